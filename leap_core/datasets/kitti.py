@@ -1,0 +1,354 @@
+"""KITTI odometry / SemanticKITTI sequence I/O.
+
+Format facts (METHOD.md, checked against PRBonn/semantic-kitti-api):
+- ``velodyne/*.bin``: float32 (x, y, z, remission) quadruples; size a multiple of 16 bytes.
+- ``labels/*.label``: uint32 per point, semantic id in the low 16 bits, instance id in the high 16.
+- ``calib.txt``: ``P0:``..``P3:`` 3×4 projections and ``Tr:`` 3×4 LiDAR→left camera; colour camera = P2.
+- ``poses.txt``: 3×4 per frame in the LEFT CAMERA frame; LiDAR pose in world = Tr⁻¹ · pose · Tr.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.errors import DatasetError
+from leap_core.io_utils import atomic_write, atomic_write_bytes
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+# --------------------------------------------------------------------------------------------- scans
+def read_scan(path: str | Path) -> npt.NDArray[np.float32]:
+    """Read a ``.bin`` scan as (N, 4) float32 (x, y, z, remission)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read scan ({exc.strerror or exc})") from exc
+    if len(raw) % 16:
+        raise DatasetError(path, f"size {len(raw)} bytes is not a multiple of 16 (float32 x,y,z,remission)")
+    pts = np.frombuffer(raw, dtype=np.float32).reshape(-1, 4)
+    if not np.isfinite(pts).all():
+        bad = int((~np.isfinite(pts).all(axis=1)).sum())
+        raise DatasetError(path, f"{bad} points have non-finite values (NaN or inf)")
+    return pts
+
+
+def write_scan(path: str | Path, points: npt.ArrayLike) -> None:
+    """Write (N, 4) points as float32 ``.bin`` (atomic)."""
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32))
+    if pts.ndim != 2 or pts.shape[1] != 4:
+        raise ValueError(f"scan must be (N, 4), got {pts.shape}")
+    atomic_write_bytes(path, pts.tobytes())
+
+
+# -------------------------------------------------------------------------------------------- labels
+def read_label(path: str | Path, num_points: int | None = None) -> npt.NDArray[np.uint32]:
+    """Read a ``.label`` file as (N,) uint32; check the count against the scan when given."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read labels ({exc.strerror or exc})") from exc
+    if len(raw) % 4:
+        raise DatasetError(path, f"size {len(raw)} bytes is not a multiple of 4 (uint32 per point)")
+    labels = np.frombuffer(raw, dtype=np.uint32)
+    if num_points is not None and labels.shape[0] != num_points:
+        raise DatasetError(path, f"label count {labels.shape[0]} != point count {num_points} of its scan")
+    return labels
+
+
+def write_label(path: str | Path, semantic: npt.ArrayLike, instance: npt.ArrayLike | None = None) -> None:
+    """Write uint32 ``semantic | instance << 16`` atomically (temp file + rename)."""
+    sem = np.asarray(semantic).astype(np.uint32)
+    if sem.ndim != 1:
+        raise ValueError(f"labels must be 1-D, got {sem.shape}")
+    if (sem > 0xFFFF).any():
+        raise ValueError("semantic ids must fit in 16 bits")
+    if instance is not None:
+        sem = sem | (np.asarray(instance).astype(np.uint32) << np.uint32(16))
+    atomic_write_bytes(path, np.ascontiguousarray(sem).tobytes())
+
+
+# --------------------------------------------------------------------------------------- calibration
+@dataclass(frozen=True)
+class Calib:
+    """Camera calibration of a sequence.
+
+    Attributes:
+        P2: (3, 4) float64 projection of the left colour camera (rectified frame).
+        Tr: (4, 4) float64 LiDAR → left camera (rectified frame 0) transform.
+    """
+
+    P2: npt.NDArray[np.float64]
+    Tr: npt.NDArray[np.float64]
+
+    @property
+    def lidar_to_image(self) -> npt.NDArray[np.float64]:
+        """(3, 4) matrix M with pixel·depth = M · [x y z 1]ᵀ for LiDAR points."""
+        return self.P2 @ self.Tr
+
+
+def _parse_matrix(path: Path, key: str, text: str) -> npt.NDArray[np.float64]:
+    try:
+        vals = np.array([float(x) for x in text.split()], dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(path, f"'{key}' has a non-numeric value ({exc})") from exc
+    if vals.size != 12:
+        raise DatasetError(path, f"'{key}' has {vals.size} values, expected 12 (3×4 row-major)")
+    if not np.isfinite(vals).all():
+        raise DatasetError(path, f"'{key}' has non-finite values")
+    return vals.reshape(3, 4)
+
+
+def read_calib(path: str | Path) -> Calib:
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read calibration ({exc.strerror or exc})") from exc
+    entries: dict[str, str] = {}
+    for line in lines:
+        if ":" in line:
+            key, _, val = line.partition(":")
+            entries[key.strip()] = val
+    for key in ("P2", "Tr"):
+        if key not in entries:
+            raise DatasetError(path, f"missing '{key}:' line (need P2 for the colour camera and Tr LiDAR→camera)")
+    tr = np.eye(4)
+    tr[:3] = _parse_matrix(path, "Tr", entries["Tr"])
+    if abs(np.linalg.det(tr[:3, :3])) < 1e-6:
+        raise DatasetError(path, "'Tr' rotation is singular")
+    return Calib(P2=_parse_matrix(path, "P2", entries["P2"]), Tr=tr)
+
+
+def write_calib(path: str | Path, calib: Calib) -> None:
+    """Write a KITTI ``calib.txt`` (P0..P3 with P2 for all cameras; only P2 and Tr are used)."""
+    def fmt(m: npt.NDArray[np.float64]) -> str:
+        return " ".join(f"{v:.12e}" for v in m.reshape(-1))
+
+    lines = [f"P{i}: {fmt(calib.P2)}" for i in range(4)] + [f"Tr: {fmt(calib.Tr[:3])}"]
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+
+
+# --------------------------------------------------------------------------------------------- poses
+def read_poses(path: str | Path) -> npt.NDArray[np.float64]:
+    """Read ``poses.txt`` as (F, 4, 4) camera-frame poses."""
+    path = Path(path)
+    try:
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read poses ({exc.strerror or exc})") from exc
+    poses = np.tile(np.eye(4), (len(lines), 1, 1))
+    for i, ln in enumerate(lines):
+        poses[i, :3] = _parse_matrix(path, f"line {i + 1}", ln)
+    return poses
+
+
+def write_poses(path: str | Path, cam_poses: npt.ArrayLike) -> None:
+    poses = np.asarray(cam_poses, dtype=np.float64)
+    text = "\n".join(" ".join(f"{v:.12e}" for v in p[:3].reshape(-1)) for p in poses) + "\n"
+    atomic_write_bytes(path, text.encode())
+
+
+def lidar_poses(cam_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """LiDAR→world poses from camera-frame poses: Tr⁻¹ · P · Tr, re-based on frame 0.
+
+    Re-basing keeps world coordinates near the origin, where float32 keeps centimetre precision.
+    """
+    tr_inv = np.linalg.inv(tr)
+    lp = tr_inv[None] @ cam_poses @ tr[None]
+    return np.linalg.inv(lp[0])[None] @ lp
+
+
+# -------------------------------------------------------------------------------------------- images
+def read_image(path: str | Path) -> npt.NDArray[np.uint8]:
+    """Read a colour image as (H, W, 3) uint8 RGB."""
+    path = Path(path)
+    data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data is not None and data.size else None
+    if img is None:
+        raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def write_image(path: str | Path, rgb: npt.NDArray[np.uint8]) -> None:
+    path = Path(path)
+    ok, buf = cv2.imencode(path.suffix or ".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError(f"cannot encode image for {path}")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def read_png16(path: str | Path) -> npt.NDArray[np.uint16]:
+    """Read a single-channel 16-bit PNG (2D ground-truth masks)."""
+    path = Path(path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    if img is None or img.ndim != 2:
+        raise DatasetError(path, "unreadable 16-bit mask PNG")
+    return img.astype(np.uint16)
+
+
+def write_png16(path: str | Path, arr: npt.NDArray[np.integer]) -> None:
+    ok, buf = cv2.imencode(".png", np.asarray(arr, dtype=np.uint16))
+    if not ok:
+        raise ValueError(f"cannot encode mask for {path}")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+# ------------------------------------------------------------------------------------------ sequence
+class Frame:
+    """One frame of a sequence; every array is read from disk on first access only."""
+
+    def __init__(self, seq: KittiSequence, index: int) -> None:
+        self.seq = seq
+        self.index = index
+        self.frame_id = seq.frame_ids[index]
+
+    @functools.cached_property
+    def points(self) -> npt.NDArray[np.float32]:
+        """(N, 4) float32 x, y, z, remission in the LiDAR frame."""
+        return read_scan(self.seq.scan_path(self.index))
+
+    @property
+    def pose(self) -> npt.NDArray[np.float64]:
+        """(4, 4) LiDAR → world (world = LiDAR frame of frame 0)."""
+        return self.seq.poses[self.index]
+
+    @property
+    def calib(self) -> Calib:
+        return self.seq.calib
+
+    @property
+    def has_image(self) -> bool:
+        return self.seq.image_path(self.index) is not None
+
+    @functools.cached_property
+    def image(self) -> npt.NDArray[np.uint8]:
+        """(H, W, 3) uint8 RGB of the left colour camera."""
+        p = self.seq.image_path(self.index)
+        if p is None:
+            raise DatasetError(self.seq.root / "image_2", f"no image for frame {self.frame_id}")
+        return read_image(p)
+
+    @property
+    def has_labels(self) -> bool:
+        return self.seq.label_path(self.index).is_file()
+
+    @functools.cached_property
+    def labels(self) -> npt.NDArray[np.uint32]:
+        """(N,) uint32 raw SemanticKITTI labels (semantic | instance << 16)."""
+        return read_label(self.seq.label_path(self.index), num_points=self.points.shape[0])
+
+    @functools.cached_property
+    def gt2d_semantic(self) -> npt.NDArray[np.uint16]:
+        """(H, W) raw semantic id per pixel (synthetic data's 2D ground truth; 0 = none)."""
+        return read_png16(self.seq.root / "gt2d" / "semantic" / f"{self.frame_id}.png")
+
+    @functools.cached_property
+    def gt2d_instance(self) -> npt.NDArray[np.uint16]:
+        """(H, W) instance id per pixel (0 = none)."""
+        return read_png16(self.seq.root / "gt2d" / "instance" / f"{self.frame_id}.png")
+
+
+class KittiSequence:
+    """A KITTI-layout sequence folder (``.../sequences/NN``), validated on open, read lazily.
+
+    Opening checks the structure (calib, poses vs scan count, label/image pairing); per-frame data is read
+    only when a :class:`Frame` attribute is accessed, so a sequence is never held in memory.
+    """
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DatasetError(self.root, "dataset folder does not exist")
+        vel = self.root / "velodyne"
+        if not vel.is_dir():
+            raise DatasetError(vel, "missing velodyne/ folder (expected a KITTI sequence folder sequences/NN)")
+        self.frame_ids: list[str] = sorted(p.stem for p in vel.glob("*.bin"))
+        if not self.frame_ids:
+            raise DatasetError(vel, "no .bin scans found")
+        self.calib = read_calib(self.root / "calib.txt")
+        pose_path = self.root / "poses.txt"
+        cam_poses = read_poses(pose_path)
+        if len(cam_poses) != len(self.frame_ids):
+            raise DatasetError(pose_path, f"{len(cam_poses)} poses but {len(self.frame_ids)} scans")
+        self.cam_poses = cam_poses
+        self.poses = lidar_poses(cam_poses, self.calib.Tr)
+        self._images = self._index_images()
+        times = self.root / "times.txt"
+        self.times: npt.NDArray[np.float64] | None = None
+        if times.is_file():
+            try:
+                self.times = np.loadtxt(times, dtype=np.float64, ndmin=1)
+            except ValueError as exc:
+                raise DatasetError(times, f"malformed timestamps ({exc})") from exc
+            if self.times.shape[0] != len(self.frame_ids):
+                raise DatasetError(times, f"{self.times.shape[0]} timestamps but {len(self.frame_ids)} scans")
+
+    def _index_images(self) -> dict[str, Path]:
+        img_dir = self.root / "image_2"
+        if not img_dir.is_dir():
+            return {}
+        return {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (Frame(self, i) for i in range(len(self)))
+
+    def frame(self, index: int) -> Frame:
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame {index} out of range 0..{len(self) - 1}")
+        return Frame(self, index)
+
+    def scan_path(self, index: int) -> Path:
+        return self.root / "velodyne" / f"{self.frame_ids[index]}.bin"
+
+    def label_path(self, index: int) -> Path:
+        return self.root / "labels" / f"{self.frame_ids[index]}.label"
+
+    def image_path(self, index: int) -> Path | None:
+        return self._images.get(self.frame_ids[index])
+
+    @property
+    def has_labels(self) -> bool:
+        """True when every scan has a ground-truth ``.label`` file."""
+        return all(self.label_path(i).is_file() for i in range(len(self)))
+
+    @property
+    def has_images(self) -> bool:
+        return bool(self._images)
+
+    @property
+    def has_gt2d(self) -> bool:
+        return (self.root / "gt2d" / "semantic").is_dir()
+
+
+__all__ = [
+    "Calib",
+    "Frame",
+    "KittiSequence",
+    "atomic_write",
+    "lidar_poses",
+    "read_calib",
+    "read_image",
+    "read_label",
+    "read_png16",
+    "read_poses",
+    "read_scan",
+    "write_calib",
+    "write_image",
+    "write_label",
+    "write_png16",
+    "write_poses",
+    "write_scan",
+]

@@ -1,0 +1,133 @@
+"""The 2D labeler interface and its compact result type.
+
+A labeler turns one camera image into M masks, each with a class distribution and a confidence
+(METHOD.md stage A). Masks are kept as packed bits; a dense float H×W×C array is never stored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.errors import DatasetError
+from leap_core.io_utils import atomic_save_npz
+
+if TYPE_CHECKING:
+    from leap_core.datasets.kitti import Frame
+    from leap_core.schema import Schema
+
+
+@dataclass(frozen=True)
+class SoftMasks:
+    """Soft 2D labels of one image.
+
+    Attributes:
+        height, width: image size in pixels.
+        bits: (M, ceil(H*W/8)) uint8, ``np.packbits`` of each row-major flattened boolean mask.
+        probs: (M, C) float32, per-mask class distribution p(q, ·); rows sum to 1.
+        confidence: (M,) float32 in (0, 1], the mask's weight where masks overlap (its max similarity).
+
+    The per-pixel distribution is p(u,v) = Σ_m w_m·1[m covers (u,v)]·p_m / Σ_m w_m·1[m covers (u,v)];
+    pixels covered by no mask carry no observation.
+    """
+
+    height: int
+    width: int
+    bits: npt.NDArray[np.uint8]
+    probs: npt.NDArray[np.float32]
+    confidence: npt.NDArray[np.float32]
+
+    @property
+    def num_masks(self) -> int:
+        return int(self.probs.shape[0])
+
+    @property
+    def num_classes(self) -> int:
+        return int(self.probs.shape[1])
+
+    @classmethod
+    def from_dense(
+        cls,
+        masks: npt.NDArray[np.bool_],
+        probs: npt.ArrayLike,
+        confidence: npt.ArrayLike,
+        num_classes: int | None = None,
+    ) -> SoftMasks:
+        """Pack (M, H, W) boolean masks. ``num_classes`` is needed only when M = 0."""
+        masks = np.asarray(masks, dtype=bool)
+        if masks.ndim != 3:
+            raise ValueError(f"masks must be (M, H, W), got shape {masks.shape}")
+        m, h, w = masks.shape
+        probs_arr = np.asarray(probs, dtype=np.float32)
+        if m == 0 and probs_arr.size == 0:
+            probs_arr = np.zeros((0, num_classes or 0), dtype=np.float32)
+        conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
+        if probs_arr.ndim != 2 or probs_arr.shape[0] != m or conf.shape[0] != m:
+            raise ValueError(f"probs {probs_arr.shape} / confidence {conf.shape} do not match {m} masks")
+        bits = np.packbits(masks.reshape(m, h * w), axis=1) if m else np.zeros((0, (h * w + 7) // 8), np.uint8)
+        return cls(height=h, width=w, bits=bits, probs=probs_arr, confidence=conf)
+
+    @classmethod
+    def empty(cls, height: int, width: int, num_classes: int) -> SoftMasks:
+        return cls.from_dense(np.zeros((0, height, width), bool), np.zeros((0, num_classes)), [], num_classes)
+
+    def dense(self) -> npt.NDArray[np.bool_]:
+        """(M, H, W) boolean masks."""
+        n = self.height * self.width
+        flat = np.unpackbits(self.bits, axis=1, count=n).astype(bool)
+        return flat.reshape(self.num_masks, self.height, self.width)
+
+    def mask(self, i: int) -> npt.NDArray[np.bool_]:
+        n = self.height * self.width
+        return np.unpackbits(self.bits[i], count=n).astype(bool).reshape(self.height, self.width)
+
+    def membership(self, u: npt.NDArray[np.integer], v: npt.NDArray[np.integer]) -> npt.NDArray[np.bool_]:
+        """(M, P) bool: does mask m cover pixel (u_p, v_p)? u = column, v = row, both in range."""
+        flat = v.astype(np.int64) * self.width + u.astype(np.int64)
+        byte, bit = flat >> 3, (7 - (flat & 7)).astype(np.uint8)
+        return ((self.bits[:, byte] >> bit) & 1).astype(bool)
+
+    def pixel_probs(self) -> npt.NDArray[np.float32]:
+        """(H, W, C) dense per-pixel distribution (zeros where no mask). For display and tests only."""
+        dense = self.dense().astype(np.float32)  # (M, H, W)
+        w = dense * self.confidence[:, None, None]
+        num = np.einsum("mhw,mc->hwc", w, self.probs)
+        den = w.sum(axis=0)[..., None]
+        return np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+
+    def save(self, path: str | Path) -> None:
+        atomic_save_npz(
+            path,
+            size=np.array([self.height, self.width], dtype=np.int64),
+            bits=self.bits,
+            probs=self.probs,
+            confidence=self.confidence,
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> SoftMasks:
+        try:
+            with np.load(path) as z:
+                h, w = (int(x) for x in z["size"])
+                return cls(h, w, z["bits"], z["probs"].astype(np.float32), z["confidence"].astype(np.float32))
+        except (OSError, KeyError, ValueError) as exc:
+            raise DatasetError(path, f"unreadable 2D label file ({exc})") from exc
+
+
+class Labeler(Protocol):
+    """Produces :class:`SoftMasks` for one frame's camera image."""
+
+    name: str
+    """Short id shown to users ("simulated", "grounded-sam")."""
+
+    def fingerprint(self, schema: Schema) -> str:
+        """A string that changes whenever this labeler's output for the same image would change."""
+        ...
+
+    def label(self, frame: Frame, schema: Schema) -> SoftMasks:
+        """Label ``frame.image`` for the classes of ``schema`` (probs has ``len(schema.classes)`` columns)."""
+        ...
