@@ -4,13 +4,16 @@ Format facts (METHOD.md, checked against PRBonn/semantic-kitti-api):
 - ``velodyne/*.bin``: float32 (x, y, z, remission) quadruples; size a multiple of 16 bytes.
 - ``labels/*.label``: uint32 per point, semantic id in the low 16 bits, instance id in the high 16.
 - ``calib.txt``: ``P0:``..``P3:`` 3×4 projections and ``Tr:`` 3×4 LiDAR→left camera; colour camera = P2.
+  The KITTI object / tracking variants (``R0_rect`` / ``R_rect`` 3×3 and ``Tr_velo_to_cam`` /
+  ``Tr_velo_cam`` 3×4, keys with or without a colon) are read too: there Tr = R0_rect · Tr_velo_to_cam.
 - ``poses.txt``: 3×4 per frame in the LEFT CAMERA frame; LiDAR pose in world = Tr⁻¹ · pose · Tr.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterator
+import re
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +29,12 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 # --------------------------------------------------------------------------------------------- scans
 def read_scan(path: str | Path) -> npt.NDArray[np.float32]:
-    """Read a ``.bin`` scan as (N, 4) float32 (x, y, z, remission)."""
+    """Read a ``.bin`` scan as a read-only (N, 4) float32 array (x, y, z, remission).
+
+    Raises:
+        DatasetError: naming the file when it is unreadable, not a whole number of points, or holds
+            NaN / inf values.
+    """
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -46,12 +54,20 @@ def write_scan(path: str | Path, points: npt.ArrayLike) -> None:
     pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32))
     if pts.ndim != 2 or pts.shape[1] != 4:
         raise ValueError(f"scan must be (N, 4), got {pts.shape}")
+    # read_scan refuses non-finite values, so writing them would only produce an unreadable file.
+    if not np.isfinite(pts).all():
+        raise ValueError(f"scan for {path} has non-finite values")
     atomic_write_bytes(path, pts.tobytes())
 
 
 # -------------------------------------------------------------------------------------------- labels
 def read_label(path: str | Path, num_points: int | None = None) -> npt.NDArray[np.uint32]:
-    """Read a ``.label`` file as (N,) uint32; check the count against the scan when given."""
+    """Read a ``.label`` file as a read-only (N,) uint32 array; check the count against the scan when given.
+
+    Raises:
+        DatasetError: naming the file when it is unreadable, not a whole number of uint32 values, or
+            its count differs from ``num_points``.
+    """
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -66,14 +82,25 @@ def read_label(path: str | Path, num_points: int | None = None) -> npt.NDArray[n
 
 
 def write_label(path: str | Path, semantic: npt.ArrayLike, instance: npt.ArrayLike | None = None) -> None:
-    """Write uint32 ``semantic | instance << 16`` atomically (temp file + rename)."""
-    sem = np.asarray(semantic).astype(np.uint32)
-    if sem.ndim != 1:
-        raise ValueError(f"labels must be 1-D, got {sem.shape}")
-    if (sem > 0xFFFF).any():
-        raise ValueError("semantic ids must fit in 16 bits")
+    """Write uint32 ``semantic | instance << 16`` atomically (temp file + rename).
+
+    Args:
+        semantic: (N,) integer semantic ids 0..65535.
+        instance: optional (N,) integer instance ids 0..65535 (0 when omitted).
+    """
+    sem_in = np.asarray(semantic)
+    if sem_in.ndim != 1:
+        raise ValueError(f"labels must be 1-D, got {sem_in.shape}")
+    if sem_in.size and (sem_in.min() < 0 or sem_in.max() > 0xFFFF):
+        raise ValueError(f"semantic ids for {path} must be 0..65535")
+    sem = sem_in.astype(np.uint32)
     if instance is not None:
-        sem = sem | (np.asarray(instance).astype(np.uint32) << np.uint32(16))
+        inst = np.asarray(instance)
+        if inst.shape != sem.shape:
+            raise ValueError(f"instance ids {inst.shape} do not match semantic ids {sem.shape}")
+        if inst.size and (inst.min() < 0 or inst.max() > 0xFFFF):
+            raise ValueError(f"instance ids for {path} must be 0..65535")
+        sem = sem | (inst.astype(np.uint32) << np.uint32(16))
     atomic_write_bytes(path, np.ascontiguousarray(sem).tobytes())
 
 
@@ -96,37 +123,68 @@ class Calib:
         return self.P2 @ self.Tr
 
 
-def _parse_matrix(path: Path, key: str, text: str) -> npt.NDArray[np.float64]:
+def _parse_matrix(path: Path, key: str, text: str, rows: int = 3, cols: int = 4) -> npt.NDArray[np.float64]:
     try:
         vals = np.array([float(x) for x in text.split()], dtype=np.float64)
     except ValueError as exc:
         raise DatasetError(path, f"'{key}' has a non-numeric value ({exc})") from exc
-    if vals.size != 12:
-        raise DatasetError(path, f"'{key}' has {vals.size} values, expected 12 (3×4 row-major)")
+    if vals.size != rows * cols:
+        raise DatasetError(
+            path, f"'{key}' has {vals.size} values, expected {rows * cols} ({rows}×{cols} row-major)"
+        )
     if not np.isfinite(vals).all():
         raise DatasetError(path, f"'{key}' has non-finite values")
-    return vals.reshape(3, 4)
+    return vals.reshape(rows, cols)
+
+
+# "KEY: values" (odometry, object) or "KEY values" (tracking); blank lines, comments and dates are skipped.
+_CALIB_LINE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?::|\s)\s*(.*)$")
 
 
 def read_calib(path: str | Path) -> Calib:
+    """Read a KITTI ``calib.txt``: P2 and the LiDAR → rectified left camera transform.
+
+    Uses ``Tr`` (odometry format) when present, else ``R0_rect · Tr_velo_to_cam`` (object / tracking
+    format, with ``R_rect`` / ``Tr_velo_cam`` accepted as aliases). Extra keys and blank lines are ignored.
+
+    Raises:
+        DatasetError: naming the file for a missing or malformed P2 / Tr, non-finite values, or a
+            singular rotation or camera matrix.
+    """
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     except OSError as exc:
         raise DatasetError(path, f"cannot read calibration ({exc.strerror or exc})") from exc
     entries: dict[str, str] = {}
     for line in lines:
-        if ":" in line:
-            key, _, val = line.partition(":")
-            entries[key.strip()] = val
-    for key in ("P2", "Tr"):
-        if key not in entries:
-            raise DatasetError(path, f"missing '{key}:' line (need P2 for the colour camera and Tr LiDAR→camera)")
+        match = _CALIB_LINE.match(line)
+        if match:
+            entries[match.group(1)] = match.group(2)
+    if "P2" not in entries:
+        raise DatasetError(path, "missing 'P2:' line (the left colour camera's 3×4 projection)")
+    p2 = _parse_matrix(path, "P2", entries["P2"])
+    if abs(np.linalg.det(p2[:, :3])) < 1e-9:
+        raise DatasetError(path, "'P2' left 3×3 block is singular (not a camera projection)")
     tr = np.eye(4)
-    tr[:3] = _parse_matrix(path, "Tr", entries["Tr"])
+    if "Tr" in entries:
+        tr[:3] = _parse_matrix(path, "Tr", entries["Tr"])
+        tr_key = "Tr"
+    else:
+        velo_key = next((k for k in ("Tr_velo_to_cam", "Tr_velo_cam") if k in entries), None)
+        if velo_key is None:
+            raise DatasetError(path, "missing 'Tr:' line (3×4 LiDAR→left camera transform)")
+        tr[:3] = _parse_matrix(path, velo_key, entries[velo_key])
+        rect_key = next((k for k in ("R0_rect", "R_rect") if k in entries), None)
+        if rect_key is not None:
+            # Object/tracking files give Tr to the unrectified camera 0; P2 expects rectified coordinates.
+            rect = np.eye(4)
+            rect[:3, :3] = _parse_matrix(path, rect_key, entries[rect_key], rows=3, cols=3)
+            tr = rect @ tr
+        tr_key = velo_key
     if abs(np.linalg.det(tr[:3, :3])) < 1e-6:
-        raise DatasetError(path, "'Tr' rotation is singular")
-    return Calib(P2=_parse_matrix(path, "P2", entries["P2"]), Tr=tr)
+        raise DatasetError(path, f"'{tr_key}' rotation is singular")
+    return Calib(P2=p2, Tr=tr)
 
 
 def write_calib(path: str | Path, calib: Calib) -> None:
@@ -140,10 +198,15 @@ def write_calib(path: str | Path, calib: Calib) -> None:
 
 # --------------------------------------------------------------------------------------------- poses
 def read_poses(path: str | Path) -> npt.NDArray[np.float64]:
-    """Read ``poses.txt`` as (F, 4, 4) camera-frame poses."""
+    """Read ``poses.txt`` as (F, 4, 4) camera-frame poses (blank lines are skipped).
+
+    Raises:
+        DatasetError: naming the file and line for a row that is not 12 finite numbers.
+    """
     path = Path(path)
     try:
-        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+        lines = [ln for ln in text.splitlines() if ln.strip()]
     except OSError as exc:
         raise DatasetError(path, f"cannot read poses ({exc.strerror or exc})") from exc
     poses = np.tile(np.eye(4), (len(lines), 1, 1))
@@ -153,7 +216,10 @@ def read_poses(path: str | Path) -> npt.NDArray[np.float64]:
 
 
 def write_poses(path: str | Path, cam_poses: npt.ArrayLike) -> None:
+    """Write (F, 4, 4) or (F, 3, 4) camera-frame poses as ``poses.txt`` (atomic)."""
     poses = np.asarray(cam_poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"poses must be (F, 4, 4) or (F, 3, 4), got {poses.shape}")
     text = "\n".join(" ".join(f"{v:.12e}" for v in p[:3].reshape(-1)) for p in poses) + "\n"
     atomic_write_bytes(path, text.encode())
 
@@ -172,7 +238,10 @@ def lidar_poses(cam_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64])
 def read_image(path: str | Path) -> npt.NDArray[np.uint8]:
     """Read a colour image as (H, W, 3) uint8 RGB."""
     path = Path(path)
-    data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
+    try:
+        data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from exc
     img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data is not None and data.size else None
     if img is None:
         raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
@@ -180,7 +249,11 @@ def read_image(path: str | Path) -> npt.NDArray[np.uint8]:
 
 
 def write_image(path: str | Path, rgb: npt.NDArray[np.uint8]) -> None:
+    """Write an (H, W, 3) uint8 RGB image; the format follows the suffix (.png lossless, .jpg lossy)."""
     path = Path(path)
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"image for {path} must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
     ok, buf = cv2.imencode(path.suffix or ".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError(f"cannot encode image for {path}")
@@ -190,14 +263,24 @@ def write_image(path: str | Path, rgb: npt.NDArray[np.uint8]) -> None:
 def read_png16(path: str | Path) -> npt.NDArray[np.uint16]:
     """Read a single-channel 16-bit PNG (2D ground-truth masks)."""
     path = Path(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    try:
+        data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read mask ({exc.strerror or exc})") from exc
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data is not None and data.size else None
     if img is None or img.ndim != 2:
         raise DatasetError(path, "unreadable 16-bit mask PNG")
     return img.astype(np.uint16)
 
 
 def write_png16(path: str | Path, arr: npt.NDArray[np.integer]) -> None:
-    ok, buf = cv2.imencode(".png", np.asarray(arr, dtype=np.uint16))
+    """Write an (H, W) integer array with values 0..65535 as a 16-bit PNG (atomic)."""
+    arr = np.asarray(arr)
+    if arr.ndim != 2:
+        raise ValueError(f"mask for {path} must be (H, W), got {arr.shape}")
+    if arr.size and (arr.min() < 0 or arr.max() > 0xFFFF):
+        raise ValueError(f"mask values for {path} must be 0..65535")
+    ok, buf = cv2.imencode(".png", arr.astype(np.uint16))
     if not ok:
         raise ValueError(f"cannot encode mask for {path}")
     atomic_write_bytes(path, buf.tobytes())
@@ -258,6 +341,14 @@ class Frame:
         return read_png16(self.seq.root / "gt2d" / "instance" / f"{self.frame_id}.png")
 
 
+def _sort_frame_ids(stems: Iterable[str]) -> list[str]:
+    """Numeric order when every stem is a number ("9" before "10"), else lexicographic."""
+    ids = list(stems)
+    if all(s.isdigit() for s in ids):
+        return sorted(ids, key=lambda s: (int(s), s))
+    return sorted(ids)
+
+
 class KittiSequence:
     """A KITTI-layout sequence folder (``.../sequences/NN``), validated on open, read lazily.
 
@@ -271,8 +362,10 @@ class KittiSequence:
             raise DatasetError(self.root, "dataset folder does not exist")
         vel = self.root / "velodyne"
         if not vel.is_dir():
-            raise DatasetError(vel, "missing velodyne/ folder (expected a KITTI sequence folder sequences/NN)")
-        self.frame_ids: list[str] = sorted(p.stem for p in vel.glob("*.bin"))
+            raise DatasetError(
+                vel, "missing velodyne/ folder (expected a KITTI sequence folder sequences/NN)"
+            )
+        self.frame_ids: list[str] = _sort_frame_ids(p.stem for p in vel.glob("*.bin"))
         if not self.frame_ids:
             raise DatasetError(vel, "no .bin scans found")
         self.calib = read_calib(self.root / "calib.txt")
@@ -290,6 +383,12 @@ class KittiSequence:
                 self.times = np.loadtxt(times, dtype=np.float64, ndmin=1)
             except ValueError as exc:
                 raise DatasetError(times, f"malformed timestamps ({exc})") from exc
+            if self.times.ndim != 1:
+                raise DatasetError(
+                    times, f"expected one timestamp per line, got {self.times.shape[1]} columns"
+                )
+            if not np.isfinite(self.times).all():
+                raise DatasetError(times, "timestamps have non-finite values")
             if self.times.shape[0] != len(self.frame_ids):
                 raise DatasetError(times, f"{self.times.shape[0]} timestamps but {len(self.frame_ids)} scans")
 
