@@ -1,0 +1,204 @@
+"""Segmentation metrics: confusion matrix, per-class IoU, mIoU, category mIoU, labeled share.
+
+Two protocols (METHOD.md "Evaluation"):
+
+- ``ignore_unlabeled_pred=True``, the paper's pseudo-label protocol: points the method left unlabeled are
+  ignored (neither false positive nor false negative). Callers restrict points to the camera view.
+- ``ignore_unlabeled_pred=False``, the all-points protocol: an unlabeled prediction is a false negative of
+  its ground-truth class. Its per-class IoU equals PRBonn/semantic-kitti-api ``evaluate_semantics.py``
+  (``iouEval``: conf[pred, gt], ignored class 0 zeroes the gt-0 column, tp = diag, fp = row sum - tp,
+  fn = column sum - tp, IoU = tp / (tp + fp + fn + 1e-15)) for the predictions exported as raw ids with
+  unlabeled → 0, which that evaluator maps to its ignored class 0.
+
+In both, points whose ground truth is ``UNLABELED`` (-1, raw id mapped to nothing) are ignored.
+
+Averages: ``miou`` is the mean IoU over the classes present in ground truth or prediction (IoU defined);
+absent classes are NaN and excluded. ``miou_all_classes`` averages all C classes with absent ones counted
+as 0, which is what ``evaluate_semantics.py`` prints (it averages all 19 classes, present or not).
+
+Category IoU (KITTI-360 style): the confusion matrix is summed into groups of classes that share a
+category, then IoU is computed per group. The grouping is the schema's ``ClassDef.category`` per class
+(for SemanticKITTI: vehicle, human, flat, construction, nature, object).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.types import UNLABELED
+
+
+def confusion_matrix(gt: npt.ArrayLike, pred: npt.ArrayLike, num_classes: int) -> npt.NDArray[np.int64]:
+    """(C, C+1) int64 counts: row = ground-truth class, column = predicted class, last column = predicted
+    ``UNLABELED``. Points with ground truth ``UNLABELED`` are not counted.
+
+    Raises:
+        ValueError: lengths differ or a label is outside ``-1..C-1``.
+    """
+    g = np.asarray(gt).reshape(-1).astype(np.int64)
+    p = np.asarray(pred).reshape(-1).astype(np.int64)
+    c = int(num_classes)
+    if g.shape != p.shape:
+        raise ValueError(f"gt has {g.shape[0]} points but pred has {p.shape[0]}")
+    for name, a in (("gt", g), ("pred", p)):
+        if a.size and (a.min() < UNLABELED or a.max() >= c):
+            raise ValueError(f"{name} labels must be in {UNLABELED}..{c - 1}, got {a.min()}..{a.max()}")
+    keep = g != UNLABELED
+    g, p = g[keep], p[keep]
+    p = np.where(p == UNLABELED, c, p)
+    return np.bincount(g * (c + 1) + p, minlength=c * (c + 1)).reshape(c, c + 1).astype(np.int64)
+
+
+def iou_from_confusion(conf: npt.ArrayLike, *, ignore_unlabeled_pred: bool) -> npt.NDArray[np.float64]:
+    """Per-class IoU ``tp / (tp + fp + fn)`` from a (C, C+1) confusion matrix; NaN where tp+fp+fn = 0.
+
+    ``tp = conf[i, i]``, ``fp = Σ_{g≠i} conf[g, i]``, ``fn = Σ_{j≠i, j<C} conf[i, j]`` plus, when
+    ``ignore_unlabeled_pred`` is False, ``conf[i, C]`` (unlabeled predictions are misses).
+    """
+    cm = np.asarray(conf, dtype=np.float64)
+    c = cm.shape[0]
+    if cm.shape != (c, c + 1):
+        raise ValueError(f"confusion matrix must be (C, C+1), got {cm.shape}")
+    tp = np.diag(cm[:, :c])
+    fp = cm[:, :c].sum(axis=0) - tp
+    fn = cm[:, :c].sum(axis=1) - tp
+    if not ignore_unlabeled_pred:
+        fn = fn + cm[:, c]
+    den = tp + fp + fn
+    return np.divide(tp, den, out=np.full(c, np.nan), where=den > 0)
+
+
+def _nanmean(x: npt.NDArray[np.float64]) -> float:
+    finite = x[~np.isnan(x)]
+    return float(finite.mean()) if finite.size else math.nan
+
+
+@dataclass
+class Metrics:
+    """Evaluation of one method's labels against ground truth.
+
+    Attributes:
+        class_names: the C class names, in index order.
+        iou: (C,) float64 IoU per class, NaN where the class is absent from both gt and pred.
+        miou: mean IoU over classes with a defined IoU.
+        miou_all_classes: mean over all C classes with absent ones counted as 0 (the semantic-kitti-api
+            printout's averaging).
+        category_iou: IoU per category (classes merged by ``ClassDef.category``), NaN where absent.
+        category_miou: mean of the defined category IoUs.
+        labeled_share: share of ground-truth-labeled points that received a prediction.
+        n_points: number of ground-truth-labeled points evaluated.
+        confusion: (C, C+1) int64 confusion matrix (last column: predicted unlabeled).
+        ignore_unlabeled_pred: which protocol produced these numbers.
+    """
+
+    class_names: tuple[str, ...]
+    iou: npt.NDArray[np.float64]
+    miou: float
+    miou_all_classes: float
+    category_iou: dict[str, float]
+    category_miou: float
+    labeled_share: float
+    n_points: int
+    confusion: npt.NDArray[np.int64] = field(repr=False)
+    ignore_unlabeled_pred: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping; NaN becomes None."""
+
+        def num(x: float) -> float | None:
+            return None if math.isnan(x) else float(x)
+
+        return {
+            "miou": num(self.miou),
+            "miou_all_classes": num(self.miou_all_classes),
+            "category_miou": num(self.category_miou),
+            "labeled_share": num(self.labeled_share),
+            "n_points": int(self.n_points),
+            "ignore_unlabeled_pred": self.ignore_unlabeled_pred,
+            "iou": {n: num(v) for n, v in zip(self.class_names, self.iou)},
+            "category_iou": {k: num(v) for k, v in self.category_iou.items()},
+            "confusion": self.confusion.tolist(),
+        }
+
+
+def evaluate(
+    gt: npt.ArrayLike,
+    pred: npt.ArrayLike,
+    class_names: Sequence[str],
+    categories: Sequence[str],
+    *,
+    ignore_unlabeled_pred: bool,
+) -> Metrics:
+    """Compare predicted class indices with ground truth (both (N,) int16, ``UNLABELED`` = -1).
+
+    Args:
+        gt: (N,) ground-truth class index per point.
+        pred: (N,) predicted class index per point.
+        class_names: C names.
+        categories: C category names (``ClassDef.category`` per class), in class order.
+        ignore_unlabeled_pred: True = paper protocol (unlabeled predictions ignored); False = all-points
+            protocol (unlabeled predictions are false negatives), see the module docstring.
+    """
+    names = tuple(class_names)
+    cats = tuple(categories)
+    c = len(names)
+    if len(cats) != c:
+        raise ValueError(f"{len(cats)} categories given for {c} classes")
+    conf = confusion_matrix(gt, pred, c)
+    iou = iou_from_confusion(conf, ignore_unlabeled_pred=ignore_unlabeled_pred)
+
+    groups = list(dict.fromkeys(cats))
+    group_of = np.array([groups.index(x) for x in cats], dtype=np.int64)
+    onehot = np.zeros((c, len(groups)), np.int64)
+    onehot[np.arange(c), group_of] = 1
+    gconf = np.zeros((len(groups), len(groups) + 1), np.int64)
+    gconf[:, : len(groups)] = onehot.T @ conf[:, :c] @ onehot
+    gconf[:, len(groups)] = onehot.T @ conf[:, c]
+    giou = iou_from_confusion(gconf, ignore_unlabeled_pred=ignore_unlabeled_pred)
+
+    n = int(conf.sum())
+    return Metrics(
+        class_names=names,
+        iou=iou,
+        miou=_nanmean(iou),
+        miou_all_classes=float(np.nan_to_num(iou, nan=0.0).mean()) if c else math.nan,
+        category_iou={g: float(v) for g, v in zip(groups, giou)},
+        category_miou=_nanmean(giou),
+        labeled_share=float(conf[:, :c].sum() / n) if n else math.nan,
+        n_points=n,
+        confusion=conf,
+        ignore_unlabeled_pred=ignore_unlabeled_pred,
+    )
+
+
+def format_table(rows: dict[str, Metrics], class_names: Sequence[str]) -> str:
+    """Text table, one line per method: mIoU, category mIoU, labeled share (all in %), per-class IoU (%).
+
+    A class absent from both gt and pred prints ``-``.
+    """
+    names = list(class_names)
+    head = ["method", "mIoU", "cat-mIoU", "labeled", *names]
+    lines: list[list[str]] = []
+
+    def pct(x: float) -> str:
+        return "-" if math.isnan(x) else f"{100 * x:.1f}"
+
+    for method, m in rows.items():
+        if len(m.iou) != len(names):
+            raise ValueError(f"method {method!r} has {len(m.iou)} classes, table has {len(names)}")
+        lines.append([method, pct(m.miou), pct(m.category_miou), pct(m.labeled_share), *map(pct, m.iou)])
+    widths = [max(len(h), *(len(r[i]) for r in lines)) if lines else len(h) for i, h in enumerate(head)]
+    fmt = [h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths))]
+    out = ["  ".join(fmt), "  ".join("-" * w for w in widths)]
+    for r in lines:
+        out.append("  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
+    return "\n".join(out)
+
+
+__all__ = ["Metrics", "confusion_matrix", "evaluate", "format_table", "iou_from_confusion"]

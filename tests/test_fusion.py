@@ -1,0 +1,285 @@
+"""Voxel keys and Bayesian log-space fusion, on hand-computed cases and properties."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from leap_core.errors import DatasetError
+from leap_core.fusion import (
+    AXIS_OFFSET,
+    FusionConfig,
+    Observations,
+    VoxelGrid,
+    apply_overrides,
+    fuse,
+    fuse_dense,
+    key_centres,
+    key_coords,
+    log_table,
+    voxel_keys,
+)
+
+F16_ATOL = 0.02  # float16 step is 1/64 for |logp| in [8, 16]; a float32 rounding difference can flip one step
+
+
+def _key(ix: int, iy: int, iz: int) -> int:
+    return ((ix + AXIS_OFFSET) << 42) | ((iy + AXIS_OFFSET) << 21) | (iz + AXIS_OFFSET)
+
+
+def _obs(keys, rows, table, floor=1e-3) -> Observations:
+    return Observations(np.asarray(keys, np.int64), np.asarray(rows, np.int32), log_table(table, floor))
+
+
+# ---------------------------------------------------------------------------------------------- keys
+def test_voxel_keys_with_negative_coordinates_and_round_trip() -> None:
+    xyz = np.array([[0.1, 0.1, 0.1], [-0.1, 0.3, -0.5], [-0.39, -0.01, 0.59]], np.float32)
+    keys = voxel_keys(xyz, 0.2)
+    assert keys.tolist() == [_key(0, 0, 0), _key(-1, 1, -3), _key(-2, -1, 2)]
+    np.testing.assert_array_equal(key_coords(keys), [[0, 0, 0], [-1, 1, -3], [-2, -1, 2]])
+    centres = key_centres(keys, 0.2)
+    np.testing.assert_allclose(centres, [[0.1, 0.1, 0.1], [-0.1, 0.3, -0.5], [-0.3, -0.1, 0.5]], atol=1e-6)
+    np.testing.assert_array_equal(voxel_keys(centres, 0.2), keys)
+
+
+def test_voxel_keys_sort_by_x_then_y_then_z() -> None:
+    coords = np.array([[-3, 5, 1], [-3, -7, 2], [2, -1, -1], [-3, 5, -4]])
+    keys = voxel_keys((coords + 0.5) * 0.2, 0.2)
+    np.testing.assert_array_equal(np.argsort(keys), np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0])))
+
+
+def test_voxel_keys_reject_out_of_range_and_nan() -> None:
+    with pytest.raises(ValueError, match="re-base"):
+        voxel_keys(np.array([[0.0, 0.0, 0.2 * AXIS_OFFSET + 1.0]]), 0.2)
+    with pytest.raises(ValueError, match="finite"):
+        voxel_keys(np.array([[np.nan, 0.0, 0.0]]), 0.2)
+    with pytest.raises(ValueError, match="shape"):
+        voxel_keys(np.zeros((4, 2)), 0.2)
+
+
+# ----------------------------------------------------------------------------------------- log table
+def test_log_table_floor_clips_and_renormalises() -> None:
+    lt = log_table(np.array([[0.5, 0.5, 0.0], [1 / 3, 1 / 3, 1 / 3]]), 1e-3)
+    np.testing.assert_allclose(lt[0], np.log([0.5 / 1.001, 0.5 / 1.001, 0.001 / 1.001]), rtol=1e-6)
+    np.testing.assert_allclose(lt[1], np.log([1 / 3] * 3), rtol=1e-6)
+
+
+# -------------------------------------------------------------------------------------------- fusion
+def test_two_class_posterior_by_hand() -> None:
+    # Two points in one voxel: [0.8, 0.2] and [0.6, 0.4]. Posterior ∝ [0.48, 0.08] = [6/7, 1/7].
+    k = _key(4, -2, 0)
+    batches = [_obs([k], [0], [[0.8, 0.2]]), _obs([k], [0], [[0.6, 0.4]])]
+    grid = fuse(batches, 2, FusionConfig(prob_floor=1e-6))
+    assert grid.keys.tolist() == [k]
+    assert grid.logp.dtype == np.float16
+    np.testing.assert_allclose(grid.logp[0], [0.0, math.log(0.08 / 0.48)], atol=1e-3)
+    np.testing.assert_allclose(grid.probs()[0], [6 / 7, 1 / 7], atol=1e-3)
+    labels, conf = grid.labels_and_confidence()
+    assert labels.tolist() == [0] and labels.dtype == np.int16
+    np.testing.assert_allclose(conf, [6 / 7], atol=1e-3)
+
+
+def test_same_table_row_counted_per_point() -> None:
+    # Three points of one image in one voxel with the same row = three observations: ∝ [0.6³, 0.4³].
+    grid = fuse([_obs([7, 7, 7], [0, 0, 0], [[0.6, 0.4]])], 2, FusionConfig(prob_floor=1e-6))
+    np.testing.assert_allclose(grid.logp[0], [0.0, 3 * math.log(0.4 / 0.6)], atol=2e-3)
+
+
+def test_uniform_observation_changes_nothing() -> None:
+    rng = np.random.default_rng(3)
+    prior = fuse([_obs(rng.integers(0, 5, 40), rng.integers(0, 4, 40), rng.dirichlet(np.ones(3), 4))], 3)
+    uniform = _obs(prior.keys, np.zeros(len(prior.keys)), [[1 / 3, 1 / 3, 1 / 3]])
+    after = fuse([uniform, uniform], 3, grid=prior)
+    np.testing.assert_array_equal(after.keys, prior.keys)
+    np.testing.assert_array_equal(after.logp, prior.logp)
+    # A voxel seen only uniformly exists but is uniform.
+    fresh = fuse([_obs([99], [0], [[1 / 3, 1 / 3, 1 / 3]])], 3)
+    np.testing.assert_array_equal(fresh.logp, [[0, 0, 0]])
+
+
+def test_floor_keeps_a_class_recoverable() -> None:
+    # A confident wrong mask [1, 0] adds only log(1e-3/1.001) ≈ -6.908 against class 0 ...
+    cfg = FusionConfig(prob_floor=1e-3)
+    wrong = _obs([1], [0], [[1.0, 0.0]])
+    g1 = fuse([wrong], 2, cfg)
+    np.testing.assert_allclose(g1.logp[0], [0.0, math.log(1e-3)], atol=0.01)
+    # ... so two observations of [0.02, 0.98] (each log(0.02/0.98) ≈ -3.892 for class 0) flip it.
+    right = _obs([1, 1], [0, 0], [[0.02, 0.98]])
+    g2 = fuse([wrong, right], 2, cfg)
+    assert g2.labels_and_confidence()[0].tolist() == [1]
+    np.testing.assert_allclose(g2.logp[0], [math.log(1e3) + 2 * math.log(0.02 / 0.98), 0.0], atol=0.01)
+
+
+def test_stored_logp_is_clipped() -> None:
+    g = fuse([_obs([5] * 5, [0] * 5, [[1.0, 0.0]])], 2, FusionConfig(logp_clip=20.0))
+    np.testing.assert_array_equal(g.logp, [[0.0, -20.0]])  # 5 × -6.9 = -34.5, clipped
+
+
+def test_weight_scales_log_likelihoods() -> None:
+    obs = [_obs([3], [0], [[0.8, 0.2]])]
+    g = fuse(obs, 2, FusionConfig(prob_floor=1e-6), weight=0.5)
+    np.testing.assert_allclose(g.logp[0], [0.0, 0.5 * math.log(0.25)], atol=1e-3)
+    with pytest.raises(ValueError, match="weight"):
+        fuse(obs, 2, weight=-1.0)
+
+
+def _reference(batches, c: int, clip: float = 20.0):
+    keys = np.concatenate([b.keys for b in batches])
+    lp = np.concatenate([b.log_table[b.rows] for b in batches]).astype(np.float64)
+    uk, inv = np.unique(keys, return_inverse=True)
+    acc = np.zeros((len(uk), c))
+    np.add.at(acc, inv, lp)
+    acc -= acc.max(axis=1, keepdims=True)
+    return uk, np.maximum(acc, -clip)
+
+
+@st.composite
+def _batches(draw):
+    c = draw(st.integers(2, 6))
+    n_batches = draw(st.integers(1, 6))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_batches):
+        p, k = int(rng.integers(0, 40)), int(rng.integers(1, 5))
+        coords = rng.integers(-3, 3, (p, 3))
+        keys = voxel_keys((coords + 0.5) * 0.2, 0.2)
+        out.append(_obs(keys, rng.integers(0, k, p), rng.dirichlet(np.ones(c), k)))
+    return c, out, seed
+
+
+@settings(max_examples=40, deadline=None)
+@given(_batches())
+def test_fusion_is_order_and_batching_independent(data) -> None:
+    c, batches, seed = data
+    rng = np.random.default_rng(seed + 1)
+    base = fuse(batches, c)
+    uk, ref = _reference(batches, c)
+    np.testing.assert_array_equal(base.keys, uk)
+    np.testing.assert_allclose(base.logp.astype(np.float64), ref, atol=F16_ATOL)
+    # Shuffled batch order, and points re-split into different batches, fused in small chunks.
+    shuffled = [batches[i] for i in rng.permutation(len(batches))]
+    split = []
+    for b in shuffled:
+        cut = int(rng.integers(0, len(b.keys) + 1))
+        split += [Observations(b.keys[:cut], b.rows[:cut], b.log_table),
+                  Observations(b.keys[cut:], b.rows[cut:], b.log_table)]
+    other = fuse(split, c, FusionConfig(chunk_points=int(rng.integers(1, 30))))
+    np.testing.assert_array_equal(other.keys, base.keys)
+    np.testing.assert_allclose(other.logp.astype(np.float64), base.logp, atol=F16_ATOL)
+
+
+def test_fusing_into_a_grid_adds_new_voxels_and_equals_one_call() -> None:
+    a = _obs([_key(0, 0, 0), _key(1, 0, 0)], [0, 1], [[0.7, 0.3], [0.4, 0.6]])
+    b = _obs([_key(1, 0, 0), _key(-1, 0, 0)], [0, 0], [[0.9, 0.1]])
+    step = fuse([b], 2, grid=fuse([a], 2))
+    once = fuse([a, b], 2)
+    np.testing.assert_array_equal(step.keys, [_key(-1, 0, 0), _key(0, 0, 0), _key(1, 0, 0)])
+    np.testing.assert_array_equal(step.keys, once.keys)
+    np.testing.assert_allclose(step.logp.astype(float), once.logp.astype(float), atol=F16_ATOL)
+
+
+def test_fuse_rejects_inconsistent_input() -> None:
+    with pytest.raises(ValueError, match="log_table must be"):
+        fuse([_obs([1], [0], [[0.5, 0.5]])], 3)
+    with pytest.raises(ValueError, match="rows must index"):
+        fuse([Observations(np.array([1]), np.array([2], np.int32), np.zeros((2, 2), np.float32))], 2)
+    with pytest.raises(ValueError, match="voxel_size"):
+        fuse([], 2, FusionConfig(voxel_size=0.5), grid=VoxelGrid.empty(2, 0.2))
+    assert len(fuse([], 4)) == 0
+
+
+def test_fuse_dense_with_weight_and_floor() -> None:
+    keys = np.array([9, 2, 9], np.int64)
+    with np.errstate(divide="ignore"):
+        logp = np.log(np.array([[0.8, 0.2], [1.0, 0.0], [0.6, 0.4]], np.float32))  # log 0 = -inf, floored
+    g = fuse_dense(None, keys, logp, 2, FusionConfig(prob_floor=1e-3), weight=0.5)
+    assert g.keys.tolist() == [2, 9]
+    np.testing.assert_allclose(g.logp[0], [0.0, 0.5 * math.log(1e-3)], atol=0.01)
+    np.testing.assert_allclose(g.logp[1], [0.0, 0.5 * math.log(0.08 / 0.48)], atol=2e-3)
+    # Fusing into a prior adds to it.
+    g2 = fuse_dense(g, np.array([9]), np.array([[0.0, -1.0]], np.float32), 2)
+    np.testing.assert_allclose(g2.logp[1], [0.0, 0.5 * math.log(1 / 6) - 1.0], atol=3e-3)
+
+
+def test_fuse_dense_matches_fuse_on_the_same_observations() -> None:
+    rng = np.random.default_rng(0)
+    obs = _obs(rng.integers(0, 50, 500), rng.integers(0, 6, 500), rng.dirichlet(np.ones(5), 6))
+    a = fuse([obs], 5)
+    b = fuse_dense(None, obs.keys, obs.log_table[obs.rows], 5)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.logp.astype(float), b.logp.astype(float), atol=F16_ATOL)
+
+
+# ---------------------------------------------------------------------------------------------- grid
+def test_grid_lookup_nbytes_and_save_load(tmp_path) -> None:
+    g = fuse([_obs([5, 10, 20], [0, 0, 0], [[0.5, 0.25, 0.25]])], 3)
+    np.testing.assert_array_equal(g.lookup(np.array([10, 11, 20, 5, -4, 99])), [1, -1, 2, 0, -1, -1])
+    np.testing.assert_array_equal(VoxelGrid.empty(3).lookup(np.array([1])), [-1])
+    big = VoxelGrid(np.arange(100, dtype=np.int64), np.zeros((100, 20), np.float16))
+    assert big.nbytes / big.num_voxels == 48
+    path = tmp_path / "grid.npz"
+    g.save(path)
+    back = VoxelGrid.load(path)
+    np.testing.assert_array_equal(back.keys, g.keys)
+    np.testing.assert_array_equal(back.logp, g.logp)
+    assert back.voxel_size == g.voxel_size and back.num_classes == 3
+
+
+def test_grid_load_rejects_bad_files(tmp_path) -> None:
+    bad = tmp_path / "grid.npz"
+    bad.write_bytes(b"garbage")
+    with pytest.raises(DatasetError, match="grid.npz: unreadable voxel grid"):
+        VoxelGrid.load(bad)
+    np.savez(bad, keys=np.array([3, 1], np.int64), logp=np.zeros((2, 2), np.float16), voxel_size=0.2)
+    with pytest.raises(DatasetError, match="not sorted"):
+        VoxelGrid.load(bad)
+    np.savez(bad, keys=np.array([1, 3], np.int64), logp=np.zeros((3, 2), np.float16), voxel_size=0.2)
+    with pytest.raises(DatasetError, match="'logp'"):
+        VoxelGrid.load(bad)
+    np.savez(bad, keys=np.array([1, 3], np.int64), logp=np.zeros((2, 2), np.float16))
+    with pytest.raises(DatasetError, match="voxel_size"):
+        VoxelGrid.load(bad)
+
+
+def test_apply_overrides() -> None:
+    g = fuse([_obs([1, 2], [0, 0], [[0.9, 0.05, 0.05]])], 3)
+    out = apply_overrides(g, np.array([2, 7]), np.array([2, 1]))
+    assert out.keys.tolist() == [1, 2, 7]
+    labels, conf = out.labels_and_confidence()
+    assert labels.tolist() == [0, 2, 1]
+    np.testing.assert_array_equal(out.logp[0], g.logp[0])  # untouched voxel
+    np.testing.assert_array_equal(out.logp[1], [-20.0, -20.0, 0.0])  # strength 50 saturates at the clip
+    assert conf[1] > 0.999999
+    with pytest.raises(ValueError, match="class_idx"):
+        apply_overrides(g, np.array([1]), np.array([3]))
+
+
+def test_extent_too_wide_to_pack_gives_the_same_result() -> None:
+    # Axis ranges of 2^21 voxels leave no bits for table rows in one int64: the np.unique path runs.
+    rng = np.random.default_rng(5)
+    coords = np.concatenate([rng.integers(-3, 3, (60, 3)), [[-AXIS_OFFSET, -AXIS_OFFSET, -AXIS_OFFSET],
+                                                           [AXIS_OFFSET - 1] * 3]])
+    keys = voxel_keys((coords + 0.5) * 0.2, 0.2)
+    obs = _obs(keys, rng.integers(0, 3, len(keys)), rng.dirichlet(np.ones(4), 3))
+    grid = fuse([obs], 4)
+    uk, ref = _reference([obs], 4)
+    np.testing.assert_array_equal(grid.keys, uk)
+    np.testing.assert_allclose(grid.logp.astype(float), ref, atol=F16_ATOL)
+
+
+def test_point_labels_from_voxels() -> None:
+    from leap_core.fusion import argmax_confidence, labels_for_points
+
+    grid = fuse([_obs([10, 20], [0, 1], [[0.7, 0.3], [0.2, 0.8]])], 2)
+    smoothed = np.array([[0.6, 0.4], [0.1, 0.9]], np.float32)
+    vl, vc = argmax_confidence(smoothed)
+    assert vl.tolist() == [0, 1] and vl.dtype == np.int16
+    np.testing.assert_allclose(vc, [0.6, 0.9])
+    labels, conf = labels_for_points(grid, np.array([20, 15, 10, 20]), vl, vc)
+    assert labels.tolist() == [1, -1, 0, 1]
+    np.testing.assert_allclose(conf, [0.9, 0.0, 0.6, 0.9])

@@ -1,0 +1,201 @@
+"""Projection, depth clustering and painting, on hand-computed cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from leap_core.errors import DatasetError
+from leap_core.fusion import log_table
+from leap_core.labelers.base import SoftMasks
+from leap_core.projection import (
+    Painted,
+    Projected,
+    ProjectionConfig,
+    depth_cluster_filter,
+    largest_depth_cluster,
+    paint,
+    project_points,
+)
+from leap_core.types import UNLABELED
+
+# Pixel = (10x + 5z, 10y + 4z) / z: focal 10, principal point (5, 4), camera frame = LiDAR frame.
+P = np.array([[10.0, 0, 5, 0], [0, 10, 4, 0], [0, 0, 1, 0]])
+
+
+def test_project_points_hand_computed() -> None:
+    xyz = np.array(
+        [
+            [0.0, 0.0, 2.0],  # (10, 8)/2 -> u 5, v 4
+            [1.0, -0.5, 4.0],  # (30, 11)/4 = (7.5, 2.75) -> rounds to u 8, v 3
+            [0.0, 0.0, -3.0],  # behind the camera
+            [0.0, 0.0, 0.4],  # closer than min_depth 0.5
+            [2.0, 0.0, 1.0],  # u = 25, right of a 10-px-wide image
+            [-1.0, 0.0, 2.0],  # u = 0: on the left edge, kept
+            [-0.56, 0.0, 1.0],  # u = -0.6 -> rounds to -1, dropped
+            [-0.54, 0.0, 1.0],  # u = -0.4 -> rounds to 0, kept
+            [0.0, 0.36, 1.0],  # v = 7.6 -> rounds to 8 = height, dropped
+        ],
+        dtype=np.float32,
+    )
+    pr = project_points(xyz, P, height=8, width=10, min_depth=0.5)
+    np.testing.assert_array_equal(pr.idx, [0, 1, 5, 7])
+    np.testing.assert_array_equal(pr.u, [5, 8, 0, 0])
+    np.testing.assert_array_equal(pr.v, [4, 3, 4, 4])
+    np.testing.assert_allclose(pr.depth, [2, 4, 2, 1])
+    assert pr.idx.dtype == np.int64 and pr.u.dtype == np.int32 and pr.depth.dtype == np.float32
+
+
+def test_project_points_uses_translation_and_ignores_extra_columns() -> None:
+    m = P.copy()
+    m[:, 3] = [10.0, 0.0, 1.0]  # depth = z + 1, a = 10x + 5z + 10
+    xyz = np.array([[0.0, 0.0, 1.0, 0.7]], dtype=np.float32)  # remission column ignored
+    pr = project_points(xyz, m, height=8, width=10)
+    # a = 15, b = 4, d = 2 -> (7.5, 2) -> u 8, v 2
+    np.testing.assert_array_equal([pr.u[0], pr.v[0]], [8, 2])
+    assert pr.depth[0] == 2.0
+
+
+def test_project_points_rejects_bad_shapes() -> None:
+    with pytest.raises(ValueError, match="xyz"):
+        project_points(np.zeros((3, 2)), P, 8, 10)
+    with pytest.raises(ValueError, match="lidar_to_image"):
+        project_points(np.zeros((3, 3)), np.eye(3), 8, 10)
+
+
+def test_largest_cluster_keeps_foreground_person_before_wall() -> None:
+    # One mask: a person at ~10 m and the wall behind it at ~25 m bleeding into the mask.
+    depth = np.array([25.0, 10.0, 10.2, 25.3, 10.4, 10.5, 25.1, 10.3])
+    keep = largest_depth_cluster(depth, gap=1.0)
+    np.testing.assert_array_equal(keep, [False, True, True, False, True, True, False, True])
+
+
+def test_largest_cluster_ties_go_to_the_nearest_and_gap_is_strict() -> None:
+    np.testing.assert_array_equal(largest_depth_cluster([20.0, 5.0, 20.5, 5.5], 1.0), [0, 1, 0, 1])
+    # A difference equal to the gap does not split (strictly larger splits).
+    np.testing.assert_array_equal(largest_depth_cluster([1.0, 2.0, 3.0, 5.0], 1.0), [1, 1, 1, 0])
+    # The largest cluster wins even when it is behind.
+    np.testing.assert_array_equal(largest_depth_cluster([5.0, 5.2, 30.0, 30.1, 30.2], 1.0), [0, 0, 1, 1, 1])
+
+
+def test_depth_cluster_filter_is_per_mask_and_respects_min_points() -> None:
+    depth = np.array([10.0, 10.2, 10.4, 25.0, 25.2, 40.0])
+    member = np.array(
+        [
+            [1, 1, 1, 1, 1, 0],  # person mask bleeding onto the wall: keeps points 0-2
+            [0, 0, 0, 1, 1, 1],  # wall mask with a far outlier: keeps 3, 4
+            [1, 0, 0, 0, 0, 1],  # 2 points only: below min_points 3, kept whole
+        ],
+        dtype=bool,
+    )
+    out = depth_cluster_filter(member, depth, gap=1.0, min_points=3)
+    expected = np.array([[1, 1, 1, 0, 0, 0], [0, 0, 0, 1, 1, 0], [1, 0, 0, 0, 0, 1]], dtype=bool)
+    np.testing.assert_array_equal(out, expected)
+    # Without the minimum, the 2-point mask keeps its nearest point (tie 1 vs 1).
+    out0 = depth_cluster_filter(member, depth, gap=1.0, min_points=0)
+    np.testing.assert_array_equal(out0[2], [1, 0, 0, 0, 0, 0])
+    assert not depth_cluster_filter(np.zeros((2, 6), bool), depth, 1.0).any()
+
+
+def _two_mask_image() -> SoftMasks:
+    # 2×3 image. Mask A covers row 0 columns 0-1, mask B covers row 0 columns 1-2.
+    a = np.array([[1, 1, 0], [0, 0, 0]], bool)
+    b = np.array([[0, 1, 1], [0, 0, 0]], bool)
+    return SoftMasks.from_dense(np.stack([a, b]), [[1.0, 0.0, 0.0], [0.0, 0.5, 0.5]], [0.8, 0.2])
+
+
+def test_paint_combo_table_is_confidence_weighted_average() -> None:
+    soft = _two_mask_image()
+    proj = Projected(
+        idx=np.array([10, 11, 12, 13, 14]),
+        u=np.array([0, 1, 2, 0, 1], np.int32),
+        v=np.array([0, 0, 0, 1, 0], np.int32),
+        depth=np.full(5, 5.0, np.float32),
+    )
+    painted = paint(soft, proj, ProjectionConfig(depth_clustering=False))
+    # Point 13 (row 1) is under no mask. Points 11 and 14 share the combination {A, B}.
+    np.testing.assert_array_equal(painted.point_idx, [10, 11, 12, 14])
+    per_point = painted.table[painted.rows]
+    expected = np.array(
+        [
+            [1.0, 0.0, 0.0],  # A only
+            [0.8, 0.1, 0.1],  # (0.8·[1,0,0] + 0.2·[0,.5,.5]) / (0.8 + 0.2)
+            [0.0, 0.5, 0.5],  # B only
+            [0.8, 0.1, 0.1],
+        ]
+    )
+    np.testing.assert_allclose(per_point, expected, atol=1e-6)
+    assert painted.table.shape == (3, 3)  # three distinct combinations, not four points
+    assert painted.rows[1] == painted.rows[3]
+    np.testing.assert_array_equal(painted.point_labels(16)[[10, 11, 12, 13, 14, 15]], [0, 0, 1, -1, 0, -1])
+    np.testing.assert_allclose(painted.point_confidence(16)[[10, 11, 12, 13]], [1.0, 0.8, 0.5, 0.0])
+
+
+def test_paint_depth_clustering_removes_bleed_onto_background() -> None:
+    # 1×8 image: the person mask covers all 8 columns, the wall mask the last 3.
+    person = np.ones((1, 8), bool)
+    wall = np.zeros((1, 8), bool)
+    wall[0, 5:] = True
+    soft = SoftMasks.from_dense(np.stack([person, wall]), [[1.0, 0.0], [0.0, 1.0]], [0.9, 0.9])
+    depth = np.array([10.0, 10.1, 10.2, 10.3, 10.4, 25.0, 25.1, 25.2], np.float32)
+    proj = Projected(np.arange(8), np.arange(8, dtype=np.int32), np.zeros(8, np.int32), depth)
+    filtered = paint(soft, proj, ProjectionConfig(cluster_gap=1.0))
+    np.testing.assert_array_equal(filtered.point_labels(8), [0, 0, 0, 0, 0, 1, 1, 1])
+    np.testing.assert_allclose(filtered.table[filtered.rows][5:], [[0.0, 1.0]] * 3)
+    # Without the filter the wall points average both masks: [0.5, 0.5].
+    raw = paint(soft, proj, ProjectionConfig(depth_clustering=False))
+    np.testing.assert_allclose(raw.table[raw.rows][5:], [[0.5, 0.5]] * 3)
+
+
+@pytest.mark.parametrize("num_masks", [5, 70])  # 70 > 64 masks exercises the multi-word combination hash
+def test_paint_matches_dense_pixel_probabilities(num_masks: int) -> None:
+    rng = np.random.default_rng(num_masks)
+    h, w, c = 12, 17, 4
+    masks = rng.random((num_masks, h, w)) < 0.15
+    probs = rng.dirichlet(np.ones(c), num_masks)
+    soft = SoftMasks.from_dense(masks, probs, rng.uniform(0.2, 1.0, num_masks))
+    n = 300
+    proj = Projected(
+        idx=np.arange(n) * 2,
+        u=rng.integers(0, w, n).astype(np.int32),
+        v=rng.integers(0, h, n).astype(np.int32),
+        depth=rng.uniform(1, 50, n).astype(np.float32),
+    )
+    painted = paint(soft, proj, ProjectionConfig(depth_clustering=False))
+    dense = soft.pixel_probs()
+    covered = masks[:, proj.v, proj.u].any(axis=0)
+    np.testing.assert_array_equal(painted.point_idx, proj.idx[covered])
+    np.testing.assert_allclose(painted.table[painted.rows], dense[proj.v, proj.u][covered], atol=1e-5)
+    assert len(np.unique(painted.rows)) == painted.table.shape[0]
+
+
+def test_paint_without_masks_or_points_is_empty() -> None:
+    soft = SoftMasks.empty(4, 5, 3)
+    uv = np.array([0, 1], np.int32)
+    proj = Projected(np.arange(2), uv, uv, np.ones(2, np.float32))
+    painted = paint(soft, proj)
+    assert len(painted) == 0 and painted.table.shape == (0, 3)
+    np.testing.assert_array_equal(painted.point_labels(3), [UNLABELED] * 3)
+
+
+def test_painted_observations_and_save_load(tmp_path) -> None:
+    table = np.array([[0.5, 0.5], [1.0, 0.0]], np.float32)
+    painted = Painted(np.array([1, 3]), np.array([1, 0], np.int32), table)
+    keys = np.array([100, 101, 102, 103], np.int64)
+    obs = painted.to_observations(keys, prob_floor=1e-3)
+    np.testing.assert_array_equal(obs.keys, [101, 103])
+    np.testing.assert_array_equal(obs.rows, [1, 0])
+    np.testing.assert_allclose(obs.log_table, log_table(painted.table, 1e-3))
+    path = tmp_path / "obs.npz"
+    painted.save(path)
+    back = Painted.load(path)
+    np.testing.assert_array_equal(back.point_idx, painted.point_idx)
+    np.testing.assert_array_equal(back.rows, painted.rows)
+    np.testing.assert_array_equal(back.table, painted.table)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(DatasetError, match="bad.npz"):
+        Painted.load(bad)
+    np.savez(bad, point_idx=np.array([0]), rows=np.array([5]), table=np.ones((2, 2)))
+    with pytest.raises(DatasetError, match="rows index outside"):
+        Painted.load(bad)
