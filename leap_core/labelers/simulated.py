@@ -1,0 +1,425 @@
+"""The "simulated" 2D labeler: soft masks made from a dataset's 2D ground truth with a documented noise model.
+
+It stands in for Grounding DINO + SAM (METHOD.md stage A) on datasets that carry per-pixel 2D ground truth
+(``gt2d/semantic`` and ``gt2d/instance``, e.g. the generated demo sequence), so the 3D stages can be run and
+measured without model weights. Users always see it called "simulated".
+
+Regions. Pixels are mapped to schema classes with ``schema.map_gt``; pixels of unmapped ids get no mask.
+A *thing* region is one (class, instance id > 0) pair: one mask per object, as a detector box + SAM
+would give. A *stuff* region is one 8-connected component of a class's pixels that carry instance 0.
+
+Noise model, applied per image in this order (every parameter lives in :class:`SimulatedLabelerConfig`):
+
+1. Calibration jitter. The whole label image is moved by one rigid 2D transform: a shift
+   ``(dx, dy) ~ N(0, jitter_px²)`` and a rotation ``θ ~ N(0, jitter_deg²)`` about the image centre
+   (nearest-neighbour resampling; pixels moved in from outside carry no label). This mimics a small
+   camera↔LiDAR calibration or synchronisation error that shifts every mask against the points.
+2. Missed regions. Region r of class c is kept with probability ``recall(c)`` (``class_recall[c]`` if
+   given, else ``recall``); regions smaller than ``min_region_px`` pixels are always missed.
+3. Confusion. If c belongs to an ambiguous pair in ``confusion_pairs``, then with probability
+   ``confusion_prob`` the mask's predicted class becomes its partner ĉ (one drawn uniformly when c has
+   several partners); otherwise ĉ = c.
+   Steps 2 and 3 are *persistent*: their draws belong to the object (thing: its instance id; stuff: its
+   class and area rank in the image) and stay the same for ``persistence_frames`` consecutive frames, so
+   a missed or confused object stays so for a while, as with a real detector. Independent per-frame
+   errors would be averaged away by the voxel fusion far more easily than real ones.
+4. Soft distribution. ``p(ĉ) = peak ~ U(peak_prob)``; of the remaining ``1 − peak``, the share
+   ``partner_share`` goes to the class ĉ is confused with (c itself after a confusion, else one of c's
+   partners), and the rest is spread over all other classes by a Dirichlet(``dirichlet_alpha``) draw.
+   The mask's confidence is ``w ~ U(confidence)``.
+5. Boundary bleed. Each thing mask is dilated by a radius drawn uniformly from ``0..bleed_px`` pixels
+   (stuff masks: ``0..stuff_bleed_px``), so it spills onto the background around it. Per-mask depth
+   clustering in the projection stage is what removes the spill of foreground objects onto points behind.
+
+With every knob off (:meth:`SimulatedLabelerConfig.exact`) each mask is one region with a one-hot
+distribution and confidence 1, so the per-pixel argmax reproduces the mapped ground truth exactly.
+
+Determinism: all draws come from ``SeedSequence([seed, frame.index, stream])`` (steps 1, 4, 5) or
+``SeedSequence([seed, frame.index // persistence_frames, stream, object])`` (steps 2, 3), so a frame's
+output depends only on the seed, its index and its images, never on which other frames were labeled or
+in which order, and turning one knob does not reshuffle the draws of the others.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.errors import LeapError
+from leap_core.labelers.base import SoftMasks
+
+if TYPE_CHECKING:
+    from leap_core.datasets.kitti import Frame
+    from leap_core.schema import Schema
+
+# Independent random streams per noise step (see the module docstring, "Determinism").
+_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED = range(4)
+
+_DEFAULT_CLASS_RECALL: dict[str, float] = {
+    # Small or thin objects are the ones open-vocabulary detectors miss most often.
+    "bicycle": 0.7,
+    "motorcycle": 0.7,
+    "bicyclist": 0.7,
+    "motorcyclist": 0.7,
+    "person": 0.8,
+    "other-vehicle": 0.8,
+    "pole": 0.75,
+    "traffic-sign": 0.75,
+    "trunk": 0.75,
+    "other-ground": 0.6,
+}
+
+_DEFAULT_CONFUSION_PAIRS: tuple[tuple[str, str], ...] = (
+    ("terrain", "vegetation"),
+    ("road", "parking"),
+    ("road", "sidewalk"),
+    ("bicycle", "person"),
+    ("car", "truck"),
+)
+
+
+@dataclass(frozen=True)
+class SimulatedLabelerConfig:
+    """Noise model of the simulated labeler (module docstring gives the exact procedure).
+
+    The defaults aim at masks of roughly Grounding DINO + SAM quality on street scenes; they are not tuned
+    to any result. :meth:`exact` turns every knob off.
+    """
+
+    seed: int = 0
+    """Base seed; a frame's draws depend only on (seed, frame index)."""
+    recall: float = 0.9
+    """Probability that a region (object instance or connected stuff area) gets a mask at all."""
+    class_recall: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_CLASS_RECALL))
+    """Per-class recall overriding ``recall``, by class name; names not in the schema are ignored."""
+    min_region_px: int = 16
+    """Regions with fewer pixels than this are never detected (tiny fragments); 0 keeps every region."""
+    confusion_prob: float = 0.1
+    """Probability that a region of a class in ``confusion_pairs`` is labeled as its partner class."""
+    persistence_frames: int = 5
+    """Misses and confusions of one object are drawn once per block of this many consecutive frames
+    (frame index // persistence_frames), as a detector's errors depend on an object's appearance, which
+    changes slowly; 1 draws them independently in every frame (noise that fusion would average away too
+    easily)."""
+    confusion_pairs: tuple[tuple[str, str], ...] = _DEFAULT_CONFUSION_PAIRS
+    """Ambiguous class pairs (symmetric), by class name; pairs with a name not in the schema are ignored."""
+    peak_prob: tuple[float, float] = (0.5, 0.9)
+    """Range (low, high) of the uniform draw of the predicted class's probability."""
+    partner_share: float = 0.5
+    """Share of the non-peak mass given to the confusable partner class (when the class has one)."""
+    dirichlet_alpha: float = 1.0
+    """Concentration of the Dirichlet draw that spreads the remaining mass over the other classes."""
+    confidence: tuple[float, float] = (0.3, 0.9)
+    """Range (low, high) of the uniform draw of a mask's confidence (its weight where masks overlap)."""
+    bleed_px: int = 3
+    """Largest dilation radius in pixels of thing (instance) masks onto their surroundings; 0 = no bleed."""
+    stuff_bleed_px: int = 1
+    """Largest dilation radius in pixels of stuff (region) masks."""
+    jitter_px: float = 1.0
+    """Standard deviation in pixels of the per-image shift of all masks (calibration error)."""
+    jitter_deg: float = 0.1
+    """Standard deviation in degrees of the per-image rotation of all masks about the image centre."""
+
+    def __post_init__(self) -> None:
+        def bad(name: str, problem: str) -> LeapError:
+            return LeapError(f"simulated.{name} {problem}")
+
+        for name in ("recall", "confusion_prob", "partner_share"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise bad(name, f"must be in [0, 1], got {v}")
+        for cname, v in self.class_recall.items():
+            if not 0.0 <= float(v) <= 1.0:
+                raise bad(f"class_recall.{cname}", f"must be in [0, 1], got {v}")
+        for name in ("peak_prob", "confidence"):
+            lo, hi = getattr(self, name)
+            if not 0.0 < lo <= hi <= 1.0:
+                raise bad(name, f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})")
+        for pair in self.confusion_pairs:
+            if len(pair) != 2 or pair[0] == pair[1]:
+                raise bad("confusion_pairs", f"entries must be two different class names, got {list(pair)}")
+        if not self.dirichlet_alpha > 0:
+            raise bad("dirichlet_alpha", f"must be > 0, got {self.dirichlet_alpha}")
+        if self.persistence_frames < 1:
+            raise bad("persistence_frames", f"must be >= 1, got {self.persistence_frames}")
+        for name in ("min_region_px", "bleed_px", "stuff_bleed_px"):
+            if getattr(self, name) < 0:
+                raise bad(name, f"must be >= 0, got {getattr(self, name)}")
+        for name in ("jitter_px", "jitter_deg"):
+            if getattr(self, name) < 0:
+                raise bad(name, f"must be >= 0, got {getattr(self, name)}")
+
+    @classmethod
+    def exact(cls, seed: int = 0) -> SimulatedLabelerConfig:
+        """Every noise knob off: one-hot masks of confidence 1 that reproduce the mapped 2D ground truth."""
+        return cls(
+            seed=seed,
+            recall=1.0,
+            class_recall={},
+            min_region_px=0,
+            confusion_prob=0.0,
+            peak_prob=(1.0, 1.0),
+            confidence=(1.0, 1.0),
+            bleed_px=0,
+            stuff_bleed_px=0,
+            jitter_px=0.0,
+            jitter_deg=0.0,
+        )
+
+
+@dataclass(frozen=True)
+class _Region:
+    """One ground-truth region: its class index, bounding box origin and the boolean crop inside the box."""
+
+    cls: int
+    thing: bool
+    ident: int
+    """Identity of the object across frames: the instance id (things) or the area rank within the class,
+    0 = largest (stuff)."""
+    y0: int
+    x0: int
+    crop: npt.NDArray[np.bool_]
+
+
+def _rng(seed: int, index: int, stream: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([seed, index, stream]))
+
+
+def _jitter(
+    sem: npt.NDArray[np.uint16],
+    inst: npt.NDArray[np.uint16],
+    cfg: SimulatedLabelerConfig,
+    rng: np.random.Generator,
+) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16]]:
+    """Move both label images by one random rigid transform (shift + rotation about the centre)."""
+    dx, dy = rng.normal(0.0, 1.0, size=2) * cfg.jitter_px
+    theta = float(rng.normal(0.0, 1.0)) * cfg.jitter_deg
+    if cfg.jitter_px == 0 and cfg.jitter_deg == 0:
+        return sem, inst
+    h, w = sem.shape
+    m = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), theta, 1.0)
+    m[:, 2] += (dx, dy)
+
+    def warp(img: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
+        return cv2.warpAffine(
+            img, m, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
+
+    return warp(sem), warp(inst)
+
+
+def _regions(cls_img: npt.NDArray[np.int16], inst: npt.NDArray[np.uint16]) -> list[_Region]:
+    """Thing regions (class, instance) first, sorted by key, then stuff components by class and label."""
+    h, w = cls_img.shape
+    regions: list[_Region] = []
+    valid = cls_img >= 0
+    thing = valid & (inst > 0)
+
+    flat_idx = np.flatnonzero(thing)
+    if flat_idx.size:
+        key = cls_img.ravel()[flat_idx].astype(np.int64) << 16 | inst.ravel()[flat_idx].astype(np.int64)
+        order = np.argsort(key, kind="stable")
+        key_sorted, idx_sorted = key[order], flat_idx[order]
+        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+        ends = np.r_[starts[1:], key_sorted.size]
+        for s, e in zip(starts, ends):
+            pix = idx_sorted[s:e]
+            ys, xs = pix // w, pix % w
+            y0, x0 = int(ys.min()), int(xs.min())
+            crop = np.zeros((int(ys.max()) - y0 + 1, int(xs.max()) - x0 + 1), dtype=bool)
+            crop[ys - y0, xs - x0] = True
+            key_s = int(key_sorted[s])
+            regions.append(_Region(key_s >> 16, True, key_s & 0xFFFF, y0, x0, crop))
+
+    stuff_cls = np.where(valid & ~thing, cls_img, np.int16(-1))
+    rows_any = [np.flatnonzero((stuff_cls == c).any(axis=1)) for c in range(int(stuff_cls.max()) + 1)]
+    for c, ys in enumerate(rows_any):
+        if ys.size == 0:
+            continue
+        # Label within the class's row band only: most stuff classes cover a fraction of the image height.
+        by0, by1 = int(ys[0]), int(ys[-1]) + 1
+        m = (stuff_cls[by0:by1] == c).astype(np.uint8)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8, ltype=cv2.CV_32S)
+        # OpenCV's label numbering depends on its thread count (parallel labeling in stripes), so order the
+        # components canonically by their first pixel in raster order; the noise draws follow this order.
+        first = []
+        for j in range(1, n):
+            x0, y0, bw = (int(v) for v in stats[j, :3])
+            first.append((y0, x0 + int(np.argmax(lab[y0, x0 : x0 + bw] == j)), j))
+        first.sort()
+        by_area = sorted((-int(stats[j, 4]), y, x, j) for y, x, j in first)
+        rank = {j: r for r, (_, _, _, j) in enumerate(by_area)}
+        for y0, _, j in first:
+            x0, bw, bh = int(stats[j, 0]), int(stats[j, 2]), int(stats[j, 3])
+            crop = lab[y0 : y0 + bh, x0 : x0 + bw] == j
+            regions.append(_Region(c, False, rank[j], by0 + y0, x0, crop))
+    return regions
+
+
+def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> dict[int, list[int]]:
+    """Class index → sorted partner indices, from the name pairs present in the schema."""
+    index = {n: i for i, n in enumerate(schema_names)}
+    out: dict[int, set[int]] = {}
+    for a, b in pairs:
+        if a in index and b in index:
+            out.setdefault(index[a], set()).add(index[b])
+            out.setdefault(index[b], set()).add(index[a])
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def _distribution(
+    true_c: int,
+    pred_c: int,
+    partners: dict[int, list[int]],
+    num_classes: int,
+    cfg: SimulatedLabelerConfig,
+    rng: np.random.Generator,
+) -> npt.NDArray[np.float32]:
+    """Step 4 of the noise model: peak on ``pred_c``, partner share, Dirichlet rest. Rows sum to 1."""
+    # Draw every random number whatever the branch, so the stream stays aligned across regions.
+    u_peak, u_partner = rng.random(2)
+    spread = rng.dirichlet(np.full(max(num_classes, 1), cfg.dirichlet_alpha))
+    lo, hi = cfg.peak_prob
+    peak = lo + (hi - lo) * u_peak
+    p = np.zeros(num_classes, dtype=np.float64)
+    p[pred_c] = peak
+    rest = 1.0 - peak
+    if rest <= 0.0 or num_classes == 1:
+        p[pred_c] = 1.0
+        return p.astype(np.float32)
+    if pred_c != true_c:
+        second: int | None = true_c
+    else:
+        cand = partners.get(true_c, [])
+        second = cand[min(int(u_partner * len(cand)), len(cand) - 1)] if cand else None
+    others = np.ones(num_classes, dtype=bool)
+    others[pred_c] = False
+    if second is not None:
+        p[second] += rest * cfg.partner_share
+        rest *= 1.0 - cfg.partner_share
+        if num_classes > 2:
+            others[second] = False
+    w = spread * others
+    total = w.sum()
+    if total > 0:
+        p += rest * w / total
+    else:
+        p[pred_c] += rest
+    return (p / p.sum()).astype(np.float32)
+
+
+class SimulatedLabeler:
+    """Soft masks from 2D ground truth with the noise model of :class:`SimulatedLabelerConfig`."""
+
+    name = "simulated"
+
+    def __init__(self, cfg: SimulatedLabelerConfig | None = None) -> None:
+        self.cfg = cfg or SimulatedLabelerConfig()
+
+    def fingerprint(self, schema: Schema) -> str:
+        """Hash of the noise config and the schema parts the output depends on (names and GT mapping)."""
+        cfg = asdict(self.cfg)
+        cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
+        parts = {
+            "labeler": self.name,
+            "version": 2,
+            "config": cfg,
+            "classes": [[c.name, sorted(int(g) for g in c.gt_ids)] for c in schema.classes],
+        }
+        return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+
+    def label(self, frame: Frame, schema: Schema) -> SoftMasks:
+        """Masks of one frame (reads ``frame.gt2d_semantic`` / ``frame.gt2d_instance``)."""
+        cfg = self.cfg
+        sem, inst = frame.gt2d_semantic, frame.gt2d_instance
+        if sem.shape != inst.shape:
+            raise LeapError(
+                f"{frame.seq.root / 'gt2d'}: frame {frame.frame_id} semantic {sem.shape} and instance "
+                f"{inst.shape} masks differ in size"
+            )
+        seed, idx = cfg.seed, frame.index
+        sem, inst = _jitter(sem, inst, cfg, _rng(seed, idx, _STREAM_JITTER))
+        h, w = sem.shape
+        cls_img = np.asarray(schema.map_gt(sem.ravel()), dtype=np.int16).reshape(h, w)
+        names = list(schema.names)
+        num_classes = len(names)
+        regions = _regions(cls_img, inst)
+
+        recall_of = np.full(num_classes, cfg.recall, dtype=np.float64)
+        for cname, r in cfg.class_recall.items():
+            if cname in names:
+                recall_of[names.index(cname)] = float(r)
+        partners = _partners(names, cfg.confusion_pairs)
+
+        n = len(regions)
+        rng_probs, rng_bleed = (_rng(seed, idx, s) for s in (_STREAM_PROBS, _STREAM_BLEED))
+        # Per object and block of frames: (recall draw, confusion draw, partner choice).
+        block = idx // cfg.persistence_frames
+        u_obj = np.array(
+            [
+                np.random.default_rng(
+                    np.random.SeedSequence([seed, block, _STREAM_OBJECT, r.cls, int(r.thing), r.ident])
+                ).random(3)
+                for r in regions
+            ]
+        ).reshape(n, 3)
+        u_recall, u_confuse = u_obj[:, 0], u_obj[:, 1:]
+        u_bleed = rng_bleed.random(n)
+        lo_c, hi_c = cfg.confidence
+        conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
+
+        bits, probs, confs = [], [], []
+        flat = np.zeros(h * w, dtype=bool)
+        for i, reg in enumerate(regions):
+            dist_rng = np.random.default_rng(rng_probs.integers(0, 2**63))
+            if u_recall[i] >= recall_of[reg.cls] or reg.crop.sum() < cfg.min_region_px:
+                continue
+            pred = reg.cls
+            cand = partners.get(reg.cls)
+            if cand and u_confuse[i, 0] < cfg.confusion_prob:
+                pred = cand[min(int(u_confuse[i, 1] * len(cand)), len(cand) - 1)]
+            probs.append(_distribution(reg.cls, pred, partners, num_classes, cfg, dist_rng))
+            confs.append(conf[i])
+            max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
+            radius = min(int(u_bleed[i] * (max_r + 1)), max_r)
+            bits.append(np.packbits(self._paint(flat, reg, radius, h, w)))
+        if not bits:
+            return SoftMasks.empty(h, w, num_classes)
+        return SoftMasks(
+            height=h,
+            width=w,
+            bits=np.stack(bits),
+            probs=np.stack(probs),
+            confidence=np.asarray(confs, dtype=np.float32),
+        )
+
+    @staticmethod
+    def _paint(
+        flat: npt.NDArray[np.bool_], reg: _Region, radius: int, h: int, w: int
+    ) -> npt.NDArray[np.bool_]:
+        """Full-image flat mask of a region dilated by ``radius`` px (``flat`` is a reused zero buffer)."""
+        crop, y0, x0 = reg.crop, reg.y0, reg.x0
+        if radius > 0:
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+            padded = np.pad(crop, radius).astype(np.uint8)
+            crop = cv2.dilate(padded, k).astype(bool)
+            y0, x0 = y0 - radius, x0 - radius
+            # Clip the dilated crop to the image.
+            cy0, cx0 = max(0, -y0), max(0, -x0)
+            cy1 = crop.shape[0] - max(0, y0 + crop.shape[0] - h)
+            cx1 = crop.shape[1] - max(0, x0 + crop.shape[1] - w)
+            crop = crop[cy0:cy1, cx0:cx1]
+            y0, x0 = y0 + cy0, x0 + cx0
+        img = flat.reshape(h, w)
+        img[:] = False
+        img[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]] = crop
+        return flat
+
+
+__all__ = ["SimulatedLabeler", "SimulatedLabelerConfig"]

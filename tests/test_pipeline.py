@@ -1,0 +1,453 @@
+"""The pipeline end to end on a tiny ray-cast street, plus PipelineConfig's dict form."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leap_core.config import (
+    PipelineConfig,
+    config_from_dict,
+    config_to_dict,
+    form_values,
+    overrides_from_form,
+)
+from leap_core.datasets.kitti import (
+    Calib,
+    KittiSequence,
+    read_label,
+    write_calib,
+    write_label,
+    write_png16,
+    write_poses,
+    write_scan,
+)
+from leap_core.errors import Cancelled, LeapError
+from leap_core.labelers.simulated import SimulatedLabelerConfig
+from leap_core.metrics import evaluate
+from leap_core.pipeline import (
+    STAGES,
+    load_metrics,
+    metrics_from_confusion,
+    plan_stages,
+    result_tables,
+    run_pipeline,
+    stage_status,
+)
+from leap_core.schema import builtin_schema
+
+# ------------------------------------------------------------------------------------ a tiny street
+# World: z up, ground z = 0. Road |y| < 4, sidewalk 4..6, terrain beyond; building walls at y = ±9;
+# two cars and a pole. The sensor drives along +x at 1.7 m height, 1.5 m per frame.
+ROAD, SIDEWALK, TERRAIN, BUILDING, CAR, POLE = 40, 48, 72, 50, 10, 80
+BOXES = [  # (xmin, xmax, ymin, ymax, zmin, zmax, semantic id, instance id)
+    (8.0, 12.0, -3.0, -1.2, 0.0, 1.5, CAR, 1),
+    (17.0, 21.0, 1.2, 3.0, 0.0, 1.6, CAR, 2),
+    (14.0, 14.3, 5.0, 5.3, 0.0, 4.0, POLE, 3),
+    (-60.0, 80.0, 9.0, 9.5, 0.0, 7.0, BUILDING, 0),
+    (-60.0, 80.0, -9.5, -9.0, 0.0, 7.0, BUILDING, 0),
+]
+H, W, F = 60, 200, 90.0
+# LiDAR (x fwd, y left, z up) → camera (x right, y down, z forward), camera at the LiDAR origin.
+TR = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+P2 = np.array([[F, 0, W / 2, 0], [0, F, H / 2, 0], [0, 0, 1, 0]], dtype=np.float64)
+
+
+def _raycast(origin: np.ndarray, dirs: np.ndarray, max_range: float = 45.0) -> tuple:
+    """Nearest hit of each ray: (t, semantic id, instance id); t = inf for no hit."""
+    n = dirs.shape[0]
+    t_best = np.full(n, np.inf)
+    sem = np.zeros(n, np.uint16)
+    inst = np.zeros(n, np.uint16)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -origin[2] / dirs[:, 2]
+        ok = (t > 0) & (t < t_best)
+        hit_y = np.abs(origin[1] + t * dirs[:, 1])
+        ground = np.where(hit_y < 4, ROAD, np.where(hit_y < 6, SIDEWALK, TERRAIN))
+        t_best = np.where(ok, t, t_best)
+        sem = np.where(ok, ground, sem).astype(np.uint16)
+        for x0, x1, y0, y1, z0, z1, s, k in BOXES:
+            lo = (np.array([x0, y0, z0]) - origin) / dirs
+            hi = (np.array([x1, y1, z1]) - origin) / dirs
+            tn = np.nanmax(np.minimum(lo, hi), axis=1)
+            tf = np.nanmin(np.maximum(lo, hi), axis=1)
+            ok = (tn <= tf) & (tn > 0) & (tn < t_best)
+            t_best = np.where(ok, tn, t_best)
+            sem = np.where(ok, s, sem).astype(np.uint16)
+            inst = np.where(ok, k, inst).astype(np.uint16)
+    far = t_best > max_range
+    t_best[far] = np.inf
+    sem[far] = 0
+    inst[far] = 0
+    return t_best, sem, inst
+
+
+def make_street(root: Path, n_frames: int = 6, step: float = 1.5) -> Path:
+    """Write a KITTI-layout sequence with scans, labels, images and 2D ground truth."""
+    root.mkdir(parents=True, exist_ok=True)
+    write_calib(root / "calib.txt", Calib(P2=P2, Tr=TR))
+    lidar_poses = []
+    el = np.deg2rad(np.linspace(-24.0, 4.0, 24))
+    az = np.deg2rad(np.arange(0.0, 360.0, 1.0))
+    ee, aa = np.meshgrid(el, az, indexing="ij")
+    ldirs = np.stack([np.cos(ee) * np.cos(aa), np.cos(ee) * np.sin(aa), np.sin(ee)], axis=-1).reshape(-1, 3)
+    vv, uu = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    cam_dirs = np.stack([(uu - W / 2) / F, (vv - H / 2) / F, np.ones_like(uu, dtype=float)], axis=-1)
+    # camera (x right, y down, z fwd) → world (x fwd, y left, z up)
+    pdirs = cam_dirs.reshape(-1, 3) @ np.linalg.inv(TR[:3, :3]).T
+    for i in range(n_frames):
+        origin = np.array([i * step, 0.0, 1.7])
+        pose = np.eye(4)
+        pose[:3, 3] = origin
+        lidar_poses.append(pose)
+        t, sem, inst = _raycast(origin, ldirs)
+        hit = np.isfinite(t)
+        xyz = (ldirs[hit] * t[hit, None]).astype(np.float32)  # LiDAR frame: no rotation
+        pts = np.concatenate([xyz, np.full((xyz.shape[0], 1), 0.5, np.float32)], axis=1)
+        fid = f"{i:06d}"
+        write_scan(root / "velodyne" / f"{fid}.bin", pts)
+        write_label(root / "labels" / f"{fid}.label", sem[hit], inst[hit])
+        _, psem, pinst = _raycast(origin, pdirs)
+        write_png16(root / "gt2d" / "semantic" / f"{fid}.png", psem.reshape(H, W))
+        write_png16(root / "gt2d" / "instance" / f"{fid}.png", pinst.reshape(H, W))
+        img = np.zeros((H, W, 3), np.uint8)
+        img[..., 0] = (psem.reshape(H, W) * 3 % 256).astype(np.uint8)
+        from leap_core.datasets.kitti import write_image
+
+        write_image(root / "image_2" / f"{fid}.png", img)
+    cam_poses = [TR @ p @ np.linalg.inv(TR) for p in lidar_poses]
+    write_poses(root / "poses.txt", np.stack(cam_poses))
+    return root
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_street(tmp_path_factory.mktemp("street") / "sequences" / "00")
+
+
+@pytest.fixture(scope="module")
+def schema():
+    return builtin_schema("semantickitti")
+
+
+def _labels(run_dir: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((run_dir / "export").iterdir())}
+
+
+@pytest.fixture(scope="module")
+def baseline(street: Path, schema, tmp_path_factory: pytest.TempPathFactory):
+    run_dir = tmp_path_factory.mktemp("runs") / "base"
+    calls: list[tuple[str, int, int]] = []
+    result = run_pipeline(street, schema, PipelineConfig(), run_dir, progress=lambda *a: calls.append(a))
+    return run_dir, result, calls
+
+
+# ------------------------------------------------------------------------------------------- tests
+def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
+    run_dir, result, calls = baseline
+    assert list(result.stages) == list(STAGES)
+    assert result.ran == [s for s in STAGES if s != "3dcn"]
+    assert result.stages["3dcn"].status == "skipped"
+    seq = KittiSequence(street)
+    for fid in seq.frame_ids:
+        n = seq.frame(seq.frame_ids.index(fid)).points.shape[0]
+        assert read_label(run_dir / "export" / f"{fid}.label", n).shape == (n,)
+        assert (run_dir / "labels2d" / f"{fid}.npz").is_file()
+        with np.load(run_dir / "points" / f"{fid}.npz") as z:
+            assert z["label"].dtype == np.int16 and z["label"].shape == (n,)
+    # Every stage reported progress ending at done == total.
+    for s in STAGES:
+        last = [c for c in calls if c[0] == s][-1]
+        assert last[1] == last[2]
+    status = stage_status(run_dir)
+    assert all(status[s]["status"] in ("done", "skipped") for s in STAGES)
+
+    m = result.metrics
+    assert m is not None and set(m["rows"]) == {"point", "voxel"}
+    cam, allp = m["camera"], m["all"]
+    # Voxels fuse several noisy views and label points the camera does not see in that scan.
+    assert cam["voxel"]["miou"] > 0.5
+    # Only 6 frames 1.5 m apart: points behind the car were seen by earlier frames only near the start.
+    assert allp["voxel"]["labeled_share"] > 1.5 * allp["point"]["labeled_share"]
+    assert m["coverage_ratio"]["voxel"] > 1.5
+    tables = result_tables(run_dir)
+    assert "simulated" in tables and "voxel" in tables and "point" in tables
+
+
+def test_exported_ids_match_metrics(baseline, street: Path, schema) -> None:
+    """The all-points IoU recomputed from the exported .label files equals metrics.json."""
+    run_dir, result, _ = baseline
+    seq = KittiSequence(street)
+    gt_all, pred_all = [], []
+    raw_to_idx = {int(e): i for i, e in enumerate(schema.export_ids())}
+    for i, fid in enumerate(seq.frame_ids):
+        frame = seq.frame(i)
+        gt_all.append(schema.map_gt(frame.labels))
+        raw = read_label(run_dir / "export" / f"{fid}.label") & 0xFFFF
+        pred_all.append(np.array([raw_to_idx.get(int(r), -1) for r in raw], np.int16))
+    m = evaluate(np.concatenate(gt_all), np.concatenate(pred_all), schema.names, schema.categories(),
+                 ignore_unlabeled_pred=False)
+    stored = result.metrics["all"]["voxel"]
+    assert m.miou == pytest.approx(stored["miou"], abs=1e-9)
+
+
+def test_second_run_skips_everything(baseline, street: Path, schema) -> None:
+    run_dir, _, _ = baseline
+    before = _labels(run_dir)
+    again = run_pipeline(street, schema, PipelineConfig(), run_dir)
+    assert again.ran == []
+    assert _labels(run_dir) == before
+    assert not any(plan_stages(street, schema, PipelineConfig(), run_dir).values())
+
+
+def test_changing_k_reruns_only_smooth_and_later(baseline, street: Path, schema, tmp_path: Path) -> None:
+    src, _, _ = baseline
+    import shutil
+
+    run_dir = tmp_path / "copy"
+    shutil.copytree(src, run_dir)
+    cfg = config_from_dict({"smoothing": {"k": 4}})
+    plan = plan_stages(street, schema, cfg, run_dir)
+    assert [s for s, todo in plan.items() if todo] == ["smooth", "3dcn", "label_points", "evaluate", "export"]
+    result = run_pipeline(street, schema, cfg, run_dir)
+    assert result.ran == ["smooth", "label_points", "evaluate", "export"]  # 3dcn is off: nothing to run
+    # A colour edit changes nothing downstream.
+    recolored = schema.with_classes(
+        [dataclasses.replace(schema.classes[0], color=(1, 2, 3)), *schema.classes[1:]]
+    )
+    assert run_pipeline(street, recolored, cfg, run_dir).ran == []
+
+
+def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, tmp_path: Path) -> None:
+    base_dir, _, _ = baseline
+    run_dir = tmp_path / "interrupted"
+    for stage, at in (("labels2d", 3), ("project", 2), ("label_points", 4)):
+        def cancel(s: str, done: int, total: int, stage: str = stage, at: int = at) -> None:
+            if s == stage and done == at:
+                raise Cancelled()
+
+        with pytest.raises(Cancelled):
+            run_pipeline(street, schema, PipelineConfig(), run_dir, progress=cancel)
+        assert stage_status(run_dir)[stage]["status"] == "cancelled"
+    result = run_pipeline(street, schema, PipelineConfig(), run_dir)
+    # The frames finished before the last interruption were not recomputed.
+    assert 0 < result.stages["label_points"].frames_computed < 6
+    assert result.stages["labels2d"].ran is False
+    assert _labels(run_dir) == _labels(base_dir)
+    assert (run_dir / "grid.npz").read_bytes() == (base_dir / "grid.npz").read_bytes()
+
+
+def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path) -> None:
+    cache = tmp_path / "cache"
+    a = run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3), cache_dir=cache,
+                     until="fuse")
+    assert a.frames == (0, 1, 2)
+    names = sorted(p.name for p in (tmp_path / "a" / "labels2d").iterdir())
+    assert names == [f"{i:06d}.npz" for i in range(3)]
+    b = run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 4), cache_dir=cache,
+                     until="labels2d")
+    assert stage_status(tmp_path / "b")["labels2d"]["cache_hits"] == 3
+    assert b.stages["labels2d"].frames_computed == 4
+    same = [(tmp_path / d / "labels2d" / "000001.npz").read_bytes() for d in ("a", "b")]
+    assert same[0] == same[1]
+    with pytest.raises(LeapError, match="out of range"):
+        run_pipeline(street, schema, PipelineConfig(), tmp_path / "c", frames=range(4, 9))
+
+
+def test_zero_noise_point_labels_match_ground_truth(street: Path, schema, tmp_path: Path) -> None:
+    """Exact 2D labels, no depth-clustering loss: projected labels equal the 3D ground truth."""
+    cfg = dataclasses.replace(PipelineConfig(), simulated=SimulatedLabelerConfig.exact())
+    result = run_pipeline(street, schema, cfg, tmp_path / "exact", until="evaluate")
+    cam = result.metrics["camera"]["point"]
+    # Points straddling an object edge may land on a pixel whose ray hits the neighbour, so allow a little.
+    assert cam["miou"] > 0.9
+    assert result.metrics["camera"]["voxel"]["miou"] > 0.85
+
+
+def test_corrections_override_voxels(baseline, street: Path, schema, tmp_path: Path) -> None:
+    import shutil
+
+    from leap_core.fusion import VoxelGrid
+
+    run_dir = tmp_path / "corr"
+    shutil.copytree(baseline[0], run_dir)
+    grid = VoxelGrid.load(run_dir / "grid.npz")
+    keys = grid.keys[:50]
+    np.savez(run_dir / "corrections.npz", keys=keys, class_idx=np.full(50, schema.index("trunk")))
+    result = run_pipeline(street, schema, PipelineConfig(), run_dir, until="fuse")
+    assert result.ran == ["fuse"]
+    fixed = VoxelGrid.load(run_dir / "grid.npz")
+    lab, _ = fixed.labels_and_confidence()
+    assert (lab[fixed.lookup(keys)] == schema.index("trunk")).all()
+    np.savez(run_dir / "corrections.npz", keys=keys, class_idx=np.full(50, 99))
+    with pytest.raises(LeapError, match="corrections.npz"):
+        run_pipeline(street, schema, PipelineConfig(), run_dir, until="fuse")
+
+
+def test_metrics_from_confusion_equals_evaluate() -> None:
+    rng = np.random.default_rng(0)
+    gt = rng.integers(-1, 4, 500).astype(np.int16)
+    pred = rng.integers(-1, 4, 500).astype(np.int16)
+    names, cats = ["a", "b", "c", "d"], ["x", "x", "y", "z"]
+    from leap_core.metrics import confusion_matrix
+
+    for ignore in (True, False):
+        a = evaluate(gt, pred, names, cats, ignore_unlabeled_pred=ignore)
+        b = metrics_from_confusion(confusion_matrix(gt[:200], pred[:200], 4)
+                                   + confusion_matrix(gt[200:], pred[200:], 4), names, cats,
+                                   ignore_unlabeled_pred=ignore)
+        assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
+
+
+def test_load_metrics_roundtrip(baseline) -> None:
+    run_dir, result, _ = baseline
+    tables = load_metrics(run_dir)
+    assert tables["camera"]["voxel"].miou == pytest.approx(result.metrics["camera"]["voxel"]["miou"])
+
+
+def test_bad_inputs_are_one_line_errors(street: Path, schema, tmp_path: Path) -> None:
+    with pytest.raises(LeapError, match="velodyne"):
+        run_pipeline(tmp_path, schema, PipelineConfig(), tmp_path / "r")
+    with pytest.raises(LeapError, match="until"):
+        run_pipeline(street, schema, PipelineConfig(), tmp_path / "r", until="nope")
+
+
+# -------------------------------------------------------------------------------------------- config
+def test_config_roundtrip_through_json() -> None:
+    cfg = config_from_dict({"fusion": {"voxel_size": 0.3}, "simulated": {"peak_prob": [0.6, 0.7]},
+                            "consistency": {"enabled": True, "backbone": {"channels": 32}}})
+    d = json.loads(json.dumps(config_to_dict(cfg)))
+    assert config_from_dict(d) == cfg
+    assert cfg.fusion.voxel_size == 0.3 and cfg.simulated.peak_prob == (0.6, 0.7)
+    assert cfg.consistency.backbone.channels == 32 and cfg.consistency.backbone.layers == 6
+    # Overrides apply on a base, keeping the base's other values.
+    again = config_from_dict({"smoothing": {"k": 3}}, cfg)
+    assert again.smoothing.k == 3 and again.fusion.voxel_size == 0.3
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"fusion": {"voxel_size": 0}}, "pipeline.fusion.voxel_size: must be"),
+        (
+            {"fusion": {"voxel_sise": 0.1}},
+            "pipeline.fusion.voxel_sise: unknown setting (did you mean 'voxel_size'?)",
+        ),
+        ({"smoothing": {"k": "9"}}, "pipeline.smoothing.k: must be an integer"),
+        ({"smoothing": {"k": True}}, "pipeline.smoothing.k: must be an integer"),
+        ({"consistency": {"share": 1.5}}, "pipeline.consistency.share: must be in (0, 1]"),
+        (
+            {"consistency": {"backbone": {"channels": 2}}},
+            "pipeline.consistency.backbone.channels: must be >= 4",
+        ),
+        ({"grounded_sam": {"box_threshold": 1.5}}, "pipeline.grounded_sam.box_threshold: must be in (0, 1)"),
+        ({"labeler": "sam"}, "pipeline.labeler: must be one of 'simulated', 'grounded-sam'"),
+        ({"simulated": {"peak_prob": [0.5]}}, "pipeline.simulated.peak_prob: must be a list of 2 values"),
+        (
+            {"simulated": {"class_recall": {"car": 2}}},
+            "pipeline.simulated.class_recall.car: must be in [0, 1]",
+        ),
+        ({"projection": 3}, "pipeline.projection: must be a mapping"),
+        ({"bogus": 1}, "pipeline.bogus: unknown setting"),
+    ],
+)
+def test_config_errors_name_the_field(overrides: dict, message: str) -> None:
+    with pytest.raises(LeapError) as info:
+        config_from_dict(overrides)
+    assert str(info.value).startswith(message)
+    assert "\n" not in str(info.value)
+
+
+def test_form_fields() -> None:
+    form = {"k": 5, "threshold": 0.3, "consistency": True, "cluster_gap": 2.0}
+    cfg = config_from_dict(overrides_from_form(form))
+    vals = form_values(cfg)
+    assert vals["k"] == 5 and vals["threshold"] == 0.3 and vals["consistency"] is True
+    assert vals["cluster_gap"] == 2.0 and vals["voxel_size"] == 0.2
+    with pytest.raises(LeapError, match="unknown field 'kk'"):
+        overrides_from_form({"kk": 1})
+
+
+# ----------------------------------------------------------------------------------------------- CLI
+def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from leap_core.cli import app
+    from leap_core.schema import projects_dir
+
+    project = tmp_path / "proj.yaml"
+    text = (projects_dir() / "semantickitti.yaml").read_text()
+    project.write_text(text + "\npipeline:\n  smoothing: {k: 5}\n  simulated: {recall: 0.95}\n")
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
+                                   "--frames", "0:4", "--labeler", "simulated"])
+    assert res.exit_code == 0, res.output
+    assert "2D labels: simulated" in res.output
+    assert "point" in res.output and "voxel" in res.output and "mIoU" in res.output
+    assert f"4 .label files (+ .conf confidences) in {out / 'export'}" in res.output
+    assert json.loads((out / "stages.json").read_text())["smooth"]["status"] == "done"
+    assert len(list((out / "export").glob("*.label"))) == 4
+    again = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
+                                     "--frames", "0:4"])
+    assert again.exit_code == 0 and "labels2d cached" in again.output
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--labeler", "dino"], "pipeline.labeler: must be one of"),
+        (["--frames", "x:y"], "--frames 'x:y'"),
+        (["--frames", "3:99"], "out of range"),
+        (["--schema", "nope"], "--schema nope"),
+    ],
+)
+def test_cli_run_bad_inputs(street: Path, tmp_path: Path, args: list[str], message: str) -> None:
+    from typer.testing import CliRunner
+
+    from leap_core.cli import app
+
+    res = CliRunner().invoke(app, ["run", str(street), "--out", str(tmp_path / "r"), *args])
+    assert res.exit_code == 2
+    last = res.output.strip().splitlines()[-1]
+    assert last.startswith("error:") and message in last
+
+
+def test_demo_project_file_is_valid_and_in_sync() -> None:
+    from leap_core.schema import load_project_file, projects_dir
+
+    schema, pipeline = load_project_file(projects_dir() / "demo.yaml")
+    cfg = config_from_dict(pipeline)
+    # The demo's classes are a copy of the SemanticKITTI schema; its pipeline section spells out the defaults.
+    assert schema.classes == builtin_schema("semantickitti").classes
+    assert cfg == PipelineConfig()
+
+
+@pytest.mark.slow
+def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -> None:
+    """3D-CN wiring: rows +3D-CN x1/x2, every point labeled, a temperature change refits nothing upstream."""
+    import shutil
+
+    run_dir = tmp_path / "cn"
+    shutil.copytree(baseline[0], run_dir)
+    tiny = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1,
+            "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+    cfg = config_from_dict({"consistency": tiny})
+    result = run_pipeline(street, schema, cfg, run_dir)
+    assert result.ran == ["3dcn", "label_points", "evaluate", "export"]
+    m = result.metrics
+    assert m["rows"] == ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
+    # The network predicts every point, so every point gets a label (all-points protocol share = 1).
+    assert m["all"]["+3D-CN x2"]["labeled_share"] == pytest.approx(1.0)
+    assert m["all"]["voxel"] == baseline[1].metrics["all"]["voxel"]
+    with np.load(run_dir / "points" / "000000.npz") as z:
+        assert (z["label"] >= 0).all()
+    assert (run_dir / "3dcn" / "3dcn_iter2.pt").is_file()
+    # Temperature only changes the fusion back: the checkpoints are reused and upstream stages are cached.
+    warmer = config_from_dict({"consistency": {**tiny, "temperature": 4.0}})
+    again = run_pipeline(street, schema, warmer, run_dir)
+    assert again.ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert "+3D-CN x1" in (result_tables(run_dir) or "")

@@ -1,0 +1,245 @@
+"""The simulated labeler's noise knobs on hand-made 2D ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_png16, write_poses, write_scan
+from leap_core.errors import LeapError
+from leap_core.labelers.simulated import SimulatedLabeler, SimulatedLabelerConfig
+from leap_core.schema import ClassDef, Schema
+
+H, W = 48, 64
+
+# Raw ids: 40 road, 48 sidewalk, 72 terrain, 70 vegetation, 10 car, 18 truck, 99 (unmapped).
+SCHEMA = Schema(
+    name="mini",
+    classes=(
+        ClassDef("car", (100, 150, 245), ("car",), 10, (10,), "vehicle"),
+        ClassDef("truck", (80, 30, 180), ("truck",), 18, (18,), "vehicle"),
+        ClassDef("road", (255, 0, 255), ("road",), 40, (40,), "flat"),
+        ClassDef("sidewalk", (75, 0, 75), ("sidewalk",), 48, (48,), "flat"),
+        ClassDef("vegetation", (0, 175, 0), ("vegetation",), 70, (70,), "nature"),
+        ClassDef("terrain", (150, 240, 80), ("terrain",), 72, (72,), "nature"),
+    ),
+)
+CAR, TRUCK, ROAD, SIDEWALK, VEG, TERRAIN = range(6)
+
+
+def _gt_images(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """A street-like label image: vegetation top, terrain strip, road bottom, two cars, one unmapped blob."""
+    sem = np.zeros((H, W), np.uint16)
+    inst = np.zeros((H, W), np.uint16)
+    sem[:16] = 70
+    sem[16:24] = 72
+    sem[24:40] = 40
+    sem[40:] = 48
+    sem[30:38, 5 + k : 20 + k] = 10
+    inst[30:38, 5 + k : 20 + k] = 1
+    sem[26:36, 35:55] = 10
+    inst[26:36, 35:55] = 2
+    sem[2:6, 50:60] = 99  # unmapped id: must get no mask
+    # A second, disconnected terrain region: a separate stuff mask.
+    sem[44:47, 2:12] = 72
+    return sem, inst
+
+
+def make_sequence(root: Path, n_frames: int = 3) -> KittiSequence:
+    """Smallest valid KITTI folder carrying 2D ground truth (the labeler reads only gt2d)."""
+    root.mkdir(parents=True, exist_ok=True)
+    p2 = np.array([[50.0, 0, W / 2, 0], [0, 50.0, H / 2, 0], [0, 0, 1, 0]])
+    write_calib(root / "calib.txt", Calib(P2=p2, Tr=np.eye(4)))
+    write_poses(root / "poses.txt", np.tile(np.eye(4), (n_frames, 1, 1)))
+    for i in range(n_frames):
+        fid = f"{i:06d}"
+        write_scan(root / "velodyne" / f"{fid}.bin", np.zeros((4, 4), np.float32))
+        sem, inst = _gt_images(i)
+        write_png16(root / "gt2d" / "semantic" / f"{fid}.png", sem)
+        write_png16(root / "gt2d" / "instance" / f"{fid}.png", inst)
+    return KittiSequence(root)
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory: pytest.TempPathFactory) -> KittiSequence:
+    return make_sequence(tmp_path_factory.mktemp("sim_seq"))
+
+
+def _argmax_image(masks) -> np.ndarray:
+    probs = masks.pixel_probs()
+    covered = probs.sum(axis=2) > 0
+    out = np.where(covered, probs.argmax(axis=2), -1).astype(np.int16)
+    return out
+
+
+def test_zero_noise_reproduces_ground_truth(seq: KittiSequence) -> None:
+    lab = SimulatedLabeler(SimulatedLabelerConfig.exact())
+    for frame in seq:
+        masks = lab.label(frame, SCHEMA)
+        gt = SCHEMA.map_gt(frame.gt2d_semantic.ravel()).reshape(H, W)
+        np.testing.assert_array_equal(_argmax_image(masks), gt)
+        np.testing.assert_array_equal(masks.confidence, 1.0)
+        assert set(np.unique(masks.probs)) <= {0.0, 1.0}
+        # 2 cars + vegetation + 2 terrain regions + road + sidewalk; the unmapped blob has no mask.
+        assert masks.num_masks == 7
+        # Masks partition the mapped pixels: no pixel is covered twice.
+        assert masks.dense().sum(axis=0).max() == 1
+
+
+def test_recall_zero_gives_no_masks(seq: KittiSequence) -> None:
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), recall=0.0)
+    masks = SimulatedLabeler(cfg).label(seq.frame(0), SCHEMA)
+    assert masks.num_masks == 0
+    assert masks.probs.shape == (0, SCHEMA.num_classes)
+
+
+def test_class_recall_drops_only_that_class(seq: KittiSequence) -> None:
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), class_recall={"car": 0.0, "bus": 0.0})
+    masks = SimulatedLabeler(cfg).label(seq.frame(0), SCHEMA)
+    assert masks.num_masks == 5
+    assert not (masks.probs.argmax(axis=1) == CAR).any()
+
+
+def test_min_region_drops_small_regions(seq: KittiSequence) -> None:
+    # The small terrain strip has 30 pixels, every other region more than 100.
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), min_region_px=31)
+    masks = SimulatedLabeler(cfg).label(seq.frame(0), SCHEMA)
+    assert masks.num_masks == 6
+
+
+def test_confusion_moves_mass_to_partner(seq: KittiSequence) -> None:
+    frame = seq.frame(0)
+    exact = SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA)
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), confusion_prob=1.0, peak_prob=(0.8, 0.8))
+    confused = SimulatedLabeler(cfg).label(frame, SCHEMA)
+    assert confused.num_masks == exact.num_masks
+    true = exact.probs.argmax(axis=1)
+    pred = confused.probs.argmax(axis=1)
+    pairs = {CAR: {TRUCK}, ROAD: {SIDEWALK}, SIDEWALK: {ROAD}, TERRAIN: {VEG}, VEG: {TERRAIN}}
+    for t, p, row in zip(true, pred, confused.probs):
+        assert p in pairs[int(t)]
+        assert row[p] == pytest.approx(0.8, abs=1e-6)
+        # Half of the remaining mass goes back to the true class (partner_share = 0.5).
+        assert row[t] == pytest.approx(0.1, abs=1e-6)
+        assert row.sum() == pytest.approx(1.0, abs=1e-6)
+    # Same masks (pixels), only the distributions changed.
+    np.testing.assert_array_equal(confused.bits, exact.bits)
+
+
+def test_soft_probabilities_and_confidence_ranges(seq: KittiSequence) -> None:
+    cfg = dataclasses.replace(
+        SimulatedLabelerConfig.exact(), peak_prob=(0.5, 0.9), confidence=(0.3, 0.9), class_recall={}
+    )
+    masks = SimulatedLabeler(cfg).label(seq.frame(1), SCHEMA)
+    peak = masks.probs.max(axis=1)
+    assert ((peak >= 0.5 - 1e-6) & (peak <= 0.9 + 1e-6)).all()
+    assert ((masks.confidence >= 0.3) & (masks.confidence <= 0.9)).all()
+    np.testing.assert_allclose(masks.probs.sum(axis=1), 1.0, atol=1e-5)
+    # No confusion: the peak stays on the true class, so the argmax image is still the ground truth.
+    gt = SCHEMA.map_gt(seq.frame(1).gt2d_semantic.ravel()).reshape(H, W)
+    np.testing.assert_array_equal(_argmax_image(masks), gt)
+
+
+def test_bleed_dilates_thing_masks_onto_background(seq: KittiSequence) -> None:
+    frame = seq.frame(0)
+    exact = SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA)
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), bleed_px=3)
+    bled = SimulatedLabeler(cfg).label(frame, SCHEMA)
+    grow = bled.dense().sum(axis=(1, 2)) - exact.dense().sum(axis=(1, 2))
+    is_car = exact.probs.argmax(axis=1) == CAR
+    assert (grow[~is_car] == 0).all()  # stuff_bleed_px = 0
+    assert (grow[is_car] >= 0).all()
+    # A mask only ever grows, and it contains the original.
+    assert (bled.dense() >= exact.dense()).all()
+
+
+def test_jitter_shifts_all_masks_together(seq: KittiSequence) -> None:
+    frame = seq.frame(0)
+    exact = _argmax_image(SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA))
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), jitter_px=3.0, seed=5)
+    moved = _argmax_image(SimulatedLabeler(cfg).label(frame, SCHEMA))
+    assert (moved != exact).any()
+    # A pure rigid move: some integer shift of the ground truth matches most pixels again.
+    best = max(
+        (np.mean(np.roll(exact, (dy, dx), axis=(0, 1))[8:-8, 8:-8] == moved[8:-8, 8:-8]), dy, dx)
+        for dy in range(-8, 9)
+        for dx in range(-8, 9)
+    )
+    assert best[0] > 0.97
+
+
+def test_deterministic_per_seed_and_frame(seq: KittiSequence) -> None:
+    lab = SimulatedLabeler(SimulatedLabelerConfig(seed=3))
+    forward = [lab.label(f, SCHEMA) for f in seq]
+    fresh = SimulatedLabeler(SimulatedLabelerConfig(seed=3))
+    backward = [fresh.label(f, SCHEMA) for f in reversed(list(seq))]
+    for a, b in zip(forward, reversed(backward)):
+        np.testing.assert_array_equal(a.bits, b.bits)
+        np.testing.assert_array_equal(a.probs, b.probs)
+        np.testing.assert_array_equal(a.confidence, b.confidence)
+    other = SimulatedLabeler(SimulatedLabelerConfig(seed=4)).label(seq.frame(0), SCHEMA)
+    same = np.array_equal(other.probs, forward[0].probs) and np.array_equal(other.bits, forward[0].bits)
+    assert not same
+
+
+def test_fingerprint_tracks_config_and_schema() -> None:
+    a = SimulatedLabeler(SimulatedLabelerConfig()).fingerprint(SCHEMA)
+    assert a == SimulatedLabeler(SimulatedLabelerConfig()).fingerprint(SCHEMA)
+    assert a != SimulatedLabeler(SimulatedLabelerConfig(recall=0.5)).fingerprint(SCHEMA)
+    renamed = SCHEMA.with_classes(
+        [dataclasses.replace(SCHEMA.classes[0], name="automobile"), *SCHEMA.classes[1:]]
+    )
+    assert a != SimulatedLabeler(SimulatedLabelerConfig()).fingerprint(renamed)
+    recolored = SCHEMA.with_classes(
+        [dataclasses.replace(SCHEMA.classes[0], color=(1, 2, 3)), *SCHEMA.classes[1:]]
+    )
+    assert a == SimulatedLabeler(SimulatedLabelerConfig()).fingerprint(recolored)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"recall": 1.5}, "simulated.recall"),
+        ({"peak_prob": (0.9, 0.5)}, "simulated.peak_prob"),
+        ({"bleed_px": -1}, "simulated.bleed_px"),
+        ({"class_recall": {"car": 2.0}}, "simulated.class_recall.car"),
+        ({"confusion_pairs": (("car", "car"),)}, "simulated.confusion_pairs"),
+    ],
+)
+def test_config_validation_names_field(kwargs: dict, field: str) -> None:
+    with pytest.raises(LeapError, match=field):
+        SimulatedLabelerConfig(**kwargs)
+
+
+def test_missing_gt2d_is_a_clear_error(tmp_path: Path) -> None:
+    seq = make_sequence(tmp_path / "s", n_frames=1)
+    (tmp_path / "s" / "gt2d" / "instance" / "000000.png").unlink()
+    with pytest.raises(LeapError, match="000000.png"):
+        SimulatedLabeler().label(seq.frame(0), SCHEMA)
+
+
+def test_misses_persist_within_a_block_of_frames(tmp_path: Path) -> None:
+    seq = make_sequence(tmp_path / "s", n_frames=6)
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), recall=0.5, persistence_frames=3, seed=1)
+    lab = SimulatedLabeler(cfg)
+
+    def kept_cars(i: int) -> tuple[int, ...]:
+        masks = lab.label(seq.frame(i), SCHEMA)
+        # Car instances sit at fixed rows: instance 1 spans rows 30-37, instance 2 rows 26-35.
+        dense = masks.dense()[masks.probs.argmax(axis=1) == CAR]
+        return tuple(sorted(int(np.flatnonzero(m.any(axis=1))[0]) for m in dense))
+
+    def kept_classes(i: int) -> list[int]:
+        return sorted(lab.label(seq.frame(i), SCHEMA).probs.argmax(axis=1).tolist())
+
+    for block in ((0, 1, 2), (3, 4, 5)):
+        assert len({kept_cars(i) for i in block}) == 1
+        assert len({tuple(kept_classes(i)) for i in block}) == 1
+    # Over many seeds the kept share approaches the recall.
+    cfg1 = dataclasses.replace(cfg, persistence_frames=1)
+    counts = [SimulatedLabeler(dataclasses.replace(cfg1, seed=s)).label(seq.frame(0), SCHEMA).num_masks
+              for s in range(40)]
+    assert 0.35 < np.mean(counts) / 7 < 0.65
