@@ -1,0 +1,230 @@
+"""Tiny RANDOM-WEIGHT Grounding DINO and SAM checkpoints, built offline from configs.
+
+These models exercise the real code path of the ``grounded-sam`` labeler (folder loading, tokenizer
+offsets, detector outputs, SAM masks, caching) in tests and on machines without the real weights.
+**Their weights are random: the labels they produce are meaningless.** They are written in the same
+folder layout as real checkpoints (``<dir>/grounding-dino-tiny``, ``<dir>/sam-vit-base``), so
+``leap labels2d … --models <dir>`` and ``leap run --labeler grounded-sam`` accept them unchanged; each
+folder carries a :data:`MARKER_FILE` so the app can warn that the labels are not real.
+
+Details that a tiny Grounding DINO must get right (METHOD.md, "Facts about the tools"):
+
+* at least 2 decoder layers;
+* the text model hard-codes token ids 101 [CLS], 102 [SEP], 1012 ``.`` and 1029 ``?`` to split phrases,
+  so the tiny BERT vocabulary puts those tokens at exactly those ids (phrases otherwise stop separating);
+* SAM's vision ``num_pos_feats`` must be half the prompt-encoder hidden size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from leap_core.io_utils import atomic_write_bytes
+
+MARKER_FILE = "LEAP_TINY_RANDOM_MODEL.txt"
+"""Present in every folder written here; its presence means "random weights, meaningless labels"."""
+
+_MARKER_TEXT = (
+    "This is a tiny model with RANDOM weights, written by `leap make-tiny-models`.\n"
+    "It exercises LeAP Studio's Grounding DINO + SAM code path only; its labels are meaningless.\n"
+    "For real labels download the real weights (see docs/real_models.md).\n"
+)
+
+# Whole-word entries make token counts of common prompts realistic; any other lowercase word still
+# tokenizes, into single-character word pieces.
+_WORDS = (
+    "car automobile van jeep bicycle bike motorcycle motorbike scooter truck lorry pickup bus train tram "
+    "trailer vehicle other person pedestrian people human child bicyclist cyclist rider motorcyclist biker "
+    "road street lane marking parking lot space sidewalk footpath pavement curb ground median strip central "
+    "reservation gravel dirt building house wall roof fence railing guardrail barrier vegetation tree bush "
+    "hedge shrub plant trunk bark branch terrain grass soil lawn field pole lamp post utility traffic sign "
+    "signboard light wire cable power line drone crop orchard row tower barn shed farm a an the of on in "
+    "with and or"
+).split()
+
+SPECIAL_IDS = {"[PAD]": 0, "[UNK]": 100, "[CLS]": 101, "[SEP]": 102, "[MASK]": 103, ".": 1012, "?": 1029}
+"""Token ids the tiny vocabulary must share with bert-base-uncased (Grounding DINO relies on them)."""
+
+
+def tiny_vocab() -> dict[str, int]:
+    """A BERT WordPiece vocabulary of 1100 entries with :data:`SPECIAL_IDS` at their BERT ids."""
+    size = 1100
+    slots: list[str | None] = [None] * size
+    for tok, i in SPECIAL_IDS.items():
+        slots[i] = tok
+    chars = list("abcdefghijklmnopqrstuvwxyz0123456789")
+    punct = ["-", ",", "'", "(", ")", "/", "&", ":", ";", "!"]
+    regular = list(dict.fromkeys([*chars, *("##" + c for c in chars), *punct, *_WORDS]))
+    free = (i for i in range(104, size) if slots[i] is None)
+    for tok in regular:
+        slots[next(free)] = tok
+    vocab: dict[str, int] = {}
+    for i, tok in enumerate(slots):
+        vocab[tok if tok is not None else f"[unused{i}]"] = i
+    return vocab
+
+
+@dataclass(frozen=True)
+class TinyModelsConfig:
+    """Sizes of the tiny random models (small enough to run a frame in well under a second on a CPU)."""
+
+    seed: int = 0
+    """Seed of the random weights (the same seed writes the same weights)."""
+    max_text_len: int = 128
+    """Detector text-token budget (the real model has 256); small values force multi-pass splitting."""
+    num_queries: int = 30
+    """Detector query regions Q (the real model has 900)."""
+    detector_shortest_edge: int = 96
+    """Detector image processor: resize so the short side is this many pixels ..."""
+    detector_longest_edge: int = 192
+    """... and the long side at most this many."""
+    sam_image_size: int = 64
+    """SAM input size (the real one is 1024); images are resized to this long side and padded square."""
+
+
+def build_tiny_detector(cfg: TinyModelsConfig | None = None):  # noqa: ANN201 - transformers types
+    """``(model, processor)``: a tiny random GroundingDinoForObjectDetection and its processor."""
+    import torch
+    from transformers import BertTokenizer, GroundingDinoConfig, GroundingDinoForObjectDetection
+    from transformers.models.grounding_dino.image_processing_pil_grounding_dino import (
+        GroundingDinoImageProcessorPil,
+    )
+    from transformers.models.grounding_dino.processing_grounding_dino import GroundingDinoProcessor
+
+    cfg = cfg or TinyModelsConfig()
+    vocab = tiny_vocab()
+    config = GroundingDinoConfig(
+        backbone_config={
+            "model_type": "swin",
+            "embed_dim": 16,
+            "depths": [1, 1, 1, 1],
+            "num_heads": [1, 1, 1, 1],
+            "window_size": 4,
+            "image_size": cfg.detector_shortest_edge,
+            "out_indices": [2, 3, 4],
+        },
+        text_config={
+            "model_type": "bert",
+            "vocab_size": max(vocab.values()) + 1,
+            "hidden_size": 32,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "intermediate_size": 64,
+            "max_position_embeddings": max(cfg.max_text_len, 64),
+        },
+        num_queries=cfg.num_queries,
+        encoder_layers=1,
+        decoder_layers=2,
+        d_model=32,
+        encoder_ffn_dim=64,
+        decoder_ffn_dim=64,
+        encoder_attention_heads=2,
+        decoder_attention_heads=2,
+        max_text_len=cfg.max_text_len,
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed)
+        model = GroundingDinoForObjectDetection(config).eval()
+    tokenizer = BertTokenizer(vocab=vocab, do_lower_case=True, model_max_length=cfg.max_text_len)
+    image_processor = GroundingDinoImageProcessorPil(
+        size={"shortest_edge": cfg.detector_shortest_edge, "longest_edge": cfg.detector_longest_edge}
+    )
+    return model, GroundingDinoProcessor(image_processor=image_processor, tokenizer=tokenizer)
+
+
+def build_tiny_segmenter(cfg: TinyModelsConfig | None = None):  # noqa: ANN201 - transformers types
+    """``(model, processor)``: a tiny random SamModel and its processor."""
+    import torch
+    from transformers import SamConfig, SamModel
+    from transformers.models.sam.image_processing_pil_sam import SamImageProcessorPil
+    from transformers.models.sam.processing_sam import SamProcessor
+
+    cfg = cfg or TinyModelsConfig()
+    size = cfg.sam_image_size
+    prompt_hidden = 16
+    config = SamConfig(
+        vision_config={
+            "hidden_size": 32,
+            "output_channels": prompt_hidden,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "image_size": size,
+            "patch_size": 8,
+            "window_size": 4,
+            "global_attn_indexes": [1],
+            "num_pos_feats": prompt_hidden // 2,
+            "mlp_dim": 64,
+            "initializer_range": 0.02,
+        },
+        prompt_encoder_config={"hidden_size": prompt_hidden, "image_size": size, "patch_size": 8},
+        mask_decoder_config={
+            "hidden_size": prompt_hidden,
+            "mlp_dim": 32,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "iou_head_hidden_dim": 16,
+        },
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed + 1)
+        model = SamModel(config).eval()
+    image_processor = SamImageProcessorPil(
+        size={"longest_edge": size}, pad_size={"height": size, "width": size}
+    )
+    return model, SamProcessor(image_processor=image_processor)
+
+
+@dataclass(frozen=True)
+class TinyModelPaths:
+    """Folders written by :func:`make_tiny_models`."""
+
+    models_dir: Path
+    """Pass this as ``--models`` / ``GroundedSamConfig.models_dir``."""
+    detector: Path
+    """``models_dir/grounding-dino-tiny``"""
+    segmenter: Path
+    """``models_dir/sam-vit-base``"""
+
+
+def make_tiny_models(
+    models_dir: str | Path,
+    cfg: TinyModelsConfig | None = None,
+    detector_name: str = "grounding-dino-tiny",
+    segmenter_name: str = "sam-vit-base",
+) -> TinyModelPaths:
+    """Write tiny random Grounding DINO and SAM folders (weights, configs, processors, marker files).
+
+    The folder names default to the last part of the labeler's default model ids, so pointing
+    ``GroundedSamConfig.models_dir`` at ``models_dir`` loads them with no other setting.
+    RANDOM WEIGHTS: the labels these models produce are meaningless; they only exercise the code path.
+    """
+    root = Path(models_dir)
+    det_dir, seg_dir = root / detector_name, root / segmenter_name
+    det_model, det_proc = build_tiny_detector(cfg)
+    seg_model, seg_proc = build_tiny_segmenter(cfg)
+    for folder, model, proc in ((det_dir, det_model, det_proc), (seg_dir, seg_model, seg_proc)):
+        folder.mkdir(parents=True, exist_ok=True)
+        model.save_pretrained(folder)
+        proc.save_pretrained(folder)
+        atomic_write_bytes(folder / MARKER_FILE, _MARKER_TEXT.encode())
+    atomic_write_bytes(root / "README.txt", _MARKER_TEXT.encode())
+    return TinyModelPaths(models_dir=root, detector=det_dir, segmenter=seg_dir)
+
+
+def is_tiny_random(folder: str | Path) -> bool:
+    """True when ``folder`` was written by :func:`make_tiny_models` (random weights)."""
+    return (Path(folder) / MARKER_FILE).is_file()
+
+
+__all__ = [
+    "MARKER_FILE",
+    "SPECIAL_IDS",
+    "TinyModelPaths",
+    "TinyModelsConfig",
+    "build_tiny_detector",
+    "build_tiny_segmenter",
+    "is_tiny_random",
+    "make_tiny_models",
+    "tiny_vocab",
+]
