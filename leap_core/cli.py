@@ -19,6 +19,400 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
+@app.command("labels2d")
+def labels2d(
+    dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    schema: str = typer.Option(
+        "semantickitti", "--schema", help="Project/schema YAML file, or a built-in name in projects/."
+    ),
+    models: str | None = typer.Option(
+        None, "--models", help="Folder with one subfolder per model (grounding-dino-tiny/, sam-vit-base/)."
+    ),
+    mode: str | None = typer.Option(None, "--mode", help="joint (all prompts in one text) or per-class."),
+    batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Images per forward pass."),
+    cache: str | None = typer.Option(
+        None, "--cache", help="Shared cache folder, as `leap run --cache` (default: <dataset>/leap_cache)."
+    ),
+    threshold: float | None = typer.Option(None, "--threshold", help="Box threshold (default: project's)."),
+    device: str | None = typer.Option(None, "--device", help="auto, cpu or cuda."),
+) -> None:
+    """Precompute Grounding DINO + SAM 2D labels of every frame into the 2D cache (resumable: frames
+    already in the cache are skipped, so an interrupted run continues where it stopped).
+
+    `leap run DATASET --labeler grounded-sam --cache <same folder>` then reads them instead of running
+    the models."""
+    import dataclasses
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from leap_core.config import config_from_dict
+    from leap_core.datasets.kitti import Frame, KittiSequence
+    from leap_core.errors import LeapError
+    from leap_core.labelers.cache import LabelCache, default_cache_dir, image_digest, pass_cache_dir
+    from leap_core.labelers.grounded_sam import GroundedSamLabeler
+    from leap_core.schema import load_project_file, projects_dir
+
+    try:
+        seq = KittiSequence(dataset)
+        schema_path = Path(schema) if Path(schema).is_file() else projects_dir() / f"{schema}.yaml"
+        if not schema_path.is_file():
+            raise LeapError(f"{schema}: no such schema file or built-in schema in {projects_dir()}")
+        sch, pipeline = load_project_file(schema_path)
+        base = config_from_dict(pipeline).grounded_sam
+        overrides = {
+            "models_dir": models,
+            "mode": mode,
+            "batch_size": batch_size,
+            "box_threshold": threshold,
+            "device": device,
+        }
+        cache_root = Path(cache) if cache else default_cache_dir(seq.root)
+        if cache is not None or base.cache_dir is None:
+            overrides["cache_dir"] = str(pass_cache_dir(cache_root))
+        cfg = dataclasses.replace(base, **{k: v for k, v in overrides.items() if v is not None})
+        store = LabelCache(cfg.cache_dir or pass_cache_dir(cache_root))
+        labeler = GroundedSamLabeler(cfg, cache=store)
+        plans = labeler.plan(sch)
+        frames = [f for f in seq if f.has_image]
+
+        def cached(frame: Frame) -> bool:
+            digest = image_digest(frame.image)
+            frame.__dict__.pop("image", None)  # a long sequence's decoded images would not fit in memory
+            return all(labeler.pass_key(digest, p) in store for p in plans)
+
+        todo = [f for f in tqdm(frames, desc="checking cache", unit="frame", leave=False) if not cached(f)]
+        typer.echo(
+            f"{len(frames)} frames with images ({len(seq) - len(frames)} without), "
+            f"{len(frames) - len(todo)} cached, {len(todo)} to label; "
+            f"{len(plans)} detector pass(es) per image, cache {store.root}"
+        )
+        with tqdm(total=len(todo), desc="labels2d", unit="frame") as bar:
+            for start in range(0, len(todo), cfg.batch_size):
+                chunk = todo[start : start + cfg.batch_size]
+                labeler.label_frames(chunk, sch)
+                for f in chunk:
+                    f.__dict__.pop("image", None)  # frames keep their decoded image otherwise
+                bar.update(len(chunk))
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    typer.echo(
+        f"done: {len(todo)} frames labeled, {labeler.detector_calls} detector and "
+        f"{labeler.segmenter_calls} SAM encoder forward passes"
+    )
+
+
+@app.command("make-tiny-models")
+def make_tiny_models_cmd(
+    folder: str = typer.Argument(..., help="Where to write grounding-dino-tiny/ and sam-vit-base/."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the random weights."),
+) -> None:
+    """Write tiny RANDOM-weight Grounding DINO + SAM models (for trying the code path without weights).
+
+    Their labels are meaningless: they only exercise the grounded-sam code path. Use them with
+    --models FOLDER; see docs/real_models.md for the real weights."""
+    from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+
+    paths = make_tiny_models(folder, TinyModelsConfig(seed=seed))
+    typer.echo(f"wrote {paths.detector} and {paths.segmenter}")
+    typer.secho(
+        "these models have RANDOM weights: their labels exercise the code path only and are meaningless",
+        fg=typer.colors.YELLOW,
+    )
+
+
+@app.command("run")
+def run_cmd(
+    dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    out: str = typer.Option(..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages)."),
+    schema: str | None = typer.Option(
+        None, "--schema", help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti)."
+    ),
+    labeler: str | None = typer.Option(None, "--labeler", help="2D labeler: simulated or grounded-sam."),
+    project_file: str | None = typer.Option(
+        None, "--project-file", help="Project YAML: classes plus a 'pipeline:' section of config overrides."
+    ),
+    consistency: bool | None = typer.Option(
+        None, "--3dcn/--no-3dcn", help="Run the 3D Consistency Network (default: the project's setting, off)."
+    ),
+    frames: str | None = typer.Option(None, "--frames", help="Frame range A:B (B exclusive), e.g. 0:20."),
+    cache: str | None = typer.Option(None, "--cache", help="Shared 2D cache folder reused across runs."),
+    models: str | None = typer.Option(
+        None, "--models", help="Folder with the Grounding DINO / SAM weights (sets pipeline.grounded_sam.models_dir)."
+    ),
+) -> None:
+    """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
+    then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from leap_core.config import config_from_dict
+    from leap_core.errors import Cancelled, LeapError
+    from leap_core.pipeline import STAGES, result_tables, run_pipeline
+    from leap_core.schema import load_project_file, projects_dir
+
+    bars: dict[str, tqdm] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        bar = bars.get(stage)
+        if bar is None:
+            for other in bars.values():
+                other.close()
+            bar = bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit="step" if stage == "3dcn" else "frame",
+                                     leave=True, dynamic_ncols=True)
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    try:
+        overrides: list[dict] = []
+        sch = None
+        if project_file is not None:
+            sch, pipe = load_project_file(project_file)
+            overrides.append(pipe)
+        if schema is not None or sch is None:
+            name = schema or "semantickitti"
+            path = Path(name) if Path(name).is_file() else projects_dir() / f"{name}.yaml"
+            if not path.is_file():
+                raise LeapError(f"--schema {name}: no such schema file or built-in schema in {projects_dir()}")
+            sch, pipe = load_project_file(path)
+            overrides.insert(0, pipe)
+        cfg = None
+        for o in overrides:
+            cfg = config_from_dict(o, cfg)
+        flags: dict = {}
+        if labeler is not None:
+            flags["labeler"] = labeler
+        if consistency is not None:
+            flags["consistency"] = {"enabled": consistency}
+        if models is not None:
+            flags["grounded_sam"] = {"models_dir": models}
+        cfg = config_from_dict(flags, cfg)
+        frame_range = None
+        if frames is not None:
+            a, sep, b = frames.partition(":")
+            try:
+                start = int(a) if a.strip() else 0
+                stop = int(b) if sep and b.strip() else (start + 1 if not sep else None)
+            except ValueError:
+                raise LeapError(f"--frames {frames!r}: expected A:B with integers (B exclusive)") from None
+            if stop is None:
+                from leap_core.datasets.kitti import KittiSequence
+
+                stop = len(KittiSequence(dataset))
+            frame_range = range(start, stop)
+        typer.echo(f"2D labels: {cfg.labeler}" + (" (2D ground truth + noise model)" if cfg.labeler == "simulated"
+                                                   else " (Grounding DINO + SAM)"))
+        try:
+            result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
+                                  cache_dir=Path(cache) if cache else None)
+        finally:
+            for bar in bars.values():
+                bar.close()
+    except KeyboardInterrupt:
+        raise fail(f"interrupted; run the same command again to resume from {out}") from None
+    except Cancelled:
+        raise fail(f"cancelled; run the same command again to resume from {out}") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+
+    timing = ", ".join(
+        f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
+        for s, r in result.stages.items() if s in STAGES
+    )
+    typer.echo(f"stages: {timing}")
+    tables = result_tables(result.run_dir)
+    if tables:
+        typer.echo("")
+        typer.echo(tables)
+    else:
+        typer.echo("no ground-truth labels: nothing to evaluate")
+    if result.export_dir is not None:
+        n = len(list(result.export_dir.glob("*.label")))
+        typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
+
+
+@app.command("serve")
+def serve_cmd(
+    host: str | None = typer.Option(
+        None, "--host", help="Address to bind (default 127.0.0.1; any other address needs --token)."
+    ),
+    port: int | None = typer.Option(None, "--port", help="Port (default 8000)."),
+    data_root: list[str] | None = typer.Option(
+        None, "--data-root", help="Folder datasets are read from and exported to (repeatable; default: data)."
+    ),
+    work_dir: str | None = typer.Option(
+        None, "--work-dir", help="Runs, caches and the database (default ./data/studio)."
+    ),
+    token: str | None = typer.Option(
+        None, "--token", help="Access token every request must carry (or LEAP_ACCESS_TOKEN)."
+    ),
+    models: str | None = typer.Option(None, "--models", help="Folder with Grounding DINO / SAM weights."),
+    no_demo: bool = typer.Option(False, "--no-demo", help="Do not seed the demo project on first start."),
+) -> None:
+    """Start LeAP Studio: the web UI, the REST API (/api/docs) and the 3D viewer, on 127.0.0.1:8000."""
+    from app.main import serve
+
+    seed = False if no_demo else None
+    settings = _app_settings(host, port, data_root, work_dir, token, models, seed_demo=seed)
+    serve(settings)
+
+
+@app.command("demo")
+def demo_cmd(
+    port: int | None = typer.Option(None, "--port", help="Port (default 8000)."),
+    work_dir: str | None = typer.Option(
+        None, "--work-dir", help="Runs, caches and the database (default ./data/studio)."
+    ),
+    data_root: list[str] | None = typer.Option(None, "--data-root", help="Data root(s) (default ./data)."),
+    no_serve: bool = typer.Option(False, "--no-serve", help="Stop after the demo run instead of serving."),
+) -> None:
+    """Generate the demo street sequence (once), label it with the simulated labeler and serve the app:
+    the browser then shows the demo project with a finished run and its metrics."""
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from app import crud
+    from app.core.db import init_db, open_db
+    from app.demo import DEMO_PROJECT_NAME, ensure_demo_sequence, seed_demo_project
+    from app.jobs.manager import JobManager
+    from app.jobs.worker import RunDirBusy, run_dir_lock
+    from app.main import serve
+    from leap_core.errors import LeapError
+    from leap_core.pipeline import result_tables
+
+    settings = _app_settings(None, port, data_root, work_dir, None, None, seed_demo=None)
+    bars: dict[str, tqdm] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        bar = bars.get(stage)
+        if bar is None:
+            for other in bars.values():
+                other.close()
+            bar = bars[stage] = tqdm(total=total, desc=f"{stage:>13}", unit="step", leave=True)
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    try:
+        ensure_demo_sequence(settings.demo_dataset, dict(settings.demo_synth), progress=progress)
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    init_db(settings.database)
+    seed_demo_project(settings)
+    with open_db(settings.database) as db:
+        project = crud.find_demo_project(db)
+        if project is None:
+            raise fail(f"the demo project was deleted from {settings.database}; use another --work-dir")
+        finished = crud.last_finished_run(db, project["id"])
+        active = crud.active_run(db, project["id"])
+    if finished is None:
+        manager = JobManager(settings)
+        if active is not None:
+            # Left "running" by a killed `leap demo`, unless a live process holds its folder's lock.
+            try:
+                with run_dir_lock(Path(active["run_dir"])):
+                    pass
+            except RunDirBusy:
+                raise fail(f"demo run {active['id']} is in use (is a server running?)") from None
+            with open_db(settings.database) as db:
+                crud.update_run(db, active["id"], status="interrupted")
+        with open_db(settings.database) as db:
+            resumable = [
+                r for r in crud.list_runs(db, project["id"]) if r["status"] in ("interrupted", "cancelled")
+            ]
+        run = manager.resume_run(resumable[0]["id"]) if resumable else manager.start_run(project["id"])
+        typer.echo(f"labeling the demo sequence (run {run['id']}, project {DEMO_PROJECT_NAME!r})")
+        status = manager.run_now(run["id"], on_progress=progress)
+        for bar in bars.values():
+            bar.close()
+        with open_db(settings.database) as db:
+            finished = crud.require_run(db, run["id"])
+        if status != "done":
+            raise fail(f"the demo run {status}: {finished['error']}")
+    tables = result_tables(finished["run_dir"])
+    if tables:
+        typer.echo(tables)
+    if no_serve:
+        return
+    serve(settings)
+
+
+def _app_settings(
+    host: str | None,
+    port: int | None,
+    data_root: list[str] | None,
+    work_dir: str | None,
+    token: str | None,
+    models: str | None,
+    *,
+    seed_demo: bool | None,
+) -> object:
+    """App settings from the environment with command-line values on top (one-line error when invalid)."""
+    from pydantic import ValidationError
+
+    from app.core.config import Settings
+
+    given = {
+        "host": host,
+        "port": port,
+        "data_roots": data_root or None,
+        "work_dir": work_dir,
+        "access_token": token,
+        "models_dir": models,
+        "seed_demo": seed_demo,
+    }
+    try:
+        return Settings(**{k: v for k, v in given.items() if v is not None})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "settings"
+        raise fail(f"{where}: {err['msg']}") from None
+
+
+@app.command("synth")
+def synth(
+    out: str = typer.Argument(..., help="Dataset root to write (the sequence goes to OUT/sequences/NN)."),
+    frames: int = typer.Option(60, "--frames", min=1, help="Number of frames (10 Hz)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the scene, the route and all sensor noise."),
+    sequence: str = typer.Option("00", "--sequence", help="Sequence folder name."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing non-empty sequence folder."),
+    workers: int = typer.Option(0, "--workers", min=0, help="Worker processes (0 = up to 2, by core count)."),
+) -> None:
+    """Generate the embedded demo sequence: a procedural street in the KITTI / SemanticKITTI layout."""
+    import time
+
+    from tqdm import tqdm
+
+    from leap_core.errors import LeapError
+    from leap_core.synth import SynthConfig, default_workers, generate_sequence
+
+    start = time.perf_counter()
+    bars: list[tqdm] = []  # opened at the first progress call, so a refusal prints only the error
+
+    def progress(done: int, total: int) -> None:
+        if not bars:
+            bars.append(tqdm(total=total, unit="frame", desc="synth"))
+        bars[0].update(done - bars[0].n)
+
+    try:
+        stats = generate_sequence(
+            out, SynthConfig(frames=frames, seed=seed), sequence, force=force,
+            workers=workers or default_workers(), progress=progress,
+        )
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    finally:
+        for bar in bars:
+            bar.close()
+    typer.echo(
+        f"wrote {stats.path} in {time.perf_counter() - start:.1f} s: {frames} frames, "
+        f"{stats.points.mean():.0f} points/scan, {100 * stats.in_image_share:.1f}% in the image"
+    )
+
+
 def main() -> None:
     app()
 

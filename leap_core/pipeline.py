@@ -301,7 +301,9 @@ class _Ctx:
             if cfg.labeler == "grounded-sam" and self.cache_dir is not None and gs_uncached:
                 # Per-pass detector cache beside the per-frame one: a prompt edit of one class then only
                 # recomputes that class's pass (per-class mode).
-                gs = replace(cfg.grounded_sam, cache_dir=str(self.cache_dir / "passes"))
+                from leap_core.labelers.cache import pass_cache_dir
+
+                gs = replace(cfg.grounded_sam, cache_dir=str(pass_cache_dir(self.cache_dir)))
                 cfg = replace(cfg, grounded_sam=gs)
             self._labeler = make_labeler(cfg)
         return self._labeler

@@ -6,6 +6,7 @@ A labeler turns one camera image into M masks, each with a class distribution an
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -114,7 +115,7 @@ class SoftMasks:
             with np.load(path) as z:
                 h, w = (int(x) for x in z["size"])
                 return cls(h, w, z["bits"], z["probs"].astype(np.float32), z["confidence"].astype(np.float32))
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
             raise DatasetError(path, f"unreadable 2D label file ({exc})") from exc
 
 
