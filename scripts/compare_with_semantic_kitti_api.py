@@ -1,0 +1,143 @@
+#!/usr/bin/env python3
+"""Check the ``.label`` files a ``leap run`` exported with semantic-kitti-api's ``evaluate_semantics.py``.
+
+Runs the external evaluator (an unmodified checkout, given by path; nothing of it is copied here) on the
+run's ``export/`` folder against the sequence's ground truth, then prints its per-class IoU beside LeAP's
+all-points figures from ``metrics.json`` and the largest absolute difference. Exit status 1 when that
+difference exceeds ``--tol`` (issue 3's acceptance: 0.001).
+
+Usage::
+
+    git clone https://github.com/PRBonn/semantic-kitti-api /tmp/ska
+    .venv/bin/leap run /tmp/demo/sequences/00 --schema semantickitti --labeler simulated --out /tmp/eval_run
+    .venv/bin/python scripts/compare_with_semantic_kitti_api.py \
+        --evaluator /tmp/ska --sequence /tmp/demo/sequences/00 --run /tmp/eval_run
+
+The evaluator only looks at the sequences of a config split (``valid`` = [8] in its stock config), so the
+sequence and the predictions are linked into a temporary tree under that split's first sequence number;
+this keeps its config untouched. Only the frames LeAP evaluated (``metrics.json`` "frames") are linked,
+because the evaluator asserts equal label and prediction counts. The evaluator is asked for its
+``--codalab`` scores file so the comparison uses full-precision values, not its 3-decimal printout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import yaml
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--evaluator", required=True, type=Path, help="semantic-kitti-api checkout folder")
+    ap.add_argument("--sequence", required=True, type=Path,
+                    help="ground-truth sequence folder (.../sequences/NN, with labels/)")
+    ap.add_argument("--run", required=True, type=Path, help="leap run folder (metrics.json, export/)")
+    ap.add_argument("--row", default=None, help="metrics.json row to compare (default: the final one, "
+                    "i.e. the labels the export stage wrote)")
+    ap.add_argument("--datacfg", type=Path, default=None,
+                    help="evaluator data config (default: <evaluator>/config/semantic-kitti.yaml)")
+    ap.add_argument("--split", default="valid", choices=["train", "valid", "test"])
+    ap.add_argument("--python", default=sys.executable, help="interpreter for the evaluator")
+    ap.add_argument("--tol", type=float, default=1e-3, help="largest allowed |IoU difference|")
+    return ap.parse_args(argv)
+
+
+def _link_tree(root: Path, seq_name: str, gt_labels: list[Path], preds: list[Path]) -> None:
+    """Evaluator layout: root/dataset/sequences/<seq>/labels, root/predictions/sequences/<seq>/predictions."""
+    lab_dir = root / "dataset" / "sequences" / seq_name / "labels"
+    pred_dir = root / "predictions" / "sequences" / seq_name / "predictions"
+    lab_dir.mkdir(parents=True)
+    pred_dir.mkdir(parents=True)
+    for src in gt_labels:
+        (lab_dir / src.name).symlink_to(src.resolve())
+    for src in preds:
+        (pred_dir / src.name).symlink_to(src.resolve())
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    evaluator = args.evaluator.resolve()
+    script = evaluator / "evaluate_semantics.py"
+    datacfg = (args.datacfg or evaluator / "config" / "semantic-kitti.yaml").resolve()
+    metrics_path = args.run / "metrics.json"
+    for p in (script, datacfg, metrics_path, args.sequence / "labels", args.run / "export"):
+        if not p.exists():
+            sys.exit(f"error: {p} does not exist")
+
+    metrics = json.loads(metrics_path.read_text())
+    row = args.row or metrics["rows"][-1]
+    if row not in metrics["all"]:
+        sys.exit(f"error: {metrics_path}: no row {row!r} (rows: {', '.join(metrics['rows'])})")
+    leap = metrics["all"][row]
+    names: list[str] = metrics["class_names"]
+    start, stop, step = metrics["frames"]
+
+    gt_files = sorted((args.sequence / "labels").glob("*.label"))[start:stop:step]
+    pred_files = [args.run / "export" / f.name for f in gt_files]
+    missing = [p.name for p in pred_files if not p.is_file()]
+    if missing:
+        sys.exit(f"error: {args.run / 'export'}: {len(missing)} predictions missing, e.g. {missing[0]}")
+
+    cfg = yaml.safe_load(datacfg.read_text())
+    split_seqs = cfg["split"][args.split]
+    if not split_seqs:
+        sys.exit(f"error: {datacfg}: split {args.split!r} lists no sequence")
+    seq_name = f"{int(split_seqs[0]):02d}"
+
+    with tempfile.TemporaryDirectory(prefix="ska_cmp_") as tmp:
+        root = Path(tmp)
+        _link_tree(root, seq_name, gt_files, pred_files)
+        scores_dir = root / "scores"
+        scores_dir.mkdir()
+        cmd = [args.python, str(script), "--dataset", str(root / "dataset"),
+               "--predictions", str(root / "predictions"), "--split", args.split,
+               "--datacfg", str(datacfg), "--codalab", str(scores_dir)]
+        # cwd = the checkout: the evaluator imports its auxiliary/ package relative to it.
+        proc = subprocess.run(cmd, cwd=evaluator, capture_output=True, text=True)
+        if proc.returncode != 0:
+            sys.stderr.write(proc.stdout + proc.stderr)
+            sys.exit(f"error: evaluator exited with status {proc.returncode}")
+        scores = yaml.safe_load((scores_dir / "scores.txt").read_text())
+
+    printed = re.search(r"IoU avg ([0-9.]+)", proc.stdout)
+    print("$ " + " ".join(cmd[1:]).replace(tmp, "<tmp>"))
+    print(f"{len(gt_files)} scans, sequence {args.sequence} as {seq_name}, "
+          f"leap row {row!r}, all-points protocol\n")
+    print(f"{'class':<14}  {'leap':>9}  {'evaluator':>9}  {'|diff|':>9}")
+    print(f"{'-' * 14}  {'-' * 9}  {'-' * 9}  {'-' * 9}")
+    worst = 0.0
+    for name in names:
+        key = f"iou_{name}"
+        if key not in scores:
+            sys.exit(f"error: evaluator has no class {name!r}; its classes: "
+                     + ", ".join(k[4:] for k in scores if k.startswith("iou_") and k != "iou_mean"))
+        ours = leap["iou"][name]
+        # LeAP leaves a class absent from gt and prediction undefined (None); the evaluator's 1e-15 in the
+        # denominator turns the same 0/0 into 0, so None compares as 0.
+        ours_v = 0.0 if ours is None else float(ours)
+        theirs = float(scores[key])
+        d = abs(ours_v - theirs)
+        worst = max(worst, d)
+        shown = "-" if ours is None else f"{ours_v:.6f}"
+        print(f"{name:<14}  {shown:>9}  {theirs:>9.6f}  {d:>9.2e}")
+    m_ours, m_theirs = float(leap["miou_all_classes"]), float(scores["iou_mean"])
+    d_m = abs(m_ours - m_theirs)
+    print(f"{'mIoU (all 19)':<14}  {m_ours:>9.6f}  {m_theirs:>9.6f}  {d_m:>9.2e}")
+    print(f"\nevaluator printout: IoU avg {printed.group(1) if printed else '?'}; "
+          f"leap miou_all_classes {m_ours:.6f}, miou (defined classes) {leap['miou']:.6f}")
+    worst = max(worst, d_m)
+    ok = worst <= args.tol and not math.isnan(worst)
+    print(f"max |diff| = {worst:.3e}  ({'OK' if ok else 'FAIL'}, tolerance {args.tol:g})")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
