@@ -1,0 +1,219 @@
+"""The 3D review viewer: start it for a project's run, and relay it under the app's own port.
+
+viser serves its client page and websocket on its own port, bound to 127.0.0.1 only. The app relays both
+under ``/api/projects/{id}/viewer/client/`` so that a browser reaches the viewer wherever it reaches the app,
+and so the access token is checked for the viewer exactly as for the API (header, ``?token=`` or the
+``leap_token`` cookie, which the page response sets so the websocket handshake carries it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from pathlib import Path
+from typing import Annotated
+from urllib.parse import urlsplit
+
+import viser
+from fastapi import APIRouter, Body, Depends, HTTPException, Request, WebSocket, status
+from fastapi.responses import HTMLResponse, RedirectResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.websockets import WebSocketDisconnect
+
+from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, SettingsDep, request_token
+from app.core.config import Settings
+from app.core.errors import AppError
+from app.core.security import token_matches
+from app.viewer.manager import ViewerManager
+from leap_core.errors import LeapError
+
+log = logging.getLogger("leap.viewer")
+
+router = APIRouter(prefix="/projects/{project_id}/viewer", tags=["viewer"])
+
+_CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
+
+
+class ViewerOpen(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    run_id: int | None = Field(None, ge=1, description="finished run to review (default: the latest)")
+
+
+class ViewerPublic(BaseModel):
+    project_id: int
+    run_id: int | None = Field(description="run shown; None until the project has a finished run")
+    port: int = Field(description="viser's own port on 127.0.0.1")
+    url: str = Field(description="viewer page relayed under the app's port (works wherever the app does)")
+    direct_url: str | None = Field(
+        description="viser's own page on 127.0.0.1 (no token check there, so only offered when the app has no "
+        "access token); reachable only from the app's machine"
+    )
+
+
+def get_viewers(request: Request) -> ViewerManager:
+    """The app's :class:`ViewerManager`, created on first use (stopped by :func:`close_viewers`)."""
+    state = request.app.state
+    manager = getattr(state, "viewers", None)
+    if manager is None:
+        manager = ViewerManager(state.settings, getattr(state, "jobs", None))
+        state.viewers = manager
+    return manager  # type: ignore[no-any-return]
+
+
+def close_viewers(app: object) -> None:
+    """Stop every viewer of ``app`` (call from the app's shutdown)."""
+    manager = getattr(getattr(app, "state", None), "viewers", None)
+    if manager is not None:
+        manager.close_all()
+
+
+ViewersDep = Annotated[ViewerManager, Depends(get_viewers)]
+
+
+def _public(request: Request, project_id: int, run_id: int | None, port: int) -> ViewerPublic:
+    path = request.url_for("viewer_client", project_id=project_id).path
+    settings: Settings = request.app.state.settings
+    return ViewerPublic(
+        project_id=project_id,
+        run_id=run_id,
+        port=port,
+        url=path,
+        direct_url=f"http://127.0.0.1:{port}/" if settings.token is None else None,
+    )
+
+
+def _run_blocking(fn, *args):  # type: ignore[no-untyped-def]
+    # Starting a viewer loads a grid (hundreds of ms for millions of voxels): keep it off the event loop.
+    return asyncio.to_thread(fn, *args)
+
+
+@router.post("", response_model=ViewerPublic, dependencies=[AuthDep])
+async def open_viewer(
+    project_id: int,
+    request: Request,
+    viewers: ViewersDep,
+    settings: SettingsDep,
+    payload: Annotated[ViewerOpen | None, Body()] = None,
+) -> ViewerPublic:
+    """Start the project's viewer (or reuse it) on the given run, or the latest finished run."""
+    if not settings.viewer_enabled:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail="The viewer is disabled in the settings")
+    run_id = None if payload is None else payload.run_id
+    try:
+        info = await _run_blocking(viewers.open, project_id, run_id)
+    except AppError as exc:
+        raise HTTPException(exc.status_code, detail=exc.detail) from None
+    except LeapError as exc:  # the run's outputs are missing or malformed: say which file
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
+    return _public(request, project_id, info.run_id, info.port)
+
+
+@router.get("", response_model=ViewerPublic, dependencies=[AuthDep])
+async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> ViewerPublic:
+    """The running viewer of the project (404 when none is running)."""
+    session = viewers.get(project_id)
+    if session is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
+    run_id = None if session.run is None else session.run.run_id
+    return _public(request, project_id, run_id, session.port)
+
+
+@router.delete("", status_code=status.HTTP_204_NO_CONTENT, dependencies=[AuthDep])
+async def close_viewer(project_id: int, viewers: ViewersDep) -> None:
+    """Stop the project's viewer (404 when none is running)."""
+    if not await _run_blocking(viewers.close, project_id):
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
+
+
+@router.get("/client", include_in_schema=False)
+async def viewer_client_noslash(project_id: int, request: Request) -> RedirectResponse:
+    target = request.url_for("viewer_client", project_id=project_id)
+    return RedirectResponse(str(target.include_query_params(**request.query_params)))
+
+
+@router.get("/client/", name="viewer_client", include_in_schema=False, dependencies=[AuthDep])
+async def viewer_client(project_id: int, request: Request, viewers: ViewersDep, settings: SettingsDep) -> HTMLResponse:
+    """viser's client page. It opens its websocket on this path without the trailing slash."""
+    if viewers.get(project_id) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
+    response = HTMLResponse(_CLIENT_HTML.read_bytes(), headers={"Cache-Control": "no-store"})
+    token = request_token(request)
+    if settings.token is not None and token is not None:
+        # The websocket handshake cannot carry a header from the viser client: hand it a cookie.
+        response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict", path="/")
+    return response
+
+
+def _ws_token(ws: WebSocket) -> str | None:
+    auth = ws.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return ws.headers.get(TOKEN_HEADER) or ws.query_params.get(TOKEN_QUERY) or ws.cookies.get(TOKEN_COOKIE)
+
+
+def _same_origin(ws: WebSocket) -> bool:
+    """Browsers send cookies with cross-site websocket handshakes: accept only our own pages' origin."""
+    origin = ws.headers.get("origin")
+    if origin is None:
+        return True  # not a browser
+    return urlsplit(origin).netloc.lower() == ws.headers.get("host", "").lower()
+
+
+@router.websocket("/client")
+async def viewer_relay(ws: WebSocket, project_id: int) -> None:
+    """Relay the viser websocket between the browser and the viewer's 127.0.0.1 port, message by message."""
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+    from websockets.typing import Subprotocol
+
+    settings: Settings = ws.app.state.settings
+    if not token_matches(settings.token, _ws_token(ws)) or not _same_origin(ws):
+        await ws.close(code=status.WS_1008_POLICY_VIOLATION)
+        return
+    manager: ViewerManager | None = getattr(ws.app.state, "viewers", None)
+    port = None if manager is None else manager.port(project_id)
+    if port is None:
+        await ws.close(code=status.WS_1011_INTERNAL_ERROR, reason="no viewer running for this project")
+        return
+    offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
+    try:
+        upstream_cm = connect(
+            f"ws://127.0.0.1:{port}", subprotocols=offered or None, max_size=None, compression=None,
+            open_timeout=10,
+        )
+        upstream = await upstream_cm.__aenter__()
+    except (OSError, asyncio.TimeoutError) as exc:
+        log.warning("viewer relay for project %d cannot reach port %d: %s", project_id, port, exc)
+        await ws.close(code=status.WS_1011_INTERNAL_ERROR)
+        return
+    try:
+        await ws.accept(subprotocol=upstream.subprotocol)
+
+        async def browser_to_viewer() -> None:
+            while True:
+                message = await ws.receive()
+                if message["type"] == "websocket.disconnect":
+                    return
+                data = message.get("bytes")
+                await upstream.send(data if data is not None else message.get("text", ""))
+
+        async def viewer_to_browser() -> None:
+            async for data in upstream:
+                if isinstance(data, bytes):
+                    await ws.send_bytes(data)
+                else:
+                    await ws.send_text(data)
+
+        tasks = [asyncio.create_task(browser_to_viewer()), asyncio.create_task(viewer_to_browser())]
+        _, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for task in pending:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed, WebSocketDisconnect, RuntimeError):
+                await task
+    finally:
+        await upstream_cm.__aexit__(None, None, None)
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+            await ws.close()

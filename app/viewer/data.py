@@ -1,0 +1,305 @@
+"""Reading a finished run for review: the final voxel grid, per-scan labels, camera geometry.
+
+The run directory layout is ``docs/ARCHITECTURE.md``'s: ``grid_smooth.npz`` (keys, probs) is the final map
+and ``grid.npz`` (keys, logp, voxel_size) the fused one; ``points/<frame_id>.npz`` holds per-point ``label``
+(final), ``conf`` and ``point_label`` (camera projection only). Arrays are read once and kept; per-class
+probability columns are extracted on demand and cached.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from app.viewer import view_logic as vl
+from leap_core.errors import DatasetError
+
+FINAL_GRID = "grid_smooth.npz"
+FUSED_GRID = "grid.npz"
+
+
+def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path) as z:
+            missing = [k for k in keys if k not in z.files]
+            if missing:
+                raise DatasetError(path, f"missing array(s) {', '.join(missing)} (has {', '.join(z.files)})")
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise DatasetError(path, f"unreadable run output ({exc})") from exc
+
+
+def final_grid_name(run_dir: Path, pipeline: dict[str, Any] | None = None) -> str:
+    """File name of a run's final smoothed grid: ``grid_smooth_3dcn{iterations}.npz`` when the run's
+    pipeline enabled the 3D Consistency Network, else ``grid_smooth.npz``.
+
+    Without the parameters, the last 3D-CN iteration found in the folder is taken.
+    """
+    cn = (pipeline or {}).get("consistency")
+    if isinstance(cn, dict) and "enabled" in cn:
+        if cn.get("enabled"):
+            return f"grid_smooth_3dcn{int(cn.get('iterations', 1))}.npz"
+        return FINAL_GRID
+    found = sorted(
+        (int(m.group(1)), p.name)
+        for p in run_dir.glob("grid_smooth_3dcn*.npz")
+        if (m := re.fullmatch(r"grid_smooth_3dcn(\d+)\.npz", p.name))
+    )
+    return found[-1][1] if found else FINAL_GRID
+
+
+@dataclass
+class ReviewGrid:
+    """The voxel map shown by the viewer.
+
+    Attributes:
+        keys: (V,) int64 sorted voxel keys (:func:`leap_core.fusion.voxel_keys` packing).
+        centres: (V, 3) float32 voxel centres in world metres.
+        probs: (V, C) float16 normalised posteriors.
+        label: (V,) int16 argmax class.
+        conf: (V,) float32 probability of the argmax class.
+        voxel_size: voxel edge in metres.
+        source: file the posteriors came from.
+    """
+
+    keys: npt.NDArray[np.int64]
+    centres: npt.NDArray[np.float32]
+    probs: npt.NDArray[np.float16]
+    label: npt.NDArray[np.int16]
+    conf: npt.NDArray[np.float32]
+    voxel_size: float
+    source: str
+
+    def __post_init__(self) -> None:
+        self._columns: dict[int, npt.NDArray[np.float32]] = {}
+        self._lock = threading.Lock()
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self.keys.shape[0])
+
+    @property
+    def num_classes(self) -> int:
+        return int(self.probs.shape[1])
+
+    def class_prob(self, c: int) -> npt.NDArray[np.float32]:
+        """(V,) float32 posterior of class ``c`` (cached: switching back to a class costs nothing)."""
+        if not 0 <= c < self.num_classes:
+            raise IndexError(f"class index {c} out of range 0..{self.num_classes - 1}")
+        with self._lock:
+            col = self._columns.get(c)
+            if col is None:
+                col = self.probs[:, c].astype(np.float32)
+                self._columns[c] = col
+            return col
+
+    def rows_of(self, keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
+        """(N,) row of each key in this grid, -1 where absent."""
+        q = np.asarray(keys, dtype=np.int64).reshape(-1)
+        if self.num_voxels == 0:
+            return np.full(q.shape, -1, np.int64)
+        pos = np.minimum(np.searchsorted(self.keys, q), self.num_voxels - 1)
+        return np.where(self.keys[pos] == q, pos, -1).astype(np.int64)
+
+    @classmethod
+    def from_arrays(
+        cls, keys: npt.ArrayLike, probs: npt.ArrayLike, voxel_size: float, source: str = "<arrays>"
+    ) -> ReviewGrid:
+        """Build from sorted keys and (V, C) probabilities (normalised here if they are not)."""
+        from leap_core.fusion import key_centres
+
+        k = np.asarray(keys, dtype=np.int64)
+        p = np.asarray(probs)
+        if k.ndim != 1 or p.ndim != 2 or p.shape[0] != k.shape[0]:
+            raise DatasetError(source, f"keys {k.shape} and probs {p.shape} do not match (V,) and (V, C)")
+        if k.size > 1 and not (np.diff(k) > 0).all():
+            raise DatasetError(source, "voxel keys are not sorted and unique")
+        p16 = p.astype(np.float16, copy=False)
+        label, conf = vl.argmax_confidence(p16)
+        return cls(
+            keys=k,
+            centres=key_centres(k, voxel_size),
+            probs=p16,
+            label=label,
+            conf=conf,
+            voxel_size=float(voxel_size),
+            source=source,
+        )
+
+    @classmethod
+    def load(cls, run_dir: str | Path, pipeline: dict[str, Any] | None = None) -> ReviewGrid:
+        """The final grid of a run (see :func:`final_grid_name`), else ``grid.npz`` (softmax of logp).
+
+        Args:
+            run_dir: the run folder.
+            pipeline: the run's pipeline parameters (to know whether 3D-CN made the final grid).
+
+        Raises:
+            DatasetError: the run has no grid, or a grid file is malformed.
+        """
+        run_dir = Path(run_dir)
+        fused_path = run_dir / FUSED_GRID
+        final_path = run_dir / final_grid_name(run_dir, pipeline)
+        voxel_size: float | None = None
+        if fused_path.is_file():
+            fused = _read_npz(fused_path, ("keys", "logp"))
+            if "voxel_size" in fused:
+                voxel_size = float(fused["voxel_size"])
+        if final_path.is_file():
+            final = _read_npz(final_path, ("keys", "probs"))
+            if "voxel_size" in final:
+                voxel_size = float(final["voxel_size"])
+            if voxel_size is None:
+                raise DatasetError(final_path, f"no voxel_size here or in {FUSED_GRID}")
+            return cls.from_arrays(final["keys"], final["probs"], voxel_size, str(final_path))
+        if not fused_path.is_file():
+            raise DatasetError(run_dir, f"run has no voxel grid ({FINAL_GRID} or {FUSED_GRID}); has it finished?")
+        if voxel_size is None:
+            raise DatasetError(fused_path, "missing array voxel_size")
+        return cls.from_arrays(fused["keys"], vl.softmax_rows(fused["logp"]), voxel_size, str(fused_path))
+
+
+@dataclass(frozen=True)
+class ScanView:
+    """One scan prepared for display.
+
+    Attributes:
+        frame_id: file stem.
+        points: (N, 3) float32 world positions.
+        label: (N,) int16 final class per point (-1 unlabeled).
+        cam_position: (3,) camera centre in world.
+        cam_wxyz: (4,) camera orientation (OpenCV convention, +z forward).
+        fov_y: vertical field of view in radians.
+        aspect: image width / height.
+        overlay: (H, W, 3) uint8 camera image with the projected labels drawn over it, or None.
+    """
+
+    frame_id: str
+    points: npt.NDArray[np.float32]
+    label: npt.NDArray[np.int16]
+    cam_position: npt.NDArray[np.float64]
+    cam_wxyz: npt.NDArray[np.float64]
+    fov_y: float
+    aspect: float
+    overlay: npt.NDArray[np.uint8] | None
+
+
+def matrix_to_wxyz(rot: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """Unit quaternion (w, x, y, z) of a 3×3 rotation (Shepperd's method: pivot on the largest term)."""
+    m = np.asarray(rot, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    out = np.asarray(q)
+    return out / np.linalg.norm(out)
+
+
+class RunOutputs:
+    """Lazy access to a run's per-scan outputs and the dataset it labelled."""
+
+    def __init__(self, run_dir: str | Path, dataset: str | Path) -> None:
+        from leap_core.datasets.kitti import KittiSequence
+
+        self.run_dir = Path(run_dir)
+        self.seq = KittiSequence(dataset)
+        points_dir = self.run_dir / "points"
+        done = {p.stem for p in points_dir.glob("*.npz")} if points_dir.is_dir() else set()
+        self.frame_indices: list[int] = [i for i, f in enumerate(self.seq.frame_ids) if f in done]
+        """Indices of the frames that have per-point labels in this run, in sequence order."""
+        self._disagreement: tuple[ReviewGrid, np.ndarray, np.ndarray] | None = None
+
+    def point_arrays(self, index: int) -> dict[str, np.ndarray]:
+        fid = self.seq.frame_ids[index]
+        return _read_npz(self.run_dir / "points" / f"{fid}.npz", ("label",))
+
+    def world_points(self, index: int) -> npt.NDArray[np.float32]:
+        """(N, 3) float32 world positions of scan ``index`` (pose · [x y z 1])."""
+        frame = self.seq.frame(index)
+        xyz = frame.points[:, :3].astype(np.float64)
+        pose = frame.pose
+        return (xyz @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
+
+    def scan_view(self, index: int, palette: npt.ArrayLike, *, overlay_radius: int = 1) -> ScanView:
+        """Points with final labels, camera pose and the labelled camera image of frame ``index``."""
+        from leap_core.projection import project_points
+
+        frame = self.seq.frame(index)
+        arrays = self.point_arrays(index)
+        label = arrays["label"].astype(np.int16)
+        if label.shape[0] != frame.points.shape[0]:
+            raise DatasetError(
+                self.run_dir / "points" / f"{frame.frame_id}.npz",
+                f"{label.shape[0]} labels but the scan has {frame.points.shape[0]} points",
+            )
+        calib = frame.calib
+        cam_to_world = frame.pose @ np.linalg.inv(calib.Tr)
+        fy = float(calib.P2[1, 1])
+        overlay = None
+        height, width = 375, 1242
+        if frame.has_image:
+            image = frame.image
+            height, width = image.shape[:2]
+            proj = project_points(frame.points, calib.lidar_to_image, height, width)
+            uv = np.stack([proj.u, proj.v], axis=1)
+            overlay = vl.draw_label_overlay(
+                image, uv, label[proj.idx], palette, radius=overlay_radius, depth=proj.depth
+            )
+        return ScanView(
+            frame_id=frame.frame_id,
+            points=self.world_points(index),
+            label=label,
+            cam_position=cam_to_world[:3, 3].copy(),
+            cam_wxyz=matrix_to_wxyz(cam_to_world[:3, :3]),
+            fov_y=float(2.0 * np.arctan(height / (2.0 * fy))),
+            aspect=float(width / height),
+            overlay=overlay,
+        )
+
+    def disagreement(self, grid: ReviewGrid) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+        """Per-voxel share of camera-labelled points whose final label differs (see
+        :func:`app.viewer.view_logic.disagreement_rate`), over every labelled scan of the run.
+
+        Reads every scan once; the result is kept for this grid.
+        """
+        from leap_core.fusion import voxel_keys
+
+        cached = self._disagreement
+        if cached is not None and cached[0] is grid:
+            return cached[1], cached[2]
+
+        rows_all, cam_all, fin_all = [], [], []
+        for i in self.frame_indices:
+            arrays = self.point_arrays(i)
+            if "point_label" not in arrays:
+                continue
+            keys = voxel_keys(self.world_points(i), grid.voxel_size)
+            rows_all.append(grid.rows_of(keys))
+            cam_all.append(arrays["point_label"].astype(np.int16))
+            fin_all.append(arrays["label"].astype(np.int16))
+        if not rows_all:
+            rate, observed = np.zeros(grid.num_voxels, np.float32), np.zeros(grid.num_voxels, np.int64)
+        else:
+            rate, observed = vl.disagreement_rate(
+                np.concatenate(rows_all), np.concatenate(cam_all), np.concatenate(fin_all), grid.num_voxels
+            )
+        self._disagreement = (grid, rate, observed)
+        return rate, observed
+
+
+__all__ = ["FINAL_GRID", "FUSED_GRID", "ReviewGrid", "final_grid_name", "RunOutputs", "ScanView", "matrix_to_wxyz"]

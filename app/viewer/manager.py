@@ -1,0 +1,245 @@
+"""Starting and stopping review viewers inside the app process, one per project.
+
+:class:`AppBackend` adapts the app's SQLite store (:mod:`app.crud`, :mod:`app.services`) and job manager
+(:mod:`app.jobs.manager`) to the viewer's :class:`~app.viewer.session.ProjectBackend`, so the viewer edits
+exactly the data the web UI edits and its re-runs queue like any other run.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from app import crud
+from app.core.config import Settings
+from app.core.db import open_db
+from app.core.errors import Conflict, NotFound
+from app.viewer.session import CorrectionRecord, ReviewSession, RunInfo, SessionConfig
+from leap_core.errors import SchemaError
+from leap_core.schema import Schema
+
+log = logging.getLogger("leap.viewer")
+
+
+def _schema_or_none(doc: dict[str, Any] | None) -> Schema | None:
+    if not doc:
+        return None
+    try:
+        return Schema.from_dict(doc, source="run schema")
+    except SchemaError:
+        return None
+
+
+class AppBackend:
+    """The viewer's view of one project in the app's database and job queue.
+
+    Args:
+        settings: app settings (database path, work dir).
+        project_id: the project.
+        jobs: the running job manager; None uses the process-wide one when a run is started.
+    """
+
+    def __init__(self, settings: Settings, project_id: int, jobs: Any | None = None) -> None:
+        self.settings = settings
+        self.project_id = project_id
+        self._jobs = jobs
+        with open_db(settings.database) as db:
+            crud.require_project(db, project_id)
+
+    def _jobs_manager(self) -> Any | None:
+        """The given job manager, else the running server's, else None (no server: read the DB only)."""
+        if self._jobs is not None:
+            return self._jobs
+        from app.jobs.manager import current_manager
+
+        try:
+            return current_manager()
+        except RuntimeError:
+            return None
+
+    def _project(self) -> dict[str, Any]:
+        with open_db(self.settings.database) as db:
+            return crud.require_project(db, self.project_id)
+
+    def project_name(self) -> str:
+        return str(self._project()["name"])
+
+    def dataset_path(self) -> Path:
+        return Path(self._project()["dataset_path"])
+
+    def load_schema(self) -> Schema:
+        return Schema.from_dict(self._project()["schema"], source=f"project {self.project_id} schema")
+
+    def save_schema(self, schema: Schema) -> None:
+        from app import services
+
+        with open_db(self.settings.database) as db:
+            services.save_classes(db, self.project_id, schema.to_dict()["classes"], loc=("viewer",))
+
+    def _info(self, run: dict[str, Any]) -> RunInfo:
+        from app import jobs
+
+        status, percent, stage, error = str(run["status"]), 0.0, None, run.get("error")
+        manager = self._jobs_manager()
+        if manager is not None:
+            progress = jobs.run_status(int(run["id"]), manager=manager)
+            status = str(progress.get("status", status))
+            percent = float(progress.get("percent") or 0.0)
+            stage = progress.get("stage")
+            error = progress.get("error") or error
+        if status == "done":
+            percent = 100.0
+        params = run.get("params") or {}
+        return RunInfo(
+            run_id=int(run["id"]),
+            number=int(run["number"]),
+            status=status,
+            percent=percent,
+            stage=stage,
+            error=error,
+            run_dir=Path(run["run_dir"]),
+            schema=_schema_or_none(params.get("schema")),
+            pipeline=params.get("pipeline") if isinstance(params.get("pipeline"), dict) else None,
+        )
+
+    def run_info(self, run_id: int) -> RunInfo:
+        with open_db(self.settings.database) as db:
+            run = crud.require_run(db, run_id)
+        if int(run["project_id"]) != self.project_id:
+            raise NotFound(f"Run {run_id} not found in project {self.project_id}")
+        return self._info(run)
+
+    def latest_finished_run(self) -> RunInfo | None:
+        with open_db(self.settings.database) as db:
+            run = crud.last_finished_run(db, self.project_id)
+        return None if run is None else self._info(run)
+
+    def active_run(self) -> RunInfo | None:
+        with open_db(self.settings.database) as db:
+            run = crud.active_run(db, self.project_id)
+        return None if run is None else self._info(run)
+
+    def start_run(self) -> int:
+        from app import jobs
+
+        manager = self._jobs_manager()
+        if manager is None:
+            raise RuntimeError("runs can only be started while the app's job manager is running")
+        return jobs.start_run(self.project_id, manager=manager)
+
+    def corrections(self) -> list[CorrectionRecord]:
+        with open_db(self.settings.database) as db:
+            rows = crud.list_corrections(db, self.project_id, active_only=False)
+        return [CorrectionRecord(c.id, c.class_name, c.voxel_size, c.keys, c.active) for c in rows]
+
+    def add_correction(self, class_name: str, voxel_size: float, keys: npt.NDArray[np.int64]) -> int:
+        with open_db(self.settings.database) as db:
+            return crud.add_correction(
+                db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys
+            )
+
+    def set_correction_active(self, correction_id: int, active: bool) -> None:
+        with open_db(self.settings.database) as db:
+            crud.set_correction_active(db, correction_id, active)
+
+
+@dataclass(frozen=True)
+class ViewerInfo:
+    """Where a project's viewer listens."""
+
+    project_id: int
+    """The project under review."""
+    run_id: int | None
+    """Run shown (None until the project has a finished run)."""
+    port: int
+    """Port viser bound on 127.0.0.1."""
+
+
+class ViewerManager:
+    """The app's review viewers: at most one per project, each on its own viser port.
+
+    Args:
+        settings: app settings.
+        jobs: job manager for re-runs (default: the process-wide one).
+        config: session tunables.
+    """
+
+    def __init__(self, settings: Settings, jobs: Any | None = None, config: SessionConfig | None = None) -> None:
+        self.settings = settings
+        self.jobs = jobs
+        self.config = config or SessionConfig(max_points=settings.viewer_max_points)
+        self._sessions: dict[int, ReviewSession] = {}
+        self._lock = threading.Lock()
+
+    def open(self, project_id: int, run_id: int | None = None) -> ViewerInfo:
+        """Start (or reuse) the project's viewer, showing ``run_id`` or the latest finished run.
+
+        Raises:
+            NotFound: unknown project or run.
+            Conflict: the run has not finished.
+        """
+        with self._lock:
+            session = self._sessions.get(project_id)
+            if session is None:
+                backend = AppBackend(self.settings, project_id, self.jobs)
+                if run_id is not None:
+                    self._check_run(backend, run_id)
+                session = ReviewSession(
+                    backend,
+                    run_id=run_id,
+                    host="127.0.0.1",
+                    port=self.settings.viewer_port if not self._sessions else 0,
+                    config=self.config,
+                )
+                self._sessions[project_id] = session
+                log.info("viewer for project %d on port %d", project_id, session.port)
+            elif run_id is not None and (session.run is None or session.run.run_id != run_id):
+                session.load_run(self._check_run(session.backend, run_id))  # type: ignore[arg-type]
+            elif run_id is None and session.run is None:
+                latest = session.backend.latest_finished_run()
+                if latest is not None:
+                    session.load_run(latest)
+        return ViewerInfo(project_id, None if session.run is None else session.run.run_id, session.port)
+
+    @staticmethod
+    def _check_run(backend: Any, run_id: int) -> RunInfo:
+        info: RunInfo = backend.run_info(run_id)
+        if info.status != "done":
+            raise Conflict(f"Run {run_id} is {info.status}; only finished runs can be reviewed")
+        return info
+
+    def get(self, project_id: int) -> ReviewSession | None:
+        with self._lock:
+            return self._sessions.get(project_id)
+
+    def port(self, project_id: int) -> int | None:
+        session = self.get(project_id)
+        return None if session is None else session.port
+
+    def close(self, project_id: int) -> bool:
+        """Stop the project's viewer; False when none was running."""
+        with self._lock:
+            session = self._sessions.pop(project_id, None)
+        if session is None:
+            return False
+        session.close()
+        return True
+
+    def close_all(self) -> None:
+        with self._lock:
+            sessions = list(self._sessions.values())
+            self._sessions.clear()
+        for session in sessions:
+            try:
+                session.close()
+            except Exception:  # noqa: BLE001 - shutting down: close the others regardless
+                log.exception("closing a viewer failed")
+
+
+__all__ = ["AppBackend", "ViewerInfo", "ViewerManager"]

@@ -1,0 +1,352 @@
+"""The viewer's GUI panel: typed viser widgets wired to a :class:`~app.viewer.session.ReviewSession`.
+
+Widgets only translate user actions into session calls and show what the session reports back
+(``on_*`` methods). Errors from an action (an invalid class name, a failed save) are shown in the status
+line instead of breaking the viewer.
+"""
+
+from __future__ import annotations
+
+import functools
+import html
+import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import viser
+
+from app.viewer import view_logic as vl
+
+if TYPE_CHECKING:
+    from app.viewer.data import ScanView
+    from app.viewer.session import ReviewSession, RunInfo
+
+log = logging.getLogger(__name__)
+
+COLOR_BY = ("class", "confidence", "class probability")
+"""Labels of the colouring modes, in :data:`app.viewer.view_logic.ColorMode` order."""
+_MODE_OF = {"class": "class", "confidence": "confidence", "class probability": "class_probability"}
+QUEUE_KINDS = ("lowest confidence", "camera vs final disagreement")
+_QUEUE_OF = {"lowest confidence": "confidence", "camera vs final disagreement": "disagreement"}
+
+
+def _hex(rgb: Any) -> str:
+    r, g, b = (int(v) for v in rgb)
+    return f"#{r:02x}{g:02x}{b:02x}"
+
+
+def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: str | None = None) -> str:
+    """HTML legend: class swatches in class mode, a colour bar with ticks in the scalar modes."""
+    if mode == "class":
+        items = "".join(
+            f'<div style="display:flex;align-items:center;gap:6px;font-size:12px">'
+            f'<span style="display:inline-block;width:12px;height:12px;border-radius:2px;'
+            f'background:{_hex(rgb)}"></span>{html.escape(n)}</div>'
+            for n, rgb in zip(names, palette)
+        )
+        return f'<div style="display:grid;grid-template-columns:1fr 1fr;gap:2px 8px">{items}</div>'
+    stops = ", ".join(f"{_hex(vl.CONFIDENCE_LUT[int(i)])}" for i in np.linspace(0, 255, 9))
+    title = "confidence (max posterior)" if mode == "confidence" else f"P({html.escape(class_name or '')})"
+    return (
+        f'<div style="font-size:12px">{title}'
+        f'<div style="height:12px;border-radius:2px;background:linear-gradient(to right, {stops})"></div>'
+        '<div style="display:flex;justify-content:space-between"><span>0</span><span>0.25</span>'
+        "<span>0.5</span><span>0.75</span><span>1</span></div></div>"
+    )
+
+
+class ReviewPanel:
+    """Builds the panel on the session's viser server and keeps it in sync with the session."""
+
+    def __init__(self, session: ReviewSession) -> None:
+        self.s = session
+        gui = session.scene.server.gui
+        self.gui = gui
+        self._class_boxes: list[viser.GuiCheckboxHandle] = []
+
+        with gui.add_folder("Run", order=0):
+            self.status = gui.add_markdown("Loading…")
+            self.progress = gui.add_progress_bar(0.0, visible=False)
+            self.rerun_button = gui.add_button("Re-run", hint="Start a new run with the current classes, "
+                                               "prompts and corrections", color="blue")
+
+        with gui.add_folder("View", order=1):
+            self.color_by = gui.add_dropdown("Color by", COLOR_BY, initial_value="class")
+            self.prob_class = gui.add_dropdown("Class", ["-"], initial_value="-", visible=False)
+            self.threshold = gui.add_slider("Min confidence", min=0.0, max=1.0, step=0.01, initial_value=0.0)
+            self.point_size = gui.add_slider("Point size", min=0.02, max=1.0, step=0.01, initial_value=0.2)
+            self.limit = gui.add_checkbox("Limit points", False, hint="Decimate the map for slow browsers")
+            self.max_points = gui.add_number(
+                "Max points", int(session.config.max_points), min=1_000, step=1_000, visible=False
+            )
+            self.legend = gui.add_html("")
+            self.stats = gui.add_markdown("")
+
+        self.classes_folder = gui.add_folder("Classes shown", order=2, expand_by_default=False)
+
+        with gui.add_folder("Scan", order=3, expand_by_default=True):
+            self.scan_slider = gui.add_slider("Scan", min=0, max=1, step=1, initial_value=0, disabled=True)
+            self.show_scan = gui.add_checkbox("Show scan", True)
+            self.show_map = gui.add_checkbox("Show voxel map", True)
+            self.scan_info = gui.add_markdown("")
+            self.scan_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="camera + labels",
+                                            format="jpeg", visible=False)
+
+        with gui.add_folder("Review queue", order=4, expand_by_default=False):
+            self.queue_kind = gui.add_dropdown("Order by", QUEUE_KINDS, initial_value=QUEUE_KINDS[0])
+            self.next_button = gui.add_button("Next region")
+            self.prev_button = gui.add_button("Previous region")
+            self.queue_info = gui.add_markdown("")
+
+        with gui.add_folder("Corrections", order=5, expand_by_default=False):
+            self.assign_class = gui.add_dropdown("Assign class", ["-"], initial_value="-")
+            self.select_button = gui.add_button("Select box", hint="Then drag a box over the voxels")
+            self.apply_button = gui.add_button("Apply to selection", disabled=True)
+            self.clear_button = gui.add_button("Clear selection", disabled=True)
+            self.undo_button = gui.add_button("Undo", disabled=True)
+            self.redo_button = gui.add_button("Redo", disabled=True)
+            self.corr_info = gui.add_markdown("")
+
+        with gui.add_folder("Classes and prompts", order=6, expand_by_default=False):
+            self.edit_class = gui.add_dropdown("Edit class", ["-"], initial_value="-")
+            self.class_name = gui.add_text("Name", "")
+            self.class_color = gui.add_rgb("Color", (200, 200, 200))
+            self.class_prompts = gui.add_text("Prompts", "", hint="Comma-separated prompt list")
+            self.save_class = gui.add_button("Save class")
+            self.remove_class = gui.add_button("Remove class", color="red")
+            self.new_class = gui.add_text("New class", "")
+            self.add_class = gui.add_button("Add class")
+            self.steer_info = gui.add_markdown("")
+
+        self._wire()
+        self.on_schema()
+
+    # ------------------------------------------------------------------------------------ wiring
+    def _guard(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return fn(*args, **kwargs)
+            except Exception as exc:  # noqa: BLE001 - show user errors, keep the viewer running
+                log.warning("viewer action %s failed: %s", fn.__name__, exc)
+                self.set_status(f"**Error:** {html.escape(str(exc))}")
+                return None
+
+        return wrapper
+
+    def _wire(self) -> None:
+        s, g = self.s, self._guard
+        self.color_by.on_update(g(lambda _: self._mode_changed()))
+        self.prob_class.on_update(g(lambda _: self._mode_changed()))
+        self.threshold.on_update(g(lambda _: s.set_state(threshold=float(self.threshold.value))))
+        self.point_size.on_update(g(lambda _: setattr(s.scene.voxels, "point_size", self.point_size.value)))
+        self.limit.on_update(g(lambda _: self._limit_changed()))
+        self.max_points.on_update(g(lambda _: self._limit_changed()))
+        self.scan_slider.on_update(g(lambda _: s.show_scan(int(self.scan_slider.value))))
+        self.show_scan.on_update(g(lambda _: self._scan_visibility()))
+        self.show_map.on_update(g(lambda _: setattr(s.scene.voxels, "visible", self.show_map.value)))
+        self.queue_kind.on_update(g(lambda _: self._queue_changed()))
+        self.next_button.on_click(g(lambda _: self._next_region(1)))
+        self.prev_button.on_click(g(lambda _: self._next_region(-1)))
+        self.select_button.on_click(g(lambda _: self._arm_select()))
+        self.apply_button.on_click(g(lambda _: s.assign_selection(str(self.assign_class.value))))
+        self.clear_button.on_click(g(lambda _: s.clear_selection()))
+        self.undo_button.on_click(g(lambda _: s.undo()))
+        self.redo_button.on_click(g(lambda _: s.redo()))
+        self.edit_class.on_update(g(lambda _: self._fill_class_editor()))
+        self.save_class.on_click(g(lambda _: self._save_class()))
+        self.remove_class.on_click(g(lambda _: self._remove_class()))
+        self.add_class.on_click(g(lambda _: self._add_class()))
+        self.rerun_button.on_click(g(lambda _: self._rerun()))
+
+    def _mode_changed(self) -> None:
+        mode = _MODE_OF[str(self.color_by.value)]
+        self.prob_class.visible = mode == "class_probability"
+        names = self.s.class_names()
+        index = names.index(self.prob_class.value) if self.prob_class.value in names else 0
+        self.threshold.label = "Min probability" if mode == "class_probability" else "Min confidence"
+        self.s.set_state(mode=mode, class_index=index)
+        self._update_legend()
+
+    def _limit_changed(self) -> None:
+        self.max_points.visible = bool(self.limit.value)
+        self.s.set_state(max_points=int(self.max_points.value) if self.limit.value else None)
+
+    def _scan_visibility(self) -> None:
+        on = bool(self.show_scan.value)
+        self.s.scene.scan.visible = on
+        self.s.scene.camera.visible = on
+
+    def _queue_changed(self) -> None:
+        self.s.build_queue(_QUEUE_OF[str(self.queue_kind.value)])  # type: ignore[arg-type]
+        self.queue_info.content = f"{len(self.s.regions)} regions; press *Next region*."
+
+    def _next_region(self, step: int) -> None:
+        kind = _QUEUE_OF[str(self.queue_kind.value)]
+        if not self.s.regions or self.s.queue_kind != kind:
+            self.s.build_queue(kind)  # type: ignore[arg-type]
+        if self.s.next_region(step) is None:
+            self.queue_info.content = "Nothing to review."
+
+    def _arm_select(self) -> None:
+        s = self.s
+
+        def on_rect(event: viser.SceneRectSelectEvent) -> None:
+            s.scene.disarm_rect_select()
+            cam = event.client.camera
+            s.select_rect(cam.position, cam.wxyz, cam.fov, cam.aspect, event.screen_min, event.screen_max)
+
+        s.scene.arm_rect_select(self._guard(on_rect))
+        self.corr_info.content = "Drag a box over the voxels to select them."
+
+    def _fill_class_editor(self) -> None:
+        schema = self.s.project_schema
+        if self.edit_class.value not in schema.names:
+            return
+        c = schema.classes[schema.index(str(self.edit_class.value))]
+        self.class_name.value = c.name
+        self.class_color.value = tuple(int(v) for v in c.color)
+        self.class_prompts.value = ", ".join(c.prompts)
+
+    def _save_class(self) -> None:
+        schema = self.s.project_schema
+        index = schema.index(str(self.edit_class.value))
+        prompts = [p.strip() for p in str(self.class_prompts.value).split(",") if p.strip()]
+        name = str(self.class_name.value).strip()
+        color = tuple(int(v) for v in self.class_color.value)
+        self.s.update_class(index, name=name, color=color, prompts=prompts)  # type: ignore[arg-type]
+        self.edit_class.value = name
+        self.steer_info.content = f"Saved class **{html.escape(name)}**; press *Re-run* to apply prompts."
+
+    def _remove_class(self) -> None:
+        schema = self.s.project_schema
+        name = str(self.edit_class.value)
+        self.s.remove_class(schema.index(name))
+        self.steer_info.content = f"Removed class **{html.escape(name)}**."
+
+    def _add_class(self) -> None:
+        name = str(self.new_class.value).strip()
+        if not name:
+            raise ValueError("type a name for the new class first")
+        self.s.add_class(name)
+        self.new_class.value = ""
+        self.edit_class.value = name
+        self.steer_info.content = f"Added class **{html.escape(name)}**."
+
+    def _rerun(self) -> None:
+        self.rerun_button.disabled = True
+        try:
+            run_id = self.s.rerun()
+        except Exception:
+            self.rerun_button.disabled = False
+            raise
+        self.on_run_progress(self.s.backend.run_info(run_id))
+
+    # ----------------------------------------------------------------------------- session → panel
+    def set_status(self, text: str) -> None:
+        self.status.content = text
+
+    def _update_legend(self) -> None:
+        mode = _MODE_OF[str(self.color_by.value)]
+        names = self.s.class_names()
+        cls = names[self.s.state.class_index] if names and self.s.state.class_index < len(names) else None
+        self.legend.content = legend_html(mode, names, self.s.palette, cls)
+
+    def on_run_loaded(self) -> None:
+        s = self.s
+        names = s.class_names()
+        run = s.run
+        grid = s.grid
+        assert run is not None and grid is not None
+        self.prob_class.options = names
+        if self.prob_class.value not in names:
+            self.prob_class.value = names[0]
+        self.assign_class.options = names
+        if self.assign_class.value not in names:
+            self.assign_class.value = names[0]
+        for box in self._class_boxes:
+            box.remove()
+        self._class_boxes = []
+        with self.classes_folder:
+            for i, n in enumerate(names):
+                box = self.gui.add_checkbox(n, True)
+                box.on_update(self._guard(functools.partial(self._toggle_class, i)))
+                self._class_boxes.append(box)
+        self.point_size.value = round(float(grid.voxel_size), 2)
+        n_frames = len(s.outputs.frame_indices) if s.outputs is not None else 0
+        self.scan_slider.max = max(1, n_frames - 1)
+        self.scan_slider.disabled = n_frames <= 1
+        self.set_status(
+            f"Run **{run.number}** (id {run.run_id}): {grid.num_voxels:,} voxels, "
+            f"{len(names)} classes, voxel {grid.voxel_size:g} m."
+        )
+        self.rerun_button.disabled = s.watched_run is not None
+        self._update_legend()
+        self.on_history()
+
+    def _toggle_class(self, index: int, event: Any) -> None:
+        self.s.set_class_enabled(index, bool(event.target.value))
+
+    def on_drawn(self, *, shown: int, total: int, seconds: float) -> None:
+        self.stats.content = f"Showing {shown:,} of {total:,} voxels (drawn in {seconds * 1000:.0f} ms)."
+
+    def on_scan(self, view: ScanView, pos: int, count: int) -> None:
+        labelled = int((view.label >= 0).sum())
+        self.scan_info.content = (
+            f"Scan **{view.frame_id}** ({pos + 1}/{count}): {view.points.shape[0]:,} points, "
+            f"{labelled:,} labelled."
+        )
+        if view.overlay is not None:
+            self.scan_image.image = view.overlay
+            self.scan_image.visible = True
+        else:
+            self.scan_image.visible = False
+        if int(self.scan_slider.value) != pos:
+            self.scan_slider.value = pos
+
+    def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None:
+        what = "mean confidence" if kind == "confidence" else "disagreement"
+        self.queue_info.content = (
+            f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels."
+        )
+
+    def on_selection(self, count: int) -> None:
+        self.apply_button.disabled = count == 0
+        self.clear_button.disabled = count == 0
+        self.corr_info.content = f"{count:,} voxels selected." if count else self._corr_summary()
+
+    def _corr_summary(self) -> str:
+        return f"{self.s.correction_count()} active corrections (applied in every later run)."
+
+    def on_history(self) -> None:
+        self.undo_button.disabled = not self.s.history.can_undo
+        self.redo_button.disabled = not self.s.history.can_redo
+        self.corr_info.content = self._corr_summary()
+
+    def on_schema(self) -> None:
+        names = self.s.project_schema.names
+        current = self.edit_class.value
+        self.edit_class.options = names
+        self.edit_class.value = current if current in names else names[0]
+        self._fill_class_editor()
+        self._update_legend()
+
+    def on_run_progress(self, info: RunInfo) -> None:
+        if info.status in ("queued", "running"):
+            self.progress.visible = True
+            self.progress.value = float(min(100.0, max(0.0, info.percent)))
+            self.rerun_button.disabled = True
+            stage = f", {info.stage}" if info.stage else ""
+            self.set_status(f"Run {info.number} {info.status}{stage}: {info.percent:.0f}%")
+            return
+        self.progress.visible = False
+        self.rerun_button.disabled = False
+        if info.status == "done":
+            self.set_status(f"Run {info.number} done; loading…")
+        else:
+            why = f": {html.escape(info.error)}" if info.error else ""
+            self.set_status(f"Run {info.number} {info.status}{why}")
+
+
+__all__ = ["COLOR_BY", "QUEUE_KINDS", "ReviewPanel", "legend_html"]

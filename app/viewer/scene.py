@@ -1,0 +1,237 @@
+"""A facade over one ``viser.ViserServer``: intention-level methods returning typed handles.
+
+Scene nodes are created once and then updated in place through their handles (points, colours, images,
+visibility), never removed and re-added: an update sends only the changed property. Positions go out as
+float32 (float16, viser's default, loses centimetres a few hundred metres from the origin); colours as
+uint8.
+
+viser is not ASGI: it serves its own client and websocket on its own port. The server binds 127.0.0.1
+only; remote browsers reach it through the app's authenticated relay (:mod:`app.api.routes.viewer`).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import viser
+
+from app.viewer import view_logic as vl
+
+RectSelectFn = Callable[[viser.SceneRectSelectEvent], None]
+
+
+class PointLayer:
+    """One point cloud, created on first :meth:`set` and afterwards updated in place."""
+
+    def __init__(self, server: viser.ViserServer, name: str, *, point_size: float) -> None:
+        self._server = server
+        self._name = name
+        self._point_size = point_size
+        self._handle: viser.PointCloudHandle | None = None
+        self._count = 0
+        self._lock = threading.Lock()
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def count(self) -> int:
+        """Number of points currently shown."""
+        return self._count
+
+    @property
+    def handle(self) -> viser.PointCloudHandle | None:
+        return self._handle
+
+    def set(self, points: npt.NDArray[np.float32], colors: npt.NDArray[np.uint8]) -> None:
+        """Show ``points`` (M, 3) with ``colors`` (M, 3) uint8 (M may differ from the previous call).
+
+        Both properties change in one atomic message group, so a client never draws M points with
+        another M's colours.
+        """
+        pts = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
+        cols = np.ascontiguousarray(colors, dtype=np.uint8).reshape(-1, 3)
+        if pts.shape != cols.shape:
+            raise ValueError(f"points {pts.shape} and colors {cols.shape} must both be (M, 3)")
+        with self._lock:
+            if self._handle is None:
+                self._handle = self._server.scene.add_point_cloud(
+                    self._name,
+                    pts,
+                    cols,
+                    point_size=self._point_size,
+                    precision="float32",
+                    point_shape="square",
+                    point_shading="flat",
+                )
+            else:
+                with self._server.atomic():
+                    self._handle.points = pts
+                    self._handle.colors = cols
+            self._count = pts.shape[0]
+
+    def set_colors(self, colors: npt.NDArray[np.uint8]) -> None:
+        """Recolour the current points (same count): only the colours go over the wire."""
+        cols = np.ascontiguousarray(colors, dtype=np.uint8).reshape(-1, 3)
+        with self._lock:
+            if self._handle is None or cols.shape[0] != self._count:
+                raise ValueError(f"set_colors needs {self._count} colours, got {cols.shape[0]}")
+            self._handle.colors = cols
+
+    @property
+    def visible(self) -> bool:
+        return self._handle is not None and bool(self._handle.visible)
+
+    @visible.setter
+    def visible(self, value: bool) -> None:
+        if self._handle is not None:
+            self._handle.visible = value
+
+    @property
+    def point_size(self) -> float:
+        return self._point_size
+
+    @point_size.setter
+    def point_size(self, value: float) -> None:
+        self._point_size = float(value)
+        if self._handle is not None:
+            self._handle.point_size = float(value)
+
+
+class CameraLayer:
+    """The camera frustum of the scan being browsed, with its (label-overlaid) image."""
+
+    def __init__(self, server: viser.ViserServer, name: str) -> None:
+        self._server = server
+        self._name = name
+        self._handle: viser.CameraFrustumHandle | None = None
+
+    @property
+    def handle(self) -> viser.CameraFrustumHandle | None:
+        return self._handle
+
+    def set(
+        self,
+        *,
+        position: npt.ArrayLike,
+        wxyz: npt.ArrayLike,
+        fov_y: float,
+        aspect: float,
+        image: npt.NDArray[np.uint8] | None,
+        scale: float = 1.5,
+    ) -> None:
+        pos = tuple(float(v) for v in np.asarray(position).reshape(3))
+        quat = tuple(float(v) for v in np.asarray(wxyz).reshape(4))
+        if self._handle is None:
+            self._handle = self._server.scene.add_camera_frustum(
+                self._name,
+                fov=fov_y,
+                aspect=aspect,
+                scale=scale,
+                color=(255, 255, 255),
+                image=image,
+                format="jpeg",
+                wxyz=quat,
+                position=pos,
+                thickness=0.05,
+            )
+            return
+        with self._server.atomic():
+            self._handle.position = pos
+            self._handle.wxyz = quat
+            self._handle.fov = fov_y
+            self._handle.aspect = aspect
+            self._handle.image = image
+
+    @property
+    def visible(self) -> bool:
+        return self._handle is not None and bool(self._handle.visible)
+
+    @visible.setter
+    def visible(self, value: bool) -> None:
+        if self._handle is not None:
+            self._handle.visible = value
+
+
+class ReviewScene:
+    """The viewer's 3D scene: voxel map, selection highlight, one scan and its camera.
+
+    Args:
+        host: address viser binds (keep 127.0.0.1: remote access goes through the app's relay).
+        port: 0 picks a free port; a busy port silently moves, so always read :attr:`port`.
+        label: title shown in the viser panel.
+    """
+
+    def __init__(self, *, host: str = "127.0.0.1", port: int = 0, label: str = "LeAP review") -> None:
+        self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        self.server.gui.configure_theme(control_width="large", dark_mode=False, show_share_button=False)
+        # A docked panel never hides the map (a floating one covers part of the canvas).
+        self.server.gui.main_panel.dock_right()
+        self.voxels = PointLayer(self.server, "/map/voxels", point_size=0.2)
+        """The voxel map (one point per voxel centre)."""
+        self.selection = PointLayer(self.server, "/map/selection", point_size=0.26)
+        """Highlight of the voxels selected for a correction."""
+        self.scan = PointLayer(self.server, "/scan/points", point_size=0.08)
+        """The browsed scan's points in their final label colours."""
+        self.camera = CameraLayer(self.server, "/scan/camera")
+        self._rect_cb: RectSelectFn | None = None
+        self._closed = False
+
+    @property
+    def port(self) -> int:
+        """The port viser actually bound."""
+        return int(self.server.get_port())
+
+    @property
+    def host(self) -> str:
+        return str(self.server.get_host())
+
+    def look_at(self, position: npt.ArrayLike, target: npt.ArrayLike) -> None:
+        """Move every connected client's camera (and new clients' initial camera) to look at ``target``."""
+        pos = np.asarray(position, dtype=np.float64).reshape(3)
+        tgt = np.asarray(target, dtype=np.float64).reshape(3)
+        self.server.initial_camera.position = tuple(pos)
+        self.server.initial_camera.look_at = tuple(tgt)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.up_direction = (0.0, 0.0, 1.0)
+                client.camera.position = pos
+                client.camera.look_at = tgt
+
+    def frame_region(self, region: vl.Region, *, min_distance: float = 14.0) -> None:
+        """Point the camera at a review region from above and to the side, with its surroundings in view."""
+        distance = max(min_distance, 4.0 * region.extent)
+        pos, tgt = vl.orbit_view(region.centre, distance, elevation_deg=40.0)
+        self.look_at(pos, tgt)
+
+    def arm_rect_select(self, callback: RectSelectFn) -> None:
+        """Make the next box drag on the canvas a selection (camera orbit is suspended meanwhile)."""
+        self.disarm_rect_select()
+        self._rect_cb = callback
+        self.server.scene.on_rect_select()(callback)
+
+    def disarm_rect_select(self) -> None:
+        if self._rect_cb is not None:
+            self.server.scene.remove_rect_select_callback(self._rect_cb)
+            self._rect_cb = None
+
+    @property
+    def rect_select_armed(self) -> bool:
+        return self._rect_cb is not None
+
+    def clients(self) -> dict[int, Any]:
+        return dict(self.server.get_clients())
+
+    def stop(self) -> None:
+        """Close the server and free its port (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            self.server.stop()
+
+
+__all__ = ["CameraLayer", "PointLayer", "ReviewScene"]

@@ -1,0 +1,686 @@
+"""Pure view maths of the 3D review viewer: colours, visibility, corrections, review regions, undo/redo.
+
+Everything here takes and returns numpy arrays (or small frozen records) and does no I/O, so the scene
+facade (:mod:`app.viewer.scene`) only moves the results into viser handles. Shapes use V voxels, N points
+and C classes; class index arrays are int16 with ``UNLABELED = -1``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Generic, Literal, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.types import UNLABELED
+
+T_arr = TypeVar("T_arr", bound=np.generic)
+
+ColorMode = Literal["class", "confidence", "class_probability"]
+"""How voxels are coloured: argmax class colour, max posterior on a colour scale, or one class's posterior."""
+
+UNLABELED_RGB: tuple[int, int, int] = (128, 128, 128)
+"""Colour of unlabeled points (grey)."""
+
+SCALE_ANCHORS: tuple[tuple[int, int, int], ...] = (
+    (68, 1, 84),
+    (59, 82, 139),
+    (33, 145, 140),
+    (94, 201, 98),
+    (253, 231, 37),
+)
+"""Evenly spaced anchor colours of the confidence scale (low → high): the viridis key colours, a
+perceptually ordered scale that stays readable for colour-blind viewers."""
+
+
+# ------------------------------------------------------------------------------------- colour scales
+def make_lut(anchors: Sequence[Sequence[int]] = SCALE_ANCHORS, size: int = 256) -> npt.NDArray[np.uint8]:
+    """Colour lookup table by piecewise-linear interpolation between evenly spaced anchors.
+
+    Entry j (t = j / (size-1)) lies between anchors a_k, a_{k+1} with s = t·(K-1) - k:
+    ``lut[j] = round((1-s)·a_k + s·a_{k+1})``.
+
+    Args:
+        anchors: (K, 3) RGB 0..255, K ≥ 2, low to high.
+        size: number of entries (≥ 2).
+
+    Returns:
+        (size, 3) uint8.
+    """
+    a = np.asarray(anchors, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 2:
+        raise ValueError(f"anchors must be (K >= 2, 3) RGB, got shape {a.shape}")
+    if size < 2:
+        raise ValueError(f"size must be >= 2, got {size}")
+    t = np.linspace(0.0, 1.0, size) * (a.shape[0] - 1)
+    k = np.minimum(np.floor(t).astype(np.int64), a.shape[0] - 2)
+    s = (t - k)[:, None]
+    return np.rint((1.0 - s) * a[k] + s * a[k + 1]).astype(np.uint8)
+
+
+CONFIDENCE_LUT: npt.NDArray[np.uint8] = make_lut()
+"""(256, 3) uint8 default confidence scale."""
+
+
+def scalar_colors(
+    values: npt.ArrayLike, lut: npt.NDArray[np.uint8] = CONFIDENCE_LUT, vmin: float = 0.0, vmax: float = 1.0
+) -> npt.NDArray[np.uint8]:
+    """Map scalars to colours: ``lut[round(clip((v - vmin) / (vmax - vmin), 0, 1) · (L-1))]``.
+
+    Args:
+        values: (N,) floats; NaN maps to the lowest colour.
+        lut: (L, 3) uint8 table.
+        vmin, vmax: the values mapped to the first and last entries (vmax > vmin).
+
+    Returns:
+        (N, 3) uint8.
+    """
+    if not vmax > vmin:
+        raise ValueError(f"vmax must be > vmin, got vmin={vmin}, vmax={vmax}")
+    v = np.asarray(values, dtype=np.float32)
+    scale = np.float32((lut.shape[0] - 1) / (vmax - vmin))
+    idx = (v - np.float32(vmin)) * scale + np.float32(0.5)
+    np.clip(idx, 0, lut.shape[0] - 1, out=idx)
+    idx = np.nan_to_num(idx, nan=0.0)
+    return lut[idx.astype(np.intp)]
+
+
+def class_colors(
+    labels: npt.ArrayLike,
+    palette: npt.ArrayLike,
+    unlabeled: tuple[int, int, int] = UNLABELED_RGB,
+) -> npt.NDArray[np.uint8]:
+    """Colour of each class index: ``palette[label]``, ``unlabeled`` where label = -1.
+
+    Args:
+        labels: (N,) int class indices in [-1, C).
+        palette: (C, 3) RGB 0..255.
+
+    Returns:
+        (N, 3) uint8.
+    """
+    lab = np.asarray(labels)
+    pal = np.asarray(palette, dtype=np.uint8).reshape(-1, 3)
+    if lab.size and (lab.max() >= pal.shape[0] or lab.min() < UNLABELED):
+        raise ValueError(f"labels must lie in [-1, {pal.shape[0]}), got [{lab.min()}, {lab.max()}]")
+    # Row C of the extended table is the unlabeled colour, so -1 indexes it directly (Python wraps -1).
+    table = np.concatenate([pal, np.asarray(unlabeled, np.uint8).reshape(1, 3)])
+    return table[lab.astype(np.intp)]
+
+
+def blend(base: npt.NDArray[np.uint8], over: npt.ArrayLike, alpha: float) -> npt.NDArray[np.uint8]:
+    """``round((1-α)·base + α·over)`` per channel, uint8 (used for highlight tints)."""
+    out = (1.0 - alpha) * base.astype(np.float32) + alpha * np.asarray(over, np.float32)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+# ------------------------------------------------------------------------------------ probabilities
+def softmax_rows(logp: npt.ArrayLike, chunk: int = 1 << 20) -> npt.NDArray[np.float16]:
+    """Row-wise ``softmax(logp)`` as float16 (the viewer's storage), computed in float32 chunks.
+
+    Args:
+        logp: (V, C) log-likelihoods (any shift per row).
+
+    Returns:
+        (V, C) float16, rows summing to 1 (to float16 rounding).
+    """
+    lp = np.asarray(logp)
+    out = np.empty(lp.shape, np.float16)
+    for s in range(0, lp.shape[0], chunk):
+        block = lp[s : s + chunk].astype(np.float32)
+        block -= block.max(axis=1, keepdims=True)
+        np.exp(block, out=block)
+        block /= block.sum(axis=1, keepdims=True)
+        out[s : s + chunk] = block
+    return out
+
+
+def argmax_confidence(
+    probs: npt.ArrayLike, chunk: int = 1 << 20
+) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
+    """Argmax class (ties: lowest index) and its probability per row.
+
+    Args:
+        probs: (V, C) class probabilities.
+
+    Returns:
+        ``(label (V,) int16, conf (V,) float32)`` with ``conf = max_i probs[:, i]``.
+    """
+    p = np.asarray(probs)
+    label = np.empty(p.shape[0], np.int16)
+    conf = np.empty(p.shape[0], np.float32)
+    for s in range(0, p.shape[0], chunk):
+        block = p[s : s + chunk]
+        idx = block.argmax(axis=1)
+        label[s : s + chunk] = idx
+        conf[s : s + chunk] = np.take_along_axis(block, idx[:, None], axis=1)[:, 0]
+    return label, conf
+
+
+# ------------------------------------------------------------------------------------------ the view
+@dataclass(frozen=True)
+class ViewState:
+    """What the user asked to see; every view is a pure function of this and the grid."""
+
+    mode: ColorMode = "class"
+    """Colouring: ``class`` (argmax colours), ``confidence`` (max posterior) or ``class_probability``."""
+    class_index: int = 0
+    """Class whose posterior colours the voxels in ``class_probability`` mode."""
+    threshold: float = 0.0
+    """Voxels whose confidence is below this are hidden (in ``class_probability`` mode: whose
+    probability of ``class_index`` is below it)."""
+    enabled: tuple[bool, ...] = ()
+    """Per-class visibility toggles by argmax class; empty means every class is shown."""
+    max_points: int | None = None
+    """Show at most this many voxels (decimation on request); None shows all."""
+
+
+def visible_mask(
+    label: npt.NDArray[np.int16],
+    score: npt.NDArray[np.floating],
+    threshold: float,
+    enabled: Sequence[bool] = (),
+) -> npt.NDArray[np.bool_]:
+    """Voxels to draw: ``score ≥ threshold`` and the toggle of their class is on.
+
+    Args:
+        label: (V,) int16 argmax class per voxel (-1 = unlabeled, always drawn if above threshold).
+        score: (V,) the value compared with the threshold.
+        threshold: minimum score; ≤ 0 keeps every score.
+        enabled: (C,) per-class toggles; empty keeps every class.
+
+    Returns:
+        (V,) bool.
+    """
+    mask = score >= np.float32(threshold) if threshold > 0 else np.ones(score.shape[0], bool)
+    if len(enabled) and not all(enabled):
+        table = np.append(np.asarray(enabled, bool), True)  # index -1 → "unlabeled", kept
+        mask &= table[label.astype(np.intp)]
+    return mask
+
+
+def decimate_indices(indices: npt.NDArray[np.int64], max_points: int | None) -> npt.NDArray[np.int64]:
+    """An evenly strided subset of ``indices`` of at most ``max_points`` (all of them if None or fewer).
+
+    Keys are sorted by (x, y, z), so a stride thins space uniformly instead of cutting a region away.
+    """
+    n = indices.shape[0]
+    if max_points is None or n <= max_points:
+        return indices
+    if max_points <= 0:
+        return indices[:0]
+    step = n / max_points
+    return indices[(np.arange(max_points) * step).astype(np.int64)]
+
+
+def view_colors(
+    state: ViewState,
+    label: npt.NDArray[np.int16],
+    conf: npt.NDArray[np.float32],
+    class_prob: npt.NDArray[np.floating] | None,
+    palette: npt.NDArray[np.uint8],
+    rows: npt.NDArray[np.int64],
+) -> npt.NDArray[np.uint8]:
+    """Colours of the voxels ``rows`` for ``state.mode``.
+
+    Args:
+        label, conf: (V,) argmax class and its probability.
+        class_prob: (V,) probability of ``state.class_index`` (needed in ``class_probability`` mode).
+        palette: (C, 3) class colours.
+        rows: (M,) voxel rows to colour.
+
+    Returns:
+        (M, 3) uint8.
+    """
+    if state.mode == "class":
+        return class_colors(label[rows], palette)
+    if state.mode == "confidence":
+        return scalar_colors(conf[rows])
+    if class_prob is None:
+        raise ValueError("class_probability mode needs the class's probabilities")
+    return scalar_colors(class_prob[rows])
+
+
+def view_score(
+    state: ViewState, conf: npt.NDArray[np.float32], class_prob: npt.NDArray[np.floating] | None
+) -> npt.NDArray[np.floating]:
+    """The per-voxel value the threshold applies to in ``state.mode``."""
+    if state.mode == "class_probability":
+        if class_prob is None:
+            raise ValueError("class_probability mode needs the class's probabilities")
+        return class_prob
+    return conf
+
+
+def render_view(
+    state: ViewState,
+    label: npt.NDArray[np.int16],
+    conf: npt.NDArray[np.float32],
+    palette: npt.NDArray[np.uint8],
+    class_prob: npt.NDArray[np.floating] | None = None,
+    corrected: npt.NDArray[np.bool_] | None = None,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
+    """Rows of the voxels to draw and their colours: the whole view as one function of its inputs.
+
+    In ``class_probability`` mode a corrected voxel counts as certain: P(c) = 1 when its assigned class
+    is c, else 0.
+
+    Args:
+        state: the requested view.
+        label, conf: (V,) argmax class and its probability (corrections already applied).
+        palette: (C, 3) class colours.
+        class_prob: (V,) probability of ``state.class_index`` (``class_probability`` mode only).
+        corrected: (V,) bool, voxels overridden by a correction.
+
+    Returns:
+        ``(rows (M,) int64, colors (M, 3) uint8)``.
+    """
+    if state.mode == "class_probability" and class_prob is not None and corrected is not None and corrected.any():
+        class_prob = np.where(corrected, (label == state.class_index).astype(np.float32), class_prob)
+    score = view_score(state, conf, class_prob)
+    mask = visible_mask(label, score, state.threshold, state.enabled)
+    rows = decimate_indices(np.flatnonzero(mask), state.max_points)
+    return rows, view_colors(state, label, conf, class_prob, palette, rows)
+
+
+# ------------------------------------------------------------------------------------- corrections
+def last_per_index(
+    index: npt.NDArray[np.int64], values: npt.NDArray[T_arr]
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[T_arr]]:
+    """Deduplicate ``index`` keeping, for each distinct index, the value that comes last.
+
+    numpy does not promise which write wins when a fancy assignment repeats an index, so callers that
+    mean "the latest wins" deduplicate first.
+
+    Returns:
+        ``(unique indices (sorted), their last values)``.
+    """
+    rev_idx = index[::-1]
+    uniq, first_in_rev = np.unique(rev_idx, return_index=True)
+    return uniq, values[::-1][first_in_rev]
+
+
+def apply_corrections(
+    keys: npt.NDArray[np.int64],
+    label: npt.NDArray[np.int16],
+    conf: npt.NDArray[np.float32],
+    corr_keys: npt.ArrayLike,
+    corr_labels: npt.ArrayLike,
+) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+    """Overlay manual corrections on the grid's labels: a corrected voxel takes its class with confidence 1.
+
+    Corrections are applied in order, so a later correction of the same voxel wins. Keys absent from the
+    grid are ignored (the voxel was never observed in this run).
+
+    Args:
+        keys: (V,) int64 sorted unique grid keys.
+        label, conf: (V,) argmax class and its probability.
+        corr_keys: (K,) int64 corrected voxel keys, in the order the corrections were made.
+        corr_labels: (K,) class index of each corrected key.
+
+    Returns:
+        ``(label', conf', corrected)``: new arrays (inputs untouched), ``corrected`` (V,) bool.
+    """
+    ck = np.asarray(corr_keys, dtype=np.int64).reshape(-1)
+    cl = np.asarray(corr_labels, dtype=np.int16).reshape(-1)
+    if ck.shape != cl.shape:
+        raise ValueError(f"corr_keys {ck.shape} and corr_labels {cl.shape} must have the same length")
+    label = label.copy()
+    conf = conf.copy()
+    corrected = np.zeros(keys.shape[0], bool)
+    if ck.size == 0 or keys.size == 0:
+        return label, conf, corrected
+    pos = np.minimum(np.searchsorted(keys, ck), keys.shape[0] - 1)
+    hit = keys[pos] == ck
+    rows, cls = last_per_index(pos[hit], cl[hit])
+    label[rows] = cls
+    conf[rows] = 1.0
+    corrected[rows] = True
+    return label, conf, corrected
+
+
+# ------------------------------------------------------------------------------ camera and selection
+def quat_to_matrix(wxyz: Sequence[float]) -> npt.NDArray[np.float64]:
+    """(3, 3) rotation of a unit quaternion (w, x, y, z) (normalised first)."""
+    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / np.linalg.norm(wxyz)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def project_to_screen(
+    points: npt.ArrayLike,
+    position: Sequence[float],
+    wxyz: Sequence[float],
+    fov_y: float,
+    aspect: float,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+    """Normalised screen coordinates of world points seen by a viser client camera.
+
+    viser's camera follows the OpenCV convention: ``p_world = R · p_cam + t`` with ``R`` from ``wxyz``,
+    +z forward, +x right, +y down. With ``p_cam = Rᵀ(p - t)``:
+    ``u = ½ + ½ · (x/z) / (aspect · tan(fov_y/2))``, ``v = ½ + ½ · (y/z) / tan(fov_y/2)``,
+    so (0, 0) is the top-left and (1, 1) the bottom-right corner (the rect-select event's convention).
+
+    Args:
+        points: (N, 3) world coordinates.
+        position: camera position t.
+        wxyz: camera orientation quaternion.
+        fov_y: vertical field of view in radians.
+        aspect: canvas width / height.
+
+    Returns:
+        ``(uv (N, 2), in_front (N,) bool)``; uv is meaningless where ``in_front`` is False.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    rot = quat_to_matrix(wxyz)
+    cam = (p - np.asarray(position, dtype=np.float64)) @ rot  # rows are Rᵀ(p - t)
+    z = cam[:, 2]
+    in_front = z > 1e-6
+    safe_z = np.where(in_front, z, 1.0)
+    ty = math.tan(fov_y / 2.0)
+    uv = np.empty((p.shape[0], 2))
+    uv[:, 0] = 0.5 + 0.5 * cam[:, 0] / safe_z / (aspect * ty)
+    uv[:, 1] = 0.5 + 0.5 * cam[:, 1] / safe_z / ty
+    return uv, in_front
+
+
+def select_in_rect(
+    points: npt.ArrayLike,
+    position: Sequence[float],
+    wxyz: Sequence[float],
+    fov_y: float,
+    aspect: float,
+    rect_min: Sequence[float],
+    rect_max: Sequence[float],
+) -> npt.NDArray[np.bool_]:
+    """(N,) bool: the points in front of the camera whose screen position lies in the rectangle.
+
+    ``rect_min`` / ``rect_max`` are normalised screen corners (see :func:`project_to_screen`); they are
+    re-ordered if given swapped. Points hidden behind others are selected too (a box selects a volume).
+    """
+    uv, in_front = project_to_screen(points, position, wxyz, fov_y, aspect)
+    lo = np.minimum(rect_min, rect_max)
+    hi = np.maximum(rect_min, rect_max)
+    inside = (uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1])
+    return in_front & inside
+
+
+def orbit_view(
+    target: Sequence[float], distance: float, elevation_deg: float = 35.0, azimuth_deg: float = 225.0
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Camera ``(position, look_at)`` orbiting ``target`` (z up) at a distance, elevation and azimuth.
+
+    ``position = target + d · (cos e · cos a, cos e · sin a, sin e)``.
+    """
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    t = np.asarray(target, dtype=np.float64)
+    offset = distance * np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    return t + offset, t
+
+
+# ----------------------------------------------------------------------------------- review regions
+@dataclass(frozen=True)
+class Region:
+    """A place worth reviewing: the voxels of the candidate set that fall in one coarse cell."""
+
+    centre: tuple[float, float, float]
+    """Mean position of the region's candidate voxels (metres)."""
+    extent: float
+    """Largest distance of a candidate voxel from the centre (metres), for framing the camera."""
+    score: float
+    """Mean score of the region's candidate voxels (confidence, or disagreement rate)."""
+    count: int
+    """Number of candidate voxels in the region."""
+
+
+def rank_regions(
+    centres: npt.NDArray[np.floating],
+    score: npt.NDArray[np.floating],
+    candidates: npt.NDArray[np.bool_],
+    cell_size: float,
+    *,
+    min_count: int = 1,
+    ascending: bool = True,
+    limit: int = 100,
+) -> list[Region]:
+    """Cluster candidate voxels into coarse cells and order the cells by their mean score.
+
+    Each candidate voxel goes to cell ``floor(xyz / cell_size)``; a cell with ≥ ``min_count`` candidates
+    is a region with score ``mean(score[candidates in cell])``. Ties are broken by larger count first.
+
+    Args:
+        centres: (V, 3) voxel centres.
+        score: (V,) per-voxel score.
+        candidates: (V,) bool, the voxels to cluster (e.g. the least confident share).
+        cell_size: cell edge in metres (> 0).
+        min_count: cells with fewer candidates are dropped (isolated voxels are noise, not regions).
+        ascending: lowest score first (confidence) or highest first (disagreement).
+        limit: return at most this many regions.
+
+    Returns:
+        Regions, best first.
+    """
+    if not cell_size > 0:
+        raise ValueError(f"cell_size must be > 0, got {cell_size}")
+    rows = np.flatnonzero(candidates)
+    if rows.size == 0:
+        return []
+    xyz = np.asarray(centres, dtype=np.float64)[rows]
+    cells = np.floor(xyz / cell_size).astype(np.int64)
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    k = counts.shape[0]
+    s = np.asarray(score, dtype=np.float64)[rows]
+    mean_score = np.bincount(inverse, weights=s, minlength=k) / counts
+    mean_xyz = np.stack([np.bincount(inverse, weights=xyz[:, d], minlength=k) for d in range(3)], 1)
+    mean_xyz /= counts[:, None]
+    dist = np.linalg.norm(xyz - mean_xyz[inverse], axis=1)
+    extent = np.zeros(k)
+    np.maximum.at(extent, inverse, dist)
+    keep = np.flatnonzero(counts >= min_count)
+    primary = mean_score[keep] if ascending else -mean_score[keep]
+    order = keep[np.lexsort((-counts[keep], primary))][:limit]
+    return [
+        Region(
+            centre=(float(mean_xyz[i, 0]), float(mean_xyz[i, 1]), float(mean_xyz[i, 2])),
+            extent=float(extent[i]),
+            score=float(mean_score[i]),
+            count=int(counts[i]),
+        )
+        for i in order
+    ]
+
+
+def lowest_share(score: npt.NDArray[np.floating], share: float) -> npt.NDArray[np.bool_]:
+    """(V,) bool: the ``share`` (0..1] of voxels with the lowest score (at least one if V > 0)."""
+    if not 0 < share <= 1:
+        raise ValueError(f"share must be in (0, 1], got {share}")
+    n = score.shape[0]
+    if n == 0:
+        return np.zeros(0, bool)
+    k = max(1, int(round(share * n)))
+    if k >= n:
+        return np.ones(n, bool)
+    cut = np.partition(score, k - 1)[k - 1]
+    return score <= cut
+
+
+def disagreement_rate(
+    voxel_rows: npt.NDArray[np.int64],
+    camera_label: npt.NDArray[np.int16],
+    final_label: npt.NDArray[np.int16],
+    num_voxels: int,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """Per voxel, the share of camera-labelled points whose final label differs from the camera label.
+
+    ``rate[n] = #{p in n : cam_p ≥ 0, final_p ≠ cam_p} / #{p in n : cam_p ≥ 0}`` (0 where no camera label).
+
+    Args:
+        voxel_rows: (N,) grid row of each point (-1 when its voxel is not in the grid).
+        camera_label: (N,) projection-only (camera) label per point, -1 when the camera did not see it.
+        final_label: (N,) final label per point (voxel / 3D-CN).
+        num_voxels: V.
+
+    Returns:
+        ``(rate (V,) float32, observed (V,) int64)``.
+    """
+    ok = (voxel_rows >= 0) & (camera_label >= 0)
+    rows = voxel_rows[ok]
+    observed = np.bincount(rows, minlength=num_voxels).astype(np.int64)
+    differ = np.bincount(rows, weights=(final_label[ok] != camera_label[ok]), minlength=num_voxels)
+    rate = np.divide(differ, observed, out=np.zeros(num_voxels), where=observed > 0).astype(np.float32)
+    return rate, observed
+
+
+# --------------------------------------------------------------------------------------- images
+def draw_label_overlay(
+    image: npt.NDArray[np.uint8],
+    uv: npt.ArrayLike,
+    labels: npt.ArrayLike,
+    palette: npt.ArrayLike,
+    *,
+    radius: int = 1,
+    alpha: float = 0.85,
+    depth: npt.ArrayLike | None = None,
+) -> npt.NDArray[np.uint8]:
+    """Draw projected points as small squares in their class colour over a camera image.
+
+    Each point paints the (2r+1)² pixels around ``round(uv)`` with ``(1-α)·image + α·colour``. Where
+    squares overlap, the nearest point (smallest ``depth``) wins; unlabeled points (-1) are not drawn.
+
+    Args:
+        image: (H, W, 3) uint8 RGB (not modified).
+        uv: (N, 2) pixel coordinates (column, row).
+        labels: (N,) class index per point.
+        palette: (C, 3) class colours.
+        radius: half size r of each square in pixels.
+        alpha: opacity of the colour.
+        depth: (N,) distance used to resolve overlaps; None draws in the given order.
+
+    Returns:
+        (H, W, 3) uint8, a new image.
+    """
+    out = image.copy()
+    h, w = image.shape[:2]
+    uv_arr = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    lab = np.asarray(labels).reshape(-1)
+    keep = lab >= 0
+    uv_arr, lab = uv_arr[keep], lab[keep]
+    if depth is not None:
+        # Paint far to near so the nearest point's colour is written last.
+        order = np.argsort(-np.asarray(depth, dtype=np.float64).reshape(-1)[keep], kind="stable")
+        uv_arr, lab = uv_arr[order], lab[order]
+    if lab.size == 0:
+        return out
+    cols = class_colors(lab, palette)
+    u0 = np.rint(uv_arr[:, 0]).astype(np.int64)
+    v0 = np.rint(uv_arr[:, 1]).astype(np.int64)
+    point = np.arange(lab.size)
+    pix, who = [], []
+    for dv in range(-radius, radius + 1):
+        for du in range(-radius, radius + 1):
+            u, v = u0 + du, v0 + dv
+            ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            pix.append(v[ok] * w + u[ok])
+            who.append(point[ok])
+    flat, src = np.concatenate(pix), np.concatenate(who)
+    # Per pixel keep the point painted last (the nearest one when depth is given).
+    order = np.argsort(src, kind="stable")
+    flat, src = last_per_index(flat[order], src[order])
+    colour = np.zeros((h * w, 3), np.uint8)
+    painted = np.zeros(h * w, bool)
+    colour[flat] = cols[src]
+    painted[flat] = True
+    base = out.reshape(-1, 3)
+    base[painted] = blend(base[painted], colour[painted], alpha)
+    return out
+
+
+# ------------------------------------------------------------------------------------- undo / redo
+T = TypeVar("T")
+
+
+class EditHistory(Generic[T]):
+    """Undo/redo stacks of applied edits (the caller knows how to apply and revert an edit).
+
+    ``push`` records a newly applied edit and clears the redo stack; ``undo`` returns the edit to revert
+    (moving it to the redo stack); ``redo`` returns the edit to re-apply (moving it back).
+    """
+
+    def __init__(self, limit: int = 1000) -> None:
+        if limit < 1:
+            raise ValueError(f"limit must be >= 1, got {limit}")
+        self._done: list[T] = []
+        self._undone: list[T] = []
+        self._limit = limit
+
+    def push(self, edit: T) -> None:
+        self._done.append(edit)
+        if len(self._done) > self._limit:
+            del self._done[0]
+        self._undone.clear()
+
+    def undo(self) -> T | None:
+        """The edit to revert, or None when there is nothing to undo."""
+        if not self._done:
+            return None
+        edit = self._done.pop()
+        self._undone.append(edit)
+        return edit
+
+    def redo(self) -> T | None:
+        """The edit to re-apply, or None when there is nothing to redo."""
+        if not self._undone:
+            return None
+        edit = self._undone.pop()
+        self._done.append(edit)
+        return edit
+
+    @property
+    def can_undo(self) -> bool:
+        return bool(self._done)
+
+    @property
+    def can_redo(self) -> bool:
+        return bool(self._undone)
+
+    def __len__(self) -> int:
+        return len(self._done)
+
+
+__all__ = [
+    "CONFIDENCE_LUT",
+    "ColorMode",
+    "EditHistory",
+    "Region",
+    "ViewState",
+    "apply_corrections",
+    "argmax_confidence",
+    "blend",
+    "class_colors",
+    "decimate_indices",
+    "disagreement_rate",
+    "draw_label_overlay",
+    "last_per_index",
+    "lowest_share",
+    "make_lut",
+    "orbit_view",
+    "project_to_screen",
+    "quat_to_matrix",
+    "rank_regions",
+    "render_view",
+    "scalar_colors",
+    "select_in_rect",
+    "softmax_rows",
+    "view_colors",
+    "view_score",
+    "visible_mask",
+]

@@ -1,0 +1,255 @@
+"""Viewer recolouring speed on a large voxel map: in-place handle updates against two baselines.
+
+For each view change (threshold move, class toggle, colour-mode switch) it times, on the server:
+
+- **ours**: :func:`app.viewer.view_logic.render_view` (vectorised mask + colours) and the in-place update
+  of the existing point-cloud handle (only the colours when the visible set is unchanged), exactly what
+  :meth:`app.viewer.session.ReviewSession.draw_now` does;
+- **re-add**: the same arrays, but the node is removed and added again (what a viewer without handles
+  does);
+- **naive loop**: a per-voxel Python loop building the visible points and colours (the threshold case).
+
+"server" is compute + handle update (the call returns; viser then encodes and sends in its own thread);
+"delivered" is until a websocket client connected on loopback has received the update's bytes.
+Target: recolouring after a threshold or class change ≤ 0.3 s on the server at ≥ 2M voxels.
+
+Run: ``.venv/bin/python benchmarks/bench_viewer.py [--voxels 2000000] [--classes 20] [--repeats 3]``.
+Prints a table and writes ``benchmarks/results/bench_viewer.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import platform
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.viewer import view_logic as vl  # noqa: E402
+from app.viewer.data import ReviewGrid  # noqa: E402
+from app.viewer.scene import ReviewScene  # noqa: E402
+from leap_core.fusion import AXIS_OFFSET  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_viewer.json"
+
+
+def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGrid:
+    """A street-sized map: voxels on a 400 m × 400 m × 8 m block at 0.2 m, random class posteriors."""
+    rng = np.random.default_rng(seed)
+    ijk = np.stack(
+        [rng.integers(0, 2000, num_voxels * 2), rng.integers(0, 2000, num_voxels * 2), rng.integers(0, 40, num_voxels * 2)],
+        axis=1,
+    ) + AXIS_OFFSET
+    keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])[:num_voxels]
+    logits = rng.normal(0.0, 1.5, (keys.shape[0], num_classes)).astype(np.float32)
+    logits[np.arange(keys.shape[0]), rng.integers(0, num_classes, keys.shape[0])] += 2.5
+    return ReviewGrid.from_arrays(keys, vl.softmax_rows(logits), 0.2, "synthetic")
+
+
+class WireClient:
+    """A websocket client on the viser port counting received bytes (to time delivery)."""
+
+    def __init__(self, port: int) -> None:
+        import viser
+
+        self.port = port
+        self.version = viser.__version__
+        self.bytes = 0
+        self.last = 0.0
+        self._lock = threading.Lock()
+        self._ready = threading.Event()
+        threading.Thread(target=lambda: asyncio.run(self._main()), daemon=True).start()
+        self._ready.wait(10)
+
+    async def _main(self) -> None:
+        from websockets.asyncio.client import connect
+
+        async with connect(
+            f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{self.version}"], max_size=None, compression=None
+        ) as ws:
+            self._ready.set()
+            async for message in ws:
+                with self._lock:
+                    self.bytes += len(message)
+                    self.last = time.perf_counter()
+
+    def mark(self) -> int:
+        with self._lock:
+            return self.bytes
+
+    def wait_for(self, start_bytes: int, expected: int, timeout: float = 60.0) -> float:
+        """Time (perf_counter) when ≥ ``expected`` bytes arrived after ``start_bytes``."""
+        deadline = time.perf_counter() + timeout
+        while time.perf_counter() < deadline:
+            with self._lock:
+                if self.bytes - start_bytes >= expected:
+                    return self.last
+            time.sleep(0.0005)
+        raise TimeoutError(f"update of {expected} bytes not delivered in {timeout} s")
+
+
+def naive_loop(grid: ReviewGrid, palette: np.ndarray, threshold: float, enabled: list[bool]) -> tuple[Any, Any]:
+    """Per-voxel Python: the baseline a straightforward viewer would write."""
+    pts, cols = [], []
+    centres, label, conf = grid.centres, grid.label.tolist(), grid.conf.tolist()
+    pal = palette.tolist()
+    for i in range(len(label)):
+        if conf[i] >= threshold and enabled[label[i]]:
+            pts.append(centres[i])
+            cols.append(pal[label[i]])
+    return np.asarray(pts, np.float32).reshape(-1, 3), np.asarray(cols, np.uint8).reshape(-1, 3)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--voxels", type=int, default=2_000_000)
+    parser.add_argument("--classes", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+
+    t = time.perf_counter()
+    grid = synthetic_grid(args.voxels, args.classes)
+    build_s = time.perf_counter() - t
+    c = grid.num_classes
+    rng = np.random.default_rng(1)
+    palette = rng.integers(30, 255, (c, 3)).astype(np.uint8)
+    all_on = tuple(True for _ in range(c))
+    scenarios: list[tuple[str, vl.ViewState]] = [
+        ("threshold 0.3", vl.ViewState("class", threshold=0.3, enabled=all_on)),
+        ("threshold 0.5", vl.ViewState("class", threshold=0.5, enabled=all_on)),
+        ("toggle class 0 off", vl.ViewState("class", threshold=0.5, enabled=(False, *all_on[1:]))),
+        ("toggle class 0 on", vl.ViewState("class", threshold=0.5, enabled=all_on)),
+        ("mode: confidence", vl.ViewState("confidence", threshold=0.5, enabled=all_on)),
+        ("mode: P(class 3)", vl.ViewState("class_probability", class_index=3, threshold=0.5, enabled=all_on)),
+        ("P(class 3) ≥ 0.2", vl.ViewState("class_probability", class_index=3, threshold=0.2, enabled=all_on)),
+        ("P(class 5), threshold 0", vl.ViewState("class_probability", class_index=5, threshold=0.0, enabled=all_on)),
+        ("back to classes", vl.ViewState("class", threshold=0.0, enabled=all_on)),
+    ]
+
+    scene = ReviewScene(port=0)
+    try:
+        client = WireClient(scene.port)
+        rows0, cols0 = vl.render_view(vl.ViewState("class", enabled=all_on), grid.label, grid.conf, palette)
+        scene.voxels.set(grid.centres[rows0], cols0)
+        client.wait_for(0, rows0.shape[0] * 15)
+        shown = rows0
+
+        def ours(state: vl.ViewState) -> tuple[float, float, int]:
+            nonlocal shown
+            start = client.mark()
+            t0 = time.perf_counter()
+            prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
+            rows, cols = vl.render_view(state, grid.label, grid.conf, palette, prob)
+            if np.array_equal(rows, shown):
+                handle = scene.voxels.handle
+                # viser sends nothing when the colours did not change either.
+                expected = 0 if handle is not None and np.array_equal(handle.colors, cols) else rows.shape[0] * 3
+                scene.voxels.set_colors(cols)
+            else:
+                scene.voxels.set(grid.centres[rows], cols)
+                expected = rows.shape[0] * 15
+                shown = rows
+            t1 = time.perf_counter()
+            t2 = client.wait_for(start, expected) if expected else t1
+            return t1 - t0, t2 - t0, int(rows.shape[0])
+
+        def readd(state: vl.ViewState) -> tuple[float, float]:
+            start = client.mark()
+            t0 = time.perf_counter()
+            prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
+            rows, cols = vl.render_view(state, grid.label, grid.conf, palette, prob)
+            handle = scene.server.scene.add_point_cloud(
+                "/bench/readd", grid.centres[rows], cols, precision="float32", point_size=0.2
+            )  # same name: viser replaces the node, sending every position again
+            t1 = time.perf_counter()
+            t2 = client.wait_for(start, rows.shape[0] * 15)
+            handle.visible = False
+            return t1 - t0, t2 - t0
+
+        # The scenarios are a sequence of user actions; each pass starts and ends on the class view.
+        srv: list[list[float]] = [[] for _ in scenarios]
+        dlv: list[list[float]] = [[] for _ in scenarios]
+        counts = [0 for _ in scenarios]
+        for _ in range(args.repeats):
+            for k, (_, state) in enumerate(scenarios):
+                s_srv, s_del, counts[k] = ours(state)
+                srv[k].append(s_srv)
+                dlv[k].append(s_del)
+        scene.voxels.visible = False
+        r_srv: list[list[float]] = [[] for _ in scenarios]
+        r_dlv: list[list[float]] = [[] for _ in scenarios]
+        for _ in range(max(1, args.repeats - 1)):
+            for k, (_, state) in enumerate(scenarios):
+                a, b = readd(state)
+                r_srv[k].append(a)
+                r_dlv[k].append(b)
+        table: list[dict[str, Any]] = [
+            {
+                "scenario": name,
+                "shown": counts[k],
+                "ours_server_s": statistics.median(srv[k]),
+                "ours_delivered_s": statistics.median(dlv[k]),
+                "readd_server_s": statistics.median(r_srv[k]),
+                "readd_delivered_s": statistics.median(r_dlv[k]),
+            }
+            for k, (name, _) in enumerate(scenarios)
+        ]
+
+        t0 = time.perf_counter()
+        pts_naive, cols_naive = naive_loop(grid, palette, 0.5, list(all_on))
+        naive_s = time.perf_counter() - t0
+        rows_ref, cols_ref = vl.render_view(scenarios[1][1], grid.label, grid.conf, palette)
+        assert np.array_equal(pts_naive, grid.centres[rows_ref]) and np.array_equal(cols_naive, cols_ref)
+    finally:
+        scene.stop()
+
+    print(f"\nviewer recolouring: {grid.num_voxels:,} voxels, {c} classes (grid built in {build_s:.1f} s), "
+          f"median of {args.repeats}\n")
+    header = f"{'change':24s} {'shown':>10s} {'ours srv':>9s} {'ours dlv':>9s} {'re-add srv':>10s} {'re-add dlv':>10s} {'dlv ratio':>9s}"
+    print(header)
+    print("-" * len(header))
+    for row in table:
+        ratio = row["readd_delivered_s"] / row["ours_delivered_s"]
+        row["readd_over_ours_delivered"] = ratio
+        print(
+            f"{row['scenario']:24s} {row['shown']:>10,d} {row['ours_server_s'] * 1e3:>7.0f}ms "
+            f"{row['ours_delivered_s'] * 1e3:>7.0f}ms {row['readd_server_s'] * 1e3:>8.0f}ms "
+            f"{row['readd_delivered_s'] * 1e3:>8.0f}ms {ratio:>8.1f}x"
+        )
+    thr = table[1]
+    print(f"\nnaive per-voxel Python loop (threshold 0.5): {naive_s * 1e3:.0f} ms server "
+          f"= {naive_s / thr['ours_server_s']:.0f}x ours ({thr['ours_server_s'] * 1e3:.0f} ms)")
+    worst = max(r["ours_server_s"] for r in table)
+    print(f"worst server time over all changes: {worst * 1e3:.0f} ms (target ≤ 300 ms): "
+          f"{'PASS' if worst <= 0.3 else 'FAIL'}")
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(
+        json.dumps(
+            {
+                "voxels": grid.num_voxels,
+                "classes": c,
+                "repeats": args.repeats,
+                "machine": {"python": platform.python_version(), "cpus": __import__("os").cpu_count()},
+                "changes": table,
+                "naive_loop_threshold_s": naive_s,
+                "naive_over_ours_server": naive_s / thr["ours_server_s"],
+                "worst_ours_server_s": worst,
+                "target_s": 0.3,
+            },
+            indent=2,
+        )
+    )
+    print(f"wrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,279 @@
+"""The 3D review viewer in a real browser, through the real app, job queue and pipeline.
+
+Debian's Chromium (software WebGL) drives the viser client the app relays under its own port. On the
+seeded demo project's finished run it: shows the map in class colours, switches to one class's probability
+view, moves the threshold, makes a manual correction (box select + assign), edits a class's prompts,
+presses Re-run, watches the run finish and the scene reload, and finally checks that the correction is in
+the new run's exported ``.label`` files. Screenshots go to ``test-artifacts/``.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+MAX_BROWSER_POINTS = 200_000
+"""Software WebGL stays responsive up to about this many points (METHOD.md)."""
+DEMO_FRAMES = 14
+"""Frames of the generated demo sequence (enough for a readable street, small enough for software WebGL)."""
+CORRECTED_CLASS = "traffic-sign"
+CORRECTED_EXPORT_ID = 81
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.slow,
+    pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's chromium at /usr/bin/chromium"),
+]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_until(check: Callable[[], Any], timeout: float, what: str, interval: float = 0.2) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def live_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """The real app on a real HTTP port, with the demo project seeded on a short generated sequence."""
+    import uvicorn
+
+    from app.core.config import Settings
+    from app.main import create_app
+
+    root = tmp_path_factory.mktemp("viewer-e2e")
+    port = _free_port()
+    settings = Settings(
+        port=port, work_dir=root / "work", data_roots=[root], seed_demo=True, demo_synth={"frames": DEMO_FRAMES}
+    )
+    # Generate the demo sequence here, in one process: the app then finds it instead of generating it.
+    from leap_core.synth import SynthConfig, generate_sequence
+
+    generate_sequence(settings.demo_dataset.parent.parent, SynthConfig(frames=DEMO_FRAMES), workers=1)
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    wait_until(lambda: server.started, 30, "the app to start")
+    try:
+        yield {"base": f"http://127.0.0.1:{port}", "app": app, "settings": settings}
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+
+def _panel_input(page: Any, label: str) -> Any:
+    """viser puts each widget's label in a paragraph before its input."""
+    return page.get_by_text(label, exact=True).locator("xpath=following::input[not(@type='hidden')][1]")
+
+
+def _pick(page: Any, dropdown: str, option: str) -> None:
+    page.get_by_role("combobox", name=dropdown).click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+def _shot(page: Any, name: str) -> Path:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    path = ARTIFACTS / name
+    page.screenshot(path=str(path))
+    return path
+
+
+def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, Any]) -> None:
+    import httpx
+    from playwright.sync_api import sync_playwright
+
+    from app import crud
+    from app.core.db import open_db
+    from leap_core.datasets.kitti import KittiSequence, read_label
+    from leap_core.fusion import voxel_keys
+
+    base, app, settings = live_app["base"], live_app["app"], live_app["settings"]
+    api = httpx.Client(base_url=f"{base}/api/v1", timeout=30)
+
+    # 1. The seeded demo project finishes its first run.
+    project = wait_until(
+        lambda: next((p for p in api.get("/projects").json()["data"] if p["is_demo"]), None), 30, "the demo project"
+    )
+    pid = project["id"]
+
+    def last_run() -> dict[str, Any] | None:
+        runs = api.get(f"/projects/{pid}/runs").json()["data"]
+        return runs[0] if runs else None
+
+    first = wait_until(lambda: (r := last_run()) and r["status"] in ("done", "failed") and r, 600, "the first run")
+    assert first["status"] == "done", first.get("error")
+
+    # 2. The app starts the viewer and relays it under its own port.
+    opened = api.post(f"/projects/{pid}/viewer")
+    assert opened.status_code == 200, opened.text
+    viewer = opened.json()
+    assert viewer["run_id"] == first["id"]
+    session = app.state.viewers.get(pid)
+    assert session is not None and session.grid is not None
+    assert session.grid.num_voxels <= MAX_BROWSER_POINTS, "demo map too large for software WebGL"
+    names = session.class_names()
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page.goto(base + viewer["url"])
+        page.get_by_text("Connected", exact=True).wait_for(timeout=60_000)
+        page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
+        alert = page.get_by_role("alert")
+        if alert.count():
+            alert.get_by_role("button").first.click()
+        assert session.wait_drawn(30)
+        page.wait_for_timeout(4000)  # software WebGL draws the map
+        _shot(page, "viewer-1-classes.png")
+        page.get_by_text(f"{session.grid.num_voxels:,} voxels, {len(names)} classes", exact=False).wait_for(
+            timeout=10_000
+        )
+
+        # 3. One class's probability view, with its colour-scale legend.
+        _pick(page, "Color by", "class probability")
+        _pick(page, "Class", "road")
+        wait_until(lambda: session.state.mode == "class_probability" and session.state.class_index == names.index("road"),
+                   20, "the road probability view")
+        page.get_by_text("P(road)").wait_for(timeout=10_000)
+        assert session.wait_drawn(30)
+        page.wait_for_timeout(2500)
+        _shot(page, "viewer-2-road-probability.png")
+
+        # 4. The threshold hides voxels below it.
+        shown_before = session.scene.voxels.count
+        threshold = _panel_input(page, "Min probability")
+        threshold.fill("0.5")
+        threshold.press("Enter")
+        wait_until(lambda: abs(session.state.threshold - 0.5) < 1e-9, 20, "the threshold to reach the server")
+        assert session.wait_drawn(30)
+        road_prob = session.grid.class_prob(names.index("road"))
+        assert session.scene.voxels.count == int((road_prob >= 0.5).sum()) < shown_before
+        page.wait_for_timeout(2500)
+        _shot(page, "viewer-3-road-threshold.png")
+
+        # 5. A manual correction: back to classes, box-select the middle of the view, assign a class.
+        _pick(page, "Color by", "class")
+        threshold = _panel_input(page, "Min confidence")
+        threshold.fill("0")
+        threshold.press("Enter")
+        wait_until(lambda: session.state.mode == "class" and session.state.threshold == 0, 20, "the class view")
+        page.get_by_text("Corrections", exact=True).click()
+        _pick(page, "Assign class", CORRECTED_CLASS)
+        page.get_by_role("button", name="Select box").click()
+        wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
+        canvas = page.locator("canvas").first.bounding_box()
+        cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+        page.mouse.move(cx - 90, cy - 50)
+        page.mouse.down()
+        page.mouse.move(cx, cy, steps=8)
+        page.mouse.move(cx + 90, cy + 50, steps=8)
+        page.mouse.up()
+        selected = wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected")
+        page.get_by_text(f"{selected:,} voxels selected.").wait_for(timeout=10_000)
+        page.wait_for_timeout(2000)
+        _shot(page, "viewer-4-selection.png")
+        page.get_by_role("button", name="Apply to selection").click()
+        with open_db(settings.database) as db:
+            corrections = wait_until(lambda: crud.list_corrections(db, pid), 20, "the correction to be stored")
+        (correction,) = corrections
+        assert correction.class_name == CORRECTED_CLASS and correction.keys.size == selected
+        assert session.wait_drawn(30)
+        assert (session.label[session.grid.rows_of(correction.keys)] == names.index(CORRECTED_CLASS)).all()
+
+        # 6. Edit a class's prompts; it lands in the project (the same data the web UI edits).
+        page.get_by_text("Classes and prompts", exact=True).click()
+        _pick(page, "Edit class", "car")
+        prompts = _panel_input(page, "Prompts")
+        wait_until(lambda: "car" in prompts.input_value(), 10, "the class editor to fill in")
+        prompts.fill("car, automobile, hatchback")
+        prompts.press("Tab")
+        page.get_by_role("button", name="Save class").click()
+        car = wait_until(
+            lambda: next(
+                (c for c in api.get(f"/projects/{pid}/classes").json()["data"]
+                 if c["name"] == "car" and "hatchback" in c["prompts"]),
+                None,
+            ),
+            20,
+            "the edited prompts in the project",
+        )
+        assert car["prompts"] == ["car", "automobile", "hatchback"]
+
+        # 7. Re-run from the panel: progress shows, the run finishes, the scene reloads.
+        version = session.scene_version
+        page.get_by_role("button", name="Re-run").click()
+        second = wait_until(lambda: (r := last_run()) and r["id"] != first["id"] and r, 30, "the new run")
+        page.get_by_text(re.compile(rf"Run {second['number']} (queued|running)")).wait_for(timeout=30_000)
+        page.wait_for_timeout(500)
+        _shot(page, "viewer-5-rerun-progress.png")
+        wait_until(lambda: session.scene_version > version, 600, "the new run's scene")
+        assert session.scene_version == version + 1 and session.run is not None
+        assert session.run.run_id == second["id"]
+        page.get_by_text(f"Run {second['number']}", exact=False).first.wait_for(timeout=30_000)
+        assert session.wait_drawn(30)
+        page.wait_for_timeout(4000)
+        _shot(page, "viewer-6-after-rerun.png")
+
+        # 8. The review queue moves the camera to the least confident region.
+        page.get_by_text("Review queue", exact=True).click()
+        page.get_by_role("button", name="Next region").click()
+        page.get_by_text(re.compile(r"Region 1/\d+: mean confidence")).wait_for(timeout=30_000)
+        region = session.regions[0]
+        assert region.score == min(r.score for r in session.regions)
+        page.wait_for_timeout(3000)
+        _shot(page, "viewer-7-review-queue.png")
+        browser.close()
+
+    # 9. The correction is in the new run's exported .label files.
+    run = api.get(f"/runs/{second['id']}").json()
+    assert run["status"] == "done"
+    with open_db(settings.database) as db:
+        run_dir = Path(crud.require_run(db, second["id"])["run_dir"])
+        first_dir = Path(crud.require_run(db, first["id"])["run_dir"])
+    seq = KittiSequence(project["dataset"]["path"])
+    voxel_size = session.grid.voxel_size
+    hit_new = hit_old = total = 0
+    for i, fid in enumerate(seq.frame_ids):
+        frame = seq.frame(i)
+        xyz = frame.points[:, :3].astype(np.float64) @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+        inside = np.isin(voxel_keys(xyz, voxel_size), correction.keys)
+        total += int(inside.sum())
+        new = read_label(run_dir / "export" / f"{fid}.label", frame.points.shape[0]) & 0xFFFF
+        old = read_label(first_dir / "export" / f"{fid}.label", frame.points.shape[0]) & 0xFFFF
+        hit_new += int((new[inside] == CORRECTED_EXPORT_ID).sum())
+        hit_old += int((old[inside] == CORRECTED_EXPORT_ID).sum())
+    assert total > 0
+    print(f"corrected voxels hold {total} points: {hit_new} exported as {CORRECTED_CLASS} after the re-run "
+          f"({hit_new / total:.1%}), {hit_old} before")
+    assert hit_old < 0.05 * total
+    # Smoothing after fusion may flip a few corrected voxels on the border of the selection.
+    assert hit_new >= 0.9 * total
