@@ -593,7 +593,22 @@ def stage_fuse(ctx: _Ctx) -> dict[str, Any]:
 
 
 def _smooth_and_save(grid: VoxelGrid, ctx: _Ctx, path: Path) -> None:
+    """kNN-smooth ``grid`` and save it; corrected voxels are then reset to their corrected class.
+
+    A manual correction is the user's final word: kNN smoothing (and a later 3D-CN round) must not move
+    it, so it is re-imposed as a one-hot distribution on the smoothed grid, not only fused as evidence.
+    """
     probs = knn_smooth(grid.centres(), grid.probs(), ctx.cfg.smoothing)
+    corr = ctx.run_dir / _CORRECTIONS_FILE
+    if corr.is_file():
+        keys, cls = _load_corrections(corr, grid.num_classes)
+        # Later corrections of the same voxel win: keep each key's last occurrence.
+        _, last = np.unique(keys[::-1], return_index=True)
+        keys, cls = keys[::-1][last], cls[::-1][last]
+        rows = grid.lookup(keys)
+        hit = rows >= 0
+        probs[rows[hit]] = 0.0
+        probs[rows[hit], cls[hit]] = 1.0
     atomic_save_npz(
         path, keys=grid.keys, probs=probs.astype(np.float16), voxel_size=np.float64(grid.voxel_size)
     )

@@ -288,6 +288,38 @@ def test_corrections_override_voxels(baseline, street: Path, schema, tmp_path: P
         run_pipeline(street, schema, PipelineConfig(), run_dir, until="fuse")
 
 
+def test_corrections_survive_smoothing_and_latest_wins(baseline, street: Path, schema, tmp_path: Path) -> None:
+    """Every point in a corrected voxel is exported with the corrected class, even at a selection's edge
+    where kNN smoothing would otherwise pull it back; a later correction of the same voxel wins."""
+    import shutil
+
+    from leap_core.datasets.kitti import KittiSequence, read_label
+    from leap_core.fusion import VoxelGrid, voxel_keys
+    from leap_core.pipeline import world_points
+
+    run_dir = tmp_path / "corr_smooth"
+    shutil.copytree(baseline[0], run_dir)
+    grid = VoxelGrid.load(run_dir / "grid.npz")
+    trunk, pole = schema.index("trunk"), schema.index("pole")
+    keys = grid.keys[::7][:200]  # scattered voxels: each one is surrounded by uncorrected neighbours
+    np.savez(run_dir / "corrections.npz", keys=np.concatenate([keys, keys[:20]]),
+             class_idx=np.concatenate([np.full(len(keys), trunk), np.full(20, pole)]))
+    result = run_pipeline(street, schema, PipelineConfig(), run_dir)
+    assert "smooth" in result.ran and "export" in result.ran
+    expected = {int(k): trunk for k in keys} | {int(k): pole for k in keys[:20]}
+    seq = KittiSequence(street)
+    export_ids = schema.export_ids()
+    checked = 0
+    for i in range(len(seq)):
+        frame = seq.frame(i)
+        pk = voxel_keys(world_points(frame.points, frame.pose), grid.voxel_size)
+        exported = read_label(result.export_dir / f"{frame.frame_id}.label", len(pk))
+        for j in np.flatnonzero(np.isin(pk, keys)):
+            assert exported[j] == export_ids[expected[int(pk[j])]]
+            checked += 1
+    assert checked > 0
+
+
 def test_metrics_from_confusion_equals_evaluate() -> None:
     rng = np.random.default_rng(0)
     gt = rng.integers(-1, 4, 500).astype(np.int16)
