@@ -145,24 +145,42 @@ def evaluate(
         ignore_unlabeled_pred: True = paper protocol (unlabeled predictions ignored); False = all-points
             protocol (unlabeled predictions are false negatives), see the module docstring.
     """
+    if len(tuple(categories)) != len(tuple(class_names)):
+        raise ValueError(f"{len(tuple(categories))} categories given for {len(tuple(class_names))} classes")
+    conf = confusion_matrix(gt, pred, len(tuple(class_names)))
+    return metrics_from_confusion(conf, class_names, categories, ignore_unlabeled_pred=ignore_unlabeled_pred)
+
+
+def metrics_from_confusion(
+    conf: npt.ArrayLike,
+    class_names: Sequence[str],
+    categories: Sequence[str],
+    *,
+    ignore_unlabeled_pred: bool,
+) -> Metrics:
+    """:class:`Metrics` from a (C, C+1) confusion matrix (rows gt, last column = unlabeled prediction).
+
+    Confusion matrices add up, so per-scan matrices can be summed instead of holding every point.
+    Category IoU merges the matrix by category: G = Aᵀ·conf·A with A the (C, G) class→category one-hot.
+    """
+    cm = np.asarray(conf, dtype=np.int64)
     names = tuple(class_names)
     cats = tuple(categories)
     c = len(names)
-    if len(cats) != c:
-        raise ValueError(f"{len(cats)} categories given for {c} classes")
-    conf = confusion_matrix(gt, pred, c)
-    iou = iou_from_confusion(conf, ignore_unlabeled_pred=ignore_unlabeled_pred)
+    if len(cats) != c or cm.shape != (c, c + 1):
+        raise ValueError(f"confusion {cm.shape} / {len(cats)} categories do not match {c} classes")
+    iou = iou_from_confusion(cm, ignore_unlabeled_pred=ignore_unlabeled_pred)
 
     groups = list(dict.fromkeys(cats))
     group_of = np.array([groups.index(x) for x in cats], dtype=np.int64)
     onehot = np.zeros((c, len(groups)), np.int64)
     onehot[np.arange(c), group_of] = 1
     gconf = np.zeros((len(groups), len(groups) + 1), np.int64)
-    gconf[:, : len(groups)] = onehot.T @ conf[:, :c] @ onehot
-    gconf[:, len(groups)] = onehot.T @ conf[:, c]
+    gconf[:, : len(groups)] = onehot.T @ cm[:, :c] @ onehot
+    gconf[:, len(groups)] = onehot.T @ cm[:, c]
     giou = iou_from_confusion(gconf, ignore_unlabeled_pred=ignore_unlabeled_pred)
 
-    n = int(conf.sum())
+    n = int(cm.sum())
     return Metrics(
         class_names=names,
         iou=iou,
@@ -170,9 +188,9 @@ def evaluate(
         miou_all_classes=float(np.nan_to_num(iou, nan=0.0).mean()) if c else math.nan,
         category_iou={g: float(v) for g, v in zip(groups, giou)},
         category_miou=_nanmean(giou),
-        labeled_share=float(conf[:, :c].sum() / n) if n else math.nan,
+        labeled_share=float(cm[:, :c].sum() / n) if n else math.nan,
         n_points=n,
-        confusion=conf,
+        confusion=cm,
         ignore_unlabeled_pred=ignore_unlabeled_pred,
     )
 
@@ -201,4 +219,4 @@ def format_table(rows: dict[str, Metrics], class_names: Sequence[str]) -> str:
     return "\n".join(out)
 
 
-__all__ = ["Metrics", "confusion_matrix", "evaluate", "format_table", "iou_from_confusion"]
+__all__ = ["Metrics", "confusion_matrix", "evaluate", "format_table", "iou_from_confusion", "metrics_from_confusion"]

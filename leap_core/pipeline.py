@@ -32,11 +32,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import shutil
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -50,7 +49,7 @@ from leap_core.errors import Cancelled, DatasetError, LeapError
 from leap_core.fusion import Observations, VoxelGrid, apply_overrides, fuse, log_table, voxel_keys
 from leap_core.io_utils import atomic_save_npz, atomic_write, atomic_write_json
 from leap_core.labelers.base import SoftMasks
-from leap_core.metrics import Metrics, confusion_matrix, format_table, iou_from_confusion
+from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
 from leap_core.projection import Painted, paint, project_points
 from leap_core.schema import Schema
 from leap_core.smoothing import knn_smooth
@@ -691,39 +690,6 @@ def stage_label_points(ctx: _Ctx) -> dict[str, Any]:
     return _per_frame(ctx, "label_points", work)
 
 
-def metrics_from_confusion(
-    conf: npt.ArrayLike, class_names: Sequence[str], categories: Sequence[str], *, ignore_unlabeled_pred: bool
-) -> Metrics:
-    """:class:`Metrics` from a summed (C, C+1) confusion matrix, identical to :func:`metrics.evaluate` on the
-    concatenated points (which lets the pipeline sum per-scan matrices instead of holding every point)."""
-    cm = np.asarray(conf, dtype=np.int64)
-    names, cats = tuple(class_names), tuple(categories)
-    c = len(names)
-    iou = iou_from_confusion(cm, ignore_unlabeled_pred=ignore_unlabeled_pred)
-    groups = list(dict.fromkeys(cats))
-    onehot = np.zeros((c, len(groups)), np.int64)
-    onehot[np.arange(c), [groups.index(x) for x in cats]] = 1
-    gconf = np.zeros((len(groups), len(groups) + 1), np.int64)
-    gconf[:, : len(groups)] = onehot.T @ cm[:, :c] @ onehot
-    gconf[:, len(groups)] = onehot.T @ cm[:, c]
-    giou = iou_from_confusion(gconf, ignore_unlabeled_pred=ignore_unlabeled_pred)
-    n = int(cm.sum())
-    finite = iou[~np.isnan(iou)]
-    gfinite = giou[~np.isnan(giou)]
-    return Metrics(
-        class_names=names,
-        iou=iou,
-        miou=float(finite.mean()) if finite.size else math.nan,
-        miou_all_classes=float(np.nan_to_num(iou, nan=0.0).mean()) if c else math.nan,
-        category_iou={g: float(v) for g, v in zip(groups, giou)},
-        category_miou=float(gfinite.mean()) if gfinite.size else math.nan,
-        labeled_share=float(cm[:, :c].sum() / n) if n else math.nan,
-        n_points=n,
-        confusion=cm,
-        ignore_unlabeled_pred=ignore_unlabeled_pred,
-    )
-
-
 def stage_evaluate(ctx: _Ctx) -> dict[str, Any]:
     """Point / voxel / +3D-CN rows against ground truth, both protocols → ``metrics.json``.
 
@@ -961,7 +927,6 @@ __all__ = [
     "cn_row",
     "dataset_identity",
     "load_metrics",
-    "metrics_from_confusion",
     "plan_stages",
     "result_tables",
     "run_pipeline",

@@ -28,11 +28,10 @@ from leap_core.datasets.kitti import (
 )
 from leap_core.errors import Cancelled, LeapError
 from leap_core.labelers.simulated import SimulatedLabelerConfig
-from leap_core.metrics import evaluate
+from leap_core.metrics import evaluate, metrics_from_confusion
 from leap_core.pipeline import (
     STAGES,
     load_metrics,
-    metrics_from_confusion,
     plan_stages,
     result_tables,
     run_pipeline,
