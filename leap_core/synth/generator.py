@@ -1,0 +1,265 @@
+"""Write a synthetic street sequence in the KITTI odometry / SemanticKITTI layout.
+
+``OUT/sequences/NN/`` receives ``velodyne/*.bin``, ``labels/*.label`` (semantic | instance << 16),
+``image_2/*.png``, ``calib.txt`` (P2, Tr), ``poses.txt`` (camera-frame poses relative to the first
+frame, as KITTI stores them), ``times.txt`` and the 2D ground truth ``gt2d/{semantic,instance}/*.png``
+(uint16). Output is byte-identical for the same configuration, whatever the number of worker processes:
+every frame draws its noise from its own generator seeded by (seed, frame).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import shutil
+import threading
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.datasets.kitti import (
+    Calib,
+    write_calib,
+    write_image,
+    write_label,
+    write_png16,
+    write_poses,
+    write_scan,
+)
+from leap_core.errors import DatasetError
+from leap_core.io_utils import atomic_write_bytes
+from leap_core.progress import ProgressFn, report
+from leap_core.synth.camera import CameraConfig, SunShadows, camera_to_world, pixel_rays, render
+from leap_core.synth.lidar import LidarConfig, ray_grid, scan
+from leap_core.synth.route import EgoConfig
+from leap_core.synth.scene import Scene, SceneConfig, build_scene
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Everything that determines a generated sequence (same config → identical bytes)."""
+
+    frames: int = 60
+    """Number of frames (scans + images)."""
+    seed: int = 0
+    """Seed of the scene layout, the route and all sensor noise."""
+    hz: float = 10.0
+    """Frame rate (Hz); KITTI records at 10 Hz."""
+    shadows: bool = True
+    """Render sun shadows in the camera images."""
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    """LiDAR sensor model."""
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    """Camera intrinsics, mounting and rendering."""
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    """Street layout and object density."""
+    ego: EgoConfig = field(default_factory=EgoConfig)
+    """How the ego vehicle drives."""
+
+    def __post_init__(self) -> None:
+        if self.frames < 1:
+            raise ValueError(f"SynthConfig.frames must be >= 1, got {self.frames}")
+        if self.hz <= 0:
+            raise ValueError(f"SynthConfig.hz must be > 0, got {self.hz}")
+
+
+@dataclass(frozen=True)
+class SynthStats:
+    """Summary of a generated sequence.
+
+    Attributes:
+        path: the sequence folder.
+        points: (F,) points per scan.
+        in_image: (F,) points per scan that project inside the image (depth > 0).
+    """
+
+    path: Path
+    points: npt.NDArray[np.int64]
+    in_image: npt.NDArray[np.int64]
+
+    @property
+    def in_image_share(self) -> float:
+        return float(self.in_image.sum() / max(self.points.sum(), 1))
+
+
+def lidar_mount(cfg: SynthConfig) -> npt.NDArray[np.float64]:
+    """(4, 4) LiDAR → vehicle transform (sensor ``lidar.height`` above the road, axes aligned)."""
+    m = np.eye(4)
+    m[2, 3] = cfg.lidar.height
+    return m
+
+
+def calibration(cfg: SynthConfig) -> Calib:
+    """The sequence's calibration (P2 and Tr as written to ``calib.txt``)."""
+    return Calib(P2=cfg.camera.P2(), Tr=cfg.camera.Tr())
+
+
+def lidar_poses(scene: Scene, cfg: SynthConfig) -> npt.NDArray[np.float64]:
+    """(F, 4, 4) LiDAR → world pose per frame."""
+    return scene.route.poses @ lidar_mount(cfg)[None]
+
+
+def camera_poses_kitti(
+    lidar_to_world: npt.NDArray[np.float64], tr: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """KITTI ``poses.txt`` matrices: camera i → camera 0, ``Tr · L₀⁻¹ · Lᵢ · Tr⁻¹``.
+
+    A reader recovers the LiDAR poses relative to the first scan as ``Tr⁻¹ · P · Tr = L₀⁻¹ · Lᵢ``.
+    """
+    rel = np.linalg.inv(lidar_to_world[0])[None] @ lidar_to_world
+    return tr[None] @ rel @ np.linalg.inv(tr)[None]
+
+
+class _Worker:
+    """Per-process state: the scene (rebuilt from the config, deterministic), ray grids, shadow tiles."""
+
+    def __init__(self, cfg: SynthConfig, seq_dir: Path) -> None:
+        self.cfg = cfg
+        self.seq_dir = seq_dir
+        self.scene = build_scene(cfg.scene, cfg.ego, cfg.frames, cfg.hz, cfg.seed)
+        self.lidar_rays = ray_grid(cfg.lidar)
+        self.pixel_rays = pixel_rays(cfg.camera)
+        self.shadows = (
+            SunShadows(self.scene.static, self.scene.sun, cfg.camera.shadow_res) if cfg.shadows else None
+        )
+        self.poses = lidar_poses(self.scene, cfg)
+        self.calib = calibration(cfg)
+
+    def frame(self, i: int) -> tuple[int, int, int]:
+        cfg, scene = self.cfg, self.scene
+        prims = scene.primitives_at(i)
+        rng_l, rng_c = (
+            np.random.default_rng(s) for s in np.random.SeedSequence([cfg.seed, i, 0x11DA]).spawn(2)
+        )
+        sc = scan(prims, self.poses[i], cfg.lidar, rng_l, self.lidar_rays)
+        cam = render(
+            prims,
+            len(scene.static),
+            camera_to_world(cfg.camera, self.poses[i]),
+            cfg.camera,
+            scene.sun,
+            self.shadows,
+            rng_c,
+            self.pixel_rays,
+        )
+        stem = f"{i:06d}"
+        d = self.seq_dir
+        write_scan(d / "velodyne" / f"{stem}.bin", sc.points)
+        write_label(d / "labels" / f"{stem}.label", sc.semantic, sc.instance)
+        write_image(d / "image_2" / f"{stem}.png", cam.rgb)
+        write_png16(d / "gt2d" / "semantic" / f"{stem}.png", cam.semantic)
+        write_png16(d / "gt2d" / "instance" / f"{stem}.png", cam.instance)
+        return (
+            i,
+            len(sc.points),
+            count_in_image(sc.points[:, :3], self.calib, cfg.camera.width, cfg.camera.height),
+        )
+
+
+def count_in_image(xyz: npt.NDArray[np.float32], calib: Calib, width: int, height: int) -> int:
+    """Number of points with positive depth whose rounded projection ``P2·Tr·X`` lies in the image."""
+    m = calib.lidar_to_image.astype(np.float32)
+    x, y, zc = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    q = [m[k, 0] * x + m[k, 1] * y + m[k, 2] * zc + m[k, 3] for k in range(3)]
+    ok = q[2] > 0.1
+    u = np.rint(q[0][ok] / q[2][ok])
+    v = np.rint(q[1][ok] / q[2][ok])
+    return int(((u >= 0) & (u < width) & (v >= 0) & (v < height)).sum())
+
+
+_WORKER: _Worker | None = None
+
+
+def _init_worker(cfg: SynthConfig, seq_dir: Path) -> None:
+    global _WORKER
+    _WORKER = _Worker(cfg, seq_dir)
+
+
+def _run_frame(i: int) -> tuple[int, int, int]:
+    assert _WORKER is not None
+    return _WORKER.frame(i)
+
+
+def generate_sequence(
+    root: str | Path,
+    cfg: SynthConfig = SynthConfig(),
+    sequence: str = "00",
+    *,
+    force: bool = False,
+    workers: int = 1,
+    progress: ProgressFn | None = None,
+) -> SynthStats:
+    """Generate ``root/sequences/<sequence>`` from ``cfg``.
+
+    Args:
+        root: dataset root (the folder that holds ``sequences/``).
+        cfg: generator configuration.
+        sequence: sequence name (two digits in KITTI).
+        force: replace an existing non-empty sequence folder (it is deleted first).
+        workers: processes rendering frames in parallel (1 = in this process). The output does not depend
+            on it.
+        progress: called as ``progress(0, total)`` once the output folder is ready, then as
+            ``progress(done, total)`` after each frame.
+
+    Returns:
+        Per-frame point counts.
+
+    Raises:
+        DatasetError: the sequence folder exists, is not empty and ``force`` is False.
+    """
+    seq_dir = Path(root) / "sequences" / sequence
+    if seq_dir.exists() and any(seq_dir.iterdir()):
+        if not force:
+            raise DatasetError(seq_dir, "sequence folder is not empty; refusing to overwrite (use --force)")
+        shutil.rmtree(seq_dir)
+    for sub in ("velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance"):
+        (seq_dir / sub).mkdir(parents=True, exist_ok=True)
+    report(progress, 0, cfg.frames)
+    points = np.zeros(cfg.frames, np.int64)
+    in_image = np.zeros(cfg.frames, np.int64)
+    workers = max(1, min(int(workers), cfg.frames))
+    global _WORKER
+    worker = _Worker(cfg, seq_dir)
+    if workers == 1:
+        _collect((worker.frame(i) for i in range(cfg.frames)), points, in_image, cfg.frames, progress)
+    else:
+        # Forked children inherit the built scene. Forking a process that runs other threads can deadlock,
+        # so there (and where fork does not exist) the workers are spawned and rebuild it (deterministic).
+        fork = "fork" in mp.get_all_start_methods() and threading.active_count() == 1
+        ctx = mp.get_context("fork" if fork else "spawn")
+        _WORKER = worker
+        try:
+            init = {} if fork else {"initializer": _init_worker, "initargs": (cfg, seq_dir)}
+            with ctx.Pool(workers, **init) as pool:
+                _collect(pool.imap(_run_frame, range(cfg.frames)), points, in_image, cfg.frames, progress)
+        finally:
+            _WORKER = None
+    scene = worker.scene
+    calib = calibration(cfg)
+    write_calib(seq_dir / "calib.txt", calib)
+    write_poses(seq_dir / "poses.txt", camera_poses_kitti(lidar_poses(scene, cfg), calib.Tr))
+    times = "".join(f"{i / cfg.hz:.6e}\n" for i in range(cfg.frames))
+    atomic_write_bytes(seq_dir / "times.txt", times.encode())
+    return SynthStats(path=seq_dir, points=points, in_image=in_image)
+
+
+def _collect(
+    results: Iterable[tuple[int, int, int]],
+    points: npt.NDArray[np.int64],
+    in_image: npt.NDArray[np.int64],
+    total: int,
+    progress: ProgressFn | None,
+) -> None:
+    """Store each frame's (index, points, points in image) and report progress."""
+    for done, (i, n, n_img) in enumerate(results, start=1):
+        points[i] = n
+        in_image[i] = n_img
+        report(progress, done, total)
+
+
+def default_workers() -> int:
+    """Worker processes to use by default: up to two, never more than the machine's cores."""
+    return max(1, min(2, os.cpu_count() or 1))
