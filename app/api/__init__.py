@@ -1,0 +1,1 @@
+"""HTTP API: ``main.api_router`` aggregates one router per resource under ``routes/``."""

@@ -1,0 +1,92 @@
+"""Request dependencies, as ``Annotated`` aliases used in every route signature."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator, Iterator
+from typing import Annotated
+
+import sqlite_utils
+from fastapi import Depends, HTTPException, Request, status
+from starlette.requests import HTTPConnection
+
+from app.core.config import Settings
+from app.core.db import ConnectionPool, open_db
+from app.core.security import token_matches
+from app.jobs.manager import JobManager
+
+TOKEN_HEADER = "X-Leap-Token"
+TOKEN_QUERY = "token"
+TOKEN_COOKIE = "leap_token"
+
+
+def get_settings(connection: HTTPConnection) -> Settings:
+    """The settings the app was created with (override in tests with ``app.dependency_overrides``)."""
+    return connection.app.state.settings  # type: ignore[no-any-return]
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_db(connection: HTTPConnection, settings: SettingsDep) -> Iterator[sqlite_utils.Database]:
+    """A SQLite connection for this request (from the app's pool; a fresh one if the app has none)."""
+    pool: ConnectionPool | None = getattr(connection.app.state, "db_pool", None)
+    if pool is None or pool.path != settings.database:
+        with open_db(settings.database) as db:
+            yield db
+        return
+    with pool.connection() as db:
+        yield db
+
+
+DbDep = Annotated[sqlite_utils.Database, Depends(get_db)]
+
+
+async def get_read_db(
+    connection: HTTPConnection, settings: SettingsDep
+) -> AsyncIterator[sqlite_utils.Database]:
+    """A pooled connection for ``async`` handlers that only READ a few rows.
+
+    Such handlers run on the event loop without a thread hand-off: in WAL mode a read never waits for a
+    writer, and a primary-key lookup takes well under a millisecond. Handlers that write use ``DbDep``.
+    """
+    pool: ConnectionPool | None = getattr(connection.app.state, "db_pool", None)
+    if pool is None or pool.path != settings.database:
+        with open_db(settings.database) as db:
+            yield db
+        return
+    with pool.connection() as db:
+        yield db
+
+
+ReadDbDep = Annotated[sqlite_utils.Database, Depends(get_read_db)]
+
+
+def get_jobs(request: Request) -> JobManager:
+    return request.app.state.jobs  # type: ignore[no-any-return]
+
+
+JobsDep = Annotated[JobManager, Depends(get_jobs)]
+
+
+def request_token(request: HTTPConnection) -> str | None:
+    """The token a request presents: ``Authorization: Bearer``, ``X-Leap-Token``, ``?token=`` or cookie.
+
+    The query form exists for ``EventSource`` and download links, which cannot set headers.
+    """
+    auth = request.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return (
+        request.headers.get(TOKEN_HEADER)
+        or request.query_params.get(TOKEN_QUERY)
+        or request.cookies.get(TOKEN_COOKIE)
+    )
+
+
+def require_token(connection: HTTPConnection, settings: SettingsDep) -> None:
+    """Every API call (and websocket) presents the configured access token, when one is configured."""
+    if not token_matches(settings.token, request_token(connection)):
+        raise HTTPException(status.HTTP_403_FORBIDDEN, detail="Access token missing or wrong")
+
+
+AuthDep = Depends(require_token)

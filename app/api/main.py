@@ -1,0 +1,23 @@
+"""The API router: every resource router, all behind the access-token check."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+
+from fastapi import APIRouter
+
+from app.api.deps import AuthDep
+from app.api.routes import classes, datasets, exports, health, projects, runs
+
+api_router = APIRouter(dependencies=[AuthDep])
+api_router.include_router(health.router)
+api_router.include_router(datasets.router)
+api_router.include_router(projects.router)
+api_router.include_router(classes.router)
+api_router.include_router(runs.router)
+api_router.include_router(exports.router)
+
+if importlib.util.find_spec("app.api.routes.viewer") is not None:
+    # The 3D review viewer is an optional module of its own (app/viewer, app/api/routes/viewer.py).
+    api_router.include_router(importlib.import_module("app.api.routes.viewer").router)

@@ -1,0 +1,37 @@
+"""Projects: a dataset, a class schema and pipeline parameters, with a history of runs."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+
+from app import crud, models, services
+from app.api.deps import DbDep, SettingsDep
+
+router = APIRouter(prefix="/projects", tags=["projects"])
+
+
+@router.get("", response_model=models.ProjectsPublic)
+def list_projects(db: DbDep) -> models.ProjectsPublic:
+    data = [services.project_public(db, p) for p in crud.list_projects(db)]
+    return models.ProjectsPublic(data=data, count=len(data))
+
+
+@router.post("", response_model=models.ProjectPublic, status_code=status.HTTP_201_CREATED)
+def create_project(payload: models.ProjectCreate, db: DbDep, settings: SettingsDep) -> models.ProjectPublic:
+    return services.project_public(db, services.create_project(db, settings, payload))
+
+
+@router.get("/{project_id}", response_model=models.ProjectPublic)
+def read_project(project_id: int, db: DbDep) -> models.ProjectPublic:
+    return services.project_public(db, crud.require_project(db, project_id))
+
+
+@router.patch("/{project_id}", response_model=models.ProjectPublic)
+def update_project(project_id: int, payload: models.ProjectUpdate, db: DbDep) -> models.ProjectPublic:
+    return services.project_public(db, services.update_project(db, project_id, payload))
+
+
+@router.delete("/{project_id}", response_model=models.Message)
+def delete_project(project_id: int, db: DbDep) -> models.Message:
+    services.delete_project(db, project_id)
+    return models.Message(message="Project deleted")

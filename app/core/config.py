@@ -1,0 +1,158 @@
+"""Deployment settings of the LeAP Studio app, read once at start-up.
+
+Only this module reads the environment (variables prefixed ``LEAP_``, e.g. ``LEAP_PORT=8001`` or
+``LEAP_DATA_ROOTS='["/data/kitti"]'``). Everything else receives a :class:`Settings` object explicitly.
+"""
+
+from __future__ import annotations
+
+import functools
+import ipaddress
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
+
+
+def is_loopback(host: str) -> bool:
+    """True when ``host`` only accepts connections from this machine."""
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+class Settings(BaseSettings):
+    """Where the app listens, where data may live, and where it keeps its state."""
+
+    model_config = SettingsConfigDict(env_prefix="LEAP_", env_ignore_empty=True, extra="ignore", frozen=True)
+
+    host: str = "127.0.0.1"
+    """Address to bind. Anything but a loopback address requires ``access_token``."""
+    port: int = Field(8000, ge=1, le=65535)
+    """TCP port of the API and web UI."""
+    data_roots: list[Path] = Field(default_factory=lambda: [Path("data")])
+    """Folders datasets may be read from and exports written to; every user path must lie inside one."""
+    work_dir: Path = Path("data/studio")
+    """Where runs, stage caches, the demo sequence and the SQLite database live."""
+    db_path: Path | None = None
+    """SQLite file; defaults to ``work_dir/studio.db``."""
+    access_token: SecretStr | None = None
+    """Shared secret every API call (and the viewer) must present when set; required off loopback."""
+    models_dir: Path | None = None
+    """Local folder with Grounding DINO / SAM weights (no download is attempted)."""
+    max_parallel_runs: int = Field(1, ge=1, le=8)
+    """Runs executed at the same time across all projects; further runs wait in a FIFO queue."""
+    prewarm_workers: bool = True
+    """Keep a worker process with the pipeline already imported, so a run starts without a delay."""
+    seed_demo: bool = True
+    """On first start, create the demo project and queue its first run."""
+    demo_synth: dict[str, Any] = Field(default_factory=dict)
+    """Overrides for ``leap_core.synth.SynthConfig`` when generating the demo sequence (e.g. fewer frames)."""
+    viewer_enabled: bool = True
+    """Start the 3D review viewer (viser) when a run is opened for review."""
+    viewer_port: int = Field(0, ge=0, le=65535)
+    """Port of the viser viewer; 0 picks a free port."""
+    viewer_max_points: int = Field(2_000_000, ge=1000)
+    """Above this many voxels the viewer decimates only when the user asks."""
+    progress_interval_s: float = Field(0.1, gt=0, le=5)
+    """Minimum seconds between two progress messages of one stage (the last one is always sent)."""
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    """Server log level."""
+
+    @field_validator("host")
+    @classmethod
+    def _host_not_empty(cls, value: str) -> str:
+        value = value.strip()
+        if not value:
+            raise ValueError("host must not be empty")
+        return value
+
+    @field_validator("data_roots")
+    @classmethod
+    def _roots(cls, value: list[Path]) -> list[Path]:
+        if not value:
+            raise ValueError("at least one data root is needed")
+        roots = [Path(p).expanduser().resolve() for p in value]
+        for root in roots:
+            if root.exists() and not root.is_dir():
+                raise ValueError(f"data root {root} is a file, not a folder")
+            if root == Path(root.anchor):
+                raise ValueError(f"data root {root} is the file-system root; name a data folder")
+        return roots
+
+    @field_validator("work_dir", "models_dir")
+    @classmethod
+    def _abs_dir(cls, value: Path | None) -> Path | None:
+        if value is None:
+            return None
+        path = Path(value).expanduser().resolve()
+        if path.exists() and not path.is_dir():
+            raise ValueError(f"{path} is a file, not a folder")
+        return path
+
+    @field_validator("demo_synth")
+    @classmethod
+    def _synth(cls, value: dict[str, Any]) -> dict[str, Any]:
+        from app.demo import synth_config
+
+        try:
+            synth_config(value)
+        except ValueError as exc:  # LeapError is a ValueError; its message names the field
+            raise ValueError(str(exc)) from None
+        return value
+
+    @field_validator("access_token")
+    @classmethod
+    def _token_strength(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and len(value.get_secret_value()) < 12:
+            raise ValueError("access_token must have at least 12 characters")
+        return value
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        if not is_loopback(self.host) and self.access_token is None:
+            raise ValueError(
+                f"host {self.host!r} is not a loopback address: set access_token (LEAP_ACCESS_TOKEN) "
+                "so that only people with the token can use the app"
+            )
+        if self.db_path is None:
+            object.__setattr__(self, "db_path", self.work_dir / "studio.db")
+        else:
+            object.__setattr__(self, "db_path", Path(self.db_path).expanduser().resolve())
+        return self
+
+    # ----------------------------------------------------------------------------------- derived paths
+    @property
+    def database(self) -> Path:
+        """The SQLite file (``db_path`` with its default filled in)."""
+        assert self.db_path is not None
+        return self.db_path
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.work_dir / "runs"
+
+    @property
+    def cache_dir(self) -> Path:
+        return self.work_dir / "cache"
+
+    @property
+    def demo_dataset(self) -> Path:
+        """Sequence folder of the built-in demo (generated on first use)."""
+        return self.work_dir / "demo" / "sequences" / "00"
+
+    @property
+    def token(self) -> str | None:
+        return None if self.access_token is None else self.access_token.get_secret_value()
+
+
+@functools.lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """Settings from the environment, read once (tests build ``Settings(...)`` and pass them instead)."""
+    return Settings()

@@ -1,0 +1,220 @@
+"""SQLite storage (sqlite-utils) with a versioned schema.
+
+One database file holds projects, runs, manual corrections and a small key/value ``meta`` table. The
+schema version lives in ``schema_version``; :data:`MIGRATIONS` are applied in order, each in its own
+transaction, so an older database is upgraded on start-up and a newer one is refused.
+
+Connections are cheap (WAL mode, no shared cache): every request and every job thread opens its own.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import sqlite3
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import sqlite_utils
+
+
+def utcnow() -> str:
+    """Current UTC time as an ISO-8601 string with a ``Z`` suffix (sortable, unambiguous)."""
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _execute_script(db: sqlite_utils.Database, script: str) -> None:
+    # sqlite3's executescript() commits any open transaction first; run statement by statement instead.
+    for statement in script.split(";"):
+        if statement.strip():
+            db.execute(statement)
+
+
+def _v1_initial(db: sqlite_utils.Database) -> None:
+    _execute_script(
+        db,
+        """
+        CREATE TABLE projects (
+            id INTEGER PRIMARY KEY,
+            name TEXT NOT NULL,
+            dataset_kind TEXT NOT NULL CHECK (dataset_kind IN ('demo', 'folder')),
+            dataset_path TEXT NOT NULL,
+            schema_json TEXT NOT NULL,
+            pipeline_json TEXT NOT NULL,
+            is_demo INTEGER NOT NULL DEFAULT 0,
+            created_at TEXT NOT NULL,
+            updated_at TEXT NOT NULL
+        );
+        CREATE TABLE runs (
+            id INTEGER PRIMARY KEY,
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            number INTEGER NOT NULL,
+            status TEXT NOT NULL CHECK (status IN
+                ('queued', 'running', 'done', 'failed', 'cancelled', 'interrupted')),
+            params_json TEXT NOT NULL,
+            run_dir TEXT NOT NULL,
+            stages_json TEXT NOT NULL DEFAULT '{}',
+            metrics_json TEXT,
+            error TEXT,
+            attempts INTEGER NOT NULL DEFAULT 0,
+            created_at TEXT NOT NULL,
+            started_at TEXT,
+            finished_at TEXT
+        );
+        CREATE INDEX runs_project ON runs(project_id, id);
+        CREATE INDEX runs_status ON runs(status);
+        CREATE TABLE corrections (
+            id INTEGER PRIMARY KEY,
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            created_at TEXT NOT NULL,
+            class_name TEXT NOT NULL,
+            voxel_size REAL NOT NULL,
+            keys BLOB NOT NULL,
+            active INTEGER NOT NULL DEFAULT 1
+        );
+        CREATE INDEX corrections_project ON corrections(project_id, id);
+        CREATE TABLE meta (
+            key TEXT PRIMARY KEY,
+            value TEXT NOT NULL
+        );
+        """,
+    )
+
+
+Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
+
+MIGRATIONS: list[Migration] = [
+    (1, "projects, runs, corrections, meta", _v1_initial),
+]
+"""Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
+
+SCHEMA_VERSION = MIGRATIONS[-1][0]
+
+
+class DatabaseVersionError(RuntimeError):
+    """The database was written by a newer LeAP Studio."""
+
+
+def connect(path: Path, *, set_wal: bool = True) -> sqlite_utils.Database:
+    """Open ``path`` (created if missing) in WAL mode with foreign keys on.
+
+    WAL mode is stored in the file: connections to a database :func:`init_db` prepared may skip setting it
+    (``set_wal=False``), which keeps opening a connection free of any lock.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    conn = sqlite3.connect(str(path), timeout=30.0, check_same_thread=False, isolation_level=None)
+    if set_wal:
+        conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute("PRAGMA synchronous=NORMAL")
+    conn.execute("PRAGMA foreign_keys=ON")
+    conn.execute("PRAGMA busy_timeout=30000")
+    return sqlite_utils.Database(conn)
+
+
+def current_version(db: sqlite_utils.Database) -> int:
+    if not db["schema_version"].exists():
+        return 0
+    row = db.execute("SELECT MAX(version) FROM schema_version").fetchone()
+    return int(row[0] or 0)
+
+
+def migrate(db: sqlite_utils.Database) -> int:
+    """Apply pending migrations in order; return the resulting version."""
+    db.execute(
+        "CREATE TABLE IF NOT EXISTS schema_version "
+        "(version INTEGER PRIMARY KEY, description TEXT NOT NULL, applied_at TEXT NOT NULL)"
+    )
+    version = current_version(db)
+    if version > SCHEMA_VERSION:
+        raise DatabaseVersionError(
+            f"database schema version {version} is newer than this program's {SCHEMA_VERSION}; "
+            "upgrade LeAP Studio"
+        )
+    for number, description, apply in MIGRATIONS:
+        if number <= version:
+            continue
+        with transaction(db):
+            apply(db)
+            db.execute(
+                "INSERT INTO schema_version (version, description, applied_at) VALUES (?, ?, ?)",
+                [number, description, utcnow()],
+            )
+        version = number
+    return version
+
+
+@contextmanager
+def transaction(db: sqlite_utils.Database) -> Iterator[None]:
+    """``BEGIN IMMEDIATE`` … ``COMMIT`` (rollback on error); writers never interleave inside one.
+
+    Nested use joins the outer transaction, so crud functions can be composed atomically by a caller.
+    """
+    conn = db.conn
+    if conn.in_transaction:
+        yield
+        return
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+def init_db(path: Path) -> int:
+    """Create or upgrade the database at ``path``; return its schema version."""
+    db = connect(path)
+    try:
+        return migrate(db)
+    finally:
+        db.close()
+
+
+class ConnectionPool:
+    """Idle connections to one database, reused across requests (opening one costs about a millisecond).
+
+    A connection is used by one request at a time: :meth:`connection` takes it from the pool and puts it
+    back afterwards, rolled back if the request left a transaction open.
+    """
+
+    def __init__(self, path: Path, max_idle: int = 16, *, prefill: int = 4) -> None:
+        self.path = path
+        self.max_idle = max_idle
+        self._lock = threading.Lock()
+        self._idle: list[sqlite_utils.Database] = [connect(path) for _ in range(min(prefill, max_idle))]
+
+    @contextmanager
+    def connection(self) -> Iterator[sqlite_utils.Database]:
+        with self._lock:
+            db = self._idle.pop() if self._idle else None
+        if db is None:
+            db = connect(self.path, set_wal=False)
+        try:
+            yield db
+        finally:
+            if db.conn.in_transaction:
+                db.conn.execute("ROLLBACK")
+            with self._lock:
+                if len(self._idle) < self.max_idle:
+                    self._idle.append(db)
+                    db = None
+            if db is not None:
+                db.close()
+
+    def close(self) -> None:
+        with self._lock:
+            idle, self._idle = self._idle, []
+        for db in idle:
+            db.close()
+
+
+@contextmanager
+def open_db(path: Path) -> Iterator[sqlite_utils.Database]:
+    """A connection for one unit of work, closed afterwards."""
+    db = connect(path)
+    try:
+        yield db
+    finally:
+        db.close()

@@ -1,0 +1,305 @@
+"""Plain database functions (no HTTP, no pipeline). Rows come back as dicts with JSON columns decoded.
+
+Every function takes the sqlite-utils ``Database`` first and its other arguments by keyword.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import sqlite_utils
+
+from app.core.db import transaction, utcnow
+from app.core.errors import NotFound
+
+_JSON_COLUMNS = {
+    "schema_json": "schema",
+    "pipeline_json": "pipeline",
+    "params_json": "params",
+    "stages_json": "stages",
+    "metrics_json": "metrics",
+}
+
+
+def _decode(row: dict[str, Any] | None) -> dict[str, Any] | None:
+    if row is None:
+        return None
+    out = dict(row)
+    for column, key in _JSON_COLUMNS.items():
+        if column in out:
+            raw = out.pop(column)
+            out[key] = None if raw is None else json.loads(raw)
+    return out
+
+
+def _rows(db: sqlite_utils.Database, sql: str, params: Sequence[Any] = ()) -> list[dict[str, Any]]:
+    cursor = db.execute(sql, list(params))
+    names = [d[0] for d in cursor.description]
+    return [_decode(dict(zip(names, r, strict=True))) for r in cursor.fetchall()]  # type: ignore[misc]
+
+
+def _one(db: sqlite_utils.Database, sql: str, params: Sequence[Any] = ()) -> dict[str, Any] | None:
+    rows = _rows(db, sql, params)
+    return rows[0] if rows else None
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"))
+
+
+# -------------------------------------------------------------------------------------------- projects
+def create_project(
+    db: sqlite_utils.Database,
+    *,
+    name: str,
+    dataset_kind: str,
+    dataset_path: str,
+    schema: dict[str, Any],
+    pipeline: dict[str, Any],
+    is_demo: bool = False,
+) -> dict[str, Any]:
+    now = utcnow()
+    cursor = db.execute(
+        "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
+        "created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        [name, dataset_kind, dataset_path, _dumps(schema), _dumps(pipeline), int(is_demo), now, now],
+    )
+    project = get_project(db, int(cursor.lastrowid))  # type: ignore[arg-type]
+    assert project is not None
+    return project
+
+
+def get_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
+    return _one(db, "SELECT * FROM projects WHERE id = ?", [project_id])
+
+
+def require_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any]:
+    """The project row, or :class:`NotFound`."""
+    project = get_project(db, project_id)
+    if project is None:
+        raise NotFound(f"Project {project_id} not found")
+    return project
+
+
+def list_projects(db: sqlite_utils.Database) -> list[dict[str, Any]]:
+    return _rows(db, "SELECT * FROM projects ORDER BY id")
+
+
+def update_project(
+    db: sqlite_utils.Database,
+    project_id: int,
+    *,
+    name: str | None = None,
+    schema: dict[str, Any] | None = None,
+    pipeline: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    sets: list[str] = []
+    params: list[Any] = []
+    for column, value in (("name", name), ("schema_json", schema), ("pipeline_json", pipeline)):
+        if value is not None:
+            sets.append(f"{column} = ?")
+            params.append(value if column == "name" else _dumps(value))
+    sets.append("updated_at = ?")
+    params.append(utcnow())
+    db.execute(f"UPDATE projects SET {', '.join(sets)} WHERE id = ?", [*params, project_id])
+    return require_project(db, project_id)
+
+
+def delete_project(db: sqlite_utils.Database, project_id: int) -> None:
+    db.execute("DELETE FROM projects WHERE id = ?", [project_id])
+
+
+def find_demo_project(db: sqlite_utils.Database) -> dict[str, Any] | None:
+    return _one(db, "SELECT * FROM projects WHERE is_demo = 1 ORDER BY id LIMIT 1")
+
+
+# ------------------------------------------------------------------------------------------------ runs
+def create_run(
+    db: sqlite_utils.Database, *, project_id: int, params: dict[str, Any], runs_dir: Path
+) -> dict[str, Any]:
+    """Insert a queued run numbered after the project's earlier ones; its folder is ``runs_dir/p<P>/r<R>``."""
+    with transaction(db):
+        number = db.execute(
+            "SELECT COALESCE(MAX(number), 0) + 1 FROM runs WHERE project_id = ?", [project_id]
+        ).fetchone()[0]
+        cursor = db.execute(
+            "INSERT INTO runs (project_id, number, status, params_json, run_dir, created_at) "
+            "VALUES (?, ?, 'queued', ?, '', ?)",
+            [project_id, number, _dumps(params), utcnow()],
+        )
+        run_id = int(cursor.lastrowid)  # type: ignore[arg-type]
+        run_dir = runs_dir / f"p{project_id}" / f"r{run_id}"
+        db.execute("UPDATE runs SET run_dir = ? WHERE id = ?", [str(run_dir), run_id])
+    run = get_run(db, run_id)
+    assert run is not None
+    return run
+
+
+def get_run(db: sqlite_utils.Database, run_id: int) -> dict[str, Any] | None:
+    return _one(db, "SELECT * FROM runs WHERE id = ?", [run_id])
+
+
+def require_run(db: sqlite_utils.Database, run_id: int) -> dict[str, Any]:
+    """The run row, or :class:`NotFound`."""
+    run = get_run(db, run_id)
+    if run is None:
+        raise NotFound(f"Run {run_id} not found")
+    return run
+
+
+def list_runs(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
+    """Runs of a project, newest first."""
+    return _rows(db, "SELECT * FROM runs WHERE project_id = ? ORDER BY id DESC", [project_id])
+
+
+def runs_with_status(db: sqlite_utils.Database, statuses: Iterable[str]) -> list[dict[str, Any]]:
+    statuses = list(statuses)
+    marks = ", ".join("?" for _ in statuses)
+    return _rows(db, f"SELECT * FROM runs WHERE status IN ({marks}) ORDER BY id", statuses)
+
+
+def active_run(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
+    """The project's queued or running run, if any."""
+    return _one(
+        db,
+        "SELECT * FROM runs WHERE project_id = ? AND status IN ('queued', 'running') ORDER BY id LIMIT 1",
+        [project_id],
+    )
+
+
+def last_finished_run(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
+    return _one(
+        db,
+        "SELECT * FROM runs WHERE project_id = ? AND status = 'done' ORDER BY id DESC LIMIT 1",
+        [project_id],
+    )
+
+
+def update_run(db: sqlite_utils.Database, run_id: int, **fields: Any) -> None:
+    """Set columns of a run; ``stages``, ``metrics`` and ``params`` are stored as JSON."""
+    sets: list[str] = []
+    params: list[Any] = []
+    for key, value in fields.items():
+        column = f"{key}_json" if key in ("stages", "metrics", "params") else key
+        sets.append(f"{column} = ?")
+        params.append(_dumps(value) if column.endswith("_json") and value is not None else value)
+    if sets:
+        db.execute(f"UPDATE runs SET {', '.join(sets)} WHERE id = ?", [*params, run_id])
+
+
+def transition_run(db: sqlite_utils.Database, run_id: int, from_status: str, **fields: Any) -> bool:
+    """Set ``fields`` only if the run is still ``from_status``; True when it was (an atomic check-and-set)."""
+    sets = [f"{k} = ?" for k in fields]
+    cursor = db.execute(
+        f"UPDATE runs SET {', '.join(sets)} WHERE id = ? AND status = ?",
+        [*fields.values(), run_id, from_status],
+    )
+    return cursor.rowcount == 1
+
+
+def mark_stale_runs_interrupted(db: sqlite_utils.Database) -> list[int]:
+    """After a crash or kill, runs left queued or running are marked ``interrupted``; returns their ids."""
+    with transaction(db):
+        ids = [
+            r[0] for r in db.execute("SELECT id FROM runs WHERE status IN ('queued', 'running')").fetchall()
+        ]
+        if ids:
+            marks = ", ".join("?" for _ in ids)
+            db.execute(
+                f"UPDATE runs SET status = 'interrupted', finished_at = ?, "
+                f"error = 'the server stopped during this run; resume it to continue' WHERE id IN ({marks})",
+                [utcnow(), *ids],
+            )
+    return ids
+
+
+def count_runs(db: sqlite_utils.Database, project_id: int) -> int:
+    return int(db.execute("SELECT COUNT(*) FROM runs WHERE project_id = ?", [project_id]).fetchone()[0])
+
+
+# ----------------------------------------------------------------------------------------- corrections
+@dataclass(frozen=True)
+class Correction:
+    """Manual voxel class assignment made in the viewer; applied as an overriding observation by runs."""
+
+    id: int
+    """Row id."""
+    project_id: int
+    """Owning project."""
+    created_at: str
+    """ISO UTC time."""
+    class_name: str
+    """Class assigned to the voxels (by name, so it survives reordering; dropped if the class is removed)."""
+    voxel_size: float
+    """Voxel edge (m) the keys were computed with."""
+    keys: npt.NDArray[np.int64]
+    """(K,) packed voxel keys (``leap_core.fusion`` key packing)."""
+    active: bool
+    """False once undone."""
+
+
+def _correction(row: dict[str, Any]) -> Correction:
+    return Correction(
+        id=int(row["id"]),
+        project_id=int(row["project_id"]),
+        created_at=row["created_at"],
+        class_name=row["class_name"],
+        voxel_size=float(row["voxel_size"]),
+        keys=np.frombuffer(row["keys"], dtype=np.int64).copy(),
+        active=bool(row["active"]),
+    )
+
+
+def add_correction(
+    db: sqlite_utils.Database,
+    *,
+    project_id: int,
+    class_name: str,
+    voxel_size: float,
+    keys: npt.ArrayLike,
+) -> int:
+    """Store a correction (active); returns its id."""
+    arr = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1))
+    require_project(db, project_id)
+    cursor = db.execute(
+        "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active) "
+        "VALUES (?, ?, ?, ?, ?, 1)",
+        [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes()],
+    )
+    return int(cursor.lastrowid)  # type: ignore[arg-type]
+
+
+def list_corrections(
+    db: sqlite_utils.Database, project_id: int, *, active_only: bool = True
+) -> list[Correction]:
+    """Corrections of a project in the order they were made (later ones win on overlap)."""
+    where = " AND active = 1" if active_only else ""
+    cursor = db.execute(f"SELECT * FROM corrections WHERE project_id = ?{where} ORDER BY id", [project_id])
+    names = [d[0] for d in cursor.description]
+    return [_correction(dict(zip(names, r, strict=True))) for r in cursor.fetchall()]
+
+
+def set_correction_active(db: sqlite_utils.Database, correction_id: int, active: bool) -> None:
+    """Undo (``active=False``) or redo a correction."""
+    cursor = db.execute("UPDATE corrections SET active = ? WHERE id = ?", [int(active), correction_id])
+    if cursor.rowcount == 0:
+        raise NotFound(f"Correction {correction_id} not found")
+
+
+# ------------------------------------------------------------------------------------------------ meta
+def get_meta(db: sqlite_utils.Database, key: str) -> str | None:
+    row = db.execute("SELECT value FROM meta WHERE key = ?", [key]).fetchone()
+    return None if row is None else str(row[0])
+
+
+def set_meta(db: sqlite_utils.Database, key: str, value: str) -> None:
+    db.execute(
+        "INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value = ?",
+        [key, value, value],
+    )

@@ -1,0 +1,722 @@
+"""Background runs: a FIFO queue across projects, worker threads, one child process per run.
+
+Life of a run: ``start_run`` snapshots the project (dataset, schema, pipeline parameters, active
+corrections) into a new ``queued`` row and folder, then a worker thread takes it, marks it ``running``
+and executes it in a child process (:mod:`app.jobs.worker`) while relaying the child's progress into a
+:class:`~app.jobs.progress.ProgressTracker` that API requests read. At most one queued-or-running run
+exists per project; ``max_parallel_runs`` runs execute at once, the rest wait in arrival order.
+
+Crash safety: stage states are written to SQLite at every stage change (and every few seconds), the
+pipeline writes its outputs atomically and records finished stages in ``run_dir/stages.json``. When the
+server starts, runs still marked queued/running are marked ``interrupted``; ``resume_run`` queues the
+same run again in the same folder with the same snapshot, so finished stages and frames are reused.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import logging
+import os
+import select
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app import crud
+from app.core.config import Settings
+from app.core.db import open_db, transaction, utcnow
+from app.core.errors import Conflict
+from app.jobs import worker
+from app.jobs.notify import ChangeNotifier
+from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
+from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
+from leap_core.io_utils import atomic_save_npz, atomic_write_json
+
+log = logging.getLogger("leap.jobs")
+
+PERSIST_EVERY_S = 0.5
+"""Longest time between two writes of a running run's stage states to SQLite."""
+FINISHED_KEPT = 256
+"""Finished trackers kept in memory so progress polls of recent runs never touch the database."""
+CANCEL_GRACE_S = 10.0
+"""After a cancel request, seconds the child gets to stop by itself before it is terminated."""
+
+
+def stage_names() -> list[str]:
+    """The pipeline's ordered stages."""
+    from leap_core.pipeline import STAGES
+
+    return list(STAGES)
+
+
+@dataclass
+class _Live:
+    """A queued or running run in this process."""
+
+    tracker: ProgressTracker
+    process: subprocess.Popen[bytes] | None = None
+    """The worker process (None until started)."""
+    cancel_requested: bool = False
+    cancel_at: float | None = None
+    done_event: threading.Event = field(default_factory=threading.Event)
+
+
+@dataclass
+class _Worker:
+    """A worker process and the read end of its message pipe."""
+
+    process: subprocess.Popen[bytes]
+    read_fd: int
+    closed: bool = False
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.process.wait(5.0)
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            os.close(self.read_fd)
+            with contextlib.suppress(OSError):
+                if self.process.stdin is not None:
+                    self.process.stdin.close()
+
+
+class JobManager:
+    """Owns the run queue and the worker threads of one server process."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._lock = threading.RLock()
+        self._wake = threading.Condition(self._lock)
+        self._queue: collections.deque[int] = collections.deque()
+        self._live: dict[int, _Live] = {}
+        self._finished: collections.OrderedDict[int, ProgressTracker] = collections.OrderedDict()
+        self._threads: list[threading.Thread] = []
+        self._stopping = False
+        self._stages: list[str] | None = None
+        self.changes = ChangeNotifier()
+        """Progress streams wait on this; every tracker change notifies it."""
+        self._payloads: dict[int, tuple[int, str, str]] = {}
+
+    # ------------------------------------------------------------------------------------- lifecycle
+    @property
+    def stages(self) -> list[str]:
+        if self._stages is None:
+            self._stages = stage_names()
+        return self._stages
+
+    def start(self) -> list[int]:
+        """Mark runs left over by a previous server as interrupted and start the workers."""
+        with open_db(self.settings.database) as db:
+            interrupted = crud.mark_stale_runs_interrupted(db)
+        for run_id in interrupted:
+            log.warning("run %d was interrupted by a server stop; it can be resumed", run_id)
+        with self._lock:
+            self._stopping = False
+            for i in range(self.settings.max_parallel_runs):
+                t = threading.Thread(target=self._worker_loop, name=f"leap-run-worker-{i}", daemon=True)
+                t.start()
+                self._threads.append(t)
+        _set_current(self)
+        return interrupted
+
+    def stop(self, timeout: float = 15.0) -> None:
+        """Stop the workers; running runs are asked to stop and end ``interrupted`` (resumable)."""
+        with self._lock:
+            self._stopping = True
+            for live in self._live.values():
+                self._send_cancel(live)
+            self._wake.notify_all()
+        deadline = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(max(0.1, deadline - time.monotonic()))
+        with self._lock:
+            for live in self._live.values():
+                if live.process is not None and live.process.poll() is None:
+                    live.process.kill()
+        for t in self._threads:
+            t.join(2.0)
+        self._threads.clear()
+        with open_db(self.settings.database) as db:
+            crud.mark_stale_runs_interrupted(db)
+        _set_current(None)
+
+    # ------------------------------------------------------------------------------------- requests
+    def start_run(self, project_id: int, *, frames: tuple[int, int] | None = None) -> dict[str, Any]:
+        """Queue a new run of the project's current settings.
+
+        Raises:
+            NotFound: unknown project.
+            Conflict: the project already has a queued or running run.
+        """
+        # The write transaction (not the manager lock, which progress readers on the event loop share)
+        # makes "check for an active run, then insert" atomic across requests.
+        with open_db(self.settings.database) as db:
+            with transaction(db):
+                project = crud.require_project(db, project_id)
+                active = crud.active_run(db, project_id)
+                if active is not None:
+                    raise Conflict(
+                        f"Project {project_id} already has run {active['id']} {active['status']}; "
+                        "cancel it or wait for it to finish"
+                    )
+                params = self._snapshot(project, frames)
+                run = crud.create_run(
+                    db, project_id=project_id, params=params, runs_dir=self.settings.runs_dir
+                )
+            self._prepare_run_dir(db, run)
+            expected = self._expected_seconds(db, project_id)
+        with self._lock:
+            self._enqueue(run, expected)
+        return run
+
+    def resume_run(self, run_id: int) -> dict[str, Any]:
+        """Queue an interrupted, cancelled or failed run again in its own folder with its own snapshot.
+
+        Raises:
+            NotFound: unknown run.
+            Conflict: the run is not resumable or its project has another active run.
+        """
+        with open_db(self.settings.database) as db:
+            with transaction(db):
+                run = crud.require_run(db, run_id)
+                if run["status"] not in RESUMABLE_STATUSES:
+                    raise Conflict(
+                        f"Run {run_id} is {run['status']}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
+                    )
+                active = crud.active_run(db, run["project_id"])
+                if active is not None:
+                    raise Conflict(
+                        f"Project {run['project_id']} already has run {active['id']} {active['status']}"
+                    )
+                crud.update_run(db, run_id, status="queued", error=None, finished_at=None)
+                run = crud.require_run(db, run_id)
+            expected = self._expected_seconds(db, run["project_id"])
+        with self._lock:
+            previous = self._finished.pop(run_id, None)
+            self._payloads.pop(run_id, None)
+            self._enqueue(run, expected, after_version=0 if previous is None else previous.version)
+        return run
+
+    def cancel_run(self, run_id: int) -> dict[str, Any]:
+        """Cancel a queued run at once, or ask a running one to stop at its next progress report.
+
+        Raises:
+            NotFound: unknown run.
+            Conflict: the run already ended.
+        """
+        with open_db(self.settings.database) as db:
+            run = crud.require_run(db, run_id)
+            if run["status"] not in ACTIVE_STATUSES:
+                raise Conflict(
+                    f"Run {run_id} is {run['status']}; only queued or running runs can be cancelled"
+                )
+            # queued -> cancelled and queued -> running (_execute) are both conditional updates, so
+            # exactly one of them wins.
+            if crud.transition_run(db, run_id, "queued", status="cancelled", finished_at=utcnow()):
+                with self._lock:
+                    if run_id in self._queue:
+                        self._queue.remove(run_id)
+                    live = self._live.get(run_id)
+                    if live is not None:
+                        live.tracker.set_status("cancelled", utcnow())
+                        self._retire(run_id)
+            else:
+                with self._lock:
+                    live = self._live.get(run_id)
+                    if live is not None:
+                        live.cancel_requested = True
+                        live.cancel_at = time.monotonic()
+                        self._send_cancel(live)  # or _execute sends it once the process exists
+                if live is None:
+                    # A row left running by a process that no longer exists.
+                    crud.transition_run(db, run_id, "running", status="cancelled", finished_at=utcnow())
+            return crud.require_run(db, run_id)
+
+    def progress(self, run_id: int) -> dict[str, Any] | None:
+        """Live (or recently finished) progress snapshot; None when the run is not in memory."""
+        with self._lock:
+            live = self._live.get(run_id)
+            if live is not None:
+                return live.tracker.snapshot()
+            finished = self._finished.get(run_id)
+            return None if finished is None else finished.snapshot()
+
+    def progress_payload(self, run_id: int) -> tuple[int, str, str] | None:
+        """``(version, status, JSON text)`` of the run's progress, serialised once per version and shared
+        by every stream and poll; None when the run is not in memory."""
+        with self._lock:
+            tracker = self._live[run_id].tracker if run_id in self._live else self._finished.get(run_id)
+            if tracker is None:
+                return None
+            cached = self._payloads.get(run_id)
+            if cached is not None and cached[0] == tracker.version:
+                return cached
+            entry = (tracker.version, tracker.status, json.dumps(tracker.snapshot(), separators=(",", ":")))
+            self._payloads[run_id] = entry
+            return entry
+
+    def counts(self) -> tuple[int, int]:
+        """(queued, running) runs in this process."""
+        with self._lock:
+            running = sum(1 for v in self._live.values() if v.tracker.status == "running")
+            return len(self._queue), running
+
+    def wait(self, run_id: int, timeout: float | None = None) -> bool:
+        """Block until a run queued in this process ends; False on timeout."""
+        with self._lock:
+            live = self._live.get(run_id)
+        return True if live is None else live.done_event.wait(timeout)
+
+    # ------------------------------------------------------------------------------------- internals
+    def _snapshot(self, project: dict[str, Any], frames: tuple[int, int] | None) -> dict[str, Any]:
+        from app.demo import SYNTH_STAGE, demo_exists
+
+        generate = project["dataset_kind"] == "demo" and not demo_exists(Path(project["dataset_path"]))
+        return {
+            "dataset": project["dataset_path"],
+            "dataset_kind": project["dataset_kind"],
+            "schema": project["schema"],
+            "pipeline": project["pipeline"],
+            "frames": None if frames is None else [int(frames[0]), int(frames[1])],
+            "stages": ([SYNTH_STAGE] if generate else []) + self.stages,
+        }
+
+    def _prepare_run_dir(self, db: Any, run: dict[str, Any]) -> None:
+        """Write the parameter snapshot and the project's active corrections into the new run folder."""
+        run_dir = Path(run["run_dir"])
+        run_dir.mkdir(parents=True, exist_ok=True)
+        params = run["params"]
+        atomic_write_json(run_dir / "params.json", params)
+        keys, classes = corrections_for_run(
+            crud.list_corrections(db, run["project_id"], active_only=True),
+            params["schema"],
+            params["pipeline"],
+        )
+        atomic_save_npz(run_dir / "corrections.npz", keys=keys, class_idx=classes)
+        previous = crud.last_finished_run(db, run["project_id"])
+        if (
+            previous is not None
+            and previous["params"].get("dataset") == params["dataset"]
+            and previous["params"].get("frames") == params["frames"]
+        ):
+            linked = seed_run_dir(Path(previous["run_dir"]), run_dir)
+            log.info(
+                "run %d starts from run %d's stage outputs (%d files linked)",
+                run["id"],
+                previous["id"],
+                linked,
+            )
+
+    def _expected_seconds(self, db: Any, project_id: int) -> dict[str, float]:
+        last = crud.last_finished_run(db, project_id)
+        if last is None:
+            return {}
+        stages = (last.get("stages") or {}).get("stages") or {}
+        return {k: float(v["seconds"]) for k, v in stages.items() if v.get("seconds") is not None}
+
+    def _enqueue(self, run: dict[str, Any], expected: dict[str, float], after_version: int = 0) -> None:
+        tracker = ProgressTracker.create(
+            run["id"],
+            run["project_id"],
+            run["params"].get("stages") or self.stages,
+            expected_seconds=expected,
+        )
+        tracker.version = after_version  # a resumed run's versions continue, so streams see only news
+        tracker.on_change = self.changes.notify
+        tracker.set_status("queued", utcnow())
+        self._live[run["id"]] = _Live(tracker=tracker)
+        self._queue.append(run["id"])
+        self._wake.notify()
+
+    def _retire(self, run_id: int) -> None:
+        live = self._live.pop(run_id, None)
+        if live is None:
+            return
+        self._finished[run_id] = live.tracker
+        while len(self._finished) > FINISHED_KEPT:
+            old_id, _ = self._finished.popitem(last=False)
+            self._payloads.pop(old_id, None)
+        live.done_event.set()
+        self.changes.notify(run_id)
+
+    def _spawn_worker(self) -> _Worker:
+        """Start a worker process; it imports the pipeline, then waits for a run spec on stdin.
+
+        Worker threads spawn their own processes, so the kernel's parent-death signal (tied to the
+        spawning thread) fires only when the server itself goes away.
+        """
+        self.settings.work_dir.mkdir(parents=True, exist_ok=True)
+        read_fd, write_fd = os.pipe()
+        try:
+            with open(self.settings.work_dir / "worker.log", "ab") as errlog:
+                process = subprocess.Popen(
+                    [sys.executable, "-m", "app.jobs.worker", str(write_fd), str(os.getpid())],
+                    stdin=subprocess.PIPE,
+                    stdout=errlog,
+                    stderr=errlog,
+                    pass_fds=(write_fd,),
+                    close_fds=True,
+                )
+        except BaseException:
+            os.close(read_fd)
+            raise
+        finally:
+            os.close(write_fd)
+        return _Worker(process, read_fd)
+
+    def _worker_loop(self) -> None:
+        spare: _Worker | None = self._spawn_worker() if self.settings.prewarm_workers else None
+        try:
+            while True:
+                with self._lock:
+                    while not self._queue and not self._stopping:
+                        self._wake.wait()
+                    if self._stopping:
+                        return
+                    run_id = self._queue.popleft()
+                if spare is None or spare.process.poll() is not None:
+                    if spare is not None:
+                        spare.close()
+                    spare = self._spawn_worker()
+                worker_proc, spare = spare, None
+                try:
+                    self._execute(run_id, worker_proc)
+                except Exception:  # noqa: BLE001 - a broken run must not kill the worker thread
+                    log.exception("run %d: unexpected error in the job manager", run_id)
+                    worker_proc.kill()
+                    with open_db(self.settings.database) as db:
+                        crud.update_run(
+                            db,
+                            run_id,
+                            status="failed",
+                            finished_at=utcnow(),
+                            error="internal error in the job manager; see the server log",
+                        )
+                    with self._lock:
+                        live = self._live.get(run_id)
+                        if live is not None:
+                            live.tracker.set_status("failed", utcnow(), "internal error in the job manager")
+                        self._retire(run_id)
+                finally:
+                    worker_proc.close()
+                with self._lock:
+                    stopping = self._stopping
+                if not stopping:
+                    # Ready for the next run: its imports happen now, while nothing else runs.
+                    spare = self._spawn_worker()
+        finally:
+            if spare is not None:
+                spare.kill()
+                spare.close()
+
+    def _execute(self, run_id: int, proc: _Worker) -> None:
+        with open_db(self.settings.database) as db:
+            run = crud.get_run(db, run_id)
+            started = run is not None and crud.transition_run(
+                db, run_id, "queued", status="running", started_at=utcnow(), attempts=run["attempts"] + 1
+            )
+        if not started:  # cancelled (or deleted) while it waited
+            with self._lock:
+                self._retire(run_id)
+            proc.kill()
+            return
+        assert run is not None
+        spec = self._spec(run)
+        Path(run["run_dir"]).mkdir(parents=True, exist_ok=True)
+        process = proc.process
+        with self._lock:
+            live = self._live[run_id]
+            live.process = process
+            live.tracker.set_status("running", utcnow())
+            assert process.stdin is not None
+            try:
+                process.stdin.write((json.dumps(spec) + "\n").encode())
+                process.stdin.flush()
+            except OSError:
+                pass  # it died while waiting; _relay reports the exit code
+            if self._stopping or live.cancel_requested:
+                self._send_cancel(live)
+        outcome = self._relay(run_id, live, proc.read_fd, process)
+        with contextlib.suppress(OSError):
+            process.stdin.close()  # type: ignore[union-attr]
+        try:
+            process.wait(5.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        self._finish(run_id, outcome)
+
+    @staticmethod
+    def _send_cancel(live: _Live) -> None:
+        process = live.process
+        if process is None or process.stdin is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            process.stdin.write(b"cancel\n")
+            process.stdin.flush()
+
+    def _spec(self, run: dict[str, Any]) -> dict[str, Any]:
+        params = run["params"]
+        return {
+            "run_id": run["id"],
+            "run_dir": run["run_dir"],
+            "dataset": params["dataset"],
+            "demo": params.get("dataset_kind") == "demo",
+            "demo_synth": dict(self.settings.demo_synth),
+            "schema": params["schema"],
+            "pipeline": params["pipeline"],
+            "frames": params.get("frames"),
+            "models_dir": None if self.settings.models_dir is None else str(self.settings.models_dir),
+            "cache_dir": str(self.settings.cache_dir / f"p{run['project_id']}"),
+            "progress_interval_s": self.settings.progress_interval_s,
+        }
+
+    def _relay(self, run_id: int, live: _Live, fd: int, process: subprocess.Popen[bytes]) -> dict[str, Any]:
+        """Feed the child's messages into the tracker until it reports a result or dies."""
+        last_persist = time.monotonic()
+        outcome: dict[str, Any] | None = None
+        buffer = b""
+        eof = False
+        while outcome is None and not eof:
+            ready, _, _ = select.select([fd], [], [], 0.2)
+            if ready:
+                chunk = os.read(fd, 65536)
+                if not chunk:
+                    eof = True
+                buffer += chunk
+                *lines, buffer = buffer.split(b"\n")
+                for line in lines:
+                    if not line.strip():
+                        continue
+                    try:
+                        message = json.loads(line)
+                    except ValueError:
+                        log.warning("run %d: unreadable worker message %r", run_id, line[:200])
+                        continue
+                    if message[0] == "stage":
+                        _, stage, done, total = message
+                        with self._lock:
+                            changed = live.tracker.update(stage, done, total, time.monotonic(), utcnow())
+                        if changed or time.monotonic() - last_persist > PERSIST_EVERY_S:
+                            self._persist_stages(run_id, live)
+                            last_persist = time.monotonic()
+                    elif message[0] == "result":
+                        outcome = dict(message[1])
+            if (
+                live.cancel_at is not None
+                and outcome is None
+                and time.monotonic() - live.cancel_at > CANCEL_GRACE_S
+            ):
+                log.warning(
+                    "run %d did not stop within %.0f s of its cancel; killing it", run_id, CANCEL_GRACE_S
+                )
+                process.kill()
+                outcome = {"status": "cancelled", "error": None}
+        if outcome is None:
+            try:
+                code = process.wait(2.0)
+            except subprocess.TimeoutExpired:
+                code = None
+            outcome = {
+                "status": "failed",
+                "error": f"the worker process stopped unexpectedly (exit code {code})",
+            }
+        return outcome
+
+    def _persist_stages(self, run_id: int, live: _Live) -> None:
+        with self._lock:
+            record = live.tracker.stages_record()
+        with open_db(self.settings.database) as db:
+            crud.update_run(db, run_id, stages=record)
+
+    def _finish(self, run_id: int, outcome: dict[str, Any]) -> None:
+        """Store the outcome, then publish it: a client that sees the end in the progress stream and
+        reads the run right after finds the final row (status, metrics) in the database."""
+        status = outcome["status"]
+        error = outcome.get("error")
+        with open_db(self.settings.database) as db:
+            run = crud.require_run(db, run_id)
+            skipped = pipeline_skipped_stages(Path(run["run_dir"]))
+            with self._lock:
+                live = self._live[run_id]
+                if status != "done" and self._stopping and not live.cancel_requested:
+                    status, error = "interrupted", "the server stopped during this run; resume it to continue"
+                final = live.tracker.clone()
+            final.set_status(status, utcnow(), error)
+            final.mark_skipped(skipped)
+            metrics = read_metrics(Path(run["run_dir"])) if status == "done" else None
+            crud.update_run(
+                db,
+                run_id,
+                status=status,
+                error=error,
+                finished_at=utcnow(),
+                stages=final.stages_record(),
+                **({"metrics": metrics} if metrics is not None else {}),
+            )
+        with self._lock:
+            live.tracker.set_status(status, utcnow(), error)
+            live.tracker.mark_skipped(skipped)
+            self._retire(run_id)
+        log.info("run %d %s%s", run_id, status, f": {error}" if error else "")
+
+    # ------------------------------------------------------------------------------ synchronous use
+    def run_now(self, run_id: int, on_progress: Callable[[str, int, int], None] | None = None) -> str:
+        """Execute a queued run in this thread and process (the ``leap demo`` command); returns its status.
+
+        The run must have been created with :meth:`start_run` on a manager that was not started, so no
+        worker thread competes for it.
+        """
+        with self._lock:
+            if run_id in self._queue:
+                self._queue.remove(run_id)
+            live = self._live[run_id]
+        with open_db(self.settings.database) as db:
+            run = crud.require_run(db, run_id)
+            crud.update_run(db, run_id, status="running", started_at=utcnow(), attempts=run["attempts"] + 1)
+        live.tracker.set_status("running", utcnow())
+
+        def emit(message: tuple[Any, ...]) -> None:
+            if message[0] == "stage":
+                _, stage, done, total = message
+                if live.tracker.update(stage, done, total, time.monotonic(), utcnow()):
+                    self._persist_stages(run_id, live)
+                if on_progress is not None:
+                    on_progress(stage, done, total)
+
+        outcome = worker.execute(self._spec(run), emit, lambda: False)
+        self._finish(run_id, outcome)
+        return str(outcome["status"])
+
+
+_NOT_SEEDED = frozenset(
+    {"params.json", "corrections.npz", worker.LOG_NAME, worker.LOCK_NAME, "export.zip", "export-conf.zip"}
+)
+
+
+def seed_run_dir(previous: Path, run_dir: Path) -> int:
+    """Hard-link a finished run's stage outputs and ``stages.json`` into a new run folder.
+
+    The pipeline then skips every stage whose fingerprint still matches (a class colour or a prompt the
+    simulated labeler does not read changes nothing; a smoothing ``k`` edit reruns ``smooth`` onwards)
+    and clears the outputs of the stages that changed. Sharing inodes is safe because leap_core writes
+    results only through ``atomic_write`` (a new file renamed over the old name): a stage that reruns
+    replaces the link in the new run and never writes into the previous run's file. Files that cannot
+    be linked (another file system) are copied.
+
+    Returns:
+        Number of files linked or copied.
+    """
+    if not (previous / "stages.json").is_file():
+        return 0
+    count = 0
+    for src in sorted(previous.rglob("*")):
+        rel = src.relative_to(previous)
+        if not src.is_file() or src.is_symlink() or any(part.startswith(".") for part in rel.parts):
+            continue
+        if len(rel.parts) == 1 and rel.name in _NOT_SEEDED:
+            continue
+        dst = run_dir / rel
+        if dst.exists():
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+        count += 1
+    return count
+
+
+def pipeline_skipped_stages(run_dir: Path) -> set[str]:
+    """Stages the pipeline recorded as skipped in ``stages.json`` (3D-CN off, no ground truth to evaluate)."""
+    try:
+        state = json.loads((run_dir / "stages.json").read_text())
+    except (OSError, ValueError):
+        return set()
+    return {name for name, rec in state.items() if isinstance(rec, dict) and rec.get("status") == "skipped"}
+
+
+def read_metrics(run_dir: Path) -> dict[str, Any] | None:
+    """The run's ``metrics.json`` (None when the dataset has no ground truth or it is unreadable)."""
+    path = run_dir / "metrics.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def corrections_for_run(
+    corrections: Sequence[crud.Correction], schema: dict[str, Any], pipeline: dict[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flatten a project's active corrections into the arrays the pipeline applies.
+
+    Later corrections override earlier ones on the same voxel. Corrections whose class is no longer in
+    the schema, or whose voxel size differs from the run's, are dropped.
+
+    Returns:
+        ``keys (K,) int64`` sorted unique voxel keys and ``class_idx (K,) int16`` class indices of the
+        run's schema.
+    """
+    names = [c["name"] for c in schema["classes"]]
+    voxel_size = pipeline_voxel_size(pipeline)
+    key_parts: list[np.ndarray] = []
+    cls_parts: list[np.ndarray] = []
+    for c in corrections:
+        if c.class_name not in names:
+            continue
+        if voxel_size is not None and not np.isclose(c.voxel_size, voxel_size, rtol=0, atol=1e-9):
+            continue
+        key_parts.append(c.keys)
+        cls_parts.append(np.full(c.keys.shape[0], names.index(c.class_name), dtype=np.int16))
+    if not key_parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int16)
+    keys = np.concatenate(key_parts)
+    classes = np.concatenate(cls_parts)
+    # Keep the LAST occurrence of each key: unique on the reversed arrays finds first-in-reverse.
+    rev_keys = keys[::-1]
+    uniq, first = np.unique(rev_keys, return_index=True)
+    return uniq.astype(np.int64), classes[::-1][first].astype(np.int16)
+
+
+def pipeline_voxel_size(pipeline: dict[str, Any]) -> float | None:
+    """The voxel size in a pipeline config dict (``fusion.voxel_size``), if present."""
+    fusion = pipeline.get("fusion")
+    if isinstance(fusion, dict) and isinstance(fusion.get("voxel_size"), (int, float)):
+        return float(fusion["voxel_size"])
+    value = pipeline.get("voxel_size")
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+# ------------------------------------------------------------------------------- process-wide access
+_current: JobManager | None = None
+
+
+def _set_current(manager: JobManager | None) -> None:
+    global _current
+    _current = manager
+
+
+def current_manager() -> JobManager:
+    """The manager of the running server (for the viewer and other in-process callers)."""
+    if _current is None:
+        raise RuntimeError("no job manager is running (the app is not started)")
+    return _current
+
+
+def is_terminal(status: str) -> bool:
+    return status in TERMINAL_STATUSES

@@ -1,0 +1,263 @@
+"""Live progress of one run: per-stage counters, timings and ETAs (pure bookkeeping, no I/O).
+
+The pipeline reports ``progress(stage, done, total)``. A stage starts at its first report and is done
+when ``done == total``. For a stage with ``d`` of ``n`` units done after ``t`` seconds the ETA is
+``t · (n − d) / d``; the run's ETA adds the expected seconds of the stages still pending (taken from
+the project's previous finished run when known). The run's percent weights every stage equally:
+``100 · Σ_s fraction_s / S``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+TERMINAL_STATUSES = frozenset({"done", "failed", "cancelled", "interrupted"})
+
+
+@dataclass
+class StageState:
+    """Counters of one stage."""
+
+    name: str
+    """Stage name (``leap_core.pipeline.STAGES``)."""
+    status: str = "pending"
+    """pending | running | done | skipped | failed | cancelled."""
+    done: int = 0
+    """Units finished (frames, iterations)."""
+    total: int = 0
+    """Units in the stage."""
+    started: float | None = None
+    """``time.monotonic()`` of the first report."""
+    seconds: float | None = None
+    """Wall time once done."""
+
+    def fraction(self) -> float:
+        if self.status in ("done", "skipped"):
+            return 1.0
+        if self.total <= 0:
+            return 0.0
+        return min(1.0, self.done / self.total)
+
+    def eta(self, now: float) -> float | None:
+        if self.status != "running" or self.started is None or self.done <= 0 or self.total <= 0:
+            return None
+        elapsed = now - self.started
+        return max(0.0, elapsed * (self.total - self.done) / self.done)
+
+    def public(self, now: float) -> dict[str, Any]:
+        seconds = self.seconds
+        if seconds is None and self.started is not None and self.status == "running":
+            seconds = now - self.started
+        eta = self.eta(now)
+        return {
+            "name": self.name,
+            "status": self.status,
+            "done": self.done,
+            "total": self.total,
+            "seconds": None if seconds is None else round(seconds, 3),
+            "eta_s": None if eta is None else round(eta, 1),
+            "percent": round(100.0 * self.fraction(), 1),
+        }
+
+
+@dataclass
+class ProgressTracker:
+    """Progress of one run, updated from the worker's messages and read by API requests."""
+
+    run_id: int
+    project_id: int
+    stages: list[StageState]
+    status: str = "queued"
+    error: str | None = None
+    expected_seconds: dict[str, float] = field(default_factory=dict)
+    """Seconds each stage took in the project's last finished run (for the run-level ETA)."""
+    version: int = 0
+    """Bumped on every change, so streams send only news."""
+    updated_at: str = ""
+    on_change: Callable[[int], None] | None = field(default=None, repr=False, compare=False)
+    """Called with the run id after every change (wakes the progress streams)."""
+
+    @classmethod
+    def create(
+        cls,
+        run_id: int,
+        project_id: int,
+        stage_names: Iterable[str],
+        *,
+        status: str = "queued",
+        expected_seconds: Mapping[str, float] | None = None,
+    ) -> ProgressTracker:
+        return cls(
+            run_id=run_id,
+            project_id=project_id,
+            stages=[StageState(n) for n in stage_names],
+            status=status,
+            expected_seconds=dict(expected_seconds or {}),
+        )
+
+    def _stage(self, name: str) -> StageState:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        # A stage the app did not know about: it runs now, so it goes before every stage not yet started.
+        state = StageState(name)
+        pending = [i for i, s in enumerate(self.stages) if s.status == "pending"]
+        self.stages.insert(pending[0] if pending else len(self.stages), state)
+        return state
+
+    def _touch(self, stamp: str) -> None:
+        self.version += 1
+        self.updated_at = stamp
+        if self.on_change is not None:
+            self.on_change(self.run_id)
+
+    def clone(self) -> ProgressTracker:
+        """An independent copy without the change callback."""
+        return dataclasses.replace(
+            self,
+            stages=[dataclasses.replace(s) for s in self.stages],
+            expected_seconds=dict(self.expected_seconds),
+            on_change=None,
+        )
+
+    def set_status(self, status: str, stamp: str, error: str | None = None) -> None:
+        self.status = status
+        self.error = error
+        if status in TERMINAL_STATUSES:
+            for s in self.stages:
+                if s.status == "running":
+                    s.status = {"done": "done", "failed": "failed"}.get(status, "cancelled")
+                elif s.status == "pending" and status == "done":
+                    s.status = "skipped"
+        self._touch(stamp)
+
+    def mark_skipped(self, names: set[str]) -> None:
+        """Show stages the pipeline reports as skipped (it still ticks them through) as skipped."""
+        for s in self.stages:
+            if s.name in names and s.status in ("done", "pending"):
+                s.status = "skipped"
+                s.seconds = None
+
+    def update(self, stage: str, done: int, total: int, now: float, stamp: str) -> bool:
+        """Record a report; returns True when the stage changed state (started or finished).
+
+        Stages run in order, so earlier stages still marked running are closed and earlier stages that
+        never reported are marked skipped.
+        """
+        state = self._stage(stage)
+        changed = False
+        if state.status in ("pending", "cancelled", "failed"):
+            index = self.stages.index(state)
+            for earlier in self.stages[:index]:
+                if earlier.status == "pending":
+                    # The pipeline reports nothing for a stage it skips (3D-CN off, no ground truth).
+                    earlier.status = "skipped"
+                elif earlier.status == "running":
+                    earlier.status = "done"
+                    earlier.done = max(earlier.done, earlier.total)
+                    if earlier.started is not None and earlier.seconds is None:
+                        earlier.seconds = now - earlier.started
+            state.status = "running"
+            state.started = now
+            state.seconds = None
+            changed = True
+        state.done = int(done)
+        state.total = int(total)
+        if total > 0 and done >= total and state.status == "running":
+            state.status = "done"
+            state.seconds = now - (state.started if state.started is not None else now)
+            changed = True
+        self._touch(stamp)
+        return changed
+
+    def current_stage(self) -> str | None:
+        for s in self.stages:
+            if s.status == "running":
+                return s.name
+        return None
+
+    def percent(self) -> float:
+        if self.status == "done":
+            return 100.0
+        if not self.stages:
+            return 0.0
+        return 100.0 * sum(s.fraction() for s in self.stages) / len(self.stages)
+
+    def eta(self, now: float) -> float | None:
+        if self.status != "running":
+            return None
+        running = [s for s in self.stages if s.status == "running"]
+        eta = 0.0
+        for s in running:
+            e = s.eta(now)
+            if e is None:
+                return None
+            eta += e
+        for s in self.stages:
+            if s.status == "pending":
+                if s.name not in self.expected_seconds:
+                    return None
+                eta += self.expected_seconds[s.name]
+        return eta
+
+    def snapshot(self, now: float | None = None) -> dict[str, Any]:
+        """The :class:`app.models.RunProgress` payload."""
+        now = time.monotonic() if now is None else now
+        eta = self.eta(now)
+        return {
+            "run_id": self.run_id,
+            "project_id": self.project_id,
+            "status": self.status,
+            "stage": self.current_stage(),
+            "percent": round(self.percent(), 1),
+            "eta_s": None if eta is None else round(eta, 1),
+            "stages": [s.public(now) for s in self.stages],
+            "error": self.error,
+            "updated_at": self.updated_at,
+            "version": self.version,
+        }
+
+    # ------------------------------------------------------------------------------- persistence
+    def stages_record(self) -> dict[str, Any]:
+        """What the ``runs.stages`` column keeps: ordered stage states (for history and restarts)."""
+        return {
+            "order": [s.name for s in self.stages],
+            "stages": {
+                s.name: {"status": s.status, "done": s.done, "total": s.total, "seconds": s.seconds}
+                for s in self.stages
+            },
+        }
+
+    @classmethod
+    def from_record(
+        cls,
+        run_id: int,
+        project_id: int,
+        status: str,
+        record: Mapping[str, Any] | None,
+        stage_names: Iterable[str],
+        error: str | None = None,
+        stamp: str = "",
+    ) -> ProgressTracker:
+        """Rebuild a (non-live) tracker from the stored record of a run."""
+        record = record or {}
+        order = list(record.get("order") or stage_names)
+        tracker = cls.create(run_id, project_id, order, status=status)
+        stored = record.get("stages") or {}
+        for s in tracker.stages:
+            entry = stored.get(s.name)
+            if entry:
+                s.status = entry.get("status", "pending")
+                s.done = int(entry.get("done") or 0)
+                s.total = int(entry.get("total") or 0)
+                s.seconds = entry.get("seconds")
+            if s.status == "running":
+                # Stored while running, but no process is working on it now.
+                s.status = "cancelled" if status in TERMINAL_STATUSES else "running"
+        tracker.error = error
+        tracker.updated_at = stamp
+        return tracker

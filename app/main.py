@@ -1,0 +1,180 @@
+"""The LeAP Studio server: ``create_app(settings)`` builds the FastAPI app, ``serve()`` runs it.
+
+One process serves the REST API under ``/api/v1``, the static web UI at ``/`` and owns the job manager
+whose worker threads execute runs in child processes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
+from fastapi.staticfiles import StaticFiles
+
+from app.api.main import api_router
+from app.core.config import LOOPBACK_NAMES, Settings, get_settings
+from app.core.db import ConnectionPool, init_db
+from app.core.errors import AppError, InvalidField
+from app.jobs.manager import JobManager
+
+API_PREFIX = "/api/v1"
+WEB_DIR = Path(__file__).resolve().parents[1] / "web"
+
+log = logging.getLogger("leap.app")
+
+Scope = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
+Send = Callable[[MutableMapping[str, Any]], Awaitable[None]]
+
+
+class LoopbackHostGuard:
+    """Without an access token the app trusts only requests addressed to a loopback name.
+
+    A web page on another site cannot then reach the API through DNS rebinding (its requests carry
+    that site's host name in the ``Host`` header).
+    """
+
+    def __init__(self, app: Callable[..., Awaitable[None]], allowed: set[str]) -> None:
+        self.app = app
+        self.allowed = allowed
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] in ("http", "websocket"):
+            host = ""
+            for key, value in scope.get("headers", []):
+                if key == b"host":
+                    host = value.decode("latin-1")
+                    break
+            name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+            name = name.strip("[]").lower()
+            if name not in self.allowed:
+                if scope["type"] == "http":
+                    response = JSONResponse({"detail": f"Host {host!r} is not allowed"}, status_code=403)
+                    await response(scope, receive, send)
+                else:
+                    await send({"type": "websocket.close", "code": 1008})
+                return
+        await self.app(scope, receive, send)
+
+
+class ServerTiming:
+    """Adds ``Server-Timing: app;dur=<ms>`` (time from the request's arrival to the response head) to every
+    HTTP response, so clients can tell the app's own time from network and scheduling delays."""
+
+    def __init__(self, app: Callable[..., Awaitable[None]]) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+
+        async def timed_send(message: MutableMapping[str, Any]) -> None:
+            if message["type"] == "http.response.start":
+                ms = (time.perf_counter() - start) * 1000.0
+                message["headers"] = [
+                    *message.get("headers", []),
+                    (b"server-timing", f"app;dur={ms:.2f}".encode()),
+                ]
+            await send(message)
+
+        await self.app(scope, receive, timed_send)
+
+
+def _operation_id(route: APIRoute) -> str:
+    return f"{route.tags[0]}-{route.name}" if route.tags else route.name
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the app; the database is created or migrated now, the workers start with the server."""
+    settings = settings or get_settings()
+    settings.work_dir.mkdir(parents=True, exist_ok=True)
+    init_db(settings.database)
+    jobs = JobManager(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        # Import the pipeline (torch included) before accepting requests, so no request pays for it.
+        import leap_core.pipeline  # noqa: F401
+
+        jobs.start()
+        if settings.seed_demo:
+            from app.demo import seed_demo_project
+
+            seed_demo_project(settings, jobs)
+        try:
+            yield
+        finally:
+            _close_viewers(app)
+            jobs.stop()
+            app.state.db_pool.close()
+
+    app = FastAPI(
+        title="LeAP Studio",
+        summary="Open-vocabulary 3D point labeling: projects, runs, progress, metrics and exports.",
+        version=_version(),
+        openapi_url=f"{API_PREFIX}/openapi.json",
+        docs_url="/api/docs",
+        redoc_url=None,
+        lifespan=lifespan,
+        generate_unique_id_function=_operation_id,
+    )
+    app.state.settings = settings
+    app.state.jobs = jobs
+    app.state.db_pool = ConnectionPool(settings.database)
+
+    @app.exception_handler(AppError)
+    async def _app_error(request: Request, exc: AppError) -> JSONResponse:
+        if isinstance(exc, InvalidField):
+            return JSONResponse({"detail": exc.as_detail()}, status_code=exc.status_code)
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+
+    app.include_router(api_router, prefix=API_PREFIX)
+    if WEB_DIR.is_dir():
+        app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
+    if settings.token is None:
+        allowed = set(LOOPBACK_NAMES) | {settings.host.lower()}
+        app.add_middleware(LoopbackHostGuard, allowed=allowed)  # type: ignore[arg-type]
+    app.add_middleware(ServerTiming)  # type: ignore[arg-type]
+    return app
+
+
+def _close_viewers(app: FastAPI) -> None:
+    """Stop the 3D viewers (an optional module) before the workers."""
+    try:
+        from app.api.routes.viewer import close_viewers
+    except ImportError:
+        return
+    close_viewers(app)
+
+
+def _version() -> str:
+    from leap_core import __version__
+
+    return __version__
+
+
+def serve(settings: Settings | None = None) -> None:
+    """Run the server in the foreground until interrupted."""
+    import uvicorn
+
+    settings = settings or get_settings()
+    app = create_app(settings)
+    logging.basicConfig(
+        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    scheme_host = f"[{settings.host}]" if ":" in settings.host else settings.host
+    log.info("LeAP Studio on http://%s:%d/", scheme_host, settings.port)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level, access_log=False)
+
+
+if __name__ == "__main__":
+    serve()

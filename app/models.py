@@ -1,0 +1,339 @@
+"""API schemas (pydantic). Database rows are plain dicts handled in :mod:`app.crud`; only these leave the API.
+
+Per resource: ``XCreate`` / ``XUpdate`` inputs, ``XPublic`` outputs and ``XsPublic(data, count)`` lists.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+RunStatus = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
+StageStatus = Literal["pending", "running", "done", "skipped", "failed", "cancelled"]
+
+ACTIVE_STATUSES: tuple[str, ...] = ("queued", "running")
+RESUMABLE_STATUSES: tuple[str, ...] = ("interrupted", "cancelled", "failed")
+
+_HEX = re.compile(r"^#[0-9a-fA-F]{6}$")
+_BAD_NAME_CHARS = re.compile(r"[/\\\x00-\x1f\x7f]")
+
+
+class _Input(BaseModel):
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+
+# --------------------------------------------------------------------------------------------- classes
+def _check_class_name(value: str) -> str:
+    if _BAD_NAME_CHARS.search(value):
+        raise ValueError("class names may not contain '/', '\\' or control characters")
+    return value
+
+
+def _check_color(value: Any) -> list[int]:
+    if isinstance(value, str):
+        if not _HEX.match(value.strip()):
+            raise ValueError("color must be '#rrggbb' or 3 integers 0..255")
+        h = value.strip()[1:]
+        return [int(h[i : i + 2], 16) for i in (0, 2, 4)]
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise ValueError("color must be '#rrggbb' or 3 integers 0..255")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in value):
+        raise ValueError("color must be '#rrggbb' or 3 integers 0..255")
+    return [int(v) for v in value]
+
+
+def _check_prompts(value: list[str]) -> list[str]:
+    out = [p.strip() for p in value]
+    for i, p in enumerate(out):
+        if not p:
+            raise ValueError(f"prompt {i} is empty")
+        if len(p) > 200:
+            raise ValueError(f"prompt {i} is longer than 200 characters")
+    return out
+
+
+class ClassBase(_Input):
+    name: str = Field(min_length=1, max_length=64)
+    color: Any = Field(description="'#rrggbb' or [r, g, b] with 0..255", examples=["#6496f5"])
+    prompts: list[str] = Field(min_length=1, max_length=64)
+    export_id: int = Field(ge=1, le=65535, description="raw id written to exported .label files")
+    gt_ids: list[int] = Field(default_factory=list, max_length=256)
+    category: str = Field("other", min_length=1, max_length=64)
+    negative_prompts: list[str] = Field(default_factory=list, max_length=64)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        return _check_class_name(v)
+
+    @field_validator("color")
+    @classmethod
+    def _color(cls, v: Any) -> list[int]:
+        return _check_color(v)
+
+    @field_validator("prompts", "negative_prompts")
+    @classmethod
+    def _prompts(cls, v: list[str]) -> list[str]:
+        return _check_prompts(v)
+
+
+class ClassCreate(ClassBase):
+    position: int | None = Field(None, ge=0, description="insert at this index (default: append)")
+
+
+class ClassUpdate(_Input):
+    """Fields to change; absent fields keep their value. ``name`` renames the class."""
+
+    name: str | None = Field(None, min_length=1, max_length=64)
+    color: Any = None
+    prompts: list[str] | None = Field(None, min_length=1, max_length=64)
+    export_id: int | None = Field(None, ge=1, le=65535)
+    gt_ids: list[int] | None = Field(None, max_length=256)
+    category: str | None = Field(None, min_length=1, max_length=64)
+    negative_prompts: list[str] | None = Field(None, max_length=64)
+    position: int | None = Field(None, ge=0, description="move the class to this index")
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str | None) -> str | None:
+        return None if v is None else _check_class_name(v)
+
+    @field_validator("color")
+    @classmethod
+    def _color(cls, v: Any) -> list[int] | None:
+        return None if v is None else _check_color(v)
+
+    @field_validator("prompts", "negative_prompts")
+    @classmethod
+    def _prompts(cls, v: list[str] | None) -> list[str] | None:
+        return None if v is None else _check_prompts(v)
+
+
+class ClassPublic(BaseModel):
+    index: int
+    name: str
+    color: list[int]
+    hex: str
+    prompts: list[str]
+    export_id: int
+    gt_ids: list[int]
+    category: str
+    negative_prompts: list[str]
+
+
+class ClassesPublic(BaseModel):
+    data: list[ClassPublic]
+    count: int
+
+
+class PromptCreate(_Input):
+    prompt: str = Field(min_length=1, max_length=200)
+
+
+class PromptsReplace(_Input):
+    prompts: list[str] = Field(min_length=1, max_length=64)
+
+    @field_validator("prompts")
+    @classmethod
+    def _prompts(cls, v: list[str]) -> list[str]:
+        return _check_prompts(v)
+
+
+class SchemaReplace(_Input):
+    """The whole ordered class list at once (what the editor saves)."""
+
+    classes: list[ClassBase] = Field(min_length=1, max_length=256)
+
+
+# -------------------------------------------------------------------------------------------- projects
+class DatasetRef(_Input):
+    kind: Literal["demo", "folder"] = "folder"
+    path: str | None = Field(None, max_length=4096, description="sequence folder inside a data root")
+
+    @model_validator(mode="after")
+    def _path_for_folder(self) -> DatasetRef:
+        if self.kind == "folder" and not self.path:
+            raise ValueError("path is required when kind is 'folder'")
+        return self
+
+
+class ProjectCreate(_Input):
+    name: str = Field(min_length=1, max_length=120)
+    dataset: DatasetRef
+    schema_name: str = Field("semantickitti", min_length=1, max_length=64, description="built-in schema")
+    pipeline: dict[str, Any] = Field(
+        default_factory=dict, description="overrides of the default pipeline configuration"
+    )
+
+
+class ProjectUpdate(_Input):
+    name: str | None = Field(None, min_length=1, max_length=120)
+    pipeline: dict[str, Any] | None = Field(
+        None, description="partial pipeline configuration, merged into the current one"
+    )
+    form: dict[str, Any] | None = Field(
+        None,
+        description="the UI's flat parameters (labeler, threshold, voxel_size, k, cluster_gap, consistency, "
+        "share, temperature, iterations), merged after `pipeline`",
+    )
+
+
+class DatasetPublic(BaseModel):
+    kind: Literal["demo", "folder"]
+    path: str
+    exists: bool
+    frames: int | None = None
+    has_ground_truth: bool = False
+
+
+class RunBrief(BaseModel):
+    id: int
+    number: int
+    status: RunStatus
+    created_at: str
+    finished_at: str | None = None
+    miou: float | None = Field(
+        None, description="camera-view mIoU of the run's final labels (last result row)"
+    )
+    miou_row: str | None = Field(None, description="which result row `miou` is (voxel, +3D-CN x1, ...)")
+
+
+class ProjectPublic(BaseModel):
+    id: int
+    name: str
+    dataset: DatasetPublic
+    schema_name: str
+    num_classes: int
+    pipeline: dict[str, Any]
+    form: dict[str, Any] = Field(description="the flat parameters the UI edits (see ProjectUpdate.form)")
+    is_demo: bool
+    created_at: str
+    updated_at: str
+    active_run: RunBrief | None = None
+    last_run: RunBrief | None = None
+    runs_count: int = 0
+
+
+class ProjectsPublic(BaseModel):
+    data: list[ProjectPublic]
+    count: int
+
+
+class DatasetCandidate(BaseModel):
+    path: str
+    frames: int
+    has_images: bool
+    has_ground_truth: bool
+
+
+class DatasetsPublic(BaseModel):
+    data: list[DatasetCandidate]
+    count: int
+    roots: list[str]
+
+
+# ------------------------------------------------------------------------------------------------ runs
+class FrameRange(_Input):
+    start: int = Field(0, ge=0)
+    stop: int = Field(ge=1)
+
+    @model_validator(mode="after")
+    def _order(self) -> FrameRange:
+        if self.stop <= self.start:
+            raise ValueError("stop must be greater than start")
+        return self
+
+
+class RunCreate(_Input):
+    frames: FrameRange | None = Field(None, description="label only these frames (default: all)")
+
+
+class StagePublic(BaseModel):
+    name: str
+    status: StageStatus = "pending"
+    done: int = 0
+    total: int = 0
+    seconds: float | None = None
+    eta_s: float | None = None
+    percent: float = 0.0
+
+
+class RunProgress(BaseModel):
+    """Live state of one run (what the progress stream sends)."""
+
+    run_id: int
+    project_id: int
+    status: RunStatus
+    stage: str | None = None
+    percent: float = 0.0
+    eta_s: float | None = None
+    stages: list[StagePublic] = Field(default_factory=list)
+    error: str | None = None
+    updated_at: str
+    version: int = 0
+
+
+class RunPublic(BaseModel):
+    id: int
+    project_id: int
+    number: int
+    status: RunStatus
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    attempts: int
+    error: str | None
+    params: dict[str, Any]
+    progress: RunProgress
+    has_metrics: bool
+    has_export: bool
+    resumable: bool
+    summary: dict[str, Any] | None = Field(None, description="headline metrics (mIoU per result row)")
+
+
+class RunsPublic(BaseModel):
+    data: list[RunPublic]
+    count: int
+
+
+class MetricsPublic(BaseModel):
+    run_id: int
+    class_names: list[str]
+    metrics: dict[str, Any]
+
+
+class LogPublic(BaseModel):
+    run_id: int
+    text: str
+    truncated: bool
+
+
+# --------------------------------------------------------------------------------------------- exports
+class ExportWrite(_Input):
+    path: str | None = Field(
+        None, max_length=4096, description="folder inside a data root (default: <dataset>/predictions)"
+    )
+    include_confidence: bool = False
+
+
+class ExportWritten(BaseModel):
+    run_id: int
+    path: str
+    files: int
+
+
+# ---------------------------------------------------------------------------------------------- health
+class HealthPublic(BaseModel):
+    status: Literal["ok"]
+    version: str
+    db_schema_version: int
+    queued: int
+    running: int
+    viewer: bool
+    auth_required: bool
+
+
+class Message(BaseModel):
+    message: str

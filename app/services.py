@@ -1,0 +1,432 @@
+"""Project, class and run operations behind the API routes (and the viewer): validation, confinement
+to the data roots, schema edits, and the conversion of rows into public schemas.
+
+Routes stay thin: they parse the request, call one function here or in :mod:`app.jobs`, and return.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import sqlite_utils
+
+from app import crud, models
+from app.core.config import Settings
+from app.core.errors import Conflict, InvalidField, NotFound
+from app.core.security import resolve_in_roots
+from app.jobs.progress import ProgressTracker
+
+_FIELD_PATH = re.compile(r"^pipeline((?:\.[\w\-]+)*): (.*)$", re.S)
+
+
+# -------------------------------------------------------------------------------------- pipeline config
+def default_pipeline() -> dict[str, Any]:
+    """The full default pipeline configuration as a dict (simulated labeler)."""
+    from leap_core.config import PipelineConfig, config_to_dict
+
+    return config_to_dict(PipelineConfig())
+
+
+def validate_pipeline(
+    overrides: dict[str, Any] | None,
+    base: dict[str, Any] | None = None,
+    *,
+    loc: tuple[str, ...] = ("body", "pipeline"),
+) -> dict[str, Any]:
+    """Apply ``overrides`` onto ``base`` (default config when None) and return the full, checked dict.
+
+    Raises:
+        InvalidField: naming the field path, e.g. ``loc = [body, pipeline, fusion, voxel_size]``.
+    """
+    from leap_core.config import config_from_dict, config_to_dict
+    from leap_core.errors import LeapError
+
+    try:
+        base_cfg = config_from_dict(base) if base is not None else None
+        cfg = config_from_dict(overrides or {}, base_cfg)
+        cfg.validate()
+    except LeapError as exc:
+        message = str(exc)
+        match = _FIELD_PATH.match(message)
+        parts = [p for p in match.group(1).split(".") if p] if match else []
+        raise InvalidField([*loc, *parts], message) from None
+    return config_to_dict(cfg)
+
+
+# --------------------------------------------------------------------------------------------- datasets
+def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[str, Path]:
+    """(kind, absolute sequence folder) of a dataset reference.
+
+    Raises:
+        Forbidden: a folder outside the data roots.
+        InvalidField: a folder that is not a KITTI-layout sequence.
+    """
+    if ref.kind == "demo":
+        return "demo", settings.demo_dataset
+    assert ref.path is not None
+    path = resolve_in_roots(ref.path, settings.data_roots, what="dataset path")
+    if not path.is_dir():
+        raise InvalidField(["body", "dataset", "path"], f"dataset path {ref.path!r}: no such folder")
+    if not (path / "velodyne").is_dir():
+        raise InvalidField(
+            ["body", "dataset", "path"],
+            f"dataset path {ref.path!r}: not a KITTI sequence folder (it has no velodyne/ folder; "
+            "pick a folder like .../sequences/00)",
+        )
+    return "folder", path
+
+
+def dataset_public(kind: str, path: str) -> models.DatasetPublic:
+    folder = Path(path)
+    velodyne = folder / "velodyne"
+    frames = sum(1 for p in velodyne.glob("*.bin")) if velodyne.is_dir() else None
+    return models.DatasetPublic(
+        kind=kind,  # type: ignore[arg-type]
+        path=str(folder),
+        exists=velodyne.is_dir(),
+        frames=frames,
+        has_ground_truth=(folder / "labels").is_dir(),
+    )
+
+
+def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> list[models.DatasetCandidate]:
+    """KITTI-layout sequence folders (with ``velodyne/``) inside the data roots, for the create form."""
+    found: list[models.DatasetCandidate] = []
+    seen: set[Path] = set()
+    work = settings.work_dir.resolve()
+
+    def visit(folder: Path, depth: int) -> None:
+        if len(found) >= limit or depth > max_depth:
+            return
+        try:
+            children = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+        except OSError:
+            return
+        if (folder / "velodyne").is_dir():
+            real = folder.resolve()
+            if real not in seen:
+                seen.add(real)
+                found.append(
+                    models.DatasetCandidate(
+                        path=str(folder),
+                        frames=sum(1 for _ in (folder / "velodyne").glob("*.bin")),
+                        has_images=(folder / "image_2").is_dir(),
+                        has_ground_truth=(folder / "labels").is_dir(),
+                    )
+                )
+            return
+        for child in children:
+            # The app's own work folder holds runs and caches, not datasets to label.
+            if child.resolve() == work:
+                continue
+            visit(child, depth + 1)
+
+    for root in settings.data_roots:
+        if root.is_dir():
+            visit(root, 0)
+    return found
+
+
+# --------------------------------------------------------------------------------------------- projects
+def create_project(
+    db: sqlite_utils.Database, settings: Settings, payload: models.ProjectCreate
+) -> dict[str, Any]:
+    from leap_core.errors import SchemaError
+    from leap_core.schema import builtin_schema
+
+    kind, path = resolve_dataset(settings, payload.dataset)
+    try:
+        schema = builtin_schema(payload.schema_name).to_dict()
+    except SchemaError as exc:
+        raise InvalidField(["body", "schema_name"], str(exc)) from None
+    pipeline = validate_pipeline(payload.pipeline)
+    return crud.create_project(
+        db, name=payload.name, dataset_kind=kind, dataset_path=str(path), schema=schema, pipeline=pipeline
+    )
+
+
+def form_values(pipeline: dict[str, Any]) -> dict[str, Any]:
+    """The flat parameters of the UI form (``leap_core.config.FORM_FIELDS``) read from a config dict."""
+    from leap_core.config import config_from_dict
+    from leap_core.config import form_values as values
+
+    return values(config_from_dict(pipeline))
+
+
+def validate_form(form: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+    """Apply the UI's flat parameters onto ``base``; errors name the flat field (``[body, form, k]``)."""
+    from leap_core.config import FORM_FIELDS, overrides_from_form
+
+    unknown = [k for k in form if k not in FORM_FIELDS]
+    if unknown:
+        raise InvalidField(
+            ["body", "form", unknown[0]],
+            f"unknown parameter {unknown[0]!r} (known: {', '.join(FORM_FIELDS)})",
+        )
+    try:
+        return validate_pipeline(overrides_from_form(form), base)
+    except InvalidField as exc:
+        dotted = ".".join(str(p) for p in exc.loc[2:])
+        flat = next((name for name, path in FORM_FIELDS.items() if path == dotted), None)
+        raise InvalidField(["body", "form", flat] if flat else exc.loc, exc.detail) from None
+
+
+def update_project(
+    db: sqlite_utils.Database, project_id: int, payload: models.ProjectUpdate
+) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    pipeline = None
+    if payload.pipeline is not None:
+        pipeline = validate_pipeline(payload.pipeline, project["pipeline"])
+    if payload.form is not None:
+        pipeline = validate_form(payload.form, pipeline or project["pipeline"])
+    return crud.update_project(db, project_id, name=payload.name, pipeline=pipeline)
+
+
+def delete_project(db: sqlite_utils.Database, project_id: int) -> None:
+    crud.require_project(db, project_id)
+    active = crud.active_run(db, project_id)
+    if active is not None:
+        raise Conflict(f"Project {project_id} has run {active['id']} {active['status']}; cancel it first")
+    crud.delete_project(db, project_id)
+
+
+def _brief(run: dict[str, Any] | None) -> models.RunBrief | None:
+    if run is None:
+        return None
+    table = normalise_metrics(run.get("metrics"))
+    row = miou = None
+    if table is not None and "camera" in table["protocols"]:
+        rows = table["protocols"]["camera"]
+        row = (table["rows"] or list(rows))[-1]
+        miou = rows.get(row, {}).get("miou")
+    return models.RunBrief(
+        id=run["id"],
+        number=run["number"],
+        status=run["status"],
+        created_at=run["created_at"],
+        finished_at=run["finished_at"],
+        miou=miou,
+        miou_row=row,
+    )
+
+
+def project_public(db: sqlite_utils.Database, project: dict[str, Any]) -> models.ProjectPublic:
+    runs = crud.list_runs(db, project["id"])
+    return models.ProjectPublic(
+        id=project["id"],
+        name=project["name"],
+        dataset=dataset_public(project["dataset_kind"], project["dataset_path"]),
+        schema_name=project["schema"]["name"],
+        num_classes=len(project["schema"]["classes"]),
+        pipeline=project["pipeline"],
+        form=form_values(project["pipeline"]),
+        is_demo=bool(project["is_demo"]),
+        created_at=project["created_at"],
+        updated_at=project["updated_at"],
+        active_run=_brief(next((r for r in runs if r["status"] in models.ACTIVE_STATUSES), None)),
+        last_run=_brief(runs[0] if runs else None),
+        runs_count=len(runs),
+    )
+
+
+# ---------------------------------------------------------------------------------------------- classes
+def _hex(color: list[int]) -> str:
+    return "#" + "".join(f"{int(c):02x}" for c in color)
+
+
+def classes_public(project: dict[str, Any]) -> models.ClassesPublic:
+    data = [
+        models.ClassPublic(index=i, hex=_hex(c["color"]), **c)
+        for i, c in enumerate(project["schema"]["classes"])
+    ]
+    return models.ClassesPublic(data=data, count=len(data))
+
+
+def _class_position(classes: list[dict[str, Any]], name: str, project_id: int) -> int:
+    for i, c in enumerate(classes):
+        if c["name"] == name:
+            return i
+    raise NotFound(f"Class {name!r} not found in project {project_id}")
+
+
+def save_classes(
+    db: sqlite_utils.Database,
+    project_id: int,
+    classes: list[dict[str, Any]],
+    *,
+    loc: tuple[str | int, ...] = ("body",),
+) -> dict[str, Any]:
+    """Validate the whole class list with the pipeline's schema rules and store it.
+
+    Raises:
+        InvalidField: naming the class entry and the problem (duplicate name, prompt in two classes, ...).
+    """
+    from leap_core.errors import SchemaError
+    from leap_core.schema import Schema
+
+    project = crud.require_project(db, project_id)
+    doc = {**project["schema"], "classes": classes}
+    try:
+        schema = Schema.from_dict(doc, source="classes")
+    except SchemaError as exc:
+        message = str(exc)
+        m = re.search(r"classes\[(\d+)\]", message)
+        raise InvalidField([*loc, "classes", *([int(m.group(1))] if m else [])], message) from None
+    return crud.update_project(db, project_id, schema=schema.to_dict())
+
+
+def add_class(db: sqlite_utils.Database, project_id: int, payload: models.ClassCreate) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    classes = list(project["schema"]["classes"])
+    entry = payload.model_dump(exclude={"position"})
+    position = len(classes) if payload.position is None else min(payload.position, len(classes))
+    classes.insert(position, entry)
+    return save_classes(db, project_id, classes)
+
+
+def update_class(
+    db: sqlite_utils.Database, project_id: int, name: str, payload: models.ClassUpdate
+) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    classes = [dict(c) for c in project["schema"]["classes"]]
+    i = _class_position(classes, name, project_id)
+    changes = payload.model_dump(exclude_unset=True, exclude={"position"})
+    for key, value in changes.items():
+        if value is None:
+            raise InvalidField(["body", key], f"{key} may not be null")
+        classes[i][key] = value
+    if payload.position is not None:
+        entry = classes.pop(i)
+        classes.insert(min(payload.position, len(classes)), entry)
+    return save_classes(db, project_id, classes)
+
+
+def delete_class(db: sqlite_utils.Database, project_id: int, name: str) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    classes = list(project["schema"]["classes"])
+    i = _class_position(classes, name, project_id)
+    if len(classes) == 1:
+        raise Conflict("A project needs at least one class; add another before removing this one")
+    del classes[i]
+    return save_classes(db, project_id, classes)
+
+
+def replace_classes(
+    db: sqlite_utils.Database, project_id: int, payload: models.SchemaReplace
+) -> dict[str, Any]:
+    return save_classes(db, project_id, [c.model_dump() for c in payload.classes])
+
+
+def set_prompts(db: sqlite_utils.Database, project_id: int, name: str, prompts: list[str]) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    classes = [dict(c) for c in project["schema"]["classes"]]
+    i = _class_position(classes, name, project_id)
+    classes[i]["prompts"] = prompts
+    return save_classes(db, project_id, classes)
+
+
+def add_prompt(db: sqlite_utils.Database, project_id: int, name: str, prompt: str) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    classes = project["schema"]["classes"]
+    i = _class_position(classes, name, project_id)
+    return set_prompts(db, project_id, name, [*classes[i]["prompts"], prompt.strip()])
+
+
+def delete_prompt(db: sqlite_utils.Database, project_id: int, name: str, index: int) -> dict[str, Any]:
+    project = crud.require_project(db, project_id)
+    classes = project["schema"]["classes"]
+    prompts = list(classes[_class_position(classes, name, project_id)]["prompts"])
+    if not 0 <= index < len(prompts):
+        raise NotFound(f"Prompt {index} not found in class {name!r}")
+    if len(prompts) == 1:
+        raise Conflict(f"Class {name!r} needs at least one prompt")
+    del prompts[index]
+    return set_prompts(db, project_id, name, prompts)
+
+
+# ------------------------------------------------------------------------------------------------- runs
+def run_progress(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunProgress:
+    if live is not None and live["status"] == run["status"]:
+        return models.RunProgress(**live)
+    tracker = ProgressTracker.from_record(
+        run["id"],
+        run["project_id"],
+        run["status"],
+        run.get("stages"),
+        run["params"].get("stages") or [],
+        error=run["error"],
+        stamp=run["finished_at"] or run["started_at"] or run["created_at"],
+    )
+    return models.RunProgress(**tracker.snapshot())
+
+
+def metrics_summary(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
+    """{protocol: {row: mIoU}} for the run history table."""
+    table = normalise_metrics(metrics)
+    if table is None:
+        return None
+    return {
+        protocol: {row: values.get("miou") for row, values in rows.items()}
+        for protocol, rows in table["protocols"].items()
+    }
+
+
+def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The parts of ``metrics.json`` the UI shows (confusion matrices dropped).
+
+    ``metrics.json`` (leap_core.pipeline's evaluate stage) holds ``protocols`` ({name: description}),
+    ``rows`` (ordered row names: point, voxel, +3D-CN xN) and, per protocol, ``{row: Metrics.to_dict()}``.
+
+    Returns:
+        ``{"protocols": {protocol: {row: {miou, category_miou, labeled_share, iou: {class: v}, ...}}},
+        "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}`` or None.
+    """
+    if not metrics or not isinstance(metrics.get("protocols"), dict):
+        return None
+    rows = list(metrics.get("rows") or [])
+    out: dict[str, dict[str, Any]] = {}
+    for protocol in metrics["protocols"]:
+        table = metrics.get(protocol)
+        if not isinstance(table, dict):
+            continue
+        out[protocol] = {
+            row: {k: v for k, v in table[row].items() if k != "confusion"}
+            for row in (rows or list(table))
+            if isinstance(table.get(row), dict)
+        }
+    if not out:
+        return None
+    return {
+        "protocols": out,
+        "descriptions": dict(metrics["protocols"]),
+        "rows": rows,
+        "coverage_ratio": metrics.get("coverage_ratio") or {},
+        "labeled_points": metrics.get("labeled_points") or {},
+        "n_points": metrics.get("n_points"),
+        "n_points_in_view": metrics.get("n_points_in_view"),
+        "labeler": metrics.get("labeler"),
+    }
+
+
+def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPublic:
+    run_dir = Path(run["run_dir"])
+    return models.RunPublic(
+        id=run["id"],
+        project_id=run["project_id"],
+        number=run["number"],
+        status=run["status"],
+        created_at=run["created_at"],
+        started_at=run["started_at"],
+        finished_at=run["finished_at"],
+        attempts=run["attempts"],
+        error=run["error"],
+        params={k: v for k, v in run["params"].items() if k != "stages"},
+        progress=run_progress(run, live),
+        has_metrics=run.get("metrics") is not None,
+        has_export=run["status"] == "done" and (run_dir / "export").is_dir(),
+        resumable=run["status"] in models.RESUMABLE_STATUSES,
+        summary=metrics_summary(run.get("metrics")),
+    )

@@ -1,0 +1,32 @@
+"""Helpers shared by the app tests (imported as ``apphelpers``; the fixtures live in conftest.py)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from fastapi.testclient import TestClient
+
+API = "/api/v1"
+TERMINAL = ("done", "failed", "cancelled", "interrupted")
+
+
+def create_project(client: TestClient, dataset: Path, name: str = "tiny") -> dict[str, Any]:
+    r = client.post(
+        f"{API}/projects", json={"name": name, "dataset": {"kind": "folder", "path": str(dataset)}}
+    )
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def wait_run(
+    client: TestClient, run_id: int, timeout: float = 90.0, until: tuple[str, ...] = TERMINAL
+) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        run = client.get(f"{API}/runs/{run_id}").json()
+        if run["status"] in until:
+            return run
+        time.sleep(0.05)
+    raise AssertionError(f"run {run_id} still {run['status']} after {timeout} s")

@@ -1,0 +1,116 @@
+"""A real LeAP Studio server in a subprocess on 127.0.0.1 (for the kill -9 and browser tests)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+SMALL_DEMO: dict[str, Any] = {
+    "shadows": False,
+    "lidar": {"beams": 32, "azimuth_step_deg": 0.4},
+    "camera": {"width": 621, "height": 187, "fx": 360.77, "fy": 360.77, "cx": 304.78, "cy": 86.43},
+}
+"""A reduced demo street: 32 beams, 0.4° azimuth steps (~26k points per scan), a half-size camera."""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def make_small_street(root: Path, frames: int) -> Path:
+    """Generate the reduced demo street into ``root/sequences/00``; returns the sequence folder."""
+    from app.demo import synth_config
+    from leap_core.synth import generate_sequence
+
+    stats = generate_sequence(root, synth_config({**SMALL_DEMO, "frames": frames}), force=True)
+    return stats.path
+
+
+class Server:
+    """``python -m app.main`` with LEAP_* settings; stdout/stderr go to ``log``."""
+
+    def __init__(
+        self,
+        data_root: Path,
+        *,
+        port: int | None = None,
+        extra_env: dict[str, str] | None = None,
+        log: Path | None = None,
+    ) -> None:
+        self.port = port or free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        self.log = log or data_root / "server.log"
+        self.env = {
+            **os.environ,
+            "LEAP_DATA_ROOTS": json.dumps([str(data_root)]),
+            "LEAP_WORK_DIR": str(data_root / "studio"),
+            "LEAP_PORT": str(self.port),
+            "LEAP_SEED_DEMO": "false",
+            "LEAP_PROGRESS_INTERVAL_S": "0.01",
+            **(extra_env or {}),
+        }
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self, timeout: float = 60.0) -> Server:
+        return self.start_with_token(None, timeout)
+
+    def start_with_token(self, token: str | None, timeout: float = 60.0) -> Server:
+        """Start and wait until ``/health`` answers (with ``token`` when the server needs one)."""
+        headers = {"X-Leap-Token": token} if token else {}
+        with open(self.log, "ab") as out:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "app.main"], env=self.env, stdout=out, stderr=out
+            )
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}; see {self.log}")
+            try:
+                if httpx.get(f"{self.base}/api/v1/health", headers=headers, timeout=1.0).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        raise RuntimeError(f"server did not answer within {timeout} s; see {self.log}")
+
+    def kill9(self) -> None:
+        assert self.proc is not None
+        os.kill(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(base_url=f"{self.base}/api/v1", timeout=30.0)
+
+
+def process_gone(pid: int, timeout: float = 10.0) -> bool:
+    """True once ``pid`` no longer runs (exited, or a zombie waiting for its new parent to reap it)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state in ("Z", "X"):
+            return True
+        time.sleep(0.05)
+    return False

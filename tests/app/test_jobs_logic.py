@@ -1,0 +1,73 @@
+"""Pure job bookkeeping: progress/ETA arithmetic and the corrections snapshot a run receives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.crud import Correction
+from app.jobs.manager import corrections_for_run
+from app.jobs.progress import ProgressTracker
+
+
+def test_stage_eta_percent_and_ordering() -> None:
+    t = ProgressTracker.create(1, 1, ["a", "b", "c"], expected_seconds={"c": 4.0})
+    t.set_status("running", "s0")
+    assert t.update("a", 0, 10, now=100.0, stamp="s1")  # stage started
+    assert not t.update("a", 4, 10, now=102.0, stamp="s2")
+    snap = t.snapshot(now=102.0)
+    a = snap["stages"][0]
+    # 4 of 10 done in 2 s -> 2 * 6 / 4 = 3 s left; run percent = (0.4 + 0 + 0) / 3.
+    assert a["eta_s"] == 3.0 and a["percent"] == 40.0 and a["status"] == "running"
+    assert snap["percent"] == pytest.approx(13.3, abs=0.05) and snap["stage"] == "a"
+    assert snap["eta_s"] is None  # stage b has no expected duration
+    assert t.update("a", 10, 10, now=105.0, stamp="s3")
+    assert t.snapshot(now=105.0)["stages"][0]["seconds"] == 5.0
+    # c starts without b reporting: b was skipped by the pipeline.
+    t.update("c", 1, 2, now=106.0, stamp="s4")
+    snap = t.snapshot(now=107.0)
+    assert [s["status"] for s in snap["stages"]] == ["done", "skipped", "running"]
+    assert snap["percent"] == pytest.approx(100 * (1 + 1 + 0.5) / 3, abs=0.05)
+    assert snap["stages"][2]["eta_s"] == 1.0  # 1 of 2 in 1 s
+    versions = snap["version"]
+    t.set_status("done", "s5")
+    assert t.snapshot()["percent"] == 100.0 and t.snapshot()["version"] == versions + 1
+
+
+def test_run_eta_adds_expected_seconds_of_pending_stages() -> None:
+    t = ProgressTracker.create(1, 1, ["a", "b"], expected_seconds={"b": 7.5})
+    t.set_status("running", "s")
+    t.update("a", 1, 4, now=0.0, stamp="s")
+    t.update("a", 2, 4, now=2.0, stamp="s")  # elapsed 2 s for 2 of 4 -> 2 s left
+    assert t.snapshot(now=2.0)["eta_s"] == 9.5
+
+
+def test_record_round_trip_and_interrupted_stage() -> None:
+    t = ProgressTracker.create(3, 2, ["a", "b"])
+    t.set_status("running", "s")
+    t.update("a", 2, 2, now=0.0, stamp="s")
+    t.update("b", 1, 5, now=1.0, stamp="s")
+    back = ProgressTracker.from_record(3, 2, "interrupted", t.stages_record(), ["a", "b"], error="stopped")
+    snap = back.snapshot(now=2.0)
+    assert [s["status"] for s in snap["stages"]] == ["done", "cancelled"]
+    assert snap["stages"][1]["done"] == 1 and snap["error"] == "stopped" and snap["status"] == "interrupted"
+
+
+def _corr(i: int, name: str, keys: list[int], size: float = 0.2) -> Correction:
+    return Correction(i, 1, "t", name, size, np.array(keys, np.int64), True)
+
+
+def test_corrections_snapshot_later_wins_and_stale_ones_drop() -> None:
+    schema = {"classes": [{"name": "car"}, {"name": "road"}, {"name": "pole"}]}
+    pipeline = {"fusion": {"voxel_size": 0.2}}
+    corrections = [
+        _corr(1, "car", [30, 10, 20]),
+        _corr(2, "pole", [20, 40]),  # later: voxel 20 becomes pole
+        _corr(3, "gone", [50]),  # class no longer in the schema
+        _corr(4, "road", [60], size=0.5),  # made on another voxel size
+    ]
+    keys, cls = corrections_for_run(corrections, schema, pipeline)
+    assert keys.dtype == np.int64 and cls.dtype == np.int16
+    assert keys.tolist() == [10, 20, 30, 40] and cls.tolist() == [0, 2, 0, 2]
+    empty_keys, empty_cls = corrections_for_run([], schema, pipeline)
+    assert empty_keys.shape == (0,) and empty_cls.shape == (0,)

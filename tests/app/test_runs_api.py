@@ -1,0 +1,285 @@
+"""Runs through the real app: worker processes running the real pipeline on a tiny dataset."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import appfixtures
+import numpy as np
+import pytest
+from apphelpers import API, create_project, wait_run
+from fastapi.testclient import TestClient
+
+from app import crud
+from app.core.db import open_db
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.fusion import voxel_keys
+from leap_core.pipeline import STAGES, world_points
+
+# The app tests' fixtures (this folder has no conftest.py; see appfixtures), found by name here.
+client, data_root, settings, tiny_dataset = (
+    appfixtures.client,
+    appfixtures.data_root,
+    appfixtures.settings,
+    appfixtures.tiny_dataset,
+)
+
+
+def read_events(client: TestClient, run_id: int) -> list[tuple[str, dict]]:
+    events: list[tuple[str, dict]] = []
+    kind = None
+    with client.stream("GET", f"{API}/runs/{run_id}/events") as stream:
+        assert stream.headers["content-type"].startswith("text/event-stream")
+        for line in stream.iter_lines():
+            if line.startswith("event: "):
+                kind = line[7:]
+            elif line.startswith("data: ") and kind is not None:
+                events.append((kind, json.loads(line[6:])))
+                if kind == "end":
+                    break
+    return events
+
+
+def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path) -> None:
+    project = create_project(client, tiny_dataset)
+    r = client.post(f"{API}/projects/{project['id']}/runs", json={})
+    assert r.status_code == 202, r.text
+    run = r.json()
+    assert run["status"] in ("queued", "running") and run["number"] == 1
+    assert [s["name"] for s in run["progress"]["stages"]] == list(STAGES)
+    # One active run per project.
+    again = client.post(f"{API}/projects/{project['id']}/runs", json={})
+    assert again.status_code == 409 and "already has run" in again.json()["detail"]
+
+    events = read_events(client, run["id"])
+    assert events[-1][0] == "end"
+    progress = [e for k, e in events if k == "progress"]
+    assert progress[-1]["status"] == "done" and progress[-1]["percent"] == 100.0
+    assert [e["version"] for e in progress] == sorted(e["version"] for e in progress)
+    assert any(e["status"] == "running" for e in progress)
+
+    run = client.get(f"{API}/runs/{run['id']}").json()
+    assert run["status"] == "done" and run["error"] is None and run["attempts"] == 1
+    stages = {s["name"]: s for s in run["progress"]["stages"]}
+    assert stages["3dcn"]["status"] == "skipped"  # 3D-CN is off by default
+    for name in ("labels2d", "project", "label_points", "export"):
+        assert stages[name]["status"] == "done" and stages[name]["done"] == stages[name]["total"] == 4
+        assert stages[name]["seconds"] is not None
+    assert run["params"]["schema"]["name"] == "semantickitti" and run["params"]["dataset"] == str(
+        tiny_dataset
+    )
+    assert run["has_metrics"] and run["has_export"] and not run["resumable"]
+    assert set(run["summary"]) == {"camera", "all"} and set(run["summary"]["camera"]) == {"point", "voxel"}
+
+    metrics = client.get(f"{API}/runs/{run['id']}/metrics").json()
+    voxel = metrics["metrics"]["protocols"]["camera"]["voxel"]
+    assert set(voxel["iou"]) == set(metrics["class_names"]) and "confusion" not in voxel
+    assert 0.0 <= voxel["miou"] <= 1.0 and metrics["metrics"]["rows"] == ["point", "voxel"]
+
+    logs = client.get(f"{API}/runs/{run['id']}/logs").json()
+    assert "stage export done" in logs["text"] and "run finished" in logs["text"]
+
+    seq = KittiSequence(tiny_dataset)
+    z = client.get(f"{API}/runs/{run['id']}/export.zip")
+    assert z.status_code == 200 and z.headers["content-type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
+        assert sorted(zf.namelist()) == [f"predictions/{f}.label" for f in seq.frame_ids]
+        for i, fid in enumerate(seq.frame_ids):
+            data = zf.read(f"predictions/{fid}.label")
+            assert len(data) == 4 * seq.frame(i).points.shape[0]
+            run_dir = Path(crud_run_dir(client, run["id"]))
+            assert data == (run_dir / "export" / f"{fid}.label").read_bytes()
+    with zipfile.ZipFile(
+        io.BytesIO(client.get(f"{API}/runs/{run['id']}/export.zip?confidence=true").content)
+    ) as zf:
+        assert len(zf.namelist()) == 2 * len(seq.frame_ids)
+
+    written = client.post(f"{API}/runs/{run['id']}/export", json={})
+    assert written.status_code == 200, written.text
+    assert written.json() == {"run_id": run["id"], "path": str(tiny_dataset / "predictions"), "files": 4}
+    for fid in seq.frame_ids:
+        assert (tiny_dataset / "predictions" / f"{fid}.label").is_file()
+    outside = client.post(f"{API}/runs/{run['id']}/export", json={"path": "/tmp/leap-export-elsewhere"})
+    assert outside.status_code == 403
+
+    project = client.get(f"{API}/projects/{project['id']}").json()
+    assert project["last_run"]["status"] == "done" and project["active_run"] is None
+
+
+def crud_run_dir(client: TestClient, run_id: int) -> str:
+    settings = client.app.state.settings  # type: ignore[attr-defined]
+    with open_db(settings.database) as db:
+        return crud.require_run(db, run_id)["run_dir"]
+
+
+def test_unknown_runs_are_404(client: TestClient) -> None:
+    for method, path in [
+        ("get", "/runs/77"),
+        ("post", "/runs/77/cancel"),
+        ("post", "/runs/77/resume"),
+        ("get", "/runs/77/progress"),
+        ("get", "/runs/77/events"),
+        ("get", "/runs/77/metrics"),
+        ("get", "/runs/77/logs"),
+        ("get", "/runs/77/export.zip"),
+        ("post", "/runs/77/export"),
+    ]:
+        r = getattr(client, method)(API + path, **({"json": {}} if method == "post" else {}))
+        assert r.status_code == 404, (method, path, r.text)
+        assert r.json()["detail"] == "Run 77 not found"
+
+
+def test_invalid_run_payload_is_422(client: TestClient, tiny_dataset: Path) -> None:
+    project = create_project(client, tiny_dataset)
+    r = client.post(f"{API}/projects/{project['id']}/runs", json={"frames": {"start": 3, "stop": 1}})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", "frames"]
+    r = client.post(f"{API}/projects/{project['id']}/runs", json={"frames": {"start": -1, "stop": 2}})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "frames", "start"]
+
+
+@pytest.mark.slow
+def test_cancel_then_resume_finishes(client: TestClient, tiny_dataset: Path) -> None:
+    project = create_project(client, tiny_dataset)
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
+    cancelled = client.post(f"{API}/runs/{run['id']}/cancel")
+    assert cancelled.status_code == 200
+    run = wait_run(client, run["id"])
+    assert run["status"] == "cancelled" and run["resumable"]
+    assert client.post(f"{API}/runs/{run['id']}/cancel").status_code == 409  # already ended
+    resumed = client.post(f"{API}/runs/{run['id']}/resume")
+    assert resumed.status_code == 202 and resumed.json()["status"] in ("queued", "running")
+    run = wait_run(client, run["id"])
+    assert run["status"] == "done" and run["number"] == 1
+    assert client.post(f"{API}/runs/{run['id']}/resume").status_code == 409  # done runs do not resume
+
+
+@pytest.mark.slow
+def test_rerun_reuses_unchanged_stages(client: TestClient, tiny_dataset: Path) -> None:
+    project = create_project(client, tiny_dataset)
+    first = wait_run(client, client.post(f"{API}/projects/{project['id']}/runs", json={}).json()["id"])
+    # A colour edit changes no computation: every stage output is reused from run 1.
+    assert (
+        client.patch(f"{API}/projects/{project['id']}/classes/car", json={"color": "#ff0000"}).status_code
+        == 200
+    )
+    second = wait_run(client, client.post(f"{API}/projects/{project['id']}/runs", json={}).json()["id"])
+    # A smoothing edit reruns smoothing and what follows, and still reuses the 2D labels and projection.
+    assert client.patch(f"{API}/projects/{project['id']}", json={"form": {"k": 4}}).status_code == 200
+    third = wait_run(client, client.post(f"{API}/projects/{project['id']}/runs", json={}).json()["id"])
+    assert [r["status"] for r in (first, second, third)] == ["done"] * 3
+    d1, d2, d3 = (Path(crud_run_dir(client, r["id"])) for r in (first, second, third))
+
+    def inode(p: Path) -> int:
+        return p.stat().st_ino
+
+    fid = "000000"
+    for folder, name in [
+        ("labels2d", f"{fid}.npz"),
+        ("observations", f"{fid}.npz"),
+        ("export", f"{fid}.label"),
+    ]:
+        assert inode(d2 / folder / name) == inode(d1 / folder / name)
+    assert inode(d2 / "grid_smooth.npz") == inode(d1 / "grid_smooth.npz")
+    assert inode(d3 / "labels2d" / f"{fid}.npz") == inode(d1 / "labels2d" / f"{fid}.npz")
+    assert inode(d3 / "observations" / f"{fid}.npz") == inode(d1 / "observations" / f"{fid}.npz")
+    assert inode(d3 / "grid_smooth.npz") != inode(d1 / "grid_smooth.npz")
+    # The earlier runs' outputs were not touched by the reruns.
+    assert (
+        json.loads((d1 / "stages.json").read_text())["smooth"]["fingerprint"]
+        != json.loads((d3 / "stages.json").read_text())["smooth"]["fingerprint"]
+    )
+    with np.load(d1 / "grid_smooth.npz") as z1, np.load(d2 / "grid_smooth.npz") as z2:
+        assert np.array_equal(z1["probs"], z2["probs"])
+
+
+@pytest.mark.slow
+def test_corrupt_dataset_fails_readably_and_keeps_earlier_outputs(
+    client: TestClient, tiny_dataset: Path
+) -> None:
+
+    project = create_project(client, tiny_dataset)
+    first = wait_run(client, client.post(f"{API}/projects/{project['id']}/runs", json={}).json()["id"])
+    before = client.get(f"{API}/runs/{first['id']}/export.zip").content
+    d1 = Path(crud_run_dir(client, first["id"]))
+    labels_before = {p.name: p.read_bytes() for p in (d1 / "export").iterdir()}
+
+    scan = tiny_dataset / "velodyne" / "000002.bin"
+    scan.write_bytes(scan.read_bytes()[:-5])  # no longer a multiple of 16 bytes
+    second = wait_run(client, client.post(f"{API}/projects/{project['id']}/runs", json={}).json()["id"])
+    assert second["status"] == "failed" and second["resumable"]
+    assert "000002.bin" in second["error"] and "multiple of 16" in second["error"]
+    assert "\n" not in second["error"]
+    assert client.get(f"{API}/runs/{second['id']}/export.zip").status_code == 409
+
+    assert client.get(f"{API}/runs/{first['id']}/export.zip").content == before
+    assert {p.name: p.read_bytes() for p in (d1 / "export").iterdir()} == labels_before
+
+
+@pytest.mark.slow
+def test_runs_of_different_projects_queue(data_root: Path, tiny_dataset: Path) -> None:
+    from app.core.config import Settings
+    from app.main import create_app
+
+    settings = Settings(
+        data_roots=[data_root], work_dir=data_root / "studio", seed_demo=False, max_parallel_runs=1
+    )
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
+        a = create_project(client, tiny_dataset, "a")
+        b = create_project(client, tiny_dataset, "b")
+        ra = client.post(f"{API}/projects/{a['id']}/runs", json={}).json()
+        rb = client.post(f"{API}/projects/{b['id']}/runs", json={}).json()
+        assert client.get(f"{API}/runs/{rb['id']}").json()["status"] == "queued"
+        assert (
+            client.get(f"{API}/health").json()["queued"] + client.get(f"{API}/health").json()["running"] == 2
+        )
+        ra = wait_run(client, ra["id"])
+        rb = wait_run(client, rb["id"])
+        assert ra["status"] == rb["status"] == "done"
+        assert rb["started_at"] >= ra["finished_at"]
+
+
+def test_corrections_reach_the_exported_labels(client: TestClient, tiny_dataset: Path) -> None:
+    project = create_project(client, tiny_dataset)
+    seq = KittiSequence(tiny_dataset)
+    frame = seq.frame(0)
+    keys = voxel_keys(world_points(frame.points, frame.pose), 0.2)
+    chosen = np.unique(keys)[:25]
+    settings = client.app.state.settings  # type: ignore[attr-defined]
+    with open_db(settings.database) as db:
+        undone = crud.add_correction(
+            db, project_id=project["id"], class_name="vegetation", voxel_size=0.2, keys=chosen
+        )
+        crud.set_correction_active(db, undone, False)
+        crud.add_correction(db, project_id=project["id"], class_name="pole", voxel_size=0.2, keys=chosen)
+        crud.add_correction(db, project_id=project["id"], class_name="pole", voxel_size=0.5, keys=chosen[:3])
+        assert [c.class_name for c in crud.list_corrections(db, project["id"])] == ["pole", "pole"]
+        assert len(crud.list_corrections(db, project["id"], active_only=False)) == 3
+    run = wait_run(client, client.post(f"{API}/projects/{project['id']}/runs", json={}).json()["id"])
+    assert run["status"] == "done", run["error"]
+    run_dir = Path(crud_run_dir(client, run["id"]))
+    with np.load(run_dir / "corrections.npz") as z:
+        assert np.array_equal(z["keys"], chosen) and z["keys"].dtype == np.int64
+        assert (
+            z["class_idx"].dtype == np.int16 and (z["class_idx"] == 17).all()
+        )  # pole; the 0.5 m one dropped
+    raw = np.fromfile(run_dir / "export" / "000000.label", dtype=np.uint32)
+    in_chosen = np.isin(keys, chosen)
+    assert in_chosen.any() and (raw[in_chosen] & 0xFFFF == 80).all()  # pole's export id
+
+
+@pytest.mark.slow
+def test_graceful_shutdown_interrupts_and_restart_resumes(settings, tiny_dataset: Path) -> None:  # type: ignore[no-untyped-def]
+    from app.main import create_app
+
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
+        project = create_project(client, tiny_dataset)
+        run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
+    # Leaving the block shut the app down while the worker was still importing the pipeline.
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
+        stopped = client.get(f"{API}/runs/{run['id']}").json()
+        assert stopped["status"] == "interrupted" and stopped["resumable"]
+        assert client.post(f"{API}/runs/{run['id']}/resume").status_code == 202
+        assert wait_run(client, run["id"])["status"] == "done"

@@ -1,0 +1,189 @@
+"""The web UI in a real Chromium (Debian's, driven by Playwright) against a real server on 127.0.0.1.
+
+Creates a project on a small generated street, edits a class's prompts, runs the pipeline while watching
+the live progress, reads the metrics and downloads the exported labels. Screenshots go to test-artifacts/.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
+FRAMES = 4
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    from serverproc import Server, make_small_street
+
+    data = tmp_path_factory.mktemp("ui") / "data"
+    dataset = make_small_street(data / "street", FRAMES)
+    srv = Server(data).start()
+    yield srv, dataset
+    srv.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():  # type: ignore[no-untyped-def]
+    if not CHROMIUM.exists():
+        pytest.skip("Debian chromium is not installed at /usr/bin/chromium (apt-get install chromium)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(
+            executable_path=str(CHROMIUM),
+            args=[
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--no-first-run",
+            ],
+        )
+        yield b
+        b.close()
+
+
+def test_create_edit_run_compare_and_download(server, browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    import httpx
+    from playwright.sync_api import expect
+
+    srv, dataset = server
+    ARTIFACTS.mkdir(exist_ok=True)
+    page = browser.new_page(viewport={"width": 1440, "height": 1000}, accept_downloads=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(srv.base + "/")
+
+    # ---- create a project on the dataset folder found in the data root
+    expect(page.locator("#create-form")).to_be_visible()
+    page.fill("#new-name", "Street <i>test</i>")
+    page.select_option("#new-dataset", str(dataset))
+    page.click("#create-project")
+    expect(page.locator("#project-name")).to_have_text("Street <i>test</i>")  # shown literally
+    assert page.locator("#project-name i").count() == 0
+
+    # ---- edit the car class's prompts: add one, remove one
+    car = page.locator('.class-row[data-class="car"]')
+    car.locator(".prompt-add").fill("sedan")
+    car.locator(".prompt-add").press("Enter")
+    expect(page.locator('.class-row[data-class="car"] .prompt-text', has_text="sedan")).to_be_visible()
+    page.locator('.class-row[data-class="car"] button[aria-label="Remove prompt jeep"]').click()
+    expect(page.locator('.class-row[data-class="car"] .prompt-text')).to_have_text(
+        ["car", "automobile", "van", "sedan"]
+    )
+    project_id = int(page.url.rsplit("/", 1)[-1])
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        car_api = api.get(f"/projects/{project_id}/classes").json()["data"][0]
+    assert car_api["name"] == "car" and car_api["prompts"] == ["car", "automobile", "van", "sedan"]
+
+    # ---- user text with markup stays text
+    page.fill("#new-class-name", "<img src=x onerror=window.__pwned=1>")
+    page.fill("#new-class-prompts", "odd thing")
+    page.locator("form.add-class button[type=submit]").click()
+    expect(page.locator(".class-row .cls-name").last).to_have_value("<img src=x onerror=window.__pwned=1>")
+    assert page.evaluate("window.__pwned") is None and page.locator(".class-list img").count() == 0
+
+    # ---- run with live per-stage progress
+    page.click("#run-button")
+    expect(page.locator("#run-status")).to_have_attribute("data-status", "running", timeout=60_000)
+    expect(page.locator(".stage")).to_have_count(8)
+    expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=180_000)
+    statuses = page.locator(".stage").evaluate_all("els => els.map(e => e.dataset.status)")
+    assert set(statuses) <= {"done", "skipped"} and statuses.count("done") >= 6
+    expect(page.locator("#run-percent")).to_have_text("100 %")
+
+    # ---- metrics table and per-class IoU chart
+    expect(page.locator("#metrics-table tbody tr")).to_have_count(2)  # point, voxel
+    one_run_bars = page.locator("#iou-chart svg rect[fill]:not(.swatch)").count()
+    assert one_run_bars == 20  # one bar per class
+    miou = page.locator('#metrics-table tr[data-row="voxel"] td.strong').inner_text()
+    assert 0 < float(miou) <= 100
+
+    # ---- change a parameter, run again, compare both runs side by side
+    page.fill('#params input[name="k"]', "0")
+    page.click("#save-params")
+    expect(page.locator('#params input[name="k"]')).to_have_class(re.compile("invalid"))
+    expect(page.locator("#params .error")).to_contain_text("smoothing.k")
+    page.fill('#params input[name="k"]', "4")
+    page.click("#save-params")
+    expect(page.locator("#params .error")).to_be_empty()
+    page.click("#run-button")
+    expect(page.locator("#run-panel h2")).to_have_text("Run 2")
+    expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=180_000)
+    expect(page.locator(".runs-table tbody tr[data-run-id]")).to_have_count(2)
+    expect(page.locator("#metrics-table tbody tr")).to_have_count(4)  # 2 runs x (point, voxel)
+    expect(page.locator(".legend > span")).to_have_count(2)
+    assert page.locator("#iou-chart svg rect[fill]:not(.swatch)").count() == 2 * one_run_bars
+    page.screenshot(path=str(ARTIFACTS / "web_ui_project.png"), full_page=True)
+
+    # ---- export download
+    with page.expect_download() as info:
+        page.locator('a[data-action="zip"]').first.click()
+    target = tmp_path / "labels.zip"
+    info.value.save_as(target)
+    frame_ids = sorted(p.stem for p in (dataset / "velodyne").glob("*.bin"))
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        export_ids = {c["export_id"] for c in api.get(f"/projects/{project_id}/classes").json()["data"]}
+    with zipfile.ZipFile(io.BytesIO(target.read_bytes())) as zf:
+        assert sorted(zf.namelist()) == [f"predictions/{f}.label" for f in frame_ids]
+        for fid in frame_ids:
+            labels = np.frombuffer(zf.read(f"predictions/{fid}.label"), dtype=np.uint32)
+            n_points = (dataset / "velodyne" / f"{fid}.bin").stat().st_size // 16
+            assert labels.shape == (n_points,)
+            semantic = labels & 0xFFFF
+            assert (labels >> 16 == 0).all() and (semantic > 0).mean() > 0.1
+            assert set(np.unique(semantic).tolist()) <= export_ids | {0}
+
+    # ---- the project list shows the finished run
+    page.goto(srv.base + "/#/")
+    card = page.locator(f'.project-card[data-project-id="{project_id}"]')
+    expect(card.locator(".chip.status-done")).to_be_visible()
+    page.screenshot(path=str(ARTIFACTS / "web_ui_projects.png"), full_page=True)
+    assert errors == []
+    page.close()
+
+
+def test_token_protected_server_asks_for_the_token(browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    from playwright.sync_api import expect
+    from serverproc import Server
+
+    token = "browser-test-token-123"
+    data = tmp_path / "data"
+    data.mkdir()
+    srv = Server(
+        data, extra_env={"LEAP_ACCESS_TOKEN": token, "LEAP_PREWARM_WORKERS": "false"}
+    ).start_with_token(token)
+    try:
+        page = browser.new_page()
+        page.goto(srv.base + "/")
+        expect(page.locator("#token-input")).to_be_visible()
+        page.fill("#token-input", "not-the-token-at-all")
+        page.locator("button[type=submit]").click()
+        expect(page.locator("#token-input")).to_be_visible()  # refused: asked again
+        page.fill("#token-input", token)
+        page.locator("button[type=submit]").click()
+        expect(page.locator("#create-form")).to_be_visible()
+        # A link that carries the token works directly and the token leaves the address bar.
+        fresh = browser.new_page()
+        fresh.goto(f"{srv.base}/?token={token}#/")
+        expect(fresh.locator("#create-form")).to_be_visible()
+        assert "token=" not in fresh.url
+        page.close()
+        fresh.close()
+    finally:
+        srv.stop()

@@ -1,0 +1,114 @@
+// Project list and the create-project form.
+
+import { get, post } from "./api.js";
+import { fmtPct, fmtTime, h, replace } from "./dom.js";
+
+function statusChip(status) {
+  return h("span", { class: `chip status-${status}` }, status);
+}
+
+function projectCard(p) {
+  const last = p.last_run;
+  return h(
+    "a",
+    { class: "card project-card", href: `#/projects/${p.id}`, dataset: { projectId: String(p.id) } },
+    h("div", { class: "project-card-head" }, h("h3", {}, p.name), p.is_demo ? h("span", { class: "chip demo" }, "demo") : null),
+    h("p", { class: "muted path" }, p.dataset.kind === "demo" ? "Built-in demo sequence" : p.dataset.path),
+    h(
+      "dl",
+      { class: "facts" },
+      h("div", {}, h("dt", {}, "frames"), h("dd", {}, p.dataset.frames ?? "–")),
+      h("div", {}, h("dt", {}, "classes"), h("dd", {}, p.num_classes)),
+      h("div", {}, h("dt", {}, "labeler"), h("dd", {}, p.form.labeler)),
+      h("div", {}, h("dt", {}, "runs"), h("dd", {}, p.runs_count)),
+    ),
+    h(
+      "div",
+      { class: "project-card-foot" },
+      last ? statusChip(last.status) : h("span", { class: "muted" }, "no runs yet"),
+      last ? h("span", { class: "muted" }, `run ${last.number} · ${fmtTime(last.finished_at || last.created_at)}`) : null,
+      last && last.miou !== null && last.miou !== undefined
+        ? h("span", { class: "card-miou", title: `camera-view mIoU of the ${last.miou_row} labels` }, h("strong", {}, fmtPct(last.miou)), " mIoU")
+        : null,
+    ),
+  );
+}
+
+function createForm(datasets, { toast, onCreated }) {
+  const name = h("input", { id: "new-name", name: "name", required: true, maxlength: 120, placeholder: "My sequence" });
+  const kindDemo = h("input", { type: "radio", name: "kind", value: "demo", id: "kind-demo" });
+  const kindFolder = h("input", { type: "radio", name: "kind", value: "folder", id: "kind-folder", checked: true });
+  const select = h(
+    "select",
+    { id: "new-dataset" },
+    h("option", { value: "" }, datasets.data.length ? "— pick a dataset folder —" : "— no KITTI sequences found in the data roots —"),
+    datasets.data.map((d) =>
+      h("option", { value: d.path }, `${d.path}  (${d.frames} frames${d.has_ground_truth ? ", ground truth" : ""})`),
+    ),
+  );
+  const path = h("input", { id: "new-path", placeholder: "or type a path inside a data root", spellcheck: "false" });
+  select.addEventListener("change", () => {
+    if (select.value) path.value = select.value;
+    kindFolder.checked = true;
+  });
+  path.addEventListener("input", () => (kindFolder.checked = true));
+  const error = h("p", { class: "error", role: "alert" });
+  const submit = h("button", { class: "btn primary", type: "submit", id: "create-project" }, "Create project");
+  const form = h(
+    "form",
+    {
+      class: "card create",
+      id: "create-form",
+      onsubmit: async (e) => {
+        e.preventDefault();
+        error.textContent = "";
+        const dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
+        submit.disabled = true;
+        try {
+          const p = await post("/projects", { name: name.value.trim(), dataset });
+          toast(`Project “${p.name}” created`);
+          onCreated(p);
+        } catch (err) {
+          error.textContent = err.message;
+        } finally {
+          submit.disabled = false;
+        }
+      },
+    },
+    h("h2", {}, "New project"),
+    h("label", { class: "field" }, h("span", {}, "Name"), name),
+    h(
+      "fieldset",
+      { class: "field" },
+      h("legend", {}, "Dataset"),
+      h("label", { class: "radio" }, kindFolder, h("span", {}, "KITTI-layout sequence folder")),
+      h("div", { class: "indent stack" }, select, path),
+      h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
+    ),
+    h("p", { class: "muted small" }, `Data roots: ${datasets.roots.join(", ")}. New projects use the SemanticKITTI classes; edit them afterwards.`),
+    error,
+    h("div", { class: "row end" }, submit),
+  );
+  return form;
+}
+
+export async function renderProjects(root, { toast }) {
+  const [projects, datasets] = await Promise.all([get("/projects"), get("/datasets")]);
+  const list = h(
+    "div",
+    { class: "project-grid", id: "project-list" },
+    projects.data.length ? projects.data.map(projectCard) : h("p", { class: "muted" }, "No projects yet: create one."),
+  );
+  replace(
+    root,
+    h("div", { class: "page-head" }, h("h1", {}, "Projects"), h("span", { class: "muted" }, `${projects.count} project${projects.count === 1 ? "" : "s"}`)),
+    h(
+      "div",
+      { class: "layout" },
+      h("section", { class: "main-col" }, list),
+      h("aside", { class: "side-col" }, createForm(datasets, { toast, onCreated: (p) => (window.location.hash = `#/projects/${p.id}`) })),
+    ),
+  );
+  return () => {};
+}
+
