@@ -110,7 +110,7 @@ def make_tiny_models_cmd(
     """Write tiny RANDOM-weight Grounding DINO + SAM models (for trying the code path without weights).
 
     Their labels are meaningless: they only exercise the grounded-sam code path. Use them with
-    --models FOLDER; see docs/real_models.md for the real weights."""
+    --models FOLDER; see the README section 'Real 2D labels' for the real weights."""
     from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 
     paths = make_tiny_models(folder, TinyModelsConfig(seed=seed))

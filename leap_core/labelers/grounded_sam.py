@@ -156,7 +156,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _download_hint(model_id: str, folder: Path) -> str:
-    return f"download it with `hf download {model_id} --local-dir {folder}` (see docs/real_models.md)"
+    return f"download it with `hf download {model_id} --local-dir {folder}` (see the README section 'Real 2D labels')"
 
 
 def resolve_model_folder(model_id: str, models_dir: str | Path | None, allow_download: bool = False) -> Path:

@@ -28,7 +28,7 @@ MARKER_FILE = "LEAP_TINY_RANDOM_MODEL.txt"
 _MARKER_TEXT = (
     "This is a tiny model with RANDOM weights, written by `leap make-tiny-models`.\n"
     "It exercises LeAP Studio's Grounding DINO + SAM code path only; its labels are meaningless.\n"
-    "For real labels download the real weights (see docs/real_models.md).\n"
+    "For real labels download the real weights (see the README section 'Real 2D labels').\n"
 )
 
 # Whole-word entries make token counts of common prompts realistic; any other lowercase word still
