@@ -13,6 +13,37 @@ app = typer.Typer(
 )
 
 
+class StageBars:
+    """One tqdm bar per pipeline stage, opened when the stage first reports (``progress(stage, done, total)``)
+    and closing the previous stage's bar; use as a context manager so every bar is closed."""
+
+    def __init__(self) -> None:
+        self.bars: dict[str, object] = {}
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        bar = self.bars.get(stage)
+        if bar is None:
+            self.close()
+            unit = "step" if stage in ("3dcn", "synth") else "frame"
+            bar = self.bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit=unit, leave=True,
+                                          dynamic_ncols=True)
+        bar.total = total  # type: ignore[attr-defined]
+        bar.n = done  # type: ignore[attr-defined]
+        bar.refresh()  # type: ignore[attr-defined]
+
+    def close(self) -> None:
+        for bar in self.bars.values():
+            bar.close()  # type: ignore[attr-defined]
+
+    def __enter__(self) -> StageBars:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def fail(message: str) -> typer.Exit:
     """Print a one-line error to stderr and return the exit to raise (``raise fail(...)``)."""
     typer.secho(f"error: {message}", err=True, fg=typer.colors.RED)
@@ -145,25 +176,13 @@ def run_cmd(
     then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
     from pathlib import Path
 
-    from tqdm import tqdm
 
     from leap_core.config import config_from_dict
     from leap_core.errors import Cancelled, LeapError
     from leap_core.pipeline import STAGES, result_tables, run_pipeline
     from leap_core.schema import load_project_file, projects_dir
 
-    bars: dict[str, tqdm] = {}
-
-    def progress(stage: str, done: int, total: int) -> None:
-        bar = bars.get(stage)
-        if bar is None:
-            for other in bars.values():
-                other.close()
-            bar = bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit="step" if stage == "3dcn" else "frame",
-                                     leave=True, dynamic_ncols=True)
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+    progress = StageBars()
 
     try:
         overrides: list[dict] = []
@@ -204,12 +223,9 @@ def run_cmd(
             frame_range = range(start, stop)
         typer.echo(f"2D labels: {cfg.labeler}" + (" (2D ground truth + noise model)" if cfg.labeler == "simulated"
                                                    else " (Grounding DINO + SAM)"))
-        try:
+        with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
                                   cache_dir=Path(cache) if cache else None)
-        finally:
-            for bar in bars.values():
-                bar.close()
     except KeyboardInterrupt:
         raise fail(f"interrupted; run the same command again to resume from {out}") from None
     except Cancelled:
@@ -272,7 +288,6 @@ def demo_cmd(
     the browser then shows the demo project with a finished run and its metrics."""
     from pathlib import Path
 
-    from tqdm import tqdm
 
     from app import crud
     from app.core.db import init_db, open_db
@@ -284,17 +299,7 @@ def demo_cmd(
     from leap_core.pipeline import result_tables
 
     settings = _app_settings(None, port, data_root, work_dir, None, None, seed_demo=None)
-    bars: dict[str, tqdm] = {}
-
-    def progress(stage: str, done: int, total: int) -> None:
-        bar = bars.get(stage)
-        if bar is None:
-            for other in bars.values():
-                other.close()
-            bar = bars[stage] = tqdm(total=total, desc=f"{stage:>13}", unit="step", leave=True)
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+    progress = StageBars()
 
     try:
         ensure_demo_sequence(settings.demo_dataset, dict(settings.demo_synth), progress=progress)
@@ -325,9 +330,8 @@ def demo_cmd(
             ]
         run = manager.resume_run(resumable[0]["id"]) if resumable else manager.start_run(project["id"])
         typer.echo(f"labeling the demo sequence (run {run['id']}, project {DEMO_PROJECT_NAME!r})")
-        status = manager.run_now(run["id"], on_progress=progress)
-        for bar in bars.values():
-            bar.close()
+        with progress:
+            status = manager.run_now(run["id"], on_progress=progress)
         with open_db(settings.database) as db:
             finished = crud.require_run(db, run["id"])
         if status != "done":
