@@ -1,0 +1,380 @@
+"""Benchmark of one 3D-CN iteration (selection + training + inference + fusion back) on a demo-sized sequence.
+
+Target (issue 5): training + inference on the default demo sequence (≈ 60 scans × ~100k points) ≤ 10 min
+on the 2-core CPU. Baseline, in the same process: the training step of a plain per-point MLP with about the
+same number of parameters on the same points; the ratio says what the kNN embedding and 2D-grid mixing cost.
+
+Inputs: with ``--run-dir``, the fused and smoothed grids and camera-view masks of a finished ``leap run``
+(the pipeline's own stage B output, so the label table matches ``leap run --3dcn``). Without it, a "camera"
+grid is built from the ground truth: points in a frontal field of view are fused with a confident
+observation, with per-observation and per-voxel label noise (``--noise``). Either way the table shows the
+voxel labels before and after one 3D-CN iteration (both kNN-smoothed like the pipeline does).
+
+Usage::
+
+    # the demo sequence, with the fused grids of a finished `leap run` (the acceptance setting)
+    .venv/bin/python benchmarks/bench_3dcn.py --sequence /tmp/demo/sequences/00 --run-dir /tmp/demo_run
+    # any labeled sequence, camera grid simulated from its ground truth; or a built-in stand-in street
+    .venv/bin/python benchmarks/bench_3dcn.py --sequence /tmp/demo/sequences/00
+    .venv/bin/python benchmarks/bench_3dcn.py
+
+Prints a table and writes ``benchmarks/results/bench_3dcn.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F_
+
+from leap_core.consistency.backbone import PointSegmenter, count_parameters
+from leap_core.consistency.config import ConsistencyConfig
+from leap_core.consistency.data import collate, prepare_cloud
+from leap_core.consistency.stage import point_labels_from_grid, run_3dcn_iteration, world_points
+from leap_core.consistency.train import num_train_steps
+from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_label, write_poses, write_scan
+from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys
+from leap_core.io_utils import atomic_write_json
+from leap_core.metrics import evaluate
+from leap_core.pipeline import smoothed_to_grid
+from leap_core.schema import builtin_schema
+from leap_core.smoothing import SmoothingConfig, knn_smooth
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+# --------------------------------------------------------------------------------- stand-in sequence
+def _boxes_for_street(length: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned boxes (lo, hi) and raw SemanticKITTI ids of a straight street along +x."""
+    boxes: list[tuple[list[float], list[float], int]] = [
+        ([-30, -5, -0.2], [length + 30, 5, 0.0], 40),  # road
+        ([-30, 5, -0.2], [length + 30, 8, 0.15], 48),  # sidewalks
+        ([-30, -8, -0.2], [length + 30, -5, 0.15], 48),
+        ([-30, 8, -0.2], [length + 30, 40, 0.1], 72),  # terrain behind the left sidewalk
+    ]
+    x = -30.0
+    while x < length + 30:  # building facades with gaps on the right, fence on the left
+        w = rng.uniform(8, 20)
+        boxes.append(([x, -20, 0.0], [x + w, -8.5, rng.uniform(6, 15)], 50))
+        x += w + rng.uniform(2, 6)
+    boxes.append(([-30, 12, 0.0], [length + 30, 12.1, 1.5], 51))
+    for xt in np.arange(-25, length + 30, 11.0):
+        xt += rng.uniform(-2, 2)
+        boxes.append(([xt - 0.2, 6.3, 0.0], [xt + 0.2, 6.7, 2.5], 71))  # trunk
+        r = rng.uniform(1.5, 2.5)
+        boxes.append(([xt - r, 6.5 - r, 2.5], [xt + r, 6.5 + r, 2.5 + 1.6 * r], 70))  # crown
+    for xp in np.arange(-20, length + 30, 17.0):
+        boxes.append(([xp - 0.1, -5.6, 0.0], [xp + 0.1, -5.4, 5.0], 80))  # pole
+        boxes.append(([xp - 0.4, -5.55, 3.0], [xp + 0.4, -5.45, 3.6], 81))  # sign
+    for xc in np.arange(-25, length + 30, 7.5):
+        if rng.random() < 0.7:
+            side = rng.choice([-1, 1])
+            yc = side * 3.6
+            boxes.append(([xc - 2.1, yc - 0.9, 0.2], [xc + 2.1, yc + 0.9, 1.5], 10))  # parked car
+    lo = np.array([b[0] for b in boxes], np.float64)
+    hi = np.array([b[1] for b in boxes], np.float64)
+    ids = np.array([b[2] for b in boxes], np.uint16)
+    return np.stack([lo, hi], axis=1), ids
+
+
+def _cast(origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: float) -> tuple[np.ndarray, np.ndarray]:
+    """Slab-method ray casting: nearest hit distance (R,) (inf = none) and box index (R,) per ray."""
+    best_t = np.full(dirs.shape[0], np.inf)
+    best_i = np.full(dirs.shape[0], -1)
+    inv = 1.0 / np.where(np.abs(dirs) < 1e-12, 1e-12, dirs)
+    for i, (lo, hi) in enumerate(boxes):
+        t1 = (lo - origin) * inv
+        t2 = (hi - origin) * inv
+        tmin = np.minimum(t1, t2).max(axis=1)
+        tmax = np.maximum(t1, t2).min(axis=1)
+        hit = (tmax >= np.maximum(tmin, 0.0)) & (tmin > 0.5) & (tmin < best_t) & (tmin < max_range)
+        best_t[hit] = tmin[hit]
+        best_i[hit] = i
+    return best_t, best_i
+
+
+def write_standin_sequence(root: Path, n_frames: int, seed: int = 0) -> Path:
+    """Write a KITTI-layout street sequence: 64 beams × 1700 columns (~100k points per scan), 1 m per frame."""
+    rng = np.random.default_rng(seed)
+    boxes, ids = _boxes_for_street(float(n_frames), rng)
+    seq = root / "sequences" / "00"
+    elev = np.deg2rad(np.linspace(-24.9, 2.0, 64))
+    azim = np.linspace(-np.pi, np.pi, 1700, endpoint=False)
+    ee, aa = np.meshgrid(elev, azim, indexing="ij")
+    dirs = np.stack([np.cos(ee) * np.cos(aa), np.cos(ee) * np.sin(aa), np.sin(ee)], axis=-1).reshape(-1, 3)
+    tr = np.eye(4)
+    tr[:3, :3] = [[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]
+    calib = Calib(P2=np.array([[700.0, 0, 600, 0], [0, 700.0, 180, 0], [0, 0, 1, 0]]), Tr=tr)
+    cam_poses = []
+    for f in range(n_frames):
+        origin = np.array([float(f), 0.0, 1.73])
+        near = (boxes[:, 0, 0] < origin[0] + 80) & (boxes[:, 1, 0] > origin[0] - 80)
+        t, bi = _cast(origin, dirs, boxes[near], 80.0)
+        ok = np.isfinite(t)
+        t = t[ok] + rng.normal(0, 0.02, ok.sum())
+        xyz = dirs[ok] * t[:, None]  # LiDAR frame = world shifted by the origin (no rotation)
+        pts = np.column_stack([xyz, rng.uniform(0, 1, len(t))]).astype(np.float32)
+        write_scan(seq / "velodyne" / f"{f:06d}.bin", pts)
+        write_label(seq / "labels" / f"{f:06d}.label", ids[near][bi[ok]])
+        lidar_pose = np.eye(4)
+        lidar_pose[:3, 3] = origin - [0, 0, 1.73]
+        cam_poses.append(tr @ lidar_pose @ np.linalg.inv(tr))
+    write_calib(seq / "calib.txt", calib)
+    write_poses(seq / "poses.txt", np.stack(cam_poses))
+    return seq
+
+
+# ----------------------------------------------------------------------------------- camera-like grid
+def camera_grid(
+    seq: KittiSequence, gt: list[np.ndarray], num_classes: int, noise: float, fov_deg: float, seed: int
+) -> tuple[VoxelGrid, list[np.ndarray]]:
+    """Fuse ground truth seen in a frontal field of view, with ``noise`` of the voxels given a wrong class.
+
+    Returns the grid and, per scan, the (N,) bool "in camera view" mask.
+    """
+    rng = np.random.default_rng(seed)
+    keys_all, lab_all, views = [], [], []
+    half = np.deg2rad(fov_deg / 2)
+    for i in range(len(seq)):
+        pts = seq.frame(i).points
+        view = (pts[:, 0] > 0.5) & (np.abs(np.arctan2(pts[:, 1], pts[:, 0])) < half) & (gt[i] >= 0)
+        views.append(view)
+        keys_all.append(voxel_keys(world_points(pts[view], seq.poses[i]), 0.2))
+        lab_all.append(gt[i][view])
+    keys = np.concatenate(keys_all)
+    labels = np.concatenate(lab_all).astype(np.int64)
+    scan_of = np.repeat(np.arange(len(keys_all)), [len(k) for k in keys_all])
+    uk, inv = np.unique(keys, return_inverse=True)
+    # Two kinds of wrong labels, each a class of the scene (real noise confuses classes that are there):
+    # per observation (one scan's view of a voxel, e.g. a bad mask) with probability ``noise``, and
+    # systematic per voxel (every view wrong, e.g. a foreground label bleeding onto it) with ``noise / 3``.
+    _, obs_id = np.unique(scan_of * (len(uk) + 1) + inv, return_inverse=True)
+    present = np.unique(labels)
+    pos = np.searchsorted(present, labels)
+    wrong_obs = (rng.random(obs_id.max() + 1) < noise)[obs_id]
+    wrong_vox = (rng.random(len(uk)) < noise / 3)[inv]
+    shift_obs = rng.integers(1, max(len(present), 2), obs_id.max() + 1)[obs_id]
+    shift_vox = rng.integers(1, max(len(present), 2), len(uk))[inv]
+    labels = np.where(wrong_vox, present[(pos + shift_vox) % len(present)], labels)
+    pos = np.searchsorted(present, labels)
+    labels = np.where(wrong_obs, present[(pos + shift_obs) % len(present)], labels)
+    obs = np.full((len(labels), num_classes), np.log(0.2 / (num_classes - 1)), np.float32)
+    obs[np.arange(len(labels)), labels] = np.log(0.8)
+    return fuse_dense(None, keys, obs, num_classes, FusionConfig()), views
+
+
+# ------------------------------------------------------------------------------------------ baseline
+class PlainMLP(nn.Module):
+    """Per-point MLP on the same input features, no neighbourhood and no grid mixing."""
+
+    def __init__(self, d_in: int, width: int, depth: int, num_classes: int) -> None:
+        super().__init__()
+        layers: list[nn.Module] = [nn.Linear(d_in, width), nn.GELU()]
+        for _ in range(depth):
+            layers += [nn.LayerNorm(width), nn.Linear(width, width), nn.GELU()]
+        layers.append(nn.Linear(width, num_classes))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        return self.net(feats)
+
+
+def step_times(cfg: ConsistencyConfig, points: np.ndarray, num_classes: int, repeats: int = 5) -> dict[str, float]:
+    """Median training-step seconds of the backbone and of a plain MLP of similar size on the same points."""
+    rng = np.random.default_rng(0)
+    n = min(cfg.points_per_scan or len(points), len(points))
+    subset = np.sort(rng.choice(len(points), n, replace=False))
+    target = torch.from_numpy(rng.integers(0, num_classes, n))
+    torch.manual_seed(0)
+    model = PointSegmenter(cfg.backbone, num_classes)
+    params = count_parameters(model)
+    width = 64
+    depth = max(1, round((params - width * (cfg.backbone.in_features + num_classes)) / (width * width + 3 * width)))
+    mlp = PlainMLP(cfg.backbone.in_features, width, depth, num_classes)
+    opt_a = torch.optim.AdamW(model.parameters())
+    opt_b = torch.optim.AdamW(mlp.parameters())
+    ta, tb = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        batch = collate([prepare_cloud(points, cfg.backbone, subset, workers=torch.get_num_threads())])
+        loss = F_.cross_entropy(model(batch), target)
+        opt_a.zero_grad()
+        loss.backward()
+        opt_a.step()
+        ta.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        loss = F_.cross_entropy(mlp(batch.feats), target)
+        opt_b.zero_grad()
+        loss.backward()
+        opt_b.step()
+        tb.append(time.perf_counter() - t0)
+    return {
+        "points_per_step": n,
+        "backbone_params": params,
+        "mlp_params": count_parameters(mlp),
+        "backbone_step_s": float(np.median(ta)),
+        "mlp_step_s": float(np.median(tb)),
+    }
+
+
+# ----------------------------------------------------------------------------------------------- main
+def load_run_inputs(
+    run_dir: Path, seq: KittiSequence, frames: range, logp_clip: float
+) -> tuple[VoxelGrid, VoxelGrid, list[np.ndarray]]:
+    """The fused and smoothed grids of a finished ``leap run`` and each scan's camera-view mask."""
+    fused = VoxelGrid.load(run_dir / "grid.npz")
+    with np.load(run_dir / "grid_smooth.npz") as z:
+        smoothed = smoothed_to_grid(z["keys"], z["probs"], float(z["voxel_size"]), logp_clip)
+    views = []
+    for i in frames:
+        with np.load(run_dir / "observations" / f"{seq.frame_ids[i]}.npz") as z:
+            views.append(np.unpackbits(z["in_view"], count=int(z["n_points"])).astype(bool))
+    return fused, smoothed, views
+
+
+def smoothed_labels(seq: KittiSequence, frames: range, grid: VoxelGrid) -> list[np.ndarray]:
+    """Per scan, each point's label in ``grid`` after the pipeline's kNN smoothing."""
+    probs = knn_smooth(grid.centres(), grid.probs(), SmoothingConfig())
+    sm = VoxelGrid(grid.keys, np.log(np.maximum(probs, 1e-9)).astype(np.float16), grid.voxel_size)
+    vl, vc = sm.labels_and_confidence()
+    out = []
+    for i in frames:
+        keys = voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), grid.voxel_size)
+        out.append(point_labels_from_grid(keys, sm, vl, vc)[0])
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sequence", type=Path, default=None, help="KITTI sequence folder (default: a stand-in)")
+    ap.add_argument("--run-dir", type=Path, default=None,
+                    help="finished `leap run` folder of --sequence: use its fused/smoothed grids and camera view")
+    ap.add_argument("--frames", type=int, default=60, help="scans of the stand-in / first scans used")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--noise", type=float, default=0.15, help="without --run-dir: camera label noise")
+    ap.add_argument("--fov", type=float, default=90.0, help="without --run-dir: camera field of view (deg)")
+    ap.add_argument("--config", type=str, default="{}", help='JSON overrides of ConsistencyConfig, e.g. \'{"temperature": 2}\'')
+    ap.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"])
+    ap.add_argument("--paper-scale", action="store_true", help="WaffleIron sizes (GPU)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_3dcn.json")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    tmp = None
+    t0 = time.perf_counter()
+    if args.sequence is None:
+        if args.run_dir is not None:
+            print("error: --run-dir needs the --sequence it was run on")
+            return 2
+        tmp = tempfile.TemporaryDirectory(prefix="bench3dcn_")
+        seq_path = write_standin_sequence(Path(tmp.name), args.frames)
+        source = f"built-in stand-in street ({args.frames} scans)"
+    else:
+        seq_path = args.sequence
+        source = str(seq_path)
+    gen_s = time.perf_counter() - t0
+    seq = KittiSequence(seq_path)
+    frames = range(min(args.frames, len(seq)))
+    schema = builtin_schema("semantickitti")
+    c = schema.num_classes
+    if not seq.has_labels:
+        print(f"error: {seq_path} has no labels/ (the benchmark evaluates against ground truth)")
+        return 2
+    gt = [schema.map_gt(seq.frame(i).labels) for i in frames]
+
+    base_cfg = ConsistencyConfig.paper_scale() if args.paper_scale else ConsistencyConfig(enabled=True)
+    overrides = json.loads(args.config)
+    if "backbone" in overrides:
+        overrides["backbone"] = replace(base_cfg.backbone, **overrides["backbone"])
+    cfg = replace(base_cfg, device=args.device, num_threads=args.threads, **overrides)
+    fusion_cfg = FusionConfig()
+
+    if args.run_dir is not None:
+        fused, smoothed, views = load_run_inputs(args.run_dir, seq, frames, fusion_cfg.logp_clip)
+        inputs = f"fused + smoothed grids of {args.run_dir}"
+    else:
+        fused, views = camera_grid(seq, gt, c, args.noise, args.fov, seed=0)
+        smoothed = fused
+        inputs = f"ground truth in a {args.fov:.0f} deg view with {args.noise:.0%} label noise"
+    n_points = sum(seq.frame(i).points.shape[0] for i in frames)
+    marks: list[tuple[float, int]] = []
+    n = len(frames)
+    load_before = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="bench3dcn_work_") as work:
+        t_start = time.perf_counter()
+        new = run_3dcn_iteration(seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1,
+                                 progress=lambda d, t: marks.append((time.perf_counter(), d)), frames=frames)
+        total_s = time.perf_counter() - t_start
+    load_after = os.getloadavg()[0]
+    steps = num_train_steps(n, cfg)
+
+    def at(done: int) -> float:
+        return next(t for t, d in marks if d >= done) - t_start
+
+    sel_s, train_end = at(n), at(n + steps)
+    phases = {"selection_s": sel_s, "training_s": train_end - sel_s, "inference_fusion_s": total_s - train_end,
+              "total_s": total_s}
+
+    gt_f = np.concatenate(gt)
+    view_f = np.concatenate(views)
+    rows = {}
+    if args.run_dir is not None:
+        vl, vc = smoothed.labels_and_confidence()
+        before = [point_labels_from_grid(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2),
+                                         smoothed, vl, vc)[0] for i in frames]
+    else:
+        before = smoothed_labels(seq, frames, fused)
+    for name, labels in (("voxel", before), ("+3D-CN x1", smoothed_labels(seq, frames, new))):
+        pred = np.concatenate(labels)
+        cam = evaluate(gt_f[view_f], pred[view_f], schema.names, schema.categories(), ignore_unlabeled_pred=True)
+        every = evaluate(gt_f, pred, schema.names, schema.categories(), ignore_unlabeled_pred=False)
+        rows[name] = {"miou_camera_view": cam.miou, "category_miou_camera_view": cam.category_miou,
+                      "miou_all_points": every.miou, "labeled_share_all": float((pred >= 0).mean())}
+    base = step_times(cfg, seq.frame(frames[0]).points, c)
+
+    print(f"3D-CN benchmark on {source}: {n} scans, {n_points:,} points; inputs: {inputs}")
+    print(f"torch threads {args.threads}, {platform.machine()}, device {cfg.device}, "
+          f"load average {load_before:.1f} -> {load_after:.1f} (other processes share the cores)")
+    print(f"{'phase':<24}{'seconds':>10}")
+    for k, v in phases.items():
+        print(f"{k:<24}{v:>10.1f}")
+    print(f"{'target (train+infer)':<24}{600:>10.1f}   ratio total/target = {total_s / 600:.2f}")
+    print(f"\n{'training step':<24}{'params':>10}{'seconds':>10}")
+    print(f"{'3D-CN backbone':<24}{base['backbone_params']:>10,}{base['backbone_step_s']:>10.3f}")
+    print(f"{'plain MLP (baseline)':<24}{base['mlp_params']:>10,}{base['mlp_step_s']:>10.3f}"
+          f"   ratio backbone/MLP = {base['backbone_step_s'] / base['mlp_step_s']:.1f}x "
+          f"({base['points_per_step']:,} points/step)")
+    print(f"\n{'labels':<24}{'mIoU cam':>10}{'cat cam':>10}{'mIoU all':>10}{'labeled':>10}")
+    for name, r in rows.items():
+        print(f"{name:<24}{100 * r['miou_camera_view']:>10.1f}{100 * r['category_miou_camera_view']:>10.1f}"
+              f"{100 * r['miou_all_points']:>10.1f}{100 * r['labeled_share_all']:>9.1f}%")
+    result = {
+        "source": source, "inputs": inputs, "scans": n, "points": n_points, "threads": args.threads,
+        "load_average": [load_before, load_after], "stand_in_seconds": gen_s,
+        "config": {"temperature": cfg.temperature, "points_per_scan": cfg.points_per_scan,
+                   "min_steps": cfg.min_steps, "channels": cfg.backbone.channels, "layers": cfg.backbone.layers,
+                   "use_intensity": cfg.backbone.use_intensity, "device": cfg.device, "train_steps": steps},
+        "phases": phases, "target_s": 600.0, "ratio_to_target": total_s / 600.0,
+        "baseline": base, "ratio_backbone_to_mlp_step": base["backbone_step_s"] / base["mlp_step_s"],
+        "labels": rows,
+    }
+    atomic_write_json(args.out, result)
+    print(f"\nwrote {args.out}")
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,210 @@
+"""Typed configuration of the 3D Consistency Network (METHOD.md stage C).
+
+``ConsistencyConfig`` holds the self-training and fusion-back parameters; it nests ``BackboneConfig``,
+the sizes of the WaffleIron-style point backbone. The defaults are sized for a 2-core CPU (the demo
+sequence trains and predicts in minutes); :meth:`ConsistencyConfig.paper_scale` gives the WaffleIron
+sizes the paper uses, for a GPU.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+from leap_core.errors import LeapError
+
+
+class ConsistencyConfigError(LeapError):
+    """A 3D-CN configuration field has an invalid value; the message names the field."""
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    """Sizes of the WaffleIron-style backbone (:mod:`leap_core.consistency.backbone`)."""
+
+    channels: int = 64
+    """Width F of every point token (WaffleIron: 256)."""
+    layers: int = 6
+    """Number of (channel-mixing MLP + spatial-mixing) layer pairs (WaffleIron: 48 on SemanticKITTI)."""
+    grid_cells: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    """2D grid cell size in metres for the planes (xy, xz, yz). Layer ``l`` mixes on plane ``l % 3``
+    (WaffleIron: 0.4 m on every plane)."""
+    knn: int = 16
+    """Neighbours of each point used by the kNN point embedding (WaffleIron: 16)."""
+    embed_channels: int = 32
+    """Hidden width of the per-neighbour layer of the kNN embedding, before the max over neighbours."""
+    mlp_ratio: int = 2
+    """Hidden width of the channel-mixing MLP as a multiple of ``channels`` (WaffleIron: 2)."""
+    kernel_size: int = 3
+    """Kernel size of the depth-wise 2D convolutions of the spatial mixing (WaffleIron: 3)."""
+    use_intensity: bool = False
+    """Also feed the LiDAR remission; the paper trains on XYZ only, so off by default."""
+    drop_path: float = 0.0
+    """Stochastic-depth probability at the last layer (linear ramp from 0); 0 disables it."""
+    layer_scale: float = 1.0
+    """Initial value of the per-channel residual scales (LayerScale). 1 suits a shallow stack; deep ones
+    (``paper_scale``: 1e-4) start near identity to train stably."""
+
+    def validate(self) -> None:
+        """Raise :class:`ConsistencyConfigError` naming the first invalid field."""
+        if self.channels < 4:
+            raise ConsistencyConfigError(f"backbone.channels must be >= 4, got {self.channels}")
+        if self.layers < 1:
+            raise ConsistencyConfigError(f"backbone.layers must be >= 1, got {self.layers}")
+        if len(self.grid_cells) != 3 or any(not c > 0 for c in self.grid_cells):
+            raise ConsistencyConfigError(f"backbone.grid_cells must be 3 positive sizes, got {self.grid_cells}")
+        if self.knn < 1:
+            raise ConsistencyConfigError(f"backbone.knn must be >= 1, got {self.knn}")
+        if self.embed_channels < 1:
+            raise ConsistencyConfigError(f"backbone.embed_channels must be >= 1, got {self.embed_channels}")
+        if self.mlp_ratio < 1:
+            raise ConsistencyConfigError(f"backbone.mlp_ratio must be >= 1, got {self.mlp_ratio}")
+        if self.kernel_size < 1 or self.kernel_size % 2 == 0:
+            raise ConsistencyConfigError(f"backbone.kernel_size must be odd and >= 1, got {self.kernel_size}")
+        if not 0.0 <= self.drop_path < 1.0:
+            raise ConsistencyConfigError(f"backbone.drop_path must be in [0, 1), got {self.drop_path}")
+
+    @property
+    def in_features(self) -> int:
+        """Per-point input width: x, y, z, range, height above ground, 5 neighbourhood shape descriptors
+        (+ remission); see :func:`leap_core.consistency.data.prepare_cloud`."""
+        return 11 if self.use_intensity else 10
+
+
+@dataclass(frozen=True)
+class ConsistencyConfig:
+    """Self-training of the 3D Consistency Network and the fusion of its predictions back into the grid.
+
+    Fusion back: the network's per-point log-probabilities are added to the voxel grid with weight
+    ``1 / temperature`` (a tempered Bayesian update, ``log V(i) += log P_net(i|x) / T``). ``T = 1`` trusts
+    a network prediction like one camera observation of that point; ``T → ∞`` ignores the network.
+    """
+
+    enabled: bool = False
+    """Run stage C at all (``leap run --3dcn`` turns it on)."""
+    iterations: int = 1
+    """Self-training rounds: 1 (default) or 2 (the paper: the second adds little and can reinforce errors)."""
+    share: float = 0.2
+    """Per class, the fraction of its labeled points (the most confident ones) used as training labels."""
+    selection_scope: Literal["scan", "sequence"] = "scan"
+    """Where the per-class top-``share`` ranking happens: within each scan (METHOD.md: project each scan
+    onto the grid, then select) or over all points of the sequence at once."""
+    temperature: float = 1.0
+    """Trust in the network when fusing back: its log-probabilities enter with weight ``1/temperature``.
+    ``T = 1`` counts the network's view of a voxel like one camera observation; ``T → ∞`` ignores it."""
+    network_evidence: Literal["voxel", "point"] = "voxel"
+    """How predictions enter the Bayesian update. ``voxel``: the mean floored log-probability of all points
+    in a voxel (over all scans) is one observation, so the network flips only voxels whose camera evidence
+    is weaker than its own, and decides voxels no camera saw. ``point``: every point prediction is one
+    observation (like each painted camera point); the network's votes then grow with point density and
+    sequence length while a fused grid's stored camera evidence is clipped at ``logp_clip``, so it
+    overrides almost every voxel unless ``temperature`` is large."""
+    epochs: int = 1
+    """Passes over the training scans (the paper: one epoch)."""
+    min_steps: int = 300
+    """Training takes at least this many steps, cycling over the scans again when ``epochs`` passes are
+    fewer. The paper's one epoch covers thousands of SemanticKITTI scans; one pass over a 60-scan demo
+    sequence is 60 steps, too few to train a network from scratch. 0 = exactly ``epochs`` passes."""
+    lr: float = 2e-3
+    """Peak AdamW learning rate (linear warm-up over the first 5% of steps, cosine decay after)."""
+    weight_decay: float = 1e-3
+    """AdamW decoupled weight decay."""
+    scans_per_step: int = 1
+    """Scans in one optimisation step (each scan is its own point cloud; gradients are averaged)."""
+    points_per_scan: int = 16384
+    """Points drawn at random from a scan for a training step (all its selected labels compete for them:
+    selected points are drawn first); ``0`` uses every point. Bounds CPU time per step."""
+    labeled_share: float = 0.5
+    """Share of a scan's ``points_per_scan`` draw reserved for points with a selected label (drawn first, at
+    random); the rest is drawn uniformly from the other points as context. 0 draws uniformly from all
+    points, which leaves only ~``share`` × labeled fraction of each step with a loss."""
+    augment: bool = True
+    """Random rotation about z, random flip of y and small scaling during training."""
+    label_smoothing: float = 0.0
+    """Cross-entropy label smoothing."""
+    class_balance: bool = True
+    """Weight the cross-entropy by inverse square-root class frequency of the selected labels, so rare
+    classes that survive the per-class selection also keep a voice in the loss."""
+    seed: int = 0
+    """Seed of weight init, point sampling and augmentation: same seed + same data = same checkpoint on CPU."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Torch device; ``auto`` takes CUDA when available."""
+    num_threads: int = 0
+    """``torch.set_num_threads`` during training/inference on CPU; ``0`` leaves torch's setting alone."""
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    """Backbone sizes (CPU-friendly defaults; see :meth:`paper_scale`)."""
+
+    def validate(self) -> None:
+        """Raise :class:`ConsistencyConfigError` naming the first invalid field."""
+        if self.iterations not in (1, 2):
+            raise ConsistencyConfigError(f"consistency.iterations must be 1 or 2, got {self.iterations}")
+        if not 0.0 < self.share <= 1.0:
+            raise ConsistencyConfigError(f"consistency.share must be in (0, 1], got {self.share}")
+        if self.selection_scope not in ("scan", "sequence"):
+            raise ConsistencyConfigError(
+                f"consistency.selection_scope must be 'scan' or 'sequence', got {self.selection_scope!r}"
+            )
+        if self.network_evidence not in ("voxel", "point"):
+            raise ConsistencyConfigError(
+                f"consistency.network_evidence must be 'voxel' or 'point', got {self.network_evidence!r}"
+            )
+        if not self.temperature > 0:
+            raise ConsistencyConfigError(f"consistency.temperature must be > 0, got {self.temperature}")
+        if self.epochs < 1:
+            raise ConsistencyConfigError(f"consistency.epochs must be >= 1, got {self.epochs}")
+        if self.min_steps < 0:
+            raise ConsistencyConfigError(f"consistency.min_steps must be >= 0, got {self.min_steps}")
+        if not self.lr > 0:
+            raise ConsistencyConfigError(f"consistency.lr must be > 0, got {self.lr}")
+        if self.weight_decay < 0:
+            raise ConsistencyConfigError(f"consistency.weight_decay must be >= 0, got {self.weight_decay}")
+        if self.scans_per_step < 1:
+            raise ConsistencyConfigError(f"consistency.scans_per_step must be >= 1, got {self.scans_per_step}")
+        if self.points_per_scan < 0:
+            raise ConsistencyConfigError(f"consistency.points_per_scan must be >= 0, got {self.points_per_scan}")
+        if not 0.0 <= self.labeled_share <= 1.0:
+            raise ConsistencyConfigError(f"consistency.labeled_share must be in [0, 1], got {self.labeled_share}")
+        if not 0.0 <= self.label_smoothing < 1.0:
+            raise ConsistencyConfigError(f"consistency.label_smoothing must be in [0, 1), got {self.label_smoothing}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConsistencyConfigError(f"consistency.device must be auto, cpu or cuda, got {self.device!r}")
+        if self.num_threads < 0:
+            raise ConsistencyConfigError(f"consistency.num_threads must be >= 0, got {self.num_threads}")
+        self.backbone.validate()
+
+    @property
+    def network_weight(self) -> float:
+        """Weight ``1 / temperature`` of the network's log-probabilities in the Bayesian update."""
+        return 1.0 / self.temperature
+
+    @classmethod
+    def paper_scale(cls, **overrides: object) -> ConsistencyConfig:
+        """The paper's WaffleIron sizes, for a GPU.
+
+        256 channels, 48 layers, 0.4 m 2D grid cells on the three planes, 16 kNN neighbours, every point of
+        every scan in training, stochastic depth 0.2, AdamW at 1e-3. ``overrides`` replace any top-level
+        field (e.g. ``temperature=1.0``).
+        """
+        base = cls(
+            enabled=True,
+            lr=1e-3,
+            weight_decay=3e-3,
+            points_per_scan=0,
+            min_steps=0,
+            device="auto",
+            backbone=BackboneConfig(
+                channels=256,
+                layers=48,
+                grid_cells=(0.4, 0.4, 0.4),
+                knn=16,
+                embed_channels=64,
+                mlp_ratio=2,
+                kernel_size=3,
+                drop_path=0.2,
+                layer_scale=1e-4,
+            ),
+        )
+        return replace(base, **overrides)  # type: ignore[arg-type]
+
+
+__all__ = ["BackboneConfig", "ConsistencyConfig", "ConsistencyConfigError"]

@@ -1,0 +1,366 @@
+"""One 3D-CN iteration: select reliable labels, train, predict every point, fuse back (METHOD.md stage C).
+
+The pipeline calls :func:`run_3dcn_iteration` once per iteration (1 by default, 2 allowed). It reads
+labels from the *smoothed* grid but adds the network's evidence to the *un-smoothed* fused grid, so the
+smoothing that the pipeline applies afterwards is not applied twice.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from leap_core.consistency.config import ConsistencyConfig
+from leap_core.consistency.selection import select_reliable_scans
+from leap_core.consistency.train import (
+    config_to_dict,
+    load_checkpoint,
+    num_train_steps,
+    predict_log_probs,
+    resolve_device,
+    save_checkpoint,
+    torch_threads,
+    train_model,
+)
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.errors import LeapError, ModelLoadError
+from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys
+from leap_core.types import UNLABELED
+
+FUSE_CHUNK_POINTS = 2_000_000
+"""Network predictions are fused back in calls of about this many points (≈ 8·C bytes each), so memory
+stays bounded on long sequences; between calls the grid is stored (float16, clipped) as after any fusion."""
+
+
+def checkpoint_path(work_dir: str | Path, iteration: int) -> Path:
+    """``work_dir/3dcn_iter{iteration}.pt``."""
+    return Path(work_dir) / f"3dcn_iter{iteration}.pt"
+
+
+def world_points(points: npt.NDArray[np.float32], pose: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(N, 3) world coordinates ``R · p + t`` of a scan's LiDAR-frame points, in float64."""
+    pose = np.asarray(pose, dtype=np.float64)
+    return points[:, :3].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+
+
+def point_labels_from_grid(
+    keys: npt.NDArray[np.int64],
+    grid: VoxelGrid,
+    voxel_labels: npt.NDArray[np.int16],
+    voxel_conf: npt.NDArray[np.float32],
+) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
+    """Each point takes its voxel's label and confidence; ``UNLABELED`` and 0 where the voxel is unknown."""
+    rows = grid.lookup(keys)
+    hit = rows >= 0
+    labels = np.full(keys.shape[0], UNLABELED, np.int16)
+    conf = np.zeros(keys.shape[0], np.float32)
+    labels[hit] = voxel_labels[rows[hit]]
+    conf[hit] = voxel_conf[rows[hit]]
+    return labels, conf
+
+
+def _fingerprint(cfg: ConsistencyConfig, num_classes: int, frames: range, targets: list[np.ndarray]) -> str:
+    """Hash of everything the trained weights depend on: config, classes, frames and selected labels."""
+    h = hashlib.sha256()
+    # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
+    trained = {k: v for k, v in config_to_dict(cfg).items()
+               if k not in ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")}
+    head = {"cfg": trained, "C": num_classes, "frames": [frames.start, frames.stop, frames.step]}
+    h.update(json.dumps(head, sort_keys=True).encode())
+    for t in targets:
+        h.update(np.ascontiguousarray(t).tobytes())
+        h.update(b"|")
+    return h.hexdigest()
+
+
+def run_3dcn_iteration(
+    seq: KittiSequence,
+    fused: VoxelGrid,
+    smoothed: VoxelGrid,
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    fusion_cfg: FusionConfig,
+    work_dir: Path,
+    iteration: int,
+    progress: Callable[[int, int], None] | None = None,
+    frames: range | None = None,
+) -> VoxelGrid:
+    """Self-train the 3D Consistency Network once and fuse its predictions into ``fused``.
+
+    1. **Selection**: every point of every scan goes to world coordinates with its pose, takes the label
+       and confidence of its voxel in ``smoothed``, and per class the ``cfg.share`` most confident points
+       become training labels (:func:`~leap_core.consistency.selection.select_reliable`, per scan or over the
+       sequence by ``cfg.selection_scope``).
+    2. **Training** (:func:`~leap_core.consistency.train.train_model`), checkpoint written to
+       ``work_dir/3dcn_iter{iteration}.pt``. A checkpoint whose fingerprint (config, classes, frames,
+       selected labels) matches is reused instead of retraining, so an interrupted run resumes here.
+    3. **Inference** on every point of every scan (inside and outside the camera view) and **fusion back**
+       (:func:`fuse_back`, ``cfg.network_evidence``): by default each voxel adds the mean of its points'
+       floored network log-probabilities with weight ``1/T``,
+       ``L_n(i) ← L_n(i) + (1/T) · mean_{p in n} max(log P_net(i | p), log prob_floor)``. A point whose voxel
+       is not in ``fused`` creates it, which is how points no camera saw get labels from 3D shape.
+       ``T = ∞`` (weight 0) returns ``fused`` unchanged.
+
+    Args:
+        seq: the sequence (scans and LiDAR→world poses).
+        fused: un-smoothed fused grid the predictions are added to (not modified).
+        smoothed: kNN-smoothed grid the training labels are read from.
+        num_classes: C.
+        cfg: 3D-CN parameters.
+        fusion_cfg: voxel size and clipping of the grid.
+        work_dir: folder for the checkpoint.
+        iteration: 1 or 2; names the checkpoint and offsets the seed.
+        progress: ``progress(done, total)`` over selection + training steps + inference scans.
+        frames: scans to use (default all).
+
+    Returns:
+        A new grid: ``fused`` plus the tempered network evidence.
+
+    Raises:
+        LeapError: when no point of any scan has a label to train on.
+    """
+    cfg.validate()
+    if fused.num_classes != num_classes or smoothed.num_classes != num_classes:
+        raise LeapError(
+            f"3D-CN: grids have {fused.num_classes} / {smoothed.num_classes} classes, schema has {num_classes}"
+        )
+    frames = range(len(seq)) if frames is None else frames
+    n = len(frames)
+    work_dir = Path(work_dir)
+    ckpt_path = checkpoint_path(work_dir, iteration)
+    # A different seed per iteration: the second round should not replay the first one's sampling.
+    cfg_it = cfg if iteration == 1 else replace(cfg, seed=cfg.seed + 1000 * (iteration - 1))
+    train_steps = num_train_steps(n, cfg)
+    total = n + train_steps + n
+    done = 0
+
+    def tick(k: int = 1) -> None:
+        nonlocal done
+        done += k
+        if progress is not None:
+            progress(done, total)
+
+    if cfg.temperature == math.inf:
+        tick(total)
+        return fused
+
+    # 1. reliable labels
+    vox_lab, vox_conf = smoothed.labels_and_confidence()
+    labels: list[np.ndarray] = []
+    confs: list[np.ndarray] = []
+    for i in frames:
+        frame = seq.frame(i)
+        keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
+        lab, conf = point_labels_from_grid(keys, smoothed, vox_lab, vox_conf)
+        labels.append(lab)
+        confs.append(conf)
+        tick()
+    masks = select_reliable_scans(labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg_it.seed)
+    targets = [np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels)]
+    del labels, confs, masks
+    counts = np.zeros(num_classes, np.int64)
+    for t in targets:
+        counts += np.bincount(t[t >= 0], minlength=num_classes)
+    if counts.sum() == 0:
+        raise LeapError("3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)")
+
+    # 2. train (or reuse a matching checkpoint)
+    fingerprint = _fingerprint(cfg_it, num_classes, frames, targets)
+    model = None
+    if ckpt_path.is_file():
+        try:
+            ck = load_checkpoint(ckpt_path)
+            if ck.meta.get("fingerprint") == fingerprint:
+                model = ck.model
+        except ModelLoadError:
+            model = None
+    if model is None:
+        frame_list = list(frames)
+        pos_of = {fi: j for j, fi in enumerate(frame_list)}
+
+        def load(i: int) -> tuple[np.ndarray, np.ndarray]:
+            return seq.frame(i).points, targets[pos_of[i]]
+
+        base = done
+        model, stats = train_model(
+            load,
+            frame_list,
+            num_classes,
+            cfg_it,
+            progress=(lambda d, _t: progress(base + d, total)) if progress is not None else None,
+            class_counts=counts,
+        )
+        save_checkpoint(
+            ckpt_path,
+            model,
+            cfg_it,
+            meta={
+                "fingerprint": fingerprint,
+                "iteration": iteration,
+                "steps": stats.steps,
+                "losses": stats.losses,
+                "seconds": stats.seconds,
+                "class_counts": counts.tolist(),
+                "frames": [frames.start, frames.stop, frames.step],
+            },
+        )
+    done += train_steps
+    if progress is not None:
+        progress(done, total)
+
+    # 3. predict every point, fuse back with weight 1/T
+    device = resolve_device(cfg)
+    model = model.to(device)
+
+    def predictions() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        with torch_threads(cfg.num_threads):
+            workers = max(1, torch.get_num_threads())
+            for i in frames:
+                frame = seq.frame(i)
+                keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
+                logp = predict_log_probs(model, frame.points, device=device, workers=workers)
+                tick()
+                yield keys, logp
+
+    return fuse_back(fused, predictions(), num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
+
+
+def voxel_mean_log_probs(
+    predictions: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]],
+    num_classes: int,
+    prob_floor: float,
+    chunk_points: int = FUSE_CHUNK_POINTS,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """Per voxel, the mean floored log-probability of all predictions that fall in it (over all scans).
+
+    ``m_n(i) = (1 / |P_n|) · Σ_{p ∈ P_n} max(logp_p(i), log prob_floor)``.
+
+    Args:
+        predictions: per scan ``(keys (N,) int64, logp (N, C) float32)``; consumed lazily.
+        num_classes: C.
+        prob_floor: the fusion's probability floor.
+        chunk_points: points reduced at once (bounds memory; the result does not depend on it beyond float
+            rounding).
+
+    Returns:
+        Sorted unique keys (V,), means (V, C) float32 (each ≥ log prob_floor), point counts (V,) int64.
+    """
+    floor = float(np.log(prob_floor))
+    acc_keys = np.zeros(0, np.int64)
+    acc_sum = np.zeros((0, num_classes), np.float32)
+    acc_cnt = np.zeros(0, np.int64)
+
+    def reduce(keys: list[np.ndarray], logps: list[np.ndarray]) -> None:
+        nonlocal acc_keys, acc_sum, acc_cnt
+        k = np.concatenate(keys)
+        uk, inv = np.unique(k, return_inverse=True)
+        lp = torch.from_numpy(np.concatenate(logps).astype(np.float32, copy=False)).clamp_min_(floor)
+        sums = torch.zeros((len(uk), num_classes), dtype=torch.float32)
+        sums.index_add_(0, torch.from_numpy(inv.reshape(-1)), lp)
+        cnt = np.bincount(inv.reshape(-1), minlength=len(uk))
+        merged = np.union1d(acc_keys, uk)
+        out_sum = np.zeros((len(merged), num_classes), np.float32)
+        out_cnt = np.zeros(len(merged), np.int64)
+        ia, ib = np.searchsorted(merged, acc_keys), np.searchsorted(merged, uk)
+        out_sum[ia] = acc_sum
+        out_cnt[ia] = acc_cnt
+        out_sum[ib] += sums.numpy()
+        out_cnt[ib] += cnt
+        acc_keys, acc_sum, acc_cnt = merged, out_sum, out_cnt
+
+    pend_k: list[np.ndarray] = []
+    pend_l: list[np.ndarray] = []
+    pending = 0
+    for keys, logp in predictions:
+        if logp.ndim != 2 or logp.shape != (len(keys), num_classes):
+            raise ValueError(f"predictions must be keys (N,) and logp (N, {num_classes}), got {logp.shape}")
+        pend_k.append(np.asarray(keys, np.int64))
+        pend_l.append(logp)
+        pending += len(keys)
+        if pending >= chunk_points:
+            reduce(pend_k, pend_l)
+            pend_k, pend_l, pending = [], [], 0
+    if pending:
+        reduce(pend_k, pend_l)
+    means = acc_sum / np.maximum(acc_cnt, 1)[:, None].astype(np.float32)
+    return acc_keys, means, acc_cnt
+
+
+def fuse_back(
+    grid: VoxelGrid,
+    predictions: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]],
+    num_classes: int,
+    temperature: float,
+    fusion_cfg: FusionConfig,
+    evidence: str = "voxel",
+    chunk_points: int = FUSE_CHUNK_POINTS,
+) -> VoxelGrid:
+    """Tempered Bayesian fusion of per-point network log-probabilities into a grid.
+
+    With ``f_p(i) = max(log P_net(i | p), log prob_floor)`` and P_n the predictions in voxel n:
+
+    - ``evidence="voxel"``: ``L_n(i) ← L_n(i) + (1/T) · mean_{p ∈ P_n} f_p(i)``: the network's view of a
+      voxel counts as ONE observation, however many points and scans fall in it;
+    - ``evidence="point"``: ``L_n(i) ← L_n(i) + (1/T) · Σ_{p ∈ P_n} f_p(i)``: every point prediction counts
+      like one painted camera point.
+
+    Then stored as every grid (row max 0, clipped at ``-logp_clip``, float16). ``T = 1`` trusts the network
+    like one camera observation; ``T → ∞`` ignores it: ``T = inf`` returns ``grid`` itself (no new voxels
+    either, since zero-weight evidence carries no class information). Voxels of ``P`` missing from ``grid``
+    are created, so points no camera saw get the network's label.
+
+    Args:
+        grid: grid to update (not modified).
+        predictions: per scan, ``(keys (N,) int64, logp (N, C) float32)``; consumed lazily.
+        num_classes: C.
+        temperature: T > 0 (``math.inf`` allowed).
+        fusion_cfg: voxel size, probability floor and clipping.
+        evidence: "voxel" or "point" (see above).
+        chunk_points: points per reduction / :func:`fuse_dense` call.
+    """
+    if not temperature > 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    if evidence not in ("voxel", "point"):
+        raise ValueError(f"evidence must be 'voxel' or 'point', got {evidence!r}")
+    if temperature == math.inf:
+        return grid
+    weight = 1.0 / temperature
+    if evidence == "voxel":
+        keys, means, _ = voxel_mean_log_probs(predictions, num_classes, fusion_cfg.prob_floor, chunk_points)
+        # Means are already ≥ log prob_floor, so fuse_dense's per-row floor leaves them unchanged.
+        return fuse_dense(grid, keys, means, num_classes, fusion_cfg, weight=weight)
+    out = grid
+    pend_keys: list[np.ndarray] = []
+    pend_logp: list[np.ndarray] = []
+    pending = 0
+    for keys, logp in predictions:
+        pend_keys.append(keys)
+        pend_logp.append(logp)
+        pending += len(keys)
+        if pending >= chunk_points:
+            out = fuse_dense(out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,
+                             weight=weight)
+            pend_keys, pend_logp, pending = [], [], 0
+    if pend_keys:
+        out = fuse_dense(out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,
+                         weight=weight)
+    return out
+
+
+__all__ = [
+    "FUSE_CHUNK_POINTS",
+    "checkpoint_path",
+    "fuse_back",
+    "voxel_mean_log_probs",
+    "point_labels_from_grid",
+    "run_3dcn_iteration",
+    "world_points",
+]

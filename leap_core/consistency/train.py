@@ -1,0 +1,351 @@
+"""Self-training of the 3D Consistency Network, its checkpoint, and inference (METHOD.md stage C.2-3).
+
+Training sees each scan in its own LiDAR frame (XYZ; remission only if the backbone config asks for it).
+Only the selected reliable points carry a loss; the other points of the scan still feed the spatial mixing
+as context. One epoch by default, seeded, AdamW with a linear warm-up and cosine decay.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch.nn import functional as F_
+
+from leap_core.consistency.backbone import PointSegmenter
+from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
+from leap_core.consistency.data import augment_points, collate, prepare_cloud
+from leap_core.errors import ModelLoadError
+from leap_core.io_utils import atomic_write
+from leap_core.progress import ProgressFn, report
+from leap_core.types import UNLABELED
+
+CHECKPOINT_FORMAT = "leap-3dcn"
+CHECKPOINT_VERSION = 1
+_IGNORE = -100
+"""``ignore_index`` of the cross-entropy (torch's default) for points without a selected label."""
+
+ScanLoader = Callable[[int], tuple[npt.NDArray[np.float32], npt.NDArray[np.integer]]]
+"""``load(i) -> (points (N, 4) float32, target (N,) int class or UNLABELED)`` for scan i."""
+
+
+@dataclass
+class TrainStats:
+    """What one training run did."""
+
+    steps: int = 0
+    """Optimisation steps taken (steps whose scans had no selected point are skipped)."""
+    losses: list[float] = field(default_factory=list)
+    """Cross-entropy of every step, in order."""
+    points_seen: int = 0
+    """Points fed through the network (context + labeled) over all steps."""
+    labeled_seen: int = 0
+    """Points that carried a loss over all steps."""
+    seconds: float = 0.0
+    """Wall time of the training loop."""
+
+
+def resolve_device(cfg: ConsistencyConfig) -> torch.device:
+    """``cfg.device``, with ``auto`` → CUDA when available, else CPU."""
+    if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available()):
+        if not torch.cuda.is_available():
+            raise ModelLoadError("consistency.device is 'cuda' but torch sees no CUDA device")
+        return torch.device("cuda")
+    return torch.device("cpu")
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Set ``torch.set_num_threads(n)`` for the block (``n = 0``: leave it alone)."""
+    if n <= 0:
+        yield
+        return
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def class_weights(counts: npt.ArrayLike, enabled: bool = True) -> torch.Tensor:
+    """Cross-entropy class weights ``w_c ∝ 1 / sqrt(n_c)``, normalised to mean 1 over present classes.
+
+    Absent classes (``n_c = 0``) get weight 1 (they never occur as targets). ``enabled=False`` gives all 1.
+    """
+    n = np.asarray(counts, dtype=np.float64)
+    w = np.ones_like(n)
+    present = n > 0
+    if enabled and present.any():
+        w[present] = 1.0 / np.sqrt(n[present])
+        w[present] /= w[present].mean()
+    return torch.as_tensor(w, dtype=torch.float32)
+
+
+def lr_factor(step: int, total: int) -> float:
+    """Learning-rate multiplier: linear warm-up over the first 5% of steps (≥ 1), then cosine to 0.
+
+    ``f(s) = (s + 1) / W`` for ``s < W``, else ``½ (1 + cos(π (s - W) / max(1, total - W)))``.
+    """
+    warm = max(1, round(0.05 * total))
+    if step < warm:
+        return (step + 1) / warm
+    return 0.5 * (1.0 + math.cos(math.pi * (step - warm) / max(1, total - warm)))
+
+
+def num_train_steps(num_scans: int, cfg: ConsistencyConfig) -> int:
+    """Optimisation steps of :func:`train_model`: ``max(epochs · ceil(S / scans_per_step), min_steps)``
+    (0 without scans)."""
+    if num_scans <= 0:
+        return 0
+    return max(cfg.epochs * math.ceil(num_scans / cfg.scans_per_step), cfg.min_steps)
+
+
+def draw_points(
+    target: npt.NDArray[np.integer], budget: int, labeled_share: float, rng: np.random.Generator
+) -> npt.NDArray[np.int64]:
+    """Sorted indices of the points of one scan fed to a training step.
+
+    ``min(#labeled, round(labeled_share · budget))`` points are drawn from those with a target, the rest of
+    the ``budget`` from the other points; all points when ``budget`` is 0 or at least the scan size.
+
+    Args:
+        target: (N,) class per point, ``UNLABELED`` where there is no training label.
+        budget: points to draw.
+        labeled_share: share of the budget reserved for labeled points.
+        rng: random source.
+    """
+    n = target.shape[0]
+    if budget <= 0 or n <= budget:
+        return np.arange(n, dtype=np.int64)
+    labeled = np.flatnonzero(target != UNLABELED)
+    n_lab = min(len(labeled), int(round(labeled_share * budget)))
+    picked = rng.choice(labeled, n_lab, replace=False) if n_lab else np.zeros(0, np.int64)
+    rest = np.ones(n, dtype=bool)
+    rest[picked] = False
+    others = rng.choice(np.flatnonzero(rest), budget - n_lab, replace=False)
+    return np.sort(np.concatenate([picked, others])).astype(np.int64)
+
+
+def _seed_all(seed: int) -> np.random.Generator:
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+def train_model(
+    load_scan: ScanLoader,
+    scan_indices: Sequence[int],
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    progress: ProgressFn | None = None,
+    class_counts: npt.ArrayLike | None = None,
+) -> tuple[PointSegmenter, TrainStats]:
+    """Train a fresh :class:`PointSegmenter` on the selected labels of the given scans.
+
+    Per pass the scans are visited in a seeded random order, ``cfg.scans_per_step`` per step, for
+    :func:`num_train_steps` steps (``epochs`` passes, more if ``min_steps`` asks for it). From every
+    scan ``cfg.points_per_scan`` points are drawn uniformly (all when 0 or fewer are available); the loss is
+    the (class-weighted) cross-entropy over the drawn points that carry a target, the rest are context.
+
+    Args:
+        load_scan: returns ``(points (N, 4), target (N,))`` of scan i; target ``UNLABELED`` = no loss.
+        scan_indices: scans to train on.
+        num_classes: C.
+        cfg: training parameters (``epochs``, ``lr``, ``seed``, backbone sizes, ...).
+        progress: ``progress(step, total_steps)`` after every step.
+        class_counts: (C,) selected-label count per class for the class weights; None = unweighted.
+
+    Returns:
+        The trained model (in eval mode, on CPU) and its :class:`TrainStats`.
+    """
+    cfg.validate()
+    device = resolve_device(cfg)
+    indices = list(scan_indices)
+    per_epoch = math.ceil(len(indices) / cfg.scans_per_step) if indices else 0
+    total = num_train_steps(len(indices), cfg)
+    stats = TrainStats()
+    t0 = time.perf_counter()
+    with torch.random.fork_rng(devices=[]), torch_threads(cfg.num_threads):
+        rng = _seed_all(cfg.seed)
+        model = PointSegmenter(cfg.backbone, num_classes).to(device)
+        weights = None
+        if class_counts is not None:
+            weights = class_weights(class_counts, cfg.class_balance).to(device)
+        opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total))
+        model.train()
+        step = 0
+        workers = max(1, torch.get_num_threads())
+        while step < total:
+            order = rng.permutation(len(indices))
+            for s in range(min(per_epoch, total - step)):
+                batch_ids = [indices[j] for j in order[s * cfg.scans_per_step : (s + 1) * cfg.scans_per_step]]
+                clouds, targets = [], []
+                for i in batch_ids:
+                    points, target = load_scan(i)
+                    target = np.asarray(target)
+                    if target.shape != (points.shape[0],):
+                        raise ValueError(f"scan {i}: target {target.shape} does not match points {points.shape}")
+                    n = points.shape[0]
+                    subset = draw_points(target, cfg.points_per_scan, cfg.labeled_share, rng)
+                    pts = augment_points(points, rng) if cfg.augment else points
+                    t = target[subset].astype(np.int64)
+                    if not (t != UNLABELED).any():
+                        continue
+                    clouds.append(prepare_cloud(pts, cfg.backbone, subset, workers=workers))
+                    targets.append(np.where(t == UNLABELED, _IGNORE, t))
+                if clouds:
+                    batch = collate(clouds).to(device)
+                    tgt = torch.from_numpy(np.concatenate(targets)).to(device)
+                    logits = model(batch)
+                    loss = F_.cross_entropy(
+                        logits, tgt, weight=weights, ignore_index=_IGNORE, label_smoothing=cfg.label_smoothing
+                    )
+                    opt.zero_grad(set_to_none=True)
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+                    opt.step()
+                    stats.steps += 1
+                    stats.losses.append(float(loss.detach()))
+                    stats.points_seen += batch.num_points
+                    stats.labeled_seen += int((tgt != _IGNORE).sum())
+                sched.step()
+                step += 1
+                report(progress, step, total)
+    model.eval()
+    stats.seconds = time.perf_counter() - t0
+    return model.cpu(), stats
+
+
+@torch.inference_mode()
+def predict_log_probs(
+    model: PointSegmenter,
+    points: npt.NDArray[np.float32],
+    device: torch.device | str = "cpu",
+    workers: int = 1,
+) -> npt.NDArray[np.float32]:
+    """Per-point class log-probabilities ``log_softmax(model(scan))`` for every point of one scan.
+
+    Args:
+        model: a trained segmenter (moved to ``device`` by the caller).
+        points: (N, 4) float32 scan in its LiDAR frame.
+        device: where the forward pass runs.
+        workers: kd-tree query threads.
+
+    Returns:
+        (N, C) float32 log-probabilities (rows log-sum-exp to 0).
+    """
+    was_training = model.training
+    model.eval()
+    try:
+        batch = collate([prepare_cloud(points, model.cfg, None, workers=workers)]).to(device)
+        return F_.log_softmax(model(batch).float(), dim=1).cpu().numpy()
+    finally:
+        model.train(was_training)
+
+
+# ----------------------------------------------------------------------------------------- checkpoint
+def config_to_dict(cfg: ConsistencyConfig) -> dict[str, Any]:
+    """Plain-data form of a config (tuples become lists), for checkpoints and fingerprints."""
+    d = asdict(cfg)
+    d["backbone"]["grid_cells"] = list(d["backbone"]["grid_cells"])
+    return d
+
+
+def config_from_dict(d: dict[str, Any]) -> ConsistencyConfig:
+    """Inverse of :func:`config_to_dict`; raises ``TypeError``/``KeyError`` on unknown or missing fields."""
+    d = dict(d)
+    bb = dict(d.pop("backbone"))
+    bb["grid_cells"] = tuple(float(c) for c in bb["grid_cells"])
+    return ConsistencyConfig(**d, backbone=BackboneConfig(**bb))
+
+
+@dataclass
+class Checkpoint:
+    """A loaded 3D-CN checkpoint."""
+
+    model: PointSegmenter
+    """The network, in eval mode, on the device it was loaded to."""
+    config: ConsistencyConfig
+    """The config it was trained with."""
+    num_classes: int
+    """C."""
+    meta: dict[str, Any]
+    """Free-form extras saved with it (fingerprint, training statistics, ...)."""
+
+
+def save_checkpoint(
+    path: str | Path,
+    model: PointSegmenter,
+    cfg: ConsistencyConfig,
+    meta: dict[str, Any] | None = None,
+) -> None:
+    """Write config + state_dict + ``meta`` with ``torch.save``, atomically."""
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "config": config_to_dict(cfg),
+        "num_classes": int(model.num_classes),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "meta": dict(meta or {}),
+    }
+    with atomic_write(path, "wb") as fh:
+        torch.save(payload, fh)
+
+
+def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint` (``weights_only``: no code is unpickled).
+
+    Raises:
+        ModelLoadError: naming the file, when it is missing, unreadable, of another format or does not
+            match the network its config describes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelLoadError(f"{path}: 3D-CN checkpoint not found (run the 3D-CN stage to train one)")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several unrelated types for corrupt files
+        raise ModelLoadError(f"{path}: unreadable 3D-CN checkpoint ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ModelLoadError(f"{path}: not a LeAP 3D-CN checkpoint (missing format '{CHECKPOINT_FORMAT}')")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise ModelLoadError(
+            f"{path}: 3D-CN checkpoint version {payload.get('version')} != supported {CHECKPOINT_VERSION}"
+        )
+    try:
+        cfg = config_from_dict(payload["config"])
+        num_classes = int(payload["num_classes"])
+        model = PointSegmenter(cfg.backbone, num_classes)
+        model.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise ModelLoadError(f"{path}: 3D-CN checkpoint does not match its config ({exc})") from exc
+    model.eval()
+    return Checkpoint(model=model.to(device), config=cfg, num_classes=num_classes, meta=dict(payload["meta"]))
+
+
+__all__ = [
+    "Checkpoint",
+    "ScanLoader",
+    "TrainStats",
+    "class_weights",
+    "config_from_dict",
+    "config_to_dict",
+    "draw_points",
+    "load_checkpoint",
+    "lr_factor",
+    "num_train_steps",
+    "predict_log_probs",
+    "resolve_device",
+    "save_checkpoint",
+    "torch_threads",
+    "train_model",
+]

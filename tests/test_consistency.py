@@ -1,0 +1,423 @@
+"""3D Consistency Network: selection, backbone, training, checkpoint, fusion back, and the whole stage."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from leap_core.consistency.backbone import CloudTensors, PlaneIndex, PointSegmenter
+from leap_core.consistency.config import BackboneConfig, ConsistencyConfig, ConsistencyConfigError
+from leap_core.consistency.data import LOCAL_SCALE, collate, prepare_cloud
+from leap_core.consistency.selection import per_class_quota, select_reliable, select_reliable_scans
+from leap_core.consistency.stage import (
+    checkpoint_path,
+    fuse_back,
+    point_labels_from_grid,
+    run_3dcn_iteration,
+    voxel_mean_log_probs,
+    world_points,
+)
+from leap_core.consistency.train import (
+    config_from_dict,
+    config_to_dict,
+    draw_points,
+    load_checkpoint,
+    lr_factor,
+    predict_log_probs,
+    save_checkpoint,
+    train_model,
+)
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.errors import ModelLoadError
+from leap_core.fusion import FusionConfig, VoxelGrid, voxel_keys
+from leap_core.types import UNLABELED
+
+TINY_BACKBONE = BackboneConfig(channels=16, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4)
+TINY = ConsistencyConfig(
+    enabled=True, backbone=TINY_BACKBONE, points_per_scan=0, min_steps=0, lr=1e-2, augment=False, device="cpu",
+    num_threads=1
+)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny tensors run fastest on one thread, and the shared test machine is often oversubscribed (where
+    multi-threaded torch waits on descheduled threads)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def synthetic_scan(seed: int, n: int = 600) -> tuple[np.ndarray, np.ndarray]:
+    """A scan with three geometrically distinct classes: ground plane 0, wall 1, pole 2. (N, 4), (N,)."""
+    rng = np.random.default_rng(seed)
+    ng, nw = n // 2, n // 3
+    npole = n - ng - nw
+    ground = np.column_stack([rng.uniform(-8, 8, ng), rng.uniform(-8, 8, ng), np.full(ng, -1.7)])
+    wall = np.column_stack([rng.uniform(-8, 8, nw), np.full(nw, 6.0), rng.uniform(-1.7, 2.0, nw)])
+    pole = np.column_stack([rng.normal(2, 0.05, npole), rng.normal(-3, 0.05, npole), rng.uniform(-1.7, 2, npole)])
+    xyz = np.concatenate([ground, wall, pole]) + rng.normal(0, 0.01, (n, 3))
+    pts = np.column_stack([xyz, rng.uniform(0, 1, n)]).astype(np.float32)
+    labels = np.repeat(np.arange(3), [ng, nw, npole]).astype(np.int16)
+    return pts, labels
+
+
+# --------------------------------------------------------------------------------------------- selection
+def test_per_class_quota_rounds_up_but_not_on_float_noise() -> None:
+    assert per_class_quota(10, 0.2) == 2  # 0.2 * 10 = 2.0000000000000004 in floats
+    assert per_class_quota(3, 0.2) == 1
+    assert per_class_quota(11, 0.2) == 3
+    assert per_class_quota(0, 0.2) == 0
+    assert per_class_quota(5, 1.0) == 5
+
+
+def test_select_reliable_keeps_top_share_per_class_exactly() -> None:
+    # class 0: 10 points, confidences 0.0 .. 0.9 in shuffled order; class 1: 3 points; class 2: none;
+    # 4 unlabeled points with the highest confidences of all.
+    lab0_conf = np.array([0.5, 0.9, 0.1, 0.8, 0.3, 0.0, 0.7, 0.2, 0.6, 0.4])
+    labels = np.array([0] * 10 + [1] * 3 + [UNLABELED] * 4, dtype=np.int16)
+    conf = np.concatenate([lab0_conf, [0.3, 0.2, 0.31], [1.0, 1.0, 1.0, 1.0]]).astype(np.float32)
+    sel = select_reliable(labels, conf, num_classes=3, share=0.2)
+    # class 0 keeps ceil(0.2·10) = 2: confidences 0.9 (index 1) and 0.8 (index 3); class 1 keeps 1 (0.31).
+    assert np.flatnonzero(sel).tolist() == [1, 3, 12]
+    assert not sel[labels == UNLABELED].any()
+
+
+def test_select_reliable_ties_break_by_index_and_share_one_keeps_all_labeled() -> None:
+    labels = np.array([2, 2, 2, 2, 2], dtype=np.int16)
+    conf = np.full(5, 0.5, np.float32)
+    assert np.flatnonzero(select_reliable(labels, conf, 3, 0.4)).tolist() == [0, 1]
+    labels2 = np.array([0, UNLABELED, 1, 1], dtype=np.int16)
+    assert select_reliable(labels2, np.ones(4, np.float32), 2, 1.0).tolist() == [True, False, True, True]
+
+
+def test_select_reliable_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="labels must lie"):
+        select_reliable(np.array([3], np.int16), np.ones(1, np.float32), 3, 0.2)
+    with pytest.raises(ValueError, match="share"):
+        select_reliable(np.array([0], np.int16), np.ones(1, np.float32), 3, 0.0)
+    with pytest.raises(ValueError, match="must both be"):
+        select_reliable(np.array([0, 1], np.int16), np.ones(1, np.float32), 3, 0.5)
+
+
+def test_selection_on_a_hand_made_grid_per_scan_and_per_sequence() -> None:
+    # Four voxels on a line at 0.2 m: labels 0, 0, 1, 1 with known confidences.
+    cfg = FusionConfig(voxel_size=0.2)
+    centres = np.array([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [0.5, 0.1, 0.1], [0.7, 0.1, 0.1]])
+    keys = voxel_keys(centres, 0.2)
+    # logp rows: conf = 1 / Σ exp(logp) → voxel 0: 1/(1+e^-1), voxel 1: 1/(1+e^-3), voxel 2/3 for class 1.
+    logp = np.array([[0, -1], [0, -3], [-2, 0], [-0.5, 0]], dtype=np.float16)
+    order = np.argsort(keys)
+    grid = VoxelGrid(keys[order], logp[order], 0.2)
+    vl, vc = grid.labels_and_confidence()
+    # Scan A: 5 points in voxel 0, 5 in voxel 1, 2 in voxel 2, 1 point in no voxel.
+    pts_a = np.concatenate([np.repeat(centres[[0]], 5, 0), np.repeat(centres[[1]], 5, 0),
+                            np.repeat(centres[[2]], 2, 0), [[5.0, 5.0, 5.0]]])
+    lab_a, conf_a = point_labels_from_grid(voxel_keys(pts_a, 0.2), grid, vl, vc)
+    assert lab_a.tolist() == [0] * 10 + [1] * 2 + [UNLABELED]
+    np.testing.assert_allclose(conf_a[[0, 5, 10]], [1 / (1 + math.exp(-1)), 1 / (1 + math.exp(-3)),
+                                                    1 / (1 + math.exp(-2))], rtol=1e-3)
+    assert conf_a[12] == 0.0
+    # Scan B: 5 points in voxel 3 (class 1, conf 1/(1+e^-0.5)).
+    pts_b = np.repeat(centres[[3]], 5, 0)
+    lab_b, conf_b = point_labels_from_grid(voxel_keys(pts_b, 0.2), grid, vl, vc)
+
+    per_scan = select_reliable_scans([lab_a, lab_b], [conf_a, conf_b], 2, 0.2, scope="scan")
+    # Scan A class 0: ceil(2) = 2 points, from voxel 1 (most confident), lowest indices 5, 6;
+    # class 1: ceil(0.4) = 1 point (index 10). Scan B class 1: 1 point (index 0).
+    assert np.flatnonzero(per_scan[0]).tolist() == [5, 6, 10]
+    assert np.flatnonzero(per_scan[1]).tolist() == [0]
+    per_seq = select_reliable_scans([lab_a, lab_b], [conf_a, conf_b], 2, 0.2, scope="sequence")
+    # Over the sequence class 1 has 7 points → ceil(1.4) = 2, both from voxel 2 (scan A), none from B.
+    assert np.flatnonzero(per_seq[0]).tolist() == [5, 6, 10, 11]
+    assert not per_seq[1].any()
+
+
+# ---------------------------------------------------------------------------------------------- backbone
+def test_plane_index_averages_the_points_of_each_cell() -> None:
+    # Points 0, 1 in cell 2, point 2 in cell 0 of a (1, 2, 2) grid.
+    plane = PlaneIndex.from_cells(torch.tensor([2, 2, 0]), (1, 2, 2))
+    assert plane.occupied.tolist() == [0, 2] and plane.inverse.tolist() == [1, 1, 0]
+    values = torch.tensor([[1.0, 2.0], [3.0, 4.0], [10.0, 0.0]])
+    assert torch.equal(torch.sparse.mm(plane.mean, values), torch.tensor([[10.0, 0.0], [2.0, 3.0]]))
+
+
+def test_prepare_cloud_cells_and_neighbours_from_the_full_scan() -> None:
+    pts = np.array([[0, 0, 0, 0], [0.1, 0, 0, 0], [2.5, 0, 0, 0], [2.5, 1.5, 0.5, 0]], dtype=np.float32)
+    cfg = BackboneConfig(channels=8, layers=1, grid_cells=(1.0, 1.0, 0.5), knn=2)
+    cloud = prepare_cloud(pts, cfg, subset=np.array([0, 2]))
+    # Point 0's nearest other point is point 1, which is not in the subset but still its neighbour.
+    np.testing.assert_allclose(cloud.local[0, 1, :3], np.array([0.1, 0, 0]) / LOCAL_SCALE, rtol=1e-5)
+    np.testing.assert_allclose(cloud.local[0, 0], 0.0)  # itself first
+    # xy plane, 1 m cells over the subset's extent x ∈ [0, 2.5]: u = 0 and 2, v = 0; grid 3 × 1.
+    assert cloud.cell_uv[0].tolist() == [[0, 0], [2, 0]]
+    assert cloud.grid_hw[0].tolist() == [3, 1]
+    batch = collate([cloud, prepare_cloud(pts, cfg)])
+    assert batch.grid_shapes[0] == (2, 3, 2)
+    # Second cloud, point 3: (u, v) = (2, 1) in a 3 × 2 grid, batch offset 6 → 6 + 2·2 + 1 = 11.
+    xy = batch.planes[0]
+    assert int(xy.occupied[xy.inverse[-1]]) == 11
+
+
+def test_backbone_forward_shape_gradients_and_point_order() -> None:
+    torch.manual_seed(0)
+    pts, _ = synthetic_scan(0, 300)
+    model = PointSegmenter(TINY_BACKBONE, num_classes=5)
+    batch = collate([prepare_cloud(pts, TINY_BACKBONE)])
+    logits = model(batch)
+    assert logits.shape == (300, 5) and torch.isfinite(logits).all()
+    logits.logsumexp(dim=1).sum().backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+        if name != "head.bias":  # logsumexp's gradient w.r.t. the bias sums to a constant
+            assert p.grad.abs().sum() > 0, name
+    # Shuffling the points shuffles the output the same way (scatter-mean and kNN max are order-free).
+    perm = np.random.default_rng(1).permutation(300)
+    model.eval()
+    with torch.no_grad():
+        a = model(collate([prepare_cloud(pts, TINY_BACKBONE)]))
+        b = model(collate([prepare_cloud(pts[perm], TINY_BACKBONE)]))
+    torch.testing.assert_close(b, a[perm], rtol=1e-4, atol=1e-5)
+
+
+def test_backbone_batch_of_two_equals_each_alone() -> None:
+    torch.manual_seed(0)
+    model = PointSegmenter(TINY_BACKBONE, 3).eval()
+    c1 = prepare_cloud(synthetic_scan(1, 200)[0], TINY_BACKBONE)
+    c2 = prepare_cloud(synthetic_scan(2, 150)[0], TINY_BACKBONE)
+    with torch.no_grad():
+        both = model(collate([c1, c2]))
+        torch.testing.assert_close(both[:200], model(collate([c1])), rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(both[200:], model(collate([c2])), rtol=1e-4, atol=1e-5)
+
+
+def test_cloud_tensors_to_keeps_shapes() -> None:
+    c = collate([prepare_cloud(synthetic_scan(3, 50)[0], TINY_BACKBONE)])
+    moved = c.to("cpu")
+    assert isinstance(moved, CloudTensors) and moved.num_points == 50
+
+
+# ------------------------------------------------------------------------------------ config + training
+def test_config_validation_names_the_field() -> None:
+    ConsistencyConfig().validate()
+    ConsistencyConfig.paper_scale().validate()
+    assert ConsistencyConfig.paper_scale().backbone.channels == 256
+    assert ConsistencyConfig.paper_scale(temperature=1.0).temperature == 1.0
+    with pytest.raises(ConsistencyConfigError, match="iterations"):
+        ConsistencyConfig(iterations=3).validate()
+    with pytest.raises(ConsistencyConfigError, match="temperature"):
+        ConsistencyConfig(temperature=0.0).validate()
+    with pytest.raises(ConsistencyConfigError, match="network_evidence"):
+        ConsistencyConfig(network_evidence="pixel").validate()  # type: ignore[arg-type]
+    with pytest.raises(ConsistencyConfigError, match="min_steps"):
+        ConsistencyConfig(min_steps=-1).validate()
+    with pytest.raises(ConsistencyConfigError, match="backbone.kernel_size"):
+        ConsistencyConfig(backbone=BackboneConfig(kernel_size=2)).validate()
+    assert config_from_dict(config_to_dict(ConsistencyConfig.paper_scale())) == ConsistencyConfig.paper_scale()
+
+
+def test_lr_schedule_warms_up_then_decays_to_zero() -> None:
+    assert lr_factor(0, 100) == pytest.approx(0.2)  # 5 warm-up steps
+    assert lr_factor(4, 100) == pytest.approx(1.0)
+    assert lr_factor(5, 100) == pytest.approx(1.0)
+    assert lr_factor(100, 100) == pytest.approx(0.0, abs=1e-12)
+
+
+def _scans(n: int = 4, share_labeled: float = 0.5) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    for i in range(n):
+        pts, lab = synthetic_scan(10 + i)
+        lab = lab.copy()
+        lab[np.random.default_rng(i).random(len(lab)) > share_labeled] = UNLABELED
+        out[i] = (pts, lab)
+    return out
+
+
+def test_tiny_training_reduces_the_loss_and_is_deterministic() -> None:
+    scans = _scans()
+    cfg = replace(TINY, epochs=8)
+    model, stats = train_model(scans.__getitem__, list(scans), 3, cfg)
+    assert stats.steps == 32 and len(stats.losses) == 32
+    assert np.mean(stats.losses[-4:]) < 0.5 * np.mean(stats.losses[:4])
+    # The trained network separates the three shapes on a scan it has not seen.
+    pts, lab = synthetic_scan(99)
+    pred = predict_log_probs(model, pts).argmax(axis=1)
+    assert (pred == lab).mean() > 0.9
+    _, stats2 = train_model(scans.__getitem__, list(scans), 3, cfg)
+    assert stats2.losses == stats.losses
+
+
+def test_training_with_subsampling_augmentation_and_class_weights_runs() -> None:
+    scans = _scans(3)
+    cfg = replace(TINY, points_per_scan=200, augment=True, scans_per_step=2, epochs=2)
+    calls: list[tuple[int, int]] = []
+    _, stats = train_model(scans.__getitem__, list(scans), 3, cfg, progress=lambda d, t: calls.append((d, t)),
+                           class_counts=[100, 10, 0])
+    assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    # Each epoch: one step of 2 scans and one of 1 scan, 200 points drawn from each.
+    assert stats.points_seen == 2 * 3 * 200
+    assert 0 < stats.labeled_seen < stats.points_seen
+
+
+def test_draw_points_reserves_a_share_for_labeled_points() -> None:
+    target = np.full(1000, UNLABELED, np.int16)
+    target[:50] = 1
+    idx = draw_points(target, 100, 0.3, np.random.default_rng(0))
+    assert len(idx) == 100 and len(np.unique(idx)) == 100 and np.all(np.diff(idx) > 0)
+    assert (idx < 50).sum() == 30
+    idx = draw_points(target, 200, 0.5, np.random.default_rng(0))
+    assert (idx < 50).sum() == 50  # only 50 labeled points exist; the other 150 are context
+    assert draw_points(target, 0, 0.5, np.random.default_rng(0)).tolist() == list(range(1000))
+    assert (draw_points(target, 100, 0.0, np.random.default_rng(0)) < 50).sum() < 30
+
+
+def test_checkpoint_reloads_to_identical_predictions(tmp_path: Path) -> None:
+    scans = _scans(2)
+    model, stats = train_model(scans.__getitem__, [0, 1], 3, TINY)
+    path = tmp_path / "ck.pt"
+    save_checkpoint(path, model, TINY, meta={"fingerprint": "abc", "losses": stats.losses})
+    ck = load_checkpoint(path)
+    assert ck.config == TINY and ck.num_classes == 3 and ck.meta["fingerprint"] == "abc"
+    pts, _ = synthetic_scan(7)
+    assert np.array_equal(predict_log_probs(ck.model, pts), predict_log_probs(model, pts))
+
+
+def test_checkpoint_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(ModelLoadError, match="not found"):
+        load_checkpoint(tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ModelLoadError, match="bad.pt: unreadable"):
+        load_checkpoint(bad)
+    other = tmp_path / "other.pt"
+    torch.save({"format": "something-else"}, other)
+    with pytest.raises(ModelLoadError, match="not a LeAP 3D-CN checkpoint"):
+        load_checkpoint(other)
+
+
+# ------------------------------------------------------------------------------------------- fusion back
+def _one_voxel_grid() -> tuple[VoxelGrid, np.ndarray]:
+    key = voxel_keys(np.array([[0.1, 0.1, 0.1]]), 0.2)
+    return VoxelGrid(key, np.array([[0.0, -1.0, -2.0]], np.float16), 0.2), key
+
+
+def test_fuse_back_temperature_one_adds_the_log_probs_exactly_once() -> None:
+    grid, key = _one_voxel_grid()
+    net = np.log(np.array([[0.2, 0.7, 0.1]], np.float32))
+    out = fuse_back(grid, [(key, net)], 3, temperature=1.0, fusion_cfg=FusionConfig())
+    expected = np.array([0.0, -1.0, -2.0]) + np.log([0.2, 0.7, 0.1])
+    expected -= expected.max()
+    np.testing.assert_allclose(out.logp[0].astype(np.float64), expected, atol=2e-3)
+    # Posterior by hand: prior softmax([0,-1,-2]) × network [0.2, 0.7, 0.1], normalised.
+    prior = np.exp([0.0, -1.0, -2.0])
+    post = prior * [0.2, 0.7, 0.1]
+    np.testing.assert_allclose(out.probs()[0], post / post.sum(), atol=2e-3)
+
+
+def test_fuse_back_temperature_scales_the_evidence_and_infinity_ignores_the_network() -> None:
+    grid, key = _one_voxel_grid()
+    net = np.log(np.array([[0.2, 0.7, 0.1]], np.float32))
+    out2 = fuse_back(grid, [(key, net)], 3, temperature=2.0, fusion_cfg=FusionConfig())
+    expected = np.array([0.0, -1.0, -2.0]) + 0.5 * np.log([0.2, 0.7, 0.1])
+    np.testing.assert_allclose(out2.logp[0].astype(np.float64), expected - expected.max(), atol=2e-3)
+    new_key = voxel_keys(np.array([[5.0, 5.0, 5.0]]), 0.2)
+    out_inf = fuse_back(grid, [(np.concatenate([key, new_key]), np.repeat(net, 2, 0))], 3, math.inf,
+                        FusionConfig())
+    assert out_inf is grid  # unchanged, and no voxel created from zero-weight evidence
+    # Finite T creates voxels the camera never saw.
+    out_new = fuse_back(grid, [(new_key, net)], 3, 1.0, FusionConfig())
+    assert out_new.num_voxels == 2 and out_new.lookup(new_key)[0] >= 0
+    assert out_new.labels_and_confidence()[0][out_new.lookup(new_key)[0]] == 1
+    np.testing.assert_array_equal(out_new.logp[out_new.lookup(key)[0]], grid.logp[0])
+
+
+def test_voxel_evidence_is_the_mean_and_point_evidence_the_sum() -> None:
+    grid, key = _one_voxel_grid()
+    # Two points in the voxel (one per "scan"); the second has a class below the floor (1e-3).
+    p1 = np.log(np.array([[0.2, 0.7, 0.1]], np.float32))
+    p2 = np.log(np.array([[0.5, 0.4999, 0.0001]], np.float32))
+    floor = math.log(1e-3)
+    f1, f2 = p1[0].astype(np.float64), np.maximum(p2[0].astype(np.float64), floor)
+    keys, means, counts = voxel_mean_log_probs([(key, p1), (key, p2)], 3, prob_floor=1e-3)
+    assert keys.tolist() == key.tolist() and counts.tolist() == [2]
+    np.testing.assert_allclose(means[0], (f1 + f2) / 2, rtol=1e-6)
+    prior = np.array([0.0, -1.0, -2.0])
+    for evidence, add in (("voxel", (f1 + f2) / 2), ("point", f1 + f2)):
+        out = fuse_back(grid, [(key, p1), (key, p2)], 3, 1.0, FusionConfig(), evidence)
+        expected = prior + add
+        # float16 storage: half a unit in the last place is 0.004 for |logp| in [8, 16).
+        np.testing.assert_allclose(out.logp[0].astype(np.float64), expected - expected.max(), atol=4e-3)
+    with pytest.raises(ValueError, match="evidence"):
+        fuse_back(grid, [(key, p1)], 3, 1.0, FusionConfig(), "pixel")
+
+
+def test_fuse_back_in_chunks_equals_one_call() -> None:
+    grid, key = _one_voxel_grid()
+    rng = np.random.default_rng(0)
+    keys = voxel_keys(rng.uniform(0, 1, (50, 3)), 0.2)
+    logp = np.log(rng.dirichlet(np.ones(3), 50)).astype(np.float32)
+    preds = [(keys[:20], logp[:20]), (keys[20:], logp[20:])]
+    for evidence in ("voxel", "point"):
+        one = fuse_back(grid, preds, 3, 2.0, FusionConfig(), evidence, chunk_points=10**9)
+        chunked = fuse_back(grid, preds, 3, 2.0, FusionConfig(), evidence, chunk_points=10)
+        assert np.array_equal(one.keys, chunked.keys)
+        np.testing.assert_allclose(one.logp.astype(np.float32), chunked.logp.astype(np.float32), atol=0.02)
+
+
+# ----------------------------------------------------------------------------------------------- stage
+def _tiny_stage_inputs(tmp_path: Path, make_tiny_sequence) -> tuple[KittiSequence, VoxelGrid, int]:
+    """A 3-frame sequence and a grid that knows only the voxels of points with x < 12 m ("camera view"),
+    labeled by height: z < -0.5 → 0, z < 0.3 → 1, else 2."""
+    tiny = make_tiny_sequence(tmp_path, n_frames=3, n_points=400)
+    seq = KittiSequence(tiny.root)
+    keys_list, lab_list = [], []
+    for i in range(len(seq)):
+        pts = seq.frame(i).points
+        seen = pts[:, 0] < 12.0
+        keys_list.append(voxel_keys(world_points(pts[seen], seq.poses[i]), 0.2))
+        lab_list.append(np.digitize(pts[seen, 2], [-0.5, 0.3]))
+    keys, first = np.unique(np.concatenate(keys_list), return_index=True)
+    lab = np.concatenate(lab_list)[first]
+    logp = np.full((len(keys), 3), -3.0, np.float16)
+    logp[np.arange(len(keys)), lab] = 0.0
+    return seq, VoxelGrid(keys, logp, 0.2), 3
+
+
+def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path, make_tiny_sequence) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    cfg = replace(TINY, epochs=2, temperature=1.0)
+    calls: list[tuple[int, int]] = []
+    out = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), tmp_path / "work", 1,
+                             progress=lambda d, t: calls.append((d, t)))
+    assert calls[-1] == (3 + 2 * 3 + 3, 3 + 2 * 3 + 3) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+    assert checkpoint_path(tmp_path / "work", 1).is_file()
+    unseen = 0
+    for i in range(len(seq)):
+        pts = seq.frame(i).points
+        keys = voxel_keys(world_points(pts, seq.poses[i]), 0.2)
+        assert (out.lookup(keys) >= 0).all()  # every point of every scan now has a voxel
+        unseen += int((grid.lookup(keys) < 0).sum())
+    assert unseen > 100  # ... including the many points the "camera" never saw
+    assert out.num_voxels > grid.num_voxels
+
+    # A second call with the same inputs reuses the checkpoint (same fingerprint) and gives the same grid.
+    mtime = checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns
+    again = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), tmp_path / "work", 1)
+    assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
+    assert np.array_equal(again.keys, out.keys) and np.array_equal(again.logp, out.logp)
+    # T = ∞ ignores the network entirely.
+    assert run_3dcn_iteration(seq, grid, grid, c, replace(cfg, temperature=math.inf), FusionConfig(),
+                              tmp_path / "work", 1) is grid
+
+
+def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    empty = VoxelGrid.empty(c, 0.2)
+    with pytest.raises(ValueError, match="no point of any scan has a voxel label"):
+        run_3dcn_iteration(seq, empty, empty, c, TINY, FusionConfig(), tmp_path / "w", 1)
