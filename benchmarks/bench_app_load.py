@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import datetime as dt
+import gc
 import json
 import os
 import random
@@ -272,6 +273,10 @@ def main() -> None:
         data_root / "street", synth_config({**SMALL_STREET, "frames": args.frames}), workers=default_workers()
     ).path
     print(f"generated {args.frames} frames in {time.perf_counter() - t:.1f} s into {dataset}", flush=True)
+    # The generator's imports leave many long-lived objects; a full GC pass over them in this client would
+    # stall its event loop and show up as server latency (the server freezes its own heap the same way).
+    gc.collect()
+    gc.freeze()
     proc, base = start_server(data_root)
     try:
         run_once(base, data_root, dataset, "warm-up", 0, args.poll_interval, proc.pid)

@@ -19,7 +19,9 @@ TOKEN_QUERY = "token"
 TOKEN_COOKIE = "leap_token"
 
 
-def get_settings(connection: HTTPConnection) -> Settings:
+# The trivial dependencies are ``async def``: FastAPI runs a plain ``def`` dependency in the thread pool,
+# which costs every request one thread hand-off each (three for a status poll) under load.
+async def get_settings(connection: HTTPConnection) -> Settings:
     """The settings the app was created with (override in tests with ``app.dependency_overrides``)."""
     return connection.app.state.settings  # type: ignore[no-any-return]
 
@@ -61,7 +63,7 @@ async def get_read_db(
 ReadDbDep = Annotated[sqlite_utils.Database, Depends(get_read_db)]
 
 
-def get_jobs(request: Request) -> JobManager:
+async def get_jobs(request: Request) -> JobManager:
     return request.app.state.jobs  # type: ignore[no-any-return]
 
 
@@ -83,7 +85,7 @@ def request_token(request: HTTPConnection) -> str | None:
     )
 
 
-def require_token(connection: HTTPConnection, settings: SettingsDep) -> None:
+async def require_token(connection: HTTPConnection, settings: SettingsDep) -> None:
     """Every API call (and websocket) presents the configured access token, when one is configured."""
     if not token_matches(settings.token, request_token(connection)):
         raise HTTPException(status.HTTP_403_FORBIDDEN, detail="Access token missing or wrong")
