@@ -257,8 +257,13 @@ def test_training_with_subsampling_augmentation_and_class_weights_runs() -> None
     scans = _scans(3)
     cfg = replace(TINY, points_per_scan=200, augment=True, scans_per_step=2, epochs=2)
     calls: list[tuple[int, int]] = []
-    _, stats = train_model(scans.__getitem__, list(scans), 3, cfg, progress=lambda d, t: calls.append((d, t)),
-                           class_counts=[100, 10, 0])
+    model, stats = train_model(scans.__getitem__, list(scans), 3, cfg, progress=lambda d, t: calls.append((d, t)),
+                               class_counts=[100, 10, 0])
+    # Class 2 had no selected label: the model gives it probability 0, the others still sum to 1.
+    assert model.trained_classes.tolist() == [True, True, False]
+    logp = predict_log_probs(model, synthetic_scan(5)[0])
+    assert np.isneginf(logp[:, 2]).all()
+    np.testing.assert_allclose(np.exp(logp[:, :2]).sum(axis=1), 1.0, rtol=1e-5)
     assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
     # Each epoch: one step of 2 scans and one of 1 scan, 200 points drawn from each.
     assert stats.points_seen == 2 * 3 * 200

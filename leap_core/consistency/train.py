@@ -161,7 +161,8 @@ def train_model(
         num_classes: C.
         cfg: training parameters (``epochs``, ``lr``, ``seed``, backbone sizes, ...).
         progress: ``progress(step, total_steps)`` after every step.
-        class_counts: (C,) selected-label count per class for the class weights; None = unweighted.
+        class_counts: (C,) selected-label count per class, for the class weights and to mark the classes
+            without any label (``model.trained_classes``); None = unweighted, every class kept.
 
     Returns:
         The trained model (in eval mode, on CPU) and its :class:`TrainStats`.
@@ -179,6 +180,7 @@ def train_model(
         weights = None
         if class_counts is not None:
             weights = class_weights(class_counts, cfg.class_balance).to(device)
+            model.trained_classes.copy_(torch.as_tensor(np.asarray(class_counts) > 0))
         opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total))
         model.train()
@@ -241,13 +243,15 @@ def predict_log_probs(
         workers: kd-tree query threads.
 
     Returns:
-        (N, C) float32 log-probabilities (rows log-sum-exp to 0).
+        (N, C) float32 log-probabilities (rows log-sum-exp to 0); ``-inf`` for classes the model had no
+        training label of (``model.trained_classes``).
     """
     was_training = model.training
     model.eval()
     try:
         batch = collate([prepare_cloud(points, model.cfg, None, workers=workers)]).to(device)
-        return F_.log_softmax(model(batch).float(), dim=1).cpu().numpy()
+        logits = model(batch).float().masked_fill(~model.trained_classes, -math.inf)
+        return F_.log_softmax(logits, dim=1).cpu().numpy()
     finally:
         model.train(was_training)
 
