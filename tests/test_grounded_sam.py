@@ -375,7 +375,7 @@ def test_labels2d_command_precomputes_and_resumes(tiny_dir: Path, tmp_path: Path
     from conftest import build_tiny_sequence
     from typer.testing import CliRunner
 
-    from leap_core.cli import app
+    from app.cli import cli as app
 
     root = build_tiny_sequence(tmp_path, n_frames=3).root
     cache = tmp_path / "cache"
@@ -405,7 +405,7 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
     from conftest import build_tiny_sequence
     from typer.testing import CliRunner
 
-    from leap_core.cli import app
+    from app.cli import cli as app
 
     root = build_tiny_sequence(tmp_path, n_frames=3).root
     models = copy_models(tiny_dir, tmp_path)
@@ -445,7 +445,7 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
 def test_make_tiny_models_command(tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
-    from leap_core.cli import app
+    from app.cli import cli as app
 
     res = CliRunner().invoke(app, ["make-tiny-models", str(tmp_path / "tm")])
     assert res.exit_code == 0, res.output

@@ -407,7 +407,7 @@ def test_form_fields() -> None:
 def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
-    from leap_core.cli import app
+    from app.cli import cli as app
     from leap_core.schema import projects_dir
 
     project = tmp_path / "proj.yaml"
@@ -439,7 +439,7 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
 def test_cli_run_bad_inputs(street: Path, tmp_path: Path, args: list[str], message: str) -> None:
     from typer.testing import CliRunner
 
-    from leap_core.cli import app
+    from app.cli import cli as app
 
     res = CliRunner().invoke(app, ["run", str(street), "--out", str(tmp_path / "r"), *args])
     assert res.exit_code == 2

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from leap_core.cli import app
+from app.cli import cli as app
 from leap_core.datasets.kitti import KittiSequence, read_label, read_scan
 from leap_core.errors import DatasetError
 from leap_core.synth import (

@@ -66,7 +66,7 @@ def test_bad_demo_settings_are_refused(data_root: Path) -> None:
 def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
     env = {**os.environ, "LEAP_DEMO_SYNTH": json.dumps(TINY_DEMO)}
     out = subprocess.run(
-        [sys.executable, "-m", "leap_core.cli", "demo", "--no-serve"],
+        [sys.executable, "-m", "app.cli", "demo", "--no-serve"],
         cwd=tmp_path,
         env=env,
         capture_output=True,
@@ -85,7 +85,7 @@ def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
         assert [r["status"] for r in runs] == ["done"] and runs[0]["metrics"] is not None
     # Run again: nothing to do, the finished run is reused and its table printed.
     again = subprocess.run(
-        [sys.executable, "-m", "leap_core.cli", "demo", "--no-serve"],
+        [sys.executable, "-m", "app.cli", "demo", "--no-serve"],
         cwd=tmp_path,
         env=env,
         capture_output=True,

@@ -1,11 +1,14 @@
-"""The ``leap`` command line. Each command keeps its heavy imports inside its function so ``leap --help``
+"""The ``leap`` command line.
+
+It lives in ``app`` because ``serve`` and ``demo`` start the web app, and leap_core stays free of web code.
+Each command keeps its heavy imports inside its function so ``leap --help``
 stays fast."""
 
 from __future__ import annotations
 
 import typer
 
-app = typer.Typer(
+cli = typer.Typer(
     name="leap",
     help="LeAP Studio: open-vocabulary 3D point labeling from camera + LiDAR sequences.",
     no_args_is_help=True,
@@ -50,7 +53,7 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-@app.command("labels2d")
+@cli.command("labels2d")
 def labels2d(
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
     schema: str = typer.Option(
@@ -133,7 +136,7 @@ def labels2d(
     )
 
 
-@app.command("make-tiny-models")
+@cli.command("make-tiny-models")
 def make_tiny_models_cmd(
     folder: str = typer.Argument(..., help="Where to write grounding-dino-tiny/ and sam-vit-base/."),
     seed: int = typer.Option(0, "--seed", help="Seed of the random weights."),
@@ -152,7 +155,7 @@ def make_tiny_models_cmd(
     )
 
 
-@app.command("run")
+@cli.command("run")
 def run_cmd(
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
     out: str = typer.Option(..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages)."),
@@ -249,7 +252,7 @@ def run_cmd(
         typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
 
 
-@app.command("serve")
+@cli.command("serve")
 def serve_cmd(
     host: str | None = typer.Option(
         None, "--host", help="Address to bind (default 127.0.0.1; any other address needs --token)."
@@ -275,7 +278,7 @@ def serve_cmd(
     serve(settings)
 
 
-@app.command("demo")
+@cli.command("demo")
 def demo_cmd(
     port: int | None = typer.Option(None, "--port", help="Port (default 8000)."),
     work_dir: str | None = typer.Option(
@@ -376,7 +379,7 @@ def _app_settings(
         raise fail(f"{where}: {err['msg']}") from None
 
 
-@app.command("synth")
+@cli.command("synth")
 def synth(
     out: str = typer.Argument(..., help="Dataset root to write (the sequence goes to OUT/sequences/NN)."),
     frames: int = typer.Option(60, "--frames", min=1, help="Number of frames (10 Hz)."),
@@ -418,7 +421,7 @@ def synth(
 
 
 def main() -> None:
-    app()
+    cli()
 
 
 if __name__ == "__main__":
