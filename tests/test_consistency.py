@@ -108,7 +108,6 @@ def test_select_reliable_rejects_bad_input() -> None:
 
 def test_selection_on_a_hand_made_grid_per_scan_and_per_sequence() -> None:
     # Four voxels on a line at 0.2 m: labels 0, 0, 1, 1 with known confidences.
-    cfg = FusionConfig(voxel_size=0.2)
     centres = np.array([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [0.5, 0.1, 0.1], [0.7, 0.1, 0.1]])
     keys = voxel_keys(centres, 0.2)
     # logp rows: conf = 1 / Σ exp(logp) → voxel 0: 1/(1+e^-1), voxel 1: 1/(1+e^-3), voxel 2/3 for class 1.
@@ -363,7 +362,7 @@ def test_voxel_evidence_is_the_mean_and_point_evidence_the_sum() -> None:
 
 
 def test_fuse_back_in_chunks_equals_one_call() -> None:
-    grid, key = _one_voxel_grid()
+    grid, _ = _one_voxel_grid()
     rng = np.random.default_rng(0)
     keys = voxel_keys(rng.uniform(0, 1, (50, 3)), 0.2)
     logp = np.log(rng.dirichlet(np.ones(3), 50)).astype(np.float32)
@@ -422,7 +421,7 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
 
 
 def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> None:
-    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    seq, _, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     empty = VoxelGrid.empty(c, 0.2)
     with pytest.raises(ValueError, match="no point of any scan has a voxel label"):
         run_3dcn_iteration(seq, empty, empty, c, TINY, FusionConfig(), tmp_path / "w", 1)

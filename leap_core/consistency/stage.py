@@ -359,8 +359,8 @@ __all__ = [
     "FUSE_CHUNK_POINTS",
     "checkpoint_path",
     "fuse_back",
-    "voxel_mean_log_probs",
     "point_labels_from_grid",
     "run_3dcn_iteration",
+    "voxel_mean_log_probs",
     "world_points",
 ]

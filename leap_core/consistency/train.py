@@ -127,7 +127,7 @@ def draw_points(
     if budget <= 0 or n <= budget:
         return np.arange(n, dtype=np.int64)
     labeled = np.flatnonzero(target != UNLABELED)
-    n_lab = min(len(labeled), int(round(labeled_share * budget)))
+    n_lab = min(len(labeled), round(labeled_share * budget))
     picked = rng.choice(labeled, n_lab, replace=False) if n_lab else np.zeros(0, np.int64)
     rest = np.ones(n, dtype=bool)
     rest[picked] = False
@@ -196,7 +196,6 @@ def train_model(
                     target = np.asarray(target)
                     if target.shape != (points.shape[0],):
                         raise ValueError(f"scan {i}: target {target.shape} does not match points {points.shape}")
-                    n = points.shape[0]
                     subset = draw_points(target, cfg.points_per_scan, cfg.labeled_share, rng)
                     pts = augment_points(points, rng) if cfg.augment else points
                     t = target[subset].astype(np.int64)
