@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import AsyncIterator, Iterator
 from typing import Annotated
 
@@ -29,14 +30,21 @@ async def get_settings(connection: HTTPConnection) -> Settings:
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
-def get_db(connection: HTTPConnection, settings: SettingsDep) -> Iterator[sqlite_utils.Database]:
-    """A SQLite connection for this request (from the app's pool; a fresh one if the app has none)."""
+@contextlib.contextmanager
+def _connection(connection: HTTPConnection, settings: Settings) -> Iterator[sqlite_utils.Database]:
+    """A SQLite connection from the app's pool (a fresh one if the app has none, or another database)."""
     pool: ConnectionPool | None = getattr(connection.app.state, "db_pool", None)
     if pool is None or pool.path != settings.database:
         with open_db(settings.database) as db:
             yield db
         return
     with pool.connection() as db:
+        yield db
+
+
+def get_db(connection: HTTPConnection, settings: SettingsDep) -> Iterator[sqlite_utils.Database]:
+    """A SQLite connection for this request; FastAPI runs this in its thread pool."""
+    with _connection(connection, settings) as db:
         yield db
 
 
@@ -51,12 +59,7 @@ async def get_read_db(
     Such handlers run on the event loop without a thread hand-off: in WAL mode a read never waits for a
     writer, and a primary-key lookup takes well under a millisecond. Handlers that write use ``DbDep``.
     """
-    pool: ConnectionPool | None = getattr(connection.app.state, "db_pool", None)
-    if pool is None or pool.path != settings.database:
-        with open_db(settings.database) as db:
-            yield db
-        return
-    with pool.connection() as db:
+    with _connection(connection, settings) as db:
         yield db
 
 
