@@ -179,7 +179,6 @@ def run_cmd(
     then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
     from pathlib import Path
 
-
     from leap_core.config import config_from_dict
     from leap_core.errors import Cancelled, LeapError
     from leap_core.pipeline import STAGES, result_tables, run_pipeline
@@ -290,7 +289,6 @@ def demo_cmd(
     """Generate the demo street sequence (once), label it with the simulated labeler and serve the app:
     the browser then shows the demo project with a finished run and its metrics."""
     from pathlib import Path
-
 
     from app import crud
     from app.core.db import init_db, open_db

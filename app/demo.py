@@ -127,20 +127,19 @@ def seed_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, 
     from app.services import default_pipeline
     from leap_core.schema import builtin_schema
 
-    with open_db(settings.database) as db:
-        with transaction(db):
-            if crud.get_meta(db, SEEDED_KEY) is not None:
-                return None
-            project = crud.create_project(
-                db,
-                name=DEMO_PROJECT_NAME,
-                dataset_kind="demo",
-                dataset_path=str(settings.demo_dataset),
-                schema=builtin_schema("semantickitti").to_dict(),
-                pipeline=default_pipeline(),
-                is_demo=True,
-            )
-            crud.set_meta(db, SEEDED_KEY, str(project["id"]))
+    with open_db(settings.database) as db, transaction(db):
+        if crud.get_meta(db, SEEDED_KEY) is not None:
+            return None
+        project = crud.create_project(
+            db,
+            name=DEMO_PROJECT_NAME,
+            dataset_kind="demo",
+            dataset_path=str(settings.demo_dataset),
+            schema=builtin_schema("semantickitti").to_dict(),
+            pipeline=default_pipeline(),
+            is_demo=True,
+        )
+        crud.set_meta(db, SEEDED_KEY, str(project["id"]))
     log.info("seeded the demo project (id %d)", project["id"])
     if jobs is not None:
         finished = None

@@ -17,8 +17,9 @@ from app.core.config import Settings
 from app.core.errors import Conflict, InvalidField, NotFound
 from app.core.security import resolve_in_roots
 from app.jobs.progress import ProgressTracker
+from leap_core.io_utils import remove_tree
 
-_FIELD_PATH = re.compile(r"^pipeline((?:\.[\w\-]+)*): (.*)$", re.S)
+_FIELD_PATH = re.compile(r"^pipeline((?:\.[\w\-]+)*): (.*)$", re.DOTALL)
 
 
 # -------------------------------------------------------------------------------------- pipeline config
@@ -185,12 +186,18 @@ def update_project(
     return crud.update_project(db, project_id, name=payload.name, pipeline=pipeline)
 
 
-def delete_project(db: sqlite_utils.Database, project_id: int) -> None:
+def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> None:
+    """Delete the project, its runs and corrections, and its run folders under the work dir.
+
+    The dataset and anything exported into its ``predictions/`` folder are the user's and stay.
+    """
     crud.require_project(db, project_id)
     active = crud.active_run(db, project_id)
     if active is not None:
         raise Conflict(f"Project {project_id} has run {active['id']} {active['status']}; cancel it first")
     crud.delete_project(db, project_id)
+    # After the rows are gone: a crash in between leaves orphan files, never rows pointing at nothing.
+    remove_tree(settings.runs_dir / f"p{project_id}")
 
 
 def _brief(run: dict[str, Any] | None) -> models.RunBrief | None:

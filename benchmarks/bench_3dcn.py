@@ -41,6 +41,7 @@ from torch.nn import functional as F_
 from leap_core.consistency.backbone import PointSegmenter, count_parameters
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.data import collate, prepare_cloud
+from leap_core.consistency.selection import view_counts
 from leap_core.consistency.stage import point_labels_from_grid, run_3dcn_iteration, world_points
 from leap_core.consistency.train import num_train_steps
 from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_label, write_poses, write_scan
@@ -48,6 +49,7 @@ from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys
 from leap_core.io_utils import atomic_write_json
 from leap_core.metrics import evaluate
 from leap_core.pipeline import smoothed_to_grid
+from leap_core.projection import Painted
 from leap_core.schema import builtin_schema
 from leap_core.smoothing import SmoothingConfig, knn_smooth
 
@@ -231,16 +233,22 @@ def step_times(cfg: ConsistencyConfig, points: np.ndarray, num_classes: int, rep
 # ----------------------------------------------------------------------------------------------- main
 def load_run_inputs(
     run_dir: Path, seq: KittiSequence, frames: range, logp_clip: float
-) -> tuple[VoxelGrid, VoxelGrid, list[np.ndarray]]:
-    """The fused and smoothed grids of a finished ``leap run`` and each scan's camera-view mask."""
+) -> tuple[VoxelGrid, VoxelGrid, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The fused and smoothed grids of a finished ``leap run``, each scan's camera-view mask, and how many
+    frames observed each voxel (the selection's tie-break, as the pipeline computes it)."""
     fused = VoxelGrid.load(run_dir / "grid.npz")
     with np.load(run_dir / "grid_smooth.npz") as z:
         smoothed = smoothed_to_grid(z["keys"], z["probs"], float(z["voxel_size"]), logp_clip)
     views = []
+    observed = []
     for i in frames:
-        with np.load(run_dir / "observations" / f"{seq.frame_ids[i]}.npz") as z:
+        path = run_dir / "observations" / f"{seq.frame_ids[i]}.npz"
+        with np.load(path) as z:
             views.append(np.unpackbits(z["in_view"], count=int(z["n_points"])).astype(bool))
-    return fused, smoothed, views
+        frame = seq.frame(i)
+        painted = frame.points[Painted.load(path).point_idx]
+        observed.append(voxel_keys(world_points(painted, frame.pose), fused.voxel_size))
+    return fused, smoothed, views, view_counts(observed)
 
 
 def smoothed_labels(seq: KittiSequence, frames: range, grid: VoxelGrid) -> list[np.ndarray]:
@@ -301,11 +309,12 @@ def main(argv: list[str] | None = None) -> int:
     fusion_cfg = FusionConfig()
 
     if args.run_dir is not None:
-        fused, smoothed, views = load_run_inputs(args.run_dir, seq, frames, fusion_cfg.logp_clip)
+        fused, smoothed, views, seen = load_run_inputs(args.run_dir, seq, frames, fusion_cfg.logp_clip)
         inputs = f"fused + smoothed grids of {args.run_dir}"
     else:
         fused, views = camera_grid(seq, gt, c, args.noise, args.fov, seed=0)
         smoothed = fused
+        seen = None
         inputs = f"ground truth in a {args.fov:.0f} deg view with {args.noise:.0%} label noise"
     n_points = sum(seq.frame(i).points.shape[0] for i in frames)
     marks: list[tuple[float, int]] = []
@@ -314,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench3dcn_work_") as work:
         t_start = time.perf_counter()
         new = run_3dcn_iteration(seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1,
-                                 progress=lambda d, t: marks.append((time.perf_counter(), d)), frames=frames)
+                                 progress=lambda d, t: marks.append((time.perf_counter(), d)), frames=frames,
+                                 views=seen)
         total_s = time.perf_counter() - t_start
     load_after = os.getloadavg()[0]
     steps = num_train_steps(n, cfg)

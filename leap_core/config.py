@@ -172,7 +172,7 @@ def _coerce(value: Any, tp: Any) -> Any:
     raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
 
 
-_FIELD_PROBLEM = re.compile(r"^(?P<path>[A-Za-z_][\w\-]*(?:\.[\w\-]+)*) (?P<problem>must\b.*)$", re.S)
+_FIELD_PROBLEM = re.compile(r"^(?P<path>[A-Za-z_][\w\-]*(?:\.[\w\-]+)*) (?P<problem>must\b.*)$", re.DOTALL)
 
 
 def _rephrase(message: str, obj: Any, path: str) -> str:

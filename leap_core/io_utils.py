@@ -1,11 +1,13 @@
-"""Atomic file writes: results are never left half-written."""
+"""Atomic file writes and folder removal: results are never left half-written or half-deleted."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import shutil
 import tempfile
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -48,3 +50,18 @@ def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> None:
     """``np.savez`` (uncompressed: these are read back often) through :func:`atomic_write`."""
     with atomic_write(path, "wb") as fh:
         np.savez(fh, **arrays)
+
+
+def remove_tree(path: str | Path) -> bool:
+    """Delete the folder ``path`` (False when it does not exist).
+
+    The folder is first renamed to a hidden sibling, so an interrupted delete leaves nothing at ``path``
+    that a later reader could take for a complete (or partial) result.
+    """
+    path = Path(path)
+    if not path.exists():
+        return False
+    doomed = path.with_name(f".deleting-{path.name}-{uuid.uuid4().hex[:8]}")
+    os.rename(path, doomed)
+    shutil.rmtree(doomed, ignore_errors=True)
+    return True

@@ -563,6 +563,15 @@ def _load_corrections(path: Path, num_classes: int) -> tuple[npt.NDArray[np.int6
     return keys.astype(np.int64), cls.astype(np.int64)
 
 
+def _observations(ctx: _Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
+    """Per frame: its observation and the world voxel key of each observed (painted) point."""
+    for i in ctx.frames:
+        painted = Painted.load(ctx.path("observations", i))
+        frame = ctx.seq.frame(i)
+        pts = frame.points[painted.point_idx]
+        yield painted, voxel_keys(world_points(pts, frame.pose), ctx.cfg.fusion.voxel_size)
+
+
 def stage_fuse(ctx: _Ctx) -> dict[str, Any]:
     """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``."""
     fcfg = ctx.cfg.fusion
@@ -570,11 +579,7 @@ def stage_fuse(ctx: _Ctx) -> dict[str, Any]:
     total = len(ctx.frames)
 
     def batches() -> Iterator[Observations]:
-        for k, i in enumerate(ctx.frames):
-            painted = Painted.load(ctx.path("observations", i))
-            frame = ctx.seq.frame(i)
-            pts = frame.points[painted.point_idx]
-            keys = voxel_keys(world_points(pts, frame.pose), fcfg.voxel_size)
+        for k, (painted, keys) in enumerate(_observations(ctx)):
             ctx.tick("fuse", k, total)
             yield Observations(keys, painted.rows, log_table(painted.table, fcfg.prob_floor))
 
@@ -632,11 +637,13 @@ def stage_3dcn(ctx: _Ctx) -> dict[str, Any]:
     cn = ctx.cfg.consistency
     if not cn.enabled:
         return {"status": "skipped", "note": "3D-CN disabled"}
+    from leap_core.consistency.selection import view_counts
     from leap_core.consistency.stage import run_3dcn_iteration
 
     c = ctx.schema.num_classes
     r = ctx.run_dir
     fused = VoxelGrid.load(r / "grid.npz")
+    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
     keys, probs, vs = _load_smooth(r / "grid_smooth.npz")
     smoothed = smoothed_to_grid(keys, probs, vs, ctx.cfg.fusion.logp_clip)
     total = cn.iterations * _3DCN_GRID_SCALE
@@ -650,8 +657,10 @@ def stage_3dcn(ctx: _Ctx) -> dict[str, Any]:
             def prog(done: int, tot: int, offset: int = offset) -> None:
                 ctx.tick("3dcn", offset + (done * _3DCN_GRID_SCALE) // max(tot, 1), total)
 
+            if cn.rank_by_views and views is None:
+                views = view_counts(obs_keys for _, obs_keys in _observations(ctx))
             fused = run_3dcn_iteration(ctx.seq, fused, smoothed, c, cn, ctx.cfg.fusion, r / "3dcn", it,
-                                       progress=prog, frames=ctx.frames)
+                                       progress=prog, frames=ctx.frames, views=views)
             fused.save(grid_path)
             _smooth_and_save(fused, ctx, smooth_path)
         keys, probs, vs = _load_smooth(smooth_path)

@@ -13,7 +13,13 @@ import torch
 from leap_core.consistency.backbone import CloudTensors, PlaneIndex, PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig, ConsistencyConfigError
 from leap_core.consistency.data import LOCAL_SCALE, collate, prepare_cloud
-from leap_core.consistency.selection import per_class_quota, select_reliable, select_reliable_scans
+from leap_core.consistency.selection import (
+    lookup_counts,
+    per_class_quota,
+    select_reliable,
+    select_reliable_scans,
+    view_counts,
+)
 from leap_core.consistency.stage import (
     checkpoint_path,
     fuse_back,
@@ -95,6 +101,31 @@ def test_select_reliable_ties_break_by_index_and_share_one_keeps_all_labeled() -
     assert np.flatnonzero(select_reliable(labels, conf, 3, 0.4)).tolist() == [0, 1]
     labels2 = np.array([0, UNLABELED, 1, 1], dtype=np.int16)
     assert select_reliable(labels2, np.ones(4, np.float32), 2, 1.0).tolist() == [True, False, True, True]
+
+
+def test_support_breaks_confidence_ties_before_the_tie_order() -> None:
+    # Five saturated points of class 0 (ties) and one less confident: support decides among the ties only.
+    labels = np.zeros(6, np.int16)
+    conf = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 0.9], np.float32)
+    support = np.array([1, 7, 3, 7, 2, 99])
+    # share 0.5 keeps 3: the two with support 7 (indices 1, 3, in index order), then support 3 (index 2);
+    # index 5 has the most support but a lower confidence, which ranks first.
+    assert np.flatnonzero(select_reliable(labels, conf, 1, 0.5, support=support)).tolist() == [1, 2, 3]
+    assert np.flatnonzero(select_reliable(labels, conf, 1, 0.5)).tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match="support"):
+        select_reliable(labels, conf, 1, 0.5, support=support[:3])
+    # Per scan, each scan's own support array is used.
+    masks = select_reliable_scans([labels, labels], [conf, conf], 1, 0.5, support=[support, support[::-1]])
+    assert np.flatnonzero(masks[0]).tolist() == [1, 2, 3]
+    assert np.flatnonzero(masks[1]).tolist() == [0, 2, 4]  # reversed support: 99, 2, 7, 3, 7 (+ 1 at 0.9)
+
+
+def test_view_counts_count_frames_not_points() -> None:
+    keys, counts = view_counts([np.array([5, 5, 7]), np.array([7]), np.array([9, 7, 7, 7])])
+    assert keys.tolist() == [5, 7, 9] and counts.tolist() == [1, 3, 1]
+    assert lookup_counts(np.array([7, 8, 5, 10, 9, 0]), keys, counts).tolist() == [3, 0, 1, 0, 1, 0]
+    empty_keys, empty_counts = view_counts([])
+    assert len(empty_keys) == 0 and lookup_counts(np.array([1, 2]), empty_keys, empty_counts).tolist() == [0, 0]
 
 
 def test_select_reliable_rejects_bad_input() -> None:

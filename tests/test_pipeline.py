@@ -464,7 +464,7 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
 
     run_dir = tmp_path / "cn"
     shutil.copytree(baseline[0], run_dir)
-    tiny = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1,
+    tiny = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
             "backbone": {"channels": 8, "layers": 1, "knn": 4}}
     cfg = config_from_dict({"consistency": tiny})
     result = run_pipeline(street, schema, cfg, run_dir)

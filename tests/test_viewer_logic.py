@@ -571,11 +571,10 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:  # type: igno
             with client.websocket_connect(ws_url, subprotocols=[proto]) as ws:
                 ws.receive_bytes()
         assert refused.value.status_code == 403
-        with pytest.raises(WebSocketDisconnect) as cross_site:
-            with client.websocket_connect(
-                ws_url + f"?token={token}", subprotocols=[proto], headers={"origin": "http://evil.example"}
-            ) as ws:
-                ws.receive_bytes()
+        with pytest.raises(WebSocketDisconnect) as cross_site, client.websocket_connect(
+            ws_url + f"?token={token}", subprotocols=[proto], headers={"origin": "http://evil.example"}
+        ) as ws:
+            ws.receive_bytes()
         assert cross_site.value.code == 1008
         from app import crud
         from app.core.db import open_db

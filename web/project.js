@@ -218,7 +218,7 @@ export async function renderProject(root, projectId, { toast }) {
         class: "btn danger ghost",
         id: "delete-project",
         onclick: async () => {
-          if (!window.confirm(`Delete project “${p.name}” and its run history? Run folders stay on disk.`)) return;
+          if (!window.confirm(`Delete project “${p.name}”, its run history and run folders? The dataset and any labels exported into it stay.`)) return;
           try {
             await del(`/projects/${projectId}`);
             window.location.hash = "#/";

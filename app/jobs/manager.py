@@ -40,7 +40,7 @@ from app.jobs import worker
 from app.jobs.notify import ChangeNotifier
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
-from leap_core.io_utils import atomic_save_npz, atomic_write_json
+from leap_core.io_utils import atomic_save_npz, atomic_write_json, remove_tree
 
 log = logging.getLogger("leap.jobs")
 
@@ -298,6 +298,9 @@ class JobManager:
     def _prepare_run_dir(self, db: Any, run: dict[str, Any]) -> None:
         """Write the parameter snapshot and the project's active corrections into the new run folder."""
         run_dir = Path(run["run_dir"])
+        # SQLite reuses the highest ids after a delete, so p<P>/r<R> may hold a deleted project's files
+        # (left behind if that delete was interrupted); stale stage outputs must never leak into this run.
+        remove_tree(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         params = run["params"]
         atomic_write_json(run_dir / "params.json", params)
@@ -395,7 +398,7 @@ class JobManager:
                 worker_proc, spare = spare, None
                 try:
                     self._execute(run_id, worker_proc)
-                except Exception:  # noqa: BLE001 - a broken run must not kill the worker thread
+                except Exception:  # a broken run must not kill the worker thread
                     log.exception("run %d: unexpected error in the job manager", run_id)
                     worker_proc.kill()
                     with open_db(self.settings.database) as db:

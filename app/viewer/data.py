@@ -302,4 +302,4 @@ class RunOutputs:
         return rate, observed
 
 
-__all__ = ["FINAL_GRID", "FUSED_GRID", "ReviewGrid", "final_grid_name", "RunOutputs", "ScanView", "matrix_to_wxyz"]
+__all__ = ["FINAL_GRID", "FUSED_GRID", "ReviewGrid", "RunOutputs", "ScanView", "final_grid_name", "matrix_to_wxyz"]

@@ -238,7 +238,7 @@ class ViewerManager:
         for session in sessions:
             try:
                 session.close()
-            except Exception:  # noqa: BLE001 - shutting down: close the others regardless
+            except Exception:  # shutting down: close the others regardless
                 log.exception("closing a viewer failed")
 
 

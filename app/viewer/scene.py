@@ -24,7 +24,22 @@ from app.viewer import view_logic as vl
 RectSelectFn = Callable[[viser.SceneRectSelectEvent], None]
 
 
-class PointLayer:
+class _Layer:
+    """One scene node, created lazily by the subclass's ``set`` and kept (hidden, never removed) after."""
+
+    _handle: viser.SceneNodeHandle | None = None
+
+    @property
+    def visible(self) -> bool:
+        return self._handle is not None and bool(self._handle.visible)
+
+    @visible.setter
+    def visible(self, value: bool) -> None:
+        if self._handle is not None:
+            self._handle.visible = value
+
+
+class PointLayer(_Layer):
     """One point cloud, created on first :meth:`set` and afterwards updated in place."""
 
     def __init__(self, server: viser.ViserServer, name: str, *, point_size: float) -> None:
@@ -84,15 +99,6 @@ class PointLayer:
             self._handle.colors = cols
 
     @property
-    def visible(self) -> bool:
-        return self._handle is not None and bool(self._handle.visible)
-
-    @visible.setter
-    def visible(self, value: bool) -> None:
-        if self._handle is not None:
-            self._handle.visible = value
-
-    @property
     def point_size(self) -> float:
         return self._point_size
 
@@ -103,7 +109,7 @@ class PointLayer:
             self._handle.point_size = float(value)
 
 
-class CameraLayer:
+class CameraLayer(_Layer):
     """The camera frustum of the scan being browsed, with its (label-overlaid) image."""
 
     def __init__(self, server: viser.ViserServer, name: str) -> None:
@@ -147,15 +153,6 @@ class CameraLayer:
             self._handle.fov = fov_y
             self._handle.aspect = aspect
             self._handle.image = image
-
-    @property
-    def visible(self) -> bool:
-        return self._handle is not None and bool(self._handle.visible)
-
-    @visible.setter
-    def visible(self, value: bool) -> None:
-        if self._handle is not None:
-            self._handle.visible = value
 
 
 class ReviewScene:

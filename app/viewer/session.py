@@ -205,7 +205,7 @@ class ReviewSession:
         for fn in list(self._listeners):
             try:
                 fn(name)
-            except Exception:  # noqa: BLE001 - a listener must not break the viewer
+            except Exception:  # a listener must not break the viewer
                 log.exception("viewer listener failed")
 
     def close(self) -> None:
@@ -367,7 +367,7 @@ class ReviewSession:
             self._draw_wanted.clear()
             try:
                 self.draw_now()
-            except Exception:  # noqa: BLE001 - keep the viewer alive; the panel shows the error
+            except Exception:  # keep the viewer alive; the panel shows the error
                 log.exception("viewer redraw failed")
                 self.panel.set_status("Redraw failed; see the server log.")
             finally:
@@ -594,7 +594,7 @@ class ReviewSession:
                 return
             try:
                 info = self.backend.run_info(run_id)
-            except Exception:  # noqa: BLE001 - a transient DB error must not kill the watcher
+            except Exception:  # a transient DB error must not kill the watcher
                 log.exception("viewer could not read run %s", run_id)
                 self._stop.wait(self.config.poll_interval_s)
                 continue
@@ -605,7 +605,7 @@ class ReviewSession:
                 if info.status == "done":
                     try:
                         self.load_run(info)
-                    except Exception as exc:  # noqa: BLE001 - report, keep the old scene
+                    except Exception as exc:  # report, keep the old scene
                         log.exception("viewer could not load run %s", run_id)
                         self.panel.set_status(f"Run {info.number} finished but could not be loaded: {exc}")
                 self._emit("run_finished")

@@ -88,15 +88,23 @@ class ConsistencyConfig:
     """Self-training rounds: 1 (default) or 2 (the paper: the second adds little and can reinforce errors)."""
     share: float = 0.2
     """Per class, the fraction of its labeled points (the most confident ones) used as training labels."""
-    selection_scope: Literal["scan", "sequence"] = "scan"
-    """Where the per-class top-``share`` ranking happens: within each scan (METHOD.md: project each scan
-    onto the grid, then select) or over all points of the sequence at once."""
+    selection_scope: Literal["scan", "sequence"] = "sequence"
+    """Where the per-class top-``share`` ranking happens: over all points of the sequence at once, or within
+    each scan. ``scan`` makes every scan contribute labels of every class it shows, so a scan whose only
+    "truck" is a mislabeled car hands that car to the truck class; ranked over the sequence, the truck
+    labels come from the voxels that are truck most surely (demo sequence, camera-view mIoU after one
+    iteration: 86.2 with ``sequence``, 82.7 with ``scan``, 85.2 before the 3D-CN)."""
+    rank_by_views: bool = True
+    """Among points of equal confidence, select those whose voxel more frames observed first. Smoothed
+    confidences saturate, and a voxel one image painted with many points (a moving object's track, a
+    mistaken mask) saturates as fast as one many views agreed on; on the demo sequence this raises the
+    purity of the selected truck labels from 85 % to 100 % (with ``selection_scope: sequence``)."""
     temperature: float = 0.25
     """Trust in the network when fusing back: its log-probabilities enter with weight ``1/temperature``.
     ``T = 1`` counts the network's view of a voxel like one camera observation; ``T → ∞`` ignores it.
     0.25 (four observations' worth, up to 4·ln(1/prob_floor) ≈ 28 nats) lets a confident network overrule
-    even a saturated camera voxel (stored evidence is clipped at ``logp_clip`` = 20); on the demo sequence
-    it gave the best camera-view mIoU of 0.25 / 0.5 / 1 (86.1 / 84.6 / 84.3 against 85.0 before)."""
+    even a saturated camera voxel (stored evidence is clipped at ``logp_clip`` = 20). Demo sequence, same
+    checkpoint, camera-view mIoU for T = 0.125 / 0.25 / 0.5 / 1: 84.2 / 86.2 / 83.3 / 82.8 (85.2 before)."""
     network_evidence: Literal["voxel", "point"] = "voxel"
     """How predictions enter the Bayesian update. ``voxel``: the mean floored log-probability of all points
     in a voxel (over all scans) is one observation, so the network flips only voxels whose camera evidence

@@ -9,6 +9,7 @@ confidence threshold would keep mostly road and building.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 import numpy.typing as npt
@@ -33,6 +34,7 @@ def select_reliable(
     num_classes: int,
     share: float,
     seed: int | None = None,
+    support: npt.NDArray[np.floating] | None = None,
 ) -> npt.NDArray[np.bool_]:
     """Per class, mark the ``share`` most confident labeled points.
 
@@ -42,12 +44,20 @@ def select_reliable(
     from ``seed``. Fused grids saturate (many voxels reach the same clipped confidence), and an index
     order would then pick points by scan order (e.g. the lowest beams) instead of spreading them out.
 
+    ``support`` (optional, higher = better) ranks points of equal confidence before the tie order. The
+    pipeline passes how many frames observed the point's voxel (:func:`view_counts`): among saturated
+    voxels it prefers those many views agreed on over those one image decided, such as the track of a
+    moving object seen once per position, whose label a single mistaken mask can flip. (The evidence
+    margin does not tell them apart: the many points one mask paints into a voxel count as independent
+    observations and saturate it alone.)
+
     Args:
         labels: (N,) int class index per point in ``[0, num_classes)`` or ``UNLABELED``.
         confidence: (N,) float confidence per point (e.g. its voxel's max class probability).
         num_classes: C, number of classes.
         share: fraction in (0, 1] of each class's points to keep.
         seed: seed of the tie-breaking order; None = point index order.
+        support: (N,) secondary key, or None.
 
     Returns:
         (N,) bool mask of selected points; ``mask.sum() == Σ_c k_c``.
@@ -59,6 +69,8 @@ def select_reliable(
     confidence = np.asarray(confidence)
     if labels.ndim != 1 or confidence.shape != labels.shape:
         raise ValueError(f"labels {labels.shape} and confidence {confidence.shape} must both be (N,)")
+    if support is not None and np.shape(support) != labels.shape:
+        raise ValueError(f"support {np.shape(support)} must have the shape of labels {labels.shape}")
     if not 0.0 < share <= 1.0:
         raise ValueError(f"share must be in (0, 1], got {share}")
     selected = np.zeros(labels.shape[0], dtype=bool)
@@ -67,14 +79,15 @@ def select_reliable(
     lab = labels.astype(np.int64)
     if lab.min() < UNLABELED or lab.max() >= num_classes:
         raise ValueError(f"labels must lie in [-1, {num_classes}), got range [{lab.min()}, {lab.max()}]")
-    # One stable sort orders points by (class, confidence descending, tie rank): lexsort's last key is
-    # primary and the sort is stable, so with no tie rank equal confidences keep index order.
+    # One stable sort orders points by (class, confidence descending, support descending, tie rank):
+    # lexsort's last key is primary and the sort is stable, so remaining ties keep index order.
     conf = np.nan_to_num(confidence.astype(np.float64), nan=-np.inf)
-    if seed is None:
-        order = np.lexsort((-conf, lab))
-    else:
-        tie = np.random.default_rng(seed).permutation(lab.shape[0])
-        order = np.lexsort((tie, -conf, lab))
+    keys: list[npt.NDArray[np.generic]] = (
+        [] if seed is None else [np.random.default_rng(seed).permutation(lab.shape[0])]
+    )
+    if support is not None:
+        keys.append(-np.nan_to_num(np.asarray(support, np.float64), nan=-np.inf))
+    order = np.lexsort((*keys, -conf, lab))
     sorted_lab = lab[order]
     counts = np.bincount(lab[lab >= 0], minlength=num_classes)
     starts = np.searchsorted(sorted_lab, np.arange(num_classes), side="left")
@@ -85,6 +98,35 @@ def select_reliable(
     return selected
 
 
+def view_counts(
+    frame_keys: Iterable[npt.NDArray[np.int64]],
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """In how many frames each voxel was observed: ``n_v = |{f : v ∈ K_f}|`` over per-frame key sets K_f.
+
+    Args:
+        frame_keys: per frame, the voxel keys of its observed (painted) points, repeats allowed.
+
+    Returns:
+        Sorted unique keys (V,) and their frame counts (V,). Example: frames [5, 5, 7] and [7] give keys
+        [5, 7] with counts [1, 2].
+    """
+    per_frame = [np.unique(np.asarray(k, np.int64)) for k in frame_keys]
+    if not per_frame:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
+    return keys, counts.astype(np.int64)
+
+
+def lookup_counts(
+    keys: npt.NDArray[np.int64], count_keys: npt.NDArray[np.int64], counts: npt.NDArray[np.int64]
+) -> npt.NDArray[np.int64]:
+    """``counts`` of each of ``keys`` (N,) in the sorted ``count_keys``; 0 where absent."""
+    if len(count_keys) == 0:
+        return np.zeros(len(keys), np.int64)
+    pos = np.minimum(np.searchsorted(count_keys, keys), len(count_keys) - 1)
+    return np.where(count_keys[pos] == keys, counts[pos], 0).astype(np.int64)
+
+
 def select_reliable_scans(
     labels: list[npt.NDArray[np.integer]],
     confidence: list[npt.NDArray[np.floating]],
@@ -92,6 +134,7 @@ def select_reliable_scans(
     share: float,
     scope: str = "scan",
     seed: int | None = None,
+    support: list[npt.NDArray[np.floating]] | None = None,
 ) -> list[npt.NDArray[np.bool_]]:
     """:func:`select_reliable` over a list of scans, ranking per scan or over the whole sequence.
 
@@ -100,14 +143,21 @@ def select_reliable_scans(
     ``scope="sequence"`` ranks all points of all scans together, so a class's labels concentrate in the
     scans where its voxels are most confident.
 
-    ``seed`` breaks ties as in :func:`select_reliable` (scan s uses ``seed + s``).
+    ``seed`` and ``support`` break ties as in :func:`select_reliable` (scan s uses ``seed + s``).
 
     Returns:
         One (N_s,) bool mask per scan.
     """
     if scope == "scan":
         return [
-            select_reliable(lab, conf, num_classes, share, None if seed is None else seed + s)
+            select_reliable(
+                lab,
+                conf,
+                num_classes,
+                share,
+                None if seed is None else seed + s,
+                None if support is None else support[s],
+            )
             for s, (lab, conf) in enumerate(zip(labels, confidence))
         ]
     if scope != "sequence":
@@ -115,7 +165,14 @@ def select_reliable_scans(
     sizes = [len(lab) for lab in labels]
     if not sizes:
         return []
-    mask = select_reliable(np.concatenate(labels), np.concatenate(confidence), num_classes, share, seed)
+    mask = select_reliable(
+        np.concatenate(labels),
+        np.concatenate(confidence),
+        num_classes,
+        share,
+        seed,
+        None if support is None else np.concatenate(support),
+    )
     return list(np.split(mask, np.cumsum(sizes)[:-1]))
 
 

@@ -19,7 +19,7 @@ import numpy.typing as npt
 import torch
 
 from leap_core.consistency.config import ConsistencyConfig
-from leap_core.consistency.selection import select_reliable_scans
+from leap_core.consistency.selection import lookup_counts, select_reliable_scans
 from leap_core.consistency.train import (
     config_to_dict,
     load_checkpoint,
@@ -92,12 +92,14 @@ def run_3dcn_iteration(
     iteration: int,
     progress: Callable[[int, int], None] | None = None,
     frames: range | None = None,
+    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None,
 ) -> VoxelGrid:
     """Self-train the 3D Consistency Network once and fuse its predictions into ``fused``.
 
     1. **Selection**: every point of every scan goes to world coordinates with its pose, takes the label
        and confidence of its voxel in ``smoothed``, and per class the ``cfg.share`` most confident points
-       become training labels (:func:`~leap_core.consistency.selection.select_reliable`, per scan or over the
+       (equal confidences: voxels more frames observed first, by ``views``) become training labels
+       (:func:`~leap_core.consistency.selection.select_reliable`, per scan or over the
        sequence by ``cfg.selection_scope``).
     2. **Training** (:func:`~leap_core.consistency.train.train_model`), checkpoint written to
        ``work_dir/3dcn_iter{iteration}.pt``. A checkpoint whose fingerprint (config, classes, frames,
@@ -120,6 +122,9 @@ def run_3dcn_iteration(
         iteration: 1 or 2; names the checkpoint and offsets the seed.
         progress: ``progress(done, total)`` over selection + training steps + inference scans.
         frames: scans to use (default all).
+        views: sorted voxel keys and the number of frames that observed each
+            (:func:`~leap_core.consistency.selection.view_counts`), the tie-break of the selection; None
+            leaves ties to the seeded random order.
 
     Returns:
         A new grid: ``fused`` plus the tempered network evidence.
@@ -156,16 +161,22 @@ def run_3dcn_iteration(
     vox_lab, vox_conf = smoothed.labels_and_confidence()
     labels: list[np.ndarray] = []
     confs: list[np.ndarray] = []
+    supports: list[np.ndarray] = []
     for i in frames:
         frame = seq.frame(i)
         keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
         lab, conf = point_labels_from_grid(keys, smoothed, vox_lab, vox_conf)
         labels.append(lab)
         confs.append(conf)
+        if views is not None:
+            supports.append(lookup_counts(keys, *views))
         tick()
-    masks = select_reliable_scans(labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg_it.seed)
+    masks = select_reliable_scans(
+        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg_it.seed,
+        support=supports if views is not None else None,
+    )
     targets = [np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels)]
-    del labels, confs, masks
+    del labels, confs, supports, masks
     counts = np.zeros(num_classes, np.int64)
     for t in targets:
         counts += np.bincount(t[t >= 0], minlength=num_classes)

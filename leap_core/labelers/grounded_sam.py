@@ -184,7 +184,7 @@ def resolve_model_folder(model_id: str, models_dir: str | Path | None, allow_dow
                     allow_patterns=["*.json", "*.txt", "*.safetensors", "*.model"],
                 )
             )
-        except Exception as exc:  # noqa: BLE001 - any hub/cache failure means "not available here"
+        except Exception as exc:  # any hub/cache failure means "not available here"
             example = Path("models") / model_folder_name(model_id)
             raise ModelLoadError(
                 f"{model_id}: not in the Hugging Face cache ({type(exc).__name__}); "
@@ -266,7 +266,7 @@ def load_processor(folder: Path, model_id: str, expect_type: str) -> Any:
 
     try:
         proc = AutoProcessor.from_pretrained(str(folder), local_files_only=True)
-    except Exception as exc:  # noqa: BLE001 - transformers raises many types for a broken folder
+    except Exception as exc:  # transformers raises many types for a broken folder
         raise ModelLoadError(
             f"{folder}: cannot read the processor of {model_id} ({_first_line(exc)}); "
             f"{_download_hint(model_id, folder)}"
@@ -294,7 +294,7 @@ def _load_model(folder: Path, model_id: str, cls_name: str, device: str) -> Any:
     cls = getattr(transformers, cls_name)
     try:
         model = cls.from_pretrained(str(folder), local_files_only=True)
-    except Exception as exc:  # noqa: BLE001 - transformers raises many types for a broken folder
+    except Exception as exc:  # transformers raises many types for a broken folder
         raise ModelLoadError(
             f"{folder}: cannot load {model_id} weights ({_first_line(exc)}); {_download_hint(model_id, folder)}"
         ) from exc

@@ -115,6 +115,31 @@ def crud_run_dir(client: TestClient, run_id: int) -> str:
         return crud.require_run(db, run_id)["run_dir"]
 
 
+def test_deleting_a_project_removes_its_run_folders(client: TestClient, tiny_dataset: Path) -> None:
+    project = create_project(client, tiny_dataset, name="doomed")
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={"frames": {"start": 0, "stop": 2}}).json()
+    assert wait_run(client, run["id"])["status"] == "done"
+    run_dir = Path(crud_run_dir(client, run["id"]))
+    assert (run_dir / "export" / "000000.label").is_file()
+
+    assert client.delete(f"{API}/projects/{project['id']}").status_code == 200
+    assert not run_dir.parent.exists()
+    assert list(run_dir.parent.parent.iterdir()) == []  # nothing half-deleted left beside it
+    assert (tiny_dataset / "velodyne" / "000000.bin").is_file()  # the user's dataset stays
+
+    # SQLite hands the highest ids out again, so the next project's first run gets the same folder. Files a
+    # crash left there (mid-delete) must not leak into it: the new run starts from an empty folder.
+    run_dir.mkdir(parents=True)
+    (run_dir / "left-by-a-deleted-project.txt").write_text("stale")
+    again = create_project(client, tiny_dataset, name="reborn")
+    rerun = client.post(f"{API}/projects/{again['id']}/runs", json={"frames": {"start": 0, "stop": 2}})
+    rerun = rerun.json()
+    assert wait_run(client, rerun["id"])["status"] == "done"
+    assert Path(crud_run_dir(client, rerun["id"])) == run_dir
+    assert not (run_dir / "left-by-a-deleted-project.txt").exists()
+    assert sorted(p.name for p in (run_dir / "export").glob("*.label")) == ["000000.label", "000001.label"]
+
+
 def test_unknown_runs_are_404(client: TestClient) -> None:
     for method, path in [
         ("get", "/runs/77"),

@@ -12,12 +12,14 @@ import sys
 import zipfile
 from pathlib import Path
 
+import browserfixtures
 import numpy as np
 import pytest
 
-CHROMIUM = Path("/usr/bin/chromium")
-ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 FRAMES = 4
+
+# The browser fixtures (this folder has no conftest.py; see browserfixtures), found by name here.
+artifacts, browser = browserfixtures.artifacts, browserfixtures.browser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
@@ -35,35 +37,11 @@ def server(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped
     srv.stop()
 
 
-@pytest.fixture(scope="module")
-def browser():  # type: ignore[no-untyped-def]
-    if not CHROMIUM.exists():
-        pytest.skip("Debian chromium is not installed at /usr/bin/chromium (apt-get install chromium)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(
-            executable_path=str(CHROMIUM),
-            args=[
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--no-first-run",
-            ],
-        )
-        yield b
-        b.close()
-
-
-def test_create_edit_run_compare_and_download(server, browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     import httpx
     from playwright.sync_api import expect
 
     srv, dataset = server
-    ARTIFACTS.mkdir(exist_ok=True)
     page = browser.new_page(viewport={"width": 1440, "height": 1000}, accept_downloads=True)
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
@@ -129,7 +107,7 @@ def test_create_edit_run_compare_and_download(server, browser, tmp_path: Path) -
     expect(page.locator("#metrics-table tbody tr")).to_have_count(4)  # 2 runs x (point, voxel)
     expect(page.locator(".legend > span")).to_have_count(2)
     assert page.locator("#iou-chart svg rect[fill]:not(.swatch)").count() == 2 * one_run_bars
-    page.screenshot(path=str(ARTIFACTS / "web_ui_project.png"), full_page=True)
+    page.screenshot(path=str(artifacts / "web_ui_project.png"), full_page=True)
 
     # ---- export download
     with page.expect_download() as info:
@@ -153,7 +131,7 @@ def test_create_edit_run_compare_and_download(server, browser, tmp_path: Path) -
     page.goto(srv.base + "/#/")
     card = page.locator(f'.project-card[data-project-id="{project_id}"]')
     expect(card.locator(".chip.status-done")).to_be_visible()
-    page.screenshot(path=str(ARTIFACTS / "web_ui_projects.png"), full_page=True)
+    page.screenshot(path=str(artifacts / "web_ui_projects.png"), full_page=True)
     assert errors == []
     page.close()
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Request, status
 
 from app import crud, models, services
 from app.api.deps import DbDep, SettingsDep
@@ -32,6 +32,9 @@ def update_project(project_id: int, payload: models.ProjectUpdate, db: DbDep) ->
 
 
 @router.delete("/{project_id}", response_model=models.Message)
-def delete_project(project_id: int, db: DbDep) -> models.Message:
-    services.delete_project(db, project_id)
+def delete_project(project_id: int, request: Request, db: DbDep, settings: SettingsDep) -> models.Message:
+    services.delete_project(db, settings, project_id)
+    viewers = getattr(request.app.state, "viewers", None)  # created on first viewer use only
+    if viewers is not None:
+        viewers.close(project_id)
     return models.Message(message="Project deleted")
