@@ -40,7 +40,7 @@ class StageBars:
         for bar in self.bars.values():
             bar.close()  # type: ignore[attr-defined]
 
-    def __enter__(self) -> StageBars:
+    def __enter__(self) -> StageBars:  # noqa: PYI034 - typing.Self needs Python 3.11
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -440,7 +440,7 @@ def _read_yaml(path: Path) -> Any:
         detail = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         raise SchemaError(f"{path}: cannot read schema file ({detail})") from exc
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - SafeLoader subclass
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # safe: a SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         problem = " ".join(str(getattr(exc, "problem", None) or exc).split())

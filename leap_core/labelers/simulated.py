@@ -216,7 +216,7 @@ def _jitter(
 
 def _regions(cls_img: npt.NDArray[np.int16], inst: npt.NDArray[np.uint16]) -> list[_Region]:
     """Thing regions (class, instance) first, sorted by key, then stuff components by class and label."""
-    h, w = cls_img.shape
+    _, w = cls_img.shape
     regions: list[_Region] = []
     valid = cls_img >= 0
     thing = valid & (inst > 0)

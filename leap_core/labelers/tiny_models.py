@@ -83,7 +83,7 @@ class TinyModelsConfig:
     """SAM input size (the real one is 1024); images are resized to this long side and padded square."""
 
 
-def build_tiny_detector(cfg: TinyModelsConfig | None = None):  # noqa: ANN201 - transformers types
+def build_tiny_detector(cfg: TinyModelsConfig | None = None):  # untyped: transformers types
     """``(model, processor)``: a tiny random GroundingDinoForObjectDetection and its processor."""
     import torch
     from transformers import BertTokenizer, GroundingDinoConfig, GroundingDinoForObjectDetection
@@ -133,7 +133,7 @@ def build_tiny_detector(cfg: TinyModelsConfig | None = None):  # noqa: ANN201 - 
     return model, GroundingDinoProcessor(image_processor=image_processor, tokenizer=tokenizer)
 
 
-def build_tiny_segmenter(cfg: TinyModelsConfig | None = None):  # noqa: ANN201 - transformers types
+def build_tiny_segmenter(cfg: TinyModelsConfig | None = None):  # untyped: transformers types
     """``(model, processor)``: a tiny random SamModel and its processor."""
     import torch
     from transformers import SamConfig, SamModel

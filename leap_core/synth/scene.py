@@ -13,6 +13,7 @@ Traffic keeps right, so the lane next to a side flows along −t.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -918,7 +919,7 @@ def _aa_box(
     """Axis-aligned box over side coordinates [a0, a1] × [c0, c1] × [z0, z1], split into tiles along a."""
     n_tiles = max(int(np.ceil((a1 - a0) / tile)), 1)
     edges = np.linspace(a0, a1, n_tiles + 1)
-    for ta, tb in zip(edges[:-1], edges[1:], strict=True):
+    for ta, tb in itertools.pairwise(edges):
         q0 = o + ta * t + c0 * n
         q1 = o + tb * t + c1 * n
         lo, hi = np.minimum(q0, q1), np.maximum(q0, q1)
@@ -1383,7 +1384,7 @@ def _streets(
             end = s_hi - (4.0 if zebra_hi else 0.0)
             n_t = max(int(np.ceil((end - a) / cfg.tile)), 1)
             edges = np.linspace(a, end, n_t + 1)
-            pieces += [(e0, e1, 1) for e0, e1 in zip(edges[:-1], edges[1:], strict=True)]
+            pieces += [(e0, e1, 1) for e0, e1 in itertools.pairwise(edges)]
             if zebra_hi:
                 pieces.append((end, s_hi, 2))
             for s0, s1, style in pieces:

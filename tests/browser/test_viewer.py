@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 # The browser fixtures (this folder has no conftest.py; see browserfixtures), found by name here.
-artifacts, browser = browserfixtures.artifacts, browserfixtures.browser
+artifacts = browserfixtures.artifacts
 
 MAX_BROWSER_POINTS = 200_000
 """Software WebGL stays responsive up to about this many points (METHOD.md)."""
@@ -102,9 +102,7 @@ def _shot(page: Any, artifacts: Path, name: str) -> Path:
     return path
 
 
-def test_review_steer_rerun_and_correct_in_a_real_browser(
-    live_app: dict[str, Any], browser: Any, artifacts: Path
-) -> None:
+def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, Any], artifacts: Path) -> None:
     import httpx
 
     from app import crud
@@ -142,122 +140,127 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(
     assert session.grid.num_voxels <= MAX_BROWSER_POINTS, "demo map too large for software WebGL"
     names = session.class_names()
 
-    page = browser.new_page(viewport={"width": 1400, "height": 900})
-    page.goto(base + viewer["url"])
-    page.get_by_text("Connected", exact=True).wait_for(timeout=60_000)
-    page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
-    alert = page.get_by_role("alert")
-    if alert.count():
-        alert.get_by_role("button").first.click()
-    assert session.wait_drawn(30)
-    page.wait_for_timeout(4000)  # software WebGL draws the map
-    _shot(page, artifacts, "viewer-1-classes.png")
-    page.get_by_text(f"{session.grid.num_voxels:,} voxels, {len(names)} classes", exact=False).wait_for(
-        timeout=10_000
-    )
+    with browserfixtures.launch_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        browserfixtures.echo_console(page)
+        page.goto(base + viewer["url"])
+        page.get_by_text("Connected", exact=True).wait_for(timeout=60_000)
+        page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
+        alert = page.get_by_role("alert")
+        if alert.count():
+            alert.get_by_role("button").first.click()
+        assert session.wait_drawn(30)
+        page.wait_for_timeout(4000)  # software WebGL draws the map
+        _shot(page, artifacts, "viewer-1-classes.png")
+        page.get_by_text(f"{session.grid.num_voxels:,} voxels, {len(names)} classes", exact=False).wait_for(
+            timeout=10_000
+        )
 
-    # 3. One class's probability view, with its colour-scale legend.
-    _pick(page, "Color by", "class probability")
-    _pick(page, "Class", "road")
-    wait_until(
-        lambda: (
-            session.state.mode == "class_probability" and session.state.class_index == names.index("road")
-        ),
-        20,
-        "the road probability view",
-    )
-    page.get_by_text("P(road)").wait_for(timeout=10_000)
-    assert session.wait_drawn(30)
-    page.wait_for_timeout(2500)
-    _shot(page, artifacts, "viewer-2-road-probability.png")
-
-    # 4. The threshold hides voxels below it.
-    shown_before = session.scene.voxels.count
-    threshold = _panel_input(page, "Min probability")
-    threshold.fill("0.5")
-    threshold.press("Enter")
-    wait_until(lambda: abs(session.state.threshold - 0.5) < 1e-9, 20, "the threshold to reach the server")
-    assert session.wait_drawn(30)
-    road_prob = session.grid.class_prob(names.index("road"))
-    assert session.scene.voxels.count == int((road_prob >= 0.5).sum()) < shown_before
-    page.wait_for_timeout(2500)
-    _shot(page, artifacts, "viewer-3-road-threshold.png")
-
-    # 5. A manual correction: back to classes, box-select the middle of the view, assign a class.
-    _pick(page, "Color by", "class")
-    threshold = _panel_input(page, "Min confidence")
-    threshold.fill("0")
-    threshold.press("Enter")
-    wait_until(lambda: session.state.mode == "class" and session.state.threshold == 0, 20, "the class view")
-    page.get_by_text("Corrections", exact=True).click()
-    _pick(page, "Assign class", CORRECTED_CLASS)
-    page.get_by_role("button", name="Select box").click()
-    wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
-    canvas = page.locator("canvas").first.bounding_box()
-    cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
-    page.mouse.move(cx - 90, cy - 50)
-    page.mouse.down()
-    page.mouse.move(cx, cy, steps=8)
-    page.mouse.move(cx + 90, cy + 50, steps=8)
-    page.mouse.up()
-    selected = wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected")
-    page.get_by_text(f"{selected:,} voxels selected.").wait_for(timeout=10_000)
-    page.wait_for_timeout(2000)
-    _shot(page, artifacts, "viewer-4-selection.png")
-    page.get_by_role("button", name="Apply to selection").click()
-    with open_db(settings.database) as db:
-        corrections = wait_until(lambda: crud.list_corrections(db, pid), 20, "the correction to be stored")
-    (correction,) = corrections
-    assert correction.class_name == CORRECTED_CLASS and correction.keys.size == selected
-    assert session.wait_drawn(30)
-    assert (session.label[session.grid.rows_of(correction.keys)] == names.index(CORRECTED_CLASS)).all()
-
-    # 6. Edit a class's prompts; it lands in the project (the same data the web UI edits).
-    page.get_by_text("Classes and prompts", exact=True).click()
-    _pick(page, "Edit class", "car")
-    prompts = _panel_input(page, "Prompts")
-    wait_until(lambda: "car" in prompts.input_value(), 10, "the class editor to fill in")
-    prompts.fill("car, automobile, hatchback")
-    prompts.press("Tab")
-    page.get_by_role("button", name="Save class").click()
-    car = wait_until(
-        lambda: next(
-            (
-                c
-                for c in api.get(f"/projects/{pid}/classes").json()["data"]
-                if c["name"] == "car" and "hatchback" in c["prompts"]
+        # 3. One class's probability view, with its colour-scale legend.
+        _pick(page, "Color by", "class probability")
+        _pick(page, "Class", "road")
+        wait_until(
+            lambda: (
+                session.state.mode == "class_probability" and session.state.class_index == names.index("road")
             ),
-            None,
-        ),
-        20,
-        "the edited prompts in the project",
-    )
-    assert car["prompts"] == ["car", "automobile", "hatchback"]
+            20,
+            "the road probability view",
+        )
+        page.get_by_text("P(road)").wait_for(timeout=10_000)
+        assert session.wait_drawn(30)
+        page.wait_for_timeout(2500)
+        _shot(page, artifacts, "viewer-2-road-probability.png")
 
-    # 7. Re-run from the panel: progress shows, the run finishes, the scene reloads.
-    version = session.scene_version
-    page.get_by_role("button", name="Re-run").click()
-    second = wait_until(lambda: (r := last_run()) and r["id"] != first["id"] and r, 30, "the new run")
-    page.get_by_text(re.compile(rf"Run {second['number']} (queued|running)")).wait_for(timeout=30_000)
-    page.wait_for_timeout(500)
-    _shot(page, artifacts, "viewer-5-rerun-progress.png")
-    wait_until(lambda: session.scene_version > version, 600, "the new run's scene")
-    assert session.scene_version == version + 1 and session.run is not None
-    assert session.run.run_id == second["id"]
-    page.get_by_text(f"Run {second['number']}", exact=False).first.wait_for(timeout=30_000)
-    assert session.wait_drawn(30)
-    page.wait_for_timeout(4000)
-    _shot(page, artifacts, "viewer-6-after-rerun.png")
+        # 4. The threshold hides voxels below it.
+        shown_before = session.scene.voxels.count
+        threshold = _panel_input(page, "Min probability")
+        threshold.fill("0.5")
+        threshold.press("Enter")
+        wait_until(lambda: abs(session.state.threshold - 0.5) < 1e-9, 20, "the threshold to reach the server")
+        assert session.wait_drawn(30)
+        road_prob = session.grid.class_prob(names.index("road"))
+        assert session.scene.voxels.count == int((road_prob >= 0.5).sum()) < shown_before
+        page.wait_for_timeout(2500)
+        _shot(page, artifacts, "viewer-3-road-threshold.png")
 
-    # 8. The review queue moves the camera to the least confident region.
-    page.get_by_text("Review queue", exact=True).click()
-    page.get_by_role("button", name="Next region").click()
-    page.get_by_text(re.compile(r"Region 1/\d+: mean confidence")).wait_for(timeout=30_000)
-    region = session.regions[0]
-    assert region.score == min(r.score for r in session.regions)
-    page.wait_for_timeout(3000)
-    _shot(page, artifacts, "viewer-7-review-queue.png")
-    page.close()
+        # 5. A manual correction: back to classes, box-select the middle of the view, assign a class.
+        _pick(page, "Color by", "class")
+        threshold = _panel_input(page, "Min confidence")
+        threshold.fill("0")
+        threshold.press("Enter")
+        wait_until(
+            lambda: session.state.mode == "class" and session.state.threshold == 0, 20, "the class view"
+        )
+        page.get_by_text("Corrections", exact=True).click()
+        _pick(page, "Assign class", CORRECTED_CLASS)
+        page.get_by_role("button", name="Select box").click()
+        wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
+        canvas = page.locator("canvas").first.bounding_box()
+        cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+        page.mouse.move(cx - 90, cy - 50)
+        page.mouse.down()
+        page.mouse.move(cx, cy, steps=8)
+        page.mouse.move(cx + 90, cy + 50, steps=8)
+        page.mouse.up()
+        selected = wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected")
+        page.get_by_text(f"{selected:,} voxels selected.").wait_for(timeout=10_000)
+        page.wait_for_timeout(2000)
+        _shot(page, artifacts, "viewer-4-selection.png")
+        page.get_by_role("button", name="Apply to selection").click()
+        with open_db(settings.database) as db:
+            corrections = wait_until(
+                lambda: crud.list_corrections(db, pid), 20, "the correction to be stored"
+            )
+        (correction,) = corrections
+        assert correction.class_name == CORRECTED_CLASS and correction.keys.size == selected
+        assert session.wait_drawn(30)
+        assert (session.label[session.grid.rows_of(correction.keys)] == names.index(CORRECTED_CLASS)).all()
+
+        # 6. Edit a class's prompts; it lands in the project (the same data the web UI edits).
+        page.get_by_text("Classes and prompts", exact=True).click()
+        _pick(page, "Edit class", "car")
+        prompts = _panel_input(page, "Prompts")
+        wait_until(lambda: "car" in prompts.input_value(), 10, "the class editor to fill in")
+        prompts.fill("car, automobile, hatchback")
+        prompts.press("Tab")
+        page.get_by_role("button", name="Save class").click()
+        car = wait_until(
+            lambda: next(
+                (
+                    c
+                    for c in api.get(f"/projects/{pid}/classes").json()["data"]
+                    if c["name"] == "car" and "hatchback" in c["prompts"]
+                ),
+                None,
+            ),
+            20,
+            "the edited prompts in the project",
+        )
+        assert car["prompts"] == ["car", "automobile", "hatchback"]
+
+        # 7. Re-run from the panel: progress shows, the run finishes, the scene reloads.
+        version = session.scene_version
+        page.get_by_role("button", name="Re-run").click()
+        second = wait_until(lambda: (r := last_run()) and r["id"] != first["id"] and r, 30, "the new run")
+        page.get_by_text(re.compile(rf"Run {second['number']} (queued|running)")).wait_for(timeout=30_000)
+        page.wait_for_timeout(500)
+        _shot(page, artifacts, "viewer-5-rerun-progress.png")
+        wait_until(lambda: session.scene_version > version, 600, "the new run's scene")
+        assert session.scene_version == version + 1 and session.run is not None
+        assert session.run.run_id == second["id"]
+        page.get_by_text(f"Run {second['number']}", exact=False).first.wait_for(timeout=30_000)
+        assert session.wait_drawn(30)
+        page.wait_for_timeout(4000)
+        _shot(page, artifacts, "viewer-6-after-rerun.png")
+
+        # 8. The review queue moves the camera to the least confident region.
+        page.get_by_text("Review queue", exact=True).click()
+        page.get_by_role("button", name="Next region").click()
+        page.get_by_text(re.compile(r"Region 1/\d+: mean confidence")).wait_for(timeout=30_000)
+        region = session.regions[0]
+        assert region.score == min(r.score for r in session.regions)
+        page.wait_for_timeout(3000)
+        _shot(page, artifacts, "viewer-7-review-queue.png")
 
     # 9. The correction is in the new run's exported .label files.
     run = api.get(f"/runs/{second['id']}").json()
