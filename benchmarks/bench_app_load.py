@@ -316,34 +316,20 @@ def main() -> None:
     base_cpu = statistics.median(r["cpu_s"] for r in baseline)
     load_cpu = statistics.median(r["cpu_s"] for r in loaded)
     ms = 1000.0
-    rows = []
-    for kind, label in (("run", "GET /runs/{id}"), ("progress", "GET /runs/{id}/progress")):
-        v = stats.latency[kind]
-        rows.append([label, len(v), pct(v, 50) * ms, pct(v, 99) * ms, max(v) * ms if v else float("nan")])
-    for kind, label in (
-        ("run", "GET /runs/{id}, in the app"),
-        ("progress", "GET /runs/{id}/progress, in the app"),
-    ):
-        v = [x / ms for x in stats.server_ms[kind]]
-        rows.append([label, len(v), pct(v, 50) * ms, pct(v, 99) * ms, max(v) * ms if v else float("nan")])
-    rows.append(
-        [
-            "SSE time to first event",
-            len(stats.first_event),
-            pct(stats.first_event, 50) * ms,
-            pct(stats.first_event, 99) * ms,
-            max(stats.first_event) * ms,
-        ]
-    )
-    rows.append(
-        [
-            "SSE event lag",
-            len(stats.event_lag),
-            pct(stats.event_lag, 50) * ms,
-            pct(stats.event_lag, 99) * ms,
-            max(stats.event_lag) * ms,
-        ]
-    )
+
+    def latency_row(label: str, seconds: list[float]) -> list[Any]:
+        if not seconds:
+            return [label, 0, float("nan"), float("nan"), float("nan")]
+        return [label, len(seconds), pct(seconds, 50) * ms, pct(seconds, 99) * ms, max(seconds) * ms]
+
+    rows = [
+        latency_row("GET /runs/{id}", stats.latency["run"]),
+        latency_row("GET /runs/{id}/progress", stats.latency["progress"]),
+        latency_row("GET /runs/{id}, in the app", [x / ms for x in stats.server_ms["run"]]),
+        latency_row("GET /runs/{id}/progress, in the app", [x / ms for x in stats.server_ms["progress"]]),
+        latency_row("SSE time to first event", stats.first_event),
+        latency_row("SSE event lag", stats.event_lag),
+    ]
     print_table(
         f"App under load: {args.clients} clients (SSE stream + a poll every {args.poll_interval} s each), "
         f"{args.pairs} loaded run(s)",

@@ -98,6 +98,19 @@ def voxel_keys(xyz_world: npt.ArrayLike, voxel_size: float) -> npt.NDArray[np.in
     return (i[:, 0] << (2 * AXIS_BITS)) | (i[:, 1] << AXIS_BITS) | i[:, 2]
 
 
+def rows_in_sorted(sorted_keys: npt.ArrayLike, query_keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """Index of each query key in the sorted unique ``sorted_keys`` (V,), -1 where absent; shape of the query.
+
+    Example: sorted_keys [3, 7, 9], queries [9, 4, 3, 10] → [2, -1, 0, -1].
+    """
+    keys = np.asarray(sorted_keys, dtype=np.int64)
+    q = np.asarray(query_keys, dtype=np.int64)
+    if keys.size == 0:
+        return np.full(q.shape, -1, np.int64)
+    pos = np.minimum(np.searchsorted(keys, q), keys.size - 1)
+    return np.where(keys[pos] == q, pos, -1).astype(np.int64)
+
+
 def key_coords(keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
     """(V, 3) int64 voxel coordinates ``floor(xyz / voxel_size)`` of packed keys (inverse of the packing)."""
     k = np.asarray(keys, dtype=np.int64)
@@ -181,12 +194,7 @@ class VoxelGrid:
 
     def lookup(self, query_keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
         """(N,) int64 row of each query key in this grid, -1 where the voxel was never observed."""
-        q = np.asarray(query_keys, dtype=np.int64)
-        if self.num_voxels == 0:
-            return np.full(q.shape, -1, np.int64)
-        pos = np.searchsorted(self.keys, q)
-        pos_c = np.minimum(pos, self.num_voxels - 1)
-        return np.where(self.keys[pos_c] == q, pos_c, -1).astype(np.int64)
+        return rows_in_sorted(self.keys, query_keys)
 
     def save(self, path: str | Path) -> None:
         """Write ``keys``, ``logp`` and ``voxel_size`` as an uncompressed npz, atomically."""

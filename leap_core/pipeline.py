@@ -46,7 +46,15 @@ import numpy.typing as npt
 from leap_core.config import PipelineConfig, config_to_dict
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import Cancelled, DatasetError, LeapError
-from leap_core.fusion import Observations, VoxelGrid, apply_overrides, fuse, log_table, voxel_keys
+from leap_core.fusion import (
+    Observations,
+    VoxelGrid,
+    apply_overrides,
+    fuse,
+    log_table,
+    rows_in_sorted,
+    voxel_keys,
+)
 from leap_core.io_utils import atomic_save_npz, atomic_write, atomic_write_json
 from leap_core.labelers.base import SoftMasks
 from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
@@ -257,12 +265,10 @@ class _GridLabels:
         n = keys.shape[0]
         lab = np.full(n, UNLABELED, np.int16)
         conf = np.zeros(n, np.float32)
-        if len(self.keys) == 0:
-            return lab, conf
-        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
-        hit = self.keys[pos] == keys
-        lab[hit] = self.labels[pos[hit]]
-        conf[hit] = self.conf[pos[hit]]
+        rows = rows_in_sorted(self.keys, keys)
+        hit = rows >= 0
+        lab[hit] = self.labels[rows[hit]]
+        conf[hit] = self.conf[rows[hit]]
         return lab, conf
 
 

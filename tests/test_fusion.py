@@ -21,6 +21,7 @@ from leap_core.fusion import (
     key_centres,
     key_coords,
     log_table,
+    rows_in_sorted,
     voxel_keys,
 )
 
@@ -283,3 +284,10 @@ def test_point_labels_from_voxels() -> None:
     labels, conf = labels_for_points(grid, np.array([20, 15, 10, 20]), vl, vc)
     assert labels.tolist() == [1, -1, 0, 1]
     np.testing.assert_allclose(conf, [0.9, 0.0, 0.6, 0.9])
+
+
+def test_rows_in_sorted_finds_present_keys_and_marks_absent_ones() -> None:
+    keys = np.array([3, 7, 9], np.int64)
+    assert rows_in_sorted(keys, np.array([9, 4, 3, 10, 0, 7])).tolist() == [2, -1, 0, -1, -1, 1]
+    assert rows_in_sorted(np.zeros(0, np.int64), np.array([1, 2])).tolist() == [-1, -1]
+    assert rows_in_sorted(keys, np.array([[7, 8]])).shape == (1, 2)

@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from app.viewer import view_logic as vl
 from leap_core.errors import DatasetError
+from leap_core.fusion import rows_in_sorted
 
 FINAL_GRID = "grid_smooth.npz"
 FUSED_GRID = "grid.npz"
@@ -101,11 +102,7 @@ class ReviewGrid:
 
     def rows_of(self, keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
         """(N,) row of each key in this grid, -1 where absent."""
-        q = np.asarray(keys, dtype=np.int64).reshape(-1)
-        if self.num_voxels == 0:
-            return np.full(q.shape, -1, np.int64)
-        pos = np.minimum(np.searchsorted(self.keys, q), self.num_voxels - 1)
-        return np.where(self.keys[pos] == q, pos, -1).astype(np.int64)
+        return rows_in_sorted(self.keys, np.asarray(keys, dtype=np.int64).reshape(-1))
 
     @classmethod
     def from_arrays(

@@ -14,6 +14,7 @@ from collections.abc import Iterable
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.fusion import rows_in_sorted
 from leap_core.types import UNLABELED
 
 
@@ -121,10 +122,11 @@ def lookup_counts(
     keys: npt.NDArray[np.int64], count_keys: npt.NDArray[np.int64], counts: npt.NDArray[np.int64]
 ) -> npt.NDArray[np.int64]:
     """``counts`` of each of ``keys`` (N,) in the sorted ``count_keys``; 0 where absent."""
-    if len(count_keys) == 0:
-        return np.zeros(len(keys), np.int64)
-    pos = np.minimum(np.searchsorted(count_keys, keys), len(count_keys) - 1)
-    return np.where(count_keys[pos] == keys, counts[pos], 0).astype(np.int64)
+    rows = rows_in_sorted(count_keys, keys)
+    out = np.zeros(rows.shape, np.int64)
+    hit = rows >= 0
+    out[hit] = np.asarray(counts, np.int64)[rows[hit]]
+    return out
 
 
 def select_reliable_scans(

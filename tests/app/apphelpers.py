@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import httpx
 from fastapi.testclient import TestClient
 
 API = "/api/v1"
@@ -21,11 +22,17 @@ def create_project(client: TestClient, dataset: Path, name: str = "tiny") -> dic
 
 
 def wait_run(
-    client: TestClient, run_id: int, timeout: float = 90.0, until: tuple[str, ...] = TERMINAL
+    client: httpx.Client,
+    run_id: int,
+    timeout: float = 90.0,
+    until: tuple[str, ...] = TERMINAL,
+    api: str = API,
 ) -> dict[str, Any]:
+    """Poll the run until its status is in ``until``; ``api`` is the path prefix (empty when the client's
+    base URL already ends in it)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        run = client.get(f"{API}/runs/{run_id}").json()
+        run = client.get(f"{api}/runs/{run_id}").json()
         if run["status"] in until:
             return run
         time.sleep(0.05)

@@ -65,14 +65,18 @@ def test_bad_demo_settings_are_refused(data_root: Path) -> None:
 @pytest.mark.slow
 def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
     env = {**os.environ, "LEAP_DEMO_SYNTH": json.dumps(TINY_DEMO)}
-    out = subprocess.run(
-        [sys.executable, "-m", "app.cli", "demo", "--no-serve"],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    def demo() -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "app.cli", "demo", "--no-serve"],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+
+    out = demo()
     assert out.returncode == 0, out.stderr[-2000:]
     assert "camera view" in out.stdout and "voxel" in out.stdout
     from app import crud
@@ -84,12 +88,5 @@ def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
         runs = crud.list_runs(db, project["id"])
         assert [r["status"] for r in runs] == ["done"] and runs[0]["metrics"] is not None
     # Run again: nothing to do, the finished run is reused and its table printed.
-    again = subprocess.run(
-        [sys.executable, "-m", "app.cli", "demo", "--no-serve"],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    again = demo()
     assert again.returncode == 0 and "labeling the demo" not in again.stdout and "voxel" in again.stdout

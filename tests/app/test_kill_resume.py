@@ -8,20 +8,11 @@ import time
 from pathlib import Path
 
 import pytest
+from apphelpers import wait_run
 from serverproc import Server, make_small_street, process_gone
 
 PER_FRAME_STAGES = ("labels2d", "project", "label_points", "export")
 FRAMES = 16
-
-
-def wait_status(client, run_id: int, statuses: tuple[str, ...], timeout: float = 180.0) -> dict:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        run = client.get(f"/runs/{run_id}").json()
-        if run["status"] in statuses:
-            return run
-        time.sleep(0.1)
-    raise AssertionError(f"run {run_id} still {run['status']}")
 
 
 @pytest.mark.slow
@@ -70,7 +61,7 @@ def test_kill_9_mid_run_then_resume_is_byte_identical(tmp_path: Path) -> None:
             cut = [n for n, _ in stored].index(killed_in[0])
             assert all(st in ("done", "skipped") for _, st in stored[:cut]) and stored[cut][1] == "cancelled"
             assert c.post(f"/runs/{run['id']}/resume").status_code == 202
-            run = wait_status(c, run["id"], ("done", "failed"))
+            run = wait_run(c, run["id"], 180.0, ("done", "failed"), api="")
             assert run["status"] == "done", run["error"]
             assert run["attempts"] == 2 and run["number"] == 1
 
@@ -78,7 +69,7 @@ def test_kill_9_mid_run_then_resume_is_byte_identical(tmp_path: Path) -> None:
                 "/projects", json={"name": "clean", "dataset": {"kind": "folder", "path": str(dataset)}}
             ).json()
             clean = c.post(f"/projects/{b['id']}/runs", json={}).json()
-            clean = wait_status(c, clean["id"], ("done", "failed"))
+            clean = wait_run(c, clean["id"], 180.0, ("done", "failed"), api="")
             assert clean["status"] == "done", clean["error"]
         clean_dir = data / "studio" / "runs" / f"p{b['id']}" / f"r{clean['id']}"
 
