@@ -170,7 +170,7 @@ def validate_form(form: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
         return validate_pipeline(overrides_from_form(form), base)
     except InvalidField as exc:
         dotted = ".".join(str(p) for p in exc.loc[2:])
-        flat = next((name for name, path in FORM_FIELDS.items() if path == dotted), None)
+        flat = next((name for name, f in FORM_FIELDS.items() if f.path == dotted), None)
         raise InvalidField(["body", "form", flat] if flat else exc.loc, exc.detail) from None
 
 

@@ -66,18 +66,47 @@ class PipelineConfig:
         _validate_tree(self, "pipeline")
 
 
-FORM_FIELDS: dict[str, str] = {
-    "labeler": "labeler",
-    "threshold": "grounded_sam.box_threshold",
-    "voxel_size": "fusion.voxel_size",
-    "k": "smoothing.k",
-    "cluster_gap": "projection.cluster_gap",
-    "consistency": "consistency.enabled",
-    "share": "consistency.share",
-    "temperature": "consistency.temperature",
-    "iterations": "consistency.iterations",
+@dataclass(frozen=True)
+class FormField:
+    """One parameter of the app's pipeline form: a flat name for a dotted :class:`PipelineConfig` path."""
+
+    path: str
+    """Dotted path in :class:`PipelineConfig` (``"fusion.voxel_size"``)."""
+    label: str
+    """Short human label."""
+    kind: Literal["select", "number", "integer", "checkbox"]
+    """Input widget."""
+    help: str = ""
+    """One line on what the setting changes."""
+    minimum: float | None = None
+    maximum: float | None = None
+    step: float | None = None
+    choices: tuple[tuple[str, str], ...] = ()
+    """``select`` only: (value, label) pairs."""
+
+
+FORM_FIELDS: dict[str, FormField] = {
+    "labeler": FormField("labeler", "2D labeler", "select", "which model turns camera images into 2D labels",
+                         choices=(("simulated", "simulated (from 2D ground truth)"),
+                                  ("grounded-sam", "Grounding DINO + SAM"))),
+    "threshold": FormField("grounded_sam.box_threshold", "Box threshold", "number",
+                           "Grounding DINO boxes below this similarity are dropped", 0.0, 1.0, 0.01),
+    "voxel_size": FormField("fusion.voxel_size", "Voxel size (m)", "number",
+                            "edge of the fusion grid's voxels", 0.01, None, 0.05),
+    "k": FormField("smoothing.k", "kNN smoothing k", "integer", "neighbours averaged per voxel", 1, None, 1),
+    "cluster_gap": FormField("projection.cluster_gap", "Depth-cluster gap (m)", "number",
+                             "depth gap that splits a mask's points into clusters", 0.0, None, 0.1),
+    "consistency": FormField("consistency.enabled", "3D Consistency Network", "checkbox",
+                             "train a 3D network on the most confident voxels and fuse it back"),
+    "share": FormField("consistency.share", "3D-CN label share", "number",
+                       "share of each class's most confident points used for training", 0.0, 1.0, 0.05),
+    "temperature": FormField("consistency.temperature", "3D-CN temperature", "number",
+                             "weight of the network's evidence when fused back (lower = stronger)", 0.0, None,
+                             0.1),
+    "iterations": FormField("consistency.iterations", "3D-CN iterations", "integer",
+                            "self-training rounds", 1, None, 1),
 }
-"""The app form's flat parameter names → dotted paths in :class:`PipelineConfig`."""
+"""The app form's flat parameter names → their :class:`FormField` (dotted path, label, widget)."""
 
 
 # ------------------------------------------------------------------------------------------ to dict
@@ -256,7 +285,7 @@ def overrides_from_form(form: Mapping[str, Any]) -> dict[str, Any]:
     for name, value in form.items():
         if name not in FORM_FIELDS:
             raise LeapError(f"pipeline form: unknown field {name!r} (known: {', '.join(FORM_FIELDS)})")
-        *parents, leaf = FORM_FIELDS[name].split(".")
+        *parents, leaf = FORM_FIELDS[name].path.split(".")
         node = out
         for p in parents:
             node = node.setdefault(p, {})
@@ -267,9 +296,9 @@ def overrides_from_form(form: Mapping[str, Any]) -> dict[str, Any]:
 def form_values(cfg: PipelineConfig) -> dict[str, Any]:
     """The app form's flat values read from ``cfg``."""
     out: dict[str, Any] = {}
-    for name, dotted in FORM_FIELDS.items():
+    for name, form_field in FORM_FIELDS.items():
         node: Any = cfg
-        for part in dotted.split("."):
+        for part in form_field.path.split("."):
             node = getattr(node, part)
         out[name] = node
     return out
@@ -277,6 +306,7 @@ def form_values(cfg: PipelineConfig) -> dict[str, Any]:
 
 __all__ = [
     "FORM_FIELDS",
+    "FormField",
     "LabelerName",
     "PipelineConfig",
     "config_from_dict",

@@ -6,7 +6,16 @@ from pathlib import Path
 
 
 class LeapError(ValueError):
-    """Base class for every user-facing error raised by leap_core."""
+    """Base class for every user-facing error raised by leap_core.
+
+    ``field`` is the dotted path of the setting at fault, as a tuple (``("pipeline", "fusion",
+    "voxel_size")``), when the error is about a configuration field; callers such as the app's API map
+    it onto their own error locations without parsing the message.
+    """
+
+    def __init__(self, message: str, *, field: tuple[str, ...] = ()) -> None:
+        self.field = tuple(field)
+        super().__init__(message)
 
 
 class DatasetError(LeapError):

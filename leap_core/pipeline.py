@@ -63,16 +63,33 @@ from leap_core.schema import Schema
 from leap_core.smoothing import knn_smooth
 from leap_core.types import UNLABELED
 
-STAGES: tuple[str, ...] = (
-    "labels2d",
-    "project",
-    "fuse",
-    "smooth",
-    "3dcn",
-    "label_points",
-    "evaluate",
-    "export",
+@dataclass(frozen=True)
+class StageInfo:
+    """What the app and the CLI show of one stage."""
+
+    name: str
+    """Key in ``stages.json``, progress messages and the API."""
+    label: str
+    """Short human name ("Voxel fusion")."""
+    description: str
+    """One line: what the stage computes and writes."""
+    per_frame: bool
+    """True when the stage works (and resumes) frame by frame."""
+
+
+STAGE_TABLE: tuple[StageInfo, ...] = (
+    StageInfo("labels2d", "2D labels", "the 2D labeler's soft masks per frame", True),
+    StageInfo("project", "Projection", "projection, per-mask depth clustering and painting per frame", True),
+    StageInfo("fuse", "Voxel fusion", "Bayesian fusion of every observation into the voxel grid", False),
+    StageInfo("smooth", "kNN smoothing", "distance-weighted kNN smoothing of the fused grid", False),
+    StageInfo("3dcn", "3D-CN", "3D Consistency Network rounds (when enabled)", False),
+    StageInfo("label_points", "Point labels", "label and confidence of every point from the final grid", True),
+    StageInfo("evaluate", "Evaluation", "point / voxel / 3D-CN metrics against ground truth", False),
+    StageInfo("export", "Export", "SemanticKITTI .label and .conf files per scan", True),
 )
+"""Every stage in execution order."""
+
+STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)
 """Stage names in execution order."""
 
 PIPELINE_VERSION = 1
@@ -936,6 +953,8 @@ __all__ = [
     "PIPELINE_VERSION",
     "PROTOCOLS",
     "STAGES",
+    "STAGE_TABLE",
+    "StageInfo",
     "ProgressCallback",
     "RunResult",
     "StageReport",
