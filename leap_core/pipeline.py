@@ -317,17 +317,9 @@ class _Ctx:
     def labeler(self) -> Any:
         if self._labeler is None:
             from leap_core.labelers import make_labeler
+            from leap_core.runtime import Runtime
 
-            cfg = self.cfg
-            gs_uncached = cfg.grounded_sam.cache_dir is None
-            if cfg.labeler == "grounded-sam" and self.cache_dir is not None and gs_uncached:
-                # Per-pass detector cache beside the per-frame one: a prompt edit of one class then only
-                # recomputes that class's pass (per-class mode).
-                from leap_core.labelers.cache import pass_cache_dir
-
-                gs = replace(cfg.grounded_sam, cache_dir=str(pass_cache_dir(self.cache_dir)))
-                cfg = replace(cfg, grounded_sam=gs)
-            self._labeler = make_labeler(cfg)
+            self._labeler = make_labeler(self.cfg, Runtime(cache_dir=self.cache_dir))
         return self._labeler
 
     def path(self, folder: str, index: int, suffix: str = ".npz") -> Path:
