@@ -1,12 +1,26 @@
 """The ``leap`` command line.
 
 It lives in ``app`` because ``serve`` and ``demo`` start the web app, and leap_core stays free of web code.
-Each command keeps its heavy imports inside its function so ``leap --help``
+Configs, presets and the labeler registry are imported at the top (they import no torch); the pipeline,
+the models, the synthesiser and the web app stay inside the commands that use them, so ``leap --help``
 stays fast."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import typer
+
+from leap_core.config import PipelineConfig, config_from_dict
+from leap_core.datasets.kitti import Frame, KittiSequence
+from leap_core.errors import Cancelled, ConfigError, LeapError
+from leap_core.labelers import LABELERS
+from leap_core.labelers.cache import default_cache_dir, image_digest
+from leap_core.labelers.grounded_sam import GroundedSamLabeler
+from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+from leap_core.presets import Preset, load_preset
+from leap_core.runtime import Runtime
 
 cli = typer.Typer(
     name="leap",
@@ -53,60 +67,68 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
+def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool) -> Runtime:
+    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``)."""
+    try:
+        return Runtime(
+            models_dir=None if models is None else Path(models),
+            cache_dir=None if cache is None else Path(cache),
+            device=device,  # type: ignore[arg-type]  # checked by Runtime
+            allow_download=allow_download,
+        )
+    except ConfigError as exc:
+        raise LeapError(f"--{exc.field[-1].replace('_', '-')} {exc.problem}") from None
+
+
+def _preset(option: str, name_or_path: str, base: PipelineConfig | None = None) -> Preset:
+    """:func:`load_preset`, its errors prefixed with the option that named the file
+    (``--schema nope: no such file, ...``)."""
+    try:
+        return load_preset(name_or_path, base)
+    except LeapError as exc:
+        raise LeapError(f"{option} {exc}", field=exc.field) from None
+
+
+_MODELS_HELP = "Folder with one subfolder per model (grounding-dino-tiny/, sam-vit-base/)."
+_DEVICE_HELP = "Where the 2D labeler's models run: auto (CUDA when available), cpu or cuda."
+_DOWNLOAD_HELP = "Without --models: download a model missing from the Hugging Face cache."
+
+
 @cli.command("labels2d")
 def labels2d(
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
     schema: str = typer.Option(
         "semantickitti", "--schema", help="Project/schema YAML file, or a built-in name in projects/."
     ),
-    models: str | None = typer.Option(
-        None, "--models", help="Folder with one subfolder per model (grounding-dino-tiny/, sam-vit-base/)."
-    ),
+    models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
     mode: str | None = typer.Option(None, "--mode", help="joint (all prompts in one text) or per-class."),
     batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Images per forward pass."),
     cache: str | None = typer.Option(
         None, "--cache", help="Shared cache folder, as `leap run --cache` (default: <dataset>/leap_cache)."
     ),
     threshold: float | None = typer.Option(None, "--threshold", help="Box threshold (default: project's)."),
-    device: str | None = typer.Option(None, "--device", help="auto, cpu or cuda."),
+    device: str = typer.Option("auto", "--device", help=_DEVICE_HELP),
+    allow_download: bool = typer.Option(False, "--allow-download", help=_DOWNLOAD_HELP),
 ) -> None:
     """Precompute Grounding DINO + SAM 2D labels of every frame into the 2D cache (resumable: frames
     already in the cache are skipped, so an interrupted run continues where it stopped).
 
     `leap run DATASET --labeler grounded-sam --cache <same folder>` then reads them instead of running
     the models."""
-    import dataclasses
-    from pathlib import Path
-
     from tqdm import tqdm
-
-    from leap_core.config import config_from_dict
-    from leap_core.datasets.kitti import Frame, KittiSequence
-    from leap_core.errors import LeapError
-    from leap_core.labelers.cache import LabelCache, default_cache_dir, image_digest, pass_cache_dir
-    from leap_core.labelers.grounded_sam import GroundedSamLabeler
-    from leap_core.schema import load_project_file, projects_dir
 
     try:
         seq = KittiSequence(dataset)
-        schema_path = Path(schema) if Path(schema).is_file() else projects_dir() / f"{schema}.yaml"
-        if not schema_path.is_file():
-            raise LeapError(f"{schema}: no such schema file or built-in schema in {projects_dir()}")
-        sch, pipeline = load_project_file(schema_path)
-        base = config_from_dict(pipeline).grounded_sam
-        overrides = {
-            "models_dir": models,
-            "mode": mode,
-            "batch_size": batch_size,
-            "box_threshold": threshold,
-            "device": device,
-        }
-        cache_root = Path(cache) if cache else default_cache_dir(seq.root)
-        if cache is not None or base.cache_dir is None:
-            overrides["cache_dir"] = str(pass_cache_dir(cache_root))
-        cfg = dataclasses.replace(base, **{k: v for k, v in overrides.items() if v is not None})
-        store = LabelCache(cfg.cache_dir or pass_cache_dir(cache_root))
-        labeler = GroundedSamLabeler(cfg, cache=store)
+        preset = _preset("--schema", schema)
+        sch = preset.schema
+        flags = {"mode": mode, "batch_size": batch_size, "box_threshold": threshold}
+        cfg = config_from_dict(
+            {"grounded_sam": {k: v for k, v in flags.items() if v is not None}}, preset.pipeline
+        ).grounded_sam
+        runtime = _runtime(models, cache if cache else default_cache_dir(seq.root), device, allow_download)
+        labeler = GroundedSamLabeler(cfg, runtime)
+        store = labeler.cache
+        assert store is not None  # runtime.cache_dir is set
         plans = labeler.plan(sch)
         frames = [f for f in seq if f.has_image]
 
@@ -145,14 +167,16 @@ def make_tiny_models_cmd(
 
     Their labels are meaningless: they only exercise the grounded-sam code path. Use them with
     --models FOLDER; see the README section 'Real 2D labels' for the real weights."""
-    from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
-
     paths = make_tiny_models(folder, TinyModelsConfig(seed=seed))
     typer.echo(f"wrote {paths.detector} and {paths.segmenter}")
     typer.secho(
         "these models have RANDOM weights: their labels exercise the code path only and are meaningless",
         fg=typer.colors.YELLOW,
     )
+
+
+def _labeler_help() -> str:
+    return "2D labeler: " + "; ".join(f"{name} ({spec.description})" for name, spec in LABELERS.items()) + "."
 
 
 @cli.command("run")
@@ -162,7 +186,13 @@ def run_cmd(
     schema: str | None = typer.Option(
         None, "--schema", help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti)."
     ),
-    labeler: str | None = typer.Option(None, "--labeler", help="2D labeler: simulated or grounded-sam."),
+    labeler: str | None = typer.Option(
+        None,
+        "--labeler",
+        help=_labeler_help(),
+        # Checked by PipelineConfig against the same registry, so a bad name is the usual one-line error.
+        autocompletion=lambda: list(LABELERS),
+    ),
     project_file: str | None = typer.Option(
         None, "--project-file", help="Project YAML: classes plus a 'pipeline:' section of config overrides."
     ),
@@ -171,45 +201,35 @@ def run_cmd(
     ),
     frames: str | None = typer.Option(None, "--frames", help="Frame range A:B (B exclusive), e.g. 0:20."),
     cache: str | None = typer.Option(None, "--cache", help="Shared 2D cache folder reused across runs."),
-    models: str | None = typer.Option(
-        None, "--models", help="Folder with the Grounding DINO / SAM weights (sets pipeline.grounded_sam.models_dir)."
-    ),
+    models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
+    device: str = typer.Option("auto", "--device", help=_DEVICE_HELP),
+    allow_download: bool = typer.Option(False, "--allow-download", help=_DOWNLOAD_HELP),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
-    from pathlib import Path
-
-    from leap_core.config import config_from_dict
-    from leap_core.errors import Cancelled, LeapError
+    # The pipeline imports torch: loaded by the command that runs it, not by `leap --help`.
     from leap_core.pipeline import STAGES, result_tables, run_pipeline
-    from leap_core.schema import load_project_file, projects_dir
 
     progress = StageBars()
 
     try:
-        overrides: list[dict] = []
-        sch = None
-        if project_file is not None:
-            sch, pipe = load_project_file(project_file)
-            overrides.append(pipe)
-        if schema is not None or sch is None:
-            name = schema or "semantickitti"
-            path = Path(name) if Path(name).is_file() else projects_dir() / f"{name}.yaml"
-            if not path.is_file():
-                raise LeapError(f"--schema {name}: no such schema file or built-in schema in {projects_dir()}")
-            sch, pipe = load_project_file(path)
-            overrides.insert(0, pipe)
+        # --schema's file gives the classes (and a base config); --project-file's pipeline applies on top.
         cfg = None
-        for o in overrides:
-            cfg = config_from_dict(o, cfg)
-        flags: dict = {}
+        sch = None
+        if schema is not None or project_file is None:
+            base = _preset("--schema", schema or "semantickitti")
+            sch, cfg = base.schema, base.pipeline
+        if project_file is not None:
+            project = _preset("--project-file", project_file, cfg)
+            sch, cfg = sch or project.schema, project.pipeline
+        assert sch is not None and cfg is not None
+        flags: dict[str, Any] = {}
         if labeler is not None:
             flags["labeler"] = labeler
         if consistency is not None:
             flags["consistency"] = {"enabled": consistency}
-        if models is not None:
-            flags["grounded_sam"] = {"models_dir": models}
         cfg = config_from_dict(flags, cfg)
+        runtime = _runtime(models, cache, device, allow_download)
         frame_range = None
         if frames is not None:
             a, sep, b = frames.partition(":")
@@ -219,15 +239,12 @@ def run_cmd(
             except ValueError:
                 raise LeapError(f"--frames {frames!r}: expected A:B with integers (B exclusive)") from None
             if stop is None:
-                from leap_core.datasets.kitti import KittiSequence
-
                 stop = len(KittiSequence(dataset))
             frame_range = range(start, stop)
-        typer.echo(f"2D labels: {cfg.labeler}" + (" (2D ground truth + noise model)" if cfg.labeler == "simulated"
-                                                   else " (Grounding DINO + SAM)"))
+        typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
         with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
-                                  cache_dir=Path(cache) if cache else None)
+                                  runtime=runtime)
     except KeyboardInterrupt:
         raise fail(f"interrupted; run the same command again to resume from {out}") from None
     except Cancelled:
@@ -288,15 +305,12 @@ def demo_cmd(
 ) -> None:
     """Generate the demo street sequence (once), label it with the simulated labeler and serve the app:
     the browser then shows the demo project with a finished run and its metrics."""
-    from pathlib import Path
-
     from app import crud
     from app.core.db import init_db, open_db
     from app.demo import DEMO_PROJECT_NAME, ensure_demo_sequence, seed_demo_project
     from app.jobs.manager import JobManager
     from app.jobs.worker import RunDirBusy, run_dir_lock
     from app.main import serve
-    from leap_core.errors import LeapError
     from leap_core.pipeline import result_tables
 
     settings = _app_settings(None, port, data_root, work_dir, None, None, seed_demo=None)
@@ -391,7 +405,6 @@ def synth(
 
     from tqdm import tqdm
 
-    from leap_core.errors import LeapError
     from leap_core.synth import SynthConfig, default_workers, generate_sequence
 
     start = time.perf_counter()

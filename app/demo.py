@@ -1,8 +1,9 @@
 """The built-in demo: a generated street sequence and a ready project on it.
 
 The demo sequence is generated once into ``work_dir/demo`` (inside a temp folder renamed into place, under
-a file lock, so two runs never generate it at the same time or see half of it). The demo project uses
-the SemanticKITTI schema and the simulated labeler, so it needs no model weights.
+a file lock, so two runs never generate it at the same time or see half of it). The demo project is the
+built-in ``semantickitti`` preset (its classes, and its pipeline: the simulated labeler), so it needs no
+model weights.
 """
 
 from __future__ import annotations
@@ -20,6 +21,9 @@ from typing import Any
 from app import crud
 from app.core.config import Settings
 from app.core.db import open_db, transaction
+from leap_core.config import config_to_dict
+from leap_core.errors import LeapError
+from leap_core.presets import builtin_preset
 
 DEMO_PROJECT_NAME = "Demo street (simulated labeler)"
 SEEDED_KEY = "demo_seeded"
@@ -49,7 +53,6 @@ def synth_config(overrides: dict[str, Any]) -> Any:
     Raises:
         LeapError: naming the field (``demo_synth.lidar.beams: ...``) for an unknown key or a bad value.
     """
-    from leap_core.errors import LeapError
     from leap_core.synth import SynthConfig
 
     def apply(obj: Any, changes: dict[str, Any], where: str) -> Any:
@@ -124,9 +127,7 @@ def seed_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, 
 
     Returns the new project, or None when the demo was seeded before (also when the user deleted it).
     """
-    from app.services import default_pipeline
-    from leap_core.schema import builtin_schema
-
+    preset = builtin_preset("semantickitti")
     with open_db(settings.database) as db, transaction(db):
         if crud.get_meta(db, SEEDED_KEY) is not None:
             return None
@@ -135,8 +136,8 @@ def seed_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, 
             name=DEMO_PROJECT_NAME,
             dataset_kind="demo",
             dataset_path=str(settings.demo_dataset),
-            schema=builtin_schema("semantickitti").to_dict(),
-            pipeline=default_pipeline(),
+            schema=preset.schema.to_dict(),
+            pipeline=config_to_dict(preset.pipeline),
             is_demo=True,
         )
         crud.set_meta(db, SEEDED_KEY, str(project["id"]))

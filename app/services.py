@@ -7,6 +7,7 @@ Routes stay thin: they parse the request, call one function here or in :mod:`app
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,43 +18,48 @@ from app.core.config import Settings
 from app.core.errors import Conflict, InvalidField, NotFound
 from app.core.security import resolve_in_roots
 from app.jobs.progress import ProgressTracker
+from leap_core.config import (
+    FORM_FIELDS,
+    PipelineConfig,
+    config_from_dict,
+    config_to_dict,
+    form_values,
+    overrides_from_form,
+)
+from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
-
-_FIELD_PATH = re.compile(r"^pipeline((?:\.[\w\-]+)*): (.*)$", re.DOTALL)
+from leap_core.presets import builtin_preset
+from leap_core.schema import Schema
 
 
 # -------------------------------------------------------------------------------------- pipeline config
-def default_pipeline() -> dict[str, Any]:
-    """The full default pipeline configuration as a dict (simulated labeler)."""
-    from leap_core.config import PipelineConfig, config_to_dict
-
-    return config_to_dict(PipelineConfig())
-
-
-def validate_pipeline(
-    overrides: dict[str, Any] | None,
-    base: dict[str, Any] | None = None,
+def pipeline_config(
+    overrides: Mapping[str, Any] | None,
+    base: PipelineConfig | None = None,
     *,
     loc: tuple[str, ...] = ("body", "pipeline"),
-) -> dict[str, Any]:
-    """Apply ``overrides`` onto ``base`` (default config when None) and return the full, checked dict.
+) -> PipelineConfig:
+    """The app's one way in for a pipeline config: a dict (API payload, a project row's stored form)
+    parsed onto ``base`` (default ``PipelineConfig()``). Everything past this point passes the typed
+    config; SQLite and run specs store :func:`~leap_core.config.config_to_dict` of it.
 
     Raises:
-        InvalidField: naming the field path, e.g. ``loc = [body, pipeline, fusion, voxel_size]``.
+        InvalidField: ``loc`` + the field's path below ``pipeline``, e.g.
+            ``[body, pipeline, fusion, voxel_size]``.
     """
-    from leap_core.config import config_from_dict, config_to_dict
-    from leap_core.errors import LeapError
-
     try:
-        base_cfg = config_from_dict(base) if base is not None else None
-        cfg = config_from_dict(overrides or {}, base_cfg)
-        cfg.validate()
+        return config_from_dict(overrides, base)
     except LeapError as exc:
-        message = str(exc)
-        match = _FIELD_PATH.match(message)
-        parts = [p for p in match.group(1).split(".") if p] if match else []
-        raise InvalidField([*loc, *parts], message) from None
-    return config_to_dict(cfg)
+        raise InvalidField([*loc, *_below_pipeline(exc.field)], str(exc)) from None
+
+
+def _below_pipeline(path: tuple[str, ...]) -> tuple[str, ...]:
+    return path[1:] if path[:1] == ("pipeline",) else path
+
+
+def project_config(project: dict[str, Any]) -> PipelineConfig:
+    """A project row's pipeline config (stored as a dict)."""
+    return pipeline_config(project["pipeline"], loc=("project", "pipeline"))
 
 
 # --------------------------------------------------------------------------------------------- datasets
@@ -134,32 +140,26 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
 def create_project(
     db: sqlite_utils.Database, settings: Settings, payload: models.ProjectCreate
 ) -> dict[str, Any]:
-    from leap_core.errors import SchemaError
-    from leap_core.schema import builtin_schema
-
+    """A new project with the classes and the ``pipeline:`` section of the built-in preset
+    ``payload.schema_name``, the payload's ``pipeline`` overrides applied on top."""
     kind, path = resolve_dataset(settings, payload.dataset)
     try:
-        schema = builtin_schema(payload.schema_name).to_dict()
-    except SchemaError as exc:
+        preset = builtin_preset(payload.schema_name)
+    except LeapError as exc:
         raise InvalidField(["body", "schema_name"], str(exc)) from None
-    pipeline = validate_pipeline(payload.pipeline)
+    config = pipeline_config(payload.pipeline, preset.pipeline)
     return crud.create_project(
-        db, name=payload.name, dataset_kind=kind, dataset_path=str(path), schema=schema, pipeline=pipeline
+        db,
+        name=payload.name,
+        dataset_kind=kind,
+        dataset_path=str(path),
+        schema=preset.schema.to_dict(),
+        pipeline=config_to_dict(config),
     )
 
 
-def form_values(pipeline: dict[str, Any]) -> dict[str, Any]:
-    """The flat parameters of the UI form (``leap_core.config.FORM_FIELDS``) read from a config dict."""
-    from leap_core.config import config_from_dict
-    from leap_core.config import form_values as values
-
-    return values(config_from_dict(pipeline))
-
-
-def validate_form(form: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+def validate_form(form: Mapping[str, Any], base: PipelineConfig) -> PipelineConfig:
     """Apply the UI's flat parameters onto ``base``; errors name the flat field (``[body, form, k]``)."""
-    from leap_core.config import FORM_FIELDS, overrides_from_form
-
     unknown = [k for k in form if k not in FORM_FIELDS]
     if unknown:
         raise InvalidField(
@@ -167,22 +167,26 @@ def validate_form(form: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
             f"unknown parameter {unknown[0]!r} (known: {', '.join(FORM_FIELDS)})",
         )
     try:
-        return validate_pipeline(overrides_from_form(form), base)
-    except InvalidField as exc:
-        dotted = ".".join(str(p) for p in exc.loc[2:])
+        return config_from_dict(overrides_from_form(form), base)
+    except LeapError as exc:
+        dotted = ".".join(_below_pipeline(exc.field))
         flat = next((name for name, f in FORM_FIELDS.items() if f.path == dotted), None)
-        raise InvalidField(["body", "form", flat] if flat else exc.loc, exc.detail) from None
+        loc = ["body", "form", flat] if flat else ["body", "pipeline", *_below_pipeline(exc.field)]
+        raise InvalidField(loc, str(exc)) from None
 
 
 def update_project(
     db: sqlite_utils.Database, project_id: int, payload: models.ProjectUpdate
 ) -> dict[str, Any]:
     project = crud.require_project(db, project_id)
-    pipeline = None
-    if payload.pipeline is not None:
-        pipeline = validate_pipeline(payload.pipeline, project["pipeline"])
-    if payload.form is not None:
-        pipeline = validate_form(payload.form, pipeline or project["pipeline"])
+    config = None
+    if payload.pipeline is not None or payload.form is not None:
+        config = project_config(project)
+        if payload.pipeline is not None:
+            config = pipeline_config(payload.pipeline, config)
+        if payload.form is not None:
+            config = validate_form(payload.form, config)
+    pipeline = None if config is None else config_to_dict(config)
     return crud.update_project(db, project_id, name=payload.name, pipeline=pipeline)
 
 
@@ -229,7 +233,7 @@ def project_public(db: sqlite_utils.Database, project: dict[str, Any]) -> models
         schema_name=project["schema"]["name"],
         num_classes=len(project["schema"]["classes"]),
         pipeline=project["pipeline"],
-        form=form_values(project["pipeline"]),
+        form=form_values(project_config(project)),
         is_demo=bool(project["is_demo"]),
         created_at=project["created_at"],
         updated_at=project["updated_at"],
@@ -271,9 +275,6 @@ def save_classes(
     Raises:
         InvalidField: naming the class entry and the problem (duplicate name, prompt in two classes, ...).
     """
-    from leap_core.errors import SchemaError
-    from leap_core.schema import Schema
-
     project = crud.require_project(db, project_id)
     doc = {**project["schema"], "classes": classes}
     try:

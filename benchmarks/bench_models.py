@@ -47,6 +47,7 @@ from leap_core.labelers.tiny_models import (  # noqa: E402
     build_tiny_segmenter,
     tiny_vocab,
 )
+from leap_core.runtime import Runtime  # noqa: E402
 from leap_core.schema import load_project_file, projects_dir  # noqa: E402
 
 KITTI_HW = (376, 1241)
@@ -101,7 +102,9 @@ def make_labeler(folder: Path, det: tuple, seg: tuple, cache: Path) -> GroundedS
         d.mkdir(parents=True, exist_ok=True)
         model.config.save_pretrained(d)
         proc.save_pretrained(d)
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(folder), device="cpu"), cache=LabelCache(cache))
+    lab = GroundedSamLabeler(
+        GroundedSamConfig(), Runtime(models_dir=folder, device="cpu"), cache=LabelCache(cache)
+    )
     lab._models = LoadedModels(det[0], lab.detector_processor, seg[0], seg[1], "cpu")
     return lab
 

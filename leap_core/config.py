@@ -1,18 +1,30 @@
 """The pipeline's configuration: one frozen tree of the per-module configs, and its dict form.
 
 ``PipelineConfig`` nests the config dataclass of every stage; each lives beside the code it configures.
-Project files (``pipeline:`` section), the app's SQLite rows and the CLI all speak the plain-dict form
-produced by :func:`config_to_dict` and read back by :func:`config_from_dict`, which applies nested
-overrides onto a base config and rejects unknown keys, wrong types and out-of-range values with a
-one-line :class:`~leap_core.errors.LeapError` naming the field path, e.g.
-``pipeline.fusion.voxel_size: must be a positive number, got 0``.
+Project files (``pipeline:`` section), the app's SQLite rows and run specs all store the plain-dict form
+produced by :func:`config_to_dict`; :func:`config_from_dict` reads it back, applying nested overrides onto
+a base config. Programs parse that dict once, where they read it, and pass the typed config on.
+
+Validation, one style for every config dataclass: the checks live in ``__post_init__``, so a config
+object that exists is valid (``dataclasses.replace`` checks again). A failed check raises
+:class:`~leap_core.errors.ConfigError` with ``field`` = the field's path relative to the dataclass
+(``("voxel_size",)``, ``("class_recall", "car")``). :func:`config_from_dict` descends the tree, checks
+keys and types itself and re-raises every error with the absolute path
+(``("pipeline", "consistency", "backbone", "channels")``), so the message reads
+``pipeline.fusion.voxel_size: must be a positive number, got 0`` and callers such as the app map
+``exc.field`` onto their own error locations without reading the message.
+
+Deployment values (models folder, 2D cache folder, device, model downloads) are not config fields; they
+are the run's :class:`~leap_core.runtime.Runtime`. A dict that still sets one of the former
+``grounded_sam`` fields is refused with a message that names its replacement (:data:`RETIRED_FIELDS`).
+
+Reading a config imports no torch: the nested configs' modules import it only where tensors are made.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
-import re
 import types
 import typing
 from collections.abc import Mapping
@@ -20,22 +32,22 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from leap_core.consistency.config import ConsistencyConfig
-from leap_core.errors import LeapError
+from leap_core.errors import ConfigError, LeapError
 from leap_core.fusion import FusionConfig
+from leap_core.labelers import LABELERS
 from leap_core.labelers.grounded_sam import GroundedSamConfig
 from leap_core.labelers.simulated import SimulatedLabelerConfig
 from leap_core.projection import ProjectionConfig
 from leap_core.smoothing import SmoothingConfig
-
-LabelerName = Literal["simulated", "grounded-sam"]
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
     """Every parameter of a pipeline run (METHOD.md stages A-C), grouped by stage."""
 
-    labeler: LabelerName = "simulated"
-    """2D labeler: "simulated" (from a dataset's 2D ground truth, with a noise model) or "grounded-sam"."""
+    labeler: str = "simulated"
+    """2D labeler, a name in :data:`leap_core.labelers.LABELERS`: "simulated" (from a dataset's 2D ground
+    truth, with a noise model) or "grounded-sam"."""
     simulated: SimulatedLabelerConfig = field(default_factory=SimulatedLabelerConfig)
     """Noise model of the simulated labeler."""
     grounded_sam: GroundedSamConfig = field(default_factory=GroundedSamConfig)
@@ -52,18 +64,11 @@ class PipelineConfig:
     """Log-odds of one manual correction (``corrections.npz`` in the run folder) when it is fused in."""
 
     def __post_init__(self) -> None:
-        if self.labeler not in ("simulated", "grounded-sam"):
-            raise LeapError(f"labeler must be 'simulated' or 'grounded-sam', got {self.labeler!r}")
+        if self.labeler not in LABELERS:
+            names = ", ".join(repr(n) for n in LABELERS)
+            raise ConfigError(f"must be one of {names}, got {self.labeler!r}", field=("labeler",))
         if not self.correction_strength > 0:
-            raise LeapError(f"correction_strength must be > 0, got {self.correction_strength}")
-
-    def validate(self) -> None:
-        """Run the nested configs' own ``validate()`` where they have one (``__post_init__`` covers the rest).
-
-        Raises:
-            LeapError: naming the field path.
-        """
-        _validate_tree(self, "pipeline")
+            raise ConfigError(f"must be > 0, got {self.correction_strength}", field=("correction_strength",))
 
 
 @dataclass(frozen=True)
@@ -87,8 +92,7 @@ class FormField:
 
 FORM_FIELDS: dict[str, FormField] = {
     "labeler": FormField("labeler", "2D labeler", "select", "which model turns camera images into 2D labels",
-                         choices=(("simulated", "simulated (from 2D ground truth)"),
-                                  ("grounded-sam", "Grounding DINO + SAM"))),
+                         choices=tuple((name, spec.label) for name, spec in LABELERS.items())),
     "threshold": FormField("grounded_sam.box_threshold", "Box threshold", "number",
                            "Grounding DINO boxes below this similarity are dropped", 0.0, 1.0, 0.01),
     "voxel_size": FormField("fusion.voxel_size", "Voxel size (m)", "number",
@@ -201,33 +205,55 @@ def _coerce(value: Any, tp: Any) -> Any:
     raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
 
 
-_FIELD_PROBLEM = re.compile(r"^(?P<path>[A-Za-z_][\w\-]*(?:\.[\w\-]+)*) (?P<problem>must\b.*)$", re.DOTALL)
+@dataclass(frozen=True)
+class RetiredField:
+    """A setting that left the pipeline config: what it used to default to and what replaces it."""
+
+    default: Any
+    """Its former default; dicts stored by older versions carry it and are read as if it were absent."""
+    replacement: str
+    """Where the value is given now, completing "no longer a pipeline setting; ..."."""
 
 
-def _rephrase(message: str, obj: Any, path: str) -> str:
-    """Turn a config's own "<Class or section>.<field> must ..." message into "<path>.<field>: must ..."."""
-    m = _FIELD_PROBLEM.match(message.strip())
-    if not m:
-        return f"{path}: {message}"
-    parts = m.group("path").split(".")
-    section = path.rsplit(".", 1)[-1]
-    if parts[0] in (type(obj).__name__, section):
-        parts = parts[1:]
-    return ".".join([path, *parts]) + ": " + m.group("problem")
+RETIRED_FIELDS: dict[tuple[str, ...], RetiredField] = {
+    ("grounded_sam", "models_dir"): RetiredField(
+        None,
+        "the models folder is given per run: `--models DIR` (leap run, leap labels2d), "
+        "LEAP_MODELS_DIR or `leap serve --models DIR` (the app)",
+    ),
+    ("grounded_sam", "cache_dir"): RetiredField(
+        None, "the 2D cache folder is given per run: `--cache DIR` (leap run, leap labels2d); the app keeps "
+        "one per project",
+    ),
+    ("grounded_sam", "device"): RetiredField(
+        "auto", "the device is given per run: `--device auto|cpu|cuda` (leap run, leap labels2d)"
+    ),
+    ("grounded_sam", "allow_download"): RetiredField(
+        False, "model downloads are allowed per run: `--allow-download` (leap run, leap labels2d)"
+    ),
+}
+"""Former config fields (path below ``pipeline``) that are deployment values now
+(:class:`~leap_core.runtime.Runtime`)."""
 
 
-def _apply(obj: Any, overrides: Mapping[str, Any], path: str) -> Any:
+def _apply(obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]) -> Any:
+    """``obj`` with ``overrides`` applied; every error carries the absolute field path."""
     if not isinstance(overrides, Mapping):
-        raise LeapError(f"{path}: must be a mapping of settings, got {overrides!r}")
+        raise ConfigError(f"must be a mapping of settings, got {overrides!r}", field=path)
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
-        where = f"{path}.{key}"
+        where = (*path, str(key))
         if key not in names:
+            retired = RETIRED_FIELDS.get(where[1:])
+            if retired is not None:
+                if value == retired.default and type(value) is type(retired.default):
+                    continue
+                raise ConfigError(f"no longer a pipeline setting; {retired.replacement}", field=where)
             close = difflib.get_close_matches(str(key), names, n=1)
             hint = f"did you mean {close[0]!r}?" if close else f"known: {', '.join(names)}"
-            raise LeapError(f"{where}: unknown setting ({hint})")
+            raise ConfigError(f"unknown setting ({hint})", field=where)
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             changes[key] = _apply(current, value, where)
@@ -235,30 +261,13 @@ def _apply(obj: Any, overrides: Mapping[str, Any], path: str) -> Any:
         try:
             changes[key] = _coerce(value, hints[key])
         except _BadValue as exc:
-            raise LeapError(f"{where}: {exc}") from None
+            raise ConfigError(str(exc), field=where) from None
+    if not changes:
+        return obj
     try:
-        new = dataclasses.replace(obj, **changes) if changes else obj
-    except (ValueError, TypeError) as exc:
-        raise LeapError(_rephrase(str(exc), obj, path)) from None
-    _validate_one(new, path)
-    return new
-
-
-def _validate_one(obj: Any, path: str) -> None:
-    validate = getattr(obj, "validate", None)
-    if callable(validate) and not isinstance(obj, PipelineConfig):
-        try:
-            validate()
-        except (ValueError, TypeError) as exc:
-            raise LeapError(_rephrase(str(exc), obj, path)) from None
-
-
-def _validate_tree(obj: Any, path: str) -> None:
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value):
-            _validate_tree(value, f"{path}.{f.name}")
-    _validate_one(obj, path)
+        return dataclasses.replace(obj, **changes)
+    except ConfigError as exc:
+        raise exc.within(*path) from None
 
 
 def config_from_dict(d: Mapping[str, Any] | None, base: PipelineConfig | None = None) -> PipelineConfig:
@@ -269,22 +278,28 @@ def config_from_dict(d: Mapping[str, Any] | None, base: PipelineConfig | None = 
         base: the config to start from; default ``PipelineConfig()``.
 
     Raises:
-        LeapError: ``"pipeline.<field path>: <problem>"`` for an unknown key, a wrong type or a value out of
-            range.
+        ConfigError: ``field`` = ``("pipeline", <field path>...)``, message
+            ``"pipeline.<field path>: <problem>"``, for an unknown key, a wrong type, a value out of range
+            or a retired field (:data:`RETIRED_FIELDS`) set to anything but its former default.
     """
-    return _apply(base if base is not None else PipelineConfig(), d or {}, "pipeline")
+    cfg = _apply(base if base is not None else PipelineConfig(), d or {}, ("pipeline",))
+    assert isinstance(cfg, PipelineConfig)
+    return cfg
 
 
 def overrides_from_form(form: Mapping[str, Any]) -> dict[str, Any]:
     """Nested overrides from the app form's flat names (:data:`FORM_FIELDS`).
 
     Raises:
-        LeapError: for a name that is not a form field.
+        LeapError: ``field = ("form", name)`` for a name that is not a form field.
     """
     out: dict[str, Any] = {}
     for name, value in form.items():
         if name not in FORM_FIELDS:
-            raise LeapError(f"pipeline form: unknown field {name!r} (known: {', '.join(FORM_FIELDS)})")
+            raise LeapError(
+                f"pipeline form: unknown field {name!r} (known: {', '.join(FORM_FIELDS)})",
+                field=("form", str(name)),
+            )
         *parents, leaf = FORM_FIELDS[name].path.split(".")
         node = out
         for p in parents:
@@ -306,9 +321,10 @@ def form_values(cfg: PipelineConfig) -> dict[str, Any]:
 
 __all__ = [
     "FORM_FIELDS",
+    "RETIRED_FIELDS",
     "FormField",
-    "LabelerName",
     "PipelineConfig",
+    "RetiredField",
     "config_from_dict",
     "config_to_dict",
     "form_values",

@@ -18,6 +18,32 @@ class LeapError(ValueError):
         super().__init__(message)
 
 
+class ConfigError(LeapError):
+    """A configuration value is invalid: ``problem`` says what is wrong with the setting at ``field``.
+
+    The message is ``"<field joined by dots>: <problem>"``. A config dataclass raises it with the field
+    path relative to itself (``ConfigError("must be a positive number, got 0", field=("voxel_size",))``);
+    :func:`leap_core.config.config_from_dict` re-raises it with the absolute path through :meth:`within`
+    (``pipeline.fusion.voxel_size: must be a positive number, got 0``), so no caller parses messages.
+    """
+
+    def __init__(self, problem: str, *, field: tuple[str, ...]) -> None:
+        self.problem = problem
+        super().__init__(f"{'.'.join(field)}: {problem}", field=field)
+
+    def within(self, *parents: str) -> ConfigError:
+        """The same problem, with ``parents`` prepended to the field path."""
+        return ConfigError(self.problem, field=(*parents, *self.field))
+
+    def __reduce__(self) -> tuple[object, ...]:
+        # Exceptions pickle as ``cls(*args)``; the keyword-only field would be lost.
+        return (_config_error, (self.problem, self.field))
+
+
+def _config_error(problem: str, field: tuple[str, ...]) -> ConfigError:
+    return ConfigError(problem, field=field)
+
+
 class DatasetError(LeapError):
     """A dataset file is missing, malformed or inconsistent with its neighbours."""
 

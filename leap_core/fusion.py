@@ -30,7 +30,7 @@ import numpy.typing as npt
 import scipy.sparse
 import torch
 
-from leap_core.errors import DatasetError
+from leap_core.errors import ConfigError, DatasetError
 from leap_core.io_utils import atomic_save_npz
 from leap_core.types import UNLABELED
 
@@ -61,13 +61,13 @@ class FusionConfig:
 
     def __post_init__(self) -> None:
         if not (self.voxel_size > 0 and math.isfinite(self.voxel_size)):
-            raise ValueError(f"FusionConfig.voxel_size must be a positive number, got {self.voxel_size}")
+            raise ConfigError(f"must be a positive number, got {self.voxel_size}", field=("voxel_size",))
         if not 0 < self.prob_floor < 1:
-            raise ValueError(f"FusionConfig.prob_floor must be in (0, 1), got {self.prob_floor}")
+            raise ConfigError(f"must be in (0, 1), got {self.prob_floor}", field=("prob_floor",))
         if not self.logp_clip > 0:
-            raise ValueError(f"FusionConfig.logp_clip must be > 0, got {self.logp_clip}")
+            raise ConfigError(f"must be > 0, got {self.logp_clip}", field=("logp_clip",))
         if self.chunk_points < 1:
-            raise ValueError(f"FusionConfig.chunk_points must be ≥ 1, got {self.chunk_points}")
+            raise ConfigError(f"must be ≥ 1, got {self.chunk_points}", field=("chunk_points",))
 
 
 # ---------------------------------------------------------------------------------------------- keys

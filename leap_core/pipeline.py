@@ -59,6 +59,7 @@ from leap_core.io_utils import atomic_save_npz, atomic_write, atomic_write_json
 from leap_core.labelers.base import SoftMasks
 from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
 from leap_core.projection import Painted, paint, project_points
+from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 from leap_core.smoothing import knn_smooth
 from leap_core.types import UNLABELED
@@ -301,6 +302,7 @@ class _Ctx:
     progress: ProgressCallback | None
     state: dict[str, dict[str, Any]] = field(default_factory=dict)
     fp: dict[str, str] = field(default_factory=dict)
+    runtime: Runtime = field(default_factory=Runtime)
     _labeler: Any = None
 
     @property
@@ -317,9 +319,8 @@ class _Ctx:
     def labeler(self) -> Any:
         if self._labeler is None:
             from leap_core.labelers import make_labeler
-            from leap_core.runtime import Runtime
 
-            self._labeler = make_labeler(self.cfg, Runtime(cache_dir=self.cache_dir))
+            self._labeler = make_labeler(self.cfg, self.runtime)
         return self._labeler
 
     def path(self, folder: str, index: int, suffix: str = ".npz") -> Path:
@@ -834,16 +835,21 @@ def _frames(seq: KittiSequence, frames: range | None) -> range:
 
 def _context(
     dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, progress: ProgressCallback | None,
-    frames: range | None, cache_dir: Path | None,
+    frames: range | None, cache_dir: Path | None, runtime: Runtime | None = None,
 ) -> _Ctx:
-    config.validate()
+    # Transitional (config branch): `runtime` carries the models folder; `cache_dir` is kept beside it
+    # until the core branch's run_pipeline(runtime=...) replaces both.
+    runtime = runtime or Runtime()
+    if cache_dir is not None:
+        runtime = replace(runtime, cache_dir=Path(cache_dir))
+    cache_dir = runtime.cache_dir
     seq = KittiSequence(dataset)
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
     run_dir.mkdir(parents=True, exist_ok=True)
     ctx = _Ctx(seq, schema, config, run_dir, _frames(seq, frames), Path(cache_dir) if cache_dir else None,
-               progress)
+               progress, runtime=runtime)
     ctx.state = _read_state(run_dir)
     ctx.fp = _fingerprints(ctx)
     return ctx
@@ -851,10 +857,10 @@ def _context(
 
 def plan_stages(
     dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *, frames: range | None = None,
-    cache_dir: Path | None = None,
+    cache_dir: Path | None = None, runtime: Runtime | None = None,
 ) -> dict[str, bool]:
     """Which stages :func:`run_pipeline` would compute (True) or skip as cached (False); writes nothing."""
-    ctx = _context(dataset, schema, config, run_dir, None, frames, cache_dir)
+    ctx = _context(dataset, schema, config, run_dir, None, frames, cache_dir, runtime)
     return {s: not _is_current(ctx, s) for s in STAGES}
 
 
@@ -867,6 +873,7 @@ def run_pipeline(
     progress: ProgressCallback | None = None,
     frames: range | None = None,
     cache_dir: Path | None = None,
+    runtime: Runtime | None = None,
     until: str | None = None,
 ) -> RunResult:
     """Run (or resume) every stage on ``run_dir``, skipping stages whose cached outputs are current.
@@ -880,6 +887,8 @@ def run_pipeline(
             :class:`~leap_core.errors.Cancelled` stops the run cleanly (finished frames are kept).
         frames: the frames to process (default: all).
         cache_dir: shared 2D cache folder (reused across runs of a project); None = no sharing.
+        runtime: deployment values (models folder, 2D cache folder, device); ``cache_dir`` overrides its
+            ``cache_dir``.
         until: stop after this stage (e.g. "smooth" to only build the grid).
 
     Returns:
@@ -891,7 +900,7 @@ def run_pipeline(
     """
     if until is not None and until not in STAGES:
         raise LeapError(f"until: unknown stage {until!r} (stages: {', '.join(STAGES)})")
-    ctx = _context(Path(dataset), schema, config, Path(run_dir), progress, frames, cache_dir)
+    ctx = _context(Path(dataset), schema, config, Path(run_dir), progress, frames, cache_dir, runtime)
     last = STAGES.index(until) if until else len(STAGES) - 1
     reports: dict[str, StageReport] = {}
     for name in STAGES[: last + 1]:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import DatasetError
+from leap_core.errors import ConfigError, DatasetError
 from leap_core.fusion import Observations, log_table
 from leap_core.io_utils import atomic_save_npz
 from leap_core.labelers.base import SoftMasks
@@ -48,13 +48,11 @@ class ProjectionConfig:
 
     def __post_init__(self) -> None:
         if not self.min_depth >= 0:
-            raise ValueError(f"ProjectionConfig.min_depth must be ≥ 0, got {self.min_depth}")
+            raise ConfigError(f"must be ≥ 0, got {self.min_depth}", field=("min_depth",))
         if not self.cluster_gap > 0:
-            raise ValueError(f"ProjectionConfig.cluster_gap must be > 0, got {self.cluster_gap}")
+            raise ConfigError(f"must be > 0, got {self.cluster_gap}", field=("cluster_gap",))
         if self.min_cluster_points < 0:
-            raise ValueError(
-                f"ProjectionConfig.min_cluster_points must be ≥ 0, got {self.min_cluster_points}"
-            )
+            raise ConfigError(f"must be ≥ 0, got {self.min_cluster_points}", field=("min_cluster_points",))
 
 
 @dataclass(frozen=True)

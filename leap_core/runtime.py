@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
+
+from leap_core.errors import ConfigError
 
 Device = Literal["auto", "cpu", "cuda"]
 
@@ -28,6 +30,10 @@ class Runtime:
     """Where models run: "auto" picks CUDA when torch sees a GPU, else the CPU."""
     allow_download: bool = False
     """Without ``models_dir``: may a model missing from the Hugging Face cache be downloaded?"""
+
+    def __post_init__(self) -> None:
+        if self.device not in get_args(Device):
+            raise ConfigError(f"must be 'auto', 'cpu' or 'cuda', got {self.device!r}", field=("device",))
 
 
 __all__ = ["Device", "Runtime"]

@@ -513,8 +513,14 @@ def projects_dir() -> Path:
     return Path(__file__).resolve().parents[1] / "projects"
 
 
-def builtin_schema(name: str = "semantickitti") -> Schema:
-    """Load the built-in schema ``projects/<name>.yaml``.
+def builtin_names() -> list[str]:
+    """Names of the built-in project files (``projects/<name>.yaml``), sorted."""
+    folder = projects_dir()
+    return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
+
+
+def builtin_path(name: str) -> Path:
+    """The file of the built-in project ``name``: ``projects/<name>.yaml``; a name is never a path.
 
     Raises:
         SchemaError: for an unknown name, listing the available ones.
@@ -522,18 +528,29 @@ def builtin_schema(name: str = "semantickitti") -> Schema:
     folder = projects_dir()
     path = folder / f"{name}.yaml"
     if not isinstance(name, str) or not _SCHEMA_NAME.match(name) or not path.is_file():
-        available = sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
         raise SchemaError(
             f"unknown built-in schema {name!r}: no {folder / (str(name) + '.yaml')} "
-            f"(available: {', '.join(available) or 'none'})"
+            f"(available: {', '.join(builtin_names()) or 'none'})"
         )
-    return load_schema(path)
+    return path
+
+
+def builtin_schema(name: str = "semantickitti") -> Schema:
+    """Load the built-in schema ``projects/<name>.yaml`` (its ``pipeline:`` section is
+    :func:`leap_core.presets.load_preset`'s business).
+
+    Raises:
+        SchemaError: for an unknown name, listing the available ones.
+    """
+    return load_schema(builtin_path(name))
 
 
 __all__ = [
     "CATEGORIES",
     "ClassDef",
     "Schema",
+    "builtin_names",
+    "builtin_path",
     "builtin_schema",
     "load_project_file",
     "load_schema",

@@ -14,6 +14,7 @@ import numpy.typing as npt
 import scipy.sparse
 from scipy.spatial import cKDTree
 
+from leap_core.errors import ConfigError
 from leap_core.fusion import VoxelGrid
 
 
@@ -33,11 +34,11 @@ class SmoothingConfig:
 
     def __post_init__(self) -> None:
         if self.k < 1:
-            raise ValueError(f"SmoothingConfig.k must be ≥ 1, got {self.k}")
+            raise ConfigError(f"must be ≥ 1, got {self.k}", field=("k",))
         if self.max_distance is not None and not self.max_distance > 0:
-            raise ValueError(f"SmoothingConfig.max_distance must be > 0 or None, got {self.max_distance}")
+            raise ConfigError(f"must be > 0 or None, got {self.max_distance}", field=("max_distance",))
         if self.workers == 0 or self.workers < -1:
-            raise ValueError(f"SmoothingConfig.workers must be ≥ 1 or -1, got {self.workers}")
+            raise ConfigError(f"must be ≥ 1 or -1, got {self.workers}", field=("workers",))
 
 
 def knn_weights(dists: npt.ArrayLike) -> npt.NDArray[np.float32]:

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from leap_core.consistency.backbone import CloudTensors, PlaneIndex, PointSegmenter
-from leap_core.consistency.config import BackboneConfig, ConsistencyConfig, ConsistencyConfigError
+from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
 from leap_core.consistency.data import LOCAL_SCALE, collate, prepare_cloud
 from leap_core.consistency.selection import (
     lookup_counts,
@@ -39,7 +39,7 @@ from leap_core.consistency.train import (
     train_model,
 )
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.errors import ModelLoadError
+from leap_core.errors import ConfigError, ModelLoadError
 from leap_core.fusion import FusionConfig, VoxelGrid, voxel_keys
 from leap_core.types import UNLABELED
 
@@ -235,20 +235,18 @@ def test_cloud_tensors_to_keeps_shapes() -> None:
 
 # ------------------------------------------------------------------------------------ config + training
 def test_config_validation_names_the_field() -> None:
-    ConsistencyConfig().validate()
-    ConsistencyConfig.paper_scale().validate()
     assert ConsistencyConfig.paper_scale().backbone.channels == 256
     assert ConsistencyConfig.paper_scale(temperature=1.0).temperature == 1.0
-    with pytest.raises(ConsistencyConfigError, match="iterations"):
-        ConsistencyConfig(iterations=3).validate()
-    with pytest.raises(ConsistencyConfigError, match="temperature"):
-        ConsistencyConfig(temperature=0.0).validate()
-    with pytest.raises(ConsistencyConfigError, match="network_evidence"):
-        ConsistencyConfig(network_evidence="pixel").validate()  # type: ignore[arg-type]
-    with pytest.raises(ConsistencyConfigError, match="min_steps"):
-        ConsistencyConfig(min_steps=-1).validate()
-    with pytest.raises(ConsistencyConfigError, match="backbone.kernel_size"):
-        ConsistencyConfig(backbone=BackboneConfig(kernel_size=2)).validate()
+    for bad, field in [
+        (lambda: ConsistencyConfig(iterations=3), ("iterations",)),
+        (lambda: ConsistencyConfig(temperature=0.0), ("temperature",)),
+        (lambda: ConsistencyConfig(network_evidence="pixel"), ("network_evidence",)),  # type: ignore[arg-type]
+        (lambda: ConsistencyConfig(min_steps=-1), ("min_steps",)),
+        (lambda: BackboneConfig(kernel_size=2), ("kernel_size",)),
+    ]:
+        with pytest.raises(ConfigError) as err:
+            bad()
+        assert err.value.field == field and str(err.value).startswith(f"{field[0]}: must")
     assert config_from_dict(config_to_dict(ConsistencyConfig.paper_scale())) == ConsistencyConfig.paper_scale()
 
 

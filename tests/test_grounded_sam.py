@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.errors import LeapError, ModelLoadError
+from leap_core.errors import ConfigError, LeapError, ModelLoadError
 from leap_core.labelers.base import SoftMasks
 from leap_core.labelers.cache import LabelCache, PassResult, image_digest
 from leap_core.labelers.grounded_sam import (
@@ -29,6 +29,7 @@ from leap_core.labelers.grounded_sam import (
 )
 from leap_core.labelers.prompts import ClassPrompts, make_pass
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+from leap_core.runtime import Runtime
 from leap_core.schema import ClassDef, Schema, save_schema
 
 NINF = -np.inf
@@ -179,7 +180,7 @@ def test_labeler_matches_a_direct_transformers_computation(tiny_dir: Path, tmp_p
     c = np.sort(conf)
     i = int(np.argmax(np.diff(c)))
     thr = float((c[i] + c[i + 1]) / 2)  # in the widest gap: some regions are kept, some are not
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(tiny_dir), box_threshold=thr), cache=LabelCache(tmp_path))
+    lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=thr), Runtime(models_dir=tiny_dir), cache=LabelCache(tmp_path))
     sm = lab.label_images([img], schema)[0]
     plans = lab.plan(schema)
     assert len(plans) == 1 and plans[0].text == "car . automobile . road . street . pole . lamp post ."
@@ -200,7 +201,7 @@ def test_sam_masks_match_a_direct_sam_call(tiny_dir: Path) -> None:
     from transformers import AutoProcessor, SamModel
 
     img = images(1)[0]
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(tiny_dir), box_threshold=0.01))
+    lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=0.01), Runtime(models_dir=tiny_dir))
     boxes = np.array([[5, 4, 60, 30], [0, 0, 96, 40], [70, 10, 90, 39]], dtype=np.float32)
     bits = lab._segment([img], [boxes])[0]
     seg_dir = tiny_dir / "sam-vit-base"
@@ -222,7 +223,7 @@ def test_frames_of_a_sequence_through_the_labeler(tiny_dir: Path, tmp_path: Path
     from leap_core.datasets.kitti import KittiSequence
 
     seq = KittiSequence(build_tiny_sequence(tmp_path, n_frames=2).root)
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(tiny_dir), box_threshold=0.05, batch_size=2))
+    lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=0.05, batch_size=2), Runtime(models_dir=tiny_dir))
     frames = list(seq)
     out = lab.label_frames(frames, small_schema())
     assert lab.detector_calls == 1 and lab.segmenter_calls == 1  # both frames in one batch
@@ -237,12 +238,13 @@ def test_frames_of_a_sequence_through_the_labeler(tiny_dir: Path, tmp_path: Path
 
 
 def test_cache_hit_calls_no_model(tiny_dir: Path, tmp_path: Path) -> None:
-    cfg = GroundedSamConfig(models_dir=str(tiny_dir), box_threshold=0.05, batch_size=2, cache_dir=str(tmp_path / "c"))
-    first = GroundedSamLabeler(cfg)
+    cfg = GroundedSamConfig(box_threshold=0.05, batch_size=2)
+    rt = Runtime(models_dir=tiny_dir, cache_dir=tmp_path / "c")
+    first = GroundedSamLabeler(cfg, rt)
     calls = counting(first)
     a = first.label_images(images(2), small_schema())
     assert calls == {"detector": 1, "sam": 1}
-    second = GroundedSamLabeler(cfg)  # a new process would start like this
+    second = GroundedSamLabeler(cfg, rt)  # a new process would start like this
     b = second.label_images(images(2), small_schema())
     assert second._models is None  # the weights were never even loaded
     assert second.detector_calls == 0 and second.segmenter_calls == 0 and second.cache.hits == 2  # type: ignore[union-attr]
@@ -250,14 +252,14 @@ def test_cache_hit_calls_no_model(tiny_dir: Path, tmp_path: Path) -> None:
         np.testing.assert_array_equal(x.bits, y.bits)
         np.testing.assert_array_equal(x.probs, y.probs)
     # Joint mode: editing one class's prompts changes the single text, so the pass reruns.
-    third = GroundedSamLabeler(cfg)
+    third = GroundedSamLabeler(cfg, rt)
     third.label_images(images(2), small_schema(pole=("pole", "utility pole")))
     assert third.detector_calls == 1
 
 
 def test_per_class_mode_reruns_only_the_edited_class(tiny_dir: Path, tmp_path: Path) -> None:
-    cfg = GroundedSamConfig(models_dir=str(tiny_dir), box_threshold=0.05, mode="per-class", cache_dir=str(tmp_path))
-    lab = GroundedSamLabeler(cfg)
+    cfg = GroundedSamConfig(box_threshold=0.05, mode="per-class")
+    lab = GroundedSamLabeler(cfg, Runtime(models_dir=tiny_dir, cache_dir=tmp_path))
     calls = counting(lab)
     before = lab.label_images(images(1), small_schema())[0]
     assert calls == {"detector": 3, "sam": 1}  # one detector pass per class, one SAM encoding per image
@@ -272,8 +274,8 @@ def test_per_class_mode_reruns_only_the_edited_class(tiny_dir: Path, tmp_path: P
 
 def test_prompts_over_the_token_budget_run_in_several_passes(tiny_dir: Path) -> None:
     schema = small_schema()
-    cfg = GroundedSamConfig(models_dir=str(tiny_dir), box_threshold=0.05, max_text_tokens=9)
-    lab = GroundedSamLabeler(cfg)
+    cfg = GroundedSamConfig(box_threshold=0.05, max_text_tokens=9)
+    lab = GroundedSamLabeler(cfg, Runtime(models_dir=tiny_dir))
     plans = lab.plan(schema)
     # car . automobile . = 2 + 1 + 1 + 1 + 1 tokens ... car alone is 6, car + road 10, pole alone 7.
     assert [p.class_names for p in plans] == [("car",), ("road",), ("pole",)]
@@ -282,24 +284,30 @@ def test_prompts_over_the_token_budget_run_in_several_passes(tiny_dir: Path) -> 
     sm = lab.label_images(images(1), schema)[0]
     assert calls["detector"] == 3 and calls["sam"] == 1
     np.testing.assert_allclose(sm.probs.sum(axis=1), 1.0, rtol=1e-5)
-    wide = GroundedSamLabeler(dataclasses.replace(cfg, max_text_tokens=256))
+    wide = GroundedSamLabeler(dataclasses.replace(cfg, max_text_tokens=256), Runtime(models_dir=tiny_dir))
     assert len(wide.plan(schema)) == 1
 
 
 def test_fingerprint_tracks_prompts_settings_and_weights(tiny_dir: Path, tmp_path: Path) -> None:
-    cfg = GroundedSamConfig(models_dir=str(tiny_dir))
-    fp = GroundedSamLabeler(cfg).fingerprint(small_schema())
-    assert fp == GroundedSamLabeler(cfg).fingerprint(small_schema())
-    assert fp != GroundedSamLabeler(cfg).fingerprint(small_schema(car=("car",)))
-    assert fp != GroundedSamLabeler(dataclasses.replace(cfg, box_threshold=0.3)).fingerprint(small_schema())
-    assert fp == GroundedSamLabeler(dataclasses.replace(cfg, batch_size=4)).fingerprint(small_schema())
+    cfg = GroundedSamConfig()
+    rt = Runtime(models_dir=tiny_dir)
+    fp = GroundedSamLabeler(cfg, rt).fingerprint(small_schema())
+    assert fp == GroundedSamLabeler(cfg, rt).fingerprint(small_schema())
+    assert fp != GroundedSamLabeler(cfg, rt).fingerprint(small_schema(car=("car",)))
+    assert fp != GroundedSamLabeler(dataclasses.replace(cfg, box_threshold=0.3), rt).fingerprint(small_schema())
+    assert fp == GroundedSamLabeler(dataclasses.replace(cfg, batch_size=4), rt).fingerprint(small_schema())
+    # Deployment values are not part of the labels' identity; the models' contents are.
+    moved = copy_models(tiny_dir, tmp_path)
+    assert fp == GroundedSamLabeler(cfg, Runtime(models_dir=moved, device="cpu", cache_dir=tmp_path)).fingerprint(
+        small_schema()
+    )
     other = make_tiny_models(tmp_path / "other", TinyModelsConfig(num_queries=20))
-    assert fp != GroundedSamLabeler(GroundedSamConfig(models_dir=str(other.models_dir))).fingerprint(small_schema())
+    assert fp != GroundedSamLabeler(cfg, Runtime(models_dir=other.models_dir)).fingerprint(small_schema())
 
 
 # ============================================================================== loading errors
 def test_missing_model_folder_says_where_and_how_to_download(tmp_path: Path) -> None:
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(tmp_path / "models")))
+    lab = GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=tmp_path / "models"))
     with pytest.raises(ModelLoadError) as err:
         lab.plan(small_schema())
     msg = str(err.value)
@@ -324,18 +332,18 @@ def test_unreadable_config_and_weights_are_clear_errors(tiny_dir: Path, tmp_path
     models = copy_models(tiny_dir, tmp_path)
     (models / "grounding-dino-tiny" / "config.json").write_text("{not json")
     with pytest.raises(ModelLoadError, match="grounding-dino-tiny/config.json: unreadable model config"):
-        GroundedSamLabeler(GroundedSamConfig(models_dir=str(models))).plan(small_schema())
+        GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=models)).plan(small_schema())
     shutil.copy(tiny_dir / "grounding-dino-tiny" / "config.json", models / "grounding-dino-tiny" / "config.json")
     (models / "sam-vit-base" / "model.safetensors").write_bytes(b"truncated")
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(models)))
+    lab = GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=models))
     with pytest.raises(ModelLoadError, match="sam-vit-base: cannot load facebook/sam-vit-base weights.*hf download"):
         lab.label_images(images(1), small_schema())
 
 
 def test_wrong_model_in_a_folder_is_a_clear_error(tiny_dir: Path) -> None:
-    cfg = GroundedSamConfig(models_dir=str(tiny_dir), detector_id="facebook/sam-vit-base")
+    cfg = GroundedSamConfig(detector_id="facebook/sam-vit-base")
     with pytest.raises(ModelLoadError, match="holds a 'sam' model, expected 'grounding-dino'"):
-        GroundedSamLabeler(cfg).plan(small_schema())
+        GroundedSamLabeler(cfg, Runtime(models_dir=tiny_dir)).plan(small_schema())
 
 
 def test_tokenizer_without_bert_special_ids_is_refused(tiny_dir: Path, tmp_path: Path) -> None:
@@ -346,14 +354,18 @@ def test_tokenizer_without_bert_special_ids_is_refused(tiny_dir: Path, tmp_path:
     vocab = {"[PAD]": 0, "[UNK]": 1, "[CLS]": 2, "[SEP]": 3, "[MASK]": 4, ".": 5, "?": 6, "car": 7}
     BertTokenizer(vocab=vocab).save_pretrained(folder)
     with pytest.raises(ModelLoadError, match="differ from the BERT ids"):
-        GroundedSamLabeler(GroundedSamConfig(models_dir=str(models))).plan(small_schema())
+        GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=models)).plan(small_schema())
 
 
 def test_config_validation_and_device_choice() -> None:
-    with pytest.raises(LeapError, match="grounded_sam.box_threshold must be in"):
+    with pytest.raises(ConfigError, match=r"^box_threshold: must be in \(0, 1\)") as err:
         GroundedSamConfig(box_threshold=0.0)
-    with pytest.raises(LeapError, match="grounded_sam.mode"):
+    assert err.value.field == ("box_threshold",)
+    with pytest.raises(ConfigError, match="^mode: must be"):
         GroundedSamConfig(mode="both")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="^device: must be") as err:
+        Runtime(device="gpu")  # type: ignore[arg-type]
+    assert err.value.field == ("device",)
     assert model_folder_name("IDEA-Research/grounding-dino-tiny") == "grounding-dino-tiny"
     assert pick_device("cpu") == "cpu"
     assert pick_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
@@ -363,7 +375,7 @@ def test_config_validation_and_device_choice() -> None:
 
 
 def test_tiny_folders_are_marked_as_random(tiny_dir: Path) -> None:
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(tiny_dir)))
+    lab = GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=tiny_dir))
     assert lab.uses_random_weights
     cfg = json.loads((tiny_dir / "grounding-dino-tiny" / "config.json").read_text())
     assert cfg["decoder_layers"] >= 2 and cfg["model_type"] == "grounding-dino"
@@ -410,11 +422,11 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
     root = build_tiny_sequence(tmp_path, n_frames=3).root
     models = copy_models(tiny_dir, tmp_path)
     proj = tmp_path / "small.yaml"
-    gs = {"models_dir": str(models), "box_threshold": 0.05, "mode": "per-class"}
+    gs = {"box_threshold": 0.05, "mode": "per-class"}
     save_schema(small_schema(), proj, pipeline={"grounded_sam": gs})
     cache = tmp_path / "cache"
     runner = CliRunner()
-    pre = runner.invoke(app, ["labels2d", str(root), "--schema", str(proj), "--cache", str(cache)])
+    pre = runner.invoke(app, ["labels2d", str(root), "--schema", str(proj), "--cache", str(cache), "--models", str(models)])
     assert pre.exit_code == 0, pre.output
     # Same-size garbage weights keep the model identity (and so the cache keys) but make any model load
     # fail: the run below can only succeed by reading the 2D cache.
@@ -423,11 +435,11 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
     run = runner.invoke(
         app,
         ["run", str(root), "--out", str(tmp_path / "run"), "--project-file", str(proj), "--labeler", "grounded-sam",
-         "--cache", str(cache)],
+         "--cache", str(cache), "--models", str(models)],
     )
     assert run.exit_code == 0, run.output
     assert "2D labels: grounded-sam" in run.output and "3 .label files" in run.output
-    direct = GroundedSamLabeler(GroundedSamConfig(**gs), cache=LabelCache(cache / "passes"))
+    direct = GroundedSamLabeler(GroundedSamConfig(**gs), Runtime(models_dir=models), cache=LabelCache(cache / "passes"))
     for fid in ("000000", "000001", "000002"):
         soft = SoftMasks.load(tmp_path / "run" / "labels2d" / f"{fid}.npz")
         want = direct.label_images([KittiSequence(root).frame(int(fid)).image], small_schema())[0]
@@ -437,7 +449,9 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
     assert direct._models is None
     # Without the cache the (now broken) weights are needed: a one-line error, not a crash.
     bad = runner.invoke(
-        app, ["run", str(root), "--out", str(tmp_path / "run2"), "--project-file", str(proj), "--labeler", "grounded-sam"]
+        app,
+        ["run", str(root), "--out", str(tmp_path / "run2"), "--project-file", str(proj), "--labeler", "grounded-sam",
+         "--models", str(models)],
     )
     assert bad.exit_code == 2 and "cannot load IDEA-Research/grounding-dino-tiny weights" in bad.output
 
@@ -450,5 +464,5 @@ def test_make_tiny_models_command(tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["make-tiny-models", str(tmp_path / "tm")])
     assert res.exit_code == 0, res.output
     assert "RANDOM weights" in res.output
-    lab = GroundedSamLabeler(GroundedSamConfig(models_dir=str(tmp_path / "tm"), box_threshold=0.05))
+    lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=0.05), Runtime(models_dir=tmp_path / "tm"))
     assert lab.label_images(images(1), small_schema())[0].num_classes == 3

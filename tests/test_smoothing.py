@@ -60,5 +60,5 @@ def test_smooth_grid_and_edge_cases() -> None:
     np.testing.assert_array_equal(knn_smooth(np.zeros((0, 3)), np.zeros((0, 4))), np.zeros((0, 4)))
     with pytest.raises(ValueError, match="centres"):
         knn_smooth(np.zeros((3, 2)), np.zeros((3, 4)))
-    with pytest.raises(ValueError, match="k must be"):
+    with pytest.raises(ValueError, match="k: must be"):
         SmoothingConfig(k=0)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import dataclasses
 import fcntl
 import logging
 import os
@@ -31,7 +30,11 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from app.demo import ensure_demo_sequence
+from leap_core.config import config_from_dict
 from leap_core.errors import Cancelled, LeapError
+from leap_core.runtime import Runtime
+from leap_core.schema import Schema
 
 LOG_NAME = "run.log"
 LOCK_NAME = ".lock"
@@ -154,22 +157,19 @@ def execute(spec: Mapping[str, Any], emit: Emit, should_cancel: Callable[[], boo
 
 
 def _run(spec: Mapping[str, Any], reporter: _Reporter, log: logging.Logger) -> None:
-    from leap_core.config import config_from_dict
+    # Imported here, not at the top: the server process imports this module (run_dir_lock) and must not
+    # load the pipeline (torch); the worker process has imported it already (child_main).
     from leap_core.pipeline import run_pipeline
-    from leap_core.schema import Schema
 
     dataset = Path(spec["dataset"])
     if spec.get("demo"):
-        from app.demo import ensure_demo_sequence
-
         ensure_demo_sequence(dataset, spec.get("demo_synth") or {}, progress=reporter, log=log)
     schema = Schema.from_dict(spec["schema"], source="project schema")
-    config = config_from_dict(spec["pipeline"])
-    if spec.get("models_dir") and config.grounded_sam.models_dir is None:
-        # The server's models folder applies to projects that do not name their own.
-        config = dataclasses.replace(
-            config, grounded_sam=dataclasses.replace(config.grounded_sam, models_dir=spec["models_dir"])
-        )
+    config = config_from_dict(spec["pipeline"])  # the run spec stores config_to_dict(); parsed once, here
+    runtime = Runtime(
+        models_dir=None if spec.get("models_dir") is None else Path(spec["models_dir"]),
+        cache_dir=None if spec.get("cache_dir") is None else Path(spec["cache_dir"]),
+    )
     frames = spec.get("frames")
     run_pipeline(
         dataset,
@@ -178,7 +178,7 @@ def _run(spec: Mapping[str, Any], reporter: _Reporter, log: logging.Logger) -> N
         Path(spec["run_dir"]),
         progress=reporter,
         frames=None if frames is None else range(int(frames[0]), int(frames[1])),
-        cache_dir=None if spec.get("cache_dir") is None else Path(spec["cache_dir"]),
+        runtime=runtime,
     )
 
 

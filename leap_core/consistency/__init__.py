@@ -9,6 +9,6 @@ Only the configs are imported here, so reading a config does not import torch.
 
 from __future__ import annotations
 
-from leap_core.consistency.config import BackboneConfig, ConsistencyConfig, ConsistencyConfigError
+from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
 
-__all__ = ["BackboneConfig", "ConsistencyConfig", "ConsistencyConfigError"]
+__all__ = ["BackboneConfig", "ConsistencyConfig"]

@@ -218,7 +218,6 @@ class PointSegmenter(nn.Module):
 
     def __init__(self, cfg: BackboneConfig, num_classes: int) -> None:
         super().__init__()
-        cfg.validate()
         if num_classes < 2:
             raise ValueError(f"num_classes must be >= 2, got {num_classes}")
         self.cfg = cfg

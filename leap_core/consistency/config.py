@@ -11,11 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
-from leap_core.errors import LeapError
-
-
-class ConsistencyConfigError(LeapError):
-    """A 3D-CN configuration field has an invalid value; the message names the field."""
+from leap_core.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -47,24 +43,20 @@ class BackboneConfig:
     """Initial value of the per-channel residual scales (LayerScale). 1 suits a shallow stack; deep ones
     (``paper_scale``: 1e-4) start near identity to train stably."""
 
-    def validate(self) -> None:
-        """Raise :class:`ConsistencyConfigError` naming the first invalid field."""
+    def __post_init__(self) -> None:
         if self.channels < 4:
-            raise ConsistencyConfigError(f"backbone.channels must be >= 4, got {self.channels}")
+            raise ConfigError(f"must be >= 4, got {self.channels}", field=("channels",))
         if self.layers < 1:
-            raise ConsistencyConfigError(f"backbone.layers must be >= 1, got {self.layers}")
+            raise ConfigError(f"must be >= 1, got {self.layers}", field=("layers",))
         if len(self.grid_cells) != 3 or any(not c > 0 for c in self.grid_cells):
-            raise ConsistencyConfigError(f"backbone.grid_cells must be 3 positive sizes, got {self.grid_cells}")
-        if self.knn < 1:
-            raise ConsistencyConfigError(f"backbone.knn must be >= 1, got {self.knn}")
-        if self.embed_channels < 1:
-            raise ConsistencyConfigError(f"backbone.embed_channels must be >= 1, got {self.embed_channels}")
-        if self.mlp_ratio < 1:
-            raise ConsistencyConfigError(f"backbone.mlp_ratio must be >= 1, got {self.mlp_ratio}")
+            raise ConfigError(f"must be 3 positive sizes, got {self.grid_cells}", field=("grid_cells",))
+        for name in ("knn", "embed_channels", "mlp_ratio"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"must be >= 1, got {getattr(self, name)}", field=(name,))
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
-            raise ConsistencyConfigError(f"backbone.kernel_size must be odd and >= 1, got {self.kernel_size}")
+            raise ConfigError(f"must be odd and >= 1, got {self.kernel_size}", field=("kernel_size",))
         if not 0.0 <= self.drop_path < 1.0:
-            raise ConsistencyConfigError(f"backbone.drop_path must be in [0, 1), got {self.drop_path}")
+            raise ConfigError(f"must be in [0, 1), got {self.drop_path}", field=("drop_path",))
 
     @property
     def in_features(self) -> int:
@@ -147,43 +139,27 @@ class ConsistencyConfig:
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     """Backbone sizes (CPU-friendly defaults; see :meth:`paper_scale`)."""
 
-    def validate(self) -> None:
-        """Raise :class:`ConsistencyConfigError` naming the first invalid field."""
-        if self.iterations not in (1, 2):
-            raise ConsistencyConfigError(f"consistency.iterations must be 1 or 2, got {self.iterations}")
-        if not 0.0 < self.share <= 1.0:
-            raise ConsistencyConfigError(f"consistency.share must be in (0, 1], got {self.share}")
-        if self.selection_scope not in ("scan", "sequence"):
-            raise ConsistencyConfigError(
-                f"consistency.selection_scope must be 'scan' or 'sequence', got {self.selection_scope!r}"
-            )
-        if self.network_evidence not in ("voxel", "point"):
-            raise ConsistencyConfigError(
-                f"consistency.network_evidence must be 'voxel' or 'point', got {self.network_evidence!r}"
-            )
-        if not self.temperature > 0:
-            raise ConsistencyConfigError(f"consistency.temperature must be > 0, got {self.temperature}")
-        if self.epochs < 1:
-            raise ConsistencyConfigError(f"consistency.epochs must be >= 1, got {self.epochs}")
-        if self.min_steps < 0:
-            raise ConsistencyConfigError(f"consistency.min_steps must be >= 0, got {self.min_steps}")
-        if not self.lr > 0:
-            raise ConsistencyConfigError(f"consistency.lr must be > 0, got {self.lr}")
-        if self.weight_decay < 0:
-            raise ConsistencyConfigError(f"consistency.weight_decay must be >= 0, got {self.weight_decay}")
-        if self.scans_per_step < 1:
-            raise ConsistencyConfigError(f"consistency.scans_per_step must be >= 1, got {self.scans_per_step}")
-        if self.points_per_scan < 0:
-            raise ConsistencyConfigError(f"consistency.points_per_scan must be >= 0, got {self.points_per_scan}")
-        if not 0.0 <= self.labeled_share <= 1.0:
-            raise ConsistencyConfigError(f"consistency.labeled_share must be in [0, 1], got {self.labeled_share}")
-        if not 0.0 <= self.label_smoothing < 1.0:
-            raise ConsistencyConfigError(f"consistency.label_smoothing must be in [0, 1), got {self.label_smoothing}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConsistencyConfigError(f"consistency.device must be auto, cpu or cuda, got {self.device!r}")
-        if self.num_threads < 0:
-            raise ConsistencyConfigError(f"consistency.num_threads must be >= 0, got {self.num_threads}")
-        self.backbone.validate()
+    def __post_init__(self) -> None:
+        checks: tuple[tuple[str, bool, str], ...] = (
+            ("iterations", self.iterations in (1, 2), "must be 1 or 2"),
+            ("share", 0.0 < self.share <= 1.0, "must be in (0, 1]"),
+            ("selection_scope", self.selection_scope in ("scan", "sequence"), "must be 'scan' or 'sequence'"),
+            ("network_evidence", self.network_evidence in ("voxel", "point"), "must be 'voxel' or 'point'"),
+            ("temperature", self.temperature > 0, "must be > 0"),
+            ("epochs", self.epochs >= 1, "must be >= 1"),
+            ("min_steps", self.min_steps >= 0, "must be >= 0"),
+            ("lr", self.lr > 0, "must be > 0"),
+            ("weight_decay", self.weight_decay >= 0, "must be >= 0"),
+            ("scans_per_step", self.scans_per_step >= 1, "must be >= 1"),
+            ("points_per_scan", self.points_per_scan >= 0, "must be >= 0"),
+            ("labeled_share", 0.0 <= self.labeled_share <= 1.0, "must be in [0, 1]"),
+            ("label_smoothing", 0.0 <= self.label_smoothing < 1.0, "must be in [0, 1)"),
+            ("device", self.device in ("auto", "cpu", "cuda"), "must be 'auto', 'cpu' or 'cuda'"),
+            ("num_threads", self.num_threads >= 0, "must be >= 0"),
+        )
+        for name, ok, rule in checks:
+            if not ok:
+                raise ConfigError(f"{rule}, got {getattr(self, name)!r}", field=(name,))
 
     @property
     def network_weight(self) -> float:
@@ -223,4 +199,4 @@ class ConsistencyConfig:
         return replace(base, **overrides)  # type: ignore[arg-type]
 
 
-__all__ = ["BackboneConfig", "ConsistencyConfig", "ConsistencyConfigError"]
+__all__ = ["BackboneConfig", "ConsistencyConfig"]

@@ -132,7 +132,6 @@ def run_3dcn_iteration(
     Raises:
         LeapError: when no point of any scan has a label to train on.
     """
-    cfg.validate()
     if fused.num_classes != num_classes or smoothed.num_classes != num_classes:
         raise LeapError(
             f"3D-CN: grids have {fused.num_classes} / {smoothed.num_classes} classes, schema has {num_classes}"

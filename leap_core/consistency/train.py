@@ -167,7 +167,6 @@ def train_model(
     Returns:
         The trained model (in eval mode, on CPU) and its :class:`TrainStats`.
     """
-    cfg.validate()
     device = resolve_device(cfg)
     indices = list(scan_indices)
     per_epoch = math.ceil(len(indices) / cfg.scans_per_step) if indices else 0

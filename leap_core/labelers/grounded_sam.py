@@ -26,9 +26,12 @@ per-class mode a car box that the "truck" pass also found gets a car-vs-truck di
 object found by one class's pass only gets a one-hot distribution. The confidence always comes from the
 region's own pass. Documented limitation: logits of different texts are compared as if from one text.
 
-Models load from local folders only (``GroundedSamConfig.models_dir/<name>``, or the user's Hugging Face
-cache); a missing or unreadable folder raises :class:`~leap_core.errors.ModelLoadError` saying how to get
-the weights. Weights load lazily, on the first image that is not in the 2D cache.
+Models load from local folders only (``Runtime.models_dir/<name>``, or the user's Hugging Face cache); a
+missing or unreadable folder raises :class:`~leap_core.errors.ModelLoadError` saying how to get the
+weights. Where the models live, the device and the 2D cache folder are deployment values of the run
+(:class:`~leap_core.runtime.Runtime`), not settings of :class:`GroundedSamConfig`. Weights load lazily,
+on the first image that is not in the 2D cache; transformers and torch are imported only then, so reading
+the config costs neither.
 """
 
 from __future__ import annotations
@@ -44,9 +47,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import LeapError, ModelLoadError
+from leap_core.errors import ConfigError, LeapError, ModelLoadError
 from leap_core.labelers.base import SoftMasks
-from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest
+from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.prompts import (
     NEG_INF,
     ClassPrompts,
@@ -61,6 +64,7 @@ from leap_core.labelers.prompts import (
     token_phrase_index,
 )
 from leap_core.labelers.tiny_models import is_tiny_random
+from leap_core.runtime import Runtime
 
 if TYPE_CHECKING:
     from leap_core.datasets.kitti import Frame
@@ -77,12 +81,12 @@ _SAM_BOX_CHUNK = 16
 
 @dataclass(frozen=True)
 class GroundedSamConfig:
-    """Settings of the ``grounded-sam`` labeler.
+    """Settings of the ``grounded-sam`` labeler: which models, and how their outputs become labels.
 
-    Model folders: when ``models_dir`` is set, each model loads from ``models_dir/<last part of its id>``,
-    e.g. ``models_dir/grounding-dino-tiny`` for ``IDEA-Research/grounding-dino-tiny`` and
-    ``models_dir/sam-vit-base`` for ``facebook/sam-vit-base``. Without ``models_dir`` the ids are resolved
-    from the user's Hugging Face cache (downloaded only if the hub is reachable).
+    Where the models are is not a setting here but part of the run's :class:`~leap_core.runtime.Runtime`:
+    with ``Runtime.models_dir`` each model loads from ``models_dir/<last part of its id>``, e.g.
+    ``models_dir/grounding-dino-tiny`` for ``IDEA-Research/grounding-dino-tiny``; without it the ids are
+    resolved from the user's Hugging Face cache.
     """
 
     detector_id: str = "IDEA-Research/grounding-dino-tiny"
@@ -90,9 +94,6 @@ class GroundedSamConfig:
 
     segmenter_id: str = "facebook/sam-vit-base"
     """Hugging Face id of the SAM checkpoint (e.g. facebook/sam-vit-huge, nielsr/slimsam-77-uniform)."""
-
-    models_dir: str | None = None
-    """Local folder with one subfolder per model named after the id's last part; None = Hugging Face cache."""
 
     box_threshold: float = 0.25
     """Keep regions whose max sigmoid region↔token similarity reaches this (paper: 0.25 KITTI, 0.2 UAV)."""
@@ -102,9 +103,6 @@ class GroundedSamConfig:
 
     max_text_tokens: int = 256
     """Text-token budget of one detector pass, [CLS] and [SEP] included (the model's max_text_len)."""
-
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """Where the models run; "auto" picks CUDA when available, else CPU."""
 
     batch_size: int = 1
     """Images per forward pass of the detector and SAM's image encoder."""
@@ -122,25 +120,17 @@ class GroundedSamConfig:
     match_iou: float = 0.7
     """Box IoU at which a region of one pass takes the class logits of a region of another pass."""
 
-    allow_download: bool = False
-    """Without ``models_dir``: may a model missing from the Hugging Face cache be downloaded?"""
-
-    cache_dir: str | None = None
-    """Folder of the 2D result cache (see :mod:`leap_core.labelers.cache`); None = no cache."""
-
     def __post_init__(self) -> None:
         if not 0.0 < self.box_threshold < 1.0:
-            raise LeapError(f"grounded_sam.box_threshold must be in (0, 1), got {self.box_threshold}")
+            raise ConfigError(f"must be in (0, 1), got {self.box_threshold}", field=("box_threshold",))
         if self.mode not in ("joint", "per-class"):
-            raise LeapError(f"grounded_sam.mode must be 'joint' or 'per-class', got {self.mode!r}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise LeapError(f"grounded_sam.device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+            raise ConfigError(f"must be 'joint' or 'per-class', got {self.mode!r}", field=("mode",))
         if self.max_text_tokens < 4:
-            raise LeapError(f"grounded_sam.max_text_tokens must be >= 4, got {self.max_text_tokens}")
+            raise ConfigError(f"must be >= 4, got {self.max_text_tokens}", field=("max_text_tokens",))
         if self.batch_size < 1:
-            raise LeapError(f"grounded_sam.batch_size must be >= 1, got {self.batch_size}")
+            raise ConfigError(f"must be >= 1, got {self.batch_size}", field=("batch_size",))
         if not 0.0 < self.match_iou <= 1.0:
-            raise LeapError(f"grounded_sam.match_iou must be in (0, 1], got {self.match_iou}")
+            raise ConfigError(f"must be in (0, 1], got {self.match_iou}", field=("match_iou",))
 
 
 # ============================================================================================ models
@@ -224,13 +214,14 @@ def _read_model_type(folder: Path) -> str:
 
 
 def pick_device(device: str) -> str:
-    """``"cuda"`` or ``"cpu"`` for a config value; "auto" prefers CUDA when available."""
+    """``"cuda"`` or ``"cpu"`` for a :attr:`Runtime.device <leap_core.runtime.Runtime.device>`; "auto"
+    prefers CUDA when available."""
     import torch
 
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if device == "cuda" and not torch.cuda.is_available():
-        raise LeapError("grounded_sam.device is 'cuda' but torch sees no CUDA GPU (use 'auto' or 'cpu')")
+        raise LeapError("device 'cuda' was asked for but torch sees no CUDA GPU (use device auto or cpu)")
     return device
 
 
@@ -382,16 +373,28 @@ def assemble_soft_masks(
 class GroundedSamLabeler:
     """Grounding DINO + SAM labeler (module docstring) with an optional on-disk 2D cache.
 
+    ``runtime`` says where the model folders are (``models_dir``, ``allow_download``), where they run
+    (``device``) and, with ``cache_dir``, keeps the per-pass results in
+    :func:`~leap_core.labelers.cache.pass_cache_dir` of that folder (an explicit ``cache`` wins).
     Construction is cheap: the tokenizer loads on the first call that needs the pass plan, the weights
     on the first image not found in the cache.
     """
 
     name = "grounded-sam"
 
-    def __init__(self, config: GroundedSamConfig | None = None, *, cache: LabelCache | None = None) -> None:
+    def __init__(
+        self,
+        config: GroundedSamConfig | None = None,
+        runtime: Runtime | None = None,
+        *,
+        cache: LabelCache | None = None,
+    ) -> None:
         self.config = config or GroundedSamConfig()
-        if cache is None and self.config.cache_dir is not None:
-            cache = LabelCache(self.config.cache_dir)
+        self.runtime = runtime or Runtime()
+        if cache is None and self.runtime.cache_dir is not None:
+            # Per-pass detector cache beside the per-frame one: a prompt edit of one class then only
+            # recomputes that class's pass (per-class mode).
+            cache = LabelCache(pass_cache_dir(self.runtime.cache_dir))
         self.cache = cache
         self._folders: tuple[Path, Path] | None = None
         self._identity: dict[str, str] | None = None
@@ -408,9 +411,9 @@ class GroundedSamLabeler:
     def folders(self) -> tuple[Path, Path]:
         """(detector folder, segmenter folder), resolved once."""
         if self._folders is None:
-            cfg = self.config
-            det = resolve_model_folder(cfg.detector_id, cfg.models_dir, cfg.allow_download)
-            seg = resolve_model_folder(cfg.segmenter_id, cfg.models_dir, cfg.allow_download)
+            cfg, rt = self.config, self.runtime
+            det = resolve_model_folder(cfg.detector_id, rt.models_dir, rt.allow_download)
+            seg = resolve_model_folder(cfg.segmenter_id, rt.models_dir, rt.allow_download)
             self._folders = (det, seg)
             for f in self._folders:
                 if is_tiny_random(f):
@@ -445,7 +448,7 @@ class GroundedSamLabeler:
         if self._models is None:
             cfg = self.config
             det, seg = self.folders
-            device = pick_device(cfg.device)
+            device = pick_device(self.runtime.device)
             seg_proc = load_processor(seg, cfg.segmenter_id, "sam")
             self._models = LoadedModels(
                 detector=_load_model(det, cfg.detector_id, "GroundingDinoForObjectDetection", device),

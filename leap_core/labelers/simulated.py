@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import LeapError
+from leap_core.errors import ConfigError, LeapError
 from leap_core.labelers.base import SoftMasks
 
 if TYPE_CHECKING:
@@ -127,33 +127,29 @@ class SimulatedLabelerConfig:
     """Standard deviation in degrees of the per-image rotation of all masks about the image centre."""
 
     def __post_init__(self) -> None:
-        def bad(name: str, problem: str) -> LeapError:
-            return LeapError(f"simulated.{name} {problem}")
-
         for name in ("recall", "confusion_prob", "partner_share"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
-                raise bad(name, f"must be in [0, 1], got {v}")
+                raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
         for cname, v in self.class_recall.items():
             if not 0.0 <= float(v) <= 1.0:
-                raise bad(f"class_recall.{cname}", f"must be in [0, 1], got {v}")
+                raise ConfigError(f"must be in [0, 1], got {v}", field=("class_recall", cname))
         for name in ("peak_prob", "confidence"):
             lo, hi = getattr(self, name)
             if not 0.0 < lo <= hi <= 1.0:
-                raise bad(name, f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})")
+                raise ConfigError(f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})", field=(name,))
         for pair in self.confusion_pairs:
             if len(pair) != 2 or pair[0] == pair[1]:
-                raise bad("confusion_pairs", f"entries must be two different class names, got {list(pair)}")
+                raise ConfigError(
+                    f"entries must be two different class names, got {list(pair)}", field=("confusion_pairs",)
+                )
         if not self.dirichlet_alpha > 0:
-            raise bad("dirichlet_alpha", f"must be > 0, got {self.dirichlet_alpha}")
+            raise ConfigError(f"must be > 0, got {self.dirichlet_alpha}", field=("dirichlet_alpha",))
         if self.persistence_frames < 1:
-            raise bad("persistence_frames", f"must be >= 1, got {self.persistence_frames}")
-        for name in ("min_region_px", "bleed_px", "stuff_bleed_px"):
+            raise ConfigError(f"must be >= 1, got {self.persistence_frames}", field=("persistence_frames",))
+        for name in ("min_region_px", "bleed_px", "stuff_bleed_px", "jitter_px", "jitter_deg"):
             if getattr(self, name) < 0:
-                raise bad(name, f"must be >= 0, got {getattr(self, name)}")
-        for name in ("jitter_px", "jitter_deg"):
-            if getattr(self, name) < 0:
-                raise bad(name, f"must be >= 0, got {getattr(self, name)}")
+                raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
 
     @classmethod
     def exact(cls, seed: int = 0) -> SimulatedLabelerConfig:

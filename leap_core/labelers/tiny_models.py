@@ -180,7 +180,7 @@ class TinyModelPaths:
     """Folders written by :func:`make_tiny_models`."""
 
     models_dir: Path
-    """Pass this as ``--models`` / ``GroundedSamConfig.models_dir``."""
+    """Pass this as ``--models`` / ``Runtime.models_dir``."""
     detector: Path
     """``models_dir/grounding-dino-tiny``"""
     segmenter: Path
@@ -196,7 +196,7 @@ def make_tiny_models(
     """Write tiny random Grounding DINO and SAM folders (weights, configs, processors, marker files).
 
     The folder names default to the last part of the labeler's default model ids, so pointing
-    ``GroundedSamConfig.models_dir`` at ``models_dir`` loads them with no other setting.
+    ``Runtime.models_dir`` at ``models_dir`` loads them with no other setting.
     RANDOM WEIGHTS: the labels these models produce are meaningless; they only exercise the code path.
     """
     root = Path(models_dir)
