@@ -9,7 +9,6 @@ model weights.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import fcntl
 import logging
 import os
@@ -21,8 +20,8 @@ from typing import Any
 from app import crud
 from app.core.config import Settings
 from app.core.db import open_db, transaction
+from app.core.demo_synth import synth_config
 from leap_core.config import config_to_dict
-from leap_core.errors import LeapError
 from leap_core.presets import builtin_preset
 
 DEMO_PROJECT_NAME = "Demo street (simulated labeler)"
@@ -45,37 +44,6 @@ def _file_lock(path: Path) -> Iterator[None]:
 
 def demo_exists(dataset: Path) -> bool:
     return (dataset / "poses.txt").is_file() and (dataset / "velodyne").is_dir()
-
-
-def synth_config(overrides: dict[str, Any]) -> Any:
-    """``SynthConfig()`` with nested overrides, e.g. ``{"frames": 8, "lidar": {"beams": 32}}``.
-
-    Raises:
-        LeapError: naming the field (``demo_synth.lidar.beams: ...``) for an unknown key or a bad value.
-    """
-    from leap_core.synth import SynthConfig
-
-    def apply(obj: Any, changes: dict[str, Any], where: str) -> Any:
-        if not isinstance(changes, dict):
-            raise LeapError(f"{where}: must be a mapping of settings, got {changes!r}")
-        names = {f.name for f in dataclasses.fields(obj)}
-        updates: dict[str, Any] = {}
-        for key, value in changes.items():
-            if key not in names:
-                raise LeapError(f"{where}.{key}: unknown setting (known: {', '.join(sorted(names))})")
-            current = getattr(obj, key)
-            if dataclasses.is_dataclass(current):
-                updates[key] = apply(current, value, f"{where}.{key}")
-            else:
-                updates[key] = (
-                    tuple(value) if isinstance(current, tuple) and isinstance(value, list) else value
-                )
-        try:
-            return dataclasses.replace(obj, **updates)
-        except (TypeError, ValueError) as exc:
-            raise LeapError(f"{where}: {exc}") from None
-
-    return apply(SynthConfig(), overrides, "demo_synth")
 
 
 def ensure_demo_sequence(

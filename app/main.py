@@ -14,6 +14,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
+import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
@@ -23,7 +24,9 @@ from app.api.main import api_router
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db
 from app.core.errors import AppError, InvalidField
+from app.demo import seed_demo_project
 from app.jobs.manager import JobManager
+from leap_core import __version__
 
 API_PREFIX = "/api/v1"
 WEB_DIR = Path(__file__).resolve().parents[1] / "web"
@@ -104,12 +107,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         # Import the pipeline (torch included) before accepting requests, so no request pays for it.
-        import leap_core.pipeline  # noqa: F401
+        import leap_core.pipeline  # noqa: F401, PLC0415
 
         jobs.start()
         if settings.seed_demo:
-            from app.demo import seed_demo_project
-
             seed_demo_project(settings, jobs)
         try:
             yield
@@ -121,7 +122,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(
         title="LeAP Studio",
         summary="Open-vocabulary 3D point labeling: projects, runs, progress, metrics and exports.",
-        version=_version(),
+        version=__version__,
         openapi_url=f"{API_PREFIX}/openapi.json",
         docs_url="/api/docs",
         redoc_url=None,
@@ -151,22 +152,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 def _close_viewers(app: FastAPI) -> None:
     """Stop the 3D viewers (an optional module) before the workers."""
     try:
-        from app.api.routes.viewer import close_viewers
+        # Optional: the app runs without app/viewer (see app.api.main); imported by then if present.
+        from app.api.routes.viewer import close_viewers  # noqa: PLC0415
     except ImportError:
         return
     close_viewers(app)
 
 
-def _version() -> str:
-    from leap_core import __version__
-
-    return __version__
-
-
 def serve(settings: Settings | None = None) -> None:
     """Run the server in the foreground until interrupted."""
-    import uvicorn
-
     settings = settings or get_settings()
     app = create_app(settings)
     logging.basicConfig(
@@ -178,7 +172,7 @@ def serve(settings: Settings | None = None) -> None:
     # collection would walk: one took 0.3 s under load with the GIL held, stalling every request and
     # stream at once. Moved to the permanent generation, they are never walked again (the lifespan's
     # own import of the pipeline is then free).
-    import leap_core.pipeline  # noqa: F401
+    import leap_core.pipeline  # noqa: F401, PLC0415
 
     gc.collect()
     gc.freeze()

@@ -324,6 +324,58 @@ class ExportWritten(BaseModel):
     files: int
 
 
+# -------------------------------------------------------------------------------------------- pipeline
+class StageInfoPublic(BaseModel):
+    """One stage a run goes through, in execution order."""
+
+    name: str = Field(description="stage name, as in a run's progress (`RunProgress.stages[].name`)")
+    label: str = Field(description="short human label")
+    description: str = Field(description="one line on what the stage computes")
+    per_frame: bool = Field(description="works frame by frame (resumable per frame; `done`/`total` count frames)")
+
+
+class FormChoice(BaseModel):
+    value: str
+    label: str
+
+
+class FormFieldPublic(BaseModel):
+    """One parameter of the project form (the flat `ProjectPublic.form` / `ProjectUpdate.form` values)."""
+
+    name: str = Field(description="flat name in `ProjectPublic.form` and `ProjectUpdate.form`")
+    path: str = Field(description="dotted path in the pipeline configuration (`fusion.voxel_size`)")
+    label: str
+    kind: Literal["select", "number", "integer", "checkbox"] = Field(description="input widget")
+    help: str = Field(description="one line on what the setting changes")
+    minimum: float | None = None
+    maximum: float | None = None
+    step: float | None = None
+    choices: list[FormChoice] = Field(default_factory=list, description="`select` only")
+
+
+class LabelerPublic(BaseModel):
+    name: str = Field(description="value of the pipeline's `labeler` setting")
+    label: str
+
+
+class RunStatusesPublic(BaseModel):
+    active: list[RunStatus] = Field(description="a run in these states is queued or working")
+    terminal: list[RunStatus] = Field(description="a run in these states has ended")
+    resumable: list[RunStatus] = Field(description="a run in these states can be resumed")
+
+
+class PipelinePublic(BaseModel):
+    """What the web UI shows of the pipeline: its stages, the parameter form and the 2D labelers."""
+
+    stages: list[StageInfoPublic] = Field(
+        description="every stage a run can report, in order (the demo generation first: it runs before the "
+        "pipeline when a demo project's sequence does not exist yet)"
+    )
+    form: list[FormFieldPublic] = Field(description="the project form's parameters, in display order")
+    labelers: list[LabelerPublic]
+    run_statuses: RunStatusesPublic
+
+
 # ---------------------------------------------------------------------------------------------- health
 class HealthPublic(BaseModel):
     status: Literal["ok"]

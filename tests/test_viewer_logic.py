@@ -448,10 +448,13 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
     from app import crud
     from app.core.db import open_db
     from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
     from app.viewer.session import ReviewSession, SessionConfig
 
     settings, pid, run_id, keys, cls = review_store
-    session = ReviewSession(AppBackend(settings, pid), config=SessionConfig(queue_share=0.2, queue_min_count=1))
+    session = ReviewSession(
+        AppBackend(settings, pid), panel=ReviewPanel, config=SessionConfig(queue_share=0.2, queue_min_count=1)
+    )
     try:
         assert session.run is not None and session.run.run_id == run_id
         assert session.class_names() == ["road", "car", "building"]

@@ -45,6 +45,11 @@ export function replace(el, ...children) {
   return el;
 }
 
+/** A run or stage status as a coloured chip. */
+export function statusChip(status) {
+  return h("span", { class: `chip status-${status}` }, status);
+}
+
 export function fmtSeconds(sec) {
   if (sec === null || sec === undefined || Number.isNaN(sec)) return "";
   if (sec < 1) return `${Math.round(sec * 1000)} ms`;

@@ -1,11 +1,7 @@
 // Project list and the create-project form.
 
 import { get, post } from "./api.js";
-import { fmtPct, fmtTime, h, replace } from "./dom.js";
-
-function statusChip(status) {
-  return h("span", { class: `chip status-${status}` }, status);
-}
+import { fmtPct, fmtTime, h, replace, statusChip } from "./dom.js";
 
 function projectCard(p) {
   const last = p.last_run;

@@ -8,10 +8,11 @@ import importlib.util
 from fastapi import APIRouter
 
 from app.api.deps import AuthDep
-from app.api.routes import classes, datasets, exports, health, projects, runs
+from app.api.routes import classes, datasets, exports, health, pipeline, projects, runs
 
 api_router = APIRouter(dependencies=[AuthDep])
 api_router.include_router(health.router)
+api_router.include_router(pipeline.router)
 api_router.include_router(datasets.router)
 api_router.include_router(projects.router)
 api_router.include_router(classes.router)

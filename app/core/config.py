@@ -14,6 +14,8 @@ from typing import Any, Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from app.core.demo_synth import synth_config
+
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
 
 
@@ -99,8 +101,6 @@ class Settings(BaseSettings):
     @field_validator("demo_synth")
     @classmethod
     def _synth(cls, value: dict[str, Any]) -> dict[str, Any]:
-        from app.demo import synth_config
-
         try:
             synth_config(value)
         except ValueError as exc:  # LeapError is a ValueError; its message names the field

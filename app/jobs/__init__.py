@@ -1,43 +1,7 @@
-"""Background runs of the pipeline.
+"""Background runs of the pipeline: the queue and its worker threads (:mod:`app.jobs.manager`), the worker
+process (:mod:`app.jobs.worker`), the messages between them (:mod:`app.jobs.messages`) and live progress
+(:mod:`app.jobs.progress`).
 
-In-process callers (the 3D viewer) use the two functions below; they act on the job manager of the
-running server (or on the one given).
+This package file imports nothing: the worker process (``python -m app.jobs.worker``) loads it first, and
+must not load the server's side before it has set itself up to die with the server.
 """
-
-from __future__ import annotations
-
-from typing import Any
-
-from app.jobs.manager import JobManager, current_manager
-
-
-def start_run(project_id: int, *, manager: JobManager | None = None) -> int:
-    """Queue a run of the project's current classes, prompts and parameters; returns the run id.
-
-    Raises:
-        app.core.errors.NotFound: unknown project.
-        app.core.errors.Conflict: the project already has a queued or running run.
-    """
-    return int((manager or current_manager()).start_run(project_id)["id"])
-
-
-def run_status(run_id: int, *, manager: JobManager | None = None) -> dict[str, Any]:
-    """The run's progress: ``{"status", "stage", "percent", "eta_s", "stages", "error", ...}``.
-
-    An ``app.models.RunProgress`` as a dict.
-
-    Raises:
-        app.core.errors.NotFound: unknown run.
-    """
-    from app import crud, services
-    from app.core.db import open_db
-
-    jobs = manager or current_manager()
-    live = jobs.progress(run_id)
-    if live is not None:
-        return live
-    with open_db(jobs.settings.database) as db:
-        return services.run_progress(crud.require_run(db, run_id), None).model_dump()
-
-
-__all__ = ["JobManager", "run_status", "start_run"]

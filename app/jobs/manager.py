@@ -32,15 +32,27 @@ from typing import Any
 
 import numpy as np
 
-from app import crud
+from app import crud, services
 from app.core.config import Settings
 from app.core.db import open_db, transaction, utcnow
 from app.core.errors import Conflict
+from app.demo import SYNTH_STAGE, demo_exists
 from app.jobs import worker
+from app.jobs.messages import (
+    CancelRun,
+    FromWorker,
+    LogLine,
+    MessageError,
+    RunOutcome,
+    RunSpec,
+    StageProgress,
+    decode_from_worker,
+)
 from app.jobs.notify import ChangeNotifier
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
 from leap_core.io_utils import atomic_save_npz, atomic_write_json, remove_tree
+from leap_core.pipeline import STAGES
 
 log = logging.getLogger("leap.jobs")
 
@@ -50,13 +62,6 @@ FINISHED_KEPT = 256
 """Finished trackers kept in memory so progress polls of recent runs never touch the database."""
 CANCEL_GRACE_S = 10.0
 """After a cancel request, seconds the child gets to stop by itself before it is terminated."""
-
-
-def stage_names() -> list[str]:
-    """The pipeline's ordered stages."""
-    from leap_core.pipeline import STAGES
-
-    return list(STAGES)
 
 
 @dataclass
@@ -106,18 +111,13 @@ class JobManager:
         self._finished: collections.OrderedDict[int, ProgressTracker] = collections.OrderedDict()
         self._threads: list[threading.Thread] = []
         self._stopping = False
-        self._stages: list[str] | None = None
+        self.stages: list[str] = list(STAGES)
+        """The pipeline's ordered stages (a run of a demo project not generated yet adds one before)."""
         self.changes = ChangeNotifier()
         """Progress streams wait on this; every tracker change notifies it."""
         self._payloads: dict[int, tuple[int, str, str]] = {}
 
     # ------------------------------------------------------------------------------------- lifecycle
-    @property
-    def stages(self) -> list[str]:
-        if self._stages is None:
-            self._stages = stage_names()
-        return self._stages
-
     def start(self) -> list[int]:
         """Mark runs left over by a previous server as interrupted and start the workers."""
         with open_db(self.settings.database) as db:
@@ -246,6 +246,18 @@ class JobManager:
                     crud.transition_run(db, run_id, "running", status="cancelled", finished_at=utcnow())
             return crud.require_run(db, run_id)
 
+    def run_status(self, run_id: int) -> dict[str, Any]:
+        """The run's progress (an :class:`app.models.RunProgress` as a dict), live or from the database.
+
+        Raises:
+            NotFound: unknown run.
+        """
+        live = self.progress(run_id)
+        if live is not None:
+            return live
+        with open_db(self.settings.database) as db:
+            return services.run_progress(crud.require_run(db, run_id), None).model_dump()
+
     def progress(self, run_id: int) -> dict[str, Any] | None:
         """Live (or recently finished) progress snapshot; None when the run is not in memory."""
         with self._lock:
@@ -283,8 +295,6 @@ class JobManager:
 
     # ------------------------------------------------------------------------------------- internals
     def _snapshot(self, project: dict[str, Any], frames: tuple[int, int] | None) -> dict[str, Any]:
-        from app.demo import SYNTH_STAGE, demo_exists
-
         generate = project["dataset_kind"] == "demo" and not demo_exists(Path(project["dataset_path"]))
         return {
             "dataset": project["dataset_path"],
@@ -447,7 +457,7 @@ class JobManager:
             live.tracker.set_status("running", utcnow())
             assert process.stdin is not None
             try:
-                process.stdin.write((json.dumps(spec) + "\n").encode())
+                process.stdin.write(spec.to_line())
                 process.stdin.flush()
             except OSError:
                 pass  # it died while waiting; _relay reports the exit code
@@ -455,7 +465,7 @@ class JobManager:
                 self._send_cancel(live)
         outcome = self._relay(run_id, live, proc.read_fd, process)
         with contextlib.suppress(OSError):
-            process.stdin.close()  # type: ignore[union-attr]
+            process.stdin.close()
         try:
             process.wait(5.0)
         except subprocess.TimeoutExpired:
@@ -469,29 +479,42 @@ class JobManager:
         if process is None or process.stdin is None:
             return
         with contextlib.suppress(OSError, ValueError):
-            process.stdin.write(b"cancel\n")
+            process.stdin.write(CancelRun().to_line())
             process.stdin.flush()
 
-    def _spec(self, run: dict[str, Any]) -> dict[str, Any]:
+    def _spec(self, run: dict[str, Any]) -> RunSpec:
         params = run["params"]
-        return {
-            "run_id": run["id"],
-            "run_dir": run["run_dir"],
-            "dataset": params["dataset"],
-            "demo": params.get("dataset_kind") == "demo",
-            "demo_synth": dict(self.settings.demo_synth),
-            "schema": params["schema"],
-            "pipeline": params["pipeline"],
-            "frames": params.get("frames"),
-            "models_dir": None if self.settings.models_dir is None else str(self.settings.models_dir),
-            "cache_dir": str(self.settings.cache_dir / f"p{run['project_id']}"),
-            "progress_interval_s": self.settings.progress_interval_s,
-        }
+        frames = params.get("frames")
+        return RunSpec(
+            run_id=int(run["id"]),
+            run_dir=Path(run["run_dir"]),
+            dataset=Path(params["dataset"]),
+            demo=params.get("dataset_kind") == "demo",
+            demo_synth=dict(self.settings.demo_synth),
+            schema=params["schema"],
+            pipeline=params["pipeline"],
+            frames=None if frames is None else (int(frames[0]), int(frames[1])),
+            models_dir=self.settings.models_dir,
+            cache_dir=self.settings.cache_dir / f"p{run['project_id']}",
+            progress_interval_s=self.settings.progress_interval_s,
+        )
 
-    def _relay(self, run_id: int, live: _Live, fd: int, process: subprocess.Popen[bytes]) -> dict[str, Any]:
+    def _on_progress(self, run_id: int, live: _Live, message: StageProgress, last_persist: float) -> float:
+        """Apply a progress report; stage states reach SQLite on a stage change or every
+        ``PERSIST_EVERY_S``. Returns the time of the last write."""
+        with self._lock:
+            changed = live.tracker.update(
+                message.stage, message.done, message.total, time.monotonic(), utcnow()
+            )
+        if changed or time.monotonic() - last_persist > PERSIST_EVERY_S:
+            self._persist_stages(run_id, live)
+            return time.monotonic()
+        return last_persist
+
+    def _relay(self, run_id: int, live: _Live, fd: int, process: subprocess.Popen[bytes]) -> RunOutcome:
         """Feed the child's messages into the tracker until it reports a result or dies."""
         last_persist = time.monotonic()
-        outcome: dict[str, Any] | None = None
+        outcome: RunOutcome | None = None
         buffer = b""
         eof = False
         while outcome is None and not eof:
@@ -506,19 +529,16 @@ class JobManager:
                     if not line.strip():
                         continue
                     try:
-                        message = json.loads(line)
-                    except ValueError:
-                        log.warning("run %d: unreadable worker message %r", run_id, line[:200])
+                        message = decode_from_worker(line)
+                    except MessageError as exc:
+                        log.warning("run %d: unreadable worker message: %s", run_id, exc)
                         continue
-                    if message[0] == "stage":
-                        _, stage, done, total = message
-                        with self._lock:
-                            changed = live.tracker.update(stage, done, total, time.monotonic(), utcnow())
-                        if changed or time.monotonic() - last_persist > PERSIST_EVERY_S:
-                            self._persist_stages(run_id, live)
-                            last_persist = time.monotonic()
-                    elif message[0] == "result":
-                        outcome = dict(message[1])
+                    if isinstance(message, StageProgress):
+                        last_persist = self._on_progress(run_id, live, message, last_persist)
+                    elif isinstance(message, LogLine):
+                        log.log(message.level, "run %d: %s: %s", run_id, message.logger, message.message)
+                    else:
+                        outcome = message
             if (
                 live.cancel_at is not None
                 and outcome is None
@@ -528,16 +548,13 @@ class JobManager:
                     "run %d did not stop within %.0f s of its cancel; killing it", run_id, CANCEL_GRACE_S
                 )
                 process.kill()
-                outcome = {"status": "cancelled", "error": None}
+                outcome = RunOutcome("cancelled")
         if outcome is None:
             try:
                 code = process.wait(2.0)
             except subprocess.TimeoutExpired:
                 code = None
-            outcome = {
-                "status": "failed",
-                "error": f"the worker process stopped unexpectedly (exit code {code})",
-            }
+            outcome = RunOutcome("failed", f"the worker process stopped unexpectedly (exit code {code})")
         return outcome
 
     def _persist_stages(self, run_id: int, live: _Live) -> None:
@@ -546,11 +563,11 @@ class JobManager:
         with open_db(self.settings.database) as db:
             crud.update_run(db, run_id, stages=record)
 
-    def _finish(self, run_id: int, outcome: dict[str, Any]) -> None:
+    def _finish(self, run_id: int, outcome: RunOutcome) -> None:
         """Store the outcome, then publish it: a client that sees the end in the progress stream and
         reads the run right after finds the final row (status, metrics) in the database."""
-        status = outcome["status"]
-        error = outcome.get("error")
+        status: str = outcome.status
+        error = outcome.error
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
             skipped = pipeline_skipped_stages(Path(run["run_dir"]))
@@ -593,17 +610,18 @@ class JobManager:
             crud.update_run(db, run_id, status="running", started_at=utcnow(), attempts=run["attempts"] + 1)
         live.tracker.set_status("running", utcnow())
 
-        def emit(message: tuple[Any, ...]) -> None:
-            if message[0] == "stage":
-                _, stage, done, total = message
-                if live.tracker.update(stage, done, total, time.monotonic(), utcnow()):
-                    self._persist_stages(run_id, live)
-                if on_progress is not None:
-                    on_progress(stage, done, total)
+        def emit(message: FromWorker) -> None:
+            if not isinstance(message, StageProgress):
+                return
+            stage, done, total = message.stage, message.done, message.total
+            if live.tracker.update(stage, done, total, time.monotonic(), utcnow()):
+                self._persist_stages(run_id, live)
+            if on_progress is not None:
+                on_progress(stage, done, total)
 
         outcome = worker.execute(self._spec(run), emit, lambda: False)
         self._finish(run_id, outcome)
-        return str(outcome["status"])
+        return outcome.status
 
 
 _NOT_SEEDED = frozenset(

@@ -2,14 +2,16 @@
 
 The child (``python -m app.jobs.worker``) is a separate process so the pipeline's CPU work never competes
 with the server for the GIL, and so a cancel that the pipeline does not honour quickly can still be
-enforced by killing it. It reports to the parent as JSON lines on a pipe:
-
-- ``["stage", name, done, total]``: progress (throttled per stage; first and last reports always sent);
-- ``["result", outcome]`` last: ``{"status": "done" | "failed" | "cancelled", "error": str | None}``.
+enforced by killing it. Both directions carry the messages of :mod:`app.jobs.messages`, one JSON line
+each: the parent writes a :class:`~app.jobs.messages.RunSpec` and later
+:class:`~app.jobs.messages.CancelRun` commands on the child's stdin; the child reports
+:class:`~app.jobs.messages.StageProgress` (throttled per stage; first and last reports always sent) and
+:class:`~app.jobs.messages.LogLine` (the pipeline's warnings) on a pipe, and one
+:class:`~app.jobs.messages.RunOutcome` last.
 
 The run's log (stage timings, errors with tracebacks) goes to ``run_dir/run.log``.
 
-The parent sends ``cancel`` lines on the child's stdin. A run folder is locked (``flock`` on
+A run folder is locked (``flock`` on
 ``run_dir/.lock``) while a process works in it, and the child dies with its parent (``PR_SET_PDEATHSIG``,
 end of stdin, and a parent-pid watchdog), so after a ``kill -9`` of the server no orphan keeps writing into
 a run that is about to be resumed.
@@ -23,14 +25,25 @@ import fcntl
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO
 
 from app.demo import ensure_demo_sequence
+from app.jobs.messages import (
+    CancelRun,
+    FromWorker,
+    LogLine,
+    MessageError,
+    RunOutcome,
+    RunSpec,
+    StageProgress,
+    decode_to_worker,
+)
 from leap_core.config import config_from_dict
 from leap_core.errors import Cancelled, LeapError
 from leap_core.runtime import Runtime
@@ -39,7 +52,11 @@ from leap_core.schema import Schema
 LOG_NAME = "run.log"
 LOCK_NAME = ".lock"
 
-Emit = Callable[[tuple[Any, ...]], None]
+worker_log = logging.getLogger("leap.worker")
+"""The worker process's own messages (stderr, i.e. the server's worker.log); a run logs to its run.log."""
+
+Emit = Callable[[FromWorker], None]
+"""Sends one message to the server."""
 
 
 class RunDirBusy(RuntimeError):
@@ -109,125 +126,148 @@ class _Reporter:
             self._started[stage] = now
         if first or finished or now - self._last[stage] >= self.interval:
             self._last[stage] = now
-            self.emit(("stage", stage, int(done), int(total)))
+            self.emit(StageProgress(stage, int(done), int(total)))
         if finished and stage in self._started:
             seconds = now - self._started.pop(stage)
             self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
 
 
-def execute(spec: Mapping[str, Any], emit: Emit, should_cancel: Callable[[], bool]) -> dict[str, Any]:
-    """Run the pipeline described by ``spec`` (built by ``JobManager._spec``) in ``spec['run_dir']``.
+def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> RunOutcome:
+    """Run the pipeline described by ``spec`` (built by ``JobManager._spec``) in ``spec.run_dir``.
 
     Returns:
-        ``{"status": "done" | "failed" | "cancelled", "error": message or None}``. Errors in the user's
-        data (``LeapError``) give their one-line message; unexpected ones add the exception type and
-        the traceback goes to the run log.
+        How it ended. Errors in the user's data (``LeapError``) give their one-line message; unexpected
+        ones add the exception type and the traceback goes to the run log.
     """
-    run_dir = Path(spec["run_dir"])
+    run_dir = spec.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)
     log = _run_logger(run_dir)
     try:
         with run_dir_lock(run_dir):
             log.info("run started in %s (pid %d)", run_dir, os.getpid())
             wall0, cpu0 = time.perf_counter(), time.process_time()
-            reporter = _Reporter(emit, should_cancel, float(spec.get("progress_interval_s", 0.1)), log)
+            reporter = _Reporter(emit, should_cancel, spec.progress_interval_s, log)
             try:
                 _run(spec, reporter, log)
             except Cancelled:
                 log.info("run cancelled")
-                return {"status": "cancelled", "error": None}
+                return RunOutcome("cancelled")
             except LeapError as exc:
                 log.error("run failed: %s", exc)
-                return {"status": "failed", "error": str(exc)}
+                return RunOutcome("failed", str(exc))
             except Exception as exc:  # noqa: BLE001 - any failure must end as a readable failed run
                 log.error("run failed:\n%s", traceback.format_exc())
-                return {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+                return RunOutcome("failed", f"{type(exc).__name__}: {exc}")
             log.info(
                 "run finished in %.2f s wall, %.2f s cpu",
                 time.perf_counter() - wall0,
                 time.process_time() - cpu0,
             )
-            return {"status": "done", "error": None}
+            return RunOutcome("done")
     except RunDirBusy as exc:
-        return {"status": "failed", "error": str(exc)}
+        return RunOutcome("failed", str(exc))
     finally:
         for handler in list(log.handlers):
             handler.close()
             log.removeHandler(handler)
 
 
-def _run(spec: Mapping[str, Any], reporter: _Reporter, log: logging.Logger) -> None:
+def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
     # Imported here, not at the top: the server process imports this module (run_dir_lock) and must not
     # load the pipeline (torch); the worker process has imported it already (child_main).
     from leap_core.pipeline import run_pipeline
 
-    dataset = Path(spec["dataset"])
-    if spec.get("demo"):
-        ensure_demo_sequence(dataset, spec.get("demo_synth") or {}, progress=reporter, log=log)
-    schema = Schema.from_dict(spec["schema"], source="project schema")
-    config = config_from_dict(spec["pipeline"])  # the run spec stores config_to_dict(); parsed once, here
-    runtime = Runtime(
-        models_dir=None if spec.get("models_dir") is None else Path(spec["models_dir"]),
-        cache_dir=None if spec.get("cache_dir") is None else Path(spec["cache_dir"]),
-    )
-    frames = spec.get("frames")
+    if spec.demo:
+        ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
+    schema = Schema.from_dict(spec.schema, source="project schema")
+    config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
+    runtime = Runtime(models_dir=spec.models_dir, cache_dir=spec.cache_dir)
     run_pipeline(
-        dataset,
+        spec.dataset,
         schema,
         config,
-        Path(spec["run_dir"]),
+        spec.run_dir,
         progress=reporter,
-        frames=None if frames is None else range(int(frames[0]), int(frames[1])),
+        frames=None if spec.frames is None else range(*spec.frames),
         runtime=runtime,
     )
 
 
-def _read_commands(stream: Any, cancel: threading.Event) -> None:
-    """Parent → child commands on stdin: ``cancel``. End of input means the parent is gone: exit at once."""
+class _ForwardLogs(logging.Handler):
+    """Sends the pipeline's warnings and errors to the server as :class:`LogLine` messages."""
+
+    def __init__(self, send: Emit) -> None:
+        super().__init__(logging.WARNING)
+        self.send = send
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.send(LogLine(record.levelno, record.name, record.getMessage()))
+        except Exception:  # noqa: BLE001 - logging must never break the run
+            self.handleError(record)
+
+
+def _read_commands(stream: IO[bytes], cancel: threading.Event) -> None:
+    """Parent → child commands on stdin (:class:`CancelRun`). End of input means the parent is gone: exit
+    at once."""
     for line in stream:
-        if line.strip() == b"cancel":
+        if not line.strip():
+            continue
+        try:
+            command = decode_to_worker(line)
+        except MessageError as exc:
+            worker_log.warning("ignored a malformed command from the server: %s", exc)
+            continue
+        if isinstance(command, CancelRun):
             cancel.set()
+        else:
+            worker_log.warning("ignored a second run spec (a worker executes one run)")
     os._exit(3)
+
+
+def _first_spec(line: bytes) -> RunSpec:
+    message = decode_to_worker(line)
+    if not isinstance(message, RunSpec):
+        raise MessageError(f"expected a run spec first, got {message.type!r}")
+    return message
 
 
 def child_main(argv: list[str] | None = None) -> None:
     """Entry point of the worker process: ``python -m app.jobs.worker MESSAGE_FD PARENT_PID``.
 
-    The run spec arrives as one JSON line on stdin; further stdin lines are commands. Messages go out as
-    JSON lines on file descriptor MESSAGE_FD (not stdout, which libraries may print to).
+    The run spec arrives as the first line on stdin; further stdin lines are commands. Messages go out on
+    file descriptor MESSAGE_FD (not stdout, which libraries may print to).
     """
-    import json
-    import sys
-
     args = sys.argv[1:] if argv is None else argv
     message_fd, parent_pid = int(args[0]), int(args[1])
     _die_with_parent(parent_pid)
     # The server handles Ctrl-C; the child stops through a cancel command or a kill.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # Import the pipeline before the run arrives: a pre-started worker then starts computing at once.
-    import leap_core.pipeline  # noqa: F401
+    # Import the pipeline (torch included) only now, once this process dies with the server, but before
+    # the run arrives: a pre-started worker then starts computing at once.
+    import leap_core.pipeline  # noqa: F401, PLC0415
 
     stdin = sys.stdin.buffer
     line = stdin.readline()
     if not line:
         os._exit(0)  # the server stopped before giving this worker a run
-    spec = json.loads(line)
     cancel = threading.Event()
     threading.Thread(target=_read_commands, args=(stdin, cancel), name="commands", daemon=True).start()
     out = os.fdopen(message_fd, "wb", buffering=0)
     lock = threading.Lock()
 
-    def emit(message: tuple[Any, ...]) -> None:
-        data = (json.dumps(list(message), separators=(",", ":")) + "\n").encode()
+    def emit(message: FromWorker) -> None:
+        data = message.to_line()
         with lock:
             out.write(data)
 
+    logging.getLogger("leap_core").addHandler(_ForwardLogs(emit))
     try:
-        outcome = execute(spec, emit, cancel.is_set)
+        outcome = execute(_first_spec(line), emit, cancel.is_set)
     except BaseException as exc:  # noqa: BLE001 - report anything, including import errors
-        outcome = {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+        outcome = RunOutcome("failed", f"{type(exc).__name__}: {exc}")
     with contextlib.suppress(OSError):
-        emit(("result", outcome))
+        emit(outcome)
     out.close()
     logging.shutdown()
     # The stdin reader thread is blocked in a read; a normal interpreter shutdown would trip over its lock.

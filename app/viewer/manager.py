@@ -16,11 +16,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app import crud
+from app import crud, services
 from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
-from app.viewer.session import CorrectionRecord, ReviewSession, RunInfo, SessionConfig
+from app.jobs.manager import JobManager, current_manager
+from app.viewer.panel import ReviewPanel
+from app.viewer.session import CorrectionRecord, ProjectBackend, ReviewSession, RunInfo, SessionConfig
 from leap_core.errors import SchemaError
 from leap_core.schema import Schema
 
@@ -45,19 +47,17 @@ class AppBackend:
         jobs: the running job manager; None uses the process-wide one when a run is started.
     """
 
-    def __init__(self, settings: Settings, project_id: int, jobs: Any | None = None) -> None:
+    def __init__(self, settings: Settings, project_id: int, jobs: JobManager | None = None) -> None:
         self.settings = settings
         self.project_id = project_id
         self._jobs = jobs
         with open_db(settings.database) as db:
             crud.require_project(db, project_id)
 
-    def _jobs_manager(self) -> Any | None:
+    def _jobs_manager(self) -> JobManager | None:
         """The given job manager, else the running server's, else None (no server: read the DB only)."""
         if self._jobs is not None:
             return self._jobs
-        from app.jobs.manager import current_manager
-
         try:
             return current_manager()
         except RuntimeError:
@@ -77,18 +77,14 @@ class AppBackend:
         return Schema.from_dict(self._project()["schema"], source=f"project {self.project_id} schema")
 
     def save_schema(self, schema: Schema) -> None:
-        from app import services
-
         with open_db(self.settings.database) as db:
             services.save_classes(db, self.project_id, schema.to_dict()["classes"], loc=("viewer",))
 
     def _info(self, run: dict[str, Any]) -> RunInfo:
-        from app import jobs
-
         status, percent, stage, error = str(run["status"]), 0.0, None, run.get("error")
         manager = self._jobs_manager()
         if manager is not None:
-            progress = jobs.run_status(int(run["id"]), manager=manager)
+            progress = manager.run_status(int(run["id"]))
             status = str(progress.get("status", status))
             percent = float(progress.get("percent") or 0.0)
             stage = progress.get("stage")
@@ -126,12 +122,10 @@ class AppBackend:
         return None if run is None else self._info(run)
 
     def start_run(self) -> int:
-        from app import jobs
-
         manager = self._jobs_manager()
         if manager is None:
             raise RuntimeError("runs can only be started while the app's job manager is running")
-        return jobs.start_run(self.project_id, manager=manager)
+        return int(manager.start_run(self.project_id)["id"])
 
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:
@@ -170,7 +164,9 @@ class ViewerManager:
         config: session tunables.
     """
 
-    def __init__(self, settings: Settings, jobs: Any | None = None, config: SessionConfig | None = None) -> None:
+    def __init__(
+        self, settings: Settings, jobs: JobManager | None = None, config: SessionConfig | None = None
+    ) -> None:
         self.settings = settings
         self.jobs = jobs
         self.config = config or SessionConfig(max_points=settings.viewer_max_points)
@@ -192,6 +188,7 @@ class ViewerManager:
                     self._check_run(backend, run_id)
                 session = ReviewSession(
                     backend,
+                    panel=ReviewPanel,
                     run_id=run_id,
                     host="127.0.0.1",
                     port=self.settings.viewer_port if not self._sessions else 0,
@@ -200,7 +197,7 @@ class ViewerManager:
                 self._sessions[project_id] = session
                 log.info("viewer for project %d on port %d", project_id, session.port)
             elif run_id is not None and (session.run is None or session.run.run_id != run_id):
-                session.load_run(self._check_run(session.backend, run_id))  # type: ignore[arg-type]
+                session.load_run(self._check_run(session.backend, run_id))
             elif run_id is None and session.run is None:
                 latest = session.backend.latest_finished_run()
                 if latest is not None:
@@ -208,8 +205,8 @@ class ViewerManager:
         return ViewerInfo(project_id, None if session.run is None else session.run.run_id, session.port)
 
     @staticmethod
-    def _check_run(backend: Any, run_id: int) -> RunInfo:
-        info: RunInfo = backend.run_info(run_id)
+    def _check_run(backend: ProjectBackend, run_id: int) -> RunInfo:
+        info = backend.run_info(run_id)
         if info.status != "done":
             raise Conflict(f"Run {run_id} is {info.status}; only finished runs can be reviewed")
         return info

@@ -1,7 +1,7 @@
 """The viewer's GUI panel: typed viser widgets wired to a :class:`~app.viewer.session.ReviewSession`.
 
 Widgets only translate user actions into session calls and show what the session reports back
-(``on_*`` methods). Errors from an action (an invalid class name, a failed save) are shown in the status
+(``on_*`` methods, the session's :class:`~app.viewer.session.SessionView` protocol). Errors from an action (an invalid class name, a failed save) are shown in the status
 line instead of breaking the viewer.
 """
 
@@ -11,16 +11,14 @@ import functools
 import html
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import viser
 
 from app.viewer import view_logic as vl
-
-if TYPE_CHECKING:
-    from app.viewer.data import ScanView
-    from app.viewer.session import ReviewSession, RunInfo
+from app.viewer.data import ScanView
+from app.viewer.session import ReviewSession, RunInfo
 
 log = logging.getLogger(__name__)
 

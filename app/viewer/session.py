@@ -1,8 +1,10 @@
 """One review session: a run's data, the scene, the GUI panel, and the project it steers.
 
 The session is the controller between the pure view maths (:mod:`app.viewer.view_logic`), the scene facade
-(:mod:`app.viewer.scene`), the panel (:mod:`app.viewer.panel`) and the project store (a
-:class:`ProjectBackend`, implemented over the app's SQLite and job manager in :mod:`app.viewer.manager`).
+(:mod:`app.viewer.scene`), the panel and the project store (a :class:`ProjectBackend`, implemented over the
+app's SQLite and job manager in :mod:`app.viewer.manager`). It reports to the panel through the
+:class:`SessionView` protocol and is handed the panel's constructor, so the panel
+(:class:`app.viewer.panel.ReviewPanel`) depends on the session and not the other way round.
 
 Redraws are coalesced: GUI callbacks only record the requested :class:`~app.viewer.view_logic.ViewState`
 and wake a drawing thread, which always draws the newest state; a slider dragged across 50 values costs
@@ -26,6 +28,7 @@ import numpy.typing as npt
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, ScanView
 from app.viewer.scene import ReviewScene
+from leap_core.fusion import key_centres, voxel_keys
 from leap_core.schema import ClassDef, Schema
 
 log = logging.getLogger(__name__)
@@ -104,6 +107,28 @@ class ProjectBackend(Protocol):
     def set_correction_active(self, correction_id: int, active: bool) -> None: ...
 
 
+class SessionView(Protocol):
+    """What the session tells its GUI panel (implemented by :class:`app.viewer.panel.ReviewPanel`)."""
+
+    def set_status(self, text: str) -> None: ...
+
+    def on_run_loaded(self) -> None: ...
+
+    def on_drawn(self, *, shown: int, total: int, seconds: float) -> None: ...
+
+    def on_scan(self, view: ScanView, pos: int, count: int) -> None: ...
+
+    def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None: ...
+
+    def on_selection(self, count: int) -> None: ...
+
+    def on_history(self) -> None: ...
+
+    def on_schema(self) -> None: ...
+
+    def on_run_progress(self, info: RunInfo) -> None: ...
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """Tunables of a review session."""
@@ -130,6 +155,8 @@ class ReviewSession:
 
     Args:
         backend: the project store.
+        panel: builds the GUI panel on the new session's scene (:class:`app.viewer.panel.ReviewPanel`);
+            called once the session's state exists, before the first run loads.
         run_id: run to show (default: the latest finished one).
         host, port: where viser binds (port 0 = any free port; read :attr:`port`).
         config: tunables.
@@ -139,13 +166,12 @@ class ReviewSession:
         self,
         backend: ProjectBackend,
         *,
+        panel: Callable[[ReviewSession], SessionView],
         run_id: int | None = None,
         host: str = "127.0.0.1",
         port: int = 0,
         config: SessionConfig | None = None,
     ) -> None:
-        from app.viewer.panel import ReviewPanel
-
         self.backend = backend
         self.config = config or SessionConfig()
         self.scene = ReviewScene(host=host, port=port, label=f"LeAP review: {backend.project_name()}")
@@ -175,7 +201,7 @@ class ReviewSession:
         self._drawn = threading.Condition()
         self._stop = threading.Event()
         self._listeners: list[Callable[[str], None]] = []
-        self.panel = ReviewPanel(self)
+        self.panel = panel(self)
         self._drawer = threading.Thread(target=self._draw_loop, name="viewer-draw", daemon=True)
         self._drawer.start()
         self._watcher: threading.Thread | None = None
@@ -273,8 +299,6 @@ class ReviewSession:
         ).reshape(-1, 3)
 
     def _apply_corrections_locked(self) -> None:
-        from leap_core.fusion import key_centres, voxel_keys
-
         assert self.grid is not None
         names = {n: i for i, n in enumerate(self.class_names())}
         keys_all, labels_all = [], []

@@ -30,7 +30,7 @@ def free_port() -> int:
 
 def make_small_street(root: Path, frames: int) -> Path:
     """Generate the reduced demo street into ``root/sequences/00``; returns the sequence folder."""
-    from app.demo import synth_config
+    from app.core.demo_synth import synth_config
     from leap_core.synth import generate_sequence
 
     stats = generate_sequence(root, synth_config({**SMALL_DEMO, "frames": frames}), force=True)

@@ -2,11 +2,14 @@
 
 Creates a project on a small generated street, edits a class's prompts, runs the pipeline while watching
 the live progress, reads the metrics and downloads the exported labels. Screenshots go to test-artifacts/.
+The stage labels and the parameter form come from ``GET /api/v1/pipeline``: the test relabels a stage and
+a parameter in that answer and finds the new labels on the page.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import re
 import sys
 import zipfile
@@ -45,6 +48,22 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     page = browser.new_page(viewport={"width": 1440, "height": 1000}, accept_downloads=True)
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
+
+    # The page must show the server's stage and parameter labels: change two in the answer it gets.
+    served: list[dict] = []
+
+    def relabel(route) -> None:  # type: ignore[no-untyped-def]
+        body = route.fetch().json()
+        for stage in body["stages"]:
+            if stage["name"] == "smooth":
+                stage["label"] = "Smoothing (served label)"
+        for field in body["form"]:
+            if field["name"] == "k":
+                field["label"] = "Neighbours k (served label)"
+        served.append(body)
+        route.fulfill(status=200, content_type="application/json", body=json.dumps(body))
+
+    page.route("**/api/v1/pipeline", relabel)
     page.goto(srv.base + "/")
 
     # ---- create a project on the dataset folder found in the data root
@@ -80,6 +99,12 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     page.click("#run-button")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "running", timeout=60_000)
     expect(page.locator(".stage")).to_have_count(8)
+    expect(page.locator('.stage[data-stage="smooth"] .stage-name')).to_have_text("Smoothing (served label)")
+    labels2d = next(s for s in served[0]["stages"] if s["name"] == "labels2d")
+    expect(page.locator('.stage[data-stage="labels2d"] .stage-name')).to_have_text(labels2d["label"])
+    expect(page.locator('.stage[data-stage="labels2d"] .stage-name')).to_have_attribute(
+        "title", labels2d["description"]
+    )
     expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=180_000)
     statuses = page.locator(".stage").evaluate_all("els => els.map(e => e.dataset.status)")
     assert set(statuses) <= {"done", "skipped"} and statuses.count("done") >= 6
@@ -93,6 +118,8 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     assert 0 < float(miou) <= 100
 
     # ---- change a parameter, run again, compare both runs side by side
+    expect(page.locator('#params label[data-param="k"] > span')).to_have_text("Neighbours k (served label)")
+    expect(page.locator("#params label[data-param]")).to_have_count(len(served[0]["form"]))
     page.fill('#params input[name="k"]', "0")
     page.click("#save-params")
     expect(page.locator('#params input[name="k"]')).to_have_class(re.compile("invalid"))
@@ -132,6 +159,10 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     card = page.locator(f'.project-card[data-project-id="{project_id}"]')
     expect(card.locator(".chip.status-done")).to_be_visible()
     page.screenshot(path=str(artifacts / "web_ui_projects.png"), full_page=True)
+    # Back to the project: the page is built again from the pipeline description it already has.
+    card.click()
+    expect(page.locator('.stage[data-stage="smooth"] .stage-name')).to_have_text("Smoothing (served label)")
+    assert len(served) == 1  # fetched once per page load
     assert errors == []
     page.close()
 

@@ -9,14 +9,13 @@ from fastapi import APIRouter
 from app import models
 from app.api.deps import DbDep, JobsDep, SettingsDep
 from app.core.db import current_version
+from leap_core import __version__
 
 router = APIRouter(prefix="/health", tags=["health"])
 
 
 @router.get("", response_model=models.HealthPublic)
 def health(db: DbDep, jobs: JobsDep, settings: SettingsDep) -> models.HealthPublic:
-    from leap_core import __version__
-
     queued, running = jobs.counts()
     return models.HealthPublic(
         status="ok",

@@ -20,6 +20,9 @@ from fastapi import APIRouter, Body, Depends, HTTPException, Request, WebSocket,
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.websockets import WebSocketDisconnect
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+from websockets.typing import Subprotocol
 
 from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, SettingsDep, request_token
 from app.core.config import Settings
@@ -164,10 +167,6 @@ def _same_origin(ws: WebSocket) -> bool:
 @router.websocket("/client")
 async def viewer_relay(ws: WebSocket, project_id: int) -> None:
     """Relay the viser websocket between the browser and the viewer's 127.0.0.1 port, message by message."""
-    from websockets.asyncio.client import connect
-    from websockets.exceptions import ConnectionClosed
-    from websockets.typing import Subprotocol
-
     settings: Settings = ws.app.state.settings
     if not token_matches(settings.token, _ws_token(ws)) or not _same_origin(ws):
         await ws.close(code=status.WS_1008_POLICY_VIOLATION)

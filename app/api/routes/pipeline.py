@@ -1,0 +1,71 @@
+"""What the pipeline looks like to the web UI: its stages, the project form's parameters, the 2D labelers
+and which run states are active, ended or resumable.
+
+The web UI builds its stage list and its parameter form from this answer, so a stage or a parameter is
+declared once, in leap_core (``STAGE_TABLE``, ``FORM_FIELDS``), and nowhere in the browser code.
+"""
+
+from __future__ import annotations
+
+import typing
+
+from fastapi import APIRouter
+
+from app import models
+from app.demo import SYNTH_STAGE
+from app.jobs.progress import TERMINAL_STATUSES
+from leap_core.config import FORM_FIELDS
+from leap_core.labelers import LABELERS
+from leap_core.pipeline import STAGE_TABLE
+
+router = APIRouter(prefix="/pipeline", tags=["pipeline"])
+
+DEMO_STAGE = models.StageInfoPublic(
+    name=SYNTH_STAGE,
+    label="Generate demo",
+    description="generate the built-in demo sequence (before the first run of a demo project)",
+    per_frame=True,
+)
+"""The stage the job manager puts first in a run of a demo project whose sequence does not exist yet."""
+
+
+def pipeline_public() -> models.PipelinePublic:
+    """The answer of ``GET /pipeline`` (the same for every request)."""
+    stages = [DEMO_STAGE] + [
+        models.StageInfoPublic(name=s.name, label=s.label, description=s.description, per_frame=s.per_frame)
+        for s in STAGE_TABLE
+    ]
+    form = [
+        models.FormFieldPublic(
+            name=name,
+            path=f.path,
+            label=f.label,
+            kind=f.kind,
+            help=f.help,
+            minimum=f.minimum,
+            maximum=f.maximum,
+            step=f.step,
+            choices=[models.FormChoice(value=value, label=label) for value, label in f.choices],
+        )
+        for name, f in FORM_FIELDS.items()
+    ]
+    labels = {value: label for f in FORM_FIELDS.values() if f.path == "labeler" for value, label in f.choices}
+    statuses = typing.get_args(models.RunStatus)
+    return models.PipelinePublic(
+        stages=stages,
+        form=form,
+        labelers=[models.LabelerPublic(name=name, label=labels.get(name, name)) for name in LABELERS],
+        run_statuses=models.RunStatusesPublic(
+            active=[s for s in statuses if s in models.ACTIVE_STATUSES],
+            terminal=[s for s in statuses if s in TERMINAL_STATUSES],
+            resumable=[s for s in statuses if s in models.RESUMABLE_STATUSES],
+        ),
+    )
+
+
+PIPELINE = pipeline_public()
+
+
+@router.get("", response_model=models.PipelinePublic)
+async def read_pipeline() -> models.PipelinePublic:
+    return PIPELINE

@@ -1,0 +1,70 @@
+// The latest run: status, overall progress with ETA, one progress bar per stage, cancel / resume.
+
+import { duration, fmtSeconds, h, replace } from "../dom.js";
+import { latestRun } from "./context.js";
+
+function stageRow(ctx, stage) {
+  const info = ctx.stages.get(stage.name);
+  const pct = Math.max(0, Math.min(100, stage.percent));
+  let detail = "";
+  if (stage.status === "running") {
+    detail = `${stage.done} / ${stage.total}`;
+    if (stage.eta_s !== null && stage.eta_s !== undefined) detail += ` · ${fmtSeconds(stage.eta_s)} left`;
+  } else if (stage.status === "done") {
+    detail = stage.seconds !== null && stage.seconds !== undefined ? fmtSeconds(stage.seconds) : "done";
+  } else {
+    detail = stage.status;
+  }
+  return h(
+    "li",
+    { class: `stage stage-${stage.status}`, dataset: { stage: stage.name, status: stage.status } },
+    h("span", { class: "stage-name", title: info ? info.description : null }, info ? info.label : stage.name),
+    h(
+      "span",
+      { class: "bar", role: "progressbar", "aria-valuemin": 0, "aria-valuemax": 100, "aria-valuenow": pct.toFixed(0) },
+      h("span", { class: "fill", style: { width: `${pct}%` } }),
+    ),
+    h("span", { class: "stage-detail" }, detail),
+  );
+}
+
+export function renderRunPanel(ctx) {
+  const el = ctx.els.run;
+  const run = latestRun(ctx);
+  if (!run) {
+    replace(el, h("h2", {}, "Run"), h("p", { class: "muted" }, "No run yet. Press “Run pipeline” to label the dataset."));
+    return;
+  }
+  const pr = run.progress;
+  const status = pr.status;
+  const active = ctx.active.has(status);
+  const eta = pr.eta_s !== null && pr.eta_s !== undefined ? ` · about ${fmtSeconds(pr.eta_s)} left` : "";
+  const dur = duration(run);
+  const head = h(
+    "div",
+    { class: "run-head" },
+    h("h2", {}, `Run ${run.number}`),
+    h("span", { id: "run-status", class: `chip status-${status}`, dataset: { status } }, status),
+    h("span", { class: "muted", id: "run-percent" }, `${pr.percent.toFixed(0)} %${active ? eta : ""}`),
+    dur !== null && ctx.terminal.has(status) ? h("span", { class: "muted" }, `in ${fmtSeconds(dur)}`) : null,
+    h("span", { class: "spacer" }),
+    active
+      ? h("button", { class: "btn small", id: "cancel-button", onclick: () => ctx.actions.runAction(run, "cancel") }, "Cancel")
+      : null,
+    run.resumable
+      ? h("button", { class: "btn small", id: "resume-button", onclick: () => ctx.actions.runAction(run, "resume") }, "Resume")
+      : null,
+  );
+  const overall = h(
+    "div",
+    { class: "bar overall", role: "progressbar", "aria-valuenow": pr.percent.toFixed(0) },
+    h("span", { class: `fill status-${status}`, style: { width: `${pr.percent}%` } }),
+  );
+  replace(
+    el,
+    head,
+    overall,
+    h("ol", { class: "stages" }, pr.stages.map((stage) => stageRow(ctx, stage))),
+    pr.error ? h("p", { class: "error run-error", role: "alert" }, pr.error) : null,
+  );
+}
