@@ -49,7 +49,8 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
 def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> None:
     """``np.savez`` (uncompressed: these are read back often) through :func:`atomic_write`."""
     with atomic_write(path, "wb") as fh:
-        np.savez(fh, **arrays)
+        # allow_pickle=True is numpy's default, spelled out so the type checker does not match **arrays to it.
+        np.savez(fh, allow_pickle=True, **arrays)
 
 
 def remove_tree(path: str | Path) -> bool:

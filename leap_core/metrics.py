@@ -71,7 +71,9 @@ def iou_from_confusion(conf: npt.ArrayLike, *, ignore_unlabeled_pred: bool) -> n
     if not ignore_unlabeled_pred:
         fn = fn + cm[:, c]
     den = tp + fp + fn
-    return np.divide(tp, den, out=np.full(c, np.nan), where=den > 0)
+    iou = np.full(c, np.nan)
+    np.divide(tp, den, out=iou, where=den > 0)
+    return iou
 
 
 def _nanmean(x: npt.NDArray[np.float64]) -> float:
@@ -121,7 +123,7 @@ class Metrics:
             "labeled_share": num(self.labeled_share),
             "n_points": int(self.n_points),
             "ignore_unlabeled_pred": self.ignore_unlabeled_pred,
-            "iou": {n: num(v) for n, v in zip(self.class_names, self.iou)},
+            "iou": {n: num(v) for n, v in zip(self.class_names, self.iou, strict=True)},
             "category_iou": {k: num(v) for k, v in self.category_iou.items()},
             "confusion": self.confusion.tolist(),
         }
@@ -186,7 +188,7 @@ def metrics_from_confusion(
         iou=iou,
         miou=_nanmean(iou),
         miou_all_classes=float(np.nan_to_num(iou, nan=0.0).mean()) if c else math.nan,
-        category_iou={g: float(v) for g, v in zip(groups, giou)},
+        category_iou={g: float(v) for g, v in zip(groups, giou, strict=True)},
         category_miou=_nanmean(giou),
         labeled_share=float(cm[:, :c].sum() / n) if n else math.nan,
         n_points=n,
@@ -212,11 +214,19 @@ def format_table(rows: dict[str, Metrics], class_names: Sequence[str]) -> str:
             raise ValueError(f"method {method!r} has {len(m.iou)} classes, table has {len(names)}")
         lines.append([method, pct(m.miou), pct(m.category_miou), pct(m.labeled_share), *map(pct, m.iou)])
     widths = [max(len(h), *(len(r[i]) for r in lines)) if lines else len(h) for i, h in enumerate(head)]
-    fmt = [h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths))]
+    fmt = [h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths, strict=True))]
     out = ["  ".join(fmt), "  ".join("-" * w for w in widths)]
     for r in lines:
-        out.append("  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
+        cells = (v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(r, widths, strict=True)))
+        out.append("  ".join(cells))
     return "\n".join(out)
 
 
-__all__ = ["Metrics", "confusion_matrix", "evaluate", "format_table", "iou_from_confusion", "metrics_from_confusion"]
+__all__ = [
+    "Metrics",
+    "confusion_matrix",
+    "evaluate",
+    "format_table",
+    "iou_from_confusion",
+    "metrics_from_confusion",
+]

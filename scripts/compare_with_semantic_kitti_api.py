@@ -30,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -62,6 +63,35 @@ def _link_tree(root: Path, seq_name: str, gt_labels: list[Path], preds: list[Pat
         (pred_dir / src.name).symlink_to(src.resolve())
 
 
+def _run_evaluator(
+    args: argparse.Namespace,
+    script: Path,
+    datacfg: Path,
+    seq_name: str,
+    gt_files: list[Path],
+    pred_files: list[Path],
+) -> tuple[dict[str, Any], str, str]:
+    """Run ``evaluate_semantics.py`` on a temporary tree of links to the label and prediction files.
+
+    Returns its ``--codalab`` scores, its printout and its command line (temporary folder shown as <tmp>).
+    """
+    with tempfile.TemporaryDirectory(prefix="ska_cmp_") as tmp:
+        root = Path(tmp)
+        _link_tree(root, seq_name, gt_files, pred_files)
+        scores_dir = root / "scores"
+        scores_dir.mkdir()
+        cmd = [args.python, str(script), "--dataset", str(root / "dataset"),
+               "--predictions", str(root / "predictions"), "--split", args.split,
+               "--datacfg", str(datacfg), "--codalab", str(scores_dir)]
+        # cwd = the checkout: the evaluator imports its auxiliary/ package relative to it.
+        proc = subprocess.run(cmd, cwd=script.parent, capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            sys.stderr.write(proc.stdout + proc.stderr)
+            sys.exit(f"error: evaluator exited with status {proc.returncode}")
+        scores: dict[str, Any] = yaml.safe_load((scores_dir / "scores.txt").read_text())
+    return scores, proc.stdout, " ".join(cmd[1:]).replace(tmp, "<tmp>")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     evaluator = args.evaluator.resolve()
@@ -92,23 +122,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"error: {datacfg}: split {args.split!r} lists no sequence")
     seq_name = f"{int(split_seqs[0]):02d}"
 
-    with tempfile.TemporaryDirectory(prefix="ska_cmp_") as tmp:
-        root = Path(tmp)
-        _link_tree(root, seq_name, gt_files, pred_files)
-        scores_dir = root / "scores"
-        scores_dir.mkdir()
-        cmd = [args.python, str(script), "--dataset", str(root / "dataset"),
-               "--predictions", str(root / "predictions"), "--split", args.split,
-               "--datacfg", str(datacfg), "--codalab", str(scores_dir)]
-        # cwd = the checkout: the evaluator imports its auxiliary/ package relative to it.
-        proc = subprocess.run(cmd, cwd=evaluator, capture_output=True, text=True)
-        if proc.returncode != 0:
-            sys.stderr.write(proc.stdout + proc.stderr)
-            sys.exit(f"error: evaluator exited with status {proc.returncode}")
-        scores = yaml.safe_load((scores_dir / "scores.txt").read_text())
-
-    printed = re.search(r"IoU avg ([0-9.]+)", proc.stdout)
-    print("$ " + " ".join(cmd[1:]).replace(tmp, "<tmp>"))
+    scores, printout, shown_cmd = _run_evaluator(args, script, datacfg, seq_name, gt_files, pred_files)
+    printed = re.search(r"IoU avg ([0-9.]+)", printout)
+    print("$ " + shown_cmd)
     print(f"{len(gt_files)} scans, sequence {args.sequence} as {seq_name}, "
           f"leap row {row!r}, all-points protocol\n")
     print(f"{'class':<14}  {'leap':>9}  {'evaluator':>9}  {'|diff|':>9}")

@@ -45,8 +45,7 @@ P3: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.372877000000e+02
 
 Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-02 \
 -7.210626507497e-03 8.081198471645e-03 -9.999413164504e-01 -5.403984729748e-02 \
-9.999738645903e-01 4.859485810390e-04 -7.206933692422e-03 -2.921968648686e-01   
-"""
+9.999738645903e-01 4.859485810390e-04 -7.206933692422e-03 -2.921968648686e-01   \n"""
 
 P2_ROW = "7.2e+02 0 6.1e+02 45.4 0 7.2e+02 1.9e+02 -0.11 0 0 1 0.0038"
 IDENTITY_ROW = "1 0 0 0 0 1 0 0 0 0 1 0"
@@ -406,7 +405,7 @@ def test_sequence_structure_errors(tmp_path: Path, make_tiny_sequence) -> None:
     assert_names(exc, seq.root / "calib.txt")
     for p in (seq.root / "velodyne").iterdir():
         p.unlink()
-    with pytest.raises(DatasetError, match="no .bin scans") as exc:
+    with pytest.raises(DatasetError, match=r"no \.bin scans") as exc:
         KittiSequence(seq.root)
     assert "velodyne" in str(exc.value)
     (seq.root / "velodyne").rmdir()
@@ -419,17 +418,17 @@ def test_writers_refuse_bad_data(tmp_path: Path) -> None:
         write_scan(tmp_path / "a.bin", np.zeros((3, 3)))
     with pytest.raises(ValueError, match="non-finite"):
         write_scan(tmp_path / "a.bin", np.full((1, 4), np.nan))
-    with pytest.raises(ValueError, match="0..65535"):
+    with pytest.raises(ValueError, match=r"0\.\.65535"):
         write_label(tmp_path / "a.label", [70000])
-    with pytest.raises(ValueError, match="0..65535"):
+    with pytest.raises(ValueError, match=r"0\.\.65535"):
         write_label(tmp_path / "a.label", [-1])
-    with pytest.raises(ValueError, match="instance ids for .* must be 0..65535"):
+    with pytest.raises(ValueError, match=r"instance ids for .* must be 0\.\.65535"):
         write_label(tmp_path / "a.label", [10], [1 << 16])
     with pytest.raises(ValueError, match="do not match"):
         write_label(tmp_path / "a.label", [10, 11], [1])
     with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
         write_image(tmp_path / "a.png", np.zeros((4, 4), np.uint8))
-    with pytest.raises(ValueError, match="0..65535"):
+    with pytest.raises(ValueError, match=r"0\.\.65535"):
         write_png16(tmp_path / "m.png", np.full((2, 2), 70000))
     with pytest.raises(ValueError, match="poses must be"):
         write_poses(tmp_path / "poses.txt", np.eye(4))
@@ -522,7 +521,7 @@ def test_optional_parts(tmp_path: Path, make_tiny_sequence) -> None:
     assert [f.has_image for f in ks] == [False, True, False]
     assert [f.has_labels for f in ks] == [True, False, False]
     with pytest.raises(DatasetError, match="no image for frame 000000") as exc:
-        ks.frame(0).image
+        _ = ks.frame(0).image
     assert "image_2" in str(exc.value)
     assert ks.frame(1).image.shape == (8, 8, 3)
 
@@ -533,7 +532,7 @@ def test_frame_label_count_mismatch_names_the_label_file(tmp_path: Path, make_ti
     ks = KittiSequence(seq.root)
     assert ks.frame(0).labels.shape == (50,)
     with pytest.raises(DatasetError, match="label count 49 != point count 50") as exc:
-        ks.frame(1).labels
+        _ = ks.frame(1).labels
     assert_names(exc, seq.root / "labels" / "000001.label")
 
 
@@ -549,12 +548,12 @@ def test_sequence_reads_nothing_per_frame_until_asked(tmp_path: Path, make_tiny_
     np.testing.assert_array_equal(ks.frame(0).points, seq.points[0])
     frame = ks.frame(1)
     with pytest.raises(DatasetError, match="not a multiple of 16") as exc:
-        frame.points
+        _ = frame.points
     assert_names(exc, bad_scan)
     with pytest.raises(DatasetError, match="multiple of 4"):
-        ks.frame(2).labels
+        _ = ks.frame(2).labels
     with pytest.raises(DatasetError, match="unreadable image") as exc:
-        ks.frame(2).image
+        _ = ks.frame(2).image
     assert_names(exc, seq.root / "image_2" / "000002.png")
 
 

@@ -51,11 +51,15 @@ class PlaneIndex:
         n = cells.shape[0]
         values = (1.0 / counts.to(torch.float32))[inverse]
         indices = torch.stack([inverse, torch.arange(n, device=cells.device)])
-        mean = torch.sparse_coo_tensor(indices, values, (occupied.shape[0], n), check_invariants=False).coalesce()
+        mean = torch.sparse_coo_tensor(
+            indices, values, (occupied.shape[0], n), check_invariants=False
+        ).coalesce()
         return cls(occupied=occupied, inverse=inverse, mean=mean, grid_shape=grid_shape)
 
     def to(self, device: torch.device | str) -> PlaneIndex:
-        return PlaneIndex(self.occupied.to(device), self.inverse.to(device), self.mean.to(device), self.grid_shape)
+        return PlaneIndex(
+            self.occupied.to(device), self.inverse.to(device), self.mean.to(device), self.grid_shape
+        )
 
 
 @dataclass
@@ -138,9 +142,10 @@ class KnnEmbedding(nn.Module):
         else:
             # A whole 120k-point scan's intermediate would take hundreds of MB; blocks keep it small.
             pooled = torch.cat(
-                [F_.gelu(self.local(blk)).amax(dim=1) for blk in local.split(self.chunk)], dim=0
+                [F_.gelu(self.local(blk)).amax(dim=1) for blk in torch.split(local, self.chunk)], dim=0
             )
-        return self.center(self.norm(feats)) + self.out(pooled)
+        tokens: Tensor = self.center(self.norm(feats)) + self.out(pooled)
+        return tokens
 
 
 class ChannelMix(nn.Module):
@@ -156,7 +161,8 @@ class ChannelMix(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """``x + γ ⊙ W_2 GELU(W_1 LN(x))``: (N, F) -> (N, F)."""
-        return x + self.drop(self.gamma * self.fc2(F_.gelu(self.fc1(self.norm(x)))))
+        update: Tensor = self.drop(self.gamma * self.fc2(F_.gelu(self.fc1(self.norm(x)))))
+        return x + update
 
 
 class SpatialMix(nn.Module):
@@ -189,7 +195,8 @@ class SpatialMix(nn.Module):
         grid = self.conv2(F_.gelu(self.conv1(grid)))
         grid = grid.permute(0, 2, 3, 1).reshape(b * h * w, f)
         back = grid.index_select(0, plane.occupied).index_select(0, plane.inverse)
-        return x + self.drop(self.gamma * back)
+        update: Tensor = self.drop(self.gamma * back)
+        return x + update
 
 
 class WaffleBackbone(nn.Module):
@@ -208,13 +215,15 @@ class WaffleBackbone(nn.Module):
 
     def forward(self, x: Tensor, planes: tuple[PlaneIndex, ...]) -> Tensor:
         """For l = 0..L-1: ``x ← Spatial_l(Channel_l(x), plane l mod 3)``: (N, F) -> (N, F)."""
-        for i, (cmix, smix) in enumerate(zip(self.channel, self.spatial)):
+        for i, (cmix, smix) in enumerate(zip(self.channel, self.spatial, strict=True)):
             x = smix(cmix(x), planes[i % len(PLANES)])
         return x
 
 
 class PointSegmenter(nn.Module):
     """Embedding, backbone and a linear classifier: ``logits = W_h LN(Backbone(Embed(f, g)))``."""
+
+    trained_classes: Tensor  # a buffer registered in __init__, declared here for the type checker
 
     def __init__(self, cfg: BackboneConfig, num_classes: int) -> None:
         super().__init__()
@@ -235,7 +244,8 @@ class PointSegmenter(nn.Module):
         """``W_h LN(Backbone(Embed(feats, local)))``: a batch of N points -> (N, C) logits."""
         x = self.embed(batch.feats, batch.local)
         x = self.backbone(x, batch.planes)
-        return self.head(self.norm(x))
+        logits: Tensor = self.head(self.norm(x))
+        return logits
 
 
 def count_parameters(module: nn.Module) -> int:

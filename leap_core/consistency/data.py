@@ -60,7 +60,7 @@ def augment_points(points: npt.NDArray[np.float32], rng: np.random.Generator) ->
     if rng.random() < 0.5:
         rot = rot @ np.diag([1.0, -1.0, 1.0])
     rot *= rng.uniform(0.95, 1.05)
-    out = points.copy()
+    out = np.copy(points, order="C")
     out[:, :3] = (points[:, :3].astype(np.float64) @ rot.T).astype(np.float32)
     return out
 
@@ -68,8 +68,9 @@ def augment_points(points: npt.NDArray[np.float32], rng: np.random.Generator) ->
 def shape_features(offsets: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     """Covariance (PCA) shape descriptors of each point's neighbourhood.
 
-    With ``λ1 ≥ λ2 ≥ λ3 ≥ 0`` the eigenvalues of the neighbours' covariance ``Σ = (1/K) Σ_m (q_m - q̄)(q_m - q̄)ᵀ``
-    and ``n`` the eigenvector of ``λ3`` (the surface normal), the features are
+    With ``λ1 ≥ λ2 ≥ λ3 ≥ 0`` the eigenvalues of the neighbours' covariance
+    ``Σ = (1/K) Σ_m (q_m - q̄)(q_m - q̄)ᵀ`` and ``n`` the eigenvector of ``λ3`` (the surface normal), the
+    features are
     ``[|n_z|, (λ1-λ2)/λ1, (λ2-λ3)/λ1, λ3/λ1, sqrt(λ1)/LOCAL_SCALE]``: verticality of the normal, linearity,
     planarity, scattering and spread. Road, walls, poles and foliage differ most in exactly these.
 
@@ -202,7 +203,9 @@ def collate(clouds: Sequence[PreparedCloud]) -> CloudTensors:
     planes = []
     for p in range(len(PLANES)):
         h, w = int(hw[p, 0]), int(hw[p, 1])
-        cells = np.concatenate([i * h * w + c.cell_uv[p, :, 0] * w + c.cell_uv[p, :, 1] for i, c in enumerate(clouds)])
+        cells = np.concatenate(
+            [i * h * w + c.cell_uv[p, :, 0] * w + c.cell_uv[p, :, 1] for i, c in enumerate(clouds)]
+        )
         planes.append(PlaneIndex.from_cells(torch.from_numpy(cells), (b, h, w)))
     return CloudTensors(
         feats=torch.from_numpy(np.concatenate([c.feats for c in clouds])),

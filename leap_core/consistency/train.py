@@ -22,7 +22,7 @@ from torch.nn import functional as F_
 
 from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
-from leap_core.consistency.data import augment_points, collate, prepare_cloud
+from leap_core.consistency.data import PreparedCloud, augment_points, collate, prepare_cloud
 from leap_core.errors import ModelLoadError
 from leap_core.io_utils import atomic_write
 from leap_core.progress import ProgressFn, report
@@ -189,19 +189,7 @@ def train_model(
             order = rng.permutation(len(indices))
             for s in range(min(per_epoch, total - step)):
                 batch_ids = [indices[j] for j in order[s * cfg.scans_per_step : (s + 1) * cfg.scans_per_step]]
-                clouds, targets = [], []
-                for i in batch_ids:
-                    points, target = load_scan(i)
-                    target = np.asarray(target)
-                    if target.shape != (points.shape[0],):
-                        raise ValueError(f"scan {i}: target {target.shape} does not match points {points.shape}")
-                    subset = draw_points(target, cfg.points_per_scan, cfg.labeled_share, rng)
-                    pts = augment_points(points, rng) if cfg.augment else points
-                    t = target[subset].astype(np.int64)
-                    if not (t != UNLABELED).any():
-                        continue
-                    clouds.append(prepare_cloud(pts, cfg.backbone, subset, workers=workers))
-                    targets.append(np.where(t == UNLABELED, _IGNORE, t))
+                clouds, targets = _training_batch(load_scan, batch_ids, cfg, rng, workers)
                 if clouds:
                     batch = collate(clouds).to(device)
                     tgt = torch.from_numpy(np.concatenate(targets)).to(device)
@@ -210,7 +198,7 @@ def train_model(
                         logits, tgt, weight=weights, ignore_index=_IGNORE, label_smoothing=cfg.label_smoothing
                     )
                     opt.zero_grad(set_to_none=True)
-                    loss.backward()
+                    torch.autograd.backward(loss)  # loss.backward(), which torch leaves unannotated
                     torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
                     opt.step()
                     stats.steps += 1
@@ -223,6 +211,31 @@ def train_model(
     model.eval()
     stats.seconds = time.perf_counter() - t0
     return model.cpu(), stats
+
+
+def _training_batch(
+    load_scan: ScanLoader,
+    batch_ids: Sequence[int],
+    cfg: ConsistencyConfig,
+    rng: np.random.Generator,
+    workers: int,
+) -> tuple[list[PreparedCloud], list[npt.NDArray[np.int64]]]:
+    """The clouds of one step and their loss targets (``_IGNORE`` where a drawn point has no selected
+    label); a scan none of whose drawn points carries a label is left out."""
+    clouds, targets = [], []
+    for i in batch_ids:
+        points, target = load_scan(i)
+        target = np.asarray(target)
+        if target.shape != (points.shape[0],):
+            raise ValueError(f"scan {i}: target {target.shape} does not match points {points.shape}")
+        subset = draw_points(target, cfg.points_per_scan, cfg.labeled_share, rng)
+        pts = augment_points(points, rng) if cfg.augment else points
+        t = target[subset].astype(np.int64)
+        if not (t != UNLABELED).any():
+            continue
+        clouds.append(prepare_cloud(pts, cfg.backbone, subset, workers=workers))
+        targets.append(np.where(t == UNLABELED, _IGNORE, t))
+    return clouds, targets
 
 
 @torch.inference_mode()

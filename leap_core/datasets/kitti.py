@@ -245,7 +245,7 @@ def read_image(path: str | Path) -> npt.NDArray[np.uint8]:
     img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data is not None and data.size else None
     if img is None:
         raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
 
 
 def write_image(path: str | Path, rgb: npt.NDArray[np.uint8]) -> None:
@@ -303,7 +303,7 @@ class Frame:
     @property
     def pose(self) -> npt.NDArray[np.float64]:
         """(4, 4) LiDAR → world (world = LiDAR frame of frame 0)."""
-        return self.seq.poses[self.index]
+        return np.asarray(self.seq.poses[self.index], dtype=np.float64)
 
     @property
     def calib(self) -> Calib:

@@ -15,6 +15,7 @@ clouds, then a light blur and sensor noise.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Final
 
 import cv2
 import numpy as np
@@ -37,6 +38,11 @@ from leap_core.synth.raycast import (
 from leap_core.synth.textures import box_pattern, facade_uv, noise, road_paint, window_mask
 
 F32 = npt.NDArray[np.float32]
+
+_HORIZON: Final = np.array([0.8, 0.85, 0.9], np.float32)
+"""Sky colour at the horizon (linear RGB)."""
+_HAZE: Final = _HORIZON * np.float32(0.92)
+"""Colour that aerial haze fades distant surfaces (and the ground beyond the blocks) towards."""
 
 
 @dataclass(frozen=True)
@@ -75,7 +81,7 @@ class CameraConfig:
     def scaled(self, factor: float) -> CameraConfig:
         """The same camera at ``factor`` × the resolution (same field of view; a coarser shadow map when
         smaller). Used for fast previews and tests."""
-        w, h = max(int(round(self.width * factor)), 8), max(int(round(self.height * factor)), 8)
+        w, h = max(round(self.width * factor), 8), max(round(self.height * factor), 8)
         fu, fv = w / self.width, h / self.height
         out = replace(
             self,
@@ -88,7 +94,8 @@ class CameraConfig:
             shadow_res=self.shadow_res / min(factor, 1.0),
         )
         # Keep camera 2's physical offset: P2[:, 3] = K · t₂.
-        return replace(out, p2_offset=tuple(float(v) for v in out.K() @ self.cam2_offset()))
+        p2x, p2y, p2z = (float(v) for v in out.K() @ self.cam2_offset())
+        return replace(out, p2_offset=(p2x, p2y, p2z))
 
     def K(self) -> npt.NDArray[np.float64]:
         """(3, 3) intrinsic matrix."""
@@ -231,7 +238,7 @@ class SunShadows:
 
 
 # ------------------------------------------------------------------------------------------ render
-def render(
+def render(  # noqa: PLR0917  benchmarks/bench_synth.py calls it with positional arguments
     prims: Primitives,
     n_static: int,
     cam_to_world: npt.NDArray[np.float64],
@@ -257,11 +264,11 @@ def render(
     h, w = cfg.height, cfg.width
     rot, origin = cam_to_world[:3, :3], cam_to_world[:3, 3]
     dirs = np.einsum("ij,jhw->ihw", rot.astype(np.float32), rays)
-    tasks = pinhole_tasks(prims, np.linalg.inv(cam_to_world), cfg.K(), w, h, cfg.max_range)
+    world_to_cam = np.asarray(np.linalg.inv(cam_to_world), dtype=np.float64)
+    tasks = pinhole_tasks(prims, world_to_cam, cfg.K(), w, h, cfg.max_range)
     depth, pid = cast_grid(prims, origin, dirs, tasks, 0.05, 1e4)
     flat_pid = pid.reshape(-1)
-    hit = flat_pid >= 0
-    idx = np.flatnonzero(hit)
+    idx = np.flatnonzero(flat_pid >= 0)
     d = np.stack([dirs[k].reshape(-1)[idx] for k in range(3)], axis=1)
     t = depth.reshape(-1)[idx]
     p = flat_pid[idx]
@@ -295,16 +302,11 @@ def render(
     color = albedo * light
     color += _specular(prims, p, hits, view, sun32, sun_vis > 0.5)
     haze = np.exp(-dist / np.float32(420.0))[:, None]
-    horizon = np.array([0.8, 0.85, 0.9], np.float32) * np.float32(0.92)
-    img = np.empty((h * w, 3), np.float32)
-    img[idx] = color * haze + horizon * (1 - haze)
-    miss = np.flatnonzero(~hit)
-    img[miss] = _sky(np.stack([dirs[k].reshape(-1)[miss] for k in range(3)], axis=1), sun32)
-    img = img.reshape(h, w, 3)
-    img = cv2.GaussianBlur(img, (3, 3), 0.55)
-    img *= np.float32(255.0)
-    img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(cfg.noise_std) + np.float32(0.5)
-    rgb = np.clip(img, 0, 255).astype(np.uint8)
+    linear = np.empty((h * w, 3), np.float32)
+    linear[idx] = color * haze + _HAZE * (1 - haze)
+    miss = np.flatnonzero(flat_pid < 0)
+    linear[miss] = _sky(np.stack([dirs[k].reshape(-1)[miss] for k in range(3)], axis=1), sun32)
+    rgb = _sensor_image(linear.reshape(h, w, 3), cfg.noise_std, rng)
 
     sem = np.zeros(h * w, np.uint16)
     inst = np.zeros(h * w, np.uint16)
@@ -314,15 +316,23 @@ def render(
     return CameraFrame(rgb=rgb, semantic=sem.reshape(h, w), instance=inst.reshape(h, w), depth=depth_out)
 
 
+def _sensor_image(linear: F32, noise_std: float, rng: np.random.Generator) -> npt.NDArray[np.uint8]:
+    """(H, W, 3) uint8 image of (H, W, 3) linear colour in [0, 1]: a light optical blur, then Gaussian
+    sensor noise of ``noise_std`` (8-bit units) and rounding."""
+    img = np.asarray(cv2.GaussianBlur(linear, (3, 3), 0.55), dtype=np.float32)
+    img *= np.float32(255.0)
+    img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_std) + np.float32(0.5)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
 def _sky(d: F32, sun: F32) -> F32:
     """(n, 3) colour of rays that hit nothing: horizon-to-zenith gradient, sun glow and soft clouds above
     the horizon, hazy distant ground below it (beyond the built blocks)."""
     n = d / np.linalg.norm(d, axis=1, keepdims=True)
     e = np.clip(n[:, 2], -1, 1)
     k = np.clip(e * 2.5, 0, 1)[:, None] ** 0.6
-    horizon = np.array([0.8, 0.85, 0.9], np.float32)
     zenith = np.array([0.33, 0.52, 0.82], np.float32)
-    col = horizon * (1 - k) + zenith * k
+    col = _HORIZON * (1 - k) + zenith * k
     glow = np.maximum(n @ sun, 0) ** 24
     col += glow[:, None] * np.array([0.35, 0.3, 0.2], np.float32)
     up = np.flatnonzero(e > 0.01)
@@ -337,10 +347,8 @@ def _sky(d: F32, sun: F32) -> F32:
     down = np.flatnonzero(e < 0)
     if down.size:
         g = np.clip(-e[down] * 40, 0, 1)[:, None]
-        col[down] = (
-            horizon * np.float32(0.92) * (1 - g * 0.25) + np.array([0.36, 0.4, 0.3], np.float32) * g * 0.25
-        )
-    return col.astype(np.float32)
+        col[down] = _HAZE * (1 - g * 0.25) + np.array([0.36, 0.4, 0.3], np.float32) * g * 0.25
+    return np.asarray(col, dtype=np.float32)
 
 
 def _specular(
@@ -376,10 +384,10 @@ def _hash01(*ints: npt.NDArray[np.int64]) -> F32:
         h ^= v.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15 * (k + 1) & 0xFFFFFFFFFFFFFFFF)
         h = (h ^ (h >> np.uint64(31))) * np.uint64(0xBF58476D1CE4E5B9)
         h ^= h >> np.uint64(29)
-    return ((h >> np.uint64(40)).astype(np.float64) / float(1 << 24)).astype(np.float32)
+    return np.asarray((h >> np.uint64(40)).astype(np.float64) / float(1 << 24), dtype=np.float32)
 
 
-def _albedo(
+def _albedo(  # noqa: PLR0912, PLR0915  one short branch per material, read as a table
     prims: Primitives, p: npt.NDArray[np.int32], hits: SurfaceHits, world: F32, fp: F32, view: F32
 ) -> F32:
     """(n, 3) textured surface colour per hit, by material."""
@@ -463,7 +471,7 @@ def _albedo(
         out[i] = base[i] * (0.78 + 0.22 * g)[:, None]
     i = sel(M.FACADE)
     if i.size:
-        out[i] = _facade(base[i], loc[i], half[i], face[i], param[i], fp[i], world[i], view[i])
+        out[i] = _facade(base[i], loc[i], half[i], face[i], param[i], fp[i])
     i = sel(M.ROOF)
     if i.size:
         rows = box_pattern(loc[i, 1], 0.34, 0.12, fp[i])
@@ -541,12 +549,10 @@ def _albedo(
         panel = box_pattern(along + 0.02, 1.2, 0.03, fp[i])
         g = noise("smooth", along, loc[i, 2], 0.3, fp[i])
         out[i] = base[i] * ((0.92 + 0.06 * g) * (1 - 0.3 * panel))[:, None]
-    return np.clip(out, 0, 1.2).astype(np.float32)
+    return np.asarray(np.clip(out, 0, 1.2), dtype=np.float32)
 
 
-def _facade(
-    base: F32, loc: F32, half: F32, face: npt.NDArray[np.int8], param: F32, fp: F32, world: F32, view: F32
-) -> F32:
+def _facade(base: F32, loc: F32, half: F32, face: npt.NDArray[np.int8], param: F32, fp: F32) -> F32:
     """Walls with windows (plaster, brick or glass bands), plinth and flat roof."""
     out = base.copy()
     side = face <= 3
@@ -592,7 +598,7 @@ def _facade(
     out = np.where(side[:, None], col, out)
     roof = face == 4
     out[roof] = np.array([0.36, 0.35, 0.34], np.float32) * (0.9 + 0.1 * g[roof])[:, None]
-    return out
+    return np.asarray(out, dtype=np.float32)
 
 
 def _sign(loc: F32, half: F32, face: npt.NDArray[np.int8], param: F32, kind: npt.NDArray[np.int8]) -> F32:

@@ -174,7 +174,7 @@ _WORKER: _Worker | None = None
 
 
 def _init_worker(cfg: SynthConfig, seq_dir: Path) -> None:
-    global _WORKER
+    global _WORKER  # noqa: PLW0603  a pool initializer can only leave per-process state in a module global
     _WORKER = _Worker(cfg, seq_dir)
 
 
@@ -221,7 +221,7 @@ def generate_sequence(
     points = np.zeros(cfg.frames, np.int64)
     in_image = np.zeros(cfg.frames, np.int64)
     workers = max(1, min(int(workers), cfg.frames))
-    global _WORKER
+    global _WORKER  # noqa: PLW0603  forked pool children inherit the built scene through this global
     worker = _Worker(cfg, seq_dir)
     if workers == 1:
         _collect((worker.frame(i) for i in range(cfg.frames)), points, in_image, cfg.frames, progress)
@@ -232,8 +232,12 @@ def generate_sequence(
         ctx = mp.get_context("fork" if fork else "spawn")
         _WORKER = worker
         try:
-            init = {} if fork else {"initializer": _init_worker, "initargs": (cfg, seq_dir)}
-            with ctx.Pool(workers, **init) as pool:
+            pool = (
+                ctx.Pool(workers)
+                if fork
+                else ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, seq_dir))
+            )
+            with pool:
                 _collect(pool.imap(_run_frame, range(cfg.frames)), points, in_image, cfg.frames, progress)
         finally:
             _WORKER = None

@@ -49,12 +49,12 @@ def beam_elevations(cfg: LidarConfig) -> npt.NDArray[np.float64]:
     n_up = cfg.beams // 2
     up = np.linspace(cfg.upper_deg[0], cfg.upper_deg[1], n_up)
     low = np.linspace(cfg.lower_deg[0], cfg.lower_deg[1], cfg.beams - n_up)
-    return np.deg2rad(np.concatenate([up, low]))
+    return np.asarray(np.deg2rad(np.concatenate([up, low])), dtype=np.float64)
 
 
 def n_azimuth(cfg: LidarConfig) -> int:
     """Number of azimuth columns in one revolution."""
-    return int(round(360.0 / cfg.azimuth_step_deg))
+    return round(360.0 / cfg.azimuth_step_deg)
 
 
 def ray_grid(cfg: LidarConfig) -> npt.NDArray[np.float32]:
@@ -104,7 +104,7 @@ def scan(
     rays = ray_grid(cfg) if rays is None else rays
     rot, origin = sensor_to_world[:3, :3], sensor_to_world[:3, 3]
     dirs_w = np.einsum("ij,jba->iba", rot.astype(np.float32), rays)
-    world_to_sensor = np.linalg.inv(sensor_to_world)
+    world_to_sensor = np.asarray(np.linalg.inv(sensor_to_world), dtype=np.float64)
     tasks = spherical_tasks(prims, world_to_sensor, beam_elevations(cfg), rays.shape[2], cfg.max_range)
     depth, pid = cast_grid(prims, origin, dirs_w, tasks, cfg.min_range, cfg.max_range)
     # Column-major order: one azimuth after the other, like the sensor's firing sequence.
@@ -142,7 +142,7 @@ def lidar_reflectivity(
 ) -> npt.NDArray[np.float32]:
     """(n,) base remission before the incidence-angle falloff: the material's reflectivity, raised on lane
     paint, lowered on window glass, scaled by paint brightness on vehicles."""
-    refl = REFLECTIVITY[mat].copy()
+    refl = REFLECTIVITY[mat]  # a new array: integer-array indexing copies
     footprint = dist * np.float32(np.deg2rad(0.2))
     road = np.flatnonzero((mat == Material.ASPHALT) & (face == 4))
     if road.size:

@@ -9,6 +9,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.datasets.kitti import KittiSequence
+
 SEMANTIC_KITTI_RGB: dict[int, tuple[int, int, int]] = {
     0: (0, 0, 0),
     10: (100, 150, 245),
@@ -36,7 +38,7 @@ def class_colors(semantic: npt.NDArray[np.integer]) -> npt.NDArray[np.uint8]:
     lut = np.full((65536, 3), 128, np.uint8)
     for k, c in SEMANTIC_KITTI_RGB.items():
         lut[k] = c
-    return lut[np.asarray(semantic, np.int64) & 0xFFFF]
+    return np.asarray(lut[np.asarray(semantic, np.int64) & 0xFFFF], dtype=np.uint8)
 
 
 def bev_image(
@@ -101,8 +103,6 @@ def write_previews(
 ) -> None:
     """Write a README preview of one frame: the camera image above its ground-truth overlay (scaled by
     ``scale``, 6-bit colour), and the bird's-eye view of its scan coloured by class (white background)."""
-    from leap_core.datasets.kitti import KittiSequence
-
     seq = KittiSequence(seq_dir)
     f = seq.frame(frame)
     img = np.concatenate([f.image, overlay(f.image, f.gt2d_semantic)], axis=0)

@@ -124,7 +124,7 @@ class Primitives:
 
     def bounding_radius(self) -> npt.NDArray[np.float64]:
         """(P,) radius of a sphere around ``center`` that contains each primitive."""
-        r = np.linalg.norm(self.half, axis=1)
+        r = np.asarray(np.linalg.norm(self.half, axis=1), dtype=np.float64)
         cyl = self.kind == CYLINDER
         r[cyl] = np.hypot(self.half[cyl, 0] * np.sqrt(2), self.half[cyl, 2])
         ell = self.kind == ELLIPSOID
@@ -140,7 +140,7 @@ class Primitives:
         cyl = self.kind == CYLINDER
         half[cyl, 1] = half[cyl, 0]  # a cylinder's radius is half[0]
         local = _CORNER_SIGNS[None] * half[:, None, :]
-        return self.center[:, None, :] + np.einsum("pij,pkj->pki", self.rot, local)
+        return np.asarray(self.center[:, None, :] + np.einsum("pij,pkj->pki", self.rot, local), np.float64)
 
 
 def rotation_z(yaw: float) -> npt.NDArray[np.float64]:
@@ -154,7 +154,7 @@ def rotation_xyz(roll: float, pitch: float, yaw: float) -> npt.NDArray[np.float6
     cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
     ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    return rotation_z(yaw) @ ry @ rx
+    return np.asarray(rotation_z(yaw) @ ry @ rx, dtype=np.float64)
 
 
 # ------------------------------------------------------------------------------------ intersections
@@ -174,12 +174,20 @@ def _halves(half: npt.NDArray[np.float64] | npt.NDArray[np.float32]) -> tuple[Ar
 
 
 def intersect_box(
-    ox: Arr, oy: Arr, oz: Arr, dx: Arr, dy: Arr, dz: Arr, half: npt.NDArray[np.float64], t_min: float
+    ox: Arr, oy: Arr, oz: Arr, dx: Arr, dy: Arr, dz: Arr, *, half: npt.NDArray[np.float64], t_min: float
 ) -> npt.NDArray[np.float32]:
     """Slab test: t = max_k min(t_k⁻, t_k⁺), hit iff t <= min_k max(t_k⁻, t_k⁺) and t > t_min,
     with t_k^± = (±half_k − o_k) / d_k."""
     with np.errstate(all="ignore"):
-        return _box(ox, oy, oz, dx, dy, dz, half, t_min)
+        return _box(ox, oy, oz, dx, dy, dz, half=half, t_min=t_min)
+
+
+def _slab(o: Arr, d: Arr, h: Arr) -> tuple[Arr, Arr]:
+    """Entry and exit distance ``(min(t⁻, t⁺), max(t⁻, t⁺))`` of the slab ``|o + t·d| <= h`` on one axis."""
+    inv = np.float32(1.0) / d if isinstance(d, np.ndarray) else 1.0 / d if d != 0 else np.inf
+    ta = (-h - o) * inv
+    tb = (h - o) * inv
+    return np.minimum(ta, tb), np.maximum(ta, tb)
 
 
 def _box(
@@ -189,29 +197,27 @@ def _box(
     dx: Arr,
     dy: Arr,
     dz: Arr,
+    *,
     half: npt.NDArray[np.float64],
     t_min: float,
 ) -> npt.NDArray[np.float32]:
     hx, hy, hz = _halves(half)
-    tnear = tfar = None
-    for ok, dk, hk in ((ox, dx, hx), (oy, dy, hy), (oz, dz, hz)):
-        inv = np.float32(1.0) / dk if isinstance(dk, np.ndarray) else 1.0 / dk if dk != 0 else np.inf
-        ta = (-hk - ok) * inv
-        tb = (hk - ok) * inv
-        lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
-        tnear = lo if tnear is None else np.maximum(tnear, lo)
-        tfar = hi if tfar is None else np.minimum(tfar, hi)
+    tnear, tfar = _slab(ox, dx, hx)
+    for ok, dk, hk in ((oy, dy, hy), (oz, dz, hz)):
+        lo, hi = _slab(ok, dk, hk)
+        tnear = np.maximum(tnear, lo)
+        tfar = np.minimum(tfar, hi)
     hit = (tnear <= tfar) & (tnear > t_min)
     return np.where(hit, tnear, np.float32(np.inf)).astype(np.float32, copy=False)
 
 
 def intersect_cylinder(
-    ox: Arr, oy: Arr, oz: Arr, dx: Arr, dy: Arr, dz: Arr, half: npt.NDArray[np.float64], t_min: float
+    ox: Arr, oy: Arr, oz: Arr, dx: Arr, dy: Arr, dz: Arr, *, half: npt.NDArray[np.float64], t_min: float
 ) -> npt.NDArray[np.float32]:
     """Side: smallest root of (ox + t dx)² + (oy + t dy)² = r² with |oz + t dz| <= h; cap: the plane
     z = ±h on the origin's side (when |oz| > h), inside the disc. Returns the nearer valid one."""
     with np.errstate(all="ignore"):
-        return _cylinder(ox, oy, oz, dx, dy, dz, half, t_min)
+        return _cylinder(ox, oy, oz, dx, dy, dz, half=half, t_min=t_min)
 
 
 def _cylinder(
@@ -221,6 +227,7 @@ def _cylinder(
     dx: Arr,
     dy: Arr,
     dz: Arr,
+    *,
     half: npt.NDArray[np.float64],
     t_min: float,
 ) -> npt.NDArray[np.float32]:
@@ -242,11 +249,11 @@ def _cylinder(
 
 
 def intersect_ellipsoid(
-    ox: Arr, oy: Arr, oz: Arr, dx: Arr, dy: Arr, dz: Arr, half: npt.NDArray[np.float64], t_min: float
+    ox: Arr, oy: Arr, oz: Arr, dx: Arr, dy: Arr, dz: Arr, *, half: npt.NDArray[np.float64], t_min: float
 ) -> npt.NDArray[np.float32]:
     """Scale to the unit sphere (o' = o / s, d' = d / s) and take the smaller root of |o' + t d'|² = 1."""
     with np.errstate(all="ignore"):
-        return _ellipsoid(ox, oy, oz, dx, dy, dz, half, t_min)
+        return _ellipsoid(ox, oy, oz, dx, dy, dz, half=half, t_min=t_min)
 
 
 def _ellipsoid(
@@ -256,6 +263,7 @@ def _ellipsoid(
     dx: Arr,
     dy: Arr,
     dz: Arr,
+    *,
     half: npt.NDArray[np.float64],
     t_min: float,
 ) -> npt.NDArray[np.float32]:
@@ -283,6 +291,7 @@ def pinhole_tasks(
     width: int,
     height: int,
     max_range: float,
+    *,
     near: float = 0.05,
 ) -> npt.NDArray[np.int64]:
     """Pixel rectangles that bound each primitive's image in a pinhole camera.
@@ -328,7 +337,7 @@ def pinhole_tasks(
     r0 = np.clip(np.ceil(v0) - 1, 0, height).astype(np.int64)
     r1 = np.clip(np.floor(v1) + 2, 0, height).astype(np.int64)
     good = any_ok & (c1 > c0) & (r1 > r0)
-    return np.stack([idx, r0, r1, c0, c1], axis=1)[good]
+    return np.asarray(np.stack([idx, r0, r1, c0, c1], axis=1)[good], dtype=np.int64)
 
 
 def spherical_tasks(
@@ -434,49 +443,31 @@ def cast_grid(
     near = (np.linalg.norm(prims.center[p_all] - origin, axis=1) - prims.bounding_radius()[p_all]) / d_max
     order = np.argsort(near, kind="stable")
     with np.errstate(all="ignore"):
-        _cast_loop(
-            tasks[order], near[order].tolist(), dirs, rot_type, rot, o_local, kind, half, t_min, depth, pid
-        )
-    return depth, pid
-
-
-def _cast_loop(
-    tasks: npt.NDArray[np.int64],
-    near: list[float],
-    dirs: npt.NDArray[np.float32],
-    rot_type: npt.NDArray[np.int8],
-    rot: npt.NDArray[np.float64],
-    o_local: list[list[float]],
-    kind: npt.NDArray[np.int8],
-    half: npt.NDArray[np.float64],
-    t_min: float,
-    depth: npt.NDArray[np.float32],
-    pid: npt.NDArray[np.int32],
-) -> None:
-    """The per-primitive loop of :func:`cast_grid` (rays of each rectangle, depth test in place)."""
-    for (p, r0, r1, c0, c1), t_near in zip(tasks.tolist(), near, strict=True):
-        if t_near > 0 and depth[r0:r1, c0:c1].max() <= t_near:
-            continue  # fully hidden behind what is already in the depth buffer
-        wx, wy, wz = dirs[0, r0:r1, c0:c1], dirs[1, r0:r1, c0:c1], dirs[2, r0:r1, c0:c1]
-        rt = rot_type[p]
-        if rt == _ROT_IDENTITY:
-            dx, dy, dz = wx, wy, wz
-        else:
-            m = rot[p].astype(np.float32)
-            dx = wx * m[0, 0] + wy * m[1, 0]
-            dy = wx * m[0, 1] + wy * m[1, 1]
-            if rt == _ROT_YAW:
-                dz = wz
+        # The per-primitive loop: the rays of each rectangle, depth test in place.
+        for (p, r0, r1, c0, c1), t_near in zip(tasks[order].tolist(), near[order].tolist(), strict=True):
+            if t_near > 0 and depth[r0:r1, c0:c1].max() <= t_near:
+                continue  # fully hidden behind what is already in the depth buffer
+            wx, wy, wz = dirs[0, r0:r1, c0:c1], dirs[1, r0:r1, c0:c1], dirs[2, r0:r1, c0:c1]
+            rt = rot_type[p]
+            if rt == _ROT_IDENTITY:
+                dx, dy, dz = wx, wy, wz
             else:
-                dx += wz * m[2, 0]
-                dy += wz * m[2, 1]
-                dz = wx * m[0, 2] + wy * m[1, 2] + wz * m[2, 2]
-        ox, oy, oz = o_local[p]
-        t = _INTERSECT[int(kind[p])](ox, oy, oz, dx, dy, dz, half[p], t_min)
-        zb = depth[r0:r1, c0:c1]
-        closer = t < zb
-        np.copyto(zb, t, where=closer)
-        np.copyto(pid[r0:r1, c0:c1], p, where=closer)
+                m = rot[p].astype(np.float32)
+                dx = wx * m[0, 0] + wy * m[1, 0]
+                dy = wx * m[0, 1] + wy * m[1, 1]
+                if rt == _ROT_YAW:
+                    dz = wz
+                else:
+                    dx += wz * m[2, 0]
+                    dy += wz * m[2, 1]
+                    dz = wx * m[0, 2] + wy * m[1, 2] + wz * m[2, 2]
+            ox, oy, oz = o_local[p]
+            t = _INTERSECT[int(kind[p])](ox, oy, oz, dx, dy, dz, half=half[p], t_min=t_min)
+            zb = depth[r0:r1, c0:c1]
+            closer = t < zb
+            np.copyto(zb, t, where=closer)
+            np.copyto(pid[r0:r1, c0:c1], p, where=closer)
+    return depth, pid
 
 
 @dataclass(frozen=True)
@@ -623,9 +614,12 @@ def cast_parallel(
             d = -(e3 @ rot)
             u = (grid.u0 + (np.arange(c0, c1, dtype=np.float32) + 0.5) * grid.res).astype(np.float32)[None, :]
             w = (grid.w0 + (np.arange(r0, r1, dtype=np.float32) + 0.5) * grid.res).astype(np.float32)[:, None]
-            ox, oy, oz = (float(a[k]) * u + float(b[k]) * w + float(const[k]) for k in range(3))
+            ox, oy, oz = (
+                np.asarray(float(a[k]) * u + float(b[k]) * w + float(const[k]), dtype=np.float32)
+                for k in range(3)
+            )
             t = _INTERSECT[int(prims.kind[p])](
-                ox, oy, oz, float(d[0]), float(d[1]), float(d[2]), prims.half[p], t_min
+                ox, oy, oz, float(d[0]), float(d[1]), float(d[2]), half=prims.half[p], t_min=t_min
             )
             t = np.broadcast_to(t, (r1 - r0, c1 - c0))
             zb = depth[r0:r1, c0:c1]
@@ -693,8 +687,8 @@ def occluded_towards(
                     float(d[0]),
                     float(d[1]),
                     float(d[2]),
-                    prims.half[p],
-                    t_min,
+                    half=prims.half[p],
+                    t_min=t_min,
                 )
                 hit[sel[np.isfinite(t)]] = True
             out[cand] = hit

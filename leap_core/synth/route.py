@@ -119,12 +119,32 @@ def _rot90(h: npt.NDArray[np.float64], sign: int) -> npt.NDArray[np.float64]:
     return np.array([-h[1], h[0]]) if sign > 0 else np.array([h[1], -h[0]])
 
 
+@dataclass(frozen=True)
+class _Line:
+    """A straight piece of the route from ``p0`` to ``p1``."""
+
+    p0: npt.NDArray[np.float64]
+    p1: npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _Arc:
+    """A turning arc around ``centre``: points ``centre + radius·(cos a, sin a)`` for a from ``a0`` over
+    ``sweep`` radians (positive = left turn)."""
+
+    centre: npt.NDArray[np.float64]
+    radius: float
+    a0: float
+    sweep: float
+
+
 def plan_route(
     cfg: EgoConfig,
     grid: StreetGrid,
     frames: int,
     hz: float,
     rng: np.random.Generator,
+    *,
     extra_length: float = 80.0,
     step: float = 0.05,
 ) -> Route:
@@ -134,13 +154,65 @@ def plan_route(
     lane lines cross), incoming heading a and outgoing heading b, the arc runs from C − R·a to C + R·b
     around C − R·a + R·b.
     """
+    need = frames * cfg.cruise_speed / hz + extra_length
+    pieces = _route_pieces(cfg, grid, rng, need)
+
+    xs, hs, legs, turns, signs = [], [], [], [], []
+    s_acc = 0.0
+    for piece in pieces:
+        if isinstance(piece, _Line):
+            p0, p1 = piece.p0, piece.p1
+            seg = float(np.linalg.norm(p1 - p0))
+            n = max(int(np.ceil(seg / step)), 1)
+            u = np.arange(n) / n
+            h = (p1 - p0) / max(seg, 1e-9)
+            xs.append(p0[None] + u[:, None] * (p1 - p0)[None])
+            hs.append(np.full(n, np.arctan2(h[1], h[0])))
+            legs.append(Leg(s0=s_acc, s1=s_acc + seg, start=np.asarray(p0, float), heading=h))
+            s_acc += seg
+        else:
+            centre, radius, a0, sweep = piece.centre, piece.radius, piece.a0, piece.sweep
+            seg = abs(sweep) * radius
+            n = max(int(np.ceil(seg / step)), 1)
+            ang = a0 + sweep * np.arange(n) / n
+            xs.append(centre[None] + radius * np.stack([np.cos(ang), np.sin(ang)], axis=1))
+            hs.append(ang + np.sign(sweep) * np.pi / 2)
+            turns.append((s_acc, s_acc + seg))
+            signs.append(np.sign(sweep))
+            s_acc += seg
+    xy = np.concatenate(xs)
+    heading_angle = np.unwrap(np.concatenate(hs))
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    turns_arr = np.array(turns, dtype=np.float64).reshape(-1, 2)
+
+    frame_s = _drive(turns_arr, cfg, 0.0, frames, hz, cfg.cruise_speed)
+    speed = np.array([_speed_limit(turns_arr, cfg, cfg.cruise_speed, sv) for sv in frame_s])
+    roll = _turn_roll(cfg, frame_s, speed, turns_arr, np.array(signs))
+    poses = _ego_poses(cfg, s, xy, heading_angle, frame_s, roll=roll, rng=rng)
+    return Route(
+        xy=xy,
+        heading_angle=heading_angle,
+        s=s,
+        legs=tuple(legs),
+        turns=turns_arr,
+        turn_sign=np.array(signs),
+        frame_s=frame_s,
+        speed=speed,
+        poses=poses,
+    )
+
+
+def _route_pieces(
+    cfg: EgoConfig, grid: StreetGrid, rng: np.random.Generator, need: float
+) -> list[_Line | _Arc]:
+    """The route as straight pieces and turning arcs, at least ``need`` metres long: the first
+    intersection is always turned at, later ones are crossed (1/2) or turned left or right (1/4 each)."""
     lw = grid.lane_width
     d0 = float(rng.uniform(*cfg.first_turn_distance))
-    need = frames * cfg.cruise_speed / hz + extra_length
     heading = np.array([1.0, 0.0])
     inter = np.array([0.0, 0.0])
     start = np.array([-d0, 0.0]) + right_of(heading) * lw / 2
-    pieces: list[tuple[str, tuple]] = []  # ("line", (p0, p1)) or ("arc", (centre, R, a0, sweep))
+    pieces: list[_Line | _Arc] = []
     cur = start
     length = 0.0
     first = True
@@ -163,57 +235,32 @@ def plan_route(
         t1 = corner - radius * heading
         t2 = corner + radius * out
         centre = t1 + radius * out
-        pieces.append(("line", (cur, t1)))
+        pieces.append(_Line(cur, t1))
         a0 = np.arctan2(*(t1 - centre)[::-1])
-        pieces.append(("arc", (centre, radius, a0, action * np.pi / 2)))
+        pieces.append(_Arc(centre, radius, a0, action * np.pi / 2))
         length += float(np.linalg.norm(t1 - cur)) + radius * np.pi / 2
         cur = t2
         heading = out
         inter = inter + heading * (grid.block_x if abs(heading[0]) > 0.5 else grid.block_y)
-    pieces.append(("line", (cur, cur + heading * max(need - length, 0.0) + heading * 40.0)))
+    pieces.append(_Line(cur, cur + heading * max(need - length, 0.0) + heading * 40.0))
+    return pieces
 
-    xs, hs, legs, turns, signs = [], [], [], [], []
-    s_acc = 0.0
-    for kind, args in pieces:
-        if kind == "line":
-            p0, p1 = args
-            seg = float(np.linalg.norm(p1 - p0))
-            n = max(int(np.ceil(seg / step)), 1)
-            u = np.arange(n) / n
-            h = (p1 - p0) / max(seg, 1e-9)
-            xs.append(p0[None] + u[:, None] * (p1 - p0)[None])
-            hs.append(np.full(n, np.arctan2(h[1], h[0])))
-            legs.append(Leg(s0=s_acc, s1=s_acc + seg, start=np.asarray(p0, float), heading=h))
-            s_acc += seg
-        else:
-            centre, radius, a0, sweep = args
-            seg = abs(sweep) * radius
-            n = max(int(np.ceil(seg / step)), 1)
-            ang = a0 + sweep * np.arange(n) / n
-            xs.append(centre[None] + radius * np.stack([np.cos(ang), np.sin(ang)], axis=1))
-            hs.append(ang + np.sign(sweep) * np.pi / 2)
-            turns.append((s_acc, s_acc + seg))
-            signs.append(np.sign(sweep))
-            s_acc += seg
-    xy = np.concatenate(xs)
-    heading_angle = np.unwrap(np.concatenate(hs))
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
-    turns_arr = np.array(turns, dtype=np.float64).reshape(-1, 2)
 
-    frame_s = _drive(turns_arr, cfg, 0.0, frames, hz, cfg.cruise_speed)
-    speed = np.array([_speed_limit(turns_arr, cfg, cfg.cruise_speed, sv) for sv in frame_s])
-    poses = _ego_poses(cfg, s, xy, heading_angle, frame_s, speed, turns_arr, np.array(signs), rng)
-    return Route(
-        xy=xy,
-        heading_angle=heading_angle,
-        s=s,
-        legs=tuple(legs),
-        turns=turns_arr,
-        turn_sign=np.array(signs),
-        frame_s=frame_s,
-        speed=speed,
-        poses=poses,
-    )
+def _turn_roll(
+    cfg: EgoConfig,
+    frame_s: npt.NDArray[np.float64],
+    speed: npt.NDArray[np.float64],
+    turns: npt.NDArray[np.float64],
+    signs: npt.NDArray[np.float64],
+) -> npt.NDArray[np.float64]:
+    """(F,) body roll per frame (rad): the lateral acceleration v²/R of a turn rolls the body outward
+    (towards the outside of the turn), zero on straight road."""
+    roll = np.zeros_like(frame_s)
+    for (a, b), sg in zip(turns, signs, strict=True):
+        inside = (frame_s >= a) & (frame_s <= b)
+        radius = (b - a) / (np.pi / 2)
+        roll[inside] = sg * np.deg2rad(cfg.roll_per_accel_deg) * speed[inside] ** 2 / radius
+    return roll
 
 
 def _ego_poses(
@@ -222,12 +269,11 @@ def _ego_poses(
     xy: npt.NDArray[np.float64],
     yaw: npt.NDArray[np.float64],
     frame_s: npt.NDArray[np.float64],
-    speed: npt.NDArray[np.float64],
-    turns: npt.NDArray[np.float64],
-    signs: npt.NDArray[np.float64],
+    *,
+    roll: npt.NDArray[np.float64],
     rng: np.random.Generator,
 ) -> npt.NDArray[np.float64]:
-    """Vehicle → world poses: lane centre + slow lateral weave, small pitch oscillation, roll in turns."""
+    """Vehicle → world poses: lane centre + slow lateral weave, small pitch oscillation, ``roll`` (rad)."""
     phase = rng.uniform(0, 2 * np.pi, 3)
     px = np.interp(frame_s, s, xy[:, 0])
     py = np.interp(frame_s, s, xy[:, 1])
@@ -236,12 +282,6 @@ def _ego_poses(
     px = px + lateral * np.sin(ya)
     py = py - lateral * np.cos(ya)
     pitch = np.deg2rad(cfg.pitch_deg) * np.sin(2 * np.pi * frame_s / 9.0 + phase[1])
-    roll = np.zeros_like(frame_s)
-    for (a, b), sg in zip(turns, signs, strict=True):
-        inside = (frame_s >= a) & (frame_s <= b)
-        radius = (b - a) / (np.pi / 2)
-        # Lateral acceleration v²/R rolls the body outward (towards the outside of the turn).
-        roll[inside] = sg * np.deg2rad(cfg.roll_per_accel_deg) * speed[inside] ** 2 / radius
     poses = np.tile(np.eye(4), (len(frame_s), 1, 1))
     for i in range(len(frame_s)):
         poses[i, :3, :3] = rotation_xyz(roll[i], pitch[i], ya[i])

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -26,6 +26,9 @@ from leap_core.synth.raycast import BOX, CYLINDER, ELLIPSOID, Primitives, rotati
 from leap_core.synth.route import EgoConfig, Route, StreetGrid, drive_along, plan_route, right_of
 
 F64 = npt.NDArray[np.float64]
+
+_Row = tuple[int, F64, F64, F64, int, int, int, F64, tuple[float, ...]]
+"""One primitive before packing: kind, center, rot, half, semantic, instance, material, color, param."""
 
 
 @dataclass(frozen=True)
@@ -122,9 +125,9 @@ class _Parts:
     """Accumulates primitives row by row, then packs them into a :class:`Primitives` table."""
 
     def __init__(self) -> None:
-        self.rows: list[tuple] = []
+        self.rows: list[_Row] = []
 
-    def add(
+    def add(  # noqa: PLR0913  one parameter per column of a Primitives row
         self,
         kind: int,
         center: npt.ArrayLike,
@@ -132,6 +135,7 @@ class _Parts:
         sem: int,
         mat: int,
         color: npt.ArrayLike,
+        *,
         rot: F64 | None = None,
         yaw: float = 0.0,
         param: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0),
@@ -175,6 +179,7 @@ class _Parts:
         sem: int,
         mat: int,
         color: npt.ArrayLike,
+        *,
         inst: int = 0,
     ) -> None:
         """A thin box from p0 to p1 (square section ``thick``), local x along the rod."""
@@ -232,14 +237,14 @@ def _frame_z(direction: npt.ArrayLike) -> F64:
     return np.stack([x, _cross(z, x), z], axis=1)
 
 
-def _yaw_of(v: npt.ArrayLike) -> float:
+def _yaw_of(v: F64) -> float:
     return float(np.arctan2(v[1], v[0]))
 
 
 # ---------------------------------------------------------------------------------------- object shapes
 # Shapes are built in the object's frame: x forward, y left, z up, origin on the ground at the centre.
 def car_shape(rng: np.random.Generator, sem: int, inst: int, van: bool = False) -> Primitives:
-    """Lower body, cabin (glass sides), four wheels. Sedans 3.9–4.8 m long; vans taller and boxier."""
+    """Lower body, cabin (glass sides), four wheels. Sedans 3.9 to 4.8 m long; vans taller and boxier."""
     p = _Parts()
     color = _CAR_COLORS[rng.integers(len(_CAR_COLORS))] * rng.uniform(0.92, 1.05)
     length = rng.uniform(4.6, 5.1) if van else rng.uniform(3.9, 4.8)
@@ -417,15 +422,16 @@ def bicycle_shape(rng: np.random.Generator, sem: int, inst: int) -> Primitives:
     for a, b in (
         (bb, head),
         (bb, seat),
-        (seat + [0.02, 0, -0.06], head),
+        (seat + np.array([0.02, 0, -0.06]), head),
         (bb, rear),
         (seat, rear),
         (head, front),
     ):
         p.rod(a, b, 0.035, sem, M.METAL, color, inst=inst)
-    p.box(seat + [0, 0, 0.03], (0.12, 0.06, 0.03), sem, M.CLOTH, (0.08, 0.08, 0.08), inst=inst)
-    p.box(head + [0.02, 0, 0.2], (0.025, 0.28, 0.02), sem, M.METAL, (0.15, 0.15, 0.15), inst=inst)
-    p.rod(head, head + [0.02, 0, 0.2], 0.03, sem, M.METAL, color, inst=inst)
+    handlebar = head + np.array([0.02, 0, 0.2])
+    p.box(seat + np.array([0, 0, 0.03]), (0.12, 0.06, 0.03), sem, M.CLOTH, (0.08, 0.08, 0.08), inst=inst)
+    p.box(handlebar, (0.025, 0.28, 0.02), sem, M.METAL, (0.15, 0.15, 0.15), inst=inst)
+    p.rod(head, handlebar, 0.03, sem, M.METAL, color, inst=inst)
     return p.build()
 
 
@@ -489,11 +495,18 @@ def _lamp(p: _Parts, rng: np.random.Generator, x: float, y: float, z0: float, to
     p.cylinder((x, y, z0 + h / 2), 0.075, h / 2, S.POLE, M.METAL, grey)
     tip = np.array([x, y, z0 + h]) + np.r_[toward * 1.6, 0.25]
     p.rod((x, y, z0 + h - 0.1), tip, 0.07, S.POLE, M.METAL, grey)
-    p.box(tip + [0, 0, -0.08], (0.35, 0.16, 0.07), S.POLE, M.METAL, grey * 0.8, yaw=_yaw_of(toward))
+    p.box(tip + np.array([0, 0, -0.08]), (0.35, 0.16, 0.07), S.POLE, M.METAL, grey * 0.8, yaw=_yaw_of(toward))
 
 
 def _sign(
-    p: _Parts, rng: np.random.Generator, x: float, y: float, z0: float, facing: F64, style: int | None = None
+    p: _Parts,
+    rng: np.random.Generator,
+    x: float,
+    y: float,
+    z0: float,
+    facing: F64,
+    *,
+    style: int | None = None,
 ) -> None:
     """Sign post (pole) with one or two plates (traffic-sign) whose front faces ``facing``."""
     h = rng.uniform(2.4, 3.0)
@@ -562,7 +575,8 @@ class _Occupancy:
 
     def free_segment(self, p0: F64, p1: F64, r: float) -> bool:
         n = max(int(np.ceil(np.linalg.norm(p1 - p0) / max(r, 0.3))), 1)
-        return all(self.free(*(p0 + u * (p1 - p0)), r) for u in np.linspace(0, 1, n + 1))
+        points = (p0 + u * (p1 - p0) for u in np.linspace(0, 1, n + 1))
+        return all(self.free(q[0], q[1], r) for q in points)
 
 
 # -------------------------------------------------------------------------------------------- actors
@@ -641,6 +655,56 @@ class _Ids:
         return self.next - 1
 
 
+@dataclass(frozen=True)
+class _Build:
+    """What the steps of one scene build share: the layout, the ground already taken, the instance id
+    counter and the static objects built so far (their order is the order of the scene's primitives)."""
+
+    cfg: SceneConfig
+    grid: StreetGrid
+    occ: _Occupancy
+    ids: _Ids
+    statics: list[Primitives]
+
+
+class _Side(NamedTuple):
+    """A block side (or lot side) in side coordinates: world (x, y) = o + a·t + c·n (module docstring)."""
+
+    o: F64
+    """(2,) origin: a = c = 0."""
+    t: F64
+    """(2,) unit direction along the curb (a)."""
+    n: F64
+    """(2,) unit direction across it, into the block (c)."""
+    length: float
+    """Length of the side along t (m)."""
+
+    def at(self, a: float, c: float) -> F64:
+        """World (x, y) of side coordinates (a, c)."""
+        return self.o + a * self.t + c * self.n
+
+    def boxes(
+        self, a: tuple[float, float], c: tuple[float, float], z: tuple[float, float], tile: float
+    ) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+        """(centre, half extents) of the axis-aligned boxes that cover [a0, a1] × [c0, c1] × [z0, z1] in
+        side coordinates, split into tiles no longer than ``tile`` along a."""
+        (a0, a1), (c0, c1), (z0, z1) = a, c, z
+        n_tiles = max(int(np.ceil((a1 - a0) / tile)), 1)
+        edges = np.linspace(a0, a1, n_tiles + 1)
+        out = []
+        for ta, tb in itertools.pairwise(edges):
+            q0 = self.o + ta * self.t + c0 * self.n
+            q1 = self.o + tb * self.t + c1 * self.n
+            lo, hi = np.minimum(q0, q1), np.maximum(q0, q1)
+            out.append(
+                (
+                    ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (z0 + z1) / 2),
+                    ((hi[0] - lo[0]) / 2, (hi[1] - lo[1]) / 2, (z1 - z0) / 2),
+                )
+            )
+        return out
+
+
 def build_scene(cfg: SceneConfig, ego: EgoConfig, frames: int, hz: float, seed: int) -> Scene:
     """Build the scene for ``frames`` frames at ``hz`` from ``seed`` (deterministic)."""
     ss = np.random.SeedSequence([int(seed), 0x5EED])
@@ -652,11 +716,10 @@ def build_scene(cfg: SceneConfig, ego: EgoConfig, frames: int, hz: float, seed: 
         parking_width=cfg.parking_width,
     )
     route = plan_route(ego, grid, frames, hz, rng_route)
-    occ = _Occupancy()
-    ids = _Ids()
     statics: list[Primitives] = []
+    build = _Build(cfg, grid, _Occupancy(), _Ids(), statics)
     actors: list[Actor] = []
-    _heroes(cfg, ego, grid, route, hz, rng_hero, occ, ids, statics, actors)
+    _heroes(build, ego, route, hz, rng_hero, actors)
 
     pts = route.xy[:: max(len(route.xy) // 200, 1)]
     lo = pts.min(axis=0) - cfg.margin
@@ -672,7 +735,7 @@ def build_scene(cfg: SceneConfig, ego: EgoConfig, frames: int, hz: float, seed: 
     p = _Parts()
     yard_hint = _yard_hints(grid, route, rng_city)
     for i, j in blocks:
-        _block(cfg, grid, i, j, rng_city, occ, ids, p, statics, yard_hint)
+        _block(build, i, j, rng_city, p, yard_hint)
     _streets(cfg, grid, set(blocks), rng_city, p)
     statics.insert(0, p.build())
     az = rng_light.uniform(0, 2 * np.pi)
@@ -697,19 +760,11 @@ def _yard_hints(grid: StreetGrid, route: Route, rng: np.random.Generator) -> dic
     return hints
 
 
-def _heroes(
-    cfg: SceneConfig,
-    ego: EgoConfig,
-    grid: StreetGrid,
-    route: Route,
-    hz: float,
-    rng: np.random.Generator,
-    occ: _Occupancy,
-    ids: _Ids,
-    statics: list[Primitives],
-    actors: list[Actor],
+def _heroes(  # noqa: PLR0915  a scene recipe: one placement after the other, read top to bottom
+    build: _Build, ego: EgoConfig, route: Route, hz: float, rng: np.random.Generator, actors: list[Actor]
 ) -> None:
     """Objects placed relative to the route so every class shows up in the camera."""
+    cfg, grid, occ, ids, statics = build.cfg, build.grid, build.occ, build.ids, build.statics
     frames = len(route.frame_s)
     t = np.arange(frames) / hz
     lw, hr, sw = grid.lane_width, grid.half_road, cfg.sidewalk_width
@@ -886,165 +941,55 @@ def _heroes(
     statics.append(p.build())
 
 
-def _side_frames(grid: StreetGrid, i: int, j: int) -> list[tuple[F64, F64, F64, float]]:
-    """(origin, t, n, length) of the four curb lines of block (i, j), counter-clockwise from the south."""
+def _side_frames(grid: StreetGrid, i: int, j: int) -> list[_Side]:
+    """The four curb lines of block (i, j), counter-clockwise from the south."""
     hr = grid.half_road
     x0, x1 = i * grid.block_x + hr, (i + 1) * grid.block_x - hr
     y0, y1 = j * grid.block_y + hr, (j + 1) * grid.block_y - hr
     return [
-        (np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), x1 - x0),
-        (np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), y1 - y0),
-        (np.array([x1, y1]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), x1 - x0),
-        (np.array([x0, y1]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), y1 - y0),
+        _Side(np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), x1 - x0),
+        _Side(np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), y1 - y0),
+        _Side(np.array([x1, y1]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), x1 - x0),
+        _Side(np.array([x0, y1]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), y1 - y0),
     ]
 
 
-def _aa_box(
-    p: _Parts,
-    o: F64,
-    t: F64,
-    n: F64,
-    a0: float,
-    a1: float,
-    c0: float,
-    c1: float,
-    z0: float,
-    z1: float,
-    tile: float,
-    sem: int,
-    mat: int,
-    color: npt.ArrayLike,
-    param: tuple = (0, 0, 0, 0),
-) -> None:
-    """Axis-aligned box over side coordinates [a0, a1] × [c0, c1] × [z0, z1], split into tiles along a."""
-    n_tiles = max(int(np.ceil((a1 - a0) / tile)), 1)
-    edges = np.linspace(a0, a1, n_tiles + 1)
-    for ta, tb in itertools.pairwise(edges):
-        q0 = o + ta * t + c0 * n
-        q1 = o + tb * t + c1 * n
-        lo, hi = np.minimum(q0, q1), np.maximum(q0, q1)
-        p.box(
-            ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (z0 + z1) / 2),
-            ((hi[0] - lo[0]) / 2, (hi[1] - lo[1]) / 2, (z1 - z0) / 2),
-            sem,
-            mat,
-            color,
-            param=param,
-        )
-
-
 def _block(
-    cfg: SceneConfig,
-    grid: StreetGrid,
+    build: _Build,
     i: int,
     j: int,
     rng: np.random.Generator,
-    occ: _Occupancy,
-    ids: _Ids,
     p: _Parts,
-    statics: list[Primitives],
     yard_hint: dict[tuple[int, int, int], bool],
 ) -> None:
     """One block: sidewalk ring, lot ground, buildings (row or detached with yards), street furniture,
     parked cars in the parking lanes along its four curbs."""
-    sw, ch, lh = cfg.sidewalk_width, cfg.curb_height, cfg.lawn_height
+    cfg, grid = build.cfg, build.grid
+    sw, lh = cfg.sidewalk_width, cfg.lawn_height
     sides = _side_frames(grid, i, j)
     yard = [yard_hint.get((i, j, k), bool(rng.random() < cfg.yard_rate)) for k in range(4)]
     setback = [rng.uniform(3.5, 6.0) if y else rng.uniform(0.0, 0.6) for y in yard]
     depth_max = 14.0
     footprints: list[tuple[F64, F64]] = []
-    for o, t, n, length in sides:
+    for side in sides:
         strip = rng.random() < cfg.grass_strip_rate
-        # Sidewalk (optionally with a grass strip behind a concrete curb) and parking lane.
-        if strip:
-            _aa_box(
-                p,
-                o,
-                t,
-                n,
-                0,
-                length,
-                0.0,
-                0.18,
-                -0.3,
-                ch + 0.01,
-                cfg.tile,
-                S.SIDEWALK,
-                M.SLABS,
-                (0.62, 0.61, 0.58),
-            )
-            _aa_box(
-                p,
-                o,
-                t,
-                n,
-                sw,
-                length - sw,
-                0.18,
-                1.5,
-                -0.3,
-                ch - 0.03,
-                cfg.tile,
-                S.TERRAIN,
-                M.GRASS,
-                (0.33, 0.45, 0.2),
-            )
-            _aa_box(
-                p, o, t, n, 0, length, 1.5, sw, -0.3, ch, cfg.tile, S.SIDEWALK, M.SLABS, (0.6, 0.59, 0.57)
-            )
-            _aa_box(p, o, t, n, 0, sw, 0.0, sw, -0.3, ch, cfg.tile, S.SIDEWALK, M.SLABS, (0.6, 0.59, 0.57))
-            _aa_box(
-                p,
-                o,
-                t,
-                n,
-                length - sw,
-                length,
-                0.0,
-                sw,
-                -0.3,
-                ch,
-                cfg.tile,
-                S.SIDEWALK,
-                M.SLABS,
-                (0.6, 0.59, 0.57),
-            )
-        else:
-            _aa_box(
-                p, o, t, n, 0, length, 0.0, sw, -0.3, ch, cfg.tile, S.SIDEWALK, M.SLABS, (0.6, 0.59, 0.57)
-            )
-        _aa_box(
-            p,
-            o,
-            t,
-            n,
-            6.0,
-            length - 6.0,
-            -grid.parking_width,
-            0.0,
-            -0.3,
-            0.006,
-            cfg.tile,
-            S.PARKING,
-            M.PAVERS,
-            (0.4, 0.39, 0.38),
-            param=(0.0, 0.0, 0.0, 0.0),
-        )
-        _furniture(cfg, grid, rng, occ, ids, p, statics, o, t, n, length, strip)
-        _parked(cfg, grid, rng, occ, ids, statics, o, t, n, length)
+        _sidewalk(cfg, grid, p, side, strip)
+        _furniture(build, rng, p, side, strip)
+        _parked(build, rng, side)
 
     # Buildings on the lot sides. Sides 1 and 3 leave the corners to sides 0 and 2.
-    for k, (o, t, n, length) in enumerate(sides):
-        lot_o = o + sw * t + sw * n
-        lot_len = length - 2 * sw
+    for k, side in enumerate(sides):
+        lot = _Side(side.at(sw, sw), side.t, side.n, side.length - 2 * sw)
         reserve = 0.0 if k % 2 == 0 else max(setback[0], setback[2]) + depth_max + 0.5
-        _buildings(cfg, rng, p, occ, lot_o, t, n, lot_len, reserve, yard[k], setback[k], footprints)
+        _buildings(
+            cfg, rng, p, lot, reserve=reserve, yard=yard[k], setback=setback[k], footprints=footprints
+        )
 
     # Lot ground (lawns, yards, backyards) in tiles; tiles fully under one building are skipped.
-    o, t, n, length = sides[0]
+    o, t, n, _ = sides[0]
     x0, y0 = o + sw * (t + n)
-    x1 = x0 + sides[0][3] - 2 * sw
-    y1 = y0 + sides[1][3] - 2 * sw
+    x1 = x0 + sides[0].length - 2 * sw
+    y1 = y0 + sides[1].length - 2 * sw
     nx, ny = max(int(np.ceil((x1 - x0) / 12)), 1), max(int(np.ceil((y1 - y0) / 12)), 1)
     xs, ys = np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1)
     for a in range(nx):
@@ -1061,15 +1006,35 @@ def _block(
             )
 
 
-def _buildings(
+def _sidewalk(cfg: SceneConfig, grid: StreetGrid, p: _Parts, side: _Side, strip: bool) -> None:
+    """The sidewalk along one curb (with a grass strip behind a concrete curb when ``strip``) and the
+    parking lane in front of it."""
+    sw, ch, length = cfg.sidewalk_width, cfg.curb_height, side.length
+    slabs = (0.6, 0.59, 0.57)
+    if strip:
+        for centre, half in side.boxes((0, length), (0.0, 0.18), (-0.3, ch + 0.01), cfg.tile):
+            p.box(centre, half, S.SIDEWALK, M.SLABS, (0.62, 0.61, 0.58))
+        for centre, half in side.boxes((sw, length - sw), (0.18, 1.5), (-0.3, ch - 0.03), cfg.tile):
+            p.box(centre, half, S.TERRAIN, M.GRASS, (0.33, 0.45, 0.2))
+        for centre, half in side.boxes((0, length), (1.5, sw), (-0.3, ch), cfg.tile):
+            p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
+        for centre, half in side.boxes((0, sw), (0.0, sw), (-0.3, ch), cfg.tile):
+            p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
+        for centre, half in side.boxes((length - sw, length), (0.0, sw), (-0.3, ch), cfg.tile):
+            p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
+    else:
+        for centre, half in side.boxes((0, length), (0.0, sw), (-0.3, ch), cfg.tile):
+            p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
+    for centre, half in side.boxes((6.0, length - 6.0), (-grid.parking_width, 0.0), (-0.3, 0.006), cfg.tile):
+        p.box(centre, half, S.PARKING, M.PAVERS, (0.4, 0.39, 0.38), param=(0.0, 0.0, 0.0, 0.0))
+
+
+def _buildings(  # noqa: PLR0912, PLR0915  a scene recipe: one building after the other, read top to bottom
     cfg: SceneConfig,
     rng: np.random.Generator,
     p: _Parts,
-    occ: _Occupancy,
-    o: F64,
-    t: F64,
-    n: F64,
-    length: float,
+    lot: _Side,
+    *,
     reserve: float,
     yard: bool,
     setback: float,
@@ -1077,6 +1042,7 @@ def _buildings(
 ) -> None:
     """Buildings along one lot side (side coordinates from the lot line), plus fences/hedges, bushes and
     yard trees for detached houses."""
+    o, t, n, length = lot
     lh = cfg.lawn_height
     a = reserve + (rng.uniform(0.0, 2.0) if yard else 0.0)
     end = length - reserve
@@ -1121,7 +1087,7 @@ def _buildings(
         )
         mid = a + width / 2
         if yard and rng.random() < 0.75:
-            _gable(p, rng, o, t, n, mid, width, setback, depth, height)
+            _gable(p, rng, lot, mid=mid, width=width, setback=setback, depth=depth, height=height)
         elif not yard and rng.random() < 0.3:
             # A set-back top storey on some row buildings.
             q0 = o + (a + 1.0) * t + (setback + 2.0) * n
@@ -1143,42 +1109,15 @@ def _buildings(
                 if s1 - s0 < 0.5:
                     continue
                 if hedge:
-                    _aa_box(
-                        p,
-                        o,
-                        t,
-                        n,
-                        s0,
-                        s1,
-                        0.15,
-                        0.75,
-                        lh,
-                        lh + rng.uniform(0.8, 1.3),
-                        12.0,
-                        S.VEGETATION,
-                        M.LEAVES,
-                        np.array([0.17, 0.32, 0.1]) * rng.uniform(0.85, 1.15),
-                        param=(rng.uniform(0, 100), 0, 0, 0),
-                    )
+                    boxes = lot.boxes((s0, s1), (0.15, 0.75), (lh, lh + rng.uniform(0.8, 1.3)), 12.0)
+                    green = np.array([0.17, 0.32, 0.1]) * rng.uniform(0.85, 1.15)
+                    leaf_seed = (rng.uniform(0, 100), 0, 0, 0)
+                    for centre, half in boxes:
+                        p.box(centre, half, S.VEGETATION, M.LEAVES, green, param=leaf_seed)
                 else:
                     fh = rng.uniform(0.9, 1.3)
-                    _aa_box(
-                        p,
-                        o,
-                        t,
-                        n,
-                        s0,
-                        s1,
-                        0.12,
-                        0.17,
-                        lh,
-                        lh + fh,
-                        12.0,
-                        S.FENCE,
-                        M.FENCE,
-                        fence_color,
-                        param=(fence_style, 0, 0, 0),
-                    )
+                    for centre, half in lot.boxes((s0, s1), (0.12, 0.17), (lh, lh + fh), 12.0):
+                        p.box(centre, half, S.FENCE, M.FENCE, fence_color, param=(fence_style, 0, 0, 0))
             for _ in range(rng.integers(1, 4)):
                 s = rng.uniform(a + 0.8, a + width - 0.8)
                 if abs(s - gate) < 1.3:
@@ -1205,9 +1144,8 @@ def _buildings(
 def _gable(
     p: _Parts,
     rng: np.random.Generator,
-    o: F64,
-    t: F64,
-    n: F64,
+    lot: _Side,
+    *,
     mid: float,
     width: float,
     setback: float,
@@ -1215,6 +1153,7 @@ def _gable(
     height: float,
 ) -> None:
     """Two pitched roof slabs meeting at a ridge parallel to the street, with the attic volume filled."""
+    o, t, n = lot.o, lot.t, lot.n
     pitch = np.deg2rad(rng.uniform(28, 42))
     ridge_h = depth / 2 * np.tan(pitch)
     t3, n3, z3 = np.r_[t, 0.0], np.r_[n, 0.0], np.array([0.0, 0.0, 1.0])
@@ -1245,34 +1184,27 @@ def _gable(
     p.box(attic, (hx, hy, ridge_h / 4), S.BUILDING, M.ROOF, color * 0.8)
 
 
-def _furniture(
-    cfg: SceneConfig,
-    grid: StreetGrid,
-    rng: np.random.Generator,
-    occ: _Occupancy,
-    ids: _Ids,
-    p: _Parts,
-    statics: list[Primitives],
-    o: F64,
-    t: F64,
-    n: F64,
-    length: float,
-    strip: bool,
-) -> None:
-    """Street trees, lamps, signs, parked bicycles and standing people on one sidewalk."""
-    ch = cfg.curb_height
-
-    def at(a: float, c: float) -> F64:
-        return o + a * t + c * n
-
+def _tree_row(build: _Build, rng: np.random.Generator, p: _Parts, side: _Side, strip: bool) -> None:
+    """Street trees along the curb of one sidewalk (in the grass strip when it has one), on
+    ``tree_row_rate`` of the sides."""
+    cfg, occ = build.cfg, build.occ
     if rng.random() < cfg.tree_row_rate:
         a = rng.uniform(6.0, 12.0)
-        while a < length - 8.0:
-            q = at(a + rng.uniform(-0.5, 0.5), 0.85 if strip else 1.0)
+        while a < side.length - 8.0:
+            q = side.at(a + rng.uniform(-0.5, 0.5), 0.85 if strip else 1.0)
             if occ.free(q[0], q[1], 1.2):
-                _tree(p, rng, q[0], q[1], ch - (0.03 if strip else 0.0))
+                _tree(p, rng, q[0], q[1], cfg.curb_height - (0.03 if strip else 0.0))
                 occ.add(q[0], q[1], 1.2)
             a += rng.uniform(8.0, 13.0)
+
+
+def _furniture(build: _Build, rng: np.random.Generator, p: _Parts, side: _Side, strip: bool) -> None:
+    """Street trees, lamps, signs, parked bicycles and standing people on one sidewalk."""
+    cfg, occ, ids, statics = build.cfg, build.occ, build.ids, build.statics
+    at, t, n, length = side.at, side.t, side.n, side.length
+    ch = cfg.curb_height
+
+    _tree_row(build, rng, p, side, strip)
     a = rng.uniform(5.0, 15.0)
     while a < length - 5.0:
         q = at(a, 0.4)
@@ -1314,19 +1246,10 @@ def _furniture(
             occ.add(q[0], q[1], 0.45)
 
 
-def _parked(
-    cfg: SceneConfig,
-    grid: StreetGrid,
-    rng: np.random.Generator,
-    occ: _Occupancy,
-    ids: _Ids,
-    statics: list[Primitives],
-    o: F64,
-    t: F64,
-    n: F64,
-    length: float,
-) -> None:
+def _parked(build: _Build, rng: np.random.Generator, side: _Side) -> None:
     """Parallel-parked cars (and the odd truck) in the parking lane along one curb, facing traffic (−t)."""
+    cfg, grid, occ, ids, statics = build.cfg, build.grid, build.occ, build.ids, build.statics
+    o, t, n, length = side
     c = -grid.parking_width / 2
     a = 7.0 + rng.uniform(0, 2.0)
     while a < length - 7.0:

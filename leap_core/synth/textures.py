@@ -67,7 +67,7 @@ def noise(
     lvl = np.clip(np.rint(np.log2(fp)), 0, LEVELS - 1).astype(np.int64)
     if lvl.ndim == 0:
         lvl = np.broadcast_to(lvl, iu.shape)
-    return tiles[lvl, iv, iu]
+    return np.asarray(tiles[lvl, iv, iu], dtype=np.float32)
 
 
 def box_pattern(x: F32, period: float, duty: float, footprint: F32) -> F32:
@@ -78,7 +78,7 @@ def box_pattern(x: F32, period: float, duty: float, footprint: F32) -> F32:
     """
     hard = ((x * np.float32(1.0 / period)) % np.float32(1.0) < duty).astype(np.float32)
     w = np.clip(footprint * np.float32(2.0 / period) - np.float32(0.5), 0.0, 1.0)
-    return hard * (1 - w) + np.float32(duty) * w
+    return np.asarray(hard * (1 - w) + np.float32(duty) * w, dtype=np.float32)
 
 
 def band(x: F32, lo: float, hi: float, footprint: F32) -> F32:
@@ -87,7 +87,8 @@ def band(x: F32, lo: float, hi: float, footprint: F32) -> F32:
     width = hi - lo
     w = np.clip(footprint / np.float32(width) - np.float32(0.5), 0.0, 1.0)
     near = (np.abs(x - np.float32((lo + hi) / 2)) < footprint).astype(np.float32)
-    return hard * (1 - w) + w * near * np.minimum(np.float32(width) / np.maximum(footprint, 1e-6), 1.0)
+    thin = w * near * np.minimum(np.float32(width) / np.maximum(footprint, 1e-6), 1.0)
+    return np.asarray(hard * (1 - w) + thin, dtype=np.float32)
 
 
 def road_paint(local: F32, param: F32, footprint: F32) -> F32:
