@@ -331,7 +331,7 @@ class StageInfoPublic(BaseModel):
     name: str = Field(description="stage name, as in a run's progress (`RunProgress.stages[].name`)")
     label: str = Field(description="short human label")
     description: str = Field(description="one line on what the stage computes")
-    per_frame: bool = Field(description="works frame by frame (resumable per frame; `done`/`total` count frames)")
+    per_frame: bool = Field(description="works frame by frame (resumable per frame; progress counts frames)")
 
 
 class FormChoice(BaseModel):

@@ -11,10 +11,9 @@ each: the parent writes a :class:`~app.jobs.messages.RunSpec` and later
 
 The run's log (stage timings, errors with tracebacks) goes to ``run_dir/run.log``.
 
-A run folder is locked (``flock`` on
-``run_dir/.lock``) while a process works in it, and the child dies with its parent (``PR_SET_PDEATHSIG``,
-end of stdin, and a parent-pid watchdog), so after a ``kill -9`` of the server no orphan keeps writing into
-a run that is about to be resumed.
+A run folder is locked (``flock`` on ``run_dir/.lock``) while a process works in it, and the child dies with
+its parent (``PR_SET_PDEATHSIG``, end of stdin, and a parent-pid watchdog), so after a ``kill -9`` of the
+server no orphan keeps writing into a run that is about to be resumed.
 """
 
 from __future__ import annotations
@@ -173,8 +172,8 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
 
 
 def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
-    # Imported here, not at the top: the server process imports this module (run_dir_lock) and must not
-    # load the pipeline (torch); the worker process has imported it already (child_main).
+    # Imported here, not at the top: the worker process must load the pipeline (torch) only once it dies
+    # with the server (child_main), and the server imports this module for execute() and LOG_NAME.
     from leap_core.pipeline import run_pipeline
 
     if spec.demo:
