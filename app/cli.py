@@ -182,6 +182,7 @@ def run_cmd(
     from leap_core.config import config_from_dict
     from leap_core.errors import Cancelled, LeapError
     from leap_core.pipeline import STAGES, result_tables, run_pipeline
+    from leap_core.runtime import Runtime
     from leap_core.schema import load_project_file, projects_dir
 
     progress = StageBars()
@@ -227,7 +228,7 @@ def run_cmd(
                                                    else " (Grounding DINO + SAM)"))
         with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
-                                  cache_dir=Path(cache) if cache else None)
+                                  runtime=Runtime(cache_dir=Path(cache) if cache else None))
     except KeyboardInterrupt:
         raise fail(f"interrupted; run the same command again to resume from {out}") from None
     except Cancelled:

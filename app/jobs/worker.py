@@ -156,6 +156,7 @@ def execute(spec: Mapping[str, Any], emit: Emit, should_cancel: Callable[[], boo
 def _run(spec: Mapping[str, Any], reporter: _Reporter, log: logging.Logger) -> None:
     from leap_core.config import config_from_dict
     from leap_core.pipeline import run_pipeline
+    from leap_core.runtime import Runtime
     from leap_core.schema import Schema
 
     dataset = Path(spec["dataset"])
@@ -178,7 +179,7 @@ def _run(spec: Mapping[str, Any], reporter: _Reporter, log: logging.Logger) -> N
         Path(spec["run_dir"]),
         progress=reporter,
         frames=None if frames is None else range(int(frames[0]), int(frames[1])),
-        cache_dir=None if spec.get("cache_dir") is None else Path(spec["cache_dir"]),
+        runtime=Runtime(cache_dir=None if spec.get("cache_dir") is None else Path(spec["cache_dir"])),
     )
 
 
