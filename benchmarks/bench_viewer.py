@@ -53,8 +53,7 @@ def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGr
     keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])[:num_voxels]
     logits = rng.normal(0.0, 1.5, (keys.shape[0], num_classes)).astype(np.float32)
     logits[np.arange(keys.shape[0]), rng.integers(0, num_classes, keys.shape[0])] += 2.5
-    return ReviewGrid.from_grid(SmoothedGrid.from_voxel_grid(VoxelGrid(keys, logits.astype(np.float16), 0.2)),
-                                "synthetic")
+    return ReviewGrid(SmoothedGrid.from_voxel_grid(VoxelGrid(keys, logits.astype(np.float16), 0.2)), "synthetic")
 
 
 class WireClient:

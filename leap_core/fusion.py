@@ -478,7 +478,8 @@ def _finalise(
         return VoxelGrid(keys, acc.astype(np.float16), cfg.voxel_size)
     # On large grids torch's row max and float16 cast are ≈ 3× faster than numpy's; on small ones its
     # thread wake-up costs more than it saves (milliseconds when other processes share the cores).
-    import torch
+    # torch is imported where tensors are made, so reading a config (FusionConfig) does not load it.
+    import torch  # noqa: PLC0415
 
     t = torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32))
     t.sub_(t.amax(dim=1, keepdim=True))
@@ -576,7 +577,7 @@ def fuse_dense(
         cfg: grid and clipping parameters.
         weight: multiplies every log-probability.
     """
-    import torch
+    import torch  # noqa: PLC0415
 
     cfg = cfg or FusionConfig()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)

@@ -145,7 +145,9 @@ class SmoothedGrid:
         if k.dtype != np.int64 or k.ndim != 1:
             raise ValueError(f"smoothed grid 'keys' must be 1-D int64, got {k.dtype} {k.shape}")
         if p.dtype != np.float16 or p.ndim != 2 or p.shape[0] != k.shape[0]:
-            raise ValueError(f"smoothed grid 'probs' must be ({k.shape[0]}, C) float16, got {p.dtype} {p.shape}")
+            raise ValueError(
+                f"smoothed grid 'probs' must be ({k.shape[0]}, C) float16, got {p.dtype} {p.shape}"
+            )
         if k.size > 1 and not (np.diff(k) > 0).all():
             raise ValueError("smoothed grid voxel keys are not sorted and unique")
         if not (self.voxel_size > 0 and math.isfinite(self.voxel_size)):
@@ -178,7 +180,7 @@ class SmoothedGrid:
         return self._labels.at(query_keys)
 
     def to_voxel_grid(self, logp_clip: float) -> VoxelGrid:
-        """A :class:`VoxelGrid` whose ``probs()`` give back these distributions: ``logp = log p − max log p``,
+        """A :class:`VoxelGrid` whose ``probs()`` give back these distributions: ``logp = log p - max log p``,
         clipped below at ``-logp_clip`` like any fused grid (float16)."""
         p = np.asarray(self.probs, dtype=np.float32)
         with np.errstate(divide="ignore"):
@@ -195,7 +197,8 @@ class SmoothedGrid:
 
     def save(self, path: str | Path) -> None:
         """Write ``keys``, ``probs`` and ``voxel_size`` as an uncompressed npz, atomically."""
-        atomic_save_npz(path, keys=self.keys, probs=self.probs, voxel_size=np.float64(self.voxel_size))
+        vs = np.asarray(self.voxel_size, np.float64)
+        atomic_save_npz(path, keys=self.keys, probs=self.probs, voxel_size=vs)
 
     @classmethod
     def load(cls, path: str | Path, voxel_size: float | None = None) -> SmoothedGrid:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -278,8 +279,6 @@ def test_a_config_change_reruns_its_readers_and_their_downstream(
 
 
 def test_corrections_rerun_fuse_and_its_downstream(baseline, street: Path, schema, tmp_path: Path) -> None:
-    import shutil
-
     run_dir = tmp_path / "plan_corr"
     shutil.copytree(baseline[0], run_dir)
     np.savez(run_dir / "corrections.npz", keys=np.array([1], np.int64), class_idx=np.array([0]))
@@ -312,7 +311,8 @@ def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, t
 
 def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path) -> None:
     cache = tmp_path / "cache"
-    a = run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3), runtime=Runtime(cache_dir=cache),
+    a = run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3),
+                     runtime=Runtime(cache_dir=cache),
                      until="fuse")
     assert a.frames == (0, 1, 2)
     names = sorted(p.name for p in (tmp_path / "a" / "labels2d").iterdir())

@@ -92,7 +92,7 @@ def test_smoothed_grid_save_load_labels_and_voxel_grid(tmp_path) -> None:
 def test_smoothed_grid_rejects_bad_files(tmp_path) -> None:
     path = tmp_path / "grid_smooth.npz"
     np.savez(path, keys=np.array([1, 2], np.int64), probs=np.ones((2, 2), np.float16))
-    with pytest.raises(DatasetError, match="grid_smooth.npz: no voxel_size"):
+    with pytest.raises(DatasetError, match=r"grid_smooth\.npz: no voxel_size"):
         SmoothedGrid.load(path)
     assert SmoothedGrid.load(path, voxel_size=0.3).voxel_size == 0.3
     np.savez(path, keys=np.array([2, 1], np.int64), probs=np.ones((2, 2), np.float16), voxel_size=0.2)

@@ -645,7 +645,7 @@ def seed_run_dir(previous: Path, run_dir: Path) -> int:
 
 
 def pipeline_skipped_stages(run_dir: Path) -> set[str]:
-    """Stages the pipeline recorded as skipped in its stage records (3D-CN off, no ground truth to evaluate)."""
+    """Stages the pipeline recorded as skipped (3D-CN off, no ground truth to evaluate)."""
     try:
         state = stage_status(run_dir)
     except LeapError:
@@ -654,7 +654,7 @@ def pipeline_skipped_stages(run_dir: Path) -> set[str]:
 
 
 def read_metrics(run_dir: Path) -> dict[str, Any] | None:
-    """The run's result tables as stored (None when the dataset has no ground truth or they are unreadable)."""
+    """The run's stored result tables (None when the dataset has no ground truth or they are unreadable)."""
     try:
         return read_metrics_json(run_dir)
     except LeapError:

@@ -1,9 +1,9 @@
 """Reading a finished run for review: the final voxel grid, per-scan labels, camera geometry.
 
 The run folder's files come from :class:`leap_core.run_layout.RunLayout`: the final grid (a
-:class:`~leap_core.smoothing.SmoothedGrid`) is the map, else the fused ``VoxelGrid``; ``points/<frame_id>.npz``
-holds per-point ``label`` (final), ``conf`` and ``point_label`` (camera projection only). Arrays are read
-once and kept; per-class probability columns are extracted on demand and cached.
+:class:`~leap_core.smoothing.SmoothedGrid`) is the map, else the fused ``VoxelGrid``;
+``points/<frame_id>.npz`` holds per-point ``label`` (final), ``conf`` and ``point_label`` (camera projection
+only). Arrays are read once and kept; per-class probability columns are extracted on demand and cached.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.viewer import view_logic as vl
+from leap_core.config import config_from_dict
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
 from leap_core.run_layout import RunLayout
@@ -40,8 +41,6 @@ def final_grid_path(run_dir: str | Path, pipeline: Mapping[str, Any] | None = No
     usable parameters, the one found in the folder (:meth:`RunLayout.final_grid_on_disk`)."""
     layout = RunLayout(Path(run_dir))
     if pipeline:
-        from leap_core.config import config_from_dict
-
         try:
             return layout.final_grid(config_from_dict(pipeline).consistency)
         except LeapError:
@@ -49,39 +48,35 @@ def final_grid_path(run_dir: str | Path, pipeline: Mapping[str, Any] | None = No
     return layout.final_grid_on_disk()
 
 
-@dataclass
 class ReviewGrid:
-    """The voxel map shown by the viewer.
+    """The voxel map shown by the viewer: a :class:`SmoothedGrid` with its centres and labels at hand.
 
     Attributes:
+        grid: the smoothed grid (keys, probs, voxel_size).
         keys: (V,) int64 sorted voxel keys (:func:`leap_core.fusion.voxel_keys` packing).
         centres: (V, 3) float32 voxel centres in world metres.
         probs: (V, C) float16 normalised posteriors.
         label: (V,) int16 argmax class.
         conf: (V,) float32 probability of the argmax class.
         voxel_size: voxel edge in metres.
+        num_voxels, num_classes: V, C.
         source: file the posteriors came from.
     """
 
-    keys: npt.NDArray[np.int64]
-    centres: npt.NDArray[np.float32]
-    probs: npt.NDArray[np.float16]
-    label: npt.NDArray[np.int16]
-    conf: npt.NDArray[np.float32]
-    voxel_size: float
-    source: str
-
-    def __post_init__(self) -> None:
+    def __init__(self, grid: SmoothedGrid, source: str) -> None:
+        labels = grid.voxel_labels()
+        self.grid = grid
+        self.keys = grid.keys
+        self.centres = grid.centres()
+        self.probs = grid.probs
+        self.label = labels.label
+        self.conf = labels.conf
+        self.voxel_size = float(grid.voxel_size)
+        self.num_voxels = grid.num_voxels
+        self.num_classes = grid.num_classes
+        self.source = source
         self._columns: dict[int, npt.NDArray[np.float32]] = {}
         self._lock = threading.Lock()
-
-    @property
-    def num_voxels(self) -> int:
-        return int(self.keys.shape[0])
-
-    @property
-    def num_classes(self) -> int:
-        return int(self.probs.shape[1])
 
     def class_prob(self, c: int) -> npt.NDArray[np.float32]:
         """(V,) float32 posterior of class ``c`` (cached: switching back to a class costs nothing)."""
@@ -99,30 +94,16 @@ class ReviewGrid:
         return rows_in_sorted(self.keys, np.asarray(keys, dtype=np.int64).reshape(-1))
 
     @classmethod
-    def from_grid(cls, grid: SmoothedGrid, source: str) -> ReviewGrid:
-        """The viewer's copy of a smoothed grid (labels: :meth:`SmoothedGrid.voxel_labels`)."""
-        labels = grid.voxel_labels()
-        return cls(
-            keys=grid.keys,
-            centres=grid.centres(),
-            probs=grid.probs,
-            label=labels.label,
-            conf=labels.conf,
-            voxel_size=float(grid.voxel_size),
-            source=source,
-        )
-
-    @classmethod
     def from_arrays(
         cls, keys: npt.ArrayLike, probs: npt.ArrayLike, voxel_size: float, source: str = "<arrays>"
     ) -> ReviewGrid:
         """Build from sorted keys and (V, C) probabilities (stored as float16)."""
         try:
-            grid = SmoothedGrid(np.asarray(keys, dtype=np.int64), np.asarray(probs).astype(np.float16, copy=False),
-                                float(voxel_size))
+            p16 = np.asarray(probs).astype(np.float16, copy=False)
+            grid = SmoothedGrid(np.asarray(keys, dtype=np.int64), p16, float(voxel_size))
         except ValueError as exc:
             raise DatasetError(source, str(exc)) from exc
-        return cls.from_grid(grid, source)
+        return cls(grid, source)
 
     @classmethod
     def load(cls, run_dir: str | Path, pipeline: Mapping[str, Any] | None = None) -> ReviewGrid:
@@ -140,12 +121,11 @@ class ReviewGrid:
         fused = VoxelGrid.load(layout.grid) if layout.grid.is_file() else None
         if final_path.is_file():
             vs = None if fused is None else fused.voxel_size
-            return cls.from_grid(SmoothedGrid.load(final_path, voxel_size=vs), str(final_path))
+            return cls(SmoothedGrid.load(final_path, voxel_size=vs), str(final_path))
         if fused is None:
-            raise DatasetError(
-                layout.run_dir, f"run has no voxel grid ({final_path.name} or {layout.grid.name}); has it finished?"
-            )
-        return cls.from_grid(SmoothedGrid.from_voxel_grid(fused), str(layout.grid))
+            missing = f"{final_path.name} or {layout.grid.name}"
+            raise DatasetError(layout.run_dir, f"run has no voxel grid ({missing}); has it finished?")
+        return cls(SmoothedGrid.from_voxel_grid(fused), str(layout.grid))
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_json
+from leap_core.labelers import make_labeler
 from leap_core.projection import Painted
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
@@ -132,8 +133,6 @@ class Ctx:
 
     def labeler(self) -> Labeler:
         if self._labeler is None:
-            from leap_core.labelers import make_labeler
-
             self._labeler = make_labeler(self.cfg, self.runtime)
         return self._labeler
 

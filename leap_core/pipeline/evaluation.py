@@ -76,7 +76,7 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
             stored = {ROW_POINT: z["point_label"], final_row: z["label"]}
         if n != pts.shape[0] or stored[ROW_POINT].shape[0] != n:
             raise DatasetError(seq.scan_path(i), f"{pts.shape[0]} points but the run's outputs have {n}")
-        keys = voxel_keys(world_points(pts, frame.pose), vs) if need_keys else None
+        keys = voxel_keys(world_points(pts, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
         n_points += n
         n_view += int(in_view.sum())
         for name, grid in rows.items():

@@ -94,7 +94,9 @@ def _fingerprints(ctx: Ctx) -> dict[str, str]:
 # ---------------------------------------------------------------------------------- stage machinery
 def _is_current(ctx: Ctx, stage: StageInfo) -> bool:
     rec = ctx.state.get(stage.name)
-    if not rec or rec.get("fingerprint") != ctx.fp[stage.name] or rec.get("status") not in ("done", "skipped"):
+    if not rec or rec.get("fingerprint") != ctx.fp[stage.name]:
+        return False
+    if rec.get("status") not in ("done", "skipped"):
         return False
     if stage.frame_files is not None:
         return not ctx.missing_frames(stage.name)
@@ -116,10 +118,9 @@ def _clear(ctx: Ctx, stage: StageInfo) -> None:
 def _run_stage(ctx: Ctx, stage: StageInfo) -> StageReport:
     name = stage.name
     if _is_current(ctx, stage):
-        rec = ctx.state[name]
         n = len(ctx.frames)
         ctx.tick(name, n, n)
-        return StageReport(name, False, rec["status"], 0.0)
+        return StageReport(name, False, ctx.state[name]["status"], 0.0)
     rec = ctx.state.get(name)
     if not rec or rec.get("fingerprint") != ctx.fp[name]:
         _clear(ctx, stage)

@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.errors import DatasetError
+from leap_core.export import export_labels
 from leap_core.fusion import (
     Observations,
     VoxelGrid,
@@ -133,7 +134,9 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
         soft_path = ctx.layout.labels2d(ctx.fid(i))
         soft = SoftMasks.load(soft_path)
         if soft.num_classes != ctx.schema.num_classes:
-            raise DatasetError(soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}")
+            raise DatasetError(
+                soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}"
+            )
         pts = ctx.seq.frame(i).points
         proj = project_points(pts, m, soft.height, soft.width, pcfg.min_depth)
         painted = paint(soft, proj, pcfg)
@@ -144,7 +147,7 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
             point_idx=painted.point_idx,
             rows=painted.rows,
             table=painted.table,
-            n_points=np.int64(pts.shape[0]),
+            n_points=np.asarray(pts.shape[0], np.int64),
             in_view=np.packbits(in_view),
         )
 
@@ -225,8 +228,9 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
     predictions into the previous fused grid → ``grid_3dcn{i}.npz``, smooth → ``grid_smooth_3dcn{i}.npz``.
     A finished round is kept on resume.
     """
-    from leap_core.consistency.selection import view_counts
-    from leap_core.consistency.stage import run_3dcn_iteration
+    # Imported here: the 3D-CN needs torch, which only this stage may load.
+    from leap_core.consistency.selection import view_counts  # noqa: PLC0415
+    from leap_core.consistency.stage import run_3dcn_iteration  # noqa: PLC0415
 
     cn = ctx.cfg.consistency
     lay = ctx.layout
@@ -286,8 +290,6 @@ def stage_label_points(ctx: Ctx) -> dict[str, Any]:
 # -------------------------------------------------------------------------------------------- export
 def stage_export(ctx: Ctx) -> dict[str, Any]:
     """Per frame: ``export/<frame_id>.label`` (raw export ids, 0 = unlabeled, instance 0) and ``.conf``."""
-    from leap_core.export import export_labels
-
     ids = ctx.schema.export_ids()
 
     def work(i: int) -> None:
