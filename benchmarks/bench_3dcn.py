@@ -42,16 +42,16 @@ from leap_core.consistency.backbone import PointSegmenter, count_parameters
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.data import collate, prepare_cloud
 from leap_core.consistency.selection import view_counts
-from leap_core.consistency.stage import point_labels_from_grid, run_3dcn_iteration, world_points
+from leap_core.consistency.stage import run_3dcn_iteration
 from leap_core.consistency.train import num_train_steps
 from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_label, write_poses, write_scan
-from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys
+from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
 from leap_core.metrics import evaluate
-from leap_core.pipeline import smoothed_to_grid
 from leap_core.projection import Painted
+from leap_core.run_layout import RunLayout
 from leap_core.schema import builtin_schema
-from leap_core.smoothing import SmoothingConfig, knn_smooth
+from leap_core.smoothing import SmoothedGrid, SmoothingConfig, knn_smooth
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -236,13 +236,13 @@ def load_run_inputs(
 ) -> tuple[VoxelGrid, VoxelGrid, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """The fused and smoothed grids of a finished ``leap run``, each scan's camera-view mask, and how many
     frames observed each voxel (the selection's tie-break, as the pipeline computes it)."""
-    fused = VoxelGrid.load(run_dir / "grid.npz")
-    with np.load(run_dir / "grid_smooth.npz") as z:
-        smoothed = smoothed_to_grid(z["keys"], z["probs"], float(z["voxel_size"]), logp_clip)
+    layout = RunLayout(run_dir)
+    fused = VoxelGrid.load(layout.grid)
+    smoothed = SmoothedGrid.load(layout.grid_smooth).to_voxel_grid(logp_clip)
     views = []
     observed = []
     for i in frames:
-        path = run_dir / "observations" / f"{seq.frame_ids[i]}.npz"
+        path = layout.observation(seq.frame_ids[i])
         with np.load(path) as z:
             views.append(np.unpackbits(z["in_view"], count=int(z["n_points"])).astype(bool))
         frame = seq.frame(i)
@@ -255,11 +255,11 @@ def smoothed_labels(seq: KittiSequence, frames: range, grid: VoxelGrid) -> list[
     """Per scan, each point's label in ``grid`` after the pipeline's kNN smoothing."""
     probs = knn_smooth(grid.centres(), grid.probs(), SmoothingConfig())
     sm = VoxelGrid(grid.keys, np.log(np.maximum(probs, 1e-9)).astype(np.float16), grid.voxel_size)
-    vl, vc = sm.labels_and_confidence()
+    labels = sm.voxel_labels()
     out = []
     for i in frames:
         keys = voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), grid.voxel_size)
-        out.append(point_labels_from_grid(keys, sm, vl, vc)[0])
+        out.append(labels.at(keys)[0])
     return out
 
 
@@ -340,9 +340,9 @@ def main(argv: list[str] | None = None) -> int:
     view_f = np.concatenate(views)
     rows = {}
     if args.run_dir is not None:
-        vl, vc = smoothed.labels_and_confidence()
-        before = [point_labels_from_grid(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2),
-                                         smoothed, vl, vc)[0] for i in frames]
+        smooth_lookup = smoothed.voxel_labels()
+        before = [smooth_lookup.at(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2))[0]
+                  for i in frames]
     else:
         before = smoothed_labels(seq, frames, fused)
     for name, labels in (("voxel", before), ("+3D-CN x1", smoothed_labels(seq, frames, new))):

@@ -49,6 +49,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import print_table, write_results  # noqa: E402
 
+from leap_core.run_layout import RunLayout  # noqa: E402
+
 SMALL_STREET: dict[str, Any] = {
     "shadows": False,
     "lidar": {"beams": 32, "azimuth_step_deg": 0.4},
@@ -223,7 +225,8 @@ def run_once(
         run = api.get(f"/runs/{run['id']}").json()
     if run["status"] != "done":
         raise SystemExit(f"run {run['id']} {run['status']}: {run['error']}")
-    log = (data_root / "studio" / "runs" / f"p{project['id']}" / f"r{run['id']}" / "run.log").read_text()
+    run_dir = data_root / "studio" / "runs" / f"p{project['id']}" / f"r{run['id']}"
+    log = RunLayout(run_dir).log.read_text()
     m = re.search(r"run finished in ([\d.]+) s wall, ([\d.]+) s cpu", log)
     assert m is not None
     elapsed = time.perf_counter() - t0

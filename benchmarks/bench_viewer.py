@@ -37,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from app.viewer import view_logic as vl  # noqa: E402
 from app.viewer.data import ReviewGrid  # noqa: E402
 from app.viewer.scene import ReviewScene  # noqa: E402
-from leap_core.fusion import AXIS_OFFSET  # noqa: E402
+from leap_core.fusion import AXIS_OFFSET, VoxelGrid  # noqa: E402
+from leap_core.smoothing import SmoothedGrid  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_viewer.json"
 
@@ -52,7 +53,7 @@ def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGr
     keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])[:num_voxels]
     logits = rng.normal(0.0, 1.5, (keys.shape[0], num_classes)).astype(np.float32)
     logits[np.arange(keys.shape[0]), rng.integers(0, num_classes, keys.shape[0])] += 2.5
-    return ReviewGrid.from_arrays(keys, vl.softmax_rows(logits), 0.2, "synthetic")
+    return ReviewGrid(SmoothedGrid.from_voxel_grid(VoxelGrid(keys, logits.astype(np.float16), 0.2)), "synthetic")
 
 
 class WireClient:

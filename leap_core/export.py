@@ -1,9 +1,10 @@
 """Export of per-point labels: SemanticKITTI ``.label`` files plus a per-point confidence file.
 
-``<out_dir>/<frame_id>.label``: uint32 per point, the class's raw export id (``Schema.export_ids``) in the
-low 16 bits, instance 0 in the high 16, and 0 ("unlabeled") for points without a label.
-``<out_dir>/<frame_id>.conf``: float32 per point, the label's posterior probability, 0 where unlabeled.
-Both are raw little-endian arrays in scan order, written atomically (temp file + rename).
+``.label``: uint32 per point, the class's raw export id (``Schema.export_ids``) in the low 16 bits,
+instance 0 in the high 16, and 0 ("unlabeled") for points without a label.
+``.conf``: float32 per point, the label's posterior probability, 0 where unlabeled.
+Both are raw little-endian arrays in scan order, written atomically (temp file + rename). A run writes them
+as ``export/<frame_id>.label`` / ``.conf`` (:class:`~leap_core.run_layout.RunLayout`).
 """
 
 from __future__ import annotations
@@ -36,36 +37,29 @@ def labels_to_raw(labels: npt.ArrayLike, export_ids: npt.ArrayLike) -> npt.NDArr
 
 
 def export_labels(
-    out_dir: str | Path,
-    frame_id: str,
+    label_path: str | Path,
+    conf_path: str | Path,
     labels: npt.ArrayLike,
     confidence: npt.ArrayLike,
     export_ids: npt.ArrayLike,
-) -> tuple[Path, Path]:
-    """Write ``<frame_id>.label`` and ``<frame_id>.conf`` for one scan, each atomically.
+) -> None:
+    """Write one scan's ``.label`` and ``.conf`` files, each atomically (folders created if missing).
 
     Args:
-        out_dir: target folder (created if missing).
-        frame_id: file stem, e.g. ``"000042"``.
+        label_path: the ``.label`` file.
+        conf_path: the ``.conf`` file.
         labels: (N,) int16 class index per point, ``UNLABELED`` (-1) where none.
         confidence: (N,) float32 confidence per point (stored as 0 where unlabeled).
         export_ids: (C,) uint32 raw id per class index.
-
-    Returns:
-        (label path, confidence path).
     """
-    out = Path(out_dir)
     lab = np.asarray(labels).reshape(-1)
     conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
     if conf.shape != lab.shape:
         raise ValueError(f"confidence has {conf.shape[0]} values for {lab.shape[0]} labels")
     raw = labels_to_raw(lab, export_ids)
     conf = np.where(lab == UNLABELED, np.float32(0.0), conf).astype("<f4")
-    label_path = out / f"{frame_id}.label"
-    conf_path = out / f"{frame_id}.conf"
     write_label(label_path, raw)
     atomic_write_bytes(conf_path, conf.tobytes())
-    return label_path, conf_path
 
 
 def read_confidence(path: str | Path, num_points: int | None = None) -> npt.NDArray[np.float32]:

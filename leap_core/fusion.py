@@ -23,12 +23,11 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse
-import torch
 
 from leap_core.errors import ConfigError, DatasetError
 from leap_core.io_utils import atomic_save_npz
@@ -167,12 +166,16 @@ class VoxelGrid:
         """(V, 3) float32 voxel centres in world metres."""
         return key_centres(self.keys, self.voxel_size)
 
-    def probs(self) -> npt.NDArray[np.float32]:
-        """(V, C) float32 ``softmax(logp)`` per row (the normalised posterior)."""
-        out = self.logp.astype(np.float32)
-        out -= out.max(axis=1, keepdims=True) if len(out) else 0.0
-        np.exp(out, out=out)
-        out /= out.sum(axis=1, keepdims=True)
+    def probs(self, dtype: npt.DTypeLike = np.float32, chunk: int = 1 << 20) -> npt.NDArray[Any]:
+        """(V, C) ``softmax(logp)`` per row (the normalised posterior), computed in float32 over chunks of
+        ``chunk`` rows and stored as ``dtype`` (float16 halves a viewer's copy)."""
+        out = np.empty(self.logp.shape, dtype)
+        for s in range(0, self.num_voxels, chunk):
+            block = self.logp[s : s + chunk].astype(np.float32)
+            block -= block.max(axis=1, keepdims=True)
+            np.exp(block, out=block)
+            block /= block.sum(axis=1, keepdims=True)
+            out[s : s + chunk] = block
         return out
 
     def labels_and_confidence(
@@ -191,6 +194,17 @@ class VoxelGrid:
             block -= block.max(axis=1, keepdims=True)
             conf[s : s + chunk] = 1.0 / np.exp(block).sum(axis=1)
         return labels, conf
+
+    def voxel_labels(self, chunk: int = 1 << 20) -> VoxelLabels:
+        """:meth:`labels_and_confidence` of every voxel, ready for :meth:`VoxelLabels.at` lookups."""
+        return VoxelLabels(self.keys, *self.labels_and_confidence(chunk))
+
+    def labels_at(self, query_keys: npt.ArrayLike) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
+        """Label and confidence of the voxel of each query key (see :meth:`VoxelLabels.at`).
+
+        Computes every voxel's label first: for many lookups take :meth:`voxel_labels` once.
+        """
+        return self.voxel_labels().at(query_keys)
 
     def lookup(self, query_keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
         """(N,) int64 row of each query key in this grid, -1 where the voxel was never observed."""
@@ -221,46 +235,90 @@ class VoxelGrid:
         return cls(keys, logp, vs)
 
 
-def argmax_confidence(probs: npt.ArrayLike) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
-    """(V,) int16 argmax class (ties: lowest index) and (V,) float32 its probability, for (V, C) probs
-    (e.g. the kNN-smoothed posteriors)."""
-    p = np.asarray(probs, dtype=np.float32)
-    if p.ndim != 2:
-        raise ValueError(f"probs must be (V, C), got shape {p.shape}")
-    lab = p.argmax(axis=1)
-    return lab.astype(np.int16), np.take_along_axis(p, lab[:, None], axis=1)[:, 0]
+@dataclass(frozen=True, eq=False)
+class VoxelLabels:
+    """Per voxel of a grid: its argmax class and that class's probability; looked up per point by key.
+
+    Attributes:
+        keys: (V,) int64 sorted unique voxel keys.
+        label: (V,) int16 argmax class.
+        conf: (V,) float32 probability of that class.
+    """
+
+    keys: npt.NDArray[np.int64]
+    label: npt.NDArray[np.int16]
+    conf: npt.NDArray[np.float32]
+
+    @classmethod
+    def from_probs(cls, keys: npt.ArrayLike, probs: npt.ArrayLike, chunk: int = 1 << 20) -> VoxelLabels:
+        """``label = argmax_i probs[:, i]`` (ties: lowest index, numpy's rule) and ``conf = probs[v, label]``.
+
+        Args:
+            keys: (V,) int64 sorted unique voxel keys.
+            probs: (V, C) class probabilities, compared in their own dtype (float16 stays float16, so
+                ties are those of the stored values); ``conf`` is that value as float32.
+            chunk: rows per step (bounds the temporaries on large grids; the result does not depend on it).
+        """
+        p = np.asarray(probs)
+        k = np.asarray(keys, dtype=np.int64)
+        if p.ndim != 2 or k.shape != (p.shape[0],):
+            raise ValueError(f"keys (V,) and probs (V, C) expected, got {k.shape} and {p.shape}")
+        label = np.empty(p.shape[0], np.int16)
+        conf = np.empty(p.shape[0], np.float32)
+        for s in range(0, p.shape[0], chunk):
+            block = p[s : s + chunk]
+            am = block.argmax(axis=1)
+            label[s : s + chunk] = am
+            conf[s : s + chunk] = np.take_along_axis(block, am[:, None], axis=1)[:, 0]
+        return cls(k, label, conf)
+
+    def at(self, query_keys: npt.ArrayLike) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
+        """``(label (N,) int16, conf (N,) float32)`` of the voxel of each query key (N,); ``UNLABELED``
+        and 0 where the voxel is not in the grid (never observed)."""
+        rows = rows_in_sorted(self.keys, query_keys)
+        hit = rows >= 0
+        label = np.full(rows.shape, UNLABELED, np.int16)
+        conf = np.zeros(rows.shape, np.float32)
+        label[hit] = self.label[rows[hit]]
+        conf[hit] = self.conf[rows[hit]]
+        return label, conf
 
 
-def labels_for_points(
-    grid: VoxelGrid,
-    point_keys: npt.ArrayLike,
-    voxel_labels: npt.ArrayLike,
-    voxel_conf: npt.ArrayLike,
-) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
-    """Per-point labels from per-voxel ones: each point takes its voxel's label and confidence.
+_V = TypeVar("_V", bound=np.generic)
 
-    Args:
-        grid: the grid whose rows ``voxel_labels`` / ``voxel_conf`` (V,) follow.
-        point_keys: (N,) int64 voxel key of each point of a scan.
-        voxel_labels: (V,) int16 class per voxel.
-        voxel_conf: (V,) float32 confidence per voxel.
+
+def last_per_key(
+    keys: npt.ArrayLike, values: npt.NDArray[_V]
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[_V]]:
+    """Deduplicate ``keys`` (N,) keeping, for each distinct key, the value (N,) that comes LAST.
+
+    The rule "a later correction of the same voxel wins" (and "the point painted last wins a pixel"):
+    numpy does not promise which write wins when a fancy assignment repeats an index, so callers that
+    mean "the latest wins" deduplicate first. Example: keys [4, 1, 4], values [a, b, c] → [1, 4], [b, c].
 
     Returns:
-        (N,) int16 labels, ``UNLABELED`` in never-observed voxels, and (N,) float32 confidence (0 there).
+        ``(unique keys (U,) int64 sorted, their last values (U,))``.
     """
-    vl = np.asarray(voxel_labels)
-    vc = np.asarray(voxel_conf, dtype=np.float32)
-    if vl.shape != (grid.num_voxels,) or vc.shape != (grid.num_voxels,):
-        raise ValueError(
-            f"voxel_labels and voxel_conf must be ({grid.num_voxels},), got {vl.shape}, {vc.shape}"
-        )
-    rows = grid.lookup(point_keys)
-    seen = rows >= 0
-    labels = np.full(rows.shape, UNLABELED, np.int16)
-    conf = np.zeros(rows.shape, np.float32)
-    labels[seen] = vl[rows[seen]]
-    conf[seen] = vc[rows[seen]]
-    return labels, conf
+    k = np.asarray(keys, dtype=np.int64).reshape(-1)
+    v = np.asarray(values).reshape(-1)
+    if v.shape != k.shape:
+        raise ValueError(f"keys {k.shape} and values {v.shape} must have the same length")
+    uniq, first_in_reversed = np.unique(k[::-1], return_index=True)
+    return uniq, v[::-1][first_in_reversed]
+
+
+def world_points(points: npt.ArrayLike, pose: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """World coordinates of LiDAR-frame points: ``x_w = R · p + t`` with ``pose = [[R, t], [0, 1]]``.
+
+    Args:
+        points: (N, ≥3) LiDAR-frame points (extra columns such as remission are ignored).
+        pose: (4, 4) LiDAR → world transform.
+
+    Returns:
+        (N, 3) float64.
+    """
+    p = np.asarray(pose, dtype=np.float64)
+    return np.asarray(points)[:, :3].astype(np.float64) @ p[:3, :3].T + p[:3, 3]
 
 
 # ------------------------------------------------------------------------------------- observations
@@ -420,6 +478,9 @@ def _finalise(
         return VoxelGrid(keys, acc.astype(np.float16), cfg.voxel_size)
     # On large grids torch's row max and float16 cast are ≈ 3× faster than numpy's; on small ones its
     # thread wake-up costs more than it saves (milliseconds when other processes share the cores).
+    # torch is imported where tensors are made, so reading a config (FusionConfig) does not load it.
+    import torch  # noqa: PLC0415
+
     t = torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32))
     t.sub_(t.amax(dim=1, keepdim=True))
     t.clamp_(min=-cfg.logp_clip)
@@ -516,6 +577,8 @@ def fuse_dense(
         cfg: grid and clipping parameters.
         weight: multiplies every log-probability.
     """
+    import torch  # noqa: PLC0415
+
     cfg = cfg or FusionConfig()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
     k = np.asarray(keys, dtype=np.int64)
@@ -590,13 +653,15 @@ __all__ = [
     "FusionConfig",
     "Observations",
     "VoxelGrid",
+    "VoxelLabels",
     "apply_overrides",
-    "argmax_confidence",
     "fuse",
     "fuse_dense",
     "key_centres",
     "key_coords",
-    "labels_for_points",
+    "last_per_key",
     "log_table",
+    "rows_in_sorted",
     "voxel_keys",
+    "world_points",
 ]

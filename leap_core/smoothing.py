@@ -7,15 +7,19 @@ are fairly flat (e^-0.2 ≈ 0.82 relative to the voxel itself): smoothing is str
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-from leap_core.errors import ConfigError
-from leap_core.fusion import VoxelGrid
+from leap_core.errors import ConfigError, DatasetError
+from leap_core.fusion import VoxelGrid, VoxelLabels, key_centres
+from leap_core.io_utils import atomic_save_npz
 
 
 @dataclass(frozen=True)
@@ -120,4 +124,108 @@ def smooth_grid(grid: VoxelGrid, cfg: SmoothingConfig | None = None) -> npt.NDAr
     return knn_smooth(grid.centres(), grid.probs(), cfg)
 
 
-__all__ = ["SmoothingConfig", "knn_smooth", "knn_weights", "smooth_grid"]
+@dataclass(frozen=True, eq=False)
+class SmoothedGrid:
+    """A grid of per-voxel class distributions (the kNN-smoothed map; ``grid_smooth*.npz`` in a run folder).
+
+    Attributes:
+        keys: (V,) int64 sorted unique voxel keys.
+        probs: (V, C) float16 class distributions (rows sum to 1 up to float16 rounding).
+        voxel_size: voxel edge length in metres.
+
+    Stored as an uncompressed npz with arrays ``keys``, ``probs`` and ``voxel_size`` (float64 scalar).
+    """
+
+    keys: npt.NDArray[np.int64]
+    probs: npt.NDArray[np.float16]
+    voxel_size: float
+
+    def __post_init__(self) -> None:
+        k, p = self.keys, self.probs
+        if k.dtype != np.int64 or k.ndim != 1:
+            raise ValueError(f"smoothed grid 'keys' must be 1-D int64, got {k.dtype} {k.shape}")
+        if p.dtype != np.float16 or p.ndim != 2 or p.shape[0] != k.shape[0]:
+            raise ValueError(
+                f"smoothed grid 'probs' must be ({k.shape[0]}, C) float16, got {p.dtype} {p.shape}"
+            )
+        if k.size > 1 and not (np.diff(k) > 0).all():
+            raise ValueError("smoothed grid voxel keys are not sorted and unique")
+        if not (self.voxel_size > 0 and math.isfinite(self.voxel_size)):
+            raise ValueError(f"smoothed grid 'voxel_size' must be positive, got {self.voxel_size}")
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self.keys.shape[0])
+
+    @property
+    def num_classes(self) -> int:
+        return int(self.probs.shape[1])
+
+    def centres(self) -> npt.NDArray[np.float32]:
+        """(V, 3) float32 voxel centres in world metres."""
+        return key_centres(self.keys, self.voxel_size)
+
+    @cached_property
+    def _labels(self) -> VoxelLabels:
+        return VoxelLabels.from_probs(self.keys, self.probs)
+
+    def voxel_labels(self) -> VoxelLabels:
+        """Argmax class and its (float16) probability per voxel (:meth:`VoxelLabels.from_probs`); computed
+        once per grid."""
+        return self._labels
+
+    def labels_at(self, query_keys: npt.ArrayLike) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
+        """``(label (N,) int16, conf (N,) float32)`` of the voxel of each query key; ``UNLABELED`` and 0 where
+        the voxel is not in the grid."""
+        return self._labels.at(query_keys)
+
+    def to_voxel_grid(self, logp_clip: float) -> VoxelGrid:
+        """A :class:`VoxelGrid` whose ``probs()`` give back these distributions: ``logp = log p - max log p``,
+        clipped below at ``-logp_clip`` like any fused grid (float16)."""
+        p = np.asarray(self.probs, dtype=np.float32)
+        with np.errstate(divide="ignore"):
+            lp = np.log(p)
+        if len(lp):
+            lp -= lp.max(axis=1, keepdims=True)
+        np.maximum(lp, np.float32(-logp_clip), out=lp)
+        return VoxelGrid(self.keys, lp.astype(np.float16), float(self.voxel_size))
+
+    @classmethod
+    def from_voxel_grid(cls, grid: VoxelGrid) -> SmoothedGrid:
+        """The posteriors ``softmax(logp)`` of a fused grid (not smoothed), as float16 distributions."""
+        return cls(grid.keys, grid.probs(np.float16), float(grid.voxel_size))
+
+    def save(self, path: str | Path) -> None:
+        """Write ``keys``, ``probs`` and ``voxel_size`` as an uncompressed npz, atomically."""
+        vs = np.asarray(self.voxel_size, np.float64)
+        atomic_save_npz(path, keys=self.keys, probs=self.probs, voxel_size=vs)
+
+    @classmethod
+    def load(cls, path: str | Path, voxel_size: float | None = None) -> SmoothedGrid:
+        """Read a grid written by :meth:`save` (``probs`` of another float type are cast to float16).
+
+        Args:
+            path: the npz file.
+            voxel_size: used when the file holds none (files written before it was stored).
+
+        Raises:
+            DatasetError: unreadable or malformed file, naming it.
+        """
+        try:
+            with np.load(path) as z:
+                keys, probs = z["keys"], z["probs"]
+                stored = float(z["voxel_size"]) if "voxel_size" in z.files else None
+        except (OSError, KeyError, ValueError, TypeError, EOFError) as exc:
+            raise DatasetError(path, f"unreadable smoothed grid ({exc})") from exc
+        vs = stored if stored is not None else voxel_size
+        if vs is None:
+            raise DatasetError(path, "no voxel_size in the smoothed grid")
+        if np.issubdtype(probs.dtype, np.floating):
+            probs = probs.astype(np.float16, copy=False)
+        try:
+            return cls(keys, probs, vs)
+        except ValueError as exc:
+            raise DatasetError(path, str(exc)) from exc
+
+
+__all__ = ["SmoothedGrid", "SmoothingConfig", "knn_smooth", "knn_weights", "smooth_grid"]

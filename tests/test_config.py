@@ -236,10 +236,5 @@ def test_reading_a_config_or_preset_never_imports_transformers() -> None:
     assert "transformers" not in _modules_after("import leap_core.config, leap_core.presets, leap_core.labelers")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="leap_core/fusion.py imports torch at module level until the core branch's lazy import is merged; "
-    "remove this mark then (strict: the suite fails once it passes)",
-)
 def test_reading_a_config_or_preset_never_imports_torch() -> None:
     assert "torch" not in _modules_after("import leap_core.config, leap_core.presets, leap_core.labelers")

@@ -23,10 +23,8 @@ from leap_core.consistency.selection import (
 from leap_core.consistency.stage import (
     checkpoint_path,
     fuse_back,
-    point_labels_from_grid,
     run_3dcn_iteration,
     voxel_mean_log_probs,
-    world_points,
 )
 from leap_core.consistency.train import (
     config_from_dict,
@@ -40,7 +38,7 @@ from leap_core.consistency.train import (
 )
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import ConfigError, ModelLoadError
-from leap_core.fusion import FusionConfig, VoxelGrid, voxel_keys
+from leap_core.fusion import FusionConfig, VoxelGrid, voxel_keys, world_points
 from leap_core.types import UNLABELED
 
 TINY_BACKBONE = BackboneConfig(channels=16, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4)
@@ -145,18 +143,17 @@ def test_selection_on_a_hand_made_grid_per_scan_and_per_sequence() -> None:
     logp = np.array([[0, -1], [0, -3], [-2, 0], [-0.5, 0]], dtype=np.float16)
     order = np.argsort(keys)
     grid = VoxelGrid(keys[order], logp[order], 0.2)
-    vl, vc = grid.labels_and_confidence()
     # Scan A: 5 points in voxel 0, 5 in voxel 1, 2 in voxel 2, 1 point in no voxel.
     pts_a = np.concatenate([np.repeat(centres[[0]], 5, 0), np.repeat(centres[[1]], 5, 0),
                             np.repeat(centres[[2]], 2, 0), [[5.0, 5.0, 5.0]]])
-    lab_a, conf_a = point_labels_from_grid(voxel_keys(pts_a, 0.2), grid, vl, vc)
+    lab_a, conf_a = grid.labels_at(voxel_keys(pts_a, 0.2))
     assert lab_a.tolist() == [0] * 10 + [1] * 2 + [UNLABELED]
     np.testing.assert_allclose(conf_a[[0, 5, 10]], [1 / (1 + math.exp(-1)), 1 / (1 + math.exp(-3)),
                                                     1 / (1 + math.exp(-2))], rtol=1e-3)
     assert conf_a[12] == 0.0
     # Scan B: 5 points in voxel 3 (class 1, conf 1/(1+e^-0.5)).
     pts_b = np.repeat(centres[[3]], 5, 0)
-    lab_b, conf_b = point_labels_from_grid(voxel_keys(pts_b, 0.2), grid, vl, vc)
+    lab_b, conf_b = grid.labels_at(voxel_keys(pts_b, 0.2))
 
     per_scan = select_reliable_scans([lab_a, lab_b], [conf_a, conf_b], 2, 0.2, scope="scan")
     # Scan A class 0: ceil(2) = 2 points, from voxel 1 (most confident), lowest indices 5, 6;

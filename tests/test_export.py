@@ -17,8 +17,8 @@ EXPORT_IDS = np.array([10, 40, 48], np.uint32)  # car, road, sidewalk
 def test_export_writes_raw_ids_and_confidence(tmp_path) -> None:
     labels = np.array([0, -1, 2, 1, 0], np.int16)
     conf = np.array([0.9, 0.5, 0.7, 0.6, 0.25], np.float32)
-    lp, cp = export_labels(tmp_path / "out", "000042", labels, conf, EXPORT_IDS)
-    assert lp == tmp_path / "out" / "000042.label" and cp == tmp_path / "out" / "000042.conf"
+    lp, cp = tmp_path / "out" / "000042.label", tmp_path / "out" / "000042.conf"
+    export_labels(lp, cp, labels, conf, EXPORT_IDS)
     assert lp.read_bytes() == np.array([10, 0, 48, 40, 10], "<u4").tobytes()  # instance 0 in the high bits
     np.testing.assert_array_equal(read_label(lp, 5), [10, 0, 48, 40, 10])
     np.testing.assert_array_equal(read_confidence(cp, 5), np.array([0.9, 0.0, 0.7, 0.6, 0.25], np.float32))
@@ -36,11 +36,12 @@ def test_labels_to_raw_validates() -> None:
 def test_export_is_atomic(tmp_path, monkeypatch) -> None:
     labels = np.array([0, 1], np.int16)
     conf = np.ones(2, np.float32)
-    lp, cp = export_labels(tmp_path, "000000", labels, conf, EXPORT_IDS)
+    lp, cp = tmp_path / "000000.label", tmp_path / "000000.conf"
+    export_labels(lp, cp, labels, conf, EXPORT_IDS)
     before = (lp.read_bytes(), cp.read_bytes())
     # Bad input fails before anything is written.
     with pytest.raises(ValueError):
-        export_labels(tmp_path, "000000", np.array([0, 5], np.int16), conf, EXPORT_IDS)
+        export_labels(lp, cp, np.array([0, 5], np.int16), conf, EXPORT_IDS)
     # A crash at the final rename (fault injected into os.replace) leaves the old files and no temp file.
     import leap_core.io_utils as io_utils
 
@@ -49,7 +50,7 @@ def test_export_is_atomic(tmp_path, monkeypatch) -> None:
 
     monkeypatch.setattr(io_utils.os, "replace", boom)
     with pytest.raises(OSError, match="disk full"):
-        export_labels(tmp_path, "000000", np.array([2, 2], np.int16), conf, EXPORT_IDS)
+        export_labels(lp, cp, np.array([2, 2], np.int16), conf, EXPORT_IDS)
     monkeypatch.undo()
     assert (lp.read_bytes(), cp.read_bytes()) == before
     assert sorted(os.listdir(tmp_path)) == ["000000.conf", "000000.label"]

@@ -15,14 +15,17 @@ from leap_core.fusion import (
     FusionConfig,
     Observations,
     VoxelGrid,
+    VoxelLabels,
     apply_overrides,
     fuse,
     fuse_dense,
     key_centres,
     key_coords,
+    last_per_key,
     log_table,
     rows_in_sorted,
     voxel_keys,
+    world_points,
 )
 
 F16_ATOL = 0.02  # float16 step is 1/64 for |logp| in [8, 16]; a float32 rounding difference can flip one step
@@ -273,17 +276,79 @@ def test_extent_too_wide_to_pack_gives_the_same_result() -> None:
     np.testing.assert_allclose(grid.logp.astype(float), ref, atol=F16_ATOL)
 
 
-def test_point_labels_from_voxels() -> None:
-    from leap_core.fusion import argmax_confidence, labels_for_points
+# ------------------------------------------------------------------------------------ labels at keys
+def test_voxel_labels_from_probs_ties_and_absent_keys() -> None:
+    # float16 probabilities as stored: row 2 is an exact tie; row 3 ties only after float16 rounding
+    # (0.35 and 0.35001 are one float16), so both take the lowest index, as numpy's argmax does.
+    probs = np.array([[0.6, 0.4, 0.0], [0.1, 0.2, 0.7], [0.25, 0.375, 0.375], [0.35, 0.35001, 0.3]],
+                     np.float32).astype(np.float16)
+    labels = VoxelLabels.from_probs([10, 20, 30, 40], probs)
+    assert labels.label.dtype == np.int16 and labels.conf.dtype == np.float32
+    assert labels.label.tolist() == [0, 2, 1, 0]
+    np.testing.assert_array_equal(labels.conf, probs[[0, 1, 2, 3], [0, 2, 1, 0]].astype(np.float32))
+    lab, conf = labels.at(np.array([20, 15, 10, 40, 99, 30]))
+    assert lab.dtype == np.int16 and conf.dtype == np.float32
+    assert lab.tolist() == [2, -1, 0, 0, -1, 1]
+    np.testing.assert_allclose(conf, [0.7, 0.0, 0.6, 0.35, 0.0, 0.375], atol=1e-3)
+    empty = VoxelLabels.from_probs(np.zeros(0, np.int64), np.zeros((0, 3), np.float16))
+    assert empty.at(np.array([1, 2]))[0].tolist() == [-1, -1]
+    with pytest.raises(ValueError, match="keys"):
+        VoxelLabels.from_probs([1, 2], probs)
 
-    grid = fuse([_obs([10, 20], [0, 1], [[0.7, 0.3], [0.2, 0.8]])], 2)
-    smoothed = np.array([[0.6, 0.4], [0.1, 0.9]], np.float32)
-    vl, vc = argmax_confidence(smoothed)
-    assert vl.tolist() == [0, 1] and vl.dtype == np.int16
-    np.testing.assert_allclose(vc, [0.6, 0.9])
-    labels, conf = labels_for_points(grid, np.array([20, 15, 10, 20]), vl, vc)
-    assert labels.tolist() == [1, -1, 0, 1]
-    np.testing.assert_allclose(conf, [0.9, 0.0, 0.6, 0.9])
+
+def test_voxel_labels_in_chunks_equal_one_pass() -> None:
+    rng = np.random.default_rng(3)
+    probs = rng.dirichlet(np.ones(5), 1000).astype(np.float16)
+    probs[::7, 1] = probs[::7, 3] = np.float16(0.5)  # ties in some rows
+    keys = np.arange(1000, dtype=np.int64) * 3
+    one = VoxelLabels.from_probs(keys, probs)
+    chunked = VoxelLabels.from_probs(keys, probs, chunk=7)
+    np.testing.assert_array_equal(one.label, probs.argmax(axis=1))
+    np.testing.assert_array_equal(chunked.label, one.label)
+    np.testing.assert_array_equal(chunked.conf, one.conf)
+
+
+def test_voxel_grid_labels_at() -> None:
+    # Voxel 10: logp (0, -ln 3) → class 0 with 1/(1 + 1/3) = 0.75; voxel 20: class 1 with 1/(1 + e^-2).
+    grid = VoxelGrid(np.array([10, 20], np.int64), np.array([[0, -math.log(3)], [-2, 0]], np.float16))
+    lab, conf = grid.labels_at(np.array([20, 15, 10]))
+    assert lab.tolist() == [1, -1, 0]
+    np.testing.assert_allclose(conf, [1 / (1 + math.exp(-2)), 0.0, 0.75], atol=1e-3)
+    chunked = grid.voxel_labels(chunk=1)
+    np.testing.assert_array_equal(chunked.label, grid.voxel_labels().label)
+    np.testing.assert_array_equal(chunked.conf, grid.voxel_labels().conf)
+
+
+def test_grid_probs_in_chunks_and_float16() -> None:
+    logp = np.array([[0.0, 0.0], [0.0, -math.log(3.0)], [-20.0, 0.0]], np.float16)
+    grid = VoxelGrid(np.array([1, 2, 3], np.int64), logp)
+    p = grid.probs()
+    np.testing.assert_allclose(p, [[0.5, 0.5], [0.75, 0.25], [2.06e-9, 1.0]], rtol=1e-3, atol=1e-10)
+    np.testing.assert_array_equal(grid.probs(chunk=2), p)
+    half = grid.probs(np.float16, chunk=1)
+    assert half.dtype == np.float16
+    np.testing.assert_array_equal(half, p.astype(np.float16))
+    assert VoxelGrid.empty(4).probs().shape == (0, 4)
+
+
+def test_last_per_key_keeps_the_last_value() -> None:
+    keys, vals = last_per_key(np.array([4, 1, 4, 2, 1]), np.array([10, 11, 12, 13, 14]))
+    assert keys.tolist() == [1, 2, 4] and vals.tolist() == [14, 13, 12]
+    keys, vals = last_per_key(np.zeros(0, np.int64), np.zeros(0, np.int16))
+    assert keys.size == 0 and vals.dtype == np.int16
+    with pytest.raises(ValueError, match="same length"):
+        last_per_key(np.array([1, 2]), np.array([1]))
+
+
+def test_world_points() -> None:
+    # 90° about z, then +(10, 20, 30): (1, 2, 3) → (-2, 1, 3) + t.
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    pose[:3, 3] = [10, 20, 30]
+    pts = np.array([[1, 2, 3, 0.5], [0, 0, 0, 0.1]], np.float32)
+    out = world_points(pts, pose)
+    assert out.dtype == np.float64 and out.shape == (2, 3)
+    np.testing.assert_array_equal(out, [[8, 21, 33], [10, 20, 30]])
 
 
 def test_rows_in_sorted_finds_present_keys_and_marks_absent_ones() -> None:

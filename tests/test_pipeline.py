@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,7 @@ from leap_core.errors import Cancelled, LeapError
 from leap_core.labelers.simulated import SimulatedLabelerConfig
 from leap_core.metrics import evaluate, metrics_from_confusion
 from leap_core.pipeline import (
+    STAGE_TABLE,
     STAGES,
     load_metrics,
     plan_stages,
@@ -37,6 +39,7 @@ from leap_core.pipeline import (
     run_pipeline,
     stage_status,
 )
+from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
 
 # ------------------------------------------------------------------------------------ a tiny street
@@ -221,6 +224,72 @@ def test_changing_k_reruns_only_smooth_and_later(baseline, street: Path, schema,
     assert run_pipeline(street, recolored, cfg, run_dir).ran == []
 
 
+# ------------------------------------------------------------------------------------- stage table
+def test_stage_table_is_ordered_and_complete() -> None:
+    names = [s.name for s in STAGE_TABLE]
+    assert tuple(names) == STAGES and len(set(names)) == len(names)
+    for k, stage in enumerate(STAGE_TABLE):
+        assert set(stage.upstream) <= set(names[:k]), f"{stage.name}: upstream must come earlier"
+        assert stage.per_frame == (stage.frame_files is not None)
+        assert stage.label and stage.description and callable(stage.run)
+    sections = set(config_to_dict(PipelineConfig()))
+    assert {r for s in STAGE_TABLE for r in s.reads} <= sections
+
+
+def _downstream(names: set[str]) -> set[str]:
+    """``names`` and every stage that reads (transitively) from one of them, by the table's upstream."""
+    out = set(names)
+    for stage in STAGE_TABLE:
+        if out & set(stage.upstream):
+            out.add(stage.name)
+    return out
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        ({"projection": {"min_depth": 0.8}}, ["project", "fuse", "smooth", "3dcn", "label_points", "evaluate",
+                                              "export"]),
+        ({"fusion": {"prob_floor": 0.002}}, ["fuse", "smooth", "3dcn", "label_points", "evaluate", "export"]),
+        ({"smoothing": {"k": 4}}, ["smooth", "3dcn", "label_points", "evaluate", "export"]),
+        ({"consistency": {"enabled": True}}, ["3dcn", "label_points", "evaluate", "export"]),
+        # A disabled 3D-CN's settings and the strength of corrections the run does not have are not inputs.
+        ({"consistency": {"share": 0.3}}, []),
+        ({"correction_strength": 20.0}, []),
+        # The labeler's own fingerprint covers its section: everything reruns.
+        ({"simulated": {"recall": 0.5}}, list(STAGES)),
+    ],
+)
+def test_a_config_change_reruns_its_readers_and_their_downstream(
+    baseline, street: Path, schema, overrides: dict, expected: list[str]
+) -> None:
+    run_dir, _, _ = baseline
+    plan = plan_stages(street, schema, config_from_dict(overrides), run_dir)
+    assert [s for s, todo in plan.items() if todo] == expected
+    # The same set follows from the table: the stages that read the section, then their downstream.
+    section = next(iter(overrides))
+    readers = {s.name for s in STAGE_TABLE if section in s.reads}
+    if section == "consistency" and "enabled" not in overrides[section]:
+        readers = set()
+    if section == "simulated":
+        readers = {"labels2d"}
+    if section == "correction_strength":
+        readers = set()
+    assert set(expected) == _downstream(readers)
+
+
+def test_corrections_rerun_fuse_and_its_downstream(baseline, street: Path, schema, tmp_path: Path) -> None:
+    run_dir = tmp_path / "plan_corr"
+    shutil.copytree(baseline[0], run_dir)
+    np.savez(run_dir / "corrections.npz", keys=np.array([1], np.int64), class_idx=np.array([0]))
+    plan = plan_stages(street, schema, PipelineConfig(), run_dir)
+    assert [s for s, todo in plan.items() if todo] == sorted(_downstream({"fuse"}), key=STAGES.index)
+    # Now the strength of the corrections is an input too.
+    run_pipeline(street, schema, PipelineConfig(), run_dir, until="fuse")
+    plan = plan_stages(street, schema, config_from_dict({"correction_strength": 20.0}), run_dir)
+    assert plan["fuse"] and not plan["project"]
+
+
 def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, tmp_path: Path) -> None:
     base_dir, _, _ = baseline
     run_dir = tmp_path / "interrupted"
@@ -242,12 +311,14 @@ def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, t
 
 def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path) -> None:
     cache = tmp_path / "cache"
-    a = run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3), cache_dir=cache,
+    a = run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3),
+                     runtime=Runtime(cache_dir=cache),
                      until="fuse")
     assert a.frames == (0, 1, 2)
     names = sorted(p.name for p in (tmp_path / "a" / "labels2d").iterdir())
     assert names == [f"{i:06d}.npz" for i in range(3)]
-    b = run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 4), cache_dir=cache,
+    b = run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 4),
+                     runtime=Runtime(cache_dir=cache),
                      until="labels2d")
     assert stage_status(tmp_path / "b")["labels2d"]["cache_hits"] == 3
     assert b.stages["labels2d"].frames_computed == 4

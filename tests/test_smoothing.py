@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from leap_core.errors import DatasetError
 from leap_core.fusion import VoxelGrid, voxel_keys
-from leap_core.smoothing import SmoothingConfig, knn_smooth, knn_weights, smooth_grid
+from leap_core.smoothing import SmoothedGrid, SmoothingConfig, knn_smooth, knn_weights, smooth_grid
 
 
 def test_knn_weights_softmax_of_negative_distance() -> None:
@@ -62,3 +63,44 @@ def test_smooth_grid_and_edge_cases() -> None:
         knn_smooth(np.zeros((3, 2)), np.zeros((3, 4)))
     with pytest.raises(ValueError, match="k: must be"):
         SmoothingConfig(k=0)
+
+
+# ------------------------------------------------------------------------------------- SmoothedGrid
+def test_smoothed_grid_save_load_labels_and_voxel_grid(tmp_path) -> None:
+    keys = np.array([3, 7, 9], np.int64)
+    probs = np.array([[0.7, 0.2, 0.1], [0.1, 0.1, 0.8], [0.45, 0.45, 0.1]], np.float16)
+    grid = SmoothedGrid(keys, probs, 0.5)
+    path = tmp_path / "grid_smooth.npz"
+    grid.save(path)
+    with np.load(path) as z:
+        assert sorted(z.files) == ["keys", "probs", "voxel_size"] and z["probs"].dtype == np.float16
+    back = SmoothedGrid.load(path)
+    np.testing.assert_array_equal(back.keys, keys)
+    np.testing.assert_array_equal(back.probs, probs)
+    assert back.voxel_size == 0.5 and back.num_classes == 3 and back.num_voxels == 3
+    lab, conf = back.labels_at(np.array([9, 8, 3, 7]))
+    assert lab.tolist() == [0, -1, 0, 2]  # voxel 9 ties: lowest index
+    np.testing.assert_array_equal(conf, np.array([0.45, 0, 0.7, 0.8], np.float16).astype(np.float32))
+    assert back.voxel_labels() is back.voxel_labels()  # computed once per grid
+    # As a VoxelGrid: probs come back (to float16 rounding of logp), 0 clips at e^-clip.
+    vg = back.to_voxel_grid(logp_clip=20.0)
+    np.testing.assert_allclose(vg.probs(), probs.astype(np.float32), atol=2e-3)
+    zero = SmoothedGrid(np.array([1], np.int64), np.array([[1.0, 0.0]], np.float16), 0.2).to_voxel_grid(5.0)
+    assert zero.logp.tolist() == [[0.0, -5.0]]
+
+
+def test_smoothed_grid_rejects_bad_files(tmp_path) -> None:
+    path = tmp_path / "grid_smooth.npz"
+    np.savez(path, keys=np.array([1, 2], np.int64), probs=np.ones((2, 2), np.float16))
+    with pytest.raises(DatasetError, match=r"grid_smooth\.npz: no voxel_size"):
+        SmoothedGrid.load(path)
+    assert SmoothedGrid.load(path, voxel_size=0.3).voxel_size == 0.3
+    np.savez(path, keys=np.array([2, 1], np.int64), probs=np.ones((2, 2), np.float16), voxel_size=0.2)
+    with pytest.raises(DatasetError, match="not sorted"):
+        SmoothedGrid.load(path)
+    np.savez(path, keys=np.array([1, 2], np.int64), probs=np.ones((3, 2), np.float16), voxel_size=0.2)
+    with pytest.raises(DatasetError, match="'probs'"):
+        SmoothedGrid.load(path)
+    path.write_bytes(b"junk")
+    with pytest.raises(DatasetError, match="unreadable smoothed grid"):
+        SmoothedGrid.load(path)

@@ -61,16 +61,6 @@ def test_legend_escapes_class_names() -> None:
     assert "P(&lt;x&gt;)" in legend_html("class_probability", ["a"], palette, "<x>")
 
 
-# ------------------------------------------------------------------------------------ probabilities
-def test_softmax_rows_and_argmax_confidence() -> None:
-    logp = np.array([[0.0, 0.0], [0.0, -math.log(3.0)], [-20.0, 0.0]], np.float16)
-    p = vl.softmax_rows(logp, chunk=2)
-    np.testing.assert_allclose(p.astype(np.float64), [[0.5, 0.5], [0.75, 0.25], [2.06e-9, 1.0]], atol=1e-3)
-    label, conf = vl.argmax_confidence(p, chunk=2)
-    assert label.tolist() == [0, 0, 1]  # tie → lowest index
-    np.testing.assert_allclose(conf, [0.5, 0.75, 1.0], atol=1e-3)
-
-
 # ----------------------------------------------------------------------------------- visibility
 def test_visible_mask_threshold_and_toggles() -> None:
     label = np.array([0, 1, 2, -1, 1], np.int16)
@@ -123,11 +113,6 @@ def test_apply_corrections_latest_wins_and_inputs_untouched() -> None:
     assert not empty[2].any()
     with pytest.raises(ValueError, match="same length"):
         vl.apply_corrections(keys, label, conf, [1, 2], [0])
-
-
-def test_last_per_index() -> None:
-    idx, val = vl.last_per_index(np.array([4, 1, 4, 2, 1]), np.array([10, 11, 12, 13, 14]))
-    assert idx.tolist() == [1, 2, 4] and val.tolist() == [14, 13, 12]
 
 
 # ---------------------------------------------------------------------------- camera and selection
@@ -596,12 +581,17 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:  # type: igno
         assert client.delete(base, headers=auth).status_code == 404
 
 
-def test_final_grid_name_follows_the_run_parameters(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from app.viewer.data import final_grid_name
+def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from app.viewer.data import final_grid_path
 
-    assert final_grid_name(tmp_path) == "grid_smooth.npz"
+    assert final_grid_path(tmp_path) == tmp_path / "grid_smooth.npz"
     for i in (1, 2, 10):
         (tmp_path / f"grid_smooth_3dcn{i}.npz").write_bytes(b"")
-    assert final_grid_name(tmp_path) == "grid_smooth_3dcn10.npz"
-    assert final_grid_name(tmp_path, {"consistency": {"enabled": False}}) == "grid_smooth.npz"
-    assert final_grid_name(tmp_path, {"consistency": {"enabled": True, "iterations": 2}}) == "grid_smooth_3dcn2.npz"
+    assert final_grid_path(tmp_path) == tmp_path / "grid_smooth_3dcn10.npz"
+    assert final_grid_path(tmp_path, {"consistency": {"enabled": False}}) == tmp_path / "grid_smooth.npz"
+    assert final_grid_path(tmp_path, {"consistency": {"enabled": True, "iterations": 2}}) == (
+        tmp_path / "grid_smooth_3dcn2.npz"
+    )
+    # Parameters without a 3D-CN section are the defaults (3D-CN off); unreadable ones fall back to the folder.
+    assert final_grid_path(tmp_path, {"smoothing": {"k": 3}}) == tmp_path / "grid_smooth.npz"
+    assert final_grid_path(tmp_path, {"no_such_section": 1}) == tmp_path / "grid_smooth_3dcn10.npz"

@@ -51,8 +51,11 @@ from app.jobs.messages import (
 from app.jobs.notify import ChangeNotifier
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
-from leap_core.io_utils import atomic_save_npz, atomic_write_json, remove_tree
-from leap_core.pipeline import STAGES
+from leap_core.errors import LeapError
+from leap_core.fusion import last_per_key
+from leap_core.io_utils import atomic_write_json, remove_tree
+from leap_core.pipeline import STAGES, read_metrics_json, stage_status
+from leap_core.run_layout import RunLayout, save_corrections
 
 log = logging.getLogger("leap.jobs")
 
@@ -313,13 +316,13 @@ class JobManager:
         remove_tree(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         params = run["params"]
-        atomic_write_json(run_dir / "params.json", params)
+        atomic_write_json(RunLayout(run_dir).params, params)
         keys, classes = corrections_for_run(
             crud.list_corrections(db, run["project_id"], active_only=True),
             params["schema"],
             params["pipeline"],
         )
-        atomic_save_npz(run_dir / "corrections.npz", keys=keys, class_idx=classes)
+        save_corrections(RunLayout(run_dir).corrections, keys, classes)
         previous = crud.last_finished_run(db, run["project_id"])
         if (
             previous is not None
@@ -624,11 +627,6 @@ class JobManager:
         return outcome.status
 
 
-_NOT_SEEDED = frozenset(
-    {"params.json", "corrections.npz", worker.LOG_NAME, worker.LOCK_NAME, "export.zip", "export-conf.zip"}
-)
-
-
 def seed_run_dir(previous: Path, run_dir: Path) -> int:
     """Hard-link a finished run's stage outputs and ``stages.json`` into a new run folder.
 
@@ -642,14 +640,14 @@ def seed_run_dir(previous: Path, run_dir: Path) -> int:
     Returns:
         Number of files linked or copied.
     """
-    if not (previous / "stages.json").is_file():
+    if not RunLayout(previous).state.is_file():
         return 0
     count = 0
     for src in sorted(previous.rglob("*")):
         rel = src.relative_to(previous)
         if not src.is_file() or src.is_symlink() or any(part.startswith(".") for part in rel.parts):
             continue
-        if len(rel.parts) == 1 and rel.name in _NOT_SEEDED:
+        if len(rel.parts) == 1 and rel.name in RunLayout.RUN_OWN_FILES:
             continue
         dst = run_dir / rel
         if dst.exists():
@@ -664,20 +662,19 @@ def seed_run_dir(previous: Path, run_dir: Path) -> int:
 
 
 def pipeline_skipped_stages(run_dir: Path) -> set[str]:
-    """Stages the pipeline recorded as skipped in ``stages.json`` (3D-CN off, no ground truth to evaluate)."""
+    """Stages the pipeline recorded as skipped (3D-CN off, no ground truth to evaluate)."""
     try:
-        state = json.loads((run_dir / "stages.json").read_text())
-    except (OSError, ValueError):
+        state = stage_status(run_dir)
+    except LeapError:
         return set()
-    return {name for name, rec in state.items() if isinstance(rec, dict) and rec.get("status") == "skipped"}
+    return {name for name, rec in state.items() if rec.get("status") == "skipped"}
 
 
 def read_metrics(run_dir: Path) -> dict[str, Any] | None:
-    """The run's ``metrics.json`` (None when the dataset has no ground truth or it is unreadable)."""
-    path = run_dir / "metrics.json"
+    """The run's stored result tables (None when the dataset has no ground truth or they are unreadable)."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        return read_metrics_json(run_dir)
+    except LeapError:
         return None
 
 
@@ -706,12 +703,8 @@ def corrections_for_run(
         cls_parts.append(np.full(c.keys.shape[0], names.index(c.class_name), dtype=np.int16))
     if not key_parts:
         return np.zeros(0, np.int64), np.zeros(0, np.int16)
-    keys = np.concatenate(key_parts)
-    classes = np.concatenate(cls_parts)
-    # Keep the LAST occurrence of each key: unique on the reversed arrays finds first-in-reverse.
-    rev_keys = keys[::-1]
-    uniq, first = np.unique(rev_keys, return_index=True)
-    return uniq.astype(np.int64), classes[::-1][first].astype(np.int16)
+    keys, classes = last_per_key(np.concatenate(key_parts), np.concatenate(cls_parts))
+    return keys, classes.astype(np.int16)
 
 
 def pipeline_voxel_size(pipeline: dict[str, Any]) -> float | None:

@@ -1,15 +1,15 @@
 """Reading a finished run for review: the final voxel grid, per-scan labels, camera geometry.
 
-The run directory layout is ``docs/ARCHITECTURE.md``'s: ``grid_smooth.npz`` (keys, probs) is the final map
-and ``grid.npz`` (keys, logp, voxel_size) the fused one; ``points/<frame_id>.npz`` holds per-point ``label``
-(final), ``conf`` and ``point_label`` (camera projection only). Arrays are read once and kept; per-class
-probability columns are extracted on demand and cached.
+The run folder's files come from :class:`leap_core.run_layout.RunLayout`: the final grid (a
+:class:`~leap_core.smoothing.SmoothedGrid`) is the map, else the fused ``VoxelGrid``;
+``points/<frame_id>.npz`` holds per-point ``label`` (final), ``conf`` and ``point_label`` (camera projection
+only). Arrays are read once and kept; per-class probability columns are extracted on demand and cached.
 """
 
 from __future__ import annotations
 
-import re
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,11 +18,11 @@ import numpy as np
 import numpy.typing as npt
 
 from app.viewer import view_logic as vl
-from leap_core.errors import DatasetError
-from leap_core.fusion import rows_in_sorted
-
-FINAL_GRID = "grid_smooth.npz"
-FUSED_GRID = "grid.npz"
+from leap_core.config import config_from_dict
+from leap_core.errors import DatasetError, LeapError
+from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
+from leap_core.run_layout import RunLayout
+from leap_core.smoothing import SmoothedGrid
 
 
 def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
@@ -36,58 +36,47 @@ def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
         raise DatasetError(path, f"unreadable run output ({exc})") from exc
 
 
-def final_grid_name(run_dir: Path, pipeline: dict[str, Any] | None = None) -> str:
-    """File name of a run's final smoothed grid: ``grid_smooth_3dcn{iterations}.npz`` when the run's
-    pipeline enabled the 3D Consistency Network, else ``grid_smooth.npz``.
-
-    Without the parameters, the last 3D-CN iteration found in the folder is taken.
-    """
-    cn = (pipeline or {}).get("consistency")
-    if isinstance(cn, dict) and "enabled" in cn:
-        if cn.get("enabled"):
-            return f"grid_smooth_3dcn{int(cn.get('iterations', 1))}.npz"
-        return FINAL_GRID
-    found = sorted(
-        (int(m.group(1)), p.name)
-        for p in run_dir.glob("grid_smooth_3dcn*.npz")
-        if (m := re.fullmatch(r"grid_smooth_3dcn(\d+)\.npz", p.name))
-    )
-    return found[-1][1] if found else FINAL_GRID
+def final_grid_path(run_dir: str | Path, pipeline: Mapping[str, Any] | None = None) -> Path:
+    """The run's final grid (:meth:`RunLayout.final_grid`) under the run's pipeline parameters, or, without
+    usable parameters, the one found in the folder (:meth:`RunLayout.final_grid_on_disk`)."""
+    layout = RunLayout(Path(run_dir))
+    if pipeline:
+        try:
+            return layout.final_grid(config_from_dict(pipeline).consistency)
+        except LeapError:
+            pass  # parameters of an older version: fall back to what the folder holds
+    return layout.final_grid_on_disk()
 
 
-@dataclass
 class ReviewGrid:
-    """The voxel map shown by the viewer.
+    """The voxel map shown by the viewer: a :class:`SmoothedGrid` with its centres and labels at hand.
 
     Attributes:
+        grid: the smoothed grid (keys, probs, voxel_size).
         keys: (V,) int64 sorted voxel keys (:func:`leap_core.fusion.voxel_keys` packing).
         centres: (V, 3) float32 voxel centres in world metres.
         probs: (V, C) float16 normalised posteriors.
         label: (V,) int16 argmax class.
         conf: (V,) float32 probability of the argmax class.
         voxel_size: voxel edge in metres.
+        num_voxels, num_classes: V, C.
         source: file the posteriors came from.
     """
 
-    keys: npt.NDArray[np.int64]
-    centres: npt.NDArray[np.float32]
-    probs: npt.NDArray[np.float16]
-    label: npt.NDArray[np.int16]
-    conf: npt.NDArray[np.float32]
-    voxel_size: float
-    source: str
-
-    def __post_init__(self) -> None:
+    def __init__(self, grid: SmoothedGrid, source: str) -> None:
+        labels = grid.voxel_labels()
+        self.grid = grid
+        self.keys = grid.keys
+        self.centres = grid.centres()
+        self.probs = grid.probs
+        self.label = labels.label
+        self.conf = labels.conf
+        self.voxel_size = float(grid.voxel_size)
+        self.num_voxels = grid.num_voxels
+        self.num_classes = grid.num_classes
+        self.source = source
         self._columns: dict[int, npt.NDArray[np.float32]] = {}
         self._lock = threading.Lock()
-
-    @property
-    def num_voxels(self) -> int:
-        return int(self.keys.shape[0])
-
-    @property
-    def num_classes(self) -> int:
-        return int(self.probs.shape[1])
 
     def class_prob(self, c: int) -> npt.NDArray[np.float32]:
         """(V,) float32 posterior of class ``c`` (cached: switching back to a class costs nothing)."""
@@ -108,30 +97,17 @@ class ReviewGrid:
     def from_arrays(
         cls, keys: npt.ArrayLike, probs: npt.ArrayLike, voxel_size: float, source: str = "<arrays>"
     ) -> ReviewGrid:
-        """Build from sorted keys and (V, C) probabilities (normalised here if they are not)."""
-        from leap_core.fusion import key_centres
-
-        k = np.asarray(keys, dtype=np.int64)
-        p = np.asarray(probs)
-        if k.ndim != 1 or p.ndim != 2 or p.shape[0] != k.shape[0]:
-            raise DatasetError(source, f"keys {k.shape} and probs {p.shape} do not match (V,) and (V, C)")
-        if k.size > 1 and not (np.diff(k) > 0).all():
-            raise DatasetError(source, "voxel keys are not sorted and unique")
-        p16 = p.astype(np.float16, copy=False)
-        label, conf = vl.argmax_confidence(p16)
-        return cls(
-            keys=k,
-            centres=key_centres(k, voxel_size),
-            probs=p16,
-            label=label,
-            conf=conf,
-            voxel_size=float(voxel_size),
-            source=source,
-        )
+        """Build from sorted keys and (V, C) probabilities (stored as float16)."""
+        try:
+            p16 = np.asarray(probs).astype(np.float16, copy=False)
+            grid = SmoothedGrid(np.asarray(keys, dtype=np.int64), p16, float(voxel_size))
+        except ValueError as exc:
+            raise DatasetError(source, str(exc)) from exc
+        return cls(grid, source)
 
     @classmethod
-    def load(cls, run_dir: str | Path, pipeline: dict[str, Any] | None = None) -> ReviewGrid:
-        """The final grid of a run (see :func:`final_grid_name`), else ``grid.npz`` (softmax of logp).
+    def load(cls, run_dir: str | Path, pipeline: Mapping[str, Any] | None = None) -> ReviewGrid:
+        """The final grid of a run (see :func:`final_grid_path`), else the fused grid (softmax of logp).
 
         Args:
             run_dir: the run folder.
@@ -140,26 +116,16 @@ class ReviewGrid:
         Raises:
             DatasetError: the run has no grid, or a grid file is malformed.
         """
-        run_dir = Path(run_dir)
-        fused_path = run_dir / FUSED_GRID
-        final_path = run_dir / final_grid_name(run_dir, pipeline)
-        voxel_size: float | None = None
-        if fused_path.is_file():
-            fused = _read_npz(fused_path, ("keys", "logp"))
-            if "voxel_size" in fused:
-                voxel_size = float(fused["voxel_size"])
+        layout = RunLayout(Path(run_dir))
+        final_path = final_grid_path(layout.run_dir, pipeline)
+        fused = VoxelGrid.load(layout.grid) if layout.grid.is_file() else None
         if final_path.is_file():
-            final = _read_npz(final_path, ("keys", "probs"))
-            if "voxel_size" in final:
-                voxel_size = float(final["voxel_size"])
-            if voxel_size is None:
-                raise DatasetError(final_path, f"no voxel_size here or in {FUSED_GRID}")
-            return cls.from_arrays(final["keys"], final["probs"], voxel_size, str(final_path))
-        if not fused_path.is_file():
-            raise DatasetError(run_dir, f"run has no voxel grid ({FINAL_GRID} or {FUSED_GRID}); has it finished?")
-        if voxel_size is None:
-            raise DatasetError(fused_path, "missing array voxel_size")
-        return cls.from_arrays(fused["keys"], vl.softmax_rows(fused["logp"]), voxel_size, str(fused_path))
+            vs = None if fused is None else fused.voxel_size
+            return cls(SmoothedGrid.load(final_path, voxel_size=vs), str(final_path))
+        if fused is None:
+            missing = f"{final_path.name} or {layout.grid.name}"
+            raise DatasetError(layout.run_dir, f"run has no voxel grid ({missing}); has it finished?")
+        return cls(SmoothedGrid.from_voxel_grid(fused), str(layout.grid))
 
 
 @dataclass(frozen=True)
@@ -214,23 +180,21 @@ class RunOutputs:
         from leap_core.datasets.kitti import KittiSequence
 
         self.run_dir = Path(run_dir)
+        self.layout = RunLayout(self.run_dir)
         self.seq = KittiSequence(dataset)
-        points_dir = self.run_dir / "points"
+        points_dir = self.layout.points_dir
         done = {p.stem for p in points_dir.glob("*.npz")} if points_dir.is_dir() else set()
         self.frame_indices: list[int] = [i for i, f in enumerate(self.seq.frame_ids) if f in done]
         """Indices of the frames that have per-point labels in this run, in sequence order."""
         self._disagreement: tuple[ReviewGrid, np.ndarray, np.ndarray] | None = None
 
     def point_arrays(self, index: int) -> dict[str, np.ndarray]:
-        fid = self.seq.frame_ids[index]
-        return _read_npz(self.run_dir / "points" / f"{fid}.npz", ("label",))
+        return _read_npz(self.layout.points(self.seq.frame_ids[index]), ("label",))
 
     def world_points(self, index: int) -> npt.NDArray[np.float32]:
-        """(N, 3) float32 world positions of scan ``index`` (pose · [x y z 1])."""
+        """(N, 3) float32 world positions of scan ``index`` (:func:`leap_core.fusion.world_points`)."""
         frame = self.seq.frame(index)
-        xyz = frame.points[:, :3].astype(np.float64)
-        pose = frame.pose
-        return (xyz @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
+        return world_points(frame.points, frame.pose).astype(np.float32)
 
     def scan_view(self, index: int, palette: npt.ArrayLike, *, overlay_radius: int = 1) -> ScanView:
         """Points with final labels, camera pose and the labelled camera image of frame ``index``."""
@@ -241,7 +205,7 @@ class RunOutputs:
         label = arrays["label"].astype(np.int16)
         if label.shape[0] != frame.points.shape[0]:
             raise DatasetError(
-                self.run_dir / "points" / f"{frame.frame_id}.npz",
+                self.layout.points(frame.frame_id),
                 f"{label.shape[0]} labels but the scan has {frame.points.shape[0]} points",
             )
         calib = frame.calib
@@ -274,8 +238,6 @@ class RunOutputs:
 
         Reads every scan once; the result is kept for this grid.
         """
-        from leap_core.fusion import voxel_keys
-
         cached = self._disagreement
         if cached is not None and cached[0] is grid:
             return cached[1], cached[2]
@@ -299,4 +261,4 @@ class RunOutputs:
         return rate, observed
 
 
-__all__ = ["FINAL_GRID", "FUSED_GRID", "ReviewGrid", "RunOutputs", "ScanView", "final_grid_name", "matrix_to_wxyz"]
+__all__ = ["ReviewGrid", "RunOutputs", "ScanView", "final_grid_path", "matrix_to_wxyz"]

@@ -15,9 +15,8 @@ from typing import Generic, Literal, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.fusion import last_per_key
 from leap_core.types import UNLABELED
-
-T_arr = TypeVar("T_arr", bound=np.generic)
 
 ColorMode = Literal["class", "confidence", "class_probability"]
 """How voxels are coloured: argmax class colour, max posterior on a colour scale, or one class's posterior."""
@@ -115,49 +114,6 @@ def blend(base: npt.NDArray[np.uint8], over: npt.ArrayLike, alpha: float) -> npt
     """``round((1-α)·base + α·over)`` per channel, uint8 (used for highlight tints)."""
     out = (1.0 - alpha) * base.astype(np.float32) + alpha * np.asarray(over, np.float32)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
-
-
-# ------------------------------------------------------------------------------------ probabilities
-def softmax_rows(logp: npt.ArrayLike, chunk: int = 1 << 20) -> npt.NDArray[np.float16]:
-    """Row-wise ``softmax(logp)`` as float16 (the viewer's storage), computed in float32 chunks.
-
-    Args:
-        logp: (V, C) log-likelihoods (any shift per row).
-
-    Returns:
-        (V, C) float16, rows summing to 1 (to float16 rounding).
-    """
-    lp = np.asarray(logp)
-    out = np.empty(lp.shape, np.float16)
-    for s in range(0, lp.shape[0], chunk):
-        block = lp[s : s + chunk].astype(np.float32)
-        block -= block.max(axis=1, keepdims=True)
-        np.exp(block, out=block)
-        block /= block.sum(axis=1, keepdims=True)
-        out[s : s + chunk] = block
-    return out
-
-
-def argmax_confidence(
-    probs: npt.ArrayLike, chunk: int = 1 << 20
-) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
-    """Argmax class (ties: lowest index) and its probability per row.
-
-    Args:
-        probs: (V, C) class probabilities.
-
-    Returns:
-        ``(label (V,) int16, conf (V,) float32)`` with ``conf = max_i probs[:, i]``.
-    """
-    p = np.asarray(probs)
-    label = np.empty(p.shape[0], np.int16)
-    conf = np.empty(p.shape[0], np.float32)
-    for s in range(0, p.shape[0], chunk):
-        block = p[s : s + chunk]
-        idx = block.argmax(axis=1)
-        label[s : s + chunk] = idx
-        conf[s : s + chunk] = np.take_along_axis(block, idx[:, None], axis=1)[:, 0]
-    return label, conf
 
 
 # ------------------------------------------------------------------------------------------ the view
@@ -287,22 +243,6 @@ def render_view(
 
 
 # ------------------------------------------------------------------------------------- corrections
-def last_per_index(
-    index: npt.NDArray[np.int64], values: npt.NDArray[T_arr]
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[T_arr]]:
-    """Deduplicate ``index`` keeping, for each distinct index, the value that comes last.
-
-    numpy does not promise which write wins when a fancy assignment repeats an index, so callers that
-    mean "the latest wins" deduplicate first.
-
-    Returns:
-        ``(unique indices (sorted), their last values)``.
-    """
-    rev_idx = index[::-1]
-    uniq, first_in_rev = np.unique(rev_idx, return_index=True)
-    return uniq, values[::-1][first_in_rev]
-
-
 def apply_corrections(
     keys: npt.NDArray[np.int64],
     label: npt.NDArray[np.int16],
@@ -335,7 +275,7 @@ def apply_corrections(
         return label, conf, corrected
     pos = np.minimum(np.searchsorted(keys, ck), keys.shape[0] - 1)
     hit = keys[pos] == ck
-    rows, cls = last_per_index(pos[hit], cl[hit])
+    rows, cls = last_per_key(pos[hit], cl[hit])
     label[rows] = cls
     conf[rows] = 1.0
     corrected[rows] = True
@@ -594,7 +534,7 @@ def draw_label_overlay(
     flat, src = np.concatenate(pix), np.concatenate(who)
     # Per pixel keep the point painted last (the nearest one when depth is given).
     order = np.argsort(src, kind="stable")
-    flat, src = last_per_index(flat[order], src[order])
+    flat, src = last_per_key(flat[order], src[order])
     colour = np.zeros((h * w, 3), np.uint8)
     painted = np.zeros(h * w, bool)
     colour[flat] = cols[src]
@@ -663,13 +603,11 @@ __all__ = [
     "Region",
     "ViewState",
     "apply_corrections",
-    "argmax_confidence",
     "blend",
     "class_colors",
     "decimate_indices",
     "disagreement_rate",
     "draw_label_overlay",
-    "last_per_index",
     "lowest_share",
     "make_lut",
     "orbit_view",
@@ -679,7 +617,6 @@ __all__ = [
     "render_view",
     "scalar_colors",
     "select_in_rect",
-    "softmax_rows",
     "view_colors",
     "view_score",
     "visible_mask",

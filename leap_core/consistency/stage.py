@@ -32,7 +32,7 @@ from leap_core.consistency.train import (
 )
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError, ModelLoadError
-from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys
+from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
 from leap_core.types import UNLABELED
 
 FUSE_CHUNK_POINTS = 2_000_000
@@ -43,28 +43,6 @@ stays bounded on long sequences; between calls the grid is stored (float16, clip
 def checkpoint_path(work_dir: str | Path, iteration: int) -> Path:
     """``work_dir/3dcn_iter{iteration}.pt``."""
     return Path(work_dir) / f"3dcn_iter{iteration}.pt"
-
-
-def world_points(points: npt.NDArray[np.float32], pose: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """(N, 3) world coordinates ``R · p + t`` of a scan's LiDAR-frame points, in float64."""
-    pose = np.asarray(pose, dtype=np.float64)
-    return points[:, :3].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
-
-
-def point_labels_from_grid(
-    keys: npt.NDArray[np.int64],
-    grid: VoxelGrid,
-    voxel_labels: npt.NDArray[np.int16],
-    voxel_conf: npt.NDArray[np.float32],
-) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
-    """Each point takes its voxel's label and confidence; ``UNLABELED`` and 0 where the voxel is unknown."""
-    rows = grid.lookup(keys)
-    hit = rows >= 0
-    labels = np.full(keys.shape[0], UNLABELED, np.int16)
-    conf = np.zeros(keys.shape[0], np.float32)
-    labels[hit] = voxel_labels[rows[hit]]
-    conf[hit] = voxel_conf[rows[hit]]
-    return labels, conf
 
 
 def _fingerprint(cfg: ConsistencyConfig, num_classes: int, frames: range, targets: list[np.ndarray]) -> str:
@@ -157,14 +135,14 @@ def run_3dcn_iteration(
         return fused
 
     # 1. reliable labels
-    vox_lab, vox_conf = smoothed.labels_and_confidence()
+    voxel_labels = smoothed.voxel_labels()
     labels: list[np.ndarray] = []
     confs: list[np.ndarray] = []
     supports: list[np.ndarray] = []
     for i in frames:
         frame = seq.frame(i)
         keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
-        lab, conf = point_labels_from_grid(keys, smoothed, vox_lab, vox_conf)
+        lab, conf = voxel_labels.at(keys)
         labels.append(lab)
         confs.append(conf)
         if views is not None:
@@ -369,8 +347,6 @@ __all__ = [
     "FUSE_CHUNK_POINTS",
     "checkpoint_path",
     "fuse_back",
-    "point_labels_from_grid",
     "run_3dcn_iteration",
     "voxel_mean_log_probs",
-    "world_points",
 ]

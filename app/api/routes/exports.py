@@ -16,6 +16,7 @@ from app.core.config import Settings
 from app.core.errors import Conflict, NotFound
 from app.core.security import resolve_in_roots
 from leap_core.io_utils import atomic_write, atomic_write_bytes
+from leap_core.run_layout import RunLayout
 
 router = APIRouter(prefix="/runs/{run_id}/export", tags=["exports"])
 
@@ -23,7 +24,7 @@ _zip_lock = threading.Lock()
 
 
 def _export_dir(run: dict[str, Any]) -> Path:
-    folder = Path(run["run_dir"]) / "export"
+    folder = RunLayout(Path(run["run_dir"])).export_dir
     if run["status"] != "done":
         raise Conflict(f"Run {run['id']} is {run['status']}; only finished runs have exports")
     if not folder.is_dir():
@@ -37,12 +38,13 @@ def _files(folder: Path, include_confidence: bool) -> list[Path]:
 
 
 def build_zip(run: dict[str, Any], include_confidence: bool) -> Path:
-    """``run_dir/export[-conf].zip`` with ``predictions/<frame>.label`` entries (built once, atomically).
+    """The run's export zip (:meth:`RunLayout.export_zip`) with ``predictions/<frame>.label`` entries (built
+    once, atomically).
 
     A finished run's export never changes, so the zip is cached beside it.
     """
     folder = _export_dir(run)
-    target = Path(run["run_dir"]) / ("export-conf.zip" if include_confidence else "export.zip")
+    target = RunLayout(Path(run["run_dir"])).export_zip(include_confidence)
     with _zip_lock:
         if not target.is_file():
             with (

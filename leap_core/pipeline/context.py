@@ -1,0 +1,247 @@
+"""What every stage works with: the stage record type, the run context, fingerprint hashing helpers and the
+readers of per-frame files that several stages share."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.config import PipelineConfig
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.errors import DatasetError
+from leap_core.io_utils import atomic_write_json
+from leap_core.labelers import make_labeler
+from leap_core.projection import Painted
+from leap_core.run_layout import RunLayout
+from leap_core.runtime import Runtime
+from leap_core.schema import Schema
+
+if TYPE_CHECKING:
+    from leap_core.labelers.base import Labeler
+
+ProgressCallback = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``; may raise :class:`~leap_core.errors.Cancelled`."""
+
+StageFn = Callable[["Ctx"], dict[str, Any]]
+"""A stage: computes its outputs into the run folder; returns extra fields for its ``stages.json`` record
+(``{"status": "skipped", "note": ...}`` when it had nothing to do)."""
+
+
+def _no_files(_layout: RunLayout, _cfg: PipelineConfig) -> tuple[Path, ...]:
+    return ()
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """Where a per-frame stage writes: ``<run_dir>/<folder>/<frame_id><suffix>`` for every suffix."""
+
+    folder: str
+    """A :class:`~leap_core.run_layout.RunLayout` per-frame folder name."""
+    suffixes: tuple[str, ...] = (".npz",)
+    """One file per suffix and frame; a frame is done when all exist."""
+
+
+@dataclass(frozen=True)
+class StageInfo:
+    """One stage of the pipeline: what the app shows, what it runs, what it reads and what it writes.
+
+    The runner derives everything from these records: the order (the table's), the fingerprint (config
+    sections read + upstream fingerprints + other inputs), when a stage is current (fingerprint matches and
+    outputs exist), what is cleared when its inputs change, and frame-by-frame resumption.
+    """
+
+    name: str
+    """Key in ``stages.json``, progress messages and the API."""
+    label: str
+    """Short human name ("Voxel fusion")."""
+    description: str
+    """One line: what the stage computes and writes."""
+    per_frame: bool
+    """True when the stage works (and resumes) frame by frame (then :attr:`frame_files` is set)."""
+    run: StageFn = field(repr=False, compare=False)
+    """The stage function."""
+    reads: tuple[str, ...] = ()
+    """:class:`~leap_core.config.PipelineConfig` sections (top-level keys of ``config_to_dict``) hashed into
+    the fingerprint."""
+    upstream: tuple[str, ...] = ()
+    """Stages whose outputs this one reads; their fingerprints are part of this one's (all earlier in the
+    table)."""
+    frame_files: FrameFiles | None = None
+    """Per-frame stages: their files (the folder is removed when the fingerprint changes)."""
+    outputs: Callable[[RunLayout, PipelineConfig], tuple[Path, ...]] = field(default=_no_files, repr=False,
+                                                                            compare=False)
+    """Whole-run stages: the files a finished run of the stage has (a stage recorded as skipped has none)."""
+    stale: Callable[[RunLayout], Iterable[Path]] | None = field(default=None, repr=False, compare=False)
+    """Files removed when the fingerprint changes; None = :attr:`outputs` (for the current config)."""
+    inputs: Callable[[Ctx], Any] | None = field(default=None, repr=False, compare=False)
+    """Other fingerprint parts (JSON-able): labeler identity, dataset identity, frames, corrections, schema
+    parts."""
+    enabled: Callable[[PipelineConfig], bool] | None = field(default=None, repr=False, compare=False)
+    """None = always runs; else the stage is recorded as skipped when this returns False (and its
+    fingerprint then ignores :attr:`reads` and :attr:`inputs`)."""
+
+    def __post_init__(self) -> None:
+        if self.per_frame != (self.frame_files is not None):
+            raise ValueError(f"stage {self.name}: per_frame and frame_files disagree")
+
+    def is_enabled(self, cfg: PipelineConfig) -> bool:
+        return self.enabled is None or self.enabled(cfg)
+
+
+# ------------------------------------------------------------------------------------------ context
+@dataclass
+class Ctx:
+    """One :func:`~leap_core.pipeline.run_pipeline` call: inputs, run folder, records, progress."""
+
+    seq: KittiSequence
+    schema: Schema
+    cfg: PipelineConfig
+    layout: RunLayout
+    frames: range
+    runtime: Runtime | None
+    progress: ProgressCallback | None
+    table: Mapping[str, StageInfo]
+    state: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """``stages.json`` as read at the start, updated as stages run."""
+    fp: dict[str, str] = field(default_factory=dict)
+    """Each stage's fingerprint for this call."""
+    _labeler: Labeler | None = None
+
+    @property
+    def cache_dir(self) -> Path | None:
+        """The shared 2D cache folder (:attr:`Runtime.cache_dir`), if any."""
+        return None if self.runtime is None else self.runtime.cache_dir
+
+    def fid(self, index: int) -> str:
+        """Frame id (file stem) of frame ``index``."""
+        return self.seq.frame_ids[index]
+
+    def tick(self, stage: str, done: int, total: int) -> None:
+        if self.progress is not None:
+            self.progress(stage, done, total)
+
+    def save_state(self) -> None:
+        atomic_write_json(self.layout.state, self.state)
+
+    def labeler(self) -> Labeler:
+        if self._labeler is None:
+            self._labeler = make_labeler(self.cfg, self.runtime)
+        return self._labeler
+
+    def missing_frames(self, stage: str) -> list[int]:
+        """Frames (in order) that lack one of the per-frame stage's files."""
+        files = self.table[stage].frame_files
+        if files is None:
+            raise ValueError(f"stage {stage} is not per-frame")
+        return [
+            i for i in self.frames
+            if not all(self.layout.frame_file(files.folder, self.fid(i), s).is_file() for s in files.suffixes)
+        ]
+
+    def each_frame(self, stage: str, work: Callable[[int], None]) -> dict[str, Any]:
+        """Run ``work(i)`` on the frames that lack the stage's files, reporting progress over all frames."""
+        todo = set(self.missing_frames(stage))
+        total = len(self.frames)
+        done = total - len(todo)
+        self.tick(stage, done, total)
+        for i in self.frames:
+            if i not in todo:
+                continue
+            work(i)
+            done += 1
+            self.tick(stage, done, total)
+        return {"frames_done": total, "frames_computed": len(todo)}
+
+
+def read_state(layout: RunLayout) -> dict[str, dict[str, Any]]:
+    """``stages.json`` ({} when the run has none)."""
+    path = layout.state
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable stage record ({exc}); delete it to recompute the run") from exc
+    if not isinstance(data, dict):
+        raise DatasetError(path, "stage record must be a JSON object")
+    return data
+
+
+# ------------------------------------------------------------------------------------- fingerprints
+def hash_json(obj: Any) -> str:
+    """24 hex digits of the SHA-256 of ``obj``'s sorted-key JSON."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:24]
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def dataset_identity(seq: KittiSequence) -> str:
+    """Hash of a sequence's location, calibration, poses and the size + mtime of every per-frame file."""
+    root = seq.root.resolve()
+    parts: list[Any] = [str(root), file_digest(root / "calib.txt"), file_digest(root / "poses.txt")]
+    folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance"]
+    for name in folders:
+        folder = root / name
+        if not folder.is_dir():
+            parts.append([name, None])
+            continue
+        with os.scandir(folder) as it:
+            entries = sorted((e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in it if e.is_file())
+        parts.append([name, entries])
+    return hash_json(parts)
+
+
+def frame_input_digest(seq: KittiSequence, index: int) -> str:
+    """Content digest of what a 2D labeler reads for one frame (its image and 2D ground truth, if any)."""
+    h = hashlib.sha256(f"{index}|{seq.frame_ids[index]}".encode())
+    fid = seq.frame_ids[index]
+    paths = [seq.image_path(index), seq.root / "gt2d" / "semantic" / f"{fid}.png",
+             seq.root / "gt2d" / "instance" / f"{fid}.png"]
+    for p in paths:
+        if p is not None and p.is_file():
+            h.update(p.name.encode())
+            h.update(file_digest(p).encode())
+    return h.hexdigest()[:32]
+
+
+# ------------------------------------------------------------------------------------- shared readers
+def load_observation(path: Path) -> tuple[Painted, int, npt.NDArray[np.bool_]]:
+    """An ``observations/`` file: the painted points, the scan's point count and its in-image mask (N,)."""
+    painted = Painted.load(path)
+    try:
+        with np.load(path) as z:
+            n = int(z["n_points"])
+            in_view = np.unpackbits(z["in_view"], count=n).astype(bool)
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable observation file ({exc})") from exc
+    return painted, n, in_view
+
+
+__all__ = [
+    "Ctx",
+    "FrameFiles",
+    "ProgressCallback",
+    "StageFn",
+    "StageInfo",
+    "dataset_identity",
+    "file_digest",
+    "frame_input_digest",
+    "hash_json",
+    "load_observation",
+    "read_state",
+]

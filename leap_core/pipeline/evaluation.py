@@ -1,0 +1,162 @@
+"""The evaluate stage and the result tables of a run (``metrics.json``).
+
+Rows: ``point`` (projection only), ``voxel`` (the smoothed fused grid) and, with the 3D-CN, ``+3D-CN x{i}``
+per round. Protocols (:data:`PROTOCOLS`): ``camera`` (points inside the image, unlabeled predictions
+ignored: the paper's) and ``all`` (every point, unlabeled = miss).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from leap_core.errors import DatasetError
+from leap_core.fusion import voxel_keys, world_points
+from leap_core.io_utils import atomic_write_json
+from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
+from leap_core.pipeline.context import load_observation
+from leap_core.run_layout import RunLayout
+from leap_core.smoothing import SmoothedGrid
+from leap_core.types import UNLABELED
+
+if TYPE_CHECKING:
+    from leap_core.pipeline.context import Ctx
+
+ROW_POINT = "point"
+ROW_VOXEL = "voxel"
+PROTOCOLS: dict[str, str] = {
+    "camera": "camera view: points inside the image, unlabeled predictions ignored (the paper's protocol)",
+    "all": "all points: every point of every scan, an unlabeled prediction counts as a miss",
+}
+"""metrics.json protocol keys and what they measure."""
+
+
+def cn_row(iteration: int) -> str:
+    """Result-table row name of the 3D-CN after ``iteration`` rounds ("+3D-CN x1")."""
+    return f"+3D-CN x{iteration}"
+
+
+def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
+    """Point / voxel / +3D-CN rows against ground truth, both protocols → ``metrics.json``.
+
+    Skipped (status "skipped") when a processed frame has no ground-truth ``.label`` file.
+    """
+    seq, schema, lay = ctx.seq, ctx.schema, ctx.layout
+    if not all(seq.label_path(i).is_file() for i in ctx.frames):
+        return {"status": "skipped", "note": "no ground truth"}
+    c = schema.num_classes
+    # None: read from points/ (the projection-only labels, and the final grid's labels that label_points
+    # already looked up); a grid: looked up here (the voxel row when the 3D-CN came after it).
+    rows: dict[str, SmoothedGrid | None] = {ROW_POINT: None}
+    cn = ctx.cfg.consistency
+    if cn.enabled:
+        rows[ROW_VOXEL] = SmoothedGrid.load(lay.grid_smooth)
+        for it in range(1, cn.iterations + 1):
+            rows[cn_row(it)] = None if it == cn.iterations else SmoothedGrid.load(lay.grid_smooth_3dcn(it))
+        final_row = cn_row(cn.iterations)
+    else:
+        rows[ROW_VOXEL] = None
+        final_row = ROW_VOXEL
+    need_keys = any(v is not None for v in rows.values())
+    conf = {p: {r: np.zeros((c, c + 1), np.int64) for r in rows} for p in PROTOCOLS}
+    n_points = n_view = 0
+    labeled_any = dict.fromkeys(rows, 0)
+    vs = ctx.cfg.fusion.voxel_size
+    total = len(ctx.frames)
+    for k, i in enumerate(ctx.frames):
+        ctx.tick("evaluate", k, total)
+        frame = seq.frame(i)
+        pts = frame.points
+        gt = schema.map_gt(frame.labels)
+        _, n, in_view = load_observation(lay.observation(ctx.fid(i)))
+        with np.load(lay.points(ctx.fid(i))) as z:
+            stored = {ROW_POINT: z["point_label"], final_row: z["label"]}
+        if n != pts.shape[0] or stored[ROW_POINT].shape[0] != n:
+            raise DatasetError(seq.scan_path(i), f"{pts.shape[0]} points but the run's outputs have {n}")
+        keys = voxel_keys(world_points(pts, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
+        n_points += n
+        n_view += int(in_view.sum())
+        for name, grid in rows.items():
+            pred = stored[name] if grid is None else grid.labels_at(keys)[0]
+            labeled_any[name] += int((pred != UNLABELED).sum())
+            conf["all"][name] += confusion_matrix(gt, pred, c)
+            conf["camera"][name] += confusion_matrix(gt[in_view], pred[in_view], c)
+    ctx.tick("evaluate", total, total)
+    out: dict[str, Any] = {
+        "class_names": schema.names,
+        "categories": schema.categories(),
+        "rows": list(rows),
+        "protocols": dict(PROTOCOLS),
+        "frames": [ctx.frames.start, ctx.frames.stop, ctx.frames.step],
+        "n_points": n_points,
+        "n_points_in_view": n_view,
+        # Share of ALL points (ground truth or not) that got a label, per row.
+        "labeled_points": {r: labeled_any[r] for r in rows},
+        "labeler": ctx.cfg.labeler,
+    }
+    for p in PROTOCOLS:
+        out[p] = {
+            r: metrics_from_confusion(conf[p][r], schema.names, schema.categories(),
+                                      ignore_unlabeled_pred=(p == "camera")).to_dict()
+            for r in rows
+        }
+    pl = labeled_any[ROW_POINT]
+    out["coverage_ratio"] = {r: (labeled_any[r] / pl if pl else None) for r in rows}
+    atomic_write_json(lay.metrics, out)
+    return {}
+
+
+def read_metrics_json(run_dir: str | Path) -> dict[str, Any] | None:
+    """The run's ``metrics.json`` as written (None when the run has none)."""
+    path = RunLayout(Path(run_dir)).metrics
+    if not path.is_file():
+        return None
+    try:
+        data: dict[str, Any] = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable metrics ({exc})") from exc
+    return data
+
+
+def load_metrics(run_dir: str | Path) -> dict[str, dict[str, Metrics]] | None:
+    """``{protocol: {row: Metrics}}`` rebuilt from ``metrics.json`` (None when the run has none)."""
+    path = RunLayout(Path(run_dir)).metrics
+    data = read_metrics_json(run_dir)
+    if data is None:
+        return None
+    try:
+        names, cats = data["class_names"], data["categories"]
+        return {
+            p: {
+                r: metrics_from_confusion(np.asarray(data[p][r]["confusion"], np.int64), names, cats,
+                                          ignore_unlabeled_pred=(p == "camera"))
+                for r in data["rows"]
+            }
+            for p in PROTOCOLS
+        }
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(path, f"unreadable metrics ({exc})") from exc
+
+
+def result_tables(run_dir: str | Path) -> str | None:
+    """The run's result tables as text (one per protocol), or None without metrics."""
+    tables = load_metrics(run_dir)
+    data = read_metrics_json(run_dir)
+    if tables is None or data is None:
+        return None
+    labeler = data.get("labeler", "?")
+    parts = []
+    for p, rows in tables.items():
+        names = next(iter(rows.values())).class_names
+        parts.append(f"{PROTOCOLS[p]}; 2D labels: {labeler}\n{format_table(rows, names)}")
+    ratio = data.get("coverage_ratio", {}).get(ROW_VOXEL)
+    if ratio:
+        parts.append(f"voxel labels cover {ratio:.2f}x as many points as projection alone")
+    return "\n\n".join(parts)
+
+
+__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "cn_row", "load_metrics", "read_metrics_json",
+           "result_tables", "stage_evaluate"]

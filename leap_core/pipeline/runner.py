@@ -1,0 +1,245 @@
+"""Running the stage table on a run folder: fingerprints, the stage records in ``stages.json``, skipping,
+clearing and resuming, all derived from :data:`~leap_core.pipeline.stages.STAGE_TABLE`."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from leap_core.config import PipelineConfig, config_to_dict
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.errors import Cancelled, LeapError
+from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_json, read_state
+from leap_core.pipeline.evaluation import read_metrics_json
+from leap_core.pipeline.stages import STAGE_TABLE, STAGES
+from leap_core.run_layout import RunLayout
+from leap_core.runtime import Runtime
+from leap_core.schema import Schema
+
+PIPELINE_VERSION = 1
+"""Bumped when a code change alters a stage's output for unchanged inputs (part of every fingerprint)."""
+
+
+@dataclass(frozen=True)
+class StageReport:
+    """What one stage did in one :func:`run_pipeline` call."""
+
+    name: str
+    ran: bool
+    """False when the stage was skipped (cached, or disabled / nothing to do)."""
+    status: str
+    """"done" or "skipped" (3dcn off, evaluate without ground truth)."""
+    seconds: float
+    """Wall time spent in this call (≈ 0 when skipped)."""
+    frames_computed: int = 0
+    """Per-frame stages: frames computed in this call (the rest came from earlier runs or the 2D cache)."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Outcome of :func:`run_pipeline`."""
+
+    run_dir: Path
+    stages: dict[str, StageReport]
+    """Per stage, in :data:`STAGES` order (only stages up to ``until``)."""
+    frames: tuple[int, ...]
+    """Frame indices processed."""
+    export_dir: Path | None
+    """Folder of the ``.label`` / ``.conf`` files, when the export stage ran or was cached."""
+    metrics: dict[str, Any] | None
+    """Content of ``metrics.json`` (None without ground truth)."""
+
+    @property
+    def ran(self) -> list[str]:
+        return [n for n, r in self.stages.items() if r.ran]
+
+    @property
+    def skipped(self) -> list[str]:
+        return [n for n, r in self.stages.items() if not r.ran]
+
+
+def stage_status(run_dir: str | Path) -> dict[str, dict[str, Any]]:
+    """Each stage's record from ``stages.json`` (``{"status": "pending"}`` for stages never started).
+
+    Statuses: ``pending``, ``running`` (also what a killed run leaves behind), ``cancelled``, ``failed``
+    (with ``error``), ``done``, ``skipped`` (3dcn off, evaluate without ground truth). Records also carry
+    ``fingerprint``, ``seconds`` and, for per-frame stages, ``frames_done``.
+    """
+    state = read_state(RunLayout(Path(run_dir)))
+    return {name: dict(state.get(name, {"status": "pending"})) for name in STAGES}
+
+
+# ------------------------------------------------------------------------------------- fingerprints
+def _fingerprints(ctx: Ctx) -> dict[str, str]:
+    """Every stage's fingerprint: the config sections it reads, its upstream stages' fingerprints and its
+    other inputs (cheap: nothing the stages wrote is read)."""
+    sections = config_to_dict(ctx.cfg)
+    fp: dict[str, str] = {}
+    for stage in STAGE_TABLE:
+        parts: dict[str, Any] = {"v": PIPELINE_VERSION, "C": ctx.schema.num_classes, "stage": stage.name,
+                                 "up": [fp[u] for u in stage.upstream]}
+        if stage.is_enabled(ctx.cfg):
+            parts["config"] = {s: sections[s] for s in stage.reads}
+            if stage.inputs is not None:
+                parts["inputs"] = stage.inputs(ctx)
+        else:
+            parts["enabled"] = False
+        fp[stage.name] = hash_json(parts)
+    return fp
+
+
+# ---------------------------------------------------------------------------------- stage machinery
+def _is_current(ctx: Ctx, stage: StageInfo) -> bool:
+    rec = ctx.state.get(stage.name)
+    if not rec or rec.get("fingerprint") != ctx.fp[stage.name]:
+        return False
+    if rec.get("status") not in ("done", "skipped"):
+        return False
+    if stage.frame_files is not None:
+        return not ctx.missing_frames(stage.name)
+    if rec["status"] == "skipped":
+        return True  # a disabled stage, or one with nothing to do, wrote nothing
+    return all(p.is_file() for p in stage.outputs(ctx.layout, ctx.cfg))
+
+
+def _clear(ctx: Ctx, stage: StageInfo) -> None:
+    """Remove a stage's outputs (its fingerprint changed, so they belong to other settings)."""
+    if stage.frame_files is not None:
+        shutil.rmtree(ctx.layout.folder(stage.frame_files.folder), ignore_errors=True)
+        return
+    stale = stage.outputs(ctx.layout, ctx.cfg) if stage.stale is None else stage.stale(ctx.layout)
+    for path in stale:
+        path.unlink(missing_ok=True)
+
+
+def _run_stage(ctx: Ctx, stage: StageInfo) -> StageReport:
+    name = stage.name
+    if _is_current(ctx, stage):
+        n = len(ctx.frames)
+        ctx.tick(name, n, n)
+        return StageReport(name, False, ctx.state[name]["status"], 0.0)
+    rec = ctx.state.get(name)
+    if not rec or rec.get("fingerprint") != ctx.fp[name]:
+        _clear(ctx, stage)
+    elif stage.frame_files is not None:
+        # Temp files a killed run left behind (atomic writes that never reached their rename).
+        for tmp in ctx.layout.folder(stage.frame_files.folder).glob(".*.tmp"):
+            tmp.unlink(missing_ok=True)
+    ctx.state[name] = {"status": "running", "fingerprint": ctx.fp[name], "started": time.time()}
+    ctx.save_state()
+    t0 = time.perf_counter()
+    try:
+        extra = stage.run(ctx) if stage.is_enabled(ctx.cfg) else {"status": "skipped",
+                                                                   "note": f"{stage.label} disabled"}
+    except (Cancelled, KeyboardInterrupt):
+        ctx.state[name].update(status="cancelled", seconds=time.perf_counter() - t0)
+        ctx.save_state()
+        raise
+    except BaseException as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        ctx.state[name].update(status="failed", error=message, seconds=time.perf_counter() - t0)
+        ctx.save_state()
+        raise
+    seconds = time.perf_counter() - t0
+    status = extra.pop("status", "done")
+    if status == "skipped":
+        ctx.tick(name, len(ctx.frames), len(ctx.frames))
+    ctx.state[name].update(status=status, seconds=round(seconds, 3), finished=time.time(), **extra)
+    ctx.save_state()
+    # A disabled stage (3dcn off, evaluate without ground truth) computed nothing: report it as not run.
+    return StageReport(name, status != "skipped", status, seconds, int(extra.get("frames_computed", 0)))
+
+
+# ---------------------------------------------------------------------------------------- public API
+def _frames(seq: KittiSequence, frames: range | None) -> range:
+    n = len(seq)
+    if frames is None:
+        return range(n)
+    if not isinstance(frames, range):
+        raise LeapError(f"frames must be a range, got {type(frames).__name__}")
+    if len(frames) == 0:
+        raise LeapError(f"frames {frames.start}:{frames.stop} select no frame (the sequence has {n})")
+    if frames.step <= 0 or frames.start < 0 or frames[-1] >= n:
+        raise LeapError(
+            f"frames {frames.start}:{frames.stop} out of range: the sequence has frames 0..{n - 1}"
+        )
+    return frames
+
+
+def _context(
+    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, progress: ProgressCallback | None,
+    frames: range | None, runtime: Runtime | None,
+) -> Ctx:
+    seq = KittiSequence(dataset)
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    layout = RunLayout(run_dir)
+    ctx = Ctx(seq, schema, config, layout, _frames(seq, frames), runtime, progress,
+              {s.name: s for s in STAGE_TABLE})
+    ctx.state = read_state(layout)
+    ctx.fp = _fingerprints(ctx)
+    return ctx
+
+
+def plan_stages(
+    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *, frames: range | None = None,
+    runtime: Runtime | None = None,
+) -> dict[str, bool]:
+    """Which stages :func:`run_pipeline` would compute (True) or skip as cached (False); writes nothing
+    but the run folder itself."""
+    ctx = _context(dataset, schema, config, run_dir, None, frames, runtime)
+    return {s.name: not _is_current(ctx, s) for s in STAGE_TABLE}
+
+
+def run_pipeline(
+    dataset: Path,
+    schema: Schema,
+    config: PipelineConfig,
+    run_dir: Path,
+    *,
+    progress: ProgressCallback | None = None,
+    frames: range | None = None,
+    runtime: Runtime | None = None,
+    until: str | None = None,
+) -> RunResult:
+    """Run (or resume) every stage on ``run_dir``, skipping stages whose cached outputs are current.
+
+    Args:
+        dataset: a KITTI-layout sequence folder (``.../sequences/NN``).
+        schema: the class schema.
+        config: pipeline parameters.
+        run_dir: the run folder (created if missing); see :mod:`leap_core.run_layout` for its layout.
+        progress: ``progress(stage, done, total)`` after each unit of work; raising
+            :class:`~leap_core.errors.Cancelled` stops the run cleanly (finished frames are kept).
+        frames: the frames to process (default: all).
+        runtime: where the run executes: models folder, shared 2D cache folder (``cache_dir``, reused
+            across runs of a project), device. None = defaults, no shared cache.
+        until: stop after this stage (e.g. "smooth" to only build the grid).
+
+    Returns:
+        :class:`RunResult` with per-stage reports, the export folder and the metrics (when GT exists).
+
+    Raises:
+        LeapError: bad dataset, schema/config or run folder (one line, naming the file or field).
+        Cancelled: raised by ``progress``; the stage is recorded as "cancelled" and a rerun resumes.
+    """
+    if until is not None and until not in STAGES:
+        raise LeapError(f"until: unknown stage {until!r} (stages: {', '.join(STAGES)})")
+    ctx = _context(Path(dataset), schema, config, Path(run_dir), progress, frames, runtime)
+    last = STAGES.index(until) if until else len(STAGES) - 1
+    reports: dict[str, StageReport] = {}
+    for stage in STAGE_TABLE[: last + 1]:
+        reports[stage.name] = _run_stage(ctx, stage)
+    metrics = None
+    if "evaluate" in reports and reports["evaluate"].status == "done":
+        metrics = read_metrics_json(ctx.layout.run_dir)
+    export_dir = ctx.layout.export_dir if "export" in reports else None
+    return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
+
+
+__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "run_pipeline", "stage_status"]

@@ -1,0 +1,223 @@
+"""Every path of a run folder, in one place: the pipeline writes and the app, the viewer and the exports read
+through :class:`RunLayout`, so no other module spells a run-folder file name.
+
+::
+
+    <run_dir>/
+      stages.json                 stage records (status, fingerprint, seconds, ...)
+      labels2d/<frame_id>.npz     the 2D labeler's SoftMasks per frame
+      observations/<frame_id>.npz projection + painting per frame
+      corrections.npz             manual corrections (keys (K,) int64, class_idx (K,)), fused into grid.npz
+      grid.npz                    fused VoxelGrid (keys, logp, voxel_size)
+      grid_smooth.npz             SmoothedGrid (keys, probs float16, voxel_size) after kNN smoothing
+      grid_3dcn{i}.npz            3D-CN round i: fused grid + network evidence
+      grid_smooth_3dcn{i}.npz     ... smoothed (the final grid when the 3D-CN is on)
+      3dcn/3dcn_iter{i}.pt        3D-CN checkpoints
+      points/<frame_id>.npz       label, conf, point_label per point
+      metrics.json                result tables
+      export/<frame_id>.label     raw export ids, instance 0
+      export/<frame_id>.conf      float32 per-point confidence
+      params.json, run.log, .lock, export.zip, export-conf.zip    the app's files of this run
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.errors import DatasetError
+from leap_core.io_utils import atomic_save_npz
+
+
+class ConsistencySwitch(Protocol):
+    """What the final-grid rule reads of :class:`~leap_core.consistency.config.ConsistencyConfig`."""
+
+    @property
+    def enabled(self) -> bool: ...
+
+    @property
+    def iterations(self) -> int: ...
+
+
+_CN_GRID = re.compile(r"grid(_smooth)?_3dcn(\d+)\.npz")
+
+
+@dataclass(frozen=True)
+class RunLayout:
+    """The paths of one run folder (nothing is created or read here, except :meth:`final_grid_on_disk`)."""
+
+    run_dir: Path
+    """The run folder."""
+
+    STATE: ClassVar[str] = "stages.json"
+    LABELS2D: ClassVar[str] = "labels2d"
+    OBSERVATIONS: ClassVar[str] = "observations"
+    POINTS: ClassVar[str] = "points"
+    EXPORT: ClassVar[str] = "export"
+    CN_DIR: ClassVar[str] = "3dcn"
+    GRID: ClassVar[str] = "grid.npz"
+    GRID_SMOOTH: ClassVar[str] = "grid_smooth.npz"
+    METRICS: ClassVar[str] = "metrics.json"
+    CORRECTIONS: ClassVar[str] = "corrections.npz"
+    PARAMS: ClassVar[str] = "params.json"
+    LOG: ClassVar[str] = "run.log"
+    LOCK: ClassVar[str] = ".lock"
+    EXPORT_ZIP: ClassVar[str] = "export.zip"
+    EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
+    RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
+        {PARAMS, CORRECTIONS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP}
+    )
+    """Top-level files that belong to one run only (never carried over into a later run's folder)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "run_dir", Path(self.run_dir))
+
+    # ------------------------------------------------------------------------------- whole-run files
+    def _file(self, name: str) -> Path:
+        return self.run_dir / name
+
+    @property
+    def state(self) -> Path:
+        return self._file(self.STATE)
+
+    @property
+    def grid(self) -> Path:
+        """The fused grid."""
+        return self._file(self.GRID)
+
+    @property
+    def grid_smooth(self) -> Path:
+        """The kNN-smoothed fused grid (the final grid without the 3D-CN)."""
+        return self._file(self.GRID_SMOOTH)
+
+    def grid_3dcn(self, iteration: int) -> Path:
+        """The fused grid after 3D-CN round ``iteration`` (1-based)."""
+        return self._file(f"grid_3dcn{iteration}.npz")
+
+    def grid_smooth_3dcn(self, iteration: int) -> Path:
+        """The smoothed grid after 3D-CN round ``iteration`` (1-based)."""
+        return self._file(f"grid_smooth_3dcn{iteration}.npz")
+
+    def cn_grids(self) -> list[Path]:
+        """Every 3D-CN grid file present, of any round (fused and smoothed)."""
+        if not self.run_dir.is_dir():
+            return []
+        return sorted(p for p in self.run_dir.iterdir() if _CN_GRID.fullmatch(p.name))
+
+    @property
+    def cn_dir(self) -> Path:
+        """Folder of the 3D-CN checkpoints."""
+        return self._file(self.CN_DIR)
+
+    @property
+    def metrics(self) -> Path:
+        return self._file(self.METRICS)
+
+    @property
+    def corrections(self) -> Path:
+        return self._file(self.CORRECTIONS)
+
+    @property
+    def params(self) -> Path:
+        """The app's parameter snapshot of the run."""
+        return self._file(self.PARAMS)
+
+    @property
+    def log(self) -> Path:
+        """The app worker's log of the run."""
+        return self._file(self.LOG)
+
+    @property
+    def lock(self) -> Path:
+        """The file the app worker holds ``flock`` on while it works in this folder."""
+        return self._file(self.LOCK)
+
+    def export_zip(self, with_confidence: bool = False) -> Path:
+        """The app's cached zip of the export (``.label`` files, plus ``.conf`` files if asked)."""
+        return self._file(self.EXPORT_CONF_ZIP if with_confidence else self.EXPORT_ZIP)
+
+    # ------------------------------------------------------------------------------- per-frame files
+    def folder(self, name: str) -> Path:
+        """A per-frame folder (:attr:`LABELS2D`, :attr:`OBSERVATIONS`, :attr:`POINTS`, :attr:`EXPORT`)."""
+        return self.run_dir / name
+
+    def frame_file(self, folder: str, frame_id: str, suffix: str = ".npz") -> Path:
+        """``<run_dir>/<folder>/<frame_id><suffix>``."""
+        return self.run_dir / folder / f"{frame_id}{suffix}"
+
+    def labels2d(self, frame_id: str) -> Path:
+        return self.frame_file(self.LABELS2D, frame_id)
+
+    def observation(self, frame_id: str) -> Path:
+        return self.frame_file(self.OBSERVATIONS, frame_id)
+
+    def points(self, frame_id: str) -> Path:
+        return self.frame_file(self.POINTS, frame_id)
+
+    @property
+    def points_dir(self) -> Path:
+        return self.folder(self.POINTS)
+
+    @property
+    def export_dir(self) -> Path:
+        return self.folder(self.EXPORT)
+
+    def export_label(self, frame_id: str) -> Path:
+        return self.frame_file(self.EXPORT, frame_id, ".label")
+
+    def export_conf(self, frame_id: str) -> Path:
+        return self.frame_file(self.EXPORT, frame_id, ".conf")
+
+    # ------------------------------------------------------------------------------- the final grid
+    def final_grid(self, consistency: ConsistencySwitch) -> Path:
+        """The grid the points take their labels from: the smoothed grid of the last 3D-CN round when the
+        3D-CN is enabled, else ``grid_smooth.npz``."""
+        if consistency.enabled:
+            return self.grid_smooth_3dcn(consistency.iterations)
+        return self.grid_smooth
+
+    def final_grid_on_disk(self) -> Path:
+        """:meth:`final_grid` for readers without the run's config: the smoothed grid of the highest 3D-CN
+        round present in the folder, else ``grid_smooth.npz`` (which may not exist)."""
+        rounds = [
+            int(m.group(2)) for p in self.cn_grids() if (m := _CN_GRID.fullmatch(p.name)) and m.group(1)
+        ]
+        return self.grid_smooth_3dcn(max(rounds)) if rounds else self.grid_smooth
+
+
+# ------------------------------------------------------------------------------------ corrections
+def save_corrections(path: str | Path, keys: npt.ArrayLike, class_idx: npt.ArrayLike) -> None:
+    """Write manual corrections: ``keys (K,)`` voxel keys and ``class_idx (K,)`` class indices, in the
+    order they were made (a later entry for the same voxel wins)."""
+    atomic_save_npz(path, keys=np.asarray(keys), class_idx=np.asarray(class_idx))
+
+
+def load_corrections(
+    path: str | Path, num_classes: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Read corrections written by :func:`save_corrections` as ``(keys (K,) int64, class_idx (K,) int64)``.
+
+    Raises:
+        DatasetError: unreadable file, arrays of different length or rank, non-integer arrays, or a class
+            index outside ``0..num_classes-1``.
+    """
+    try:
+        with np.load(path) as z:
+            keys, cls = np.asarray(z["keys"]), np.asarray(z["class_idx"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable corrections (need arrays 'keys', 'class_idx'): {exc}") from exc
+    if keys.ndim != 1 or cls.shape != keys.shape:
+        raise DatasetError(path, f"'keys' {keys.shape} and 'class_idx' {cls.shape} must be equal-length 1-D")
+    if not (np.issubdtype(keys.dtype, np.integer) and np.issubdtype(cls.dtype, np.integer)):
+        raise DatasetError(path, "'keys' and 'class_idx' must be integer arrays")
+    if len(cls) and (cls.min() < 0 or cls.max() >= num_classes):
+        raise DatasetError(path, f"'class_idx' must be in 0..{num_classes - 1}")
+    return keys.astype(np.int64), cls.astype(np.int64)
+
+
+__all__ = ["ConsistencySwitch", "RunLayout", "load_corrections", "save_corrections"]

@@ -1,0 +1,70 @@
+"""RunLayout: the run folder's paths, the final-grid rule and the corrections file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leap_core.consistency.config import ConsistencyConfig
+from leap_core.errors import DatasetError
+from leap_core.run_layout import RunLayout, load_corrections, save_corrections
+
+
+def test_paths(tmp_path: Path) -> None:
+    lay = RunLayout(tmp_path)
+    assert lay.labels2d("000007") == tmp_path / "labels2d" / "000007.npz"
+    assert lay.observation("000007") == tmp_path / "observations" / "000007.npz"
+    assert lay.points("000007") == tmp_path / "points" / "000007.npz"
+    assert lay.export_label("000007") == tmp_path / "export" / "000007.label"
+    assert lay.export_conf("000007") == tmp_path / "export" / "000007.conf"
+    assert lay.grid_3dcn(2) == tmp_path / "grid_3dcn2.npz"
+    assert lay.grid_smooth_3dcn(2) == tmp_path / "grid_smooth_3dcn2.npz"
+    assert lay.cn_dir == tmp_path / "3dcn"
+    assert (lay.export_zip(), lay.export_zip(with_confidence=True)) == (tmp_path / "export.zip",
+                                                                        tmp_path / "export-conf.zip")
+    assert RunLayout(str(tmp_path)).run_dir == tmp_path  # type: ignore[arg-type]
+    assert {lay.params.name, lay.log.name, lay.lock.name, lay.corrections.name} <= RunLayout.RUN_OWN_FILES
+
+
+@pytest.mark.parametrize(
+    ("enabled", "iterations", "name"),
+    [(False, 1, "grid_smooth.npz"), (False, 2, "grid_smooth.npz"), (True, 1, "grid_smooth_3dcn1.npz"),
+     (True, 2, "grid_smooth_3dcn2.npz")],
+)
+def test_final_grid_follows_the_config(tmp_path: Path, enabled: bool, iterations: int, name: str) -> None:
+    cfg = ConsistencyConfig(enabled=enabled, iterations=iterations)
+    assert RunLayout(tmp_path).final_grid(cfg) == tmp_path / name
+
+
+def test_final_grid_on_disk_takes_the_last_smoothed_round(tmp_path: Path) -> None:
+    lay = RunLayout(tmp_path)
+    assert lay.final_grid_on_disk() == lay.grid_smooth
+    for name in ("grid.npz", "grid_smooth.npz", "grid_smooth_3dcn2.npz", "grid_smooth_3dcn10.npz",
+                 "grid_3dcn11.npz", "grid_smooth_3dcnx.npz", "old_grid_smooth_3dcn12.npz"):
+        (tmp_path / name).write_bytes(b"")
+    # 10 > 2 as numbers; a fused-only round (11) and names that are not round files do not count.
+    assert lay.final_grid_on_disk() == tmp_path / "grid_smooth_3dcn10.npz"
+    assert [p.name for p in lay.cn_grids()] == ["grid_3dcn11.npz", "grid_smooth_3dcn10.npz",
+                                                "grid_smooth_3dcn2.npz"]
+    assert RunLayout(tmp_path / "missing").cn_grids() == []
+
+
+def test_corrections_roundtrip_and_errors(tmp_path: Path) -> None:
+    path = RunLayout(tmp_path).corrections
+    save_corrections(path, np.array([5, 3, 5], np.int64), np.array([1, 0, 2], np.int16))
+    keys, cls = load_corrections(path, 3)
+    assert keys.tolist() == [5, 3, 5] and cls.tolist() == [1, 0, 2]  # order kept: the last one wins later
+    assert keys.dtype == np.int64 and cls.dtype == np.int64
+    with pytest.raises(DatasetError, match=r"class_idx' must be in 0\.\.1"):
+        load_corrections(path, 2)
+    save_corrections(path, np.array([1, 2]), np.array([0]))
+    with pytest.raises(DatasetError, match="equal-length"):
+        load_corrections(path, 3)
+    save_corrections(path, np.array([1.5]), np.array([0]))
+    with pytest.raises(DatasetError, match="integer"):
+        load_corrections(path, 3)
+    path.write_bytes(b"junk")
+    with pytest.raises(DatasetError, match="unreadable corrections"):
+        load_corrections(path, 3)
