@@ -54,7 +54,7 @@ class StageBars:
         for bar in self.bars.values():
             bar.close()  # type: ignore[attr-defined]
 
-    def __enter__(self) -> StageBars:  # noqa: PYI034 - typing.Self needs Python 3.11
+    def __enter__(self) -> StageBars:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -47,9 +47,9 @@ import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import print_table, write_results  # noqa: E402
+from common import print_table, write_results
 
-from leap_core.run_layout import RunLayout  # noqa: E402
+from leap_core.run_layout import RunLayout
 
 SMALL_STREET: dict[str, Any] = {
     "shadows": False,

@@ -28,10 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import peak_memory, print_table, time_it, write_results  # noqa: E402
+from common import peak_memory, print_table, time_it, write_results
 
-from leap_core.fusion import FusionConfig, Observations, fuse, log_table, voxel_keys  # noqa: E402
-from leap_core.smoothing import SmoothingConfig, knn_smooth  # noqa: E402
+from leap_core.fusion import FusionConfig, Observations, fuse, log_table, voxel_keys
+from leap_core.smoothing import SmoothingConfig, knn_smooth
 
 C = 20
 

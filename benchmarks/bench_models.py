@@ -37,23 +37,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import print_table, time_it, write_results  # noqa: E402
+from common import print_table, time_it, write_results
 
-from leap_core.labelers.cache import LabelCache, PassResult, image_digest  # noqa: E402
-from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler, LoadedModels  # noqa: E402
-from leap_core.labelers.tiny_models import (  # noqa: E402
+from leap_core.labelers.cache import LabelCache, PassResult, image_digest
+from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler, LoadedModels
+from leap_core.labelers.tiny_models import (
     TinyModelsConfig,
     build_tiny_detector,
     build_tiny_segmenter,
     tiny_vocab,
 )
-from leap_core.runtime import Runtime  # noqa: E402
-from leap_core.schema import load_project_file, projects_dir  # noqa: E402
+from leap_core.runtime import Runtime
+from leap_core.schema import load_project_file, projects_dir
 
 KITTI_HW = (376, 1241)
 
 
-def real_detector(words: list[str]):  # noqa: ANN201 - transformers types
+def real_detector(words: list[str]):
     """Grounding DINO Swin-T + BERT-base from default configs, random weights, and its processor.
 
     The vocabulary is 30522 entries like bert-base-uncased, with the BERT special ids and every word of
@@ -79,7 +79,7 @@ def real_detector(words: list[str]):  # noqa: ANN201 - transformers types
     return model, proc
 
 
-def real_sam(large: bool = False):  # noqa: ANN201 - transformers types
+def real_sam(large: bool = False):
     """SAM ViT-B (default config) or ViT-L, random weights, and its processor (1024 px)."""
     import torch
     from transformers import SamConfig, SamModel

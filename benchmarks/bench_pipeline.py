@@ -27,12 +27,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import PeakMemory, print_table, write_results  # noqa: E402
+from common import PeakMemory, print_table, write_results
 
-from leap_core.config import PipelineConfig, config_from_dict  # noqa: E402
-from leap_core.datasets.kitti import KittiSequence  # noqa: E402
-from leap_core.pipeline import STAGES, load_metrics, result_tables, run_pipeline  # noqa: E402
-from leap_core.schema import builtin_schema  # noqa: E402
+from leap_core.config import PipelineConfig, config_from_dict
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.pipeline import STAGES, load_metrics, result_tables, run_pipeline
+from leap_core.schema import builtin_schema
 
 
 def io_floor(seq: KittiSequence) -> float:

@@ -32,13 +32,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import print_table, write_results  # noqa: E402
+from common import print_table, write_results
 
-from leap_core.synth import LidarConfig, SynthConfig, generate_sequence  # noqa: E402
-from leap_core.synth.camera import camera_to_world, render  # noqa: E402
-from leap_core.synth.generator import _Worker  # noqa: E402
-from leap_core.synth.lidar import beam_elevations, ray_grid, scan  # noqa: E402
-from leap_core.synth.raycast import cast_grid, spherical_tasks  # noqa: E402
+from leap_core.synth import LidarConfig, SynthConfig, generate_sequence
+from leap_core.synth.camera import camera_to_world, render
+from leap_core.synth.generator import _Worker
+from leap_core.synth.lidar import beam_elevations, ray_grid, scan
+from leap_core.synth.raycast import cast_grid, spherical_tasks
 
 
 def _cpu() -> float:
@@ -123,7 +123,7 @@ def culling_vs_brute(cfg: SynthConfig, frame: int) -> dict:
     brute = time.process_time() - c
     return {
         "rays": int(rays.shape[1] * rays.shape[2]),
-        "primitives_in_range": int(len(in_range)),
+        "primitives_in_range": len(in_range),
         "culled_cpu_s": culled,
         "brute_cpu_s": brute,
         "same_result": bool((p1 == p2).all()),

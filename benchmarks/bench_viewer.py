@@ -34,11 +34,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.viewer import view_logic as vl  # noqa: E402
-from app.viewer.data import ReviewGrid  # noqa: E402
-from app.viewer.scene import ReviewScene  # noqa: E402
-from leap_core.fusion import AXIS_OFFSET, VoxelGrid  # noqa: E402
-from leap_core.smoothing import SmoothedGrid  # noqa: E402
+from app.viewer import view_logic as vl
+from app.viewer.data import ReviewGrid
+from app.viewer.scene import ReviewScene
+from leap_core.fusion import AXIS_OFFSET, VoxelGrid
+from leap_core.smoothing import SmoothedGrid
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_viewer.json"
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-import leap_core.labelers as labelers
+from leap_core import labelers
 from leap_core.config import FORM_FIELDS, RETIRED_FIELDS, PipelineConfig, config_from_dict, config_to_dict
 from leap_core.errors import ConfigError, LeapError, SchemaError
 from leap_core.labelers import LABELERS, LabelerSpec, make_labeler
@@ -164,7 +164,7 @@ def test_the_registry_drives_labeler_validation(monkeypatch: pytest.MonkeyPatch)
         PipelineConfig(labeler="exact")
     built: list[SimulatedLabelerConfig] = []
 
-    def exact(config: SimulatedLabelerConfig, runtime: Runtime) -> SimulatedLabeler:  # noqa: ARG001
+    def exact(config: SimulatedLabelerConfig, runtime: Runtime) -> SimulatedLabeler:
         built.append(config)
         return SimulatedLabeler(SimulatedLabelerConfig.exact())
 

@@ -43,7 +43,7 @@ def test_export_is_atomic(tmp_path, monkeypatch) -> None:
     with pytest.raises(ValueError):
         export_labels(lp, cp, np.array([0, 5], np.int16), conf, EXPORT_IDS)
     # A crash at the final rename (fault injected into os.replace) leaves the old files and no temp file.
-    import leap_core.io_utils as io_utils
+    from leap_core import io_utils
 
     def boom(src, dst):
         raise OSError("disk full")

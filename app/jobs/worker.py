@@ -154,7 +154,7 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
             except LeapError as exc:
                 log.error("run failed: %s", exc)
                 return RunOutcome("failed", str(exc))
-            except Exception as exc:  # noqa: BLE001 - any failure must end as a readable failed run
+            except Exception as exc:
                 log.error("run failed:\n%s", traceback.format_exc())
                 return RunOutcome("failed", f"{type(exc).__name__}: {exc}")
             log.info(
@@ -202,7 +202,7 @@ class _ForwardLogs(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         try:
             self.send(LogLine(record.levelno, record.name, record.getMessage()))
-        except Exception:  # noqa: BLE001 - logging must never break the run
+        except Exception:
             self.handleError(record)
 
 
@@ -263,7 +263,7 @@ def child_main(argv: list[str] | None = None) -> None:
     logging.getLogger("leap_core").addHandler(_ForwardLogs(emit))
     try:
         outcome = execute(_first_spec(line), emit, cancel.is_set)
-    except BaseException as exc:  # noqa: BLE001 - report anything, including import errors
+    except BaseException as exc:
         outcome = RunOutcome("failed", f"{type(exc).__name__}: {exc}")
     with contextlib.suppress(OSError):
         emit(outcome)

@@ -126,7 +126,7 @@ class ReviewPanel:
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             try:
                 return fn(*args, **kwargs)
-            except Exception as exc:  # noqa: BLE001 - show user errors, keep the viewer running
+            except Exception as exc:
                 log.warning("viewer action %s failed: %s", fn.__name__, exc)
                 self.set_status(f"**Error:** {html.escape(str(exc))}")
                 return None

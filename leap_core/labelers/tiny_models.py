@@ -33,15 +33,7 @@ _MARKER_TEXT = (
 
 # Whole-word entries make token counts of common prompts realistic; any other lowercase word still
 # tokenizes, into single-character word pieces.
-_WORDS = (
-    "car automobile van jeep bicycle bike motorcycle motorbike scooter truck lorry pickup bus train tram "
-    "trailer vehicle other person pedestrian people human child bicyclist cyclist rider motorcyclist biker "
-    "road street lane marking parking lot space sidewalk footpath pavement curb ground median strip central "
-    "reservation gravel dirt building house wall roof fence railing guardrail barrier vegetation tree bush "
-    "hedge shrub plant trunk bark branch terrain grass soil lawn field pole lamp post utility traffic sign "
-    "signboard light wire cable power line drone crop orchard row tower barn shed farm a an the of on in "
-    "with and or"
-).split()
+_WORDS = ["car", "automobile", "van", "jeep", "bicycle", "bike", "motorcycle", "motorbike", "scooter", "truck", "lorry", "pickup", "bus", "train", "tram", "trailer", "vehicle", "other", "person", "pedestrian", "people", "human", "child", "bicyclist", "cyclist", "rider", "motorcyclist", "biker", "road", "street", "lane", "marking", "parking", "lot", "space", "sidewalk", "footpath", "pavement", "curb", "ground", "median", "strip", "central", "reservation", "gravel", "dirt", "building", "house", "wall", "roof", "fence", "railing", "guardrail", "barrier", "vegetation", "tree", "bush", "hedge", "shrub", "plant", "trunk", "bark", "branch", "terrain", "grass", "soil", "lawn", "field", "pole", "lamp", "post", "utility", "traffic", "sign", "signboard", "light", "wire", "cable", "power", "line", "drone", "crop", "orchard", "row", "tower", "barn", "shed", "farm", "a", "an", "the", "of", "on", "in", "with", "and", "or"]
 
 SPECIAL_IDS = {"[PAD]": 0, "[UNK]": 100, "[CLS]": 101, "[SEP]": 102, "[MASK]": 103, ".": 1012, "?": 1029}
 """Token ids the tiny vocabulary must share with bert-base-uncased (Grounding DINO relies on them)."""
