@@ -8,7 +8,7 @@ stays fast."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
@@ -21,6 +21,9 @@ from leap_core.labelers.grounded_sam import GroundedSamLabeler
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.presets import Preset, load_preset
 from leap_core.runtime import Runtime
+
+if TYPE_CHECKING:
+    from app.core.config import Settings
 
 cli = typer.Typer(
     name="leap",
@@ -182,9 +185,13 @@ def _labeler_help() -> str:
 @cli.command("run")
 def run_cmd(
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
-    out: str = typer.Option(..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages)."),
+    out: str = typer.Option(
+        ..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages)."
+    ),
     schema: str | None = typer.Option(
-        None, "--schema", help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti)."
+        None,
+        "--schema",
+        help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti).",
     ),
     labeler: str | None = typer.Option(
         None,
@@ -368,13 +375,13 @@ def _app_settings(
     models: str | None,
     *,
     seed_demo: bool | None,
-) -> object:
+) -> Settings:
     """App settings from the environment with command-line values on top (one-line error when invalid)."""
     from pydantic import ValidationError
 
     from app.core.config import Settings
 
-    given = {
+    given: dict[str, Any] = {
         "host": host,
         "port": port,
         "data_roots": data_root or None,

@@ -17,7 +17,7 @@ File format (``projects/<name>.yaml``)::
         gt_ids: [10, 252]           # optional
         category: vehicle           # optional, default "other"
         negative_prompts: []        # optional
-    pipeline: {}                    # optional config overrides, see load_project_file
+    pipeline: {}                    # optional config overrides, see leap_core.presets.load_preset
 
 Every problem raises :class:`~leap_core.errors.SchemaError` with one line naming the file and the entry,
 e.g. ``projects/x.yaml: classes[3] 'pole': color must be 3 integers 0..255``.

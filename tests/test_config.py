@@ -29,11 +29,13 @@ REPO = Path(__file__).resolve().parents[1]
     ("overrides", "field", "problem"),
     [
         # PipelineConfig's own fields
-        ({"labeler": "sam"}, ("pipeline", "labeler"), "must be one of 'simulated', 'grounded-sam', got 'sam'"),
+        ({"labeler": "sam"}, ("pipeline", "labeler"),
+         "must be one of 'simulated', 'grounded-sam', got 'sam'"),
         ({"correction_strength": 0}, ("pipeline", "correction_strength"), "must be > 0"),
         ({"bogus": 1}, ("pipeline", "bogus"), "unknown setting"),
         # one level down: every section's own check
-        ({"fusion": {"voxel_size": 0}}, ("pipeline", "fusion", "voxel_size"), "must be a positive number, got 0"),
+        ({"fusion": {"voxel_size": 0}}, ("pipeline", "fusion", "voxel_size"),
+         "must be a positive number, got 0"),
         ({"projection": {"cluster_gap": -1}}, ("pipeline", "projection", "cluster_gap"), "must be > 0"),
         ({"smoothing": {"workers": 0}}, ("pipeline", "smoothing", "workers"), "must be ≥ 1 or -1"),
         ({"grounded_sam": {"match_iou": 0}}, ("pipeline", "grounded_sam", "match_iou"), "must be in (0, 1]"),
@@ -53,7 +55,9 @@ REPO = Path(__file__).resolve().parents[1]
         ({"consistency": {"backbone": 8}}, ("pipeline", "consistency", "backbone"), "must be a mapping"),
     ],
 )
-def test_every_error_carries_its_absolute_field_path(overrides: dict, field: tuple[str, ...], problem: str) -> None:
+def test_every_error_carries_its_absolute_field_path(
+    overrides: dict, field: tuple[str, ...], problem: str
+) -> None:
     with pytest.raises(ConfigError) as err:
         config_from_dict(overrides)
     assert err.value.field == field
@@ -94,7 +98,9 @@ def test_config_errors_survive_pickling() -> None:
         ("allow_download", True, "--allow-download"),
     ],
 )
-def test_deployment_fields_in_a_config_say_what_replaces_them(key: str, value: object, replacement: str) -> None:
+def test_deployment_fields_in_a_config_say_what_replaces_them(
+    key: str, value: object, replacement: str
+) -> None:
     with pytest.raises(ConfigError) as err:
         config_from_dict({"grounded_sam": {key: value}})
     message = str(err.value)
@@ -126,7 +132,8 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
         load_preset(bad)
     assert err.value.field == ("pipeline", "grounded_sam", "models_dir")
     assert str(err.value).startswith(f"{bad}: pipeline.grounded_sam.models_dir: no longer a pipeline setting")
-    res = CliRunner().invoke(cli, ["run", str(tmp_path), "--out", str(tmp_path / "r"), "--project-file", str(bad)])
+    args = ["run", str(tmp_path), "--out", str(tmp_path / "r"), "--project-file", str(bad)]
+    res = CliRunner().invoke(cli, args)
     assert res.exit_code == 2
     last = res.output.strip().splitlines()[-1]
     assert last.startswith(f"error: --project-file {bad}: pipeline.grounded_sam.models_dir: no longer")
@@ -202,8 +209,8 @@ def test_presets_read_classes_and_pipeline_section() -> None:
     assert on_base.smoothing.k == 3 and on_base.grounded_sam.box_threshold == 0.2
 
 
-def test_unknown_presets_and_paths_for_names_are_refused(tmp_path: Path) -> None:
-    with pytest.raises(SchemaError, match="nope: no such file, and no built-in preset .*agri_uav"):
+def test_unknown_presets_and_paths_for_names_are_refused() -> None:
+    with pytest.raises(SchemaError, match=r"nope: no such file, and no built-in preset .*agri_uav"):
         load_preset("nope")
     # An API payload's name is never read as a path, even one that exists.
     with pytest.raises(SchemaError, match="unknown built-in schema"):
@@ -226,15 +233,19 @@ def test_cli_errors_name_the_option(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ no torch
+_READ_CONFIG = "import leap_core.config, leap_core.presets, leap_core.labelers"
+
+
 def _modules_after(statement: str) -> set[str]:
-    code = f"import sys; {statement}; print(' '.join(m for m in ('torch', 'transformers') if m in sys.modules))"
+    heavy = "('torch', 'transformers')"
+    code = f"import sys; {statement}; print(' '.join(m for m in {heavy} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     return set(out.stdout.split())
 
 
 def test_reading_a_config_or_preset_never_imports_transformers() -> None:
-    assert "transformers" not in _modules_after("import leap_core.config, leap_core.presets, leap_core.labelers")
+    assert "transformers" not in _modules_after(_READ_CONFIG)
 
 
 def test_reading_a_config_or_preset_never_imports_torch() -> None:
-    assert "torch" not in _modules_after("import leap_core.config, leap_core.presets, leap_core.labelers")
+    assert "torch" not in _modules_after(_READ_CONFIG)

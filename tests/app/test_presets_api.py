@@ -70,7 +70,8 @@ def test_pipeline_errors_locate_the_field(client: TestClient, tiny_dataset: Path
 
     project = _create(client, tiny_dataset, schema_name="agri_uav")
     r = client.patch(f"{API}/projects/{project['id']}", json={"pipeline": {"fusion": {"voxel_size": 0}}})
-    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "pipeline", "fusion", "voxel_size"]
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "pipeline", "fusion", "voxel_size"]
     r = client.patch(f"{API}/projects/{project['id']}", json={"form": {"threshold": 1.5}})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "form", "threshold"]
     assert r.json()["detail"][0]["msg"].startswith("pipeline.grounded_sam.box_threshold: must be in (0, 1)")
