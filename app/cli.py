@@ -8,7 +8,7 @@ stays fast."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import typer
 
@@ -21,8 +21,12 @@ from leap_core.labelers.grounded_sam import GroundedSamLabeler
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.presets import Preset, load_preset
 from leap_core.runtime import Runtime
+from leap_core.schema import Schema
 
 if TYPE_CHECKING:
+    from pydantic import SecretStr
+    from tqdm import tqdm
+
     from app.core.config import Settings
 
 cli = typer.Typer(
@@ -38,7 +42,7 @@ class StageBars:
     and closing the previous stage's bar; use as a context manager so every bar is closed."""
 
     def __init__(self) -> None:
-        self.bars: dict[str, object] = {}
+        self.bars: dict[str, tqdm[Any]] = {}
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         from tqdm import tqdm
@@ -49,13 +53,13 @@ class StageBars:
             unit = "step" if stage in ("3dcn", "synth") else "frame"
             bar = self.bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit=unit, leave=True,
                                           dynamic_ncols=True)
-        bar.total = total  # type: ignore[attr-defined]
-        bar.n = done  # type: ignore[attr-defined]
-        bar.refresh()  # type: ignore[attr-defined]
+        bar.total = total
+        bar.n = done
+        bar.refresh()
 
     def close(self) -> None:
         for bar in self.bars.values():
-            bar.close()  # type: ignore[attr-defined]
+            bar.close()
 
     def __enter__(self) -> StageBars:
         return self
@@ -76,7 +80,7 @@ def _runtime(models: str | None, cache: str | Path | None, device: str, allow_do
         return Runtime(
             models_dir=None if models is None else Path(models),
             cache_dir=None if cache is None else Path(cache),
-            device=device,  # type: ignore[arg-type]  # checked by Runtime
+            device=device,  # type: ignore[arg-type]  # any string: Runtime rejects a bad one (error below)
             allow_download=allow_download,
         )
     except ConfigError as exc:
@@ -98,8 +102,9 @@ _DOWNLOAD_HELP = "Without --models: download a model missing from the Hugging Fa
 
 
 @cli.command("labels2d")
-def labels2d(
+def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    *,
     schema: str = typer.Option(
         "semantickitti", "--schema", help="Project/schema YAML file, or a built-in name in projects/."
     ),
@@ -183,8 +188,9 @@ def _labeler_help() -> str:
 
 
 @cli.command("run")
-def run_cmd(
+def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    *,
     out: str = typer.Option(
         ..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages)."
     ),
@@ -220,34 +226,9 @@ def run_cmd(
     progress = StageBars()
 
     try:
-        # --schema's file gives the classes (and a base config); --project-file's pipeline applies on top.
-        cfg = None
-        sch = None
-        if schema is not None or project_file is None:
-            base = _preset("--schema", schema or "semantickitti")
-            sch, cfg = base.schema, base.pipeline
-        if project_file is not None:
-            project = _preset("--project-file", project_file, cfg)
-            sch, cfg = sch or project.schema, project.pipeline
-        assert sch is not None and cfg is not None
-        flags: dict[str, Any] = {}
-        if labeler is not None:
-            flags["labeler"] = labeler
-        if consistency is not None:
-            flags["consistency"] = {"enabled": consistency}
-        cfg = config_from_dict(flags, cfg)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency)
         runtime = _runtime(models, cache, device, allow_download)
-        frame_range = None
-        if frames is not None:
-            a, sep, b = frames.partition(":")
-            try:
-                start = int(a) if a.strip() else 0
-                stop = int(b) if sep and b.strip() else (start + 1 if not sep else None)
-            except ValueError:
-                raise LeapError(f"--frames {frames!r}: expected A:B with integers (B exclusive)") from None
-            if stop is None:
-                stop = len(KittiSequence(dataset))
-            frame_range = range(start, stop)
+        frame_range = None if frames is None else _frame_range(frames, dataset)
         typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
         with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
@@ -275,8 +256,44 @@ def run_cmd(
         typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
 
 
+def _run_config(
+    schema: str | None, project_file: str | None, labeler: str | None, consistency: bool | None
+) -> tuple[Schema, PipelineConfig]:
+    """``leap run``'s classes and config: --schema's file gives the classes (and a base config),
+    --project-file's pipeline applies on top, then --labeler and --3dcn."""
+    cfg = None
+    sch = None
+    if schema is not None or project_file is None:
+        base = _preset("--schema", schema or "semantickitti")
+        sch, cfg = base.schema, base.pipeline
+    if project_file is not None:
+        project = _preset("--project-file", project_file, cfg)
+        sch, cfg = sch or project.schema, project.pipeline
+    assert sch is not None and cfg is not None
+    flags: dict[str, Any] = {}
+    if labeler is not None:
+        flags["labeler"] = labeler
+    if consistency is not None:
+        flags["consistency"] = {"enabled": consistency}
+    return sch, config_from_dict(flags, cfg)
+
+
+def _frame_range(frames: str, dataset: str) -> range:
+    """``--frames A:B`` (B exclusive; ``A`` alone is one frame, ``A:`` runs to the sequence's end)."""
+    a, sep, b = frames.partition(":")
+    try:
+        start = int(a) if a.strip() else 0
+        stop = int(b) if sep and b.strip() else (start + 1 if not sep else None)
+    except ValueError:
+        raise LeapError(f"--frames {frames!r}: expected A:B with integers (B exclusive)") from None
+    if stop is None:
+        stop = len(KittiSequence(dataset))
+    return range(start, stop)
+
+
 @cli.command("serve")
 def serve_cmd(
+    *,
     host: str | None = typer.Option(
         None, "--host", help="Address to bind (default 127.0.0.1; any other address needs --token)."
     ),
@@ -296,13 +313,21 @@ def serve_cmd(
     """Start LeAP Studio: the web UI, the REST API (/api/docs) and the 3D viewer, on 127.0.0.1:8000."""
     from app.main import serve
 
-    seed = False if no_demo else None
-    settings = _app_settings(host, port, data_root, work_dir, token, models, seed_demo=seed)
+    settings = _app_settings(
+        host=host,
+        port=port,
+        data_root=data_root,
+        work_dir=work_dir,
+        token=token,
+        models=models,
+        seed_demo=False if no_demo else None,
+    )
     serve(settings)
 
 
 @cli.command("demo")
 def demo_cmd(
+    *,
     port: int | None = typer.Option(None, "--port", help="Port (default 8000)."),
     work_dir: str | None = typer.Option(
         None, "--work-dir", help="Runs, caches and the database (default ./data/studio)."
@@ -320,7 +345,7 @@ def demo_cmd(
     from app.main import serve
     from leap_core.pipeline import result_tables
 
-    settings = _app_settings(None, port, data_root, work_dir, None, None, seed_demo=None)
+    settings = _app_settings(port=port, data_root=data_root, work_dir=work_dir)
     progress = StageBars()
 
     try:
@@ -366,32 +391,51 @@ def demo_cmd(
     serve(settings)
 
 
+class _GivenSettings(TypedDict, total=False):
+    """The :class:`Settings` fields a command line sets; the others come from the environment."""
+
+    host: str
+    port: int
+    data_roots: list[Path]
+    work_dir: Path
+    access_token: SecretStr
+    models_dir: Path
+    seed_demo: bool
+
+
 def _app_settings(
-    host: str | None,
-    port: int | None,
-    data_root: list[str] | None,
-    work_dir: str | None,
-    token: str | None,
-    models: str | None,
     *,
-    seed_demo: bool | None,
+    host: str | None = None,
+    port: int | None = None,
+    data_root: list[str] | None = None,
+    work_dir: str | None = None,
+    token: str | None = None,
+    models: str | None = None,
+    seed_demo: bool | None = None,
 ) -> Settings:
-    """App settings from the environment with command-line values on top (one-line error when invalid)."""
-    from pydantic import ValidationError
+    """App settings from the environment with the command-line values given (not None) on top (one-line
+    error when invalid)."""
+    from pydantic import SecretStr, ValidationError
 
     from app.core.config import Settings
 
-    given: dict[str, Any] = {
-        "host": host,
-        "port": port,
-        "data_roots": data_root or None,
-        "work_dir": work_dir,
-        "access_token": token,
-        "models_dir": models,
-        "seed_demo": seed_demo,
-    }
+    given: _GivenSettings = {}
+    if host is not None:
+        given["host"] = host
+    if port is not None:
+        given["port"] = port
+    if data_root:
+        given["data_roots"] = [Path(p) for p in data_root]
+    if work_dir is not None:
+        given["work_dir"] = Path(work_dir)
+    if token is not None:
+        given["access_token"] = SecretStr(token)
+    if models is not None:
+        given["models_dir"] = Path(models)
+    if seed_demo is not None:
+        given["seed_demo"] = seed_demo
     try:
-        return Settings(**{k: v for k, v in given.items() if v is not None})
+        return Settings(**given)
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "settings"

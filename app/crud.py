@@ -6,6 +6,7 @@ Every function takes the sqlite-utils ``Database`` first and its other arguments
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,9 +28,8 @@ _JSON_COLUMNS = {
 }
 
 
-def _decode(row: dict[str, Any] | None) -> dict[str, Any] | None:
-    if row is None:
-        return None
+def _decode(row: dict[str, Any]) -> dict[str, Any]:
+    """A row with its JSON columns parsed (``schema_json`` → ``schema``, ...)."""
     out = dict(row)
     for column, key in _JSON_COLUMNS.items():
         if column in out:
@@ -41,12 +41,20 @@ def _decode(row: dict[str, Any] | None) -> dict[str, Any] | None:
 def _rows(db: sqlite_utils.Database, sql: str, params: Sequence[Any] = ()) -> list[dict[str, Any]]:
     cursor = db.execute(sql, list(params))
     names = [d[0] for d in cursor.description]
-    return [_decode(dict(zip(names, r, strict=True))) for r in cursor.fetchall()]  # type: ignore[misc]
+    return [_decode(dict(zip(names, r, strict=True))) for r in cursor.fetchall()]
 
 
 def _one(db: sqlite_utils.Database, sql: str, params: Sequence[Any] = ()) -> dict[str, Any] | None:
     rows = _rows(db, sql, params)
     return rows[0] if rows else None
+
+
+def _inserted_id(cursor: sqlite3.Cursor) -> int:
+    """The id of the row an ``INSERT`` just added (sqlite3 types ``lastrowid`` as optional)."""
+    rowid = cursor.lastrowid
+    if rowid is None:
+        raise RuntimeError("the statement inserted no row")
+    return int(rowid)
 
 
 def _dumps(value: Any) -> str:
@@ -70,7 +78,7 @@ def create_project(
         "created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
         [name, dataset_kind, dataset_path, _dumps(schema), _dumps(pipeline), int(is_demo), now, now],
     )
-    project = get_project(db, int(cursor.lastrowid))  # type: ignore[arg-type]
+    project = get_project(db, _inserted_id(cursor))
     assert project is not None
     return project
 
@@ -133,7 +141,7 @@ def create_run(
             "VALUES (?, ?, 'queued', ?, '', ?)",
             [project_id, number, _dumps(params), utcnow()],
         )
-        run_id = int(cursor.lastrowid)  # type: ignore[arg-type]
+        run_id = _inserted_id(cursor)
         run_dir = runs_dir / f"p{project_id}" / f"r{run_id}"
         db.execute("UPDATE runs SET run_dir = ? WHERE id = ?", [str(run_dir), run_id])
     run = get_run(db, run_id)
@@ -272,7 +280,7 @@ def add_correction(
         "VALUES (?, ?, ?, ?, ?, 1)",
         [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes()],
     )
-    return int(cursor.lastrowid)  # type: ignore[arg-type]
+    return _inserted_id(cursor)
 
 
 def list_corrections(

@@ -23,6 +23,7 @@ from app.core.db import open_db, transaction
 from app.core.demo_synth import synth_config
 from leap_core.config import config_to_dict
 from leap_core.presets import builtin_preset
+from leap_core.synth import default_workers, generate_sequence
 
 DEMO_PROJECT_NAME = "Demo street (simulated labeler)"
 SEEDED_KEY = "demo_seeded"
@@ -60,8 +61,6 @@ def ensure_demo_sequence(
         synth_overrides: ``SynthConfig`` overrides (see :func:`synth_config`), e.g. fewer frames for tests.
         progress: called as ``progress("generate demo", done, total)`` after each frame.
     """
-    from leap_core.synth import default_workers, generate_sequence
-
     dataset = Path(dataset)
     if demo_exists(dataset):
         return dataset

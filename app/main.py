@@ -107,7 +107,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         # Import the pipeline (torch included) before accepting requests, so no request pays for it.
-        import leap_core.pipeline  # noqa: F401, PLC0415
+        import leap_core.pipeline  # noqa: F401, PLC0415  # warm-up when serving, not on import of app.main
 
         jobs.start()
         if settings.seed_demo:
@@ -134,7 +134,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.db_pool = ConnectionPool(settings.database)
 
     @app.exception_handler(AppError)
-    async def _app_error(request: Request, exc: AppError) -> JSONResponse:
+    async def _app_error(_request: Request, exc: AppError) -> JSONResponse:
         if isinstance(exc, InvalidField):
             return JSONResponse({"detail": exc.as_detail()}, status_code=exc.status_code)
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
@@ -144,8 +144,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
     if settings.token is None:
         allowed = set(LOOPBACK_NAMES) | {settings.host.lower()}
-        app.add_middleware(LoopbackHostGuard, allowed=allowed)  # type: ignore[arg-type]
-    app.add_middleware(ServerTiming)  # type: ignore[arg-type]
+        app.add_middleware(LoopbackHostGuard, allowed=allowed)
+    app.add_middleware(ServerTiming)
     return app
 
 
@@ -153,7 +153,7 @@ def _close_viewers(app: FastAPI) -> None:
     """Stop the 3D viewers (an optional module) before the workers."""
     try:
         # Optional: the app runs without app/viewer (see app.api.main); imported by then if present.
-        from app.api.routes.viewer import close_viewers  # noqa: PLC0415
+        from app.api.routes.viewer import close_viewers  # noqa: PLC0415  # optional module, may be absent
     except ImportError:
         return
     close_viewers(app)
@@ -172,7 +172,7 @@ def serve(settings: Settings | None = None) -> None:
     # collection would walk: one took 0.3 s under load with the GIL held, stalling every request and
     # stream at once. Moved to the permanent generation, they are never walked again (the lifespan's
     # own import of the pipeline is then free).
-    import leap_core.pipeline  # noqa: F401, PLC0415
+    import leap_core.pipeline  # noqa: F401, PLC0415  # warm-up before gc.freeze(), see the comment above
 
     gc.collect()
     gc.freeze()

@@ -12,6 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 RunStatus = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
 StageStatus = Literal["pending", "running", "done", "skipped", "failed", "cancelled"]
+DatasetKind = Literal["demo", "folder"]
 
 ACTIVE_STATUSES: tuple[str, ...] = ("queued", "running")
 RESUMABLE_STATUSES: tuple[str, ...] = ("interrupted", "cancelled", "failed")
@@ -60,7 +61,7 @@ class ClassBase(_Input):
     prompts: list[str] = Field(min_length=1, max_length=64)
     export_id: int = Field(ge=1, le=65535, description="raw id written to exported .label files")
     gt_ids: list[int] = Field(default_factory=list, max_length=256)
-    category: str = Field("other", min_length=1, max_length=64)
+    category: str = Field(default="other", min_length=1, max_length=64)
     negative_prompts: list[str] = Field(default_factory=list, max_length=64)
 
     @field_validator("name")
@@ -80,20 +81,20 @@ class ClassBase(_Input):
 
 
 class ClassCreate(ClassBase):
-    position: int | None = Field(None, ge=0, description="insert at this index (default: append)")
+    position: int | None = Field(default=None, ge=0, description="insert at this index (default: append)")
 
 
 class ClassUpdate(_Input):
     """Fields to change; absent fields keep their value. ``name`` renames the class."""
 
-    name: str | None = Field(None, min_length=1, max_length=64)
+    name: str | None = Field(default=None, min_length=1, max_length=64)
     color: Any = None
-    prompts: list[str] | None = Field(None, min_length=1, max_length=64)
-    export_id: int | None = Field(None, ge=1, le=65535)
-    gt_ids: list[int] | None = Field(None, max_length=256)
-    category: str | None = Field(None, min_length=1, max_length=64)
-    negative_prompts: list[str] | None = Field(None, max_length=64)
-    position: int | None = Field(None, ge=0, description="move the class to this index")
+    prompts: list[str] | None = Field(default=None, min_length=1, max_length=64)
+    export_id: int | None = Field(default=None, ge=1, le=65535)
+    gt_ids: list[int] | None = Field(default=None, max_length=256)
+    category: str | None = Field(default=None, min_length=1, max_length=64)
+    negative_prompts: list[str] | None = Field(default=None, max_length=64)
+    position: int | None = Field(default=None, ge=0, description="move the class to this index")
 
     @field_validator("name")
     @classmethod
@@ -149,8 +150,8 @@ class SchemaReplace(_Input):
 
 # -------------------------------------------------------------------------------------------- projects
 class DatasetRef(_Input):
-    kind: Literal["demo", "folder"] = "folder"
-    path: str | None = Field(None, max_length=4096, description="sequence folder inside a data root")
+    kind: DatasetKind = "folder"
+    path: str | None = Field(default=None, max_length=4096, description="sequence folder inside a data root")
 
     @model_validator(mode="after")
     def _path_for_folder(self) -> DatasetRef:
@@ -162,26 +163,28 @@ class DatasetRef(_Input):
 class ProjectCreate(_Input):
     name: str = Field(min_length=1, max_length=120)
     dataset: DatasetRef
-    schema_name: str = Field("semantickitti", min_length=1, max_length=64, description="built-in schema")
+    schema_name: str = Field(
+        default="semantickitti", min_length=1, max_length=64, description="built-in schema"
+    )
     pipeline: dict[str, Any] = Field(
         default_factory=dict, description="overrides of the default pipeline configuration"
     )
 
 
 class ProjectUpdate(_Input):
-    name: str | None = Field(None, min_length=1, max_length=120)
+    name: str | None = Field(default=None, min_length=1, max_length=120)
     pipeline: dict[str, Any] | None = Field(
-        None, description="partial pipeline configuration, merged into the current one"
+        default=None, description="partial pipeline configuration, merged into the current one"
     )
     form: dict[str, Any] | None = Field(
-        None,
+        default=None,
         description="the UI's flat parameters (labeler, threshold, voxel_size, k, cluster_gap, consistency, "
         "share, temperature, iterations), merged after `pipeline`",
     )
 
 
 class DatasetPublic(BaseModel):
-    kind: Literal["demo", "folder"]
+    kind: DatasetKind
     path: str
     exists: bool
     frames: int | None = None
@@ -195,9 +198,11 @@ class RunBrief(BaseModel):
     created_at: str
     finished_at: str | None = None
     miou: float | None = Field(
-        None, description="camera-view mIoU of the run's final labels (last result row)"
+        default=None, description="camera-view mIoU of the run's final labels (last result row)"
     )
-    miou_row: str | None = Field(None, description="which result row `miou` is (voxel, +3D-CN x1, ...)")
+    miou_row: str | None = Field(
+        default=None, description="which result row `miou` is (voxel, +3D-CN x1, ...)"
+    )
 
 
 class ProjectPublic(BaseModel):
@@ -236,7 +241,7 @@ class DatasetsPublic(BaseModel):
 
 # ------------------------------------------------------------------------------------------------ runs
 class FrameRange(_Input):
-    start: int = Field(0, ge=0)
+    start: int = Field(default=0, ge=0)
     stop: int = Field(ge=1)
 
     @model_validator(mode="after")
@@ -247,7 +252,7 @@ class FrameRange(_Input):
 
 
 class RunCreate(_Input):
-    frames: FrameRange | None = Field(None, description="label only these frames (default: all)")
+    frames: FrameRange | None = Field(default=None, description="label only these frames (default: all)")
 
 
 class StagePublic(BaseModel):
@@ -290,7 +295,7 @@ class RunPublic(BaseModel):
     has_metrics: bool
     has_export: bool
     resumable: bool
-    summary: dict[str, Any] | None = Field(None, description="headline metrics (mIoU per result row)")
+    summary: dict[str, Any] | None = Field(default=None, description="headline metrics (mIoU per result row)")
 
 
 class RunsPublic(BaseModel):
@@ -313,7 +318,9 @@ class LogPublic(BaseModel):
 # --------------------------------------------------------------------------------------------- exports
 class ExportWrite(_Input):
     path: str | None = Field(
-        None, max_length=4096, description="folder inside a data root (default: <dataset>/predictions)"
+        default=None,
+        max_length=4096,
+        description="folder inside a data root (default: <dataset>/predictions)",
     )
     include_confidence: bool = False
 

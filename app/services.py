@@ -63,7 +63,7 @@ def project_config(project: dict[str, Any]) -> PipelineConfig:
 
 
 # --------------------------------------------------------------------------------------------- datasets
-def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[str, Path]:
+def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.DatasetKind, Path]:
     """(kind, absolute sequence folder) of a dataset reference.
 
     Raises:
@@ -85,12 +85,12 @@ def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[str, Pa
     return "folder", path
 
 
-def dataset_public(kind: str, path: str) -> models.DatasetPublic:
+def dataset_public(kind: models.DatasetKind, path: str) -> models.DatasetPublic:
     folder = Path(path)
     velodyne = folder / "velodyne"
     frames = sum(1 for p in velodyne.glob("*.bin")) if velodyne.is_dir() else None
     return models.DatasetPublic(
-        kind=kind,  # type: ignore[arg-type]
+        kind=kind,
         path=str(folder),
         exists=velodyne.is_dir(),
         frames=frames,

@@ -43,8 +43,8 @@ from leap_core.types import UNLABELED
 
 TINY_BACKBONE = BackboneConfig(channels=16, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4)
 TINY = ConsistencyConfig(
-    enabled=True, backbone=TINY_BACKBONE, points_per_scan=0, min_steps=0, lr=1e-2, augment=False, device="cpu",
-    num_threads=1
+    enabled=True, backbone=TINY_BACKBONE, points_per_scan=0, min_steps=0, lr=1e-2, augment=False,
+    device="cpu", num_threads=1
 )
 
 
@@ -65,7 +65,9 @@ def synthetic_scan(seed: int, n: int = 600) -> tuple[np.ndarray, np.ndarray]:
     npole = n - ng - nw
     ground = np.column_stack([rng.uniform(-8, 8, ng), rng.uniform(-8, 8, ng), np.full(ng, -1.7)])
     wall = np.column_stack([rng.uniform(-8, 8, nw), np.full(nw, 6.0), rng.uniform(-1.7, 2.0, nw)])
-    pole = np.column_stack([rng.normal(2, 0.05, npole), rng.normal(-3, 0.05, npole), rng.uniform(-1.7, 2, npole)])
+    pole = np.column_stack(
+        [rng.normal(2, 0.05, npole), rng.normal(-3, 0.05, npole), rng.uniform(-1.7, 2, npole)]
+    )
     xyz = np.concatenate([ground, wall, pole]) + rng.normal(0, 0.01, (n, 3))
     pts = np.column_stack([xyz, rng.uniform(0, 1, n)]).astype(np.float32)
     labels = np.repeat(np.arange(3), [ng, nw, npole]).astype(np.int16)
@@ -123,7 +125,8 @@ def test_view_counts_count_frames_not_points() -> None:
     assert keys.tolist() == [5, 7, 9] and counts.tolist() == [1, 3, 1]
     assert lookup_counts(np.array([7, 8, 5, 10, 9, 0]), keys, counts).tolist() == [3, 0, 1, 0, 1, 0]
     empty_keys, empty_counts = view_counts([])
-    assert len(empty_keys) == 0 and lookup_counts(np.array([1, 2]), empty_keys, empty_counts).tolist() == [0, 0]
+    assert len(empty_keys) == 0
+    assert lookup_counts(np.array([1, 2]), empty_keys, empty_counts).tolist() == [0, 0]
 
 
 def test_select_reliable_rejects_bad_input() -> None:
@@ -237,14 +240,18 @@ def test_config_validation_names_the_field() -> None:
     for bad, field in [
         (lambda: ConsistencyConfig(iterations=3), ("iterations",)),
         (lambda: ConsistencyConfig(temperature=0.0), ("temperature",)),
-        (lambda: ConsistencyConfig(network_evidence="pixel"), ("network_evidence",)),  # type: ignore[arg-type]
+        (
+            lambda: ConsistencyConfig(network_evidence="pixel"),  # type: ignore[arg-type]  # invalid on purpose
+            ("network_evidence",),
+        ),
         (lambda: ConsistencyConfig(min_steps=-1), ("min_steps",)),
         (lambda: BackboneConfig(kernel_size=2), ("kernel_size",)),
     ]:
         with pytest.raises(ConfigError) as err:
             bad()
         assert err.value.field == field and str(err.value).startswith(f"{field[0]}: must")
-    assert config_from_dict(config_to_dict(ConsistencyConfig.paper_scale())) == ConsistencyConfig.paper_scale()
+    paper = ConsistencyConfig.paper_scale()
+    assert config_from_dict(config_to_dict(paper)) == paper
 
 
 def test_lr_schedule_warms_up_then_decays_to_zero() -> None:
@@ -282,8 +289,8 @@ def test_training_with_subsampling_augmentation_and_class_weights_runs() -> None
     scans = _scans(3)
     cfg = replace(TINY, points_per_scan=200, augment=True, scans_per_step=2, epochs=2)
     calls: list[tuple[int, int]] = []
-    model, stats = train_model(scans.__getitem__, list(scans), 3, cfg, progress=lambda d, t: calls.append((d, t)),
-                               class_counts=[100, 10, 0])
+    model, stats = train_model(scans.__getitem__, list(scans), 3, cfg,
+                               progress=lambda d, t: calls.append((d, t)), class_counts=[100, 10, 0])
     # Class 2 had no selected label: the model gives it probability 0, the others still sum to 1.
     assert model.trained_classes.tolist() == [True, True, False]
     logp = predict_log_probs(model, synthetic_scan(5)[0])
@@ -323,7 +330,7 @@ def test_checkpoint_errors_name_the_file(tmp_path: Path) -> None:
         load_checkpoint(tmp_path / "missing.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(ModelLoadError, match="bad.pt: unreadable"):
+    with pytest.raises(ModelLoadError, match=r"bad\.pt: unreadable"):
         load_checkpoint(bad)
     other = tmp_path / "other.pt"
     torch.save({"format": "something-else"}, other)
@@ -425,7 +432,8 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     calls: list[tuple[int, int]] = []
     out = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), tmp_path / "work", 1,
                              progress=lambda d, t: calls.append((d, t)))
-    assert calls[-1] == (3 + 2 * 3 + 3, 3 + 2 * 3 + 3) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+    assert calls[-1] == (3 + 2 * 3 + 3, 3 + 2 * 3 + 3)
+    assert [d for d, _ in calls] == sorted(d for d, _ in calls)
     assert checkpoint_path(tmp_path / "work", 1).is_file()
     unseen = 0
     for i in range(len(seq)):

@@ -59,7 +59,7 @@ def test_export_is_atomic(tmp_path, monkeypatch) -> None:
 def test_read_confidence_rejects_bad_files(tmp_path) -> None:
     p = tmp_path / "x.conf"
     p.write_bytes(b"abc")
-    with pytest.raises(DatasetError, match="x.conf: size 3"):
+    with pytest.raises(DatasetError, match=r"x\.conf: size 3"):
         read_confidence(p)
     p.write_bytes(np.zeros(3, "<f4").tobytes())
     with pytest.raises(DatasetError, match="count 3 != point count 4"):

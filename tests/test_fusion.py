@@ -237,7 +237,7 @@ def test_grid_lookup_nbytes_and_save_load(tmp_path) -> None:
 def test_grid_load_rejects_bad_files(tmp_path) -> None:
     bad = tmp_path / "grid.npz"
     bad.write_bytes(b"garbage")
-    with pytest.raises(DatasetError, match="grid.npz: unreadable voxel grid"):
+    with pytest.raises(DatasetError, match=r"grid\.npz: unreadable voxel grid"):
         VoxelGrid.load(bad)
     np.savez(bad, keys=np.array([3, 1], np.int64), logp=np.zeros((2, 2), np.float16), voxel_size=0.2)
     with pytest.raises(DatasetError, match="not sorted"):

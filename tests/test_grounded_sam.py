@@ -1,6 +1,7 @@
 """The grounded-sam labeler: exact stage-A maths on fabricated detector outputs, and the real code path
 with tiny RANDOM-weight Grounding DINO + SAM models built from configs, saved to a temp folder and loaded
-back exactly as a user's downloaded models are (their labels are meaningless; the wiring is what is tested)."""
+back exactly as a user's downloaded models are (their labels are meaningless; the wiring is what is
+tested)."""
 
 from __future__ import annotations
 
@@ -39,7 +40,7 @@ NINF = -np.inf
 def test_pass_regions_thresholds_scores_and_converts_boxes() -> None:
     car = ClassPrompts(0, "car", ("car", "van"), ())
     road = ClassPrompts(1, "road", ("road",), ("sidewalk",))
-    plan = make_pass([car, road], lambda p: 1)  # text "car . van . road . sidewalk ."
+    plan = make_pass([car, road], lambda _phrase: 1)  # text "car . van . road . sidewalk ."
     assert plan.text == "car . van . road . sidewalk ."
     # columns: [CLS] car . van . road . sidewalk . [SEP] pad pad
     token_phrase = np.array([-1, 0, -1, 1, -1, 2, -1, 3, -1, -1, -1, -1])
@@ -94,7 +95,10 @@ def test_assemble_maps_pass_columns_to_schema_order_fills_and_drops_empty_masks(
     full = np.ones((1, 2, 2), dtype=bool)
     empty = np.zeros((1, 2, 2), dtype=bool)
     p_road = _result(("road",), [[0, 0, 2, 2]], [[0.0]], full)
-    p_car = _result(("car", "truck"), [[0, 0, 2, 2], [0, 0, 1, 1]], [[math.log(2), 0.0], [5.0, 5.0]], np.concatenate([full, empty]))
+    p_car = _result(
+        ("car", "truck"), [[0, 0, 2, 2], [0, 0, 1, 1]], [[math.log(2), 0.0], [5.0, 5.0]],
+        np.concatenate([full, empty]),
+    )
     sm = assemble_soft_masks([p_road, p_car], ["car", "truck", "road"], match_iou=0.9)
     assert sm.num_masks == 2 and sm.num_classes == 3  # the empty-mask region is gone
     # Road region: its own road logit 0, car/truck from the matched box (log 2, 0) -> weights 1 : 2 : 1.
@@ -143,7 +147,9 @@ def counting(labeler: GroundedSamLabeler) -> dict[str, int]:
     return calls
 
 
-def direct_scores(det_dir: Path, image: np.ndarray, text: str, phrase_classes: list[tuple[str, int]], c: int) -> tuple[np.ndarray, np.ndarray]:
+def direct_scores(
+    det_dir: Path, image: np.ndarray, text: str, phrase_classes: list[tuple[str, int]], c: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Class logits (Q, C) and xyxy boxes computed straight from transformers, locating each phrase's
     token columns by searching its token ids in the text's ids (independent of offsets)."""
     from transformers import AutoProcessor, GroundingDinoForObjectDetection
@@ -166,7 +172,8 @@ def direct_scores(det_dir: Path, image: np.ndarray, text: str, phrase_classes: l
         s[:, cls] = np.maximum(s[:, cls], logits[:, cols].max(axis=1))
     h, w = image.shape[:2]
     cx, cy, bw, bh = out.pred_boxes[0].numpy().T
-    boxes = np.clip(np.stack([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2], 1) * [w, h, w, h], 0, [w, h, w, h])
+    xyxy = np.stack([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2], 1)
+    boxes = np.clip(xyxy * [w, h, w, h], 0, [w, h, w, h])
     return s, boxes
 
 
@@ -174,23 +181,30 @@ def test_labeler_matches_a_direct_transformers_computation(tiny_dir: Path, tmp_p
     schema = small_schema()
     img = images(1)[0]
     det_dir = tiny_dir / "grounding-dino-tiny"
-    phrase_classes = [("car", 0), ("automobile", 0), ("road", 1), ("street", 1), ("pole", 2), ("lamp post", 2)]
-    s, boxes = direct_scores(det_dir, img, "car . automobile . road . street . pole . lamp post .", phrase_classes, 3)
+    phrase_classes = [
+        ("car", 0), ("automobile", 0), ("road", 1), ("street", 1), ("pole", 2), ("lamp post", 2)
+    ]
+    text = "car . automobile . road . street . pole . lamp post ."
+    s, boxes = direct_scores(det_dir, img, text, phrase_classes, 3)
     conf = 1 / (1 + np.exp(-s.max(axis=1)))
     c = np.sort(conf)
     i = int(np.argmax(np.diff(c)))
     thr = float((c[i] + c[i + 1]) / 2)  # in the widest gap: some regions are kept, some are not
-    lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=thr), Runtime(models_dir=tiny_dir), cache=LabelCache(tmp_path))
+    lab = GroundedSamLabeler(
+        GroundedSamConfig(box_threshold=thr), Runtime(models_dir=tiny_dir), cache=LabelCache(tmp_path)
+    )
     sm = lab.label_images([img], schema)[0]
     plans = lab.plan(schema)
     assert len(plans) == 1 and plans[0].text == "car . automobile . road . street . pole . lamp post ."
-    stored = lab.cache.get(lab.pass_key(image_digest(img), plans[0]))  # type: ignore[union-attr]
+    assert lab.cache is not None
+    stored = lab.cache.get(lab.pass_key(image_digest(img), plans[0]))
+    assert stored is not None
     keep = conf >= np.float32(thr)
     assert 0 < keep.sum() < len(keep)
-    np.testing.assert_allclose(stored.scores, s[keep], rtol=1e-5, atol=1e-5)  # type: ignore[union-attr]
-    np.testing.assert_allclose(stored.boxes, boxes[keep], rtol=1e-4, atol=1e-3)  # type: ignore[union-attr]
+    np.testing.assert_allclose(stored.scores, s[keep], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(stored.boxes, boxes[keep], rtol=1e-4, atol=1e-3)
     # SoftMasks: softmax of the same logits for the regions whose SAM mask is not empty.
-    nonempty = stored.bits.any(axis=1)  # type: ignore[union-attr]
+    nonempty = stored.bits.any(axis=1)
     e = np.exp(s[keep] - s[keep].max(axis=1, keepdims=True))
     np.testing.assert_allclose(sm.probs, (e / e.sum(1, keepdims=True))[nonempty], rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(sm.confidence, conf[keep][nonempty], rtol=1e-5)
@@ -210,7 +224,9 @@ def test_sam_masks_match_a_direct_sam_call(tiny_dir: Path) -> None:
     inputs = proc(images=[img], input_boxes=[boxes.tolist()], return_tensors="pt")
     with torch.no_grad():
         out = model(**inputs, multimask_output=True)
-    masks = proc.image_processor.post_process_masks(out.pred_masks, inputs["original_sizes"], inputs["reshaped_input_sizes"])[0]
+    masks = proc.image_processor.post_process_masks(
+        out.pred_masks, inputs["original_sizes"], inputs["reshaped_input_sizes"]
+    )[0]
     best = out.iou_scores[0].argmax(dim=1)
     want = masks[torch.arange(3), best].numpy()  # (3, H, W)
     got = np.unpackbits(bits, axis=1, count=40 * 96).reshape(3, 40, 96).astype(bool)
@@ -223,7 +239,9 @@ def test_frames_of_a_sequence_through_the_labeler(tiny_dir: Path, tmp_path: Path
     from leap_core.datasets.kitti import KittiSequence
 
     seq = KittiSequence(build_tiny_sequence(tmp_path, n_frames=2).root)
-    lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=0.05, batch_size=2), Runtime(models_dir=tiny_dir))
+    lab = GroundedSamLabeler(
+        GroundedSamConfig(box_threshold=0.05, batch_size=2), Runtime(models_dir=tiny_dir)
+    )
     frames = list(seq)
     out = lab.label_frames(frames, small_schema())
     assert lab.detector_calls == 1 and lab.segmenter_calls == 1  # both frames in one batch
@@ -247,7 +265,8 @@ def test_cache_hit_calls_no_model(tiny_dir: Path, tmp_path: Path) -> None:
     second = GroundedSamLabeler(cfg, rt)  # a new process would start like this
     b = second.label_images(images(2), small_schema())
     assert second._models is None  # the weights were never even loaded
-    assert second.detector_calls == 0 and second.segmenter_calls == 0 and second.cache.hits == 2  # type: ignore[union-attr]
+    assert second.detector_calls == 0 and second.segmenter_calls == 0
+    assert second.cache is not None and second.cache.hits == 2
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x.bits, y.bits)
         np.testing.assert_array_equal(x.probs, y.probs)
@@ -263,11 +282,13 @@ def test_per_class_mode_reruns_only_the_edited_class(tiny_dir: Path, tmp_path: P
     calls = counting(lab)
     before = lab.label_images(images(1), small_schema())[0]
     assert calls == {"detector": 3, "sam": 1}  # one detector pass per class, one SAM encoding per image
-    assert [p.text for p in lab.plan(small_schema())] == ["car . automobile .", "road . street .", "pole . lamp post ."]
+    assert [p.text for p in lab.plan(small_schema())] == [
+        "car . automobile .", "road . street .", "pole . lamp post ."
+    ]
     edited = small_schema(road=("road", "asphalt"))
     after = lab.label_images(images(1), edited)[0]
     assert calls == {"detector": 4, "sam": 2}  # only the road pass ran again
-    assert lab.cache.hits == 2  # type: ignore[union-attr]  # car and pole
+    assert lab.cache is not None and lab.cache.hits == 2  # car and pole
     assert after.num_classes == 3 and before.num_classes == 3
     np.testing.assert_allclose(after.probs.sum(axis=1), 1.0, rtol=1e-5)
 
@@ -294,13 +315,13 @@ def test_fingerprint_tracks_prompts_settings_and_weights(tiny_dir: Path, tmp_pat
     fp = GroundedSamLabeler(cfg, rt).fingerprint(small_schema())
     assert fp == GroundedSamLabeler(cfg, rt).fingerprint(small_schema())
     assert fp != GroundedSamLabeler(cfg, rt).fingerprint(small_schema(car=("car",)))
-    assert fp != GroundedSamLabeler(dataclasses.replace(cfg, box_threshold=0.3), rt).fingerprint(small_schema())
+    other_threshold = dataclasses.replace(cfg, box_threshold=0.3)
+    assert fp != GroundedSamLabeler(other_threshold, rt).fingerprint(small_schema())
     assert fp == GroundedSamLabeler(dataclasses.replace(cfg, batch_size=4), rt).fingerprint(small_schema())
     # Deployment values are not part of the labels' identity; the models' contents are.
     moved = copy_models(tiny_dir, tmp_path)
-    assert fp == GroundedSamLabeler(cfg, Runtime(models_dir=moved, device="cpu", cache_dir=tmp_path)).fingerprint(
-        small_schema()
-    )
+    elsewhere = Runtime(models_dir=moved, device="cpu", cache_dir=tmp_path)
+    assert fp == GroundedSamLabeler(cfg, elsewhere).fingerprint(small_schema())
     other = make_tiny_models(tmp_path / "other", TinyModelsConfig(num_queries=20))
     assert fp != GroundedSamLabeler(cfg, Runtime(models_dir=other.models_dir)).fingerprint(small_schema())
 
@@ -318,7 +339,9 @@ def test_missing_model_folder_says_where_and_how_to_download(tmp_path: Path) -> 
 
 def test_model_not_in_the_hugging_face_cache_is_a_clear_error() -> None:
     cfg = GroundedSamConfig(detector_id="leap-studio-tests/no-such-model")
-    with pytest.raises(ModelLoadError, match="leap-studio-tests/no-such-model: not in the Hugging Face cache.*hf download"):
+    with pytest.raises(
+        ModelLoadError, match=r"leap-studio-tests/no-such-model: not in the Hugging Face cache.*hf download"
+    ):
         GroundedSamLabeler(cfg).plan(small_schema())
 
 
@@ -331,12 +354,15 @@ def copy_models(tiny_dir: Path, tmp_path: Path) -> Path:
 def test_unreadable_config_and_weights_are_clear_errors(tiny_dir: Path, tmp_path: Path) -> None:
     models = copy_models(tiny_dir, tmp_path)
     (models / "grounding-dino-tiny" / "config.json").write_text("{not json")
-    with pytest.raises(ModelLoadError, match="grounding-dino-tiny/config.json: unreadable model config"):
+    with pytest.raises(ModelLoadError, match=r"grounding-dino-tiny/config\.json: unreadable model config"):
         GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=models)).plan(small_schema())
-    shutil.copy(tiny_dir / "grounding-dino-tiny" / "config.json", models / "grounding-dino-tiny" / "config.json")
+    config = "grounding-dino-tiny/config.json"
+    shutil.copy(tiny_dir / config, models / config)
     (models / "sam-vit-base" / "model.safetensors").write_bytes(b"truncated")
     lab = GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=models))
-    with pytest.raises(ModelLoadError, match="sam-vit-base: cannot load facebook/sam-vit-base weights.*hf download"):
+    with pytest.raises(
+        ModelLoadError, match=r"sam-vit-base: cannot load facebook/sam-vit-base weights.*hf download"
+    ):
         lab.label_images(images(1), small_schema())
 
 
@@ -361,10 +387,10 @@ def test_config_validation_and_device_choice() -> None:
     with pytest.raises(ConfigError, match=r"^box_threshold: must be in \(0, 1\)") as err:
         GroundedSamConfig(box_threshold=0.0)
     assert err.value.field == ("box_threshold",)
-    with pytest.raises(ConfigError, match="^mode: must be"):
-        GroundedSamConfig(mode="both")  # type: ignore[arg-type]
-    with pytest.raises(ConfigError, match="^device: must be") as err:
-        Runtime(device="gpu")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"^mode: must be"):
+        GroundedSamConfig(mode="both")  # type: ignore[arg-type]  # invalid on purpose: the check under test
+    with pytest.raises(ConfigError, match=r"^device: must be") as err:
+        Runtime(device="gpu")  # type: ignore[arg-type]  # invalid on purpose: the check under test
     assert err.value.field == ("device",)
     assert model_folder_name("IDEA-Research/grounding-dino-tiny") == "grounding-dino-tiny"
     assert pick_device("cpu") == "cpu"
@@ -392,7 +418,9 @@ def test_labels2d_command_precomputes_and_resumes(tiny_dir: Path, tmp_path: Path
     root = build_tiny_sequence(tmp_path, n_frames=3).root
     cache = tmp_path / "cache"
     schema = tmp_path / "small.yaml"
-    save_schema(small_schema(), schema, pipeline={"grounded_sam": {"box_threshold": 0.05, "mode": "per-class"}})
+    save_schema(
+        small_schema(), schema, pipeline={"grounded_sam": {"box_threshold": 0.05, "mode": "per-class"}}
+    )
     args = ["labels2d", str(root), "--schema", str(schema), "--models", str(tiny_dir), "--cache", str(cache),
             "--batch-size", "2"]
     runner = CliRunner()
@@ -413,7 +441,9 @@ def test_labels2d_command_precomputes_and_resumes(tiny_dir: Path, tmp_path: Path
 
 
 @pytest.mark.slow
-def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir: Path, tmp_path: Path) -> None:
+def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(
+    tiny_dir: Path, tmp_path: Path
+) -> None:
     from conftest import build_tiny_sequence
     from typer.testing import CliRunner
 
@@ -426,7 +456,9 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
     save_schema(small_schema(), proj, pipeline={"grounded_sam": gs})
     cache = tmp_path / "cache"
     runner = CliRunner()
-    pre = runner.invoke(app, ["labels2d", str(root), "--schema", str(proj), "--cache", str(cache), "--models", str(models)])
+    pre = runner.invoke(
+        app, ["labels2d", str(root), "--schema", str(proj), "--cache", str(cache), "--models", str(models)]
+    )
     assert pre.exit_code == 0, pre.output
     # Same-size garbage weights keep the model identity (and so the cache keys) but make any model load
     # fail: the run below can only succeed by reading the 2D cache.
@@ -434,12 +466,14 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
         f.write_bytes(b"\0" * f.stat().st_size)
     run = runner.invoke(
         app,
-        ["run", str(root), "--out", str(tmp_path / "run"), "--project-file", str(proj), "--labeler", "grounded-sam",
-         "--cache", str(cache), "--models", str(models)],
+        ["run", str(root), "--out", str(tmp_path / "run"), "--project-file", str(proj),
+         "--labeler", "grounded-sam", "--cache", str(cache), "--models", str(models)],
     )
     assert run.exit_code == 0, run.output
     assert "2D labels: grounded-sam" in run.output and "3 .label files" in run.output
-    direct = GroundedSamLabeler(GroundedSamConfig(**gs), Runtime(models_dir=models), cache=LabelCache(cache / "passes"))
+    direct = GroundedSamLabeler(
+        GroundedSamConfig(**gs), Runtime(models_dir=models), cache=LabelCache(cache / "passes")
+    )
     for fid in ("000000", "000001", "000002"):
         soft = SoftMasks.load(tmp_path / "run" / "labels2d" / f"{fid}.npz")
         want = direct.label_images([KittiSequence(root).frame(int(fid)).image], small_schema())[0]
@@ -450,8 +484,8 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(tiny_dir
     # Without the cache the (now broken) weights are needed: a one-line error, not a crash.
     bad = runner.invoke(
         app,
-        ["run", str(root), "--out", str(tmp_path / "run2"), "--project-file", str(proj), "--labeler", "grounded-sam",
-         "--models", str(models)],
+        ["run", str(root), "--out", str(tmp_path / "run2"), "--project-file", str(proj),
+         "--labeler", "grounded-sam", "--models", str(models)],
     )
     assert bad.exit_code == 2 and "cannot load IDEA-Research/grounding-dino-tiny weights" in bad.output
 

@@ -354,11 +354,13 @@ def test_corrections_override_voxels(baseline, street: Path, schema, tmp_path: P
     lab, _ = fixed.labels_and_confidence()
     assert (lab[fixed.lookup(keys)] == schema.index("trunk")).all()
     np.savez(run_dir / "corrections.npz", keys=keys, class_idx=np.full(50, 99))
-    with pytest.raises(LeapError, match="corrections.npz"):
+    with pytest.raises(LeapError, match=r"corrections\.npz"):
         run_pipeline(street, schema, PipelineConfig(), run_dir, until="fuse")
 
 
-def test_corrections_survive_smoothing_and_latest_wins(baseline, street: Path, schema, tmp_path: Path) -> None:
+def test_corrections_survive_smoothing_and_latest_wins(
+    baseline, street: Path, schema, tmp_path: Path
+) -> None:
     """Every point in a corrected voxel is exported with the corrected class, even at a selection's edge
     where kNN smoothing would otherwise pull it back; a later correction of the same voxel wins."""
     import shutil

@@ -194,7 +194,7 @@ def test_painted_observations_and_save_load(tmp_path) -> None:
     np.testing.assert_array_equal(back.table, painted.table)
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(DatasetError, match="bad.npz"):
+    with pytest.raises(DatasetError, match=r"bad\.npz"):
         Painted.load(bad)
     np.savez(bad, point_idx=np.array([0]), rows=np.array([5]), table=np.ones((2, 2)))
     with pytest.raises(DatasetError, match="rows index outside"):

@@ -22,6 +22,7 @@ from leap_core.labelers.prompts import (
     softmax_classes,
     token_phrase_index,
 )
+from leap_core.schema import Schema
 
 NINF = -np.inf
 
@@ -63,11 +64,11 @@ def test_token_phrase_index_with_a_real_word_piece_tokenizer() -> None:
     got = token_phrase_index(enc["offset_mapping"], spans)
     pieces = tok.convert_ids_to_tokens(enc["input_ids"])
     # Each phrase's word pieces (hyphen and ##-continuations included) map to it; separators to -1.
-    by_phrase = {j: [p for p, g in zip(pieces, got) if g == j] for j in range(3)}
+    by_phrase = {j: [p for p, g in zip(pieces, got, strict=True) if g == j] for j in range(3)}
     assert by_phrase[0] == ["car"]
     assert "".join(by_phrase[1]).replace("##", "") == "other-vehicle"
     assert "".join(by_phrase[2]).replace("##", "") == "zebracrossing"
-    assert [p for p, g in zip(pieces, got) if g == -1] == ["[CLS]", ".", ".", ".", "[SEP]"]
+    assert [p for p, g in zip(pieces, got, strict=True) if g == -1] == ["[CLS]", ".", ".", ".", "[SEP]"]
     assert enc["input_ids"][0] == 101 and enc["input_ids"][-1] == 102
     assert sum(1 for i in enc["input_ids"] if i == 1012) == 3
 
@@ -102,7 +103,7 @@ def test_plan_passes_joint_packs_classes_in_order_within_budget() -> None:
 
 def test_plan_passes_refuses_a_class_larger_than_the_budget() -> None:
     classes = [ClassPrompts(0, "a", ("a",)), ClassPrompts(1, "big", ("x y z", "u v w"))]
-    with pytest.raises(SchemaError, match="class 'big': its prompts need 10 text tokens, more than .* 9"):
+    with pytest.raises(SchemaError, match=r"class 'big': its prompts need 10 text tokens, more than .* 9"):
         plan_passes(classes, words, budget=9)
 
 
@@ -193,9 +194,9 @@ def test_fill_across_passes_takes_matched_logits_of_other_passes() -> None:
 
 
 # ------------------------------------------------------------------------------------------ presets
-def _words_by_class(schema: object) -> dict[str, set[str]]:
+def _words_by_class(schema: Schema) -> dict[str, set[str]]:
     owners: dict[str, set[str]] = {}
-    for c in schema.classes:  # type: ignore[attr-defined]
+    for c in schema.classes:
         for p in c.prompts:
             for w in p.lower().split():
                 owners.setdefault(w, set()).add(c.name)

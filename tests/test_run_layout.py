@@ -24,7 +24,7 @@ def test_paths(tmp_path: Path) -> None:
     assert lay.cn_dir == tmp_path / "3dcn"
     assert (lay.export_zip(), lay.export_zip(with_confidence=True)) == (tmp_path / "export.zip",
                                                                         tmp_path / "export-conf.zip")
-    assert RunLayout(str(tmp_path)).run_dir == tmp_path  # type: ignore[arg-type]
+    assert RunLayout(str(tmp_path)).run_dir == tmp_path  # type: ignore[arg-type]  # a str path works at run time
     assert {lay.params.name, lay.log.name, lay.lock.name, lay.corrections.name} <= RunLayout.RUN_OWN_FILES
 
 

@@ -103,7 +103,7 @@ def test_builtin_colors(kitti: Schema) -> None:
 def test_builtin_categories(kitti: Schema) -> None:
     cats = kitti.categories()
     for cat, names in CATEGORY_OF.items():
-        assert sorted(n for n, c in zip(kitti.names, cats) if c == cat) == sorted(names)
+        assert sorted(n for n, c in zip(kitti.names, cats, strict=True) if c == cat) == sorted(names)
 
 
 def test_builtin_prompts_follow_the_three_strategies(kitti: Schema) -> None:

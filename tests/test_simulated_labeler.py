@@ -119,7 +119,7 @@ def test_confusion_moves_mass_to_partner(seq: KittiSequence) -> None:
     true = exact.probs.argmax(axis=1)
     pred = confused.probs.argmax(axis=1)
     pairs = {CAR: {TRUCK}, ROAD: {SIDEWALK}, SIDEWALK: {ROAD}, TERRAIN: {VEG}, VEG: {TERRAIN}}
-    for t, p, row in zip(true, pred, confused.probs):
+    for t, p, row in zip(true, pred, confused.probs, strict=True):
         assert p in pairs[int(t)]
         assert row[p] == pytest.approx(0.8, abs=1e-6)
         # Half of the remaining mass goes back to the true class (partner_share = 0.5).
@@ -176,7 +176,7 @@ def test_deterministic_per_seed_and_frame(seq: KittiSequence) -> None:
     forward = [lab.label(f, SCHEMA) for f in seq]
     fresh = SimulatedLabeler(SimulatedLabelerConfig(seed=3))
     backward = [fresh.label(f, SCHEMA) for f in reversed(list(seq))]
-    for a, b in zip(forward, reversed(backward)):
+    for a, b in zip(forward, reversed(backward), strict=True):
         np.testing.assert_array_equal(a.bits, b.bits)
         np.testing.assert_array_equal(a.probs, b.probs)
         np.testing.assert_array_equal(a.confidence, b.confidence)
@@ -219,7 +219,7 @@ def test_config_validation_names_field(kwargs: dict, field: tuple[str, ...]) -> 
 def test_missing_gt2d_is_a_clear_error(tmp_path: Path) -> None:
     seq = make_sequence(tmp_path / "s", n_frames=1)
     (tmp_path / "s" / "gt2d" / "instance" / "000000.png").unlink()
-    with pytest.raises(LeapError, match="000000.png"):
+    with pytest.raises(LeapError, match=r"000000\.png"):
         SimulatedLabeler().label(seq.frame(0), SCHEMA)
 
 

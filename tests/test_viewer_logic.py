@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import socket
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -67,8 +68,10 @@ def test_visible_mask_threshold_and_toggles() -> None:
     score = np.array([0.9, 0.4, 0.6, 0.8, 0.5], np.float32)
     assert vl.visible_mask(label, score, 0.0).all()
     assert vl.visible_mask(label, score, 0.5).tolist() == [True, False, True, True, True]
-    assert vl.visible_mask(label, score, 0.5, (True, False, True)).tolist() == [True, False, True, True, False]
-    assert vl.visible_mask(label, score, 0.0, (False, False, False)).tolist() == [False, False, False, True, False]
+    some_on = vl.visible_mask(label, score, 0.5, (True, False, True))
+    assert some_on.tolist() == [True, False, True, True, False]
+    all_off = vl.visible_mask(label, score, 0.0, (False, False, False))
+    assert all_off.tolist() == [False, False, False, True, False]
 
 
 def test_decimate_indices_is_an_even_stride() -> None:
@@ -92,7 +95,8 @@ def test_view_colors_and_score_per_mode() -> None:
     conf_cols = vl.view_colors(vl.ViewState("confidence"), label, conf, None, palette, rows)
     assert conf_cols.tolist() == [vl.CONFIDENCE_LUT[0].tolist(), vl.CONFIDENCE_LUT[-1].tolist()]
     st_p = vl.ViewState("class_probability", class_index=1)
-    assert vl.view_colors(st_p, label, conf, prob, palette, rows)[0].tolist() == vl.CONFIDENCE_LUT[-1].tolist()
+    prob_cols = vl.view_colors(st_p, label, conf, prob, palette, rows)
+    assert prob_cols[0].tolist() == vl.CONFIDENCE_LUT[-1].tolist()
     assert vl.view_score(st_p, conf, prob) is prob
     assert vl.view_score(vl.ViewState("class"), conf, prob) is conf
     with pytest.raises(ValueError, match="class_probability"):
@@ -117,7 +121,11 @@ def test_apply_corrections_latest_wins_and_inputs_untouched() -> None:
 
 # ---------------------------------------------------------------------------- camera and selection
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
+@given(
+    st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
+        lambda q: np.linalg.norm(q) > 0.1
+    )
+)
 def test_quat_to_matrix_matches_viser(q: list[float]) -> None:
     from viser.transforms import SO3
 
@@ -133,7 +141,9 @@ def test_project_to_screen_identity_camera() -> None:
     uv, front = vl.project_to_screen(pts, (0, 0, 0), (1, 0, 0, 0), fov, aspect=2.0)
     assert front.tolist() == [True, True, True, False, True]
     # u = .5 + .5·(x/z)/(aspect·1), v = .5 + .5·(y/z)
-    np.testing.assert_allclose(uv[[0, 1, 2, 4]], [[0.5, 0.5], [1.0, 0.5], [0.5, 0.0], [0.625, 0.75]], atol=1e-12)
+    np.testing.assert_allclose(
+        uv[[0, 1, 2, 4]], [[0.5, 0.5], [1.0, 0.5], [0.5, 0.0], [0.625, 0.75]], atol=1e-12
+    )
 
 
 def test_select_in_rect_from_a_look_at_camera() -> None:
@@ -149,9 +159,10 @@ def test_select_in_rect_from_a_look_at_camera() -> None:
     uv, front = vl.project_to_screen(pts, position, wxyz, math.radians(90), 1.0)
     np.testing.assert_allclose(uv[:3], [[0.5, 0.5], [0.65, 0.5], [0.5, 0.35]], atol=1e-12)
     assert front.tolist() == [True, True, True, False]
-    sel = vl.select_in_rect(pts, position, wxyz, math.radians(90), 1.0, (0.6, 0.6), (0.4, 0.4))
+    fov = math.radians(90)
+    sel = vl.select_in_rect(pts, position, wxyz, fov, 1.0, rect_min=(0.6, 0.6), rect_max=(0.4, 0.4))
     assert sel.tolist() == [True, False, False, False]
-    sel = vl.select_in_rect(pts, position, wxyz, math.radians(90), 1.0, (0.55, 0.4), (0.7, 0.6))
+    sel = vl.select_in_rect(pts, position, wxyz, fov, 1.0, rect_min=(0.55, 0.4), rect_max=(0.7, 0.6))
     assert sel.tolist() == [False, True, False, False]
 
 
@@ -207,14 +218,17 @@ def test_draw_label_overlay_nearest_wins_and_unlabeled_skipped() -> None:
     img = np.zeros((5, 5, 3), np.uint8)
     palette = np.array([[100, 0, 0], [0, 200, 0]], np.uint8)
     uv = np.array([[2, 2], [2.4, 1.6], [0, 0], [4, 4]])
-    out = vl.draw_label_overlay(img, uv, [0, 1, -1, 1], palette, radius=0, alpha=1.0, depth=[5.0, 3.0, 1.0, 9.0])
+    out = vl.draw_label_overlay(
+        img, uv, [0, 1, -1, 1], palette, radius=0, alpha=1.0, depth=[5.0, 3.0, 1.0, 9.0]
+    )
     assert img.sum() == 0  # input untouched
     assert out[2, 2].tolist() == [0, 200, 0]  # both land on (2, 2): the nearer (depth 3) wins
     assert out[0, 0].tolist() == [0, 0, 0]  # unlabeled is not drawn
     assert out[4, 4].tolist() == [0, 200, 0]
     assert int((out.sum(axis=2) > 0).sum()) == 2
     # Without depth the later point wins; radius 1 paints a clipped 3×3 square; alpha blends.
-    out = vl.draw_label_overlay(np.full((5, 5, 3), 100, np.uint8), [[0, 0]], [1], palette, radius=1, alpha=0.5)
+    grey = np.full((5, 5, 3), 100, np.uint8)
+    out = vl.draw_label_overlay(grey, [[0, 0]], [1], palette, radius=1, alpha=0.5)
     assert out[0, 0].tolist() == [50, 150, 50] and out[1, 1].tolist() == [50, 150, 50]
     assert out[2, 2].tolist() == [100, 100, 100]
 
@@ -238,7 +252,7 @@ def test_edit_history() -> None:
 
 
 # ------------------------------------------------------------------------------------- run loading
-def _write_grid(run_dir, keys, probs, voxel_size=0.5, smooth=True):  # type: ignore[no-untyped-def]
+def _write_grid(run_dir, keys, probs, voxel_size=0.5, smooth=True):
     logp = np.log(np.clip(probs, 1e-9, 1)).astype(np.float16)
     logp -= logp.max(axis=1, keepdims=True)
     VoxelGrid(keys=keys, logp=logp, voxel_size=voxel_size).save(run_dir / "grid.npz")
@@ -246,7 +260,7 @@ def _write_grid(run_dir, keys, probs, voxel_size=0.5, smooth=True):  # type: ign
         atomic_save_npz(run_dir / "grid_smooth.npz", keys=keys, probs=probs.astype(np.float16))
 
 
-def test_review_grid_loads_final_or_fused(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_review_grid_loads_final_or_fused(tmp_path) -> None:
     xyz = np.array([[0.1, 0.1, 0.1], [1.2, 0.1, 0.1], [0.1, 2.3, 0.1]])
     keys = np.sort(voxel_keys(xyz, 0.5))
     probs = np.array([[0.7, 0.2, 0.1], [0.1, 0.1, 0.8], [0.4, 0.5, 0.1]], np.float32)
@@ -265,24 +279,25 @@ def test_review_grid_loads_final_or_fused(tmp_path) -> None:  # type: ignore[no-
     assert g.source.endswith("grid_smooth.npz") and g.label.tolist() == [1, 2, 0] and g.voxel_size == 0.5
 
 
-def test_review_grid_errors_name_the_file(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_review_grid_errors_name_the_file(tmp_path) -> None:
     from leap_core.errors import DatasetError
 
     with pytest.raises(DatasetError, match="has no voxel grid"):
         ReviewGrid.load(tmp_path)
-    atomic_save_npz(tmp_path / "grid_smooth.npz", keys=np.array([2, 1], np.int64), probs=np.ones((2, 2), np.float16))
-    with pytest.raises(DatasetError, match="grid_smooth.npz: no voxel_size"):
+    unsorted_keys = np.array([2, 1], np.int64)
+    atomic_save_npz(tmp_path / "grid_smooth.npz", keys=unsorted_keys, probs=np.ones((2, 2), np.float16))
+    with pytest.raises(DatasetError, match=r"grid_smooth\.npz: no voxel_size"):
         ReviewGrid.load(tmp_path)
-    atomic_save_npz(tmp_path / "grid_smooth.npz", keys=np.array([2, 1], np.int64), probs=np.ones((2, 2), np.float16),
+    atomic_save_npz(tmp_path / "grid_smooth.npz", keys=unsorted_keys, probs=np.ones((2, 2), np.float16),
                     voxel_size=np.float64(0.2))
     with pytest.raises(DatasetError, match="not sorted"):
         ReviewGrid.load(tmp_path)
     (tmp_path / "grid_smooth.npz").write_bytes(b"junk")
-    with pytest.raises(DatasetError, match="grid_smooth.npz"):
+    with pytest.raises(DatasetError, match=r"grid_smooth\.npz"):
         ReviewGrid.load(tmp_path)
 
 
-def test_run_outputs_scan_view_and_disagreement(tmp_path, make_tiny_sequence) -> None:  # type: ignore[no-untyped-def]
+def test_run_outputs_scan_view_and_disagreement(tmp_path, make_tiny_sequence) -> None:
     seq = make_tiny_sequence(tmp_path / "data", n_frames=2, n_points=40)
     run_dir = tmp_path / "run"
     outputs_seq = RunOutputs.__new__(RunOutputs)  # only to reuse world_points before outputs exist
@@ -388,7 +403,7 @@ SCHEMA3 = {
 
 
 @pytest.fixture
-def review_store(tmp_path, make_tiny_sequence):  # type: ignore[no-untyped-def]
+def review_store(tmp_path, make_tiny_sequence):
     """A project with one finished run whose outputs are built by hand on a tiny sequence."""
     from app import crud
     from app.core.config import Settings
@@ -400,7 +415,8 @@ def review_store(tmp_path, make_tiny_sequence):  # type: ignore[no-untyped-def]
     seq = make_tiny_sequence(tmp_path / "data", n_frames=3, n_points=60)
     kseq = KittiSequence(seq.root)
     world = [
-        (p[:, :3].astype(np.float64) @ kseq.poses[i][:3, :3].T + kseq.poses[i][:3, 3]) for i, p in enumerate(seq.points)
+        (p[:, :3].astype(np.float64) @ kseq.poses[i][:3, :3].T + kseq.poses[i][:3, 3])
+        for i, p in enumerate(seq.points)
     ]
     keys = np.unique(voxel_keys(np.concatenate(world), 0.5))
     centres = key_centres(keys, 0.5)
@@ -415,7 +431,9 @@ def review_store(tmp_path, make_tiny_sequence):  # type: ignore[no-untyped-def]
             db, name="tiny <b>", dataset_kind="folder", dataset_path=str(seq.root), schema=SCHEMA3,
             pipeline={"fusion": {"voxel_size": 0.5}},
         )
-        run = crud.create_run(db, project_id=project["id"], params={"schema": SCHEMA3}, runs_dir=settings.runs_dir)
+        run = crud.create_run(
+            db, project_id=project["id"], params={"schema": SCHEMA3}, runs_dir=settings.runs_dir
+        )
         crud.update_run(db, run["id"], status="done")
     run_dir = Path(run["run_dir"])
     run_dir.mkdir(parents=True)
@@ -429,7 +447,7 @@ def review_store(tmp_path, make_tiny_sequence):  # type: ignore[no-untyped-def]
     return settings, project["id"], run["id"], keys, cls
 
 
-def test_session_shows_edits_and_corrects_through_the_store(review_store) -> None:  # type: ignore[no-untyped-def]
+def test_session_shows_edits_and_corrects_through_the_store(review_store) -> None:
     from app import crud
     from app.core.db import open_db
     from app.viewer.manager import AppBackend
@@ -465,16 +483,17 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
 
         # Review queue: lowest-confidence regions first; the camera target moves there.
         regions = session.build_queue("confidence")
-        assert regions and all(a.score <= b.score for a, b in zip(regions, regions[1:]))
+        assert regions and all(a.score <= b.score for a, b in pairwise(regions))
         assert session.next_region() == regions[0]
         dis = session.build_queue("disagreement")
-        assert dis and all(a.score >= b.score for a, b in zip(dis, dis[1:]))
+        assert dis and all(a.score >= b.score for a, b in pairwise(dis))
 
         # Steering: a renamed, recoloured, re-prompted class lands in the project's SQLite row.
         session.update_class(1, name="vehicle", color=(1, 2, 3), prompts=["car", "van"])
         with open_db(settings.database) as db:
             stored = crud.require_project(db, pid)["schema"]["classes"][1]
-        assert stored["name"] == "vehicle" and stored["color"] == [1, 2, 3] and stored["prompts"] == ["car", "van"]
+        assert stored["name"] == "vehicle" and stored["color"] == [1, 2, 3]
+        assert stored["prompts"] == ["car", "van"]
         session.add_class("pole")
         session.remove_class(0)
         with open_db(settings.database) as db:
@@ -490,7 +509,8 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
         from viser.transforms import SO3
 
         down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
-        n = session.select_rect(centre + [0, 0, 200.0], down, math.radians(60), 1.0, (0.0, 0.0), (1.0, 1.0))
+        above = centre + np.array([0, 0, 200.0])
+        n = session.select_rect(above, down, math.radians(60), 1.0, (0.0, 0.0), (1.0, 1.0))
         assert n == keys.size
         cid = session.assign_selection("building")
         assert cid is not None and session.wait_drawn()
@@ -516,7 +536,7 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
 SCHEMA3_COLORS = [c["color"] for c in SCHEMA3["classes"]]
 
 
-def test_viewer_api_and_authenticated_relay(review_store) -> None:  # type: ignore[no-untyped-def]
+def test_viewer_api_and_authenticated_relay(review_store) -> None:
     import viser
     from fastapi.testclient import TestClient
     from starlette.testclient import WebSocketDenialResponse
@@ -555,9 +575,11 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:  # type: igno
             first = ws.receive_bytes()  # viser's scene backlog, relayed
             assert len(first) > keys.size * 15
         client.cookies.clear()
-        with pytest.raises(WebSocketDenialResponse) as refused:  # the handshake itself is answered 403
-            with client.websocket_connect(ws_url, subprotocols=[proto]) as ws:
-                ws.receive_bytes()
+        # The handshake itself is answered 403.
+        with pytest.raises(WebSocketDenialResponse) as refused, client.websocket_connect(
+            ws_url, subprotocols=[proto]
+        ) as ws:
+            ws.receive_bytes()
         assert refused.value.status_code == 403
         with pytest.raises(WebSocketDisconnect) as cross_site, client.websocket_connect(
             ws_url + f"?token={token}", subprotocols=[proto], headers={"origin": "http://evil.example"}
@@ -568,8 +590,9 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:  # type: igno
         from app.core.db import open_db
 
         with open_db(settings.database) as db:
-            queued = crud.create_run(db, project_id=pid, params={"schema": SCHEMA3}, runs_dir=settings.runs_dir)
-            empty = crud.create_run(db, project_id=pid, params={"schema": SCHEMA3}, runs_dir=settings.runs_dir)
+            params = {"schema": SCHEMA3}
+            queued = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.runs_dir)
+            empty = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.runs_dir)
             crud.update_run(db, empty["id"], status="done")
             crud.update_run(db, queued["id"], status="cancelled")
         r = client.post(base, json={"run_id": queued["id"]}, headers=auth)
@@ -581,7 +604,7 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:  # type: igno
         assert client.delete(base, headers=auth).status_code == 404
 
 
-def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:
     from app.viewer.data import final_grid_path
 
     assert final_grid_path(tmp_path) == tmp_path / "grid_smooth.npz"
@@ -592,6 +615,7 @@ def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:  # type: 
     assert final_grid_path(tmp_path, {"consistency": {"enabled": True, "iterations": 2}}) == (
         tmp_path / "grid_smooth_3dcn2.npz"
     )
-    # Parameters without a 3D-CN section are the defaults (3D-CN off); unreadable ones fall back to the folder.
+    # Parameters without a 3D-CN section are the defaults (3D-CN off); unreadable ones fall back to the
+    # folder.
     assert final_grid_path(tmp_path, {"smoothing": {"k": 3}}) == tmp_path / "grid_smooth.npz"
     assert final_grid_path(tmp_path, {"no_such_section": 1}) == tmp_path / "grid_smooth_3dcn10.npz"

@@ -24,7 +24,8 @@ TOKEN_COOKIE = "leap_token"
 # which costs every request one thread hand-off each (three for a status poll) under load.
 async def get_settings(connection: HTTPConnection) -> Settings:
     """The settings the app was created with (override in tests with ``app.dependency_overrides``)."""
-    return connection.app.state.settings  # type: ignore[no-any-return]
+    settings: Settings = connection.app.state.settings
+    return settings
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -67,7 +68,8 @@ ReadDbDep = Annotated[sqlite_utils.Database, Depends(get_read_db)]
 
 
 async def get_jobs(request: Request) -> JobManager:
-    return request.app.state.jobs  # type: ignore[no-any-return]
+    jobs: JobManager = request.app.state.jobs
+    return jobs
 
 
 JobsDep = Annotated[JobManager, Depends(get_jobs)]

@@ -36,7 +36,7 @@ class Settings(BaseSettings):
 
     host: str = "127.0.0.1"
     """Address to bind. Anything but a loopback address requires ``access_token``."""
-    port: int = Field(8000, ge=1, le=65535)
+    port: int = Field(default=8000, ge=1, le=65535)
     """TCP port of the API and web UI."""
     data_roots: list[Path] = Field(default_factory=lambda: [Path("data")])
     """Folders datasets may be read from and exports written to; every user path must lie inside one."""
@@ -48,7 +48,7 @@ class Settings(BaseSettings):
     """Shared secret every API call (and the viewer) must present when set; required off loopback."""
     models_dir: Path | None = None
     """Local folder with Grounding DINO / SAM weights (no download is attempted)."""
-    max_parallel_runs: int = Field(1, ge=1, le=8)
+    max_parallel_runs: int = Field(default=1, ge=1, le=8)
     """Runs executed at the same time across all projects; further runs wait in a FIFO queue."""
     prewarm_workers: bool = True
     """Keep a worker process with the pipeline already imported, so a run starts without a delay."""
@@ -58,11 +58,11 @@ class Settings(BaseSettings):
     """Overrides for ``leap_core.synth.SynthConfig`` when generating the demo sequence (e.g. fewer frames)."""
     viewer_enabled: bool = True
     """Start the 3D review viewer (viser) when a run is opened for review."""
-    viewer_port: int = Field(0, ge=0, le=65535)
+    viewer_port: int = Field(default=0, ge=0, le=65535)
     """Port of the viser viewer; 0 picks a free port."""
-    viewer_max_points: int = Field(2_000_000, ge=1000)
+    viewer_max_points: int = Field(default=2_000_000, ge=1000)
     """Above this many voxels the viewer decimates only when the user asks."""
-    progress_interval_s: float = Field(0.1, gt=0, le=5)
+    progress_interval_s: float = Field(default=0.1, gt=0, le=5)
     """Minimum seconds between two progress messages of one stage (the last one is always sent)."""
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     """Server log level."""

@@ -721,7 +721,7 @@ _current: JobManager | None = None
 
 
 def _set_current(manager: JobManager | None) -> None:
-    global _current
+    global _current  # noqa: PLW0603  # the one manager of this process: set by start(), cleared by stop()
     _current = manager
 
 

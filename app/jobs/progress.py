@@ -240,6 +240,7 @@ class ProgressTracker:
         status: str,
         record: Mapping[str, Any] | None,
         stage_names: Iterable[str],
+        *,
         error: str | None = None,
         stamp: str = "",
     ) -> ProgressTracker:

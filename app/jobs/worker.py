@@ -174,7 +174,7 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
 def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
     # Imported here, not at the top: the worker process must load the pipeline (torch) only once it dies
     # with the server (child_main), and the server imports this module for execute() and LOG_NAME.
-    from leap_core.pipeline import run_pipeline
+    from leap_core.pipeline import run_pipeline  # noqa: PLC0415  # loaded by a run only, see above
 
     if spec.demo:
         ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
@@ -244,7 +244,7 @@ def child_main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Import the pipeline (torch included) only now, once this process dies with the server, but before
     # the run arrives: a pre-started worker then starts computing at once.
-    import leap_core.pipeline  # noqa: F401, PLC0415
+    import leap_core.pipeline  # noqa: F401, PLC0415  # pre-warm only in the child, see the comment above
 
     stdin = sys.stdin.buffer
     line = stdin.readline()

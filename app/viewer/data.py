@@ -19,8 +19,10 @@ import numpy.typing as npt
 
 from app.viewer import view_logic as vl
 from leap_core.config import config_from_dict
+from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
+from leap_core.projection import project_points
 from leap_core.run_layout import RunLayout
 from leap_core.smoothing import SmoothedGrid
 
@@ -177,8 +179,6 @@ class RunOutputs:
     """Lazy access to a run's per-scan outputs and the dataset it labelled."""
 
     def __init__(self, run_dir: str | Path, dataset: str | Path) -> None:
-        from leap_core.datasets.kitti import KittiSequence
-
         self.run_dir = Path(run_dir)
         self.layout = RunLayout(self.run_dir)
         self.seq = KittiSequence(dataset)
@@ -198,8 +198,6 @@ class RunOutputs:
 
     def scan_view(self, index: int, palette: npt.ArrayLike, *, overlay_radius: int = 1) -> ScanView:
         """Points with final labels, camera pose and the labelled camera image of frame ``index``."""
-        from leap_core.projection import project_points
-
         frame = self.seq.frame(index)
         arrays = self.point_arrays(index)
         label = arrays["label"].astype(np.int16)

@@ -1,8 +1,8 @@
 """The viewer's GUI panel: typed viser widgets wired to a :class:`~app.viewer.session.ReviewSession`.
 
 Widgets only translate user actions into session calls and show what the session reports back
-(``on_*`` methods, the session's :class:`~app.viewer.session.SessionView` protocol). Errors from an action (an invalid class name, a failed save) are shown in the status
-line instead of breaking the viewer.
+(``on_*`` methods, the session's :class:`~app.viewer.session.SessionView` protocol). Errors from an action
+(an invalid class name, a failed save) are shown in the status line instead of breaking the viewer.
 """
 
 from __future__ import annotations
@@ -18,15 +18,22 @@ import viser
 
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
-from app.viewer.session import ReviewSession, RunInfo
+from app.viewer.session import QueueKind, ReviewSession, RunInfo
 
 log = logging.getLogger(__name__)
 
 COLOR_BY = ("class", "confidence", "class probability")
 """Labels of the colouring modes, in :data:`app.viewer.view_logic.ColorMode` order."""
-_MODE_OF = {"class": "class", "confidence": "confidence", "class probability": "class_probability"}
+_MODE_OF: dict[str, vl.ColorMode] = {
+    "class": "class",
+    "confidence": "confidence",
+    "class probability": "class_probability",
+}
 QUEUE_KINDS = ("lowest confidence", "camera vs final disagreement")
-_QUEUE_OF = {"lowest confidence": "confidence", "camera vs final disagreement": "disagreement"}
+_QUEUE_OF: dict[str, QueueKind] = {
+    "lowest confidence": "confidence",
+    "camera vs final disagreement": "disagreement",
+}
 
 
 def _hex(rgb: Any) -> str:
@@ -41,7 +48,9 @@ def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: st
             f'<div style="display:flex;align-items:center;gap:6px;font-size:12px">'
             f'<span style="display:inline-block;width:12px;height:12px;border-radius:2px;'
             f'background:{_hex(rgb)}"></span>{html.escape(n)}</div>'
-            for n, rgb in zip(names, palette)
+            # Not strict: the palette is refreshed with the grid, so while none is loaded a class just added
+            # to the schema has a name but no colour yet (and gets no swatch).
+            for n, rgb in zip(names, palette, strict=False)
         )
         return f'<div style="display:grid;grid-template-columns:1fr 1fr;gap:2px 8px">{items}</div>'
     stops = ", ".join(f"{_hex(vl.CONFIDENCE_LUT[int(i)])}" for i in np.linspace(0, 255, 9))
@@ -56,6 +65,11 @@ def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: st
 
 class ReviewPanel:
     """Builds the panel on the session's viser server and keeps it in sync with the session."""
+
+    # Class note: viser defines each widget's ``value`` setter apart from its getter (a method sits between
+    # them), which mypy reads as a read-only property, so the assignments to ``.value`` below carry
+    # ``type: ignore[misc]``. Only that code is ignored: the assigned value is still checked against the
+    # widget's type.
 
     def __init__(self, session: ReviewSession) -> None:
         self.s = session
@@ -177,13 +191,13 @@ class ReviewPanel:
         self.s.scene.camera.visible = on
 
     def _queue_changed(self) -> None:
-        self.s.build_queue(_QUEUE_OF[str(self.queue_kind.value)])  # type: ignore[arg-type]
+        self.s.build_queue(_QUEUE_OF[str(self.queue_kind.value)])
         self.queue_info.content = f"{len(self.s.regions)} regions; press *Next region*."
 
     def _next_region(self, step: int) -> None:
         kind = _QUEUE_OF[str(self.queue_kind.value)]
         if not self.s.regions or self.s.queue_kind != kind:
-            self.s.build_queue(kind)  # type: ignore[arg-type]
+            self.s.build_queue(kind)
         if self.s.next_region(step) is None:
             self.queue_info.content = "Nothing to review."
 
@@ -203,18 +217,20 @@ class ReviewPanel:
         if self.edit_class.value not in schema.names:
             return
         c = schema.classes[schema.index(str(self.edit_class.value))]
-        self.class_name.value = c.name
-        self.class_color.value = tuple(int(v) for v in c.color)
-        self.class_prompts.value = ", ".join(c.prompts)
+        self.class_name.value = c.name  # type: ignore[misc]  # viser: split setter, see class note
+        r, g, b = (int(v) for v in c.color)
+        self.class_color.value = (r, g, b)  # type: ignore[misc]  # viser: split setter, see class note
+        prompts = ", ".join(c.prompts)
+        self.class_prompts.value = prompts  # type: ignore[misc]  # viser: split setter, see class note
 
     def _save_class(self) -> None:
         schema = self.s.project_schema
         index = schema.index(str(self.edit_class.value))
         prompts = [p.strip() for p in str(self.class_prompts.value).split(",") if p.strip()]
         name = str(self.class_name.value).strip()
-        color = tuple(int(v) for v in self.class_color.value)
-        self.s.update_class(index, name=name, color=color, prompts=prompts)  # type: ignore[arg-type]
-        self.edit_class.value = name
+        r, g, b = (int(v) for v in self.class_color.value)
+        self.s.update_class(index, name=name, color=(r, g, b), prompts=prompts)
+        self.edit_class.value = name  # type: ignore[misc]  # viser: split setter, see class note
         self.steer_info.content = f"Saved class **{html.escape(name)}**; press *Re-run* to apply prompts."
 
     def _remove_class(self) -> None:
@@ -228,8 +244,8 @@ class ReviewPanel:
         if not name:
             raise ValueError("type a name for the new class first")
         self.s.add_class(name)
-        self.new_class.value = ""
-        self.edit_class.value = name
+        self.new_class.value = ""  # type: ignore[misc]  # viser: split setter, see class note
+        self.edit_class.value = name  # type: ignore[misc]  # viser: split setter, see class note
         self.steer_info.content = f"Added class **{html.escape(name)}**."
 
     def _rerun(self) -> None:
@@ -259,10 +275,10 @@ class ReviewPanel:
         assert run is not None and grid is not None
         self.prob_class.options = names
         if self.prob_class.value not in names:
-            self.prob_class.value = names[0]
+            self.prob_class.value = names[0]  # type: ignore[misc]  # viser: split setter, see class note
         self.assign_class.options = names
         if self.assign_class.value not in names:
-            self.assign_class.value = names[0]
+            self.assign_class.value = names[0]  # type: ignore[misc]  # viser: split setter, see class note
         for box in self._class_boxes:
             box.remove()
         self._class_boxes = []
@@ -271,7 +287,8 @@ class ReviewPanel:
                 box = self.gui.add_checkbox(n, True)
                 box.on_update(self._guard(functools.partial(self._toggle_class, i)))
                 self._class_boxes.append(box)
-        self.point_size.value = round(float(grid.voxel_size), 2)
+        size = round(float(grid.voxel_size), 2)
+        self.point_size.value = size  # type: ignore[misc]  # viser: split setter, see class note
         n_frames = len(s.outputs.frame_indices) if s.outputs is not None else 0
         self.scan_slider.max = max(1, n_frames - 1)
         self.scan_slider.disabled = n_frames <= 1
@@ -301,7 +318,7 @@ class ReviewPanel:
         else:
             self.scan_image.visible = False
         if int(self.scan_slider.value) != pos:
-            self.scan_slider.value = pos
+            self.scan_slider.value = pos  # type: ignore[misc]  # viser: split setter, see class note
 
     def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None:
         what = "mean confidence" if kind == "confidence" else "disagreement"
@@ -326,14 +343,16 @@ class ReviewPanel:
         names = self.s.project_schema.names
         current = self.edit_class.value
         self.edit_class.options = names
-        self.edit_class.value = current if current in names else names[0]
+        shown = current if current in names else names[0]
+        self.edit_class.value = shown  # type: ignore[misc]  # viser: split setter, see class note
         self._fill_class_editor()
         self._update_legend()
 
     def on_run_progress(self, info: RunInfo) -> None:
         if info.status in ("queued", "running"):
             self.progress.visible = True
-            self.progress.value = float(min(100.0, max(0.0, info.percent)))
+            percent = float(min(100.0, max(0.0, info.percent)))
+            self.progress.value = percent  # type: ignore[misc]  # viser: split setter, see class note
             self.rerun_button.disabled = True
             stage = f", {info.stage}" if info.stage else ""
             self.set_status(f"Run {info.number} {info.status}{stage}: {info.percent:.0f}%")

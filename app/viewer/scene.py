@@ -24,6 +24,18 @@ from app.viewer import view_logic as vl
 RectSelectFn = Callable[[viser.SceneRectSelectEvent], None]
 
 
+def _xyz(values: npt.ArrayLike) -> tuple[float, float, float]:
+    """A 3-vector as the tuple of floats viser's positions take."""
+    x, y, z = (float(v) for v in np.asarray(values).reshape(3))
+    return x, y, z
+
+
+def _wxyz(values: npt.ArrayLike) -> tuple[float, float, float, float]:
+    """A quaternion as the tuple of floats viser's orientations take."""
+    w, x, y, z = (float(v) for v in np.asarray(values).reshape(4))
+    return w, x, y, z
+
+
 class _Layer:
     """One scene node, created lazily by the subclass's ``set`` and kept (hidden, never removed) after."""
 
@@ -131,8 +143,8 @@ class CameraLayer(_Layer):
         image: npt.NDArray[np.uint8] | None,
         scale: float = 1.5,
     ) -> None:
-        pos = tuple(float(v) for v in np.asarray(position).reshape(3))
-        quat = tuple(float(v) for v in np.asarray(wxyz).reshape(4))
+        pos = _xyz(position)
+        quat = _wxyz(wxyz)
         if self._handle is None:
             self._handle = self._server.scene.add_camera_frustum(
                 self._name,
@@ -192,8 +204,8 @@ class ReviewScene:
         """Move every connected client's camera (and new clients' initial camera) to look at ``target``."""
         pos = np.asarray(position, dtype=np.float64).reshape(3)
         tgt = np.asarray(target, dtype=np.float64).reshape(3)
-        self.server.initial_camera.position = tuple(pos)
-        self.server.initial_camera.look_at = tuple(tgt)
+        self.server.initial_camera.position = _xyz(pos)
+        self.server.initial_camera.look_at = _xyz(tgt)
         for client in self.server.get_clients().values():
             with client.atomic():
                 client.camera.up_direction = (0.0, 0.0, 1.0)

@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -31,9 +31,23 @@ from app.viewer.scene import ReviewScene
 from leap_core.fusion import key_centres, voxel_keys
 from leap_core.schema import ClassDef, Schema
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack  # typing.Unpack from Python 3.11
+
 log = logging.getLogger(__name__)
 
 QueueKind = Literal["confidence", "disagreement"]
+
+
+class ViewChanges(TypedDict, total=False):
+    """Fields of :class:`~app.viewer.view_logic.ViewState` to change (:meth:`ReviewSession.set_state`)."""
+
+    mode: vl.ColorMode
+    class_index: int
+    threshold: float
+    enabled: tuple[bool, ...]
+    max_points: int | None
+
 
 SELECTION_RGB = (15, 15, 15)
 """Highlight of selected voxels: near-black, unlike every class colour and the light background."""
@@ -317,11 +331,11 @@ class ReviewSession:
         )
 
     # ---------------------------------------------------------------------------------------- drawing
-    def set_state(self, **changes: object) -> None:
+    def set_state(self, **changes: Unpack[ViewChanges]) -> None:
         """Change the view (``mode``, ``class_index``, ``threshold``, ``enabled``, ``max_points``) and
         schedule a redraw."""
         with self._lock:
-            self.state = dataclasses.replace(self.state, **changes)  # type: ignore[arg-type]
+            self.state = dataclasses.replace(self.state, **changes)
         self._draw_wanted.set()
 
     def set_class_enabled(self, index: int, on: bool) -> None:
@@ -497,7 +511,13 @@ class ReviewSession:
             return 0
         rows, _ = self.compute_view()
         inside = vl.select_in_rect(
-            grid.centres[rows], list(np.asarray(position)), list(np.asarray(wxyz)), fov_y, aspect, rect_min, rect_max
+            grid.centres[rows],
+            list(np.asarray(position)),
+            list(np.asarray(wxyz)),
+            fov_y,
+            aspect,
+            rect_min=rect_min,
+            rect_max=rect_max,
         )
         with self._lock:
             self.selection = _Selection(rows[inside])
@@ -639,4 +659,12 @@ class ReviewSession:
             self._stop.wait(self.config.poll_interval_s)
 
 
-__all__ = ["CorrectionRecord", "ProjectBackend", "QueueKind", "ReviewSession", "RunInfo", "SessionConfig"]
+__all__ = [
+    "CorrectionRecord",
+    "ProjectBackend",
+    "QueueKind",
+    "ReviewSession",
+    "RunInfo",
+    "SessionConfig",
+    "ViewChanges",
+]

@@ -234,7 +234,12 @@ def render_view(
     Returns:
         ``(rows (M,) int64, colors (M, 3) uint8)``.
     """
-    if state.mode == "class_probability" and class_prob is not None and corrected is not None and corrected.any():
+    if (
+        state.mode == "class_probability"
+        and class_prob is not None
+        and corrected is not None
+        and corrected.any()
+    ):
         class_prob = np.where(corrected, (label == state.class_index).astype(np.float32), class_prob)
     score = view_score(state, conf, class_prob)
     mask = visible_mask(label, score, state.threshold, state.enabled)
@@ -338,6 +343,7 @@ def select_in_rect(
     wxyz: Sequence[float],
     fov_y: float,
     aspect: float,
+    *,
     rect_min: Sequence[float],
     rect_max: Sequence[float],
 ) -> npt.NDArray[np.bool_]:
@@ -354,7 +360,7 @@ def select_in_rect(
 
 
 def orbit_view(
-    target: Sequence[float], distance: float, elevation_deg: float = 35.0, azimuth_deg: float = 225.0
+    target: npt.ArrayLike, distance: float, elevation_deg: float = 35.0, azimuth_deg: float = 225.0
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """Camera ``(position, look_at)`` orbiting ``target`` (z up) at a distance, elevation and azimuth.
 
@@ -420,8 +426,8 @@ def rank_regions(
     k = counts.shape[0]
     s = np.asarray(score, dtype=np.float64)[rows]
     mean_score = np.bincount(inverse, weights=s, minlength=k) / counts
-    mean_xyz = np.stack([np.bincount(inverse, weights=xyz[:, d], minlength=k) for d in range(3)], 1)
-    mean_xyz /= counts[:, None]
+    sum_xyz = np.stack([np.bincount(inverse, weights=xyz[:, d], minlength=k) for d in range(3)], 1)
+    mean_xyz = sum_xyz / counts[:, None]
     dist = np.linalg.norm(xyz - mean_xyz[inverse], axis=1)
     extent = np.zeros(k)
     np.maximum.at(extent, inverse, dist)
@@ -446,7 +452,7 @@ def lowest_share(score: npt.NDArray[np.floating], share: float) -> npt.NDArray[n
     n = score.shape[0]
     if n == 0:
         return np.zeros(0, bool)
-    k = max(1, int(round(share * n)))
+    k = max(1, round(share * n))
     if k >= n:
         return np.ones(n, bool)
     cut = np.partition(score, k - 1)[k - 1]

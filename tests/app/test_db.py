@@ -33,7 +33,7 @@ def test_newer_database_is_refused(tmp_path: Path) -> None:
 
 
 def test_failed_migration_rolls_back(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    def broken(db) -> None:  # type: ignore[no-untyped-def]
+    def broken(db) -> None:
         db.execute("CREATE TABLE half_done (x)")
         raise RuntimeError("boom")
 

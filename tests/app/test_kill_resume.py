@@ -44,7 +44,9 @@ def test_kill_9_mid_run_then_resume_is_byte_identical(tmp_path: Path) -> None:
                     time.sleep(0.01)
             assert killed_in is not None, "never saw a per-frame stage part-way through"
         run_dir = data / "studio" / "runs" / f"p{a['id']}" / f"r{run['id']}"
-        worker_pid = int(re.search(r"\(pid (\d+)\)", (run_dir / "run.log").read_text()).group(1))  # type: ignore[union-attr]
+        started = re.search(r"\(pid (\d+)\)", (run_dir / "run.log").read_text())
+        assert started is not None, "run.log names no worker pid"
+        worker_pid = int(started.group(1))
         server.kill9()
         # The worker dies with the server: nothing keeps writing into the run folder.
         assert process_gone(worker_pid), "the worker process outlived the killed server"

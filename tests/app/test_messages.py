@@ -78,7 +78,7 @@ def test_every_message_type_has_resolvable_annotations_and_an_example() -> None:
     assert set(types) == {"run", "cancel", "stage", "log", "result"}
     for tag, cls in types.items():
         assert cls.type == tag and dataclasses.is_dataclass(cls)
-        assert cls.__dataclass_params__.frozen  # type: ignore[attr-defined]
+        assert cls.__dataclass_params__.frozen  # type: ignore[attr-defined]  # set by @dataclass, untyped
         hints = typing.get_type_hints(cls)  # raises for an annotation that does not resolve
         assert {f.name for f in dataclasses.fields(cls)} <= set(hints)
     assert {type(m) for m in EXAMPLES} == set(types.values())

@@ -53,7 +53,7 @@ def test_create_list_read_update_delete(client: TestClient, tiny_dataset: Path) 
     assert client.get(f"{API}/projects").json()["count"] == 0
 
 
-def test_demo_project_reference(client: TestClient, settings) -> None:  # type: ignore[no-untyped-def]
+def test_demo_project_reference(client: TestClient, settings) -> None:
     r = client.post(f"{API}/projects", json={"name": "demo", "dataset": {"kind": "demo"}})
     assert r.status_code == 201
     assert r.json()["dataset"]["path"] == str(settings.demo_dataset)
@@ -76,7 +76,7 @@ def test_unknown_project_is_404(client: TestClient) -> None:
 
 
 def test_invalid_payloads_name_the_field(client: TestClient, tiny_dataset: Path) -> None:
-    def loc(r) -> list:  # type: ignore[no-untyped-def]
+    def loc(r) -> list:
         assert r.status_code == 422, r.text
         return r.json()["detail"][0]["loc"]
 

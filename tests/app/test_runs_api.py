@@ -11,9 +11,11 @@ import appfixtures
 import numpy as np
 import pytest
 from apphelpers import API, create_project, wait_run
+from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from app import crud
+from app.core.config import Settings
 from app.core.db import open_db
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.fusion import voxel_keys
@@ -109,9 +111,16 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert project["last_run"]["status"] == "done" and project["active_run"] is None
 
 
+def app_settings(client: TestClient) -> Settings:
+    """The settings the test client's app was created with."""
+    app = client.app
+    assert isinstance(app, FastAPI)
+    settings: Settings = app.state.settings
+    return settings
+
+
 def crud_run_dir(client: TestClient, run_id: int) -> str:
-    settings = client.app.state.settings  # type: ignore[attr-defined]
-    with open_db(settings.database) as db:
+    with open_db(app_settings(client).database) as db:
         return crud.require_run(db, run_id)["run_dir"]
 
 
@@ -272,7 +281,7 @@ def test_corrections_reach_the_exported_labels(client: TestClient, tiny_dataset:
     frame = seq.frame(0)
     keys = voxel_keys(world_points(frame.points, frame.pose), 0.2)
     chosen = np.unique(keys)[:25]
-    settings = client.app.state.settings  # type: ignore[attr-defined]
+    settings = app_settings(client)
     with open_db(settings.database) as db:
         undone = crud.add_correction(
             db, project_id=project["id"], class_name="vegetation", voxel_size=0.2, keys=chosen
@@ -296,7 +305,7 @@ def test_corrections_reach_the_exported_labels(client: TestClient, tiny_dataset:
 
 
 @pytest.mark.slow
-def test_graceful_shutdown_interrupts_and_restart_resumes(settings, tiny_dataset: Path) -> None:  # type: ignore[no-untyped-def]
+def test_graceful_shutdown_interrupts_and_restart_resumes(settings, tiny_dataset: Path) -> None:
     from app.main import create_app
 
     with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:

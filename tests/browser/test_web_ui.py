@@ -30,7 +30,7 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+def server(tmp_path_factory: pytest.TempPathFactory):
     from serverproc import Server, make_small_street
 
     data = tmp_path_factory.mktemp("ui") / "data"
@@ -40,7 +40,7 @@ def server(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped
     srv.stop()
 
 
-def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, tmp_path: Path) -> None:
     import httpx
     from playwright.sync_api import expect
 
@@ -52,7 +52,7 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     # The page must show the server's stage and parameter labels: change two in the answer it gets.
     served: list[dict] = []
 
-    def relabel(route) -> None:  # type: ignore[no-untyped-def]
+    def relabel(route) -> None:
         body = route.fetch().json()
         for stage in body["stages"]:
             if stage["name"] == "smooth":
@@ -167,7 +167,7 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     page.close()
 
 
-def test_token_protected_server_asks_for_the_token(browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+def test_token_protected_server_asks_for_the_token(browser, tmp_path: Path) -> None:
     from playwright.sync_api import expect
     from serverproc import Server
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ParamSpec, TypeVar
 from urllib.parse import urlsplit
 
 import viser
@@ -33,6 +34,9 @@ from leap_core.errors import LeapError
 
 log = logging.getLogger("leap.viewer")
 
+_P = ParamSpec("_P")
+_T = TypeVar("_T")
+
 router = APIRouter(prefix="/projects/{project_id}/viewer", tags=["viewer"])
 
 _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
@@ -41,7 +45,7 @@ _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "ind
 class ViewerOpen(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    run_id: int | None = Field(None, ge=1, description="finished run to review (default: the latest)")
+    run_id: int | None = Field(default=None, ge=1, description="finished run to review (default: the latest)")
 
 
 class ViewerPublic(BaseModel):
@@ -50,19 +54,19 @@ class ViewerPublic(BaseModel):
     port: int = Field(description="viser's own port on 127.0.0.1")
     url: str = Field(description="viewer page relayed under the app's port (works wherever the app does)")
     direct_url: str | None = Field(
-        description="viser's own page on 127.0.0.1 (no token check there, so only offered when the app has no "
-        "access token); reachable only from the app's machine"
+        description="viser's own page on 127.0.0.1 (no token check there, so only offered when the app has "
+        "no access token); reachable only from the app's machine"
     )
 
 
 def get_viewers(request: Request) -> ViewerManager:
     """The app's :class:`ViewerManager`, created on first use (stopped by :func:`close_viewers`)."""
     state = request.app.state
-    manager = getattr(state, "viewers", None)
+    manager: ViewerManager | None = getattr(state, "viewers", None)
     if manager is None:
         manager = ViewerManager(state.settings, getattr(state, "jobs", None))
         state.viewers = manager
-    return manager  # type: ignore[no-any-return]
+    return manager
 
 
 def close_viewers(app: object) -> None:
@@ -87,9 +91,9 @@ def _public(request: Request, project_id: int, run_id: int | None, port: int) ->
     )
 
 
-def _run_blocking(fn, *args):  # type: ignore[no-untyped-def]
+async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
     # Starting a viewer loads a grid (hundreds of ms for millions of voxels): keep it off the event loop.
-    return asyncio.to_thread(fn, *args)
+    return await asyncio.to_thread(fn, *args, **kwargs)
 
 
 @router.post("", response_model=ViewerPublic, dependencies=[AuthDep])
@@ -137,7 +141,9 @@ async def viewer_client_noslash(project_id: int, request: Request) -> RedirectRe
 
 
 @router.get("/client/", name="viewer_client", include_in_schema=False, dependencies=[AuthDep])
-async def viewer_client(project_id: int, request: Request, viewers: ViewersDep, settings: SettingsDep) -> HTMLResponse:
+async def viewer_client(
+    project_id: int, request: Request, viewers: ViewersDep, settings: SettingsDep
+) -> HTMLResponse:
     """viser's client page. It opens its websocket on this path without the trailing slash."""
     if viewers.get(project_id) is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
@@ -210,7 +216,9 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
         for task in pending:
             task.cancel()
         for task in tasks:
-            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed, WebSocketDisconnect, RuntimeError):
+            with contextlib.suppress(
+                asyncio.CancelledError, ConnectionClosed, WebSocketDisconnect, RuntimeError
+            ):
                 await task
     finally:
         await upstream_cm.__aexit__(None, None, None)
