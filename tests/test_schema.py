@@ -43,7 +43,8 @@ LEARNING_MAP: dict[int, str | None] = {
     259: "other-vehicle",
 }  # fmt: skip
 
-# RGB colours given in the paper (METHOD.md) and SemanticKITTI color_map entries (BGR) turned into RGB.
+# RGB colours given in the paper (docs/METHOD.md E.7) and SemanticKITTI color_map entries (BGR) turned
+# into RGB.
 PAPER_RGB = {
     "car": (100, 150, 245), "road": (255, 0, 255), "sidewalk": (75, 0, 75), "building": (255, 200, 0),
     "vegetation": (0, 175, 0), "terrain": (150, 240, 80), "pole": (255, 240, 150),

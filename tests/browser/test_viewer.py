@@ -25,7 +25,7 @@ import pytest
 artifacts = browserfixtures.artifacts
 
 MAX_BROWSER_POINTS = 200_000
-"""Software WebGL stays responsive up to about this many points (METHOD.md)."""
+"""Software WebGL stays responsive up to about this many points (docs/METHOD.md, Facts about the tools)."""
 DEMO_FRAMES = 14
 """Frames of the generated demo sequence (enough for a readable street, small enough for software WebGL)."""
 CORRECTED_CLASS = "traffic-sign"
