@@ -71,8 +71,8 @@ def _boxes_for_street(length: float, rng: np.random.Generator) -> tuple[np.ndarr
         boxes.append(([x, -20, 0.0], [x + w, -8.5, rng.uniform(6, 15)], 50))
         x += w + rng.uniform(2, 6)
     boxes.append(([-30, 12, 0.0], [length + 30, 12.1, 1.5], 51))
-    for xt in np.arange(-25, length + 30, 11.0):
-        xt += rng.uniform(-2, 2)
+    for x_row in np.arange(-25, length + 30, 11.0):
+        xt = x_row + rng.uniform(-2, 2)
         boxes.append(([xt - 0.2, 6.3, 0.0], [xt + 0.2, 6.7, 2.5], 71))  # trunk
         r = rng.uniform(1.5, 2.5)
         boxes.append(([xt - r, 6.5 - r, 2.5], [xt + r, 6.5 + r, 2.5 + 1.6 * r], 70))  # crown
@@ -90,7 +90,9 @@ def _boxes_for_street(length: float, rng: np.random.Generator) -> tuple[np.ndarr
     return np.stack([lo, hi], axis=1), ids
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: float) -> tuple[np.ndarray, np.ndarray]:
+def _cast(
+    origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Slab-method ray casting: nearest hit distance (R,) (inf = none) and box index (R,) per ray."""
     best_t = np.full(dirs.shape[0], np.inf)
     best_i = np.full(dirs.shape[0], -1)
@@ -107,7 +109,8 @@ def _cast(origin: np.ndarray, dirs: np.ndarray, boxes: np.ndarray, max_range: fl
 
 
 def write_standin_sequence(root: Path, n_frames: int, seed: int = 0) -> Path:
-    """Write a KITTI-layout street sequence: 64 beams × 1700 columns (~100k points per scan), 1 m per frame."""
+    """Write a KITTI-layout street sequence: 64 beams × 1700 columns (~100k points per scan), 1 m per
+    frame."""
     rng = np.random.default_rng(seed)
     boxes, ids = _boxes_for_street(float(n_frames), rng)
     seq = root / "sequences" / "00"
@@ -192,7 +195,9 @@ class PlainMLP(nn.Module):
         return self.net(feats)
 
 
-def step_times(cfg: ConsistencyConfig, points: np.ndarray, num_classes: int, repeats: int = 5) -> dict[str, float]:
+def step_times(
+    cfg: ConsistencyConfig, points: np.ndarray, num_classes: int, repeats: int = 5
+) -> dict[str, float]:
     """Median training-step seconds of the backbone and of a plain MLP of similar size on the same points."""
     rng = np.random.default_rng(0)
     n = min(cfg.points_per_scan or len(points), len(points))
@@ -202,7 +207,8 @@ def step_times(cfg: ConsistencyConfig, points: np.ndarray, num_classes: int, rep
     model = PointSegmenter(cfg.backbone, num_classes)
     params = count_parameters(model)
     width = 64
-    depth = max(1, round((params - width * (cfg.backbone.in_features + num_classes)) / (width * width + 3 * width)))
+    per_layer = width * width + 3 * width
+    depth = max(1, round((params - width * (cfg.backbone.in_features + num_classes)) / per_layer))
     mlp = PlainMLP(cfg.backbone.in_features, width, depth, num_classes)
     opt_a = torch.optim.AdamW(model.parameters())
     opt_b = torch.optim.AdamW(mlp.parameters())
@@ -263,16 +269,18 @@ def smoothed_labels(seq: KittiSequence, frames: range, grid: VoxelGrid) -> list[
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run and report, top to bottom
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sequence", type=Path, default=None, help="KITTI sequence folder (default: a stand-in)")
     ap.add_argument("--run-dir", type=Path, default=None,
-                    help="finished `leap run` folder of --sequence: use its fused/smoothed grids and camera view")
+                    help="finished `leap run` folder of --sequence: use its fused/smoothed grids and "
+                         "camera view")
     ap.add_argument("--frames", type=int, default=60, help="scans of the stand-in / first scans used")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--noise", type=float, default=0.15, help="without --run-dir: camera label noise")
     ap.add_argument("--fov", type=float, default=90.0, help="without --run-dir: camera field of view (deg)")
-    ap.add_argument("--config", type=str, default="{}", help='JSON overrides of ConsistencyConfig, e.g. \'{"temperature": 2}\'')
+    ap.add_argument("--config", type=str, default="{}",
+                    help='JSON overrides of ConsistencyConfig, e.g. \'{"temperature": 2}\'')
     ap.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"])
     ap.add_argument("--paper-scale", action="store_true", help="WaffleIron sizes (GPU)")
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_3dcn.json")
@@ -323,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench3dcn_work_") as work:
         t_start = time.perf_counter()
         new = run_3dcn_iteration(seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1,
-                                 progress=lambda d, t: marks.append((time.perf_counter(), d)), frames=frames,
+                                 progress=lambda d, _t: marks.append((time.perf_counter(), d)), frames=frames,
                                  views=seen)
         total_s = time.perf_counter() - t_start
     load_after = os.getloadavg()[0]
@@ -333,8 +341,8 @@ def main(argv: list[str] | None = None) -> int:
         return next(t for t, d in marks if d >= done) - t_start
 
     sel_s, train_end = at(n), at(n + steps)
-    phases = {"selection_s": sel_s, "training_s": train_end - sel_s, "inference_fusion_s": total_s - train_end,
-              "total_s": total_s}
+    phases = {"selection_s": sel_s, "training_s": train_end - sel_s,
+              "inference_fusion_s": total_s - train_end, "total_s": total_s}
 
     gt_f = np.concatenate(gt)
     view_f = np.concatenate(views)
@@ -347,7 +355,8 @@ def main(argv: list[str] | None = None) -> int:
         before = smoothed_labels(seq, frames, fused)
     for name, labels in (("voxel", before), ("+3D-CN x1", smoothed_labels(seq, frames, new))):
         pred = np.concatenate(labels)
-        cam = evaluate(gt_f[view_f], pred[view_f], schema.names, schema.categories(), ignore_unlabeled_pred=True)
+        cam = evaluate(gt_f[view_f], pred[view_f], schema.names, schema.categories(),
+                       ignore_unlabeled_pred=True)
         every = evaluate(gt_f, pred, schema.names, schema.categories(), ignore_unlabeled_pred=False)
         rows[name] = {"miou_camera_view": cam.miou, "category_miou_camera_view": cam.category_miou,
                       "miou_all_points": every.miou, "labeled_share_all": float((pred >= 0).mean())}
@@ -373,7 +382,8 @@ def main(argv: list[str] | None = None) -> int:
         "source": source, "inputs": inputs, "scans": n, "points": n_points, "threads": args.threads,
         "load_average": [load_before, load_after], "stand_in_seconds": gen_s,
         "config": {"temperature": cfg.temperature, "points_per_scan": cfg.points_per_scan,
-                   "min_steps": cfg.min_steps, "channels": cfg.backbone.channels, "layers": cfg.backbone.layers,
+                   "min_steps": cfg.min_steps, "channels": cfg.backbone.channels,
+                   "layers": cfg.backbone.layers,
                    "use_intensity": cfg.backbone.use_intensity, "device": cfg.device, "train_steps": steps},
         "phases": phases, "target_s": 600.0, "ratio_to_target": total_s / 600.0,
         "baseline": base, "ratio_backbone_to_mlp_step": base["backbone_step_s"] / base["mlp_step_s"],

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import datetime as dt
 import gc
 import json
@@ -166,10 +167,8 @@ async def poll_status(
         except httpx.HTTPError as exc:
             stats.errors.append(f"{path} {type(exc).__name__}: {exc}")
         i += 1
-        try:
+        with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(done.wait(), timeout=interval)
-        except asyncio.TimeoutError:
-            pass
 
 
 async def load_while_running(base: str, run_id: int, clients: int, interval: float) -> LoadStats:
@@ -208,7 +207,7 @@ def process_cpu(pid: int) -> float:
 
 
 def run_once(
-    base: str, data_root: Path, dataset: Path, name: str, clients: int, interval: float, server_pid: int
+    base: str, data_root: Path, dataset: Path, name: str, *, clients: int, interval: float, server_pid: int
 ) -> dict[str, Any]:
     server0, client0, t0 = process_cpu(server_pid), time.process_time(), time.perf_counter()
     with httpx.Client(base_url=f"{base}/api/v1", timeout=60) as api:
@@ -285,15 +284,18 @@ def main() -> None:
     gc.freeze()
     proc, base = start_server(data_root)
     try:
-        run_once(base, data_root, dataset, "warm-up", 0, args.poll_interval, proc.pid)
+        run_once(base, data_root, dataset, "warm-up", clients=0, interval=args.poll_interval,
+                 server_pid=proc.pid)
         baseline: list[dict[str, Any]] = []
         loaded: list[dict[str, Any]] = []
         for i in range(args.pairs):
             baseline.append(
-                run_once(base, data_root, dataset, f"baseline {i}", 0, args.poll_interval, proc.pid)
+                run_once(base, data_root, dataset, f"baseline {i}", clients=0, interval=args.poll_interval,
+                         server_pid=proc.pid)
             )
             loaded.append(
-                run_once(base, data_root, dataset, f"loaded {i}", args.clients, args.poll_interval, proc.pid)
+                run_once(base, data_root, dataset, f"loaded {i}", clients=args.clients,
+                         interval=args.poll_interval, server_pid=proc.pid)
             )
             print(
                 f"pair {i + 1}: baseline {baseline[-1]['wall_s']:.2f} s, "

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -114,16 +115,16 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
     for coherent in (True, False):
         label = "coherent rows" if coherent else "random rows (worst case)"
         obs = make_observations(images, points, rows, coherent)
-        t_fuse = time_it(lambda: fuse(obs, C), repeat=repeat)
-        grid, mem = peak_memory(lambda: fuse(obs, C))
+        t_fuse = time_it(partial(fuse, obs, C), repeat=repeat)
+        grid, mem = peak_memory(partial(fuse, obs, C))
         inv, logp, v = naive_inputs(obs)
-        t_naive = time_it(lambda: naive_add_at(inv, logp, v), repeat=max(1, repeat // 2))
+        t_naive = time_it(partial(naive_add_at, inv, logp, v), repeat=max(1, repeat // 2))
         acc = naive_add_at(inv, logp, v)
         acc -= acc.max(axis=1, keepdims=True)
         np.maximum(acc, -FusionConfig().logp_clip, out=acc)
         max_diff = float(np.abs(acc - grid.logp.astype(np.float32)).max())
         del inv, logp, acc
-        t_full = time_it(lambda: naive_full(obs), repeat=1, warmup=0)
+        t_full = time_it(partial(naive_full, obs), repeat=1, warmup=0)
         rate = n / t_fuse.median
         ratio = t_naive.median / t_fuse.median
         results["coherent" if coherent else "random_rows"] = {
@@ -151,7 +152,7 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
                            f"max|Δ| vs naive {max_diff:.3g}"] + [""] * 6)
         if coherent:
             xyz = _xyz_cache(images, points)
-            t_keys = time_it(lambda: voxel_keys(xyz, 0.2), repeat=3)
+            t_keys = time_it(partial(voxel_keys, xyz, 0.2), repeat=3)
             results["voxel_keys"] = {**t_keys.to_dict(), "points_per_s": len(xyz) / t_keys.median}
             table_rows.append(_row("  voxel_keys (xyz → key), same points", t_keys, len(xyz), None, None))
     return table_rows, results

@@ -74,7 +74,8 @@ def real_detector(words: list[str]):
     torch.manual_seed(0)
     model = GroundingDinoForObjectDetection(GroundingDinoConfig()).eval()
     proc = GroundingDinoProcessor(
-        image_processor=GroundingDinoImageProcessorPil(), tokenizer=BertTokenizer(vocab=vocab, do_lower_case=True)
+        image_processor=GroundingDinoImageProcessorPil(),
+        tokenizer=BertTokenizer(vocab=vocab, do_lower_case=True),
     )
     return model, proc
 
@@ -127,7 +128,9 @@ def main() -> None:
     import torch
 
     schema, _ = load_project_file(projects_dir() / "semantickitti_expanded.yaml")
-    words = sorted({w for c in schema.classes for p in (*c.prompts, *c.negative_prompts) for w in p.lower().split()})
+    words = sorted(
+        {w for c in schema.classes for p in (*c.prompts, *c.negative_prompts) for w in p.lower().split()}
+    )
     rng = np.random.default_rng(0)
     image = rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8)
     boxes = random_boxes(args.boxes, KITTI_HW, rng)
@@ -148,7 +151,9 @@ def main() -> None:
     plans = lab.plan(schema)
     t_det = time_it(lambda: lab._detect([image], plans[0]), repeat=args.repeat, warmup=1)
     n_q = det[0].config.num_queries
-    results["detector"] = {**t_det.to_dict(), "passes": len(plans), "text_tokens": plans[0].num_tokens, "queries": n_q}
+    results["detector"] = {
+        **t_det.to_dict(), "passes": len(plans), "text_tokens": plans[0].num_tokens, "queries": n_q
+    }
     seg_times = {}
     for name, seg in segs.items():
         slab = make_labeler(tmp / name.replace(" ", "_"), det, seg, tmp / "cache")
@@ -161,19 +166,24 @@ def main() -> None:
         t_enc = time_it(encode, repeat=args.repeat, warmup=1)
         t_full = time_it(lambda s=slab: s._segment([image], [boxes]), repeat=args.repeat, warmup=1)
         seg_times[name] = (t_enc, t_full)
-        results[name] = {"encoder": t_enc.to_dict(), "encoder_plus_decoder": t_full.to_dict(), "boxes": args.boxes}
+        results[name] = {
+            "encoder": t_enc.to_dict(), "encoder_plus_decoder": t_full.to_dict(), "boxes": args.boxes
+        }
 
     # Cache hit: pass results with --boxes regions in all, stored under the keys the labeler computes.
     h, w = KITTI_HW
     digest = image_digest(image)
+    cache = lab.cache
+    assert cache is not None, "make_labeler gives the labeler a 2D cache"
     for part, plan in zip(np.array_split(np.arange(args.boxes), len(plans)), plans, strict=True):
         masks = np.zeros((len(part), h, w), dtype=bool)
         for j, (x0, y0, x1, y1) in enumerate(boxes[part].astype(int)):
             masks[j, y0:y1, x0:x1] = True
         k = len(plan.class_names)
-        res = PassResult(h, w, plan.class_names, boxes[part], rng.normal(0, 2, (len(part), k)).astype(np.float32),
+        logits = rng.normal(0, 2, (len(part), k)).astype(np.float32)
+        res = PassResult(h, w, plan.class_names, boxes[part], logits,
                          np.packbits(masks.reshape(len(part), -1), axis=1))
-        lab.cache.put(lab.pass_key(digest, plan), res)  # type: ignore[union-attr]
+        cache.put(lab.pass_key(digest, plan), res)
     calls_before = lab.detector_calls
     t_hit = time_it(lambda: lab.label_images([image], schema), repeat=5, warmup=1)
     assert lab.detector_calls == calls_before, "a cache hit must not run the detector"
@@ -182,21 +192,24 @@ def main() -> None:
     def row(label: str, t: float, cpu: float, base: float) -> list:
         return [label, t, cpu, base / t if t > 0 else float("inf")]
 
-    first_enc, first_full = next(iter(seg_times.values()))
+    _, first_full = next(iter(seg_times.values()))
     baseline = t_det.median + first_full.median
     rows.append(row(f"{det_name}: 1 joint pass", t_det.median, t_det.cpu_median, baseline))
     for name, (t_enc, t_full) in seg_times.items():
         rows.append(row(f"{name} encoder", t_enc.median, t_enc.cpu_median, baseline))
-        rows.append(row(f"{name} encoder + decoder ({args.boxes} boxes)", t_full.median, t_full.cpu_median, baseline))
+        rows.append(row(f"{name} encoder + decoder ({args.boxes} boxes)", t_full.median, t_full.cpu_median,
+                        baseline))
         rows.append(row(f"total compute, {det_name} + {name}", t_det.median + t_full.median,
                         t_det.cpu_median + t_full.cpu_median, baseline))
     rows.append(row("2D cache hit (read + assemble)", t_hit.median, t_hit.cpu_median, baseline))
-    title = (f"grounded-sam per image, {KITTI_HW[1]}x{KITTI_HW[0]} px, {torch.get_num_threads()} torch threads, "
+    title = (f"grounded-sam per image, {KITTI_HW[1]}x{KITTI_HW[0]} px, "
+             f"{torch.get_num_threads()} torch threads, "
              f"text {plans[0].num_tokens} tokens in {len(plans)} pass(es), Q={n_q}; "
              f"ratio = total compute ({det_name} + {next(iter(seg_times))}) / row")
     print_table(title, ["step", "median s", "cpu s", "x faster than compute"], rows)
     n_classes = schema.num_classes
-    print(f"per-class mode runs the detector {n_classes}x per image: about {n_classes * t_det.median:.0f} s here.\n")
+    print(f"per-class mode runs the detector {n_classes}x per image: "
+          f"about {n_classes * t_det.median:.0f} s here.\n")
     path = write_results("models_quick" if args.quick else "models",
                          {"image_hw": KITTI_HW, "schema": "semantickitti_expanded", "results": results})
     print(f"wrote {path}")

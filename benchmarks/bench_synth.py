@@ -83,10 +83,10 @@ def stage_breakdown(cfg: SynthConfig, frames: list[int]) -> dict:
                 len(w.scene.static),
                 camera_to_world(cfg.camera, w.poses[i]),
                 cfg.camera,
-                w.scene.sun,
-                w.shadows,
-                rng,
-                w.pixel_rays,
+                sun=w.scene.sun,
+                shadows=w.shadows,
+                rng=rng,
+                rays=w.pixel_rays,
             )
             camera.append(time.process_time() - c)
             c = time.process_time()
@@ -114,12 +114,12 @@ def culling_vs_brute(cfg: SynthConfig, frame: int) -> dict:
         prims, np.linalg.inv(pose), beam_elevations(coarse), rays.shape[2], coarse.max_range
     )
     c = time.process_time()
-    d1, p1 = cast_grid(prims, pose[:3, 3], dirs, tasks, coarse.min_range, coarse.max_range)
+    _, p1 = cast_grid(prims, pose[:3, 3], dirs, tasks, coarse.min_range, coarse.max_range)
     culled = time.process_time() - c
     in_range = np.unique(tasks[:, 0])
     full = np.array([[p, 0, rays.shape[1], 0, rays.shape[2]] for p in in_range])
     c = time.process_time()
-    d2, p2 = cast_grid(prims, pose[:3, 3], dirs, full, coarse.min_range, coarse.max_range)
+    _, p2 = cast_grid(prims, pose[:3, 3], dirs, full, coarse.min_range, coarse.max_range)
     brute = time.process_time() - c
     return {
         "rays": int(rays.shape[1] * rays.shape[2]),

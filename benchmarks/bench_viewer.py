@@ -47,13 +47,18 @@ def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGr
     """A street-sized map: voxels on a 400 m × 400 m × 8 m block at 0.2 m, random class posteriors."""
     rng = np.random.default_rng(seed)
     ijk = np.stack(
-        [rng.integers(0, 2000, num_voxels * 2), rng.integers(0, 2000, num_voxels * 2), rng.integers(0, 40, num_voxels * 2)],
+        [
+            rng.integers(0, 2000, num_voxels * 2),
+            rng.integers(0, 2000, num_voxels * 2),
+            rng.integers(0, 40, num_voxels * 2),
+        ],
         axis=1,
     ) + AXIS_OFFSET
     keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])[:num_voxels]
     logits = rng.normal(0.0, 1.5, (keys.shape[0], num_classes)).astype(np.float32)
     logits[np.arange(keys.shape[0]), rng.integers(0, num_classes, keys.shape[0])] += 2.5
-    return ReviewGrid(SmoothedGrid.from_voxel_grid(VoxelGrid(keys, logits.astype(np.float16), 0.2)), "synthetic")
+    grid = VoxelGrid(keys, logits.astype(np.float16), 0.2)
+    return ReviewGrid(SmoothedGrid.from_voxel_grid(grid), "synthetic")
 
 
 class WireClient:
@@ -75,7 +80,10 @@ class WireClient:
         from websockets.asyncio.client import connect
 
         async with connect(
-            f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{self.version}"], max_size=None, compression=None
+            f"ws://127.0.0.1:{self.port}",
+            subprotocols=[f"viser-v{self.version}"],
+            max_size=None,
+            compression=None,
         ) as ws:
             self._ready.set()
             async for message in ws:
@@ -98,7 +106,9 @@ class WireClient:
         raise TimeoutError(f"update of {expected} bytes not delivered in {timeout} s")
 
 
-def naive_loop(grid: ReviewGrid, palette: np.ndarray, threshold: float, enabled: list[bool]) -> tuple[Any, Any]:
+def naive_loop(
+    grid: ReviewGrid, palette: np.ndarray, threshold: float, enabled: list[bool]
+) -> tuple[Any, Any]:
     """Per-voxel Python: the baseline a straightforward viewer would write."""
     pts, cols = [], []
     centres, label, conf = grid.centres, grid.label.tolist(), grid.conf.tolist()
@@ -132,7 +142,8 @@ def main() -> None:
         ("mode: confidence", vl.ViewState("confidence", threshold=0.5, enabled=all_on)),
         ("mode: P(class 3)", vl.ViewState("class_probability", class_index=3, threshold=0.5, enabled=all_on)),
         ("P(class 3) ≥ 0.2", vl.ViewState("class_probability", class_index=3, threshold=0.2, enabled=all_on)),
-        ("P(class 5), threshold 0", vl.ViewState("class_probability", class_index=5, threshold=0.0, enabled=all_on)),
+        ("P(class 5), threshold 0",
+         vl.ViewState("class_probability", class_index=5, threshold=0.0, enabled=all_on)),
         ("back to classes", vl.ViewState("class", threshold=0.0, enabled=all_on)),
     ]
 
@@ -153,7 +164,8 @@ def main() -> None:
             if np.array_equal(rows, shown):
                 handle = scene.voxels.handle
                 # viser sends nothing when the colours did not change either.
-                expected = 0 if handle is not None and np.array_equal(handle.colors, cols) else rows.shape[0] * 3
+                unchanged = handle is not None and np.array_equal(handle.colors, cols)
+                expected = 0 if unchanged else rows.shape[0] * 3
                 scene.voxels.set_colors(cols)
             else:
                 scene.voxels.set(grid.centres[rows], cols)
@@ -215,7 +227,8 @@ def main() -> None:
 
     print(f"\nviewer recolouring: {grid.num_voxels:,} voxels, {c} classes (grid built in {build_s:.1f} s), "
           f"median of {args.repeats}\n")
-    header = f"{'change':24s} {'shown':>10s} {'ours srv':>9s} {'ours dlv':>9s} {'re-add srv':>10s} {'re-add dlv':>10s} {'dlv ratio':>9s}"
+    header = (f"{'change':24s} {'shown':>10s} {'ours srv':>9s} {'ours dlv':>9s} {'re-add srv':>10s} "
+              f"{'re-add dlv':>10s} {'dlv ratio':>9s}")
     print(header)
     print("-" * len(header))
     for row in table:

@@ -152,7 +152,8 @@ def format_table(title: str, header: Sequence[str], rows: Sequence[Sequence[Any]
     widths = [max(len(h), *(len(r[i]) for r in body)) if body else len(h) for i, h in enumerate(header)]
 
     def line(vals: Sequence[str]) -> str:
-        return "  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(vals, widths)))
+        cells = enumerate(zip(vals, widths, strict=True))
+        return "  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in cells)
 
     out = [title, line(list(header)), "  ".join("-" * w for w in widths)]
     out += [line(r) for r in body]

@@ -126,7 +126,8 @@ def _plain(value: Any) -> Any:
 
 def config_to_dict(cfg: PipelineConfig) -> dict[str, Any]:
     """JSON/YAML-ready nested dict of every field (tuples become lists); see :func:`config_from_dict`."""
-    return _plain(cfg)
+    out: dict[str, Any] = _plain(cfg)
+    return out
 
 
 # ---------------------------------------------------------------------------------------- from dict
@@ -134,7 +135,7 @@ class _BadValue(Exception):
     """Internal: a value does not fit a field's type; the caller adds the field path."""
 
 
-def _type_name(tp: Any) -> str:
+def _type_name(tp: Any) -> str:  # noqa: PLR0911  one return per kind of annotation, read as a table
     origin = typing.get_origin(tp)
     if origin is Literal:
         return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
@@ -154,7 +155,7 @@ def _type_name(tp: Any) -> str:
     )
 
 
-def _coerce(value: Any, tp: Any) -> Any:
+def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per kind of annotation (a table)
     """``value`` converted to type ``tp`` (strictly: no str→number, no bool→int); raises _BadValue."""
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
@@ -182,7 +183,7 @@ def _coerce(value: Any, tp: Any) -> Any:
             return tuple(_coerce(v, args[0]) for v in value)
         if len(value) != len(args):
             raise _BadValue(f"must be {_type_name(tp)}, got {len(value)} values")
-        return tuple(_coerce(v, a) for v, a in zip(value, args))
+        return tuple(_coerce(v, a) for v, a in zip(value, args, strict=True))
     if origin is dict:
         if not isinstance(value, Mapping):
             raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")

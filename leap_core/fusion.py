@@ -318,7 +318,8 @@ def world_points(points: npt.ArrayLike, pose: npt.ArrayLike) -> npt.NDArray[np.f
         (N, 3) float64.
     """
     p = np.asarray(pose, dtype=np.float64)
-    return np.asarray(points)[:, :3].astype(np.float64) @ p[:3, :3].T + p[:3, 3]
+    out: npt.NDArray[np.float64] = np.asarray(points)[:, :3].astype(np.float64) @ p[:3, :3].T + p[:3, 3]
+    return out
 
 
 # ------------------------------------------------------------------------------------- observations
@@ -345,7 +346,8 @@ def log_table(table: npt.ArrayLike, floor: float) -> npt.NDArray[np.float32]:
     t = np.maximum(np.asarray(table, dtype=np.float32), np.float32(floor))
     if t.ndim != 2:
         raise ValueError(f"table must be (K, C), got shape {t.shape}")
-    return (np.log(t) - np.log(t.sum(axis=1, keepdims=True))).astype(np.float32)
+    out: npt.NDArray[np.float32] = (np.log(t) - np.log(t.sum(axis=1, keepdims=True))).astype(np.float32)
+    return out
 
 
 # -------------------------------------------------------------------------------------------- fusion
@@ -354,8 +356,8 @@ def _bits(n: int) -> int:
     return max(int(n).bit_length(), 0)
 
 
-def _reduce_chunk(
-    obs: list[Observations], num_classes: int, weight: float
+def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buffers (del) when done
+    obs: list[Observations], weight: float
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
     """Σ over a chunk of observations: (sorted unique keys (V,), weight·Σ log-tables (V, C) float32).
 
@@ -373,7 +375,7 @@ def _reduce_chunk(
     comp = np.empty(n, np.int64)
     rows = np.empty(n, np.int32 if k_total < 2**31 else np.int64)
     s = 0
-    for o, off in zip(obs, offsets[:-1]):
+    for o, off in zip(obs, offsets[:-1], strict=True):
         e = s + len(o.keys)
         comp[s:e] = o.keys
         np.add(o.rows, off, out=rows[s:e], casting="unsafe")
@@ -387,7 +389,7 @@ def _reduce_chunk(
         for a, c in enumerate(_axes(blk)):
             lo[a] = min(lo[a], int(c.min()))
             hi[a] = max(hi[a], int(c.max()))
-    cbits = [_bits(int(h - m)) for h, m in zip(hi, lo)]
+    cbits = [_bits(int(h - m)) for h, m in zip(hi, lo, strict=True)]
     uniq_keys = None
     if sum(cbits) + rbits <= 62:
         shifts = (cbits[1] + cbits[2] + rbits, cbits[2] + rbits, rbits)
@@ -479,7 +481,7 @@ def _finalise(
     # On large grids torch's row max and float16 cast are ≈ 3× faster than numpy's; on small ones its
     # thread wake-up costs more than it saves (milliseconds when other processes share the cores).
     # torch is imported where tensors are made, so reading a config (FusionConfig) does not load it.
-    import torch  # noqa: PLC0415
+    import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
 
     t = torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32))
     t.sub_(t.amax(dim=1, keepdim=True))
@@ -487,7 +489,9 @@ def _finalise(
     return VoxelGrid(keys, t.half().numpy(), cfg.voxel_size)
 
 
-def _start(grid: VoxelGrid | None, num_classes: int, cfg: FusionConfig, weight: float) -> tuple:
+def _start(
+    grid: VoxelGrid | None, num_classes: int, cfg: FusionConfig, weight: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
     if not (weight >= 0 and math.isfinite(weight)):
         raise ValueError(f"fusion weight must be a finite number ≥ 0, got {weight}")
     if grid is None:
@@ -539,9 +543,9 @@ def fuse(
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
     pending: list[Observations] = []
     n_pending = 0
-    for i, o in enumerate(batches):
+    for i, batch in enumerate(batches):
         o = Observations(
-            np.asarray(o[0], dtype=np.int64), np.asarray(o[1]), np.asarray(o[2], dtype=np.float32)
+            np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]), np.asarray(batch[2], dtype=np.float32)
         )
         _check_obs(o, num_classes, i)
         if len(o.keys) == 0:
@@ -549,10 +553,10 @@ def fuse(
         pending.append(o)
         n_pending += len(o.keys)
         if n_pending >= cfg.chunk_points:
-            acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, num_classes, weight))
+            acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight))
             pending, n_pending = [], 0
     if pending:
-        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, num_classes, weight))
+        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight))
     return _finalise(acc_keys, acc, cfg)
 
 
@@ -577,7 +581,7 @@ def fuse_dense(
         cfg: grid and clipping parameters.
         weight: multiplies every log-probability.
     """
-    import torch  # noqa: PLC0415
+    import torch  # noqa: PLC0415  imported where tensors are made: reading a FusionConfig must not load it
 
     cfg = cfg or FusionConfig()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)

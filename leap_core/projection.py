@@ -177,7 +177,8 @@ def depth_cluster_filter(
 def largest_depth_cluster(depth: npt.ArrayLike, gap: float) -> npt.NDArray[np.bool_]:
     """(P,) bool: the points of the largest 1-D gap cluster of ``depth`` (ties: the nearest cluster)."""
     d = np.asarray(depth).reshape(-1)
-    return depth_cluster_filter(np.ones((1, d.shape[0]), bool), d, gap)[0]
+    keep: npt.NDArray[np.bool_] = depth_cluster_filter(np.ones((1, d.shape[0]), bool), d, gap)[0]
+    return keep
 
 
 # ------------------------------------------------------------------------------------------- painting

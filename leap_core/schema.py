@@ -32,7 +32,7 @@ import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 import numpy.typing as npt
@@ -121,7 +121,7 @@ def _entry_label(name: object) -> str:
     return repr(name) if isinstance(name, str) and name.strip() else "<unnamed>"
 
 
-def _is_int(value: object) -> bool:
+def _is_int(value: object) -> TypeGuard[numbers.Integral]:
     # bool is an Integral in Python; `export_id: yes` in YAML must not pass as 1.
     return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
 
@@ -188,11 +188,11 @@ def _normalise_class(
     out: dict[str, Any] = {"name": _text(name, "name")}
     out["color"] = _color(color)
     out["prompts"] = _prompt_list(prompts, "prompts", required=True)
-    if not _is_int(export_id) or not 1 <= int(export_id) <= MAX_RAW_ID:  # type: ignore[call-overload]
+    if not _is_int(export_id) or not 1 <= int(export_id) <= MAX_RAW_ID:
         raise _Invalid(
             f"export_id must be an integer 1..{MAX_RAW_ID} (0 means unlabeled in exports), got {export_id!r}"
         )
-    out["export_id"] = int(export_id)  # type: ignore[call-overload]
+    out["export_id"] = int(export_id)
     if gt_ids is None:
         gt_ids = ()
     if isinstance(gt_ids, np.ndarray):
@@ -334,7 +334,8 @@ class Schema:
         raw = np.asarray(raw_labels)
         if not np.issubdtype(raw.dtype, np.integer):
             raise TypeError(f"raw labels must be an integer array, got dtype {raw.dtype}")
-        return self.gt_lut()[raw & MAX_RAW_ID]
+        classes: npt.NDArray[np.int16] = self.gt_lut()[raw & MAX_RAW_ID]
+        return classes
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping in the file format (see the module docstring)."""

@@ -65,7 +65,8 @@ def knn_weights(dists: npt.ArrayLike) -> npt.NDArray[np.float32]:
     e = np.subtract(dmin, d)
     np.exp(e, out=e)
     s = e.sum(axis=1, keepdims=True)
-    return np.divide(e, s, out=np.zeros_like(e), where=s > 0)
+    w: npt.NDArray[np.float32] = np.divide(e, s, out=np.zeros_like(e), where=s > 0)
+    return w
 
 
 def knn_smooth(
@@ -94,7 +95,8 @@ def knn_smooth(
         raise ValueError(f"centres (V, 3) and probs (V, C) expected, got {pts.shape} and {p.shape}")
     v = pts.shape[0]
     if v == 0:
-        return p.copy()
+        empty: npt.NDArray[np.float32] = p.copy()
+        return empty
     k = min(cfg.k, v)
     bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
     dists, idx = cKDTree(pts).query(pts, k=k, distance_upper_bound=bound, workers=cfg.workers)

@@ -9,7 +9,7 @@ sizes the paper uses, for a GPU.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 from leap_core.errors import ConfigError
 
@@ -131,7 +131,8 @@ class ConsistencyConfig:
     """Weight the cross-entropy by inverse square-root class frequency of the selected labels, so rare
     classes that survive the per-class selection also keep a voice in the loss."""
     seed: int = 0
-    """Seed of weight init, point sampling and augmentation: same seed + same data = same checkpoint on CPU."""
+    """Seed of weight init, point sampling and augmentation: same seed + same data = same checkpoint on
+    CPU."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Torch device; ``auto`` takes CUDA when available."""
     num_threads: int = 0
@@ -167,7 +168,7 @@ class ConsistencyConfig:
         return 1.0 / self.temperature
 
     @classmethod
-    def paper_scale(cls, **overrides: object) -> ConsistencyConfig:
+    def paper_scale(cls, **overrides: Any) -> ConsistencyConfig:
         """The paper's WaffleIron sizes, for a GPU.
 
         256 channels, 48 layers, 0.4 m 2D grid cells on the three planes, 16 kNN neighbours, XYZ input only,
@@ -196,7 +197,7 @@ class ConsistencyConfig:
                 use_intensity=False,
             ),
         )
-        return replace(base, **overrides)  # type: ignore[arg-type]
+        return replace(base, **overrides)
 
 
 __all__ = ["BackboneConfig", "ConsistencyConfig"]

@@ -135,6 +135,7 @@ def select_reliable_scans(
     num_classes: int,
     share: float,
     scope: str = "scan",
+    *,
     seed: int | None = None,
     support: list[npt.NDArray[np.floating]] | None = None,
 ) -> list[npt.NDArray[np.bool_]]:
@@ -160,7 +161,7 @@ def select_reliable_scans(
                 None if seed is None else seed + s,
                 None if support is None else support[s],
             )
-            for s, (lab, conf) in enumerate(zip(labels, confidence))
+            for s, (lab, conf) in enumerate(zip(labels, confidence, strict=True))
         ]
     if scope != "sequence":
         raise ValueError(f"scope must be 'scan' or 'sequence', got {scope!r}")

@@ -49,8 +49,8 @@ def _fingerprint(cfg: ConsistencyConfig, num_classes: int, frames: range, target
     """Hash of everything the trained weights depend on: config, classes, frames and selected labels."""
     h = hashlib.sha256()
     # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
-    trained = {k: v for k, v in config_to_dict(cfg).items()
-               if k not in ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")}
+    untrained = ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")
+    trained = {k: v for k, v in config_to_dict(cfg).items() if k not in untrained}
     head = {"cfg": trained, "C": num_classes, "frames": [frames.start, frames.stop, frames.step]}
     h.update(json.dumps(head, sort_keys=True).encode())
     for t in targets:
@@ -59,7 +59,7 @@ def _fingerprint(cfg: ConsistencyConfig, num_classes: int, frames: range, target
     return h.hexdigest()
 
 
-def run_3dcn_iteration(
+def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; its steps 1-3 share a counter
     seq: KittiSequence,
     fused: VoxelGrid,
     smoothed: VoxelGrid,
@@ -112,7 +112,8 @@ def run_3dcn_iteration(
     """
     if fused.num_classes != num_classes or smoothed.num_classes != num_classes:
         raise LeapError(
-            f"3D-CN: grids have {fused.num_classes} / {smoothed.num_classes} classes, schema has {num_classes}"
+            f"3D-CN: grids have {fused.num_classes} / {smoothed.num_classes} classes, "
+            f"schema has {num_classes}"
         )
     frames = range(len(seq)) if frames is None else frames
     n = len(frames)
@@ -152,13 +153,17 @@ def run_3dcn_iteration(
         labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg_it.seed,
         support=supports if views is not None else None,
     )
-    targets = [np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels)]
+    targets = [
+        np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels, strict=True)
+    ]
     del labels, confs, supports, masks
     counts = np.zeros(num_classes, np.int64)
     for t in targets:
         counts += np.bincount(t[t >= 0], minlength=num_classes)
     if counts.sum() == 0:
-        raise LeapError("3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)")
+        raise LeapError(
+            "3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)"
+        )
 
     # 2. train (or reuse a matching checkpoint)
     fingerprint = _fingerprint(cfg_it, num_classes, frames, targets)
@@ -278,7 +283,8 @@ def voxel_mean_log_probs(
             pend_k, pend_l, pending = [], [], 0
     if pending:
         reduce(pend_k, pend_l)
-    means = acc_sum / np.maximum(acc_cnt, 1)[:, None].astype(np.float32)
+    denom = np.maximum(acc_cnt, 1)[:, None].astype(np.float32)
+    means = acc_sum / denom
     return acc_keys, means, acc_cnt
 
 
@@ -289,6 +295,7 @@ def fuse_back(
     temperature: float,
     fusion_cfg: FusionConfig,
     evidence: str = "voxel",
+    *,
     chunk_points: int = FUSE_CHUNK_POINTS,
 ) -> VoxelGrid:
     """Tempered Bayesian fusion of per-point network log-probabilities into a grid.
@@ -334,8 +341,10 @@ def fuse_back(
         pend_logp.append(logp)
         pending += len(keys)
         if pending >= chunk_points:
-            out = fuse_dense(out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,
-                             weight=weight)
+            out = fuse_dense(
+                out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,
+                weight=weight,
+            )
             pend_keys, pend_logp, pending = [], [], 0
     if pend_keys:
         out = fuse_dense(out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,

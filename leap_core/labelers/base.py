@@ -69,7 +69,9 @@ class SoftMasks:
         conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
         if probs_arr.ndim != 2 or probs_arr.shape[0] != m or conf.shape[0] != m:
             raise ValueError(f"probs {probs_arr.shape} / confidence {conf.shape} do not match {m} masks")
-        bits = np.packbits(masks.reshape(m, h * w), axis=1) if m else np.zeros((0, (h * w + 7) // 8), np.uint8)
+        bits = (
+            np.packbits(masks.reshape(m, h * w), axis=1) if m else np.zeros((0, (h * w + 7) // 8), np.uint8)
+        )
         return cls(height=h, width=w, bits=bits, probs=probs_arr, confidence=conf)
 
     @classmethod
@@ -98,7 +100,8 @@ class SoftMasks:
         w = dense * self.confidence[:, None, None]
         num = np.einsum("mhw,mc->hwc", w, self.probs)
         den = w.sum(axis=0)[..., None]
-        return np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+        out: npt.NDArray[np.float32] = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+        return out
 
     def save(self, path: str | Path) -> None:
         atomic_save_npz(

@@ -11,8 +11,9 @@ assembled from the pass results in milliseconds, so:
 Keys are SHA-256 digests of the image content (pixels, not file bytes, so re-encoding a PNG losslessly
 keeps its key), the model identities (id + a hash of each model folder's config and weight files), the
 pass text and class roles, and every setting that changes the result (threshold, mode, mask settings).
-Entries are compressed ``.npz`` files. Writes are atomic (temp file + rename), so an interrupted run leaves no half-written entry and a rerun
-resumes where it stopped; two writers of the same key write identical content, last one wins.
+Entries are compressed ``.npz`` files. Writes are atomic (temp file + rename), so an interrupted run leaves
+no half-written entry and a rerun resumes where it stopped; two writers of the same key write identical
+content, last one wins.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ def image_digest(image: npt.NDArray[Any]) -> str:
     """SHA-256 hex digest of an image's pixels (shape and dtype included)."""
     arr = np.ascontiguousarray(image)
     h = hashlib.sha256(f"{arr.shape}|{arr.dtype.str}|".encode())
-    h.update(memoryview(arr).cast("B"))
+    h.update(arr.data.cast("B"))
     return h.hexdigest()
 
 

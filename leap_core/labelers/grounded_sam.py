@@ -146,7 +146,10 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _download_hint(model_id: str, folder: Path) -> str:
-    return f"download it with `hf download {model_id} --local-dir {folder}` (see the README section 'Real 2D labels')"
+    return (
+        f"download it with `hf download {model_id} --local-dir {folder}` "
+        "(see the README section 'Real 2D labels')"
+    )
 
 
 def resolve_model_folder(model_id: str, models_dir: str | Path | None, allow_download: bool = False) -> Path:
@@ -256,7 +259,9 @@ def load_processor(folder: Path, model_id: str, expect_type: str) -> Any:
     from transformers import AutoProcessor
 
     try:
-        proc = AutoProcessor.from_pretrained(str(folder), local_files_only=True)
+        proc = AutoProcessor.from_pretrained(  # type: ignore[no-untyped-call]  # transformers: unannotated
+            str(folder), local_files_only=True
+        )
     except Exception as exc:  # transformers raises many types for a broken folder
         raise ModelLoadError(
             f"{folder}: cannot read the processor of {model_id} ({_first_line(exc)}); "
@@ -287,7 +292,8 @@ def _load_model(folder: Path, model_id: str, cls_name: str, device: str) -> Any:
         model = cls.from_pretrained(str(folder), local_files_only=True)
     except Exception as exc:  # transformers raises many types for a broken folder
         raise ModelLoadError(
-            f"{folder}: cannot load {model_id} weights ({_first_line(exc)}); {_download_hint(model_id, folder)}"
+            f"{folder}: cannot load {model_id} weights ({_first_line(exc)}); "
+            f"{_download_hint(model_id, folder)}"
         ) from exc
     return model.to(device).eval()
 

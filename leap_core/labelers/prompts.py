@@ -45,8 +45,8 @@ def build_text(phrases: Sequence[str]) -> tuple[str, list[tuple[int, int]]]:
     """
     text = ""
     spans: list[tuple[int, int]] = []
-    for p in phrases:
-        p = " ".join(p.split())
+    for phrase in phrases:
+        p = " ".join(phrase.split())
         if not p or "." in p or "?" in p:
             raise ValueError(f"prompt {p!r} is empty or contains '.'/'?', which separate detector phrases")
         if text:
@@ -217,7 +217,9 @@ def plan_passes(
 
 
 # ------------------------------------------------------------------------------ region mathematics
-def phrase_max(logits: npt.ArrayLike, token_phrase: npt.ArrayLike, membership: npt.ArrayLike) -> npt.NDArray:
+def phrase_max(
+    logits: npt.ArrayLike, token_phrase: npt.ArrayLike, membership: npt.ArrayLike
+) -> npt.NDArray[np.float32]:
     """Max logit over the token columns of each group of phrases.
 
     .. math:: s(q,k) = \\max_{t:\\ M[\\mathrm{phrase}(t),k]} L(q,t)\\quad (-\\infty \\text{ if no column})
@@ -253,7 +255,8 @@ def apply_negatives(positive: npt.ArrayLike, negative: npt.ArrayLike) -> npt.NDA
     """
     s = np.asarray(positive, dtype=np.float32)
     n = np.asarray(negative, dtype=np.float32)
-    return np.where(n > s, NEG_INF, s).astype(np.float32)
+    out: npt.NDArray[np.float32] = np.where(n > s, NEG_INF, s).astype(np.float32)
+    return out
 
 
 def sigmoid(x: npt.ArrayLike) -> npt.NDArray[np.float32]:
@@ -282,7 +285,8 @@ def keep_regions(scores: npt.ArrayLike, threshold: float) -> npt.NDArray[np.bool
     s = np.asarray(scores, dtype=np.float32)
     if s.shape[1] == 0:
         return np.zeros(s.shape[0], dtype=bool)
-    return sigmoid(s.max(axis=1)) >= np.float32(threshold)
+    keep: npt.NDArray[np.bool_] = sigmoid(s.max(axis=1)) >= np.float32(threshold)
+    return keep
 
 
 def softmax_classes(scores: npt.ArrayLike) -> npt.NDArray[np.float32]:
@@ -300,7 +304,8 @@ def softmax_classes(scores: npt.ArrayLike) -> npt.NDArray[np.float32]:
     if not np.isfinite(m).all():
         raise ValueError("every region needs at least one finite class score")
     e = np.exp(s - m)
-    return (e / e.sum(axis=1, keepdims=True)).astype(np.float32)
+    out: npt.NDArray[np.float32] = (e / e.sum(axis=1, keepdims=True)).astype(np.float32)
+    return out
 
 
 def box_iou(a: npt.ArrayLike, b: npt.ArrayLike) -> npt.NDArray[np.float32]:
@@ -313,7 +318,9 @@ def box_iou(a: npt.ArrayLike, b: npt.ArrayLike) -> npt.NDArray[np.float32]:
     area_a = np.clip(a[:, 2:] - a[:, :2], 0, None).prod(axis=1)
     area_b = np.clip(b[:, 2:] - b[:, :2], 0, None).prod(axis=1)
     union = area_a[:, None] + area_b[None, :] - inter
-    return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0).astype(np.float32)
+    iou = np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
+    out: npt.NDArray[np.float32] = iou.astype(np.float32)
+    return out
 
 
 def fill_across_passes(
@@ -349,14 +356,15 @@ def fill_across_passes(
     member = np.asarray(pass_classes, dtype=bool)
     s = np.asarray(scores, dtype=np.float32)
     if s.shape[0] == 0:
-        return s.copy()
+        empty: npt.NDArray[np.float32] = s.copy()
+        return empty
     in_pass = member[pid]  # (R, C)
-    own = np.where(in_pass, s, NEG_INF).astype(np.float32)
+    own: npt.NDArray[np.float32] = np.where(in_pass, s, NEG_INF).astype(np.float32)
     if np.unique(pid).size < 2:
         return own
     iou = box_iou(boxes, boxes)
     match = (iou >= np.float32(match_iou)) & (pid[:, None] != pid[None, :])
-    out = own.copy()
+    out: npt.NDArray[np.float32] = own.copy()
     for c in range(s.shape[1]):
         col = np.where(match, own[None, :, c], NEG_INF)  # (R, R'): matched regions' logits for c
         out[:, c] = np.where(in_pass[:, c], own[:, c], col.max(axis=1))

@@ -203,9 +203,10 @@ def _jitter(
     m[:, 2] += (dx, dy)
 
     def warp(img: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
-        return cv2.warpAffine(
+        warped = cv2.warpAffine(
             img, m, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
         )
+        return np.asarray(warped, dtype=np.uint16)  # already uint16 (cv2 keeps the dtype): no copy
 
     return warp(sem), warp(inst)
 
@@ -224,7 +225,7 @@ def _regions(cls_img: npt.NDArray[np.int16], inst: npt.NDArray[np.uint16]) -> li
         key_sorted, idx_sorted = key[order], flat_idx[order]
         starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
         ends = np.r_[starts[1:], key_sorted.size]
-        for s, e in zip(starts, ends):
+        for s, e in zip(starts, ends, strict=True):
             pix = idx_sorted[s:e]
             ys, xs = pix // w, pix % w
             y0, x0 = int(ys.min()), int(xs.min())
@@ -307,7 +308,8 @@ def _distribution(
         p += rest * w / total
     else:
         p[pred_c] += rest
-    return (p / p.sum()).astype(np.float32)
+    out: npt.NDArray[np.float32] = (p / p.sum()).astype(np.float32)
+    return out
 
 
 class SimulatedLabeler:

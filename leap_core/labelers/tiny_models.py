@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from leap_core.io_utils import atomic_write_bytes
 
@@ -33,7 +34,18 @@ _MARKER_TEXT = (
 
 # Whole-word entries make token counts of common prompts realistic; any other lowercase word still
 # tokenizes, into single-character word pieces.
-_WORDS = ["car", "automobile", "van", "jeep", "bicycle", "bike", "motorcycle", "motorbike", "scooter", "truck", "lorry", "pickup", "bus", "train", "tram", "trailer", "vehicle", "other", "person", "pedestrian", "people", "human", "child", "bicyclist", "cyclist", "rider", "motorcyclist", "biker", "road", "street", "lane", "marking", "parking", "lot", "space", "sidewalk", "footpath", "pavement", "curb", "ground", "median", "strip", "central", "reservation", "gravel", "dirt", "building", "house", "wall", "roof", "fence", "railing", "guardrail", "barrier", "vegetation", "tree", "bush", "hedge", "shrub", "plant", "trunk", "bark", "branch", "terrain", "grass", "soil", "lawn", "field", "pole", "lamp", "post", "utility", "traffic", "sign", "signboard", "light", "wire", "cable", "power", "line", "drone", "crop", "orchard", "row", "tower", "barn", "shed", "farm", "a", "an", "the", "of", "on", "in", "with", "and", "or"]
+_WORDS = [
+    "car", "automobile", "van", "jeep", "bicycle", "bike", "motorcycle", "motorbike", "scooter", "truck",
+    "lorry", "pickup", "bus", "train", "tram", "trailer", "vehicle", "other", "person", "pedestrian",
+    "people", "human", "child", "bicyclist", "cyclist", "rider", "motorcyclist", "biker", "road", "street",
+    "lane", "marking", "parking", "lot", "space", "sidewalk", "footpath", "pavement", "curb", "ground",
+    "median", "strip", "central", "reservation", "gravel", "dirt", "building", "house", "wall", "roof",
+    "fence", "railing", "guardrail", "barrier", "vegetation", "tree", "bush", "hedge", "shrub", "plant",
+    "trunk", "bark", "branch", "terrain", "grass", "soil", "lawn", "field", "pole", "lamp", "post",
+    "utility", "traffic", "sign", "signboard", "light", "wire", "cable", "power", "line", "drone", "crop",
+    "orchard", "row", "tower", "barn", "shed", "farm", "a", "an", "the", "of", "on", "in", "with", "and",
+    "or",
+]
 
 SPECIAL_IDS = {"[PAD]": 0, "[UNK]": 100, "[CLS]": 101, "[SEP]": 102, "[MASK]": 103, ".": 1012, "?": 1029}
 """Token ids the tiny vocabulary must share with bert-base-uncased (Grounding DINO relies on them)."""
@@ -52,8 +64,8 @@ def tiny_vocab() -> dict[str, int]:
     for tok in regular:
         slots[next(free)] = tok
     vocab: dict[str, int] = {}
-    for i, tok in enumerate(slots):
-        vocab[tok if tok is not None else f"[unused{i}]"] = i
+    for i, slot in enumerate(slots):
+        vocab[slot if slot is not None else f"[unused{i}]"] = i
     return vocab
 
 
@@ -75,8 +87,9 @@ class TinyModelsConfig:
     """SAM input size (the real one is 1024); images are resized to this long side and padded square."""
 
 
-def build_tiny_detector(cfg: TinyModelsConfig | None = None):  # untyped: transformers types
-    """``(model, processor)``: a tiny random GroundingDinoForObjectDetection and its processor."""
+def build_tiny_detector(cfg: TinyModelsConfig | None = None) -> tuple[Any, Any]:
+    """``(model, processor)``: a tiny random GroundingDinoForObjectDetection and its processor (typed Any:
+    transformers is unannotated)."""
     import torch
     from transformers import BertTokenizer, GroundingDinoConfig, GroundingDinoForObjectDetection
     from transformers.models.grounding_dino.image_processing_pil_grounding_dino import (
@@ -117,16 +130,20 @@ def build_tiny_detector(cfg: TinyModelsConfig | None = None):  # untyped: transf
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        model = GroundingDinoForObjectDetection(config).eval()
+        model = GroundingDinoForObjectDetection(config).eval()  # type: ignore[no-untyped-call]  # transformers: unannotated eval()
     tokenizer = BertTokenizer(vocab=vocab, do_lower_case=True, model_max_length=cfg.max_text_len)
     image_processor = GroundingDinoImageProcessorPil(
         size={"shortest_edge": cfg.detector_shortest_edge, "longest_edge": cfg.detector_longest_edge}
     )
-    return model, GroundingDinoProcessor(image_processor=image_processor, tokenizer=tokenizer)
+    processor = GroundingDinoProcessor(  # type: ignore[no-untyped-call]  # transformers: unannotated __init__
+        image_processor=image_processor, tokenizer=tokenizer
+    )
+    return model, processor
 
 
-def build_tiny_segmenter(cfg: TinyModelsConfig | None = None):  # untyped: transformers types
-    """``(model, processor)``: a tiny random SamModel and its processor."""
+def build_tiny_segmenter(cfg: TinyModelsConfig | None = None) -> tuple[Any, Any]:
+    """``(model, processor)``: a tiny random SamModel and its processor (typed Any: transformers is
+    unannotated)."""
     import torch
     from transformers import SamConfig, SamModel
     from transformers.models.sam.image_processing_pil_sam import SamImageProcessorPil
@@ -160,11 +177,12 @@ def build_tiny_segmenter(cfg: TinyModelsConfig | None = None):  # untyped: trans
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed + 1)
-        model = SamModel(config).eval()
+        model = SamModel(config).eval()  # type: ignore[no-untyped-call]  # transformers: unannotated eval()
     image_processor = SamImageProcessorPil(
         size={"longest_edge": size}, pad_size={"height": size, "width": size}
     )
-    return model, SamProcessor(image_processor=image_processor)
+    processor = SamProcessor(image_processor=image_processor)  # type: ignore[no-untyped-call]  # transformers: unannotated
+    return model, processor
 
 
 @dataclass(frozen=True)

@@ -170,8 +170,8 @@ def _frames(seq: KittiSequence, frames: range | None) -> range:
 
 
 def _context(
-    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, progress: ProgressCallback | None,
-    frames: range | None, runtime: Runtime | None,
+    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *,
+    progress: ProgressCallback | None, frames: range | None, runtime: Runtime | None,
 ) -> Ctx:
     seq = KittiSequence(dataset)
     run_dir = Path(run_dir)
@@ -192,7 +192,7 @@ def plan_stages(
 ) -> dict[str, bool]:
     """Which stages :func:`run_pipeline` would compute (True) or skip as cached (False); writes nothing
     but the run folder itself."""
-    ctx = _context(dataset, schema, config, run_dir, None, frames, runtime)
+    ctx = _context(dataset, schema, config, run_dir, progress=None, frames=frames, runtime=runtime)
     return {s.name: not _is_current(ctx, s) for s in STAGE_TABLE}
 
 
@@ -230,7 +230,9 @@ def run_pipeline(
     """
     if until is not None and until not in STAGES:
         raise LeapError(f"until: unknown stage {until!r} (stages: {', '.join(STAGES)})")
-    ctx = _context(Path(dataset), schema, config, Path(run_dir), progress, frames, runtime)
+    ctx = _context(
+        Path(dataset), schema, config, Path(run_dir), progress=progress, frames=frames, runtime=runtime
+    )
     last = STAGES.index(until) if until else len(STAGES) - 1
     reports: dict[str, StageReport] = {}
     for stage in STAGE_TABLE[: last + 1]:

@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
+from leap_core.consistency.selection import view_counts
 from leap_core.errors import DatasetError
 from leap_core.export import export_labels
 from leap_core.fusion import (
@@ -29,6 +30,7 @@ from leap_core.fusion import (
     world_points,
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write
+from leap_core.labelers import LABELERS
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline.context import (
     Ctx,
@@ -78,12 +80,9 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     ``runtime.cache_dir`` when given: entries keyed by the labeler's fingerprint and the frame's inputs,
     hard-linked into the run folder)."""
     labeler = ctx.labeler()
-    if ctx.cfg.labeler == "simulated" and not ctx.seq.has_gt2d:
-        raise DatasetError(
-            ctx.seq.root / "gt2d" / "semantic",
-            "the simulated labeler needs 2D ground truth (gt2d/semantic, gt2d/instance); "
-            "use --labeler grounded-sam for real camera images",
-        )
+    spec = LABELERS[ctx.cfg.labeler]
+    if spec.needs == "gt2d" and not ctx.seq.has_gt2d:
+        raise DatasetError(ctx.seq.root / "gt2d" / "semantic", spec.missing)
     lfp = labeler.fingerprint(ctx.schema)
     cache_root = None
     if ctx.cache_dir is not None:
@@ -229,8 +228,7 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
     A finished round is kept on resume.
     """
     # Imported here: the 3D-CN needs torch, which only this stage may load.
-    from leap_core.consistency.selection import view_counts  # noqa: PLC0415
-    from leap_core.consistency.stage import run_3dcn_iteration  # noqa: PLC0415
+    from leap_core.consistency.stage import run_3dcn_iteration  # noqa: PLC0415  loads torch (see above)
 
     cn = ctx.cfg.consistency
     lay = ctx.layout

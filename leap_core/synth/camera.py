@@ -238,11 +238,12 @@ class SunShadows:
 
 
 # ------------------------------------------------------------------------------------------ render
-def render(  # noqa: PLR0917  benchmarks/bench_synth.py calls it with positional arguments
+def render(
     prims: Primitives,
     n_static: int,
     cam_to_world: npt.NDArray[np.float64],
     cfg: CameraConfig,
+    *,
     sun: npt.NDArray[np.float64],
     shadows: SunShadows | None,
     rng: np.random.Generator,

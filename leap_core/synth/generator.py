@@ -140,10 +140,10 @@ class _Worker:
             len(scene.static),
             camera_to_world(cfg.camera, self.poses[i]),
             cfg.camera,
-            scene.sun,
-            self.shadows,
-            rng_c,
-            self.pixel_rays,
+            sun=scene.sun,
+            shadows=self.shadows,
+            rng=rng_c,
+            rays=self.pixel_rays,
         )
         stem = f"{i:06d}"
         d = self.seq_dir
