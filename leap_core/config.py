@@ -43,7 +43,7 @@ from leap_core.smoothing import SmoothingConfig
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Every parameter of a pipeline run (METHOD.md stages A-C), grouped by stage."""
+    """Every parameter of a pipeline run (docs/METHOD.md stages A-C), grouped by stage."""
 
     labeler: str = "simulated"
     """2D labeler, a name in :data:`leap_core.labelers.LABELERS`: "simulated" (from a dataset's 2D ground

@@ -1,4 +1,4 @@
-"""Sparse voxel grid with Bayesian log-space label fusion (METHOD.md stage B.3).
+"""Sparse voxel grid with Bayesian log-space label fusion (docs/METHOD.md stage B.3).
 
 Per voxel n and class i the paper's update is
 ``V_n(i) ← V_n(i)·P(i|X_k) / Σ_j V_n(j)·P(j|X_k)``. In log space this is a sum,
@@ -6,10 +6,10 @@ Per voxel n and class i the paper's update is
 order-independent, so any number of scans can be reduced in one batch, equal (up to float rounding) to
 scan-by-scan updates.
 
-Speed (METHOD.md "Performance facts"): logs are never taken per point. One image's painted points carry an
-index ``rows`` into a small per-image table of distinct distributions (one per combination of covering
-masks, :mod:`leap_core.projection`); the log is taken per table row (:func:`log_table`). :func:`fuse` then
-packs (voxel, table row) into one int64 per point, sorts once, counts equal pairs and multiplies the
+Speed (docs/METHOD.md, "Performance facts"): logs are never taken per point. One image's painted points
+carry an index ``rows`` into a small per-image table of distinct distributions (one per combination of
+covering masks, :mod:`leap_core.projection`); the log is taken per table row (:func:`log_table`).
+:func:`fuse` then packs (voxel, table row) into one int64 per point, sorts once, counts equal pairs and multiplies the
 (voxel × table-row) count matrix with the stacked log tables as a sparse product, so per point only 8 bytes
 are sorted and never C floats moved.
 

@@ -1,6 +1,6 @@
 """Segmentation metrics: confusion matrix, per-class IoU, mIoU, category mIoU, labeled share.
 
-Two protocols (METHOD.md "Evaluation"):
+Two protocols (docs/METHOD.md "Evaluation"):
 
 - ``ignore_unlabeled_pred=True``, the paper's pseudo-label protocol: points the method left unlabeled are
   ignored (neither false positive nor false negative). Callers restrict points to the camera view.

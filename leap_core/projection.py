@@ -1,4 +1,4 @@
-"""Point projection, per-mask depth clustering and painting (METHOD.md stage B.1-B.2).
+"""Point projection, per-mask depth clustering and painting (docs/METHOD.md stage B.1-B.2).
 
 A LiDAR point ``x`` lands on pixel ``(u, v) = round(m₁·x̃ / m₃·x̃, m₂·x̃ / m₃·x̃)`` with ``M = P2 · Tr`` and
 ``x̃ = [x y z 1]ᵀ`` (PointPainting). It is painted with the confidence-weighted average distribution of the
@@ -7,7 +7,7 @@ camera depth, so the label of a foreground object does not bleed onto the points
 
 A painted image is stored table-indexed (:class:`Painted`): per point only an int32 row into a table of the
 DISTINCT combinations of covering masks, so later stages take logs and move C floats per table row, never
-per point (METHOD.md "Performance facts").
+per point (docs/METHOD.md "Performance facts").
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Class schemas: the ordered class list of a labeling project, read from editable YAML files.
 
 A schema fixes, for each class index 0..C-1: its name, display colour, the text prompts given to the
-open-vocabulary detector (METHOD.md stage A, "prompt expansion"), the raw id written to exported
+open-vocabulary detector (docs/METHOD.md stage A, "prompt expansion"), the raw id written to exported
 ``.label`` files, the raw ground-truth ids that count as this class when evaluating (SemanticKITTI
 ``learning_map`` semantics) and a coarse category for category mIoU.
 

@@ -1,4 +1,4 @@
-"""Distance-weighted kNN smoothing of the fused voxel grid (METHOD.md stage B.4).
+"""Distance-weighted kNN smoothing of the fused voxel grid (docs/METHOD.md stage B.4).
 
 ``p̄_i(n) = Σ_{m ∈ N_k(n)} w_nm · p_i(m)`` with ``w_n = softmax(-d_n)`` over the k neighbour distances
 (metres). ``N_k(n)`` contains n itself at d = 0. Because voxel neighbours sit 0.2-0.5 m apart, the weights

@@ -1,4 +1,4 @@
-"""3D Consistency Network (METHOD.md stage C): a WaffleIron-style point backbone self-trained on the most
+"""3D Consistency Network (docs/METHOD.md stage C): a WaffleIron-style point backbone self-trained on the most
 confident voxel labels, whose predictions on every point are fused back into the voxel grid.
 
 Modules: :mod:`.config` (typed configs), :mod:`.backbone` (pure ``nn.Module``\\ s), :mod:`.data` (scan →

@@ -1,4 +1,4 @@
-"""A WaffleIron-style point segmentation backbone in pure PyTorch (METHOD.md stage C.2).
+"""A WaffleIron-style point segmentation backbone in pure PyTorch (docs/METHOD.md stage C.2).
 
 Every point is a token of width F. The network alternates two residual mixers:
 

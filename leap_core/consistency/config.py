@@ -1,4 +1,4 @@
-"""Typed configuration of the 3D Consistency Network (METHOD.md stage C).
+"""Typed configuration of the 3D Consistency Network (docs/METHOD.md stage C).
 
 ``ConsistencyConfig`` holds the self-training and fusion-back parameters; it nests ``BackboneConfig``,
 the sizes of the WaffleIron-style point backbone. The defaults are sized for a 2-core CPU (the demo

@@ -1,4 +1,4 @@
-"""Reliable label selection for self-training the 3D Consistency Network (METHOD.md stage C.1).
+"""Reliable label selection for self-training the 3D Consistency Network (docs/METHOD.md stage C.1).
 
 Each scan's points are projected onto the (smoothed) voxel grid and take their voxel's label and
 confidence. Per class, only the most confident ``share`` of that class's points become training labels.
@@ -141,7 +141,7 @@ def select_reliable_scans(
 ) -> list[npt.NDArray[np.bool_]]:
     """:func:`select_reliable` over a list of scans, ranking per scan or over the whole sequence.
 
-    ``scope="scan"`` (METHOD.md's reading: project *each scan* onto the grid, then select) keeps the top
+    ``scope="scan"`` (docs/METHOD.md's reading: project *each scan* onto the grid, then select) keeps the top
     ``share`` of each class within every scan, so every scan contributes training labels.
     ``scope="sequence"`` ranks all points of all scans together, so a class's labels concentrate in the
     scans where its voxels are most confident.

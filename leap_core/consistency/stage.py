@@ -1,4 +1,5 @@
-"""One 3D-CN iteration: select reliable labels, train, predict every point, fuse back (METHOD.md stage C).
+"""One 3D-CN iteration: select reliable labels, train, predict every point, fuse back
+(docs/METHOD.md stage C).
 
 The pipeline calls :func:`run_3dcn_iteration` once per iteration (1 by default, 2 allowed). It reads
 labels from the *smoothed* grid but adds the network's evidence to the *un-smoothed* fused grid, so the

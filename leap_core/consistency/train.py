@@ -1,4 +1,4 @@
-"""Self-training of the 3D Consistency Network, its checkpoint, and inference (METHOD.md stage C.2-3).
+"""Self-training of the 3D Consistency Network, its checkpoint, and inference (docs/METHOD.md stage C.2-3).
 
 Training sees each scan in its own LiDAR frame (XYZ; remission only if the backbone config asks for it).
 Only the selected reliable points carry a loss; the other points of the scan still feed the spatial mixing

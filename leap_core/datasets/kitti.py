@@ -1,6 +1,6 @@
 """KITTI odometry / SemanticKITTI sequence I/O.
 
-Format facts (METHOD.md, checked against PRBonn/semantic-kitti-api):
+Format facts (docs/METHOD.md, checked against PRBonn/semantic-kitti-api):
 - ``velodyne/*.bin``: float32 (x, y, z, remission) quadruples; size a multiple of 16 bytes.
 - ``labels/*.label``: uint32 per point, semantic id in the low 16 bits, instance id in the high 16.
 - ``calib.txt``: ``P0:``..``P3:`` 3×4 projections and ``Tr:`` 3×4 LiDAR→left camera; colour camera = P2.

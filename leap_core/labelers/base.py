@@ -1,7 +1,7 @@
 """The 2D labeler interface and its compact result type.
 
 A labeler turns one camera image into M masks, each with a class distribution and a confidence
-(METHOD.md stage A). Masks are kept as packed bits; a dense float H×W×C array is never stored.
+(docs/METHOD.md stage A). Masks are kept as packed bits; a dense float H×W×C array is never stored.
 """
 
 from __future__ import annotations

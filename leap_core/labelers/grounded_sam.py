@@ -1,4 +1,4 @@
-"""Grounding DINO + SAM soft 2D labeler: METHOD.md stage A with Hugging Face transformers.
+"""Grounding DINO + SAM soft 2D labeler: docs/METHOD.md stage A with Hugging Face transformers.
 
 Per image and per detector pass (see :mod:`leap_core.labelers.prompts` for passes and phrases):
 

@@ -1,4 +1,4 @@
-"""Prompt text, token↔prompt mapping, token-budget splitting and the stage-A region maths (METHOD.md).
+"""Prompt text, token↔prompt mapping, token-budget splitting and the stage-A region maths (docs/METHOD.md).
 
 Everything here is a pure function on strings and arrays: no model, no I/O. The Grounding DINO labeler
 (:mod:`leap_core.labelers.grounded_sam`) feeds it the tokenizer offsets and the detector outputs.

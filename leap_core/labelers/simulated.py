@@ -1,8 +1,8 @@
 """The "simulated" 2D labeler: soft masks made from a dataset's 2D ground truth with a documented noise model.
 
-It stands in for Grounding DINO + SAM (METHOD.md stage A) on datasets that carry per-pixel 2D ground truth
-(``gt2d/semantic`` and ``gt2d/instance``, e.g. the generated demo sequence), so the 3D stages can be run and
-measured without model weights. Users always see it called "simulated".
+It stands in for Grounding DINO + SAM (docs/METHOD.md stage A) on datasets that carry per-pixel 2D ground
+truth (``gt2d/semantic`` and ``gt2d/instance``, e.g. the generated demo sequence), so the 3D stages can be
+run and measured without model weights. Users always see it called "simulated".
 
 Regions. Pixels are mapped to schema classes with ``schema.map_gt``; pixels of unmapped ids get no mask.
 A *thing* region is one (class, instance id > 0) pair: one mask per object, as a detector box + SAM

@@ -7,7 +7,7 @@ folder layout as real checkpoints (``<dir>/grounding-dino-tiny``, ``<dir>/sam-vi
 ``leap labels2d … --models <dir>`` and ``leap run --labeler grounded-sam`` accept them unchanged; each
 folder carries a :data:`MARKER_FILE` so the app can warn that the labels are not real.
 
-Details that a tiny Grounding DINO must get right (METHOD.md, "Facts about the tools"):
+Details that a tiny Grounding DINO must get right (docs/METHOD.md, "Facts about the tools"):
 
 * at least 2 decoder layers;
 * the text model hard-codes token ids 101 [CLS], 102 [SEP], 1012 ``.`` and 1029 ``?`` to split phrases,

@@ -1,10 +1,10 @@
 """The labeling pipeline as separable, cached, resumable stages on a run directory.
 
 Stages (:data:`STAGE_TABLE`, in order) and what each writes into the run folder
-(:class:`~leap_core.run_layout.RunLayout`):
+(:class:`~leap_core.run_layout.RunLayout`); the labels in brackets are sections of docs/METHOD.md:
 
 ============  ================================================================================================
-labels2d      ``labels2d/<frame_id>.npz``: the 2D labeler's :class:`SoftMasks` per frame (METHOD.md stage A)
+labels2d      ``labels2d/<frame_id>.npz``: the 2D labeler's :class:`SoftMasks` per frame (stage A)
 project       ``observations/<frame_id>.npz``: projection + per-mask depth clustering + painting (B.1-B.2)
 fuse          ``grid.npz``: Bayesian log-space fusion of every observation, then manual corrections (B.3)
 smooth        ``grid_smooth.npz``: distance-weighted kNN smoothing of the fused grid (B.4)
