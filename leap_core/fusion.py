@@ -9,9 +9,9 @@ scan-by-scan updates.
 Speed (docs/METHOD.md, "Performance facts"): logs are never taken per point. One image's painted points
 carry an index ``rows`` into a small per-image table of distinct distributions (one per combination of
 covering masks, :mod:`leap_core.projection`); the log is taken per table row (:func:`log_table`).
-:func:`fuse` then packs (voxel, table row) into one int64 per point, sorts once, counts equal pairs and multiplies the
-(voxel × table-row) count matrix with the stacked log tables as a sparse product, so per point only 8 bytes
-are sorted and never C floats moved.
+:func:`fuse` then packs (voxel, table row) into one int64 per point, sorts once, counts equal pairs and
+multiplies the (voxel × table-row) count matrix with the stacked log tables as a sparse product, so per point
+only 8 bytes are sorted and never C floats moved.
 
 Voxel keys pack ``floor(xyz / voxel_size)`` in 21 bits per axis (offset by 2²⁰ so negatives work): x in
 bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y, z).
