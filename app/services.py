@@ -29,6 +29,7 @@ from leap_core.config import (
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
 from leap_core.presets import builtin_preset
+from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 
 
@@ -434,7 +435,7 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         params={k: v for k, v in run["params"].items() if k != "stages"},
         progress=run_progress(run, live),
         has_metrics=run.get("metrics") is not None,
-        has_export=run["status"] == "done" and (run_dir / "export").is_dir(),
+        has_export=run["status"] == "done" and RunLayout(run_dir).export_dir.is_dir(),
         resumable=run["status"] in models.RESUMABLE_STATUSES,
         summary=metrics_summary(run.get("metrics")),
     )

@@ -45,11 +45,12 @@ from app.jobs.messages import (
 )
 from leap_core.config import config_from_dict
 from leap_core.errors import Cancelled, LeapError
+from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
-LOG_NAME = "run.log"
-LOCK_NAME = ".lock"
+LOG_NAME = RunLayout.LOG
+LOCK_NAME = RunLayout.LOCK
 
 worker_log = logging.getLogger("leap.worker")
 """The worker process's own messages (stderr, i.e. the server's worker.log); a run logs to its run.log."""
