@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from tqdm import tqdm
 
     from app.core.config import Settings
+    from app.core.instance import WorkDirLock
 
 cli = typer.Typer(
     name="leap",
@@ -347,6 +348,7 @@ def demo_cmd(
 
     settings = _app_settings(port=port, data_root=data_root, work_dir=work_dir)
     progress = StageBars()
+    lock = _lock_work_dir(settings)
 
     try:
         ensure_demo_sequence(settings.demo_dataset, dict(settings.demo_synth), progress=progress)
@@ -388,7 +390,20 @@ def demo_cmd(
         typer.echo(tables)
     if no_serve:
         return
-    serve(settings)
+    serve(settings, lock=lock)
+
+
+def _lock_work_dir(settings: Settings) -> WorkDirLock:
+    """The work folder's lock, held from before the database is opened until the process ends (one
+    process per work folder; a one-line error when another holds it)."""
+    from app.core.instance import StartupRefused, WorkDirLock
+
+    lock = WorkDirLock(settings.work_dir)
+    try:
+        lock.acquire(f"leap demo, port {settings.port}")
+    except StartupRefused as exc:
+        raise fail(str(exc)) from None
+    return lock
 
 
 class _GivenSettings(TypedDict, total=False):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import sqlite3
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
 from contextlib import asynccontextmanager
@@ -22,8 +23,9 @@ from fastapi.staticfiles import StaticFiles
 
 from app.api.main import api_router
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
-from app.core.db import ConnectionPool, init_db
-from app.core.errors import AppError, InvalidField
+from app.core.db import ConnectionPool, init_db, set_size_cap
+from app.core.errors import AppError, InvalidField, disk_full_message
+from app.core.instance import StartupRefused, WorkDirLock, bind_socket
 from app.demo import seed_demo_project
 from app.jobs.manager import JobManager
 from leap_core import __version__
@@ -101,6 +103,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app; the database is created or migrated now, the workers start with the server."""
     settings = settings or get_settings()
     settings.work_dir.mkdir(parents=True, exist_ok=True)
+    set_size_cap(settings.database, None if settings.db_max_mb is None else int(settings.db_max_mb * 2**20))
     init_db(settings.database)
     jobs = JobManager(settings)
 
@@ -112,6 +115,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         jobs.start()
         if settings.seed_demo:
             seed_demo_project(settings, jobs)
+        announce = getattr(app.state, "announce", None)
+        if announce:
+            # Its own line on stdout, apart from the log lines and any progress bar on stderr.
+            print(f"\n{announce}\n", flush=True)
         try:
             yield
         finally:
@@ -139,6 +146,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return JSONResponse({"detail": exc.as_detail()}, status_code=exc.status_code)
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
 
+    @app.exception_handler(sqlite3.OperationalError)
+    async def _db_error(_request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
+        # A full disk is the user's to fix, so it gets a message; other database errors stay a 500.
+        message = disk_full_message(exc)
+        if message is None:
+            log.error("database error", exc_info=exc)
+            return JSONResponse({"detail": "Internal Server Error"}, status_code=500)
+        return JSONResponse({"detail": message}, status_code=507)
+
     app.include_router(api_router, prefix=API_PREFIX)
     if WEB_DIR.is_dir():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
@@ -159,24 +175,45 @@ def _close_viewers(app: FastAPI) -> None:
     close_viewers(app)
 
 
-def serve(settings: Settings | None = None) -> None:
-    """Run the server in the foreground until interrupted."""
+def serve(settings: Settings | None = None, lock: WorkDirLock | None = None) -> None:
+    """Run the server in the foreground until interrupted.
+
+    Refused with a one-line message (exit status 1) and without touching the database when another
+    server owns the work folder or the port cannot be bound (see :mod:`app.core.instance`).
+
+    Args:
+        lock: the work folder's lock when the caller already holds it (``leap demo``).
+    """
     settings = settings or get_settings()
-    app = create_app(settings)
     logging.basicConfig(
         level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     scheme_host = f"[{settings.host}]" if ":" in settings.host else settings.host
-    log.info("LeAP Studio on http://%s:%d/", scheme_host, settings.port)
-    # Importing the pipeline (torch included) leaves ~240k long-lived objects that every full garbage
-    # collection would walk: one took 0.3 s under load with the GIL held, stalling every request and
-    # stream at once. Moved to the permanent generation, they are never walked again (the lifespan's
-    # own import of the pipeline is then free).
-    import leap_core.pipeline  # noqa: F401, PLC0415  # warm-up before gc.freeze(), see the comment above
+    try:
+        if lock is None:
+            lock = WorkDirLock(settings.work_dir)
+            lock.acquire(f"{scheme_host}:{settings.port}")
+        sock = bind_socket(settings.host, settings.port)
+    except StartupRefused as exc:
+        raise SystemExit(f"error: {exc}") from None
+    try:
+        app = create_app(settings)
+        app.state.announce = f"LeAP Studio: http://{scheme_host}:{settings.port}/"
+        # Importing the pipeline (torch included) leaves ~240k long-lived objects that every full garbage
+        # collection would walk: one took 0.3 s under load with the GIL held, stalling every request and
+        # stream at once. Moved to the permanent generation, they are never walked again (the lifespan's
+        # own import of the pipeline is then free).
+        import leap_core.pipeline  # noqa: F401, PLC0415  # warm-up before gc.freeze(), see the comment above
 
-    gc.collect()
-    gc.freeze()
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level, access_log=False)
+        gc.collect()
+        gc.freeze()
+        config = uvicorn.Config(
+            app, host=settings.host, port=settings.port, log_level=settings.log_level, access_log=False
+        )
+        uvicorn.Server(config).run(sockets=[sock])
+    finally:
+        sock.close()
+        lock.release()
 
 
 if __name__ == "__main__":

@@ -276,6 +276,9 @@ class RunProgress(BaseModel):
     eta_s: float | None = None
     stages: list[StagePublic] = Field(default_factory=list)
     error: str | None = None
+    warnings: list[str] = Field(
+        default_factory=list, description="what the pipeline warned about (e.g. frames without an image)"
+    )
     updated_at: str
     version: int = 0
 
@@ -385,13 +388,19 @@ class PipelinePublic(BaseModel):
 
 # ---------------------------------------------------------------------------------------------- health
 class HealthPublic(BaseModel):
-    status: Literal["ok"]
+    status: Literal["ok", "degraded"] = Field(description="degraded when `problems` is not empty")
     version: str
     db_schema_version: int
     queued: int
     running: int
     viewer: bool
     auth_required: bool
+    workers: int = Field(description="job threads the server started (settings.max_parallel_runs)")
+    workers_alive: int = Field(description="job threads still alive (fewer means runs cannot execute)")
+    unsaved_runs: list[int] = Field(description="ended runs whose end the database refused so far")
+    disk_free_mb: float | None = Field(description="free MiB on the work folder's file system")
+    min_free_disk_mb: float = Field(description="below this free space no run starts")
+    problems: list[str] = Field(description="what needs attention, one sentence each")
 
 
 class Message(BaseModel):

@@ -66,6 +66,13 @@ class Settings(BaseSettings):
     """Minimum seconds between two progress messages of one stage (the last one is always sent)."""
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     """Server log level."""
+    min_free_disk_mb: float = Field(default=200.0, ge=0)
+    """Free space (MiB) the work folder's file system must have for a run to start: below it, starting or
+    resuming a run is refused with a message and a queued run fails before it starts. ``/health`` reports
+    the free space. 0 turns the check off."""
+    db_max_mb: float | None = Field(default=None, gt=0)
+    """Largest size (MiB) the SQLite database may grow to; a write that needs more fails as on a full
+    disk (the run that needed it fails, the server stays up). None: no cap beyond the disk's size."""
 
     @field_validator("host")
     @classmethod

@@ -96,6 +96,20 @@ class DatabaseVersionError(RuntimeError):
     """The database was written by a newer LeAP Studio."""
 
 
+_size_caps: dict[Path, int] = {}
+"""Largest size in bytes per database file (``Settings.db_max_mb``), applied to every connection."""
+
+
+def set_size_cap(path: Path, max_bytes: int | None) -> None:
+    """Cap the database at ``path`` to ``max_bytes`` (None removes the cap) for connections opened from
+    now on. SQLite then fails a write that needs more pages with ``database or disk is full``, exactly
+    as on a full disk (``PRAGMA max_page_count`` is a per-connection setting, hence this registry)."""
+    if max_bytes is None:
+        _size_caps.pop(path, None)
+    else:
+        _size_caps[path] = max_bytes
+
+
 def connect(path: Path, *, set_wal: bool = True) -> sqlite_utils.Database:
     """Open ``path`` (created if missing) in WAL mode with foreign keys on.
 
@@ -109,6 +123,10 @@ def connect(path: Path, *, set_wal: bool = True) -> sqlite_utils.Database:
     conn.execute("PRAGMA synchronous=NORMAL")
     conn.execute("PRAGMA foreign_keys=ON")
     conn.execute("PRAGMA busy_timeout=30000")
+    cap = _size_caps.get(path)
+    if cap is not None:
+        page_size = int(conn.execute("PRAGMA page_size").fetchone()[0])
+        conn.execute(f"PRAGMA max_page_count = {max(1, cap // page_size)}")
     return sqlite_utils.Database(conn)
 
 

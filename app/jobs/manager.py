@@ -35,7 +35,7 @@ import numpy as np
 from app import crud, services
 from app.core.config import Settings
 from app.core.db import open_db, transaction, utcnow
-from app.core.errors import Conflict
+from app.core.errors import Conflict, InsufficientStorage, disk_full_message
 from app.demo import SYNTH_STAGE, demo_exists
 from app.jobs import worker
 from app.jobs.messages import (
@@ -65,6 +65,13 @@ FINISHED_KEPT = 256
 """Finished trackers kept in memory so progress polls of recent runs never touch the database."""
 CANCEL_GRACE_S = 10.0
 """After a cancel request, seconds the child gets to stop by itself before it is terminated."""
+RETRY_STORE_S = 2.0
+"""Seconds between two attempts to store a run's end that the database refused (e.g. a full disk)."""
+MIB = 1 << 20
+
+
+class _RunRefused(Exception):
+    """A queued run cannot start (the message says why)."""
 
 
 @dataclass
@@ -72,6 +79,8 @@ class _Live:
     """A queued or running run in this process."""
 
     tracker: ProgressTracker
+    label: str
+    """How logs name the run: the number the UI shows, its project and its id."""
     process: subprocess.Popen[bytes] | None = None
     """The worker process (None until started)."""
     cancel_requested: bool = False
@@ -119,16 +128,29 @@ class JobManager:
         self.changes = ChangeNotifier()
         """Progress streams wait on this; every tracker change notifies it."""
         self._payloads: dict[int, tuple[int, str, str]] = {}
+        self._unsaved: dict[int, dict[str, Any]] = {}
+        """Final columns of ended runs that the database refused (full disk); retried until stored."""
+        self._store_error: str | None = None
+        """Why the last refused write failed (for /health)."""
+        self._started = False
 
     # ------------------------------------------------------------------------------------- lifecycle
     def start(self) -> list[int]:
         """Mark runs left over by a previous server as interrupted and start the workers."""
         with open_db(self.settings.database) as db:
             interrupted = crud.mark_stale_runs_interrupted(db)
-        for run_id in interrupted:
-            log.warning("run %d was interrupted by a server stop; it can be resumed", run_id)
+            for run_id in interrupted:
+                run = crud.get_run(db, run_id)
+                if run is not None:
+                    log.warning(
+                        "run #%d of project %d (id %d) was interrupted by a server stop; it can be resumed",
+                        run["number"],
+                        run["project_id"],
+                        run_id,
+                    )
         with self._lock:
             self._stopping = False
+            self._started = True
             for i in range(self.settings.max_parallel_runs):
                 t = threading.Thread(target=self._worker_loop, name=f"leap-run-worker-{i}", daemon=True)
                 t.start()
@@ -153,8 +175,14 @@ class JobManager:
         for t in self._threads:
             t.join(2.0)
         self._threads.clear()
-        with open_db(self.settings.database) as db:
-            crud.mark_stale_runs_interrupted(db)
+        self._flush_unsaved()
+        try:
+            with open_db(self.settings.database) as db:
+                crud.mark_stale_runs_interrupted(db)
+        except Exception:  # a full disk must not stop the shutdown; the next start marks them instead
+            log.exception("could not mark the runs left active as interrupted")
+        with self._lock:
+            self._started = False
         _set_current(None)
 
     # ------------------------------------------------------------------------------------- requests
@@ -164,7 +192,9 @@ class JobManager:
         Raises:
             NotFound: unknown project.
             Conflict: the project already has a queued or running run.
+            InsufficientStorage: less free disk space than ``min_free_disk_mb``.
         """
+        self._refuse_when_disk_low()
         # The write transaction (not the manager lock, which progress readers on the event loop share)
         # makes "check for an active run, then insert" atomic across requests.
         with open_db(self.settings.database) as db:
@@ -192,7 +222,10 @@ class JobManager:
         Raises:
             NotFound: unknown run.
             Conflict: the run is not resumable or its project has another active run.
+            InsufficientStorage: less free disk space than ``min_free_disk_mb``.
         """
+        self._refuse_when_disk_low()
+        self._refuse_when_unsaved(run_id)
         with open_db(self.settings.database) as db:
             with transaction(db):
                 run = crud.require_run(db, run_id)
@@ -221,6 +254,7 @@ class JobManager:
             NotFound: unknown run.
             Conflict: the run already ended.
         """
+        self._refuse_when_unsaved(run_id)
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
             if run["status"] not in ACTIVE_STATUSES:
@@ -331,9 +365,10 @@ class JobManager:
         ):
             linked = seed_run_dir(Path(previous["run_dir"]), run_dir)
             log.info(
-                "run %d starts from run %d's stage outputs (%d files linked)",
-                run["id"],
-                previous["id"],
+                "run #%d of project %d starts from run #%d's stage outputs (%d files linked)",
+                run["number"],
+                run["project_id"],
+                previous["number"],
                 linked,
             )
 
@@ -354,7 +389,8 @@ class JobManager:
         tracker.version = after_version  # a resumed run's versions continue, so streams see only news
         tracker.on_change = self.changes.notify
         tracker.set_status("queued", utcnow())
-        self._live[run["id"]] = _Live(tracker=tracker)
+        label = f"run #{run['number']} of project {run['project_id']} (id {run['id']})"
+        self._live[run["id"]] = _Live(tracker=tracker, label=label)
         self._queue.append(run["id"])
         self._wake.notify()
 
@@ -380,7 +416,8 @@ class JobManager:
         try:
             with open(self.settings.work_dir / "worker.log", "ab") as errlog:
                 process = subprocess.Popen(
-                    [sys.executable, "-m", "app.jobs.worker", str(write_fd), str(os.getpid())],
+                    worker_command(write_fd),
+                    env=worker_env(),
                     stdin=subprocess.PIPE,
                     stdout=errlog,
                     stderr=errlog,
@@ -395,49 +432,198 @@ class JobManager:
         return _Worker(process, read_fd)
 
     def _worker_loop(self) -> None:
-        spare: _Worker | None = self._spawn_worker() if self.settings.prewarm_workers else None
+        """A worker thread's body. No error ends it: a dead thread would leave its run ``running`` for
+        good, turn Cancel into a no-op and keep every later run ``queued``."""
+        while True:
+            try:
+                self._serve_queue()
+                return
+            except Exception:
+                name = threading.current_thread().name
+                log.exception("job manager: unexpected error in %s; the thread goes on", name)
+                time.sleep(1.0)
+
+    def _serve_queue(self) -> None:
+        spare: _Worker | None = None
         try:
+            if self.settings.prewarm_workers:
+                spare = self._spawn_spare()
             while True:
                 with self._lock:
                     while not self._queue and not self._stopping:
+                        if self._unsaved:
+                            self._wake.wait(RETRY_STORE_S)
+                            break
                         self._wake.wait()
                     if self._stopping:
                         return
-                    run_id = self._queue.popleft()
-                if spare is None or spare.process.poll() is not None:
-                    if spare is not None:
-                        spare.close()
-                    spare = self._spawn_worker()
+                    run_id = self._queue.popleft() if self._queue else None
+                self._flush_unsaved()
+                if run_id is None:
+                    continue
                 worker_proc, spare = spare, None
-                try:
-                    self._execute(run_id, worker_proc)
-                except Exception:  # a broken run must not kill the worker thread
-                    log.exception("run %d: unexpected error in the job manager", run_id)
-                    worker_proc.kill()
-                    with open_db(self.settings.database) as db:
-                        crud.update_run(
-                            db,
-                            run_id,
-                            status="failed",
-                            finished_at=utcnow(),
-                            error="internal error in the job manager; see the server log",
-                        )
-                    with self._lock:
-                        live = self._live.get(run_id)
-                        if live is not None:
-                            live.tracker.set_status("failed", utcnow(), "internal error in the job manager")
-                        self._retire(run_id)
-                finally:
-                    worker_proc.close()
+                self._run_one(run_id, worker_proc)
                 with self._lock:
                     stopping = self._stopping
                 if not stopping:
                     # Ready for the next run: its imports happen now, while nothing else runs.
-                    spare = self._spawn_worker()
+                    spare = self._spawn_spare()
         finally:
             if spare is not None:
                 spare.kill()
                 spare.close()
+
+    def _run_one(self, run_id: int, proc: _Worker | None) -> None:
+        """Execute a run taken from the queue in ``proc`` (a pre-started worker, or a new one)."""
+        try:
+            low = self._low_disk_message()
+            if low is not None:
+                raise _RunRefused(f"not started: {low}")
+            if proc is None or proc.process.poll() is not None:
+                if proc is not None:
+                    proc.close()
+                proc = self._spawn_worker()
+            self._execute(run_id, proc)
+        except Exception as exc:  # a broken run must not end the worker thread
+            self._fail_run(run_id, exc, proc)
+        finally:
+            if proc is not None:
+                proc.close()
+
+    def _spawn_spare(self) -> _Worker | None:
+        """A pre-started worker, or None when it cannot be started now (the next run tries again)."""
+        try:
+            return self._spawn_worker()
+        except Exception:
+            log.exception("could not start a worker process")
+            return None
+
+    def _fail_run(self, run_id: int, exc: Exception, proc: _Worker | None) -> None:
+        """End a run the job manager could not carry through: kill its process, store and publish
+        ``failed`` with the reason (a full disk, a refused start, or an internal error)."""
+        with self._lock:
+            live = self._live.get(run_id)
+        label = live.label if live is not None else f"run id {run_id}"
+        reason = str(exc) if isinstance(exc, _RunRefused) else disk_full_message(exc)
+        if reason is None:
+            log.exception("%s: unexpected error in the job manager", label)
+            reason = f"internal error in the job manager ({type(exc).__name__}: {exc}); see the server log"
+        else:
+            log.error("%s failed: %s", label, reason)
+        if proc is not None:
+            proc.kill()
+        if live is None:
+            return
+        with self._lock:
+            final = live.tracker.clone()
+        final.set_status("failed", utcnow(), reason)
+        self._store_final(
+            run_id,
+            {"status": "failed", "error": reason, "finished_at": utcnow(), "stages": final.stages_record()},
+        )
+        with self._lock:
+            live.tracker.set_status("failed", utcnow(), reason)
+            self._retire(run_id)
+
+    def _store_final(self, run_id: int, fields: dict[str, Any]) -> bool:
+        """Write a run's final columns; when the database refuses, keep them and retry every
+        ``RETRY_STORE_S`` (until then /health reports it). True when stored now."""
+        try:
+            with open_db(self.settings.database) as db:
+                crud.update_run(db, run_id, **fields)
+        except Exception as exc:
+            why = disk_full_message(exc) or f"{type(exc).__name__}: {exc}"
+            log.error("run id %d: its end (%s) not stored, will retry: %s", run_id, fields["status"], why)
+            with self._lock:
+                self._unsaved[run_id] = fields
+                self._store_error = why
+                self._wake.notify()
+            return False
+        return True
+
+    def _flush_unsaved(self) -> None:
+        """Retry storing the ends the database refused before."""
+        with self._lock:
+            pending = list(self._unsaved.items())
+        for run_id, fields in pending:
+            try:
+                with open_db(self.settings.database) as db:
+                    crud.update_run(db, run_id, **fields)
+            except Exception as exc:
+                with self._lock:
+                    self._store_error = disk_full_message(exc) or f"{type(exc).__name__}: {exc}"
+                continue
+            log.info("run id %d: its end (%s) is stored now", run_id, fields["status"])
+            with self._lock:
+                if self._unsaved.get(run_id) is fields:
+                    del self._unsaved[run_id]
+
+    def _refuse_when_unsaved(self, run_id: int) -> None:
+        """A run whose end is not stored yet cannot be cancelled or resumed (its row still says running)."""
+        if run_id not in self._unsaved:
+            return
+        self._flush_unsaved()
+        with self._lock:
+            fields = self._unsaved.get(run_id)
+            why = self._store_error
+        if fields is not None:
+            raise InsufficientStorage(
+                f"Run id {run_id} already ended ({fields['status']}: {fields.get('error')}), but the "
+                f"database cannot store that yet: {why}"
+            )
+
+    # ----------------------------------------------------------------------------------- disk space
+    def free_disk_bytes(self) -> int | None:
+        """Free bytes on the work folder's file system (None when it cannot be read)."""
+        try:
+            return shutil.disk_usage(self.settings.work_dir).free
+        except OSError:
+            return None
+
+    def _low_disk_message(self, free: int | None = None) -> str | None:
+        """Why no run may start now (free space below ``min_free_disk_mb``), or None."""
+        need = self.settings.min_free_disk_mb
+        if need <= 0:
+            return None
+        free = self.free_disk_bytes() if free is None else free
+        if free is None or free >= need * MIB:
+            return None
+        return (
+            f"only {free / MIB:.0f} MiB free on the disk of {self.settings.work_dir}, and a run needs at "
+            f"least {need:g} MiB (setting min_free_disk_mb); free some space, then start the run again"
+        )
+
+    def _refuse_when_disk_low(self) -> None:
+        low = self._low_disk_message()
+        if low is not None:
+            raise InsufficientStorage(f"Run not started: {low}")
+
+    def health(self) -> dict[str, Any]:
+        """The job manager's state for ``/health``: worker threads alive, ends waiting to be stored, free
+        disk space; ``problems`` lists what needs attention (empty when all is well)."""
+        with self._lock:
+            expected = len(self._threads) if self._started else 0
+            alive = sum(1 for t in self._threads if t.is_alive())
+            unsaved = sorted(self._unsaved)
+            store_error = self._store_error
+        free = self.free_disk_bytes()
+        problems: list[str] = []
+        if alive < expected:
+            problems.append(f"{expected - alive} of {expected} job threads stopped; restart the server")
+        if unsaved:
+            ids = ", ".join(str(i) for i in unsaved)
+            problems.append(f"the end of run id(s) {ids} is not stored yet: {store_error}")
+        low = self._low_disk_message(free)
+        if low is not None:
+            problems.append(low)
+        return {
+            "workers": expected,
+            "workers_alive": alive,
+            "unsaved_runs": unsaved,
+            "disk_free_mb": None if free is None else round(free / MIB, 1),
+            "min_free_disk_mb": self.settings.min_free_disk_mb,
+            "problems": problems,
+        }
 
     def _execute(self, run_id: int, proc: _Worker) -> None:
         with open_db(self.settings.database) as db:
@@ -514,6 +700,13 @@ class JobManager:
             return time.monotonic()
         return last_persist
 
+    def _on_log(self, live: _Live, message: LogLine) -> None:
+        """A pipeline warning: into the server log, and into the run's warnings the UI shows."""
+        log.log(message.level, "%s: %s: %s", live.label, message.logger, message.message)
+        if message.level >= logging.WARNING:
+            with self._lock:
+                live.tracker.add_warning(message.message, utcnow())
+
     def _relay(self, run_id: int, live: _Live, fd: int, process: subprocess.Popen[bytes]) -> RunOutcome:
         """Feed the child's messages into the tracker until it reports a result or dies."""
         last_persist = time.monotonic()
@@ -534,12 +727,12 @@ class JobManager:
                     try:
                         message = decode_from_worker(line)
                     except MessageError as exc:
-                        log.warning("run %d: unreadable worker message: %s", run_id, exc)
+                        log.warning("%s: unreadable worker message: %s", live.label, exc)
                         continue
                     if isinstance(message, StageProgress):
                         last_persist = self._on_progress(run_id, live, message, last_persist)
                     elif isinstance(message, LogLine):
-                        log.log(message.level, "run %d: %s: %s", run_id, message.logger, message.message)
+                        self._on_log(live, message)
                     else:
                         outcome = message
             if (
@@ -548,7 +741,7 @@ class JobManager:
                 and time.monotonic() - live.cancel_at > CANCEL_GRACE_S
             ):
                 log.warning(
-                    "run %d did not stop within %.0f s of its cancel; killing it", run_id, CANCEL_GRACE_S
+                    "%s did not stop within %.0f s of its cancel; killing it", live.label, CANCEL_GRACE_S
                 )
                 process.kill()
                 outcome = RunOutcome("cancelled")
@@ -568,34 +761,52 @@ class JobManager:
 
     def _finish(self, run_id: int, outcome: RunOutcome) -> None:
         """Store the outcome, then publish it: a client that sees the end in the progress stream and
-        reads the run right after finds the final row (status, metrics) in the database."""
+        reads the run right after finds the final row (status, metrics) in the database.
+
+        A run whose end the database refuses for lack of space ends ``failed`` with that reason (its
+        outputs stay on disk: a resume finds them); any other error propagates to :meth:`_fail_run`."""
         status: str = outcome.status
         error = outcome.error
         with open_db(self.settings.database) as db:
-            run = crud.require_run(db, run_id)
-            skipped = pipeline_skipped_stages(Path(run["run_dir"]))
+            run_dir = Path(crud.require_run(db, run_id)["run_dir"])
+        skipped = pipeline_skipped_stages(run_dir)
+        with self._lock:
+            live = self._live[run_id]
+            if status != "done" and self._stopping and not live.cancel_requested:
+                status, error = "interrupted", "the server stopped during this run; resume it to continue"
+            final = live.tracker.clone()
+        final.set_status(status, utcnow(), error)
+        final.mark_skipped(skipped)
+        metrics = read_metrics(run_dir) if status == "done" else None
+        try:
+            with open_db(self.settings.database) as db:
+                crud.update_run(
+                    db,
+                    run_id,
+                    status=status,
+                    error=error,
+                    finished_at=utcnow(),
+                    stages=final.stages_record(),
+                    **({"metrics": metrics} if metrics is not None else {}),
+                )
+        except Exception as exc:
+            reason = disk_full_message(exc)
+            if reason is None:
+                raise
+            status, error = "failed", f"the run's end could not be stored: {reason}; then resume the run"
             with self._lock:
-                live = self._live[run_id]
-                if status != "done" and self._stopping and not live.cancel_requested:
-                    status, error = "interrupted", "the server stopped during this run; resume it to continue"
                 final = live.tracker.clone()
             final.set_status(status, utcnow(), error)
             final.mark_skipped(skipped)
-            metrics = read_metrics(Path(run["run_dir"])) if status == "done" else None
-            crud.update_run(
-                db,
+            self._store_final(
                 run_id,
-                status=status,
-                error=error,
-                finished_at=utcnow(),
-                stages=final.stages_record(),
-                **({"metrics": metrics} if metrics is not None else {}),
+                {"status": status, "error": error, "finished_at": utcnow(), "stages": final.stages_record()},
             )
         with self._lock:
             live.tracker.set_status(status, utcnow(), error)
             live.tracker.mark_skipped(skipped)
             self._retire(run_id)
-        log.info("run %d %s%s", run_id, status, f": {error}" if error else "")
+        log.info("%s %s%s", live.label, status, f": {error}" if error else "")
 
     # ------------------------------------------------------------------------------ synchronous use
     def run_now(self, run_id: int, on_progress: Callable[[str, int, int], None] | None = None) -> str:
@@ -625,6 +836,25 @@ class JobManager:
         outcome = worker.execute(self._spec(run), emit, lambda: False)
         self._finish(run_id, outcome)
         return outcome.status
+
+
+_CODE_ROOT = Path(__file__).resolve().parents[2]
+"""The folder holding the ``app`` and ``leap_core`` packages this server runs."""
+
+
+def worker_command(message_fd: int) -> list[str]:
+    """The worker's command line. ``-P`` keeps the server's current folder off the worker's import path:
+    a stray ``numbers.py`` there would otherwise shadow the standard library's and fail every run."""
+    return [sys.executable, "-P", "-m", "app.jobs.worker", str(message_fd), str(os.getpid())]
+
+
+def worker_env() -> dict[str, str]:
+    """The server's environment, with the server's own code first on ``PYTHONPATH`` (``-P`` removed the
+    current folder, the worker must still import the same ``app`` and ``leap_core`` as the server)."""
+    env = dict(os.environ)
+    parts = [str(_CODE_ROOT), *(p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p)]
+    env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(parts))
+    return env
 
 
 def seed_run_dir(previous: Path, run_dir: Path) -> int:

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 TERMINAL_STATUSES = frozenset({"done", "failed", "cancelled", "interrupted"})
+MAX_WARNINGS = 20
+"""Warnings a run keeps (the first ones; later ones are counted in the last entry)."""
 
 
 @dataclass
@@ -75,6 +77,8 @@ class ProgressTracker:
     error: str | None = None
     expected_seconds: dict[str, float] = field(default_factory=dict)
     """Seconds each stage took in the project's last finished run (for the run-level ETA)."""
+    warnings: list[str] = field(default_factory=list)
+    """What the pipeline warned about (e.g. frames without a camera image), shown with the run."""
     version: int = 0
     """Bumped on every change, so streams send only news."""
     updated_at: str = ""
@@ -121,6 +125,7 @@ class ProgressTracker:
             self,
             stages=[dataclasses.replace(s) for s in self.stages],
             expected_seconds=dict(self.expected_seconds),
+            warnings=list(self.warnings),
             on_change=None,
         )
 
@@ -133,6 +138,18 @@ class ProgressTracker:
                     s.status = {"done": "done", "failed": "failed"}.get(status, "cancelled")
                 elif s.status == "pending" and status == "done":
                     s.status = "skipped"
+        self._touch(stamp)
+
+    def add_warning(self, text: str, stamp: str) -> None:
+        """Record a warning once (a resumed run repeats its first attempt's warnings)."""
+        if text in self.warnings:
+            return
+        if len(self.warnings) < MAX_WARNINGS:
+            self.warnings.append(text)
+        elif len(self.warnings) == MAX_WARNINGS:
+            self.warnings.append("… further warnings are in the run's log")
+        else:
+            return
         self._touch(stamp)
 
     def mark_skipped(self, names: set[str]) -> None:
@@ -217,6 +234,7 @@ class ProgressTracker:
             "eta_s": None if eta is None else round(eta, 1),
             "stages": [s.public(now) for s in self.stages],
             "error": self.error,
+            "warnings": list(self.warnings),
             "updated_at": self.updated_at,
             "version": self.version,
         }
@@ -230,6 +248,7 @@ class ProgressTracker:
                 s.name: {"status": s.status, "done": s.done, "total": s.total, "seconds": s.seconds}
                 for s in self.stages
             },
+            "warnings": list(self.warnings),
         }
 
     @classmethod
@@ -260,5 +279,6 @@ class ProgressTracker:
                 # Stored while running, but no process is working on it now.
                 s.status = "cancelled" if status in TERMINAL_STATUSES else "running"
         tracker.error = error
+        tracker.warnings = [str(w) for w in record.get("warnings") or []]
         tracker.updated_at = stamp
         return tracker

@@ -32,6 +32,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
+from app.core.errors import disk_full_message
 from app.demo import ensure_demo_sequence
 from app.jobs.messages import (
     CancelRun,
@@ -95,14 +96,16 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
-def _run_logger(run_dir: Path) -> logging.Logger:
+def _run_logger(run_dir: Path) -> tuple[logging.Logger, logging.Handler]:
+    """The run's own logger, and the handler writing to its ``run.log`` (the pipeline's warnings, e.g.
+    frames without a camera image, go there too: the UI shows that log)."""
     logger = logging.getLogger(f"leap.run.{run_dir.name}")
     logger.setLevel(logging.INFO)
     logger.propagate = False
     handler = logging.FileHandler(run_dir / LOG_NAME, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
     logger.addHandler(handler)
-    return logger
+    return logger, handler
 
 
 class _Reporter:
@@ -141,7 +144,11 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
     """
     run_dir = spec.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)
-    log = _run_logger(run_dir)
+    log, handler = _run_logger(run_dir)
+    pipeline_warnings = logging.FileHandler(run_dir / LOG_NAME, encoding="utf-8")
+    pipeline_warnings.setLevel(logging.WARNING)
+    pipeline_warnings.setFormatter(handler.formatter)
+    logging.getLogger("leap_core").addHandler(pipeline_warnings)
     try:
         with run_dir_lock(run_dir):
             log.info("run started in %s (pid %d)", run_dir, os.getpid())
@@ -155,6 +162,10 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
             except LeapError as exc:
                 log.error("run failed: %s", exc)
                 return RunOutcome("failed", str(exc))
+            except OSError as exc:
+                full = disk_full_message(exc)
+                log.error("run failed:\n%s", traceback.format_exc())
+                return RunOutcome("failed", full or f"{type(exc).__name__}: {exc}")
             except Exception as exc:
                 log.error("run failed:\n%s", traceback.format_exc())
                 return RunOutcome("failed", f"{type(exc).__name__}: {exc}")
@@ -167,9 +178,11 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
     except RunDirBusy as exc:
         return RunOutcome("failed", str(exc))
     finally:
-        for handler in list(log.handlers):
-            handler.close()
-            log.removeHandler(handler)
+        logging.getLogger("leap_core").removeHandler(pipeline_warnings)
+        pipeline_warnings.close()
+        for h in list(log.handlers):
+            h.close()
+            log.removeHandler(h)
 
 
 def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:

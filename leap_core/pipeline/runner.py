@@ -3,6 +3,7 @@ clearing and resuming, all derived from :data:`~leap_core.pipeline.stages.STAGE_
 
 from __future__ import annotations
 
+import logging
 import shutil
 import time
 from dataclasses import dataclass
@@ -12,12 +13,15 @@ from typing import Any
 from leap_core.config import PipelineConfig, config_to_dict
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import Cancelled, LeapError
+from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_json, read_state
 from leap_core.pipeline.evaluation import read_metrics_json
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
+
+log = logging.getLogger(__name__)
 
 PIPELINE_VERSION = 1
 """Bumped when a code change alters a stage's output for unchanged inputs (part of every fingerprint)."""
@@ -169,6 +173,27 @@ def _frames(seq: KittiSequence, frames: range | None) -> range:
     return frames
 
 
+def warn_missing_images(seq: KittiSequence, frames: range, labeler: str) -> list[str]:
+    """Log a warning naming the run's frames that have no camera image; returns their frame ids.
+
+    A labeler that reads 2D ground truth (the simulated one) still labels such a frame, so without this
+    warning a deleted image would go unnoticed in a run that ends ``done``; an image labeler fails on it.
+    """
+    missing = [seq.frame_ids[i] for i in frames if seq.image_path(i) is None]
+    if missing:
+        shown = ", ".join(missing[:5]) + (", …" if len(missing) > 5 else "")
+        consequence = (
+            "the simulated labeler labels them from the 2D ground truth only"
+            if LABELERS[labeler].needs == "gt2d"
+            else "the 2D labeler cannot label them"
+        )
+        log.warning(
+            "%d of %d frames have no camera image in %s (frames %s): %s",
+            len(missing), len(frames), seq.root / "image_2", shown, consequence,
+        )
+    return missing
+
+
 def _context(
     dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *,
     progress: ProgressCallback | None, frames: range | None, runtime: Runtime | None,
@@ -233,6 +258,7 @@ def run_pipeline(
     ctx = _context(
         Path(dataset), schema, config, Path(run_dir), progress=progress, frames=frames, runtime=runtime
     )
+    warn_missing_images(ctx.seq, ctx.frames, config.labeler)
     last = STAGES.index(until) if until else len(STAGES) - 1
     reports: dict[str, StageReport] = {}
     for stage in STAGE_TABLE[: last + 1]:

@@ -156,7 +156,8 @@ def test_the_relay_survives_malformed_lines_and_logs_worker_warnings(
         )
         run = crud.create_run(db, project_id=project["id"], params={}, runs_dir=settings.runs_dir)
     manager = JobManager(settings)
-    live = _Live(tracker=ProgressTracker.create(run["id"], project["id"], ["labels2d", "fuse"]))
+    label = f"run #{run['number']} of project {project['id']} (id {run['id']})"
+    live = _Live(tracker=ProgressTracker.create(run["id"], project["id"], ["labels2d", "fuse"]), label=label)
     read_fd, write_fd = os.pipe()
     lines = [
         b"not json at all\n",
@@ -194,7 +195,10 @@ def test_the_relay_survives_malformed_lines_and_logs_worker_warnings(
     assert "stage.done: expected an integer" in unreadable[2] and "does not send 'cancel'" in unreadable[3]
     forwarded = [r for r in caplog.records if "random weights" in r.getMessage()]
     assert len(forwarded) == 1 and forwarded[0].levelno == logging.WARNING
-    assert forwarded[0].getMessage() == f"run {run['id']}: leap_core.labelers: random weights"
+    assert forwarded[0].getMessage() == f"{label}: leap_core.labelers: random weights"
+    # Warnings also become part of the run the UI shows (and of its stored record).
+    assert live.tracker.snapshot()["warnings"] == ["random weights"]
+    assert live.tracker.stages_record()["warnings"] == ["random weights"]
 
 
 def test_the_worker_forwards_pipeline_warnings_only() -> None:
