@@ -202,6 +202,8 @@ class JobManager:
                 project = crud.require_project(db, project_id)
                 active = crud.active_run(db, project_id)
                 if active is not None:
+                    # Inside this transaction a retry of the stored end would wait for its own lock.
+                    self._refuse_when_unsaved(active["id"], flush=False)
                     raise Conflict(
                         f"Project {project_id} already has run {active['id']} {active['status']}; "
                         "cancel it or wait for it to finish"
@@ -558,11 +560,13 @@ class JobManager:
                 if self._unsaved.get(run_id) is fields:
                     del self._unsaved[run_id]
 
-    def _refuse_when_unsaved(self, run_id: int) -> None:
-        """A run whose end is not stored yet cannot be cancelled or resumed (its row still says running)."""
+    def _refuse_when_unsaved(self, run_id: int, *, flush: bool = True) -> None:
+        """A run whose end is not stored yet cannot be cancelled or resumed (its row still says running);
+        ``flush`` first tries to store it once more."""
         if run_id not in self._unsaved:
             return
-        self._flush_unsaved()
+        if flush:
+            self._flush_unsaved()
         with self._lock:
             fields = self._unsaved.get(run_id)
             why = self._store_error

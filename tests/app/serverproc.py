@@ -47,6 +47,7 @@ class Server:
         port: int | None = None,
         extra_env: dict[str, str] | None = None,
         log: Path | None = None,
+        cwd: Path | None = None,
     ) -> None:
         self.port = port or free_port()
         self.base = f"http://127.0.0.1:{self.port}"
@@ -61,6 +62,9 @@ class Server:
             **(extra_env or {}),
         }
         self.proc: subprocess.Popen[bytes] | None = None
+        self.cwd = cwd
+        """Current folder of the server process (default: the test's); started with ``python -P`` then,
+        so that folder is not on the server's own import path either."""
 
     def start(self, timeout: float = 60.0) -> Server:
         return self.start_with_token(None, timeout)
@@ -68,10 +72,7 @@ class Server:
     def start_with_token(self, token: str | None, timeout: float = 60.0) -> Server:
         """Start and wait until ``/health`` answers (with ``token`` when the server needs one)."""
         headers = {"X-Leap-Token": token} if token else {}
-        with open(self.log, "ab") as out:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "app.main"], env=self.env, stdout=out, stderr=out
-            )
+        self.proc = self.launch()
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -83,6 +84,31 @@ class Server:
                 pass
             time.sleep(0.1)
         raise RuntimeError(f"server did not answer within {timeout} s; see {self.log}")
+
+    def launch(self) -> subprocess.Popen[bytes]:
+        """Start the process without waiting for it (see :meth:`refused` for one expected to exit)."""
+        python = [sys.executable] if self.cwd is None else [sys.executable, "-P"]
+        with open(self.log, "ab") as out:
+            return subprocess.Popen(
+                [*python, "-m", "app.main"], env=self.env, stdout=out, stderr=out, cwd=self.cwd
+            )
+
+    def refused(self, timeout: float = 60.0) -> tuple[int | None, str]:
+        """Start a server expected to refuse to run: ``(exit status, its output)``; a server still running
+        after ``timeout`` is stopped and gives ``(None, output)``."""
+        start = self.log.stat().st_size if self.log.exists() else 0
+        proc = self.launch()
+        try:
+            code: int | None = proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+            code = None
+        return code, self.log.read_bytes()[start:].decode("utf-8", "replace")
 
     def kill9(self) -> None:
         assert self.proc is not None
