@@ -7,6 +7,7 @@ stays fast."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypedDict
 
@@ -40,17 +41,36 @@ cli = typer.Typer(
 
 class StageBars:
     """One tqdm bar per pipeline stage, opened when the stage first reports (``progress(stage, done, total)``)
-    and closing the previous stage's bar; use as a context manager so every bar is closed."""
+    and closing the previous stage's bar; use as a context manager so every bar is closed and log lines
+    (the pipeline's warnings) are written above the bars instead of onto them.
 
-    def __init__(self) -> None:
+    The pipeline reports a stage it does not compute (cached from an earlier run, or disabled) as complete
+    at once. With ``run_dir`` given, such a stage is held back until the pipeline has recorded it, then
+    printed as one ``skipped`` line instead of a full bar (a stage that really computed in one step still
+    gets its bar).
+    """
+
+    def __init__(self, run_dir: Path | None = None) -> None:
+        import time
+
         self.bars: dict[str, tqdm[Any]] = {}
+        self.run_dir = run_dir
+        self.started = time.time()
+        self._held: tuple[str, int] | None = None
+        self._redirect: Any = None
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         from tqdm import tqdm
 
+        if self._held is not None and self._held[0] != stage:
+            self._settle()
         bar = self.bars.get(stage)
         if bar is None:
-            self.close()
+            if self.run_dir is not None and total > 0 and done >= total and self._held is None:
+                self._close_bars()
+                self._held = (stage, total)
+                return
+            self._close_bars()
             unit = "step" if stage in ("3dcn", "synth") else "frame"
             bar = self.bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit=unit, leave=True,
                                           dynamic_ncols=True)
@@ -58,15 +78,47 @@ class StageBars:
         bar.n = done
         bar.refresh()
 
-    def close(self) -> None:
+    def _settle(self) -> None:
+        """Print the held stage as skipped, or as the full bar of a stage that computed in one step."""
+        from tqdm import tqdm
+
+        from leap_core.pipeline import stage_status
+
+        assert self._held is not None and self.run_dir is not None
+        stage, total = self._held
+        self._held = None
+        record = stage_status(self.run_dir).get(stage, {})
+        if record.get("status") == "skipped":
+            tqdm.write(f"{stage:<12} skipped ({record.get('note') or 'nothing to do'})", file=sys.stderr)
+        elif float(record.get("finished") or 0.0) < self.started:
+            tqdm.write(f"{stage:<12} skipped (unchanged since the last run in this folder)", file=sys.stderr)
+        else:
+            unit = "step" if stage in ("3dcn", "synth") else "frame"
+            with tqdm(total=total, initial=total, desc=f"{stage:<12}", unit=unit, dynamic_ncols=True):
+                pass
+
+    def _close_bars(self) -> None:
         for bar in self.bars.values():
             bar.close()
+        self.bars.clear()
+
+    def close(self) -> None:
+        if self._held is not None:
+            self._settle()
+        self._close_bars()
 
     def __enter__(self) -> StageBars:
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        self._redirect = logging_redirect_tqdm()
+        self._redirect.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+        if self._redirect is not None:
+            self._redirect.__exit__(None, None, None)
+            self._redirect = None
 
 
 def fail(message: str) -> typer.Exit:
@@ -224,7 +276,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     # The pipeline imports torch: loaded by the command that runs it, not by `leap --help`.
     from leap_core.pipeline import STAGES, result_tables, run_pipeline
 
-    progress = StageBars()
+    progress = StageBars(Path(out))
 
     try:
         sch, cfg = _run_config(schema, project_file, labeler, consistency)
@@ -379,6 +431,7 @@ def demo_cmd(
             ]
         run = manager.resume_run(resumable[0]["id"]) if resumable else manager.start_run(project["id"])
         typer.echo(f"labeling the demo sequence (run {run['id']}, project {DEMO_PROJECT_NAME!r})")
+        progress.run_dir = Path(run["run_dir"])
         with progress:
             status = manager.run_now(run["id"], on_progress=progress)
         with open_db(settings.database) as db:

@@ -17,7 +17,7 @@ from typing import Any
 
 import uvicorn
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, JSONResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
@@ -131,7 +131,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Open-vocabulary 3D point labeling: projects, runs, progress, metrics and exports.",
         version=__version__,
         openapi_url=f"{API_PREFIX}/openapi.json",
-        docs_url="/api/docs",
+        docs_url=None,  # FastAPI's page loads Swagger UI from a CDN; ours (below) works offline
         redoc_url=None,
         lifespan=lifespan,
         generate_unique_id_function=_operation_id,
@@ -156,6 +156,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": message}, status_code=507)
 
     app.include_router(api_router, prefix=API_PREFIX)
+
+    @app.get("/api/docs", include_in_schema=False)
+    def _api_docs() -> FileResponse:
+        """The REST reference: a self-contained page (web/api-docs.*) rendering the OpenAPI document."""
+        return FileResponse(WEB_DIR / "api-docs.html")
+
     if WEB_DIR.is_dir():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
     if settings.token is None:

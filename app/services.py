@@ -100,7 +100,8 @@ def dataset_public(kind: models.DatasetKind, path: str) -> models.DatasetPublic:
 
 
 def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> list[models.DatasetCandidate]:
-    """KITTI-layout sequence folders (with ``velodyne/``) inside the data roots, for the create form."""
+    """KITTI-layout sequence folders (with ``velodyne/``) inside the data roots, for the create form (the
+    demo street too, once generated, when the work folder lies inside a data root)."""
     found: list[models.DatasetCandidate] = []
     seen: set[Path] = set()
     work = settings.work_dir.resolve()
@@ -126,8 +127,10 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
                 )
             return
         for child in children:
-            # The app's own work folder holds runs and caches, not datasets to label.
+            # The app's own work folder holds runs and caches, not datasets to label; of it only the
+            # generated demo street (work_dir/demo/sequences/00) is offered.
             if child.resolve() == work:
+                visit(child / settings.demo_dataset.relative_to(settings.work_dir).parts[0], depth + 2)
                 continue
             visit(child, depth + 1)
 

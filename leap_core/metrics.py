@@ -198,13 +198,15 @@ def metrics_from_confusion(
 
 
 def format_table(rows: dict[str, Metrics], class_names: Sequence[str]) -> str:
-    """Text table, one line per method: mIoU, category mIoU, labeled share (all in %), per-class IoU (%).
+    """Text table with one column per method (point, voxel, +3D-CN ...) and one line per figure: mIoU,
+    category mIoU, labeled share, then the IoU of each class (all in %).
 
-    A class absent from both gt and pred prints ``-``.
+    Classes run down the lines, so the width grows with the number of methods, never with the number of
+    classes (19 SemanticKITTI classes across fit a terminal only at over 200 columns). A class absent
+    from both gt and pred prints ``-``.
     """
     names = list(class_names)
-    head = ["method", "mIoU", "cat-mIoU", "labeled", *names]
-    lines: list[list[str]] = []
+    methods = list(rows)
 
     def pct(x: float) -> str:
         return "-" if math.isnan(x) else f"{100 * x:.1f}"
@@ -212,13 +214,22 @@ def format_table(rows: dict[str, Metrics], class_names: Sequence[str]) -> str:
     for method, m in rows.items():
         if len(m.iou) != len(names):
             raise ValueError(f"method {method!r} has {len(m.iou)} classes, table has {len(names)}")
-        lines.append([method, pct(m.miou), pct(m.category_miou), pct(m.labeled_share), *map(pct, m.iou)])
-    widths = [max(len(h), *(len(r[i]) for r in lines)) if lines else len(h) for i, h in enumerate(head)]
-    fmt = [h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths, strict=True))]
-    out = ["  ".join(fmt), "  ".join("-" * w for w in widths)]
-    for r in lines:
-        cells = (v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(r, widths, strict=True)))
-        out.append("  ".join(cells))
+    lines: list[list[str]] = [
+        ["mIoU", *(pct(rows[k].miou) for k in methods)],
+        ["cat-mIoU", *(pct(rows[k].category_miou) for k in methods)],
+        ["labeled", *(pct(rows[k].labeled_share) for k in methods)],
+    ]
+    lines += [[name, *(pct(rows[k].iou[c]) for k in methods)] for c, name in enumerate(names)]
+    head = ["%", *methods]
+    widths = [max(len(h), *(len(r[i]) for r in lines)) for i, h in enumerate(head)]
+
+    def row(cells: Sequence[str]) -> str:
+        return "  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(cells, widths)))
+
+    out = [row(head), "  ".join("-" * w for w in widths)]
+    out += [row(r) for r in lines[:3]]
+    out.append("  ".join("-" * w for w in widths))
+    out += [row(r) for r in lines[3:]]
     return "\n".join(out)
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from leap_core.metrics import confusion_matrix, evaluate, format_table
+from leap_core.presets import load_preset
 
 NAMES = ["car", "road", "sidewalk", "person"]
 CATS = ["vehicle", "flat", "flat", "human"]
@@ -111,9 +112,25 @@ def test_to_dict_and_format_table() -> None:
     assert d["category_iou"]["flat"] == pytest.approx(0.75)
     assert d["confusion"][1] == [0, 3, 1, 0, 2]
     table = format_table({"point": allp, "voxel": ign}, NAMES)
-    lines = table.splitlines()
-    assert lines[0].split() == ["method", "mIoU", "cat-mIoU", "labeled", *NAMES]
-    assert lines[2].split() == ["point", "44.3", "50.0", "76.9", "40.0", "42.9", "50.0", "-"]
-    assert lines[3].split() == ["voxel", "53.3", "62.5", "76.9", "50.0", "60.0", "50.0", "-"]
+    lines = [line.split() for line in table.splitlines() if not line.startswith("-")]
+    assert lines[0] == ["%", "point", "voxel"]
+    columns = {row[0]: row[1:] for row in lines[1:]}
+    assert list(columns) == ["mIoU", "cat-mIoU", "labeled", *NAMES]
+    assert [v[0] for v in columns.values()] == ["44.3", "50.0", "76.9", "40.0", "42.9", "50.0", "-"]
+    assert [v[1] for v in columns.values()] == ["53.3", "62.5", "76.9", "50.0", "60.0", "50.0", "-"]
     with pytest.raises(ValueError, match="categories"):
         evaluate(gt, pred, NAMES, CATS[:2], ignore_unlabeled_pred=True)
+
+
+def test_format_table_fits_120_columns_with_the_semantickitti_classes() -> None:
+    """19 classes and five result rows (point, voxel, three 3D-CN rounds) fit a 120-column terminal."""
+    schema = load_preset("semantickitti").schema
+    names = [c.name for c in schema.classes]
+    cats = [c.category for c in schema.classes]
+    rng = np.random.default_rng(0)
+    gt = rng.integers(0, len(names), 5000)
+    pred = np.where(rng.random(5000) < 0.7, gt, rng.integers(-1, len(names), 5000))
+    m = evaluate(gt, pred, names, cats, ignore_unlabeled_pred=True)
+    table = format_table({"point": m, "voxel": m, "+3D-CN x1": m, "+3D-CN x2": m, "+3D-CN x3": m}, names)
+    assert max(len(line) for line in table.splitlines()) <= 120, table
+    assert len(table.splitlines()) == 2 + 3 + 1 + len(names)

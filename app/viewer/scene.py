@@ -11,12 +11,14 @@ only; remote browsers reach it through the app's authenticated relay (:mod:`app.
 
 from __future__ import annotations
 
+import contextlib
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import rich
 import viser
 
 from app.viewer import view_logic as vl
@@ -167,6 +169,23 @@ class CameraLayer(_Layer):
             self._handle.image = image
 
 
+_rich_quiet = threading.Lock()
+
+
+@contextlib.contextmanager
+def _quiet_viser() -> Iterator[None]:
+    """Silence viser's start banner and stop line (printed through rich even with ``verbose=False``): they
+    name its internal port, which users must not open (the app relays the viewer on its own port)."""
+    console = rich.get_console()
+    with _rich_quiet:
+        before = console.quiet
+        console.quiet = True
+        try:
+            yield
+        finally:
+            console.quiet = before
+
+
 class ReviewScene:
     """The viewer's 3D scene: voxel map, selection highlight, one scan and its camera.
 
@@ -177,7 +196,8 @@ class ReviewScene:
     """
 
     def __init__(self, *, host: str = "127.0.0.1", port: int = 0, label: str = "LeAP review") -> None:
-        self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        with _quiet_viser():
+            self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_share_button=False)
         # A docked panel never hides the map (a floating one covers part of the canvas).
         self.server.gui.main_panel.dock_right()
@@ -240,7 +260,8 @@ class ReviewScene:
         """Close the server and free its port (idempotent)."""
         if not self._closed:
             self._closed = True
-            self.server.stop()
+            with _quiet_viser():
+                self.server.stop()
 
 
 __all__ = ["CameraLayer", "PointLayer", "ReviewScene"]
