@@ -80,6 +80,10 @@ function runRows(ctx, run, rows) {
   if (run.error && !ctx.active.has(run.status)) {
     out.push(h("tr", { class: "sub" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "error small" }, run.error)));
   }
+  const warnings = (run.progress && run.progress.warnings) || [];
+  if (warnings.length && !ctx.active.has(run.status)) {
+    out.push(h("tr", { class: "sub" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "run-warnings small" }, warnings.join(" · "))));
+  }
   if (state.openLogs.has(run.id)) {
     const pre = h("pre", { class: "log" }, "loading…");
     get(`/runs/${run.id}/logs`).then(

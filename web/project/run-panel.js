@@ -66,5 +66,8 @@ export function renderRunPanel(ctx) {
     overall,
     h("ol", { class: "stages" }, pr.stages.map((stage) => stageRow(ctx, stage))),
     pr.error ? h("p", { class: "error run-error", role: "alert" }, pr.error) : null,
+    pr.warnings && pr.warnings.length
+      ? h("ul", { class: "run-warnings", "aria-label": "Warnings" }, pr.warnings.map((w) => h("li", {}, w)))
+      : null,
   );
 }
