@@ -430,7 +430,7 @@ def demo_cmd(
                 r for r in crud.list_runs(db, project["id"]) if r["status"] in ("interrupted", "cancelled")
             ]
         run = manager.resume_run(resumable[0]["id"]) if resumable else manager.start_run(project["id"])
-        typer.echo(f"labeling the demo sequence (run {run['id']}, project {DEMO_PROJECT_NAME!r})")
+        typer.echo(f"labeling the demo sequence (run #{run['number']} of project {DEMO_PROJECT_NAME!r})")
         progress.run_dir = Path(run["run_dir"])
         with progress:
             status = manager.run_now(run["id"], on_progress=progress)

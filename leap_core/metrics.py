@@ -224,7 +224,8 @@ def format_table(rows: dict[str, Metrics], class_names: Sequence[str]) -> str:
     widths = [max(len(h), *(len(r[i]) for r in lines)) for i, h in enumerate(head)]
 
     def row(cells: Sequence[str]) -> str:
-        return "  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(cells, widths)))
+        pairs = enumerate(zip(cells, widths, strict=True))
+        return "  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in pairs)
 
     out = [row(head), "  ".join("-" * w for w in widths)]
     out += [row(r) for r in lines[:3]]

@@ -77,3 +77,15 @@ def test_the_viewer_prints_no_viser_banner(capfd: pytest.CaptureFixture[str]) ->
     scene.stop()
     out, err = capfd.readouterr()
     assert "viser" not in out + err and str(port) not in out + err, out + err
+
+
+@pytest.mark.slow
+def test_the_server_prints_its_url_on_a_line_of_its_own(tmp_path: Path) -> None:
+    from serverproc import Server
+
+    data = tmp_path / "data"
+    data.mkdir()
+    server = Server(data).start()
+    server.stop()
+    lines = (data / "server.log").read_text().splitlines()
+    assert f"LeAP Studio: http://127.0.0.1:{server.port}/" in lines, lines

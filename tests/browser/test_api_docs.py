@@ -27,7 +27,7 @@ def test_api_docs_render_with_no_external_request(browser, tmp_path: Path) -> No
         browserfixtures.echo_console(page)
         external: list[str] = []
 
-        def route(r) -> None:  # noqa: ANN001  # playwright's Route
+        def route(r) -> None:
             if r.request.url.startswith(server.base):
                 r.continue_()
             else:
