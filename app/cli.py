@@ -308,6 +308,9 @@ def serve_cmd(
         None, "--token", help="Access token every request must carry (or LEAP_ACCESS_TOKEN)."
     ),
     models: str | None = typer.Option(None, "--models", help="Folder with Grounding DINO / SAM weights."),
+    allow_download: bool = typer.Option(
+        False, "--allow-download", help=_DOWNLOAD_HELP + " (or LEAP_ALLOW_DOWNLOAD=true)"
+    ),
     no_demo: bool = typer.Option(False, "--no-demo", help="Do not seed the demo project on first start."),
 ) -> None:
     """Start LeAP Studio: the web UI, the REST API (/api/docs) and the 3D viewer, on 127.0.0.1:8000."""
@@ -320,6 +323,7 @@ def serve_cmd(
         work_dir=work_dir,
         token=token,
         models=models,
+        allow_download=True if allow_download else None,
         seed_demo=False if no_demo else None,
     )
     serve(settings)
@@ -400,6 +404,7 @@ class _GivenSettings(TypedDict, total=False):
     work_dir: Path
     access_token: SecretStr
     models_dir: Path
+    allow_download: bool
     seed_demo: bool
 
 
@@ -411,6 +416,7 @@ def _app_settings(
     work_dir: str | None = None,
     token: str | None = None,
     models: str | None = None,
+    allow_download: bool | None = None,
     seed_demo: bool | None = None,
 ) -> Settings:
     """App settings from the environment with the command-line values given (not None) on top (one-line
@@ -432,6 +438,8 @@ def _app_settings(
         given["access_token"] = SecretStr(token)
     if models is not None:
         given["models_dir"] = Path(models)
+    if allow_download is not None:
+        given["allow_download"] = allow_download
     if seed_demo is not None:
         given["seed_demo"] = seed_demo
     try:

@@ -47,7 +47,11 @@ class Settings(BaseSettings):
     access_token: SecretStr | None = None
     """Shared secret every API call (and the viewer) must present when set; required off loopback."""
     models_dir: Path | None = None
-    """Local folder with Grounding DINO / SAM weights (no download is attempted)."""
+    """Local folder with Grounding DINO / SAM weights; None = the Hugging Face cache of the user running the
+    server. Only the server's settings name it: a project names model ids, never folders."""
+    allow_download: bool = False
+    """Without ``models_dir``: may a run download a model missing from the Hugging Face cache? Off by
+    default, and only the server's settings can turn it on (a project cannot)."""
     max_parallel_runs: int = Field(default=1, ge=1, le=8)
     """Runs executed at the same time across all projects; further runs wait in a FIFO queue."""
     prewarm_workers: bool = True
