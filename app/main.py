@@ -24,6 +24,7 @@ from app.api.main import api_router
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db
 from app.core.errors import AppError, InvalidField
+from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_demo_project
 from app.jobs.manager import JobManager
 from leap_core import __version__
@@ -62,6 +63,38 @@ class LoopbackHostGuard:
                 if scope["type"] == "http":
                     response = JSONResponse({"detail": f"Host {host!r} is not allowed"}, status_code=403)
                     await response(scope, receive, send)
+                else:
+                    await send({"type": "websocket.close", "code": 1008})
+                return
+        await self.app(scope, receive, send)
+
+
+class SameOriginGuard:
+    """Refuses state-changing requests (POST, PUT, PATCH, DELETE) and websocket handshakes that a page of
+    another origin sent, with or without an access token.
+
+    A browser sends a ``no-cors`` POST from any page and attaches the user's cookies (the viewer's
+    ``leap_token``): without this check a page on another port or loopback alias could start runs or open
+    viewers. What counts as another origin is :func:`app.core.security.cross_origin_reason`; requests
+    without ``Origin`` and ``Sec-Fetch-Site`` (curl, the CLI, scripts) are not from a page and pass.
+    """
+
+    def __init__(self, app: Callable[..., Awaitable[None]]) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        kind = scope["type"]
+        if kind == "websocket" or (kind == "http" and scope["method"] in UNSAFE_METHODS):
+            headers: dict[str, str] = {}
+            for key, value in scope.get("headers", []):
+                headers.setdefault(key.decode("latin-1").lower(), value.decode("latin-1"))
+            reason = cross_origin_reason(headers)
+            if reason is not None:
+                log.warning("refused a cross-origin %s %s: %s", scope.get("method", "websocket"),
+                            scope.get("path", ""), reason)
+                if kind == "http":
+                    detail = f"Cross-origin request refused ({reason})"
+                    await JSONResponse({"detail": detail}, status_code=403)(scope, receive, send)
                 else:
                     await send({"type": "websocket.close", "code": 1008})
                 return
@@ -145,6 +178,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.token is None:
         allowed = set(LOOPBACK_NAMES) | {settings.host.lower()}
         app.add_middleware(LoopbackHostGuard, allowed=allowed)
+    app.add_middleware(SameOriginGuard)
     app.add_middleware(ServerTiming)
     return app
 

@@ -1,10 +1,12 @@
-"""Access token check and confinement of user-given paths to the configured data roots."""
+"""Access token check, the same-origin rule for state-changing requests, and confinement of user-given
+paths to the configured data roots."""
 
 from __future__ import annotations
 
 import hmac
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from app.core.errors import Forbidden
 
@@ -36,3 +38,47 @@ def resolve_in_roots(raw: str | Path, roots: Iterable[Path], *, what: str = "pat
             return resolved
     allowed = ", ".join(str(r) for r in roots)
     raise Forbidden(f"{what} {str(raw)!r} is outside the allowed data roots ({allowed})")
+
+
+UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+"""Methods that change state: a page of another origin must not be able to send them."""
+
+_DEFAULT_PORTS = {"http": 80, "https": 443, "ws": 80, "wss": 443}
+
+
+def _host_port(netloc: str, scheme: str) -> tuple[str, int | None] | None:
+    """(lower-case host, port) of ``netloc``; the scheme's default port when it names none."""
+    try:
+        parts = urlsplit(f"//{netloc}")
+        port = parts.port
+    except ValueError:
+        return None
+    if parts.hostname is None:
+        return None
+    return parts.hostname.lower(), port if port is not None else _DEFAULT_PORTS.get(scheme)
+
+
+def cross_origin_reason(headers: Mapping[str, str]) -> str | None:
+    """Why a browser request comes from a page of another origin, or None when it does not.
+
+    ``headers`` are the request's (lower-case names). ``Sec-Fetch-Site: cross-site`` or ``same-site``, an
+    ``Origin`` of ``null`` (sandboxed pages, file: URLs) or an ``Origin`` whose host and port differ from the
+    ``Host`` the request was sent to all count as another origin. Loopback aliases are distinct origins
+    (``127.0.0.2`` is not ``127.0.0.1``, nor is ``localhost``): a browser keeps their pages apart too.
+    Requests with neither header (curl, the CLI, scripts) are not from a web page and pass.
+    """
+    site = headers.get("sec-fetch-site", "").lower()
+    if site in ("cross-site", "same-site"):
+        return f"Sec-Fetch-Site is {site}"
+    origin = headers.get("origin")
+    if origin is None:
+        return None
+    scheme = urlsplit(origin).scheme.lower() if origin != "null" else ""
+    if scheme not in _DEFAULT_PORTS:
+        return f"Origin {origin!r} is not a web origin"
+    theirs = _host_port(urlsplit(origin).netloc, scheme)
+    # A Host without a port means the default port of the scheme the browser used, the Origin's.
+    ours = _host_port(headers.get("host", ""), scheme)
+    if theirs is None or ours is None or theirs != ours:
+        return f"Origin {origin!r} is not this server ({headers.get('host', '')!r})"
+    return None

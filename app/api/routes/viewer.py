@@ -3,7 +3,10 @@
 viser serves its client page and websocket on its own port, bound to 127.0.0.1 only. The app relays both
 under ``/api/projects/{id}/viewer/client/`` so that a browser reaches the viewer wherever it reaches the app,
 and so the access token is checked for the viewer exactly as for the API (header, ``?token=`` or the
-``leap_token`` cookie, which the page response sets so the websocket handshake carries it).
+``leap_token`` cookie, which the page response sets so the websocket handshake carries it). The relay's
+handshake must come from the app's own origin (:func:`~app.core.security.cross_origin_reason`, also checked
+by the app's middleware); viser's port streams only to the relay, which presents the viewer's per-session
+secret (:data:`app.viewer.scene.SECRET_HEADER`).
 """
 
 from __future__ import annotations
@@ -14,7 +17,6 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, ParamSpec, TypeVar
-from urllib.parse import urlsplit
 
 import viser
 from fastapi import APIRouter, Body, Depends, HTTPException, Request, WebSocket, status
@@ -28,8 +30,9 @@ from websockets.typing import Subprotocol
 from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, SettingsDep, request_token
 from app.core.config import Settings
 from app.core.errors import AppError
-from app.core.security import token_matches
+from app.core.security import cross_origin_reason, token_matches
 from app.viewer.manager import ViewerManager
+from app.viewer.scene import SECRET_HEADER
 from leap_core.errors import LeapError
 
 log = logging.getLogger("leap.viewer")
@@ -51,12 +54,8 @@ class ViewerOpen(BaseModel):
 class ViewerPublic(BaseModel):
     project_id: int
     run_id: int | None = Field(description="run shown; None until the project has a finished run")
-    port: int = Field(description="viser's own port on 127.0.0.1")
+    port: int = Field(description="viser's own port on 127.0.0.1 (it streams only to the app's relay)")
     url: str = Field(description="viewer page relayed under the app's port (works wherever the app does)")
-    direct_url: str | None = Field(
-        description="viser's own page on 127.0.0.1 (no token check there, so only offered when the app has "
-        "no access token); reachable only from the app's machine"
-    )
 
 
 def get_viewers(request: Request) -> ViewerManager:
@@ -81,14 +80,7 @@ ViewersDep = Annotated[ViewerManager, Depends(get_viewers)]
 
 def _public(request: Request, project_id: int, run_id: int | None, port: int) -> ViewerPublic:
     path = request.url_for("viewer_client", project_id=project_id).path
-    settings: Settings = request.app.state.settings
-    return ViewerPublic(
-        project_id=project_id,
-        run_id=run_id,
-        port=port,
-        url=path,
-        direct_url=f"http://127.0.0.1:{port}/" if settings.token is None else None,
-    )
+    return ViewerPublic(project_id=project_id, run_id=run_id, port=port, url=path)
 
 
 async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
@@ -163,11 +155,9 @@ def _ws_token(ws: WebSocket) -> str | None:
 
 
 def _same_origin(ws: WebSocket) -> bool:
-    """Browsers send cookies with cross-site websocket handshakes: accept only our own pages' origin."""
-    origin = ws.headers.get("origin")
-    if origin is None:
-        return True  # not a browser
-    return urlsplit(origin).netloc.lower() == ws.headers.get("host", "").lower()
+    """Browsers send cookies with cross-site websocket handshakes: accept only our own pages' origin (the
+    app's middleware checks this too; the relay does not rely on being mounted behind it)."""
+    return cross_origin_reason({k.lower(): v for k, v in ws.headers.items()}) is None
 
 
 @router.websocket("/client")
@@ -178,15 +168,16 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
         await ws.close(code=status.WS_1008_POLICY_VIOLATION)
         return
     manager: ViewerManager | None = getattr(ws.app.state, "viewers", None)
-    port = None if manager is None else manager.port(project_id)
-    if port is None:
+    endpoint = None if manager is None else manager.endpoint(project_id)
+    if endpoint is None:
         await ws.close(code=status.WS_1011_INTERNAL_ERROR, reason="no viewer running for this project")
         return
+    port, secret = endpoint
     offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
     try:
         upstream_cm = connect(
             f"ws://127.0.0.1:{port}", subprotocols=offered or None, max_size=None, compression=None,
-            open_timeout=10,
+            open_timeout=10, additional_headers={SECRET_HEADER: secret},
         )
         upstream = await upstream_cm.__aenter__()
     except (OSError, asyncio.TimeoutError) as exc:
