@@ -15,8 +15,8 @@ from typing import Any
 import httpx
 import pytest
 import viser
-from apphelpers import wait_run
 from appfixtures import add_gt2d
+from apphelpers import wait_run
 from serverproc import Server
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
@@ -118,7 +118,8 @@ def test_the_viewer_port_streams_only_to_the_relay(tiny_data: tuple[Path, Path])
             # guessed one, are all closed before the scene is sent.
             assert await _closed_before_any_message(direct, origin="http://evil.example") == 1008
             assert await _closed_before_any_message(direct) == 1008
-            assert await _closed_before_any_message(direct, additional_headers={SECRET_HEADER: "guess"}) == 1008
+            guessed = {SECRET_HEADER: "guess"}
+            assert await _closed_before_any_message(direct, additional_headers=guessed) == 1008
             # The relay: refused at the handshake for another origin, streams for the app's own pages.
             for origin in ("http://evil.example", EVIL_PAGE):
                 with pytest.raises(InvalidStatus) as refused:
