@@ -21,11 +21,38 @@ from serverproc import Server
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from app.core.security import cross_origin_reason
 from app.viewer.scene import SECRET_HEADER
 
 EVIL_PAGE = "http://127.0.0.2:8769"
 TOKEN = "correct-horse-battery"
 PROTOCOL = f"viser-v{viser.__version__}"
+
+
+@pytest.mark.parametrize(
+    ("headers", "refused"),
+    [
+        ({"host": "127.0.0.1:8000"}, False),  # curl, scripts, the CLI: not a page
+        ({"host": "127.0.0.1:8000", "origin": "http://127.0.0.1:8000"}, False),
+        ({"host": "127.0.0.1:80", "origin": "http://127.0.0.1", "sec-fetch-site": "same-origin"}, False),
+        ({"host": "127.0.0.1:8000", "sec-fetch-site": "none"}, False),  # typed into the address bar
+        ({"host": "[::1]:8000", "origin": "http://[::1]:8000"}, False),
+        ({"host": "127.0.0.1", "origin": "http://127.0.0.1:80"}, False),  # default ports
+        ({"host": "studio.example", "origin": "https://studio.example"}, False),  # behind a TLS proxy
+        ({"host": "Studio.Example:443", "origin": "https://studio.example"}, False),
+        ({"host": "127.0.0.1:8000", "origin": "http://127.0.0.2:8000"}, True),  # loopback alias
+        ({"host": "127.0.0.1:8000", "origin": "http://localhost:8000"}, True),
+        ({"host": "127.0.0.1:8000", "origin": "http://127.0.0.1:8001"}, True),
+        ({"host": "studio.example:80", "origin": "https://studio.example"}, True),  # scheme → port 443
+        ({"host": "127.0.0.1:8000", "origin": "null"}, True),
+        ({"host": "127.0.0.1:8000", "origin": "chrome-extension://abc"}, True),
+        ({"origin": "http://127.0.0.1:8000"}, True),  # no Host to compare with
+        ({"host": "127.0.0.1:80", "origin": "http://127.0.0.1", "sec-fetch-site": "same-site"}, True),
+        ({"host": "127.0.0.1:8000", "sec-fetch-site": "cross-site"}, True),
+    ],
+)
+def test_what_counts_as_another_origin(headers: dict[str, str], refused: bool) -> None:
+    assert (cross_origin_reason(headers) is not None) is refused
 
 
 @pytest.fixture
