@@ -184,9 +184,13 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
         return
     offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
     try:
+        # max_queue=None: with a bounded queue, a browser that is slow to take a large scene makes the relay
+        # stop reading viser's socket, viser's keepalive pings then go unanswered and viser drops the
+        # connection after 40 s. Reading eagerly keeps this local hop alive (the scene is bounded by
+        # viewer_max_points); liveness of the browser is checked on the browser's own socket.
         upstream_cm = connect(
             f"ws://127.0.0.1:{port}", subprotocols=offered or None, max_size=None, compression=None,
-            open_timeout=10,
+            open_timeout=10, max_queue=None, ping_interval=None,
         )
         upstream = await upstream_cm.__aenter__()
     except (OSError, asyncio.TimeoutError) as exc:
@@ -220,6 +224,13 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
                 asyncio.CancelledError, ConnectionClosed, WebSocketDisconnect, RuntimeError
             ):
                 await task
+        code = upstream.close_code
+        if code is not None and code not in (1000, 1001):
+            # The browser reconnects on its own; the reason is the only trace of why it had to.
+            log.warning(
+                "viewer relay for project %d: viser closed the connection (%s %s)",
+                project_id, code, upstream.close_reason or "",
+            )
     finally:
         await upstream_cm.__aexit__(None, None, None)
         with contextlib.suppress(RuntimeError, WebSocketDisconnect):
