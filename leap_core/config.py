@@ -67,7 +67,7 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.labeler not in LABELERS:
             names = ", ".join(repr(n) for n in LABELERS)
-            raise ConfigError(f"must be one of {names}, got {self.labeler!r}", field=("labeler",))
+            raise ConfigError(f"must be one of {names}, got {_short(self.labeler)}", field=("labeler",))
         if not self.correction_strength > 0:
             raise ConfigError(f"must be > 0, got {self.correction_strength}", field=("correction_strength",))
 
