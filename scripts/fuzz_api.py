@@ -84,7 +84,9 @@ def run_schemathesis(base: str, report_dir: Path, *, max_examples: int, seed: in
     ]
     for path in EXCLUDED_PATHS:
         command += ["--exclude-path", path]
-    proc = subprocess.run(command, capture_output=True, text=True, check=False)
+    # In the report folder: schemathesis keeps a crash cache in ./.schemathesis and replays it next time;
+    # each run should stand on its own seed.
+    proc = subprocess.run(command, capture_output=True, text=True, check=False, cwd=report_dir)
     har = json.loads((report_dir / "requests.har").read_text())
     statuses = collections.Counter(int(e["response"]["status"]) for e in har["log"]["entries"])
     report = json.loads((report_dir / "report.json").read_text())

@@ -138,7 +138,7 @@ def test_non_finite_and_oversized_numbers_are_refused(api: httpx.Client, project
 
 
 def test_nul_and_unusable_dataset_paths_are_422(api: httpx.Client) -> None:
-    for path in ("a\u0000b", "seq\u0000/../..", "0" * 5000, "x/" + "y" * 300):
+    for path in ("a\u0000b", "seq\u0000/../..", "0" * 4000, "x/" + "y" * 300):
         r = api.post("/projects", json={"name": "x", "dataset": {"kind": "folder", "path": path}})
         assert_422(r, ["body", "dataset", "path"])
 
