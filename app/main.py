@@ -22,9 +22,9 @@ from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
 from app.api.main import api_router
+from app.core.body_limit import BodyLimit
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db
-from app.core.body_limit import BodyLimit
 from app.core.errors import AppError, InvalidField, printable, validation_errors
 from app.demo import seed_demo_project
 from app.jobs.manager import JobManager

@@ -95,7 +95,9 @@ def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.
     if ref.kind == "demo":
         return "demo", settings.demo_dataset
     assert ref.path is not None
-    path = resolve_in_roots(ref.path, settings.data_roots, what="dataset path", loc=("body", "dataset", "path"))
+    path = resolve_in_roots(
+        ref.path, settings.data_roots, what="dataset path", loc=("body", "dataset", "path")
+    )
     if not path.is_dir():
         raise InvalidField(["body", "dataset", "path"], f"dataset path {ref.path!r}: no such folder")
     if not (path / "velodyne").is_dir():

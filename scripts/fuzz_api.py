@@ -72,14 +72,22 @@ def run_schemathesis(base: str, report_dir: Path, *, max_examples: int, seed: in
         str(schemathesis) if schemathesis.exists() else "schemathesis",
         "run",
         f"{base}/api/v1/openapi.json",
-        "--checks", CHECKS,
-        "--max-examples", str(max_examples),
-        "--seed", str(seed),
-        "--workers", "1",
-        "--request-timeout", "30",
-        "--report", "har,json",
-        "--report-har-path", str(report_dir / "requests.har"),
-        "--report-json-path", str(report_dir / "report.json"),
+        "--checks",
+        CHECKS,
+        "--max-examples",
+        str(max_examples),
+        "--seed",
+        str(seed),
+        "--workers",
+        "1",
+        "--request-timeout",
+        "30",
+        "--report",
+        "har,json",
+        "--report-har-path",
+        str(report_dir / "requests.har"),
+        "--report-json-path",
+        str(report_dir / "report.json"),
         "--no-color",
     ]
     for path in EXCLUDED_PATHS:
@@ -115,7 +123,9 @@ def seed_project(server: Server, timeout: float = 600.0) -> None:
             time.sleep(0.5)
 
 
-def fuzz_live_server(work: Path, *, max_examples: int, seed: int, report_dir: Path | None = None) -> FuzzResult:
+def fuzz_live_server(
+    work: Path, *, max_examples: int, seed: int, report_dir: Path | None = None
+) -> FuzzResult:
     """Start a server with its data root and work folder under ``work``, fuzz it, stop it."""
     data = work / "data"
     data.mkdir(parents=True, exist_ok=True)
@@ -139,7 +149,9 @@ def fuzz_live_server(work: Path, *, max_examples: int, seed: int, report_dir: Pa
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--max-examples", type=int, default=60, help="test cases per operation and phase")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--report-dir", type=Path, default=None, help="keep the HAR and JSON reports here")

@@ -39,17 +39,6 @@ def string_problem(value: str) -> str | None:
     return f"contains the control character U+{ord(ch):04X} at position {m.start()}"
 
 
-def _safe_str(value: str) -> str:
-    problem = string_problem(value)
-    if problem is not None:
-        raise ValueError(f"text {problem}")
-    return value
-
-
-SafeStr = Annotated[str, AfterValidator(_safe_str)]
-"""A string without NUL, control characters or lone surrogates (else 422)."""
-
-
 class PlainJsonError(ValueError):
     """A value in a request body no part of the app can hold; ``loc`` is its path inside the body."""
 
@@ -106,7 +95,9 @@ PromptIndex = Annotated[int, Path(ge=0, le=MAX_INT, description="index of the pr
 
 
 def _class_name(value: str) -> str:
-    _safe_str(value)
+    problem = string_problem(value)
+    if problem is not None:
+        raise ValueError(f"text {problem}")
     problem = class_name_problem(value)
     if problem is not None:
         raise ValueError(problem)
@@ -126,4 +117,6 @@ def class_name_problem(name: str) -> str | None:
     return None
 
 
-ClassName = Annotated[str, Path(min_length=1, max_length=64, description="class name"), AfterValidator(_class_name)]
+ClassName = Annotated[
+    str, Path(min_length=1, max_length=64, description="class name"), AfterValidator(_class_name)
+]

@@ -83,7 +83,7 @@ def validation_errors(errors: Sequence[Mapping[str, Any]]) -> list[dict[str, Any
     for err in list(errors)[:20]:
         item: dict[str, Any] = {
             "type": str(err.get("type", "value_error")),
-            "loc": [part if isinstance(part, int) else printable(str(part), 80) for part in err.get("loc", ())],
+            "loc": [p if isinstance(p, int) else printable(str(p), 80) for p in err.get("loc", ())],
             "msg": printable(str(err.get("msg", ""))),
         }
         if "input" in err:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -40,10 +41,9 @@ def resolve_in_roots(
         if not candidate.is_absolute():
             candidate = roots[0] / candidate
         resolved = candidate.resolve()
-        try:
-            resolved.stat()  # raises what later checks (is_dir) would: a name too long, a loop
-        except (FileNotFoundError, NotADirectoryError):
-            pass  # absent is fine here; callers say what they need
+        # Raises what later checks (is_dir) would: a name too long, a loop. Absent is fine here.
+        with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+            resolved.stat()
     except (OSError, ValueError) as exc:  # ENAMETOOLONG, ELOOP, "embedded null byte"
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         raise InvalidField(loc, f"{what} {printable(str(raw), 120)!r} cannot be used: {reason}") from None

@@ -7,6 +7,7 @@ that breaks paths and URLs, and checks the answer the API now gives instead.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -107,8 +108,11 @@ def test_lone_surrogates_are_refused_with_a_422(api: httpx.Client, project: dict
     pid = project["id"]
     cases = [
         ("/projects", '{"name": "\\ud800", "dataset": {"kind": "demo"}}', ["body", "name"]),
-        ("/projects", '{"name": "x", "dataset": {"kind": "folder", "path": "a\\udfffb"}}',
-         ["body", "dataset", "path"]),
+        (
+            "/projects",
+            '{"name": "x", "dataset": {"kind": "folder", "path": "a\\udfffb"}}',
+            ["body", "dataset", "path"],
+        ),
         (f"/projects/{pid}/classes/car/prompts", '{"prompt": "red \\ud83d car"}', ["body", "prompt"]),
     ]
     for path, text, loc in cases:
@@ -126,9 +130,15 @@ def test_non_finite_and_oversized_numbers_are_refused(api: httpx.Client, project
     path = f"/projects/{project['id']}"
     for number in ("1e400", "-1e400", "NaN", "Infinity", "1" + "0" * 400):
         for text, loc in (
-            (f'{{"pipeline": {{"fusion": {{"voxel_size": {number}}}}}}}', ["body", "pipeline", "fusion", "voxel_size"]),
+            (
+                f'{{"pipeline": {{"fusion": {{"voxel_size": {number}}}}}}}',
+                ["body", "pipeline", "fusion", "voxel_size"],
+            ),
             (f'{{"form": {{"voxel_size": {number}}}}}', ["body", "form", "voxel_size"]),
-            (f'{{"pipeline": {{"correction_strength": {number}}}}}', ["body", "pipeline", "correction_strength"]),
+            (
+                f'{{"pipeline": {{"correction_strength": {number}}}}}',
+                ["body", "pipeline", "correction_strength"],
+            ),
         ):
             detail = assert_422(raw_post(api, path, text, "PATCH"), loc)
             assert len(json.dumps(detail)) < 1000
@@ -150,21 +160,20 @@ def _rss_kib(pid: int) -> int:
     raise AssertionError("no VmRSS")
 
 
-def _stream_post(port: int, path: str, *, declared: int | None, chunks: int, chunk: bytes) -> tuple[int, bytes]:
+def _stream_post(
+    port: int, path: str, *, declared: int | None, chunks: int, chunk: bytes
+) -> tuple[int, bytes]:
     """POST up to ``chunks`` × ``chunk`` bytes over a raw socket, with ``Content-Length: declared`` or,
     when None, ``Transfer-Encoding: chunked``; stop sending as soon as the server answers."""
     framing = f"Content-Length: {declared}" if declared is not None else "Transfer-Encoding: chunked"
     with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
-        s.sendall(
-            f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n{framing}\r\n\r\n".encode()
-        )
+        head = f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        s.sendall(f"{head}{framing}\r\n\r\n".encode())
         answer = b""
         for _ in range(chunks):
             s.settimeout(0.0)
-            try:
+            with contextlib.suppress(BlockingIOError, ConnectionResetError):
                 answer += s.recv(65536)
-            except (BlockingIOError, ConnectionResetError):
-                pass
             s.settimeout(30)
             if answer:
                 break
@@ -186,7 +195,9 @@ def test_request_bodies_are_limited(server: Server, api: httpx.Client) -> None:
     before = _rss_kib(server.proc.pid)
     chunk = b" " * 65536
     # Declared size over the limit (1 MiB by default): refused before the body is read.
-    status, body = _stream_post(server.port, "/api/v1/projects", declared=200 * 2**20, chunks=3200, chunk=chunk)
+    status, body = _stream_post(
+        server.port, "/api/v1/projects", declared=200 * 2**20, chunks=3200, chunk=chunk
+    )
     assert status == 413 and b"limit is 1048576 bytes" in body, body
     # No declared size (chunked): refused once 1 MiB has streamed in.
     status, body = _stream_post(server.port, "/api/v1/projects", declared=None, chunks=3200, chunk=chunk)
@@ -194,8 +205,11 @@ def test_request_bodies_are_limited(server: Server, api: httpx.Client) -> None:
     # 400 MB were offered in all; the server held at most about one limit's worth of them.
     assert _rss_kib(server.proc.pid) - before < 60 * 1024
     # Just under the limit is read and validated as usual.
-    r = api.post("/projects", content=b'{"name": "' + b"x" * (1024 * 1024 - 100) + b'"}',
-                 headers={"content-type": "application/json"})
+    r = api.post(
+        "/projects",
+        content=b'{"name": "' + b"x" * (1024 * 1024 - 100) + b'"}',
+        headers={"content-type": "application/json"},
+    )
     assert r.status_code == 422
 
 
@@ -239,9 +253,13 @@ def test_links_out_of_the_data_roots_are_neither_listed_nor_accepted(
 
     r = api.post("/projects", json={"name": "s", "dataset": {"kind": "folder", "path": str(sneaky)}})
     assert r.status_code == 403 and "velodyne is a link to" in r.json()["detail"], r.text
-    r = api.post("/projects", json={"name": "o", "dataset": {"kind": "folder", "path": "linked/sequences/00"}})
+    r = api.post(
+        "/projects", json={"name": "o", "dataset": {"kind": "folder", "path": "linked/sequences/00"}}
+    )
     assert r.status_code == 403, r.text
-    r = api.post("/projects", json={"name": "i", "dataset": {"kind": "folder", "path": "in-root-link/sequences/00"}})
+    r = api.post(
+        "/projects", json={"name": "i", "dataset": {"kind": "folder", "path": "in-root-link/sequences/00"}}
+    )
     assert r.status_code == 201, r.text
 
 
@@ -270,7 +288,9 @@ def test_class_names_made_of_dots_are_refused(api: httpx.Client, project: dict[s
     classes = api.get(f"/projects/{pid}/classes").json()["data"]
     replaced = [{k: c[k] for k in ("name", "color", "prompts", "export_id")} for c in classes]
     replaced[0]["name"] = ".."
-    assert_422(api.put(f"/projects/{pid}/classes", json={"classes": replaced}), ["body", "classes", 0, "name"])
+    assert_422(
+        api.put(f"/projects/{pid}/classes", json={"classes": replaced}), ["body", "classes", 0, "name"]
+    )
     # A name with dots among other characters is fine, and its URL reaches it.
     klass = {"name": "v1.2", "color": "#102030", "prompts": ["version thing"], "export_id": 901}
     assert api.post(f"/projects/{pid}/classes", json=klass).status_code == 201
@@ -296,15 +316,30 @@ def test_a_weak_token_stops_the_server_and_new_token_makes_a_strong_one(tmp_path
     data = tmp_path / "data"
     data.mkdir()
     env = {**os.environ, "LEAP_PREWARM_WORKERS": "false"}
-    base = [sys.executable, "-m", "app.cli", "serve", "--data-root", str(data),
-            "--work-dir", str(data / "studio"), "--no-demo"]
-    weak = subprocess.run([*base, "--token", "aaaaaaaaaaaa"], env=env, capture_output=True, text=True,
-                          timeout=120, check=False)
+    base = [
+        sys.executable,
+        "-m",
+        "app.cli",
+        "serve",
+        "--data-root",
+        str(data),
+        "--work-dir",
+        str(data / "studio"),
+        "--no-demo",
+    ]
+    weak = subprocess.run(
+        [*base, "--token", "aaaaaaaaaaaa"], env=env, capture_output=True, text=True, timeout=120, check=False
+    )
     assert weak.returncode == 2 and "access_token must have at least 16 characters" in weak.stderr
 
     port = free_port()
-    proc = subprocess.Popen([*base, "--new-token", "--port", str(port)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [*base, "--new-token", "--port", str(port)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         assert proc.stdout is not None
         line = proc.stdout.readline()

@@ -34,7 +34,9 @@ def create_class(project_id: ProjectId, payload: models.ClassCreate, db: DbDep) 
 
 
 @router.patch("/{name}", response_model=models.ClassesPublic)
-def update_class(project_id: ProjectId, name: ClassName, payload: models.ClassUpdate, db: DbDep) -> models.ClassesPublic:
+def update_class(
+    project_id: ProjectId, name: ClassName, payload: models.ClassUpdate, db: DbDep
+) -> models.ClassesPublic:
     return services.classes_public(services.update_class(db, project_id, name, payload))
 
 
@@ -51,10 +53,14 @@ def replace_prompts(
 
 
 @router.post("/{name}/prompts", response_model=models.ClassesPublic, status_code=status.HTTP_201_CREATED)
-def add_prompt(project_id: ProjectId, name: ClassName, payload: models.PromptCreate, db: DbDep) -> models.ClassesPublic:
+def add_prompt(
+    project_id: ProjectId, name: ClassName, payload: models.PromptCreate, db: DbDep
+) -> models.ClassesPublic:
     return services.classes_public(services.add_prompt(db, project_id, name, payload.prompt))
 
 
 @router.delete("/{name}/prompts/{index}", response_model=models.ClassesPublic)
-def delete_prompt(project_id: ProjectId, name: ClassName, index: PromptIndex, db: DbDep) -> models.ClassesPublic:
+def delete_prompt(
+    project_id: ProjectId, name: ClassName, index: PromptIndex, db: DbDep
+) -> models.ClassesPublic:
     return services.classes_public(services.delete_prompt(db, project_id, name, index))

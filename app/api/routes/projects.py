@@ -34,7 +34,9 @@ def update_project(project_id: ProjectId, payload: models.ProjectUpdate, db: DbD
 
 
 @router.delete("/{project_id}", response_model=models.Message)
-def delete_project(project_id: ProjectId, request: Request, db: DbDep, settings: SettingsDep) -> models.Message:
+def delete_project(
+    project_id: ProjectId, request: Request, db: DbDep, settings: SettingsDep
+) -> models.Message:
     services.delete_project(db, settings, project_id)
     viewers = getattr(request.app.state, "viewers", None)  # created on first viewer use only
     if viewers is not None:

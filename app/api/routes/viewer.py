@@ -49,7 +49,9 @@ _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "ind
 class ViewerOpen(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    run_id: int | None = Field(default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)")
+    run_id: int | None = Field(
+        default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"
+    )
 
 
 class ViewerPublic(BaseModel):
