@@ -207,7 +207,7 @@ def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per
             try:
                 number = float(value)
             except OverflowError:  # an integer beyond float range (1e308)
-                bits = value.bit_length()
+                bits = int(value).bit_length()
                 raise _BadValue(f"must be a finite number, got an integer of {bits} bits") from None
             if not math.isfinite(number):
                 # YAML's .inf / .nan and JSON's 1e400 parse as non-finite floats; no setting means them.

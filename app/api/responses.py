@@ -31,17 +31,21 @@ class ValidationErrorPublic(BaseModel):
     detail: list[ValidationErrorItem]
 
 
-def _error(description: str, model: type[BaseModel] = ErrorPublic) -> dict[str, Any]:
-    return {"model": model, "description": description}
+Responses = dict[int | str, dict[str, Any]]
+"""The type of FastAPI's ``responses=`` argument."""
 
 
-BAD_REQUEST = {400: _error("The body could not be read (not JSON, or a number too long to parse)")}
-FORBIDDEN = {403: _error("Access token missing or wrong, or a path outside the data roots")}
-TOO_LARGE = {413: _error("The request body is larger than the server's limit (`LEAP_MAX_BODY_BYTES`)")}
-INVALID = {422: _error("A parameter or a body field is invalid", ValidationErrorPublic)}
-NOT_FOUND = {404: _error("No such project, run, class or prompt (or the resource has nothing to show)")}
-CONFLICT = {409: _error("The request conflicts with the resource's state (e.g. a run is active)")}
+def _error(status: int, description: str, model: type[BaseModel] = ErrorPublic) -> Responses:
+    return {status: {"model": model, "description": description}}
 
-COMMON_RESPONSES: dict[int | str, dict[str, Any]] = {**BAD_REQUEST, **FORBIDDEN, **TOO_LARGE, **INVALID}
+
+BAD_REQUEST = _error(400, "The body could not be read (not JSON, or a number too long to parse)")
+FORBIDDEN = _error(403, "Access token missing or wrong, or a path outside the data roots")
+TOO_LARGE = _error(413, "The request body is larger than the server's limit (`LEAP_MAX_BODY_BYTES`)")
+INVALID = _error(422, "A parameter or a body field is invalid", ValidationErrorPublic)
+NOT_FOUND = _error(404, "No such project, run, class or prompt (or the resource has nothing to show)")
+CONFLICT = _error(409, "The request conflicts with the resource's state (e.g. a run is active)")
+
+COMMON_RESPONSES: Responses = {**BAD_REQUEST, **FORBIDDEN, **TOO_LARGE, **INVALID}
 """What any API route can answer besides its success: every route is behind the token check, the body
 limit and request validation."""
