@@ -26,6 +26,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
 from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, SettingsDep, request_token
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import MAX_INT, ProjectId
 from app.core.config import Settings
 from app.core.errors import AppError
 from app.core.security import token_matches
@@ -37,7 +39,9 @@ log = logging.getLogger("leap.viewer")
 _P = ParamSpec("_P")
 _T = TypeVar("_T")
 
-router = APIRouter(prefix="/projects/{project_id}/viewer", tags=["viewer"])
+router = APIRouter(
+    prefix="/projects/{project_id}/viewer", tags=["viewer"], responses={**NOT_FOUND, **CONFLICT}
+)
 
 _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
 
@@ -45,7 +49,9 @@ _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "ind
 class ViewerOpen(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    run_id: int | None = Field(default=None, ge=1, description="finished run to review (default: the latest)")
+    run_id: int | None = Field(
+        default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"
+    )
 
 
 class ViewerPublic(BaseModel):
@@ -98,7 +104,7 @@ async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwarg
 
 @router.post("", response_model=ViewerPublic, dependencies=[AuthDep])
 async def open_viewer(
-    project_id: int,
+    project_id: ProjectId,
     request: Request,
     viewers: ViewersDep,
     settings: SettingsDep,
@@ -118,7 +124,7 @@ async def open_viewer(
 
 
 @router.get("", response_model=ViewerPublic, dependencies=[AuthDep])
-async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> ViewerPublic:
+async def get_viewer(project_id: ProjectId, request: Request, viewers: ViewersDep) -> ViewerPublic:
     """The running viewer of the project (404 when none is running)."""
     session = viewers.get(project_id)
     if session is None:
@@ -128,21 +134,21 @@ async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> 
 
 
 @router.delete("", status_code=status.HTTP_204_NO_CONTENT, dependencies=[AuthDep])
-async def close_viewer(project_id: int, viewers: ViewersDep) -> None:
+async def close_viewer(project_id: ProjectId, viewers: ViewersDep) -> None:
     """Stop the project's viewer (404 when none is running)."""
     if not await _run_blocking(viewers.close, project_id):
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
 
 
 @router.get("/client", include_in_schema=False)
-async def viewer_client_noslash(project_id: int, request: Request) -> RedirectResponse:
+async def viewer_client_noslash(project_id: ProjectId, request: Request) -> RedirectResponse:
     target = request.url_for("viewer_client", project_id=project_id)
     return RedirectResponse(str(target.include_query_params(**request.query_params)))
 
 
 @router.get("/client/", name="viewer_client", include_in_schema=False, dependencies=[AuthDep])
 async def viewer_client(
-    project_id: int, request: Request, viewers: ViewersDep, settings: SettingsDep
+    project_id: ProjectId, request: Request, viewers: ViewersDep, settings: SettingsDep
 ) -> HTMLResponse:
     """viser's client page. It opens its websocket on this path without the trailing slash."""
     if viewers.get(project_id) is None:
