@@ -292,7 +292,7 @@ def _frame_range(frames: str, dataset: str) -> range:
 
 
 @cli.command("serve")
-def serve_cmd(
+def serve_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     *,
     host: str | None = typer.Option(
         None, "--host", help="Address to bind (default 127.0.0.1; any other address needs --token)."
@@ -305,7 +305,13 @@ def serve_cmd(
         None, "--work-dir", help="Runs, caches and the database (default ./data/studio)."
     ),
     token: str | None = typer.Option(
-        None, "--token", help="Access token every request must carry (or LEAP_ACCESS_TOKEN)."
+        None,
+        "--token",
+        help="Access token every request must carry (or LEAP_ACCESS_TOKEN); at least 16 characters, "
+        "8 different ones, about 64 bits of entropy.",
+    ),
+    new_token: bool = typer.Option(
+        False, "--new-token", help="Generate a random access token, print it once and require it."
     ),
     models: str | None = typer.Option(None, "--models", help="Folder with Grounding DINO / SAM weights."),
     allow_download: bool = typer.Option(
@@ -314,8 +320,15 @@ def serve_cmd(
     no_demo: bool = typer.Option(False, "--no-demo", help="Do not seed the demo project on first start."),
 ) -> None:
     """Start LeAP Studio: the web UI, the REST API (/api/docs) and the 3D viewer, on 127.0.0.1:8000."""
+    import secrets
+
     from app.main import serve
 
+    if new_token:
+        if token is not None:
+            raise fail("--token and --new-token exclude each other")
+        token = secrets.token_urlsafe(32)  # 256 random bits
+        typer.echo(f"access token (give it to the people who may use this server): {token}")
     settings = _app_settings(
         host=host,
         port=port,

@@ -16,14 +16,16 @@ from typing import Any
 
 import uvicorn
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
 from app.api.main import api_router
+from app.core.body_limit import BodyLimit
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db
-from app.core.errors import AppError, InvalidField
+from app.core.errors import AppError, InvalidField, printable, validation_errors
 from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_demo_project
 from app.jobs.manager import JobManager
@@ -170,7 +172,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def _app_error(_request: Request, exc: AppError) -> JSONResponse:
         if isinstance(exc, InvalidField):
             return JSONResponse({"detail": exc.as_detail()}, status_code=exc.status_code)
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+        return JSONResponse({"detail": printable(exc.detail)}, status_code=exc.status_code)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler repeats the whole input (and the whole body of a JSON syntax error) and
+        # fails on a lone surrogate in it: answer with the errors only, each input cut short.
+        return JSONResponse({"detail": validation_errors(exc.errors())}, status_code=422)
 
     app.include_router(api_router, prefix=API_PREFIX)
     if WEB_DIR.is_dir():
@@ -180,6 +188,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.add_middleware(LoopbackHostGuard, allowed=allowed)
     app.add_middleware(SameOriginGuard)
     app.add_middleware(ServerTiming)
+    # Outermost: an oversized body is refused before any other layer sees the request.
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     return app
 
 

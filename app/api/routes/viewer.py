@@ -28,6 +28,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
 from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, SettingsDep, request_token
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import MAX_INT, ProjectId
 from app.core.config import Settings
 from app.core.errors import AppError
 from app.core.security import cross_origin_reason, token_matches
@@ -40,7 +42,9 @@ log = logging.getLogger("leap.viewer")
 _P = ParamSpec("_P")
 _T = TypeVar("_T")
 
-router = APIRouter(prefix="/projects/{project_id}/viewer", tags=["viewer"])
+router = APIRouter(
+    prefix="/projects/{project_id}/viewer", tags=["viewer"], responses={**NOT_FOUND, **CONFLICT}
+)
 
 _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
 
@@ -48,7 +52,9 @@ _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "ind
 class ViewerOpen(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    run_id: int | None = Field(default=None, ge=1, description="finished run to review (default: the latest)")
+    run_id: int | None = Field(
+        default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"
+    )
 
 
 class ViewerPublic(BaseModel):
@@ -90,7 +96,7 @@ async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwarg
 
 @router.post("", response_model=ViewerPublic, dependencies=[AuthDep])
 async def open_viewer(
-    project_id: int,
+    project_id: ProjectId,
     request: Request,
     viewers: ViewersDep,
     settings: SettingsDep,
@@ -110,7 +116,7 @@ async def open_viewer(
 
 
 @router.get("", response_model=ViewerPublic, dependencies=[AuthDep])
-async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> ViewerPublic:
+async def get_viewer(project_id: ProjectId, request: Request, viewers: ViewersDep) -> ViewerPublic:
     """The running viewer of the project (404 when none is running)."""
     session = viewers.get(project_id)
     if session is None:
@@ -120,21 +126,21 @@ async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> 
 
 
 @router.delete("", status_code=status.HTTP_204_NO_CONTENT, dependencies=[AuthDep])
-async def close_viewer(project_id: int, viewers: ViewersDep) -> None:
+async def close_viewer(project_id: ProjectId, viewers: ViewersDep) -> None:
     """Stop the project's viewer (404 when none is running)."""
     if not await _run_blocking(viewers.close, project_id):
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
 
 
 @router.get("/client", include_in_schema=False)
-async def viewer_client_noslash(project_id: int, request: Request) -> RedirectResponse:
+async def viewer_client_noslash(project_id: ProjectId, request: Request) -> RedirectResponse:
     target = request.url_for("viewer_client", project_id=project_id)
     return RedirectResponse(str(target.include_query_params(**request.query_params)))
 
 
 @router.get("/client/", name="viewer_client", include_in_schema=False, dependencies=[AuthDep])
 async def viewer_client(
-    project_id: int, request: Request, viewers: ViewersDep, settings: SettingsDep
+    project_id: ProjectId, request: Request, viewers: ViewersDep, settings: SettingsDep
 ) -> HTMLResponse:
     """viser's client page. It opens its websocket on this path without the trailing slash."""
     if viewers.get(project_id) is None:
@@ -175,9 +181,13 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
     port, secret = endpoint
     offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
     try:
+        # max_queue=None: with a bounded queue, a browser that is slow to take a large scene makes the relay
+        # stop reading viser's socket, viser's keepalive pings then go unanswered and viser drops the
+        # connection after 40 s. Reading eagerly keeps this local hop alive (the scene is bounded by
+        # viewer_max_points); liveness of the browser is checked on the browser's own socket.
         upstream_cm = connect(
             f"ws://127.0.0.1:{port}", subprotocols=offered or None, max_size=None, compression=None,
-            open_timeout=10, additional_headers={SECRET_HEADER: secret},
+            open_timeout=10, max_queue=None, ping_interval=None, additional_headers={SECRET_HEADER: secret},
         )
         upstream = await upstream_cm.__aenter__()
     except (OSError, asyncio.TimeoutError) as exc:
@@ -211,6 +221,13 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
                 asyncio.CancelledError, ConnectionClosed, WebSocketDisconnect, RuntimeError
             ):
                 await task
+        code = upstream.close_code
+        if code is not None and code not in (1000, 1001):
+            # The browser reconnects on its own; the reason is the only trace of why it had to.
+            log.warning(
+                "viewer relay for project %d: viser closed the connection (%s %s)",
+                project_id, code, upstream.close_reason or "",
+            )
     finally:
         await upstream_cm.__aexit__(None, None, None)
         with contextlib.suppress(RuntimeError, WebSocketDisconnect):
