@@ -311,18 +311,17 @@ def render(
     linear[miss] = _sky(np.stack([dirs[k].reshape(-1)[miss] for k in range(3)], axis=1), sun32)
     rgb = _sensor_image(linear.reshape(h, w, 3), cfg.noise_std, rng)
 
-    sem = np.zeros(h * w, np.uint16)
-    inst = np.zeros(h * w, np.uint16)
-    name = np.zeros(h * w, np.uint16)
-    sem[idx] = prims.semantic[p]
-    inst[idx] = prims.instance[p]
-    name[idx] = prims.name[p]
+    def gt(column: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
+        img = np.zeros(h * w, np.uint16)
+        img[idx] = column[p]
+        return img.reshape(h, w)
+
     depth_out = np.where(pid >= 0, depth, np.float32(np.inf)).astype(np.float32)
     return CameraFrame(
         rgb=rgb,
-        semantic=sem.reshape(h, w),
-        instance=inst.reshape(h, w),
-        name=name.reshape(h, w),
+        semantic=gt(prims.semantic),
+        instance=gt(prims.instance),
+        name=gt(prims.name),
         depth=depth_out,
     )
 

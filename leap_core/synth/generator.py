@@ -4,8 +4,9 @@
 ``image_2/*.png``, ``calib.txt`` (P2, Tr), ``poses.txt`` (camera-frame poses relative to the first
 frame, as KITTI stores them), ``times.txt``, the 2D ground truth ``gt2d/{semantic,instance,name}/*.png``
 (uint16; ``name`` holds the fine-grained name id of every pixel, see ``leap_core.synth.names``) and
-``synth_version.txt`` (:data:`SYNTH_VERSION`). Output is byte-identical for the same configuration, whatever the number of worker processes:
-every frame draws its noise from its own generator seeded by (seed, frame).
+``synth_version.txt`` (:data:`SYNTH_VERSION`). Output is byte-identical for the same configuration,
+whatever the number of worker processes: every frame draws its noise from its own generator seeded by
+(seed, frame).
 """
 
 from __future__ import annotations

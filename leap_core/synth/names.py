@@ -29,6 +29,7 @@ whose lexicon lists the SemanticKITTI class name and a few common synonyms.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import re
@@ -94,107 +95,65 @@ _TRUCK_RAW = (18, 258)
 _PERSON_RAW = (30, 254)
 _VEHICLE = ("vehicle", "motor vehicle")
 
+# fmt: off
+# Columns: id, name, raw ids, synonyms, descriptions, hypernyms (loose names: see the module docstring).
 VOCABULARY: Final[tuple[Name, ...]] = (
     # ---------------------------------------------------------------- vehicles (SemanticKITTI car)
     Name(1, "sedan", _CAR_RAW, ("car", "automobile", "saloon"), ("four-door car",), _VEHICLE),
     Name(2, "hatchback", _CAR_RAW, ("car", "automobile"), ("small car", "compact car"), _VEHICLE),
-    # A detector calls these "van" / "SUV", rarely "car": SemanticKITTI's car includes them anyway, which is
-    # why the paper adds them as helper prompts.
-    Name(3, "van", _CAR_RAW, ("minivan", "people carrier"), ("passenger van",), ("car", *_VEHICLE)),
-    Name(
-        4,
-        "jeep",
-        _CAR_RAW,
-        ("suv", "sport utility vehicle", "off-roader"),
-        ("four-wheel drive",),
-        ("car", *_VEHICLE),
-    ),
+    # Detectors call these "van" / "SUV", and loosely "car" or "truck"; SemanticKITTI's car includes them,
+    # which is why the paper adds them to car as helper prompts.
+    Name(3, "van", _CAR_RAW, ("minivan", "people carrier"), ("passenger van",), ("car", "truck", *_VEHICLE)),
+    Name(4, "jeep", _CAR_RAW, ("suv", "sport utility vehicle", "off-roader"), ("four-wheel drive",),
+         ("car", "truck", *_VEHICLE)),
     # ---------------------------------------------------------------- truck, other-vehicle
     Name(5, "box truck", _TRUCK_RAW, ("truck", "lorry", "delivery truck"), ("cargo truck",), _VEHICLE),
     Name(6, "bus", (13, 257), ("city bus", "coach"), ("public bus", "passenger bus"), _VEHICLE),
     # ---------------------------------------------------------------- two-wheelers, people
     Name(7, "city bike", (11,), ("bicycle", "bike", "pushbike"), ("parked bicycle",), ("vehicle",)),
-    Name(
-        8,
-        "pedestrian",
-        _PERSON_RAW,
-        ("person", "walker"),
-        ("man", "woman", "walking person"),
-        ("human", "people"),
-    ),
+    Name(8, "pedestrian", _PERSON_RAW, ("person", "walker"), ("man", "woman", "walking person"),
+         ("human", "people")),
     Name(9, "child", _PERSON_RAW, ("kid",), ("small person",), ("person", "pedestrian", "human", "people")),
     # ---------------------------------------------------------------- flat
     Name(10, "asphalt", (40,), ("road", "street", "roadway"), ("asphalt road", "paved road"), ("ground",)),
-    Name(
-        11,
-        "crosswalk",
-        (40,),
-        ("zebra crossing", "pedestrian crossing"),
-        ("road marking",),
-        ("road", "street"),
-    ),
-    Name(
-        12,
-        "parking lane",
-        (44,),
-        ("parking bay", "parking space", "parking spot"),
-        ("parking area", "parking lot", "paved parking"),
-        ("parking", "ground"),
-    ),
+    Name(11, "crosswalk", (40,), ("zebra crossing", "pedestrian crossing"), ("road marking",),
+         ("road", "street")),
+    Name(12, "parking lane", (44,), ("parking bay", "parking space", "parking spot"),
+         ("parking area", "parking lot", "paved parking"), ("parking", "road", "street", "ground")),
     Name(13, "sidewalk", (48,), ("footpath", "pavement", "footway"), ("paved walkway",), ("ground",)),
-    Name(14, "curb", (48,), ("kerb", "curbstone"), ("curb stone",), ("sidewalk",)),
-    Name(15, "gravel", (49,), ("gravel strip", "grit"), ("gravel path", "loose stones"), ("ground",)),
+    Name(14, "curb", (48,), ("kerb", "curbstone"), ("curb stone",), ("sidewalk", "road", "street")),
+    Name(15, "gravel", (49,), ("gravel strip", "grit"), ("gravel path", "loose stones"),
+         ("terrain", "ground")),
     # ---------------------------------------------------------------- construction
     Name(16, "house", (50,), ("building", "detached house", "home"), ("facade", "wall"), ("structure",)),
-    Name(
-        17,
-        "apartment building",
-        (50,),
-        ("building", "apartment block", "row house"),
-        ("facade", "wall"),
-        ("house", "structure"),
-    ),
-    Name(
-        18,
-        "office building",
-        (50,),
-        ("building", "office block"),
-        ("glass facade", "facade", "wall"),
-        ("structure",),
-    ),
+    Name(17, "apartment building", (50,), ("building", "apartment block", "row house"), ("facade", "wall"),
+         ("house", "structure")),
+    Name(18, "office building", (50,), ("building", "office block"), ("glass facade", "facade", "wall"),
+         ("structure",)),
     Name(19, "roof", (50,), ("rooftop",), ("tiled roof",), ("building", "house")),
     Name(20, "wooden fence", (51,), ("fence", "picket fence"), ("wooden railing",), ("barrier",)),
     Name(21, "metal fence", (51,), ("fence", "railing"), ("metal railing", "guardrail"), ("barrier",)),
     # ---------------------------------------------------------------- nature
     Name(22, "tree", (70,), ("tree canopy", "treetop"), ("foliage", "leaves"), ("vegetation", "plant")),
-    Name(23, "bush", (70,), ("shrub",), ("foliage",), ("vegetation", "plant")),
-    Name(24, "hedge", (70,), ("hedgerow",), ("shrub", "foliage"), ("vegetation", "plant")),
+    Name(23, "bush", (70,), ("shrub",), ("foliage",), ("vegetation", "plant", "terrain")),
+    Name(24, "hedge", (70,), ("hedgerow",), ("shrub", "foliage"), ("vegetation", "plant", "fence")),
     Name(25, "trunk", (71,), ("tree trunk",), ("bark", "stem"), ("tree",)),
-    Name(26, "lawn", (72,), ("grass", "turf"), ("grass field", "meadow"), ("terrain", "ground")),
-    Name(27, "grass strip", (72,), ("grass", "grass verge", "verge"), ("lawn",), ("terrain", "ground")),
+    Name(26, "lawn", (72,), ("grass", "turf"), ("grass field", "meadow"),
+         ("terrain", "vegetation", "ground")),
+    Name(27, "grass strip", (72,), ("grass", "grass verge", "verge"), ("lawn",),
+         ("terrain", "vegetation", "ground")),
     # ---------------------------------------------------------------- objects
-    Name(
-        28,
-        "lamp post",
-        (80,),
-        ("street lamp", "lamppost", "street light", "light pole"),
-        (),
-        ("pole", "post"),
-    ),
+    Name(28, "lamp post", (80,), ("street lamp", "lamppost", "street light", "light pole"), (),
+         ("pole", "post")),
     Name(29, "sign post", (80,), ("signpost",), ("metal post",), ("pole", "post")),
-    Name(
-        30,
-        "traffic sign",
-        (81,),
-        ("road sign", "street sign", "signboard"),
-        ("stop sign", "speed limit sign", "yield sign"),
-        ("sign",),
-    ),
+    Name(30, "traffic sign", (81,), ("road sign", "street sign", "signboard"),
+         ("stop sign", "speed limit sign", "yield sign"), ("sign",)),
     # ---------------------------------------------------------------- demo-only objects (raw ids 300+)
     Name(31, "traffic cone", (300,), ("safety cone", "pylon"), ("orange cone",), ("cone",)),
     Name(32, "bench", (301,), ("park bench", "seat"), ("wooden bench",), ("street furniture",)),
     Name(33, "bollard", (302,), ("traffic bollard",), ("short post", "metal post"), ("post",)),
 )
+# fmt: on
 """The names the demo generator uses (ids 1..99)."""
 
 # Generic names of raw SemanticKITTI ids (and the demo extras), for 2D ground truth without a name image.
@@ -276,9 +235,14 @@ def lexicon_digest() -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+@functools.cache
+def _phrases(name: Name) -> dict[str, Strength]:
+    return name.phrases()
+
+
 def match(prompt: str, name: Name) -> Strength | None:
     """How strongly ``prompt`` names a region called ``name`` (None: it does not name it)."""
-    phrases = name.phrases()
+    phrases = _phrases(name)
     q = normalize(prompt)
     if q in phrases:
         return phrases[q]
