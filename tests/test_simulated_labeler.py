@@ -291,7 +291,7 @@ def test_a_region_gets_a_mask_only_when_a_prompt_names_it(tmp_path: Path) -> Non
     seq = _named_sequence(tmp_path / "s")
     frame = seq.frame(0)
     exact = SimulatedLabeler(SimulatedLabelerConfig.exact())
-    # "car" names a van only loosely, but alone it names it: 12 van masks + asphalt + lawn (+ hedge via "vegetation").
+    # "car" names a van only loosely, but alone it names it (and "truck" too: the two compete).
     masks = exact.label(frame, SCHEMA)
     classes = masks.probs.argmax(axis=1)
     assert (classes == CAR).sum() + (classes == TRUCK).sum() == 12

@@ -27,9 +27,10 @@ Noise model, applied per image in this order (every parameter lives in :class:`S
    ``(dx, dy) ~ N(0, jitter_px²)`` and a rotation ``θ ~ N(0, jitter_deg²)`` about the image centre
    (nearest-neighbour resampling; pixels moved in from outside carry no label). This mimics a small
    camera↔LiDAR calibration or synchronisation error that shifts every mask against the points.
-2. Missed regions. Region r won by class c with match strength k is kept with probability
-   ``recall(c) · match_detection[k]`` (``recall(c)`` = ``class_recall[c]`` if given, else ``recall``);
-   regions smaller than ``min_region_px`` pixels are always missed.
+2. Missed regions. Region r won by class c is kept with probability
+   ``recall(c) · (1 − Π_j (1 − match_detection[k(r, j)]))`` over the classes j whose prompts name r (each
+   naming prompt is one more chance for the detector to box it; ``recall(c)`` = ``class_recall[c]`` if
+   given, else ``recall``); regions smaller than ``min_region_px`` pixels are always missed.
 3. Confusion. If c belongs to an ambiguous pair in ``confusion_pairs``, then with probability
    ``confusion_prob`` the mask's predicted class becomes its partner ĉ (one drawn uniformly when c has
    several partners); otherwise ĉ = c.
@@ -170,8 +171,9 @@ class SimulatedLabelerConfig:
     jitter_deg: float = 0.1
     """Standard deviation in degrees of the per-image rotation of all masks about the image centre."""
     match_detection: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_MATCH_DETECTION))
-    """Per match strength (exact, synonym, descriptive, hypernym): factor on the recall of a region that a
-    prompt names with that strength. A looser name finds its object less often."""
+    """Per match strength (exact, synonym, descriptive, hypernym): the chance that a prompt naming a region
+    with that strength gets it detected (combined over the naming classes, times the class recall). A
+    looser name finds its object less often."""
     match_confidence: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_MATCH_CONFIDENCE))
     """Per match strength: factor on the mask's confidence draw, and the similarity that decides which
     class wins a region that prompts of several classes name."""
@@ -519,7 +521,9 @@ class SimulatedLabeler:
                 continue  # no prompt names this region: the detector is never asked for it
             cls, k, rival = _compete(cands, cfg, float(u_obj[i, 3]))
             strength = STRENGTHS[k]
-            keep = recall_of[cls] * cfg.match_detection[strength]
+            # Every class whose prompts name the region is one more chance for the detector to box it.
+            missed = np.prod([1.0 - cfg.match_detection[STRENGTHS[kj]] for _, kj in cands])
+            keep = recall_of[cls] * (1.0 - missed)
             if u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
                 continue
             pred = cls

@@ -926,15 +926,13 @@ def _heroes(  # noqa: PLR0915  a scene recipe: one placement after the other, re
         """Point ``along`` metres from ``centre`` along the street, ``lateral`` right of its centre line."""
         return centre + h * along + right_of(h) * lateral
 
-    # Lead car: drives the route ahead of the ego, slowing for the turns like the ego does.
+    # Lead car: drives the route ahead of the ego, slowing for the turns like the ego does. It is a jeep
+    # (an SUV: SemanticKITTI's car, a detector's "SUV"), so the prompt expansion car -> jeep matters in view.
     lead_s = drive_along(route, ego, float(rng.uniform(13, 18)), frames, hz, cruise_scale=1.05)
     lead_xy, lead_yaw = route.at(lead_s)
     inst = ids()
-    actors.append(
-        Actor(
-            inst, S.MOVING_CAR, car_shape(rng, S.MOVING_CAR, inst), None, lead_xy, lead_yaw, np.zeros(frames)
-        )
-    )
+    lead = car_shape(rng, S.MOVING_CAR, inst, jeep=True)
+    actors.append(Actor(inst, S.MOVING_CAR, lead, None, lead_xy, lead_yaw, np.zeros(frames)))
 
     # Oncoming car on the first street, passing the ego before it reaches the intersection.
     d0 = float(np.dot(inter1 - leg1.start, h1))
