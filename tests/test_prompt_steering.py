@@ -8,7 +8,6 @@ camera-view rule (pixels without a prediction are ignored): fast, and the same l
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,9 +43,9 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> KittiSequence:
 
 
 def _ious(seq: KittiSequence, schema: Schema) -> tuple[np.ndarray, np.ndarray]:
-    """(C,) 2D IoU per class over all frames and labeler seeds (NaN = class absent), twice: with the camera-view
-    rule (pixels without a prediction are ignored, the paper's protocol) and with the all-points rule (they
-    count as misses)."""
+    """(C,) 2D IoU per class over all frames and labeler seeds (NaN = class absent), twice: with the
+    camera-view rule (pixels without a prediction are ignored, the paper's protocol) and with the all-points
+    rule (they count as misses)."""
     gts, preds = [], []
     for seed in LABELER_SEEDS:
         lab = SimulatedLabeler(SimulatedLabelerConfig(seed=seed, persistence_frames=1))
