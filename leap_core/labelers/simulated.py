@@ -363,7 +363,12 @@ def _compete(
     cands: list[tuple[int, int]], cfg: SimulatedLabelerConfig, u: float
 ) -> tuple[int, int, int | None]:
     """The winning class of a region named by ``cands`` [(class, strength index)], its strength index and
-    the strongest other class (None when alone). ``u`` ~ U(0, 1) decides (module docstring, "Prompts")."""
+    the strongest other class (None when alone).
+
+    ``P(c wins) = exp(s_c / T) / Σ_j exp(s_j / T)`` with ``s_c = match_confidence[k(r, c)]`` and
+    ``T = match_temperature``; at T = 0 the classes of the strongest strength share the win equally.
+    ``u`` ~ U(0, 1) picks from the cumulative distribution (classes in ``cands`` order).
+    """
     if len(cands) == 1:
         return cands[0][0], cands[0][1], None
     if cfg.match_temperature == 0:
