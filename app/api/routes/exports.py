@@ -12,13 +12,17 @@ from fastapi.responses import FileResponse
 
 from app import crud, models
 from app.api.deps import DbDep, SettingsDep
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import RunId
 from app.core.config import Settings
 from app.core.errors import Conflict, NotFound
 from app.core.security import resolve_in_roots
 from leap_core.io_utils import atomic_write, atomic_write_bytes
 from leap_core.run_layout import RunLayout
 
-router = APIRouter(prefix="/runs/{run_id}/export", tags=["exports"])
+router = APIRouter(
+    prefix="/runs/{run_id}/export", tags=["exports"], responses={**NOT_FOUND, **CONFLICT}
+)
 
 _zip_lock = threading.Lock()
 
@@ -57,7 +61,7 @@ def build_zip(run: dict[str, Any], include_confidence: bool) -> Path:
 
 
 @router.get(".zip", response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}})
-def download_export(run_id: int, db: DbDep, confidence: bool = False) -> FileResponse:
+def download_export(run_id: RunId, db: DbDep, confidence: bool = False) -> FileResponse:
     """Zip of the run's ``.label`` files (SemanticKITTI raw ids); ``confidence=true`` adds ``.conf`` files."""
     run = crud.require_run(db, run_id)
     path = build_zip(run, confidence)
@@ -78,7 +82,7 @@ def _allowed_roots(settings: Settings, project: dict[str, Any]) -> list[Path]:
 
 @router.post("", response_model=models.ExportWritten)
 def write_export(
-    run_id: int, payload: models.ExportWrite, db: DbDep, settings: SettingsDep
+    run_id: RunId, payload: models.ExportWrite, db: DbDep, settings: SettingsDep
 ) -> models.ExportWritten:
     """Copy the ``.label`` files into ``<dataset>/predictions`` (or ``path``), inside a data root."""
     run = crud.require_run(db, run_id)
