@@ -132,9 +132,8 @@ def label_map(schema: Schema, counts: Mapping[int, int] | None = None, *, name: 
     learning: dict[int, int] = {0: 0}
     for k, c in enumerate(schema.classes):
         for gid in c.gt_ids:
-            if int(gid) not in ids:
-                learning[int(gid)] = k + 1
-    for k, c in enumerate(schema.classes):
+            learning[int(gid)] = k + 1
+    for k, c in enumerate(schema.classes):  # after the gt ids: an export id keeps its own class
         labels[ids[k]] = c.name
         colors[ids[k]] = [int(c.color[2]), int(c.color[1]), int(c.color[0])]
         learning[ids[k]] = k + 1
