@@ -104,9 +104,10 @@ def test_label_map_yaml_round_trip() -> None:
 
 
 def test_label_map_export_id_wins_over_another_class_gt_id() -> None:
-    schema = Schema("s", classes=(ClassDef("a", (1, 2, 3), ("a",), export_id=7, gt_ids=(7, 8)),
-                                  ClassDef("b", (4, 5, 6), ("b",), export_id=8)))
-    assert label_map(schema)["learning_map"] == {0: 0, 7: 1, 8: 2}
+    for a_gt, b_gt in (((7, 8), ()), ((), (7, 8))):  # the clash in either class order
+        schema = Schema("s", classes=(ClassDef("a", (1, 2, 3), ("a",), export_id=7, gt_ids=a_gt),
+                                      ClassDef("b", (4, 5, 6), ("b",), export_id=8, gt_ids=b_gt)))
+        assert label_map(schema)["learning_map"] == {0: 0, 7: 1, 8: 2}
 
 
 def test_load_label_map_names_the_bad_key() -> None:
