@@ -17,8 +17,6 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from app import models
 from app.core.config import Settings
 from app.core.errors import Conflict, Forbidden, NotFound
@@ -36,11 +34,12 @@ from leap_core.export import (
     export_target_problem,
     label_map,
     label_map_yaml,
+    summary_yaml,
     write_export_folder,
-    zip_member,
+    write_export_zip,
 )
-from leap_core.io_utils import atomic_write, atomic_write_json
-from leap_core.pipeline.coverage import ExportCoverage, export_coverage
+from leap_core.io_utils import atomic_write_json
+from leap_core.pipeline.coverage import ExportCoverage, coverage_counts, export_coverage
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 
@@ -211,44 +210,10 @@ def export_info(settings: Settings, run: dict[str, Any], project: dict[str, Any]
 
 
 # ------------------------------------------------------------------------------------------- zip
-def _summary(run: dict[str, Any], project: dict[str, Any], cov: ExportCoverage, with_conf: bool) -> str:
-    """The zip's ``summary.yaml``: project, run, dataset, the run's full settings and the counts."""
-    schema = _schema(run)
-    cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
-    frames = _frames(run)
-    summary = {
-        "project": {"id": project["id"], "name": project["name"]},
-        "run": {"id": run["id"], "number": run["number"], "finished_at": run.get("finished_at")},
-        "dataset": {
-            "path": run["params"]["dataset"],
-            "sequence": Path(run["params"]["dataset"]).name,
-            "frames": "all" if frames is None else [frames.start, frames.stop],
-        },
-        "files": {
-            "labels": f"sequences/{Path(run['params']['dataset']).name}/{PREDICTIONS}/*.label",
-            "confidences": "sequences/*/confidences/*.conf (float32 per point)" if with_conf else None,
-            "label_map": LABEL_MAP_FILE,
-        },
-        "counts": {
-            "scans": cov.frames,
-            "points": cov.points,
-            "labeled": cov.labeled,
-            "unlabeled": cov.unlabeled,
-            "unlabeled_by_reason": {key: getattr(cov, key) for key, _, _ in REASONS},
-            "per_class": {c.name: cov.raw_counts.get(c.export_id, 0) for c in schema.classes},
-        },
-        "settings": {"schema": schema.name, "pipeline": config_to_dict(cfg)},
-        "leap_studio_version": __version__,
-        "written_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-    }
-    header = "# LeAP Studio export summary. Unlabeled reasons: see README, 'Exports'.\n"
-    return header + yaml.safe_dump(summary, sort_keys=False, allow_unicode=True)
-
-
 def build_zip(run: dict[str, Any], project: dict[str, Any], include_confidence: bool) -> Path:
     """The run's stand-alone export zip (:meth:`RunLayout.export_zip`), built once and cached beside it:
     ``sequences/<seq>/predictions/<frame>.label`` (+ ``confidences/<frame>.conf``), ``label-map.yaml``
-    and ``summary.yaml``."""
+    and ``summary.yaml`` (:func:`leap_core.export.write_export_zip`)."""
     lay = _finished_export(run)
     target = lay.export_zip(include_confidence)
     cov = coverage(run)
@@ -256,18 +221,25 @@ def build_zip(run: dict[str, Any], project: dict[str, Any], include_confidence: 
         if target.is_file() and _current_zip(target):
             return target
         schema = _schema(run)
-        seq = Path(run["params"]["dataset"]).name
-        suffixes = (".label", ".conf") if include_confidence else (".label",)
-        files = sorted(p for p in lay.export_dir.iterdir() if p.suffix in suffixes and p.is_file())
+        dataset = Path(run["params"]["dataset"])
+        cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
         name = f"{project['name']} run {run['number']}"
-        with (
-            atomic_write(target, "wb") as fh,
-            zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, compresslevel=6) as zf,
-        ):
-            for path in files:
-                zf.write(path, zip_member(seq, path.stem, path.suffix))
-            zf.writestr(LABEL_MAP_FILE, label_map_yaml(label_map(schema, cov.raw_counts, name=name)))
-            zf.writestr(SUMMARY_FILE, _summary(run, project, cov, include_confidence))
+        summary = summary_yaml(
+            project={"id": project["id"], "name": project["name"]},
+            run={"id": run["id"], "number": run["number"], "finished_at": run.get("finished_at")},
+            dataset=dataset,
+            frames=_frames(run),
+            schema=schema,
+            pipeline=config_to_dict(cfg),
+            counts=coverage_counts(cov),
+            with_confidence=include_confidence,
+            version=__version__,
+            written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        )
+        extra = {LABEL_MAP_FILE: label_map_yaml(label_map(schema, cov.raw_counts, name=name)), SUMMARY_FILE: summary}
+        # The cached zip is the app's own file: rebuilding it (older layout) replaces it.
+        write_export_zip(target, lay.export_dir, dataset.name, extra, include_confidence=include_confidence,
+                         overwrite=True)
     return target
 
 

@@ -18,6 +18,7 @@ import contextlib
 import os
 import shutil
 import uuid
+import zipfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ import yaml
 
 from leap_core.datasets.kitti import write_label
 from leap_core.errors import DatasetError, LeapError
-from leap_core.io_utils import atomic_write_bytes
+from leap_core.io_utils import atomic_write, atomic_write_bytes
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 from leap_core.types import UNLABELED
@@ -243,6 +244,84 @@ def zip_member(sequence: str, frame_id: str, suffix: str) -> str:
     return f"sequences/{sequence}/{folder}/{frame_id}{suffix}"
 
 
+def summary_yaml(
+    *,
+    project: Mapping[str, Any],
+    run: Mapping[str, Any],
+    dataset: Path,
+    frames: range | None,
+    schema: Schema,
+    pipeline: Mapping[str, Any],
+    counts: Mapping[str, Any],
+    with_confidence: bool,
+    version: str,
+    written_at: str,
+) -> str:
+    """An export's ``summary.yaml``: which project and run, the dataset and frames, where the files are, the
+    point counts and the run's full settings (``pipeline``: :func:`~leap_core.config.config_to_dict`).
+
+    ``counts`` holds ``scans``, ``points``, ``labeled``, ``unlabeled``, ``unlabeled_by_reason`` and
+    ``raw_counts`` (raw id → points); ``per_class`` (class name → points) is derived here.
+    """
+    raw = {int(k): int(v) for k, v in counts["raw_counts"].items()}
+    seq = dataset.name
+    summary = {
+        "project": dict(project),
+        "run": dict(run),
+        "dataset": {"path": str(dataset), "sequence": seq,
+                    "frames": "all" if frames is None else [frames.start, frames.stop]},
+        "files": {
+            "labels": f"sequences/{seq}/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 in the high bits)",
+            "confidences": f"sequences/{seq}/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence
+            else None,
+            "label_map": LABEL_MAP_FILE,
+        },
+        "counts": {
+            **{k: counts[k] for k in ("scans", "points", "labeled", "unlabeled", "unlabeled_by_reason")},
+            "per_class": {c.name: raw.get(int(c.export_id), 0) for c in schema.classes},
+        },
+        "settings": {"schema": schema.name, "pipeline": dict(pipeline)},
+        "leap_studio_version": version,
+        "written_at": written_at,
+    }
+    return "# LeAP Studio export summary (README, 'Exports').\n" + yaml.safe_dump(
+        summary, sort_keys=False, allow_unicode=True)
+
+
+def write_export_zip(
+    path: Path,
+    export_dir: Path,
+    sequence: str,
+    extra: Mapping[str, str],
+    *,
+    include_confidence: bool,
+    overwrite: bool = False,
+) -> int:
+    """Write a stand-alone export zip atomically: each ``.label`` (and ``.conf``) file of ``export_dir`` at
+    :func:`zip_member`, plus ``extra`` (zip name → text, e.g. the label map and summary).
+
+    Returns:
+        The number of frame files written.
+
+    Raises:
+        ExportConflict: ``path`` exists and ``overwrite`` is off (nothing is written).
+    """
+    if path.exists() and not overwrite:
+        raise ExportConflict(f"{path} already exists; nothing was written. Export again with overwrite to "
+                             "replace it", 1)
+    suffixes = EXPORT_SUFFIXES if include_confidence else (".label",)
+    files = sorted(p for p in export_dir.iterdir() if p.suffix in suffixes and p.is_file())
+    with (
+        atomic_write(path, "wb") as fh,
+        zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, compresslevel=6) as zf,
+    ):
+        for f in files:
+            zf.write(f, zip_member(sequence, f.stem, f.suffix))
+        for name, text in extra.items():
+            zf.writestr(name, text)
+    return len(files)
+
+
 # ------------------------------------------------------------------------------- where exports go
 class ExportConflict(LeapError):
     """An export would replace existing files (or files it did not write); nothing was written."""
@@ -354,6 +433,8 @@ __all__ = [
     "load_label_map",
     "raw_id_counts",
     "read_confidence",
+    "summary_yaml",
     "write_export_folder",
+    "write_export_zip",
     "zip_member",
 ]

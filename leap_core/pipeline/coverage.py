@@ -59,6 +59,18 @@ class ExportCoverage:
         return {**asdict(self), "unlabeled": self.unlabeled}
 
 
+def coverage_counts(cov: ExportCoverage) -> dict[str, object]:
+    """The ``counts`` :func:`leap_core.export.summary_yaml` takes."""
+    return {
+        "scans": cov.frames,
+        "points": cov.points,
+        "labeled": cov.labeled,
+        "unlabeled": cov.unlabeled,
+        "unlabeled_by_reason": {"outside_view": cov.outside_view, "no_mask": cov.no_mask},
+        "raw_counts": dict(cov.raw_counts),
+    }
+
+
 def unlabeled_reasons(
     label: npt.ArrayLike, keys: npt.ArrayLike, seen_keys: npt.ArrayLike
 ) -> tuple[int, int]:
@@ -130,4 +142,4 @@ def export_coverage(run_dir: Path, dataset: Path, frames: range | None, voxel_si
     return ExportCoverage(len(idx), points, labeled, outside, no_mask, raw_id_counts(raws))
 
 
-__all__ = ["ExportCoverage", "export_coverage", "unlabeled_reasons"]
+__all__ = ["ExportCoverage", "coverage_counts", "export_coverage", "unlabeled_reasons"]
