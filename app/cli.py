@@ -276,7 +276,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         n = len(list(result.export_dir.glob("*.label")))
         typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
         try:
-            _write_exports(result.run_dir, Path(dataset), sch, cfg, frame_range, targets, with_conf, overwrite)
+            _write_exports(result.run_dir, Path(dataset), sch, cfg, frame_range, targets,
+                           with_conf=with_conf, overwrite=overwrite)
         except LeapError as exc:
             raise fail(str(exc)) from None
 
@@ -288,7 +289,7 @@ class _Targets(TypedDict):
 
 def _export_targets(export_to: str | None, zip_path: str | None, overwrite: bool) -> _Targets:
     """Check ``--export-to`` / ``--zip`` (resolved) before the run; the writes check again."""
-    from leap_core.export import existing_export_files, export_target_problem  # noqa: PLC0415
+    from leap_core.export import existing_export_files, export_target_problem
 
     folder = None if export_to is None else Path(export_to).expanduser().resolve()
     zfile = None if zip_path is None else Path(zip_path).expanduser().resolve()
@@ -309,16 +310,16 @@ def _export_targets(export_to: str | None, zip_path: str | None, overwrite: bool
     return {"folder": folder, "zip": zfile}
 
 
-def _write_exports(  # noqa: PLR0913  # the run's pieces the export needs
+def _write_exports(
     run_dir: Path, dataset: Path, sch: Schema, cfg: PipelineConfig, frames: range | None, targets: _Targets,
-    with_conf: bool, overwrite: bool,
+    *, with_conf: bool, overwrite: bool,
 ) -> None:
     """Print the unlabeled counts, then write ``--export-to`` / ``--zip``."""
-    import datetime  # noqa: PLC0415
+    import datetime
 
-    from leap_core import __version__  # noqa: PLC0415
-    from leap_core.config import config_to_dict  # noqa: PLC0415
-    from leap_core.export import (  # noqa: PLC0415
+    from leap_core import __version__
+    from leap_core.config import config_to_dict
+    from leap_core.export import (
         LABEL_MAP_FILE,
         SUMMARY_FILE,
         label_map,
@@ -327,8 +328,8 @@ def _write_exports(  # noqa: PLR0913  # the run's pieces the export needs
         write_export_folder,
         write_export_zip,
     )
-    from leap_core.pipeline.coverage import coverage_counts, export_coverage  # noqa: PLC0415
-    from leap_core.run_layout import RunLayout  # noqa: PLC0415
+    from leap_core.pipeline.coverage import coverage_counts, export_coverage
+    from leap_core.run_layout import RunLayout
 
     lay = RunLayout(run_dir)
     cov = export_coverage(run_dir, dataset, frames, cfg.fusion.voxel_size)
@@ -338,7 +339,8 @@ def _write_exports(  # noqa: PLR0913  # the run's pieces the export needs
         suffixes = (".label", ".conf") if with_conf else (".label",)
         files = sorted(p for p in lay.export_dir.iterdir() if p.suffix in suffixes)
         replaced = write_export_folder(targets["folder"], files, overwrite=overwrite)
-        typer.echo(f"wrote {len(files)} files to {targets['folder']}" + (f" (replaced {replaced})" if replaced else ""))
+        note = f" (replaced {replaced})" if replaced else ""
+        typer.echo(f"wrote {len(files)} files to {targets['folder']}{note}")
     if targets["zip"] is not None:
         summary = summary_yaml(
             project={"schema": sch.name}, run={"folder": str(run_dir)}, dataset=dataset, frames=frames,
@@ -346,10 +348,10 @@ def _write_exports(  # noqa: PLR0913  # the run's pieces the export needs
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         )
-        extra = {LABEL_MAP_FILE: label_map_yaml(label_map(sch, cov.raw_counts, name=sch.name)),
-                 SUMMARY_FILE: summary}
-        n = write_export_zip(targets["zip"], lay.export_dir, dataset.name, extra, include_confidence=with_conf,
-                             overwrite=overwrite)
+        lmap = label_map(sch, cov.raw_counts, name=sch.name, sequence=dataset.name)
+        extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}
+        n = write_export_zip(targets["zip"], lay.export_dir, dataset.name, extra,
+                             include_confidence=with_conf, overwrite=overwrite)
         typer.echo(f"wrote {targets['zip']} ({n} files, {LABEL_MAP_FILE}, {SUMMARY_FILE})")
 
 

@@ -53,20 +53,23 @@ REASONS: tuple[tuple[str, str, str], ...] = (
     (
         "outside_view",
         "outside every camera view",
-        "No point of its voxel was inside the camera image in any frame of the run, so no 2D label reached it.",
+        "No point of its voxel was inside the camera image in any frame of the run, "
+        "so no 2D label reached it.",
     ),
     (
         "no_mask",
         "in view, no mask",
         "Its voxel was inside the camera image, but no 2D mask covered it there (the labeler found nothing, "
-        "e.g. a detector box below the box threshold was dropped) or depth clustering removed it from the mask.",
+        "e.g. a detector box below the box threshold was dropped) or depth clustering removed it "
+        "from the mask.",
     ),
 )
 """(key, label, explanation) of each reason a point stays unlabeled (leap_core.pipeline.coverage)."""
 
 THRESHOLD_NOTE = (
     "No confidence threshold is applied in 3D: every point of a labeled voxel keeps the voxel's most likely "
-    "class, so no point is unlabeled for being below a threshold (thresholds act in 2D and count as 'no mask')."
+    "class, so no point is unlabeled for being below a threshold (thresholds act in 2D and count as "
+    "'no mask')."
 )
 
 
@@ -108,7 +111,8 @@ def export_target(settings: Settings, project: dict[str, Any], raw: str | None) 
     is_predictions = target.name == PREDICTIONS and (target.parent / "velodyne").is_dir()
     if not is_predictions:
         raise Forbidden(
-            f"export path {shown!r}: exports go into a dataset's {PREDICTIONS}/ folder (beside its velodyne/) "
+            f"export path {shown!r}: exports go into a dataset's {PREDICTIONS}/ folder "
+            "(beside its velodyne/) "
             f"or into a folder inside the app's export folder {own}"
         )
     demo_predictions = (
@@ -148,7 +152,9 @@ def coverage(run: dict[str, Any]) -> ExportCoverage:
             return cached
         cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
         try:
-            cov = export_coverage(lay.run_dir, Path(run["params"]["dataset"]), _frames(run), cfg.fusion.voxel_size)
+            cov = export_coverage(
+                lay.run_dir, Path(run["params"]["dataset"]), _frames(run), cfg.fusion.voxel_size
+            )
         except LeapError as exc:
             raise Conflict(f"Run {run['id']}: cannot count its export ({exc})") from None
         data = cov.to_dict()
@@ -236,10 +242,12 @@ def build_zip(run: dict[str, Any], project: dict[str, Any], include_confidence: 
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         )
-        extra = {LABEL_MAP_FILE: label_map_yaml(label_map(schema, cov.raw_counts, name=name)), SUMMARY_FILE: summary}
+        lmap = label_map(schema, cov.raw_counts, name=name, sequence=dataset.name)
+        extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}
         # The cached zip is the app's own file: rebuilding it (older layout) replaces it.
-        write_export_zip(target, lay.export_dir, dataset.name, extra, include_confidence=include_confidence,
-                         overwrite=True)
+        write_export_zip(
+            target, lay.export_dir, dataset.name, extra, include_confidence=include_confidence, overwrite=True
+        )
     return target
 
 

@@ -339,7 +339,7 @@ class ExportWritten(BaseModel):
 
 
 class UnlabeledReason(BaseModel):
-    key: Literal["outside_view", "no_mask"]
+    key: str = Field(description="`outside_view` or `no_mask` (README, 'Exports')")
     label: str
     points: int
     explanation: str

@@ -38,7 +38,7 @@ from leap_core.types import UNLABELED
 PREDICTIONS = "predictions"
 """A sequence's folder for predicted ``.label`` files (beside its ground-truth ``labels/``)."""
 CONFIDENCES = "confidences"
-"""The zip's folder for the ``.conf`` files, beside ``predictions/`` (evaluation tools read only the latter)."""
+"""The zip's folder for the ``.conf`` files, beside ``predictions/`` (which evaluation tools read)."""
 LABEL_MAP_FILE = "label-map.yaml"
 SUMMARY_FILE = "summary.yaml"
 EXPORT_SUFFIXES = (".label", ".conf")
@@ -105,7 +105,9 @@ def read_confidence(path: str | Path, num_points: int | None = None) -> npt.NDAr
 
 
 # ------------------------------------------------------------------------------------- label map
-def label_map(schema: Schema, counts: Mapping[int, int] | None = None, *, name: str = "") -> dict[str, Any]:
+def label_map(
+    schema: Schema, counts: Mapping[int, int] | None = None, *, name: str = "", sequence: str | None = None
+) -> dict[str, Any]:
     """The label map of an export, as semantic-kitti-api's ``config/semantic-kitti.yaml`` lays one out.
 
     Keys (ids are the raw ids of ``.label`` files; learning ids are 0 = unlabeled, ``k + 1`` = class k):
@@ -121,11 +123,14 @@ def label_map(schema: Schema, counts: Mapping[int, int] | None = None, *, name: 
       maps to the class it is the export id of, because that is what the ``.label`` files mean.
     - ``learning_map_inv``: learning id → export id (0 → 0).
     - ``learning_ignore``: learning id → ignored in evaluation (only 0).
+    - ``split``: ``{train: [], valid: [<sequence>], test: []}`` when ``sequence`` is a number (``"00"``), so
+      semantic-kitti-api's ``evaluate_semantics.py --split valid`` finds the exported sequence.
 
     Args:
         schema: the run's classes.
         counts: raw id → points in the export (ids absent from it count 0).
         name: written as ``name`` (semantic-kitti-api's files carry one too).
+        sequence: the exported sequence's folder name.
     """
     ids = [int(c.export_id) for c in schema.classes]
     labels: dict[int, str] = {0: "unlabeled"}
@@ -147,6 +152,8 @@ def label_map(schema: Schema, counts: Mapping[int, int] | None = None, *, name: 
     out["learning_map"] = dict(sorted(learning.items()))
     out["learning_map_inv"] = {0: 0, **{k + 1: ids[k] for k in range(len(ids))}}
     out["learning_ignore"] = {0: True, **{k + 1: False for k in range(len(ids))}}
+    if sequence is not None and sequence.isdigit():
+        out["split"] = {"train": [], "valid": [int(sequence)], "test": []}
     return out
 
 
@@ -215,7 +222,8 @@ def load_label_map(text: str, source: str = "label map") -> LabelMap:
 
     colors: dict[int, tuple[int, int, int]] = {}
     for raw, bgr in table("color_map").items():
-        if not (isinstance(bgr, list) and len(bgr) == 3 and all(isinstance(v, int) and 0 <= v <= 255 for v in bgr)):
+        ok = isinstance(bgr, list) and len(bgr) == 3
+        if not (ok and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in bgr)):
             raise DatasetError(source, f"color_map[{raw}] must be [B, G, R] integers 0..255, got {bgr!r}")
         colors[raw] = (bgr[2], bgr[1], bgr[0])
     return LabelMap(
@@ -244,7 +252,7 @@ def zip_member(sequence: str, frame_id: str, suffix: str) -> str:
     return f"sequences/{sequence}/{folder}/{frame_id}{suffix}"
 
 
-def summary_yaml(
+def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
     *,
     project: Mapping[str, Any],
     run: Mapping[str, Any],
@@ -271,9 +279,10 @@ def summary_yaml(
         "dataset": {"path": str(dataset), "sequence": seq,
                     "frames": "all" if frames is None else [frames.start, frames.stop]},
         "files": {
-            "labels": f"sequences/{seq}/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 in the high bits)",
-            "confidences": f"sequences/{seq}/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence
-            else None,
+            "labels": f"sequences/{seq}/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 above)",
+            "confidences": (
+                f"sequences/{seq}/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence else None
+            ),
             "label_map": LABEL_MAP_FILE,
         },
         "counts": {
@@ -407,7 +416,7 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
                 # rename() replaces an empty folder and fails on a non-empty one (someone wrote there since).
                 os.rename(fresh, target)
             except OSError as exc:
-                raise ExportConflict(f"{target} changed while exporting ({exc.strerror}); nothing was written",
+                raise ExportConflict(f"{target} changed while exporting ({exc.strerror}); nothing written",
                                      len(existing_export_files(target))) from None
     finally:
         if fresh.exists():

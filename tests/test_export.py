@@ -101,6 +101,8 @@ def test_label_map_yaml_round_trip() -> None:
     assert raw["color_map"][car.export_id] == [car.color[2], car.color[1], car.color[0]]
     assert raw["content"][0] == pytest.approx(0.25) and raw["learning_ignore"][0] is True
     assert list(raw)[:3] == ["name", "labels", "color_map"] and raw["name"] == "demo run 3"
+    assert "split" not in raw
+    assert label_map(schema, sequence="08")["split"] == {"train": [], "valid": [8], "test": []}
 
 
 def test_label_map_export_id_wins_over_another_class_gt_id() -> None:
@@ -160,7 +162,8 @@ def test_write_export_folder_needs_overwrite_and_swaps_whole_folders(tmp_path) -
     files = sorted(src.iterdir())
     target = tmp_path / "seq" / "predictions"
     assert write_export_folder(target, files) == 0
-    assert {p.name: p.read_bytes() for p in target.iterdir()} == {"000000.label": b"new0", "000001.label": b"new1"}
+    written = {p.name: p.read_bytes() for p in target.iterdir()}
+    assert written == {"000000.label": b"new0", "000001.label": b"new1"}
 
     (target / "000000.label").write_bytes(b"mine")
     (target / "000009.label").write_bytes(b"old9")
@@ -173,7 +176,7 @@ def test_write_export_folder_needs_overwrite_and_swaps_whole_folders(tmp_path) -
     assert sorted(p.name for p in target.parent.iterdir()) == ["predictions"]
 
     (target / "readme.txt").write_text("keep me")
-    with pytest.raises(ExportConflict, match="readme.txt"):
+    with pytest.raises(ExportConflict, match=r"readme\.txt"):
         write_export_folder(target, files, overwrite=True)
     assert (target / "readme.txt").read_text() == "keep me"
     # An empty existing folder takes the export without the flag.

@@ -503,12 +503,13 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
 def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) -> None:
     import zipfile
 
+    from click.testing import Result
     from typer.testing import CliRunner
 
     from app.cli import cli as app
     from leap_core.export import load_label_map
 
-    def run(*args: str) -> Any:
+    def run(*args: str) -> Result:
         return CliRunner().invoke(app, ["run", str(street), "--out", str(tmp_path / "run"), "--frames", "0:2",
                                         "--labeler", "simulated", *args])
 

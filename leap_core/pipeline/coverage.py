@@ -71,9 +71,7 @@ def coverage_counts(cov: ExportCoverage) -> dict[str, object]:
     }
 
 
-def unlabeled_reasons(
-    label: npt.ArrayLike, keys: npt.ArrayLike, seen_keys: npt.ArrayLike
-) -> tuple[int, int]:
+def unlabeled_reasons(label: npt.ArrayLike, keys: npt.ArrayLike, seen_keys: npt.ArrayLike) -> tuple[int, int]:
     """``(outside_view, no_mask)`` counts of one scan's unlabeled points.
 
     Args:

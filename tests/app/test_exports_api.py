@@ -55,7 +55,9 @@ def studio(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Studio]:
         with server.client() as c:
             st = Studio(data, server, c, seq.root)
             for name in ("A", "B"):
-                p = c.post("/projects", json={"name": name, "dataset": {"kind": "folder", "path": str(seq.root)}})
+                p = c.post(
+                    "/projects", json={"name": name, "dataset": {"kind": "folder", "path": str(seq.root)}}
+                )
                 assert p.status_code == 201, p.text
                 run = c.post(f"/projects/{p.json()['id']}/runs", json={}).json()
                 st.runs[name] = wait_run(c, run["id"], api="")
@@ -116,7 +118,9 @@ def test_export_never_writes_into_another_run_or_the_work_folder(studio: Studio)
     assert not (work / "somewhere-new").exists() and not (studio.data / "not-a-dataset").exists()
 
 
-def test_existing_predictions_are_replaced_only_with_overwrite(studio: Studio, clean_predictions: Path) -> None:
+def test_existing_predictions_are_replaced_only_with_overwrite(
+    studio: Studio, clean_predictions: Path
+) -> None:
     b_export = run_dir(studio, "B") / "export"
     first = export(studio, "A")
     assert first.status_code == 200, first.text
@@ -134,7 +138,10 @@ def test_existing_predictions_are_replaced_only_with_overwrite(studio: Studio, c
     done = export(studio, "B", include_confidence=True, overwrite=True)
     assert done.status_code == 200, done.text
     assert done.json() == {
-        "run_id": studio.runs["B"]["id"], "path": str(clean_predictions), "files": 2 * FRAMES, "replaced": FRAMES
+        "run_id": studio.runs["B"]["id"],
+        "path": str(clean_predictions),
+        "files": 2 * FRAMES,
+        "replaced": FRAMES,
     }
     assert tree_digest(clean_predictions) == tree_digest(b_export)
     # No temp or backup folder is left beside it.
@@ -152,8 +159,9 @@ def test_app_export_folder_takes_new_folders(studio: Studio) -> None:
     target = studio.data / "studio" / "exports" / "b-run"
     r = export(studio, "B", path=str(target))
     assert r.status_code == 200, r.text
-    assert tree_digest(target) == {k: v for k, v in tree_digest(run_dir(studio, "B") / "export").items()
-                                   if k.endswith(".label")}
+    assert tree_digest(target) == {
+        k: v for k, v in tree_digest(run_dir(studio, "B") / "export").items() if k.endswith(".label")
+    }
     again = export(studio, "B", path=str(target))
     assert again.status_code == 409
 
@@ -216,6 +224,7 @@ def test_zip_stands_alone_with_its_label_map(studio: Studio, tmp_path: Path) -> 
         assert int((learned == k).sum()) == cls["points"] == cfg["counts"][raw_id]
         assert cfg["learning_ignore"][k] is False
     assert cfg["learning_ignore"][0] is True
+    assert cfg["split"]["valid"] == [0]  # semantic-kitti-api's evaluate_semantics.py --split valid
     summary = yaml.safe_load((tmp_path / "summary.yaml").read_text())
     assert summary["project"]["name"] == "B" and summary["run"]["id"] == run["id"]
     assert summary["counts"]["unlabeled"] == info["unlabeled"]

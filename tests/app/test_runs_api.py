@@ -98,7 +98,8 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     with zipfile.ZipFile(
         io.BytesIO(client.get(f"{API}/runs/{run['id']}/export.zip?confidence=true").content)
     ) as zf:
-        assert len([n for n in zf.namelist() if n.startswith("sequences/00/confidences/")]) == len(seq.frame_ids)
+        confs = [n for n in zf.namelist() if n.startswith("sequences/00/confidences/")]
+        assert len(confs) == len(seq.frame_ids)
 
     written = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert written.status_code == 200, written.text

@@ -33,7 +33,9 @@ def finished_run(tmp_path_factory: pytest.TempPathFactory):
     srv = Server(data).start()
     try:
         with srv.client() as c:
-            project = c.post("/projects", json={"name": "tiny", "dataset": {"kind": "folder", "path": str(seq.root)}})
+            project = c.post(
+                "/projects", json={"name": "tiny", "dataset": {"kind": "folder", "path": str(seq.root)}}
+            )
             run = c.post(f"/projects/{project.json()['id']}/runs", json={}).json()
             assert wait_run(c, run["id"], api="")["status"] == "done"
             info = c.get(f"/runs/{run['id']}/export").json()
