@@ -13,7 +13,7 @@ import pytest
 
 FRAMES = 4
 
-browser = browserfixtures.browser
+artifacts, browser = browserfixtures.artifacts, browserfixtures.browser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
@@ -44,7 +44,7 @@ def finished_run(tmp_path_factory: pytest.TempPathFactory):
         srv.stop()
 
 
-def test_export_dialog_counts_and_confirmations(finished_run, browser) -> None:
+def test_export_dialog_counts_and_confirmations(finished_run, browser, artifacts: Path) -> None:
     from playwright.sync_api import expect
 
     srv, dataset, project_id, info = finished_run
@@ -89,6 +89,7 @@ def test_export_dialog_counts_and_confirmations(finished_run, browser) -> None:
     dialog.locator('button[data-action="predictions"]').click()
     expect(dialog.locator(".confirm-text")).to_contain_text(f"already holds {FRAMES} files")
     expect(dialog.locator('button[data-action="confirm-write"]')).to_have_text(f"Replace {FRAMES} files")
+    dialog.screenshot(path=str(artifacts / "export_dialog.png"))
     dialog.locator('button[data-action="cancel-write"]').click()
     assert edited.read_bytes() == np.zeros(400, "<u4").tobytes()
     dialog.locator('button[data-action="predictions"]').click()
