@@ -391,7 +391,7 @@ def _frame_range(frames: str, dataset: str) -> range:
 
 
 @cli.command("serve")
-def serve_cmd(
+def serve_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     *,
     host: str | None = typer.Option(
         None, "--host", help="Address to bind (default 127.0.0.1; any other address needs --token)."
@@ -404,14 +404,30 @@ def serve_cmd(
         None, "--work-dir", help="Runs, caches and the database (default ./data/studio)."
     ),
     token: str | None = typer.Option(
-        None, "--token", help="Access token every request must carry (or LEAP_ACCESS_TOKEN)."
+        None,
+        "--token",
+        help="Access token every request must carry (or LEAP_ACCESS_TOKEN); at least 16 characters, "
+        "8 different ones, about 64 bits of entropy.",
+    ),
+    new_token: bool = typer.Option(
+        False, "--new-token", help="Generate a random access token, print it once and require it."
     ),
     models: str | None = typer.Option(None, "--models", help="Folder with Grounding DINO / SAM weights."),
+    allow_download: bool = typer.Option(
+        False, "--allow-download", help=_DOWNLOAD_HELP + " (or LEAP_ALLOW_DOWNLOAD=true)"
+    ),
     no_demo: bool = typer.Option(False, "--no-demo", help="Do not seed the demo project on first start."),
 ) -> None:
     """Start LeAP Studio: the web UI, the REST API (/api/docs) and the 3D viewer, on 127.0.0.1:8000."""
+    import secrets
+
     from app.main import serve
 
+    if new_token:
+        if token is not None:
+            raise fail("--token and --new-token exclude each other")
+        token = secrets.token_urlsafe(32)  # 256 random bits
+        typer.echo(f"access token (give it to the people who may use this server): {token}")
     settings = _app_settings(
         host=host,
         port=port,
@@ -419,6 +435,7 @@ def serve_cmd(
         work_dir=work_dir,
         token=token,
         models=models,
+        allow_download=True if allow_download else None,
         seed_demo=False if no_demo else None,
     )
     serve(settings)
@@ -499,6 +516,7 @@ class _GivenSettings(TypedDict, total=False):
     work_dir: Path
     access_token: SecretStr
     models_dir: Path
+    allow_download: bool
     seed_demo: bool
 
 
@@ -510,6 +528,7 @@ def _app_settings(
     work_dir: str | None = None,
     token: str | None = None,
     models: str | None = None,
+    allow_download: bool | None = None,
     seed_demo: bool | None = None,
 ) -> Settings:
     """App settings from the environment with the command-line values given (not None) on top (one-line
@@ -531,6 +550,8 @@ def _app_settings(
         given["access_token"] = SecretStr(token)
     if models is not None:
         given["models_dir"] = Path(models)
+    if allow_download is not None:
+        given["allow_download"] = allow_download
     if seed_demo is not None:
         given["seed_demo"] = seed_demo
     try:

@@ -16,14 +16,17 @@ from typing import Any
 
 import uvicorn
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
 from app.api.main import api_router
+from app.core.body_limit import BodyLimit
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db
-from app.core.errors import AppError, InvalidField
+from app.core.errors import AppError, InvalidField, printable, validation_errors
+from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_demo_project
 from app.jobs.manager import JobManager
 from leap_core import __version__
@@ -62,6 +65,38 @@ class LoopbackHostGuard:
                 if scope["type"] == "http":
                     response = JSONResponse({"detail": f"Host {host!r} is not allowed"}, status_code=403)
                     await response(scope, receive, send)
+                else:
+                    await send({"type": "websocket.close", "code": 1008})
+                return
+        await self.app(scope, receive, send)
+
+
+class SameOriginGuard:
+    """Refuses state-changing requests (POST, PUT, PATCH, DELETE) and websocket handshakes that a page of
+    another origin sent, with or without an access token.
+
+    A browser sends a ``no-cors`` POST from any page and attaches the user's cookies (the viewer's
+    ``leap_token``): without this check a page on another port or loopback alias could start runs or open
+    viewers. What counts as another origin is :func:`app.core.security.cross_origin_reason`; requests
+    without ``Origin`` and ``Sec-Fetch-Site`` (curl, the CLI, scripts) are not from a page and pass.
+    """
+
+    def __init__(self, app: Callable[..., Awaitable[None]]) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        kind = scope["type"]
+        if kind == "websocket" or (kind == "http" and scope["method"] in UNSAFE_METHODS):
+            headers: dict[str, str] = {}
+            for key, value in scope.get("headers", []):
+                headers.setdefault(key.decode("latin-1").lower(), value.decode("latin-1"))
+            reason = cross_origin_reason(headers)
+            if reason is not None:
+                log.warning("refused a cross-origin %s %s: %s", scope.get("method", "websocket"),
+                            scope.get("path", ""), reason)
+                if kind == "http":
+                    detail = f"Cross-origin request refused ({reason})"
+                    await JSONResponse({"detail": detail}, status_code=403)(scope, receive, send)
                 else:
                     await send({"type": "websocket.close", "code": 1008})
                 return
@@ -137,7 +172,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def _app_error(_request: Request, exc: AppError) -> JSONResponse:
         if isinstance(exc, InvalidField):
             return JSONResponse({"detail": exc.as_detail()}, status_code=exc.status_code)
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+        return JSONResponse({"detail": printable(exc.detail)}, status_code=exc.status_code)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler repeats the whole input (and the whole body of a JSON syntax error) and
+        # fails on a lone surrogate in it: answer with the errors only, each input cut short.
+        return JSONResponse({"detail": validation_errors(exc.errors())}, status_code=422)
 
     app.include_router(api_router, prefix=API_PREFIX)
     if WEB_DIR.is_dir():
@@ -145,7 +186,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.token is None:
         allowed = set(LOOPBACK_NAMES) | {settings.host.lower()}
         app.add_middleware(LoopbackHostGuard, allowed=allowed)
+    app.add_middleware(SameOriginGuard)
     app.add_middleware(ServerTiming)
+    # Outermost: an oversized body is refused before any other layer sees the request.
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     return app
 
 

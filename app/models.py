@@ -10,6 +10,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from app.api.types import class_name_problem
+
 RunStatus = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
 StageStatus = Literal["pending", "running", "done", "skipped", "failed", "cancelled"]
 DatasetKind = Literal["demo", "folder"]
@@ -22,13 +24,19 @@ _BAD_NAME_CHARS = re.compile(r"[/\\\x00-\x1f\x7f]")
 
 
 class _Input(BaseModel):
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+    """Base of every request body. Ids, strings and numbers inside bodies are bounded for every route by
+    :func:`app.api.deps.require_plain_body` (64-bit integers, finite numbers, no control characters)."""
+
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------------------------- classes
 def _check_class_name(value: str) -> str:
     if _BAD_NAME_CHARS.search(value):
         raise ValueError("class names may not contain '/', '\\' or control characters")
+    problem = class_name_problem(value)
+    if problem is not None:
+        raise ValueError(problem)
     return value
 
 

@@ -15,7 +15,7 @@ import sqlite_utils
 
 from app import crud, models
 from app.core.config import Settings
-from app.core.errors import Conflict, InvalidField, NotFound
+from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
 from app.jobs.progress import ProgressTracker
 from leap_core.config import (
@@ -64,17 +64,40 @@ def project_config(project: dict[str, Any]) -> PipelineConfig:
 
 
 # --------------------------------------------------------------------------------------------- datasets
+SEQUENCE_ENTRIES = ("velodyne", "image_2", "labels", "calib.txt", "poses.txt", "times.txt", "gt2d")
+"""What the pipeline reads inside a sequence folder; each must resolve inside a data root."""
+
+
+def _inside(path: Path, roots: list[Path]) -> bool:
+    return any(path == root or path.is_relative_to(root) for root in roots)
+
+
+def escaping_entry(folder: Path, roots: list[Path]) -> tuple[str, Path] | None:
+    """(name, real target) of the first entry of the sequence ``folder`` (itself resolved inside a root)
+    that is a symbolic link leading outside every data root, or None."""
+    for name in SEQUENCE_ENTRIES:
+        entry = folder / name
+        if entry.is_symlink():
+            target = entry.resolve()
+            if not _inside(target, roots):
+                return name, target
+    return None
+
+
 def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.DatasetKind, Path]:
     """(kind, absolute sequence folder) of a dataset reference.
 
     Raises:
-        Forbidden: a folder outside the data roots.
+        Forbidden: a folder outside the data roots, or one whose ``velodyne/`` (or another entry the
+            pipeline reads) is a link to a place outside them.
         InvalidField: a folder that is not a KITTI-layout sequence.
     """
     if ref.kind == "demo":
         return "demo", settings.demo_dataset
     assert ref.path is not None
-    path = resolve_in_roots(ref.path, settings.data_roots, what="dataset path")
+    path = resolve_in_roots(
+        ref.path, settings.data_roots, what="dataset path", loc=("body", "dataset", "path")
+    )
     if not path.is_dir():
         raise InvalidField(["body", "dataset", "path"], f"dataset path {ref.path!r}: no such folder")
     if not (path / "velodyne").is_dir():
@@ -82,6 +105,12 @@ def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.
             ["body", "dataset", "path"],
             f"dataset path {ref.path!r}: not a KITTI sequence folder (it has no velodyne/ folder; "
             "pick a folder like .../sequences/00)",
+        )
+    escape = escaping_entry(path, settings.data_roots)
+    if escape is not None:
+        name, target = escape
+        raise Forbidden(
+            f"dataset path {ref.path!r}: {name} is a link to {str(target)!r}, outside the allowed data roots"
         )
     return "folder", path
 
@@ -105,6 +134,8 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
     seen: set[Path] = set()
     work = settings.work_dir.resolve()
 
+    roots = list(settings.data_roots)
+
     def visit(folder: Path, depth: int) -> None:
         if len(found) >= limit or depth > max_depth:
             return
@@ -114,7 +145,8 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
             return
         if (folder / "velodyne").is_dir():
             real = folder.resolve()
-            if real not in seen:
+            # A listed folder must be one a project can be created on (resolve_dataset's rules).
+            if real not in seen and escaping_entry(folder, roots) is None:
                 seen.add(real)
                 found.append(
                     models.DatasetCandidate(
@@ -126,8 +158,10 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
                 )
             return
         for child in children:
-            # The app's own work folder holds runs and caches, not datasets to label.
-            if child.resolve() == work:
+            real = child.resolve()
+            # The app's own work folder holds runs and caches, not datasets to label; a link leading
+            # out of the data roots is not followed (the listing would show folders nobody may use).
+            if real == work or not _inside(real, roots):
                 continue
             visit(child, depth + 1)
 

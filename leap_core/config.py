@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import types
 import typing
 from collections.abc import Mapping
@@ -66,7 +67,7 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.labeler not in LABELERS:
             names = ", ".join(repr(n) for n in LABELERS)
-            raise ConfigError(f"must be one of {names}, got {self.labeler!r}", field=("labeler",))
+            raise ConfigError(f"must be one of {names}, got {_short(self.labeler)}", field=("labeler",))
         if not self.correction_strength > 0:
             raise ConfigError(f"must be > 0, got {self.correction_strength}", field=("correction_strength",))
 
@@ -155,6 +156,12 @@ def _type_name(tp: Any) -> str:  # noqa: PLR0911  one return per kind of annotat
     )
 
 
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters: error messages quote what was given, never all of it."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per kind of annotation (a table)
     """``value`` converted to type ``tp`` (strictly: no str→number, no bool→int); raises _BadValue."""
     origin = typing.get_origin(tp)
@@ -164,7 +171,7 @@ def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per
     if origin is Literal:
         if value in args and not isinstance(value, bool):
             return value
-        raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
+        raise _BadValue(f"must be {_type_name(tp)}, got {_short(value)}")
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
@@ -175,10 +182,10 @@ def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per
                 return _coerce(value, a)
             except _BadValue:
                 pass
-        raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
+        raise _BadValue(f"must be {_type_name(tp)}, got {_short(value)}")
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
+            raise _BadValue(f"must be {_type_name(tp)}, got {_short(value)}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(v, args[0]) for v in value)
         if len(value) != len(args):
@@ -186,7 +193,7 @@ def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per
         return tuple(_coerce(v, a) for v, a in zip(value, args, strict=True))
     if origin is dict:
         if not isinstance(value, Mapping):
-            raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
+            raise _BadValue(f"must be {_type_name(tp)}, got {_short(value)}")
         kt, vt = args
         return {_coerce(k, kt): _coerce(v, vt) for k, v in value.items()}
     if tp is bool:
@@ -197,13 +204,21 @@ def _coerce(value: Any, tp: Any) -> Any:  # noqa: PLR0911, PLR0912  one case per
             return value
     elif tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                number = float(value)
+            except OverflowError:  # an integer beyond float range (1e308)
+                bits = int(value).bit_length()
+                raise _BadValue(f"must be a finite number, got an integer of {bits} bits") from None
+            if not math.isfinite(number):
+                # YAML's .inf / .nan and JSON's 1e400 parse as non-finite floats; no setting means them.
+                raise _BadValue(f"must be a finite number, got {number}")
+            return number
     elif tp is str:
         if isinstance(value, str):
             return value
     else:
         raise _BadValue(f"has an unsupported type {tp!r}")
-    raise _BadValue(f"must be {_type_name(tp)}, got {value!r}")
+    raise _BadValue(f"must be {_type_name(tp)}, got {_short(value)}")
 
 
 @dataclass(frozen=True)
@@ -240,7 +255,7 @@ RETIRED_FIELDS: dict[tuple[str, ...], RetiredField] = {
 def _apply(obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]) -> Any:
     """``obj`` with ``overrides`` applied; every error carries the absolute field path."""
     if not isinstance(overrides, Mapping):
-        raise ConfigError(f"must be a mapping of settings, got {overrides!r}", field=path)
+        raise ConfigError(f"must be a mapping of settings, got {_short(overrides)}", field=path)
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     changes: dict[str, Any] = {}

@@ -80,6 +80,19 @@ def test_configs_raise_relative_paths_that_config_from_dict_makes_absolute() -> 
     assert base.fusion.voxel_size == 0.3
 
 
+def test_float_settings_must_be_finite_and_messages_stay_short() -> None:
+    # YAML's .inf / .nan and JSON's 1e400 arrive as non-finite floats, 10**400 as an int no float holds.
+    for value in (float("inf"), float("-inf"), float("nan"), 10**400):
+        with pytest.raises(ConfigError, match="must be a finite number") as info:
+            config_from_dict({"fusion": {"voxel_size": value}})
+        assert info.value.field == ("pipeline", "fusion", "voxel_size")
+        assert len(str(info.value)) < 200
+    with pytest.raises(ConfigError) as info:
+        config_from_dict({"labeler": "x" * 100_000})
+    assert len(str(info.value)) < 300
+    assert config_from_dict({"fusion": {"voxel_size": 1}}).fusion.voxel_size == 1.0
+
+
 def test_config_errors_survive_pickling() -> None:
     import pickle
 

@@ -563,7 +563,7 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
         body = r.json()
         assert body["run_id"] == run_id and body["port"] > 0
         assert body["url"] == f"/api/v1/projects/{pid}/viewer/client/"
-        assert body["direct_url"] is None  # viser's own port has no token check
+        assert "direct_url" not in body  # viser's own port streams only to the relay
         assert client.post(base, json={"run_id": run_id}, headers=auth).json()["port"] == body["port"]
         assert client.get(body["url"]).status_code == 403
         page = client.get(body["url"] + f"?token={token}")

@@ -8,8 +8,10 @@ from typing import Annotated
 
 import sqlite_utils
 from fastapi import Depends, HTTPException, Request, status
+from fastapi.exceptions import RequestValidationError
 from starlette.requests import HTTPConnection
 
+from app.api.types import PlainJsonError, check_plain_json
 from app.core.config import Settings
 from app.core.db import ConnectionPool, open_db
 from app.core.security import token_matches
@@ -97,3 +99,31 @@ async def require_token(connection: HTTPConnection, settings: SettingsDep) -> No
 
 
 AuthDep = Depends(require_token)
+
+
+async def require_plain_body(request: HTTPConnection) -> None:
+    """A JSON body holds only values the app can store and send back (:mod:`app.api.types`).
+
+    Runs for every API route after the token check. FastAPI has already parsed the body by then and
+    Starlette keeps the parsed value, so this costs a walk over a small document, nothing more.
+    """
+    if not isinstance(request, Request):  # a websocket has no body
+        return
+    content_type = request.headers.get("content-type", "")
+    if request.method in ("GET", "HEAD", "OPTIONS") or "json" not in content_type.lower():
+        return
+    if not await request.body():
+        return
+    try:
+        document = await request.json()
+    except ValueError:
+        return  # not JSON: FastAPI's own parsing reports it
+    try:
+        check_plain_json(document)
+    except PlainJsonError as exc:
+        raise RequestValidationError(
+            [{"type": "value_error", "loc": ("body", *exc.loc), "msg": exc.problem, "input": exc.value}]
+        ) from None
+
+
+PlainBodyDep = Depends(require_plain_body)

@@ -1,4 +1,5 @@
-"""The API router: every resource router, all behind the access-token check."""
+"""The API router: every resource router, all behind the access-token check and the body check
+(:func:`app.api.deps.require_plain_body`), with the error answers every route can give declared once."""
 
 from __future__ import annotations
 
@@ -7,10 +8,11 @@ import importlib.util
 
 from fastapi import APIRouter
 
-from app.api.deps import AuthDep
+from app.api.deps import AuthDep, PlainBodyDep
+from app.api.responses import COMMON_RESPONSES
 from app.api.routes import classes, datasets, exports, health, pipeline, projects, runs
 
-api_router = APIRouter(dependencies=[AuthDep])
+api_router = APIRouter(dependencies=[AuthDep, PlainBodyDep], responses=COMMON_RESPONSES)
 api_router.include_router(health.router)
 api_router.include_router(pipeline.router)
 api_router.include_router(datasets.router)

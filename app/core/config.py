@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import ipaddress
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -29,6 +30,44 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+MIN_TOKEN_LENGTH = 16
+MIN_TOKEN_DISTINCT = 8
+MIN_TOKEN_BITS = 64
+
+
+def token_weakness(token: str) -> str | None:
+    """Why ``token`` is too easy to guess, or None.
+
+    A token must have at least 16 characters, 8 of them different, and an estimated 64 bits of entropy:
+    length × log2(size of the character classes it uses: lower case 26, upper case 26, digits 10, other
+    printable ASCII 33, anything else 100). ``secrets.token_urlsafe(32)`` (what ``--new-token`` makes)
+    has about 256. The estimate is an upper bound for chosen words, so it only turns away the obviously
+    weak (``aaaaaaaaaaaaaaaa``, ``1234567890123456``).
+    """
+    if len(token) < MIN_TOKEN_LENGTH:
+        return f"must have at least {MIN_TOKEN_LENGTH} characters (it has {len(token)})"
+    if any(not ch.isprintable() or ch.isspace() for ch in token):
+        return "may only contain printable characters without spaces"
+    if len(set(token)) < MIN_TOKEN_DISTINCT:
+        return f"must use at least {MIN_TOKEN_DISTINCT} different characters (it uses {len(set(token))})"
+    pool = 0
+    for present, size in (
+        (any(ch.islower() and ch.isascii() for ch in token), 26),
+        (any(ch.isupper() and ch.isascii() for ch in token), 26),
+        (any(ch.isdigit() and ch.isascii() for ch in token), 10),
+        (any(ch.isascii() and not ch.isalnum() for ch in token), 33),
+        (any(not ch.isascii() for ch in token), 100),
+    ):
+        pool += size if present else 0
+    bits = len(token) * math.log2(pool)
+    if bits < MIN_TOKEN_BITS:
+        return (
+            f"is too easy to guess (about {bits:.0f} bits; needs {MIN_TOKEN_BITS}): make it longer or mix "
+            "letters, digits and symbols"
+        )
+    return None
+
+
 class Settings(BaseSettings):
     """Where the app listens, where data may live, and where it keeps its state."""
 
@@ -47,7 +86,11 @@ class Settings(BaseSettings):
     access_token: SecretStr | None = None
     """Shared secret every API call (and the viewer) must present when set; required off loopback."""
     models_dir: Path | None = None
-    """Local folder with Grounding DINO / SAM weights (no download is attempted)."""
+    """Local folder with Grounding DINO / SAM weights; None = the Hugging Face cache of the user running the
+    server. Only the server's settings name it: a project names model ids, never folders."""
+    allow_download: bool = False
+    """Without ``models_dir``: may a run download a model missing from the Hugging Face cache? Off by
+    default, and only the server's settings can turn it on (a project cannot)."""
     max_parallel_runs: int = Field(default=1, ge=1, le=8)
     """Runs executed at the same time across all projects; further runs wait in a FIFO queue."""
     prewarm_workers: bool = True
@@ -66,6 +109,8 @@ class Settings(BaseSettings):
     """Minimum seconds between two progress messages of one stage (the last one is always sent)."""
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     """Server log level."""
+    max_body_bytes: int = Field(default=1024 * 1024, ge=1024, le=1024**3)
+    """Largest request body accepted (bytes); a larger one is answered 413 before it is read."""
 
     @field_validator("host")
     @classmethod
@@ -110,8 +155,10 @@ class Settings(BaseSettings):
     @field_validator("access_token")
     @classmethod
     def _token_strength(cls, value: SecretStr | None) -> SecretStr | None:
-        if value is not None and len(value.get_secret_value()) < 12:
-            raise ValueError("access_token must have at least 12 characters")
+        if value is not None:
+            problem = token_weakness(value.get_secret_value())
+            if problem is not None:
+                raise ValueError(f"access_token {problem}; `leap serve --new-token` generates a strong one")
         return value
 
     @model_validator(mode="after")

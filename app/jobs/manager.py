@@ -36,6 +36,7 @@ from app import crud, services
 from app.core.config import Settings
 from app.core.db import open_db, transaction, utcnow
 from app.core.errors import Conflict
+from app.core.security import resolve_in_roots
 from app.demo import SYNTH_STAGE, demo_exists
 from app.jobs import worker
 from app.jobs.messages import (
@@ -170,6 +171,7 @@ class JobManager:
         with open_db(self.settings.database) as db:
             with transaction(db):
                 project = crud.require_project(db, project_id)
+                self._confine_dataset(project["dataset_kind"], project["dataset_path"])
                 active = crud.active_run(db, project_id)
                 if active is not None:
                     raise Conflict(
@@ -196,6 +198,9 @@ class JobManager:
         with open_db(self.settings.database) as db:
             with transaction(db):
                 run = crud.require_run(db, run_id)
+                params = run["params"]
+                if params.get("dataset") is not None:
+                    self._confine_dataset(params.get("dataset_kind", "folder"), params["dataset"])
                 if run["status"] not in RESUMABLE_STATUSES:
                     raise Conflict(
                         f"Run {run_id} is {run['status']}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
@@ -297,6 +302,16 @@ class JobManager:
         return True if live is None else live.done_event.wait(timeout)
 
     # ------------------------------------------------------------------------------------- internals
+    def _confine_dataset(self, kind: str, path: str) -> None:
+        """Check a folder dataset against the server's data roots as they are NOW: they may have narrowed
+        since the project was created, or a folder on the way may have become a link out of them.
+
+        Raises:
+            Forbidden: naming the path and the allowed roots.
+        """
+        if kind != "demo":
+            resolve_in_roots(path, self.settings.data_roots, what="dataset path")
+
     def _snapshot(self, project: dict[str, Any], frames: tuple[int, int] | None) -> dict[str, Any]:
         generate = project["dataset_kind"] == "demo" and not demo_exists(Path(project["dataset_path"]))
         return {
@@ -500,6 +515,7 @@ class JobManager:
             models_dir=self.settings.models_dir,
             cache_dir=self.settings.cache_dir / f"p{run['project_id']}",
             progress_interval_s=self.settings.progress_interval_s,
+            allow_download=self.settings.allow_download,
         )
 
     def _on_progress(self, run_id: int, live: _Live, message: StageProgress, last_persist: float) -> float:

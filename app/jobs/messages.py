@@ -83,6 +83,9 @@ class RunSpec(Message):
     """Per-project 2D cache shared across the project's runs."""
     progress_interval_s: float
     """Minimum seconds between two progress messages of one stage."""
+    allow_download: bool = False
+    """The server allows a model missing from the Hugging Face cache to be downloaded (its
+    ``allow_download`` setting; a project cannot ask for it)."""
 
 
 @dataclass(frozen=True)

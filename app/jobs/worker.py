@@ -181,7 +181,10 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
         ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
     schema = Schema.from_dict(spec.schema, source="project schema")
     config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
-    runtime = Runtime(models_dir=spec.models_dir, cache_dir=spec.cache_dir)
+    # Deployment values come from the server's settings only (the spec), never from the project.
+    runtime = Runtime(
+        models_dir=spec.models_dir, cache_dir=spec.cache_dir, allow_download=spec.allow_download
+    )
     run_pipeline(
         spec.dataset,
         schema,

@@ -219,6 +219,11 @@ class ViewerManager:
         session = self.get(project_id)
         return None if session is None else session.port
 
+    def endpoint(self, project_id: int) -> tuple[int, str] | None:
+        """(port, websocket secret) of the project's viewer, for the app's relay; None when none runs."""
+        session = self.get(project_id)
+        return None if session is None else (session.port, session.scene.secret)
+
     def close(self, project_id: int) -> bool:
         """Stop the project's viewer; False when none was running."""
         with self._lock:

@@ -6,11 +6,17 @@ float32 (float16, viser's default, loses centimetres a few hundred metres from t
 uint8.
 
 viser is not ASGI: it serves its own client and websocket on its own port. The server binds 127.0.0.1
-only; remote browsers reach it through the app's authenticated relay (:mod:`app.api.routes.viewer`).
+only, and browsers reach it through the app's authenticated relay (:mod:`app.api.routes.viewer`). Anyone on
+the machine can reach 127.0.0.1, so the port itself streams the scene only to the relay: a websocket must
+carry the scene's per-session secret (:data:`SECRET_HEADER`) and no ``Origin`` (browsers always send one,
+the relay never does); any other is closed with 1008 before a single message is sent
+(:func:`guard_websocket`).
 """
 
 from __future__ import annotations
 
+import hmac
+import secrets
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -22,6 +28,40 @@ import viser
 from app.viewer import view_logic as vl
 
 RectSelectFn = Callable[[viser.SceneRectSelectEvent], None]
+
+SECRET_HEADER = "X-Leap-Viewer-Secret"
+"""Handshake header carrying :attr:`ReviewScene.secret` (set by the app's relay only)."""
+
+
+def guard_websocket(server: viser.ViserServer, secret: str) -> None:
+    """Close every websocket to ``server`` that lacks ``secret`` or comes from a browser page.
+
+    viser offers no handshake hook, but it runs its connect callbacks after the handshake and before it
+    starts sending (the scene backlog included), with the raw connection already registered: the check
+    runs there. Clients connected before the guard (the server accepts from its construction on) are
+    dropped so that they reconnect through it.
+
+    Raises:
+        RuntimeError: viser's internals changed so that the guard cannot be installed (the viewer then does
+            not start, rather than start unguarded).
+    """
+    ws_server = getattr(server, "_websock_server", None)
+    live = getattr(ws_server, "_live_connections", None)
+    if ws_server is None or not isinstance(live, dict):
+        raise RuntimeError(f"viser {viser.__version__}: cannot guard the viewer's websocket port")
+    expected = secret.encode()
+
+    async def check(client: Any) -> None:
+        connection = live.get(client.client_id)
+        request = getattr(connection, "request", None)
+        if connection is None or request is None:
+            return
+        given = (request.headers.get(SECRET_HEADER) or "").encode()
+        if "origin" in request.headers or not hmac.compare_digest(given, expected):
+            await connection.close(1008, "only the LeAP Studio relay may connect")
+
+    ws_server.on_client_connect(check)
+    ws_server.disconnect_all_clients()
 
 
 def _xyz(values: npt.ArrayLike) -> tuple[float, float, float]:
@@ -178,6 +218,13 @@ class ReviewScene:
 
     def __init__(self, *, host: str = "127.0.0.1", port: int = 0, label: str = "LeAP review") -> None:
         self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        self.secret = secrets.token_urlsafe(32)
+        """Per-session secret a websocket must send in :data:`SECRET_HEADER` (the app's relay does)."""
+        try:
+            guard_websocket(self.server, self.secret)
+        except RuntimeError:
+            self.server.stop()
+            raise
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_share_button=False)
         # A docked panel never hides the map (a floating one covers part of the canvas).
         self.server.gui.main_panel.dock_right()
@@ -243,4 +290,4 @@ class ReviewScene:
             self.server.stop()
 
 
-__all__ = ["CameraLayer", "PointLayer", "ReviewScene"]
+__all__ = ["SECRET_HEADER", "CameraLayer", "PointLayer", "ReviewScene", "guard_websocket"]

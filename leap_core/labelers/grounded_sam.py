@@ -39,6 +39,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -131,9 +132,32 @@ class GroundedSamConfig:
             raise ConfigError(f"must be >= 1, got {self.batch_size}", field=("batch_size",))
         if not 0.0 < self.match_iou <= 1.0:
             raise ConfigError(f"must be in (0, 1], got {self.match_iou}", field=("match_iou",))
+        for name in ("detector_id", "segmenter_id"):
+            check_model_id(getattr(self, name), field=name)
 
 
 # ============================================================================================ models
+_MODEL_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*(/[A-Za-z0-9][A-Za-z0-9._-]*)?$")
+
+
+def check_model_id(model_id: str, *, field: str) -> None:
+    """Refuse a model id that is not a Hugging Face id (``name`` or ``owner/name``).
+
+    The id's last part names a subfolder of the models folder (:func:`model_folder_name`), so an id such
+    as ``x/..`` or an absolute path would load weights from outside it: a project names models, never
+    where they are.
+
+    Raises:
+        ConfigError: ``field`` = ``(field,)``.
+    """
+    if not isinstance(model_id, str) or not _MODEL_ID.match(model_id) or ".." in model_id:
+        raise ConfigError(
+            f"must be a Hugging Face model id ('name' or 'owner/name': letters, digits, '.', '_', '-'; "
+            f"no '..'), got {model_id!r}",
+            field=(field,),
+        )
+
+
 def model_folder_name(model_id: str) -> str:
     """Subfolder of ``models_dir`` holding ``model_id``: the id's last path part
     (``IDEA-Research/grounding-dino-tiny`` → ``grounding-dino-tiny``)."""

@@ -32,7 +32,7 @@ def test_settings_defaults_and_validation(tmp_path: Path) -> None:
     assert s.database == tmp_path / "w" / "studio.db"
     with pytest.raises(ValidationError, match="not a loopback address"):
         Settings(host="0.0.0.0", data_roots=[tmp_path])
-    with pytest.raises(ValidationError, match="at least 12 characters"):
+    with pytest.raises(ValidationError, match="at least 16 characters"):
         Settings(host="0.0.0.0", access_token="short", data_roots=[tmp_path])
     with pytest.raises(ValidationError, match="port"):
         Settings(port=70000, data_roots=[tmp_path])

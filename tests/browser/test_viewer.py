@@ -144,7 +144,10 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
         page = browser.new_page(viewport={"width": 1400, "height": 900})
         browserfixtures.echo_console(page)
         page.goto(base + viewer["url"])
-        page.get_by_text("Connected", exact=True).wait_for(timeout=60_000)
+        # The status badge reads "Connected" only until the server's panel label arrives (viser shows a
+        # set label in its place): waiting for "Connected" raced with the scene replay and timed out under
+        # load. The label comes only over an open websocket, so it proves the connection instead.
+        page.get_by_text(f"LeAP review: {project['name']}", exact=True).wait_for(timeout=60_000)
         page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
         alert = page.get_by_role("alert")
         if alert.count():

@@ -10,47 +10,57 @@ from fastapi import APIRouter, status
 
 from app import crud, models, services
 from app.api.deps import DbDep
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import ClassName, ProjectId, PromptIndex
 
-router = APIRouter(prefix="/projects/{project_id}/classes", tags=["classes"])
+router = APIRouter(
+    prefix="/projects/{project_id}/classes", tags=["classes"], responses={**NOT_FOUND, **CONFLICT}
+)
 
 
 @router.get("", response_model=models.ClassesPublic)
-def list_classes(project_id: int, db: DbDep) -> models.ClassesPublic:
+def list_classes(project_id: ProjectId, db: DbDep) -> models.ClassesPublic:
     return services.classes_public(crud.require_project(db, project_id))
 
 
 @router.put("", response_model=models.ClassesPublic)
-def replace_classes(project_id: int, payload: models.SchemaReplace, db: DbDep) -> models.ClassesPublic:
+def replace_classes(project_id: ProjectId, payload: models.SchemaReplace, db: DbDep) -> models.ClassesPublic:
     return services.classes_public(services.replace_classes(db, project_id, payload))
 
 
 @router.post("", response_model=models.ClassesPublic, status_code=status.HTTP_201_CREATED)
-def create_class(project_id: int, payload: models.ClassCreate, db: DbDep) -> models.ClassesPublic:
+def create_class(project_id: ProjectId, payload: models.ClassCreate, db: DbDep) -> models.ClassesPublic:
     return services.classes_public(services.add_class(db, project_id, payload))
 
 
 @router.patch("/{name}", response_model=models.ClassesPublic)
-def update_class(project_id: int, name: str, payload: models.ClassUpdate, db: DbDep) -> models.ClassesPublic:
+def update_class(
+    project_id: ProjectId, name: ClassName, payload: models.ClassUpdate, db: DbDep
+) -> models.ClassesPublic:
     return services.classes_public(services.update_class(db, project_id, name, payload))
 
 
 @router.delete("/{name}", response_model=models.ClassesPublic)
-def delete_class(project_id: int, name: str, db: DbDep) -> models.ClassesPublic:
+def delete_class(project_id: ProjectId, name: ClassName, db: DbDep) -> models.ClassesPublic:
     return services.classes_public(services.delete_class(db, project_id, name))
 
 
 @router.put("/{name}/prompts", response_model=models.ClassesPublic)
 def replace_prompts(
-    project_id: int, name: str, payload: models.PromptsReplace, db: DbDep
+    project_id: ProjectId, name: ClassName, payload: models.PromptsReplace, db: DbDep
 ) -> models.ClassesPublic:
     return services.classes_public(services.set_prompts(db, project_id, name, payload.prompts))
 
 
 @router.post("/{name}/prompts", response_model=models.ClassesPublic, status_code=status.HTTP_201_CREATED)
-def add_prompt(project_id: int, name: str, payload: models.PromptCreate, db: DbDep) -> models.ClassesPublic:
+def add_prompt(
+    project_id: ProjectId, name: ClassName, payload: models.PromptCreate, db: DbDep
+) -> models.ClassesPublic:
     return services.classes_public(services.add_prompt(db, project_id, name, payload.prompt))
 
 
 @router.delete("/{name}/prompts/{index}", response_model=models.ClassesPublic)
-def delete_prompt(project_id: int, name: str, index: int, db: DbDep) -> models.ClassesPublic:
+def delete_prompt(
+    project_id: ProjectId, name: ClassName, index: PromptIndex, db: DbDep
+) -> models.ClassesPublic:
     return services.classes_public(services.delete_prompt(db, project_id, name, index))

@@ -8,12 +8,16 @@ from fastapi.responses import FileResponse
 
 from app import crud, exports, models
 from app.api.deps import DbDep, SettingsDep
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import RunId
 
-router = APIRouter(prefix="/runs/{run_id}/export", tags=["exports"])
+router = APIRouter(
+    prefix="/runs/{run_id}/export", tags=["exports"], responses={**NOT_FOUND, **CONFLICT}
+)
 
 
 @router.get("", response_model=models.ExportInfo)
-def export_info(run_id: int, db: DbDep, settings: SettingsDep) -> models.ExportInfo:
+def export_info(run_id: RunId, db: DbDep, settings: SettingsDep) -> models.ExportInfo:
     """Point counts of the export (labeled, unlabeled by reason, per class) and the default target folder."""
     run = crud.require_run(db, run_id)
     project = crud.require_project(db, run["project_id"])
@@ -21,7 +25,7 @@ def export_info(run_id: int, db: DbDep, settings: SettingsDep) -> models.ExportI
 
 
 @router.get(".zip", response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}})
-def download_export(run_id: int, db: DbDep, confidence: bool = False) -> FileResponse:
+def download_export(run_id: RunId, db: DbDep, confidence: bool = False) -> FileResponse:
     """Stand-alone zip: ``sequences/<seq>/predictions/*.label`` (SemanticKITTI raw ids), ``label-map.yaml``
     (semantic-kitti-api layout), ``summary.yaml``; ``confidence=true`` adds ``confidences/*.conf``."""
     run = crud.require_run(db, run_id)
@@ -33,7 +37,7 @@ def download_export(run_id: int, db: DbDep, confidence: bool = False) -> FileRes
 
 @router.post("", response_model=models.ExportWritten)
 def write_export(
-    run_id: int, payload: models.ExportWrite, db: DbDep, settings: SettingsDep
+    run_id: RunId, payload: models.ExportWrite, db: DbDep, settings: SettingsDep
 ) -> models.ExportWritten:
     """Copy the ``.label`` files into the project dataset's ``predictions/`` (or ``path``: another dataset's
     ``predictions/`` or a folder inside the app's export folder). A folder that already holds files is

@@ -6,8 +6,10 @@ from fastapi import APIRouter, Request, status
 
 from app import crud, models, services
 from app.api.deps import DbDep, SettingsDep
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import ProjectId
 
-router = APIRouter(prefix="/projects", tags=["projects"])
+router = APIRouter(prefix="/projects", tags=["projects"], responses={**NOT_FOUND, **CONFLICT})
 
 
 @router.get("", response_model=models.ProjectsPublic)
@@ -22,17 +24,19 @@ def create_project(payload: models.ProjectCreate, db: DbDep, settings: SettingsD
 
 
 @router.get("/{project_id}", response_model=models.ProjectPublic)
-def read_project(project_id: int, db: DbDep) -> models.ProjectPublic:
+def read_project(project_id: ProjectId, db: DbDep) -> models.ProjectPublic:
     return services.project_public(db, crud.require_project(db, project_id))
 
 
 @router.patch("/{project_id}", response_model=models.ProjectPublic)
-def update_project(project_id: int, payload: models.ProjectUpdate, db: DbDep) -> models.ProjectPublic:
+def update_project(project_id: ProjectId, payload: models.ProjectUpdate, db: DbDep) -> models.ProjectPublic:
     return services.project_public(db, services.update_project(db, project_id, payload))
 
 
 @router.delete("/{project_id}", response_model=models.Message)
-def delete_project(project_id: int, request: Request, db: DbDep, settings: SettingsDep) -> models.Message:
+def delete_project(
+    project_id: ProjectId, request: Request, db: DbDep, settings: SettingsDep
+) -> models.Message:
     services.delete_project(db, settings, project_id)
     viewers = getattr(request.app.state, "viewers", None)  # created on first viewer use only
     if viewers is not None:

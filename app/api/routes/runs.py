@@ -14,6 +14,8 @@ from starlette.concurrency import run_in_threadpool
 
 from app import crud, models, services
 from app.api.deps import DbDep, JobsDep, ReadDbDep, SettingsDep
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import ProjectId, RunId
 from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import NotFound
@@ -21,7 +23,7 @@ from app.jobs.manager import JobManager
 from app.jobs.progress import TERMINAL_STATUSES
 from app.jobs.worker import LOG_NAME
 
-router = APIRouter(tags=["runs"])
+router = APIRouter(tags=["runs"], responses={**NOT_FOUND, **CONFLICT})
 
 STREAM_MIN_INTERVAL_S = 0.25
 """Shortest time between two events of one stream (changes in between are coalesced)."""
@@ -34,7 +36,7 @@ LOG_TAIL_BYTES = 256 * 1024
     "/projects/{project_id}/runs", response_model=models.RunPublic, status_code=status.HTTP_202_ACCEPTED
 )
 def start_run(
-    project_id: int, jobs: JobsDep, db: DbDep, payload: models.RunCreate | None = None
+    project_id: ProjectId, jobs: JobsDep, db: DbDep, payload: models.RunCreate | None = None
 ) -> models.RunPublic:
     frames = (
         None if payload is None or payload.frames is None else (payload.frames.start, payload.frames.stop)
@@ -46,7 +48,7 @@ def start_run(
 # The two polled read endpoints build their public model once and send its JSON directly (FastAPI would
 # otherwise validate the returned model a second time); ``response_model`` still documents them.
 @router.get("/projects/{project_id}/runs", response_model=models.RunsPublic)
-async def list_runs(project_id: int, db: ReadDbDep, jobs: JobsDep) -> Response:
+async def list_runs(project_id: ProjectId, db: ReadDbDep, jobs: JobsDep) -> Response:
     crud.require_project(db, project_id)
     data = [services.run_public(r, jobs.progress(r["id"])) for r in crud.list_runs(db, project_id)]
     return Response(
@@ -55,19 +57,19 @@ async def list_runs(project_id: int, db: ReadDbDep, jobs: JobsDep) -> Response:
 
 
 @router.get("/runs/{run_id}", response_model=models.RunPublic)
-async def read_run(run_id: int, db: ReadDbDep, jobs: JobsDep) -> Response:
+async def read_run(run_id: RunId, db: ReadDbDep, jobs: JobsDep) -> Response:
     run = services.run_public(crud.require_run(db, run_id), jobs.progress(run_id))
     return Response(run.model_dump_json(), media_type="application/json")
 
 
 @router.post("/runs/{run_id}/cancel", response_model=models.RunPublic)
-def cancel_run(run_id: int, jobs: JobsDep, db: DbDep) -> models.RunPublic:
+def cancel_run(run_id: RunId, jobs: JobsDep, db: DbDep) -> models.RunPublic:
     jobs.cancel_run(run_id)
     return services.run_public(crud.require_run(db, run_id), jobs.progress(run_id))
 
 
 @router.post("/runs/{run_id}/resume", response_model=models.RunPublic, status_code=status.HTTP_202_ACCEPTED)
-def resume_run(run_id: int, jobs: JobsDep, db: DbDep) -> models.RunPublic:
+def resume_run(run_id: RunId, jobs: JobsDep, db: DbDep) -> models.RunPublic:
     jobs.resume_run(run_id)
     return services.run_public(crud.require_run(db, run_id), jobs.progress(run_id))
 
@@ -88,7 +90,7 @@ async def _payload(jobs: JobManager, settings: Settings, run_id: int) -> tuple[i
 
 
 @router.get("/runs/{run_id}/progress", response_model=models.RunProgress)
-async def read_progress(run_id: int, jobs: JobsDep, settings: SettingsDep) -> Response:
+async def read_progress(run_id: RunId, jobs: JobsDep, settings: SettingsDep) -> Response:
     """The run's progress: from memory while it is queued or running (no database access), else stored."""
     _, _, text = await _payload(jobs, settings, run_id)
     return Response(text, media_type="application/json")
@@ -100,7 +102,7 @@ async def read_progress(run_id: int, jobs: JobsDep, settings: SettingsDep) -> Re
     responses={200: {"content": {"text/event-stream": {}}, "description": "`progress` events, then `end`"}},
 )
 async def stream_progress(
-    run_id: int, request: Request, jobs: JobsDep, settings: SettingsDep
+    run_id: RunId, request: Request, jobs: JobsDep, settings: SettingsDep
 ) -> StreamingResponse:
     """Server-sent events: a ``progress`` event (a RunProgress JSON) whenever the run changes, at most four
     times a second, and a final ``end`` event once it is done, failed, cancelled or interrupted."""
@@ -138,7 +140,7 @@ async def stream_progress(
 
 
 @router.get("/runs/{run_id}/metrics", response_model=models.MetricsPublic)
-def read_metrics(run_id: int, db: DbDep) -> models.MetricsPublic:
+def read_metrics(run_id: RunId, db: DbDep) -> models.MetricsPublic:
     run = crud.require_run(db, run_id)
     table = services.normalise_metrics(run.get("metrics"))
     if table is None:
@@ -150,7 +152,7 @@ def read_metrics(run_id: int, db: DbDep) -> models.MetricsPublic:
 
 
 @router.get("/runs/{run_id}/logs", response_model=models.LogPublic)
-def read_logs(run_id: int, db: DbDep) -> models.LogPublic:
+def read_logs(run_id: RunId, db: DbDep) -> models.LogPublic:
     run = crud.require_run(db, run_id)
     path = Path(run["run_dir"]) / LOG_NAME
     try:

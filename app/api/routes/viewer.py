@@ -3,7 +3,10 @@
 viser serves its client page and websocket on its own port, bound to 127.0.0.1 only. The app relays both
 under ``/api/projects/{id}/viewer/client/`` so that a browser reaches the viewer wherever it reaches the app,
 and so the access token is checked for the viewer exactly as for the API (header, ``?token=`` or the
-``leap_token`` cookie, which the page response sets so the websocket handshake carries it).
+``leap_token`` cookie, which the page response sets so the websocket handshake carries it). The relay's
+handshake must come from the app's own origin (:func:`~app.core.security.cross_origin_reason`, also checked
+by the app's middleware); viser's port streams only to the relay, which presents the viewer's per-session
+secret (:data:`app.viewer.scene.SECRET_HEADER`).
 """
 
 from __future__ import annotations
@@ -14,7 +17,6 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, ParamSpec, TypeVar
-from urllib.parse import urlsplit
 
 import viser
 from fastapi import APIRouter, Body, Depends, HTTPException, Request, WebSocket, status
@@ -26,10 +28,13 @@ from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
 from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, SettingsDep, request_token
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.types import MAX_INT, ProjectId
 from app.core.config import Settings
 from app.core.errors import AppError
-from app.core.security import token_matches
+from app.core.security import cross_origin_reason, token_matches
 from app.viewer.manager import ViewerManager
+from app.viewer.scene import SECRET_HEADER
 from leap_core.errors import LeapError
 
 log = logging.getLogger("leap.viewer")
@@ -37,7 +42,9 @@ log = logging.getLogger("leap.viewer")
 _P = ParamSpec("_P")
 _T = TypeVar("_T")
 
-router = APIRouter(prefix="/projects/{project_id}/viewer", tags=["viewer"])
+router = APIRouter(
+    prefix="/projects/{project_id}/viewer", tags=["viewer"], responses={**NOT_FOUND, **CONFLICT}
+)
 
 _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
 
@@ -45,18 +52,16 @@ _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "ind
 class ViewerOpen(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    run_id: int | None = Field(default=None, ge=1, description="finished run to review (default: the latest)")
+    run_id: int | None = Field(
+        default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"
+    )
 
 
 class ViewerPublic(BaseModel):
     project_id: int
     run_id: int | None = Field(description="run shown; None until the project has a finished run")
-    port: int = Field(description="viser's own port on 127.0.0.1")
+    port: int = Field(description="viser's own port on 127.0.0.1 (it streams only to the app's relay)")
     url: str = Field(description="viewer page relayed under the app's port (works wherever the app does)")
-    direct_url: str | None = Field(
-        description="viser's own page on 127.0.0.1 (no token check there, so only offered when the app has "
-        "no access token); reachable only from the app's machine"
-    )
 
 
 def get_viewers(request: Request) -> ViewerManager:
@@ -81,14 +86,7 @@ ViewersDep = Annotated[ViewerManager, Depends(get_viewers)]
 
 def _public(request: Request, project_id: int, run_id: int | None, port: int) -> ViewerPublic:
     path = request.url_for("viewer_client", project_id=project_id).path
-    settings: Settings = request.app.state.settings
-    return ViewerPublic(
-        project_id=project_id,
-        run_id=run_id,
-        port=port,
-        url=path,
-        direct_url=f"http://127.0.0.1:{port}/" if settings.token is None else None,
-    )
+    return ViewerPublic(project_id=project_id, run_id=run_id, port=port, url=path)
 
 
 async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
@@ -98,7 +96,7 @@ async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwarg
 
 @router.post("", response_model=ViewerPublic, dependencies=[AuthDep])
 async def open_viewer(
-    project_id: int,
+    project_id: ProjectId,
     request: Request,
     viewers: ViewersDep,
     settings: SettingsDep,
@@ -118,7 +116,7 @@ async def open_viewer(
 
 
 @router.get("", response_model=ViewerPublic, dependencies=[AuthDep])
-async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> ViewerPublic:
+async def get_viewer(project_id: ProjectId, request: Request, viewers: ViewersDep) -> ViewerPublic:
     """The running viewer of the project (404 when none is running)."""
     session = viewers.get(project_id)
     if session is None:
@@ -128,21 +126,21 @@ async def get_viewer(project_id: int, request: Request, viewers: ViewersDep) -> 
 
 
 @router.delete("", status_code=status.HTTP_204_NO_CONTENT, dependencies=[AuthDep])
-async def close_viewer(project_id: int, viewers: ViewersDep) -> None:
+async def close_viewer(project_id: ProjectId, viewers: ViewersDep) -> None:
     """Stop the project's viewer (404 when none is running)."""
     if not await _run_blocking(viewers.close, project_id):
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
 
 
 @router.get("/client", include_in_schema=False)
-async def viewer_client_noslash(project_id: int, request: Request) -> RedirectResponse:
+async def viewer_client_noslash(project_id: ProjectId, request: Request) -> RedirectResponse:
     target = request.url_for("viewer_client", project_id=project_id)
     return RedirectResponse(str(target.include_query_params(**request.query_params)))
 
 
 @router.get("/client/", name="viewer_client", include_in_schema=False, dependencies=[AuthDep])
 async def viewer_client(
-    project_id: int, request: Request, viewers: ViewersDep, settings: SettingsDep
+    project_id: ProjectId, request: Request, viewers: ViewersDep, settings: SettingsDep
 ) -> HTMLResponse:
     """viser's client page. It opens its websocket on this path without the trailing slash."""
     if viewers.get(project_id) is None:
@@ -163,11 +161,9 @@ def _ws_token(ws: WebSocket) -> str | None:
 
 
 def _same_origin(ws: WebSocket) -> bool:
-    """Browsers send cookies with cross-site websocket handshakes: accept only our own pages' origin."""
-    origin = ws.headers.get("origin")
-    if origin is None:
-        return True  # not a browser
-    return urlsplit(origin).netloc.lower() == ws.headers.get("host", "").lower()
+    """Browsers send cookies with cross-site websocket handshakes: accept only our own pages' origin (the
+    app's middleware checks this too; the relay does not rely on being mounted behind it)."""
+    return cross_origin_reason({k.lower(): v for k, v in ws.headers.items()}) is None
 
 
 @router.websocket("/client")
@@ -178,15 +174,20 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
         await ws.close(code=status.WS_1008_POLICY_VIOLATION)
         return
     manager: ViewerManager | None = getattr(ws.app.state, "viewers", None)
-    port = None if manager is None else manager.port(project_id)
-    if port is None:
+    endpoint = None if manager is None else manager.endpoint(project_id)
+    if endpoint is None:
         await ws.close(code=status.WS_1011_INTERNAL_ERROR, reason="no viewer running for this project")
         return
+    port, secret = endpoint
     offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
     try:
+        # max_queue=None: with a bounded queue, a browser that is slow to take a large scene makes the relay
+        # stop reading viser's socket, viser's keepalive pings then go unanswered and viser drops the
+        # connection after 40 s. Reading eagerly keeps this local hop alive (the scene is bounded by
+        # viewer_max_points); liveness of the browser is checked on the browser's own socket.
         upstream_cm = connect(
             f"ws://127.0.0.1:{port}", subprotocols=offered or None, max_size=None, compression=None,
-            open_timeout=10,
+            open_timeout=10, max_queue=None, ping_interval=None, additional_headers={SECRET_HEADER: secret},
         )
         upstream = await upstream_cm.__aenter__()
     except (OSError, asyncio.TimeoutError) as exc:
@@ -220,6 +221,13 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
                 asyncio.CancelledError, ConnectionClosed, WebSocketDisconnect, RuntimeError
             ):
                 await task
+        code = upstream.close_code
+        if code is not None and code not in (1000, 1001):
+            # The browser reconnects on its own; the reason is the only trace of why it had to.
+            log.warning(
+                "viewer relay for project %d: viser closed the connection (%s %s)",
+                project_id, code, upstream.close_reason or "",
+            )
     finally:
         await upstream_cm.__aexit__(None, None, None)
         with contextlib.suppress(RuntimeError, WebSocketDisconnect):
