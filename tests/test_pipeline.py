@@ -278,6 +278,24 @@ def test_a_config_change_reruns_its_readers_and_their_downstream(
     assert set(expected) == _downstream(readers)
 
 
+def test_a_prompt_edit_reruns_the_2d_stage_and_a_colour_edit_nothing(
+    baseline, street: Path, schema
+) -> None:
+    """The simulated labeler reads the prompts (docs/METHOD.md A.7): a prompt edit must not reuse masks."""
+    run_dir, _, _ = baseline
+    car = schema.names.index("car")
+
+    def edited(**changes: object):
+        return schema.with_classes(
+            [dataclasses.replace(c, **changes) if i == car else c for i, c in enumerate(schema.classes)]
+        )
+
+    plan = plan_stages(street, edited(prompts=("car",)), PipelineConfig(), run_dir)
+    assert [s for s, todo in plan.items() if todo] == list(STAGES)
+    plan = plan_stages(street, edited(color=(1, 2, 3)), PipelineConfig(), run_dir)
+    assert not any(plan.values())
+
+
 def test_corrections_rerun_fuse_and_its_downstream(baseline, street: Path, schema, tmp_path: Path) -> None:
     run_dir = tmp_path / "plan_corr"
     shutil.copytree(baseline[0], run_dir)

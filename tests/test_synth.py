@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from app.cli import cli as app
-from leap_core.datasets.kitti import KittiSequence, read_label, read_scan
+from leap_core.datasets.kitti import KittiSequence, read_label, read_png16, read_scan
 from leap_core.errors import DatasetError
 from leap_core.synth import (
     CameraConfig,
@@ -24,9 +24,10 @@ from leap_core.synth import (
     generate_sequence,
 )
 from leap_core.synth.camera import pixel_rays
-from leap_core.synth.generator import camera_poses_kitti, lidar_poses
+from leap_core.synth.generator import SYNTH_VERSION, camera_poses_kitti, lidar_poses, synth_version
 from leap_core.synth.lidar import beam_elevations, ray_grid, scan
 from leap_core.synth.materials import REQUIRED_IDS, Material, SemanticId
+from leap_core.synth.names import DEMO_EXTRA_RAW_IDS, NAMES_BY_ID, VOCABULARY
 from leap_core.synth.preview import project_points
 from leap_core.synth.raycast import (
     BOX,
@@ -67,6 +68,7 @@ def _prims(rows: list[tuple[int, tuple, tuple, float]]) -> Primitives:
         half=np.array([r[2] for r in rows], np.float64),
         semantic=np.arange(1, n + 1, dtype=np.uint16),
         instance=np.zeros(n, np.uint16),
+        name=np.zeros(n, np.uint16),
         material=np.zeros(n, np.uint8),
         color=np.zeros((n, 3), np.float32),
         param=np.zeros((n, 4), np.float32),
@@ -288,7 +290,9 @@ def sequences(tmp_path_factory):
 def test_deterministic_bytes(sequences) -> None:
     a, b, c = sequences
     da, db, dc = _digest(a.path), _digest(b.path), _digest(c.path)
-    assert len(da) == 3 * 5 + 3
+    assert (
+        len(da) == 3 * 6 + 4
+    )  # velodyne, labels, image_2, gt2d/{semantic,instance,name}; 4 files per sequence
     assert da == db  # same seed, one or two worker processes
     differing = [k for k in da if da[k] != dc.get(k)]
     assert "velodyne/000000.bin" in differing and "image_2/000000.png" in differing
@@ -308,6 +312,38 @@ def test_layout_reads_back(sequences) -> None:
     lp = lidar_poses(scene, SMALL)
     np.testing.assert_allclose(seq.poses, np.linalg.inv(lp[0])[None] @ lp, atol=1e-9)
     np.testing.assert_allclose(camera_poses_kitti(lp, seq.calib.Tr)[0], np.eye(4), atol=1e-12)
+
+
+def test_name_image_agrees_with_class_and_instance_masks(sequences) -> None:
+    """gt2d/name: sky exactly where the class mask is 0, every name's raw ids include the pixel's class,
+    one name per object instance, and the names are the fine-grained vocabulary (not one per class)."""
+    seq = KittiSequence(sequences[0].path)
+    assert synth_version(seq.root) == SYNTH_VERSION
+    seen: set[int] = set()
+    for f in seq:
+        names = read_png16(seq.root / "gt2d" / "name" / f"{f.frame_id}.png")
+        sem, inst = f.gt2d_semantic, f.gt2d_instance
+        np.testing.assert_array_equal(names == 0, sem == 0)
+        assert set(np.unique(names).tolist()) - {0} <= {n.id for n in VOCABULARY}
+        for nid in np.unique(names[names > 0]):
+            assert set(np.unique(sem[names == nid]).tolist()) <= set(NAMES_BY_ID[int(nid)].raw_ids), nid
+        for k in np.unique(inst[inst > 0]):
+            assert np.unique(names[inst == k]).size == 1, k
+        seen |= set(np.unique(names).tolist())
+    assert len(seen - {0}) >= 15
+
+
+def test_every_primitive_is_named_in_its_class(default_scene) -> None:
+    prims = Primitives.concat([default_scene.primitives_at(0)])
+    for nid in np.unique(prims.name):
+        assert set(np.unique(prims.semantic[prims.name == nid]).tolist()) <= set(
+            NAMES_BY_ID[int(nid)].raw_ids
+        )
+    used = {NAMES_BY_ID[int(n)].name for n in np.unique(prims.name)}
+    # Every demo name is used somewhere in the default scene, and the demo's own objects carry their raw ids.
+    assert used == {n.name for n in VOCABULARY}
+    assert {300, 301, 302} <= set(np.unique(prims.semantic).tolist())
+    assert {DEMO_EXTRA_RAW_IDS[i] for i in (300, 301, 302)} == {"traffic-cone", "bench", "bollard"}
 
 
 def test_points_in_image_share(sequences) -> None:

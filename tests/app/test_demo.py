@@ -90,3 +90,19 @@ def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
     # Run again: nothing to do, the finished run is reused and its table printed.
     again = demo()
     assert again.returncode == 0 and "labeling the demo" not in again.stdout and "voxel" in again.stdout
+
+
+def test_a_demo_from_an_older_generator_is_generated_again(tmp_path: Path) -> None:
+    """A demo folder without the current ``synth_version.txt`` (written before the demo world had names) is
+    stale: ``ensure_demo_sequence`` replaces it, so the simulated labeler finds ``gt2d/name``."""
+    from app.demo import demo_exists, ensure_demo_sequence
+    from leap_core.synth import SYNTH_VERSION
+
+    dataset = tmp_path / "demo" / "sequences" / "00"
+    ensure_demo_sequence(dataset, TINY_DEMO)
+    assert demo_exists(dataset) and (dataset / "gt2d" / "name" / "000002.png").is_file()
+    (dataset / "synth_version.txt").write_text(f"{SYNTH_VERSION - 1}\n")
+    (dataset / "gt2d" / "name" / "000002.png").unlink()
+    assert not demo_exists(dataset)
+    ensure_demo_sequence(dataset, TINY_DEMO)
+    assert demo_exists(dataset) and (dataset / "gt2d" / "name" / "000002.png").is_file()
