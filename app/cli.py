@@ -270,6 +270,25 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
     device: str = typer.Option("auto", "--device", help=_DEVICE_HELP),
     allow_download: bool = typer.Option(False, "--allow-download", help=_DOWNLOAD_HELP),
+    export_to: str | None = typer.Option(
+        None,
+        "--export-to",
+        help="Also copy the .label files into this folder, e.g. the sequence's predictions/ (written as a "
+        "fresh folder renamed into place). Refused: a dataset's labels/, velodyne/, image_2/, a run folder; "
+        "a folder that already holds files unless --overwrite.",
+    ),
+    zip_path: str | None = typer.Option(
+        None,
+        "--zip",
+        help="Also write a stand-alone zip: .label files in the SemanticKITTI layout, label-map.yaml "
+        "(semantic-kitti-api style), summary.yaml. An existing file is refused unless --overwrite.",
+    ),
+    with_conf: bool = typer.Option(False, "--with-conf", help="--export-to / --zip include the .conf files."),
+    overwrite: bool = typer.Option(
+        False,
+        "--overwrite",
+        help="Let --export-to / --zip replace existing files (.label/.conf only); never done without it.",
+    ),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
@@ -282,6 +301,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         sch, cfg = _run_config(schema, project_file, labeler, consistency)
         runtime = _runtime(models, cache, device, allow_download)
         frame_range = None if frames is None else _frame_range(frames, dataset)
+        # Refuse a target before a long run, not after it.
+        targets = _export_targets(export_to, zip_path, overwrite)
         typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
         with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
@@ -307,6 +328,84 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     if result.export_dir is not None:
         n = len(list(result.export_dir.glob("*.label")))
         typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
+        try:
+            _write_exports(result.run_dir, Path(dataset), sch, cfg, frame_range, targets,
+                           with_conf=with_conf, overwrite=overwrite)
+        except LeapError as exc:
+            raise fail(str(exc)) from None
+
+
+class _Targets(TypedDict):
+    folder: Path | None
+    zip: Path | None
+
+
+def _export_targets(export_to: str | None, zip_path: str | None, overwrite: bool) -> _Targets:
+    """Check ``--export-to`` / ``--zip`` (resolved) before the run; the writes check again."""
+    from leap_core.export import existing_export_files, export_target_problem
+
+    folder = None if export_to is None else Path(export_to).expanduser().resolve()
+    zfile = None if zip_path is None else Path(zip_path).expanduser().resolve()
+    if folder is not None:
+        problem = export_target_problem(folder)
+        if problem is not None:
+            raise LeapError(f"--export-to: {problem}")
+        old = existing_export_files(folder)
+        if old and not overwrite:
+            raise LeapError(f"--export-to: {folder} already holds {len(old)} files (e.g. {old[0]}); "
+                            "add --overwrite to replace them")
+    if zfile is not None:
+        problem = export_target_problem(zfile.parent)
+        if problem is not None:
+            raise LeapError(f"--zip: {problem}")
+        if zfile.exists() and not overwrite:
+            raise LeapError(f"--zip: {zfile} already exists; add --overwrite to replace it")
+    return {"folder": folder, "zip": zfile}
+
+
+def _write_exports(
+    run_dir: Path, dataset: Path, sch: Schema, cfg: PipelineConfig, frames: range | None, targets: _Targets,
+    *, with_conf: bool, overwrite: bool,
+) -> None:
+    """Print the unlabeled counts, then write ``--export-to`` / ``--zip``."""
+    import datetime
+
+    from leap_core import __version__
+    from leap_core.config import config_to_dict
+    from leap_core.export import (
+        LABEL_MAP_FILE,
+        SUMMARY_FILE,
+        label_map,
+        label_map_yaml,
+        summary_yaml,
+        write_export_folder,
+        write_export_zip,
+    )
+    from leap_core.pipeline.coverage import coverage_counts, export_coverage
+    from leap_core.run_layout import RunLayout
+
+    lay = RunLayout(run_dir)
+    cov = export_coverage(run_dir, dataset, frames, cfg.fusion.voxel_size)
+    typer.echo(f"{cov.labeled} of {cov.points} points labeled; {cov.unlabeled} unlabeled: "
+               f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask")
+    if targets["folder"] is not None:
+        suffixes = (".label", ".conf") if with_conf else (".label",)
+        files = sorted(p for p in lay.export_dir.iterdir() if p.suffix in suffixes)
+        replaced = write_export_folder(targets["folder"], files, overwrite=overwrite)
+        note = f" (replaced {replaced})" if replaced else ""
+        typer.echo(f"wrote {len(files)} files to {targets['folder']}{note}")
+    if targets["zip"] is not None:
+        summary = summary_yaml(
+            project={"schema": sch.name}, run={"folder": str(run_dir)}, dataset=dataset, frames=frames,
+            schema=sch, pipeline=config_to_dict(cfg), counts=coverage_counts(cov), with_confidence=with_conf,
+            version=__version__,
+            written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        )
+        lmap = label_map(sch, cov.raw_counts, name=sch.name, sequence=dataset.name)
+        extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}
+        n = write_export_zip(targets["zip"], lay.export_dir, dataset.name, extra,
+                             include_confidence=with_conf, overwrite=overwrite)
+        typer.echo(f"wrote {targets['zip']} ({n} files, {LABEL_MAP_FILE}, {SUMMARY_FILE})")
 
 
 def _run_config(

@@ -331,15 +331,52 @@ class ExportWrite(_Input):
     path: str | None = Field(
         default=None,
         max_length=4096,
-        description="folder inside a data root (default: <dataset>/predictions)",
+        description="a dataset's predictions/ folder or a folder inside the app's export folder "
+        "(<work_dir>/exports); default: the project dataset's predictions/",
     )
-    include_confidence: bool = False
+    include_confidence: bool = Field(default=False, description="also copy the .conf files")
+    overwrite: bool = Field(
+        default=False,
+        description="replace the .label/.conf files a previous export left there; without it a folder that "
+        "holds files is refused (409) and nothing is written",
+    )
 
 
 class ExportWritten(BaseModel):
     run_id: int
     path: str
-    files: int
+    files: int = Field(description="files written")
+    replaced: int = Field(description="files the folder held before (0 unless overwrite was set)")
+
+
+class UnlabeledReason(BaseModel):
+    key: str = Field(description="`outside_view` or `no_mask` (README, 'Exports')")
+    label: str
+    points: int
+    explanation: str
+
+
+class ExportClassCount(BaseModel):
+    name: str
+    export_id: int
+    color: str
+    points: int
+
+
+class ExportInfo(BaseModel):
+    """A finished run's export: point counts, why points stay unlabeled, and the default target folder."""
+
+    run_id: int
+    frames: int
+    points: int
+    labeled: int
+    unlabeled: int
+    reasons: list[UnlabeledReason] = Field(description="unlabeled points by reason; they sum to `unlabeled`")
+    threshold_note: str = Field(description="why there is no 'below threshold' count")
+    classes: list[ExportClassCount]
+    predictions_path: str = Field(description="the project dataset's predictions/ folder")
+    predictions_allowed: bool = Field(description="whether that folder may receive an export")
+    predictions_existing: int = Field(description="entries it holds now (writing them needs overwrite)")
 
 
 # -------------------------------------------------------------------------------------------- pipeline

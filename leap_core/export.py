@@ -1,23 +1,50 @@
-"""Export of per-point labels: SemanticKITTI ``.label`` files plus a per-point confidence file.
+"""Export of per-point labels: SemanticKITTI ``.label`` files, a per-point confidence file, the label map
+that reads them, and the rules for where an export may be written.
 
 ``.label``: uint32 per point, the class's raw export id (``Schema.export_ids``) in the low 16 bits,
 instance 0 in the high 16, and 0 ("unlabeled") for points without a label.
 ``.conf``: float32 per point, the label's posterior probability, 0 where unlabeled.
 Both are raw little-endian arrays in scan order, written atomically (temp file + rename). A run writes them
 as ``export/<frame_id>.label`` / ``.conf`` (:class:`~leap_core.run_layout.RunLayout`).
+
+A stand-alone export (zip) holds them in the SemanticKITTI folder layout (:func:`zip_member`) beside a
+label-map YAML in the style of PRBonn/semantic-kitti-api's ``config/semantic-kitti.yaml``
+(:func:`label_map`, :func:`load_label_map`; docs/METHOD.md, "Export").
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import uuid
+import zipfile
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import yaml
 
 from leap_core.datasets.kitti import write_label
-from leap_core.errors import DatasetError
-from leap_core.io_utils import atomic_write_bytes
+from leap_core.errors import DatasetError, LeapError
+from leap_core.io_utils import atomic_write, atomic_write_bytes
+from leap_core.run_layout import RunLayout
+from leap_core.schema import Schema
 from leap_core.types import UNLABELED
+
+PREDICTIONS = "predictions"
+"""A sequence's folder for predicted ``.label`` files (beside its ground-truth ``labels/``)."""
+CONFIDENCES = "confidences"
+"""The zip's folder for the ``.conf`` files, beside ``predictions/`` (which evaluation tools read)."""
+LABEL_MAP_FILE = "label-map.yaml"
+SUMMARY_FILE = "summary.yaml"
+EXPORT_SUFFIXES = (".label", ".conf")
+"""What an export writes into a folder; nothing else is ever replaced there."""
+DATASET_INPUT_FOLDERS = frozenset({"velodyne", "labels", "image_2", "image_3", "gt2d", "voxels"})
+"""Folders of a KITTI / SemanticKITTI sequence that hold its input data or ground truth."""
 
 
 def labels_to_raw(labels: npt.ArrayLike, export_ids: npt.ArrayLike) -> npt.NDArray[np.uint32]:
@@ -77,4 +104,346 @@ def read_confidence(path: str | Path, num_points: int | None = None) -> npt.NDAr
     return conf
 
 
-__all__ = ["export_labels", "labels_to_raw", "read_confidence"]
+# ------------------------------------------------------------------------------------- label map
+def label_map(
+    schema: Schema, counts: Mapping[int, int] | None = None, *, name: str = "", sequence: str | None = None
+) -> dict[str, Any]:
+    """The label map of an export, as semantic-kitti-api's ``config/semantic-kitti.yaml`` lays one out.
+
+    Keys (ids are the raw ids of ``.label`` files; learning ids are 0 = unlabeled, ``k + 1`` = class k):
+
+    - ``labels``: raw id → name; 0 is ``unlabeled``, each class's export id its name.
+    - ``color_map``: raw id → ``[B, G, R]`` (BGR, as semantic-kitti-api stores colours; the schema's RGB
+      reversed), unlabeled black.
+    - ``content``: raw id → fraction of the exported points with that id (semantic-kitti-api's "ratio with
+      the total number of points"); only with ``counts``.
+    - ``counts``: raw id → number of exported points (LeAP's addition); only with ``counts``.
+    - ``learning_map``: raw id → learning id, for 0, every export id and every class's ``gt_ids`` (the
+      mapping the run was evaluated with); an id that is one class's export id and another's ``gt_id``
+      maps to the class it is the export id of, because that is what the ``.label`` files mean.
+    - ``learning_map_inv``: learning id → export id (0 → 0).
+    - ``learning_ignore``: learning id → ignored in evaluation (only 0).
+    - ``split``: ``{train: [], valid: [<sequence>], test: []}`` when ``sequence`` is a number (``"00"``), so
+      semantic-kitti-api's ``evaluate_semantics.py --split valid`` finds the exported sequence.
+
+    Args:
+        schema: the run's classes.
+        counts: raw id → points in the export (ids absent from it count 0).
+        name: written as ``name`` (semantic-kitti-api's files carry one too).
+        sequence: the exported sequence's folder name.
+    """
+    ids = [int(c.export_id) for c in schema.classes]
+    labels: dict[int, str] = {0: "unlabeled"}
+    colors: dict[int, list[int]] = {0: [0, 0, 0]}
+    learning: dict[int, int] = {0: 0}
+    for k, c in enumerate(schema.classes):
+        for gid in c.gt_ids:
+            learning[int(gid)] = k + 1
+    for k, c in enumerate(schema.classes):  # after the gt ids: an export id keeps its own class
+        labels[ids[k]] = c.name
+        colors[ids[k]] = [int(c.color[2]), int(c.color[1]), int(c.color[0])]
+        learning[ids[k]] = k + 1
+    out: dict[str, Any] = {"name": name or schema.name, "labels": labels, "color_map": colors}
+    if counts is not None:
+        n = {raw: int(counts.get(raw, 0)) for raw in labels}
+        total = sum(n.values())
+        out["content"] = {raw: (v / total if total else 0.0) for raw, v in n.items()}
+        out["counts"] = n
+    out["learning_map"] = dict(sorted(learning.items()))
+    out["learning_map_inv"] = {0: 0, **{k + 1: ids[k] for k in range(len(ids))}}
+    out["learning_ignore"] = {0: True, **{k + 1: False for k in range(len(ids))}}
+    if sequence is not None and sequence.isdigit():
+        out["split"] = {"train": [], "valid": [int(sequence)], "test": []}
+    return out
+
+
+_LABEL_MAP_HEADER = """\
+# Label map of a LeAP Studio export, in the layout of semantic-kitti-api's config/semantic-kitti.yaml.
+# labels: raw id in the .label files (low 16 bits) -> class name; 0 = unlabeled.
+# color_map: raw id -> [B, G, R] (BGR, like semantic-kitti-api's color_map).
+# content / counts: share / number of the exported points with that id.
+# learning_map: raw id -> learning id (0 = unlabeled, k = k-th class); learning_map_inv: the inverse.
+"""
+
+
+def label_map_yaml(mapping: Mapping[str, Any]) -> str:
+    """:func:`label_map`'s result as YAML text (integer keys, key order kept), with a header comment."""
+    return _LABEL_MAP_HEADER + yaml.safe_dump(dict(mapping), sort_keys=False, default_flow_style=None,
+                                              allow_unicode=True)
+
+
+@dataclass(frozen=True)
+class LabelMap:
+    """A label-map YAML read back: what a ``.label`` value means.
+
+    Attributes:
+        names: raw id → name (0 → ``unlabeled``).
+        colors_rgb: raw id → (R, G, B) (the file's BGR reversed).
+        learning_map: raw id → learning id.
+        learning_map_inv: learning id → raw id.
+        counts: raw id → points (empty when the file has none).
+    """
+
+    names: dict[int, str]
+    colors_rgb: dict[int, tuple[int, int, int]]
+    learning_map: dict[int, int]
+    learning_map_inv: dict[int, int]
+    counts: dict[int, int]
+
+    def class_names(self) -> list[str]:
+        """Names of the learning ids 1..K in order (the classes of the export)."""
+        return [self.names[self.learning_map_inv[k]] for k in sorted(self.learning_map_inv) if k]
+
+
+def load_label_map(text: str, source: str = "label map") -> LabelMap:
+    """Parse a label-map YAML (:func:`label_map_yaml`, or semantic-kitti-api's own config file).
+
+    Raises:
+        DatasetError: naming ``source`` and the key at fault (not YAML, missing ``labels`` /
+            ``color_map`` / ``learning_map`` / ``learning_map_inv``, a non-integer id, a colour that is not
+            three 0..255 integers).
+    """
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise DatasetError(source, f"not valid YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise DatasetError(source, "expected a mapping with 'labels', 'color_map', 'learning_map'")
+
+    def table(key: str, *, required: bool = True) -> dict[int, Any]:
+        value = data.get(key)
+        if value is None and not required:
+            return {}
+        if not isinstance(value, dict):
+            raise DatasetError(source, f"'{key}' must be a mapping of integer ids")
+        if not all(isinstance(k, int) and not isinstance(k, bool) for k in value):
+            raise DatasetError(source, f"'{key}' has a key that is not an integer id")
+        return dict(value)
+
+    colors: dict[int, tuple[int, int, int]] = {}
+    for raw, bgr in table("color_map").items():
+        ok = isinstance(bgr, list) and len(bgr) == 3
+        if not (ok and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in bgr)):
+            raise DatasetError(source, f"color_map[{raw}] must be [B, G, R] integers 0..255, got {bgr!r}")
+        colors[raw] = (bgr[2], bgr[1], bgr[0])
+    return LabelMap(
+        names={k: str(v) for k, v in table("labels").items()},
+        colors_rgb=colors,
+        learning_map={k: int(v) for k, v in table("learning_map").items()},
+        learning_map_inv={k: int(v) for k, v in table("learning_map_inv").items()},
+        counts={k: int(v) for k, v in table("counts", required=False).items()},
+    )
+
+
+def raw_id_counts(raw_labels: Iterable[npt.ArrayLike]) -> dict[int, int]:
+    """Points per raw id (low 16 bits) over ``.label`` arrays, ids in ascending order."""
+    total: dict[int, int] = {}
+    for raw in raw_labels:
+        ids, n = np.unique(np.asarray(raw, dtype=np.uint32) & 0xFFFF, return_counts=True)
+        for i, c in zip(ids.tolist(), n.tolist(), strict=True):
+            total[i] = total.get(i, 0) + c
+    return dict(sorted(total.items()))
+
+
+def zip_member(sequence: str, frame_id: str, suffix: str) -> str:
+    """Path of a frame's file inside an export zip: ``sequences/<seq>/predictions/<frame>.label`` (the
+    SemanticKITTI layout evaluation tools read) or ``sequences/<seq>/confidences/<frame>.conf``."""
+    folder = PREDICTIONS if suffix == ".label" else CONFIDENCES
+    return f"sequences/{sequence}/{folder}/{frame_id}{suffix}"
+
+
+def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
+    *,
+    project: Mapping[str, Any],
+    run: Mapping[str, Any],
+    dataset: Path,
+    frames: range | None,
+    schema: Schema,
+    pipeline: Mapping[str, Any],
+    counts: Mapping[str, Any],
+    with_confidence: bool,
+    version: str,
+    written_at: str,
+) -> str:
+    """An export's ``summary.yaml``: which project and run, the dataset and frames, where the files are, the
+    point counts and the run's full settings (``pipeline``: :func:`~leap_core.config.config_to_dict`).
+
+    ``counts`` holds ``scans``, ``points``, ``labeled``, ``unlabeled``, ``unlabeled_by_reason`` and
+    ``raw_counts`` (raw id → points); ``per_class`` (class name → points) is derived here.
+    """
+    raw = {int(k): int(v) for k, v in counts["raw_counts"].items()}
+    seq = dataset.name
+    summary = {
+        "project": dict(project),
+        "run": dict(run),
+        "dataset": {"path": str(dataset), "sequence": seq,
+                    "frames": "all" if frames is None else [frames.start, frames.stop]},
+        "files": {
+            "labels": f"sequences/{seq}/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 above)",
+            "confidences": (
+                f"sequences/{seq}/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence else None
+            ),
+            "label_map": LABEL_MAP_FILE,
+        },
+        "counts": {
+            **{k: counts[k] for k in ("scans", "points", "labeled", "unlabeled", "unlabeled_by_reason")},
+            "per_class": {c.name: raw.get(int(c.export_id), 0) for c in schema.classes},
+        },
+        "settings": {"schema": schema.name, "pipeline": dict(pipeline)},
+        "leap_studio_version": version,
+        "written_at": written_at,
+    }
+    return "# LeAP Studio export summary (README, 'Exports').\n" + yaml.safe_dump(
+        summary, sort_keys=False, allow_unicode=True)
+
+
+def write_export_zip(
+    path: Path,
+    export_dir: Path,
+    sequence: str,
+    extra: Mapping[str, str],
+    *,
+    include_confidence: bool,
+    overwrite: bool = False,
+) -> int:
+    """Write a stand-alone export zip atomically: each ``.label`` (and ``.conf``) file of ``export_dir`` at
+    :func:`zip_member`, plus ``extra`` (zip name → text, e.g. the label map and summary).
+
+    Returns:
+        The number of frame files written.
+
+    Raises:
+        ExportConflict: ``path`` exists and ``overwrite`` is off (nothing is written).
+    """
+    if path.exists() and not overwrite:
+        raise ExportConflict(f"{path} already exists; nothing was written. Export again with overwrite to "
+                             "replace it", 1)
+    suffixes = EXPORT_SUFFIXES if include_confidence else (".label",)
+    files = sorted(p for p in export_dir.iterdir() if p.suffix in suffixes and p.is_file())
+    with (
+        atomic_write(path, "wb") as fh,
+        zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, compresslevel=6) as zf,
+    ):
+        for f in files:
+            zf.write(f, zip_member(sequence, f.stem, f.suffix))
+        for name, text in extra.items():
+            zf.writestr(name, text)
+    return len(files)
+
+
+# ------------------------------------------------------------------------------- where exports go
+class ExportConflict(LeapError):
+    """An export would replace existing files (or files it did not write); nothing was written."""
+
+    def __init__(self, message: str, existing: int) -> None:
+        self.existing = existing
+        super().__init__(message)
+
+
+def export_target_problem(target: Path) -> str | None:
+    """Why the folder ``target`` (absolute, resolved) may not receive an export, or None.
+
+    Refused: a sequence folder itself, a sequence's input folders (:data:`DATASET_INPUT_FOLDERS`, e.g.
+    ``labels/``, ``velodyne/``, ``image_2/``) and anything inside them, and any pipeline run folder (it
+    holds ``stages.json``) or a folder inside one. A sequence is a folder with a ``velodyne/`` folder.
+    """
+    if (target / "velodyne").is_dir():
+        return f"{target} is a dataset sequence folder; export into its {PREDICTIONS}/ folder"
+    for folder in (target, *target.parents):
+        if folder.name in DATASET_INPUT_FOLDERS and (folder.parent / "velodyne").is_dir():
+            return f"{target} is inside the dataset folder {folder} (its input data or ground truth)"
+        if (folder / RunLayout.STATE).is_file():
+            return f"{target} is inside the pipeline run folder {folder}"
+    return None
+
+
+def existing_export_files(target: Path) -> list[str]:
+    """Names of the entries of the folder ``target`` (empty when it does not exist)."""
+    if not target.is_dir():
+        return []
+    return sorted(p.name for p in target.iterdir())
+
+
+def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool = False) -> int:
+    """Copy ``files`` into the folder ``target``: written into a fresh hidden sibling folder, then renamed
+    into place, so ``target`` never holds a half-written export.
+
+    An existing ``target`` is replaced only when it is empty, or with ``overwrite`` when it holds nothing
+    but ``.label`` / ``.conf`` files (what an export writes); the old folder is removed after the swap.
+
+    Returns:
+        The number of files the previous ``target`` held (0 when it was new or empty).
+
+    Raises:
+        ExportConflict: ``target`` holds files and ``overwrite`` is off, or holds something an export does
+            not write (then even ``overwrite`` refuses).
+    """
+    old = existing_export_files(target)
+    if old and not overwrite:
+        raise ExportConflict(
+            f"{target} already holds {len(old)} files (e.g. {old[0]}); nothing was written. "
+            "Export again with overwrite to replace them", len(old))
+    foreign = [n for n in old if not (n.endswith(EXPORT_SUFFIXES) and (target / n).is_file())]
+    if foreign:
+        raise ExportConflict(
+            f"{target} holds {foreign[0]!r}, which an export does not write; nothing was written "
+            "(move it away, or export elsewhere)", len(old))
+    if target.exists() and not target.is_dir():
+        raise ExportConflict(f"{target} is a file, not a folder; nothing was written", 1)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tag = uuid.uuid4().hex[:8]
+    fresh = target.parent / f".{target.name}.leap-new-{tag}"
+    fresh.mkdir()
+    try:
+        for path in files:
+            shutil.copyfile(path, fresh / path.name)
+        with contextlib.suppress(OSError):  # a best effort: the copies are flushed before the rename
+            for path in fresh.iterdir():
+                fd = os.open(path, os.O_RDONLY)
+                os.fsync(fd)
+                os.close(fd)
+        if old:
+            stale = target.parent / f".{target.name}.leap-old-{tag}"
+            os.rename(target, stale)
+            try:
+                os.rename(fresh, target)
+            except OSError:
+                os.rename(stale, target)
+                raise
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            try:
+                # rename() replaces an empty folder and fails on a non-empty one (someone wrote there since).
+                os.rename(fresh, target)
+            except OSError as exc:
+                raise ExportConflict(f"{target} changed while exporting ({exc.strerror}); nothing written",
+                                     len(existing_export_files(target))) from None
+    finally:
+        if fresh.exists():
+            shutil.rmtree(fresh, ignore_errors=True)
+    return len(old)
+
+
+__all__ = [
+    "CONFIDENCES",
+    "DATASET_INPUT_FOLDERS",
+    "EXPORT_SUFFIXES",
+    "LABEL_MAP_FILE",
+    "PREDICTIONS",
+    "SUMMARY_FILE",
+    "ExportConflict",
+    "LabelMap",
+    "existing_export_files",
+    "export_labels",
+    "export_target_problem",
+    "label_map",
+    "label_map_yaml",
+    "labels_to_raw",
+    "load_label_map",
+    "raw_id_counts",
+    "read_confidence",
+    "summary_yaml",
+    "write_export_folder",
+    "write_export_zip",
+    "zip_member",
+]

@@ -17,7 +17,8 @@ through :class:`RunLayout`, so no other module spells a run-folder file name.
       metrics.json                result tables
       export/<frame_id>.label     raw export ids, instance 0
       export/<frame_id>.conf      float32 per-point confidence
-      params.json, run.log, .lock, export.zip, export-conf.zip    the app's files of this run
+      params.json, run.log, .lock, export.zip, export-conf.zip, export-coverage.json
+                                  the app's files of this run
 """
 
 from __future__ import annotations
@@ -69,8 +70,9 @@ class RunLayout:
     LOCK: ClassVar[str] = ".lock"
     EXPORT_ZIP: ClassVar[str] = "export.zip"
     EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
+    EXPORT_COVERAGE: ClassVar[str] = "export-coverage.json"
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
-        {PARAMS, CORRECTIONS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP}
+        {PARAMS, CORRECTIONS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, EXPORT_COVERAGE}
     )
     """Top-level files that belong to one run only (never carried over into a later run's folder)."""
 
@@ -140,6 +142,11 @@ class RunLayout:
     def export_zip(self, with_confidence: bool = False) -> Path:
         """The app's cached zip of the export (``.label`` files, plus ``.conf`` files if asked)."""
         return self._file(self.EXPORT_CONF_ZIP if with_confidence else self.EXPORT_ZIP)
+
+    @property
+    def export_coverage(self) -> Path:
+        """The app's cached point counts of the export (labeled, unlabeled by reason, per raw id)."""
+        return self._file(self.EXPORT_COVERAGE)
 
     # ------------------------------------------------------------------------------- per-frame files
     def folder(self, name: str) -> Path:

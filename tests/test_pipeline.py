@@ -518,6 +518,46 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
     assert again.exit_code == 0 and "labels2d cached" in again.output
 
 
+def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) -> None:
+    import zipfile
+
+    from click.testing import Result
+    from typer.testing import CliRunner
+
+    from app.cli import cli as app
+    from leap_core.export import load_label_map
+
+    def run(*args: str) -> Result:
+        return CliRunner().invoke(app, ["run", str(street), "--out", str(tmp_path / "run"), "--frames", "0:2",
+                                        "--labeler", "simulated", *args])
+
+    gt = {p.name: p.read_bytes() for p in (street / "labels").iterdir()}
+    for bad in (street / "labels", street / "velodyne", street):
+        res = run("--export-to", str(bad), "--overwrite")
+        assert res.exit_code == 2 and "--export-to:" in res.output.strip().splitlines()[-1], res.output
+        assert not (tmp_path / "run").exists()  # refused before the run started
+    assert {p.name: p.read_bytes() for p in (street / "labels").iterdir()} == gt
+
+    preds, zpath = tmp_path / "out" / "predictions", tmp_path / "out" / "labels.zip"
+    res = run("--export-to", str(preds), "--zip", str(zpath))
+    assert res.exit_code == 0, res.output
+    assert "unlabeled:" in res.output and "outside every camera view" in res.output
+    assert sorted(p.name for p in preds.iterdir()) == ["000000.label", "000001.label"]
+    with zipfile.ZipFile(zpath) as zf:
+        lm = load_label_map(zf.read("label-map.yaml").decode())
+        assert "sequences/00/predictions/000001.label" in zf.namelist()
+    assert sum(lm.counts.values()) == sum(p.stat().st_size // 4 for p in preds.iterdir())
+
+    (preds / "000000.label").write_bytes(b"mine")
+    for args in (("--export-to", str(preds)), ("--zip", str(zpath))):
+        res = run(*args)
+        assert res.exit_code == 2 and "--overwrite" in res.output.strip().splitlines()[-1], res.output
+    assert (preds / "000000.label").read_bytes() == b"mine"
+    res = run("--export-to", str(preds), "--zip", str(zpath), "--overwrite")
+    assert res.exit_code == 0 and "(replaced 2)" in res.output, res.output
+    assert (preds / "000000.label").read_bytes() != b"mine"
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

@@ -3,7 +3,7 @@
 //
 //   head.js       name, dataset, run / 3D viewer (viewer.js) / delete actions
 //   run-panel.js  the latest run: per-stage progress, cancel, resume
-//   history.js    run history (exports.js: zip download, predictions/), compare check boxes, logs
+//   history.js    run history (exports.js: the export dialog), compare check boxes, logs
 //   compare.js    metrics of the compared runs: table and per-class IoU chart
 //   classes.js    classes & prompts editor
 //   params.js     pipeline parameters form

@@ -88,20 +88,24 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     z = client.get(f"{API}/runs/{run['id']}/export.zip")
     assert z.status_code == 200 and z.headers["content-type"] == "application/zip"
     with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
-        assert sorted(zf.namelist()) == [f"predictions/{f}.label" for f in seq.frame_ids]
+        labels = [f"sequences/00/predictions/{f}.label" for f in seq.frame_ids]
+        assert sorted(zf.namelist()) == sorted([*labels, "label-map.yaml", "summary.yaml"])
         for i, fid in enumerate(seq.frame_ids):
-            data = zf.read(f"predictions/{fid}.label")
+            data = zf.read(f"sequences/00/predictions/{fid}.label")
             assert len(data) == 4 * seq.frame(i).points.shape[0]
             run_dir = Path(crud_run_dir(client, run["id"]))
             assert data == (run_dir / "export" / f"{fid}.label").read_bytes()
     with zipfile.ZipFile(
         io.BytesIO(client.get(f"{API}/runs/{run['id']}/export.zip?confidence=true").content)
     ) as zf:
-        assert len(zf.namelist()) == 2 * len(seq.frame_ids)
+        confs = [n for n in zf.namelist() if n.startswith("sequences/00/confidences/")]
+        assert len(confs) == len(seq.frame_ids)
 
     written = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert written.status_code == 200, written.text
-    assert written.json() == {"run_id": run["id"], "path": str(tiny_dataset / "predictions"), "files": 4}
+    assert written.json() == {
+        "run_id": run["id"], "path": str(tiny_dataset / "predictions"), "files": 4, "replaced": 0
+    }
     for fid in seq.frame_ids:
         assert (tiny_dataset / "predictions" / f"{fid}.label").is_file()
     outside = client.post(f"{API}/runs/{run['id']}/export", json={"path": "/tmp/leap-export-elsewhere"})

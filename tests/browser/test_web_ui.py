@@ -136,23 +136,28 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     assert page.locator("#iou-chart svg rect[fill]:not(.swatch)").count() == 2 * one_run_bars
     page.screenshot(path=str(artifacts / "web_ui_project.png"), full_page=True)
 
-    # ---- export download
+    # ---- export download, from the export dialog
+    page.locator('button[data-action="export"]').first.click()
+    expect(page.locator("dialog.export-dialog .unlabeled-count")).to_be_visible()
     with page.expect_download() as info:
-        page.locator('a[data-action="zip"]').first.click()
+        page.locator('dialog.export-dialog a[data-action="zip"]').click()
     target = tmp_path / "labels.zip"
     info.value.save_as(target)
     frame_ids = sorted(p.stem for p in (dataset / "velodyne").glob("*.bin"))
     with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
         export_ids = {c["export_id"] for c in api.get(f"/projects/{project_id}/classes").json()["data"]}
     with zipfile.ZipFile(io.BytesIO(target.read_bytes())) as zf:
-        assert sorted(zf.namelist()) == [f"predictions/{f}.label" for f in frame_ids]
-        for fid in frame_ids:
-            labels = np.frombuffer(zf.read(f"predictions/{fid}.label"), dtype=np.uint32)
+        members = [f"sequences/00/predictions/{f}.label" for f in frame_ids]
+        assert sorted(zf.namelist()) == sorted([*members, "label-map.yaml", "summary.yaml"])
+        for fid, member in zip(frame_ids, members, strict=True):
+            labels = np.frombuffer(zf.read(member), dtype=np.uint32)
             n_points = (dataset / "velodyne" / f"{fid}.bin").stat().st_size // 16
             assert labels.shape == (n_points,)
             semantic = labels & 0xFFFF
             assert (labels >> 16 == 0).all() and (semantic > 0).mean() > 0.1
             assert set(np.unique(semantic).tolist()) <= export_ids | {0}
+
+    page.locator('dialog.export-dialog button[data-action="close"]').click()
 
     # ---- the project list shows the finished run
     page.goto(srv.base + "/#/")
