@@ -6,7 +6,10 @@ Routes stay thin: they parse the request, call one function here or in :mod:`app
 
 from __future__ import annotations
 
+import os
 import re
+import tempfile
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -18,6 +21,7 @@ from app.core.config import Settings
 from app.core.errors import Conflict, InvalidField, NotFound
 from app.core.security import resolve_in_roots
 from app.jobs.progress import ProgressTracker
+from leap_core.colors import distinct_color
 from leap_core.config import (
     FORM_FIELDS,
     PipelineConfig,
@@ -26,10 +30,15 @@ from leap_core.config import (
     form_values,
     overrides_from_form,
 )
+from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
+from leap_core.pipeline import STAGE_TABLE, all_points_labeled_share, stage_fingerprints
+from leap_core.pipeline.context import read_state
+from leap_core.pipeline.steering import changed_sections, recompute_plan, run_changes
 from leap_core.presets import builtin_preset
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import RunLayout, save_corrections
+from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
 
@@ -249,12 +258,15 @@ def _hex(color: list[int]) -> str:
     return "#" + "".join(f"{int(c):02x}" for c in color)
 
 
+def next_color(classes: list[dict[str, Any]]) -> list[int]:
+    """The colour a new class gets when it names none (:func:`leap_core.colors.distinct_color`)."""
+    return list(distinct_color([c["color"] for c in classes]))
+
+
 def classes_public(project: dict[str, Any]) -> models.ClassesPublic:
-    data = [
-        models.ClassPublic(index=i, hex=_hex(c["color"]), **c)
-        for i, c in enumerate(project["schema"]["classes"])
-    ]
-    return models.ClassesPublic(data=data, count=len(data))
+    classes = project["schema"]["classes"]
+    data = [models.ClassPublic(index=i, hex=_hex(c["color"]), **c) for i, c in enumerate(classes)]
+    return models.ClassesPublic(data=data, count=len(data), next_color=_hex(next_color(classes)))
 
 
 def _class_position(classes: list[dict[str, Any]], name: str, project_id: int) -> int:
@@ -291,6 +303,8 @@ def add_class(db: sqlite_utils.Database, project_id: int, payload: models.ClassC
     project = crud.require_project(db, project_id)
     classes = list(project["schema"]["classes"])
     entry = payload.model_dump(exclude={"position"})
+    if entry["color"] is None:
+        entry["color"] = next_color(classes)
     position = len(classes) if payload.position is None else min(payload.position, len(classes))
     classes.insert(position, entry)
     return save_classes(db, project_id, classes)
@@ -414,6 +428,7 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         "rows": rows,
         "coverage_ratio": metrics.get("coverage_ratio") or {},
         "labeled_points": metrics.get("labeled_points") or {},
+        "labeled_share_all_points": all_points_labeled_share(metrics),
         "n_points": metrics.get("n_points"),
         "n_points_in_view": metrics.get("n_points_in_view"),
         "labeler": metrics.get("labeler"),
@@ -438,4 +453,158 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         has_export=run["status"] == "done" and RunLayout(run_dir).export_dir.is_dir(),
         resumable=run["status"] in models.RESUMABLE_STATUSES,
         summary=metrics_summary(run.get("metrics")),
+        note=run.get("note"),
     )
+
+
+# ------------------------------------------------------------------------------------ ground-truth ids
+_RAW_ID_CACHE: dict[tuple[str, int, int], tuple[dict[int, int], int, int]] = {}
+_RAW_ID_LOCK = threading.Lock()
+
+
+def _labels_signature(labels: Path) -> tuple[int, int]:
+    """(newest mtime_ns, file count) of a labels folder: changes when a file is added, replaced or removed."""
+    newest, count = labels.stat().st_mtime_ns, 0
+    with os.scandir(labels) as it:
+        for e in it:
+            if e.name.endswith(".label"):
+                count += 1
+                newest = max(newest, e.stat().st_mtime_ns)
+    return newest, count
+
+
+def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
+    """The raw ids in the project dataset's labels with their names and the classes mapping them.
+
+    The scan (:func:`leap_core.datasets.raw_ids.scan_raw_ids`, at most 200 evenly spaced files) is cached
+    per labels folder until a file in it changes.
+    """
+    folder = Path(project["dataset_path"])
+    labels = folder / "labels"
+    names = raw_id_names()
+    if not labels.is_dir():
+        return models.RawIdsPublic(data=[], count=0, has_ground_truth=False, frames_read=0, frames_total=0,
+                                   names={str(k): v for k, v in names.items()})
+    key = (str(labels.resolve()), *_labels_signature(labels))
+    with _RAW_ID_LOCK:
+        cached = _RAW_ID_CACHE.get(key)
+    if cached is None:
+        try:
+            scan = scan_raw_ids(folder)
+        except LeapError as exc:
+            raise InvalidField(["dataset", "labels"], str(exc)) from None
+        cached = (scan.counts, scan.frames_read, scan.frames_total)
+        with _RAW_ID_LOCK:
+            _RAW_ID_CACHE[key] = cached
+    counts, read, total = cached
+    users: dict[int, list[str]] = {}
+    for c in project["schema"]["classes"]:
+        for g in c.get("gt_ids", []):
+            users.setdefault(int(g), []).append(c["name"])
+    data = [
+        models.RawIdPublic(id=i, name=names.get(i), points=n, classes=users.get(i, []))
+        for i, n in sorted(counts.items())
+    ]
+    return models.RawIdsPublic(data=data, count=len(data), has_ground_truth=True, frames_read=read,
+                               frames_total=total, names={str(k): v for k, v in names.items()})
+
+
+# ------------------------------------------------------------------------------------------ steering
+def _change_public(change: Any) -> models.ChangePublic:
+    return models.ChangePublic(kind=change.kind, subject=change.subject, text=change.text, ignored=change.ignored)
+
+
+def project_snapshot(project: dict[str, Any]) -> dict[str, Any]:
+    """The inputs a new run of all frames would snapshot (the parts :func:`run_changes` compares)."""
+    return {"dataset": project["dataset_path"], "frames": None, "schema": project["schema"],
+            "pipeline": project["pipeline"]}
+
+
+def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) -> models.RunPreview:
+    """Which stages the next run (all frames) recomputes: the fingerprints it would have against those in
+    the ``stages.json`` of the finished run its folder would be seeded from (the job manager's rule: the
+    latest finished run, when it covered the same dataset and all frames)."""
+    # Imported here: the job manager imports this module (the run folder's corrections are its rule).
+    from app.jobs.manager import corrections_for_run  # noqa: PLC0415  import cycle (see above)
+
+    project = crud.require_project(db, project_id)
+    snapshot = project_snapshot(project)
+    last = crud.last_finished_run(db, project_id)
+    base = None
+    if last is not None and last["params"].get("dataset") == snapshot["dataset"] and last["params"].get(
+        "frames"
+    ) is None:
+        base = last
+    changes = [] if base is None else [_change_public(c) for c in run_changes(base["params"], snapshot)]
+    basis = None if base is None else models.RunBasis(id=base["id"], number=base["number"])
+
+    def everything(reason: str, problem: str | None = None) -> models.RunPreview:
+        stages = [models.StagePlanPublic(name=s.name, label=s.label, action="recompute", reason=reason)
+                  for s in STAGE_TABLE]
+        return models.RunPreview(base_run=basis, stages=stages, recompute=[s.name for s in stages],
+                                 changes=changes, problem=problem)
+
+    dataset = Path(project["dataset_path"])
+    if not (dataset / "velodyne").is_dir():
+        return everything("the dataset does not exist yet")
+    config = project_config(project)
+    try:
+        schema = Schema.from_dict(project["schema"], source="classes")
+        runtime = Runtime(models_dir=settings.models_dir, cache_dir=settings.cache_dir / f"p{project_id}")
+        settings.work_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
+            keys, classes = corrections_for_run(
+                crud.list_corrections(db, project_id, active_only=True), project["schema"], project["pipeline"]
+            )
+            save_corrections(RunLayout(Path(tmp)).corrections, keys, classes)
+            fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
+    except LeapError as exc:
+        return everything("its inputs could not be fingerprinted", problem=str(exc))
+    previous = None if base is None else read_state(RunLayout(Path(base["run_dir"])))
+    sections = [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
+    kinds = {"class": "the classes or prompts changed", "dataset": "the dataset changed",
+             "frames": "the frames changed"}
+    hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
+    plans = recompute_plan(config, fps, previous, sections,
+                           **({"input_hint": hint} if hint else {}))
+    stages = [models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans]
+    return models.RunPreview(base_run=basis, stages=stages,
+                             recompute=[p.name for p in plans if p.action == "recompute"], changes=changes)
+
+
+def _num(value: Any) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def _delta(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a - b
+
+
+def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models.ComparePublic:
+    """``run`` against ``base``: per protocol and shared result row the mIoU and per-class IoU deltas
+    (classes matched by name: a class only one run has gets a null delta), and the input changes."""
+    run = crud.require_run(db, run_id)
+    base = crud.require_run(db, base_id)
+    if run["project_id"] != base["project_id"]:
+        raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
+    changes = [_change_public(c) for c in run_changes(base["params"], run["params"])]
+    rows: list[models.RowDelta] = []
+    ma, mb = normalise_metrics(run.get("metrics")), normalise_metrics(base.get("metrics"))
+    if ma is not None and mb is not None:
+        names = [c["name"] for c in run["params"]["schema"]["classes"]]
+        names += [c["name"] for c in base["params"]["schema"]["classes"] if c["name"] not in names]
+        for protocol, table in ma["protocols"].items():
+            other = mb["protocols"].get(protocol, {})
+            for row, values in table.items():
+                if row not in other:
+                    continue
+                ia, ib = values.get("iou") or {}, other[row].get("iou") or {}
+                classes = [
+                    models.ClassDelta(name=n, iou=_num(ia.get(n)), base_iou=_num(ib.get(n)),
+                                      delta=_delta(_num(ia.get(n)), _num(ib.get(n))))
+                    for n in names
+                ]
+                a, b = _num(values.get("miou")), _num(other[row].get("miou"))
+                rows.append(models.RowDelta(protocol=protocol, row=row, miou=a, base_miou=b, delta=_delta(a, b),
+                                            classes=classes))
+    return models.ComparePublic(run_id=run_id, base_run_id=base_id, changes=changes, rows=rows)
