@@ -77,6 +77,9 @@ def test_distinct_colors_added_one_by_one_stay_apart() -> None:
         assert _min_delta_e(a, [b]) > 20
     assert all(_min_delta_e(c, [UNLABELED_RGB]) > 30 for c in used)
     assert distinct_color([]) == distinct_color([])  # deterministic
+    # With no class yet, the first colour is the candidate farthest from unlabeled grey.
+    farthest = max(_min_delta_e(c, [UNLABELED_RGB]) for c in CANDIDATES.tolist())
+    assert _min_delta_e(distinct_color([]), [UNLABELED_RGB]) == pytest.approx(farthest)
 
 
 # ------------------------------------------------------------------------------------------ raw ids
