@@ -23,7 +23,7 @@ from app.core.db import open_db, transaction
 from app.core.demo_synth import synth_config
 from leap_core.config import config_to_dict
 from leap_core.presets import builtin_preset
-from leap_core.synth import default_workers, generate_sequence
+from leap_core.synth import SYNTH_VERSION, default_workers, generate_sequence, synth_version
 
 DEMO_PROJECT_NAME = "Demo street (simulated labeler)"
 SEEDED_KEY = "demo_seeded"
@@ -44,7 +44,12 @@ def _file_lock(path: Path) -> Iterator[None]:
 
 
 def demo_exists(dataset: Path) -> bool:
-    return (dataset / "poses.txt").is_file() and (dataset / "velodyne").is_dir()
+    """A complete demo sequence written by this generator version (an older one is generated again)."""
+    return (
+        (dataset / "poses.txt").is_file()
+        and (dataset / "velodyne").is_dir()
+        and synth_version(dataset) == SYNTH_VERSION
+    )
 
 
 def ensure_demo_sequence(

@@ -242,6 +242,165 @@ def test_misses_persist_within_a_block_of_frames(tmp_path: Path) -> None:
         assert len({tuple(kept_classes(i)) for i in block}) == 1
     # Over many seeds the kept share approaches the recall.
     cfg1 = dataclasses.replace(cfg, persistence_frames=1)
-    counts = [SimulatedLabeler(dataclasses.replace(cfg1, seed=s)).label(seq.frame(0), SCHEMA).num_masks
-              for s in range(40)]
+    counts = [
+        SimulatedLabeler(dataclasses.replace(cfg1, seed=s)).label(seq.frame(0), SCHEMA).num_masks
+        for s in range(40)
+    ]
     assert 0.35 < np.mean(counts) / 7 < 0.65
+
+
+# ------------------------------------------------------------------------------ prompts and names
+def _named_sequence(root: Path, n_frames: int = 1) -> KittiSequence:
+    """A sequence with a ``gt2d/name`` folder: 12 vans (instances 1..12) on asphalt, a lawn strip on top,
+    a hedge at the left edge."""
+    from leap_core.synth.names import name_id
+
+    root.mkdir(parents=True, exist_ok=True)
+    p2 = np.array([[50.0, 0, W / 2, 0], [0, 50.0, H / 2, 0], [0, 0, 1, 0]])
+    write_calib(root / "calib.txt", Calib(P2=p2, Tr=np.eye(4)))
+    write_poses(root / "poses.txt", np.tile(np.eye(4), (n_frames, 1, 1)))
+    sem = np.full((H, W), 40, np.uint16)
+    names = np.full((H, W), name_id("asphalt"), np.uint16)
+    inst = np.zeros((H, W), np.uint16)
+    sem[:10], names[:10] = 72, name_id("lawn")
+    sem[10:, :4], names[10:, :4] = 70, name_id("hedge")
+    for k in range(12):
+        y, x = 12 + (k // 6) * 16, 6 + (k % 6) * 10
+        sem[y : y + 10, x : x + 8], names[y : y + 10, x : x + 8], inst[y : y + 10, x : x + 8] = (
+            10,
+            name_id("van"),
+            k + 1,
+        )
+    for i in range(n_frames):
+        fid = f"{i:06d}"
+        write_scan(root / "velodyne" / f"{fid}.bin", np.zeros((4, 4), np.float32))
+        write_png16(root / "gt2d" / "semantic" / f"{fid}.png", sem)
+        write_png16(root / "gt2d" / "instance" / f"{fid}.png", inst)
+        write_png16(root / "gt2d" / "name" / f"{fid}.png", names)
+    return KittiSequence(root)
+
+
+def _schema(**prompts: tuple[str, ...]) -> Schema:
+    """The mini schema with some classes' prompts replaced."""
+    return SCHEMA.with_classes(
+        [dataclasses.replace(c, prompts=prompts.get(c.name, c.prompts)) for c in SCHEMA.classes]
+    )
+
+
+def test_a_region_gets_a_mask_only_when_a_prompt_names_it(tmp_path: Path) -> None:
+    seq = _named_sequence(tmp_path / "s")
+    frame = seq.frame(0)
+    exact = SimulatedLabeler(SimulatedLabelerConfig.exact())
+    # "car" names a van only loosely, but alone it names it: 12 van masks + asphalt + lawn (+ hedge via "vegetation").
+    masks = exact.label(frame, SCHEMA)
+    classes = masks.probs.argmax(axis=1)
+    assert (classes == CAR).sum() + (classes == TRUCK).sum() == 12
+    # Prompts that name nothing find nothing.
+    useless = _schema(
+        car=("spaceship",),
+        truck=("zeppelin",),
+        road=("ocean",),
+        sidewalk=("glacier",),
+        vegetation=("cloud",),
+        terrain=("moon",),
+    )
+    assert exact.label(frame, useless).num_masks == 0
+    # Without a name image, every pixel is named by its raw id's generic name ("car" for raw id 10).
+    generic = exact.label(make_sequence(tmp_path / "g", 1).frame(0), _schema(car=("van",)))
+    assert not (generic.probs.argmax(axis=1) == CAR).any()
+
+
+def test_prompts_of_two_classes_that_name_a_region_compete(tmp_path: Path) -> None:
+    """A van is loosely both "car" and "truck": with only those prompts the two classes split the vans; the
+    helper prompt "van" names them strongly and car wins nearly every one (the paper's prompt expansion)."""
+    seq = _named_sequence(tmp_path / "s")
+    frame = seq.frame(0)
+
+    def car_share(schema: Schema) -> float:
+        wins = []
+        for seed in range(8):
+            cfg = dataclasses.replace(SimulatedLabelerConfig.exact(seed=seed), match_temperature=0.1)
+            cfg = dataclasses.replace(cfg, match_confidence=SimulatedLabelerConfig().match_confidence)
+            masks = SimulatedLabeler(cfg).label(frame, schema)
+            cls = masks.probs.argmax(axis=1)
+            vehicles = cls[(cls == CAR) | (cls == TRUCK)]
+            assert vehicles.size == 12
+            wins.append(float(np.mean(vehicles == CAR)))
+        return float(np.mean(wins))
+
+    assert 0.3 < car_share(SCHEMA) < 0.7
+    assert car_share(_schema(car=("car", "van"))) > 0.95  # exact beats hypernym e^5.5 : 1 at T = 0.1
+    # The loser of a competition takes the partner share of the winner's distribution.
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), peak_prob=(0.8, 0.8))
+    masks = SimulatedLabeler(cfg).label(frame, SCHEMA)
+    vans = masks.probs[(masks.probs.argmax(axis=1) == CAR) | (masks.probs.argmax(axis=1) == TRUCK)]
+    np.testing.assert_allclose(np.sort(vans[:, [CAR, TRUCK]], axis=1), [[0.1, 0.8]] * 12, atol=1e-6)
+
+
+def test_match_strength_sets_detection_and_confidence(tmp_path: Path) -> None:
+    seq = _named_sequence(tmp_path / "s")
+    frame = seq.frame(0)
+    base = SimulatedLabelerConfig.exact()
+    cfg = dataclasses.replace(
+        base,
+        match_detection={"exact": 1.0, "synonym": 1.0, "descriptive": 1.0, "hypernym": 0.0},
+        match_confidence={"exact": 1.0, "synonym": 0.8, "descriptive": 0.6, "hypernym": 0.4},
+    )
+    lab = SimulatedLabeler(cfg)
+    # "vegetation" names the hedge only as a hypernym: never detected at detection 0.
+    assert not (lab.label(frame, SCHEMA).probs.argmax(axis=1) == VEG).any()
+    masks = lab.label(frame, _schema(vegetation=("hedge",), terrain=("grass",), car=("minivan",)))
+    cls = masks.probs.argmax(axis=1)
+    assert masks.confidence[cls == VEG].tolist() == [1.0]  # exact
+    assert masks.confidence[cls == TERRAIN].tolist() == pytest.approx([0.8])  # synonym
+    assert masks.confidence[cls == CAR].tolist() == pytest.approx([0.8] * 12)
+
+
+def test_negative_prompt_that_names_a_region_more_strongly_rules_the_class_out(tmp_path: Path) -> None:
+    seq = _named_sequence(tmp_path / "s")
+    lab = SimulatedLabeler(SimulatedLabelerConfig.exact())
+    schema = SCHEMA.with_classes(
+        [
+            dataclasses.replace(c, negative_prompts=("minivan",)) if c.name == "car" else c
+            for c in SCHEMA.classes
+        ]
+    )
+    cls = lab.label(seq.frame(0), schema).probs.argmax(axis=1)
+    assert (cls == TRUCK).sum() == 12 and not (cls == CAR).any()
+
+
+def test_editing_prompts_changes_the_fingerprint() -> None:
+    lab = SimulatedLabeler(SimulatedLabelerConfig())
+    a = lab.fingerprint(SCHEMA)
+    assert a != lab.fingerprint(_schema(car=("car", "van")))
+    negative = SCHEMA.with_classes(
+        [
+            dataclasses.replace(c, negative_prompts=("minivan",)) if c.name == "car" else c
+            for c in SCHEMA.classes
+        ]
+    )
+    assert a != lab.fingerprint(negative)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"match_detection": {"exact": 1.0}}, ("match_detection",)),
+        (
+            {"match_confidence": {"exact": 1.0, "synonym": 1.0, "descriptive": 1.0, "hypernym": 0.0}},
+            ("match_confidence", "hypernym"),
+        ),
+        ({"match_temperature": -0.1}, ("match_temperature",)),
+    ],
+)
+def test_match_config_validation_names_field(kwargs: dict, field: tuple[str, ...]) -> None:
+    with pytest.raises(LeapError) as err:
+        SimulatedLabelerConfig(**kwargs)
+    assert err.value.field == field
+
+
+def test_unknown_name_ids_are_a_clear_error(tmp_path: Path) -> None:
+    seq = _named_sequence(tmp_path / "s")
+    write_png16(tmp_path / "s" / "gt2d" / "name" / "000000.png", np.full((H, W), 999, np.uint16))
+    with pytest.raises(LeapError, match=r"name.000000\.png: unknown name ids \[999\]"):
+        SimulatedLabeler().label(seq.frame(0), SCHEMA)

@@ -67,6 +67,7 @@ def _prims(rows: list[tuple[int, tuple, tuple, float]]) -> Primitives:
         half=np.array([r[2] for r in rows], np.float64),
         semantic=np.arange(1, n + 1, dtype=np.uint16),
         instance=np.zeros(n, np.uint16),
+        name=np.zeros(n, np.uint16),
         material=np.zeros(n, np.uint8),
         color=np.zeros((n, 3), np.float32),
         param=np.zeros((n, 4), np.float32),

@@ -1,12 +1,25 @@
-"""The "simulated" 2D labeler: soft masks made from a dataset's 2D ground truth with a documented noise model.
+"""The "simulated" 2D labeler: soft masks made from a dataset's 2D ground truth, steered by the class prompts
+through a small lexicon, with a documented noise model.
 
 It stands in for Grounding DINO + SAM (docs/METHOD.md stage A) on datasets that carry per-pixel 2D ground
-truth (``gt2d/semantic`` and ``gt2d/instance``, e.g. the generated demo sequence), so the 3D stages can be
-run and measured without model weights. Users always see it called "simulated".
+truth (``gt2d/semantic``, ``gt2d/instance`` and, on the generated demo, ``gt2d/name``), so the 3D stages
+can be run and measured without model weights, and so prompt expansion has a measurable effect. Users
+always see it called "simulated".
 
-Regions. Pixels are mapped to schema classes with ``schema.map_gt``; pixels of unmapped ids get no mask.
-A *thing* region is one (class, instance id > 0) pair: one mask per object, as a detector box + SAM
-would give. A *stuff* region is one 8-connected component of a class's pixels that carry instance 0.
+Regions. Every pixel has a *name* (``leap_core.synth.names``): the demo's ``gt2d/name`` image gives
+fine-grained names ("sedan", "hedge", "curb"); without that folder each pixel gets the generic name of its
+raw semantic id ("car", "vegetation"). A *thing* region is one (name, instance id > 0) pair: one mask per
+object, as a detector box + SAM would give. A *stuff* region is one 8-connected component of one name's
+pixels that carry instance 0.
+
+Prompts. Region r is offered to class c when one of c's prompts names r's name in the lexicon
+(``names.match``), with the strongest matching strength k(r, c) among exact, synonym, descriptive and
+hypernym; a negative prompt of c that names r more strongly than c's best prompt withdraws the offer (as
+in docs/METHOD.md stage A.3). A region that no prompt names gets no mask, so a class whose prompts name
+nothing finds nothing. When prompts of several classes name r, the classes compete: class c wins with
+probability ∝ exp(match_confidence[k(r, c)] / match_temperature) (0: the strongest strength wins, ties
+drawn uniformly), and the strongest loser takes the partner share of step 4. This is the joint-prompt
+confusion of a real detector: a prompt like "vehicle" in two classes makes them split the vehicles.
 
 Noise model, applied per image in this order (every parameter lives in :class:`SimulatedLabelerConfig`):
 
@@ -14,25 +27,29 @@ Noise model, applied per image in this order (every parameter lives in :class:`S
    ``(dx, dy) ~ N(0, jitter_px²)`` and a rotation ``θ ~ N(0, jitter_deg²)`` about the image centre
    (nearest-neighbour resampling; pixels moved in from outside carry no label). This mimics a small
    camera↔LiDAR calibration or synchronisation error that shifts every mask against the points.
-2. Missed regions. Region r of class c is kept with probability ``recall(c)`` (``class_recall[c]`` if
-   given, else ``recall``); regions smaller than ``min_region_px`` pixels are always missed.
+2. Missed regions. Region r won by class c with match strength k is kept with probability
+   ``recall(c) · match_detection[k]`` (``recall(c)`` = ``class_recall[c]`` if given, else ``recall``);
+   regions smaller than ``min_region_px`` pixels are always missed.
 3. Confusion. If c belongs to an ambiguous pair in ``confusion_pairs``, then with probability
    ``confusion_prob`` the mask's predicted class becomes its partner ĉ (one drawn uniformly when c has
    several partners); otherwise ĉ = c.
-   Steps 2 and 3 are *persistent*: their draws belong to the object (thing: its instance id; stuff: its
-   class and area rank in the image) and stay the same for ``persistence_frames`` consecutive frames, so
-   a missed or confused object stays so for a while, as with a real detector. Independent per-frame
-   errors would be averaged away by the voxel fusion far more easily than real ones.
+   Steps 2 and 3 and the competition draw are *persistent*: their draws belong to the object (thing: its
+   name and instance id; stuff: its name and area rank in the image) and stay the same for
+   ``persistence_frames`` consecutive frames, so a missed or confused object stays so for a while, as with
+   a real detector. Independent per-frame errors would be averaged away by the voxel fusion far more
+   easily than real ones.
 4. Soft distribution. ``p(ĉ) = peak ~ U(peak_prob)``; of the remaining ``1 − peak``, the share
-   ``partner_share`` goes to the class ĉ is confused with (c itself after a confusion, else one of c's
-   partners), and the rest is spread over all other classes by a Dirichlet(``dirichlet_alpha``) draw.
-   The mask's confidence is ``w ~ U(confidence)``.
+   ``partner_share`` goes to the class ĉ is confused with (c itself after a confusion, else the strongest
+   competing class of the prompts, else one of c's partners), and the rest is spread over all other
+   classes by a Dirichlet(``dirichlet_alpha``) draw. The mask's confidence is
+   ``w ~ U(confidence) · match_confidence[k]``.
 5. Boundary bleed. Each thing mask is dilated by a radius drawn uniformly from ``0..bleed_px`` pixels
    (stuff masks: ``0..stuff_bleed_px``), so it spills onto the background around it. Per-mask depth
    clustering in the projection stage is what removes the spill of foreground objects onto points behind.
 
-With every knob off (:meth:`SimulatedLabelerConfig.exact`) each mask is one region with a one-hot
-distribution and confidence 1, so the per-pixel argmax reproduces the mapped ground truth exactly.
+With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
+distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
+the per-pixel argmax reproduces the mapped ground truth exactly.
 
 Determinism: all draws come from ``SeedSequence([seed, frame.index, stream])`` (steps 1, 4, 5) or
 ``SeedSequence([seed, frame.index // persistence_frames, stream, object])`` (steps 2, 3), so a frame's
@@ -51,8 +68,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.datasets.kitti import read_png16
 from leap_core.errors import ConfigError, LeapError
 from leap_core.labelers.base import SoftMasks
+from leap_core.synth.names import NAMES_BY_ID, STRENGTHS, generic_name_ids, lexicon_digest, match
 
 if TYPE_CHECKING:
     from leap_core.datasets.kitti import Frame
@@ -75,6 +94,19 @@ _DEFAULT_CLASS_RECALL: dict[str, float] = {
     "other-ground": 0.6,
 }
 
+_DEFAULT_MATCH_DETECTION: dict[str, float] = {
+    "exact": 1.0,
+    "synonym": 0.95,
+    "descriptive": 0.85,
+    "hypernym": 0.5,
+}
+_DEFAULT_MATCH_CONFIDENCE: dict[str, float] = {
+    "exact": 1.0,
+    "synonym": 0.85,
+    "descriptive": 0.7,
+    "hypernym": 0.45,
+}
+
 _DEFAULT_CONFUSION_PAIRS: tuple[tuple[str, str], ...] = (
     ("terrain", "vegetation"),
     ("road", "parking"),
@@ -82,6 +114,18 @@ _DEFAULT_CONFUSION_PAIRS: tuple[tuple[str, str], ...] = (
     ("bicycle", "person"),
     ("car", "truck"),
 )
+
+
+def _check_strength_table(table: dict[str, float], name: str, *, positive: bool) -> None:
+    """A per-strength table has exactly the four strengths as keys and values in [0, 1] ((0, 1] if
+    ``positive``)."""
+    if set(table) != set(STRENGTHS):
+        got = ", ".join(map(str, table)) or "none"
+        raise ConfigError(f"needs exactly the keys {', '.join(STRENGTHS)}, got {got}", field=(name,))
+    for k, v in table.items():
+        ok = 0.0 < float(v) <= 1.0 if positive else 0.0 <= float(v) <= 1.0
+        if not ok:
+            raise ConfigError(f"must be in {'(0, 1]' if positive else '[0, 1]'}, got {v}", field=(name, k))
 
 
 @dataclass(frozen=True)
@@ -125,6 +169,15 @@ class SimulatedLabelerConfig:
     """Standard deviation in pixels of the per-image shift of all masks (calibration error)."""
     jitter_deg: float = 0.1
     """Standard deviation in degrees of the per-image rotation of all masks about the image centre."""
+    match_detection: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_MATCH_DETECTION))
+    """Per match strength (exact, synonym, descriptive, hypernym): factor on the recall of a region that a
+    prompt names with that strength. A looser name finds its object less often."""
+    match_confidence: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_MATCH_CONFIDENCE))
+    """Per match strength: factor on the mask's confidence draw, and the similarity that decides which
+    class wins a region that prompts of several classes name."""
+    match_temperature: float = 0.1
+    """Softness of that competition: class c wins with probability ∝ exp(match_confidence[k(c)] / T);
+    0 = the strongest strength always wins (ties drawn uniformly)."""
 
     def __post_init__(self) -> None:
         for name in ("recall", "confusion_prob", "partner_share"):
@@ -147,9 +200,18 @@ class SimulatedLabelerConfig:
             raise ConfigError(f"must be > 0, got {self.dirichlet_alpha}", field=("dirichlet_alpha",))
         if self.persistence_frames < 1:
             raise ConfigError(f"must be >= 1, got {self.persistence_frames}", field=("persistence_frames",))
-        for name in ("min_region_px", "bleed_px", "stuff_bleed_px", "jitter_px", "jitter_deg"):
+        for name in (
+            "min_region_px",
+            "bleed_px",
+            "stuff_bleed_px",
+            "jitter_px",
+            "jitter_deg",
+            "match_temperature",
+        ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
+        _check_strength_table(self.match_detection, "match_detection", positive=False)
+        _check_strength_table(self.match_confidence, "match_confidence", positive=True)
 
     @classmethod
     def exact(cls, seed: int = 0) -> SimulatedLabelerConfig:
@@ -166,18 +228,21 @@ class SimulatedLabelerConfig:
             stuff_bleed_px=0,
             jitter_px=0.0,
             jitter_deg=0.0,
+            match_detection=dict.fromkeys(STRENGTHS, 1.0),
+            match_confidence=dict.fromkeys(STRENGTHS, 1.0),
+            match_temperature=0.0,
         )
 
 
 @dataclass(frozen=True)
 class _Region:
-    """One ground-truth region: its class index, bounding box origin and the boolean crop inside the box."""
+    """One ground-truth region: its name id, bounding box origin and the boolean crop inside the box."""
 
-    cls: int
+    name: int
     thing: bool
     ident: int
-    """Identity of the object across frames: the instance id (things) or the area rank within the class,
-    0 = largest (stuff)."""
+    """Identity of the object across frames: the instance id (things) or the area rank among the regions
+    of its name, 0 = largest (stuff)."""
     y0: int
     x0: int
     crop: npt.NDArray[np.bool_]
@@ -188,7 +253,7 @@ def _rng(seed: int, index: int, stream: int) -> np.random.Generator:
 
 
 def _jitter(
-    sem: npt.NDArray[np.uint16],
+    names: npt.NDArray[np.uint16],
     inst: npt.NDArray[np.uint16],
     cfg: SimulatedLabelerConfig,
     rng: np.random.Generator,
@@ -197,8 +262,8 @@ def _jitter(
     dx, dy = rng.normal(0.0, 1.0, size=2) * cfg.jitter_px
     theta = float(rng.normal(0.0, 1.0)) * cfg.jitter_deg
     if cfg.jitter_px == 0 and cfg.jitter_deg == 0:
-        return sem, inst
-    h, w = sem.shape
+        return names, inst
+    h, w = names.shape
     m = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), theta, 1.0)
     m[:, 2] += (dx, dy)
 
@@ -208,19 +273,19 @@ def _jitter(
         )
         return np.asarray(warped, dtype=np.uint16)  # already uint16 (cv2 keeps the dtype): no copy
 
-    return warp(sem), warp(inst)
+    return warp(names), warp(inst)
 
 
-def _regions(cls_img: npt.NDArray[np.int16], inst: npt.NDArray[np.uint16]) -> list[_Region]:
-    """Thing regions (class, instance) first, sorted by key, then stuff components by class and label."""
-    _, w = cls_img.shape
+def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> list[_Region]:
+    """Thing regions (name, instance) first, sorted by key, then stuff components by name id and label."""
+    _, w = name_img.shape
     regions: list[_Region] = []
-    valid = cls_img >= 0
+    valid = name_img > 0
     thing = valid & (inst > 0)
 
     flat_idx = np.flatnonzero(thing)
     if flat_idx.size:
-        key = cls_img.ravel()[flat_idx].astype(np.int64) << 16 | inst.ravel()[flat_idx].astype(np.int64)
+        key = name_img.ravel()[flat_idx].astype(np.int64) << 16 | inst.ravel()[flat_idx].astype(np.int64)
         order = np.argsort(key, kind="stable")
         key_sorted, idx_sorted = key[order], flat_idx[order]
         starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
@@ -234,14 +299,12 @@ def _regions(cls_img: npt.NDArray[np.int16], inst: npt.NDArray[np.uint16]) -> li
             key_s = int(key_sorted[s])
             regions.append(_Region(key_s >> 16, True, key_s & 0xFFFF, y0, x0, crop))
 
-    stuff_cls = np.where(valid & ~thing, cls_img, np.int16(-1))
-    rows_any = [np.flatnonzero((stuff_cls == c).any(axis=1)) for c in range(int(stuff_cls.max()) + 1)]
-    for c, ys in enumerate(rows_any):
-        if ys.size == 0:
-            continue
-        # Label within the class's row band only: most stuff classes cover a fraction of the image height.
+    stuff_name = np.where(valid & ~thing, name_img, np.uint16(0))
+    for nid in (int(v) for v in np.unique(stuff_name) if v):
+        ys = np.flatnonzero((stuff_name == nid).any(axis=1))
+        # Label within the name's row band only: most stuff surfaces cover a fraction of the image height.
         by0, by1 = int(ys[0]), int(ys[-1]) + 1
-        m = (stuff_cls[by0:by1] == c).astype(np.uint8)
+        m = (stuff_name[by0:by1] == nid).astype(np.uint8)
         n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8, ltype=cv2.CV_32S)
         # OpenCV's label numbering depends on its thread count (parallel labeling in stripes), so order the
         # components canonically by their first pixel in raster order; the noise draws follow this order.
@@ -255,7 +318,7 @@ def _regions(cls_img: npt.NDArray[np.int16], inst: npt.NDArray[np.uint16]) -> li
         for y0, _, j in first:
             x0, bw, bh = int(stats[j, 0]), int(stats[j, 2]), int(stats[j, 3])
             crop = lab[y0 : y0 + bh, x0 : x0 + bw] == j
-            regions.append(_Region(c, False, rank[j], by0 + y0, x0, crop))
+            regions.append(_Region(nid, False, rank[j], by0 + y0, x0, crop))
     return regions
 
 
@@ -270,9 +333,58 @@ def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> di
     return {k: sorted(v) for k, v in out.items()}
 
 
+def prompt_matches(schema: Schema) -> dict[int, list[tuple[int, int]]]:
+    """Name id → [(class index, strength index)] of the classes whose prompts name it, strongest first.
+
+    Strength index i is ``names.STRENGTHS[i]`` (0 = exact). A class's strength is the strongest over its
+    prompts; a negative prompt of the class that names the region strictly more strongly rules the class
+    out (docs/METHOD.md stage A.3 in discrete form). Names no prompt names are absent.
+    """
+    rank = {k: i for i, k in enumerate(STRENGTHS)}
+    out: dict[int, list[tuple[int, int]]] = {}
+    for nid, name in NAMES_BY_ID.items():
+        found: list[tuple[int, int]] = []
+        for c, cls in enumerate(schema.classes):
+            pos = [rank[k] for p in cls.prompts if (k := match(p, name)) is not None]
+            if not pos:
+                continue
+            neg = [rank[k] for p in cls.negative_prompts if (k := match(p, name)) is not None]
+            if neg and min(neg) < min(pos):
+                continue
+            found.append((c, min(pos)))
+        if found:
+            out[nid] = sorted(found, key=lambda t: (t[1], t[0]))
+    return out
+
+
+def _compete(
+    cands: list[tuple[int, int]], cfg: SimulatedLabelerConfig, u: float
+) -> tuple[int, int, int | None]:
+    """The winning class of a region named by ``cands`` [(class, strength index)], its strength index and
+    the strongest other class (None when alone). ``u`` ~ U(0, 1) decides (module docstring, "Prompts")."""
+    if len(cands) == 1:
+        return cands[0][0], cands[0][1], None
+    if cfg.match_temperature == 0:
+        best = cands[0][1]
+        tied = [c for c in cands if c[1] == best]
+        weights = np.ones(len(tied))
+        pool = tied
+    else:
+        sim = np.array([cfg.match_confidence[STRENGTHS[k]] for _, k in cands])
+        weights = np.exp((sim - sim.max()) / cfg.match_temperature)
+        pool = cands
+    cum = np.cumsum(weights / weights.sum())
+    i = min(int(np.searchsorted(cum, u, side="right")), len(pool) - 1)
+    win_c, win_k = pool[i]
+    rival = next(c for c, _ in cands if c != win_c)
+    return win_c, win_k, rival
+
+
 def _distribution(
     true_c: int,
     pred_c: int,
+    *,
+    rival: int | None,
     partners: dict[int, list[int]],
     num_classes: int,
     cfg: SimulatedLabelerConfig,
@@ -290,8 +402,11 @@ def _distribution(
     if rest <= 0.0 or num_classes == 1:
         p[pred_c] = 1.0
         return p.astype(np.float32)
+    second: int | None
     if pred_c != true_c:
-        second: int | None = true_c
+        second = true_c
+    elif rival is not None:
+        second = rival
     else:
         cand = partners.get(true_c, [])
         second = cand[min(int(u_partner * len(cand)), len(cand) - 1)] if cand else None
@@ -312,8 +427,30 @@ def _distribution(
     return out
 
 
+def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
+    """The frame's per-pixel name ids: ``gt2d/name/<frame>.png`` when the sequence has that folder, else
+    the generic name of each pixel's raw semantic id."""
+    folder = frame.seq.root / "gt2d" / "name"
+    if not folder.is_dir():
+        return generic_name_ids(semantic)
+    names = read_png16(folder / f"{frame.frame_id}.png")
+    if names.shape != semantic.shape:
+        raise LeapError(
+            f"{folder / (frame.frame_id + '.png')}: name image {names.shape} and semantic mask "
+            f"{semantic.shape} differ in size"
+        )
+    unknown = np.setdiff1d(np.unique(names), [0, *NAMES_BY_ID])
+    if unknown.size:
+        raise LeapError(
+            f"{folder / (frame.frame_id + '.png')}: unknown name ids {unknown[:5].tolist()} "
+            "(see leap_core/synth/names.py)"
+        )
+    return names
+
+
 class SimulatedLabeler:
-    """Soft masks from 2D ground truth with the noise model of :class:`SimulatedLabelerConfig`."""
+    """Soft masks from 2D ground truth, steered by the prompts, with the noise model of
+    :class:`SimulatedLabelerConfig`."""
 
     name = "simulated"
 
@@ -321,19 +458,21 @@ class SimulatedLabeler:
         self.cfg = cfg or SimulatedLabelerConfig()
 
     def fingerprint(self, schema: Schema) -> str:
-        """Hash of the noise config and the schema parts the output depends on (names and GT mapping)."""
+        """Hash of the noise config, the lexicon and the schema parts the output depends on (class names,
+        prompts and negative prompts: a prompt edit changes the masks, so it must re-run the 2D stage)."""
         cfg = asdict(self.cfg)
         cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
         parts = {
             "labeler": self.name,
-            "version": 2,
+            "version": 3,
+            "lexicon": lexicon_digest(),
             "config": cfg,
-            "classes": [[c.name, sorted(int(g) for g in c.gt_ids)] for c in schema.classes],
+            "classes": [[c.name, list(c.prompts), list(c.negative_prompts)] for c in schema.classes],
         }
         return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 
     def label(self, frame: Frame, schema: Schema) -> SoftMasks:
-        """Masks of one frame (reads ``frame.gt2d_semantic`` / ``frame.gt2d_instance``)."""
+        """Masks of one frame (reads ``gt2d/semantic``, ``gt2d/instance`` and ``gt2d/name`` if present)."""
         cfg = self.cfg
         sem, inst = frame.gt2d_semantic, frame.gt2d_instance
         if sem.shape != inst.shape:
@@ -342,12 +481,12 @@ class SimulatedLabeler:
                 f"{inst.shape} masks differ in size"
             )
         seed, idx = cfg.seed, frame.index
-        sem, inst = _jitter(sem, inst, cfg, _rng(seed, idx, _STREAM_JITTER))
-        h, w = sem.shape
-        cls_img = np.asarray(schema.map_gt(sem.ravel()), dtype=np.int16).reshape(h, w)
+        names_img, inst = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER))
+        h, w = names_img.shape
         names = list(schema.names)
         num_classes = len(names)
-        regions = _regions(cls_img, inst)
+        regions = _regions(names_img, inst)
+        matches = prompt_matches(schema)
 
         recall_of = np.full(num_classes, cfg.recall, dtype=np.float64)
         for cname, r in cfg.class_recall.items():
@@ -357,17 +496,16 @@ class SimulatedLabeler:
 
         n = len(regions)
         rng_probs, rng_bleed = (_rng(seed, idx, s) for s in (_STREAM_PROBS, _STREAM_BLEED))
-        # Per object and block of frames: (recall draw, confusion draw, partner choice).
+        # Per object and block of frames: (recall draw, confusion draw, partner choice, competition draw).
         block = idx // cfg.persistence_frames
         u_obj = np.array(
             [
                 np.random.default_rng(
-                    np.random.SeedSequence([seed, block, _STREAM_OBJECT, r.cls, int(r.thing), r.ident])
-                ).random(3)
+                    np.random.SeedSequence([seed, block, _STREAM_OBJECT, r.name, int(r.thing), r.ident])
+                ).random(4)
                 for r in regions
             ]
-        ).reshape(n, 3)
-        u_recall, u_confuse = u_obj[:, 0], u_obj[:, 1:]
+        ).reshape(n, 4)
         u_bleed = rng_bleed.random(n)
         lo_c, hi_c = cfg.confidence
         conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
@@ -376,14 +514,24 @@ class SimulatedLabeler:
         flat = np.zeros(h * w, dtype=bool)
         for i, reg in enumerate(regions):
             dist_rng = np.random.default_rng(rng_probs.integers(0, 2**63))
-            if u_recall[i] >= recall_of[reg.cls] or reg.crop.sum() < cfg.min_region_px:
+            cands = matches.get(reg.name)
+            if not cands:
+                continue  # no prompt names this region: the detector is never asked for it
+            cls, k, rival = _compete(cands, cfg, float(u_obj[i, 3]))
+            strength = STRENGTHS[k]
+            keep = recall_of[cls] * cfg.match_detection[strength]
+            if u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
                 continue
-            pred = reg.cls
-            cand = partners.get(reg.cls)
-            if cand and u_confuse[i, 0] < cfg.confusion_prob:
-                pred = cand[min(int(u_confuse[i, 1] * len(cand)), len(cand) - 1)]
-            probs.append(_distribution(reg.cls, pred, partners, num_classes, cfg, dist_rng))
-            confs.append(conf[i])
+            pred = cls
+            cand = partners.get(cls)
+            if cand and u_obj[i, 1] < cfg.confusion_prob:
+                pred = cand[min(int(u_obj[i, 2] * len(cand)), len(cand) - 1)]
+            probs.append(
+                _distribution(
+                    cls, pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg, rng=dist_rng
+                )
+            )
+            confs.append(np.float32(conf[i] * cfg.match_confidence[strength]))
             max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
             radius = min(int(u_bleed[i] * (max_r + 1)), max_r)
             bits.append(np.packbits(self._paint(flat, reg, radius, h, w)))
@@ -420,4 +568,4 @@ class SimulatedLabeler:
         return flat
 
 
-__all__ = ["SimulatedLabeler", "SimulatedLabelerConfig"]
+__all__ = ["SimulatedLabeler", "SimulatedLabelerConfig", "prompt_matches"]

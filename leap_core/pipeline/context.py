@@ -209,7 +209,7 @@ def dataset_identity(seq: KittiSequence) -> str:
     """Hash of a sequence's location, calibration, poses and the size + mtime of every per-frame file."""
     root = seq.root.resolve()
     parts: list[Any] = [str(root), file_digest(root / "calib.txt"), file_digest(root / "poses.txt")]
-    folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance"]
+    folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]
     for name in folders:
         folder = root / name
         if not folder.is_dir():
@@ -221,12 +221,15 @@ def dataset_identity(seq: KittiSequence) -> str:
     return hash_json(parts)
 
 
+GT2D_KINDS = ("semantic", "instance", "name")
+"""Per-frame 2D ground-truth images a labeler may read (``gt2d/<kind>/<frame>.png``)."""
+
+
 def frame_input_digest(seq: KittiSequence, index: int) -> str:
     """Content digest of what a 2D labeler reads for one frame (its image and 2D ground truth, if any)."""
     h = hashlib.sha256(f"{index}|{seq.frame_ids[index]}".encode())
     fid = seq.frame_ids[index]
-    paths = [seq.image_path(index), seq.root / "gt2d" / "semantic" / f"{fid}.png",
-             seq.root / "gt2d" / "instance" / f"{fid}.png"]
+    paths = [seq.image_path(index), *(seq.root / "gt2d" / kind / f"{fid}.png" for kind in GT2D_KINDS)]
     for p in paths:
         if p is not None and p.is_file():
             h.update(p.name.encode())

@@ -4,7 +4,7 @@ shadows, and per-pixel 2D ground truth.
 Projection model (as in KITTI): a LiDAR point X maps to ``P2 · Tr · [X 1]ᵀ``; with ``P2 = K [I | t₂]`` the
 camera centre sits at −t₂ in the rectified camera-0 frame. Pixel centres are at integer (u, v), so the
 pixel of a projected point is ``round(u), round(v)``. Each pixel is rendered from the ray through its
-centre; the 2D ground truth is the class / instance of the surface that ray hits (0 for sky).
+centre; the 2D ground truth is the class / instance / name of the surface that ray hits (0 for sky).
 
 Shading: albedo from procedural textures per material, Lambert with the sun (shadowed with a lazily
 built sun-view depth map of the static scene plus exact shadow rays against moving objects) plus a
@@ -125,12 +125,14 @@ class CameraFrame:
 
     Attributes:
         rgb: (H, W, 3) uint8 image. semantic: (H, W) uint16 raw class id (0 = sky / nothing).
-        instance: (H, W) uint16 instance id (0 = stuff). depth: (H, W) float32 z-depth (inf = sky).
+        instance: (H, W) uint16 instance id (0 = stuff). name: (H, W) uint16 name id of the surface
+        (``leap_core.synth.names``; 0 = sky). depth: (H, W) float32 z-depth (inf = sky).
     """
 
     rgb: npt.NDArray[np.uint8]
     semantic: npt.NDArray[np.uint16]
     instance: npt.NDArray[np.uint16]
+    name: npt.NDArray[np.uint16]
     depth: npt.NDArray[np.float32]
 
 
@@ -309,12 +311,19 @@ def render(
     linear[miss] = _sky(np.stack([dirs[k].reshape(-1)[miss] for k in range(3)], axis=1), sun32)
     rgb = _sensor_image(linear.reshape(h, w, 3), cfg.noise_std, rng)
 
-    sem = np.zeros(h * w, np.uint16)
-    inst = np.zeros(h * w, np.uint16)
-    sem[idx] = prims.semantic[p]
-    inst[idx] = prims.instance[p]
+    def gt(column: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
+        img = np.zeros(h * w, np.uint16)
+        img[idx] = column[p]
+        return img.reshape(h, w)
+
     depth_out = np.where(pid >= 0, depth, np.float32(np.inf)).astype(np.float32)
-    return CameraFrame(rgb=rgb, semantic=sem.reshape(h, w), instance=inst.reshape(h, w), depth=depth_out)
+    return CameraFrame(
+        rgb=rgb,
+        semantic=gt(prims.semantic),
+        instance=gt(prims.instance),
+        name=gt(prims.name),
+        depth=depth_out,
+    )
 
 
 def _sensor_image(linear: F32, noise_std: float, rng: np.random.Generator) -> npt.NDArray[np.uint8]:

@@ -2,9 +2,11 @@
 
 ``OUT/sequences/NN/`` receives ``velodyne/*.bin``, ``labels/*.label`` (semantic | instance << 16),
 ``image_2/*.png``, ``calib.txt`` (P2, Tr), ``poses.txt`` (camera-frame poses relative to the first
-frame, as KITTI stores them), ``times.txt`` and the 2D ground truth ``gt2d/{semantic,instance}/*.png``
-(uint16). Output is byte-identical for the same configuration, whatever the number of worker processes:
-every frame draws its noise from its own generator seeded by (seed, frame).
+frame, as KITTI stores them), ``times.txt``, the 2D ground truth ``gt2d/{semantic,instance,name}/*.png``
+(uint16; ``name`` holds the fine-grained name id of every pixel, see ``leap_core.synth.names``) and
+``synth_version.txt`` (:data:`SYNTH_VERSION`). Output is byte-identical for the same configuration,
+whatever the number of worker processes: every frame draws its noise from its own generator seeded by
+(seed, frame).
 """
 
 from __future__ import annotations
@@ -36,6 +38,22 @@ from leap_core.synth.camera import CameraConfig, SunShadows, camera_to_world, pi
 from leap_core.synth.lidar import LidarConfig, ray_grid, scan
 from leap_core.synth.route import EgoConfig
 from leap_core.synth.scene import Scene, SceneConfig, build_scene
+
+SYNTH_VERSION = 2
+"""Version of what the generator writes for a given config; bumped whenever the same config would produce
+different files (a new object kind, a new ground-truth image). A demo folder with another (or no)
+``synth_version.txt`` is stale and is generated again. 2: the demo world with names (issue 12)."""
+
+VERSION_FILE = "synth_version.txt"
+
+
+def synth_version(seq_dir: str | Path) -> int | None:
+    """The :data:`SYNTH_VERSION` a sequence folder was generated with (None: not written by this
+    generator, or by a version before the stamp existed)."""
+    try:
+        return int((Path(seq_dir) / VERSION_FILE).read_text().strip())
+    except (OSError, ValueError):
+        return None
 
 
 @dataclass(frozen=True)
@@ -152,6 +170,7 @@ class _Worker:
         write_image(d / "image_2" / f"{stem}.png", cam.rgb)
         write_png16(d / "gt2d" / "semantic" / f"{stem}.png", cam.semantic)
         write_png16(d / "gt2d" / "instance" / f"{stem}.png", cam.instance)
+        write_png16(d / "gt2d" / "name" / f"{stem}.png", cam.name)
         return (
             i,
             len(sc.points),
@@ -215,7 +234,7 @@ def generate_sequence(
         if not force:
             raise DatasetError(seq_dir, "sequence folder is not empty; refusing to overwrite (use --force)")
         shutil.rmtree(seq_dir)
-    for sub in ("velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance"):
+    for sub in ("velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"):
         (seq_dir / sub).mkdir(parents=True, exist_ok=True)
     report(progress, 0, cfg.frames)
     points = np.zeros(cfg.frames, np.int64)
@@ -247,6 +266,7 @@ def generate_sequence(
     write_poses(seq_dir / "poses.txt", camera_poses_kitti(lidar_poses(scene, cfg), calib.Tr))
     times = "".join(f"{i / cfg.hz:.6e}\n" for i in range(cfg.frames))
     atomic_write_bytes(seq_dir / "times.txt", times.encode())
+    atomic_write_bytes(seq_dir / VERSION_FILE, f"{SYNTH_VERSION}\n".encode())
     return SynthStats(path=seq_dir, points=points, in_image=in_image)
 
 

@@ -1,6 +1,8 @@
 """Class ids, materials and their LiDAR reflectivity for the synthetic street scene.
 
-Class ids are raw SemanticKITTI ids (the values written to ``.label`` and to the 2D ground-truth masks).
+Class ids are raw SemanticKITTI ids (the values written to ``.label`` and to the 2D ground-truth masks),
+plus the demo's own ids 300..302 for objects no SemanticKITTI class names well
+(``leap_core.synth.names.DEMO_EXTRA_RAW_IDS``).
 A material decides how a surface is textured in the camera image and how bright it is to the LiDAR;
 ``Primitives.param`` carries up to four per-primitive numbers whose meaning depends on the material
 (documented per member below).
@@ -20,11 +22,13 @@ class SemanticId(IntEnum):
     UNLABELED = 0
     CAR = 10
     BICYCLE = 11
+    BUS = 13
     TRUCK = 18
     PERSON = 30
     ROAD = 40
     PARKING = 44
     SIDEWALK = 48
+    OTHER_GROUND = 49
     BUILDING = 50
     FENCE = 51
     VEGETATION = 70
@@ -34,6 +38,13 @@ class SemanticId(IntEnum):
     TRAFFIC_SIGN = 81
     MOVING_CAR = 252
     MOVING_PERSON = 254
+    MOVING_BUS = 257
+    TRAFFIC_CONE = 300
+    """Demo extension (``DEMO_EXTRA_RAW_IDS``)."""
+    BENCH = 301
+    """Demo extension."""
+    BOLLARD = 302
+    """Demo extension."""
 
 
 THING_IDS: Final = frozenset(
@@ -44,9 +55,14 @@ THING_IDS: Final = frozenset(
         SemanticId.PERSON,
         SemanticId.MOVING_CAR,
         SemanticId.MOVING_PERSON,
+        SemanticId.MOVING_BUS,
+        SemanticId.TRAFFIC_CONE,
+        SemanticId.BENCH,
+        SemanticId.BOLLARD,
     }
 )
-"""Classes whose objects carry an instance id (as in SemanticKITTI); everything else is stuff (instance 0)."""
+"""Classes whose objects carry an instance id (as in SemanticKITTI); everything else is stuff (instance 0).
+The demo's own objects (cones, benches, bollards) are things too: one mask each, like a detector box."""
 
 REQUIRED_IDS: Final = frozenset(
     {
@@ -66,9 +82,15 @@ REQUIRED_IDS: Final = frozenset(
         SemanticId.BICYCLE,
         SemanticId.MOVING_CAR,
         SemanticId.MOVING_PERSON,
+        SemanticId.MOVING_BUS,
+        SemanticId.OTHER_GROUND,
+        SemanticId.TRAFFIC_CONE,
+        SemanticId.BENCH,
+        SemanticId.BOLLARD,
     }
 )
-"""Every class a default scene must contain (issue 2, item 4)."""
+"""Every class a default scene must contain (issue 2, item 4; the bus, gravel and the demo's own objects
+since the demo has names, issue 12)."""
 
 
 class Material(IntEnum):

@@ -62,6 +62,7 @@ class Primitives:
         half: (P, 3) float64 half extents (box), (radius, radius, half height) (cylinder) or semi-axes.
         semantic: (P,) uint16 raw SemanticKITTI class id.
         instance: (P,) uint16 instance id (0 for stuff).
+        name: (P,) uint16 fine-grained name id (``leap_core.synth.names``; 0 = no name).
         material: (P,) uint8 material id (``leap_core.synth.materials.Material``).
         color: (P, 3) float32 base albedo in [0, 1] (linear RGB).
         param: (P, 4) float32 material-specific texture parameters (see ``materials``).
@@ -73,6 +74,7 @@ class Primitives:
     half: npt.NDArray[np.float64]
     semantic: npt.NDArray[np.uint16]
     instance: npt.NDArray[np.uint16]
+    name: npt.NDArray[np.uint16]
     material: npt.NDArray[np.uint8]
     color: npt.NDArray[np.float32]
     param: npt.NDArray[np.float32]
@@ -89,6 +91,7 @@ class Primitives:
             half=np.zeros((0, 3)),
             semantic=np.zeros(0, np.uint16),
             instance=np.zeros(0, np.uint16),
+            name=np.zeros(0, np.uint16),
             material=np.zeros(0, np.uint8),
             color=np.zeros((0, 3), np.float32),
             param=np.zeros((0, 4), np.float32),
@@ -117,6 +120,7 @@ class Primitives:
             half=self.half,
             semantic=self.semantic,
             instance=self.instance,
+            name=self.name,
             material=self.material,
             color=self.color,
             param=self.param,

@@ -22,13 +22,39 @@ import numpy.typing as npt
 
 from leap_core.synth.materials import Material as M
 from leap_core.synth.materials import SemanticId as S
+from leap_core.synth.names import name_id
 from leap_core.synth.raycast import BOX, CYLINDER, ELLIPSOID, Primitives, rotation_xyz, rotation_z
 from leap_core.synth.route import EgoConfig, Route, StreetGrid, drive_along, plan_route, right_of
 
 F64 = npt.NDArray[np.float64]
 
-_Row = tuple[int, F64, F64, F64, int, int, int, F64, tuple[float, ...]]
-"""One primitive before packing: kind, center, rot, half, semantic, instance, material, color, param."""
+_Row = tuple[int, F64, F64, F64, int, int, int, F64, tuple[float, ...], int]
+"""One primitive before packing: kind, center, rot, half, semantic, instance, material, color, param, name."""
+
+_DEFAULT_NAME: Final[dict[int, str]] = {
+    S.CAR: "sedan",
+    S.MOVING_CAR: "sedan",
+    S.BICYCLE: "city bike",
+    S.TRUCK: "box truck",
+    S.MOVING_BUS: "bus",
+    S.PERSON: "pedestrian",
+    S.MOVING_PERSON: "pedestrian",
+    S.ROAD: "asphalt",
+    S.PARKING: "parking lane",
+    S.SIDEWALK: "sidewalk",
+    S.OTHER_GROUND: "gravel",
+    S.BUILDING: "apartment building",
+    S.FENCE: "wooden fence",
+    S.VEGETATION: "tree",
+    S.TRUNK: "trunk",
+    S.TERRAIN: "lawn",
+    S.POLE: "lamp post",
+    S.TRAFFIC_SIGN: "traffic sign",
+    S.TRAFFIC_CONE: "traffic cone",
+    S.BENCH: "bench",
+    S.BOLLARD: "bollard",
+}
+"""Name of a primitive whose builder gives none: the most common name of its class in the scene."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +89,16 @@ class SceneConfig:
     """Chance that a block side has detached houses with front yards (else closed row buildings)."""
     grass_strip_rate: float = 0.35
     """Chance that a sidewalk has a grass strip along the curb."""
+    gravel_strip_rate: float = 0.4
+    """Chance that such a strip is gravel (other-ground) instead of grass."""
+    cone_rate: float = 0.25
+    """Chance that a block side has a few traffic cones along its parking lane."""
+    jeep_rate: float = 0.2
+    """Share of the parked cars (vans aside) that are jeeps (SUVs)."""
+    bench_rate: float = 0.35
+    """Mean number of benches per sidewalk."""
+    bollard_rate: float = 0.3
+    """Chance that a sidewalk has a row of bollards near a corner."""
     lamp_spacing: tuple[float, float] = (24.0, 34.0)
     """Range of the spacing of street lamps (m)."""
     bicycles_per_side: float = 0.6
@@ -140,13 +176,15 @@ class _Parts:
         yaw: float = 0.0,
         param: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0),
         inst: int = 0,
+        name: str | None = None,
     ) -> None:
         r = rotation_z(yaw) if rot is None else rot
+        nid = name_id(name if name is not None else _DEFAULT_NAME[sem])
         half = np.asarray(half, np.float64)
         if kind == CYLINDER:
             half = np.array([half[0], half[0], half[2]])
         self.rows.append(
-            (kind, np.asarray(center, float), r, half, sem, inst, mat, np.asarray(color, float), param)
+            (kind, np.asarray(center, float), r, half, sem, inst, mat, np.asarray(color, float), param, nid)
         )
 
     def box(
@@ -181,6 +219,7 @@ class _Parts:
         color: npt.ArrayLike,
         *,
         inst: int = 0,
+        name: str | None = None,
     ) -> None:
         """A thin box from p0 to p1 (square section ``thick``), local x along the rod."""
         p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
@@ -193,6 +232,7 @@ class _Parts:
             color,
             rot=_frame_x(p1 - p0),
             inst=inst,
+            name=name,
         )
 
     def build(self) -> Primitives:
@@ -209,6 +249,7 @@ class _Parts:
             material=np.array(cols[6], np.uint8),
             color=np.clip(np.array(cols[7], np.float32), 0, 1),
             param=np.array(cols[8], np.float32).reshape(-1, 4),
+            name=np.array(cols[9], np.uint16),
         )
 
 
@@ -243,14 +284,21 @@ def _yaw_of(v: F64) -> float:
 
 # ---------------------------------------------------------------------------------------- object shapes
 # Shapes are built in the object's frame: x forward, y left, z up, origin on the ground at the centre.
-def car_shape(rng: np.random.Generator, sem: int, inst: int, van: bool = False) -> Primitives:
-    """Lower body, cabin (glass sides), four wheels. Sedans 3.9 to 4.8 m long; vans taller and boxier."""
+def car_shape(
+    rng: np.random.Generator, sem: int, inst: int, van: bool = False, jeep: bool = False
+) -> Primitives:
+    """Lower body, cabin (glass sides), four wheels. Sedans 3.9 to 4.8 m long (named "hatchback" below
+    4.3 m); vans taller and boxier; jeeps (SUVs) sit higher with a longer, taller cabin."""
     p = _Parts()
     color = _CAR_COLORS[rng.integers(len(_CAR_COLORS))] * rng.uniform(0.92, 1.05)
     length = rng.uniform(4.6, 5.1) if van else rng.uniform(3.9, 4.8)
     width = rng.uniform(1.75, 1.95) if van else rng.uniform(1.7, 1.85)
     body_top = rng.uniform(0.9, 1.0)
     clear = 0.28
+    if jeep and not van:
+        # The same draws as a sedan, raised and lengthened, so choosing a jeep shifts no other draw.
+        length, body_top, clear = max(length, 4.35), body_top + 0.22, 0.42
+    name = "van" if van else "jeep" if jeep else ("hatchback" if length < 4.3 else "sedan")
     p.box(
         (0, 0, (clear + body_top) / 2),
         (length / 2, width / 2, (body_top - clear) / 2),
@@ -259,13 +307,24 @@ def car_shape(rng: np.random.Generator, sem: int, inst: int, van: bool = False) 
         color,
         param=(0.0, 0, 0, 0),
         inst=inst,
+        name=name,
     )
     if van:
         cab_len, cab_h, cab_x = length * 0.36, rng.uniform(0.75, 0.95), -0.1 * length
     else:
         cab_len, cab_h, cab_x = length * rng.uniform(0.2, 0.24), rng.uniform(0.42, 0.5), -0.07 * length
+        if jeep:
+            cab_len, cab_h = cab_len * 1.3, cab_h + 0.2
     cab_w = width / 2 - 0.08
-    p.box((cab_x, 0, body_top + cab_h / 2), (cab_len, cab_w, cab_h / 2), sem, M.GLASS, color, inst=inst)
+    p.box(
+        (cab_x, 0, body_top + cab_h / 2),
+        (cab_len, cab_w, cab_h / 2),
+        sem,
+        M.GLASS,
+        color,
+        inst=inst,
+        name=name,
+    )
     # Sloped wind screen and rear window: thick boxes whose top face is the slope; the rest of each box
     # lies inside the body and cabin, so no gap opens under the slope.
     for side, run in (
@@ -290,6 +349,7 @@ def car_shape(rng: np.random.Generator, sem: int, inst: int, van: bool = False) 
             rot=rot,
             param=(1.0, 0, 0, 0),
             inst=inst,
+            name=name,
         )
     r = rng.uniform(0.3, 0.34)
     axle = length / 2 - rng.uniform(0.7, 0.85)
@@ -304,6 +364,7 @@ def car_shape(rng: np.random.Generator, sem: int, inst: int, van: bool = False) 
                 (0.05, 0.05, 0.05),
                 rot=_frame_z((0, sy, 0)),
                 inst=inst,
+                name=name,
             )
     return p.build()
 
@@ -363,9 +424,13 @@ class PersonLook:
     skin: tuple[float, float, float]
 
 
-def person_look(rng: np.random.Generator) -> PersonLook:
+_CHILD_HEIGHT: Final = 1.45
+"""People shorter than this are named "child"."""
+
+
+def person_look(rng: np.random.Generator, child: bool = False) -> PersonLook:
     return PersonLook(
-        height=float(rng.uniform(1.58, 1.92)),
+        height=float(rng.uniform(1.05, 1.4) if child else rng.uniform(1.58, 1.92)),
         shirt=tuple(_SHIRTS[rng.integers(len(_SHIRTS))] * rng.uniform(0.85, 1.05)),
         pants=tuple(_PANTS[rng.integers(len(_PANTS))]),
         skin=tuple(_SKIN[rng.integers(len(_SKIN))]),
@@ -377,6 +442,7 @@ def person_shape(look: PersonLook, sem: int, inst: int, phase: float, swing: flo
     and shoulders (opposite sides in counter-phase)."""
     p = _Parts()
     h = look.height
+    name = "child" if h < _CHILD_HEIGHT else "pedestrian"
     leg, torso = 0.47 * h, 0.3 * h
     hip, shoulder = leg, leg + torso
     for side in (-1, 1):
@@ -390,6 +456,7 @@ def person_shape(look: PersonLook, sem: int, inst: int, phase: float, swing: flo
             look.pants,
             rot=r_leg,
             inst=inst,
+            name=name,
         )
         r_arm = rotation_xyz(0.0, -a * 0.8, 0.0)
         arm = 0.36 * h
@@ -401,9 +468,12 @@ def person_shape(look: PersonLook, sem: int, inst: int, phase: float, swing: flo
             look.shirt,
             rot=r_arm,
             inst=inst,
+            name=name,
         )
-    p.box((0, 0, hip + torso / 2), (0.12, 0.19, torso / 2), sem, M.CLOTH, look.shirt, inst=inst)
-    p.ellipsoid((0.0, 0, shoulder + 0.14 * h * 0.75), (0.1, 0.085, 0.12), sem, M.SKIN, look.skin, inst=inst)
+    p.box((0, 0, hip + torso / 2), (0.12, 0.19, torso / 2), sem, M.CLOTH, look.shirt, inst=inst, name=name)
+    p.ellipsoid(
+        (0.0, 0, shoulder + 0.14 * h * 0.75), (0.1, 0.085, 0.12), sem, M.SKIN, look.skin, inst=inst, name=name
+    )
     return p.build()
 
 
@@ -432,6 +502,77 @@ def bicycle_shape(rng: np.random.Generator, sem: int, inst: int) -> Primitives:
     p.box(seat + np.array([0, 0, 0.03]), (0.12, 0.06, 0.03), sem, M.CLOTH, (0.08, 0.08, 0.08), inst=inst)
     p.box(handlebar, (0.025, 0.28, 0.02), sem, M.METAL, (0.15, 0.15, 0.15), inst=inst)
     p.rod(head, handlebar, 0.03, sem, M.METAL, color, inst=inst)
+    return p.build()
+
+
+def bus_shape(rng: np.random.Generator, sem: int, inst: int) -> Primitives:
+    """A city bus: a 12 m painted body with a dark windscreen, a glazed upper band and six wheels."""
+    p = _Parts()
+    color = np.array([0.85, 0.72, 0.12]) if rng.random() < 0.5 else np.array([0.2, 0.42, 0.7])
+    length, width, clear = rng.uniform(11.0, 12.5), 2.5, 0.35
+    p.box(
+        (0, 0, clear + 0.9), (length / 2, width / 2, 0.9), sem, M.PAINT, color, param=(1, 0, 0, 0), inst=inst
+    )
+    p.box(
+        (0, 0, clear + 1.8 + 0.55),
+        (length / 2 - 0.05, width / 2 - 0.03, 0.55),
+        sem,
+        M.GLASS,
+        color,
+        inst=inst,
+    )
+    r = 0.5
+    for x in (length / 2 - 2.4, -length / 2 + 3.0, -length / 2 + 1.9):
+        for sy in (-1, 1):
+            p.cylinder(
+                (x, sy * (width / 2 - 0.2), r),
+                r,
+                0.16,
+                sem,
+                M.RUBBER,
+                (0.05, 0.05, 0.05),
+                rot=_frame_z((0, sy, 0)),
+                inst=inst,
+            )
+    return p.build()
+
+
+def cone_shape(inst: int) -> Primitives:
+    """A 0.6 m traffic cone: a square black foot and three stacked orange / white cylinders."""
+    p = _Parts()
+    sem = S.TRAFFIC_CONE
+    p.box((0, 0, 0.02), (0.19, 0.19, 0.02), sem, M.RUBBER, (0.05, 0.05, 0.05), inst=inst)
+    orange, white = (0.95, 0.35, 0.05), (0.92, 0.92, 0.9)
+    for k, (radius, color) in enumerate(((0.15, orange), (0.11, white), (0.075, orange))):
+        p.cylinder((0, 0, 0.04 + 0.09 + 0.18 * k), radius, 0.09, sem, M.CLOTH, color, inst=inst)
+    return p.build()
+
+
+def bench_shape(rng: np.random.Generator, inst: int) -> Primitives:
+    """A 1.8 m wooden park bench (seat and back slats on two metal frames), facing +x."""
+    p = _Parts()
+    sem = S.BENCH
+    wood = np.array([0.5, 0.34, 0.2]) * rng.uniform(0.85, 1.1)
+    half_len = 0.9
+    p.box((0, 0, 0.45), (0.22, half_len, 0.03), sem, M.FENCE, wood, param=(0, 0, 0, 0), inst=inst)
+    p.box((-0.24, 0, 0.75), (0.03, half_len, 0.2), sem, M.FENCE, wood, param=(0, 0, 0, 0), inst=inst)
+    for sy in (-1, 1):
+        p.box(
+            (-0.05, sy * (half_len - 0.1), 0.22),
+            (0.22, 0.03, 0.22),
+            sem,
+            M.METAL,
+            (0.15, 0.15, 0.16),
+            inst=inst,
+        )
+    return p.build()
+
+
+def bollard_shape(inst: int) -> Primitives:
+    """A 0.9 m metal bollard with a reflective band."""
+    p = _Parts()
+    p.cylinder((0, 0, 0.45), 0.09, 0.45, S.BOLLARD, M.METAL, (0.22, 0.23, 0.25), inst=inst)
+    p.cylinder((0, 0, 0.78), 0.095, 0.04, S.BOLLARD, M.SIGN, (0.9, 0.9, 0.9), inst=inst)
     return p.build()
 
 
@@ -510,7 +651,7 @@ def _sign(
 ) -> None:
     """Sign post (pole) with one or two plates (traffic-sign) whose front faces ``facing``."""
     h = rng.uniform(2.4, 3.0)
-    p.cylinder((x, y, z0 + h / 2), 0.04, h / 2, S.POLE, M.METAL, (0.55, 0.56, 0.58))
+    p.cylinder((x, y, z0 + h / 2), 0.04, h / 2, S.POLE, M.METAL, (0.55, 0.56, 0.58), name="sign post")
     style = int(rng.integers(0, 4)) if style is None else style
     plate_z = z0 + h - 0.35
     front = np.array([x, y, 0]) + np.r_[facing, 0] * 0.06
@@ -665,6 +806,9 @@ class _Build:
     occ: _Occupancy
     ids: _Ids
     statics: list[Primitives]
+    extra: np.random.Generator
+    """Draws added with the demo's names (jeeps, gravel, cones, benches, bollards, the bus, children):
+    a stream of its own, so they shift none of the older layout draws."""
 
 
 class _Side(NamedTuple):
@@ -708,7 +852,8 @@ class _Side(NamedTuple):
 def build_scene(cfg: SceneConfig, ego: EgoConfig, frames: int, hz: float, seed: int) -> Scene:
     """Build the scene for ``frames`` frames at ``hz`` from ``seed`` (deterministic)."""
     ss = np.random.SeedSequence([int(seed), 0x5EED])
-    rng_route, rng_hero, rng_city, rng_light = (np.random.default_rng(s) for s in ss.spawn(4))
+    # spawn(5)'s first four children equal spawn(4)'s: the fifth stream was added without moving the others.
+    rng_route, rng_hero, rng_city, rng_light, rng_extra = (np.random.default_rng(s) for s in ss.spawn(5))
     grid = StreetGrid(
         block_x=float(rng_city.uniform(*cfg.block_x)),
         block_y=float(rng_city.uniform(*cfg.block_y)),
@@ -717,7 +862,7 @@ def build_scene(cfg: SceneConfig, ego: EgoConfig, frames: int, hz: float, seed: 
     )
     route = plan_route(ego, grid, frames, hz, rng_route)
     statics: list[Primitives] = []
-    build = _Build(cfg, grid, _Occupancy(), _Ids(), statics)
+    build = _Build(cfg, grid, _Occupancy(), _Ids(), statics, rng_extra)
     actors: list[Actor] = []
     _heroes(build, ego, route, hz, rng_hero, actors)
 
@@ -736,6 +881,10 @@ def build_scene(cfg: SceneConfig, ego: EgoConfig, frames: int, hz: float, seed: 
     yard_hint = _yard_hints(grid, route, rng_city)
     for i, j in blocks:
         _block(build, i, j, rng_city, p, yard_hint)
+    _named_extras(build, route, hz, actors)
+    for i, j in blocks:
+        for side in _side_frames(grid, i, j):
+            _street_objects(build, side)
     _streets(cfg, grid, set(blocks), rng_city, p)
     statics.insert(0, p.build())
     az = rng_light.uniform(0, 2 * np.pi)
@@ -941,6 +1090,105 @@ def _heroes(  # noqa: PLR0915  a scene recipe: one placement after the other, re
     statics.append(p.build())
 
 
+def _named_extras(build: _Build, route: Route, hz: float, actors: list[Actor]) -> None:
+    """Objects added with the demo's names, placed on the first street so the camera sees them early: an
+    oncoming bus, a row of traffic cones on the ego lane's edge, a bench, bollards at the corner and two
+    children. Their draws come from ``build.extra`` only."""
+    cfg, grid, occ, ids, statics, rng = (
+        build.cfg,
+        build.grid,
+        build.occ,
+        build.ids,
+        build.statics,
+        build.extra,
+    )
+    frames = len(route.frame_s)
+    t = np.arange(frames) / hz
+    lw, hr, sw, ch = grid.lane_width, grid.half_road, cfg.sidewalk_width, cfg.curb_height
+    leg1 = route.legs[0]
+    h1 = leg1.heading
+    centre1 = leg1.start - right_of(h1) * lw / 2
+    start_along = float(np.dot(leg1.start - centre1, h1))
+    along_corner = float(np.dot(np.zeros(2) - centre1, h1)) - hr - 1.5
+
+    def point(along: float, lateral: float) -> F64:
+        return centre1 + h1 * along + right_of(h1) * lateral
+
+    # The bus comes towards the ego in the oncoming lane, behind the (faster) oncoming car of _heroes.
+    d0 = float(np.dot(np.zeros(2) - leg1.start, h1))
+    bus_start = point(start_along + max(d0 - 2.0, 12.0) + 14.0 + rng.uniform(22.0, 30.0), -lw / 2)
+    xy = bus_start[None] - cfg.oncoming_speed * 0.85 * t[:, None] * h1[None]
+    inst = ids()
+    actors.append(
+        Actor(
+            inst,
+            S.MOVING_BUS,
+            bus_shape(rng, S.MOVING_BUS, inst),
+            None,
+            xy,
+            np.full(frames, _yaw_of(-h1)),
+            np.zeros(frames),
+        )
+    )
+
+    # Cones on the right edge of the ego lane, ahead of the start.
+    a0 = start_along + rng.uniform(14.0, 20.0)
+    for k in range(5):
+        q = point(a0 + 2.2 * k, lw - 0.35)
+        if occ.free(q[0], q[1], 0.25):
+            statics.append(_place(cone_shape(ids()), q[0], q[1], rng.uniform(0, np.pi)))
+            occ.add(q[0], q[1], 0.25)
+
+    # A bench on the right sidewalk, back to the lots; bollards at the corner; two children nearby.
+    for along in np.linspace(start_along + 8.0, along_corner - 6.0, 12):
+        q = point(float(along), hr + sw - 0.5)
+        if occ.free(q[0], q[1], 1.0):
+            statics.append(_place(bench_shape(rng, ids()), q[0], q[1], _yaw_of(-right_of(h1)), ch))
+            occ.add(q[0], q[1], 1.0)
+            break
+    for side in (1.0, -1.0):
+        for k in range(4):
+            q = point(along_corner - 4.0 - 1.4 * k, side * (hr + 0.3))
+            if occ.free(q[0], q[1], 0.2):
+                statics.append(_place(bollard_shape(ids()), q[0], q[1], 0.0, ch))
+                occ.add(q[0], q[1], 0.2)
+    for _ in range(2):
+        q = point(float(rng.uniform(start_along + 10.0, along_corner - 3.0)), -(hr + rng.uniform(1.2, 2.2)))
+        if occ.free(q[0], q[1], 0.45):
+            look = person_look(rng, child=True)
+            statics.append(
+                _place(
+                    person_shape(look, S.PERSON, ids(), 0.0, 0.0), q[0], q[1], rng.uniform(-np.pi, np.pi), ch
+                )
+            )
+            occ.add(q[0], q[1], 0.45)
+
+
+def _street_objects(build: _Build, side: _Side) -> None:
+    """Cones in the parking lane, benches and a bollard row on one block side (``build.extra`` draws)."""
+    cfg, occ, ids, statics, rng = build.cfg, build.occ, build.ids, build.statics, build.extra
+    ch, sw = cfg.curb_height, cfg.sidewalk_width
+    if rng.random() < cfg.cone_rate:
+        a = rng.uniform(8.0, max(side.length - 16.0, 9.0))
+        for k in range(int(rng.integers(2, 5))):
+            q = side.at(a + 1.8 * k, -build.grid.parking_width + 0.4)
+            if occ.free(q[0], q[1], 0.25):
+                statics.append(_place(cone_shape(ids()), q[0], q[1], rng.uniform(0, np.pi)))
+                occ.add(q[0], q[1], 0.25)
+    for _ in range(rng.poisson(cfg.bench_rate)):
+        q = side.at(rng.uniform(6.0, side.length - 6.0), sw - 0.5)
+        if occ.free(q[0], q[1], 1.0):
+            statics.append(_place(bench_shape(rng, ids()), q[0], q[1], _yaw_of(-side.n), ch))
+            occ.add(q[0], q[1], 1.0)
+    if rng.random() < cfg.bollard_rate:
+        a = rng.uniform(4.0, 7.0)
+        for k in range(int(rng.integers(3, 6))):
+            q = side.at(a + 1.4 * k, 0.3)
+            if occ.free(q[0], q[1], 0.2):
+                statics.append(_place(bollard_shape(ids()), q[0], q[1], 0.0, ch))
+                occ.add(q[0], q[1], 0.2)
+
+
 def _side_frames(grid: StreetGrid, i: int, j: int) -> list[_Side]:
     """The four curb lines of block (i, j), counter-clockwise from the south."""
     hr = grid.half_road
@@ -973,7 +1221,8 @@ def _block(
     footprints: list[tuple[F64, F64]] = []
     for side in sides:
         strip = rng.random() < cfg.grass_strip_rate
-        _sidewalk(cfg, grid, p, side, strip)
+        gravel = strip and build.extra.random() < cfg.gravel_strip_rate
+        _sidewalk(cfg, grid, p, side, strip, gravel)
         _furniture(build, rng, p, side, strip)
         _parked(build, rng, side)
 
@@ -981,9 +1230,7 @@ def _block(
     for k, side in enumerate(sides):
         lot = _Side(side.at(sw, sw), side.t, side.n, side.length - 2 * sw)
         reserve = 0.0 if k % 2 == 0 else max(setback[0], setback[2]) + depth_max + 0.5
-        _buildings(
-            cfg, rng, p, lot, reserve=reserve, yard=yard[k], setback=setback[k], footprints=footprints
-        )
+        _buildings(cfg, rng, p, lot, reserve=reserve, yard=yard[k], setback=setback[k], footprints=footprints)
 
     # Lot ground (lawns, yards, backyards) in tiles; tiles fully under one building are skipped.
     o, t, n, _ = sides[0]
@@ -1006,16 +1253,22 @@ def _block(
             )
 
 
-def _sidewalk(cfg: SceneConfig, grid: StreetGrid, p: _Parts, side: _Side, strip: bool) -> None:
-    """The sidewalk along one curb (with a grass strip behind a concrete curb when ``strip``) and the
-    parking lane in front of it."""
+def _sidewalk(
+    cfg: SceneConfig, grid: StreetGrid, p: _Parts, side: _Side, strip: bool, gravel: bool = False
+) -> None:
+    """The sidewalk along one curb (a concrete curb, then slabs; with a grass strip, or a gravel strip when
+    ``gravel``, behind the curb when ``strip``) and the parking lane in front of it."""
     sw, ch, length = cfg.sidewalk_width, cfg.curb_height, side.length
     slabs = (0.6, 0.59, 0.57)
+    for centre, half in side.boxes((0, length), (0.0, 0.18), (-0.3, ch + 0.01), cfg.tile):
+        p.box(centre, half, S.SIDEWALK, M.SLABS, (0.62, 0.61, 0.58), name="curb")
     if strip:
-        for centre, half in side.boxes((0, length), (0.0, 0.18), (-0.3, ch + 0.01), cfg.tile):
-            p.box(centre, half, S.SIDEWALK, M.SLABS, (0.62, 0.61, 0.58))
         for centre, half in side.boxes((sw, length - sw), (0.18, 1.5), (-0.3, ch - 0.03), cfg.tile):
-            p.box(centre, half, S.TERRAIN, M.GRASS, (0.33, 0.45, 0.2))
+            if gravel:
+                # Plain (style 0) asphalt shading with a light stone colour reads as fine gravel.
+                p.box(centre, half, S.OTHER_GROUND, M.ASPHALT, (0.56, 0.53, 0.47), name="gravel")
+            else:
+                p.box(centre, half, S.TERRAIN, M.GRASS, (0.33, 0.45, 0.2), name="grass strip")
         for centre, half in side.boxes((0, length), (1.5, sw), (-0.3, ch), cfg.tile):
             p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
         for centre, half in side.boxes((0, sw), (0.0, sw), (-0.3, ch), cfg.tile):
@@ -1023,7 +1276,7 @@ def _sidewalk(cfg: SceneConfig, grid: StreetGrid, p: _Parts, side: _Side, strip:
         for centre, half in side.boxes((length - sw, length), (0.0, sw), (-0.3, ch), cfg.tile):
             p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
     else:
-        for centre, half in side.boxes((0, length), (0.0, sw), (-0.3, ch), cfg.tile):
+        for centre, half in side.boxes((0, length), (0.18, sw), (-0.3, ch), cfg.tile):
             p.box(centre, half, S.SIDEWALK, M.SLABS, slabs)
     for centre, half in side.boxes((6.0, length - 6.0), (-grid.parking_width, 0.0), (-0.3, 0.006), cfg.tile):
         p.box(centre, half, S.PARKING, M.PAVERS, (0.4, 0.39, 0.38), param=(0.0, 0.0, 0.0, 0.0))
@@ -1072,6 +1325,7 @@ def _buildings(  # noqa: PLR0912, PLR0915  a scene recipe: one building after th
             else (np.array([0.55, 0.58, 0.6]) if style == 2 else _PLASTER[rng.integers(len(_PLASTER))])
         )
         color = color * rng.uniform(0.9, 1.05)
+        bname = "house" if yard else ("office building" if style == 2 else "apartment building")
         q0 = o + a * t + setback * n
         q1 = o + (a + width) * t + (setback + depth) * n
         lo, hi = np.minimum(q0, q1), np.maximum(q0, q1)
@@ -1084,6 +1338,7 @@ def _buildings(  # noqa: PLR0912, PLR0915  a scene recipe: one building after th
             M.FACADE,
             color,
             param=(floor_h, spacing, style, rng.uniform(0, 1000)),
+            name=bname,
         )
         mid = a + width / 2
         if yard and rng.random() < 0.75:
@@ -1100,6 +1355,7 @@ def _buildings(  # noqa: PLR0912, PLR0915  a scene recipe: one building after th
                 M.FACADE,
                 color * 0.95,
                 param=(floor_h, spacing, style, rng.uniform(0, 1000)),
+                name=bname,
             )
         if yard:
             lot0, lot1 = a - gap / 2 if a > reserve + 0.5 else a - 1.0, a + width + gap / 2
@@ -1113,11 +1369,19 @@ def _buildings(  # noqa: PLR0912, PLR0915  a scene recipe: one building after th
                     green = np.array([0.17, 0.32, 0.1]) * rng.uniform(0.85, 1.15)
                     leaf_seed = (rng.uniform(0, 100), 0, 0, 0)
                     for centre, half in boxes:
-                        p.box(centre, half, S.VEGETATION, M.LEAVES, green, param=leaf_seed)
+                        p.box(centre, half, S.VEGETATION, M.LEAVES, green, param=leaf_seed, name="hedge")
                 else:
                     fh = rng.uniform(0.9, 1.3)
                     for centre, half in lot.boxes((s0, s1), (0.12, 0.17), (lh, lh + fh), 12.0):
-                        p.box(centre, half, S.FENCE, M.FENCE, fence_color, param=(fence_style, 0, 0, 0))
+                        p.box(
+                            centre,
+                            half,
+                            S.FENCE,
+                            M.FENCE,
+                            fence_color,
+                            param=(fence_style, 0, 0, 0),
+                            name="wooden fence" if fence_style == 0 else "metal fence",
+                        )
             for _ in range(rng.integers(1, 4)):
                 s = rng.uniform(a + 0.8, a + width - 0.8)
                 if abs(s - gate) < 1.3:
@@ -1132,6 +1396,7 @@ def _buildings(  # noqa: PLR0912, PLR0915  a scene recipe: one building after th
                     M.LEAVES,
                     np.array([0.2, 0.38, 0.13]) * rng.uniform(0.8, 1.2, 3),
                     param=(rng.uniform(0, 100), 0, 0, 0),
+                    name="bush",
                 )
             if rng.random() < 0.4 and setback > 4.0:
                 s = rng.uniform(a, a + width)
@@ -1176,12 +1441,13 @@ def _gable(
             M.ROOF,
             color * rng.uniform(0.9, 1.1),
             rot=rot,
+            name="roof",
         )
     attic = base + n3 * (setback + depth / 2) + z3 * (ridge_h / 4)
     half_along, half_across = width / 2 - 0.05, depth / 4
     hx = abs(t[0]) * half_along + abs(n[0]) * half_across
     hy = abs(t[1]) * half_along + abs(n[1]) * half_across
-    p.box(attic, (hx, hy, ridge_h / 4), S.BUILDING, M.ROOF, color * 0.8)
+    p.box(attic, (hx, hy, ridge_h / 4), S.BUILDING, M.ROOF, color * 0.8, name="roof")
 
 
 def _tree_row(build: _Build, rng: np.random.Generator, p: _Parts, side: _Side, strip: bool) -> None:
@@ -1267,7 +1533,9 @@ def _parked(build: _Build, rng: np.random.Generator, side: _Side) -> None:
             if truck:
                 shape = truck_shape(rng, S.TRUCK, inst)
             else:
-                shape = car_shape(rng, S.CAR, inst, van=bool(rng.random() < 0.15))
+                van = bool(rng.random() < 0.15)
+                jeep = not van and bool(build.extra.random() < cfg.jeep_rate)
+                shape = car_shape(rng, S.CAR, inst, van=van, jeep=jeep)
             statics.append(_place(shape, q[0] + off[0], q[1] + off[1], yaw))
             occ.add_segment(q - t * (size / 2 - 1), q + t * (size / 2 - 1), 1.0)
             a += size + rng.uniform(0.6, 2.2)
@@ -1321,4 +1589,5 @@ def _streets(
                     asphalt,
                     yaw=yaw,
                     param=(mid, style, lw, 0),
+                    name="crosswalk" if style == 2 else "asphalt",
                 )
