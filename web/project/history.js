@@ -101,7 +101,7 @@ function runRows(ctx, run, rows) {
   );
   const out = [tr];
   if (run.note) {
-    out.push(h("tr", { class: "sub run-note-row" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "muted small run-note" }, `Note: ${run.note}`)));
+    out.push(h("tr", { class: "sub run-note-row" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "muted small run-note-text" }, `Note: ${run.note}`)));
   }
   if (run.error && !ctx.active.has(run.status)) {
     out.push(h("tr", { class: "sub" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "error small" }, run.error)));
