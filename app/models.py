@@ -71,7 +71,7 @@ class ClassBase(_Input):
 
     @field_validator("color")
     @classmethod
-    def _color(cls, v: Any) -> list[int]:
+    def _color(cls, v: Any) -> list[int] | None:  # None only where a subclass allows it (ClassCreate)
         return _check_color(v)
 
     @field_validator("prompts", "negative_prompts")

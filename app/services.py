@@ -511,7 +511,9 @@ def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
 
 # ------------------------------------------------------------------------------------------ steering
 def _change_public(change: Any) -> models.ChangePublic:
-    return models.ChangePublic(kind=change.kind, subject=change.subject, text=change.text, ignored=change.ignored)
+    return models.ChangePublic(
+        kind=change.kind, subject=change.subject, text=change.text, ignored=change.ignored
+    )
 
 
 def project_snapshot(project: dict[str, Any]) -> dict[str, Any]:
@@ -554,20 +556,26 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
         settings.work_dir.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
             keys, classes = corrections_for_run(
-                crud.list_corrections(db, project_id, active_only=True), project["schema"], project["pipeline"]
+                crud.list_corrections(db, project_id, active_only=True),
+                project["schema"],
+                project["pipeline"],
             )
             save_corrections(RunLayout(Path(tmp)).corrections, keys, classes)
             fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
     except LeapError as exc:
         return everything("its inputs could not be fingerprinted", problem=str(exc))
     previous = None if base is None else read_state(RunLayout(Path(base["run_dir"])))
-    sections = [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
+    sections = (
+        [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
+    )
     kinds = {"class": "the classes or prompts changed", "dataset": "the dataset changed",
              "frames": "the frames changed"}
     hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
     plans = recompute_plan(config, fps, previous, sections,
                            **({"input_hint": hint} if hint else {}))
-    stages = [models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans]
+    stages = [
+        models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans
+    ]
     return models.RunPreview(base_run=basis, stages=stages,
                              recompute=[p.name for p in plans if p.action == "recompute"], changes=changes)
 
@@ -605,6 +613,9 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
                     for n in names
                 ]
                 a, b = _num(values.get("miou")), _num(other[row].get("miou"))
-                rows.append(models.RowDelta(protocol=protocol, row=row, miou=a, base_miou=b, delta=_delta(a, b),
-                                            classes=classes))
+                rows.append(
+                    models.RowDelta(
+                        protocol=protocol, row=row, miou=a, base_miou=b, delta=_delta(a, b), classes=classes
+                    )
+                )
     return models.ComparePublic(run_id=run_id, base_run_id=base_id, changes=changes, rows=rows)

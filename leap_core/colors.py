@@ -63,7 +63,7 @@ def distinct_color(used: Sequence[Sequence[int]], avoid: Sequence[Sequence[int]]
         avoid: further colours to stay away from; by default the viewer's unlabeled grey.
 
     Returns:
-        ``argmax_c min_{u ∈ used ∪ avoid} ‖lab(c) − lab(u)‖`` (the first such candidate on ties), so the
+        ``argmax_c min_{u in used + avoid} ‖lab(c) − lab(u)‖`` (the first such candidate on ties), so the
         result is never a colour already used and never grey.
     """
     taken = [tuple(int(v) for v in u) for u in (*used, *avoid)]

@@ -113,7 +113,7 @@ def test_scan_raw_ids_reads_a_sample_and_names_the_bad_file(tmp_path: Path) -> N
     assert part.counts == {10: 2, 40: 4, 300: 1} and part.frames_read == 2
     assert scan_raw_ids(tmp_path / "nothing").counts == {}
     (root / "labels" / "000002.label").write_bytes(b"abc")
-    with pytest.raises(DatasetError, match="000002.label"):
+    with pytest.raises(DatasetError, match=r"000002\.label"):
         scan_raw_ids(root)
 
 
@@ -136,7 +136,8 @@ def test_setting_scopes_come_from_the_labeler_and_stage_records() -> None:
 
 # ------------------------------------------------------------------------------------- run changes
 def _snapshot(schema, cfg: PipelineConfig, frames=None) -> dict:
-    return {"dataset": "/d/seq", "frames": frames, "schema": schema.to_dict(), "pipeline": config_to_dict(cfg)}
+    return {"dataset": "/d/seq", "frames": frames, "schema": schema.to_dict(),
+            "pipeline": config_to_dict(cfg)}
 
 
 def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
@@ -162,10 +163,11 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert run_changes(old, old) == []
     back = {c.text for c in run_changes(new, old)}
     assert "class traffic-cone removed" in back
-    ids = run_changes(old, _snapshot(schema.with_classes([dataclasses.replace(car, gt_ids=()), *schema.classes[1:]]),
-                                     PipelineConfig()))
+    no_ids = schema.with_classes([dataclasses.replace(car, gt_ids=()), *schema.classes[1:]])
+    ids = run_changes(old, _snapshot(no_ids, PipelineConfig()))
     assert [c.text for c in ids] == ["ground-truth ids of car: [10, 252] → none"]
-    assert changed_sections(config_to_dict(PipelineConfig()), new["pipeline"]) == ["grounded_sam", "smoothing"]
+    sections = changed_sections(config_to_dict(PipelineConfig()), new["pipeline"])
+    assert sections == ["grounded_sam", "smoothing"]
 
 
 # -------------------------------------------------------------------------------------- recompute plan
@@ -200,7 +202,9 @@ VARIANTS = {
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
-def test_the_preview_agrees_with_the_runner(variant: str, street: Path, finished: Path, tmp_path: Path) -> None:
+def test_the_preview_agrees_with_the_runner(
+    variant: str, street: Path, finished: Path, tmp_path: Path
+) -> None:
     """The plan from fingerprints says exactly what the runner would recompute in a folder seeded from the
     finished run (the runner's own decision, ``plan_stages``), for every enabled stage."""
     make_schema, overrides = VARIANTS[variant]

@@ -176,5 +176,6 @@ def result_tables(run_dir: str | Path) -> str | None:
     return "\n\n".join(parts)
 
 
-__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row", "load_metrics", "read_metrics_json",
+__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row", "load_metrics",
+           "read_metrics_json",
            "result_tables", "stage_evaluate"]

@@ -256,5 +256,6 @@ def run_pipeline(
     return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
 
 
-__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "run_pipeline", "stage_fingerprints",
+__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "run_pipeline",
+           "stage_fingerprints",
            "stage_status"]

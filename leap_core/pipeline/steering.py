@@ -49,7 +49,7 @@ def setting_scope(path: str) -> SettingScope:
 
 
 def stage_switches() -> dict[str, str]:
-    """Stage name → flat form name of the form field that switches it (stages whose switch is a form field)."""
+    """Stage name → flat name of the form field that switches it (stages whose switch is a form field)."""
     by_path = {f.path: name for name, f in FORM_FIELDS.items()}
     return {s.name: by_path[s.switch] for s in STAGE_TABLE if s.switch is not None and s.switch in by_path}
 
@@ -222,13 +222,15 @@ def _class_changes(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, 
             if pa != pb:
                 plus = [f"+ {_fmt(p)}" for p in pb if p not in pa]
                 minus = [f"− {_fmt(p)}" for p in pa if p not in pb]
-                out.append(Change("class", name, f"{what} of {name}: {', '.join(plus + minus) or 'reordered'}"))
+                listed = ", ".join(plus + minus) or "reordered"
+                out.append(Change("class", name, f"{what} of {name}: {listed}"))
         ga, gb = sorted(a.get("gt_ids", [])), sorted(b.get("gt_ids", []))
         if ga != gb:
             out.append(Change("class", name, f"ground-truth ids of {name}: {_fmt(ga)} → {_fmt(gb)}"))
         for key, what in (("export_id", "export id"), ("category", "category"), ("color", "colour")):
             if a.get(key) != b.get(key):
-                out.append(Change("class", name, f"{what} of {name}: {_fmt(a.get(key))} → {_fmt(b.get(key))}"))
+                text = f"{what} of {name}: {_fmt(a.get(key))} → {_fmt(b.get(key))}"
+                out.append(Change("class", name, text))
     return out
 
 
@@ -242,8 +244,10 @@ def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
     if old.get("frames") != new.get("frames"):
         def frames(v: Any) -> str:
             return "all" if v is None else f"{v[0]}..{v[1] - 1}"
-        out.append(Change("frames", "frames", f"frames: {frames(old.get('frames'))} → {frames(new.get('frames'))}"))
-    out += _class_changes((old.get("schema") or {}).get("classes", []), (new.get("schema") or {}).get("classes", []))
+        text = f"frames: {frames(old.get('frames'))} → {frames(new.get('frames'))}"
+        out.append(Change("frames", "frames", text))
+    classes_old = (old.get("schema") or {}).get("classes", [])
+    out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
     fa, fb = _flatten(old.get("pipeline") or {}), _flatten(new.get("pipeline") or {})
     try:
         cfg: PipelineConfig | None = config_from_dict(new.get("pipeline") or {})

@@ -84,7 +84,8 @@ def test_a_new_class_without_colour_gets_the_most_distinct_one(env) -> None:
     before = client.get(f"/projects/{p['id']}/classes").json()
     suggested = before["next_color"]
     r = client.post(f"/projects/{p['id']}/classes",
-                    json={"name": "traffic-cone", "prompts": ["traffic cone"], "export_id": 300, "gt_ids": [300]})
+                    json={"name": "traffic-cone", "prompts": ["traffic cone"], "export_id": 300,
+                          "gt_ids": [300]})
     assert r.status_code == 201, r.text
     cone = r.json()["data"][-1]
     assert cone["hex"] == suggested and cone["gt_ids"] == [300]

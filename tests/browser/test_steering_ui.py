@@ -14,6 +14,7 @@ import pytest
 
 FRAMES = 4
 CONE_ID = 300
+NO_VALUE = "\u2013"  # the en dash the UI shows for a missing figure
 
 artifacts, browser = browserfixtures.artifacts, browserfixtures.browser
 
@@ -68,7 +69,8 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
         "the simulated (from 2D ground truth) labeler ignores it"
     )
     expect(share).to_be_disabled()
-    expect(page.locator('#params label[data-param="share"] .param-note')).to_contain_text("3D-CN stage is off")
+    share_note = page.locator('#params label[data-param="share"] .param-note')
+    expect(share_note).to_contain_text("3D-CN stage is off")
     for name in ("voxel_size", "k", "cluster_gap", "consistency", "labeler"):
         expect(page.locator(f'#params [name="{name}"]')).to_be_enabled()
     # Choices take effect before saving: another labeler or the 3D-CN ticked enables their settings.
@@ -82,7 +84,8 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
     expect(share).to_be_disabled()
 
     # ---- before the first run everything is computed; the run carries a note
-    expect(page.locator('#recompute-plan li[data-stage="labels2d"]')).to_have_attribute("data-action", "recompute")
+    labels2d = page.locator('#recompute-plan li[data-stage="labels2d"]')
+    expect(labels2d).to_have_attribute("data-action", "recompute")
     expect(page.locator('#recompute-plan li[data-stage="3dcn"]')).to_have_attribute("data-action", "off")
     page.fill("#run-note", "before cones")
     page.click("#run-button")
@@ -122,8 +125,8 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
     expect(cone.locator(".gt-summary")).to_have_text("300 traffic-cone")
 
     # ---- the next run recomputes from the 2D labels on, and says what changed
-    expect(page.locator('#recompute-plan li[data-stage="labels2d"]')).to_have_attribute("data-action", "recompute")
-    expect(page.locator('#recompute-plan li[data-stage="labels2d"] .plan-reason')).to_have_text(
+    expect(labels2d).to_have_attribute("data-action", "recompute")
+    expect(labels2d.locator(".plan-reason")).to_have_text(
         "the classes or prompts changed"
     )
     expect(page.locator("#pending-changes")).to_contain_text("class traffic-cone added")
@@ -133,11 +136,13 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
 
     # ---- the cones have an IoU now; Δ against run 1 (where the class did not exist) is blank
     cell = page.locator('#class-table tr[data-class="traffic-cone"] td.iou')
-    expect(cell).not_to_have_text("–")
+    expect(cell).not_to_have_text(NO_VALUE)
     assert float(cell.inner_text()) > 0
-    expect(page.locator('#class-table tr[data-class="traffic-cone"] td.delta')).to_have_text("–")
+    expect(page.locator('#class-table tr[data-class="traffic-cone"] td.delta')).to_have_text(NO_VALUE)
     expect(page.locator("#class-table thead th")).to_have_text(["Class", "#1 IoU", "#2 IoU", "Δ"])
-    expect(page.locator("#run-changes")).to_contain_text('class traffic-cone added (prompts "traffic cone"; ground-truth ids 300)')
+    expect(page.locator("#run-changes")).to_contain_text(
+        'class traffic-cone added (prompts "traffic cone"; ground-truth ids 300)'
+    )
     expect(page.locator(".run-note-row")).to_have_count(2)
     expect(page.locator(".legend")).to_contain_text("“traffic cones”")
     expect(page.locator("#metrics-headline")).to_contain_text("Run 2")
