@@ -12,7 +12,7 @@ from fastapi import APIRouter, Request, Response, status
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from app import crud, models, services
+from app import crud, models, services, steering
 from app.api.deps import DbDep, JobsDep, ReadDbDep, SettingsDep
 from app.core.config import Settings
 from app.core.db import open_db
@@ -49,7 +49,7 @@ def start_run(
 def preview_run(project_id: int, db: DbDep, settings: SettingsDep) -> models.RunPreview:
     """Which stages a new run of all frames would recompute, and what changed since the finished run it
     would start from: the fingerprints it would have against that run's ``stages.json``."""
-    return services.run_preview(db, settings, project_id)
+    return steering.run_preview(db, settings, project_id)
 
 
 @router.patch("/runs/{run_id}", response_model=models.RunPublic)
@@ -64,7 +64,7 @@ def update_run(run_id: int, payload: models.RunUpdate, db: DbDep, jobs: JobsDep)
 def compare_runs(run_id: int, base_id: int, db: DbDep) -> models.ComparePublic:
     """The run against ``base_id`` (same project): Δ mIoU and Δ IoU per class for every protocol and
     result row both have, and what changed between their inputs (classes, prompts, parameters)."""
-    return services.compare_runs(db, run_id, base_id)
+    return steering.compare_runs(db, run_id, base_id)
 
 
 # The two polled read endpoints build their public model once and send its JSON directly (FastAPI would
