@@ -69,7 +69,7 @@ export function renderParams(ctx) {
     const el = input(field, form[field.name]);
     el.addEventListener("change", refresh);
     inputs[field.name] = el;
-    notes[field.name] = h("span", { class: "param-note small", hidden: true });
+    notes[field.name] = h("small", { class: "param-note", hidden: true }); // not a span: "> span" is the label
     labels[field.name] = h(
       "label",
       { class: `param ${field.kind}`, title: field.help || null, dataset: { param: field.name } },
