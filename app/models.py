@@ -79,7 +79,7 @@ class ClassBase(_Input):
 
     @field_validator("color")
     @classmethod
-    def _color(cls, v: Any) -> list[int]:
+    def _color(cls, v: Any) -> list[int] | None:  # None only where a subclass allows it (ClassCreate)
         return _check_color(v)
 
     @field_validator("prompts", "negative_prompts")
@@ -89,7 +89,18 @@ class ClassBase(_Input):
 
 
 class ClassCreate(ClassBase):
+    color: Any = Field(
+        default=None,
+        description="'#rrggbb' or [r, g, b]; absent = the unused colour most distinct from the project's "
+        "other classes and from unlabeled grey (`ClassesPublic.next_color`)",
+        examples=["#6496f5"],
+    )
     position: int | None = Field(default=None, ge=0, description="insert at this index (default: append)")
+
+    @field_validator("color")
+    @classmethod
+    def _color(cls, v: Any) -> list[int] | None:
+        return None if v is None else _check_color(v)
 
 
 class ClassUpdate(_Input):
@@ -135,6 +146,28 @@ class ClassPublic(BaseModel):
 class ClassesPublic(BaseModel):
     data: list[ClassPublic]
     count: int
+    next_color: str = Field(
+        description="'#rrggbb' a new class gets when it names none: the candidate colour farthest (CIELAB) "
+        "from every class colour and from the viewer's unlabeled grey"
+    )
+
+
+class RawIdPublic(BaseModel):
+    id: int = Field(description="raw semantic id (low 16 bits of a .label value)")
+    name: str | None = Field(description="SemanticKITTI's or the demo's name for it; null when unknown")
+    points: int = Field(description="points carrying it in the label files read")
+    classes: list[str] = Field(description="classes of the project whose ground-truth ids include it")
+
+
+class RawIdsPublic(BaseModel):
+    """The raw ground-truth ids of a project's dataset, for picking a class's ground-truth ids."""
+
+    data: list[RawIdPublic] = Field(description="ids present in the dataset's labels, ascending")
+    count: int
+    has_ground_truth: bool = Field(description="the dataset has a labels/ folder")
+    frames_read: int = Field(description="label files read (evenly spaced when the dataset has many)")
+    frames_total: int
+    names: dict[str, str] = Field(description="every raw id this program can name (id as a string -> name)")
 
 
 class PromptCreate(_Input):
@@ -259,8 +292,17 @@ class FrameRange(_Input):
         return self
 
 
+RUN_NOTE_MAX = 500
+"""Longest run note, in characters."""
+
+
 class RunCreate(_Input):
     frames: FrameRange | None = Field(default=None, description="label only these frames (default: all)")
+    note: str | None = Field(default=None, max_length=RUN_NOTE_MAX, description="free text kept with the run")
+
+
+class RunUpdate(_Input):
+    note: str | None = Field(max_length=RUN_NOTE_MAX, description="the run's note; null or '' clears it")
 
 
 class StagePublic(BaseModel):
@@ -307,6 +349,7 @@ class RunPublic(BaseModel):
     has_export: bool
     resumable: bool
     summary: dict[str, Any] | None = Field(default=None, description="headline metrics (mIoU per result row)")
+    note: str | None = Field(default=None, description="the note given when the run was started or later")
 
 
 class RunsPublic(BaseModel):
@@ -318,6 +361,66 @@ class MetricsPublic(BaseModel):
     run_id: int
     class_names: list[str]
     metrics: dict[str, Any]
+
+
+class ChangePublic(BaseModel):
+    """One difference between two runs' inputs (or between the latest run and the project now)."""
+
+    kind: Literal["dataset", "frames", "class", "parameter"]
+    subject: str = Field(description="class name, dotted parameter path, `dataset` or `frames`")
+    text: str = Field(description="one line for people")
+    ignored: str | None = Field(
+        default=None, description="a parameter the newer configuration ignores: why (it changed nothing)"
+    )
+
+
+class ClassDelta(BaseModel):
+    name: str
+    iou: float | None = Field(description="IoU in the run (null: not evaluated in it)")
+    base_iou: float | None = Field(description="IoU in the base run (null: not evaluated in it)")
+    delta: float | None = Field(description="iou - base_iou, when both exist")
+
+
+class RowDelta(BaseModel):
+    protocol: str
+    row: str
+    miou: float | None
+    base_miou: float | None
+    delta: float | None
+    classes: list[ClassDelta] = Field(description="the run's classes, then the base run's others")
+
+
+class ComparePublic(BaseModel):
+    """A run against an earlier one: the Δ per class and result row, and what changed in between."""
+
+    run_id: int
+    base_run_id: int
+    changes: list[ChangePublic] = Field(description="base run → run: dataset, frames, classes, parameters")
+    rows: list[RowDelta] = Field(description="per protocol, the result rows both runs have")
+
+
+class StagePlanPublic(BaseModel):
+    name: str
+    label: str
+    action: Literal["recompute", "reuse", "off"]
+    reason: str
+
+
+class RunBasis(BaseModel):
+    id: int
+    number: int
+
+
+class RunPreview(BaseModel):
+    """What the next run of the project will recompute and why."""
+
+    base_run: RunBasis | None = Field(
+        description="the finished run whose outputs the next run starts from (null: it starts empty)"
+    )
+    stages: list[StagePlanPublic]
+    recompute: list[str] = Field(description="names of the stages the next run recomputes")
+    changes: list[ChangePublic] = Field(description="the base run → the project's current settings")
+    problem: str | None = Field(default=None, description="why the fingerprints could not be computed")
 
 
 class LogPublic(BaseModel):
@@ -387,6 +490,9 @@ class StageInfoPublic(BaseModel):
     label: str = Field(description="short human label")
     description: str = Field(description="one line on what the stage computes")
     per_frame: bool = Field(description="works frame by frame (resumable per frame; progress counts frames)")
+    switch: str | None = Field(
+        default=None, description="flat name of the form field that turns the stage on (`consistency`)"
+    )
 
 
 class FormChoice(BaseModel):
@@ -406,6 +512,12 @@ class FormFieldPublic(BaseModel):
     maximum: float | None = None
     step: float | None = None
     choices: list[FormChoice] = Field(default_factory=list, description="`select` only")
+    labeler: str | None = Field(
+        default=None, description="only this labeler reads the setting; the others ignore it"
+    )
+    stage: str | None = Field(
+        default=None, description="only this stage reads the setting; ignored while its `switch` is off"
+    )
 
 
 class LabelerPublic(BaseModel):

@@ -6,7 +6,9 @@ Routes stay thin: they parse the request, call one function here or in :mod:`app
 
 from __future__ import annotations
 
+import os
 import re
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -18,6 +20,7 @@ from app.core.config import Settings
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
 from app.jobs.progress import ProgressTracker
+from leap_core.colors import distinct_color
 from leap_core.config import (
     FORM_FIELDS,
     PipelineConfig,
@@ -26,8 +29,10 @@ from leap_core.config import (
     form_values,
     overrides_from_form,
 )
+from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
+from leap_core.pipeline import all_points_labeled_share
 from leap_core.presets import builtin_preset
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
@@ -288,12 +293,15 @@ def _hex(color: list[int]) -> str:
     return "#" + "".join(f"{int(c):02x}" for c in color)
 
 
+def next_color(classes: list[dict[str, Any]]) -> list[int]:
+    """The colour a new class gets when it names none (:func:`leap_core.colors.distinct_color`)."""
+    return list(distinct_color([c["color"] for c in classes]))
+
+
 def classes_public(project: dict[str, Any]) -> models.ClassesPublic:
-    data = [
-        models.ClassPublic(index=i, hex=_hex(c["color"]), **c)
-        for i, c in enumerate(project["schema"]["classes"])
-    ]
-    return models.ClassesPublic(data=data, count=len(data))
+    classes = project["schema"]["classes"]
+    data = [models.ClassPublic(index=i, hex=_hex(c["color"]), **c) for i, c in enumerate(classes)]
+    return models.ClassesPublic(data=data, count=len(data), next_color=_hex(next_color(classes)))
 
 
 def _class_position(classes: list[dict[str, Any]], name: str, project_id: int) -> int:
@@ -330,6 +338,8 @@ def add_class(db: sqlite_utils.Database, project_id: int, payload: models.ClassC
     project = crud.require_project(db, project_id)
     classes = list(project["schema"]["classes"])
     entry = payload.model_dump(exclude={"position"})
+    if entry["color"] is None:
+        entry["color"] = next_color(classes)
     position = len(classes) if payload.position is None else min(payload.position, len(classes))
     classes.insert(position, entry)
     return save_classes(db, project_id, classes)
@@ -453,6 +463,7 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         "rows": rows,
         "coverage_ratio": metrics.get("coverage_ratio") or {},
         "labeled_points": metrics.get("labeled_points") or {},
+        "labeled_share_all_points": all_points_labeled_share(metrics),
         "n_points": metrics.get("n_points"),
         "n_points_in_view": metrics.get("n_points_in_view"),
         "labeler": metrics.get("labeler"),
@@ -477,4 +488,57 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         has_export=run["status"] == "done" and RunLayout(run_dir).export_dir.is_dir(),
         resumable=run["status"] in models.RESUMABLE_STATUSES,
         summary=metrics_summary(run.get("metrics")),
+        note=run.get("note"),
     )
+
+
+# ------------------------------------------------------------------------------------ ground-truth ids
+_RAW_ID_CACHE: dict[tuple[str, int, int], tuple[dict[int, int], int, int]] = {}
+_RAW_ID_LOCK = threading.Lock()
+
+
+def _labels_signature(labels: Path) -> tuple[int, int]:
+    """(newest mtime_ns, file count) of a labels folder: changes when a file is added, replaced or removed."""
+    newest, count = labels.stat().st_mtime_ns, 0
+    with os.scandir(labels) as it:
+        for e in it:
+            if e.name.endswith(".label"):
+                count += 1
+                newest = max(newest, e.stat().st_mtime_ns)
+    return newest, count
+
+
+def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
+    """The raw ids in the project dataset's labels with their names and the classes mapping them.
+
+    The scan (:func:`leap_core.datasets.raw_ids.scan_raw_ids`, at most 200 evenly spaced files) is cached
+    per labels folder until a file in it changes.
+    """
+    folder = Path(project["dataset_path"])
+    labels = folder / "labels"
+    names = raw_id_names()
+    if not labels.is_dir():
+        return models.RawIdsPublic(data=[], count=0, has_ground_truth=False, frames_read=0, frames_total=0,
+                                   names={str(k): v for k, v in names.items()})
+    key = (str(labels.resolve()), *_labels_signature(labels))
+    with _RAW_ID_LOCK:
+        cached = _RAW_ID_CACHE.get(key)
+    if cached is None:
+        try:
+            scan = scan_raw_ids(folder)
+        except LeapError as exc:
+            raise InvalidField(["dataset", "labels"], str(exc)) from None
+        cached = (scan.counts, scan.frames_read, scan.frames_total)
+        with _RAW_ID_LOCK:
+            _RAW_ID_CACHE[key] = cached
+    counts, read, total = cached
+    users: dict[int, list[str]] = {}
+    for c in project["schema"]["classes"]:
+        for g in c.get("gt_ids", []):
+            users.setdefault(int(g), []).append(c["name"])
+    data = [
+        models.RawIdPublic(id=i, name=names.get(i), points=n, classes=users.get(i, []))
+        for i, n in sorted(counts.items())
+    ]
+    return models.RawIdsPublic(data=data, count=len(data), has_ground_truth=True, frames_read=read,
+                               frames_total=total, names={str(k): v for k, v in names.items()})

@@ -5,8 +5,10 @@
 //   run-panel.js  the latest run: per-stage progress, cancel, resume
 //   history.js    run history (exports.js: the export dialog), compare check boxes, logs
 //   compare.js    metrics of the compared runs: table and per-class IoU chart
-//   classes.js    classes & prompts editor
-//   params.js     pipeline parameters form
+//   next-run.js   what the next run recomputes (and why), what changed since the latest run, its note
+//   classes.js    classes & prompts editor (colours, ground-truth ids)
+//   params.js     pipeline parameters form (settings the chosen labeler or a switched-off stage ignores are
+//                 greyed out with the reason)
 
 import { get, post, url } from "./api.js";
 import { h, replace } from "./dom.js";
@@ -16,6 +18,7 @@ import { renderCompare } from "./project/compare.js";
 import { projectContext } from "./project/context.js";
 import { renderHead } from "./project/head.js";
 import { renderRuns } from "./project/history.js";
+import { renderNextRun } from "./project/next-run.js";
 import { renderParams } from "./project/params.js";
 import { renderRunPanel } from "./project/run-panel.js";
 
@@ -23,6 +26,8 @@ export async function renderProject(root, projectId, { toast }) {
   const state = {
     project: null,
     classes: [],
+    nextColor: null,
+    gtIds: null,
     runs: [],
     health: null,
     stream: null,
@@ -39,6 +44,7 @@ export async function renderProject(root, projectId, { toast }) {
   const els = {
     head: h("div", { class: "page-head" }),
     run: h("section", { class: "card", id: "run-panel" }),
+    next: h("section", { class: "card", id: "next-run" }),
     runs: h("section", { class: "card", id: "runs" }),
     compare: h("section", { class: "card", id: "compare" }),
     classes: h("section", { class: "card", id: "classes" }),
@@ -55,6 +61,7 @@ export async function renderProject(root, projectId, { toast }) {
     ]);
     state.project = project;
     state.classes = classes.data;
+    state.nextColor = classes.next_color;
     state.runs = runs.data;
     state.health = health;
   }
@@ -76,6 +83,7 @@ export async function renderProject(root, projectId, { toast }) {
   ctx.render = {
     head: () => renderHead(ctx),
     run: () => renderRunPanel(ctx),
+    next: () => renderNextRun(ctx),
     runs: () => renderRuns(ctx),
     compare: () => renderCompare(ctx),
     classes: () => renderClasses(ctx),
@@ -115,6 +123,7 @@ export async function renderProject(root, projectId, { toast }) {
       ctx.render.head();
       ctx.render.run();
       ctx.render.runs();
+      ctx.render.next();
       await ctx.render.compare();
     });
   }
@@ -132,8 +141,11 @@ export async function renderProject(root, projectId, { toast }) {
     follow,
     startRun: async () => {
       try {
-        const run = await post(`/projects/${projectId}/runs`, {});
+        const note = (state.runNote || "").trim();
+        const run = await post(`/projects/${projectId}/runs`, note ? { note } : {});
+        state.runNote = "";
         await afterRunChange(run.id, run);
+        ctx.render.next();
       } catch (err) {
         toast(err.message, "error");
       }
@@ -155,7 +167,7 @@ export async function renderProject(root, projectId, { toast }) {
     h(
       "div",
       { class: "layout" },
-      h("div", { class: "main-col" }, els.run, els.compare, els.runs),
+      h("div", { class: "main-col" }, els.run, els.next, els.compare, els.runs),
       h("aside", { class: "side-col" }, els.classes, els.params),
     ),
   );
@@ -164,6 +176,7 @@ export async function renderProject(root, projectId, { toast }) {
   ctx.render.runs();
   ctx.render.classes();
   ctx.render.params();
+  ctx.render.next();
   await ctx.render.compare();
   follow(state.runs.find((r) => ctx.active.has(r.status)));
 

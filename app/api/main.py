@@ -18,6 +18,7 @@ api_router.include_router(pipeline.router)
 api_router.include_router(datasets.router)
 api_router.include_router(projects.router)
 api_router.include_router(classes.router)
+api_router.include_router(classes.ids_router)
 api_router.include_router(runs.router)
 api_router.include_router(exports.router)
 

@@ -82,10 +82,15 @@ def _v1_initial(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v2_run_note(db: sqlite_utils.Database) -> None:
+    db.execute("ALTER TABLE runs ADD COLUMN note TEXT")
+
+
 Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
 
 MIGRATIONS: list[Migration] = [
     (1, "projects, runs, corrections, meta", _v1_initial),
+    (2, "runs.note", _v2_run_note),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -40,6 +40,7 @@ from leap_core.pipeline.evaluation import (
     PROTOCOLS,
     ROW_POINT,
     ROW_VOXEL,
+    all_points_labeled_share,
     cn_row,
     load_metrics,
     read_metrics_json,
@@ -51,6 +52,7 @@ from leap_core.pipeline.runner import (
     StageReport,
     plan_stages,
     run_pipeline,
+    stage_fingerprints,
     stage_status,
 )
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES
@@ -67,6 +69,7 @@ __all__ = [
     "RunResult",
     "StageInfo",
     "StageReport",
+    "all_points_labeled_share",
     "cn_row",
     "dataset_identity",
     "load_metrics",
@@ -74,6 +77,7 @@ __all__ = [
     "read_metrics_json",
     "result_tables",
     "run_pipeline",
+    "stage_fingerprints",
     "stage_status",
     "world_points",
 ]

@@ -84,16 +84,31 @@ class StageInfo:
     inputs: Callable[[Ctx], Any] | None = field(default=None, repr=False, compare=False)
     """Other fingerprint parts (JSON-able): labeler identity, dataset identity, frames, corrections, schema
     parts."""
+    switch: str | None = None
+    """Dotted :class:`~leap_core.config.PipelineConfig` path of the boolean that turns the stage on
+    (``"consistency.enabled"``); None = no switch. The app greys out the settings of a switched-off stage
+    (:mod:`leap_core.pipeline.steering`), so the switch is data, not only code."""
     enabled: Callable[[PipelineConfig], bool] | None = field(default=None, repr=False, compare=False)
-    """None = always runs; else the stage is recorded as skipped when this returns False (and its
-    fingerprint then ignores :attr:`reads` and :attr:`inputs`)."""
+    """Any further condition; the stage runs when its :attr:`switch` (if any) is on and this (if any)
+    returns True, else it is recorded as skipped (and its fingerprint then ignores :attr:`reads` and
+    :attr:`inputs`)."""
 
     def __post_init__(self) -> None:
         if self.per_frame != (self.frame_files is not None):
             raise ValueError(f"stage {self.name}: per_frame and frame_files disagree")
 
     def is_enabled(self, cfg: PipelineConfig) -> bool:
+        if self.switch is not None and not config_value(cfg, self.switch):
+            return False
         return self.enabled is None or self.enabled(cfg)
+
+
+def config_value(cfg: PipelineConfig, path: str) -> Any:
+    """The value at a dotted path of ``cfg`` (``"consistency.enabled"``)."""
+    node: Any = cfg
+    for part in path.split("."):
+        node = getattr(node, part)
+    return node
 
 
 # ------------------------------------------------------------------------------------------ context
@@ -241,6 +256,7 @@ __all__ = [
     "ProgressCallback",
     "StageFn",
     "StageInfo",
+    "config_value",
     "dataset_identity",
     "file_digest",
     "frame_input_digest",

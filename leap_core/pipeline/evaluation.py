@@ -8,6 +8,7 @@ ignored: the paper's) and ``all`` (every point, unlabeled = miss).
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -93,8 +94,10 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         "frames": [ctx.frames.start, ctx.frames.stop, ctx.frames.step],
         "n_points": n_points,
         "n_points_in_view": n_view,
-        # Share of ALL points (ground truth or not) that got a label, per row.
+        # Points (ground truth or not) that got a label, per row, and their share of all points: what the
+        # exported .label files leave unlabeled is 1 - that share of the final row.
         "labeled_points": {r: labeled_any[r] for r in rows},
+        "labeled_share_all_points": {r: (labeled_any[r] / n_points if n_points else None) for r in rows},
         "labeler": ctx.cfg.labeler,
     }
     for p in PROTOCOLS:
@@ -107,6 +110,21 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
     out["coverage_ratio"] = {r: (labeled_any[r] / pl if pl else None) for r in rows}
     atomic_write_json(lay.metrics, out)
     return {}
+
+
+def all_points_labeled_share(metrics: Mapping[str, Any]) -> dict[str, float | None]:
+    """Row → share of all points of the evaluated scans that got a label (``labeled_points / n_points``).
+
+    Unlike ``labeled_share`` in a protocol's table (the share of *ground-truth-labeled* points, inside the
+    camera view for ``camera``), this counts every point, as an exported ``.label`` file does. Read from
+    ``labeled_share_all_points`` when ``metrics.json`` has it, else computed (files of older runs).
+    """
+    stored = metrics.get("labeled_share_all_points")
+    if isinstance(stored, Mapping):
+        return {str(r): (None if v is None else float(v)) for r, v in stored.items()}
+    counts = metrics.get("labeled_points") or {}
+    n = metrics.get("n_points")
+    return {str(r): (float(v) / n if isinstance(n, int) and n > 0 else None) for r, v in counts.items()}
 
 
 def read_metrics_json(run_dir: str | Path) -> dict[str, Any] | None:
@@ -158,5 +176,6 @@ def result_tables(run_dir: str | Path) -> str | None:
     return "\n\n".join(parts)
 
 
-__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "cn_row", "load_metrics", "read_metrics_json",
+__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row", "load_metrics",
+           "read_metrics_json",
            "result_tables", "stage_evaluate"]

@@ -221,6 +221,18 @@ def plan_stages(
     return {s.name: not _is_current(ctx, s) for s in STAGE_TABLE}
 
 
+def stage_fingerprints(
+    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *, frames: range | None = None,
+    runtime: Runtime | None = None,
+) -> dict[str, str]:
+    """Each stage's fingerprint for a run of these inputs in ``run_dir`` (whose ``corrections.npz``, if
+    any, is part of the fuse stage's); compared with a ``stages.json`` they say which stages a run would
+    recompute (:func:`leap_core.pipeline.steering.recompute_plan`). Reads no stage output."""
+    ctx = _context(Path(dataset), schema, config, Path(run_dir), progress=None, frames=frames,
+                   runtime=runtime)
+    return dict(ctx.fp)
+
+
 def run_pipeline(
     dataset: Path,
     schema: Schema,
@@ -270,4 +282,6 @@ def run_pipeline(
     return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
 
 
-__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "run_pipeline", "stage_status"]
+__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "run_pipeline",
+           "stage_fingerprints",
+           "stage_status"]

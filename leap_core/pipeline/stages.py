@@ -325,7 +325,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
     StageInfo(
         "3dcn", "3D-CN", "3D Consistency Network rounds (when enabled)", False, stage_3dcn,
         reads=("consistency",), upstream=("project", "fuse", "smooth"), outputs=_3dcn_outputs,
-        stale=lambda lay: lay.cn_grids(), enabled=lambda cfg: cfg.consistency.enabled,
+        stale=lambda lay: lay.cn_grids(), switch="consistency.enabled",
     ),
     StageInfo(
         "label_points", "Point labels", "label and confidence of every point from the final grid", True,

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from leap_core.config import FORM_FIELDS
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
+from leap_core.pipeline.steering import setting_scope, stage_switches
 
 client, data_root, settings, tiny_dataset = (
     appfixtures.client,
@@ -29,11 +30,17 @@ def test_stages_come_from_the_stage_table_after_the_demo_generation(client: Test
         "label": "Generate demo",
         "description": "generate the built-in demo sequence (before the first run of a demo project)",
         "per_frame": True,
+        "switch": None,
     }
+    switches = stage_switches()
     assert stages[1:] == [
-        {"name": s.name, "label": s.label, "description": s.description, "per_frame": s.per_frame}
+        {"name": s.name, "label": s.label, "description": s.description, "per_frame": s.per_frame,
+         "switch": switches.get(s.name)}
         for s in STAGE_TABLE
     ]
+    # The 3D-CN is switched by the form's checkbox, whose field sets its stage's switch path.
+    assert next(s for s in stages if s["name"] == "3dcn")["switch"] == "consistency"
+    assert FORM_FIELDS["consistency"].path == next(s for s in STAGE_TABLE if s.name == "3dcn").switch
     assert len({s["label"] for s in stages}) == len(stages)  # every stage tells itself apart
 
 
@@ -57,6 +64,11 @@ def test_the_form_fields_are_the_projects_form_values_and_its_limits_are_enforce
         assert (f["path"], f["label"], f["kind"], f["help"]) == (spec.path, spec.label, spec.kind, spec.help)
         assert (f["minimum"], f["maximum"], f["step"]) == (spec.minimum, spec.maximum, spec.step)
         assert [(c["value"], c["label"]) for c in f["choices"]] == list(spec.choices)
+        scope = setting_scope(spec.path)
+        assert (f["labeler"], f["stage"]) == (scope.labeler, scope.stage)
+    scoped = {f["name"]: (f["labeler"], f["stage"]) for f in fields if f["labeler"] or f["stage"]}
+    assert scoped == {"threshold": ("grounded-sam", None), "share": (None, "3dcn"),
+                      "temperature": (None, "3dcn"), "iterations": (None, "3dcn")}
     labeler = next(f for f in fields if f["name"] == "labeler")
     assert [c["value"] for c in labeler["choices"]] == [lab["name"] for lab in body["labelers"]]
     assert [lab["name"] for lab in body["labelers"]] == list(LABELERS)

@@ -1,8 +1,16 @@
-// Classes & prompts editor: colour, name and export id per class, prompt chips (Enter adds one), a form
-// for a new class. Every edit is saved at once; the next run uses it.
+// Classes & prompts editor: colour, name and export id per class, prompt chips (Enter adds one), the raw
+// ground-truth ids each class is evaluated against, and a form for a new class. A new class gets the
+// server's most distinct unused colour (never the viewer's unlabeled grey); its ground-truth ids are picked
+// from the raw ids present in the dataset's labels (GET /projects/{id}/gt-ids, with names where known), and
+// named objects no class maps yet (the demo's traffic cones, benches, bollards …) are offered as one-click
+// suggestions. Every edit is saved at once; the next run uses it.
 
-import { del, enc, patch, post } from "../api.js";
+import { del, enc, get, patch, post } from "../api.js";
 import { h, replace } from "../dom.js";
+
+const NOT_EVALUATED = "none: not evaluated";
+/** Raw ids never offered as a class of their own: SemanticKITTI's "unlabeled" and "outlier". */
+const NEVER_SUGGESTED = new Set([0, 1]);
 
 /** Run one class-list request; on success show the new list, on failure its message. */
 async function classCall(ctx, fn) {
@@ -10,10 +18,12 @@ async function classCall(ctx, fn) {
   try {
     const res = await fn();
     ctx.state.classes = res.data;
+    ctx.state.nextColor = res.next_color;
     renderClasses(ctx);
     const saved = ctx.els.classes.querySelector(".editor-status");
     saved.textContent = "Saved";
     saved.className = "editor-status ok";
+    if (ctx.render.next) ctx.render.next();
     return true;
   } catch (err) {
     if (status) {
@@ -22,6 +32,84 @@ async function classCall(ctx, fn) {
     }
     return false;
   }
+}
+
+function idName(ctx, id) {
+  const ids = ctx.state.gtIds;
+  return ids && ids.names[String(id)] ? ids.names[String(id)] : null;
+}
+
+/** Classes whose ground-truth ids include raw id `id` (from the current class list, not the cached scan). */
+function usersOf(ctx, id) {
+  return ctx.state.classes.filter((c) => c.gt_ids.includes(id)).map((c) => c.name);
+}
+
+function idText(ctx, id) {
+  const name = idName(ctx, id);
+  return name ? `${id} ${name}` : `${id}`;
+}
+
+/** A multi-select over the dataset's raw ids (plus any already chosen that the dataset lacks). */
+function gtSelect(ctx, chosen, attrs) {
+  const ids = ctx.state.gtIds;
+  const present = ids ? ids.data : [];
+  const all = new Map(present.map((r) => [r.id, r]));
+  for (const id of chosen) if (!all.has(id)) all.set(id, { id, name: idName(ctx, id), points: 0 });
+  const options = [...all.values()]
+    .sort((a, b) => a.id - b.id)
+    .map((r) => {
+      const users = usersOf(ctx, r.id);
+      const used = users.length ? ` · ${users.join(", ")}` : "";
+      const count = r.points ? ` · ${r.points.toLocaleString()} pts` : " · not in the dataset";
+      return h("option", { value: String(r.id), selected: chosen.includes(r.id) }, `${r.id} ${r.name || "(no name)"}${count}${used}`);
+    });
+  return h("select", { multiple: true, size: Math.min(8, Math.max(3, options.length)), ...attrs }, options);
+}
+
+function selectedIds(select) {
+  return [...select.selectedOptions].map((o) => Number(o.value));
+}
+
+function gtSummary(ctx, ids) {
+  return ids.length ? ids.map((id) => idText(ctx, id)).join(", ") : NOT_EVALUATED;
+}
+
+function gtEditor(ctx, c, save) {
+  const base = `/projects/${ctx.projectId}/classes/${enc(c.name)}`;
+  const open = ctx.state.gtOpen === c.name;
+  const summary = h("span", { class: `gt-summary${c.gt_ids.length ? "" : " muted"}` }, gtSummary(ctx, c.gt_ids));
+  const toggle = h(
+    "button",
+    {
+      type: "button",
+      class: "btn ghost small gt-edit",
+      "aria-label": `Edit ground-truth ids of ${c.name}`,
+      onclick: () => {
+        ctx.state.gtOpen = open ? null : c.name;
+        renderClasses(ctx);
+      },
+    },
+    open ? "Close" : "Edit",
+  );
+  const parts = [h("div", { class: "gt-line small" }, h("span", { class: "muted" }, "Ground truth: "), summary, toggle)];
+  if (open) {
+    const select = gtSelect(ctx, c.gt_ids, { class: "gt-select", "aria-label": `Ground-truth ids of ${c.name}` });
+    parts.push(
+      h(
+        "div",
+        { class: "gt-pick" },
+        select,
+        h("p", { class: "muted small" }, ctx.state.gtIds && !ctx.state.gtIds.has_ground_truth ? "The dataset has no ground-truth labels." : `Ctrl/⌘-click picks several; none selected = ${NOT_EVALUATED}.`),
+        h(
+          "div",
+          { class: "row" },
+          h("button", { type: "button", class: "btn small primary gt-save", onclick: () => { ctx.state.gtOpen = null; save(() => patch(base, { gt_ids: selectedIds(select) })); } }, "Save ids"),
+          h("button", { type: "button", class: "btn small ghost gt-clear", onclick: () => { ctx.state.gtOpen = null; save(() => patch(base, { gt_ids: [] })); } }, "Not evaluated"),
+        ),
+      ),
+    );
+  }
+  return parts;
 }
 
 function classRow(ctx, c) {
@@ -102,16 +190,56 @@ function classRow(ctx, c) {
     { class: "class-row", dataset: { class: c.name } },
     h("div", { class: "class-line" }, color, name, exportId, remove),
     h("div", { class: "prompts" }, chips, add),
+    gtEditor(ctx, c, save),
   );
+}
+
+/** Named raw ids present in the dataset that no class maps (e.g. the demo's traffic cones). */
+function suggestions(ctx) {
+  const ids = ctx.state.gtIds;
+  if (!ids) return [];
+  const names = new Set(ctx.state.classes.map((c) => c.name));
+  return ids.data.filter((r) => r.name && !usersOf(ctx, r.id).length && !NEVER_SUGGESTED.has(r.id) && !names.has(r.name));
 }
 
 function addClassForm(ctx) {
   const classes = ctx.state.classes;
   const name = h("input", { placeholder: "new class", maxlength: 64, id: "new-class-name", "aria-label": "New class name" });
-  const color = h("input", { type: "color", value: "#888888", "aria-label": "New class color" });
+  let colorTouched = false;
+  const color = h("input", {
+    type: "color",
+    value: ctx.state.nextColor || "#e6194b",
+    id: "new-class-color",
+    title: "The most distinct unused colour; change it if you like",
+    "aria-label": "New class color",
+    oninput: () => (colorTouched = true),
+  });
+  const usedExport = new Set(classes.map((c) => c.export_id));
   const nextId = Math.max(0, ...classes.map((c) => c.export_id)) + 1;
-  const exportId = h("input", { type: "number", min: 1, max: 65535, value: String(Math.min(nextId, 65535)), class: "cls-export", "aria-label": "New class export id" });
+  const exportId = h("input", { type: "number", min: 1, max: 65535, value: String(Math.min(nextId, 65535)), class: "cls-export", id: "new-class-export", "aria-label": "New class export id" });
   const prompts = h("input", { placeholder: "prompts, comma separated", id: "new-class-prompts", "aria-label": "New class prompts" });
+  const gt = gtSelect(ctx, [], { id: "new-class-gt", "aria-label": "New class ground-truth ids" });
+  const gtNote = h("span", { class: "muted small", id: "new-class-gt-summary" }, `Ground truth: ${NOT_EVALUATED}`);
+  gt.addEventListener("change", () => (gtNote.textContent = `Ground truth: ${gtSummary(ctx, selectedIds(gt))}`));
+  const offer = suggestions(ctx).map((r) =>
+    h(
+      "button",
+      {
+        type: "button",
+        class: "btn small ghost suggestion",
+        dataset: { rawId: String(r.id) },
+        title: `${r.points.toLocaleString()} points in the dataset carry raw id ${r.id}; no class maps it yet`,
+        onclick: () => {
+          name.value = r.name;
+          prompts.value = r.name.replace(/-/g, " ");
+          if (!usedExport.has(r.id) && r.id >= 1) exportId.value = String(r.id);
+          for (const o of gt.options) o.selected = Number(o.value) === r.id;
+          gt.dispatchEvent(new Event("change"));
+        },
+      },
+      `+ ${r.name} (${r.id})`,
+    ),
+  );
   return h(
     "form",
     {
@@ -121,14 +249,29 @@ function addClassForm(ctx) {
         const list = prompts.value.split(",").map((p) => p.trim()).filter(Boolean);
         const n = name.value.trim();
         if (!n) return;
-        await classCall(ctx, () =>
-          post(`/projects/${ctx.projectId}/classes`, { name: n, color: color.value, export_id: Number(exportId.value), prompts: list.length ? list : [n] }),
-        );
+        const body = { name: n, export_id: Number(exportId.value), prompts: list.length ? list : [n], gt_ids: selectedIds(gt) };
+        if (colorTouched) body.color = color.value; // else the server picks the same distinct colour
+        await classCall(ctx, () => post(`/projects/${ctx.projectId}/classes`, body));
       },
     },
+    offer.length ? h("div", { class: "suggestions" }, h("span", { class: "muted small" }, "In the ground truth, not yet a class: "), offer) : null,
     h("div", { class: "class-line" }, color, name, exportId, h("button", { class: "btn small", type: "submit" }, "Add")),
     prompts,
+    gtNote,
+    gt,
   );
+}
+
+async function loadGtIds(ctx) {
+  if (ctx.state.gtIds || ctx.state.gtIdsLoading) return;
+  ctx.state.gtIdsLoading = true;
+  try {
+    ctx.state.gtIds = await get(`/projects/${ctx.projectId}/gt-ids`);
+  } catch (err) {
+    ctx.state.gtIds = { data: [], names: {}, has_ground_truth: false, error: err.message };
+  }
+  ctx.state.gtIdsLoading = false;
+  renderClasses(ctx);
 }
 
 export function renderClasses(ctx) {
@@ -141,4 +284,5 @@ export function renderClasses(ctx) {
     h("ol", { class: "class-list" }, classes.map((c) => classRow(ctx, c))),
     addClassForm(ctx),
   );
+  loadGtIds(ctx);
 }

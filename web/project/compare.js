@@ -1,8 +1,77 @@
-// Metrics of the runs ticked in the history, side by side: a table per result row and a per-class IoU chart.
+// Metrics of the runs ticked in the history, side by side: a headline with the camera-view figures beside
+// the share of *all* points labeled (what an export leaves unlabeled), a table per result row, a per-class
+// IoU table with a Δ column (newest compared run against the one before it), what changed between those two
+// runs (GET /runs/{id}/compare/{base}: prompts, classes, parameters) and a per-class IoU chart.
 
 import { get } from "../api.js";
 import { RUN_COLORS, iouChart } from "../chart.js";
 import { fmtPct, h, replace } from "../dom.js";
+import { changeList } from "./next-run.js";
+
+async function comparisonOf(state, runId, baseId) {
+  const key = `${runId}:${baseId}`;
+  if (!state.comparisons) state.comparisons = new Map();
+  if (!state.comparisons.has(key)) state.comparisons.set(key, await get(`/runs/${runId}/compare/${baseId}`));
+  return state.comparisons.get(key);
+}
+
+function fmtDelta(x) {
+  if (x === null || x === undefined || Number.isNaN(x)) return "–";
+  const v = 100 * x;
+  return `${v > 0 ? "+" : v < 0 ? "−" : "±"}${Math.abs(v).toFixed(1)}`;
+}
+
+/** The camera-view figures of the newest run's chosen row beside the share of all its points labeled. */
+function headline(state, run, m) {
+  const camera = (m.protocols.camera || {})[state.row];
+  const all = (m.labeled_share_all_points || {})[state.row];
+  return h(
+    "p",
+    { class: "metrics-headline", id: "metrics-headline" },
+    h("strong", {}, `Run ${run.number} · ${state.row}: `),
+    camera ? `camera view mIoU ${fmtPct(camera.miou)} %, ${fmtPct(camera.labeled_share)} % of in-view ground-truth points labeled · ` : "",
+    h("span", { id: "all-points-labeled", title: "Share of every point of every evaluated scan that got a label: what the exported .label files label" }, `${fmtPct(all)} % of all points labeled`),
+  );
+}
+
+function classTable(state, runs, all, comparison) {
+  const latest = all[all.length - 1];
+  const names = latest.class_names;
+  const two = comparison !== null;
+  const rowDelta = two ? comparison.rows.find((r) => r.protocol === state.protocol && r.row === state.row) : null;
+  const byName = new Map(rowDelta ? rowDelta.classes.map((c) => [c.name, c]) : []);
+  const iouOf = (i) => ((all[i].metrics.protocols[state.protocol] || {})[state.row] || {}).iou || {};
+  const last = iouOf(all.length - 1);
+  const prev = two ? iouOf(all.length - 2) : {};
+  const nameList = two && rowDelta ? rowDelta.classes.map((c) => c.name) : names;
+  const a = runs[runs.length - 1];
+  const b = two ? runs[runs.length - 2] : null;
+  return h(
+    "table",
+    { class: "metrics-table class-table", id: "class-table" },
+    h(
+      "thead",
+      {},
+      h("tr", {}, h("th", {}, "Class"), two ? h("th", { class: "num" }, `#${b.number} IoU`) : null, h("th", { class: "num" }, `#${a.number} IoU`), two ? h("th", { class: "num", title: `run ${a.number} − run ${b.number}` }, "Δ") : null),
+    ),
+    h(
+      "tbody",
+      {},
+      nameList.map((n) => {
+        const d = byName.get(n);
+        const delta = d ? d.delta : null;
+        return h(
+          "tr",
+          { dataset: { class: n } },
+          h("td", {}, n),
+          two ? h("td", { class: "num" }, fmtPct(d ? d.base_iou : prev[n])) : null,
+          h("td", { class: "num iou" }, fmtPct(d ? d.iou : last[n])),
+          two ? h("td", { class: `num delta${delta > 0 ? " up" : delta < 0 ? " down" : ""}` }, fmtDelta(delta)) : null,
+        );
+      }),
+    ),
+  );
+}
 
 async function metricsOf(state, runId) {
   if (!state.metrics.has(runId)) state.metrics.set(runId, await get(`/runs/${runId}/metrics`));
@@ -17,7 +86,7 @@ function metricsTable(state, runs, all) {
   return h(
     "table",
     { class: "metrics-table", id: "metrics-table" },
-    h("thead", {}, h("tr", {}, h("th", {}, "Run"), h("th", {}, "Labels"), h("th", { class: "num" }, "mIoU"), h("th", { class: "num" }, "cat. mIoU"), h("th", { class: "num" }, "labeled"), h("th", { class: "num" }, "× points"))),
+    h("thead", {}, h("tr", {}, h("th", {}, "Run"), h("th", {}, "Labels"), h("th", { class: "num" }, "mIoU"), h("th", { class: "num" }, "cat. mIoU"), h("th", { class: "num", title: "share of ground-truth points labeled (in the camera view for that protocol)" }, "labeled"), h("th", { class: "num", title: "share of all points labeled, ground truth or not" }, "all pts labeled"), h("th", { class: "num" }, "× points"))),
     h(
       "tbody",
       {},
@@ -33,6 +102,7 @@ function metricsTable(state, runs, all) {
             h("td", { class: "num strong" }, fmtPct(v.miou)),
             h("td", { class: "num" }, fmtPct(v.category_miou)),
             h("td", { class: "num" }, fmtPct(v.labeled_share)),
+            h("td", { class: "num all-labeled" }, fmtPct((m.labeled_share_all_points || {})[row])),
             h("td", { class: "num" }, m.coverage_ratio && m.coverage_ratio[row] ? m.coverage_ratio[row].toFixed(2) : "–"),
           ),
         );
@@ -80,12 +150,26 @@ export async function renderCompare(ctx) {
     const row = (all[i].metrics.protocols[state.protocol] || {})[state.row];
     return { label: `run ${run.number}`, iou: row ? row.iou : {} };
   });
-  const legend = h("div", { class: "legend" }, runs.map((run, i) => h("span", {}, runDot(i), `run ${run.number}`)));
+  const legend = h("div", { class: "legend" }, runs.map((run, i) => h("span", { title: run.note || "" }, runDot(i), `run ${run.number}`, run.note ? h("em", { class: "muted small" }, ` “${run.note}”`) : null)));
+  let comparison = null;
+  if (runs.length >= 2) {
+    try {
+      comparison = await comparisonOf(state, runs[runs.length - 1].id, runs[runs.length - 2].id);
+    } catch (err) {
+      comparison = null;
+    }
+  }
+  const latest = runs[runs.length - 1];
   replace(
     el,
-    h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Chart ", rowSel))),
+    h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
+    headline(state, latest, all[all.length - 1].metrics),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
-    h("h3", { class: "chart-title" }, `Per-class IoU (%) · ${state.row} labels`),
+    h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),
+    h("div", { class: "table-wrap" }, classTable(state, runs, all, comparison)),
+    comparison ? h("h3", { class: "chart-title" }, `What changed from run ${runs[runs.length - 2].number} to run ${latest.number}`) : null,
+    comparison ? changeList(comparison.changes, "run-changes") : null,
+    h("h3", { class: "chart-title" }, "Per-class IoU chart"),
     legend,
     h("div", { id: "iou-chart" }, iouChart(series, classRows)),
   );

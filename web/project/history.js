@@ -1,7 +1,7 @@
 // Run history: one row per run with its status, time and headline mIoU per result row, the compare
 // check boxes, exports, resume and the run log.
 
-import { get } from "../api.js";
+import { get, patch } from "../api.js";
 import { duration, fmtPct, fmtSeconds, fmtTime, h, replace, statusChip } from "../dom.js";
 import { exportActions } from "./exports.js";
 
@@ -29,6 +29,29 @@ function runActions(ctx, run) {
   const { state } = ctx;
   const out = exportActions(ctx, run);
   if (run.resumable) out.push(h("button", { class: "btn small", onclick: () => ctx.actions.runAction(run, "resume") }, "Resume"));
+  out.push(
+    h(
+      "button",
+      {
+        class: "btn small ghost",
+        dataset: { action: "note" },
+        title: run.note ? "Edit the run's note" : "Add a note to the run",
+        onclick: async () => {
+          const text = window.prompt(`Note for run ${run.number}`, run.note || "");
+          if (text === null) return;
+          try {
+            const updated = await patch(`/runs/${run.id}`, { note: text });
+            run.note = updated.note;
+            ctx.render.runs();
+            await ctx.render.compare();
+          } catch (err) {
+            ctx.toast(err.message, "error");
+          }
+        },
+      },
+      "Note",
+    ),
+  );
   out.push(
     h(
       "button",
@@ -77,6 +100,9 @@ function runRows(ctx, run, rows) {
     h("td", { class: "run-actions" }, runActions(ctx, run)),
   );
   const out = [tr];
+  if (run.note) {
+    out.push(h("tr", { class: "sub run-note-row" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "muted small run-note-text" }, `Note: ${run.note}`)));
+  }
   if (run.error && !ctx.active.has(run.status)) {
     out.push(h("tr", { class: "sub" }, h("td", {}), h("td", { colspan: 5 + rows.length, class: "error small" }, run.error)));
   }

@@ -1,7 +1,9 @@
-"""A project's classes (name, color, prompts, export id) and each class's prompt list.
+"""A project's classes (name, color, prompts, export id, ground-truth ids) and each class's prompt list,
+and the raw ground-truth ids of the project's dataset (to pick a class's ground-truth ids from).
 
 Classes are addressed by name; every change is validated against the whole schema (unique names, export
-ids and prompts) and answers with the full, ordered class list.
+ids and prompts) and answers with the full, ordered class list. A class created without a colour gets
+``next_color`` of that list: the unused colour most distinct from the others and from unlabeled grey.
 """
 
 from __future__ import annotations
@@ -16,6 +18,14 @@ from app.api.types import ClassName, ProjectId, PromptIndex
 router = APIRouter(
     prefix="/projects/{project_id}/classes", tags=["classes"], responses={**NOT_FOUND, **CONFLICT}
 )
+ids_router = APIRouter(prefix="/projects/{project_id}", tags=["classes"], responses={**NOT_FOUND})
+
+
+@ids_router.get("/gt-ids", response_model=models.RawIdsPublic)
+def list_gt_ids(project_id: ProjectId, db: DbDep) -> models.RawIdsPublic:
+    """The raw ids in the dataset's ``labels/`` (at most 200 evenly spaced files are read; cached until
+    the folder changes), each with its SemanticKITTI or demo name and the classes that map it."""
+    return services.raw_ids_public(crud.require_project(db, project_id))
 
 
 @router.get("", response_model=models.ClassesPublic)

@@ -2,7 +2,10 @@
 and which run states are active, ended or resumable.
 
 The web UI builds its stage list and its parameter form from this answer, so a stage or a parameter is
-declared once, in leap_core (``STAGE_TABLE``, ``FORM_FIELDS``), and nowhere in the browser code.
+declared once, in leap_core (``STAGE_TABLE``, ``FORM_FIELDS``), and nowhere in the browser code. Each form
+field says which labeler or switchable stage it belongs to (``leap_core.pipeline.steering.setting_scope``)
+and each switchable stage which form field switches it, so the form greys out what the chosen settings
+ignore without knowing any setting by name.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from app.jobs.progress import TERMINAL_STATUSES
 from leap_core.config import FORM_FIELDS
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
+from leap_core.pipeline.steering import setting_scope, stage_switches
 
 router = APIRouter(prefix="/pipeline", tags=["pipeline"])
 
@@ -31,10 +35,18 @@ DEMO_STAGE = models.StageInfoPublic(
 
 def pipeline_public() -> models.PipelinePublic:
     """The answer of ``GET /pipeline`` (the same for every request)."""
+    switches = stage_switches()
     stages = [DEMO_STAGE] + [
-        models.StageInfoPublic(name=s.name, label=s.label, description=s.description, per_frame=s.per_frame)
+        models.StageInfoPublic(
+            name=s.name,
+            label=s.label,
+            description=s.description,
+            per_frame=s.per_frame,
+            switch=switches.get(s.name),
+        )
         for s in STAGE_TABLE
     ]
+    scopes = {name: setting_scope(f.path) for name, f in FORM_FIELDS.items()}
     form = [
         models.FormFieldPublic(
             name=name,
@@ -46,6 +58,8 @@ def pipeline_public() -> models.PipelinePublic:
             maximum=f.maximum,
             step=f.step,
             choices=[models.FormChoice(value=value, label=label) for value, label in f.choices],
+            labeler=scopes[name].labeler,
+            stage=scopes[name].stage,
         )
         for name, f in FORM_FIELDS.items()
     ]

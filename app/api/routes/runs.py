@@ -1,5 +1,5 @@
-"""Runs of a project: start, list, detail, cancel, resume, live progress (JSON and server-sent events),
-metrics and logs."""
+"""Runs of a project: start (with a note), a preview of what the next run recomputes, list, detail, note
+edits, cancel, resume, live progress (JSON and server-sent events), metrics, comparison and logs."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from fastapi import APIRouter, Request, Response, status
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from app import crud, models, services
+from app import crud, models, services, steering
 from app.api.deps import DbDep, JobsDep, ReadDbDep, SettingsDep
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.types import ProjectId, RunId
@@ -42,7 +42,31 @@ def start_run(
         None if payload is None or payload.frames is None else (payload.frames.start, payload.frames.stop)
     )
     run = jobs.start_run(project_id, frames=frames)
+    if payload is not None and payload.note:
+        crud.update_run(db, run["id"], note=payload.note)
     return services.run_public(crud.require_run(db, run["id"]), jobs.progress(run["id"]))
+
+
+@router.get("/projects/{project_id}/runs/preview", response_model=models.RunPreview)
+def preview_run(project_id: ProjectId, db: DbDep, settings: SettingsDep) -> models.RunPreview:
+    """Which stages a new run of all frames would recompute, and what changed since the finished run it
+    would start from: the fingerprints it would have against that run's ``stages.json``."""
+    return steering.run_preview(db, settings, project_id)
+
+
+@router.patch("/runs/{run_id}", response_model=models.RunPublic)
+def update_run(run_id: RunId, payload: models.RunUpdate, db: DbDep, jobs: JobsDep) -> models.RunPublic:
+    """Set or clear the run's note."""
+    crud.require_run(db, run_id)
+    crud.update_run(db, run_id, note=payload.note or None)
+    return services.run_public(crud.require_run(db, run_id), jobs.progress(run_id))
+
+
+@router.get("/runs/{run_id}/compare/{base_id}", response_model=models.ComparePublic)
+def compare_runs(run_id: RunId, base_id: RunId, db: DbDep) -> models.ComparePublic:
+    """The run against ``base_id`` (same project): Δ mIoU and Δ IoU per class for every protocol and
+    result row both have, and what changed between their inputs (classes, prompts, parameters)."""
+    return steering.compare_runs(db, run_id, base_id)
 
 
 # The two polled read endpoints build their public model once and send its JSON directly (FastAPI would

@@ -1,0 +1,137 @@
+"""Steering between runs: what the next run of a project recomputes, and how a run compares with an
+earlier one (Δ per class, what changed). Routes call these; the rules live in
+:mod:`leap_core.pipeline.steering`.
+
+A module of its own because the preview needs the job manager's rule for a new run's corrections, and the
+job manager imports :mod:`app.services`.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import sqlite_utils
+
+from app import crud, models
+from app.core.config import Settings
+from app.core.errors import InvalidField
+from app.jobs.manager import corrections_for_run
+from app.services import normalise_metrics, project_config
+from leap_core.errors import LeapError
+from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
+from leap_core.pipeline.context import read_state
+from leap_core.pipeline.steering import Change, changed_sections, recompute_plan, run_changes
+from leap_core.run_layout import RunLayout, save_corrections
+from leap_core.runtime import Runtime
+from leap_core.schema import Schema
+
+
+# ------------------------------------------------------------------------------------------ steering
+def _change_public(change: Change) -> models.ChangePublic:
+    return models.ChangePublic(
+        kind=change.kind, subject=change.subject, text=change.text, ignored=change.ignored
+    )
+
+
+def project_snapshot(project: dict[str, Any]) -> dict[str, Any]:
+    """The inputs a new run of all frames would snapshot (the parts :func:`run_changes` compares)."""
+    return {"dataset": project["dataset_path"], "frames": None, "schema": project["schema"],
+            "pipeline": project["pipeline"]}
+
+
+def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) -> models.RunPreview:
+    """Which stages the next run (all frames) recomputes: the fingerprints it would have against those in
+    the ``stages.json`` of the finished run its folder would be seeded from (the job manager's rule: the
+    latest finished run, when it covered the same dataset and all frames)."""
+    project = crud.require_project(db, project_id)
+    snapshot = project_snapshot(project)
+    last = crud.last_finished_run(db, project_id)
+    base = None
+    if last is not None and last["params"].get("dataset") == snapshot["dataset"] and last["params"].get(
+        "frames"
+    ) is None:
+        base = last
+    changes = [] if base is None else [_change_public(c) for c in run_changes(base["params"], snapshot)]
+    basis = None if base is None else models.RunBasis(id=base["id"], number=base["number"])
+
+    def everything(reason: str, problem: str | None = None) -> models.RunPreview:
+        stages = [models.StagePlanPublic(name=s.name, label=s.label, action="recompute", reason=reason)
+                  for s in STAGE_TABLE]
+        return models.RunPreview(base_run=basis, stages=stages, recompute=[s.name for s in stages],
+                                 changes=changes, problem=problem)
+
+    dataset = Path(project["dataset_path"])
+    if not (dataset / "velodyne").is_dir():
+        return everything("the dataset does not exist yet")
+    config = project_config(project)
+    try:
+        schema = Schema.from_dict(project["schema"], source="classes")
+        runtime = Runtime(models_dir=settings.models_dir, cache_dir=settings.cache_dir / f"p{project_id}")
+        settings.work_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
+            keys, classes = corrections_for_run(
+                crud.list_corrections(db, project_id, active_only=True),
+                project["schema"],
+                project["pipeline"],
+            )
+            save_corrections(RunLayout(Path(tmp)).corrections, keys, classes)
+            fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
+    except LeapError as exc:
+        return everything("its inputs could not be fingerprinted", problem=str(exc))
+    previous = None if base is None else read_state(RunLayout(Path(base["run_dir"])))
+    sections = (
+        [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
+    )
+    kinds = {"class": "the classes or prompts changed", "dataset": "the dataset changed",
+             "frames": "the frames changed"}
+    hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
+    plans = recompute_plan(config, fps, previous, sections,
+                           **({"input_hint": hint} if hint else {}))
+    stages = [
+        models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans
+    ]
+    return models.RunPreview(base_run=basis, stages=stages,
+                             recompute=[p.name for p in plans if p.action == "recompute"], changes=changes)
+
+
+def _num(value: Any) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def _delta(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a - b
+
+
+def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models.ComparePublic:
+    """``run`` against ``base``: per protocol and shared result row the mIoU and per-class IoU deltas
+    (classes matched by name: a class only one run has gets a null delta), and the input changes."""
+    run = crud.require_run(db, run_id)
+    base = crud.require_run(db, base_id)
+    if run["project_id"] != base["project_id"]:
+        raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
+    changes = [_change_public(c) for c in run_changes(base["params"], run["params"])]
+    rows: list[models.RowDelta] = []
+    ma, mb = normalise_metrics(run.get("metrics")), normalise_metrics(base.get("metrics"))
+    if ma is not None and mb is not None:
+        names = [c["name"] for c in run["params"]["schema"]["classes"]]
+        names += [c["name"] for c in base["params"]["schema"]["classes"] if c["name"] not in names]
+        for protocol, table in ma["protocols"].items():
+            other = mb["protocols"].get(protocol, {})
+            for row, values in table.items():
+                if row not in other:
+                    continue
+                ia, ib = values.get("iou") or {}, other[row].get("iou") or {}
+                classes = [
+                    models.ClassDelta(name=n, iou=_num(ia.get(n)), base_iou=_num(ib.get(n)),
+                                      delta=_delta(_num(ia.get(n)), _num(ib.get(n))))
+                    for n in names
+                ]
+                a, b = _num(values.get("miou")), _num(other[row].get("miou"))
+                rows.append(
+                    models.RowDelta(
+                        protocol=protocol, row=row, miou=a, base_miou=b, delta=_delta(a, b), classes=classes
+                    )
+                )
+    return models.ComparePublic(run_id=run_id, base_run_id=base_id, changes=changes, rows=rows)

@@ -1,0 +1,277 @@
+"""Steering a project between runs: which settings a configuration ignores, which stages a new run will
+recompute, and what changed between two runs.
+
+Everything here is derived from the registries, so no rule is written twice:
+
+- A setting belongs to a **labeler** when its top-level config section is that labeler's
+  ``LabelerSpec.config_field`` (``grounded_sam.box_threshold`` → ``grounded-sam``), and to a **switchable
+  stage** when the stage's ``StageInfo.reads`` holds its section and the stage has a ``switch``
+  (``consistency.share`` → ``3dcn``, whose switch is ``consistency.enabled``). It is ignored when another
+  labeler is chosen or that stage is switched off.
+- A stage is **recomputed** when the fingerprint a new run would give it differs from the one recorded in the
+  latest run's ``stages.json`` (the rule :func:`~leap_core.pipeline.run_pipeline` applies when it reuses a
+  seeded run folder), or when that run did not finish it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from leap_core.config import FORM_FIELDS, PipelineConfig, config_from_dict
+from leap_core.errors import LeapError
+from leap_core.labelers import LABELERS
+from leap_core.pipeline.stages import STAGE_TABLE
+
+
+# ------------------------------------------------------------------------------------ setting scopes
+@dataclass(frozen=True)
+class SettingScope:
+    """What a setting (a dotted config path) depends on to have any effect."""
+
+    labeler: str | None = None
+    """Only this labeler (a :data:`LABELERS` name) reads it."""
+    stage: str | None = None
+    """Only this switchable stage reads it (ignored while the stage's switch is off)."""
+
+
+def setting_scope(path: str) -> SettingScope:
+    """The scope of the dotted config path ``path`` (``"grounded_sam.box_threshold"``)."""
+    section = path.split(".", maxsplit=1)[0]
+    labeler = next((s.name for s in LABELERS.values() if s.config_field == section), None)
+    stage = next(
+        (s.name for s in STAGE_TABLE if s.switch is not None and section in s.reads and path != s.switch),
+        None,
+    )
+    return SettingScope(labeler=labeler, stage=stage)
+
+
+def stage_switches() -> dict[str, str]:
+    """Stage name → flat name of the form field that switches it (stages whose switch is a form field)."""
+    by_path = {f.path: name for name, f in FORM_FIELDS.items()}
+    return {s.name: by_path[s.switch] for s in STAGE_TABLE if s.switch is not None and s.switch in by_path}
+
+
+def ignored_reason(cfg: PipelineConfig, path: str) -> str | None:
+    """Why ``cfg`` ignores the setting at ``path``, or None when the setting has an effect."""
+    scope = setting_scope(path)
+    if scope.labeler is not None and scope.labeler != cfg.labeler:
+        return (f"only the {LABELERS[scope.labeler].label} labeler uses it; "
+                f"the {LABELERS[cfg.labeler].label} labeler ignores it")
+    if scope.stage is not None:
+        stage = next(s for s in STAGE_TABLE if s.name == scope.stage)
+        if not stage.is_enabled(cfg):
+            switch = stage_switches().get(stage.name)
+            how = f" ({FORM_FIELDS[switch].label} is unticked)" if switch is not None else ""
+            return f"the {stage.label} stage is off{how}"
+    return None
+
+
+def ignored_settings(cfg: PipelineConfig) -> dict[str, str]:
+    """Flat form name → why ``cfg`` ignores it, for every form field (:data:`FORM_FIELDS`) it ignores."""
+    out: dict[str, str] = {}
+    for name, f in FORM_FIELDS.items():
+        reason = ignored_reason(cfg, f.path)
+        if reason is not None:
+            out[name] = reason
+    return out
+
+
+# ----------------------------------------------------------------------------------- recompute plan
+StageAction = Literal["recompute", "reuse", "off"]
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """What a new run will do with one stage."""
+
+    name: str
+    label: str
+    action: StageAction
+    """``recompute``; ``reuse`` (the latest run's outputs are current); ``off`` (switched off: skipped)."""
+    reason: str
+    """One line: why (``"settings changed: smoothing"``, ``"after Voxel fusion"``, ...)."""
+
+
+def recompute_plan(
+    cfg: PipelineConfig,
+    fingerprints: Mapping[str, str],
+    previous: Mapping[str, Mapping[str, Any]] | None,
+    changed_sections: Collection[str] = (),
+    input_hint: str = "its inputs changed (classes, prompts, corrections or data)",
+) -> list[StagePlan]:
+    """Per stage (table order): will a run with ``fingerprints`` (:func:`~leap_core.pipeline.runner.
+    stage_fingerprints`) recompute it, given the ``stages.json`` records ``previous`` of the run whose
+    folder it starts from (None: no such run)?
+
+    Args:
+        cfg: the new run's config (which stages are switched on).
+        fingerprints: stage name → the new run's fingerprint.
+        previous: stage name → record with ``fingerprint`` and ``status``; None or {} = nothing to reuse.
+        changed_sections: config sections (top-level keys) that differ from the previous run's, to name
+            in the reasons.
+        input_hint: the reason of a stage whose own settings and upstream stages are unchanged but whose
+            other inputs (:attr:`StageInfo.inputs`, the class count) are not.
+    """
+    plans: list[StagePlan] = []
+    changed: dict[str, bool] = {}
+    label = {s.name: s.label for s in STAGE_TABLE}
+    by_name = {s.name: s for s in STAGE_TABLE}
+    for stage in STAGE_TABLE:
+        rec = (previous or {}).get(stage.name)
+        same = rec is not None and rec.get("fingerprint") == fingerprints[stage.name]
+        finished = rec is not None and rec.get("status") in ("done", "skipped")
+        changed[stage.name] = not (same and finished)
+        if not stage.is_enabled(cfg):
+            # Off, it writes nothing: it changes what follows only when it was on in the latest run.
+            changed[stage.name] = bool(previous) and (rec or {}).get("status") != "skipped"
+            plans.append(StagePlan(stage.name, stage.label, "off", "switched off"))
+            continue
+        if not changed[stage.name]:
+            plans.append(StagePlan(stage.name, stage.label, "reuse", "unchanged since the latest run"))
+            continue
+        if not previous:
+            reason = "no earlier run to reuse"
+        elif rec is None:
+            reason = "not run before"
+        elif same:
+            reason = f"unfinished in the latest run ({rec.get('status')})"
+        else:
+            parts = []
+            own = [s for s in stage.reads if s in changed_sections]
+            if own:
+                parts.append(f"settings changed: {', '.join(own)}")
+            ups = [label[u] + (" (switched off)" if not by_name[u].is_enabled(cfg) else "")
+                   for u in stage.upstream if changed[u]]
+            if ups:
+                parts.append(f"after {', '.join(ups)}")
+            reason = "; ".join(parts) or input_hint
+        plans.append(StagePlan(stage.name, stage.label, "recompute", reason))
+    return plans
+
+
+def changed_sections(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order)."""
+    keys = list(new) + [k for k in old if k not in new]
+    return [k for k in keys if _canon(old.get(k)) != _canon(new.get(k))]
+
+
+def _canon(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, default=str)
+
+
+# ------------------------------------------------------------------------------------ run changes
+ChangeKind = Literal["dataset", "frames", "class", "parameter"]
+
+
+@dataclass(frozen=True)
+class Change:
+    """One difference between two runs' inputs."""
+
+    kind: ChangeKind
+    subject: str
+    """Class name, dotted parameter path, ``dataset`` or ``frames``."""
+    text: str
+    """One line for people (``prompts of car: + "sedan", − "jeep"``)."""
+    ignored: str | None = None
+    """For a parameter the newer run's config ignores: why (it then changed nothing)."""
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list) and not value:
+        return "none"
+    return json.dumps(value, default=str)
+
+
+def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        path = f"{prefix}{k}"
+        if isinstance(v, Mapping) and v:
+            out.update(_flatten(v, path + "."))
+        else:
+            out[path] = v
+    return out
+
+
+def _class_changes(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, Any]]) -> list[Change]:
+    out: list[Change] = []
+    before = {c["name"]: c for c in old}
+    after = {c["name"]: c for c in new}
+    for c in new:
+        if c["name"] not in before:
+            ids = ", ".join(str(i) for i in c.get("gt_ids", [])) or "none"
+            prompts = ", ".join(_fmt(p) for p in c.get("prompts", []))
+            out.append(Change("class", c["name"], f"class {c['name']} added (prompts {prompts}; "
+                                                  f"ground-truth ids {ids})"))
+    for c in old:
+        if c["name"] not in after:
+            out.append(Change("class", c["name"], f"class {c['name']} removed"))
+    common_old = [c["name"] for c in old if c["name"] in after]
+    common_new = [c["name"] for c in new if c["name"] in before]
+    if common_old != common_new:
+        out.append(Change("class", "order", "class order changed"))
+    for name in common_new:
+        a, b = before[name], after[name]
+        for key, what in (("prompts", "prompts"), ("negative_prompts", "negative prompts")):
+            pa, pb = list(a.get(key, [])), list(b.get(key, []))
+            if pa != pb:
+                plus = [f"+ {_fmt(p)}" for p in pb if p not in pa]
+                minus = [f"− {_fmt(p)}" for p in pa if p not in pb]
+                listed = ", ".join(plus + minus) or "reordered"
+                out.append(Change("class", name, f"{what} of {name}: {listed}"))
+        ga, gb = sorted(a.get("gt_ids", [])), sorted(b.get("gt_ids", []))
+        if ga != gb:
+            out.append(Change("class", name, f"ground-truth ids of {name}: {_fmt(ga)} → {_fmt(gb)}"))
+        for key, what in (("export_id", "export id"), ("category", "category"), ("color", "colour")):
+            if a.get(key) != b.get(key):
+                text = f"{what} of {name}: {_fmt(a.get(key))} → {_fmt(b.get(key))}"
+                out.append(Change("class", name, text))
+    return out
+
+
+def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
+    """What differs between two runs' input snapshots (``{"dataset", "frames", "schema": {"classes"},
+    "pipeline"}``, as the app stores them), older run first: dataset, frames, classes and prompts, then
+    parameters (dotted paths, each marked when ``new``'s config ignores it)."""
+    out: list[Change] = []
+    if old.get("dataset") != new.get("dataset"):
+        out.append(Change("dataset", "dataset", f"dataset: {old.get('dataset')} → {new.get('dataset')}"))
+    if old.get("frames") != new.get("frames"):
+        def frames(v: Any) -> str:
+            return "all" if v is None else f"{v[0]}..{v[1] - 1}"
+        text = f"frames: {frames(old.get('frames'))} → {frames(new.get('frames'))}"
+        out.append(Change("frames", "frames", text))
+    classes_old = (old.get("schema") or {}).get("classes", [])
+    out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
+    fa, fb = _flatten(old.get("pipeline") or {}), _flatten(new.get("pipeline") or {})
+    try:
+        cfg: PipelineConfig | None = config_from_dict(new.get("pipeline") or {})
+    except LeapError:
+        cfg = None  # a snapshot from an older version: list its changes without the "ignored" notes
+    labels = {f.path: f.label for f in FORM_FIELDS.values()}
+    for path in list(fb) + [p for p in fa if p not in fb]:
+        if _canon(fa.get(path)) == _canon(fb.get(path)):
+            continue
+        name = f"{labels[path]} ({path})" if path in labels else path
+        ignored = None if cfg is None else ignored_reason(cfg, path)
+        out.append(Change("parameter", path, f"{name}: {_fmt(fa.get(path))} → {_fmt(fb.get(path))}", ignored))
+    return out
+
+
+__all__ = [
+    "Change",
+    "SettingScope",
+    "StagePlan",
+    "changed_sections",
+    "ignored_reason",
+    "ignored_settings",
+    "recompute_plan",
+    "run_changes",
+    "setting_scope",
+    "stage_switches",
+]

@@ -1,0 +1,271 @@
+"""Steering functions: class colours, raw ground-truth ids, setting scopes, the recompute preview, run
+changes and the all-points labeled share."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_pipeline import make_street
+
+from leap_core.colors import CANDIDATES, UNLABELED_RGB, distinct_color, srgb_to_lab
+from leap_core.config import FORM_FIELDS, PipelineConfig, config_from_dict, config_to_dict
+from leap_core.datasets.kitti import write_label
+from leap_core.datasets.raw_ids import (
+    SEMANTIC_KITTI_RAW_NAMES,
+    raw_id_counts,
+    raw_id_names,
+    sample_indices,
+    scan_raw_ids,
+)
+from leap_core.errors import DatasetError
+from leap_core.pipeline import (
+    STAGE_TABLE,
+    all_points_labeled_share,
+    plan_stages,
+    run_pipeline,
+    stage_fingerprints,
+)
+from leap_core.pipeline.context import read_state
+from leap_core.pipeline.steering import (
+    changed_sections,
+    ignored_settings,
+    recompute_plan,
+    run_changes,
+    setting_scope,
+    stage_switches,
+)
+from leap_core.run_layout import RunLayout
+from leap_core.schema import ClassDef, builtin_schema
+from leap_core.synth.names import DEMO_EXTRA_RAW_IDS
+
+
+# ------------------------------------------------------------------------------------------ colours
+def _min_delta_e(color, others) -> float:
+    lab = srgb_to_lab(np.asarray(color, float))
+    return float(np.linalg.norm(srgb_to_lab(np.asarray(others, float)) - lab, axis=-1).min())
+
+
+def test_lab_of_reference_colours() -> None:
+    assert srgb_to_lab([255, 255, 255]) == pytest.approx([100.0, 0.0, 0.0], abs=1e-3)
+    assert srgb_to_lab([0, 0, 0]) == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
+    # sRGB red in CIELAB (D65): L 53.24, a 80.09, b 67.20 (the standard conversion's published values).
+    assert srgb_to_lab([255, 0, 0]) == pytest.approx([53.24, 80.09, 67.20], abs=0.05)
+
+
+def test_distinct_color_is_the_farthest_candidate_and_never_grey_or_used() -> None:
+    schema = builtin_schema("semantickitti")
+    used = [c.color for c in schema.classes]
+    pick = distinct_color(used)
+    assert list(pick) not in [list(u) for u in used]
+    # Brute force over the candidates: nothing is farther from every used colour and from grey.
+    best = max(_min_delta_e(c, [*used, UNLABELED_RGB]) for c in CANDIDATES.tolist())
+    assert _min_delta_e(pick, [*used, UNLABELED_RGB]) == pytest.approx(best)
+    assert _min_delta_e(pick, [UNLABELED_RGB]) > 30  # clearly not grey
+
+
+def test_distinct_colors_added_one_by_one_stay_apart() -> None:
+    used: list[tuple[int, int, int]] = []
+    for _ in range(12):
+        used.append(distinct_color(used))
+    assert len(set(used)) == 12
+    for a, b in itertools.combinations(used, 2):
+        assert _min_delta_e(a, [b]) > 20
+    assert all(_min_delta_e(c, [UNLABELED_RGB]) > 30 for c in used)
+    assert distinct_color([]) == distinct_color([])  # deterministic
+    # With no class yet, the first colour is the candidate farthest from unlabeled grey.
+    farthest = max(_min_delta_e(c, [UNLABELED_RGB]) for c in CANDIDATES.tolist())
+    assert _min_delta_e(distinct_color([]), [UNLABELED_RGB]) == pytest.approx(farthest)
+
+
+# ------------------------------------------------------------------------------------------ raw ids
+def test_raw_id_names_merge_semantic_kitti_and_the_demo() -> None:
+    names = raw_id_names()
+    assert names[10] == "car" and names[252] == "moving-car" and names[81] == "traffic-sign"
+    assert names[300] == "traffic-cone" and names[301] == "bench" and names[302] == "bollard"
+    assert len(SEMANTIC_KITTI_RAW_NAMES) == 34 and set(DEMO_EXTRA_RAW_IDS) <= set(names)
+    assert not set(SEMANTIC_KITTI_RAW_NAMES) & set(DEMO_EXTRA_RAW_IDS)
+
+
+def test_raw_id_counts_use_the_low_16_bits() -> None:
+    labels = np.array([10 | (3 << 16), 10, 300 | (7 << 16), 0, 300], np.uint32)
+    assert raw_id_counts(labels) == {0: 1, 10: 2, 300: 2}
+
+
+@pytest.mark.parametrize(("total", "k", "expected"), [(10, 4, [0, 3, 6, 9]), (3, 5, [0, 1, 2]), (5, 1, [0]),
+                                                      (0, 3, []), (7, 2, [0, 6])])
+def test_sample_indices(total: int, k: int, expected: list[int]) -> None:
+    assert sample_indices(total, k) == expected
+
+
+def test_scan_raw_ids_reads_a_sample_and_names_the_bad_file(tmp_path: Path) -> None:
+    root = tmp_path / "seq"
+    for i in range(6):
+        ids = np.array([40, 40, 10] + ([300] if i == 5 else []), np.uint32)
+        write_label(root / "labels" / f"{i:06d}.label", ids)
+    full = scan_raw_ids(root)
+    assert full.counts == {10: 6, 40: 12, 300: 1} and (full.frames_read, full.frames_total) == (6, 6)
+    part = scan_raw_ids(root, max_frames=2)  # files 0 and 5: the last one is always read
+    assert part.counts == {10: 2, 40: 4, 300: 1} and part.frames_read == 2
+    assert scan_raw_ids(tmp_path / "nothing").counts == {}
+    (root / "labels" / "000002.label").write_bytes(b"abc")
+    with pytest.raises(DatasetError, match=r"000002\.label"):
+        scan_raw_ids(root)
+
+
+# ------------------------------------------------------------------------------------ setting scopes
+def test_setting_scopes_come_from_the_labeler_and_stage_records() -> None:
+    assert setting_scope("grounded_sam.box_threshold").labeler == "grounded-sam"
+    assert setting_scope("simulated.recall").labeler == "simulated"
+    assert setting_scope("consistency.share").stage == "3dcn"
+    assert setting_scope("consistency.enabled").stage is None  # the switch itself always applies
+    assert setting_scope("smoothing.k") == setting_scope("fusion.voxel_size") == setting_scope("labeler")
+    assert stage_switches() == {"3dcn": "consistency"}
+
+    default = ignored_settings(PipelineConfig())
+    assert set(default) == {"threshold", "share", "temperature", "iterations"}
+    assert "simulated" in default["threshold"] and "3D Consistency Network" in default["share"]
+    gsam = config_from_dict({"labeler": "grounded-sam", "consistency": {"enabled": True}})
+    assert ignored_settings(gsam) == {}
+    assert set(FORM_FIELDS) >= set(default)
+
+
+# ------------------------------------------------------------------------------------- run changes
+def _snapshot(schema, cfg: PipelineConfig, frames=None) -> dict:
+    return {"dataset": "/d/seq", "frames": frames, "schema": schema.to_dict(),
+            "pipeline": config_to_dict(cfg)}
+
+
+def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
+    schema = builtin_schema("semantickitti")
+    car = schema.classes[0]
+    edited = schema.with_classes([
+        dataclasses.replace(car, prompts=(*car.prompts[:-1], "sedan")),
+        *schema.classes[1:],
+        ClassDef(name="traffic-cone", color=(255, 120, 0), prompts=("traffic cone",), export_id=300,
+                 gt_ids=(300,)),
+    ])
+    old = _snapshot(schema, PipelineConfig())
+    new = _snapshot(edited, config_from_dict({"smoothing": {"k": 4}, "grounded_sam": {"box_threshold": 0.3}}),
+                    frames=[0, 3])
+    texts = {c.text: c for c in run_changes(old, new)}
+    assert "frames: all → 0..2" in texts
+    assert 'prompts of car: + "sedan", − "jeep"' in texts
+    assert 'class traffic-cone added (prompts "traffic cone"; ground-truth ids 300)' in texts
+    k = texts["kNN smoothing k (smoothing.k): 9 → 4"]
+    assert k.kind == "parameter" and k.ignored is None
+    thr = texts["Box threshold (grounded_sam.box_threshold): 0.25 → 0.3"]
+    assert thr.ignored is not None and "simulated" in thr.ignored
+    assert run_changes(old, old) == []
+    back = {c.text for c in run_changes(new, old)}
+    assert "class traffic-cone removed" in back
+    no_ids = schema.with_classes([dataclasses.replace(car, gt_ids=()), *schema.classes[1:]])
+    ids = run_changes(old, _snapshot(no_ids, PipelineConfig()))
+    assert [c.text for c in ids] == ["ground-truth ids of car: [10, 252] → none"]
+    sections = changed_sections(config_to_dict(PipelineConfig()), new["pipeline"])
+    assert sections == ["grounded_sam", "smoothing"]
+
+
+# -------------------------------------------------------------------------------------- recompute plan
+@pytest.fixture(scope="module")
+def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_street(tmp_path_factory.mktemp("street") / "sequences" / "00", n_frames=3)
+
+
+@pytest.fixture(scope="module")
+def finished(street: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run_dir = tmp_path_factory.mktemp("runs") / "base"
+    run_pipeline(street, builtin_schema("semantickitti"), PipelineConfig(), run_dir)
+    return run_dir
+
+
+def _cone_schema():
+    schema = builtin_schema("semantickitti")
+    return schema.with_classes([*schema.classes, ClassDef(name="traffic-cone", color=(255, 120, 0),
+                                                          prompts=("traffic cone",), export_id=300,
+                                                          gt_ids=(300,))])
+
+
+VARIANTS = {
+    "same": (None, {}),
+    "k": (None, {"smoothing": {"k": 4}}),
+    "ignored threshold": (None, {"grounded_sam": {"box_threshold": 0.3}}),
+    "voxel": (None, {"fusion": {"voxel_size": 0.3}}),
+    "cluster gap": (None, {"projection": {"cluster_gap": 0.7}}),
+    "3dcn on": (None, {"consistency": {"enabled": True}}),
+    "class added": (_cone_schema, {}),
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_the_preview_agrees_with_the_runner(
+    variant: str, street: Path, finished: Path, tmp_path: Path
+) -> None:
+    """The plan from fingerprints says exactly what the runner would recompute in a folder seeded from the
+    finished run (the runner's own decision, ``plan_stages``), for every enabled stage."""
+    make_schema, overrides = VARIANTS[variant]
+    schema = make_schema() if make_schema else builtin_schema("semantickitti")
+    cfg = config_from_dict(overrides)
+    seeded = tmp_path / "seeded"
+    shutil.copytree(finished, seeded)
+    fresh = tmp_path / "fresh"  # the preview's folder: no outputs, only what fingerprints read
+    fps = stage_fingerprints(street, schema, cfg, fresh)
+    assert fps == stage_fingerprints(street, schema, cfg, seeded)
+    previous = read_state(RunLayout(finished))
+    plan = {p.name: p for p in recompute_plan(cfg, fps, previous, changed_sections(
+        config_to_dict(PipelineConfig()), config_to_dict(cfg)))}
+    truth = plan_stages(street, schema, cfg, seeded)
+    for stage in STAGE_TABLE:
+        if stage.is_enabled(cfg):
+            assert (plan[stage.name].action == "recompute") == truth[stage.name], (variant, stage.name)
+        else:
+            assert plan[stage.name].action == "off"
+    if variant in ("same", "ignored threshold"):
+        assert all(p.action != "recompute" for p in plan.values())
+    if variant == "k":
+        assert plan["smooth"].reason == "settings changed: smoothing"
+        assert plan["labels2d"].action == "reuse" and plan["export"].reason == "after Point labels"
+
+
+def test_plan_reasons_without_a_previous_run_and_for_unfinished_stages() -> None:
+    cfg = PipelineConfig()
+    fps = {s.name: f"fp-{s.name}" for s in STAGE_TABLE}
+    empty = recompute_plan(cfg, fps, None)
+    assert {p.action for p in empty if p.name != "3dcn"} == {"recompute"}
+    assert empty[0].reason == "no earlier run to reuse"
+    prev = {s.name: {"fingerprint": fps[s.name], "status": "done"} for s in STAGE_TABLE}
+    prev["3dcn"]["status"] = "skipped"
+    prev["fuse"]["status"] = "cancelled"
+    plan = {p.name: p for p in recompute_plan(cfg, fps, prev)}
+    assert plan["project"].action == "reuse"
+    assert plan["fuse"].reason == "unfinished in the latest run (cancelled)"
+    # As in the runner, a stage whose own fingerprint and outputs are current is reused even when an
+    # upstream stage with an unchanged fingerprint is finished again.
+    assert plan["smooth"].action == "reuse"
+    # The 3D-CN switched off after a run that used it: what read its grids recomputes.
+    prev2 = {**{k: dict(v) for k, v in prev.items()}, "fuse": {"fingerprint": fps["fuse"], "status": "done"}}
+    prev2["3dcn"]["status"] = "done"
+    plan2 = {p.name: p for p in recompute_plan(cfg, {**fps, "label_points": "other"}, prev2)}
+    assert plan2["3dcn"].action == "off" and plan2["label_points"].reason == "after 3D-CN (switched off)"
+
+
+# ------------------------------------------------------------------------------ all-points labeled share
+def test_all_points_labeled_share(finished: Path, street: Path) -> None:
+    import json
+
+    metrics = json.loads(RunLayout(finished).metrics.read_text())
+    share = all_points_labeled_share(metrics)
+    assert share == metrics["labeled_share_all_points"]
+    n = metrics["n_points"]
+    assert share["voxel"] == pytest.approx(metrics["labeled_points"]["voxel"] / n)
+    # What the exported .label files label is that share of the final row.
+    labeled = sum(int((np.fromfile(p, np.uint32) & 0xFFFF).astype(bool).sum())
+                  for p in sorted(RunLayout(finished).export_dir.glob("*.label")))
+    assert labeled / n == pytest.approx(share["voxel"])
+    older = {k: v for k, v in metrics.items() if k != "labeled_share_all_points"}
+    assert all_points_labeled_share(older) == pytest.approx(share)
+    assert all_points_labeled_share({"labeled_points": {"voxel": 3}, "n_points": 0}) == {"voxel": None}
