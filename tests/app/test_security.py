@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
 from app.core.config import Settings, is_loopback
+from app.core.db import SCHEMA_VERSION
 from app.core.errors import Forbidden
 from app.core.security import resolve_in_roots, token_matches
 from app.main import create_app
@@ -111,5 +112,5 @@ def test_loopback_server_refuses_foreign_host_headers(client: TestClient) -> Non
 
 def test_health(client: TestClient) -> None:
     body = client.get(f"{API}/health").json()
-    assert body["status"] == "ok" and body["db_schema_version"] == 1
+    assert body["status"] == "ok" and body["db_schema_version"] == SCHEMA_VERSION
     assert body["queued"] == body["running"] == 0 and body["auth_required"] is False

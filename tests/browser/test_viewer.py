@@ -216,8 +216,14 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
             )
         (correction,) = corrections
         assert correction.class_name == CORRECTED_CLASS and correction.keys.size == selected
+        # The correction is stored before the session relabels its voxels: wait for the relabel, not
+        # only for the row (under load the check could otherwise run in between).
+        rows = session.grid.rows_of(correction.keys)
+        def relabelled() -> bool:
+            return bool((session.label[rows] == names.index(CORRECTED_CLASS)).all())
+
+        wait_until(relabelled, 30, "the corrected labels")
         assert session.wait_drawn(30)
-        assert (session.label[session.grid.rows_of(correction.keys)] == names.index(CORRECTED_CLASS)).all()
 
         # 6. Edit a class's prompts; it lands in the project (the same data the web UI edits).
         page.get_by_text("Classes and prompts", exact=True).click()

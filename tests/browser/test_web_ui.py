@@ -18,6 +18,7 @@ from pathlib import Path
 import browserfixtures
 import numpy as np
 import pytest
+import yaml
 
 FRAMES = 4
 
@@ -149,13 +150,22 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     with zipfile.ZipFile(io.BytesIO(target.read_bytes())) as zf:
         members = [f"sequences/00/predictions/{f}.label" for f in frame_ids]
         assert sorted(zf.namelist()) == sorted([*members, "label-map.yaml", "summary.yaml"])
+        labeled = 0
         for fid, member in zip(frame_ids, members, strict=True):
             labels = np.frombuffer(zf.read(member), dtype=np.uint32)
             n_points = (dataset / "velodyne" / f"{fid}.bin").stat().st_size // 16
             assert labels.shape == (n_points,)
             semantic = labels & 0xFFFF
-            assert (labels >> 16 == 0).all() and (semantic > 0).mean() > 0.1
+            # Most points of a scan lie outside the camera view, and the simulated detector may miss the
+            # road of a whole block of frames: a few per cent labeled is a real export, none is not.
+            assert (labels >> 16 == 0).all() and (semantic > 0).mean() > 0.05
             assert set(np.unique(semantic).tolist()) <= export_ids | {0}
+            labeled += int((semantic > 0).sum())
+        summary = yaml.safe_load(zf.read("summary.yaml"))
+    # The zip holds exactly the labels whose counts the export dialog showed.
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        info = api.get(f"/runs/{summary['run']['id']}/export").json()
+    assert labeled == info["labeled"] == summary["counts"]["labeled"] > 0
 
     page.locator('dialog.export-dialog button[data-action="close"]').click()
 
