@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from app.api.types import class_name_problem
+from leap_core.schema import class_name_problem
 
 RunStatus = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
 StageStatus = Literal["pending", "running", "done", "skipped", "failed", "cancelled"]

@@ -174,6 +174,20 @@ def _color(value: object) -> tuple[int, int, int]:
     return (r, g, b)
 
 
+def class_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be a class name, or None.
+
+    A class name is one URL path segment in the app (``/classes/{name}``) and a file-name-safe label in
+    exports: ``/`` or ``\\`` would split it, and a name of only dots (``.``, ``..``) is removed by every URL
+    normaliser, so such a class could not be reached.
+    """
+    if "/" in name or "\\" in name:
+        return "class names may not contain '/' or '\\'"
+    if name and set(name) == {"."}:
+        return "class names may not consist of dots only"
+    return None
+
+
 def _normalise_class(
     *,
     name: object,
@@ -186,6 +200,9 @@ def _normalise_class(
 ) -> dict[str, Any]:
     """Check one class's fields and return them normalised (tuples, plain ints, stripped strings)."""
     out: dict[str, Any] = {"name": _text(name, "name")}
+    problem = class_name_problem(out["name"])
+    if problem is not None:
+        raise _Invalid(f"name: {problem}")
     out["color"] = _color(color)
     out["prompts"] = _prompt_list(prompts, "prompts", required=True)
     if not _is_int(export_id) or not 1 <= int(export_id) <= MAX_RAW_ID:
@@ -553,6 +570,7 @@ __all__ = [
     "builtin_names",
     "builtin_path",
     "builtin_schema",
+    "class_name_problem",
     "load_project_file",
     "load_schema",
     "projects_dir",

@@ -296,6 +296,8 @@ CASES: list[tuple[str, Mutation, str]] = [
     ("color bool", _set(3, "color", [True, 0, 0]), BAD_COLOR),
     ("color name", _set(3, "color", "red"), BAD_COLOR),
     ("color bad hex", _set(3, "color", "#12345g"), BAD_COLOR),
+    ("name of dots", _set(4, "name", ".."), "classes[4] '..': name: class names may not consist of dots"),
+    ("name with slash", _set(4, "name", "a/b"), "classes[4] 'a/b': name: class names may not contain '/'"),
     ("no prompts", _set(4, "prompts", []), f"{OV}: prompts must list at least one prompt"),
     ("blank prompt", _set(4, "prompts", ["bus", "  "]), f"{OV}: prompts[1] must be a non-empty string"),
     ("null prompt", _set(4, "prompts", [None]), f"{OV}: prompts[0] must be a non-empty string"),

@@ -21,6 +21,8 @@ from typing import Annotated, Any
 from fastapi import Path
 from pydantic import AfterValidator
 
+from leap_core.schema import class_name_problem
+
 MAX_INT = 2**63 - 1
 """Largest integer SQLite stores (signed 64-bit)."""
 
@@ -102,19 +104,6 @@ def _class_name(value: str) -> str:
     if problem is not None:
         raise ValueError(problem)
     return value
-
-
-def class_name_problem(name: str) -> str | None:
-    """Why ``name`` cannot be a class name, or None.
-
-    Class names appear as one URL path segment (``/classes/{name}``): ``/`` would split it, and a name
-    of only dots (``.``, ``..``) is removed by every URL normaliser, so such a class could not be reached.
-    """
-    if "/" in name or "\\" in name:
-        return "class names may not contain '/' or '\\'"
-    if name and set(name) == {"."}:
-        return "class names may not consist of dots only"
-    return None
 
 
 ClassName = Annotated[
