@@ -302,6 +302,13 @@ class JobManager:
         with open_db(self.settings.database) as db:
             return services.run_progress(crud.require_run(db, run_id), None).model_dump()
 
+    def as_stored(self, run: dict[str, Any]) -> dict[str, Any]:
+        """``run`` (a row) with the end the database has refused so far laid over it, so that readers see
+        the run as it will be stored (e.g. ``failed`` with its reason), not the stale ``running`` row."""
+        with self._lock:
+            pending = self._unsaved.get(run["id"])
+        return run if pending is None else {**run, **pending}
+
     def progress(self, run_id: int) -> dict[str, Any] | None:
         """Live (or recently finished) progress snapshot; None when the run is not in memory."""
         with self._lock:

@@ -91,6 +91,11 @@ def test_a_full_disk_fails_the_run_and_the_job_manager_lives_on(tmp_path: Path) 
             assert health["workers_alive"] == health["workers"] == 1
             assert health["unsaved_runs"] == [run["id"]]
             assert any("not stored yet" in p and "full" in p for p in health["problems"]), health
+            # The run reads as it will be stored, not as the stale "running" row.
+            shown = c.get(f"/runs/{run['id']}").json()
+            assert shown["status"] == "failed" and "full" in shown["error"], shown
+            listed = c.get(f"/projects/{project['id']}/runs").json()["data"]
+            assert [r["status"] for r in listed if r["id"] == run["id"]] == ["failed"], listed
             # Requests that need space are refused with the reason, not a 500.
             r = c.post(f"/projects/{project['id']}/runs", json={})
             assert r.status_code == 507 and "cannot store that yet" in r.json()["detail"], r.text
@@ -101,13 +106,10 @@ def test_a_full_disk_fails_the_run_and_the_job_manager_lives_on(tmp_path: Path) 
             ballast.execute("DROP TABLE ballast")
             ballast.commit()
             ballast.close()
-            stored = _wait(
-                lambda: (x := c.get(f"/runs/{run['id']}").json())["status"] == "failed" and x,
-                30,
-                "the run's end to be stored",
-            )
-            assert "full" in stored["error"] and stored["resumable"], stored
+            _wait(lambda: c.get("/health").json()["unsaved_runs"] == [], 30, "the run's end to be stored")
             assert c.get("/health").json()["status"] == "ok"
+            stored = c.get(f"/runs/{run['id']}").json()
+            assert stored["status"] == "failed" and "full" in stored["error"] and stored["resumable"], stored
 
             assert c.post(f"/runs/{run['id']}/resume").status_code == 202
             resumed = wait_run(c, run["id"], 180.0, ("done", "failed"), api="")

@@ -74,7 +74,9 @@ def compare_runs(run_id: RunId, base_id: RunId, db: DbDep) -> models.ComparePubl
 @router.get("/projects/{project_id}/runs", response_model=models.RunsPublic)
 async def list_runs(project_id: ProjectId, db: ReadDbDep, jobs: JobsDep) -> Response:
     crud.require_project(db, project_id)
-    data = [services.run_public(r, jobs.progress(r["id"])) for r in crud.list_runs(db, project_id)]
+    data = [
+        services.run_public(jobs.as_stored(r), jobs.progress(r["id"])) for r in crud.list_runs(db, project_id)
+    ]
     return Response(
         models.RunsPublic(data=data, count=len(data)).model_dump_json(), media_type="application/json"
     )
@@ -82,7 +84,7 @@ async def list_runs(project_id: ProjectId, db: ReadDbDep, jobs: JobsDep) -> Resp
 
 @router.get("/runs/{run_id}", response_model=models.RunPublic)
 async def read_run(run_id: RunId, db: ReadDbDep, jobs: JobsDep) -> Response:
-    run = services.run_public(crud.require_run(db, run_id), jobs.progress(run_id))
+    run = services.run_public(jobs.as_stored(crud.require_run(db, run_id)), jobs.progress(run_id))
     return Response(run.model_dump_json(), media_type="application/json")
 
 
