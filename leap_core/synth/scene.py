@@ -369,6 +369,23 @@ def car_shape(
     return p.build()
 
 
+def _wheels(p: _Parts, xs: tuple[float, ...], half_track: float, sem: int, inst: int) -> None:
+    """A pair of 0.5 m rubber wheels (left, right) at each axle position ``xs`` of a vehicle's frame."""
+    r = 0.5
+    for x in xs:
+        for sy in (-1, 1):
+            p.cylinder(
+                (x, sy * half_track, r),
+                r,
+                0.16,
+                sem,
+                M.RUBBER,
+                (0.05, 0.05, 0.05),
+                rot=_frame_z((0, sy, 0)),
+                inst=inst,
+            )
+
+
 def truck_shape(rng: np.random.Generator, sem: int, inst: int) -> Primitives:
     """Cab, cargo box, chassis and six wheels; about 8 m long and 3.5 m tall."""
     p = _Parts()
@@ -398,19 +415,7 @@ def truck_shape(rng: np.random.Generator, sem: int, inst: int) -> Primitives:
     cx = front - cab_len - 0.2 - cargo_len / 2
     p.box((cx, 0, 1.05 + 1.45), (cargo_len / 2, 1.25, 1.45), sem, M.TARP, box_color, inst=inst)
     p.box((cx + 0.3, 0, 0.78), (total / 2 - 0.4, 0.9, 0.25), sem, M.METAL, (0.12, 0.12, 0.13), inst=inst)
-    r = 0.5
-    for x in (front - 1.0, cx - cargo_len / 2 + 1.0, cx - cargo_len / 2 + 2.1):
-        for sy in (-1, 1):
-            p.cylinder(
-                (x, sy * 1.0, r),
-                r,
-                0.16,
-                sem,
-                M.RUBBER,
-                (0.05, 0.05, 0.05),
-                rot=_frame_z((0, sy, 0)),
-                inst=inst,
-            )
+    _wheels(p, (front - 1.0, cx - cargo_len / 2 + 1.0, cx - cargo_len / 2 + 2.1), 1.0, sem, inst)
     return p.build()
 
 
@@ -521,19 +526,7 @@ def bus_shape(rng: np.random.Generator, sem: int, inst: int) -> Primitives:
         color,
         inst=inst,
     )
-    r = 0.5
-    for x in (length / 2 - 2.4, -length / 2 + 3.0, -length / 2 + 1.9):
-        for sy in (-1, 1):
-            p.cylinder(
-                (x, sy * (width / 2 - 0.2), r),
-                r,
-                0.16,
-                sem,
-                M.RUBBER,
-                (0.05, 0.05, 0.05),
-                rot=_frame_z((0, sy, 0)),
-                inst=inst,
-            )
+    _wheels(p, (length / 2 - 2.4, -length / 2 + 3.0, -length / 2 + 1.9), width / 2 - 0.2, sem, inst)
     return p.build()
 
 
@@ -909,6 +902,12 @@ def _yard_hints(grid: StreetGrid, route: Route, rng: np.random.Generator) -> dic
     return hints
 
 
+def _oncoming(inst: int, sem: int, shape: Primitives, xy: F64, heading: F64) -> Actor:
+    """A vehicle on the oncoming lane: driving against ``heading`` along ``xy`` (T, 2), never turning."""
+    frames = len(xy)
+    return Actor(inst, sem, shape, None, xy, np.full(frames, _yaw_of(-heading)), np.zeros(frames))
+
+
 def _heroes(  # noqa: PLR0915  a scene recipe: one placement after the other, read top to bottom
     build: _Build, ego: EgoConfig, route: Route, hz: float, rng: np.random.Generator, actors: list[Actor]
 ) -> None:
@@ -941,17 +940,7 @@ def _heroes(  # noqa: PLR0915  a scene recipe: one placement after the other, re
     )
     xy = start[None] - cfg.oncoming_speed * t[:, None] * h1[None]
     inst = ids()
-    actors.append(
-        Actor(
-            inst,
-            S.MOVING_CAR,
-            car_shape(rng, S.MOVING_CAR, inst),
-            None,
-            xy,
-            np.full(frames, _yaw_of(-h1)),
-            np.zeros(frames),
-        )
-    )
+    actors.append(_oncoming(inst, S.MOVING_CAR, car_shape(rng, S.MOVING_CAR, inst), xy, h1))
 
     # After the first turn: an oncoming car on the new street that reaches the intersection well after the
     # ego has left it.
@@ -1117,17 +1106,7 @@ def _named_extras(build: _Build, route: Route, hz: float, actors: list[Actor]) -
     bus_start = point(start_along + max(d0 - 2.0, 12.0) + 14.0 + rng.uniform(22.0, 30.0), -lw / 2)
     xy = bus_start[None] - cfg.oncoming_speed * 0.85 * t[:, None] * h1[None]
     inst = ids()
-    actors.append(
-        Actor(
-            inst,
-            S.MOVING_BUS,
-            bus_shape(rng, S.MOVING_BUS, inst),
-            None,
-            xy,
-            np.full(frames, _yaw_of(-h1)),
-            np.zeros(frames),
-        )
-    )
+    actors.append(_oncoming(inst, S.MOVING_BUS, bus_shape(rng, S.MOVING_BUS, inst), xy, h1))
 
     # Cones on the right edge of the ego lane, ahead of the start.
     a0 = start_along + rng.uniform(14.0, 20.0)
