@@ -17,13 +17,13 @@ import sqlite_utils
 from app import crud, models
 from app.core.config import Settings
 from app.core.errors import InvalidField
-from app.jobs.manager import corrections_for_run
+from app.jobs.manager import seed_source, write_run_corrections
 from app.services import normalise_metrics, project_config
 from leap_core.errors import LeapError
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
 from leap_core.pipeline.steering import Change, changed_sections, recompute_plan, run_changes
-from leap_core.run_layout import RunLayout, save_corrections
+from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -47,12 +47,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     latest finished run, when it covered the same dataset and all frames)."""
     project = crud.require_project(db, project_id)
     snapshot = project_snapshot(project)
-    last = crud.last_finished_run(db, project_id)
-    base = None
-    if last is not None and last["params"].get("dataset") == snapshot["dataset"] and last["params"].get(
-        "frames"
-    ) is None:
-        base = last
+    base = seed_source(db, project_id, snapshot)
     changes = [] if base is None else [_change_public(c) for c in run_changes(base["params"], snapshot)]
     basis = None if base is None else models.RunBasis(id=base["id"], number=base["number"])
 
@@ -71,12 +66,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
         runtime = Runtime(models_dir=settings.models_dir, cache_dir=settings.cache_dir / f"p{project_id}")
         settings.work_dir.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
-            keys, classes = corrections_for_run(
-                crud.list_corrections(db, project_id, active_only=True),
-                project["schema"],
-                project["pipeline"],
-            )
-            save_corrections(RunLayout(Path(tmp)).corrections, keys, classes)
+            write_run_corrections(db, project_id, snapshot, Path(tmp))
             fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
     except LeapError as exc:
         return everything("its inputs could not be fingerprinted", problem=str(exc))

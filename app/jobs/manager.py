@@ -375,18 +375,9 @@ class JobManager:
         run_dir.mkdir(parents=True, exist_ok=True)
         params = run["params"]
         atomic_write_json(RunLayout(run_dir).params, params)
-        keys, classes = corrections_for_run(
-            crud.list_corrections(db, run["project_id"], active_only=True),
-            params["schema"],
-            params["pipeline"],
-        )
-        save_corrections(RunLayout(run_dir).corrections, keys, classes)
-        previous = crud.last_finished_run(db, run["project_id"])
-        if (
-            previous is not None
-            and previous["params"].get("dataset") == params["dataset"]
-            and previous["params"].get("frames") == params["frames"]
-        ):
+        write_run_corrections(db, run["project_id"], params, run_dir)
+        previous = seed_source(db, run["project_id"], params)
+        if previous is not None:
             linked = seed_run_dir(Path(previous["run_dir"]), run_dir)
             log.info(
                 "run #%d of project %d starts from run #%d's stage outputs (%d files linked)",
@@ -933,6 +924,25 @@ def read_metrics(run_dir: Path) -> dict[str, Any] | None:
         return read_metrics_json(run_dir)
     except LeapError:
         return None
+
+
+def seed_source(db: Any, project_id: int, params: dict[str, Any]) -> dict[str, Any] | None:
+    """The finished run a new run with ``params`` starts from: the project's latest finished run when it
+    covered the same dataset and frames (its stage outputs are linked in and reused where the
+    fingerprints still match); None when there is none."""
+    previous = crud.last_finished_run(db, project_id)
+    if previous is None:
+        return None
+    same = previous["params"].get("dataset") == params["dataset"]
+    return previous if same and previous["params"].get("frames") == params["frames"] else None
+
+
+def write_run_corrections(db: Any, project_id: int, params: dict[str, Any], run_dir: Path) -> None:
+    """Write the project's active corrections, as a run with ``params`` applies them, into ``run_dir``."""
+    keys, classes = corrections_for_run(
+        crud.list_corrections(db, project_id, active_only=True), params["schema"], params["pipeline"]
+    )
+    save_corrections(RunLayout(run_dir).corrections, keys, classes)
 
 
 def corrections_for_run(
