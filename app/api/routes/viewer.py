@@ -47,6 +47,17 @@ router = APIRouter(
 )
 
 _CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
+_OVERLAY_TAG = b'<script type="module" src="/viewer/overlay.js"></script>'
+"""Our additions to viser's client page (web/viewer/overlay.js: shortcuts, free-hand tools), same origin."""
+
+
+def client_page() -> bytes:
+    """viser's client page with :data:`_OVERLAY_TAG` loaded after viser's own scripts."""
+    html = _CLIENT_HTML.read_bytes()
+    if b"</body>" not in html:  # a viser build we do not know: serve it as is rather than break the viewer
+        log.warning("viser's client page has no </body>; viewer shortcuts and tools are not loaded")
+        return html
+    return html.replace(b"</body>", _OVERLAY_TAG + b"</body>", 1)
 
 
 class ViewerOpen(BaseModel):
@@ -145,7 +156,7 @@ async def viewer_client(
     """viser's client page. It opens its websocket on this path without the trailing slash."""
     if viewers.get(project_id) is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
-    response = HTMLResponse(_CLIENT_HTML.read_bytes(), headers={"Cache-Control": "no-store"})
+    response = HTMLResponse(client_page(), headers={"Cache-Control": "no-store"})
     token = request_token(request)
     if settings.token is not None and token is not None:
         # The websocket handshake cannot carry a header from the viser client: hand it a cookie.
