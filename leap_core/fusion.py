@@ -546,6 +546,7 @@ def fuse(
     cfg: FusionConfig | None = None,
     grid: VoxelGrid | None = None,
     weight: float = 1.0,
+    *,
     paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Bayesian fusion of painted observations into a voxel grid.
@@ -597,6 +598,7 @@ def fuse_dense(
     num_classes: int,
     cfg: FusionConfig | None = None,
     weight: float = 1.0,
+    *,
     paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Fuse per-point log-probabilities (e.g. 3D-CN predictions fused back with temperature T, weight = 1/T).
@@ -647,6 +649,7 @@ def apply_overrides(
     class_idx: npt.ArrayLike,
     strength: float = 50.0,
     cfg: FusionConfig | None = None,
+    *,
     paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Apply manual corrections as overriding observations.

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from leap_core.consistency.backbone import CloudTensors, PlaneIndex, PointSegmenter
+from leap_core.consistency.backbone import CloudTensors, KnnEmbedding, PlaneIndex, PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
 from leap_core.consistency.data import LOCAL_SCALE, collate, prepare_cloud
 from leap_core.consistency.selection import (
@@ -405,6 +405,20 @@ def test_fuse_back_in_chunks_equals_one_call() -> None:
         chunked = fuse_back(grid, preds, 3, 2.0, FusionConfig(), evidence, chunk_points=10)
         assert np.array_equal(one.keys, chunked.keys)
         np.testing.assert_allclose(one.logp.astype(np.float32), chunked.logp.astype(np.float32), atol=0.02)
+
+
+def test_knn_embedding_in_blocks_equals_one_pass() -> None:
+    """At evaluation the (N, K, hidden) intermediate is computed in blocks of ``chunk`` points above that
+    size; it is per point, so blocks change nothing (to float32 matmul rounding: BLAS may sum a block's
+    products in another order)."""
+    torch.manual_seed(0)
+    emb = KnnEmbedding(4, 3, 8, 6, chunk=10**6).eval()
+    feats, local = torch.randn(50, 4), torch.randn(50, 5, 3)
+    with torch.no_grad():
+        one = emb(feats, local)
+        emb.chunk = 7  # 50 points > 7: the block path
+        blocks = emb(feats, local)
+    torch.testing.assert_close(blocks, one, rtol=0, atol=1e-6)
 
 
 # ----------------------------------------------------------------------------------------------- stage

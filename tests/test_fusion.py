@@ -328,12 +328,12 @@ def test_unique_numbering_and_block_size_give_the_same_sums() -> None:
         other = fuse(batches, c, paths=paths)
         np.testing.assert_array_equal(other.keys, base.keys)
         np.testing.assert_array_equal(other.logp, base.logp)
-    uk, ref = _reference(batches, c)
+    _, ref = _reference(batches, c)
     np.testing.assert_allclose(base.logp.astype(np.float64), ref, atol=F16_ATOL)
 
 
 def test_fusion_paths_reject_bad_values() -> None:
-    with pytest.raises(ValueError, match="pack_max_bits: must be in 0..62"):
+    with pytest.raises(ValueError, match=r"pack_max_bits: must be in 0\.\.62"):
         FusionPaths(pack_max_bits=63)
     with pytest.raises(ValueError, match="block: must be"):
         FusionPaths(block=0)
