@@ -608,8 +608,14 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
     with np.load(run_dir / "points" / "000000.npz") as z:
         assert (z["label"] >= 0).all()
     assert (run_dir / "3dcn" / "3dcn_iter2.pt").is_file()
-    # Temperature only changes the fusion back: the checkpoints are reused and upstream stages are cached.
+    # Temperature only changes the fusion back: round 1's checkpoint is reused and upstream stages are
+    # cached. Round 2 trains on labels read from round 1's output, which T changed, so it retrains.
+    ckpt1 = run_dir / "3dcn" / "3dcn_iter1.pt"
+    before = (ckpt1.stat().st_mtime_ns, ckpt1.read_bytes())
+    grid_before = (run_dir / "grid_3dcn1.npz").read_bytes()
     warmer = config_from_dict({"consistency": {**tiny, "temperature": 4.0}})
     again = run_pipeline(street, schema, warmer, run_dir)
     assert again.ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert (ckpt1.stat().st_mtime_ns, ckpt1.read_bytes()) == before  # not retrained, not rewritten
+    assert (run_dir / "grid_3dcn1.npz").read_bytes() != grid_before  # ... yet fused back with the new T
     assert "+3D-CN x1" in (result_tables(run_dir) or "")
