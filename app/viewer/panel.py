@@ -46,14 +46,15 @@ def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: st
     """HTML legend: class swatches in class mode, a colour bar with ticks in the scalar modes."""
     if mode == "class":
         items = "".join(
-            f'<div style="display:flex;align-items:center;gap:6px;font-size:12px">'
+            f'<div style="display:flex;align-items:center;gap:4px;font-size:11px;white-space:nowrap">'
             f'<span style="display:inline-block;width:12px;height:12px;border-radius:2px;'
             f'background:{_hex(rgb)}"></span>{html.escape(n)}</div>'
             # Not strict: the palette is refreshed with the grid, so while none is loaded a class just added
             # to the schema has a name but no colour yet (and gets no swatch).
             for n, rgb in zip(names, palette, strict=False)
         )
-        return f'<div style="display:grid;grid-template-columns:1fr 1fr;gap:2px 8px">{items}</div>'
+        # Three columns: 19 classes in 7 rows, so the Scan section starts within a 720 px high window.
+        return f'<div style="display:grid;grid-template-columns:1fr 1fr 1fr;gap:1px 6px">{items}</div>'
     stops = ", ".join(f"{_hex(vl.CONFIDENCE_LUT[int(i)])}" for i in np.linspace(0, 255, 9))
     title = "confidence (max posterior)" if mode == "confidence" else f"P({html.escape(class_name or '')})"
     return (

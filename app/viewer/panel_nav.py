@@ -142,7 +142,8 @@ class NavPanel:
                 "every scan change (key G)"
             )
             self.enlarge = gui.add_button("Enlarge image", hint="Show the image across the view (key I)")
-        self.inspect_folder = gui.add_folder("Inspect", order=3.5, expand_by_default=True, visible=False)
+        # Right under Run: a click's answer shows without scrolling, whatever else is expanded.
+        self.inspect_folder = gui.add_folder("Inspect", order=0.5, expand_by_default=True, visible=False)
         with self.inspect_folder:
             self.inspect = gui.add_html("")
         with gui.add_folder("Confidence by class", order=7, expand_by_default=False):

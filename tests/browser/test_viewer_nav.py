@@ -62,7 +62,7 @@ def viewer(live_app: dict[str, Any]) -> Iterator[dict[str, Any]]:
         alert = page.get_by_role("alert")
         if alert.count():
             alert.get_by_role("button").first.click()
-        wait_until(lambda: session.scene.clients(), 30, "the browser's viser client")
+        wait_until(session.scene.clients, 30, "the browser's viser client")
         assert session.wait_drawn(30)
         page.wait_for_timeout(3000)  # software WebGL draws the map
         yield {"page": page, "session": session, "api": api, "pid": pid}
@@ -161,6 +161,8 @@ def test_clicking_a_voxel_shows_its_distribution(viewer: dict[str, Any], artifac
     got_uv, _ = _screen_of(session, grid.centres[found.row][None, :])
     assert abs((got_uv[0, 0] - uv[target, 0]) * box["width"]) < 12
     assert abs((got_uv[0, 1] - uv[target, 1]) * box["height"]) < 12
+    # ... and the first one along the ray: no farther than the nearest voxel under the cursor.
+    assert found.distance <= depth[target] + grid.voxel_size
     names = session.class_names()
     top = names[int(np.argmax(found.probs))]
     panel = page.get_by_text(f"observed by {found.views} scan", exact=False)
@@ -206,7 +208,7 @@ def test_probability_view_draws_the_scan_grey(viewer: dict[str, Any]) -> None:
     browserfixtures.pick(page, "Color by", "class probability")
     wait_until(lambda: session.state.mode == "class_probability", 20, "the probability view")
     wait_until(
-        lambda: (np.asarray(scan.colors) == nl.SCAN_GREY_RGB).all(), 20, "the scan points drawn grey"
+        lambda: bool((np.asarray(scan.colors) == nl.SCAN_GREY_RGB).all()), 20, "the scan points drawn grey"
     )
     # A newly shown scan is grey too. The dropdown keeps the focus, and keys typed into an input are not
     # shortcuts: leave it first, as a user clicking back into the view would.
