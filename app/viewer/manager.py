@@ -130,7 +130,9 @@ class AppBackend:
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:
             rows = crud.list_corrections(db, self.project_id, active_only=False)
-        return [CorrectionRecord(c.id, c.class_name, c.voxel_size, c.keys, c.active) for c in rows]
+        return [
+            CorrectionRecord(c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at) for c in rows
+        ]
 
     def add_correction(self, class_name: str, voxel_size: float, keys: npt.NDArray[np.int64]) -> int:
         with open_db(self.settings.database) as db:

@@ -22,13 +22,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, TypedDict
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.viewer import nav_logic as nl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, ScanView
 from app.viewer.scene import ReviewScene
 from leap_core.fusion import key_centres, voxel_keys
+from leap_core.picking import pick_voxel
 from leap_core.schema import ClassDef, Schema
 
 if TYPE_CHECKING:
@@ -91,6 +94,34 @@ class CorrectionRecord:
     """Packed voxel keys."""
     active: bool
     """False once undone."""
+    created_at: str = ""
+    """ISO UTC time it was made ("" when the store does not say)."""
+
+
+@dataclass(frozen=True)
+class Inspection:
+    """What the panel shows of one clicked voxel (:meth:`ReviewSession.inspect_ray`)."""
+
+    row: int
+    """Row of the voxel in the displayed grid."""
+    key: int
+    """Its packed voxel key."""
+    centre: tuple[float, float, float]
+    """Voxel centre (metres)."""
+    probs: npt.NDArray[np.float32]
+    """(C,) the grid's class distribution of the voxel (before corrections)."""
+    label: int
+    """Shown class index (after corrections), -1 unlabeled."""
+    conf: float
+    """Shown confidence (1 for a corrected voxel)."""
+    corrected: bool
+    """An active correction overrides the voxel."""
+    views: int
+    """Number of the run's scans that observed the voxel (:meth:`RunOutputs.view_counts`)."""
+    history: tuple[CorrectionRecord, ...]
+    """Every correction (active or undone) whose voxels include this one, oldest first."""
+    distance: float
+    """Distance from the click ray's origin (metres)."""
 
 
 class ProjectBackend(Protocol):
@@ -142,6 +173,10 @@ class SessionView(Protocol):
 
     def on_run_progress(self, info: RunInfo) -> None: ...
 
+    def on_inspect(self, inspection: Inspection) -> None: ...
+
+    def on_nav(self) -> None: ...
+
 
 @dataclass(frozen=True)
 class SessionConfig:
@@ -157,6 +192,10 @@ class SessionConfig:
     """How often a started run's progress is polled."""
     max_points: int = 200_000
     """Default of the panel's "Max points" (decimation applies only once the user ticks "Limit points")."""
+    play_interval_s: float = 1.0
+    """Seconds between scans while playing through them."""
+    follow_ego: bool = True
+    """Whether the camera follows the ego pose on a scan change when the viewer starts (key ``g``)."""
 
 
 @dataclass
@@ -205,6 +244,7 @@ class ReviewSession:
         self.region_pos = -1
         self.queue_kind: QueueKind = "confidence"
         self.frame_pos = 0
+        self._init_navigation()
         self.last_draw_s = 0.0
         self.draw_count = 0
         self.scene_version = 0
@@ -232,6 +272,20 @@ class ReviewSession:
             self.close()  # free the port and threads of a viewer that could not start
             raise
 
+    def _init_navigation(self) -> None:
+        self.scan_view: ScanView | None = None
+        """The scan shown (points, labels, ego pose, image)."""
+        self.follow_ego = self.config.follow_ego
+        """Move the camera behind the ego vehicle on every scan change."""
+        self.playing = False
+        self.image_open = False
+        """The page shows the scan's image enlarged (web/viewer/nav.js reads it, so it stays open while
+        navigating and the panel's button and the ``i`` key act on the same state)."""
+        self.inspected: Inspection | None = None
+        self._image_jpeg: tuple[ScanView, bytes] | None = None
+        self._scan_lock = threading.RLock()
+        self._player: threading.Thread | None = None
+
     # ------------------------------------------------------------------------------------- plumbing
     @property
     def port(self) -> int:
@@ -249,7 +303,8 @@ class ReviewSession:
                 log.exception("viewer listener failed")
 
     def close(self) -> None:
-        """Stop the drawing and watching threads and the viser server."""
+        """Stop the drawing, playing and watching threads and the viser server."""
+        self.playing = False
         self._stop.set()
         self._draw_wanted.set()
         self._drawer.join(timeout=5)
@@ -286,8 +341,11 @@ class ReviewSession:
         if self.scene_version == 1:
             # Frame the map once; a reload after a re-run keeps the camera where the user left it.
             self._frame_whole_map()
+        self.inspected = None
+        self.scene.inspected.visible = False
         if outputs.frame_indices:
-            self.show_scan(len(outputs.frame_indices) // 2)
+            # The map framing above is the first view; following starts with the user's first scan change.
+            self.show_scan(len(outputs.frame_indices) // 2, move_camera=False)
         self._emit("loaded")
 
     def class_names(self) -> list[str]:
@@ -335,7 +393,11 @@ class ReviewSession:
         """Change the view (``mode``, ``class_index``, ``threshold``, ``enabled``, ``max_points``) and
         schedule a redraw."""
         with self._lock:
+            old_mode = self.state.mode
             self.state = dataclasses.replace(self.state, **changes)
+            mode = self.state.mode
+        if mode != old_mode:
+            self._color_scan()
         self._draw_wanted.set()
 
     def set_class_enabled(self, index: int, on: bool) -> None:
@@ -426,35 +488,186 @@ class ReviewSession:
 
     def _frame_whole_map(self) -> None:
         grid = self.grid
-        if grid is None or grid.num_voxels == 0:
-            return
-        lo = np.percentile(grid.centres, 2, axis=0)
-        hi = np.percentile(grid.centres, 98, axis=0)
-        centre = (lo + hi) / 2.0
-        centre[2] = float(np.percentile(grid.centres[:, 2], 20))
-        extent = float(np.linalg.norm(hi[:2] - lo[:2]))
-        pos, tgt = vl.orbit_view(centre, max(10.0, 0.85 * extent), elevation_deg=50.0, azimuth_deg=200.0)
-        self.scene.look_at(pos, tgt)
+        view = None if grid is None else nl.fit_view(grid.centres)
+        if view is not None:
+            self.scene.look_at(*view)
+
+    def fit_map(self) -> None:
+        """Move the camera so that the whole voxel map is in view (key ``shift+f``)."""
+        self._frame_whole_map()
+
+    def fit_scan(self) -> None:
+        """Move the camera so that the shown scan's points are in view (key ``f``)."""
+        view = self.scan_view
+        framing = None if view is None else nl.fit_view(view.points)
+        if framing is not None:
+            self.scene.look_at(*framing)
+
+    def follow_scan(self) -> None:
+        """Move the camera behind and above the shown scan's ego pose (:func:`nav_logic.follow_view`)."""
+        view = self.scan_view
+        if view is not None and view.ego_pose is not None:
+            self.scene.look_at(*nl.follow_view(view.ego_pose))
 
     # ------------------------------------------------------------------------------------ scan browser
-    def show_scan(self, pos: int) -> ScanView | None:
-        """Show the ``pos``-th labelled scan: its points, camera frustum and labelled image."""
+    @property
+    def scan_count(self) -> int:
+        """Number of scans the run labelled (the positions :meth:`show_scan` takes)."""
+        outputs = self.outputs
+        return 0 if outputs is None else len(outputs.frame_indices)
+
+    def show_scan(self, pos: int, *, move_camera: bool | None = None) -> ScanView | None:
+        """Show the ``pos``-th labelled scan (clipped to the run's scans): its points, camera frustum and
+        labelled image. The camera follows the ego pose when ``move_camera`` is True, or when it is None and
+        :attr:`follow_ego` is on."""
         outputs = self.outputs
         if outputs is None or not outputs.frame_indices:
             return None
-        pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
-        view = outputs.scan_view(outputs.frame_indices[pos], self.palette)
-        self.frame_pos = pos
-        self.scene.scan.set(view.points, vl.class_colors(view.label, self.palette))
-        self.scene.camera.set(
-            position=view.cam_position,
-            wxyz=view.cam_wxyz,
-            fov_y=view.fov_y,
-            aspect=view.aspect,
-            image=view.overlay,
-        )
+        with self._scan_lock:
+            pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
+            view = outputs.scan_view(outputs.frame_indices[pos], self.palette)
+            self.frame_pos = pos
+            self.scan_view = view
+            self.scene.scan.set(view.points, nl.scan_colors(self.state.mode, view.label, self.palette))
+            self.scene.camera.set(
+                position=view.cam_position,
+                wxyz=view.cam_wxyz,
+                fov_y=view.fov_y,
+                aspect=view.aspect,
+                image=view.overlay,
+            )
+            if move_camera if move_camera is not None else self.follow_ego:
+                self.follow_scan()
         self.panel.on_scan(view, pos, len(outputs.frame_indices))
         return view
+
+    def step_scan(self, step: int) -> ScanView | None:
+        """Show the scan ``step`` positions after (before, when negative) the shown one."""
+        with self._scan_lock:
+            return self.show_scan(self.frame_pos + step)
+
+    def _color_scan(self) -> None:
+        with self._scan_lock:
+            view = self.scan_view
+            if view is not None and self.scene.scan.count == view.points.shape[0]:
+                self.scene.scan.set_colors(nl.scan_colors(self.state.mode, view.label, self.palette))
+
+    def set_follow(self, on: bool | None = None) -> bool:
+        """Turn camera following on or off (None toggles); turning it on moves the camera at once."""
+        self.follow_ego = (not self.follow_ego) if on is None else bool(on)
+        if self.follow_ego:
+            self.follow_scan()
+        self.panel.on_nav()
+        return self.follow_ego
+
+    def set_image_open(self, on: bool | None = None) -> bool:
+        """Show or hide the enlarged scan image in the page (None toggles)."""
+        self.image_open = (not self.image_open) if on is None else bool(on)
+        self.panel.on_nav()
+        return self.image_open
+
+    def scan_image_jpeg(self, quality: int = 90) -> bytes | None:
+        """The shown scan's labelled camera image as JPEG, or None when it has none (encoded once per
+        scan)."""
+        view = self.scan_view
+        if view is None or view.overlay is None:
+            return None
+        cached = self._image_jpeg
+        if cached is not None and cached[0] is view:
+            return cached[1]
+        ok, buf = cv2.imencode(".jpg", view.overlay[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise RuntimeError(f"could not encode the image of scan {view.frame_id}")
+        data = buf.tobytes()
+        self._image_jpeg = (view, data)
+        return data
+
+    def set_playing(self, on: bool | None = None) -> bool:
+        """Play through the scans, one every ``config.play_interval_s``, or pause (None toggles).
+
+        Playing from the last scan starts again at the first; playing stops at the last scan.
+        """
+        with self._scan_lock:
+            want = (not self.playing) if on is None else bool(on)
+            if want and self.scan_count <= 1:
+                want = False
+            self.playing = want
+            if want and self.frame_pos >= self.scan_count - 1:
+                self.show_scan(0)
+            if want and (self._player is None or not self._player.is_alive()):
+                self._player = threading.Thread(target=self._play_loop, name="viewer-play", daemon=True)
+                self._player.start()
+        self.panel.on_nav()
+        return self.playing
+
+    def _play_loop(self) -> None:
+        while self.playing and not self._stop.wait(self.config.play_interval_s):
+            if not self.playing:
+                return
+            try:
+                with self._scan_lock:
+                    at_end = self.frame_pos + 1 >= self.scan_count - 1
+                    self.step_scan(1)
+                    if at_end:
+                        self.playing = False
+            except Exception:  # stop playing, keep the viewer
+                log.exception("viewer could not show the next scan")
+                self.playing = False
+            if not self.playing:
+                self.panel.on_nav()
+                return
+
+    # ------------------------------------------------------------------------------------- inspection
+    def confidence_histograms(self, bins: int = 10) -> npt.NDArray[np.int64]:
+        """(C, bins) voxel counts per shown class and confidence bin (corrections applied; see
+        :func:`app.viewer.nav_logic.confidence_histograms`)."""
+        with self._lock:
+            label, conf = self.label, self.conf
+        return nl.confidence_histograms(label, conf, len(self.class_names()), bins)
+
+    def inspect_ray(self, origin: npt.ArrayLike, direction: npt.ArrayLike) -> Inspection | None:
+        """Inspect the first shown voxel a click ray enters (:func:`leap_core.picking.pick_voxel`): its
+        class distribution, confidence, number of scans that observed it and its correction history.
+        Returns None (and changes nothing) when the ray hits no shown voxel."""
+        grid = self.grid
+        if grid is None:
+            return None
+        rows, _ = self.compute_view()
+        pick = pick_voxel(origin, direction, grid.centres[rows], grid.voxel_size)
+        if pick is None:
+            return None
+        row = int(rows[pick.index])
+        key = int(grid.keys[row])
+        history = []
+        for rec in self.backend.corrections():
+            keys = rec.keys
+            if not np.isclose(rec.voxel_size, grid.voxel_size):
+                keys = voxel_keys(key_centres(keys, rec.voxel_size), grid.voxel_size)
+            if np.any(keys == key):
+                history.append(rec)
+        views = self.outputs.view_counts(grid) if self.outputs is not None else None
+        with self._lock:
+            label, conf, corrected = int(self.label[row]), float(self.conf[row]), bool(self.corrected[row])
+        cx, cy, cz = (float(v) for v in grid.centres[row])
+        found = Inspection(
+            row=row,
+            key=key,
+            centre=(cx, cy, cz),
+            probs=np.asarray(grid.probs[row], dtype=np.float32),
+            label=label,
+            conf=conf,
+            corrected=corrected,
+            views=0 if views is None else int(views[row]),
+            history=tuple(history),
+            distance=pick.distance,
+        )
+        self.inspected = found
+        # Larger than a voxel, so the marker shows around the voxel it covers.
+        self.scene.inspected.point_size = 1.6 * grid.voxel_size
+        self.scene.inspected.set(grid.centres[row : row + 1], np.array([nl.INSPECT_RGB], np.uint8))
+        self.scene.inspected.visible = True
+        self.panel.on_inspect(found)
+        return found
 
     # ------------------------------------------------------------------------------------ review queue
     def build_queue(self, kind: QueueKind) -> list[vl.Region]:
@@ -661,6 +874,7 @@ class ReviewSession:
 
 __all__ = [
     "CorrectionRecord",
+    "Inspection",
     "ProjectBackend",
     "QueueKind",
     "ReviewSession",
