@@ -18,7 +18,8 @@ import viser
 
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
-from app.viewer.session import QueueKind, ReviewSession, RunInfo
+from app.viewer.panel_tools import ToolsPanel
+from app.viewer.session import QueueKind, ReviewSession, RunInfo, camera_of
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +134,7 @@ class ReviewPanel:
 
         self._wire()
         self.on_schema()
+        self.tools = ToolsPanel(self)
 
     # ------------------------------------------------------------------------------------ wiring
     def _guard(self, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -206,8 +208,9 @@ class ReviewPanel:
 
         def on_rect(event: viser.SceneRectSelectEvent) -> None:
             s.scene.disarm_rect_select()
-            cam = event.client.camera
-            s.select_rect(cam.position, cam.wxyz, cam.fov, cam.aspect, event.screen_min, event.screen_max)
+            s.select_screen("box", [event.screen_min, event.screen_max], camera_of(event.client.camera))
+            if s.tools.tool == "box":
+                s.set_tools(tool=None)
 
         s.scene.arm_rect_select(self._guard(on_rect))
         self.corr_info.content = "Drag a box over the voxels to select them."
