@@ -15,6 +15,7 @@ Camera convention (viser's, OpenCV): ``p_world = R · p_cam + t`` with ``R`` fro
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -132,7 +133,9 @@ def _screen_of(
 def _check_outline(name: str, outline: npt.ArrayLike, min_points: int) -> npt.NDArray[np.float64]:
     arr = np.asarray(outline, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < min_points:
-        raise ValueError(f"{name} must be (K, 2) normalised screen points with K >= {min_points}, got {arr.shape}")
+        raise ValueError(
+            f"{name} must be (K, 2) normalised screen points with K >= {min_points}, got {arr.shape}"
+        )
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} holds non-finite coordinates")
     return arr
@@ -183,17 +186,17 @@ def stroke_mask(stroke: npt.ArrayLike, radius_px: float, width: int, height: int
         raise ValueError(f"radius_px must be > 0, got {radius_px}")
     samples = [pts[:1]]
     step = max(radius_px / 2.0, 0.5)
-    for a, b in zip(pts[:-1], pts[1:], strict=True):
+    for a, b in itertools.pairwise(pts):
         n = max(1, math.ceil(float(np.linalg.norm(b - a)) / step))
         t = np.arange(1, n + 1, dtype=np.float64)[:, None] / n
         samples.append(a + t * (b - a))
     centres = np.concatenate(samples)
     mask = np.zeros((height, width), bool)
-    r = int(math.ceil(radius_px))
+    r = math.ceil(radius_px)
     dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
     for cx, cy in centres:
         # Pixel centres (j + ½, i + ½) within the radius of (cx, cy).
-        j0, i0 = int(math.floor(cx - 0.5)), int(math.floor(cy - 0.5))
+        j0, i0 = math.floor(cx - 0.5), math.floor(cy - 0.5)
         jj, ii = j0 + dx, i0 + dy
         disc = (jj + 0.5 - cx) ** 2 + (ii + 0.5 - cy) ** 2 <= radius_px * radius_px
         ok = disc & (jj >= 0) & (jj < width) & (ii >= 0) & (ii < height)
@@ -226,6 +229,7 @@ def front_surface(
     row: npt.NDArray[np.int64],
     depth: npt.NDArray[np.floating],
     splat_px: npt.NDArray[np.floating],
+    *,
     occluder: npt.NDArray[np.bool_],
     candidate: npt.NDArray[np.bool_],
     distance: float,
@@ -259,8 +263,8 @@ def front_surface(
     cell = max(1.0, float(np.median(splat_px[cand])))
     ccol = (col / cell).astype(np.int64)
     crow = (row / cell).astype(np.int64)
-    c0, c1 = int(ccol[cand].min()) - 1, int(ccol[cand].max()) + 1
-    r0, r1 = int(crow[cand].min()) - 1, int(crow[cand].max()) + 1
+    c0, c1 = ccol[cand].min() - 1, ccol[cand].max() + 1
+    r0, r1 = crow[cand].min() - 1, crow[cand].max() + 1
     occ = np.flatnonzero(
         occluder & (ccol >= c0) & (ccol <= c1) & (crow >= r0) & (crow <= r1)
     )
@@ -308,7 +312,8 @@ def select_points(
         eligible: (N,) bool filter, or None.
     """
     if mask.shape != (camera.height_px, camera.width_px):
-        raise ValueError(f"mask is {mask.shape} but the camera canvas is {(camera.height_px, camera.width_px)}")
+        canvas = (camera.height_px, camera.width_px)
+        raise ValueError(f"mask is {mask.shape} but the camera canvas is {canvas}")
     if depth_mode not in ("front", "through"):
         raise ValueError(f"depth_mode must be 'front' or 'through', got {depth_mode!r}")
     cam = camera_coords(points, camera.position, camera.wxyz)
@@ -320,7 +325,9 @@ def select_points(
         depth = np.sqrt(np.einsum("ij,ij->i", cam, cam))
         z = np.where(in_front, cam[:, 2], 1.0)
         splat = splat_size * camera.focal_px / z
-        selected = front_surface(col, row, depth, splat, visible, selected, distance)
+        selected = front_surface(
+            col, row, depth, splat, occluder=visible, candidate=selected, distance=distance
+        )
     if eligible is not None:
         selected &= eligible
     return selected

@@ -157,7 +157,7 @@ class AppBackend:
         frame_id: str | None = None,
         points: npt.NDArray[np.int64] | None = None,
     ) -> int:
-        if scope != "map":
+        if scope != "map" or frame_id is not None or points is not None:
             # The corrections table gets its scope / frame_id / points columns in DB migration 3.
             raise ValueError("scan-scope corrections are not stored by this version of the database yet")
         with open_db(self.settings.database) as db:

@@ -914,6 +914,6 @@ __all__ = [
     "Target",
     "ToolKind",
     "ToolSettings",
-    "camera_of",
     "ViewChanges",
+    "camera_of",
 ]

@@ -138,7 +138,9 @@ async def select(project_id: ProjectId, payload: SelectBody, viewers: ViewersDep
     except LookupError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     try:
-        count = await _run_blocking(session.select_screen, payload.tool, payload.points, camera, add=payload.add)
+        count = await _run_blocking(
+            session.select_screen, payload.tool, payload.points, camera, add=payload.add
+        )
     except ValueError as exc:
         raise _unprocessable("points", exc) from None
     return SelectResult(count=count, target=session.selection.target)
