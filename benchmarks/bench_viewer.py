@@ -176,7 +176,9 @@ def bench_selection(grid: ReviewGrid, repeats: int) -> dict[str, Any]:
         cand = in_front & on & crossing_number(uv, polygon)
         depth = np.linalg.norm(cam, axis=1)
         splat = grid.voxel_size * camera.focal_px / np.where(in_front, cam[:, 2], 1.0)
-        picked = sel.front_surface(col, row, depth, splat, occluder=in_front & on, candidate=cand, distance=0.5)
+        picked = sel.front_surface(
+            col, row, depth, splat, occluder=in_front & on, candidate=cand, distance=0.5
+        )
         keys = grid.keys[picked]
         vl.apply_corrections(grid.keys, grid.label, grid.conf, keys, np.full(keys.shape[0], corr_label))
         return int(picked.sum())
@@ -192,7 +194,8 @@ def bench_selection(grid: ReviewGrid, repeats: int) -> dict[str, Any]:
     ours_s, n_ours = timed(ours)
     base_s, n_base = timed(baseline)
     print(f"\nselection at {grid.num_voxels:,} voxels (lasso of {polygon.shape[0]} vertices, "
-          f"front surface 0.5 m, + apply): ours {ours_s * 1e3:.0f} ms ({n_ours:,} selected), per-edge crossing baseline "
+          f"front surface 0.5 m, + apply): ours {ours_s * 1e3:.0f} ms ({n_ours:,} selected), "
+          f"per-edge crossing baseline "
           f"{base_s * 1e3:.0f} ms ({n_base:,} selected) = {base_s / ours_s:.1f}x; target ≤ 300 ms: "
           f"{'PASS' if ours_s <= 0.3 else 'FAIL'}")
     return {"voxels": grid.num_voxels, "polygon_vertices": int(polygon.shape[0]), "ours_s": ours_s,

@@ -167,7 +167,8 @@ def polygon_mask(polygon: npt.ArrayLike, width: int, height: int) -> npt.NDArray
     toggles = np.zeros((height, width + 1), np.int32)
     ri, ki = np.nonzero(straddle)
     np.add.at(toggles, (ri, col[ri, ki]), 1)
-    return (np.cumsum(toggles[:, :width], axis=1) & 1).astype(bool)
+    inside: npt.NDArray[np.bool_] = (np.cumsum(toggles[:, :width], axis=1) & 1).astype(bool)
+    return inside
 
 
 def stroke_mask(stroke: npt.ArrayLike, radius_px: float, width: int, height: int) -> npt.NDArray[np.bool_]:
@@ -208,14 +209,17 @@ def rect_mask(
     corner_a: Sequence[float], corner_b: Sequence[float], width: int, height: int
 ) -> npt.NDArray[np.bool_]:
     """(H, W) bool: pixels whose centre lies in the screen rectangle spanned by two normalised corners."""
-    lo = np.minimum(corner_a, corner_b)
-    hi = np.maximum(corner_a, corner_b)
+    lo = np.minimum(np.asarray(corner_a, np.float64), np.asarray(corner_b, np.float64))
+    hi = np.maximum(np.asarray(corner_a, np.float64), np.asarray(corner_b, np.float64))
     u = (np.arange(width) + 0.5) / width
     v = (np.arange(height) + 0.5) / height
-    return ((v >= lo[1]) & (v <= hi[1]))[:, None] & ((u >= lo[0]) & (u <= hi[0]))[None, :]
+    inside: npt.NDArray[np.bool_] = ((v >= lo[1]) & (v <= hi[1]))[:, None] & ((u >= lo[0]) & (u <= hi[0]))[None, :]
+    return inside
 
 
-def pixel_of(uv: npt.NDArray[np.float64], width: int, height: int) -> tuple[npt.NDArray[np.int64], ...]:
+def pixel_of(
+    uv: npt.NDArray[np.float64], width: int, height: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
     """(column, row, on_screen) of normalised screen positions: ``col = ⌊u·W⌋``, ``row = ⌊v·H⌋``."""
     col = np.floor(uv[:, 0] * width)
     row = np.floor(uv[:, 1] * height)

@@ -46,7 +46,9 @@ class ToolsPanel:
             self.erase_button = gui.add_button("Erase to unlabeled", disabled=True)
             self.info = gui.add_markdown("Keys: L lasso, B brush, M box, 1-9 assign, E erase, Esc clear.")
         g = panel._guard
-        widgets = (self.tool, self.depth, self.distance, self.class_filter, self.target, self.scope, self.brush)
+        widgets = (
+            self.tool, self.depth, self.distance, self.class_filter, self.target, self.scope, self.brush
+        )
         for widget in widgets:
             widget.on_update(g(lambda _: self._changed()))
         self.erase_button.on_click(g(lambda _: self.s.assign_selection("")))

@@ -590,9 +590,13 @@ class ReviewSession:
         if not 0.0 <= tools.distance <= 100.0:
             raise ValueError(f"distance must lie in [0, 100] m, got {tools.distance}")
         if tools.target not in ("map", "scan") or tools.scope not in ("map", "scan"):
-            raise ValueError(f"target and scope must be 'map' or 'scan', got {tools.target!r}, {tools.scope!r}")
+            raise ValueError(
+                f"target and scope must be 'map' or 'scan', got {tools.target!r}, {tools.scope!r}"
+            )
         if not 0.001 <= tools.brush_radius <= 0.5:
-            raise ValueError(f"brush_radius must lie in [0.001, 0.5] of the canvas height, got {tools.brush_radius}")
+            raise ValueError(
+                f"brush_radius must lie in [0.001, 0.5] of the canvas height, got {tools.brush_radius}"
+            )
         if tools.class_filter is not None and tools.class_filter not in self.class_names():
             raise ValueError(f"class_filter: unknown class {tools.class_filter!r}")
         with self._lock:
@@ -737,7 +741,8 @@ class ReviewSession:
             if selection.target == "scan":
                 points = rows
             else:
-                points = np.flatnonzero(np.isin(voxel_keys(view.points.astype(np.float64), grid.voxel_size), keys))
+                scan_keys = voxel_keys(view.points.astype(np.float64), grid.voxel_size)
+                points = np.flatnonzero(np.isin(scan_keys, keys))
             cid = self.backend.add_correction(
                 class_name, grid.voxel_size, keys, scope="scan", frame_id=view.frame_id,
                 points=points.astype(np.int64),

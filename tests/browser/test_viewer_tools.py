@@ -80,11 +80,14 @@ def _wall_points(seq_dir: Path) -> tuple[list[np.ndarray], int, int]:
 
 def _open(api: Any, app: Any, base: str, browser: Any) -> tuple[Any, Any, dict[str, Any]]:
     project = wait_until(
-        lambda: next((p for p in api.get("/projects").json()["data"] if p["is_demo"]), None), 30, "the project"
+        lambda: next((p for p in api.get("/projects").json()["data"] if p["is_demo"]), None),
+        30,
+        "the project",
     )
     pid = project["id"]
     run = wait_until(
-        lambda: (r := api.get(f"/projects/{pid}/runs").json()["data"]) and r[0]["status"] in ("done", "failed")
+        lambda: (r := api.get(f"/projects/{pid}/runs").json()["data"])
+        and r[0]["status"] in ("done", "failed")
         and r[0],
         600,
         "the first run",
@@ -116,7 +119,7 @@ def _look(session: Any, page: Any, position: np.ndarray, target: np.ndarray) -> 
             return None
         return cam if np.allclose(cam.position, position, atol=0.05) else None
 
-    cam = wait_until(arrived, 20, "the browser's camera")
+    wait_until(arrived, 20, "the browser's camera")
     page.wait_for_timeout(1500)
     return session.latest_camera()
 
@@ -189,7 +192,7 @@ def test_lasso_front_surface_corrects_only_the_front_wall(tools_app: dict[str, A
         keys = grid.keys[session.selection.rows]
         other = keys[~np.isin(keys, front_keys)]
         where = (grid.centres[grid.rows_of(other)] - pose0[:3, 3]) @ pose0[:3, :3]
-        assert other.size == 0, f"not on the front wall: {np.isin(other, back_keys).sum()} of the back wall, " \
+        assert other.size == 0, f"off the front wall: {np.isin(other, back_keys).sum()} of the back wall, " \
             f"{other.size} in all, at {where[:10].round(2).tolist()}"
         assert selected >= 10
         page.keyboard.press(str(slot))
@@ -263,8 +266,8 @@ def test_brush_with_a_class_filter_changes_only_that_class(tools_app: dict[str, 
         picked = session.selection.rows.copy()
         assert (label_before[picked] == road).all()
         page.keyboard.press("e")  # erase to unlabeled
-        wait_until(lambda: (session.label[picked] == -1).all(), 20, "the erased voxels")
+        wait_until(lambda: bool((session.label[picked] == -1).all()), 20, "the erased voxels")
         changed = np.flatnonzero(session.label != label_before)
         assert changed.size == picked.size and (label_before[changed] == road).all()
         page.keyboard.press("Control+z")
-        wait_until(lambda: (session.label == label_before).all(), 20, "the undo")
+        wait_until(lambda: bool((session.label == label_before).all()), 20, "the undo")
