@@ -213,7 +213,9 @@ def rect_mask(
     hi = np.maximum(np.asarray(corner_a, np.float64), np.asarray(corner_b, np.float64))
     u = (np.arange(width) + 0.5) / width
     v = (np.arange(height) + 0.5) / height
-    inside: npt.NDArray[np.bool_] = ((v >= lo[1]) & (v <= hi[1]))[:, None] & ((u >= lo[0]) & (u <= hi[0]))[None, :]
+    rows = (v >= lo[1]) & (v <= hi[1])
+    cols = (u >= lo[0]) & (u <= hi[0])
+    inside: npt.NDArray[np.bool_] = rows[:, None] & cols[None, :]
     return inside
 
 
