@@ -22,7 +22,14 @@ from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
 from app.jobs.manager import JobManager, current_manager
 from app.viewer.panel import ReviewPanel
-from app.viewer.session import CorrectionRecord, ProjectBackend, ReviewSession, RunInfo, SessionConfig
+from app.viewer.session import (
+    CorrectionRecord,
+    ProjectBackend,
+    ReviewSession,
+    RunInfo,
+    Scope,
+    SessionConfig,
+)
 from leap_core.errors import SchemaError
 from leap_core.schema import Schema
 
@@ -130,11 +137,29 @@ class AppBackend:
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:
             rows = crud.list_corrections(db, self.project_id, active_only=False)
+        # scope / frame_id / points arrive with DB migration 3; rows stored before it are map corrections.
         return [
-            CorrectionRecord(c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at) for c in rows
+            CorrectionRecord(
+                c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at,
+                scope=getattr(c, "scope", "map"), frame_id=getattr(c, "frame_id", None),
+                points=getattr(c, "points", None),
+            )
+            for c in rows
         ]
 
-    def add_correction(self, class_name: str, voxel_size: float, keys: npt.NDArray[np.int64]) -> int:
+    def add_correction(
+        self,
+        class_name: str,
+        voxel_size: float,
+        keys: npt.NDArray[np.int64],
+        *,
+        scope: Scope = "map",
+        frame_id: str | None = None,
+        points: npt.NDArray[np.int64] | None = None,
+    ) -> int:
+        if scope != "map" or frame_id is not None or points is not None:
+            # The corrections table gets its scope / frame_id / points columns in DB migration 3.
+            raise ValueError("scan-scope corrections are not stored by this version of the database yet")
         with open_db(self.settings.database) as db:
             return crud.add_correction(
                 db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys

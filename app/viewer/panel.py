@@ -19,7 +19,8 @@ import viser
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
-from app.viewer.session import Inspection, QueueKind, ReviewSession, RunInfo
+from app.viewer.panel_tools import ToolsPanel
+from app.viewer.session import Inspection, QueueKind, ReviewSession, RunInfo, camera_of
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,7 @@ class ReviewPanel:
         self.nav = NavPanel(session, gui, self.scan_folder, self._guard)
         self._wire()
         self.on_schema()
+        self.tools = ToolsPanel(self)
 
     def _add_display_folder(self) -> None:
         # Rarely changed settings stay folded so that Scan, Review and Corrections fit at 1280×720.
@@ -221,8 +223,9 @@ class ReviewPanel:
 
         def on_rect(event: viser.SceneRectSelectEvent) -> None:
             s.scene.disarm_rect_select()
-            cam = event.client.camera
-            s.select_rect(cam.position, cam.wxyz, cam.fov, cam.aspect, event.screen_min, event.screen_max)
+            s.select_screen("box", [event.screen_min, event.screen_max], camera_of(event.client.camera))
+            if s.tools.tool == "box":
+                s.set_tools(tool=None)
 
         s.scene.arm_rect_select(self._guard(on_rect))
         self.corr_info.content = "Drag a box over the voxels to select them."

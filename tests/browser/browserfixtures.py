@@ -88,7 +88,7 @@ DEMO_FRAMES = 14
 """Frames of the generated demo sequence (enough for a readable street, small enough for software WebGL)."""
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -104,27 +104,33 @@ def wait_until(check: Callable[[], Any], timeout: float, what: str, interval: fl
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
-@pytest.fixture(scope="module")
-def live_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
-    """The real app on a real HTTP port, with the demo project seeded on a short generated sequence."""
+@contextlib.contextmanager
+def running_app(
+    root: Path, frames: int = DEMO_FRAMES, prepare: Callable[[Path], None] | None = None
+) -> Iterator[dict[str, Any]]:
+    """The real app on a real HTTP port, with the demo project seeded on a short generated sequence.
+
+    ``prepare(sequence_dir)`` may change the generated sequence before the app starts (and labels it).
+    """
     import uvicorn
 
     from app.core.config import Settings
     from app.main import create_app
 
-    root = tmp_path_factory.mktemp("viewer-e2e")
-    port = _free_port()
+    port = free_port()
     settings = Settings(
         port=port,
         work_dir=root / "work",
         data_roots=[root],
         seed_demo=True,
-        demo_synth={"frames": DEMO_FRAMES},
+        demo_synth={"frames": frames},
     )
     # Generate the demo sequence here, in one process: the app then finds it instead of generating it.
     from leap_core.synth import SynthConfig, generate_sequence
 
-    generate_sequence(settings.demo_dataset.parent.parent, SynthConfig(frames=DEMO_FRAMES), workers=1)
+    generate_sequence(settings.demo_dataset.parent.parent, SynthConfig(frames=frames), workers=1)
+    if prepare is not None:
+        prepare(settings.demo_dataset)
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
@@ -135,6 +141,18 @@ def live_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any
     finally:
         server.should_exit = True
         thread.join(30)
+
+
+@pytest.fixture(scope="module")
+def live_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """The real app on a real HTTP port, with the demo project seeded on a short generated sequence."""
+    with running_app(tmp_path_factory.mktemp("viewer-e2e")) as app:
+        yield app
+
+
+def panel_input(page: Any, label: str) -> Any:
+    """viser puts each widget's label in a paragraph before its input."""
+    return page.get_by_text(label, exact=True).locator("xpath=following::input[not(@type='hidden')][1]")
 
 
 def pick(page: Any, dropdown: str, option: str) -> None:

@@ -34,9 +34,7 @@ pytestmark = [
 ]
 
 
-def _panel_input(page: Any, label: str) -> Any:
-    """viser puts each widget's label in a paragraph before its input."""
-    return page.get_by_text(label, exact=True).locator("xpath=following::input[not(@type='hidden')][1]")
+_panel_input = browserfixtures.panel_input
 
 
 def _shot(page: Any, artifacts: Path, name: str) -> Path:

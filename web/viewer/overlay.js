@@ -30,6 +30,7 @@ async function start() {
   if (projectId === null) return;
   addStyles();
   // Feature modules bind their keys on import; listen() last, so the "?" list is complete.
+  await import("./tools.js");
   listen();
 }
 
