@@ -84,13 +84,19 @@ class CorrectionRecord:
     id: int
     """Row id."""
     class_name: str
-    """Assigned class."""
+    """Assigned class (``""`` = erase to unlabeled)."""
     voxel_size: float
     """Voxel edge of ``keys``."""
     keys: npt.NDArray[np.int64]
     """Packed voxel keys."""
     active: bool
     """False once undone."""
+    scope: str = "map"
+    """``"map"`` (every scan's points in ``keys``) or ``"scan"`` (``points`` of scan ``frame_id`` only)."""
+    frame_id: str | None = None
+    """Scan scope: the scan."""
+    points: npt.NDArray[np.int64] | None = None
+    """Scan scope: indices into that scan's points."""
 
 
 class ProjectBackend(Protocol):
@@ -116,7 +122,16 @@ class ProjectBackend(Protocol):
 
     def corrections(self) -> list[CorrectionRecord]: ...
 
-    def add_correction(self, class_name: str, voxel_size: float, keys: npt.NDArray[np.int64]) -> int: ...
+    def add_correction(
+        self,
+        class_name: str,
+        voxel_size: float,
+        keys: npt.NDArray[np.int64],
+        *,
+        scope: str = "map",
+        frame_id: str | None = None,
+        points: npt.NDArray[np.int64] | None = None,
+    ) -> int: ...
 
     def set_correction_active(self, correction_id: int, active: bool) -> None: ...
 
@@ -317,7 +332,7 @@ class ReviewSession:
         names = {n: i for i, n in enumerate(self.class_names())}
         keys_all, labels_all = [], []
         for rec in self.backend.corrections():
-            if not rec.active or rec.class_name not in names or rec.keys.size == 0:
+            if not rec.active or rec.scope != "map" or rec.class_name not in names or rec.keys.size == 0:
                 continue
             keys = rec.keys
             if not np.isclose(rec.voxel_size, self.grid.voxel_size):
