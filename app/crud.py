@@ -282,7 +282,7 @@ CORRECTION_SCOPES = ("map", "scan")
 """Where a correction applies (:attr:`Correction.scope`)."""
 
 
-def add_correction(
+def add_correction(  # noqa: PLR0913  one keyword per column of the row
     db: sqlite_utils.Database,
     *,
     project_id: int,

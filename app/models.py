@@ -587,7 +587,8 @@ class CorrectionCreate(_Input):
         description="scan scope: the scan's frame id (file stem)",
     )
     points: list[int] | None = Field(
-        default=None, max_length=CORRECTION_MAX_ITEMS, description="scan scope: indices into the scan's points"
+        default=None, max_length=CORRECTION_MAX_ITEMS,
+        description="scan scope: indices into the scan's points",
     )
 
     @field_validator("class_name")

@@ -75,6 +75,7 @@ def correct_points(
     point_keys: npt.ArrayLike,
     map_keys: npt.NDArray[np.int64],
     map_class: npt.NDArray[np.integer],
+    *,
     scan_points: npt.NDArray[np.int64] | None = None,
     scan_class: npt.NDArray[np.integer] | None = None,
 ) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
@@ -166,11 +167,11 @@ class ScanCorrections:
         cls_out: list[npt.NDArray[np.int16]] = []
         for f in ids:
             p = np.concatenate([a for a, _ in per_frame[f]])
-            c = np.concatenate([b for _, b in per_frame[f]])
+            cl = np.concatenate([b for _, b in per_frame[f]])
             # Last occurrence wins: unique over the reversed list keeps each point's last class.
             uniq, first_rev = np.unique(p[::-1], return_index=True)
             pts_out.append(uniq)
-            cls_out.append(c[::-1][first_rev])
+            cls_out.append(cl[::-1][first_rev])
             ptr.append(ptr[-1] + uniq.size)
         return cls(
             tuple(ids),

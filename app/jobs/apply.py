@@ -171,11 +171,12 @@ class CorrectionApplier:
         schema = Schema.from_dict(params["schema"], source=f"run {run['id']} schema")
         cache = self._cache(project_id, run)
         result = apply_to_run(lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(),
-                              run_corrections(corrections, params), cache)
+                              new=run_corrections(corrections, params), cache=cache)
         if result.frames:
             exports.invalidate(lay.run_dir)
         seconds = time.perf_counter() - asked
-        log.info("corrections applied to run %s: %d scans in %.2f s", run["number"], len(result.frames), seconds)
+        log.info("corrections applied to run %s: %d scans in %.2f s", run["number"], len(result.frames),
+                 seconds)
         return ApplyState(
             status="done",
             run_id=int(run["id"]),

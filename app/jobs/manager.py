@@ -955,9 +955,10 @@ def run_corrections(corrections: Sequence[crud.Correction], params: dict[str, An
     keys, classes = corrections_for_run(corrections, params["schema"], params["pipeline"])
     names = [c["name"] for c in params["schema"]["classes"]]
     scan = ScanCorrections.merge(
-        (c.frame_id, c.points, _class_index(c.class_name, names))
+        (c.frame_id, c.points, index)
         for c in corrections
-        if c.scope == "scan" and c.frame_id and c.points is not None and _class_index(c.class_name, names) != -2
+        if c.scope == "scan" and c.frame_id and c.points is not None
+        and (index := _class_index(c.class_name, names)) != -2
     )
     return RunCorrections(keys, classes, scan)
 

@@ -134,7 +134,9 @@ class AppBackend:
         with open_db(self.settings.database) as db:
             rows = crud.list_corrections(db, self.project_id, active_only=False)
         return [
-            CorrectionRecord(c.id, c.class_name, c.voxel_size, c.keys, c.active, c.scope, c.frame_id, c.points)
+            CorrectionRecord(
+                c.id, c.class_name, c.voxel_size, c.keys, c.active, c.scope, c.frame_id, c.points
+            )
             for c in rows
         ]
 

@@ -61,7 +61,9 @@ class RunCorrections:
         if map_path.is_file():
             k, c = last_per_key(*load_corrections(map_path, num_classes))
             keys, cls_ = k, c.astype(np.int16)
-        scan = ScanCorrections.load(scan_path, num_classes) if scan_path.is_file() else ScanCorrections.empty()
+        scan = ScanCorrections.empty()
+        if scan_path.is_file():
+            scan = ScanCorrections.load(scan_path, num_classes)
         return cls(keys, cls_, scan)
 
     @classmethod
@@ -93,14 +95,15 @@ def point_labels(
     corrections (map scope, then this scan's scan scope)."""
     lab, conf = final.labels_at(point_keys)
     pts, cls = corr.scan.of(frame_id)
-    return correct_points(lab, conf, point_keys, corr.map_keys, corr.map_class, pts, cls)
+    return correct_points(lab, conf, point_keys, corr.map_keys, corr.map_class,
+                          scan_points=pts, scan_class=cls)
 
 
 def check_scan_points(path: Path, frame_id: str, corr: RunCorrections, n_points: int) -> None:
     """Raise DatasetError (naming the corrections file) when a scan correction indexes past the scan."""
     pts, _ = corr.scan.of(frame_id)
     if pts.size and int(pts.max()) >= n_points:
-        raise DatasetError(path, f"frame {frame_id}: point index {int(pts.max())} but the scan has {n_points}")
+        raise DatasetError(path, f"frame {frame_id}: point index {int(pts.max())}, the scan has {n_points}")
 
 
 def build_frame_index(
@@ -158,6 +161,7 @@ def apply_to_run(
     frames: range,
     voxel_size: float,
     export_ids: npt.NDArray[np.uint32],
+    *,
     new: RunCorrections,
     cache: RunCache,
     progress: Callable[[int, int], None] | None = None,
@@ -192,7 +196,8 @@ def apply_to_run(
         except (OSError, KeyError, ValueError) as exc:
             raise DatasetError(path, f"unreadable point labels ({exc})") from exc
         atomic_save_npz(path, label=lab, conf=conf.astype(np.float16), point_label=point_label)
-        export_labels(layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16), export_ids)
+        export_labels(layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16),
+                      export_ids)
         if progress is not None:
             progress(k + 1, len(todo))
     new.write(layout.applied_corrections, layout.applied_corrections_scan)

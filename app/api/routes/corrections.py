@@ -67,7 +67,8 @@ def add_correction(
     """Store a correction (author "api") and apply it to the latest run's export in the background."""
     cid = crud.add_correction(
         db, project_id=project_id, class_name=payload.class_name, voxel_size=payload.voxel_size,
-        keys=payload.keys, scope=payload.scope, frame_id=payload.frame_id, points=payload.points, author="api",
+        keys=payload.keys, scope=payload.scope, frame_id=payload.frame_id, points=payload.points,
+        author="api",
     )
     applier(settings).request(project_id)
     return _public(crud.get_correction(db, cid))
