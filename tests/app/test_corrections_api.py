@@ -69,7 +69,8 @@ def studio(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Studio]:
     server = Server(data).start()
     try:
         with server.client() as c:
-            p = c.post("/projects", json={"name": "corr", "dataset": {"kind": "folder", "path": str(seq.root)}})
+            dataset = {"kind": "folder", "path": str(seq.root)}
+            p = c.post("/projects", json={"name": "corr", "dataset": dataset})
             assert p.status_code == 201, p.text
             run = c.post(f"/projects/{p.json()['id']}/runs", json={}).json()
             run = wait_run(c, run["id"], api="")
@@ -146,7 +147,8 @@ def test_routes_refuse_bad_input_with_the_field_named(studio: Studio) -> None:
     r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "a/b", "voxel_size": vs, "keys": []})
     assert r.status_code == 422 and "class_name" in r.text, r.text
     r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "scope": "scan", "frame_id": "000000", "points": [-1]})
+                                                          "scope": "scan", "frame_id": "000000",
+                                                          "points": [-1]})
     assert r.status_code == 422 and "points" in r.text, r.text
     r = st.c.patch(f"/projects/{st.pid}/corrections/999999", json={"active": True})
     assert r.status_code == 404, r.text
