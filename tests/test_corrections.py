@@ -35,6 +35,8 @@ def test_correct_points_map_then_scan_and_erase() -> None:
     assert lab.tolist() == [0, 2, 0, -1]
     assert cf.tolist() == [0.5, 1.0, 1.0, 0.0]
     assert label.tolist() == [0, 1, 1, 3]  # inputs not modified
+    lab, cf = correct_points(np.array([1]), np.array([0.5]), np.array([9]), np.array([9]), np.array([ERASE]))
+    assert lab.tolist() == [-1] and cf.tolist() == [0.0]  # a map-scope erase alone unlabels the point
     with pytest.raises(ValueError, match="out of range"):
         correct_points(label, conf, keys, np.zeros(0, np.int64), np.zeros(0, np.int16),
                        scan_points=np.array([4]), scan_class=np.array([0]))
