@@ -361,6 +361,11 @@ class MetricsPublic(BaseModel):
     run_id: int
     class_names: list[str]
     metrics: dict[str, Any]
+    before_corrections: bool = Field(
+        default=False,
+        description="the run's export now carries corrections applied after its evaluation (the "
+        "apply-corrections job); these figures describe the labels before them until a re-run",
+    )
 
 
 class ChangePublic(BaseModel):

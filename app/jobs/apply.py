@@ -28,7 +28,7 @@ from app.jobs.manager import run_corrections
 from app.services import pipeline_config
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError
-from leap_core.pipeline.apply import RunCache, apply_to_run, load_run_cache
+from leap_core.pipeline.apply import RunCache, RunCorrections, apply_to_run, load_run_cache
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 
@@ -169,9 +169,14 @@ class CorrectionApplier:
         lay = RunLayout(Path(run["run_dir"]))
         seq = KittiSequence(Path(params["dataset"]))
         schema = Schema.from_dict(params["schema"], source=f"run {run['id']} schema")
+        new = run_corrections(corrections, params)
+        if not new.differs(RunCorrections.applied(lay, schema.num_classes)):
+            # The usual case after a run ends (the hook of app.main): nothing to load or rewrite.
+            return ApplyState(status="done", run_id=int(run["id"]), run_number=int(run["number"]),
+                              seconds=round(time.perf_counter() - asked, 4), finished_at=utcnow())
         cache = self._cache(project_id, run)
         result = apply_to_run(lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(),
-                              new=run_corrections(corrections, params), cache=cache)
+                              new=new, cache=cache)
         if result.frames:
             exports.invalidate(lay.run_dir)
         seconds = time.perf_counter() - asked

@@ -136,6 +136,13 @@ class JobManager:
         self._store_error: str | None = None
         """Why the last refused write failed (for /health)."""
         self._started = False
+        self._done_hooks: list[Callable[[int], None]] = []
+
+    def on_run_done(self, hook: Callable[[int], None]) -> None:
+        """Call ``hook(project_id)`` after each run that ends ``done`` (on the worker thread, after its row
+        is stored): the app's "apply corrections" job uses it, since corrections made while a run worked
+        are newer than the ones the run fused (:mod:`app.jobs.apply`)."""
+        self._done_hooks.append(hook)
 
     # ------------------------------------------------------------------------------------- lifecycle
     def start(self) -> list[int]:
@@ -788,7 +795,8 @@ class JobManager:
         status: str = outcome.status
         error = outcome.error
         with open_db(self.settings.database) as db:
-            run_dir = Path(crud.require_run(db, run_id)["run_dir"])
+            row = crud.require_run(db, run_id)
+        run_dir, project_id = Path(row["run_dir"]), int(row["project_id"])
         skipped = pipeline_skipped_stages(run_dir)
         with self._lock:
             live = self._live[run_id]
@@ -827,6 +835,12 @@ class JobManager:
             live.tracker.mark_skipped(skipped)
             self._retire(run_id)
         log.info("%s %s%s", live.label, status, f": {error}" if error else "")
+        if status == "done":
+            for hook in self._done_hooks:
+                try:
+                    hook(project_id)
+                except Exception:  # a hook's failure must not fail the run that already ended
+                    log.exception("after run %d: a run-done hook failed", run_id)
 
     # ------------------------------------------------------------------------------ synchronous use
     def run_now(self, run_id: int, on_progress: Callable[[str, int, int], None] | None = None) -> str:

@@ -72,6 +72,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
     progress: Callable[[int, int], None] | None = None,
     frames: range | None = None,
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None,
+    erased: npt.NDArray[np.int64] | None = None,
 ) -> VoxelGrid:
     """Self-train the 3D Consistency Network once and fuse its predictions into ``fused``.
 
@@ -104,6 +105,8 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         views: sorted voxel keys and the number of frames that observed each
             (:func:`~leap_core.consistency.selection.view_counts`), the tie-break of the selection; None
             leaves ties to the seeded random order.
+        erased: voxel keys the user erased to unlabeled (map-scope erase corrections): their points are
+            never training labels, whatever class the fused evidence gives the voxel.
 
     Returns:
         A new grid: ``fused`` plus the tempered network evidence.
@@ -145,6 +148,8 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         frame = seq.frame(i)
         keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
         lab, conf = voxel_labels.at(keys)
+        if erased is not None and erased.size:
+            lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
         labels.append(lab)
         confs.append(conf)
         if views is not None:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.corrections import FrameVoxelIndex, ScanCorrections, changed_keys, correct_points
+from leap_core.corrections import ERASE, FrameVoxelIndex, ScanCorrections, changed_keys, correct_points
 from leap_core.datasets.kitti import Frame, KittiSequence
 from leap_core.errors import DatasetError
 from leap_core.export import export_labels
@@ -78,9 +78,26 @@ class RunCorrections:
             return cls.read(layout.applied_corrections, layout.applied_corrections_scan, num_classes)
         return cls.of_run(layout, num_classes)
 
+    def erased_keys(self) -> npt.NDArray[np.int64]:
+        """(E,) sorted voxel keys of the map-scope erase corrections."""
+        return self.map_keys[self.map_class == ERASE]
+
+    def differs(self, other: RunCorrections) -> bool:
+        """Whether any point would get another label under ``other`` (a voxel or a scan's points differ)."""
+        return bool(changed_keys(self.map_keys, self.map_class, other.map_keys, other.map_class).size
+                    or self.scan.changed_frames(other.scan))
+
     def write(self, map_path: Path, scan_path: Path) -> None:
         save_corrections(map_path, self.map_keys, self.map_class)
         self.scan.save(scan_path)
+
+
+def export_ahead_of_metrics(layout: RunLayout, num_classes: int) -> bool:
+    """Whether the run's points and export carry corrections its ``metrics.json`` does not (the app's
+    apply job changed labels after the run's evaluation: the metrics describe the labels before them)."""
+    if not layout.applied_corrections.is_file():
+        return False
+    return RunCorrections.of_run(layout, num_classes).differs(RunCorrections.applied(layout, num_classes))
 
 
 def frame_keys(frame: Frame, voxel_size: float) -> npt.NDArray[np.int64]:
@@ -210,4 +227,4 @@ def apply_to_run(
 
 
 __all__ = ["ApplyResult", "RunCache", "RunCorrections", "apply_to_run", "build_frame_index",
-           "check_scan_points", "frame_keys", "load_run_cache", "point_labels"]
+           "check_scan_points", "export_ahead_of_metrics", "frame_keys", "load_run_cache", "point_labels"]

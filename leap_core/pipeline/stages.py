@@ -240,6 +240,9 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
     fused = VoxelGrid.load(lay.grid)
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
     smoothed = SmoothedGrid.load(lay.grid_smooth).to_voxel_grid(clip)
+    # Erased voxels keep their fused evidence (fuse imposes no class on them), so without this their
+    # points would train the network on the very labels the user removed.
+    erased = RunCorrections.of_run(lay, ctx.schema.num_classes).erased_keys()
     total = cn.iterations * _3DCN_GRID_SCALE
     for it in range(1, cn.iterations + 1):
         grid_path, smooth_path = lay.grid_3dcn(it), lay.grid_smooth_3dcn(it)
@@ -254,7 +257,8 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
             if cn.rank_by_views and views is None:
                 views = view_counts(obs_keys for _, obs_keys in observed_keys(ctx))
             fused = run_3dcn_iteration(ctx.seq, fused, smoothed, ctx.schema.num_classes, cn, ctx.cfg.fusion,
-                                       lay.cn_dir, it, progress=prog, frames=ctx.frames, views=views)
+                                       lay.cn_dir, it, progress=prog, frames=ctx.frames, views=views,
+                                       erased=erased)
             fused.save(grid_path)
             _smooth_and_save(fused, ctx, smooth_path)
         smoothed = SmoothedGrid.load(smooth_path).to_voxel_grid(clip)

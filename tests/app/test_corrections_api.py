@@ -125,6 +125,8 @@ def test_a_correction_reaches_the_export_without_a_run_and_undo_reverts_it(studi
     info = st.c.get(f"/runs/{st.run['id']}/export").json()
     counted = next(c["points"] for c in info["classes"] if c["name"] == target)
     assert counted == sum(int((lab == st.class_id(target)).sum()) for lab in after.values())
+    # Its metrics were measured before the correction: they say so (and stop saying so once undone).
+    assert st.c.get(f"/runs/{st.run['id']}/metrics").json()["before_corrections"] is True
 
     r = st.c.patch(f"/projects/{st.pid}/corrections/{corr['id']}", json={"active": False})
     assert r.status_code == 200 and r.json()["active"] is False, r.text
@@ -133,6 +135,7 @@ def test_a_correction_reaches_the_export_without_a_run_and_undo_reverts_it(studi
     for fid in before:
         assert (reverted[fid] == before[fid]).all(), fid
     assert len(st.runs()) == runs_before
+    assert st.c.get(f"/runs/{st.run['id']}/metrics").json()["before_corrections"] is False
 
 
 def test_routes_refuse_bad_input_with_the_field_named(studio: Studio) -> None:
@@ -199,6 +202,32 @@ def test_scan_scope_and_erase_survive_and_win_in_a_real_run(studio: Studio) -> N
     preview = st.c.get(f"/projects/{st.pid}/runs/preview").json()
     text = repr(preview)
     assert "label_points" in text
+
+
+def test_a_correction_made_while_a_run_works_reaches_that_runs_export_when_it_ends(studio: Studio) -> None:
+    from app import crud
+    from app.core.config import Settings
+
+    st = studio
+    names = [c["name"] for c in st.run["params"]["schema"]["classes"]]
+    target = names[0]
+    run = st.c.post(f"/projects/{st.pid}/runs", json={}).json()
+    # Straight into the database (as the viewer's request would land while the run works): the run's
+    # corrections were written when it was created, and no apply pass is asked for here, so only the
+    # run-done hook can bring this one into the run's export.
+    database = Settings(work_dir=st.data / "studio", data_roots=[st.data]).database
+    points = list(range(1, 30, 3))
+    with dbmod.open_db(database) as db:
+        crud.add_correction(db, project_id=st.pid, class_name=target, voxel_size=_voxel_size(st), keys=[],
+                            scope="scan", frame_id="000000", points=points, author="api")
+    assert st.c.get(f"/runs/{run['id']}").json()["status"] in ("queued", "running")
+    run = wait_run(st.c, run["id"], api="")
+    assert run["status"] == "done", run
+    deadline = time.monotonic() + 30
+    while (body := st.wait_apply())["apply"]["run_id"] != run["id"] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert body["apply"]["run_id"] == run["id"], body
+    assert (st.labels(run)["000000"][points] == st.class_id(target)).all()
 
 
 def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:

@@ -112,6 +112,10 @@ def test_viewer_correction_is_in_the_export_without_a_run(live_app: dict[str, An
         assert CORRECTED_CLASS in text and "map" in text and "viewer" in text
         ui.locator(f"#corrections li[data-cls='{CORRECTED_CLASS}']").wait_for(timeout=10_000)
         ui.get_by_text(f"Applied to run {first['number']}", exact=False).wait_for(timeout=10_000)
+        # The run's metrics predate the correction, and the page says so.
+        note = ui.locator("#metrics-before-corrections")
+        note.wait_for(timeout=10_000)
+        assert f"#{first['number']}" in note.inner_text()
         ui.screenshot(path=str(artifacts / "corrections-web-ui.png"))
         row.locator("input.corr-active").uncheck()
         wait_until(lambda: not crud_active(settings, correction.id), 20, "the correction to be turned off")

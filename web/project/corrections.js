@@ -29,6 +29,7 @@ export function mountCorrections(ctx) {
   const anchor = ctx.els.runs;
   anchor.parentElement.insertBefore(el, anchor);
   let timer = null;
+  let lastApplied; // undefined until the first answer
 
   async function toggle(c, active) {
     try {
@@ -48,6 +49,13 @@ export function mountCorrections(ctx) {
       replace(el, h("h2", {}, "Corrections"), h("p", { class: "error" }, err.message));
       return;
     }
+    const applied = body.apply.status === "done" ? `${body.apply.run_id}@${body.apply.finished_at}` : null;
+    if (applied && lastApplied !== undefined && applied !== lastApplied) {
+      // That run's export changed: its cached metrics no longer say whether they predate the corrections.
+      ctx.state.metrics.delete(body.apply.run_id);
+      ctx.render.compare();
+    }
+    lastApplied = applied;
     const rows = body.corrections.map((c) =>
       h(
         "tr",
