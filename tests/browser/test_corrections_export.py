@@ -56,15 +56,7 @@ def test_viewer_correction_is_in_the_export_without_a_run(live_app: dict[str, An
     assert session is not None and session.grid is not None
 
     with browserfixtures.launch_chromium() as browser:
-        page = browser.new_page(viewport={"width": 1400, "height": 900})
-        browserfixtures.echo_console(page)
-        page.goto(base + viewer["url"])
-        page.get_by_text(f"LeAP review: {project['name']}", exact=True).wait_for(timeout=60_000)
-        page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
-        alert = page.get_by_role("alert")
-        if alert.count():
-            alert.get_by_role("button").first.click()
-        assert session.wait_drawn(30)
+        page = browserfixtures.open_viewer(browser, base + viewer["url"], project["name"], session)
         threshold = browserfixtures.panel_input(page, "Min confidence")
         threshold.fill("0")
         threshold.press("Enter")

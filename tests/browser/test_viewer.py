@@ -83,18 +83,7 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
     names = session.class_names()
 
     with browserfixtures.launch_chromium() as browser:
-        page = browser.new_page(viewport={"width": 1400, "height": 900})
-        browserfixtures.echo_console(page)
-        page.goto(base + viewer["url"])
-        # The status badge reads "Connected" only until the server's panel label arrives (viser shows a
-        # set label in its place): waiting for "Connected" raced with the scene replay and timed out under
-        # load. The label comes only over an open websocket, so it proves the connection instead.
-        page.get_by_text(f"LeAP review: {project['name']}", exact=True).wait_for(timeout=60_000)
-        page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
-        alert = page.get_by_role("alert")
-        if alert.count():
-            alert.get_by_role("button").first.click()
-        assert session.wait_drawn(30)
+        page = browserfixtures.open_viewer(browser, base + viewer["url"], project["name"], session)
         page.wait_for_timeout(4000)  # software WebGL draws the map
         _shot(page, artifacts, "viewer-1-classes.png")
         page.get_by_text(f"{session.grid.num_voxels:,} voxels, {len(names)} classes", exact=False).wait_for(
