@@ -162,8 +162,10 @@ def bench_apply_export(
     # The map: the street block of synthetic_grid; each scan samples points near its own stretch.
     grid = synthetic_grid(voxels, schema.num_classes).grid
     centres = grid.centres()
+    x0, x1 = float(centres[:, 0].min()) + 30.0, float(centres[:, 0].max()) - 30.0
     for i in range(frames):
-        near = np.flatnonzero(np.abs(centres[:, 0] - (centres[:, 0].min() + i * 6.0)) < 30.0)
+        # Scans spread along the map's x extent, each seeing a 60 m stretch (neighbours overlap).
+        near = np.flatnonzero(np.abs(centres[:, 0] - (x0 + (x1 - x0) * i / max(frames - 1, 1))) < 30.0)
         pick = rng.choice(near, points)
         pts = np.zeros((points, 4), np.float32)
         pts[:, :3] = centres[pick] + rng.uniform(-0.09, 0.09, (points, 3)) - np.array([i * 1.5, 0, 0])

@@ -80,7 +80,8 @@ class RunCorrections:
 
     def erased_keys(self) -> npt.NDArray[np.int64]:
         """(E,) sorted voxel keys of the map-scope erase corrections."""
-        return self.map_keys[self.map_class == ERASE]
+        erased: npt.NDArray[np.int64] = self.map_keys[self.map_class == ERASE]
+        return erased
 
     def differs(self, other: RunCorrections) -> bool:
         """Whether any point would get another label under ``other`` (a voxel or a scan's points differ)."""
