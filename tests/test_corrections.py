@@ -76,3 +76,21 @@ def test_frame_voxel_index(tmp_path: Path) -> None:
     idx.save(tmp_path / "fv.npz")
     back = FrameVoxelIndex.load(tmp_path / "fv.npz")
     assert back.frames_of([8]).tolist() == [2] and back.num_frames == 3
+
+
+def test_point_labels_of_a_subset_equal_the_whole_scans() -> None:
+    from leap_core.pipeline.apply import RunCorrections, point_labels
+    from leap_core.smoothing import SmoothedGrid
+
+    # Voxels 10 (class 0, p 0.75), 20 (class 1, p 1.0); points 0..5 in voxels 10, 20, 10, 30, 20, 10.
+    grid = SmoothedGrid(np.array([10, 20], np.int64), np.array([[0.75, 0.25], [0.0, 1.0]], np.float16), 0.2)
+    keys = np.array([10, 20, 10, 30, 20, 10], np.int64)
+    scan = ScanCorrections.merge([("f", [2, 4], 1), ("f", [5], ERASE)])
+    corr = RunCorrections(np.array([20], np.int64), np.array([0], np.int16), scan)
+    lab, conf = point_labels(grid, keys, "f", corr)
+    assert lab.tolist() == [0, 0, 1, -1, 1, -1] and conf.tolist() == [0.75, 1, 1, 0, 1, 0]
+    subset = np.array([1, 2, 5], np.int64)
+    sub_lab, sub_conf = point_labels(grid, keys, "f", corr, subset=subset)
+    assert sub_lab.tolist() == lab[subset].tolist() and sub_conf.tolist() == conf[subset].tolist()
+    empty = point_labels(grid, keys, "f", corr, subset=np.zeros(0, np.int64))
+    assert empty[0].size == 0 and empty[1].size == 0

@@ -32,7 +32,7 @@ from leap_core.corrections import ERASE, FrameVoxelIndex, ScanCorrections, chang
 from leap_core.datasets.kitti import Frame, KittiSequence
 from leap_core.errors import DatasetError
 from leap_core.export import export_labels
-from leap_core.fusion import last_per_key, voxel_keys, world_points
+from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys, world_points
 from leap_core.io_utils import atomic_save_npz
 from leap_core.run_layout import RunLayout, load_corrections, save_corrections
 from leap_core.smoothing import SmoothedGrid
@@ -107,14 +107,30 @@ def frame_keys(frame: Frame, voxel_size: float) -> npt.NDArray[np.int64]:
 
 
 def point_labels(
-    final: SmoothedGrid, point_keys: npt.NDArray[np.int64], frame_id: str, corr: RunCorrections
+    final: SmoothedGrid,
+    point_keys: npt.NDArray[np.int64],
+    frame_id: str,
+    corr: RunCorrections,
+    subset: npt.NDArray[np.int64] | None = None,
 ) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
     """One scan's ``(label (N,) int16, conf (N,) float32)``: its voxels' labels in the final grid, then the
-    corrections (map scope, then this scan's scan scope)."""
-    lab, conf = final.labels_at(point_keys)
+    corrections (map scope, then this scan's scan scope).
+
+    ``subset`` (S,) sorted point indices: label only those points (arrays of length S), each exactly as the
+    whole scan would label it. Example: scan correction on points [2, 7], subset [1, 7] → position 1 of
+    the result carries point 7's scan correction.
+    """
+    keys = point_keys if subset is None else point_keys[subset]
+    lab, conf = final.labels_at(keys)
     pts, cls = corr.scan.of(frame_id)
-    return correct_points(lab, conf, point_keys, corr.map_keys, corr.map_class,
-                          scan_points=pts, scan_class=cls)
+    if subset is not None and pts.size:
+        if subset.size == 0:
+            pts, cls = pts[:0], cls[:0]
+        else:
+            pos = np.minimum(np.searchsorted(subset, pts), subset.size - 1)
+            inside = subset[pos] == pts
+            pts, cls = pos[inside].astype(np.int64), cls[inside]
+    return correct_points(lab, conf, keys, corr.map_keys, corr.map_class, scan_points=pts, scan_class=cls)
 
 
 def check_scan_points(path: Path, frame_id: str, corr: RunCorrections, n_points: int) -> None:
@@ -200,19 +216,28 @@ def apply_to_run(
     own = RunCorrections.of_run(layout, num_classes)
     baked = np.setdiff1d(own.map_keys[own.map_class >= 0], new.map_keys, assume_unique=True)
     todo = sorted(positions)
+    scan_changed = set(new.scan.changed_frames(old.scan))
     for k, p in enumerate(todo):
         i = frames[p]
         fid = seq.frame_ids[i]
         frame = seq.frame(i)
         keys = frame_keys(frame, voxel_size)
         check_scan_points(layout.applied_corrections_scan, fid, new, keys.size)
-        lab, conf = point_labels(cache.final, keys, fid, new)
         path = layout.points(fid)
         try:
             with np.load(path) as z:
                 point_label = np.asarray(z["point_label"])
+                lab = np.array(z["label"], np.int16)
+                conf = np.asarray(z["conf"], np.float32)
         except (OSError, KeyError, ValueError) as exc:
             raise DatasetError(path, f"unreadable point labels ({exc})") from exc
+        if fid in scan_changed or lab.shape != keys.shape or conf.shape != keys.shape:
+            lab, conf = point_labels(cache.final, keys, fid, new)
+        else:
+            # Only points in changed voxels can change (their grid lookup is most of a scan's cost): the
+            # others keep the label the file has, which the same rule gave them.
+            sel = np.flatnonzero(rows_in_sorted(diff, keys) >= 0).astype(np.int64)
+            lab[sel], conf[sel] = point_labels(cache.final, keys, fid, new, subset=sel)
         atomic_save_npz(path, label=lab, conf=conf.astype(np.float16), point_label=point_label)
         export_labels(layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16),
                       export_ids)
