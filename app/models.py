@@ -6,7 +6,7 @@ Per resource: ``XCreate`` / ``XUpdate`` inputs, ``XPublic`` outputs and ``XsPubl
 from __future__ import annotations
 
 import re
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -581,7 +581,7 @@ class CorrectionCreate(_Input):
         max_length=64, description="class to assign; '' erases to unlabeled (export id 0)"
     )
     voxel_size: float = Field(gt=0, le=100, description="voxel edge (m) the keys were computed with")
-    keys: list[int] = Field(
+    keys: list[Annotated[int, Field(ge=0, le=2**63 - 1)]] = Field(
         default_factory=list, max_length=CORRECTION_MAX_ITEMS, description="packed voxel keys covered"
     )
     scope: Literal["map", "scan"] = Field(
@@ -591,7 +591,7 @@ class CorrectionCreate(_Input):
         default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
         description="scan scope: the scan's frame id (file stem)",
     )
-    points: list[int] | None = Field(
+    points: list[Annotated[int, Field(ge=0, le=2**31 - 1)]] | None = Field(
         default=None, max_length=CORRECTION_MAX_ITEMS,
         description="scan scope: indices into the scan's points",
     )
@@ -600,13 +600,6 @@ class CorrectionCreate(_Input):
     @classmethod
     def _class(cls, value: str) -> str:
         return value if value == "" else _check_class_name(value)
-
-    @field_validator("points")
-    @classmethod
-    def _points(cls, value: list[int] | None) -> list[int] | None:
-        if value is not None and any(p < 0 for p in value):
-            raise ValueError("point indices must be >= 0")
-        return value
 
     @model_validator(mode="after")
     def _scope(self) -> CorrectionCreate:

@@ -153,6 +153,17 @@ def test_routes_refuse_bad_input_with_the_field_named(studio: Studio) -> None:
                                                           "scope": "scan", "frame_id": "000000",
                                                           "points": [-1]})
     assert r.status_code == 422 and "points" in r.text, r.text
+    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
+                                                          "keys": [2**63]})
+    assert r.status_code == 422 and "keys" in r.text, r.text
+    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
+                                                          "scope": "scan", "frame_id": "999999",
+                                                          "points": [1]})
+    assert r.status_code == 422 and "frame_id" in r.text and "999999" in r.text, r.text
+    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
+                                                          "scope": "scan", "frame_id": "000000",
+                                                          "points": [400]})  # the scans have 400 points
+    assert r.status_code == 422 and "points" in r.text and "past scan 000000" in r.text, r.text
     r = st.c.patch(f"/projects/{st.pid}/corrections/999999", json={"active": True})
     assert r.status_code == 404, r.text
     r = st.c.patch(f"/projects/{st.pid}/corrections/1", json={"active": "maybe"})

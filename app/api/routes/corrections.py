@@ -5,7 +5,8 @@ job (:mod:`app.jobs.apply`), which brings the latest finished run's export up to
 from __future__ import annotations
 
 from collections import Counter
-from typing import Annotated
+from pathlib import Path as FilePath
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, status
 
@@ -13,7 +14,7 @@ from app import crud, models
 from app.api.deps import DbDep, ReadDbDep, SettingsDep
 from app.api.responses import NOT_FOUND
 from app.api.types import MAX_INT, ProjectId
-from app.core.errors import NotFound
+from app.core.errors import InvalidField, NotFound
 from app.jobs.apply import applier
 
 router = APIRouter(tags=["corrections"], responses={**NOT_FOUND})
@@ -33,6 +34,17 @@ def _public(c: crud.Correction) -> models.CorrectionPublic:
         author=c.author,
         active=c.active,
     )
+
+
+def _check_scan(project: dict[str, Any], frame_id: str, points: list[int]) -> None:
+    """A scan-scope correction must name a scan of the project's dataset and points inside it: stored
+    otherwise, it would fail every later run (label_points checks the indices against the scan)."""
+    scan = FilePath(project["dataset_path"]) / "velodyne" / f"{frame_id}.bin"
+    if not scan.is_file():
+        raise InvalidField(("frame_id",), f"scan {frame_id!r} is not in the project's dataset")
+    n = scan.stat().st_size // 16  # float32 x, y, z, remission per point
+    if points and max(points) >= n:
+        raise InvalidField(("points",), f"point index {max(points)} is past scan {frame_id} ({n} points)")
 
 
 @router.get("/projects/{project_id}/corrections", response_model=models.CorrectionList)
@@ -65,6 +77,8 @@ def add_correction(
     project_id: ProjectId, payload: models.CorrectionCreate, db: DbDep, settings: SettingsDep
 ) -> models.CorrectionPublic:
     """Store a correction (author "api") and apply it to the latest run's export in the background."""
+    if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
+        _check_scan(crud.require_project(db, project_id), payload.frame_id, payload.points)
     cid = crud.add_correction(
         db, project_id=project_id, class_name=payload.class_name, voxel_size=payload.voxel_size,
         keys=payload.keys, scope=payload.scope, frame_id=payload.frame_id, points=payload.points,
