@@ -10,14 +10,14 @@ import sqlite3
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 import sqlite_utils
 
 from app.core.db import transaction, utcnow
-from app.core.errors import NotFound
+from app.core.errors import InvalidField, NotFound
 
 _JSON_COLUMNS = {
     "schema_json": "schema",
@@ -243,13 +243,23 @@ class Correction:
     created_at: str
     """ISO UTC time."""
     class_name: str
-    """Class assigned to the voxels (by name, so it survives reordering; dropped if the class is removed)."""
+    """Class assigned (by name, so it survives reordering; dropped if the class is removed); ``""`` erases
+    to unlabeled (export id 0)."""
     voxel_size: float
     """Voxel edge (m) the keys were computed with."""
     keys: npt.NDArray[np.int64]
-    """(K,) packed voxel keys (``leap_core.fusion`` key packing)."""
+    """(K,) packed voxel keys (``leap_core.fusion`` key packing): the voxels the correction covers (for a
+    scan-scope correction, the voxels of its points, for display)."""
     active: bool
     """False once undone."""
+    scope: Literal["map", "scan"] = "map"
+    """``"map"``: every point of every scan in ``keys``; ``"scan"``: only ``points`` of scan ``frame_id``."""
+    frame_id: str | None = None
+    """Scan-scope: the scan's frame id (file stem)."""
+    points: npt.NDArray[np.int64] | None = None
+    """Scan-scope: (P,) indices into that scan's points."""
+    author: str | None = None
+    """Who made it ("viewer", "api"); None for corrections made before authors were recorded."""
 
 
 def _correction(row: dict[str, Any]) -> Correction:
@@ -261,26 +271,67 @@ def _correction(row: dict[str, Any]) -> Correction:
         voxel_size=float(row["voxel_size"]),
         keys=np.frombuffer(row["keys"], dtype=np.int64).copy(),
         active=bool(row["active"]),
+        scope="scan" if row.get("scope") == "scan" else "map",
+        frame_id=row.get("frame_id"),
+        points=None if row.get("points") is None else np.frombuffer(row["points"], dtype=np.int64).copy(),
+        author=row.get("author"),
     )
 
 
-def add_correction(
+CORRECTION_SCOPES = ("map", "scan")
+"""Where a correction applies (:attr:`Correction.scope`)."""
+
+
+def add_correction(  # noqa: PLR0913  one keyword per column of the row
     db: sqlite_utils.Database,
     *,
     project_id: int,
     class_name: str,
     voxel_size: float,
     keys: npt.ArrayLike,
+    scope: str = "map",
+    frame_id: str | None = None,
+    points: npt.ArrayLike | None = None,
+    author: str | None = None,
 ) -> int:
-    """Store a correction (active); returns its id."""
+    """Store a correction (active); returns its id.
+
+    Raises:
+        InvalidField: an unknown scope, a scan-scope correction without ``frame_id`` / ``points`` (or with
+            negative point indices), or a map-scope one with them.
+    """
     arr = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1))
+    if scope not in CORRECTION_SCOPES:
+        raise InvalidField(("scope",), f"scope must be one of {', '.join(CORRECTION_SCOPES)}, got {scope!r}")
+    blob: bytes | None = None
+    if scope == "scan":
+        if not frame_id:
+            raise InvalidField(("frame_id",), "a scan-scope correction needs the scan's frame_id")
+        if points is None:
+            raise InvalidField(("points",), "a scan-scope correction needs the indices of its points")
+        pts = np.ascontiguousarray(np.asarray(points, dtype=np.int64).reshape(-1))
+        if pts.size and pts.min() < 0:
+            raise InvalidField(("points",), "point indices must be >= 0")
+        blob = pts.tobytes()
+    elif frame_id is not None or points is not None:
+        field = "frame_id" if frame_id is not None else "points"
+        raise InvalidField((field,), f"{field} is only for scan-scope corrections")
     require_project(db, project_id)
     cursor = db.execute(
-        "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active) "
-        "VALUES (?, ?, ?, ?, ?, 1)",
-        [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes()],
+        "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
+        "frame_id, points, author) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?)",
+        [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes(), scope, frame_id, blob, author],
     )
     return _inserted_id(cursor)
+
+
+def get_correction(db: sqlite_utils.Database, correction_id: int) -> Correction:
+    """One correction. Raises NotFound."""
+    cursor = db.execute("SELECT * FROM corrections WHERE id = ?", [correction_id])
+    row = cursor.fetchone()
+    if row is None:
+        raise NotFound(f"Correction {correction_id} not found")
+    return _correction(dict(zip([d[0] for d in cursor.description], row, strict=True)))
 
 
 def list_corrections(

@@ -144,7 +144,7 @@ def _schema(run: dict[str, Any]) -> Schema:
 
 def coverage(run: dict[str, Any]) -> ExportCoverage:
     """The run's export counts (:func:`~leap_core.pipeline.coverage.export_coverage`), computed once and
-    cached in the run folder (a finished run's export never changes)."""
+    cached in the run folder (until the "apply corrections" job changes the export: :func:`invalidate`)."""
     lay = _finished_export(run)
     with _lock:
         cached = _read_coverage(lay.export_coverage)
@@ -251,6 +251,15 @@ def build_zip(run: dict[str, Any], project: dict[str, Any], include_confidence: 
     return target
 
 
+def invalidate(run_dir: Path) -> None:
+    """Forget a run's cached zips and counts after its export files changed (the "apply corrections" job):
+    under the lock, so a zip being built from the old files is removed once it is written."""
+    lay = RunLayout(run_dir)
+    with _lock:
+        for path in (lay.export_zip(False), lay.export_zip(True), lay.export_coverage):
+            path.unlink(missing_ok=True)
+
+
 def _current_zip(path: Path) -> bool:
     """A cached zip in today's layout (zips cached by older versions lack the label map: rebuilt)."""
     try:
@@ -282,4 +291,5 @@ def write_export(
     return models.ExportWritten(run_id=run["id"], path=str(target), files=len(files), replaced=replaced)
 
 
-__all__ = ["REASONS", "build_zip", "coverage", "export_info", "export_target", "exports_dir", "write_export"]
+__all__ = ["REASONS", "build_zip", "coverage", "export_info", "export_target", "exports_dir", "invalidate",
+           "write_export"]

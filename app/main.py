@@ -30,6 +30,7 @@ from app.core.errors import AppError, InvalidField, disk_full_message, printable
 from app.core.instance import StartupRefused, WorkDirLock, bind_socket
 from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_demo_project
+from app.jobs.apply import applier
 from app.jobs.manager import JobManager
 from leap_core import __version__
 
@@ -141,6 +142,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     set_size_cap(settings.database, None if settings.db_max_mb is None else int(settings.db_max_mb * 2**20))
     init_db(settings.database)
     jobs = JobManager(settings)
+    # Corrections made while a run worked reach its export when it ends, not only at the next edit.
+    jobs.on_run_done(applier(settings).request)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

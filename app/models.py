@@ -6,7 +6,7 @@ Per resource: ``XCreate`` / ``XUpdate`` inputs, ``XPublic`` outputs and ``XsPubl
 from __future__ import annotations
 
 import re
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -361,6 +361,11 @@ class MetricsPublic(BaseModel):
     run_id: int
     class_names: list[str]
     metrics: dict[str, Any]
+    before_corrections: bool = Field(
+        default=False,
+        description="the run's export now carries corrections applied after its evaluation (the "
+        "apply-corrections job); these figures describe the labels before them until a re-run",
+    )
 
 
 class ChangePublic(BaseModel):
@@ -562,3 +567,86 @@ class HealthPublic(BaseModel):
 
 class Message(BaseModel):
     message: str
+
+
+# ----------------------------------------------------------------------------------------- corrections
+CORRECTION_MAX_ITEMS = 5_000_000
+"""Most voxel keys or point indices one correction may list (the request body limit applies too)."""
+
+
+class CorrectionCreate(_Input):
+    """A manual correction made through the API (author "api"); the viewer makes them itself."""
+
+    class_name: str = Field(
+        max_length=64, description="class to assign; '' erases to unlabeled (export id 0)"
+    )
+    voxel_size: float = Field(gt=0, le=100, description="voxel edge (m) the keys were computed with")
+    keys: list[Annotated[int, Field(ge=0, le=2**63 - 1)]] = Field(
+        default_factory=list, max_length=CORRECTION_MAX_ITEMS, description="packed voxel keys covered"
+    )
+    scope: Literal["map", "scan"] = Field(
+        default="map", description="'map': all scans' points in the voxels; 'scan': listed points of one scan"
+    )
+    frame_id: str | None = Field(
+        default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
+        description="scan scope: the scan's frame id (file stem)",
+    )
+    points: list[Annotated[int, Field(ge=0, le=2**31 - 1)]] | None = Field(
+        default=None, max_length=CORRECTION_MAX_ITEMS,
+        description="scan scope: indices into the scan's points",
+    )
+
+    @field_validator("class_name")
+    @classmethod
+    def _class(cls, value: str) -> str:
+        return value if value == "" else _check_class_name(value)
+
+    @model_validator(mode="after")
+    def _scope(self) -> CorrectionCreate:
+        if self.scope == "scan" and (self.frame_id is None or self.points is None):
+            raise ValueError("a scan-scope correction needs frame_id and points")
+        if self.scope == "map" and (self.frame_id is not None or self.points is not None):
+            raise ValueError("frame_id and points are only for scan-scope corrections")
+        return self
+
+
+class CorrectionUpdate(_Input):
+    active: bool = Field(description="false undoes the correction, true redoes it")
+
+
+class CorrectionPublic(BaseModel):
+    id: int
+    created_at: str
+    class_name: str = Field(description="assigned class; '' = erased to unlabeled")
+    scope: Literal["map", "scan"]
+    frame_id: str | None = Field(description="scan scope: the scan")
+    voxels: int = Field(description="voxels covered")
+    points: int | None = Field(description="scan scope: points covered")
+    author: str | None = Field(description="'viewer', 'api', or null for corrections older than authors")
+    active: bool
+
+
+class CorrectionClassCount(BaseModel):
+    class_name: str
+    corrections: int = Field(description="active corrections assigning this class")
+    voxels: int = Field(description="voxels they cover (a voxel corrected twice counts twice)")
+
+
+class CorrectionApply(BaseModel):
+    """The "apply corrections" job (app/jobs/apply.py ApplyState)."""
+
+    status: Literal["idle", "running", "done", "failed", "no_run"]
+    run_id: int | None
+    run_number: int | None
+    frames: int
+    changed_voxels: int
+    baked_reverts: int
+    seconds: float
+    error: str | None
+    finished_at: str | None
+
+
+class CorrectionList(BaseModel):
+    corrections: list[CorrectionPublic]
+    per_class: list[CorrectionClassCount]
+    apply: CorrectionApply

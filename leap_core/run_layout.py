@@ -7,7 +7,9 @@ through :class:`RunLayout`, so no other module spells a run-folder file name.
       stages.json                 stage records (status, fingerprint, seconds, ...)
       labels2d/<frame_id>.npz     the 2D labeler's SoftMasks per frame
       observations/<frame_id>.npz projection + painting per frame
-      corrections.npz             manual corrections (keys (K,) int64, class_idx (K,)), fused into grid.npz
+      corrections.npz             map-scope manual corrections (keys (K,) int64, class_idx (K,), -1 = erase),
+                                  fused into grid.npz, re-imposed on smoothed grids and on the points
+      corrections_scan.npz        scan-scope corrections (leap_core.corrections.ScanCorrections), per point
       grid.npz                    fused VoxelGrid (keys, logp, voxel_size)
       grid_smooth.npz             SmoothedGrid (keys, probs float16, voxel_size) after kNN smoothing
       grid_3dcn{i}.npz            3D-CN round i: fused grid + network evidence
@@ -19,6 +21,9 @@ through :class:`RunLayout`, so no other module spells a run-folder file name.
       export/<frame_id>.conf      float32 per-point confidence
       params.json, run.log, .lock, export.zip, export-conf.zip, export-coverage.json
                                   the app's files of this run
+      applied_corrections.npz, applied_corrections_scan.npz, frame_voxels.npz
+                                  the app's "apply corrections" job: the corrections the points and export
+                                  now carry, and the voxel → frames index (leap_core.pipeline.apply)
 """
 
 from __future__ import annotations
@@ -65,6 +70,10 @@ class RunLayout:
     GRID_SMOOTH: ClassVar[str] = "grid_smooth.npz"
     METRICS: ClassVar[str] = "metrics.json"
     CORRECTIONS: ClassVar[str] = "corrections.npz"
+    CORRECTIONS_SCAN: ClassVar[str] = "corrections_scan.npz"
+    APPLIED_CORRECTIONS: ClassVar[str] = "applied_corrections.npz"
+    APPLIED_CORRECTIONS_SCAN: ClassVar[str] = "applied_corrections_scan.npz"
+    FRAME_VOXELS: ClassVar[str] = "frame_voxels.npz"
     PARAMS: ClassVar[str] = "params.json"
     LOG: ClassVar[str] = "run.log"
     LOCK: ClassVar[str] = ".lock"
@@ -72,7 +81,8 @@ class RunLayout:
     EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
     EXPORT_COVERAGE: ClassVar[str] = "export-coverage.json"
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
-        {PARAMS, CORRECTIONS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, EXPORT_COVERAGE}
+        {PARAMS, CORRECTIONS, CORRECTIONS_SCAN, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, EXPORT_COVERAGE,
+         APPLIED_CORRECTIONS, APPLIED_CORRECTIONS_SCAN, FRAME_VOXELS}
     )
     """Top-level files that belong to one run only (never carried over into a later run's folder)."""
 
@@ -122,7 +132,29 @@ class RunLayout:
 
     @property
     def corrections(self) -> Path:
+        """Map-scope corrections (:func:`save_corrections`)."""
         return self._file(self.CORRECTIONS)
+
+    @property
+    def corrections_scan(self) -> Path:
+        """Scan-scope corrections (:class:`leap_core.corrections.ScanCorrections`)."""
+        return self._file(self.CORRECTIONS_SCAN)
+
+    @property
+    def applied_corrections(self) -> Path:
+        """Map-scope corrections the points and export carry after the app's apply job (absent: the
+        run's own :attr:`corrections`)."""
+        return self._file(self.APPLIED_CORRECTIONS)
+
+    @property
+    def applied_corrections_scan(self) -> Path:
+        """Scan-scope counterpart of :attr:`applied_corrections`."""
+        return self._file(self.APPLIED_CORRECTIONS_SCAN)
+
+    @property
+    def frame_voxels(self) -> Path:
+        """The voxel → frames index of the run's points (:class:`leap_core.corrections.FrameVoxelIndex`)."""
+        return self._file(self.FRAME_VOXELS)
 
     @property
     def params(self) -> Path:
@@ -199,8 +231,8 @@ class RunLayout:
 
 # ------------------------------------------------------------------------------------ corrections
 def save_corrections(path: str | Path, keys: npt.ArrayLike, class_idx: npt.ArrayLike) -> None:
-    """Write manual corrections: ``keys (K,)`` voxel keys and ``class_idx (K,)`` class indices, in the
-    order they were made (a later entry for the same voxel wins)."""
+    """Write map-scope manual corrections: ``keys (K,)`` voxel keys and ``class_idx (K,)`` class indices
+    (-1 = erase to unlabeled), in the order they were made (a later entry for the same voxel wins)."""
     atomic_save_npz(path, keys=np.asarray(keys), class_idx=np.asarray(class_idx))
 
 
@@ -211,7 +243,7 @@ def load_corrections(
 
     Raises:
         DatasetError: unreadable file, arrays of different length or rank, non-integer arrays, or a class
-            index outside ``0..num_classes-1``.
+            index outside ``-1..num_classes-1`` (-1 erases).
     """
     try:
         with np.load(path) as z:
@@ -222,8 +254,8 @@ def load_corrections(
         raise DatasetError(path, f"'keys' {keys.shape} and 'class_idx' {cls.shape} must be equal-length 1-D")
     if not (np.issubdtype(keys.dtype, np.integer) and np.issubdtype(cls.dtype, np.integer)):
         raise DatasetError(path, "'keys' and 'class_idx' must be integer arrays")
-    if len(cls) and (cls.min() < 0 or cls.max() >= num_classes):
-        raise DatasetError(path, f"'class_idx' must be in 0..{num_classes - 1}")
+    if len(cls) and (cls.min() < -1 or cls.max() >= num_classes):
+        raise DatasetError(path, f"'class_idx' must be in -1..{num_classes - 1} (-1 erases)")
     return keys.astype(np.int64), cls.astype(np.int64)
 
 

@@ -485,6 +485,12 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
                               tmp_path / "work", 1) is fused
 
 
+def test_run_3dcn_iteration_never_trains_on_erased_voxels(tmp_path: Path, make_tiny_sequence) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    with pytest.raises(ValueError, match="no point of any scan has a voxel label"):
+        run_3dcn_iteration(seq, grid, grid, c, TINY, FusionConfig(), tmp_path / "w", 1, erased=grid.keys)
+
+
 def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> None:
     seq, _, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     empty = VoxelGrid.empty(c, 0.2)

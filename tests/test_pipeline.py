@@ -308,6 +308,19 @@ def test_corrections_rerun_fuse_and_its_downstream(baseline, street: Path, schem
     assert plan["fuse"] and not plan["project"]
 
 
+def test_erased_voxels_are_never_3dcn_training_labels(baseline, street: Path, schema, tmp_path: Path) -> None:
+    # Erase every voxel of the map: fuse keeps their evidence, so only the 3D-CN's exclusion of erased
+    # voxels leaves it nothing to train on (before any training starts).
+    run_dir = tmp_path / "erase_all"
+    shutil.copytree(baseline[0], run_dir)
+    with np.load(run_dir / "grid.npz") as z:
+        keys = np.asarray(z["keys"], np.int64)
+    np.savez(run_dir / "corrections.npz", keys=keys, class_idx=np.full(keys.shape, -1))
+    cfg = config_from_dict({"consistency": {"enabled": True, "device": "cpu", "num_threads": 1}})
+    with pytest.raises(LeapError, match="no point of any scan has a voxel label"):
+        run_pipeline(street, schema, cfg, run_dir, until="3dcn")
+
+
 def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, tmp_path: Path) -> None:
     base_dir, _, _ = baseline
     run_dir = tmp_path / "interrupted"

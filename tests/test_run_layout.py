@@ -57,7 +57,12 @@ def test_corrections_roundtrip_and_errors(tmp_path: Path) -> None:
     keys, cls = load_corrections(path, 3)
     assert keys.tolist() == [5, 3, 5] and cls.tolist() == [1, 0, 2]  # order kept: the last one wins later
     assert keys.dtype == np.int64 and cls.dtype == np.int64
-    with pytest.raises(DatasetError, match=r"class_idx' must be in 0\.\.1"):
+    with pytest.raises(DatasetError, match=r"class_idx' must be in -1\.\.1"):
+        load_corrections(path, 2)
+    save_corrections(path, np.array([4]), np.array([-1]))  # -1 erases to unlabeled
+    assert load_corrections(path, 2)[1].tolist() == [-1]
+    save_corrections(path, np.array([4]), np.array([-2]))
+    with pytest.raises(DatasetError, match="must be in -1"):
         load_corrections(path, 2)
     save_corrections(path, np.array([1, 2]), np.array([0]))
     with pytest.raises(DatasetError, match="equal-length"):

@@ -147,11 +147,13 @@ def test_observations_are_projection_depth_clustering_and_painting(run: Run) -> 
 
 
 def test_fused_grid_is_fusion_of_the_observations_then_corrections(run: Run) -> None:
-    """grid.npz = apply_overrides(fuse(every stored observation), corrections) with the run's config."""
+    """grid.npz = apply_overrides(fuse(every stored observation), corrections) with the run's config; the
+    last correction of a voxel replaces earlier ones (an erase, -1, then adds nothing)."""
     fcfg = run.cfg.fusion
     batches = [Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor))
                for p, keys in run.observations()]
-    keys, cls = run.corrections()
+    keys, cls = last_per_key(*run.corrections())
+    keys, cls = keys[cls >= 0], cls[cls >= 0]
     expected = apply_overrides(fuse(batches, run.c, fcfg), keys, cls, run.cfg.correction_strength, fcfg)
     stored = VoxelGrid.load(run.lay.grid)
     np.testing.assert_array_equal(stored.keys, expected.keys)

@@ -179,6 +179,7 @@ export async function renderProject(root, projectId, { toast }) {
   ctx.render.next();
   await ctx.render.compare();
   follow(state.runs.find((r) => ctx.active.has(r.status)));
+  import("./project/corrections.js").then((m) => m.mountCorrections(ctx));
 
   return () => {
     disposed = true;

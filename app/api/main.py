@@ -10,7 +10,7 @@ from fastapi import APIRouter
 
 from app.api.deps import AuthDep, PlainBodyDep
 from app.api.responses import COMMON_RESPONSES
-from app.api.routes import classes, datasets, exports, health, pipeline, projects, runs
+from app.api.routes import classes, corrections, datasets, exports, health, pipeline, projects, runs
 
 api_router = APIRouter(dependencies=[AuthDep, PlainBodyDep], responses=COMMON_RESPONSES)
 api_router.include_router(health.router)
@@ -21,6 +21,7 @@ api_router.include_router(classes.router)
 api_router.include_router(classes.ids_router)
 api_router.include_router(runs.router)
 api_router.include_router(exports.router)
+api_router.include_router(corrections.router)
 
 if importlib.util.find_spec("app.api.routes.viewer") is not None:
     # The 3D review viewer is an optional module of its own (app/viewer, app/api/routes/viewer.py).

@@ -86,11 +86,25 @@ def _v2_run_note(db: sqlite_utils.Database) -> None:
     db.execute("ALTER TABLE runs ADD COLUMN note TEXT")
 
 
+def _v3_correction_scope(db: sqlite_utils.Database) -> None:
+    # Existing rows are map-scope corrections made before authors were recorded (author stays NULL).
+    _execute_script(
+        db,
+        """
+        ALTER TABLE corrections ADD COLUMN scope TEXT NOT NULL DEFAULT 'map' CHECK (scope IN ('map', 'scan'));
+        ALTER TABLE corrections ADD COLUMN frame_id TEXT;
+        ALTER TABLE corrections ADD COLUMN points BLOB;
+        ALTER TABLE corrections ADD COLUMN author TEXT
+        """,
+    )
+
+
 Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
 
 MIGRATIONS: list[Migration] = [
     (1, "projects, runs, corrections, meta", _v1_initial),
     (2, "runs.note", _v2_run_note),
+    (3, "corrections.scope, frame_id, points, author", _v3_correction_scope),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

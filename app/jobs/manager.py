@@ -52,11 +52,13 @@ from app.jobs.messages import (
 from app.jobs.notify import ChangeNotifier
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
+from leap_core.corrections import ERASE, ScanCorrections
 from leap_core.errors import LeapError
 from leap_core.fusion import last_per_key
 from leap_core.io_utils import atomic_write_json, remove_tree
 from leap_core.pipeline import STAGES, read_metrics_json, stage_status
-from leap_core.run_layout import RunLayout, save_corrections
+from leap_core.pipeline.apply import RunCorrections
+from leap_core.run_layout import RunLayout
 
 log = logging.getLogger("leap.jobs")
 
@@ -134,6 +136,13 @@ class JobManager:
         self._store_error: str | None = None
         """Why the last refused write failed (for /health)."""
         self._started = False
+        self._done_hooks: list[Callable[[int], None]] = []
+
+    def on_run_done(self, hook: Callable[[int], None]) -> None:
+        """Call ``hook(project_id)`` after each run that ends ``done`` (on the worker thread, after its row
+        is stored): the app's "apply corrections" job uses it, since corrections made while a run worked
+        are newer than the ones the run fused (:mod:`app.jobs.apply`)."""
+        self._done_hooks.append(hook)
 
     # ------------------------------------------------------------------------------------- lifecycle
     def start(self) -> list[int]:
@@ -786,7 +795,8 @@ class JobManager:
         status: str = outcome.status
         error = outcome.error
         with open_db(self.settings.database) as db:
-            run_dir = Path(crud.require_run(db, run_id)["run_dir"])
+            row = crud.require_run(db, run_id)
+        run_dir, project_id = Path(row["run_dir"]), int(row["project_id"])
         skipped = pipeline_skipped_stages(run_dir)
         with self._lock:
             live = self._live[run_id]
@@ -825,6 +835,12 @@ class JobManager:
             live.tracker.mark_skipped(skipped)
             self._retire(run_id)
         log.info("%s %s%s", live.label, status, f": {error}" if error else "")
+        if status == "done":
+            for hook in self._done_hooks:
+                try:
+                    hook(project_id)
+                except Exception:  # a hook's failure must not fail the run that already ended
+                    log.exception("after run %d: a run-done hook failed", run_id)
 
     # ------------------------------------------------------------------------------ synchronous use
     def run_now(self, run_id: int, on_progress: Callable[[str, int, int], None] | None = None) -> str:
@@ -938,36 +954,61 @@ def seed_source(db: Any, project_id: int, params: dict[str, Any]) -> dict[str, A
 
 
 def write_run_corrections(db: Any, project_id: int, params: dict[str, Any], run_dir: Path) -> None:
-    """Write the project's active corrections, as a run with ``params`` applies them, into ``run_dir``."""
-    keys, classes = corrections_for_run(
-        crud.list_corrections(db, project_id, active_only=True), params["schema"], params["pipeline"]
+    """Write the project's active corrections, as a run with ``params`` applies them, into ``run_dir``
+    (``corrections.npz`` map scope, ``corrections_scan.npz`` scan scope)."""
+    lay = RunLayout(run_dir)
+    run_corrections(crud.list_corrections(db, project_id, active_only=True), params).write(
+        lay.corrections, lay.corrections_scan
     )
-    save_corrections(RunLayout(run_dir).corrections, keys, classes)
+
+
+def run_corrections(corrections: Sequence[crud.Correction], params: dict[str, Any]) -> RunCorrections:
+    """The active corrections of a project as a run with ``params`` (its ``schema`` and ``pipeline``)
+    applies them: map scope flattened by :func:`corrections_for_run`, scan scope by
+    :meth:`ScanCorrections.merge` (later corrections win on the same voxel / point)."""
+    keys, classes = corrections_for_run(corrections, params["schema"], params["pipeline"])
+    names = [c["name"] for c in params["schema"]["classes"]]
+    scan = ScanCorrections.merge(
+        (c.frame_id, c.points, index)
+        for c in corrections
+        if c.scope == "scan" and c.frame_id and c.points is not None
+        and (index := _class_index(c.class_name, names)) != -2
+    )
+    return RunCorrections(keys, classes, scan)
+
+
+def _class_index(name: str, names: list[str]) -> int:
+    """A correction's class index in a run's schema: -1 (erase) for ``""``, -2 when the class is gone."""
+    if name == "":
+        return ERASE
+    return names.index(name) if name in names else -2
 
 
 def corrections_for_run(
     corrections: Sequence[crud.Correction], schema: dict[str, Any], pipeline: dict[str, Any]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Flatten a project's active corrections into the arrays the pipeline applies.
+    """Flatten a project's active map-scope corrections into the arrays the pipeline applies.
 
-    Later corrections override earlier ones on the same voxel. Corrections whose class is no longer in
-    the schema, or whose voxel size differs from the run's, are dropped.
+    Later corrections override earlier ones on the same voxel; an erase (class ``""``) becomes class -1.
+    Corrections whose class is no longer in the schema, or whose voxel size differs from the run's, are
+    dropped.
 
     Returns:
         ``keys (K,) int64`` sorted unique voxel keys and ``class_idx (K,) int16`` class indices of the
-        run's schema.
+        run's schema (-1 = erase).
     """
     names = [c["name"] for c in schema["classes"]]
     voxel_size = pipeline_voxel_size(pipeline)
     key_parts: list[np.ndarray] = []
     cls_parts: list[np.ndarray] = []
     for c in corrections:
-        if c.class_name not in names:
+        index = _class_index(c.class_name, names)
+        if c.scope != "map" or index == -2:
             continue
         if voxel_size is not None and not np.isclose(c.voxel_size, voxel_size, rtol=0, atol=1e-9):
             continue
         key_parts.append(c.keys)
-        cls_parts.append(np.full(c.keys.shape[0], names.index(c.class_name), dtype=np.int16))
+        cls_parts.append(np.full(c.keys.shape[0], index, dtype=np.int16))
     if not key_parts:
         return np.zeros(0, np.int64), np.zeros(0, np.int16)
     keys, classes = last_per_key(np.concatenate(key_parts), np.concatenate(cls_parts))

@@ -20,6 +20,7 @@ from app import crud, services
 from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
+from app.jobs.apply import applier
 from app.jobs.manager import JobManager, current_manager
 from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
@@ -60,6 +61,8 @@ class AppBackend:
         self._jobs = jobs
         with open_db(settings.database) as db:
             crud.require_project(db, project_id)
+        # Corrections made in this viewer reach the export at once: load what that needs now.
+        applier(settings).warm(project_id)
 
     def _jobs_manager(self) -> JobManager | None:
         """The given job manager, else the running server's, else None (no server: read the DB only)."""
@@ -137,12 +140,10 @@ class AppBackend:
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:
             rows = crud.list_corrections(db, self.project_id, active_only=False)
-        # scope / frame_id / points arrive with DB migration 3; rows stored before it are map corrections.
         return [
             CorrectionRecord(
                 c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at,
-                scope=getattr(c, "scope", "map"), frame_id=getattr(c, "frame_id", None),
-                points=getattr(c, "points", None),
+                scope=c.scope, frame_id=c.frame_id, points=c.points,
             )
             for c in rows
         ]
@@ -157,17 +158,22 @@ class AppBackend:
         frame_id: str | None = None,
         points: npt.NDArray[np.int64] | None = None,
     ) -> int:
-        if scope != "map" or frame_id is not None or points is not None:
-            # The corrections table gets its scope / frame_id / points columns in DB migration 3.
-            raise ValueError("scan-scope corrections are not stored by this version of the database yet")
+        """Store a correction made in the viewer (author "viewer") and apply it to the latest run's export
+        in the background (:mod:`app.jobs.apply`)."""
         with open_db(self.settings.database) as db:
-            return crud.add_correction(
-                db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys
+            cid = crud.add_correction(
+                db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys,
+                scope=scope, frame_id=frame_id, points=points, author="viewer",
             )
+        applier(self.settings).request(self.project_id)
+        return cid
 
     def set_correction_active(self, correction_id: int, active: bool) -> None:
         with open_db(self.settings.database) as db:
+            if crud.get_correction(db, correction_id).project_id != self.project_id:
+                raise NotFound(f"Correction {correction_id} not found in project {self.project_id}")
             crud.set_correction_active(db, correction_id, active)
+        applier(self.settings).request(self.project_id)
 
 
 @dataclass(frozen=True)

@@ -95,7 +95,7 @@ class CorrectionRecord:
     id: int
     """Row id."""
     class_name: str
-    """Assigned class."""
+    """Assigned class (``""`` = erase to unlabeled)."""
     voxel_size: float
     """Voxel edge of ``keys``."""
     keys: npt.NDArray[np.int64]

@@ -65,7 +65,7 @@ def training_fingerprint(
     return h.hexdigest()
 
 
-def reliable_targets(  # noqa: PLR0917  the selection's inputs, each named in the docstring
+def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each named in the docstring
     seq: KittiSequence,
     smoothed: VoxelGrid,
     num_classes: int,
@@ -74,6 +74,7 @@ def reliable_targets(  # noqa: PLR0917  the selection's inputs, each named in th
     frames: range,
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None,
     progress: Callable[[], None] | None = None,
+    erased: npt.NDArray[np.int64] | None = None,
 ) -> list[npt.NDArray[np.int16]]:
     """Step 1 of :func:`run_3dcn_iteration`: per scan, the (N_s,) int16 training label of each point, its
     voxel's argmax class in ``smoothed`` where selected, ``UNLABELED`` elsewhere.
@@ -81,7 +82,8 @@ def reliable_targets(  # noqa: PLR0917  the selection's inputs, each named in th
     Points take label and confidence of their voxel (``voxel_keys(world_points(points, pose))``); per class
     the ``cfg.share`` most confident become labels (:func:`select_reliable_scans`, scope
     ``cfg.selection_scope``, ties by ``views`` counts, then by ``cfg.seed``'s random order). ``progress()``
-    is called once per scan.
+    is called once per scan. Points in ``erased`` voxels (map-scope erase corrections) are never labels,
+    whatever class the fused evidence gives the voxel.
     """
     voxel_labels = smoothed.voxel_labels()
     labels: list[np.ndarray] = []
@@ -91,6 +93,8 @@ def reliable_targets(  # noqa: PLR0917  the selection's inputs, each named in th
         frame = seq.frame(i)
         keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
         lab, conf = voxel_labels.at(keys)
+        if erased is not None and erased.size:
+            lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
         labels.append(lab)
         confs.append(conf)
         if views is not None:
@@ -124,6 +128,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
     progress: Callable[[int, int], None] | None = None,
     frames: range | None = None,
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None,
+    erased: npt.NDArray[np.int64] | None = None,
 ) -> VoxelGrid:
     """Self-train the 3D Consistency Network once and fuse its predictions into ``fused``.
 
@@ -156,6 +161,8 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         views: sorted voxel keys and the number of frames that observed each
             (:func:`~leap_core.consistency.selection.view_counts`), the tie-break of the selection; None
             leaves ties to the seeded random order.
+        erased: voxel keys the user erased to unlabeled (map-scope erase corrections): their points are
+            never training labels, whatever class the fused evidence gives the voxel.
 
     Returns:
         A new grid: ``fused`` plus the tempered network evidence.
@@ -189,7 +196,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
 
     # 1. reliable labels
     targets = reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames, views,
-                               progress=tick)
+                               progress=tick, erased=erased)
     counts = np.zeros(num_classes, np.int64)
     for t in targets:
         counts += np.bincount(t[t >= 0], minlength=num_classes)

@@ -32,6 +32,7 @@ from leap_core.fusion import (
 from leap_core.io_utils import atomic_save_npz, atomic_write
 from leap_core.labelers import LABELERS
 from leap_core.labelers.base import SoftMasks
+from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
     Ctx,
     FrameFiles,
@@ -177,10 +178,13 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
     grid = fuse(batches(), c, fcfg)
     n_corr = 0
     if ctx.layout.corrections.is_file():
-        keys, cls = load_corrections(ctx.layout.corrections, c)
+        # Deduplicated first so an erase (-1) cancels an earlier class on its voxel; erased voxels get no
+        # override here (label_points makes their points unlabeled).
+        keys, cls = last_per_key(*load_corrections(ctx.layout.corrections, c))
         n_corr = len(keys)
-        if n_corr:
-            grid = apply_overrides(grid, keys, cls, ctx.cfg.correction_strength, fcfg)
+        keep = cls >= 0
+        if keep.any():
+            grid = apply_overrides(grid, keys[keep], cls[keep], ctx.cfg.correction_strength, fcfg)
     grid.save(ctx.layout.grid)
     ctx.tick("fuse", total, total)
     return {"voxels": grid.num_voxels, "corrections": n_corr}
@@ -204,7 +208,7 @@ def _smooth_and_save(grid: VoxelGrid, ctx: Ctx, path: Path) -> None:
     if ctx.layout.corrections.is_file():
         keys, cls = last_per_key(*load_corrections(ctx.layout.corrections, grid.num_classes))
         rows = grid.lookup(keys)
-        hit = rows >= 0
+        hit = (rows >= 0) & (cls >= 0)  # an erase (-1) has no class to impose
         probs[rows[hit]] = 0.0
         probs[rows[hit], cls[hit]] = 1.0
     SmoothedGrid(grid.keys, probs.astype(np.float16), grid.voxel_size).save(path)
@@ -236,6 +240,9 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
     fused = VoxelGrid.load(lay.grid)
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
     smoothed = SmoothedGrid.load(lay.grid_smooth).to_voxel_grid(clip)
+    # Erased voxels keep their fused evidence (fuse imposes no class on them), so without this their
+    # points would train the network on the very labels the user removed.
+    erased = RunCorrections.of_run(lay, ctx.schema.num_classes).erased_keys()
     total = cn.iterations * _3DCN_GRID_SCALE
     for it in range(1, cn.iterations + 1):
         grid_path, smooth_path = lay.grid_3dcn(it), lay.grid_smooth_3dcn(it)
@@ -250,7 +257,8 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
             if cn.rank_by_views and views is None:
                 views = view_counts(obs_keys for _, obs_keys in observed_keys(ctx))
             fused = run_3dcn_iteration(ctx.seq, fused, smoothed, ctx.schema.num_classes, cn, ctx.cfg.fusion,
-                                       lay.cn_dir, it, progress=prog, frames=ctx.frames, views=views)
+                                       lay.cn_dir, it, progress=prog, frames=ctx.frames, views=views,
+                                       erased=erased)
             fused.save(grid_path)
             _smooth_and_save(fused, ctx, smooth_path)
         smoothed = SmoothedGrid.load(smooth_path).to_voxel_grid(clip)
@@ -267,22 +275,33 @@ def stage_label_points(ctx: Ctx) -> dict[str, Any]:
     """Per frame: every point takes its voxel's label in the final grid → ``points/<frame_id>.npz``.
 
     ``label`` (N,) int16 and ``conf`` (N,) float16 from the final smoothed grid (UNLABELED / 0 for points
-    in never-observed voxels); ``point_label`` (N,) int16 from projection alone (the paper's "point").
+    in never-observed voxels), then the manual corrections (map scope incl. erase, then this scan's scan
+    scope: :func:`leap_core.pipeline.apply.point_labels`); ``point_label`` (N,) int16 from projection alone
+    (the paper's "point").
     """
     final = SmoothedGrid.load(ctx.layout.final_grid(ctx.cfg.consistency))
     vs = ctx.cfg.fusion.voxel_size
+    corr = RunCorrections.of_run(ctx.layout, ctx.schema.num_classes)
 
     def work(i: int) -> None:
         frame = ctx.seq.frame(i)
-        pts = frame.points
-        lab, conf = final.labels_at(voxel_keys(world_points(pts, frame.pose), vs))
+        keys = frame_keys(frame, vs)
         painted, n, _ = load_observation(ctx.layout.observation(ctx.fid(i)))
-        if n != pts.shape[0]:
-            raise DatasetError(ctx.seq.scan_path(i), f"{pts.shape[0]} points but its observation has {n}")
+        if n != keys.shape[0]:
+            raise DatasetError(ctx.seq.scan_path(i), f"{keys.shape[0]} points but its observation has {n}")
+        check_scan_points(ctx.layout.corrections_scan, ctx.fid(i), corr, n)
+        lab, conf = point_labels(final, keys, ctx.fid(i), corr)
         atomic_save_npz(ctx.layout.points(ctx.fid(i)), label=lab, conf=conf.astype(np.float16),
                         point_label=painted.point_labels(n))
 
     return ctx.each_frame("label_points", work)
+
+
+def _label_points_inputs(ctx: Ctx) -> dict[str, Any]:
+    # Map-scope corrections reach this stage through fuse's fingerprint; scan-scope ones only here, so a
+    # changed scan correction reruns label_points, evaluate and export but not the fusion.
+    scan = ctx.layout.corrections_scan
+    return {"scan_corrections": file_digest(scan) if scan.is_file() else None}
 
 
 # -------------------------------------------------------------------------------------------- export
@@ -329,7 +348,8 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
     ),
     StageInfo(
         "label_points", "Point labels", "label and confidence of every point from the final grid", True,
-        stage_label_points, upstream=("project", "smooth", "3dcn"), frame_files=FrameFiles(RunLayout.POINTS),
+        stage_label_points, upstream=("project", "smooth", "3dcn"), inputs=_label_points_inputs,
+        frame_files=FrameFiles(RunLayout.POINTS),
     ),
     StageInfo(
         "evaluate", "Evaluation", "point / voxel / 3D-CN metrics against ground truth", False, stage_evaluate,

@@ -84,6 +84,7 @@ def artifacts() -> Path:
     return path
 
 
+# ------------------------------------------------------------------------- the live app (viewer tests)
 DEMO_FRAMES = 14
 """Frames of the generated demo sequence (enough for a readable street, small enough for software WebGL)."""
 
@@ -158,3 +159,20 @@ def panel_input(page: Any, label: str) -> Any:
 def pick(page: Any, dropdown: str, option: str) -> None:
     page.get_by_role("combobox", name=dropdown).click()
     page.get_by_role("option", name=option, exact=True).click()
+
+
+def open_viewer(browser: Any, url: str, project_name: str, session: Any) -> Any:
+    """A new page on the project's 3D viewer, connected, its dialog dismissed, the scene drawn."""
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    echo_console(page)
+    page.goto(url)
+    # The status badge reads "Connected" only until the server's panel label arrives (viser shows a
+    # set label in its place): waiting for "Connected" raced with the scene replay and timed out under
+    # load. The label comes only over an open websocket, so it proves the connection instead.
+    page.get_by_text(f"LeAP review: {project_name}", exact=True).wait_for(timeout=60_000)
+    page.get_by_text("Color by", exact=True).wait_for(timeout=30_000)
+    alert = page.get_by_role("alert")
+    if alert.count():
+        alert.get_by_role("button").first.click()
+    assert session.wait_drawn(30)
+    return page

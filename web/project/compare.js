@@ -34,6 +34,14 @@ function headline(state, run, m) {
   );
 }
 
+/** Runs whose export the "apply corrections" job changed after their evaluation: their figures predate it. */
+function staleNote(runs, all) {
+  const stale = runs.filter((_, i) => all[i].before_corrections).map((r) => `#${r.number}`);
+  if (!stale.length) return null;
+  return h("p", { class: "muted small", id: "metrics-before-corrections" },
+    `Run ${stale.join(", ")}: these figures were measured before the corrections since applied to its export; a re-run measures them with the corrections.`);
+}
+
 function classTable(state, runs, all, comparison) {
   const latest = all[all.length - 1];
   const names = latest.class_names;
@@ -164,6 +172,7 @@ export async function renderCompare(ctx) {
     el,
     h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
     headline(state, latest, all[all.length - 1].metrics),
+    staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
     h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),
     h("div", { class: "table-wrap" }, classTable(state, runs, all, comparison)),

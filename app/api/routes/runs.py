@@ -22,6 +22,9 @@ from app.core.errors import NotFound
 from app.jobs.manager import JobManager
 from app.jobs.progress import TERMINAL_STATUSES
 from app.jobs.worker import LOG_NAME
+from leap_core.errors import LeapError
+from leap_core.pipeline.apply import export_ahead_of_metrics
+from leap_core.run_layout import RunLayout
 
 router = APIRouter(tags=["runs"], responses={**NOT_FOUND, **CONFLICT})
 
@@ -174,7 +177,11 @@ def read_metrics(run_id: RunId, db: DbDep) -> models.MetricsPublic:
             f"Run {run_id} has no metrics (it is not finished, or its dataset has no ground truth)"
         )
     names = [c["name"] for c in run["params"]["schema"]["classes"]]
-    return models.MetricsPublic(run_id=run_id, class_names=names, metrics=table)
+    try:
+        stale = export_ahead_of_metrics(RunLayout(Path(run["run_dir"])), len(names))
+    except LeapError:
+        stale = True  # unreadable applied-corrections files: do not claim the figures are current
+    return models.MetricsPublic(run_id=run_id, class_names=names, metrics=table, before_corrections=stale)
 
 
 @router.get("/runs/{run_id}/logs", response_model=models.LogPublic)

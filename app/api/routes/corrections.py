@@ -1,0 +1,104 @@
+"""A project's manual corrections for the web UI: list (with counts per class and the state of the "apply
+corrections" job), add through the API, and the active toggle (undo / redo). Adding or toggling starts the
+job (:mod:`app.jobs.apply`), which brings the latest finished run's export up to date without a run."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path as FilePath
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, status
+
+from app import crud, models
+from app.api.deps import DbDep, ReadDbDep, SettingsDep
+from app.api.responses import NOT_FOUND
+from app.api.types import MAX_INT, ProjectId
+from app.core.errors import InvalidField, NotFound
+from app.jobs.apply import applier
+
+router = APIRouter(tags=["corrections"], responses={**NOT_FOUND})
+
+CorrectionId = Annotated[int, Path(ge=1, le=MAX_INT, description="correction id")]
+
+
+def _public(c: crud.Correction) -> models.CorrectionPublic:
+    return models.CorrectionPublic(
+        id=c.id,
+        created_at=c.created_at,
+        class_name=c.class_name,
+        scope="scan" if c.scope == "scan" else "map",
+        frame_id=c.frame_id,
+        voxels=int(c.keys.size),
+        points=None if c.points is None else int(c.points.size),
+        author=c.author,
+        active=c.active,
+    )
+
+
+def _check_scan(project: dict[str, Any], frame_id: str, points: list[int]) -> None:
+    """A scan-scope correction must name a scan of the project's dataset and points inside it: stored
+    otherwise, it would fail every later run (label_points checks the indices against the scan)."""
+    scan = FilePath(project["dataset_path"]) / "velodyne" / f"{frame_id}.bin"
+    if not scan.is_file():
+        raise InvalidField(("frame_id",), f"scan {frame_id!r} is not in the project's dataset")
+    n = scan.stat().st_size // 16  # float32 x, y, z, remission per point
+    if points and max(points) >= n:
+        raise InvalidField(("points",), f"point index {max(points)} is past scan {frame_id} ({n} points)")
+
+
+@router.get("/projects/{project_id}/corrections", response_model=models.CorrectionList)
+def list_corrections(project_id: ProjectId, db: ReadDbDep, settings: SettingsDep) -> models.CorrectionList:
+    """Every correction of the project (newest first), active counts per class, and the apply job."""
+    crud.require_project(db, project_id)
+    rows = crud.list_corrections(db, project_id, active_only=False)
+    counts: Counter[str] = Counter()
+    voxels: Counter[str] = Counter()
+    for c in rows:
+        if c.active:
+            counts[c.class_name] += 1
+            voxels[c.class_name] += int(c.keys.size)
+    return models.CorrectionList(
+        corrections=[_public(c) for c in reversed(rows)],
+        per_class=[
+            models.CorrectionClassCount(class_name=name, corrections=n, voxels=voxels[name])
+            for name, n in sorted(counts.items())
+        ],
+        apply=models.CorrectionApply(**applier(settings).state(project_id).to_dict()),
+    )
+
+
+@router.post(
+    "/projects/{project_id}/corrections",
+    response_model=models.CorrectionPublic,
+    status_code=status.HTTP_201_CREATED,
+)
+def add_correction(
+    project_id: ProjectId, payload: models.CorrectionCreate, db: DbDep, settings: SettingsDep
+) -> models.CorrectionPublic:
+    """Store a correction (author "api") and apply it to the latest run's export in the background."""
+    if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
+        _check_scan(crud.require_project(db, project_id), payload.frame_id, payload.points)
+    cid = crud.add_correction(
+        db, project_id=project_id, class_name=payload.class_name, voxel_size=payload.voxel_size,
+        keys=payload.keys, scope=payload.scope, frame_id=payload.frame_id, points=payload.points,
+        author="api",
+    )
+    applier(settings).request(project_id)
+    return _public(crud.get_correction(db, cid))
+
+
+@router.patch("/projects/{project_id}/corrections/{correction_id}", response_model=models.CorrectionPublic)
+def update_correction(
+    project_id: ProjectId,
+    correction_id: CorrectionId,
+    payload: models.CorrectionUpdate,
+    db: DbDep,
+    settings: SettingsDep,
+) -> models.CorrectionPublic:
+    """Turn a correction off (undo) or on again; the export follows in the background."""
+    if crud.get_correction(db, correction_id).project_id != project_id:
+        raise NotFound(f"Correction {correction_id} not found in project {project_id}")
+    crud.set_correction_active(db, correction_id, payload.active)
+    applier(settings).request(project_id)
+    return _public(crud.get_correction(db, correction_id))

@@ -1,0 +1,219 @@
+"""The light "apply corrections" job: a correction added or toggled reaches the latest finished run's point
+labels and ``.label`` / ``.conf`` export at once, without starting a run.
+
+One background thread per project at most; requests made while it works coalesce into one more pass (the
+job always applies the project's corrections as they are when it reads them, so nothing is lost). The work
+itself is :func:`leap_core.pipeline.apply.apply_to_run`: only the frames whose points a changed correction
+touches are rewritten, atomically per file; the run's cached export zips and counts are then dropped
+(:func:`app.exports.invalidate`). The run's final grid and its voxel → frames index are kept in memory for
+the project's latest run (the index is also saved in the run folder, ``frame_voxels.npz``), so after the
+first pass a job costs about the rewritten frames only. :meth:`CorrectionApplier.warm` loads them ahead
+(the viewer calls it when it opens a project).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from app import crud, exports
+from app.core.config import Settings
+from app.core.db import open_db, utcnow
+from app.core.errors import AppError
+from app.jobs.manager import run_corrections
+from app.services import pipeline_config
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.errors import LeapError
+from leap_core.pipeline.apply import RunCache, RunCorrections, apply_to_run, load_run_cache
+from leap_core.run_layout import RunLayout
+from leap_core.schema import Schema
+
+log = logging.getLogger("leap.corrections")
+
+
+@dataclass(frozen=True)
+class ApplyState:
+    """Where a project's "apply corrections" job stands (served to the web UI)."""
+
+    status: str = "idle"
+    """``idle`` (nothing asked since the server started), ``running``, ``done``, ``failed`` or ``no_run``
+    (the project has no finished run to apply to)."""
+    run_id: int | None = None
+    """The run the last pass applied to."""
+    run_number: int | None = None
+    """Its number within the project."""
+    frames: int = 0
+    """Scans the last pass rewrote."""
+    changed_voxels: int = 0
+    """Map-scope voxels whose correction changed in the last pass."""
+    baked_reverts: int = 0
+    """Undone voxels the run had already fused: they keep their class until the next run."""
+    seconds: float = 0.0
+    """Wall time of the last pass (request to written files)."""
+    error: str | None = None
+    """Why the last pass failed."""
+    finished_at: str | None = None
+    """ISO UTC time the last pass ended."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class CorrectionApplier:
+    """The "apply corrections" jobs of one database (one per app process: :func:`applier`)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._lock = threading.Lock()
+        self._states: dict[int, ApplyState] = {}
+        self._wanted: dict[int, float] = {}
+        """project → time.perf_counter() of the oldest request not yet taken by a pass."""
+        self._threads: dict[int, threading.Thread] = {}
+        self._caches: dict[int, tuple[Path, RunCache]] = {}
+        self._idle = threading.Condition(self._lock)
+
+    # ---------------------------------------------------------------------------------------- requests
+    def request(self, project_id: int) -> None:
+        """Ask for a pass (returns at once; the work runs on the project's background thread)."""
+        with self._lock:
+            self._wanted.setdefault(project_id, time.perf_counter())
+            if project_id in self._threads:
+                return
+            thread = threading.Thread(
+                target=self._loop, args=(project_id,), name=f"leap-apply-p{project_id}", daemon=True
+            )
+            self._threads[project_id] = thread
+        thread.start()
+
+    def warm(self, project_id: int) -> None:
+        """Load the latest run's grid and voxel → frames index in the background (no files change)."""
+        threading.Thread(target=self._warm, args=(project_id,), name=f"leap-apply-warm-p{project_id}",
+                         daemon=True).start()
+
+    def state(self, project_id: int) -> ApplyState:
+        with self._lock:
+            state = self._states.get(project_id, ApplyState())
+            busy = project_id in self._threads
+        return replace(state, status="running") if busy else state
+
+    def wait(self, project_id: int, timeout: float = 30.0) -> ApplyState:
+        """Block until no pass is queued or running for the project (tests, benchmarks)."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            while project_id in self._threads:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"apply-corrections job of project {project_id} still running")
+                self._idle.wait(left)
+        return self.state(project_id)
+
+    # ------------------------------------------------------------------------------------------- work
+    def _loop(self, project_id: int) -> None:
+        try:
+            while True:
+                with self._lock:
+                    asked = self._wanted.pop(project_id, None)
+                    if asked is None:
+                        return
+                try:
+                    state = self._pass(project_id, asked)
+                except (LeapError, AppError, OSError, ValueError, KeyError) as exc:
+                    log.warning("applying corrections of project %d failed: %s", project_id, exc)
+                    state = ApplyState(status="failed", error=str(exc), finished_at=utcnow())
+                except Exception as exc:  # the thread must end cleanly and say why
+                    log.exception("applying corrections of project %d failed", project_id)
+                    state = ApplyState(status="failed", error=f"internal error: {exc}", finished_at=utcnow())
+                with self._lock:
+                    self._states[project_id] = state
+        finally:
+            with self._lock:
+                self._threads.pop(project_id, None)
+                self._idle.notify_all()
+
+    def _latest(self, project_id: int) -> tuple[dict[str, Any] | None, list[crud.Correction]]:
+        with open_db(self.settings.database) as db:
+            run = crud.last_finished_run(db, project_id)
+            corrections = crud.list_corrections(db, project_id, active_only=True)
+        return run, corrections
+
+    def _cache(self, project_id: int, run: dict[str, Any]) -> RunCache:
+        lay = RunLayout(Path(run["run_dir"]))
+        with self._lock:
+            held = self._caches.get(project_id)
+        if held is not None and held[0] == lay.run_dir:
+            return held[1]
+        params = run["params"]
+        seq = KittiSequence(Path(params["dataset"]))
+        cache = load_run_cache(lay, seq, _frames(params, seq), _voxel_size(params))
+        with self._lock:
+            self._caches[project_id] = (lay.run_dir, cache)
+        return cache
+
+    def _warm(self, project_id: int) -> None:
+        try:
+            run, _ = self._latest(project_id)
+            if run is not None and RunLayout(Path(run["run_dir"])).export_dir.is_dir():
+                self._cache(project_id, run)
+        except (LeapError, AppError, OSError, ValueError, KeyError) as exc:
+            log.info("could not prepare corrections of project %d: %s", project_id, exc)
+
+    def _pass(self, project_id: int, asked: float) -> ApplyState:
+        run, corrections = self._latest(project_id)
+        if run is None or not RunLayout(Path(run["run_dir"])).export_dir.is_dir():
+            return ApplyState(status="no_run", finished_at=utcnow())
+        params = run["params"]
+        lay = RunLayout(Path(run["run_dir"]))
+        seq = KittiSequence(Path(params["dataset"]))
+        schema = Schema.from_dict(params["schema"], source=f"run {run['id']} schema")
+        new = run_corrections(corrections, params)
+        if not new.differs(RunCorrections.applied(lay, schema.num_classes)):
+            # The usual case after a run ends (the hook of app.main): nothing to load or rewrite.
+            return ApplyState(status="done", run_id=int(run["id"]), run_number=int(run["number"]),
+                              seconds=round(time.perf_counter() - asked, 4), finished_at=utcnow())
+        cache = self._cache(project_id, run)
+        result = apply_to_run(lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(),
+                              new=new, cache=cache)
+        if result.frames:
+            exports.invalidate(lay.run_dir)
+        seconds = time.perf_counter() - asked
+        log.info("corrections applied to run %s: %d scans in %.2f s", run["number"], len(result.frames),
+                 seconds)
+        return ApplyState(
+            status="done",
+            run_id=int(run["id"]),
+            run_number=int(run["number"]),
+            frames=len(result.frames),
+            changed_voxels=result.changed_voxels,
+            baked_reverts=result.baked_reverts,
+            seconds=round(seconds, 4),
+            finished_at=utcnow(),
+        )
+
+
+def _frames(params: dict[str, Any], seq: KittiSequence) -> range:
+    frames = params.get("frames")
+    return range(len(seq)) if frames is None else range(int(frames[0]), int(frames[1]))
+
+
+def _voxel_size(params: dict[str, Any]) -> float:
+    return pipeline_config(params["pipeline"], loc=("run", "params", "pipeline")).fusion.voxel_size
+
+
+_appliers: dict[Path, CorrectionApplier] = {}
+_appliers_lock = threading.Lock()
+
+
+def applier(settings: Settings) -> CorrectionApplier:
+    """The process's applier for ``settings.database`` (created on first use)."""
+    with _appliers_lock:
+        found = _appliers.get(settings.database)
+        if found is None:
+            found = _appliers[settings.database] = CorrectionApplier(settings)
+        return found
+
+
+__all__ = ["ApplyState", "CorrectionApplier", "applier"]

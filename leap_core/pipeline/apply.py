@@ -1,0 +1,266 @@
+"""Manual corrections on a run's points and export: the per-frame rule the ``label_points`` stage uses, and
+the immediate "apply corrections" update of a finished run (no stage reruns).
+
+**Immediate apply** (:func:`apply_to_run`): a finished run's ``points/<frame>.npz`` and
+``export/<frame>.label|.conf`` are rewritten for exactly the frames whose points a changed correction
+touches, each frame's labels recomputed from the run's final grid with the new corrections on top
+(:func:`leap_core.corrections.correct_points`). "Changed" is the difference between the corrections the
+run's files carry now (``applied_corrections*.npz``, else the run's own ``corrections*.npz``) and the new
+ones: map-scope voxels whose class differs (:func:`~leap_core.corrections.changed_keys`) → frames through
+the run's voxel → frames index (``frame_voxels.npz``, :class:`~leap_core.corrections.FrameVoxelIndex`, built
+once per run from the scans: every frame's point voxel keys), plus the frames whose scan-scope corrections
+differ. The stage records (``stages.json``) are left as the stages wrote them, so the next run's
+fingerprints still see the corrections as new and fuse them (a correction is then evidence for the 3D-CN
+and smoothing too); the applied files are only the run's own overlay.
+
+Limit: a correction the run itself already fused is one-hot in its final grid; undoing it here recomputes
+those points from that grid, i.e. they keep the corrected class until the next run
+(:attr:`ApplyResult.baked_reverts` counts such voxels).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.corrections import ERASE, FrameVoxelIndex, ScanCorrections, changed_keys, correct_points
+from leap_core.datasets.kitti import Frame, KittiSequence
+from leap_core.errors import DatasetError
+from leap_core.export import export_labels
+from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys, world_points
+from leap_core.io_utils import atomic_save_npz
+from leap_core.run_layout import RunLayout, load_corrections, save_corrections
+from leap_core.smoothing import SmoothedGrid
+
+
+@dataclass(frozen=True)
+class RunCorrections:
+    """The corrections a run applies: map scope (sorted unique keys, one class each, -1 = erase) and scan
+    scope."""
+
+    map_keys: npt.NDArray[np.int64]
+    """(K,) sorted unique voxel keys."""
+    map_class: npt.NDArray[np.int16]
+    """(K,) class per key (-1 erases)."""
+    scan: ScanCorrections
+    """Scan-scope corrections."""
+
+    @classmethod
+    def empty(cls) -> RunCorrections:
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int16), ScanCorrections.empty())
+
+    @classmethod
+    def read(cls, map_path: Path, scan_path: Path, num_classes: int) -> RunCorrections:
+        """Read a pair of files (either may be missing: no corrections of that scope)."""
+        keys, cls_ = np.zeros(0, np.int64), np.zeros(0, np.int16)
+        if map_path.is_file():
+            k, c = last_per_key(*load_corrections(map_path, num_classes))
+            keys, cls_ = k, c.astype(np.int16)
+        scan = ScanCorrections.empty()
+        if scan_path.is_file():
+            scan = ScanCorrections.load(scan_path, num_classes)
+        return cls(keys, cls_, scan)
+
+    @classmethod
+    def of_run(cls, layout: RunLayout, num_classes: int) -> RunCorrections:
+        """The corrections the run's stages applied (``corrections.npz`` + ``corrections_scan.npz``)."""
+        return cls.read(layout.corrections, layout.corrections_scan, num_classes)
+
+    @classmethod
+    def applied(cls, layout: RunLayout, num_classes: int) -> RunCorrections:
+        """The corrections the run's points and export carry now (after any immediate apply)."""
+        if layout.applied_corrections.is_file():
+            return cls.read(layout.applied_corrections, layout.applied_corrections_scan, num_classes)
+        return cls.of_run(layout, num_classes)
+
+    def erased_keys(self) -> npt.NDArray[np.int64]:
+        """(E,) sorted voxel keys of the map-scope erase corrections."""
+        erased: npt.NDArray[np.int64] = self.map_keys[self.map_class == ERASE]
+        return erased
+
+    def differs(self, other: RunCorrections) -> bool:
+        """Whether any point would get another label under ``other`` (a voxel or a scan's points differ)."""
+        return bool(changed_keys(self.map_keys, self.map_class, other.map_keys, other.map_class).size
+                    or self.scan.changed_frames(other.scan))
+
+    def write(self, map_path: Path, scan_path: Path) -> None:
+        save_corrections(map_path, self.map_keys, self.map_class)
+        self.scan.save(scan_path)
+
+
+def export_ahead_of_metrics(layout: RunLayout, num_classes: int) -> bool:
+    """Whether the run's points and export carry corrections its ``metrics.json`` does not (the app's
+    apply job changed labels after the run's evaluation: the metrics describe the labels before them)."""
+    if not layout.applied_corrections.is_file():
+        return False
+    return RunCorrections.of_run(layout, num_classes).differs(RunCorrections.applied(layout, num_classes))
+
+
+def frame_keys(frame: Frame, voxel_size: float) -> npt.NDArray[np.int64]:
+    """(N,) world voxel key of every point of a frame."""
+    return voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+
+
+def point_labels(
+    final: SmoothedGrid,
+    point_keys: npt.NDArray[np.int64],
+    frame_id: str,
+    corr: RunCorrections,
+    subset: npt.NDArray[np.int64] | None = None,
+) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
+    """One scan's ``(label (N,) int16, conf (N,) float32)``: its voxels' labels in the final grid, then the
+    corrections (map scope, then this scan's scan scope).
+
+    ``subset`` (S,) sorted point indices: label only those points (arrays of length S), each exactly as the
+    whole scan would label it. Example: scan correction on points [2, 7], subset [1, 7] → position 1 of
+    the result carries point 7's scan correction.
+    """
+    keys = point_keys if subset is None else point_keys[subset]
+    lab, conf = final.labels_at(keys)
+    pts, cls = corr.scan.of(frame_id)
+    if subset is not None and pts.size:
+        if subset.size == 0:
+            pts, cls = pts[:0], cls[:0]
+        else:
+            pos = np.minimum(np.searchsorted(subset, pts), subset.size - 1)
+            inside = subset[pos] == pts
+            pts, cls = pos[inside].astype(np.int64), cls[inside]
+    return correct_points(lab, conf, keys, corr.map_keys, corr.map_class, scan_points=pts, scan_class=cls)
+
+
+def check_scan_points(path: Path, frame_id: str, corr: RunCorrections, n_points: int) -> None:
+    """Raise DatasetError (naming the corrections file) when a scan correction indexes past the scan."""
+    pts, _ = corr.scan.of(frame_id)
+    if pts.size and int(pts.max()) >= n_points:
+        raise DatasetError(path, f"frame {frame_id}: point index {int(pts.max())}, the scan has {n_points}")
+
+
+def build_frame_index(
+    seq: KittiSequence, frames: Iterable[int], voxel_size: float
+) -> FrameVoxelIndex:
+    """The voxel → frames index over ``frames`` (positions follow their order)."""
+    return FrameVoxelIndex.build(frame_keys(seq.frame(i), voxel_size) for i in frames)
+
+
+@dataclass
+class RunCache:
+    """What :func:`apply_to_run` reuses between calls on the same run (kept by the caller)."""
+
+    final: SmoothedGrid
+    """The run's final grid."""
+    index: FrameVoxelIndex
+    """Voxel → frame positions."""
+
+
+def load_run_cache(layout: RunLayout, seq: KittiSequence, frames: range, voxel_size: float) -> RunCache:
+    """Load the final grid and the voxel → frames index (built and saved in the run folder when missing
+    or built over other frames)."""
+    final = SmoothedGrid.load(layout.final_grid_on_disk())
+    index: FrameVoxelIndex | None = None
+    if layout.frame_voxels.is_file():
+        try:
+            index = FrameVoxelIndex.load(layout.frame_voxels)
+        except DatasetError:
+            index = None  # damaged: rebuilt below
+        if index is not None and index.num_frames != len(frames):
+            index = None
+    if index is None:
+        index = build_frame_index(seq, frames, voxel_size)
+        index.save(layout.frame_voxels)
+    return RunCache(final, index)
+
+
+@dataclass(frozen=True)
+class ApplyResult:
+    """What one :func:`apply_to_run` changed."""
+
+    frames: tuple[str, ...]
+    """Frame ids whose points and export were rewritten."""
+    changed_voxels: int
+    """Map-scope voxels whose correction changed."""
+    baked_reverts: int
+    """Undone voxels the run had already fused (they keep their class until the next run)."""
+    seconds: float
+    """Wall time."""
+
+
+def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corrections, the cache, knobs
+    layout: RunLayout,
+    seq: KittiSequence,
+    frames: range,
+    voxel_size: float,
+    export_ids: npt.NDArray[np.uint32],
+    *,
+    new: RunCorrections,
+    cache: RunCache,
+    progress: Callable[[int, int], None] | None = None,
+    threads: int = 4,
+) -> ApplyResult:
+    """Rewrite the run's points and export of the frames ``new`` changes (module docstring), atomically
+    per file, then record ``new`` as applied. ``threads`` frames are rewritten at a time (an error in one
+    is raised once the others end; the applied record is then left as it was, so the next call redoes
+    them all).
+
+    Raises:
+        DatasetError: a scan correction indexes past its scan, or a points file is unreadable.
+    """
+    t0 = time.perf_counter()
+    num_classes = len(export_ids)
+    old = RunCorrections.applied(layout, num_classes)
+    diff = changed_keys(old.map_keys, old.map_class, new.map_keys, new.map_class)
+    positions = set(cache.index.frames_of(diff).tolist()) if diff.size else set()
+    pos_of = {seq.frame_ids[i]: p for p, i in enumerate(frames)}
+    positions |= {pos_of[f] for f in new.scan.changed_frames(old.scan) if f in pos_of}
+    own = RunCorrections.of_run(layout, num_classes)
+    baked = np.setdiff1d(own.map_keys[own.map_class >= 0], new.map_keys, assume_unique=True)
+    todo = sorted(positions)
+    scan_changed = set(new.scan.changed_frames(old.scan))
+
+    def rewrite(p: int) -> None:
+        i = frames[p]
+        fid = seq.frame_ids[i]
+        frame = seq.frame(i)
+        keys = frame_keys(frame, voxel_size)
+        check_scan_points(layout.applied_corrections_scan, fid, new, keys.size)
+        path = layout.points(fid)
+        try:
+            with np.load(path) as z:
+                point_label = np.asarray(z["point_label"])
+                lab = np.array(z["label"], np.int16)
+                conf = np.asarray(z["conf"], np.float32)
+        except (OSError, KeyError, ValueError) as exc:
+            raise DatasetError(path, f"unreadable point labels ({exc})") from exc
+        if fid in scan_changed or lab.shape != keys.shape or conf.shape != keys.shape:
+            lab, conf = point_labels(cache.final, keys, fid, new)
+        else:
+            # Only points in changed voxels can change (their grid lookup is most of a scan's cost): the
+            # others keep the label the file has, which the same rule gave them.
+            sel = np.flatnonzero(rows_in_sorted(diff, keys) >= 0).astype(np.int64)
+            lab[sel], conf[sel] = point_labels(cache.final, keys, fid, new, subset=sel)
+        atomic_save_npz(path, label=lab, conf=conf.astype(np.float16), point_label=point_label)
+        export_labels(layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16),
+                      export_ids)
+
+    # Frames are independent files; numpy's lookups and the fsyncs of the atomic writes release the GIL,
+    # so a few threads overlap one frame's disk waits with another's arithmetic.
+    with ThreadPoolExecutor(max(1, min(threads, len(todo)))) as pool:
+        for k, _ in enumerate(pool.map(rewrite, todo)):
+            if progress is not None:
+                progress(k + 1, len(todo))
+    new.write(layout.applied_corrections, layout.applied_corrections_scan)
+    return ApplyResult(
+        frames=tuple(seq.frame_ids[frames[p]] for p in todo),
+        changed_voxels=int(diff.size),
+        baked_reverts=int(np.intersect1d(baked, diff, assume_unique=True).size),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+__all__ = ["ApplyResult", "RunCache", "RunCorrections", "apply_to_run", "build_frame_index",
+           "check_scan_points", "export_ahead_of_metrics", "frame_keys", "load_run_cache", "point_labels"]

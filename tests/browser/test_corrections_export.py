@@ -1,0 +1,126 @@
+"""A correction made in the 3D viewer reaches the latest run's exported ``.label`` files at once, without a
+run (the "apply corrections" job, issue 11 item 3), and the web UI's project page lists it; unticking it
+there reverts the export. Real app, SQLite, pipeline, viser and Chromium, on a short generated demo."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import browserfixtures
+import numpy as np
+import pytest
+
+artifacts = browserfixtures.artifacts
+live_app = browserfixtures.live_app
+wait_until = browserfixtures.wait_until
+
+CORRECTED_CLASS = "traffic-sign"
+CORRECTED_EXPORT_ID = 81
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+
+def test_viewer_correction_is_in_the_export_without_a_run(live_app: dict[str, Any], artifacts: Path) -> None:
+    import httpx
+
+    from app import crud
+    from app.core.db import open_db
+    from leap_core.datasets.kitti import KittiSequence, read_label
+    from leap_core.fusion import voxel_keys, world_points
+
+    base, app, settings = live_app["base"], live_app["app"], live_app["settings"]
+    api = httpx.Client(base_url=f"{base}/api/v1", timeout=30)
+    project = wait_until(
+        lambda: next((p for p in api.get("/projects").json()["data"] if p["is_demo"]), None), 30, "the demo"
+    )
+    pid = project["id"]
+
+    def runs() -> list[dict[str, Any]]:
+        return list(api.get(f"/projects/{pid}/runs").json()["data"])
+
+    first = wait_until(lambda: (r := runs()) and r[0]["status"] in ("done", "failed") and r[0], 600, "run 1")
+    assert first["status"] == "done", first.get("error")
+    run_dir = Path(first["run_dir"]) if "run_dir" in first else None
+    seq = KittiSequence(settings.demo_dataset)
+    voxel_size = float(first["params"]["pipeline"]["fusion"]["voxel_size"])
+    if run_dir is None:
+        run_dir = settings.work_dir / "runs" / f"p{pid}" / f"r{first['id']}"
+
+    def exported() -> dict[str, np.ndarray]:
+        return {fid: read_label(run_dir / "export" / f"{fid}.label") & 0xFFFF for fid in seq.frame_ids}
+
+    before = exported()
+    viewer = api.post(f"/projects/{pid}/viewer").json()
+    session = app.state.viewers.get(pid)
+    assert session is not None and session.grid is not None
+
+    with browserfixtures.launch_chromium() as browser:
+        page = browserfixtures.open_viewer(browser, base + viewer["url"], project["name"], session)
+        threshold = browserfixtures.panel_input(page, "Min confidence")
+        threshold.fill("0")
+        threshold.press("Enter")
+        wait_until(lambda: session.state.threshold == 0, 20, "the threshold")
+        page.get_by_text("Corrections", exact=True).click()
+        browserfixtures.pick(page, "Assign class", CORRECTED_CLASS)
+        page.get_by_role("button", name="Select box").click()
+        wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
+        canvas = page.locator("canvas").first.bounding_box()
+        cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+        page.mouse.move(cx - 90, cy - 50)
+        page.mouse.down()
+        page.mouse.move(cx + 90, cy + 50, steps=12)
+        page.mouse.up()
+        wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected")
+        page.get_by_role("button", name="Apply to selection").click()
+        with open_db(settings.database) as db:
+            (correction,) = wait_until(lambda: crud.list_corrections(db, pid), 20, "the stored correction")
+        assert correction.author == "viewer"
+
+        def applied() -> dict[str, Any] | None:
+            body = api.get(f"/projects/{pid}/corrections").json()
+            return body if body["apply"]["status"] == "done" else None
+
+        body = wait_until(applied, 30, "the apply-corrections job")
+        assert body["apply"]["run_id"] == first["id"], body
+        after = exported()
+        inside = {}
+        for i, fid in enumerate(seq.frame_ids):
+            f = seq.frame(i)
+            inside[fid] = np.isin(voxel_keys(world_points(f.points, f.pose), voxel_size), correction.keys)
+        assert sum(int(m.sum()) for m in inside.values()) > 0
+        for fid, mask in inside.items():
+            assert (after[fid][mask] == CORRECTED_EXPORT_ID).all(), fid
+            assert (after[fid][~mask] == before[fid][~mask]).all(), fid
+        assert len(runs()) == 1  # no run was started
+
+        # The web UI lists it; unticking it reverts the export.
+        ui = browser.new_page(viewport={"width": 1280, "height": 900})
+        browserfixtures.echo_console(ui)
+        ui.goto(f"{base}/#/projects/{pid}")
+        row = ui.locator(f"#corrections tr[data-id='{correction.id}']")
+        row.wait_for(timeout=30_000)
+        text = row.inner_text()
+        assert CORRECTED_CLASS in text and "map" in text and "viewer" in text
+        ui.locator(f"#corrections li[data-cls='{CORRECTED_CLASS}']").wait_for(timeout=10_000)
+        ui.get_by_text(f"Applied to run {first['number']}", exact=False).wait_for(timeout=10_000)
+        # The run's metrics predate the correction, and the page says so.
+        note = ui.locator("#metrics-before-corrections")
+        note.wait_for(timeout=10_000)
+        assert f"#{first['number']}" in note.inner_text()
+        ui.screenshot(path=str(artifacts / "corrections-web-ui.png"))
+        row.locator("input.corr-active").uncheck()
+        wait_until(lambda: not crud_active(settings, correction.id), 20, "the correction to be turned off")
+        wait_until(applied, 30, "the apply-corrections job after the toggle")
+        reverted = exported()
+        for fid in seq.frame_ids:
+            assert (reverted[fid] == before[fid]).all(), fid
+        assert len(runs()) == 1
+
+
+def crud_active(settings: Any, correction_id: int) -> bool:
+    from app import crud
+    from app.core.db import open_db
+
+    with open_db(settings.database) as db:
+        return crud.get_correction(db, correction_id).active

@@ -1,0 +1,109 @@
+// The project's manual corrections (made in the 3D viewer or through the API): counts per class, each
+// correction with its scope (voxel map or one scan), author and time, an active toggle (undo / redo), and
+// the state of the "apply corrections" job that brings the latest finished run's export up to date
+// without a run. Mounted by web/project.js; polls while the page shows it. Every user string (class names,
+// authors) goes in as text (dom.js h), never as HTML.
+
+import { get, patch } from "../api.js";
+import { fmtTime, h, replace } from "../dom.js";
+
+const POLL_MS = 2000;
+
+function className(name) {
+  return name === "" ? "erase (unlabeled)" : name;
+}
+
+function applyText(a) {
+  if (a.status === "running") return "Applying corrections to the latest run's export…";
+  if (a.status === "failed") return `Applying corrections failed: ${a.error || "unknown error"}`;
+  if (a.status === "no_run") return "No finished run yet: corrections apply at the next run.";
+  if (a.status === "done") {
+    const reverts = a.baked_reverts ? ` ${a.baked_reverts} undone voxels keep their class until the next run.` : "";
+    return `Applied to run ${a.run_number}: ${a.frames} scan${a.frames === 1 ? "" : "s"} updated in ${a.seconds.toFixed(2)} s.${reverts}`;
+  }
+  return "Corrections made now reach the latest run's export at once.";
+}
+
+export function mountCorrections(ctx) {
+  const el = h("section", { class: "card", id: "corrections" });
+  const anchor = ctx.els.runs;
+  anchor.parentElement.insertBefore(el, anchor);
+  let timer = null;
+  let lastApplied; // undefined until the first answer
+
+  async function toggle(c, active) {
+    try {
+      await patch(`/projects/${ctx.projectId}/corrections/${c.id}`, { active });
+    } catch (err) {
+      ctx.toast(err.message, "error");
+    }
+    await render();
+  }
+
+  async function render() {
+    if (!el.isConnected) return;
+    let body;
+    try {
+      body = await get(`/projects/${ctx.projectId}/corrections`);
+    } catch (err) {
+      replace(el, h("h2", {}, "Corrections"), h("p", { class: "error" }, err.message));
+      return;
+    }
+    const applied = body.apply.status === "done" ? `${body.apply.run_id}@${body.apply.finished_at}` : null;
+    if (applied && lastApplied !== undefined && applied !== lastApplied) {
+      // That run's export changed: its cached metrics no longer say whether they predate the corrections.
+      ctx.state.metrics.delete(body.apply.run_id);
+      ctx.render.compare();
+    }
+    lastApplied = applied;
+    const rows = body.corrections.map((c) =>
+      h(
+        "tr",
+        { dataset: { id: String(c.id) }, class: c.active ? "" : "muted" },
+        h("td", {}, className(c.class_name)),
+        h("td", {}, c.scope === "scan" ? `scan ${c.frame_id}` : "map"),
+        h("td", { class: "num" }, c.scope === "scan" ? `${c.points} points` : `${c.voxels} voxels`),
+        h("td", {}, c.author || "—"),
+        h("td", {}, fmtTime(c.created_at)),
+        h(
+          "td",
+          {},
+          h("input", {
+            type: "checkbox",
+            class: "corr-active",
+            checked: c.active,
+            "aria-label": `Correction ${c.id} active`,
+            onchange: (e) => toggle(c, e.target.checked),
+          }),
+        ),
+      ),
+    );
+    replace(
+      el,
+      h("div", { class: "card-head" }, h("h2", {}, "Corrections"), h("span", { class: "muted small", id: "corrections-apply", dataset: { status: body.apply.status } }, applyText(body.apply))),
+      body.per_class.length
+        ? h(
+            "ul",
+            { class: "corr-classes" },
+            body.per_class.map((p) => h("li", { dataset: { cls: p.class_name } }, `${className(p.class_name)}: ${p.corrections} correction${p.corrections === 1 ? "" : "s"}, ${p.voxels} voxels`)),
+          )
+        : null,
+      rows.length
+        ? h(
+            "table",
+            { class: "corr-table" },
+            h("thead", {}, h("tr", {}, ["Class", "Scope", "Size", "By", "When", "Active"].map((t) => h("th", {}, t)))),
+            h("tbody", {}, rows),
+          )
+        : h("p", { class: "muted small" }, "No corrections yet. Make them in the 3D viewer (select, then a class)."),
+    );
+  }
+
+  async function loop() {
+    if (!el.isConnected) return;
+    await render();
+    timer = setTimeout(loop, POLL_MS);
+  }
+  loop();
+  return () => clearTimeout(timer);
+}
