@@ -86,11 +86,38 @@ def _v2_run_note(db: sqlite_utils.Database) -> None:
     db.execute("ALTER TABLE runs ADD COLUMN note TEXT")
 
 
+def _v4_review_marks(db: sqlite_utils.Database) -> None:
+    # Version 3 is the corrections' scope columns (issue 11, corrections); 4 does not depend on it.
+    _execute_script(
+        db,
+        """
+        CREATE TABLE review_marks (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            region TEXT NOT NULL,
+            signature TEXT NOT NULL,
+            state TEXT NOT NULL CHECK (state IN ('accepted', 'skipped')),
+            run_id INTEGER,
+            updated_at TEXT NOT NULL,
+            PRIMARY KEY (project_id, region)
+        );
+        CREATE TABLE review_queues (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            kind TEXT NOT NULL CHECK (kind IN ('confidence', 'disagreement')),
+            run_id INTEGER,
+            regions_json TEXT NOT NULL,
+            updated_at TEXT NOT NULL,
+            PRIMARY KEY (project_id, kind)
+        );
+        """,
+    )
+
+
 Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
 
 MIGRATIONS: list[Migration] = [
     (1, "projects, runs, corrections, meta", _v1_initial),
     (2, "runs.note", _v2_run_note),
+    (4, "review_marks, review_queues", _v4_review_marks),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

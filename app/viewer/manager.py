@@ -22,7 +22,14 @@ from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
 from app.jobs.manager import JobManager, current_manager
 from app.viewer.panel import ReviewPanel
-from app.viewer.session import CorrectionRecord, ProjectBackend, ReviewSession, RunInfo, SessionConfig
+from app.viewer.session import (
+    CorrectionRecord,
+    ProjectBackend,
+    ReviewMarkRecord,
+    ReviewSession,
+    RunInfo,
+    SessionConfig,
+)
 from leap_core.errors import SchemaError
 from leap_core.schema import Schema
 
@@ -141,6 +148,21 @@ class AppBackend:
     def set_correction_active(self, correction_id: int, active: bool) -> None:
         with open_db(self.settings.database) as db:
             crud.set_correction_active(db, correction_id, active)
+
+    def review_marks(self) -> dict[str, ReviewMarkRecord]:
+        with open_db(self.settings.database) as db:
+            marks = crud.list_review_marks(db, self.project_id)
+        return {k: ReviewMarkRecord(m.signature, m.state) for k, m in marks.items()}
+
+    def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None:
+        with open_db(self.settings.database) as db:
+            crud.set_review_mark(
+                db, self.project_id, region=region, signature=signature, state=state, run_id=run_id
+            )
+
+    def save_review_queue(self, kind: str, run_id: int | None, regions: list[tuple[str, str]]) -> None:
+        with open_db(self.settings.database) as db:
+            crud.save_review_queue(db, self.project_id, kind, run_id, regions)
 
 
 @dataclass(frozen=True)
