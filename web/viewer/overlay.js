@@ -7,6 +7,7 @@
 
 import { api } from "/api.js";
 import { listen } from "./keys.js";
+import "./review.js";
 
 const match = window.location.pathname.match(/\/projects\/(\d+)\/viewer\//);
 
