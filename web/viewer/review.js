@@ -116,7 +116,7 @@ async function openPicker() {
 
 window.addEventListener("keydown", (ev) => {
   if (ev.key === "Escape") closePicker();
-});
+}, true);
 
 bind(["a"], "Accept the highlighted region (mark reviewed) and go to the next", () =>
   act("mark", { state: "accepted" }, "Saving…"), GROUP);
