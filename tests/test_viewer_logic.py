@@ -630,7 +630,7 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
     from app.core.db import open_db
     from app.viewer.manager import AppBackend
     from app.viewer.panel import ReviewPanel
-    from app.viewer.session import ReviewSession, SessionConfig
+    from app.viewer.session import REVIEW_BOX_RGB, ReviewSession, SessionConfig
     from leap_core import review
 
     settings, pid, run_id, keys, cls = review_store
@@ -658,9 +658,13 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
         counts = [out.region_observers(f, keys[region.rows], 0.5) for f in out.frame_indices]
         best = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
         assert best is not None and session.focus_frame == best and session.frame_pos == best
-        if counts[best][1]:
-            overlay = session.scene.camera.handle.image
-            assert overlay is not None
+        # The image shows where the region is: its projected points boxed in magenta.
+        assert counts[best][1] > 0, "the tiny scene's camera should see the region"
+        plain = out.scan_view(out.frame_indices[best], session.palette)
+        boxed = session._mark_region_in_image(plain, best)
+        u0, v0, u1, v1 = review.image_box(counts[best][2], plain.overlay.shape[1], plain.overlay.shape[0])
+        assert boxed.overlay[v0, u0].tolist() == list(REVIEW_BOX_RGB)
+        assert boxed.overlay[v1, (u0 + u1) // 2].tolist() == list(REVIEW_BOX_RGB)
 
         # Accept, then skip: stored in SQLite, the next unmarked region is shown each time.
         nxt = session.mark_region("accepted")
