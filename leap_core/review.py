@@ -171,7 +171,8 @@ def nearest_scans(positions: npt.ArrayLike, centre: npt.ArrayLike, k: int) -> np
 
 def best_observer(in_image: npt.ArrayLike, total: npt.ArrayLike) -> int | None:
     """The scan that observed a region most: most of the region's points seen by its camera, then most
-    of its LiDAR points, then the earliest. None when no scan has a point in the region.
+    of its LiDAR points, then the first in the given order (callers list scans nearest the region first,
+    :func:`nearest_scans`, so a tie goes to the closer view). None when no scan has a point in the region.
 
     Args:
         in_image: (S,) per scan, points in the region's voxels that project into its image.

@@ -618,6 +618,11 @@ class ReviewSession:
         self.panel.on_region(region, pos, len(self.regions), self.queue_kind)
         return region
 
+    @staticmethod
+    def blend_dim(colors: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+        """How voxels outside the focused region are drawn (:func:`app.viewer.view_logic.dim_outside`)."""
+        return vl.dim_outside(colors, np.zeros(colors.shape[0], np.int64), np.zeros(0, np.int64))
+
     def clear_focus(self) -> None:
         with self._lock:
             self.focus, self.focus_frame = None, None

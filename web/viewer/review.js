@@ -127,5 +127,10 @@ bind(["n"], "Next review region (ranks the queue first)", () =>
   act("step", { step: 1 }, "Ranking regions…"), GROUP);
 bind(["p"], "Previous review region", () => act("step", { step: -1 }, "Ranking regions…"), GROUP);
 
+// The badge exists (hidden) from the start: tests wait for it to know the keys are bound.
+ensureBadge();
 // Show the progress once the page is up (a viewer reopened after a restart shows the stored marks).
-viewerApi("GET", "review").then((state) => { if (state.total) show(state); }).catch(() => {});
+// Deferred: overlay.js imports this module before its own body ran, so its `projectId` is not set yet.
+setTimeout(() => {
+  viewerApi("GET", "review").then((state) => { if (state.total) show(state); }).catch(() => {});
+}, 0);
