@@ -211,7 +211,7 @@ def image_box(
 def draw_box(
     image: npt.NDArray[np.uint8],
     box: tuple[int, int, int, int],
-    color: tuple[int, int, int] = (255, 0, 200),
+    color: tuple[int, int, int] = (0, 255, 255),
     thickness: int = 2,
 ) -> npt.NDArray[np.uint8]:
     """A copy of ``image`` (H, W, 3) with the outline of ``box`` (inclusive pixel corners) drawn in ``color``,

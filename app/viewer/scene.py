@@ -291,7 +291,7 @@ class ReviewScene:
         self,
         centre: npt.ArrayLike | None,
         size: npt.ArrayLike | None = None,
-        color: tuple[int, int, int] = (255, 0, 200),
+        color: tuple[int, int, int] = (0, 255, 255),
     ) -> None:
         """Outline the focused review region with a wireframe box (``centre`` None hides it)."""
         if centre is None or size is None:

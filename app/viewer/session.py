@@ -50,8 +50,9 @@ class ViewChanges(TypedDict, total=False):
     max_points: int | None
 
 
-REVIEW_BOX_RGB = (255, 0, 200)
-"""Outline of the focused review region (3D box and image box): magenta, unlike every class colour."""
+REVIEW_BOX_RGB = (0, 255, 255)
+"""Outline of the focused review region (3D box and image box): cyan, which no SemanticKITTI class uses
+(magenta would vanish on the road)."""
 
 SELECTION_RGB = (15, 15, 15)
 """Highlight of selected voxels: near-black, unlike every class colour and the light background."""
