@@ -128,7 +128,7 @@ def naive_loop(
 
 def old_rank_regions(
     centres: np.ndarray, score: np.ndarray, candidates: np.ndarray, cell_size: float, min_count: int,
-    ascending: bool, limit: int = 100,
+    ascending: bool,
 ) -> list[tuple[float, int]]:
     """Baseline: the ranking before issue 11 (cells grouped with a row-wise ``np.unique(axis=0)``)."""
     rows = np.flatnonzero(candidates)
@@ -144,7 +144,7 @@ def old_rank_regions(
     np.maximum.at(extent, inverse, np.linalg.norm(xyz - mean_xyz[inverse], axis=1))
     keep = np.flatnonzero(counts >= min_count)
     primary = mean_score[keep] if ascending else -mean_score[keep]
-    order = keep[np.lexsort((-counts[keep], primary))][:limit]
+    order = keep[np.lexsort((-counts[keep], primary))][:100]
     return [(float(mean_score[i]), int(counts[i])) for i in order]
 
 

@@ -84,8 +84,8 @@ def rank_cells(
     k = counts.shape[0]
     s = np.asarray(score, dtype=np.float64)[rows]
     mean_score = np.bincount(inverse, weights=s, minlength=k) / counts
-    mean_xyz = np.stack([np.bincount(inverse, weights=xyz[:, d], minlength=k) for d in range(3)], 1)
-    mean_xyz /= counts[:, None]
+    sum_xyz = np.stack([np.bincount(inverse, weights=xyz[:, d], minlength=k) for d in range(3)], 1)
+    mean_xyz = sum_xyz / counts[:, None]
     dist = np.linalg.norm(xyz - mean_xyz[inverse], axis=1)
     extent = np.zeros(k)
     np.maximum.at(extent, inverse, dist)
@@ -216,7 +216,7 @@ def draw_box(
 ) -> npt.NDArray[np.uint8]:
     """A copy of ``image`` (H, W, 3) with the outline of ``box`` (inclusive pixel corners) drawn in ``color``,
     ``thickness`` pixels wide inwards (clipped to the box)."""
-    out = image.copy()
+    out: npt.NDArray[np.uint8] = image.copy()
     u0, v0, u1, v1 = box
     t = max(1, thickness)
     rgb = np.asarray(color, np.uint8)

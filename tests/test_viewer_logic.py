@@ -633,7 +633,7 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
     from app.viewer.session import REVIEW_BOX_RGB, ReviewSession, SessionConfig
     from leap_core import review
 
-    settings, pid, run_id, keys, cls = review_store
+    settings, pid, _run_id, keys, cls = review_store
     config = SessionConfig(queue_share=0.3, queue_min_count=1, queue_cell=2.0)
     session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
     try:

@@ -92,7 +92,8 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
     live = LiveApp(_settings(root))
     try:
         api = httpx.Client(base_url=f"{live.base}/api/v1", timeout=30)
-        r = api.post("/projects", json={"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}})
+        street = {"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}}
+        r = api.post("/projects", json=street)
         assert r.status_code == 201, r.text
         pid = r.json()["id"]
         run = api.post(f"/projects/{pid}/runs", json={})
