@@ -187,6 +187,18 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             assert (session.regions[0].id, session.regions[1].id) == (accepted_id, skipped_id)
             page.keyboard.press("n")
             expect(badge).to_contain_text(f"region 2/{total} (skipped")
+
+            # r opens the class picker on the region; a class relabels it (a correction) and accepts it.
+            page.keyboard.press("r")
+            picker = page.locator("#leap-review-picker")
+            expect(picker).to_contain_text(f"Relabel region 2 ({session.regions[1].count} voxels) as")
+            picker.get_by_role("button", name="building", exact=True).click()
+            expect(badge).to_contain_text(f"2 / {total} reviewed", timeout=30_000)
+            with open_db(live.settings.database) as db:
+                (correction,) = crud.list_corrections(db, pid)
+                assert crud.list_review_marks(db, pid)[skipped_id].state == "accepted"
+            assert correction.class_name == "building"
+            np.testing.assert_array_equal(correction.keys, session.grid.keys[session.regions[1].rows])
             page.wait_for_timeout(1500)
             page.screenshot(path=str(artifacts / "viewer-review-2-after-restart.png"))
     finally:

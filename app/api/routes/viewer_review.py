@@ -8,6 +8,7 @@ so the progress route answers without a viewer.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal
 
 from fastapi import APIRouter, HTTPException, status
@@ -118,8 +119,13 @@ def _state(session: ReviewSession) -> ReviewStatePublic:
     )
 
 
-def _conflict(exc: ValueError) -> HTTPException:
-    return HTTPException(status.HTTP_409_CONFLICT, detail=str(exc))
+async def _on_region(session: ReviewSession, action: Callable[[str], object], arg: str) -> ReviewStatePublic:
+    """Run a region action off the event loop; "no region is shown" (ValueError) answers 409."""
+    try:
+        await _run_blocking(action, arg)
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
+    return _state(session)
 
 
 @router.get("/viewer/review", response_model=ReviewStatePublic)
@@ -152,11 +158,7 @@ async def mark_region(project_id: ProjectId, payload: RegionMark, viewers: Viewe
     """Accept (reviewed) or skip the highlighted region, stored in the project; then highlight the next
     region without a mark. 409 when no region is highlighted."""
     session = _session(viewers, project_id)
-    try:
-        await _run_blocking(session.mark_region, payload.state)
-    except ValueError as exc:
-        raise _conflict(exc) from None
-    return _state(session)
+    return await _on_region(session, session.mark_region, payload.state)
 
 
 @router.post("/viewer/review/relabel", response_model=ReviewStatePublic)
@@ -172,11 +174,7 @@ async def relabel_region(
             detail=[{"loc": ["body", "class_name"], "msg": f"unknown class {payload.class_name!r}",
                      "type": "value_error"}],
         )
-    try:
-        await _run_blocking(session.relabel_region, payload.class_name)
-    except ValueError as exc:
-        raise _conflict(exc) from None
-    return _state(session)
+    return await _on_region(session, session.relabel_region, payload.class_name)
 
 
 @router.get("/review", response_model=ReviewProgressPublic)
