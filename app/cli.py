@@ -265,6 +265,12 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     consistency: bool | None = typer.Option(
         None, "--3dcn/--no-3dcn", help="Run the 3D Consistency Network (default: the project's setting, off)."
     ),
+    cn_iterations: int | None = typer.Option(
+        None,
+        "--3dcn-iterations",
+        help="3D-CN rounds, 1 or 2 (pipeline.consistency.iterations; default: the project's setting, 1). "
+        "Implies --3dcn; the result table gets one '+3D-CN xN' column per round.",
+    ),
     frames: str | None = typer.Option(None, "--frames", help="Frame range A:B (B exclusive), e.g. 0:20."),
     cache: str | None = typer.Option(None, "--cache", help="Shared 2D cache folder reused across runs."),
     models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
@@ -298,7 +304,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     progress = StageBars(Path(out))
 
     try:
-        sch, cfg = _run_config(schema, project_file, labeler, consistency)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
         runtime = _runtime(models, cache, device, allow_download)
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
@@ -409,10 +415,15 @@ def _write_exports(
 
 
 def _run_config(
-    schema: str | None, project_file: str | None, labeler: str | None, consistency: bool | None
+    schema: str | None,
+    project_file: str | None,
+    labeler: str | None,
+    consistency: bool | None,
+    cn_iterations: int | None = None,
 ) -> tuple[Schema, PipelineConfig]:
     """``leap run``'s classes and config: --schema's file gives the classes (and a base config),
-    --project-file's pipeline applies on top, then --labeler and --3dcn."""
+    --project-file's pipeline applies on top, then --labeler, --3dcn and --3dcn-iterations (which turns the
+    3D-CN on; with --no-3dcn it is a contradiction, refused)."""
     cfg = None
     sch = None
     if schema is not None or project_file is None:
@@ -427,6 +438,12 @@ def _run_config(
         flags["labeler"] = labeler
     if consistency is not None:
         flags["consistency"] = {"enabled": consistency}
+    if cn_iterations is not None:
+        if consistency is False:
+            raise LeapError("--3dcn-iterations runs the 3D-CN: drop --no-3dcn or --3dcn-iterations")
+        if cn_iterations not in (1, 2):
+            raise LeapError(f"--3dcn-iterations: must be 1 or 2, got {cn_iterations}")
+        flags["consistency"] = {"enabled": True, "iterations": cn_iterations}
     return sch, config_from_dict(flags, cfg)
 
 

@@ -7,10 +7,15 @@ Data (synthetic, deterministic, built here so the benchmark needs no dataset):
   table rows per image. Points thin out with range like a spinning LiDAR's. Table rows are spatially
   coherent (points of one mask share a row), as painted images are; a second run uses a random row per
   point, the worst case for the (voxel, row) reduction.
-- Baseline, same process, same data: the naive per-point accumulation
-  ``np.add.at(acc, voxel_index, logp_per_point)`` with the voxel index and the per-point log-probabilities
-  precomputed (not timed), so the baseline is timed at its cheapest. The "naive full" row adds the
-  ``np.unique(return_inverse=True)`` and per-point log-table gather it needs.
+- Baselines, same process, same data: three simple per-point accumulations into a (V, C) float32 array,
+  each given the voxel index and the per-point log-probabilities precomputed (not timed), so each is timed
+  at its cheapest: ``np.add.at(acc, voxel_index, logp)``, ``torch.index_add_`` (which the project uses in
+  ``fuse_dense``; torch's default threads) and a scipy sparse product ``(V × N one-hot) @ (N × C logp)``.
+  The headline ratio is ``fuse`` against the fastest of the three ("best baseline"). The "naive full" row
+  adds the ``np.unique(return_inverse=True)`` and per-point log-table gather the baselines need (the cost
+  ``fuse`` pays inside its own time).
+- Memory: peak working memory added by ``fuse``, per input point. The stored grid's size per voxel is not a
+  measurement (8 B key + 2·C B float16 logp, fixed by the format), so it is printed as a fact, not a target.
 - Smoothing: ~1M voxels on street surfaces (ground with steps, two facades), 20-class random posteriors.
 
 Run: ``.venv/bin/python benchmarks/bench_fusion.py`` (``--quick`` for a small smoke run).
@@ -26,6 +31,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -102,6 +108,25 @@ def naive_add_at(inv: np.ndarray, logp: np.ndarray, v: int) -> np.ndarray:
     return acc
 
 
+def torch_index_add(inv: np.ndarray, logp: np.ndarray, v: int) -> np.ndarray:
+    import torch
+
+    acc = torch.zeros((v, C), dtype=torch.float32)
+    acc.index_add_(0, torch.from_numpy(inv), torch.from_numpy(logp))
+    out: np.ndarray = acc.numpy()
+    return out
+
+
+def scipy_sparse_sum(inv: np.ndarray, logp: np.ndarray, v: int) -> np.ndarray:
+    n = len(inv)
+    onehot = scipy.sparse.csr_matrix((np.ones(n, np.float32), (inv, np.arange(n))), shape=(v, n))
+    return np.asarray(onehot @ logp, dtype=np.float32)
+
+
+BASELINES = {"np.add.at": naive_add_at, "torch.index_add_": torch_index_add, "scipy sparse": scipy_sparse_sum}
+"""Per-point accumulations ``acc[inv[p]] += logp[p]`` into (V, C), given (inv, logp, V)."""
+
+
 def naive_full(obs: list[Observations]) -> np.ndarray:
     inv, logp, v = naive_inputs(obs)
     return naive_add_at(inv, logp, v)
@@ -118,38 +143,45 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
         t_fuse = time_it(partial(fuse, obs, C), repeat=repeat)
         grid, mem = peak_memory(partial(fuse, obs, C))
         inv, logp, v = naive_inputs(obs)
-        t_naive = time_it(partial(naive_add_at, inv, logp, v), repeat=max(1, repeat // 2))
-        acc = naive_add_at(inv, logp, v)
-        acc -= acc.max(axis=1, keepdims=True)
-        np.maximum(acc, -FusionConfig().logp_clip, out=acc)
-        max_diff = float(np.abs(acc - grid.logp.astype(np.float32)).max())
+        base_t, base_diff = {}, {}
+        for name, fn in BASELINES.items():
+            base_t[name] = time_it(partial(fn, inv, logp, v), repeat=max(1, repeat // 2))
+            acc = fn(inv, logp, v)
+            acc -= acc.max(axis=1, keepdims=True)
+            np.maximum(acc, -FusionConfig().logp_clip, out=acc)
+            base_diff[name] = float(np.abs(acc - grid.logp.astype(np.float32)).max())
         del inv, logp, acc
+        best = min(base_t, key=lambda k: base_t[k].median)
+        best_best = min(base_t, key=lambda k: base_t[k].best)
         t_full = time_it(partial(naive_full, obs), repeat=1, warmup=0)
-        rate = n / t_fuse.median
-        ratio = t_naive.median / t_fuse.median
+        t_best = base_t[best].median
         results["coherent" if coherent else "random_rows"] = {
             "fuse": t_fuse.to_dict(),
-            "naive_add_at": t_naive.to_dict(),
+            "baselines": {k: {**t.to_dict(), "max_abs_diff_vs_fuse": base_diff[k]}
+                          for k, t in base_t.items()},
+            "best_baseline": best,
             "naive_full": t_full.to_dict(),
-            "points_per_s": rate,
+            "points_per_s": n / t_fuse.median,
             "points_per_s_best": n / t_fuse.best,
             "points_per_cpu_s": n / t_fuse.cpu_median,
-            "ratio_vs_naive_add_at": ratio,
-            "ratio_vs_naive_add_at_best": t_naive.best / t_fuse.best,
+            "ratio_vs_best_baseline": t_best / t_fuse.median,
+            "ratio_vs_best_baseline_best": base_t[best_best].best / t_fuse.best,
+            "ratio_vs_naive_add_at": base_t["np.add.at"].median / t_fuse.median,
             "ratio_vs_naive_full": t_full.median / t_fuse.median,
             "voxels": len(grid),
-            "bytes_per_voxel": grid.nbytes / len(grid),
+            "stored_bytes_per_voxel": grid.nbytes / len(grid),
             "peak_memory_added_bytes": mem.added,
+            "peak_memory_added_bytes_per_point": mem.added / n,
             "peak_memory_exact": mem.exact,
-            "max_abs_diff_vs_naive": max_diff,
         }
-        table_rows += [
-            _row(f"fuse, {label}", t_fuse, n, t_naive.median, mem.added),
-            _row("  naive np.add.at (index+logp given)", t_naive, n, t_naive.median, None),
-            _row("  naive full (unique+gather+add.at)", t_full, n, t_naive.median, None),
-        ]
-        table_rows.append([f"  {len(grid):,} voxels, {grid.nbytes / len(grid):.0f} B/voxel, "
-                           f"max|Δ| vs naive {max_diff:.3g}"] + [""] * 6)
+        table_rows.append(_row(f"fuse, {label}", t_fuse, n, t_best, mem.added))
+        for name, t in base_t.items():
+            mark = " (best)" if name == best else ""
+            table_rows.append(_row(f"  {name}, index+logp given{mark}", t, n, t_best, None))
+        table_rows.append(_row("  naive full (unique+gather+add.at)", t_full, n, t_best, None))
+        diffs = ", ".join(f"{k} {d:.3g}" for k, d in base_diff.items())
+        table_rows.append([f"  {len(grid):,} voxels, working memory {mem.added / n:.1f} B/point; "
+                           f"max|Δ| vs fuse: {diffs}"] + [""] * 6)
         if coherent:
             xyz = _xyz_cache(images, points)
             t_keys = time_it(partial(voxel_keys, xyz, 0.2), repeat=3)
@@ -208,29 +240,36 @@ def main() -> None:
     load_start = os.getloadavg()
     frows, fres = bench_fusion(args.images, args.points, args.rows, args.repeat)
     srows, sres = bench_smoothing(args.voxels, args.repeat)
-    header = ["what", "median s", "best s", "CPU s", "M items/s", "× naive", "peak MiB added"]
+    header = ["what", "median s", "best s", "CPU s", "M items/s", "× best baseline", "peak MiB added"]
     load = os.getloadavg()
     print_table(f"Fusion: {fres['points']:,} points, {C} classes, {args.rows} table rows per image "
                 f"(load average at start {load_start[0]:.1f}, now {load[0]:.1f} on {os.cpu_count()} cores)",
                 header, frows)
     print_table("Smoothing", header, srows)
 
-    co = fres["coherent"]
+    co, rnd = fres["coherent"], fres["random_rows"]
     sm = sres["bounded"]
     targets = [
         ["fusion ≥ 10 M points/s", co["points_per_s"] / 1e6, co["points_per_s_best"] / 1e6, 10.0],
-        ["fusion ≥ 5× naive np.add.at", co["ratio_vs_naive_add_at"], co["ratio_vs_naive_add_at_best"], 5.0],
-        ["bytes per voxel ≤ 48 (C=20)", co["bytes_per_voxel"], co["bytes_per_voxel"], 48.0],
+        [f"fusion ≥ 1× best baseline ({co['best_baseline']})", co["ratio_vs_best_baseline"],
+         co["ratio_vs_best_baseline_best"], 1.0],
+        [f"  random rows, ≥ 1× best ({rnd['best_baseline']})", rnd["ratio_vs_best_baseline"],
+         rnd["ratio_vs_best_baseline_best"], 1.0],
         ["smoothing 1M voxels ≤ 3 s", sm["median_s"], sm["best_s"], 3.0],
         ["  (unbounded kNN, paper)", sres["unbounded"]["median_s"], sres["unbounded"]["best_s"], 3.0],
     ]
     for t in targets:
-        lower_is_better = t[0].startswith(("bytes", "smoothing", "  (unb"))
+        lower_is_better = t[0].startswith(("smoothing", "  (unb"))
         t.append("yes" if (t[1] <= t[3] if lower_is_better else t[1] >= t[3]) else "no")
         t.append("yes" if (t[2] <= t[3] if lower_is_better else t[2] >= t[3]) else "no")
         if args.quick:
             t[-2:] = ["(quick)", "(quick)"]
     print_table("Targets", ["target", "median", "best", "limit", "met (median)", "met (best)"], targets)
+    print(f"Ratio to the best baseline (coherent rows): {co['ratio_vs_best_baseline']:.2f}× "
+          f"{co['best_baseline']} (np.add.at: {co['ratio_vs_naive_add_at']:.1f}×).")
+    print(f"Stored grid: {co['stored_bytes_per_voxel']:.0f} B/voxel = 8 B key + 2·{C} B float16 logp (fixed "
+          f"by the format, not a measurement); fuse's working memory: "
+          f"{co['peak_memory_added_bytes_per_point']:.1f} B per input point (peak RSS added).")
     path = write_results(
         "fusion" if not args.quick else "fusion_quick",
         {"args": vars(args), "fusion": fres, "smoothing": sres,

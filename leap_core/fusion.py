@@ -38,8 +38,6 @@ AXIS_BITS = 21
 AXIS_OFFSET = 1 << (AXIS_BITS - 1)
 """Added to each integer voxel coordinate so that coordinates in [-2²⁰, 2²⁰) become non-negative."""
 _AXIS_MASK = (1 << AXIS_BITS) - 1
-_TORCH_MIN_ELEMENTS = 4_000_000
-_BLOCK = 1 << 16  # elements per block in the key-packing passes: the temporaries stay in L2 cache
 
 
 @dataclass(frozen=True)
@@ -67,6 +65,33 @@ class FusionConfig:
             raise ConfigError(f"must be > 0, got {self.logp_clip}", field=("logp_clip",))
         if self.chunk_points < 1:
             raise ConfigError(f"must be ≥ 1, got {self.chunk_points}", field=("chunk_points",))
+
+
+@dataclass(frozen=True)
+class FusionPaths:
+    """Where :func:`fuse`, :func:`fuse_dense` and :func:`apply_overrides` switch between two implementations
+    of the same maths. The result does not depend on them (tests/test_fusion.py checks each pair of paths
+    agrees exactly); they exist so tests can reach both sides of each switch on small data. Not part of
+    :class:`FusionConfig` (nor of a run's fingerprint), since they change speed, never output."""
+
+    torch_min_elements: int = 4_000_000
+    """Grids of at least this many (voxel × class) elements are finalised (row shift to max 0, clip, float16
+    cast) with torch, smaller ones with numpy: on large grids torch's row max and cast are ≈ 3× faster; on
+    small ones its thread wake-up costs more than it saves. 0 = always torch."""
+    pack_max_bits: int = 62
+    """A fusion chunk packs (voxel, table row) into one int64 per point when its per-axis key ranges plus the
+    row bits fit in this many bits; otherwise voxels are first numbered with ``np.unique`` (wide extents,
+    e.g. coordinates near ±2²⁰ voxels). 0 = always ``np.unique``."""
+    block: int = 1 << 16
+    """Elements per block in the in-place key-packing passes (the temporaries stay in L2 cache)."""
+
+    def __post_init__(self) -> None:
+        if self.torch_min_elements < 0:
+            raise ConfigError(f"must be ≥ 0, got {self.torch_min_elements}", field=("torch_min_elements",))
+        if not 0 <= self.pack_max_bits <= 62:
+            raise ConfigError(f"must be in 0..62, got {self.pack_max_bits}", field=("pack_max_bits",))
+        if self.block < 1:
+            raise ConfigError(f"must be ≥ 1, got {self.block}", field=("block",))
 
 
 # ---------------------------------------------------------------------------------------------- keys
@@ -357,7 +382,7 @@ def _bits(n: int) -> int:
 
 
 def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buffers (del) when done
-    obs: list[Observations], weight: float
+    obs: list[Observations], weight: float, paths: FusionPaths
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
     """Σ over a chunk of observations: (sorted unique keys (V,), weight·Σ log-tables (V, C) float32).
 
@@ -365,8 +390,10 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
        the chunk (a sequence's few-hundred-metre extent needs ≈ 32 bits, leaving ≥ 30 bits for rows).
     2. Sort; equal neighbours are repeated (voxel, row) pairs: their run lengths are the counts.
     3. Σ_pairs count · log_table[row] per voxel as a sparse (V × K) @ (K × C) product.
-    The packing runs in place over cache-sized blocks; the chunk's whole working memory, output included,
-    measured ≈ 36 bytes per point at 5M points (benchmarks/bench_fusion.py).
+    The packing runs in place over blocks of ``paths.block`` elements; when the packed pair needs more than
+    ``paths.pack_max_bits`` bits, voxels are numbered by ``np.unique`` instead (same sums). The chunk's
+    whole working memory, output included, measured ≈ 36 bytes per point at 5M points
+    (benchmarks/bench_fusion.py).
     """
     n = sum(len(o.keys) for o in obs)
     offsets = np.cumsum([0] + [o.log_table.shape[0] for o in obs])
@@ -384,17 +411,18 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
 
     lo = np.full(3, np.iinfo(np.int64).max)
     hi = np.full(3, np.iinfo(np.int64).min)
-    for b in range(0, n, _BLOCK):
-        blk = comp[b : b + _BLOCK]
+    block = paths.block
+    for b in range(0, n, block):
+        blk = comp[b : b + block]
         for a, c in enumerate(_axes(blk)):
             lo[a] = min(lo[a], int(c.min()))
             hi[a] = max(hi[a], int(c.max()))
     cbits = [_bits(int(h - m)) for h, m in zip(hi, lo, strict=True)]
     uniq_keys = None
-    if sum(cbits) + rbits <= 62:
+    if sum(cbits) + rbits <= paths.pack_max_bits:
         shifts = (cbits[1] + cbits[2] + rbits, cbits[2] + rbits, rbits)
-        for b in range(0, n, _BLOCK):
-            blk = comp[b : b + _BLOCK]
+        for b in range(0, n, block):
+            blk = comp[b : b + block]
             x, y, z = _axes(blk)
             x -= lo[0]
             x <<= shifts[0]
@@ -404,7 +432,7 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
             z <<= shifts[2]
             x |= y
             x |= z
-            np.bitwise_or(x, rows[b : b + _BLOCK], out=blk)
+            np.bitwise_or(x, rows[b : b + block], out=blk)
     else:
         uniq_keys, vox = np.unique(comp, return_inverse=True)
         if _bits(len(uniq_keys)) + rbits > 62:
@@ -470,17 +498,16 @@ def _merge(
 
 
 def _finalise(
-    keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig
+    keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig, paths: FusionPaths
 ) -> VoxelGrid:
-    """Shift each row to max 0, clip at -logp_clip, store float16."""
-    if acc.size < _TORCH_MIN_ELEMENTS:
+    """Shift each row to max 0, clip at -logp_clip, store float16 (numpy or torch: same values)."""
+    if acc.size < paths.torch_min_elements:
         if len(acc):
             acc -= acc.max(axis=1, keepdims=True)
             np.maximum(acc, np.float32(-cfg.logp_clip), out=acc)
         return VoxelGrid(keys, acc.astype(np.float16), cfg.voxel_size)
-    # On large grids torch's row max and float16 cast are ≈ 3× faster than numpy's; on small ones its
-    # thread wake-up costs more than it saves (milliseconds when other processes share the cores).
-    # torch is imported where tensors are made, so reading a config (FusionConfig) does not load it.
+    # Why two paths: see FusionPaths.torch_min_elements. torch is imported where tensors are made, so
+    # reading a config (FusionConfig) does not load it.
     import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
 
     t = torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32))
@@ -519,6 +546,8 @@ def fuse(
     cfg: FusionConfig | None = None,
     grid: VoxelGrid | None = None,
     weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Bayesian fusion of painted observations into a voxel grid.
 
@@ -535,11 +564,13 @@ def fuse(
         cfg: grid and clipping parameters.
         grid: prior grid to update (not modified); None starts from an empty grid.
         weight: multiplies every log-likelihood (1 = plain Bayes; < 1 trusts these observations less).
+        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
 
     Returns:
         A new :class:`VoxelGrid`.
     """
     cfg = cfg or FusionConfig()
+    paths = paths or FusionPaths()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
     pending: list[Observations] = []
     n_pending = 0
@@ -553,11 +584,11 @@ def fuse(
         pending.append(o)
         n_pending += len(o.keys)
         if n_pending >= cfg.chunk_points:
-            acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight))
+            acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight, paths))
             pending, n_pending = [], 0
     if pending:
-        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight))
-    return _finalise(acc_keys, acc, cfg)
+        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight, paths))
+    return _finalise(acc_keys, acc, cfg, paths)
 
 
 def fuse_dense(
@@ -567,6 +598,8 @@ def fuse_dense(
     num_classes: int,
     cfg: FusionConfig | None = None,
     weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Fuse per-point log-probabilities (e.g. 3D-CN predictions fused back with temperature T, weight = 1/T).
 
@@ -580,6 +613,7 @@ def fuse_dense(
         num_classes: C.
         cfg: grid and clipping parameters.
         weight: multiplies every log-probability.
+        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
     """
     import torch  # noqa: PLC0415  imported where tensors are made: reading a FusionConfig must not load it
 
@@ -606,7 +640,7 @@ def fuse_dense(
         sums = torch.zeros((int(first.sum()), num_classes), dtype=torch.float32)
         sums.index_add_(0, torch.from_numpy(inv), lp)
         acc_keys, acc = _merge(acc_keys, acc, sk[first], sums.numpy())
-    return _finalise(acc_keys, acc, cfg)
+    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
 
 def apply_overrides(
@@ -615,6 +649,8 @@ def apply_overrides(
     class_idx: npt.ArrayLike,
     strength: float = 50.0,
     cfg: FusionConfig | None = None,
+    *,
+    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Apply manual corrections as overriding observations.
 
@@ -629,6 +665,7 @@ def apply_overrides(
         class_idx: (N,) class index per key.
         strength: log-odds of each correction.
         cfg: clipping parameters (``voxel_size`` must match the grid's); default FusionConfig().
+        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
     """
     cfg = cfg or FusionConfig(voxel_size=grid.voxel_size)
     k = np.asarray(keys, dtype=np.int64).reshape(-1)
@@ -648,13 +685,14 @@ def apply_overrides(
         # Each correction: -strength on every class except its own.
         obs -= strength * (hits.sum(axis=1, keepdims=True) - hits)
         acc_keys, acc = _merge(acc_keys, acc, uk, obs)
-    return _finalise(acc_keys, acc, cfg)
+    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
 
 __all__ = [
     "AXIS_BITS",
     "AXIS_OFFSET",
     "FusionConfig",
+    "FusionPaths",
     "Observations",
     "VoxelGrid",
     "VoxelLabels",

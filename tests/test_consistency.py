@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from leap_core.consistency.backbone import CloudTensors, PlaneIndex, PointSegmenter
+from leap_core.consistency.backbone import CloudTensors, KnnEmbedding, PlaneIndex, PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
 from leap_core.consistency.data import LOCAL_SCALE, collate, prepare_cloud
 from leap_core.consistency.selection import (
@@ -23,7 +23,9 @@ from leap_core.consistency.selection import (
 from leap_core.consistency.stage import (
     checkpoint_path,
     fuse_back,
+    reliable_targets,
     run_3dcn_iteration,
+    training_fingerprint,
     voxel_mean_log_probs,
 )
 from leap_core.consistency.train import (
@@ -407,6 +409,20 @@ def test_fuse_back_in_chunks_equals_one_call() -> None:
         np.testing.assert_allclose(one.logp.astype(np.float32), chunked.logp.astype(np.float32), atol=0.02)
 
 
+def test_knn_embedding_in_blocks_equals_one_pass() -> None:
+    """At evaluation the (N, K, hidden) intermediate is computed in blocks of ``chunk`` points above that
+    size; it is per point, so blocks change nothing (to float32 matmul rounding: BLAS may sum a block's
+    products in another order)."""
+    torch.manual_seed(0)
+    emb = KnnEmbedding(4, 3, 8, 6, chunk=10**6).eval()
+    feats, local = torch.randn(50, 4), torch.randn(50, 5, 3)
+    with torch.no_grad():
+        one = emb(feats, local)
+        emb.chunk = 7  # 50 points > 7: the block path
+        blocks = emb(feats, local)
+    torch.testing.assert_close(blocks, one, rtol=0, atol=1e-6)
+
+
 # ----------------------------------------------------------------------------------------------- stage
 def _tiny_stage_inputs(tmp_path: Path, make_tiny_sequence) -> tuple[KittiSequence, VoxelGrid, int]:
     """A 3-frame sequence and a grid that knows only the voxels of points with x < 12 m ("camera view"),
@@ -428,10 +444,25 @@ def _tiny_stage_inputs(tmp_path: Path, make_tiny_sequence) -> tuple[KittiSequenc
 
 def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path, make_tiny_sequence) -> None:
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    # The fused grid (evidence goes here) and the smoothed one (labels are read here) differ: the fused one
+    # has every label moved to the next class, so a mix-up of the two shows in the result.
+    fused = VoxelGrid(grid.keys, np.roll(grid.logp, 1, axis=1), grid.voxel_size)
     cfg = replace(TINY, epochs=2, temperature=1.0)
     calls: list[tuple[int, int]] = []
-    out = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), tmp_path / "work", 1,
+    out = run_3dcn_iteration(seq, fused, grid, c, cfg, FusionConfig(), tmp_path / "work", 1,
                              progress=lambda d, t: calls.append((d, t)))
+    # Trained on the smoothed grid's labels (the checkpoint's fingerprint hashes them) ...
+    ck = load_checkpoint(checkpoint_path(tmp_path / "work", 1))
+    frames = range(len(seq))
+    targets = reliable_targets(seq, grid, c, cfg, 0.2, frames, None)
+    assert ck.meta["fingerprint"] == training_fingerprint(cfg, c, frames, targets)
+    other = reliable_targets(seq, fused, c, cfg, 0.2, frames, None)
+    assert training_fingerprint(cfg, c, frames, other) != ck.meta["fingerprint"]
+    # ... and its predictions fused into the fused grid.
+    preds = [(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2),
+              predict_log_probs(ck.model, seq.frame(i).points)) for i in frames]
+    expected = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), cfg.network_evidence)
+    assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
     assert calls[-1] == (3 + 2 * 3 + 3, 3 + 2 * 3 + 3)
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)
     assert checkpoint_path(tmp_path / "work", 1).is_file()
@@ -446,12 +477,12 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
 
     # A second call with the same inputs reuses the checkpoint (same fingerprint) and gives the same grid.
     mtime = checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns
-    again = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), tmp_path / "work", 1)
+    again = run_3dcn_iteration(seq, fused, grid, c, cfg, FusionConfig(), tmp_path / "work", 1)
     assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
     assert np.array_equal(again.keys, out.keys) and np.array_equal(again.logp, out.logp)
     # T = ∞ ignores the network entirely.
-    assert run_3dcn_iteration(seq, grid, grid, c, replace(cfg, temperature=math.inf), FusionConfig(),
-                              tmp_path / "work", 1) is grid
+    assert run_3dcn_iteration(seq, fused, grid, c, replace(cfg, temperature=math.inf), FusionConfig(),
+                              tmp_path / "work", 1) is fused
 
 
 def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> None:

@@ -565,6 +565,8 @@ def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) 
         (["--frames", "x:y"], "--frames 'x:y'"),
         (["--frames", "3:99"], "out of range"),
         (["--schema", "nope"], "--schema nope"),
+        (["--3dcn-iterations", "3"], "--3dcn-iterations: must be 1 or 2, got 3"),
+        (["--no-3dcn", "--3dcn-iterations", "2"], "drop --no-3dcn or --3dcn-iterations"),
     ],
 )
 def test_cli_run_bad_inputs(street: Path, tmp_path: Path, args: list[str], message: str) -> None:
@@ -576,6 +578,22 @@ def test_cli_run_bad_inputs(street: Path, tmp_path: Path, args: list[str], messa
     assert res.exit_code == 2
     last = res.output.strip().splitlines()[-1]
     assert last.startswith("error:") and message in last
+
+
+def test_cli_3dcn_iterations_sets_the_rounds() -> None:
+    """`leap run --3dcn-iterations 2` is the README's "+3D-CN x2" column: the 3D-CN on, two rounds, on top
+    of the project's settings (the demo project's 3D-CN section is kept, only the two fields change)."""
+    from app.cli import _run_config
+
+    _, cfg = _run_config(None, None, None, None, 2)
+    assert cfg.consistency.enabled and cfg.consistency.iterations == 2
+    _, cfg = _run_config(None, None, None, True, 1)
+    assert cfg.consistency.enabled and cfg.consistency.iterations == 1
+    _, base = _run_config(None, None, None, None)
+    assert not base.consistency.enabled and base.consistency.iterations == 1
+    _, demo = _run_config(None, "demo", None, None, 2)
+    _, demo_base = _run_config(None, "demo", None, None)
+    assert demo.consistency == dataclasses.replace(demo_base.consistency, enabled=True, iterations=2)
 
 
 def test_demo_project_file_is_valid_and_in_sync() -> None:
@@ -608,8 +626,14 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
     with np.load(run_dir / "points" / "000000.npz") as z:
         assert (z["label"] >= 0).all()
     assert (run_dir / "3dcn" / "3dcn_iter2.pt").is_file()
-    # Temperature only changes the fusion back: the checkpoints are reused and upstream stages are cached.
+    # Temperature only changes the fusion back: round 1's checkpoint is reused and upstream stages are
+    # cached. Round 2 trains on labels read from round 1's output, which T changed, so it retrains.
+    ckpt1 = run_dir / "3dcn" / "3dcn_iter1.pt"
+    before = (ckpt1.stat().st_mtime_ns, ckpt1.read_bytes())
+    grid_before = (run_dir / "grid_3dcn1.npz").read_bytes()
     warmer = config_from_dict({"consistency": {**tiny, "temperature": 4.0}})
     again = run_pipeline(street, schema, warmer, run_dir)
     assert again.ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert (ckpt1.stat().st_mtime_ns, ckpt1.read_bytes()) == before  # not retrained, not rewritten
+    assert (run_dir / "grid_3dcn1.npz").read_bytes() != grid_before  # ... yet fused back with the new T
     assert "+3D-CN x1" in (result_tables(run_dir) or "")

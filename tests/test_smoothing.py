@@ -65,6 +65,23 @@ def test_smooth_grid_and_edge_cases() -> None:
         SmoothingConfig(k=0)
 
 
+def test_smooth_grid_by_hand() -> None:
+    """Voxels (0,0,0), (1,0,0), (5,0,0) at 0.5 m: centres 0.25, 0.75 and 2.75 m along x.
+    k = 2, unbounded: voxel 0 and 1 mix with weights softmax(-[0, 0.5]); voxel 2's nearest other voxel is
+    voxel 1, 2 m away: weights softmax(-[0, 2]). With max_distance 0.6 (default) voxel 2 keeps its own."""
+    keys = voxel_keys(np.array([[0.1, 0.1, 0.1], [0.6, 0.1, 0.1], [2.6, 0.1, 0.1]]), 0.5)
+    logp = np.log(np.array([[0.75, 0.25], [0.25, 0.75], [0.5, 0.5]]))
+    grid = VoxelGrid(keys, (logp - logp.max(axis=1, keepdims=True)).astype(np.float16), 0.5)
+    p = grid.probs()
+    a, b = 1 / (1 + math.exp(-0.5)), 1 / (1 + math.exp(-2.0))
+    out = smooth_grid(grid, SmoothingConfig(k=2, max_distance=None))
+    np.testing.assert_allclose(out, [a * p[0] + (1 - a) * p[1], a * p[1] + (1 - a) * p[0],
+                                     b * p[2] + (1 - b) * p[1]], rtol=1e-6)
+    bounded = smooth_grid(grid, SmoothingConfig(k=2))
+    np.testing.assert_allclose(bounded[:2], out[:2], rtol=1e-6)
+    np.testing.assert_allclose(bounded[2], p[2], rtol=1e-6)
+
+
 # ------------------------------------------------------------------------------------- SmoothedGrid
 def test_smoothed_grid_save_load_labels_and_voxel_grid(tmp_path) -> None:
     keys = np.array([3, 7, 9], np.int64)

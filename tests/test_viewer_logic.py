@@ -511,6 +511,7 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
 
         down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
         above = centre + np.array([0, 0, 200.0])
+        session.set_tools(depth_mode="through")
         n = session.select_rect(above, down, math.radians(60), 1.0, (0.0, 0.0), (1.0, 1.0))
         assert n == keys.size
         cid = session.assign_selection("building")

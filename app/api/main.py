@@ -25,4 +25,6 @@ api_router.include_router(exports.router)
 if importlib.util.find_spec("app.api.routes.viewer") is not None:
     # The 3D review viewer is an optional module of its own (app/viewer, app/api/routes/viewer.py).
     api_router.include_router(importlib.import_module("app.api.routes.viewer").router)
+    api_router.include_router(importlib.import_module("app.api.routes.viewer_nav").router)
+    api_router.include_router(importlib.import_module("app.api.routes.viewer_tools").router)
     api_router.include_router(importlib.import_module("app.api.routes.viewer_review").router)

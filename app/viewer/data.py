@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from app.viewer import view_logic as vl
 from leap_core.config import config_from_dict
+from leap_core.consistency.selection import lookup_counts, view_counts
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
@@ -143,6 +144,7 @@ class ScanView:
         fov_y: vertical field of view in radians.
         aspect: image width / height.
         overlay: (H, W, 3) uint8 camera image with the projected labels drawn over it, or None.
+        ego_pose: (4, 4) sensor-to-world pose of the scan (where the camera follows the ego vehicle to).
     """
 
     frame_id: str
@@ -153,6 +155,7 @@ class ScanView:
     fov_y: float
     aspect: float
     overlay: npt.NDArray[np.uint8] | None
+    ego_pose: npt.NDArray[np.float64] | None = None
 
 
 def matrix_to_wxyz(rot: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -187,6 +190,8 @@ class RunOutputs:
         self.frame_indices: list[int] = [i for i, f in enumerate(self.seq.frame_ids) if f in done]
         """Indices of the frames that have per-point labels in this run, in sequence order."""
         self._disagreement: tuple[ReviewGrid, np.ndarray, np.ndarray] | None = None
+        self._views: tuple[ReviewGrid, npt.NDArray[np.int64]] | None = None
+        self._lock = threading.Lock()
 
     def point_arrays(self, index: int) -> dict[str, np.ndarray]:
         return _read_npz(self.layout.points(self.seq.frame_ids[index]), ("label",))
@@ -228,6 +233,7 @@ class RunOutputs:
             fov_y=float(2.0 * np.arctan(height / (2.0 * fy))),
             aspect=float(width / height),
             overlay=overlay,
+            ego_pose=np.asarray(frame.pose, dtype=np.float64).copy(),
         )
 
     def disagreement(self, grid: ReviewGrid) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
@@ -289,6 +295,32 @@ class RunOutputs:
         proj = project_points(frame.points[inside], frame.calib.lidar_to_image, h, w)
         uv = np.stack([proj.u, proj.v], axis=1).astype(np.float64)
         return int(inside.size), int(uv.shape[0]), uv
+
+
+    def view_counts(self, grid: ReviewGrid) -> npt.NDArray[np.int64]:
+        """(V,) number of this run's scans that observed each voxel of ``grid``.
+
+        A scan observed a voxel when at least one of its camera-painted points (``point_label ≥ 0`` in
+        ``points/<frame_id>.npz``, the points the fusion took evidence from) falls in it: the count the
+        3D-CN ranks its training voxels by (:func:`leap_core.consistency.selection.view_counts`), which the
+        pipeline keeps in memory only, so it is counted again here from the run's per-frame files. Voxels
+        only smoothing or the 3D-CN labelled count 0. Reads every scan once; the result is kept for this grid.
+        """
+        with self._lock:
+            cached = self._views
+            if cached is not None and cached[0] is grid:
+                return cached[1]
+            frame_keys = []
+            for i in self.frame_indices:
+                arrays = self.point_arrays(i)
+                if "point_label" not in arrays:
+                    continue
+                painted = arrays["point_label"] >= 0
+                frame_keys.append(voxel_keys(self.world_points(i)[painted], grid.voxel_size))
+            keys, counts = view_counts(frame_keys)
+            out = lookup_counts(grid.keys, keys, counts)
+            self._views = (grid, out)
+            return out
 
 
 __all__ = ["ReviewGrid", "RunOutputs", "ScanView", "final_grid_path", "matrix_to_wxyz"]

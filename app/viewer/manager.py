@@ -28,6 +28,7 @@ from app.viewer.session import (
     ReviewMarkRecord,
     ReviewSession,
     RunInfo,
+    Scope,
     SessionConfig,
 )
 from leap_core.errors import SchemaError
@@ -137,9 +138,29 @@ class AppBackend:
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:
             rows = crud.list_corrections(db, self.project_id, active_only=False)
-        return [CorrectionRecord(c.id, c.class_name, c.voxel_size, c.keys, c.active) for c in rows]
+        # scope / frame_id / points arrive with DB migration 3; rows stored before it are map corrections.
+        return [
+            CorrectionRecord(
+                c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at,
+                scope=getattr(c, "scope", "map"), frame_id=getattr(c, "frame_id", None),
+                points=getattr(c, "points", None),
+            )
+            for c in rows
+        ]
 
-    def add_correction(self, class_name: str, voxel_size: float, keys: npt.NDArray[np.int64]) -> int:
+    def add_correction(
+        self,
+        class_name: str,
+        voxel_size: float,
+        keys: npt.NDArray[np.int64],
+        *,
+        scope: Scope = "map",
+        frame_id: str | None = None,
+        points: npt.NDArray[np.int64] | None = None,
+    ) -> int:
+        if scope != "map" or frame_id is not None or points is not None:
+            # The corrections table gets its scope / frame_id / points columns in DB migration 3.
+            raise ValueError("scan-scope corrections are not stored by this version of the database yet")
         with open_db(self.settings.database) as db:
             return crud.add_correction(
                 db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys

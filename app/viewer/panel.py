@@ -18,8 +18,10 @@ import viser
 
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
+from app.viewer.panel_nav import NavPanel
 from app.viewer.panel_review import QUEUE_KINDS, ReviewQueuePanel
-from app.viewer.session import ReviewSession, RunInfo
+from app.viewer.panel_tools import ToolsPanel
+from app.viewer.session import Inspection, ReviewSession, RunInfo, camera_of
 
 log = logging.getLogger(__name__)
 
@@ -41,14 +43,15 @@ def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: st
     """HTML legend: class swatches in class mode, a colour bar with ticks in the scalar modes."""
     if mode == "class":
         items = "".join(
-            f'<div style="display:flex;align-items:center;gap:6px;font-size:12px">'
+            f'<div style="display:flex;align-items:center;gap:4px;font-size:11px;white-space:nowrap">'
             f'<span style="display:inline-block;width:12px;height:12px;border-radius:2px;'
             f'background:{_hex(rgb)}"></span>{html.escape(n)}</div>'
             # Not strict: the palette is refreshed with the grid, so while none is loaded a class just added
             # to the schema has a name but no colour yet (and gets no swatch).
             for n, rgb in zip(names, palette, strict=False)
         )
-        return f'<div style="display:grid;grid-template-columns:1fr 1fr;gap:2px 8px">{items}</div>'
+        # Three columns: 19 classes in 7 rows, so the Scan section starts within a 720 px high window.
+        return f'<div style="display:grid;grid-template-columns:1fr 1fr 1fr;gap:1px 6px">{items}</div>'
     stops = ", ".join(f"{_hex(vl.CONFIDENCE_LUT[int(i)])}" for i in np.linspace(0, 255, 9))
     title = "confidence (max posterior)" if mode == "confidence" else f"P({html.escape(class_name or '')})"
     return (
@@ -83,20 +86,14 @@ class ReviewPanel:
             self.color_by = gui.add_dropdown("Color by", COLOR_BY, initial_value="class")
             self.prob_class = gui.add_dropdown("Class", ["-"], initial_value="-", visible=False)
             self.threshold = gui.add_slider("Min confidence", min=0.0, max=1.0, step=0.01, initial_value=0.0)
-            self.point_size = gui.add_slider("Point size", min=0.02, max=1.0, step=0.01, initial_value=0.2)
-            self.limit = gui.add_checkbox("Limit points", False, hint="Decimate the map for slow browsers")
-            self.max_points = gui.add_number(
-                "Max points", int(session.config.max_points), min=1_000, step=1_000, visible=False
-            )
             self.legend = gui.add_html("")
-            self.stats = gui.add_markdown("")
+            self._add_display_folder()
 
         self.classes_folder = gui.add_folder("Classes shown", order=2, expand_by_default=False)
 
-        with gui.add_folder("Scan", order=3, expand_by_default=True):
+        self.scan_folder = gui.add_folder("Scan", order=3, expand_by_default=True)
+        with self.scan_folder:
             self.scan_slider = gui.add_slider("Scan", min=0, max=1, step=1, initial_value=0, disabled=True)
-            self.show_scan = gui.add_checkbox("Show scan", True)
-            self.show_map = gui.add_checkbox("Show voxel map", True)
             self.scan_info = gui.add_markdown("")
             self.scan_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="camera + labels",
                                             format="jpeg", visible=False)
@@ -124,8 +121,23 @@ class ReviewPanel:
             self.add_class = gui.add_button("Add class")
             self.steer_info = gui.add_markdown("")
 
+        self.nav = NavPanel(session, gui, self.scan_folder, self._guard)
         self._wire()
         self.on_schema()
+        self.tools = ToolsPanel(self)
+
+    def _add_display_folder(self) -> None:
+        # Rarely changed settings stay folded so that Scan, Review and Corrections fit at 1280×720.
+        gui = self.gui
+        with gui.add_folder("Display", expand_by_default=False):
+            self.point_size = gui.add_slider("Point size", min=0.02, max=1.0, step=0.01, initial_value=0.2)
+            self.limit = gui.add_checkbox("Limit points", False, hint="Decimate the map for slow browsers")
+            self.max_points = gui.add_number(
+                "Max points", int(self.s.config.max_points), min=1_000, step=1_000, visible=False
+            )
+            self.show_scan = gui.add_checkbox("Show scan", True)
+            self.show_map = gui.add_checkbox("Show voxel map", True)
+            self.stats = gui.add_markdown("")
 
     # ------------------------------------------------------------------------------------ wiring
     def _guard(self, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -148,7 +160,7 @@ class ReviewPanel:
         self.point_size.on_update(g(lambda _: setattr(s.scene.voxels, "point_size", self.point_size.value)))
         self.limit.on_update(g(lambda _: self._limit_changed()))
         self.max_points.on_update(g(lambda _: self._limit_changed()))
-        self.scan_slider.on_update(g(lambda _: s.show_scan(int(self.scan_slider.value))))
+        self.scan_slider.on_update(g(lambda _: self._slider_moved()))
         self.show_scan.on_update(g(lambda _: self._scan_visibility()))
         self.show_map.on_update(g(lambda _: setattr(s.scene.voxels, "visible", self.show_map.value)))
         self.select_button.on_click(g(lambda _: self._arm_select()))
@@ -175,6 +187,11 @@ class ReviewPanel:
         self.max_points.visible = bool(self.limit.value)
         self.s.set_state(max_points=int(self.max_points.value) if self.limit.value else None)
 
+    def _slider_moved(self) -> None:
+        # The session moves the slider itself after a key or button step: that echo must not reload.
+        if int(self.scan_slider.value) != self.s.frame_pos:
+            self.s.show_scan(int(self.scan_slider.value))
+
     def _scan_visibility(self) -> None:
         on = bool(self.show_scan.value)
         self.s.scene.scan.visible = on
@@ -185,8 +202,9 @@ class ReviewPanel:
 
         def on_rect(event: viser.SceneRectSelectEvent) -> None:
             s.scene.disarm_rect_select()
-            cam = event.client.camera
-            s.select_rect(cam.position, cam.wxyz, cam.fov, cam.aspect, event.screen_min, event.screen_max)
+            s.select_screen("box", [event.screen_min, event.screen_max], camera_of(event.client.camera))
+            if s.tools.tool == "box":
+                s.set_tools(tool=None)
 
         s.scene.arm_rect_select(self._guard(on_rect))
         self.corr_info.content = "Drag a box over the voxels to select them."
@@ -279,6 +297,8 @@ class ReviewPanel:
         self.rerun_button.disabled = s.watched_run is not None
         self._update_legend()
         self.on_history()
+        self.nav.inspect_folder.visible = False
+        self.nav.on_nav()
 
     def _toggle_class(self, index: int, event: Any) -> None:
         self.s.set_class_enabled(index, bool(event.target.value))
@@ -318,6 +338,14 @@ class ReviewPanel:
         self.undo_button.disabled = not self.s.history.can_undo
         self.redo_button.disabled = not self.s.history.can_redo
         self.corr_info.content = self._corr_summary()
+        if self.s.grid is not None:
+            self.nav.update_histogram()
+
+    def on_inspect(self, inspection: Inspection) -> None:
+        self.nav.on_inspect(inspection)
+
+    def on_nav(self) -> None:
+        self.nav.on_nav()
 
     def on_schema(self) -> None:
         names = self.s.project_schema.names

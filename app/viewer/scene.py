@@ -30,6 +30,7 @@ import viser
 from app.viewer import view_logic as vl
 
 RectSelectFn = Callable[[viser.SceneRectSelectEvent], None]
+ClickFn = Callable[[viser.SceneClickEvent], None]
 
 SECRET_HEADER = "X-Leap-Viewer-Secret"
 """Handshake header carrying :attr:`ReviewScene.secret` (set by the app's relay only)."""
@@ -256,6 +257,8 @@ class ReviewScene:
         self.scan = PointLayer(self.server, "/scan/points", point_size=0.08)
         """The browsed scan's points in their final label colours."""
         self.camera = CameraLayer(self.server, "/scan/camera")
+        self.inspected = PointLayer(self.server, "/map/inspected", point_size=0.35)
+        """Marker of the voxel shown in the panel's Inspect section."""
         self._rect_cb: RectSelectFn | None = None
         self._review_box: viser.BoxHandle | None = None
         self._closed = False
@@ -323,6 +326,11 @@ class ReviewScene:
         if self._rect_cb is not None:
             self.server.scene.remove_rect_select_callback(self._rect_cb)
             self._rect_cb = None
+
+    def on_click(self, callback: ClickFn) -> None:
+        """Call ``callback`` for every plain click on the canvas (a drag still orbits the camera; clicks
+        with a modifier held are left to other tools)."""
+        self.server.scene.on_click()(callback)
 
     @property
     def rect_select_armed(self) -> bool:

@@ -22,15 +22,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, TypedDict
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.viewer import nav_logic as nl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, ScanView
 from app.viewer.scene import ReviewScene
 from leap_core import review
+from leap_core import selection as sel
 from leap_core.fusion import key_centres, voxel_keys
+from leap_core.picking import pick_voxel
 from leap_core.schema import ClassDef, Schema
+from leap_core.types import UNLABELED
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack  # typing.Unpack from Python 3.11
@@ -38,6 +43,12 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 QueueKind = Literal["confidence", "disagreement"]
+ToolKind = Literal["lasso", "brush", "box"]
+Target = Literal["map", "scan"]
+"""What a selection tool picks from: voxels of the map, or points of the scan shown."""
+Scope = Literal["map", "scan"]
+"""What a correction changes: all points in its voxels in every scan (``map``), or listed points of one
+scan (``scan``)."""
 
 
 class ViewChanges(TypedDict, total=False):
@@ -96,6 +107,61 @@ class CorrectionRecord:
     """Packed voxel keys."""
     active: bool
     """False once undone."""
+    created_at: str = ""
+    """ISO UTC time it was made ("" when the store does not say)."""
+
+    scope: Scope = "map"
+    """``map``: every point in ``keys``' voxels; ``scan``: only ``points`` of scan ``frame_id``."""
+    frame_id: str | None = None
+    """Scan of a scan-scope correction."""
+    points: npt.NDArray[np.int64] | None = None
+    """Scan scope: indices into that scan's points."""
+
+
+@dataclass(frozen=True)
+class Inspection:
+    """What the panel shows of one clicked voxel (:meth:`ReviewSession.inspect_ray`)."""
+
+    row: int
+    """Row of the voxel in the displayed grid."""
+    key: int
+    """Its packed voxel key."""
+    centre: tuple[float, float, float]
+    """Voxel centre (metres)."""
+    probs: npt.NDArray[np.float32]
+    """(C,) the grid's class distribution of the voxel (before corrections)."""
+    label: int
+    """Shown class index (after corrections), -1 unlabeled."""
+    conf: float
+    """Shown confidence (1 for a corrected voxel)."""
+    corrected: bool
+    """An active correction overrides the voxel."""
+    views: int
+    """Number of the run's scans that observed the voxel (:meth:`RunOutputs.view_counts`)."""
+    history: tuple[CorrectionRecord, ...]
+    """Every correction (active or undone) whose voxels include this one, oldest first."""
+    distance: float
+    """Distance from the click ray's origin (metres)."""
+
+
+@dataclass(frozen=True)
+class ToolSettings:
+    """The selection tools' settings (panel widgets and the viewer page's keys change them)."""
+
+    tool: ToolKind | None = None
+    """Armed tool: the next drag on the canvas draws its outline (None: the camera orbits)."""
+    depth_mode: sel.DepthMode = "front"
+    """``front``: only the first surface along each view ray (within ``distance``); ``through``: all."""
+    distance: float = 0.5
+    """Front-surface tolerance (m) behind the first hit."""
+    class_filter: str | None = None
+    """Select only what is currently labelled this class (None: any class)."""
+    target: Target = "map"
+    """Select voxels of the map or points of the scan shown."""
+    scope: Scope = "map"
+    """Scope of the corrections made from the selection."""
+    brush_radius: float = 0.03
+    """Brush radius as a share of the canvas height."""
 
 
 @dataclass(frozen=True)
@@ -131,7 +197,16 @@ class ProjectBackend(Protocol):
 
     def corrections(self) -> list[CorrectionRecord]: ...
 
-    def add_correction(self, class_name: str, voxel_size: float, keys: npt.NDArray[np.int64]) -> int: ...
+    def add_correction(
+        self,
+        class_name: str,
+        voxel_size: float,
+        keys: npt.NDArray[np.int64],
+        *,
+        scope: Scope = "map",
+        frame_id: str | None = None,
+        points: npt.NDArray[np.int64] | None = None,
+    ) -> int: ...
 
     def set_correction_active(self, correction_id: int, active: bool) -> None: ...
 
@@ -165,6 +240,10 @@ class SessionView(Protocol):
 
     def on_run_progress(self, info: RunInfo) -> None: ...
 
+    def on_inspect(self, inspection: Inspection) -> None: ...
+
+    def on_nav(self) -> None: ...
+
 
 @dataclass(frozen=True)
 class SessionConfig:
@@ -184,11 +263,31 @@ class SessionConfig:
     """A focused region's scan is the best observer (:func:`leap_core.review.best_observer`) among this many
     scans whose sensor positions lie nearest the region: counting every scan's points would cost a pass over
     the whole sequence per region."""
+    play_interval_s: float = 1.0
+    """Seconds between scans while playing through them."""
+    follow_ego: bool = True
+    """Whether the camera follows the ego pose on a scan change when the viewer starts (key ``g``)."""
 
 
 @dataclass
 class _Selection:
     rows: npt.NDArray[np.int64]
+    """Rows of the grid (target ``map``) or indices of the shown scan's points (target ``scan``)."""
+    target: Target = "map"
+    frame_id: str | None = None
+
+
+def camera_of(camera: Any) -> sel.PinholeCamera:
+    """The :class:`~leap_core.selection.PinholeCamera` of a viser client camera (its canvas size capped at
+    :data:`~leap_core.selection.MAX_CANVAS_PX`, keeping the aspect)."""
+    w, h = int(camera.image_width), int(camera.image_height)
+    scale = min(1.0, sel.MAX_CANVAS_PX / max(w, h, 1))
+    p = np.asarray(camera.position, dtype=np.float64).reshape(3)
+    q = np.asarray(camera.wxyz, dtype=np.float64).reshape(4)
+    return sel.PinholeCamera(
+        (float(p[0]), float(p[1]), float(p[2])), (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+        float(camera.fov), max(1, int(w * scale)), max(1, int(h * scale)),
+    )
 
 
 class ReviewSession:
@@ -228,11 +327,15 @@ class ReviewSession:
         self.conf = np.zeros(0, np.float32)
         self.corrected = np.zeros(0, bool)
         self.selection = _Selection(np.zeros(0, np.int64))
+        self.tools = ToolSettings()
+        self.scan_label = np.zeros(0, np.int16)
+        """Labels of the shown scan's points with the corrections overlaid (what the scan layer shows)."""
         self.regions: list[vl.Region] = []
         self.region_pos = -1
         self.queue_kind: QueueKind = "confidence"
         self._init_review_state()
         self.frame_pos = 0
+        self._init_navigation()
         self.last_draw_s = 0.0
         self.draw_count = 0
         self.scene_version = 0
@@ -271,6 +374,19 @@ class ReviewSession:
         """The review region shown highlighted (its voxels at full colour, the rest dimmed)."""
         self.focus_frame: int | None = None
         """Position (in the scan slider) of the scan the focused region was seen best in."""
+    def _init_navigation(self) -> None:
+        self.scan_view: ScanView | None = None
+        """The scan shown (points, labels, ego pose, image)."""
+        self.follow_ego = self.config.follow_ego
+        """Move the camera behind the ego vehicle on every scan change."""
+        self.playing = False
+        self.image_open = False
+        """The page shows the scan's image enlarged (web/viewer/nav.js reads it, so it stays open while
+        navigating and the panel's button and the ``i`` key act on the same state)."""
+        self.inspected: Inspection | None = None
+        self._image_jpeg: tuple[ScanView, bytes] | None = None
+        self._scan_lock = threading.RLock()
+        self._player: threading.Thread | None = None
 
     # ------------------------------------------------------------------------------------- plumbing
     @property
@@ -289,7 +405,8 @@ class ReviewSession:
                 log.exception("viewer listener failed")
 
     def close(self) -> None:
-        """Stop the drawing and watching threads and the viser server."""
+        """Stop the drawing, playing and watching threads and the viser server."""
+        self.playing = False
         self._stop.set()
         self._draw_wanted.set()
         self._drawer.join(timeout=5)
@@ -329,9 +446,12 @@ class ReviewSession:
         if self.scene_version == 1:
             # Frame the map once; a reload after a re-run keeps the camera where the user left it.
             self._frame_whole_map()
+        self.inspected = None
+        self.scene.inspected.visible = False
         self.scene.set_review_box(None)
         if outputs.frame_indices:
-            self.show_scan(len(outputs.frame_indices) // 2)
+            # The map framing above is the first view; following starts with the user's first scan change.
+            self.show_scan(len(outputs.frame_indices) // 2, move_camera=False)
         if rebuild:
             # After a re-run the queue is ranked again on the new grid (in the background: the disagreement
             # queue reads every scan); marks of regions whose signature did not change still count.
@@ -362,12 +482,16 @@ class ReviewSession:
             [current.get(c.name, c.color) for c in self.run_schema.classes], dtype=np.uint8
         ).reshape(-1, 3)
 
+    def _class_ids(self) -> dict[str, int]:
+        """Class name → index of the displayed grid; ``""`` (erase) → unlabeled (-1)."""
+        return {"": UNLABELED, **{n: i for i, n in enumerate(self.class_names())}}
+
     def _apply_corrections_locked(self) -> None:
         assert self.grid is not None
-        names = {n: i for i, n in enumerate(self.class_names())}
+        names = self._class_ids()
         keys_all, labels_all = [], []
         for rec in self.backend.corrections():
-            if not rec.active or rec.class_name not in names or rec.keys.size == 0:
+            if rec.scope != "map" or not rec.active or rec.class_name not in names or rec.keys.size == 0:
                 continue
             keys = rec.keys
             if not np.isclose(rec.voxel_size, self.grid.voxel_size):
@@ -385,7 +509,11 @@ class ReviewSession:
         """Change the view (``mode``, ``class_index``, ``threshold``, ``enabled``, ``max_points``) and
         schedule a redraw."""
         with self._lock:
+            old_mode = self.state.mode
             self.state = dataclasses.replace(self.state, **changes)
+            mode = self.state.mode
+        if mode != old_mode:
+            self._color_scan()
         self._draw_wanted.set()
 
     def set_class_enabled(self, index: int, on: bool) -> None:
@@ -475,41 +603,208 @@ class ReviewSession:
             return
         cols = np.empty((rows.shape[0], 3), np.uint8)
         cols[:] = SELECTION_RGB
-        self.scene.selection.set(grid.centres[rows], cols)
+        if self.selection.target == "scan":
+            view = self.scan_view
+            if view is None or view.frame_id != self.selection.frame_id:
+                self.scene.selection.visible = False
+                return
+            self.scene.selection.set(view.points[rows], cols)
+        else:
+            self.scene.selection.set(grid.centres[rows], cols)
         self.scene.selection.visible = True
 
     def _frame_whole_map(self) -> None:
         grid = self.grid
-        if grid is None or grid.num_voxels == 0:
-            return
-        lo = np.percentile(grid.centres, 2, axis=0)
-        hi = np.percentile(grid.centres, 98, axis=0)
-        centre = (lo + hi) / 2.0
-        centre[2] = float(np.percentile(grid.centres[:, 2], 20))
-        extent = float(np.linalg.norm(hi[:2] - lo[:2]))
-        pos, tgt = vl.orbit_view(centre, max(10.0, 0.85 * extent), elevation_deg=50.0, azimuth_deg=200.0)
-        self.scene.look_at(pos, tgt)
+        view = None if grid is None else nl.fit_view(grid.centres)
+        if view is not None:
+            self.scene.look_at(*view)
+
+    def fit_map(self) -> None:
+        """Move the camera so that the whole voxel map is in view (key ``shift+f``)."""
+        self._frame_whole_map()
+
+    def fit_scan(self) -> None:
+        """Move the camera so that the shown scan's points are in view (key ``f``)."""
+        view = self.scan_view
+        framing = None if view is None else nl.fit_view(view.points)
+        if framing is not None:
+            self.scene.look_at(*framing)
+
+    def follow_scan(self) -> None:
+        """Move the camera behind and above the shown scan's ego pose (:func:`nav_logic.follow_view`)."""
+        view = self.scan_view
+        if view is not None and view.ego_pose is not None:
+            self.scene.look_at(*nl.follow_view(view.ego_pose))
 
     # ------------------------------------------------------------------------------------ scan browser
-    def show_scan(self, pos: int) -> ScanView | None:
-        """Show the ``pos``-th labelled scan: its points, camera frustum and labelled image."""
+    @property
+    def scan_count(self) -> int:
+        """Number of scans the run labelled (the positions :meth:`show_scan` takes)."""
+        outputs = self.outputs
+        return 0 if outputs is None else len(outputs.frame_indices)
+
+    def show_scan(self, pos: int, *, move_camera: bool | None = None) -> ScanView | None:
+        """Show the ``pos``-th labelled scan (clipped to the run's scans): its points, camera frustum and
+        labelled image. The camera follows the ego pose when ``move_camera`` is True, or when it is None and
+        :attr:`follow_ego` is on."""
         outputs = self.outputs
         if outputs is None or not outputs.frame_indices:
             return None
-        pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
-        view = outputs.scan_view(outputs.frame_indices[pos], self.palette)
-        view = self._mark_region_in_image(view, pos)
-        self.frame_pos = pos
-        self.scene.scan.set(view.points, vl.class_colors(view.label, self.palette))
-        self.scene.camera.set(
-            position=view.cam_position,
-            wxyz=view.cam_wxyz,
-            fov_y=view.fov_y,
-            aspect=view.aspect,
-            image=view.overlay,
-        )
+        with self._scan_lock:
+            pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
+            view = outputs.scan_view(outputs.frame_indices[pos], self.palette)
+            view = self._mark_region_in_image(view, pos)
+            self.frame_pos = pos
+            with self._lock:
+                self.scan_view = view
+                dropped = self.selection.target == "scan" and self.selection.rows.size > 0
+                if dropped:  # a scan selection belongs to the scan it was made on
+                    self.selection = _Selection(np.zeros(0, np.int64))
+                self.scan_label = self._scan_labels_locked(view)
+                colors = nl.scan_colors(self.state.mode, self.scan_label, self.palette)
+                self.scene.scan.set(view.points, colors)
+            if dropped:
+                self._draw_selection()
+                self.panel.on_selection(0)
+            self.scene.camera.set(
+                position=view.cam_position,
+                wxyz=view.cam_wxyz,
+                fov_y=view.fov_y,
+                aspect=view.aspect,
+                image=view.overlay,
+            )
+            if move_camera if move_camera is not None else self.follow_ego:
+                self.follow_scan()
         self.panel.on_scan(view, pos, len(outputs.frame_indices))
         return view
+
+    def step_scan(self, step: int) -> ScanView | None:
+        """Show the scan ``step`` positions after (before, when negative) the shown one."""
+        with self._scan_lock:
+            return self.show_scan(self.frame_pos + step)
+
+    def _color_scan(self) -> None:
+        with self._scan_lock:
+            view = self.scan_view
+            if view is not None and self.scene.scan.count == view.points.shape[0]:
+                self.scene.scan.set_colors(nl.scan_colors(self.state.mode, self.scan_label, self.palette))
+
+    def set_follow(self, on: bool | None = None) -> bool:
+        """Turn camera following on or off (None toggles); turning it on moves the camera at once."""
+        self.follow_ego = (not self.follow_ego) if on is None else bool(on)
+        if self.follow_ego:
+            self.follow_scan()
+        self.panel.on_nav()
+        return self.follow_ego
+
+    def set_image_open(self, on: bool | None = None) -> bool:
+        """Show or hide the enlarged scan image in the page (None toggles)."""
+        self.image_open = (not self.image_open) if on is None else bool(on)
+        self.panel.on_nav()
+        return self.image_open
+
+    def scan_image_jpeg(self, quality: int = 90) -> bytes | None:
+        """The shown scan's labelled camera image as JPEG, or None when it has none (encoded once per
+        scan)."""
+        view = self.scan_view
+        if view is None or view.overlay is None:
+            return None
+        cached = self._image_jpeg
+        if cached is not None and cached[0] is view:
+            return cached[1]
+        ok, buf = cv2.imencode(".jpg", view.overlay[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise RuntimeError(f"could not encode the image of scan {view.frame_id}")
+        data = buf.tobytes()
+        self._image_jpeg = (view, data)
+        return data
+
+    def set_playing(self, on: bool | None = None) -> bool:
+        """Play through the scans, one every ``config.play_interval_s``, or pause (None toggles).
+
+        Playing from the last scan starts again at the first; playing stops at the last scan.
+        """
+        with self._scan_lock:
+            want = (not self.playing) if on is None else bool(on)
+            if want and self.scan_count <= 1:
+                want = False
+            self.playing = want
+            if want and self.frame_pos >= self.scan_count - 1:
+                self.show_scan(0)
+            if want and (self._player is None or not self._player.is_alive()):
+                self._player = threading.Thread(target=self._play_loop, name="viewer-play", daemon=True)
+                self._player.start()
+        self.panel.on_nav()
+        return self.playing
+
+    def _play_loop(self) -> None:
+        while self.playing and not self._stop.wait(self.config.play_interval_s):
+            if not self.playing:
+                return
+            try:
+                with self._scan_lock:
+                    at_end = self.frame_pos + 1 >= self.scan_count - 1
+                    self.step_scan(1)
+                    if at_end:
+                        self.playing = False
+            except Exception:  # stop playing, keep the viewer
+                log.exception("viewer could not show the next scan")
+                self.playing = False
+            if not self.playing:
+                self.panel.on_nav()
+                return
+
+    # ------------------------------------------------------------------------------------- inspection
+    def confidence_histograms(self, bins: int = 10) -> npt.NDArray[np.int64]:
+        """(C, bins) voxel counts per shown class and confidence bin (corrections applied; see
+        :func:`app.viewer.nav_logic.confidence_histograms`)."""
+        with self._lock:
+            label, conf = self.label, self.conf
+        return nl.confidence_histograms(label, conf, len(self.class_names()), bins)
+
+    def inspect_ray(self, origin: npt.ArrayLike, direction: npt.ArrayLike) -> Inspection | None:
+        """Inspect the first shown voxel a click ray enters (:func:`leap_core.picking.pick_voxel`): its
+        class distribution, confidence, number of scans that observed it and its correction history.
+        Returns None (and changes nothing) when the ray hits no shown voxel."""
+        grid = self.grid
+        if grid is None:
+            return None
+        rows, _ = self.compute_view()
+        pick = pick_voxel(origin, direction, grid.centres[rows], grid.voxel_size)
+        if pick is None:
+            return None
+        row = int(rows[pick.index])
+        key = int(grid.keys[row])
+        history = []
+        for rec in self.backend.corrections():
+            keys = rec.keys
+            if not np.isclose(rec.voxel_size, grid.voxel_size):
+                keys = voxel_keys(key_centres(keys, rec.voxel_size), grid.voxel_size)
+            if np.any(keys == key):
+                history.append(rec)
+        views = self.outputs.view_counts(grid) if self.outputs is not None else None
+        with self._lock:
+            label, conf, corrected = int(self.label[row]), float(self.conf[row]), bool(self.corrected[row])
+        cx, cy, cz = (float(v) for v in grid.centres[row])
+        found = Inspection(
+            row=row,
+            key=key,
+            centre=(cx, cy, cz),
+            probs=np.asarray(grid.probs[row], dtype=np.float32),
+            label=label,
+            conf=conf,
+            corrected=corrected,
+            views=0 if views is None else int(views[row]),
+            history=tuple(history),
+            distance=pick.distance,
+        )
+        self.inspected = found
+        # Larger than a voxel, so the marker shows around the voxel it covers.
+        self.scene.inspected.point_size = 1.6 * grid.voxel_size
+        self.scene.inspected.set(grid.centres[row : row + 1], np.array([nl.INSPECT_RGB], np.uint8))
+        self.scene.inspected.visible = True
+        self.panel.on_inspect(found)
+        return found
 
     # ------------------------------------------------------------------------------------ review queue
     def build_queue(self, kind: QueueKind) -> list[vl.Region]:
@@ -615,7 +910,7 @@ class ReviewSession:
         if best is not None:
             with self._lock:
                 self.focus_frame = best
-            self.show_scan(best)
+            self.show_scan(best, move_camera=False)  # keep the framing of the region
         self.panel.on_region(region, pos, len(self.regions), self.queue_kind)
         return region
 
@@ -701,6 +996,109 @@ class ReviewSession:
         return cid
 
     # ------------------------------------------------------------------------------------- corrections
+    def set_tools(self, **changes: Any) -> ToolSettings:
+        """Change the selection tools' settings (fields of :class:`ToolSettings`); validated here so the
+        panel and the viewer page's routes share one rule."""
+        tools = dataclasses.replace(self.tools, **changes)
+        if tools.tool not in (None, "lasso", "brush", "box"):
+            raise ValueError(f"tool must be lasso, brush, box or none, got {tools.tool!r}")
+        if tools.depth_mode not in ("front", "through"):
+            raise ValueError(f"depth_mode must be 'front' or 'through', got {tools.depth_mode!r}")
+        if not 0.0 <= tools.distance <= 100.0:
+            raise ValueError(f"distance must lie in [0, 100] m, got {tools.distance}")
+        if tools.target not in ("map", "scan") or tools.scope not in ("map", "scan"):
+            raise ValueError(
+                f"target and scope must be 'map' or 'scan', got {tools.target!r}, {tools.scope!r}"
+            )
+        if not 0.001 <= tools.brush_radius <= 0.5:
+            raise ValueError(
+                f"brush_radius must lie in [0.001, 0.5] of the canvas height, got {tools.brush_radius}"
+            )
+        if tools.class_filter is not None and tools.class_filter not in self.class_names():
+            raise ValueError(f"class_filter: unknown class {tools.class_filter!r}")
+        with self._lock:
+            self.tools = tools
+        self._emit("tools")
+        return tools
+
+    def latest_camera(self) -> sel.PinholeCamera:
+        """The camera of the most recently updated browser (each moves its own camera; the one moved last
+        is the one the user is drawing on).
+
+        Raises:
+            LookupError: no browser has reported its camera yet.
+        """
+        best = None
+        for client in self.scene.clients().values():
+            try:
+                stamp = client.camera.update_timestamp
+            except AssertionError:  # viser asserts until the client's first camera message
+                continue
+            if best is None or stamp > best[0]:
+                best = (stamp, client.camera)
+        if best is None:
+            raise LookupError("no viewer page has reported its camera yet")
+        return camera_of(best[1])
+
+    def select_screen(
+        self,
+        tool: ToolKind,
+        outline: npt.ArrayLike,
+        camera: sel.PinholeCamera,
+        *,
+        add: bool = False,
+    ) -> int:
+        """Select with a tool's outline drawn on the canvas of ``camera``; returns the selection's size.
+
+        ``outline``: (K, 2) normalised screen points: the lasso's polygon, the brush's stroke, or the box's
+        two corners. The depth mode, distance, class filter and target come from :attr:`tools`; ``add``
+        adds to the current selection (same target and scan) instead of replacing it.
+        """
+        tools = self.tools
+        w, h = camera.width_px, camera.height_px
+        if tool == "lasso":
+            mask = sel.polygon_mask(outline, w, h)
+        elif tool == "brush":
+            mask = sel.stroke_mask(outline, tools.brush_radius * h, w, h)
+        elif tool == "box":
+            corners = np.asarray(outline, dtype=np.float64).reshape(-1, 2)
+            if corners.shape[0] != 2:
+                raise ValueError(f"a box needs 2 corners, got {corners.shape[0]}")
+            mask = sel.rect_mask(corners[0], corners[1], w, h)
+        else:
+            raise ValueError(f"unknown tool {tool!r}")
+        with self._lock:
+            grid, view, label = self.grid, self.scan_view, self.label
+            scan_label = self.scan_label
+        if grid is None:
+            return 0
+        cls = None if tools.class_filter is None else self._class_ids().get(tools.class_filter)
+        frame_id = None
+        if tools.target == "map":
+            rows, _ = self.compute_view()
+            points, splat = grid.centres[rows], grid.voxel_size
+            eligible = None if cls is None else label[rows] == cls
+        else:
+            if view is None:
+                raise ValueError("no scan is shown to select from")
+            rows = np.arange(view.points.shape[0], dtype=np.int64)
+            points, splat, frame_id = view.points, float(self.scene.scan.point_size), view.frame_id
+            eligible = None if cls is None else scan_label == cls
+        picked = sel.select_points(
+            points, camera, mask, depth_mode=tools.depth_mode, distance=tools.distance, splat_size=splat,
+            eligible=eligible,
+        )
+        chosen = rows[picked]
+        with self._lock:
+            old = self.selection
+            if add and old.target == tools.target and old.frame_id == frame_id:
+                chosen = np.union1d(old.rows, chosen)
+            self.selection = _Selection(chosen, tools.target, frame_id)
+        self._draw_selection()
+        self.panel.on_selection(int(chosen.size))
+        self._emit("selection")
+        return int(chosen.size)
+
     def select_rect(
         self,
         position: npt.ArrayLike,
@@ -709,50 +1107,112 @@ class ReviewSession:
         aspect: float,
         rect_min: tuple[float, float],
         rect_max: tuple[float, float],
+        *,
+        height_px: int = 1080,
     ) -> int:
-        """Select the visible voxels inside a screen rectangle seen from a camera; returns the count."""
-        grid = self.grid
-        if grid is None:
-            return 0
-        rows, _ = self.compute_view()
-        inside = vl.select_in_rect(
-            grid.centres[rows],
-            list(np.asarray(position)),
-            list(np.asarray(wxyz)),
-            fov_y,
-            aspect,
-            rect_min=rect_min,
-            rect_max=rect_max,
+        """Select with a screen rectangle seen from a camera (the box tool); returns the count."""
+        p = np.asarray(position, dtype=np.float64).reshape(3)
+        q = np.asarray(wxyz, dtype=np.float64).reshape(4)
+        camera = sel.PinholeCamera(
+            (float(p[0]), float(p[1]), float(p[2])), (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+            float(fov_y), max(1, round(height_px * aspect)), height_px,
         )
-        with self._lock:
-            self.selection = _Selection(rows[inside])
-        self._draw_selection()
-        self.panel.on_selection(int(inside.sum()))
-        return int(inside.sum())
+        return self.select_screen("box", [rect_min, rect_max], camera)
 
     def clear_selection(self) -> None:
         with self._lock:
             self.selection = _Selection(np.zeros(0, np.int64))
         self._draw_selection()
         self.panel.on_selection(0)
+        self._emit("selection")
 
-    def assign_selection(self, class_name: str) -> int | None:
-        """Store a correction assigning ``class_name`` to the selected voxels; returns its id."""
-        grid = self.grid
-        rows = self.selection.rows
+    def assign_selection(self, class_name: str, *, scope: Scope | None = None) -> int | None:
+        """Store a correction assigning ``class_name`` (``""``: erase to unlabeled) to the selection;
+        returns its id (None when nothing is selected).
+
+        ``scope`` (default :attr:`ToolSettings.scope`): ``map`` stores the voxels (of the selected voxels,
+        or of the voxels holding the selected scan points); ``scan`` stores the shown scan's points (the
+        selected points, or the scan's points inside the selected voxels).
+        """
+        scope = self.tools.scope if scope is None else scope
+        if scope not in ("map", "scan"):
+            raise ValueError(f"scope must be 'map' or 'scan', got {scope!r}")
+        with self._lock:
+            grid, selection, view = self.grid, self.selection, self.scan_view
+        rows = selection.rows
         if grid is None or rows.size == 0:
             return None
-        if class_name not in self.class_names():
+        if class_name != "" and class_name not in self.class_names():
             raise ValueError(f"unknown class {class_name!r}")
-        cid = self.backend.add_correction(class_name, grid.voxel_size, grid.keys[rows])
+        if selection.target == "map":
+            keys = grid.keys[rows]
+        else:
+            if view is None or view.frame_id != selection.frame_id:
+                raise ValueError("the selected scan is no longer shown; select again")
+            keys = np.unique(voxel_keys(view.points[rows].astype(np.float64), grid.voxel_size))
+        if scope == "map":
+            cid = self.backend.add_correction(class_name, grid.voxel_size, keys)
+        else:
+            if view is None:
+                raise ValueError("no scan is shown: a scan-scope correction needs one")
+            if selection.target == "scan":
+                points = rows
+            else:
+                scan_keys = voxel_keys(view.points.astype(np.float64), grid.voxel_size)
+                points = np.flatnonzero(np.isin(scan_keys, keys))
+            cid = self.backend.add_correction(
+                class_name, grid.voxel_size, keys, scope="scan", frame_id=view.frame_id,
+                points=points.astype(np.int64),
+            )
         self.history.push(cid)
         with self._lock:
             self.selection = _Selection(np.zeros(0, np.int64))
             self._apply_corrections_locked()
+        self._recolour_scan()
         self.panel.on_selection(0)
         self.panel.on_history()
         self.request_draw()
+        self._emit("corrected")
         return cid
+
+    def assign_slot(self, slot: int) -> int | None:
+        """Assign the ``slot``-th class (1-based, the order of the class picker) to the selection."""
+        names = self.class_names()
+        if not 1 <= slot <= len(names):
+            raise ValueError(f"slot must lie in [1, {len(names)}], got {slot}")
+        return self.assign_selection(names[slot - 1])
+
+    def _scan_labels_locked(self, view: ScanView) -> npt.NDArray[np.int16]:
+        """The scan's run labels with the active corrections overlaid: map corrections through the voxel
+        of each point, then this scan's own corrections in the order they were made."""
+        label = view.label.copy()
+        grid = self.grid
+        if grid is None or self.corrected.size != grid.num_voxels:
+            return label
+        if self.corrected.any():
+            rows = grid.rows_of(voxel_keys(view.points.astype(np.float64), grid.voxel_size))
+            hit = rows >= 0
+            hit[hit] = self.corrected[rows[hit]]
+            label[hit] = self.label[rows[hit]]
+        names = self._class_ids()
+        n = label.shape[0]
+        for rec in self.backend.corrections():
+            if (
+                rec.scope == "scan" and rec.active and rec.frame_id == view.frame_id
+                and rec.points is not None and (rec.class_name in names or rec.class_name == "")
+            ):
+                pts = rec.points[(rec.points >= 0) & (rec.points < n)]
+                label[pts] = names.get(rec.class_name, UNLABELED)
+        return label
+
+    def _recolour_scan(self) -> None:
+        with self._lock:
+            view = self.scan_view
+            if view is None:
+                return
+            self.scan_label = self._scan_labels_locked(view)
+            colors = nl.scan_colors(self.state.mode, self.scan_label, self.palette)
+        self.scene.scan.set_colors(colors)
 
     def undo(self) -> int | None:
         cid = self.history.undo()
@@ -772,6 +1232,7 @@ class ReviewSession:
         with self._lock:
             if self.grid is not None:
                 self._apply_corrections_locked()
+        self._recolour_scan()
         self.panel.on_history()
         self.request_draw()
 
@@ -866,11 +1327,17 @@ class ReviewSession:
 
 __all__ = [
     "CorrectionRecord",
+    "Inspection",
     "ProjectBackend",
     "QueueKind",
     "ReviewMarkRecord",
     "ReviewSession",
     "RunInfo",
+    "Scope",
     "SessionConfig",
+    "Target",
+    "ToolKind",
+    "ToolSettings",
     "ViewChanges",
+    "camera_of",
 ]

@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from leap_core import review
 from leap_core.fusion import last_per_key
+from leap_core.selection import project_to_screen, quat_to_matrix
 from leap_core.types import UNLABELED
 
 ColorMode = Literal["class", "confidence", "class_probability"]
@@ -289,55 +290,6 @@ def apply_corrections(
 
 
 # ------------------------------------------------------------------------------ camera and selection
-def quat_to_matrix(wxyz: Sequence[float]) -> npt.NDArray[np.float64]:
-    """(3, 3) rotation of a unit quaternion (w, x, y, z) (normalised first)."""
-    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / np.linalg.norm(wxyz)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def project_to_screen(
-    points: npt.ArrayLike,
-    position: Sequence[float],
-    wxyz: Sequence[float],
-    fov_y: float,
-    aspect: float,
-) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
-    """Normalised screen coordinates of world points seen by a viser client camera.
-
-    viser's camera follows the OpenCV convention: ``p_world = R · p_cam + t`` with ``R`` from ``wxyz``,
-    +z forward, +x right, +y down. With ``p_cam = Rᵀ(p - t)``:
-    ``u = ½ + ½ · (x/z) / (aspect · tan(fov_y/2))``, ``v = ½ + ½ · (y/z) / tan(fov_y/2)``,
-    so (0, 0) is the top-left and (1, 1) the bottom-right corner (the rect-select event's convention).
-
-    Args:
-        points: (N, 3) world coordinates.
-        position: camera position t.
-        wxyz: camera orientation quaternion.
-        fov_y: vertical field of view in radians.
-        aspect: canvas width / height.
-
-    Returns:
-        ``(uv (N, 2), in_front (N,) bool)``; uv is meaningless where ``in_front`` is False.
-    """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    rot = quat_to_matrix(wxyz)
-    cam = (p - np.asarray(position, dtype=np.float64)) @ rot  # rows are Rᵀ(p - t)
-    z = cam[:, 2]
-    in_front = z > 1e-6
-    safe_z = np.where(in_front, z, 1.0)
-    ty = math.tan(fov_y / 2.0)
-    uv = np.empty((p.shape[0], 2))
-    uv[:, 0] = 0.5 + 0.5 * cam[:, 0] / safe_z / (aspect * ty)
-    uv[:, 1] = 0.5 + 0.5 * cam[:, 1] / safe_z / ty
-    return uv, in_front
-
-
 def select_in_rect(
     points: npt.ArrayLike,
     position: Sequence[float],

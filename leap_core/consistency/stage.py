@@ -46,8 +46,13 @@ def checkpoint_path(work_dir: str | Path, iteration: int) -> Path:
     return Path(work_dir) / f"3dcn_iter{iteration}.pt"
 
 
-def _fingerprint(cfg: ConsistencyConfig, num_classes: int, frames: range, targets: list[np.ndarray]) -> str:
-    """Hash of everything the trained weights depend on: config, classes, frames and selected labels."""
+def training_fingerprint(
+    cfg: ConsistencyConfig, num_classes: int, frames: range, targets: list[npt.NDArray[np.int16]]
+) -> str:
+    """Hash of everything the trained weights depend on: config, classes, frames and selected labels.
+
+    Stored as ``meta["fingerprint"]`` in each checkpoint; ``cfg`` is the iteration's config (seed offset
+    included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets`."""
     h = hashlib.sha256()
     # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
     untrained = ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")
@@ -58,6 +63,53 @@ def _fingerprint(cfg: ConsistencyConfig, num_classes: int, frames: range, target
         h.update(np.ascontiguousarray(t).tobytes())
         h.update(b"|")
     return h.hexdigest()
+
+
+def reliable_targets(  # noqa: PLR0917  the selection's inputs, each named in the docstring
+    seq: KittiSequence,
+    smoothed: VoxelGrid,
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    voxel_size: float,
+    frames: range,
+    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None,
+    progress: Callable[[], None] | None = None,
+) -> list[npt.NDArray[np.int16]]:
+    """Step 1 of :func:`run_3dcn_iteration`: per scan, the (N_s,) int16 training label of each point, its
+    voxel's argmax class in ``smoothed`` where selected, ``UNLABELED`` elsewhere.
+
+    Points take label and confidence of their voxel (``voxel_keys(world_points(points, pose))``); per class
+    the ``cfg.share`` most confident become labels (:func:`select_reliable_scans`, scope
+    ``cfg.selection_scope``, ties by ``views`` counts, then by ``cfg.seed``'s random order). ``progress()``
+    is called once per scan.
+    """
+    voxel_labels = smoothed.voxel_labels()
+    labels: list[np.ndarray] = []
+    confs: list[np.ndarray] = []
+    supports: list[np.ndarray] = []
+    for i in frames:
+        frame = seq.frame(i)
+        keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+        lab, conf = voxel_labels.at(keys)
+        labels.append(lab)
+        confs.append(conf)
+        if views is not None:
+            supports.append(lookup_counts(keys, *views))
+        if progress is not None:
+            progress()
+    masks = select_reliable_scans(
+        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
+        support=supports if views is not None else None,
+    )
+    return [
+        np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels, strict=True)
+    ]
+
+
+def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfig:
+    """``cfg`` with the seed of round ``iteration`` (``seed + 1000·(iteration-1)``): the second round should
+    not replay the first one's sampling."""
+    return cfg if iteration == 1 else replace(cfg, seed=cfg.seed + 1000 * (iteration - 1))
 
 
 def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; its steps 1-3 share a counter
@@ -120,8 +172,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
     n = len(frames)
     work_dir = Path(work_dir)
     ckpt_path = checkpoint_path(work_dir, iteration)
-    # A different seed per iteration: the second round should not replay the first one's sampling.
-    cfg_it = cfg if iteration == 1 else replace(cfg, seed=cfg.seed + 1000 * (iteration - 1))
+    cfg_it = iteration_config(cfg, iteration)
     train_steps = num_train_steps(n, cfg)
     total = n + train_steps + n
     done = 0
@@ -137,27 +188,8 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         return fused
 
     # 1. reliable labels
-    voxel_labels = smoothed.voxel_labels()
-    labels: list[np.ndarray] = []
-    confs: list[np.ndarray] = []
-    supports: list[np.ndarray] = []
-    for i in frames:
-        frame = seq.frame(i)
-        keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
-        lab, conf = voxel_labels.at(keys)
-        labels.append(lab)
-        confs.append(conf)
-        if views is not None:
-            supports.append(lookup_counts(keys, *views))
-        tick()
-    masks = select_reliable_scans(
-        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg_it.seed,
-        support=supports if views is not None else None,
-    )
-    targets = [
-        np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels, strict=True)
-    ]
-    del labels, confs, supports, masks
+    targets = reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames, views,
+                               progress=tick)
     counts = np.zeros(num_classes, np.int64)
     for t in targets:
         counts += np.bincount(t[t >= 0], minlength=num_classes)
@@ -167,7 +199,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         )
 
     # 2. train (or reuse a matching checkpoint)
-    fingerprint = _fingerprint(cfg_it, num_classes, frames, targets)
+    fingerprint = training_fingerprint(cfg_it, num_classes, frames, targets)
     model = None
     if ckpt_path.is_file():
         try:
@@ -357,6 +389,9 @@ __all__ = [
     "FUSE_CHUNK_POINTS",
     "checkpoint_path",
     "fuse_back",
+    "iteration_config",
+    "reliable_targets",
     "run_3dcn_iteration",
+    "training_fingerprint",
     "voxel_mean_log_probs",
 ]

@@ -7,8 +7,10 @@ the top-level one for `from conftest import ...`.
 from __future__ import annotations
 
 import contextlib
+import socket
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -80,3 +82,79 @@ def artifacts() -> Path:
     path = Path(__file__).resolve().parents[2] / "test-artifacts"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+DEMO_FRAMES = 14
+"""Frames of the generated demo sequence (enough for a readable street, small enough for software WebGL)."""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_until(check: Callable[[], Any], timeout: float, what: str, interval: float = 0.2) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+@contextlib.contextmanager
+def running_app(
+    root: Path, frames: int = DEMO_FRAMES, prepare: Callable[[Path], None] | None = None
+) -> Iterator[dict[str, Any]]:
+    """The real app on a real HTTP port, with the demo project seeded on a short generated sequence.
+
+    ``prepare(sequence_dir)`` may change the generated sequence before the app starts (and labels it).
+    """
+    import uvicorn
+
+    from app.core.config import Settings
+    from app.main import create_app
+
+    port = free_port()
+    settings = Settings(
+        port=port,
+        work_dir=root / "work",
+        data_roots=[root],
+        seed_demo=True,
+        demo_synth={"frames": frames},
+    )
+    # Generate the demo sequence here, in one process: the app then finds it instead of generating it.
+    from leap_core.synth import SynthConfig, generate_sequence
+
+    generate_sequence(settings.demo_dataset.parent.parent, SynthConfig(frames=frames), workers=1)
+    if prepare is not None:
+        prepare(settings.demo_dataset)
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    wait_until(lambda: server.started, 30, "the app to start")
+    try:
+        yield {"base": f"http://127.0.0.1:{port}", "app": app, "settings": settings}
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+
+@pytest.fixture(scope="module")
+def live_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """The real app on a real HTTP port, with the demo project seeded on a short generated sequence."""
+    with running_app(tmp_path_factory.mktemp("viewer-e2e")) as app:
+        yield app
+
+
+def panel_input(page: Any, label: str) -> Any:
+    """viser puts each widget's label in a paragraph before its input."""
+    return page.get_by_text(label, exact=True).locator("xpath=following::input[not(@type='hidden')][1]")
+
+
+def pick(page: Any, dropdown: str, option: str) -> None:
+    page.get_by_role("combobox", name=dropdown).click()
+    page.get_by_role("option", name=option, exact=True).click()

@@ -18,18 +18,19 @@ from typing import Any
 import browserfixtures
 import numpy as np
 import pytest
-from test_viewer import _free_port, wait_until
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
 artifacts = browserfixtures.artifacts
+wait_until = browserfixtures.wait_until
 FRAMES = 6
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 class LiveApp:
-    """``create_app`` served by uvicorn in a thread; :meth:`stop` runs the app's shutdown."""
+    """``create_app`` served by uvicorn in a thread; :meth:`stop` runs the app's shutdown. Unlike
+    ``browserfixtures.running_app`` it seeds no demo and can be stopped and started again on one work dir."""
 
     def __init__(self, settings: Any) -> None:
         import uvicorn
@@ -64,7 +65,9 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 def _settings(root: Path) -> Any:
     from app.core.config import Settings
 
-    return Settings(port=_free_port(), work_dir=root / "work", data_roots=[root / "data"], seed_demo=False)
+    return Settings(
+        port=browserfixtures.free_port(), work_dir=root / "work", data_roots=[root / "data"], seed_demo=False
+    )
 
 
 def _open_viewer(page: Any, live: LiveApp, pid: int, api: Any) -> Any:
@@ -155,7 +158,7 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             # a accepts (and moves on), s skips; both land in SQLite.
             page.keyboard.press("a")
             expect(badge).to_contain_text(f"1 / {total} reviewed", timeout=30_000)
-            expect(badge).to_contain_text("region 2/")
+            expect(badge).to_contain_text("region 2/", timeout=30_000)
             page.keyboard.press("s")
             expect(badge).to_contain_text(f"1 / {total} reviewed, 1 skipped", timeout=30_000)
             accepted_id, skipped_id = session.regions[0].id, session.regions[1].id
@@ -186,7 +189,7 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             assert [session.region_state(i) for i in (0, 1)] == ["accepted", "skipped"]
             assert (session.regions[0].id, session.regions[1].id) == (accepted_id, skipped_id)
             page.keyboard.press("n")
-            expect(badge).to_contain_text(f"region 2/{total} (skipped")
+            expect(badge).to_contain_text(f"region 2/{total} (skipped", timeout=30_000)
 
             # r opens the class picker on the region; a class relabels it (a correction) and accepts it.
             page.keyboard.press("r")

@@ -40,6 +40,8 @@ function typing(event) {
   const el = event.target;
   if (!el || !el.tagName) return false;
   const tag = el.tagName.toLowerCase();
+  // viser's dropdowns keep focus in a read-only <input> after a pick: that is not typing.
+  if (tag === "input" && el.readOnly) return false;
   return tag === "input" || tag === "textarea" || tag === "select" || el.isContentEditable;
 }
 

@@ -7,6 +7,7 @@
 
 import { api } from "/api.js";
 import { listen } from "./keys.js";
+import "./nav.js";
 import "./review.js";
 
 const match = window.location.pathname.match(/\/projects\/(\d+)\/viewer\//);
@@ -30,6 +31,7 @@ async function start() {
   if (projectId === null) return;
   addStyles();
   // Feature modules bind their keys on import; listen() last, so the "?" list is complete.
+  await import("./tools.js");
   listen();
 }
 

@@ -1,0 +1,134 @@
+"""Scan navigation of the running viewer, for the page's keys (web/viewer/nav.js).
+
+The viser panel's Browse / Fit view / Follow ego / Enlarge image widgets call the same
+:class:`~app.viewer.session.ReviewSession` methods, so keys and widgets act on one state. The camera moves
+of every browser showing the viewer follow (viser's ``client.camera``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from fastapi import APIRouter, HTTPException, Response, status
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.api.deps import AuthDep
+from app.api.responses import CONFLICT, NOT_FOUND
+from app.api.routes.viewer import ViewersDep, _run_blocking
+from app.api.types import ProjectId
+from app.viewer.session import ReviewSession
+
+router = APIRouter(
+    prefix="/projects/{project_id}/viewer/nav", tags=["viewer"], responses={**NOT_FOUND, **CONFLICT}
+)
+
+
+class NavState(BaseModel):
+    pos: int = Field(description="position of the shown scan among the run's labelled scans (0-based)")
+    count: int = Field(description="number of labelled scans")
+    frame_id: str | None = Field(description="file stem of the shown scan")
+    follow: bool = Field(description="the camera follows the ego pose on a scan change")
+    playing: bool = Field(description="playing through the scans")
+    image_open: bool = Field(description="the page shows the scan's image enlarged")
+    has_image: bool = Field(description="the shown scan has a camera image")
+
+
+class StepBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    step: int = Field(ge=-10_000, le=10_000, description="scans to move (< 0: back), clipped at the ends")
+
+
+class ToggleBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    on: bool | None = Field(default=None, description="true / false, or null to toggle")
+
+
+class FitBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    target: Literal["scan", "map"] = Field(description="frame the shown scan or the whole voxel map")
+
+
+def _session(viewers: ViewersDep, project_id: int) -> ReviewSession:
+    session = viewers.get(project_id)
+    if session is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
+    if session.grid is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail="The viewer has no finished run loaded yet")
+    return session
+
+
+def _state(session: ReviewSession) -> NavState:
+    view = session.scan_view
+    return NavState(
+        pos=session.frame_pos,
+        count=session.scan_count,
+        frame_id=None if view is None else view.frame_id,
+        follow=session.follow_ego,
+        playing=session.playing,
+        image_open=session.image_open,
+        has_image=view is not None and view.overlay is not None,
+    )
+
+
+@router.get("", response_model=NavState, dependencies=[AuthDep])
+async def nav_state(project_id: ProjectId, viewers: ViewersDep) -> NavState:
+    """Where the viewer is: shown scan, follow / play / enlarged-image state."""
+    return _state(_session(viewers, project_id))
+
+
+@router.post("/step", response_model=NavState, dependencies=[AuthDep])
+async def step_scan(project_id: ProjectId, body: StepBody, viewers: ViewersDep) -> NavState:
+    """Show the next (``step`` > 0) or previous scan; the camera follows the ego pose when following."""
+    session = _session(viewers, project_id)
+    await _run_blocking(session.step_scan, body.step)
+    return _state(session)
+
+
+@router.post("/play", response_model=NavState, dependencies=[AuthDep])
+async def play(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
+    """Play through the scans or pause."""
+    session = _session(viewers, project_id)
+    await _run_blocking(session.set_playing, body.on)
+    return _state(session)
+
+
+@router.post("/follow", response_model=NavState, dependencies=[AuthDep])
+async def follow(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
+    """Make the camera follow the ego pose on scan changes (turning it on moves the camera now)."""
+    session = _session(viewers, project_id)
+    await _run_blocking(session.set_follow, body.on)
+    return _state(session)
+
+
+@router.post("/fit", response_model=NavState, dependencies=[AuthDep])
+async def fit(project_id: ProjectId, body: FitBody, viewers: ViewersDep) -> NavState:
+    """Move the camera to show the whole shown scan or the whole map."""
+    session = _session(viewers, project_id)
+    await _run_blocking(session.fit_scan if body.target == "scan" else session.fit_map)
+    return _state(session)
+
+
+@router.post("/image", response_model=NavState, dependencies=[AuthDep])
+async def image_open(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
+    """Show or hide the enlarged image of the shown scan in the page."""
+    session = _session(viewers, project_id)
+    session.set_image_open(body.on)
+    return _state(session)
+
+
+@router.get(
+    "/image",
+    dependencies=[AuthDep],
+    response_class=Response,
+    responses={200: {"content": {"image/jpeg": {}}, "description": "the shown scan's labelled image"}},
+)
+async def scan_image(project_id: ProjectId, viewers: ViewersDep) -> Response:
+    """The shown scan's camera image with its labels drawn over it, as JPEG (404 when it has none)."""
+    session = _session(viewers, project_id)
+    data = await _run_blocking(session.scan_image_jpeg)
+    if data is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="The shown scan has no camera image")
+    return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})

@@ -1,0 +1,119 @@
+"""Pure maths of the viewer's navigation and inspection: camera placements, scan colours, histograms.
+
+Like :mod:`app.viewer.view_logic`, everything here takes and returns numpy arrays and does no I/O; the
+session (:mod:`app.viewer.session`) moves the results into the scene and the panel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from app.viewer import view_logic as vl
+
+SCAN_GREY_RGB: tuple[int, int, int] = (150, 150, 150)
+"""Colour of every scan point in the confidence and probability views: class colours there would mean a
+second thing beside the colour scale of the voxels."""
+INSPECT_RGB: tuple[int, int, int] = (0, 255, 255)
+"""Marker of the inspected voxel: cyan, a colour neither the demo's class palette nor the colour scale uses
+(the selection highlight is near-black)."""
+
+
+def follow_view(
+    pose: npt.ArrayLike, *, distance: float = 22.0, elevation_deg: float = 35.0, ahead: float = 8.0
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Camera ``(position, look_at)`` behind and above the ego vehicle, looking along its heading.
+
+    The heading is the sensor's +x axis (KITTI's LiDAR points forward along x), flattened onto the ground:
+    ``f = (R₀₀, R₁₀, 0) / ‖·‖`` with ``R`` the rotation of ``pose`` (sensor → world). With ego position
+    ``t``: ``look_at = t + ahead · f`` and
+    ``position = look_at - distance · cos(e) · f + distance · sin(e) · ẑ``.
+    A sensor pointing straight up (no horizontal heading) looks along world +x.
+
+    Args:
+        pose: (4, 4) sensor-to-world transform of the scan.
+        distance: camera distance from ``look_at`` (metres).
+        elevation_deg: angle of the camera above the ground plane.
+        ahead: how far ahead of the ego position the camera looks (metres).
+    """
+    m = np.asarray(pose, dtype=np.float64).reshape(4, 4)
+    f = np.array([m[0, 0], m[1, 0], 0.0])
+    n = float(np.linalg.norm(f))
+    f = f / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])
+    e = math.radians(elevation_deg)
+    target = m[:3, 3] + ahead * f
+    position = target - distance * math.cos(e) * f + np.array([0.0, 0.0, distance * math.sin(e)])
+    return position, target
+
+
+def fit_view(
+    points: npt.ArrayLike,
+    *,
+    elevation_deg: float = 50.0,
+    azimuth_deg: float = 200.0,
+    min_distance: float = 10.0,
+    spread: float = 0.85,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None:
+    """Camera ``(position, look_at)`` that shows ``points`` whole (the map, or one scan), or None when empty.
+
+    Outliers do not stretch the view: the box is the 2nd..98th percentile per axis, ``lo``..``hi``.
+    ``look_at`` is its centre, lowered to the 20th height percentile (the ground, where most content is);
+    the camera orbits it (:func:`app.viewer.view_logic.orbit_view`) at
+    ``max(min_distance, spread · ‖hi_xy - lo_xy‖)``.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if p.shape[0] == 0:
+        return None
+    lo = np.percentile(p, 2, axis=0)
+    hi = np.percentile(p, 98, axis=0)
+    centre = (lo + hi) / 2.0
+    centre[2] = float(np.percentile(p[:, 2], 20))
+    extent = float(np.linalg.norm(hi[:2] - lo[:2]))
+    return vl.orbit_view(centre, max(min_distance, spread * extent), elevation_deg, azimuth_deg)
+
+
+def scan_colors(
+    mode: vl.ColorMode, labels: npt.NDArray[np.integer], palette: npt.ArrayLike
+) -> npt.NDArray[np.uint8]:
+    """(N, 3) colours of a scan's points: class colours in the class view, :data:`SCAN_GREY_RGB` in the
+    confidence and probability views (where the voxels carry a colour scale)."""
+    if mode == "class":
+        return vl.class_colors(labels, palette)
+    out = np.empty((np.asarray(labels).shape[0], 3), np.uint8)
+    out[:] = SCAN_GREY_RGB
+    return out
+
+
+def confidence_histograms(
+    label: npt.ArrayLike, conf: npt.ArrayLike, num_classes: int, bins: int = 10
+) -> npt.NDArray[np.int64]:
+    """Per class, how many voxels of that label fall in each confidence bin.
+
+    Bin ``b`` of ``bins`` equal bins over [0, 1] holds ``b/bins ≤ conf < (b+1)/bins`` (the last bin also
+    holds 1.0; values outside [0, 1] are clipped into the end bins). Unlabeled voxels (label -1) count
+    nowhere.
+
+    Args:
+        label: (V,) class index per voxel, -1 unlabeled.
+        conf: (V,) confidence per voxel.
+        num_classes: C.
+        bins: number of bins ≥ 1.
+
+    Returns:
+        (C, bins) int64 counts.
+    """
+    if bins < 1:
+        raise ValueError(f"bins must be >= 1, got {bins}")
+    lab = np.asarray(label, dtype=np.int64).reshape(-1)
+    c = np.asarray(conf, dtype=np.float64).reshape(-1)
+    if lab.shape != c.shape:
+        raise ValueError(f"label {lab.shape} and conf {c.shape} must have the same length")
+    ok = (lab >= 0) & (lab < num_classes)
+    b = np.clip(np.floor(c[ok] * bins), 0, bins - 1).astype(np.int64)
+    flat = np.bincount(lab[ok] * bins + b, minlength=num_classes * bins)
+    return flat.reshape(num_classes, bins).astype(np.int64)
+
+
+__all__ = ["INSPECT_RGB", "SCAN_GREY_RGB", "confidence_histograms", "fit_view", "follow_view", "scan_colors"]

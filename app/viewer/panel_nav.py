@@ -1,0 +1,195 @@
+"""The panel's navigation and inspection widgets: scan stepping, play/pause, camera fit and follow, the
+enlarged image toggle, the Inspect section (a clicked voxel) and the per-class confidence histograms.
+
+Built by :class:`app.viewer.panel.ReviewPanel` (one call); the same session methods are reached from the
+page's keys through :mod:`app.api.routes.viewer_nav`. Every class name goes through ``html.escape``.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import viser
+
+from app.viewer.session import CorrectionRecord, Inspection, ReviewSession
+
+BROWSE = ("◀ Previous", "Play", "Next ▶")
+"""Options of the "Browse" button group (the middle one reads "Pause" while playing)."""
+FIT = ("Scan", "Map")
+"""Options of the "Fit view" button group."""
+_CLIP = "overflow:hidden;text-overflow:ellipsis;white-space:nowrap"
+
+
+def _hex(rgb: Sequence[int] | npt.NDArray[np.uint8]) -> str:
+    r, g, b = (int(v) for v in rgb)
+    return f"#{r:02x}{g:02x}{b:02x}"
+
+
+def _swatch(rgb: Sequence[int] | npt.NDArray[np.uint8]) -> str:
+    return (
+        f'<span style="display:inline-block;width:10px;height:10px;border-radius:2px;'
+        f'background:{_hex(rgb)};margin-right:4px"></span>'
+    )
+
+
+def distribution_html(
+    found: Inspection, names: Sequence[str], palette: npt.ArrayLike, *, top: int = 6
+) -> str:
+    """The Inspect section: class distribution bars (the ``top`` most probable classes), shown class and
+    confidence, number of scans that observed the voxel, and its correction history."""
+    pal = np.asarray(palette, dtype=np.uint8).reshape(-1, 3)
+    probs = np.asarray(found.probs, dtype=np.float64)
+    order = [int(i) for i in np.argsort(-probs, kind="stable")[:top]]
+    bars = []
+    for i in order:
+        name = html.escape(names[i] if i < len(names) else f"class {i}")
+        p = float(probs[i])
+        colour = _hex(pal[i]) if i < pal.shape[0] else "#888888"
+        bars.append(
+            '<div class="leap-dist-row" style="display:flex;align-items:center;gap:6px;font-size:12px">'
+            f'<span style="width:96px;{_CLIP}">{name}</span>'
+            '<span style="flex:1;background:#eee;height:10px;border-radius:2px">'
+            f'<span style="display:block;width:{100.0 * p:.1f}%;height:10px;border-radius:2px;'
+            f'background:{colour}"></span></span>'
+            f'<span style="width:34px;text-align:right">{p:.2f}</span></div>'
+        )
+    if found.label >= 0:
+        shown = html.escape(names[found.label] if found.label < len(names) else f"class {found.label}")
+    else:
+        shown = "unlabeled"
+    how = "corrected" if found.corrected else f"confidence {found.conf:.2f}"
+    x, y, z = found.centre
+    scans = "scan" if found.views == 1 else "scans"
+    lines = [
+        f'<div style="font-size:12px;margin-bottom:4px">Voxel at ({x:.1f}, {y:.1f}, {z:.1f}) m: '
+        f"<b>{shown}</b> ({how}); observed by <b>{found.views}</b> {scans}.</div>",
+        *bars,
+        history_html(found.history),
+    ]
+    return "".join(lines)
+
+
+def history_html(history: Sequence[CorrectionRecord]) -> str:
+    """The corrections that include a voxel, oldest first: when, class, active or undone."""
+    if not history:
+        return '<div style="font-size:12px;margin-top:4px">No corrections include this voxel.</div>'
+    rows = []
+    for rec in history:
+        when = html.escape(rec.created_at.replace("T", " ")[:19]) if rec.created_at else "-"
+        what = html.escape(rec.class_name) if rec.class_name else "unlabeled (erase)"
+        state = "active" if rec.active else "undone"
+        rows.append(f"<tr><td>{when}</td><td>{what}</td><td>{state}</td></tr>")
+    return (
+        '<div style="font-size:12px;margin-top:4px">Corrections of this voxel:</div>'
+        '<table style="font-size:12px;border-collapse:collapse;width:100%">'
+        "<tr><th align=left>when (UTC)</th><th align=left>class</th><th align=left>state</th></tr>"
+        f"{''.join(rows)}</table>"
+    )
+
+
+def histogram_html(hist: npt.NDArray[np.int64], names: Sequence[str], palette: npt.ArrayLike) -> str:
+    """Per class (rows with at least one voxel), a small bar chart of its voxels' confidence bins
+    (:func:`app.viewer.nav_logic.confidence_histograms`), bars scaled to the class's largest bin."""
+    pal = np.asarray(palette, dtype=np.uint8).reshape(-1, 3)
+    rows = []
+    for c in range(hist.shape[0]):
+        counts = hist[c]
+        total = int(counts.sum())
+        if total == 0:
+            continue
+        peak = float(counts.max())
+        colour = _hex(pal[c]) if c < pal.shape[0] else "#888888"
+        bars = "".join(
+            f'<span title="{int(n):,}" style="display:inline-block;width:7px;margin-right:1px;'
+            f'height:{max(1.0, 16.0 * float(n) / peak):.0f}px;background:{colour};'
+            'vertical-align:bottom"></span>'
+            for n in counts
+        )
+        name = html.escape(names[c] if c < len(names) else f"class {c}")
+        rows.append(
+            '<div style="display:flex;align-items:flex-end;gap:6px;font-size:12px">'
+            f'<span style="width:110px;{_CLIP}">{name}</span>'
+            f'<span style="height:16px;white-space:nowrap">{bars}</span>'
+            f'<span style="opacity:0.7">{total:,}</span></div>'
+        )
+    head = (
+        '<div style="font-size:11px;opacity:0.7;margin-bottom:2px">Voxels per confidence bin, 0 → 1 '
+        f"({hist.shape[1]} bins), per shown class</div>"
+    )
+    return head + "".join(rows)
+
+
+class NavPanel:
+    """Navigation widgets in the Scan folder, the Inspect folder and the confidence histogram folder."""
+
+    def __init__(
+        self,
+        session: ReviewSession,
+        gui: viser.GuiApi,
+        scan_folder: viser.GuiFolderHandle,
+        guard: Callable[[Callable[..., Any]], Callable[..., Any]],
+    ) -> None:
+        self.s = session
+        with scan_folder:
+            self.browse = gui.add_button_group("Browse", BROWSE, order=-3)
+            self.fit = gui.add_button_group("Fit view", FIT, order=-2)
+            self.follow = gui.add_checkbox(
+                "Follow ego", session.follow_ego, order=-1, hint="Move the camera behind the ego vehicle on "
+                "every scan change (key G)"
+            )
+            self.enlarge = gui.add_button("Enlarge image", hint="Show the image across the view (key I)")
+        # Right under Run: a click's answer shows without scrolling, whatever else is expanded.
+        self.inspect_folder = gui.add_folder("Inspect", order=0.5, expand_by_default=True, visible=False)
+        with self.inspect_folder:
+            self.inspect = gui.add_html("")
+        with gui.add_folder("Confidence by class", order=7, expand_by_default=False):
+            self.histogram = gui.add_html("")
+
+        s = session
+        self.browse.on_click(guard(lambda e: self._browse(str(e.target.value))))
+        self.fit.on_click(guard(lambda e: s.fit_scan() if e.target.value == "Scan" else s.fit_map()))
+        self.follow.on_update(guard(lambda _: self._follow_changed()))
+        self.enlarge.on_click(guard(lambda _: s.set_image_open(None)))
+        s.scene.on_click(guard(self._clicked))
+
+    def _browse(self, option: str) -> None:
+        if option == BROWSE[0]:
+            self.s.step_scan(-1)
+        elif option == BROWSE[2]:
+            self.s.step_scan(1)
+        else:
+            self.s.set_playing(None)
+
+    def _follow_changed(self) -> None:
+        if bool(self.follow.value) != self.s.follow_ego:
+            self.s.set_follow(bool(self.follow.value))
+
+    def _clicked(self, event: viser.SceneClickEvent) -> None:
+        self.s.inspect_ray(event.ray_origin, event.ray_direction)
+
+    # ---------------------------------------------------------------------------- session → panel
+    def on_nav(self) -> None:
+        s = self.s
+        options = (BROWSE[0], "Pause" if s.playing else BROWSE[1], BROWSE[2])
+        if tuple(self.browse.options) != options:
+            self.browse.options = options
+        if bool(self.follow.value) != s.follow_ego:
+            self.follow.value = s.follow_ego  # type: ignore[misc]  # viser: split setter (see panel.py)
+        label = "Shrink image" if s.image_open else "Enlarge image"
+        if self.enlarge.label != label:
+            self.enlarge.label = label
+
+    def on_inspect(self, found: Inspection) -> None:
+        self.inspect.content = distribution_html(found, self.s.class_names(), self.s.palette)
+        self.inspect_folder.visible = True
+
+    def update_histogram(self) -> None:
+        s = self.s
+        self.histogram.content = histogram_html(s.confidence_histograms(), s.class_names(), s.palette)
+
+
+__all__ = ["BROWSE", "FIT", "NavPanel", "distribution_html", "histogram_html", "history_html"]

@@ -1,0 +1,62 @@
+"""Navigation and inspection maths of the viewer (app.viewer.nav_logic), on hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.viewer import nav_logic as nl
+
+
+def test_follow_view_sits_behind_and_above_the_ego_heading() -> None:
+    # Ego at (10, 20, 1) heading along world +y (sensor x → world y: a 90° turn about z).
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    pose[:3, 3] = (10, 20, 1)
+    pos, tgt = nl.follow_view(pose, distance=10.0, elevation_deg=30.0, ahead=4.0)
+    assert tgt == pytest.approx([10, 24, 1])
+    # 10·cos 30° = 8.660 behind the target along -y, 10·sin 30° = 5 above it.
+    assert pos == pytest.approx([10, 24 - 10 * math.cos(math.radians(30)), 6])
+
+
+def test_follow_view_of_a_sensor_pointing_up_looks_along_x() -> None:
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]  # sensor x → world -z
+    pos, tgt = nl.follow_view(pose, distance=2.0, elevation_deg=0.0, ahead=1.0)
+    assert tgt == pytest.approx([1, 0, 0]) and pos == pytest.approx([-1, 0, 0])
+
+
+def test_fit_view_frames_the_percentile_box() -> None:
+    # 101 points on x ∈ [0, 100] (y = z = 0): the 2..98 percentile box is x ∈ [2, 98], centre x = 50,
+    # diagonal 96 → distance 0.85 · 96 = 81.6.
+    pts = np.zeros((101, 3))
+    pts[:, 0] = np.arange(101)
+    pos, tgt = nl.fit_view(pts, elevation_deg=90.0)  # type: ignore[misc]
+    assert tgt == pytest.approx([50, 0, 0])
+    assert pos == pytest.approx([50, 0, 81.6])
+    assert nl.fit_view(np.zeros((0, 3))) is None
+    # A single point still gets min_distance.
+    pos1, _ = nl.fit_view([(1.0, 2.0, 3.0)], elevation_deg=90.0)  # type: ignore[misc]
+    assert pos1 == pytest.approx([1, 2, 13])
+
+
+def test_scan_colors_are_grey_outside_the_class_view() -> None:
+    palette = np.array([[255, 0, 0], [0, 255, 0]], np.uint8)
+    labels = np.array([0, 1, -1], np.int16)
+    assert nl.scan_colors("class", labels, palette).tolist() == [[255, 0, 0], [0, 255, 0], [128, 128, 128]]
+    for mode in ("confidence", "class_probability"):
+        assert nl.scan_colors(mode, labels, palette).tolist() == [list(nl.SCAN_GREY_RGB)] * 3
+
+
+def test_confidence_histograms_bin_per_class() -> None:
+    label = [0, 0, 1, 1, 1, -1]
+    conf = [0.05, 1.0, 0.5, 0.55, 0.99, 0.5]
+    h = nl.confidence_histograms(label, conf, num_classes=3, bins=4)
+    # Bins [0, .25), [.25, .5), [.5, .75), [.75, 1]: class 0 → bins 0 and 3; class 1 → 2, 2, 3.
+    assert h.tolist() == [[1, 0, 0, 1], [0, 0, 2, 1], [0, 0, 0, 0]]
+    with pytest.raises(ValueError, match="bins"):
+        nl.confidence_histograms(label, conf, 3, bins=0)
+    with pytest.raises(ValueError, match="same length"):
+        nl.confidence_histograms([0], [0.1, 0.2], 1)

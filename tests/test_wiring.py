@@ -1,0 +1,217 @@
+"""Stage wiring: each stored stage output equals that stage's pure function applied to the stored inputs.
+
+One real pipeline run (tiny ray-cast street, simulated 2D labels, manual corrections, a tiny 3D-CN round)
+and, per stage, the output recomputed from the files the run wrote, with the run's own config. The unit
+tests check the maths; these check that the pipeline feeds each function the right inputs (a pipeline that
+skipped smoothing or depth clustering, or gave the 3D-CN the unsmoothed grid or no view counts, would still
+run and score well on a loose mIoU bound).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_pipeline import make_street
+
+from leap_core.config import PipelineConfig, config_from_dict
+from leap_core.consistency.selection import view_counts
+from leap_core.consistency.stage import (
+    checkpoint_path,
+    fuse_back,
+    iteration_config,
+    reliable_targets,
+    training_fingerprint,
+)
+from leap_core.consistency.train import load_checkpoint, predict_log_probs, torch_threads
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.fusion import (
+    Observations,
+    VoxelGrid,
+    apply_overrides,
+    fuse,
+    last_per_key,
+    log_table,
+    voxel_keys,
+    world_points,
+)
+from leap_core.labelers.base import SoftMasks
+from leap_core.pipeline import run_pipeline
+from leap_core.projection import Painted, paint, project_points
+from leap_core.run_layout import RunLayout, load_corrections, save_corrections
+from leap_core.schema import Schema, builtin_schema
+from leap_core.smoothing import SmoothedGrid, knn_smooth
+
+TINY_3DCN = {"enabled": True, "iterations": 1, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
+             "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+
+
+class Run:
+    """The finished run and what the checks need from it."""
+
+    def __init__(self, street: Path, run_dir: Path, schema: Schema, cfg: PipelineConfig) -> None:
+        self.seq = KittiSequence(street)
+        self.lay = RunLayout(run_dir)
+        self.schema = schema
+        self.cfg = cfg
+        self.c = schema.num_classes
+        self.frames = range(len(self.seq))
+
+    def observations(self) -> list[tuple[Painted, np.ndarray]]:
+        """Per frame: the stored observation and the world voxel key of each painted point."""
+        out = []
+        for i in self.frames:
+            frame = self.seq.frame(i)
+            painted = Painted.load(self.lay.observation(frame.frame_id))
+            keys = voxel_keys(world_points(frame.points[painted.point_idx], frame.pose),
+                              self.cfg.fusion.voxel_size)
+            out.append((painted, keys))
+        return out
+
+    def corrections(self) -> tuple[np.ndarray, np.ndarray]:
+        return load_corrections(self.lay.corrections, self.c)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
+    street = make_street(tmp_path_factory.mktemp("street") / "sequences" / "00", n_frames=4)
+    schema = builtin_schema("semantickitti")
+    run_dir = tmp_path_factory.mktemp("runs") / "wired"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    # Corrections made before the run: scattered voxels of frame 0 (each amid uncorrected neighbours, so
+    # smoothing would move them), one voxel corrected twice (the later entry wins).
+    seq = KittiSequence(street)
+    f0 = seq.frame(0)
+    keys = np.unique(voxel_keys(world_points(f0.points, f0.pose), 0.2))[::97]
+    trunk, pole = schema.index("trunk"), schema.index("pole")
+    save_corrections(run_dir / "corrections.npz", np.concatenate([keys, keys[:1]]),
+                     np.concatenate([np.full(len(keys), trunk), [pole]]))
+    # Non-default settings in every section a stage reads: a stage that used a default config would differ.
+    cfg = config_from_dict({"consistency": TINY_3DCN, "smoothing": {"k": 6}, "fusion": {"prob_floor": 0.002},
+                            "projection": {"cluster_gap": 0.8}})
+    assert cfg.smoothing != PipelineConfig().smoothing
+    result = run_pipeline(street, schema, cfg, run_dir)
+    assert "3dcn" in result.ran
+    return Run(street, run_dir, schema, cfg)
+
+
+def _expected_smoothed(run: Run, grid: VoxelGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """knn_smooth of ``grid`` with the run's config, and the rows / classes of the corrected voxels."""
+    smooth = knn_smooth(grid.centres(), grid.probs(), run.cfg.smoothing)
+    keys, cls = last_per_key(*run.corrections())
+    rows = grid.lookup(keys)
+    assert (rows >= 0).all()  # corrected voxels are in every grid (apply_overrides adds them)
+    return smooth, rows, cls
+
+
+def _check_smoothed(run: Run, grid: VoxelGrid, stored: SmoothedGrid) -> None:
+    smooth, rows, cls = _expected_smoothed(run, grid)
+    np.testing.assert_array_equal(stored.keys, grid.keys)
+    free = np.ones(grid.num_voxels, bool)
+    free[rows] = False
+    # Uncorrected voxels: exactly the smoothed distribution, stored as float16.
+    np.testing.assert_array_equal(stored.probs[free], smooth[free].astype(np.float16))
+    # Corrected voxels: exactly one-hot at the latest correction's class, whatever smoothing said.
+    onehot = np.zeros((len(rows), run.c), np.float16)
+    onehot[np.arange(len(rows)), cls] = 1.0
+    np.testing.assert_array_equal(stored.probs[rows], onehot)
+    # Guard: on this data smoothing and the corrections both change something, so the checks above bite.
+    posterior = grid.probs().argmax(axis=1)
+    assert (smooth[free].argmax(axis=1) != posterior[free]).sum() > 10
+    assert (smooth[rows].argmax(axis=1) != cls).any()
+
+
+# -------------------------------------------------------------------------------------------- tests
+def test_observations_are_projection_depth_clustering_and_painting(run: Run) -> None:
+    """observations/<frame>.npz = paint(labels2d/<frame>.npz, project_points(scan)) with the run's
+    projection config (its per-mask depth clustering included)."""
+    pcfg = run.cfg.projection
+    assert pcfg.depth_clustering
+    unclustered_differs = 0
+    for i in run.frames:
+        frame = run.seq.frame(i)
+        soft = SoftMasks.load(run.lay.labels2d(frame.frame_id))
+        proj = project_points(frame.points, run.seq.calib.lidar_to_image, soft.height, soft.width,
+                              pcfg.min_depth)
+        expected = paint(soft, proj, pcfg)
+        stored = Painted.load(run.lay.observation(frame.frame_id))
+        np.testing.assert_array_equal(stored.point_idx, expected.point_idx)
+        np.testing.assert_array_equal(stored.rows, expected.rows)
+        np.testing.assert_array_equal(stored.table, expected.table)
+        plain = paint(soft, proj, dataclasses.replace(pcfg, depth_clustering=False))
+        unclustered_differs += int(len(plain.point_idx) != len(expected.point_idx)
+                                   or not np.array_equal(plain.rows, expected.rows))
+    assert unclustered_differs > 0  # guard: clustering changes the painting of this street
+
+
+def test_fused_grid_is_fusion_of_the_observations_then_corrections(run: Run) -> None:
+    """grid.npz = apply_overrides(fuse(every stored observation), corrections) with the run's config."""
+    fcfg = run.cfg.fusion
+    batches = [Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor))
+               for p, keys in run.observations()]
+    keys, cls = run.corrections()
+    expected = apply_overrides(fuse(batches, run.c, fcfg), keys, cls, run.cfg.correction_strength, fcfg)
+    stored = VoxelGrid.load(run.lay.grid)
+    np.testing.assert_array_equal(stored.keys, expected.keys)
+    np.testing.assert_array_equal(stored.logp, expected.logp)
+
+
+def test_smoothed_grid_is_knn_smooth_of_the_fused_grid_with_corrections_reimposed(run: Run) -> None:
+    """grid_smooth.npz = knn_smooth(grid.npz) with the run's smoothing config; corrected voxels one-hot."""
+    _check_smoothed(run, VoxelGrid.load(run.lay.grid), SmoothedGrid.load(run.lay.grid_smooth))
+
+
+def test_3dcn_trains_on_the_smoothed_grid_and_the_view_counts(run: Run) -> None:
+    """The checkpoint was trained on reliable_targets(grid_smooth.npz, view counts of the observations): its
+    stored fingerprint hashes exactly those labels."""
+    cn = iteration_config(run.cfg.consistency, 1)
+    assert cn.rank_by_views
+    vs, clip = run.cfg.fusion.voxel_size, run.cfg.fusion.logp_clip
+    views = view_counts(keys for _, keys in run.observations())
+    smoothed = SmoothedGrid.load(run.lay.grid_smooth).to_voxel_grid(clip)
+
+    def fingerprint(grid: VoxelGrid, views_used: tuple[np.ndarray, np.ndarray] | None) -> str:
+        targets = reliable_targets(run.seq, grid, run.c, cn, vs, run.frames, views_used)
+        return training_fingerprint(cn, run.c, run.frames, targets)
+
+    meta = load_checkpoint(checkpoint_path(run.lay.cn_dir, 1)).meta
+    assert meta["fingerprint"] == fingerprint(smoothed, views)
+    # Guards: the unsmoothed grid, or no view counts, select other labels on this data.
+    assert fingerprint(VoxelGrid.load(run.lay.grid), views) != meta["fingerprint"]
+    assert fingerprint(smoothed, None) != meta["fingerprint"]
+
+
+def test_3dcn_grid_is_the_fused_grid_plus_network_evidence(run: Run) -> None:
+    """grid_3dcn1.npz = fuse_back(grid.npz, the checkpoint's predictions of every scan); grid_smooth_3dcn1.npz
+    = its knn_smooth with the corrections re-imposed."""
+    cn, fcfg = run.cfg.consistency, run.cfg.fusion
+    model = load_checkpoint(checkpoint_path(run.lay.cn_dir, 1)).model
+    preds = []
+    with torch_threads(cn.num_threads):  # the stage's thread count: matmul sums in the same order
+        for i in run.frames:
+            frame = run.seq.frame(i)
+            preds.append((voxel_keys(world_points(frame.points, frame.pose), fcfg.voxel_size),
+                          predict_log_probs(model, frame.points)))
+    fused = VoxelGrid.load(run.lay.grid)
+    expected = fuse_back(fused, preds, run.c, cn.temperature, fcfg, cn.network_evidence)
+    stored = VoxelGrid.load(run.lay.grid_3dcn(1))
+    np.testing.assert_array_equal(stored.keys, expected.keys)
+    np.testing.assert_array_equal(stored.logp, expected.logp)
+    _check_smoothed(run, stored, SmoothedGrid.load(run.lay.grid_smooth_3dcn(1)))
+
+
+def test_point_labels_come_from_the_final_grid(run: Run) -> None:
+    """points/<frame>.npz: label/conf of each point's voxel in the final smoothed grid; point_label from the
+    frame's observation alone."""
+    final = SmoothedGrid.load(run.lay.final_grid(run.cfg.consistency))
+    assert run.lay.final_grid(run.cfg.consistency) == run.lay.grid_smooth_3dcn(1)
+    for (painted, _), i in zip(run.observations(), run.frames, strict=True):
+        frame = run.seq.frame(i)
+        keys = voxel_keys(world_points(frame.points, frame.pose), run.cfg.fusion.voxel_size)
+        lab, conf = final.labels_at(keys)
+        with np.load(run.lay.points(frame.frame_id)) as z:
+            np.testing.assert_array_equal(z["label"], lab)
+            np.testing.assert_array_equal(z["conf"], conf.astype(np.float16))
+            np.testing.assert_array_equal(z["point_label"], painted.point_labels(len(frame.points)))
