@@ -351,6 +351,104 @@ def set_correction_active(db: sqlite_utils.Database, correction_id: int, active:
         raise NotFound(f"Correction {correction_id} not found")
 
 
+# ---------------------------------------------------------------------------------------- review marks
+@dataclass(frozen=True)
+class ReviewMark:
+    """A reviewer's verdict on one review region (see :mod:`leap_core.review` for identity/signature)."""
+
+    region: str
+    """Stable region identity (:func:`leap_core.review.region_id`)."""
+    signature: str
+    """Content signature the verdict was made on; the mark counts only while the region still has it."""
+    state: str
+    """``accepted`` (reviewed) or ``skipped``."""
+    run_id: int | None
+    """Run shown when the mark was made."""
+    updated_at: str
+    """ISO UTC time."""
+
+
+REVIEW_STATES = ("accepted", "skipped")
+"""Values of :attr:`ReviewMark.state`."""
+
+
+def set_review_mark(
+    db: sqlite_utils.Database,
+    project_id: int,
+    *,
+    region: str,
+    signature: str,
+    state: str,
+    run_id: int | None = None,
+) -> None:
+    """Record (or replace) the verdict on ``region``."""
+    if state not in REVIEW_STATES:
+        raise ValueError(f"state must be one of {', '.join(REVIEW_STATES)}, got {state!r}")
+    require_project(db, project_id)
+    db.execute(
+        "INSERT INTO review_marks (project_id, region, signature, state, run_id, updated_at) "
+        "VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT(project_id, region) DO UPDATE SET "
+        "signature = excluded.signature, state = excluded.state, run_id = excluded.run_id, "
+        "updated_at = excluded.updated_at",
+        [project_id, region, signature, state, run_id, utcnow()],
+    )
+
+
+def list_review_marks(db: sqlite_utils.Database, project_id: int) -> dict[str, ReviewMark]:
+    """The project's review marks by region identity."""
+    rows = db.execute(
+        "SELECT region, signature, state, run_id, updated_at FROM review_marks WHERE project_id = ?",
+        [project_id],
+    ).fetchall()
+    return {r[0]: ReviewMark(r[0], r[1], r[2], None if r[3] is None else int(r[3]), r[4]) for r in rows}
+
+
+def save_review_queue(
+    db: sqlite_utils.Database,
+    project_id: int,
+    kind: str,
+    run_id: int | None,
+    regions: Sequence[tuple[str, str]],
+) -> None:
+    """Remember the latest ranked queue of ``kind``: ``(region, signature)`` pairs, best first (the web UI
+    counts review progress against it without starting a viewer)."""
+    require_project(db, project_id)
+    db.execute(
+        "INSERT INTO review_queues (project_id, kind, run_id, regions_json, updated_at) "
+        "VALUES (?, ?, ?, ?, ?) "
+        "ON CONFLICT(project_id, kind) DO UPDATE SET run_id = excluded.run_id, "
+        "regions_json = excluded.regions_json, updated_at = excluded.updated_at",
+        [project_id, kind, run_id, _dumps([list(r) for r in regions]), utcnow()],
+    )
+
+
+def review_progress(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
+    """Per saved queue: ``kind``, ``run_id``, ``total``, ``reviewed`` (accepted with an unchanged signature),
+    ``skipped`` (likewise) and ``updated_at``."""
+    require_project(db, project_id)
+    marks = list_review_marks(db, project_id)
+    out = []
+    for kind, run_id, regions_json, updated_at in db.execute(
+        "SELECT kind, run_id, regions_json, updated_at FROM review_queues WHERE project_id = ? ORDER BY kind",
+        [project_id],
+    ).fetchall():
+        regions = json.loads(regions_json)
+        states = [
+            m.state for region, sig in regions if (m := marks.get(region)) is not None and m.signature == sig
+        ]
+        out.append(
+            {
+                "kind": kind,
+                "run_id": run_id,
+                "total": len(regions),
+                "reviewed": states.count("accepted"),
+                "skipped": states.count("skipped"),
+                "updated_at": updated_at,
+            }
+        )
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ meta
 def get_meta(db: sqlite_utils.Database, key: str) -> str | None:
     row = db.execute("SELECT value FROM meta WHERE key = ?", [key]).fetchone()

@@ -485,6 +485,7 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
         regions = session.build_queue("confidence")
         assert regions and all(a.score <= b.score for a, b in pairwise(regions))
         assert session.next_region() == regions[0]
+        session.clear_focus()
         dis = session.build_queue("disagreement")
         assert dis and all(a.score >= b.score for a, b in pairwise(dis))
 
@@ -620,3 +621,87 @@ def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:
     # folder.
     assert final_grid_path(tmp_path, {"smoothing": {"k": 3}}) == tmp_path / "grid_smooth.npz"
     assert final_grid_path(tmp_path, {"no_such_section": 1}) == tmp_path / "grid_smooth_3dcn10.npz"
+
+
+def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> None:
+    """The focused region: its voxels at full colour and the rest dimmed, a box around it, the scan that saw
+    it most shown with the region boxed in its image; accept/skip stored so that a new session (a restarted
+    server) sees them; a changed region loses its mark."""
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import REVIEW_BOX_RGB, ReviewSession, SessionConfig
+    from leap_core import review
+
+    settings, pid, _run_id, keys, cls = review_store
+    config = SessionConfig(queue_share=0.3, queue_min_count=1, queue_cell=2.0)
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
+    try:
+        regions = session.build_queue("confidence")
+        assert len(regions) >= 3
+        assert session.review_progress() == {"total": len(regions), "reviewed": 0, "skipped": 0}
+        region = session.next_region()
+        assert region is regions[0] and session.focus is region
+        assert session.wait_drawn()
+        handle = session.scene.voxels.handle
+        full = np.array(SCHEMA3_COLORS, np.uint8)[cls]
+        inside = np.isin(np.arange(keys.size), region.rows)
+        np.testing.assert_array_equal(handle.colors[inside], full[inside])
+        np.testing.assert_array_equal(handle.colors[~inside], vl.blend(full[~inside], (235, 235, 235), 0.75))
+        box = session.scene.review_box
+        assert box is not None and box.visible
+        held = session.grid.centres[region.rows]
+        np.testing.assert_allclose(box.position, (held.min(axis=0) + held.max(axis=0)) / 2, atol=1e-5)
+
+        # Scan jump: brute force over every scan (three here, all within queue_scans).
+        out = session.outputs
+        counts = [out.region_observers(f, keys[region.rows], 0.5) for f in out.frame_indices]
+        best = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
+        assert best is not None and session.focus_frame == best and session.frame_pos == best
+        # The image shows where the region is: its projected points boxed in magenta.
+        assert counts[best][1] > 0, "the tiny scene's camera should see the region"
+        plain = out.scan_view(out.frame_indices[best], session.palette)
+        boxed = session._mark_region_in_image(plain, best)
+        u0, v0, u1, v1 = review.image_box(counts[best][2], plain.overlay.shape[1], plain.overlay.shape[0])
+        assert boxed.overlay[v0, u0].tolist() == list(REVIEW_BOX_RGB)
+        assert boxed.overlay[v1, (u0 + u1) // 2].tolist() == list(REVIEW_BOX_RGB)
+
+        # Accept, then skip: stored in SQLite, the next unmarked region is shown each time.
+        nxt = session.mark_region("accepted")
+        assert nxt is regions[1] and session.region_pos == 1
+        session.mark_region("skipped")
+        assert session.review_progress() == {"total": len(regions), "reviewed": 1, "skipped": 1}
+        with open_db(settings.database) as db:
+            marks = crud.list_review_marks(db, pid)
+            (progress,) = crud.review_progress(db, pid)
+        assert marks[regions[0].id].state == "accepted" and marks[regions[1].id].state == "skipped"
+        assert (progress["kind"], progress["reviewed"], progress["skipped"]) == ("confidence", 1, 1)
+    finally:
+        session.close()
+
+    # A new session on the same store (the server restarted) ranks the same queue and sees the marks.
+    again = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
+    try:
+        regions2 = again.build_queue("confidence")
+        assert [r.id for r in regions2] == [r.id for r in regions]
+        assert again.review_progress() == {"total": len(regions), "reviewed": 1, "skipped": 1}
+        assert again.region_state(0) == "accepted" and again.region_state(1) == "skipped"
+        # Relabel the first region (a correction): its content changed, so its old mark no longer counts
+        # until it is accepted on the new content (relabel accepts it).
+        again.show_region(0)
+        cid = again.relabel_region("building")
+        assert cid is not None and again.region_state(0) == "accepted"
+        with open_db(settings.database) as db:
+            (corr,) = crud.list_corrections(db, pid)
+            stored = crud.list_review_marks(db, pid)[regions[0].id]
+        np.testing.assert_array_equal(corr.keys, keys[regions[0].rows])
+        assert stored.signature == again.signatures[0] != review.region_signatures(
+            again.grid.centres, again.grid.keys, again.grid.label, [regions[0].cell], 2.0
+        )[0]
+        # Re-ranked: the relabelled voxels are certain now; if the cell still ranks, it stays accepted.
+        ranked = [r.id for r in again.build_queue("confidence")]
+        if regions[0].id in ranked:
+            assert again.region_state(ranked.index(regions[0].id)) == "accepted"
+    finally:
+        again.close()

@@ -20,6 +20,7 @@ import { renderHead } from "./project/head.js";
 import { renderRuns } from "./project/history.js";
 import { renderNextRun } from "./project/next-run.js";
 import { renderParams } from "./project/params.js";
+import { renderReview } from "./project/review.js";
 import { renderRunPanel } from "./project/run-panel.js";
 
 export async function renderProject(root, projectId, { toast }) {
@@ -177,6 +178,7 @@ export async function renderProject(root, projectId, { toast }) {
   ctx.render.classes();
   ctx.render.params();
   ctx.render.next();
+  renderReview(ctx);
   await ctx.render.compare();
   follow(state.runs.find((r) => ctx.active.has(r.status)));
   import("./project/corrections.js").then((m) => m.mountCorrections(ctx));

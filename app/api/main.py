@@ -28,3 +28,4 @@ if importlib.util.find_spec("app.api.routes.viewer") is not None:
     api_router.include_router(importlib.import_module("app.api.routes.viewer").router)
     api_router.include_router(importlib.import_module("app.api.routes.viewer_nav").router)
     api_router.include_router(importlib.import_module("app.api.routes.viewer_tools").router)
+    api_router.include_router(importlib.import_module("app.api.routes.viewer_review").router)

@@ -99,12 +99,38 @@ def _v3_correction_scope(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v4_review_marks(db: sqlite_utils.Database) -> None:
+    _execute_script(
+        db,
+        """
+        CREATE TABLE review_marks (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            region TEXT NOT NULL,
+            signature TEXT NOT NULL,
+            state TEXT NOT NULL CHECK (state IN ('accepted', 'skipped')),
+            run_id INTEGER,
+            updated_at TEXT NOT NULL,
+            PRIMARY KEY (project_id, region)
+        );
+        CREATE TABLE review_queues (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            kind TEXT NOT NULL CHECK (kind IN ('confidence', 'disagreement')),
+            run_id INTEGER,
+            regions_json TEXT NOT NULL,
+            updated_at TEXT NOT NULL,
+            PRIMARY KEY (project_id, kind)
+        );
+        """,
+    )
+
+
 Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
 
 MIGRATIONS: list[Migration] = [
     (1, "projects, runs, corrections, meta", _v1_initial),
     (2, "runs.note", _v2_run_note),
     (3, "corrections.scope, frame_id, points, author", _v3_correction_scope),
+    (4, "review_marks, review_queues", _v4_review_marks),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -240,7 +240,10 @@ class RunOutputs:
         """Per-voxel share of camera-labelled points whose final label differs (see
         :func:`app.viewer.view_logic.disagreement_rate`), over every labelled scan of the run.
 
-        Reads every scan once; the result is kept for this grid.
+        Reads every scan once; the result is kept for this grid. Only the points the camera labelled
+        (``point_label ≥ 0``, a tenth of a scan or less: the camera sees a narrow wedge) can disagree, so
+        only they are moved to the world and looked up in the grid; transforming and searching every point
+        made the demo's disagreement queue take 5.7 s.
         """
         cached = self._disagreement
         if cached is not None and cached[0] is grid:
@@ -251,10 +254,18 @@ class RunOutputs:
             arrays = self.point_arrays(i)
             if "point_label" not in arrays:
                 continue
-            keys = voxel_keys(self.world_points(i), grid.voxel_size)
+            cam = arrays["point_label"]
+            seen = np.flatnonzero(cam >= 0)
+            frame = self.seq.frame(i)
+            if cam.shape[0] != frame.points.shape[0]:
+                raise DatasetError(
+                    self.layout.points(frame.frame_id),
+                    f"{cam.shape[0]} labels but the scan has {frame.points.shape[0]} points",
+                )
+            keys = voxel_keys(world_points(frame.points[seen], frame.pose), grid.voxel_size)
             rows_all.append(grid.rows_of(keys))
-            cam_all.append(arrays["point_label"].astype(np.int16))
-            fin_all.append(arrays["label"].astype(np.int16))
+            cam_all.append(cam[seen].astype(np.int16))
+            fin_all.append(arrays["label"][seen].astype(np.int16))
         if not rows_all:
             rate, observed = np.zeros(grid.num_voxels, np.float32), np.zeros(grid.num_voxels, np.int64)
         else:
@@ -263,6 +274,27 @@ class RunOutputs:
             )
         self._disagreement = (grid, rate, observed)
         return rate, observed
+
+    def region_observers(
+        self, index: int, keys: npt.NDArray[np.int64], voxel_size: float
+    ) -> tuple[int, int, npt.NDArray[np.float64]]:
+        """How scan ``index`` saw a region: ``(points in the region's voxels, of them in its image, their
+        pixel coordinates (n, 2))``.
+
+        Args:
+            keys: sorted voxel keys of the region.
+            voxel_size: edge of those keys.
+        """
+        frame = self.seq.frame(index)
+        inside = np.flatnonzero(
+            rows_in_sorted(keys, voxel_keys(world_points(frame.points, frame.pose), voxel_size)) >= 0
+        )
+        if inside.size == 0 or not frame.has_image:
+            return int(inside.size), 0, np.zeros((0, 2))
+        h, w = frame.image.shape[:2]
+        proj = project_points(frame.points[inside], frame.calib.lidar_to_image, h, w)
+        uv = np.stack([proj.u, proj.v], axis=1).astype(np.float64)
+        return int(inside.size), int(uv.shape[0]), uv
 
 
     def view_counts(self, grid: ReviewGrid) -> npt.NDArray[np.int64]:

@@ -26,6 +26,7 @@ from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
     CorrectionRecord,
     ProjectBackend,
+    ReviewMarkRecord,
     ReviewSession,
     RunInfo,
     Scope,
@@ -174,6 +175,21 @@ class AppBackend:
                 raise NotFound(f"Correction {correction_id} not found in project {self.project_id}")
             crud.set_correction_active(db, correction_id, active)
         applier(self.settings).request(self.project_id)
+
+    def review_marks(self) -> dict[str, ReviewMarkRecord]:
+        with open_db(self.settings.database) as db:
+            marks = crud.list_review_marks(db, self.project_id)
+        return {k: ReviewMarkRecord(m.signature, m.state) for k, m in marks.items()}
+
+    def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None:
+        with open_db(self.settings.database) as db:
+            crud.set_review_mark(
+                db, self.project_id, region=region, signature=signature, state=state, run_id=run_id
+            )
+
+    def save_review_queue(self, kind: str, run_id: int | None, regions: list[tuple[str, str]]) -> None:
+        with open_db(self.settings.database) as db:
+            crud.save_review_queue(db, self.project_id, kind, run_id, regions)
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,9 @@ import viser
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
+from app.viewer.panel_review import QUEUE_KINDS, ReviewQueuePanel
 from app.viewer.panel_tools import ToolsPanel
-from app.viewer.session import Inspection, QueueKind, ReviewSession, RunInfo, camera_of
+from app.viewer.session import Inspection, ReviewSession, RunInfo, camera_of
 
 log = logging.getLogger(__name__)
 
@@ -30,11 +31,6 @@ _MODE_OF: dict[str, vl.ColorMode] = {
     "class": "class",
     "confidence": "confidence",
     "class probability": "class_probability",
-}
-QUEUE_KINDS = ("lowest confidence", "camera vs final disagreement")
-_QUEUE_OF: dict[str, QueueKind] = {
-    "lowest confidence": "confidence",
-    "camera vs final disagreement": "disagreement",
 }
 
 
@@ -103,10 +99,7 @@ class ReviewPanel:
                                             format="jpeg", visible=False)
 
         with gui.add_folder("Review queue", order=4, expand_by_default=False):
-            self.queue_kind = gui.add_dropdown("Order by", QUEUE_KINDS, initial_value=QUEUE_KINDS[0])
-            self.next_button = gui.add_button("Next region")
-            self.prev_button = gui.add_button("Previous region")
-            self.queue_info = gui.add_markdown("")
+            self.review = ReviewQueuePanel(self)
 
         with gui.add_folder("Corrections", order=5, expand_by_default=False):
             self.assign_class = gui.add_dropdown("Assign class", ["-"], initial_value="-")
@@ -170,9 +163,6 @@ class ReviewPanel:
         self.scan_slider.on_update(g(lambda _: self._slider_moved()))
         self.show_scan.on_update(g(lambda _: self._scan_visibility()))
         self.show_map.on_update(g(lambda _: setattr(s.scene.voxels, "visible", self.show_map.value)))
-        self.queue_kind.on_update(g(lambda _: self._queue_changed()))
-        self.next_button.on_click(g(lambda _: self._next_region(1)))
-        self.prev_button.on_click(g(lambda _: self._next_region(-1)))
         self.select_button.on_click(g(lambda _: self._arm_select()))
         self.apply_button.on_click(g(lambda _: s.assign_selection(str(self.assign_class.value))))
         self.clear_button.on_click(g(lambda _: s.clear_selection()))
@@ -206,17 +196,6 @@ class ReviewPanel:
         on = bool(self.show_scan.value)
         self.s.scene.scan.visible = on
         self.s.scene.camera.visible = on
-
-    def _queue_changed(self) -> None:
-        self.s.build_queue(_QUEUE_OF[str(self.queue_kind.value)])
-        self.queue_info.content = f"{len(self.s.regions)} regions; press *Next region*."
-
-    def _next_region(self, step: int) -> None:
-        kind = _QUEUE_OF[str(self.queue_kind.value)]
-        if not self.s.regions or self.s.queue_kind != kind:
-            self.s.build_queue(kind)
-        if self.s.next_region(step) is None:
-            self.queue_info.content = "Nothing to review."
 
     def _arm_select(self) -> None:
         s = self.s
@@ -295,6 +274,7 @@ class ReviewPanel:
         if self.prob_class.value not in names:
             self.prob_class.value = names[0]  # type: ignore[misc]  # viser: split setter, see class note
         self.assign_class.options = names
+        self.review.on_run_loaded(names)
         if self.assign_class.value not in names:
             self.assign_class.value = names[0]  # type: ignore[misc]  # viser: split setter, see class note
         for box in self._class_boxes:
@@ -341,10 +321,10 @@ class ReviewPanel:
             self.scan_slider.value = pos  # type: ignore[misc]  # viser: split setter, see class note
 
     def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None:
-        what = "mean confidence" if kind == "confidence" else "disagreement"
-        self.queue_info.content = (
-            f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels."
-        )
+        self.review.on_region(region, pos, count, kind)
+
+    def on_queue(self, building: bool) -> None:
+        self.review.on_queue(building)
 
     def on_selection(self, count: int) -> None:
         self.apply_button.disabled = count == 0

@@ -260,6 +260,7 @@ class ReviewScene:
         self.inspected = PointLayer(self.server, "/map/inspected", point_size=0.35)
         """Marker of the voxel shown in the panel's Inspect section."""
         self._rect_cb: RectSelectFn | None = None
+        self._review_box: viser.BoxHandle | None = None
         self._closed = False
 
     @property
@@ -288,6 +289,32 @@ class ReviewScene:
         distance = max(min_distance, 4.0 * region.extent)
         pos, tgt = vl.orbit_view(region.centre, distance, elevation_deg=40.0)
         self.look_at(pos, tgt)
+
+    def set_review_box(
+        self,
+        centre: npt.ArrayLike | None,
+        size: npt.ArrayLike | None = None,
+        color: tuple[int, int, int] = (0, 255, 255),
+    ) -> None:
+        """Outline the focused review region with a wireframe box (``centre`` None hides it)."""
+        if centre is None or size is None:
+            if self._review_box is not None:
+                self._review_box.visible = False
+            return
+        dims = _xyz(np.maximum(np.asarray(size, dtype=np.float64), 0.1))
+        if self._review_box is None:
+            self._review_box = self.server.scene.add_box(
+                "/map/review_box", color=color, dimensions=dims, wireframe=True, position=_xyz(centre)
+            )
+            return
+        with self.server.atomic():
+            self._review_box.dimensions = dims
+            self._review_box.position = _xyz(centre)
+            self._review_box.visible = True
+
+    @property
+    def review_box(self) -> viser.BoxHandle | None:
+        return self._review_box
 
     def arm_rect_select(self, callback: RectSelectFn) -> None:
         """Make the next box drag on the canvas a selection (camera orbit is suspended meanwhile)."""

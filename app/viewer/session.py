@@ -30,6 +30,7 @@ from app.viewer import nav_logic as nl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, ScanView
 from app.viewer.scene import ReviewScene
+from leap_core import review
 from leap_core import selection as sel
 from leap_core.fusion import key_centres, voxel_keys
 from leap_core.picking import pick_voxel
@@ -59,6 +60,10 @@ class ViewChanges(TypedDict, total=False):
     enabled: tuple[bool, ...]
     max_points: int | None
 
+
+REVIEW_BOX_RGB = (0, 255, 255)
+"""Outline of the focused review region (3D box and image box): cyan, which no SemanticKITTI class uses
+(magenta would vanish on the road)."""
 
 SELECTION_RGB = (15, 15, 15)
 """Highlight of selected voxels: near-black, unlike every class colour and the light background."""
@@ -159,6 +164,16 @@ class ToolSettings:
     """Brush radius as a share of the canvas height."""
 
 
+@dataclass(frozen=True)
+class ReviewMarkRecord:
+    """A stored verdict on a review region (see :class:`app.crud.ReviewMark`)."""
+
+    signature: str
+    """Content signature the verdict was made on (:func:`leap_core.review.region_signatures`)."""
+    state: str
+    """``accepted`` or ``skipped``."""
+
+
 class ProjectBackend(Protocol):
     """The project store the viewer reads and steers (the same data the web UI edits)."""
 
@@ -195,6 +210,12 @@ class ProjectBackend(Protocol):
 
     def set_correction_active(self, correction_id: int, active: bool) -> None: ...
 
+    def review_marks(self) -> dict[str, ReviewMarkRecord]: ...
+
+    def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None: ...
+
+    def save_review_queue(self, kind: str, run_id: int | None, regions: list[tuple[str, str]]) -> None: ...
+
 
 class SessionView(Protocol):
     """What the session tells its GUI panel (implemented by :class:`app.viewer.panel.ReviewPanel`)."""
@@ -208,6 +229,8 @@ class SessionView(Protocol):
     def on_scan(self, view: ScanView, pos: int, count: int) -> None: ...
 
     def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None: ...
+
+    def on_queue(self, building: bool) -> None: ...
 
     def on_selection(self, count: int) -> None: ...
 
@@ -236,6 +259,10 @@ class SessionConfig:
     """How often a started run's progress is polled."""
     max_points: int = 200_000
     """Default of the panel's "Max points" (decimation applies only once the user ticks "Limit points")."""
+    queue_scans: int = 12
+    """A focused region's scan is the best observer (:func:`leap_core.review.best_observer`) among this many
+    scans whose sensor positions lie nearest the region: counting every scan's points would cost a pass over
+    the whole sequence per region."""
     play_interval_s: float = 1.0
     """Seconds between scans while playing through them."""
     follow_ego: bool = True
@@ -306,6 +333,7 @@ class ReviewSession:
         self.regions: list[vl.Region] = []
         self.region_pos = -1
         self.queue_kind: QueueKind = "confidence"
+        self._init_review_state()
         self.frame_pos = 0
         self._init_navigation()
         self.last_draw_s = 0.0
@@ -335,6 +363,17 @@ class ReviewSession:
             self.close()  # free the port and threads of a viewer that could not start
             raise
 
+    def _init_review_state(self) -> None:
+        self.queue_built = False
+        """True once a queue was built for the loaded run (a re-run rebuilds it)."""
+        self.queue_building = False
+        self.signatures: list[str] = []
+        """Content signature of each region of :attr:`regions` (same order)."""
+        self.marks: dict[str, ReviewMarkRecord] = {}
+        self.focus: vl.Region | None = None
+        """The review region shown highlighted (its voxels at full colour, the rest dimmed)."""
+        self.focus_frame: int | None = None
+        """Position (in the scan slider) of the scan the focused region was seen best in."""
     def _init_navigation(self) -> None:
         self.scan_view: ScanView | None = None
         """The scan shown (points, labels, ego pose, image)."""
@@ -391,7 +430,10 @@ class ReviewSession:
             self.project_schema = self.backend.load_schema()
             self._refresh_palette()
             self.selection = _Selection(np.zeros(0, np.int64))
-            self.regions, self.region_pos = [], -1
+            self.regions, self.region_pos, self.signatures = [], -1, []
+            self.focus, self.focus_frame = None, None
+            rebuild = self.queue_built
+            self.queue_built = False
             enabled = tuple(True for _ in range(grid.num_classes))
             cls = min(self.state.class_index, grid.num_classes - 1)
             self.state = dataclasses.replace(self.state, enabled=enabled, class_index=cls)
@@ -406,9 +448,16 @@ class ReviewSession:
             self._frame_whole_map()
         self.inspected = None
         self.scene.inspected.visible = False
+        self.scene.set_review_box(None)
         if outputs.frame_indices:
             # The map framing above is the first view; following starts with the user's first scan change.
             self.show_scan(len(outputs.frame_indices) // 2, move_camera=False)
+        if rebuild:
+            # After a re-run the queue is ranked again on the new grid (in the background: the disagreement
+            # queue reads every scan); marks of regions whose signature did not change still count.
+            threading.Thread(
+                target=self._rebuild_queue, args=(self.queue_kind,), name="viewer-queue", daemon=True
+            ).start()
         self._emit("loaded")
 
     def class_names(self) -> list[str]:
@@ -484,7 +533,11 @@ class ReviewSession:
         if grid is None:
             return np.zeros(0, np.int64), np.zeros((0, 3), np.uint8)
         class_prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
-        return vl.render_view(state, label, conf, palette, class_prob, corrected)
+        rows, colors = vl.render_view(state, label, conf, palette, class_prob, corrected)
+        focus = self.focus
+        if focus is not None and focus.rows.size:
+            colors = vl.dim_outside(colors, rows, focus.rows)
+        return rows, colors
 
     def draw_now(self) -> None:
         """Recompute and push the voxel layer (and selection highlight) synchronously."""
@@ -600,6 +653,7 @@ class ReviewSession:
         with self._scan_lock:
             pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
             view = outputs.scan_view(outputs.frame_indices[pos], self.palette)
+            view = self._mark_region_in_image(view, pos)
             self.frame_pos = pos
             with self._lock:
                 self.scan_view = view
@@ -754,42 +808,192 @@ class ReviewSession:
 
     # ------------------------------------------------------------------------------------ review queue
     def build_queue(self, kind: QueueKind) -> list[vl.Region]:
-        """Regions to review, worst first: lowest confidence, or most camera-vs-final disagreement."""
+        """Regions to review, worst first: lowest confidence, or most camera-vs-final disagreement.
+
+        Each region gets its content signature; the queue (identities and signatures) is saved to the
+        project so the web UI can count review progress, and the project's marks are read back.
+        """
         cfg = self.config
         with self._lock:
-            grid, conf = self.grid, self.conf
-        if grid is None:
-            return []
-        if kind == "confidence":
-            candidates = vl.lowest_share(conf, cfg.queue_share)
-            regions = vl.rank_regions(
-                grid.centres, conf, candidates, cfg.queue_cell, min_count=cfg.queue_min_count, ascending=True
+            grid, conf, label, run = self.grid, self.conf, self.label, self.run
+            self.queue_building = True
+        self.panel.on_queue(True)
+        try:
+            if grid is None:
+                return []
+            if kind == "confidence":
+                candidates = vl.lowest_share(conf, cfg.queue_share)
+                regions = vl.rank_regions(
+                    grid.centres, conf, candidates, cfg.queue_cell, min_count=cfg.queue_min_count,
+                    ascending=True,
+                )
+            else:
+                assert self.outputs is not None
+                rate, observed = self.outputs.disagreement(grid)
+                seen = observed > 0
+                # lowest_share of -rate (unseen voxels last) is the highest-disagreement share.
+                top = vl.lowest_share(np.where(seen, -rate, np.inf), cfg.queue_share)
+                candidates = seen & (rate > 0) & top
+                regions = vl.rank_regions(
+                    grid.centres, rate, candidates, cfg.queue_cell, min_count=cfg.queue_min_count,
+                    ascending=False,
+                )
+            signatures = review.region_signatures(
+                grid.centres, grid.keys, label, [r.cell for r in regions], cfg.queue_cell
             )
-        else:
-            assert self.outputs is not None
-            rate, observed = self.outputs.disagreement(grid)
-            seen = observed > 0
-            # lowest_share of -rate (unseen voxels last) is the highest-disagreement share.
-            candidates = seen & (rate > 0) & vl.lowest_share(np.where(seen, -rate, np.inf), cfg.queue_share)
-            regions = vl.rank_regions(
-                grid.centres, rate, candidates, cfg.queue_cell, min_count=cfg.queue_min_count, ascending=False
-            )
+            run_id = None if run is None else run.run_id
+            pairs = [(r.id, g) for r, g in zip(regions, signatures, strict=True)]
+            self.backend.save_review_queue(kind, run_id, pairs)
+            marks = self.backend.review_marks()
+            with self._lock:
+                self.queue_kind = kind
+                self.regions = regions
+                self.signatures = signatures
+                self.marks = marks
+                self.region_pos = -1
+                self.queue_built = True
+            return regions
+        finally:
+            with self._lock:
+                self.queue_building = False
+            self.panel.on_queue(False)
+
+    def _rebuild_queue(self, kind: QueueKind) -> None:
+        try:
+            self.build_queue(kind)
+        except Exception:  # keep the viewer alive; the panel shows the error
+            log.exception("rebuilding the review queue failed")
+            self.panel.set_status("Ranking the review queue failed; see the server log.")
+
+    def region_state(self, pos: int) -> str | None:
+        """``accepted`` / ``skipped`` when region ``pos`` has a mark made on its current content, else
+        None."""
+        mark = self.marks.get(self.regions[pos].id)
+        return mark.state if mark is not None and mark.signature == self.signatures[pos] else None
+
+    def review_progress(self) -> dict[str, int]:
+        """``{"total", "reviewed", "skipped"}`` over the current queue (marks on unchanged content only)."""
         with self._lock:
-            self.queue_kind = kind
-            self.regions = regions
-            self.region_pos = -1
-        return regions
+            states = [self.region_state(i) for i in range(len(self.regions))]
+        return {
+            "total": len(states),
+            "reviewed": states.count("accepted"),
+            "skipped": states.count("skipped"),
+        }
 
     def next_region(self, step: int = 1) -> vl.Region | None:
-        """Move the camera to the next (or previous, ``step=-1``) region of the queue."""
+        """Show the next (or previous, ``step=-1``) region of the queue (see :meth:`show_region`)."""
         with self._lock:
             if not self.regions:
                 return None
-            self.region_pos = (self.region_pos + step) % len(self.regions)
-            region = self.regions[self.region_pos]
+            pos = (self.region_pos + step) % len(self.regions)
+        return self.show_region(pos)
+
+    def show_region(self, pos: int) -> vl.Region | None:
+        """Focus region ``pos``: highlight its voxels and dim the rest, outline it, frame the camera on it,
+        and show the scan that observed it best with the region boxed in its image."""
+        with self._lock:
+            if not 0 <= pos < len(self.regions):
+                return None
+            self.region_pos = pos
+            region = self.regions[pos]
+            self.focus = region
+            self.focus_frame = None
+            grid = self.grid
+        assert grid is not None
+        lo = grid.centres[region.rows].min(axis=0) - grid.voxel_size / 2
+        hi = grid.centres[region.rows].max(axis=0) + grid.voxel_size / 2
+        self.scene.set_review_box((lo + hi) / 2, hi - lo, REVIEW_BOX_RGB)
         self.scene.frame_region(region)
-        self.panel.on_region(region, self.region_pos, len(self.regions), self.queue_kind)
+        self.request_draw()
+        best = self._best_scan(region)
+        if best is not None:
+            with self._lock:
+                self.focus_frame = best
+            self.show_scan(best, move_camera=False)  # keep the framing of the region
+        self.panel.on_region(region, pos, len(self.regions), self.queue_kind)
         return region
+
+    @staticmethod
+    def blend_dim(colors: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+        """How voxels outside the focused region are drawn (:func:`app.viewer.view_logic.dim_outside`)."""
+        return vl.dim_outside(colors, np.zeros(colors.shape[0], np.int64), np.zeros(0, np.int64))
+
+    def clear_focus(self) -> None:
+        with self._lock:
+            self.focus, self.focus_frame = None, None
+        self.scene.set_review_box(None)
+        self.request_draw()
+
+    def _region_keys(self, region: vl.Region) -> npt.NDArray[np.int64]:
+        assert self.grid is not None
+        return self.grid.keys[region.rows]  # rows ascend, so the keys stay sorted
+
+    def _best_scan(self, region: vl.Region) -> int | None:
+        """Slider position of the scan that observed ``region`` most, among the ``queue_scans`` scans
+        nearest it (:func:`leap_core.review.best_observer`)."""
+        outputs, grid = self.outputs, self.grid
+        if outputs is None or grid is None or not outputs.frame_indices:
+            return None
+        frames = np.asarray(outputs.frame_indices)
+        positions = outputs.seq.poses[frames, :3, 3]
+        near = review.nearest_scans(positions, region.centre, self.config.queue_scans)
+        keys = self._region_keys(region)
+        counts = [outputs.region_observers(int(frames[i]), keys, grid.voxel_size)[:2] for i in near]
+        best = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
+        return None if best is None else int(near[best])
+
+    def _mark_region_in_image(self, view: ScanView, pos: int) -> ScanView:
+        """The scan view with the focused region boxed in its image (when this scan's camera sees it)."""
+        region, outputs, grid = self.focus, self.outputs, self.grid
+        if region is None or outputs is None or grid is None or view.overlay is None:
+            return view
+        keys = self._region_keys(region)
+        _, _, uv = outputs.region_observers(outputs.frame_indices[pos], keys, grid.voxel_size)
+        h, w = view.overlay.shape[:2]
+        box = review.image_box(uv, w, h)
+        if box is None:
+            return view
+        return dataclasses.replace(view, overlay=review.draw_box(view.overlay, box, REVIEW_BOX_RGB))
+
+    def mark_region(self, state: str) -> vl.Region | None:
+        """Record ``accepted`` or ``skipped`` for the focused region (in the project's database) and show
+        the next region without a mark; returns that region (None when every region has one)."""
+        with self._lock:
+            pos = self.region_pos
+            if not 0 <= pos < len(self.regions):
+                raise ValueError("no review region is shown; press Next region first")
+            region, signature = self.regions[pos], self.signatures[pos]
+        run_id = None if self.run is None else self.run.run_id
+        self.backend.set_review_mark(region.id, signature, state, run_id)
+        with self._lock:
+            self.marks[region.id] = ReviewMarkRecord(signature, state)
+            n = len(self.regions)
+            following = [(pos + k) % n for k in range(1, n + 1)]
+            nxt = next((i for i in following if self.region_state(i) is None), None)
+        if nxt is None:
+            self.panel.on_region(region, pos, n, self.queue_kind)
+            return None
+        return self.show_region(nxt)
+
+    def relabel_region(self, class_name: str) -> int | None:
+        """Assign ``class_name`` to the focused region's voxels (a correction, as a box selection would)
+        and accept the region on its new content; returns the correction id."""
+        with self._lock:
+            pos = self.region_pos
+            if not 0 <= pos < len(self.regions) or self.grid is None:
+                raise ValueError("no review region is shown; press Next region first")
+            region = self.regions[pos]
+            self.selection = _Selection(region.rows)
+        cid = self.assign_selection(class_name)
+        assert self.grid is not None
+        signature = review.region_signatures(
+            self.grid.centres, self.grid.keys, self.label, [region.cell], self.config.queue_cell
+        )[0]
+        with self._lock:
+            self.signatures[pos] = signature
+        self.mark_region("accepted")
+        return cid
 
     # ------------------------------------------------------------------------------------- corrections
     def set_tools(self, **changes: Any) -> ToolSettings:
@@ -1126,6 +1330,7 @@ __all__ = [
     "Inspection",
     "ProjectBackend",
     "QueueKind",
+    "ReviewMarkRecord",
     "ReviewSession",
     "RunInfo",
     "Scope",

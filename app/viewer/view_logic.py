@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Generic, Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
+from leap_core import review
 from leap_core.fusion import last_per_key
 from leap_core.selection import project_to_screen, quat_to_matrix
 from leap_core.types import UNLABELED
@@ -325,7 +326,7 @@ def orbit_view(
 
 
 # ----------------------------------------------------------------------------------- review regions
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Region:
     """A place worth reviewing: the voxels of the candidate set that fall in one coarse cell."""
 
@@ -337,6 +338,12 @@ class Region:
     """Mean score of the region's candidate voxels (confidence, or disagreement rate)."""
     count: int
     """Number of candidate voxels in the region."""
+    id: str = ""
+    """Stable identity across runs (:func:`leap_core.review.region_id`)."""
+    rows: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    """(count,) grid rows of the candidate voxels (the ones highlighted)."""
+    cell: int = 0
+    """Packed cell key (:func:`leap_core.review.rank_cells`)."""
 
 
 def rank_regions(
@@ -349,10 +356,8 @@ def rank_regions(
     ascending: bool = True,
     limit: int = 100,
 ) -> list[Region]:
-    """Cluster candidate voxels into coarse cells and order the cells by their mean score.
-
-    Each candidate voxel goes to cell ``floor(xyz / cell_size)``; a cell with ≥ ``min_count`` candidates
-    is a region with score ``mean(score[candidates in cell])``. Ties are broken by larger count first.
+    """Cluster candidate voxels into coarse cells and order the cells by their mean score
+    (:func:`leap_core.review.rank_cells`; ties: more candidates first, then the smaller cell key).
 
     Args:
         centres: (V, 3) voxel centres.
@@ -364,37 +369,46 @@ def rank_regions(
         limit: return at most this many regions.
 
     Returns:
-        Regions, best first.
+        Regions, best first, each with its identity and candidate rows.
     """
-    if not cell_size > 0:
-        raise ValueError(f"cell_size must be > 0, got {cell_size}")
-    rows = np.flatnonzero(candidates)
-    if rows.size == 0:
-        return []
-    xyz = np.asarray(centres, dtype=np.float64)[rows]
-    cells = np.floor(xyz / cell_size).astype(np.int64)
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    k = counts.shape[0]
-    s = np.asarray(score, dtype=np.float64)[rows]
-    mean_score = np.bincount(inverse, weights=s, minlength=k) / counts
-    sum_xyz = np.stack([np.bincount(inverse, weights=xyz[:, d], minlength=k) for d in range(3)], 1)
-    mean_xyz = sum_xyz / counts[:, None]
-    dist = np.linalg.norm(xyz - mean_xyz[inverse], axis=1)
-    extent = np.zeros(k)
-    np.maximum.at(extent, inverse, dist)
-    keep = np.flatnonzero(counts >= min_count)
-    primary = mean_score[keep] if ascending else -mean_score[keep]
-    order = keep[np.lexsort((-counts[keep], primary))][:limit]
+    cells = review.rank_cells(
+        centres, score, candidates, cell_size, min_count=min_count, ascending=ascending, limit=limit
+    )
     return [
         Region(
-            centre=(float(mean_xyz[i, 0]), float(mean_xyz[i, 1]), float(mean_xyz[i, 2])),
-            extent=float(extent[i]),
-            score=float(mean_score[i]),
-            count=int(counts[i]),
+            centre=c.centre,
+            extent=c.extent,
+            score=c.score,
+            count=int(c.rows.shape[0]),
+            id=review.region_id(c.cell, cell_size),
+            rows=c.rows,
+            cell=c.cell,
         )
-        for i in order
+        for c in cells
     ]
+
+
+def dim_outside(
+    colors: npt.NDArray[np.uint8],
+    rows: npt.NDArray[np.int64],
+    keep_rows: npt.NDArray[np.int64],
+    toward: tuple[int, int, int] = (235, 235, 235),
+    alpha: float = 0.75,
+) -> npt.NDArray[np.uint8]:
+    """Dim every drawn voxel but the focused ones: :func:`blend` ``(c, toward, α)`` where ``rows[m]`` is not
+    in ``keep_rows``, the colour unchanged where it is.
+
+    Args:
+        colors: (M, 3) colours of the drawn voxels ``rows`` (M,).
+        keep_rows: grid rows left at full colour (any order).
+
+    Returns:
+        (M, 3) uint8, a new array.
+    """
+    keep = np.isin(rows, keep_rows)
+    out = blend(colors, toward, alpha)
+    out[keep] = colors[keep]
+    return out
 
 
 def lowest_share(score: npt.NDArray[np.floating], share: float) -> npt.NDArray[np.bool_]:
@@ -564,6 +578,7 @@ __all__ = [
     "blend",
     "class_colors",
     "decimate_indices",
+    "dim_outside",
     "disagreement_rate",
     "draw_label_overlay",
     "lowest_share",

@@ -8,6 +8,7 @@
 import { api } from "/api.js";
 import { listen } from "./keys.js";
 import "./nav.js";
+import "./review.js";
 
 const match = window.location.pathname.match(/\/projects\/(\d+)\/viewer\//);
 

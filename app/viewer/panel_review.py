@@ -1,0 +1,114 @@
+"""The panel's "Review queue" folder: rank regions, step through them, accept / skip / relabel.
+
+Built by :class:`app.viewer.panel.ReviewPanel` inside its folder; the same actions are reachable from the
+viewer page's keys (web/viewer/review.js through app/api/routes/viewer_review.py).
+"""
+
+from __future__ import annotations
+
+import html
+import threading
+from typing import TYPE_CHECKING, Any
+
+from app.viewer import view_logic as vl
+from app.viewer.session import QueueKind
+
+if TYPE_CHECKING:
+    from app.viewer.panel import ReviewPanel
+
+QUEUE_KINDS = ("lowest confidence", "camera vs final disagreement")
+QUEUE_OF: dict[str, QueueKind] = {
+    "lowest confidence": "confidence",
+    "camera vs final disagreement": "disagreement",
+}
+STATE_TEXT = {"accepted": "accepted", "skipped": "skipped", None: "not reviewed"}
+
+
+def progress_text(progress: dict[str, int]) -> str:
+    """``"12 / 100 reviewed"`` (and the skipped count when there are any)."""
+    text = f"{progress['reviewed']} / {progress['total']} reviewed"
+    return f"{text}, {progress['skipped']} skipped" if progress.get("skipped") else text
+
+
+class ReviewQueuePanel:
+    """Widgets of the review queue (call inside the panel's "Review queue" folder)."""
+
+    def __init__(self, panel: ReviewPanel) -> None:
+        self.p = panel
+        s, gui, g = panel.s, panel.gui, panel._guard
+        self.queue_kind = gui.add_dropdown("Order by", QUEUE_KINDS, initial_value=QUEUE_KINDS[0])
+        self.next_button = gui.add_button("Next region", hint="Key: N")
+        self.prev_button = gui.add_button("Previous region", hint="Key: P")
+        self.accept_button = gui.add_button("Accept region", hint="Mark reviewed and go on (key: A)",
+                                            color="green", disabled=True)
+        self.skip_button = gui.add_button("Skip region", hint="Mark skipped and go on (key: S)",
+                                          disabled=True)
+        self.relabel_class = gui.add_dropdown("Relabel as", ["-"], initial_value="-")
+        self.relabel_button = gui.add_button("Relabel region", hint="Assign the class to the highlighted "
+                                             "voxels (key: R opens the class picker)", disabled=True)
+        self.queue_info = gui.add_markdown("")
+        self.progress = gui.add_markdown("")
+        self.queue_kind.on_update(g(lambda _: self._in_background(self._build)))
+        self.next_button.on_click(g(lambda _: self._in_background(lambda: self.step(1))))
+        self.prev_button.on_click(g(lambda _: self._in_background(lambda: self.step(-1))))
+        self.accept_button.on_click(g(lambda _: s.mark_region("accepted")))
+        self.skip_button.on_click(g(lambda _: s.mark_region("skipped")))
+        self.relabel_button.on_click(g(lambda _: s.relabel_region(str(self.relabel_class.value))))
+
+    def _in_background(self, fn: Any) -> None:
+        # Ranking the disagreement queue reads every scan: keep viser's callback thread free meanwhile.
+        threading.Thread(target=self.p._guard(fn), name="viewer-queue", daemon=True).start()
+
+    def kind(self) -> QueueKind:
+        return QUEUE_OF[str(self.queue_kind.value)]
+
+    def _build(self) -> None:
+        s = self.p.s
+        s.build_queue(self.kind())
+        self.queue_info.content = f"{len(s.regions)} regions; press *Next region* (N)."
+
+    def step(self, step: int) -> vl.Region | None:
+        """Show the next / previous region, ranking the chosen queue first when needed."""
+        s = self.p.s
+        if not s.regions or s.queue_kind != self.kind() or not s.queue_built:
+            s.build_queue(self.kind())
+        region = s.next_region(step)
+        if region is None:
+            self.queue_info.content = "Nothing to review."
+        return region
+
+    def on_run_loaded(self, names: list[str]) -> None:
+        self.relabel_class.options = names
+        if self.relabel_class.value not in names:
+            self.relabel_class.value = names[0]  # type: ignore[misc]  # viser: split setter (panel.py)
+        self.progress.content = ""
+        for b in (self.accept_button, self.skip_button, self.relabel_button):
+            b.disabled = True
+
+    def on_queue(self, building: bool) -> None:
+        for b in (self.next_button, self.prev_button):
+            b.disabled = building
+        self.queue_kind.disabled = building
+        if building:
+            self.queue_info.content = "⏳ Ranking regions…"
+        else:
+            self.progress.content = progress_text(self.p.s.review_progress())
+
+    def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None:
+        s = self.p.s
+        what = "mean confidence" if kind == "confidence" else "disagreement"
+        state = STATE_TEXT[s.region_state(pos)]
+        seen = ""
+        if s.focus_frame is not None and s.outputs is not None:
+            fid = s.outputs.seq.frame_ids[s.outputs.frame_indices[s.focus_frame]]
+            seen = f" Seen best in scan {html.escape(fid)} (boxed in the image)."
+        self.queue_info.content = (
+            f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels "
+            f"({state}).{seen}"
+        )
+        self.progress.content = progress_text(s.review_progress())
+        for b in (self.accept_button, self.skip_button, self.relabel_button):
+            b.disabled = False
+
+
+__all__ = ["QUEUE_KINDS", "QUEUE_OF", "ReviewQueuePanel", "progress_text"]

@@ -1,0 +1,208 @@
+"""The review queue in a real browser: keys highlight a region, jump to the scan that saw it most, and
+accept / skip marks survive a restart of the app on the same work folder.
+
+The app runs in this process (uvicorn on a real port, like tests/browser/test_viewer.py) so the test can
+check the scene the server sends: the focused region's voxels at full colour and every other voxel dimmed,
+the scan slider on the best observing scan. It is then shut down (its viewers and job manager with it) and
+a new app is started on the same work folder: only SQLite carries the marks across.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import browserfixtures
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
+
+artifacts = browserfixtures.artifacts
+wait_until = browserfixtures.wait_until
+FRAMES = 6
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+
+class LiveApp:
+    """``create_app`` served by uvicorn in a thread; :meth:`stop` runs the app's shutdown. Unlike
+    ``browserfixtures.running_app`` it seeds no demo and can be stopped and started again on one work dir."""
+
+    def __init__(self, settings: Any) -> None:
+        import uvicorn
+
+        from app.main import create_app
+
+        self.settings = settings
+        self.app = create_app(settings)
+        self.base = f"http://127.0.0.1:{settings.port}"
+        self.server = uvicorn.Server(
+            uvicorn.Config(self.app, host="127.0.0.1", port=settings.port, log_level="warning")
+        )
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.thread.start()
+        wait_until(lambda: self.server.started, 30, "the app to start")
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(30)
+        assert not self.thread.is_alive(), "the app did not shut down"
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    from serverproc import make_small_street
+
+    root = tmp_path_factory.mktemp("review-e2e")
+    dataset = make_small_street(root / "data" / "street", FRAMES)
+    return root, dataset
+
+
+def _settings(root: Path) -> Any:
+    from app.core.config import Settings
+
+    return Settings(
+        port=browserfixtures.free_port(), work_dir=root / "work", data_roots=[root / "data"], seed_demo=False
+    )
+
+
+def _open_viewer(page: Any, live: LiveApp, pid: int, api: Any) -> Any:
+    opened = api.post(f"/projects/{pid}/viewer")
+    assert opened.status_code == 200, opened.text
+    page.goto(live.base + opened.json()["url"])
+    page.get_by_text("Color by", exact=True).wait_for(timeout=60_000)
+    session = live.app.state.viewers.get(pid)
+    assert session is not None and session.wait_drawn(30)
+    page.locator("#leap-review").wait_for(state="attached", timeout=30_000)  # review.js bound its keys
+    return session
+
+
+def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
+    workdir: tuple[Path, Path], artifacts: Path
+) -> None:
+    import httpx
+    from playwright.sync_api import expect
+
+    from app import crud
+    from app.core.db import open_db
+    from leap_core import review
+
+    root, dataset = workdir
+    live = LiveApp(_settings(root))
+    try:
+        api = httpx.Client(base_url=f"{live.base}/api/v1", timeout=30)
+        street = {"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}}
+        r = api.post("/projects", json=street)
+        assert r.status_code == 201, r.text
+        pid = r.json()["id"]
+        run = api.post(f"/projects/{pid}/runs", json={})
+        assert run.status_code == 202, run.text
+        done = wait_until(
+            lambda: (x := api.get(f"/runs/{run.json()['id']}").json())["status"] in ("done", "failed") and x,
+            300,
+            "the first run",
+        )
+        assert done["status"] == "done", done.get("error")
+
+        with browserfixtures.launch_chromium() as browser:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            browserfixtures.echo_console(page)
+            page.on("pageerror", lambda exc: print(f"[page error] {exc}"))
+            session = _open_viewer(page, live, pid, api)
+            grid = session.grid
+            full = session.scene.voxels.handle.colors.copy()
+
+            # n: rank the least-confident queue and focus its first region.
+            page.get_by_text("Review queue", exact=True).click()
+            page.evaluate("document.activeElement && document.activeElement.blur()")  # keys go to the page
+            page.keyboard.press("n")
+            badge = page.locator("#leap-review")
+            expect(badge).to_contain_text(re.compile(r"0 / \d+ reviewed"), timeout=60_000)
+            expect(badge).to_contain_text("region 1/")
+            region = session.focus
+            assert region is not None and region is session.regions[0] and region.rows.size > 0
+            total = len(session.regions)
+
+            # Highlighted: the region's voxels keep their colours, every other voxel is dimmed.
+            assert session.wait_drawn(30)
+            colors = session.scene.voxels.handle.colors
+            inside = np.isin(np.arange(grid.num_voxels), region.rows)
+            np.testing.assert_array_equal(colors[inside], full[inside])
+            np.testing.assert_array_equal(colors[~inside], session.blend_dim(full[~inside]))
+            box = session.scene.review_box
+            assert box is not None and box.visible
+
+            # The scan slider jumped to the scan that observed the region most: every scan counted here,
+            # nearest the region first (equal counts go to the nearer scan).
+            out = session.outputs
+            keys = grid.keys[region.rows]
+            frames = np.asarray(out.frame_indices)
+            near = review.nearest_scans(out.seq.poses[frames, :3, 3], region.centre, len(frames))
+            counts = [out.region_observers(int(frames[i]), keys, grid.voxel_size) for i in near]
+            found = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
+            assert found is not None and counts[found][1] > 0, "the region should be in some camera image"
+            best = int(near[found])
+            assert session.frame_pos == best
+            fid = out.seq.frame_ids[out.frame_indices[best]]
+            expect(page.get_by_text(f"Seen best in scan {fid}", exact=False)).to_be_visible(timeout=20_000)
+            scan_info = page.get_by_text(re.compile(rf"Scan {fid} \({best + 1}/{FRAMES}\)"))
+            expect(scan_info).to_be_visible(timeout=20_000)
+            expect(badge).to_contain_text(f"scan {fid}")
+            page.wait_for_timeout(2500)  # software WebGL draws the dimmed map
+            page.screenshot(path=str(artifacts / "viewer-review-1-region.png"))
+
+            # a accepts (and moves on), s skips; both land in SQLite.
+            page.keyboard.press("a")
+            expect(badge).to_contain_text(f"1 / {total} reviewed", timeout=30_000)
+            expect(badge).to_contain_text("region 2/", timeout=30_000)
+            page.keyboard.press("s")
+            expect(badge).to_contain_text(f"1 / {total} reviewed, 1 skipped", timeout=30_000)
+            accepted_id, skipped_id = session.regions[0].id, session.regions[1].id
+            with open_db(live.settings.database) as db:
+                marks = crud.list_review_marks(db, pid)
+            assert marks[accepted_id].state == "accepted" and marks[skipped_id].state == "skipped"
+            page.close()
+    finally:
+        live.stop()
+
+    # A new app on the same work folder: the marks and the progress come back from SQLite.
+    live = LiveApp(_settings(root))
+    try:
+        api = httpx.Client(base_url=f"{live.base}/api/v1", timeout=30)
+        with browserfixtures.launch_chromium() as browser:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            browserfixtures.echo_console(page)
+            page.goto(f"{live.base}/#/projects/{pid}")
+            expect(page.locator("#review-progress")).to_contain_text(
+                f"1 / {total} reviewed, 1 skipped", timeout=30_000
+            )
+            session = _open_viewer(page, live, pid, api)
+            assert session.regions == []  # nothing in memory: a fresh viewer
+            page.keyboard.press("n")
+            badge = page.locator("#leap-review")
+            expect(badge).to_contain_text(f"1 / {total} reviewed, 1 skipped", timeout=60_000)
+            expect(badge).to_contain_text(f"region 1/{total} (accepted")
+            assert [session.region_state(i) for i in (0, 1)] == ["accepted", "skipped"]
+            assert (session.regions[0].id, session.regions[1].id) == (accepted_id, skipped_id)
+            page.keyboard.press("n")
+            expect(badge).to_contain_text(f"region 2/{total} (skipped", timeout=30_000)
+
+            # r opens the class picker on the region; a class relabels it (a correction) and accepts it.
+            page.keyboard.press("r")
+            picker = page.locator("#leap-review-picker")
+            expect(picker).to_contain_text(f"Relabel region 2 ({session.regions[1].count} voxels) as")
+            picker.get_by_role("button", name="building", exact=True).click()
+            expect(badge).to_contain_text(f"2 / {total} reviewed", timeout=30_000)
+            with open_db(live.settings.database) as db:
+                (correction,) = crud.list_corrections(db, pid)
+                assert crud.list_review_marks(db, pid)[skipped_id].state == "accepted"
+            assert correction.class_name == "building"
+            np.testing.assert_array_equal(correction.keys, session.grid.keys[session.regions[1].rows])
+            page.wait_for_timeout(1500)
+            page.screenshot(path=str(artifacts / "viewer-review-2-after-restart.png"))
+    finally:
+        live.stop()
