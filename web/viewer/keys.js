@@ -29,10 +29,11 @@ export function comboOf(event) {
 
 /**
  * Bind `combos` (e.g. ["arrowright", "."]) to `handler(event)`. `group` and `what` describe it in the
- * "?" overlay. Returns nothing; bindings live as long as the page.
+ * "?" overlay, which shows `shown` (e.g. ["1-9"]) instead of the combinations when given. Bindings live as
+ * long as the page.
  */
-export function bind(combos, what, handler, group = "General") {
-  bindings.push({ combos: combos.map((c) => c.toLowerCase()), what, handler, group });
+export function bind(combos, what, handler, group = "General", shown = null) {
+  bindings.push({ combos: combos.map((c) => c.toLowerCase()), what, handler, group, shown });
 }
 
 /** True when the key went to a text field (viser's own inputs): shortcuts must not steal typing. */
@@ -73,9 +74,9 @@ function toggleHelp() {
       const row = table.insertRow();
       const keys = row.insertCell();
       keys.className = "keys";
-      for (const c of b.combos) {
+      for (const c of b.shown || b.combos) {
         const k = document.createElement("kbd");
-        k.textContent = keyLabel(c);
+        k.textContent = b.shown ? c : keyLabel(c);
         keys.append(k, " ");
       }
       row.insertCell().textContent = b.what;

@@ -137,10 +137,8 @@ async function poll() {
   setTimeout(poll, POLL_MS);
 }
 
-for (let n = 1; n <= 9; n++) {
-  bind([String(n)], `Assign the ${n}${["st", "nd", "rd"][n - 1] || "th"} class of the picker to the selection`,
-    () => assign({ slot: n }), "Selection and corrections");
-}
+bind(["1", "2", "3", "4", "5", "6", "7", "8", "9"], "Assign the n-th class of the picker to the selection",
+  (event) => assign({ slot: Number(event.key) }), "Selection and corrections", ["1-9"]);
 bind(["e"], "Erase the selection to unlabeled", () => assign({ erase: true }), "Selection and corrections");
 bind(["ctrl+z"], "Undo the last correction", () => viewerApi("POST", "tools/undo", {}), "Selection and corrections");
 bind(["ctrl+shift+z"], "Redo", () => viewerApi("POST", "tools/redo", {}), "Selection and corrections");
