@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid
-from app.viewer.scene import ReviewScene
+from app.viewer.scene import SECRET_HEADER, ReviewScene
 from leap_core import review
 from leap_core import selection as sel
 from leap_core.fusion import AXIS_OFFSET, VoxelGrid, voxel_keys, world_points
@@ -77,10 +77,11 @@ def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGr
 class WireClient:
     """A websocket client on the viser port counting received bytes (to time delivery)."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, secret: str) -> None:
         import viser
 
         self.port = port
+        self.secret = secret
         self.version = viser.__version__
         self.bytes = 0
         self.last = 0.0
@@ -95,6 +96,7 @@ class WireClient:
         async with connect(
             f"ws://127.0.0.1:{self.port}",
             subprotocols=[f"viser-v{self.version}"],
+            additional_headers={SECRET_HEADER: self.secret},  # the viewer admits only its relay
             max_size=None,
             compression=None,
         ) as ws:
@@ -483,7 +485,7 @@ def bench_recolour(grid: ReviewGrid, repeats: int, build_s: float) -> dict[str, 
 
     scene = ReviewScene(port=0)
     try:
-        client = WireClient(scene.port)
+        client = WireClient(scene.port, scene.secret)
         rows0, cols0 = vl.render_view(vl.ViewState("class", enabled=all_on), grid.label, grid.conf, palette)
         scene.voxels.set(grid.centres[rows0], cols0)
         client.wait_for(0, rows0.shape[0] * 15)
