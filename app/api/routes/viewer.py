@@ -35,6 +35,7 @@ from app.core.errors import AppError
 from app.core.security import cross_origin_reason, token_matches
 from app.viewer.manager import ViewerManager
 from app.viewer.scene import SECRET_HEADER
+from app.viewer.session import ReviewSession
 from leap_core.errors import LeapError
 
 log = logging.getLogger("leap.viewer")
@@ -95,12 +96,20 @@ def close_viewers(app: object) -> None:
 ViewersDep = Annotated[ViewerManager, Depends(get_viewers)]
 
 
+def running_session(viewers: ViewerManager, project_id: int) -> ReviewSession:
+    """The project's running viewer session, for the routes that act on it (404 when none runs)."""
+    session = viewers.get(project_id)
+    if session is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
+    return session
+
+
 def _public(request: Request, project_id: int, run_id: int | None, port: int) -> ViewerPublic:
     path = request.url_for("viewer_client", project_id=project_id).path
     return ViewerPublic(project_id=project_id, run_id=run_id, port=port, url=path)
 
 
-async def _run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
+async def run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
     # Starting a viewer loads a grid (hundreds of ms for millions of voxels): keep it off the event loop.
     return await asyncio.to_thread(fn, *args, **kwargs)
 
@@ -118,7 +127,7 @@ async def open_viewer(
         raise HTTPException(status.HTTP_409_CONFLICT, detail="The viewer is disabled in the settings")
     run_id = None if payload is None else payload.run_id
     try:
-        info = await _run_blocking(viewers.open, project_id, run_id)
+        info = await run_blocking(viewers.open, project_id, run_id)
     except AppError as exc:
         raise HTTPException(exc.status_code, detail=exc.detail) from None
     except LeapError as exc:  # the run's outputs are missing or malformed: say which file
@@ -139,7 +148,7 @@ async def get_viewer(project_id: ProjectId, request: Request, viewers: ViewersDe
 @router.delete("", status_code=status.HTTP_204_NO_CONTENT, dependencies=[AuthDep])
 async def close_viewer(project_id: ProjectId, viewers: ViewersDep) -> None:
     """Stop the project's viewer (404 when none is running)."""
-    if not await _run_blocking(viewers.close, project_id):
+    if not await run_blocking(viewers.close, project_id):
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
 
 

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from app.api.deps import AuthDep
 from app.api.responses import CONFLICT, NOT_FOUND
-from app.api.routes.viewer import ViewersDep, _run_blocking
+from app.api.routes.viewer import ViewersDep, run_blocking, running_session
 from app.api.types import ProjectId
 from app.viewer.session import ReviewSession
 
@@ -52,9 +52,7 @@ class FitBody(BaseModel):
 
 
 def _session(viewers: ViewersDep, project_id: int) -> ReviewSession:
-    session = viewers.get(project_id)
-    if session is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
+    session = running_session(viewers, project_id)
     if session.grid is None:
         raise HTTPException(status.HTTP_409_CONFLICT, detail="The viewer has no finished run loaded yet")
     return session
@@ -83,7 +81,7 @@ async def nav_state(project_id: ProjectId, viewers: ViewersDep) -> NavState:
 async def step_scan(project_id: ProjectId, body: StepBody, viewers: ViewersDep) -> NavState:
     """Show the next (``step`` > 0) or previous scan; the camera follows the ego pose when following."""
     session = _session(viewers, project_id)
-    await _run_blocking(session.step_scan, body.step)
+    await run_blocking(session.step_scan, body.step)
     return _state(session)
 
 
@@ -91,7 +89,7 @@ async def step_scan(project_id: ProjectId, body: StepBody, viewers: ViewersDep) 
 async def play(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
     """Play through the scans or pause."""
     session = _session(viewers, project_id)
-    await _run_blocking(session.set_playing, body.on)
+    await run_blocking(session.set_playing, body.on)
     return _state(session)
 
 
@@ -99,7 +97,7 @@ async def play(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> 
 async def follow(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
     """Make the camera follow the ego pose on scan changes (turning it on moves the camera now)."""
     session = _session(viewers, project_id)
-    await _run_blocking(session.set_follow, body.on)
+    await run_blocking(session.set_follow, body.on)
     return _state(session)
 
 
@@ -107,7 +105,7 @@ async def follow(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -
 async def fit(project_id: ProjectId, body: FitBody, viewers: ViewersDep) -> NavState:
     """Move the camera to show the whole shown scan or the whole map."""
     session = _session(viewers, project_id)
-    await _run_blocking(session.fit_scan if body.target == "scan" else session.fit_map)
+    await run_blocking(session.fit_scan if body.target == "scan" else session.fit_map)
     return _state(session)
 
 
@@ -128,7 +126,7 @@ async def image_open(project_id: ProjectId, body: ToggleBody, viewers: ViewersDe
 async def scan_image(project_id: ProjectId, viewers: ViewersDep) -> Response:
     """The shown scan's camera image with its labels drawn over it, as JPEG (404 when it has none)."""
     session = _session(viewers, project_id)
-    data = await _run_blocking(session.scan_image_jpeg)
+    data = await run_blocking(session.scan_image_jpeg)
     if data is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="The shown scan has no camera image")
     return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from app import crud
 from app.api.deps import ReadDbDep
 from app.api.responses import CONFLICT, NOT_FOUND
-from app.api.routes.viewer import ViewersDep, _run_blocking
+from app.api.routes.viewer import ViewersDep, run_blocking, running_session
 from app.api.types import ProjectId
 from app.viewer.panel_review import progress_text
 from app.viewer.session import QueueKind, ReviewSession
@@ -89,13 +89,6 @@ class ReviewProgressPublic(BaseModel):
     data: list[QueueProgress] = Field(description="one entry per queue ranked so far (latest ranking)")
 
 
-def _session(viewers: ViewersDep, project_id: int) -> ReviewSession:
-    session = viewers.get(project_id)
-    if session is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
-    return session
-
-
 def _state(session: ReviewSession) -> ReviewStatePublic:
     progress = session.review_progress()
     region = None
@@ -122,7 +115,7 @@ def _state(session: ReviewSession) -> ReviewStatePublic:
 async def _on_region(session: ReviewSession, action: Callable[[str], object], arg: str) -> ReviewStatePublic:
     """Run a region action off the event loop; "no region is shown" (ValueError) answers 409."""
     try:
-        await _run_blocking(action, arg)
+        await run_blocking(action, arg)
     except ValueError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     return _state(session)
@@ -131,25 +124,25 @@ async def _on_region(session: ReviewSession, action: Callable[[str], object], ar
 @router.get("/viewer/review", response_model=ReviewStatePublic)
 async def review_state(project_id: ProjectId, viewers: ViewersDep) -> ReviewStatePublic:
     """The viewer's review queue: its kind, progress and the highlighted region."""
-    return _state(_session(viewers, project_id))
+    return _state(running_session(viewers, project_id))
 
 
 @router.post("/viewer/review/queue", response_model=ReviewStatePublic)
 async def build_queue(project_id: ProjectId, payload: QueueBuild, viewers: ViewersDep) -> ReviewStatePublic:
     """Rank the regions of a queue (the disagreement queue reads every scan once per run)."""
-    session = _session(viewers, project_id)
-    await _run_blocking(session.build_queue, payload.kind)
+    session = running_session(viewers, project_id)
+    await run_blocking(session.build_queue, payload.kind)
     return _state(session)
 
 
 @router.post("/viewer/review/step", response_model=ReviewStatePublic)
 async def step_region(project_id: ProjectId, payload: QueueStep, viewers: ViewersDep) -> ReviewStatePublic:
     """Highlight the next / previous region (ranking the queue first when there is none yet)."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     kind = payload.kind or session.queue_kind
     if not session.queue_built or not session.regions or session.queue_kind != kind:
-        await _run_blocking(session.build_queue, kind)
-    await _run_blocking(session.next_region, payload.step)
+        await run_blocking(session.build_queue, kind)
+    await run_blocking(session.next_region, payload.step)
     return _state(session)
 
 
@@ -157,7 +150,7 @@ async def step_region(project_id: ProjectId, payload: QueueStep, viewers: Viewer
 async def mark_region(project_id: ProjectId, payload: RegionMark, viewers: ViewersDep) -> ReviewStatePublic:
     """Accept (reviewed) or skip the highlighted region, stored in the project; then highlight the next
     region without a mark. 409 when no region is highlighted."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     return await _on_region(session, session.mark_region, payload.state)
 
 
@@ -167,7 +160,7 @@ async def relabel_region(
 ) -> ReviewStatePublic:
     """Assign a class to the highlighted region's voxels (a correction) and accept the region.
     409 when no region is highlighted; 422 naming ``class_name`` for a class the run does not have."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     if payload.class_name not in session.class_names():
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_ENTITY,

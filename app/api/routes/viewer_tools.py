@@ -16,7 +16,7 @@ from fastapi import APIRouter, HTTPException, status
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.api.responses import CONFLICT, NOT_FOUND
-from app.api.routes.viewer import ViewersDep, _run_blocking
+from app.api.routes.viewer import ViewersDep, run_blocking, running_session
 from app.api.types import ProjectId
 from app.viewer.session import ReviewSession, ToolSettings
 
@@ -87,13 +87,6 @@ class EditResult(BaseModel):
     correction_id: int | None = Field(description="correction made, undone or redone (None: nothing to do)")
 
 
-def _session(viewers: ViewersDep, project_id: int) -> ReviewSession:
-    session = viewers.get(project_id)
-    if session is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
-    return session
-
-
 def _state(session: ReviewSession) -> ToolsState:
     t: ToolSettings = session.tools
     return ToolsState(
@@ -110,13 +103,13 @@ def _unprocessable(field: str, exc: Exception) -> HTTPException:
 @router.get("", response_model=ToolsState)
 async def get_tools(project_id: ProjectId, viewers: ViewersDep) -> ToolsState:
     """The selection tools' settings and the selection's size."""
-    return _state(_session(viewers, project_id))
+    return _state(running_session(viewers, project_id))
 
 
 @router.patch("", response_model=ToolsState)
 async def patch_tools(project_id: ProjectId, payload: ToolsPatch, viewers: ViewersDep) -> ToolsState:
     """Arm a tool or change the tools' settings (fields left out keep their value)."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     changes = payload.model_dump(exclude_none=True)
     if changes.get("tool") == "none":
         changes["tool"] = None
@@ -132,13 +125,13 @@ async def patch_tools(project_id: ProjectId, payload: ToolsPatch, viewers: Viewe
 @router.post("/select", response_model=SelectResult)
 async def select(project_id: ProjectId, payload: SelectBody, viewers: ViewersDep) -> SelectResult:
     """Select with a tool outline drawn on the canvas of the browser whose camera moved last."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     try:
         camera = session.latest_camera()
     except LookupError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     try:
-        count = await _run_blocking(
+        count = await run_blocking(
             session.select_screen, payload.tool, payload.points, camera, add=payload.add
         )
     except ValueError as exc:
@@ -149,15 +142,15 @@ async def select(project_id: ProjectId, payload: SelectBody, viewers: ViewersDep
 @router.post("/assign", response_model=EditResult)
 async def assign(project_id: ProjectId, payload: AssignBody, viewers: ViewersDep) -> EditResult:
     """Correct the selection: the ``slot``-th class, or unlabeled (``erase``), in the tools' scope."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     if payload.erase == (payload.slot is not None):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, detail="body: give either slot or erase")
     try:
         if payload.erase:
-            cid = await _run_blocking(session.assign_selection, "")
+            cid = await run_blocking(session.assign_selection, "")
         else:
             assert payload.slot is not None
-            cid = await _run_blocking(session.assign_slot, payload.slot)
+            cid = await run_blocking(session.assign_slot, payload.slot)
     except ValueError as exc:
         raise _unprocessable("slot" if payload.slot is not None else "erase", exc) from None
     return EditResult(correction_id=cid)
@@ -166,19 +159,19 @@ async def assign(project_id: ProjectId, payload: AssignBody, viewers: ViewersDep
 @router.post("/undo", response_model=EditResult)
 async def undo(project_id: ProjectId, viewers: ViewersDep) -> EditResult:
     """Undo the viewer's last correction."""
-    return EditResult(correction_id=await _run_blocking(_session(viewers, project_id).undo))
+    return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).undo))
 
 
 @router.post("/redo", response_model=EditResult)
 async def redo(project_id: ProjectId, viewers: ViewersDep) -> EditResult:
     """Redo the last undone correction."""
-    return EditResult(correction_id=await _run_blocking(_session(viewers, project_id).redo))
+    return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).redo))
 
 
 @router.post("/clear", response_model=ToolsState)
 async def clear(project_id: ProjectId, viewers: ViewersDep) -> ToolsState:
     """Clear the selection and disarm the tool (the Escape key)."""
-    session = _session(viewers, project_id)
+    session = running_session(viewers, project_id)
     session.clear_selection()
     session.set_tools(tool=None)
     return _state(session)
