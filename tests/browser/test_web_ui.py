@@ -78,6 +78,12 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     # ---- edit the car class's prompts: add one, remove one
     car = page.locator('.class-row[data-class="car"]')
     car.locator(".prompt-add").fill("sedan")
+    # A redraw of the list (the ground-truth ids arriving, another class's editor opening) keeps a prompt
+    # being typed: it used to drop it, so a prompt typed while the page loaded was lost.
+    gt_bicycle = page.locator('button[aria-label="Edit ground-truth ids of bicycle"]')
+    gt_bicycle.click()
+    expect(car.locator(".prompt-add")).to_have_value("sedan")
+    gt_bicycle.click()
     car.locator(".prompt-add").press("Enter")
     expect(page.locator('.class-row[data-class="car"] .prompt-text', has_text="sedan")).to_be_visible()
     page.locator('.class-row[data-class="car"] button[aria-label="Remove prompt jeep"]').click()

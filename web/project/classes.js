@@ -86,7 +86,7 @@ function gtEditor(ctx, c, save) {
       "aria-label": `Edit ground-truth ids of ${c.name}`,
       onclick: () => {
         ctx.state.gtOpen = open ? null : c.name;
-        renderClasses(ctx);
+        renderClasses(ctx, { keepTyped: true });
       },
     },
     open ? "Close" : "Edit",
@@ -271,11 +271,28 @@ async function loadGtIds(ctx) {
     ctx.state.gtIds = { data: [], names: {}, has_ground_truth: false, error: err.message };
   }
   ctx.state.gtIdsLoading = false;
-  renderClasses(ctx);
+  renderClasses(ctx, { keepTyped: true });
 }
 
-export function renderClasses(ctx) {
+/** Prompts typed but not yet added (Enter), by class name, and the class whose prompt field has focus. */
+function typedPrompts(ctx) {
+  const typed = new Map();
+  let focused = null;
+  for (const input of ctx.els.classes.querySelectorAll(".prompt-add")) {
+    const name = input.closest(".class-row").dataset.class;
+    if (input.value) typed.set(name, input.value);
+    if (document.activeElement === input) focused = name;
+  }
+  return { typed, focused };
+}
+
+/**
+ * Draw the class list. `keepTyped`: a redraw nobody asked for (the ground-truth ids arriving) keeps what
+ * the user is typing into a prompt field, and its focus; a redraw after a saved edit starts clean.
+ */
+export function renderClasses(ctx, { keepTyped = false } = {}) {
   const classes = ctx.state.classes;
+  const kept = keepTyped ? typedPrompts(ctx) : null;
   replace(
     ctx.els.classes,
     h("div", { class: "card-head" }, h("h2", {}, "Classes & prompts"), h("span", { class: "muted small" }, `${classes.length} classes`)),
@@ -284,5 +301,12 @@ export function renderClasses(ctx) {
     h("ol", { class: "class-list" }, classes.map((c) => classRow(ctx, c))),
     addClassForm(ctx),
   );
+  if (kept) {
+    for (const input of ctx.els.classes.querySelectorAll(".prompt-add")) {
+      const name = input.closest(".class-row").dataset.class;
+      if (kept.typed.has(name)) input.value = kept.typed.get(name);
+      if (kept.focused === name) input.focus();
+    }
+  }
   loadGtIds(ctx);
 }
