@@ -323,9 +323,7 @@ class ReviewSession:
         self.run_schema: Schema | None = None
         self.project_schema: Schema = backend.load_schema()
         self.palette = self.project_schema.colors()
-        self.label = np.zeros(0, np.int16)
-        self.conf = np.zeros(0, np.float32)
-        self.corrected = np.zeros(0, bool)
+        self._init_labels()
         self.selection = _Selection(np.zeros(0, np.int64))
         self.tools = ToolSettings()
         self.scan_label = np.zeros(0, np.int16)
@@ -374,6 +372,14 @@ class ReviewSession:
         """The review region shown highlighted (its voxels at full colour, the rest dimmed)."""
         self.focus_frame: int | None = None
         """Position (in the scan slider) of the scan the focused region was seen best in."""
+    def _init_labels(self) -> None:
+        self.label = np.zeros(0, np.int16)
+        self.conf = np.zeros(0, np.float32)
+        self.corrected = np.zeros(0, bool)
+        self.corrections: list[CorrectionRecord] = []
+        """The project's corrections as last read from the backend: re-read on every correction change (and
+        run load), not on every scan change."""
+
     def _init_navigation(self) -> None:
         self.scan_view: ScanView | None = None
         """The scan shown (points, labels, ego pose, image)."""
@@ -486,16 +492,22 @@ class ReviewSession:
         """Class name → index of the displayed grid; ``""`` (erase) → unlabeled (-1)."""
         return {"": UNLABELED, **{n: i for i, n in enumerate(self.class_names())}}
 
+    def _grid_keys(self, rec: CorrectionRecord) -> npt.NDArray[np.int64]:
+        """``rec``'s voxel keys at the displayed grid's voxel size (a correction made on another size)."""
+        assert self.grid is not None
+        if np.isclose(rec.voxel_size, self.grid.voxel_size):
+            return rec.keys
+        return voxel_keys(key_centres(rec.keys, rec.voxel_size), self.grid.voxel_size)
+
     def _apply_corrections_locked(self) -> None:
         assert self.grid is not None
         names = self._class_ids()
         keys_all, labels_all = [], []
-        for rec in self.backend.corrections():
+        self.corrections = self.backend.corrections()
+        for rec in self.corrections:
             if rec.scope != "map" or not rec.active or rec.class_name not in names or rec.keys.size == 0:
                 continue
-            keys = rec.keys
-            if not np.isclose(rec.voxel_size, self.grid.voxel_size):
-                keys = voxel_keys(key_centres(keys, rec.voxel_size), self.grid.voxel_size)
+            keys = self._grid_keys(rec)
             keys_all.append(keys)
             labels_all.append(np.full(keys.shape[0], names[rec.class_name], np.int16))
         ck = np.concatenate(keys_all) if keys_all else np.zeros(0, np.int64)
@@ -775,13 +787,7 @@ class ReviewSession:
             return None
         row = int(rows[pick.index])
         key = int(grid.keys[row])
-        history = []
-        for rec in self.backend.corrections():
-            keys = rec.keys
-            if not np.isclose(rec.voxel_size, grid.voxel_size):
-                keys = voxel_keys(key_centres(keys, rec.voxel_size), grid.voxel_size)
-            if np.any(keys == key):
-                history.append(rec)
+        history = [rec for rec in self.corrections if np.any(self._grid_keys(rec) == key)]
         views = self.outputs.view_counts(grid) if self.outputs is not None else None
         with self._lock:
             label, conf, corrected = int(self.label[row]), float(self.conf[row]), bool(self.corrected[row])
@@ -1196,13 +1202,13 @@ class ReviewSession:
             label[hit] = self.label[rows[hit]]
         names = self._class_ids()
         n = label.shape[0]
-        for rec in self.backend.corrections():
+        for rec in self.corrections:
             if (
                 rec.scope == "scan" and rec.active and rec.frame_id == view.frame_id
-                and rec.points is not None and (rec.class_name in names or rec.class_name == "")
+                and rec.points is not None and rec.class_name in names
             ):
                 pts = rec.points[(rec.points >= 0) & (rec.points < n)]
-                label[pts] = names.get(rec.class_name, UNLABELED)
+                label[pts] = names[rec.class_name]
         return label
 
     def _recolour_scan(self) -> None:
@@ -1237,7 +1243,7 @@ class ReviewSession:
         self.request_draw()
 
     def correction_count(self) -> int:
-        return sum(1 for c in self.backend.corrections() if c.active)
+        return sum(1 for c in self.corrections if c.active)
 
     # -------------------------------------------------------------------------------------- steering
     def update_class(
