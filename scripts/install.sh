@@ -13,6 +13,8 @@ fi
 extras=""
 if [ "${1:-}" = "--test" ]; then extras="[test]"; fi
 .venv/bin/python -m pip install -q -e ".${extras}"
+# nuScenes devkit without its numpy<2 pin (see pyproject.toml); its imports are project dependencies.
+.venv/bin/python -m pip install -q --no-deps "nuscenes-devkit==1.2.0"
 if [ "${1:-}" = "--test" ] && [ ! -x /usr/bin/chromium ]; then
   # Real-browser tests drive Debian's Chromium (no browser download is possible here).
   if [ "$(id -u)" = "0" ]; then SUDO=""; else SUDO="sudo"; fi
