@@ -53,6 +53,14 @@ class DatasetError(LeapError):
         super().__init__(f"{self.path}: {problem}")
 
 
+class PosesMissingError(DatasetError):
+    """A stage needs one pose per scan and the sequence has none (no ``poses.txt``).
+
+    Callers add advice that fits where it is shown (the CLI names ``leap poses`` / ``--estimate-poses``,
+    the app its "estimate poses" option); the message itself names only the file and what needs it.
+    """
+
+
 class SchemaError(LeapError):
     """A class schema is invalid; the message names the offending entry."""
 

@@ -7,6 +7,9 @@ Format facts (docs/METHOD.md, checked against PRBonn/semantic-kitti-api):
   The KITTI object / tracking variants (``R0_rect`` / ``R_rect`` 3×3 and ``Tr_velo_to_cam`` /
   ``Tr_velo_cam`` 3×4, keys with or without a colon) are read too: there Tr = R0_rect · Tr_velo_to_cam.
 - ``poses.txt``: 3×4 per frame in the LEFT CAMERA frame; LiDAR pose in world = Tr⁻¹ · pose · Tr.
+  Optional: a sequence recorded without poses opens, and only what needs poses fails
+  (:class:`~leap_core.errors.PosesMissingError`). Estimated poses (``leap poses``, KISS-ICP) are a
+  ``poses.txt`` with a ``poses_estimated.json`` note beside it saying how they were made.
 """
 
 from __future__ import annotations
@@ -21,10 +24,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, PosesMissingError
 from leap_core.io_utils import atomic_write, atomic_write_bytes
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+#: Written beside an estimated ``poses.txt``: JSON saying the poses are estimated, by what and how.
+POSES_NOTE = "poses_estimated.json"
 
 
 # --------------------------------------------------------------------------------------------- scans
@@ -356,7 +361,9 @@ class KittiSequence:
     only when a :class:`Frame` attribute is accessed, so a sequence is never held in memory.
     """
 
-    def __init__(self, root: str | Path) -> None:
+    def __init__(self, root: str | Path, poses_path: str | Path | None = None) -> None:
+        """Open ``root``; ``poses_path`` reads the poses from another ``poses.txt`` (e.g. estimated
+        poses kept outside a read-only dataset) instead of ``root/poses.txt``."""
         self.root = Path(root)
         if not self.root.is_dir():
             raise DatasetError(self.root, "dataset folder does not exist")
@@ -369,12 +376,17 @@ class KittiSequence:
         if not self.frame_ids:
             raise DatasetError(vel, "no .bin scans found")
         self.calib = read_calib(self.root / "calib.txt")
-        pose_path = self.root / "poses.txt"
-        cam_poses = read_poses(pose_path)
-        if len(cam_poses) != len(self.frame_ids):
-            raise DatasetError(pose_path, f"{len(cam_poses)} poses but {len(self.frame_ids)} scans")
-        self.cam_poses = cam_poses
-        self.poses = lidar_poses(cam_poses, self.calib.Tr)
+        self.poses_path = Path(poses_path) if poses_path is not None else self.root / "poses.txt"
+        self._cam_poses: npt.NDArray[np.float64] | None = None
+        self._poses: npt.NDArray[np.float64] | None = None
+        if self.poses_path.is_file():
+            cam_poses = read_poses(self.poses_path)
+            if len(cam_poses) != len(self.frame_ids):
+                raise DatasetError(
+                    self.poses_path, f"{len(cam_poses)} poses but {len(self.frame_ids)} scans"
+                )
+            self._cam_poses = cam_poses
+            self._poses = lidar_poses(cam_poses, self.calib.Tr)
         self._images = self._index_images()
         times = self.root / "times.txt"
         self.times: npt.NDArray[np.float64] | None = None
@@ -391,6 +403,32 @@ class KittiSequence:
                 raise DatasetError(times, "timestamps have non-finite values")
             if self.times.shape[0] != len(self.frame_ids):
                 raise DatasetError(times, f"{self.times.shape[0]} timestamps but {len(self.frame_ids)} scans")
+
+    @property
+    def pose_source(self) -> str:
+        """Where the poses come from: ``"file"``, ``"estimated"`` (a :data:`POSES_NOTE` lies beside
+        the poses file) or ``"missing"``."""
+        if self._poses is None:
+            return "missing"
+        return "estimated" if (self.poses_path.parent / POSES_NOTE).is_file() else "file"
+
+    @property
+    def has_poses(self) -> bool:
+        return self._poses is not None
+
+    @property
+    def cam_poses(self) -> npt.NDArray[np.float64]:
+        """(F, 4, 4) camera-frame poses as read from the poses file."""
+        if self._cam_poses is None:
+            raise PosesMissingError(self.poses_path, "no poses: the 3D stages need one pose per scan")
+        return self._cam_poses
+
+    @property
+    def poses(self) -> npt.NDArray[np.float64]:
+        """(F, 4, 4) LiDAR → world (world = LiDAR frame of the first pose)."""
+        if self._poses is None:
+            raise PosesMissingError(self.poses_path, "no poses: the 3D stages need one pose per scan")
+        return self._poses
 
     def _index_images(self) -> dict[str, Path]:
         img_dir = self.root / "image_2"
@@ -433,6 +471,7 @@ class KittiSequence:
 
 
 __all__ = [
+    "POSES_NOTE",
     "Calib",
     "Frame",
     "KittiSequence",
