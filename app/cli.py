@@ -688,6 +688,9 @@ def synth(
 
 
 def main() -> None:
+    from app.cli_import import import_cli
+
+    cli.add_typer(import_cli, name="import")
     cli()
 
 
