@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, TypedDict
 
 import typer
 
+from app.cli_import import import_cli
 from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import Frame, KittiSequence
 from leap_core.errors import Cancelled, ConfigError, LeapError
@@ -37,6 +38,7 @@ cli = typer.Typer(
     no_args_is_help=True,
     pretty_exceptions_show_locals=False,
 )
+cli.add_typer(import_cli, name="import")
 
 
 class StageBars:
@@ -688,9 +690,6 @@ def synth(
 
 
 def main() -> None:
-    from app.cli_import import import_cli
-
-    cli.add_typer(import_cli, name="import")
     cli()
 
 
