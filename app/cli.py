@@ -273,7 +273,9 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         help="3D-CN rounds, 1 or 2 (pipeline.consistency.iterations; default: the project's setting, 1). "
         "Implies --3dcn; the result table gets one '+3D-CN xN' column per round.",
     ),
-    frames: str | None = typer.Option(None, "--frames", help="Frame range A:B (B exclusive), e.g. 0:20."),
+    frames: str | None = typer.Option(
+        None, "--frames", help="Frame numbers A:B (B exclusive; scan 000010.bin is frame 10), e.g. 0:20."
+    ),
     cache: str | None = typer.Option(None, "--cache", help="Shared 2D cache folder reused across runs."),
     models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
     device: str = typer.Option("auto", "--device", help=_DEVICE_HELP),
@@ -450,7 +452,7 @@ def _run_config(
 
 
 def _frame_range(frames: str, dataset: str) -> range:
-    """``--frames A:B`` (B exclusive; ``A`` alone is one frame, ``A:`` runs to the sequence's end)."""
+    """``--frames A:B`` frame numbers (B exclusive; ``A`` alone is one frame, ``A:`` runs to the last scan)."""
     a, sep, b = frames.partition(":")
     try:
         start = int(a) if a.strip() else 0
@@ -458,7 +460,7 @@ def _frame_range(frames: str, dataset: str) -> range:
     except ValueError:
         raise LeapError(f"--frames {frames!r}: expected A:B with integers (B exclusive)") from None
     if stop is None:
-        stop = len(KittiSequence(dataset))
+        stop = KittiSequence(dataset).frame_numbers[-1] + 1
     return range(start, stop)
 
 

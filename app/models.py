@@ -282,8 +282,10 @@ class DatasetsPublic(BaseModel):
 
 # ------------------------------------------------------------------------------------------------ runs
 class FrameRange(_Input):
-    start: int = Field(default=0, ge=0)
-    stop: int = Field(ge=1)
+    """Frame numbers start..stop-1 (scan ``000010.bin`` is frame 10), as ``leap run --frames A:B``."""
+
+    start: int = Field(default=0, ge=0, description="first frame number")
+    stop: int = Field(ge=1, description="frame number after the last one (exclusive)")
 
     @model_validator(mode="after")
     def _order(self) -> FrameRange:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
 import shutil
-import tempfile
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,15 +15,37 @@ from typing import IO, Any
 import numpy as np
 
 
+_TEMP_TRIES = 100
+
+
+def create_temp_file(folder: Path, name: str) -> tuple[int, Path]:
+    """Create a new empty file ``folder/.<name>.<random>.tmp`` for writing: ``(fd, path)``.
+
+    Created with mode 0o666 less the process umask, as ``open()`` creates files (0644 under umask 022,
+    0664 under 002), so a colleague or a job running as another user can read what the project writes.
+    ``tempfile.mkstemp`` would give 0600 whatever the umask, and the rename would keep it. ``O_EXCL``
+    makes the name ours alone.
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
+    for _ in range(_TEMP_TRIES):
+        tmp = folder / f".{name}.{secrets.token_hex(6)}.tmp"
+        try:
+            return os.open(tmp, flags, 0o666), tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{folder}: no free temporary name for {name} after {_TEMP_TRIES} tries")
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temp file beside ``path``; on success fsync and rename it over ``path``.
 
+    The file gets the mode ``open()`` would give it under the current umask (:func:`create_temp_file`).
     On any exception the temp file is removed and ``path`` keeps its previous content.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = create_temp_file(path.parent, path.name)
     try:
         with os.fdopen(fd, mode) as fh:
             yield fh

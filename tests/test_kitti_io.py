@@ -26,7 +26,7 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, LeapError
 
 # A real SemanticKITTI sequence 00 calib.txt (odometry format), plus the blank line and trailing spaces
 # that hand-edited copies often have.
@@ -347,12 +347,17 @@ def test_pose_errors(tmp_path: Path, text: str, match: str) -> None:
     assert_names(exc, path)
 
 
-def test_pose_count_differs_from_scan_count(tmp_path: Path, make_tiny_sequence) -> None:
+def test_scan_past_the_end_of_poses_names_the_file_and_the_frame(tmp_path: Path, make_tiny_sequence) -> None:
     seq = make_tiny_sequence(tmp_path, n_frames=3)
     write_poses(seq.root / "poses.txt", seq.cam_poses[:2])
-    with pytest.raises(DatasetError, match="2 poses but 3 scans") as exc:
+    with pytest.raises(DatasetError, match=r"2 poses \(frames 0\.\.1\) but scan 000002\.bin is frame 2$") as exc:
         KittiSequence(seq.root)
     assert_names(exc, seq.root / "poses.txt")
+    # Only scans past the end count: a copy of frame 1 alone reads line 1 of the same two-line file.
+    for fid in ("000000", "000002"):
+        (seq.root / "velodyne" / f"{fid}.bin").unlink()
+    ks = KittiSequence(seq.root)
+    np.testing.assert_allclose(ks.cam_poses, seq.cam_poses[1:2], rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("content", [b"", b"\x89PNG\r\n\x1a\n garbage", b"not an image at all"])
@@ -382,7 +387,7 @@ def test_png16_rejects_colour_png(tmp_path: Path) -> None:
     ("text", "match"),
     [
         ("0.0\n0.1\nabc\n", "malformed timestamps"),
-        ("0.0\n0.1\n", "2 timestamps but 3 scans"),
+        ("0.0\n0.1\n", r"2 timestamps \(frames 0\.\.1\) but scan 000002\.bin is frame 2"),
         ("0.0 1\n0.1 1\n0.2 1\n", "2 columns"),
         ("0.0\nnan\n0.2\n", "non-finite"),
     ],
@@ -504,10 +509,86 @@ def test_frames_sort_numerically_without_zero_padding(tmp_path: Path, tiny_calib
     for stem in ("0", "2", "10", "1"):
         write_scan(root / "velodyne" / f"{stem}.bin", np.full((1, 4), float(stem), np.float32))
     write_calib(root / "calib.txt", tiny_calib)
-    write_poses(root / "poses.txt", np.tile(np.eye(4), (4, 1, 1)))
+    write_poses(root / "poses.txt", np.tile(np.eye(4), (11, 1, 1)))
     ks = KittiSequence(root)
     assert ks.frame_ids == ["0", "1", "2", "10"]
+    assert ks.frame_numbers == (0, 1, 2, 10)
     assert [float(f.points[0, 0]) for f in ks] == [0.0, 1.0, 2.0, 10.0]
+
+
+def _keep_scans(root: Path, keep: set[str]) -> None:
+    """Delete every scan, image and label file whose frame id is not in ``keep`` (calib, poses.txt and
+    times.txt stay whole, as when a user copies a subset of a sequence)."""
+    for folder in ("velodyne", "image_2", "labels"):
+        for path in (root / folder).iterdir():
+            if path.stem not in keep:
+                path.unlink()
+
+
+def test_subset_with_gaps_takes_its_frames_lines_and_keeps_the_world(tmp_path: Path, make_tiny_sequence) -> None:
+    """Scans 3, 5 and 6 of an 8-line poses.txt / times.txt: each takes its own line, and the world frame
+    stays the LiDAR frame of pose line 0, so poses equal the whole sequence's (not re-based on scan 3)."""
+    seq = make_tiny_sequence(tmp_path, n_frames=8, n_points=20)
+    whole = KittiSequence(seq.root)
+    _keep_scans(seq.root, {"000003", "000005", "000006"})
+    ks = KittiSequence(seq.root)
+    assert ks.frame_ids == ["000003", "000005", "000006"]
+    assert ks.frame_numbers == (3, 5, 6)
+    assert [f.number for f in ks] == [3, 5, 6] and [f.index for f in ks] == [0, 1, 2]
+    np.testing.assert_array_equal(ks.poses, whole.poses[[3, 5, 6]])
+    np.testing.assert_allclose(ks.cam_poses, seq.cam_poses[[3, 5, 6]], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(ks.times, seq.times[[3, 5, 6]], rtol=1e-12)
+    assert not np.allclose(ks.poses[0], np.eye(4))
+    np.testing.assert_array_equal(ks.frame(1).pose, whole.frame(5).pose)
+    np.testing.assert_array_equal(ks.frame(1).points, whole.frame(5).points)
+
+
+def test_scans_without_numeric_names_need_one_line_each(tmp_path: Path, tiny_calib: Calib) -> None:
+    root = tmp_path / "seq"
+    for k, stem in enumerate(("b", "a", "c")):
+        write_scan(root / "velodyne" / f"{stem}.bin", np.full((1, 4), float(k), np.float32))
+    write_calib(root / "calib.txt", tiny_calib)
+    cam = np.tile(np.eye(4), (4, 1, 1))
+    cam[:, 0, 3] = [10.0, 11.0, 12.0, 13.0]
+    write_poses(root / "poses.txt", cam)
+    with pytest.raises(DatasetError, match=r"4 poses but 3 scans \(scans without numeric names") as exc:
+        KittiSequence(root)
+    assert_names(exc, root / "poses.txt")
+    write_poses(root / "poses.txt", cam[:3])
+    ks = KittiSequence(root)
+    assert ks.frame_ids == ["a", "b", "c"] and ks.frame_numbers == (0, 1, 2)
+    # Line k goes to the k-th scan in name order; world = line 0.
+    np.testing.assert_allclose(ks.cam_poses[:, 0, 3], [10.0, 11.0, 12.0])
+    np.testing.assert_allclose(ks.poses[0], np.eye(4), atol=1e-12)
+
+
+def test_two_scans_with_the_same_number_are_refused(tmp_path: Path, tiny_calib: Calib) -> None:
+    root = tmp_path / "seq"
+    for stem in ("0", "01", "1"):
+        write_scan(root / "velodyne" / f"{stem}.bin", np.zeros((1, 4), np.float32))
+    write_calib(root / "calib.txt", tiny_calib)
+    with pytest.raises(DatasetError, match=r"scans 01\.bin and 1\.bin are both frame 1") as exc:
+        KittiSequence(root)
+    assert "velodyne" in str(exc.value)
+
+
+def test_select_takes_frame_numbers(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=8, n_points=5, with_images=False, with_labels=False)
+    _keep_scans(seq.root, {"000002", "000003", "000005", "000006"})
+    ks = KittiSequence(seq.root)
+    assert ks.select(None) == range(4)
+    assert ks.select(range(2, 7)) == range(4)
+    assert ks.select(range(3, 6)) == range(1, 3)  # frames 3 and 5 (4 is a gap)
+    assert ks.select(range(5, 6)) == range(2, 3)
+    for bad, match in [
+        (range(4, 5), "select no frame: no scan is numbered"),
+        (range(0, 3), r"out of range: the sequence has frames 2\.\.6"),
+        (range(5, 8), "out of range"),
+        (range(5, 5), "select no frame"),
+        (range(2, 7, 2), "step 2"),
+    ]:
+        with pytest.raises(LeapError, match=match):
+            ks.select(bad)
 
 
 def test_optional_parts(tmp_path: Path, make_tiny_sequence) -> None:

@@ -195,8 +195,9 @@ class CorrectionApplier:
 
 
 def _frames(params: dict[str, Any], seq: KittiSequence) -> range:
+    """The run's frames as indices into ``seq`` (the run stores frame numbers)."""
     frames = params.get("frames")
-    return range(len(seq)) if frames is None else range(int(frames[0]), int(frames[1]))
+    return seq.select(None if frames is None else range(int(frames[0]), int(frames[1])))
 
 
 def _voxel_size(params: dict[str, Any]) -> float:

@@ -9,7 +9,7 @@ confidence threshold would keep mostly road and building.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -138,6 +138,7 @@ def select_reliable_scans(
     *,
     seed: int | None = None,
     support: list[npt.NDArray[np.floating]] | None = None,
+    scan_numbers: Sequence[int] | None = None,
 ) -> list[npt.NDArray[np.bool_]]:
     """:func:`select_reliable` over a list of scans, ranking per scan or over the whole sequence.
 
@@ -146,7 +147,9 @@ def select_reliable_scans(
     ``scope="sequence"`` ranks all points of all scans together, so a class's labels concentrate in the
     scans where its voxels are most confident.
 
-    ``seed`` and ``support`` break ties as in :func:`select_reliable` (scan s uses ``seed + s``).
+    ``seed`` and ``support`` break ties as in :func:`select_reliable` (scan s uses ``seed + n_s`` with
+    ``n_s = scan_numbers[s]``, its frame number, so a scan's tie order does not depend on which other scans
+    the run holds; without ``scan_numbers``, ``n_s = s``).
 
     Returns:
         One (N_s,) bool mask per scan.
@@ -158,7 +161,7 @@ def select_reliable_scans(
                 conf,
                 num_classes,
                 share,
-                None if seed is None else seed + s,
+                None if seed is None else seed + (s if scan_numbers is None else int(scan_numbers[s])),
                 None if support is None else support[s],
             )
             for s, (lab, conf) in enumerate(zip(labels, confidence, strict=True))

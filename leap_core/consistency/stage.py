@@ -103,7 +103,7 @@ def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each na
             progress()
     masks = select_reliable_scans(
         labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
-        support=supports if views is not None else None,
+        support=supports if views is not None else None, scan_numbers=[seq.frame_numbers[i] for i in frames],
     )
     return [
         np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels, strict=True)

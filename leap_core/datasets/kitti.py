@@ -10,10 +10,16 @@ Format facts (docs/METHOD.md, checked against PRBonn/semantic-kitti-api):
   Optional: a sequence recorded without poses opens, and only what needs poses fails
   (:class:`~leap_core.errors.PosesMissingError`). Estimated poses (``leap poses``, KISS-ICP) are a
   ``poses.txt`` with a ``poses_estimated.json`` note beside it saying how they were made.
+- Frame numbers: when every scan's stem is a number, scan ``NNNNNN.bin`` is frame NNNNNN and takes line
+  NNNNNN (0-based, blank lines skipped) of ``poses.txt`` and ``times.txt``, which may hold more lines than
+  there are scans (a copied subset keeps the sequence's files; gaps in the numbering work). Otherwise the
+  frame number is the scan's position and both files need exactly one line per scan. World = the LiDAR
+  frame of pose line 0, so a frame's world coordinates do not depend on which other scans are present.
 """
 
 from __future__ import annotations
 
+import bisect
 import functools
 import re
 from collections.abc import Iterable, Iterator
@@ -24,7 +30,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import DatasetError, PosesMissingError
+from leap_core.errors import DatasetError, LeapError, PosesMissingError
 from leap_core.io_utils import atomic_write, atomic_write_bytes
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -230,7 +236,8 @@ def write_poses(path: str | Path, cam_poses: npt.ArrayLike) -> None:
 
 
 def lidar_poses(cam_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """LiDAR→world poses from camera-frame poses: Tr⁻¹ · P · Tr, re-based on frame 0.
+    """LiDAR→world poses from camera-frame poses: Tr⁻¹ · P · Tr, re-based on the first pose given
+    (a sequence passes every line of ``poses.txt``, so world = the LiDAR frame of line 0).
 
     Re-basing keeps world coordinates near the origin, where float32 keeps centimetre precision.
     """
@@ -299,6 +306,9 @@ class Frame:
         self.seq = seq
         self.index = index
         self.frame_id = seq.frame_ids[index]
+        self.number = seq.frame_numbers[index]
+        """The frame number (:attr:`KittiSequence.frame_numbers`): what seeds and names depend on, never
+        :attr:`index`, the position among the scans present."""
 
     @functools.cached_property
     def points(self) -> npt.NDArray[np.float32]:
@@ -307,7 +317,7 @@ class Frame:
 
     @property
     def pose(self) -> npt.NDArray[np.float64]:
-        """(4, 4) LiDAR → world (world = LiDAR frame of frame 0)."""
+        """(4, 4) LiDAR → world (world = LiDAR frame of pose line 0)."""
         return np.asarray(self.seq.poses[self.index], dtype=np.float64)
 
     @property
@@ -354,11 +364,35 @@ def _sort_frame_ids(stems: Iterable[str]) -> list[str]:
     return sorted(ids)
 
 
+def _rows_of_frames(path: Path, n_lines: int, what: str, seq: KittiSequence) -> npt.NDArray[np.int64]:
+    """(F,) the line of ``path`` (one of ``n_lines`` ``what``) that each scan takes: its frame number.
+
+    Raises:
+        DatasetError: naming ``path`` and the first scan whose number is past the end, or, for scans
+            without numeric names, when the line count differs from the scan count.
+    """
+    rows = np.asarray(seq.frame_numbers, dtype=np.int64)
+    if not seq.numbered:
+        if n_lines != len(rows):
+            raise DatasetError(path, f"{n_lines} {what} but {len(rows)} scans (scans without numeric names "
+                                     "need exactly one line each, in name order)")
+        return rows
+    past = np.flatnonzero(rows >= n_lines)
+    if past.size:
+        fid = seq.frame_ids[int(past[0])]
+        raise DatasetError(
+            path, f"{n_lines} {what} (frames 0..{n_lines - 1}) but scan {fid}.bin is frame {int(rows[past[0]])}"
+            f"{f' (and {past.size - 1} more scans past the end)' if past.size > 1 else ''}"
+        )
+    return rows
+
+
 class KittiSequence:
     """A KITTI-layout sequence folder (``.../sequences/NN``), validated on open, read lazily.
 
-    Opening checks the structure (calib, poses vs scan count, label/image pairing); per-frame data is read
-    only when a :class:`Frame` attribute is accessed, so a sequence is never held in memory.
+    Opening checks the structure (calib, a pose and timestamp line for every scan's frame number,
+    label/image pairing); per-frame data is read only when a :class:`Frame` attribute is accessed, so a
+    sequence is never held in memory.
     """
 
     def __init__(self, root: str | Path, poses_path: str | Path | None = None) -> None:
@@ -373,36 +407,47 @@ class KittiSequence:
                 vel, "missing velodyne/ folder (expected a KITTI sequence folder sequences/NN)"
             )
         self.frame_ids: list[str] = _sort_frame_ids(p.stem for p in vel.glob("*.bin"))
+        """File stems of the scans present, in frame order; a frame's position here is its *index*."""
         if not self.frame_ids:
             raise DatasetError(vel, "no .bin scans found")
+        self.numbered = all(s.isdigit() for s in self.frame_ids)
+        """True when every scan's stem is a number: the frame number is then that number."""
+        self.frame_numbers: tuple[int, ...] = (
+            tuple(int(s) for s in self.frame_ids) if self.numbered else tuple(range(len(self.frame_ids)))
+        )
+        """Per scan, its frame number: the line it takes in ``poses.txt`` / ``times.txt``, and what every
+        per-frame seed depends on (increasing; equal to the index only for a complete sequence)."""
+        same = [k for k in range(1, len(self.frame_ids)) if self.frame_numbers[k] == self.frame_numbers[k - 1]]
+        if same:
+            a, b = self.frame_ids[same[0] - 1], self.frame_ids[same[0]]
+            raise DatasetError(vel, f"scans {a}.bin and {b}.bin are both frame {self.frame_numbers[same[0]]}")
         self.calib = read_calib(self.root / "calib.txt")
         self.poses_path = Path(poses_path) if poses_path is not None else self.root / "poses.txt"
         self._cam_poses: npt.NDArray[np.float64] | None = None
         self._poses: npt.NDArray[np.float64] | None = None
         if self.poses_path.is_file():
             cam_poses = read_poses(self.poses_path)
-            if len(cam_poses) != len(self.frame_ids):
-                raise DatasetError(
-                    self.poses_path, f"{len(cam_poses)} poses but {len(self.frame_ids)} scans"
-                )
-            self._cam_poses = cam_poses
-            self._poses = lidar_poses(cam_poses, self.calib.Tr)
+            rows = _rows_of_frames(self.poses_path, len(cam_poses), "poses", self)
+            self._cam_poses = cam_poses[rows]
+            # Re-based on line 0 before selecting, so a frame's world coordinates are the same in a copied
+            # subset as in the whole sequence.
+            self._poses = lidar_poses(cam_poses, self.calib.Tr)[rows]
         self._images = self._index_images()
         times = self.root / "times.txt"
         self.times: npt.NDArray[np.float64] | None = None
+        """(F,) seconds per scan (the line of its frame number), when ``times.txt`` exists."""
         if times.is_file():
             try:
-                self.times = np.loadtxt(times, dtype=np.float64, ndmin=1)
+                all_times = np.loadtxt(times, dtype=np.float64, ndmin=1)
             except ValueError as exc:
                 raise DatasetError(times, f"malformed timestamps ({exc})") from exc
-            if self.times.ndim != 1:
+            if all_times.ndim != 1:
                 raise DatasetError(
-                    times, f"expected one timestamp per line, got {self.times.shape[1]} columns"
+                    times, f"expected one timestamp per line, got {all_times.shape[1]} columns"
                 )
-            if not np.isfinite(self.times).all():
+            if not np.isfinite(all_times).all():
                 raise DatasetError(times, "timestamps have non-finite values")
-            if self.times.shape[0] != len(self.frame_ids):
-                raise DatasetError(times, f"{self.times.shape[0]} timestamps but {len(self.frame_ids)} scans")
+            self.times = all_times[_rows_of_frames(times, all_times.shape[0], "timestamps", self)]
 
     @property
     def pose_source(self) -> str:
@@ -418,14 +463,14 @@ class KittiSequence:
 
     @property
     def cam_poses(self) -> npt.NDArray[np.float64]:
-        """(F, 4, 4) camera-frame poses as read from the poses file."""
+        """(F, 4, 4) camera-frame poses as read from the poses file, one per scan (its frame's line)."""
         if self._cam_poses is None:
             raise PosesMissingError(self.poses_path, "no poses: the 3D stages need one pose per scan")
         return self._cam_poses
 
     @property
     def poses(self) -> npt.NDArray[np.float64]:
-        """(F, 4, 4) LiDAR → world (world = LiDAR frame of the first pose)."""
+        """(F, 4, 4) LiDAR → world per scan (world = LiDAR frame of pose line 0, present or not)."""
         if self._poses is None:
             raise PosesMissingError(self.poses_path, "no poses: the 3D stages need one pose per scan")
         return self._poses
@@ -441,6 +486,33 @@ class KittiSequence:
 
     def __iter__(self) -> Iterator[Frame]:
         return (Frame(self, i) for i in range(len(self)))
+
+    def select(self, numbers: range | None) -> range:
+        """The indices of the scans whose frame number lies in ``numbers`` (a range of frame numbers,
+        step 1, e.g. ``--frames 10:20``); None = every scan.
+
+        Raises:
+            LeapError: for a step other than 1, an empty range, or one reaching before the first or past
+                the last frame number (gaps inside are fine: their scans are simply absent).
+        """
+        n = len(self)
+        if numbers is None:
+            return range(n)
+        if not isinstance(numbers, range):
+            raise LeapError(f"frames must be a range, got {type(numbers).__name__}")
+        first, last = self.frame_numbers[0], self.frame_numbers[-1]
+        label = f"frames {numbers.start}:{numbers.stop}"
+        if numbers.step != 1:
+            raise LeapError(f"{label}: step {numbers.step} not supported (frames are a range A:B)")
+        if len(numbers) == 0:
+            raise LeapError(f"{label} select no frame (the sequence has frames {first}..{last})")
+        if numbers.start < first or numbers.stop - 1 > last:
+            raise LeapError(f"{label} out of range: the sequence has frames {first}..{last}")
+        lo = bisect.bisect_left(self.frame_numbers, numbers.start)
+        hi = bisect.bisect_left(self.frame_numbers, numbers.stop)
+        if lo == hi:
+            raise LeapError(f"{label} select no frame: no scan is numbered in that range")
+        return range(lo, hi)
 
     def frame(self, index: int) -> Frame:
         if not 0 <= index < len(self):

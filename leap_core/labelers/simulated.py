@@ -52,10 +52,11 @@ With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is 
 distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
 the per-pixel argmax reproduces the mapped ground truth exactly.
 
-Determinism: all draws come from ``SeedSequence([seed, frame.index, stream])`` (steps 1, 4, 5) or
-``SeedSequence([seed, frame.index // persistence_frames, stream, object])`` (steps 2, 3), so a frame's
-output depends only on the seed, its index and its images, never on which other frames were labeled or
-in which order, and turning one knob does not reshuffle the draws of the others.
+Determinism: all draws come from ``SeedSequence([seed, frame.number, stream])`` (steps 1, 4, 5) or
+``SeedSequence([seed, frame.number // persistence_frames, stream, object])`` (steps 2, 3), so a frame's
+output depends only on the seed, its frame number (its file number, ``Frame.number``) and its images,
+never on which other frames are present, were labeled or in which order, and turning one knob does not
+reshuffle the draws of the others.
 """
 
 from __future__ import annotations
@@ -138,7 +139,7 @@ class SimulatedLabelerConfig:
     """
 
     seed: int = 0
-    """Base seed; a frame's draws depend only on (seed, frame index)."""
+    """Base seed; a frame's draws depend only on (seed, frame number)."""
     recall: float = 0.9
     """Probability that a region (object instance or connected stuff area) gets a mask at all."""
     class_recall: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_CLASS_RECALL))
@@ -149,7 +150,7 @@ class SimulatedLabelerConfig:
     """Probability that a region of a class in ``confusion_pairs`` is labeled as its partner class."""
     persistence_frames: int = 5
     """Misses and confusions of one object are drawn once per block of this many consecutive frames
-    (frame index // persistence_frames), as a detector's errors depend on an object's appearance, which
+    (frame number // persistence_frames), as a detector's errors depend on an object's appearance, which
     changes slowly; 1 draws them independently in every frame (noise that fusion would average away too
     easily)."""
     confusion_pairs: tuple[tuple[str, str], ...] = _DEFAULT_CONFUSION_PAIRS
@@ -487,7 +488,7 @@ class SimulatedLabeler:
                 f"{frame.seq.root / 'gt2d'}: frame {frame.frame_id} semantic {sem.shape} and instance "
                 f"{inst.shape} masks differ in size"
             )
-        seed, idx = cfg.seed, frame.index
+        seed, idx = cfg.seed, frame.number
         names_img, inst = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER))
         h, w = names_img.shape
         names = list(schema.names)

@@ -88,6 +88,9 @@ class StageInfo:
     """Dotted :class:`~leap_core.config.PipelineConfig` path of the boolean that turns the stage on
     (``"consistency.enabled"``); None = no switch. The app greys out the settings of a switched-off stage
     (:mod:`leap_core.pipeline.steering`), so the switch is data, not only code."""
+    needs_poses: bool = False
+    """True when the stage places scans in the world (``frame.pose``): a run that reaches it on a sequence
+    without poses is refused before any stage runs (:func:`~leap_core.pipeline.runner.require_poses`)."""
     enabled: Callable[[PipelineConfig], bool] | None = field(default=None, repr=False, compare=False)
     """Any further condition; the stage runs when its :attr:`switch` (if any) is on and this (if any)
     returns True, else it is recorded as skipped (and its fingerprint then ignores :attr:`reads` and
@@ -138,6 +141,11 @@ class Ctx:
     def fid(self, index: int) -> str:
         """Frame id (file stem) of frame ``index``."""
         return self.seq.frame_ids[index]
+
+    def frame_ids(self) -> list[str]:
+        """The ids of the run's frames, in order: what fingerprints name (never their positions, which
+        shift when scans are added or removed)."""
+        return [self.fid(i) for i in self.frames]
 
     def tick(self, stage: str, done: int, total: int) -> None:
         if self.progress is not None:
@@ -206,9 +214,11 @@ def file_digest(path: Path) -> str:
 
 
 def dataset_identity(seq: KittiSequence) -> str:
-    """Hash of a sequence's location, calibration, poses and the size + mtime of every per-frame file."""
+    """Hash of a sequence's location, calibration, poses (the file the sequence reads them from, None
+    without) and the size + mtime of every per-frame file."""
     root = seq.root.resolve()
-    parts: list[Any] = [str(root), file_digest(root / "calib.txt"), file_digest(root / "poses.txt")]
+    poses = file_digest(seq.poses_path) if seq.has_poses else None
+    parts: list[Any] = [str(root), file_digest(root / "calib.txt"), poses]
     folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]
     for name in folders:
         folder = root / name
@@ -226,8 +236,9 @@ GT2D_KINDS = ("semantic", "instance", "name")
 
 
 def frame_input_digest(seq: KittiSequence, index: int) -> str:
-    """Content digest of what a 2D labeler reads for one frame (its image and 2D ground truth, if any)."""
-    h = hashlib.sha256(f"{index}|{seq.frame_ids[index]}".encode())
+    """Content digest of what a 2D labeler reads for one frame: its frame number and id (what seeds
+    depend on), its image and 2D ground truth, if any."""
+    h = hashlib.sha256(f"{seq.frame_numbers[index]}|{seq.frame_ids[index]}".encode())
     fid = seq.frame_ids[index]
     paths = [seq.image_path(index), *(seq.root / "gt2d" / kind / f"{fid}.png" for kind in GT2D_KINDS)]
     for p in paths:

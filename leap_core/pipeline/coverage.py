@@ -97,7 +97,7 @@ def export_coverage(run_dir: Path, dataset: Path, frames: range | None, voxel_si
     Args:
         run_dir: the run folder.
         dataset: the run's sequence folder.
-        frames: the run's frames (None: all).
+        frames: the run's frame numbers (None: all), as given to the run.
         voxel_size: the run's ``fusion.voxel_size``.
 
     Raises:
@@ -105,7 +105,7 @@ def export_coverage(run_dir: Path, dataset: Path, frames: range | None, voxel_si
     """
     lay = RunLayout(run_dir)
     seq = KittiSequence(dataset)
-    idx = range(len(seq)) if frames is None else frames
+    idx = seq.select(frames)
 
     def keys_of(i: int) -> npt.NDArray[np.int64]:
         frame = seq.frame(i)

@@ -91,7 +91,8 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         "categories": schema.categories(),
         "rows": list(rows),
         "protocols": dict(PROTOCOLS),
-        "frames": [ctx.frames.start, ctx.frames.stop, ctx.frames.step],
+        # Frame numbers (first, last + 1), as --frames takes them; positions would shift with a subset.
+        "frames": [seq.frame_numbers[ctx.frames[0]], seq.frame_numbers[ctx.frames[-1]] + 1],
         "n_points": n_points,
         "n_points_in_view": n_view,
         # Points (ground truth or not) that got a label, per row, and their share of all points: what the

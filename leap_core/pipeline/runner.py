@@ -6,13 +6,14 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from leap_core.config import PipelineConfig, config_to_dict
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.errors import Cancelled, LeapError
+from leap_core.errors import Cancelled, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_json, read_state
 from leap_core.pipeline.evaluation import read_metrics_json
@@ -50,7 +51,7 @@ class RunResult:
     stages: dict[str, StageReport]
     """Per stage, in :data:`STAGES` order (only stages up to ``until``)."""
     frames: tuple[int, ...]
-    """Frame indices processed."""
+    """Indices (positions in ``KittiSequence.frame_ids``) of the frames processed."""
     export_dir: Path | None
     """Folder of the ``.label`` / ``.conf`` files, when the export stage ran or was cached."""
     metrics: dict[str, Any] | None
@@ -158,21 +159,6 @@ def _run_stage(ctx: Ctx, stage: StageInfo) -> StageReport:
 
 
 # ---------------------------------------------------------------------------------------- public API
-def _frames(seq: KittiSequence, frames: range | None) -> range:
-    n = len(seq)
-    if frames is None:
-        return range(n)
-    if not isinstance(frames, range):
-        raise LeapError(f"frames must be a range, got {type(frames).__name__}")
-    if len(frames) == 0:
-        raise LeapError(f"frames {frames.start}:{frames.stop} select no frame (the sequence has {n})")
-    if frames.step <= 0 or frames.start < 0 or frames[-1] >= n:
-        raise LeapError(
-            f"frames {frames.start}:{frames.stop} out of range: the sequence has frames 0..{n - 1}"
-        )
-    return frames
-
-
 def warn_missing_images(seq: KittiSequence, frames: range, labeler: str) -> list[str]:
     """Log a warning naming the run's frames that have no camera image; returns their frame ids.
 
@@ -194,6 +180,23 @@ def warn_missing_images(seq: KittiSequence, frames: range, labeler: str) -> list
     return missing
 
 
+def require_poses(seq: KittiSequence, config: PipelineConfig, stages: Iterable[StageInfo]) -> None:
+    """Refuse, before any work, a run that would reach a stage needing poses on a sequence without them.
+
+    The one place a run checks for poses, so a caller can catch the error and add its own advice.
+
+    Raises:
+        PosesMissingError: naming the poses file and the stages that need it.
+    """
+    if seq.has_poses:
+        return
+    needing = [s.name for s in stages if s.needs_poses and s.is_enabled(config)]
+    if needing:
+        raise PosesMissingError(
+            seq.poses_path, f"no poses: the 3D stages ({', '.join(needing)}) need one pose per scan"
+        )
+
+
 def _context(
     dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *,
     progress: ProgressCallback | None, frames: range | None, runtime: Runtime | None,
@@ -204,7 +207,7 @@ def _context(
         raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
     run_dir.mkdir(parents=True, exist_ok=True)
     layout = RunLayout(run_dir)
-    ctx = Ctx(seq, schema, config, layout, _frames(seq, frames), runtime, progress,
+    ctx = Ctx(seq, schema, config, layout, seq.select(frames), runtime, progress,
               {s.name: s for s in STAGE_TABLE})
     ctx.state = read_state(layout)
     ctx.fp = _fingerprints(ctx)
@@ -253,7 +256,8 @@ def run_pipeline(
         run_dir: the run folder (created if missing); see :mod:`leap_core.run_layout` for its layout.
         progress: ``progress(stage, done, total)`` after each unit of work; raising
             :class:`~leap_core.errors.Cancelled` stops the run cleanly (finished frames are kept).
-        frames: the frames to process (default: all).
+        frames: the frame numbers to process (``range(10, 20)`` = scans 000010..000019, gaps allowed;
+            default: all), see :meth:`~leap_core.datasets.kitti.KittiSequence.select`.
         runtime: where the run executes: models folder, shared 2D cache folder (``cache_dir``, reused
             across runs of a project), device. None = defaults, no shared cache.
         until: stop after this stage (e.g. "smooth" to only build the grid).
@@ -263,6 +267,8 @@ def run_pipeline(
 
     Raises:
         LeapError: bad dataset, schema/config or run folder (one line, naming the file or field).
+        PosesMissingError: the sequence has no poses and a stage up to ``until`` needs them
+            (:func:`require_poses`, raised before any stage runs).
         Cancelled: raised by ``progress``; the stage is recorded as "cancelled" and a rerun resumes.
     """
     if until is not None and until not in STAGES:
@@ -270,8 +276,9 @@ def run_pipeline(
     ctx = _context(
         Path(dataset), schema, config, Path(run_dir), progress=progress, frames=frames, runtime=runtime
     )
-    warn_missing_images(ctx.seq, ctx.frames, config.labeler)
     last = STAGES.index(until) if until else len(STAGES) - 1
+    require_poses(ctx.seq, config, STAGE_TABLE[: last + 1])
+    warn_missing_images(ctx.seq, ctx.frames, config.labeler)
     reports: dict[str, StageReport] = {}
     for stage in STAGE_TABLE[: last + 1]:
         reports[stage.name] = _run_stage(ctx, stage)
@@ -282,6 +289,6 @@ def run_pipeline(
     return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
 
 
-__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "run_pipeline",
+__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "require_poses", "run_pipeline",
            "stage_fingerprints",
            "stage_status"]

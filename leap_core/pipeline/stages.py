@@ -193,7 +193,7 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
 def _fuse_inputs(ctx: Ctx) -> dict[str, Any]:
     corr = ctx.layout.corrections
     digest = file_digest(corr) if corr.is_file() else None
-    return {"frames": [ctx.frames.start, ctx.frames.stop, ctx.frames.step], "corrections": digest,
+    return {"frames": hash_json(ctx.frame_ids()), "corrections": digest,
             "strength": ctx.cfg.correction_strength if digest else None}
 
 
@@ -336,6 +336,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
     StageInfo(
         "fuse", "Voxel fusion", "Bayesian fusion of every observation into the voxel grid", False, stage_fuse,
         reads=("fusion",), upstream=("project",), inputs=_fuse_inputs, outputs=lambda lay, _cfg: (lay.grid,),
+        needs_poses=True,
     ),
     StageInfo(
         "smooth", "kNN smoothing", "distance-weighted kNN smoothing of the fused grid", False, stage_smooth,
@@ -345,17 +346,20 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         "3dcn", "3D-CN", "3D Consistency Network rounds (when enabled)", False, stage_3dcn,
         reads=("consistency",), upstream=("project", "fuse", "smooth"), outputs=_3dcn_outputs,
         stale=lambda lay: lay.cn_grids(), switch="consistency.enabled",
+        needs_poses=True,
     ),
     StageInfo(
         "label_points", "Point labels", "label and confidence of every point from the final grid", True,
         stage_label_points, upstream=("project", "smooth", "3dcn"), inputs=_label_points_inputs,
         frame_files=FrameFiles(RunLayout.POINTS),
+        needs_poses=True,
     ),
     StageInfo(
         "evaluate", "Evaluation", "point / voxel / 3D-CN metrics against ground truth", False, stage_evaluate,
         upstream=("project", "smooth", "3dcn", "label_points"),
         inputs=lambda ctx: [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes],
         outputs=lambda lay, _cfg: (lay.metrics,),
+        needs_poses=True,
     ),
     StageInfo(
         "export", "Export", "SemanticKITTI .label and .conf files per scan", True, stage_export,
