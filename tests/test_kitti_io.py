@@ -520,7 +520,7 @@ def _keep_scans(root: Path, keep: set[str]) -> None:
     """Delete every scan, image and label file whose frame id is not in ``keep`` (calib, poses.txt and
     times.txt stay whole, as when a user copies a subset of a sequence)."""
     for folder in ("velodyne", "image_2", "labels"):
-        for path in (root / folder).iterdir():
+        for path in (root / folder).glob("*"):
             if path.stem not in keep:
                 path.unlink()
 

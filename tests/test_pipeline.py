@@ -650,3 +650,40 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
     assert (ckpt1.stat().st_mtime_ns, ckpt1.read_bytes()) == before  # not retrained, not rewritten
     assert (run_dir / "grid_3dcn1.npz").read_bytes() != grid_before  # ... yet fused back with the new T
     assert "+3D-CN x1" in (result_tables(run_dir) or "")
+
+
+# ------------------------------------------------------------------------------------------ file modes
+@pytest.mark.parametrize("umask", [0o022, 0o002])
+def test_written_files_get_the_mode_open_gives_under_the_umask(
+    street: Path, schema, tmp_path: Path, umask: int
+) -> None:
+    """Run outputs, the shared 2D cache, a folder export and a zip export get 0o666 & ~umask (0644, 0664)
+    like any file ``open()`` creates, not mkstemp's 0600, and folders 0o777 & ~umask."""
+    import os
+    import stat
+
+    from leap_core.export import write_export_folder, write_export_zip
+
+    run_dir, cache = tmp_path / "run", tmp_path / "cache"
+    old = os.umask(umask)
+    try:
+        result = run_pipeline(street, schema, PipelineConfig(), run_dir, frames=range(0, 2),
+                              runtime=Runtime(cache_dir=cache))
+        assert result.export_dir is not None
+        labels = sorted(result.export_dir.glob("*.label"))
+        write_export_folder(tmp_path / "out" / "predictions", labels)
+        write_export_zip(tmp_path / "out" / "labels.zip", result.export_dir, "00", {"summary.yaml": "a: 1\n"},
+                         include_confidence=True)
+    finally:
+        os.umask(old)
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    names = {p.relative_to(tmp_path).as_posix() for p in files}
+    for must in ("run/export/000001.label", "run/export/000001.conf", "run/points/000000.npz", "run/grid.npz",
+                 "run/stages.json", "run/metrics.json", "out/predictions/000000.label", "out/labels.zip"):
+        assert must in names
+    assert any(n.startswith("cache/") for n in names)
+    modes = {p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode)) for p in files}
+    assert set(modes.values()) == {oct(0o666 & ~umask)}, modes
+    folders = {p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode))
+               for p in tmp_path.rglob("*") if p.is_dir()}
+    assert set(folders.values()) == {oct(0o777 & ~umask)}, folders
