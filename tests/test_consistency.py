@@ -122,6 +122,21 @@ def test_support_breaks_confidence_ties_before_the_tie_order() -> None:
     assert np.flatnonzero(masks[1]).tolist() == [0, 2, 4]  # reversed support: 99, 2, 7, 3, 7 (+ 1 at 0.9)
 
 
+def test_per_scan_tie_order_is_seeded_by_the_frame_number() -> None:
+    """Scan s breaks ties with ``seed + scan_numbers[s]``: frame 13's selection is the same whether it is
+    the first scan of a run over frames 13.. or the fourteenth of a run over 0.."""
+    labels = np.zeros(40, np.int16)
+    conf = np.full(40, 0.5, np.float32)  # all tied: the seeded order alone decides
+    alone = select_reliable(labels, conf, 1, 0.25, 7 + 13)
+    masks = select_reliable_scans([labels, labels], [conf, conf], 1, 0.25, seed=7, scan_numbers=[13, 14])
+    np.testing.assert_array_equal(masks[0], alone)
+    np.testing.assert_array_equal(masks[1], select_reliable(labels, conf, 1, 0.25, 7 + 14))
+    assert not np.array_equal(masks[0], masks[1])
+    # Without frame numbers, scan s uses seed + s.
+    default = select_reliable_scans([labels], [conf], 1, 0.25, seed=7)
+    np.testing.assert_array_equal(default[0], select_reliable(labels, conf, 1, 0.25, 7))
+
+
 def test_view_counts_count_frames_not_points() -> None:
     keys, counts = view_counts([np.array([5, 5, 7]), np.array([7]), np.array([9, 7, 7, 7])])
     assert keys.tolist() == [5, 7, 9] and counts.tolist() == [1, 3, 1]

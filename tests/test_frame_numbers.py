@@ -13,11 +13,14 @@ from typer.testing import CliRunner
 
 from app.cli import cli
 from leap_core.config import PipelineConfig
+from leap_core.consistency.config import ConsistencyConfig
+from leap_core.consistency.stage import reliable_targets
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import PosesMissingError
 from leap_core.labelers.simulated import SimulatedLabeler
 from leap_core.pipeline import run_pipeline, stage_status
 from leap_core.presets import builtin_preset
+from leap_core.smoothing import SmoothedGrid
 from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence
 
 SMALL = SynthConfig(
@@ -76,6 +79,15 @@ def test_copy_of_frames_10_19_labels_like_those_frames_of_the_whole_sequence(
     assert exported == _exports(tmp_path / "whole")
     # The fused grids agree too: same world frame (pose line 0), same voxels.
     assert (tmp_path / "copy" / "grid.npz").read_bytes() == (tmp_path / "whole" / "grid.npz").read_bytes()
+
+    # The 3D-CN's per-scan selection of frame 13 does not depend on where 13 sits in the run's frames.
+    seq = KittiSequence(whole)
+    smoothed = SmoothedGrid.load(tmp_path / "whole" / "grid_smooth.npz").to_voxel_grid(30.0)
+    cfg = ConsistencyConfig(selection_scope="scan", share=0.2)
+    c = builtin_preset("semantickitti").schema.num_classes
+    late = reliable_targets(seq, smoothed, c, cfg, 0.2, seq.select(range(12, 20)), None)
+    early = reliable_targets(seq, smoothed, c, cfg, 0.2, seq.select(range(10, 20)), None)
+    np.testing.assert_array_equal(late[1], early[3])
 
 
 def test_subset_frames_keep_their_poses_seeds_and_2d_labels(whole: Path, subset: Path) -> None:
