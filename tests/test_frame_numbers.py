@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from app.cli import cli
+from app.cli import _frame_range, cli
 from leap_core.config import PipelineConfig
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.stage import reliable_targets
@@ -113,6 +113,8 @@ def test_frames_option_takes_frame_numbers_on_a_copy(subset: Path, tmp_path: Pat
     run_pipeline(subset, builtin_preset("semantickitti").schema, PipelineConfig(), tmp_path / "r",
                  frames=range(12, 14), until="labels2d")
     assert sorted(p.name for p in (tmp_path / "r" / "labels2d").iterdir()) == ["000012.npz", "000013.npz"]
+    assert _frame_range("12:", str(subset)) == range(12, 20)  # "A:" runs to the last scan's number
+    assert _frame_range("12", str(subset)) == range(12, 13)
 
 
 # ---------------------------------------------------------------------------------------- no poses

@@ -416,6 +416,7 @@ def test_labels2d_command_precomputes_and_resumes(tiny_dir: Path, tmp_path: Path
     from app.cli import cli as app
 
     root = build_tiny_sequence(tmp_path, n_frames=3).root
+    (root / "poses.txt").unlink()  # 2D labels need no poses (most recordings come without)
     cache = tmp_path / "cache"
     schema = tmp_path / "small.yaml"
     save_schema(
