@@ -452,7 +452,7 @@ def _run_config(
 
 
 def _frame_range(frames: str, dataset: str) -> range:
-    """``--frames A:B`` frame numbers (B exclusive; ``A`` alone is one frame, ``A:`` runs to the last scan)."""
+    """``--frames A:B``: frame numbers, B exclusive (``A`` alone: one frame; ``A:``: to the last scan)."""
     a, sep, b = frames.partition(":")
     try:
         start = int(a) if a.strip() else 0

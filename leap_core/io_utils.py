@@ -14,7 +14,6 @@ from typing import IO, Any
 
 import numpy as np
 
-
 _TEMP_TRIES = 100
 
 

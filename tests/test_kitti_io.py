@@ -350,7 +350,8 @@ def test_pose_errors(tmp_path: Path, text: str, match: str) -> None:
 def test_scan_past_the_end_of_poses_names_the_file_and_the_frame(tmp_path: Path, make_tiny_sequence) -> None:
     seq = make_tiny_sequence(tmp_path, n_frames=3)
     write_poses(seq.root / "poses.txt", seq.cam_poses[:2])
-    with pytest.raises(DatasetError, match=r"2 poses \(frames 0\.\.1\) but scan 000002\.bin is frame 2$") as exc:
+    match = r"2 poses \(frames 0\.\.1\) but scan 000002\.bin is frame 2$"
+    with pytest.raises(DatasetError, match=match) as exc:
         KittiSequence(seq.root)
     assert_names(exc, seq.root / "poses.txt")
     # Only scans past the end count: a copy of frame 1 alone reads line 1 of the same two-line file.
@@ -525,7 +526,9 @@ def _keep_scans(root: Path, keep: set[str]) -> None:
                 path.unlink()
 
 
-def test_subset_with_gaps_takes_its_frames_lines_and_keeps_the_world(tmp_path: Path, make_tiny_sequence) -> None:
+def test_subset_with_gaps_takes_its_frames_lines_and_keeps_the_world(
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     """Scans 3, 5 and 6 of an 8-line poses.txt / times.txt: each takes its own line, and the world frame
     stays the LiDAR frame of pose line 0, so poses equal the whole sequence's (not re-based on scan 3)."""
     seq = make_tiny_sequence(tmp_path, n_frames=8, n_points=20)

@@ -379,10 +379,11 @@ def _rows_of_frames(path: Path, n_lines: int, what: str, seq: KittiSequence) -> 
         return rows
     past = np.flatnonzero(rows >= n_lines)
     if past.size:
-        fid = seq.frame_ids[int(past[0])]
+        first = int(past[0])
+        more = f" (and {past.size - 1} more scans past the end)" if past.size > 1 else ""
         raise DatasetError(
-            path, f"{n_lines} {what} (frames 0..{n_lines - 1}) but scan {fid}.bin is frame {int(rows[past[0]])}"
-            f"{f' (and {past.size - 1} more scans past the end)' if past.size > 1 else ''}"
+            path, f"{n_lines} {what} (frames 0..{n_lines - 1}) but scan {seq.frame_ids[first]}.bin is frame "
+            f"{int(rows[first])}{more}"
         )
     return rows
 
@@ -417,7 +418,8 @@ class KittiSequence:
         )
         """Per scan, its frame number: the line it takes in ``poses.txt`` / ``times.txt``, and what every
         per-frame seed depends on (increasing; equal to the index only for a complete sequence)."""
-        same = [k for k in range(1, len(self.frame_ids)) if self.frame_numbers[k] == self.frame_numbers[k - 1]]
+        nums = self.frame_numbers
+        same = [k for k in range(1, len(nums)) if nums[k] == nums[k - 1]]
         if same:
             a, b = self.frame_ids[same[0] - 1], self.frame_ids[same[0]]
             raise DatasetError(vel, f"scans {a}.bin and {b}.bin are both frame {self.frame_numbers[same[0]]}")
