@@ -200,8 +200,13 @@ def require_poses(seq: KittiSequence, config: PipelineConfig, stages: Iterable[S
 def _context(
     dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *,
     progress: ProgressCallback | None, frames: range | None, runtime: Runtime | None,
+    until: str | None = None,
 ) -> Ctx:
+    """The run's context; with ``until`` (a run, not a preview) first :func:`require_poses` for the
+    stages up to it, so a missing poses file stops the run before anything (the labeler included) loads."""
     seq = KittiSequence(dataset)
+    if until is not None:
+        require_poses(seq, config, STAGE_TABLE[: STAGES.index(until) + 1])
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
@@ -273,11 +278,11 @@ def run_pipeline(
     """
     if until is not None and until not in STAGES:
         raise LeapError(f"until: unknown stage {until!r} (stages: {', '.join(STAGES)})")
-    ctx = _context(
-        Path(dataset), schema, config, Path(run_dir), progress=progress, frames=frames, runtime=runtime
-    )
     last = STAGES.index(until) if until else len(STAGES) - 1
-    require_poses(ctx.seq, config, STAGE_TABLE[: last + 1])
+    ctx = _context(
+        Path(dataset), schema, config, Path(run_dir), progress=progress, frames=frames, runtime=runtime,
+        until=STAGES[last],
+    )
     warn_missing_images(ctx.seq, ctx.frames, config.labeler)
     reports: dict[str, StageReport] = {}
     for stage in STAGE_TABLE[: last + 1]:
