@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import typer
+from tqdm import tqdm
 
 from leap_core.errors import Cancelled, LeapError
 
@@ -35,8 +36,6 @@ class _Bar:
         self.bar: Any = None
 
     def __call__(self, done: int, total: int) -> None:
-        from tqdm import tqdm
-
         if self.bar is None:
             self.bar = tqdm(total=total, desc=self.desc, unit=self.unit, dynamic_ncols=True)
         self.bar.total = total
@@ -49,7 +48,9 @@ class _Bar:
 
 @import_cli.command("rosbag")
 def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
-    bag: str = typer.Argument(..., help="ROS 1 .bag file, or ROS 2 bag folder (or its .db3 / .mcap file)."),
+    bag: str = typer.Argument(
+        ..., help="ROS 1 .bag file, or ROS 2 bag folder (or its .db3 / .mcap file)."
+    ),
     *,
     lidar_topic: str = typer.Option(..., "--lidar-topic", help="sensor_msgs/PointCloud2 topic."),
     camera_topic: str = typer.Option(
@@ -57,24 +58,29 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     ),
     calib: str | None = typer.Option(
         None, "--calib",
-        help="Calibration YAML (docs/IMPORT.md) or KITTI calib.txt; default: the bag's CameraInfo + /tf_static.",
+        help="Calibration YAML (docs/IMPORT.md) or KITTI calib.txt; default: the bag's CameraInfo + "
+        "/tf_static.",
     ),
     out: str | None = typer.Option(
         None, "--out", help="Sequence folder to write (default data/<bag name>/sequences/00)."
     ),
     max_offset_ms: float = typer.Option(
-        50.0, "--max-offset-ms", help="Largest scan-to-camera stamp difference; scans without a partner are dropped."
+        50.0, "--max-offset-ms",
+        help="Largest scan-to-camera stamp difference; scans without a partner are dropped.",
     ),
     camera_info_topic: str | None = typer.Option(
-        None, "--camera-info-topic", help="sensor_msgs/CameraInfo topic (default: the one of the images' frame)."
+        None, "--camera-info-topic",
+        help="sensor_msgs/CameraInfo topic (default: the one of the images' frame).",
     ),
     fixed_frame: str | None = typer.Option(
-        None, "--fixed-frame", help="/tf frame the poses are taken in (default: the root of the LiDAR's tree)."
+        None, "--fixed-frame",
+        help="/tf frame the poses are taken in (default: the root of the LiDAR's tree).",
     ),
     force: bool = typer.Option(False, "--force", help="Replace a non-empty output folder."),
 ) -> None:
     """Convert a ROS bag (ROS 1, ROS 2 sqlite3 or mcap) into a KITTI sequence folder: scans paired with the
     nearest camera frame, calib.txt, times.txt, and poses.txt when /tf moves the LiDAR frame."""
+    # rosbags and scipy load with the command that needs them, not with `leap --help`.
     from leap_core.importers.rosbag import RosbagImportConfig, import_rosbag
 
     bag_path = Path(bag)

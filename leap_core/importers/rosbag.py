@@ -8,8 +8,9 @@ What is read:
   and of any PointField datatype, either byte order, any ``point_step`` / ``row_step`` padding; points with a
   non-finite coordinate are dropped. Remission = a float intensity as recorded, an integer intensity divided
   by its type's maximum (``uint8`` 255 → 1.0), 0 without an intensity field.
-- ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8, mono16, 8UC1, 8UC3) or ``sensor_msgs/CompressedImage``
-  (JPEG / PNG) on the camera topic. Raw images are written as PNG; compressed ones keep their bytes.
+- ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8, mono16, 8UC1, 8UC3) or
+  ``sensor_msgs/CompressedImage`` (JPEG / PNG) on the camera topic. Raw images are written as PNG;
+  compressed ones keep their bytes.
 - Each scan takes the camera frame with the nearest header stamp if it lies within ``max_offset_ms``;
   other scans are dropped (and counted).
 - Calibration: ``P2`` = ``sensor_msgs/CameraInfo.P``, ``Tr`` = the LiDAR → camera optical frame transform
@@ -28,6 +29,8 @@ import contextlib
 import math
 import os
 import shutil
+import sqlite3
+import struct
 import uuid
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -38,6 +41,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 import yaml
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.typesys import Stores, get_typestore
+from scipy.spatial.transform import Rotation, Slerp
 
 from leap_core.datasets.kitti import Calib, read_calib, write_calib, write_image, write_poses, write_scan
 from leap_core.errors import ConfigError, DatasetError, LeapError
@@ -81,7 +87,9 @@ class RosbagImportConfig:
             if not getattr(self, name).strip():
                 raise ConfigError("must name a topic", field=(name,))
         if not (math.isfinite(self.max_offset_ms) and self.max_offset_ms >= 0):
-            raise ConfigError(f"must be a finite number >= 0, got {self.max_offset_ms}", field=("max_offset_ms",))
+            raise ConfigError(
+                f"must be a finite number >= 0, got {self.max_offset_ms}", field=("max_offset_ms",)
+            )
 
 
 @dataclass
@@ -200,7 +208,9 @@ def image_rgb(msg: Any) -> npt.NDArray[np.uint8]:
     step = int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
     if step < w * ch * depth or data.size < (h - 1) * step + w * ch * depth:
-        raise ValueError(f"image data has {data.size} bytes, too few for {h}×{w} {msg.encoding} (step {step})")
+        raise ValueError(
+            f"image data has {data.size} bytes, too few for {h}×{w} {msg.encoding} (step {step})"
+        )
     rows = np.lib.stride_tricks.as_strided(data, (h, w * ch * depth), (step, 1))
     if depth == 2:
         px = rows.copy().view(">u2" if msg.is_bigendian else "<u2")
@@ -231,8 +241,6 @@ def compressed_image(msg: Any) -> tuple[npt.NDArray[np.uint8], bytes, str]:
 # --------------------------------------------------------------------------------------- transforms
 def transform_matrix(translation: Sequence[float], quat_xyzw: Sequence[float]) -> F64:
     """(4, 4) homogeneous transform from a translation and a (normalised) ROS quaternion (x, y, z, w)."""
-    from scipy.spatial.transform import Rotation
-
     m = np.eye(4)
     m[:3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, np.float64)).as_matrix()
     m[:3, 3] = translation
@@ -293,7 +301,9 @@ class TfTree:
         path = self.chain(frame)
         return any(f in self.dynamic for f in path[: path.index(root)])
 
-    def to_ancestor(self, frame: str, ancestor: str, times_ns: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
+    def to_ancestor(
+        self, frame: str, ancestor: str, times_ns: npt.NDArray[np.int64]
+    ) -> tuple[F64, npt.NDArray[np.bool_]]:
         """(T, 4, 4) transforms ``ancestor ← frame`` at ``times_ns`` and a (T,) mask of the times every
         dynamic edge on the way covers (outside its samples there is no extrapolation)."""
         n = len(times_ns)
@@ -313,7 +323,10 @@ class TfTree:
         """``target ← source`` through static edges only (None when they do not connect the two)."""
         up_s, up_t = self.chain(source), self.chain(target)
         common = next((f for f in up_s if f in up_t), None)
-        if common is None or any(f in self.dynamic for f in up_s[: up_s.index(common)] + up_t[: up_t.index(common)]):
+        if common is None:
+            return None
+        below = up_s[: up_s.index(common)] + up_t[: up_t.index(common)]
+        if any(f in self.dynamic for f in below):
             return None
         stamp = np.zeros(1, np.int64)
         a_s, _ = self.to_ancestor(source, common, stamp)
@@ -324,8 +337,6 @@ class TfTree:
 def _interpolate(edge: _Edge, times_ns: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Transforms of a dynamic edge at ``times_ns``: translation linear and rotation slerp between the two
     samples around each time; (mask of times inside the sampled span)."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     t_all = np.asarray(edge.times, np.int64)
     order = np.argsort(t_all, kind="stable")
     t_sorted, first = np.unique(t_all[order], return_index=True)  # one sample per stamp
@@ -406,13 +417,56 @@ def _section(path: Path, doc: dict[str, Any], name: str, allowed: set[str]) -> d
     return sec
 
 
+def _camera_part(path: Path, cam: dict[str, Any] | None) -> F64 | None:
+    """P2 from the YAML ``camera`` section (``P`` 3×4, or ``K`` 3×3 giving ``[K | 0]``)."""
+    if cam is None:
+        return None
+    if ("P" in cam) == ("K" in cam):
+        raise DatasetError(path, "'camera' needs exactly one of 'P' (12 values) or 'K' (9 values)")
+    if "P" in cam:
+        p2 = _numbers(path, "camera.P", cam["P"], (12,)).reshape(3, 4)
+    else:
+        p2 = np.zeros((3, 4))
+        p2[:, :3] = _numbers(path, "camera.K", cam["K"], (9,)).reshape(3, 3)
+    if abs(np.linalg.det(p2[:, :3])) < 1e-9:
+        raise DatasetError(path, "'camera' projection's left 3×3 block is singular")
+    return p2
+
+
+def _extrinsic_part(path: Path, ext: dict[str, Any] | None) -> F64 | None:
+    """Tr from the YAML ``lidar_to_camera`` section (``matrix``, or ``translation`` + ``rotation``)."""
+    if ext is None:
+        return None
+    if "matrix" in ext:
+        if set(ext) != {"matrix"}:
+            raise DatasetError(path, "'lidar_to_camera' takes 'matrix' or 'translation' + 'rotation', "
+                               "not both")
+        m = _numbers(path, "lidar_to_camera.matrix", ext["matrix"], (12, 16))
+        tr = np.eye(4)
+        tr[:3] = m[:12].reshape(3, 4)
+        if m.size == 16 and not np.allclose(m[12:], [0, 0, 0, 1]):
+            raise DatasetError(path, "'lidar_to_camera.matrix' last row must be 0 0 0 1")
+    else:
+        if set(ext) != {"translation", "rotation"}:
+            raise DatasetError(path, "'lidar_to_camera' needs 'translation' and 'rotation' (or 'matrix')")
+        t = _numbers(path, "lidar_to_camera.translation", ext["translation"], (3,))
+        q = _numbers(path, "lidar_to_camera.rotation", ext["rotation"], (4,))
+        if np.linalg.norm(q) < 1e-9:
+            raise DatasetError(path, "'lidar_to_camera.rotation' is a zero quaternion")
+        tr = transform_matrix(t, q)
+    if abs(np.linalg.det(tr[:3, :3])) < 1e-6:
+        raise DatasetError(path, "'lidar_to_camera' rotation is singular")
+    return tr
+
+
 def read_calib_file(path: str | Path) -> PartialCalib:
     """Read ``--calib``: a KITTI ``calib.txt`` (``.txt``: P2 and Tr) or the YAML format of docs/IMPORT.md::
 
         camera:            # P (3×4 row-major, ROS CameraInfo.P) or K (3×3; P = [K | 0])
           P: [fx, 0, cx, tx, 0, fy, cy, ty, 0, 0, 1, 0]
         lidar_to_camera:   # LiDAR points → camera optical frame (x right, y down, z forward)
-          matrix: [...]    # 12 (3×4) or 16 (4×4) row-major, or translation: [x, y, z] + rotation: [qx, qy, qz, qw]
+          matrix: [...]    # 12 (3×4) or 16 (4×4) row-major,
+                           # or translation: [x, y, z] + rotation: [qx, qy, qz, qw]
 
     Either section may be left out when the bag provides it (CameraInfo, /tf_static).
 
@@ -435,38 +489,8 @@ def read_calib_file(path: str | Path) -> PartialCalib:
     unknown = sorted(set(doc) - {"camera", "lidar_to_camera"})
     if unknown:
         raise DatasetError(path, f"'{unknown[0]}' is not a known key (camera, lidar_to_camera)")
-    p2 = tr = None
-    cam = _section(path, doc, "camera", {"P", "K"})
-    if cam is not None:
-        if ("P" in cam) == ("K" in cam):
-            raise DatasetError(path, "'camera' needs exactly one of 'P' (12 values) or 'K' (9 values)")
-        if "P" in cam:
-            p2 = _numbers(path, "camera.P", cam["P"], (12,)).reshape(3, 4)
-        else:
-            p2 = np.zeros((3, 4))
-            p2[:, :3] = _numbers(path, "camera.K", cam["K"], (9,)).reshape(3, 3)
-        if abs(np.linalg.det(p2[:, :3])) < 1e-9:
-            raise DatasetError(path, "'camera' projection's left 3×3 block is singular")
-    ext = _section(path, doc, "lidar_to_camera", {"matrix", "translation", "rotation"})
-    if ext is not None:
-        if "matrix" in ext:
-            if set(ext) != {"matrix"}:
-                raise DatasetError(path, "'lidar_to_camera' takes 'matrix' or 'translation' + 'rotation', not both")
-            m = _numbers(path, "lidar_to_camera.matrix", ext["matrix"], (12, 16))
-            tr = np.eye(4)
-            tr[:3] = m[:12].reshape(3, 4)
-            if m.size == 16 and not np.allclose(m[12:], [0, 0, 0, 1]):
-                raise DatasetError(path, "'lidar_to_camera.matrix' last row must be 0 0 0 1")
-        else:
-            if set(ext) != {"translation", "rotation"}:
-                raise DatasetError(path, "'lidar_to_camera' needs 'translation' and 'rotation' (or 'matrix')")
-            t = _numbers(path, "lidar_to_camera.translation", ext["translation"], (3,))
-            q = _numbers(path, "lidar_to_camera.rotation", ext["rotation"], (4,))
-            if np.linalg.norm(q) < 1e-9:
-                raise DatasetError(path, "'lidar_to_camera.rotation' is a zero quaternion")
-            tr = transform_matrix(t, q)
-        if abs(np.linalg.det(tr[:3, :3])) < 1e-6:
-            raise DatasetError(path, "'lidar_to_camera' rotation is singular")
+    p2 = _camera_part(path, _section(path, doc, "camera", {"P", "K"}))
+    tr = _extrinsic_part(path, _section(path, doc, "lidar_to_camera", {"matrix", "translation", "rotation"}))
     if p2 is None and tr is None:
         raise DatasetError(path, "has neither 'camera' nor 'lidar_to_camera'")
     return PartialCalib(P2=p2, Tr=tr)
@@ -479,12 +503,6 @@ _READ_ERRORS: tuple[type[BaseException], ...] = (OSError, KeyError, ValueError, 
 @contextlib.contextmanager
 def _open_bag(bag: Path) -> Iterator[Any]:
     """An open ``AnyReader``; any failure to read becomes a DatasetError naming the bag."""
-    import struct
-    import sqlite3
-
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
-
     path = bag.parent if bag.name == "metadata.yaml" else bag
     errors = (AnyReaderError, struct.error, sqlite3.Error, *_READ_ERRORS)
     try:
@@ -513,7 +531,8 @@ def _topic(reader: Any, bag: Path, topic: str, types: tuple[str, ...], what: str
         raise DatasetError(bag, f"no {what} topic {topic!r}; topics in the bag: {available}")
     info = topics[topic]
     if info.msgtype not in types:
-        raise DatasetError(bag, f"{what} topic {topic!r} carries {info.msgtype}, expected {' or '.join(types)}")
+        expected = " or ".join(types)
+        raise DatasetError(bag, f"{what} topic {topic!r} carries {info.msgtype}, expected {expected}")
     return list(info.connections)
 
 
@@ -540,7 +559,7 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
     if cfg.camera_info_topic is not None:
         info_conns = _topic(reader, bag, cfg.camera_info_topic, (CAMERA_INFO,), "camera info")
     else:
-        info_conns = [c for name, t in topics.items() if t.msgtype == CAMERA_INFO for c in t.connections]
+        info_conns = [c for t in topics.values() if t.msgtype == CAMERA_INFO for c in t.connections]
     tf_conns = [c for name in (TF_TOPIC, TF_STATIC_TOPIC) if name in topics
                 and topics[name].msgtype == TF_MESSAGE for c in topics[name].connections]
     scans: list[_Msg] = []
@@ -600,7 +619,7 @@ def _calibration(
     else:
         topic, msg = info
         # ROS 2 names the matrices p, d; ROS 1 P, D.
-        p = np.asarray(getattr(msg, "p", None) if hasattr(msg, "p") else msg.P, np.float64).reshape(3, 4)
+        p = np.asarray(msg.p if hasattr(msg, "p") else msg.P, np.float64).reshape(3, 4)
         if abs(np.linalg.det(p[:, :3])) < 1e-9:
             problems.append(f"camera intrinsics (CameraInfo on {topic} has no valid P matrix)")
         else:
@@ -614,8 +633,9 @@ def _calibration(
     else:
         tr = first["tree"].lookup_static(cam_frame, lidar_frame)
         if tr is None:
+            static = ", ".join(sorted(first["tree"].static)) or "none"
             problems.append(f"LiDAR → camera transform (no {TF_STATIC_TOPIC} chain from {lidar_frame!r} to "
-                            f"{cam_frame!r}; static frames: {', '.join(sorted(first['tree'].static)) or 'none'})")
+                            f"{cam_frame!r}; frames with a static parent: {static})")
         else:
             sources.append(f"{TF_STATIC_TOPIC} {lidar_frame} → {cam_frame}")
     if problems:
@@ -626,13 +646,16 @@ def _calibration(
 
 
 def _poses(
-    cfg: RosbagImportConfig, tree: TfTree, lidar_frame: str, stamps: npt.NDArray[np.int64]
+    bag: Path, cfg: RosbagImportConfig, tree: TfTree, lidar_frame: str, stamps: npt.NDArray[np.int64]
 ) -> tuple[F64 | None, npt.NDArray[np.bool_], str | None]:
     """(LiDAR → fixed frame per scan, mask of scans /tf covers, description) or (None, all True, None) when
     /tf does not move the LiDAR frame."""
     chain = tree.chain(lidar_frame)
     root = chain[-1] if cfg.fixed_frame is None else _frame(cfg.fixed_frame)
-    if root not in chain or not tree.is_moving(lidar_frame, root):
+    if root not in chain:
+        raise DatasetError(bag, f"fixed frame {root!r} is not above the LiDAR frame in /tf and /tf_static "
+                           f"(its chain: {' → '.join(chain)})")
+    if not tree.is_moving(lidar_frame, root):
         return None, np.ones(len(stamps), bool), None
     mats, ok = tree.to_ancestor(lidar_frame, root, stamps)
     return mats, ok, f"{TF_TOPIC} {root} → {lidar_frame}"
@@ -713,7 +736,7 @@ def import_rosbag(
         calib, summary.calib_source, summary.notes = _calibration(bag, cfg, first, lidar_frame)
         stamps = np.array([s.stamp for s in scans], np.int64)
         partner = pair_nearest(stamps, [c.stamp for c in cams], round(cfg.max_offset_ms * 1e6))
-        lidar_world, covered, summary.pose_source = _poses(cfg, first["tree"], lidar_frame, stamps)
+        lidar_world, covered, summary.pose_source = _poses(bag, cfg, first["tree"], lidar_frame, stamps)
         summary.no_camera = int((partner < 0).sum())
         summary.no_pose = int(((partner >= 0) & ~covered).sum())
         keep = (partner >= 0) & covered
@@ -726,7 +749,8 @@ def import_rosbag(
 
         fresh = _fresh_folder(out, force)
         try:
-            written = _write_frames(reader, bag, first, todo, wanted, fresh, summary, progress)
+            plan = _Plan(first["lidar"], first["camera"], todo, wanted)
+            written = _write_frames(reader, bag, plan, fresh, summary, progress)
             if not written:
                 raise DatasetError(bag, "no scan has a camera frame within "
                                    f"{cfg.max_offset_ms:g} ms (or a pose): nothing to write")
@@ -746,65 +770,79 @@ def import_rosbag(
     return summary
 
 
-def _write_frames(  # noqa: PLR0913  # the state of one import
-    reader: Any,
-    bag: Path,
-    first: dict[str, Any],
-    todo: dict[tuple[int, int], int],
-    wanted: dict[tuple[int, int], list[int]],
-    seq: Path,
-    summary: ImportSummary,
-    progress: ProgressFn | None,
-) -> list[int]:
-    """Second pass: write the kept scans (``todo``: message key → scan index; numbered in order) and the
-    camera frames they pair with (``wanted``: message key → scan indices); returns the scan indices
-    written. A camera frame may arrive before or after its scan, so a decoded one waits for its scans."""
-    lidar_ids = {c.id for c in first["lidar"]}
-    total = len(todo) + len(wanted)
+@dataclass
+class _Plan:
+    """What the second pass writes: ``todo`` (message key → scan index) the kept scans, numbered in the
+    order they come; ``wanted`` (message key → scan indices) the camera frames they pair with."""
+
+    lidar: list[Any]
+    camera: list[Any]
+    todo: dict[tuple[int, int], int]
+    wanted: dict[tuple[int, int], list[int]]
+    frame_of: dict[int, int | None] = field(default_factory=dict)
+    """Scan index → frame number (None: the scan had no finite point)."""
+    waiting: dict[int, tuple[npt.NDArray[np.uint8], bytes | None, str]] = field(default_factory=dict)
+    """Scan index → its decoded image, when the image came before the scan."""
+    written: list[int] = field(default_factory=list)
+    """Scan indices written, in frame order."""
+
+
+def _write_frames(reader: Any, bag: Path, plan: _Plan, seq: Path, summary: ImportSummary,
+                  progress: ProgressFn | None) -> list[int]:
+    """Second pass: write the kept scans and their camera frames; returns the scan indices written."""
+    lidar_ids = {c.id for c in plan.lidar}
+    total = len(plan.todo) + len(plan.wanted)
     done = 0
     report(progress, 0, total)
-    frame_of: dict[int, int | None] = {}  # scan index -> frame number (None: empty scan)
-    waiting: dict[int, tuple[npt.NDArray[np.uint8], bytes | None, str]] = {}  # scan index -> image
-    written: list[int] = []
-    for conn, log_ns, raw in reader.messages(connections=[*first["lidar"], *first["camera"]]):
-        if conn.id in lidar_ids:
-            msg = reader.deserialize(raw, conn.msgtype)
-            scan_i = todo.get((int(log_ns), stamp_ns(msg.header) or int(log_ns)))
-            if scan_i is None or scan_i in frame_of:
-                continue
-            try:
-                pts, nan, _ = pointcloud_xyzi(msg)
-            except ValueError as exc:
-                raise DatasetError(bag, f"{conn.topic} at {log_ns} ns: {exc}") from None
-            summary.nan_points += nan
-            if len(pts) == 0:
-                summary.empty += 1
-                frame_of[scan_i] = None
-                waiting.pop(scan_i, None)
+    for conn, log_ns, raw in reader.messages(connections=[*plan.lidar, *plan.camera]):
+        msg = reader.deserialize(raw, conn.msgtype)
+        key = (int(log_ns), stamp_ns(msg.header) or int(log_ns))
+        try:
+            if conn.id in lidar_ids:
+                scan_i = plan.todo.get(key)
+                if scan_i is None or scan_i in plan.frame_of:
+                    continue
+                _write_scan(plan, scan_i, pointcloud_xyzi(msg), seq, summary)
             else:
-                frame_no = len(written)
-                write_scan(seq / "velodyne" / f"{frame_no:06d}.bin", pts)
-                written.append(scan_i)
-                frame_of[scan_i] = frame_no
-                if scan_i in waiting:
-                    _write_image(seq, frame_no, waiting.pop(scan_i))
-        else:
-            msg = reader.deserialize(raw, conn.msgtype)
-            scans = wanted.pop((int(log_ns), stamp_ns(msg.header) or int(log_ns)), None)
-            if scans is None:
-                continue
-            try:
-                payload = _decode_image(conn.msgtype, msg)
-            except ValueError as exc:
-                raise DatasetError(bag, f"{conn.topic} at {log_ns} ns: {exc}") from None
-            for s in scans:
-                if s not in frame_of:
-                    waiting[s] = payload
-                elif (no := frame_of[s]) is not None:
-                    _write_image(seq, no, payload)
+                scans = plan.wanted.pop(key, None)
+                if scans is None:
+                    continue
+                _write_camera(plan, scans, _decode_image(conn.msgtype, msg), seq)
+        except ValueError as exc:
+            raise DatasetError(bag, f"{conn.topic} message at {log_ns} ns: {exc}") from None
         done += 1
         report(progress, done, total)
-    return written
+    return plan.written
+
+
+def _write_scan(
+    plan: _Plan, scan_i: int, cloud: tuple[npt.NDArray[np.float32], int, bool], seq: Path,
+    summary: ImportSummary,
+) -> None:
+    pts, nan, _ = cloud
+    summary.nan_points += nan
+    if len(pts) == 0:
+        summary.empty += 1
+        plan.frame_of[scan_i] = None
+        plan.waiting.pop(scan_i, None)
+        return
+    frame_no = len(plan.written)
+    write_scan(seq / "velodyne" / f"{frame_no:06d}.bin", pts)
+    plan.written.append(scan_i)
+    plan.frame_of[scan_i] = frame_no
+    if scan_i in plan.waiting:
+        _write_image(seq, frame_no, plan.waiting.pop(scan_i))
+
+
+def _write_camera(
+    plan: _Plan, scans: list[int], payload: tuple[npt.NDArray[np.uint8], bytes | None, str], seq: Path
+) -> None:
+    # A camera frame may come before or after its scans: before, it waits for them.
+    for s in scans:
+        if s not in plan.frame_of:
+            plan.waiting[s] = payload
+        elif (no := plan.frame_of[s]) is not None:
+            _write_image(seq, no, payload)
 
 
 __all__ = [
