@@ -69,6 +69,8 @@ class BagSpec:
     tf: bool = True
     moving_map: bool = False
     """map → odom drifts linearly (sampled only 0.5 s before the first and after the last scan)."""
+    info_pad: int = 0
+    """CameraInfo height minus the images' height."""
     tf_start_frame: int = 0
     """odom → base_link samples start at this frame (earlier scans have no pose)."""
 
@@ -103,6 +105,8 @@ class Msgs:
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         self.ros1 = ros1
+        self.info_pad = 0
+        """Rows added to the image height the CameraInfo states (a mismatched calibration)."""
         self.ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
         tf_msg = "tf2_msgs/msg/TFMessage"
         if tf_msg not in self.ts.types:  # not in the Noetic store; real bags carry their definitions
@@ -164,6 +168,7 @@ class Msgs:
                                                step=w * ch + 4, data=rows.ravel())
 
     def camera_info(self, ns: int, calib: Calib, hw: tuple[int, int]) -> Any:
+        hw = (hw[0] + self.info_pad, hw[1])
         mats = {"d": np.zeros(5), "k": calib.P2[:, :3].ravel(), "r": np.eye(3).ravel(), "p": calib.P2.ravel()}
         roi = self.t["sensor_msgs/msg/RegionOfInterest"](
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
@@ -209,6 +214,7 @@ def write_bag(seq: KittiSequence, path: Path, spec: BagSpec = BagSpec()) -> Path
     from rosbags.rosbag2 import Writer as Writer2
 
     m = Msgs(spec.kind == "ros1")
+    m.info_pad = spec.info_pad
     stamps = scan_stamps(seq)
     offsets = spec.camera_offsets_ms or (10.0,) * len(seq)
     msgs: list[tuple[int, str, Any]] = []  # (recording time, topic, message)
@@ -467,6 +473,14 @@ def test_missing_calibration_names_what_is_missing(demo: KittiSequence, tmp_path
     assert "LiDAR → camera transform (no /tf_static chain from 'velodyne' to 'camera_optical'" in msg
     assert "--calib FILE" in msg
     assert not (tmp_path / "out" / "sequences" / "00").exists()
+
+
+def test_camera_info_for_another_image_size_is_refused(demo: KittiSequence, tmp_path: Path) -> None:
+    h, w = demo.frame(0).image.shape[:2]
+    with pytest.raises(DatasetError) as err:
+        do_import(demo, tmp_path, BagSpec(info_pad=2))
+    assert f"CameraInfo on /camera/camera_info is for {w}×{h + 2} images, /camera/image_raw has {w}×{h}" \
+        in str(err.value)
 
 
 @pytest.mark.parametrize(

@@ -565,6 +565,7 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
     scans: list[_Msg] = []
     cams: list[_Msg] = []
     infos: dict[str, Any] = {}
+    size: tuple[int, int] | None = None  # (width, height) of the first raw image
     tree = TfTree()
     lidar_ids, camera_ids = {c.id for c in lidar}, {c.id for c in camera}
     for conn, log_ns, raw in reader.messages(connections=[*lidar, *camera, *info_conns, *tf_conns]):
@@ -578,10 +579,12 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
             scans.append(_Msg(stamp, int(log_ns), _frame(msg.header.frame_id)))
         elif conn.id in camera_ids:
             cams.append(_Msg(stamp, int(log_ns), _frame(msg.header.frame_id)))
+            if size is None and conn.msgtype == IMAGE:
+                size = (int(msg.width), int(msg.height))
         else:
             infos.setdefault(conn.topic, msg)
     return {"scans": scans, "cams": cams, "cam_frame": cams[0].frame if cams else "", "infos": infos,
-            "tree": tree, "lidar": lidar, "camera": camera}
+            "tree": tree, "lidar": lidar, "camera": camera, "size": size}
 
 
 def _camera_info(cfg: RosbagImportConfig, infos: dict[str, Any], cam_frame: str) -> tuple[str, Any] | None:
@@ -594,6 +597,28 @@ def _camera_info(cfg: RosbagImportConfig, infos: dict[str, Any], cam_frame: str)
     if not matching and len(infos) == 1:
         return next(iter(infos.items()))
     return None
+
+
+def _p2_from_info(
+    cfg: RosbagImportConfig, first: dict[str, Any], info: tuple[str, Any], problems: list[str],
+    notes: list[str],
+) -> F64 | None:
+    """P2 = CameraInfo.P, or None with the reason appended to ``problems``."""
+    topic, msg = info
+    # ROS 2 names the matrices p, d; ROS 1 P, D.
+    p = np.asarray(msg.p if hasattr(msg, "p") else msg.P, np.float64).reshape(3, 4)
+    info_size = (int(msg.width), int(msg.height))
+    if abs(np.linalg.det(p[:, :3])) < 1e-9:
+        problems.append(f"camera intrinsics (CameraInfo on {topic} has no valid P matrix)")
+        return None
+    if first["size"] is not None and all(info_size) and info_size != first["size"]:
+        problems.append(f"camera intrinsics (CameraInfo on {topic} is for {info_size[0]}×{info_size[1]} "
+                        f"images, {cfg.camera_topic} has {first['size'][0]}×{first['size'][1]})")
+        return None
+    if np.any(np.asarray(msg.d if hasattr(msg, "d") else msg.D, np.float64) != 0):
+        notes.append(f"CameraInfo {topic} has lens distortion: the images are used as recorded, "
+                     "so import a rectified image topic")
+    return p
 
 
 def _calibration(
@@ -617,17 +642,9 @@ def _calibration(
                  else f"no sensor_msgs/CameraInfo topic for camera frame {cam_frame!r}")
         problems.append(f"camera intrinsics ({where})")
     else:
-        topic, msg = info
-        # ROS 2 names the matrices p, d; ROS 1 P, D.
-        p = np.asarray(msg.p if hasattr(msg, "p") else msg.P, np.float64).reshape(3, 4)
-        if abs(np.linalg.det(p[:, :3])) < 1e-9:
-            problems.append(f"camera intrinsics (CameraInfo on {topic} has no valid P matrix)")
-        else:
-            p2 = p
-            sources.append(f"CameraInfo {topic}")
-            if np.any(np.asarray(msg.d if hasattr(msg, "d") else msg.D, np.float64) != 0):
-                notes.append(f"CameraInfo {topic} has lens distortion: the images are used as recorded, "
-                             "so import a rectified image topic")
+        p2 = _p2_from_info(cfg, first, info, problems, notes)
+        if p2 is not None:
+            sources.append(f"CameraInfo {info[0]}")
     if tr is not None:
         sources.append(f"{cfg.calib_file} (lidar_to_camera)")
     else:
