@@ -299,6 +299,7 @@ def assert_same_sequence(
         np.testing.assert_array_equal(fa, fb)
         assert np.abs(pa[fa] - pb[fb]).max() < 1e-3
     if poses:
+        np.testing.assert_allclose(got.cam_poses[0], np.eye(4), atol=1e-12)  # KITTI: frame 0 at the origin
         world = expected_lidar_world(src, spec)[list(frames)]
         want = np.linalg.inv(world[0])[None] @ world
         np.testing.assert_allclose(got.poses, want, atol=1e-6)
@@ -545,6 +546,29 @@ def test_corrupt_bag_names_the_file(demo: KittiSequence, tmp_path: Path, kind: s
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("kind", ["sqlite3", "mcap"])
+def test_damaged_bag_content_names_the_bag(demo: KittiSequence, tmp_path: Path, kind: str) -> None:
+    """A bag that still opens but whose content is damaged: the error comes from reading its messages
+    (sqlite3 storage: every b-tree page header after the first page overwritten, an apsw.CorruptError; mcap:
+    the message type's name made invalid UTF-8, a decoding error), still one line naming the bag."""
+    spec = BagSpec(kind=kind)
+    bag = write_bag(demo, bag_path(tmp_path, spec), spec)
+    target = next(p for p in bag.iterdir() if p.suffix in (".mcap", ".db3"))
+    data = bytearray(target.read_bytes())
+    if kind == "sqlite3":
+        page = int.from_bytes(data[16:18], "big")
+        for start in range(page, len(data), page):
+            data[start : start + 8] = b"\xff" * 8
+    else:
+        name = b"sensor_msgs/msg/PointCloud2"
+        data = bytearray(bytes(data).replace(name, b"\xff" * len(name)))
+    target.write_bytes(bytes(data))
+    cfg = RosbagImportConfig(lidar_topic="/velodyne_points", camera_topic="/camera/image_raw")
+    with pytest.raises(DatasetError, match=f"^{bag}: cannot read the bag"):
+        import_rosbag(bag, tmp_path / "out", cfg)
+    assert not (tmp_path / "out").exists()
+
+
 def test_refuses_a_non_empty_output_without_force(demo: KittiSequence, tmp_path: Path) -> None:
     bag = write_bag(demo, tmp_path / "rec")
     out = tmp_path / "seq"
@@ -553,6 +577,11 @@ def test_refuses_a_non_empty_output_without_force(demo: KittiSequence, tmp_path:
     cfg = RosbagImportConfig(lidar_topic="/velodyne_points", camera_topic="/camera/image_raw")
     with pytest.raises(DatasetError, match="not empty; refusing to overwrite"):
         import_rosbag(bag, out, cfg)
+    # Refused before the bag is read (a long bag is not read for nothing).
+    garbage = tmp_path / "garbage.bag"
+    garbage.write_bytes(b"not a bag")
+    with pytest.raises(DatasetError, match=f"^{out}: output folder is not empty"):
+        import_rosbag(garbage, out, cfg)
     assert (out / "mine.txt").read_text() == "keep"
     import_rosbag(bag, out, cfg, force=True)
     assert not (out / "mine.txt").exists() and len(KittiSequence(out)) == 5

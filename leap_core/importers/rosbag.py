@@ -29,14 +29,13 @@ import contextlib
 import math
 import os
 import shutil
-import sqlite3
-import struct
 import uuid
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import apsw
 import cv2
 import numpy as np
 import numpy.typing as npt
@@ -497,14 +496,18 @@ def read_calib_file(path: str | Path) -> PartialCalib:
 
 
 # ------------------------------------------------------------------------------------------- reading
-_READ_ERRORS: tuple[type[BaseException], ...] = (OSError, KeyError, ValueError, IndexError, EOFError)
+# What a damaged bag raises past AnyReader: rosbags' sqlite3 storage reads through apsw (a page that does not
+# parse is an apsw.CorruptError), a damaged mcap record can fail to decode (UnicodeDecodeError, a ValueError).
+_READ_ERRORS: tuple[type[BaseException], ...] = (
+    apsw.Error, OSError, KeyError, ValueError, IndexError, EOFError
+)
 
 
 @contextlib.contextmanager
 def _open_bag(bag: Path) -> Iterator[Any]:
     """An open ``AnyReader``; any failure to read becomes a DatasetError naming the bag."""
     path = bag.parent if bag.name == "metadata.yaml" else bag
-    errors = (AnyReaderError, struct.error, sqlite3.Error, *_READ_ERRORS)
+    errors = (AnyReaderError, *_READ_ERRORS)
     try:
         store = get_typestore(Stores.ROS1_NOETIC if path.suffix == ".bag" else Stores.ROS2_HUMBLE)
         reader = AnyReader([path], default_typestore=store)
