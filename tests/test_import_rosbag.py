@@ -652,7 +652,7 @@ def test_imported_bags_label_like_the_source_frames(
 
     source = run(demo.root, tmp_path / "run-source")
     labeled = np.concatenate(source) > 0
-    assert labeled.mean() > 0.2  # not a comparison of two empty exports
+    assert labeled.mean() > 0.1  # not a comparison of two empty exports (measured: 16 % labeled)
     for kind in ("mcap", "ros1"):
         spec = BagSpec(kind=kind)
         bag = write_bag(demo, bag_path(tmp_path, spec, f"demo-{kind}"), spec)
@@ -662,4 +662,5 @@ def test_imported_bags_label_like_the_source_frames(
         assert res.exit_code == 0, res.output
         got = run(out, tmp_path / f"run-{kind}")
         same = np.concatenate([a == b for a, b in zip(got, source, strict=True)])
+        print(f"{kind}: same label on {100 * same.mean():.3f} % of {same.size} points")
         assert same.mean() >= 0.999, (kind, same.mean())
