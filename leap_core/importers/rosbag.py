@@ -30,7 +30,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -149,11 +149,13 @@ def pointcloud_xyzi(msg: Any) -> tuple[npt.NDArray[np.float32], int, bool]:
     fields = {f.name: f for f in msg.fields}
     missing = [n for n in ("x", "y", "z") if n not in fields]
     if missing:
-        names = ", ".join(fields) or "none"
-        raise ValueError(f"PointCloud2 has no field {', '.join(missing)} (fields: {names})")
+        listed = ", ".join(fields) or "none"
+        raise ValueError(f"PointCloud2 has no field {', '.join(missing)} (fields: {listed})")
     order = ">" if msg.is_bigendian else "<"
     wanted = ["x", "y", "z"] + (["intensity"] if "intensity" in fields else [])
-    names, formats, offsets = [], [], []
+    names: list[str] = []
+    formats: list[str] = []
+    offsets: list[int] = []
     for name in wanted:
         f = fields[name]
         code = POINTFIELD_TYPES.get(int(f.datatype))
@@ -238,7 +240,7 @@ def compressed_image(msg: Any) -> tuple[npt.NDArray[np.uint8], bytes, str]:
 
 
 # --------------------------------------------------------------------------------------- transforms
-def transform_matrix(translation: Sequence[float], quat_xyzw: Sequence[float]) -> F64:
+def transform_matrix(translation: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> F64:
     """(4, 4) homogeneous transform from a translation and a (normalised) ROS quaternion (x, y, z, w)."""
     m = np.eye(4)
     m[:3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, np.float64)).as_matrix()
@@ -507,7 +509,7 @@ _READ_ERRORS: tuple[type[BaseException], ...] = (
 def _open_bag(bag: Path) -> Iterator[Any]:
     """An open ``AnyReader``; any failure to read becomes a DatasetError naming the bag."""
     path = bag.parent if bag.name == "metadata.yaml" else bag
-    errors = (AnyReaderError, *_READ_ERRORS)
+    errors: tuple[type[BaseException], ...] = (AnyReaderError, *_READ_ERRORS)
     try:
         store = get_typestore(Stores.ROS1_NOETIC if path.suffix == ".bag" else Stores.ROS2_HUMBLE)
         reader = AnyReader([path], default_typestore=store)
