@@ -9,6 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from tqdm import tqdm
+
+from leap_core.errors import LeapError
 
 import_cli = typer.Typer(
     name="import",
@@ -18,12 +21,14 @@ import_cli = typer.Typer(
 
 
 @import_cli.command("nuscenes")
-def nuscenes_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
+def nuscenes_cmd(
     dataroot: str = typer.Argument(..., help="nuScenes folder (holding samples/, v1.0-mini/, lidarseg/)."),
     *,
     version: str = typer.Option("v1.0-mini", "--version", help="Table folder: v1.0-mini, v1.0-trainval, ..."),
     scene: str = typer.Option(..., "--scene", help="Scene name, e.g. scene-0061."),
-    camera: str = typer.Option("CAM_FRONT", "--camera", help="Camera channel whose keyframe images are used."),
+    camera: str = typer.Option(
+        "CAM_FRONT", "--camera", help="Camera channel whose keyframe images are used."
+    ),
     out: str | None = typer.Option(
         None, "--out", help="Sequence folder to write (default: data/nuscenes/<scene>)."
     ),
@@ -31,11 +36,8 @@ def nuscenes_cmd(  # noqa: PLR0913  # typer: one parameter per command-line opti
 ) -> None:
     """Write one nuScenes scene's LIDAR_TOP keyframes, camera images, calibration, ego poses and
     lidarseg labels as a KITTI-layout sequence (label it with --project-file projects/nuscenes.yaml)."""
-    from tqdm import tqdm
-
-    from app.cli import fail
-    from leap_core.errors import LeapError
-    from leap_core.importers.nuscenes import import_nuscenes
+    from app.cli import fail  # app.cli imports this module
+    from leap_core.importers.nuscenes import import_nuscenes  # loads the devkit (matplotlib, sklearn)
 
     target = Path(out) if out is not None else Path("data") / "nuscenes" / scene
     bar: tqdm[None] | None = None
@@ -46,13 +48,21 @@ def nuscenes_cmd(  # noqa: PLR0913  # typer: one parameter per command-line opti
 
     def progress(done: int, total: int) -> None:
         if bar is not None:
-            bar.n = done
+            bar.total, bar.n = total, done
             bar.refresh()
 
     typer.echo(f"reading the {version} tables of {dataroot} (nuscenes-devkit)")
     try:
-        summary = import_nuscenes(dataroot, target, version=version, scene=scene, camera=camera, force=force,
-                                  progress=progress, on_loaded=loaded)
+        summary = import_nuscenes(
+            dataroot,
+            target,
+            version=version,
+            scene=scene,
+            camera=camera,
+            force=force,
+            progress=progress,
+            on_loaded=loaded,
+        )
     except KeyboardInterrupt:
         raise fail(f"interrupted; nothing was written to {target}") from None
     except LeapError as exc:

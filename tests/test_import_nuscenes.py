@@ -1,7 +1,7 @@
-"""``leap import nuscenes``: a nuScenes-format folder written from generated demo frames (the JSON tables the
-devkit reads, LIDAR_TOP ``.pcd.bin``, CAM_FRONT ``.jpg``, lidarseg ``.bin``), loaded by the devkit itself, then
-imported and compared with what was written: points, images, calibration (projected pixels), poses, times,
-labels; bad input; the ``projects/nuscenes.yaml`` preset against the devkit's lidarseg mapping.
+"""``leap import nuscenes``: a nuScenes-format folder written from generated demo frames (the JSON tables
+the devkit reads, LIDAR_TOP ``.pcd.bin``, CAM_FRONT ``.jpg``, lidarseg ``.bin``), loaded by the devkit
+itself, then imported and compared with what was written: points, images, calibration (projected pixels),
+poses, times, labels; bad input; the ``projects/nuscenes.yaml`` preset against the devkit's lidarseg mapping.
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ T0 = 1_532_402_927_647_951
 """First LiDAR keyframe timestamp (µs), as nuScenes' (2018, microseconds)."""
 KEYFRAME_US = 500_000
 IMAGE_LAG_US = 18_000
-"""The camera keyframe is taken 18 ms after the sweep's timestamp; the ego moves :data:`EGO_MOTION` meanwhile."""
+"""The camera keyframe is taken 18 ms after the sweep's timestamp; the ego moves :data:`EGO_MOTION`
+meanwhile."""
 
 DEMO = SynthConfig(
     frames=4,
@@ -50,9 +51,36 @@ DEMO = SynthConfig(
 """Four demo frames, coarse LiDAR and a 310×94 image: fast, and every part of the importer has data."""
 
 SK_TO_LIDARSEG = {
-    10: 17, 252: 17, 11: 14, 13: 16, 257: 16, 15: 21, 18: 23, 258: 23, 20: 22, 259: 22, 30: 2, 254: 2, 31: 2,
-    40: 24, 44: 24, 60: 24, 48: 26, 49: 25, 50: 28, 51: 28, 52: 28, 80: 28, 81: 28, 70: 30, 71: 30, 72: 27,
-    99: 29, 300: 12, 301: 29, 302: 9,
+    10: 17,
+    252: 17,
+    11: 14,
+    13: 16,
+    257: 16,
+    15: 21,
+    18: 23,
+    258: 23,
+    20: 22,
+    259: 22,
+    30: 2,
+    254: 2,
+    31: 2,
+    40: 24,
+    44: 24,
+    60: 24,
+    48: 26,
+    49: 25,
+    50: 28,
+    51: 28,
+    52: 28,
+    80: 28,
+    81: 28,
+    70: 30,
+    71: 30,
+    72: 27,
+    99: 29,
+    300: 12,
+    301: 29,
+    302: 9,
 }
 """The demo's SemanticKITTI (and demo) raw ids → nuScenes-lidarseg indices, unknown → 0 noise."""
 
@@ -61,7 +89,9 @@ def _rigid(yaw: float, t: tuple[float, float, float], tilt: float = 0.0) -> np.n
     """4×4 rotation about z by ``yaw`` (then about x by ``tilt``) and translation ``t``."""
     cz, sz, cx, sx = np.cos(yaw), np.sin(yaw), np.cos(tilt), np.sin(tilt)
     m = np.eye(4)
-    m[:3, :3] = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    m[:3, :3] = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array(
+        [[1, 0, 0], [0, cx, -sx], [0, sx, cx]]
+    )
     m[:3, 3] = t
     return m
 
@@ -80,8 +110,12 @@ def _token(kind: str, i: int) -> str:
 
 def _pose_record(token: str, m: np.ndarray, **extra: object) -> dict[str, object]:
     q = Quaternion(matrix=m[:3, :3])
-    return {"token": token, "translation": [float(v) for v in m[:3, 3]], "rotation": [float(v) for v in q.elements],
-            **extra}
+    return {
+        "token": token,
+        "translation": [float(v) for v in m[:3, 3]],
+        "rotation": [float(v) for v in q.elements],
+        **extra,
+    }
 
 
 @dataclass
@@ -103,7 +137,9 @@ class NuSource:
     camera_tokens: list[str]
 
 
-def write_nuscenes(demo: KittiSequence, dataroot: Path, frames: int | None = None, lidarseg: bool = True) -> NuSource:
+def write_nuscenes(
+    demo: KittiSequence, dataroot: Path, frames: int | None = None, lidarseg: bool = True
+) -> NuSource:
     """Write ``frames`` demo frames as one nuScenes scene (keyframes 2 Hz, one LiDAR and one camera sweep
     between keyframes, a CAM_BACK sensor without data) and check the devkit loads it.
 
@@ -143,14 +179,29 @@ def write_nuscenes(demo: KittiSequence, dataroot: Path, frames: int | None = Non
         frame = demo.frame(i)
         ego_sweep = MAP_OFFSET @ frame.pose @ np.linalg.inv(LIDAR_TO_EGO)
         sample = _token("sample", i)
-        samples.append({"token": sample, "timestamp": T0 + i * KEYFRAME_US, "scene_token": scene,
-                        "prev": _token("sample", i - 1) if i else "", "next": _token("sample", i + 1) if i < n - 1 else ""})
-        pts = np.column_stack([frame.points[:, :3], frame.points[:, 3] * 255.0,
-                               rng.integers(0, 32, len(frame.points))]).astype(np.float32)
+        samples.append(
+            {
+                "token": sample,
+                "timestamp": T0 + i * KEYFRAME_US,
+                "scene_token": scene,
+                "prev": _token("sample", i - 1) if i else "",
+                "next": _token("sample", i + 1) if i < n - 1 else "",
+            }
+        )
+        pts = np.column_stack(
+            [frame.points[:, :3], frame.points[:, 3] * 255.0, rng.integers(0, 32, len(frame.points))]
+        ).astype(np.float32)
         img = cv2.imencode(".jpg", cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR))[1].tobytes()
         sweeps = [(True, 0, pts, img)]
         if i < n - 1:  # one sweep between keyframes: different points and image, not to be imported
-            sweeps.append((False, KEYFRAME_US // 2, pts[: len(pts) // 2], cv2.imencode(".jpg", 255 - frame.image)[1].tobytes()))
+            sweeps.append(
+                (
+                    False,
+                    KEYFRAME_US // 2,
+                    pts[: len(pts) // 2],
+                    cv2.imencode(".jpg", 255 - frame.image)[1].tobytes(),
+                )
+            )
         for key, dt, cloud, jpg in sweeps:
             ts = T0 + i * KEYFRAME_US + dt
             folder = "samples" if key else "sweeps"
@@ -163,12 +214,32 @@ def write_nuscenes(demo: KittiSequence, dataroot: Path, frames: int | None = Non
                 (dataroot / name).parent.mkdir(parents=True, exist_ok=True)
                 (dataroot / name).write_bytes(data)
             common = {"sample_token": sample, "is_key_frame": key}
-            lidar_chain.append({"token": _token("sd-l", ts), "ego_pose_token": ego_l, "calibrated_sensor_token": cs_lidar,
-                                "timestamp": ts, "fileformat": "pcd", "height": 0, "width": 0, "filename": lname,
-                                **common})
-            cam_chain.append({"token": _token("sd-c", ts), "ego_pose_token": ego_c, "calibrated_sensor_token": cs_cam,
-                              "timestamp": ts + IMAGE_LAG_US, "fileformat": "jpg", "height": h, "width": w,
-                              "filename": cname, **common})
+            lidar_chain.append(
+                {
+                    "token": _token("sd-l", ts),
+                    "ego_pose_token": ego_l,
+                    "calibrated_sensor_token": cs_lidar,
+                    "timestamp": ts,
+                    "fileformat": "pcd",
+                    "height": 0,
+                    "width": 0,
+                    "filename": lname,
+                    **common,
+                }
+            )
+            cam_chain.append(
+                {
+                    "token": _token("sd-c", ts),
+                    "ego_pose_token": ego_c,
+                    "calibrated_sensor_token": cs_cam,
+                    "timestamp": ts + IMAGE_LAG_US,
+                    "fileformat": "jpg",
+                    "height": h,
+                    "width": w,
+                    "filename": cname,
+                    **common,
+                }
+            )
             if key:
                 sem = lut[frame.labels & 0xFFFF]
                 src.points.append(cloud)
@@ -180,8 +251,13 @@ def write_nuscenes(demo: KittiSequence, dataroot: Path, frames: int | None = Non
                     fname = f"lidarseg/{VERSION}/{lidar_chain[-1]['token']}_lidarseg.bin"
                     (dataroot / fname).parent.mkdir(parents=True, exist_ok=True)
                     (dataroot / fname).write_bytes(sem.tobytes())
-                    lidarseg_rows.append({"token": lidar_chain[-1]["token"],
-                                          "sample_data_token": lidar_chain[-1]["token"], "filename": fname})
+                    lidarseg_rows.append(
+                        {
+                            "token": lidar_chain[-1]["token"],
+                            "sample_data_token": lidar_chain[-1]["token"],
+                            "filename": fname,
+                        }
+                    )
     for chain in (lidar_chain, cam_chain):
         for j, rec in enumerate(chain):
             rec["prev"] = chain[j - 1]["token"] if j else ""
@@ -189,17 +265,47 @@ def write_nuscenes(demo: KittiSequence, dataroot: Path, frames: int | None = Non
     (dataroot / "maps").mkdir()
     cv2.imwrite(str(dataroot / "maps" / "prior.png"), np.zeros((4, 4), np.uint8))
     out = {
-        "category": [{"token": _token("cat", i), "name": nm, "description": nm, "index": i}
-                     for i, nm in enumerate(LIDARSEG_NAMES)],
-        "attribute": [], "visibility": [], "instance": [], "sample_annotation": [],
-        "sensor": sensors, "calibrated_sensor": calibrated, "ego_pose": ego_poses,
-        "log": [{"token": log, "logfile": "n008-2018-07-24", "vehicle": "n008", "date_captured": "2018-07-24",
-                 "location": "boston-seaport"}],
-        "scene": [{"token": scene, "log_token": log, "nbr_samples": n, "first_sample_token": samples[0]["token"],
-                   "last_sample_token": samples[-1]["token"], "name": SCENE, "description": "demo street"}],
-        "sample": samples, "sample_data": lidar_chain + cam_chain,
-        "map": [{"token": _token("map", 0), "log_tokens": [log], "category": "semantic_prior",
-                 "filename": "maps/prior.png"}],
+        "category": [
+            {"token": _token("cat", i), "name": nm, "description": nm, "index": i}
+            for i, nm in enumerate(LIDARSEG_NAMES)
+        ],
+        "attribute": [],
+        "visibility": [],
+        "instance": [],
+        "sample_annotation": [],
+        "sensor": sensors,
+        "calibrated_sensor": calibrated,
+        "ego_pose": ego_poses,
+        "log": [
+            {
+                "token": log,
+                "logfile": "n008-2018-07-24",
+                "vehicle": "n008",
+                "date_captured": "2018-07-24",
+                "location": "boston-seaport",
+            }
+        ],
+        "scene": [
+            {
+                "token": scene,
+                "log_token": log,
+                "nbr_samples": n,
+                "first_sample_token": samples[0]["token"],
+                "last_sample_token": samples[-1]["token"],
+                "name": SCENE,
+                "description": "demo street",
+            }
+        ],
+        "sample": samples,
+        "sample_data": lidar_chain + cam_chain,
+        "map": [
+            {
+                "token": _token("map", 0),
+                "log_tokens": [log],
+                "category": "semantic_prior",
+                "filename": "maps/prior.png",
+            }
+        ],
     }
     if lidarseg:
         out["lidarseg"] = lidarseg_rows
@@ -259,13 +365,17 @@ def test_camera_time_correction_hand_computed() -> None:
     # A LiDAR turned 90° left sees that forward motion as its −y.
     m = camera_time_correction(np.eye(4), _rigid(0.0, (1.0, 0.0, 0.0)), _rigid(np.pi / 2, (0.0, 0.0, 1.0)))
     np.testing.assert_allclose(m, _rigid(0.0, (0.0, 1.0, 0.0)), atol=1e-12)
-    np.testing.assert_allclose(camera_time_correction(MAP_OFFSET, MAP_OFFSET, LIDAR_TO_EGO), np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(
+        camera_time_correction(MAP_OFFSET, MAP_OFFSET, LIDAR_TO_EGO), np.eye(4), atol=1e-9
+    )
 
 
 def test_kitti_cam_poses_hand_computed() -> None:
     tr = np.eye(4)
     tr[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]  # LiDAR x forward → camera z forward
-    g = np.stack([_rigid(0.3, (100.0, 50.0, 0.0)), _rigid(0.3, (100.0, 50.0, 0.0)) @ _rigid(0.0, (2.0, 0.0, 0.0))])
+    g = np.stack(
+        [_rigid(0.3, (100.0, 50.0, 0.0)), _rigid(0.3, (100.0, 50.0, 0.0)) @ _rigid(0.0, (2.0, 0.0, 0.0))]
+    )
     poses = kitti_cam_poses(g, tr)
     np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)
     np.testing.assert_allclose(poses[1], _rigid(0.0, (0.0, 0.0, 2.0)), atol=1e-12)  # 2 m along camera z
@@ -275,13 +385,17 @@ def test_kitti_cam_poses_hand_computed() -> None:
 def test_round_trip_points_images_calibration_poses_labels(source: NuSource, tmp_path: Path) -> None:
     out = tmp_path / "seq"
     done: list[int] = []
-    summary = import_nuscenes(source.dataroot, out, version=VERSION, scene=SCENE,
-                              progress=lambda d, t: done.append(d))
+    summary = import_nuscenes(
+        source.dataroot, out, version=VERSION, scene=SCENE, progress=lambda d, _total: done.append(d)
+    )
     n = len(source.points)
     assert (summary.frames, summary.images, summary.labels, summary.skipped_sweeps) == (n, n, n, n - 1)
     assert done == list(range(1, n + 1))
     assert summary.max_offset_ms == pytest.approx(IMAGE_LAG_US / 1e3)
-    assert f"wrote {n} frames of {SCENE}" in summary.line() and f"skipped {n - 1} LIDAR_TOP sweeps" in summary.line()
+    assert (
+        f"wrote {n} frames of {SCENE}" in summary.line()
+        and f"skipped {n - 1} LIDAR_TOP sweeps" in summary.line()
+    )
     seq = KittiSequence(out)
     assert seq.frame_ids == [f"{i:06d}" for i in range(n)] and seq.has_labels and seq.pose_source == "file"
     # Motion compensation: the points are seen from the LiDAR at the image time, N = S⁻¹·D·S later.
@@ -309,7 +423,13 @@ def test_round_trip_points_images_calibration_poses_labels(source: NuSource, tmp
         # global map coordinates ~1000 m, so its pixels carry ~1e-2 px of rounding).
         dk_uv, _, im = nusc.explorer.map_pointcloud_to_image(source.lidar_tokens[i], source.camera_tokens[i])
         w, h = im.size
-        keep = (depth > 1.0) & (uv_got[:, 0] > 1) & (uv_got[:, 0] < w - 1) & (uv_got[:, 1] > 1) & (uv_got[:, 1] < h - 1)
+        keep = (
+            (depth > 1.0)
+            & (uv_got[:, 0] > 1)
+            & (uv_got[:, 0] < w - 1)
+            & (uv_got[:, 1] > 1)
+            & (uv_got[:, 1] < h - 1)
+        )
         assert dk_uv.shape[1] == keep.sum() > 100
         np.testing.assert_allclose(uv_got[keep], dk_uv[:2].T, atol=0.05)
         # Labels: the lidarseg index per point, instance 0.
@@ -328,7 +448,9 @@ def test_round_trip_points_images_calibration_poses_labels(source: NuSource, tmp
 def test_without_lidarseg_writes_no_labels(demo: KittiSequence, tmp_path: Path) -> None:
     src = write_nuscenes(demo, tmp_path / "nu", frames=2, lidarseg=False)
     summary = import_nuscenes(src.dataroot, tmp_path / "seq", version=VERSION, scene=SCENE)
-    assert summary.frames == 2 and summary.labels == 0 and "no labels (lidarseg not installed)" in summary.line()
+    assert (
+        summary.frames == 2 and summary.labels == 0 and "no labels (lidarseg not installed)" in summary.line()
+    )
     assert not (tmp_path / "seq" / "labels").exists() and not KittiSequence(tmp_path / "seq").has_labels
 
 
@@ -339,7 +461,9 @@ def test_the_chosen_camera_and_a_keyframe_without_it(source: NuSource, tmp_path:
     victim = next(r for r in sample_data if r["token"] == source.camera_tokens[1])
     victim["is_key_frame"] = False
     (tables / "sample_data.json").write_text(json.dumps(sample_data))
-    summary = import_nuscenes(source.dataroot, tmp_path / "seq", version=VERSION, scene=SCENE, camera="CAM_FRONT")
+    summary = import_nuscenes(
+        source.dataroot, tmp_path / "seq", version=VERSION, scene=SCENE, camera="CAM_FRONT"
+    )
     seq = KittiSequence(tmp_path / "seq")
     assert summary.images == len(seq) - 1 and seq.image_path(1) is None and seq.image_path(2) is not None
     assert "1 keyframes have no CAM_FRONT image" in summary.line()
@@ -350,11 +474,15 @@ def test_missing_dataroot_version_scene_camera_list_what_exists(source: NuSource
     out = tmp_path / "seq"
     with pytest.raises(DatasetError, match="nuScenes dataroot does not exist"):
         import_nuscenes(tmp_path / "nowhere", out, scene=SCENE)
-    with pytest.raises(DatasetError, match=r"no nuScenes version 'v1.0-trainval' .*versions in .*: v1.0-mini"):
+    with pytest.raises(
+        DatasetError, match=r"no nuScenes version 'v1.0-trainval' .*versions in .*: v1.0-mini"
+    ):
         import_nuscenes(source.dataroot, out, version="v1.0-trainval", scene=SCENE)
     with pytest.raises(DatasetError, match=r"scene.json: no scene 'scene-9999' \(scenes: scene-0061\)"):
         import_nuscenes(source.dataroot, out, scene="scene-9999")
-    with pytest.raises(DatasetError, match=r"sensor.json: no camera 'CAM_LEFT' \(cameras: CAM_BACK, CAM_FRONT\)"):
+    with pytest.raises(
+        DatasetError, match=r"sensor.json: no camera 'CAM_LEFT' \(cameras: CAM_BACK, CAM_FRONT\)"
+    ):
         import_nuscenes(source.dataroot, out, scene=SCENE, camera="CAM_LEFT")
     with pytest.raises(DatasetError, match="scene 'scene-0061' has no CAM_BACK keyframe images"):
         import_nuscenes(source.dataroot, out, scene=SCENE, camera="CAM_BACK")
@@ -365,7 +493,9 @@ def test_broken_tables_and_files_name_the_file(source: NuSource, tmp_path: Path)
     tables = source.dataroot / VERSION
     good = (tables / "calibrated_sensor.json").read_text()
     (tables / "calibrated_sensor.json").write_text("[]")  # sample_data now points at unknown calibrations
-    with pytest.raises(DatasetError, match=r"v1.0-mini: the nuScenes devkit cannot load it: missing key or token"):
+    with pytest.raises(
+        DatasetError, match=r"v1.0-mini: the nuScenes devkit cannot load it: missing key or token"
+    ):
         import_nuscenes(source.dataroot, tmp_path / "a", scene=SCENE)
     (tables / "calibrated_sensor.json").write_text(good)
     pcd = source.dataroot / json.loads((tables / "sample_data.json").read_text())[0]["filename"]
@@ -376,7 +506,9 @@ def test_broken_tables_and_files_name_the_file(source: NuSource, tmp_path: Path)
     pcd.write_bytes(good_pcd)
     label = next((source.dataroot / "lidarseg" / VERSION).glob(f"{source.lidar_tokens[2]}*"))
     label.write_bytes(label.read_bytes()[:-1])
-    with pytest.raises(DatasetError, match=rf"{label.name}: {len(source.points[2]) - 1} lidarseg labels but "):
+    with pytest.raises(
+        DatasetError, match=rf"{label.name}: {len(source.points[2]) - 1} lidarseg labels but "
+    ):
         import_nuscenes(source.dataroot, tmp_path / "c", scene=SCENE)
     for name in ("a", "b", "c"):  # nothing half-written
         assert not (tmp_path / name).exists() and not list(tmp_path.glob(f".{name}.*"))
@@ -423,8 +555,17 @@ def test_output_folder_is_never_overwritten_without_force(source: NuSource, tmp_
 # ---------------------------------------------------------------------------------------------- CLI
 def test_cli_imports_with_a_summary_and_reports_errors_in_one_line(source: NuSource, tmp_path: Path) -> None:
     runner = CliRunner()
-    args = ["import", "nuscenes", str(source.dataroot), "--version", VERSION, "--scene", SCENE,
-            "--out", str(tmp_path / "seq")]
+    args = [
+        "import",
+        "nuscenes",
+        str(source.dataroot),
+        "--version",
+        VERSION,
+        "--scene",
+        SCENE,
+        "--out",
+        str(tmp_path / "seq"),
+    ]
     res = runner.invoke(cli, args)
     assert res.exit_code == 0, res.output
     assert f"wrote {len(source.points)} frames of {SCENE}" in res.output and "nuscenes: 100%" in res.output
@@ -468,8 +609,19 @@ def test_leap_run_on_an_imported_scene_with_the_nuscenes_preset(demo: KittiSeque
     assert import_nuscenes(src.dataroot, seq, scene=SCENE).frames == 3
     models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=12)).models_dir
     res = CliRunner().invoke(
-        cli, ["run", str(seq), "--project-file", "nuscenes", "--models", str(models), "--no-3dcn",
-              "--out", str(tmp_path / "run")])
+        cli,
+        [
+            "run",
+            str(seq),
+            "--project-file",
+            "nuscenes",
+            "--models",
+            str(models),
+            "--no-3dcn",
+            "--out",
+            str(tmp_path / "run"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "2D labels: grounded-sam" in res.output and "3 .label files" in res.output
     assert "driveable_surface" in res.output  # the result table: the imported lidarseg labels were evaluated

@@ -25,7 +25,16 @@ IMPORT_NOTE = "import.json"
 source ids), so a result can be traced back to the recording."""
 
 IMPORT_ENTRIES: frozenset[str] = frozenset(
-    {"velodyne", "image_2", "labels", "calib.txt", "poses.txt", "times.txt", "poses_estimated.json", IMPORT_NOTE}
+    {
+        "velodyne",
+        "image_2",
+        "labels",
+        "calib.txt",
+        "poses.txt",
+        "times.txt",
+        "poses_estimated.json",
+        IMPORT_NOTE,
+    }
 )
 """What an import writes (and ``leap poses`` adds); ``force`` replaces a folder holding only these."""
 
@@ -44,15 +53,17 @@ def check_output(out: Path, force: bool, allowed: Iterable[str] = IMPORT_ENTRIES
         return
     if not force:
         raise DatasetError(
-            out, f"output folder is not empty ({len(entries)} entries, e.g. {entries[0]!r}); nothing was written "
-            "(pass --force to replace a previous import)"
+            out,
+            f"output folder is not empty ({len(entries)} entries, e.g. {entries[0]!r}); nothing was written "
+            "(pass --force to replace a previous import)",
         )
     allowed = frozenset(allowed)
     foreign = [name for name in entries if name not in allowed]
     if foreign:
         raise DatasetError(
-            out, f"holds {foreign[0]!r}, which an import does not write; even --force will not replace this "
-            "folder (move it away, or import elsewhere)"
+            out,
+            f"holds {foreign[0]!r}, which an import does not write; even --force will not replace this "
+            "folder (move it away, or import elsewhere)",
         )
 
 

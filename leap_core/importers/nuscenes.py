@@ -38,6 +38,11 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
+from nuscenes.nuscenes import NuScenes  # type: ignore[import-untyped]
+from nuscenes.utils.data_classes import LidarPointCloud  # type: ignore[import-untyped]
+from nuscenes.utils.data_io import load_bin_file  # type: ignore[import-untyped]
+from nuscenes.utils.geometry_utils import transform_matrix  # type: ignore[import-untyped]
+from pyquaternion import Quaternion  # type: ignore[import-untyped]
 
 from leap_core.datasets.kitti import (
     IMAGE_SUFFIXES,
@@ -59,15 +64,38 @@ INTENSITY_SCALE = 255.0
 """LIDAR_TOP intensity is a 0..255 byte stored as float32; remission = intensity / this, clipped to 0..1."""
 
 LIDARSEG_NAMES: tuple[str, ...] = (
-    "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child",
-    "human.pedestrian.construction_worker", "human.pedestrian.personal_mobility",
-    "human.pedestrian.police_officer", "human.pedestrian.stroller", "human.pedestrian.wheelchair",
-    "movable_object.barrier", "movable_object.debris", "movable_object.pushable_pullable",
-    "movable_object.trafficcone", "static_object.bicycle_rack", "vehicle.bicycle", "vehicle.bus.bendy",
-    "vehicle.bus.rigid", "vehicle.car", "vehicle.construction", "vehicle.emergency.ambulance",
-    "vehicle.emergency.police", "vehicle.motorcycle", "vehicle.trailer", "vehicle.truck",
-    "flat.driveable_surface", "flat.other", "flat.sidewalk", "flat.terrain", "static.manmade",
-    "static.other", "static.vegetation", "vehicle.ego",
+    "noise",
+    "animal",
+    "human.pedestrian.adult",
+    "human.pedestrian.child",
+    "human.pedestrian.construction_worker",
+    "human.pedestrian.personal_mobility",
+    "human.pedestrian.police_officer",
+    "human.pedestrian.stroller",
+    "human.pedestrian.wheelchair",
+    "movable_object.barrier",
+    "movable_object.debris",
+    "movable_object.pushable_pullable",
+    "movable_object.trafficcone",
+    "static_object.bicycle_rack",
+    "vehicle.bicycle",
+    "vehicle.bus.bendy",
+    "vehicle.bus.rigid",
+    "vehicle.car",
+    "vehicle.construction",
+    "vehicle.emergency.ambulance",
+    "vehicle.emergency.police",
+    "vehicle.motorcycle",
+    "vehicle.trailer",
+    "vehicle.truck",
+    "flat.driveable_surface",
+    "flat.other",
+    "flat.sidewalk",
+    "flat.terrain",
+    "static.manmade",
+    "static.other",
+    "static.vegetation",
+    "vehicle.ego",
 )
 """The 32 nuScenes-lidarseg categories by their ``index`` in nuScenes v1.0's ``category.json`` (the raw ids
 the ``.label`` files hold; ``projects/nuscenes.yaml``'s ``gt_ids`` assume them). An import whose
@@ -113,8 +141,10 @@ def camera_time_correction(
     return np.asarray(np.linalg.inv(ego_at_image @ lidar_to_ego) @ ego_at_sweep @ lidar_to_ego)
 
 
-def kitti_cam_poses(lidar_to_global: npt.NDArray[np.float64], tr: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """(F, 4, 4) KITTI ``poses.txt`` poses from (F, 4, 4) LiDAR → global poses ``G``, with ``Tr`` LiDAR→camera.
+def kitti_cam_poses(
+    lidar_to_global: npt.NDArray[np.float64], tr: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """(F, 4, 4) KITTI ``poses.txt`` poses from (F, 4, 4) LiDAR → global poses ``G``; ``Tr``: LiDAR→camera.
 
     ``P_i = Tr · G_0⁻¹ · G_i · Tr⁻¹``: camera i → camera 0 (frame 0 is the identity), the inverse of
     ``kitti.lidar_poses`` (``Tr⁻¹ · P_i · Tr = G_0⁻¹ · G_i``). Re-basing on frame 0 also keeps nuScenes'
@@ -156,7 +186,8 @@ class ImportSummary:
         text = (
             f"wrote {self.frames} frames of {self.scene} to {self.out} ({self.images} {self.camera} images, "
             f"{labels}); skipped {self.skipped_sweeps} {LIDAR_CHANNEL} sweeps between keyframes (no image or "
-            f"labels there); image-sweep offset up to {self.max_offset_ms:.0f} ms, compensated with the ego poses"
+            f"labels there); image-sweep offset up to {self.max_offset_ms:.0f} ms, compensated with the ego "
+            "poses"
         )
         return text + "".join(f"; {n}" for n in self.notes)
 
@@ -172,8 +203,6 @@ def _load(dataroot: Path, version: str) -> Any:
             dataroot / version,
             f"no nuScenes version {version!r} here (versions in {dataroot}: {', '.join(found) or 'none'})",
         )
-    from nuscenes.nuscenes import NuScenes
-
     try:
         return NuScenes(version=version, dataroot=str(dataroot), verbose=False)
     except (AssertionError, KeyError, IndexError, OSError, ValueError, TypeError) as exc:
@@ -185,12 +214,11 @@ def _load(dataroot: Path, version: str) -> Any:
 
 def _matrix(nusc: Any, table: str, token: str) -> npt.NDArray[np.float64]:
     """4×4 of a ``calibrated_sensor`` or ``ego_pose`` record (sensor → ego, ego → global)."""
-    from nuscenes.utils.geometry_utils import transform_matrix
-    from pyquaternion import Quaternion
-
     rec = nusc.get(table, token)
-    return np.asarray(transform_matrix(np.asarray(rec["translation"], dtype=np.float64),
-                                       Quaternion(rec["rotation"])), dtype=np.float64)
+    return np.asarray(
+        transform_matrix(np.asarray(rec["translation"], dtype=np.float64), Quaternion(rec["rotation"])),
+        dtype=np.float64,
+    )
 
 
 def _one_calibration(nusc: Any, tokens: Sequence[str], channel: str, where: Path) -> npt.NDArray[np.float64]:
@@ -217,22 +245,24 @@ def _check_channels(nusc: Any, camera: str, where: Path) -> None:
     channels = {s["channel"]: s["modality"] for s in nusc.sensor}
     cameras = sorted(c for c, m in channels.items() if m == "camera")
     if channels.get(camera) != "camera":
-        raise DatasetError(where / "sensor.json", f"no camera {camera!r} (cameras: {', '.join(cameras) or 'none'})")
+        raise DatasetError(
+            where / "sensor.json", f"no camera {camera!r} (cameras: {', '.join(cameras) or 'none'})"
+        )
     if channels.get(LIDAR_CHANNEL) != "lidar":
         raise DatasetError(where / "sensor.json", f"no {LIDAR_CHANNEL} LiDAR sensor")
 
 
 def _read_points(nusc: Any, token: str) -> npt.NDArray[np.float32]:
     """(N, 4) x, y, z, intensity of a LIDAR_TOP file, read by the devkit (which drops the ring index)."""
-    from nuscenes.utils.data_classes import LidarPointCloud
-
     path = Path(nusc.get_sample_data_path(token))
     if not path.is_file():
         raise DatasetError(path, "LiDAR file is missing")
     try:
         pts = np.asarray(LidarPointCloud.from_file(str(path)).points.T, dtype=np.float32)
     except (AssertionError, ValueError) as exc:
-        raise DatasetError(path, f"not a nuScenes LiDAR file (float32 x, y, z, intensity, ring): {exc}") from exc
+        raise DatasetError(
+            path, f"not a nuScenes LiDAR file (float32 x, y, z, intensity, ring): {exc}"
+        ) from exc
     if not np.isfinite(pts).all():
         raise DatasetError(path, "points with non-finite values")
     return pts
@@ -240,8 +270,6 @@ def _read_points(nusc: Any, token: str) -> npt.NDArray[np.float32]:
 
 def _read_labels(nusc: Any, lidar_token: str, n_points: int) -> npt.NDArray[np.uint8] | None:
     """(N,) lidarseg indices of a keyframe sweep, or None when it has no lidarseg record."""
-    from nuscenes.utils.data_io import load_bin_file
-
     try:
         record = nusc.get("lidarseg", lidar_token)  # lidarseg records share their sweep's token
     except KeyError:
@@ -268,6 +296,105 @@ def _read_image_bytes(path: Path) -> bytes:
     if not buf.size or cv2.imdecode(buf, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
         raise DatasetError(path, "unreadable camera image (empty or not a JPEG/PNG)")
     return data
+
+
+@dataclass
+class _Scene:
+    """The keyframes of one scene and its calibration, looked up in the tables before anything is written."""
+
+    record: dict[str, Any]
+    lidar: list[dict[str, Any]]
+    """LIDAR_TOP keyframe ``sample_data`` records in time order."""
+    cameras: list[dict[str, Any] | None]
+    """The camera's keyframe ``sample_data`` of each LiDAR keyframe's sample (None where it has none)."""
+    lidar_to_ego: npt.NDArray[np.float64]
+    calib: Calib
+
+
+def _plan(nusc: Any, scene: str, camera: str, tables: Path) -> _Scene:
+    _check_channels(nusc, camera, tables)
+    rec = _scene(nusc, scene, tables)
+    samples = []
+    token = rec["first_sample_token"]
+    while token:
+        samples.append(nusc.get("sample", token))
+        token = samples[-1]["next"]
+    with_lidar = [s for s in samples if LIDAR_CHANNEL in s["data"]]
+    if not with_lidar:
+        raise DatasetError(tables / "sample_data.json", f"scene {scene!r} has no {LIDAR_CHANNEL} keyframes")
+    lidar = [nusc.get("sample_data", s["data"][LIDAR_CHANNEL]) for s in with_lidar]
+    cameras = [
+        nusc.get("sample_data", s["data"][camera]) if camera in s["data"] else None for s in with_lidar
+    ]
+    cam_tokens = [c["calibrated_sensor_token"] for c in cameras if c is not None]
+    if not cam_tokens:
+        raise DatasetError(tables / "sample_data.json", f"scene {scene!r} has no {camera} keyframe images")
+    lidar_to_ego = _one_calibration(
+        nusc, [sd["calibrated_sensor_token"] for sd in lidar], LIDAR_CHANNEL, tables
+    )
+    cam_to_ego = _one_calibration(nusc, cam_tokens, camera, tables)
+    try:
+        calib = kitti_calib(
+            lidar_to_ego, cam_to_ego, nusc.get("calibrated_sensor", cam_tokens[0])["camera_intrinsic"]
+        )
+    except ValueError as exc:
+        raise DatasetError(tables / "calibrated_sensor.json", f"{camera}: {exc}") from exc
+    return _Scene(rec, lidar, cameras, lidar_to_ego, calib)
+
+
+def _new_summary(nusc: Any, plan: _Scene, out: Path, camera: str) -> ImportSummary:
+    summary = ImportSummary(
+        out=out, scene=plan.record["name"], camera=camera, lidarseg=hasattr(nusc, "lidarseg")
+    )
+    in_scene = {sd["sample_token"] for sd in plan.lidar}
+    summary.skipped_sweeps = sum(
+        1
+        for sd in nusc.sample_data
+        if sd["channel"] == LIDAR_CHANNEL and not sd["is_key_frame"] and sd["sample_token"] in in_scene
+    )
+    if summary.lidarseg and {int(c["index"]): c["name"] for c in nusc.category} != dict(
+        enumerate(LIDARSEG_NAMES)
+    ):
+        summary.notes.append(
+            "category.json numbers the lidarseg classes differently from nuScenes v1.0: check the gt_ids of "
+            "projects/nuscenes.yaml against it"
+        )
+    return summary
+
+
+def _write_frame(
+    nusc: Any, plan: _Scene, i: int, stage: Path, summary: ImportSummary
+) -> tuple[npt.NDArray[np.float64], dict[str, Any]]:
+    """Write frame ``i``'s scan, image and labels into ``stage``; return its LiDAR → global pose at the image
+    time and its ``import.json`` entry."""
+    sd, cam = plan.lidar[i], plan.cameras[i]
+    fid = f"{i:06d}"
+    ego_sweep = _matrix(nusc, "ego_pose", sd["ego_pose_token"])
+    pts = _read_points(nusc, sd["token"])
+    entry: dict[str, Any] = {
+        "frame": fid,
+        "sample_token": sd["sample_token"],
+        "lidar_token": sd["token"],
+        "lidar_timestamp_us": int(sd["timestamp"]),
+    }
+    ego_image = ego_sweep
+    if cam is not None:
+        ego_image = _matrix(nusc, "ego_pose", cam["ego_pose_token"])
+        image = _read_image_bytes(Path(nusc.get_sample_data_path(cam["token"])))
+        atomic_write_bytes(stage / "image_2" / f"{fid}{Path(cam['filename']).suffix.lower()}", image)
+        summary.images += 1
+        summary.max_offset_ms = max(summary.max_offset_ms, abs(cam["timestamp"] - sd["timestamp"]) / 1e3)
+        entry.update(camera_token=cam["token"], camera_timestamp_us=int(cam["timestamp"]))
+    corr = camera_time_correction(ego_sweep, ego_image, plan.lidar_to_ego)
+    xyz = pts[:, :3].astype(np.float64) @ corr[:3, :3].T + corr[:3, 3]
+    write_scan(stage / "velodyne" / f"{fid}.bin", np.column_stack([xyz, intensity_to_remission(pts[:, 3])]))
+    if summary.lidarseg:
+        labels = _read_labels(nusc, sd["token"], len(pts))
+        if labels is not None:
+            write_label(stage / "labels" / f"{fid}.label", labels)
+            summary.labels += 1
+    summary.frames += 1
+    return ego_image @ plan.lidar_to_ego, entry
 
 
 def import_nuscenes(
@@ -301,101 +428,45 @@ def import_nuscenes(
     root, out = Path(dataroot), Path(out)
     check_output(out, force)  # before the minutes the tables of a full release take to load
     nusc = _load(root, version)
-    tables = root / version
-    _check_channels(nusc, camera, tables)
-    rec = _scene(nusc, scene, tables)
-    samples = []
-    token = rec["first_sample_token"]
-    while token:
-        samples.append(nusc.get("sample", token))
-        token = samples[-1]["next"]
-    lidar_sds = [nusc.get("sample_data", s["data"][LIDAR_CHANNEL]) for s in samples if LIDAR_CHANNEL in s["data"]]
-    if not lidar_sds:
-        raise DatasetError(tables / "sample_data.json", f"scene {scene!r} has no {LIDAR_CHANNEL} keyframes")
-    cam_sds = [nusc.get("sample_data", nusc.get("sample", sd["sample_token"])["data"][camera])
-               if camera in nusc.get("sample", sd["sample_token"])["data"] else None for sd in lidar_sds]
-    cam_tokens = [c["calibrated_sensor_token"] for c in cam_sds if c is not None]
-    if not cam_tokens:
-        raise DatasetError(tables / "sample_data.json", f"scene {scene!r} has no {camera} keyframe images")
-    lidar_to_ego = _one_calibration(nusc, [sd["calibrated_sensor_token"] for sd in lidar_sds], LIDAR_CHANNEL, tables)
-    cam_to_ego = _one_calibration(nusc, cam_tokens, camera, tables)
-    intrinsic = nusc.get("calibrated_sensor", cam_tokens[0])["camera_intrinsic"]
-    try:
-        calib = kitti_calib(lidar_to_ego, cam_to_ego, intrinsic)
-    except ValueError as exc:
-        raise DatasetError(tables / "calibrated_sensor.json", f"{camera}: {exc}") from exc
-
-    scene_samples = {s["token"] for s in samples}
-    summary = ImportSummary(out=out, scene=scene, camera=camera, lidarseg=hasattr(nusc, "lidarseg"))
-    summary.skipped_sweeps = sum(
-        1 for sd in nusc.sample_data
-        if sd["channel"] == LIDAR_CHANNEL and not sd["is_key_frame"] and sd["sample_token"] in scene_samples
-    )
-    if summary.lidarseg:
-        indices = {int(c["index"]): c["name"] for c in nusc.category}
-        expected = dict(enumerate(LIDARSEG_NAMES))
-        if indices != expected:
-            summary.notes.append(
-                "category.json numbers the lidarseg classes differently from nuScenes v1.0: check the gt_ids "
-                "of projects/nuscenes.yaml against it"
-            )
+    plan = _plan(nusc, scene, camera, root / version)
+    summary = _new_summary(nusc, plan, out, camera)
+    n = len(plan.lidar)
     if on_loaded is not None:
-        on_loaded(len(lidar_sds))
-
-    n = len(lidar_sds)
+        on_loaded(n)
     lidar_global = np.zeros((n, 4, 4))
-    frames_note: list[dict[str, Any]] = []
-    no_image = no_label = 0
+    entries: list[dict[str, Any]] = []
     with staged_output(out, force) as stage:
-        for i, (sd, cam) in enumerate(zip(lidar_sds, cam_sds, strict=True)):
-            fid = f"{i:06d}"
-            ego_sweep = _matrix(nusc, "ego_pose", sd["ego_pose_token"])
-            pts = _read_points(nusc, sd["token"])
-            entry: dict[str, Any] = {"frame": fid, "sample_token": sd["sample_token"], "lidar_token": sd["token"],
-                                     "lidar_timestamp_us": int(sd["timestamp"])}
-            ego_image = ego_sweep
-            if cam is not None:
-                ego_image = _matrix(nusc, "ego_pose", cam["ego_pose_token"])
-                image = _read_image_bytes(Path(nusc.get_sample_data_path(cam["token"])))
-                atomic_write_bytes(stage / "image_2" / f"{fid}{Path(cam['filename']).suffix.lower()}", image)
-                summary.images += 1
-                summary.max_offset_ms = max(summary.max_offset_ms, abs(cam["timestamp"] - sd["timestamp"]) / 1e3)
-                entry.update(camera_token=cam["token"], camera_timestamp_us=int(cam["timestamp"]))
-            else:
-                no_image += 1
-            corr = camera_time_correction(ego_sweep, ego_image, lidar_to_ego)
-            xyz = pts[:, :3].astype(np.float64) @ corr[:3, :3].T + corr[:3, 3]
-            write_scan(stage / "velodyne" / f"{fid}.bin",
-                       np.column_stack([xyz, intensity_to_remission(pts[:, 3])]))
-            lidar_global[i] = ego_image @ lidar_to_ego
-            if summary.lidarseg:
-                labels = _read_labels(nusc, sd["token"], len(pts))
-                if labels is None:
-                    no_label += 1
-                else:
-                    write_label(stage / "labels" / f"{fid}.label", labels)
-                    summary.labels += 1
-            frames_note.append(entry)
-            summary.frames += 1
+        for i in range(n):
+            lidar_global[i], entry = _write_frame(nusc, plan, i, stage, summary)
+            entries.append(entry)
             report(progress, i + 1, n)
-        write_calib(stage / "calib.txt", calib)
-        write_poses(stage / "poses.txt", kitti_cam_poses(lidar_global, calib.Tr))
-        t0 = lidar_sds[0]["timestamp"]
-        times = "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in lidar_sds)
-        atomic_write_bytes(stage / "times.txt", times.encode())
+        write_calib(stage / "calib.txt", plan.calib)
+        write_poses(stage / "poses.txt", kitti_cam_poses(lidar_global, plan.calib.Tr))
+        t0 = plan.lidar[0]["timestamp"]
+        atomic_write_bytes(
+            stage / "times.txt",
+            "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in plan.lidar).encode(),
+        )
         note = {
-            "importer": "nuscenes", "dataroot": str(root.resolve()), "version": version, "scene": scene,
-            "scene_token": rec["token"], "lidar": LIDAR_CHANNEL, "camera": camera,
+            "importer": "nuscenes",
+            "dataroot": str(root.resolve()),
+            "version": version,
+            "scene": scene,
+            "scene_token": plan.record["token"],
+            "lidar": LIDAR_CHANNEL,
+            "camera": camera,
             "remission": f"intensity / {INTENSITY_SCALE:g}, clipped to 0..1",
             "points": "LiDAR frame at the camera image's timestamp (ego-motion compensated)",
             "labels": "nuScenes-lidarseg index per point" if summary.lidarseg else None,
-            "frames": frames_note,
+            "frames": entries,
         }
         atomic_write_bytes(stage / IMPORT_NOTE, (json.dumps(note, indent=2) + "\n").encode())
-    if no_image:
-        summary.notes.append(f"{no_image} keyframes have no {camera} image")
-    if no_label:
-        summary.notes.append(f"{no_label} keyframes have no lidarseg record (evaluation needs labels on every scan)")
+    if summary.images < n:
+        summary.notes.append(f"{n - summary.images} keyframes have no {camera} image")
+    if summary.lidarseg and summary.labels < n:
+        summary.notes.append(
+            f"{n - summary.labels} keyframes have no lidarseg record (evaluation needs labels on every scan)"
+        )
     return summary
 
 
