@@ -597,6 +597,16 @@ def test_preset_matches_the_devkit_lidarseg_mapping(source: NuSource) -> None:
         fine = sorted(f for f, k in mapper.fine_idx_2_coarse_idx_mapping.items() if k == c.export_id)
         assert sorted(c.gt_ids) == fine, c.name
         assert c.color == mapper.coarse_colormap[c.name]
+    # Prompts: no word in two classes (the score is a max over tokens), all in one detector pass.
+    from test_prompts import _words_by_class, words
+
+    from leap_core.labelers.prompts import ClassPrompts, plan_passes
+
+    assert {w: o for w, o in _words_by_class(preset.schema).items() if len(o) > 1} == {}
+    classes = [
+        ClassPrompts(i, c.name, c.prompts, c.negative_prompts) for i, c in enumerate(preset.schema.classes)
+    ]
+    assert len(plan_passes(classes, words, budget=256)) == 1
 
 
 # ---------------------------------------------------------------------------------------- end to end
