@@ -498,6 +498,11 @@ def test_broken_tables_and_files_name_the_file(source: NuSource, tmp_path: Path)
     ):
         import_nuscenes(source.dataroot, tmp_path / "a", scene=SCENE)
     (tables / "calibrated_sensor.json").write_text(good)
+    poses = json.loads((tables / "ego_pose.json").read_text())
+    (tables / "ego_pose.json").write_text(json.dumps(poses[1:]))  # the loader does not check these tokens
+    with pytest.raises(DatasetError, match=r"v1.0-mini: a record refers to a token its table lacks: '"):
+        import_nuscenes(source.dataroot, tmp_path / "a", scene=SCENE)
+    (tables / "ego_pose.json").write_text(json.dumps(poses))
     pcd = source.dataroot / json.loads((tables / "sample_data.json").read_text())[0]["filename"]
     good_pcd = pcd.read_bytes()
     pcd.write_bytes(good_pcd[:-4])

@@ -428,39 +428,42 @@ def import_nuscenes(
     root, out = Path(dataroot), Path(out)
     check_output(out, force)  # before the minutes the tables of a full release take to load
     nusc = _load(root, version)
-    plan = _plan(nusc, scene, camera, root / version)
-    summary = _new_summary(nusc, plan, out, camera)
-    n = len(plan.lidar)
-    if on_loaded is not None:
-        on_loaded(n)
-    lidar_global = np.zeros((n, 4, 4))
-    entries: list[dict[str, Any]] = []
-    with staged_output(out, force) as stage:
-        for i in range(n):
-            lidar_global[i], entry = _write_frame(nusc, plan, i, stage, summary)
-            entries.append(entry)
-            report(progress, i + 1, n)
-        write_calib(stage / "calib.txt", plan.calib)
-        write_poses(stage / "poses.txt", kitti_cam_poses(lidar_global, plan.calib.Tr))
-        t0 = plan.lidar[0]["timestamp"]
-        atomic_write_bytes(
-            stage / "times.txt",
-            "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in plan.lidar).encode(),
-        )
-        note = {
-            "importer": "nuscenes",
-            "dataroot": str(root.resolve()),
-            "version": version,
-            "scene": scene,
-            "scene_token": plan.record["token"],
-            "lidar": LIDAR_CHANNEL,
-            "camera": camera,
-            "remission": f"intensity / {INTENSITY_SCALE:g}, clipped to 0..1",
-            "points": "LiDAR frame at the camera image's timestamp (ego-motion compensated)",
-            "labels": "nuScenes-lidarseg index per point" if summary.lidarseg else None,
-            "frames": entries,
-        }
-        atomic_write_bytes(stage / IMPORT_NOTE, (json.dumps(note, indent=2) + "\n").encode())
+    try:
+        plan = _plan(nusc, scene, camera, root / version)
+        summary = _new_summary(nusc, plan, out, camera)
+        n = len(plan.lidar)
+        if on_loaded is not None:
+            on_loaded(n)
+        lidar_global = np.zeros((n, 4, 4))
+        entries: list[dict[str, Any]] = []
+        with staged_output(out, force) as stage:
+            for i in range(n):
+                lidar_global[i], entry = _write_frame(nusc, plan, i, stage, summary)
+                entries.append(entry)
+                report(progress, i + 1, n)
+            write_calib(stage / "calib.txt", plan.calib)
+            write_poses(stage / "poses.txt", kitti_cam_poses(lidar_global, plan.calib.Tr))
+            t0 = plan.lidar[0]["timestamp"]
+            atomic_write_bytes(
+                stage / "times.txt",
+                "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in plan.lidar).encode(),
+            )
+            note = {
+                "importer": "nuscenes",
+                "dataroot": str(root.resolve()),
+                "version": version,
+                "scene": scene,
+                "scene_token": plan.record["token"],
+                "lidar": LIDAR_CHANNEL,
+                "camera": camera,
+                "remission": f"intensity / {INTENSITY_SCALE:g}, clipped to 0..1",
+                "points": "LiDAR frame at the camera image's timestamp (ego-motion compensated)",
+                "labels": "nuScenes-lidarseg index per point" if summary.lidarseg else None,
+                "frames": entries,
+            }
+            atomic_write_bytes(stage / IMPORT_NOTE, (json.dumps(note, indent=2) + "\n").encode())
+    except KeyError as exc:  # nusc.get of a token its table lacks (e.g. an ego_pose the loader never checks)
+        raise DatasetError(root / version, f"a record refers to a token its table lacks: {exc}") from exc
     if summary.images < n:
         summary.notes.append(f"{n - summary.images} keyframes have no {camera} image")
     if summary.lidarseg and summary.labels < n:
