@@ -7,17 +7,43 @@ turn errors into one-line messages.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 from tqdm import tqdm
 
-from leap_core.errors import LeapError
+from leap_core.errors import Cancelled, LeapError
 
 import_cli = typer.Typer(
     name="import",
     help="Convert a recording (ROS 1/2 bag, nuScenes) into a KITTI-layout sequence folder.",
     no_args_is_help=True,
 )
+
+
+def _fail(message: str) -> typer.Exit:
+    """Print a one-line error to stderr and return the exit to raise (as ``app.cli.fail``, which imports
+    this module)."""
+    typer.secho(f"error: {message}", err=True, fg=typer.colors.RED)
+    return typer.Exit(code=2)
+
+
+class _Bar:
+    """A tqdm bar opened at the first ``progress(done, total)`` call (a refusal prints only the error)."""
+
+    def __init__(self, desc: str, unit: str) -> None:
+        self.desc, self.unit = desc, unit
+        self.bar: Any = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.bar is None:
+            self.bar = tqdm(total=total, desc=self.desc, unit=self.unit, dynamic_ncols=True)
+        self.bar.total = total
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 @import_cli.command("nuscenes")
@@ -35,39 +61,21 @@ def nuscenes_cmd(
     force: bool = typer.Option(False, "--force", help="Replace a previous import in --out."),
 ) -> None:
     """Write one nuScenes scene's LIDAR_TOP keyframes, camera images, calibration, ego poses and
-    lidarseg labels as a KITTI-layout sequence (label it with --project-file projects/nuscenes.yaml)."""
-    from app.cli import fail  # app.cli imports this module
+    lidarseg labels as a KITTI-layout sequence (label it with --project-file nuscenes)."""
     from leap_core.importers.nuscenes import import_nuscenes  # loads the devkit (matplotlib, sklearn)
 
     target = Path(out) if out is not None else Path("data") / "nuscenes" / scene
-    bar: tqdm[None] | None = None
-
-    def loaded(total: int) -> None:
-        nonlocal bar
-        bar = tqdm(total=total, desc="nuscenes", unit="frame", dynamic_ncols=True)
-
-    def progress(done: int, total: int) -> None:
-        if bar is not None:
-            bar.total, bar.n = total, done
-            bar.refresh()
-
     typer.echo(f"reading the {version} tables of {dataroot} (nuscenes-devkit)")
+    bar = _Bar("nuscenes", "frame")
     try:
         summary = import_nuscenes(
-            dataroot,
-            target,
-            version=version,
-            scene=scene,
-            camera=camera,
-            force=force,
-            progress=progress,
-            on_loaded=loaded,
+            dataroot, target, version=version, scene=scene, camera=camera, force=force, progress=bar
         )
-    except KeyboardInterrupt:
-        raise fail(f"interrupted; nothing was written to {target}") from None
+    except (KeyboardInterrupt, Cancelled):
+        bar.close()
+        raise _fail(f"interrupted; nothing was written to {target}") from None
     except LeapError as exc:
-        raise fail(str(exc)) from None
-    finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
+        raise _fail(str(exc)) from None
+    bar.close()
     typer.echo(summary.line())

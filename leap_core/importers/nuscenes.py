@@ -30,7 +30,7 @@ What is written (``leap import nuscenes``; docs/IMPORT.md, "nuScenes"):
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -406,7 +406,6 @@ def import_nuscenes(
     camera: str = "CAM_FRONT",
     force: bool = False,
     progress: ProgressFn | None = None,
-    on_loaded: Callable[[int], None] | None = None,
 ) -> ImportSummary:
     """Write the keyframes of one nuScenes scene as a KITTI-layout sequence folder ``out`` (module docstring).
 
@@ -418,7 +417,6 @@ def import_nuscenes(
         camera: camera channel whose keyframe images are written.
         force: replace a previous import in ``out``.
         progress: ``progress(done, total)`` per frame.
-        on_loaded: called with the frame count once the tables are read (before the frames are written).
 
     Raises:
         DatasetError: naming the folder, table or file: missing dataroot / version / scene / camera (listing
@@ -432,8 +430,6 @@ def import_nuscenes(
         plan = _plan(nusc, scene, camera, root / version)
         summary = _new_summary(nusc, plan, out, camera)
         n = len(plan.lidar)
-        if on_loaded is not None:
-            on_loaded(n)
         lidar_global = np.zeros((n, 4, 4))
         entries: list[dict[str, Any]] = []
         with staged_output(out, force) as stage:
