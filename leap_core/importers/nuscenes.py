@@ -233,7 +233,7 @@ def _one_calibration(nusc: Any, tokens: Sequence[str], channel: str, where: Path
 
 
 def _scene(nusc: Any, name: str, where: Path) -> dict[str, Any]:
-    scenes = {s["name"]: s for s in nusc.scene}
+    scenes: dict[str, dict[str, Any]] = {s["name"]: s for s in nusc.scene}
     if name not in scenes:
         names = sorted(scenes)
         shown = ", ".join(names[:20]) + (f", … ({len(names)} scenes)" if len(names) > 20 else "")
