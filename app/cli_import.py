@@ -105,3 +105,38 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     if summary.pose_source is None:
         line += f": estimate them with `leap poses {target}` or run with `leap run --estimate-poses`"
     typer.echo(line)
+
+
+@import_cli.command("nuscenes")
+def nuscenes_cmd(
+    dataroot: str = typer.Argument(..., help="nuScenes folder (holding samples/, v1.0-mini/, lidarseg/)."),
+    *,
+    version: str = typer.Option("v1.0-mini", "--version", help="Table folder: v1.0-mini, v1.0-trainval, ..."),
+    scene: str = typer.Option(..., "--scene", help="Scene name, e.g. scene-0061."),
+    camera: str = typer.Option(
+        "CAM_FRONT", "--camera", help="Camera channel whose keyframe images are used."
+    ),
+    out: str | None = typer.Option(
+        None, "--out", help="Sequence folder to write (default: data/nuscenes/<scene>)."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace a previous import in --out."),
+) -> None:
+    """Write one nuScenes scene's LIDAR_TOP keyframes, camera images, calibration, ego poses and
+    lidarseg labels as a KITTI-layout sequence (label it with --project-file nuscenes)."""
+    from leap_core.importers.nuscenes import import_nuscenes  # loads the devkit (matplotlib, sklearn)
+
+    target = Path(out) if out is not None else Path("data") / "nuscenes" / scene
+    typer.echo(f"reading the {version} tables of {dataroot} (nuscenes-devkit)")
+    bar = _Bar("nuscenes", "frame")
+    try:
+        summary = import_nuscenes(
+            dataroot, target, version=version, scene=scene, camera=camera, force=force, progress=bar
+        )
+    except (KeyboardInterrupt, Cancelled):
+        bar.close()
+        raise _fail(f"interrupted; nothing was written to {target}") from None
+    except LeapError as exc:
+        bar.close()
+        raise _fail(str(exc)) from None
+    bar.close()
+    typer.echo(summary.line())
