@@ -570,7 +570,7 @@ def test_refuses_a_non_empty_output_without_force(demo: KittiSequence, tmp_path:
     out.mkdir()
     (out / "mine.txt").write_text("keep")
     cfg = RosbagImportConfig(lidar_topic="/velodyne_points", camera_topic="/camera/image_raw")
-    with pytest.raises(DatasetError, match="not empty; refusing to overwrite"):
+    with pytest.raises(DatasetError, match="output folder is not empty"):
         import_rosbag(bag, out, cfg)
     # Refused before the bag is read (a long bag is not read for nothing).
     garbage = tmp_path / "garbage.bag"
@@ -578,8 +578,14 @@ def test_refuses_a_non_empty_output_without_force(demo: KittiSequence, tmp_path:
     with pytest.raises(DatasetError, match=f"^{out}: output folder is not empty"):
         import_rosbag(garbage, out, cfg)
     assert (out / "mine.txt").read_text() == "keep"
+    # --force re-imports over a previous import, never over a user's other files.
+    with pytest.raises(DatasetError, match="'mine.txt', which an import does not write"):
+        import_rosbag(bag, out, cfg, force=True)
+    assert (out / "mine.txt").read_text() == "keep"
+    (out / "mine.txt").unlink()
+    import_rosbag(bag, out, cfg)
     import_rosbag(bag, out, cfg, force=True)
-    assert not (out / "mine.txt").exists() and len(KittiSequence(out)) == 5
+    assert len(KittiSequence(out)) == 5
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp folders left
 
 
@@ -603,7 +609,7 @@ def test_cli_imports_and_prints_one_summary_line(demo: KittiSequence, tmp_path: 
     assert bad.exit_code == 2 and "no LiDAR topic '/nope'" in bad.output
     again = runner.invoke(cli, ["import", "rosbag", str(bag), "--lidar-topic", "/velodyne_points",
                                 "--camera-topic", "/camera/image_raw", "--out", str(out)])
-    assert again.exit_code == 2 and "use --force" in again.output
+    assert again.exit_code == 2 and "pass --force" in again.output
 
 
 # ================================================================================== acceptance

@@ -27,9 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
-import shutil
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +43,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from leap_core.datasets.kitti import Calib, read_calib, write_calib, write_image, write_poses, write_scan
 from leap_core.errors import ConfigError, DatasetError, LeapError
+from leap_core.importers.folder import check_output, staged_output
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
 
@@ -699,27 +697,6 @@ def _write_image(seq: Path, frame_no: int, payload: tuple[npt.NDArray[np.uint8],
         atomic_write_bytes(path, data)  # JPEG/PNG bytes as recorded: no re-encoding loss
 
 
-def _fresh_folder(out: Path, force: bool) -> Path:
-    if out.exists() and not out.is_dir():
-        raise DatasetError(out, "exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise DatasetError(out, "output folder is not empty; refusing to overwrite (use --force)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fresh = out.parent / f".{out.name}.leap-import-{uuid.uuid4().hex[:8]}"
-    fresh.mkdir()
-    return fresh
-
-
-def _swap_into_place(fresh: Path, out: Path) -> None:
-    stale = None
-    if out.exists():
-        stale = out.parent / f".{out.name}.leap-old-{uuid.uuid4().hex[:8]}"
-        os.rename(out, stale)
-    os.rename(fresh, out)
-    if stale is not None:
-        shutil.rmtree(stale, ignore_errors=True)
-
-
 def import_rosbag(
     bag: str | Path,
     out: str | Path,
@@ -744,8 +721,7 @@ def import_rosbag(
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise DatasetError(bag, "no such bag file or folder")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise DatasetError(out, "output folder is not empty; refusing to overwrite (use --force)")
+    check_output(out, force)  # before the bag is read
     summary = ImportSummary(out=out)
     with _open_bag(bag) as reader:
         first = _first_pass(reader, bag, cfg)
@@ -769,8 +745,7 @@ def import_rosbag(
         for s in np.flatnonzero(keep):
             wanted.setdefault(cams[int(partner[s])].key, []).append(int(s))
 
-        fresh = _fresh_folder(out, force)
-        try:
+        with staged_output(out, force) as fresh:
             plan = _Plan(first["lidar"], first["camera"], todo, wanted)
             written = _write_frames(reader, bag, plan, fresh, summary, progress)
             if not written:
@@ -784,10 +759,6 @@ def import_rosbag(
                 rel = np.linalg.inv(lidar_world[kept[0]])[None] @ lidar_world[kept]
                 tr_inv = np.linalg.inv(calib.Tr)
                 write_poses(fresh / "poses.txt", calib.Tr[None] @ rel @ tr_inv[None])
-            _swap_into_place(fresh, out)
-        except BaseException:
-            shutil.rmtree(fresh, ignore_errors=True)
-            raise
     summary.frames = len(written)
     return summary
 
