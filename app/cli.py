@@ -238,6 +238,53 @@ def make_tiny_models_cmd(
     )
 
 
+CHECK_EXIT_CODES = {"full": 0, "partial": 1, "none": 3}
+"""``leap check``'s exit code per verdict (2 stays typer's usage error and this CLI's one-line errors)."""
+
+
+@cli.command("check")
+def check_cmd(
+    dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    *,
+    labeler: str | None = typer.Option(
+        None, "--labeler", help="Judge the stages for this 2D labeler (default: the project file's, else the "
+        "first labeler that can run).", autocompletion=lambda: list(LABELERS),
+    ),
+    project_file: str | None = typer.Option(
+        None, "--project-file", help="Project YAML whose 'pipeline:' section the run would use."
+    ),
+    models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
+    estimate_poses: bool = typer.Option(
+        False, "--estimate-poses", help="Judge a run with --estimate-poses (missing poses estimated first)."
+    ),
+    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+) -> None:
+    """Check a sequence folder before a run: frames, camera images, calibration, poses (file, estimated or
+    missing), ground truth, 2D ground truth, and which labelers and stages can run, each problem with
+    its fix.
+
+    Exit codes: 0 every stage can run (evaluation without ground truth and a switched-off 3D-CN count as
+    runnable); 1 only some stages can run (see the findings); 3 the pipeline cannot run on this folder at
+    all; 2 a usage error."""
+    import json
+
+    from leap_core.datasets.check import check_dataset, render_cli, report_dict
+
+    try:
+        config = None
+        if labeler is not None or project_file is not None:
+            _, config = _run_config(None, project_file, labeler, None)
+        runtime = _runtime(models, None, "auto", False)
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    report = check_dataset(dataset, config=config, runtime=runtime, estimate_poses=estimate_poses)
+    if as_json:
+        typer.echo(json.dumps(report_dict(report, "cli"), indent=2))
+    else:
+        typer.echo(render_cli(report, CHECK_EXIT_CODES))
+    raise typer.Exit(code=CHECK_EXIT_CODES[report.verdict])
+
+
 def _labeler_help() -> str:
     return "2D labeler: " + "; ".join(f"{name} ({spec.description})" for name, spec in LABELERS.items()) + "."
 
