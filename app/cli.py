@@ -84,16 +84,14 @@ class StageBars:
         """Print the held stage as skipped, or as the full bar of a stage that computed in one step."""
         from tqdm import tqdm
 
-        from leap_core.pipeline import stage_status
+        from leap_core.pipeline import skip_reason
 
         assert self._held is not None and self.run_dir is not None
         stage, total = self._held
         self._held = None
-        record = stage_status(self.run_dir).get(stage, {})
-        if record.get("status") == "skipped":
-            tqdm.write(f"{stage:<12} skipped ({record.get('note') or 'nothing to do'})", file=sys.stderr)
-        elif float(record.get("finished") or 0.0) < self.started:
-            tqdm.write(f"{stage:<12} skipped (unchanged since the last run in this folder)", file=sys.stderr)
+        reason = skip_reason(self.run_dir, stage, self.started)
+        if reason is not None:
+            tqdm.write(f"{stage:<12} skipped ({reason})", file=sys.stderr)
         else:
             unit = "step" if stage in ("3dcn", "synth") else "frame"
             with tqdm(total=total, initial=total, desc=f"{stage:<12}", unit=unit, dynamic_ncols=True):

@@ -384,6 +384,7 @@ class StagePublic(BaseModel):
     seconds: float | None = None
     eta_s: float | None = None
     percent: float = 0.0
+    note: str | None = Field(default=None, description="why a skipped stage computed nothing")
 
 
 class RunProgress(BaseModel):

@@ -111,11 +111,16 @@ def _run_logger(run_dir: Path) -> tuple[logging.Logger, logging.Handler]:
 class _Reporter:
     """The pipeline's progress callback: throttles messages and turns a cancel request into ``Cancelled``."""
 
-    def __init__(self, emit: Emit, should_cancel: Callable[[], bool], interval: float, log: logging.Logger):
+    def __init__(self, emit: Emit, should_cancel: Callable[[], bool], interval: float, log: logging.Logger,
+                 run_dir: Path | None = None):
         self.emit = emit
         self.should_cancel = should_cancel
         self.interval = interval
         self.log = log
+        self.run_dir = run_dir
+        """The pipeline's run folder (None for the demo generation): a stage's completion is checked there
+        for a skip (its ``stages.json`` record)."""
+        self.since = time.time()
         self._last: dict[str, float] = {}
         self._started: dict[str, float] = {}
 
@@ -127,12 +132,22 @@ class _Reporter:
         finished = total > 0 and done >= total
         if first:
             self._started[stage] = now
+        skipped = None
+        if finished and first and self.run_dir is not None:
+            # The pipeline reports a stage it skips as complete at once, after recording why. (Imported
+            # here: a run has loaded the pipeline by now; the server importing this module must not.)
+            from leap_core.pipeline.runner import skip_reason  # noqa: PLC0415  see the comment above
+
+            skipped = skip_reason(self.run_dir, stage, self.since)
         if first or finished or now - self._last[stage] >= self.interval:
             self._last[stage] = now
-            self.emit(StageProgress(stage, int(done), int(total)))
+            self.emit(StageProgress(stage, int(done), int(total), skipped))
         if finished and stage in self._started:
             seconds = now - self._started.pop(stage)
-            self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
+            if skipped is not None:
+                self.log.info("stage %s skipped (%s)", stage, skipped)
+            else:
+                self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
 
 
 def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> RunOutcome:
@@ -153,7 +168,7 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
         with run_dir_lock(run_dir):
             log.info("run started in %s (pid %d)", run_dir, os.getpid())
             wall0, cpu0 = time.perf_counter(), time.process_time()
-            reporter = _Reporter(emit, should_cancel, spec.progress_interval_s, log)
+            reporter = _Reporter(emit, should_cancel, spec.progress_interval_s, log, run_dir)
             try:
                 _run(spec, reporter, log)
             except Cancelled:
