@@ -84,12 +84,14 @@ class StageBars:
         """Print the held stage as skipped, or as the full bar of a stage that computed in one step."""
         from tqdm import tqdm
 
-        from leap_core.pipeline import skip_reason
+        from leap_core.pipeline.runner import UNCHANGED, skip_reason
 
         assert self._held is not None and self.run_dir is not None
         stage, total = self._held
         self._held = None
         reason = skip_reason(self.run_dir, stage, self.started)
+        if reason == UNCHANGED:
+            reason += " in this folder"
         if reason is not None:
             tqdm.write(f"{stage:<12} skipped ({reason})", file=sys.stderr)
         else:

@@ -313,7 +313,6 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         where = Path(getattr(exc, "path", root))
         problem = getattr(exc, "problem", str(exc))
         if where == poses_file:
-            poses = PosesCheck("invalid", str(poses_file))
             findings.append(Finding("poses_unreadable", "blocker", str(poses_file), problem))
         elif not any(f.path == str(where) and f.severity == "blocker" for f in findings):
             findings.append(Finding("unreadable", "blocker", str(where), problem))
@@ -332,7 +331,8 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
                 poses = PosesCheck("file", str(poses_file), len(read_poses(poses_file)))
             except DatasetError as exc:
                 poses = PosesCheck("invalid", str(poses_file))
-                findings.append(Finding("poses_invalid", "warning", str(poses_file), exc.problem))
+                if not any(f.path == str(poses_file) for f in findings):  # the reader's refusal says it
+                    findings.append(Finding("poses_invalid", "warning", str(poses_file), exc.problem))
     if poses.source == "missing":
         if estimate_poses:
             poses = PosesCheck("will-estimate", str(poses_file))
