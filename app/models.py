@@ -298,7 +298,8 @@ class DatasetPublic(BaseModel):
     frames: int | None = None
     has_ground_truth: bool = False
     check: DatasetCheck | None = Field(
-        default=None, description="what the project's pipeline can do with the dataset (None: not generated yet)"
+        default=None,
+        description="what the project's pipeline can do with the dataset (None: not generated yet)",
     )
 
 

@@ -174,7 +174,8 @@ def dataset_check(
 
 def check_problem(check: models.DatasetCheck) -> str:
     """One line for a dataset the pipeline cannot run on: each blocker with its fix."""
-    parts = [f"{f.message} ({f.fix})" if f.fix else f.message for f in check.findings if f.severity == "blocker"]
+    blockers = [f for f in check.findings if f.severity == "blocker"]
+    parts = [f"{f.message} ({f.fix})" if f.fix else f.message for f in blockers]
     return f"the pipeline cannot run on this dataset: {'; '.join(parts)}"
 
 
@@ -250,7 +251,9 @@ def create_project(
         check = dataset_check(settings, path, config, estimate_poses=project_estimates_poses(
             payload.model_dump()))
         if check.verdict == "none":
-            raise InvalidField(["body", "dataset", "path"], f"dataset path {str(path)!r}: {check_problem(check)}")
+            raise InvalidField(
+                ["body", "dataset", "path"], f"dataset path {str(path)!r}: {check_problem(check)}"
+            )
     return crud.create_project(
         db,
         name=payload.name,

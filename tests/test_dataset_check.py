@@ -56,13 +56,15 @@ def test_without_poses_only_the_3d_stages_are_blocked(seq: TinySequence) -> None
     assert r.verdict == "partial" and r.poses.source == "missing"
     states = _stages(r)
     assert states["labels2d"] == states["project"] == "runs"
-    assert all(states[s] == "blocked" for s in ("fuse", "smooth", "3dcn", "label_points", "evaluate", "export"))
+    three_d = ("fuse", "smooth", "3dcn", "label_points", "evaluate", "export")
+    assert all(states[s] == "blocked" for s in three_d)
     f = r.finding("poses_missing")
     assert f is not None and f.path == str(seq.root / "poses.txt")
     assert f"leap poses {seq.root}" in advice(f, "cli", r) and "--estimate-poses" in advice(f, "cli", r)
     assert "Estimate poses (KISS-ICP)" in advice(f, "app", r) and "--" not in advice(f, "app", r)
     # With the poses to be estimated first, every stage can run.
-    assert check_dataset(seq.root, config=SIMULATED, check_models=False, estimate_poses=True).verdict == "full"
+    later = check_dataset(seq.root, config=SIMULATED, check_models=False, estimate_poses=True)
+    assert later.verdict == "full"
 
 
 def test_estimated_poses_are_reported_with_their_method(seq: TinySequence) -> None:

@@ -275,7 +275,8 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         inner = sorted(p.parent.name for p in root.glob("sequences/*/velodyne") if p.is_dir())
         inner += sorted(p.parent.name for p in root.glob("*/velodyne") if p.is_dir())
         hint = f"; it holds sequence folders: {', '.join(inner[:5])}" if inner else ""
-        return early("not_a_sequence", vel, f"no velodyne/ folder, so this is not a KITTI sequence folder{hint}")
+        return early("not_a_sequence", vel,
+                     f"no velodyne/ folder, so this is not a KITTI sequence folder{hint}")
     sizes = _scan_sizes(vel)
     frames = _ordered(sizes)
     if not frames:
@@ -319,8 +320,9 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
     else:
         if seq.has_poses:
             source = seq.pose_source
+            method = _note_method(poses_file) if source == "estimated" else None
             poses = PosesCheck("estimated" if source == "estimated" else "file", str(poses_file),
-                               len(seq.cam_poses), _note_method(poses_file) if source == "estimated" else None)
+                               len(seq.cam_poses), method)
         else:
             poses = PosesCheck("missing", str(poses_file))
     if poses is None:  # the reader stopped before (or without) reading the poses: read them here
@@ -337,7 +339,8 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         if estimate_poses:
             poses = PosesCheck("will-estimate", str(poses_file))
             findings.append(Finding("poses_will_estimate", "info", str(poses_file),
-                                    "no poses file: the poses will be estimated (KISS-ICP) before the 3D stages"))
+                                    "no poses file: the poses will be estimated (KISS-ICP) before the 3D "
+                                    "stages"))
         else:
             findings.append(Finding("poses_missing", "warning", str(poses_file),
                                     "no poses file: the 3D stages need one pose per scan"))
@@ -354,8 +357,8 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
                 "have no pose", beyond))
         elif poses.lines > len(frames):
             findings.append(Finding("poses_extra", "info", str(poses_file),
-                                    f"{poses.lines} poses for {len(frames)} scans: scan NNNNNN takes pose line "
-                                    "NNNNNN (counted from 0)"))
+                                    f"{poses.lines} poses for {len(frames)} scans: scan NNNNNN takes pose "
+                                    "line NNNNNN (counted from 0)"))
         if poses.source == "estimated":
             findings.append(Finding("poses_estimated", "info", str(poses_file),
                                     f"estimated poses ({poses.method or 'method not recorded'}; note "
@@ -411,7 +414,8 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
             continue
         if is_tiny_random(folder):
             findings.append(Finding("models_random", "warning", str(folder),
-                                    f"{model_id}: a tiny RANDOM-weight test model; its labels are meaningless"))
+                                    f"{model_id}: a tiny RANDOM-weight test model; its labels are "
+                                    "meaningless"))
     if not missing:
         return {"grounded-sam": ()}
     if rt.models_dir is not None:
@@ -444,7 +448,7 @@ def _labeler_checks(
     return tuple(out)
 
 
-def _assemble(  # noqa: PLR0913  # the parts check_dataset gathered
+def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gathered
     root: Path, frames: list[str], img: FrameCoverage, gt: FrameCoverage, gt2d: FrameCoverage,
     calib: CalibCheck, poses: PosesCheck, cfg: PipelineConfig, chosen: bool, findings: list[Finding],
     model_codes: dict[str, tuple[str, ...]],
@@ -540,7 +544,8 @@ ADVICE: dict[str, Advice] = {
     "no_2d_input": Advice("add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
                           "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "
                           "Grounding DINO + SAM labeler", "nothing to label from"),
-    "images_missing": Advice("add camera images as image_2/NNNNNN.png (or .jpg) to use --labeler grounded-sam",
+    "images_missing": Advice("add camera images as image_2/NNNNNN.png (or .jpg) to use "
+                             "--labeler grounded-sam",
                              "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset to use the "
                              "Grounding DINO + SAM labeler", "no camera images"),
     "images_partial": Advice("add the missing images, or label only frames that have one (--frames A:B)",
@@ -549,8 +554,8 @@ ADVICE: dict[str, Advice] = {
     "gt2d_missing": Advice("", "", "no 2D ground truth"),
     "gt2d_partial": Advice("add the missing gt2d/semantic and gt2d/instance masks, or use "
                            "--labeler grounded-sam",
-                           "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM labeler "
-                           "under Parameters", "frames without 2D ground truth"),
+                           "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM "
+                           "labeler under Parameters", "frames without 2D ground truth"),
     "labels_missing": Advice("", "", "no ground truth"),
     "labels_partial": Advice("add the missing labels/NNNNNN.label files (evaluation needs one per scan)",
                              "add the missing labels/NNNNNN.label files to the dataset (evaluation needs one "
@@ -569,8 +574,8 @@ ADVICE: dict[str, Advice] = {
                                "\"Estimate poses (KISS-ICP)\" ticked", "unreadable poses"),
     "poses_short": Advice("poses.txt needs one line per frame number: add the missing lines, or estimate "
                           "poses with `leap poses {seq} --force`",
-                          "poses.txt needs one line per frame number: add the missing lines, or remove it and "
-                          "create the project with \"Estimate poses (KISS-ICP)\" ticked",
+                          "poses.txt needs one line per frame number: add the missing lines, or remove it "
+                          "and create the project with \"Estimate poses (KISS-ICP)\" ticked",
                           "frames without a pose"),
     "poses_extra": Advice("", "", ""),
     "poses_estimated": Advice("", "", ""),
@@ -661,11 +666,13 @@ def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = No
         lines.append(f"poses     {pose_text}")
         lines.append(f"labels    {report.ground_truth.kind}: "
                      f"{_coverage_line(report.ground_truth, 'ground truth (labels/)')}")
-        lines.append(f"gt2d      {report.gt2d.kind}: {_coverage_line(report.gt2d, '2D ground truth (gt2d/)')}")
+        gt2d = _coverage_line(report.gt2d, "2D ground truth (gt2d/)")
+        lines.append(f"gt2d      {report.gt2d.kind}: {gt2d}")
         lines.append("")
         lines.append("labelers")
         for lab in report.labelers:
-            state = "can run" if lab.can_run else "cannot run (" + ", ".join(map(reason_text, lab.reasons)) + ")"
+            why = ", ".join(map(reason_text, lab.reasons))
+            state = "can run" if lab.can_run else f"cannot run ({why})"
             lines.append(f"  {lab.name:<14} {state}")
         how = "" if report.labeler_chosen else ", the first that can run"
         lines.append("")

@@ -27,7 +27,8 @@ client, data_root, settings, tiny_dataset = (
 
 
 def _post(client: TestClient, path: Path) -> Any:
-    return client.post(f"{API}/projects", json={"name": "x", "dataset": {"kind": "folder", "path": str(path)}})
+    body = {"name": "x", "dataset": {"kind": "folder", "path": str(path)}}
+    return client.post(f"{API}/projects", json=body)
 
 
 def _copy(src: Path, dst: Path, drop: tuple[str, ...] = ()) -> Path:
