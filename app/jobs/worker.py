@@ -45,7 +45,7 @@ from app.jobs.messages import (
     decode_to_worker,
 )
 from leap_core.config import config_from_dict
-from leap_core.errors import Cancelled, LeapError
+from leap_core.errors import Cancelled, LeapError, ModelLoadError
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -174,6 +174,13 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
             except Cancelled:
                 log.info("run cancelled")
                 return RunOutcome("cancelled")
+            except ModelLoadError as exc:
+                # Its own advice is for the command line (`hf download`, `--models`): the app's users get
+                # the server's side of it (the dataset check's wording).
+                from leap_core.datasets.check import ADVICE  # noqa: PLC0415  the pipeline is loaded by now
+
+                log.error("run failed: %s", exc)
+                return RunOutcome("failed", f"{str(exc).split('; ')[0]}; {ADVICE['models_missing'].app}")
             except LeapError as exc:
                 log.error("run failed: %s", exc)
                 return RunOutcome("failed", str(exc))

@@ -183,3 +183,16 @@ def test_random_weight_models_warn_in_the_run_log_and_on_the_run(data_root: Path
         assert any("RANDOM-weight" in w for w in warnings), warnings
         log = client.get(f"{API}/runs/{run['id']}/logs").json()["text"]
         assert "RANDOM-weight test model" in log, log
+
+
+def test_a_run_without_models_fails_with_the_servers_side_of_the_fix(
+    client: TestClient, tiny_dataset: Path
+) -> None:
+    r = client.post(f"{API}/projects", json={
+        "name": "p", "dataset": {"kind": "folder", "path": str(tiny_dataset)}, "schema_name": "agri_uav"})
+    assert r.status_code == 201, r.text
+    assert r.json()["dataset"]["check"]["verdict"] == "partial"  # warned at creation: no models folder
+    run = client.post(f"{API}/projects/{r.json()['id']}/runs", json={}).json()
+    run = wait_run(client, run["id"])
+    assert run["status"] == "failed" and "LEAP_MODELS_DIR" in run["error"], run["error"]
+    assert "--" not in run["error"] and "grounding-dino-tiny" in run["error"], run["error"]
