@@ -174,16 +174,9 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
             except Cancelled:
                 log.info("run cancelled")
                 return RunOutcome("cancelled")
-            except ModelLoadError as exc:
-                # Its own advice is for the command line (`hf download`, `--models`): the app's users get
-                # the server's side of it (the dataset check's wording).
-                from leap_core.datasets.check import ADVICE  # noqa: PLC0415  the pipeline is loaded by now
-
-                log.error("run failed: %s", exc)
-                return RunOutcome("failed", f"{str(exc).split('; ')[0]}; {ADVICE['models_missing'].app}")
             except LeapError as exc:
                 log.error("run failed: %s", exc)
-                return RunOutcome("failed", str(exc))
+                return RunOutcome("failed", _in_app_words(exc))
             except OSError as exc:
                 full = disk_full_message(exc)
                 log.error("run failed:\n%s", traceback.format_exc())
@@ -205,6 +198,16 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
         for h in list(log.handlers):
             h.close()
             log.removeHandler(h)
+
+
+def _in_app_words(exc: LeapError) -> str:
+    """A run's error as the app shows it. A missing model's own advice is for the command line (`hf
+    download`, `--models`); the app's users get the server's side of it (the dataset check's wording)."""
+    if isinstance(exc, ModelLoadError):
+        from leap_core.datasets.check import ADVICE  # noqa: PLC0415  a run has loaded the pipeline by now
+
+        return f"{str(exc).split('; ')[0]}; {ADVICE['models_missing'].app}"
+    return str(exc)
 
 
 def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
