@@ -122,8 +122,15 @@ def test_labelers_and_their_inputs(seq: TinySequence, tmp_path: Path) -> None:
     assert labelers["grounded-sam"].reasons == ("models_missing",)
     assert r.verdict == "partial" and _stages(r)["labels2d"] == "blocked"
     f = r.finding("models_missing")
-    assert f is not None and f.severity == "info"  # the chosen (simulated) labeler needs no models
+    assert f is not None and f.severity == "warning"  # the simulated labeler cannot run: they matter
     assert f.path == str(tmp_path / "models") and "grounding-dino-tiny/" in f.detail
+    f = r.finding("labeler_cannot_run")
+    assert f is not None and "could, given its models" in f.detail
+    assert advice(f, "cli", r) == "use --labeler grounded-sam"
+    # Where the chosen labeler runs, missing models are only a fact.
+    f = check_dataset(seq.root, config=SIMULATED, runtime=Runtime(models_dir=tmp_path / "models")).finding(
+        "models_missing")
+    assert f is not None and f.severity == "info"
 
     models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=8)).models_dir
     r = check_dataset(real, runtime=Runtime(models_dir=models))  # no config: the first labeler that can run

@@ -448,6 +448,14 @@ def _labeler_checks(
     return tuple(out)
 
 
+def _alternative(labelers: Iterable[LabelerCheck], besides: str | None) -> LabelerCheck | None:
+    """The labeler to suggest: the first (registry order) that can run, else the first whose input the
+    folder has and that lacks only its models."""
+    others = [lab for lab in labelers if lab.name != besides]
+    return next((lab for lab in others if lab.can_run), None) or next(
+        (lab for lab in others if set(lab.reasons) <= {"models_missing"}), None)
+
+
 def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gathered
     root: Path, frames: list[str], img: FrameCoverage, gt: FrameCoverage, gt2d: FrameCoverage,
     calib: CalibCheck, poses: PosesCheck, cfg: PipelineConfig, chosen: bool, findings: list[Finding],
@@ -457,18 +465,21 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
     by_name = {lab.name: lab for lab in labelers}
     labeler = cfg.labeler
     if not chosen:
-        labeler = next((lab.name for lab in labelers if lab.can_run), cfg.labeler)
-    if labeler not in model_codes:
+        pick = _alternative(labelers, None)
+        labeler = pick.name if pick is not None else labeler
+    if labeler not in model_codes and by_name[labeler].can_run:
         # The models concern only runs with the grounded-sam labeler: a fact here, not a warning.
         findings[:] = [replace(f, severity="info") if f.code in ("models_missing", "models_random") else f
                        for f in findings]
     blockers = [f.code for f in findings if f.severity == "blocker"]
     if by_name[labeler].can_run is False and not blockers:
-        alt = next((lab for lab in labelers if lab.can_run), None)
+        alt = _alternative(labelers, labeler)
+        why = ", ".join(reason_text(r) for r in by_name[labeler].reasons)
         findings.append(Finding(
             "labeler_cannot_run", "warning", None,
-            f"the {labeler} labeler cannot run: {LABELERS[labeler].missing}"
-            + (f"; the {alt.name} labeler can" if alt else ""),
+            f"the {labeler} labeler cannot run ({why})"
+            + ("" if alt is None else f"; the {alt.name} labeler can" if alt.can_run else
+               f"; the {alt.name} labeler could, given its models"),
         ))
     codes = {f.code for f in findings}
     pose_codes = tuple(c for c in ("poses_missing", "poses_invalid", "poses_short") if c in codes)
@@ -601,7 +612,7 @@ def advice(finding: Finding, audience: Audience, report: DatasetReport) -> str:
         return ""
     text = entry.cli if audience == "cli" else entry.app
     if finding.code == "labeler_cannot_run":
-        alt = next((lab for lab in report.labelers if lab.can_run), None)
+        alt = _alternative(report.labelers, report.labeler)
         if alt is None:
             return "fix the problems listed for the labelers" if audience == "cli" else (
                 "fix the problems listed for the 2D labelers")
@@ -674,7 +685,7 @@ def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = No
             why = ", ".join(map(reason_text, lab.reasons))
             state = "can run" if lab.can_run else f"cannot run ({why})"
             lines.append(f"  {lab.name:<14} {state}")
-        how = "" if report.labeler_chosen else ", the first that can run"
+        how = "" if report.labeler_chosen else ", picked by the check; --labeler picks another"
         lines.append("")
         lines.append(f"stages (labeler {report.labeler}{how})")
         for st in report.stages:
