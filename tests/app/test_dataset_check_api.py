@@ -57,7 +57,7 @@ def test_creation_refuses_a_folder_nothing_can_run_on(client: TestClient, tiny_d
     bad_calib = _copy(tiny_dataset, root / "badcalib" / "sequences" / "00")
     (bad_calib / "calib.txt").write_text("P2: 1 2 3\nTr: nonsense\n")
     r = _post(client, bad_calib)
-    assert r.status_code == 422 and "calib.txt" in r.text and "12 values" in r.text, r.text
+    assert r.status_code == 422 and "calib.txt" in r.text and "has 3 values, expected 12" in r.text, r.text
 
     # Scans only: neither camera images nor 2D ground truth, so no 2D labeler has anything to label.
     no_images = _copy(tiny_dataset, root / "noimg" / "sequences" / "00", drop=("image_2", "gt2d"))
