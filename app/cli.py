@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
     from app.core.config import Settings
     from app.core.instance import WorkDirLock
+    from leap_core.datasets.check import Verdict
 
 cli = typer.Typer(
     name="leap",
@@ -238,7 +239,7 @@ def make_tiny_models_cmd(
     )
 
 
-CHECK_EXIT_CODES = {"full": 0, "partial": 1, "none": 3}
+CHECK_EXIT_CODES: dict[Verdict, int] = {"full": 0, "partial": 1, "none": 3}
 """``leap check``'s exit code per verdict (2 stays typer's usage error and this CLI's one-line errors)."""
 
 
