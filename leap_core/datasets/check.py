@@ -472,13 +472,14 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
         findings[:] = [replace(f, severity="info") if f.code in ("models_missing", "models_random") else f
                        for f in findings]
     blockers = [f.code for f in findings if f.severity == "blocker"]
-    if by_name[labeler].can_run is False and not blockers:
-        alt = _alternative(labelers, labeler)
+    alt = _alternative(labelers, labeler)
+    if not by_name[labeler].can_run and not blockers and alt is not None:
+        # Only with another labeler to suggest: otherwise the findings behind it carry the fixes.
         why = ", ".join(reason_text(r) for r in by_name[labeler].reasons)
         findings.append(Finding(
             "labeler_cannot_run", "warning", None,
             f"the {labeler} labeler cannot run ({why})"
-            + ("" if alt is None else f"; the {alt.name} labeler can" if alt.can_run else
+            + (f"; the {alt.name} labeler can" if alt.can_run else
                f"; the {alt.name} labeler could, given its models"),
         ))
     codes = {f.code for f in findings}
