@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
     from app.core.config import Settings
     from app.core.instance import WorkDirLock
+    from leap_core.datasets.check import Verdict
 
 cli = typer.Typer(
     name="leap",
@@ -84,16 +85,16 @@ class StageBars:
         """Print the held stage as skipped, or as the full bar of a stage that computed in one step."""
         from tqdm import tqdm
 
-        from leap_core.pipeline import stage_status
+        from leap_core.pipeline.runner import UNCHANGED, skip_reason
 
         assert self._held is not None and self.run_dir is not None
         stage, total = self._held
         self._held = None
-        record = stage_status(self.run_dir).get(stage, {})
-        if record.get("status") == "skipped":
-            tqdm.write(f"{stage:<12} skipped ({record.get('note') or 'nothing to do'})", file=sys.stderr)
-        elif float(record.get("finished") or 0.0) < self.started:
-            tqdm.write(f"{stage:<12} skipped (unchanged since the last run in this folder)", file=sys.stderr)
+        reason = skip_reason(self.run_dir, stage, self.started)
+        if reason == UNCHANGED:
+            reason += " in this folder"
+        if reason is not None:
+            tqdm.write(f"{stage:<12} skipped ({reason})", file=sys.stderr)
         else:
             unit = "step" if stage in ("3dcn", "synth") else "frame"
             with tqdm(total=total, initial=total, desc=f"{stage:<12}", unit=unit, dynamic_ncols=True):
@@ -236,6 +237,53 @@ def make_tiny_models_cmd(
         "these models have RANDOM weights: their labels exercise the code path only and are meaningless",
         fg=typer.colors.YELLOW,
     )
+
+
+CHECK_EXIT_CODES: dict[Verdict, int] = {"full": 0, "partial": 1, "none": 3}
+"""``leap check``'s exit code per verdict (2 stays typer's usage error and this CLI's one-line errors)."""
+
+
+@cli.command("check")
+def check_cmd(
+    dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    *,
+    labeler: str | None = typer.Option(
+        None, "--labeler", help="Judge the stages for this 2D labeler (default: the project file's, else the "
+        "first labeler that can run).", autocompletion=lambda: list(LABELERS),
+    ),
+    project_file: str | None = typer.Option(
+        None, "--project-file", help="Project YAML whose 'pipeline:' section the run would use."
+    ),
+    models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
+    estimate_poses: bool = typer.Option(
+        False, "--estimate-poses", help="Judge a run with --estimate-poses (missing poses estimated first)."
+    ),
+    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+) -> None:
+    """Check a sequence folder before a run: frames, camera images, calibration, poses (file, estimated or
+    missing), ground truth, 2D ground truth, and which labelers and stages can run, each problem with
+    its fix.
+
+    Exit codes: 0 every stage can run (evaluation without ground truth and a switched-off 3D-CN count as
+    runnable); 1 only some stages can run (see the findings); 3 the pipeline cannot run on this folder at
+    all; 2 a usage error."""
+    import json
+
+    from leap_core.datasets.check import check_dataset, render_cli, report_dict
+
+    try:
+        config = None
+        if labeler is not None or project_file is not None:
+            _, config = _run_config(None, project_file, labeler, None)
+        runtime = _runtime(models, None, "auto", False)
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    report = check_dataset(dataset, config=config, runtime=runtime, estimate_poses=estimate_poses)
+    if as_json:
+        typer.echo(json.dumps(report_dict(report, "cli"), indent=2))
+    else:
+        typer.echo(render_cli(report, CHECK_EXIT_CODES))
+    raise typer.Exit(code=CHECK_EXIT_CODES[report.verdict])
 
 
 def _labeler_help() -> str:

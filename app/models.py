@@ -224,12 +224,83 @@ class ProjectUpdate(_Input):
     )
 
 
+class CheckCoverage(BaseModel):
+    present: int = Field(description="scans that have the file")
+    total: int = Field(description="scans in velodyne/")
+    kind: Literal["all", "some", "none"]
+
+
+class CheckCalib(BaseModel):
+    present: bool
+    valid: bool
+    problem: str | None = None
+
+
+class CheckPoses(BaseModel):
+    source: Literal["file", "estimated", "missing", "invalid", "will-estimate"]
+    path: str
+    lines: int | None = None
+    method: str | None = None
+
+
+class CheckFinding(BaseModel):
+    code: str = Field(description="stable identifier (leap_core.datasets.check.ADVICE)")
+    severity: Literal["blocker", "warning", "info"]
+    path: str | None = None
+    detail: str
+    frames: list[str] = Field(default_factory=list, description="the first frames concerned")
+    count: int = Field(default=0, description="frames concerned in all")
+    message: str = Field(description="the finding in one line (file, problem, frames)")
+    fix: str = Field(description="what to do, worded for this app ('' when nothing)")
+
+
+class CheckLabeler(BaseModel):
+    name: str
+    label: str
+    can_run: bool
+    reasons: list[str] = Field(default_factory=list)
+    reason: str = ""
+
+
+class CheckStage(BaseModel):
+    name: str
+    label: str
+    state: Literal["runs", "skipped", "blocked"]
+    reasons: list[str] = Field(default_factory=list)
+    reason: str = ""
+
+
+class DatasetCheck(BaseModel):
+    """What the pipeline can do with a dataset (leap_core.datasets.check; `leap check` prints the same)."""
+
+    root: str
+    verdict: Literal["full", "partial", "none"]
+    summary: str
+    frames: int
+    first_frame: str | None = None
+    last_frame: str | None = None
+    images: CheckCoverage
+    ground_truth: CheckCoverage
+    gt2d: CheckCoverage
+    calib: CheckCalib
+    poses: CheckPoses
+    labeler: str = Field(description="the labeler the stages were judged for")
+    labeler_chosen: bool
+    labelers: list[CheckLabeler]
+    stages: list[CheckStage]
+    findings: list[CheckFinding]
+
+
 class DatasetPublic(BaseModel):
     kind: DatasetKind
     path: str
     exists: bool
     frames: int | None = None
     has_ground_truth: bool = False
+    check: DatasetCheck | None = Field(
+        default=None,
+        description="what the project's pipeline can do with the dataset (None: not generated yet)",
+    )
 
 
 class RunBrief(BaseModel):
@@ -272,6 +343,7 @@ class DatasetCandidate(BaseModel):
     frames: int
     has_images: bool
     has_ground_truth: bool
+    check: DatasetCheck = Field(description="what a new project's pipeline could do with it")
 
 
 class DatasetsPublic(BaseModel):
@@ -315,6 +387,7 @@ class StagePublic(BaseModel):
     seconds: float | None = None
     eta_s: float | None = None
     percent: float = 0.0
+    note: str | None = Field(default=None, description="why a skipped stage computed nothing")
 
 
 class RunProgress(BaseModel):

@@ -29,12 +29,14 @@ from leap_core.config import (
     form_values,
     overrides_from_form,
 )
+from leap_core.datasets.check import check_dataset, dataset_stamp, report_dict
 from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
 from leap_core.pipeline import all_points_labeled_share
 from leap_core.presets import builtin_preset
 from leap_core.run_layout import RunLayout
+from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
 
@@ -120,7 +122,9 @@ def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.
     return "folder", path
 
 
-def dataset_public(kind: models.DatasetKind, path: str) -> models.DatasetPublic:
+def dataset_public(
+    kind: models.DatasetKind, path: str, check: models.DatasetCheck | None = None
+) -> models.DatasetPublic:
     folder = Path(path)
     velodyne = folder / "velodyne"
     frames = sum(1 for p in velodyne.glob("*.bin")) if velodyne.is_dir() else None
@@ -130,7 +134,55 @@ def dataset_public(kind: models.DatasetKind, path: str) -> models.DatasetPublic:
         exists=velodyne.is_dir(),
         frames=frames,
         has_ground_truth=(folder / "labels").is_dir(),
+        check=check,
     )
+
+
+# ------------------------------------------------------------------------------------------ dataset check
+_CHECK_CACHE_SIZE = 256
+_check_cache: dict[tuple[Any, ...], models.DatasetCheck] = {}
+_check_lock = threading.Lock()
+
+
+def dataset_check(
+    settings: Settings, path: Path, config: PipelineConfig | None = None, *, estimate_poses: bool = False
+) -> models.DatasetCheck:
+    """:func:`leap_core.datasets.check.check_dataset` of a sequence folder, worded for the app (its
+    options, never a command-line flag), with the server's models folder. Cached per folder state
+    (:func:`~leap_core.datasets.check.dataset_stamp`: the mtimes of the folder and the entries it reads)
+    and per setting that changes the answer, so the dataset list and project pages stay fast."""
+    gs = None if config is None else config.grounded_sam
+    key = (
+        dataset_stamp(path),
+        None if config is None else (config.labeler, gs.detector_id if gs else None,
+                                     gs.segmenter_id if gs else None, config.consistency.enabled),
+        str(settings.models_dir), estimate_poses,
+    )
+    with _check_lock:
+        hit = _check_cache.get(key)
+    if hit is not None:
+        return hit
+    report = check_dataset(path, config=config, runtime=Runtime(models_dir=settings.models_dir),
+                           estimate_poses=estimate_poses)
+    public = models.DatasetCheck.model_validate(report_dict(report, "app"))
+    with _check_lock:
+        if len(_check_cache) >= _CHECK_CACHE_SIZE:
+            _check_cache.pop(next(iter(_check_cache)))
+        _check_cache[key] = public
+    return public
+
+
+def check_problem(check: models.DatasetCheck) -> str:
+    """One line for a dataset the pipeline cannot run on: each blocker with its fix."""
+    blockers = [f for f in check.findings if f.severity == "blocker"]
+    parts = [f"{f.message} ({f.fix})" if f.fix else f.message for f in blockers]
+    return f"the pipeline cannot run on this dataset: {'; '.join(parts)}"
+
+
+def project_estimates_poses(project: Mapping[str, Any]) -> bool:
+    """Whether the project estimates missing poses before its 3D stages (its "Estimate poses (KISS-ICP)"
+    option; a project row or creation payload without the option does not)."""
+    return bool(project.get("estimate_poses") or False)
 
 
 def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> list[models.DatasetCandidate]:
@@ -154,12 +206,14 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
             # A listed folder must be one a project can be created on (resolve_dataset's rules).
             if real not in seen and escaping_entry(folder, roots) is None:
                 seen.add(real)
+                check = dataset_check(settings, folder)
                 found.append(
                     models.DatasetCandidate(
                         path=str(folder),
-                        frames=sum(1 for _ in (folder / "velodyne").glob("*.bin")),
+                        frames=check.frames,
                         has_images=(folder / "image_2").is_dir(),
                         has_ground_truth=(folder / "labels").is_dir(),
+                        check=check,
                     )
                 )
             return
@@ -193,6 +247,13 @@ def create_project(
     except LeapError as exc:
         raise InvalidField(["body", "schema_name"], str(exc)) from None
     config = pipeline_config(payload.pipeline, preset.pipeline)
+    if kind == "folder":
+        check = dataset_check(settings, path, config, estimate_poses=project_estimates_poses(
+            payload.model_dump()))
+        if check.verdict == "none":
+            raise InvalidField(
+                ["body", "dataset", "path"], f"dataset path {str(path)!r}: {check_problem(check)}"
+            )
     return crud.create_project(
         db,
         name=payload.name,
@@ -269,12 +330,25 @@ def _brief(run: dict[str, Any] | None) -> models.RunBrief | None:
     )
 
 
-def project_public(db: sqlite_utils.Database, project: dict[str, Any]) -> models.ProjectPublic:
+def project_check(settings: Settings, project: dict[str, Any]) -> models.DatasetCheck | None:
+    """The dataset check for the project's own settings (None while the demo street is not generated)."""
+    path = Path(project["dataset_path"])
+    if project["dataset_kind"] == "demo" and not (path / "velodyne").is_dir():
+        return None
+    return dataset_check(settings, path, project_config(project),
+                         estimate_poses=project_estimates_poses(project))
+
+
+def project_public(
+    db: sqlite_utils.Database, project: dict[str, Any], settings: Settings | None = None
+) -> models.ProjectPublic:
+    """A project row as the API shows it; with ``settings``, its dataset carries the dataset check."""
     runs = crud.list_runs(db, project["id"])
+    check = None if settings is None else project_check(settings, project)
     return models.ProjectPublic(
         id=project["id"],
         name=project["name"],
-        dataset=dataset_public(project["dataset_kind"], project["dataset_path"]),
+        dataset=dataset_public(project["dataset_kind"], project["dataset_path"], check),
         schema_name=project["schema"]["name"],
         num_classes=len(project["schema"]["classes"]),
         pipeline=project["pipeline"],

@@ -13,6 +13,7 @@
 import { get, post, url } from "./api.js";
 import { h, replace } from "./dom.js";
 import { pipelineInfo } from "./pipeline.js";
+import { renderDatasetCheck } from "./dataset-check.js";
 import { renderClasses } from "./project/classes.js";
 import { renderCompare } from "./project/compare.js";
 import { projectContext } from "./project/context.js";
@@ -44,6 +45,7 @@ export async function renderProject(root, projectId, { toast }) {
 
   const els = {
     head: h("div", { class: "page-head" }),
+    check: h("section", { class: "card dataset-check-card", id: "dataset-check", hidden: true }),
     run: h("section", { class: "card", id: "run-panel" }),
     next: h("section", { class: "card", id: "next-run" }),
     runs: h("section", { class: "card", id: "runs" }),
@@ -89,6 +91,7 @@ export async function renderProject(root, projectId, { toast }) {
     compare: () => renderCompare(ctx),
     classes: () => renderClasses(ctx),
     params: () => renderParams(ctx),
+    check: () => renderDatasetCheck(els.check, state.project),
   };
 
   // --------------------------------------------------------------------------------- live progress
@@ -168,11 +171,12 @@ export async function renderProject(root, projectId, { toast }) {
     h(
       "div",
       { class: "layout" },
-      h("div", { class: "main-col" }, els.run, els.next, els.compare, els.runs),
+      h("div", { class: "main-col" }, els.check, els.run, els.next, els.compare, els.runs),
       h("aside", { class: "side-col" }, els.classes, els.params),
     ),
   );
   ctx.render.head();
+  ctx.render.check();
   ctx.render.run();
   ctx.render.runs();
   ctx.render.classes();

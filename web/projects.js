@@ -1,6 +1,7 @@
 // Project list and the create-project form.
 
 import { get, post } from "./api.js";
+import { checkSummary } from "./dataset-check.js";
 import { fmtPct, fmtTime, h, replace, statusChip } from "./dom.js";
 
 function projectCard(p) {
@@ -43,11 +44,20 @@ function createForm(datasets, { toast, onCreated }) {
     ),
   );
   const path = h("input", { id: "new-path", placeholder: "or type a path inside a data root", spellcheck: "false" });
+  const checkBox = h("div", { class: "check-slot" });
+  const showCheck = () => {
+    const d = datasets.data.find((x) => x.path === path.value.trim());
+    replace(checkBox, d ? checkSummary(d.check) : null);
+  };
   select.addEventListener("change", () => {
     if (select.value) path.value = select.value;
     kindFolder.checked = true;
+    showCheck();
   });
-  path.addEventListener("input", () => (kindFolder.checked = true));
+  path.addEventListener("input", () => {
+    kindFolder.checked = true;
+    showCheck();
+  });
   const error = h("p", { class: "error", role: "alert" });
   const submit = h("button", { class: "btn primary", type: "submit", id: "create-project" }, "Create project");
   const form = h(
@@ -62,7 +72,8 @@ function createForm(datasets, { toast, onCreated }) {
         submit.disabled = true;
         try {
           const p = await post("/projects", { name: name.value.trim(), dataset });
-          toast(`Project “${p.name}” created`);
+          const partial = p.dataset.check && p.dataset.check.verdict === "partial";
+          toast(`Project “${p.name}” created${partial ? `: ${p.dataset.check.summary}, see the dataset check` : ""}`);
           onCreated(p);
         } catch (err) {
           error.textContent = err.message;
@@ -78,7 +89,7 @@ function createForm(datasets, { toast, onCreated }) {
       { class: "field" },
       h("legend", {}, "Dataset"),
       h("label", { class: "radio" }, kindFolder, h("span", {}, "KITTI-layout sequence folder")),
-      h("div", { class: "indent stack" }, select, path),
+      h("div", { class: "indent stack" }, select, path, checkBox),
       h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
     ),
     h("p", { class: "muted small" }, `Data roots: ${datasets.roots.join(", ")}. New projects use the SemanticKITTI classes; edit them afterwards.`),

@@ -720,7 +720,7 @@ class JobManager:
         ``PERSIST_EVERY_S``. Returns the time of the last write."""
         with self._lock:
             changed = live.tracker.update(
-                message.stage, message.done, message.total, time.monotonic(), utcnow()
+                message.stage, message.done, message.total, time.monotonic(), utcnow(), message.skipped
             )
         if changed or time.monotonic() - last_persist > PERSIST_EVERY_S:
             self._persist_stages(run_id, live)
@@ -862,7 +862,7 @@ class JobManager:
             if not isinstance(message, StageProgress):
                 return
             stage, done, total = message.stage, message.done, message.total
-            if live.tracker.update(stage, done, total, time.monotonic(), utcnow()):
+            if live.tracker.update(stage, done, total, time.monotonic(), utcnow(), message.skipped):
                 self._persist_stages(run_id, live)
             if on_progress is not None:
                 on_progress(stage, done, total)
@@ -925,13 +925,13 @@ def seed_run_dir(previous: Path, run_dir: Path) -> int:
     return count
 
 
-def pipeline_skipped_stages(run_dir: Path) -> set[str]:
-    """Stages the pipeline recorded as skipped (3D-CN off, no ground truth to evaluate)."""
+def pipeline_skipped_stages(run_dir: Path) -> dict[str, str | None]:
+    """Stages the pipeline recorded as skipped (3D-CN off, no ground truth to evaluate), with their note."""
     try:
         state = stage_status(run_dir)
     except LeapError:
-        return set()
-    return {name for name, rec in state.items() if rec.get("status") == "skipped"}
+        return {}
+    return {name: rec.get("note") for name, rec in state.items() if rec.get("status") == "skipped"}
 
 
 def read_metrics(run_dir: Path) -> dict[str, Any] | None:

@@ -108,6 +108,9 @@ class StageProgress(Message):
     """Units finished."""
     total: int
     """Units in the stage."""
+    skipped: str | None = None
+    """Set on a stage's completion report when it computed nothing: why ("no ground truth", "unchanged
+    since the last run"; :func:`leap_core.pipeline.skip_reason`)."""
 
 
 @dataclass(frozen=True)

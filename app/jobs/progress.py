@@ -36,6 +36,8 @@ class StageState:
     """``time.monotonic()`` of the first report."""
     seconds: float | None = None
     """Wall time once done."""
+    note: str | None = None
+    """Why a skipped stage computed nothing ("no ground truth", "unchanged since the last run")."""
 
     def fraction(self) -> float:
         if self.status in ("done", "skipped"):
@@ -63,6 +65,7 @@ class StageState:
             "seconds": None if seconds is None else round(seconds, 3),
             "eta_s": None if eta is None else round(eta, 1),
             "percent": round(100.0 * self.fraction(), 1),
+            "note": self.note,
         }
 
 
@@ -152,18 +155,22 @@ class ProgressTracker:
             return
         self._touch(stamp)
 
-    def mark_skipped(self, names: set[str]) -> None:
-        """Show stages the pipeline reports as skipped (it still ticks them through) as skipped."""
+    def mark_skipped(self, notes: Mapping[str, str | None]) -> None:
+        """Show stages the pipeline recorded as skipped (stage → its note) as skipped, with the note."""
         for s in self.stages:
-            if s.name in names and s.status in ("done", "pending"):
+            if s.name in notes and s.status in ("done", "pending", "skipped"):
                 s.status = "skipped"
                 s.seconds = None
+                s.note = s.note or notes[s.name]
 
-    def update(self, stage: str, done: int, total: int, now: float, stamp: str) -> bool:
+    def update(
+        self, stage: str, done: int, total: int, now: float, stamp: str, skipped: str | None = None
+    ) -> bool:
         """Record a report; returns True when the stage changed state (started or finished).
 
         Stages run in order, so earlier stages still marked running are closed and earlier stages that
-        never reported are marked skipped.
+        never reported are marked skipped. ``skipped`` (the reason) marks a stage that reports completion
+        without computing anything as skipped rather than done.
         """
         state = self._stage(stage)
         changed = False
@@ -187,6 +194,9 @@ class ProgressTracker:
         if total > 0 and done >= total and state.status == "running":
             state.status = "done"
             state.seconds = now - (state.started if state.started is not None else now)
+            changed = True
+        if skipped is not None and state.status in ("running", "done"):
+            state.status, state.note, state.seconds = "skipped", skipped, None
             changed = True
         self._touch(stamp)
         return changed
@@ -245,7 +255,8 @@ class ProgressTracker:
         return {
             "order": [s.name for s in self.stages],
             "stages": {
-                s.name: {"status": s.status, "done": s.done, "total": s.total, "seconds": s.seconds}
+                s.name: {"status": s.status, "done": s.done, "total": s.total, "seconds": s.seconds,
+                         **({"note": s.note} if s.note else {})}
                 for s in self.stages
             },
             "warnings": list(self.warnings),
@@ -275,6 +286,7 @@ class ProgressTracker:
                 s.done = int(entry.get("done") or 0)
                 s.total = int(entry.get("total") or 0)
                 s.seconds = entry.get("seconds")
+                s.note = entry.get("note")
             if s.status == "running":
                 # Stored while running, but no process is working on it now.
                 s.status = "cancelled" if status in TERMINAL_STATUSES else "running"

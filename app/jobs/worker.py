@@ -45,7 +45,7 @@ from app.jobs.messages import (
     decode_to_worker,
 )
 from leap_core.config import config_from_dict
-from leap_core.errors import Cancelled, LeapError
+from leap_core.errors import Cancelled, LeapError, ModelLoadError
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -111,11 +111,16 @@ def _run_logger(run_dir: Path) -> tuple[logging.Logger, logging.Handler]:
 class _Reporter:
     """The pipeline's progress callback: throttles messages and turns a cancel request into ``Cancelled``."""
 
-    def __init__(self, emit: Emit, should_cancel: Callable[[], bool], interval: float, log: logging.Logger):
+    def __init__(self, emit: Emit, should_cancel: Callable[[], bool], interval: float, log: logging.Logger,
+                 run_dir: Path | None = None):
         self.emit = emit
         self.should_cancel = should_cancel
         self.interval = interval
         self.log = log
+        self.run_dir = run_dir
+        """The pipeline's run folder (None for the demo generation): a stage's completion is checked there
+        for a skip (its ``stages.json`` record)."""
+        self.since = time.time()
         self._last: dict[str, float] = {}
         self._started: dict[str, float] = {}
 
@@ -127,12 +132,22 @@ class _Reporter:
         finished = total > 0 and done >= total
         if first:
             self._started[stage] = now
+        skipped = None
+        if finished and first and self.run_dir is not None:
+            # The pipeline reports a stage it skips as complete at once, after recording why. (Imported
+            # here: a run has loaded the pipeline by now; the server importing this module must not.)
+            from leap_core.pipeline.runner import skip_reason  # noqa: PLC0415  see the comment above
+
+            skipped = skip_reason(self.run_dir, stage, self.since)
         if first or finished or now - self._last[stage] >= self.interval:
             self._last[stage] = now
-            self.emit(StageProgress(stage, int(done), int(total)))
+            self.emit(StageProgress(stage, int(done), int(total), skipped))
         if finished and stage in self._started:
             seconds = now - self._started.pop(stage)
-            self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
+            if skipped is not None:
+                self.log.info("stage %s skipped (%s)", stage, skipped)
+            else:
+                self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
 
 
 def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> RunOutcome:
@@ -153,7 +168,7 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
         with run_dir_lock(run_dir):
             log.info("run started in %s (pid %d)", run_dir, os.getpid())
             wall0, cpu0 = time.perf_counter(), time.process_time()
-            reporter = _Reporter(emit, should_cancel, spec.progress_interval_s, log)
+            reporter = _Reporter(emit, should_cancel, spec.progress_interval_s, log, run_dir)
             try:
                 _run(spec, reporter, log)
             except Cancelled:
@@ -161,7 +176,7 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
                 return RunOutcome("cancelled")
             except LeapError as exc:
                 log.error("run failed: %s", exc)
-                return RunOutcome("failed", str(exc))
+                return RunOutcome("failed", _in_app_words(exc))
             except OSError as exc:
                 full = disk_full_message(exc)
                 log.error("run failed:\n%s", traceback.format_exc())
@@ -183,6 +198,16 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
         for h in list(log.handlers):
             h.close()
             log.removeHandler(h)
+
+
+def _in_app_words(exc: LeapError) -> str:
+    """A run's error as the app shows it. A missing model's own advice is for the command line (`hf
+    download`, `--models`); the app's users get the server's side of it (the dataset check's wording)."""
+    if isinstance(exc, ModelLoadError):
+        from leap_core.datasets.check import ADVICE  # noqa: PLC0415  a run has loaded the pipeline by now
+
+        return f"{str(exc).split('; ')[0]}; {ADVICE['models_missing'].app}"
+    return str(exc)
 
 
 def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:

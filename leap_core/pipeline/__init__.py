@@ -52,6 +52,7 @@ from leap_core.pipeline.runner import (
     StageReport,
     plan_stages,
     run_pipeline,
+    skip_reason,
     stage_fingerprints,
     stage_status,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "read_metrics_json",
     "result_tables",
     "run_pipeline",
+    "skip_reason",
     "stage_fingerprints",
     "stage_status",
     "world_points",

@@ -77,6 +77,30 @@ def stage_status(run_dir: str | Path) -> dict[str, dict[str, Any]]:
     return {name: dict(state.get(name, {"status": "pending"})) for name in STAGES}
 
 
+UNCHANGED = "unchanged since the last run"
+""":func:`skip_reason` of a stage whose outputs an earlier run (or attempt) in the folder left current."""
+
+
+def skip_reason(run_dir: str | Path, stage: str, since: float) -> str | None:
+    """Why a stage that reported itself complete computed nothing in a run started at ``since``
+    (``time.time()``), or None when it computed.
+
+    The pipeline reports a stage it skips as complete at once, after recording it in ``stages.json``:
+    ``skipped`` with its note ("no ground truth", "3D-CN disabled"), or ``done`` by an earlier run when its
+    outputs were current (:data:`UNCHANGED`). Progress displays (the CLI's bars, the app's run log) call
+    this when a stage reports completion, so a skipped stage reads "skipped (reason)" and not "done 0 s".
+    """
+    try:
+        record = stage_status(run_dir).get(stage, {})
+    except LeapError:
+        return None
+    if record.get("status") == "skipped":
+        return str(record.get("note") or "nothing to do")
+    if record.get("status") == "done" and float(record.get("finished") or since) < since:
+        return UNCHANGED
+    return None
+
+
 # ------------------------------------------------------------------------------------- fingerprints
 def _fingerprints(ctx: Ctx) -> dict[str, str]:
     """Every stage's fingerprint: the config sections it reads, its upstream stages' fingerprints and its
@@ -150,10 +174,11 @@ def _run_stage(ctx: Ctx, stage: StageInfo) -> StageReport:
         raise
     seconds = time.perf_counter() - t0
     status = extra.pop("status", "done")
-    if status == "skipped":
-        ctx.tick(name, len(ctx.frames), len(ctx.frames))
     ctx.state[name].update(status=status, seconds=round(seconds, 3), finished=time.time(), **extra)
     ctx.save_state()
+    if status == "skipped":
+        # After the record: a progress listener that sees the stage complete can read why (skip_reason).
+        ctx.tick(name, len(ctx.frames), len(ctx.frames))
     # A disabled stage (3dcn off, evaluate without ground truth) computed nothing: report it as not run.
     return StageReport(name, status != "skipped", status, seconds, int(extra.get("frames_computed", 0)))
 
@@ -294,6 +319,5 @@ def run_pipeline(
     return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
 
 
-__all__ = ["PIPELINE_VERSION", "RunResult", "StageReport", "plan_stages", "require_poses", "run_pipeline",
-           "stage_fingerprints",
-           "stage_status"]
+__all__ = ["PIPELINE_VERSION", "UNCHANGED", "RunResult", "StageReport", "plan_stages", "require_poses",
+           "run_pipeline", "skip_reason", "stage_fingerprints", "stage_status"]

@@ -21,6 +21,7 @@ client, data_root, settings, tiny_dataset = (
 def test_create_list_read_update_delete(client: TestClient, tiny_dataset: Path) -> None:
     project = create_project(client, tiny_dataset, name="Street <b>one</b>")
     assert project["name"] == "Street <b>one</b>"  # stored literally; the UI escapes it
+    check = project["dataset"].pop("check")
     assert project["dataset"] == {
         "kind": "folder",
         "path": str(tiny_dataset),
@@ -28,6 +29,7 @@ def test_create_list_read_update_delete(client: TestClient, tiny_dataset: Path) 
         "frames": 4,
         "has_ground_truth": True,
     }
+    assert check["verdict"] == "full" and check["frames"] == 4 and check["labeler"] == "simulated"
     assert project["schema_name"] == "semantickitti" and project["num_classes"] == 19
     assert project["form"]["labeler"] == "simulated" and project["form"]["voxel_size"] == 0.2
     assert project["last_run"] is None and project["runs_count"] == 0
@@ -148,6 +150,7 @@ def test_dataset_paths_outside_the_roots_are_403(
 def test_dataset_discovery_lists_sequences_in_the_roots(client: TestClient, tiny_dataset: Path) -> None:
     body = client.get(f"{API}/datasets").json()
     assert [d["path"] for d in body["data"]] == [str(tiny_dataset)]
+    assert body["data"][0].pop("check")["verdict"] == "full"
     assert body["data"][0] == {
         "path": str(tiny_dataset),
         "frames": 4,

@@ -20,6 +20,7 @@ from typing import Any
 
 import httpx
 import pytest
+from conftest import build_tiny_sequence
 from serverproc import Server, free_port
 
 from app.core.config import Settings
@@ -229,9 +230,9 @@ def test_422_answers_repeat_only_a_short_prefix(api: httpx.Client, project: dict
 
 
 def _sequence(folder: Path) -> Path:
-    (folder / "velodyne").mkdir(parents=True)
-    (folder / "velodyne" / "000000.bin").write_bytes(b"\0" * 16)
-    return folder
+    # A real (tiny) sequence: project creation refuses a folder the pipeline cannot run on.
+    assert folder.parent.name == "sequences"
+    return build_tiny_sequence(folder.parent.parent, n_frames=1, n_points=16).root
 
 
 def test_links_out_of_the_data_roots_are_neither_listed_nor_accepted(

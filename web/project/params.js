@@ -98,6 +98,7 @@ export function renderParams(ctx) {
             toast("Parameters saved");
             renderParams(ctx);
             if (ctx.render.next) ctx.render.next();
+            if (ctx.render.check) ctx.render.check(); // a new labeler changes what the dataset allows
           } catch (err) {
             error.textContent = err.message;
             const f = err instanceof ApiError ? err.field() : null;

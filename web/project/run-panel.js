@@ -12,6 +12,8 @@ function stageRow(ctx, stage) {
     if (stage.eta_s !== null && stage.eta_s !== undefined) detail += ` · ${fmtSeconds(stage.eta_s)} left`;
   } else if (stage.status === "done") {
     detail = stage.seconds !== null && stage.seconds !== undefined ? fmtSeconds(stage.seconds) : "done";
+  } else if (stage.status === "skipped") {
+    detail = stage.note ? `skipped (${stage.note})` : "skipped";
   } else {
     detail = stage.status;
   }

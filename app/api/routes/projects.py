@@ -13,24 +13,26 @@ router = APIRouter(prefix="/projects", tags=["projects"], responses={**NOT_FOUND
 
 
 @router.get("", response_model=models.ProjectsPublic)
-def list_projects(db: DbDep) -> models.ProjectsPublic:
-    data = [services.project_public(db, p) for p in crud.list_projects(db)]
+def list_projects(db: DbDep, settings: SettingsDep) -> models.ProjectsPublic:
+    data = [services.project_public(db, p, settings) for p in crud.list_projects(db)]
     return models.ProjectsPublic(data=data, count=len(data))
 
 
 @router.post("", response_model=models.ProjectPublic, status_code=status.HTTP_201_CREATED)
 def create_project(payload: models.ProjectCreate, db: DbDep, settings: SettingsDep) -> models.ProjectPublic:
-    return services.project_public(db, services.create_project(db, settings, payload))
+    return services.project_public(db, services.create_project(db, settings, payload), settings)
 
 
 @router.get("/{project_id}", response_model=models.ProjectPublic)
-def read_project(project_id: ProjectId, db: DbDep) -> models.ProjectPublic:
-    return services.project_public(db, crud.require_project(db, project_id))
+def read_project(project_id: ProjectId, db: DbDep, settings: SettingsDep) -> models.ProjectPublic:
+    return services.project_public(db, crud.require_project(db, project_id), settings)
 
 
 @router.patch("/{project_id}", response_model=models.ProjectPublic)
-def update_project(project_id: ProjectId, payload: models.ProjectUpdate, db: DbDep) -> models.ProjectPublic:
-    return services.project_public(db, services.update_project(db, project_id, payload))
+def update_project(
+    project_id: ProjectId, payload: models.ProjectUpdate, db: DbDep, settings: SettingsDep
+) -> models.ProjectPublic:
+    return services.project_public(db, services.update_project(db, project_id, payload), settings)
 
 
 @router.delete("/{project_id}", response_model=models.Message)

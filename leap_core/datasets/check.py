@@ -1,0 +1,750 @@
+"""What a sequence folder holds and what the pipeline can do with it, before a run (``leap check``, the
+app's project creation and dataset list).
+
+:func:`check_dataset` is a pure inspection: it lists the folder's entries, reads ``calib.txt`` and the
+poses, opens the folder with :class:`~leap_core.datasets.kitti.KittiSequence` (the reader every run uses,
+so the check refuses exactly what a run would refuse) and never raises for a bad folder: every problem
+becomes a :class:`Finding` with a code, the file it concerns and a neutral description. Scans are not
+read (only their sizes are checked), so the check costs a few directory listings whatever the sequence
+length.
+
+Advice depends on where it is shown: :func:`advice` words each finding's fix for the command line (it
+may name ``leap`` commands and flags) or for the web app (it names the app's own options, never a
+command-line flag). :func:`render_cli` prints a whole report; the app sends the structured report with
+the app wording (:func:`report_dict`).
+
+Verdict (:attr:`DatasetReport.verdict`):
+
+- ``"none"``: nothing can run (no folder, no scans, bad calibration, a file the reader refuses, or no
+  input any 2D labeler reads: neither camera images nor 2D ground truth);
+- ``"partial"``: some stages cannot run (e.g. no poses: the 3D stages; the chosen labeler lacks its
+  input or its models);
+- ``"full"``: every stage can run (a stage that is merely skipped, evaluation without ground truth or a
+  switched-off 3D-CN, does not count against it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from leap_core.config import PipelineConfig
+from leap_core.datasets.kitti import IMAGE_SUFFIXES, POSES_NOTE, KittiSequence, read_calib, read_poses
+from leap_core.errors import DatasetError, ModelLoadError
+from leap_core.labelers import LABELERS
+from leap_core.labelers.grounded_sam import model_folder_name, resolve_model_folder
+from leap_core.labelers.tiny_models import is_tiny_random
+from leap_core.pipeline.stages import STAGE_TABLE
+from leap_core.runtime import Runtime
+
+Severity = Literal["blocker", "warning", "info"]
+"""``blocker``: nothing can run; ``warning``: something cannot run or will be wrong; ``info``: a fact."""
+Verdict = Literal["full", "partial", "none"]
+StageState = Literal["runs", "skipped", "blocked"]
+"""``runs``: the stage can compute; ``skipped``: it will run as a no-op (evaluation without ground truth,
+3D-CN switched off); ``blocked``: it cannot run on this dataset."""
+Audience = Literal["cli", "app"]
+PoseSource = Literal["file", "estimated", "missing", "invalid", "will-estimate"]
+
+SHOWN_FRAMES = 5
+"""Frame ids a finding names (the rest are counted)."""
+POSES_STAGES = ("fuse", "smooth", "3dcn", "label_points", "evaluate", "export")
+"""Stages that place scans in the world (they read ``frame.pose``); ``labels2d`` and ``project`` do not."""
+
+
+# ------------------------------------------------------------------------------------------ records
+@dataclass(frozen=True)
+class Finding:
+    """One fact about the folder that limits what can run (or that a user should know)."""
+
+    code: str
+    """Stable identifier (``poses_missing``, ``calib_invalid``, ...: the keys of :data:`ADVICE`)."""
+    severity: Severity
+    path: str | None
+    """The file or folder it concerns."""
+    detail: str
+    """What is wrong, neutral (no advice; :func:`advice` adds that for the place it is shown)."""
+    frames: tuple[str, ...] = ()
+    """Frame ids concerned (the first :data:`SHOWN_FRAMES`), when per frame."""
+    count: int = 0
+    """How many frames are concerned in all (0 when not per frame)."""
+
+
+@dataclass(frozen=True)
+class FrameCoverage:
+    """How many of the sequence's scans have a per-frame file of one kind."""
+
+    present: int
+    """Scans with the file."""
+    total: int
+    """Scans in ``velodyne/``."""
+
+    @property
+    def kind(self) -> Literal["all", "some", "none"]:
+        if self.total and self.present >= self.total:
+            return "all"
+        return "some" if self.present else "none"
+
+
+@dataclass(frozen=True)
+class CalibCheck:
+    present: bool
+    """``calib.txt`` exists."""
+    valid: bool
+    """It has a usable P2 and Tr."""
+    problem: str | None = None
+    """What the reader refused (the file's problem), when not valid."""
+
+
+@dataclass(frozen=True)
+class PosesCheck:
+    source: PoseSource
+    """``file`` / ``estimated`` (:data:`~leap_core.datasets.kitti.POSES_NOTE` beside it, as
+    ``KittiSequence.pose_source``), ``missing``, ``invalid`` (unreadable) or ``will-estimate`` (missing,
+    and the caller estimates them before the 3D stages)."""
+    path: str
+    """The poses file the sequence reads."""
+    lines: int | None = None
+    """Poses in the file (None when missing or unreadable)."""
+    method: str | None = None
+    """For estimated poses: the note's ``method`` (``kiss-icp``)."""
+
+
+@dataclass(frozen=True)
+class LabelerCheck:
+    name: str
+    """Registry name (``leap_core.labelers.LABELERS``)."""
+    label: str
+    """Its human name (the app's choice)."""
+    can_run: bool
+    reasons: tuple[str, ...] = ()
+    """Codes of the findings that stop it."""
+
+
+@dataclass(frozen=True)
+class StageCheck:
+    name: str
+    """Stage name (``leap_core.pipeline.STAGES``)."""
+    label: str
+    state: StageState
+    reasons: tuple[str, ...] = ()
+    """Codes of the findings (or ``needs:<stage>``, ``off``) behind a skipped or blocked state."""
+
+
+@dataclass(frozen=True)
+class DatasetReport:
+    """The result of :func:`check_dataset`."""
+
+    root: str
+    verdict: Verdict
+    frames: int
+    """Scans in ``velodyne/``."""
+    first_frame: str | None
+    last_frame: str | None
+    images: FrameCoverage
+    ground_truth: FrameCoverage
+    """``labels/<frame>.label`` per scan (3D ground truth)."""
+    gt2d: FrameCoverage
+    """``gt2d/semantic`` + ``gt2d/instance`` masks per scan (2D ground truth)."""
+    calib: CalibCheck
+    poses: PosesCheck
+    labeler: str
+    """The labeler the stages were judged for."""
+    labeler_chosen: bool
+    """True when the caller named the labeler; False when the check picked the first one that can run."""
+    labelers: tuple[LabelerCheck, ...]
+    stages: tuple[StageCheck, ...]
+    findings: tuple[Finding, ...]
+
+    def finding(self, code: str) -> Finding | None:
+        return next((f for f in self.findings if f.code == code), None)
+
+    @property
+    def blocked_stages(self) -> list[str]:
+        return [s.name for s in self.stages if s.state == "blocked"]
+
+
+# ----------------------------------------------------------------------------------------- listing
+def _stems(folder: Path, suffixes: Iterable[str]) -> set[str]:
+    if not folder.is_dir():
+        return set()
+    allowed = tuple(suffixes)
+    try:
+        with os.scandir(folder) as it:
+            return {os.path.splitext(e.name)[0] for e in it if e.name.lower().endswith(allowed)}
+    except OSError:
+        return set()
+
+
+def _scan_sizes(vel: Path) -> dict[str, int]:
+    out: dict[str, int] = {}
+    try:
+        with os.scandir(vel) as it:
+            for e in it:
+                if e.name.endswith(".bin"):
+                    try:
+                        out[e.name[:-4]] = e.stat().st_size
+                    except OSError:
+                        out[e.name[:-4]] = -1
+    except OSError:
+        pass
+    return out
+
+
+def _ordered(ids: Iterable[str]) -> list[str]:
+    items = list(ids)
+    if all(s.isdigit() for s in items):
+        return sorted(items, key=lambda s: (int(s), s))
+    return sorted(items)
+
+
+def _missing(frames: list[str], have: set[str]) -> list[str]:
+    return [f for f in frames if f not in have]
+
+
+def _per_frame(code: str, severity: Severity, path: Path, detail: str, frames: list[str]) -> Finding:
+    return Finding(code, severity, str(path), detail, tuple(frames[:SHOWN_FRAMES]), len(frames))
+
+
+def dataset_stamp(root: str | Path, poses_path: str | Path | None = None) -> tuple[Any, ...]:
+    """A cheap key that changes when :func:`check_dataset`'s answer may change: the modification time
+    and size of the folder and of every entry it reads (a file added to or removed from a folder changes
+    the folder's mtime). For caching reports (the app's dataset list)."""
+    root = Path(root)
+    names = ("", "velodyne", "image_2", "labels", "gt2d", "gt2d/semantic", "gt2d/instance", "calib.txt",
+             "poses.txt", "times.txt", POSES_NOTE)
+    paths = [root / n if n else root for n in names]
+    if poses_path is not None:
+        paths += [Path(poses_path), Path(poses_path).parent / POSES_NOTE]
+    stamp: list[Any] = [str(root)]
+    for p in paths:
+        try:
+            st = p.stat()
+            stamp.append((st.st_mtime_ns, st.st_size, st.st_ino))
+        except OSError:
+            stamp.append(None)
+    return tuple(stamp)
+
+
+# ------------------------------------------------------------------------------------------- check
+def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts, in the order they matter
+    root: str | Path,
+    *,
+    config: PipelineConfig | None = None,
+    runtime: Runtime | None = None,
+    poses_path: str | Path | None = None,
+    estimate_poses: bool = False,
+    check_models: bool = True,
+) -> DatasetReport:
+    """Inspect a KITTI-layout sequence folder; never raises for a bad folder.
+
+    Args:
+        root: the sequence folder (``.../sequences/NN``).
+        config: the pipeline settings the run would use (its labeler, model ids, 3D-CN switch). None =
+            the defaults, with the first labeler (registry order) that can run on the folder.
+        runtime: where models are looked for (``models_dir``; None = the Hugging Face cache).
+        poses_path: read the poses from this file instead of ``root/poses.txt`` (as ``KittiSequence``).
+        estimate_poses: missing poses will be estimated before the 3D stages (the app's "Estimate poses
+            (KISS-ICP)" option, ``leap run --estimate-poses``): the 3D stages are then not blocked by them.
+        check_models: look for the grounded-sam model folders (skip for a listing that must stay cheap).
+
+    Returns:
+        The :class:`DatasetReport`.
+    """
+    root = Path(root)
+    chosen = config is not None
+    cfg = config or PipelineConfig()
+    rt = runtime or Runtime()
+    poses_file = Path(poses_path) if poses_path is not None else root / "poses.txt"
+    findings: list[Finding] = []
+    empty = FrameCoverage(0, 0)
+
+    def early(code: str, path: Path, detail: str) -> DatasetReport:
+        findings.append(Finding(code, "blocker", str(path), detail))
+        return _assemble(root, [], empty, empty, empty, CalibCheck(False, False),
+                         PosesCheck("missing", str(poses_file)), cfg, chosen, findings, {})
+
+    if not root.is_dir():
+        return early("not_a_folder", root, "no such folder" if not root.exists() else "not a folder")
+    vel = root / "velodyne"
+    if not vel.is_dir():
+        inner = sorted(p.parent.name for p in root.glob("sequences/*/velodyne") if p.is_dir())
+        inner += sorted(p.parent.name for p in root.glob("*/velodyne") if p.is_dir())
+        hint = f"; it holds sequence folders: {', '.join(inner[:5])}" if inner else ""
+        return early("not_a_sequence", vel,
+                     f"no velodyne/ folder, so this is not a KITTI sequence folder{hint}")
+    sizes = _scan_sizes(vel)
+    frames = _ordered(sizes)
+    if not frames:
+        return early("no_scans", vel, "no .bin scans")
+    damaged = [f for f in frames if sizes[f] < 0 or sizes[f] % 16]
+    if damaged:
+        findings.append(_per_frame("scans_damaged", "blocker", vel, "scans whose size is not a whole number "
+                                   "of points (16 bytes: float32 x, y, z, remission)", damaged))
+
+    images = _stems(root / "image_2", IMAGE_SUFFIXES)
+    labels = _stems(root / "labels", (".label",))
+    gt2d = _stems(root / "gt2d" / "semantic", (".png",)) & _stems(root / "gt2d" / "instance", (".png",))
+    cover_img = FrameCoverage(len(set(frames) & images), len(frames))
+    cover_gt = FrameCoverage(len(set(frames) & labels), len(frames))
+    cover_2d = FrameCoverage(len(set(frames) & gt2d), len(frames))
+
+    # Calibration: needed by every stage from the projection on (and by the reader to open the folder).
+    calib_path = root / "calib.txt"
+    if not calib_path.is_file():
+        calib = CalibCheck(False, False, "missing")
+        findings.append(Finding("calib_missing", "blocker", str(calib_path), "no calibration file"))
+    else:
+        try:
+            read_calib(calib_path)
+            calib = CalibCheck(True, True)
+        except DatasetError as exc:
+            calib = CalibCheck(True, False, exc.problem)
+            findings.append(Finding("calib_invalid", "blocker", str(calib_path), exc.problem))
+
+    # The reader every run uses decides what opens; its own poses reading gives pose_source.
+    poses: PosesCheck | None = None
+    try:
+        seq = KittiSequence(root, poses_path=poses_file)
+    except (DatasetError, OSError, ValueError) as exc:
+        where = Path(getattr(exc, "path", root))
+        problem = getattr(exc, "problem", str(exc))
+        if where == poses_file:
+            findings.append(Finding("poses_unreadable", "blocker", str(poses_file), problem))
+        elif not any(f.path == str(where) and f.severity == "blocker" for f in findings):
+            findings.append(Finding("unreadable", "blocker", str(where), problem))
+    else:
+        if seq.has_poses:
+            source = seq.pose_source
+            method = _note_method(poses_file) if source == "estimated" else None
+            poses = PosesCheck("estimated" if source == "estimated" else "file", str(poses_file),
+                               len(seq.cam_poses), method)
+        else:
+            poses = PosesCheck("missing", str(poses_file))
+    if poses is None:  # the reader stopped before (or without) reading the poses: read them here
+        if not poses_file.is_file():
+            poses = PosesCheck("missing", str(poses_file))
+        else:
+            try:
+                poses = PosesCheck("file", str(poses_file), len(read_poses(poses_file)))
+            except DatasetError as exc:
+                poses = PosesCheck("invalid", str(poses_file))
+                if not any(f.path == str(poses_file) for f in findings):  # the reader's refusal says it
+                    findings.append(Finding("poses_invalid", "warning", str(poses_file), exc.problem))
+    if poses.source == "missing":
+        if estimate_poses:
+            poses = PosesCheck("will-estimate", str(poses_file))
+            findings.append(Finding("poses_will_estimate", "info", str(poses_file),
+                                    "no poses file: the poses will be estimated (KISS-ICP) before the 3D "
+                                    "stages"))
+        else:
+            findings.append(Finding("poses_missing", "warning", str(poses_file),
+                                    "no poses file: the 3D stages need one pose per scan"))
+    elif poses.lines is not None:
+        # A scan NNNNNN takes pose line NNNNNN (the frame's number), so the file may hold more lines than
+        # there are scans (a subset copied out of a sequence) but not fewer than the highest number + 1.
+        numbered = all(f.isdigit() for f in frames)
+        beyond = [f for f in frames if int(f) >= poses.lines] if numbered else (
+            frames[poses.lines:] if poses.lines < len(frames) else [])
+        if beyond:
+            findings.append(_per_frame(
+                "poses_short", "warning", poses_file,
+                f"{poses.lines} poses, but scans are numbered up to {frames[-1]}: frames past the last line "
+                "have no pose", beyond))
+        elif poses.lines > len(frames):
+            findings.append(Finding("poses_extra", "info", str(poses_file),
+                                    f"{poses.lines} poses for {len(frames)} scans: scan NNNNNN takes pose "
+                                    "line NNNNNN (counted from 0)"))
+        if poses.source == "estimated":
+            findings.append(Finding("poses_estimated", "info", str(poses_file),
+                                    f"estimated poses ({poses.method or 'method not recorded'}; note "
+                                    f"{POSES_NOTE})"))
+
+    # 2D inputs: camera images (grounded-sam), 2D ground truth (simulated).
+    if cover_img.kind == "none":
+        findings.append(Finding("images_missing", "warning", str(root / "image_2"), "no camera images"))
+    elif cover_img.kind == "some":
+        findings.append(_per_frame("images_partial", "warning", root / "image_2",
+                                   "scans without a camera image of the same number",
+                                   _missing(frames, images)))
+    if cover_2d.kind == "none":
+        findings.append(Finding("gt2d_missing", "info", str(root / "gt2d"), "no 2D ground truth"))
+    elif cover_2d.kind == "some":
+        findings.append(_per_frame("gt2d_partial", "warning", root / "gt2d",
+                                   "scans without 2D ground truth (gt2d/semantic and gt2d/instance)",
+                                   _missing(frames, gt2d)))
+    if cover_img.kind == "none" and cover_2d.kind == "none":
+        findings.append(Finding("no_2d_input", "blocker", str(root),
+                                "neither camera images (image_2/) nor 2D ground truth (gt2d/): no 2D labeler "
+                                "has anything to label"))
+    if cover_gt.kind == "none":
+        findings.append(Finding("labels_missing", "info", str(root / "labels"),
+                                "no ground-truth labels: the run is not evaluated"))
+    elif cover_gt.kind == "some":
+        findings.append(_per_frame("labels_partial", "warning", root / "labels",
+                                   "scans without a ground-truth .label file: the run is not evaluated",
+                                   _missing(frames, labels)))
+    model_codes = _check_models(cfg, rt, findings) if check_models else {}
+    return _assemble(root, frames, cover_img, cover_gt, cover_2d, calib, poses, cfg, chosen, findings,
+                     model_codes)
+
+
+def _note_method(poses_file: Path) -> str | None:
+    try:
+        note = json.loads((poses_file.parent / POSES_NOTE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    method = note.get("method") if isinstance(note, dict) else None
+    return str(method) if method else None
+
+
+def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> dict[str, tuple[str, ...]]:
+    """Findings on the grounded-sam model folders; returns {labeler: codes that stop it}."""
+    gs = cfg.grounded_sam
+    missing: list[str] = []
+    for model_id in (gs.detector_id, gs.segmenter_id):
+        try:
+            folder = resolve_model_folder(model_id, rt.models_dir, allow_download=False)
+        except ModelLoadError:
+            missing.append(model_id)
+            continue
+        if is_tiny_random(folder):
+            findings.append(Finding("models_random", "warning", str(folder),
+                                    f"{model_id}: a tiny RANDOM-weight test model; its labels are "
+                                    "meaningless"))
+    if not missing:
+        return {"grounded-sam": ()}
+    if rt.models_dir is not None:
+        names = ", ".join(f"{model_folder_name(m)}/ ({m})" for m in missing)
+        findings.append(Finding("models_missing", "warning", str(rt.models_dir),
+                                f"no model folder with a config.json for {names}"))
+    else:
+        findings.append(Finding("models_missing", "warning", None,
+                                f"no models folder is set and {', '.join(missing)} "
+                                f"{'is' if len(missing) == 1 else 'are'} not in the Hugging Face cache"))
+    return {"grounded-sam": ("models_missing",)}
+
+
+def _labeler_checks(
+    frames: list[str], img: FrameCoverage, gt2d: FrameCoverage, model_codes: dict[str, tuple[str, ...]],
+) -> tuple[LabelerCheck, ...]:
+    out = []
+    for name, spec in LABELERS.items():
+        cover = img if spec.needs == "images" else gt2d
+        if not frames:
+            reasons: tuple[str, ...] = ("no_scans",)
+        elif cover.kind == "none":
+            reasons = ("images_missing",) if spec.needs == "images" else ("gt2d_missing",)
+        elif cover.kind == "some":
+            reasons = ("images_partial",) if spec.needs == "images" else ("gt2d_partial",)
+        else:
+            reasons = ()
+        reasons += model_codes.get(name, ())
+        out.append(LabelerCheck(name, spec.label, not reasons, reasons))
+    return tuple(out)
+
+
+def _alternative(labelers: Iterable[LabelerCheck], besides: str | None) -> LabelerCheck | None:
+    """The labeler to suggest: the first (registry order) that can run, else the first whose input the
+    folder has and that lacks only its models."""
+    others = [lab for lab in labelers if lab.name != besides]
+    return next((lab for lab in others if lab.can_run), None) or next(
+        (lab for lab in others if set(lab.reasons) <= {"models_missing"}), None)
+
+
+def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gathered
+    root: Path, frames: list[str], img: FrameCoverage, gt: FrameCoverage, gt2d: FrameCoverage,
+    calib: CalibCheck, poses: PosesCheck, cfg: PipelineConfig, chosen: bool, findings: list[Finding],
+    model_codes: dict[str, tuple[str, ...]],
+) -> DatasetReport:
+    labelers = _labeler_checks(frames, img, gt2d, model_codes)
+    by_name = {lab.name: lab for lab in labelers}
+    labeler = cfg.labeler
+    if not chosen:
+        pick = _alternative(labelers, None)
+        labeler = pick.name if pick is not None else labeler
+    if labeler not in model_codes and by_name[labeler].can_run:
+        # The models concern only runs with the grounded-sam labeler: a fact here, not a warning.
+        findings[:] = [replace(f, severity="info") if f.code in ("models_missing", "models_random") else f
+                       for f in findings]
+    blockers = [f.code for f in findings if f.severity == "blocker"]
+    alt = _alternative(labelers, labeler)
+    if not by_name[labeler].can_run and not blockers and alt is not None:
+        # Only with another labeler to suggest: otherwise the findings behind it carry the fixes.
+        why = ", ".join(reason_text(r) for r in by_name[labeler].reasons)
+        findings.append(Finding(
+            "labeler_cannot_run", "warning", None,
+            f"the {labeler} labeler cannot run ({why})"
+            + (f"; the {alt.name} labeler can" if alt.can_run else
+               f"; the {alt.name} labeler could, given its models"),
+        ))
+    codes = {f.code for f in findings}
+    pose_codes = tuple(c for c in ("poses_missing", "poses_invalid", "poses_short") if c in codes)
+    stages: list[StageCheck] = []
+    state: dict[str, StageState] = {}
+    for info in STAGE_TABLE:
+        reasons: list[str] = []
+        if blockers:
+            reasons = blockers
+        else:
+            if info.name == "labels2d" and not by_name[labeler].can_run:
+                reasons = ["labeler_cannot_run", *by_name[labeler].reasons]
+            if info.name in POSES_STAGES:
+                reasons += pose_codes
+            if not reasons:  # its own reasons already say why; "needs X" only when it has none
+                reasons = [f"needs:{u}" for u in info.upstream if state.get(u) == "blocked"]
+        if reasons:
+            st: StageState = "blocked"
+        elif not info.is_enabled(cfg):
+            st, reasons = "skipped", ["off"]
+        elif info.name == "evaluate" and gt.kind != "all":
+            st, reasons = "skipped", ["labels_missing" if gt.kind == "none" else "labels_partial"]
+        else:
+            st = "runs"
+        state[info.name] = st
+        stages.append(StageCheck(info.name, info.label, st, tuple(dict.fromkeys(reasons))))
+    if blockers:
+        verdict: Verdict = "none"
+    elif any(s.state == "blocked" for s in stages):
+        verdict = "partial"
+    else:
+        verdict = "full"
+    return DatasetReport(
+        root=str(root), verdict=verdict, frames=len(frames),
+        first_frame=frames[0] if frames else None, last_frame=frames[-1] if frames else None,
+        images=img, ground_truth=gt, gt2d=gt2d, calib=calib, poses=poses, labeler=labeler,
+        labeler_chosen=chosen, labelers=labelers, stages=tuple(stages), findings=tuple(findings),
+    )
+
+
+# ------------------------------------------------------------------------------------------ wording
+@dataclass(frozen=True)
+class Advice:
+    """How to fix one finding code, worded for each place it is shown."""
+
+    cli: str
+    """For the command line: may name ``leap`` commands and flags. ``{seq}`` = the sequence folder."""
+    app: str
+    """For the web app: names the app's own options; never a command-line flag."""
+    reason: str = ""
+    """Short phrase for a stage or labeler that it stops ("no poses")."""
+
+
+ADVICE: dict[str, Advice] = {
+    "not_a_folder": Advice("give the path of a sequence folder (…/sequences/NN)",
+                           "pick an existing sequence folder inside a data root", "no such folder"),
+    "not_a_sequence": Advice("give a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
+                             "pick a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
+                             "not a sequence folder"),
+    "no_scans": Advice("add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
+                       "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)", "no scans"),
+    "scans_damaged": Advice("replace the damaged scans", "replace the damaged scans", "damaged scans"),
+    "calib_missing": Advice(
+        "write calib.txt with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' line (the 3×4 "
+        "LiDAR→camera transform)",
+        "add calib.txt to the dataset, with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' "
+        "line (the 3×4 LiDAR→camera transform)", "no calibration"),
+    "calib_invalid": Advice("fix calib.txt ('P2:' and 'Tr:', 12 numbers each)",
+                            "fix calib.txt in the dataset ('P2:' and 'Tr:', 12 numbers each)",
+                            "unusable calibration"),
+    "unreadable": Advice("fix the file named above", "fix the file named above in the dataset",
+                         "a file the reader refuses"),
+    "no_2d_input": Advice("add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
+                          "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "
+                          "Grounding DINO + SAM labeler", "nothing to label from"),
+    "images_missing": Advice("add camera images as image_2/NNNNNN.png (or .jpg) to use "
+                             "--labeler grounded-sam",
+                             "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset to use the "
+                             "Grounding DINO + SAM labeler", "no camera images"),
+    "images_partial": Advice("add the missing images, or label only frames that have one (--frames A:B)",
+                             "add the missing images to the dataset's image_2/ folder",
+                             "frames without a camera image"),
+    "gt2d_missing": Advice("", "", "no 2D ground truth"),
+    "gt2d_partial": Advice("add the missing gt2d/semantic and gt2d/instance masks, or use "
+                           "--labeler grounded-sam",
+                           "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM "
+                           "labeler under Parameters", "frames without 2D ground truth"),
+    "labels_missing": Advice("", "", "no ground truth"),
+    "labels_partial": Advice("add the missing labels/NNNNNN.label files (evaluation needs one per scan)",
+                             "add the missing labels/NNNNNN.label files to the dataset (evaluation needs one "
+                             "per scan)", "ground truth for only some scans"),
+    "poses_missing": Advice(
+        "estimate them with `leap poses {seq}` (KISS-ICP LiDAR odometry), or add --estimate-poses to "
+        "`leap run`",
+        "create the project with \"Estimate poses (KISS-ICP)\" ticked, or add poses.txt to the dataset",
+        "no poses"),
+    "poses_will_estimate": Advice("", "", ""),
+    "poses_invalid": Advice("fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",
+                            "fix or remove the dataset's poses.txt, then create the project with \"Estimate "
+                            "poses (KISS-ICP)\" ticked", "unreadable poses"),
+    "poses_unreadable": Advice("fix or remove poses.txt (then `leap poses {seq}` estimates new ones)",
+                               "fix or remove the dataset's poses.txt, then create the project with "
+                               "\"Estimate poses (KISS-ICP)\" ticked", "unreadable poses"),
+    "poses_short": Advice("poses.txt needs one line per frame number: add the missing lines, or estimate "
+                          "poses with `leap poses {seq} --force`",
+                          "poses.txt needs one line per frame number: add the missing lines, or remove it "
+                          "and create the project with \"Estimate poses (KISS-ICP)\" ticked",
+                          "frames without a pose"),
+    "poses_extra": Advice("", "", ""),
+    "poses_estimated": Advice("", "", ""),
+    "models_missing": Advice(
+        "pass --models DIR with grounding-dino-tiny/ and sam-vit-base/ (README 'Real 2D labels'); "
+        "`leap make-tiny-models DIR` writes random-weight stand-ins to try the code path",
+        "the server needs a models folder holding grounding-dino-tiny/ and sam-vit-base/: whoever runs it "
+        "sets it (LEAP_MODELS_DIR) and restarts it", "its models are not found"),
+    "models_random": Advice("use real weights (README 'Real 2D labels')",
+                            "the server's models folder holds test models with random weights: ask whoever "
+                            "runs it for real weights", ""),
+    "labeler_cannot_run": Advice("use --labeler {alt}", "choose \"{alt_label}\" as the 2D labeler under "
+                                 "Parameters", "the chosen labeler cannot run"),
+    "off": Advice("", "", "3D-CN off"),
+}
+"""Every finding code with its fix for the command line and for the app."""
+
+
+def advice(finding: Finding, audience: Audience, report: DatasetReport) -> str:
+    """The fix for ``finding`` worded for the command line or the app ('' when there is nothing to do)."""
+    entry = ADVICE.get(finding.code)
+    if entry is None:
+        return ""
+    text = entry.cli if audience == "cli" else entry.app
+    if finding.code == "labeler_cannot_run":
+        alt = _alternative(report.labelers, report.labeler)
+        if alt is None:
+            return "fix the problems listed for the labelers" if audience == "cli" else (
+                "fix the problems listed for the 2D labelers")
+        return text.format(alt=alt.name, alt_label=alt.label)
+    return text.format(seq=report.root)
+
+
+def describe(finding: Finding) -> str:
+    """The finding in one line: its file, what is wrong and the frames concerned."""
+    text = f"{finding.path}: {finding.detail}" if finding.path else finding.detail
+    if finding.count:
+        shown = ", ".join(finding.frames) + (", …" if finding.count > len(finding.frames) else "")
+        text += f" ({finding.count} frame{'s' if finding.count != 1 else ''}: {shown})"
+    return text
+
+
+def reason_text(code: str) -> str:
+    """A stage's or labeler's reason code as a short phrase."""
+    if code.startswith("needs:"):
+        return f"needs {code.split(':', 1)[1]}"
+    entry = ADVICE.get(code)
+    return entry.reason if entry is not None and entry.reason else code.replace("_", " ")
+
+
+VERDICT_TEXT: dict[Verdict, str] = {
+    "full": "every stage can run",
+    "partial": "only some stages can run",
+    "none": "the pipeline cannot run on this folder",
+}
+
+
+def stage_line(stage: StageCheck) -> str:
+    """``runs`` / ``skipped (no ground truth)`` / ``cannot run (no poses)``."""
+    why = ", ".join(reason_text(r) for r in stage.reasons)
+    if stage.state == "runs":
+        return "runs"
+    return f"skipped ({why})" if stage.state == "skipped" else f"cannot run ({why})"
+
+
+def _coverage_line(cover: FrameCoverage, what: str) -> str:
+    return f"{cover.present} of {cover.total} scans have {what}"
+
+
+def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = None) -> str:
+    """The report as ``leap check`` prints it (advice names commands and flags)."""
+    lines = [f"dataset   {report.root}"]
+    if report.frames:
+        plural = "s" if report.frames != 1 else ""
+        lines.append(f"frames    {report.frames} scan{plural} ({report.first_frame} … {report.last_frame})")
+        lines.append(f"images    {_coverage_line(report.images, 'a camera image (image_2/)')}")
+        cal = report.calib
+        lines.append("calib     " + ("calib.txt: P2 and Tr read" if cal.valid else
+                                    f"calib.txt: {cal.problem or 'missing'}"))
+        p = report.poses
+        pose_text = {
+            "file": f"poses.txt, {p.lines} poses",
+            "estimated": f"poses.txt, {p.lines} poses, estimated ({p.method or 'method not recorded'})",
+            "missing": "missing (no poses.txt)",
+            "invalid": "poses.txt cannot be read",
+            "will-estimate": "missing: estimated before the 3D stages",
+        }[p.source]
+        lines.append(f"poses     {pose_text}")
+        lines.append(f"labels    {report.ground_truth.kind}: "
+                     f"{_coverage_line(report.ground_truth, 'ground truth (labels/)')}")
+        gt2d = _coverage_line(report.gt2d, "2D ground truth (gt2d/)")
+        lines.append(f"gt2d      {report.gt2d.kind}: {gt2d}")
+        lines.append("")
+        lines.append("labelers")
+        for lab in report.labelers:
+            why = ", ".join(map(reason_text, lab.reasons))
+            state = "can run" if lab.can_run else f"cannot run ({why})"
+            lines.append(f"  {lab.name:<14} {state}")
+        how = "" if report.labeler_chosen else ", picked by the check; --labeler picks another"
+        lines.append("")
+        lines.append(f"stages (labeler {report.labeler}{how})")
+        for st in report.stages:
+            lines.append(f"  {st.name:<14} {stage_line(st)}")
+    order = {"blocker": 0, "warning": 1, "info": 2}
+    if report.findings:
+        lines.append("")
+        lines.append("findings")
+    for f in sorted(report.findings, key=lambda f: order[f.severity]):
+        lines.append(f"  {f.severity:<8} {describe(f)}")
+        fix = advice(f, "cli", report) if f.severity != "info" else ""
+        if fix:
+            lines.append(f"           fix: {fix}")
+    lines.append("")
+    code = f" (exit code {exit_codes[report.verdict]})" if exit_codes else ""
+    lines.append(f"verdict: {VERDICT_TEXT[report.verdict]}{code}")
+    return "\n".join(lines)
+
+
+def report_dict(report: DatasetReport, audience: Audience) -> dict[str, Any]:
+    """The report as plain JSON-able data, each finding with its ``message`` and ``fix`` and each stage
+    and labeler with its ``reason`` worded for ``audience`` (the app sends ``"app"``)."""
+    data = asdict(report)
+    data["summary"] = VERDICT_TEXT[report.verdict]
+    for cover in ("images", "ground_truth", "gt2d"):
+        data[cover]["kind"] = getattr(report, cover).kind
+    data["findings"] = [
+        {**asdict(f), "message": describe(f), "fix": advice(f, audience, report)} for f in report.findings
+    ]
+    data["stages"] = [
+        {**asdict(s), "reason": "" if s.state == "runs" else ", ".join(map(reason_text, s.reasons))}
+        for s in report.stages
+    ]
+    data["labelers"] = [
+        {**asdict(lab), "reason": ", ".join(map(reason_text, lab.reasons))} for lab in report.labelers
+    ]
+    return data
+
+
+__all__ = [
+    "ADVICE",
+    "POSES_STAGES",
+    "Advice",
+    "Audience",
+    "CalibCheck",
+    "DatasetReport",
+    "Finding",
+    "FrameCoverage",
+    "LabelerCheck",
+    "PosesCheck",
+    "StageCheck",
+    "Verdict",
+    "advice",
+    "check_dataset",
+    "dataset_stamp",
+    "describe",
+    "reason_text",
+    "render_cli",
+    "report_dict",
+    "stage_line",
+]

@@ -1,0 +1,75 @@
+// The dataset check (GET /datasets and a project's dataset.check; leap_core/datasets/check.py): what the
+// pipeline can do with a dataset, each problem with its fix in the app's words. Shown under the dataset
+// picker of the create-project form and as a card on the project page.
+
+import { h, replace } from "./dom.js";
+
+const SEVERITY_ORDER = { blocker: 0, warning: 1, info: 2 };
+
+/** The findings worth showing (blockers and warnings; facts without a fix stay in the details). */
+function problems(check) {
+  return check.findings
+    .filter((f) => f.severity !== "info")
+    .sort((a, b) => SEVERITY_ORDER[a.severity] - SEVERITY_ORDER[b.severity]);
+}
+
+function findingItem(f) {
+  return h(
+    "li",
+    { class: `check-finding check-${f.severity}`, dataset: { code: f.code, severity: f.severity } },
+    h("span", { class: "check-message" }, f.message),
+    f.fix ? h("span", { class: "check-fix" }, ` Fix: ${f.fix}`) : null,
+  );
+}
+
+function stageList(check) {
+  return h(
+    "ul",
+    { class: "check-stages small" },
+    check.stages.map((s) =>
+      h(
+        "li",
+        { class: `check-stage check-stage-${s.state}`, dataset: { stage: s.name, state: s.state } },
+        h("span", { class: "stage-name" }, s.label),
+        " ",
+        s.state === "runs" ? "runs" : s.state === "skipped" ? `skipped (${s.reason})` : `cannot run (${s.reason})`,
+      ),
+    ),
+  );
+}
+
+function facts(check) {
+  const poses = { file: "poses.txt", estimated: "estimated poses", missing: "no poses", invalid: "unreadable poses", "will-estimate": "poses estimated before the 3D stages" }[check.poses.source];
+  return `${check.frames} frames · ${check.images.present} with a camera image · ${poses} · ground truth: ${check.ground_truth.kind} · 2D ground truth: ${check.gt2d.kind}`;
+}
+
+/** A compact summary for the create-project form: the verdict and the problems with their fixes. */
+export function checkSummary(check) {
+  if (!check) return null;
+  const list = problems(check);
+  return h(
+    "div",
+    { class: `dataset-check verdict-${check.verdict}`, id: "new-dataset-check", dataset: { verdict: check.verdict } },
+    h("p", { class: "small" }, h("strong", {}, check.verdict === "full" ? "✓ " : "⚠ "), check.summary, " · ", facts(check)),
+    list.length ? h("ul", { class: "check-findings small" }, list.map(findingItem)) : null,
+  );
+}
+
+/** The project page's "Dataset check" card (hidden when every stage can run and nothing needs a word). */
+export function renderDatasetCheck(el, project) {
+  const check = project.dataset && project.dataset.check;
+  const list = check ? problems(check) : [];
+  if (!check || (check.verdict === "full" && !list.length)) {
+    el.hidden = true;
+    replace(el);
+    return;
+  }
+  el.hidden = false;
+  replace(
+    el,
+    h("h2", {}, "Dataset check"),
+    h("p", { class: "muted small" }, `${check.summary} · ${facts(check)}`),
+    h("ul", { class: "check-findings" }, list.map(findingItem)),
+    h("details", {}, h("summary", { class: "small" }, "Stages"), stageList(check)),
+  );
+}
