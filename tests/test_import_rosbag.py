@@ -579,7 +579,7 @@ def test_refuses_a_non_empty_output_without_force(demo: KittiSequence, tmp_path:
         import_rosbag(garbage, out, cfg)
     assert (out / "mine.txt").read_text() == "keep"
     # --force re-imports over a previous import, never over a user's other files.
-    with pytest.raises(DatasetError, match="'mine.txt', which an import does not write"):
+    with pytest.raises(DatasetError, match=r"'mine\.txt', which an import does not write"):
         import_rosbag(bag, out, cfg, force=True)
     assert (out / "mine.txt").read_text() == "keep"
     (out / "mine.txt").unlink()
