@@ -160,11 +160,7 @@ def test_poses_are_indexed_by_frame_number(seq: TinySequence, tmp_path: Path) ->
             (sub / part.format(fid)).unlink()
     r = check_dataset(sub, config=SIMULATED, check_models=False)
     assert r.frames == 2 and r.poses.lines == 4 and r.finding("poses_short") is None
-    # Until the reader takes a frame's pose by its file number it refuses the folder, naming poses.txt.
-    if r.verdict == "none":
-        assert [f.path for f in r.findings if f.severity == "blocker"] == [str(sub / "poses.txt")]
-    else:
-        assert r.verdict == "full" and r.finding("poses_extra") is not None
+    assert r.verdict == "full" and r.finding("poses_extra") is not None
 
     short = shutil.copytree(seq.root, tmp_path / "short")
     (short / "poses.txt").write_text("".join((short / "poses.txt").read_text().splitlines(True)[:2]))

@@ -322,7 +322,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
             source = seq.pose_source
             method = _note_method(poses_file) if source == "estimated" else None
             poses = PosesCheck("estimated" if source == "estimated" else "file", str(poses_file),
-                               len(seq.cam_poses), method)
+                               seq.pose_lines, method)
         else:
             poses = PosesCheck("missing", str(poses_file))
     if poses is None:  # the reader stopped before (or without) reading the poses: read them here

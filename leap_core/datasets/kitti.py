@@ -427,8 +427,11 @@ class KittiSequence:
         self.poses_path = Path(poses_path) if poses_path is not None else self.root / "poses.txt"
         self._cam_poses: npt.NDArray[np.float64] | None = None
         self._poses: npt.NDArray[np.float64] | None = None
+        self.pose_lines: int | None = None
+        """Lines of the poses file (≥ the highest frame number + 1), None without poses."""
         if self.poses_path.is_file():
             cam_poses = read_poses(self.poses_path)
+            self.pose_lines = len(cam_poses)
             rows = _rows_of_frames(self.poses_path, len(cam_poses), "poses", self)
             self._cam_poses = cam_poses[rows]
             # Re-based on line 0 before selecting, so a frame's world coordinates are the same in a copied

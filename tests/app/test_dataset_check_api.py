@@ -122,9 +122,8 @@ def test_labeler_and_images_warnings_use_the_apps_words(client: TestClient, tiny
 
 
 def test_a_single_scan_copied_out_with_the_full_poses(client: TestClient, tiny_dataset: Path) -> None:
-    """Frame 000002 alone, with the sequence's 4-line poses.txt and times.txt. The KITTI reader decides:
-    once it reads a frame's pose by its file number the project is created with a full check; a reader
-    that wants one pose per scan refuses it, naming poses.txt."""
+    """Frame 000002 alone, with the sequence's 4-line poses.txt and times.txt: the reader takes a frame's
+    pose by its file number, so the project is created with a full check."""
     single = tiny_dataset.parents[2] / "single" / "sequences" / "00"
     for sub, suffix in (("velodyne", ".bin"), ("image_2", ".png"), ("labels", ".label"),
                         ("gt2d/semantic", ".png"), ("gt2d/instance", ".png")):
@@ -133,12 +132,9 @@ def test_a_single_scan_copied_out_with_the_full_poses(client: TestClient, tiny_d
     for name in ("calib.txt", "poses.txt", "times.txt"):
         shutil.copy(tiny_dataset / name, single / name)
     r = _post(client, single)
-    if r.status_code == 422:
-        assert str(single / "poses.txt") in r.text, r.text
-    else:
-        assert r.status_code == 201, r.text
-        check = r.json()["dataset"]["check"]
-        assert check["verdict"] == "full" and check["frames"] == 1 and check["poses"]["lines"] == 4
+    assert r.status_code == 201, r.text
+    check = r.json()["dataset"]["check"]
+    assert check["verdict"] == "full" and check["frames"] == 1 and check["poses"]["lines"] == 4
 
 
 def test_the_run_shows_skipped_stages_with_their_reason(client: TestClient, tiny_dataset: Path) -> None:
