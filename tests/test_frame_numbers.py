@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from app.cli import _frame_range, cli
-from leap_core.config import PipelineConfig
+from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.stage import reliable_targets
 from leap_core.datasets.kitti import KittiSequence
@@ -144,3 +144,17 @@ def test_a_run_without_poses_stops_before_any_work(no_poses: Path, tmp_path: Pat
     last = res.output.strip().splitlines()[-1]
     assert last.startswith("error:") and "poses.txt: no poses" in last
     assert not (tmp_path / "cli").exists()
+
+
+@pytest.mark.slow
+def test_copy_labels_like_the_whole_sequence_with_the_3dcn_on(
+    whole: Path, subset: Path, tmp_path: Path
+) -> None:
+    """The same with a (small, fast) 3D-CN round: its selection, training and fusion see the same frames."""
+    cfg = config_from_dict({"consistency": {"enabled": True, "min_steps": 20, "points_per_scan": 2048,
+                                            "backbone": {"channels": 16, "layers": 2}}})
+    schema = builtin_preset("semantickitti").schema
+    a = run_pipeline(whole, schema, cfg, tmp_path / "whole", frames=SUBSET)
+    b = run_pipeline(subset, schema, cfg, tmp_path / "copy")
+    assert a.stages["3dcn"].status == b.stages["3dcn"].status == "done"
+    assert _exports(tmp_path / "copy") == _exports(tmp_path / "whole")
