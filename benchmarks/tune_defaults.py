@@ -2,22 +2,28 @@
 the seeds the README reports (docs/METHOD.md, "How defaults were chosen").
 
 The 3D-CN settings below were once picked by their camera-view mIoU on the demo sequence (seed 0), the very
-sequence whose figures the README prints. Here each is swept one at a time around the current defaults
-(every other setting at its default) on generated sequences of two seed groups:
+sequence whose figures the README prints. Here each is swept one at a time around a centre (the current
+defaults, or the ``--set`` overrides), every other setting at the centre, on generated sequences of two
+seed groups:
 
 - **tuning** seeds (default 101, 102, 103): the choice is made on these alone;
 - **report** seeds (default 0 = the demo's seed, 201, 202): shown beside them, never used to choose.
 
 Rule: per setting, the value with the highest mean camera-view ``+3D-CN x1`` mIoU over the tuning seeds
-wins; the current default stays unless another value beats it there by more than ``--tie`` points.
+wins; the centre's value stays unless another value beats it there by more than ``--tie`` points.
 
 Values that differ only after training (``temperature``) reuse the round's checkpoint; the others train
-the network again. Stages up to smoothing run once per seed (the pipeline's cache).
+the network again. Stages up to smoothing run once per seed (the pipeline's cache). Figures are cached per
+seed and configuration under ``--work`` (``results*.json``), so a sweep cut off by a time limit resumes,
+and one run elsewhere (a GPU machine) can be tabulated here with ``--cached-only``.
 
 Usage::
 
     .venv/bin/python benchmarks/tune_defaults.py --work /tmp/tune        # the whole sweep (long on a CPU)
     .venv/bin/python benchmarks/tune_defaults.py --work /tmp/tune --only temperature --frames 30
+    # the sweep of record (docs/METHOD.md): around the former defaults, 3D-CN on a GPU, 6 seeds at once
+    .venv/bin/python benchmarks/tune_defaults.py --work /tmp/tune --jobs 6 --device cuda --threads 2 \
+        --set consistency.temperature=0.25 --set 'consistency.selection_scope="sequence"'
     .venv/bin/python benchmarks/tune_defaults.py --from-json benchmarks/results/tune_defaults.json
 
 Prints one table per setting (rows: values; columns: mIoU per seed and the mean of each seed group) and
@@ -31,7 +37,6 @@ import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -86,10 +91,43 @@ def _figures(metrics: dict[str, Any]) -> dict[str, float]:
     }
 
 
+def base_config(device: str, threads: int, sets: dict[str, Any]) -> PipelineConfig:
+    """The centre of the sweep: the defaults with the 3D-CN on (one round) and the ``--set`` overrides."""
+    base = config_from_dict(
+        {"consistency": {"enabled": True, "iterations": 1, "device": device, "num_threads": threads}},
+        PipelineConfig(),
+    )
+    for path, value in sets.items():
+        base = config_from_dict(_override(path, value), base)
+    return base
+
+
+def variants(base: PipelineConfig, only: list[str]) -> list[tuple[str, str, PipelineConfig, str]]:
+    """``(setting, value as JSON, config, cache key)`` of every swept value, in sweep order."""
+    out = []
+    for name in only:
+        path, values = SETTINGS[name]
+        for value in values:
+            cfg = config_from_dict(_override(path, value), base)
+            out.append((name, json.dumps(value), cfg, json.dumps(config_to_dict(cfg), sort_keys=True)))
+    return out
+
+
+def read_caches(root: Path) -> dict[str, Any]:
+    """Figures by cache key from every ``results*.json`` of one seed's folder (runs split over processes
+    or machines write one file each)."""
+    cache: dict[str, Any] = {}
+    for f in sorted(root.glob("results*.json")):
+        cache.update(json.loads(f.read_text()))
+    return cache
+
+
 def sweep_seed(  # noqa: PLR0917  one worker's whole job, picklable arguments
-    seed: int, frames: int, work: str, only: list[str], device: str, threads: int, sets: dict[str, Any]
+    seed: int, frames: int, work: str, only: list[str], device: str, threads: int, sets: dict[str, Any],
+    run: bool = True,
 ) -> dict[str, Any]:
-    """Every value of every setting in ``only`` on the sequence of ``seed``: ``{setting: {value: figures}}``.
+    """Every value of every setting in ``only`` on the sequence of ``seed``: ``{setting: {value: figures}}``
+    (figures None for a value neither run nor cached when ``run`` is False).
 
     Runs in its own process (one per seed); the run folder is reused across values, so only the 3D-CN and
     the stages after it run again (and training only when the selected labels or the network change)."""
@@ -97,78 +135,77 @@ def sweep_seed(  # noqa: PLR0917  one worker's whole job, picklable arguments
 
     root = Path(work) / f"seed{seed}_f{frames}"
     seq_dir = root / "sequences" / "00"
-    if not (seq_dir / "velodyne").is_dir() or len(list((seq_dir / "velodyne").glob("*.bin"))) != frames:
-        generate_sequence(root, SynthConfig(frames=frames, seed=seed), "00", force=True, workers=1)
     schema = builtin_schema("semantickitti")
-    base = config_from_dict(
-        {"consistency": {"enabled": True, "iterations": 1, "device": device, "num_threads": threads}},
-        PipelineConfig(),
-    )
-    for path, value in sets.items():
-        base = config_from_dict(_override(path, value), base)
     run_dir = root / "run"
-    # Figures per full configuration: a value equal to the default repeats the base run, and a sweep
+    # Figures per full configuration: a value equal to the centre repeats the base run, and a sweep
     # stopped half-way (a time limit) resumes here without running anything twice.
     cache_path = root / "results.json"
-    cache: dict[str, Any] = json.loads(cache_path.read_text()) if cache_path.is_file() else {}
-    out: dict[str, Any] = {}
-    for name in only:
-        path, values = SETTINGS[name]
-        out[name] = {}
-        for value in values:
-            cfg = config_from_dict(_override(path, value), base)
-            key = json.dumps(config_to_dict(cfg), sort_keys=True)
-            if key not in cache:
-                t = time.perf_counter()
-                res = run_pipeline(seq_dir, schema, cfg, run_dir, until="evaluate")
-                cache[key] = _figures(res.metrics or {}) | {"seconds": time.perf_counter() - t}
-                atomic_write_json(cache_path, cache)
-            figs = cache[key]
-            out[name][json.dumps(value)] = figs
+    cache = read_caches(root)
+    out: dict[str, Any] = {name: {} for name in only}
+    for name, value, cfg, key in variants(base_config(device, threads, sets), only):
+        if key not in cache and run:
+            scans = seq_dir / "velodyne"
+            if not scans.is_dir() or len(list(scans.glob("*.bin"))) != frames:
+                generate_sequence(root, SynthConfig(frames=frames, seed=seed), "00", force=True, workers=1)
+            t = time.perf_counter()
+            res = run_pipeline(seq_dir, schema, cfg, run_dir, until="evaluate")
+            cache[key] = _figures(res.metrics or {}) | {"seconds": time.perf_counter() - t}
+            own = json.loads(cache_path.read_text()) if cache_path.is_file() else {}
+            atomic_write_json(cache_path, own | {key: cache[key]})
+        figs = cache.get(key)
+        out[name][value] = figs
+        if figs is not None:
             print(f"seed {seed} {name}={value}: camera x1 {figs['camera_3dcn']:.1f} "
                   f"(voxel {figs['camera_voxel']:.1f}), all x1 {figs['all_3dcn']:.1f}, "
                   f"{figs['seconds']:.0f} s", flush=True)
     return out
 
 
-def choose(values: dict[str, dict[int, dict[str, float]]], default: str, tune: list[int], tie: float) -> str:
+def choose(values: dict[str, dict[int, Any]], default: str, tune: list[int], tie: float) -> str | None:
     """The winning value (JSON text) on the tuning seeds: highest mean camera-view ``+3D-CN x1`` mIoU; the
-    default is kept unless the best beats it by more than ``tie`` points."""
+    default is kept unless the best beats it by more than ``tie`` points. None when a value lacks a tuning
+    seed's figures."""
+    if any(values[v][s] is None for v in values for s in tune):
+        return None
+
     def mean(v: str) -> float:
         return sum(values[v][s]["camera_3dcn"] for s in tune) / len(tune)
     best = max(values, key=mean)
     return default if default in values and mean(best) - mean(default) <= tie else best
 
 
-def report(results: dict[str, Any], tie: float) -> dict[str, str]:
+def report(results: dict[str, Any], tie: float) -> dict[str, str | None]:
     """Print one table per setting; returns ``{setting: chosen value (JSON text)}``."""
     tune, rep = results["tune_seeds"], results["report_seeds"]
     per_seed: dict[str, dict[str, Any]] = {str(k): v for k, v in results["seeds"].items()}
-    defaults = PipelineConfig()
-    chosen: dict[str, str] = {}
+    chosen: dict[str, str | None] = {}
     for name in results["settings"]:
         path, _ = SETTINGS[name]
         values = list(per_seed[str(tune[0])][name])
         table = {v: {s: per_seed[str(s)][name][v] for s in tune + rep} for v in values}
-        default = json.dumps(results["defaults"].get(name, _get(defaults, path)))
+        default = json.dumps(results["centre"][name])
         pick = choose(table, default, tune, tie)
         chosen[name] = pick
 
         def row(label: str, v: str, cam: str, all_: str, table: dict[str, Any] = table) -> list[str]:
+            def one(s: int, key: str) -> str:
+                return "n/a" if table[v][s] is None else f"{table[v][s][key]:.1f}"
+
             def mean(seeds: list[int], key: str) -> str:
-                return f"{sum(table[v][s][key] for s in seeds) / len(seeds):.1f}"
+                got = [table[v][s][key] for s in seeds if table[v][s] is not None]
+                return f"{sum(got) / len(got):.1f}" if len(got) == len(seeds) else "n/a"
             return (
                 [label]
-                + [f"{table[v][s][cam]:.1f}" for s in tune] + [mean(tune, cam)]
-                + [f"{table[v][s][cam]:.1f}" for s in rep] + [mean(rep, cam)]
+                + [one(s, cam) for s in tune] + [mean(tune, cam)]
+                + [one(s, cam) for s in rep] + [mean(rep, cam)]
                 + [mean(tune, all_), mean(rep, all_)]
             )
 
         rows = []
         for v in values:
-            mark = ("default " if v == default else "") + ("chosen" if v == pick else "")
+            mark = ("centre " if v == default else "") + ("chosen" if v == pick else "")
             rows.append(row(f"{v} {mark}".strip(), v, "camera_3dcn", "all_3dcn"))
-        rows.append(row("(voxel, no 3D-CN)", values[0], "camera_voxel", "all_voxel"))
+        rows.append(row("(voxel, no 3D-CN)", default, "camera_voxel", "all_voxel"))
         head = (
             [path]
             + [f"tune {s}" for s in tune] + ["tune mean"]
@@ -197,6 +234,9 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="PATH=JSON",
                     help="Extra override of every run, e.g. consistency.min_steps=5 (a quick smoke test).")
     ap.add_argument("--from-json", default=None, help="Print the tables of a results file; run nothing.")
+    ap.add_argument("--cached-only", action="store_true",
+                    help="Run nothing: tables from the figures cached under --work (e.g. copied from the "
+                    "machine that ran the sweep); values without figures show n/a.")
     ap.add_argument("--name", default="tune_defaults", help="Result file: benchmarks/results/NAME.json.")
     args = ap.parse_args()
 
@@ -224,20 +264,20 @@ def main() -> None:
     start = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         futs = {s: pool.submit(sweep_seed, s, args.frames, args.work, only, args.device, args.threads,
-                           sets)
+                           sets, not args.cached_only)
                 for s in seeds}
         per_seed = {str(s): f.result() for s, f in futs.items()}
-    defaults = PipelineConfig()
+    base = base_config(args.device, args.threads, sets)
     results: dict[str, Any] = {
         "frames": args.frames,
         "tune_seeds": tune,
         "report_seeds": rep,
         "settings": only,
-        "defaults": {n: _get(defaults, SETTINGS[n][0]) for n in only},
+        "centre": {n: _get(base, SETTINGS[n][0]) for n in only},
         "device": args.device,
         "overrides": sets,
         "seconds": time.perf_counter() - start,
-        "config": config_to_dict(replace(defaults)),
+        "config": config_to_dict(base),
         "seeds": per_seed,
     }
     chosen = report(results, args.tie)

@@ -54,6 +54,8 @@ RUN_BARE = ["run", SEQ, "--project-file", "projects/semantickitti_bare.yaml", "-
 RUN_EXPANDED = ["run", SEQ, "--project-file", "projects/semantickitti_expanded.yaml", "--labeler",
                 "simulated", "--no-3dcn", "--out", "runs/expanded"]
 ROWS = ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
+TABLES = ("demo-miou", "prompt-expansion")
+"""Names of the README tables this script writes (each between its markers)."""
 
 
 def leap(args: list[str]) -> None:
@@ -86,12 +88,12 @@ def metrics_of(run: list[str]) -> dict[str, Any]:
 
 
 def _pct(x: float | None) -> str:
-    return "–" if x is None else f"{100 * x:.1f}"
+    return "n/a" if x is None else f"{100 * x:.1f}"
 
 
 def _share(x: float | None) -> str:
     if x is None:
-        return "–"
+        return "n/a"
     return f"{100 * x:.0f} %" if x > 0.995 else f"{100 * x:.1f} %"
 
 
@@ -142,7 +144,9 @@ def compute() -> dict[str, str]:
     demo = metrics_of(RUN_DEMO)
     bare = metrics_of(RUN_BARE)
     full = metrics_of(RUN_EXPANDED)
-    return {"demo-miou": demo_miou(demo), "prompt-expansion": prompt_expansion(bare, demo, full)}
+    tables = {"demo-miou": demo_miou(demo), "prompt-expansion": prompt_expansion(bare, demo, full)}
+    assert tuple(tables) == TABLES
+    return tables
 
 
 def replace_tables(text: str, tables: dict[str, str]) -> str:
