@@ -55,13 +55,14 @@ def test_readme_has_the_markers_of_every_table_the_script_writes() -> None:
 def _metrics(camera: list[float], all_: list[float], share: list[float]) -> dict[str, object]:
     rows = ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
     return {
-        "camera": {r: {"miou": v} for r, v in zip(rows, camera, strict=True)},
-        "all": {r: {"miou": v} for r, v in zip(rows, all_, strict=True)},
-        "labeled_share_all_points": dict(zip(rows, share, strict=True)),
+        "camera": {r: {"miou": v, "labeled_share": 0.9} for r, v in zip(rows, camera, strict=True)},
+        "all": {r: {"miou": v, "labeled_share": sh} for r, v, sh in zip(rows, all_, share, strict=True)},
+        # Every point, not only those with ground truth: not what the row shows.
+        "labeled_share_all_points": dict.fromkeys(rows, 0.5),
     }
 
 
-def test_demo_table_rows_are_the_camera_and_all_points_miou_and_the_labeled_share() -> None:
+def test_demo_table_rows_are_the_camera_and_all_points_miou_and_the_ground_truth_labeled_share() -> None:
     rt = _module()
     table = rt.demo_miou(_metrics([0.779, 0.8534, 0.79, None], [0.128, 0.441, 0.6194, 0.62],
                                   [0.1224, 0.584, 1.0, 1.0]))
