@@ -1,0 +1,73 @@
+"""scripts/readme_tables.py: README tables are replaced between their markers only, every table the script
+computes has its markers in README.md, and the table text is built from metrics.json as documented."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("readme_tables", ROOT / "scripts" / "readme_tables.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["readme_tables"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_replace_tables_rewrites_only_between_each_pair_of_markers() -> None:
+    rt = _module()
+    text = (
+        "intro\n<!-- table:a -->\nold a\n<!-- /table:a -->\nmiddle\n"
+        "<!-- table:b -->\nold b\nmore b\n<!-- /table:b -->\nend\n"
+    )
+    out = rt.replace_tables(text, {"a": "new a", "b": "new b"})
+    assert out == (
+        "intro\n<!-- table:a -->\nnew a\n<!-- /table:a -->\nmiddle\n"
+        "<!-- table:b -->\nnew b\n<!-- /table:b -->\nend\n"
+    )
+    # Replacing with what is there changes nothing (what --check relies on).
+    assert rt.replace_tables(out, {"a": "new a", "b": "new b"}) == out
+
+
+def test_replace_tables_refuses_a_table_without_markers() -> None:
+    rt = _module()
+    with pytest.raises(SystemExit, match=r"table:b"):
+        rt.replace_tables("<!-- table:a -->\nx\n<!-- /table:a -->\n", {"a": "y", "b": "z"})
+
+
+def test_readme_has_the_markers_of_every_table_the_script_writes() -> None:
+    rt = _module()
+    text = (ROOT / "README.md").read_text()
+    for name in rt.TABLES:
+        assert text.count(f"<!-- table:{name} -->") == 1, name
+        assert text.count(f"<!-- /table:{name} -->") == 1, name
+        assert text.index(f"<!-- table:{name} -->") < text.index(f"<!-- /table:{name} -->"), name
+
+
+def _metrics(camera: list[float], all_: list[float], share: list[float]) -> dict[str, object]:
+    rows = ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
+    return {
+        "camera": {r: {"miou": v, "labeled_share": 0.9} for r, v in zip(rows, camera, strict=True)},
+        "all": {r: {"miou": v, "labeled_share": sh} for r, v, sh in zip(rows, all_, share, strict=True)},
+        # Every point, not only those with ground truth: not what the row shows.
+        "labeled_share_all_points": dict.fromkeys(rows, 0.5),
+    }
+
+
+def test_demo_table_rows_are_the_camera_and_all_points_miou_and_the_ground_truth_labeled_share() -> None:
+    rt = _module()
+    table = rt.demo_miou(_metrics([0.779, 0.8534, 0.79, None], [0.128, 0.441, 0.6194, 0.62],
+                                  [0.1224, 0.584, 1.0, 1.0]))
+    lines = table.splitlines()
+    assert "Report seed 0" in lines[0] and "--3dcn-iterations 2" in lines[0]
+    assert lines[-3] == "| camera view | 77.9 | 85.3 | 79.0 | n/a |"
+    assert lines[-2] == "| all points | 12.8 | 44.1 | 61.9 | 62.0 |"
+    assert lines[-1] == "| points labeled | 12.2 % | 58.4 % | 100 % | 100 % |"
