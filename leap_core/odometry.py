@@ -13,17 +13,22 @@ The estimate is written as ``poses.txt`` plus a ``poses_estimated.json`` note be
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 import math
 import os
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from kiss_icp.config import KISSConfig
+from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
+from kiss_icp.kiss_icp import KissICP
 
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence, write_poses
 from leap_core.errors import ConfigError, DatasetError, LeapError
@@ -70,10 +75,14 @@ class OdometryConfig:
         if self.voxel_size is not None:
             positive("voxel_size", self.voxel_size)
         if self.max_points_per_voxel < 1:
-            raise ConfigError(f"must be >= 1, got {self.max_points_per_voxel}", field=("max_points_per_voxel",))
+            raise ConfigError(
+                f"must be >= 1, got {self.max_points_per_voxel}", field=("max_points_per_voxel",)
+            )
         positive("initial_threshold", self.initial_threshold)
         if not (self.min_motion_threshold >= 0 and math.isfinite(self.min_motion_threshold)):
-            raise ConfigError(f"must be >= 0, got {self.min_motion_threshold}", field=("min_motion_threshold",))
+            raise ConfigError(
+                f"must be >= 0, got {self.min_motion_threshold}", field=("min_motion_threshold",)
+            )
         if self.max_iterations < 1:
             raise ConfigError(f"must be >= 1, got {self.max_iterations}", field=("max_iterations",))
         positive("convergence", self.convergence)
@@ -97,15 +106,6 @@ def _kiss(config: OdometryConfig) -> Any:
     that would otherwise read ``KISS_ICP_*`` environment variables, and leap_core reads no environment.
     Deskewing stays off: a KITTI ``.bin`` scan has no per-point times to deskew with.
     """
-    from kiss_icp.config import KISSConfig
-    from kiss_icp.config.config import (
-        AdaptiveThresholdConfig,
-        DataConfig,
-        MappingConfig,
-        RegistrationConfig,
-    )
-    from kiss_icp.kiss_icp import KissICP
-
     kcfg = KISSConfig(
         out_dir="results",
         data=DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=False),
@@ -200,6 +200,7 @@ class EstimatedPoses:
         cam: (F, 4, 4) KITTI camera-frame poses (first = identity).
         seconds: wall time of the registration.
         config: the settings used.
+        scans: :func:`scans_signature` of the sequence the estimate was made from.
     """
 
     frame_ids: list[str]
@@ -207,11 +208,10 @@ class EstimatedPoses:
     cam: npt.NDArray[np.float64]
     seconds: float
     config: OdometryConfig
+    scans: str = ""
 
     def note(self) -> dict[str, Any]:
         """The ``poses_estimated.json`` content."""
-        from importlib.metadata import version
-
         return {
             "method": METHOD,
             "version": version("kiss-icp"),
@@ -220,6 +220,7 @@ class EstimatedPoses:
             "frame_ids": self.frame_ids,
             "seconds": round(self.seconds, 3),
             "settings": self.config.settings(),
+            "scans": self.scans,
         }
 
 
@@ -231,7 +232,8 @@ def estimate_sequence_poses(
     t0 = time.perf_counter()
     lidar = estimate_lidar_poses((f.points for f in seq), len(seq), cfg, progress)
     seconds = time.perf_counter() - t0
-    return EstimatedPoses(list(seq.frame_ids), lidar, camera_poses(lidar, seq.calib.Tr), seconds, cfg)
+    return EstimatedPoses(list(seq.frame_ids), lidar, camera_poses(lidar, seq.calib.Tr), seconds, cfg,
+                          scans_signature(seq))
 
 
 def write_estimated_poses(poses_path: str | Path, est: EstimatedPoses, *, force: bool = False) -> Path:
@@ -271,11 +273,44 @@ def read_note(poses_path: str | Path) -> dict[str, Any] | None:
     return data
 
 
+def reusable_estimate(seq: KittiSequence, poses_path: str | Path, config: OdometryConfig) -> bool:
+    """Whether ``poses_path`` already holds a KISS-ICP estimate of exactly these scans (and calibration)
+    made with these settings, so estimating again would give the same poses."""
+    path = Path(poses_path)
+    try:
+        note = read_note(path)
+    except DatasetError:
+        return False
+    return (
+        path.is_file() and note is not None and note.get("method") == METHOD
+        and note.get("scans") == scans_signature(seq) and note.get("settings") == config.settings()
+    )
+
+
+def estimate_into(
+    seq: KittiSequence, poses_path: str | Path, config: OdometryConfig | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[dict[str, Any], bool]:
+    """Estimated poses of ``seq`` at ``poses_path`` (a work folder's own file, replaced when stale):
+    reused when :func:`reusable_estimate`, else estimated and written.
+
+    Returns:
+        The note of the poses now at ``poses_path``, and whether they were reused.
+    """
+    cfg = config or OdometryConfig()
+    if reusable_estimate(seq, poses_path, cfg):
+        report(progress, len(seq), len(seq))
+        note = read_note(poses_path)
+        assert note is not None  # reusable_estimate read it
+        return note, True
+    est = estimate_sequence_poses(seq, cfg, progress)
+    write_estimated_poses(poses_path, est, force=True)
+    return est.note(), False
+
+
 def scans_signature(seq: KittiSequence) -> str:
     """What an estimate depends on: the calibration and every scan's name, size and modification time
     (a changed scan or calibration makes a cached estimate stale)."""
-    import hashlib
-
     h = hashlib.sha256((seq.root / "calib.txt").read_bytes())
     for i in range(len(seq)):
         st = os.stat(seq.scan_path(i))
@@ -288,11 +323,13 @@ __all__ = [
     "EstimatedPoses",
     "OdometryConfig",
     "camera_poses",
+    "estimate_into",
     "estimate_lidar_poses",
     "estimate_sequence_poses",
     "pose_file_rows",
     "pose_lines",
     "read_note",
+    "reusable_estimate",
     "scans_signature",
     "write_estimated_poses",
 ]

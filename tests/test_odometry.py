@@ -80,13 +80,15 @@ def test_pose_file_rows_follow_frame_numbers() -> None:
     np.testing.assert_array_equal(pose_file_rows(["x", "y"], cam), cam)
 
 
-def test_write_estimated_poses_refuses_to_replace_and_notes_what_it_wrote(tmp_path: Path, make_tiny_sequence) -> None:
+def test_write_estimated_poses_refuses_to_replace_and_notes_what_it_wrote(
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     tiny = make_tiny_sequence(tmp_path, n_frames=3)
     cam = camera_poses(np.stack([_pose(_rz(5.0 * i), (1.0 * i, 0, 0)) for i in range(3)]), tiny.calib.Tr)
     est = EstimatedPoses(tiny.frame_ids, np.eye(4)[None].repeat(3, 0), cam, 0.5, OdometryConfig())
     measured = tiny.root / "poses.txt"
     before = measured.read_bytes()
-    with pytest.raises(DatasetError, match="poses.txt: already exists"):
+    with pytest.raises(DatasetError, match=r"poses\.txt: already exists"):
         write_estimated_poses(measured, est)
     assert measured.read_bytes() == before and not (tiny.root / POSES_NOTE).exists()
     assert KittiSequence(tiny.root).pose_source == "file"
@@ -103,11 +105,11 @@ def test_write_estimated_poses_refuses_to_replace_and_notes_what_it_wrote(tmp_pa
 
 
 def test_odometry_config_names_the_bad_field() -> None:
-    with pytest.raises(ConfigError, match="^max_range: must be a positive number"):
+    with pytest.raises(ConfigError, match=r"^max_range: must be a positive number"):
         OdometryConfig(max_range=0.0)
     with pytest.raises(ConfigError, match=r"^min_range: must be in \[0, max_range\)"):
         OdometryConfig(min_range=90.0)
-    with pytest.raises(ConfigError, match="^voxel_size:"):
+    with pytest.raises(ConfigError, match=r"^voxel_size:"):
         OdometryConfig(voxel_size=float("nan"))
     assert OdometryConfig(max_range=50.0).voxel == 0.5
 
@@ -160,7 +162,8 @@ def test_segment_errors_hand_computed_rotation() -> None:
     for k in range(11):
         est[k, :3, :3] = _rz(0.1 * k)  # heading drifts 0.1° per frame, positions exact
     se = segment_errors(gt, est, lengths=(5.0,), step=5)
-    # Segment 0 → 6: D = ΔE⁻¹ ΔG = [R₆ᵀ | R₆ᵀ t − R₆ᵀ t] = [R₆ᵀ | 0]: 0.6° over 5 m = 12°/100 m, no translation.
+    # Segment 0 → 6: D = ΔE⁻¹ ΔG = [R₆ᵀ | R₆ᵀ t − R₆ᵀ t] = [R₆ᵀ | 0]:
+    # 0.6° over 5 m = 12°/100 m, and no translation error.
     assert se.rotation_deg_per_100m == pytest.approx(12.0)
     assert se.translation_pct == pytest.approx(0.0, abs=1e-9)
 

@@ -2,6 +2,7 @@
 
 import { get, post } from "./api.js";
 import { fmtPct, fmtTime, h, replace, statusChip } from "./dom.js";
+import { posesOption } from "./poses-option.js";
 
 function projectCard(p) {
   const last = p.last_run;
@@ -48,6 +49,7 @@ function createForm(datasets, { toast, onCreated }) {
     kindFolder.checked = true;
   });
   path.addEventListener("input", () => (kindFolder.checked = true));
+  const poses = posesOption();
   const error = h("p", { class: "error", role: "alert" });
   const submit = h("button", { class: "btn primary", type: "submit", id: "create-project" }, "Create project");
   const form = h(
@@ -61,7 +63,7 @@ function createForm(datasets, { toast, onCreated }) {
         const dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
         submit.disabled = true;
         try {
-          const p = await post("/projects", { name: name.value.trim(), dataset });
+          const p = await post("/projects", { name: name.value.trim(), dataset, estimate_poses: poses.checked() });
           toast(`Project “${p.name}” created`);
           onCreated(p);
         } catch (err) {
@@ -81,6 +83,7 @@ function createForm(datasets, { toast, onCreated }) {
       h("div", { class: "indent stack" }, select, path),
       h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
     ),
+    poses.element,
     h("p", { class: "muted small" }, `Data roots: ${datasets.roots.join(", ")}. New projects use the SemanticKITTI classes; edit them afterwards.`),
     error,
     h("div", { class: "row end" }, submit),

@@ -44,8 +44,10 @@ from app.jobs.messages import (
     StageProgress,
     decode_to_worker,
 )
+from app.jobs.poses import ADVICE as POSES_ADVICE
+from app.jobs.poses import POSES_STAGE, prepare_run_poses
 from leap_core.config import config_from_dict
-from leap_core.errors import Cancelled, LeapError
+from leap_core.errors import Cancelled, LeapError, PosesMissingError
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -161,7 +163,9 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
                 return RunOutcome("cancelled")
             except LeapError as exc:
                 log.error("run failed: %s", exc)
-                return RunOutcome("failed", str(exc))
+                # The app's own advice for a dataset without poses (the message names only the file).
+                advice = f"; {POSES_ADVICE}" if isinstance(exc, PosesMissingError) else ""
+                return RunOutcome("failed", f"{exc}{advice}")
             except OSError as exc:
                 full = disk_full_message(exc)
                 log.error("run failed:\n%s", traceback.format_exc())
@@ -192,6 +196,10 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
 
     if spec.demo:
         ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
+    prepare_run_poses(
+        spec.dataset, spec.run_dir, estimate=spec.estimate_poses, cache_root=spec.poses_cache,
+        progress=lambda done, total: reporter(POSES_STAGE, done, total),
+    )
     schema = Schema.from_dict(spec.schema, source="project schema")
     config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
     # Deployment values come from the server's settings only (the spec), never from the project.

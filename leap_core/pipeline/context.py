@@ -206,9 +206,11 @@ def file_digest(path: Path) -> str:
 
 
 def dataset_identity(seq: KittiSequence) -> str:
-    """Hash of a sequence's location, calibration, poses and the size + mtime of every per-frame file."""
+    """Hash of a sequence's location, calibration, poses (the file it reads them from, which may lie in a
+    run folder: estimated poses) and the size + mtime of every per-frame file."""
     root = seq.root.resolve()
-    parts: list[Any] = [str(root), file_digest(root / "calib.txt"), file_digest(root / "poses.txt")]
+    poses = file_digest(seq.poses_path) if seq.has_poses else None
+    parts: list[Any] = [str(root), file_digest(root / "calib.txt"), poses]
     folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]
     for name in folders:
         folder = root / name

@@ -198,8 +198,8 @@ def _context(
     dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *,
     progress: ProgressCallback | None, frames: range | None, runtime: Runtime | None,
 ) -> Ctx:
-    seq = KittiSequence(dataset)
     run_dir = Path(run_dir)
+    seq = RunLayout(run_dir).open_sequence(dataset)
     if run_dir.exists() and not run_dir.is_dir():
         raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
     run_dir.mkdir(parents=True, exist_ok=True)
