@@ -60,12 +60,12 @@ def prepare_run_poses(
     Without ``estimate`` (or when the dataset has its own ``poses.txt``) the run folder's ``poses/`` is
     removed, so poses estimated for an earlier run (carried over with its stage outputs) are not used.
     """
-    from leap_core.odometry import estimate_into  # noqa: PLC0415  # KISS-ICP loads in a run that estimates
-
     layout = RunLayout(run_dir)
     if not estimate or not needs_estimate(dataset) or cache_root is None:
         remove_tree(layout.poses.parent)
         return
+    from leap_core.odometry import estimate_into  # noqa: PLC0415  # KISS-ICP loads in a run that estimates
+
     seq = KittiSequence(dataset)
     cached = cache_folder(cache_root, dataset) / "poses.txt"
     note, reused = estimate_into(seq, cached, progress=progress)
