@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from kiss_icp.config import KISSConfig
-from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
-from kiss_icp.kiss_icp import KissICP
+from kiss_icp import config as kiss_config  # type: ignore[import-untyped]  # kiss-icp ships no type hints
+from kiss_icp.config import config as kiss_sections  # type: ignore[import-untyped]  # (the same)
+from kiss_icp.kiss_icp import KissICP  # type: ignore[import-untyped]  # (the same)
 
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence, write_poses
 from leap_core.errors import ConfigError, DatasetError, LeapError
@@ -106,15 +106,17 @@ def _kiss(config: OdometryConfig) -> Any:
     that would otherwise read ``KISS_ICP_*`` environment variables, and leap_core reads no environment.
     Deskewing stays off: a KITTI ``.bin`` scan has no per-point times to deskew with.
     """
-    kcfg = KISSConfig(
+    kcfg = kiss_config.KISSConfig(
         out_dir="results",
-        data=DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=False),
-        mapping=MappingConfig(voxel_size=config.voxel, max_points_per_voxel=config.max_points_per_voxel),
-        registration=RegistrationConfig(
+        data=kiss_sections.DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=False),
+        mapping=kiss_sections.MappingConfig(
+            voxel_size=config.voxel, max_points_per_voxel=config.max_points_per_voxel
+        ),
+        registration=kiss_sections.RegistrationConfig(
             max_num_iterations=config.max_iterations, convergence_criterion=config.convergence,
             max_num_threads=config.threads,
         ),
-        adaptive_threshold=AdaptiveThresholdConfig(
+        adaptive_threshold=kiss_sections.AdaptiveThresholdConfig(
             initial_threshold=config.initial_threshold, min_motion_th=config.min_motion_threshold
         ),
     )
