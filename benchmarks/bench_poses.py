@@ -88,6 +88,11 @@ def mious(run_dir: Path) -> dict[str, dict[str, float]]:
     return {p: {r: 100.0 * float(m[p][r]["miou"]) for r in m["rows"]} for p in ("camera", "all")}
 
 
+def _num(v: float) -> float | None:
+    """NaN (no segment of that length fits the drive) as JSON null."""
+    return None if math.isnan(v) else v
+
+
 def bench_sequence(seq_dir: Path, work: Path, preset: str, config: OdometryConfig) -> dict[str, Any]:
     true_seq = KittiSequence(seq_dir)
     if not true_seq.has_poses:
@@ -120,8 +125,8 @@ def bench_sequence(seq_dir: Path, work: Path, preset: str, config: OdometryConfi
         "path_m": float(path_distances(gt)[-1]),
         "kiss_icp": est.note()["settings"],
         "kitti_lengths": {"lengths_m": list(KITTI_SEGMENT_LENGTHS), "segments": kitti.count,
-                          "translation_pct": kitti.translation_pct,
-                          "rotation_deg_per_100m": kitti.rotation_deg_per_100m},
+                          "translation_pct": _num(kitti.translation_pct),
+                          "rotation_deg_per_100m": _num(kitti.rotation_deg_per_100m)},
         "fitted_lengths": {"lengths_m": list(lengths), "segments": fitted.count,
                            "translation_pct": fitted.translation_pct,
                            "rotation_deg_per_100m": fitted.rotation_deg_per_100m},
@@ -152,8 +157,8 @@ def main() -> None:
             work.mkdir()
             results.append(bench_sequence(Path(seq), work, args.schema, config))
 
-    def fmt(v: float) -> str:
-        return "n/a" if math.isnan(v) else f"{v:.2f}"  # NaN: no segment fits
+    def fmt(v: float | None) -> str:
+        return "n/a" if v is None else f"{v:.2f}"  # no segment fits
 
     rows = []
     for r in results:
