@@ -367,7 +367,8 @@ def _estimate_run_poses(dataset: Path, out: Path) -> None:
         return
     target = RunLayout(out).poses
     with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
-        def tick(done: int, _total: int) -> None:
+        def tick(done: int, total: int) -> None:
+            bar.total = total
             bar.update(done - bar.n)
 
         note, reused = estimate_into(seq, target, progress=tick)
@@ -401,7 +402,8 @@ def poses_cmd(
             raise LeapError(f"{target}: already exists; add --force to replace it")
         start = time.perf_counter()
         with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
-            def tick(done: int, _total: int) -> None:
+            def tick(done: int, total: int) -> None:
+                bar.total = total
                 bar.update(done - bar.n)
 
             est = estimate_sequence_poses(seq, progress=tick)

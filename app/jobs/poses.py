@@ -13,11 +13,11 @@ import hashlib
 import logging
 import os
 import shutil
-from collections.abc import Callable
 from pathlib import Path
 
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
 from leap_core.io_utils import remove_tree
+from leap_core.progress import ProgressFn
 from leap_core.run_layout import RunLayout
 
 POSES_STAGE = "estimate poses"
@@ -53,7 +53,7 @@ def _link(src: Path, dst: Path) -> None:
 
 def prepare_run_poses(
     dataset: Path, run_dir: Path, *, estimate: bool, cache_root: Path | None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressFn | None = None,
 ) -> None:
     """Put the poses a run uses in place before its pipeline starts.
 
