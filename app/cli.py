@@ -16,7 +16,7 @@ import typer
 from app.cli_import import import_cli
 from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import Frame, KittiSequence
-from leap_core.errors import Cancelled, ConfigError, LeapError
+from leap_core.errors import Cancelled, ConfigError, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
 from leap_core.labelers.cache import default_cache_dir, image_digest
 from leap_core.labelers.grounded_sam import GroundedSamLabeler
@@ -347,6 +347,12 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         "--overwrite",
         help="Let --export-to / --zip replace existing files (.label/.conf only); never done without it.",
     ),
+    estimate_poses: bool = typer.Option(
+        False,
+        "--estimate-poses",
+        help="When the sequence has no poses.txt, estimate poses with KISS-ICP first, into OUT/poses/ "
+        "(the dataset is not written; reused by later runs in OUT while the scans are unchanged).",
+    ),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
@@ -361,6 +367,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
+        if estimate_poses:
+            _estimate_run_poses(Path(dataset), Path(out))
         typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
         with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
@@ -369,6 +377,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         raise fail(f"interrupted; run the same command again to resume from {out}") from None
     except Cancelled:
         raise fail(f"cancelled; run the same command again to resume from {out}") from None
+    except PosesMissingError as exc:
+        raise fail(f"{exc}; run `leap poses {dataset}` or pass --estimate-poses") from None
     except LeapError as exc:
         raise fail(str(exc)) from None
 
@@ -391,6 +401,72 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
                            with_conf=with_conf, overwrite=overwrite)
         except LeapError as exc:
             raise fail(str(exc)) from None
+
+
+def _estimate_run_poses(dataset: Path, out: Path) -> None:
+    """``leap run --estimate-poses``: KISS-ICP poses into the run folder when the dataset has none
+    (reused when the run folder already holds an estimate of the same scans)."""
+    from tqdm import tqdm
+
+    from leap_core.odometry import estimate_into
+    from leap_core.run_layout import RunLayout
+
+    seq = KittiSequence(dataset)
+    if seq.has_poses:
+        typer.echo(f"poses: {seq.poses_path} (--estimate-poses not needed)")
+        return
+    target = RunLayout(out).poses
+    with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
+        def tick(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        note, reused = estimate_into(seq, target, progress=tick)
+    how = "reused" if reused else f"estimated in {note['seconds']:.1f} s"
+    typer.echo(f"poses: {how} with KISS-ICP {note['version']} for {note['frames']} scans -> {target}")
+
+
+@cli.command("poses")
+def poses_cmd(
+    dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    *,
+    out: str | None = typer.Option(
+        None, "--out", help="poses.txt to write (default: DATASET/poses.txt); the note goes beside it."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace an existing poses file."),
+) -> None:
+    """Estimate the sequence's poses with KISS-ICP LiDAR odometry and write them as a KITTI poses.txt
+    (left-camera frame, first pose = identity) plus poses_estimated.json saying how they were made."""
+    import time
+
+    from tqdm import tqdm
+
+    from leap_core.odometry import estimate_sequence_poses, write_estimated_poses
+    from leap_core.trajectory import path_distances
+
+    try:
+        seq = KittiSequence(dataset, poses_path=out) if out is not None else KittiSequence(dataset)
+        target = seq.poses_path
+        # Refused before the work, not after it.
+        if target.exists() and not force:
+            raise LeapError(f"{target}: already exists; add --force to replace it")
+        start = time.perf_counter()
+        with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
+            def tick(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done - bar.n)
+
+            est = estimate_sequence_poses(seq, progress=tick)
+        note = write_estimated_poses(target, est, force=force)
+    except KeyboardInterrupt:
+        raise fail("interrupted; nothing was written") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    seconds = time.perf_counter() - start
+    typer.echo(
+        f"wrote {target} and {note.name}: {len(seq)} poses, {path_distances(est.lidar)[-1]:.1f} m driven, "
+        f"KISS-ICP in {seconds:.1f} s ({1000 * est.seconds / len(seq):.0f} ms/scan)"
+    )
 
 
 class _Targets(TypedDict):

@@ -71,12 +71,14 @@ def create_project(
     schema: dict[str, Any],
     pipeline: dict[str, Any],
     is_demo: bool = False,
+    estimate_poses: bool = False,
 ) -> dict[str, Any]:
     now = utcnow()
     cursor = db.execute(
         "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
-        "created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-        [name, dataset_kind, dataset_path, _dumps(schema), _dumps(pipeline), int(is_demo), now, now],
+        "estimate_poses, created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        [name, dataset_kind, dataset_path, _dumps(schema), _dumps(pipeline), int(is_demo),
+         int(estimate_poses), now, now],
     )
     project = get_project(db, _inserted_id(cursor))
     assert project is not None
@@ -106,6 +108,7 @@ def update_project(
     name: str | None = None,
     schema: dict[str, Any] | None = None,
     pipeline: dict[str, Any] | None = None,
+    estimate_poses: bool | None = None,
 ) -> dict[str, Any]:
     sets: list[str] = []
     params: list[Any] = []
@@ -113,6 +116,9 @@ def update_project(
         if value is not None:
             sets.append(f"{column} = ?")
             params.append(value if column == "name" else _dumps(value))
+    if estimate_poses is not None:
+        sets.append("estimate_poses = ?")
+        params.append(int(estimate_poses))
     sets.append("updated_at = ?")
     params.append(utcnow())
     db.execute(f"UPDATE projects SET {', '.join(sets)} WHERE id = ?", [*params, project_id])

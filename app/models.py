@@ -210,10 +210,18 @@ class ProjectCreate(_Input):
     pipeline: dict[str, Any] = Field(
         default_factory=dict, description="overrides of the default pipeline configuration"
     )
+    estimate_poses: bool = Field(
+        default=False,
+        description="when the dataset has no poses.txt, runs first estimate poses with KISS-ICP LiDAR "
+        "odometry into the work folder (the dataset is never written)",
+    )
 
 
 class ProjectUpdate(_Input):
     name: str | None = Field(default=None, min_length=1, max_length=120)
+    estimate_poses: bool | None = Field(
+        default=None, description="estimate poses with KISS-ICP when the dataset has none"
+    )
     pipeline: dict[str, Any] | None = Field(
         default=None, description="partial pipeline configuration, merged into the current one"
     )
@@ -325,6 +333,9 @@ class ProjectPublic(BaseModel):
     num_classes: int
     pipeline: dict[str, Any]
     form: dict[str, Any] = Field(description="the flat parameters the UI edits (see ProjectUpdate.form)")
+    estimate_poses: bool = Field(
+        default=False, description="runs estimate poses with KISS-ICP when the dataset has none"
+    )
     is_demo: bool
     created_at: str
     updated_at: str

@@ -261,6 +261,7 @@ def create_project(
         dataset_path=str(path),
         schema=preset.schema.to_dict(),
         pipeline=config_to_dict(config),
+        estimate_poses=payload.estimate_poses,
     )
 
 
@@ -293,7 +294,9 @@ def update_project(
         if payload.form is not None:
             config = validate_form(payload.form, config)
     pipeline = None if config is None else config_to_dict(config)
-    return crud.update_project(db, project_id, name=payload.name, pipeline=pipeline)
+    return crud.update_project(
+        db, project_id, name=payload.name, pipeline=pipeline, estimate_poses=payload.estimate_poses
+    )
 
 
 def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> None:
@@ -353,6 +356,7 @@ def project_public(
         num_classes=len(project["schema"]["classes"]),
         pipeline=project["pipeline"],
         form=form_values(project_config(project)),
+        estimate_poses=bool(project.get("estimate_poses")),
         is_demo=bool(project["is_demo"]),
         created_at=project["created_at"],
         updated_at=project["updated_at"],

@@ -24,6 +24,8 @@ through :class:`RunLayout`, so no other module spells a run-folder file name.
       applied_corrections.npz, applied_corrections_scan.npz, frame_voxels.npz
                                   the app's "apply corrections" job: the corrections the points and export
                                   now carry, and the voxel → frames index (leap_core.pipeline.apply)
+      poses/poses.txt, poses/poses_estimated.json
+                                  estimated poses (KISS-ICP) the run uses because its dataset has none
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_save_npz
 
@@ -80,6 +83,7 @@ class RunLayout:
     EXPORT_ZIP: ClassVar[str] = "export.zip"
     EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
     EXPORT_COVERAGE: ClassVar[str] = "export-coverage.json"
+    POSES_DIR: ClassVar[str] = "poses"
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
         {PARAMS, CORRECTIONS, CORRECTIONS_SCAN, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, EXPORT_COVERAGE,
          APPLIED_CORRECTIONS, APPLIED_CORRECTIONS_SCAN, FRAME_VOXELS}
@@ -179,6 +183,20 @@ class RunLayout:
     def export_coverage(self) -> Path:
         """The app's cached point counts of the export (labeled, unlabeled by reason, per raw id)."""
         return self._file(self.EXPORT_COVERAGE)
+
+    @property
+    def poses(self) -> Path:
+        """Estimated poses (``poses/poses.txt``, the note beside it) for a dataset without its own, written
+        by ``leap run --estimate-poses`` or the app's run of a project that estimates poses."""
+        return self.run_dir / self.POSES_DIR / "poses.txt"
+
+    def open_sequence(self, dataset: str | Path) -> KittiSequence:
+        """The dataset as this run reads it: with the dataset's own ``poses.txt`` when it has one, else
+        with the run's :attr:`poses` when present (the one rule the pipeline, the exports, the app's
+        corrections and the viewer follow, so they all place the scans with the same poses)."""
+        if not (Path(dataset) / "poses.txt").is_file() and self.poses.is_file():
+            return KittiSequence(dataset, poses_path=self.poses)
+        return KittiSequence(dataset)
 
     # ------------------------------------------------------------------------------- per-frame files
     def folder(self, name: str) -> Path:

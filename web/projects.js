@@ -3,6 +3,7 @@
 import { get, post } from "./api.js";
 import { checkSummary } from "./dataset-check.js";
 import { fmtPct, fmtTime, h, replace, statusChip } from "./dom.js";
+import { posesOption } from "./poses-option.js";
 
 function projectCard(p) {
   const last = p.last_run;
@@ -58,6 +59,7 @@ function createForm(datasets, { toast, onCreated }) {
     kindFolder.checked = true;
     showCheck();
   });
+  const poses = posesOption();
   const error = h("p", { class: "error", role: "alert" });
   const submit = h("button", { class: "btn primary", type: "submit", id: "create-project" }, "Create project");
   const form = h(
@@ -71,7 +73,7 @@ function createForm(datasets, { toast, onCreated }) {
         const dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
         submit.disabled = true;
         try {
-          const p = await post("/projects", { name: name.value.trim(), dataset });
+          const p = await post("/projects", { name: name.value.trim(), dataset, estimate_poses: poses.checked() });
           const partial = p.dataset.check && p.dataset.check.verdict === "partial";
           toast(`Project “${p.name}” created${partial ? `: ${p.dataset.check.summary}, see the dataset check` : ""}`);
           onCreated(p);
@@ -92,6 +94,7 @@ function createForm(datasets, { toast, onCreated }) {
       h("div", { class: "indent stack" }, select, path, checkBox),
       h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
     ),
+    poses.element,
     h("p", { class: "muted small" }, `Data roots: ${datasets.roots.join(", ")}. New projects use the SemanticKITTI classes; edit them afterwards.`),
     error,
     h("div", { class: "row end" }, submit),

@@ -124,6 +124,11 @@ def _v4_review_marks(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v5_estimate_poses(db: sqlite_utils.Database) -> None:
+    # Existing projects read their dataset's poses.txt as before.
+    db.execute("ALTER TABLE projects ADD COLUMN estimate_poses INTEGER NOT NULL DEFAULT 0")
+
+
 Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
 
 MIGRATIONS: list[Migration] = [
@@ -131,6 +136,7 @@ MIGRATIONS: list[Migration] = [
     (2, "runs.note", _v2_run_note),
     (3, "corrections.scope, frame_id, points, author", _v3_correction_scope),
     (4, "review_marks, review_queues", _v4_review_marks),
+    (5, "projects.estimate_poses", _v5_estimate_poses),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -147,7 +147,7 @@ class CorrectionApplier:
         if held is not None and held[0] == lay.run_dir:
             return held[1]
         params = run["params"]
-        seq = KittiSequence(Path(params["dataset"]))
+        seq = lay.open_sequence(Path(params["dataset"]))
         cache = load_run_cache(lay, seq, _frames(params, seq), _voxel_size(params))
         with self._lock:
             self._caches[project_id] = (lay.run_dir, cache)
@@ -167,7 +167,7 @@ class CorrectionApplier:
             return ApplyState(status="no_run", finished_at=utcnow())
         params = run["params"]
         lay = RunLayout(Path(run["run_dir"]))
-        seq = KittiSequence(Path(params["dataset"]))
+        seq = lay.open_sequence(Path(params["dataset"]))
         schema = Schema.from_dict(params["schema"], source=f"run {run['id']} schema")
         new = run_corrections(corrections, params)
         if not new.differs(RunCorrections.applied(lay, schema.num_classes)):

@@ -50,6 +50,7 @@ from app.jobs.messages import (
     decode_from_worker,
 )
 from app.jobs.notify import ChangeNotifier
+from app.jobs.poses import POSES_STAGE, needs_estimate
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
 from leap_core.corrections import ERASE, ScanCorrections
@@ -366,13 +367,17 @@ class JobManager:
 
     def _snapshot(self, project: dict[str, Any], frames: tuple[int, int] | None) -> dict[str, Any]:
         generate = project["dataset_kind"] == "demo" and not demo_exists(Path(project["dataset_path"]))
+        estimate = bool(project.get("estimate_poses"))
+        estimate_now = estimate and not generate and needs_estimate(Path(project["dataset_path"]))
         return {
             "dataset": project["dataset_path"],
             "dataset_kind": project["dataset_kind"],
             "schema": project["schema"],
             "pipeline": project["pipeline"],
             "frames": None if frames is None else [int(frames[0]), int(frames[1])],
-            "stages": ([SYNTH_STAGE] if generate else []) + self.stages,
+            "estimate_poses": estimate,
+            "stages": ([SYNTH_STAGE] if generate else []) + ([POSES_STAGE] if estimate_now else [])
+            + self.stages,
         }
 
     def _prepare_run_dir(self, db: Any, run: dict[str, Any]) -> None:
@@ -713,6 +718,8 @@ class JobManager:
             cache_dir=self.settings.cache_dir / f"p{run['project_id']}",
             progress_interval_s=self.settings.progress_interval_s,
             allow_download=self.settings.allow_download,
+            estimate_poses=bool(params.get("estimate_poses")),
+            poses_cache=self.settings.cache_dir,
         )
 
     def _on_progress(self, run_id: int, live: _Live, message: StageProgress, last_persist: float) -> float:

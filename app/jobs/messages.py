@@ -86,6 +86,10 @@ class RunSpec(Message):
     allow_download: bool = False
     """The server allows a model missing from the Hugging Face cache to be downloaded (its
     ``allow_download`` setting; a project cannot ask for it)."""
+    estimate_poses: bool = False
+    """The project estimates poses with KISS-ICP when its dataset has none (``app.jobs.poses``)."""
+    poses_cache: Path | None = None
+    """Where estimated poses are cached across runs (the server's cache folder)."""
 
 
 @dataclass(frozen=True)

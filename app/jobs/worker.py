@@ -44,8 +44,9 @@ from app.jobs.messages import (
     StageProgress,
     decode_to_worker,
 )
+from app.jobs.poses import POSES_STAGE, prepare_run_poses
 from leap_core.config import config_from_dict
-from leap_core.errors import Cancelled, LeapError, ModelLoadError
+from leap_core.errors import Cancelled, LeapError, ModelLoadError, PosesMissingError
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -202,11 +203,14 @@ def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> Run
 
 def _in_app_words(exc: LeapError) -> str:
     """A run's error as the app shows it. A missing model's own advice is for the command line (`hf
-    download`, `--models`); the app's users get the server's side of it (the dataset check's wording)."""
-    if isinstance(exc, ModelLoadError):
-        from leap_core.datasets.check import ADVICE  # noqa: PLC0415  a run has loaded the pipeline by now
+    download`, `--models`); the app's users get the server's side of it (the dataset check's wording). A
+    dataset without poses names only the file; the app adds its own option."""
+    from leap_core.datasets.check import ADVICE  # noqa: PLC0415  a run has loaded the pipeline by now
 
+    if isinstance(exc, ModelLoadError):
         return f"{str(exc).split('; ')[0]}; {ADVICE['models_missing'].app}"
+    if isinstance(exc, PosesMissingError):
+        return f"{exc}; {ADVICE['poses_missing'].app}"
     return str(exc)
 
 
@@ -217,6 +221,10 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
 
     if spec.demo:
         ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
+    prepare_run_poses(
+        spec.dataset, spec.run_dir, estimate=spec.estimate_poses, cache_root=spec.poses_cache,
+        progress=lambda done, total: reporter(POSES_STAGE, done, total),
+    )
     schema = Schema.from_dict(spec.schema, source="project schema")
     config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
     # Deployment values come from the server's settings only (the spec), never from the project.

@@ -20,7 +20,6 @@ import numpy.typing as npt
 from app.viewer import view_logic as vl
 from leap_core.config import config_from_dict
 from leap_core.consistency.selection import lookup_counts, view_counts
-from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
 from leap_core.projection import project_points
@@ -184,7 +183,7 @@ class RunOutputs:
     def __init__(self, run_dir: str | Path, dataset: str | Path) -> None:
         self.run_dir = Path(run_dir)
         self.layout = RunLayout(self.run_dir)
-        self.seq = KittiSequence(dataset)
+        self.seq = self.layout.open_sequence(dataset)
         points_dir = self.layout.points_dir
         done = {p.stem for p in points_dir.glob("*.npz")} if points_dir.is_dir() else set()
         self.frame_indices: list[int] = [i for i, f in enumerate(self.seq.frame_ids) if f in done]

@@ -575,7 +575,8 @@ ADVICE: dict[str, Advice] = {
     "poses_missing": Advice(
         "estimate them with `leap poses {seq}` (KISS-ICP LiDAR odometry), or add --estimate-poses to "
         "`leap run`",
-        "create the project with \"Estimate poses (KISS-ICP)\" ticked, or add poses.txt to the dataset",
+        "turn on \"Estimate poses (KISS-ICP)\" (on the project page, or when creating the project), or add "
+        "a poses.txt to the dataset",
         "no poses"),
     "poses_will_estimate": Advice("", "", ""),
     "poses_invalid": Advice("fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",

@@ -214,8 +214,8 @@ def file_digest(path: Path) -> str:
 
 
 def dataset_identity(seq: KittiSequence) -> str:
-    """Hash of a sequence's location, calibration, poses (the file the sequence reads them from, None
-    without) and the size + mtime of every per-frame file."""
+    """Hash of a sequence's location, calibration, poses (the file it reads them from, which may lie in a
+    run folder: estimated poses) and the size + mtime of every per-frame file."""
     root = seq.root.resolve()
     poses = file_digest(seq.poses_path) if seq.has_poses else None
     parts: list[Any] = [str(root), file_digest(root / "calib.txt"), poses]

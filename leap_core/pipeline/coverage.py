@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError
 from leap_core.export import raw_id_counts
 from leap_core.fusion import rows_in_sorted, voxel_keys, world_points
@@ -104,7 +103,7 @@ def export_coverage(run_dir: Path, dataset: Path, frames: range | None, voxel_si
         DatasetError: a missing or unreadable run file, naming it.
     """
     lay = RunLayout(run_dir)
-    seq = KittiSequence(dataset)
+    seq = lay.open_sequence(dataset)
     idx = seq.select(frames)
 
     def keys_of(i: int) -> npt.NDArray[np.int64]:

@@ -228,11 +228,13 @@ def _context(
     until: str | None = None,
 ) -> Ctx:
     """The run's context; with ``until`` (a run, not a preview) first :func:`require_poses` for the
-    stages up to it, so a missing poses file stops the run before anything (the labeler included) loads."""
-    seq = KittiSequence(dataset)
+    stages up to it, so a missing poses file stops the run before anything (the labeler included) loads.
+    The sequence reads the dataset's poses, else estimated ones in the run folder
+    (:meth:`RunLayout.open_sequence`)."""
+    run_dir = Path(run_dir)
+    seq = RunLayout(run_dir).open_sequence(dataset)
     if until is not None:
         require_poses(seq, config, STAGE_TABLE[: STAGES.index(until) + 1])
-    run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
     run_dir.mkdir(parents=True, exist_ok=True)

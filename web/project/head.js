@@ -2,6 +2,7 @@
 
 import { del, patch } from "../api.js";
 import { h, replace } from "../dom.js";
+import { posesToggle } from "../poses-option.js";
 import { viewerButton } from "./viewer.js";
 
 function renameButton(ctx, title) {
@@ -83,5 +84,6 @@ export function renderHead(ctx) {
       ds.has_ground_truth ? " · ground truth" : "",
     ),
     h("div", { class: "actions" }, runBtn, viewerButton(ctx), deleteButton(ctx)),
+    posesToggle(ctx),
   );
 }

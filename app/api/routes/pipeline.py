@@ -16,6 +16,7 @@ from fastapi import APIRouter
 
 from app import models
 from app.demo import SYNTH_STAGE
+from app.jobs.poses import POSES_STAGE
 from app.jobs.progress import TERMINAL_STATUSES
 from leap_core.config import FORM_FIELDS
 from leap_core.labelers import LABELERS
@@ -32,11 +33,20 @@ DEMO_STAGE = models.StageInfoPublic(
 )
 """The stage the job manager puts first in a run of a demo project whose sequence does not exist yet."""
 
+POSES_STAGE_INFO = models.StageInfoPublic(
+    name=POSES_STAGE,
+    label="Estimate poses",
+    description="KISS-ICP LiDAR odometry into the work folder (projects that estimate poses, on a dataset "
+    "without poses.txt; cached for later runs)",
+    per_frame=True,
+)
+"""The stage before the pipeline's in a run that estimates poses."""
+
 
 def pipeline_public() -> models.PipelinePublic:
     """The answer of ``GET /pipeline`` (the same for every request)."""
     switches = stage_switches()
-    stages = [DEMO_STAGE] + [
+    stages = [DEMO_STAGE, POSES_STAGE_INFO] + [
         models.StageInfoPublic(
             name=s.name,
             label=s.label,

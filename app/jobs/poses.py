@@ -1,0 +1,76 @@
+"""Estimated poses for a run of a project with "Estimate poses (KISS-ICP)" on.
+
+The estimate is made once per dataset into the work folder's cache (``<work_dir>/cache/poses/<key>/``,
+``key`` from the dataset's resolved path), reused by every later run while the scans, calibration and
+settings are unchanged (:func:`leap_core.odometry.estimate_into`), and linked into the run folder's
+``poses/`` (:attr:`leap_core.run_layout.RunLayout.poses`), where the pipeline, the exports, the
+corrections job and the viewer read it. The dataset folder is never written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shutil
+from pathlib import Path
+
+from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
+from leap_core.io_utils import remove_tree
+from leap_core.progress import ProgressFn
+from leap_core.run_layout import RunLayout
+
+POSES_STAGE = "estimate poses"
+"""The progress stage the job manager puts before the pipeline's stages when a run estimates poses."""
+
+#: Reports the user sees; the worker sends them to the run log and the UI's run warnings.
+notice_log = logging.getLogger("leap_core.poses")
+
+
+def cache_folder(cache_root: Path, dataset: Path) -> Path:
+    """The cache folder of one dataset's estimate."""
+    key = hashlib.sha256(str(Path(dataset).resolve()).encode()).hexdigest()[:16]
+    return cache_root / "poses" / key
+
+
+def needs_estimate(dataset: Path) -> bool:
+    """Whether a run of a project that estimates poses will estimate them (the dataset has no poses.txt)."""
+    return not (Path(dataset) / "poses.txt").is_file()
+
+
+def _link(src: Path, dst: Path) -> None:
+    tmp = dst.with_name(f".{dst.name}.link")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+def prepare_run_poses(
+    dataset: Path, run_dir: Path, *, estimate: bool, cache_root: Path | None,
+    progress: ProgressFn | None = None,
+) -> None:
+    """Put the poses a run uses in place before its pipeline starts.
+
+    Without ``estimate`` (or when the dataset has its own ``poses.txt``) the run folder's ``poses/`` is
+    removed, so poses estimated for an earlier run (carried over with its stage outputs) are not used.
+    """
+    layout = RunLayout(run_dir)
+    if not estimate or not needs_estimate(dataset) or cache_root is None:
+        remove_tree(layout.poses.parent)
+        return
+    from leap_core.odometry import estimate_into  # noqa: PLC0415  # KISS-ICP loads in a run that estimates
+
+    seq = KittiSequence(dataset)
+    cached = cache_folder(cache_root, dataset) / "poses.txt"
+    note, reused = estimate_into(seq, cached, progress=progress)
+    layout.poses.parent.mkdir(parents=True, exist_ok=True)
+    _link(cached.parent / POSES_NOTE, layout.poses.parent / POSES_NOTE)
+    _link(cached, layout.poses)
+    how = "reused the estimate cached" if reused else f"estimated them in {note['seconds']:.1f} s, cached"
+    notice_log.warning(
+        "poses: the dataset has no poses.txt; KISS-ICP %s LiDAR odometry %s in %s (%d scans)",
+        note["version"], how, cached.parent, note["frames"],
+    )
