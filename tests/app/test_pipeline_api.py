@@ -32,8 +32,10 @@ def test_stages_come_from_the_stage_table_after_the_demo_generation(client: Test
         "per_frame": True,
         "switch": None,
     }
+    # Then the app's pose estimation (projects with "Estimate poses" on a dataset without poses.txt).
+    assert stages[1]["name"] == "estimate poses" and "KISS-ICP" in stages[1]["description"]
     switches = stage_switches()
-    assert stages[1:] == [
+    assert stages[2:] == [
         {"name": s.name, "label": s.label, "description": s.description, "per_frame": s.per_frame,
          "switch": switches.get(s.name)}
         for s in STAGE_TABLE
