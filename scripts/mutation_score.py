@@ -47,7 +47,8 @@ def main(argv: list[str]) -> int:
         paths = sorted(str(p.relative_to(ROOT / "mutants"))[: -len(".meta")]
                        for p in (ROOT / "mutants" / "leap_core").rglob("*.py.meta"))
     equivalent = equivalent_mutants()
-    print(f"{'module':38} {'mutants':>7} {'killed':>6} {'survived':>8} {'no tests':>8} {'equiv.':>6} {'score':>7}")
+    head = ("mutants", "killed", "survived", "no tests", "equiv.")
+    print(f"{'module':38} " + " ".join(f"{h:>8}" for h in head) + f" {'score':>7}")
     tot = {"n": 0, "killed": 0, "equiv": 0, "survived": 0, "untested": 0}
     incomplete_any = False
     left: list[str] = []
@@ -67,7 +68,8 @@ def main(argv: list[str]) -> int:
         incomplete_any |= incomplete
         denom = len(res) - eq
         score = f"{100 * killed / denom:6.1f}%" if denom else "    -  "
-        print(f"{path:38} {len(res):7d} {killed:6d} {len(survived):8d} {len(untested):8d} {eq:6d} {score}"
+        cells = (len(res), killed, len(survived), len(untested), eq)
+        print(f"{path:38} " + " ".join(f"{v:8d}" for v in cells) + f" {score}"
               + ("  incomplete" if incomplete else ""))
         tot["n"] += len(res)
         tot["killed"] += killed
@@ -77,8 +79,9 @@ def main(argv: list[str]) -> int:
         left += [f"{n}: survived" for n in survived] + [f"{n}: {res[n]}" for n in untested]
     denom = tot["n"] - tot["equiv"]
     if denom:
-        print(f"{'overall':38} {tot['n']:7d} {tot['killed']:6d} {tot['survived']:8d} {tot['untested']:8d} "
-              f"{tot['equiv']:6d} {100 * tot['killed'] / denom:6.1f}%" + ("  incomplete" if incomplete_any else ""))
+        cells = (tot["n"], tot["killed"], tot["survived"], tot["untested"], tot["equiv"])
+        print(f"{'overall':38} " + " ".join(f"{v:8d}" for v in cells)
+              + f" {100 * tot['killed'] / denom:6.1f}%" + ("  incomplete" if incomplete_any else ""))
     if show:
         print("\nnot killed and not listed as equivalent in docs/MUTATION.md:")
         print("\n".join(f"  {line}" for line in left) or "  (none)")

@@ -175,7 +175,8 @@ def test_select_reliable_returns_a_bool_mask_and_ranks_nan_last() -> None:
     ties = np.ones(2, np.float32)
     assert select_reliable(labels, ties, 1, 0.5, support=np.array([np.nan, 0.0])).tolist() == [False, True]
     # Unsigned supports (frame counts) rank by value: negating them must not wrap 0 to the top.
-    assert select_reliable(labels, ties, 1, 0.5, support=np.array([0, 3], np.uint32)).tolist() == [False, True]
+    frames = np.array([0, 3], np.uint32)
+    assert select_reliable(labels, ties, 1, 0.5, support=frames).tolist() == [False, True]
 
 
 def test_seeded_tie_order_is_the_seeds_permutation() -> None:
