@@ -184,3 +184,21 @@ def test_k_one_keeps_every_voxel_as_it_is() -> None:
     centres = np.array([[0.0, 0, 0], [0.2, 0, 0], [0.4, 0, 0]], np.float32)
     probs = np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]], np.float32)
     np.testing.assert_array_equal(knn_smooth(centres, probs, SmoothingConfig(k=1)), probs)
+
+
+def test_knn_weights_shift_each_row_by_its_own_minimum() -> None:
+    """A voxel whose nearest neighbours are 200 m away (unbounded kNN) still gets softmax(-d) weights: each
+    row is shifted by its own minimum before exp(), where exp(-200) would underflow float32 to 0."""
+    s1 = 1 / (1 + math.e**-1)
+    w = knn_weights(np.array([[0.0, 1.0], [200.0, 201.0]]))
+    np.testing.assert_allclose(w, [[s1, 1 - s1], [s1, 1 - s1]], rtol=1e-6)
+
+
+def test_smoothed_grid_load_casts_float_probs_but_refuses_others(tmp_path) -> None:
+    path = tmp_path / "grid_smooth.npz"
+    np.savez(path, keys=np.array([1, 2], np.int64), probs=np.full((2, 2), 0.5, np.float32), voxel_size=0.2)
+    back = SmoothedGrid.load(path)
+    assert back.probs.dtype == np.float16 and back.probs.tolist() == [[0.5, 0.5], [0.5, 0.5]]
+    np.savez(path, keys=np.array([1, 2], np.int64), probs=np.ones((2, 2), np.int64), voxel_size=0.2)
+    with pytest.raises(DatasetError, match="'probs'"):
+        SmoothedGrid.load(path)
