@@ -202,3 +202,16 @@ def test_smoothed_grid_load_casts_float_probs_but_refuses_others(tmp_path) -> No
     np.savez(path, keys=np.array([1, 2], np.int64), probs=np.ones((2, 2), np.int64), voxel_size=0.2)
     with pytest.raises(DatasetError, match="'probs'"):
         SmoothedGrid.load(path)
+
+
+def test_smoothed_grid_checks_each_array_on_its_own() -> None:
+    keys = np.array([1, 2], np.int64)
+    probs = np.full((2, 2), 0.5, np.float16)
+    with pytest.raises(ValueError, match="'keys' must be 1-D int64"):
+        SmoothedGrid(keys.astype(np.int32), probs, 0.2)  # right shape, wrong type
+    with pytest.raises(ValueError, match="'keys' must be 1-D int64"):
+        SmoothedGrid(keys[:, None], probs, 0.2)  # right type, wrong shape
+    with pytest.raises(ValueError, match="'probs' must be"):
+        SmoothedGrid(keys, probs.astype(np.float32), 0.2)
+    with pytest.raises(ValueError, match="'probs' must be"):
+        SmoothedGrid(keys, probs[:, 0], 0.2)
