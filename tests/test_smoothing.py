@@ -215,3 +215,14 @@ def test_smoothed_grid_checks_each_array_on_its_own() -> None:
         SmoothedGrid(keys, probs.astype(np.float32), 0.2)
     with pytest.raises(ValueError, match="'probs' must be"):
         SmoothedGrid(keys, probs[:, 0], 0.2)
+
+
+def test_config_and_voxel_size_bounds() -> None:
+    assert SmoothingConfig(k=1, max_distance=1e-6, workers=-1).k == 1  # the smallest valid values
+    for bad in ({"max_distance": 0.0}, {"workers": 0}, {"workers": -2}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SmoothingConfig(**bad)
+    keys, probs = np.array([1], np.int64), np.ones((1, 2), np.float16)
+    for vs in (0.0, math.inf, math.nan, -0.2):
+        with pytest.raises(ValueError, match="voxel_size"):
+            SmoothedGrid(keys, probs, vs)
