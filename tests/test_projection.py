@@ -199,3 +199,24 @@ def test_painted_observations_and_save_load(tmp_path) -> None:
     np.savez(bad, point_idx=np.array([0]), rows=np.array([5]), table=np.ones((2, 2)))
     with pytest.raises(DatasetError, match="rows index outside"):
         Painted.load(bad)
+
+
+def test_largest_cluster_flattens_its_input() -> None:
+    depth = np.array([25.0, 10.0, 10.2, 25.3, 10.4])
+    expected = [False, True, True, False, True]
+    np.testing.assert_array_equal(largest_depth_cluster(depth[None, :], 1.0), expected)  # a (1, P) row
+    np.testing.assert_array_equal(largest_depth_cluster(depth[:, None], 1.0), expected)  # a (P, 1) column
+
+
+def test_painted_types_empty_and_full() -> None:
+    """Painted arrays keep their documented types (int64 indices, int32 rows, float32 table) also when
+    empty, and per-point outputs are int16 labels and float32 confidences."""
+    empty = Painted.empty(3)
+    assert (empty.point_idx.shape, empty.rows.shape, empty.table.shape) == ((0,), (0,), (0, 3))
+    assert (empty.point_idx.dtype, empty.rows.dtype, empty.table.dtype) == (np.int64, np.int32, np.float32)
+    table = np.array([[0.5, 0.5], [0.9, 0.1]], np.float32)
+    painted = Painted(np.array([1, 3]), np.array([1, 0], np.int32), table)
+    conf = painted.point_confidence(4)
+    assert conf.dtype == np.float32 and conf.tolist() == [0.0, np.float32(0.9), 0.0, 0.5]
+    obs = painted.to_observations(np.array([100, 101, 102, 103], np.int32), prob_floor=1e-3)
+    assert obs.keys.dtype == np.int64 and obs.keys.tolist() == [101, 103]
