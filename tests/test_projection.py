@@ -220,3 +220,21 @@ def test_painted_types_empty_and_full() -> None:
     assert conf.dtype == np.float32 and conf.tolist() == [0.0, np.float32(0.9), 0.0, 0.5]
     obs = painted.to_observations(np.array([100, 101, 102, 103], np.int32), prob_floor=1e-3)
     assert obs.keys.dtype == np.int64 and obs.keys.tolist() == [101, 103]
+
+
+def test_project_points_default_min_depth_and_empty_image_size() -> None:
+    # Default min_depth 0.5 m: a point 1 m ahead is kept, one 0.4 m ahead is not.
+    pr = project_points(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.4]], np.float32), P, height=8, width=10)
+    assert pr.idx.tolist() == [0]
+    for h, w in ((0, 10), (8, 0), (-1, 10)):
+        with pytest.raises(ValueError, match="image size"):
+            project_points(np.zeros((1, 3)), P, h, w)
+
+
+def test_project_points_one_pixel_image_and_depth_exactly_at_the_minimum() -> None:
+    # Pixel = (10x + 5z, 10y + 4z) / z: x = -0.5, y = -0.4 at z = 1 lands on pixel (0, 0).
+    one = project_points(np.array([[-0.5, -0.4, 1.0]], np.float32), P, height=1, width=1)
+    assert (one.u.tolist(), one.v.tolist()) == ([0], [0])
+    # Kept only when d > min_depth: a point at exactly 0.5 m is dropped.
+    at = project_points(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5001]], np.float32), P, 8, 10, min_depth=0.5)
+    assert at.idx.tolist() == [1]
