@@ -235,6 +235,20 @@ def test_project_points_one_pixel_image_and_depth_exactly_at_the_minimum() -> No
     # Pixel = (10x + 5z, 10y + 4z) / z: x = -0.5, y = -0.4 at z = 1 lands on pixel (0, 0).
     one = project_points(np.array([[-0.5, -0.4, 1.0]], np.float32), P, height=1, width=1)
     assert (one.u.tolist(), one.v.tolist()) == ([0], [0])
+    assert one.u.dtype == np.int32 and one.v.dtype == np.int32
     # Kept only when d > min_depth: a point at exactly 0.5 m is dropped.
     at = project_points(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5001]], np.float32), P, 8, 10, min_depth=0.5)
     assert at.idx.tolist() == [1]
+
+
+def test_depth_cluster_filter_types_shapes_and_exact_gaps() -> None:
+    member = np.array([[1, 1, 1, 0]])  # integer 0/1 membership
+    depth = np.array([5.0, 5.1, 9.0, 5.2])
+    out = depth_cluster_filter(member, depth, gap=1.0)
+    assert out.dtype == np.bool_ and out.tolist() == [[True, True, False, False]]
+    np.testing.assert_array_equal(depth_cluster_filter(member, depth[:, None], gap=1.0), out)  # (P, 1) depths
+    # float32 depths 0.73531526 and 1.73531532 are 1.0000000596 m apart: more than the 1 m gap, although
+    # their float32 difference rounds to exactly 1.0.
+    a, b = np.float32(0.7353152632713318), np.float32(1.7353153228759766)
+    assert float(b) - float(a) > 1.0 and b - a == np.float32(1.0)
+    np.testing.assert_array_equal(largest_depth_cluster(np.array([a, b, b], np.float32), 1.0), [0, 1, 1])
