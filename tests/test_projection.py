@@ -252,3 +252,13 @@ def test_depth_cluster_filter_types_shapes_and_exact_gaps() -> None:
     a, b = np.float32(0.7353152632713318), np.float32(1.7353153228759766)
     assert float(b) - float(a) > 1.0 and b - a == np.float32(1.0)
     np.testing.assert_array_equal(largest_depth_cluster(np.array([a, b, b], np.float32), 1.0), [0, 1, 1])
+
+
+def test_depth_cluster_filter_keeps_masks_apart_in_its_single_sort() -> None:
+    # Mask 0: one cluster 10.0-11.5 m (0.5 m steps); mask 1: one point at 10.2 m, inside mask 0's range.
+    # The one sort by (mask, depth) must not interleave the masks, which would split mask 0 in two.
+    member = np.array([[1, 1, 1, 1, 0], [0, 0, 0, 0, 1]], bool)
+    depth = np.array([10.0, 10.5, 11.0, 11.5, 10.2])
+    np.testing.assert_array_equal(depth_cluster_filter(member, depth, gap=1.0), member)
+    with pytest.raises(ValueError, match="member must be"):
+        depth_cluster_filter(member, depth[:4], gap=1.0)
