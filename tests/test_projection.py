@@ -147,7 +147,7 @@ def test_paint_depth_clustering_removes_bleed_onto_background() -> None:
     np.testing.assert_allclose(raw.table[raw.rows][5:], [[0.5, 0.5]] * 3)
 
 
-@pytest.mark.parametrize("num_masks", [5, 70])  # 70 > 64 masks exercises the multi-word combination hash
+@pytest.mark.parametrize("num_masks", [5, 20, 70])  # 20: one 64-bit word of several bytes; 70: several words
 def test_paint_matches_dense_pixel_probabilities(num_masks: int) -> None:
     rng = np.random.default_rng(num_masks)
     h, w, c = 12, 17, 4
@@ -262,3 +262,21 @@ def test_depth_cluster_filter_keeps_masks_apart_in_its_single_sort() -> None:
     np.testing.assert_array_equal(depth_cluster_filter(member, depth, gap=1.0), member)
     with pytest.raises(ValueError, match="member must be"):
         depth_cluster_filter(member, depth[:4], gap=1.0)
+
+
+def test_paint_keeps_every_combination_of_64_masks_apart() -> None:
+    """Membership patterns are hashed as unsigned 64-bit words: two patterns that share masks 48-51 and
+    57-63 (as float64 bits: an all-ones exponent, i.e. NaN) and differ in one more mask get their own rows."""
+    shared = [*range(48, 52), *range(57, 64)]
+    dense = np.zeros((64, 1, 2), bool)
+    dense[shared, 0, :] = True
+    dense[0, 0, 0] = True  # pixel (0, 0): the shared masks + mask 0
+    dense[1, 0, 1] = True  # pixel (1, 0): the shared masks + mask 1
+    probs = np.full((64, 2), 0.5)
+    probs[0], probs[1] = [1.0, 0.0], [0.0, 1.0]
+    soft = SoftMasks.from_dense(dense, probs, np.ones(64))
+    u, v = np.array([0, 1], np.int32), np.zeros(2, np.int32)
+    proj = Projected(np.array([0, 1]), u, v, np.ones(2, np.float32))
+    painted = paint(soft, proj, ProjectionConfig(depth_clustering=False))
+    table = painted.table[painted.rows]
+    np.testing.assert_allclose(table, [[6.5 / 12, 5.5 / 12], [5.5 / 12, 6.5 / 12]], rtol=1e-6)
