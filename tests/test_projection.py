@@ -280,3 +280,19 @@ def test_paint_keeps_every_combination_of_64_masks_apart() -> None:
     painted = paint(soft, proj, ProjectionConfig(depth_clustering=False))
     table = painted.table[painted.rows]
     np.testing.assert_allclose(table, [[6.5 / 12, 5.5 / 12], [5.5 / 12, 6.5 / 12]], rtol=1e-6)
+
+
+def _at_pixels(u: list[int], v: list[int]) -> Projected:
+    """Points 0..n-1 at pixels (u, v), 1 m deep."""
+    n = len(u)
+    return Projected(np.arange(n), np.array(u, np.int32), np.array(v, np.int32), np.ones(n, np.float32))
+
+
+def test_paint_edge_cases_one_mask_one_point_and_pixels_outside() -> None:
+    one_mask = SoftMasks.from_dense(np.ones((1, 2, 3), bool), [[0.25, 0.75]], [0.5])
+    painted = paint(one_mask, _at_pixels([2], [1]))
+    assert painted.point_idx.tolist() == [0] and painted.table.tolist() == [[0.25, 0.75]]
+    assert len(paint(one_mask, _at_pixels([], []))) == 0  # masks but no point
+    for u, v in ((3, 0), (0, 2)):  # one past the 3-wide or the 2-high mask
+        with pytest.raises(ValueError, match="exceed"):
+            paint(one_mask, _at_pixels([u], [v]))
