@@ -296,3 +296,19 @@ def test_paint_edge_cases_one_mask_one_point_and_pixels_outside() -> None:
     for u, v in ((3, 0), (0, 2)):  # one past the 3-wide or the 2-high mask
         with pytest.raises(ValueError, match="exceed"):
             paint(one_mask, _at_pixels([u], [v]))
+
+
+def test_paint_passes_the_gap_and_the_minimum_to_depth_clustering() -> None:
+    # Mask 0 covers row 0 (4 points at 10, 10.5, 12, 12.5 m: two clusters 1.5 m apart with a 1 m gap);
+    # mask 1 covers row 1 (2 points at 10 and 20 m: fewer than min_cluster_points = 3, kept whole).
+    dense = np.array([[[1, 1, 1, 1], [0, 0, 0, 0]], [[0, 0, 0, 0], [1, 1, 0, 0]]], bool)
+    soft = SoftMasks.from_dense(dense, [[1.0, 0.0], [0.0, 1.0]], [1, 1])
+    proj = _at_pixels([0, 1, 2, 3, 0, 1], [0, 0, 0, 0, 1, 1])
+    proj = Projected(proj.idx, proj.u, proj.v, np.array([10, 10.5, 12, 12.5, 10, 20], np.float32))
+    painted = paint(soft, proj, ProjectionConfig(cluster_gap=1.0, min_cluster_points=3))
+    # Mask 0 keeps its nearest cluster (a tie of 2 and 2 points); mask 1 keeps both points.
+    assert painted.point_idx.tolist() == [0, 1, 4, 5]
+    # A mask that covers none of the points: no observation, an empty (0, C) table.
+    corner = SoftMasks.from_dense(np.array([[[1, 0, 0, 0], [0, 0, 0, 0]]], bool), [[0.5, 0.5]], [1])
+    empty = paint(corner, _at_pixels([3], [1]))
+    assert len(empty) == 0 and empty.table.shape == (0, 2)
