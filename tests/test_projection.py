@@ -218,6 +218,8 @@ def test_painted_types_empty_and_full() -> None:
     painted = Painted(np.array([1, 3]), np.array([1, 0], np.int32), table)
     conf = painted.point_confidence(4)
     assert conf.dtype == np.float32 and conf.tolist() == [0.0, np.float32(0.9), 0.0, 0.5]
+    labels = painted.point_labels(4)
+    assert labels.dtype == np.int16 and labels.tolist() == [UNLABELED, 0, UNLABELED, 0]
     obs = painted.to_observations(np.array([100, 101, 102, 103], np.int32), prob_floor=1e-3)
     assert obs.keys.dtype == np.int64 and obs.keys.tolist() == [101, 103]
 
@@ -292,6 +294,7 @@ def test_paint_edge_cases_one_mask_one_point_and_pixels_outside() -> None:
     one_mask = SoftMasks.from_dense(np.ones((1, 2, 3), bool), [[0.25, 0.75]], [0.5])
     painted = paint(one_mask, _at_pixels([2], [1]))
     assert painted.point_idx.tolist() == [0] and painted.table.tolist() == [[0.25, 0.75]]
+    assert painted.rows.dtype == np.int32 and painted.table.dtype == np.float32
     assert len(paint(one_mask, _at_pixels([], []))) == 0  # masks but no point
     for u, v in ((3, 0), (0, 2)):  # one past the 3-wide or the 2-high mask
         with pytest.raises(ValueError, match="exceed"):
