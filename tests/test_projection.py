@@ -315,3 +315,26 @@ def test_paint_passes_the_gap_and_the_minimum_to_depth_clustering() -> None:
     corner = SoftMasks.from_dense(np.array([[[1, 0, 0, 0], [0, 0, 0, 0]]], bool), [[0.5, 0.5]], [1])
     empty = paint(corner, _at_pixels([3], [1]))
     assert len(empty) == 0 and empty.table.shape == (0, 2)
+
+
+def test_projection_config_bounds_and_painted_load_checks(tmp_path) -> None:
+    ProjectionConfig(min_depth=0.0, cluster_gap=1e-6, min_cluster_points=0)  # the smallest valid values
+    for bad in ({"min_depth": -0.1}, {"cluster_gap": 0.0}, {"min_cluster_points": -1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            ProjectionConfig(**bad)
+    path = tmp_path / "obs.npz"
+    # Other integer / float types are read into the documented ones.
+    np.savez(path, point_idx=np.array([4], np.int32), rows=np.array([0], np.int64), table=np.ones((1, 2)))
+    back = Painted.load(path)
+    assert (back.point_idx.dtype, back.rows.dtype, back.table.dtype) == (np.int64, np.int32, np.float32)
+    for idx, rows, table in (
+        (np.array([0, 1]), np.array([0]), np.ones((1, 2))),  # rows for another number of points
+        (np.array([[0]]), np.array([[0]]), np.ones((1, 2))),  # 2-D indices
+        (np.array([0]), np.array([0]), np.ones(2)),  # 1-D table
+    ):
+        np.savez(path, point_idx=idx, rows=rows, table=table)
+        with pytest.raises(DatasetError, match="inconsistent shapes"):
+            Painted.load(path)
+    np.savez(path, point_idx=np.array([0]), rows=np.array([-1]), table=np.ones((2, 2)))
+    with pytest.raises(DatasetError, match="rows index outside"):
+        Painted.load(path)
