@@ -146,11 +146,70 @@ def test_view_counts_count_frames_not_points() -> None:
     assert lookup_counts(np.array([1, 2]), empty_keys, empty_counts).tolist() == [0, 0]
 
 
+def test_view_counts_and_lookup_counts_are_int64_even_when_empty() -> None:
+    # Callers index and concatenate these arrays: float64 keys or counts would silently change hashing and
+    # comparisons (a float key loses bits above 2^53).
+    keys, counts = view_counts([np.array([3, 1], np.int32), np.array([1], np.int32)])
+    assert (keys.dtype, counts.dtype) == (np.int64, np.int64)
+    assert counts.tolist() == [2, 1]
+    empty_keys, empty_counts = view_counts([])
+    assert (empty_keys.shape, empty_counts.shape) == ((0,), (0,))
+    assert (empty_keys.dtype, empty_counts.dtype) == (np.int64, np.int64)
+    assert lookup_counts(np.array([1, 2]), keys, counts).dtype == np.int64
+
+
+def test_per_scan_tie_order_uses_seed_plus_scan_index() -> None:
+    # Ten tied points of one class per scan, share 0.3 keeps 3: which 3 depends on the tie order only, and
+    # scan s draws it from seed + s (so equal scans do not all keep the same indices).
+    labels = np.zeros(10, np.int16)
+    conf = np.ones(10, np.float32)
+    masks = select_reliable_scans([labels, labels], [conf, conf], 1, 0.3, scope="scan", seed=5)
+    for s in range(2):
+        np.testing.assert_array_equal(masks[s], select_reliable(labels, conf, 1, 0.3, seed=5 + s))
+    assert not np.array_equal(masks[0], masks[1])
+    # Over the sequence the concatenated points use the seed itself.
+    seq = select_reliable_scans([labels, labels], [conf, conf], 1, 0.3, scope="sequence", seed=5)
+    whole = select_reliable(np.concatenate([labels, labels]), np.concatenate([conf, conf]), 1, 0.3, seed=5)
+    np.testing.assert_array_equal(np.concatenate(seq), whole)
+    assert not np.array_equal(whole, select_reliable(np.zeros(20, np.int16), np.ones(20, np.float32), 1, 0.3))
+    with pytest.raises(ValueError):  # one confidence array for two scans
+        select_reliable_scans([labels, labels], [conf], 1, 0.3, scope="scan")
+
+
+def test_quota_rounds_share_times_count_to_9_decimals_only() -> None:
+    # 0.20000000003 · 10 = 2.0000000003: rounded to 9 decimals it is 2 (keep 2), not a count above 2.
+    assert per_class_quota(10, 0.20000000003) == 2
+    assert per_class_quota(10, 0.2000000003) == 3  # 2.000000003 survives the rounding: ceil → 3
+
+
+def test_select_reliable_returns_a_bool_mask_and_ranks_nan_last() -> None:
+    labels = np.zeros(2, np.int16)
+    # A NaN confidence ranks below every number (even 0), a NaN support below every support (even 0).
+    sel = select_reliable(labels, np.array([np.nan, 0.0], np.float32), 1, 0.5)
+    assert sel.dtype == np.bool_ and sel.tolist() == [False, True]
+    ties = np.ones(2, np.float32)
+    assert select_reliable(labels, ties, 1, 0.5, support=np.array([np.nan, 0.0])).tolist() == [False, True]
+    # Unsigned supports (frame counts) rank by value: negating them must not wrap 0 to the top.
+    frames = np.array([0, 3], np.uint32)
+    assert select_reliable(labels, ties, 1, 0.5, support=frames).tolist() == [False, True]
+
+
+def test_seeded_tie_order_is_the_seeds_permutation() -> None:
+    # lexsort ranks tied points by the permutation's value: the kept ones are the k smallest.
+    n, k = 10, 3
+    perm = np.random.default_rng(5).permutation(n)
+    sel = select_reliable(np.zeros(n, np.int16), np.ones(n, np.float32), 1, 0.3, seed=5)
+    assert np.flatnonzero(sel).tolist() == sorted(np.argsort(perm)[:k].tolist())
+    assert np.flatnonzero(sel).tolist() != [0, 1, 2]  # differs from the index order of seed=None
+
+
 def test_select_reliable_rejects_bad_input() -> None:
     with pytest.raises(ValueError, match="labels must lie"):
         select_reliable(np.array([3], np.int16), np.ones(1, np.float32), 3, 0.2)
     with pytest.raises(ValueError, match="share"):
         select_reliable(np.array([0], np.int16), np.ones(1, np.float32), 3, 0.0)
+    with pytest.raises(ValueError, match="share"):
+        select_reliable(np.array([0], np.int16), np.ones(1, np.float32), 3, 1.5)
     with pytest.raises(ValueError, match="must both be"):
         select_reliable(np.array([0, 1], np.int16), np.ones(1, np.float32), 3, 0.5)
 

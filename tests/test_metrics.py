@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from leap_core.metrics import confusion_matrix, evaluate, format_table
+from leap_core.metrics import confusion_matrix, evaluate, format_table, metrics_from_confusion
 from leap_core.presets import load_preset
 
 NAMES = ["car", "road", "sidewalk", "person"]
@@ -45,6 +45,10 @@ def test_confusion_matrix_by_hand() -> None:
     assert cm.dtype == np.int64
     with pytest.raises(ValueError, match="pred labels"):
         confusion_matrix(gt, np.full_like(pred, 4), 4)
+    with pytest.raises(ValueError, match="gt labels"):
+        confusion_matrix(np.full_like(gt, 4), pred, 4)
+    # Inputs of any shape are flattened (per-scan label columns, say).
+    np.testing.assert_array_equal(confusion_matrix(gt[:, None], pred[:, None], 4), expected)
     with pytest.raises(ValueError, match="points"):
         confusion_matrix(gt, pred[:-1], 4)
 
@@ -134,3 +138,58 @@ def test_format_table_fits_120_columns_with_the_semantickitti_classes() -> None:
     table = format_table({"point": m, "voxel": m, "+3D-CN x1": m, "+3D-CN x2": m, "+3D-CN x3": m}, names)
     assert max(len(line) for line in table.splitlines()) <= 120, table
     assert len(table.splitlines()) == 2 + 3 + 1 + len(names)
+
+
+def test_format_table_layout_exactly() -> None:
+    """Names left-aligned, figures right-aligned, each column as wide as its longest cell, the header
+    included (here the method name is wider than its figures)."""
+    gt, pred = _points()
+    m = evaluate(gt, pred, NAMES, CATS, ignore_unlabeled_pred=True)
+    assert format_table({"voxel-long": m}, NAMES).splitlines() == [
+        "%         voxel-long",
+        "--------  ----------",
+        "mIoU            53.3",
+        "cat-mIoU        62.5",
+        "labeled         76.9",
+        "--------  ----------",
+        "car             50.0",
+        "road            60.0",
+        "sidewalk        50.0",
+        "person             -",
+    ]
+
+
+def test_to_dict_keys_and_values() -> None:
+    """The metrics file's fields (runs' metrics.json, the API, the app's result table read them by name)."""
+    gt, pred = _points()
+    d = evaluate(gt, pred, NAMES, CATS, ignore_unlabeled_pred=False).to_dict()
+    assert set(d) == {"miou", "miou_all_classes", "category_miou", "labeled_share", "n_points",
+                      "ignore_unlabeled_pred", "iou", "category_iou", "confusion"}
+    assert d["miou"] == pytest.approx((0.4 + 3 / 7 + 0.5) / 3)
+    assert d["miou_all_classes"] == pytest.approx((0.4 + 3 / 7 + 0.5) / 4)
+    assert d["category_miou"] == pytest.approx(0.5)
+    assert d["labeled_share"] == pytest.approx(10 / 13)
+    assert d["n_points"] == 13 and type(d["n_points"]) is int
+    assert d["ignore_unlabeled_pred"] is False
+    assert d["category_iou"] == {"vehicle": pytest.approx(0.4), "flat": pytest.approx(0.6), "human": None}
+
+
+def test_a_class_with_a_single_point() -> None:
+    # One car point predicted car: tp = 1, tp + fp + fn = 1 → IoU 1 (not "absent"); road absent → NaN.
+    one = np.array([0])
+    m = evaluate(one, one, ["car", "road"], ["vehicle", "flat"], ignore_unlabeled_pred=True)
+    assert m.iou[0] == 1.0 and math.isnan(m.iou[1])
+    assert m.miou == 1.0 and m.category_iou["vehicle"] == 1.0
+
+
+def test_metrics_from_a_float_confusion_matrix_store_it_as_int64() -> None:
+    cm = np.array([[2, 1, 0, 0, 1], [0, 3, 1, 0, 2], [1, 0, 2, 0, 0], [0, 0, 0, 0, 0]], np.float64)
+    m = metrics_from_confusion(cm, NAMES, CATS, ignore_unlabeled_pred=True)
+    assert m.confusion.dtype == np.int64
+    assert m.to_dict()["confusion"][1] == [0, 3, 1, 0, 2] and type(m.to_dict()["confusion"][1][1]) is int
+    np.testing.assert_allclose(m.iou[:3], [0.5, 0.6, 0.5])
+    # Either mismatch alone is refused: categories for another class count, a matrix of another shape.
+    with pytest.raises(ValueError, match="do not match"):
+        metrics_from_confusion(cm, NAMES, CATS[:3], ignore_unlabeled_pred=True)
+    with pytest.raises(ValueError, match="do not match"):
+        metrics_from_confusion(cm[:, :4], NAMES, CATS, ignore_unlabeled_pred=True)

@@ -147,7 +147,7 @@ def test_paint_depth_clustering_removes_bleed_onto_background() -> None:
     np.testing.assert_allclose(raw.table[raw.rows][5:], [[0.5, 0.5]] * 3)
 
 
-@pytest.mark.parametrize("num_masks", [5, 70])  # 70 > 64 masks exercises the multi-word combination hash
+@pytest.mark.parametrize("num_masks", [5, 20, 70])  # 20: one 64-bit word of several bytes; 70: several words
 def test_paint_matches_dense_pixel_probabilities(num_masks: int) -> None:
     rng = np.random.default_rng(num_masks)
     h, w, c = 12, 17, 4
@@ -199,3 +199,142 @@ def test_painted_observations_and_save_load(tmp_path) -> None:
     np.savez(bad, point_idx=np.array([0]), rows=np.array([5]), table=np.ones((2, 2)))
     with pytest.raises(DatasetError, match="rows index outside"):
         Painted.load(bad)
+
+
+def test_largest_cluster_flattens_its_input() -> None:
+    depth = np.array([25.0, 10.0, 10.2, 25.3, 10.4])
+    expected = [False, True, True, False, True]
+    np.testing.assert_array_equal(largest_depth_cluster(depth[None, :], 1.0), expected)  # a (1, P) row
+    np.testing.assert_array_equal(largest_depth_cluster(depth[:, None], 1.0), expected)  # a (P, 1) column
+
+
+def test_painted_types_empty_and_full() -> None:
+    """Painted arrays keep their documented types (int64 indices, int32 rows, float32 table) also when
+    empty, and per-point outputs are int16 labels and float32 confidences."""
+    empty = Painted.empty(3)
+    assert (empty.point_idx.shape, empty.rows.shape, empty.table.shape) == ((0,), (0,), (0, 3))
+    assert (empty.point_idx.dtype, empty.rows.dtype, empty.table.dtype) == (np.int64, np.int32, np.float32)
+    table = np.array([[0.5, 0.5], [0.9, 0.1]], np.float32)
+    painted = Painted(np.array([1, 3]), np.array([1, 0], np.int32), table)
+    conf = painted.point_confidence(4)
+    assert conf.dtype == np.float32 and conf.tolist() == [0.0, np.float32(0.9), 0.0, 0.5]
+    labels = painted.point_labels(4)
+    assert labels.dtype == np.int16 and labels.tolist() == [UNLABELED, 0, UNLABELED, 0]
+    obs = painted.to_observations(np.array([100, 101, 102, 103], np.int32), prob_floor=1e-3)
+    assert obs.keys.dtype == np.int64 and obs.keys.tolist() == [101, 103]
+
+
+def test_project_points_default_min_depth_and_empty_image_size() -> None:
+    # Default min_depth 0.5 m: a point 1 m ahead is kept, one 0.4 m ahead is not.
+    pr = project_points(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.4]], np.float32), P, height=8, width=10)
+    assert pr.idx.tolist() == [0]
+    for h, w in ((0, 10), (8, 0), (-1, 10)):
+        with pytest.raises(ValueError, match="image size"):
+            project_points(np.zeros((1, 3)), P, h, w)
+
+
+def test_project_points_one_pixel_image_and_depth_exactly_at_the_minimum() -> None:
+    # Pixel = (10x + 5z, 10y + 4z) / z: x = -0.5, y = -0.4 at z = 1 lands on pixel (0, 0).
+    one = project_points(np.array([[-0.5, -0.4, 1.0]], np.float32), P, height=1, width=1)
+    assert (one.u.tolist(), one.v.tolist()) == ([0], [0])
+    assert one.u.dtype == np.int32 and one.v.dtype == np.int32
+    # Kept only when d > min_depth: a point at exactly 0.5 m is dropped.
+    at = project_points(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5001]], np.float32), P, 8, 10, min_depth=0.5)
+    assert at.idx.tolist() == [1]
+
+
+def test_depth_cluster_filter_types_shapes_and_exact_gaps() -> None:
+    member = np.array([[1, 1, 1, 0]])  # integer 0/1 membership
+    depth = np.array([5.0, 5.1, 9.0, 5.2])
+    out = depth_cluster_filter(member, depth, gap=1.0)
+    assert out.dtype == np.bool_ and out.tolist() == [[True, True, False, False]]
+    np.testing.assert_array_equal(depth_cluster_filter(member, depth[:, None], gap=1.0), out)  # (P, 1) depths
+    # float32 depths 0.73531526 and 1.73531532 are 1.0000000596 m apart: more than the 1 m gap, although
+    # their float32 difference rounds to exactly 1.0.
+    a, b = np.float32(0.7353152632713318), np.float32(1.7353153228759766)
+    assert float(b) - float(a) > 1.0 and b - a == np.float32(1.0)
+    np.testing.assert_array_equal(largest_depth_cluster(np.array([a, b, b], np.float32), 1.0), [0, 1, 1])
+
+
+def test_depth_cluster_filter_keeps_masks_apart_in_its_single_sort() -> None:
+    # Mask 0: one cluster 10.0-11.5 m (0.5 m steps); mask 1: one point at 10.2 m, inside mask 0's range.
+    # The one sort by (mask, depth) must not interleave the masks, which would split mask 0 in two.
+    member = np.array([[1, 1, 1, 1, 0], [0, 0, 0, 0, 1]], bool)
+    depth = np.array([10.0, 10.5, 11.0, 11.5, 10.2])
+    np.testing.assert_array_equal(depth_cluster_filter(member, depth, gap=1.0), member)
+    with pytest.raises(ValueError, match="member must be"):
+        depth_cluster_filter(member, depth[:4], gap=1.0)
+
+
+def test_paint_keeps_every_combination_of_64_masks_apart() -> None:
+    """Membership patterns are hashed as unsigned 64-bit words: two patterns that share masks 48-51 and
+    57-63 (as float64 bits: an all-ones exponent, i.e. NaN) and differ in one more mask get their own rows."""
+    shared = [*range(48, 52), *range(57, 64)]
+    dense = np.zeros((64, 1, 2), bool)
+    dense[shared, 0, :] = True
+    dense[0, 0, 0] = True  # pixel (0, 0): the shared masks + mask 0
+    dense[1, 0, 1] = True  # pixel (1, 0): the shared masks + mask 1
+    probs = np.full((64, 2), 0.5)
+    probs[0], probs[1] = [1.0, 0.0], [0.0, 1.0]
+    soft = SoftMasks.from_dense(dense, probs, np.ones(64))
+    u, v = np.array([0, 1], np.int32), np.zeros(2, np.int32)
+    proj = Projected(np.array([0, 1]), u, v, np.ones(2, np.float32))
+    painted = paint(soft, proj, ProjectionConfig(depth_clustering=False))
+    table = painted.table[painted.rows]
+    np.testing.assert_allclose(table, [[6.5 / 12, 5.5 / 12], [5.5 / 12, 6.5 / 12]], rtol=1e-6)
+
+
+def _at_pixels(u: list[int], v: list[int]) -> Projected:
+    """Points 0..n-1 at pixels (u, v), 1 m deep."""
+    n = len(u)
+    return Projected(np.arange(n), np.array(u, np.int32), np.array(v, np.int32), np.ones(n, np.float32))
+
+
+def test_paint_edge_cases_one_mask_one_point_and_pixels_outside() -> None:
+    one_mask = SoftMasks.from_dense(np.ones((1, 2, 3), bool), [[0.25, 0.75]], [0.5])
+    painted = paint(one_mask, _at_pixels([2], [1]))
+    assert painted.point_idx.tolist() == [0] and painted.table.tolist() == [[0.25, 0.75]]
+    assert painted.rows.dtype == np.int32 and painted.table.dtype == np.float32
+    assert len(paint(one_mask, _at_pixels([], []))) == 0  # masks but no point
+    for u, v in ((3, 0), (0, 2)):  # one past the 3-wide or the 2-high mask
+        with pytest.raises(ValueError, match="exceed"):
+            paint(one_mask, _at_pixels([u], [v]))
+
+
+def test_paint_passes_the_gap_and_the_minimum_to_depth_clustering() -> None:
+    # Mask 0 covers row 0 (4 points at 10, 10.5, 12, 12.5 m: two clusters 1.5 m apart with a 1 m gap);
+    # mask 1 covers row 1 (2 points at 10 and 20 m: fewer than min_cluster_points = 3, kept whole).
+    dense = np.array([[[1, 1, 1, 1], [0, 0, 0, 0]], [[0, 0, 0, 0], [1, 1, 0, 0]]], bool)
+    soft = SoftMasks.from_dense(dense, [[1.0, 0.0], [0.0, 1.0]], [1, 1])
+    proj = _at_pixels([0, 1, 2, 3, 0, 1], [0, 0, 0, 0, 1, 1])
+    proj = Projected(proj.idx, proj.u, proj.v, np.array([10, 10.5, 12, 12.5, 10, 20], np.float32))
+    painted = paint(soft, proj, ProjectionConfig(cluster_gap=1.0, min_cluster_points=3))
+    # Mask 0 keeps its nearest cluster (a tie of 2 and 2 points); mask 1 keeps both points.
+    assert painted.point_idx.tolist() == [0, 1, 4, 5]
+    # A mask that covers none of the points: no observation, an empty (0, C) table.
+    corner = SoftMasks.from_dense(np.array([[[1, 0, 0, 0], [0, 0, 0, 0]]], bool), [[0.5, 0.5]], [1])
+    empty = paint(corner, _at_pixels([3], [1]))
+    assert len(empty) == 0 and empty.table.shape == (0, 2)
+
+
+def test_projection_config_bounds_and_painted_load_checks(tmp_path) -> None:
+    ProjectionConfig(min_depth=0.0, cluster_gap=1e-6, min_cluster_points=0)  # the smallest valid values
+    for bad in ({"min_depth": -0.1}, {"cluster_gap": 0.0}, {"min_cluster_points": -1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            ProjectionConfig(**bad)
+    path = tmp_path / "obs.npz"
+    # Other integer / float types are read into the documented ones.
+    np.savez(path, point_idx=np.array([4], np.int32), rows=np.array([0], np.int64), table=np.ones((1, 2)))
+    back = Painted.load(path)
+    assert (back.point_idx.dtype, back.rows.dtype, back.table.dtype) == (np.int64, np.int32, np.float32)
+    for idx, rows, table in (
+        (np.array([0, 1]), np.array([0]), np.ones((1, 2))),  # rows for another number of points
+        (np.array([[0]]), np.array([[0]]), np.ones((1, 2))),  # 2-D indices
+        (np.array([0]), np.array([0]), np.ones(2)),  # 1-D table
+    ):
+        np.savez(path, point_idx=idx, rows=rows, table=table)
+        with pytest.raises(DatasetError, match="inconsistent shapes"):
+            Painted.load(path)
+    np.savez(path, point_idx=np.array([0]), rows=np.array([-1]), table=np.ones((2, 2)))
+    with pytest.raises(DatasetError, match="rows index outside"):
+        Painted.load(path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -121,3 +122,107 @@ def test_smoothed_grid_rejects_bad_files(tmp_path) -> None:
     path.write_bytes(b"junk")
     with pytest.raises(DatasetError, match="unreadable smoothed grid"):
         SmoothedGrid.load(path)
+
+
+def test_smoothed_grid_centres_and_from_voxel_grid() -> None:
+    keys = voxel_keys(np.array([[-0.3, 0.6, 1.2], [0.1, 0.1, 0.1]]), 0.5)  # voxels (-1,1,2), (0,0,0): sorted
+    probs = np.array([[0.75, 0.25], [0.5, 0.5]], np.float16)
+    grid = SmoothedGrid(keys, probs, 0.5)
+    np.testing.assert_array_equal(grid.centres(), [[-0.25, 0.75, 1.25], [0.25, 0.25, 0.25]])
+    # A fused grid's posteriors as float16 distributions, same keys and voxel size.
+    fused = VoxelGrid(keys, np.array([[0.0, -math.log(3.0)], [0.0, 0.0]], np.float16), 0.5)
+    back = SmoothedGrid.from_voxel_grid(fused)
+    np.testing.assert_array_equal(back.keys, keys)
+    assert back.probs.dtype == np.float16 and back.voxel_size == 0.5
+    np.testing.assert_allclose(back.probs.astype(np.float32), probs.astype(np.float32), atol=1e-3)
+
+
+def test_to_voxel_grid_logp_exactly() -> None:
+    """logp = log p − max log p per row, computed in float32 and rounded to float16 once: a row's largest
+    class sits at exactly 0 (probs() alone cannot tell, softmax ignores a row shift); log 0 clips silently."""
+    p = np.array([[3.9551e-01, 5.9326e-01, 1.1520e-02], [0.25, 0.0, 0.75]], np.float16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no divide-by-zero warning for the zero probability
+        vg = SmoothedGrid(np.array([4, 9], np.int64), p, 0.5).to_voxel_grid(logp_clip=20.0)
+    assert vg.logp.dtype == np.float16 and vg.voxel_size == 0.5
+    p64 = p.astype(np.float64)
+    with np.errstate(divide="ignore"):
+        expected = np.maximum(np.log(p64) - np.log(p64.max(axis=1, keepdims=True)), -20.0).astype(np.float16)
+    # Row 0: ln(0.3955 / 0.5933) = -0.4055, 0, ln(0.01152 / 0.5933) = -3.941 (float16 logs would give
+    # -0.4058 and -3.943).
+    np.testing.assert_array_equal(vg.logp, expected)
+    assert vg.logp[0].tolist() == [np.float16(-0.4055), 0.0, np.float16(-3.941)]
+    assert vg.logp[1, 1] == -20.0
+
+
+def test_knn_smooth_works_in_float32_whatever_the_input_type() -> None:
+    """Centres and distributions are rounded to float32 first (as a stored grid holds them), so float64
+    inputs give the bytes of their float32 copies, also at the distance bound."""
+    rng = np.random.default_rng(0)
+    c = rng.uniform(0, 2, (300, 3))
+    p = rng.dirichlet(np.ones(4), 300)
+    np.testing.assert_array_equal(knn_smooth(c, p), knn_smooth(c.astype(np.float32), p.astype(np.float32)))
+    # 0.5999999999 m is inside a 0.6 m bound, its float32 rounding (0.60000002) is not: no mixing.
+    two = np.array([[0.0, 0.0, 0.0], [0.5999999999, 0.0, 0.0]])
+    np.testing.assert_array_equal(knn_smooth(two, np.eye(2), SmoothingConfig(max_distance=0.6)), np.eye(2))
+
+
+def test_knn_smooth_shape_checks_and_empty_input() -> None:
+    out = knn_smooth(np.zeros((0, 3)), np.zeros((0, 4)))
+    assert out.shape == (0, 4) and out.dtype == np.float32
+    with pytest.raises(ValueError, match="centres"):  # probs for another number of voxels
+        knn_smooth(np.zeros((3, 3)), np.zeros((2, 4)))
+
+
+def test_knn_weights_of_one_neighbour_and_of_none() -> None:
+    np.testing.assert_array_equal(knn_weights(np.array([[0.0]])), [[1.0]])  # the voxel itself, weight 1
+    w = knn_weights(np.zeros((2, 0)))
+    assert w.shape == (2, 0) and w.dtype == np.float32
+
+
+def test_k_one_keeps_every_voxel_as_it_is() -> None:
+    centres = np.array([[0.0, 0, 0], [0.2, 0, 0], [0.4, 0, 0]], np.float32)
+    probs = np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]], np.float32)
+    np.testing.assert_array_equal(knn_smooth(centres, probs, SmoothingConfig(k=1)), probs)
+
+
+def test_knn_weights_shift_each_row_by_its_own_minimum() -> None:
+    """A voxel whose nearest neighbours are 200 m away (unbounded kNN) still gets softmax(-d) weights: each
+    row is shifted by its own minimum before exp(), where exp(-200) would underflow float32 to 0."""
+    s1 = 1 / (1 + math.e**-1)
+    w = knn_weights(np.array([[0.0, 1.0], [200.0, 201.0]]))
+    np.testing.assert_allclose(w, [[s1, 1 - s1], [s1, 1 - s1]], rtol=1e-6)
+
+
+def test_smoothed_grid_load_casts_float_probs_but_refuses_others(tmp_path) -> None:
+    path = tmp_path / "grid_smooth.npz"
+    np.savez(path, keys=np.array([1, 2], np.int64), probs=np.full((2, 2), 0.5, np.float32), voxel_size=0.2)
+    back = SmoothedGrid.load(path)
+    assert back.probs.dtype == np.float16 and back.probs.tolist() == [[0.5, 0.5], [0.5, 0.5]]
+    np.savez(path, keys=np.array([1, 2], np.int64), probs=np.ones((2, 2), np.int64), voxel_size=0.2)
+    with pytest.raises(DatasetError, match="'probs'"):
+        SmoothedGrid.load(path)
+
+
+def test_smoothed_grid_checks_each_array_on_its_own() -> None:
+    keys = np.array([1, 2], np.int64)
+    probs = np.full((2, 2), 0.5, np.float16)
+    with pytest.raises(ValueError, match="'keys' must be 1-D int64"):
+        SmoothedGrid(keys.astype(np.int32), probs, 0.2)  # right shape, wrong type
+    with pytest.raises(ValueError, match="'keys' must be 1-D int64"):
+        SmoothedGrid(keys[:, None], probs, 0.2)  # right type, wrong shape
+    with pytest.raises(ValueError, match="'probs' must be"):
+        SmoothedGrid(keys, probs.astype(np.float32), 0.2)
+    with pytest.raises(ValueError, match="'probs' must be"):
+        SmoothedGrid(keys, probs[:, 0], 0.2)
+
+
+def test_config_and_voxel_size_bounds() -> None:
+    assert SmoothingConfig(k=1, max_distance=1e-6, workers=-1).k == 1  # the smallest valid values
+    for bad in ({"max_distance": 0.0}, {"workers": 0}, {"workers": -2}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SmoothingConfig(**bad)
+    keys, probs = np.array([1], np.int64), np.ones((1, 2), np.float16)
+    for vs in (0.0, math.inf, math.nan, -0.2):
+        with pytest.raises(ValueError, match="voxel_size"):
+            SmoothedGrid(keys, probs, vs)

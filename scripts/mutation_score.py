@@ -1,0 +1,95 @@
+"""Mutation score per module from mutmut's results (scripts/mutation.sh runs it after mutmut).
+
+score = killed / (total − equivalent), where killed counts mutmut's "killed" and "timeout" (a mutant that
+makes the tests run past mutmut's limit is caught by them), and the equivalent mutants are the ones
+docs/MUTATION.md lists in its table rows ``| `MUTANT` | equivalent | reason |``. A mutant with no
+result yet ("not checked": a run stopped early) makes the module's line say "incomplete".
+
+Usage: python scripts/mutation_score.py [--survivors] [MODULE_PATH ...]   (from the repository root)
+  --survivors   also print every surviving / untested mutant that docs/MUTATION.md does not list as
+                equivalent, and listed equivalents that are no longer survivors (stale entries).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+
+from mutmut.stats import status_by_exit_code
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "MUTATION.md"
+_EQUIVALENT_ROW = re.compile(r"^\|\s*`([^`]+__mutmut_\d+)`\s*\|\s*equivalent\s*\|")
+
+
+def equivalent_mutants(doc: Path = DOC) -> set[str]:
+    """Mutant names docs/MUTATION.md marks equivalent (one table row each)."""
+    if not doc.exists():
+        return set()
+    return {m.group(1) for line in doc.read_text().splitlines() if (m := _EQUIVALENT_ROW.match(line))}
+
+
+def module_results(path: str) -> dict[str, str]:
+    """{mutant name: mutmut status} of one mutated file, from ``mutants/<path>.meta``."""
+    meta = ROOT / "mutants" / f"{path}.meta"
+    if not meta.exists():
+        return {}
+    codes = json.loads(meta.read_text())["exit_code_by_key"]
+    return {name: status_by_exit_code[code] for name, code in codes.items()}
+
+
+def main(argv: list[str]) -> int:
+    show = "--survivors" in argv
+    paths = [a for a in argv if not a.startswith("--")]
+    if not paths:
+        paths = sorted(str(p.relative_to(ROOT / "mutants"))[: -len(".meta")]
+                       for p in (ROOT / "mutants" / "leap_core").rglob("*.py.meta"))
+    equivalent = equivalent_mutants()
+    head = ("mutants", "killed", "survived", "no tests", "equiv.")
+    print(f"{'module':38} " + " ".join(f"{h:>8}" for h in head) + f" {'score':>7}")
+    tot = {"n": 0, "killed": 0, "equiv": 0, "survived": 0, "untested": 0}
+    incomplete_any = False
+    left: list[str] = []
+    stale: list[str] = []
+    for path in paths:
+        res = module_results(path)
+        if not res:
+            print(f"{path:38} (no results: run scripts/mutation.sh first)")
+            continue
+        killed = sum(s in ("killed", "timeout") for s in res.values())
+        eq = sum(1 for name in res if name in equivalent)
+        survived = [n for n, s in res.items() if s == "survived" and n not in equivalent]
+        untested = [n for n, s in res.items()
+                    if s not in ("killed", "timeout", "survived", "not checked") and n not in equivalent]
+        stale += [n for n in res if n in equivalent and res[n] in ("killed", "timeout")]
+        incomplete = any(s == "not checked" for s in res.values())
+        incomplete_any |= incomplete
+        denom = len(res) - eq
+        score = f"{100 * killed / denom:6.1f}%" if denom else "    -  "
+        cells = (len(res), killed, len(survived), len(untested), eq)
+        print(f"{path:38} " + " ".join(f"{v:8d}" for v in cells) + f" {score}"
+              + ("  incomplete" if incomplete else ""))
+        tot["n"] += len(res)
+        tot["killed"] += killed
+        tot["equiv"] += eq
+        tot["survived"] += len(survived)
+        tot["untested"] += len(untested)
+        left += [f"{n}: survived" for n in survived] + [f"{n}: {res[n]}" for n in untested]
+    denom = tot["n"] - tot["equiv"]
+    if denom:
+        cells = (tot["n"], tot["killed"], tot["survived"], tot["untested"], tot["equiv"])
+        print(f"{'overall':38} " + " ".join(f"{v:8d}" for v in cells)
+              + f" {100 * tot['killed'] / denom:6.1f}%" + ("  incomplete" if incomplete_any else ""))
+    if show:
+        print("\nnot killed and not listed as equivalent in docs/MUTATION.md:")
+        print("\n".join(f"  {line}" for line in left) or "  (none)")
+        if stale:
+            print("\nlisted as equivalent but killed now (remove from docs/MUTATION.md):")
+            print("\n".join(f"  {n}" for n in stale))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
