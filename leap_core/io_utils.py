@@ -74,6 +74,20 @@ def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> None:
         np.savez(fh, allow_pickle=True, **arrays)
 
 
+def link_or_copy(src: str | Path, dst: str | Path) -> None:
+    """Make ``dst`` the same file as ``src``: a hard link (no copy of a large file), else a copy (another
+    file system); atomic, so a reader never sees a half-copied ``dst``."""
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.link")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
 def remove_tree(path: str | Path) -> bool:
     """Delete the folder ``path`` (False when it does not exist).
 

@@ -11,12 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
-import shutil
 from pathlib import Path
 
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
-from leap_core.io_utils import remove_tree
+from leap_core.io_utils import link_or_copy, remove_tree
 from leap_core.progress import ProgressFn
 from leap_core.run_layout import RunLayout
 
@@ -38,16 +36,6 @@ def needs_estimate(dataset: Path) -> bool:
     return not (Path(dataset) / "poses.txt").is_file()
 
 
-def _link(src: Path, dst: Path) -> None:
-    tmp = dst.with_name(f".{dst.name}.link")
-    tmp.unlink(missing_ok=True)
-    try:
-        os.link(src, tmp)
-    except OSError:
-        shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
-
-
 def prepare_run_poses(
     dataset: Path, run_dir: Path, *, estimate: bool, cache_root: Path | None,
     progress: ProgressFn | None = None,
@@ -67,8 +55,8 @@ def prepare_run_poses(
     cached = cache_folder(cache_root, dataset) / "poses.txt"
     note, reused = estimate_into(seq, cached, progress=progress)
     layout.poses.parent.mkdir(parents=True, exist_ok=True)
-    _link(cached.parent / POSES_NOTE, layout.poses.parent / POSES_NOTE)
-    _link(cached, layout.poses)
+    link_or_copy(cached.parent / POSES_NOTE, layout.poses.parent / POSES_NOTE)
+    link_or_copy(cached, layout.poses)
     how = "reused the estimate cached" if reused else f"estimated them in {note['seconds']:.1f} s, cached"
     notice_log.warning(
         "poses: the dataset has no poses.txt; KISS-ICP %s LiDAR odometry %s in %s (%d scans)",

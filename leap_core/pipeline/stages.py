@@ -6,8 +6,6 @@ function (docs/ARCHITECTURE.md, "Adding a stage").
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,7 +27,7 @@ from leap_core.fusion import (
     voxel_keys,
     world_points,
 )
-from leap_core.io_utils import atomic_save_npz, atomic_write
+from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy
 from leap_core.labelers import LABELERS
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
@@ -65,17 +63,6 @@ def _save_soft(path: Path, soft: SoftMasks) -> None:
         )
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.link")
-    tmp.unlink(missing_ok=True)
-    try:
-        os.link(src, tmp)
-    except OSError:
-        shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
-
-
 def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     """Per frame: the labeler's SoftMasks → ``labels2d/<frame_id>.npz`` (via the shared 2D cache folder
     ``runtime.cache_dir`` when given: entries keyed by the labeler's fingerprint and the frame's inputs,
@@ -99,13 +86,13 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
             if entry.is_file():
                 try:
                     SoftMasks.load(entry)
-                    _link_or_copy(entry, out)
+                    link_or_copy(entry, out)
                     hits += 1
                     return
                 except DatasetError:
                     pass  # A damaged entry is recomputed and replaced atomically below.
             _save_soft(entry, labeler.label(frame, ctx.schema))
-            _link_or_copy(entry, out)
+            link_or_copy(entry, out)
         else:
             _save_soft(out, labeler.label(frame, ctx.schema))
 
