@@ -174,8 +174,9 @@ def main() -> None:
     unknown = [t for t in only if t not in TABLES]
     if unknown:
         sys.exit(f"--only: unknown table(s) {', '.join(unknown)} (tables: {', '.join(TABLES)})")
+    tables = compute(only)  # minutes to hours: README.md is read after, so edits made meanwhile are kept
     old = README.read_text()
-    new = replace_tables(old, compute(only))
+    new = replace_tables(old, tables)
     if args.check:
         if new != old:
             sys.stdout.writelines(difflib.unified_diff(
