@@ -161,6 +161,21 @@ def pick(page: Any, dropdown: str, option: str) -> None:
     page.get_by_role("option", name=option, exact=True).click()
 
 
+def box_select_centre(page: Any, session: Any) -> int:
+    """Arm the panel's box selection, drag a 180 × 100 px box around the canvas centre (in two strokes,
+    as a hand does), and return how many voxels the viewer selected."""
+    page.get_by_role("button", name="Select box").click()
+    wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
+    canvas = page.locator("canvas").first.bounding_box()
+    cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+    page.mouse.move(cx - 90, cy - 50)
+    page.mouse.down()
+    page.mouse.move(cx, cy, steps=8)
+    page.mouse.move(cx + 90, cy + 50, steps=8)
+    page.mouse.up()
+    return int(wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected"))
+
+
 def open_viewer(browser: Any, url: str, project_name: str, session: Any) -> Any:
     """A new page on the project's 3D viewer, connected, its dialog dismissed, the scene drawn."""
     page = browser.new_page(viewport={"width": 1400, "height": 900})

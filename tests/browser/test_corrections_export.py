@@ -63,15 +63,7 @@ def test_viewer_correction_is_in_the_export_without_a_run(live_app: dict[str, An
         wait_until(lambda: session.state.threshold == 0, 20, "the threshold")
         page.get_by_text("Corrections", exact=True).click()
         browserfixtures.pick(page, "Assign class", CORRECTED_CLASS)
-        page.get_by_role("button", name="Select box").click()
-        wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
-        canvas = page.locator("canvas").first.bounding_box()
-        cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
-        page.mouse.move(cx - 90, cy - 50)
-        page.mouse.down()
-        page.mouse.move(cx + 90, cy + 50, steps=12)
-        page.mouse.up()
-        wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected")
+        browserfixtures.box_select_centre(page, session)
         page.get_by_role("button", name="Apply to selection").click()
         with open_db(settings.database) as db:
             (correction,) = wait_until(lambda: crud.list_corrections(db, pid), 20, "the stored correction")
