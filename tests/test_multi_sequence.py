@@ -253,6 +253,7 @@ def test_the_joint_3dcn_trains_one_network_on_every_sequence(joint) -> None:
     layout = MultiRunLayout(result.root)
     meta = torch.load(layout.cn_dir / "3dcn_iter1.pt", weights_only=True)["meta"]
     assert meta["frames"] == [["00", 0, 5, 1], ["01", 0, 4, 1]]
+    assert meta["steps"] == 5 + 4  # one step per scan of either sequence (min_steps 0)
     assert (JOINT, "3dcn", 1000, 1000) in calls
     for name in ("00", "01"):
         member = layout.sequence(name)
@@ -269,8 +270,11 @@ def test_a_change_in_one_sequence_reruns_the_3dcn_of_all(joint, streets, schema,
     result, cfg, _ = joint
     out = tmp_path / "multi"
     shutil.copytree(result.root, out)
+    staged = MultiRunLayout(out).joint_rounds("00").grid_3dcn(1)
+    before = staged.stat().st_mtime_ns
     again = run_sequences(_specs(streets), schema, cfg, out)
     assert all(r.ran == [] for r in again.per_sequence.values())
+    assert staged.stat().st_mtime_ns == before  # the finished round was kept, not recomputed
     # A correction in sequence 01 changes its fused grid, hence what the joint network trains on.
     member = MultiRunLayout(out).sequence("01")
     with np.load(member.grid) as z:
