@@ -541,6 +541,8 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
             for s, r in res.stages.items()
         )
         typer.echo(f"sequence {name}: {timing}")
+    if cfg.consistency.enabled:
+        typer.echo(f"joint 3D-CN (one network per round, all sequences): {result.joint_seconds:.1f}s")
     tables = multi_result_tables(out)
     typer.echo("")
     typer.echo(tables if tables else "no ground-truth labels: nothing to evaluate")
