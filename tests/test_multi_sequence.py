@@ -309,6 +309,45 @@ def test_joint_3dcn_resumes_after_cancel(joint, streets, schema, tmp_path) -> No
             _files(MultiRunLayout(result.root).sequence(name).export_dir)
 
 
+@pytest.mark.slow
+def test_switching_the_3dcn_off_gives_the_ordinary_runs_again(joint, plain, streets, schema, tmp_path) -> None:
+    result, _, _ = joint
+    multi, _, _ = plain
+    out = tmp_path / "multi"
+    shutil.copytree(result.root, out)
+    off = run_sequences(_specs(streets), schema, PipelineConfig(), out)
+    for name in ("00", "01"):
+        member = MultiRunLayout(out).sequence(name)
+        assert not member.joint_3dcn.exists()
+        assert off.per_sequence[name].ran == ["label_points", "evaluate", "export"]
+        assert _files(member.export_dir) == _files(MultiRunLayout(multi.root).sequence(name).export_dir)
+    assert off.metrics == multi.metrics
+
+
+def test_an_ordinary_runs_3dcn_fingerprint_is_unchanged_by_the_joint_input(plain, streets, schema) -> None:
+    """The joint record is an optional input of the 3dcn stage: an ordinary 3D-CN run's fingerprint is the
+    one it had before multi-sequence runs existed (config section + upstream only), so existing run
+    folders keep their 3D-CN, and the record, when present, changes it."""
+    from leap_core.config import config_to_dict
+    from leap_core.pipeline import PIPELINE_VERSION, stage_fingerprints
+    from leap_core.pipeline.context import hash_json
+
+    _, singles, _ = plain
+    cfg = config_from_dict({"consistency": TINY_3DCN})
+    run_dir = singles["00"].run_dir
+    fp = stage_fingerprints(streets["00"], schema, cfg, run_dir)
+    before = hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes, "stage": "3dcn",
+                        "up": [fp["project"], fp["fuse"], fp["smooth"]],
+                        "config": {"consistency": config_to_dict(cfg)["consistency"]}})
+    assert fp["3dcn"] == before
+    note = RunLayout(run_dir).joint_3dcn
+    note.write_text("{}")
+    try:
+        assert stage_fingerprints(streets["00"], schema, cfg, run_dir)["3dcn"] != before
+    finally:
+        note.unlink()
+
+
 def test_a_member_without_its_joint_round_is_refused(plain, streets, schema, tmp_path) -> None:
     multi, _, _ = plain
     out = tmp_path / "multi"
