@@ -310,7 +310,8 @@ def test_joint_3dcn_resumes_after_cancel(joint, streets, schema, tmp_path) -> No
 
 
 @pytest.mark.slow
-def test_switching_the_3dcn_off_gives_the_ordinary_runs_again(joint, plain, streets, schema, tmp_path) -> None:
+def test_switching_the_3dcn_off_gives_the_ordinary_runs_again(joint, plain, streets, schema,
+                                                             tmp_path) -> None:
     result, _, _ = joint
     multi, _, _ = plain
     out = tmp_path / "multi"
