@@ -288,6 +288,19 @@ def test_a_change_in_one_sequence_reruns_the_3dcn_of_all(joint, streets, schema,
 
 
 @pytest.mark.slow
+def test_sequences_seeded_from_an_earlier_run_keep_their_joint_3dcn(joint, streets, schema, tmp_path) -> None:
+    """The app starts a run by linking the last run's sequence folders into a fresh root: with nothing
+    changed, no network is trained again, though the fresh root has no checkpoints or staged rounds."""
+    result, cfg, _ = joint
+    out = tmp_path / "multi"
+    shutil.copytree(result.root / "sequences", out / "sequences")
+    again = run_sequences(_specs(streets), schema, cfg, out)
+    assert all(r.ran == [] for r in again.per_sequence.values())
+    assert not (MultiRunLayout(out).cn_dir / "3dcn_iter1.pt").exists()
+    assert again.metrics == result.metrics
+
+
+@pytest.mark.slow
 def test_joint_3dcn_resumes_after_cancel(joint, streets, schema, tmp_path) -> None:
     result, cfg, _ = joint
     out = tmp_path / "multi"

@@ -55,7 +55,7 @@ from leap_core.export import (
     zip_member,
 )
 from leap_core.io_utils import atomic_write, atomic_write_json, remove_tree
-from leap_core.pipeline.context import Ctx, hash_json
+from leap_core.pipeline.context import Ctx, hash_json, read_state
 from leap_core.pipeline.evaluation import format_result_tables, overall_metrics
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
@@ -260,13 +260,53 @@ def joint_fingerprint(
     """What the joint 3D-CN rounds depend on: the 3D-CN settings, C, and each sequence's name and
     ``smooth`` / ``project`` fingerprints (which cover its 2D labels, frames, fusion, corrections and
     smoothing); reads no stage output."""
-    members = []
+    return _joint_fingerprints(specs, schema, config, layout, runtime)[0]
+
+
+def _joint_fingerprints(
+    specs: Sequence[SequenceSpec], schema: Schema, config: PipelineConfig, layout: MultiRunLayout,
+    runtime: Runtime | None,
+) -> tuple[str, dict[str, dict[str, str]]]:
+    """:func:`joint_fingerprint` and every sequence's stage fingerprints (with its joint record as it is)."""
+    members, fps = [], {}
     for spec in specs:
         fp = stage_fingerprints(spec.dataset, schema, config, layout.sequence(spec.name).run_dir,
                                 frames=spec.frames, runtime=runtime)
+        fps[spec.name] = fp
         members.append([spec.name, fp["project"], fp["smooth"]])
-    return hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes,
-                      "consistency": config_to_dict(config)["consistency"], "members": members})
+    joint = hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes,
+                       "consistency": config_to_dict(config)["consistency"], "members": members})
+    return joint, fps
+
+
+def _joint_note(fingerprint: str, name: str, specs: Sequence[SequenceSpec]) -> dict[str, Any]:
+    """A sequence's ``3dcn_joint.json``."""
+    return {"fingerprint": fingerprint, "name": name, "sequences": [s.name for s in specs]}
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable joint 3D-CN record ({exc}); delete it to recompute") from exc
+
+
+def _all_linked(layout: MultiRunLayout, specs: Sequence[SequenceSpec], config: PipelineConfig,
+                fingerprint: str, fps: Mapping[str, Mapping[str, str]]) -> bool:
+    """True when every sequence already holds this joint round's 3D-CN: its record names it, its 3dcn
+    stage is done under the fingerprint that record gives, and its round grids exist. (A run folder seeded
+    from an earlier run, e.g. by the app, then needs neither the staged grids nor the checkpoints.)"""
+    for spec in specs:
+        lay = layout.sequence(spec.name)
+        if _read_json(lay.joint_3dcn) != _joint_note(fingerprint, spec.name, specs):
+            return False
+        record = read_state(lay).get("3dcn", {})
+        if record.get("status") != "done" or record.get("fingerprint") != fps[spec.name]["3dcn"]:
+            return False
+        rounds = range(1, config.consistency.iterations + 1)
+        if not all(lay.grid_3dcn(i).is_file() and lay.grid_smooth_3dcn(i).is_file() for i in rounds):
+            return False
+    return True
 
 
 def _joint_3dcn(
@@ -274,13 +314,15 @@ def _joint_3dcn(
     runtime: Runtime | None, progress: MultiProgress | None,
 ) -> None:
     """The joint rounds into ``<root>/3dcn/rounds/<name>/``, then each sequence's ``3dcn_joint.json``."""
-    fingerprint = joint_fingerprint(specs, schema, config, layout, runtime)
+    fingerprint, fps = _joint_fingerprints(specs, schema, config, layout, runtime)
+    tick = None if progress is None else (lambda done, total: progress(JOINT, "3dcn", done, total))
+    if _all_linked(layout, specs, config, fingerprint, fps):
+        if tick is not None:
+            tick(1, 1)
+        return
     state = layout.joint_state
-    try:
-        old = json.loads(state.read_text()).get("fingerprint") if state.is_file() else None
-    except (OSError, ValueError, AttributeError) as exc:
-        raise DatasetError(state, f"unreadable joint 3D-CN record ({exc}); delete it to recompute") from exc
-    if old != fingerprint:
+    old = _read_json(state)
+    if not isinstance(old, dict) or old.get("fingerprint") != fingerprint:
         # Staged grids of other settings; checkpoints stay (each is reused only when its fingerprint
         # matches, e.g. after a temperature change).
         remove_tree(layout.cn_dir / "rounds")
@@ -292,12 +334,11 @@ def _joint_3dcn(
         ctx = Ctx(seq, schema, config, lay, seq.select(spec.frames), runtime, None,
                   {s.name: s for s in STAGE_TABLE})
         members.append(CnMember(ctx, layout.joint_rounds(spec.name), spec.name))
-    tick = None if progress is None else (lambda done, total: progress(JOINT, "3dcn", done, total))
     cn_rounds(members, layout.cn_dir, tick)
     for spec in specs:
-        note = {"fingerprint": fingerprint, "name": spec.name, "sequences": [s.name for s in specs]}
+        note = _joint_note(fingerprint, spec.name, specs)
         path = layout.sequence(spec.name).joint_3dcn
-        if not path.is_file() or json.loads(path.read_text()) != note:
+        if _read_json(path) != note:
             atomic_write_json(path, note)
 
 
