@@ -172,6 +172,11 @@ def yaml_safe(text: str):
 
 
 def test_specs_are_checked(streets, schema, tmp_path) -> None:
+    link = tmp_path / "sequences" / "07"
+    link.parent.mkdir()
+    link.symlink_to(streets["00"])
+    assert SequenceSpec.of(link).name == "07" and SequenceSpec.of(link / ".." / "07").name == "07"
+    assert SequenceSpec.of(link, name="seven", frames=range(2)) == SequenceSpec("seven", link, range(2))
     with pytest.raises(ConfigError, match="name: must be 1-64") as err:
         SequenceSpec("../x", streets["00"])
     assert err.value.field == ("name",)

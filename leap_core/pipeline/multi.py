@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
@@ -104,7 +105,8 @@ class SequenceSpec:
         """A spec named after the sequence folder (``.../sequences/00`` → ``"00"``) unless ``name`` is
         given."""
         path = Path(dataset)
-        return cls(path.resolve().name if name is None else name, path, frames)
+        # abspath, not resolve: a sequence folder that is a link keeps the name it is given under.
+        return cls(Path(os.path.abspath(path)).name if name is None else name, path, frames)
 
 
 @dataclass(frozen=True)
