@@ -313,7 +313,11 @@ def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
     root = MultiRunLayout(ctx.layout.run_dir.parent.parent)
     staged = root.joint_rounds(name)
     state = root.joint_state
-    current = state.is_file() and json.loads(state.read_text()).get("fingerprint") == fingerprint
+    try:
+        current = (name == ctx.layout.run_dir.name and state.is_file()
+                   and json.loads(state.read_text()).get("fingerprint") == fingerprint)
+    except (OSError, ValueError, AttributeError) as exc:
+        raise DatasetError(state, f"unreadable joint 3D-CN record ({exc})") from exc
     iterations = ctx.cfg.consistency.iterations
     files = [(staged.grid_3dcn(i), ctx.layout.grid_3dcn(i)) for i in range(1, iterations + 1)]
     files += [(staged.grid_smooth_3dcn(i), ctx.layout.grid_smooth_3dcn(i)) for i in range(1, iterations + 1)]
