@@ -201,9 +201,34 @@ class DatasetRef(_Input):
         return self
 
 
+SEQUENCE_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+"""A sequence's name: it names the run's ``sequences/<name>/`` folder and the export's, so no ``/``, no
+leading dot."""
+
+MAX_SEQUENCES = 64
+"""Most sequences one project may hold."""
+
+
+class SequenceRef(_Input):
+    """One sequence of a multi-sequence project: a KITTI sequence folder inside a data root."""
+
+    path: str = Field(min_length=1, max_length=4096, description="sequence folder inside a data root")
+    name: str | None = Field(
+        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        description="name in runs, metrics and exports (default: the folder's name, e.g. `00`)",
+    )
+
+
 class ProjectCreate(_Input):
     name: str = Field(min_length=1, max_length=120)
-    dataset: DatasetRef
+    dataset: DatasetRef | None = Field(
+        default=None, description="the project's one sequence (or the built-in demo); give this or `sequences`"
+    )
+    sequences: list[SequenceRef] | None = Field(
+        default=None, min_length=1, max_length=MAX_SEQUENCES,
+        description="several sequence folders labeled with one class schema (e.g. SemanticKITTI 00-10); a "
+        "run labels them all, metrics come per sequence and overall; give this or `dataset`",
+    )
     schema_name: str = Field(
         default="semantickitti", min_length=1, max_length=64, description="built-in schema"
     )
@@ -311,6 +336,11 @@ class DatasetPublic(BaseModel):
     )
 
 
+class SequencePublic(BaseModel):
+    name: str = Field(description="the sequence's name in runs, metrics and exports")
+    dataset: DatasetPublic
+
+
 class RunBrief(BaseModel):
     id: int
     number: int
@@ -328,7 +358,10 @@ class RunBrief(BaseModel):
 class ProjectPublic(BaseModel):
     id: int
     name: str
-    dataset: DatasetPublic
+    dataset: DatasetPublic = Field(description="the project's (first) sequence")
+    sequences: list[SequencePublic] = Field(
+        default_factory=list, description="every sequence, in order (one for a single-sequence project)"
+    )
     schema_name: str
     num_classes: int
     pipeline: dict[str, Any]
