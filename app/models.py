@@ -485,6 +485,14 @@ class MetricsPublic(BaseModel):
         description="the run's export now carries corrections applied after its evaluation (the "
         "apply-corrections job); these figures describe the labels before them until a re-run",
     )
+    sequence: str | None = Field(
+        default=None, description="the sequence these figures are of (null: the run's own, overall for a "
+        "run of several sequences)",
+    )
+    sequences: list[str] = Field(
+        default_factory=list, description="a run of several sequences: those with metrics of their own "
+        "(`?sequence=`), in run order; empty for a run of one sequence",
+    )
 
 
 class ChangePublic(BaseModel):
@@ -604,6 +612,10 @@ class ExportInfo(BaseModel):
     predictions_path: str = Field(description="the project dataset's predictions/ folder")
     predictions_allowed: bool = Field(description="whether that folder may receive an export")
     predictions_existing: int = Field(description="entries it holds now (writing them needs overwrite)")
+    sequences: list[str] = Field(
+        default_factory=list, description="a run of several sequences: their names; the export writes "
+        "`<predictions_path>/sequences/<name>/predictions/` for each (empty for a run of one sequence)",
+    )
 
 
 # -------------------------------------------------------------------------------------------- pipeline
@@ -714,6 +726,10 @@ class CorrectionCreate(_Input):
         default=None, max_length=CORRECTION_MAX_ITEMS,
         description="scan scope: indices into the scan's points",
     )
+    sequence: str | None = Field(
+        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        description="the project sequence it corrects (default: the first; keys and frame ids are per sequence)",
+    )
 
     @field_validator("class_name")
     @classmethod
@@ -743,6 +759,7 @@ class CorrectionPublic(BaseModel):
     points: int | None = Field(description="scan scope: points covered")
     author: str | None = Field(description="'viewer', 'api', or null for corrections older than authors")
     active: bool
+    sequence: str | None = Field(default=None, description="the project sequence it corrects")
 
 
 class CorrectionClassCount(BaseModel):

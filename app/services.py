@@ -20,6 +20,7 @@ from app.core.config import Settings
 from app.core.db import default_sequence_name
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
+from app.jobs.multi import run_sequences_of, sequence_run_dir
 from app.jobs.progress import ProgressTracker
 from leap_core.colors import distinct_color
 from leap_core.config import (
@@ -579,6 +580,8 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         ``{"protocols": {protocol: {row: {miou, category_miou, labeled_share, iou: {class: v}, ...}}},
         "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}`` or None.
     """
+    if metrics and isinstance(metrics.get("overall"), dict) and "protocols" not in metrics:
+        metrics = metrics["overall"]  # a multi-sequence run's metrics: the summed confusion matrices
     if not metrics or not isinstance(metrics.get("protocols"), dict):
         return None
     rows = list(metrics.get("rows") or [])
@@ -607,6 +610,40 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
+def metrics_sequences(metrics: dict[str, Any] | None) -> list[str]:
+    """The sequences with metrics of their own in a multi-sequence run's ``metrics`` (in run order); empty
+    for a single-sequence run."""
+    if not metrics or "overall" not in metrics or not isinstance(metrics.get("sequences"), dict):
+        return []
+    return [name for name, m in metrics["sequences"].items() if isinstance(m, dict)]
+
+
+def sequence_metrics(
+    run: dict[str, Any], sequence: str | None, project_sequences: list[str]
+) -> dict[str, Any] | None:
+    """The metrics table (:func:`normalise_metrics`) of one sequence of the run, or, with ``sequence``
+    None, the run's own (a multi-sequence run's: overall). A single-sequence run's one sequence is the
+    project's (``project_sequences``: the project's sequence names).
+
+    Raises:
+        InvalidField: ``sequence`` is not one of the run's sequences (``[query, sequence]``).
+    """
+    metrics = run.get("metrics")
+    if sequence is None:
+        return normalise_metrics(metrics)
+    listed = run_sequences_of(run["params"])
+    if listed is None:
+        if sequence not in project_sequences[:1]:
+            raise InvalidField(["query", "sequence"], f"run {run['id']} has one sequence, not {sequence!r}")
+        return normalise_metrics(metrics)
+    names = [n for n, _ in listed]
+    if sequence not in names:
+        raise InvalidField(["query", "sequence"],
+                           f"run {run['id']} has no sequence {sequence!r} (it has {', '.join(names)})")
+    per = (metrics or {}).get("sequences") or {}
+    return normalise_metrics(per.get(sequence))
+
+
 def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPublic:
     run_dir = Path(run["run_dir"])
     return models.RunPublic(
@@ -622,7 +659,10 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         params={k: v for k, v in run["params"].items() if k != "stages"},
         progress=run_progress(run, live),
         has_metrics=run.get("metrics") is not None,
-        has_export=run["status"] == "done" and RunLayout(run_dir).export_dir.is_dir(),
+        has_export=run["status"] == "done" and all(
+            RunLayout(sequence_run_dir(run_dir, run["params"], name)[0]).export_dir.is_dir()
+            for name in [n for n, _ in run_sequences_of(run["params"]) or [(None, None)]]
+        ),
         resumable=run["status"] in models.RESUMABLE_STATUSES,
         summary=metrics_summary(run.get("metrics")),
         note=run.get("note"),

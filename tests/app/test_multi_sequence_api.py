@@ -5,18 +5,27 @@ marks scoped to a sequence, and the viewer opening the sequence asked for."""
 
 from __future__ import annotations
 
+import io
+import json
 import shutil
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import appfixtures
 import pytest
+from apphelpers import API, create_project, wait_run
 from fastapi.testclient import TestClient
 
 from app import crud
 from app.core import db as dbmod
-import appfixtures
-from apphelpers import API, create_project
+from app.core.config import Settings
+from app.core.db import open_db
+from app.jobs.apply import applier
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.fusion import voxel_keys
+from leap_core.pipeline import STAGES, world_points
 
 client = appfixtures.client
 data_root = appfixtures.data_root
@@ -182,3 +191,126 @@ def test_corrections_and_marks_are_per_sequence(tmp_path: Path) -> None:
         assert crud.review_progress(db, pid) == []
         (q,) = crud.review_progress(db, pid, "01")
         assert (q["total"], q["reviewed"], q["skipped"]) == (1, 0, 1)
+
+
+# ------------------------------------------------------------------------------------------------ runs
+def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path], tiny_dataset: Path,
+                                   tmp_path: Path, settings: Settings) -> None:
+    project = create_multi(client, two_sequences)
+    pid = project["id"]
+    r = client.post(f"{API}/projects/{pid}/runs", json={"frames": {"start": 0, "stop": 2}})
+    assert loc_of(r) == ["body", "frames"]
+    r = client.post(f"{API}/projects/{pid}/runs", json={})
+    assert r.status_code == 202, r.text
+    run = r.json()
+    assert run["params"]["sequences"] == [{"name": "00", "dataset": str(two_sequences[0])},
+                                          {"name": "01", "dataset": str(two_sequences[1])}]
+    expected = [f"{n}/{s}" for n in ("00", "01") for s in STAGES]
+    assert [s["name"] for s in run["progress"]["stages"]] == expected
+    run = wait_run(client, run["id"], timeout=300)
+    assert run["status"] == "done", run["error"]
+    stages = {s["name"]: s for s in run["progress"]["stages"]}
+    assert stages["00/labels2d"]["total"] == 4 and stages["01/labels2d"]["total"] == 3
+    assert stages["01/export"]["status"] == "done" and stages["00/3dcn"]["status"] == "skipped"
+    with open_db(settings.database) as db:
+        run_dir = Path(crud.require_run(db, run["id"])["run_dir"])
+    for name, folder in zip(("00", "01"), two_sequences, strict=True):
+        exported = sorted(p.name for p in (run_dir / "sequences" / name / "export").glob("*.label"))
+        assert exported == sorted(f"{p.stem}.label" for p in (folder / "velodyne").glob("*.bin"))
+    log = client.get(f"{API}/runs/{run['id']}/logs").json()["text"]
+    assert "stage 00/fuse done" in log and "stage 01/export done" in log
+
+    # Metrics: overall (the summed confusion matrices) by default, per sequence on request.
+    overall = client.get(f"{API}/runs/{run['id']}/metrics").json()
+    assert overall["sequences"] == ["00", "01"] and overall["sequence"] is None
+    per = {n: client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": n}).json() for n in ("00", "01")}
+    assert per["00"]["sequence"] == "00"
+    stored = json.loads((run_dir / "metrics.json").read_text())
+    for n in ("00", "01"):
+        assert per[n]["metrics"]["protocols"]["camera"]["voxel"]["miou"] == pytest.approx(
+            stored["sequences"][n]["camera"]["voxel"]["miou"])
+    assert overall["metrics"]["protocols"]["camera"]["voxel"]["miou"] == pytest.approx(
+        stored["overall"]["camera"]["voxel"]["miou"])
+    assert per["00"]["metrics"] != per["01"]["metrics"]
+    assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "07"})) == [
+        "query", "sequence"]
+    assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "../x"}))[:2] == [
+        "query", "sequence"]
+    listed = client.get(f"{API}/projects/{pid}/runs").json()["data"][0]
+    assert listed["has_export"] and listed["summary"]["camera"]["voxel"] == pytest.approx(
+        stored["overall"]["camera"]["voxel"]["miou"])
+
+    # The zip: sequences/<name>/predictions/<frame>.label for every sequence.
+    z = client.get(f"{API}/runs/{run['id']}/export.zip")
+    assert z.status_code == 200
+    names = set(zipfile.ZipFile(io.BytesIO(z.content)).namelist())
+    for name, folder in zip(("00", "01"), two_sequences, strict=True):
+        for scan in (folder / "velodyne").glob("*.bin"):
+            member = f"sequences/{name}/predictions/{scan.stem}.label"
+            assert member in names
+            assert zipfile.ZipFile(io.BytesIO(z.content)).read(member) == (
+                run_dir / "sequences" / name / "export" / f"{scan.stem}.label").read_bytes()
+
+    # The folder export: by default into each dataset's predictions/ (the sequences share a root).
+    info = client.get(f"{API}/runs/{run['id']}/export").json()
+    assert info["sequences"] == ["00", "01"] and info["predictions_path"] == str(two_sequences[0].parent.parent)
+    assert info["frames"] == 7 and info["predictions_allowed"]
+    w = client.post(f"{API}/runs/{run['id']}/export", json={})
+    assert w.status_code == 200, w.text
+    assert w.json()["files"] == 7
+    for name, folder in zip(("00", "01"), two_sequences, strict=True):
+        assert sorted(p.name for p in (folder / "predictions").iterdir()) == sorted(
+            p.name for p in (run_dir / "sequences" / name / "export").glob("*.label"))
+    again = client.post(f"{API}/runs/{run['id']}/export", json={})
+    assert again.status_code == 409
+    assert client.post(f"{API}/runs/{run['id']}/export", json={"overwrite": True}).json()["replaced"] == 7
+    # Into the app's export folder: sequences/<name>/predictions/ under the folder named.
+    own = settings.work_dir / "exports" / "kitti-out"
+    w = client.post(f"{API}/runs/{run['id']}/export", json={"path": str(own)})
+    assert w.status_code == 200, w.text
+    assert {p.relative_to(own).parts[:3] for p in own.rglob("*.label")} == {
+        ("sequences", "00", "predictions"), ("sequences", "01", "predictions")}
+    # Anywhere else in a data root is refused (not a dataset's predictions/ folder).
+    bad = client.post(f"{API}/runs/{run['id']}/export", json={"path": str(tiny_dataset.parent)})
+    assert bad.status_code == 403
+
+    # Corrections are per sequence: one in 01 changes 01's export only.
+    before = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
+              for n in ("00", "01")}
+    keys = _voxel_keys_of(two_sequences[1], "000000", run["params"]["pipeline"])
+    c = client.post(f"{API}/projects/{pid}/corrections", json={
+        "class_name": "building", "voxel_size": 0.2, "keys": keys, "sequence": "01"})
+    assert c.status_code == 201, c.text
+    assert c.json()["sequence"] == "01"
+    assert client.get(f"{API}/projects/{pid}/corrections").json()["corrections"] == []
+    assert len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "01"}).json()[
+        "corrections"]) == 1
+    assert loc_of(client.post(f"{API}/projects/{pid}/corrections", json={
+        "class_name": "car", "voxel_size": 0.2, "keys": [1], "sequence": "09"})) == ["body", "sequence"]
+    state = applier(settings).wait(pid)
+    assert state.status == "done" and state.frames >= 1, state
+    after = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
+             for n in ("00", "01")}
+    assert after["00"] == before["00"] and after["01"] != before["01"]
+
+    # The viewer opens the sequence asked for: its run folder, its dataset, its corrections.
+    v = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "01"})
+    assert v.status_code == 200, v.text
+    assert v.json()["sequence"] == "01" and v.json()["run_id"] == run["id"]
+    session = client.app.state.viewers.get(pid)
+    assert session.run.run_dir == run_dir / "sequences" / "01"
+    assert session.backend.dataset_path() == two_sequences[1]
+    assert [c.class_name for c in session.backend.corrections()] == ["building"]
+    v = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "00"})
+    assert v.json()["sequence"] == "00"
+    assert client.app.state.viewers.get(pid).run.run_dir == run_dir / "sequences" / "00"
+    assert client.app.state.viewers.get(pid).backend.corrections() == []
+    assert loc_of(client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "05"})) == ["body", "sequence"]
+    assert client.get(f"{API}/projects/{pid}/viewer").json()["sequence"] == "00"
+
+
+def _voxel_keys_of(folder: Path, frame_id: str, pipeline: dict[str, Any]) -> list[int]:
+    """The voxel keys of one scan's points (what a map correction covering the scan lists)."""
+    seq = KittiSequence(folder)
+    frame = seq.frame(seq.frame_ids.index(frame_id))
+    return sorted({int(k) for k in voxel_keys(world_points(frame.points, frame.pose), 0.2)})
