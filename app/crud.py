@@ -62,7 +62,7 @@ def _dumps(value: Any) -> str:
 
 
 # -------------------------------------------------------------------------------------------- projects
-def create_project(
+def create_project(  # noqa: PLR0913  one keyword per column, and the sequences
     db: sqlite_utils.Database,
     *,
     name: str,
@@ -89,7 +89,8 @@ def create_project(
         project_id = _inserted_id(cursor)
         for position, (seq_name, seq_path) in enumerate(seqs):
             db.execute(
-                "INSERT INTO project_sequences (project_id, name, dataset_path, position) VALUES (?, ?, ?, ?)",
+                "INSERT INTO project_sequences (project_id, name, dataset_path, position) "
+                "VALUES (?, ?, ?, ?)",
                 [project_id, seq_name, seq_path, position],
             )
     project = get_project(db, project_id)
@@ -413,7 +414,8 @@ def list_corrections(
         return []  # a deleted project has none (its corrections went with it)
     seq = sequence_name(db, project_id, sequence)
     cursor = db.execute(
-        f"SELECT * FROM corrections WHERE project_id = ? AND sequence = ?{where} ORDER BY id", [project_id, seq]
+        f"SELECT * FROM corrections WHERE project_id = ? AND sequence = ?{where} ORDER BY id",
+        [project_id, seq],
     )
     names = [d[0] for d in cursor.description]
     return [_correction(dict(zip(names, r, strict=True))) for r in cursor.fetchall()]
@@ -533,8 +535,8 @@ def review_progress(
     marks = list_review_marks(db, project_id, seq)
     out = []
     for kind, run_id, regions_json, updated_at in db.execute(
-        "SELECT kind, run_id, regions_json, updated_at FROM review_queues WHERE project_id = ? AND sequence = ? "
-        "ORDER BY kind",
+        "SELECT kind, run_id, regions_json, updated_at FROM review_queues "
+        "WHERE project_id = ? AND sequence = ? ORDER BY kind",
         [project_id, seq],
     ).fetchall():
         regions = json.loads(regions_json)

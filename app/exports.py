@@ -377,7 +377,8 @@ def multi_target(settings: Settings, project: dict[str, Any], run: dict[str, Any
         Forbidden: naming the first sequence folder the policy refuses.
     """
     shown = raw if raw else str(default_multi_target(settings, project, run))
-    base = resolve_in_roots(shown, [*settings.data_roots, exports_dir(settings).resolve()], what="export path")
+    roots = [*settings.data_roots, exports_dir(settings).resolve()]
+    base = resolve_in_roots(shown, roots, what="export path")
     for name, _ in run_sequences_of(run["params"]) or []:
         folder = base / SEQUENCES / name / PREDICTIONS
         try:

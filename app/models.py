@@ -222,7 +222,8 @@ class SequenceRef(_Input):
 class ProjectCreate(_Input):
     name: str = Field(min_length=1, max_length=120)
     dataset: DatasetRef | None = Field(
-        default=None, description="the project's one sequence (or the built-in demo); give this or `sequences`"
+        default=None,
+        description="the project's one sequence (or the built-in demo); give this or `sequences`",
     )
     sequences: list[SequenceRef] | None = Field(
         default=None, min_length=1, max_length=MAX_SEQUENCES,
@@ -728,7 +729,8 @@ class CorrectionCreate(_Input):
     )
     sequence: str | None = Field(
         default=None, pattern=SEQUENCE_NAME_PATTERN,
-        description="the project sequence it corrects (default: the first; keys and frame ids are per sequence)",
+        description="the project sequence it corrects (default: the first; keys and frame ids are per "
+        "sequence)",
     )
 
     @field_validator("class_name")

@@ -307,7 +307,8 @@ def _project_sequences(
         if name in names:
             raise InvalidField(
                 ("body", "sequences", i, "name"),
-                f"sequence name {name!r} is taken by sequences[{names[name]}]; give each sequence its own name",
+                f"sequence name {name!r} is taken by sequences[{names[name]}]; give each sequence its "
+                "own name",
             )
         real = path.resolve()
         if real in folders:
@@ -644,6 +645,12 @@ def sequence_metrics(
     return normalise_metrics(per.get(sequence))
 
 
+def _sequence_names(run: dict[str, Any]) -> list[str | None]:
+    """The run's sequences (``[None]``: a single-sequence run's one)."""
+    listed = run_sequences_of(run["params"])
+    return [None] if listed is None else [n for n, _ in listed]
+
+
 def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPublic:
     run_dir = Path(run["run_dir"])
     return models.RunPublic(
@@ -661,7 +668,7 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         has_metrics=run.get("metrics") is not None,
         has_export=run["status"] == "done" and all(
             RunLayout(sequence_run_dir(run_dir, run["params"], name)[0]).export_dir.is_dir()
-            for name in [n for n, _ in run_sequences_of(run["params"]) or [(None, None)]]
+            for name in _sequence_names(run)
         ),
         resumable=run["status"] in models.RESUMABLE_STATUSES,
         summary=metrics_summary(run.get("metrics")),

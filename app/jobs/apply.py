@@ -148,8 +148,10 @@ class CorrectionApplier:
                 targets = [(RunLayout(Path(run["run_dir"])), Path(run["params"]["dataset"]),
                             crud.list_corrections(db, project_id, active_only=True))]
             else:
-                targets = [(lay, dataset, crud.list_corrections(db, project_id, active_only=True, sequence=name))
-                           for name, dataset, lay in sequence_layouts(Path(run["run_dir"]), run["params"])]
+                targets = [
+                    (lay, dataset, crud.list_corrections(db, project_id, active_only=True, sequence=name))
+                    for name, dataset, lay in sequence_layouts(Path(run["run_dir"]), run["params"])
+                ]
         return run, targets
 
     def _cache(self, project_id: int, run: dict[str, Any], lay: RunLayout, dataset: Path) -> RunCache:

@@ -98,7 +98,7 @@ def sequence_run_dir(run_dir: Path, params: Mapping[str, Any], sequence: str | N
 
 
 # ------------------------------------------------------------------------------- the worker's side
-def execute_sequences(  # noqa: PLR0913  # one keyword per part of the run spec it reads
+def execute_sequences(  # one keyword per part of the run spec it reads
     run_dir: Path,
     sequences: Mapping[str, Path],
     schema_doc: dict[str, Any],

@@ -48,7 +48,8 @@ def two_sequences(data_root: Path, make_tiny_sequence: Callable[..., Any], tmp_p
     return out
 
 
-def create_multi(client: TestClient, folders: list[Path], name: str = "multi", **extra: Any) -> dict[str, Any]:
+def create_multi(client: TestClient, folders: list[Path], name: str = "multi", **extra: Any
+                 ) -> dict[str, Any]:
     r = client.post(
         f"{API}/projects",
         json={"name": name, "sequences": [{"path": str(f)} for f in folders], **extra},
@@ -223,7 +224,8 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     # Metrics: overall (the summed confusion matrices) by default, per sequence on request.
     overall = client.get(f"{API}/runs/{run['id']}/metrics").json()
     assert overall["sequences"] == ["00", "01"] and overall["sequence"] is None
-    per = {n: client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": n}).json() for n in ("00", "01")}
+    per = {n: client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": n}).json()
+           for n in ("00", "01")}
     assert per["00"]["sequence"] == "00"
     stored = json.loads((run_dir / "metrics.json").read_text())
     for n in ("00", "01"):
@@ -253,7 +255,8 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
 
     # The folder export: by default into each dataset's predictions/ (the sequences share a root).
     info = client.get(f"{API}/runs/{run['id']}/export").json()
-    assert info["sequences"] == ["00", "01"] and info["predictions_path"] == str(two_sequences[0].parent.parent)
+    assert info["sequences"] == ["00", "01"]
+    assert info["predictions_path"] == str(two_sequences[0].parent.parent)
     assert info["frames"] == 7 and info["predictions_allowed"]
     w = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert w.status_code == 200, w.text
@@ -305,7 +308,8 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     assert v.json()["sequence"] == "00"
     assert client.app.state.viewers.get(pid).run.run_dir == run_dir / "sequences" / "00"
     assert client.app.state.viewers.get(pid).backend.corrections() == []
-    assert loc_of(client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "05"})) == ["body", "sequence"]
+    bad_sequence = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "05"})
+    assert loc_of(bad_sequence) == ["body", "sequence"]
     assert client.get(f"{API}/projects/{pid}/viewer").json()["sequence"] == "00"
 
 
