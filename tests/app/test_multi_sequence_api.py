@@ -277,6 +277,10 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     bad = client.post(f"{API}/runs/{run['id']}/export", json={"path": str(tiny_dataset.parent)})
     assert bad.status_code == 403
 
+    # The next run's preview starts from this run, over every sequence.
+    preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
+    assert preview["base_run"]["id"] == run["id"] and "fuse" not in preview["recompute"], preview
+
     # Corrections are per sequence: one in 01 changes 01's export only.
     before = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
               for n in ("00", "01")}
@@ -290,6 +294,9 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
         "corrections"]) == 1
     assert loc_of(client.post(f"{API}/projects/{pid}/corrections", json={
         "class_name": "car", "voxel_size": 0.2, "keys": [1], "sequence": "09"})) == ["body", "sequence"]
+    preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
+    fuse = next(st for st in preview["stages"] if st["name"] == "fuse")
+    assert fuse["action"] == "recompute" and fuse["reason"].startswith("sequence 01: "), fuse
     state = applier(settings).wait(pid)
     assert state.status == "done" and state.frames >= 1, state
     after = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}

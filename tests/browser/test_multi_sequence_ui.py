@@ -101,6 +101,8 @@ def test_sequences_in_the_form_metrics_and_viewer(server, browser) -> None:
     seq_select = page.locator("#viewer-sequence")
     assert seq_select.locator("option").all_inner_texts() == ["city", "01"]
     seq_select.select_option("01")
+    # The review progress shown is the picked sequence's (marks are per sequence).
+    expect(page.locator("#review-progress h2")).to_have_text("Review progress · 01")
     with page.context.expect_page() as popup_info:
         page.click("#viewer-button")
     popup = popup_info.value

@@ -16,7 +16,15 @@ function sequencePicker(ctx) {
     "Sequence ",
     h(
       "select",
-      { id: "viewer-sequence", onchange: (e) => (state.viewerSequence = e.target.value) },
+      {
+        id: "viewer-sequence",
+        onchange: (e) => {
+          state.viewerSequence = e.target.value;
+          // The review progress and the corrections shown are the picked sequence's.
+          if (ctx.render.review) ctx.render.review();
+          if (ctx.render.corrections) ctx.render.corrections();
+        },
+      },
       seqs.map((s) => h("option", { value: s.name, selected: s.name === state.viewerSequence }, s.name)),
     ),
   );
