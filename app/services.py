@@ -611,12 +611,14 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
-def metrics_sequences(metrics: dict[str, Any] | None) -> list[str]:
-    """The sequences with metrics of their own in a multi-sequence run's ``metrics`` (in run order); empty
-    for a single-sequence run."""
-    if not metrics or "overall" not in metrics or not isinstance(metrics.get("sequences"), dict):
+def metrics_sequences(run: dict[str, Any]) -> list[str]:
+    """The sequences with metrics of their own in a multi-sequence run (in run order: the stored JSON's
+    keys are sorted); empty for a single-sequence run."""
+    metrics = run.get("metrics")
+    listed = run_sequences_of(run["params"])
+    if listed is None or not metrics or not isinstance(metrics.get("sequences"), dict):
         return []
-    return [name for name, m in metrics["sequences"].items() if isinstance(m, dict)]
+    return [name for name, _ in listed if isinstance(metrics["sequences"].get(name), dict)]
 
 
 def sequence_metrics(

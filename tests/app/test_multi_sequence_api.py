@@ -197,16 +197,19 @@ def test_corrections_and_marks_are_per_sequence(tmp_path: Path) -> None:
 # ------------------------------------------------------------------------------------------------ runs
 def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path], tiny_dataset: Path,
                                    tmp_path: Path, settings: Settings) -> None:
+    # Listed 01 first: run order is not name order (stored JSON sorts its keys; the API must not).
+    two_sequences = two_sequences[::-1]
     project = create_multi(client, two_sequences)
+    assert [s["name"] for s in project["sequences"]] == ["01", "00"]
     pid = project["id"]
     r = client.post(f"{API}/projects/{pid}/runs", json={"frames": {"start": 0, "stop": 2}})
     assert loc_of(r) == ["body", "frames"]
     r = client.post(f"{API}/projects/{pid}/runs", json={})
     assert r.status_code == 202, r.text
     run = r.json()
-    assert run["params"]["sequences"] == [{"name": "00", "dataset": str(two_sequences[0])},
-                                          {"name": "01", "dataset": str(two_sequences[1])}]
-    expected = [f"{n}/{s}" for n in ("00", "01") for s in STAGES]
+    assert run["params"]["sequences"] == [{"name": "01", "dataset": str(two_sequences[0])},
+                                          {"name": "00", "dataset": str(two_sequences[1])}]
+    expected = [f"{n}/{s}" for n in ("01", "00") for s in STAGES]
     assert [s["name"] for s in run["progress"]["stages"]] == expected
     run = wait_run(client, run["id"], timeout=300)
     assert run["status"] == "done", run["error"]
@@ -215,7 +218,7 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     assert stages["01/export"]["status"] == "done" and stages["00/3dcn"]["status"] == "skipped"
     with open_db(settings.database) as db:
         run_dir = Path(crud.require_run(db, run["id"])["run_dir"])
-    for name, folder in zip(("00", "01"), two_sequences, strict=True):
+    for name, folder in zip(("01", "00"), two_sequences, strict=True):
         exported = sorted(p.name for p in (run_dir / "sequences" / name / "export").glob("*.label"))
         assert exported == sorted(f"{p.stem}.label" for p in (folder / "velodyne").glob("*.bin"))
     log = client.get(f"{API}/runs/{run['id']}/logs").json()["text"]
@@ -223,7 +226,7 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
 
     # Metrics: overall (the summed confusion matrices) by default, per sequence on request.
     overall = client.get(f"{API}/runs/{run['id']}/metrics").json()
-    assert overall["sequences"] == ["00", "01"] and overall["sequence"] is None
+    assert overall["sequences"] == ["01", "00"] and overall["sequence"] is None
     per = {n: client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": n}).json()
            for n in ("00", "01")}
     assert per["00"]["sequence"] == "00"
@@ -246,7 +249,7 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     z = client.get(f"{API}/runs/{run['id']}/export.zip")
     assert z.status_code == 200
     names = set(zipfile.ZipFile(io.BytesIO(z.content)).namelist())
-    for name, folder in zip(("00", "01"), two_sequences, strict=True):
+    for name, folder in zip(("01", "00"), two_sequences, strict=True):
         for scan in (folder / "velodyne").glob("*.bin"):
             member = f"sequences/{name}/predictions/{scan.stem}.label"
             assert member in names
@@ -255,13 +258,13 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
 
     # The folder export: by default into each dataset's predictions/ (the sequences share a root).
     info = client.get(f"{API}/runs/{run['id']}/export").json()
-    assert info["sequences"] == ["00", "01"]
+    assert info["sequences"] == ["01", "00"]
     assert info["predictions_path"] == str(two_sequences[0].parent.parent)
     assert info["frames"] == 7 and info["predictions_allowed"]
     w = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert w.status_code == 200, w.text
     assert w.json()["files"] == 7
-    for name, folder in zip(("00", "01"), two_sequences, strict=True):
+    for name, folder in zip(("01", "00"), two_sequences, strict=True):
         assert sorted(p.name for p in (folder / "predictions").iterdir()) == sorted(
             p.name for p in (run_dir / "sequences" / name / "export").glob("*.label"))
     again = client.post(f"{API}/runs/{run['id']}/export", json={})
@@ -281,43 +284,43 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
     assert preview["base_run"]["id"] == run["id"] and "fuse" not in preview["recompute"], preview
 
-    # Corrections are per sequence: one in 01 changes 01's export only.
+    # Corrections are per sequence: one in 00 changes 00's export only.
     before = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
-              for n in ("00", "01")}
+              for n in ("01", "00")}
     keys = _voxel_keys_of(two_sequences[1], "000000", run["params"]["pipeline"])
     c = client.post(f"{API}/projects/{pid}/corrections", json={
-        "class_name": "building", "voxel_size": 0.2, "keys": keys, "sequence": "01"})
+        "class_name": "building", "voxel_size": 0.2, "keys": keys, "sequence": "00"})
     assert c.status_code == 201, c.text
-    assert c.json()["sequence"] == "01"
+    assert c.json()["sequence"] == "00"
     assert client.get(f"{API}/projects/{pid}/corrections").json()["corrections"] == []
-    assert len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "01"}).json()[
+    assert len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "00"}).json()[
         "corrections"]) == 1
     assert loc_of(client.post(f"{API}/projects/{pid}/corrections", json={
         "class_name": "car", "voxel_size": 0.2, "keys": [1], "sequence": "09"})) == ["body", "sequence"]
     preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
     fuse = next(st for st in preview["stages"] if st["name"] == "fuse")
-    assert fuse["action"] == "recompute" and fuse["reason"].startswith("sequence 01: "), fuse
+    assert fuse["action"] == "recompute" and fuse["reason"].startswith("sequence 00: "), fuse
     state = applier(settings).wait(pid)
     assert state.status == "done" and state.frames >= 1, state
     after = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
-             for n in ("00", "01")}
-    assert after["00"] == before["00"] and after["01"] != before["01"]
+             for n in ("01", "00")}
+    assert after["01"] == before["01"] and after["00"] != before["00"]
 
     # The viewer opens the sequence asked for: its run folder, its dataset, its corrections.
-    v = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "01"})
+    v = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "00"})
     assert v.status_code == 200, v.text
-    assert v.json()["sequence"] == "01" and v.json()["run_id"] == run["id"]
+    assert v.json()["sequence"] == "00" and v.json()["run_id"] == run["id"]
     session = client.app.state.viewers.get(pid)
-    assert session.run.run_dir == run_dir / "sequences" / "01"
+    assert session.run.run_dir == run_dir / "sequences" / "00"
     assert session.backend.dataset_path() == two_sequences[1]
     assert [c.class_name for c in session.backend.corrections()] == ["building"]
-    v = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "00"})
-    assert v.json()["sequence"] == "00"
-    assert client.app.state.viewers.get(pid).run.run_dir == run_dir / "sequences" / "00"
+    v = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "01"})
+    assert v.json()["sequence"] == "01"
+    assert client.app.state.viewers.get(pid).run.run_dir == run_dir / "sequences" / "01"
     assert client.app.state.viewers.get(pid).backend.corrections() == []
     bad_sequence = client.post(f"{API}/projects/{pid}/viewer", json={"sequence": "05"})
     assert loc_of(bad_sequence) == ["body", "sequence"]
-    assert client.get(f"{API}/projects/{pid}/viewer").json()["sequence"] == "00"
+    assert client.get(f"{API}/projects/{pid}/viewer").json()["sequence"] == "01"
 
 
 def _voxel_keys_of(folder: Path, frame_id: str, pipeline: dict[str, Any]) -> list[int]:

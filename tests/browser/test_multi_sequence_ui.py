@@ -53,7 +53,8 @@ def test_sequences_in_the_form_metrics_and_viewer(server, browser) -> None:
     page.goto(srv.base + "/")
 
     # ---- create: the picker adds folders to the list while "several" is chosen; "name = folder" names one
-    expect(page.locator("#create-form")).to_be_visible()
+    browserfixtures.echo_console(page)
+    expect(page.locator("#create-form")).to_be_visible(timeout=60_000)
     page.fill("#new-name", "Two <b>streets</b>")
     page.check("#kind-several")
     page.fill("#new-paths", f"city = {folders[0]}")

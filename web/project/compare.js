@@ -152,14 +152,14 @@ export async function renderCompare(ctx) {
   }
   if (state.metricsSequence === undefined) state.metricsSequence = null;
   let all;
-  let names = [];
+  let seqNames = [];
   try {
     const own = await Promise.all(runs.map((r) => metricsOf(state, r.id)));
-    names = own[own.length - 1].sequences || [];
-    if (!names.includes(state.metricsSequence)) state.metricsSequence = null;
+    seqNames = own[own.length - 1].sequences || [];
+    if (!seqNames.includes(state.metricsSequence)) state.metricsSequence = null;
     all = state.metricsSequence === null ? own : await Promise.all(runs.map((r) => metricsOf(state, r.id, state.metricsSequence)));
   } catch (err) {
-    replace(el, h("div", { class: "card-head" }, h("h2", {}, "Metrics"), sequenceSelect(ctx, names)), h("p", { class: "error" }, err.message));
+    replace(el, h("div", { class: "card-head" }, h("h2", {}, "Metrics"), sequenceSelect(ctx, seqNames)), h("p", { class: "error" }, err.message));
     return;
   }
   const protocols = Object.keys(all[0].metrics.protocols);
@@ -200,8 +200,8 @@ export async function renderCompare(ctx) {
   const latest = runs[runs.length - 1];
   replace(
     el,
-    h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, names), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
-    headline(state, latest, all[all.length - 1].metrics, names.length > 0),
+    h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, seqNames), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
+    headline(state, latest, all[all.length - 1].metrics, seqNames.length > 0),
     staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
     h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),

@@ -194,7 +194,7 @@ def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> mo
         stale = True  # unreadable applied-corrections files: do not claim the figures are current
     return models.MetricsPublic(
         run_id=run_id, class_names=names, metrics=table, before_corrections=stale,
-        sequence=sequence, sequences=services.metrics_sequences(run.get("metrics")),
+        sequence=sequence, sequences=services.metrics_sequences(run),
     )
 
 
