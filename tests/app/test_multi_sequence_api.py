@@ -223,6 +223,7 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
         assert exported == sorted(f"{p.stem}.label" for p in (folder / "velodyne").glob("*.bin"))
     log = client.get(f"{API}/runs/{run['id']}/logs").json()["text"]
     assert "stage 00/fuse done" in log and "stage 01/export done" in log
+    assert "stage 00/3dcn skipped (" in log  # the 3D-CN is off: the log says so, per sequence
 
     # Metrics: overall (the summed confusion matrices) by default, per sequence on request.
     overall = client.get(f"{API}/runs/{run['id']}/metrics").json()
@@ -328,3 +329,24 @@ def _voxel_keys_of(folder: Path, frame_id: str, pipeline: dict[str, Any]) -> lis
     seq = KittiSequence(folder)
     frame = seq.frame(seq.frame_ids.index(frame_id))
     return sorted({int(k) for k in voxel_keys(world_points(frame.points, frame.pose), 0.2)})
+
+
+def test_joint_3dcn_run_reports_its_rounds_between_the_sequences(client: TestClient, two_sequences: list[Path],
+                                                                 settings: Settings) -> None:
+    tiny_3dcn = {"enabled": True, "iterations": 1, "points_per_scan": 512, "num_threads": 1, "min_steps": 0,
+                 "device": "cpu", "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+    project = create_multi(client, two_sequences, pipeline={"consistency": tiny_3dcn})
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
+    # Every sequence up to smoothing, the rounds trained on both, then each sequence from its 3D-CN on.
+    cut = STAGES.index("3dcn")
+    expected = ([f"{n}/{s}" for n in ("00", "01") for s in STAGES[:cut]] + ["*/3dcn"]
+                + [f"{n}/{s}" for n in ("00", "01") for s in STAGES[cut:]])
+    assert [s["name"] for s in run["progress"]["stages"]] == expected
+    run = wait_run(client, run["id"], timeout=600)
+    assert run["status"] == "done", run["error"]
+    stages = {s["name"]: s for s in run["progress"]["stages"]}
+    assert stages["*/3dcn"]["status"] == "done" and stages["*/3dcn"]["total"] >= 1
+    assert all(stages[f"{n}/export"]["status"] == "done" for n in ("00", "01"))
+    assert all(s["status"] in ("done", "skipped") for s in stages.values()), stages
+    rows = client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "01"}).json()["metrics"]["rows"]
+    assert rows[-1].startswith("+3D-CN")
