@@ -331,8 +331,9 @@ def _voxel_keys_of(folder: Path, frame_id: str, pipeline: dict[str, Any]) -> lis
     return sorted({int(k) for k in voxel_keys(world_points(frame.points, frame.pose), 0.2)})
 
 
-def test_joint_3dcn_run_reports_its_rounds_between_the_sequences(client: TestClient, two_sequences: list[Path],
-                                                                 settings: Settings) -> None:
+def test_joint_3dcn_run_reports_its_rounds_between_the_sequences(
+    client: TestClient, two_sequences: list[Path]
+) -> None:
     tiny_3dcn = {"enabled": True, "iterations": 1, "points_per_scan": 512, "num_threads": 1, "min_steps": 0,
                  "device": "cpu", "backbone": {"channels": 8, "layers": 1, "knn": 4}}
     project = create_multi(client, two_sequences, pipeline={"consistency": tiny_3dcn})
