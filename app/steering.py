@@ -9,6 +9,7 @@ job manager imports :mod:`app.services`.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -83,9 +84,14 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
                 corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
                 lay = RunLayout(Path(tmp))
                 run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
+                base_lay = None if base is None else RunLayout(
+                    sequence_run_dir(Path(base["run_dir"]), base["params"], name)[0])
+                if base_lay is not None and name is not None and base_lay.joint_3dcn.is_file():
+                    # A sequence's 3D-CN fingerprint covers the joint round it took; a change anywhere
+                    # that reruns the joint round shows up as another sequence's recompute (merged below).
+                    shutil.copyfile(base_lay.joint_3dcn, lay.joint_3dcn)
                 fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
-            previous = None if base is None else read_state(
-                RunLayout(sequence_run_dir(Path(base["run_dir"]), base["params"], name)[0]))
+            previous = None if base_lay is None else read_state(base_lay)
             per_sequence.append((name, recompute_plan(config, fps, previous, sections,
                                                       **({"input_hint": hint} if hint else {}))))
     except LeapError as exc:

@@ -351,3 +351,6 @@ def test_joint_3dcn_run_reports_its_rounds_between_the_sequences(
     assert all(s["status"] in ("done", "skipped") for s in stages.values()), stages
     rows = client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "01"}).json()["metrics"]["rows"]
     assert rows[-1].startswith("+3D-CN")
+    # Nothing changed since: the next run reuses every stage, the joint 3D-CN included.
+    preview = client.get(f"{API}/projects/{project['id']}/runs/preview").json()
+    assert preview["base_run"]["id"] == run["id"] and "3dcn" not in preview["recompute"], preview
