@@ -13,7 +13,7 @@ from pathlib import Path
 import browserfixtures
 import pytest
 
-browser = browserfixtures.browser
+artifacts, browser = browserfixtures.artifacts, browserfixtures.browser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
@@ -41,7 +41,7 @@ def server(tmp_path_factory: pytest.TempPathFactory):
     srv.stop()
 
 
-def test_sequences_in_the_form_metrics_and_viewer(server, browser) -> None:
+def test_sequences_in_the_form_metrics_and_viewer(server, browser, artifacts: Path) -> None:
     import httpx
     from playwright.sync_api import expect
 
@@ -97,6 +97,8 @@ def test_sequences_in_the_form_metrics_and_viewer(server, browser) -> None:
     page.locator("#metrics-sequence").select_option("")
     headline = page.locator("#metrics-headline")
     expect(headline).to_contain_text(f"camera view mIoU {100 * overall['miou']:.1f} %")
+
+    page.screenshot(path=str(artifacts / "web_ui_multi_sequence.png"), full_page=True)
 
     # ---- the viewer opens the sequence picked beside its button
     seq_select = page.locator("#viewer-sequence")
