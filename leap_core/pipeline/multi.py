@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -116,6 +117,9 @@ class MultiRunResult:
     metrics: dict[str, Any] | None
     """Content of ``<root>/metrics.json`` (None when no sequence has ground truth or evaluation did not
     run)."""
+    joint_seconds: float = 0.0
+    """Wall time of the joint 3D-CN rounds in this call (≈ 0 when the 3D-CN is off or its rounds were
+    kept from an earlier call); each sequence's own ``3dcn`` stage only links their grids."""
 
 
 def check_specs(specs: Sequence[SequenceSpec]) -> None:
@@ -210,9 +214,12 @@ def run_sequences(
 
     joint = config.consistency.enabled and last >= STAGES.index("3dcn")
     results: dict[str, RunResult] = {}
+    joint_seconds = 0.0
     if joint:
         first = {spec.name: run(spec, "smooth") for spec in specs}
+        t0 = time.perf_counter()
         _joint_3dcn(layout, specs, schema, config, runtime, progress)
+        joint_seconds = time.perf_counter() - t0
         for spec in specs:
             second = run(spec, STAGES[last])
             stages = {**first[spec.name].stages,
@@ -228,7 +235,7 @@ def run_sequences(
     metrics = None
     if last >= STAGES.index("evaluate"):
         metrics = write_metrics(layout, {n: r.metrics for n, r in results.items()})
-    return MultiRunResult(layout.root, results, metrics)
+    return MultiRunResult(layout.root, results, metrics, joint_seconds)
 
 
 def write_metrics(layout: MultiRunLayout, per_sequence: Mapping[str, Mapping[str, Any] | None]
