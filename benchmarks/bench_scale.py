@@ -485,7 +485,7 @@ def main() -> None:
     ap.add_argument("--3dcn", dest="cn", action="store_true", help="Run with the 3D Consistency Network.")
     ap.add_argument("--work", type=Path, default=None,
                     help="Folder for the runs (and generated data); default: a temporary folder, removed.")
-    ap.add_argument("--interval", type=float, default=0.1, help="psutil sampling interval, seconds.")
+    ap.add_argument("--interval", type=float, default=0.05, help="psutil sampling interval, seconds.")
     ap.add_argument("--no-cached", dest="cached", action="store_false", help="Skip the cached reruns.")
     ap.add_argument("--markdown", action="store_true", help="Print the tables as Markdown (the README's).")
     ap.add_argument("--report", action="store_true", help="Only print the last results file again.")

@@ -66,7 +66,7 @@ def reference_counts(run_dir: Path, dataset: Path) -> ExportCoverage:
     return ExportCoverage(len(seq), points, labeled, outside, no_mask, dict(sorted(raws.items())))
 
 
-@pytest.mark.parametrize("merge_at", [1, 3, 1 << 22])
+@pytest.mark.parametrize("merge_at", [1, 3, 1 << 19])
 def test_export_coverage_matches_the_definition(street: Path, tmp_path: Path, merge_at: int) -> None:
     run_dir = tmp_path / "run"
     _run(street, run_dir)
@@ -162,3 +162,19 @@ def test_cli_rerun_prints_the_counts_from_the_run_folder(street: Path, tmp_path:
     data["no_mask"] += 1000
     RunLayout(out).export_coverage.write_text(json.dumps(data))
     assert run().endswith(f"{fresh.no_mask + 1000} in view but no mask")
+
+
+@pytest.mark.parametrize("merge_at", [1, 5, 1000])
+def test_key_counts_are_the_multiset_of_everything_added(merge_at: int) -> None:
+    from leap_core.pipeline.coverage import _KeyCounts
+
+    rng = np.random.default_rng(3)
+    parts = [rng.integers(-50, 50, rng.integers(0, 30)).astype(np.int64) for _ in range(20)]
+    kc = _KeyCounts(merge_at)
+    for p in parts:
+        kc.add(p)
+    keys, counts = kc.merged()
+    want_keys, want_counts = np.unique(np.concatenate(parts), return_counts=True)
+    assert keys.dtype == np.int64 and counts.dtype == np.int64
+    np.testing.assert_array_equal(keys, want_keys)  # sorted, each key once
+    np.testing.assert_array_equal(counts, want_counts)
