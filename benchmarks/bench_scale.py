@@ -463,7 +463,8 @@ def print_report(doc: dict[str, Any], as_markdown: bool) -> None:
     m = doc.get("machine", {})
     note = (f"{doc.get('config', {}).get('labeler', 'simulated')} labeler, 3D-CN "
             f"{'on' if doc.get('config', {}).get('3dcn') else 'off'}; {m.get('cpu', '?')}, "
-            f"{m.get('affinity_cpus', '?')} cores, load average at the end "
+            f"{m.get('affinity_cpus', '?')} cores, OPENBLAS_NUM_THREADS "
+            f"{doc.get('config', {}).get('openblas_threads') or 'unset'}, load average at the end "
             f"{m.get('load_average_1_5_15_min')}")
     for title, header, rows in report_tables(doc):
         if as_markdown:
@@ -487,6 +488,9 @@ def main() -> None:
                     help="Folder for the runs (and generated data); default: a temporary folder, removed.")
     ap.add_argument("--interval", type=float, default=0.05, help="psutil sampling interval, seconds.")
     ap.add_argument("--no-cached", dest="cached", action="store_false", help="Skip the cached reruns.")
+    ap.add_argument("--blas-threads", type=int, default=None,
+                    help="OPENBLAS_NUM_THREADS of the runs (default: inherited). On a loaded machine numpy's "
+                         "threaded matrix products of N×3 points by 3×3 rotations wait on each other.")
     ap.add_argument("--markdown", action="store_true", help="Print the tables as Markdown (the README's).")
     ap.add_argument("--report", action="store_true", help="Only print the last results file again.")
     ap.add_argument("--name", default=None, help="Result file benchmarks/results/NAME.json.")
@@ -511,8 +515,11 @@ def main() -> None:
         seqs = [ensure_sequence(work / "data" / f"f{n}-s{seed}", n, seed, args.interval)
                 for n, seed in zip(args.frames, args.seeds, strict=True)]
 
+    if args.blas_threads is not None:
+        os.environ["OPENBLAS_NUM_THREADS"] = str(args.blas_threads)  # the children inherit it
     results = [measure_length(s, work, args.cn, args.interval, args.cached) for s in seqs]
-    doc = {"config": {"labeler": "simulated", "3dcn": bool(args.cn)}, "results": results,
+    doc = {"config": {"labeler": "simulated", "3dcn": bool(args.cn),
+                      "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS")}, "results": results,
            "analysis": analyse(results)}
     path = write_results(name, doc)
     doc = json.loads(path.read_text())
