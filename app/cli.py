@@ -695,11 +695,12 @@ def _write_exports(
         write_export_folder,
         write_export_zip,
     )
-    from leap_core.pipeline.coverage import coverage_counts, export_coverage
+    from leap_core.pipeline.coverage import cached_export_coverage, coverage_counts
     from leap_core.run_layout import RunLayout
 
     lay = RunLayout(run_dir)
-    cov = export_coverage(run_dir, dataset, frames, cfg.fusion.voxel_size)
+    # Counted once per export, then read from the run folder (a cached rerun reads no scan).
+    cov = cached_export_coverage(run_dir, dataset, frames, cfg.fusion.voxel_size)
     typer.echo(f"{cov.labeled} of {cov.points} points labeled; {cov.unlabeled} unlabeled: "
                f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask")
     if targets["folder"] is not None:
