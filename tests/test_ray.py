@@ -1,0 +1,222 @@
+"""The Ray engine (``Runtime.ray_address``, :mod:`leap_core.pipeline.executor`) writes the same bytes as the
+local engine: every exported ``.label`` / ``.conf``, every per-frame file and the grids, also after a run
+cancelled mid-stage on Ray is resumed there; fusion's blocks fold to exactly :func:`fuse`'s grid; a run
+without Ray never imports ray.
+
+The Ray tests share one local Ray instance of 2 CPUs (module fixture, shut down at the end)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from leap_core.config import PipelineConfig
+from leap_core.errors import Cancelled
+from leap_core.fusion import (
+    FusionConfig,
+    Observations,
+    fold_blocks,
+    fuse,
+    fusion_blocks,
+    reduce_block,
+)
+from leap_core.pipeline import run_pipeline, stage_status
+from leap_core.pipeline.executor import frame_blocks, merge_records
+from leap_core.presets import builtin_preset
+from leap_core.runtime import Runtime
+from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = SynthConfig(frames=10, seed=0, lidar=LidarConfig(beams=16, azimuth_step_deg=1.0),
+                    camera=CameraConfig().scaled(0.5))
+"""The demo street (seed 0), coarse LiDAR, half-size camera: about 400-700 observed points per frame."""
+FRAMES = range(0, 8)
+RAY = Runtime(ray_address="auto")
+
+
+# ------------------------------------------------------------------------------- fusion blocks (no Ray)
+def _random_obs(rng: np.random.Generator, n: int, c: int) -> Observations:
+    keys = rng.integers(0, 40, n).astype(np.int64) * 7919 + (1 << 62) // 3
+    table = rng.dirichlet(np.ones(c), size=5).astype(np.float32)
+    return Observations(keys, rng.integers(0, 5, n).astype(np.int32), np.log(table))
+
+
+def test_fusion_blocks_follow_fuse_chunking() -> None:
+    assert fusion_blocks([5, 0, 4, 3], 8) == [[0, 2], [3]]
+    assert fusion_blocks([9, 1, 1], 8) == [[0], [1, 2]]
+    assert fusion_blocks([0, 0], 8) == []
+
+
+def test_blocks_folded_in_order_are_fuse_byte_for_byte() -> None:
+    rng = np.random.default_rng(3)
+    c = 6
+    batches = [_random_obs(rng, int(n), c) for n in (300, 0, 250, 400, 120, 380, 90)]
+    cfg = FusionConfig(chunk_points=500)
+    blocks = fusion_blocks([len(b.keys) for b in batches], cfg.chunk_points)
+    assert len(blocks) >= 3
+    partials = [reduce_block([batches[i] for i in block], c) for block in blocks]
+    folded = fold_blocks(partials, c, cfg)
+    expected = fuse(batches, c, cfg)
+    assert folded.keys.tobytes() == expected.keys.tobytes()
+    assert folded.logp.tobytes() == expected.logp.tobytes()
+
+
+def test_fold_order_matters_and_is_kept() -> None:
+    """Three one-voxel chunks whose float32 sum depends on the order: (1e8 - 1e8) + 1 = 1, but
+    (1 - 1e8) + 1e8 = 0. The fold must add them in block order, as fuse does."""
+    c = 2
+    key = np.array([5], np.int64)
+    rows = np.zeros(1, np.int32)
+    tables = [np.array([[v, 0.0]], np.float32) for v in (1e8, -1e8, 1.0)]
+    batches = [Observations(key, rows, t) for t in tables]
+    cfg = FusionConfig(chunk_points=1, logp_clip=20.0)
+    blocks = fusion_blocks([1, 1, 1], cfg.chunk_points)
+    partials = [reduce_block([batches[i] for i in b], c) for b in blocks]
+    expected = fuse(batches, c, cfg)
+    assert expected.logp.tolist() == [[0.0, -1.0]]
+    assert fold_blocks(partials, c, cfg).logp.tobytes() == expected.logp.tobytes()
+    assert fold_blocks(partials[::-1], c, cfg).logp.tobytes() != expected.logp.tobytes()
+
+
+def test_frame_blocks_and_records() -> None:
+    assert frame_blocks([0, 1, 2, 5, 6, 7, 8], 3) == [[0, 1, 2], [5, 6, 7], [8]]
+    assert frame_blocks([], 2) == []
+    rec = merge_records([{"frames_done": 3, "frames_computed": 3, "cache_hits": 1, "labeler": "simulated"},
+                         {"frames_done": 2, "frames_computed": 2, "cache_hits": 2, "labeler": "simulated"}], 8, 5)
+    assert rec == {"frames_done": 8, "frames_computed": 5, "cache_hits": 3, "labeler": "simulated"}
+
+
+def test_a_local_run_never_imports_ray(tmp_path: Path) -> None:
+    data = tmp_path / "seq"
+    (data / "velodyne").mkdir(parents=True)
+    code = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "from leap_core.pipeline import run_pipeline\n"
+        "from leap_core.presets import builtin_preset\n"
+        "from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence\n"
+        f"seq = generate_sequence(Path({str(tmp_path)!r}), SynthConfig(frames=2, seed=0, "
+        "lidar=LidarConfig(beams=8, azimuth_step_deg=2.0), camera=CameraConfig().scaled(0.25))).path\n"
+        "p = builtin_preset('demo')\n"
+        f"run_pipeline(seq, p.schema, p.pipeline, Path({str(tmp_path / 'run')!r}))\n"
+        "assert (Path(" + repr(str(tmp_path / "run")) + ") / 'export').is_dir()\n"
+        "print('ray' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+# ------------------------------------------------------------------------------------------ Ray runs
+@pytest.fixture(scope="module")
+def ray_instance():
+    import ray  # noqa: PLC0415  only these tests start Ray
+
+    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=256 * 1024 * 1024,
+             logging_level="ERROR", log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return generate_sequence(tmp_path_factory.mktemp("demo"), SMALL).path
+
+
+@pytest.fixture(scope="module")
+def preset_config() -> tuple[Any, PipelineConfig]:
+    p = builtin_preset("demo")
+    # Small fusion chunks, so that the 8 frames fuse in several blocks (checked below).
+    cfg = dataclasses.replace(p.pipeline, fusion=dataclasses.replace(p.pipeline.fusion, chunk_points=900))
+    return p.schema, cfg
+
+
+@pytest.fixture(scope="module")
+def local_run(dataset: Path, preset_config, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    schema, cfg = preset_config
+    run_dir = tmp_path_factory.mktemp("local") / "run"
+    run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES)
+    return run_dir
+
+
+OUTPUT_FOLDERS = ("labels2d", "observations", "points", "export")
+OUTPUT_FILES = ("grid.npz", "grid_smooth.npz", "metrics.json")
+
+
+def _outputs(run_dir: Path) -> dict[str, bytes]:
+    out = {f"{folder}/{p.name}": p.read_bytes() for folder in OUTPUT_FOLDERS
+           for p in sorted((run_dir / folder).iterdir())}
+    out.update({name: (run_dir / name).read_bytes() for name in OUTPUT_FILES})
+    return out
+
+
+def _same_outputs(run_dir: Path, local_run: Path) -> None:
+    ray_out, local_out = _outputs(run_dir), _outputs(local_run)
+    assert sorted(ray_out) == sorted(local_out)
+    assert len([n for n in local_out if n.endswith(".label")]) == len(FRAMES)
+    differ = [name for name in local_out if ray_out[name] != local_out[name]]
+    assert differ == []
+
+
+@pytest.mark.slow
+def test_ray_run_writes_the_local_bytes(ray_instance, dataset: Path, preset_config, local_run: Path,
+                                        tmp_path: Path) -> None:
+    schema, cfg = preset_config
+    calls: list[tuple[str, int, int]] = []
+    result = run_pipeline(dataset, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY,
+                          progress=lambda *a: calls.append(a))
+    _same_outputs(tmp_path / "run", local_run)
+    records = stage_status(tmp_path / "run")
+    for stage in ("labels2d", "project", "label_points", "export"):
+        assert records[stage]["ray_tasks"] >= 2, stage  # really cut into sub-ranges on Ray
+        assert records[stage]["frames_computed"] == len(FRAMES)
+        assert result.stages[stage].frames_computed == len(FRAMES)
+    assert records["labels2d"]["labeler"] == "simulated"
+    assert records["fuse"]["fusion_chunks"] >= 3
+    assert ("project", len(FRAMES), len(FRAMES)) in calls
+    assert ("fuse", len(FRAMES), len(FRAMES)) in calls
+
+
+@pytest.mark.slow
+def test_cancel_on_ray_then_resume_gives_the_local_bytes(ray_instance, dataset: Path, preset_config,
+                                                         local_run: Path, tmp_path: Path) -> None:
+    schema, cfg = preset_config
+    run_dir = tmp_path / "run"
+
+    def cancel_mid_project(stage: str, done: int, total: int) -> None:
+        if stage == "project" and 0 < done < total:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY, progress=cancel_mid_project)
+    assert stage_status(run_dir)["project"]["status"] == "cancelled"
+    kept = len(list((run_dir / "observations").glob("*.npz")))
+    assert 0 < kept < len(FRAMES)
+    result = run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY)
+    assert not result.stages["labels2d"].ran
+    computed = result.stages["project"].frames_computed
+    assert len(FRAMES) - kept <= computed < len(FRAMES)  # resumed: the kept frames were not recomputed
+    _same_outputs(run_dir, local_run)
+
+
+@pytest.mark.slow
+def test_cli_run_with_ray(ray_instance, dataset: Path, tmp_path: Path) -> None:
+    from app.cli import cli  # noqa: PLC0415  the CLI imports the app's packages
+
+    runner = CliRunner()
+    outs = {}
+    for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
+        res = runner.invoke(cli, ["run", str(dataset), "--schema", "demo", "--labeler", "simulated",
+                                  "--out", str(tmp_path / name), "--frames", "2:6", *extra])
+        assert res.exit_code == 0, res.output
+        outs[name] = {p.name: p.read_bytes() for p in sorted((tmp_path / name / "export").iterdir())}
+    assert len(outs["ray"]) == 8
+    assert outs["ray"] == outs["local"]
+    assert "ray_tasks" in json.loads((tmp_path / "ray" / "stages.json").read_text())["project"]
