@@ -724,7 +724,11 @@ Partial = tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]
 
 
 def reduce_block(
-    batches: Iterable[Observations], num_classes: int, weight: float = 1.0, *, paths: FusionPaths | None = None
+    batches: Iterable[Observations],
+    num_classes: int,
+    weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
 ) -> Partial:
     """The partial sum of one :func:`fusion_blocks` chunk: the batches of its positions, in order (empty
     ones may be included; they add nothing). Checks each batch as :func:`fuse` does."""
@@ -760,7 +764,9 @@ def fold_blocks(
         k = np.asarray(keys, dtype=np.int64)
         s = np.asarray(sums, dtype=np.float32)
         if k.ndim != 1 or s.shape != (k.shape[0], num_classes):
-            raise ValueError(f"partial keys (V,) and sums (V, {num_classes}) expected, got {k.shape}, {s.shape}")
+            raise ValueError(
+                f"partial keys (V,) and sums (V, {num_classes}) expected, got {k.shape} and {s.shape}"
+            )
         if len(k) == 0:
             continue
         if len(acc_keys) == 0:
@@ -780,8 +786,8 @@ __all__ = [
     "VoxelGrid",
     "VoxelLabels",
     "apply_overrides",
-    "fuse",
     "fold_blocks",
+    "fuse",
     "fuse_dense",
     "fusion_blocks",
     "key_centres",

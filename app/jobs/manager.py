@@ -720,6 +720,7 @@ class JobManager:
             allow_download=self.settings.allow_download,
             estimate_poses=bool(params.get("estimate_poses")),
             poses_cache=self.settings.cache_dir,
+            ray_address=self.settings.ray_address,
         )
 
     def _on_progress(self, run_id: int, live: _Live, message: StageProgress, last_persist: float) -> float:

@@ -90,6 +90,9 @@ class RunSpec(Message):
     """The project estimates poses with KISS-ICP when its dataset has none (``app.jobs.poses``)."""
     poses_cache: Path | None = None
     """Where estimated poses are cached across runs (the server's cache folder)."""
+    ray_address: str | None = None
+    """The server's Ray cluster (its ``ray_address`` setting, ``Runtime.ray_address``); None = the
+    worker computes the run itself."""
 
 
 @dataclass(frozen=True)

@@ -229,7 +229,8 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
     config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
     # Deployment values come from the server's settings only (the spec), never from the project.
     runtime = Runtime(
-        models_dir=spec.models_dir, cache_dir=spec.cache_dir, allow_download=spec.allow_download
+        models_dir=spec.models_dir, cache_dir=spec.cache_dir, allow_download=spec.allow_download,
+        ray_address=spec.ray_address,
     )
     run_pipeline(
         spec.dataset,

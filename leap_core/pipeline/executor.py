@@ -1,7 +1,7 @@
 """Where a run's stages compute: in this process (the default) or as Ray tasks on a cluster.
 
-:func:`make_executor` picks the engine from :attr:`Runtime.ray_address <leap_core.runtime.Runtime.ray_address>`:
-None = :class:`LocalExecutor` (each stage's function in this process; ray is never imported), else
+:func:`make_executor` picks the engine from :attr:`leap_core.runtime.Runtime.ray_address`: None =
+:class:`LocalExecutor` (each stage's function in this process; ray is never imported), else
 :class:`RayExecutor`. The runner (:func:`leap_core.pipeline.runner.run_pipeline`) keeps everything else:
 fingerprints, ``stages.json``, clearing, resuming.
 
@@ -358,8 +358,10 @@ class RayExecutor:
         return record
 
     # ---------------------------------------------------------------------------- leap labels2d
-    def label_cache(self, dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
-                    frame_ids: Sequence[str], progress: Callable[[int], None] | None = None) -> tuple[int, int]:
+    def label_cache(
+        self, dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
+        frame_ids: Sequence[str], progress: Callable[[int], None] | None = None,
+    ) -> tuple[int, int]:
         """:func:`label_cache_task` over ``frame_ids`` cut into runs of whole batches, one GPU per task when
         the cluster has GPUs (and ``runtime.device`` is not ``cpu``); ``progress(frames)`` as each ends.
         Returns the (detector, SAM encoder) forward passes of all tasks."""
@@ -398,7 +400,8 @@ class RayExecutor:
         for chunk in chunks:
             # A chunk spans consecutive frames (the empty ones between its members add nothing).
             span = frames[chunk[0] : chunk[-1] + 1]
-            parts = [self._observe.remote(job, number_range(ctx, block)) for block in frame_blocks(span, size)]
+            blocks = frame_blocks(span, size)
+            parts = [self._observe.remote(job, number_range(ctx, block)) for block in blocks]
             partials.append((self._reduce.remote(c, *parts), chunk[-1] + 1))
             refs += [*parts, partials[-1][0]]
         ctx.tick("fuse", 0, total)
@@ -421,4 +424,5 @@ class RayExecutor:
 
 
 __all__ = ["TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RunJob", "connect", "frame_blocks",
-           "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count", "worker_context"]
+           "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count",
+           "worker_context"]

@@ -368,5 +368,5 @@ STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)
 """Stage names in execution order."""
 
 
-__all__ = ["STAGES", "STAGE_TABLE", "finish_fuse", "observed_keys", "stage_3dcn", "stage_export", "stage_fuse",
-           "stage_label_points", "stage_labels2d", "stage_project", "stage_smooth"]
+__all__ = ["STAGES", "STAGE_TABLE", "finish_fuse", "observed_keys", "stage_3dcn", "stage_export",
+           "stage_fuse", "stage_label_points", "stage_labels2d", "stage_project", "stage_smooth"]
