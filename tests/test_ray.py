@@ -253,3 +253,33 @@ def test_app_setting_sends_the_worker_run_to_ray(ray_instance, dataset: Path, pr
     assert outcome.status == "done", outcome
     assert stage_status(tmp_path / "run")["export"]["ray_tasks"] >= 2
     _same_outputs(tmp_path / "run", local_run)
+
+
+@pytest.mark.slow
+def test_labels2d_command_on_ray_fills_the_cache_as_locally(ray_instance, tmp_path: Path) -> None:
+    """``leap labels2d --ray auto`` (tiny random-weight models, CPU): the same cache files, byte for byte,
+    as without Ray; tasks hold whole batches, so the model sees the same batches."""
+    from conftest import build_tiny_sequence
+
+    from app.cli import cli
+    from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+    from leap_core.schema import ClassDef, Schema, save_schema
+
+    root = build_tiny_sequence(tmp_path, n_frames=4).root
+    models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=12)).models_dir
+    schema = Schema("small", (ClassDef("car", (255, 0, 0), ("car",), 10),
+                              ClassDef("road", (0, 0, 255), ("road", "street"), 40)))
+    project = tmp_path / "small.yaml"
+    save_schema(schema, project, pipeline={"grounded_sam": {"box_threshold": 0.05}})
+    runner = CliRunner()
+    caches = {}
+    for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
+        cache = tmp_path / f"cache-{name}"
+        res = runner.invoke(cli, ["labels2d", str(root), "--schema", str(project), "--models", str(models),
+                                  "--cache", str(cache), "--batch-size", "2", "--device", "cpu", *extra])
+        assert res.exit_code == 0, res.output
+        assert "done: 4 frames labeled" in res.output
+        caches[name] = {p.relative_to(cache).as_posix(): p.read_bytes() for p in sorted(cache.rglob("*.npz"))}
+    assert "(Ray tasks)" in res.output
+    assert len(caches["ray"]) == 4
+    assert caches["ray"] == caches["local"]
