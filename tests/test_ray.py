@@ -283,3 +283,21 @@ def test_labels2d_command_on_ray_fills_the_cache_as_locally(ray_instance, tmp_pa
     assert "(Ray tasks)" in res.output
     assert len(caches["ray"]) == 4
     assert caches["ray"] == caches["local"]
+
+
+@pytest.mark.slow
+def test_an_error_in_a_task_is_the_stage_error(ray_instance, dataset: Path, preset_config,
+                                               tmp_path: Path) -> None:
+    """A task's LeapError reaches the caller as itself (one line naming the file), not as Ray's wrapper."""
+    from leap_core.errors import DatasetError
+
+    schema, cfg = preset_config
+    copy = tmp_path / "seq"
+    copy.mkdir()
+    for name in ("velodyne", "image_2", "calib.txt", "poses.txt", "times.txt"):
+        (copy / name).symlink_to(dataset / name)
+    with pytest.raises(DatasetError) as err:
+        run_pipeline(copy, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY)
+    assert type(err.value) is DatasetError
+    assert "gt2d" in str(err.value) and "\n" not in str(err.value)
+    assert stage_status(tmp_path / "run")["labels2d"]["status"] == "failed"

@@ -31,9 +31,11 @@ logged again in the driver, so the CLI and the app's run log show them as for a 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import logging
 import math
 import os
+import traceback
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -51,6 +53,8 @@ from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from types import ModuleType
@@ -237,6 +241,46 @@ def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, r
     return labeler.detector_calls, labeler.segmenter_calls
 
 
+@dataclass(frozen=True)
+class TaskError:
+    """A :class:`LeapError` raised in a task, carried back as data. Ray would pickle the exception, and
+    unpickling calls its class with its ``args``: that fails for the subclasses whose constructors take
+    other arguments (``DatasetError(path, problem)``), and the driver would get Ray's wrapper instead of
+    the one-line error naming the file (and the app could not tell a :class:`ModelLoadError`)."""
+
+    module: str
+    qualname: str
+    args: tuple[Any, ...]
+    state: dict[str, Any]
+    traceback: str
+
+    @classmethod
+    def of(cls, exc: BaseException) -> TaskError:
+        kind = type(exc)
+        return cls(kind.__module__, kind.__qualname__, exc.args, dict(vars(exc)),
+                   "".join(traceback.format_exception(exc)))
+
+    def rebuild(self) -> BaseException:
+        """The same exception: same class, ``args`` (its message) and attributes (``path``, ``field``)."""
+        kind = getattr(importlib.import_module(self.module), self.qualname)
+        exc: BaseException = kind.__new__(kind)
+        exc.args = self.args
+        vars(exc).update(self.state)
+        return exc
+
+
+def run_task(fn: Callable[..., Any], *args: Any) -> Any:
+    """What every Ray task runs: ``fn(*args)``, a :class:`LeapError` returned as a :class:`TaskError`
+    (and a :class:`TaskError` among the arguments, an upstream task's, passed on instead of calling)."""
+    for arg in args:
+        if isinstance(arg, TaskError):
+            return arg
+    try:
+        return fn(*args)
+    except LeapError as exc:
+        return TaskError.of(exc)
+
+
 # --------------------------------------------------------------------------------------- the driver
 def connect(address: str, cpus: int | None) -> ModuleType:
     """Import ray and join the cluster at ``address`` (``"auto"``: the one this machine belongs to, else a
@@ -269,9 +313,7 @@ class RayExecutor:
 
     def __init__(self, address: str, cpus: int | None = None) -> None:
         self.ray = connect(address, cpus)
-        self._stage = self.ray.remote(stage_task)
-        self._observe = self.ray.remote(observations_task)
-        self._reduce = self.ray.remote(reduce_task)
+        self._task = self.ray.remote(run_task)
 
     # ----------------------------------------------------------------------------------- dispatch
     def run_stage(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
@@ -300,12 +342,16 @@ class RayExecutor:
     def _get(self, ref: Any) -> Any:
         """``ray.get`` that raises a task's own error (a :class:`LeapError` names its file in one line)."""
         try:
-            return self.ray.get(ref)
+            result = self.ray.get(ref)
         except self.ray.exceptions.RayTaskError as exc:
             cause = exc.cause
             if isinstance(cause, BaseException):
                 raise cause from None
             raise
+        if isinstance(result, TaskError):
+            log.debug("task failed:\n%s", result.traceback)
+            raise result.rebuild() from None
+        return result
 
     def _stop(self, refs: Sequence[Any]) -> None:
         """Cancel unfinished tasks and wait (bounded) for the running ones to stop, so none still writes
@@ -336,8 +382,8 @@ class RayExecutor:
         total = len(ctx.frames)
         size = math.ceil(len(todo) / (TASKS_PER_CPU * self._cpus()))
         job = self._job(ctx)
-        task = self._stage.options(**self._gpu_options(ctx, stage))
-        pending = {task.remote(job, stage.name, number_range(ctx, block)): len(block)
+        task = self._task.options(**self._gpu_options(ctx, stage))
+        pending = {task.remote(stage_task, job, stage.name, number_range(ctx, block)): len(block)
                    for block in frame_blocks(todo, size)}
         done = total - len(todo)
         parts: list[dict[str, Any]] = []
@@ -368,10 +414,11 @@ class RayExecutor:
         gpus = self.ray.cluster_resources().get("GPU", 0) >= 1 and runtime.device != "cpu"
         slots = int(self.ray.cluster_resources().get("GPU", 1)) if gpus else self._cpus()
         per_task = math.ceil(len(frame_ids) / (TASKS_PER_CPU * slots) / config.batch_size) * config.batch_size
-        task = self.ray.remote(label_cache_task).options(num_gpus=1 if gpus else 0)
+        task = self._task.options(num_gpus=1 if gpus else 0)
         worker_runtime = dataclasses.replace(runtime, ray_address=None)
         pending = {
-            task.remote(dataset, schema, config, worker_runtime, list(frame_ids[s : s + per_task])):
+            task.remote(label_cache_task, dataset, schema, config, worker_runtime,
+                        list(frame_ids[s : s + per_task])):
                 len(frame_ids[s : s + per_task])
             for s in range(0, len(frame_ids), max(per_task, 1))
         }
@@ -401,8 +448,8 @@ class RayExecutor:
             # A chunk spans consecutive frames (the empty ones between its members add nothing).
             span = frames[chunk[0] : chunk[-1] + 1]
             blocks = frame_blocks(span, size)
-            parts = [self._observe.remote(job, number_range(ctx, block)) for block in blocks]
-            partials.append((self._reduce.remote(c, *parts), chunk[-1] + 1))
+            parts = [self._task.remote(observations_task, job, number_range(ctx, block)) for block in blocks]
+            partials.append((self._task.remote(reduce_task, c, *parts), chunk[-1] + 1))
             refs += [*parts, partials[-1][0]]
         ctx.tick("fuse", 0, total)
 
@@ -423,6 +470,7 @@ class RayExecutor:
         return record
 
 
-__all__ = ["TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RunJob", "connect", "frame_blocks",
+__all__ = ["TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RunJob", "TaskError", "connect",
+           "frame_blocks",
            "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count",
-           "worker_context"]
+           "run_task", "worker_context"]
