@@ -51,7 +51,8 @@ def main() -> None:
     import ray
 
     t0 = time.perf_counter()
-    ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
+    # address="local": a new instance of --cpus CPUs even where a cluster runs (ray.init would join it).
+    ray.init(address="local", num_cpus=args.cpus, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
              object_store_memory=512 * 1024 * 1024)
     ray_start = time.perf_counter() - t0
 

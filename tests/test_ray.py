@@ -121,7 +121,8 @@ def test_a_local_run_never_imports_ray(tmp_path: Path) -> None:
 def ray_instance():
     import ray  # only these tests start Ray
 
-    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=256 * 1024 * 1024,
+    # address="local": a new instance of 2 CPUs even where a cluster runs (ray.init would join it).
+    ray.init(address="local", num_cpus=2, include_dashboard=False, object_store_memory=256 * 1024 * 1024,
              logging_level="ERROR", log_to_driver=False)
     yield ray
     ray.shutdown()

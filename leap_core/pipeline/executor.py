@@ -302,7 +302,7 @@ def connect(address: str, cpus: int | None) -> ModuleType:
         if address != "auto":
             raise LeapError(f"ray_address {address!r}: cannot reach the Ray cluster ({exc})") from None
         n = cpus if cpus is not None else len(os.sched_getaffinity(0))
-        ray.init(num_cpus=n, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+        ray.init(address="local", num_cpus=n, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
     return ray
 
 
