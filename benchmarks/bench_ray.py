@@ -52,8 +52,8 @@ def main() -> None:
 
     t0 = time.perf_counter()
     # address="local": a new instance of --cpus CPUs even where a cluster runs (ray.init would join it).
-    ray.init(address="local", num_cpus=args.cpus, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
-             object_store_memory=512 * 1024 * 1024)
+    ray.init(address="local", num_cpus=args.cpus, include_dashboard=False, logging_level="ERROR",
+             log_to_driver=False, object_store_memory=512 * 1024 * 1024)
     ray_start = time.perf_counter() - t0
 
     engines = {"local": Runtime(), "ray": Runtime(ray_address="auto")}
