@@ -122,8 +122,9 @@ def ray_instance():
     import ray  # only these tests start Ray
 
     # address="local": a new instance of 2 CPUs even where a cluster runs (ray.init would join it).
-    ray.init(address="local", num_cpus=2, include_dashboard=False, object_store_memory=256 * 1024 * 1024,
-             logging_level="ERROR", log_to_driver=False)
+    # One logical GPU (this machine has none): tasks that ask for a GPU can be scheduled, and run on the CPU.
+    ray.init(address="local", num_cpus=2, num_gpus=1, include_dashboard=False,
+             object_store_memory=256 * 1024 * 1024, logging_level="ERROR", log_to_driver=False)
     yield ray
     ray.shutdown()
 
@@ -302,3 +303,30 @@ def test_an_error_in_a_task_is_the_stage_error(ray_instance, dataset: Path, pres
     assert type(err.value) is DatasetError
     assert "gt2d" in str(err.value) and "\n" not in str(err.value)
     assert stage_status(tmp_path / "run")["labels2d"]["status"] == "failed"
+
+
+@pytest.mark.slow
+def test_model_2d_labels_ask_for_a_gpu_per_task(ray_instance, tmp_path: Path) -> None:
+    """grounded-sam's labels2d stage on a cluster with a (logical) GPU: each task asks for one, unless the
+    runtime's device is the CPU; the soft masks are the local run's."""
+    from conftest import build_tiny_sequence
+
+    from leap_core.config import config_from_dict
+    from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+    from leap_core.schema import ClassDef, Schema
+
+    root = build_tiny_sequence(tmp_path, n_frames=3).root
+    models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=12)).models_dir
+    schema = Schema("small", (ClassDef("car", (255, 0, 0), ("car",), 10),
+                              ClassDef("road", (0, 0, 255), ("road", "street"), 40)))
+    cfg = config_from_dict({"labeler": "grounded-sam", "grounded_sam": {"box_threshold": 0.05}})
+    runs = {}
+    for name, runtime in (("local", Runtime(models_dir=models, device="cpu")),
+                          ("gpu", Runtime(models_dir=models, ray_address="auto")),
+                          ("cpu", Runtime(models_dir=models, device="cpu", ray_address="auto"))):
+        run_pipeline(root, schema, cfg, tmp_path / name, runtime=runtime, until="labels2d")
+        runs[name] = {p.name: p.read_bytes() for p in sorted((tmp_path / name / "labels2d").iterdir())}
+    assert stage_status(tmp_path / "gpu")["labels2d"]["ray_gpus_per_task"] == 1
+    assert "ray_gpus_per_task" not in stage_status(tmp_path / "cpu")["labels2d"]
+    assert len(runs["gpu"]) == 3
+    assert runs["gpu"] == runs["local"] == runs["cpu"]

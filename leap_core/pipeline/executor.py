@@ -380,9 +380,13 @@ class RayExecutor:
         if not todo:
             return stage.run(ctx)  # nothing to compute: the stage's own (cheap) record
         total = len(ctx.frames)
-        size = math.ceil(len(todo) / (TASKS_PER_CPU * self._cpus()))
+        options = self._gpu_options(ctx, stage)
+        # Tasks that each take a GPU run one per GPU: as many sub-ranges as for the CPUs would only load
+        # the models more often.
+        slots = int(self.ray.cluster_resources().get("GPU", 1)) if options else self._cpus()
+        size = math.ceil(len(todo) / (TASKS_PER_CPU * slots))
         job = self._job(ctx)
-        task = self._task.options(**self._gpu_options(ctx, stage))
+        task = self._task.options(**options)
         pending = {task.remote(stage_task, job, stage.name, number_range(ctx, block)): len(block)
                    for block in frame_blocks(todo, size)}
         done = total - len(todo)
@@ -401,6 +405,8 @@ class RayExecutor:
         self._drain(pending, finished)
         record = merge_records(parts, total, len(todo))
         record["ray_tasks"] = len(parts)
+        if options:
+            record["ray_gpus_per_task"] = options["num_gpus"]
         return record
 
     # ---------------------------------------------------------------------------- leap labels2d
