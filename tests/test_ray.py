@@ -116,6 +116,22 @@ def test_a_local_run_never_imports_ray(tmp_path: Path) -> None:
     assert out.stdout.strip().splitlines()[-1] == "False"
 
 
+def test_an_address_nobody_answers_at_is_a_one_line_error_at_once() -> None:
+    """ray.init would retry such an address for minutes (the subprocess's timeout fails the test then);
+    the engine tries it first. A fresh process: no Ray instance is running there."""
+    code = (
+        "from leap_core.errors import LeapError\n"
+        "from leap_core.pipeline.executor import connect\n"
+        "try:\n"
+        "    connect('127.0.0.1:1', None)\n"
+        "except LeapError as exc:\n"
+        "    print(exc)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True,
+                         timeout=120)
+    assert out.stdout.splitlines() == ["ray_address '127.0.0.1:1': no Ray cluster answers at 127.0.0.1:1"]
+
+
 # ------------------------------------------------------------------------------------------ Ray runs
 @pytest.fixture(scope="module")
 def ray_instance():

@@ -35,6 +35,7 @@ import importlib
 import logging
 import math
 import os
+import socket
 import traceback
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
@@ -296,14 +297,51 @@ def connect(address: str, cpus: int | None) -> ModuleType:
         return ray
     common: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR,
                               "log_to_driver": False, "configure_logging": True}
-    try:
-        ray.init(address=address, **common)
-    except ConnectionError as exc:
-        if address != "auto":
-            raise LeapError(f"ray_address {address!r}: cannot reach the Ray cluster ({exc})") from None
-        n = cpus if cpus is not None else len(os.sched_getaffinity(0))
-        ray.init(address="local", num_cpus=n, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+    target = _cluster_address(address)
+    # ray.init retries an address nobody answers at for minutes (a cluster stopped without `ray stop`
+    # leaves its address behind for "auto"), so the address is first tried with a short connect.
+    if target is not None and _answers(target):
+        try:
+            ray.init(address=target, **common)
+            return ray
+        except ConnectionError as exc:
+            if address != "auto":
+                raise LeapError(f"ray_address {address!r}: cannot join the Ray cluster ({exc})") from None
+    elif address != "auto":
+        raise LeapError(f"ray_address {address!r}: no Ray cluster answers at {target or address}")
+    n = cpus if cpus is not None else len(os.sched_getaffinity(0))
+    log.info("no running Ray cluster found; starting a local Ray instance of %d CPUs", n)
+    ray.init(address="local", num_cpus=n, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
     return ray
+
+
+def _cluster_address(address: str) -> str | None:
+    """The ``host:port`` (or ``ray://host:port``) that ``address`` names; for ``"auto"`` the cluster Ray
+    finds for this machine (``ray start``'s address file, a running GCS), None when there is none."""
+    if address != "auto":
+        return address
+    try:
+        from ray._private.services import canonicalize_bootstrap_address  # noqa: PLC0415  (see below)
+    except ImportError:  # a Ray without this helper: let ray.init resolve "auto" itself
+        return address
+    # Ray's own resolution of "auto" (private: there is no public way to ask without connecting).
+    try:
+        return canonicalize_bootstrap_address("auto")
+    except (ConnectionError, ValueError):
+        return None
+
+
+def _answers(address: str, timeout_s: float = 3.0) -> bool:
+    """Whether something accepts a TCP connection at ``address`` (``[ray://]host:port``); True for an
+    address that is not of that form (ray.init then judges it)."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        return True
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
 
 
 class RayExecutor:
