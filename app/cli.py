@@ -26,6 +26,8 @@ from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from pydantic import SecretStr
     from tqdm import tqdm
 
@@ -33,6 +35,7 @@ if TYPE_CHECKING:
     from app.core.instance import WorkDirLock
     from leap_core.datasets.check import Verdict
     from leap_core.pipeline.multi import MultiRunResult, SequenceSpec
+    from leap_core.labelers.grounded_sam import GroundedSamConfig
 
 cli = typer.Typer(
     name="leap",
@@ -131,7 +134,8 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool) -> Runtime:
+def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool,
+             ray: str | None = None, ray_cpus: int | None = None) -> Runtime:
     """The run's deployment values from the command-line flags (one-line error for a bad ``--device``)."""
     try:
         return Runtime(
@@ -139,6 +143,8 @@ def _runtime(models: str | None, cache: str | Path | None, device: str, allow_do
             cache_dir=None if cache is None else Path(cache),
             device=device,  # type: ignore[arg-type]  # any string: Runtime rejects a bad one (error below)
             allow_download=allow_download,
+            ray_address=ray,
+            ray_cpus=ray_cpus,
         )
     except ConfigError as exc:
         raise LeapError(f"--{exc.field[-1].replace('_', '-')} {exc.problem}") from None
@@ -156,6 +162,12 @@ def _preset(option: str, name_or_path: str, base: PipelineConfig | None = None) 
 _MODELS_HELP = "Folder with one subfolder per model (grounding-dino-tiny/, sam-vit-base/)."
 _DEVICE_HELP = "Where the 2D labeler's models run: auto (CUDA when available), cpu or cuda."
 _DOWNLOAD_HELP = "Without --models: download a model missing from the Hugging Face cache."
+_RAY_HELP = (
+    "Run the per-frame work as Ray tasks: 'auto' joins this machine's Ray cluster (`ray start --head`) or "
+    "starts a local one; or a cluster address (host:6379). The run folder and dataset must be on storage "
+    "every node sees at the same path. Same output bytes as without it."
+)
+_RAY_CPUS_HELP = "CPUs of the local Ray instance --ray auto starts when no cluster runs (default: all cores)."
 
 
 @cli.command("labels2d")
@@ -174,6 +186,8 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
     threshold: float | None = typer.Option(None, "--threshold", help="Box threshold (default: project's)."),
     device: str = typer.Option("auto", "--device", help=_DEVICE_HELP),
     allow_download: bool = typer.Option(False, "--allow-download", help=_DOWNLOAD_HELP),
+    ray: str | None = typer.Option(None, "--ray", metavar="auto|ADDRESS", help=_RAY_HELP),
+    ray_cpus: int | None = typer.Option(None, "--ray-cpus", min=1, help=_RAY_CPUS_HELP),
 ) -> None:
     """Precompute Grounding DINO + SAM 2D labels of every frame into the 2D cache (resumable: frames
     already in the cache are skipped, so an interrupted run continues where it stopped).
@@ -190,7 +204,8 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
         cfg = config_from_dict(
             {"grounded_sam": {k: v for k, v in flags.items() if v is not None}}, preset.pipeline
         ).grounded_sam
-        runtime = _runtime(models, cache if cache else default_cache_dir(seq.root), device, allow_download)
+        runtime = _runtime(models, cache if cache else default_cache_dir(seq.root), device, allow_download,
+                           ray, ray_cpus)
         labeler = GroundedSamLabeler(cfg, runtime)
         store = labeler.cache
         assert store is not None  # runtime.cache_dir is set
@@ -208,6 +223,13 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
             f"{len(frames) - len(todo)} cached, {len(todo)} to label; "
             f"{len(plans)} detector pass(es) per image, cache {store.root}"
         )
+        if runtime.ray_address is not None:
+            with tqdm(total=len(todo), desc="labels2d (ray)", unit="frame") as bar:
+                calls = _labels2d_on_ray(Path(dataset), sch, cfg, runtime, [f.frame_id for f in todo],
+                                         bar.update)
+            typer.echo(f"done: {len(todo)} frames labeled, {calls[0]} detector and {calls[1]} SAM encoder "
+                       "forward passes (Ray tasks)")
+            return
         with tqdm(total=len(todo), desc="labels2d", unit="frame") as bar:
             for start in range(0, len(todo), cfg.batch_size):
                 chunk = todo[start : start + cfg.batch_size]
@@ -221,6 +243,16 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
         f"done: {len(todo)} frames labeled, {labeler.detector_calls} detector and "
         f"{labeler.segmenter_calls} SAM encoder forward passes"
     )
+
+
+def _labels2d_on_ray(dataset: Path, sch: Schema, cfg: GroundedSamConfig, runtime: Runtime,
+                     frame_ids: list[str], update: Callable[[int], Any]) -> tuple[int, int]:
+    """``leap labels2d --ray``: the frames to label as Ray tasks (a GPU each when the cluster has GPUs)."""
+    from leap_core.pipeline.executor import RayExecutor  # the pipeline (and ray) only when asked for
+
+    assert runtime.ray_address is not None
+    return RayExecutor(runtime.ray_address, runtime.ray_cpus).label_cache(
+        dataset, sch, cfg, runtime, frame_ids, update)
 
 
 @cli.command("make-tiny-models")
@@ -360,6 +392,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         help="When the sequence has no poses.txt, estimate poses with KISS-ICP first, into OUT/poses/ "
         "(the dataset is not written; reused by later runs in OUT while the scans are unchanged).",
     ),
+    ray: str | None = typer.Option(None, "--ray", metavar="auto|ADDRESS", help=_RAY_HELP),
+    ray_cpus: int | None = typer.Option(None, "--ray-cpus", min=1, help=_RAY_CPUS_HELP),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files.
@@ -374,7 +408,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         _run_multi(datasets, Path(out), schema=schema, project_file=project_file, labeler=labeler,
                    consistency=consistency, cn_iterations=cn_iterations, frames=frames, cache=cache,
                    models=models, device=device, allow_download=allow_download, export_to=export_to,
-                   zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses)
+                   zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses,
+                   ray=ray, ray_cpus=ray_cpus)
         return
     dataset = datasets[0]
     progress = StageBars(Path(out))
@@ -384,7 +419,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
             raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
                             "folder, or name all its sequences")
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
-        runtime = _runtime(models, cache, device, allow_download)
+        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus)
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
@@ -499,9 +534,10 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     datasets: list[str], out: Path, *, schema: str | None, project_file: str | None, labeler: str | None,
     consistency: bool | None, cn_iterations: int | None, frames: str | None, cache: str | None,
     models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
-    with_conf: bool, overwrite: bool, estimate_poses: bool,
+    with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None, ray_cpus: int | None = None,
 ) -> None:
-    """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi)."""
+    """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
+    sequence's stages run on that Ray cluster (one connection for the whole run)."""
     from leap_core.pipeline import multi_result_tables
     from leap_core.pipeline.multi import check_export_target, run_sequences
     from leap_core.run_layout import MultiRunLayout
@@ -510,7 +546,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     try:
         specs = _multi_specs(datasets, frames)
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
-        runtime = _runtime(models, cache, device, allow_download)
+        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus)
         names = [s.name for s in specs]
         # Refuse a target before a long run, not after it.
         if export_to is not None:

@@ -688,21 +688,113 @@ def apply_overrides(
     return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
 
+# ------------------------------------------------------------------------- fusion in blocks (distributed)
+def fusion_blocks(point_counts: Iterable[int], chunk_points: int) -> list[list[int]]:
+    """The chunks :func:`fuse` reduces, for batches of these point counts, in its order.
+
+    Args:
+        point_counts: (B,) points per batch (``len(Observations.keys)``), in fusion order.
+        chunk_points: :attr:`FusionConfig.chunk_points`.
+
+    Returns:
+        Lists of batch positions: a chunk closes as soon as its points reach ``chunk_points``; empty
+        batches belong to none. Example: counts [5, 0, 4, 3], chunk_points 8 → [[0, 2], [3]].
+
+    With :func:`reduce_block` per chunk (anywhere, in any order) and :func:`fold_blocks` of the partials
+    in this order, the grid is :func:`fuse`'s, byte for byte: the same float32 additions in the same order.
+    """
+    blocks: list[list[int]] = []
+    pending: list[int] = []
+    n_pending = 0
+    for b, n in enumerate(point_counts):
+        if n == 0:
+            continue
+        pending.append(b)
+        n_pending += int(n)
+        if n_pending >= chunk_points:
+            blocks.append(pending)
+            pending, n_pending = [], 0
+    if pending:
+        blocks.append(pending)
+    return blocks
+
+
+Partial = tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]
+"""A block's partial sum: sorted unique voxel keys (V,) and ``weight · Σ log-likelihoods`` (V, C) float32."""
+
+
+def reduce_block(
+    batches: Iterable[Observations],
+    num_classes: int,
+    weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
+) -> Partial:
+    """The partial sum of one :func:`fusion_blocks` chunk: the batches of its positions, in order (empty
+    ones may be included; they add nothing). Checks each batch as :func:`fuse` does."""
+    obs: list[Observations] = []
+    for i, batch in enumerate(batches):
+        o = Observations(
+            np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]), np.asarray(batch[2], dtype=np.float32)
+        )
+        _check_obs(o, num_classes, i)
+        if len(o.keys):
+            obs.append(o)
+    if not obs:
+        return np.zeros(0, np.int64), np.zeros((0, num_classes), np.float32)
+    return _reduce_chunk(obs, weight, paths or FusionPaths())
+
+
+def fold_blocks(
+    partials: Iterable[Partial],
+    num_classes: int,
+    cfg: FusionConfig | None = None,
+    grid: VoxelGrid | None = None,
+    weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
+) -> VoxelGrid:
+    """``grid`` plus the :func:`reduce_block` partials, added in the order given, stored as :func:`fuse`
+    stores (row max 0, clip, float16). float32 sums are not associative: fold in :func:`fusion_blocks`
+    order to get :func:`fuse`'s bytes. Partials may be read-only (a Ray object store's zero-copy arrays):
+    they are copied before being added to."""
+    cfg = cfg or FusionConfig()
+    acc_keys, acc = _start(grid, num_classes, cfg, weight)
+    for keys, sums in partials:
+        k = np.asarray(keys, dtype=np.int64)
+        s = np.asarray(sums, dtype=np.float32)
+        if k.ndim != 1 or s.shape != (k.shape[0], num_classes):
+            raise ValueError(
+                f"partial keys (V,) and sums (V, {num_classes}) expected, got {k.shape} and {s.shape}"
+            )
+        if len(k) == 0:
+            continue
+        if len(acc_keys) == 0:
+            # _merge hands the first partial back as the accumulator, which later merges write into.
+            k, s = k.copy(), s.copy()
+        acc_keys, acc = _merge(acc_keys, acc, k, s)
+    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+
+
 __all__ = [
     "AXIS_BITS",
     "AXIS_OFFSET",
     "FusionConfig",
     "FusionPaths",
     "Observations",
+    "Partial",
     "VoxelGrid",
     "VoxelLabels",
     "apply_overrides",
+    "fold_blocks",
     "fuse",
     "fuse_dense",
+    "fusion_blocks",
     "key_centres",
     "key_coords",
     "last_per_key",
     "log_table",
+    "reduce_block",
     "rows_in_sorted",
     "voxel_keys",
     "world_points",

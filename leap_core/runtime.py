@@ -31,9 +31,24 @@ class Runtime:
     allow_download: bool = False
     """Without ``models_dir``: may a model missing from the Hugging Face cache be downloaded?"""
 
+    # --- the distributed engine (leap_core.pipeline.executor)
+    ray_address: str | None = None
+    """Run per-frame stages and fusion as Ray tasks: ``"auto"`` joins the Ray cluster this machine belongs
+    to (``ray start --head`` / ``--address``) or, when there is none, starts a private local instance of
+    :attr:`ray_cpus` CPUs; any other value is a cluster address (``"10.0.0.5:6379"``,
+    ``"ray://host:10001"``). None = the local single-process engine, which never imports ray. The run
+    folder (and dataset) must lie on storage every node sees at the same path."""
+    ray_cpus: int | None = None
+    """CPUs of the local Ray instance that ``"auto"`` starts when no cluster runs; None = the cores this
+    process may use. Ignored when joining a cluster (its nodes declare their own)."""
+
     def __post_init__(self) -> None:
         if self.device not in get_args(Device):
             raise ConfigError(f"must be 'auto', 'cpu' or 'cuda', got {self.device!r}", field=("device",))
+        if self.ray_address is not None and not self.ray_address.strip():
+            raise ConfigError("must be 'auto' or a Ray cluster address, got ''", field=("ray_address",))
+        if self.ray_cpus is not None and self.ray_cpus < 1:
+            raise ConfigError(f"must be >= 1, got {self.ray_cpus}", field=("ray_cpus",))
 
 
 __all__ = ["Device", "Runtime"]

@@ -91,6 +91,10 @@ class Settings(BaseSettings):
     allow_download: bool = False
     """Without ``models_dir``: may a run download a model missing from the Hugging Face cache? Off by
     default, and only the server's settings can turn it on (a project cannot)."""
+    ray_address: str | None = None
+    """Ray cluster the run workers send per-frame work and fusion to (``LEAP_RAY_ADDRESS``): ``auto`` (the
+    cluster this machine belongs to, else a local instance) or ``host:6379``; the work folder and the data
+    roots must be on storage every node sees at the same path. None = each worker computes its run itself."""
     max_parallel_runs: int = Field(default=1, ge=1, le=8)
     """Runs executed at the same time across all projects; further runs wait in a FIFO queue."""
     prewarm_workers: bool = True

@@ -759,6 +759,7 @@ class JobManager:
             estimate_poses=bool(params.get("estimate_poses")),
             poses_cache=self.settings.cache_dir,
             sequences=None if (listed := run_sequences_of(params)) is None else dict(listed),
+            ray_address=self.settings.ray_address,
         )
 
     def _on_progress(self, run_id: int, live: _Live, message: StageProgress, last_persist: float) -> float:

@@ -94,6 +94,9 @@ class RunSpec(Message):
     """A project of several sequences: name → sequence folder, in run order (``dataset`` is the first);
     the run is :func:`leap_core.pipeline.multi.run_sequences` into ``run_dir`` (:mod:`app.jobs.multi`).
     None for a project of one sequence."""
+    ray_address: str | None = None
+    """The server's Ray cluster (its ``ray_address`` setting, ``Runtime.ray_address``); None = the
+    worker computes the run itself."""
 
 
 @dataclass(frozen=True)

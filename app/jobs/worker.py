@@ -229,13 +229,15 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
     # with the server (child_main), and the server imports this module for execute() and LOG_NAME.
     from leap_core.pipeline import run_pipeline  # noqa: PLC0415  # loaded by a run only, see above
 
+    # Deployment values come from the server's settings only (the spec), never from the project.
+    runtime = Runtime(
+        models_dir=spec.models_dir, cache_dir=spec.cache_dir, allow_download=spec.allow_download,
+        ray_address=spec.ray_address,
+    )
     if spec.sequences:
-        # Deployment values come from the server's settings only (the spec), never from the project.
         reporter.multi = True
         execute_sequences(
-            spec.run_dir, spec.sequences, spec.schema, spec.pipeline, reporter,
-            runtime=Runtime(models_dir=spec.models_dir, cache_dir=spec.cache_dir,
-                            allow_download=spec.allow_download),
+            spec.run_dir, spec.sequences, spec.schema, spec.pipeline, reporter, runtime=runtime,
             estimate_poses=spec.estimate_poses, poses_cache=spec.poses_cache,
         )
         return
@@ -247,10 +249,6 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
     )
     schema = Schema.from_dict(spec.schema, source="project schema")
     config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
-    # Deployment values come from the server's settings only (the spec), never from the project.
-    runtime = Runtime(
-        models_dir=spec.models_dir, cache_dir=spec.cache_dir, allow_download=spec.allow_download
-    )
     run_pipeline(
         spec.dataset,
         schema,

@@ -17,6 +17,7 @@ from leap_core.errors import Cancelled, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_json, read_state
 from leap_core.pipeline.evaluation import read_metrics_json
+from leap_core.pipeline.executor import Executor, LocalExecutor, make_executor
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
@@ -145,7 +146,7 @@ def _clear(ctx: Ctx, stage: StageInfo) -> None:
         path.unlink(missing_ok=True)
 
 
-def _run_stage(ctx: Ctx, stage: StageInfo) -> StageReport:
+def _run_stage(ctx: Ctx, stage: StageInfo, executor: Executor | None = None) -> StageReport:
     name = stage.name
     if _is_current(ctx, stage):
         n = len(ctx.frames)
@@ -162,8 +163,9 @@ def _run_stage(ctx: Ctx, stage: StageInfo) -> StageReport:
     ctx.save_state()
     t0 = time.perf_counter()
     try:
-        extra = stage.run(ctx) if stage.is_enabled(ctx.cfg) else {"status": "skipped",
-                                                                   "note": f"{stage.label} disabled"}
+        engine = executor or LocalExecutor()
+        extra = engine.run_stage(ctx, stage) if stage.is_enabled(ctx.cfg) else {
+            "status": "skipped", "note": f"{stage.label} disabled"}
     except (Cancelled, KeyboardInterrupt):
         ctx.state[name].update(status="cancelled", seconds=time.perf_counter() - t0)
         ctx.save_state()
@@ -292,7 +294,9 @@ def run_pipeline(
         frames: the frame numbers to process (``range(10, 20)`` = scans 000010..000019, gaps allowed;
             default: all), see :meth:`~leap_core.datasets.kitti.KittiSequence.select`.
         runtime: where the run executes: models folder, shared 2D cache folder (``cache_dir``, reused
-            across runs of a project), device. None = defaults, no shared cache.
+            across runs of a project), device, and the engine (``ray_address``: per-frame stages and
+            fusion as Ray tasks, same bytes; :mod:`leap_core.pipeline.executor`). None = defaults, no
+            shared cache, this process only.
         until: stop after this stage (e.g. "smooth" to only build the grid).
 
     Returns:
@@ -312,9 +316,10 @@ def run_pipeline(
         until=STAGES[last],
     )
     warn_missing_images(ctx.seq, ctx.frames, config.labeler)
+    executor = make_executor(runtime)
     reports: dict[str, StageReport] = {}
     for stage in STAGE_TABLE[: last + 1]:
-        reports[stage.name] = _run_stage(ctx, stage)
+        reports[stage.name] = _run_stage(ctx, stage, executor)
     metrics = None
     if "evaluate" in reports and reports["evaluate"].status == "done":
         metrics = read_metrics_json(ctx.layout.run_dir)

@@ -165,7 +165,15 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
             ctx.tick("fuse", k, total)
             yield Observations(keys, painted.rows, log_table(painted.table, fcfg.prob_floor))
 
-    grid = fuse(batches(), c, fcfg)
+    return finish_fuse(ctx, fuse(batches(), c, fcfg))
+
+
+def finish_fuse(ctx: Ctx, grid: VoxelGrid) -> dict[str, Any]:
+    """The end of :func:`stage_fuse` (also that of the distributed engine's fusion): the manual
+    corrections into the fused ``grid``, then ``grid.npz``."""
+    fcfg = ctx.cfg.fusion
+    c = ctx.schema.num_classes
+    total = len(ctx.frames)
     n_corr = 0
     if ctx.layout.corrections.is_file():
         # Deduplicated first so an erase (-1) cancels an earlier class on its voxel; erased voxels get no
@@ -449,5 +457,6 @@ STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)
 """Stage names in execution order."""
 
 
-__all__ = ["STAGES", "STAGE_TABLE", "CnMember", "cn_rounds", "stage_3dcn", "stage_export", "stage_fuse",
-           "stage_label_points", "stage_labels2d", "stage_project", "stage_smooth"]
+__all__ = ["STAGES", "STAGE_TABLE", "CnMember", "cn_rounds", "finish_fuse", "observed_keys", "stage_3dcn",
+           "stage_export", "stage_fuse", "stage_label_points", "stage_labels2d", "stage_project",
+           "stage_smooth"]

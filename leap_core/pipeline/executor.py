@@ -1,0 +1,520 @@
+"""Where a run's stages compute: in this process (the default) or as Ray tasks on a cluster.
+
+:func:`make_executor` picks the engine from :attr:`leap_core.runtime.Runtime.ray_address`: None =
+:class:`LocalExecutor` (each stage's function in this process; ray is never imported), else
+:class:`RayExecutor`. The runner (:func:`leap_core.pipeline.runner.run_pipeline`) keeps everything else:
+fingerprints, ``stages.json``, clearing, resuming.
+
+The Ray engine changes where work runs, never what it computes, so a run's files are the same bytes as a
+local run's (``tests/test_ray.py``):
+
+* **Per-frame stages** (labels2d, project, label_points, export): the frames that still lack their files
+  are cut into contiguous sub-ranges; each Ray task rebuilds the run context in its worker for its
+  sub-range (:func:`worker_context`: the run folder and the dataset must be on storage every node sees at
+  the same path) and calls the stage's own function, which computes and atomically writes exactly those
+  frames, as it does locally. The driver reports progress as tasks finish; a ``Cancelled`` from the
+  progress callback cancels the tasks not yet finished (finished frames are kept: a rerun resumes).
+  2D labeling by a labeler that runs models (it reads camera images) asks for one GPU per task when
+  the cluster has GPUs and the runtime's device is not ``cpu``.
+* **Fusion**: float32 sums are not associative, so partial grids may not be added in any order. The
+  frames are cut into the very chunks :func:`leap_core.fusion.fuse` reduces one after the other
+  (:func:`~leap_core.fusion.fusion_blocks`, ``fusion.chunk_points``); tasks prepare each frame's
+  observations and reduce each chunk (:func:`~leap_core.fusion.reduce_block`) in parallel, and the driver
+  adds the partials in chunk order (:func:`~leap_core.fusion.fold_blocks`): the same additions in the
+  same order as the local fusion, whose code and bytes are unchanged.
+* Everything else (smoothing, 3D-CN, evaluation) runs in the driver, as locally.
+
+Warnings the stage code logs in a worker (``leap_core`` loggers) are sent back with the task's result and
+logged again in the driver, so the CLI and the app's run log show them as for a local run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+import math
+import os
+import socket
+import traceback
+import zipfile
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from leap_core.config import PipelineConfig
+from leap_core.errors import DatasetError, LeapError
+from leap_core.fusion import Observations, Partial, fold_blocks, fusion_blocks, log_table, reduce_block
+from leap_core.labelers import LABELERS
+from leap_core.pipeline.context import Ctx, StageInfo
+from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys
+from leap_core.run_layout import RunLayout
+from leap_core.runtime import Runtime
+from leap_core.schema import Schema
+
+log = logging.getLogger(__name__)
+
+if TYPE_CHECKING:
+    from types import ModuleType
+
+    from leap_core.labelers.grounded_sam import GroundedSamConfig
+
+TASKS_PER_CPU = 2
+"""Per-frame stages are cut into about this many sub-ranges per cluster CPU: enough for progress and for
+balancing uneven frames, few enough that each task's start (context, labeler, final grid) is paid rarely."""
+
+LOCAL_OBJECT_STORE_BYTES = 512 * 1024 * 1024
+"""Object store of a local instance started for ``"auto"``: a task's results (one chunk's observations,
+its partial grid) are a few tens of MB; Ray's default (30 % of the RAM) would reserve far more."""
+
+
+class Executor(Protocol):
+    """Runs one enabled stage of a run: its effect is the stage function's (``stage.run(ctx)``)."""
+
+    name: str
+
+    def run_stage(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
+        """Compute the stage's outputs into ``ctx.layout``; returns the stage function's record fields."""
+        ...
+
+
+class LocalExecutor:
+    """Every stage in this process (the default engine)."""
+
+    name = "local"
+
+    def run_stage(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
+        return stage.run(ctx)
+
+
+def make_executor(runtime: Runtime | None) -> Executor:
+    """The engine ``runtime`` asks for: :class:`LocalExecutor` without :attr:`Runtime.ray_address`, else a
+    :class:`RayExecutor` connected to that cluster (raises :class:`LeapError` when it cannot connect)."""
+    if runtime is None or runtime.ray_address is None:
+        return LocalExecutor()
+    return RayExecutor(runtime.ray_address, runtime.ray_cpus)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def frame_blocks(indices: Sequence[int], size: int) -> list[list[int]]:
+    """Cut sorted frame indices into runs of consecutive indices of at most ``size`` each.
+
+    Example: [0, 1, 2, 5, 6, 7, 8], size 3 → [[0, 1, 2], [5, 6, 7], [8]].
+    """
+    if size < 1:
+        raise ValueError(f"size must be >= 1, got {size}")
+    blocks: list[list[int]] = []
+    for i in indices:
+        if blocks and blocks[-1][-1] == i - 1 and len(blocks[-1]) < size:
+            blocks[-1].append(i)
+        else:
+            blocks.append([i])
+    return blocks
+
+
+def number_range(ctx: Ctx, indices: Sequence[int]) -> range:
+    """The frame numbers spanning consecutive indices (what :meth:`KittiSequence.select` turns back into
+    exactly those indices: numbers in between belong to no scan)."""
+    numbers = ctx.seq.frame_numbers
+    return range(numbers[indices[0]], numbers[indices[-1]] + 1)
+
+
+def observed_count(path: Path) -> int:
+    """Number of observed points of an ``observations/`` file, read from the array header only."""
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open("point_idx.npy") as fh:
+            version = np.lib.format.read_magic(fh)
+            header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                      else np.lib.format.read_array_header_2_0)
+            shape, _, _ = header(fh)
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        raise DatasetError(path, f"unreadable observation file ({exc})") from exc
+    if len(shape) != 1:
+        raise DatasetError(path, f"point_idx must be 1-D, got shape {shape}")
+    return int(shape[0])
+
+
+def merge_records(parts: Sequence[dict[str, Any]], total: int, computed: int) -> dict[str, Any]:
+    """One ``stages.json`` record from the per-task records of a per-frame stage: counts (integers) add
+    up, other values are the first task's; ``frames_done`` / ``frames_computed`` are the stage's."""
+    out: dict[str, Any] = {}
+    for part in parts:
+        for key, value in part.items():
+            if isinstance(value, int) and not isinstance(value, bool):
+                out[key] = out.get(key, 0) + value
+            else:
+                out.setdefault(key, value)
+    out["frames_done"] = total
+    out["frames_computed"] = computed
+    return out
+
+
+# ------------------------------------------------------------------------------- the worker's side
+@dataclass(frozen=True)
+class RunJob:
+    """What a worker needs to rebuild a run's context: the run's inputs, never its state."""
+
+    dataset: Path
+    schema: Schema
+    config: PipelineConfig
+    run_dir: Path
+    runtime: Runtime
+    """The run's runtime without its Ray address (a worker computes in its own process)."""
+
+
+def worker_context(job: RunJob, frames: range) -> Ctx:
+    """The run context of ``job`` restricted to the frame numbers ``frames``, as a worker builds it: the
+    same sequence (with the run's estimated poses when the dataset has none), no progress, no records."""
+    layout = RunLayout(job.run_dir)
+    seq = layout.open_sequence(job.dataset)
+    return Ctx(seq, job.schema, job.config, layout, seq.select(frames), job.runtime, None,
+               {s.name: s for s in STAGE_TABLE})
+
+
+class _Collect(logging.Handler):
+    """Keeps the warning records logged under ``leap_core`` while a task runs."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[tuple[str, int, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append((record.name, record.levelno, record.getMessage()))
+
+
+def _with_warnings(fn: Callable[[], Any]) -> tuple[Any, list[tuple[str, int, str]]]:
+    handler = _Collect()
+    logger = logging.getLogger("leap_core")
+    logger.addHandler(handler)
+    try:
+        return fn(), handler.lines
+    finally:
+        logger.removeHandler(handler)
+
+
+def stage_task(job: RunJob, stage: str, frames: range) -> tuple[dict[str, Any], list[tuple[str, int, str]]]:
+    """A per-frame stage on a sub-range of the run's frames (a Ray task): the stage's own function on the
+    worker's context, so each frame is computed and written by the code a local run uses."""
+
+    def work() -> dict[str, Any]:
+        ctx = worker_context(job, frames)
+        return ctx.table[stage].run(ctx)
+
+    result, lines = _with_warnings(work)
+    return result, lines
+
+
+def observations_task(job: RunJob, frames: range) -> list[Observations]:
+    """Each frame's observations in voxel keys, as :func:`~leap_core.pipeline.stages.stage_fuse` feeds
+    them to the fusion (a Ray task)."""
+    ctx = worker_context(job, frames)
+    floor = ctx.cfg.fusion.prob_floor
+    return [Observations(keys, painted.rows, log_table(painted.table, floor))
+            for painted, keys in observed_keys(ctx)]
+
+
+def reduce_task(num_classes: int, *parts: list[Observations]) -> Partial:
+    """One fusion chunk's partial sum from its frames' observations, in frame order (a Ray task)."""
+    return reduce_block((o for part in parts for o in part), num_classes)
+
+
+def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
+                     frame_ids: list[str]) -> tuple[int, int]:
+    """``leap labels2d``'s work on some frames (a Ray task): Grounding DINO + SAM into the 2D cache of
+    ``runtime.cache_dir``, ``config.batch_size`` images per forward pass. Returns (detector, SAM encoder)
+    forward passes."""
+    # Imported here: the labeler's module is only needed where this task runs.
+    from leap_core.datasets.kitti import KittiSequence  # noqa: PLC0415
+    from leap_core.labelers.grounded_sam import GroundedSamLabeler  # noqa: PLC0415
+
+    seq = KittiSequence(dataset)
+    labeler = GroundedSamLabeler(config, runtime)
+    index = {fid: i for i, fid in enumerate(seq.frame_ids)}
+    frames = [seq.frame(index[fid]) for fid in frame_ids]
+    for start in range(0, len(frames), config.batch_size):
+        chunk = frames[start : start + config.batch_size]
+        labeler.label_frames(chunk, schema)
+        for f in chunk:
+            f.__dict__.pop("image", None)  # a frame keeps its decoded image otherwise
+    return labeler.detector_calls, labeler.segmenter_calls
+
+
+@dataclass(frozen=True)
+class TaskError:
+    """A :class:`LeapError` raised in a task, carried back as data. Ray would pickle the exception, and
+    unpickling calls its class with its ``args``: that fails for the subclasses whose constructors take
+    other arguments (``DatasetError(path, problem)``), and the driver would get Ray's wrapper instead of
+    the one-line error naming the file (and the app could not tell a :class:`ModelLoadError`)."""
+
+    module: str
+    qualname: str
+    args: tuple[Any, ...]
+    state: dict[str, Any]
+    traceback: str
+
+    @classmethod
+    def of(cls, exc: BaseException) -> TaskError:
+        kind = type(exc)
+        return cls(kind.__module__, kind.__qualname__, exc.args, dict(vars(exc)),
+                   "".join(traceback.format_exception(exc)))
+
+    def rebuild(self) -> BaseException:
+        """The same exception: same class, ``args`` (its message) and attributes (``path``, ``field``)."""
+        kind = getattr(importlib.import_module(self.module), self.qualname)
+        exc: BaseException = kind.__new__(kind)
+        exc.args = self.args
+        vars(exc).update(self.state)
+        return exc
+
+
+def run_task(fn: Callable[..., Any], *args: Any) -> Any:
+    """What every Ray task runs: ``fn(*args)``, a :class:`LeapError` returned as a :class:`TaskError`
+    (and a :class:`TaskError` among the arguments, an upstream task's, passed on instead of calling)."""
+    for arg in args:
+        if isinstance(arg, TaskError):
+            return arg
+    try:
+        return fn(*args)
+    except LeapError as exc:
+        return TaskError.of(exc)
+
+
+# --------------------------------------------------------------------------------------- the driver
+def connect(address: str, cpus: int | None) -> ModuleType:
+    """Import ray and join the cluster at ``address`` (``"auto"``: the one this machine belongs to, else a
+    new local instance of ``cpus`` CPUs, by default the cores this process may use), once per process: a
+    process already connected (the app's worker between runs, a test's fixture) keeps its connection.
+    No dashboard, Ray's own logging at ERROR and workers' output not copied here (warnings of the
+    stage code come back with the results)."""
+    try:
+        import ray  # noqa: PLC0415  imported only by a run that asks for Ray (the local engine never does)
+    except ImportError as exc:
+        raise LeapError(f"ray_address {address!r}: the ray package is not installed ({exc})") from None
+    if ray.is_initialized():
+        return ray
+    common: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR,
+                              "log_to_driver": False, "configure_logging": True}
+    target = _cluster_address(address)
+    # ray.init retries an address nobody answers at for minutes (a cluster stopped without `ray stop`
+    # leaves its address behind for "auto"), so the address is first tried with a short connect.
+    if target is not None and _answers(target):
+        try:
+            ray.init(address=target, **common)
+            return ray
+        except ConnectionError as exc:
+            if address != "auto":
+                raise LeapError(f"ray_address {address!r}: cannot join the Ray cluster ({exc})") from None
+    elif address != "auto":
+        raise LeapError(f"ray_address {address!r}: no Ray cluster answers at {target or address}")
+    n = cpus if cpus is not None else len(os.sched_getaffinity(0))
+    log.info("no running Ray cluster found; starting a local Ray instance of %d CPUs", n)
+    ray.init(address="local", num_cpus=n, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+    return ray
+
+
+def _cluster_address(address: str) -> str | None:
+    """The ``host:port`` (or ``ray://host:port``) that ``address`` names; for ``"auto"`` the cluster Ray
+    finds for this machine (``ray start``'s address file, a running GCS), None when there is none."""
+    if address != "auto":
+        return address
+    try:
+        from ray._private.services import canonicalize_bootstrap_address  # noqa: PLC0415  (see below)
+    except ImportError:  # a Ray without this helper: let ray.init resolve "auto" itself
+        return address
+    # Ray's own resolution of "auto" (private: there is no public way to ask without connecting).
+    try:
+        return canonicalize_bootstrap_address("auto")
+    except (ConnectionError, ValueError):
+        return None
+
+
+def _answers(address: str, timeout_s: float = 3.0) -> bool:
+    """Whether something accepts a TCP connection at ``address`` (``[ray://]host:port``); True for an
+    address that is not of that form (ray.init then judges it)."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        return True
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+class RayExecutor:
+    """Per-frame stages and fusion as Ray tasks (module docstring); other stages in this process."""
+
+    name = "ray"
+
+    def __init__(self, address: str, cpus: int | None = None) -> None:
+        self.ray = connect(address, cpus)
+        self._task = self.ray.remote(run_task)
+
+    # ----------------------------------------------------------------------------------- dispatch
+    def run_stage(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
+        if stage.frame_files is not None:
+            return self._per_frame(ctx, stage)
+        if stage.name == "fuse":
+            return self._fuse(ctx)
+        return stage.run(ctx)
+
+    def _job(self, ctx: Ctx) -> RunJob:
+        return RunJob(ctx.seq.root, ctx.schema, ctx.cfg, ctx.layout.run_dir,
+                      dataclasses.replace(ctx.runtime or Runtime(), ray_address=None))
+
+    def _cpus(self) -> int:
+        return max(1, int(self.ray.cluster_resources().get("CPU", 1)))
+
+    def _gpu_options(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
+        # Only a labeler that runs models on camera images uses a GPU; a task that asks for one waits for
+        # a free GPU, so nothing else may ask.
+        runtime = ctx.runtime or Runtime()
+        if (stage.name == "labels2d" and LABELERS[ctx.cfg.labeler].needs == "images"
+                and runtime.device != "cpu" and self.ray.cluster_resources().get("GPU", 0) >= 1):
+            return {"num_gpus": 1}
+        return {}
+
+    def _get(self, ref: Any) -> Any:
+        """``ray.get`` that raises a task's own error (a :class:`LeapError` names its file in one line)."""
+        try:
+            result = self.ray.get(ref)
+        except self.ray.exceptions.RayTaskError as exc:
+            cause = exc.cause
+            if isinstance(cause, BaseException):
+                raise cause from None
+            raise
+        if isinstance(result, TaskError):
+            log.debug("task failed:\n%s", result.traceback)
+            raise result.rebuild() from None
+        return result
+
+    def _stop(self, refs: Sequence[Any]) -> None:
+        """Cancel unfinished tasks and wait (bounded) for the running ones to stop, so none still writes
+        into the run folder after the stage returned."""
+        for ref in refs:
+            self.ray.cancel(ref)
+        if refs:
+            self.ray.wait(list(refs), num_returns=len(refs), timeout=30)
+
+    def _drain(self, pending: dict[Any, int], finished: Callable[[Any, int], None]) -> None:
+        """``finished(result, weight)`` for each task of ``pending`` (ref → weight) as it ends, in the order
+        they end; an error (a task's, or ``Cancelled`` from ``finished``) stops the others first."""
+        try:
+            while pending:
+                ready, _ = self.ray.wait(list(pending), num_returns=1)
+                for ref in ready:
+                    n = pending.pop(ref)
+                    finished(self._get(ref), n)
+        except BaseException:
+            self._stop(list(pending))
+            raise
+
+    # ----------------------------------------------------------------------------- per-frame stages
+    def _per_frame(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
+        todo = ctx.missing_frames(stage.name)
+        if not todo:
+            return stage.run(ctx)  # nothing to compute: the stage's own (cheap) record
+        total = len(ctx.frames)
+        options = self._gpu_options(ctx, stage)
+        # Tasks that each take a GPU run one per GPU: as many sub-ranges as for the CPUs would only load
+        # the models more often.
+        slots = int(self.ray.cluster_resources().get("GPU", 1)) if options else self._cpus()
+        size = math.ceil(len(todo) / (TASKS_PER_CPU * slots))
+        job = self._job(ctx)
+        task = self._task.options(**options)
+        pending = {task.remote(stage_task, job, stage.name, number_range(ctx, block)): len(block)
+                   for block in frame_blocks(todo, size)}
+        done = total - len(todo)
+        parts: list[dict[str, Any]] = []
+        ctx.tick(stage.name, done, total)
+
+        def finished(result: tuple[dict[str, Any], list[tuple[str, int, str]]], n: int) -> None:
+            nonlocal done
+            record, lines = result
+            for name, level, message in lines:
+                logging.getLogger(name).log(level, "%s", message)
+            parts.append(record)
+            done += n
+            ctx.tick(stage.name, done, total)
+
+        self._drain(pending, finished)
+        record = merge_records(parts, total, len(todo))
+        record["ray_tasks"] = len(parts)
+        if options:
+            record["ray_gpus_per_task"] = options["num_gpus"]
+        return record
+
+    # ---------------------------------------------------------------------------- leap labels2d
+    def label_cache(
+        self, dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
+        frame_ids: Sequence[str], progress: Callable[[int], None] | None = None,
+    ) -> tuple[int, int]:
+        """:func:`label_cache_task` over ``frame_ids`` cut into runs of whole batches, one GPU per task when
+        the cluster has GPUs (and ``runtime.device`` is not ``cpu``); ``progress(frames)`` as each ends.
+        Returns the (detector, SAM encoder) forward passes of all tasks."""
+        gpus = self.ray.cluster_resources().get("GPU", 0) >= 1 and runtime.device != "cpu"
+        slots = int(self.ray.cluster_resources().get("GPU", 1)) if gpus else self._cpus()
+        per_task = math.ceil(len(frame_ids) / (TASKS_PER_CPU * slots) / config.batch_size) * config.batch_size
+        task = self._task.options(num_gpus=1 if gpus else 0)
+        worker_runtime = dataclasses.replace(runtime, ray_address=None)
+        pending = {
+            task.remote(label_cache_task, dataset, schema, config, worker_runtime,
+                        list(frame_ids[s : s + per_task])):
+                len(frame_ids[s : s + per_task])
+            for s in range(0, len(frame_ids), max(per_task, 1))
+        }
+        calls = [0, 0]
+
+        def finished(result: tuple[int, int], n: int) -> None:
+            calls[0] += result[0]
+            calls[1] += result[1]
+            if progress is not None:
+                progress(n)
+
+        self._drain(pending, finished)
+        return calls[0], calls[1]
+
+    # ---------------------------------------------------------------------------------------- fusion
+    def _fuse(self, ctx: Ctx) -> dict[str, Any]:
+        frames = list(ctx.frames)
+        total = len(frames)
+        counts = [observed_count(ctx.layout.observation(ctx.fid(i))) for i in frames]
+        chunks = fusion_blocks(counts, ctx.cfg.fusion.chunk_points)
+        size = max(1, math.ceil(total / (TASKS_PER_CPU * self._cpus())))
+        job = self._job(ctx)
+        c = ctx.schema.num_classes
+        partials: list[tuple[Any, int]] = []
+        refs: list[Any] = []
+        for chunk in chunks:
+            # A chunk spans consecutive frames (the empty ones between its members add nothing).
+            span = frames[chunk[0] : chunk[-1] + 1]
+            blocks = frame_blocks(span, size)
+            parts = [self._task.remote(observations_task, job, number_range(ctx, block)) for block in blocks]
+            partials.append((self._task.remote(reduce_task, c, *parts), chunk[-1] + 1))
+            refs += [*parts, partials[-1][0]]
+        ctx.tick("fuse", 0, total)
+
+        def in_order() -> Iterator[Partial]:
+            for ref, reached in partials:
+                partial = self._get(ref)
+                ctx.tick("fuse", reached, total)
+                yield partial
+
+        try:
+            grid = fold_blocks(in_order(), c, ctx.cfg.fusion)
+        except BaseException:
+            self._stop(refs)
+            raise
+        record = finish_fuse(ctx, grid)
+        record["ray_tasks"] = len(refs)
+        record["fusion_chunks"] = len(chunks)
+        return record
+
+
+__all__ = ["TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RunJob", "TaskError", "connect",
+           "frame_blocks",
+           "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count",
+           "run_task", "worker_context"]
