@@ -34,8 +34,8 @@ if TYPE_CHECKING:
     from app.core.config import Settings
     from app.core.instance import WorkDirLock
     from leap_core.datasets.check import Verdict
-    from leap_core.pipeline.multi import MultiRunResult, SequenceSpec
     from leap_core.labelers.grounded_sam import GroundedSamConfig
+    from leap_core.pipeline.multi import MultiRunResult, SequenceSpec
 
 cli = typer.Typer(
     name="leap",
@@ -534,7 +534,8 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     datasets: list[str], out: Path, *, schema: str | None, project_file: str | None, labeler: str | None,
     consistency: bool | None, cn_iterations: int | None, frames: str | None, cache: str | None,
     models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
-    with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None, ray_cpus: int | None = None,
+    with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None,
+    ray_cpus: int | None = None,
 ) -> None:
     """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
     sequence's stages run on that Ray cluster (one connection for the whole run)."""
