@@ -22,6 +22,7 @@ from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager, current_manager
+from app.viewer.lod import LodConfig
 from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
     CorrectionRecord,
@@ -218,7 +219,9 @@ class ViewerManager:
     ) -> None:
         self.settings = settings
         self.jobs = jobs
-        self.config = config or SessionConfig(max_points=settings.viewer_max_points)
+        self.config = config or SessionConfig(
+            max_points=settings.viewer_max_points, lod=LodConfig(budget=settings.viewer_max_points)
+        )
         self._sessions: dict[int, ReviewSession] = {}
         self._lock = threading.Lock()
 
