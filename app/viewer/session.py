@@ -448,6 +448,11 @@ class ReviewSession:
         """Load a finished run's grid (with the project's corrections overlaid) and draw it."""
         grid = ReviewGrid.load(run.run_dir, run.pipeline)
         outputs = RunOutputs(run.run_dir, self.backend.dataset_path())
+        self.show_grid(run, grid, outputs)
+
+    def show_grid(self, run: RunInfo, grid: ReviewGrid, outputs: RunOutputs | None) -> None:
+        """Show a run's grid already in memory (:meth:`load_run` reads it from the run's folder), with its
+        scans when ``outputs`` is given."""
         t0 = time.perf_counter()
         index = lod.build_index(grid.centres, grid.voxel_size) if self._needs_lod(grid) else None
         index_s = time.perf_counter() - t0
@@ -485,7 +490,7 @@ class ReviewSession:
         self.inspected = None
         self.scene.inspected.visible = False
         self.scene.set_review_box(None)
-        if outputs.frame_indices:
+        if outputs is not None and outputs.frame_indices:
             # The map framing above is the first view; following starts with the user's first scan change.
             self.show_scan(len(outputs.frame_indices) // 2, move_camera=False)
         if rebuild:
