@@ -203,6 +203,33 @@ def test_culled_selection_equals_the_full_selection(depth_mode: str) -> None:
     assert sum(n > 0 for n in sizes) >= 4  # the lassos mostly catch something
 
 
+def test_culled_selection_keeps_the_occluders_beside_the_lasso() -> None:
+    # Ground at z = 0 seen from 60 m straight above (a voxel is 6.2 px wide, so is a z-buffer cell), a platform
+    # 10 m high from x = 0.5 m: its first column projects to pixel 211, in the cell next to the lasso's last
+    # ground column (pixel 203, rectangle edge 204), so the z-buffer's 3×3 erosion lets it hide that column;
+    # culling must keep the platform although it lies farther outside the lasso's rectangle (7.2 px) than
+    # the bounding spheres of its one-voxel cubes reach (6.5 px).
+    vs = 0.5
+    gx, gy = np.meshgrid(np.arange(-40, 40), np.arange(-40, 40), indexing="ij")
+    ground = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size, np.int64)], 1)
+    px, py = np.meshgrid(np.arange(1, 6), np.arange(-40, 40), indexing="ij")
+    platform = np.stack([px.ravel(), py.ravel(), np.full(px.size, 20)], 1)
+    centres = ((np.concatenate([ground, platform]) + 0.5) * vs).astype(np.float32)
+    index = lod.build_index(centres, vs)
+    from viser.transforms import SO3
+
+    down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
+    camera = sel.PinholeCamera((0.0, 0.0, 60.0), tuple(down), math.radians(30), 400, 400)
+    mask = sel.rect_mask((0.3, 0.3), (0.51, 0.7), 400, 400)
+    visible = np.ones(centres.shape[0], bool)
+    full = sel.select_points(centres, camera, mask, depth_mode="front", distance=0.5, splat_size=vs)
+    got = lod.select_culled(index, index.blocks(0), camera, mask, visible=visible, depth_mode="front",
+                            distance=0.5, splat_size=vs)
+    in_rect = sel.select_points(centres, camera, mask, depth_mode="through")
+    assert 0 < full.sum() < in_rect.sum()  # the platform hides some of the ground the lasso covers
+    np.testing.assert_array_equal(got, np.flatnonzero(full))
+
+
 def test_frustum_culling_never_drops_a_point_in_the_rectangle() -> None:
     rng = np.random.default_rng(4)
     keys, _, vs = _street(seed=3)
@@ -360,6 +387,10 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         # The overview shows the correction too: the blocks under the box are now building-coloured.
         bcols = np.asarray(overview.colors)[np.abs(np.asarray(overview.points)[:, 0] - area[0]) <= 12]
         assert bcols.size and (bcols == SCHEMA3["classes"][2]["color"]).all()
+        # "Limit points" below the budget: the full-resolution disc shrinks to what fits.
+        session.set_state(max_points=1000)
+        assert session.wait_drawn() and 900 < sent() <= 1000
+        assert session.scene.voxels.count > 0 and session.scene.overview.count > 0
     finally:
         session.close()
 
