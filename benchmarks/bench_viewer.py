@@ -621,7 +621,7 @@ def street_map(num_voxels: int, voxel_size: float = 0.2, seed: int = 0, spacing_
         ``(keys (V,) sorted, class (V,) int16, side_m)``.
     """
     rng = np.random.default_rng(seed)
-    per_m = int(round(1 / voxel_size))
+    per_m = round(1 / voxel_size)
     sp, half, road = int(spacing_m * per_m), 9 * per_m, 6 * per_m
 
     def build(blocks: int) -> tuple[np.ndarray, np.ndarray]:
@@ -670,7 +670,8 @@ def street_map(num_voxels: int, voxel_size: float = 0.2, seed: int = 0, spacing_
                     wall = np.stack([a.ravel(), np.full(a.size, fixed), zz.ravel()], 1)
                     add(wall[:, [1, 0, 2]] if swap else wall, STREET_CLASSES["building"])
         ijk = np.concatenate(parts).astype(np.int64)
-        keys = ((ijk[:, 0] + AXIS_OFFSET) << 42) | ((ijk[:, 1] + AXIS_OFFSET) << 21) | (ijk[:, 2] + AXIS_OFFSET)
+        off = ijk + AXIS_OFFSET
+        keys = (off[:, 0] << 42) | (off[:, 1] << 21) | off[:, 2]
         keys, first = np.unique(keys, return_index=True)
         return keys, np.concatenate(cls)[first]
 
@@ -761,6 +762,8 @@ class MemoryBackend:
     def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None:
         from app.viewer.session import ReviewMarkRecord
 
+        del run_id  # one run only
+
         self.marks[region] = ReviewMarkRecord(signature, state)
 
     def save_review_queue(self, kind: str, run_id: int | None, regions: list[tuple[str, str]]) -> None:
@@ -815,7 +818,7 @@ def _look_camera(target: np.ndarray, distance: float, width: int = 1280, height:
 
 
 def _lod_session_run(
-    grid: ReviewGrid, schema: Any, seq_root: Path, run_dir: Path, budget: int | None, repeats: int,
+    grid: ReviewGrid, schema: Any, seq_root: Path, run_dir: Path, *, budget: int | None, repeats: int,
     side_m: float,
 ) -> dict[str, Any]:
     """One session on the grid (level of detail with ``budget``, or the exact draw when None): the first
@@ -929,9 +932,10 @@ def bench_lod(num_voxels: int, repeats: int, budget: int = 2_000_000, frames: in
           f"{build_s:.1f} s), budget {budget:,} points, median of {repeats}")
     with tempfile.TemporaryDirectory() as tmp:
         seq_root, run_dir = street_scans(Path(tmp), grid, side_m, frames, points)
-        ours = _lod_session_run(grid, schema, seq_root, run_dir, budget, repeats, side_m)
+        ours = _lod_session_run(grid, schema, seq_root, run_dir, budget=budget, repeats=repeats,
+                                side_m=side_m)
         rss_lod = _rss_peak_mb()
-        base = _lod_session_run(grid, schema, seq_root, run_dir, None, repeats, side_m)
+        base = _lod_session_run(grid, schema, seq_root, run_dir, budget=None, repeats=repeats, side_m=side_m)
     header = f"{'step':24s} {'ours':>9s} {'exact':>9s} {'ratio':>7s}"
     print(f"\n{header}\n{'-' * len(header)}")
     rows = [("first draw (server)", ours["first_draw_server_s"], base["first_draw_server_s"]),
@@ -947,13 +951,15 @@ def bench_lod(num_voxels: int, repeats: int, budget: int = 2_000_000, frames: in
     print(f"points sent: ours {ours['points_sent']:,} (then {ours['last_points_sent']:,}), exact "
           f"{base['points_sent']:,}; index built in {ours['index_s']:.2f} s (part of the first draw)")
     print(f"selected voxels, ours / exact: {ours['selected']} / {base['selected']}")
-    print(f"review queue ranked in {ours['queue_build_s']:.2f} s (exact session {base['queue_build_s']:.2f} s)")
+    print(f"review queue ranked in {ours['queue_build_s']:.2f} s "
+          f"(exact session {base['queue_build_s']:.2f} s)")
     targets = {"first draw (server)": 5.0}
     worst = max(v["max_s"] for k, v in ours["interactions"].items()
                 if k in ("scan change", "region select", "class toggle", "colour switch", "camera refine"))
     print(f"first draw {ours['first_draw_server_s']:.2f} s (target ≤ 5 s): "
           f"{'PASS' if ours['first_draw_server_s'] <= 5.0 else 'FAIL'}; worst interaction (scan, region, "
-          f"toggle, colour, refine) {worst * 1e3:.0f} ms (target ≤ 300 ms): {'PASS' if worst <= 0.3 else 'FAIL'}")
+          f"toggle, colour, refine) {worst * 1e3:.0f} ms (target ≤ 300 ms): "
+          f"{'PASS' if worst <= 0.3 else 'FAIL'}")
     print(f"peak RSS: {rss_lod:.0f} MB after the level-of-detail session, {_rss_peak_mb():.0f} MB after both")
     return {"voxels": grid.num_voxels, "side_m": side_m, "grid_build_s": build_s, "budget": budget,
             "frames": frames, "points_per_frame": points, "ours": ours, "exact": base,

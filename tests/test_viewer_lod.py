@@ -49,7 +49,7 @@ def _hand_index() -> tuple[lod.LodIndex, np.ndarray]:
 
 
 def test_blocks_group_the_voxels_of_each_cube() -> None:
-    index, centres = _hand_index()
+    index, _ = _hand_index()
     blocks = index.blocks(1)
     assert blocks.count == 4 and blocks.edge == 2.0
     groups = {tuple(sorted(index.order[blocks.starts[b] : blocks.starts[b + 1]].tolist())) for b in range(4)}
@@ -204,11 +204,11 @@ def test_culled_selection_equals_the_full_selection(depth_mode: str) -> None:
 
 
 def test_culled_selection_keeps_the_occluders_beside_the_lasso() -> None:
-    # Ground at z = 0 seen from 60 m straight above (a voxel is 6.2 px wide, so is a z-buffer cell), a platform
-    # 10 m high from x = 0.5 m: its first column projects to pixel 211, in the cell next to the lasso's last
-    # ground column (pixel 203, rectangle edge 204), so the z-buffer's 3×3 erosion lets it hide that column;
-    # culling must keep the platform although it lies farther outside the lasso's rectangle (7.2 px) than
-    # the bounding spheres of its one-voxel cubes reach (6.5 px).
+    # Ground at z = 0 seen from 60 m straight above (a voxel is 6.2 px wide, so is a z-buffer cell), a
+    # platform 10 m high from x = 0.5 m: its first column projects to pixel 211, in the cell next to the
+    # lasso's last ground column (pixel 203, rectangle edge 204), so the z-buffer's 3×3 erosion lets it
+    # hide that column; culling must keep the platform although it lies farther outside the lasso's
+    # rectangle (7.2 px) than the bounding spheres of its one-voxel cubes reach (6.5 px).
     vs = 0.5
     gx, gy = np.meshgrid(np.arange(-40, 40), np.arange(-40, 40), indexing="ij")
     ground = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size, np.int64)], 1)
@@ -316,7 +316,8 @@ def big_store(tmp_path, make_tiny_sequence):
     run_dir = Path(run["run_dir"])
     run_dir.mkdir(parents=True)
     logp = np.log(probs).astype(np.float16)
-    VoxelGrid(keys=keys, logp=logp - logp.max(axis=1, keepdims=True), voxel_size=vs).save(run_dir / "grid.npz")
+    logp -= logp.max(axis=1, keepdims=True)
+    VoxelGrid(keys=keys, logp=logp, voxel_size=vs).save(run_dir / "grid.npz")
     atomic_save_npz(run_dir / "grid_smooth.npz", keys=keys, probs=probs.astype(np.float16))
     return settings, project["id"], keys, label, vs
 
@@ -328,7 +329,7 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
     from app.viewer.panel import ReviewPanel
     from app.viewer.session import ReviewSession, SessionConfig
 
-    settings, pid, keys, label, vs = big_store
+    settings, pid, keys, _, _ = big_store
     budget = 8000
     config = SessionConfig(lod=lod.LodConfig(budget=budget, radius=6.0, refine_distance=5.0))
     session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
@@ -342,7 +343,7 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
             assert overview.points.shape[0] == overview.colors.shape[0]
             return int(voxels.points.shape[0] + overview.points.shape[0])
 
-        assert 0 < voxels.points.shape[0] and 0 < overview.points.shape[0] and sent() <= budget
+        assert voxels.points.shape[0] > 0 and overview.points.shape[0] > 0 and sent() <= budget
         # The camera's look-at point moves far down the street: the full resolution follows it.
         far = np.array([150.0, 12.0, 0.0])
         session._camera_moved(far)
@@ -367,13 +368,14 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         area = np.array([20.0, 12.0, 0.0])
         down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
         fov = 2 * math.atan(15.0 / 100.0)
-        uv, front = vl.project_to_screen(centres, area + [0, 0, 100.0], down, fov, 1.0)
+        above = area + np.array([0, 0, 100.0])
+        uv, front = vl.project_to_screen(centres, above, down, fov, 1.0)
         expected = np.flatnonzero(front & (uv >= 0).all(axis=1) & (uv <= 1).all(axis=1))
         assert not np.isin(expected, session.lod_plan.rows).any()  # nothing there is at full resolution
         overview_pts = np.asarray(overview.points)
         shown_there = int((np.abs(overview_pts[:, 0] - area[0]) <= 16).sum())
         session.set_tools(depth_mode="through")
-        n = session.select_rect(area + [0, 0, 100.0], down, fov, 1.0, (0.0, 0.0), (1.0, 1.0))
+        n = session.select_rect(above, down, fov, 1.0, (0.0, 0.0), (1.0, 1.0))
         assert n == expected.size > 10 * shown_there  # every voxel under the box, not the drawn blocks
         np.testing.assert_array_equal(session.selection.rows, expected)
         assert session.scene.selection.count <= budget
@@ -400,7 +402,7 @@ def test_small_map_is_drawn_exactly(big_store) -> None:
     from app.viewer.panel import ReviewPanel
     from app.viewer.session import ReviewSession, SessionConfig
 
-    settings, pid, keys, label, vs = big_store
+    settings, pid, keys, label, _ = big_store
     config = SessionConfig(lod=lod.LodConfig(budget=keys.size))
     session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
     try:

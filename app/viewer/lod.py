@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+
 import numpy as np
 import numpy.typing as npt
 
@@ -222,7 +223,8 @@ class LodIndex:
         mean = np.stack(
             [np.bincount(of_row, weights=self.centres[:, d], minlength=nb) / counts for d in range(3)], axis=1
         ).astype(np.float32)
-        blocks = Blocks(level, size * self.voxel_size, starts, of_row, lower_ijk * self.voxel_size, mean)
+        lower = (lower_ijk * self.voxel_size).astype(np.float64)
+        blocks = Blocks(level, size * self.voxel_size, starts, of_row, lower, mean)
         self._levels[level] = blocks
         return blocks
 
@@ -425,7 +427,7 @@ def mask_rect(mask: npt.NDArray[np.bool_]) -> tuple[tuple[float, float], tuple[f
     return (cols[0] / w, rows[0] / h), ((cols[-1] + 1) / w, (rows[-1] + 1) / h)
 
 
-def select_culled(
+def select_culled(  # noqa: PLR0913 (select_points' own keywords, plus the index and its cubes)
     index: LodIndex,
     cubes: Blocks,
     camera: PinholeCamera,
@@ -497,10 +499,13 @@ def ray_rows(
 
 
 def thin_rows(
-    blocks: Blocks, full: npt.NDArray[np.int64], centres: npt.NDArray[np.float32], rows: npt.NDArray[np.int64]
+    blocks: Blocks,
+    full: npt.NDArray[np.int64],
+    centres: npt.NDArray[np.float32],
+    rows: npt.NDArray[np.int64],
 ) -> npt.NDArray[np.float32]:
-    """Points marking ``rows``: the centres of those in the ``full`` (ascending) blocks, then the mean centre of
-    each other block holding one of them (so a selection over the overview stays within the budget)."""
+    """Points marking ``rows``: the centres of those in the ``full`` (ascending) blocks, then the mean centre
+    of each other block holding one of them (so a selection over the overview stays within the budget)."""
     b = blocks.of_row[rows].astype(np.int64)
     pos = np.minimum(np.searchsorted(full, b), max(full.shape[0] - 1, 0))
     inside = full[pos] == b if full.size else np.zeros(b.shape[0], bool)

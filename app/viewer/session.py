@@ -269,8 +269,12 @@ class SessionConfig:
     """Seconds between scans while playing through them."""
     follow_ego: bool = True
     """Whether the camera follows the ego pose on a scan change when the viewer starts (key ``g``)."""
-    lod: LodConfig = LodConfig()
+    lod: LodConfig = dataclasses.field(default_factory=LodConfig)
     """Level of detail of maps with more voxels than its budget (:mod:`app.viewer.lod`)."""
+
+
+_Tables = tuple[tuple[Any, ...], npt.NDArray[np.float32], npt.NDArray[np.float32] | None]
+"""Cached per-block tables: (what they were made from, counts, score sums)."""
 
 
 @dataclass
@@ -388,8 +392,7 @@ class ReviewSession:
         """What the last level-of-detail draw sent (None after an exact draw)."""
         self.lod_seconds: dict[str, float] = {}
         """Server seconds of the last level-of-detail steps (``index`` at load, ``tables``, ``plan``)."""
-        self._lod_tables: tuple[tuple[Any, ...], npt.NDArray[np.float32], npt.NDArray[np.float32] | None] | None
-        self._lod_tables = None
+        self._lod_tables: _Tables | None = None
         self._lod_centre: npt.NDArray[np.float64] | None = None
         self._shown_blocks: tuple[lod.Blocks, npt.NDArray[np.int64]] | None = None
         self.map_visible = True
@@ -642,7 +645,7 @@ class ReviewSession:
         return vl.view_score(state, conf, class_prob), class_prob
 
     def _block_tables(
-        self, blocks: lod.Blocks, state: vl.ViewState, label: npt.NDArray[np.int16],
+        self, blocks: lod.Blocks, *, state: vl.ViewState, label: npt.NDArray[np.int16],
         conf: npt.NDArray[np.float32], corrected: npt.NDArray[np.bool_], score: npt.NDArray[np.floating],
         num_classes: int,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None]:
@@ -678,7 +681,10 @@ class ReviewSession:
         budget = self._lod_budget(state)
         blocks = index.blocks(index.overview_level(budget, cfg.overview_share))
         score, class_prob = self._view_score(grid, state, label, conf, corrected)
-        hist, ssum = self._block_tables(blocks, state, label, conf, corrected, score, grid.num_classes)
+        hist, ssum = self._block_tables(
+            blocks, state=state, label=label, conf=conf, corrected=corrected, score=score,
+            num_classes=grid.num_classes,
+        )
         t0 = time.perf_counter()
         columns = lod.enabled_columns(state.enabled, grid.num_classes)
         counts = lod.visible_counts(hist, columns)
