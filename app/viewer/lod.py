@@ -123,9 +123,16 @@ def block_counts(codes_sorted: npt.NDArray[np.uint64], level: int) -> int:
 
 
 def choose_level(codes_sorted: npt.NDArray[np.uint64], cap: int) -> int:
-    """The finest level ``n ≥ 1`` with at most ``cap`` non-empty blocks (21 when none fits)."""
-    for level in range(1, 22):
-        if block_counts(codes_sorted, level) <= cap:
+    """The finest level ``n ≥ 1`` with at most ``cap`` non-empty blocks (21 when none fits).
+
+    Neighbours in sorted order lie in different blocks of level n iff their codes differ above bit 3n, i.e.
+    ``a XOR b ≥ 2^(3n)``: one XOR pass, then one comparison per level tried.
+    """
+    if codes_sorted.size == 0:
+        return 1
+    change = codes_sorted[1:] ^ codes_sorted[:-1]
+    for level in range(1, 21):
+        if 1 + int(np.count_nonzero(change >= np.uint64(1 << (3 * level)))) <= cap:
             return level
     return 21
 
@@ -318,11 +325,13 @@ def visible_counts(hist: npt.NDArray[np.float32], columns: npt.NDArray[np.float3
 
 
 def majority_class(
-    hist: npt.NDArray[np.float32], columns: npt.NDArray[np.float32], blocks: npt.NDArray[np.int64]
+    hist: npt.NDArray[np.float32],
+    columns: npt.NDArray[np.float32],
+    blocks: npt.NDArray[np.int64] | None = None,
 ) -> npt.NDArray[np.int16]:
-    """(M,) the most frequent visible class of each of ``blocks`` (-1 unlabeled). Ties go to the lower
-    class index, unlabeled lowest."""
-    sub = hist[blocks] * columns
+    """(M,) the most frequent visible class of each of ``blocks`` (every block when None; -1 unlabeled).
+    Ties go to the lower class index, unlabeled lowest."""
+    sub = (hist if blocks is None else hist[blocks]) * columns
     return (np.argmax(sub, axis=1) - 1).astype(np.int16)
 
 
@@ -330,11 +339,12 @@ def mean_score(
     hist: npt.NDArray[np.float32],
     ssum: npt.NDArray[np.float32],
     columns: npt.NDArray[np.float32],
-    blocks: npt.NDArray[np.int64],
+    blocks: npt.NDArray[np.int64] | None = None,
 ) -> npt.NDArray[np.float32]:
-    """(M,) mean score of the visible voxels of each of ``blocks`` (0 for a block with none)."""
-    n = hist[blocks] @ columns
-    s = ssum[blocks] @ columns
+    """(M,) mean score of the visible voxels of each of ``blocks`` (every block when None; 0 for a block with
+    none)."""
+    n = (hist if blocks is None else hist[blocks]) @ columns
+    s = (ssum if blocks is None else ssum[blocks]) @ columns
     return np.divide(s, n, out=np.zeros_like(s), where=n > 0).astype(np.float32)
 
 

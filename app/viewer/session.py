@@ -273,7 +273,7 @@ class SessionConfig:
     """Level of detail of maps with more voxels than its budget (:mod:`app.viewer.lod`)."""
 
 
-_Tables = tuple[tuple[Any, ...], npt.NDArray[np.float32], npt.NDArray[np.float32] | None]
+_Tables = tuple[tuple[Any, ...], npt.NDArray[np.float32], npt.NDArray[np.float32]]
 """Cached per-block tables: (what they were made from, counts, score sums)."""
 
 
@@ -393,6 +393,7 @@ class ReviewSession:
         self.lod_seconds: dict[str, float] = {}
         """Server seconds of the last level-of-detail steps (``index`` at load, ``tables``, ``plan``)."""
         self._lod_tables: _Tables | None = None
+        self._lod_colors: tuple[tuple[Any, ...], npt.NDArray[np.uint8]] | None = None
         self._lod_centre: npt.NDArray[np.float64] | None = None
         self._shown_blocks: tuple[lod.Blocks, npt.NDArray[np.int64]] | None = None
         self.map_visible = True
@@ -464,7 +465,7 @@ class ReviewSession:
             self.grid = grid
             self.lod_index = index
             self.lod_seconds = {"index": index_s} if index is not None else {}
-            self._lod_tables, self._shown_blocks, self.lod_plan = None, None, None
+            self._lod_tables, self._lod_colors, self._shown_blocks, self.lod_plan = None, None, None, None
             self._lod_centre = None
             self.outputs = outputs
             self.run_schema = run.schema or self.project_schema
@@ -648,12 +649,13 @@ class ReviewSession:
         self, blocks: lod.Blocks, *, state: vl.ViewState, label: npt.NDArray[np.int16],
         conf: npt.NDArray[np.float32], corrected: npt.NDArray[np.bool_], score: npt.NDArray[np.floating],
         num_classes: int,
-    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None]:
-        """Per block and class counts (and score sums) of the voxels passing the threshold, kept until the
-        labels, the scored quantity or the threshold change (a class toggle or a new focus reuses them)."""
-        scored = state.mode != "class"
-        key = (blocks, label, conf, corrected, state.mode if scored else "class",
-               state.class_index if state.mode == "class_probability" else -1, state.threshold)
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """Per block and class counts and score sums of the voxels passing the threshold, kept until the
+        labels, the scored quantity or the threshold change (a class toggle or a new focus reuses them; the
+        class and confidence views share one table: both threshold and sum the confidence)."""
+        prob = state.mode == "class_probability"
+        key = (blocks, label, conf, corrected if prob else None, state.class_index if prob else -1,
+               state.threshold)
         cached = self._lod_tables
         if cached is not None and len(cached[0]) == len(key) and all(
             a is b if isinstance(a, (np.ndarray, lod.Blocks)) else a == b
@@ -662,12 +664,29 @@ class ReviewSession:
             return cached[1], cached[2]
         t0 = time.perf_counter()
         keep = score >= np.float32(state.threshold) if state.threshold > 0 else None
-        hist, ssum = lod.block_tables(
-            blocks.of_row, blocks.count, label, num_classes, keep=keep, score=score if scored else None
-        )
+        hist, ssum = lod.block_tables(blocks.of_row, blocks.count, label, num_classes, keep=keep, score=score)
+        assert ssum is not None
         self._lod_tables = (key, hist, ssum)
         self.lod_seconds["tables"] = time.perf_counter() - t0
         return hist, ssum
+
+    def _all_block_colors(
+        self, hist: npt.NDArray[np.float32], ssum: npt.NDArray[np.float32], columns: npt.NDArray[np.float32],
+        mode: vl.ColorMode, palette: npt.NDArray[np.uint8],
+    ) -> npt.NDArray[np.uint8]:
+        """(B, 3) overview colour of every block (majority class or mean score of its visible voxels), kept
+        until the tables, the class toggles, the mode or the palette change (a new focus reuses it)."""
+        key = (hist, columns.tobytes(), mode, palette)
+        cached = self._lod_colors
+        same = cached is not None and cached[0][0] is hist and cached[0][3] is palette
+        if cached is not None and same and cached[0][1:3] == key[1:3]:
+            return cached[1]
+        if mode == "class":
+            colors = vl.class_colors(lod.majority_class(hist, columns), palette)
+        else:
+            colors = vl.scalar_colors(lod.mean_score(hist, ssum, columns))
+        self._lod_colors = (key, colors)
+        return colors
 
     def _draw_lod(self, grid: ReviewGrid, index: lod.LodIndex) -> int | None:
         """Draw a big map within the budget (:mod:`app.viewer.lod`): the voxels near :attr:`lod_focus` in the
@@ -697,11 +716,7 @@ class ReviewSession:
         plan = lod.plan_view(blocks, index.order, counts, focus, cfg.radius, budget)
         rows = vl.visible_rows(state, label, score, plan.rows)
         colors = vl.view_colors(state, label, conf, class_prob, palette, rows)
-        if state.mode == "class":
-            block_colors = vl.class_colors(lod.majority_class(hist, columns, plan.blocks), palette)
-        else:
-            assert ssum is not None
-            block_colors = vl.scalar_colors(lod.mean_score(hist, ssum, columns, plan.blocks))
+        block_colors = self._all_block_colors(hist, ssum, columns, state.mode, palette)[plan.blocks]
         if region is not None and region.rows.size:
             colors = vl.dim_outside(colors, rows, region.rows)
             block_colors = self.blend_dim(block_colors)
