@@ -32,6 +32,7 @@ the voxels inside the cubes that pass, with a test that never drops a voxel the 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -163,22 +164,22 @@ def segment_rows(
 
 
 # ------------------------------------------------------------------------------------------- index
-@dataclass(frozen=True, eq=False)
 class Blocks:
-    """The blocks of one level of a :class:`LodIndex`."""
+    """The non-empty blocks of one level of a :class:`LodIndex` (per-voxel arrays made on first use: the
+    culling cubes need only their runs and corners)."""
 
-    level: int
-    """n: a block is a cube of 2ⁿ voxels per edge."""
-    edge: float
-    """Block edge in metres (2ⁿ · voxel edge)."""
-    starts: npt.NDArray[np.int64]
-    """(B + 1,) start of each block in the index's sorted order (:func:`block_starts`)."""
-    of_row: npt.NDArray[np.int32]
-    """(V,) block of each grid row."""
-    lower: npt.NDArray[np.float64]
-    """(B, 3) world corner of each block's cube with the smallest coordinates."""
-    mean: npt.NDArray[np.float32]
-    """(B, 3) mean centre of each block's voxels (where its overview point is drawn)."""
+    def __init__(self, index: LodIndex, level: int) -> None:
+        self.index = index
+        self.level = level
+        """n: a block is a cube of 2ⁿ voxels per edge."""
+        self.edge = (1 << level) * index.voxel_size
+        """Block edge in metres (2ⁿ · voxel edge)."""
+        self.starts = block_starts(index.codes, level)
+        """(B + 1,) start of each block in the index's sorted order (:func:`block_starts`)."""
+        first = index.ijk_of(index.order[self.starts[:-1]])
+        lower_ijk = ((first - index.origin) >> level << level) + index.origin
+        self.lower: npt.NDArray[np.float64] = (lower_ijk * index.voxel_size).astype(np.float64)
+        """(B, 3) float64 world corner of each block's cube with the smallest coordinates."""
 
     @property
     def count(self) -> int:
@@ -189,6 +190,28 @@ class Blocks:
     def cube_centres(self) -> npt.NDArray[np.float64]:
         """(B, 3) centre of each block's cube."""
         return self.lower + 0.5 * self.edge
+
+    @functools.cached_property
+    def of_sorted(self) -> npt.NDArray[np.int32]:
+        """(V,) block of each voxel in the index's sorted order (non-decreasing)."""
+        return np.repeat(np.arange(self.count, dtype=np.int32), np.diff(self.starts))
+
+    @functools.cached_property
+    def of_row(self) -> npt.NDArray[np.int32]:
+        """(V,) block of each grid row."""
+        out = np.empty(self.index.num_voxels, np.int32)
+        out[self.index.order] = self.of_sorted
+        return out
+
+    @functools.cached_property
+    def mean(self) -> npt.NDArray[np.float32]:
+        """(B, 3) mean centre of each block's voxels (where its overview point is drawn)."""
+        counts = np.diff(self.starts).astype(np.float64)
+        c = self.index.centres
+        return np.stack(
+            [np.bincount(self.of_row, weights=c[:, d], minlength=self.count) / counts for d in range(3)],
+            axis=1,
+        ).astype(np.float32)
 
 
 @dataclass(eq=False)
@@ -212,28 +235,33 @@ class LodIndex:
     def num_voxels(self) -> int:
         return int(self.order.shape[0])
 
+    def ijk_of(self, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        """(M, 3) voxel indices ``⌊centre / s⌋`` of grid rows."""
+        return np.floor(self.centres[rows].astype(np.float64) / self.voxel_size).astype(np.int64)
+
     def blocks(self, level: int) -> Blocks:
         """The non-empty blocks of ``level`` (built once: one pass over the sorted codes)."""
         cached = self._levels.get(level)
-        if cached is not None:
-            return cached
-        starts = block_starts(self.codes, level)
-        nb = starts.shape[0] - 1
-        of_sorted = np.repeat(np.arange(nb, dtype=np.int32), np.diff(starts))
-        of_row = np.empty(self.num_voxels, np.int32)
-        of_row[self.order] = of_sorted
-        first = self.order[starts[:-1]]
-        ijk = np.floor(self.centres[first].astype(np.float64) / self.voxel_size).astype(np.int64)
-        size = 1 << level
-        lower_ijk = ((ijk - self.origin) >> level << level) + self.origin
-        counts = np.diff(starts).astype(np.float64)
-        mean = np.stack(
-            [np.bincount(of_row, weights=self.centres[:, d], minlength=nb) / counts for d in range(3)], axis=1
-        ).astype(np.float32)
-        lower = (lower_ijk * self.voxel_size).astype(np.float64)
-        blocks = Blocks(level, size * self.voxel_size, starts, of_row, lower, mean)
-        self._levels[level] = blocks
-        return blocks
+        if cached is None:
+            cached = self._levels[level] = Blocks(self, level)
+        return cached
+
+    def sorted_tables(
+        self,
+        blocks: Blocks,
+        label: npt.NDArray[np.int16],
+        num_classes: int,
+        *,
+        keep: npt.NDArray[np.bool_] | None = None,
+        score: npt.NDArray[np.floating] | None = None,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None]:
+        """:func:`block_tables` of per-row arrays, counted in sorted order: block ids then only grow, so the
+        counting walks the tables front to back instead of jumping (same result, a fraction of the time)."""
+        order = self.order
+        return block_tables(
+            blocks.of_sorted, blocks.count, label[order], num_classes,
+            keep=None if keep is None else keep[order], score=None if score is None else score[order],
+        )
 
     def overview_level(self, budget: int, share: float) -> int:
         """Level of the overview under ``budget`` points (:func:`choose_level` of ``⌊share · budget⌋``)."""
@@ -249,12 +277,16 @@ class LodIndex:
         return min(21, max(at_least, need))
 
 
-def build_index(centres: npt.NDArray[np.float32], voxel_size: float) -> LodIndex:
+def build_index(
+    centres: npt.NDArray[np.float32], voxel_size: float, ijk: npt.NDArray[np.int64] | None = None
+) -> LodIndex:
     """Sort a grid's voxels by the Morton code of their indices (see the module doc).
 
     Args:
         centres: (V, 3) voxel centres (m), ``(i + ½)·s`` as :func:`leap_core.fusion.key_centres` makes them.
         voxel_size: s > 0.
+        ijk: (V, 3) their integer indices ``⌊centre / s⌋`` when at hand (unpacked from the grid's keys, which
+            is cheaper than dividing the centres).
 
     Raises:
         ValueError: the map spans 2²¹ voxels or more along an axis.
@@ -262,7 +294,8 @@ def build_index(centres: npt.NDArray[np.float32], voxel_size: float) -> LodIndex
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
     c = np.asarray(centres)
-    ijk = np.floor(c.astype(np.float64) / voxel_size).astype(np.int64)
+    if ijk is None:
+        ijk = np.floor(c.astype(np.float64) / voxel_size).astype(np.int64)
     origin = ijk.min(axis=0) if ijk.shape[0] else np.zeros(3, np.int64)
     codes = morton3(ijk - origin)
     del ijk
@@ -554,7 +587,15 @@ def plan_view(
         focus: (3,) world point the full resolution is centred on.
         radius, budget: :class:`LodConfig` values.
     """
-    dist = footprint_distance(blocks.lower, blocks.edge, focus)
+    f = np.asarray(focus, dtype=np.float64).reshape(-1)
+    # Only blocks whose footprint meets the square around the disc need their exact distance.
+    lo, edge = blocks.lower, blocks.edge
+    box = np.flatnonzero(
+        (lo[:, 0] <= f[0] + radius) & (lo[:, 0] + edge >= f[0] - radius)
+        & (lo[:, 1] <= f[1] + radius) & (lo[:, 1] + edge >= f[1] - radius)
+    )
+    dist = np.full(blocks.count, np.inf)
+    dist[box] = footprint_distance(lo[box], edge, f)
     full = full_blocks(dist, counts, radius, budget)
     shown = counts > 0
     shown[full] = False

@@ -34,7 +34,7 @@ from app.viewer.lod import LodConfig
 from app.viewer.scene import ReviewScene
 from leap_core import review
 from leap_core import selection as sel
-from leap_core.fusion import key_centres, voxel_keys
+from leap_core.fusion import key_centres, key_coords, voxel_keys
 from leap_core.picking import pick_voxel
 from leap_core.schema import ClassDef, Schema
 from leap_core.types import UNLABELED
@@ -458,7 +458,9 @@ class ReviewSession:
         """Show a run's grid already in memory (:meth:`load_run` reads it from the run's folder), with its
         scans when ``outputs`` is given."""
         t0 = time.perf_counter()
-        index = lod.build_index(grid.centres, grid.voxel_size) if self._needs_lod(grid) else None
+        index = None
+        if self._needs_lod(grid):
+            index = lod.build_index(grid.centres, grid.voxel_size, key_coords(grid.keys))
         index_s = time.perf_counter() - t0
         with self._lock:
             self.run = run
@@ -664,7 +666,7 @@ class ReviewSession:
             return cached[1], cached[2]
         t0 = time.perf_counter()
         keep = score >= np.float32(state.threshold) if state.threshold > 0 else None
-        hist, ssum = lod.block_tables(blocks.of_row, blocks.count, label, num_classes, keep=keep, score=score)
+        hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, keep=keep, score=score)
         assert ssum is not None
         self._lod_tables = (key, hist, ssum)
         self.lod_seconds["tables"] = time.perf_counter() - t0
