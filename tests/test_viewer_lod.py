@@ -103,6 +103,28 @@ def test_majority_class_and_mean_score_by_hand() -> None:
     assert lod.mean_score(kept, ssum, only2 * np.array([0, 1, 1, 1], np.float32), blocks)[0] == 0.0
 
 
+@pytest.mark.parametrize("threshold", [0.0, 0.5])
+def test_update_tables_equals_a_recount(threshold: float) -> None:
+    rng = np.random.default_rng(8)
+    n, nb, c = 5000, 300, 4
+    of_row = rng.integers(0, nb, n).astype(np.int32)
+    label = rng.integers(-1, c, n).astype(np.int16)
+    score = rng.random(n).astype(np.float32)
+    keep = score >= threshold
+    hist, ssum = lod.block_tables(of_row, nb, label, c, keep=keep, score=score)
+    assert ssum is not None
+    rows = rng.choice(n, 200, replace=False)
+    label2, score2 = label.copy(), score.copy()
+    label2[rows] = rng.integers(-1, c, rows.size)
+    score2[rows] = rng.random(rows.size)
+    keep2 = score2 >= threshold
+    lod.update_tables(hist, ssum, of_row[rows], c, (label[rows], score[rows], keep[rows]),
+                      (label2[rows], score2[rows], keep2[rows]))
+    want_h, want_s = lod.block_tables(of_row, nb, label2, c, keep=keep2, score=score2)
+    np.testing.assert_array_equal(hist, want_h)
+    np.testing.assert_allclose(ssum, want_s, atol=1e-5)
+
+
 def test_full_blocks_take_the_nearest_within_the_budget() -> None:
     distance = np.array([0.0, 5.0, 10.0, 100.0, 5.0])
     counts = np.array([3, 4, 0, 2, 1])
@@ -389,8 +411,25 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         # The overview shows the correction too: the blocks under the box are now building-coloured.
         bcols = np.asarray(overview.colors)[np.abs(np.asarray(overview.points)[:, 0] - area[0]) <= 12]
         assert bcols.size and (bcols == SCHEMA3["classes"][2]["color"]).all()
+        # A small correction moves its voxels in the block tables instead of recounting: same tables.
+        fov_small = 2 * math.atan(3.0 / 100.0)
+        beside = above + np.array([40.0, 0, 0])
+        n_small = session.select_rect(beside, down, fov_small, 1.0, (0.0, 0.0), (1.0, 1.0))
+        assert 0 < n_small < keys.size // 20
+        # With a threshold the corrected voxels (confidence 0.8 -> 1) also enter the count.
+        session.set_state(threshold=0.9)
+        assert session.wait_drawn()
+        session.assign_selection("sidewalk")
+        assert session.wait_drawn()
+        cached = session._lod_tables
+        assert cached is not None
+        blocks = cached[0][0]
+        want_h, want_s = lod.block_tables(blocks.of_row, blocks.count, session.label, 3,
+                                          keep=session.conf >= 0.9, score=session.conf)
+        np.testing.assert_array_equal(cached[1], want_h)
+        np.testing.assert_allclose(cached[2], want_s, atol=1e-3)
         # "Limit points" below the budget: the full-resolution disc shrinks to what fits.
-        session.set_state(max_points=1000)
+        session.set_state(max_points=1000, threshold=0.0)
         assert session.wait_drawn() and 900 < sent() <= 1000
         assert session.scene.voxels.count > 0 and session.scene.overview.count > 0
     finally:

@@ -367,6 +367,32 @@ def block_tables(
     return hist, ssum
 
 
+def update_tables(
+    hist: npt.NDArray[np.float32],
+    ssum: npt.NDArray[np.float32],
+    block: npt.NDArray[np.int32],
+    num_classes: int,
+    before: tuple[npt.NDArray[np.int16], npt.NDArray[np.floating], npt.NDArray[np.bool_]],
+    after: tuple[npt.NDArray[np.int16], npt.NDArray[np.floating], npt.NDArray[np.bool_]],
+) -> None:
+    """Move changed voxels in :func:`block_tables`' tables, in place: each voxel's old entry (class, score,
+    counted) is taken out of its block's row and its new one put in (a correction changes a few voxels; a
+    full recount reads them all).
+
+    Args:
+        hist, ssum: (B, C + 1) tables to update.
+        block: (K,) block of each changed voxel.
+        num_classes: C.
+        before, after: ``(label (K,), score (K,), counted (K,) bool)`` of the changed voxels.
+    """
+    width = num_classes + 1
+    flat_h, flat_s = hist.reshape(-1), ssum.reshape(-1)
+    for (lab, sc, counted), sign in ((before, -1.0), (after, 1.0)):
+        idx = block[counted].astype(np.int64) * width + lab[counted].astype(np.int64) + 1
+        np.add.at(flat_h, idx, np.float32(sign))
+        np.add.at(flat_s, idx, (sign * np.asarray(sc)[counted]).astype(np.float32))
+
+
 def enabled_columns(enabled: tuple[bool, ...], num_classes: int) -> npt.NDArray[np.float32]:
     """(C + 1,) 1/0 weight of each table column: unlabeled (column 0) always on, class c per its toggle
     (every class when ``enabled`` is empty, as :func:`app.viewer.view_logic.visible_mask`)."""
@@ -651,5 +677,6 @@ __all__ = [
     "segment_rows",
     "select_culled",
     "thin_rows",
+    "update_tables",
     "visible_counts",
 ]

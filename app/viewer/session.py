@@ -393,6 +393,7 @@ class ReviewSession:
         self.lod_seconds: dict[str, float] = {}
         """Server seconds of the last level-of-detail steps (``index`` at load, ``tables``, ``plan``)."""
         self._lod_tables: _Tables | None = None
+        self._lod_table_inputs: tuple[npt.NDArray[np.int16], npt.NDArray[np.floating]] | None = None
         self._lod_colors: tuple[tuple[Any, ...], npt.NDArray[np.uint8]] | None = None
         self._lod_centre: npt.NDArray[np.float64] | None = None
         self._shown_blocks: tuple[lod.Blocks, npt.NDArray[np.int64]] | None = None
@@ -468,6 +469,7 @@ class ReviewSession:
             self.lod_index = index
             self.lod_seconds = {"index": index_s} if index is not None else {}
             self._lod_tables, self._lod_colors, self._shown_blocks, self.lod_plan = None, None, None, None
+            self._lod_table_inputs = None
             self._lod_centre = None
             self.outputs = outputs
             self.run_schema = run.schema or self.project_schema
@@ -665,11 +667,41 @@ class ReviewSession:
         ):
             return cached[1], cached[2]
         t0 = time.perf_counter()
-        keep = score >= np.float32(state.threshold) if state.threshold > 0 else None
-        hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, keep=keep, score=score)
-        assert ssum is not None
+        thr = np.float32(state.threshold)
+        hist_ssum = self._tables_after_edit(blocks, key, label, score, thr, num_classes)
+        if hist_ssum is None:
+            keep = score >= thr if state.threshold > 0 else None
+            hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, keep=keep, score=score)
+            assert ssum is not None
+        else:
+            hist, ssum = hist_ssum
         self._lod_tables = (key, hist, ssum)
+        self._lod_table_inputs = (label, score)
         self.lod_seconds["tables"] = time.perf_counter() - t0
+        return hist, ssum
+
+    def _tables_after_edit(
+        self, blocks: lod.Blocks, key: tuple[Any, ...], label: npt.NDArray[np.int16],
+        score: npt.NDArray[np.floating], thr: np.float32, num_classes: int,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None:
+        """The cached tables moved to new labels / scores when only those changed, and in few voxels (a
+        correction, an undo); None when they must be counted afresh."""
+        cached, inputs = self._lod_tables, self._lod_table_inputs
+        if cached is None or inputs is None or cached[0][0] is not blocks or cached[0][4:] != key[4:]:
+            return None
+        old_label, old_score = inputs
+        if old_label.shape != label.shape or old_score.shape != score.shape:
+            return None
+        rows = np.flatnonzero((old_label != label) | (old_score != score))
+        if rows.size > label.shape[0] // 20:
+            return None
+        hist, ssum = cached[1].copy(), cached[2].copy()  # the old ones stay valid for their colour cache
+        counted_old = old_score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
+        counted_new = score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
+        lod.update_tables(
+            hist, ssum, blocks.of_row[rows], num_classes,
+            (old_label[rows], old_score[rows], counted_old), (label[rows], score[rows], counted_new),
+        )
         return hist, ssum
 
     def _all_block_colors(
