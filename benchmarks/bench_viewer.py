@@ -21,8 +21,15 @@ previous implementation in the same process: ranking cells with a row-wise ``np.
 disagreement queue, moving and looking up *every* point of every scan instead of only the points the camera
 labelled (the only ones that can disagree).
 
+:func:`bench_lod` (``--only lod``) opens a real session (viser server, a websocket client counting the bytes)
+on a synthetic street town of ``--voxels`` voxels (:func:`street_map`) and times the first draw and each
+interaction (scan change, class toggle, colour switch, threshold, camera refine, lasso and box selections,
+a correction and its undo, review-region select) with level of detail under ``--budget`` points, against the
+same session drawing every voxel (the viewer before level of detail), same process, same grid, same actions.
+Run it at 10 M voxels under ``flock /work/cpu.lock nice -n 19`` on a shared machine.
+
 Run: ``.venv/bin/python benchmarks/bench_viewer.py [--voxels 2000000] [--classes 20] [--repeats 3]
-[--only recolour|selection|queues|apply ...]``.
+[--only recolour|selection|queues|apply|lod ...] [--budget 2000000]``.
 Prints tables and writes ``benchmarks/results/bench_viewer.json``.
 """
 
