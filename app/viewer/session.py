@@ -744,8 +744,9 @@ class ReviewSession:
         if int(counts.sum()) <= budget:
             return None
         if focus is None:
-            if self._lod_centre is None:
-                self._lod_centre = grid.centres.mean(axis=0, dtype=np.float64)
+            if self._lod_centre is None:  # until something is focused: the middle of the map's blocks
+                lower = blocks.lower
+                self._lod_centre = (lower.min(axis=0) + lower.max(axis=0) + blocks.edge) / 2.0
             focus = self._lod_centre
         plan = lod.plan_view(blocks, index.order, counts, focus, cfg.radius, budget)
         rows = vl.visible_rows(state, label, score, plan.rows)
@@ -867,7 +868,11 @@ class ReviewSession:
 
     def _frame_whole_map(self) -> None:
         grid = self.grid
-        view = None if grid is None else nl.fit_view(grid.centres)
+        centres = None if grid is None else grid.centres
+        if centres is not None and self.lod_index is not None:
+            # Percentiles of a big map's evenly strided sample (keys sort by x): framing needs no more.
+            centres = centres[:: max(1, centres.shape[0] // 1_000_000)]
+        view = None if centres is None else nl.fit_view(centres)
         if view is not None:
             self.scene.look_at(*view)
 
