@@ -457,17 +457,16 @@ class ReviewSession:
 
     def show_grid(self, run: RunInfo, grid: ReviewGrid, outputs: RunOutputs | None) -> None:
         """Show a run's grid already in memory (:meth:`load_run` reads it from the run's folder), with its
-        scans when ``outputs`` is given."""
-        t0 = time.perf_counter()
-        index = None
-        if self._needs_lod(grid):
-            index = lod.build_index(grid.centres, grid.voxel_size, key_coords(grid.keys))
-        index_s = time.perf_counter() - t0
+        scans when ``outputs`` is given.
+
+        A map above the level-of-detail budget is first drawn as an evenly strided subset within the budget;
+        its spatial index is built on a thread meanwhile, and the level-of-detail view replaces it when ready.
+        """
         with self._lock:
             self.run = run
             self.grid = grid
-            self.lod_index = index
-            self.lod_seconds = {"index": index_s} if index is not None else {}
+            self.lod_index = None
+            self.lod_seconds = {}
             self._lod_tables, self._lod_colors, self._shown_blocks, self.lod_plan = None, None, None, None
             self._lod_table_inputs = None
             self._lod_centre = None
@@ -492,6 +491,8 @@ class ReviewSession:
             self.scene_version += 1
         self.panel.on_run_loaded()
         self.draw_now()
+        if self._needs_lod(grid):
+            self._build_index(grid)
         if self.scene_version == 1:
             # Frame the map once; a reload after a re-run keeps the camera where the user left it.
             self._frame_whole_map()
@@ -613,11 +614,16 @@ class ReviewSession:
         self._emit("drawn")
 
     def _draw_exact(self) -> int:
-        """Draw every visible voxel (a map within the budget); returns the points sent."""
+        """Draw every visible voxel (a map within the budget; a bigger one evenly strided to the budget until
+        its index is built); returns the points sent."""
         rows, colors = self.compute_view()
         grid = self.grid
         if grid is None:
             return 0
+        budget = self._lod_budget(self.state)
+        if self._needs_lod(grid) and rows.shape[0] > budget:
+            keep = vl.decimate_indices(np.arange(rows.shape[0]), budget)
+            rows, colors = rows[keep], colors[keep]
         self._put_voxels(grid, rows, colors)
         self.lod_plan = None
         if self.scene.overview.visible:
@@ -787,11 +793,13 @@ class ReviewSession:
 
     def focus_lod(self, point: npt.ArrayLike) -> None:
         """Centre the full-resolution area of a big map on ``point`` (3,) and redraw (no-op for a map drawn
-        exactly)."""
-        if self.lod_index is None:
+        exactly; kept for the level-of-detail view while its index is built)."""
+        grid = self.grid
+        if grid is None or not self._needs_lod(grid):
             return
         self.lod_focus = np.asarray(point, dtype=np.float64).reshape(3).copy()
-        self.request_draw()
+        if self.lod_index is not None:
+            self.request_draw()
 
     def _camera_moved(self, look_at: npt.NDArray[np.float64]) -> None:
         """Follow a browser's look-at point once it left the full-resolution area's centre by
@@ -809,7 +817,7 @@ class ReviewSession:
         """Block until no redraw is pending (tests and the benchmark use this)."""
         deadline = time.monotonic() + timeout
         with self._drawn:
-            while self._draw_wanted.is_set() or self._drawing:
+            while self._draw_wanted.is_set() or self._drawing or self._indexing:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -817,6 +825,7 @@ class ReviewSession:
         return True
 
     _drawing = False
+    _indexing = False
     _shown: tuple[ReviewGrid, npt.NDArray[np.int64]] | None = None
 
     def _draw_loop(self) -> None:
@@ -865,6 +874,29 @@ class ReviewSession:
 
     def _needs_lod(self, grid: ReviewGrid) -> bool:
         return grid.num_voxels > self.config.lod.budget
+
+    def _build_index(self, grid: ReviewGrid) -> None:
+        """Build ``grid``'s level-of-detail index on a thread, then redraw with it."""
+        self._indexing = True
+
+        def build() -> None:
+            try:
+                t0 = time.perf_counter()
+                index = lod.build_index(grid.centres, grid.voxel_size, key_coords(grid.keys))
+                with self._lock:
+                    if self.grid is grid:
+                        self.lod_index = index
+                        self.lod_seconds["index"] = time.perf_counter() - t0
+                self.request_draw()
+            except Exception:  # keep the strided view; the panel says why
+                log.exception("building the viewer's level-of-detail index failed")
+                self.panel.set_status("The map's level of detail could not be built; see the server log.")
+            finally:
+                self._indexing = False
+                with self._drawn:
+                    self._drawn.notify_all()
+
+        threading.Thread(target=build, name="viewer-lod-index", daemon=True).start()
 
     def _frame_whole_map(self) -> None:
         grid = self.grid
