@@ -580,14 +580,16 @@ class ReviewSession:
             self.state = dataclasses.replace(self.state, enabled=tuple(enabled))
         self._draw_wanted.set()
 
-    def compute_view(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
+    def compute_view(self, limit: int | None = None) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
         """Rows of the visible voxels and their colours for the current state (pure on the session's
-        arrays)."""
+        arrays); ``limit`` caps them like "Max points" (an even stride)."""
         with self._lock:
             grid, state = self.grid, self.state
             label, conf, corrected, palette = self.label, self.conf, self.corrected, self.palette
         if grid is None:
             return np.zeros(0, np.int64), np.zeros((0, 3), np.uint8)
+        if limit is not None:
+            state = dataclasses.replace(state, max_points=min(limit, state.max_points or limit))
         class_prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
         rows, colors = vl.render_view(state, label, conf, palette, class_prob, corrected)
         focus = self.focus
@@ -616,14 +618,11 @@ class ReviewSession:
     def _draw_exact(self) -> int:
         """Draw every visible voxel (a map within the budget; a bigger one evenly strided to the budget until
         its index is built); returns the points sent."""
-        rows, colors = self.compute_view()
         grid = self.grid
         if grid is None:
             return 0
-        budget = self._lod_budget(self.state)
-        if self._needs_lod(grid) and rows.shape[0] > budget:
-            keep = vl.decimate_indices(np.arange(rows.shape[0]), budget)
-            rows, colors = rows[keep], colors[keep]
+        # A big map: an even stride within the budget (colours computed for those voxels only).
+        rows, colors = self.compute_view(self._lod_budget(self.state) if self._needs_lod(grid) else None)
         self._put_voxels(grid, rows, colors)
         self.lod_plan = None
         if self.scene.overview.visible:
