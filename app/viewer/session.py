@@ -700,7 +700,8 @@ class ReviewSession:
         rows = np.flatnonzero((old_label != label) | (old_score != score))
         if rows.size > label.shape[0] // 20:
             return None
-        hist, ssum = cached[1].copy(), cached[2].copy()  # the old ones stay valid for their colour cache
+        hist, ssum = cached[1], cached[2]  # updated in place: the colours made from them go too
+        self._lod_colors = None
         counted_old = old_score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
         counted_new = score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
         lod.update_tables(
@@ -882,6 +883,10 @@ class ReviewSession:
             try:
                 t0 = time.perf_counter()
                 index = lod.build_index(grid.centres, grid.voxel_size, key_coords(grid.keys))
+                cfg = self.config.lod
+                blocks = index.blocks(index.overview_level(self._lod_budget(self.state), cfg.overview_share))
+                # Per-voxel block arrays now, not on the first draw or correction that needs them.
+                _ = blocks.of_row, blocks.mean, index.blocks(index.query_level(cfg.query_edge))
                 with self._lock:
                     if self.grid is grid:
                         self.lod_index = index
