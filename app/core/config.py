@@ -108,7 +108,8 @@ class Settings(BaseSettings):
     viewer_port: int = Field(default=0, ge=0, le=65535)
     """Port of the viser viewer; 0 picks a free port."""
     viewer_max_points: int = Field(default=2_000_000, ge=1000)
-    """Above this many voxels the viewer decimates only when the user asks."""
+    """Most points the viewer sends for the voxel map: a bigger map is drawn with level of detail (full
+    resolution near the focus, one point per block elsewhere; ``app.viewer.lod``)."""
     progress_interval_s: float = Field(default=0.1, gt=0, le=5)
     """Minimum seconds between two progress messages of one stage (the last one is always sent)."""
     log_level: Literal["debug", "info", "warning", "error"] = "info"

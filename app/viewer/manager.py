@@ -23,6 +23,7 @@ from app.core.errors import Conflict, NotFound
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager, current_manager
 from app.jobs.multi import sequence_run_dir
+from app.viewer.lod import LodConfig
 from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
     CorrectionRecord,
@@ -230,7 +231,9 @@ class ViewerManager:
     ) -> None:
         self.settings = settings
         self.jobs = jobs
-        self.config = config or SessionConfig(max_points=settings.viewer_max_points)
+        self.config = config or SessionConfig(
+            max_points=settings.viewer_max_points, lod=LodConfig(budget=settings.viewer_max_points)
+        )
         self._sessions: dict[int, ReviewSession] = {}
         self._lock = threading.Lock()
 

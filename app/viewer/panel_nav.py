@@ -8,6 +8,8 @@ page's keys through :mod:`app.api.routes.viewer_nav`. Every class name goes thro
 from __future__ import annotations
 
 import html
+import itertools
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -187,9 +189,25 @@ class NavPanel:
         self.inspect.content = distribution_html(found, self.s.class_names(), self.s.palette)
         self.inspect_folder.visible = True
 
+    _histogram_runs = itertools.count()
+    _histogram_latest = 0
+
     def update_histogram(self) -> None:
+        """Recount the confidence histograms: at once for a map drawn exactly, on a thread for a big one (a
+        pass over every voxel, which must not hold up its first draw or a correction)."""
+        run = self._histogram_latest = next(self._histogram_runs)
+        if self.s.lod_index is None:
+            self._fill_histogram(run)
+        else:
+            fill = threading.Thread(target=self._fill_histogram, args=(run,), name="viewer-histogram")
+            fill.daemon = True
+            fill.start()
+
+    def _fill_histogram(self, run: int) -> None:
         s = self.s
-        self.histogram.content = histogram_html(s.confidence_histograms(), s.class_names(), s.palette)
+        content = histogram_html(s.confidence_histograms(), s.class_names(), s.palette)
+        if run == self._histogram_latest:  # a later recount has started: its result wins
+            self.histogram.content = content
 
 
 __all__ = ["BROWSE", "FIT", "NavPanel", "distribution_html", "histogram_html", "history_html"]

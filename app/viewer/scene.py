@@ -251,7 +251,9 @@ class ReviewScene:
         # A docked panel never hides the map (a floating one covers part of the canvas).
         self.server.gui.main_panel.dock_right()
         self.voxels = PointLayer(self.server, "/map/voxels", point_size=0.2)
-        """The voxel map (one point per voxel centre)."""
+        """The voxel map (one point per voxel centre; on a big map, the voxels near the focus)."""
+        self.overview = PointLayer(self.server, "/map/overview", point_size=0.4)
+        """A big map's overview: one point per block away from the focus (:mod:`app.viewer.lod`)."""
         self.selection = PointLayer(self.server, "/map/selection", point_size=0.26)
         """Highlight of the voxels selected for a correction."""
         self.scan = PointLayer(self.server, "/scan/points", point_size=0.08)
@@ -326,6 +328,15 @@ class ReviewScene:
         if self._rect_cb is not None:
             self.server.scene.remove_rect_select_callback(self._rect_cb)
             self._rect_cb = None
+
+    def on_look_at(self, callback: Callable[[npt.NDArray[np.float64]], None]) -> None:
+        """Call ``callback(look_at)`` with the (3,) look-at point whenever a browser's camera moves (every
+        connected browser and every later one)."""
+
+        def attach(client: Any) -> None:
+            client.camera.on_update(lambda camera: callback(np.asarray(camera.look_at, dtype=np.float64)))
+
+        self.server.on_client_connect(attach)
 
     def on_click(self, callback: ClickFn) -> None:
         """Call ``callback`` for every plain click on the canvas (a drag still orbits the camera; clicks

@@ -26,13 +26,15 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.viewer import lod
 from app.viewer import nav_logic as nl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, ScanView
+from app.viewer.lod import LodConfig
 from app.viewer.scene import ReviewScene
 from leap_core import review
 from leap_core import selection as sel
-from leap_core.fusion import key_centres, voxel_keys
+from leap_core.fusion import key_centres, key_coords, voxel_keys
 from leap_core.picking import pick_voxel
 from leap_core.schema import ClassDef, Schema
 from leap_core.types import UNLABELED
@@ -267,6 +269,12 @@ class SessionConfig:
     """Seconds between scans while playing through them."""
     follow_ego: bool = True
     """Whether the camera follows the ego pose on a scan change when the viewer starts (key ``g``)."""
+    lod: LodConfig = dataclasses.field(default_factory=LodConfig)
+    """Level of detail of maps with more voxels than its budget (:mod:`app.viewer.lod`)."""
+
+
+_Tables = tuple[tuple[Any, ...], npt.NDArray[np.float32], npt.NDArray[np.float32]]
+"""Cached per-block tables: (what they were made from, counts, score sums)."""
 
 
 @dataclass
@@ -336,6 +344,7 @@ class ReviewSession:
         self._init_navigation()
         self.last_draw_s = 0.0
         self.draw_count = 0
+        self._init_lod()
         self.scene_version = 0
         """Bumped every time a run's data is (re)loaded into the scene."""
         self.watched_run: int | None = None
@@ -345,6 +354,7 @@ class ReviewSession:
         self._stop = threading.Event()
         self._listeners: list[Callable[[str], None]] = []
         self.panel = panel(self)
+        self.scene.on_look_at(self._camera_moved)
         self._drawer = threading.Thread(target=self._draw_loop, name="viewer-draw", daemon=True)
         self._drawer.start()
         self._watcher: threading.Thread | None = None
@@ -372,6 +382,24 @@ class ReviewSession:
         """The review region shown highlighted (its voxels at full colour, the rest dimmed)."""
         self.focus_frame: int | None = None
         """Position (in the scan slider) of the scan the focused region was seen best in."""
+    def _init_lod(self) -> None:
+        self.lod_index: lod.LodIndex | None = None
+        """Spatial index of the shown grid when it has more voxels than ``config.lod.budget`` (else None:
+        the map is drawn exactly)."""
+        self.lod_focus: npt.NDArray[np.float64] | None = None
+        """Point the full-resolution area is centred on (the scan, region or look-at point last focused)."""
+        self.lod_plan: lod.LodPlan | None = None
+        """What the last level-of-detail draw sent (None after an exact draw)."""
+        self.lod_seconds: dict[str, float] = {}
+        """Server seconds of the last level-of-detail steps (``index`` at load, ``tables``, ``plan``)."""
+        self._lod_tables: _Tables | None = None
+        self._lod_table_inputs: tuple[npt.NDArray[np.int16], npt.NDArray[np.floating]] | None = None
+        self._lod_colors: tuple[tuple[Any, ...], npt.NDArray[np.uint8]] | None = None
+        self._lod_centre: npt.NDArray[np.float64] | None = None
+        self._shown_blocks: tuple[lod.Blocks, npt.NDArray[np.int64]] | None = None
+        self.map_visible = True
+        """The panel's "Show voxel map": both map layers (voxels and overview) follow it."""
+
     def _init_labels(self) -> None:
         self.label = np.zeros(0, np.int16)
         self.conf = np.zeros(0, np.float32)
@@ -425,9 +453,23 @@ class ReviewSession:
         """Load a finished run's grid (with the project's corrections overlaid) and draw it."""
         grid = ReviewGrid.load(run.run_dir, run.pipeline)
         outputs = RunOutputs(run.run_dir, self.backend.dataset_path())
+        self.show_grid(run, grid, outputs)
+
+    def show_grid(self, run: RunInfo, grid: ReviewGrid, outputs: RunOutputs | None) -> None:
+        """Show a run's grid already in memory (:meth:`load_run` reads it from the run's folder), with its
+        scans when ``outputs`` is given.
+
+        A map above the level-of-detail budget is first drawn as an evenly strided subset within the budget;
+        its spatial index is built on a thread meanwhile, and the level-of-detail view replaces it when ready.
+        """
         with self._lock:
             self.run = run
             self.grid = grid
+            self.lod_index = None
+            self.lod_seconds = {}
+            self._lod_tables, self._lod_colors, self._shown_blocks, self.lod_plan = None, None, None, None
+            self._lod_table_inputs = None
+            self._lod_centre = None
             self.outputs = outputs
             self.run_schema = run.schema or self.project_schema
             if self.run_schema.num_classes != grid.num_classes:
@@ -449,13 +491,15 @@ class ReviewSession:
             self.scene_version += 1
         self.panel.on_run_loaded()
         self.draw_now()
+        if self._needs_lod(grid):
+            self._build_index(grid)
         if self.scene_version == 1:
             # Frame the map once; a reload after a re-run keeps the camera where the user left it.
             self._frame_whole_map()
         self.inspected = None
         self.scene.inspected.visible = False
         self.scene.set_review_box(None)
-        if outputs.frame_indices:
+        if outputs is not None and outputs.frame_indices:
             # The map framing above is the first view; following starts with the user's first scan change.
             self.show_scan(len(outputs.frame_indices) // 2, move_camera=False)
         if rebuild:
@@ -536,14 +580,16 @@ class ReviewSession:
             self.state = dataclasses.replace(self.state, enabled=tuple(enabled))
         self._draw_wanted.set()
 
-    def compute_view(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
+    def compute_view(self, limit: int | None = None) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
         """Rows of the visible voxels and their colours for the current state (pure on the session's
-        arrays)."""
+        arrays); ``limit`` caps them like "Max points" (an even stride)."""
         with self._lock:
             grid, state = self.grid, self.state
             label, conf, corrected, palette = self.label, self.conf, self.corrected, self.palette
         if grid is None:
             return np.zeros(0, np.int64), np.zeros((0, 3), np.uint8)
+        if limit is not None:
+            state = dataclasses.replace(state, max_points=min(limit, state.max_points or limit))
         class_prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
         rows, colors = vl.render_view(state, label, conf, palette, class_prob, corrected)
         focus = self.focus
@@ -554,10 +600,38 @@ class ReviewSession:
     def draw_now(self) -> None:
         """Recompute and push the voxel layer (and selection highlight) synchronously."""
         t0 = time.perf_counter()
-        rows, colors = self.compute_view()
-        grid = self.grid
+        with self._lock:
+            grid, index = self.grid, self.lod_index
         if grid is None:
             return
+        shown = self._draw_lod(grid, index) if index is not None else None
+        if shown is None:
+            shown = self._draw_exact()
+        self._draw_selection()
+        self.last_draw_s = time.perf_counter() - t0
+        self.draw_count += 1
+        self.panel.on_drawn(shown=shown, total=grid.num_voxels, seconds=self.last_draw_s)
+        with self._drawn:
+            self._drawn.notify_all()
+        self._emit("drawn")
+
+    def _draw_exact(self) -> int:
+        """Draw every visible voxel (a map within the budget; a bigger one evenly strided to the budget until
+        its index is built); returns the points sent."""
+        grid = self.grid
+        if grid is None:
+            return 0
+        # A big map: an even stride within the budget (colours computed for those voxels only).
+        rows, colors = self.compute_view(self._lod_budget(self.state) if self._needs_lod(grid) else None)
+        self._put_voxels(grid, rows, colors)
+        self.lod_plan = None
+        if self.scene.overview.visible:
+            self.scene.overview.visible = False
+        return int(rows.shape[0])
+
+    def _put_voxels(
+        self, grid: ReviewGrid, rows: npt.NDArray[np.int64], colors: npt.NDArray[np.uint8]
+    ) -> None:
         shown = self._shown
         if shown is not None and shown[0] is grid and np.array_equal(shown[1], rows):
             # Same voxels (a colouring change): only the colours go over the wire.
@@ -565,13 +639,176 @@ class ReviewSession:
         else:
             self.scene.voxels.set(grid.centres[rows], colors)
             self._shown = (grid, rows)
-        self._draw_selection()
-        self.last_draw_s = time.perf_counter() - t0
-        self.draw_count += 1
-        self.panel.on_drawn(shown=rows.shape[0], total=grid.num_voxels, seconds=self.last_draw_s)
-        with self._drawn:
-            self._drawn.notify_all()
-        self._emit("drawn")
+
+    def _lod_budget(self, state: vl.ViewState) -> int:
+        budget = self.config.lod.budget
+        return budget if state.max_points is None else max(2, min(budget, state.max_points))
+
+    def _view_score(
+        self, grid: ReviewGrid, state: vl.ViewState, label: npt.NDArray[np.int16],
+        conf: npt.NDArray[np.float32], corrected: npt.NDArray[np.bool_],
+    ) -> tuple[npt.NDArray[np.floating], npt.NDArray[np.floating] | None]:
+        """``(score, class_prob)`` of the view: the value the threshold applies to, and the probability of
+        ``state.class_index`` (corrections applied; None outside ``class_probability`` mode)."""
+        class_prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
+        class_prob = vl.corrected_class_prob(state, label, class_prob, corrected)
+        return vl.view_score(state, conf, class_prob), class_prob
+
+    def _block_tables(
+        self, blocks: lod.Blocks, *, state: vl.ViewState, label: npt.NDArray[np.int16],
+        conf: npt.NDArray[np.float32], corrected: npt.NDArray[np.bool_], score: npt.NDArray[np.floating],
+        num_classes: int,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """Per block and class counts and score sums of the voxels passing the threshold, kept until the
+        labels, the scored quantity or the threshold change (a class toggle or a new focus reuses them; the
+        class and confidence views share one table: both threshold and sum the confidence)."""
+        prob = state.mode == "class_probability"
+        key = (blocks, label, conf, corrected if prob else None, state.class_index if prob else -1,
+               state.threshold)
+        cached = self._lod_tables
+        if cached is not None and len(cached[0]) == len(key) and all(
+            a is b if isinstance(a, (np.ndarray, lod.Blocks)) else a == b
+            for a, b in zip(cached[0], key, strict=True)
+        ):
+            return cached[1], cached[2]
+        t0 = time.perf_counter()
+        thr = np.float32(state.threshold)
+        hist_ssum = self._tables_after_edit(blocks, key, label, score, thr, num_classes)
+        if hist_ssum is None:
+            keep = score >= thr if state.threshold > 0 else None
+            hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, keep=keep, score=score)
+            assert ssum is not None
+        else:
+            hist, ssum = hist_ssum
+        self._lod_tables = (key, hist, ssum)
+        self._lod_table_inputs = (label, score)
+        self.lod_seconds["tables"] = time.perf_counter() - t0
+        return hist, ssum
+
+    def _tables_after_edit(
+        self, blocks: lod.Blocks, key: tuple[Any, ...], label: npt.NDArray[np.int16],
+        score: npt.NDArray[np.floating], thr: np.float32, num_classes: int,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None:
+        """The cached tables moved to new labels / scores when only those changed, and in few voxels (a
+        correction, an undo); None when they must be counted afresh."""
+        cached, inputs = self._lod_tables, self._lod_table_inputs
+        if cached is None or inputs is None or cached[0][0] is not blocks or cached[0][4:] != key[4:]:
+            return None
+        old_label, old_score = inputs
+        if old_label.shape != label.shape or old_score.shape != score.shape:
+            return None
+        rows = np.flatnonzero((old_label != label) | (old_score != score))
+        if rows.size > label.shape[0] // 20:
+            return None
+        hist, ssum = cached[1], cached[2]  # updated in place: the colours made from them go too
+        self._lod_colors = None
+        counted_old = old_score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
+        counted_new = score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
+        lod.update_tables(
+            hist, ssum, blocks.of_row[rows], num_classes,
+            (old_label[rows], old_score[rows], counted_old), (label[rows], score[rows], counted_new),
+        )
+        return hist, ssum
+
+    def _all_block_colors(
+        self, hist: npt.NDArray[np.float32], ssum: npt.NDArray[np.float32], columns: npt.NDArray[np.float32],
+        mode: vl.ColorMode, palette: npt.NDArray[np.uint8],
+    ) -> npt.NDArray[np.uint8]:
+        """(B, 3) overview colour of every block (majority class or mean score of its visible voxels), kept
+        until the tables, the class toggles, the mode or the palette change (a new focus reuses it)."""
+        key = (hist, columns.tobytes(), mode, palette)
+        cached = self._lod_colors
+        same = cached is not None and cached[0][0] is hist and cached[0][3] is palette
+        if cached is not None and same and cached[0][1:3] == key[1:3]:
+            return cached[1]
+        if mode == "class":
+            colors = vl.class_colors(lod.majority_class(hist, columns), palette)
+        else:
+            colors = vl.scalar_colors(lod.mean_score(hist, ssum, columns))
+        self._lod_colors = (key, colors)
+        return colors
+
+    def _draw_lod(self, grid: ReviewGrid, index: lod.LodIndex) -> int | None:
+        """Draw a big map within the budget (:mod:`app.viewer.lod`): the voxels near :attr:`lod_focus` in the
+        voxel layer, one point per block elsewhere in the overview layer. Returns the points sent, or None
+        when every visible voxel fits the budget (then the caller draws exactly)."""
+        with self._lock:
+            state, palette, region = self.state, self.palette, self.focus
+            label, conf, corrected = self.label, self.conf, self.corrected
+            focus = self.lod_focus
+        cfg = self.config.lod
+        budget = self._lod_budget(state)
+        blocks = index.blocks(index.overview_level(budget, cfg.overview_share))
+        score, class_prob = self._view_score(grid, state, label, conf, corrected)
+        hist, ssum = self._block_tables(
+            blocks, state=state, label=label, conf=conf, corrected=corrected, score=score,
+            num_classes=grid.num_classes,
+        )
+        t0 = time.perf_counter()
+        columns = lod.enabled_columns(state.enabled, grid.num_classes)
+        counts = lod.visible_counts(hist, columns)
+        if int(counts.sum()) <= budget:
+            return None
+        if focus is None:
+            if self._lod_centre is None:  # until something is focused: the middle of the map's blocks
+                lower = blocks.lower
+                self._lod_centre = (lower.min(axis=0) + lower.max(axis=0) + blocks.edge) / 2.0
+            focus = self._lod_centre
+        plan = lod.plan_view(blocks, index.order, counts, focus, cfg.radius, budget)
+        rows = vl.visible_rows(state, label, score, plan.rows)
+        colors = vl.view_colors(state, label, conf, class_prob, palette, rows)
+        block_colors = self._all_block_colors(hist, ssum, columns, state.mode, palette)[plan.blocks]
+        if region is not None and region.rows.size:
+            colors = vl.dim_outside(colors, rows, region.rows)
+            block_colors = self.blend_dim(block_colors)
+        self._put_voxels(grid, rows, colors)
+        shown = self._shown_blocks
+        if shown is not None and shown[0] is blocks and np.array_equal(shown[1], plan.blocks):
+            self.scene.overview.set_colors(block_colors)
+        else:
+            self.scene.overview.set(blocks.mean[plan.blocks], block_colors)
+            self._shown_blocks = (blocks, plan.blocks)
+        size = blocks.edge * self.scene.voxels.point_size / grid.voxel_size
+        if not np.isclose(self.scene.overview.point_size, size):
+            self.scene.overview.point_size = size
+        if self.scene.overview.visible != self.map_visible:
+            self.scene.overview.visible = self.map_visible
+        self.lod_plan = plan
+        self.lod_seconds["plan"] = time.perf_counter() - t0
+        return int(rows.shape[0] + plan.blocks.shape[0])
+
+    def set_map_visible(self, on: bool) -> None:
+        """Show or hide the voxel map (both its layers)."""
+        self.map_visible = bool(on)
+        self.scene.voxels.visible = self.map_visible
+        if self.lod_plan is not None or not self.map_visible:
+            self.scene.overview.visible = self.map_visible
+
+    def set_point_size(self, size: float) -> None:
+        """Voxel point size (m); overview blocks keep their size relative to it."""
+        grid = self.grid
+        self.scene.voxels.point_size = float(size)
+        if grid is not None and self._shown_blocks is not None:
+            self.scene.overview.point_size = self._shown_blocks[0].edge * float(size) / grid.voxel_size
+
+    def focus_lod(self, point: npt.ArrayLike) -> None:
+        """Centre the full-resolution area of a big map on ``point`` (3,) and redraw (no-op for a map drawn
+        exactly; kept for the level-of-detail view while its index is built)."""
+        grid = self.grid
+        if grid is None or not self._needs_lod(grid):
+            return
+        self.lod_focus = np.asarray(point, dtype=np.float64).reshape(3).copy()
+        if self.lod_index is not None:
+            self.request_draw()
+
+    def _camera_moved(self, look_at: npt.NDArray[np.float64]) -> None:
+        """Follow a browser's look-at point once it left the full-resolution area's centre by
+        ``refine_distance`` (horizontally)."""
+        if self.lod_index is None:
+            return
+        focus = self.lod_focus if self.lod_focus is not None else self._lod_centre
+        if focus is None or float(np.hypot(*(look_at[:2] - focus[:2]))) > self.config.lod.refine_distance:
+            self.focus_lod(look_at)
 
     def request_draw(self) -> None:
         self._draw_wanted.set()
@@ -580,7 +817,7 @@ class ReviewSession:
         """Block until no redraw is pending (tests and the benchmark use this)."""
         deadline = time.monotonic() + timeout
         with self._drawn:
-            while self._draw_wanted.is_set() or self._drawing:
+            while self._draw_wanted.is_set() or self._drawing or self._indexing:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -588,6 +825,7 @@ class ReviewSession:
         return True
 
     _drawing = False
+    _indexing = False
     _shown: tuple[ReviewGrid, npt.NDArray[np.int64]] | None = None
 
     def _draw_loop(self) -> None:
@@ -613,6 +851,15 @@ class ReviewSession:
         if grid is None or rows.size == 0:
             self.scene.selection.visible = False
             return
+        if self.selection.target == "map" and self.lod_plan is not None and self.lod_index is not None:
+            # Selected voxels of the overview are highlighted by their blocks: the budget holds.
+            blocks = self.lod_index.blocks(self.lod_plan.level)
+            points = lod.thin_rows(blocks, self.lod_plan.full, grid.centres, rows)
+            cols = np.empty((points.shape[0], 3), np.uint8)
+            cols[:] = SELECTION_RGB
+            self.scene.selection.set(points, cols)
+            self.scene.selection.visible = True
+            return
         cols = np.empty((rows.shape[0], 3), np.uint8)
         cols[:] = SELECTION_RGB
         if self.selection.target == "scan":
@@ -625,9 +872,43 @@ class ReviewSession:
             self.scene.selection.set(grid.centres[rows], cols)
         self.scene.selection.visible = True
 
+    def _needs_lod(self, grid: ReviewGrid) -> bool:
+        return grid.num_voxels > self.config.lod.budget
+
+    def _build_index(self, grid: ReviewGrid) -> None:
+        """Build ``grid``'s level-of-detail index on a thread, then redraw with it."""
+        self._indexing = True
+
+        def build() -> None:
+            try:
+                t0 = time.perf_counter()
+                index = lod.build_index(grid.centres, grid.voxel_size, key_coords(grid.keys))
+                cfg = self.config.lod
+                blocks = index.blocks(index.overview_level(self._lod_budget(self.state), cfg.overview_share))
+                # Per-voxel block arrays now, not on the first draw or correction that needs them.
+                _ = blocks.of_row, blocks.mean, index.blocks(index.query_level(cfg.query_edge))
+                with self._lock:
+                    if self.grid is grid:
+                        self.lod_index = index
+                        self.lod_seconds["index"] = time.perf_counter() - t0
+                self.request_draw()
+            except Exception:  # keep the strided view; the panel says why
+                log.exception("building the viewer's level-of-detail index failed")
+                self.panel.set_status("The map's level of detail could not be built; see the server log.")
+            finally:
+                self._indexing = False
+                with self._drawn:
+                    self._drawn.notify_all()
+
+        threading.Thread(target=build, name="viewer-lod-index", daemon=True).start()
+
     def _frame_whole_map(self) -> None:
         grid = self.grid
-        view = None if grid is None else nl.fit_view(grid.centres)
+        centres = None if grid is None else grid.centres
+        if centres is not None and self.lod_index is not None:
+            # Percentiles of a big map's evenly strided sample (keys sort by x): framing needs no more.
+            centres = centres[:: max(1, centres.shape[0] // 1_000_000)]
+        view = None if centres is None else nl.fit_view(centres)
         if view is not None:
             self.scene.look_at(*view)
 
@@ -687,6 +968,10 @@ class ReviewSession:
             )
             if move_camera if move_camera is not None else self.follow_ego:
                 self.follow_scan()
+            if self.focus is None or self.focus_frame != pos:
+                # A focused region keeps the full resolution on itself while its best scan is shown.
+                ego = view.ego_pose[:3, 3] if view.ego_pose is not None else view.cam_position
+                self.focus_lod(ego)
         self.panel.on_scan(view, pos, len(outputs.frame_indices))
         return view
 
@@ -781,7 +1066,14 @@ class ReviewSession:
         grid = self.grid
         if grid is None:
             return None
-        rows, _ = self.compute_view()
+        index = self.lod_index
+        if index is not None:
+            # Every visible voxel of a big map can be picked, overview or not; cubes off the ray are skipped.
+            cubes = index.blocks(index.query_level(self.config.lod.query_edge))
+            rows = lod.ray_rows(index, cubes, origin, direction)
+            rows = rows[self._visible_mask(grid)[rows]]
+        else:
+            rows, _ = self.compute_view()
         pick = pick_voxel(origin, direction, grid.centres[rows], grid.voxel_size)
         if pick is None:
             return None
@@ -911,6 +1203,7 @@ class ReviewSession:
         hi = grid.centres[region.rows].max(axis=0) + grid.voxel_size / 2
         self.scene.set_review_box((lo + hi) / 2, hi - lo, REVIEW_BOX_RGB)
         self.scene.frame_region(region)
+        self.focus_lod(region.centre)
         self.request_draw()
         best = self._best_scan(region)
         if best is not None:
@@ -1080,6 +1373,15 @@ class ReviewSession:
             return 0
         cls = None if tools.class_filter is None else self._class_ids().get(tools.class_filter)
         frame_id = None
+        index = self.lod_index
+        if tools.target == "map" and index is not None:
+            # A big map: the full grid's visible voxels, culled by coarse cubes first (same result).
+            chosen = lod.select_culled(
+                index, index.blocks(index.query_level(self.config.lod.query_edge)), camera, mask,
+                visible=self._visible_mask(grid), eligible=None if cls is None else label == cls,
+                depth_mode=tools.depth_mode, distance=tools.distance, splat_size=grid.voxel_size,
+            )
+            return self._set_selection(chosen, tools.target, None, add)
         if tools.target == "map":
             rows, _ = self.compute_view()
             points, splat = grid.centres[rows], grid.voxel_size
@@ -1094,16 +1396,27 @@ class ReviewSession:
             points, camera, mask, depth_mode=tools.depth_mode, distance=tools.distance, splat_size=splat,
             eligible=eligible,
         )
-        chosen = rows[picked]
+        return self._set_selection(rows[picked], tools.target, frame_id, add)
+
+    def _set_selection(
+        self, chosen: npt.NDArray[np.int64], target: Target, frame_id: str | None, add: bool
+    ) -> int:
         with self._lock:
             old = self.selection
-            if add and old.target == tools.target and old.frame_id == frame_id:
+            if add and old.target == target and old.frame_id == frame_id:
                 chosen = np.union1d(old.rows, chosen)
-            self.selection = _Selection(chosen, tools.target, frame_id)
+            self.selection = _Selection(chosen, target, frame_id)
         self._draw_selection()
         self.panel.on_selection(int(chosen.size))
         self._emit("selection")
         return int(chosen.size)
+
+    def _visible_mask(self, grid: ReviewGrid) -> npt.NDArray[np.bool_]:
+        """(V,) the voxels the view shows (threshold and class toggles; every one, drawn or thinned)."""
+        with self._lock:
+            state, label, conf, corrected = self.state, self.label, self.conf, self.corrected
+        score, _ = self._view_score(grid, state, label, conf, corrected)
+        return vl.visible_mask(label, score, state.threshold, state.enabled)
 
     def select_rect(
         self,

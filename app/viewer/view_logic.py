@@ -236,17 +236,40 @@ def render_view(
     Returns:
         ``(rows (M,) int64, colors (M, 3) uint8)``.
     """
+    class_prob = corrected_class_prob(state, label, class_prob, corrected)
+    score = view_score(state, conf, class_prob)
+    mask = visible_mask(label, score, state.threshold, state.enabled)
+    rows = decimate_indices(np.flatnonzero(mask), state.max_points)
+    return rows, view_colors(state, label, conf, class_prob, palette, rows)
+
+
+def corrected_class_prob(
+    state: ViewState,
+    label: npt.NDArray[np.int16],
+    class_prob: npt.NDArray[np.floating] | None,
+    corrected: npt.NDArray[np.bool_] | None,
+) -> npt.NDArray[np.floating] | None:
+    """``class_prob`` with corrected voxels certain (1 where their class is ``state.class_index``, else 0) in
+    ``class_probability`` mode; unchanged otherwise (see :func:`render_view`)."""
     if (
         state.mode == "class_probability"
         and class_prob is not None
         and corrected is not None
         and corrected.any()
     ):
-        class_prob = np.where(corrected, (label == state.class_index).astype(np.float32), class_prob)
-    score = view_score(state, conf, class_prob)
-    mask = visible_mask(label, score, state.threshold, state.enabled)
-    rows = decimate_indices(np.flatnonzero(mask), state.max_points)
-    return rows, view_colors(state, label, conf, class_prob, palette, rows)
+        return np.where(corrected, (label == state.class_index).astype(np.float32), class_prob)
+    return class_prob
+
+
+def visible_rows(
+    state: ViewState,
+    label: npt.NDArray[np.int16],
+    score: npt.NDArray[np.floating],
+    rows: npt.NDArray[np.int64],
+) -> npt.NDArray[np.int64]:
+    """The rows among ``rows`` that :func:`render_view` shows (before ``max_points``), in the given order;
+    ``score`` is the (V,) per-voxel value of :func:`view_score` (corrections applied)."""
+    return rows[visible_mask(label[rows], score[rows], state.threshold, state.enabled)]
 
 
 # ------------------------------------------------------------------------------------- corrections
@@ -577,6 +600,7 @@ __all__ = [
     "apply_corrections",
     "blend",
     "class_colors",
+    "corrected_class_prob",
     "decimate_indices",
     "dim_outside",
     "disagreement_rate",
@@ -593,4 +617,5 @@ __all__ = [
     "view_colors",
     "view_score",
     "visible_mask",
+    "visible_rows",
 ]
