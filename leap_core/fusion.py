@@ -31,6 +31,7 @@ import scipy.sparse
 
 from leap_core.errors import ConfigError, DatasetError
 from leap_core.io_utils import atomic_save_npz
+from leap_core.npzio import load_npz, release
 from leap_core.types import UNLABELED
 
 AXIS_BITS = 21
@@ -146,9 +147,23 @@ def key_coords(keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
     return out
 
 
-def key_centres(keys: npt.ArrayLike, voxel_size: float) -> npt.NDArray[np.float32]:
-    """(V, 3) float32 voxel centres ``(i + 0.5) · voxel_size`` of packed keys."""
-    return ((key_coords(keys) + 0.5) * float(voxel_size)).astype(np.float32)
+def key_centres(keys: npt.ArrayLike, voxel_size: float, chunk: int = 1 << 18) -> npt.NDArray[np.float32]:
+    """(V, 3) float32 voxel centres ``(i + 0.5) · voxel_size`` of packed keys, computed over chunks of
+    ``chunk`` keys so the int64 / float64 temporaries stay small beside the (V, 3) result."""
+    k = np.asarray(keys, dtype=np.int64)
+    out = np.empty((k.shape[0], 3), np.float32)
+    for s in range(0, k.shape[0], chunk):
+        out[s : s + chunk] = (key_coords(k[s : s + chunk]) + 0.5) * float(voxel_size)
+    return out
+
+
+def keys_sorted_unique(keys: npt.NDArray[np.int64], chunk: int = 1 << 20) -> bool:
+    """Whether ``keys`` (V,) strictly increase, checked over chunks (no (V,) temporaries)."""
+    for s in range(0, max(keys.shape[0] - 1, 0), chunk):
+        block = keys[s : s + chunk + 1]
+        if not (block[1:] > block[:-1]).all():
+            return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------- grid
@@ -240,11 +255,16 @@ class VoxelGrid:
         atomic_save_npz(path, keys=self.keys, logp=self.logp, voxel_size=np.float64(self.voxel_size))
 
     @classmethod
-    def load(cls, path: str | Path) -> VoxelGrid:
-        """Read a grid written by :meth:`save`; a malformed file raises :class:`DatasetError`."""
+    def load(cls, path: str | Path, *, mmap: bool = False) -> VoxelGrid:
+        """Read a grid written by :meth:`save`; a malformed file raises :class:`DatasetError`.
+
+        ``mmap=True`` maps ``keys`` and ``logp`` read-only from the file (:func:`leap_core.npzio.load_npz`;
+        a compressed file is read as usual): a whole-grid stage then holds only the pages it touches, and
+        :func:`leap_core.npzio.release` drops them after a pass.
+        """
         try:
-            with np.load(path) as z:
-                keys, logp, vs = z["keys"], z["logp"], float(z["voxel_size"])
+            z = load_npz(path, ["keys", "logp", "voxel_size"], mmap=mmap)
+            keys, logp, vs = z["keys"], z["logp"], float(z["voxel_size"])
         except (OSError, KeyError, ValueError, TypeError) as exc:
             raise DatasetError(path, f"unreadable voxel grid ({exc})") from exc
         if keys.dtype != np.int64 or keys.ndim != 1:
@@ -253,7 +273,7 @@ class VoxelGrid:
             raise DatasetError(
                 path, f"voxel grid 'logp' must be ({keys.shape[0]}, C) float16, got {logp.dtype} {logp.shape}"
             )
-        if keys.size > 1 and not (np.diff(keys) > 0).all():
+        if not keys_sorted_unique(keys):
             raise DatasetError(path, "voxel grid 'keys' are not sorted and unique")
         if not (vs > 0 and math.isfinite(vs)):
             raise DatasetError(path, f"voxel grid 'voxel_size' must be positive, got {vs}")
@@ -295,6 +315,7 @@ class VoxelLabels:
             am = block.argmax(axis=1)
             label[s : s + chunk] = am
             conf[s : s + chunk] = np.take_along_axis(block, am[:, None], axis=1)[:, 0]
+            release(p)  # a memory-mapped grid: the pass holds one chunk of it, not all of it
         return cls(k, label, conf)
 
     def at(self, query_keys: npt.ArrayLike) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
@@ -475,13 +496,38 @@ def _axes(keys: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], ...]:
     return keys >> (2 * AXIS_BITS), (keys >> AXIS_BITS) & _AXIS_MASK, keys & _AXIS_MASK
 
 
+_MOVE_BLOCK = 1 << 16
+"""Rows per block when :func:`_merge` shifts the accumulator's rows in place, and per block of
+:func:`_finalise` (times C elements at most 1 << 22): the temporaries of both stay a few MB."""
+
+
+def _grow(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
+    """``arr`` with ``rows`` rows, the first ``len(arr)`` kept: resized in place when it owns its memory
+    (``realloc``, which for large blocks remaps pages instead of copying them, so the accumulator never
+    exists twice), else copied into a new array. Callers hold no view of ``arr``."""
+    if arr.flags.owndata and arr.flags.c_contiguous and arr.base is None:
+        try:
+            arr.resize((rows, *arr.shape[1:]), refcheck=False)
+            return arr
+        except ValueError:
+            pass
+    out = np.zeros((rows, *arr.shape[1:]), arr.dtype)
+    out[: len(arr)] = arr
+    return out
+
+
 def _merge(
     keys_a: npt.NDArray[np.int64],
     acc_a: npt.NDArray[np.float32],
     keys_b: npt.NDArray[np.int64],
     acc_b: npt.NDArray[np.float32],
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
-    """Sum two sparse accumulators with sorted unique keys."""
+    """Sum two sparse accumulators with sorted unique keys, growing ``keys_a`` / ``acc_a`` in place.
+
+    A voxel only in b gets ``0 + acc_b``, one in both ``acc_a + acc_b`` (float32). The old rows move to
+    their merged positions from the last block backwards (each lands at or after where it was, so no
+    row is overwritten before it moved) and the accumulator is never copied whole.
+    """
     if len(keys_a) == 0:
         return keys_b, acc_b
     pos = np.minimum(np.searchsorted(keys_a, keys_b), len(keys_a) - 1)
@@ -489,31 +535,69 @@ def _merge(
     if found.all():
         acc_a[pos] += acc_b
         return keys_a, acc_a
-    keys = np.concatenate([keys_a, keys_b[~found]])
-    keys.sort()
-    out = np.zeros((len(keys), acc_a.shape[1]), np.float32)
-    out[np.searchsorted(keys, keys_a)] = acc_a
-    out[np.searchsorted(keys, keys_b)] += acc_b
-    return keys, out
+    new = keys_b[~found]
+    del pos, found
+    n, m = len(keys_a), len(new)
+    # Merged position of each new key: its rank among the new keys plus the old keys below it.
+    dest_new = np.arange(m) + np.searchsorted(keys_a, new)
+    keys_a = _grow(keys_a, n + m)
+    acc_a = _grow(acc_a, n + m)
+    for s in range(((n - 1) // _MOVE_BLOCK) * _MOVE_BLOCK, -1, -_MOVE_BLOCK):
+        e = min(n, s + _MOVE_BLOCK)
+        k_blk = keys_a[s:e].copy()
+        a_blk = acc_a[s:e].copy()
+        dest = np.arange(s, e) + np.searchsorted(new, k_blk)
+        keys_a[dest] = k_blk
+        acc_a[dest] = a_blk
+    keys_a[dest_new] = new
+    acc_a[dest_new] = 0.0
+    acc_a[np.searchsorted(keys_a, keys_b)] += acc_b
+    return keys_a, acc_a
 
 
 def _finalise(
     keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig, paths: FusionPaths
 ) -> VoxelGrid:
-    """Shift each row to max 0, clip at -logp_clip, store float16 (numpy or torch: same values)."""
-    if acc.size < paths.torch_min_elements:
-        if len(acc):
-            acc -= acc.max(axis=1, keepdims=True)
-            np.maximum(acc, np.float32(-cfg.logp_clip), out=acc)
-        return VoxelGrid(keys, acc.astype(np.float16), cfg.voxel_size)
-    # Why two paths: see FusionPaths.torch_min_elements. torch is imported where tensors are made, so
-    # reading a config (FusionConfig) does not load it.
-    import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
+    """Shift each row to max 0, clip at -logp_clip, store float16 (numpy or torch: same values).
 
-    t = torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32))
-    t.sub_(t.amax(dim=1, keepdim=True))
-    t.clamp_(min=-cfg.logp_clip)
-    return VoxelGrid(keys, t.half().numpy(), cfg.voxel_size)
+    Works over blocks of rows and, when ``acc`` owns its memory, writes the float16 rows into the front of
+    ``acc``'s own buffer (block [s, e)'s float16 bytes lie inside float32 rows [s/2, e/2), already done)
+    and shrinks it, so the float32 and float16 grids never both exist whole.
+    """
+    v, c = acc.shape
+    use_torch = acc.size >= paths.torch_min_elements
+    torch: Any = None
+    if use_torch:
+        # Why two paths: see FusionPaths.torch_min_elements. torch is imported where tensors are made, so
+        # reading a config (FusionConfig) does not load it.
+        import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
+    in_place = bool(acc.flags.owndata and acc.flags.c_contiguous and acc.base is None and v > 0)
+    out16 = None if in_place else np.empty((v, c), np.float16)
+    flat16 = acc.reshape(-1).view(np.float16) if in_place else None
+    block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
+    for s in range(0, v, block):
+        rows = acc[s : s + block]
+        if use_torch:
+            t = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float32))
+            t.sub_(t.amax(dim=1, keepdim=True))
+            t.clamp_(min=-cfg.logp_clip)
+            half = t.half().numpy()
+        else:
+            rows -= rows.max(axis=1, keepdims=True)
+            np.maximum(rows, np.float32(-cfg.logp_clip), out=rows)
+            half = rows.astype(np.float16)
+        if flat16 is not None:
+            flat16[s * c : s * c + half.size] = half.reshape(-1)
+        else:
+            assert out16 is not None
+            out16[s : s + block] = half
+    if out16 is not None:
+        return VoxelGrid(keys, out16, cfg.voxel_size)
+    del flat16, rows, half  # views of acc's buffer, which the resize below may move
+    # The float16 rows fill the first v·c/2 float32 elements: shrink the buffer to them, in place.
+    acc.resize(((v * c + 1) // 2,), refcheck=False)
+    logp = acc.view(np.float16)[: v * c].reshape(v, c)
+    return VoxelGrid(keys, logp, cfg.voxel_size)
 
 
 def _start(
@@ -701,6 +785,7 @@ __all__ = [
     "fuse_dense",
     "key_centres",
     "key_coords",
+    "keys_sorted_unique",
     "last_per_key",
     "log_table",
     "rows_in_sorted",

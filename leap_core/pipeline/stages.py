@@ -44,7 +44,7 @@ from leap_core.pipeline.context import (
 from leap_core.pipeline.evaluation import stage_evaluate
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import RunLayout, load_corrections
-from leap_core.smoothing import SmoothedGrid, knn_smooth
+from leap_core.smoothing import SmoothedGrid, smooth_grid_blocks
 
 _3DCN_GRID_SCALE = 1000
 """3D-CN progress is reported in thousandths of an iteration (its own step count is not known upfront)."""
@@ -190,21 +190,37 @@ def _smooth_and_save(grid: VoxelGrid, ctx: Ctx, path: Path) -> None:
 
     A manual correction is the user's final word: kNN smoothing (and a later 3D-CN round) must not move
     it, so it is re-imposed as a one-hot distribution on the smoothed grid, not only fused as evidence.
+
+    Streams (docs/METHOD.md, "Memory"): rows are smoothed a chunk at a time
+    (:func:`~leap_core.smoothing.smooth_grid_blocks`), corrected, cast to float16 and written to the file
+    as they come, so besides the grid and its kd-tree only one chunk is held; the file is the one
+    :meth:`SmoothedGrid.save` writes.
     """
-    probs = knn_smooth(grid.centres(), grid.probs(), ctx.cfg.smoothing)
+    rows = np.zeros(0, np.int64)
+    cls = np.zeros(0, np.int64)
     if ctx.layout.corrections.is_file():
         keys, cls = last_per_key(*load_corrections(ctx.layout.corrections, grid.num_classes))
         rows = grid.lookup(keys)
         hit = (rows >= 0) & (cls >= 0)  # an erase (-1) has no class to impose
-        probs[rows[hit]] = 0.0
-        probs[rows[hit], cls[hit]] = 1.0
-    SmoothedGrid(grid.keys, probs.astype(np.float16), grid.voxel_size).save(path)
+        order = np.argsort(rows[hit], kind="stable")
+        rows, cls = rows[hit][order], cls[hit][order]
+
+    def blocks() -> Iterator[npt.NDArray[np.float16]]:
+        for s, probs in smooth_grid_blocks(grid, ctx.cfg.smoothing):
+            lo, hi = np.searchsorted(rows, [s, s + len(probs)])
+            r = rows[lo:hi] - s
+            probs[r] = 0.0
+            probs[r, cls[lo:hi]] = 1.0
+            yield probs.astype(np.float16)
+
+    SmoothedGrid.save_blocks(path, grid.keys, grid.num_classes, blocks(), grid.voxel_size)
 
 
 def stage_smooth(ctx: Ctx) -> dict[str, Any]:
-    """kNN smoothing of ``grid.npz`` → ``grid_smooth.npz`` (a :class:`SmoothedGrid`)."""
+    """kNN smoothing of ``grid.npz`` → ``grid_smooth.npz`` (a :class:`SmoothedGrid`); the grid is
+    memory-mapped, not read whole."""
     ctx.tick("smooth", 0, 1)
-    grid = VoxelGrid.load(ctx.layout.grid)
+    grid = VoxelGrid.load(ctx.layout.grid, mmap=True)
     _smooth_and_save(grid, ctx, ctx.layout.grid_smooth)
     ctx.tick("smooth", 1, 1)
     return {"voxels": grid.num_voxels}
@@ -266,7 +282,7 @@ def stage_label_points(ctx: Ctx) -> dict[str, Any]:
     scope: :func:`leap_core.pipeline.apply.point_labels`); ``point_label`` (N,) int16 from projection alone
     (the paper's "point").
     """
-    final = SmoothedGrid.load(ctx.layout.final_grid(ctx.cfg.consistency))
+    final = SmoothedGrid.load(ctx.layout.final_grid(ctx.cfg.consistency), mmap=True)
     vs = ctx.cfg.fusion.voxel_size
     corr = RunCorrections.of_run(ctx.layout, ctx.schema.num_classes)
 

@@ -1,0 +1,231 @@
+"""Peak resident memory of ``leap run`` against the bounded-memory target, beside the baseline code.
+
+Target (issue 14, "Bounded memory on one machine"): the peak RSS of ``leap run`` (3D stages, 3D-CN off)
+stays within ``1.5 GB + 64 B × voxels`` at any sequence length; with the 3D-CN on within
+``3 GB + 64 B × voxels``.
+
+Each run is a child process (``python -m app.cli run``); its RSS is sampled with psutil every
+``--interval`` seconds (child and its descendants summed), and the kernel's own peak of the child
+(``os.wait4``'s ``ru_maxrss``) is read when it exits; the larger of the two is reported. The stage at the
+sampled peak is told from the stage durations in the run's ``stages.json``, counted back from the end.
+
+The baseline is the code of commit ``--baseline`` (default ``c472ae0``, main before this work), checked
+out with ``git worktree add --detach`` into a temporary folder and run with ``PYTHONPATH`` set to it, on
+the same sequence and the same 2D cache folder (the labeler's masks are computed once and shared, so
+both runs do the same work). The ratio is this code's peak / the baseline's peak.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_memory.py --sequence /work/data/demo/sequences/00 [--3dcn]
+        [--baseline c472ae0 | --no-baseline] [--work /tmp/bench_memory]
+
+Prints a table and writes ``benchmarks/results/bench_memory[_3dcn]_<sequence name>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import print_table, write_results
+
+ROOT = Path(__file__).resolve().parent.parent
+GB = 1e9
+FIXED_3D = 1.5 * GB
+"""Fixed allowance of the target without the 3D-CN (bytes)."""
+FIXED_3DCN = 3.0 * GB
+"""Fixed allowance with the 3D-CN on (bytes)."""
+PER_VOXEL = 64
+"""Allowed bytes per voxel of the fused grid."""
+
+
+@dataclass
+class RunMemory:
+    """Memory of one ``leap run`` child."""
+
+    peak_sampled: int
+    """Largest sum of RSS over the child and its descendants seen by the sampler (bytes)."""
+    peak_kernel: int
+    """The child's own peak RSS from ``wait4`` (``ru_maxrss``, bytes)."""
+    seconds: float
+    """Wall time of the run."""
+    voxels: int
+    """Voxels of the fused grid (``stages.json``, fuse)."""
+    peak_stage: str
+    """Stage running when the sampled peak was seen."""
+
+    @property
+    def peak(self) -> int:
+        return max(self.peak_sampled, self.peak_kernel)
+
+
+def _tree_rss(proc: psutil.Process) -> int:
+    total = 0
+    try:
+        procs = [proc, *proc.children(recursive=True)]
+    except psutil.Error:
+        return 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            continue
+    return total
+
+
+def _stage_at(run_dir: Path, end: float, when: float) -> str:
+    """Which stage ran at time ``when``, from stages.json's durations laid back from the run's ``end``."""
+    try:
+        state = json.loads((run_dir / "stages.json").read_text())
+    except (OSError, ValueError):
+        return "?"
+    order = [s for s, rec in state.items() if isinstance(rec, dict) and "seconds" in rec]
+    from leap_core.pipeline import STAGES  # noqa: PLC0415  only for the order of the stage names
+
+    order = [s for s in STAGES if s in order]
+    t = end
+    for s in reversed(order):
+        start = t - float(state[s]["seconds"])
+        if when >= start:
+            return s
+        t = start
+    return "startup"
+
+
+def measure(code_root: Path, sequence: Path, run_dir: Path, cache: Path, cn: bool, interval: float) -> RunMemory:
+    """Run ``leap run`` from ``code_root`` in a child process and sample its memory."""
+    cmd = [sys.executable, "-m", "app.cli", "run", str(sequence), "--out", str(run_dir), "--cache", str(cache),
+           "--3dcn" if cn else "--no-3dcn"]
+    env = {**os.environ, "PYTHONPATH": str(code_root)}
+    t0 = time.monotonic()
+    child = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = psutil.Process(child.pid)
+    peak = [0, 0.0]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            rss = _tree_rss(proc)
+            if rss > peak[0]:
+                peak[0], peak[1] = rss, time.monotonic()
+            done.wait(interval)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    _, status, usage = os.wait4(child.pid, 0)
+    end = time.monotonic()
+    done.set()
+    sampler.join()
+    err = child.stderr.read().decode(errors="replace") if child.stderr else ""
+    child.returncode = os.waitstatus_to_exitcode(status)
+    if child.returncode != 0:
+        raise SystemExit(f"leap run from {code_root} failed ({child.returncode}):\n{err[-3000:]}")
+    state = json.loads((run_dir / "stages.json").read_text())
+    voxels = int(state.get("fuse", {}).get("voxels", 0))
+    return RunMemory(peak_sampled=int(peak[0]), peak_kernel=int(usage.ru_maxrss) * 1024, seconds=end - t0,
+                     voxels=voxels, peak_stage=_stage_at(run_dir, end, peak[1]))
+
+
+def baseline_tree(commit: str, where: Path) -> Path:
+    """A detached worktree of ``commit`` under ``where`` (removed by :func:`drop_tree`)."""
+    path = where / f"baseline-{commit}"
+    if not path.exists():
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(path), commit], check=True,
+                       stdout=subprocess.DEVNULL)
+    return path
+
+
+def drop_tree(path: Path) -> None:
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(path)], check=False,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def target(voxels: int, cn: bool) -> float:
+    """``1.5 GB + 64 B × voxels`` (``3 GB + ...`` with the 3D-CN)."""
+    return (FIXED_3DCN if cn else FIXED_3D) + PER_VOXEL * voxels
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sequence", type=Path, action="append", required=True,
+                    help="sequence folder (repeatable)")
+    ap.add_argument("--3dcn", dest="cn", action="store_true", help="run with the 3D-CN on")
+    ap.add_argument("--baseline", default="c472ae0", help="commit of the baseline code")
+    ap.add_argument("--no-baseline", action="store_true", help="measure this code only")
+    ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
+    ap.add_argument("--interval", type=float, default=0.02, help="RSS sampling period in seconds")
+    args = ap.parse_args()
+
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench_memory-"))
+    work.mkdir(parents=True, exist_ok=True)
+    base = None if args.no_baseline else baseline_tree(args.baseline, work)
+    rows: list[list[Any]] = []
+    results: list[dict[str, Any]] = []
+    try:
+        for seq in args.sequence:
+            name = f"{seq.parent.parent.name}-{seq.name}"
+            cache = work / f"cache-{name}"
+            runs: dict[str, RunMemory] = {}
+            for label, code in (("baseline", base), ("this", ROOT)):
+                if code is None:
+                    continue
+                run_dir = work / f"run-{name}-{label}{'-3dcn' if args.cn else ''}"
+                shutil.rmtree(run_dir, ignore_errors=True)
+                runs[label] = measure(code, seq, run_dir, cache, args.cn, args.interval)
+                shutil.rmtree(run_dir, ignore_errors=True)
+            this = runs["this"]
+            tgt = target(this.voxels, args.cn)
+            old = runs.get("baseline")
+            rows.append([
+                f"{name}{' +3D-CN' if args.cn else ''}", f"{this.voxels:,}", f"{tgt / 1e6:,.0f}",
+                f"{this.peak / 1e6:,.0f}", this.peak_stage,
+                f"{old.peak / 1e6:,.0f}" if old else "-", old.peak_stage if old else "-",
+                f"{this.peak / old.peak:.2f}" if old else "-", "yes" if this.peak <= tgt else "NO",
+            ])
+            results.append({
+                "sequence": str(seq), "3dcn": args.cn, "voxels": this.voxels, "target_bytes": tgt,
+                "runs": {k: {"peak_bytes": r.peak, "peak_sampled_bytes": r.peak_sampled,
+                             "peak_kernel_bytes": r.peak_kernel, "seconds": r.seconds, "voxels": r.voxels,
+                             "peak_stage": r.peak_stage} for k, r in runs.items()},
+            })
+    finally:
+        if base is not None:
+            drop_tree(base)
+        if args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+    print_table(
+        f"Peak RSS of `leap run` (MB), target {'3' if args.cn else '1.5'} GB + {PER_VOXEL} B × voxels; "
+        f"baseline = {args.baseline}",
+        ["sequence", "voxels", "target", "peak", "at stage", "baseline", "at stage", "ratio", "within"],
+        rows,
+    )
+    if len(results) >= 2:
+        pts = sorted((r["voxels"], r["runs"]["this"]["peak_bytes"]) for r in results)
+        (v0, p0), (v1, p1) = pts[0], pts[-1]
+        if v1 > v0:
+            line = f"slope between the smallest and largest run: {(p1 - p0) / (v1 - v0):,.0f} B/voxel (this code)"
+            if all("baseline" in r["runs"] for r in results):
+                b = sorted((r["voxels"], r["runs"]["baseline"]["peak_bytes"]) for r in results)
+                line += f", {(b[-1][1] - b[0][1]) / (v1 - v0):,.0f} B/voxel (baseline)"
+            sys.stdout.write(line + "\n")
+    suffix = "_3dcn" if args.cn else ""
+    names = "_".join(f"{s.parent.parent.name}{s.name}" for s in args.sequence)
+    write_results(f"bench_memory{suffix}_{names}", {"results": results})
+
+
+if __name__ == "__main__":
+    main()
