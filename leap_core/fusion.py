@@ -516,43 +516,61 @@ def _grow(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
     return out
 
 
-def _merge(
+def merge_sparse(
     keys_a: npt.NDArray[np.int64],
-    acc_a: npt.NDArray[np.float32],
+    accs_a: list[npt.NDArray[Any]],
     keys_b: npt.NDArray[np.int64],
-    acc_b: npt.NDArray[np.float32],
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
-    """Sum two sparse accumulators with sorted unique keys, growing ``keys_a`` / ``acc_a`` in place.
+    accs_b: list[npt.NDArray[Any]],
+) -> tuple[npt.NDArray[np.int64], list[npt.NDArray[Any]]]:
+    """Sum two sparse accumulators with sorted unique keys, growing ``keys_a`` / ``accs_a`` in place.
 
-    A voxel only in b gets ``0 + acc_b``, one in both ``acc_a + acc_b`` (float32). The old rows move to
-    their merged positions from the last block backwards (each lands at or after where it was, so no
-    row is overwritten before it moved) and the accumulator is never copied whole.
+    ``accs_a[j]`` and ``accs_b[j]`` hold one row per key (any trailing shape, same dtype). A key only in b
+    gets ``0 + b``, one in both ``a + b``; with a empty, b is returned as it is. The old rows move to their
+    merged positions from the last block backwards (each lands at or after where it was, so no row is
+    overwritten before it moved): the accumulators are resized in place (:func:`_grow`), never copied
+    whole, so merging needs the merged size plus b, not twice the merged size. The caller must hold no
+    view of ``keys_a`` / ``accs_a``. Example: keys [2, 5] rows [1, 1] + keys [3, 5] rows [4, 4] → keys
+    [2, 3, 5] rows [1, 4, 5].
     """
     if len(keys_a) == 0:
-        return keys_b, acc_b
+        return keys_b, accs_b
     pos = np.minimum(np.searchsorted(keys_a, keys_b), len(keys_a) - 1)
     found = keys_a[pos] == keys_b
     if found.all():
-        acc_a[pos] += acc_b
-        return keys_a, acc_a
+        for acc_a, acc_b in zip(accs_a, accs_b, strict=True):
+            acc_a[pos] += acc_b
+        return keys_a, accs_a
     new = keys_b[~found]
     del pos, found
     n, m = len(keys_a), len(new)
     # Merged position of each new key: its rank among the new keys plus the old keys below it.
     dest_new = np.arange(m) + np.searchsorted(keys_a, new)
     keys_a = _grow(keys_a, n + m)
-    acc_a = _grow(acc_a, n + m)
+    accs_a = [_grow(acc, n + m) for acc in accs_a]
     for s in range(((n - 1) // _MOVE_BLOCK) * _MOVE_BLOCK, -1, -_MOVE_BLOCK):
         e = min(n, s + _MOVE_BLOCK)
         k_blk = keys_a[s:e].copy()
-        a_blk = acc_a[s:e].copy()
         dest = np.arange(s, e) + np.searchsorted(new, k_blk)
+        for acc in accs_a:
+            acc[dest] = acc[s:e].copy()
         keys_a[dest] = k_blk
-        acc_a[dest] = a_blk
     keys_a[dest_new] = new
-    acc_a[dest_new] = 0.0
-    acc_a[np.searchsorted(keys_a, keys_b)] += acc_b
-    return keys_a, acc_a
+    rows_b = np.searchsorted(keys_a, keys_b)
+    for acc_a, acc_b in zip(accs_a, accs_b, strict=True):
+        acc_a[dest_new] = 0
+        acc_a[rows_b] += acc_b
+    return keys_a, accs_a
+
+
+def _merge(
+    keys_a: npt.NDArray[np.int64],
+    acc_a: npt.NDArray[np.float32],
+    keys_b: npt.NDArray[np.int64],
+    acc_b: npt.NDArray[np.float32],
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    """:func:`merge_sparse` of one (V, C) float32 accumulator."""
+    keys, (acc,) = merge_sparse(keys_a, [acc_a], keys_b, [acc_b])
+    return keys, acc
 
 
 def _finalise(
@@ -788,6 +806,7 @@ __all__ = [
     "keys_sorted_unique",
     "last_per_key",
     "log_table",
+    "merge_sparse",
     "rows_in_sorted",
     "voxel_keys",
     "world_points",

@@ -267,14 +267,19 @@ class SmoothedGrid:
 
     def to_voxel_grid(self, logp_clip: float) -> VoxelGrid:
         """A :class:`VoxelGrid` whose ``probs()`` give back these distributions: ``logp = log p - max log p``,
-        clipped below at ``-logp_clip`` like any fused grid (float16)."""
-        p = np.asarray(self.probs, dtype=np.float32)
-        with np.errstate(divide="ignore"):
-            lp = np.log(p)
-        if len(lp):
+        clipped below at ``-logp_clip`` like any fused grid (float16). Computed over chunks of rows, so only
+        the float16 result is held whole."""
+        out = np.empty(self.probs.shape, np.float16)
+        chunk = 1 << 16
+        for s in range(0, self.num_voxels, chunk):
+            p = np.asarray(self.probs[s : s + chunk], dtype=np.float32)
+            with np.errstate(divide="ignore"):
+                lp = np.log(p)
             lp -= lp.max(axis=1, keepdims=True)
-        np.maximum(lp, np.float32(-logp_clip), out=lp)
-        return VoxelGrid(self.keys, lp.astype(np.float16), float(self.voxel_size))
+            np.maximum(lp, np.float32(-logp_clip), out=lp)
+            out[s : s + chunk] = lp
+            release(self.probs)
+        return VoxelGrid(self.keys, out, float(self.voxel_size))
 
     @classmethod
     def from_voxel_grid(cls, grid: VoxelGrid) -> SmoothedGrid:

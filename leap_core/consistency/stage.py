@@ -20,7 +20,7 @@ import numpy.typing as npt
 import torch
 
 from leap_core.consistency.config import ConsistencyConfig
-from leap_core.consistency.selection import lookup_counts, select_reliable_scans
+from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
     config_to_dict,
     load_checkpoint,
@@ -33,7 +33,7 @@ from leap_core.consistency.train import (
 )
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError, ModelLoadError
-from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
+from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, merge_sparse, voxel_keys, world_points
 from leap_core.types import UNLABELED
 
 FUSE_CHUNK_POINTS = 2_000_000
@@ -46,13 +46,20 @@ def checkpoint_path(work_dir: str | Path, iteration: int) -> Path:
     return Path(work_dir) / f"3dcn_iter{iteration}.pt"
 
 
+def targets_path(work_dir: str | Path, iteration: int) -> Path:
+    """``work_dir/.3dcn_targets_iter{iteration}.i16``: the round's training targets while it runs
+    (:class:`TargetFile`; deleted when the round ends)."""
+    return Path(work_dir) / f".3dcn_targets_iter{iteration}.i16"
+
+
 def training_fingerprint(
-    cfg: ConsistencyConfig, num_classes: int, frames: range, targets: list[npt.NDArray[np.int16]]
+    cfg: ConsistencyConfig, num_classes: int, frames: range, targets: Iterable[npt.NDArray[np.int16]]
 ) -> str:
     """Hash of everything the trained weights depend on: config, classes, frames and selected labels.
 
     Stored as ``meta["fingerprint"]`` in each checkpoint; ``cfg`` is the iteration's config (seed offset
-    included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets`."""
+    included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets` (any
+    iterable of them, e.g. a :class:`TargetFile`: they are hashed one scan at a time)."""
     h = hashlib.sha256()
     # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
     untrained = ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")
@@ -63,6 +70,101 @@ def training_fingerprint(
         h.update(np.ascontiguousarray(t).tobytes())
         h.update(b"|")
     return h.hexdigest()
+
+
+class TargetFile:
+    """Per-scan training targets kept on disk, not in memory: one flat int16 file, scan after scan.
+
+    Written once by :meth:`write` (a temporary file in the 3D-CN's work folder), read back one scan at a
+    time (:meth:`read`, iteration), so a sequence's targets cost 2 bytes per point of disk and only the
+    scans in use of memory, however long the sequence. :meth:`close` deletes the file.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.offsets: list[int] = [0]
+        """Start of scan j's targets (in int16 elements) at ``offsets[j]``; ``offsets[-1]`` = total."""
+
+    @classmethod
+    def write(cls, path: Path, targets: Iterable[npt.NDArray[np.int16]]) -> TargetFile:
+        """Write every scan's targets in order (the file is replaced)."""
+        out = cls(path)
+        out.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(out.path, "wb") as fh:
+            for t in targets:
+                a = np.ascontiguousarray(t, dtype=np.int16)
+                fh.write(a.data)
+                out.offsets.append(out.offsets[-1] + len(a))
+        return out
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def read(self, j: int) -> npt.NDArray[np.int16]:
+        """(N_j,) int16 targets of the j-th scan written."""
+        n = self.offsets[j + 1] - self.offsets[j]
+        return np.fromfile(self.path, dtype=np.int16, count=n, offset=2 * self.offsets[j])
+
+    def __iter__(self) -> Iterator[npt.NDArray[np.int16]]:
+        return (self.read(j) for j in range(len(self)))
+
+    def close(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def iter_reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each named in reliable_targets
+    seq: KittiSequence,
+    smoothed: VoxelGrid,
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    voxel_size: float,
+    frames: range,
+    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None,
+    progress: Callable[[], None] | None = None,
+    erased: npt.NDArray[np.int64] | None = None,
+) -> Iterator[npt.NDArray[np.int16]]:
+    """:func:`reliable_targets` one scan at a time, in frame order.
+
+    With ``selection_scope="scan"`` each scan is selected alone (:func:`select_reliable` with seed
+    ``cfg.seed + frame number``, what :func:`select_reliable_scans` does per scan), so only one scan's
+    labels, confidences and view counts are held at a time. ``"sequence"`` ranks every point of the
+    sequence together and so holds them all (≈ 14 bytes per point) while it selects.
+    """
+    voxel_labels = smoothed.voxel_labels()
+
+    def scan(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        frame = seq.frame(i)
+        keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+        lab, conf = voxel_labels.at(keys)
+        if erased is not None and erased.size:
+            lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
+        support = lookup_counts(keys, *views) if views is not None else None
+        if progress is not None:
+            progress()
+        return lab, conf, support
+
+    if cfg.selection_scope == "scan":
+        for i in frames:
+            lab, conf, support = scan(i)
+            mask = select_reliable(lab, conf, num_classes, cfg.share, cfg.seed + int(seq.frame_numbers[i]),
+                                   support)
+            yield np.where(mask, lab, np.int16(UNLABELED)).astype(np.int16)
+        return
+    labels: list[np.ndarray] = []
+    confs: list[np.ndarray] = []
+    supports: list[np.ndarray] = []
+    for i in frames:
+        lab, conf, support = scan(i)
+        labels.append(lab)
+        confs.append(conf)
+        if support is not None:
+            supports.append(support)
+    masks = select_reliable_scans(
+        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
+        support=supports if views is not None else None, scan_numbers=[seq.frame_numbers[i] for i in frames],
+    )
+    for m, lab in zip(masks, labels, strict=True):
+        yield np.where(m, lab, np.int16(UNLABELED)).astype(np.int16)
 
 
 def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each named in the docstring
@@ -83,31 +185,11 @@ def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each na
     the ``cfg.share`` most confident become labels (:func:`select_reliable_scans`, scope
     ``cfg.selection_scope``, ties by ``views`` counts, then by ``cfg.seed``'s random order). ``progress()``
     is called once per scan. Points in ``erased`` voxels (map-scope erase corrections) are never labels,
-    whatever class the fused evidence gives the voxel.
+    whatever class the fused evidence gives the voxel. The pipeline streams the same targets to disk
+    (:func:`iter_reliable_targets`, :class:`TargetFile`) instead of holding this list.
     """
-    voxel_labels = smoothed.voxel_labels()
-    labels: list[np.ndarray] = []
-    confs: list[np.ndarray] = []
-    supports: list[np.ndarray] = []
-    for i in frames:
-        frame = seq.frame(i)
-        keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
-        lab, conf = voxel_labels.at(keys)
-        if erased is not None and erased.size:
-            lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
-        labels.append(lab)
-        confs.append(conf)
-        if views is not None:
-            supports.append(lookup_counts(keys, *views))
-        if progress is not None:
-            progress()
-    masks = select_reliable_scans(
-        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
-        support=supports if views is not None else None, scan_numbers=[seq.frame_numbers[i] for i in frames],
-    )
-    return [
-        np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels, strict=True)
-    ]
+    return list(iter_reliable_targets(seq, smoothed, num_classes, cfg, voxel_size, frames, views,
+                                      progress=progress, erased=erased))
 
 
 def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfig:
@@ -194,16 +276,49 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         tick(total)
         return fused
 
-    # 1. reliable labels
-    targets = reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames, views,
-                               progress=tick, erased=erased)
+    # 1. reliable labels, streamed to a file in the work folder (one scan in memory at a time)
     counts = np.zeros(num_classes, np.int64)
-    for t in targets:
-        counts += np.bincount(t[t >= 0], minlength=num_classes)
+
+    def counted(ts: Iterable[npt.NDArray[np.int16]]) -> Iterator[npt.NDArray[np.int16]]:
+        for t in ts:
+            counts[:] += np.bincount(t[t >= 0], minlength=num_classes)
+            yield t
+
+    targets = TargetFile.write(
+        targets_path(work_dir, iteration),
+        counted(iter_reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames, views,
+                                      progress=tick, erased=erased)),
+    )
+    try:
+        return _train_and_fuse(seq, fused, num_classes, cfg, cfg_it, fusion_cfg, ckpt_path, iteration, frames,
+                               targets, counts, tick, progress, total)
+    finally:
+        targets.close()
+
+
+def _train_and_fuse(  # noqa: PLR0913, PLR0917  steps 2-3 of run_3dcn_iteration, which names each input
+    seq: KittiSequence,
+    fused: VoxelGrid,
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    cfg_it: ConsistencyConfig,
+    fusion_cfg: FusionConfig,
+    ckpt_path: Path,
+    iteration: int,
+    frames: range,
+    targets: TargetFile,
+    counts: npt.NDArray[np.int64],
+    tick: Callable[[int], None],
+    progress: Callable[[int, int], None] | None,
+    total: int,
+) -> VoxelGrid:
     if counts.sum() == 0:
         raise LeapError(
             "3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)"
         )
+    n = len(frames)
+    done = n  # the selection ticked once per scan
+    train_steps = num_train_steps(n, cfg)
 
     # 2. train (or reuse a matching checkpoint)
     fingerprint = training_fingerprint(cfg_it, num_classes, frames, targets)
@@ -220,7 +335,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
         pos_of = {fi: j for j, fi in enumerate(frame_list)}
 
         def load(i: int) -> tuple[np.ndarray, np.ndarray]:
-            return seq.frame(i).points, targets[pos_of[i]]
+            return seq.frame(i).points, targets.read(pos_of[i])
 
         base = done
         model, stats = train_model(
@@ -245,9 +360,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
                 "frames": [frames.start, frames.stop, frames.step],
             },
         )
-    done += train_steps
-    if progress is not None:
-        progress(done, total)
+    tick(train_steps)
 
     # 3. predict every point, fuse back with weight 1/T
     device = resolve_device(cfg)
@@ -260,7 +373,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
                 frame = seq.frame(i)
                 keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
                 logp = predict_log_probs(model, frame.points, device=device, workers=workers)
-                tick()
+                tick(1)
                 yield keys, logp
 
     return fuse_back(fused, predictions(), num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
@@ -298,16 +411,12 @@ def voxel_mean_log_probs(
         lp = torch.from_numpy(np.concatenate(logps).astype(np.float32, copy=False)).clamp_min_(floor)
         sums = torch.zeros((len(uk), num_classes), dtype=torch.float32)
         sums.index_add_(0, torch.from_numpy(inv.reshape(-1)), lp)
-        cnt = np.bincount(inv.reshape(-1), minlength=len(uk))
-        merged = np.union1d(acc_keys, uk)
-        out_sum = np.zeros((len(merged), num_classes), np.float32)
-        out_cnt = np.zeros(len(merged), np.int64)
-        ia, ib = np.searchsorted(merged, acc_keys), np.searchsorted(merged, uk)
-        out_sum[ia] = acc_sum
-        out_cnt[ia] = acc_cnt
-        out_sum[ib] += sums.numpy()
-        out_cnt[ib] += cnt
-        acc_keys, acc_sum, acc_cnt = merged, out_sum, out_cnt
+        del lp
+        cnt = np.bincount(inv.reshape(-1), minlength=len(uk)).astype(np.int64)
+        # In place (fusion.merge_sparse): the (V, C) sums are grown, never copied whole; new voxels get
+        # 0 + chunk sums, as a zero-filled merge would give them.
+        acc_keys, (acc_sum, acc_cnt) = merge_sparse(acc_keys, [acc_sum, acc_cnt], uk,
+                                                    [np.array(sums.numpy()), cnt])
 
     pend_k: list[np.ndarray] = []
     pend_l: list[np.ndarray] = []
@@ -324,8 +433,8 @@ def voxel_mean_log_probs(
     if pending:
         reduce(pend_k, pend_l)
     denom = np.maximum(acc_cnt, 1)[:, None].astype(np.float32)
-    means = acc_sum / denom
-    return acc_keys, means, acc_cnt
+    acc_sum /= denom  # the means, in place
+    return acc_keys, acc_sum, acc_cnt
 
 
 def fuse_back(

@@ -242,7 +242,7 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
     clip = ctx.cfg.fusion.logp_clip
     fused = VoxelGrid.load(lay.grid)
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
-    smoothed = SmoothedGrid.load(lay.grid_smooth).to_voxel_grid(clip)
+    smoothed = SmoothedGrid.load(lay.grid_smooth, mmap=True).to_voxel_grid(clip)
     # Erased voxels keep their fused evidence (fuse imposes no class on them), so without this their
     # points would train the network on the very labels the user removed.
     erased = RunCorrections.of_run(lay, ctx.schema.num_classes).erased_keys()
@@ -264,7 +264,7 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
                                        erased=erased)
             fused.save(grid_path)
             _smooth_and_save(fused, ctx, smooth_path)
-        smoothed = SmoothedGrid.load(smooth_path).to_voxel_grid(clip)
+        smoothed = SmoothedGrid.load(smooth_path, mmap=True).to_voxel_grid(clip)
         ctx.tick("3dcn", it * _3DCN_GRID_SCALE, total)
     return {"iterations": cn.iterations, "voxels": fused.num_voxels}
 
