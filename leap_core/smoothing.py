@@ -113,7 +113,7 @@ def knn_smooth_blocks(
     # The tree holds its own float64 copy of the centres (the query converts float32 input to exactly
     # these values), so queries read it and the caller's float32 array is not needed past this point.
     data = tree.data
-    del pts
+    del pts, centres
     for s in range(0, v, chunk):
         e = min(v, s + chunk)
         n = e - s
@@ -192,10 +192,9 @@ def smooth_grid_blocks(
     :func:`smooth_grid`'s output, without ever holding all V rows of probabilities. When the grid is
     memory-mapped (``VoxelGrid.load(mmap=True)``) its pages are dropped after each chunk
     (:func:`leap_core.npzio.release`), so resident memory stays at the tree plus one chunk."""
-    centres = grid.centres()
+    blocks = knn_smooth_blocks(grid.centres(), grid_row_probs(grid), cfg, chunk)
     release(grid.keys)
-    rows_of = grid_row_probs(grid)
-    for s, block in knn_smooth_blocks(centres, rows_of, cfg, chunk):
+    for s, block in blocks:
         release(grid.logp)
         yield s, block
 
