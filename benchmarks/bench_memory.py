@@ -94,7 +94,7 @@ def _stage_at(run_dir: Path, end: float, when: float) -> str:
     except (OSError, ValueError):
         return "?"
     order = [s for s, rec in state.items() if isinstance(rec, dict) and "seconds" in rec]
-    from leap_core.pipeline import STAGES  # noqa: PLC0415  only for the order of the stage names
+    from leap_core.pipeline import STAGES
 
     order = [s for s in STAGES if s in order]
     t = end
@@ -106,10 +106,12 @@ def _stage_at(run_dir: Path, end: float, when: float) -> str:
     return "startup"
 
 
-def measure(code_root: Path, sequence: Path, run_dir: Path, cache: Path, cn: bool, interval: float) -> RunMemory:
+def measure(
+    code_root: Path, sequence: Path, run_dir: Path, cache: Path, cn: bool, interval: float
+) -> RunMemory:
     """Run ``leap run`` from ``code_root`` in a child process and sample its memory."""
-    cmd = [sys.executable, "-m", "app.cli", "run", str(sequence), "--out", str(run_dir), "--cache", str(cache),
-           "--3dcn" if cn else "--no-3dcn"]
+    cmd = [sys.executable, "-m", "app.cli", "run", str(sequence), "--out", str(run_dir),
+           "--cache", str(cache), "--3dcn" if cn else "--no-3dcn"]
     env = {**os.environ, "PYTHONPATH": str(code_root)}
     t0 = time.monotonic()
     child = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -217,7 +219,8 @@ def main() -> None:
         pts = sorted((r["voxels"], r["runs"]["this"]["peak_bytes"]) for r in results)
         (v0, p0), (v1, p1) = pts[0], pts[-1]
         if v1 > v0:
-            line = f"slope between the smallest and largest run: {(p1 - p0) / (v1 - v0):,.0f} B/voxel (this code)"
+            slope = (p1 - p0) / (v1 - v0)
+            line = f"slope between the smallest and largest run: {slope:,.0f} B/voxel (this code)"
             if all("baseline" in r["runs"] for r in results):
                 b = sorted((r["voxels"], r["runs"]["baseline"]["peak_bytes"]) for r in results)
                 line += f", {(b[-1][1] - b[0][1]) / (v1 - v0):,.0f} B/voxel (baseline)"

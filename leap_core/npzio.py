@@ -63,7 +63,7 @@ def _write_member(zf: zipfile.ZipFile, name: str, value: npt.ArrayLike | Streame
         for block in value.blocks:
             b = np.ascontiguousarray(block, dtype=dtype)
             if b.shape[1:] != row_shape:
-                raise ValueError(f"npz member {name!r}: block of shape {b.shape}, rows of {row_shape} expected")
+                raise ValueError(f"npz member {name!r}: block shape {b.shape}, rows {row_shape} expected")
             rows += b.shape[0]
             if rows > value.shape[0]:
                 raise ValueError(f"npz member {name!r}: more than {value.shape[0]} rows streamed")

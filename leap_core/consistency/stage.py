@@ -198,7 +198,7 @@ def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfi
     return cfg if iteration == 1 else replace(cfg, seed=cfg.seed + 1000 * (iteration - 1))
 
 
-def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; its steps 1-3 share a counter
+def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 share a counter
     seq: KittiSequence,
     fused: VoxelGrid,
     smoothed: VoxelGrid,
@@ -286,8 +286,8 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917, PLR0915  a round's inputs; it
 
     targets = TargetFile.write(
         targets_path(work_dir, iteration),
-        counted(iter_reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames, views,
-                                      progress=tick, erased=erased)),
+        counted(iter_reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames,
+                                      views, progress=tick, erased=erased)),
     )
     try:
         return _train_and_fuse(seq, fused, num_classes, cfg, cfg_it, fusion_cfg, ckpt_path, iteration, frames,
