@@ -169,7 +169,7 @@ def main() -> None:
     ap.add_argument("--baseline", default="c472ae0", help="commit of the baseline code")
     ap.add_argument("--no-baseline", action="store_true", help="measure this code only")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
-    ap.add_argument("--interval", type=float, default=0.02, help="RSS sampling period in seconds")
+    ap.add_argument("--interval", type=float, default=0.1, help="RSS sampling period in seconds")
     args = ap.parse_args()
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_memory-"))
