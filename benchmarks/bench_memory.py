@@ -17,7 +17,7 @@ both runs do the same work). The ratio is this code's peak / the baseline's peak
 Usage::
 
     .venv/bin/python benchmarks/bench_memory.py --sequence /work/data/demo/sequences/00 [--3dcn]
-        [--baseline c472ae0 | --no-baseline] [--work /tmp/bench_memory]
+        [--voxel-size 0.2 --voxel-size 0.1] [--baseline c472ae0 | --no-baseline] [--work /tmp/bench_memory]
 
 Prints a table and writes ``benchmarks/results/bench_memory[_3dcn]_<sequence name>.json``.
 """
@@ -106,12 +106,15 @@ def _stage_at(run_dir: Path, end: float, when: float) -> str:
     return "startup"
 
 
-def measure(
-    code_root: Path, sequence: Path, run_dir: Path, cache: Path, cn: bool, interval: float
+def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
+    code_root: Path, sequence: Path, run_dir: Path, cache: Path, cn: bool, interval: float,
+    project: Path | None = None,
 ) -> RunMemory:
     """Run ``leap run`` from ``code_root`` in a child process and sample its memory."""
     cmd = [sys.executable, "-m", "app.cli", "run", str(sequence), "--out", str(run_dir),
            "--cache", str(cache), "--3dcn" if cn else "--no-3dcn"]
+    if project is not None:
+        cmd += ["--project-file", str(project)]
     env = {**os.environ, "PYTHONPATH": str(code_root)}
     t0 = time.monotonic()
     child = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -156,6 +159,15 @@ def drop_tree(path: Path) -> None:
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+def project_file(work: Path, voxel_size: float) -> Path:
+    """The semantickitti schema with ``pipeline.fusion.voxel_size`` set: smaller voxels give more of them
+    from the same frames, so the per-voxel slope is measured with the per-frame work unchanged."""
+    path = work / f"project-vs{voxel_size:g}.yaml"
+    text = (ROOT / "projects" / "semantickitti.yaml").read_text()
+    path.write_text(text + f"\npipeline:\n  fusion:\n    voxel_size: {voxel_size}\n")
+    return path
+
+
 def target(voxels: int, cn: bool) -> float:
     """``1.5 GB + 64 B × voxels`` (``3 GB + ...`` with the 3D-CN)."""
     return (FIXED_3DCN if cn else FIXED_3D) + PER_VOXEL * voxels
@@ -170,6 +182,8 @@ def main() -> None:
     ap.add_argument("--no-baseline", action="store_true", help="measure this code only")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--interval", type=float, default=0.1, help="RSS sampling period in seconds")
+    ap.add_argument("--voxel-size", type=float, action="append", default=None,
+                    help="fusion.voxel_size of the runs (repeatable; default: the schema's default, 0.2 m)")
     args = ap.parse_args()
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_memory-"))
@@ -178,16 +192,17 @@ def main() -> None:
     rows: list[list[Any]] = []
     results: list[dict[str, Any]] = []
     try:
-        for seq in args.sequence:
-            name = f"{seq.parent.parent.name}-{seq.name}"
-            cache = work / f"cache-{name}"
+        for seq, vs in [(s, v) for s in args.sequence for v in (args.voxel_size or [None])]:
+            name = f"{seq.parent.parent.name}-{seq.name}" + ("" if vs is None else f"-vs{vs:g}")
+            cache = work / f"cache-{seq.parent.parent.name}-{seq.name}"
+            project = None if vs is None else project_file(work, vs)
             runs: dict[str, RunMemory] = {}
             for label, code in (("baseline", base), ("this", ROOT)):
                 if code is None:
                     continue
                 run_dir = work / f"run-{name}-{label}{'-3dcn' if args.cn else ''}"
                 shutil.rmtree(run_dir, ignore_errors=True)
-                runs[label] = measure(code, seq, run_dir, cache, args.cn, args.interval)
+                runs[label] = measure(code, seq, run_dir, cache, args.cn, args.interval, project)
                 shutil.rmtree(run_dir, ignore_errors=True)
             this = runs["this"]
             tgt = target(this.voxels, args.cn)
@@ -199,7 +214,8 @@ def main() -> None:
                 f"{this.peak / old.peak:.2f}" if old else "-", "yes" if this.peak <= tgt else "NO",
             ])
             results.append({
-                "sequence": str(seq), "3dcn": args.cn, "voxels": this.voxels, "target_bytes": tgt,
+                "sequence": str(seq), "voxel_size": vs, "3dcn": args.cn, "voxels": this.voxels,
+                "target_bytes": tgt,
                 "runs": {k: {"peak_bytes": r.peak, "peak_sampled_bytes": r.peak_sampled,
                              "peak_kernel_bytes": r.peak_kernel, "seconds": r.seconds, "voxels": r.voxels,
                              "peak_stage": r.peak_stage} for k, r in runs.items()},
@@ -227,6 +243,8 @@ def main() -> None:
             sys.stdout.write(line + "\n")
     suffix = "_3dcn" if args.cn else ""
     names = "_".join(f"{s.parent.parent.name}{s.name}" for s in args.sequence)
+    if args.voxel_size:
+        names += "_vs" + "-".join(f"{v:g}" for v in args.voxel_size)
     write_results(f"bench_memory{suffix}_{names}", {"results": results})
 
 
