@@ -745,6 +745,39 @@ def fuse_dense(
     return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
 
+def fuse_unique(
+    grid: VoxelGrid | None,
+    keys: npt.NDArray[np.int64],
+    logp: npt.NDArray[np.float32],
+    num_classes: int,
+    cfg: FusionConfig | None = None,
+    weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
+) -> VoxelGrid:
+    """:func:`fuse_dense` for one row per voxel (``keys`` sorted and unique), working in ``logp`` itself.
+
+    Same values as ``fuse_dense(grid, keys, logp, ...)`` (the floor, the float32 product with the weight
+    and the sums are the same operations; tests/test_memory.py compares them), without its per-row copies:
+    the 3D-CN's per-voxel means are fused this way, so no second and third (V, C) float32 array exists.
+    ``logp`` (V, C) float32, C-contiguous, is overwritten.
+    """
+    cfg = cfg or FusionConfig()
+    if keys.ndim != 1 or logp.shape != (len(keys), num_classes) or logp.dtype != np.float32:
+        raise ValueError(
+            f"keys (V,), logp (V, {num_classes}) float32 expected: {keys.shape}, {logp.shape} {logp.dtype}"
+        )
+    if len(keys) > 1 and not keys_sorted_unique(keys):
+        raise ValueError("fuse_unique needs sorted unique keys")
+    acc_keys, acc = _start(grid, num_classes, cfg, weight)
+    if len(keys):
+        np.maximum(logp, np.float32(math.log(cfg.prob_floor)), out=logp)
+        if weight != 1.0:
+            logp *= np.float32(weight)
+        acc_keys, acc = _merge(acc_keys, acc, keys, logp)
+    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+
+
 def apply_overrides(
     grid: VoxelGrid,
     keys: npt.ArrayLike,
@@ -801,6 +834,7 @@ __all__ = [
     "apply_overrides",
     "fuse",
     "fuse_dense",
+    "fuse_unique",
     "key_centres",
     "key_coords",
     "keys_sorted_unique",

@@ -206,3 +206,23 @@ def test_target_file_round_trip(tmp_path) -> None:
     assert [t.tolist() for t in store] == [t.tolist() for t in targets]
     store.close()
     assert not (tmp_path / "t.i16").exists()
+
+
+@pytest.mark.parametrize("weight", [1.0, 0.5, 1 / 3])
+def test_fuse_unique_equals_fuse_dense(weight: float) -> None:
+    rng = np.random.default_rng(4)
+    c = 4
+    prior = fusion.fuse_dense(None, rng.integers(0, 40, 60), np.log(rng.dirichlet(np.ones(c), 60)), c)
+    # Many voxels, so that a float32 difference of an ulp or two crosses a float16 rounding boundary
+    # somewhere and shows in the stored grid.
+    keys = np.unique(rng.integers(20, 40_000, 20_000)).astype(np.int64)
+    logp = np.log(rng.dirichlet(np.ones(c) * 0.3, len(keys))).astype(np.float32)
+    logp[0] = [-np.inf, 0.0, -0.0, -50.0]  # below the floor, zero of both signs
+    logp[1] = np.float32(np.log(1e-3))  # exactly at the floor's float32 value
+    for grid in (None, prior):
+        ref = fusion.fuse_dense(grid, keys, logp.copy(), c, weight=weight)
+        got = fusion.fuse_unique(grid, keys, logp.copy(), c, weight=weight)
+        assert got.keys.tobytes() == ref.keys.tobytes()
+        assert got.logp.tobytes() == ref.logp.tobytes()
+    with pytest.raises(ValueError, match="sorted unique"):
+        fusion.fuse_unique(None, keys[::-1].copy(), logp.copy(), c)

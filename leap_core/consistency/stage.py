@@ -33,7 +33,15 @@ from leap_core.consistency.train import (
 )
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError, ModelLoadError
-from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, merge_sparse, voxel_keys, world_points
+from leap_core.fusion import (
+    FusionConfig,
+    VoxelGrid,
+    fuse_dense,
+    fuse_unique,
+    merge_sparse,
+    voxel_keys,
+    world_points,
+)
 from leap_core.types import UNLABELED
 
 FUSE_CHUNK_POINTS = 2_000_000
@@ -479,8 +487,8 @@ def fuse_back(
     weight = 1.0 / temperature
     if evidence == "voxel":
         keys, means, _ = voxel_mean_log_probs(predictions, num_classes, fusion_cfg.prob_floor, chunk_points)
-        # Means are already ≥ log prob_floor, so fuse_dense's per-row floor leaves them unchanged.
-        return fuse_dense(grid, keys, means, num_classes, fusion_cfg, weight=weight)
+        # One row per voxel: fuse_dense's values, computed in the means' own buffer (fuse_unique).
+        return fuse_unique(grid, keys, means, num_classes, fusion_cfg, weight=weight)
     out = grid
     pend_keys: list[np.ndarray] = []
     pend_logp: list[np.ndarray] = []
