@@ -117,7 +117,11 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
         cmd += ["--project-file", str(project)]
     env = {**os.environ, "PYTHONPATH": str(code_root)}
     t0 = time.monotonic()
-    child = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    log_path = run_dir.with_name(run_dir.name + ".log")
+    # The log goes to a file: a pipe nobody reads during the run fills up with progress lines and blocks
+    # the child.
+    log = open(log_path, "wb")  # noqa: SIM115  closed below, after the child exits
+    child = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=log, stderr=subprocess.STDOUT)
     proc = psutil.Process(child.pid)
     peak = [0, 0.0]
     done = threading.Event()
@@ -135,7 +139,9 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
     end = time.monotonic()
     done.set()
     sampler.join()
-    err = child.stderr.read().decode(errors="replace") if child.stderr else ""
+    log.close()
+    err = log_path.read_text(errors="replace")
+    log_path.unlink()
     child.returncode = os.waitstatus_to_exitcode(status)
     if child.returncode != 0:
         raise SystemExit(f"leap run from {code_root} failed ({child.returncode}):\n{err[-3000:]}")
