@@ -67,6 +67,8 @@ class RunMemory:
     """Voxels of the fused grid (``stages.json``, fuse)."""
     peak_stage: str
     """Stage running when the sampled peak was seen."""
+    stage_peaks: dict[str, int]
+    """Largest sampled RSS while each stage ran (``stages.json``'s start and finish times)."""
 
     @property
     def peak(self) -> int:
@@ -87,23 +89,14 @@ def _tree_rss(proc: psutil.Process) -> int:
     return total
 
 
-def _stage_at(run_dir: Path, end: float, when: float) -> str:
-    """Which stage ran at time ``when``, from stages.json's durations laid back from the run's ``end``."""
-    try:
-        state = json.loads((run_dir / "stages.json").read_text())
-    except (OSError, ValueError):
-        return "?"
-    order = [s for s, rec in state.items() if isinstance(rec, dict) and "seconds" in rec]
-    from leap_core.pipeline import STAGES
-
-    order = [s for s in STAGES if s in order]
-    t = end
-    for s in reversed(order):
-        start = t - float(state[s]["seconds"])
-        if when >= start:
-            return s
-        t = start
-    return "startup"
+def _stage_at(state: dict[str, Any], when: float) -> str:
+    """Which stage ran at wall time ``when`` (``stages.json``'s ``started`` / ``finished``), else "other"
+    (start-up, the runner between stages, exit)."""
+    for s, rec in state.items():
+        done = isinstance(rec, dict) and "started" in rec and "finished" in rec
+        if done and float(rec["started"]) <= when <= float(rec["finished"]):
+            return str(s)
+    return "other"
 
 
 def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
@@ -123,14 +116,12 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
     log = open(log_path, "wb")  # noqa: SIM115  closed below, after the child exits
     child = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=log, stderr=subprocess.STDOUT)
     proc = psutil.Process(child.pid)
-    peak = [0, 0.0]
+    samples: list[tuple[float, int]] = []
     done = threading.Event()
 
     def sample() -> None:
         while not done.is_set():
-            rss = _tree_rss(proc)
-            if rss > peak[0]:
-                peak[0], peak[1] = rss, time.monotonic()
+            samples.append((time.time(), _tree_rss(proc)))
             done.wait(interval)
 
     sampler = threading.Thread(target=sample, daemon=True)
@@ -147,8 +138,13 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
         raise SystemExit(f"leap run from {code_root} failed ({child.returncode}):\n{err[-3000:]}")
     state = json.loads((run_dir / "stages.json").read_text())
     voxels = int(state.get("fuse", {}).get("voxels", 0))
-    return RunMemory(peak_sampled=int(peak[0]), peak_kernel=int(usage.ru_maxrss) * 1024, seconds=end - t0,
-                     voxels=voxels, peak_stage=_stage_at(run_dir, end, peak[1]))
+    stage_peaks: dict[str, int] = {}
+    for when, rss in samples:
+        s = _stage_at(state, when)
+        stage_peaks[s] = max(stage_peaks.get(s, 0), rss)
+    when, rss = max(samples, key=lambda x: x[1]) if samples else (0.0, 0)
+    return RunMemory(peak_sampled=rss, peak_kernel=int(usage.ru_maxrss) * 1024, seconds=end - t0,
+                     voxels=voxels, peak_stage=_stage_at(state, when), stage_peaks=stage_peaks)
 
 
 def baseline_tree(commit: str, where: Path) -> Path:
@@ -172,6 +168,10 @@ def project_file(work: Path, voxel_size: float) -> Path:
     text = (ROOT / "projects" / "semantickitti.yaml").read_text()
     path.write_text(text + f"\npipeline:\n  fusion:\n    voxel_size: {voxel_size}\n")
     return path
+
+
+STAGE_COLUMNS = ("other", "labels2d", "project", "fuse", "smooth", "3dcn", "label_points", "evaluate",
+                 "export")
 
 
 def target(voxels: int, cn: bool) -> float:
@@ -224,13 +224,21 @@ def main() -> None:
                 "target_bytes": tgt,
                 "runs": {k: {"peak_bytes": r.peak, "peak_sampled_bytes": r.peak_sampled,
                              "peak_kernel_bytes": r.peak_kernel, "seconds": r.seconds, "voxels": r.voxels,
-                             "peak_stage": r.peak_stage} for k, r in runs.items()},
+                             "peak_stage": r.peak_stage, "stage_peaks_bytes": r.stage_peaks}
+                         for k, r in runs.items()},
             })
     finally:
         if base is not None:
             drop_tree(base)
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)
+    stage_rows = []
+    for r in results:
+        for label, run in r["runs"].items():
+            peaks = run["stage_peaks_bytes"]
+            stage_rows.append([f"{Path(r['sequence']).parent.parent.name} vs={r['voxel_size']} {label}",
+                               *(f"{peaks.get(s, 0) / 1e6:,.0f}" for s in STAGE_COLUMNS)])
+    print_table("Peak RSS per stage (MB, sampled)", ["run", *STAGE_COLUMNS], stage_rows)
     print_table(
         f"Peak RSS of `leap run` (MB), target {'3' if args.cn else '1.5'} GB + {PER_VOXEL} B × voxels; "
         f"baseline = {args.baseline}",

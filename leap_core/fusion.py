@@ -20,8 +20,8 @@ bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y,
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
@@ -31,7 +31,7 @@ import scipy.sparse
 
 from leap_core.errors import ConfigError, DatasetError
 from leap_core.io_utils import atomic_save_npz
-from leap_core.npzio import load_npz, release
+from leap_core.npzio import Streamed, load_npz, release, save_npz
 from leap_core.types import UNLABELED
 
 AXIS_BITS = 21
@@ -778,6 +778,159 @@ def fuse_unique(
     return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
 
+FILE_BLOCK_VOXELS = 1 << 20
+""":func:`fuse_to_file` sums and finalises the grid over blocks of this many voxels (≈ (8 + 6C) bytes each
+while a block is built); the result does not depend on it."""
+
+
+def _override_obs(
+    keys: npt.ArrayLike, class_idx: npt.ArrayLike, num_classes: int, strength: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    """:func:`apply_overrides`' observation per corrected voxel: sorted unique keys (U,) and (U, C) rows of
+    ``-strength`` per correction of another class."""
+    k = np.asarray(keys, dtype=np.int64).reshape(-1)
+    c = np.asarray(class_idx, dtype=np.int64).reshape(-1)
+    if k.shape != c.shape:
+        raise ValueError(f"keys {k.shape} and class_idx {c.shape} must have the same length")
+    if len(c) and (c.min() < 0 or c.max() >= num_classes):
+        raise ValueError(f"class_idx must be in 0..{num_classes - 1}")
+    if not strength > 0:
+        raise ValueError(f"override strength must be > 0, got {strength}")
+    uk, inv = np.unique(k, return_inverse=True)
+    obs = np.full((len(uk), num_classes), 0.0, np.float32)
+    hits = np.zeros((len(uk), num_classes), np.float32)
+    np.add.at(hits, (inv, c), 1.0)
+    # Each correction: -strength on every class except its own.
+    obs -= strength * (hits.sum(axis=1, keepdims=True) - hits)
+    return uk, obs
+
+
+def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; one pass per step
+    batches: Iterable[Observations],
+    num_classes: int,
+    path: str | Path,
+    spill_dir: str | Path,
+    cfg: FusionConfig | None = None,
+    *,
+    overrides: tuple[npt.ArrayLike, npt.ArrayLike, float] | None = None,
+    paths: FusionPaths | None = None,
+    block_voxels: int = FILE_BLOCK_VOXELS,
+) -> int:
+    """``apply_overrides(fuse(batches, num_classes, cfg), *overrides)`` written to ``path`` as
+    :meth:`VoxelGrid.save` writes it, the same bytes, without the grid ever being in memory whole.
+
+    1. The observations are reduced in the chunks :func:`fuse` uses (``cfg.chunk_points``); each chunk's
+       sorted keys and float32 sums go to ``spill_dir`` (``8 + 4C`` bytes per voxel of a chunk, on disk)
+       and its keys are merged into the sorted set of all keys (8 bytes per voxel, the only per-voxel
+       array held).
+    2. Per block of ``block_voxels`` keys, each chunk's rows of the block are read back (memory-mapped) and
+       summed in chunk order as :func:`fuse`'s merge sums them (the first chunk's rows as they are, later
+       ones added to a zero-filled row when new), finalised (:func:`_finalise`), the overrides applied as
+       :func:`apply_overrides` applies them, and the float16 rows written to the file as they come.
+
+    Args:
+        batches: per-image :class:`Observations`.
+        num_classes: C.
+        path: the grid file to write (atomically).
+        spill_dir: a folder for the chunk files (created; its chunk files are deleted at the end).
+        cfg: grid, clipping and chunk size.
+        overrides: ``(keys, class_idx, strength)`` of :func:`apply_overrides`, or None.
+        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
+        block_voxels: voxels per block of step 2 (≥ 1; the result does not depend on it).
+
+    Returns:
+        The number of voxels written.
+    """
+    cfg = cfg or FusionConfig()
+    paths = paths or FusionPaths()
+    if block_voxels < 1:
+        raise ValueError(f"block_voxels must be ≥ 1, got {block_voxels}")
+    spill = Path(spill_dir)
+    spill.mkdir(parents=True, exist_ok=True)
+    chunk_files: list[tuple[Path, Path]] = []
+    all_keys = np.zeros(0, np.int64)
+    try:
+        pending: list[Observations] = []
+        n_pending = 0
+
+        def spill_chunk() -> None:
+            nonlocal all_keys
+            k, sums = _reduce_chunk(pending, 1.0, paths)
+            kp, sp = spill / f"chunk{len(chunk_files)}.keys.npy", spill / f"chunk{len(chunk_files)}.sums.npy"
+            np.save(kp, k)
+            np.save(sp, sums)
+            chunk_files.append((kp, sp))
+            all_keys = np.union1d(all_keys, k)
+
+        for i, batch in enumerate(batches):
+            o = Observations(np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]),
+                             np.asarray(batch[2], dtype=np.float32))
+            _check_obs(o, num_classes, i)
+            if len(o.keys) == 0:
+                continue
+            pending.append(o)
+            n_pending += len(o.keys)
+            if n_pending >= cfg.chunk_points:
+                spill_chunk()
+                pending, n_pending = [], 0
+        if pending:
+            spill_chunk()
+        pending = []
+
+        o_keys = np.zeros(0, np.int64)
+        o_obs = np.zeros((0, num_classes), np.float32)
+        if overrides is not None:
+            o_keys, o_obs = _override_obs(overrides[0], overrides[1], num_classes, overrides[2])
+        out_keys = np.union1d(all_keys, o_keys) if len(o_keys) else all_keys
+        # fuse's choice of finalising path depends on the whole grid's size (both give the same values).
+        fused_paths = _whole_size_paths(paths, all_keys.size * num_classes)
+        final_paths = _whole_size_paths(paths, out_keys.size * num_classes)
+
+        spilled = [(np.load(kp, mmap_mode="r"), np.load(sp, mmap_mode="r")) for kp, sp in chunk_files]
+
+        def blocks() -> Iterator[npt.NDArray[np.float16]]:
+            for b0 in range(0, len(out_keys), block_voxels):
+                bk = out_keys[b0 : b0 + block_voxels]
+                first, last = bk[0], bk[-1]
+                f0, f1 = np.searchsorted(all_keys, first), np.searchsorted(all_keys, last, side="right")
+                fk = all_keys[f0:f1]
+                acc = np.zeros((len(fk), num_classes), np.float32)
+                for c, (ck, cs) in enumerate(spilled if len(fk) else []):
+                    lo, hi = int(np.searchsorted(ck, fk[0])), int(np.searchsorted(ck, fk[-1], side="right"))
+                    if hi > lo:
+                        pos = np.searchsorted(fk, ck[lo:hi])
+                        if c == 0:
+                            acc[pos] = cs[lo:hi]  # fuse's first chunk starts the accumulator as it is
+                        else:
+                            acc[pos] += cs[lo:hi]
+                        release(ck)
+                        release(cs)
+                grid = _finalise(fk, acc, cfg, fused_paths)
+                if len(o_keys):
+                    lo_o, hi_o = np.searchsorted(o_keys, first), np.searchsorted(o_keys, last, side="right")
+                    if hi_o > lo_o:
+                        ka, acc_a = fk.copy(), np.asarray(grid.logp, dtype=np.float32)
+                        ka, acc_a = _merge(ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy())
+                        grid = _finalise(ka, acc_a, cfg, final_paths)
+                yield np.asarray(grid.logp, np.float16)
+
+        save_npz(path, keys=out_keys,
+                 logp=Streamed((len(out_keys), num_classes), np.dtype(np.float16), blocks()),
+                 voxel_size=np.float64(cfg.voxel_size))
+        spilled.clear()  # unmaps the chunk files before they are deleted
+        return len(out_keys)
+    finally:
+        for kp, sp in chunk_files:
+            kp.unlink(missing_ok=True)
+            sp.unlink(missing_ok=True)
+
+
+def _whole_size_paths(paths: FusionPaths, elements: int) -> FusionPaths:
+    """``paths`` with the torch switch decided once for a grid of ``elements`` elements, so that blocks of
+    it finalise on the path the whole grid would take (their values are the same either way)."""
+    return replace(paths, torch_min_elements=0 if elements >= paths.torch_min_elements else 1 << 62)
+
+
 def apply_overrides(
     grid: VoxelGrid,
     keys: npt.ArrayLike,
@@ -813,12 +966,7 @@ def apply_overrides(
         raise ValueError(f"override strength must be > 0, got {strength}")
     acc_keys, acc = _start(grid, grid.num_classes, cfg, 1.0)
     if len(k):
-        uk, inv = np.unique(k, return_inverse=True)
-        obs = np.full((len(uk), grid.num_classes), 0.0, np.float32)
-        hits = np.zeros((len(uk), grid.num_classes), np.float32)
-        np.add.at(hits, (inv, c), 1.0)
-        # Each correction: -strength on every class except its own.
-        obs -= strength * (hits.sum(axis=1, keepdims=True) - hits)
+        uk, obs = _override_obs(k, c, grid.num_classes, strength)
         acc_keys, acc = _merge(acc_keys, acc, uk, obs)
     return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
@@ -834,6 +982,7 @@ __all__ = [
     "apply_overrides",
     "fuse",
     "fuse_dense",
+    "fuse_to_file",
     "fuse_unique",
     "key_centres",
     "key_coords",

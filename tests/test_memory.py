@@ -226,3 +226,44 @@ def test_fuse_unique_equals_fuse_dense(weight: float) -> None:
         assert got.logp.tobytes() == ref.logp.tobytes()
     with pytest.raises(ValueError, match="sorted unique"):
         fusion.fuse_unique(None, keys[::-1].copy(), logp.copy(), c)
+
+
+def _observations(seed: int, frames: int = 25, c: int = 5) -> list[fusion.Observations]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(frames):
+        n = int(rng.integers(0, 400))
+        keys = voxel_keys(rng.normal(size=(n, 3)) * 2 + i * 0.15, 0.2)
+        k = int(rng.integers(1, 6))
+        table = fusion.log_table(rng.dirichlet(np.ones(c), size=k), 1e-3)
+        out.append(fusion.Observations(keys, rng.integers(0, k, n).astype(np.int32), table))
+    return out
+
+
+@pytest.mark.parametrize("torch_min", [0, 10**9])
+def test_fuse_to_file_writes_the_grid_fuse_and_apply_overrides_give(tmp_path, torch_min: int) -> None:
+    obs = _observations(5)
+    c = 5
+    paths = FusionPaths(torch_min_elements=torch_min)
+    rng = np.random.default_rng(6)
+    for chunk_points in (700, 10**7):
+        cfg = FusionConfig(chunk_points=chunk_points)
+        fused = fusion.fuse(iter(obs), c, cfg, paths=paths)
+        # Corrections on fused voxels and on voxels no observation reached, a key corrected twice.
+        ok = np.concatenate([fused.keys[::9], fused.keys[:1], voxel_keys(np.array([[50.0, 50, 50]]), 0.2)])
+        oc = rng.integers(0, c, len(ok))
+        for overrides in (None, (ok, oc, 50.0)):
+            ref = fused if overrides is None else fusion.apply_overrides(fused, *overrides, cfg, paths=paths)
+            for block in (97, 10**6):
+                out = tmp_path / f"g{chunk_points}-{block}.npz"
+                n = fusion.fuse_to_file(iter(obs), c, out, tmp_path / "spill", cfg, overrides=overrides,
+                                        paths=paths, block_voxels=block)
+                got = VoxelGrid.load(out)
+                assert n == ref.num_voxels
+                assert got.keys.tobytes() == ref.keys.tobytes(), (chunk_points, block)
+                assert got.logp.tobytes() == ref.logp.tobytes(), (chunk_points, block)
+                assert got.voxel_size == ref.voxel_size
+    assert list((tmp_path / "spill").iterdir()) == []  # chunk files are deleted
+    empty = tmp_path / "empty.npz"
+    assert fusion.fuse_to_file(iter([]), c, empty, tmp_path / "spill") == 0
+    assert VoxelGrid.load(empty).logp.shape == (0, c)

@@ -6,6 +6,7 @@ function (docs/ARCHITECTURE.md, "Adding a stage").
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -20,8 +21,7 @@ from leap_core.export import export_labels
 from leap_core.fusion import (
     Observations,
     VoxelGrid,
-    apply_overrides,
-    fuse,
+    fuse_to_file,
     last_per_key,
     log_table,
     voxel_keys,
@@ -152,7 +152,13 @@ def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
 
 # ---------------------------------------------------------------------------------------------- fuse
 def stage_fuse(ctx: Ctx) -> dict[str, Any]:
-    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``."""
+    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``.
+
+    Written by :func:`~leap_core.fusion.fuse_to_file` (the bytes of ``fuse`` + ``apply_overrides``): the
+    per-chunk sums wait on disk in ``<run>/.fuse_spill/`` and the grid is summed, finalised and written a
+    block of voxels at a time, so the stage holds 8 bytes per voxel (the sorted keys) plus one chunk and
+    one block, never the (V, C) grid (docs/METHOD.md, "Memory").
+    """
     fcfg = ctx.cfg.fusion
     c = ctx.schema.num_classes
     total = len(ctx.frames)
@@ -162,8 +168,8 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
             ctx.tick("fuse", k, total)
             yield Observations(keys, painted.rows, log_table(painted.table, fcfg.prob_floor))
 
-    grid = fuse(batches(), c, fcfg)
     n_corr = 0
+    overrides = None
     if ctx.layout.corrections.is_file():
         # Deduplicated first so an erase (-1) cancels an earlier class on its voxel; erased voxels get no
         # override here (label_points makes their points unlabeled).
@@ -171,10 +177,14 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
         n_corr = len(keys)
         keep = cls >= 0
         if keep.any():
-            grid = apply_overrides(grid, keys[keep], cls[keep], ctx.cfg.correction_strength, fcfg)
-    grid.save(ctx.layout.grid)
+            overrides = (keys[keep], cls[keep], ctx.cfg.correction_strength)
+    spill = ctx.layout.run_dir / ".fuse_spill"
+    try:
+        voxels = fuse_to_file(batches(), c, ctx.layout.grid, spill, fcfg, overrides=overrides)
+    finally:
+        shutil.rmtree(spill, ignore_errors=True)
     ctx.tick("fuse", total, total)
-    return {"voxels": grid.num_voxels, "corrections": n_corr}
+    return {"voxels": voxels, "corrections": n_corr}
 
 
 def _fuse_inputs(ctx: Ctx) -> dict[str, Any]:
