@@ -228,12 +228,15 @@ def test_fuse_unique_equals_fuse_dense(weight: float) -> None:
         fusion.fuse_unique(None, keys[::-1].copy(), logp.copy(), c)
 
 
-def _observations(seed: int, frames: int = 25, c: int = 5) -> list[fusion.Observations]:
+def _observations(seed: int, frames: int = 60, c: int = 5) -> list[fusion.Observations]:
+    """Frames of points in a 3 m cube: ≈ 3 000 voxels, each observed by many frames, so summing in another
+    order or another chunking changes float32 sums by an ulp here and there, which shows in some float16
+    values of the stored grid."""
     rng = np.random.default_rng(seed)
     out = []
     for i in range(frames):
-        n = int(rng.integers(0, 400))
-        keys = voxel_keys(rng.normal(size=(n, 3)) * 2 + i * 0.15, 0.2)
+        n = int(rng.integers(0, 1500)) if i else 0
+        keys = voxel_keys(rng.uniform(0, 3, size=(n, 3)) + i * 0.01, 0.2)
         k = int(rng.integers(1, 6))
         table = fusion.log_table(rng.dirichlet(np.ones(c), size=k), 1e-3)
         out.append(fusion.Observations(keys, rng.integers(0, k, n).astype(np.int32), table))
@@ -246,7 +249,7 @@ def test_fuse_to_file_writes_the_grid_fuse_and_apply_overrides_give(tmp_path, to
     c = 5
     paths = FusionPaths(torch_min_elements=torch_min)
     rng = np.random.default_rng(6)
-    for chunk_points in (700, 10**7):
+    for chunk_points in (5000, 10**7):
         cfg = FusionConfig(chunk_points=chunk_points)
         fused = fusion.fuse(iter(obs), c, cfg, paths=paths)
         # Corrections on fused voxels and on voxels no observation reached, a key corrected twice.
@@ -254,7 +257,7 @@ def test_fuse_to_file_writes_the_grid_fuse_and_apply_overrides_give(tmp_path, to
         oc = rng.integers(0, c, len(ok))
         for overrides in (None, (ok, oc, 50.0)):
             ref = fused if overrides is None else fusion.apply_overrides(fused, *overrides, cfg, paths=paths)
-            for block in (97, 10**6):
+            for block in (997, 10**6):
                 out = tmp_path / f"g{chunk_points}-{block}.npz"
                 n = fusion.fuse_to_file(iter(obs), c, out, tmp_path / "spill", cfg, overrides=overrides,
                                         paths=paths, block_voxels=block)
