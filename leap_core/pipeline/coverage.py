@@ -16,6 +16,7 @@ stays unlabeled.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -28,6 +29,9 @@ from leap_core.fusion import rows_in_sorted, voxel_keys, world_points
 from leap_core.pipeline.context import load_observation
 from leap_core.run_layout import RunLayout
 from leap_core.types import UNLABELED
+
+_SEEN_BATCH = 1 << 22
+"""Per-frame unique keys gathered before :func:`export_coverage` folds them into the seen set."""
 
 
 @dataclass(frozen=True)
@@ -110,33 +114,49 @@ def export_coverage(run_dir: Path, dataset: Path, frames: range | None, voxel_si
         frame = seq.frame(i)
         return voxel_keys(world_points(frame.points, frame.pose), voxel_size)
 
-    seen_parts = []
+    # Both passes hold one frame at a time: the seen voxels are folded in batches of per-frame unique keys
+    # and the exported labels are counted frame by frame, so memory does not grow with the sequence.
+    seen = np.zeros(0, np.int64)
+    pending: list[npt.NDArray[np.int64]] = []
+    n_pending = 0
     for i in idx:
         _, n, in_view = load_observation(lay.observation(seq.frame_ids[i]))
-        seen_parts.append(np.unique(keys_of(i)[in_view]) if n else np.zeros(0, np.int64))
-    seen = np.unique(np.concatenate(seen_parts)) if seen_parts else np.zeros(0, np.int64)
+        if n:
+            pending.append(np.unique(keys_of(i)[in_view]))
+            n_pending += len(pending[-1])
+        if n_pending >= _SEEN_BATCH:
+            seen = np.union1d(seen, np.concatenate(pending))
+            pending, n_pending = [], 0
+    if pending:
+        seen = np.union1d(seen, np.concatenate(pending))
 
     points = labeled = outside = no_mask = 0
-    raws = []
-    for i in idx:
-        fid = seq.frame_ids[i]
-        path = lay.points(fid)
-        try:
-            with np.load(path) as z:
-                lab = np.asarray(z["label"])
-        except (OSError, KeyError, ValueError) as exc:
-            raise DatasetError(path, f"unreadable point labels ({exc})") from exc
-        o, m = unlabeled_reasons(lab, keys_of(i), seen)
-        points += lab.shape[0]
-        labeled += int((lab != UNLABELED).sum())
-        outside += o
-        no_mask += m
-        label_path = lay.export_label(fid)
-        try:
-            raws.append(np.fromfile(label_path, dtype="<u4"))
-        except OSError as exc:
-            raise DatasetError(label_path, f"cannot read exported labels ({exc.strerror or exc})") from exc
-    return ExportCoverage(len(idx), points, labeled, outside, no_mask, raw_id_counts(raws))
+
+    def raws() -> Iterator[npt.NDArray[np.uint32]]:
+        nonlocal points, labeled, outside, no_mask
+        for i in idx:
+            fid = seq.frame_ids[i]
+            path = lay.points(fid)
+            try:
+                with np.load(path) as z:
+                    lab = np.asarray(z["label"])
+            except (OSError, KeyError, ValueError) as exc:
+                raise DatasetError(path, f"unreadable point labels ({exc})") from exc
+            o, m = unlabeled_reasons(lab, keys_of(i), seen)
+            points += lab.shape[0]
+            labeled += int((lab != UNLABELED).sum())
+            outside += o
+            no_mask += m
+            label_path = lay.export_label(fid)
+            try:
+                raw = np.fromfile(label_path, dtype="<u4")
+            except OSError as exc:
+                why = exc.strerror or exc
+                raise DatasetError(label_path, f"cannot read exported labels ({why})") from exc
+            yield raw
+
+    counts = raw_id_counts(raws())
+    return ExportCoverage(len(idx), points, labeled, outside, no_mask, counts)
 
 
 __all__ = ["ExportCoverage", "coverage_counts", "export_coverage", "unlabeled_reasons"]
