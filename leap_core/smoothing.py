@@ -71,9 +71,10 @@ def knn_weights(dists: npt.ArrayLike) -> npt.NDArray[np.float32]:
     return w
 
 
-SMOOTH_CHUNK = 1 << 16
-"""Voxels whose neighbours are queried and mixed at once: bounds the per-chunk temporaries (≈ 0.3 kB per
-voxel of a chunk at k = 9, C = 20, so ≈ 20 MB) however large the grid; the result does not depend on it."""
+SMOOTH_CHUNK = 1 << 14
+"""Voxels whose neighbours are queried and mixed at once: bounds the per-chunk temporaries (≈ 1.1 kB per
+voxel of a chunk at k = 9, C = 20, measured: ≈ 18 MB) however large the grid; the result does not depend
+on it."""
 
 RowProbs = Callable[[npt.NDArray[np.int64]], npt.NDArray[np.float32]]
 """``row_probs(rows) -> (len(rows), C) float32``: the distributions of the given (sorted unique) rows."""
