@@ -4,9 +4,11 @@ Target (issue 14, "Bounded memory on one machine"): the peak RSS of ``leap run``
 stays within ``1.5 GB + 64 B × voxels`` at any sequence length; with the 3D-CN on within
 ``3 GB + 64 B × voxels``.
 
-Each run is a child process (``python -m app.cli run``); its RSS is sampled with psutil every
-``--interval`` seconds (child and its descendants summed), and the kernel's own peak of the child
-(``os.wait4``'s ``ru_maxrss``) is read when it exits; the larger of the two is reported. The stage at the
+Each run is a child process (``app.cli``'s ``leap run`` through :data:`_RUN_CHILD`); its RSS is sampled
+with psutil every ``--interval`` seconds (child and its descendants summed), and the child writes the
+kernel's high-water mark of its own memory (``VmHWM`` of ``/proc/self/status``) when it exits; the larger
+of the two is reported. (``wait4``'s ``ru_maxrss`` is not used: Linux carries the forking parent's size
+into it across ``exec``.) The stage at the
 sampled peak is told from the stage durations in the run's ``stages.json``, counted back from the end.
 
 The baseline is the code of commit ``--baseline`` (default ``c472ae0``, main before this work), checked
@@ -60,7 +62,7 @@ class RunMemory:
     peak_sampled: int
     """Largest sum of RSS over the child and its descendants seen by the sampler (bytes)."""
     peak_kernel: int
-    """The child's own peak RSS from ``wait4`` (``ru_maxrss``, bytes)."""
+    """The child's own peak RSS (``VmHWM`` at exit, bytes)."""
     seconds: float
     """Wall time of the run."""
     voxels: int
@@ -104,7 +106,8 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
     project: Path | None = None,
 ) -> RunMemory:
     """Run ``leap run`` from ``code_root`` in a child process and sample its memory."""
-    cmd = [sys.executable, "-m", "app.cli", "run", str(sequence), "--out", str(run_dir),
+    hwm_file = run_dir.with_name(run_dir.name + ".hwm")
+    cmd = [sys.executable, "-c", _RUN_CHILD, str(hwm_file), "run", str(sequence), "--out", str(run_dir),
            "--cache", str(cache), "--3dcn" if cn else "--no-3dcn"]
     if project is not None:
         cmd += ["--project-file", str(project)]
@@ -126,7 +129,7 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    _, status, usage = os.wait4(child.pid, 0)
+    _, status, _usage = os.wait4(child.pid, 0)
     end = time.monotonic()
     done.set()
     sampler.join()
@@ -143,7 +146,9 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
         s = _stage_at(state, when)
         stage_peaks[s] = max(stage_peaks.get(s, 0), rss)
     when, rss = max(samples, key=lambda x: x[1]) if samples else (0.0, 0)
-    return RunMemory(peak_sampled=rss, peak_kernel=int(usage.ru_maxrss) * 1024, seconds=end - t0,
+    hwm = int(hwm_file.read_text()) if hwm_file.is_file() else 0
+    hwm_file.unlink(missing_ok=True)
+    return RunMemory(peak_sampled=rss, peak_kernel=hwm, seconds=end - t0,
                      voxels=voxels, peak_stage=_stage_at(state, when), stage_peaks=stage_peaks)
 
 
@@ -174,15 +179,117 @@ STAGE_COLUMNS = ("other", "labels2d", "project", "fuse", "smooth", "3dcn", "labe
                  "export")
 
 
+_HWM = """
+def _hwm():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    return 0
+"""
+
+_RUN_CHILD = _HWM + """
+import atexit, runpy, sys
+out = sys.argv.pop(1)
+atexit.register(lambda: open(out, "w").write(str(_hwm())))
+sys.argv[0] = "leap"
+runpy.run_module("app.cli", run_name="__main__", alter_sys=True)
+"""
+"""``leap run`` (the CLI module as ``python -m app.cli`` runs it) writing its ``VmHWM`` to a file at exit."""
+
+_SMOOTH_CHILD = _HWM + """
+import sys, time
+import numpy as np
+from leap_core.fusion import VoxelGrid
+import leap_core.smoothing as sm
+grid_path, out = sys.argv[1], sys.argv[2]
+t = time.perf_counter()
+if hasattr(sm, "smooth_grid_blocks"):  # this code: what stage_smooth does
+    grid = VoxelGrid.load(grid_path, mmap=True)
+    rows = (b.astype(np.float16) for _, b in sm.smooth_grid_blocks(grid))
+    sm.SmoothedGrid.save_blocks(out, grid.keys, grid.num_classes, rows, grid.voxel_size)
+else:  # the baseline's stage_smooth
+    grid = VoxelGrid.load(grid_path)
+    probs = sm.knn_smooth(grid.centres(), grid.probs())
+    sm.SmoothedGrid(grid.keys, probs.astype(np.float16), grid.voxel_size).save(out)
+print(_hwm(), time.perf_counter() - t)
+"""
+
+
+def synthetic_grid(path: Path, voxels: int, num_classes: int = 20) -> None:
+    """A street-like surface of about ``voxels`` voxels (a 0.2 m lattice in x, y with a noisy height), random
+    fused log-posteriors: the smoothing stage's input without running the per-frame stages."""
+    sys.path.insert(0, str(ROOT))
+    import numpy as np
+
+    from leap_core.fusion import VoxelGrid, voxel_keys
+
+    rng = np.random.default_rng(0)
+    side = int(np.ceil(np.sqrt(voxels)))
+    x, y = np.meshgrid(np.arange(side), np.arange(side), indexing="ij")
+    xyz = np.stack([x.ravel() * 0.2 + 0.1, y.ravel() * 0.2 + 0.1, rng.normal(0, 0.15, side * side)], 1)
+    keys = np.unique(voxel_keys(xyz[:voxels], 0.2))
+    logp = np.clip(rng.normal(0, 4, size=(len(keys), num_classes)), -20, None)
+    logp -= logp.max(axis=1, keepdims=True)
+    VoxelGrid(keys, logp.astype(np.float16), 0.2).save(path)
+
+
+def smooth_peak(code_root: Path, grid: Path, out: Path) -> tuple[int, float]:
+    """Peak RSS (bytes, ``VmHWM``) and seconds of the smooth stage's work in a child running
+    ``code_root``'s code."""
+    env = {**os.environ, "PYTHONPATH": str(code_root)}
+    res = subprocess.run([sys.executable, "-c", _SMOOTH_CHILD, str(grid), str(out)], cwd=code_root, env=env,
+                         check=True, capture_output=True, text=True)
+    peak, seconds = res.stdout.split()[-2:]
+    return int(peak), float(seconds)
+
+
+def smooth_table(sizes: list[int], base: Path | None, work: Path) -> list[dict[str, Any]]:
+    """The smooth stage alone on synthetic grids: peak RSS of this code and of the baseline, same child
+    start-up, outputs compared byte for byte."""
+    rows, results = [], []
+    for n in sizes:
+        grid = work / f"synthetic-{n}.npz"
+        synthetic_grid(grid, n)
+        peaks = {}
+        for label, code in (("baseline", base), ("this", ROOT)):
+            if code is not None:
+                peaks[label] = smooth_peak(code, grid, work / f"smooth-{label}.npz")
+        same = "-"
+        if "baseline" in peaks:
+            import numpy as np
+
+            with np.load(work / "smooth-this.npz") as a, np.load(work / "smooth-baseline.npz") as b:
+                same = "yes" if all(a[k].tobytes() == b[k].tobytes() for k in a.files) else "NO"
+        this, old = peaks["this"], peaks.get("baseline")
+        rows.append([f"{n:,}", f"{this[0] / 1e6:,.0f}", f"{this[1]:.1f}",
+                     f"{old[0] / 1e6:,.0f}" if old else "-", f"{old[1]:.1f}" if old else "-",
+                     f"{this[0] / old[0]:.2f}" if old else "-", same])
+        results.append({"voxels": n, "this_peak_bytes": this[0], "this_seconds": this[1],
+                        "baseline_peak_bytes": old[0] if old else None,
+                        "baseline_seconds": old[1] if old else None, "identical_output": same == "yes"})
+    print_table("Smooth stage alone, synthetic surface grid (20 classes): child peak RSS (MB), seconds",
+                ["voxels", "peak", "s", "baseline peak", "baseline s", "ratio", "same bytes"], rows)
+    if len(results) >= 2:
+        a, b = results[0], results[-1]
+        dv = b["voxels"] - a["voxels"]
+        line = f"smooth slope: {(b['this_peak_bytes'] - a['this_peak_bytes']) / dv:,.0f} B/voxel (this code)"
+        if a["baseline_peak_bytes"]:
+            line += f", {(b['baseline_peak_bytes'] - a['baseline_peak_bytes']) / dv:,.0f} B/voxel (baseline)"
+        sys.stdout.write(line + "\n\n")
+    return results
+
+
 def target(voxels: int, cn: bool) -> float:
     """``1.5 GB + 64 B × voxels`` (``3 GB + ...`` with the 3D-CN)."""
     return (FIXED_3DCN if cn else FIXED_3D) + PER_VOXEL * voxels
 
 
-def main() -> None:
+def main() -> None:  # noqa: PLR0912  one branch per optional part of the report
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sequence", type=Path, action="append", required=True,
+    ap.add_argument("--sequence", type=Path, action="append", default=[],
                     help="sequence folder (repeatable)")
+    ap.add_argument("--smooth-voxels", type=int, action="append", default=[],
+                    help="also the smooth stage alone on a synthetic grid of this many voxels (repeatable)")
     ap.add_argument("--3dcn", dest="cn", action="store_true", help="run with the 3D-CN on")
     ap.add_argument("--baseline", default="c472ae0", help="commit of the baseline code")
     ap.add_argument("--no-baseline", action="store_true", help="measure this code only")
@@ -197,7 +304,10 @@ def main() -> None:
     base = None if args.no_baseline else baseline_tree(args.baseline, work)
     rows: list[list[Any]] = []
     results: list[dict[str, Any]] = []
+    smooth_results: list[dict[str, Any]] = []
     try:
+        if args.smooth_voxels:
+            smooth_results = smooth_table(args.smooth_voxels, base, work)
         for seq, vs in [(s, v) for s in args.sequence for v in (args.voxel_size or [None])]:
             name = f"{seq.parent.parent.name}-{seq.name}" + ("" if vs is None else f"-vs{vs:g}")
             cache = work / f"cache-{seq.parent.parent.name}-{seq.name}"
@@ -259,7 +369,9 @@ def main() -> None:
     names = "_".join(f"{s.parent.parent.name}{s.name}" for s in args.sequence)
     if args.voxel_size:
         names += "_vs" + "-".join(f"{v:g}" for v in args.voxel_size)
-    write_results(f"bench_memory{suffix}_{names}", {"results": results})
+    if smooth_results:
+        names += "_smooth" + "-".join(str(n) for n in args.smooth_voxels)
+    write_results(f"bench_memory{suffix}_{names}", {"results": results, "smooth_stage": smooth_results})
 
 
 if __name__ == "__main__":
