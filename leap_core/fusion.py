@@ -629,7 +629,11 @@ def _start(
         raise ValueError(f"grid has {grid.num_classes} classes, observations have {num_classes}")
     if not math.isclose(grid.voxel_size, cfg.voxel_size, rel_tol=1e-9):
         raise ValueError(f"grid voxel_size {grid.voxel_size} != FusionConfig.voxel_size {cfg.voxel_size}")
-    return grid.keys.copy(), grid.logp.astype(np.float32)
+    keys, acc = grid.keys.copy(), grid.logp.astype(np.float32)
+    # A memory-mapped prior grid: its pages are not needed once copied.
+    release(grid.keys)
+    release(grid.logp)
+    return keys, acc
 
 
 def _check_obs(o: Observations, num_classes: int, i: int) -> None:

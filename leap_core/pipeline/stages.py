@@ -250,7 +250,7 @@ def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
     cn = ctx.cfg.consistency
     lay = ctx.layout
     clip = ctx.cfg.fusion.logp_clip
-    fused = VoxelGrid.load(lay.grid)
+    fused = VoxelGrid.load(lay.grid, mmap=True)  # read once, into the round's float32 accumulator
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
     smoothed = SmoothedGrid.load(lay.grid_smooth, mmap=True).to_voxel_grid(clip)
     # Erased voxels keep their fused evidence (fuse imposes no class on them), so without this their
