@@ -52,7 +52,9 @@ class Streamed:
 def _write_member(zf: zipfile.ZipFile, name: str, value: npt.ArrayLike | Streamed) -> None:
     with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
         if not isinstance(value, Streamed):
-            np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+            arr = np.asanyarray(value)
+            np.lib.format.write_array(fh, arr, allow_pickle=False)
+            release(arr)  # a memory-mapped source: written, so its pages can go
             return
         dtype = np.dtype(value.dtype)
         header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
