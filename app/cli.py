@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from app.core.config import Settings
     from app.core.instance import WorkDirLock
     from leap_core.datasets.check import Verdict
+    from leap_core.pipeline.multi import MultiRunResult, SequenceSpec
 
 cli = typer.Typer(
     name="leap",
@@ -292,10 +293,15 @@ def _labeler_help() -> str:
 
 @cli.command("run")
 def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
-    dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
+    datasets: list[str] = typer.Argument(
+        ..., help="Sequence folder in KITTI layout (.../sequences/NN). Several folders = one multi-sequence "
+        "run (one schema and config; each sequence named after its folder, names must differ).",
+        metavar="DATASET...",
+    ),
     *,
     out: str = typer.Option(
-        ..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages)."
+        ..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages). A multi-sequence "
+        "run holds OUT/sequences/<name>/ per sequence."
     ),
     schema: str | None = typer.Option(
         None,
@@ -332,7 +338,8 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         None,
         "--export-to",
         help="Also copy the .label files into this folder, e.g. the sequence's predictions/ (written as a "
-        "fresh folder renamed into place). Refused: a dataset's labels/, velodyne/, image_2/, a run folder; "
+        "fresh folder renamed into place); with several sequences into DIR/sequences/<name>/predictions/. "
+        "Refused: a dataset's labels/, velodyne/, image_2/, a run folder; "
         "a folder that already holds files unless --overwrite.",
     ),
     zip_path: str | None = typer.Option(
@@ -355,13 +362,27 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     ),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
-    then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
+    then evaluate against ground truth when it exists and export SemanticKITTI .label files.
+
+    With several sequence folders: one multi-sequence run (the 3D-CN trains one network on all of them),
+    result tables per sequence and overall, exports in the sequences/<name>/predictions/ layout."""
     # The pipeline imports torch: loaded by the command that runs it, not by `leap --help`.
     from leap_core.pipeline import STAGES, result_tables, run_pipeline
+    from leap_core.run_layout import is_multi_run
 
+    if len(datasets) > 1:
+        _run_multi(datasets, Path(out), schema=schema, project_file=project_file, labeler=labeler,
+                   consistency=consistency, cn_iterations=cn_iterations, frames=frames, cache=cache,
+                   models=models, device=device, allow_download=allow_download, export_to=export_to,
+                   zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses)
+        return
+    dataset = datasets[0]
     progress = StageBars(Path(out))
 
     try:
+        if is_multi_run(out):
+            raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
+                            "folder, or name all its sequences")
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
         runtime = _runtime(models, cache, device, allow_download)
         frame_range = None if frames is None else _frame_range(frames, dataset)
@@ -401,6 +422,165 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
                            with_conf=with_conf, overwrite=overwrite)
         except LeapError as exc:
             raise fail(str(exc)) from None
+
+
+class SequenceBars:
+    """:class:`StageBars` for a multi-sequence run (``progress(sequence, stage, done, total)``): one set of
+    bars per sequence (and one for the joint 3D-CN), a header line when the sequence changes; a stage that
+    reports complete again in the run's second pass (after the joint 3D-CN) is not printed twice."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.bars: dict[str, StageBars] = {}
+        self.name: str | None = None
+        self.complete: set[tuple[str, str]] = set()
+        self._redirect: Any = None
+
+    def __call__(self, name: str, stage: str, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        from leap_core.pipeline import JOINT
+        from leap_core.run_layout import MultiRunLayout
+
+        key = (name, stage)
+        if key in self.complete:
+            return
+        if name != self.name:
+            if self.name is not None:
+                self.bars[self.name].close()
+            self.name = name
+            if name not in self.bars:
+                run_dir = None if name == JOINT else MultiRunLayout(self.root).sequence(name).run_dir
+                self.bars[name] = StageBars(run_dir)
+            tqdm.write("== joint 3D-CN (all sequences)" if name == JOINT else f"== sequence {name}",
+                       file=sys.stderr)
+        self.bars[name](stage, done, total)
+        if total > 0 and done >= total:
+            self.complete.add(key)
+
+    def __enter__(self) -> SequenceBars:
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        self._redirect = logging_redirect_tqdm()
+        self._redirect.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for bars in self.bars.values():
+            bars.close()
+        if self._redirect is not None:
+            self._redirect.__exit__(None, None, None)
+            self._redirect = None
+
+
+def _multi_specs(datasets: list[str], frames: str | None) -> list[SequenceSpec]:
+    """The sequences of ``leap run A B ...``, each named after its folder; one-line errors for a folder
+    that is not a sequence, a name that cannot be a folder, two sequences of one name."""
+    from leap_core.pipeline.multi import SequenceSpec, check_specs
+
+    specs = []
+    for d in datasets:
+        try:
+            seq = KittiSequence(d)
+        except LeapError as exc:
+            raise LeapError(f"{d}: not a sequence folder ({exc})") from None
+        try:
+            specs.append(SequenceSpec.of(seq.root, None if frames is None else _frame_range(frames, d)))
+        except ConfigError as exc:
+            raise LeapError(f"{d}: the folder name cannot name a sequence: {exc.problem}") from None
+    try:
+        check_specs(specs)
+    except ConfigError as exc:
+        raise LeapError(exc.problem) from None
+    return specs
+
+
+def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
+    datasets: list[str], out: Path, *, schema: str | None, project_file: str | None, labeler: str | None,
+    consistency: bool | None, cn_iterations: int | None, frames: str | None, cache: str | None,
+    models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
+    with_conf: bool, overwrite: bool, estimate_poses: bool,
+) -> None:
+    """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi)."""
+    from leap_core.pipeline import multi_result_tables
+    from leap_core.pipeline.multi import check_export_target, run_sequences
+    from leap_core.run_layout import MultiRunLayout
+
+    layout = MultiRunLayout(out)
+    try:
+        specs = _multi_specs(datasets, frames)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
+        runtime = _runtime(models, cache, device, allow_download)
+        names = [s.name for s in specs]
+        # Refuse a target before a long run, not after it.
+        if export_to is not None:
+            try:
+                check_export_target(Path(export_to), names, with_conf=with_conf, overwrite=overwrite)
+            except LeapError as exc:
+                more = "; add --overwrite to replace them" if "already holds" in str(exc) else ""
+                raise LeapError(f"--export-to: {exc}{more}") from None
+        targets = _export_targets(None, zip_path, overwrite)
+        if estimate_poses:
+            for spec in specs:
+                _estimate_run_poses(spec.dataset, layout.sequence(spec.name).run_dir)
+        typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences {', '.join(names)}")
+        with SequenceBars(out) as bars:
+            result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
+    except KeyboardInterrupt:
+        raise fail(f"interrupted; run the same command again to resume from {out}") from None
+    except Cancelled:
+        raise fail(f"cancelled; run the same command again to resume from {out}") from None
+    except PosesMissingError as exc:
+        raise fail(f"{exc}; run `leap poses` on that sequence or pass --estimate-poses") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+
+    for name, res in result.per_sequence.items():
+        timing = ", ".join(
+            f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
+            for s, r in res.stages.items()
+        )
+        typer.echo(f"sequence {name}: {timing}")
+    if cfg.consistency.enabled:
+        typer.echo(f"joint 3D-CN (one network per round, all sequences): {result.joint_seconds:.1f}s")
+    tables = multi_result_tables(out)
+    typer.echo("")
+    typer.echo(tables if tables else "no ground-truth labels: nothing to evaluate")
+    try:
+        _write_multi_exports(result, specs, sch, cfg, export_to, targets["zip"], with_conf=with_conf,
+                             overwrite=overwrite)
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+
+
+def _write_multi_exports(  # the run and the export options
+    result: MultiRunResult, specs: list[SequenceSpec], sch: Schema, cfg: PipelineConfig,
+    export_to: str | None, zip_file: Path | None, *, with_conf: bool, overwrite: bool,
+) -> None:
+    """Print each sequence's unlabeled counts, then write ``--export-to`` / ``--zip`` of a multi run."""
+    from leap_core import __version__
+    from leap_core.pipeline.coverage import export_coverage
+    from leap_core.pipeline.multi import export_sequences, export_zip
+
+    raw: dict[int, int] = {}
+    for spec in specs:
+        res = result.per_sequence[spec.name]
+        cov = export_coverage(res.run_dir, spec.dataset, spec.frames, cfg.fusion.voxel_size)
+        typer.echo(f"sequence {spec.name}: {cov.labeled} of {cov.points} points labeled; {cov.unlabeled} "
+                   f"unlabeled: {cov.outside_view} outside every camera view, {cov.no_mask} in view but no "
+                   f"mask ({res.export_dir})")
+        for k, v in cov.raw_counts.items():
+            raw[k] = raw.get(k, 0) + v
+    if export_to is not None:
+        written = export_sequences(result.root, Path(export_to), with_conf=with_conf, overwrite=overwrite)
+        target = Path(export_to).expanduser().resolve()
+        typer.echo(f"wrote {sum(written.values())} files to {target}/sequences/"
+                   f"{{{','.join(written)}}}/predictions/")
+    if zip_file is not None:
+        n = export_zip(result.root, zip_file, sch, config=cfg, with_conf=with_conf, overwrite=overwrite,
+                       raw_counts=raw, version=__version__)
+        typer.echo(f"wrote {zip_file} ({n} files in sequences/<name>/predictions/, label-map.yaml, "
+                   "summary.yaml)")
 
 
 def _estimate_run_poses(dataset: Path, out: Path) -> None:

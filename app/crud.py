@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 import sqlite_utils
 
-from app.core.db import transaction, utcnow
+from app.core.db import default_sequence_name, transaction, utcnow
 from app.core.errors import InvalidField, NotFound
 
 _JSON_COLUMNS = {
@@ -62,7 +62,7 @@ def _dumps(value: Any) -> str:
 
 
 # -------------------------------------------------------------------------------------------- projects
-def create_project(
+def create_project(  # noqa: PLR0913  one keyword per column, and the sequences
     db: sqlite_utils.Database,
     *,
     name: str,
@@ -72,21 +72,71 @@ def create_project(
     pipeline: dict[str, Any],
     is_demo: bool = False,
     estimate_poses: bool = False,
+    sequences: Sequence[tuple[str, str]] | None = None,
 ) -> dict[str, Any]:
+    """Insert a project and its sequences: ``sequences`` (name, dataset path) in order, default one named
+    after ``dataset_path``'s folder. ``dataset_path`` is the first sequence's (what single-sequence code
+    reads)."""
     now = utcnow()
-    cursor = db.execute(
-        "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
-        "estimate_poses, created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        [name, dataset_kind, dataset_path, _dumps(schema), _dumps(pipeline), int(is_demo),
-         int(estimate_poses), now, now],
-    )
-    project = get_project(db, _inserted_id(cursor))
+    seqs = list(sequences) if sequences else [(default_sequence_name(dataset_path), dataset_path)]
+    with transaction(db):
+        cursor = db.execute(
+            "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
+            "estimate_poses, created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            [name, dataset_kind, seqs[0][1], _dumps(schema), _dumps(pipeline), int(is_demo),
+             int(estimate_poses), now, now],
+        )
+        project_id = _inserted_id(cursor)
+        for position, (seq_name, seq_path) in enumerate(seqs):
+            db.execute(
+                "INSERT INTO project_sequences (project_id, name, dataset_path, position) "
+                "VALUES (?, ?, ?, ?)",
+                [project_id, seq_name, seq_path, position],
+            )
+    project = get_project(db, project_id)
     assert project is not None
     return project
 
 
+def _with_sequences(db: sqlite_utils.Database, project: dict[str, Any] | None) -> dict[str, Any] | None:
+    if project is not None:
+        project["sequences"] = list_sequences(db, int(project["id"]))
+    return project
+
+
 def get_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
-    return _one(db, "SELECT * FROM projects WHERE id = ?", [project_id])
+    """The project row with ``sequences`` (:func:`list_sequences`)."""
+    return _with_sequences(db, _one(db, "SELECT * FROM projects WHERE id = ?", [project_id]))
+
+
+def list_sequences(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
+    """The project's sequences in order: ``{"name", "dataset_path", "position"}`` each."""
+    return _rows(
+        db,
+        "SELECT name, dataset_path, position FROM project_sequences WHERE project_id = ? ORDER BY position",
+        [project_id],
+    )
+
+
+def sequence_name(
+    db: sqlite_utils.Database, project_id: int, name: str | None, *, loc: Sequence[str | int] = ("sequence",)
+) -> str:
+    """The stored name of one of the project's sequences: ``name``, or the first sequence's when None
+    (what single-sequence callers get).
+
+    Raises:
+        NotFound: unknown project.
+        InvalidField: ``name`` is not one of the project's sequences (``loc`` names the field).
+    """
+    names = [s["name"] for s in list_sequences(db, project_id)]
+    if not names:
+        require_project(db, project_id)
+        raise NotFound(f"Project {project_id} has no sequences")
+    if name is None:
+        return str(names[0])
+    if name not in names:
+        raise InvalidField(loc, f"project {project_id} has no sequence {name!r} (it has {', '.join(names)})")
+    return name
 
 
 def require_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any]:
@@ -98,7 +148,14 @@ def require_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any
 
 
 def list_projects(db: sqlite_utils.Database) -> list[dict[str, Any]]:
-    return _rows(db, "SELECT * FROM projects ORDER BY id")
+    projects = _rows(db, "SELECT * FROM projects ORDER BY id")
+    by_project: dict[int, list[dict[str, Any]]] = {}
+    for row in _rows(db, "SELECT project_id, name, dataset_path, position FROM project_sequences "
+                         "ORDER BY project_id, position"):
+        by_project.setdefault(int(row.pop("project_id")), []).append(row)
+    for p in projects:
+        p["sequences"] = by_project.get(int(p["id"]), [])
+    return projects
 
 
 def update_project(
@@ -130,7 +187,7 @@ def delete_project(db: sqlite_utils.Database, project_id: int) -> None:
 
 
 def find_demo_project(db: sqlite_utils.Database) -> dict[str, Any] | None:
-    return _one(db, "SELECT * FROM projects WHERE is_demo = 1 ORDER BY id LIMIT 1")
+    return _with_sequences(db, _one(db, "SELECT * FROM projects WHERE is_demo = 1 ORDER BY id LIMIT 1"))
 
 
 # ------------------------------------------------------------------------------------------------ runs
@@ -266,6 +323,9 @@ class Correction:
     """Scan-scope: (P,) indices into that scan's points."""
     author: str | None = None
     """Who made it ("viewer", "api"); None for corrections made before authors were recorded."""
+    sequence: str | None = None
+    """The project sequence whose scans it corrects (migration 6; voxel keys and frame ids are per
+    sequence)."""
 
 
 def _correction(row: dict[str, Any]) -> Correction:
@@ -281,6 +341,7 @@ def _correction(row: dict[str, Any]) -> Correction:
         frame_id=row.get("frame_id"),
         points=None if row.get("points") is None else np.frombuffer(row["points"], dtype=np.int64).copy(),
         author=row.get("author"),
+        sequence=row.get("sequence"),
     )
 
 
@@ -299,12 +360,13 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     frame_id: str | None = None,
     points: npt.ArrayLike | None = None,
     author: str | None = None,
+    sequence: str | None = None,
 ) -> int:
-    """Store a correction (active); returns its id.
+    """Store a correction (active) of the project's sequence ``sequence`` (None: its first); returns its id.
 
     Raises:
         InvalidField: an unknown scope, a scan-scope correction without ``frame_id`` / ``points`` (or with
-            negative point indices), or a map-scope one with them.
+            negative point indices), or a map-scope one with them; an unknown ``sequence``.
     """
     arr = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1))
     if scope not in CORRECTION_SCOPES:
@@ -323,10 +385,12 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
         field = "frame_id" if frame_id is not None else "points"
         raise InvalidField((field,), f"{field} is only for scan-scope corrections")
     require_project(db, project_id)
+    seq = sequence_name(db, project_id, sequence)
     cursor = db.execute(
         "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
-        "frame_id, points, author) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?)",
-        [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes(), scope, frame_id, blob, author],
+        "frame_id, points, author, sequence) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?)",
+        [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes(), scope, frame_id, blob, author,
+         seq],
     )
     return _inserted_id(cursor)
 
@@ -341,11 +405,18 @@ def get_correction(db: sqlite_utils.Database, correction_id: int) -> Correction:
 
 
 def list_corrections(
-    db: sqlite_utils.Database, project_id: int, *, active_only: bool = True
+    db: sqlite_utils.Database, project_id: int, *, active_only: bool = True, sequence: str | None = None
 ) -> list[Correction]:
-    """Corrections of a project in the order they were made (later ones win on overlap)."""
+    """Corrections of one sequence of a project (None: its first) in the order they were made (later ones
+    win on overlap)."""
     where = " AND active = 1" if active_only else ""
-    cursor = db.execute(f"SELECT * FROM corrections WHERE project_id = ?{where} ORDER BY id", [project_id])
+    if sequence is None and not list_sequences(db, project_id):
+        return []  # a deleted project has none (its corrections went with it)
+    seq = sequence_name(db, project_id, sequence)
+    cursor = db.execute(
+        f"SELECT * FROM corrections WHERE project_id = ? AND sequence = ?{where} ORDER BY id",
+        [project_id, seq],
+    )
     names = [d[0] for d in cursor.description]
     return [_correction(dict(zip(names, r, strict=True))) for r in cursor.fetchall()]
 
@@ -386,27 +457,50 @@ def set_review_mark(
     signature: str,
     state: str,
     run_id: int | None = None,
+    sequence: str | None = None,
 ) -> None:
-    """Record (or replace) the verdict on ``region``."""
+    """Record (or replace) the verdict on ``region`` of the sequence ``sequence`` (None: the first)."""
     if state not in REVIEW_STATES:
         raise ValueError(f"state must be one of {', '.join(REVIEW_STATES)}, got {state!r}")
     require_project(db, project_id)
+    key = review_key(db, project_id, sequence, region)
     db.execute(
         "INSERT INTO review_marks (project_id, region, signature, state, run_id, updated_at) "
         "VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT(project_id, region) DO UPDATE SET "
         "signature = excluded.signature, state = excluded.state, run_id = excluded.run_id, "
         "updated_at = excluded.updated_at",
-        [project_id, region, signature, state, run_id, utcnow()],
+        [project_id, key, signature, state, run_id, utcnow()],
     )
 
 
-def list_review_marks(db: sqlite_utils.Database, project_id: int) -> dict[str, ReviewMark]:
-    """The project's review marks by region identity."""
+def review_key(db: sqlite_utils.Database, project_id: int, sequence: str | None, region: str) -> str:
+    """How a mark on ``region`` of ``sequence`` (None: the first) is stored in ``review_marks.region``:
+    the region itself in a single-sequence project (as before sequences existed), ``<sequence>/<region>``
+    in a project with several (sequence names hold no ``/``)."""
+    count = len(list_sequences(db, project_id))
+    if sequence is None and count <= 1:
+        return region
+    seq = sequence_name(db, project_id, sequence)
+    return region if count <= 1 else f"{seq}/{region}"
+
+
+def list_review_marks(
+    db: sqlite_utils.Database, project_id: int, sequence: str | None = None
+) -> dict[str, ReviewMark]:
+    """The review marks of one sequence of the project (None: its first) by region identity (a region's
+    identity is a place in that sequence's world frame)."""
+    prefix = review_key(db, project_id, sequence, "")
     rows = db.execute(
         "SELECT region, signature, state, run_id, updated_at FROM review_marks WHERE project_id = ?",
         [project_id],
     ).fetchall()
-    return {r[0]: ReviewMark(r[0], r[1], r[2], None if r[3] is None else int(r[3]), r[4]) for r in rows}
+    out = {}
+    for r in rows:
+        if prefix and not r[0].startswith(prefix):
+            continue
+        region = r[0][len(prefix):]
+        out[region] = ReviewMark(region, r[1], r[2], None if r[3] is None else int(r[3]), r[4])
+    return out
 
 
 def save_review_queue(
@@ -415,28 +509,35 @@ def save_review_queue(
     kind: str,
     run_id: int | None,
     regions: Sequence[tuple[str, str]],
+    sequence: str | None = None,
 ) -> None:
-    """Remember the latest ranked queue of ``kind``: ``(region, signature)`` pairs, best first (the web UI
-    counts review progress against it without starting a viewer)."""
+    """Remember the latest ranked queue of ``kind`` of the sequence ``sequence`` (None: the first):
+    ``(region, signature)`` pairs, best first (the web UI counts review progress against it without
+    starting a viewer)."""
     require_project(db, project_id)
+    seq = sequence_name(db, project_id, sequence)
     db.execute(
-        "INSERT INTO review_queues (project_id, kind, run_id, regions_json, updated_at) "
-        "VALUES (?, ?, ?, ?, ?) "
-        "ON CONFLICT(project_id, kind) DO UPDATE SET run_id = excluded.run_id, "
+        "INSERT INTO review_queues (project_id, sequence, kind, run_id, regions_json, updated_at) "
+        "VALUES (?, ?, ?, ?, ?, ?) "
+        "ON CONFLICT(project_id, sequence, kind) DO UPDATE SET run_id = excluded.run_id, "
         "regions_json = excluded.regions_json, updated_at = excluded.updated_at",
-        [project_id, kind, run_id, _dumps([list(r) for r in regions]), utcnow()],
+        [project_id, seq, kind, run_id, _dumps([list(r) for r in regions]), utcnow()],
     )
 
 
-def review_progress(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
-    """Per saved queue: ``kind``, ``run_id``, ``total``, ``reviewed`` (accepted with an unchanged signature),
-    ``skipped`` (likewise) and ``updated_at``."""
+def review_progress(
+    db: sqlite_utils.Database, project_id: int, sequence: str | None = None
+) -> list[dict[str, Any]]:
+    """Per saved queue of the sequence (None: the first): ``kind``, ``run_id``, ``total``, ``reviewed``
+    (accepted with an unchanged signature), ``skipped`` (likewise) and ``updated_at``."""
     require_project(db, project_id)
-    marks = list_review_marks(db, project_id)
+    seq = sequence_name(db, project_id, sequence)
+    marks = list_review_marks(db, project_id, seq)
     out = []
     for kind, run_id, regions_json, updated_at in db.execute(
-        "SELECT kind, run_id, regions_json, updated_at FROM review_queues WHERE project_id = ? ORDER BY kind",
-        [project_id],
+        "SELECT kind, run_id, regions_json, updated_at FROM review_queues "
+        "WHERE project_id = ? AND sequence = ? ORDER BY kind",
+        [project_id, seq],
     ).fetchall():
         regions = json.loads(regions_json)
         states = [

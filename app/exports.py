@@ -21,6 +21,7 @@ from app import models
 from app.core.config import Settings
 from app.core.errors import Conflict, Forbidden, NotFound
 from app.core.security import resolve_in_roots
+from app.jobs.multi import run_sequences_of, sequence_layouts
 from app.services import pipeline_config
 from leap_core import __version__
 from leap_core.config import config_to_dict
@@ -40,6 +41,7 @@ from leap_core.export import (
 )
 from leap_core.io_utils import atomic_write_json
 from leap_core.pipeline.coverage import ExportCoverage, coverage_counts, export_coverage
+from leap_core.pipeline.multi import export_sequences, export_targets, export_zip
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 
@@ -144,17 +146,42 @@ def _schema(run: dict[str, Any]) -> Schema:
 
 def coverage(run: dict[str, Any]) -> ExportCoverage:
     """The run's export counts (:func:`~leap_core.pipeline.coverage.export_coverage`), computed once and
-    cached in the run folder (until the "apply corrections" job changes the export: :func:`invalidate`)."""
-    lay = _finished_export(run)
+    cached in the run folder (until the "apply corrections" job changes the export: :func:`invalidate`);
+    a run of several sequences sums its sequences' counts (each cached in its own folder)."""
+    if run_sequences_of(run["params"]) is None:
+        return _coverage(run, _finished_export(run), Path(run["params"]["dataset"]))
+    parts = [_coverage(run, lay, dataset) for lay, dataset in _sequence_exports(run)]
+    raw: dict[int, int] = {}
+    for c in parts:
+        for k, v in c.raw_counts.items():
+            raw[k] = raw.get(k, 0) + v
+    return ExportCoverage(
+        frames=sum(c.frames for c in parts), points=sum(c.points for c in parts),
+        labeled=sum(c.labeled for c in parts), outside_view=sum(c.outside_view for c in parts),
+        no_mask=sum(c.no_mask for c in parts), raw_counts=dict(sorted(raw.items())),
+    )
+
+
+def _sequence_exports(run: dict[str, Any]) -> list[tuple[RunLayout, Path]]:
+    """(run layout, dataset) per sequence of a finished multi-sequence run, each with its export folder."""
+    if run["status"] != "done":
+        raise Conflict(f"Run {run['id']} is {run['status']}; only finished runs have exports")
+    out = []
+    for name, dataset, lay in sequence_layouts(Path(run["run_dir"]), run["params"]):
+        if not lay.export_dir.is_dir():
+            raise NotFound(f"Run {run['id']} has no export folder for sequence {name!r}")
+        out.append((lay, dataset))
+    return out
+
+
+def _coverage(run: dict[str, Any], lay: RunLayout, dataset: Path) -> ExportCoverage:
     with _lock:
         cached = _read_coverage(lay.export_coverage)
         if cached is not None:
             return cached
         cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
         try:
-            cov = export_coverage(
-                lay.run_dir, Path(run["params"]["dataset"]), _frames(run), cfg.fusion.voxel_size
-            )
+            cov = export_coverage(lay.run_dir, dataset, _frames(run), cfg.fusion.voxel_size)
         except LeapError as exc:
             raise Conflict(f"Run {run['id']}: cannot count its export ({exc})") from None
         data = cov.to_dict()
@@ -183,12 +210,21 @@ def export_info(settings: Settings, run: dict[str, Any], project: dict[str, Any]
     cov = coverage(run)
     schema = _schema(run)
     by_reason = {"outside_view": cov.outside_view, "no_mask": cov.no_mask}
-    predictions = Path(project["dataset_path"]) / PREDICTIONS
+    names = [n for n, _ in run_sequences_of(run["params"]) or []]
+    predictions = Path(project["dataset_path"]) / PREDICTIONS if not names else default_multi_target(
+        settings, project, run)
+    target: Path | None
     try:
-        target: Path | None = export_target(settings, project, None)
+        target = export_target(settings, project, None) if not names else multi_target(
+            settings, project, run, None)
     except Forbidden:
         target = None
-    existing = existing_export_files(target) if target is not None else []
+    if target is None:
+        existing = []
+    elif names:
+        existing = [f for n in names for f in existing_export_files(target / SEQUENCES / n / PREDICTIONS)]
+    else:
+        existing = existing_export_files(target)
     return models.ExportInfo(
         run_id=run["id"],
         frames=cov.frames,
@@ -212,6 +248,7 @@ def export_info(settings: Settings, run: dict[str, Any], project: dict[str, Any]
         predictions_path=str(target if target is not None else predictions),
         predictions_allowed=target is not None,
         predictions_existing=len(existing),
+        sequences=names,
     )
 
 
@@ -220,6 +257,8 @@ def build_zip(run: dict[str, Any], project: dict[str, Any], include_confidence: 
     """The run's stand-alone export zip (:meth:`RunLayout.export_zip`), built once and cached beside it:
     ``sequences/<seq>/predictions/<frame>.label`` (+ ``confidences/<frame>.conf``), ``label-map.yaml``
     and ``summary.yaml`` (:func:`leap_core.export.write_export_zip`)."""
+    if run_sequences_of(run["params"]) is not None:
+        return _build_multi_zip(run, include_confidence)
     lay = _finished_export(run)
     target = lay.export_zip(include_confidence)
     cov = coverage(run)
@@ -248,6 +287,24 @@ def build_zip(run: dict[str, Any], project: dict[str, Any], include_confidence: 
         write_export_zip(
             target, lay.export_dir, dataset.name, extra, include_confidence=include_confidence, overwrite=True
         )
+    return target
+
+
+def _build_multi_zip(run: dict[str, Any], include_confidence: bool) -> Path:
+    """A multi-sequence run's zip (:func:`leap_core.pipeline.multi.export_zip`: ``sequences/<name>/
+    predictions/<frame>.label`` per sequence, one label map and summary), cached in the run folder."""
+    _sequence_exports(run)
+    target = RunLayout(Path(run["run_dir"])).export_zip(include_confidence)
+    cov = coverage(run)
+    with _lock:
+        if target.is_file() and _current_zip(target):
+            return target
+        cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
+        try:
+            export_zip(Path(run["run_dir"]), target, _schema(run), config=cfg, with_conf=include_confidence,
+                       overwrite=True, raw_counts=cov.raw_counts, version=__version__)
+        except LeapError as exc:
+            raise Conflict(f"Run {run['id']}: cannot build its zip ({exc})") from None
     return target
 
 
@@ -280,6 +337,8 @@ def write_export(
         Forbidden: a target the policy refuses (:func:`export_target`).
         Conflict: the target holds files and ``overwrite`` is off, or holds files an export does not write.
     """
+    if run_sequences_of(run["params"]) is not None:
+        return _write_multi_export(settings, run, project, payload)
     lay = _finished_export(run)
     target = export_target(settings, project, payload.path)
     suffixes = (".label", ".conf") if payload.include_confidence else (".label",)
@@ -289,6 +348,63 @@ def write_export(
     except ExportConflict as exc:
         raise Conflict(str(exc)) from None
     return models.ExportWritten(run_id=run["id"], path=str(target), files=len(files), replaced=replaced)
+
+
+# ------------------------------------------------------------------------- runs of several sequences
+SEQUENCES = "sequences"
+"""An export of several sequences writes ``<folder>/sequences/<name>/predictions/`` (SemanticKITTI's
+layout)."""
+
+
+def default_multi_target(settings: Settings, project: dict[str, Any], run: dict[str, Any]) -> Path:
+    """Where a multi-sequence run's export goes by default: the datasets' common root when every sequence
+    is ``<root>/sequences/<name>`` (each sequence's own ``predictions/``), else
+    ``<work_dir>/exports/<project>-run<N>``."""
+    listed = run_sequences_of(run["params"]) or []
+    roots = {dataset.parent.parent for _, dataset in listed}
+    if len(roots) == 1 and all(d.parent.name == SEQUENCES and d.name == n for n, d in listed):
+        return roots.pop()
+    stem = "".join(ch if ch.isalnum() or ch in "-_" else "-" for ch in project["name"])[:40] or "project"
+    return exports_dir(settings) / f"{stem}-run{run['number']}"
+
+
+def multi_target(settings: Settings, project: dict[str, Any], run: dict[str, Any], raw: str | None) -> Path:
+    """The folder a multi-sequence run's export may go into: each ``<folder>/sequences/<name>/predictions``
+    must be allowed by :func:`export_target` (a dataset's ``predictions/`` beside its ``velodyne/``, or a
+    folder inside the app's export folder).
+
+    Raises:
+        Forbidden: naming the first sequence folder the policy refuses.
+    """
+    shown = raw if raw else str(default_multi_target(settings, project, run))
+    roots = [*settings.data_roots, exports_dir(settings).resolve()]
+    base = resolve_in_roots(shown, roots, what="export path")
+    for name, _ in run_sequences_of(run["params"]) or []:
+        folder = base / SEQUENCES / name / PREDICTIONS
+        try:
+            export_target(settings, project, str(folder))
+        except Forbidden as exc:
+            raise Forbidden(f"export path {shown!r}, sequence {name!r}: {exc.detail}") from None
+    return base
+
+
+def _write_multi_export(
+    settings: Settings, run: dict[str, Any], project: dict[str, Any], payload: models.ExportWrite
+) -> models.ExportWritten:
+    _sequence_exports(run)
+    target = multi_target(settings, project, run, payload.path)
+    names = [n for n, _ in run_sequences_of(run["params"]) or []]
+    replaced = sum(len(existing_export_files(folder)) for folders in export_targets(
+        target, names, with_conf=payload.include_confidence).values() for folder in folders)
+    try:
+        written = export_sequences(Path(run["run_dir"]), target, with_conf=payload.include_confidence,
+                                   overwrite=payload.overwrite)
+    except ExportConflict as exc:
+        raise Conflict(str(exc)) from None
+    except LeapError as exc:
+        raise Forbidden(f"export path {str(target)!r}: {exc}") from None
+    return models.ExportWritten(run_id=run["id"], path=str(target), files=sum(written.values()),
+                                replaced=replaced if payload.overwrite else 0)
 
 
 __all__ = ["REASONS", "build_zip", "coverage", "export_info", "export_target", "exports_dir", "invalidate",

@@ -201,9 +201,35 @@ class DatasetRef(_Input):
         return self
 
 
+SEQUENCE_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+"""A sequence's name: it names the run's ``sequences/<name>/`` folder and the export's, so no ``/``, no
+leading dot."""
+
+MAX_SEQUENCES = 64
+"""Most sequences one project may hold."""
+
+
+class SequenceRef(_Input):
+    """One sequence of a multi-sequence project: a KITTI sequence folder inside a data root."""
+
+    path: str = Field(min_length=1, max_length=4096, description="sequence folder inside a data root")
+    name: str | None = Field(
+        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        description="name in runs, metrics and exports (default: the folder's name, e.g. `00`)",
+    )
+
+
 class ProjectCreate(_Input):
     name: str = Field(min_length=1, max_length=120)
-    dataset: DatasetRef
+    dataset: DatasetRef | None = Field(
+        default=None,
+        description="the project's one sequence (or the built-in demo); give this or `sequences`",
+    )
+    sequences: list[SequenceRef] | None = Field(
+        default=None, min_length=1, max_length=MAX_SEQUENCES,
+        description="several sequence folders labeled with one class schema (e.g. SemanticKITTI 00-10); a "
+        "run labels them all, metrics come per sequence and overall; give this or `dataset`",
+    )
     schema_name: str = Field(
         default="semantickitti", min_length=1, max_length=64, description="built-in schema"
     )
@@ -311,6 +337,11 @@ class DatasetPublic(BaseModel):
     )
 
 
+class SequencePublic(BaseModel):
+    name: str = Field(description="the sequence's name in runs, metrics and exports")
+    dataset: DatasetPublic
+
+
 class RunBrief(BaseModel):
     id: int
     number: int
@@ -328,7 +359,10 @@ class RunBrief(BaseModel):
 class ProjectPublic(BaseModel):
     id: int
     name: str
-    dataset: DatasetPublic
+    dataset: DatasetPublic = Field(description="the project's (first) sequence")
+    sequences: list[SequencePublic] = Field(
+        default_factory=list, description="every sequence, in order (one for a single-sequence project)"
+    )
     schema_name: str
     num_classes: int
     pipeline: dict[str, Any]
@@ -452,6 +486,14 @@ class MetricsPublic(BaseModel):
         description="the run's export now carries corrections applied after its evaluation (the "
         "apply-corrections job); these figures describe the labels before them until a re-run",
     )
+    sequence: str | None = Field(
+        default=None, description="the sequence these figures are of (null: the run's own, overall for a "
+        "run of several sequences)",
+    )
+    sequences: list[str] = Field(
+        default_factory=list, description="a run of several sequences: those with metrics of their own "
+        "(`?sequence=`), in run order; empty for a run of one sequence",
+    )
 
 
 class ChangePublic(BaseModel):
@@ -571,6 +613,10 @@ class ExportInfo(BaseModel):
     predictions_path: str = Field(description="the project dataset's predictions/ folder")
     predictions_allowed: bool = Field(description="whether that folder may receive an export")
     predictions_existing: int = Field(description="entries it holds now (writing them needs overwrite)")
+    sequences: list[str] = Field(
+        default_factory=list, description="a run of several sequences: their names; the export writes "
+        "`<predictions_path>/sequences/<name>/predictions/` for each (empty for a run of one sequence)",
+    )
 
 
 # -------------------------------------------------------------------------------------------- pipeline
@@ -681,6 +727,11 @@ class CorrectionCreate(_Input):
         default=None, max_length=CORRECTION_MAX_ITEMS,
         description="scan scope: indices into the scan's points",
     )
+    sequence: str | None = Field(
+        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        description="the project sequence it corrects (default: the first; keys and frame ids are per "
+        "sequence)",
+    )
 
     @field_validator("class_name")
     @classmethod
@@ -710,6 +761,7 @@ class CorrectionPublic(BaseModel):
     points: int | None = Field(description="scan scope: points covered")
     author: str | None = Field(description="'viewer', 'api', or null for corrections older than authors")
     active: bool
+    sequence: str | None = Field(default=None, description="the project sequence it corrects")
 
 
 class CorrectionClassCount(BaseModel):

@@ -17,8 +17,10 @@ import sqlite_utils
 
 from app import crud, models
 from app.core.config import Settings
+from app.core.db import default_sequence_name
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
+from app.jobs.multi import run_sequences_of, sequence_run_dir
 from app.jobs.progress import ProgressTracker
 from leap_core.colors import distinct_color
 from leap_core.config import (
@@ -91,8 +93,10 @@ def escaping_entry(folder: Path, roots: list[Path]) -> tuple[str, Path] | None:
     return None
 
 
-def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.DatasetKind, Path]:
-    """(kind, absolute sequence folder) of a dataset reference.
+def resolve_dataset(
+    settings: Settings, ref: models.DatasetRef, loc: tuple[str | int, ...] = ("body", "dataset", "path")
+) -> tuple[models.DatasetKind, Path]:
+    """(kind, absolute sequence folder) of a dataset reference (``loc``: the payload field naming it).
 
     Raises:
         Forbidden: a folder outside the data roots, or one whose ``velodyne/`` (or another entry the
@@ -102,14 +106,12 @@ def resolve_dataset(settings: Settings, ref: models.DatasetRef) -> tuple[models.
     if ref.kind == "demo":
         return "demo", settings.demo_dataset
     assert ref.path is not None
-    path = resolve_in_roots(
-        ref.path, settings.data_roots, what="dataset path", loc=("body", "dataset", "path")
-    )
+    path = resolve_in_roots(ref.path, settings.data_roots, what="dataset path", loc=loc)
     if not path.is_dir():
-        raise InvalidField(["body", "dataset", "path"], f"dataset path {ref.path!r}: no such folder")
+        raise InvalidField(loc, f"dataset path {ref.path!r}: no such folder")
     if not (path / "velodyne").is_dir():
         raise InvalidField(
-            ["body", "dataset", "path"],
+            loc,
             f"dataset path {ref.path!r}: not a KITTI sequence folder (it has no velodyne/ folder; "
             "pick a folder like .../sequences/00)",
         )
@@ -240,29 +242,80 @@ def create_project(
     db: sqlite_utils.Database, settings: Settings, payload: models.ProjectCreate
 ) -> dict[str, Any]:
     """A new project with the classes and the ``pipeline:`` section of the built-in preset
-    ``payload.schema_name``, the payload's ``pipeline`` overrides applied on top."""
-    kind, path = resolve_dataset(settings, payload.dataset)
+    ``payload.schema_name``, the payload's ``pipeline`` overrides applied on top, on one sequence
+    (``payload.dataset``) or several (``payload.sequences``, each confined and checked like one)."""
+    kind, sequences = _project_sequences(settings, payload)
     try:
         preset = builtin_preset(payload.schema_name)
     except LeapError as exc:
         raise InvalidField(["body", "schema_name"], str(exc)) from None
     config = pipeline_config(payload.pipeline, preset.pipeline)
     if kind == "folder":
-        check = dataset_check(settings, path, config, estimate_poses=project_estimates_poses(
-            payload.model_dump()))
-        if check.verdict == "none":
-            raise InvalidField(
-                ["body", "dataset", "path"], f"dataset path {str(path)!r}: {check_problem(check)}"
-            )
+        for name, path, loc in sequences:
+            check = dataset_check(settings, path, config, estimate_poses=project_estimates_poses(
+                payload.model_dump()))
+            if check.verdict == "none":
+                what = f"dataset path {str(path)!r}" + (f" (sequence {name!r})" if len(sequences) > 1 else "")
+                raise InvalidField(loc, f"{what}: {check_problem(check)}")
     return crud.create_project(
         db,
         name=payload.name,
         dataset_kind=kind,
-        dataset_path=str(path),
+        dataset_path=str(sequences[0][1]),
         schema=preset.schema.to_dict(),
         pipeline=config_to_dict(config),
         estimate_poses=payload.estimate_poses,
+        sequences=[(name, str(path)) for name, path, _ in sequences],
     )
+
+
+def _project_sequences(
+    settings: Settings, payload: models.ProjectCreate
+) -> tuple[models.DatasetKind, list[tuple[str, Path, tuple[str | int, ...]]]]:
+    """(kind, [(name, resolved folder, payload field)]) of a new project's sequences.
+
+    Raises:
+        InvalidField: neither or both of ``dataset`` and ``sequences``; a folder that is not a sequence; a
+            name that is not given and cannot come from the folder; two sequences with one name or one
+            folder.
+        Forbidden: a folder outside the data roots (:func:`resolve_dataset`).
+    """
+    if (payload.dataset is None) == (payload.sequences is None):
+        field = "sequences" if payload.dataset is not None else "dataset"
+        raise InvalidField(
+            ["body", field],
+            "give either dataset (one sequence folder, or the demo) or sequences (several folders), not both"
+            if payload.dataset is not None else "dataset is required (or sequences, for several folders)",
+        )
+    if payload.dataset is not None:
+        kind, path = resolve_dataset(settings, payload.dataset)
+        return kind, [(default_sequence_name(str(path)), path, ("body", "dataset", "path"))]
+    assert payload.sequences is not None
+    out: list[tuple[str, Path, tuple[str | int, ...]]] = []
+    names: dict[str, int] = {}
+    folders: dict[Path, int] = {}
+    for i, ref in enumerate(payload.sequences):
+        loc: tuple[str | int, ...] = ("body", "sequences", i, "path")
+        _, path = resolve_dataset(settings, models.DatasetRef(kind="folder", path=ref.path), loc)
+        name = ref.name if ref.name is not None else path.name
+        if not re.match(models.SEQUENCE_NAME_PATTERN, name):
+            raise InvalidField(
+                ("body", "sequences", i, "name"),
+                f"folder name {name!r} cannot name a sequence (letters, digits, '_', '.', '-'; first a "
+                "letter or digit); give a name",
+            )
+        if name in names:
+            raise InvalidField(
+                ("body", "sequences", i, "name"),
+                f"sequence name {name!r} is taken by sequences[{names[name]}]; give each sequence its "
+                "own name",
+            )
+        real = path.resolve()
+        if real in folders:
+            raise InvalidField(loc, f"dataset path {ref.path!r} is sequences[{folders[real]}] again")
+        names[name], folders[real] = i, i
+        out.append((name, path, loc))
+    return "folder", out
 
 
 def validate_form(form: Mapping[str, Any], base: PipelineConfig) -> PipelineConfig:
@@ -348,10 +401,18 @@ def project_public(
     """A project row as the API shows it; with ``settings``, its dataset carries the dataset check."""
     runs = crud.list_runs(db, project["id"])
     check = None if settings is None else project_check(settings, project)
+    sequences = project.get("sequences") or crud.list_sequences(db, project["id"])
     return models.ProjectPublic(
         id=project["id"],
         name=project["name"],
         dataset=dataset_public(project["dataset_kind"], project["dataset_path"], check),
+        sequences=[
+            models.SequencePublic(
+                name=s["name"],
+                dataset=dataset_public(project["dataset_kind"], s["dataset_path"], check if i == 0 else None),
+            )
+            for i, s in enumerate(sequences)
+        ],
         schema_name=project["schema"]["name"],
         num_classes=len(project["schema"]["classes"]),
         pipeline=project["pipeline"],
@@ -520,6 +581,8 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         ``{"protocols": {protocol: {row: {miou, category_miou, labeled_share, iou: {class: v}, ...}}},
         "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}`` or None.
     """
+    if metrics and isinstance(metrics.get("overall"), dict) and "protocols" not in metrics:
+        metrics = metrics["overall"]  # a multi-sequence run's metrics: the summed confusion matrices
     if not metrics or not isinstance(metrics.get("protocols"), dict):
         return None
     rows = list(metrics.get("rows") or [])
@@ -548,6 +611,48 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
+def metrics_sequences(run: dict[str, Any]) -> list[str]:
+    """The sequences with metrics of their own in a multi-sequence run (in run order: the stored JSON's
+    keys are sorted); empty for a single-sequence run."""
+    metrics = run.get("metrics")
+    listed = run_sequences_of(run["params"])
+    if listed is None or not metrics or not isinstance(metrics.get("sequences"), dict):
+        return []
+    return [name for name, _ in listed if isinstance(metrics["sequences"].get(name), dict)]
+
+
+def sequence_metrics(
+    run: dict[str, Any], sequence: str | None, project_sequences: list[str]
+) -> dict[str, Any] | None:
+    """The metrics table (:func:`normalise_metrics`) of one sequence of the run, or, with ``sequence``
+    None, the run's own (a multi-sequence run's: overall). A single-sequence run's one sequence is the
+    project's (``project_sequences``: the project's sequence names).
+
+    Raises:
+        InvalidField: ``sequence`` is not one of the run's sequences (``[query, sequence]``).
+    """
+    metrics = run.get("metrics")
+    if sequence is None:
+        return normalise_metrics(metrics)
+    listed = run_sequences_of(run["params"])
+    if listed is None:
+        if sequence not in project_sequences[:1]:
+            raise InvalidField(["query", "sequence"], f"run {run['id']} has one sequence, not {sequence!r}")
+        return normalise_metrics(metrics)
+    names = [n for n, _ in listed]
+    if sequence not in names:
+        raise InvalidField(["query", "sequence"],
+                           f"run {run['id']} has no sequence {sequence!r} (it has {', '.join(names)})")
+    per = (metrics or {}).get("sequences") or {}
+    return normalise_metrics(per.get(sequence))
+
+
+def _sequence_names(run: dict[str, Any]) -> list[str | None]:
+    """The run's sequences (``[None]``: a single-sequence run's one)."""
+    listed = run_sequences_of(run["params"])
+    return [None] if listed is None else [n for n, _ in listed]
+
+
 def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPublic:
     run_dir = Path(run["run_dir"])
     return models.RunPublic(
@@ -563,7 +668,10 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         params={k: v for k, v in run["params"].items() if k != "stages"},
         progress=run_progress(run, live),
         has_metrics=run.get("metrics") is not None,
-        has_export=run["status"] == "done" and RunLayout(run_dir).export_dir.is_dir(),
+        has_export=run["status"] == "done" and all(
+            RunLayout(sequence_run_dir(run_dir, run["params"], name)[0]).export_dir.is_dir()
+            for name in _sequence_names(run)
+        ),
         resumable=run["status"] in models.RESUMABLE_STATUSES,
         summary=metrics_summary(run.get("metrics")),
         note=run.get("note"),

@@ -8,6 +8,8 @@ job manager imports :mod:`app.services`.
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -17,12 +19,13 @@ import sqlite_utils
 from app import crud, models
 from app.core.config import Settings
 from app.core.errors import InvalidField
-from app.jobs.manager import seed_source, write_run_corrections
+from app.jobs.manager import run_corrections, seed_source
+from app.jobs.multi import run_sequences_of, sequence_run_dir, snapshot_sequences
 from app.services import normalise_metrics, project_config
 from leap_core.errors import LeapError
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
-from leap_core.pipeline.steering import Change, changed_sections, recompute_plan, run_changes
+from leap_core.pipeline.steering import Change, StagePlan, changed_sections, recompute_plan, run_changes
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -37,8 +40,10 @@ def _change_public(change: Change) -> models.ChangePublic:
 
 def project_snapshot(project: dict[str, Any]) -> dict[str, Any]:
     """The inputs a new run of all frames would snapshot (the parts :func:`run_changes` compares)."""
-    return {"dataset": project["dataset_path"], "frames": None, "schema": project["schema"],
-            "pipeline": project["pipeline"]}
+    snapshot = {"dataset": project["dataset_path"], "frames": None, "schema": project["schema"],
+                "pipeline": project["pipeline"]}
+    sequences = snapshot_sequences(project.get("sequences") or [])
+    return snapshot if sequences is None else {**snapshot, "sequences": sequences}
 
 
 def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) -> models.RunPreview:
@@ -57,33 +62,62 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
         return models.RunPreview(base_run=basis, stages=stages, recompute=[s.name for s in stages],
                                  changes=changes, problem=problem)
 
-    dataset = Path(project["dataset_path"])
-    if not (dataset / "velodyne").is_dir():
+    # Per sequence (one for a single-sequence project): its dataset, the base run's folder of it.
+    listed = run_sequences_of(snapshot)
+    targets = [(None, Path(project["dataset_path"]))] if listed is None else listed
+    if not all((dataset / "velodyne").is_dir() for _, dataset in targets):
         return everything("the dataset does not exist yet")
     config = project_config(project)
-    try:
-        schema = Schema.from_dict(project["schema"], source="classes")
-        runtime = Runtime(models_dir=settings.models_dir, cache_dir=settings.cache_dir / f"p{project_id}")
-        settings.work_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
-            write_run_corrections(db, project_id, snapshot, Path(tmp))
-            fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
-    except LeapError as exc:
-        return everything("its inputs could not be fingerprinted", problem=str(exc))
-    previous = None if base is None else read_state(RunLayout(Path(base["run_dir"])))
     sections = (
         [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
     )
     kinds = {"class": "the classes or prompts changed", "dataset": "the dataset changed",
              "frames": "the frames changed"}
     hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
-    plans = recompute_plan(config, fps, previous, sections,
-                           **({"input_hint": hint} if hint else {}))
+    per_sequence = []
+    try:
+        schema = Schema.from_dict(project["schema"], source="classes")
+        runtime = Runtime(models_dir=settings.models_dir, cache_dir=settings.cache_dir / f"p{project_id}")
+        settings.work_dir.mkdir(parents=True, exist_ok=True)
+        for name, dataset in targets:
+            with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
+                corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
+                lay = RunLayout(Path(tmp))
+                run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
+                base_lay = None if base is None else RunLayout(
+                    sequence_run_dir(Path(base["run_dir"]), base["params"], name)[0])
+                if base_lay is not None and name is not None and base_lay.joint_3dcn.is_file():
+                    # A sequence's 3D-CN fingerprint covers the joint round it took; a change anywhere
+                    # that reruns the joint round shows up as another sequence's recompute (merged below).
+                    shutil.copyfile(base_lay.joint_3dcn, lay.joint_3dcn)
+                fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
+            previous = None if base_lay is None else read_state(base_lay)
+            per_sequence.append((name, recompute_plan(config, fps, previous, sections,
+                                                      **({"input_hint": hint} if hint else {}))))
+    except LeapError as exc:
+        return everything("its inputs could not be fingerprinted", problem=str(exc))
+    plans = _merged_plans(per_sequence)
     stages = [
         models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans
     ]
     return models.RunPreview(base_run=basis, stages=stages,
                              recompute=[p.name for p in plans if p.action == "recompute"], changes=changes)
+
+
+def _merged_plans(per_sequence: list[tuple[str | None, list[StagePlan]]]) -> list[StagePlan]:
+    """One plan per stage over every sequence: a stage any sequence recomputes is recomputed (the reason
+    names the first such sequence); else the first sequence's plan."""
+    if len(per_sequence) == 1:
+        return per_sequence[0][1]
+    merged = []
+    for i, first in enumerate(per_sequence[0][1]):
+        chosen = next(((n, p[i]) for n, p in per_sequence if p[i].action == "recompute"), None)
+        if chosen is None:
+            merged.append(first)
+        else:
+            name, plan = chosen
+            merged.append(dataclasses.replace(plan, reason=f"sequence {name}: {plan.reason}"))
+    return merged
 
 
 def _num(value: Any) -> float | None:

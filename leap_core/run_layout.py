@@ -26,10 +26,26 @@ through :class:`RunLayout`, so no other module spells a run-folder file name.
                                   now carry, and the voxel → frames index (leap_core.pipeline.apply)
       poses/poses.txt, poses/poses_estimated.json
                                   estimated poses (KISS-ICP) the run uses because its dataset has none
+      3dcn_joint.json             only in a sequence of a multi-sequence run with the 3D-CN on: the joint
+                                  3D-CN round it takes its 3D-CN grids from (its digest is part of the
+                                  3dcn stage's fingerprint)
+
+A multi-sequence run (:class:`MultiRunLayout`, ``leap_core.pipeline.multi``) holds one such run folder per
+sequence::
+
+    <root>/
+      multi.json                  the run's sequences: name, dataset folder, frames (in run order)
+      metrics.json                {"overall": metrics of the summed confusion matrices, "sequences": {...}}
+      sequences/<name>/           a complete run folder (above) per sequence
+      3dcn/3dcn_iter{i}.pt        the joint 3D-CN's checkpoints (one network per round, all sequences)
+      3dcn/joint.json             the fingerprint the staged rounds below belong to
+      3dcn/rounds/<name>/grid_3dcn{i}.npz, grid_smooth_3dcn{i}.npz
+                                  round i's grids of each sequence, hard-linked into sequences/<name>/
 """
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +55,7 @@ import numpy as np
 import numpy.typing as npt
 
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, LeapError
 from leap_core.io_utils import atomic_save_npz
 
 
@@ -84,6 +100,7 @@ class RunLayout:
     EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
     EXPORT_COVERAGE: ClassVar[str] = "export-coverage.json"
     POSES_DIR: ClassVar[str] = "poses"
+    JOINT_3DCN: ClassVar[str] = "3dcn_joint.json"
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
         {PARAMS, CORRECTIONS, CORRECTIONS_SCAN, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, EXPORT_COVERAGE,
          APPLIED_CORRECTIONS, APPLIED_CORRECTIONS_SCAN, FRAME_VOXELS}
@@ -190,6 +207,12 @@ class RunLayout:
         by ``leap run --estimate-poses`` or the app's run of a project that estimates poses."""
         return self.run_dir / self.POSES_DIR / "poses.txt"
 
+    @property
+    def joint_3dcn(self) -> Path:
+        """In a sequence of a multi-sequence run with the 3D-CN on: which joint 3D-CN round its 3D-CN
+        grids come from (:mod:`leap_core.pipeline.multi`); absent in an ordinary run."""
+        return self._file(self.JOINT_3DCN)
+
     def open_sequence(self, dataset: str | Path) -> KittiSequence:
         """The dataset as this run reads it: with the dataset's own ``poses.txt`` when it has one, else
         with the run's :attr:`poses` when present (the one rule the pipeline, the exports, the app's
@@ -247,6 +270,109 @@ class RunLayout:
         return self.grid_smooth_3dcn(max(rounds)) if rounds else self.grid_smooth
 
 
+# ------------------------------------------------------------------------------- multi-sequence runs
+_SEQUENCE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+
+def sequence_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a sequence of a multi-sequence run (a folder under ``sequences/``), or
+    None: 1-64 characters, letters, digits, ``_``, ``-`` and ``.``, starting with a letter or digit."""
+    if not isinstance(name, str) or not _SEQUENCE_NAME.fullmatch(name):
+        return (f"must be 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit "
+                f"(a folder name), got {name!r}")
+    return None
+
+
+@dataclass(frozen=True)
+class MultiRunLayout:
+    """The paths of a multi-sequence run folder (module docstring): one ordinary run folder per sequence
+    under ``sequences/``, the joint 3D-CN's files under ``3dcn/`` and the overall metrics."""
+
+    root: Path
+    """The multi-sequence run folder."""
+
+    SPEC: ClassVar[str] = "multi.json"
+    SEQUENCES: ClassVar[str] = "sequences"
+    METRICS: ClassVar[str] = "metrics.json"
+    CN_DIR: ClassVar[str] = "3dcn"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def spec(self) -> Path:
+        """``multi.json``: the run's sequences (name, dataset, frames), written when the run starts."""
+        return self.root / self.SPEC
+
+    @property
+    def metrics(self) -> Path:
+        """``metrics.json``: ``{"overall": ..., "sequences": {name: ...}}``
+        (:func:`leap_core.pipeline.evaluation.overall_metrics`)."""
+        return self.root / self.METRICS
+
+    @property
+    def sequences_dir(self) -> Path:
+        return self.root / self.SEQUENCES
+
+    def sequence(self, name: str) -> RunLayout:
+        """The run folder of sequence ``name`` (``root/sequences/<name>``), a complete ordinary run folder.
+
+        Raises:
+            LeapError: ``name`` is not a folder-safe sequence name (:func:`sequence_name_problem`).
+        """
+        problem = sequence_name_problem(name)
+        if problem is not None:
+            raise LeapError(f"sequence name: {problem}", field=("name",))
+        return RunLayout(self.sequences_dir / name)
+
+    def names(self) -> list[str]:
+        """The run's sequences: in ``multi.json``'s order when it exists (those whose folder is present),
+        else every run folder under ``sequences/`` in name order."""
+        listed = self._listed()
+        if listed is not None:
+            return [n for n in listed if (self.sequences_dir / n).is_dir()]
+        if not self.sequences_dir.is_dir():
+            return []
+        return sorted(p.name for p in self.sequences_dir.iterdir()
+                      if p.is_dir() and sequence_name_problem(p.name) is None)
+
+    def _listed(self) -> list[str] | None:
+        if not self.spec.is_file():
+            return None
+        try:
+            data = json.loads(self.spec.read_text())
+            return [str(s["name"]) for s in data["sequences"]]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise DatasetError(self.spec, f"unreadable multi-sequence run record ({exc})") from exc
+
+    # ------------------------------------------------------------------------------- joint 3D-CN
+    @property
+    def cn_dir(self) -> Path:
+        """The joint 3D-CN's checkpoints (``3dcn_iter{i}.pt``)."""
+        return self.root / self.CN_DIR
+
+    @property
+    def joint_state(self) -> Path:
+        """``3dcn/joint.json``: the fingerprint of the joint round whose grids ``3dcn/rounds/`` holds."""
+        return self.cn_dir / "joint.json"
+
+    def joint_rounds(self, name: str) -> RunLayout:
+        """Where the joint 3D-CN stages sequence ``name``'s round grids (``grid_3dcn{i}.npz``,
+        ``grid_smooth_3dcn{i}.npz``) before its run folder links them in."""
+        self.sequence(name)  # checks the name
+        return RunLayout(self.cn_dir / "rounds" / name)
+
+    @staticmethod
+    def is_multi_run(path: str | Path) -> bool:
+        """True when ``path`` is a multi-sequence run folder (it holds ``multi.json``)."""
+        return (Path(path) / MultiRunLayout.SPEC).is_file()
+
+
+def is_multi_run(path: str | Path) -> bool:
+    """:meth:`MultiRunLayout.is_multi_run`."""
+    return MultiRunLayout.is_multi_run(path)
+
+
 # ------------------------------------------------------------------------------------ corrections
 def save_corrections(path: str | Path, keys: npt.ArrayLike, class_idx: npt.ArrayLike) -> None:
     """Write map-scope manual corrections: ``keys (K,)`` voxel keys and ``class_idx (K,)`` class indices
@@ -277,4 +403,5 @@ def load_corrections(
     return keys.astype(np.int64), cls.astype(np.int64)
 
 
-__all__ = ["ConsistencySwitch", "RunLayout", "load_corrections", "save_corrections"]
+__all__ = ["ConsistencySwitch", "MultiRunLayout", "RunLayout", "is_multi_run", "load_corrections",
+           "save_corrections", "sequence_name_problem"]

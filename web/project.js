@@ -92,6 +92,7 @@ export async function renderProject(root, projectId, { toast }) {
     classes: () => renderClasses(ctx),
     params: () => renderParams(ctx),
     check: () => renderDatasetCheck(els.check, state.project),
+    review: () => renderReview(ctx),
   };
 
   // --------------------------------------------------------------------------------- live progress

@@ -11,11 +11,11 @@ function projectCard(p) {
     "a",
     { class: "card project-card", href: `#/projects/${p.id}`, dataset: { projectId: String(p.id) } },
     h("div", { class: "project-card-head" }, h("h3", {}, p.name), p.is_demo ? h("span", { class: "chip demo" }, "demo") : null),
-    h("p", { class: "muted path" }, p.dataset.kind === "demo" ? "Built-in demo sequence" : p.dataset.path),
+    h("p", { class: "muted path" }, p.dataset.kind === "demo" ? "Built-in demo sequence" : p.sequences && p.sequences.length > 1 ? `${p.sequences.length} sequences: ${p.sequences.map((s) => s.name).join(", ")}` : p.dataset.path),
     h(
       "dl",
       { class: "facts" },
-      h("div", {}, h("dt", {}, "frames"), h("dd", {}, p.dataset.frames ?? "–")),
+      h("div", {}, h("dt", {}, "frames"), h("dd", {}, p.sequences && p.sequences.length > 1 ? p.sequences.reduce((n, s) => n + (s.dataset.frames || 0), 0) : p.dataset.frames ?? "–")),
       h("div", {}, h("dt", {}, "classes"), h("dd", {}, p.num_classes)),
       h("div", {}, h("dt", {}, "labeler"), h("dd", {}, p.form.labeler)),
       h("div", {}, h("dt", {}, "runs"), h("dd", {}, p.runs_count)),
@@ -32,10 +32,27 @@ function projectCard(p) {
   );
 }
 
+/** The "several sequences" list: one folder per line, "name = folder" to name one. */
+export function sequenceLines(text) {
+  return text
+    .split("\n")
+    .map((line) => line.trim())
+    .filter((line) => line)
+    .map((line) => {
+      const m = line.match(/^([A-Za-z0-9][A-Za-z0-9_.-]*)\s*=\s*(.+)$/);
+      return m ? { name: m[1], path: m[2].trim() } : { path: line };
+    });
+}
+
 function createForm(datasets, { toast, onCreated }) {
   const name = h("input", { id: "new-name", name: "name", required: true, maxlength: 120, placeholder: "My sequence" });
   const kindDemo = h("input", { type: "radio", name: "kind", value: "demo", id: "kind-demo" });
   const kindFolder = h("input", { type: "radio", name: "kind", value: "folder", id: "kind-folder", checked: true });
+  const kindSeveral = h("input", { type: "radio", name: "kind", value: "several", id: "kind-several" });
+  // Several sequences (e.g. SemanticKITTI 00-10) labeled with one class schema: one folder per line,
+  // optionally "name = folder" (the name defaults to the folder's, e.g. 00).
+  const paths = h("textarea", { id: "new-paths", rows: 4, spellcheck: "false", placeholder: "one sequence folder per line (name = folder to name it)" });
+  paths.addEventListener("input", () => (kindSeveral.checked = true));
   const select = h(
     "select",
     { id: "new-dataset" },
@@ -51,6 +68,14 @@ function createForm(datasets, { toast, onCreated }) {
     replace(checkBox, d ? checkSummary(d.check) : null);
   };
   select.addEventListener("change", () => {
+    if (kindSeveral.checked) {
+      // The picker adds folders to the list while "several" is chosen.
+      if (select.value && !sequenceLines(paths.value).some((l) => l.path === select.value)) {
+        paths.value = `${paths.value.replace(/\s+$/, "")}${paths.value.trim() ? "\n" : ""}${select.value}`;
+      }
+      select.value = "";
+      return;
+    }
     if (select.value) path.value = select.value;
     kindFolder.checked = true;
     showCheck();
@@ -70,10 +95,12 @@ function createForm(datasets, { toast, onCreated }) {
       onsubmit: async (e) => {
         e.preventDefault();
         error.textContent = "";
-        const dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
+        const body = { name: name.value.trim(), estimate_poses: poses.checked() };
+        if (kindSeveral.checked) body.sequences = sequenceLines(paths.value);
+        else body.dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
         submit.disabled = true;
         try {
-          const p = await post("/projects", { name: name.value.trim(), dataset, estimate_poses: poses.checked() });
+          const p = await post("/projects", body);
           const partial = p.dataset.check && p.dataset.check.verdict === "partial";
           toast(`Project “${p.name}” created${partial ? `: ${p.dataset.check.summary}, see the dataset check` : ""}`);
           onCreated(p);
@@ -92,6 +119,8 @@ function createForm(datasets, { toast, onCreated }) {
       h("legend", {}, "Dataset"),
       h("label", { class: "radio" }, kindFolder, h("span", {}, "KITTI-layout sequence folder")),
       h("div", { class: "indent stack" }, select, path, checkBox),
+      h("label", { class: "radio" }, kindSeveral, h("span", {}, "Several sequence folders, one class schema (pick them above or type them)")),
+      h("div", { class: "indent stack" }, paths),
       h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
     ),
     poses.element,

@@ -18,7 +18,7 @@ import re
 from collections.abc import Mapping
 from typing import Annotated, Any
 
-from fastapi import Path
+from fastapi import Path, Query
 from pydantic import AfterValidator
 
 from leap_core.schema import class_name_problem
@@ -94,6 +94,12 @@ def _short_key(key: str) -> str:
 ProjectId = Annotated[int, Path(ge=1, le=MAX_INT, description="project id")]
 RunId = Annotated[int, Path(ge=1, le=MAX_INT, description="run id")]
 PromptIndex = Annotated[int, Path(ge=0, le=MAX_INT, description="index of the prompt in the class's list")]
+SequenceQuery = Annotated[
+    str | None,
+    Query(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
+          description="one of the project's sequences (default: the run's own figures / the first sequence)"),
+]
+"""``?sequence=`` of a project with several sequences (its names: ``app.models.SEQUENCE_NAME_PATTERN``)."""
 
 
 def _class_name(value: str) -> str:

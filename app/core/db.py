@@ -129,6 +129,63 @@ def _v5_estimate_poses(db: sqlite_utils.Database) -> None:
     db.execute("ALTER TABLE projects ADD COLUMN estimate_poses INTEGER NOT NULL DEFAULT 0")
 
 
+def _v6_project_sequences(db: sqlite_utils.Database) -> None:
+    # A project labels one or more sequences with one class schema. Every existing project gets its one
+    # sequence, named after its folder (".../sequences/00" -> "00"), and its corrections and saved review
+    # queues are scoped to it, so single-sequence projects read exactly what they did. review_queues gains
+    # the sequence in its primary key (SQLite cannot alter a key: the table is rebuilt). review_marks keeps
+    # its columns: in a project with several sequences a mark's region is stored as "<sequence>/<region>"
+    # (app.crud.review_key), so a single-sequence project's marks are unchanged.
+    _execute_script(
+        db,
+        """
+        CREATE TABLE project_sequences (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            name TEXT NOT NULL,
+            dataset_path TEXT NOT NULL,
+            position INTEGER NOT NULL,
+            PRIMARY KEY (project_id, name),
+            UNIQUE (project_id, position)
+        );
+        ALTER TABLE corrections ADD COLUMN sequence TEXT;
+        CREATE TABLE review_queues_v6 (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            sequence TEXT NOT NULL,
+            kind TEXT NOT NULL CHECK (kind IN ('confidence', 'disagreement')),
+            run_id INTEGER,
+            regions_json TEXT NOT NULL,
+            updated_at TEXT NOT NULL,
+            PRIMARY KEY (project_id, sequence, kind)
+        )
+        """,
+    )
+    for project_id, dataset_path in db.execute("SELECT id, dataset_path FROM projects").fetchall():
+        db.execute(
+            "INSERT INTO project_sequences (project_id, name, dataset_path, position) VALUES (?, ?, ?, 0)",
+            [project_id, default_sequence_name(dataset_path), dataset_path],
+        )
+    _execute_script(
+        db,
+        """
+        UPDATE corrections SET sequence =
+            (SELECT s.name FROM project_sequences s WHERE s.project_id = corrections.project_id);
+        INSERT INTO review_queues_v6 (project_id, sequence, kind, run_id, regions_json, updated_at)
+            SELECT q.project_id, s.name, q.kind, q.run_id, q.regions_json, q.updated_at
+            FROM review_queues q JOIN project_sequences s ON s.project_id = q.project_id;
+        DROP TABLE review_queues;
+        ALTER TABLE review_queues_v6 RENAME TO review_queues;
+        CREATE INDEX corrections_sequence ON corrections(project_id, sequence, id)
+        """,
+    )
+
+
+def default_sequence_name(dataset_path: str) -> str:
+    """The name a sequence gets from its folder when none is given: the folder's own name (``00`` for
+    ``.../sequences/00``), or ``"00"`` for a path without one."""
+    name = Path(dataset_path).name
+    return name if name not in ("", ".", "..") else "00"
+
+
 Migration = tuple[int, str, Callable[[sqlite_utils.Database], None]]
 
 MIGRATIONS: list[Migration] = [
@@ -137,6 +194,7 @@ MIGRATIONS: list[Migration] = [
     (3, "corrections.scope, frame_id, points, author", _v3_correction_scope),
     (4, "review_marks, review_queues", _v4_review_marks),
     (5, "projects.estimate_poses", _v5_estimate_poses),
+    (6, "project_sequences; corrections and review queues per sequence", _v6_project_sequences),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

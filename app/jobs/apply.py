@@ -25,6 +25,7 @@ from app.core.config import Settings
 from app.core.db import open_db, utcnow
 from app.core.errors import AppError
 from app.jobs.manager import run_corrections
+from app.jobs.multi import run_sequences_of, sequence_layouts
 from app.services import pipeline_config
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError
@@ -134,20 +135,34 @@ class CorrectionApplier:
                 self._threads.pop(project_id, None)
                 self._idle.notify_all()
 
-    def _latest(self, project_id: int) -> tuple[dict[str, Any] | None, list[crud.Correction]]:
+    def _latest(
+        self, project_id: int
+    ) -> tuple[dict[str, Any] | None, list[tuple[RunLayout, Path, list[crud.Correction]]]]:
+        """The latest finished run and, per sequence of it (one for a single-sequence run), its run
+        layout, dataset and the sequence's active corrections."""
         with open_db(self.settings.database) as db:
             run = crud.last_finished_run(db, project_id)
-            corrections = crud.list_corrections(db, project_id, active_only=True)
-        return run, corrections
+            if run is None:
+                return None, []
+            if run_sequences_of(run["params"]) is None:
+                targets = [(RunLayout(Path(run["run_dir"])), Path(run["params"]["dataset"]),
+                            crud.list_corrections(db, project_id, active_only=True))]
+            else:
+                targets = [
+                    (lay, dataset, crud.list_corrections(db, project_id, active_only=True, sequence=name))
+                    for name, dataset, lay in sequence_layouts(Path(run["run_dir"]), run["params"])
+                ]
+        return run, targets
 
-    def _cache(self, project_id: int, run: dict[str, Any]) -> RunCache:
-        lay = RunLayout(Path(run["run_dir"]))
+    def _cache(self, project_id: int, run: dict[str, Any], lay: RunLayout, dataset: Path) -> RunCache:
+        # One cache per project (its latest run; of several sequences, the one applied last): the grid
+        # and index of a large sequence take much memory.
         with self._lock:
             held = self._caches.get(project_id)
         if held is not None and held[0] == lay.run_dir:
             return held[1]
         params = run["params"]
-        seq = lay.open_sequence(Path(params["dataset"]))
+        seq = lay.open_sequence(dataset)
         cache = load_run_cache(lay, seq, _frames(params, seq), _voxel_size(params))
         with self._lock:
             self._caches[project_id] = (lay.run_dir, cache)
@@ -155,40 +170,45 @@ class CorrectionApplier:
 
     def _warm(self, project_id: int) -> None:
         try:
-            run, _ = self._latest(project_id)
-            if run is not None and RunLayout(Path(run["run_dir"])).export_dir.is_dir():
-                self._cache(project_id, run)
+            run, targets = self._latest(project_id)
+            if run is not None and targets and targets[0][0].export_dir.is_dir():
+                self._cache(project_id, run, targets[0][0], targets[0][1])
         except (LeapError, AppError, OSError, ValueError, KeyError) as exc:
             log.info("could not prepare corrections of project %d: %s", project_id, exc)
 
     def _pass(self, project_id: int, asked: float) -> ApplyState:
-        run, corrections = self._latest(project_id)
-        if run is None or not RunLayout(Path(run["run_dir"])).export_dir.is_dir():
+        run, targets = self._latest(project_id)
+        if run is None or not targets or not all(lay.export_dir.is_dir() for lay, _, _ in targets):
             return ApplyState(status="no_run", finished_at=utcnow())
         params = run["params"]
-        lay = RunLayout(Path(run["run_dir"]))
-        seq = lay.open_sequence(Path(params["dataset"]))
         schema = Schema.from_dict(params["schema"], source=f"run {run['id']} schema")
-        new = run_corrections(corrections, params)
-        if not new.differs(RunCorrections.applied(lay, schema.num_classes)):
-            # The usual case after a run ends (the hook of app.main): nothing to load or rewrite.
-            return ApplyState(status="done", run_id=int(run["id"]), run_number=int(run["number"]),
-                              seconds=round(time.perf_counter() - asked, 4), finished_at=utcnow())
-        cache = self._cache(project_id, run)
-        result = apply_to_run(lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(),
-                              new=new, cache=cache)
-        if result.frames:
-            exports.invalidate(lay.run_dir)
+        frames = changed = baked = 0
+        for lay, dataset, corrections in targets:
+            new = run_corrections(corrections, params)
+            if not new.differs(RunCorrections.applied(lay, schema.num_classes)):
+                # The usual case after a run ends (the hook of app.main): nothing to load or rewrite.
+                continue
+            seq = lay.open_sequence(dataset)
+            cache = self._cache(project_id, run, lay, dataset)
+            result = apply_to_run(lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(),
+                                  new=new, cache=cache)
+            if result.frames:
+                exports.invalidate(lay.run_dir)
+                if lay.run_dir != Path(run["run_dir"]):
+                    exports.invalidate(Path(run["run_dir"]))  # the run's zips of every sequence
+            frames += len(result.frames)
+            changed += result.changed_voxels
+            baked += result.baked_reverts
         seconds = time.perf_counter() - asked
-        log.info("corrections applied to run %s: %d scans in %.2f s", run["number"], len(result.frames),
-                 seconds)
+        if frames:
+            log.info("corrections applied to run %s: %d scans in %.2f s", run["number"], frames, seconds)
         return ApplyState(
             status="done",
             run_id=int(run["id"]),
             run_number=int(run["number"]),
-            frames=len(result.frames),
-            changed_voxels=result.changed_voxels,
-            baked_reverts=result.baked_reverts,
+            frames=frames,
+            changed_voxels=changed,
+            baked_reverts=baked,
             seconds=round(seconds, 4),
             finished_at=utcnow(),
         )

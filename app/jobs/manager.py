@@ -35,7 +35,7 @@ import numpy as np
 from app import crud, services
 from app.core.config import Settings
 from app.core.db import open_db, transaction, utcnow
-from app.core.errors import Conflict, InsufficientStorage, disk_full_message
+from app.core.errors import Conflict, InsufficientStorage, InvalidField, disk_full_message
 from app.core.security import resolve_in_roots
 from app.demo import SYNTH_STAGE, demo_exists
 from app.jobs import worker
@@ -49,17 +49,26 @@ from app.jobs.messages import (
     StageProgress,
     decode_from_worker,
 )
+from app.jobs.multi import (
+    read_run_metrics,
+    run_sequences_of,
+    run_stages,
+    sequence_layouts,
+    skipped_stages,
+    snapshot_sequences,
+)
 from app.jobs.notify import ChangeNotifier
 from app.jobs.poses import POSES_STAGE, needs_estimate
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
+from leap_core.config import config_from_dict
 from leap_core.corrections import ERASE, ScanCorrections
 from leap_core.errors import LeapError
 from leap_core.fusion import last_per_key
 from leap_core.io_utils import atomic_write_json, remove_tree
 from leap_core.pipeline import STAGES, read_metrics_json, stage_status
 from leap_core.pipeline.apply import RunCorrections
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import MultiRunLayout, RunLayout
 
 log = logging.getLogger("leap.jobs")
 
@@ -211,7 +220,14 @@ class JobManager:
         with open_db(self.settings.database) as db:
             with transaction(db):
                 project = crud.require_project(db, project_id)
-                self._confine_dataset(project["dataset_kind"], project["dataset_path"])
+                for seq in project["sequences"] or [{"dataset_path": project["dataset_path"]}]:
+                    self._confine_dataset(project["dataset_kind"], seq["dataset_path"])
+                if frames is not None and len(project["sequences"]) > 1:
+                    raise InvalidField(
+                        ["body", "frames"],
+                        f"project {project_id} has {len(project['sequences'])} sequences: its runs label "
+                        "every frame of each (frames are for a project of one sequence)",
+                    )
                 active = crud.active_run(db, project_id)
                 if active is not None:
                     # Inside this transaction a retry of the stored end would wait for its own lock.
@@ -246,6 +262,8 @@ class JobManager:
                 params = run["params"]
                 if params.get("dataset") is not None:
                     self._confine_dataset(params.get("dataset_kind", "folder"), params["dataset"])
+                for _, dataset in run_sequences_of(params) or []:
+                    self._confine_dataset(params.get("dataset_kind", "folder"), str(dataset))
                 if run["status"] not in RESUMABLE_STATUSES:
                     raise Conflict(
                         f"Run {run_id} is {run['status']}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
@@ -369,6 +387,22 @@ class JobManager:
         generate = project["dataset_kind"] == "demo" and not demo_exists(Path(project["dataset_path"]))
         estimate = bool(project.get("estimate_poses"))
         estimate_now = estimate and not generate and needs_estimate(Path(project["dataset_path"]))
+        sequences = snapshot_sequences(project.get("sequences") or [])
+        if sequences is not None:
+            # Only a project of several sequences records them: a one-sequence snapshot stays as it was.
+            joint = config_from_dict(project["pipeline"]).consistency.enabled
+            estimated = [s["name"] for s in sequences if estimate and needs_estimate(Path(s["dataset"]))]
+            return {
+                "dataset": project["dataset_path"],
+                "dataset_kind": project["dataset_kind"],
+                "sequences": sequences,
+                "schema": project["schema"],
+                "pipeline": project["pipeline"],
+                "frames": None,
+                "estimate_poses": estimate,
+                "stages": run_stages([s["name"] for s in sequences], self.stages, joint_3dcn=joint,
+                                     estimate=estimated),
+            }
         return {
             "dataset": project["dataset_path"],
             "dataset_kind": project["dataset_kind"],
@@ -389,10 +423,14 @@ class JobManager:
         run_dir.mkdir(parents=True, exist_ok=True)
         params = run["params"]
         atomic_write_json(RunLayout(run_dir).params, params)
-        write_run_corrections(db, run["project_id"], params, run_dir)
         previous = seed_source(db, run["project_id"], params)
+        if run_sequences_of(params) is not None:
+            linked = prepare_sequences(db, run["project_id"], params, run_dir,
+                                       None if previous is None else Path(previous["run_dir"]))
+        else:
+            write_run_corrections(db, run["project_id"], params, run_dir)
+            linked = 0 if previous is None else seed_run_dir(Path(previous["run_dir"]), run_dir)
         if previous is not None:
-            linked = seed_run_dir(Path(previous["run_dir"]), run_dir)
             log.info(
                 "run #%d of project %d starts from run #%d's stage outputs (%d files linked)",
                 run["number"],
@@ -720,6 +758,7 @@ class JobManager:
             allow_download=self.settings.allow_download,
             estimate_poses=bool(params.get("estimate_poses")),
             poses_cache=self.settings.cache_dir,
+            sequences=None if (listed := run_sequences_of(params)) is None else dict(listed),
         )
 
     def _on_progress(self, run_id: int, live: _Live, message: StageProgress, last_persist: float) -> float:
@@ -804,7 +843,8 @@ class JobManager:
         with open_db(self.settings.database) as db:
             row = crud.require_run(db, run_id)
         run_dir, project_id = Path(row["run_dir"]), int(row["project_id"])
-        skipped = pipeline_skipped_stages(run_dir)
+        multi = run_sequences_of(row["params"]) is not None
+        skipped = skipped_stages(run_dir, row["params"]) if multi else pipeline_skipped_stages(run_dir)
         with self._lock:
             live = self._live[run_id]
             if status != "done" and self._stopping and not live.cancel_requested:
@@ -812,7 +852,7 @@ class JobManager:
             final = live.tracker.clone()
         final.set_status(status, utcnow(), error)
         final.mark_skipped(skipped)
-        metrics = read_metrics(run_dir) if status == "done" else None
+        metrics = None if status != "done" else read_run_metrics(run_dir) if multi else read_metrics(run_dir)
         try:
             with open_db(self.settings.database) as db:
                 crud.update_run(
@@ -957,7 +997,47 @@ def seed_source(db: Any, project_id: int, params: dict[str, Any]) -> dict[str, A
     if previous is None:
         return None
     same = previous["params"].get("dataset") == params["dataset"]
+    same = same and previous["params"].get("sequences") == params.get("sequences")
     return previous if same and previous["params"].get("frames") == params["frames"] else None
+
+
+def prepare_sequences(
+    db: Any, project_id: int, params: dict[str, Any], run_dir: Path, previous: Path | None
+) -> int:
+    """A new multi-sequence run folder: each sequence's folder gets its own active corrections and the
+    previous run's stage outputs of that sequence (:func:`seed_run_dir`), the root the joint 3D-CN's
+    checkpoints and staged rounds (reused while their fingerprints match). Returns the files linked."""
+    linked = 0
+    for name, _, lay in sequence_layouts(run_dir, params):
+        lay.run_dir.mkdir(parents=True, exist_ok=True)
+        corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
+        run_corrections(corrections, params).write(lay.corrections, lay.corrections_scan)
+        if previous is not None:
+            linked += seed_run_dir(MultiRunLayout(previous).sequence(name).run_dir, lay.run_dir)
+    if previous is not None:
+        linked += link_tree(MultiRunLayout(previous).cn_dir, MultiRunLayout(run_dir).cn_dir)
+    return linked
+
+
+def link_tree(source: Path, target: Path) -> int:
+    """Hard-link (else copy) every file under ``source`` to the same place under ``target``; returns how
+    many. Safe for pipeline outputs, which are only ever replaced through ``atomic_write``."""
+    if not source.is_dir():
+        return 0
+    count = 0
+    for src in sorted(source.rglob("*")):
+        if not src.is_file() or src.is_symlink():
+            continue
+        dst = target / src.relative_to(source)
+        if dst.exists():
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+        count += 1
+    return count
 
 
 def write_run_corrections(db: Any, project_id: int, params: dict[str, Any], run_dir: Path) -> None:

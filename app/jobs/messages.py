@@ -90,6 +90,10 @@ class RunSpec(Message):
     """The project estimates poses with KISS-ICP when its dataset has none (``app.jobs.poses``)."""
     poses_cache: Path | None = None
     """Where estimated poses are cached across runs (the server's cache folder)."""
+    sequences: dict[str, Path] | None = None
+    """A project of several sequences: name → sequence folder, in run order (``dataset`` is the first);
+    the run is :func:`leap_core.pipeline.multi.run_sequences` into ``run_dir`` (:mod:`app.jobs.multi`).
+    None for a project of one sequence."""
 
 
 @dataclass(frozen=True)
@@ -217,6 +221,8 @@ def _encode(value: Any) -> Any:
         return str(value)
     if isinstance(value, tuple):
         return [_encode(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _encode(v) for k, v in value.items()}
     return value
 
 

@@ -44,6 +44,7 @@ from app.jobs.messages import (
     StageProgress,
     decode_to_worker,
 )
+from app.jobs.multi import execute_sequences, stage_dir
 from app.jobs.poses import POSES_STAGE, prepare_run_poses
 from leap_core.config import config_from_dict
 from leap_core.errors import Cancelled, LeapError, ModelLoadError, PosesMissingError
@@ -121,6 +122,8 @@ class _Reporter:
         self.run_dir = run_dir
         """The pipeline's run folder (None for the demo generation): a stage's completion is checked there
         for a skip (its ``stages.json`` record)."""
+        self.multi = False
+        """The run is a multi-sequence run: stage names are ``<sequence>/<stage>`` (:mod:`app.jobs.multi`)."""
         self.since = time.time()
         self._last: dict[str, float] = {}
         self._started: dict[str, float] = {}
@@ -134,12 +137,13 @@ class _Reporter:
         if first:
             self._started[stage] = now
         skipped = None
-        if finished and first and self.run_dir is not None:
+        where = self._stage_record(stage) if finished and first else None
+        if where is not None:
             # The pipeline reports a stage it skips as complete at once, after recording why. (Imported
             # here: a run has loaded the pipeline by now; the server importing this module must not.)
             from leap_core.pipeline.runner import skip_reason  # noqa: PLC0415  see the comment above
 
-            skipped = skip_reason(self.run_dir, stage, self.since)
+            skipped = skip_reason(where[0], where[1], self.since)
         if first or finished or now - self._last[stage] >= self.interval:
             self._last[stage] = now
             self.emit(StageProgress(stage, int(done), int(total), skipped))
@@ -149,6 +153,12 @@ class _Reporter:
                 self.log.info("stage %s skipped (%s)", stage, skipped)
             else:
                 self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
+
+    def _stage_record(self, stage: str) -> tuple[Path, str] | None:
+        """(run folder, stage name) whose ``stages.json`` records the progress stage ``stage``."""
+        if self.run_dir is None:
+            return None
+        return stage_dir(self.run_dir, stage) if self.multi else (self.run_dir, stage)
 
 
 def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> RunOutcome:
@@ -219,6 +229,16 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
     # with the server (child_main), and the server imports this module for execute() and LOG_NAME.
     from leap_core.pipeline import run_pipeline  # noqa: PLC0415  # loaded by a run only, see above
 
+    if spec.sequences:
+        # Deployment values come from the server's settings only (the spec), never from the project.
+        reporter.multi = True
+        execute_sequences(
+            spec.run_dir, spec.sequences, spec.schema, spec.pipeline, reporter,
+            runtime=Runtime(models_dir=spec.models_dir, cache_dir=spec.cache_dir,
+                            allow_download=spec.allow_download),
+            estimate_poses=spec.estimate_poses, poses_cache=spec.poses_cache,
+        )
+        return
     if spec.demo:
         ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
     prepare_run_poses(

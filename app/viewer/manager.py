@@ -22,6 +22,7 @@ from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager, current_manager
+from app.jobs.multi import sequence_run_dir
 from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
     CorrectionRecord,
@@ -54,14 +55,20 @@ class AppBackend:
         settings: app settings (database path, work dir).
         project_id: the project.
         jobs: the running job manager; None uses the process-wide one when a run is started.
+        sequence: which of the project's sequences it shows (None: the first); its run folder, dataset,
+            corrections and review marks are that sequence's.
     """
 
-    def __init__(self, settings: Settings, project_id: int, jobs: JobManager | None = None) -> None:
+    def __init__(
+        self, settings: Settings, project_id: int, jobs: JobManager | None = None, sequence: str | None = None
+    ) -> None:
         self.settings = settings
         self.project_id = project_id
         self._jobs = jobs
         with open_db(settings.database) as db:
             crud.require_project(db, project_id)
+            self.sequence = crud.sequence_name(db, project_id, sequence, loc=("body", "sequence"))
+            self.multi = len(crud.list_sequences(db, project_id)) > 1
         # Corrections made in this viewer reach the export at once: load what that needs now.
         applier(settings).warm(project_id)
 
@@ -79,10 +86,12 @@ class AppBackend:
             return crud.require_project(db, self.project_id)
 
     def project_name(self) -> str:
-        return str(self._project()["name"])
+        name = str(self._project()["name"])
+        return f"{name} · {self.sequence}" if self.multi else name
 
     def dataset_path(self) -> Path:
-        return Path(self._project()["dataset_path"])
+        project = self._project()
+        return Path(next(s["dataset_path"] for s in project["sequences"] if s["name"] == self.sequence))
 
     def load_schema(self) -> Schema:
         return Schema.from_dict(self._project()["schema"], source=f"project {self.project_id} schema")
@@ -110,7 +119,7 @@ class AppBackend:
             percent=percent,
             stage=stage,
             error=error,
-            run_dir=Path(run["run_dir"]),
+            run_dir=sequence_run_dir(Path(run["run_dir"]), params, self.sequence)[0],
             schema=_schema_or_none(params.get("schema")),
             pipeline=params.get("pipeline") if isinstance(params.get("pipeline"), dict) else None,
         )
@@ -140,7 +149,7 @@ class AppBackend:
 
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:
-            rows = crud.list_corrections(db, self.project_id, active_only=False)
+            rows = crud.list_corrections(db, self.project_id, active_only=False, sequence=self.sequence)
         return [
             CorrectionRecord(
                 c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at,
@@ -164,7 +173,7 @@ class AppBackend:
         with open_db(self.settings.database) as db:
             cid = crud.add_correction(
                 db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys,
-                scope=scope, frame_id=frame_id, points=points, author="viewer",
+                scope=scope, frame_id=frame_id, points=points, author="viewer", sequence=self.sequence,
             )
         applier(self.settings).request(self.project_id)
         return cid
@@ -178,18 +187,19 @@ class AppBackend:
 
     def review_marks(self) -> dict[str, ReviewMarkRecord]:
         with open_db(self.settings.database) as db:
-            marks = crud.list_review_marks(db, self.project_id)
+            marks = crud.list_review_marks(db, self.project_id, self.sequence)
         return {k: ReviewMarkRecord(m.signature, m.state) for k, m in marks.items()}
 
     def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None:
         with open_db(self.settings.database) as db:
             crud.set_review_mark(
-                db, self.project_id, region=region, signature=signature, state=state, run_id=run_id
+                db, self.project_id, region=region, signature=signature, state=state, run_id=run_id,
+                sequence=self.sequence,
             )
 
     def save_review_queue(self, kind: str, run_id: int | None, regions: list[tuple[str, str]]) -> None:
         with open_db(self.settings.database) as db:
-            crud.save_review_queue(db, self.project_id, kind, run_id, regions)
+            crud.save_review_queue(db, self.project_id, kind, run_id, regions, self.sequence)
 
 
 @dataclass(frozen=True)
@@ -202,6 +212,8 @@ class ViewerInfo:
     """Run shown (None until the project has a finished run)."""
     port: int
     """Port viser bound on 127.0.0.1."""
+    sequence: str | None = None
+    """The project sequence shown."""
 
 
 class ViewerManager:
@@ -222,17 +234,27 @@ class ViewerManager:
         self._sessions: dict[int, ReviewSession] = {}
         self._lock = threading.Lock()
 
-    def open(self, project_id: int, run_id: int | None = None) -> ViewerInfo:
-        """Start (or reuse) the project's viewer, showing ``run_id`` or the latest finished run.
+    def open(self, project_id: int, run_id: int | None = None, sequence: str | None = None) -> ViewerInfo:
+        """Start (or reuse) the project's viewer, showing ``run_id`` or the latest finished run, of the
+        project's sequence ``sequence`` (None: the one shown, else the first). Asking for another sequence
+        than the running viewer shows replaces that viewer (one per project).
 
         Raises:
             NotFound: unknown project or run.
+            InvalidField: ``sequence`` is not one of the project's.
             Conflict: the run has not finished.
         """
+        replaced = None
         with self._lock:
             session = self._sessions.get(project_id)
+            if session is not None and sequence is not None and _shown_sequence(session) != sequence:
+                AppBackend(self.settings, project_id, self.jobs, sequence)  # 422 before closing anything
+                replaced = self._sessions.pop(project_id)
+                session = None
             if session is None:
-                backend = AppBackend(self.settings, project_id, self.jobs)
+                if replaced is not None:
+                    replaced.close()
+                backend = AppBackend(self.settings, project_id, self.jobs, sequence)
                 if run_id is not None:
                     self._check_run(backend, run_id)
                 session = ReviewSession(
@@ -251,7 +273,8 @@ class ViewerManager:
                 latest = session.backend.latest_finished_run()
                 if latest is not None:
                     session.load_run(latest)
-        return ViewerInfo(project_id, None if session.run is None else session.run.run_id, session.port)
+        return ViewerInfo(project_id, None if session.run is None else session.run.run_id, session.port,
+                          _shown_sequence(session))
 
     @staticmethod
     def _check_run(backend: ProjectBackend, run_id: int) -> RunInfo:
@@ -291,6 +314,11 @@ class ViewerManager:
                 session.close()
             except Exception:  # shutting down: close the others regardless
                 log.exception("closing a viewer failed")
+
+
+def _shown_sequence(session: ReviewSession) -> str | None:
+    backend = session.backend
+    return backend.sequence if isinstance(backend, AppBackend) else None
 
 
 __all__ = ["AppBackend", "ViewerInfo", "ViewerManager"]

@@ -1,7 +1,10 @@
 """One 3D-CN iteration: select reliable labels, train, predict every point, fuse back
 (docs/METHOD.md stage C).
 
-The pipeline calls :func:`run_3dcn_iteration` once per iteration (1 by default, 2 allowed). It reads
+The pipeline runs one round per iteration (1 by default, 2 allowed): :func:`iter_3dcn_round` over one
+sequence, or over several in a multi-sequence run (one network per round, trained on the reliable labels
+of every sequence, fused back into each sequence's own grid); :func:`run_3dcn_iteration` is its
+one-sequence form. It reads
 labels from the *smoothed* grid but adds the network's evidence to the *un-smoothed* fused grid, so the
 smoothing that the pipeline applies afterwards is not applied twice.
 """
@@ -11,14 +14,15 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import replace
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 import torch
 
+from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
@@ -61,18 +65,27 @@ def targets_path(work_dir: str | Path, iteration: int) -> Path:
 
 
 def training_fingerprint(
-    cfg: ConsistencyConfig, num_classes: int, frames: range, targets: Iterable[npt.NDArray[np.int16]]
+    cfg: ConsistencyConfig,
+    num_classes: int,
+    frames: range | Sequence[tuple[str, range]],
+    targets: Iterable[npt.NDArray[np.int16]],
 ) -> str:
     """Hash of everything the trained weights depend on: config, classes, frames and selected labels.
 
     Stored as ``meta["fingerprint"]`` in each checkpoint; ``cfg`` is the iteration's config (seed offset
-    included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets` (any
-    iterable of them, e.g. a :class:`TargetFile`: they are hashed one scan at a time)."""
+    included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets` (of
+    every part, in order; any iterable of them, e.g. a :class:`TargetFile`: they are hashed one scan at a
+    time). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
+    joint round over several sequences (:func:`iter_3dcn_round`)."""
     h = hashlib.sha256()
     # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
     untrained = ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")
     trained = {k: v for k, v in config_to_dict(cfg).items() if k not in untrained}
-    head = {"cfg": trained, "C": num_classes, "frames": [frames.start, frames.stop, frames.step]}
+    head: dict[str, object] = {"cfg": trained, "C": num_classes}
+    if isinstance(frames, range):
+        head["frames"] = [frames.start, frames.stop, frames.step]
+    else:
+        head["parts"] = [[name, fr.start, fr.stop, fr.step] for name, fr in frames]
     h.update(json.dumps(head, sort_keys=True).encode())
     for t in targets:
         h.update(np.ascontiguousarray(t).tobytes())
@@ -206,7 +219,41 @@ def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfi
     return cfg if iteration == 1 else replace(cfg, seed=cfg.seed + 1000 * (iteration - 1))
 
 
-def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 share a counter
+GridSource = VoxelGrid | Callable[[], VoxelGrid]
+"""A grid, or a function that loads it when a round needs it (a joint round holds one sequence's grids at
+a time)."""
+
+
+def _grid(source: GridSource) -> VoxelGrid:
+    return source if isinstance(source, VoxelGrid) else source()
+
+
+@dataclass(frozen=True)
+class RoundPart:
+    """One sequence's share of a 3D-CN round (:func:`iter_3dcn_round`); a single-sequence run is the round
+    of one part."""
+
+    seq: KittiSequence
+    """The sequence (scans and LiDAR→world poses)."""
+    fused: GridSource
+    """Its un-smoothed fused grid, which the network's predictions are added to (not modified)."""
+    smoothed: GridSource
+    """Its kNN-smoothed grid, which the training labels are read from."""
+    frames: range | None = None
+    """Scans to use (default all)."""
+    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
+    """Sorted voxel keys and the number of frames that observed each
+    (:func:`~leap_core.consistency.selection.view_counts`), the tie-break of the selection; None leaves
+    ties to the seeded random order."""
+    erased: npt.NDArray[np.int64] | None = None
+    """Voxel keys the user erased to unlabeled (map-scope erase corrections): their points are never
+    training labels, whatever class the fused evidence gives the voxel."""
+    name: str = ""
+    """The sequence's name in a joint round (part of the checkpoint's fingerprint when there are several
+    parts)."""
+
+
+def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named in the docstring
     seq: KittiSequence,
     fused: VoxelGrid,
     smoothed: VoxelGrid,
@@ -220,39 +267,16 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None,
     erased: npt.NDArray[np.int64] | None = None,
 ) -> VoxelGrid:
-    """Self-train the 3D Consistency Network once and fuse its predictions into ``fused``.
-
-    1. **Selection**: every point of every scan goes to world coordinates with its pose, takes the label
-       and confidence of its voxel in ``smoothed``, and per class the ``cfg.share`` most confident points
-       (equal confidences: voxels more frames observed first, by ``views``) become training labels
-       (:func:`~leap_core.consistency.selection.select_reliable`, per scan or over the
-       sequence by ``cfg.selection_scope``).
-    2. **Training** (:func:`~leap_core.consistency.train.train_model`), checkpoint written to
-       ``work_dir/3dcn_iter{iteration}.pt``. A checkpoint whose fingerprint (config, classes, frames,
-       selected labels) matches is reused instead of retraining, so an interrupted run resumes here.
-    3. **Inference** on every point of every scan (inside and outside the camera view) and **fusion back**
-       (:func:`fuse_back`, ``cfg.network_evidence``): by default each voxel adds the mean of its points'
-       floored network log-probabilities with weight ``1/T``,
-       ``L_n(i) ← L_n(i) + (1/T) · mean_{p in n} max(log P_net(i | p), log prob_floor)``. A point whose voxel
-       is not in ``fused`` creates it, which is how points no camera saw get labels from 3D shape.
-       ``T = ∞`` (weight 0) returns ``fused`` unchanged.
+    """Self-train the 3D Consistency Network once on one sequence and fuse its predictions into ``fused``:
+    :func:`iter_3dcn_round` with one :class:`RoundPart` (whose fields document the arguments).
 
     Args:
-        seq: the sequence (scans and LiDAR→world poses).
-        fused: un-smoothed fused grid the predictions are added to (not modified).
-        smoothed: kNN-smoothed grid the training labels are read from.
         num_classes: C.
         cfg: 3D-CN parameters.
         fusion_cfg: voxel size and clipping of the grid.
         work_dir: folder for the checkpoint.
         iteration: 1 or 2; names the checkpoint and offsets the seed.
         progress: ``progress(done, total)`` over selection + training steps + inference scans.
-        frames: scans to use (default all).
-        views: sorted voxel keys and the number of frames that observed each
-            (:func:`~leap_core.consistency.selection.view_counts`), the tie-break of the selection; None
-            leaves ties to the seeded random order.
-        erased: voxel keys the user erased to unlabeled (map-scope erase corrections): their points are
-            never training labels, whatever class the fused evidence gives the voxel.
 
     Returns:
         A new grid: ``fused`` plus the tempered network evidence.
@@ -260,13 +284,58 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1
     Raises:
         LeapError: when no point of any scan has a label to train on.
     """
-    if fused.num_classes != num_classes or smoothed.num_classes != num_classes:
-        raise LeapError(
-            f"3D-CN: grids have {fused.num_classes} / {smoothed.num_classes} classes, "
-            f"schema has {num_classes}"
-        )
-    frames = range(len(seq)) if frames is None else frames
-    n = len(frames)
+    part = RoundPart(seq, fused, smoothed, frames, views, erased)
+    return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress))
+
+
+def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a counter
+    parts: Sequence[RoundPart],
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    fusion_cfg: FusionConfig,
+    work_dir: Path,
+    iteration: int,
+    progress: Callable[[int, int], None] | None = None,
+) -> Iterator[VoxelGrid]:
+    """One 3D-CN round over one or several sequences: ONE network trained on the reliable labels of every
+    part, its predictions fused back into each part's own grid. Yields each part's new grid in order;
+    training happens before the first one.
+
+    1. **Selection**, per part: every point of every scan goes to world coordinates with its pose, takes
+       the label and confidence of its voxel in the part's ``smoothed`` grid, and per class the
+       ``cfg.share`` most confident points (equal confidences: voxels more frames observed first, by
+       ``views``) become training labels (:func:`reliable_targets`, per scan or over the part's sequence by
+       ``cfg.selection_scope``: each sequence ranks its own points, its grid's confidences).
+    2. **Training** (:func:`~leap_core.consistency.train.train_model`) on the scans of all parts, in part
+       order, class weights from the labels of all parts; checkpoint ``work_dir/3dcn_iter{iteration}.pt``.
+       A checkpoint whose fingerprint (config, classes, frames of every part, selected labels) matches is
+       reused instead of retraining, so an interrupted run resumes here.
+    3. **Inference** on every point of every scan of a part (inside and outside the camera view) and
+       **fusion back** into that part's ``fused`` (:func:`fuse_back`, ``cfg.network_evidence``): by default
+       each voxel adds the mean of its points' floored network log-probabilities with weight ``1/T``,
+       ``L_n(i) ← L_n(i) + (1/T) · mean_{p in n} max(log P_net(i | p), log prob_floor)``. A point whose
+       voxel is not in ``fused`` creates it, which is how points no camera saw get labels from 3D shape.
+       ``T = ∞`` (weight 0) yields every ``fused`` unchanged.
+
+    With one part this is exactly the single-sequence round (:func:`run_3dcn_iteration`): the scans are
+    visited in the same order, the fingerprint has the single-sequence form.
+
+    Args:
+        parts: the sequences of the round.
+        num_classes: C.
+        cfg: 3D-CN parameters.
+        fusion_cfg: voxel size and clipping of the grids.
+        work_dir: folder for the checkpoint.
+        iteration: 1 or 2; names the checkpoint and offsets the seed.
+        progress: ``progress(done, total)`` over selection + training steps + inference scans (all parts).
+
+    Raises:
+        LeapError: when no point of any scan has a label to train on, or a grid has another C.
+    """
+    if not parts:
+        raise LeapError("3D-CN: a round needs at least one sequence")
+    frame_sets = [range(len(p.seq)) if p.frames is None else p.frames for p in parts]
+    n = sum(len(f) for f in frame_sets)
     work_dir = Path(work_dir)
     ckpt_path = checkpoint_path(work_dir, iteration)
     cfg_it = iteration_config(cfg, iteration)
@@ -280,56 +349,87 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1
         if progress is not None:
             progress(done, total)
 
+    def check(grid: VoxelGrid, what: str, part: RoundPart) -> VoxelGrid:
+        if grid.num_classes != num_classes:
+            where = f" of sequence {part.name}" if part.name else ""
+            raise LeapError(f"3D-CN: the {what} grid{where} has {grid.num_classes} classes, schema has "
+                            f"{num_classes}")
+        return grid
+
     if cfg.temperature == math.inf:
         tick(total)
-        return fused
+        for part in parts:
+            yield check(_grid(part.fused), "fused", part)
+        return
 
-    # 1. reliable labels, streamed to a file in the work folder (one scan in memory at a time)
+    # 1. reliable labels, per part (one smoothed grid in memory at a time), streamed scan by scan into a
+    # file in the work folder: no per-point array of the whole round is held (docs/METHOD.md, "Memory")
     counts = np.zeros(num_classes, np.int64)
 
-    def counted(ts: Iterable[npt.NDArray[np.int16]]) -> Iterator[npt.NDArray[np.int16]]:
-        for t in ts:
-            counts[:] += np.bincount(t[t >= 0], minlength=num_classes)
-            yield t
+    def all_targets() -> Iterator[npt.NDArray[np.int16]]:
+        for part, frames in zip(parts, frame_sets, strict=True):
+            smoothed = check(_grid(part.smoothed), "smoothed", part)
+            for t in iter_reliable_targets(part.seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size,
+                                           frames, part.views, progress=tick, erased=part.erased):
+                counts[:] += np.bincount(t[t >= 0], minlength=num_classes)
+                yield t
+            del smoothed
 
-    targets = TargetFile.write(
-        targets_path(work_dir, iteration),
-        counted(iter_reliable_targets(seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames,
-                                      views, progress=tick, erased=erased)),
-    )
+    targets = TargetFile.write(targets_path(work_dir, iteration), all_targets())
     try:
-        return _train_and_fuse(seq, fused, num_classes, cfg, cfg_it, fusion_cfg, ckpt_path, iteration, frames,
-                               targets, counts, tick, progress, total)
+        model = _train(parts, frame_sets, targets, counts, num_classes, cfg_it, ckpt_path, iteration,
+                       progress, done, total)
     finally:
-        targets.close()
+        targets.close()  # the labels are in the weights now
+
+    done += train_steps
+    if progress is not None:
+        progress(done, total)
+
+    # 3. per part: predict every point, fuse back into the part's grid with weight 1/T
+    device = resolve_device(cfg)
+    model = model.to(device)
+
+    def predictions(seq: KittiSequence, frames: range) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        with torch_threads(cfg.num_threads):
+            workers = max(1, torch.get_num_threads())
+            for i in frames:
+                frame = seq.frame(i)
+                keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
+                logp = predict_log_probs(model, frame.points, device=device, workers=workers)
+                tick()
+                yield keys, logp
+
+    for part, frames in zip(parts, frame_sets, strict=True):
+        fused = check(_grid(part.fused), "fused", part)
+        yield fuse_back(fused, predictions(part.seq, frames), num_classes, cfg.temperature, fusion_cfg,
+                        cfg.network_evidence)
 
 
-def _train_and_fuse(  # noqa: PLR0913, PLR0917  steps 2-3 of run_3dcn_iteration, which names each input
-    seq: KittiSequence,
-    fused: VoxelGrid,
-    num_classes: int,
-    cfg: ConsistencyConfig,
-    cfg_it: ConsistencyConfig,
-    fusion_cfg: FusionConfig,
-    ckpt_path: Path,
-    iteration: int,
-    frames: range,
+def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names each input
+    parts: Sequence[RoundPart],
+    frame_sets: list[range],
     targets: TargetFile,
     counts: npt.NDArray[np.int64],
-    tick: Callable[[int], None],
+    num_classes: int,
+    cfg_it: ConsistencyConfig,
+    ckpt_path: Path,
+    iteration: int,
     progress: Callable[[int, int], None] | None,
+    done: int,
     total: int,
-) -> VoxelGrid:
+) -> PointSegmenter:
+    """Step 2 of :func:`iter_3dcn_round`: the round's network, trained on ``targets`` (or a checkpoint
+    whose fingerprint matches)."""
     if counts.sum() == 0:
         raise LeapError(
             "3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)"
         )
-    n = len(frames)
-    done = n  # the selection ticked once per scan
-    train_steps = num_train_steps(n, cfg)
-
     # 2. train (or reuse a matching checkpoint)
-    fingerprint = training_fingerprint(cfg_it, num_classes, frames, targets)
+    named: range | list[tuple[str, range]] = (
+        frame_sets[0] if len(parts) == 1 else [(p.name, f) for p, f in zip(parts, frame_sets, strict=True)]
+    )
+    fingerprint = training_fingerprint(cfg_it, num_classes, named, targets)
     model = None
     if ckpt_path.is_file():
         try:
@@ -339,16 +439,18 @@ def _train_and_fuse(  # noqa: PLR0913, PLR0917  steps 2-3 of run_3dcn_iteration,
         except ModelLoadError:
             model = None
     if model is None:
-        frame_list = list(frames)
-        pos_of = {fi: j for j, fi in enumerate(frame_list)}
+        # Scan j of the round (parts in order, each part's frames in order) → its sequence and frame index;
+        # train_model only passes these positions back to load().
+        scans = [(p.seq, i) for p, frames in zip(parts, frame_sets, strict=True) for i in frames]
 
-        def load(i: int) -> tuple[np.ndarray, np.ndarray]:
-            return seq.frame(i).points, targets.read(pos_of[i])
+        def load(j: int) -> tuple[np.ndarray, np.ndarray]:
+            seq, i = scans[j]
+            return seq.frame(i).points, targets.read(j)
 
         base = done
         model, stats = train_model(
             load,
-            frame_list,
+            range(len(scans)),
             num_classes,
             cfg_it,
             progress=(lambda d, _t: progress(base + d, total)) if progress is not None else None,
@@ -365,26 +467,13 @@ def _train_and_fuse(  # noqa: PLR0913, PLR0917  steps 2-3 of run_3dcn_iteration,
                 "losses": stats.losses,
                 "seconds": stats.seconds,
                 "class_counts": counts.tolist(),
-                "frames": [frames.start, frames.stop, frames.step],
+                "frames": (
+                    [named.start, named.stop, named.step] if isinstance(named, range)
+                    else [[name, f.start, f.stop, f.step] for name, f in named]
+                ),
             },
         )
-    tick(train_steps)
-
-    # 3. predict every point, fuse back with weight 1/T
-    device = resolve_device(cfg)
-    model = model.to(device)
-
-    def predictions() -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        with torch_threads(cfg.num_threads):
-            workers = max(1, torch.get_num_threads())
-            for i in frames:
-                frame = seq.frame(i)
-                keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
-                logp = predict_log_probs(model, frame.points, device=device, workers=workers)
-                tick(1)
-                yield keys, logp
-
-    return fuse_back(fused, predictions(), num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
+    return model
 
 
 def voxel_mean_log_probs(
@@ -511,11 +600,17 @@ def fuse_back(
 
 __all__ = [
     "FUSE_CHUNK_POINTS",
+    "GridSource",
+    "RoundPart",
+    "TargetFile",
     "checkpoint_path",
     "fuse_back",
+    "iter_3dcn_round",
+    "iter_reliable_targets",
     "iteration_config",
     "reliable_targets",
     "run_3dcn_iteration",
+    "targets_path",
     "training_fingerprint",
     "voxel_mean_log_probs",
 ]

@@ -28,8 +28,13 @@ cancelled through the progress callback) and run again yields byte-identical fin
 A shared 2D cache (``Runtime.cache_dir``) lets runs of one project reuse 2D results: entries are keyed by
 the labeler's fingerprint and a digest of the frame's input files, and hard-linked into the run folder.
 
+Several sequences with one schema and config form a multi-sequence run (:mod:`.multi`:
+:func:`run_sequences`, one run folder per sequence, a joint 3D-CN, overall metrics, exports in the
+``sequences/NN/predictions/`` layout).
+
 Modules: :mod:`.context` (stage record, run context), :mod:`.stages` (stage functions, the table),
-:mod:`.evaluation` (evaluate stage, result tables), :mod:`.runner` (fingerprints, run / plan / status).
+:mod:`.evaluation` (evaluate stage, result tables), :mod:`.runner` (fingerprints, run / plan / status),
+:mod:`.multi` (multi-sequence runs).
 """
 
 from __future__ import annotations
@@ -43,8 +48,19 @@ from leap_core.pipeline.evaluation import (
     all_points_labeled_share,
     cn_row,
     load_metrics,
+    overall_metrics,
     read_metrics_json,
     result_tables,
+)
+from leap_core.pipeline.multi import (
+    JOINT,
+    MultiRunResult,
+    SequenceSpec,
+    export_sequences,
+    export_zip,
+    multi_result_tables,
+    read_multi_metrics,
+    run_sequences,
 )
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
@@ -59,6 +75,7 @@ from leap_core.pipeline.runner import (
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES
 
 __all__ = [
+    "JOINT",
     "PIPELINE_VERSION",
     "PROTOCOLS",
     "ROW_POINT",
@@ -66,18 +83,26 @@ __all__ = [
     "STAGES",
     "STAGE_TABLE",
     "FrameFiles",
+    "MultiRunResult",
     "ProgressCallback",
     "RunResult",
+    "SequenceSpec",
     "StageInfo",
     "StageReport",
     "all_points_labeled_share",
     "cn_row",
     "dataset_identity",
+    "export_sequences",
+    "export_zip",
     "load_metrics",
+    "multi_result_tables",
+    "overall_metrics",
     "plan_stages",
     "read_metrics_json",
+    "read_multi_metrics",
     "result_tables",
     "run_pipeline",
+    "run_sequences",
     "skip_reason",
     "stage_fingerprints",
     "stage_status",

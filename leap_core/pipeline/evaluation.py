@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
 from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
@@ -142,10 +142,15 @@ def read_metrics_json(run_dir: str | Path) -> dict[str, Any] | None:
 
 def load_metrics(run_dir: str | Path) -> dict[str, dict[str, Metrics]] | None:
     """``{protocol: {row: Metrics}}`` rebuilt from ``metrics.json`` (None when the run has none)."""
-    path = RunLayout(Path(run_dir)).metrics
     data = read_metrics_json(run_dir)
     if data is None:
         return None
+    return metrics_tables(data, RunLayout(Path(run_dir)).metrics)
+
+
+def metrics_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> dict[str, dict[str, Metrics]]:
+    """``{protocol: {row: Metrics}}`` rebuilt from the content of a ``metrics.json`` (or an ``overall``
+    entry of a multi-sequence run's); ``source`` names it in errors."""
     try:
         names, cats = data["class_names"], data["categories"]
         return {
@@ -157,15 +162,12 @@ def load_metrics(run_dir: str | Path) -> dict[str, dict[str, Metrics]] | None:
             for p in PROTOCOLS
         }
     except (ValueError, KeyError, TypeError) as exc:
-        raise DatasetError(path, f"unreadable metrics ({exc})") from exc
+        raise DatasetError(source, f"unreadable metrics ({exc})") from exc
 
 
-def result_tables(run_dir: str | Path) -> str | None:
-    """The run's result tables as text (one per protocol), or None without metrics."""
-    tables = load_metrics(run_dir)
-    data = read_metrics_json(run_dir)
-    if tables is None or data is None:
-        return None
+def format_result_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> str:
+    """The result tables (one per protocol) of the content of a ``metrics.json`` as text."""
+    tables = metrics_tables(data, source)
     labeler = data.get("labeler", "?")
     parts = []
     for p, rows in tables.items():
@@ -177,6 +179,74 @@ def result_tables(run_dir: str | Path) -> str | None:
     return "\n\n".join(parts)
 
 
-__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row", "load_metrics",
-           "read_metrics_json",
+def result_tables(run_dir: str | Path) -> str | None:
+    """The run's result tables as text (one per protocol), or None without metrics."""
+    data = read_metrics_json(run_dir)
+    if data is None:
+        return None
+    return format_result_tables(data, RunLayout(Path(run_dir)).metrics)
+
+
+# ------------------------------------------------------------------------------- several sequences
+_SUMMED = ("n_points", "n_points_in_view")
+
+
+def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dict[str, Any] | None:
+    """The metrics of several sequences taken together: each protocol's and row's confusion matrices
+    summed over the sequences, then IoU / mIoU computed from the sum (``IoU_c = TP_c / (TP_c + FP_c +
+    FN_c)`` of the summed counts; not a mean of the sequences' mIoUs, which would weigh a short sequence
+    like a long one).
+
+    Args:
+        per_sequence: sequence name → its ``metrics.json`` content, None for a sequence without ground
+            truth (left out).
+
+    Returns:
+        A dict in ``metrics.json``'s layout (``class_names``, ``rows``, one entry per protocol, point
+        counts summed), plus ``sequences`` (the names summed) and ``frames`` (name → that sequence's
+        frames); None when no sequence has metrics.
+
+    Raises:
+        LeapError: the sequences' metrics disagree on classes or rows (runs of other settings).
+    """
+    have = {n: m for n, m in per_sequence.items() if m is not None}
+    if not have:
+        return None
+    first_name, first = next(iter(have.items()))
+    for name, m in have.items():
+        for key in ("class_names", "rows"):
+            if list(m.get(key, [])) != list(first.get(key, [])):
+                raise LeapError(f"sequence {name}: metrics {key} {m.get(key)} differ from sequence "
+                                f"{first_name}'s {first.get(key)}; evaluate every sequence with one schema "
+                                "and one config")
+    names, cats, rows = list(first["class_names"]), list(first["categories"]), list(first["rows"])
+    out: dict[str, Any] = {
+        "class_names": names,
+        "categories": cats,
+        "rows": rows,
+        "protocols": dict(PROTOCOLS),
+        "sequences": list(have),
+        "frames": {n: m.get("frames") for n, m in have.items()},
+        "labeler": first.get("labeler"),
+    }
+    for key in _SUMMED:
+        out[key] = int(sum(int(m.get(key, 0)) for m in have.values()))
+    labeled = {r: int(sum(int(m.get("labeled_points", {}).get(r, 0)) for m in have.values()))
+               for r in rows}
+    out["labeled_points"] = labeled
+    n = out["n_points"]
+    out["labeled_share_all_points"] = {r: (labeled[r] / n if n else None) for r in rows}
+    for p in PROTOCOLS:
+        out[p] = {}
+        for r in rows:
+            conf = sum(np.asarray(m[p][r]["confusion"], np.int64) for m in have.values())
+            out[p][r] = metrics_from_confusion(conf, names, cats,
+                                               ignore_unlabeled_pred=(p == "camera")).to_dict()
+    pl = labeled.get(ROW_POINT, 0)
+    out["coverage_ratio"] = {r: (labeled[r] / pl if pl else None) for r in rows}
+    return out
+
+
+__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row",
+           "format_result_tables", "load_metrics", "metrics_tables", "overall_metrics", "read_metrics_json",
            "result_tables", "stage_evaluate"]

@@ -112,8 +112,9 @@ def _fingerprints(ctx: Ctx) -> dict[str, str]:
                                  "up": [fp[u] for u in stage.upstream]}
         if stage.is_enabled(ctx.cfg):
             parts["config"] = {s: sections[s] for s in stage.reads}
-            if stage.inputs is not None:
-                parts["inputs"] = stage.inputs(ctx)
+            inputs = None if stage.inputs is None else stage.inputs(ctx)
+            if inputs is not None:  # an absent optional input (3dcn's joint record) changes nothing
+                parts["inputs"] = inputs
         else:
             parts["enabled"] = False
         fp[stage.name] = hash_json(parts)

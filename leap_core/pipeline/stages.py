@@ -6,8 +6,11 @@ function (docs/ARCHITECTURE.md, "Adding a stage").
 
 from __future__ import annotations
 
+import json
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +19,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.consistency.selection import view_counts
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, LeapError
 from leap_core.export import export_labels
 from leap_core.fusion import (
     Observations,
@@ -43,7 +46,7 @@ from leap_core.pipeline.context import (
 )
 from leap_core.pipeline.evaluation import stage_evaluate
 from leap_core.projection import Painted, paint, project_points
-from leap_core.run_layout import RunLayout, load_corrections
+from leap_core.run_layout import MultiRunLayout, RunLayout, load_corrections
 from leap_core.smoothing import SmoothedGrid, smooth_grid_blocks
 
 _3DCN_GRID_SCALE = 1000
@@ -237,46 +240,132 @@ def stage_smooth(ctx: Ctx) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------- 3dcn
-def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
-    """The 3D Consistency Network, ``consistency.iterations`` rounds (the table skips it unless enabled).
+@dataclass(frozen=True)
+class CnMember:
+    """A sequence in :func:`cn_rounds`: its run (whose fused / smoothed grids, frames and corrections the
+    rounds read) and where its round grids go."""
 
-    Round i: train on the reliable labels of the previous smoothed grid, fuse the network's tempered
-    predictions into the previous fused grid → ``grid_3dcn{i}.npz``, smooth → ``grid_smooth_3dcn{i}.npz``.
-    A finished round is kept on resume.
+    ctx: Ctx
+    rounds: RunLayout
+    """``grid_3dcn{i}.npz`` / ``grid_smooth_3dcn{i}.npz`` are written here: the run folder itself in a
+    single run, the joint staging folder in a multi-sequence run."""
+    name: str = ""
+
+
+def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
+              progress: Callable[[int, int], None] | None = None) -> list[int]:
+    """The 3D Consistency Network's ``consistency.iterations`` rounds over one or several sequences (one
+    network per round: :func:`~leap_core.consistency.stage.iter_3dcn_round`).
+
+    Round i: train on the reliable labels of every member's previous smoothed grid, fuse the network's
+    tempered predictions into each member's previous fused grid → ``grid_3dcn{i}.npz``, smooth →
+    ``grid_smooth_3dcn{i}.npz`` (both in ``member.rounds``). A round whose grids every member has is kept
+    on resume; checkpoints go to ``checkpoints`` and are reused when their fingerprint matches.
+    ``progress(done, total)`` counts thousandths of a round. Returns each member's final voxel count.
     """
     # Imported here: the 3D-CN needs torch, which only this stage may load.
-    from leap_core.consistency.stage import run_3dcn_iteration  # noqa: PLC0415  loads torch (see above)
+    from leap_core.consistency.stage import RoundPart, iter_3dcn_round  # noqa: PLC0415  loads torch
 
-    cn = ctx.cfg.consistency
-    lay = ctx.layout
-    clip = ctx.cfg.fusion.logp_clip
-    fused = VoxelGrid.load(lay.grid, mmap=True)  # read once, into the round's float32 accumulator
-    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
-    smoothed = SmoothedGrid.load(lay.grid_smooth, mmap=True).to_voxel_grid(clip)
+    cfg = members[0].ctx.cfg
+    cn = cfg.consistency
+    c = members[0].ctx.schema.num_classes
+    clip = cfg.fusion.logp_clip
+    fused: list[Path] = [m.ctx.layout.grid for m in members]
+    smoothed: list[Path] = [m.ctx.layout.grid_smooth for m in members]
     # Erased voxels keep their fused evidence (fuse imposes no class on them), so without this their
     # points would train the network on the very labels the user removed.
-    erased = RunCorrections.of_run(lay, ctx.schema.num_classes).erased_keys()
+    erased = [RunCorrections.of_run(m.ctx.layout, c).erased_keys() for m in members]
+    views: list[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None] = [None] * len(members)
     total = cn.iterations * _3DCN_GRID_SCALE
+
+    def tick(done: int, tot: int) -> None:
+        if progress is not None:
+            progress(done, tot)
+
     for it in range(1, cn.iterations + 1):
-        grid_path, smooth_path = lay.grid_3dcn(it), lay.grid_smooth_3dcn(it)
-        if grid_path.is_file() and smooth_path.is_file():
-            fused = VoxelGrid.load(grid_path)
-        else:
+        paths = [(m.rounds.grid_3dcn(it), m.rounds.grid_smooth_3dcn(it)) for m in members]
+        if not all(g.is_file() and sm.is_file() for g, sm in paths):
             offset = (it - 1) * _3DCN_GRID_SCALE
 
             def prog(done: int, tot: int, offset: int = offset) -> None:
-                ctx.tick("3dcn", offset + (done * _3DCN_GRID_SCALE) // max(tot, 1), total)
+                tick(offset + (done * _3DCN_GRID_SCALE) // max(tot, 1), total)
 
-            if cn.rank_by_views and views is None:
-                views = view_counts(obs_keys for _, obs_keys in observed_keys(ctx))
-            fused = run_3dcn_iteration(ctx.seq, fused, smoothed, ctx.schema.num_classes, cn, ctx.cfg.fusion,
-                                       lay.cn_dir, it, progress=prog, frames=ctx.frames, views=views,
-                                       erased=erased)
-            fused.save(grid_path)
-            _smooth_and_save(fused, ctx, smooth_path)
-        smoothed = SmoothedGrid.load(smooth_path, mmap=True).to_voxel_grid(clip)
-        ctx.tick("3dcn", it * _3DCN_GRID_SCALE, total)
-    return {"iterations": cn.iterations, "voxels": fused.num_voxels}
+            if cn.rank_by_views:
+                views = [v if v is not None else view_counts(keys for _, keys in observed_keys(m.ctx))
+                         for m, v in zip(members, views, strict=True)]
+            parts = [
+                RoundPart(m.ctx.seq, partial(VoxelGrid.load, f, mmap=True),
+                          partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name)
+                for m, f, s, v, e in zip(members, fused, smoothed, views, erased, strict=True)
+            ]
+            round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog)
+            for m, grid, (grid_path, smooth_path) in zip(members, round_grids, paths, strict=True):
+                grid.save(grid_path)
+                _smooth_and_save(grid, m.ctx, smooth_path)
+        fused = [g for g, _ in paths]
+        smoothed = [sm for _, sm in paths]
+        tick(it * _3DCN_GRID_SCALE, total)
+    return [VoxelGrid.load(f).num_voxels for f in fused]
+
+
+def _load_smoothed(path: Path, clip: float) -> VoxelGrid:
+    return SmoothedGrid.load(path, mmap=True).to_voxel_grid(clip)
+
+
+def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
+    """The 3D Consistency Network, ``consistency.iterations`` rounds (the table skips it unless enabled):
+    :func:`cn_rounds` over this run's sequence, checkpoints in ``3dcn/``.
+
+    In a sequence of a multi-sequence run (``3dcn_joint.json`` present) the rounds ran over every
+    sequence at once (:mod:`leap_core.pipeline.multi`); the stage then takes this sequence's round grids
+    from the joint run's staging folder.
+    """
+    if ctx.layout.joint_3dcn.is_file():
+        return _link_joint_rounds(ctx)
+    sizes = cn_rounds([CnMember(ctx, ctx.layout)], ctx.layout.cn_dir,
+                      lambda done, total: ctx.tick("3dcn", done, total))
+    return {"iterations": ctx.cfg.consistency.iterations, "voxels": sizes[0]}
+
+
+def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
+    """Hard-link this sequence's joint round grids from ``<root>/3dcn/rounds/<name>/`` into the run
+    folder, after checking they belong to the joint round ``3dcn_joint.json`` names."""
+    note_path = ctx.layout.joint_3dcn
+    try:
+        note = json.loads(note_path.read_text())
+        name, fingerprint = str(note["name"]), str(note["fingerprint"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(note_path, f"unreadable joint 3D-CN record ({exc})") from exc
+    root = MultiRunLayout(ctx.layout.run_dir.parent.parent)
+    staged = root.joint_rounds(name)
+    state = root.joint_state
+    try:
+        current = (name == ctx.layout.run_dir.name and state.is_file()
+                   and json.loads(state.read_text()).get("fingerprint") == fingerprint)
+    except (OSError, ValueError, AttributeError) as exc:
+        raise DatasetError(state, f"unreadable joint 3D-CN record ({exc})") from exc
+    iterations = ctx.cfg.consistency.iterations
+    files = [(staged.grid_3dcn(i), ctx.layout.grid_3dcn(i)) for i in range(1, iterations + 1)]
+    files += [(staged.grid_smooth_3dcn(i), ctx.layout.grid_smooth_3dcn(i)) for i in range(1, iterations + 1)]
+    if not current or not all(src.is_file() for src, _ in files):
+        raise LeapError(
+            f"{ctx.layout.run_dir}: sequence {name} of the multi-sequence run {root.root}, whose joint 3D-CN "
+            "has not run for these settings; run the multi-sequence run again (leap run SEQ SEQ ... --out "
+            f"{root.root})"
+        )
+    for src, dst in files:
+        link_or_copy(src, dst)
+    ctx.tick("3dcn", 1, 1)
+    return {"iterations": iterations, "voxels": VoxelGrid.load(ctx.layout.grid_3dcn(iterations)).num_voxels,
+            "joint": fingerprint}
+
+
+def _3dcn_inputs(ctx: Ctx) -> str | None:
+    # A sequence of a multi-sequence run takes its 3D-CN from the joint round its record names, so the
+    # record's digest is part of the stage's fingerprint; None (an ordinary run) leaves the fingerprint as
+    # it was before multi-sequence runs existed.
+    note = ctx.layout.joint_3dcn
+    return file_digest(note) if note.is_file() else None
 
 
 def _3dcn_outputs(lay: RunLayout, cfg: PipelineConfig) -> tuple[Path, ...]:
@@ -358,7 +447,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
     StageInfo(
         "3dcn", "3D-CN", "3D Consistency Network rounds (when enabled)", False, stage_3dcn,
         reads=("consistency",), upstream=("project", "fuse", "smooth"), outputs=_3dcn_outputs,
-        stale=lambda lay: lay.cn_grids(), switch="consistency.enabled",
+        stale=lambda lay: lay.cn_grids(), switch="consistency.enabled", inputs=_3dcn_inputs,
         needs_poses=True,
     ),
     StageInfo(
@@ -386,5 +475,5 @@ STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)
 """Stage names in execution order."""
 
 
-__all__ = ["STAGES", "STAGE_TABLE", "stage_3dcn", "stage_export", "stage_fuse", "stage_label_points",
-           "stage_labels2d", "stage_project", "stage_smooth"]
+__all__ = ["STAGES", "STAGE_TABLE", "CnMember", "cn_rounds", "stage_3dcn", "stage_export", "stage_fuse",
+           "stage_label_points", "stage_labels2d", "stage_project", "stage_smooth"]

@@ -22,13 +22,13 @@ function fmtDelta(x) {
 }
 
 /** The camera-view figures of the newest run's chosen row beside the share of all its points labeled. */
-function headline(state, run, m) {
+function headline(state, run, m, several) {
   const camera = (m.protocols.camera || {})[state.row];
   const all = (m.labeled_share_all_points || {})[state.row];
   return h(
     "p",
     { class: "metrics-headline", id: "metrics-headline" },
-    h("strong", {}, `Run ${run.number} · ${state.row}: `),
+    h("strong", {}, `Run ${run.number}${state.metricsSequence !== null ? ` · sequence ${state.metricsSequence}` : several ? " · overall" : ""} · ${state.row}: `),
     camera ? `camera view mIoU ${fmtPct(camera.miou)} %, ${fmtPct(camera.labeled_share)} % of in-view ground-truth points labeled · ` : "",
     h("span", { id: "all-points-labeled", title: "Share of every point of every evaluated scan that got a label: what the exported .label files label" }, `${fmtPct(all)} % of all points labeled`),
   );
@@ -67,7 +67,8 @@ function classTable(state, runs, all, comparison) {
       {},
       nameList.map((n) => {
         const d = byName.get(n);
-        const delta = d ? d.delta : null;
+        const computed = two && typeof last[n] === "number" && typeof prev[n] === "number" ? last[n] - prev[n] : null;
+        const delta = d ? d.delta : computed;
         return h(
           "tr",
           { dataset: { class: n } },
@@ -81,9 +82,31 @@ function classTable(state, runs, all, comparison) {
   );
 }
 
-async function metricsOf(state, runId) {
-  if (!state.metrics.has(runId)) state.metrics.set(runId, await get(`/runs/${runId}/metrics`));
-  return state.metrics.get(runId);
+/** A run's metrics: its own (overall for a run of several sequences), or one sequence's. */
+async function metricsOf(state, runId, sequence = null) {
+  const key = sequence === null ? runId : `${runId}:${sequence}`;
+  if (!state.metrics.has(key)) {
+    const query = sequence === null ? "" : `?sequence=${encodeURIComponent(sequence)}`;
+    state.metrics.set(key, await get(`/runs/${runId}/metrics${query}`));
+  }
+  return state.metrics.get(key);
+}
+
+/** The sequence picker of the metrics card (runs of several sequences): overall or one sequence. */
+function sequenceSelect(ctx, names) {
+  const { state } = ctx;
+  if (!names.length) return null;
+  return h(
+    "label",
+    { class: "inline" },
+    "Sequence ",
+    h(
+      "select",
+      { id: "metrics-sequence", onchange: (e) => { state.metricsSequence = e.target.value || null; ctx.render.compare(); } },
+      h("option", { value: "", selected: state.metricsSequence === null }, "overall"),
+      names.map((n) => h("option", { value: n, selected: n === state.metricsSequence }, n)),
+    ),
+  );
 }
 
 function runDot(i) {
@@ -127,11 +150,16 @@ export async function renderCompare(ctx) {
     replace(el, h("h2", {}, "Metrics"), h("p", { class: "muted" }, "Finished runs on data with ground truth show their metrics here; tick runs in the history to compare them."));
     return;
   }
+  if (state.metricsSequence === undefined) state.metricsSequence = null;
   let all;
+  let seqNames = [];
   try {
-    all = await Promise.all(runs.map((r) => metricsOf(state, r.id)));
+    const own = await Promise.all(runs.map((r) => metricsOf(state, r.id)));
+    seqNames = own[own.length - 1].sequences || [];
+    if (!seqNames.includes(state.metricsSequence)) state.metricsSequence = null;
+    all = state.metricsSequence === null ? own : await Promise.all(runs.map((r) => metricsOf(state, r.id, state.metricsSequence)));
   } catch (err) {
-    replace(el, h("h2", {}, "Metrics"), h("p", { class: "error" }, err.message));
+    replace(el, h("div", { class: "card-head" }, h("h2", {}, "Metrics"), sequenceSelect(ctx, seqNames)), h("p", { class: "error" }, err.message));
     return;
   }
   const protocols = Object.keys(all[0].metrics.protocols);
@@ -163,6 +191,8 @@ export async function renderCompare(ctx) {
   if (runs.length >= 2) {
     try {
       comparison = await comparisonOf(state, runs[runs.length - 1].id, runs[runs.length - 2].id);
+      // The server's Δ rows are of the runs' own (overall) figures; one sequence's Δ is computed here.
+      if (state.metricsSequence !== null) comparison = { ...comparison, rows: [] };
     } catch (err) {
       comparison = null;
     }
@@ -170,8 +200,8 @@ export async function renderCompare(ctx) {
   const latest = runs[runs.length - 1];
   replace(
     el,
-    h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
-    headline(state, latest, all[all.length - 1].metrics),
+    h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, seqNames), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
+    headline(state, latest, all[all.length - 1].metrics, seqNames.length > 0),
     staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
     h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),

@@ -6,6 +6,7 @@
 
 import { get, patch } from "../api.js";
 import { fmtTime, h, replace } from "../dom.js";
+import { sequenceQuery } from "./review.js";
 
 const POLL_MS = 2000;
 
@@ -44,7 +45,7 @@ export function mountCorrections(ctx) {
     if (!el.isConnected) return;
     let body;
     try {
-      body = await get(`/projects/${ctx.projectId}/corrections`);
+      body = await get(`/projects/${ctx.projectId}/corrections${sequenceQuery(ctx)}`);
     } catch (err) {
       replace(el, h("h2", {}, "Corrections"), h("p", { class: "error" }, err.message));
       return;
@@ -98,6 +99,8 @@ export function mountCorrections(ctx) {
         : h("p", { class: "muted small" }, "No corrections yet. Make them in the 3D viewer (select, then a class)."),
     );
   }
+
+  ctx.render.corrections = render;
 
   async function loop() {
     if (!el.isConnected) return;

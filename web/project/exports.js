@@ -108,6 +108,9 @@ function writeSection(ctx, run, info, dialog) {
     {},
     h("h3", {}, "Write into the dataset"),
     h("p", { class: "muted small" }, info.predictions_allowed ? info.predictions_path : `${info.predictions_path} cannot receive exports.`),
+    info.sequences && info.sequences.length
+      ? h("p", { class: "muted small", id: "export-sequences" }, `Each sequence into sequences/<name>/predictions/ there: ${info.sequences.join(", ")}`)
+      : null,
     h("label", { class: "small" }, conf, " with .conf files"),
     " ",
     start,

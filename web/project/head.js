@@ -71,18 +71,35 @@ export function renderHead(ctx) {
     active ? `Run ${active.number} ${active.status}…` : "▶ Run pipeline",
   );
   const ds = p.dataset;
+  const several = p.sequences && p.sequences.length > 1;
   replace(
     ctx.els.head,
     h("a", { href: "#/", class: "back" }, "← Projects"),
     h("div", { class: "title-row" }, title, renameButton(ctx, title), p.is_demo ? h("span", { class: "chip demo" }, "demo") : null),
-    h(
-      "p",
-      { class: "muted dataset-line" },
-      ds.kind === "demo" ? "Built-in demo sequence · " : "",
-      h("code", {}, ds.path),
-      ds.frames !== null ? ` · ${ds.frames} frames` : " · not generated yet",
-      ds.has_ground_truth ? " · ground truth" : "",
-    ),
+    several
+      ? h(
+          "ul",
+          { class: "muted dataset-line sequence-list", id: "sequence-list" },
+          p.sequences.map((s) =>
+            h(
+              "li",
+              { dataset: { sequence: s.name } },
+              h("strong", {}, s.name),
+              " ",
+              h("code", {}, s.dataset.path),
+              s.dataset.frames !== null ? ` · ${s.dataset.frames} frames` : " · missing",
+              s.dataset.has_ground_truth ? " · ground truth" : "",
+            ),
+          ),
+        )
+      : h(
+          "p",
+          { class: "muted dataset-line" },
+          ds.kind === "demo" ? "Built-in demo sequence · " : "",
+          h("code", {}, ds.path),
+          ds.frames !== null ? ` · ${ds.frames} frames` : " · not generated yet",
+          ds.has_ground_truth ? " · ground truth" : "",
+        ),
     h("div", { class: "actions" }, runBtn, viewerButton(ctx), deleteButton(ctx)),
     posesToggle(ctx),
   );

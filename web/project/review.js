@@ -14,11 +14,14 @@ export async function renderReview(ctx) {
     card = h("section", { class: "card", id: "review-progress" });
     els.run.after(card);
   }
+  // A project of several sequences: the sequence picked beside "Open 3D viewer" (marks are per sequence).
+  const seq = sequenceQuery(ctx);
+  const title = h("h2", {}, seq ? `Review progress · ${ctx.state.viewerSequence}` : "Review progress");
   let data;
   try {
-    data = (await get(`/projects/${projectId}/review`)).data;
+    data = (await get(`/projects/${projectId}/review${seq}`)).data;
   } catch (err) {
-    replace(card, h("h2", {}, "Review progress"), h("p", { class: "error" }, err.message));
+    replace(card, title, h("p", { class: "error" }, err.message));
     return;
   }
   const lines = data.length
@@ -32,5 +35,13 @@ export async function renderReview(ctx) {
         );
       })
     : [h("p", { class: "muted" }, "No review queue ranked yet: open the 3D viewer and press Next region (N).")];
-  replace(card, h("h2", {}, "Review progress"), ...lines);
+  replace(card, title, ...lines);
+}
+
+/** `?sequence=<name>` of the sequence picked beside "Open 3D viewer" in a project of several sequences,
+ * else "" (the project's one sequence). */
+export function sequenceQuery(ctx) {
+  const seqs = ctx.state.project.sequences || [];
+  const name = ctx.state.viewerSequence;
+  return seqs.length > 1 && name ? `?sequence=${encodeURIComponent(name)}` : "";
 }

@@ -3,8 +3,19 @@
 import { duration, fmtSeconds, h, replace } from "../dom.js";
 import { latestRun } from "./context.js";
 
+/** A stage's label: "Fuse", or in a run of several sequences "01 · Fuse" ("all · 3D-CN" for the 3D-CN
+ * rounds trained on every sequence at once; the server names those stages "<sequence>/<stage>"). */
+function stageLabel(ctx, name) {
+  const cut = name.indexOf("/");
+  const seq = cut < 0 ? null : name.slice(0, cut);
+  const base = cut < 0 ? name : name.slice(cut + 1);
+  const info = ctx.stages.get(base);
+  const label = info ? info.label : base;
+  return { info, text: seq === null ? label : `${seq === "*" ? "all" : seq} · ${label}` };
+}
+
 function stageRow(ctx, stage) {
-  const info = ctx.stages.get(stage.name);
+  const { info, text } = stageLabel(ctx, stage.name);
   const pct = Math.max(0, Math.min(100, stage.percent));
   let detail = "";
   if (stage.status === "running") {
@@ -20,7 +31,7 @@ function stageRow(ctx, stage) {
   return h(
     "li",
     { class: `stage stage-${stage.status}`, dataset: { stage: stage.name, status: stage.status } },
-    h("span", { class: "stage-name", title: info ? info.description : null }, info ? info.label : stage.name),
+    h("span", { class: "stage-name", title: info ? info.description : null }, text),
     h(
       "span",
       { class: "bar", role: "progressbar", "aria-valuemin": 0, "aria-valuemax": 100, "aria-valuenow": pct.toFixed(0) },

@@ -3,12 +3,41 @@
 import { post, url } from "../api.js";
 import { h } from "../dom.js";
 
-/** The "Open 3D viewer" button, or null when the server has no viewer. */
+/** The sequence picker beside the button, for a project of several sequences (null otherwise): the
+ * viewer shows one sequence at a time. */
+function sequencePicker(ctx) {
+  const { state } = ctx;
+  const seqs = state.project.sequences || [];
+  if (seqs.length < 2) return null;
+  if (!seqs.some((s) => s.name === state.viewerSequence)) state.viewerSequence = seqs[0].name;
+  return h(
+    "label",
+    { class: "inline viewer-sequence" },
+    "Sequence ",
+    h(
+      "select",
+      {
+        id: "viewer-sequence",
+        onchange: (e) => {
+          state.viewerSequence = e.target.value;
+          // The review progress and the corrections shown are the picked sequence's.
+          if (ctx.render.review) ctx.render.review();
+          if (ctx.render.corrections) ctx.render.corrections();
+        },
+      },
+      seqs.map((s) => h("option", { value: s.name, selected: s.name === state.viewerSequence }, s.name)),
+    ),
+  );
+}
+
+/** The "Open 3D viewer" button (with the sequence picker of a project of several sequences), or null when
+ * the server has no viewer. */
 export function viewerButton(ctx) {
   const { state, projectId, toast } = ctx;
   if (!(state.health && state.health.viewer)) return null;
   const lastDone = state.runs.find((r) => r.status === "done");
-  return h(
+  const picker = sequencePicker(ctx);
+  const button = h(
     "button",
     {
       class: "btn",
@@ -18,7 +47,9 @@ export function viewerButton(ctx) {
       onclick: async () => {
         const win = window.open("about:blank", "_blank");
         try {
-          const v = await post(`/projects/${projectId}/viewer`, { run_id: lastDone.id });
+          const body = { run_id: lastDone.id };
+          if (picker) body.sequence = state.viewerSequence;
+          const v = await post(`/projects/${projectId}/viewer`, body);
           if (win) win.location = url(v.url);
         } catch (err) {
           if (win) win.close();
@@ -28,4 +59,5 @@ export function viewerButton(ctx) {
     },
     "Open 3D viewer",
   );
+  return picker ? h("span", { class: "viewer-open" }, button, picker) : button;
 }

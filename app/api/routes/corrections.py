@@ -6,14 +6,14 @@ from __future__ import annotations
 
 from collections import Counter
 from pathlib import Path as FilePath
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Path, status
 
 from app import crud, models
 from app.api.deps import DbDep, ReadDbDep, SettingsDep
 from app.api.responses import NOT_FOUND
-from app.api.types import MAX_INT, ProjectId
+from app.api.types import MAX_INT, ProjectId, SequenceQuery
 from app.core.errors import InvalidField, NotFound
 from app.jobs.apply import applier
 
@@ -33,13 +33,14 @@ def _public(c: crud.Correction) -> models.CorrectionPublic:
         points=None if c.points is None else int(c.points.size),
         author=c.author,
         active=c.active,
+        sequence=c.sequence,
     )
 
 
-def _check_scan(project: dict[str, Any], frame_id: str, points: list[int]) -> None:
-    """A scan-scope correction must name a scan of the project's dataset and points inside it: stored
+def _check_scan(dataset: FilePath, frame_id: str, points: list[int]) -> None:
+    """A scan-scope correction must name a scan of the sequence's dataset and points inside it: stored
     otherwise, it would fail every later run (label_points checks the indices against the scan)."""
-    scan = FilePath(project["dataset_path"]) / "velodyne" / f"{frame_id}.bin"
+    scan = dataset / "velodyne" / f"{frame_id}.bin"
     if not scan.is_file():
         raise InvalidField(("frame_id",), f"scan {frame_id!r} is not in the project's dataset")
     n = scan.stat().st_size // 16  # float32 x, y, z, remission per point
@@ -48,10 +49,14 @@ def _check_scan(project: dict[str, Any], frame_id: str, points: list[int]) -> No
 
 
 @router.get("/projects/{project_id}/corrections", response_model=models.CorrectionList)
-def list_corrections(project_id: ProjectId, db: ReadDbDep, settings: SettingsDep) -> models.CorrectionList:
-    """Every correction of the project (newest first), active counts per class, and the apply job."""
+def list_corrections(
+    project_id: ProjectId, db: ReadDbDep, settings: SettingsDep, sequence: SequenceQuery = None
+) -> models.CorrectionList:
+    """Every correction of the project's sequence (default: its first; newest first), active counts per
+    class, and the apply job."""
     crud.require_project(db, project_id)
-    rows = crud.list_corrections(db, project_id, active_only=False)
+    name = crud.sequence_name(db, project_id, sequence, loc=("query", "sequence"))
+    rows = crud.list_corrections(db, project_id, active_only=False, sequence=name)
     counts: Counter[str] = Counter()
     voxels: Counter[str] = Counter()
     for c in rows:
@@ -77,12 +82,15 @@ def add_correction(
     project_id: ProjectId, payload: models.CorrectionCreate, db: DbDep, settings: SettingsDep
 ) -> models.CorrectionPublic:
     """Store a correction (author "api") and apply it to the latest run's export in the background."""
+    crud.require_project(db, project_id)
+    name = crud.sequence_name(db, project_id, payload.sequence, loc=("body", "sequence"))
     if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
-        _check_scan(crud.require_project(db, project_id), payload.frame_id, payload.points)
+        dataset = next(s["dataset_path"] for s in crud.list_sequences(db, project_id) if s["name"] == name)
+        _check_scan(FilePath(dataset), payload.frame_id, payload.points)
     cid = crud.add_correction(
         db, project_id=project_id, class_name=payload.class_name, voxel_size=payload.voxel_size,
         keys=payload.keys, scope=payload.scope, frame_id=payload.frame_id, points=payload.points,
-        author="api",
+        author="api", sequence=name,
     )
     applier(settings).request(project_id)
     return _public(crud.get_correction(db, cid))

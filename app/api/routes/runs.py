@@ -15,11 +15,12 @@ from starlette.concurrency import run_in_threadpool
 from app import crud, models, services, steering
 from app.api.deps import DbDep, JobsDep, ReadDbDep, SettingsDep
 from app.api.responses import CONFLICT, NOT_FOUND
-from app.api.types import ProjectId, RunId
+from app.api.types import ProjectId, RunId, SequenceQuery
 from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import NotFound
 from app.jobs.manager import JobManager
+from app.jobs.multi import run_sequences_of, sequence_run_dir
 from app.jobs.progress import TERMINAL_STATUSES
 from app.jobs.worker import LOG_NAME
 from leap_core.errors import LeapError
@@ -169,19 +170,32 @@ async def stream_progress(
 
 
 @router.get("/runs/{run_id}/metrics", response_model=models.MetricsPublic)
-def read_metrics(run_id: RunId, db: DbDep) -> models.MetricsPublic:
+def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> models.MetricsPublic:
+    """The run's result tables; a run of several sequences has them overall (the sequences' confusion
+    matrices summed) and, with ``sequence``, per sequence."""
     run = crud.require_run(db, run_id)
-    table = services.normalise_metrics(run.get("metrics"))
+    project_sequences = [s["name"] for s in crud.list_sequences(db, run["project_id"])]
+    table = services.sequence_metrics(run, sequence, project_sequences)
     if table is None:
+        what = f"Sequence {sequence!r} of run {run_id}" if sequence is not None else f"Run {run_id}"
         raise NotFound(
-            f"Run {run_id} has no metrics (it is not finished, or its dataset has no ground truth)"
+            f"{what} has no metrics (it is not finished, or its dataset has no ground truth)"
         )
     names = [c["name"] for c in run["params"]["schema"]["classes"]]
+    listed = run_sequences_of(run["params"])
+    chosen = [n for n, _ in listed] if listed is not None and sequence is None else [sequence]
     try:
-        stale = export_ahead_of_metrics(RunLayout(Path(run["run_dir"])), len(names))
+        stale = any(
+            export_ahead_of_metrics(RunLayout(sequence_run_dir(Path(run["run_dir"]), run["params"], n)[0]),
+                                    len(names))
+            for n in chosen
+        )
     except LeapError:
         stale = True  # unreadable applied-corrections files: do not claim the figures are current
-    return models.MetricsPublic(run_id=run_id, class_names=names, metrics=table, before_corrections=stale)
+    return models.MetricsPublic(
+        run_id=run_id, class_names=names, metrics=table, before_corrections=stale,
+        sequence=sequence, sequences=services.metrics_sequences(run),
+    )
 
 
 @router.get("/runs/{run_id}/logs", response_model=models.LogPublic)

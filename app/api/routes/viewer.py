@@ -31,8 +31,9 @@ from app.api.deps import TOKEN_COOKIE, TOKEN_HEADER, TOKEN_QUERY, AuthDep, Setti
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.types import MAX_INT, ProjectId
 from app.core.config import Settings
-from app.core.errors import AppError
+from app.core.errors import AppError, InvalidField
 from app.core.security import cross_origin_reason, token_matches
+from app.models import SEQUENCE_NAME_PATTERN
 from app.viewer.manager import ViewerManager
 from app.viewer.scene import SECRET_HEADER
 from app.viewer.session import ReviewSession
@@ -67,6 +68,11 @@ class ViewerOpen(BaseModel):
     run_id: int | None = Field(
         default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"
     )
+    sequence: str | None = Field(
+        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        description="the project sequence to review (default: the one shown, else the first); another "
+        "sequence than the running viewer's replaces it",
+    )
 
 
 class ViewerPublic(BaseModel):
@@ -74,6 +80,7 @@ class ViewerPublic(BaseModel):
     run_id: int | None = Field(description="run shown; None until the project has a finished run")
     port: int = Field(description="viser's own port on 127.0.0.1 (it streams only to the app's relay)")
     url: str = Field(description="viewer page relayed under the app's port (works wherever the app does)")
+    sequence: str | None = Field(default=None, description="the project sequence shown")
 
 
 def get_viewers(request: Request) -> ViewerManager:
@@ -104,9 +111,11 @@ def running_session(viewers: ViewerManager, project_id: int) -> ReviewSession:
     return session
 
 
-def _public(request: Request, project_id: int, run_id: int | None, port: int) -> ViewerPublic:
+def _public(
+    request: Request, project_id: int, run_id: int | None, port: int, sequence: str | None = None
+) -> ViewerPublic:
     path = request.url_for("viewer_client", project_id=project_id).path
-    return ViewerPublic(project_id=project_id, run_id=run_id, port=port, url=path)
+    return ViewerPublic(project_id=project_id, run_id=run_id, port=port, url=path, sequence=sequence)
 
 
 async def run_blocking(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
@@ -126,13 +135,16 @@ async def open_viewer(
     if not settings.viewer_enabled:
         raise HTTPException(status.HTTP_409_CONFLICT, detail="The viewer is disabled in the settings")
     run_id = None if payload is None else payload.run_id
+    sequence = None if payload is None else payload.sequence
     try:
-        info = await run_blocking(viewers.open, project_id, run_id)
+        info = await run_blocking(viewers.open, project_id, run_id, sequence)
+    except InvalidField as exc:
+        raise HTTPException(exc.status_code, detail=exc.as_detail()) from None
     except AppError as exc:
         raise HTTPException(exc.status_code, detail=exc.detail) from None
     except LeapError as exc:  # the run's outputs are missing or malformed: say which file
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
-    return _public(request, project_id, info.run_id, info.port)
+    return _public(request, project_id, info.run_id, info.port, info.sequence)
 
 
 @router.get("", response_model=ViewerPublic, dependencies=[AuthDep])
@@ -142,7 +154,8 @@ async def get_viewer(project_id: ProjectId, request: Request, viewers: ViewersDe
     if session is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="No viewer is running for this project")
     run_id = None if session.run is None else session.run.run_id
-    return _public(request, project_id, run_id, session.port)
+    backend = session.backend
+    return _public(request, project_id, run_id, session.port, getattr(backend, "sequence", None))
 
 
 @router.delete("", status_code=status.HTTP_204_NO_CONTENT, dependencies=[AuthDep])

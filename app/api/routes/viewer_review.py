@@ -18,7 +18,7 @@ from app import crud
 from app.api.deps import ReadDbDep
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.routes.viewer import ViewersDep, run_blocking, running_session
-from app.api.types import ProjectId
+from app.api.types import ProjectId, SequenceQuery
 from app.viewer.panel_review import progress_text
 from app.viewer.session import QueueKind, ReviewSession
 
@@ -171,9 +171,14 @@ async def relabel_region(
 
 
 @router.get("/review", response_model=ReviewProgressPublic)
-def review_progress(project_id: ProjectId, db: ReadDbDep) -> ReviewProgressPublic:
-    """Review progress of the project per ranked queue (for the web UI's project page; no viewer needed)."""
-    return ReviewProgressPublic(data=[QueueProgress(**p) for p in crud.review_progress(db, project_id)])
+def review_progress(
+    project_id: ProjectId, db: ReadDbDep, sequence: SequenceQuery = None
+) -> ReviewProgressPublic:
+    """Review progress of the project's sequence (default: its first) per ranked queue (for the web UI's
+    project page; no viewer needed)."""
+    crud.require_project(db, project_id)
+    name = crud.sequence_name(db, project_id, sequence, loc=("query", "sequence"))
+    return ReviewProgressPublic(data=[QueueProgress(**p) for p in crud.review_progress(db, project_id, name)])
 
 
 __all__ = ["router"]
