@@ -166,12 +166,20 @@ def drop_tree(path: Path) -> None:
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def project_file(work: Path, voxel_size: float) -> Path:
-    """The semantickitti schema with ``pipeline.fusion.voxel_size`` set: smaller voxels give more of them
-    from the same frames, so the per-voxel slope is measured with the per-frame work unchanged."""
-    path = work / f"project-vs{voxel_size:g}.yaml"
-    text = (ROOT / "projects" / "semantickitti.yaml").read_text()
-    path.write_text(text + f"\npipeline:\n  fusion:\n    voxel_size: {voxel_size}\n")
+def project_file(work: Path, voxel_size: float | None, cn_steps: int | None) -> Path | None:
+    """The semantickitti schema with ``pipeline.fusion.voxel_size`` and / or
+    ``pipeline.consistency.min_steps`` set (None: neither is set, no file). Smaller voxels give more of
+    them from the same frames, so the per-voxel slope is measured with the per-frame work unchanged; fewer
+    3D-CN training steps shorten a run without changing what it holds in memory."""
+    if voxel_size is None and cn_steps is None:
+        return None
+    path = work / f"project-vs{voxel_size}-steps{cn_steps}.yaml"
+    text = (ROOT / "projects" / "semantickitti.yaml").read_text() + "\npipeline:\n"
+    if voxel_size is not None:
+        text += f"  fusion:\n    voxel_size: {voxel_size}\n"
+    if cn_steps is not None:
+        text += f"  consistency:\n    min_steps: {cn_steps}\n"
+    path.write_text(text)
     return path
 
 
@@ -295,6 +303,8 @@ def main() -> None:  # noqa: PLR0912  one branch per optional part of the report
     ap.add_argument("--no-baseline", action="store_true", help="measure this code only")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--interval", type=float, default=0.1, help="RSS sampling period in seconds")
+    ap.add_argument("--cn-steps", type=int, default=None,
+                    help="consistency.min_steps of the runs (fewer 3D-CN training steps; default: 500)")
     ap.add_argument("--voxel-size", type=float, action="append", default=None,
                     help="fusion.voxel_size of the runs (repeatable; default: the schema's default, 0.2 m)")
     args = ap.parse_args()
@@ -311,7 +321,7 @@ def main() -> None:  # noqa: PLR0912  one branch per optional part of the report
         for seq, vs in [(s, v) for s in args.sequence for v in (args.voxel_size or [None])]:
             name = f"{seq.parent.parent.name}-{seq.name}" + ("" if vs is None else f"-vs{vs:g}")
             cache = work / f"cache-{seq.parent.parent.name}-{seq.name}"
-            project = None if vs is None else project_file(work, vs)
+            project = project_file(work, vs, args.cn_steps)
             runs: dict[str, RunMemory] = {}
             for label, code in (("baseline", base), ("this", ROOT)):
                 if code is None:
