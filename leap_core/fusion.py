@@ -20,8 +20,8 @@ bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y,
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
@@ -31,6 +31,7 @@ import scipy.sparse
 
 from leap_core.errors import ConfigError, DatasetError
 from leap_core.io_utils import atomic_save_npz
+from leap_core.npzio import Streamed, load_npz, release, save_npz
 from leap_core.types import UNLABELED
 
 AXIS_BITS = 21
@@ -146,9 +147,23 @@ def key_coords(keys: npt.ArrayLike) -> npt.NDArray[np.int64]:
     return out
 
 
-def key_centres(keys: npt.ArrayLike, voxel_size: float) -> npt.NDArray[np.float32]:
-    """(V, 3) float32 voxel centres ``(i + 0.5) · voxel_size`` of packed keys."""
-    return ((key_coords(keys) + 0.5) * float(voxel_size)).astype(np.float32)
+def key_centres(keys: npt.ArrayLike, voxel_size: float, chunk: int = 1 << 18) -> npt.NDArray[np.float32]:
+    """(V, 3) float32 voxel centres ``(i + 0.5) · voxel_size`` of packed keys, computed over chunks of
+    ``chunk`` keys so the int64 / float64 temporaries stay small beside the (V, 3) result."""
+    k = np.asarray(keys, dtype=np.int64)
+    out = np.empty((k.shape[0], 3), np.float32)
+    for s in range(0, k.shape[0], chunk):
+        out[s : s + chunk] = (key_coords(k[s : s + chunk]) + 0.5) * float(voxel_size)
+    return out
+
+
+def keys_sorted_unique(keys: npt.NDArray[np.int64], chunk: int = 1 << 20) -> bool:
+    """Whether ``keys`` (V,) strictly increase, checked over chunks (no (V,) temporaries)."""
+    for s in range(0, max(keys.shape[0] - 1, 0), chunk):
+        block = keys[s : s + chunk + 1]
+        if not (block[1:] > block[:-1]).all():
+            return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------- grid
@@ -240,11 +255,16 @@ class VoxelGrid:
         atomic_save_npz(path, keys=self.keys, logp=self.logp, voxel_size=np.float64(self.voxel_size))
 
     @classmethod
-    def load(cls, path: str | Path) -> VoxelGrid:
-        """Read a grid written by :meth:`save`; a malformed file raises :class:`DatasetError`."""
+    def load(cls, path: str | Path, *, mmap: bool = False) -> VoxelGrid:
+        """Read a grid written by :meth:`save`; a malformed file raises :class:`DatasetError`.
+
+        ``mmap=True`` maps ``keys`` and ``logp`` read-only from the file (:func:`leap_core.npzio.load_npz`;
+        a compressed file is read as usual): a whole-grid stage then holds only the pages it touches, and
+        :func:`leap_core.npzio.release` drops them after a pass.
+        """
         try:
-            with np.load(path) as z:
-                keys, logp, vs = z["keys"], z["logp"], float(z["voxel_size"])
+            z = load_npz(path, ["keys", "logp", "voxel_size"], mmap=mmap)
+            keys, logp, vs = z["keys"], z["logp"], float(z["voxel_size"])
         except (OSError, KeyError, ValueError, TypeError) as exc:
             raise DatasetError(path, f"unreadable voxel grid ({exc})") from exc
         if keys.dtype != np.int64 or keys.ndim != 1:
@@ -253,7 +273,7 @@ class VoxelGrid:
             raise DatasetError(
                 path, f"voxel grid 'logp' must be ({keys.shape[0]}, C) float16, got {logp.dtype} {logp.shape}"
             )
-        if keys.size > 1 and not (np.diff(keys) > 0).all():
+        if not keys_sorted_unique(keys):
             raise DatasetError(path, "voxel grid 'keys' are not sorted and unique")
         if not (vs > 0 and math.isfinite(vs)):
             raise DatasetError(path, f"voxel grid 'voxel_size' must be positive, got {vs}")
@@ -295,6 +315,7 @@ class VoxelLabels:
             am = block.argmax(axis=1)
             label[s : s + chunk] = am
             conf[s : s + chunk] = np.take_along_axis(block, am[:, None], axis=1)[:, 0]
+            release(p)  # a memory-mapped grid: the pass holds one chunk of it, not all of it
         return cls(k, label, conf)
 
     def at(self, query_keys: npt.ArrayLike) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]]:
@@ -475,45 +496,126 @@ def _axes(keys: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], ...]:
     return keys >> (2 * AXIS_BITS), (keys >> AXIS_BITS) & _AXIS_MASK, keys & _AXIS_MASK
 
 
+_MOVE_BLOCK = 1 << 16
+"""Rows per block when :func:`_merge` shifts the accumulator's rows in place, and per block of
+:func:`_finalise` (times C elements at most 1 << 22): the temporaries of both stay a few MB."""
+
+
+def _grow(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
+    """``arr`` with ``rows`` rows, the first ``len(arr)`` kept: resized in place when it owns its memory
+    (``realloc``, which for large blocks remaps pages instead of copying them, so the accumulator never
+    exists twice), else copied into a new array. Callers hold no view of ``arr``."""
+    if arr.flags.owndata and arr.flags.c_contiguous and arr.base is None:
+        try:
+            arr.resize((rows, *arr.shape[1:]), refcheck=False)
+            return arr
+        except ValueError:
+            pass
+    out = np.zeros((rows, *arr.shape[1:]), arr.dtype)
+    out[: len(arr)] = arr
+    return out
+
+
+def merge_sparse(
+    keys_a: npt.NDArray[np.int64],
+    accs_a: list[npt.NDArray[Any]],
+    keys_b: npt.NDArray[np.int64],
+    accs_b: list[npt.NDArray[Any]],
+) -> tuple[npt.NDArray[np.int64], list[npt.NDArray[Any]]]:
+    """Sum two sparse accumulators with sorted unique keys, growing ``keys_a`` / ``accs_a`` in place.
+
+    ``accs_a[j]`` and ``accs_b[j]`` hold one row per key (any trailing shape, same dtype). A key only in b
+    gets ``0 + b``, one in both ``a + b``; with a empty, b is returned as it is. The old rows move to their
+    merged positions from the last block backwards (each lands at or after where it was, so no row is
+    overwritten before it moved): the accumulators are resized in place (:func:`_grow`), never copied
+    whole, so merging needs the merged size plus b, not twice the merged size. The caller must hold no
+    view of ``keys_a`` / ``accs_a``. Example: keys [2, 5] rows [1, 1] + keys [3, 5] rows [4, 4] → keys
+    [2, 3, 5] rows [1, 4, 5].
+    """
+    if len(keys_a) == 0:
+        return keys_b, accs_b
+    pos = np.minimum(np.searchsorted(keys_a, keys_b), len(keys_a) - 1)
+    found = keys_a[pos] == keys_b
+    if found.all():
+        for acc_a, acc_b in zip(accs_a, accs_b, strict=True):
+            acc_a[pos] += acc_b
+        return keys_a, accs_a
+    new = keys_b[~found]
+    del pos, found
+    n, m = len(keys_a), len(new)
+    # Merged position of each new key: its rank among the new keys plus the old keys below it.
+    dest_new = np.arange(m) + np.searchsorted(keys_a, new)
+    keys_a = _grow(keys_a, n + m)
+    accs_a = [_grow(acc, n + m) for acc in accs_a]
+    for s in range(((n - 1) // _MOVE_BLOCK) * _MOVE_BLOCK, -1, -_MOVE_BLOCK):
+        e = min(n, s + _MOVE_BLOCK)
+        k_blk = keys_a[s:e].copy()
+        dest = np.arange(s, e) + np.searchsorted(new, k_blk)
+        for acc in accs_a:
+            acc[dest] = acc[s:e].copy()
+        keys_a[dest] = k_blk
+    keys_a[dest_new] = new
+    rows_b = np.searchsorted(keys_a, keys_b)
+    for acc_a, acc_b in zip(accs_a, accs_b, strict=True):
+        acc_a[dest_new] = 0
+        acc_a[rows_b] += acc_b
+    return keys_a, accs_a
+
+
 def _merge(
     keys_a: npt.NDArray[np.int64],
     acc_a: npt.NDArray[np.float32],
     keys_b: npt.NDArray[np.int64],
     acc_b: npt.NDArray[np.float32],
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
-    """Sum two sparse accumulators with sorted unique keys."""
-    if len(keys_a) == 0:
-        return keys_b, acc_b
-    pos = np.minimum(np.searchsorted(keys_a, keys_b), len(keys_a) - 1)
-    found = keys_a[pos] == keys_b
-    if found.all():
-        acc_a[pos] += acc_b
-        return keys_a, acc_a
-    keys = np.concatenate([keys_a, keys_b[~found]])
-    keys.sort()
-    out = np.zeros((len(keys), acc_a.shape[1]), np.float32)
-    out[np.searchsorted(keys, keys_a)] = acc_a
-    out[np.searchsorted(keys, keys_b)] += acc_b
-    return keys, out
+    """:func:`merge_sparse` of one (V, C) float32 accumulator."""
+    keys, (acc,) = merge_sparse(keys_a, [acc_a], keys_b, [acc_b])
+    return keys, acc
 
 
 def _finalise(
     keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig, paths: FusionPaths
 ) -> VoxelGrid:
-    """Shift each row to max 0, clip at -logp_clip, store float16 (numpy or torch: same values)."""
-    if acc.size < paths.torch_min_elements:
-        if len(acc):
-            acc -= acc.max(axis=1, keepdims=True)
-            np.maximum(acc, np.float32(-cfg.logp_clip), out=acc)
-        return VoxelGrid(keys, acc.astype(np.float16), cfg.voxel_size)
-    # Why two paths: see FusionPaths.torch_min_elements. torch is imported where tensors are made, so
-    # reading a config (FusionConfig) does not load it.
-    import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
+    """Shift each row to max 0, clip at -logp_clip, store float16 (numpy or torch: same values).
 
-    t = torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32))
-    t.sub_(t.amax(dim=1, keepdim=True))
-    t.clamp_(min=-cfg.logp_clip)
-    return VoxelGrid(keys, t.half().numpy(), cfg.voxel_size)
+    Works over blocks of rows and, when ``acc`` owns its memory, writes the float16 rows into the front of
+    ``acc``'s own buffer (block [s, e)'s float16 bytes lie inside float32 rows [s/2, e/2), already done)
+    and shrinks it, so the float32 and float16 grids never both exist whole.
+    """
+    v, c = acc.shape
+    use_torch = acc.size >= paths.torch_min_elements
+    torch: Any = None
+    if use_torch:
+        # Why two paths: see FusionPaths.torch_min_elements. torch is imported where tensors are made, so
+        # reading a config (FusionConfig) does not load it.
+        import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
+    in_place = bool(acc.flags.owndata and acc.flags.c_contiguous and acc.base is None and v > 0)
+    out16 = None if in_place else np.empty((v, c), np.float16)
+    flat16 = acc.reshape(-1).view(np.float16) if in_place else None
+    block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
+    for s in range(0, v, block):
+        rows = acc[s : s + block]
+        if use_torch:
+            t = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float32))
+            t.sub_(t.amax(dim=1, keepdim=True))
+            t.clamp_(min=-cfg.logp_clip)
+            half = t.half().numpy()
+        else:
+            rows -= rows.max(axis=1, keepdims=True)
+            np.maximum(rows, np.float32(-cfg.logp_clip), out=rows)
+            half = rows.astype(np.float16)
+        if flat16 is not None:
+            flat16[s * c : s * c + half.size] = half.reshape(-1)
+        else:
+            assert out16 is not None
+            out16[s : s + block] = half
+    if out16 is not None:
+        return VoxelGrid(keys, out16, cfg.voxel_size)
+    del flat16, rows, half  # views of acc's buffer, which the resize below may move
+    # The float16 rows fill the first v·c/2 float32 elements: shrink the buffer to them, in place.
+    acc.resize(((v * c + 1) // 2,), refcheck=False)
+    logp = acc.view(np.float16)[: v * c].reshape(v, c)
+    return VoxelGrid(keys, logp, cfg.voxel_size)
 
 
 def _start(
@@ -527,7 +629,11 @@ def _start(
         raise ValueError(f"grid has {grid.num_classes} classes, observations have {num_classes}")
     if not math.isclose(grid.voxel_size, cfg.voxel_size, rel_tol=1e-9):
         raise ValueError(f"grid voxel_size {grid.voxel_size} != FusionConfig.voxel_size {cfg.voxel_size}")
-    return grid.keys.copy(), grid.logp.astype(np.float32)
+    keys, acc = grid.keys.copy(), grid.logp.astype(np.float32)
+    # A memory-mapped prior grid: its pages are not needed once copied.
+    release(grid.keys)
+    release(grid.logp)
+    return keys, acc
 
 
 def _check_obs(o: Observations, num_classes: int, i: int) -> None:
@@ -643,6 +749,192 @@ def fuse_dense(
     return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
 
+def fuse_unique(
+    grid: VoxelGrid | None,
+    keys: npt.NDArray[np.int64],
+    logp: npt.NDArray[np.float32],
+    num_classes: int,
+    cfg: FusionConfig | None = None,
+    weight: float = 1.0,
+    *,
+    paths: FusionPaths | None = None,
+) -> VoxelGrid:
+    """:func:`fuse_dense` for one row per voxel (``keys`` sorted and unique), working in ``logp`` itself.
+
+    Same values as ``fuse_dense(grid, keys, logp, ...)`` (the floor, the float32 product with the weight
+    and the sums are the same operations; tests/test_memory.py compares them), without its per-row copies:
+    the 3D-CN's per-voxel means are fused this way, so no second and third (V, C) float32 array exists.
+    ``logp`` (V, C) float32, C-contiguous, is overwritten.
+    """
+    cfg = cfg or FusionConfig()
+    if keys.ndim != 1 or logp.shape != (len(keys), num_classes) or logp.dtype != np.float32:
+        raise ValueError(
+            f"keys (V,), logp (V, {num_classes}) float32 expected: {keys.shape}, {logp.shape} {logp.dtype}"
+        )
+    if len(keys) > 1 and not keys_sorted_unique(keys):
+        raise ValueError("fuse_unique needs sorted unique keys")
+    acc_keys, acc = _start(grid, num_classes, cfg, weight)
+    if len(keys):
+        np.maximum(logp, np.float32(math.log(cfg.prob_floor)), out=logp)
+        if weight != 1.0:
+            logp *= np.float32(weight)
+        acc_keys, acc = _merge(acc_keys, acc, keys, logp)
+    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+
+
+FILE_BLOCK_VOXELS = 1 << 20
+""":func:`fuse_to_file` sums and finalises the grid over blocks of this many voxels (≈ (8 + 6C) bytes each
+while a block is built); the result does not depend on it."""
+
+
+def _override_obs(
+    keys: npt.ArrayLike, class_idx: npt.ArrayLike, num_classes: int, strength: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    """:func:`apply_overrides`' observation per corrected voxel: sorted unique keys (U,) and (U, C) rows of
+    ``-strength`` per correction of another class."""
+    k = np.asarray(keys, dtype=np.int64).reshape(-1)
+    c = np.asarray(class_idx, dtype=np.int64).reshape(-1)
+    if k.shape != c.shape:
+        raise ValueError(f"keys {k.shape} and class_idx {c.shape} must have the same length")
+    if len(c) and (c.min() < 0 or c.max() >= num_classes):
+        raise ValueError(f"class_idx must be in 0..{num_classes - 1}")
+    if not strength > 0:
+        raise ValueError(f"override strength must be > 0, got {strength}")
+    uk, inv = np.unique(k, return_inverse=True)
+    obs = np.full((len(uk), num_classes), 0.0, np.float32)
+    hits = np.zeros((len(uk), num_classes), np.float32)
+    np.add.at(hits, (inv, c), 1.0)
+    # Each correction: -strength on every class except its own.
+    obs -= strength * (hits.sum(axis=1, keepdims=True) - hits)
+    return uk, obs
+
+
+def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; one pass per step
+    batches: Iterable[Observations],
+    num_classes: int,
+    path: str | Path,
+    spill_dir: str | Path,
+    cfg: FusionConfig | None = None,
+    *,
+    overrides: tuple[npt.ArrayLike, npt.ArrayLike, float] | None = None,
+    paths: FusionPaths | None = None,
+    block_voxels: int = FILE_BLOCK_VOXELS,
+) -> int:
+    """``apply_overrides(fuse(batches, num_classes, cfg), *overrides)`` written to ``path`` as
+    :meth:`VoxelGrid.save` writes it, the same bytes, without the grid ever being in memory whole.
+
+    1. The observations are reduced in the chunks :func:`fuse` uses (``cfg.chunk_points``); each chunk's
+       sorted keys and float32 sums go to ``spill_dir`` (``8 + 4C`` bytes per voxel of a chunk, on disk)
+       and its keys are merged into the sorted set of all keys (8 bytes per voxel, the only per-voxel
+       array held).
+    2. Per block of ``block_voxels`` keys, each chunk's rows of the block are read back (memory-mapped) and
+       summed in chunk order as :func:`fuse`'s merge sums them (the first chunk's rows as they are, later
+       ones added to a zero-filled row when new), finalised (:func:`_finalise`), the overrides applied as
+       :func:`apply_overrides` applies them, and the float16 rows written to the file as they come.
+
+    Args:
+        batches: per-image :class:`Observations`.
+        num_classes: C.
+        path: the grid file to write (atomically).
+        spill_dir: a folder for the chunk files (created; its chunk files are deleted at the end).
+        cfg: grid, clipping and chunk size.
+        overrides: ``(keys, class_idx, strength)`` of :func:`apply_overrides`, or None.
+        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
+        block_voxels: voxels per block of step 2 (≥ 1; the result does not depend on it).
+
+    Returns:
+        The number of voxels written.
+    """
+    cfg = cfg or FusionConfig()
+    paths = paths or FusionPaths()
+    if block_voxels < 1:
+        raise ValueError(f"block_voxels must be ≥ 1, got {block_voxels}")
+    spill = Path(spill_dir)
+    spill.mkdir(parents=True, exist_ok=True)
+    chunk_files: list[tuple[Path, Path]] = []
+    all_keys = np.zeros(0, np.int64)
+    try:
+        pending: list[Observations] = []
+        n_pending = 0
+
+        def spill_chunk() -> None:
+            nonlocal all_keys
+            k, sums = _reduce_chunk(pending, 1.0, paths)
+            kp, sp = spill / f"chunk{len(chunk_files)}.keys.npy", spill / f"chunk{len(chunk_files)}.sums.npy"
+            np.save(kp, k)
+            np.save(sp, sums)
+            chunk_files.append((kp, sp))
+            all_keys = np.union1d(all_keys, k)
+
+        for i, batch in enumerate(batches):
+            o = Observations(np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]),
+                             np.asarray(batch[2], dtype=np.float32))
+            _check_obs(o, num_classes, i)
+            if len(o.keys) == 0:
+                continue
+            pending.append(o)
+            n_pending += len(o.keys)
+            if n_pending >= cfg.chunk_points:
+                spill_chunk()
+                pending, n_pending = [], 0
+        if pending:
+            spill_chunk()
+        pending = []
+
+        o_keys = np.zeros(0, np.int64)
+        o_obs = np.zeros((0, num_classes), np.float32)
+        if overrides is not None:
+            o_keys, o_obs = _override_obs(overrides[0], overrides[1], num_classes, overrides[2])
+        out_keys = np.union1d(all_keys, o_keys) if len(o_keys) else all_keys
+        # fuse's choice of finalising path depends on the whole grid's size (both give the same values).
+        fused_paths = _whole_size_paths(paths, all_keys.size * num_classes)
+        final_paths = _whole_size_paths(paths, out_keys.size * num_classes)
+
+        spilled = [(np.load(kp, mmap_mode="r"), np.load(sp, mmap_mode="r")) for kp, sp in chunk_files]
+
+        def blocks() -> Iterator[npt.NDArray[np.float16]]:
+            for b0 in range(0, len(out_keys), block_voxels):
+                bk = out_keys[b0 : b0 + block_voxels]
+                first, last = bk[0], bk[-1]
+                f0, f1 = np.searchsorted(all_keys, first), np.searchsorted(all_keys, last, side="right")
+                fk = all_keys[f0:f1]
+                acc = np.zeros((len(fk), num_classes), np.float32)
+                for c, (ck, cs) in enumerate(spilled if len(fk) else []):
+                    lo, hi = int(np.searchsorted(ck, fk[0])), int(np.searchsorted(ck, fk[-1], side="right"))
+                    if hi > lo:
+                        pos = np.searchsorted(fk, ck[lo:hi])
+                        if c == 0:
+                            acc[pos] = cs[lo:hi]  # fuse's first chunk starts the accumulator as it is
+                        else:
+                            acc[pos] += cs[lo:hi]
+                        release(ck)
+                        release(cs)
+                grid = _finalise(fk, acc, cfg, fused_paths)
+                if len(o_keys):
+                    lo_o, hi_o = np.searchsorted(o_keys, first), np.searchsorted(o_keys, last, side="right")
+                    if hi_o > lo_o:
+                        ka, acc_a = fk.copy(), np.asarray(grid.logp, dtype=np.float32)
+                        ka, acc_a = _merge(ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy())
+                        grid = _finalise(ka, acc_a, cfg, final_paths)
+                yield np.asarray(grid.logp, np.float16)
+
+        save_npz(path, keys=out_keys,
+                 logp=Streamed((len(out_keys), num_classes), np.dtype(np.float16), blocks()),
+                 voxel_size=np.float64(cfg.voxel_size))
+        spilled.clear()  # unmaps the chunk files before they are deleted
+        return len(out_keys)
+    finally:
+        for kp, sp in chunk_files:
+            kp.unlink(missing_ok=True)
+            sp.unlink(missing_ok=True)
+
+
+def _whole_size_paths(paths: FusionPaths, elements: int) -> FusionPaths:
+    """``paths`` with the torch switch decided once for a grid of ``elements`` elements, so that blocks of
+    it finalise on the path the whole grid would take (their values are the same either way)."""
+    return replace(paths, torch_min_elements=0 if elements >= paths.torch_min_elements else 1 << 62)
+
+
 def apply_overrides(
     grid: VoxelGrid,
     keys: npt.ArrayLike,
@@ -678,12 +970,7 @@ def apply_overrides(
         raise ValueError(f"override strength must be > 0, got {strength}")
     acc_keys, acc = _start(grid, grid.num_classes, cfg, 1.0)
     if len(k):
-        uk, inv = np.unique(k, return_inverse=True)
-        obs = np.full((len(uk), grid.num_classes), 0.0, np.float32)
-        hits = np.zeros((len(uk), grid.num_classes), np.float32)
-        np.add.at(hits, (inv, c), 1.0)
-        # Each correction: -strength on every class except its own.
-        obs -= strength * (hits.sum(axis=1, keepdims=True) - hits)
+        uk, obs = _override_obs(k, c, grid.num_classes, strength)
         acc_keys, acc = _merge(acc_keys, acc, uk, obs)
     return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
 
@@ -789,11 +1076,15 @@ __all__ = [
     "fold_blocks",
     "fuse",
     "fuse_dense",
+    "fuse_to_file",
+    "fuse_unique",
     "fusion_blocks",
     "key_centres",
     "key_coords",
+    "keys_sorted_unique",
     "last_per_key",
     "log_table",
+    "merge_sparse",
     "reduce_block",
     "rows_in_sorted",
     "voxel_keys",

@@ -8,6 +8,7 @@ are fairly flat (e^-0.2 ≈ 0.82 relative to the voxel itself): smoothing is str
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -18,8 +19,9 @@ import scipy.sparse
 from scipy.spatial import cKDTree
 
 from leap_core.errors import ConfigError, DatasetError
-from leap_core.fusion import VoxelGrid, VoxelLabels, key_centres
+from leap_core.fusion import VoxelGrid, VoxelLabels, key_centres, keys_sorted_unique
 from leap_core.io_utils import atomic_save_npz
+from leap_core.npzio import Streamed, has_member, load_npz, release, save_npz
 
 
 @dataclass(frozen=True)
@@ -69,61 +71,143 @@ def knn_weights(dists: npt.ArrayLike) -> npt.NDArray[np.float32]:
     return w
 
 
+SMOOTH_CHUNK = 1 << 14
+"""Voxels whose neighbours are queried and mixed at once: bounds the per-chunk temporaries (≈ 1.1 kB per
+voxel of a chunk at k = 9, C = 20, measured: ≈ 18 MB) however large the grid; the result does not depend
+on it."""
+
+RowProbs = Callable[[npt.NDArray[np.int64]], npt.NDArray[np.float32]]
+"""``row_probs(rows) -> (len(rows), C) float32``: the distributions of the given (sorted unique) rows."""
+
+
+def knn_smooth_blocks(
+    centres: npt.ArrayLike,
+    row_probs: RowProbs,
+    cfg: SmoothingConfig | None = None,
+    chunk: int = SMOOTH_CHUNK,
+) -> Iterator[tuple[int, npt.NDArray[np.float32]]]:
+    """:func:`knn_smooth` one chunk of output rows at a time: yields ``(start, out[start:start + n])``.
+
+    One cKDTree is built over all centres; each chunk of ``chunk`` voxels queries it, takes the
+    distributions of the rows its neighbours hit (``row_probs``, so the caller never needs all V rows at
+    once) and mixes them with the same sparse product, entry order and float32 arithmetic as the
+    unchunked computation, so every row is bit for bit what :func:`knn_smooth` gives whatever ``chunk``.
+
+    Args:
+        centres: (V, 3) voxel centres in metres (float32 values).
+        row_probs: distributions of given rows (:data:`RowProbs`).
+        cfg: k, distance bound and threads.
+        chunk: voxels per chunk (≥ 1).
+    """
+    cfg = cfg or SmoothingConfig()
+    if chunk < 1:
+        raise ValueError(f"chunk must be ≥ 1, got {chunk}")
+    pts = np.asarray(centres, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"centres (V, 3) expected, got {pts.shape}")
+    v = pts.shape[0]
+    if v == 0:
+        return
+    k = min(cfg.k, v)
+    bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
+    tree = cKDTree(pts)
+    # The tree holds its own float64 copy of the centres (the query converts float32 input to exactly
+    # these values), so queries read it and the caller's float32 array is not needed past this point.
+    data = tree.data
+    del pts, centres
+    for s in range(0, v, chunk):
+        e = min(v, s + chunk)
+        n = e - s
+        dists, idx = tree.query(data[s:e], k=k, distance_upper_bound=bound, workers=cfg.workers)
+        w = knn_weights(np.asarray(dists).reshape(n, k))
+        idx = np.asarray(idx).reshape(n, k)
+        # Missing neighbours come back as index V; they have weight 0, so point them at the voxel itself.
+        missing = idx >= v
+        if missing.any():
+            idx = np.where(missing, np.arange(s, e)[:, None], idx)
+        # Σ_j w_nj · probs[idx_nj] as one sparse (n × R, k per row) @ (R × C) product over the R distinct
+        # rows the chunk's neighbours hit; columns renumbered, entries kept in neighbour order.
+        cols, inv = np.unique(idx, return_inverse=True)
+        mat = scipy.sparse.csr_matrix(
+            (w.reshape(-1), inv.reshape(-1).astype(np.int64, copy=False),
+             np.arange(0, n * k + 1, k, dtype=np.int64)),
+            shape=(n, len(cols)),
+        )
+        p = np.asarray(row_probs(cols.astype(np.int64, copy=False)), dtype=np.float32)
+        yield s, np.asarray(mat @ p, dtype=np.float32)
+
+
 def knn_smooth(
     centres: npt.ArrayLike,
     probs: npt.ArrayLike,
     cfg: SmoothingConfig | None = None,
+    chunk: int = SMOOTH_CHUNK,
 ) -> npt.NDArray[np.float32]:
     """Smooth per-voxel distributions over each voxel's k nearest voxels.
 
     ``out[n] = Σ_{j<k} w_nj · probs[idx_nj]`` with ``(d, idx)`` from a cKDTree query of the centres on
     themselves (``distance_upper_bound = max_distance`` when set) and ``w = knn_weights(d)``. Rows of the
-    output sum to 1 when rows of ``probs`` do.
+    output sum to 1 when rows of ``probs`` do. Computed in chunks of ``chunk`` voxels
+    (:func:`knn_smooth_blocks`; the result does not depend on ``chunk``).
 
     Args:
         centres: (V, 3) float32 voxel centres in metres.
         probs: (V, C) float32 per-voxel distributions.
         cfg: k, distance bound and threads.
+        chunk: voxels per chunk.
 
     Returns:
         (V, C) float32 smoothed distributions.
     """
-    cfg = cfg or SmoothingConfig()
     pts = np.asarray(centres, dtype=np.float32)
     p = np.asarray(probs, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3 or p.ndim != 2 or p.shape[0] != pts.shape[0]:
         raise ValueError(f"centres (V, 3) and probs (V, C) expected, got {pts.shape} and {p.shape}")
-    v = pts.shape[0]
-    if v == 0:
+    if pts.shape[0] == 0:
         empty: npt.NDArray[np.float32] = p.copy()
         return empty
-    k = min(cfg.k, v)
-    bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
-    dists, idx = cKDTree(pts).query(pts, k=k, distance_upper_bound=bound, workers=cfg.workers)
-    dists = np.asarray(dists).reshape(v, k)
-    idx = np.asarray(idx).reshape(v, k)
-    w = knn_weights(dists)
-    # Missing neighbours come back as index V; they have weight 0, so point them at the voxel itself.
-    missing = idx >= v
-    if missing.any():
-        idx = np.where(missing, np.arange(v)[:, None], idx)
-    # Σ_j w_nj · probs[idx_nj] as one sparse (V × V, k per row) @ (V × C) product: one pass over the
-    # output instead of k gathers of (V, C) temporaries.
-    mat = scipy.sparse.csr_matrix(
-        (
-            w.reshape(-1),
-            idx.reshape(-1).astype(np.int64, copy=False),
-            np.arange(0, v * k + 1, k, dtype=np.int64),
-        ),
-        shape=(v, v),
-    )
-    out = np.asarray(mat @ p, dtype=np.float32)
+    out = np.empty(p.shape, np.float32)
+    for s, block in knn_smooth_blocks(pts, lambda rows: p[rows], cfg, chunk):
+        out[s : s + len(block)] = block
     return out
 
 
-def smooth_grid(grid: VoxelGrid, cfg: SmoothingConfig | None = None) -> npt.NDArray[np.float32]:
+def grid_row_probs(grid: VoxelGrid) -> RowProbs:
+    """:data:`RowProbs` of a fused grid: ``softmax(logp[rows])`` per row, the values ``grid.probs()`` has in
+    those rows (same float32 steps row by row)."""
+
+    def rows_of(rows: npt.NDArray[np.int64]) -> npt.NDArray[np.float32]:
+        block = grid.logp[rows].astype(np.float32)
+        block -= block.max(axis=1, keepdims=True)
+        np.exp(block, out=block)
+        block /= block.sum(axis=1, keepdims=True)
+        return block
+
+    return rows_of
+
+
+def smooth_grid_blocks(
+    grid: VoxelGrid, cfg: SmoothingConfig | None = None, chunk: int = SMOOTH_CHUNK
+) -> Iterator[tuple[int, npt.NDArray[np.float32]]]:
+    """:func:`knn_smooth_blocks` of a fused grid's posteriors: ``(start, rows)`` float32 chunks of
+    :func:`smooth_grid`'s output, without ever holding all V rows of probabilities. When the grid is
+    memory-mapped (``VoxelGrid.load(mmap=True)``) its pages are dropped after each chunk
+    (:func:`leap_core.npzio.release`), so resident memory stays at the tree plus one chunk."""
+    blocks = knn_smooth_blocks(grid.centres(), grid_row_probs(grid), cfg, chunk)
+    release(grid.keys)
+    for s, block in blocks:
+        release(grid.logp)
+        yield s, block
+
+
+def smooth_grid(
+    grid: VoxelGrid, cfg: SmoothingConfig | None = None, chunk: int = SMOOTH_CHUNK
+) -> npt.NDArray[np.float32]:
     """(V, C) float32 :func:`knn_smooth` of ``grid.probs()`` over ``grid.centres()``."""
-    return knn_smooth(grid.centres(), grid.probs(), cfg)
+    out = np.empty(grid.logp.shape, np.float32)
+    for s, block in smooth_grid_blocks(grid, cfg, chunk):
+        out[s : s + len(block)] = block
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,7 +234,7 @@ class SmoothedGrid:
             raise ValueError(
                 f"smoothed grid 'probs' must be ({k.shape[0]}, C) float16, got {p.dtype} {p.shape}"
             )
-        if k.size > 1 and not (np.diff(k) > 0).all():
+        if not keys_sorted_unique(k):
             raise ValueError("smoothed grid voxel keys are not sorted and unique")
         if not (self.voxel_size > 0 and math.isfinite(self.voxel_size)):
             raise ValueError(f"smoothed grid 'voxel_size' must be positive, got {self.voxel_size}")
@@ -183,14 +267,19 @@ class SmoothedGrid:
 
     def to_voxel_grid(self, logp_clip: float) -> VoxelGrid:
         """A :class:`VoxelGrid` whose ``probs()`` give back these distributions: ``logp = log p - max log p``,
-        clipped below at ``-logp_clip`` like any fused grid (float16)."""
-        p = np.asarray(self.probs, dtype=np.float32)
-        with np.errstate(divide="ignore"):
-            lp = np.log(p)
-        if len(lp):
+        clipped below at ``-logp_clip`` like any fused grid (float16). Computed over chunks of rows, so only
+        the float16 result is held whole."""
+        out = np.empty(self.probs.shape, np.float16)
+        chunk = 1 << 16
+        for s in range(0, self.num_voxels, chunk):
+            p = np.asarray(self.probs[s : s + chunk], dtype=np.float32)
+            with np.errstate(divide="ignore"):
+                lp = np.log(p)
             lp -= lp.max(axis=1, keepdims=True)
-        np.maximum(lp, np.float32(-logp_clip), out=lp)
-        return VoxelGrid(self.keys, lp.astype(np.float16), float(self.voxel_size))
+            np.maximum(lp, np.float32(-logp_clip), out=lp)
+            out[s : s + chunk] = lp
+            release(self.probs)
+        return VoxelGrid(self.keys, out, float(self.voxel_size))
 
     @classmethod
     def from_voxel_grid(cls, grid: VoxelGrid) -> SmoothedGrid:
@@ -203,20 +292,42 @@ class SmoothedGrid:
         atomic_save_npz(path, keys=self.keys, probs=self.probs, voxel_size=vs)
 
     @classmethod
-    def load(cls, path: str | Path, voxel_size: float | None = None) -> SmoothedGrid:
+    def save_blocks(
+        cls,
+        path: str | Path,
+        keys: npt.NDArray[np.int64],
+        num_classes: int,
+        blocks: Iterable[npt.NDArray[np.floating]],
+        voxel_size: float,
+    ) -> None:
+        """Write the file :meth:`save` writes for ``SmoothedGrid(keys, probs, voxel_size)``, with ``probs``
+        given as consecutive row blocks (cast to float16 as they come), so the (V, C) array is never whole
+        in memory.
+
+        Raises:
+            ValueError: the blocks do not add up to ``len(keys)`` rows of ``num_classes`` columns.
+        """
+        probs = Streamed((len(keys), int(num_classes)), np.dtype(np.float16), blocks)
+        save_npz(path, keys=keys, probs=probs, voxel_size=np.asarray(voxel_size, np.float64))
+
+    @classmethod
+    def load(cls, path: str | Path, voxel_size: float | None = None, *, mmap: bool = False) -> SmoothedGrid:
         """Read a grid written by :meth:`save` (``probs`` of another float type are cast to float16).
 
         Args:
             path: the npz file.
             voxel_size: used when the file holds none (files written before it was stored).
+            mmap: map ``keys`` and ``probs`` read-only from the file instead of reading them
+                (:func:`leap_core.npzio.load_npz`; compressed files are read as usual).
 
         Raises:
             DatasetError: unreadable or malformed file, naming it.
         """
         try:
-            with np.load(path) as z:
-                keys, probs = z["keys"], z["probs"]
-                stored = float(z["voxel_size"]) if "voxel_size" in z.files else None
+            names = ["keys", "probs"] + (["voxel_size"] if has_member(path, "voxel_size") else [])
+            z = load_npz(path, names, mmap=mmap)
+            keys, probs = z["keys"], z["probs"]
+            stored = float(z["voxel_size"]) if "voxel_size" in z else None
         except (OSError, KeyError, ValueError, TypeError, EOFError) as exc:
             raise DatasetError(path, f"unreadable smoothed grid ({exc})") from exc
         vs = stored if stored is not None else voxel_size
@@ -230,4 +341,5 @@ class SmoothedGrid:
             raise DatasetError(path, str(exc)) from exc
 
 
-__all__ = ["SmoothedGrid", "SmoothingConfig", "knn_smooth", "knn_weights", "smooth_grid"]
+__all__ = ["SMOOTH_CHUNK", "RowProbs", "SmoothedGrid", "SmoothingConfig", "grid_row_probs", "knn_smooth",
+           "knn_smooth_blocks", "knn_weights", "smooth_grid", "smooth_grid_blocks"]

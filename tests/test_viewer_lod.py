@@ -332,8 +332,8 @@ def big_store(tmp_path, make_tiny_sequence):
     with open_db(settings.database) as db:
         project = crud.create_project(db, name="street", dataset_kind="folder", dataset_path=str(seq.root),
                                       schema=SCHEMA3, pipeline={"fusion": {"voxel_size": vs}})
-        run = crud.create_run(db, project_id=project["id"], params={"schema": SCHEMA3, "dataset": str(seq.root)},
-                              runs_dir=settings.runs_dir)
+        params = {"schema": SCHEMA3, "dataset": str(seq.root)}
+        run = crud.create_run(db, project_id=project["id"], params=params, runs_dir=settings.runs_dir)
         crud.update_run(db, run["id"], status="done")
     run_dir = Path(run["run_dir"])
     run_dir.mkdir(parents=True)

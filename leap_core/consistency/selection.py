@@ -99,23 +99,50 @@ def select_reliable(
     return selected
 
 
+VIEW_COUNT_BATCH = 1 << 22
+""":func:`view_counts` folds frames into its running counts once this many per-frame keys are pending, so
+it holds the counts (16 B per voxel) plus one batch, not every frame's keys."""
+
+
 def view_counts(
     frame_keys: Iterable[npt.NDArray[np.int64]],
+    batch: int = VIEW_COUNT_BATCH,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """In how many frames each voxel was observed: ``n_v = |{f : v ∈ K_f}|`` over per-frame key sets K_f.
 
     Args:
         frame_keys: per frame, the voxel keys of its observed (painted) points, repeats allowed.
+        batch: per-frame unique keys gathered before they are folded into the counts (bounds memory; the
+            result does not depend on it).
 
     Returns:
         Sorted unique keys (V,) and their frame counts (V,). Example: frames [5, 5, 7] and [7] give keys
         [5, 7] with counts [1, 2].
     """
-    per_frame = [np.unique(np.asarray(k, np.int64)) for k in frame_keys]
-    if not per_frame:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
-    return keys, counts.astype(np.int64)
+    keys = np.zeros(0, np.int64)
+    counts = np.zeros(0, np.int64)
+    pending: list[npt.NDArray[np.int64]] = []
+    n_pending = 0
+
+    def fold() -> None:
+        nonlocal keys, counts
+        k, c = np.unique(np.concatenate(pending), return_counts=True)
+        merged = np.union1d(keys, k)
+        out = np.zeros(len(merged), np.int64)
+        out[np.searchsorted(merged, keys)] = counts
+        out[np.searchsorted(merged, k)] += c
+        keys, counts = merged, out
+
+    for fk in frame_keys:
+        u = np.unique(np.asarray(fk, np.int64))
+        pending.append(u)
+        n_pending += len(u)
+        if n_pending >= batch:
+            fold()
+            pending, n_pending = [], 0
+    if pending:
+        fold()
+    return keys, counts
 
 
 def lookup_counts(
@@ -182,4 +209,5 @@ def select_reliable_scans(
     return list(np.split(mask, np.cumsum(sizes)[:-1]))
 
 
-__all__ = ["per_class_quota", "select_reliable", "select_reliable_scans"]
+__all__ = ["VIEW_COUNT_BATCH", "lookup_counts", "per_class_quota", "select_reliable", "select_reliable_scans",
+           "view_counts"]

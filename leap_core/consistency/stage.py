@@ -22,8 +22,9 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import ConsistencyConfig
-from leap_core.consistency.selection import lookup_counts, select_reliable_scans
+from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
     config_to_dict,
     load_checkpoint,
@@ -36,7 +37,15 @@ from leap_core.consistency.train import (
 )
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError, ModelLoadError
-from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
+from leap_core.fusion import (
+    FusionConfig,
+    VoxelGrid,
+    fuse_dense,
+    fuse_unique,
+    merge_sparse,
+    voxel_keys,
+    world_points,
+)
 from leap_core.types import UNLABELED
 
 FUSE_CHUNK_POINTS = 2_000_000
@@ -49,17 +58,24 @@ def checkpoint_path(work_dir: str | Path, iteration: int) -> Path:
     return Path(work_dir) / f"3dcn_iter{iteration}.pt"
 
 
+def targets_path(work_dir: str | Path, iteration: int) -> Path:
+    """``work_dir/.3dcn_targets_iter{iteration}.i16``: the round's training targets while it runs
+    (:class:`TargetFile`; deleted when the round ends)."""
+    return Path(work_dir) / f".3dcn_targets_iter{iteration}.i16"
+
+
 def training_fingerprint(
     cfg: ConsistencyConfig,
     num_classes: int,
     frames: range | Sequence[tuple[str, range]],
-    targets: list[npt.NDArray[np.int16]],
+    targets: Iterable[npt.NDArray[np.int16]],
 ) -> str:
     """Hash of everything the trained weights depend on: config, classes, frames and selected labels.
 
     Stored as ``meta["fingerprint"]`` in each checkpoint; ``cfg`` is the iteration's config (seed offset
     included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets` (of
-    every part, in order). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
+    every part, in order; any iterable of them, e.g. a :class:`TargetFile`: they are hashed one scan at a
+    time). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
     joint round over several sequences (:func:`iter_3dcn_round`)."""
     h = hashlib.sha256()
     # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
@@ -75,6 +91,101 @@ def training_fingerprint(
         h.update(np.ascontiguousarray(t).tobytes())
         h.update(b"|")
     return h.hexdigest()
+
+
+class TargetFile:
+    """Per-scan training targets kept on disk, not in memory: one flat int16 file, scan after scan.
+
+    Written once by :meth:`write` (a temporary file in the 3D-CN's work folder), read back one scan at a
+    time (:meth:`read`, iteration), so a sequence's targets cost 2 bytes per point of disk and only the
+    scans in use of memory, however long the sequence. :meth:`close` deletes the file.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.offsets: list[int] = [0]
+        """Start of scan j's targets (in int16 elements) at ``offsets[j]``; ``offsets[-1]`` = total."""
+
+    @classmethod
+    def write(cls, path: Path, targets: Iterable[npt.NDArray[np.int16]]) -> TargetFile:
+        """Write every scan's targets in order (the file is replaced)."""
+        out = cls(path)
+        out.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(out.path, "wb") as fh:
+            for t in targets:
+                a = np.ascontiguousarray(t, dtype=np.int16)
+                fh.write(a.data)
+                out.offsets.append(out.offsets[-1] + len(a))
+        return out
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def read(self, j: int) -> npt.NDArray[np.int16]:
+        """(N_j,) int16 targets of the j-th scan written."""
+        n = self.offsets[j + 1] - self.offsets[j]
+        return np.fromfile(self.path, dtype=np.int16, count=n, offset=2 * self.offsets[j])
+
+    def __iter__(self) -> Iterator[npt.NDArray[np.int16]]:
+        return (self.read(j) for j in range(len(self)))
+
+    def close(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def iter_reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each named in reliable_targets
+    seq: KittiSequence,
+    smoothed: VoxelGrid,
+    num_classes: int,
+    cfg: ConsistencyConfig,
+    voxel_size: float,
+    frames: range,
+    views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None,
+    progress: Callable[[], None] | None = None,
+    erased: npt.NDArray[np.int64] | None = None,
+) -> Iterator[npt.NDArray[np.int16]]:
+    """:func:`reliable_targets` one scan at a time, in frame order.
+
+    With ``selection_scope="scan"`` each scan is selected alone (:func:`select_reliable` with seed
+    ``cfg.seed + frame number``, what :func:`select_reliable_scans` does per scan), so only one scan's
+    labels, confidences and view counts are held at a time. ``"sequence"`` ranks every point of the
+    sequence together and so holds them all (≈ 14 bytes per point) while it selects.
+    """
+    voxel_labels = smoothed.voxel_labels()
+
+    def scan(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        frame = seq.frame(i)
+        keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+        lab, conf = voxel_labels.at(keys)
+        if erased is not None and erased.size:
+            lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
+        support = lookup_counts(keys, *views) if views is not None else None
+        if progress is not None:
+            progress()
+        return lab, conf, support
+
+    if cfg.selection_scope == "scan":
+        for i in frames:
+            lab, conf, support = scan(i)
+            mask = select_reliable(lab, conf, num_classes, cfg.share, cfg.seed + int(seq.frame_numbers[i]),
+                                   support)
+            yield np.where(mask, lab, np.int16(UNLABELED)).astype(np.int16)
+        return
+    labels: list[np.ndarray] = []
+    confs: list[np.ndarray] = []
+    supports: list[np.ndarray] = []
+    for i in frames:
+        lab, conf, support = scan(i)
+        labels.append(lab)
+        confs.append(conf)
+        if support is not None:
+            supports.append(support)
+    masks = select_reliable_scans(
+        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
+        support=supports if views is not None else None, scan_numbers=[seq.frame_numbers[i] for i in frames],
+    )
+    for m, lab in zip(masks, labels, strict=True):
+        yield np.where(m, lab, np.int16(UNLABELED)).astype(np.int16)
 
 
 def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each named in the docstring
@@ -95,31 +206,11 @@ def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each na
     the ``cfg.share`` most confident become labels (:func:`select_reliable_scans`, scope
     ``cfg.selection_scope``, ties by ``views`` counts, then by ``cfg.seed``'s random order). ``progress()``
     is called once per scan. Points in ``erased`` voxels (map-scope erase corrections) are never labels,
-    whatever class the fused evidence gives the voxel.
+    whatever class the fused evidence gives the voxel. The pipeline streams the same targets to disk
+    (:func:`iter_reliable_targets`, :class:`TargetFile`) instead of holding this list.
     """
-    voxel_labels = smoothed.voxel_labels()
-    labels: list[np.ndarray] = []
-    confs: list[np.ndarray] = []
-    supports: list[np.ndarray] = []
-    for i in frames:
-        frame = seq.frame(i)
-        keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
-        lab, conf = voxel_labels.at(keys)
-        if erased is not None and erased.size:
-            lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
-        labels.append(lab)
-        confs.append(conf)
-        if views is not None:
-            supports.append(lookup_counts(keys, *views))
-        if progress is not None:
-            progress()
-    masks = select_reliable_scans(
-        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
-        support=supports if views is not None else None, scan_numbers=[seq.frame_numbers[i] for i in frames],
-    )
-    return [
-        np.where(m, lab, np.int16(UNLABELED)).astype(np.int16) for m, lab in zip(masks, labels, strict=True)
-    ]
+    return list(iter_reliable_targets(seq, smoothed, num_classes, cfg, voxel_size, frames, views,
+                                      progress=progress, erased=erased))
 
 
 def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfig:
@@ -197,7 +288,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
     return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress))
 
 
-def iter_3dcn_round(  # noqa: PLR0917, PLR0915  a round's inputs; its steps 1-3 share a counter
+def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a counter
     parts: Sequence[RoundPart],
     num_classes: int,
     cfg: ConsistencyConfig,
@@ -271,21 +362,69 @@ def iter_3dcn_round(  # noqa: PLR0917, PLR0915  a round's inputs; its steps 1-3 
             yield check(_grid(part.fused), "fused", part)
         return
 
-    # 1. reliable labels, per part (one smoothed grid in memory at a time)
-    targets: list[npt.NDArray[np.int16]] = []
-    for part, frames in zip(parts, frame_sets, strict=True):
-        smoothed = check(_grid(part.smoothed), "smoothed", part)
-        targets += reliable_targets(part.seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size, frames,
-                                    part.views, progress=tick, erased=part.erased)
-        del smoothed
+    # 1. reliable labels, per part (one smoothed grid in memory at a time), streamed scan by scan into a
+    # file in the work folder: no per-point array of the whole round is held (docs/METHOD.md, "Memory")
     counts = np.zeros(num_classes, np.int64)
-    for t in targets:
-        counts += np.bincount(t[t >= 0], minlength=num_classes)
+
+    def all_targets() -> Iterator[npt.NDArray[np.int16]]:
+        for part, frames in zip(parts, frame_sets, strict=True):
+            smoothed = check(_grid(part.smoothed), "smoothed", part)
+            for t in iter_reliable_targets(part.seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size,
+                                           frames, part.views, progress=tick, erased=part.erased):
+                counts[:] += np.bincount(t[t >= 0], minlength=num_classes)
+                yield t
+            del smoothed
+
+    targets = TargetFile.write(targets_path(work_dir, iteration), all_targets())
+    try:
+        model = _train(parts, frame_sets, targets, counts, num_classes, cfg_it, ckpt_path, iteration,
+                       progress, done, total)
+    finally:
+        targets.close()  # the labels are in the weights now
+
+    done += train_steps
+    if progress is not None:
+        progress(done, total)
+
+    # 3. per part: predict every point, fuse back into the part's grid with weight 1/T
+    device = resolve_device(cfg)
+    model = model.to(device)
+
+    def predictions(seq: KittiSequence, frames: range) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        with torch_threads(cfg.num_threads):
+            workers = max(1, torch.get_num_threads())
+            for i in frames:
+                frame = seq.frame(i)
+                keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
+                logp = predict_log_probs(model, frame.points, device=device, workers=workers)
+                tick()
+                yield keys, logp
+
+    for part, frames in zip(parts, frame_sets, strict=True):
+        fused = check(_grid(part.fused), "fused", part)
+        yield fuse_back(fused, predictions(part.seq, frames), num_classes, cfg.temperature, fusion_cfg,
+                        cfg.network_evidence)
+
+
+def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names each input
+    parts: Sequence[RoundPart],
+    frame_sets: list[range],
+    targets: TargetFile,
+    counts: npt.NDArray[np.int64],
+    num_classes: int,
+    cfg_it: ConsistencyConfig,
+    ckpt_path: Path,
+    iteration: int,
+    progress: Callable[[int, int], None] | None,
+    done: int,
+    total: int,
+) -> PointSegmenter:
+    """Step 2 of :func:`iter_3dcn_round`: the round's network, trained on ``targets`` (or a checkpoint
+    whose fingerprint matches)."""
     if counts.sum() == 0:
         raise LeapError(
             "3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)"
         )
-
     # 2. train (or reuse a matching checkpoint)
     named: range | list[tuple[str, range]] = (
         frame_sets[0] if len(parts) == 1 else [(p.name, f) for p, f in zip(parts, frame_sets, strict=True)]
@@ -306,7 +445,7 @@ def iter_3dcn_round(  # noqa: PLR0917, PLR0915  a round's inputs; its steps 1-3 
 
         def load(j: int) -> tuple[np.ndarray, np.ndarray]:
             seq, i = scans[j]
-            return seq.frame(i).points, targets[j]
+            return seq.frame(i).points, targets.read(j)
 
         base = done
         model, stats = train_model(
@@ -334,29 +473,7 @@ def iter_3dcn_round(  # noqa: PLR0917, PLR0915  a round's inputs; its steps 1-3 
                 ),
             },
         )
-    targets.clear()  # the labels are in the weights now; inference needs memory more
-    done += train_steps
-    if progress is not None:
-        progress(done, total)
-
-    # 3. per part: predict every point, fuse back into the part's grid with weight 1/T
-    device = resolve_device(cfg)
-    model = model.to(device)
-
-    def predictions(seq: KittiSequence, frames: range) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        with torch_threads(cfg.num_threads):
-            workers = max(1, torch.get_num_threads())
-            for i in frames:
-                frame = seq.frame(i)
-                keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
-                logp = predict_log_probs(model, frame.points, device=device, workers=workers)
-                tick()
-                yield keys, logp
-
-    for part, frames in zip(parts, frame_sets, strict=True):
-        fused = check(_grid(part.fused), "fused", part)
-        yield fuse_back(fused, predictions(part.seq, frames), num_classes, cfg.temperature, fusion_cfg,
-                        cfg.network_evidence)
+    return model
 
 
 def voxel_mean_log_probs(
@@ -391,16 +508,12 @@ def voxel_mean_log_probs(
         lp = torch.from_numpy(np.concatenate(logps).astype(np.float32, copy=False)).clamp_min_(floor)
         sums = torch.zeros((len(uk), num_classes), dtype=torch.float32)
         sums.index_add_(0, torch.from_numpy(inv.reshape(-1)), lp)
-        cnt = np.bincount(inv.reshape(-1), minlength=len(uk))
-        merged = np.union1d(acc_keys, uk)
-        out_sum = np.zeros((len(merged), num_classes), np.float32)
-        out_cnt = np.zeros(len(merged), np.int64)
-        ia, ib = np.searchsorted(merged, acc_keys), np.searchsorted(merged, uk)
-        out_sum[ia] = acc_sum
-        out_cnt[ia] = acc_cnt
-        out_sum[ib] += sums.numpy()
-        out_cnt[ib] += cnt
-        acc_keys, acc_sum, acc_cnt = merged, out_sum, out_cnt
+        del lp
+        cnt = np.bincount(inv.reshape(-1), minlength=len(uk)).astype(np.int64)
+        # In place (fusion.merge_sparse): the (V, C) sums are grown, never copied whole; new voxels get
+        # 0 + chunk sums, as a zero-filled merge would give them.
+        acc_keys, (acc_sum, acc_cnt) = merge_sparse(acc_keys, [acc_sum, acc_cnt], uk,
+                                                    [np.array(sums.numpy()), cnt])
 
     pend_k: list[np.ndarray] = []
     pend_l: list[np.ndarray] = []
@@ -417,8 +530,8 @@ def voxel_mean_log_probs(
     if pending:
         reduce(pend_k, pend_l)
     denom = np.maximum(acc_cnt, 1)[:, None].astype(np.float32)
-    means = acc_sum / denom
-    return acc_keys, means, acc_cnt
+    acc_sum /= denom  # the means, in place
+    return acc_keys, acc_sum, acc_cnt
 
 
 def fuse_back(
@@ -463,8 +576,8 @@ def fuse_back(
     weight = 1.0 / temperature
     if evidence == "voxel":
         keys, means, _ = voxel_mean_log_probs(predictions, num_classes, fusion_cfg.prob_floor, chunk_points)
-        # Means are already ≥ log prob_floor, so fuse_dense's per-row floor leaves them unchanged.
-        return fuse_dense(grid, keys, means, num_classes, fusion_cfg, weight=weight)
+        # One row per voxel: fuse_dense's values, computed in the means' own buffer (fuse_unique).
+        return fuse_unique(grid, keys, means, num_classes, fusion_cfg, weight=weight)
     out = grid
     pend_keys: list[np.ndarray] = []
     pend_logp: list[np.ndarray] = []
@@ -489,12 +602,15 @@ __all__ = [
     "FUSE_CHUNK_POINTS",
     "GridSource",
     "RoundPart",
+    "TargetFile",
     "checkpoint_path",
     "fuse_back",
     "iter_3dcn_round",
+    "iter_reliable_targets",
     "iteration_config",
     "reliable_targets",
     "run_3dcn_iteration",
+    "targets_path",
     "training_fingerprint",
     "voxel_mean_log_probs",
 ]

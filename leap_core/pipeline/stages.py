@@ -7,6 +7,7 @@ function (docs/ARCHITECTURE.md, "Adding a stage").
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -24,7 +25,7 @@ from leap_core.fusion import (
     Observations,
     VoxelGrid,
     apply_overrides,
-    fuse,
+    fuse_to_file,
     last_per_key,
     log_table,
     voxel_keys,
@@ -47,7 +48,7 @@ from leap_core.pipeline.context import (
 from leap_core.pipeline.evaluation import stage_evaluate
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import MultiRunLayout, RunLayout, load_corrections
-from leap_core.smoothing import SmoothedGrid, knn_smooth
+from leap_core.smoothing import SmoothedGrid, smooth_grid_blocks
 
 _3DCN_GRID_SCALE = 1000
 """3D-CN progress is reported in thousandths of an iteration (its own step count is not known upfront)."""
@@ -155,7 +156,13 @@ def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
 
 # ---------------------------------------------------------------------------------------------- fuse
 def stage_fuse(ctx: Ctx) -> dict[str, Any]:
-    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``."""
+    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``.
+
+    Written by :func:`~leap_core.fusion.fuse_to_file` (the bytes of ``fuse`` + ``apply_overrides``): the
+    per-chunk sums wait on disk in ``<run>/.fuse_spill/`` and the grid is summed, finalised and written a
+    block of voxels at a time, so the stage holds 8 bytes per voxel (the sorted keys) plus one chunk and
+    one block, never the (V, C) grid (docs/METHOD.md, "Memory").
+    """
     fcfg = ctx.cfg.fusion
     c = ctx.schema.num_classes
     total = len(ctx.frames)
@@ -165,25 +172,39 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
             ctx.tick("fuse", k, total)
             yield Observations(keys, painted.rows, log_table(painted.table, fcfg.prob_floor))
 
-    return finish_fuse(ctx, fuse(batches(), c, fcfg))
+    overrides, n_corr = _fuse_overrides(ctx)
+    spill = ctx.layout.run_dir / ".fuse_spill"
+    try:
+        voxels = fuse_to_file(batches(), c, ctx.layout.grid, spill, fcfg, overrides=overrides)
+    finally:
+        shutil.rmtree(spill, ignore_errors=True)
+    ctx.tick("fuse", total, total)
+    return {"voxels": voxels, "corrections": n_corr}
+
+
+def _fuse_overrides(ctx: Ctx) -> tuple[tuple[npt.NDArray[np.int64], npt.NDArray[Any], float] | None, int]:
+    """The run's map corrections as :func:`~leap_core.fusion.apply_overrides` arguments ``(keys, class_idx,
+    strength)`` (None when there is no class to impose) and the number of corrected voxels."""
+    if not ctx.layout.corrections.is_file():
+        return None, 0
+    # Deduplicated first so an erase (-1) cancels an earlier class on its voxel; erased voxels get no
+    # override here (label_points makes their points unlabeled).
+    keys, cls = last_per_key(*load_corrections(ctx.layout.corrections, ctx.schema.num_classes))
+    keep = cls >= 0
+    if not keep.any():
+        return None, len(keys)
+    return (keys[keep], cls[keep], ctx.cfg.correction_strength), len(keys)
 
 
 def finish_fuse(ctx: Ctx, grid: VoxelGrid) -> dict[str, Any]:
-    """The end of :func:`stage_fuse` (also that of the distributed engine's fusion): the manual
-    corrections into the fused ``grid``, then ``grid.npz``."""
-    fcfg = ctx.cfg.fusion
-    c = ctx.schema.num_classes
-    total = len(ctx.frames)
-    n_corr = 0
-    if ctx.layout.corrections.is_file():
-        # Deduplicated first so an erase (-1) cancels an earlier class on its voxel; erased voxels get no
-        # override here (label_points makes their points unlabeled).
-        keys, cls = last_per_key(*load_corrections(ctx.layout.corrections, c))
-        n_corr = len(keys)
-        keep = cls >= 0
-        if keep.any():
-            grid = apply_overrides(grid, keys[keep], cls[keep], ctx.cfg.correction_strength, fcfg)
+    """The end of the distributed engine's fusion (its partial grids already folded into ``grid``): the
+    manual corrections, then ``grid.npz``; the same bytes as :func:`stage_fuse`'s
+    :func:`~leap_core.fusion.fuse_to_file`."""
+    overrides, n_corr = _fuse_overrides(ctx)
+    if overrides is not None:
+        grid = apply_overrides(grid, *overrides, ctx.cfg.fusion)
     grid.save(ctx.layout.grid)
+    total = len(ctx.frames)
     ctx.tick("fuse", total, total)
     return {"voxels": grid.num_voxels, "corrections": n_corr}
 
@@ -201,21 +222,37 @@ def _smooth_and_save(grid: VoxelGrid, ctx: Ctx, path: Path) -> None:
 
     A manual correction is the user's final word: kNN smoothing (and a later 3D-CN round) must not move
     it, so it is re-imposed as a one-hot distribution on the smoothed grid, not only fused as evidence.
+
+    Streams (docs/METHOD.md, "Memory"): rows are smoothed a chunk at a time
+    (:func:`~leap_core.smoothing.smooth_grid_blocks`), corrected, cast to float16 and written to the file
+    as they come, so besides the grid and its kd-tree only one chunk is held; the file is the one
+    :meth:`SmoothedGrid.save` writes.
     """
-    probs = knn_smooth(grid.centres(), grid.probs(), ctx.cfg.smoothing)
+    rows = np.zeros(0, np.int64)
+    cls = np.zeros(0, np.int64)
     if ctx.layout.corrections.is_file():
         keys, cls = last_per_key(*load_corrections(ctx.layout.corrections, grid.num_classes))
         rows = grid.lookup(keys)
         hit = (rows >= 0) & (cls >= 0)  # an erase (-1) has no class to impose
-        probs[rows[hit]] = 0.0
-        probs[rows[hit], cls[hit]] = 1.0
-    SmoothedGrid(grid.keys, probs.astype(np.float16), grid.voxel_size).save(path)
+        order = np.argsort(rows[hit], kind="stable")
+        rows, cls = rows[hit][order], cls[hit][order]
+
+    def blocks() -> Iterator[npt.NDArray[np.float16]]:
+        for s, probs in smooth_grid_blocks(grid, ctx.cfg.smoothing):
+            lo, hi = np.searchsorted(rows, [s, s + len(probs)])
+            r = rows[lo:hi] - s
+            probs[r] = 0.0
+            probs[r, cls[lo:hi]] = 1.0
+            yield probs.astype(np.float16)
+
+    SmoothedGrid.save_blocks(path, grid.keys, grid.num_classes, blocks(), grid.voxel_size)
 
 
 def stage_smooth(ctx: Ctx) -> dict[str, Any]:
-    """kNN smoothing of ``grid.npz`` → ``grid_smooth.npz`` (a :class:`SmoothedGrid`)."""
+    """kNN smoothing of ``grid.npz`` → ``grid_smooth.npz`` (a :class:`SmoothedGrid`); the grid is
+    memory-mapped, not read whole."""
     ctx.tick("smooth", 0, 1)
-    grid = VoxelGrid.load(ctx.layout.grid)
+    grid = VoxelGrid.load(ctx.layout.grid, mmap=True)
     _smooth_and_save(grid, ctx, ctx.layout.grid_smooth)
     ctx.tick("smooth", 1, 1)
     return {"voxels": grid.num_voxels}
@@ -276,7 +313,7 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
                 views = [v if v is not None else view_counts(keys for _, keys in observed_keys(m.ctx))
                          for m, v in zip(members, views, strict=True)]
             parts = [
-                RoundPart(m.ctx.seq, partial(VoxelGrid.load, f),
+                RoundPart(m.ctx.seq, partial(VoxelGrid.load, f, mmap=True),
                           partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name)
                 for m, f, s, v, e in zip(members, fused, smoothed, views, erased, strict=True)
             ]
@@ -291,7 +328,7 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
 
 
 def _load_smoothed(path: Path, clip: float) -> VoxelGrid:
-    return SmoothedGrid.load(path).to_voxel_grid(clip)
+    return SmoothedGrid.load(path, mmap=True).to_voxel_grid(clip)
 
 
 def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
@@ -363,7 +400,7 @@ def stage_label_points(ctx: Ctx) -> dict[str, Any]:
     scope: :func:`leap_core.pipeline.apply.point_labels`); ``point_label`` (N,) int16 from projection alone
     (the paper's "point").
     """
-    final = SmoothedGrid.load(ctx.layout.final_grid(ctx.cfg.consistency))
+    final = SmoothedGrid.load(ctx.layout.final_grid(ctx.cfg.consistency), mmap=True)
     vs = ctx.cfg.fusion.voxel_size
     corr = RunCorrections.of_run(ctx.layout, ctx.schema.num_classes)
 
