@@ -270,35 +270,3 @@ def test_fuse_to_file_writes_the_grid_fuse_and_apply_overrides_give(tmp_path, to
     empty = tmp_path / "empty.npz"
     assert fusion.fuse_to_file(iter([]), c, empty, tmp_path / "spill") == 0
     assert VoxelGrid.load(empty).logp.shape == (0, c)
-
-
-def test_export_coverage_streams_and_counts_as_before(tmp_path, monkeypatch) -> None:
-    from test_pipeline import make_street
-
-    from leap_core.config import PipelineConfig
-    from leap_core.datasets.kitti import KittiSequence
-    from leap_core.export import raw_id_counts
-    from leap_core.fusion import world_points
-    from leap_core.pipeline import coverage, run_pipeline
-    from leap_core.pipeline.context import load_observation
-    from leap_core.run_layout import RunLayout
-    from leap_core.schema import builtin_schema
-
-    street = make_street(tmp_path / "street" / "sequences" / "00", n_frames=3)
-    run_dir = tmp_path / "run"
-    run_pipeline(street, builtin_schema("semantickitti"), PipelineConfig(), run_dir)
-    # The whole-sequence computation the streamed one replaces.
-    lay, seq = RunLayout(run_dir), KittiSequence(street)
-    keys = [voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2) for i in range(len(seq))]
-    seen = np.unique(np.concatenate([np.unique(k[load_observation(lay.observation(seq.frame_ids[i]))[2]])
-                                     for i, k in enumerate(keys)]))
-    raws = [np.fromfile(lay.export_label(f), dtype="<u4") for f in seq.frame_ids]
-    reasons = [coverage.unlabeled_reasons(np.load(lay.points(f))["label"], k, seen)
-               for f, k in zip(seq.frame_ids, keys, strict=True)]
-    for batch in (1, 1 << 22):
-        monkeypatch.setattr(coverage, "_SEEN_BATCH", batch)
-        cov = coverage.export_coverage(run_dir, street, None, 0.2)
-        assert cov.raw_counts == raw_id_counts(raws)
-        assert cov.points == sum(len(r) for r in raws)
-        assert (cov.outside_view, cov.no_mask) == tuple(int(x) for x in np.sum(reasons, axis=0))
-        assert cov.outside_view > 0 and cov.no_mask > 0
