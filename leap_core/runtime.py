@@ -16,6 +16,9 @@ from leap_core.errors import ConfigError
 
 Device = Literal["auto", "cpu", "cuda"]
 
+MAX_FRAME_THREADS = 64
+"""Upper bound of :attr:`Runtime.frame_threads` (each thread holds one frame's arrays)."""
+
 
 @dataclass(frozen=True)
 class Runtime:
@@ -30,10 +33,21 @@ class Runtime:
     """Where models run: "auto" picks CUDA when torch sees a GPU, else the CPU."""
     allow_download: bool = False
     """Without ``models_dir``: may a model missing from the Hugging Face cache be downloaded?"""
+    frame_threads: int = 4
+    """Frames that the per-frame 3D stages (project, label_points, export) compute at a time, on threads of
+    the run's process (:meth:`leap_core.pipeline.context.Ctx.each_frame`). NumPy releases the interpreter
+    lock in its array loops and an atomic write's fsync waits for the disk, so a few frames in flight
+    overlap one frame's file round trips with another's arithmetic. The files and the progress reports are
+    the same for every value (progress counts frames in frame order); 1 computes one frame after another.
+    The 2D labeler always labels one frame at a time (its models are not shared between threads)."""
 
     def __post_init__(self) -> None:
         if self.device not in get_args(Device):
             raise ConfigError(f"must be 'auto', 'cpu' or 'cuda', got {self.device!r}", field=("device",))
+        if isinstance(self.frame_threads, bool) or not isinstance(self.frame_threads, int) \
+                or not 1 <= self.frame_threads <= MAX_FRAME_THREADS:
+            raise ConfigError(f"must be an integer in 1..{MAX_FRAME_THREADS}, got {self.frame_threads!r}",
+                              field=("frame_threads",))
 
 
-__all__ = ["Device", "Runtime"]
+__all__ = ["MAX_FRAME_THREADS", "Device", "Runtime"]

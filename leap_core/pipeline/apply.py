@@ -33,7 +33,8 @@ from leap_core.corrections import ERASE, FrameVoxelIndex, ScanCorrections, chang
 from leap_core.datasets.kitti import Frame, KittiSequence
 from leap_core.errors import DatasetError
 from leap_core.export import export_labels
-from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys, world_points
+from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys
+from leap_core.geometry import affine_points, row_blocks
 from leap_core.io_utils import atomic_save_npz
 from leap_core.run_layout import RunLayout, load_corrections, save_corrections
 from leap_core.smoothing import SmoothedGrid
@@ -103,8 +104,15 @@ def export_ahead_of_metrics(layout: RunLayout, num_classes: int) -> bool:
 
 
 def frame_keys(frame: Frame, voxel_size: float) -> npt.NDArray[np.int64]:
-    """(N,) world voxel key of every point of a frame."""
-    return voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+    """(N,) world voxel key of every point of a frame: ``voxel_keys(world_points(points, pose))``, computed
+    in row blocks (:mod:`leap_core.geometry`: the same bytes without OpenBLAS's threads, and each block's
+    float64 temporaries stay in cache)."""
+    pts = frame.points
+    pose = frame.pose[:3]
+    out = np.empty(pts.shape[0], np.int64)
+    for start, stop in row_blocks(pts.shape[0]):
+        out[start:stop] = voxel_keys(affine_points(pts[start:stop], pose), voxel_size)
+    return out
 
 
 def point_labels(
