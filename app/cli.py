@@ -130,14 +130,17 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool) -> Runtime:
-    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``)."""
+def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool,
+             frame_threads: int = Runtime.frame_threads) -> Runtime:
+    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``
+    or ``--frame-threads``)."""
     try:
         return Runtime(
             models_dir=None if models is None else Path(models),
             cache_dir=None if cache is None else Path(cache),
             device=device,  # type: ignore[arg-type]  # any string: Runtime rejects a bad one (error below)
             allow_download=allow_download,
+            frame_threads=frame_threads,
         )
     except ConfigError as exc:
         raise LeapError(f"--{exc.field[-1].replace('_', '-')} {exc.problem}") from None
@@ -353,6 +356,12 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         help="When the sequence has no poses.txt, estimate poses with KISS-ICP first, into OUT/poses/ "
         "(the dataset is not written; reused by later runs in OUT while the scans are unchanged).",
     ),
+    frame_threads: int = typer.Option(
+        Runtime.frame_threads,
+        "--frame-threads",
+        help="Frames the projection, point-label and export stages compute at a time (threads; the same "
+        "files for any value, 1 = one after another).",
+    ),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files."""
@@ -363,7 +372,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
 
     try:
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
-        runtime = _runtime(models, cache, device, allow_download)
+        runtime = _runtime(models, cache, device, allow_download, frame_threads)
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
