@@ -103,8 +103,9 @@ def current_version(threads: int) -> Version:
     import leap_core.pipeline.stages
     import leap_core.schema
 
-    return Version(f"this tree ({threads} frame threads)", leap_core.pipeline.runner, leap_core.pipeline.stages,
-                   leap_core.config, leap_core.schema, Runtime(frame_threads=threads))
+    return Version(f"this tree ({threads} frame threads)", leap_core.pipeline.runner,
+                   leap_core.pipeline.stages, leap_core.config, leap_core.schema,
+                   Runtime(frame_threads=threads))
 
 
 # ------------------------------------------------------------------------------------------- data
@@ -153,7 +154,9 @@ class StageTimes:
     cpu: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in TIMED})
 
 
-def run_once(version: Version, seq_dir: Path, prepared: Path, work: Path, times: StageTimes) -> dict[str, str]:
+def run_once(
+    version: Version, seq_dir: Path, prepared: Path, work: Path, times: StageTimes
+) -> dict[str, str]:
     run_dir = work / "timed"
     shutil.rmtree(run_dir, ignore_errors=True)
     shutil.copytree(prepared, run_dir, copy_function=shutil.copyfile)
@@ -211,7 +214,8 @@ def main() -> None:
     ap.add_argument("--sequence", default="/tmp/demo/sequences/00", help="KITTI-layout sequence folder.")
     ap.add_argument("--points", type=int, default=120_000, help="Points per scan of the padded copy.")
     ap.add_argument("--repeat", type=int, default=3, help="Timed runs per version and sequence.")
-    ap.add_argument("--threads", type=int, default=Runtime().frame_threads, help="frame_threads of this tree.")
+    ap.add_argument("--threads", type=int, default=Runtime().frame_threads,
+                    help="frame_threads of this tree.")
     ap.add_argument("--baseline", default="c472ae0", help="Git commit of the baseline.")
     ap.add_argument("--work", default=None, help="Folder for data and runs (default: a temp folder).")
     ap.add_argument("--name", default="bench_scan", help="Result file: benchmarks/results/NAME.json.")

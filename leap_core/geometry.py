@@ -42,7 +42,9 @@ def row_blocks(n: int, block: int = ROW_BLOCK) -> Iterator[tuple[int, int]]:
         start = stop
 
 
-def affine_points(points: npt.ArrayLike, matrix: npt.ArrayLike, block: int = ROW_BLOCK) -> npt.NDArray[np.float64]:
+def affine_points(
+    points: npt.ArrayLike, matrix: npt.ArrayLike, block: int = ROW_BLOCK
+) -> npt.NDArray[np.float64]:
     """``points[:, :3] @ matrix[:, :3].T + matrix[:, 3]`` in float64, block by block.
 
     Byte for byte what the one-call expression ``pts[:, :3].astype(np.float64) @ m[:, :3].T + m[:, 3]``

@@ -13,7 +13,7 @@ import struct
 import uuid
 import zipfile
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -103,8 +103,9 @@ def _npy_array(data: bytes, name: str) -> np.ndarray:
     return arr.reshape(shape, order="F" if fortran else "C")
 
 
-def read_npz(path: str | Path) -> dict[str, np.ndarray]:
-    """Every array of an ``.npz`` file (``np.savez`` or ``np.savez_compressed``), by name.
+def read_npz(path: str | Path, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` file (``np.savez`` or ``np.savez_compressed``), by name: all of them, or
+    those in ``names`` (a missing one raises KeyError).
 
     Each member costs one read and, when deflated, one ``zlib`` call, with zipfile's CRC check. ``np.load``
     reads a deflated member in 256 KiB pieces (a decompress and a CRC call each: about 20 for one 2D label
@@ -117,6 +118,7 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray]:
 
     Raises:
         OSError: the file cannot be read.
+        KeyError: a name in ``names`` is not in the file.
         ValueError: not an npz archive, a damaged member (CRC, sizes), an object array or another member.
     """
     out: dict[str, np.ndarray] = {}
@@ -125,31 +127,43 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray]:
             members = zipfile.ZipFile(fh).infolist()
         except zipfile.BadZipFile as exc:
             raise ValueError(f"not an npz archive ({exc})") from exc
+        wanted = None if names is None else set(names)
+        if wanted is not None:
+            missing = wanted - {m.filename[:-4] for m in members if m.filename.endswith(".npy")}
+            if missing:
+                raise KeyError(f"{sorted(missing)[0]} is not a member of {path}")
         for info in members:
             name = info.filename
             if not name.endswith(".npy"):
                 raise ValueError(f"member {name} is not a .npy array")
-            fh.seek(info.header_offset)
-            sig, name_len, extra_len = _LOCAL_HEADER.unpack(fh.read(_LOCAL_HEADER.size))
-            if sig != b"PK\x03\x04":
-                raise ValueError(f"member {name}: bad local header")
-            fh.seek(info.header_offset + _LOCAL_HEADER.size + name_len + extra_len)
-            raw = fh.read(info.compress_size)
-            if len(raw) != info.compress_size:
-                raise ValueError(f"member {name}: truncated")
-            if info.compress_type == zipfile.ZIP_STORED:
-                data = raw
-            elif info.compress_type == zipfile.ZIP_DEFLATED:
-                try:
-                    data = zlib.decompress(raw, -zlib.MAX_WBITS, max(info.file_size, 1))
-                except zlib.error as exc:
-                    raise ValueError(f"member {name}: {exc}") from exc
-            else:
-                raise ValueError(f"member {name}: compression method {info.compress_type} not supported")
-            if len(data) != info.file_size or zlib.crc32(data) != info.CRC:
-                raise ValueError(f"member {name}: damaged (size or CRC mismatch)")
-            out[name[:-4]] = _npy_array(data, name)
+            if wanted is None or name[:-4] in wanted:
+                out[name[:-4]] = _npy_array(_member_bytes(fh, info), name)
     return out
+
+
+def _member_bytes(fh: IO[bytes], info: zipfile.ZipInfo) -> bytes:
+    """One zip member's content: one read, one ``zlib`` call when deflated, zipfile's CRC check."""
+    name = info.filename
+    fh.seek(info.header_offset)
+    sig, name_len, extra_len = _LOCAL_HEADER.unpack(fh.read(_LOCAL_HEADER.size))
+    if sig != b"PK\x03\x04":
+        raise ValueError(f"member {name}: bad local header")
+    fh.seek(info.header_offset + _LOCAL_HEADER.size + name_len + extra_len)
+    raw = fh.read(info.compress_size)
+    if len(raw) != info.compress_size:
+        raise ValueError(f"member {name}: truncated")
+    if info.compress_type == zipfile.ZIP_STORED:
+        data = raw
+    elif info.compress_type == zipfile.ZIP_DEFLATED:
+        try:
+            data = zlib.decompress(raw, -zlib.MAX_WBITS, max(info.file_size, 1))
+        except zlib.error as exc:
+            raise ValueError(f"member {name}: {exc}") from exc
+    else:
+        raise ValueError(f"member {name}: compression method {info.compress_type} not supported")
+    if len(data) != info.file_size or zlib.crc32(data) != info.CRC:
+        raise ValueError(f"member {name}: damaged (size or CRC mismatch)")
+    return data
 
 
 def link_or_copy(src: str | Path, dst: str | Path) -> None:

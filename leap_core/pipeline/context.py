@@ -177,7 +177,9 @@ class Ctx:
         """Frames a parallel :meth:`each_frame` computes at a time (:attr:`Runtime.frame_threads`)."""
         return (self.runtime or Runtime()).frame_threads
 
-    def each_frame(self, stage: str, work: Callable[[int], None], *, parallel: bool = False) -> dict[str, Any]:
+    def each_frame(
+        self, stage: str, work: Callable[[int], None], *, parallel: bool = False
+    ) -> dict[str, Any]:
         """Run ``work(i)`` on the frames that lack the stage's files, reporting progress over all frames.
 
         With ``parallel``, up to :attr:`frame_threads` frames are in flight on a thread pool; ``work`` must

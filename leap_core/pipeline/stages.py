@@ -313,7 +313,7 @@ def stage_export(ctx: Ctx) -> dict[str, Any]:
         fid = ctx.fid(i)
         path = ctx.layout.points(fid)
         try:
-            z = read_npz(path)
+            z = read_npz(path, ("label", "conf"))
             lab, conf = z["label"], z["conf"].astype(np.float32)
         except (OSError, KeyError, ValueError) as exc:
             raise DatasetError(path, f"unreadable point labels ({exc})") from exc
