@@ -249,8 +249,8 @@ def main() -> None:
     total = sum(results["padded"]["wall_ms_per_scan"][versions[-1].name].values())
     cpu_total = sum(results["padded"]["cpu_ms_per_scan"][versions[-1].name].values())
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"this tree, {args.points} points per scan: {total:.1f} ms wall, {cpu_total:.1f} ms CPU per scan for "
-          f"the four stages (target 40 ms); load average {load} (1, 5, 15 min) on {os.cpu_count()} CPUs")
+    print(f"this tree, {args.points} points per scan: {total:.1f} ms wall, {cpu_total:.1f} ms CPU per scan "
+          f"for the four stages (target 40 ms); load average {load} (1, 5, 15 min) on {os.cpu_count()} CPUs")
     path = write_results(args.name, {"baseline": args.baseline, "frame_threads": args.threads,
                                      "repeat": args.repeat, **results})
     print(f"wrote {path}")
