@@ -262,6 +262,14 @@ def test_read_npz_refuses_damaged_files(tmp_path: Path) -> None:
     bad.write_bytes(bytes(raw))
     with pytest.raises(ValueError):
         read_npz(bad)
+    np.savez(path, x=np.arange(1000))  # stored: only the CRC sees a changed data byte
+    raw = bytearray(path.read_bytes())
+    info = zipfile.ZipFile(path).getinfo("x.npy")
+    name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26 : info.header_offset + 30])
+    raw[info.header_offset + 30 + name_len + extra_len + info.compress_size - 3] ^= 0x01
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="CRC"):
+        read_npz(bad)
     bad.write_bytes(b"not a zip at all")
     with pytest.raises(ValueError, match="not an npz"):
         read_npz(bad)
