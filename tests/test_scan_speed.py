@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_pipeline import make_street
+from typer.testing import CliRunner
 
+from app.cli import cli
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import Cancelled, ConfigError
@@ -384,3 +386,12 @@ def test_frame_threads_is_checked() -> None:
         with pytest.raises(ConfigError, match="frame_threads") as exc:
             Runtime(frame_threads=bad)  # type: ignore[arg-type]
         assert exc.value.field == ("frame_threads",)
+
+
+def test_cli_frame_threads_flag(street: Path, tmp_path: Path) -> None:
+    """``leap run --frame-threads``: a bad value is a one-line error naming the flag before any stage runs."""
+    out = tmp_path / "bad"
+    res = CliRunner().invoke(cli, ["run", str(street), "--out", str(out), "--frame-threads", "0"])
+    assert res.exit_code == 2
+    assert "--frame-threads must be an integer in 1..64, got 0" in res.output
+    assert not (out / "stages.json").exists()
