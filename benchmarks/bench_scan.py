@@ -88,7 +88,8 @@ def import_baseline(commit: str, into: Path) -> Version:
     tar = subprocess.run(["git", "-C", str(REPO), "archive", commit, "leap_core", "projects"],
                          check=True, capture_output=True).stdout
     root = into / "baseline"
-    root.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(root, ignore_errors=True)
+    root.mkdir(parents=True)
     with tarfile.open(fileobj=io.BytesIO(tar)) as tf:
         tf.extractall(root, filter="data")
     (root / "leap_core").rename(root / name)
