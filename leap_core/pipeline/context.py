@@ -206,10 +206,10 @@ class Ctx:
                     while in_flight:
                         in_flight.popleft().result()
                         done += 1
+                        self.tick(stage, done, total)  # before the next frame starts: Cancelled stops it
                         nxt = next(queue, None)
                         if nxt is not None:
                             in_flight.append(pool.submit(work, nxt))
-                        self.tick(stage, done, total)
                 except BaseException:
                     for fut in in_flight:
                         fut.cancel()
