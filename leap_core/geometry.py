@@ -2,9 +2,8 @@
 
 ``points[:, :3] @ M[:, :3].T + M[:, 3]`` over a whole scan is one (N, 3) × (3, R) BLAS product. OpenBLAS
 hands a product above about 2.6 · 10⁵ multiply-adds to its thread pool; for three-term dot products the
-hand-off costs far more than the arithmetic (≈ 35 ms of CPU for a 106 k-point scan on the 2-core machine,
-against ≈ 1 ms computed in blocks), and on a loaded machine its spinning threads take cores from
-the other work. Below the threshold OpenBLAS computes on the calling thread, so each block of
+hand-off costs far more than the arithmetic (25-35 ms of CPU for a 106 k-point scan on the loaded 2-core
+machine, against ≈ 2 ms computed in blocks), and its spinning threads take cores from the other work. Below the threshold OpenBLAS computes on the calling thread, so each block of
 :data:`ROW_BLOCK` rows is one single-threaded product.
 
 Same bytes: every output element is the same three-term dot product in the same kernel, whatever the
