@@ -3,13 +3,14 @@
 ``points[:, :3] @ M[:, :3].T + M[:, 3]`` over a whole scan is one (N, 3) × (3, R) BLAS product. OpenBLAS
 hands a product above about 2.6 · 10⁵ multiply-adds to its thread pool; for three-term dot products the
 hand-off costs far more than the arithmetic (25-35 ms of CPU for a 106 k-point scan on the loaded 2-core
-machine, against ≈ 2 ms computed in blocks), and its spinning threads take cores from the other work. Below the threshold OpenBLAS computes on the calling thread, so each block of
-:data:`ROW_BLOCK` rows is one single-threaded product.
+machine, against ≈ 2 ms computed in blocks), and its spinning threads take cores from the other work.
+Below the threshold OpenBLAS computes on the calling thread, so each block of :data:`ROW_BLOCK` rows is
+one single-threaded product.
 
 Same bytes: every output element is the same three-term dot product in the same kernel, whatever the
 number of rows, as long as a block has at least 2 rows (numpy computes a 1-row product by another path,
-whose rounding differs), so the remainder rows join the last full block. ``tests/test_geometry.py``
-compares the blocked result with the one-call expression on real scans.
+whose rounding differs), so the remainder rows join the last full block. ``tests/test_scan_speed.py``
+compares the blocked result with the one-call expression for many sizes and block sizes.
 """
 
 from __future__ import annotations
