@@ -14,7 +14,7 @@ rounding differs, so the remainder rows join the last full block. ``tests/test_s
 the blocked result with the one-call expression for many sizes and block sizes, so a BLAS build that
 rounds otherwise fails there. (Not so for longer dot products: a (K, 96) × (96, C) float32 product in row
 blocks differs from the one-call product in the last bit once the whole is large, so painting keeps its
-one-call product, which stays below the threading threshold.)
+one-call product (below the threading threshold on the demo: K·M·C ≤ 2.5 · 10⁵).)
 """
 
 from __future__ import annotations
