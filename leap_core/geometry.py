@@ -12,9 +12,10 @@ whatever the number of rows (checked on the demo scans for 2 to 320 000 rows and
 rows), as long as a block has at least 2 rows: numpy computes a 1-row product by another path, whose
 rounding differs, so the remainder rows join the last full block. ``tests/test_scan_speed.py`` compares
 the blocked result with the one-call expression for many sizes and block sizes, so a BLAS build that
-rounds otherwise fails there. (Not so for longer dot products: a (K, 96) × (96, C) float32 product in row
-blocks differs from the one-call product in the last bit once the whole is large, so painting keeps its
-one-call product (below the threading threshold on the demo: K·M·C ≤ 2.5 · 10⁵).)
+rounds otherwise fails there. (Not so for longer dot products: a (K, M) × (M, C) float32 product with
+M ≈ 100-300 computed in row blocks differs from the one-call product in the last bit once the whole is
+large, so painting keeps its one-call product, below the threading threshold on the demo: K·M·C ≤
+2.5 · 10⁵.)
 """
 
 from __future__ import annotations
