@@ -135,8 +135,10 @@ def fail(message: str) -> typer.Exit:
 
 
 def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool,
-             ray: str | None = None, ray_cpus: int | None = None) -> Runtime:
-    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``)."""
+             ray: str | None = None, ray_cpus: int | None = None, *,
+             frame_threads: int = Runtime.frame_threads) -> Runtime:
+    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``
+    or ``--frame-threads``)."""
     try:
         return Runtime(
             models_dir=None if models is None else Path(models),
@@ -145,6 +147,7 @@ def _runtime(models: str | None, cache: str | Path | None, device: str, allow_do
             allow_download=allow_download,
             ray_address=ray,
             ray_cpus=ray_cpus,
+            frame_threads=frame_threads,
         )
     except ConfigError as exc:
         raise LeapError(f"--{exc.field[-1].replace('_', '-')} {exc.problem}") from None
@@ -394,6 +397,12 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     ),
     ray: str | None = typer.Option(None, "--ray", metavar="auto|ADDRESS", help=_RAY_HELP),
     ray_cpus: int | None = typer.Option(None, "--ray-cpus", min=1, help=_RAY_CPUS_HELP),
+    frame_threads: int = typer.Option(
+        Runtime.frame_threads,
+        "--frame-threads",
+        help="Frames the projection, point-label and export stages compute at a time (threads; the same "
+        "files for any value, 1 = one after another).",
+    ),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files.
@@ -409,7 +418,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
                    consistency=consistency, cn_iterations=cn_iterations, frames=frames, cache=cache,
                    models=models, device=device, allow_download=allow_download, export_to=export_to,
                    zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses,
-                   ray=ray, ray_cpus=ray_cpus)
+                   ray=ray, ray_cpus=ray_cpus, frame_threads=frame_threads)
         return
     dataset = datasets[0]
     progress = StageBars(Path(out))
@@ -419,7 +428,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
             raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
                             "folder, or name all its sequences")
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
-        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus)
+        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
@@ -535,7 +544,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     consistency: bool | None, cn_iterations: int | None, frames: str | None, cache: str | None,
     models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
     with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None,
-    ray_cpus: int | None = None,
+    ray_cpus: int | None = None, frame_threads: int = 4,
 ) -> None:
     """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
     sequence's stages run on that Ray cluster (one connection for the whole run)."""
@@ -547,7 +556,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     try:
         specs = _multi_specs(datasets, frames)
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
-        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus)
+        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
         names = [s.name for s in specs]
         # Refuse a target before a long run, not after it.
         if export_to is not None:

@@ -14,13 +14,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from leap_core.errors import ConfigError, DatasetError
 from leap_core.fusion import Observations, log_table
-from leap_core.io_utils import atomic_save_npz
+from leap_core.geometry import affine_points
+from leap_core.io_utils import atomic_save_npz, read_npz
 from leap_core.labelers.base import SoftMasks
 from leap_core.types import UNLABELED
 
@@ -102,7 +104,7 @@ def project_points(
         raise ValueError(f"lidar_to_image must be (3, 4), got shape {m.shape}")
     if height <= 0 or width <= 0:
         raise ValueError(f"image size must be positive, got {height}×{width}")
-    cam = pts[:, :3].astype(np.float64) @ m[:, :3].T + m[:, 3]
+    cam = affine_points(pts, m)
     d = cam[:, 2]
     front = np.flatnonzero(d > min_depth)
     cam, d = cam[front], d[front]
@@ -129,7 +131,7 @@ def depth_cluster_filter(
     For each mask m, its points' depths are sorted; consecutive depths more than ``gap`` apart start a new
     cluster (1-D single-linkage clustering). The cluster with the most points is kept; ties go to the
     nearest cluster. Masks with fewer than ``min_points`` points are kept whole. All masks are handled in
-    one vectorised pass (one sort over the (mask, point) memberships).
+    one vectorised pass (one sort over the (mask, point) memberships: :func:`cluster_pairs`).
 
     Args:
         member: (M, P) bool, mask m covers point p.
@@ -146,12 +148,39 @@ def depth_cluster_filter(
         raise ValueError(f"member must be (M, {d_all.shape[0]}), got {member.shape}")
     m_idx, p_idx = np.nonzero(member)
     out = np.zeros_like(member)
+    ms, ps = cluster_pairs(m_idx, p_idx, d_all, member.shape[0], gap, min_points)
+    out[ms, ps] = True
+    return out
+
+
+def cluster_pairs(
+    m_idx: npt.NDArray[np.int64],
+    p_idx: npt.NDArray[np.int64],
+    depth: npt.ArrayLike,
+    num_masks: int,
+    gap: float,
+    min_points: int = 0,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """:func:`depth_cluster_filter` on (mask, point) pairs: the pairs it keeps.
+
+    Args:
+        m_idx, p_idx: (K,) int64 pairs "mask m covers point p", in (mask, point) order (``np.nonzero`` of
+            the (M, P) membership).
+        depth: (P,) camera depth per point.
+        num_masks: M.
+        gap, min_points: as :func:`depth_cluster_filter`.
+
+    Returns:
+        The kept pairs ``(m, p)``, ordered by (mask, depth).
+    """
     if len(m_idx) == 0:
-        return out
-    d = d_all[p_idx]
-    # One float argsort of mask·span + depth orders by (mask, depth); ≈ 10× faster than np.lexsort.
+        return m_idx, p_idx
+    d = np.asarray(depth, dtype=np.float64).reshape(-1)[p_idx]
+    # One float argsort of mask·span + depth orders by (mask, depth); ≈ 10× faster than np.lexsort. Stable:
+    # the pairs arrive sorted by mask, runs a stable sort exploits. Equal keys are equal depths of one
+    # mask, which fall in one cluster whatever their order, so the kept pairs do not depend on the sort.
     span = float(d.max() - d.min()) + 1.0
-    order = np.argsort(m_idx * span + (d - d.min()))
+    order = np.argsort(m_idx * span + (d - d.min()), kind="stable")
     ms, ps, ds = m_idx[order], p_idx[order], d[order]
     start = np.empty(len(ms), bool)
     start[0] = True
@@ -168,10 +197,9 @@ def depth_cluster_filter(
     keep_cluster[c_order[best_first]] = True
     keep = keep_cluster[cid]
     if min_points > 0:
-        small = np.bincount(m_idx, minlength=member.shape[0]) < min_points
+        small = np.bincount(m_idx, minlength=num_masks) < min_points
         keep |= small[ms]
-    out[ms[keep], ps[keep]] = True
-    return out
+    return ms[keep], ps[keep]
 
 
 def largest_depth_cluster(depth: npt.ArrayLike, gap: float) -> npt.NDArray[np.bool_]:
@@ -234,10 +262,20 @@ class Painted:
     def load(cls, path: str | Path) -> Painted:
         """Read a file written by :meth:`save`; a malformed file raises :class:`DatasetError`."""
         try:
-            with np.load(path) as z:
-                idx, rows, table = z["point_idx"], z["rows"], z["table"]
-        except (OSError, KeyError, ValueError) as exc:
+            arrays = read_npz(path)
+        except (OSError, ValueError) as exc:
             raise DatasetError(path, f"unreadable observation file ({exc})") from exc
+        return cls.from_arrays(path, arrays)
+
+    @classmethod
+    def from_arrays(cls, path: str | Path, arrays: dict[str, npt.NDArray[Any]]) -> Painted:
+        """The arrays ``point_idx``, ``rows``, ``table`` of an observation file read by
+        :func:`~leap_core.io_utils.read_npz`, checked (``path`` names the file in errors) and copied into
+        the documented dtypes."""
+        try:
+            idx, rows, table = arrays["point_idx"], arrays["rows"], arrays["table"]
+        except KeyError as exc:
+            raise DatasetError(path, f"unreadable observation file (no array {exc})") from exc
         if idx.ndim != 1 or rows.shape != idx.shape or table.ndim != 2:
             raise DatasetError(path, f"inconsistent shapes point_idx {idx.shape}, rows {rows.shape}, "
                                      f"table {table.shape}")
@@ -246,30 +284,71 @@ class Painted:
         return cls(idx.astype(np.int64), rows.astype(np.int32), table.astype(np.float32))
 
 
-def _unique_rows(bits: npt.NDArray[np.uint8]) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.int64]]:
-    """Unique rows of a (P, B) uint8 bit-pattern array: (unique (K, B), inverse (P,))."""
-    p, b = bits.shape
-    words = -(-b // 8)
-    padded = np.zeros((p, words * 8), np.uint8)
-    padded[:, :b] = bits
-    as_u64 = padded.view(np.uint64)
-    if words == 1:
-        # One word per point (≤ 64 masks): a plain 1-D unique, far faster than unique(axis=0).
-        uniq, inv = np.unique(as_u64[:, 0], return_inverse=True)
-        uniq = uniq.reshape(-1, 1)
-    else:
-        uniq, inv = np.unique(as_u64, axis=0, return_inverse=True)
-    return np.ascontiguousarray(uniq).view(np.uint8)[:, :b], inv.reshape(-1).astype(np.int64)
+def covering_pairs(
+    soft: SoftMasks, u: npt.NDArray[np.integer], v: npt.NDArray[np.integer]
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The (mask, point) pairs "mask m covers pixel (u_p, v_p)", in (mask, point) order.
+
+    ``np.nonzero(soft.membership(u, v))``, read straight from the packed bits: one (M, P) byte gather, a
+    bit test and a 1-D ``flatnonzero`` of a boolean array (numpy's 2-D ``nonzero`` of a uint8 array is
+    ≈ 15× slower).
+    """
+    flat = v.astype(np.int64) * soft.width + u.astype(np.int64)
+    bit = np.right_shift(np.uint8(0x80), (flat & 7).astype(np.uint8))
+    hits = soft.bits[:, flat >> 3]
+    hits &= bit
+    pairs = np.flatnonzero(hits != 0)
+    m_idx, p_idx = np.divmod(pairs, np.int64(flat.shape[0]))
+    return m_idx, p_idx
+
+
+def combination_words(
+    m_idx: npt.NDArray[np.int64], p_idx: npt.NDArray[np.int64], num_points: int, num_masks: int
+) -> npt.NDArray[np.uint64]:
+    """(P, ⌈M/64⌉) uint64: point p's set of covering masks as bits.
+
+    The layout is the little-endian uint64 view of ``np.packbits(member, axis=0).T`` padded to whole words
+    (mask 8b + r is bit 7 − r of byte b), so rows compare as the packed bit patterns do. A point's masks are
+    distinct, so OR-ing their bits is adding them.
+    """
+    words = -(-num_masks // 64)
+    in_word = m_idx % 64
+    pos = (in_word // 8) * 8 + 7 - in_word % 8
+    out = np.zeros(num_points * words, np.uint64)
+    np.add.at(out, p_idx * words + m_idx // 64, np.left_shift(np.uint64(1), pos.astype(np.uint64)))
+    return out.reshape(num_points, words)
+
+
+def unique_word_rows(words: npt.NDArray[np.uint64]) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.int64]]:
+    """Unique rows of a (P, W) uint64 array in lexicographic (numeric) order and the inverse (P,).
+
+    Equal to ``np.unique(words, axis=0, return_inverse=True)`` (for W = 1, to ``np.unique(words[:, 0],
+    return_inverse=True)``), through one stable W-key ``np.lexsort``: a point's covering set repeats over
+    thousands of points, and numpy's quicksort-based ``unique`` is ≈ 10× slower on such runs of equal
+    values (its sort of a structured view for W > 1 another 3× slower).
+    """
+    p = words.shape[0]
+    if p == 0:
+        return words[:0], np.zeros(0, np.int64)
+    order = np.lexsort(words.T[::-1])  # the last key is the primary one: column 0 first
+    ordered = words[order]
+    start = np.empty(p, bool)
+    start[0] = True
+    start[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
+    inv = np.empty(p, np.int64)
+    inv[order] = np.cumsum(start) - 1
+    return ordered[start], inv
 
 
 def paint(soft: SoftMasks, proj: Projected, cfg: ProjectionConfig | None = None) -> Painted:
     """Paint projected points with an image's soft masks.
 
-    1. ``member[m, p]``: mask m covers point p's pixel.
-    2. If ``cfg.depth_clustering``: :func:`depth_cluster_filter` per mask on the points' depths.
+    1. The pairs (mask m, point p) with m covering p's pixel (:func:`covering_pairs`).
+    2. If ``cfg.depth_clustering``: per mask, only its largest depth cluster (:func:`cluster_pairs`).
     3. Points covered by no remaining mask get no observation.
-    4. Each distinct membership pattern S_k (hashed as packed bits, one np.unique) becomes a table row
-       ``Σ_{m∈S_k} w_m p_m / Σ_{m∈S_k} w_m`` with ``w = soft.confidence``, ``p = soft.probs``.
+    4. Each distinct covering set S_k (hashed as bits, :func:`combination_words`, :func:`unique_word_rows`)
+       becomes a table row ``Σ_{m∈S_k} w_m p_m / Σ_{m∈S_k} w_m`` with ``w = soft.confidence``,
+       ``p = soft.probs``; rows are in the order of the sets' packed bit patterns.
 
     Args:
         soft: the image's masks (M masks, C classes).
@@ -282,15 +361,17 @@ def paint(soft: SoftMasks, proj: Projected, cfg: ProjectionConfig | None = None)
         return Painted.empty(c)
     if proj.u.max() >= soft.width or proj.v.max() >= soft.height:
         raise ValueError(f"projected pixels exceed the {soft.height}×{soft.width} mask size")
-    member = soft.membership(proj.u, proj.v)
+    m_idx, p_idx = covering_pairs(soft, proj.u, proj.v)
     if cfg.depth_clustering:
-        member = depth_cluster_filter(member, proj.depth, cfg.cluster_gap, cfg.min_cluster_points)
-    covered = np.flatnonzero(member.any(axis=0))
-    if len(covered) == 0:
+        m_idx, p_idx = cluster_pairs(m_idx, p_idx, proj.depth, soft.num_masks, cfg.cluster_gap,
+                                     cfg.min_cluster_points)
+    if len(m_idx) == 0:
         return Painted.empty(c)
-    packed = np.ascontiguousarray(np.packbits(member[:, covered], axis=0).T)  # (P', ceil(M/8))
-    uniq, inv = _unique_rows(packed)
-    combos = np.unpackbits(uniq, axis=1, count=soft.num_masks).astype(np.float32)  # (K, M)
+    words = combination_words(m_idx, p_idx, len(proj), soft.num_masks)
+    covered = np.flatnonzero(np.bincount(p_idx, minlength=len(proj)))
+    uniq, inv = unique_word_rows(words[covered])
+    uniq_bits = np.ascontiguousarray(uniq).view(np.uint8)[:, : -(-soft.num_masks // 8)]
+    combos = np.unpackbits(uniq_bits, axis=1, count=soft.num_masks).astype(np.float32)  # (K, M)
     # A zero confidence would make a single-mask row 0/0; a tiny weight keeps it that mask's distribution.
     w = combos * np.maximum(soft.confidence, np.float32(1e-6))[None, :]
     table = (w @ soft.probs) / w.sum(axis=1, keepdims=True)
@@ -301,8 +382,12 @@ __all__ = [
     "Painted",
     "Projected",
     "ProjectionConfig",
+    "cluster_pairs",
+    "combination_words",
+    "covering_pairs",
     "depth_cluster_filter",
     "largest_depth_cluster",
     "paint",
     "project_points",
+    "unique_word_rows",
 ]

@@ -16,6 +16,9 @@ from leap_core.errors import ConfigError
 
 Device = Literal["auto", "cpu", "cuda"]
 
+MAX_FRAME_THREADS = 64
+"""Upper bound of :attr:`Runtime.frame_threads` (each thread holds one frame's arrays)."""
+
 
 @dataclass(frozen=True)
 class Runtime:
@@ -30,6 +33,13 @@ class Runtime:
     """Where models run: "auto" picks CUDA when torch sees a GPU, else the CPU."""
     allow_download: bool = False
     """Without ``models_dir``: may a model missing from the Hugging Face cache be downloaded?"""
+    frame_threads: int = 4
+    """Frames that the per-frame 3D stages (project, label_points, export) compute at a time, on threads of
+    the run's process (:meth:`leap_core.pipeline.context.Ctx.each_frame`). NumPy releases the interpreter
+    lock in its array loops and an atomic write's fsync waits for the disk, so a few frames in flight
+    overlap one frame's file round trips with another's arithmetic. The files and the progress reports are
+    the same for every value (progress counts frames in frame order); 1 computes one frame after another.
+    The 2D labeler always labels one frame at a time (its models are not shared between threads)."""
 
     # --- the distributed engine (leap_core.pipeline.executor)
     ray_address: str | None = None
@@ -49,6 +59,10 @@ class Runtime:
             raise ConfigError("must be 'auto' or a Ray cluster address, got ''", field=("ray_address",))
         if self.ray_cpus is not None and self.ray_cpus < 1:
             raise ConfigError(f"must be >= 1, got {self.ray_cpus}", field=("ray_cpus",))
+        if isinstance(self.frame_threads, bool) or not isinstance(self.frame_threads, int) \
+                or not 1 <= self.frame_threads <= MAX_FRAME_THREADS:
+            raise ConfigError(f"must be an integer in 1..{MAX_FRAME_THREADS}, got {self.frame_threads!r}",
+                              field=("frame_threads",))
 
 
-__all__ = ["Device", "Runtime"]
+__all__ = ["MAX_FRAME_THREADS", "Device", "Runtime"]

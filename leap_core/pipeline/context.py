@@ -4,9 +4,12 @@ readers of per-frame files that several stages share."""
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
+from collections import deque
 from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -17,7 +20,7 @@ import numpy.typing as npt
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError
-from leap_core.io_utils import atomic_write_json
+from leap_core.io_utils import atomic_write_json, read_npz
 from leap_core.labelers import make_labeler
 from leap_core.projection import Painted
 from leap_core.run_layout import RunLayout
@@ -169,18 +172,48 @@ class Ctx:
             if not all(self.layout.frame_file(files.folder, self.fid(i), s).is_file() for s in files.suffixes)
         ]
 
-    def each_frame(self, stage: str, work: Callable[[int], None]) -> dict[str, Any]:
-        """Run ``work(i)`` on the frames that lack the stage's files, reporting progress over all frames."""
-        todo = set(self.missing_frames(stage))
+    @property
+    def frame_threads(self) -> int:
+        """Frames a parallel :meth:`each_frame` computes at a time (:attr:`Runtime.frame_threads`)."""
+        return (self.runtime or Runtime()).frame_threads
+
+    def each_frame(
+        self, stage: str, work: Callable[[int], None], *, parallel: bool = False
+    ) -> dict[str, Any]:
+        """Run ``work(i)`` on the frames that lack the stage's files, reporting progress over all frames.
+
+        With ``parallel``, up to :attr:`frame_threads` frames are in flight on a thread pool; ``work`` must
+        then only read shared state. Frames are started and their completions reported in frame order, so
+        the progress calls are those of the one-by-one loop. An exception (a frame's error, or
+        :class:`~leap_core.errors.Cancelled` from the progress callback) stops further frames from starting,
+        waits for those already running (their files are whole: atomic writes) and is raised.
+        """
+        todo = self.missing_frames(stage)
         total = len(self.frames)
         done = total - len(todo)
         self.tick(stage, done, total)
-        for i in self.frames:
-            if i not in todo:
-                continue
-            work(i)
-            done += 1
-            self.tick(stage, done, total)
+        threads = min(self.frame_threads, len(todo)) if parallel else 1
+        if threads <= 1:
+            for i in todo:
+                work(i)
+                done += 1
+                self.tick(stage, done, total)
+        else:
+            queue = iter(todo)
+            with ThreadPoolExecutor(threads, thread_name_prefix=f"leap-{stage}") as pool:
+                in_flight = deque(pool.submit(work, i) for i in itertools.islice(queue, threads))
+                try:
+                    while in_flight:
+                        in_flight.popleft().result()
+                        done += 1
+                        self.tick(stage, done, total)  # before the next frame starts: Cancelled stops it
+                        nxt = next(queue, None)
+                        if nxt is not None:
+                            in_flight.append(pool.submit(work, nxt))
+                except BaseException:
+                    for fut in in_flight:
+                        fut.cancel()
+                    raise
         return {"frames_done": total, "frames_computed": len(todo)}
 
 
@@ -250,15 +283,15 @@ def frame_input_digest(seq: KittiSequence, index: int) -> str:
 
 # ------------------------------------------------------------------------------------- shared readers
 def load_observation(path: Path) -> tuple[Painted, int, npt.NDArray[np.bool_]]:
-    """An ``observations/`` file: the painted points, the scan's point count and its in-image mask (N,)."""
-    painted = Painted.load(path)
+    """An ``observations/`` file: the painted points, the scan's point count and its in-image mask (N,)
+    (one read of the file)."""
     try:
-        with np.load(path) as z:
-            n = int(z["n_points"])
-            in_view = np.unpackbits(z["in_view"], count=n).astype(bool)
+        arrays = read_npz(path)
+        n = int(arrays["n_points"])
+        in_view = np.unpackbits(arrays["in_view"], count=n).astype(bool)
     except (OSError, KeyError, ValueError) as exc:
         raise DatasetError(path, f"unreadable observation file ({exc})") from exc
-    return painted, n, in_view
+    return Painted.from_arrays(path, arrays), n, in_view
 
 
 __all__ = [

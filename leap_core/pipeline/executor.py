@@ -363,7 +363,8 @@ class RayExecutor:
 
     def _job(self, ctx: Ctx) -> RunJob:
         return RunJob(ctx.seq.root, ctx.schema, ctx.cfg, ctx.layout.run_dir,
-                      dataclasses.replace(ctx.runtime or Runtime(), ray_address=None))
+                      # A task holds one Ray CPU: it computes its frames one at a time.
+                      dataclasses.replace(ctx.runtime or Runtime(), ray_address=None, frame_threads=1))
 
     def _cpus(self) -> int:
         return max(1, int(self.ray.cluster_resources().get("CPU", 1)))
@@ -459,7 +460,7 @@ class RayExecutor:
         slots = int(self.ray.cluster_resources().get("GPU", 1)) if gpus else self._cpus()
         per_task = math.ceil(len(frame_ids) / (TASKS_PER_CPU * slots) / config.batch_size) * config.batch_size
         task = self._task.options(num_gpus=1 if gpus else 0)
-        worker_runtime = dataclasses.replace(runtime, ray_address=None)
+        worker_runtime = dataclasses.replace(runtime, ray_address=None, frame_threads=1)
         pending = {
             task.remote(label_cache_task, dataset, schema, config, worker_runtime,
                         list(frame_ids[s : s + per_task])):
