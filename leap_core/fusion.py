@@ -30,6 +30,7 @@ import numpy.typing as npt
 import scipy.sparse
 
 from leap_core.errors import ConfigError, DatasetError
+from leap_core.geometry import affine_points
 from leap_core.io_utils import atomic_save_npz
 from leap_core.npzio import Streamed, load_npz, release, save_npz
 from leap_core.types import UNLABELED
@@ -363,9 +364,10 @@ def world_points(points: npt.ArrayLike, pose: npt.ArrayLike) -> npt.NDArray[np.f
     Returns:
         (N, 3) float64.
     """
-    p = np.asarray(pose, dtype=np.float64)
-    out: npt.NDArray[np.float64] = np.asarray(points)[:, :3].astype(np.float64) @ p[:3, :3].T + p[:3, 3]
-    return out
+    # Blocked (leap_core.geometry): the same bytes as the one-call product, without OpenBLAS handing an
+    # (N, 3) × (3, 3) product to threads that wait on each other on busy cores (fuse, export counts, the
+    # viewer's region tools all place whole scans).
+    return affine_points(points, np.asarray(pose, dtype=np.float64)[:3])
 
 
 # ------------------------------------------------------------------------------------- observations

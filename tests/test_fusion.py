@@ -416,6 +416,20 @@ def test_world_points() -> None:
     np.testing.assert_array_equal(out, [[8, 21, 33], [10, 20, 30]])
 
 
+def test_world_points_blocked_equals_the_one_call_product_byte_for_byte() -> None:
+    # world_points computes in row blocks (leap_core.geometry) to keep OpenBLAS's threads out; a whole
+    # scan's voxel keys depend on its last bits, so the blocks must give the one-call product's bytes,
+    # including the rows left over after the last full block.
+    rng = np.random.default_rng(3)
+    pts = (rng.normal(size=(20_003, 4)) * 40).astype(np.float32)
+    a = rng.normal(size=(3, 3))
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(a)[0]
+    pose[:3, 3] = [123.4, -56.7, 8.9]
+    ref = pts[:, :3].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    assert world_points(pts, pose).tobytes() == ref.tobytes()
+
+
 def test_rows_in_sorted_finds_present_keys_and_marks_absent_ones() -> None:
     keys = np.array([3, 7, 9], np.int64)
     assert rows_in_sorted(keys, np.array([9, 4, 3, 10, 0, 7])).tolist() == [2, -1, 0, -1, -1, 1]
