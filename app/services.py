@@ -669,7 +669,7 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         progress=run_progress(run, live),
         has_metrics=run.get("metrics") is not None,
         has_export=run["status"] == "done" and all(
-            RunLayout(sequence_run_dir(run_dir, run["params"], name)[0]).export_dir.is_dir()
+            RunLayout(sequence_run_dir(run_dir, run["params"], name)).export_dir.is_dir()
             for name in _sequence_names(run)
         ),
         resumable=run["status"] in models.RESUMABLE_STATUSES,

@@ -85,7 +85,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
                 lay = RunLayout(Path(tmp))
                 run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
                 base_lay = None if base is None else RunLayout(
-                    sequence_run_dir(Path(base["run_dir"]), base["params"], name)[0])
+                    sequence_run_dir(Path(base["run_dir"]), base["params"], name))
                 if base_lay is not None and name is not None and base_lay.joint_3dcn.is_file():
                     # A sequence's 3D-CN fingerprint covers the joint round it took; a change anywhere
                     # that reruns the joint round shows up as another sequence's recompute (merged below).

@@ -79,22 +79,21 @@ def run_stages(names: Sequence[str], stages: Sequence[str], *, joint_3dcn: bool,
     return out
 
 
-def sequence_run_dir(run_dir: Path, params: Mapping[str, Any], sequence: str | None) -> tuple[Path, Path]:
-    """(run folder, dataset) of one sequence of a run: ``run_dir/sequences/<name>`` for a multi-sequence
-    run (None: its first sequence), ``run_dir`` and the run's dataset for a single-sequence run (whatever
-    ``sequence`` says).
+def sequence_run_dir(run_dir: Path, params: Mapping[str, Any], sequence: str | None) -> Path:
+    """The run folder of one sequence of a run: ``run_dir/sequences/<name>`` for a multi-sequence run
+    (None: its first sequence), ``run_dir`` itself for a single-sequence run (whatever ``sequence`` says).
 
     Raises:
         KeyError: ``sequence`` is not one of the run's sequences.
     """
     listed = run_sequences_of(params)
     if listed is None:  # the project's one sequence (the caller checked the name against the project)
-        return run_dir, Path(params["dataset"])
-    by_name = dict(listed)
-    name = listed[0][0] if sequence is None else sequence
-    if name not in by_name:
+        return run_dir
+    names = [n for n, _ in listed]
+    name = names[0] if sequence is None else sequence
+    if name not in names:
         raise KeyError(sequence)
-    return MultiRunLayout(run_dir).sequence(name).run_dir, by_name[name]
+    return MultiRunLayout(run_dir).sequence(name).run_dir
 
 
 # ------------------------------------------------------------------------------- the worker's side

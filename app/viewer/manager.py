@@ -120,7 +120,7 @@ class AppBackend:
             percent=percent,
             stage=stage,
             error=error,
-            run_dir=sequence_run_dir(Path(run["run_dir"]), params, self.sequence)[0],
+            run_dir=sequence_run_dir(Path(run["run_dir"]), params, self.sequence),
             schema=_schema_or_none(params.get("schema")),
             pipeline=params.get("pipeline") if isinstance(params.get("pipeline"), dict) else None,
         )

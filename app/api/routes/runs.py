@@ -186,7 +186,7 @@ def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> mo
     chosen = [n for n, _ in listed] if listed is not None and sequence is None else [sequence]
     try:
         stale = any(
-            export_ahead_of_metrics(RunLayout(sequence_run_dir(Path(run["run_dir"]), run["params"], n)[0]),
+            export_ahead_of_metrics(RunLayout(sequence_run_dir(Path(run["run_dir"]), run["params"], n)),
                                     len(names))
             for n in chosen
         )
