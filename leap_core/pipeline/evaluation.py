@@ -130,7 +130,11 @@ def all_points_labeled_share(metrics: Mapping[str, Any]) -> dict[str, float | No
 
 def read_metrics_json(run_dir: str | Path) -> dict[str, Any] | None:
     """The run's ``metrics.json`` as written (None when the run has none)."""
-    path = RunLayout(Path(run_dir)).metrics
+    return read_metrics_file(RunLayout(Path(run_dir)).metrics)
+
+
+def read_metrics_file(path: Path) -> dict[str, Any] | None:
+    """A metrics file (a run's or a multi-sequence run's) as written (None when there is none)."""
     if not path.is_file():
         return None
     try:
@@ -248,5 +252,5 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
 
 
 __all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row",
-           "format_result_tables", "load_metrics", "metrics_tables", "overall_metrics", "read_metrics_json",
-           "result_tables", "stage_evaluate"]
+           "format_result_tables", "load_metrics", "metrics_tables", "overall_metrics", "read_metrics_file",
+           "read_metrics_json", "result_tables", "stage_evaluate"]

@@ -57,7 +57,7 @@ from leap_core.export import (
 )
 from leap_core.io_utils import atomic_write, atomic_write_json, remove_tree
 from leap_core.pipeline.context import Ctx, hash_json, read_state
-from leap_core.pipeline.evaluation import format_result_tables, overall_metrics
+from leap_core.pipeline.evaluation import format_result_tables, overall_metrics, read_metrics_file
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
     RunResult,
@@ -482,14 +482,7 @@ def export_zip(  # noqa: PLR0913  # keyword-only: what goes in
 # ------------------------------------------------------------------------------------------ reading
 def read_multi_metrics(out: str | Path) -> dict[str, Any] | None:
     """``<root>/metrics.json`` of a multi-sequence run (None when it has none)."""
-    path = MultiRunLayout(Path(out)).metrics
-    if not path.is_file():
-        return None
-    try:
-        data: dict[str, Any] = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DatasetError(path, f"unreadable metrics ({exc})") from exc
-    return data
+    return read_metrics_file(MultiRunLayout(Path(out)).metrics)
 
 
 def multi_result_tables(out: str | Path) -> str | None:
