@@ -65,7 +65,7 @@ from leap_core.config import config_from_dict
 from leap_core.corrections import ERASE, ScanCorrections
 from leap_core.errors import LeapError
 from leap_core.fusion import last_per_key
-from leap_core.io_utils import atomic_write_json, remove_tree
+from leap_core.io_utils import atomic_write_json, link_or_copy, remove_tree
 from leap_core.pipeline import STAGES, read_metrics_json, stage_status
 from leap_core.pipeline.apply import RunCorrections
 from leap_core.run_layout import MultiRunLayout, RunLayout
@@ -954,23 +954,15 @@ def seed_run_dir(previous: Path, run_dir: Path) -> int:
     """
     if not RunLayout(previous).state.is_file():
         return 0
-    count = 0
-    for src in sorted(previous.rglob("*")):
-        rel = src.relative_to(previous)
-        if not src.is_file() or src.is_symlink() or any(part.startswith(".") for part in rel.parts):
-            continue
-        if len(rel.parts) == 1 and rel.name in RunLayout.RUN_OWN_FILES:
-            continue
-        dst = run_dir / rel
-        if dst.exists():
-            continue
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(src, dst)
-        except OSError:
-            shutil.copy2(src, dst)
-        count += 1
-    return count
+
+    def stage_output(rel: Path) -> bool:
+        # Hidden files are a run's temporaries (spills, partial writes); the run's own files (log, lock,
+        # corrections) belong to the run that wrote them.
+        if any(part.startswith(".") for part in rel.parts):
+            return False
+        return not (len(rel.parts) == 1 and rel.name in RunLayout.RUN_OWN_FILES)
+
+    return link_tree(previous, run_dir, keep=stage_output)
 
 
 def pipeline_skipped_stages(run_dir: Path) -> dict[str, str | None]:
@@ -1020,23 +1012,21 @@ def prepare_sequences(
     return linked
 
 
-def link_tree(source: Path, target: Path) -> int:
-    """Hard-link (else copy) every file under ``source`` to the same place under ``target``; returns how
-    many. Safe for pipeline outputs, which are only ever replaced through ``atomic_write``."""
+def link_tree(source: Path, target: Path, keep: Callable[[Path], bool] | None = None) -> int:
+    """Hard-link (else copy) every file under ``source`` that ``target`` lacks to the same place under
+    ``target`` (only those whose relative path ``keep`` accepts, when given); returns how many. Safe for
+    pipeline outputs, which are only ever replaced through ``atomic_write``."""
     if not source.is_dir():
         return 0
     count = 0
     for src in sorted(source.rglob("*")):
-        if not src.is_file() or src.is_symlink():
+        rel = src.relative_to(source)
+        if not src.is_file() or src.is_symlink() or (keep is not None and not keep(rel)):
             continue
-        dst = target / src.relative_to(source)
+        dst = target / rel
         if dst.exists():
             continue
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(src, dst)
-        except OSError:
-            shutil.copy2(src, dst)
+        link_or_copy(src, dst)
         count += 1
     return count
 
