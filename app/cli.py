@@ -605,13 +605,13 @@ def _write_multi_exports(  # the run and the export options
 ) -> None:
     """Print each sequence's unlabeled counts, then write ``--export-to`` / ``--zip`` of a multi run."""
     from leap_core import __version__
-    from leap_core.pipeline.coverage import export_coverage
+    from leap_core.pipeline.coverage import cached_export_coverage
     from leap_core.pipeline.multi import export_sequences, export_zip
 
     raw: dict[int, int] = {}
     for spec in specs:
         res = result.per_sequence[spec.name]
-        cov = export_coverage(res.run_dir, spec.dataset, spec.frames, cfg.fusion.voxel_size)
+        cov = cached_export_coverage(res.run_dir, spec.dataset, spec.frames, cfg.fusion.voxel_size)
         typer.echo(f"sequence {spec.name}: {cov.labeled} of {cov.points} points labeled; {cov.unlabeled} "
                    f"unlabeled: {cov.outside_view} outside every camera view, {cov.no_mask} in view but no "
                    f"mask ({res.export_dir})")

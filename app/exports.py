@@ -11,7 +11,6 @@ dataset / run-folder rules, this module the app's part. Existing files are repla
 from __future__ import annotations
 
 import datetime
-import json
 import threading
 import zipfile
 from pathlib import Path
@@ -39,8 +38,13 @@ from leap_core.export import (
     write_export_folder,
     write_export_zip,
 )
-from leap_core.io_utils import atomic_write_json
-from leap_core.pipeline.coverage import ExportCoverage, coverage_counts, export_coverage
+from leap_core.pipeline.coverage import (
+    ExportCoverage,
+    coverage_counts,
+    export_coverage,
+    read_coverage_file,
+    write_coverage_file,
+)
 from leap_core.pipeline.multi import export_sequences, export_targets, export_zip
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
@@ -176,7 +180,10 @@ def _sequence_exports(run: dict[str, Any]) -> list[tuple[RunLayout, Path]]:
 
 def _coverage(run: dict[str, Any], lay: RunLayout, dataset: Path) -> ExportCoverage:
     with _lock:
-        cached = _read_coverage(lay.export_coverage)
+        # Written without a stage key: the app invalidates the file itself (the "apply corrections" job
+        # rewrites the export without a stage record and deletes it, ``invalidate``), so any file present
+        # is current; a `leap run` never trusts a keyless file (coverage.cached_export_coverage).
+        cached = read_coverage_file(lay.export_coverage)
         if cached is not None:
             return cached
         cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
@@ -184,25 +191,8 @@ def _coverage(run: dict[str, Any], lay: RunLayout, dataset: Path) -> ExportCover
             cov = export_coverage(lay.run_dir, dataset, _frames(run), cfg.fusion.voxel_size)
         except LeapError as exc:
             raise Conflict(f"Run {run['id']}: cannot count its export ({exc})") from None
-        data = cov.to_dict()
-        data["raw_counts"] = {str(k): v for k, v in cov.raw_counts.items()}
-        atomic_write_json(lay.export_coverage, data)
+        write_coverage_file(lay.export_coverage, cov, None)
         return cov
-
-
-def _read_coverage(path: Path) -> ExportCoverage | None:
-    try:
-        data = json.loads(path.read_text())
-        return ExportCoverage(
-            frames=int(data["frames"]),
-            points=int(data["points"]),
-            labeled=int(data["labeled"]),
-            outside_view=int(data["outside_view"]),
-            no_mask=int(data["no_mask"]),
-            raw_counts={int(k): int(v) for k, v in data["raw_counts"].items()},
-        )
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None  # missing or from an older format: recomputed
 
 
 def export_info(settings: Settings, run: dict[str, Any], project: dict[str, Any]) -> models.ExportInfo:
