@@ -7,6 +7,7 @@ stays fast."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypedDict
@@ -26,7 +27,7 @@ from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterator
 
     from pydantic import SecretStr
     from tqdm import tqdm
@@ -126,6 +127,22 @@ class StageBars:
         if self._redirect is not None:
             self._redirect.__exit__(None, None, None)
             self._redirect = None
+
+
+@contextlib.contextmanager
+def _run_errors(out: str | Path, *, poses: str) -> Iterator[None]:
+    """A `leap run`'s one-line endings: interrupted or cancelled (run again to resume), no poses (``poses``
+    names the fix besides --estimate-poses), any other LeapError."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise fail(f"interrupted; run the same command again to resume from {out}") from None
+    except Cancelled:
+        raise fail(f"cancelled; run the same command again to resume from {out}") from None
+    except PosesMissingError as exc:
+        raise fail(f"{exc}; {poses} or pass --estimate-poses") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
 
 
 def fail(message: str) -> typer.Exit:
@@ -423,7 +440,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     dataset = datasets[0]
     progress = StageBars(Path(out))
 
-    try:
+    with _run_errors(out, poses=f"run `leap poses {dataset}`"):
         if is_multi_run(out):
             raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
                             "folder, or name all its sequences")
@@ -438,14 +455,6 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         with progress:
             result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
                                   runtime=runtime)
-    except KeyboardInterrupt:
-        raise fail(f"interrupted; run the same command again to resume from {out}") from None
-    except Cancelled:
-        raise fail(f"cancelled; run the same command again to resume from {out}") from None
-    except PosesMissingError as exc:
-        raise fail(f"{exc}; run `leap poses {dataset}` or pass --estimate-poses") from None
-    except LeapError as exc:
-        raise fail(str(exc)) from None
 
     timing = ", ".join(
         f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
@@ -553,7 +562,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     from leap_core.run_layout import MultiRunLayout
 
     layout = MultiRunLayout(out)
-    try:
+    with _run_errors(out, poses="run `leap poses` on that sequence"):
         specs = _multi_specs(datasets, frames)
         sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
         runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
@@ -572,14 +581,6 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
         typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences {', '.join(names)}")
         with SequenceBars(out) as bars:
             result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
-    except KeyboardInterrupt:
-        raise fail(f"interrupted; run the same command again to resume from {out}") from None
-    except Cancelled:
-        raise fail(f"cancelled; run the same command again to resume from {out}") from None
-    except PosesMissingError as exc:
-        raise fail(f"{exc}; run `leap poses` on that sequence or pass --estimate-poses") from None
-    except LeapError as exc:
-        raise fail(str(exc)) from None
 
     for name, res in result.per_sequence.items():
         timing = ", ".join(
