@@ -648,6 +648,37 @@ def _check_obs(o: Observations, num_classes: int, i: int) -> None:
         raise ValueError(f"observation batch {i}: rows must index 0..{lt.shape[0] - 1} of log_table")
 
 
+_T = TypeVar("_T")
+
+
+def _chunked(items: Iterable[tuple[int, _T]], chunk_points: int) -> Iterator[list[_T]]:
+    """``(points, item)`` pairs grouped in order into the chunks fusion reduces: a chunk closes as soon as
+    its points reach ``chunk_points``; items of 0 points belong to none. The one chunking rule of
+    :func:`fuse`, :func:`fuse_to_file` and :func:`fusion_blocks`, whose equality of bytes rests on it."""
+    pending: list[_T] = []
+    n_pending = 0
+    for n, item in items:
+        if n == 0:
+            continue
+        pending.append(item)
+        n_pending += n
+        if n_pending >= chunk_points:
+            yield pending
+            pending, n_pending = [], 0
+    if pending:
+        yield pending
+
+
+def _checked(batches: Iterable[Observations], num_classes: int) -> Iterator[tuple[int, Observations]]:
+    """Each batch as arrays of the fused dtypes, checked (:func:`_check_obs`), with its point count."""
+    for i, batch in enumerate(batches):
+        o = Observations(
+            np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]), np.asarray(batch[2], dtype=np.float32)
+        )
+        _check_obs(o, num_classes, i)
+        yield len(o.keys), o
+
+
 def fuse(
     batches: Iterable[Observations],
     num_classes: int,
@@ -680,22 +711,8 @@ def fuse(
     cfg = cfg or FusionConfig()
     paths = paths or FusionPaths()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
-    pending: list[Observations] = []
-    n_pending = 0
-    for i, batch in enumerate(batches):
-        o = Observations(
-            np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]), np.asarray(batch[2], dtype=np.float32)
-        )
-        _check_obs(o, num_classes, i)
-        if len(o.keys) == 0:
-            continue
-        pending.append(o)
-        n_pending += len(o.keys)
-        if n_pending >= cfg.chunk_points:
-            acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight, paths))
-            pending, n_pending = [], 0
-    if pending:
-        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(pending, weight, paths))
+    for chunk in _chunked(_checked(batches, num_classes), cfg.chunk_points):
+        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(chunk, weight, paths))
     return _finalise(acc_keys, acc, cfg, paths)
 
 
@@ -856,32 +873,14 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
     chunk_files: list[tuple[Path, Path]] = []
     all_keys = np.zeros(0, np.int64)
     try:
-        pending: list[Observations] = []
-        n_pending = 0
-
-        def spill_chunk() -> None:
-            nonlocal all_keys
-            k, sums = _reduce_chunk(pending, 1.0, paths)
+        for chunk in _chunked(_checked(batches, num_classes), cfg.chunk_points):
+            k, sums = _reduce_chunk(chunk, 1.0, paths)
+            chunk.clear()  # the chunk's observations go now, not when the next one starts
             kp, sp = spill / f"chunk{len(chunk_files)}.keys.npy", spill / f"chunk{len(chunk_files)}.sums.npy"
             np.save(kp, k)
             np.save(sp, sums)
             chunk_files.append((kp, sp))
             all_keys = np.union1d(all_keys, k)
-
-        for i, batch in enumerate(batches):
-            o = Observations(np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]),
-                             np.asarray(batch[2], dtype=np.float32))
-            _check_obs(o, num_classes, i)
-            if len(o.keys) == 0:
-                continue
-            pending.append(o)
-            n_pending += len(o.keys)
-            if n_pending >= cfg.chunk_points:
-                spill_chunk()
-                pending, n_pending = [], 0
-        if pending:
-            spill_chunk()
-        pending = []
 
         o_keys = np.zeros(0, np.int64)
         o_obs = np.zeros((0, num_classes), np.float32)
@@ -992,20 +991,7 @@ def fusion_blocks(point_counts: Iterable[int], chunk_points: int) -> list[list[i
     With :func:`reduce_block` per chunk (anywhere, in any order) and :func:`fold_blocks` of the partials
     in this order, the grid is :func:`fuse`'s, byte for byte: the same float32 additions in the same order.
     """
-    blocks: list[list[int]] = []
-    pending: list[int] = []
-    n_pending = 0
-    for b, n in enumerate(point_counts):
-        if n == 0:
-            continue
-        pending.append(b)
-        n_pending += int(n)
-        if n_pending >= chunk_points:
-            blocks.append(pending)
-            pending, n_pending = [], 0
-    if pending:
-        blocks.append(pending)
-    return blocks
+    return list(_chunked(((int(n), b) for b, n in enumerate(point_counts)), chunk_points))
 
 
 Partial = tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]
