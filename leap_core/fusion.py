@@ -1007,14 +1007,7 @@ def reduce_block(
 ) -> Partial:
     """The partial sum of one :func:`fusion_blocks` chunk: the batches of its positions, in order (empty
     ones may be included; they add nothing). Checks each batch as :func:`fuse` does."""
-    obs: list[Observations] = []
-    for i, batch in enumerate(batches):
-        o = Observations(
-            np.asarray(batch[0], dtype=np.int64), np.asarray(batch[1]), np.asarray(batch[2], dtype=np.float32)
-        )
-        _check_obs(o, num_classes, i)
-        if len(o.keys):
-            obs.append(o)
+    obs = [o for n, o in _checked(batches, num_classes) if n]
     if not obs:
         return np.zeros(0, np.int64), np.zeros((0, num_classes), np.float32)
     return _reduce_chunk(obs, weight, paths or FusionPaths())
