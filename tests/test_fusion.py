@@ -25,6 +25,7 @@ from leap_core.fusion import (
     last_per_key,
     log_table,
     rows_in_sorted,
+    union_sorted,
     voxel_keys,
     world_points,
 )
@@ -435,3 +436,18 @@ def test_rows_in_sorted_finds_present_keys_and_marks_absent_ones() -> None:
     assert rows_in_sorted(keys, np.array([9, 4, 3, 10, 0, 7])).tolist() == [2, -1, 0, -1, -1, 1]
     assert rows_in_sorted(np.zeros(0, np.int64), np.array([1, 2])).tolist() == [-1, -1]
     assert rows_in_sorted(keys, np.array([[7, 8]])).shape == (1, 2)
+
+
+def test_union_sorted_by_hand_and_against_union1d() -> None:
+    a = np.array([1, 4, 9], np.int64)
+    assert union_sorted(a, np.array([0, 4, 10], np.int64)).tolist() == [0, 1, 4, 9, 10]
+    assert union_sorted(a, np.array([4, 9], np.int64)).tolist() == [1, 4, 9]  # nothing new
+    assert union_sorted(np.zeros(0, np.int64), a).tolist() == [1, 4, 9]
+    assert union_sorted(a, np.zeros(0, np.int64)).tolist() == [1, 4, 9]
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        x = np.unique(rng.integers(-50, 50, rng.integers(0, 40)))
+        y = np.unique(rng.integers(-60, 60, rng.integers(0, 40)))
+        got = union_sorted(x, y)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, np.union1d(x, y))

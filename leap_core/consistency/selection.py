@@ -14,7 +14,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.fusion import rows_in_sorted
+from leap_core.fusion import rows_in_sorted, union_sorted
 from leap_core.types import UNLABELED
 
 
@@ -127,7 +127,7 @@ def view_counts(
     def fold() -> None:
         nonlocal keys, counts
         k, c = np.unique(np.concatenate(pending), return_counts=True)
-        merged = np.union1d(keys, k)
+        merged = union_sorted(keys, k)
         out = np.zeros(len(merged), np.int64)
         out[np.searchsorted(merged, keys)] = counts
         out[np.searchsorted(merged, k)] += c
