@@ -10,6 +10,8 @@ of the run with 1, and a cancelled threaded run must resume to them.
 from __future__ import annotations
 
 import struct
+import threading
+import time
 import zipfile
 from pathlib import Path
 
@@ -29,6 +31,7 @@ from leap_core.io_utils import read_npz
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline import run_pipeline, stage_status
 from leap_core.pipeline.apply import frame_keys
+from leap_core.pipeline.context import ordered_map
 from leap_core.projection import (
     Painted,
     Projected,
@@ -305,7 +308,7 @@ def runs(street: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[int, tu
 
 
 def _files(run_dir: Path) -> dict[str, bytes]:
-    names = ["grid.npz", "grid_smooth.npz"]
+    names = ["grid.npz", "grid_smooth.npz", "metrics.json"]  # metrics: evaluate reads frames on threads
     for folder in ("observations", "points", "export"):
         names += [f"{folder}/{p.name}" for p in sorted((run_dir / folder).iterdir())]
     return {n: (run_dir / n).read_bytes() for n in names}
@@ -314,7 +317,7 @@ def _files(run_dir: Path) -> dict[str, bytes]:
 def test_frame_threads_change_no_byte_and_no_progress_call(runs) -> None:
     (one, calls1), (four, calls4) = runs[1], runs[4]
     files = _files(one)
-    assert len(files) == 2 + 6 * 4
+    assert len(files) == 3 + 6 * 4
     assert files == _files(four)
     assert calls1 == calls4
 
@@ -395,3 +398,38 @@ def test_cli_frame_threads_flag(street: Path, tmp_path: Path) -> None:
     assert res.exit_code == 2
     assert "--frame-threads must be an integer in 1..64, got 0" in res.output
     assert not (out / "stages.json").exists()
+
+
+def test_ordered_map_keeps_order_runs_concurrently_and_stops_when_closed() -> None:
+    lock = threading.Lock()
+    running, peak, started = 0, 0, []
+
+    def fn(i: int) -> int:
+        nonlocal running, peak
+        with lock:
+            running += 1
+            peak = max(peak, running)
+            started.append(i)
+        time.sleep(0.02 * (5 - i % 5))  # later items finish first
+        with lock:
+            running -= 1
+        return i * i
+
+    assert list(ordered_map(fn, range(10), 3)) == [i * i for i in range(10)]
+    assert peak == 3
+    assert list(ordered_map(fn, range(4), 1)) == [0, 1, 4, 9]
+    started.clear()
+    gen = ordered_map(fn, range(100), 2)
+    assert next(gen) == 0
+    gen.close()  # the consumer stops: nothing beyond the items already in flight starts
+    assert sorted(started) == [0, 1]
+
+    def boom(i: int) -> int:
+        if i == 2:
+            raise ValueError("frame 2")
+        return i
+
+    got = []
+    with pytest.raises(ValueError, match="frame 2"):
+        got.extend(ordered_map(boom, range(6), 3))
+    assert got == [0, 1]

@@ -3,16 +3,17 @@ readers of per-frame files that several stages share."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import itertools
 import json
 import os
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Generator, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -29,6 +30,39 @@ from leap_core.schema import Schema
 
 if TYPE_CHECKING:
     from leap_core.labelers.base import Labeler
+
+_R = TypeVar("_R")
+
+
+def ordered_map(fn: Callable[[int], _R], items: Iterable[int], threads: int) -> Generator[_R, None, None]:
+    """``fn(i)`` for each item, yielded in item order, with up to ``threads`` calls in flight on a thread
+    pool (``threads`` ≤ 1: one after the other, in this thread).
+
+    The next item starts only when the consumer asks for the next result, so a consumer that raises (or
+    closes the generator: use :func:`contextlib.closing`) starts no further items; the calls already
+    running are waited for and those not started are cancelled. An exception of ``fn`` is raised at its
+    item's turn. Overlaps the reads of frame files (disk, page faults) with other frames' numpy work,
+    which releases the GIL.
+    """
+    if threads <= 1:
+        for i in items:
+            yield fn(i)
+        return
+    queue = iter(items)
+    with ThreadPoolExecutor(threads, thread_name_prefix="leap-frames") as pool:
+        in_flight = deque(pool.submit(fn, i) for i in itertools.islice(queue, threads))
+        try:
+            while in_flight:
+                result = in_flight.popleft().result()
+                yield result
+                nxt = next(queue, None)
+                if nxt is not None:
+                    in_flight.append(pool.submit(fn, nxt))
+        except BaseException:
+            for fut in in_flight:
+                fut.cancel()
+            raise
+
 
 ProgressCallback = Callable[[str, int, int], None]
 """``progress(stage, done, total)``; may raise :class:`~leap_core.errors.Cancelled`."""
@@ -193,27 +227,10 @@ class Ctx:
         done = total - len(todo)
         self.tick(stage, done, total)
         threads = min(self.frame_threads, len(todo)) if parallel else 1
-        if threads <= 1:
-            for i in todo:
-                work(i)
+        with contextlib.closing(ordered_map(work, todo, threads)) as results:
+            for _ in results:
                 done += 1
-                self.tick(stage, done, total)
-        else:
-            queue = iter(todo)
-            with ThreadPoolExecutor(threads, thread_name_prefix=f"leap-{stage}") as pool:
-                in_flight = deque(pool.submit(work, i) for i in itertools.islice(queue, threads))
-                try:
-                    while in_flight:
-                        in_flight.popleft().result()
-                        done += 1
-                        self.tick(stage, done, total)  # before the next frame starts: Cancelled stops it
-                        nxt = next(queue, None)
-                        if nxt is not None:
-                            in_flight.append(pool.submit(work, nxt))
-                except BaseException:
-                    for fut in in_flight:
-                        fut.cancel()
-                    raise
+                self.tick(stage, done, total)  # before the next frame starts: Cancelled stops it
         return {"frames_done": total, "frames_computed": len(todo)}
 
 

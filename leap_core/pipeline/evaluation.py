@@ -7,18 +7,20 @@ ignored: the paper's) and ``all`` (every point, unlabeled = miss).
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
 from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
-from leap_core.pipeline.context import load_observation
+from leap_core.pipeline.context import load_observation, ordered_map
 from leap_core.run_layout import RunLayout
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -62,13 +64,11 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         rows[ROW_VOXEL] = None
         final_row = ROW_VOXEL
     need_keys = any(v is not None for v in rows.values())
-    conf = {p: {r: np.zeros((c, c + 1), np.int64) for r in rows} for p in PROTOCOLS}
-    n_points = n_view = 0
-    labeled_any = dict.fromkeys(rows, 0)
     vs = ctx.cfg.fusion.voxel_size
-    total = len(ctx.frames)
-    for k, i in enumerate(ctx.frames):
-        ctx.tick("evaluate", k, total)
+
+    def counts(i: int) -> tuple[dict[str, dict[str, npt.NDArray[np.int64]]], dict[str, int], int, int]:
+        """One frame's confusion matrices (protocol → row → (C, C+1)), labeled points per row, points and
+        points in view: integers, so their sum does not depend on the order frames finish."""
         frame = seq.frame(i)
         pts = frame.points
         gt = schema.map_gt(frame.labels)
@@ -78,13 +78,31 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         if n != pts.shape[0] or stored[ROW_POINT].shape[0] != n:
             raise DatasetError(seq.scan_path(i), f"{pts.shape[0]} points but the run's outputs have {n}")
         keys = voxel_keys(world_points(pts, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
-        n_points += n
-        n_view += int(in_view.sum())
+        conf: dict[str, dict[str, npt.NDArray[np.int64]]] = {p: {} for p in PROTOCOLS}
+        labeled: dict[str, int] = {}
         for name, grid in rows.items():
             pred = stored[name] if grid is None else grid.labels_at(keys)[0]
-            labeled_any[name] += int((pred != UNLABELED).sum())
-            conf["all"][name] += confusion_matrix(gt, pred, c)
-            conf["camera"][name] += confusion_matrix(gt[in_view], pred[in_view], c)
+            labeled[name] = int((pred != UNLABELED).sum())
+            conf["all"][name] = confusion_matrix(gt, pred, c)
+            conf["camera"][name] = confusion_matrix(gt[in_view], pred[in_view], c)
+        return conf, labeled, n, int(in_view.sum())
+
+    conf = {p: {r: np.zeros((c, c + 1), np.int64) for r in rows} for p in PROTOCOLS}
+    n_points = n_view = 0
+    labeled_any = dict.fromkeys(rows, 0)
+    total = len(ctx.frames)
+    ctx.tick("evaluate", 0, total)
+    # Frames are read on threads (their files' reads overlap other frames' maths); integer sums.
+    with contextlib.closing(ordered_map(counts, ctx.frames, ctx.frame_threads)) as results:
+        for k, (f_conf, f_labeled, n, n_in_view) in enumerate(results, start=1):
+            n_points += n
+            n_view += n_in_view
+            for name in rows:
+                labeled_any[name] += f_labeled[name]
+                for p in PROTOCOLS:
+                    conf[p][name] += f_conf[p][name]
+            if k < total:
+                ctx.tick("evaluate", k, total)
     ctx.tick("evaluate", total, total)
     out: dict[str, Any] = {
         "class_names": schema.names,
