@@ -23,7 +23,9 @@ from fastapi.testclient import TestClient
 from app import crud
 from app.core.config import Settings
 from app.core.db import open_db
+from app.core.errors import Conflict
 from app.jobs.apply import applier
+from app.viewer.manager import AppBackend
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.fusion import voxel_keys
 from leap_core.pipeline import world_points
@@ -218,6 +220,11 @@ def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[
     assert client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "00"}).status_code == 200
     assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "01"})) == [
         "query", "sequence"]
+    # The viewer shows a sequence only the runs that labeled it.
+    assert AppBackend(settings, pid, sequence="01").latest_finished_run() is None
+    assert AppBackend(settings, pid, sequence="00").latest_finished_run().run_id == run["id"]
+    with pytest.raises(Conflict, match="did not label sequence '01'"):
+        AppBackend(settings, pid, sequence="01").run_info(run["id"])
     # The mark made before is still 00's, now that marks are kept per sequence.
     with open_db(settings.database) as db:
         assert set(crud.list_review_marks(db, pid, "00")) == {"4m:0,0,0"}

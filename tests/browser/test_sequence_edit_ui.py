@@ -48,7 +48,8 @@ def test_add_and_remove_a_sequence(server, browser, artifacts: Path) -> None:
 
     srv, data, folders = server
     api = f"{srv.base}/api/v1"
-    r = httpx.post(f"{api}/projects", json={"name": "edit", "dataset": {"kind": "folder", "path": str(folders[0])}})
+    body = {"name": "edit", "dataset": {"kind": "folder", "path": str(folders[0])}}
+    r = httpx.post(f"{api}/projects", json=body)
     assert r.status_code == 201, r.text
     pid = r.json()["id"]
     page = browser.new_page(viewport={"width": 1440, "height": 1000})
