@@ -355,6 +355,14 @@ class StaleResults(BaseModel):
     message: str = Field(description="one line for the user")
 
 
+class SequencesPublic(BaseModel):
+    data: list[SequencePublic] = Field(description="the project's sequences in run order")
+    count: int
+    stale: StaleResults | None = Field(
+        default=None, description="set when sequences were added or removed since the latest finished run"
+    )
+
+
 class RunBrief(BaseModel):
     id: int
     number: int

@@ -92,7 +92,9 @@ def test_add_and_remove_keep_every_sequence_checked(client: TestClient, folders:
     assert [f["path"] for f in checks[1]["findings"] if f["code"] == "poses_missing"] == [
         str(folders[1] / "poses.txt")]
     assert project["dataset"]["check"] == checks[0]  # the project's own stays its first sequence's
-    assert [s["name"] for s in client.get(f"{API}/projects/{pid}/sequences").json()] == ["00", "01"]
+    listed = client.get(f"{API}/projects/{pid}/sequences").json()
+    assert [s["name"] for s in listed["data"]] == ["00", "01"] and listed["count"] == 2
+    assert listed["data"] == project["sequences"] and listed["stale"] is None
 
     r = add(client, pid, folders[2], name="city")
     assert r.status_code == 201, r.text
@@ -214,6 +216,7 @@ def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[
     assert "run 1" in stale["message"]
     preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
     assert preview["stale"] == stale and preview["base_run"] is None
+    assert client.get(f"{API}/projects/{pid}/sequences").json()["stale"] == stale
     assert all(s["reason"] == "the sequences changed since run 1" for s in preview["stages"]
                if s["action"] == "recompute"), preview
     # The one-sequence run labeled 00 only: no figures of it are 01's.

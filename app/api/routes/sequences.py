@@ -36,10 +36,12 @@ def _close_viewer(request: Request, project_id: int) -> None:
         viewers.close(project_id)
 
 
-@router.get("", response_model=list[models.SequencePublic])
-def list_sequences(project_id: ProjectId, db: DbDep, settings: SettingsDep) -> list[models.SequencePublic]:
-    """The project's sequences in run order, each with its dataset check."""
-    return services.project_public(db, crud.require_project(db, project_id), settings).sequences
+@router.get("", response_model=models.SequencesPublic)
+def list_sequences(project_id: ProjectId, db: DbDep, settings: SettingsDep) -> models.SequencesPublic:
+    """The project's sequences in run order, each with its dataset check, and whether the latest run's
+    results describe other sequences."""
+    project = services.project_public(db, crud.require_project(db, project_id), settings)
+    return models.SequencesPublic(data=project.sequences, count=len(project.sequences), stale=project.stale)
 
 
 @router.post("", response_model=models.ProjectPublic, status_code=status.HTTP_201_CREATED)
