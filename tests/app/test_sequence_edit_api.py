@@ -209,7 +209,11 @@ def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[
     export = {p.name: p.read_bytes() for p in (run_dir / "export").glob("*.label")}
     assert export
 
+    v = client.post(f"{API}/projects/{pid}/viewer", json={})
+    assert v.status_code == 200 and v.json()["run_id"] == run["id"], v.text
     project = add(client, pid, folders[1]).json()
+    # The viewer opened on the one sequence is closed: the next one opens on the sequences as they are.
+    assert client.app.state.viewers.get(pid) is None
     stale = project["stale"]
     assert stale is not None
     assert (stale["run_id"], stale["added"], stale["removed"]) == (run["id"], ["01"], [])
