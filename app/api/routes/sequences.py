@@ -10,22 +10,16 @@ the whole project, every sequence with its dataset check.
 
 from __future__ import annotations
 
-from typing import Annotated
-
-from fastapi import APIRouter, Path, Request, status
+from fastapi import APIRouter, Request, status
 
 from app import crud, models, services
 from app.api.deps import DbDep, SettingsDep
 from app.api.responses import CONFLICT, NOT_FOUND
-from app.api.types import ProjectId
+from app.api.types import ProjectId, SequenceName
 
 router = APIRouter(
     prefix="/projects/{project_id}/sequences", tags=["sequences"], responses={**NOT_FOUND, **CONFLICT}
 )
-
-SequenceName = Annotated[
-    str, Path(pattern=models.SEQUENCE_NAME_PATTERN, description="the sequence's name in the project")
-]
 
 
 def _close_viewer(request: Request, project_id: int) -> None:
