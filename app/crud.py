@@ -110,12 +110,77 @@ def get_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | 
 
 
 def list_sequences(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
-    """The project's sequences in order: ``{"name", "dataset_path", "position"}`` each."""
+    """The project's sequences in order: ``{"name", "dataset_path", "position"}`` each (removed ones
+    left out)."""
     return _rows(
         db,
-        "SELECT name, dataset_path, position FROM project_sequences WHERE project_id = ? ORDER BY position",
+        "SELECT name, dataset_path, position FROM project_sequences WHERE project_id = ? "
+        "AND removed_at IS NULL ORDER BY position",
         [project_id],
     )
+
+
+def removed_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> dict[str, Any] | None:
+    """The removed sequence ``name`` of the project (``{"name", "dataset_path", "removed_at"}``), if any:
+    the folder its kept corrections and review marks belong to."""
+    return _one(
+        db,
+        "SELECT name, dataset_path, removed_at FROM project_sequences WHERE project_id = ? AND name = ? "
+        "AND removed_at IS NOT NULL",
+        [project_id, name],
+    )
+
+
+def add_sequence(db: sqlite_utils.Database, project_id: int, *, name: str, dataset_path: str) -> None:
+    """Append the sequence ``name`` on ``dataset_path`` to the project (a removed sequence of that name
+    comes back, with its corrections and review marks; the caller checked it is the same folder).
+
+    A project going from one sequence to two has its review marks re-keyed ``<first>/<region>``
+    (:func:`review_key`). Call inside :func:`~app.core.db.transaction` with the checks it relies on.
+    """
+    before = list_sequences(db, project_id)
+    position = db.execute(
+        "SELECT COALESCE(MAX(position), -1) + 1 FROM project_sequences WHERE project_id = ?", [project_id]
+    ).fetchone()[0]
+    if removed_sequence(db, project_id, name) is not None:
+        db.execute(
+            "UPDATE project_sequences SET removed_at = NULL, position = ?, dataset_path = ? "
+            "WHERE project_id = ? AND name = ?",
+            [position, dataset_path, project_id, name],
+        )
+    else:
+        db.execute(
+            "INSERT INTO project_sequences (project_id, name, dataset_path, position) VALUES (?, ?, ?, ?)",
+            [project_id, name, dataset_path, position],
+        )
+    if len(before) == 1:
+        first = str(before[0]["name"])
+        db.execute(
+            "UPDATE review_marks SET region = ? || '/' || region WHERE project_id = ? "
+            "AND instr(region, '/') = 0",
+            [first, project_id],
+        )
+    db.execute("UPDATE projects SET updated_at = ? WHERE id = ?", [utcnow(), project_id])
+
+
+def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> None:
+    """Take the sequence ``name`` out of the project. Its row stays (``removed_at``), and so do its
+    corrections, review marks and queues and every run; ``projects.dataset_path`` follows the new first
+    sequence. A project left with one sequence has that one's review marks keyed by region alone again
+    (:func:`review_key`). Call inside :func:`~app.core.db.transaction` (the caller keeps one sequence)."""
+    now = utcnow()
+    db.execute("UPDATE project_sequences SET removed_at = ? WHERE project_id = ? AND name = ?",
+               [now, project_id, name])
+    after = list_sequences(db, project_id)
+    db.execute("UPDATE projects SET dataset_path = ?, updated_at = ? WHERE id = ?",
+               [after[0]["dataset_path"], now, project_id])
+    if len(after) == 1:
+        prefix = f"{after[0]['name']}/"
+        db.execute(
+            "UPDATE review_marks SET region = substr(region, ?) WHERE project_id = ? "
+            "AND substr(region, 1, ?) = ?",
+            [len(prefix) + 1, project_id, len(prefix), prefix],
+        )
 
 
 def sequence_name(
@@ -151,7 +216,7 @@ def list_projects(db: sqlite_utils.Database) -> list[dict[str, Any]]:
     projects = _rows(db, "SELECT * FROM projects ORDER BY id")
     by_project: dict[int, list[dict[str, Any]]] = {}
     for row in _rows(db, "SELECT project_id, name, dataset_path, position FROM project_sequences "
-                         "ORDER BY project_id, position"):
+                         "WHERE removed_at IS NULL ORDER BY project_id, position"):
         by_project.setdefault(int(row.pop("project_id")), []).append(row)
     for p in projects:
         p["sequences"] = by_project.get(int(p["id"]), [])
@@ -496,7 +561,8 @@ def list_review_marks(
     ).fetchall()
     out = {}
     for r in rows:
-        if prefix and not r[0].startswith(prefix):
+        # A one-sequence project's marks are bare regions; "<name>/..." ones are a removed sequence's.
+        if (prefix and not r[0].startswith(prefix)) or (not prefix and "/" in r[0]):
             continue
         region = r[0][len(prefix):]
         out[region] = ReviewMark(region, r[1], r[2], None if r[3] is None else int(r[3]), r[4])

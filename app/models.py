@@ -342,6 +342,27 @@ class SequencePublic(BaseModel):
     dataset: DatasetPublic
 
 
+class StaleResults(BaseModel):
+    """The project's sequences changed since its latest finished run: that run's results describe other
+    sequences than the project's now, and a re-run labels the current ones together."""
+
+    run_id: int
+    run_number: int
+    added: list[str] = Field(description="project sequences the run did not label (added since)")
+    removed: list[str] = Field(
+        description="sequences the run labeled that the project no longer has (their run folders stay)"
+    )
+    message: str = Field(description="one line for the user")
+
+
+class SequencesPublic(BaseModel):
+    data: list[SequencePublic] = Field(description="the project's sequences in run order")
+    count: int
+    stale: StaleResults | None = Field(
+        default=None, description="set when sequences were added or removed since the latest finished run"
+    )
+
+
 class RunBrief(BaseModel):
     id: int
     number: int
@@ -376,6 +397,10 @@ class ProjectPublic(BaseModel):
     active_run: RunBrief | None = None
     last_run: RunBrief | None = None
     runs_count: int = 0
+    stale: StaleResults | None = Field(
+        default=None,
+        description="set when sequences were added or removed since the latest finished run (re-run)",
+    )
 
 
 class ProjectsPublic(BaseModel):
@@ -554,6 +579,9 @@ class RunPreview(BaseModel):
     recompute: list[str] = Field(description="names of the stages the next run recomputes")
     changes: list[ChangePublic] = Field(description="the base run → the project's current settings")
     problem: str | None = Field(default=None, description="why the fingerprints could not be computed")
+    stale: StaleResults | None = Field(
+        default=None, description="the sequences changed since the latest finished run (nothing reused)"
+    )
 
 
 class LogPublic(BaseModel):

@@ -17,10 +17,10 @@ import sqlite_utils
 
 from app import crud, models
 from app.core.config import Settings
-from app.core.db import default_sequence_name
+from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
-from app.jobs.multi import run_sequences_of, sequence_run_dir
+from app.jobs.multi import covered_sequences, run_sequence_folders, run_sequences_of, sequence_run_dir
 from app.jobs.progress import ProgressTracker
 from leap_core.colors import distinct_color
 from leap_core.config import (
@@ -366,6 +366,101 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
     remove_tree(settings.runs_dir / f"p{project_id}")
 
 
+# -------------------------------------------------------------------------------------------- sequences
+def _refuse_sequence_edit(db: sqlite_utils.Database, project: dict[str, Any]) -> None:
+    """Sequence edits need a project on folders and no queued or running run (whose snapshot and run
+    folder were made from the sequences as they were).
+
+    Raises:
+        Conflict: a run of the project is queued or running, or the project labels the built-in demo.
+    """
+    active = crud.active_run(db, project["id"])
+    if active is not None:
+        raise Conflict(
+            f"Project {project['id']} has run {active['id']} {active['status']}; its sequences can change "
+            "once it ends (or is cancelled)"
+        )
+    if project["dataset_kind"] == "demo":
+        raise Conflict(
+            f"Project {project['id']} labels the built-in demo street, which is generated for it; create a "
+            "project on sequence folders to label several"
+        )
+
+
+def add_sequence(
+    db: sqlite_utils.Database, settings: Settings, project_id: int, payload: models.SequenceRef
+) -> dict[str, Any]:
+    """Append a sequence folder to an existing project, confined and checked as at creation
+    (:func:`resolve_dataset`, the dataset check for the project's settings). A name not given is the
+    folder's. The name of a removed sequence brings that sequence back only on its own folder.
+
+    Raises:
+        Conflict: see :func:`_refuse_sequence_edit`; the project already has ``MAX_SEQUENCES``.
+        Forbidden: a folder outside the data roots or linking out of them.
+        InvalidField: at ``[body, path]`` (not a sequence folder, one the pipeline cannot run on, one the
+            project already has) or ``[body, name]`` (taken, or a folder name that cannot name one).
+    """
+    loc: tuple[str, ...] = ("body", "path")
+    _, path = resolve_dataset(settings, models.DatasetRef(kind="folder", path=payload.path), loc)
+    name = payload.name if payload.name is not None else path.name
+    if not re.match(models.SEQUENCE_NAME_PATTERN, name):
+        raise InvalidField(
+            ("body", "name"),
+            f"folder name {name!r} cannot name a sequence (letters, digits, '_', '.', '-'; first a letter or "
+            "digit); give a name",
+        )
+    project = crud.require_project(db, project_id)
+    # Checked before the write transaction, which a large folder's check would hold for long.
+    check = dataset_check(settings, path, project_config(project),
+                          estimate_poses=project_estimates_poses(project))
+    with transaction(db):
+        project = crud.require_project(db, project_id)
+        _refuse_sequence_edit(db, project)
+        sequences = project["sequences"]
+        if len(sequences) >= models.MAX_SEQUENCES:
+            raise Conflict(f"Project {project_id} has {len(sequences)} sequences, the most one project holds")
+        for s in sequences:
+            if s["name"] == name:
+                raise InvalidField(("body", "name"), f"sequence name {name!r} is taken in project "
+                                   f"{project_id}; give the new sequence its own name")
+            if Path(s["dataset_path"]).resolve() == path:
+                raise InvalidField(loc, f"dataset path {payload.path!r} is sequence {s['name']!r} of project "
+                                   f"{project_id} already")
+        removed = crud.removed_sequence(db, project_id, name)
+        if removed is not None and Path(removed["dataset_path"]).resolve() != path:
+            raise InvalidField(
+                ("body", "name"),
+                f"sequence name {name!r} belonged to the removed sequence on {removed['dataset_path']!r}, "
+                "whose corrections and review marks are kept under that name; give this folder another name",
+            )
+        if check.verdict == "none":
+            raise InvalidField(loc, f"dataset path {str(path)!r}: {check_problem(check)}")
+        crud.add_sequence(db, project_id, name=name, dataset_path=str(path))
+    return crud.require_project(db, project_id)
+
+
+def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> dict[str, Any]:
+    """Take a sequence out of a project. Nothing is deleted: the dataset, every run (their folders hold
+    the removed sequence's results) and the sequence's corrections and review marks stay, the latter to
+    come back if the same folder is added again under this name.
+
+    Raises:
+        NotFound: the project has no sequence ``name``.
+        Conflict: see :func:`_refuse_sequence_edit`; ``name`` is the project's last sequence.
+    """
+    with transaction(db):
+        project = crud.require_project(db, project_id)
+        names = [s["name"] for s in project["sequences"]]
+        if name not in names:
+            raise NotFound(f"Project {project_id} has no sequence {name!r} (it has {', '.join(names)})")
+        _refuse_sequence_edit(db, project)
+        if len(names) == 1:
+            raise Conflict(f"Sequence {name!r} is project {project_id}'s last; a project keeps one sequence "
+                           "at least (delete the project instead)")
+        crud.remove_sequence(db, project_id, name)
+    return crud.require_project(db, project_id)
+
+
 def _brief(run: dict[str, Any] | None) -> models.RunBrief | None:
     if run is None:
         return None
@@ -386,13 +481,44 @@ def _brief(run: dict[str, Any] | None) -> models.RunBrief | None:
     )
 
 
-def project_check(settings: Settings, project: dict[str, Any]) -> models.DatasetCheck | None:
-    """The dataset check for the project's own settings (None while the demo street is not generated)."""
-    path = Path(project["dataset_path"])
-    if project["dataset_kind"] == "demo" and not (path / "velodyne").is_dir():
+def project_check(
+    settings: Settings, project: dict[str, Any], path: str | None = None
+) -> models.DatasetCheck | None:
+    """The dataset check of one of the project's sequence folders (``path``; default its first) for the
+    project's own settings (None while the demo street is not generated)."""
+    folder = Path(project["dataset_path"] if path is None else path)
+    if project["dataset_kind"] == "demo" and not (folder / "velodyne").is_dir():
         return None
-    return dataset_check(settings, path, project_config(project),
+    return dataset_check(settings, folder, project_config(project),
                          estimate_poses=project_estimates_poses(project))
+
+
+def stale_results(project: dict[str, Any], runs: list[dict[str, Any]]) -> models.StaleResults | None:
+    """Whether the project's latest finished run (``runs``: newest first) labeled other sequences than
+    the project has now (:func:`app.jobs.multi.covered_sequences`), and how; None when it labeled exactly
+    them, or when there is no finished run."""
+    run = next((r for r in runs if r["status"] == "done"), None)
+    if run is None:
+        return None
+    sequences = project.get("sequences") or []
+    covered = covered_sequences(run["params"], sequences)
+    added = [str(s["name"]) for s in sequences if s["name"] not in covered]
+    labeled = run_sequence_folders(run["params"])
+    removed = [
+        name if name is not None else folder
+        for name, folder in labeled
+        if not any(str(s["dataset_path"]) == folder and name in (None, s["name"]) for s in sequences)
+    ]
+    if not added and not removed:
+        return None
+    parts = ([f"added {', '.join(added)}"] if added else []) + (
+        [f"removed {', '.join(removed)}"] if removed else [])
+    message = (
+        f"The sequences changed since run {run['number']} ({'; '.join(parts)}): its results describe the "
+        "sequences it labeled, not the project's now. Run the pipeline to label the current sequences."
+    )
+    return models.StaleResults(run_id=run["id"], run_number=run["number"], added=added, removed=removed,
+                               message=message)
 
 
 def project_public(
@@ -400,18 +526,20 @@ def project_public(
 ) -> models.ProjectPublic:
     """A project row as the API shows it; with ``settings``, its dataset carries the dataset check."""
     runs = crud.list_runs(db, project["id"])
-    check = None if settings is None else project_check(settings, project)
     sequences = project.get("sequences") or crud.list_sequences(db, project["id"])
+    # One check per sequence folder (each is cached per folder state); the project's own is the first's.
+    checks = [None if settings is None else project_check(settings, project, s["dataset_path"])
+              for s in sequences]
     return models.ProjectPublic(
         id=project["id"],
         name=project["name"],
-        dataset=dataset_public(project["dataset_kind"], project["dataset_path"], check),
+        dataset=dataset_public(project["dataset_kind"], project["dataset_path"],
+                               checks[0] if checks else None),
         sequences=[
             models.SequencePublic(
-                name=s["name"],
-                dataset=dataset_public(project["dataset_kind"], s["dataset_path"], check if i == 0 else None),
+                name=s["name"], dataset=dataset_public(project["dataset_kind"], s["dataset_path"], check)
             )
-            for i, s in enumerate(sequences)
+            for s, check in zip(sequences, checks, strict=True)
         ],
         schema_name=project["schema"]["name"],
         num_classes=len(project["schema"]["classes"]),
@@ -424,6 +552,7 @@ def project_public(
         active_run=_brief(next((r for r in runs if r["status"] in models.ACTIVE_STATUSES), None)),
         last_run=_brief(runs[0] if runs else None),
         runs_count=len(runs),
+        stale=stale_results({**project, "sequences": sequences}, runs),
     )
 
 
@@ -626,7 +755,8 @@ def sequence_metrics(
 ) -> dict[str, Any] | None:
     """The metrics table (:func:`normalise_metrics`) of one sequence of the run, or, with ``sequence``
     None, the run's own (a multi-sequence run's: overall). A single-sequence run's one sequence is the
-    project's (``project_sequences``: the project's sequence names).
+    first of ``project_sequences`` (the project's sequences it labeled,
+    :func:`app.jobs.multi.covered_sequences`).
 
     Raises:
         InvalidField: ``sequence`` is not one of the run's sequences (``[query, sequence]``).

@@ -21,7 +21,7 @@ from app.core.config import Settings
 from app.core.errors import InvalidField
 from app.jobs.manager import run_corrections, seed_source
 from app.jobs.multi import run_sequences_of, sequence_run_dir, snapshot_sequences
-from app.services import normalise_metrics, project_config
+from app.services import normalise_metrics, project_config, stale_results
 from leap_core.errors import LeapError
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
@@ -55,12 +55,14 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     base = seed_source(db, project_id, snapshot)
     changes = [] if base is None else [_change_public(c) for c in run_changes(base["params"], snapshot)]
     basis = None if base is None else models.RunBasis(id=base["id"], number=base["number"])
+    # A run of other sequences seeds nothing (seed_source): say why instead of "no earlier run".
+    stale = None if base is not None else stale_results(project, crud.list_runs(db, project_id))
 
     def everything(reason: str, problem: str | None = None) -> models.RunPreview:
         stages = [models.StagePlanPublic(name=s.name, label=s.label, action="recompute", reason=reason)
                   for s in STAGE_TABLE]
         return models.RunPreview(base_run=basis, stages=stages, recompute=[s.name for s in stages],
-                                 changes=changes, problem=problem)
+                                 changes=changes, problem=problem, stale=stale)
 
     # Per sequence (one for a single-sequence project): its dataset, the base run's folder of it.
     listed = run_sequences_of(snapshot)
@@ -97,11 +99,15 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     except LeapError as exc:
         return everything("its inputs could not be fingerprinted", problem=str(exc))
     plans = _merged_plans(per_sequence)
+    if stale is not None:
+        plans = [dataclasses.replace(p, reason=f"the sequences changed since run {stale.run_number}")
+                 if p.action == "recompute" else p for p in plans]
     stages = [
         models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans
     ]
     return models.RunPreview(base_run=basis, stages=stages,
-                             recompute=[p.name for p in plans if p.action == "recompute"], changes=changes)
+                             recompute=[p.name for p in plans if p.action == "recompute"], changes=changes,
+                             stale=stale)
 
 
 def _merged_plans(per_sequence: list[tuple[str | None, list[StagePlan]]]) -> list[StagePlan]:

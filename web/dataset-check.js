@@ -55,8 +55,46 @@ export function checkSummary(check) {
   );
 }
 
-/** The project page's "Dataset check" card (hidden when every stage can run and nothing needs a word). */
+/** Whether a check has anything to say (a stage that cannot run, or a problem with a fix). */
+function worthShowing(check) {
+  return check.verdict !== "full" || problems(check).length > 0;
+}
+
+function calibFact(check) {
+  return !check.calib.present ? "no calib.txt" : check.calib.valid ? "calibration" : "unreadable calib.txt";
+}
+
+/** One sequence's part of the card: its facts, problems and stages. */
+function sequenceCheck(name, check) {
+  const list = problems(check);
+  return h(
+    "li",
+    { class: `sequence-check verdict-${check.verdict}`, dataset: { sequence: name, verdict: check.verdict } },
+    h("p", { class: "small" }, h("strong", {}, name), ` · ${check.summary} · ${calibFact(check)} · ${facts(check)}`),
+    list.length ? h("ul", { class: "check-findings" }, list.map(findingItem)) : null,
+    worthShowing(check) ? h("details", {}, h("summary", { class: "small" }, "Stages"), stageList(check)) : null,
+  );
+}
+
+/** The project page's "Dataset check" card (hidden when every stage can run and nothing needs a word).
+ * A project of several sequences lists each sequence's check (frames, calibration, images, poses, ground
+ * truth, problems with their fixes) as soon as one of them needs a word. */
 export function renderDatasetCheck(el, project) {
+  const seqs = (project.sequences || []).filter((s) => s.dataset && s.dataset.check);
+  if (seqs.length > 1) {
+    const shown = seqs.some((s) => worthShowing(s.dataset.check));
+    el.hidden = !shown;
+    if (!shown) {
+      replace(el);
+      return;
+    }
+    replace(
+      el,
+      h("h2", {}, "Dataset check"),
+      h("ul", { class: "sequence-checks", id: "sequence-checks" }, seqs.map((s) => sequenceCheck(s.name, s.dataset.check))),
+    );
+    return;
+  }
   const check = project.dataset && project.dataset.check;
   const list = check ? problems(check) : [];
   if (!check || (check.verdict === "full" && !list.length)) {

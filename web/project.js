@@ -5,6 +5,7 @@
 //   run-panel.js  the latest run: per-stage progress, cancel, resume
 //   history.js    run history (exports.js: the export dialog), compare check boxes, logs
 //   compare.js    metrics of the compared runs: table and per-class IoU chart
+//   sequences.js  the project's sequences: add a folder, remove one (confirmed), the "results stale" note
 //   next-run.js   what the next run recomputes (and why), what changed since the latest run, its note
 //   classes.js    classes & prompts editor (colours, ground-truth ids)
 //   params.js     pipeline parameters form (settings the chosen labeler or a switched-off stage ignores are
@@ -23,6 +24,7 @@ import { renderNextRun } from "./project/next-run.js";
 import { renderParams } from "./project/params.js";
 import { renderReview } from "./project/review.js";
 import { renderRunPanel } from "./project/run-panel.js";
+import { renderSequences } from "./project/sequences.js";
 
 export async function renderProject(root, projectId, { toast }) {
   const state = {
@@ -50,6 +52,7 @@ export async function renderProject(root, projectId, { toast }) {
     next: h("section", { class: "card", id: "next-run" }),
     runs: h("section", { class: "card", id: "runs" }),
     compare: h("section", { class: "card", id: "compare" }),
+    sequences: h("section", { class: "card", id: "sequences" }),
     classes: h("section", { class: "card", id: "classes" }),
     params: h("section", { class: "card", id: "params" }),
   };
@@ -85,6 +88,7 @@ export async function renderProject(root, projectId, { toast }) {
   const ctx = projectContext({ projectId, state, els, pipeline, toast });
   ctx.render = {
     head: () => renderHead(ctx),
+    sequences: () => renderSequences(ctx),
     run: () => renderRunPanel(ctx),
     next: () => renderNextRun(ctx),
     runs: () => renderRuns(ctx),
@@ -113,6 +117,7 @@ export async function renderProject(root, projectId, { toast }) {
         if (changed && state.project.active_run) {
           state.project.active_run.status = progress.status;
           ctx.render.head();
+          ctx.render.sequences();
         }
       }
       ctx.render.run();
@@ -126,6 +131,7 @@ export async function renderProject(root, projectId, { toast }) {
       const r = state.runs.find((x) => x.id === run.id);
       if (r) toast(`Run ${r.number} ${r.status}${r.error ? `: ${r.error}` : ""}`, r.status === "done" ? "info" : "error");
       ctx.render.head();
+      ctx.render.sequences();
       ctx.render.run();
       ctx.render.runs();
       ctx.render.next();
@@ -137,6 +143,7 @@ export async function renderProject(root, projectId, { toast }) {
   async function afterRunChange(runId, fallback) {
     await refreshRuns();
     ctx.render.head();
+    ctx.render.sequences();
     ctx.render.run();
     ctx.render.runs();
     follow(state.runs.find((r) => r.id === runId) || fallback);
@@ -173,10 +180,11 @@ export async function renderProject(root, projectId, { toast }) {
       "div",
       { class: "layout" },
       h("div", { class: "main-col" }, els.check, els.run, els.next, els.compare, els.runs),
-      h("aside", { class: "side-col" }, els.classes, els.params),
+      h("aside", { class: "side-col" }, els.sequences, els.classes, els.params),
     ),
   );
   ctx.render.head();
+  ctx.render.sequences();
   ctx.render.check();
   ctx.render.run();
   ctx.render.runs();

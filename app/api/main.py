@@ -10,13 +10,24 @@ from fastapi import APIRouter
 
 from app.api.deps import AuthDep, PlainBodyDep
 from app.api.responses import COMMON_RESPONSES
-from app.api.routes import classes, corrections, datasets, exports, health, pipeline, projects, runs
+from app.api.routes import (
+    classes,
+    corrections,
+    datasets,
+    exports,
+    health,
+    pipeline,
+    projects,
+    runs,
+    sequences,
+)
 
 api_router = APIRouter(dependencies=[AuthDep, PlainBodyDep], responses=COMMON_RESPONSES)
 api_router.include_router(health.router)
 api_router.include_router(pipeline.router)
 api_router.include_router(datasets.router)
 api_router.include_router(projects.router)
+api_router.include_router(sequences.router)
 api_router.include_router(classes.router)
 api_router.include_router(classes.ids_router)
 api_router.include_router(runs.router)

@@ -100,6 +100,10 @@ SequenceQuery = Annotated[
           description="one of the project's sequences (default: the run's own figures / the first sequence)"),
 ]
 """``?sequence=`` of a project with several sequences (its names: ``app.models.SEQUENCE_NAME_PATTERN``)."""
+SequenceName = Annotated[
+    str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="one of the project's sequences")
+]
+"""A sequence's name in a route's path (``app.models.SEQUENCE_NAME_PATTERN``)."""
 
 
 def _class_name(value: str) -> str:

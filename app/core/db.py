@@ -179,6 +179,14 @@ def _v6_project_sequences(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v7_sequence_removal(db: sqlite_utils.Database) -> None:
+    # Sequences can be added to and removed from an existing project. A removed sequence keeps its row
+    # (removed_at set) so its name stays bound to its folder: its corrections, review marks and queues are
+    # the user's and stay, and come back when the same folder is added again under that name; the name
+    # cannot be given to another folder, whose world frame those voxel keys do not describe.
+    db.execute("ALTER TABLE project_sequences ADD COLUMN removed_at TEXT")
+
+
 def default_sequence_name(dataset_path: str) -> str:
     """The name a sequence gets from its folder when none is given: the folder's own name (``00`` for
     ``.../sequences/00``), or ``"00"`` for a path without one."""
@@ -195,6 +203,7 @@ MIGRATIONS: list[Migration] = [
     (4, "review_marks, review_queues", _v4_review_marks),
     (5, "projects.estimate_poses", _v5_estimate_poses),
     (6, "project_sequences; corrections and review queues per sequence", _v6_project_sequences),
+    (7, "project_sequences.removed_at", _v7_sequence_removal),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

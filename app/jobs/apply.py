@@ -25,7 +25,7 @@ from app.core.config import Settings
 from app.core.db import open_db, utcnow
 from app.core.errors import AppError
 from app.jobs.manager import run_corrections
-from app.jobs.multi import run_sequences_of, sequence_layouts
+from app.jobs.multi import covered_sequences, run_sequences_of, sequence_layouts
 from app.services import pipeline_config
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError
@@ -139,18 +139,23 @@ class CorrectionApplier:
         self, project_id: int
     ) -> tuple[dict[str, Any] | None, list[tuple[RunLayout, Path, list[crud.Correction]]]]:
         """The latest finished run and, per sequence of it (one for a single-sequence run), its run
-        layout, dataset and the sequence's active corrections."""
+        layout, dataset and the sequence's active corrections. Only the project's sequences the run
+        labeled (:func:`~app.jobs.multi.covered_sequences`): one added since has no results there, one
+        removed since keeps the export it had."""
         with open_db(self.settings.database) as db:
             run = crud.last_finished_run(db, project_id)
             if run is None:
                 return None, []
+            covered = covered_sequences(run["params"], crud.list_sequences(db, project_id))
             if run_sequences_of(run["params"]) is None:
                 targets = [(RunLayout(Path(run["run_dir"])), Path(run["params"]["dataset"]),
-                            crud.list_corrections(db, project_id, active_only=True))]
+                            crud.list_corrections(db, project_id, active_only=True, sequence=name))
+                           for name in covered]
             else:
                 targets = [
                     (lay, dataset, crud.list_corrections(db, project_id, active_only=True, sequence=name))
                     for name, dataset, lay in sequence_layouts(Path(run["run_dir"]), run["params"])
+                    if name in covered
                 ]
         return run, targets
 

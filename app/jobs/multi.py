@@ -79,6 +79,31 @@ def run_stages(names: Sequence[str], stages: Sequence[str], *, joint_3dcn: bool,
     return out
 
 
+def run_sequence_folders(params: Mapping[str, Any]) -> list[tuple[str | None, str]]:
+    """(name, dataset folder) per sequence a run labeled; a single-sequence run's one has no name in its
+    snapshot (None)."""
+    listed = run_sequences_of(params)
+    if listed is None:
+        return [(None, str(params.get("dataset")))]
+    return [(name, str(dataset)) for name, dataset in listed]
+
+
+def covered_sequences(params: Mapping[str, Any], sequences: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The names of the project's current ``sequences`` (``{"name", "dataset_path"}`` rows) that a run
+    labeled: a multi-sequence run's listed sequences still in the project on the same folder, a
+    single-sequence run's folder (its snapshot names none). Sequences added or re-pointed since the run
+    are not covered, so its results are never shown or corrected as theirs."""
+    labeled = run_sequence_folders(params)
+    out = []
+    for s in sequences:
+        name, folder = str(s["name"]), str(s["dataset_path"])
+        if any(folder == f and n in (None, name) for n, f in labeled):
+            out.append(name)
+            if labeled[0][0] is None:
+                break  # a single-sequence run labeled one folder: one project sequence at most
+    return out
+
+
 def sequence_run_dir(run_dir: Path, params: Mapping[str, Any], sequence: str | None) -> Path:
     """The run folder of one sequence of a run: ``run_dir/sequences/<name>`` for a multi-sequence run
     (None: its first sequence), ``run_dir`` itself for a single-sequence run (whatever ``sequence`` says).
@@ -181,6 +206,6 @@ def skipped_stages(run_dir: Path, params: Mapping[str, Any]) -> dict[str, str | 
     return out
 
 
-__all__ = ["JOINT", "SEPARATOR", "execute_sequences", "read_run_metrics", "run_sequences_of", "run_stages",
-           "sequence_layouts", "sequence_run_dir", "skipped_stages", "snapshot_sequences", "split_stage",
-           "stage_dir", "stage_name"]
+__all__ = ["JOINT", "SEPARATOR", "covered_sequences", "execute_sequences", "read_run_metrics",
+           "run_sequence_folders", "run_sequences_of", "run_stages", "sequence_layouts", "sequence_run_dir",
+           "skipped_stages", "snapshot_sequences", "split_stage", "stage_dir", "stage_name"]

@@ -22,7 +22,7 @@ from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager, current_manager
-from app.jobs.multi import sequence_run_dir
+from app.jobs.multi import covered_sequences, sequence_run_dir
 from app.viewer.lod import LodConfig
 from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
@@ -125,16 +125,25 @@ class AppBackend:
             pipeline=params.get("pipeline") if isinstance(params.get("pipeline"), dict) else None,
         )
 
+    def _covers(self, run: dict[str, Any]) -> bool:
+        """Whether the run labeled this sequence (it may predate the sequence's addition)."""
+        return self.sequence in covered_sequences(run.get("params") or {}, self._project()["sequences"])
+
     def run_info(self, run_id: int) -> RunInfo:
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
         if int(run["project_id"]) != self.project_id:
             raise NotFound(f"Run {run_id} not found in project {self.project_id}")
+        if not self._covers(run):
+            raise Conflict(f"Run {run_id} did not label sequence {self.sequence!r} (added since); run the "
+                           "pipeline to label it")
         return self._info(run)
 
     def latest_finished_run(self) -> RunInfo | None:
+        """The newest finished run that labeled this sequence."""
         with open_db(self.settings.database) as db:
-            run = crud.last_finished_run(db, self.project_id)
+            runs = [r for r in crud.list_runs(db, self.project_id) if r["status"] == "done"]
+        run = next((r for r in runs if self._covers(r)), None)
         return None if run is None else self._info(run)
 
     def active_run(self) -> RunInfo | None:

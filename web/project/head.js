@@ -1,4 +1,5 @@
-// The page head: project name (renamable), dataset line, and the run / viewer / delete actions.
+// The page head: project name (renamable), dataset line (or the sequences' names), and the run / viewer /
+// delete actions.
 
 import { del, patch } from "../api.js";
 import { h, replace } from "../dom.js";
@@ -78,19 +79,10 @@ export function renderHead(ctx) {
     h("div", { class: "title-row" }, title, renameButton(ctx, title), p.is_demo ? h("span", { class: "chip demo" }, "demo") : null),
     several
       ? h(
-          "ul",
-          { class: "muted dataset-line sequence-list", id: "sequence-list" },
-          p.sequences.map((s) =>
-            h(
-              "li",
-              { dataset: { sequence: s.name } },
-              h("strong", {}, s.name),
-              " ",
-              h("code", {}, s.dataset.path),
-              s.dataset.frames !== null ? ` · ${s.dataset.frames} frames` : " · missing",
-              s.dataset.has_ground_truth ? " · ground truth" : "",
-            ),
-          ),
+          "p",
+          { class: "muted dataset-line", id: "sequences-line" },
+          // Each sequence's folder and frames are in the Sequences card (project/sequences.js).
+          `${p.sequences.length} sequences: ${p.sequences.map((s) => s.name).join(", ")} · ${p.sequences.reduce((n, s) => n + (s.dataset.frames || 0), 0)} frames`,
         )
       : h(
           "p",

@@ -48,7 +48,9 @@ export async function renderNextRun(ctx) {
     oninput: (e) => (state.runNote = e.target.value),
   });
   const summary = !preview.base_run
-    ? "Nothing to reuse: the next run computes every stage."
+    ? preview.stale
+      ? `The sequences changed since run ${preview.stale.run_number}: the next run computes every stage.`
+      : "Nothing to reuse: the next run computes every stage."
     : recompute.length === 0
       ? `Nothing changed since run ${preview.base_run.number}: the next run reuses every stage.`
       : `Against run ${preview.base_run.number}, the next run recomputes ${recompute.length} of ${preview.stages.length} stages.`;

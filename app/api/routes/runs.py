@@ -20,7 +20,7 @@ from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import NotFound
 from app.jobs.manager import JobManager
-from app.jobs.multi import run_sequences_of, sequence_run_dir
+from app.jobs.multi import covered_sequences, run_sequences_of, sequence_run_dir
 from app.jobs.progress import TERMINAL_STATUSES
 from app.jobs.worker import LOG_NAME
 from leap_core.errors import LeapError
@@ -174,8 +174,9 @@ def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> mo
     """The run's result tables; a run of several sequences has them overall (the sequences' confusion
     matrices summed) and, with ``sequence``, per sequence."""
     run = crud.require_run(db, run_id)
-    project_sequences = [s["name"] for s in crud.list_sequences(db, run["project_id"])]
-    table = services.sequence_metrics(run, sequence, project_sequences)
+    # A single-sequence run's one sequence is the project sequence on its folder, if any is still.
+    labeled = covered_sequences(run["params"], crud.list_sequences(db, run["project_id"]))
+    table = services.sequence_metrics(run, sequence, labeled)
     if table is None:
         what = f"Sequence {sequence!r} of run {run_id}" if sequence is not None else f"Run {run_id}"
         raise NotFound(
