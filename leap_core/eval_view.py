@@ -5,10 +5,10 @@ reads a view, summing the schema-class confusion matrix into the view's classes
 (:func:`leap_core.metrics.merge_confusion`). docs/METHOD.md D.5.
 
 :data:`PAPER_VIEW` is the paper's Table 1 (SemanticKITTI columns): the 19 SemanticKITTI classes merged
-into 11 so that a model trained on nuScenes (16 classes) could be scored beside the pseudo-labels (paper,
-Experiments, Metrics: "we rename and merge several classes to pair models trained on nuScenes (16 classes) with
-SemanticKITTI (19 classes)"). The paper names the 11 columns but not the merge; each entry's ``reason``
-says what it rests on.
+into 11 so that a model trained on nuScenes (16 classes) could be scored beside the pseudo-labels
+(paper, Experiments, Metrics: "we rename and merge several classes to pair models trained on nuScenes
+(16 classes) with SemanticKITTI (19 classes)"). The paper names the 11 columns but not the merge; each
+entry's ``reason`` says what it rests on.
 """
 
 from __future__ import annotations
@@ -113,19 +113,20 @@ PAPER_VIEW = MergedView(
         MergedClass("car", ("car",), "vehicle", "a Table 1 column as is"),
         MergedClass(
             "bicycle", ("bicycle", "bicyclist"), "vehicle",
-            "Table 1 has no bicyclist column. The merge pairs SemanticKITTI with nuScenes, whose lidarseg "
-            "labels a ridden bicycle and its rider as vehicle.bicycle (the points inside the bicycle's box, "
-            "which includes the rider), so a moving bike is one bicycle; the paper's remark that the 2D models "
-            "'may split a moving bike into separate person and bicycle labels' reads as an error "
-            "against such one-class ground truth (Experiments, Pseudo-label quality). The paper does not say it; this is our reading."),
+            "Table 1 has no bicyclist column and the paper does not say where it went; this is our reading. "
+            "The merge pairs SemanticKITTI with nuScenes, whose bicycle annotations include the rider (its "
+            "boxes enclose bicycle and rider), so a ridden bike is one bicycle there; and the paper's remark "
+            "that the 2D models 'may split a moving bike into separate person and bicycle labels' "
+            "(Experiments, Pseudo-label quality) reads as an error against one-class ground truth"),
         MergedClass(
             "motorcycle", ("motorcycle", "motorcyclist"), "vehicle",
-            "as bicycle: nuScenes' vehicle.motorcycle includes its rider; no motorcyclist column in Table 1"),
+            "as bicycle: nuScenes' motorcycle annotations include the rider; Table 1 has no motorcyclist "
+            "column"),
         MergedClass(
             "other-vehicle", ("truck", "other-vehicle"), "vehicle",
-            "Table 1 has no truck column; nuScenes' truck, bus, trailer and construction vehicle all pair with "
-            "a non-car vehicle class, and the paper's prompt expansion already describes other-vehicle by "
-            "its kinds (bus, train)"),
+            "Table 1 has no truck column; nuScenes' truck, bus, trailer and construction vehicle all pair "
+            "with a non-car vehicle class, and the paper's prompt expansion already describes other-vehicle "
+            "by its kinds (bus, train)"),
         MergedClass("person", ("person",), "human", "a Table 1 column as is (nuScenes: pedestrian)"),
         MergedClass(
             "road", ("road", "parking"), "flat",

@@ -42,6 +42,7 @@ from __future__ import annotations
 from leap_core.fusion import world_points
 from leap_core.pipeline.context import FrameFiles, ProgressCallback, StageInfo, dataset_identity
 from leap_core.pipeline.evaluation import (
+    PAPER,
     PROTOCOLS,
     ROW_POINT,
     ROW_VOXEL,
@@ -76,6 +77,7 @@ from leap_core.pipeline.stages import STAGE_TABLE, STAGES
 
 __all__ = [
     "JOINT",
+    "PAPER",
     "PIPELINE_VERSION",
     "PROTOCOLS",
     "ROW_POINT",

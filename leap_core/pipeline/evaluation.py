@@ -68,7 +68,8 @@ def add_paper_protocol(out: dict[str, Any]) -> None:
     out["protocols"][PAPER] = PAPER_DESCRIPTION
     out["paper_view"] = PAPER_VIEW.to_dict()
     out[PAPER] = {
-        r: metrics_from_confusion(merge_confusion(np.asarray(out["camera"][r]["confusion"], np.int64), mapping, m),
+        r: metrics_from_confusion(merge_confusion(np.asarray(out["camera"][r]["confusion"], np.int64),
+                                                  mapping, m),
                                   PAPER_VIEW.names, PAPER_VIEW.categories,
                                   ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER]).to_dict()
         for r in out["rows"]
@@ -142,6 +143,7 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
             if k < total:
                 ctx.tick("evaluate", k, total)
     ctx.tick("evaluate", total, total)
+    pl = labeled_any[ROW_POINT]
     out: dict[str, Any] = {
         "class_names": schema.names,
         "categories": schema.categories(),
@@ -156,16 +158,14 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         "labeled_points": {r: labeled_any[r] for r in rows},
         "labeled_share_all_points": {r: (labeled_any[r] / n_points if n_points else None) for r in rows},
         "labeler": ctx.cfg.labeler,
+        "coverage_ratio": {r: (labeled_any[r] / pl if pl else None) for r in rows},
     }
-    for p in PROTOCOLS:
-        out[p] = {
-            r: metrics_from_confusion(conf[p][r], schema.names, schema.categories(),
-                                      ignore_unlabeled_pred=IGNORES_UNLABELED[p]).to_dict()
-            for r in rows
-        }
+    out.update({
+        p: {r: metrics_from_confusion(conf[p][r], schema.names, schema.categories(),
+                                      ignore_unlabeled_pred=IGNORES_UNLABELED[p]).to_dict() for r in rows}
+        for p in PROTOCOLS
+    })
     add_paper_protocol(out)
-    pl = labeled_any[ROW_POINT]
-    out["coverage_ratio"] = {r: (labeled_any[r] / pl if pl else None) for r in rows}
     atomic_write_json(lay.metrics, out)
     return {}
 

@@ -42,9 +42,17 @@ function staleNote(runs, all) {
     `Run ${stale.join(", ")}: these figures were measured before the corrections since applied to its export; a re-run measures them with the corrections.`);
 }
 
+/** A protocol's classes in a run's metrics: the merged ones of a view (the paper's 11), else the schema's. */
+function protocolClasses(m, protocol) {
+  const view = (m.metrics.views || {})[protocol];
+  return view ? view.class_names : m.class_names;
+}
+
+const PROTOCOL_LABELS = { camera: "camera view", all: "all points", paper: "paper's 11 classes (camera view)" };
+
 function classTable(state, runs, all, comparison) {
   const latest = all[all.length - 1];
-  const names = latest.class_names;
+  const names = protocolClasses(latest, state.protocol);
   const two = comparison !== null;
   const rowDelta = two ? comparison.rows.find((r) => r.protocol === state.protocol && r.row === state.row) : null;
   const byName = new Map(rowDelta ? rowDelta.classes.map((c) => [c.name, c]) : []);
@@ -162,7 +170,9 @@ export async function renderCompare(ctx) {
     replace(el, h("div", { class: "card-head" }, h("h2", {}, "Metrics"), sequenceSelect(ctx, seqNames)), h("p", { class: "error" }, err.message));
     return;
   }
-  const protocols = Object.keys(all[0].metrics.protocols);
+  // Every protocol any compared run has (the paper's exists only for runs with SemanticKITTI's classes).
+  const protocols = [];
+  for (const m of all) for (const p of Object.keys(m.metrics.protocols)) if (!protocols.includes(p)) protocols.push(p);
   if (!protocols.includes(state.protocol)) state.protocol = protocols[0];
   const rowNames = [];
   for (const m of all) for (const r of m.metrics.rows.length ? m.metrics.rows : Object.keys(m.metrics.protocols[state.protocol])) if (!rowNames.includes(r)) rowNames.push(r);
@@ -171,8 +181,12 @@ export async function renderCompare(ctx) {
   const protoSel = h(
     "select",
     { id: "protocol-select", onchange: (e) => { state.protocol = e.target.value; ctx.render.runs(); ctx.render.compare(); } },
-    protocols.map((p) => h("option", { value: p, selected: p === state.protocol }, p === "camera" ? "camera view (paper)" : "all points")),
+    protocols.map((p) => h("option", { value: p, selected: p === state.protocol, title: (all[all.length - 1].metrics.descriptions || {})[p] || "" }, PROTOCOL_LABELS[p] || p)),
   );
+  const notes = all[all.length - 1].metrics.notes || {};
+  const protocolNotes = Object.keys(notes).length
+    ? h("p", { class: "muted small", id: "protocol-notes" }, Object.entries(notes).map(([p, t]) => `${PROTOCOL_LABELS[p] || p}: ${t}`).join(" · "))
+    : null;
   const rowSel = h(
     "select",
     { id: "row-select", onchange: (e) => { state.row = e.target.value; ctx.render.compare(); } },
@@ -180,8 +194,10 @@ export async function renderCompare(ctx) {
   );
 
   const colorOf = new Map(state.classes.map((c) => [c.name, c.hex]));
-  const names = all[all.length - 1].class_names;
-  const classRows = names.map((n) => ({ name: n, color: colorOf.get(n) || "#999999" }));
+  const names = protocolClasses(all[all.length - 1], state.protocol);
+  // A merged class takes the colour of its first schema class (manmade: building's, as in the paper).
+  const merge = ((all[all.length - 1].metrics.views || {})[state.protocol] || {}).merge || {};
+  const classRows = names.map((n) => ({ name: n, color: colorOf.get(n) || colorOf.get((merge[n] || [])[0]) || "#999999" }));
   const series = runs.map((run, i) => {
     const row = (all[i].metrics.protocols[state.protocol] || {})[state.row];
     return { label: `run ${run.number}`, iou: row ? row.iou : {} };
@@ -202,6 +218,7 @@ export async function renderCompare(ctx) {
     el,
     h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, seqNames), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
     headline(state, latest, all[all.length - 1].metrics, seqNames.length > 0),
+    protocolNotes,
     staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
     h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),
