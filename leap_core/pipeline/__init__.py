@@ -10,7 +10,7 @@ fuse          ``grid.npz``: Bayesian log-space fusion of every observation, then
 smooth        ``grid_smooth.npz``: distance-weighted kNN smoothing of the fused grid (B.4)
 3dcn          ``grid_3dcn{i}.npz`` / ``grid_smooth_3dcn{i}.npz`` per iteration i (stage C, when enabled)
 label_points  ``points/<frame_id>.npz``: label + confidence of every point from the final grid (B.5)
-evaluate      ``metrics.json``: point / voxel / +3D-CN rows, camera-view, all-points and (SemanticKITTI) paper protocols
+evaluate      ``metrics.json``: point / voxel / +3D-CN rows; protocols camera, all and paper (D.5)
 export        ``export/<frame_id>.label`` + ``.conf`` per scan
 ============  ================================================================================================
 
