@@ -42,17 +42,25 @@ function staleNote(runs, all) {
     `Run ${stale.join(", ")}: these figures were measured before the corrections since applied to its export; a re-run measures them with the corrections.`);
 }
 
-/** A protocol's classes in a run's metrics: the merged ones of a view (the paper's 11), else the schema's. */
-function protocolClasses(m, protocol) {
-  const view = (m.metrics.views || {})[protocol];
-  return view ? view.class_names : m.class_names;
+/** The view of a protocol over merged classes (the paper's 11) in the newest compared run that has it. */
+function protocolView(all, protocol) {
+  for (let i = all.length - 1; i >= 0; i -= 1) {
+    const view = (all[i].metrics.views || {})[protocol];
+    if (view) return view;
+  }
+  return null;
+}
+
+/** A protocol's classes: the merged ones of its view, else the newest run's schema classes. */
+function protocolClasses(all, protocol) {
+  const view = protocolView(all, protocol);
+  return view ? view.class_names : all[all.length - 1].class_names;
 }
 
 const PROTOCOL_LABELS = { camera: "camera view", all: "all points", paper: "paper's 11 classes (camera view)" };
 
 function classTable(state, runs, all, comparison) {
-  const latest = all[all.length - 1];
-  const names = protocolClasses(latest, state.protocol);
+  const names = protocolClasses(all, state.protocol);
   const two = comparison !== null;
   const rowDelta = two ? comparison.rows.find((r) => r.protocol === state.protocol && r.row === state.row) : null;
   const byName = new Map(rowDelta ? rowDelta.classes.map((c) => [c.name, c]) : []);
@@ -194,9 +202,9 @@ export async function renderCompare(ctx) {
   );
 
   const colorOf = new Map(state.classes.map((c) => [c.name, c.hex]));
-  const names = protocolClasses(all[all.length - 1], state.protocol);
+  const names = protocolClasses(all, state.protocol);
   // A merged class takes the colour of its first schema class (manmade: building's, as in the paper).
-  const merge = ((all[all.length - 1].metrics.views || {})[state.protocol] || {}).merge || {};
+  const merge = (protocolView(all, state.protocol) || {}).merge || {};
   const classRows = names.map((n) => ({ name: n, color: colorOf.get(n) || colorOf.get((merge[n] || [])[0]) || "#999999" }));
   const series = runs.map((run, i) => {
     const row = (all[i].metrics.protocols[state.protocol] || {})[state.row];
