@@ -183,7 +183,7 @@ export async function renderCompare(ctx) {
   for (const m of all) for (const p of Object.keys(m.metrics.protocols)) if (!protocols.includes(p)) protocols.push(p);
   if (!protocols.includes(state.protocol)) state.protocol = protocols[0];
   const rowNames = [];
-  for (const m of all) for (const r of m.metrics.rows.length ? m.metrics.rows : Object.keys(m.metrics.protocols[state.protocol])) if (!rowNames.includes(r)) rowNames.push(r);
+  for (const m of all) for (const r of m.metrics.rows.length ? m.metrics.rows : Object.keys(m.metrics.protocols[state.protocol] || {})) if (!rowNames.includes(r)) rowNames.push(r);
   if (!rowNames.includes(state.row)) state.row = rowNames.includes("voxel") ? "voxel" : rowNames[rowNames.length - 1];
 
   const protoSel = h(
