@@ -35,7 +35,7 @@ from leap_core.datasets.check import check_dataset, dataset_stamp, report_dict
 from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
-from leap_core.pipeline import all_points_labeled_share
+from leap_core.pipeline import PAPER, all_points_labeled_share
 from leap_core.presets import builtin_preset
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
@@ -709,6 +709,9 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
     Returns:
         ``{"protocols": {protocol: {row: {miou, category_miou, labeled_share, iou: {class: v}, ...}}},
         "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}`` or None.
+        A protocol over merged classes (the paper's) has its classes in ``views`` ({protocol: {class_names,
+        categories, merge: {class: [schema classes]}}}); ``notes`` ({protocol: text}) says why a protocol
+        is absent.
     """
     if metrics and isinstance(metrics.get("overall"), dict) and "protocols" not in metrics:
         metrics = metrics["overall"]  # a multi-sequence run's metrics: the summed confusion matrices
@@ -737,6 +740,9 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         "n_points": metrics.get("n_points"),
         "n_points_in_view": metrics.get("n_points_in_view"),
         "labeler": metrics.get("labeler"),
+        "views": ({PAPER: metrics["paper_view"]}
+                  if PAPER in out and isinstance(metrics.get("paper_view"), dict) else {}),
+        "notes": dict(metrics.get("protocol_notes") or {}),
     }
 
 

@@ -153,10 +153,13 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
                 if row not in other:
                     continue
                 ia, ib = values.get("iou") or {}, other[row].get("iou") or {}
+                # A protocol over merged classes (the paper's) has its own classes, not the schema's.
+                view = ma["views"].get(protocol)
+                order = list(view["class_names"]) if view else names
                 classes = [
                     models.ClassDelta(name=n, iou=_num(ia.get(n)), base_iou=_num(ib.get(n)),
                                       delta=_delta(_num(ia.get(n)), _num(ib.get(n))))
-                    for n in names
+                    for n in order
                 ]
                 a, b = _num(values.get("miou")), _num(other[row].get("miou"))
                 rows.append(

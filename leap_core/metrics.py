@@ -16,6 +16,9 @@ Averages: ``miou`` is the mean IoU over the classes present in ground truth or p
 absent classes are NaN and excluded. ``miou_all_classes`` averages all C classes with absent ones counted
 as 0, which is what ``evaluate_semantics.py`` prints (it averages all 19 classes, present or not).
 
+Merged classes (the paper's 11 SemanticKITTI classes, ``leap_core.eval_view``): :func:`merge_confusion`
+sums the (C, C+1) matrix into the merged classes; IoU is then computed on the merged matrix.
+
 Category IoU (KITTI-360 style): the confusion matrix is summed into groups of classes that share a
 category, then IoU is computed per group. The grouping is the schema's ``ClassDef.category`` per class
 (for SemanticKITTI: vehicle, human, flat, construction, nature, object).
@@ -74,6 +77,39 @@ def iou_from_confusion(conf: npt.ArrayLike, *, ignore_unlabeled_pred: bool) -> n
     iou = np.full(c, np.nan)
     np.divide(tp, den, out=iou, where=den > 0)
     return iou
+
+
+def merge_confusion(conf: npt.ArrayLike, mapping: npt.ArrayLike, num_merged: int) -> npt.NDArray[np.int64]:
+    """Sum a (C, C+1) confusion matrix into (M, M+1) merged classes.
+
+    ``out[mapping[g], mapping[p]] = Σ conf[g, p]`` over g, p < C, and ``out[mapping[g], M] = Σ conf[g, C]``
+    (predicted ``UNLABELED`` stays unlabeled): with B the (C, M) one-hot of ``mapping``,
+    ``out[:, :M] = Bᵀ · conf[:, :C] · B`` and ``out[:, M] = Bᵀ · conf[:, C]``. It equals the confusion
+    matrix of the labels mapped through ``mapping`` (ground truth and prediction alike), so per-class IoU
+    of the merged classes needs no per-point pass.
+
+    Args:
+        conf: (C, C+1) integer counts, rows ground truth, last column predicted ``UNLABELED``.
+        mapping: (C,) integers in 0..M-1: the merged class of each class (every class is in one).
+        num_merged: M.
+
+    Raises:
+        ValueError: shapes disagree or a mapping entry is outside 0..M-1.
+    """
+    cm = np.asarray(conf, dtype=np.int64)
+    to = np.asarray(mapping).reshape(-1).astype(np.int64)
+    c, m = to.shape[0], int(num_merged)
+    if cm.shape != (c, c + 1):
+        raise ValueError(f"confusion {cm.shape} does not match a mapping of {c} classes "
+                         f"(needs ({c}, {c + 1}))")
+    if c and (to.min() < 0 or to.max() >= m):
+        raise ValueError(f"mapping entries must be in 0..{m - 1}, got {to.min()}..{to.max()}")
+    onehot = np.zeros((c, m), np.int64)
+    onehot[np.arange(c), to] = 1
+    out = np.zeros((m, m + 1), np.int64)
+    out[:, :m] = onehot.T @ cm[:, :c] @ onehot
+    out[:, m] = onehot.T @ cm[:, c]
+    return out
 
 
 def _nanmean(x: npt.NDArray[np.float64]) -> float:
@@ -163,7 +199,7 @@ def metrics_from_confusion(
     """:class:`Metrics` from a (C, C+1) confusion matrix (rows gt, last column = unlabeled prediction).
 
     Confusion matrices add up, so per-scan matrices can be summed instead of holding every point.
-    Category IoU merges the matrix by category: G = Aᵀ·conf·A with A the (C, G) class→category one-hot.
+    Category IoU merges the matrix by category (:func:`merge_confusion` with the class→category map).
     """
     cm = np.asarray(conf, dtype=np.int64)
     names = tuple(class_names)
@@ -175,11 +211,7 @@ def metrics_from_confusion(
 
     groups = list(dict.fromkeys(cats))
     group_of = np.array([groups.index(x) for x in cats], dtype=np.int64)
-    onehot = np.zeros((c, len(groups)), np.int64)
-    onehot[np.arange(c), group_of] = 1
-    gconf = np.zeros((len(groups), len(groups) + 1), np.int64)
-    gconf[:, : len(groups)] = onehot.T @ cm[:, :c] @ onehot
-    gconf[:, len(groups)] = onehot.T @ cm[:, c]
+    gconf = merge_confusion(cm, group_of, len(groups))
     giou = iou_from_confusion(gconf, ignore_unlabeled_pred=ignore_unlabeled_pred)
 
     n = int(cm.sum())
@@ -240,5 +272,6 @@ __all__ = [
     "evaluate",
     "format_table",
     "iou_from_confusion",
+    "merge_confusion",
     "metrics_from_confusion",
 ]

@@ -526,6 +526,7 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert "2D labels: simulated" in res.output
     assert "point" in res.output and "voxel" in res.output and "mIoU" in res.output
+    assert "the paper's Table 1" in res.output and "manmade" in res.output  # the paper's protocol too
     assert f"4 .label files (+ .conf confidences) in {out / 'export'}" in res.output
     assert json.loads((out / "stages.json").read_text())["smooth"]["status"] == "done"
     assert len(list((out / "export").glob("*.label"))) == 4

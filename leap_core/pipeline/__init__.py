@@ -10,7 +10,7 @@ fuse          ``grid.npz``: Bayesian log-space fusion of every observation, then
 smooth        ``grid_smooth.npz``: distance-weighted kNN smoothing of the fused grid (B.4)
 3dcn          ``grid_3dcn{i}.npz`` / ``grid_smooth_3dcn{i}.npz`` per iteration i (stage C, when enabled)
 label_points  ``points/<frame_id>.npz``: label + confidence of every point from the final grid (B.5)
-evaluate      ``metrics.json``: point / voxel / +3D-CN rows, camera-view and all-points protocols
+evaluate      ``metrics.json``: point / voxel / +3D-CN rows; protocols camera, all and paper (D.5)
 export        ``export/<frame_id>.label`` + ``.conf`` per scan
 ============  ================================================================================================
 
@@ -42,6 +42,7 @@ from __future__ import annotations
 from leap_core.fusion import world_points
 from leap_core.pipeline.context import FrameFiles, ProgressCallback, StageInfo, dataset_identity
 from leap_core.pipeline.evaluation import (
+    PAPER,
     PROTOCOLS,
     ROW_POINT,
     ROW_VOXEL,
@@ -76,6 +77,7 @@ from leap_core.pipeline.stages import STAGE_TABLE, STAGES
 
 __all__ = [
     "JOINT",
+    "PAPER",
     "PIPELINE_VERSION",
     "PROTOCOLS",
     "ROW_POINT",

@@ -2,7 +2,9 @@
 
 Rows: ``point`` (projection only), ``voxel`` (the smoothed fused grid) and, with the 3D-CN, ``+3D-CN x{i}``
 per round. Protocols (:data:`PROTOCOLS`): ``camera`` (points inside the image, unlabeled predictions
-ignored: the paper's) and ``all`` (every point, unlabeled = miss).
+ignored: the paper's) and ``all`` (every point, unlabeled = miss), over the schema's classes; and
+``paper`` (:data:`PAPER`): the camera protocol's confusion matrices summed into the 11 merged classes of
+the paper's Table 1 (:data:`leap_core.eval_view.PAPER_VIEW`), present only for a SemanticKITTI schema.
 """
 
 from __future__ import annotations
@@ -17,9 +19,10 @@ import numpy as np
 import numpy.typing as npt
 
 from leap_core.errors import DatasetError, LeapError
+from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
-from leap_core.metrics import Metrics, confusion_matrix, format_table, metrics_from_confusion
+from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_confusion, metrics_from_confusion
 from leap_core.pipeline.context import load_observation, ordered_map
 from leap_core.run_layout import RunLayout
 from leap_core.smoothing import SmoothedGrid
@@ -34,7 +37,43 @@ PROTOCOLS: dict[str, str] = {
     "camera": "camera view: points inside the image, unlabeled predictions ignored (the paper's protocol)",
     "all": "all points: every point of every scan, an unlabeled prediction counts as a miss",
 }
-"""metrics.json protocol keys and what they measure."""
+"""metrics.json keys of the protocols counted point by point over the schema's classes, and what they
+measure."""
+
+PAPER = "paper"
+"""metrics.json key of the paper's protocol: ``camera`` merged into the 11 classes of the paper's Table 1."""
+PAPER_DESCRIPTION = (
+    "the paper's Table 1: camera view, unlabeled predictions ignored, SemanticKITTI's 19 classes merged into "
+    f"{len(PAPER_VIEW.classes)} ({', '.join(PAPER_VIEW.names)})"
+)
+IGNORES_UNLABELED: dict[str, bool] = {"camera": True, "all": False, PAPER: True}
+"""Per protocol key: whether an unlabeled prediction is ignored (True) or a miss (False)."""
+
+
+def add_paper_protocol(out: dict[str, Any]) -> None:
+    """Add the paper's protocol to the content of a ``metrics.json`` (in place), from its ``camera``
+    confusion matrices: per row ``merge_confusion(camera confusion, PAPER_VIEW mapping)`` → ``out["paper"]``,
+    the view's classes → ``out["paper_view"]``, the description → ``out["protocols"]["paper"]``.
+
+    When the view does not apply to ``out["class_names"]`` (not SemanticKITTI's 19 classes), nothing of the
+    protocol is added but ``out["protocol_notes"]["paper"]``, a sentence saying why.
+    """
+    names = list(out["class_names"])
+    problem = PAPER_VIEW.problem(names)
+    mapping = PAPER_VIEW.mapping(names)
+    if problem is not None or mapping is None:
+        out.setdefault("protocol_notes", {})[PAPER] = f"not computed: {problem}"
+        return
+    m = len(PAPER_VIEW.classes)
+    out["protocols"][PAPER] = PAPER_DESCRIPTION
+    out["paper_view"] = PAPER_VIEW.to_dict()
+    out[PAPER] = {
+        r: metrics_from_confusion(merge_confusion(np.asarray(out["camera"][r]["confusion"], np.int64),
+                                                  mapping, m),
+                                  PAPER_VIEW.names, PAPER_VIEW.categories,
+                                  ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER]).to_dict()
+        for r in out["rows"]
+    }
 
 
 def cn_row(iteration: int) -> str:
@@ -43,7 +82,7 @@ def cn_row(iteration: int) -> str:
 
 
 def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
-    """Point / voxel / +3D-CN rows against ground truth, both protocols → ``metrics.json``.
+    """Point / voxel / +3D-CN rows against ground truth, every protocol → ``metrics.json``.
 
     Skipped (status "skipped") when a processed frame has no ground-truth ``.label`` file.
     """
@@ -104,6 +143,7 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
             if k < total:
                 ctx.tick("evaluate", k, total)
     ctx.tick("evaluate", total, total)
+    pl = labeled_any[ROW_POINT]
     out: dict[str, Any] = {
         "class_names": schema.names,
         "categories": schema.categories(),
@@ -118,15 +158,14 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         "labeled_points": {r: labeled_any[r] for r in rows},
         "labeled_share_all_points": {r: (labeled_any[r] / n_points if n_points else None) for r in rows},
         "labeler": ctx.cfg.labeler,
+        "coverage_ratio": {r: (labeled_any[r] / pl if pl else None) for r in rows},
     }
-    for p in PROTOCOLS:
-        out[p] = {
-            r: metrics_from_confusion(conf[p][r], schema.names, schema.categories(),
-                                      ignore_unlabeled_pred=(p == "camera")).to_dict()
-            for r in rows
-        }
-    pl = labeled_any[ROW_POINT]
-    out["coverage_ratio"] = {r: (labeled_any[r] / pl if pl else None) for r in rows}
+    out.update({
+        p: {r: metrics_from_confusion(conf[p][r], schema.names, schema.categories(),
+                                      ignore_unlabeled_pred=IGNORES_UNLABELED[p]).to_dict() for r in rows}
+        for p in PROTOCOLS
+    })
+    add_paper_protocol(out)
     atomic_write_json(lay.metrics, out)
     return {}
 
@@ -172,29 +211,37 @@ def load_metrics(run_dir: str | Path) -> dict[str, dict[str, Metrics]] | None:
 
 def metrics_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> dict[str, dict[str, Metrics]]:
     """``{protocol: {row: Metrics}}`` rebuilt from the content of a ``metrics.json`` (or an ``overall``
-    entry of a multi-sequence run's); ``source`` names it in errors."""
+    entry of a multi-sequence run's): :data:`PROTOCOLS`, then ``paper`` when the file has it; ``source``
+    names it in errors."""
     try:
-        names, cats = data["class_names"], data["categories"]
-        return {
-            p: {
+        tables: dict[str, dict[str, Metrics]] = {}
+        for p in (*PROTOCOLS, PAPER):
+            if p == PAPER and PAPER not in data:
+                continue
+            view = data["paper_view"] if p == PAPER else data
+            names, cats = view["class_names"], view["categories"]
+            tables[p] = {
                 r: metrics_from_confusion(np.asarray(data[p][r]["confusion"], np.int64), names, cats,
-                                          ignore_unlabeled_pred=(p == "camera"))
+                                          ignore_unlabeled_pred=IGNORES_UNLABELED[p])
                 for r in data["rows"]
             }
-            for p in PROTOCOLS
-        }
+        return tables
     except (ValueError, KeyError, TypeError) as exc:
         raise DatasetError(source, f"unreadable metrics ({exc})") from exc
 
 
 def format_result_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> str:
-    """The result tables (one per protocol) of the content of a ``metrics.json`` as text."""
+    """The result tables (one per protocol) of the content of a ``metrics.json`` as text; a protocol the
+    file notes as not computed (the paper's, for a schema other than SemanticKITTI's) gets its note."""
     tables = metrics_tables(data, source)
     labeler = data.get("labeler", "?")
+    described = {**PROTOCOLS, PAPER: PAPER_DESCRIPTION, **(data.get("protocols") or {})}
     parts = []
     for p, rows in tables.items():
         names = next(iter(rows.values())).class_names
-        parts.append(f"{PROTOCOLS[p]}; 2D labels: {labeler}\n{format_table(rows, names)}")
+        parts.append(f"{described[p]}; 2D labels: {labeler}\n{format_table(rows, names)}")
+    for p, note in (data.get("protocol_notes") or {}).items():
+        parts.append(f"{p} protocol {note}")
     ratio = data.get("coverage_ratio", {}).get(ROW_VOXEL)
     if ratio:
         parts.append(f"voxel labels cover {ratio:.2f}x as many points as projection alone")
@@ -263,12 +310,15 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
         for r in rows:
             conf = sum(np.asarray(m[p][r]["confusion"], np.int64) for m in have.values())
             out[p][r] = metrics_from_confusion(conf, names, cats,
-                                               ignore_unlabeled_pred=(p == "camera")).to_dict()
+                                               ignore_unlabeled_pred=IGNORES_UNLABELED[p]).to_dict()
+    # Merging is linear, so the merge of the summed camera matrices is the sum of the sequences' merges.
+    add_paper_protocol(out)
     pl = labeled.get(ROW_POINT, 0)
     out["coverage_ratio"] = {r: (labeled[r] / pl if pl else None) for r in rows}
     return out
 
 
-__all__ = ["PROTOCOLS", "ROW_POINT", "ROW_VOXEL", "all_points_labeled_share", "cn_row",
+__all__ = ["IGNORES_UNLABELED", "PAPER", "PAPER_DESCRIPTION", "PROTOCOLS", "ROW_POINT", "ROW_VOXEL",
+           "add_paper_protocol", "all_points_labeled_share", "cn_row",
            "format_result_tables", "load_metrics", "metrics_tables", "overall_metrics", "read_metrics_file",
            "read_metrics_json", "result_tables", "stage_evaluate"]

@@ -20,6 +20,7 @@ import numpy.typing as npt
 from leap_core.config import PipelineConfig
 from leap_core.consistency.selection import view_counts
 from leap_core.errors import DatasetError, LeapError
+from leap_core.eval_view import PAPER_VIEW
 from leap_core.export import export_labels
 from leap_core.fusion import (
     Observations,
@@ -491,7 +492,9 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
     StageInfo(
         "evaluate", "Evaluation", "point / voxel / 3D-CN metrics against ground truth", False, stage_evaluate,
         upstream=("project", "smooth", "3dcn", "label_points"),
-        inputs=lambda ctx: [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes],
+        # The paper's merge is an input too: a changed merge table re-evaluates.
+        inputs=lambda ctx: [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
+        + [PAPER_VIEW.to_dict()],
         outputs=lambda lay, _cfg: (lay.metrics,),
         needs_poses=True,
     ),

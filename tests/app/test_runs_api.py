@@ -18,6 +18,7 @@ from app import crud
 from app.core.config import Settings
 from app.core.db import open_db
 from leap_core.datasets.kitti import KittiSequence
+from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys
 from leap_core.pipeline import STAGES, world_points
 
@@ -74,12 +75,23 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
         tiny_dataset
     )
     assert run["has_metrics"] and run["has_export"] and not run["resumable"]
-    assert set(run["summary"]) == {"camera", "all"} and set(run["summary"]["camera"]) == {"point", "voxel"}
+    assert set(run["summary"]) == {"camera", "all", "paper"}
+    assert set(run["summary"]["camera"]) == {"point", "voxel"}
 
     metrics = client.get(f"{API}/runs/{run['id']}/metrics").json()
     voxel = metrics["metrics"]["protocols"]["camera"]["voxel"]
     assert set(voxel["iou"]) == set(metrics["class_names"]) and "confusion" not in voxel
     assert 0.0 <= voxel["miou"] <= 1.0 and metrics["metrics"]["rows"] == ["point", "voxel"]
+    # The paper's protocol: Table 1's 11 merged classes, named in views, with the merge and a description.
+    view = metrics["metrics"]["views"]["paper"]
+    paper = metrics["metrics"]["protocols"]["paper"]["voxel"]
+    assert view["class_names"] == PAPER_VIEW.names and len(view["class_names"]) == 11
+    assert set(paper["iou"]) == set(view["class_names"])  # stored JSON sorts keys: the order is the view's
+    assert view["merge"]["manmade"] == ["building", "fence", "pole", "traffic-sign"]
+    assert "confusion" not in paper
+    assert "Table 1" in metrics["metrics"]["descriptions"]["paper"] and metrics["metrics"]["notes"] == {}
+    stored = json.loads((Path(crud_run_dir(client, run["id"])) / "metrics.json").read_text())
+    assert paper["miou"] == stored["paper"]["voxel"]["miou"] == run["summary"]["paper"]["voxel"]
 
     logs = client.get(f"{API}/runs/{run['id']}/logs").json()
     assert "stage export done" in logs["text"] and "run finished" in logs["text"]

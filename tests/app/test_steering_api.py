@@ -188,6 +188,25 @@ def test_preview_note_and_comparison(env) -> None:
     assert foreign.status_code == 422 and "another project" in foreign.text
 
 
+def test_comparison_of_the_paper_protocol_lists_its_merged_classes(env) -> None:
+    client, data = env
+    pid = _project(client, data / "tiny" / "sequences" / "00", "paper")["id"]
+    run1 = _run(client, pid)
+    client.patch(f"/projects/{pid}", json={"form": {"k": 4}})
+    run2 = _run(client, pid)
+    cmp = client.get(f"/runs/{run2['id']}/compare/{run1['id']}").json()
+    rows = [r for r in cmp["rows"] if r["protocol"] == "paper"]
+    assert [r["row"] for r in rows] == ["point", "voxel"]
+    m1 = client.get(f"/runs/{run1['id']}/metrics").json()["metrics"]
+    m2 = client.get(f"/runs/{run2['id']}/metrics").json()["metrics"]
+    for row in rows:
+        # The view's classes in its order, not the schema's 19 (none of which but car ... terrain exist).
+        assert [c["name"] for c in row["classes"]] == m2["views"]["paper"]["class_names"]
+        for c in row["classes"]:
+            assert c["iou"] == m2["protocols"]["paper"][row["row"]]["iou"][c["name"]]
+            assert c["base_iou"] == m1["protocols"]["paper"][row["row"]]["iou"][c["name"]]
+
+
 def test_metrics_carry_the_share_of_all_points_labeled(env) -> None:
     client, data = env
     p = _project(client, data / "tiny" / "sequences" / "00", "share")

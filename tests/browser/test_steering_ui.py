@@ -155,5 +155,18 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
     assert iou is not None and iou > 0
     assert f"{100 * iou:.1f}" == cell.inner_text()
     assert [r["note"] for r in runs] == ["traffic cones", "before cones"]
+
+    # ---- the paper's protocol: run 1 (SemanticKITTI's 19 classes) has it over Table 1's 11 classes; run 2
+    # (with traffic-cone, a class the merge does not know) has a note instead
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        first = api.get(f"/runs/{runs[1]['id']}/metrics").json()["metrics"]
+    manmade = first["protocols"]["paper"]["voxel"]["iou"]["manmade"]
+    assert manmade is not None and "paper" not in metrics["protocols"]
+    page.select_option("#protocol-select", "paper")
+    expect(page.locator("#protocol-notes")).to_contain_text("does not know (traffic-cone)")
+    expect(page.locator("#class-table tbody tr")).to_have_count(11)
+    row = page.locator('#class-table tr[data-class="manmade"] td')
+    expect(row.nth(1)).to_have_text(f"{100 * manmade:.1f}")  # run 1's column
+    expect(row.nth(2)).to_have_text(NO_VALUE)  # run 2 has no paper protocol
     assert errors == []
     page.close()

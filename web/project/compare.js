@@ -42,9 +42,25 @@ function staleNote(runs, all) {
     `Run ${stale.join(", ")}: these figures were measured before the corrections since applied to its export; a re-run measures them with the corrections.`);
 }
 
+/** The view of a protocol over merged classes (the paper's 11) in the newest compared run that has it. */
+function protocolView(all, protocol) {
+  for (let i = all.length - 1; i >= 0; i -= 1) {
+    const view = (all[i].metrics.views || {})[protocol];
+    if (view) return view;
+  }
+  return null;
+}
+
+/** A protocol's classes: the merged ones of its view, else the newest run's schema classes. */
+function protocolClasses(all, protocol) {
+  const view = protocolView(all, protocol);
+  return view ? view.class_names : all[all.length - 1].class_names;
+}
+
+const PROTOCOL_LABELS = { camera: "camera view", all: "all points", paper: "paper's 11 classes (camera view)" };
+
 function classTable(state, runs, all, comparison) {
-  const latest = all[all.length - 1];
-  const names = latest.class_names;
+  const names = protocolClasses(all, state.protocol);
   const two = comparison !== null;
   const rowDelta = two ? comparison.rows.find((r) => r.protocol === state.protocol && r.row === state.row) : null;
   const byName = new Map(rowDelta ? rowDelta.classes.map((c) => [c.name, c]) : []);
@@ -162,17 +178,23 @@ export async function renderCompare(ctx) {
     replace(el, h("div", { class: "card-head" }, h("h2", {}, "Metrics"), sequenceSelect(ctx, seqNames)), h("p", { class: "error" }, err.message));
     return;
   }
-  const protocols = Object.keys(all[0].metrics.protocols);
+  // Every protocol any compared run has (the paper's exists only for runs with SemanticKITTI's classes).
+  const protocols = [];
+  for (const m of all) for (const p of Object.keys(m.metrics.protocols)) if (!protocols.includes(p)) protocols.push(p);
   if (!protocols.includes(state.protocol)) state.protocol = protocols[0];
   const rowNames = [];
-  for (const m of all) for (const r of m.metrics.rows.length ? m.metrics.rows : Object.keys(m.metrics.protocols[state.protocol])) if (!rowNames.includes(r)) rowNames.push(r);
+  for (const m of all) for (const r of m.metrics.rows.length ? m.metrics.rows : Object.keys(m.metrics.protocols[state.protocol] || {})) if (!rowNames.includes(r)) rowNames.push(r);
   if (!rowNames.includes(state.row)) state.row = rowNames.includes("voxel") ? "voxel" : rowNames[rowNames.length - 1];
 
   const protoSel = h(
     "select",
     { id: "protocol-select", onchange: (e) => { state.protocol = e.target.value; ctx.render.runs(); ctx.render.compare(); } },
-    protocols.map((p) => h("option", { value: p, selected: p === state.protocol }, p === "camera" ? "camera view (paper)" : "all points")),
+    protocols.map((p) => h("option", { value: p, selected: p === state.protocol, title: (all[all.length - 1].metrics.descriptions || {})[p] || "" }, PROTOCOL_LABELS[p] || p)),
   );
+  const notes = all[all.length - 1].metrics.notes || {};
+  const protocolNotes = Object.keys(notes).length
+    ? h("p", { class: "muted small", id: "protocol-notes" }, Object.entries(notes).map(([p, t]) => `${PROTOCOL_LABELS[p] || p}: ${t}`).join(" · "))
+    : null;
   const rowSel = h(
     "select",
     { id: "row-select", onchange: (e) => { state.row = e.target.value; ctx.render.compare(); } },
@@ -180,8 +202,10 @@ export async function renderCompare(ctx) {
   );
 
   const colorOf = new Map(state.classes.map((c) => [c.name, c.hex]));
-  const names = all[all.length - 1].class_names;
-  const classRows = names.map((n) => ({ name: n, color: colorOf.get(n) || "#999999" }));
+  const names = protocolClasses(all, state.protocol);
+  // A merged class takes the colour of its first schema class (manmade: building's, as in the paper).
+  const merge = (protocolView(all, state.protocol) || {}).merge || {};
+  const classRows = names.map((n) => ({ name: n, color: colorOf.get(n) || colorOf.get((merge[n] || [])[0]) || "#999999" }));
   const series = runs.map((run, i) => {
     const row = (all[i].metrics.protocols[state.protocol] || {})[state.row];
     return { label: `run ${run.number}`, iou: row ? row.iou : {} };
@@ -202,6 +226,7 @@ export async function renderCompare(ctx) {
     el,
     h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, seqNames), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
     headline(state, latest, all[all.length - 1].metrics, seqNames.length > 0),
+    protocolNotes,
     staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
     h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),
