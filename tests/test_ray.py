@@ -421,21 +421,28 @@ def _seq_span(run_dir: Path, stages: tuple[str, ...]) -> tuple[float, float]:
     return min(records[s]["started"] for s in stages), max(records[s]["finished"] for s in stages)
 
 
+@pytest.fixture(scope="module")
+def streets(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two tiny ray-cast streets, ``00`` and ``01`` (as tests/test_multi_sequence.py)."""
+    from test_pipeline import make_street
+
+    base = tmp_path_factory.mktemp("streets")
+    return [make_street(base / "x" / "sequences" / "00", n_frames=5),
+            make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0)]
+
+
 @pytest.mark.slow
-def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, tmp_path: Path) -> None:
+def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, streets: list[Path],
+                                                               tmp_path: Path) -> None:
     """A two-sequence project with the 3D-CN: on Ray both sequences' stages before the joint 3D-CN run at
     the same time (their stages.json spans overlap; locally they follow each other), the joint inference
     runs as tasks, and every file is the local multi-sequence run's."""
-    from test_pipeline import make_street
-
     from leap_core.config import config_from_dict
     from leap_core.pipeline import SequenceSpec, run_sequences
     from leap_core.run_layout import MultiRunLayout
     from leap_core.schema import builtin_schema
 
-    base = tmp_path / "data"
-    specs = [SequenceSpec.of(make_street(base / "x" / "sequences" / "00", n_frames=5)),
-             SequenceSpec.of(make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0))]
+    specs = [SequenceSpec.of(path) for path in streets]
     schema = builtin_schema("semantickitti")
     cfg = config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1}})
     first = ("labels2d", "project", "fuse", "smooth")
@@ -445,8 +452,8 @@ def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, tmp
         results[name] = run_sequences(specs, schema, cfg, tmp_path / name, runtime=runtime,
                                       progress=lambda *a, c=calls[name]: c.append(a))
     spans = {}
-    for name in results:
-        layout = MultiRunLayout(results[name].root)
+    for name, result in results.items():
+        layout = MultiRunLayout(result.root)
         spans[name] = [_seq_span(layout.sequence(s.name).run_dir, first) for s in specs]
     (a0, a1), (b0, b1) = spans["local"]
     assert a1 <= b0  # locally one after the other
@@ -467,3 +474,26 @@ def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, tmp
     for name in results:
         ends = {(seq, stage) for seq, stage, done, total in calls[name] if total > 0 and done >= total}
         assert {(s.name, stage) for s in specs for stage in ("labels2d", "smooth", "export")} <= ends
+
+
+@pytest.mark.slow
+def test_cli_runs_sequences_at_once_on_ray(ray_instance, streets: list[Path], tmp_path: Path) -> None:
+    """``leap run A B --ray auto``: the same exports as without Ray; the bars of sequences that report in
+    turn are named after their sequence instead of following a header per sequence."""
+    from app.cli import cli
+
+    runner = CliRunner()
+    outs, outputs = {}, {}
+    for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
+        res = runner.invoke(cli, ["run", *map(str, streets), "--labeler", "simulated",
+                                  "--out", str(tmp_path / name), *extra])
+        assert res.exit_code == 0, res.output
+        outputs[name] = res.output
+        outs[name] = {p.relative_to(tmp_path / name).as_posix(): p.read_bytes()
+                      for p in sorted((tmp_path / name).glob("sequences/*/export/*"))}
+    assert len(outs["ray"]) == 2 * (5 + 4)
+    assert outs["ray"] == outs["local"]
+    # The result tables' heading only (locally also the bars' headers).
+    assert outputs["ray"].count("== sequence 00") == 1 < outputs["local"].count("== sequence 00")
+    assert "00 labels2d" in outputs["ray"] and "01 export" in outputs["ray"]
+    assert "sequence 01: " in outputs["ray"] and "points labeled" in outputs["ray"]
