@@ -431,49 +431,100 @@ def streets(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
             make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0)]
 
 
+MULTI_FILES = ("grid.npz", "grid_smooth.npz", "grid_3dcn1.npz", "grid_smooth_3dcn1.npz", "metrics.json")
+
+
+def _multi_setup(streets: list[Path]) -> tuple[list[Any], Any, PipelineConfig]:
+    from leap_core.config import config_from_dict
+    from leap_core.pipeline import SequenceSpec
+    from leap_core.schema import builtin_schema
+
+    return ([SequenceSpec.of(path) for path in streets], builtin_schema("semantickitti"),
+            config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1}}))
+
+
+@pytest.fixture(scope="module")
+def local_multi(streets: list[Path], tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, list[Any]]:
+    """The two streets' multi-sequence run with the 3D-CN, locally, and its progress reports."""
+    from leap_core.pipeline import run_sequences
+
+    specs, schema, cfg = _multi_setup(streets)
+    calls: list[Any] = []
+    return run_sequences(specs, schema, cfg, tmp_path_factory.mktemp("multi") / "local",
+                         progress=lambda *a: calls.append(a)), calls
+
+
+def _same_multi_outputs(root: Path, local_root: Path, names: list[str]) -> None:
+    from leap_core.run_layout import MultiRunLayout
+
+    for name in names:
+        lay, ref = MultiRunLayout(root).sequence(name), MultiRunLayout(local_root).sequence(name)
+        for folder in ("labels2d", "observations", "points", "export"):
+            local_files = {p.name: p.read_bytes() for p in sorted(ref.folder(folder).iterdir())}
+            ray_files = {p.name: p.read_bytes() for p in sorted(lay.folder(folder).iterdir())}
+            assert ray_files == local_files, (name, folder)
+        for f in MULTI_FILES:
+            assert (lay.run_dir / f).read_bytes() == (ref.run_dir / f).read_bytes(), (name, f)
+    assert (root / "metrics.json").read_bytes() == (local_root / "metrics.json").read_bytes()
+
+
 @pytest.mark.slow
-def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, streets: list[Path],
+def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, streets: list[Path], local_multi,
                                                                tmp_path: Path) -> None:
     """A two-sequence project with the 3D-CN: on Ray both sequences' stages before the joint 3D-CN run at
     the same time (their stages.json spans overlap; locally they follow each other), the joint inference
     runs as tasks, and every file is the local multi-sequence run's."""
-    from leap_core.config import config_from_dict
-    from leap_core.pipeline import SequenceSpec, run_sequences
+    from leap_core.pipeline import run_sequences
     from leap_core.run_layout import MultiRunLayout
-    from leap_core.schema import builtin_schema
 
-    specs = [SequenceSpec.of(path) for path in streets]
-    schema = builtin_schema("semantickitti")
-    cfg = config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1}})
+    specs, schema, cfg = _multi_setup(streets)
     first = ("labels2d", "project", "fuse", "smooth")
-    results, calls = {}, {}
-    for name, runtime in (("local", None), ("ray", RAY)):
-        calls[name] = []
-        results[name] = run_sequences(specs, schema, cfg, tmp_path / name, runtime=runtime,
-                                      progress=lambda *a, c=calls[name]: c.append(a))
+    local, local_calls = local_multi
+    calls: list[Any] = []
+    result = run_sequences(specs, schema, cfg, tmp_path / "ray", runtime=RAY,
+                           progress=lambda *a: calls.append(a))
     spans = {}
-    for name, result in results.items():
-        layout = MultiRunLayout(result.root)
-        spans[name] = [_seq_span(layout.sequence(s.name).run_dir, first) for s in specs]
+    for name, root in (("local", local.root), ("ray", result.root)):
+        spans[name] = [_seq_span(MultiRunLayout(root).sequence(s.name).run_dir, first) for s in specs]
     (a0, a1), (b0, b1) = spans["local"]
     assert a1 <= b0  # locally one after the other
     (a0, a1), (b0, b1) = spans["ray"]
     assert a0 < b1 and b0 < a1  # on Ray at the same time
-    for s in specs:
-        lay = {n: MultiRunLayout(results[n].root).sequence(s.name) for n in results}
-        for folder in ("labels2d", "observations", "points", "export"):
-            local_files = {p.name: p.read_bytes() for p in sorted(lay["local"].folder(folder).iterdir())}
-            ray_files = {p.name: p.read_bytes() for p in sorted(lay["ray"].folder(folder).iterdir())}
-            assert ray_files == local_files, (s.name, folder)
-        for f in ("grid.npz", "grid_smooth.npz", "grid_3dcn1.npz", "grid_smooth_3dcn1.npz", "metrics.json"):
-            assert (lay["ray"].run_dir / f).read_bytes() == (lay["local"].run_dir / f).read_bytes(), f
-    assert results["ray"].metrics == results["local"].metrics
-    joint_state = json.loads(MultiRunLayout(results["ray"].root).joint_state.read_text())
+    _same_multi_outputs(result.root, local.root, [s.name for s in specs])
+    assert result.metrics == local.metrics
+    joint_state = json.loads(MultiRunLayout(result.root).joint_state.read_text())
     assert joint_state["ray_tasks"] >= 2
     # Every stage of every sequence reported its end, however the reports interleaved.
-    for name in results:
-        ends = {(seq, stage) for seq, stage, done, total in calls[name] if total > 0 and done >= total}
+    for reports in (local_calls, calls):
+        ends = {(seq, stage) for seq, stage, done, total in reports if total > 0 and done >= total}
         assert {(s.name, stage) for s in specs for stage in ("labels2d", "smooth", "export")} <= ends
+
+
+@pytest.mark.slow
+def test_sequences_at_once_cancel_together_and_resume(ray_instance, streets: list[Path], local_multi,
+                                                      tmp_path: Path) -> None:
+    """A cancel in one sequence stops the other at its next report; each keeps its own stages.json, and
+    the rerun resumes both (kept frames not recomputed) to the local bytes."""
+    from leap_core.pipeline import run_sequences
+    from leap_core.run_layout import MultiRunLayout
+
+    specs, schema, cfg = _multi_setup(streets)
+    out = tmp_path / "ray"
+
+    def cancel_in_01(name: str, stage: str, done: int, total: int) -> None:
+        if (name, stage) == ("01", "project") and 0 < done < total:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        run_sequences(specs, schema, cfg, out, runtime=RAY, progress=cancel_in_01)
+    layout = MultiRunLayout(out)
+    assert stage_status(layout.sequence("01").run_dir)["project"]["status"] == "cancelled"
+    kept = len(list(layout.sequence("01").folder("observations").glob("*.npz")))
+    assert 0 < kept < 4
+    assert not layout.joint_state.exists()  # stopped before the joint 3D-CN
+    result = run_sequences(specs, schema, cfg, out, runtime=RAY)
+    assert result.per_sequence["01"].stages["project"].frames_computed == 4 - kept
+    _same_multi_outputs(out, local_multi[0].root, [s.name for s in specs])
 
 
 @pytest.mark.slow
