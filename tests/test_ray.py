@@ -387,7 +387,22 @@ def test_3dcn_inference_runs_as_ray_tasks_with_the_local_bytes(ray_instance, dat
     # Counted as results come back from Ray: a silent fallback to the driver's own loop leaves it out.
     record = stage_status(run_dir)["3dcn"]
     assert record["ray_tasks"] >= 2 * 2  # two rounds, each cut into several tasks
+    assert "ray_gpus_per_task" not in record  # consistency.device "cpu"
     assert ("3dcn", 2000, 2000) in calls
+
+
+@pytest.mark.slow
+def test_3dcn_inference_asks_for_a_gpu_per_task(ray_instance, dataset: Path, preset_config,
+                                                local_3dcn_run: Path, tmp_path: Path) -> None:
+    """consistency.device "auto" on a cluster with a (logical) GPU: each inference task asks for one (and
+    computes on the CPU here, torch seeing no CUDA device): the local bytes."""
+    schema, cfg = preset_config
+    run_dir = tmp_path / "run"
+    run_pipeline(dataset, schema, _with_3dcn(cfg, device="auto"), run_dir, frames=FRAMES, runtime=RAY)
+    record = stage_status(run_dir)["3dcn"]
+    assert record["ray_gpus_per_task"] == 1 and record["ray_tasks"] >= 2
+    for name in CN_FILES:
+        assert (run_dir / name).read_bytes() == (local_3dcn_run / name).read_bytes(), name
 
 
 @pytest.mark.slow

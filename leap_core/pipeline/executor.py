@@ -394,6 +394,8 @@ class RayExecutor:
             record = stage_3dcn(ctx, predict)
             if predict.tasks:  # none when the rounds were kept, or the grids linked from a joint round
                 record["ray_tasks"] = predict.tasks
+                if predict.gpus:
+                    record["ray_gpus_per_task"] = predict.gpus
             return record
         return stage.run(ctx)
 
@@ -574,6 +576,8 @@ class RayPredictor:
         self.voxel_size = cfg.fusion.voxel_size
         self.tasks = 0
         """Inference tasks whose results came back (what a run's ``3dcn`` record calls ``ray_tasks``)."""
+        self.gpus = 0
+        """GPUs each inference task asked for (0 or 1)."""
 
     def __call__(self, seq: KittiSequence, frames: range, checkpoint: Path) -> Iterator[tuple[Any, Any]]:
         from leap_core.consistency.remote import inference_threads  # noqa: PLC0415  loads torch
@@ -585,6 +589,7 @@ class RayPredictor:
         if self.cfg.device != "cpu" and resources.get("GPU", 0) >= 1:
             options: dict[str, Any] = {"num_gpus": 1}
             slots = int(resources["GPU"])
+            self.gpus = 1
         else:
             cpus = min(threads, ex._cpus())
             options = {"num_cpus": cpus}
