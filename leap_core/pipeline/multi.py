@@ -21,6 +21,11 @@ joint:
 Without the 3D-CN nothing is joint but the overall metrics: each sequence's files are byte for byte those
 of an ordinary run of that sequence.
 
+Locally the sequences run one after another. With a Ray runtime they run at once, one driver thread each
+sending its per-frame work to the one cluster (:class:`_Concurrently`); every sequence is still an
+ordinary :func:`~leap_core.pipeline.runner.run_pipeline` in its own folder, so its files are the local
+run's bytes, and the joint rounds' inference runs as Ray tasks too.
+
 Exports keep SemanticKITTI's layout: :func:`export_sequences` writes ``<target>/sequences/<name>/
 predictions/<frame>.label`` (through :func:`leap_core.export.write_export_folder`), :func:`export_zip` the
 same layout into a zip with one label map and summary.
