@@ -57,6 +57,18 @@ def _config(base: PipelineConfig, cn: bool, cn_steps: int | None) -> PipelineCon
     return dataclasses.replace(base, consistency=consistency)
 
 
+TRAINING = "3dcn training"
+"""The 3D-CN's training (in the driver on either engine), part of the 3dcn stage's seconds."""
+
+
+def _training_seconds(run_dir: Path) -> float:
+    """The training loops' seconds of a run's 3D-CN rounds (``meta["seconds"]`` of its checkpoints)."""
+    import torch
+
+    return sum(float(torch.load(p, weights_only=True)["meta"]["seconds"])
+               for p in sorted((run_dir / "3dcn").glob("3dcn_iter*.pt")))
+
+
 def _multi_outputs(root: Path) -> dict[str, bytes]:
     """Every sequence's exports and grids of a multi-sequence run folder."""
     layout = MultiRunLayout(root)
@@ -141,7 +153,7 @@ def main() -> None:
 
     engines = {"local": Runtime(), "ray": Runtime(ray_address="auto")}
     walls: dict[str, list[float]] = {e: [] for e in engines}
-    stage_s: dict[str, dict[str, list[float]]] = {e: {s: [] for s in STAGES} for e in engines}
+    stage_s: dict[str, dict[str, list[float]]] = {e: {s: [] for s in (*STAGES, TRAINING)} for e in engines}
     exports: dict[str, dict[str, bytes]] = {}
     tasks: dict[str, int] = {}
     with tempfile.TemporaryDirectory(prefix="bench_ray_") as tmp:
@@ -158,13 +170,14 @@ def main() -> None:
                 if cfg.consistency.enabled:
                     exports[name].update({p.name: p.read_bytes() for p in sorted(run_dir.glob("grid*.npz"))})
                     tasks[name] = read_state(RunLayout(run_dir))["3dcn"].get("ray_tasks", 0)
+                    stage_s[name][TRAINING].append(_training_seconds(run_dir))
         multi = (bench_multi(args, cfg, preset.schema, frames, Path(tmp), engines)
                  if args.second is not None else None)
     ray.shutdown()
     same = exports["local"] == exports["ray"]
 
     rows = []
-    for s in STAGES:
+    for s in (*STAGES, TRAINING) if cfg.consistency.enabled else STAGES:
         lo, ra = statistics.median(stage_s["local"][s]), statistics.median(stage_s["ray"][s])
         rows.append([s, f"{lo:.2f}", f"{ra:.2f}", f"{ra / lo:.2f}" if lo > 0.005 else "-"])
     lo, ra = statistics.median(walls["local"]), statistics.median(walls["ray"])
