@@ -12,6 +12,11 @@ two-sequence run (``--sequence``'s frames and all of ``SEQ``, one multi-sequence
 sequence after the other) and on Ray (both at once), with the wall seconds of its first pass (every
 sequence up to ``smooth``), the joint 3D-CN and its second pass.
 
+``--inference N`` times only the 3D-CN's inference on the first N frames of ``--sequence`` (a seeded,
+untrained network of the preset's backbone saved as a checkpoint: the cost does not depend on the
+weights): in this process (``predict_frames``, what the local loop computes) against
+:class:`~leap_core.pipeline.executor.RayPredictor`, alternating, with the bytes compared.
+
 Usage::
 
     .venv/bin/python benchmarks/bench_ray.py --sequence data/demo/sequences/00 --frames 0:10 --cpus 2
@@ -127,6 +132,52 @@ def bench_multi(args: argparse.Namespace, cfg: PipelineConfig, schema, frames: r
             "overlap_s": overlap, "outputs_identical": same, "files_compared": len(outputs["ray"])}
 
 
+def bench_inference(args: argparse.Namespace, cfg: PipelineConfig, tmp: Path) -> dict[str, object]:
+    """The 3D-CN's inference alone, local vs Ray (module docstring)."""
+    import torch
+
+    from leap_core.consistency.backbone import PointSegmenter
+    from leap_core.consistency.remote import inference_threads, predict_frames
+    from leap_core.consistency.train import save_checkpoint
+    from leap_core.datasets.kitti import KittiSequence
+    from leap_core.pipeline.executor import RayExecutor
+
+    cn = cfg.consistency
+    torch.manual_seed(0)
+    checkpoint = tmp / "3dcn_iter1.pt"
+    save_checkpoint(checkpoint, PointSegmenter(cn.backbone, 20), cn)
+    seq = KittiSequence(args.sequence)
+    frames = range(args.inference)
+    threads = inference_threads(cn)
+    predictor = RayExecutor("auto").predictor(cfg)
+
+    def local() -> list[tuple[object, object]]:
+        return list(predict_frames(seq, list(frames), checkpoint, cn, cfg.fusion.voxel_size, threads))
+
+    def on_ray() -> list[tuple[object, object]]:
+        return list(predictor(seq, frames, checkpoint))
+
+    walls: dict[str, list[float]] = {"local": [], "ray": []}
+    outs = {}
+    for _ in range(args.repeat):
+        for name, fn in (("local", local), ("ray", on_ray)):
+            t = time.perf_counter()
+            outs[name] = fn()
+            walls[name].append(time.perf_counter() - t)
+    same = all(k.tobytes() == k2.tobytes() and v.tobytes() == v2.tobytes()  # type: ignore[attr-defined]
+               for (k, v), (k2, v2) in zip(outs["local"], outs["ray"], strict=True))
+    lo, ra = statistics.median(walls["local"]), statistics.median(walls["ray"])
+    print_table(
+        f"3D-CN inference of {args.sequence} frames 0:{args.inference}: this process ({threads} torch "
+        f"threads) vs Ray tasks ({predictor.tasks // args.repeat} per pass), median of {args.repeat}; "
+        f"identical: {same}",
+        ["", "local s", "ray s", "ray / local"],
+        [["inference", f"{lo:.2f}", f"{ra:.2f}", f"{ra / lo:.2f}"],
+         ["per frame", f"{lo / len(frames):.3f}", f"{ra / len(frames):.3f}", ""]],
+    )
+    return {"frames": args.inference, "threads": threads, "wall_s": walls, "identical": same}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sequence", type=Path, required=True, help="KITTI-layout sequence (the demo).")
@@ -137,6 +188,7 @@ def main() -> None:
     ap.add_argument("--3dcn", dest="cn", action="store_true", help="Turn the 3D-CN on.")
     ap.add_argument("--cn-steps", type=int, default=None, help="3D-CN training steps (min_steps).")
     ap.add_argument("--second", type=Path, default=None, help="Also time a two-sequence run with this one.")
+    ap.add_argument("--inference", type=int, default=None, help="Only time the 3D-CN's inference (N frames).")
     args = ap.parse_args()
     a, b = (int(x) for x in args.frames.split(":"))
     frames = range(a, b)
@@ -150,6 +202,13 @@ def main() -> None:
     ray.init(address="local", num_cpus=args.cpus, include_dashboard=False, logging_level="ERROR",
              log_to_driver=False, object_store_memory=512 * 1024 * 1024)
     ray_start = time.perf_counter() - t0
+    if args.inference is not None:
+        with tempfile.TemporaryDirectory(prefix="bench_ray_") as tmp:
+            result = bench_inference(args, cfg, Path(tmp))
+        ray.shutdown()
+        write_results("bench_ray_inference", {"machine": machine_info(), "cpus": args.cpus,
+                                              "ray_init_s": ray_start, **result})
+        return
 
     engines = {"local": Runtime(), "ray": Runtime(ray_address="auto")}
     walls: dict[str, list[float]] = {e: [] for e in engines}
