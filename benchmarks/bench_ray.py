@@ -14,7 +14,7 @@ sequence up to ``smooth``), the joint 3D-CN and its second pass.
 
 ``--inference N`` times only the 3D-CN's inference on the first N frames of ``--sequence`` (a seeded,
 untrained network of the preset's backbone saved as a checkpoint: the cost does not depend on the
-weights): in this process (``predict_frames``, what the local loop computes) against
+weights): in this process (``predict_from_checkpoint``, what the local loop computes) against
 :class:`~leap_core.pipeline.executor.RayPredictor`, alternating, with the bytes compared.
 
 Usage::
@@ -137,7 +137,7 @@ def bench_inference(args: argparse.Namespace, cfg: PipelineConfig, tmp: Path) ->
     import torch
 
     from leap_core.consistency.backbone import PointSegmenter
-    from leap_core.consistency.remote import inference_threads, predict_frames
+    from leap_core.consistency.remote import inference_threads, predict_from_checkpoint
     from leap_core.consistency.train import save_checkpoint
     from leap_core.datasets.kitti import KittiSequence
     from leap_core.pipeline.executor import RayExecutor
@@ -152,7 +152,8 @@ def bench_inference(args: argparse.Namespace, cfg: PipelineConfig, tmp: Path) ->
     predictor = RayExecutor("auto").predictor(cfg)
 
     def local() -> list[tuple[object, object]]:
-        return list(predict_frames(seq, list(frames), checkpoint, cn, cfg.fusion.voxel_size, threads))
+        return list(predict_from_checkpoint(seq, list(frames), checkpoint, cn, cfg.fusion.voxel_size,
+                                            threads))
 
     def on_ray() -> list[tuple[object, object]]:
         return list(predictor(seq, frames, checkpoint))

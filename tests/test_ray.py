@@ -411,7 +411,7 @@ def test_ray_predictions_come_back_in_frame_order(ray_instance, dataset: Path, p
                                                   ) -> None:
     """The predictor yields exactly the local loop's (keys, log-probabilities), frame after frame, when
     every frame is its own task (so tasks end in any order and the window of tasks in flight moves)."""
-    from leap_core.consistency.remote import predict_frames
+    from leap_core.consistency.remote import predict_from_checkpoint
     from leap_core.datasets.kitti import KittiSequence
     from leap_core.pipeline import executor as engine
 
@@ -423,7 +423,8 @@ def test_ray_predictions_come_back_in_frame_order(ray_instance, dataset: Path, p
     monkeypatch.setattr(engine, "INFER_TASK_FRAMES", 1)
     predictor = engine.RayExecutor("auto").predictor(cfg)
     got = list(predictor(seq, frames, checkpoint))
-    expected = predict_frames(seq, list(frames), checkpoint, cfg.consistency, cfg.fusion.voxel_size, 1)
+    expected = predict_from_checkpoint(seq, list(frames), checkpoint, cfg.consistency, cfg.fusion.voxel_size,
+                                       1)
     assert predictor.tasks == len(frames)
     assert len(got) == len(expected) == len(frames)
     for (keys, logp), (k, lp) in zip(got, expected, strict=True):

@@ -21,13 +21,13 @@ from leap_core.fusion import voxel_keys, world_points
 
 def inference_threads(cfg: ConsistencyConfig) -> int:
     """The torch threads the round's inference uses in this process: ``cfg.num_threads``, or with 0 the
-    process's own setting. Another process must use this same number (:func:`predict_frames`'s
+    process's own setting. Another process must use this same number (:func:`predict_from_checkpoint`'s
     ``threads``): a forward pass's float sums are split by thread, so its bytes may depend on it."""
     with torch_threads(cfg.num_threads):
         return max(1, torch.get_num_threads())
 
 
-def predict_frames(
+def predict_from_checkpoint(
     seq: KittiSequence,
     indices: Sequence[int],
     checkpoint: Path,
@@ -59,4 +59,4 @@ def predict_frames(
     return out
 
 
-__all__ = ["inference_threads", "predict_frames"]
+__all__ = ["inference_threads", "predict_from_checkpoint"]

@@ -24,9 +24,10 @@ local run's (``tests/test_ray.py``):
   same order as the local fusion, whose code and bytes are unchanged.
 * **3D-CN inference**: the network is trained in the driver (one network) and saved to the run folder as
   locally; then tasks load that checkpoint (a path, never the model object), predict blocks of consecutive
-  frames with the driver's torch thread count (:func:`leap_core.consistency.remote.predict_frames`) and
-  send each frame's keys and log-probabilities back; the driver fuses them in frame order, as the local
-  loop would have produced them (:class:`RayPredictor`).
+  frames with the driver's torch thread count
+  (:func:`leap_core.consistency.remote.predict_from_checkpoint`) and send each frame's keys and
+  log-probabilities back; the driver fuses them in frame order, as the local loop would have produced
+  them (:class:`RayPredictor`).
 * Everything else (smoothing, 3D-CN training, evaluation) runs in the driver, as locally.
 
 Warnings the stage code logs in a worker (``leap_core`` loggers) are sent back with the task's result and
@@ -265,11 +266,11 @@ def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, r
 def predict_task(seq: KittiSequence, indices: list[int], checkpoint: Path, cfg: ConsistencyConfig,
                  voxel_size: float, threads: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """The 3D-CN's predictions of some frames (a Ray task):
-    :func:`leap_core.consistency.remote.predict_frames`."""
+    :func:`leap_core.consistency.remote.predict_from_checkpoint`."""
     # Imported here: the 3D-CN needs torch, which only the processes that run it load.
-    from leap_core.consistency.remote import predict_frames  # noqa: PLC0415
+    from leap_core.consistency.remote import predict_from_checkpoint  # noqa: PLC0415
 
-    return predict_frames(seq, indices, checkpoint, cfg, voxel_size, threads)
+    return predict_from_checkpoint(seq, indices, checkpoint, cfg, voxel_size, threads)
 
 
 @dataclass(frozen=True)
