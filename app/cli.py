@@ -58,11 +58,13 @@ class StageBars:
     gets its bar).
     """
 
-    def __init__(self, run_dir: Path | None = None) -> None:
+    def __init__(self, run_dir: Path | None = None, label: str = "") -> None:
         import time
 
         self.bars: dict[str, tqdm[Any]] = {}
         self.run_dir = run_dir
+        self.label = label
+        """Put before each stage's name (a sequence's bars among others')."""
         self.started = time.time()
         self._held: tuple[str, int] | None = None
         self._redirect: Any = None
@@ -80,7 +82,7 @@ class StageBars:
                 return
             self._close_bars()
             unit = "step" if stage in ("3dcn", "synth") else "frame"
-            bar = self.bars[stage] = tqdm(total=total, desc=f"{stage:<12}", unit=unit, leave=True,
+            bar = self.bars[stage] = tqdm(total=total, desc=f"{self.label}{stage:<12}", unit=unit, leave=True,
                                           dynamic_ncols=True)
         bar.total = total
         bar.n = done
@@ -99,10 +101,11 @@ class StageBars:
         if reason == UNCHANGED:
             reason += " in this folder"
         if reason is not None:
-            tqdm.write(f"{stage:<12} skipped ({reason})", file=sys.stderr)
+            tqdm.write(f"{self.label}{stage:<12} skipped ({reason})", file=sys.stderr)
         else:
             unit = "step" if stage in ("3dcn", "synth") else "frame"
-            with tqdm(total=total, initial=total, desc=f"{stage:<12}", unit=unit, dynamic_ncols=True):
+            with tqdm(total=total, initial=total, desc=f"{self.label}{stage:<12}", unit=unit,
+                      dynamic_ncols=True):
                 pass
 
     def _close_bars(self) -> None:
@@ -480,10 +483,13 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
 class SequenceBars:
     """:class:`StageBars` for a multi-sequence run (``progress(sequence, stage, done, total)``): one set of
     bars per sequence (and one for the joint 3D-CN), a header line when the sequence changes; a stage that
-    reports complete again in the run's second pass (after the joint 3D-CN) is not printed twice."""
+    reports complete again in the run's second pass (after the joint 3D-CN) is not printed twice. With
+    ``concurrent`` (sequences running at once on Ray, their reports interleaved) no header: each bar
+    starts with its sequence's name and a sequence's bars stay open while another reports."""
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, concurrent: bool = False) -> None:
         self.root = root
+        self.concurrent = concurrent
         self.bars: dict[str, StageBars] = {}
         self.name: str | None = None
         self.complete: set[tuple[str, str]] = set()
@@ -499,14 +505,15 @@ class SequenceBars:
         if key in self.complete:
             return
         if name != self.name:
-            if self.name is not None:
+            if self.name is not None and not self.concurrent:
                 self.bars[self.name].close()
             self.name = name
             if name not in self.bars:
                 run_dir = None if name == JOINT else MultiRunLayout(self.root).sequence(name).run_dir
-                self.bars[name] = StageBars(run_dir)
-            tqdm.write("== joint 3D-CN (all sequences)" if name == JOINT else f"== sequence {name}",
-                       file=sys.stderr)
+                self.bars[name] = StageBars(run_dir, f"{name} " if self.concurrent else "")
+            if not self.concurrent:
+                tqdm.write("== joint 3D-CN (all sequences)" if name == JOINT else f"== sequence {name}",
+                           file=sys.stderr)
         self.bars[name](stage, done, total)
         if total > 0 and done >= total:
             self.complete.add(key)
@@ -579,7 +586,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
             for spec in specs:
                 _estimate_run_poses(spec.dataset, layout.sequence(spec.name).run_dir)
         typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences {', '.join(names)}")
-        with SequenceBars(out) as bars:
+        with SequenceBars(out, concurrent=ray is not None and len(specs) > 1) as bars:
             result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
 
     for name, res in result.per_sequence.items():

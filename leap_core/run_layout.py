@@ -38,7 +38,8 @@ sequence::
       metrics.json                {"overall": metrics of the summed confusion matrices, "sequences": {...}}
       sequences/<name>/           a complete run folder (above) per sequence
       3dcn/3dcn_iter{i}.pt        the joint 3D-CN's checkpoints (one network per round, all sequences)
-      3dcn/joint.json             the fingerprint the staged rounds below belong to
+      3dcn/joint.json             the fingerprint the staged rounds below belong to (and ray_tasks: the
+                                  inference tasks of the last rounds computed on Ray)
       3dcn/rounds/<name>/grid_3dcn{i}.npz, grid_smooth_3dcn{i}.npz
                                   round i's grids of each sequence, hard-linked into sequences/<name>/
 """

@@ -43,7 +43,8 @@ class Runtime:
 
     # --- the distributed engine (leap_core.pipeline.executor)
     ray_address: str | None = None
-    """Run per-frame stages and fusion as Ray tasks: ``"auto"`` joins the Ray cluster this machine belongs
+    """Run per-frame stages, fusion and the 3D-CN's inference as Ray tasks, and a multi-sequence run's
+    sequences at once: ``"auto"`` joins the Ray cluster this machine belongs
     to (``ray start --head`` / ``--address``) or, when there is none, starts a private local instance of
     :attr:`ray_cpus` CPUs; any other value is a cluster address (``"10.0.0.5:6379"``,
     ``"ray://host:10001"``). None = the local single-process engine, which never imports ray. The run

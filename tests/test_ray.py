@@ -346,3 +346,221 @@ def test_model_2d_labels_ask_for_a_gpu_per_task(ray_instance, tmp_path: Path) ->
     assert "ray_gpus_per_task" not in stage_status(tmp_path / "cpu")["labels2d"]
     assert len(runs["gpu"]) == 3
     assert runs["gpu"] == runs["local"] == runs["cpu"]
+
+
+# ------------------------------------------------------------------------- 3D-CN inference, sequences
+TINY_3DCN = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
+             "device": "cpu", "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+"""A 3D-CN that trains in seconds; one torch thread, so two inference tasks share the 2 CPUs."""
+CN_FILES = ("grid_3dcn1.npz", "grid_smooth_3dcn1.npz", "grid_3dcn2.npz", "grid_smooth_3dcn2.npz")
+
+
+def _with_3dcn(cfg: PipelineConfig, **over: Any) -> PipelineConfig:
+    from leap_core.config import config_from_dict, config_to_dict
+
+    data = config_to_dict(cfg)
+    data["consistency"] = {**TINY_3DCN, **over}
+    return config_from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def local_3dcn_run(dataset: Path, preset_config, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    schema, cfg = preset_config
+    run_dir = tmp_path_factory.mktemp("local3dcn") / "run"
+    run_pipeline(dataset, schema, _with_3dcn(cfg), run_dir, frames=FRAMES)
+    return run_dir
+
+
+@pytest.mark.slow
+def test_3dcn_inference_runs_as_ray_tasks_with_the_local_bytes(ray_instance, dataset: Path, preset_config,
+                                                                local_3dcn_run: Path, tmp_path: Path) -> None:
+    schema, cfg = preset_config
+    run_dir = tmp_path / "run"
+    calls: list[tuple[str, int, int]] = []
+    run_pipeline(dataset, schema, _with_3dcn(cfg), run_dir, frames=FRAMES, runtime=RAY,
+                 progress=lambda *a: calls.append(a))
+    ray_out, local_out = _outputs(run_dir), _outputs(local_3dcn_run)
+    for name in CN_FILES:
+        ray_out[name], local_out[name] = (run_dir / name).read_bytes(), (local_3dcn_run / name).read_bytes()
+    assert sorted(ray_out) == sorted(local_out)
+    assert [name for name in local_out if ray_out[name] != local_out[name]] == []
+    # Counted as results come back from Ray: a silent fallback to the driver's own loop leaves it out.
+    record = stage_status(run_dir)["3dcn"]
+    assert record["ray_tasks"] >= 2 * 2  # two rounds, each cut into several tasks
+    assert "ray_gpus_per_task" not in record  # consistency.device "cpu"
+    assert ("3dcn", 2000, 2000) in calls
+
+
+@pytest.mark.slow
+def test_3dcn_inference_asks_for_a_gpu_per_task(ray_instance, dataset: Path, preset_config,
+                                                local_3dcn_run: Path, tmp_path: Path) -> None:
+    """consistency.device "auto" on a cluster with a (logical) GPU: each inference task asks for one (and
+    computes on the CPU here, torch seeing no CUDA device): the local bytes."""
+    schema, cfg = preset_config
+    run_dir = tmp_path / "run"
+    run_pipeline(dataset, schema, _with_3dcn(cfg, device="auto"), run_dir, frames=FRAMES, runtime=RAY)
+    record = stage_status(run_dir)["3dcn"]
+    assert record["ray_gpus_per_task"] == 1 and record["ray_tasks"] >= 2
+    for name in CN_FILES:
+        assert (run_dir / name).read_bytes() == (local_3dcn_run / name).read_bytes(), name
+
+
+@pytest.mark.slow
+def test_ray_predictions_come_back_in_frame_order(ray_instance, dataset: Path, preset_config,
+                                                  local_3dcn_run: Path, monkeypatch: pytest.MonkeyPatch
+                                                  ) -> None:
+    """The predictor yields exactly the local loop's (keys, log-probabilities), frame after frame, when
+    every frame is its own task (so tasks end in any order and the window of tasks in flight moves)."""
+    from leap_core.consistency.remote import predict_from_checkpoint
+    from leap_core.datasets.kitti import KittiSequence
+    from leap_core.pipeline import executor as engine
+
+    _, cfg = preset_config
+    cfg = _with_3dcn(cfg)
+    checkpoint = local_3dcn_run / "3dcn" / "3dcn_iter1.pt"
+    seq = KittiSequence(dataset)
+    frames = seq.select(FRAMES)
+    monkeypatch.setattr(engine, "INFER_TASK_FRAMES", 1)
+    predictor = engine.RayExecutor("auto").predictor(cfg)
+    got = list(predictor(seq, frames, checkpoint))
+    expected = predict_from_checkpoint(seq, list(frames), checkpoint, cfg.consistency, cfg.fusion.voxel_size,
+                                       1)
+    assert predictor.tasks == len(frames)
+    assert len(got) == len(expected) == len(frames)
+    for (keys, logp), (k, lp) in zip(got, expected, strict=True):
+        assert keys.tobytes() == k.tobytes()
+        assert logp.tobytes() == lp.tobytes()
+
+
+def _seq_span(run_dir: Path, stages: tuple[str, ...]) -> tuple[float, float]:
+    records = stage_status(run_dir)
+    return min(records[s]["started"] for s in stages), max(records[s]["finished"] for s in stages)
+
+
+@pytest.fixture(scope="module")
+def streets(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two tiny ray-cast streets, ``00`` and ``01`` (as tests/test_multi_sequence.py)."""
+    from test_pipeline import make_street
+
+    base = tmp_path_factory.mktemp("streets")
+    return [make_street(base / "x" / "sequences" / "00", n_frames=5),
+            make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0)]
+
+
+MULTI_FILES = ("grid.npz", "grid_smooth.npz", "grid_3dcn1.npz", "grid_smooth_3dcn1.npz", "metrics.json")
+
+
+def _multi_setup(streets: list[Path]) -> tuple[list[Any], Any, PipelineConfig]:
+    from leap_core.config import config_from_dict
+    from leap_core.pipeline import SequenceSpec
+    from leap_core.schema import builtin_schema
+
+    return ([SequenceSpec.of(path) for path in streets], builtin_schema("semantickitti"),
+            config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1}}))
+
+
+@pytest.fixture(scope="module")
+def local_multi(streets: list[Path], tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, list[Any]]:
+    """The two streets' multi-sequence run with the 3D-CN, locally, and its progress reports."""
+    from leap_core.pipeline import run_sequences
+
+    specs, schema, cfg = _multi_setup(streets)
+    calls: list[Any] = []
+    return run_sequences(specs, schema, cfg, tmp_path_factory.mktemp("multi") / "local",
+                         progress=lambda *a: calls.append(a)), calls
+
+
+def _same_multi_outputs(root: Path, local_root: Path, names: list[str]) -> None:
+    from leap_core.run_layout import MultiRunLayout
+
+    for name in names:
+        lay, ref = MultiRunLayout(root).sequence(name), MultiRunLayout(local_root).sequence(name)
+        for folder in ("labels2d", "observations", "points", "export"):
+            local_files = {p.name: p.read_bytes() for p in sorted(ref.folder(folder).iterdir())}
+            ray_files = {p.name: p.read_bytes() for p in sorted(lay.folder(folder).iterdir())}
+            assert ray_files == local_files, (name, folder)
+        for f in MULTI_FILES:
+            assert (lay.run_dir / f).read_bytes() == (ref.run_dir / f).read_bytes(), (name, f)
+    assert (root / "metrics.json").read_bytes() == (local_root / "metrics.json").read_bytes()
+
+
+@pytest.mark.slow
+def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, streets: list[Path], local_multi,
+                                                               tmp_path: Path) -> None:
+    """A two-sequence project with the 3D-CN: on Ray both sequences' stages before the joint 3D-CN run at
+    the same time (their stages.json spans overlap; locally they follow each other), the joint inference
+    runs as tasks, and every file is the local multi-sequence run's."""
+    from leap_core.pipeline import run_sequences
+    from leap_core.run_layout import MultiRunLayout
+
+    specs, schema, cfg = _multi_setup(streets)
+    first = ("labels2d", "project", "fuse", "smooth")
+    local, local_calls = local_multi
+    calls: list[Any] = []
+    result = run_sequences(specs, schema, cfg, tmp_path / "ray", runtime=RAY,
+                           progress=lambda *a: calls.append(a))
+    spans = {}
+    for name, root in (("local", local.root), ("ray", result.root)):
+        spans[name] = [_seq_span(MultiRunLayout(root).sequence(s.name).run_dir, first) for s in specs]
+    (a0, a1), (b0, b1) = spans["local"]
+    assert a1 <= b0  # locally one after the other
+    (a0, a1), (b0, b1) = spans["ray"]
+    assert a0 < b1 and b0 < a1  # on Ray at the same time
+    _same_multi_outputs(result.root, local.root, [s.name for s in specs])
+    assert result.metrics == local.metrics
+    joint_state = json.loads(MultiRunLayout(result.root).joint_state.read_text())
+    assert joint_state["ray_tasks"] >= 2
+    # Every stage of every sequence reported its end, however the reports interleaved.
+    for reports in (local_calls, calls):
+        ends = {(seq, stage) for seq, stage, done, total in reports if total > 0 and done >= total}
+        assert {(s.name, stage) for s in specs for stage in ("labels2d", "smooth", "export")} <= ends
+
+
+@pytest.mark.slow
+def test_sequences_at_once_cancel_together_and_resume(ray_instance, streets: list[Path], local_multi,
+                                                      tmp_path: Path) -> None:
+    """A cancel in one sequence stops the other at its next report; each keeps its own stages.json, and
+    the rerun resumes both (kept frames not recomputed) to the local bytes."""
+    from leap_core.pipeline import run_sequences
+    from leap_core.run_layout import MultiRunLayout
+
+    specs, schema, cfg = _multi_setup(streets)
+    out = tmp_path / "ray"
+
+    def cancel_in_01(name: str, stage: str, done: int, total: int) -> None:
+        if (name, stage) == ("01", "project") and 0 < done < total:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        run_sequences(specs, schema, cfg, out, runtime=RAY, progress=cancel_in_01)
+    layout = MultiRunLayout(out)
+    assert stage_status(layout.sequence("01").run_dir)["project"]["status"] == "cancelled"
+    kept = len(list(layout.sequence("01").folder("observations").glob("*.npz")))
+    assert 0 < kept < 4
+    assert not layout.joint_state.exists()  # stopped before the joint 3D-CN
+    result = run_sequences(specs, schema, cfg, out, runtime=RAY)
+    assert result.per_sequence["01"].stages["project"].frames_computed == 4 - kept
+    _same_multi_outputs(out, local_multi[0].root, [s.name for s in specs])
+
+
+@pytest.mark.slow
+def test_cli_runs_sequences_at_once_on_ray(ray_instance, streets: list[Path], tmp_path: Path) -> None:
+    """``leap run A B --ray auto``: the same exports as without Ray; the bars of sequences that report in
+    turn are named after their sequence instead of following a header per sequence."""
+    from app.cli import cli
+
+    runner = CliRunner()
+    outs, outputs = {}, {}
+    for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
+        res = runner.invoke(cli, ["run", *map(str, streets), "--labeler", "simulated",
+                                  "--out", str(tmp_path / name), *extra])
+        assert res.exit_code == 0, res.output
+        outputs[name] = res.output
+        outs[name] = {p.relative_to(tmp_path / name).as_posix(): p.read_bytes()
+                      for p in sorted((tmp_path / name).glob("sequences/*/export/*"))}
+    assert len(outs["ray"]) == 2 * (5 + 4)
+    assert outs["ray"] == outs["local"]
+    # The result tables' heading only (locally also the bars' headers).
+    assert outputs["ray"].count("== sequence 00") == 1 < outputs["local"].count("== sequence 00")
+    assert "00 labels2d" in outputs["ray"] and "01 export" in outputs["ray"]
+    assert "sequence 01: " in outputs["ray"] and "points labeled" in outputs["ray"]

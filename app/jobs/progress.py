@@ -15,6 +15,8 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from app.jobs.multi import JOINT, SEPARATOR
+
 TERMINAL_STATUSES = frozenset({"done", "failed", "cancelled", "interrupted"})
 MAX_WARNINGS = 20
 """Warnings a run keeps (the first ones; later ones are counted in the last entry)."""
@@ -67,6 +69,17 @@ class StageState:
             "percent": round(100.0 * self.fraction(), 1),
             "note": self.note,
         }
+
+
+def precedes(earlier: str, later: str) -> bool:
+    """Whether the stage listed before ``later`` has ended when ``later`` starts. Always in a one-sequence
+    run. A multi-sequence run's stages are ``<sequence>/<stage>`` (:mod:`app.jobs.multi`) and its
+    sequences may run at the same time (on a Ray cluster), so only a stage of the same sequence precedes,
+    or one across the joint 3D-CN (sequence ``*``), which starts after every sequence's first stages and
+    ends before any of their later ones."""
+    seq_e, sep_e, _ = earlier.partition(SEPARATOR)
+    seq_l, sep_l, _ = later.partition(SEPARATOR)
+    return not (sep_e and sep_l) or JOINT in (seq_e, seq_l) or seq_e == seq_l
 
 
 @dataclass
@@ -169,14 +182,17 @@ class ProgressTracker:
         """Record a report; returns True when the stage changed state (started or finished).
 
         Stages run in order, so earlier stages still marked running are closed and earlier stages that
-        never reported are marked skipped. ``skipped`` (the reason) marks a stage that reports completion
-        without computing anything as skipped rather than done.
+        never reported are marked skipped (in a multi-sequence run only those that precede it:
+        :func:`precedes`). ``skipped`` (the reason) marks a stage that reports completion without computing
+        anything as skipped rather than done.
         """
         state = self._stage(stage)
         changed = False
         if state.status in ("pending", "cancelled", "failed"):
             index = self.stages.index(state)
             for earlier in self.stages[:index]:
+                if not precedes(earlier.name, stage):
+                    continue
                 if earlier.status == "pending":
                     # The pipeline reports nothing for a stage it skips (3D-CN off, no ground truth).
                     earlier.status = "skipped"

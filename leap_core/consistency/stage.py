@@ -219,6 +219,12 @@ def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfi
     return cfg if iteration == 1 else replace(cfg, seed=cfg.seed + 1000 * (iteration - 1))
 
 
+Predict = Callable[[KittiSequence, range, Path], Iterable[tuple[np.ndarray, np.ndarray]]]
+"""``predict(seq, frames, checkpoint)``: per frame index of ``frames``, in order, the ``(keys (N,) int64,
+log-probabilities (N, C) float32)`` that the round's own inference gives for the network saved at
+``checkpoint``; how :func:`iter_3dcn_round` is handed inference that runs elsewhere (Ray tasks:
+:meth:`leap_core.pipeline.executor.RayExecutor.predictor`)."""
+
 GridSource = VoxelGrid | Callable[[], VoxelGrid]
 """A grid, or a function that loads it when a round needs it (a joint round holds one sequence's grids at
 a time)."""
@@ -296,6 +302,7 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
     work_dir: Path,
     iteration: int,
     progress: Callable[[int, int], None] | None = None,
+    predict: Predict | None = None,
 ) -> Iterator[VoxelGrid]:
     """One 3D-CN round over one or several sequences: ONE network trained on the reliable labels of every
     part, its predictions fused back into each part's own grid. Yields each part's new grid in order;
@@ -328,6 +335,8 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
         work_dir: folder for the checkpoint.
         iteration: 1 or 2; names the checkpoint and offsets the seed.
         progress: ``progress(done, total)`` over selection + training steps + inference scans (all parts).
+        predict: step 3's predictions from the checkpoint instead of this process (:data:`Predict`; the
+            same values in the same order, so the same grids); None = here.
 
     Raises:
         LeapError: when no point of any scan has a label to train on, or a grid has another C.
@@ -401,9 +410,18 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
                 yield keys, logp
 
     for part, frames in zip(parts, frame_sets, strict=True):
-        fused = check(_grid(part.fused), "fused", part)
-        yield fuse_back(fused, predictions(part.seq, frames), num_classes, cfg.temperature, fusion_cfg,
-                        cfg.network_evidence)
+        yield fuse_back(check(_grid(part.fused), "fused", part),
+                        predictions(part.seq, frames) if predict is None
+                        else _ticked(predict(part.seq, frames, ckpt_path), tick),
+                        num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
+
+
+def _ticked(pairs: Iterable[tuple[np.ndarray, np.ndarray]], tick: Callable[[], None]
+            ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``pairs``, calling ``tick()`` before each (one per scan predicted, as the local loop reports)."""
+    for pair in pairs:
+        tick()
+        yield pair
 
 
 def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names each input
@@ -601,6 +619,7 @@ def fuse_back(
 __all__ = [
     "FUSE_CHUNK_POINTS",
     "GridSource",
+    "Predict",
     "RoundPart",
     "TargetFile",
     "checkpoint_path",

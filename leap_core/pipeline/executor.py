@@ -22,7 +22,13 @@ local run's (``tests/test_ray.py``):
   observations and reduce each chunk (:func:`~leap_core.fusion.reduce_block`) in parallel, and the driver
   adds the partials in chunk order (:func:`~leap_core.fusion.fold_blocks`): the same additions in the
   same order as the local fusion, whose code and bytes are unchanged.
-* Everything else (smoothing, 3D-CN, evaluation) runs in the driver, as locally.
+* **3D-CN inference**: the network is trained in the driver (one network) and saved to the run folder as
+  locally; then tasks load that checkpoint (a path, never the model object), predict blocks of consecutive
+  frames with the driver's torch thread count
+  (:func:`leap_core.consistency.remote.predict_from_checkpoint`) and send each frame's keys and
+  log-probabilities back; the driver fuses them in frame order, as the local loop would have produced
+  them (:class:`RayPredictor`).
+* Everything else (smoothing, 3D-CN training, evaluation) runs in the driver, as locally.
 
 Warnings the stage code logs in a worker (``leap_core`` loggers) are sent back with the task's result and
 logged again in the driver, so the CLI and the app's run log show them as for a local run.
@@ -38,6 +44,7 @@ import os
 import socket
 import traceback
 import zipfile
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +57,7 @@ from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import Observations, Partial, fold_blocks, fusion_blocks, log_table, reduce_block
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, StageInfo
-from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys
+from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys, stage_3dcn
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -60,11 +67,18 @@ log = logging.getLogger(__name__)
 if TYPE_CHECKING:
     from types import ModuleType
 
+    from leap_core.consistency.config import ConsistencyConfig
+    from leap_core.consistency.stage import Predict
+    from leap_core.datasets.kitti import KittiSequence
     from leap_core.labelers.grounded_sam import GroundedSamConfig
 
 TASKS_PER_CPU = 2
 """Per-frame stages are cut into about this many sub-ranges per cluster CPU: enough for progress and for
 balancing uneven frames, few enough that each task's start (context, labeler, final grid) is paid rarely."""
+
+INFER_TASK_FRAMES = 8
+"""At most this many frames per 3D-CN inference task: a frame's predictions are ≈ 4·C bytes per point
+(≈ 8 MB for a 106k-point scan at C = 20), held in the object store until the driver fuses them."""
 
 LOCAL_OBJECT_STORE_BYTES = 512 * 1024 * 1024
 """Object store of a local instance started for ``"auto"``: a task's results (one chunk's observations,
@@ -80,6 +94,10 @@ class Executor(Protocol):
         """Compute the stage's outputs into ``ctx.layout``; returns the stage function's record fields."""
         ...
 
+    def predictor(self, cfg: PipelineConfig) -> Predict | None:
+        """Where the 3D-CN's inference runs: None = in this process (the round's own loop)."""
+        ...
+
 
 class LocalExecutor:
     """Every stage in this process (the default engine)."""
@@ -88,6 +106,9 @@ class LocalExecutor:
 
     def run_stage(self, ctx: Ctx, stage: StageInfo) -> dict[str, Any]:
         return stage.run(ctx)
+
+    def predictor(self, cfg: PipelineConfig) -> Predict | None:  # noqa: ARG002  the protocol's signature
+        return None
 
 
 def make_executor(runtime: Runtime | None) -> Executor:
@@ -242,6 +263,16 @@ def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, r
     return labeler.detector_calls, labeler.segmenter_calls
 
 
+def predict_task(seq: KittiSequence, indices: list[int], checkpoint: Path, cfg: ConsistencyConfig,
+                 voxel_size: float, threads: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The 3D-CN's predictions of some frames (a Ray task):
+    :func:`leap_core.consistency.remote.predict_from_checkpoint`."""
+    # Imported here: the 3D-CN needs torch, which only the processes that run it load.
+    from leap_core.consistency.remote import predict_from_checkpoint  # noqa: PLC0415
+
+    return predict_from_checkpoint(seq, indices, checkpoint, cfg, voxel_size, threads)
+
+
 @dataclass(frozen=True)
 class TaskError:
     """A :class:`LeapError` raised in a task, carried back as data. Ray would pickle the exception, and
@@ -359,7 +390,19 @@ class RayExecutor:
             return self._per_frame(ctx, stage)
         if stage.name == "fuse":
             return self._fuse(ctx)
+        if stage.name == "3dcn":
+            predict = self.predictor(ctx.cfg)
+            record = stage_3dcn(ctx, predict)
+            if predict.tasks:  # none when the rounds were kept, or the grids linked from a joint round
+                record["ray_tasks"] = predict.tasks
+                if predict.gpus:
+                    record["ray_gpus_per_task"] = predict.gpus
+            return record
         return stage.run(ctx)
+
+    def predictor(self, cfg: PipelineConfig) -> RayPredictor:
+        """The 3D-CN's inference as Ray tasks (:class:`RayPredictor`)."""
+        return RayPredictor(self, cfg)
 
     def _job(self, ctx: Ctx) -> RunJob:
         return RunJob(ctx.seq.root, ctx.schema, ctx.cfg, ctx.layout.run_dir,
@@ -515,7 +558,70 @@ class RayExecutor:
         return record
 
 
-__all__ = ["TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RunJob", "TaskError", "connect",
-           "frame_blocks",
+class RayPredictor:
+    """``predict(seq, frames, checkpoint)`` of a 3D-CN round as Ray tasks
+    (:data:`leap_core.consistency.stage.Predict`).
+
+    ``frames`` is cut into blocks of consecutive frames (about :data:`TASKS_PER_CPU` per task slot, at
+    most :data:`INFER_TASK_FRAMES` each); each task loads the checkpoint once and predicts its block
+    (:func:`predict_task`) with this process's torch thread count (the local rule,
+    :func:`leap_core.consistency.remote.inference_threads`), asking for that many CPUs (or one GPU where
+    the cluster has GPUs and ``consistency.device`` is not ``cpu``). The frames come back in frame order,
+    whatever order the tasks end in, and at most ``2 × slots`` tasks are ahead of the one being read, so
+    the object store holds a bounded number of frames' predictions.
+    """
+
+    def __init__(self, executor: RayExecutor, cfg: PipelineConfig) -> None:
+        self.executor = executor
+        self.cfg = cfg.consistency
+        self.voxel_size = cfg.fusion.voxel_size
+        self.tasks = 0
+        """Inference tasks whose results came back (what a run's ``3dcn`` record calls ``ray_tasks``)."""
+        self.gpus = 0
+        """GPUs each inference task asked for (0 or 1)."""
+
+    def __call__(self, seq: KittiSequence, frames: range, checkpoint: Path) -> Iterator[tuple[Any, Any]]:
+        from leap_core.consistency.remote import inference_threads  # noqa: PLC0415  loads torch
+
+        ex = self.executor
+        ray = ex.ray
+        threads = inference_threads(self.cfg)
+        resources = ray.cluster_resources()
+        if self.cfg.device != "cpu" and resources.get("GPU", 0) >= 1:
+            options: dict[str, Any] = {"num_gpus": 1}
+            slots = int(resources["GPU"])
+            self.gpus = 1
+        else:
+            cpus = min(threads, ex._cpus())
+            options = {"num_cpus": cpus}
+            slots = max(1, ex._cpus() // cpus)
+        size = min(INFER_TASK_FRAMES, max(1, math.ceil(len(frames) / (TASKS_PER_CPU * slots))))
+        blocks = iter(frame_blocks(list(frames), size))
+        task = ex._task.options(**options)
+        seq_ref = ray.put(seq)
+        pending: deque[Any] = deque()
+
+        def submit() -> None:
+            block = next(blocks, None)
+            if block is not None:
+                pending.append(task.remote(predict_task, seq_ref, block, Path(checkpoint), self.cfg,
+                                           self.voxel_size, threads))
+
+        try:
+            for _ in range(2 * slots + 1):
+                submit()
+            while pending:
+                result = ex._get(pending.popleft())
+                self.tasks += 1
+                submit()
+                yield from result
+                del result
+        except BaseException:  # an error, a Cancelled from progress, or the consumer closing the generator
+            ex._stop(list(pending))
+            raise
+
+
+__all__ = ["INFER_TASK_FRAMES", "TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RayPredictor",
+           "RunJob", "TaskError", "connect", "frame_blocks",
            "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count",
-           "run_task", "worker_context"]
+           "predict_task", "run_task", "worker_context"]

@@ -21,6 +21,11 @@ joint:
 Without the 3D-CN nothing is joint but the overall metrics: each sequence's files are byte for byte those
 of an ordinary run of that sequence.
 
+Locally the sequences run one after another. With a Ray runtime they run at once, one driver thread each
+sending its per-frame work to the one cluster (:class:`_Concurrently`); every sequence is still an
+ordinary :func:`~leap_core.pipeline.runner.run_pipeline` in its own folder, so its files are the local
+run's bytes, and the joint rounds' inference runs as Ray tasks too.
+
 Exports keep SemanticKITTI's layout: :func:`export_sequences` writes ``<target>/sequences/<name>/
 predictions/<frame>.label`` (through :func:`leap_core.export.write_export_folder`), :func:`export_zip` the
 same layout into a zip with one label map and summary.
@@ -31,9 +36,11 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import threading
 import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,7 +48,7 @@ from typing import Any
 import yaml
 
 from leap_core.config import PipelineConfig, config_to_dict
-from leap_core.errors import ConfigError, DatasetError, LeapError
+from leap_core.errors import Cancelled, ConfigError, DatasetError, LeapError
 from leap_core.export import (
     CONFIDENCES,
     LABEL_MAP_FILE,
@@ -58,6 +65,7 @@ from leap_core.export import (
 from leap_core.io_utils import atomic_write, atomic_write_json, remove_tree
 from leap_core.pipeline.context import Ctx, hash_json, read_state
 from leap_core.pipeline.evaluation import format_result_tables, overall_metrics, read_metrics_file
+from leap_core.pipeline.executor import Executor, make_executor
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
     RunResult,
@@ -204,26 +212,27 @@ def run_sequences(
     layout.root.mkdir(parents=True, exist_ok=True)
     _write_spec(layout, specs)
 
-    def member_progress(name: str) -> Callable[[str, int, int], None] | None:
-        if progress is None:
-            return None
-        return lambda stage, done, total: progress(name, stage, done, total)
+    # On a Ray cluster the sequences run at once (one driver thread each, their per-frame work as tasks
+    # of the one connection made here); locally one after another.
+    executor = make_executor(runtime)
+    each = _Concurrently(progress) if executor.name == "ray" and len(specs) > 1 else _InTurn(progress)
 
     def run(spec: SequenceSpec, stop: str) -> RunResult:
         return run_pipeline(spec.dataset, schema, config, layout.sequence(spec.name).run_dir,
-                            progress=member_progress(spec.name), frames=spec.frames, runtime=runtime,
+                            progress=each.progress(spec.name), frames=spec.frames, runtime=runtime,
                             until=stop)
 
     joint = config.consistency.enabled and last >= STAGES.index("3dcn")
     results: dict[str, RunResult] = {}
     joint_seconds = 0.0
     if joint:
-        first = {spec.name: run(spec, "smooth") for spec in specs}
+        first = each.run(specs, lambda spec: run(spec, "smooth"))
         t0 = time.perf_counter()
-        _joint_3dcn(layout, specs, schema, config, runtime, progress)
+        _joint_3dcn(layout, specs, schema, config, runtime, progress, executor)
         joint_seconds = time.perf_counter() - t0
+        seconds = each.run(specs, lambda spec: run(spec, STAGES[last]))
         for spec in specs:
-            second = run(spec, STAGES[last])
+            second = seconds[spec.name]
             stages = {**first[spec.name].stages,
                       **{k: v for k, v in second.stages.items() if k not in first[spec.name].stages}}
             results[spec.name] = RunResult(second.run_dir, stages, second.frames, second.export_dir,
@@ -233,11 +242,73 @@ def run_sequences(
             # A joint record left by an earlier run with the 3D-CN on would make this folder's 3D-CN differ
             # from an ordinary run's; without the 3D-CN nothing is joint.
             layout.sequence(spec.name).joint_3dcn.unlink(missing_ok=True)
-            results[spec.name] = run(spec, STAGES[last])
+        results = each.run(specs, lambda spec: run(spec, STAGES[last]))
     metrics = None
     if last >= STAGES.index("evaluate"):
         metrics = write_metrics(layout, {n: r.metrics for n, r in results.items()})
     return MultiRunResult(layout.root, results, metrics, joint_seconds)
+
+
+class _InTurn:
+    """The sequences one after another (the local engine)."""
+
+    def __init__(self, progress: MultiProgress | None) -> None:
+        self._progress = progress
+
+    def progress(self, name: str) -> Callable[[str, int, int], None] | None:
+        report = self._progress
+        if report is None:
+            return None
+        return lambda stage, done, total: report(name, stage, done, total)
+
+    def run(self, specs: Sequence[SequenceSpec], fn: Callable[[SequenceSpec], RunResult]
+            ) -> dict[str, RunResult]:
+        return {spec.name: fn(spec) for spec in specs}
+
+
+class _Concurrently(_InTurn):
+    """The sequences at once, one thread each (the Ray engine: the threads mostly wait for tasks).
+
+    Progress reports are passed on one at a time (the callback need not be thread-safe). When one
+    sequence fails or is cancelled, or the waiting thread is interrupted, the others stop at their next
+    report with :class:`Cancelled` (their stages recorded as cancelled: a rerun resumes them); the first
+    error that is not such a consequence is raised once every thread has ended."""
+
+    def __init__(self, progress: MultiProgress | None) -> None:
+        super().__init__(progress)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+
+    def progress(self, name: str) -> Callable[[str, int, int], None]:
+        def report(stage: str, done: int, total: int) -> None:
+            if self._stop.is_set():
+                raise Cancelled("stopped with the multi-sequence run")
+            if self._progress is not None:
+                with self._lock:
+                    self._progress(name, stage, done, total)
+
+        return report
+
+    def run(self, specs: Sequence[SequenceSpec], fn: Callable[[SequenceSpec], RunResult]
+            ) -> dict[str, RunResult]:
+        def guarded(spec: SequenceSpec) -> RunResult:
+            try:
+                return fn(spec)
+            except BaseException:
+                self._stop.set()
+                raise
+
+        with ThreadPoolExecutor(len(specs), thread_name_prefix="leap-sequence") as pool:
+            futures = [pool.submit(guarded, spec) for spec in specs]
+            try:
+                wait(futures)
+            except BaseException:  # e.g. Ctrl-C in the CLI: the threads stop at their next report
+                self._stop.set()
+                raise
+        errors = [e for f in futures if (e := f.exception()) is not None]
+        if errors:
+            raise next((e for e in errors if not isinstance(e, Cancelled)), errors[0])
+        return {spec.name: f.result() for spec, f in zip(specs, futures, strict=True)}
 
 
 def write_metrics(layout: MultiRunLayout, per_sequence: Mapping[str, Mapping[str, Any] | None]
@@ -311,11 +382,12 @@ def _all_linked(layout: MultiRunLayout, specs: Sequence[SequenceSpec], config: P
     return True
 
 
-def _joint_3dcn(
+def _joint_3dcn(  # noqa: PLR0917  the run's parts, each as run_sequences has it
     layout: MultiRunLayout, specs: Sequence[SequenceSpec], schema: Schema, config: PipelineConfig,
-    runtime: Runtime | None, progress: MultiProgress | None,
+    runtime: Runtime | None, progress: MultiProgress | None, executor: Executor,
 ) -> None:
-    """The joint rounds into ``<root>/3dcn/rounds/<name>/``, then each sequence's ``3dcn_joint.json``."""
+    """The joint rounds into ``<root>/3dcn/rounds/<name>/`` (their inference where ``executor`` puts it),
+    then each sequence's ``3dcn_joint.json``."""
     fingerprint, fps = _joint_fingerprints(specs, schema, config, layout, runtime)
     tick = None if progress is None else (lambda done, total: progress(JOINT, "3dcn", done, total))
     if _all_linked(layout, specs, config, fingerprint, fps):
@@ -336,7 +408,11 @@ def _joint_3dcn(
         ctx = Ctx(seq, schema, config, lay, seq.select(spec.frames), runtime, None,
                   {s.name: s for s in STAGE_TABLE})
         members.append(CnMember(ctx, layout.joint_rounds(spec.name), spec.name))
-    cn_rounds(members, layout.cn_dir, tick)
+    predict = executor.predictor(config)
+    cn_rounds(members, layout.cn_dir, tick, predict)
+    tasks = getattr(predict, "tasks", 0)
+    if tasks:  # how many inference tasks ran on Ray (the rounds' own record: sequences only link them)
+        atomic_write_json(state, {**json.loads(state.read_text()), "ray_tasks": tasks})
     for spec in specs:
         note = _joint_note(fingerprint, spec.name, specs)
         path = layout.sequence(spec.name).joint_3dcn

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +50,9 @@ from leap_core.pipeline.evaluation import stage_evaluate
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import MultiRunLayout, RunLayout, load_corrections
 from leap_core.smoothing import SmoothedGrid, smooth_grid_blocks
+
+if TYPE_CHECKING:
+    from leap_core.consistency.stage import Predict
 
 _3DCN_GRID_SCALE = 1000
 """3D-CN progress is reported in thousandths of an iteration (its own step count is not known upfront)."""
@@ -285,7 +288,8 @@ class CnMember:
 
 
 def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
-              progress: Callable[[int, int], None] | None = None) -> list[int]:
+              progress: Callable[[int, int], None] | None = None,
+              predict: Predict | None = None) -> list[int]:
     """The 3D Consistency Network's ``consistency.iterations`` rounds over one or several sequences (one
     network per round: :func:`~leap_core.consistency.stage.iter_3dcn_round`).
 
@@ -293,7 +297,9 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
     tempered predictions into each member's previous fused grid → ``grid_3dcn{i}.npz``, smooth →
     ``grid_smooth_3dcn{i}.npz`` (both in ``member.rounds``). A round whose grids every member has is kept
     on resume; checkpoints go to ``checkpoints`` and are reused when their fingerprint matches.
-    ``progress(done, total)`` counts thousandths of a round. Returns each member's final voxel count.
+    ``progress(done, total)`` counts thousandths of a round. ``predict``: the rounds' inference elsewhere
+    (Ray tasks, same bytes; :data:`~leap_core.consistency.stage.Predict`). Returns each member's final
+    voxel count.
     """
     # Imported here: the 3D-CN needs torch, which only this stage may load.
     from leap_core.consistency.stage import RoundPart, iter_3dcn_round  # noqa: PLC0415  loads torch
@@ -330,7 +336,8 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
                           partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name)
                 for m, f, s, v, e in zip(members, fused, smoothed, views, erased, strict=True)
             ]
-            round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog)
+            round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog,
+                                          predict=predict)
             for m, grid, (grid_path, smooth_path) in zip(members, round_grids, paths, strict=True):
                 grid.save(grid_path)
                 _smooth_and_save(grid, m.ctx, smooth_path)
@@ -344,18 +351,18 @@ def _load_smoothed(path: Path, clip: float) -> VoxelGrid:
     return SmoothedGrid.load(path, mmap=True).to_voxel_grid(clip)
 
 
-def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
+def stage_3dcn(ctx: Ctx, predict: Predict | None = None) -> dict[str, Any]:
     """The 3D Consistency Network, ``consistency.iterations`` rounds (the table skips it unless enabled):
     :func:`cn_rounds` over this run's sequence, checkpoints in ``3dcn/``.
 
     In a sequence of a multi-sequence run (``3dcn_joint.json`` present) the rounds ran over every
     sequence at once (:mod:`leap_core.pipeline.multi`); the stage then takes this sequence's round grids
-    from the joint run's staging folder.
+    from the joint run's staging folder. ``predict``: as for :func:`cn_rounds` (the Ray engine's).
     """
     if ctx.layout.joint_3dcn.is_file():
         return _link_joint_rounds(ctx)
     sizes = cn_rounds([CnMember(ctx, ctx.layout)], ctx.layout.cn_dir,
-                      lambda done, total: ctx.tick("3dcn", done, total))
+                      lambda done, total: ctx.tick("3dcn", done, total), predict)
     return {"iterations": ctx.cfg.consistency.iterations, "voxels": sizes[0]}
 
 

@@ -34,6 +34,29 @@ def test_stage_eta_percent_and_ordering() -> None:
     assert t.snapshot()["percent"] == 100.0 and t.snapshot()["version"] == versions + 1
 
 
+def test_sequences_running_at_once_keep_each_others_stages() -> None:
+    """A multi-sequence run on Ray interleaves its sequences' reports: a stage of 01 starting closes
+    nothing of 00; the joint 3D-CN (``*``) closes every stage before it, and is closed by any after it."""
+    names = ["00/labels2d", "00/project", "01/labels2d", "01/project", "*/3dcn", "00/export", "01/export"]
+    t = ProgressTracker.create(1, 1, names)
+    t.set_status("running", "s0")
+    t.update("00/labels2d", 1, 4, now=1.0, stamp="s1")
+    t.update("01/labels2d", 1, 3, now=1.5, stamp="s2")
+    t.update("00/labels2d", 4, 4, now=2.0, stamp="s3")
+    t.update("01/project", 1, 3, now=2.5, stamp="s4")  # 01/labels2d ends unreported, 00/project waits
+    status = {s["name"]: s["status"] for s in t.snapshot(now=3.0)["stages"]}
+    assert status == {"00/labels2d": "done", "00/project": "pending", "01/labels2d": "done",
+                      "01/project": "running", "*/3dcn": "pending", "00/export": "pending",
+                      "01/export": "pending"}
+    t.update("00/project", 2, 4, now=3.0, stamp="s5")
+    assert t.snapshot(now=3.0)["stages"][1]["status"] == "running"
+    t.update("*/3dcn", 0, 10, now=4.0, stamp="s6")
+    t.update("01/export", 1, 3, now=5.0, stamp="s7")
+    status = {s["name"]: s["status"] for s in t.snapshot(now=5.0)["stages"]}
+    assert status["00/project"] == status["01/project"] == status["*/3dcn"] == "done"
+    assert status["00/export"] == "pending" and status["01/export"] == "running"
+
+
 def test_run_eta_adds_expected_seconds_of_pending_stages() -> None:
     t = ProgressTracker.create(1, 1, ["a", "b"], expected_seconds={"b": 7.5})
     t.set_status("running", "s")
