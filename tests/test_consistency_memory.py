@@ -185,13 +185,14 @@ del blocks
 freed = proc.memory_info().rss
 released = heap.release_free_memory()
 after = proc.memory_info().rss
-print(json.dumps({"held": (freed - rss0) / 2**20, "after_trim": (after - rss0) / 2**20, "released": released}))
+mib = 2**20
+print(json.dumps({"held": (freed - rss0) / mib, "after_trim": (after - rss0) / mib, "released": released}))
 """
 
 
 def _heap_child(mode: str) -> dict[str, float]:
-    out = subprocess.run([sys.executable, "-c", _HEAP_CHILD, mode], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parent.parent)
+    out = subprocess.run([sys.executable, "-c", _HEAP_CHILD, mode], capture_output=True, text=True,
+                         check=True, cwd=Path(__file__).resolve().parent.parent)
     result: dict[str, float] = json.loads(out.stdout)
     return result
 
