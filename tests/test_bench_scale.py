@@ -36,6 +36,7 @@ def test_fits_recover_exact_laws(bench: ModuleType) -> None:
     assert a == pytest.approx(5.0) and b == pytest.approx(64.0)
     assert all(math.isnan(v) for v in bench.power_law_fit(x[:1], x[:1]))
     assert bench.memory_target(1e6) == pytest.approx(1.5e9 + 64e6)
+    assert bench.memory_target(1e6, cn=True) == pytest.approx(3.0e9 + 64e6)
 
 
 def _result(frames: int, per_scan: dict[str, float], peak: float, voxels: int) -> dict[str, Any]:

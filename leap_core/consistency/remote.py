@@ -7,6 +7,7 @@ round's grids are the same bytes wherever its frames were predicted.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +15,9 @@ import numpy.typing as npt
 import torch
 
 from leap_core.consistency.config import ConsistencyConfig
-from leap_core.consistency.train import load_checkpoint, predict_log_probs, resolve_device, torch_threads
+from leap_core.consistency.stage import predict_frames
+from leap_core.consistency.train import load_checkpoint, resolve_device, torch_threads
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.fusion import voxel_keys, world_points
 
 
 def inference_threads(cfg: ConsistencyConfig) -> int:
@@ -49,14 +50,6 @@ def predict_from_checkpoint(
     """
     device = resolve_device(cfg)
     model = load_checkpoint(checkpoint, device).model
-    out = []
-    with torch_threads(threads):
-        workers = max(1, torch.get_num_threads())
-        for i in indices:
-            frame = seq.frame(i)
-            keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
-            out.append((keys, predict_log_probs(model, frame.points, device=device, workers=workers)))
-    return out
-
+    return list(predict_frames(model, seq, indices, replace(cfg, num_threads=threads), voxel_size))
 
 __all__ = ["inference_threads", "predict_from_checkpoint"]

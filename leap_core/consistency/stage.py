@@ -46,6 +46,7 @@ from leap_core.fusion import (
     voxel_keys,
     world_points,
 )
+from leap_core.heap import cap_heap_growth, release_free_memory
 from leap_core.types import UNLABELED
 
 FUSE_CHUNK_POINTS = 2_000_000
@@ -371,6 +372,9 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
             yield check(_grid(part.fused), "fused", part)
         return
 
+    # Freed tensors and arrays of 1 MiB or more go back to the system from here on; without this the
+    # round's resident size grows with its steps and scans (leap_core.heap, README "Memory").
+    cap_heap_growth()
     # 1. reliable labels, per part (one smoothed grid in memory at a time), streamed scan by scan into a
     # file in the work folder: no per-point array of the whole round is held (docs/METHOD.md, "Memory")
     counts = np.zeros(num_classes, np.int64)
@@ -399,21 +403,42 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
     device = resolve_device(cfg)
     model = model.to(device)
 
-    def predictions(seq: KittiSequence, frames: range) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        with torch_threads(cfg.num_threads):
-            workers = max(1, torch.get_num_threads())
-            for i in frames:
-                frame = seq.frame(i)
-                keys = voxel_keys(world_points(frame.points, frame.pose), fusion_cfg.voxel_size)
-                logp = predict_log_probs(model, frame.points, device=device, workers=workers)
-                tick()
-                yield keys, logp
-
     for part, frames in zip(parts, frame_sets, strict=True):
-        yield fuse_back(check(_grid(part.fused), "fused", part),
-                        predictions(part.seq, frames) if predict is None
-                        else _ticked(predict(part.seq, frames, ckpt_path), tick),
-                        num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
+        fused = check(_grid(part.fused), "fused", part)
+        scans = (predict_frames(model, part.seq, frames, cfg, fusion_cfg.voxel_size, tick) if predict is None
+                 else _ticked(predict(part.seq, frames, ckpt_path), tick))
+        grid = fuse_back(fused, scans, num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
+        del fused
+        release_free_memory()
+        yield grid
+        del grid
+
+
+def predict_frames(
+    model: PointSegmenter,
+    seq: KittiSequence,
+    frames: Sequence[int],
+    cfg: ConsistencyConfig,
+    voxel_size: float,
+    tick: Callable[[], None] | None = None,
+) -> Iterator[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]]:
+    """Step 3's inference, one scan at a time: per frame of ``frames``, the (N,) voxel keys of its points
+    in world coordinates and their (N, C) network log-probabilities (:func:`predict_log_probs`, on
+    ``model``'s device, ``cfg.num_threads`` torch threads). Only the scan being predicted is held; the
+    memory its forward pass freed goes back to the system before the scan is yielded
+    (:func:`~leap_core.heap.release_free_memory`). ``tick()`` after each scan."""
+    device = next(model.parameters()).device
+    with torch_threads(cfg.num_threads):
+        workers = max(1, torch.get_num_threads())
+        for i in frames:
+            frame = seq.frame(i)
+            keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+            logp = predict_log_probs(model, frame.points, device=device, workers=workers)
+            del frame
+            release_free_memory()  # the forward pass's activations, freed by now
+            if tick is not None:
+                tick()
+            yield keys, logp
 
 
 def _ticked(pairs: Iterable[tuple[np.ndarray, np.ndarray]], tick: Callable[[], None]
@@ -518,35 +543,53 @@ def voxel_mean_log_probs(
     acc_keys = np.zeros(0, np.int64)
     acc_sum = np.zeros((0, num_classes), np.float32)
     acc_cnt = np.zeros(0, np.int64)
+    # The chunk being summed: its sorted keys, float32 sums and counts, grown scan by scan. Each scan is
+    # added as it arrives and then dropped, so at most one scan's predictions are held; the sums are the
+    # very float32 additions of summing the chunk's scans concatenated (every voxel's row starts at 0 and
+    # adds its points in scan and point order; index_add_ adds rows in index order), and the chunk joins
+    # the accumulator at the same point count as before, so the means are bit for bit the same.
+    ck_keys = np.zeros(0, np.int64)
+    ck_sum = torch.zeros((0, num_classes), dtype=torch.float32)
+    ck_cnt = np.zeros(0, np.int64)
+    pending = 0
 
-    def reduce(keys: list[np.ndarray], logps: list[np.ndarray]) -> None:
-        nonlocal acc_keys, acc_sum, acc_cnt
-        k = np.concatenate(keys)
-        uk, inv = np.unique(k, return_inverse=True)
-        lp = torch.from_numpy(np.concatenate(logps).astype(np.float32, copy=False)).clamp_min_(floor)
-        sums = torch.zeros((len(uk), num_classes), dtype=torch.float32)
-        sums.index_add_(0, torch.from_numpy(inv.reshape(-1)), lp)
-        del lp
-        cnt = np.bincount(inv.reshape(-1), minlength=len(uk)).astype(np.int64)
+    def add_scan(keys: np.ndarray, logp: np.ndarray) -> None:
+        nonlocal ck_keys, ck_sum, ck_cnt
+        uk = np.unique(keys)
+        if len(ck_keys) == 0 or not np.isin(uk, ck_keys, assume_unique=True).all():
+            grown = np.union1d(ck_keys, uk)
+            old_rows = torch.from_numpy(np.searchsorted(grown, ck_keys))
+            sums = torch.zeros((len(grown), num_classes), dtype=torch.float32)
+            sums.index_copy_(0, old_rows, ck_sum)
+            cnt = np.zeros(len(grown), np.int64)
+            cnt[old_rows.numpy()] = ck_cnt
+            ck_keys, ck_sum, ck_cnt = grown, sums, cnt
+        rows = np.searchsorted(ck_keys, keys)
+        lp = torch.from_numpy(np.asarray(logp, dtype=np.float32)).clamp_min(floor)
+        ck_sum.index_add_(0, torch.from_numpy(rows), lp)
+        ck_cnt += np.bincount(rows, minlength=len(ck_keys))
+
+    def reduce() -> None:
+        nonlocal acc_keys, acc_sum, acc_cnt, ck_keys, ck_sum, ck_cnt
         # In place (fusion.merge_sparse): the (V, C) sums are grown, never copied whole; new voxels get
         # 0 + chunk sums, as a zero-filled merge would give them.
-        acc_keys, (acc_sum, acc_cnt) = merge_sparse(acc_keys, [acc_sum, acc_cnt], uk,
-                                                    [np.array(sums.numpy()), cnt])
+        acc_keys, (acc_sum, acc_cnt) = merge_sparse(acc_keys, [acc_sum, acc_cnt], ck_keys,
+                                                    [np.array(ck_sum.numpy()), ck_cnt])
+        ck_keys = np.zeros(0, np.int64)
+        ck_sum = torch.zeros((0, num_classes), dtype=torch.float32)
+        ck_cnt = np.zeros(0, np.int64)
 
-    pend_k: list[np.ndarray] = []
-    pend_l: list[np.ndarray] = []
-    pending = 0
     for keys, logp in predictions:
         if logp.ndim != 2 or logp.shape != (len(keys), num_classes):
             raise ValueError(f"predictions must be keys (N,) and logp (N, {num_classes}), got {logp.shape}")
-        pend_k.append(np.asarray(keys, np.int64))
-        pend_l.append(logp)
+        add_scan(np.asarray(keys, np.int64), logp)
         pending += len(keys)
+        del keys, logp  # the generator's next scan need not share memory with this one
         if pending >= chunk_points:
-            reduce(pend_k, pend_l)
-            pend_k, pend_l, pending = [], [], 0
+            reduce()
+            pending = 0
     if pending:
-        reduce(pend_k, pend_l)
+        reduce()
     denom = np.maximum(acc_cnt, 1)[:, None].astype(np.float32)
     acc_sum /= denom  # the means, in place
     return acc_keys, acc_sum, acc_cnt
@@ -627,6 +670,7 @@ __all__ = [
     "iter_3dcn_round",
     "iter_reliable_targets",
     "iteration_config",
+    "predict_frames",
     "reliable_targets",
     "run_3dcn_iteration",
     "targets_path",

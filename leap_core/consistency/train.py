@@ -24,6 +24,7 @@ from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
 from leap_core.consistency.data import PreparedCloud, augment_points, collate, prepare_cloud
 from leap_core.errors import ModelLoadError
+from leap_core.heap import release_free_memory
 from leap_core.io_utils import atomic_write
 from leap_core.progress import ProgressFn, report
 from leap_core.types import UNLABELED
@@ -189,28 +190,48 @@ def train_model(
             order = rng.permutation(len(indices))
             for s in range(min(per_epoch, total - step)):
                 batch_ids = [indices[j] for j in order[s * cfg.scans_per_step : (s + 1) * cfg.scans_per_step]]
-                clouds, targets = _training_batch(load_scan, batch_ids, cfg, rng, workers)
-                if clouds:
-                    batch = collate(clouds).to(device)
-                    tgt = torch.from_numpy(np.concatenate(targets)).to(device)
-                    logits = model(batch)
-                    loss = F_.cross_entropy(
-                        logits, tgt, weight=weights, ignore_index=_IGNORE, label_smoothing=cfg.label_smoothing
-                    )
-                    opt.zero_grad(set_to_none=True)
-                    torch.autograd.backward(loss)  # loss.backward(), which torch leaves unannotated
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-                    opt.step()
-                    stats.steps += 1
-                    stats.losses.append(float(loss.detach()))
-                    stats.points_seen += batch.num_points
-                    stats.labeled_seen += int((tgt != _IGNORE).sum())
+                batch = _training_batch(load_scan, batch_ids, cfg, rng, workers)
+                _train_step(model, opt, batch, weights, cfg, device, stats)
+                del batch
+                # The step's batch, activations and gradients are freed by now; hand their pages back
+                # so they do not add up step after step (leap_core.heap).
+                release_free_memory()
                 sched.step()
                 step += 1
                 report(progress, step, total)
     model.eval()
     stats.seconds = time.perf_counter() - t0
     return model.cpu(), stats
+
+
+def _train_step(  # noqa: PLR0917  one step's model, optimiser, batch and its settings
+    model: PointSegmenter,
+    opt: torch.optim.Optimizer,
+    batch_data: tuple[list[PreparedCloud], list[npt.NDArray[np.int64]]],
+    weights: torch.Tensor | None,
+    cfg: ConsistencyConfig,
+    device: torch.device,
+    stats: TrainStats,
+) -> None:
+    """One optimisation step on one batch (:func:`_training_batch`), counted in ``stats``; nothing when
+    the batch is empty. Its own function so that the step's tensors are gone when it returns."""
+    clouds, targets = batch_data
+    if not clouds:
+        return
+    batch = collate(clouds).to(device)
+    tgt = torch.from_numpy(np.concatenate(targets)).to(device)
+    logits = model(batch)
+    loss = F_.cross_entropy(
+        logits, tgt, weight=weights, ignore_index=_IGNORE, label_smoothing=cfg.label_smoothing
+    )
+    opt.zero_grad(set_to_none=True)
+    torch.autograd.backward(loss)  # loss.backward(), which torch leaves unannotated
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+    opt.step()
+    stats.steps += 1
+    stats.losses.append(float(loss.detach()))
+    stats.points_seen += batch.num_points
+    stats.labeled_seen += int((tgt != _IGNORE).sum())
 
 
 def _training_batch(
