@@ -584,7 +584,7 @@ def test_select_takes_frame_numbers(tmp_path: Path, make_tiny_sequence) -> None:
     assert ks.select(range(3, 6)) == range(1, 3)  # frames 3 and 5 (4 is a gap)
     assert ks.select(range(5, 6)) == range(2, 3)
     for bad, match in [
-        (range(4, 5), "select no frame: no scan is numbered"),
+        (range(4, 5), "^frames 4:5 select no frame: no scan is numbered"),
         (range(0, 3), r"out of range: the sequence has frames 2\.\.6"),
         (range(5, 8), "out of range"),
         (range(5, 5), "select no frame"),
@@ -647,3 +647,46 @@ def test_frame_caches_its_arrays(tmp_path: Path, make_tiny_sequence) -> None:
     first = frame.points
     (seq.root / "velodyne" / "000000.bin").unlink()
     assert frame.points is first
+
+
+# ------------------------------------------------------------------------- edges the mutants found
+def test_write_scan_stores_float32_whatever_the_input_dtype(tmp_path: Path) -> None:
+    pts = np.array([[1.5, -2.0, 0.25, 0.5], [3.0, 4.0, 5.0, 0.0]], np.float64)
+    write_scan(tmp_path / "a.bin", pts)
+    assert (tmp_path / "a.bin").stat().st_size == 2 * 16  # 16 bytes a point, not 32
+    np.testing.assert_array_equal(read_scan(tmp_path / "a.bin"), pts.astype(np.float32))
+
+
+def test_16_bit_writers_take_65535_and_refuse_65536(tmp_path: Path) -> None:
+    write_label(tmp_path / "a.label", [0xFFFF])
+    np.testing.assert_array_equal(read_label(tmp_path / "a.label"), [0xFFFF])
+    write_png16(tmp_path / "m.png", np.array([[0xFFFF]]))
+    np.testing.assert_array_equal(read_png16(tmp_path / "m.png"), [[0xFFFF]])
+    with pytest.raises(ValueError, match=r"semantic ids .* 0\.\.65535"):
+        write_label(tmp_path / "b.label", [0x10000])
+    with pytest.raises(ValueError, match=r"0\.\.65535"):
+        write_png16(tmp_path / "n.png", np.array([[0x10000]]))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.label", "m.png"]
+
+
+def test_write_poses_takes_3x4_rows_and_refuses_other_shapes(tmp_path: Path) -> None:
+    rows = np.arange(24, dtype=np.float64).reshape(2, 3, 4)
+    write_poses(tmp_path / "poses.txt", rows)
+    np.testing.assert_array_equal(read_poses(tmp_path / "poses.txt")[:, :3], rows)
+    for shape in ((2, 3, 3), (2, 3, 5), (2, 4, 3)):
+        with pytest.raises(ValueError, match="poses must be"):
+            write_poses(tmp_path / "bad.txt", np.zeros(shape))
+    assert not (tmp_path / "bad.txt").exists()
+
+
+def test_write_image_format_follows_the_suffix_png_without_one(tmp_path: Path) -> None:
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    rgb[..., 0] = 200
+    write_image(tmp_path / "a.jpg", rgb)
+    assert (tmp_path / "a.jpg").read_bytes()[:2] == b"\xff\xd8"  # JPEG, as the name says
+    write_image(tmp_path / "noext", rgb)
+    assert (tmp_path / "noext").read_bytes()[:4] == b"\x89PNG"
+    np.testing.assert_array_equal(read_image(tmp_path / "noext"), rgb)
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
+        write_image(tmp_path / "b.png", np.zeros((4, 6, 3), np.uint16))  # 16-bit colour is not what we store
+    assert not (tmp_path / "b.png").exists()
