@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from leap_core.datasets.kitti import (
+    POSES_NOTE,
     Calib,
     KittiSequence,
     lidar_poses,
@@ -26,7 +27,7 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
-from leap_core.errors import DatasetError, LeapError
+from leap_core.errors import DatasetError, LeapError, PosesMissingError
 
 # A real SemanticKITTI sequence 00 calib.txt (odometry format), plus the blank line and trailing spaces
 # that hand-edited copies often have.
@@ -690,3 +691,58 @@ def test_write_image_format_follows_the_suffix_png_without_one(tmp_path: Path) -
     with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
         write_image(tmp_path / "b.png", np.zeros((4, 6, 3), np.uint16))  # 16-bit colour is not what we store
     assert not (tmp_path / "b.png").exists()
+
+
+def test_pose_source_and_missing_poses(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=2, with_images=False, with_labels=False)
+    ks = KittiSequence(seq.root)
+    assert ks.has_poses and ks.pose_source == "file" and ks.pose_lines == 2
+    (seq.root / POSES_NOTE).write_text("{}")
+    assert KittiSequence(seq.root).pose_source == "estimated"
+    # Poses kept elsewhere (e.g. estimated beside a read-only dataset): read from there, the note beside them.
+    other = tmp_path / "elsewhere" / "poses.txt"
+    moved = seq.cam_poses.copy()
+    moved[1, 0, 3] = 5.0
+    write_poses(other, moved)
+    ks = KittiSequence(seq.root, poses_path=other)
+    assert ks.poses_path == other and ks.pose_source == "file"
+    np.testing.assert_allclose(ks.cam_poses, moved, rtol=1e-12, atol=1e-15)
+    (seq.root / "poses.txt").unlink()
+    ks = KittiSequence(seq.root)
+    assert not ks.has_poses and ks.pose_source == "missing" and ks.pose_lines is None
+    for attr in ("poses", "cam_poses"):
+        with pytest.raises(PosesMissingError, match="no poses") as exc:
+            getattr(ks, attr)
+        assert_names(exc, seq.root / "poses.txt")
+    assert len(ks) == 2 and ks.frame(1).points.shape == (50, 4)  # the rest of the sequence still opens
+
+
+def test_every_scan_past_the_end_of_poses_is_counted(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=3, with_images=False, with_labels=False)
+    write_poses(seq.root / "poses.txt", seq.cam_poses[:1])
+    match = r"1 poses \(frames 0\.\.0\) but scan 000001\.bin is frame 1 \(and 1 more scans past the end\)$"
+    with pytest.raises(DatasetError, match=match):
+        KittiSequence(seq.root)
+
+
+def test_images_are_found_by_suffix_in_any_case(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=3, with_images=False, with_labels=False)
+    img = np.full((4, 4, 3), 9, np.uint8)
+    write_image(seq.root / "image_2" / "000000.PNG", img)
+    write_image(seq.root / "image_2" / "000001.jpeg", img)
+    (seq.root / "image_2" / "000002.txt").write_text("not an image")
+    ks = KittiSequence(seq.root)
+    assert [f.has_image for f in ks] == [True, True, False]
+    np.testing.assert_array_equal(ks.frame(0).image, img)
+
+
+def test_frame_reads_its_2d_ground_truth(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=2, with_images=False, with_labels=False)
+    sem = np.array([[0, 10], [40, 65535]], np.uint16)
+    inst = np.array([[0, 1], [2, 3]], np.uint16)
+    write_png16(seq.root / "gt2d" / "semantic" / "000001.png", sem)
+    write_png16(seq.root / "gt2d" / "instance" / "000001.png", inst)
+    ks = KittiSequence(seq.root)
+    assert ks.has_gt2d
+    np.testing.assert_array_equal(ks.frame(1).gt2d_semantic, sem)
+    np.testing.assert_array_equal(ks.frame(1).gt2d_instance, inst)
