@@ -746,3 +746,19 @@ def test_frame_reads_its_2d_ground_truth(tmp_path: Path, make_tiny_sequence) -> 
     assert ks.has_gt2d
     np.testing.assert_array_equal(ks.frame(1).gt2d_semantic, sem)
     np.testing.assert_array_equal(ks.frame(1).gt2d_instance, inst)
+
+
+def test_scan_non_finite_counts_points_not_values(tmp_path: Path) -> None:
+    pts = np.zeros((4, 4), np.float32)
+    pts[0, :2] = np.nan  # two bad values in one point
+    pts[3, 3] = np.inf
+    path = tmp_path / "000004.bin"
+    path.write_bytes(pts.tobytes())
+    with pytest.raises(DatasetError, match="2 points have non-finite"):
+        read_scan(path)
+
+
+def test_missing_png16(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="unreadable 16-bit mask PNG") as exc:
+        read_png16(tmp_path / "000009.png")
+    assert_names(exc, tmp_path / "000009.png")
