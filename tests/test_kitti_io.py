@@ -762,3 +762,19 @@ def test_missing_png16(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="unreadable 16-bit mask PNG") as exc:
         read_png16(tmp_path / "000009.png")
     assert_names(exc, tmp_path / "000009.png")
+
+
+def test_poses_with_bom_and_crlf(tmp_path: Path) -> None:
+    path = tmp_path / "poses.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + b"1 0 0 0 0 1 0 0 0 0 1 0\r\n1 0 0 2 0 1 0 0 0 0 1 3\r\n")
+    poses = read_poses(path)
+    assert poses.shape == (2, 4, 4)
+    np.testing.assert_array_equal(poses[1, :3, 3], [2, 0, 3])
+
+
+def test_poses_with_bytes_that_are_not_utf8_name_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "poses.txt"
+    path.write_bytes(b"1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 \xff 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DatasetError, match="'line 2' has a non-numeric") as exc:
+        read_poses(path)
+    assert_names(exc, path)
