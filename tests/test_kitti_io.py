@@ -778,3 +778,12 @@ def test_poses_with_bytes_that_are_not_utf8_name_the_file(tmp_path: Path) -> Non
     with pytest.raises(DatasetError, match="'line 2' has a non-numeric") as exc:
         read_poses(path)
     assert_names(exc, path)
+
+
+def test_the_first_two_scans_with_the_same_number_are_refused(tmp_path: Path, tiny_calib: Calib) -> None:
+    root = tmp_path / "seq"
+    for stem in ("0", "00", "1"):
+        write_scan(root / "velodyne" / f"{stem}.bin", np.zeros((1, 4), np.float32))
+    write_calib(root / "calib.txt", tiny_calib)
+    with pytest.raises(DatasetError, match=r"scans 0\.bin and 00\.bin are both frame 0"):
+        KittiSequence(root)
