@@ -787,3 +787,9 @@ def test_the_first_two_scans_with_the_same_number_are_refused(tmp_path: Path, ti
     write_calib(root / "calib.txt", tiny_calib)
     with pytest.raises(DatasetError, match=r"scans 0\.bin and 00\.bin are both frame 0"):
         KittiSequence(root)
+
+
+def test_calib_with_a_bom_before_its_p2_line(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
+    assert read_calib(path).P2[0, 0] == pytest.approx(720.0)
