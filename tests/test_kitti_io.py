@@ -793,3 +793,16 @@ def test_calib_with_a_bom_before_its_p2_line(tmp_path: Path) -> None:
     path = tmp_path / "calib.txt"
     path.write_bytes(b"\xef\xbb\xbf" + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
     assert read_calib(path).P2[0, 0] == pytest.approx(720.0)
+
+
+def test_calib_with_a_comment_that_is_not_utf8(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_bytes("# calibrated by Müller\n".encode("latin-1") + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
+    assert read_calib(path).P2[0, 0] == pytest.approx(720.0)
+
+
+def test_calib_accepts_a_camera_in_normalised_units(tmp_path: Path) -> None:
+    """Focal lengths in image widths (det of the 3×3 block 0.25): small, but far from singular."""
+    path = tmp_path / "calib.txt"
+    path.write_text(f"P2: 0.5 0 0.5 0 0 0.5 0.5 0 0 0 1 0\nTr: {IDENTITY_ROW}\n")
+    assert read_calib(path).P2[0, 0] == 0.5
