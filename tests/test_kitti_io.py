@@ -797,7 +797,8 @@ def test_calib_with_a_bom_before_its_p2_line(tmp_path: Path) -> None:
 
 def test_calib_with_a_comment_that_is_not_utf8(tmp_path: Path) -> None:
     path = tmp_path / "calib.txt"
-    path.write_bytes("# calibrated by Müller\n".encode("latin-1") + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
+    comment = "# calibrated by Müller\n".encode("latin-1")
+    path.write_bytes(comment + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
     assert read_calib(path).P2[0, 0] == pytest.approx(720.0)
 
 
