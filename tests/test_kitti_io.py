@@ -807,3 +807,14 @@ def test_calib_accepts_a_camera_in_normalised_units(tmp_path: Path) -> None:
     path = tmp_path / "calib.txt"
     path.write_text(f"P2: 0.5 0 0.5 0 0 0.5 0.5 0 0 0 1 0\nTr: {IDENTITY_ROW}\n")
     assert read_calib(path).P2[0, 0] == 0.5
+
+
+def test_velo_to_cam_without_rectification_and_its_errors_name_the_key(tmp_path: Path) -> None:
+    velo = np.hstack([AXIS_SWAP, [[0.1], [0.2], [0.3]]])
+    path = tmp_path / "calib.txt"
+    path.write_text(f"P2: {P2_ROW}\nTr_velo_to_cam: {' '.join(str(v) for v in velo.ravel())}\n")
+    np.testing.assert_allclose(read_calib(path).Tr[:3], velo, atol=1e-12)  # no R0_rect: used as it is
+    path.write_text(f"P2: {P2_ROW}\nTr_velo_to_cam: 1 0 0 0 0 1 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match="'Tr_velo_to_cam' has 11 values") as exc:
+        read_calib(path)
+    assert_names(exc, path)
