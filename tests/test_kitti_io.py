@@ -827,3 +827,10 @@ def test_tracking_format_folds_r_rect_into_tr(tmp_path: Path) -> None:
     path.write_text(f"P2: {P2_ROW}\nR_rect {' '.join(str(v) for v in r_rect.ravel())}\n"
                     f"Tr_velo_cam {' '.join(str(v) for v in velo.ravel())}\n")
     np.testing.assert_allclose(read_calib(path).Tr[:3], r_rect @ velo, atol=1e-12)
+
+
+def test_singular_velo_to_cam_names_its_key(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_text(f"P2: {P2_ROW}\nTr_velo_to_cam: " + " ".join(["0"] * 12) + "\n")
+    with pytest.raises(DatasetError, match="'Tr_velo_to_cam' rotation is singular"):
+        read_calib(path)
