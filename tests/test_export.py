@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import shutil
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +23,10 @@ from leap_core.export import (
     load_label_map,
     raw_id_counts,
     read_confidence,
+    summary_yaml,
     write_export_folder,
+    write_export_zip,
+    zip_member,
 )
 from leap_core.pipeline.coverage import unlabeled_reasons
 from leap_core.presets import builtin_preset
@@ -36,7 +42,9 @@ def test_export_writes_raw_ids_and_confidence(tmp_path) -> None:
     export_labels(lp, cp, labels, conf, EXPORT_IDS)
     assert lp.read_bytes() == np.array([10, 0, 48, 40, 10], "<u4").tobytes()  # instance 0 in the high bits
     np.testing.assert_array_equal(read_label(lp, 5), [10, 0, 48, 40, 10])
-    np.testing.assert_array_equal(read_confidence(cp, 5), np.array([0.9, 0.0, 0.7, 0.6, 0.25], np.float32))
+    back = read_confidence(cp, 5)
+    np.testing.assert_array_equal(back, np.array([0.9, 0.0, 0.7, 0.6, 0.25], np.float32))
+    assert back.dtype == np.float32  # as documented, not float64 (twice the memory per point)
     assert sorted(os.listdir(tmp_path / "out")) == ["000042.conf", "000042.label"]
 
 
@@ -202,3 +210,245 @@ def test_write_export_folder_failure_leaves_the_old_folder(tmp_path, monkeypatch
     monkeypatch.undo()
     assert (target / "a.label").read_bytes() == b"old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.label", "predictions"]
+
+
+def test_summary_yaml_holds_every_part_in_order() -> None:
+    schema = Schema("mini", classes=(ClassDef("car", (1, 2, 3), ("car",), export_id=10),
+                                     ClassDef("röad", (4, 5, 6), ("road",), export_id=40),
+                                     ClassDef("pole", (7, 8, 9), ("pole",), export_id=80)))
+    counts = {"scans": 3, "points": 90, "labeled": 70, "unlabeled": 20,
+              "unlabeled_by_reason": {"outside_view": 15, "no_mask": 5},
+              "raw_counts": {"0": 20, "10": 30, 40: 40, 99: 7}}  # keys as read back from JSON, or ints
+    common = {"project": {"name": "démo", "id": 1}, "run": {"id": 7}, "dataset": Path("/data/seq/08"),
+              "schema": schema, "pipeline": {"voxel_size": 0.1}, "counts": counts, "version": "1.2.3",
+              "written_at": "2026-11-27T00:00:00Z"}
+    text = summary_yaml(frames=range(2, 5), with_confidence=True, **common)
+    assert text.startswith("# LeAP Studio export summary (README, 'Exports').\n")
+    assert "démo" in text and "röad" in text  # allow_unicode: names stay readable, not \xe9 escapes
+    data = yaml.safe_load(text)
+    assert list(data) == ["project", "run", "dataset", "files", "counts", "settings", "leap_studio_version",
+                          "written_at"]  # sort_keys=False: the order written above
+    assert data == {
+        "project": {"name": "démo", "id": 1},
+        "run": {"id": 7},
+        "dataset": {"path": "/data/seq/08", "sequence": "08", "frames": [2, 5]},
+        "files": {"labels": "sequences/08/predictions/<frame>.label (uint32: raw id, instance 0 above)",
+                  "confidences": "sequences/08/confidences/<frame>.conf (float32 per point)",
+                  "label_map": "label-map.yaml"},
+        "counts": {"scans": 3, "points": 90, "labeled": 70, "unlabeled": 20,
+                   "unlabeled_by_reason": {"outside_view": 15, "no_mask": 5},
+                   "per_class": {"car": 30, "röad": 40, "pole": 0}},
+        "settings": {"schema": "mini", "pipeline": {"voxel_size": 0.1}},
+        "leap_studio_version": "1.2.3",
+        "written_at": "2026-11-27T00:00:00Z",
+    }
+    assert list(data["counts"]["per_class"]) == ["car", "röad", "pole"]
+    bare = yaml.safe_load(summary_yaml(frames=None, with_confidence=False, **common))
+    assert bare["dataset"]["frames"] == "all" and bare["files"]["confidences"] is None
+
+
+def test_label_map_defaults_and_the_tables_for_unlabeled() -> None:
+    schema = Schema("mini", classes=(ClassDef("car", (1, 2, 3), ("car",), export_id=10),
+                                     ClassDef("road", (4, 5, 6), ("road",), export_id=40)))
+    lm = label_map(schema, {})
+    assert lm["name"] == "mini"  # no name given: the schema's
+    assert lm["content"] == {0: 0.0, 10: 0.0, 40: 0.0} and lm["counts"] == {0: 0, 10: 0, 40: 0}  # no point
+    assert lm["learning_map_inv"] == {0: 0, 1: 10, 2: 40}
+    assert lm["learning_ignore"] == {0: True, 1: False, 2: False}
+    # Without counts the file has no counts table, and reading it back gives an empty one.
+    assert load_label_map(label_map_yaml(label_map(schema))).counts == {}
+
+
+def test_label_map_yaml_text_is_readable_unicode_with_flow_style_colours() -> None:
+    schema = Schema("mini", classes=(ClassDef("véhicule", (255, 0, 10), ("car",), export_id=10),))
+    text = label_map_yaml(label_map(schema))
+    assert "véhicule" in text and "\\x" not in text and "\\u" not in text
+    # One line per id, the colour as a [B, G, R] list on it, as in semantic-kitti-api's own file.
+    assert "\n  10: [10, 0, 255]\n" in text and "\n  0: [0, 0, 0]\n" in text
+    assert load_label_map(text).names[10] == "véhicule"
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("labels: {car: 10}\ncolor_map: {}\nlearning_map: {}\nlearning_map_inv: {}\n",
+         r"'labels' has a key that is not an integer id"),
+        ("labels: {true: car}\ncolor_map: {}\nlearning_map: {}\nlearning_map_inv: {}\n",
+         r"'labels' has a key that is not an integer id"),
+        ("labels: {10: car}\ncolor_map: {10: [0, 0, 256]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+         r"color_map\[10\] must be"),
+        ("labels: {10: car}\ncolor_map: {10: [300, 0, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+         r"color_map\[10\] must be"),
+        ("labels: {10: car}\ncolor_map: {10: [0, -1, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+         r"color_map\[10\] must be"),
+        ("labels: {10: car}\ncolor_map: {10: [0, true, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+         r"color_map\[10\] must be"),
+    ],
+)
+def test_load_label_map_refuses_non_integer_ids_and_colours_out_of_range(text: str, match: str) -> None:
+    with pytest.raises(DatasetError, match=match):
+        load_label_map(text, "cfg.yaml")
+    # The highest colour value is fine.
+    ok = load_label_map("labels: {10: car}\ncolor_map: {10: [255, 0, 1]}\nlearning_map: {}\n"
+                        "learning_map_inv: {}\n")
+    assert ok.colors_rgb == {10: (1, 0, 255)}
+
+
+def test_load_label_map_names_a_default_source() -> None:
+    with pytest.raises(DatasetError, match=r"^label map: expected a mapping"):
+        load_label_map("[1, 2]")
+
+
+def test_raw_id_counts_add_up_across_scans() -> None:
+    scans = [np.array([10, 40], np.uint32), np.array([10 | (1 << 16), 10], np.uint32)]
+    assert raw_id_counts(scans) == {10: 3, 40: 1}
+
+
+def test_zip_member_puts_labels_and_confidences_in_their_folders() -> None:
+    assert zip_member("08", "000001", ".label") == "sequences/08/predictions/000001.label"
+    assert zip_member("08", "000001", ".conf") == "sequences/08/confidences/000001.conf"
+
+
+def test_write_export_zip_holds_the_frame_files_and_the_extras(tmp_path) -> None:
+    export_dir = tmp_path / "export"
+    export_dir.mkdir()
+    for name, data in (("000000.label", b"L0" * 400), ("000000.conf", b"C0" * 400),
+                       ("000001.label", b"L1" * 400), ("000001.conf", b"C1" * 400), ("notes.txt", b"no")):
+        (export_dir / name).write_bytes(data)
+    (export_dir / "sub.label").mkdir()  # a folder named like a frame file is not one
+    extra = {"label-map.yaml": "labels: {}\n", "summary.yaml": "a: 1\n"}
+    out = tmp_path / "labels.zip"
+    assert write_export_zip(out, export_dir, "08", extra, include_confidence=True) == 4
+    with zipfile.ZipFile(out) as zf:
+        assert sorted(zf.namelist()) == [
+            "label-map.yaml", "sequences/08/confidences/000000.conf", "sequences/08/confidences/000001.conf",
+            "sequences/08/predictions/000000.label", "sequences/08/predictions/000001.label", "summary.yaml"]
+        assert zf.read("sequences/08/predictions/000001.label") == b"L1" * 400
+        assert zf.read("summary.yaml") == b"a: 1\n"
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}
+    before = out.read_bytes()
+    with pytest.raises(ExportConflict, match="already exists"):
+        write_export_zip(out, export_dir, "08", extra, include_confidence=False)
+    assert out.read_bytes() == before
+    assert write_export_zip(out, export_dir, "08", {}, include_confidence=False, overwrite=True) == 2
+    with zipfile.ZipFile(out) as zf:
+        assert sorted(zf.namelist()) == ["sequences/08/predictions/000000.label",
+                                         "sequences/08/predictions/000001.label"]
+
+
+def _frame_files(folder, **files):
+    folder.mkdir(parents=True)
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+    return sorted(folder.iterdir())
+
+
+def test_write_export_folder_creates_parents_and_survives_a_failing_fsync(tmp_path, monkeypatch) -> None:
+    files = _frame_files(tmp_path / "src", **{"000000.label": b"a"})
+
+    def no_fsync(fd):  # some file systems (network mounts) refuse fsync; the copy itself succeeded
+        raise OSError(22, "Invalid argument")
+
+    monkeypatch.setattr(os, "fsync", no_fsync)
+    target = tmp_path / "new" / "deep" / "predictions"
+    assert write_export_folder(target, files) == 0
+    monkeypatch.undo()
+    assert (target / "000000.label").read_bytes() == b"a"
+
+
+def test_write_export_folder_puts_the_old_folder_back_when_the_swap_fails(tmp_path, monkeypatch) -> None:
+    files = _frame_files(tmp_path / "src", **{"000000.label": b"new"})
+    target = tmp_path / "predictions"
+    _frame_files(target, **{"000000.label": b"old", "000005.label": b"old5"})
+    real_rename = os.rename
+
+    def fail_second_rename(src, dst):
+        if ".leap-new-" in str(src):  # the new folder into place: the old one has been moved aside
+            raise OSError(5, "I/O error")
+        real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", fail_second_rename)
+    with pytest.raises(OSError, match="I/O error"):
+        write_export_folder(target, files, overwrite=True)
+    monkeypatch.undo()
+    old = {p.name: p.read_bytes() for p in target.iterdir()}
+    assert old == {"000000.label": b"old", "000005.label": b"old5"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["predictions", "src"]
+
+
+def test_write_export_folder_outlives_an_old_folder_it_cannot_remove(tmp_path, monkeypatch) -> None:
+    files = _frame_files(tmp_path / "src", **{"000000.label": b"new"})
+    target = tmp_path / "predictions"
+    _frame_files(target, **{"000000.label": b"old"})
+
+    def busy(*args, **kwargs):
+        raise OSError(16, "Device or resource busy")
+
+    monkeypatch.setattr(os, "unlink", busy)  # the removal of the old folder, after the swap
+    assert write_export_folder(target, files, overwrite=True) == 1
+    monkeypatch.undo()
+    assert (target / "000000.label").read_bytes() == b"new"
+    left = [p.name for p in tmp_path.iterdir() if ".leap-old-" in p.name]
+    assert len(left) == 1  # best effort: the old copy stays beside it, hidden
+
+
+def test_write_export_folder_reports_the_failure_not_the_cleanup(tmp_path, monkeypatch) -> None:
+    files = _frame_files(tmp_path / "src", **{"000000.label": b"a", "000001.label": b"b"})
+    target = tmp_path / "predictions"
+    real_copy = shutil.copyfile
+
+    def copy_then_fail(src, dst):
+        if src.name == "000001.label":
+            raise OSError(28, "No space left on device")
+        return real_copy(src, dst)
+
+    def busy(*args, **kwargs):
+        raise OSError(16, "Device or resource busy")
+
+    monkeypatch.setattr(shutil, "copyfile", copy_then_fail)
+    monkeypatch.setattr(os, "unlink", busy)  # the half-written fresh folder cannot be removed either
+    with pytest.raises(OSError, match="No space left"):
+        write_export_folder(target, files)
+    monkeypatch.undo()
+    assert not target.exists()
+
+
+def test_two_exports_into_one_folder_at_once_do_not_share_a_scratch_folder(tmp_path, monkeypatch) -> None:
+    first = _frame_files(tmp_path / "a", **{"000000.label": b"first"})
+    second = _frame_files(tmp_path / "b", **{"000000.label": b"second", "000001.label": b"second1"})
+    target = tmp_path / "out" / "predictions"
+    real_copy = shutil.copyfile
+    calls = []
+
+    def copy_while_another_export_runs(src, dst):
+        if not calls:  # the first export is half-way when the second one starts and finishes
+            calls.append(-1)
+            calls[0] = write_export_folder(target, second)
+        return real_copy(src, dst)
+
+    monkeypatch.setattr(shutil, "copyfile", copy_while_another_export_runs)
+    with pytest.raises(ExportConflict, match="changed while exporting"):
+        write_export_folder(target, first)
+    monkeypatch.undo()
+    assert calls == [0]
+    assert {p.name: p.read_bytes() for p in target.iterdir()} == {"000000.label": b"second",
+                                                                  "000001.label": b"second1"}
+    assert sorted(p.name for p in target.parent.iterdir()) == ["predictions"]
+
+
+def test_labels_to_raw_bounds_and_dtype() -> None:
+    out = labels_to_raw(np.array([0, 1, -1]), np.array([0, 0xFFFF]))  # both ends of the 16-bit range
+    np.testing.assert_array_equal(out, [0, 0xFFFF, 0])
+    assert out.dtype == np.uint32  # what a .label file holds
+    for bad in (-1, 0x10000):
+        with pytest.raises(ValueError, match="export ids"):
+            labels_to_raw(np.array([0]), np.array([10, bad]))
+
+
+def test_labels_and_confidences_of_any_shape_are_flattened_in_scan_order(tmp_path) -> None:
+    labels = np.array([[0, 2], [-1, 1]], np.int16)
+    np.testing.assert_array_equal(labels_to_raw(labels, EXPORT_IDS[:, None]), [10, 48, 0, 40])
+    lp, cp = tmp_path / "a.label", tmp_path / "a.conf"
+    export_labels(lp, cp, labels, np.array([[0.5, 0.25], [0.75, 1.0]]), EXPORT_IDS)
+    np.testing.assert_array_equal(read_label(lp, 4), [10, 48, 0, 40])
+    np.testing.assert_array_equal(read_confidence(cp, 4), np.array([0.5, 0.25, 0.0, 1.0], np.float32))

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from leap_core.datasets.kitti import (
+    POSES_NOTE,
     Calib,
     KittiSequence,
     lidar_poses,
@@ -26,7 +27,7 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
-from leap_core.errors import DatasetError, LeapError
+from leap_core.errors import DatasetError, LeapError, PosesMissingError
 
 # A real SemanticKITTI sequence 00 calib.txt (odometry format), plus the blank line and trailing spaces
 # that hand-edited copies often have.
@@ -584,7 +585,7 @@ def test_select_takes_frame_numbers(tmp_path: Path, make_tiny_sequence) -> None:
     assert ks.select(range(3, 6)) == range(1, 3)  # frames 3 and 5 (4 is a gap)
     assert ks.select(range(5, 6)) == range(2, 3)
     for bad, match in [
-        (range(4, 5), "select no frame: no scan is numbered"),
+        (range(4, 5), "^frames 4:5 select no frame: no scan is numbered"),
         (range(0, 3), r"out of range: the sequence has frames 2\.\.6"),
         (range(5, 8), "out of range"),
         (range(5, 5), "select no frame"),
@@ -647,3 +648,189 @@ def test_frame_caches_its_arrays(tmp_path: Path, make_tiny_sequence) -> None:
     first = frame.points
     (seq.root / "velodyne" / "000000.bin").unlink()
     assert frame.points is first
+
+
+# ------------------------------------------------------------------------- edges the mutants found
+def test_write_scan_stores_float32_whatever_the_input_dtype(tmp_path: Path) -> None:
+    pts = np.array([[1.5, -2.0, 0.25, 0.5], [3.0, 4.0, 5.0, 0.0]], np.float64)
+    write_scan(tmp_path / "a.bin", pts)
+    assert (tmp_path / "a.bin").stat().st_size == 2 * 16  # 16 bytes a point, not 32
+    np.testing.assert_array_equal(read_scan(tmp_path / "a.bin"), pts.astype(np.float32))
+
+
+def test_16_bit_writers_take_65535_and_refuse_65536(tmp_path: Path) -> None:
+    write_label(tmp_path / "a.label", [0xFFFF])
+    np.testing.assert_array_equal(read_label(tmp_path / "a.label"), [0xFFFF])
+    write_png16(tmp_path / "m.png", np.array([[0xFFFF]]))
+    np.testing.assert_array_equal(read_png16(tmp_path / "m.png"), [[0xFFFF]])
+    with pytest.raises(ValueError, match=r"semantic ids .* 0\.\.65535"):
+        write_label(tmp_path / "b.label", [0x10000])
+    with pytest.raises(ValueError, match=r"0\.\.65535"):
+        write_png16(tmp_path / "n.png", np.array([[0x10000]]))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.label", "m.png"]
+
+
+def test_write_poses_takes_3x4_rows_and_refuses_other_shapes(tmp_path: Path) -> None:
+    rows = np.arange(24, dtype=np.float64).reshape(2, 3, 4)
+    write_poses(tmp_path / "poses.txt", rows)
+    np.testing.assert_array_equal(read_poses(tmp_path / "poses.txt")[:, :3], rows)
+    for shape in ((2, 3, 3), (2, 3, 5), (2, 4, 3)):
+        with pytest.raises(ValueError, match="poses must be"):
+            write_poses(tmp_path / "bad.txt", np.zeros(shape))
+    assert not (tmp_path / "bad.txt").exists()
+
+
+def test_write_image_format_follows_the_suffix_png_without_one(tmp_path: Path) -> None:
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    rgb[..., 0] = 200
+    write_image(tmp_path / "a.jpg", rgb)
+    assert (tmp_path / "a.jpg").read_bytes()[:2] == b"\xff\xd8"  # JPEG, as the name says
+    write_image(tmp_path / "noext", rgb)
+    assert (tmp_path / "noext").read_bytes()[:4] == b"\x89PNG"
+    np.testing.assert_array_equal(read_image(tmp_path / "noext"), rgb)
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
+        write_image(tmp_path / "b.png", np.zeros((4, 6, 3), np.uint16))  # 16-bit colour is not what we store
+    assert not (tmp_path / "b.png").exists()
+
+
+def test_pose_source_and_missing_poses(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=2, with_images=False, with_labels=False)
+    ks = KittiSequence(seq.root)
+    assert ks.has_poses and ks.pose_source == "file" and ks.pose_lines == 2
+    (seq.root / POSES_NOTE).write_text("{}")
+    assert KittiSequence(seq.root).pose_source == "estimated"
+    # Poses kept elsewhere (e.g. estimated beside a read-only dataset): read from there, the note beside them.
+    other = tmp_path / "elsewhere" / "poses.txt"
+    moved = seq.cam_poses.copy()
+    moved[1, 0, 3] = 5.0
+    write_poses(other, moved)
+    ks = KittiSequence(seq.root, poses_path=other)
+    assert ks.poses_path == other and ks.pose_source == "file"
+    np.testing.assert_allclose(ks.cam_poses, moved, rtol=1e-12, atol=1e-15)
+    (seq.root / "poses.txt").unlink()
+    ks = KittiSequence(seq.root)
+    assert not ks.has_poses and ks.pose_source == "missing" and ks.pose_lines is None
+    for attr in ("poses", "cam_poses"):
+        with pytest.raises(PosesMissingError, match="no poses") as exc:
+            getattr(ks, attr)
+        assert_names(exc, seq.root / "poses.txt")
+    assert len(ks) == 2 and ks.frame(1).points.shape == (50, 4)  # the rest of the sequence still opens
+
+
+def test_every_scan_past_the_end_of_poses_is_counted(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=3, with_images=False, with_labels=False)
+    write_poses(seq.root / "poses.txt", seq.cam_poses[:1])
+    match = r"1 poses \(frames 0\.\.0\) but scan 000001\.bin is frame 1 \(and 1 more scans past the end\)$"
+    with pytest.raises(DatasetError, match=match):
+        KittiSequence(seq.root)
+
+
+def test_images_are_found_by_suffix_in_any_case(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=3, with_images=False, with_labels=False)
+    img = np.full((4, 4, 3), 9, np.uint8)
+    write_image(seq.root / "image_2" / "000000.PNG", img)
+    write_image(seq.root / "image_2" / "000001.jpeg", img)
+    (seq.root / "image_2" / "000002.txt").write_text("not an image")
+    ks = KittiSequence(seq.root)
+    assert [f.has_image for f in ks] == [True, True, False]
+    np.testing.assert_array_equal(ks.frame(0).image, img)
+
+
+def test_frame_reads_its_2d_ground_truth(tmp_path: Path, make_tiny_sequence) -> None:
+    seq = make_tiny_sequence(tmp_path, n_frames=2, with_images=False, with_labels=False)
+    sem = np.array([[0, 10], [40, 65535]], np.uint16)
+    inst = np.array([[0, 1], [2, 3]], np.uint16)
+    write_png16(seq.root / "gt2d" / "semantic" / "000001.png", sem)
+    write_png16(seq.root / "gt2d" / "instance" / "000001.png", inst)
+    ks = KittiSequence(seq.root)
+    assert ks.has_gt2d
+    np.testing.assert_array_equal(ks.frame(1).gt2d_semantic, sem)
+    np.testing.assert_array_equal(ks.frame(1).gt2d_instance, inst)
+
+
+def test_scan_non_finite_counts_points_not_values(tmp_path: Path) -> None:
+    pts = np.zeros((4, 4), np.float32)
+    pts[0, :2] = np.nan  # two bad values in one point
+    pts[3, 3] = np.inf
+    path = tmp_path / "000004.bin"
+    path.write_bytes(pts.tobytes())
+    with pytest.raises(DatasetError, match="2 points have non-finite"):
+        read_scan(path)
+
+
+def test_missing_png16(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="unreadable 16-bit mask PNG") as exc:
+        read_png16(tmp_path / "000009.png")
+    assert_names(exc, tmp_path / "000009.png")
+
+
+def test_poses_with_bom_and_crlf(tmp_path: Path) -> None:
+    path = tmp_path / "poses.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + b"1 0 0 0 0 1 0 0 0 0 1 0\r\n1 0 0 2 0 1 0 0 0 0 1 3\r\n")
+    poses = read_poses(path)
+    assert poses.shape == (2, 4, 4)
+    np.testing.assert_array_equal(poses[1, :3, 3], [2, 0, 3])
+
+
+def test_poses_with_bytes_that_are_not_utf8_name_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "poses.txt"
+    path.write_bytes(b"1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 \xff 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DatasetError, match="'line 2' has a non-numeric") as exc:
+        read_poses(path)
+    assert_names(exc, path)
+
+
+def test_the_first_two_scans_with_the_same_number_are_refused(tmp_path: Path, tiny_calib: Calib) -> None:
+    root = tmp_path / "seq"
+    for stem in ("0", "00", "1"):
+        write_scan(root / "velodyne" / f"{stem}.bin", np.zeros((1, 4), np.float32))
+    write_calib(root / "calib.txt", tiny_calib)
+    with pytest.raises(DatasetError, match=r"scans 0\.bin and 00\.bin are both frame 0"):
+        KittiSequence(root)
+
+
+def test_calib_with_a_bom_before_its_p2_line(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
+    assert read_calib(path).P2[0, 0] == pytest.approx(720.0)
+
+
+def test_calib_with_a_comment_that_is_not_utf8(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    comment = "# calibrated by Müller\n".encode("latin-1")
+    path.write_bytes(comment + f"P2: {P2_ROW}\nTr: {IDENTITY_ROW}\n".encode())
+    assert read_calib(path).P2[0, 0] == pytest.approx(720.0)
+
+
+def test_calib_accepts_a_camera_in_normalised_units(tmp_path: Path) -> None:
+    """Focal lengths in image widths (det of the 3×3 block 0.25): small, but far from singular."""
+    path = tmp_path / "calib.txt"
+    path.write_text(f"P2: 0.5 0 0.5 0 0 0.5 0.5 0 0 0 1 0\nTr: {IDENTITY_ROW}\n")
+    assert read_calib(path).P2[0, 0] == 0.5
+
+
+def test_velo_to_cam_without_rectification_and_its_errors_name_the_key(tmp_path: Path) -> None:
+    velo = np.hstack([AXIS_SWAP, [[0.1], [0.2], [0.3]]])
+    path = tmp_path / "calib.txt"
+    path.write_text(f"P2: {P2_ROW}\nTr_velo_to_cam: {' '.join(str(v) for v in velo.ravel())}\n")
+    np.testing.assert_allclose(read_calib(path).Tr[:3], velo, atol=1e-12)  # no R0_rect: used as it is
+    path.write_text(f"P2: {P2_ROW}\nTr_velo_to_cam: 1 0 0 0 0 1 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match="'Tr_velo_to_cam' has 11 values") as exc:
+        read_calib(path)
+    assert_names(exc, path)
+
+
+def test_tracking_format_folds_r_rect_into_tr(tmp_path: Path) -> None:
+    r_rect = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    velo = np.hstack([AXIS_SWAP, [[0.1], [0.2], [0.3]]])
+    path = tmp_path / "0002.txt"
+    path.write_text(f"P2: {P2_ROW}\nR_rect {' '.join(str(v) for v in r_rect.ravel())}\n"
+                    f"Tr_velo_cam {' '.join(str(v) for v in velo.ravel())}\n")
+    np.testing.assert_allclose(read_calib(path).Tr[:3], r_rect @ velo, atol=1e-12)
+
+
+def test_singular_velo_to_cam_names_its_key(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_text(f"P2: {P2_ROW}\nTr_velo_to_cam: " + " ".join(["0"] * 12) + "\n")
+    with pytest.raises(DatasetError, match="'Tr_velo_to_cam' rotation is singular"):
+        read_calib(path)
