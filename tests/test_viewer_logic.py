@@ -431,8 +431,11 @@ def review_store(tmp_path, make_tiny_sequence):
             db, name="tiny <b>", dataset_kind="folder", dataset_path=str(seq.root), schema=SCHEMA3,
             pipeline={"fusion": {"voxel_size": 0.5}},
         )
+        # The dataset snapshot every run the app queues has: the viewer shows a run only over the
+        # sequences it labeled (app.jobs.multi.covered_sequences).
         run = crud.create_run(
-            db, project_id=project["id"], params={"schema": SCHEMA3}, runs_dir=settings.runs_dir
+            db, project_id=project["id"], params={"schema": SCHEMA3, "dataset": str(seq.root)},
+            runs_dir=settings.runs_dir,
         )
         crud.update_run(db, run["id"], status="done")
     run_dir = Path(run["run_dir"])
@@ -592,7 +595,9 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
         from app.core.db import open_db
 
         with open_db(settings.database) as db:
-            params = {"schema": SCHEMA3}
+            project = crud.get_project(db, pid)
+            assert project is not None
+            params = {"schema": SCHEMA3, "dataset": project["dataset_path"]}
             queued = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.runs_dir)
             empty = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.runs_dir)
             crud.update_run(db, empty["id"], status="done")
