@@ -7,6 +7,7 @@ This folder deliberately has no ``conftest.py``: a second module named ``conftes
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,21 @@ def add_gt2d(seq_root: Path, frame_ids: list[str], hw: tuple[int, int]) -> None:
         inst[: h // 2, : w // 2] = 1
         write_png16(seq_root / "gt2d" / "semantic" / f"{fid}.png", sem)
         write_png16(seq_root / "gt2d" / "instance" / f"{fid}.png", inst)
+
+
+def kitti_sequences(data_root: Path, make_tiny_sequence: Callable[..., Any], build: Path,
+                    frames: tuple[int, ...]) -> list[Path]:
+    """``data_root/kitti/sequences/00``, ``01``, ... with ``frames[i]`` frames each (400 points, seed i),
+    images, labels and 2D ground truth; built under ``build`` and moved into place."""
+    out = []
+    for i, n_frames in enumerate(frames):
+        seq = make_tiny_sequence(build / f"build{i}", n_frames=n_frames, n_points=400, seed=i)
+        add_gt2d(seq.root, seq.frame_ids, (48, 64))
+        target = data_root / "kitti" / "sequences" / f"{i:02d}"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(seq.root, target)
+        out.append(target)
+    return out
 
 
 @pytest.fixture

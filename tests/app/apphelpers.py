@@ -37,3 +37,9 @@ def wait_run(
             return run
         time.sleep(0.05)
     raise AssertionError(f"run {run_id} still {run['status']} after {timeout} s")
+
+
+def loc_of(r: Any) -> list[Any]:
+    """The ``loc`` of a 422 answer's first error."""
+    assert r.status_code == 422, r.text
+    return list(r.json()["detail"][0]["loc"])

@@ -15,7 +15,7 @@ from typing import Any
 
 import appfixtures
 import pytest
-from apphelpers import API, create_project, wait_run
+from apphelpers import API, create_project, loc_of, wait_run
 from fastapi.testclient import TestClient
 
 from app import crud
@@ -37,15 +37,7 @@ tiny_dataset = appfixtures.tiny_dataset
 def two_sequences(data_root: Path, make_tiny_sequence: Callable[..., Any], tmp_path: Path) -> list[Path]:
     """``data/kitti/sequences/00`` (4 frames) and ``.../01`` (3 frames, other points), both with images,
     labels and 2D ground truth."""
-    out = []
-    for i, n_frames in enumerate((4, 3)):
-        seq = make_tiny_sequence(tmp_path / f"build{i}", n_frames=n_frames, n_points=400, seed=i)
-        appfixtures.add_gt2d(seq.root, seq.frame_ids, (48, 64))
-        target = data_root / "kitti" / "sequences" / f"{i:02d}"
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(seq.root, target)
-        out.append(target)
-    return out
+    return appfixtures.kitti_sequences(data_root, make_tiny_sequence, tmp_path, (4, 3))
 
 
 def create_multi(client: TestClient, folders: list[Path], name: str = "multi", **extra: Any
@@ -57,10 +49,6 @@ def create_multi(client: TestClient, folders: list[Path], name: str = "multi", *
     assert r.status_code == 201, r.text
     return r.json()
 
-
-def loc_of(r: Any) -> list[Any]:
-    assert r.status_code == 422, r.text
-    return list(r.json()["detail"][0]["loc"])
 
 
 # ------------------------------------------------------------------------------------------- creation

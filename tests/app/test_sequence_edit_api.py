@@ -17,7 +17,7 @@ from typing import Any
 
 import appfixtures
 import pytest
-from apphelpers import API, TERMINAL, create_project, wait_run
+from apphelpers import API, TERMINAL, create_project, loc_of, wait_run
 from fastapi.testclient import TestClient
 
 from app import crud
@@ -39,15 +39,7 @@ settings = appfixtures.settings
 def folders(data_root: Path, make_tiny_sequence: Callable[..., Any], tmp_path: Path) -> list[Path]:
     """``data/kitti/sequences/00`` (4 frames), ``01`` (3 frames) and ``02`` (3 frames), each with images,
     labels and 2D ground truth."""
-    out = []
-    for i, n_frames in enumerate((4, 3, 3)):
-        seq = make_tiny_sequence(tmp_path / f"build{i}", n_frames=n_frames, n_points=400, seed=i)
-        appfixtures.add_gt2d(seq.root, seq.frame_ids, (48, 64))
-        target = data_root / "kitti" / "sequences" / f"{i:02d}"
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(seq.root, target)
-        out.append(target)
-    return out
+    return appfixtures.kitti_sequences(data_root, make_tiny_sequence, tmp_path, (4, 3, 3))
 
 
 def add(client: TestClient, pid: int, path: Path | str, name: str | None = None, **headers: str) -> Any:
@@ -58,10 +50,6 @@ def add(client: TestClient, pid: int, path: Path | str, name: str | None = None,
 def remove(client: TestClient, pid: int, name: str) -> Any:
     return client.delete(f"{API}/projects/{pid}/sequences/{name}")
 
-
-def loc_of(r: Any) -> list[Any]:
-    assert r.status_code == 422, r.text
-    return list(r.json()["detail"][0]["loc"])
 
 
 def names_of(project: dict[str, Any]) -> list[str]:
