@@ -39,6 +39,8 @@ from leap_core.pipeline import (
     run_pipeline,
     stage_status,
 )
+from leap_core.pipeline.runner import UNCHANGED, StageReport, skip_reason, stage_fingerprints
+from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
 
@@ -202,6 +204,9 @@ def test_second_run_skips_everything(baseline, street: Path, schema) -> None:
     before = _labels(run_dir)
     again = run_pipeline(street, schema, PipelineConfig(), run_dir)
     assert again.ran == []
+    # A cached stage reports its name, its recorded status and no time spent in this call.
+    recorded = stage_status(run_dir)
+    assert again.stages == {s: StageReport(s, False, recorded[s]["status"], 0.0) for s in STAGES}
     assert _labels(run_dir) == before
     assert not any(plan_stages(street, schema, PipelineConfig(), run_dir).values())
 
@@ -360,6 +365,14 @@ def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path)
     assert same[0] == same[1]
     with pytest.raises(LeapError, match="out of range"):
         run_pipeline(street, schema, PipelineConfig(), tmp_path / "c", frames=range(4, 9))
+    # Planning and fingerprints are for the frames asked for: run a's first stages are current for its
+    # three frames (recorded fingerprints included), not for all six.
+    plan = plan_stages(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3))
+    assert [s for s, todo in plan.items() if not todo] == ["labels2d", "project", "fuse"]
+    assert all(plan_stages(street, schema, PipelineConfig(), tmp_path / "a").values())
+    recorded = stage_status(tmp_path / "a")
+    fps = stage_fingerprints(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3))
+    assert [s for s in STAGES if fps[s] == recorded[s].get("fingerprint")] == ["labels2d", "project", "fuse"]
 
 
 def test_zero_noise_point_labels_match_ground_truth(street: Path, schema, tmp_path: Path) -> None:
@@ -452,6 +465,70 @@ def test_bad_inputs_are_one_line_errors(street: Path, schema, tmp_path: Path) ->
         run_pipeline(tmp_path, schema, PipelineConfig(), tmp_path / "r")
     with pytest.raises(LeapError, match="until"):
         run_pipeline(street, schema, PipelineConfig(), tmp_path / "r", until="nope")
+
+
+# ------------------------------------------------------------------------------------- stage records
+def test_stages_never_started_are_pending(street: Path, schema, tmp_path: Path) -> None:
+    run_pipeline(street, schema, PipelineConfig(), tmp_path / "r", frames=range(0, 1), until="labels2d")
+    status = stage_status(tmp_path / "r")
+    assert status["labels2d"]["status"] == "done"
+    assert all(status[s] == {"status": "pending"} for s in STAGES[1:])
+
+
+def test_skip_reason_of_a_finished_run(baseline) -> None:
+    """What the progress displays say of each stage of the baseline run (3D-CN off) when a later run
+    reports it complete: cached stages "unchanged", the disabled 3D-CN its note; a stage that finished
+    after the run started (or at the same instant) computed in it."""
+    run_dir, _, _ = baseline
+    status = stage_status(run_dir)
+    later = max(float(r.get("finished", 0.0)) for r in status.values()) + 1.0
+    assert skip_reason(run_dir, "fuse", later) == UNCHANGED
+    assert skip_reason(run_dir, "3dcn", later) == "3D-CN disabled"
+    assert skip_reason(run_dir, "fuse", status["fuse"]["finished"]) is None
+    assert skip_reason(run_dir, "fuse", 0.0) is None
+    assert skip_reason(run_dir, "no_such_stage", later) is None
+
+
+def test_skip_reason_reads_the_stage_record(tmp_path: Path) -> None:
+    """skip_reason is a function of ``stages.json``: records another program version (or a hand edit) may
+    have left, including a skipped record without a note and a failed one that carries a finish time."""
+    lay = RunLayout(tmp_path / "r")
+    lay.run_dir.mkdir()
+    lay.state.write_text(json.dumps({
+        "labels2d": {"status": "done", "finished": 100.0},
+        "project": {"status": "skipped"},
+        "fuse": {"status": "failed", "finished": 100.0},
+        "smooth": {"status": "skipped", "note": "no ground truth"},
+        "3dcn": {"status": "done"},
+    }))
+    assert skip_reason(lay.run_dir, "labels2d", 100.5) == UNCHANGED
+    assert skip_reason(lay.run_dir, "labels2d", 100.0) is None
+    assert skip_reason(lay.run_dir, "project", 100.5) == "nothing to do"
+    assert skip_reason(lay.run_dir, "fuse", 100.5) is None
+    assert skip_reason(lay.run_dir, "smooth", 100.5) == "no ground truth"
+    assert skip_reason(lay.run_dir, "3dcn", 100.5) is None  # done, finish time unknown: not "unchanged"
+    assert skip_reason(lay.run_dir, "evaluate", 100.5) is None  # pending
+    lay.state.write_text("{not json")
+    assert skip_reason(lay.run_dir, "labels2d", 100.5) is None  # an unreadable record says nothing
+
+
+def test_a_model_labeler_fingerprint_follows_the_runtime_models(street: Path, schema, tmp_path: Path) -> None:
+    """The models folder is part of the run's runtime, not its config: planning and fingerprints must use
+    the runtime they are given (another model folder content = other 2D labels, everything reruns)."""
+    from leap_core.labelers.grounded_sam import model_folder_name
+
+    cfg = config_from_dict({"labeler": "grounded-sam"})
+    fps = []
+    for version in ("a", "b"):
+        models = tmp_path / f"models_{version}"
+        for model_id in (cfg.grounded_sam.detector_id, cfg.grounded_sam.segmenter_id):
+            folder = models / model_folder_name(model_id)
+            folder.mkdir(parents=True)
+            (folder / "config.json").write_text(json.dumps({"version": version}))
+        runtime = Runtime(models_dir=models)
+        fps.append(stage_fingerprints(street, schema, cfg, tmp_path / "r", runtime=runtime))
+        assert all(plan_stages(street, schema, cfg, tmp_path / "r", runtime=runtime).values())
+    assert all(fps[0][s] != fps[1][s] for s in STAGES)
 
 
 # -------------------------------------------------------------------------------------------- config

@@ -217,3 +217,17 @@ def test_point_labels_come_from_the_final_grid(run: Run) -> None:
             np.testing.assert_array_equal(z["label"], lab)
             np.testing.assert_array_equal(z["conf"], conf.astype(np.float16))
             np.testing.assert_array_equal(z["point_label"], painted.point_labels(len(frame.points)))
+
+
+def test_a_changed_3dcn_setting_removes_every_round_grid(run: Run, tmp_path: Path) -> None:
+    """The 3D-CN's outputs are its smoothed round grids, but what a changed fingerprint clears is every
+    round's grids (fused ones too): none of them belongs to the new settings."""
+    import shutil
+
+    run_dir = tmp_path / "copy"
+    shutil.copytree(run.lay.run_dir, run_dir)
+    assert {p.name for p in RunLayout(run_dir).cn_grids()} == {"grid_3dcn1.npz", "grid_smooth_3dcn1.npz"}
+    off = dataclasses.replace(run.cfg, consistency=dataclasses.replace(run.cfg.consistency, enabled=False))
+    result = run_pipeline(run.seq.root, run.schema, off, run_dir, until="3dcn")
+    assert result.ran == []  # the 3D-CN is now skipped, the stages before it are current
+    assert RunLayout(run_dir).cn_grids() == []
