@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -329,9 +330,11 @@ def test_erased_voxels_are_never_3dcn_training_labels(baseline, street: Path, sc
 def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, tmp_path: Path) -> None:
     base_dir, _, _ = baseline
     run_dir = tmp_path / "interrupted"
-    for stage, at in (("labels2d", 3), ("project", 2), ("label_points", 4)):
+    running: list[dict] = []
+    for stage, at in (("labels2d", 3), ("project", 2), ("fuse", 2), ("label_points", 4)):
         def cancel(s: str, done: int, total: int, stage: str = stage, at: int = at) -> None:
             if s == stage and done == at:
+                running.append(stage_status(run_dir)[stage])
                 raise Cancelled()
 
         # One frame at a time: with frames in flight the cancelled stage may finish every frame
@@ -340,7 +343,14 @@ def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, t
             run_pipeline(street, schema, PipelineConfig(), run_dir, progress=cancel,
                          runtime=Runtime(frame_threads=1))
         assert stage_status(run_dir)[stage]["status"] == "cancelled"
+    # While a stage runs, its record says so (and since when) under the fingerprint it computes for.
+    assert [sorted(r) for r in running] == [["fingerprint", "started", "status"]] * 4
+    assert all(r["status"] == "running" and r["started"] <= time.time() for r in running)
+    # A temporary file a killed run left in a per-frame folder is removed when the stage resumes.
+    leftover = run_dir / "points" / ".000005.npz.0123456789ab.tmp"
+    leftover.write_bytes(b"partial")
     result = run_pipeline(street, schema, PipelineConfig(), run_dir)
+    assert not leftover.exists()
     # The frames finished before the last interruption were not recomputed.
     assert 0 < result.stages["label_points"].frames_computed < 6
     assert result.stages["labels2d"].ran is False
@@ -473,6 +483,37 @@ def test_stages_never_started_are_pending(street: Path, schema, tmp_path: Path) 
     status = stage_status(tmp_path / "r")
     assert status["labels2d"]["status"] == "done"
     assert all(status[s] == {"status": "pending"} for s in STAGES[1:])
+
+
+def test_failed_cancelled_and_done_records(street: Path, schema, tmp_path: Path) -> None:
+    """A stage's record after it failed (the error's first line, or its type when it has no message), was
+    cancelled, or finished; each with the seconds spent in that call."""
+    run_dir = tmp_path / "r"
+
+    def labels2d(stop: BaseException | None) -> tuple[dict, float]:
+        """Run the 2D stage on two frames, ``stop`` raised by the progress callback after the first."""
+        def progress(stage: str, done: int, total: int) -> None:
+            if stop is not None and stage == "labels2d" and done == 1:
+                raise stop
+
+        t0 = time.perf_counter()
+        try:
+            run_pipeline(street, schema, PipelineConfig(), run_dir, progress=progress, frames=range(0, 2),
+                         until="labels2d", runtime=Runtime(frame_threads=1))
+        except BaseException as exc:
+            assert exc is stop  # the stage's own exception, not one raised while recording it
+        else:
+            assert stop is None
+        return stage_status(run_dir)["labels2d"], time.perf_counter() - t0
+
+    cases = [(RuntimeError("first line\nsecond line"), "failed", "first line"),
+             (RuntimeError(), "failed", "RuntimeError"),
+             (Cancelled(), "cancelled", None),
+             (None, "done", None)]
+    for stop, status, error in cases:
+        rec, elapsed = labels2d(stop)
+        assert (rec["status"], rec.get("error")) == (status, error)
+        assert 0.0 <= rec["seconds"] <= elapsed
 
 
 def test_skip_reason_of_a_finished_run(baseline) -> None:
