@@ -40,7 +40,13 @@ from leap_core.pipeline import (
     run_pipeline,
     stage_status,
 )
-from leap_core.pipeline.runner import UNCHANGED, StageReport, skip_reason, stage_fingerprints
+from leap_core.pipeline.runner import (
+    UNCHANGED,
+    StageReport,
+    skip_reason,
+    stage_fingerprints,
+    warn_missing_images,
+)
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
@@ -157,6 +163,13 @@ def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
     assert list(result.stages) == list(STAGES)
     assert result.ran == [s for s in STAGES if s != "3dcn"]
     assert result.stages["3dcn"].status == "skipped"
+    # Each report names its stage; per-frame stages computed every frame, whole-run stages count none.
+    assert [r.name for r in result.stages.values()] == list(STAGES)
+    assert {s: r.frames_computed for s, r in result.stages.items()} == {
+        s.name: 6 if s.per_frame else 0 for s in STAGE_TABLE}
+    # The record keeps the report's seconds to the millisecond.
+    records = stage_status(run_dir)
+    assert all(records[s]["seconds"] == round(r.seconds, 3) for s, r in result.stages.items())
     seq = KittiSequence(street)
     for fid in seq.frame_ids:
         n = seq.frame(seq.frame_ids.index(fid)).points.shape[0]
@@ -514,6 +527,32 @@ def test_failed_cancelled_and_done_records(street: Path, schema, tmp_path: Path)
         rec, elapsed = labels2d(stop)
         assert (rec["status"], rec.get("error")) == (status, error)
         assert 0.0 <= rec["seconds"] <= elapsed
+
+
+def test_frames_without_a_camera_image_are_named_in_a_warning(
+    street: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    copy = tmp_path / "00"
+    shutil.copytree(street, copy)
+    (copy / "image_2" / "000002.png").unlink()
+    with caplog.at_level("WARNING", logger="leap_core.pipeline.runner"):
+        assert warn_missing_images(KittiSequence(copy), range(0, 6), "simulated") == ["000002"]
+        assert warn_missing_images(KittiSequence(copy), range(3, 6), "simulated") == []
+    assert [r.getMessage() for r in caplog.records] == [
+        f"1 of 6 frames have no camera image in {copy / 'image_2'} (frames 000002): the simulated labeler "
+        "labels them from the 2D ground truth only"]
+    caplog.clear()
+    for p in (copy / "image_2").iterdir():
+        p.unlink()
+    with caplog.at_level("WARNING", logger="leap_core.pipeline.runner"):
+        assert len(warn_missing_images(KittiSequence(copy), range(0, 6), "grounded-sam")) == 6
+        assert warn_missing_images(KittiSequence(copy), range(1, 6), "grounded-sam") == [
+            f"{i:06d}" for i in range(1, 6)]
+    assert [r.getMessage() for r in caplog.records] == [
+        f"6 of 6 frames have no camera image in {copy / 'image_2'} (frames 000000, 000001, 000002, 000003, "
+        "000004, …): the 2D labeler cannot label them",
+        f"5 of 5 frames have no camera image in {copy / 'image_2'} (frames 000001, 000002, 000003, 000004, "
+        "000005): the 2D labeler cannot label them"]
 
 
 def test_skip_reason_of_a_finished_run(baseline) -> None:
