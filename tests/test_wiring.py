@@ -231,3 +231,18 @@ def test_a_changed_3dcn_setting_removes_every_round_grid(run: Run, tmp_path: Pat
     result = run_pipeline(run.seq.root, run.schema, off, run_dir, until="3dcn")
     assert result.ran == []  # the 3D-CN is now skipped, the stages before it are current
     assert RunLayout(run_dir).cn_grids() == []
+
+
+def test_the_3dcn_is_current_only_while_its_last_smoothed_round_grid_exists(run: Run, tmp_path: Path) -> None:
+    """A finished 3D-CN stage is cached as long as its outputs (the smoothed grid of each round) exist; a
+    deleted one makes it run again, and only it (the later stages' inputs are its fingerprint)."""
+    import shutil
+
+    from leap_core.pipeline import plan_stages
+
+    run_dir = tmp_path / "copy"
+    shutil.copytree(run.lay.run_dir, run_dir)
+    assert not any(plan_stages(run.seq.root, run.schema, run.cfg, run_dir).values())
+    RunLayout(run_dir).grid_smooth_3dcn(1).unlink()
+    plan = plan_stages(run.seq.root, run.schema, run.cfg, run_dir)
+    assert [s for s, todo in plan.items() if todo] == ["3dcn"]
