@@ -246,3 +246,54 @@ def test_the_3dcn_is_current_only_while_its_last_smoothed_round_grid_exists(run:
     RunLayout(run_dir).grid_smooth_3dcn(1).unlink()
     plan = plan_stages(run.seq.root, run.schema, run.cfg, run_dir)
     assert [s for s, todo in plan.items() if todo] == ["3dcn"]
+
+
+def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_path: Path) -> None:
+    """In a multi-sequence run the 3D-CN stage of a sequence takes its round grids from the joint round's
+    staging folder (hard links), once its record (``3dcn_joint.json``) matches the joint state; otherwise
+    it refuses, naming the run."""
+    import json
+    import os
+    import shutil
+
+    from leap_core.errors import DatasetError, LeapError
+    from leap_core.pipeline import stage_status
+    from leap_core.run_layout import MultiRunLayout
+
+    root = MultiRunLayout(tmp_path / "multi")
+    lay = root.sequence("00")
+    shutil.copytree(run.lay.run_dir, lay.run_dir)
+    staged = root.joint_rounds("00")
+    staged.run_dir.mkdir(parents=True)
+    # Staged grids that differ from the run's own rounds, so a link is told apart from the files left there.
+    shutil.copyfile(run.lay.grid, staged.grid_3dcn(1))
+    shutil.copyfile(run.lay.grid_smooth, staged.grid_smooth_3dcn(1))
+    root.joint_state.write_text(json.dumps({"fingerprint": "f1", "sequences": ["00"]}))
+
+    def link(note: object) -> None:
+        lay.joint_3dcn.write_text(note if isinstance(note, str) else json.dumps(note))
+        run_pipeline(run.seq.root, run.schema, run.cfg, lay.run_dir, until="3dcn")
+
+    link({"fingerprint": "f1", "name": "00", "sequences": ["00"]})
+    assert os.path.samefile(staged.grid_3dcn(1), lay.grid_3dcn(1))
+    assert os.path.samefile(staged.grid_smooth_3dcn(1), lay.grid_smooth_3dcn(1))
+    record = stage_status(lay.run_dir)["3dcn"]
+    assert (record["joint"], record["iterations"]) == ("f1", 1)
+    assert record["voxels"] == VoxelGrid.load(run.lay.grid).num_voxels
+    # A record of another joint round, or of another sequence, or with the staged grids gone: refused.
+    for note in ({"fingerprint": "f0", "name": "00"}, {"fingerprint": "f1", "name": "01"}):
+        with pytest.raises(LeapError, match=r"multi/sequences/00: sequence .* has not run for these settings"):
+            link(note)
+    staged.grid_smooth_3dcn(1).unlink()
+    with pytest.raises(LeapError, match="has not run for these settings"):
+        link({"fingerprint": "f1", "name": "00", "sequences": ["00", "01"]})
+    # Unreadable records name their file.
+    for bad in ("{not json", json.dumps({"name": "00"}), json.dumps(["f1"])):
+        with pytest.raises(DatasetError, match="3dcn_joint.json: unreadable joint 3D-CN record"):
+            link(bad)
+    root.joint_state.write_text("{not json")
+    with pytest.raises(DatasetError, match=r"3dcn/joint.json: unreadable joint 3D-CN record"):
+        link({"fingerprint": "f1", "name": "00"})
+    root.joint_state.write_text(json.dumps(["f1"]))
+    with pytest.raises(DatasetError, match=r"3dcn/joint.json: unreadable joint 3D-CN record"):
+        link({"fingerprint": "f1", "name": "00", "x": 1})
