@@ -297,3 +297,27 @@ def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_p
     root.joint_state.write_text(json.dumps(["f1"]))
     with pytest.raises(DatasetError, match=r"3dcn/joint\.json: unreadable joint 3D-CN record"):
         link({"fingerprint": "f1", "name": "00", "x": 1})
+
+
+def test_the_distributed_fusion_ends_with_the_grid_the_fuse_stage_wrote(run: Run, tmp_path: Path) -> None:
+    """finish_fuse, the Ray engine's last fusion step (its partial grids already summed: here fuse() of
+    every stored observation), applies the corrections and writes the fuse stage's grid.npz byte for byte."""
+    import shutil
+
+    from leap_core.pipeline.runner import _context
+    from leap_core.pipeline.stages import finish_fuse
+
+    run_dir = tmp_path / "copy"
+    shutil.copytree(run.lay.run_dir, run_dir)
+    RunLayout(run_dir).grid.unlink()
+    calls: list[tuple[str, int, int]] = []
+    ctx = _context(run.seq.root, run.schema, run.cfg, run_dir, progress=lambda *a: calls.append(a),
+                   frames=None, runtime=None)
+    fcfg = run.cfg.fusion
+    batches = [Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor))
+               for p, keys in run.observations()]
+    record = finish_fuse(ctx, fuse(batches, run.c, fcfg))
+    assert RunLayout(run_dir).grid.read_bytes() == run.lay.grid.read_bytes()
+    n_corrected = len(last_per_key(*run.corrections())[0])
+    assert record == {"voxels": VoxelGrid.load(run.lay.grid).num_voxels, "corrections": n_corrected}
+    assert calls == [("fuse", len(run.frames), len(run.frames))]
