@@ -28,7 +28,7 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
-from leap_core.errors import Cancelled, LeapError
+from leap_core.errors import Cancelled, LeapError, PosesMissingError
 from leap_core.labelers.simulated import SimulatedLabelerConfig
 from leap_core.metrics import evaluate, metrics_from_confusion
 from leap_core.pipeline import (
@@ -43,6 +43,7 @@ from leap_core.pipeline import (
 from leap_core.pipeline.runner import (
     UNCHANGED,
     StageReport,
+    require_poses,
     skip_reason,
     stage_fingerprints,
     warn_missing_images,
@@ -553,6 +554,21 @@ def test_frames_without_a_camera_image_are_named_in_a_warning(
         "000004, …): the 2D labeler cannot label them",
         f"5 of 5 frames have no camera image in {copy / 'image_2'} (frames 000001, 000002, 000003, 000004, "
         "000005): the 2D labeler cannot label them"]
+
+
+def test_a_run_without_poses_is_refused_only_when_an_enabled_stage_needs_them(
+    street: Path, tmp_path: Path
+) -> None:
+    copy = tmp_path / "00"
+    shutil.copytree(street, copy)
+    (copy / "poses.txt").unlink()
+    seq, on = KittiSequence(copy), config_from_dict({"consistency": {"enabled": True}})
+    require_poses(seq, PipelineConfig(), STAGE_TABLE[:2])  # the 2D labels and the projection need none
+    require_poses(KittiSequence(street), on, STAGE_TABLE)
+    for cfg, needing in ((PipelineConfig(), "fuse, label_points, evaluate"),
+                         (on, "fuse, 3dcn, label_points, evaluate")):
+        with pytest.raises(PosesMissingError, match=rf"poses\.txt: no poses: the 3D stages \({needing}\)"):
+            require_poses(seq, cfg, STAGE_TABLE)
 
 
 def test_skip_reason_of_a_finished_run(baseline) -> None:
