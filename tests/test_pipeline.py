@@ -40,7 +40,9 @@ from leap_core.pipeline import (
     run_pipeline,
     stage_status,
 )
+from leap_core.pipeline.context import hash_json
 from leap_core.pipeline.runner import (
+    PIPELINE_VERSION,
     UNCHANGED,
     StageReport,
     require_poses,
@@ -378,6 +380,7 @@ def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path)
                      runtime=Runtime(cache_dir=cache),
                      until="fuse")
     assert a.frames == (0, 1, 2)
+    assert a.metrics is None and a.export_dir is None  # neither stage was reached
     names = sorted(p.name for p in (tmp_path / "a" / "labels2d").iterdir())
     assert names == [f"{i:06d}.npz" for i in range(3)]
     b = run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 4),
@@ -569,6 +572,47 @@ def test_a_run_without_poses_is_refused_only_when_an_enabled_stage_needs_them(
                          (on, "fuse, 3dcn, label_points, evaluate")):
         with pytest.raises(PosesMissingError, match=rf"poses\.txt: no poses: the 3D stages \({needing}\)"):
             require_poses(seq, cfg, STAGE_TABLE)
+
+
+def test_a_run_without_poses_stops_before_any_stage_but_a_2d_run_warns_and_runs(
+    street: Path, schema, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    copy = tmp_path / "00"
+    shutil.copytree(street, copy)
+    (copy / "poses.txt").unlink()
+    (copy / "image_2" / "000001.png").unlink()
+    run_dir = tmp_path / "r"
+    with caplog.at_level("WARNING", logger="leap_core.pipeline.runner"):
+        result = run_pipeline(copy, schema, PipelineConfig(), run_dir, frames=range(0, 2), until="project")
+    assert result.ran == ["labels2d", "project"]
+    assert [r.getMessage().split(":")[0] for r in caplog.records] == [
+        f"1 of 2 frames have no camera image in {copy / 'image_2'} (frames 000001)"]
+    with pytest.raises(PosesMissingError, match=r"poses\.txt"):
+        run_pipeline(copy, schema, PipelineConfig(), run_dir, frames=range(0, 2))
+    assert stage_status(run_dir)["fuse"] == {"status": "pending"}  # refused before the stage started
+
+
+def test_fingerprints_hash_the_documented_parts(baseline, street: Path, schema) -> None:
+    """A stage's fingerprint is the hash of: pipeline version, class count, stage name, upstream
+    fingerprints, the config sections it reads and its other inputs (a disabled stage: ``enabled`` false
+    instead). Their spelling is part of the contract: run folders of earlier versions stay cached only
+    while it holds (as tests/test_multi_sequence.py checks for the 3D-CN)."""
+    run_dir, _, _ = baseline
+    cfg = PipelineConfig()
+    fp = stage_fingerprints(street, schema, cfg, run_dir)
+    sections = config_to_dict(cfg)
+
+    def parts(stage: str, up: list[str], **rest: object) -> str:
+        return hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes, "stage": stage,
+                          "up": [fp[u] for u in up], **rest})
+
+    frames = hash_json([f"{i:06d}" for i in range(6)])
+    assert fp["project"] == parts("project", ["labels2d"], config={"projection": sections["projection"]})
+    assert fp["fuse"] == parts("fuse", ["project"], config={"fusion": sections["fusion"]},
+                               inputs={"frames": frames, "corrections": None, "strength": None})
+    assert fp["smooth"] == parts("smooth", ["fuse"], config={"smoothing": sections["smoothing"]})
+    assert fp["3dcn"] == parts("3dcn", ["project", "fuse", "smooth"], enabled=False)
+    assert {s: r["fingerprint"] for s, r in stage_status(run_dir).items()} == fp
 
 
 def test_skip_reason_of_a_finished_run(baseline) -> None:
