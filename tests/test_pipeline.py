@@ -615,6 +615,60 @@ def test_fingerprints_hash_the_documented_parts(baseline, street: Path, schema) 
     assert {s: r["fingerprint"] for s, r in stage_status(run_dir).items()} == fp
 
 
+def test_stage_records_and_progress(baseline) -> None:
+    """What each stage adds to its record, and the progress calls of a stage that works per frame, the
+    fusion (one per frame read, then done) and the smoothing (start, done)."""
+    from leap_core.fusion import VoxelGrid
+
+    run_dir, _, calls = baseline
+    records = stage_status(run_dir)
+    voxels = VoxelGrid.load(run_dir / "grid.npz").num_voxels
+    assert (records["fuse"]["voxels"], records["fuse"]["corrections"]) == (voxels, 0)
+    assert records["smooth"]["voxels"] == voxels
+    assert (records["labels2d"]["labeler"], records["labels2d"]["cache_hits"]) == ("simulated", 0)
+    assert (records["project"]["frames_done"], records["project"]["frames_computed"]) == (6, 6)
+    assert records["3dcn"]["note"] == "3D-CN disabled"
+    for stage in ("labels2d", "project", "fuse", "label_points", "export"):
+        assert [c for c in calls if c[0] == stage] == [(stage, k, 6) for k in range(7)], stage
+    assert [c for c in calls if c[0] == "smooth"] == [("smooth", 0, 1), ("smooth", 1, 1)]
+    assert [c for c in calls if c[0] == "3dcn"] == [("3dcn", 6, 6)]
+
+
+def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: Path) -> None:
+    cache = Runtime(cache_dir=tmp_path / "cache")
+    run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 2), until="labels2d",
+                 runtime=cache)
+    entries = sorted((tmp_path / "cache" / "labels2d").glob("*/*.npz"))
+    assert [e.name[:7] for e in entries] == ["000000-", "000001-"]
+    good = entries[0].read_bytes()
+    entries[0].write_bytes(b"damaged")
+    run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 2), until="labels2d",
+                 runtime=cache)
+    assert stage_status(tmp_path / "b")["labels2d"]["cache_hits"] == 1
+    assert entries[0].read_bytes() == good
+    assert (tmp_path / "b" / "labels2d" / "000000.npz").read_bytes() == good
+
+
+def test_stage_errors_name_their_file(baseline, street: Path, schema, tmp_path: Path) -> None:
+    no_gt2d = tmp_path / "00"
+    shutil.copytree(street, no_gt2d)
+    shutil.rmtree(no_gt2d / "gt2d")
+    with pytest.raises(LeapError, match=r"gt2d/semantic"):
+        run_pipeline(no_gt2d, schema, PipelineConfig(), tmp_path / "r0", frames=range(0, 1), until="labels2d")
+    run_dir = tmp_path / "r"
+    shutil.copytree(baseline[0], run_dir)
+    (run_dir / "labels2d" / "000002.npz").write_bytes(b"damaged")
+    shutil.rmtree(run_dir / "observations")
+    with pytest.raises(LeapError, match=r"labels2d/000002\.npz: unreadable 2D label file"):
+        run_pipeline(street, schema, PipelineConfig(), run_dir, until="project")
+    run_dir = tmp_path / "s"
+    shutil.copytree(baseline[0], run_dir)
+    (run_dir / "points" / "000003.npz").write_bytes(b"damaged")
+    shutil.rmtree(run_dir / "export")
+    with pytest.raises(LeapError, match=r"points/000003\.npz: unreadable point labels"):
+        run_pipeline(street, schema, PipelineConfig(), run_dir)
+
+
 def test_skip_reason_of_a_finished_run(baseline) -> None:
     """What the progress displays say of each stage of the baseline run (3D-CN off) when a later run
     reports it complete: cached stages "unchanged", the disabled 3D-CN its note; a stage that finished
