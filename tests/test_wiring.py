@@ -58,6 +58,8 @@ class Run:
         self.cfg = cfg
         self.c = schema.num_classes
         self.frames = range(len(self.seq))
+        self.calls: list[tuple[str, int, int]] = []
+        """The run's progress calls."""
 
     def observations(self) -> list[tuple[Painted, np.ndarray]]:
         """Per frame: the stored observation and the world voxel key of each painted point."""
@@ -92,9 +94,12 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     cfg = config_from_dict({"consistency": TINY_3DCN, "smoothing": {"k": 6}, "fusion": {"prob_floor": 0.002},
                             "projection": {"cluster_gap": 0.8}})
     assert cfg.smoothing != PipelineConfig().smoothing
-    result = run_pipeline(street, schema, cfg, run_dir)
+    calls: list[tuple[str, int, int]] = []
+    result = run_pipeline(street, schema, cfg, run_dir, progress=lambda *a: calls.append(a))
     assert "3dcn" in result.ran
-    return Run(street, run_dir, schema, cfg)
+    out = Run(street, run_dir, schema, cfg)
+    out.calls = calls
+    return out
 
 
 def _expected_smoothed(run: Run, grid: VoxelGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,3 +326,18 @@ def test_the_distributed_fusion_ends_with_the_grid_the_fuse_stage_wrote(run: Run
     n_corrected = len(last_per_key(*run.corrections())[0])
     assert record == {"voxels": VoxelGrid.load(run.lay.grid).num_voxels, "corrections": n_corrected}
     assert calls == [("fuse", len(run.frames), len(run.frames))]
+
+
+def test_3dcn_record_and_progress(run: Run) -> None:
+    """The 3D-CN's record (rounds, voxels of the last round's grid; fuse's: the corrected voxels) and its
+    progress in thousandths of a round, rising to 1000 per round."""
+    from leap_core.pipeline import stage_status
+
+    records = stage_status(run.lay.run_dir)
+    assert records["3dcn"]["iterations"] == 1
+    assert records["3dcn"]["voxels"] == VoxelGrid.load(run.lay.grid_3dcn(1)).num_voxels
+    assert records["fuse"]["corrections"] == len(last_per_key(*run.corrections())[0])
+    ticks = [(done, total) for stage, done, total in run.calls if stage == "3dcn"]
+    assert {total for _, total in ticks} == {1000} and ticks[-1] == (1000, 1000)
+    done = [d for d, _ in ticks]
+    assert done == sorted(done) and len(set(done)) > 3 and 0 <= done[0] < 1000
