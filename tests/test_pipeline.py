@@ -170,9 +170,11 @@ def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
     assert [r.name for r in result.stages.values()] == list(STAGES)
     assert {s: r.frames_computed for s, r in result.stages.items()} == {
         s.name: 6 if s.per_frame else 0 for s in STAGE_TABLE}
-    # The record keeps the report's seconds to the millisecond.
+    # The record keeps the report's seconds to the millisecond, the finish time and a disabled stage's note.
     records = stage_status(run_dir)
     assert all(records[s]["seconds"] == round(r.seconds, 3) for s, r in result.stages.items())
+    assert skip_reason(run_dir, "fuse", time.time()) == UNCHANGED
+    assert skip_reason(run_dir, "3dcn", time.time()) == "3D-CN disabled"
     seq = KittiSequence(street)
     for fid in seq.frame_ids:
         n = seq.frame(seq.frame_ids.index(fid)).points.shape[0]
@@ -392,13 +394,18 @@ def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path)
     assert same[0] == same[1]
     with pytest.raises(LeapError, match="out of range"):
         run_pipeline(street, schema, PipelineConfig(), tmp_path / "c", frames=range(4, 9))
-    # Planning and fingerprints are for the frames asked for: run a's first stages are current for its
-    # three frames (recorded fingerprints included), not for all six.
-    plan = plan_stages(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3))
+
+
+def test_plans_and_fingerprints_are_for_the_frames_asked_for(street: Path, schema, tmp_path: Path) -> None:
+    """A run folder made for three frames: its first stages are current for those frames (recorded
+    fingerprints included), not for all six."""
+    run_dir = tmp_path / "runs" / "a"  # its parent folder does not exist yet either
+    run_pipeline(street, schema, PipelineConfig(), run_dir, frames=range(0, 3), until="fuse")
+    plan = plan_stages(street, schema, PipelineConfig(), run_dir, frames=range(0, 3))
     assert [s for s, todo in plan.items() if not todo] == ["labels2d", "project", "fuse"]
-    assert all(plan_stages(street, schema, PipelineConfig(), tmp_path / "a").values())
-    recorded = stage_status(tmp_path / "a")
-    fps = stage_fingerprints(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3))
+    assert all(plan_stages(street, schema, PipelineConfig(), run_dir).values())
+    recorded = stage_status(run_dir)
+    fps = stage_fingerprints(street, schema, PipelineConfig(), run_dir, frames=range(0, 3))
     assert [s for s in STAGES if fps[s] == recorded[s].get("fingerprint")] == ["labels2d", "project", "fuse"]
 
 
@@ -590,6 +597,10 @@ def test_a_run_without_poses_stops_before_any_stage_but_a_2d_run_warns_and_runs(
     with pytest.raises(PosesMissingError, match=r"poses\.txt"):
         run_pipeline(copy, schema, PipelineConfig(), run_dir, frames=range(0, 2))
     assert stage_status(run_dir)["fuse"] == {"status": "pending"}  # refused before the stage started
+    # A run that stops at the first stage needing poses is refused before its 2D labels too.
+    with pytest.raises(PosesMissingError, match=r"poses\.txt"):
+        run_pipeline(copy, schema, PipelineConfig(), tmp_path / "r2", frames=range(0, 2), until="fuse")
+    assert stage_status(tmp_path / "r2")["labels2d"] == {"status": "pending"}
 
 
 def test_fingerprints_hash_the_documented_parts(baseline, street: Path, schema) -> None:
