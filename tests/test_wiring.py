@@ -91,7 +91,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     save_corrections(run_dir / "corrections.npz", np.concatenate([keys, keys[:1]]),
                      np.concatenate([np.full(len(keys), trunk), [pole]]))
     # Non-default settings in every section a stage reads: a stage that used a default config would differ.
-    cfg = config_from_dict({"consistency": TINY_3DCN, "smoothing": {"k": 6}, "fusion": {"prob_floor": 0.002},
+    cfg = config_from_dict({"consistency": TINY_3DCN, "smoothing": {"k": 6},
+                            "fusion": {"prob_floor": 0.002, "logp_clip": 12.0},
                             "projection": {"cluster_gap": 0.8}})
     assert cfg.smoothing != PipelineConfig().smoothing
     calls: list[tuple[str, int, int]] = []
