@@ -252,6 +252,10 @@ def test_the_3dcn_is_current_only_while_its_last_smoothed_round_grid_exists(run:
     RunLayout(run_dir).grid_smooth_3dcn(1).unlink()
     plan = plan_stages(run.seq.root, run.schema, run.cfg, run_dir)
     assert [s for s, todo in plan.items() if todo] == ["3dcn"]
+    # The round whose smoothed grid is gone is computed again (its checkpoint reused): the same bytes.
+    assert run_pipeline(run.seq.root, run.schema, run.cfg, run_dir, until="3dcn").ran == ["3dcn"]
+    assert RunLayout(run_dir).grid_smooth_3dcn(1).read_bytes() == run.lay.grid_smooth_3dcn(1).read_bytes()
+    assert RunLayout(run_dir).grid_3dcn(1).read_bytes() == run.lay.grid_3dcn(1).read_bytes()
 
 
 def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_path: Path) -> None:
@@ -276,11 +280,15 @@ def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_p
     shutil.copyfile(run.lay.grid_smooth, staged.grid_smooth_3dcn(1))
     root.joint_state.write_text(json.dumps({"fingerprint": "f1", "sequences": ["00"]}))
 
+    calls: list[tuple[str, int, int]] = []
+
     def link(note: object) -> None:
         lay.joint_3dcn.write_text(note if isinstance(note, str) else json.dumps(note))
-        run_pipeline(run.seq.root, run.schema, run.cfg, lay.run_dir, until="3dcn")
+        run_pipeline(run.seq.root, run.schema, run.cfg, lay.run_dir, until="3dcn",
+                     progress=lambda *a: calls.append(a))
 
     link({"fingerprint": "f1", "name": "00", "sequences": ["00"]})
+    assert [c for c in calls if c[0] == "3dcn"] == [("3dcn", 1, 1)]
     assert os.path.samefile(staged.grid_3dcn(1), lay.grid_3dcn(1))
     assert os.path.samefile(staged.grid_smooth_3dcn(1), lay.grid_smooth_3dcn(1))
     record = stage_status(lay.run_dir)["3dcn"]
