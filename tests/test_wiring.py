@@ -348,5 +348,6 @@ def test_3dcn_record_and_progress(run: Run) -> None:
     assert records["fuse"]["corrections"] == len(last_per_key(*run.corrections())[0])
     ticks = [(done, total) for stage, done, total in run.calls if stage == "3dcn"]
     assert {total for _, total in ticks} == {1000} and ticks[-1] == (1000, 1000)
+    assert all(type(d) is int for d, _ in ticks)  # whole thousandths, as progress(stage, done, total) counts
     done = [d for d, _ in ticks]
     assert done == sorted(done) and len(set(done)) > 3 and 0 <= done[0] < 1000
