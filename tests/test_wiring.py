@@ -351,3 +351,23 @@ def test_3dcn_record_and_progress(run: Run) -> None:
     assert all(type(d) is int for d, _ in ticks)  # whole thousandths, as progress(stage, done, total) counts
     done = [d for d, _ in ticks]
     assert done == sorted(done) and len(set(done)) > 3 and 0 <= done[0] < 1000
+
+
+def test_3dcn_of_a_frame_subset_trains_on_those_frames_only(run: Run, tmp_path: Path) -> None:
+    """A run over some of the scans trains its 3D-CN on the reliable labels of those scans only."""
+    frames = range(0, 3)
+    run_dir = tmp_path / "subset"
+    run_pipeline(run.seq.root, run.schema, run.cfg, run_dir, frames=frames, until="3dcn")
+    lay = RunLayout(run_dir)
+    cn = iteration_config(run.cfg.consistency, 1)
+    vs, clip = run.cfg.fusion.voxel_size, run.cfg.fusion.logp_clip
+    observed = []
+    for i in frames:
+        frame = run.seq.frame(i)
+        painted = Painted.load(lay.observation(frame.frame_id))
+        observed.append(voxel_keys(world_points(frame.points[painted.point_idx], frame.pose), vs))
+    views = view_counts(iter(observed))
+    smoothed = SmoothedGrid.load(lay.grid_smooth).to_voxel_grid(clip)
+    targets = reliable_targets(run.seq, smoothed, run.c, cn, vs, frames, views)
+    meta = load_checkpoint(checkpoint_path(lay.cn_dir, 1)).meta
+    assert meta["fingerprint"] == training_fingerprint(cn, run.c, frames, targets)
