@@ -258,6 +258,19 @@ def _apply(obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]) -> Any
         raise ConfigError(f"must be a mapping of settings, got {_short(overrides)}", field=path)
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
+    from_preset = getattr(type(obj), "from_preset", None)
+    if from_preset is not None and "preset" in overrides:
+        # A named preset replaces the whole section; the section's other keys then apply on top of it.
+        name = overrides["preset"]
+        if not isinstance(name, str):
+            raise ConfigError(f"must be a preset name, got {_short(name)}", field=(*path, "preset"))
+        try:
+            obj = from_preset(name)
+        except ConfigError as exc:
+            raise exc.within(*path) from None
+        overrides = {k: v for k, v in overrides.items() if k != "preset"}
+        if not overrides:
+            return obj
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
         where = (*path, str(key))

@@ -61,8 +61,10 @@ reshuffle the draws of the others.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import typing
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
@@ -80,7 +82,7 @@ if TYPE_CHECKING:
     from leap_core.schema import Schema
 
 # Independent random streams per noise step (see the module docstring, "Determinism").
-_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED = range(4)
+_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED, _STREAM_SHAPE, _STREAM_TILE = range(6)
 
 _DEFAULT_CLASS_RECALL: dict[str, float] = {
     # Small or thin objects are the ones open-vocabulary detectors miss most often.
@@ -181,15 +183,49 @@ class SimulatedLabelerConfig:
     match_temperature: float = 0.1
     """Softness of that competition: class c wins with probability ∝ exp(match_confidence[k(c)] / T);
     0 = the strongest strength always wins (ties drawn uniformly)."""
+    # The terms below are off by default (the default preset's masks and fingerprint do not see them); the
+    # "paper" preset (:data:`SIMULATED_PRESETS`) turns them on to reach real Grounding DINO + SAM errors.
+    class_confusion: dict[str, float] = field(default_factory=dict)
+    """Per-class confusion probability overriding ``confusion_prob``, by class name (names not in the
+    schema are ignored); a class still needs a partner in ``confusion_pairs`` to be confused."""
+    small_region_px: int = 0
+    """Size-dependent recall: a region of a pixels is kept with its recall times ``min(1, a /
+    small_region_px)`` (:func:`size_recall`), so small and far objects are missed more often; 0 = off."""
+    box_leak_prob: float = 0.0
+    """Probability that a thing mask becomes its whole bounding box grown by ``box_leak_margin``
+    (:func:`box_leak_crop`): SAM segmenting the box rather than the object, the background inside the
+    box leaks into the mask."""
+    box_leak_margin: float = 0.0
+    """Growth of the leaked box on each side, as a fraction of the box's height (top, bottom) and width
+    (left, right)."""
+    pair_merge_prob: float = 0.0
+    """Probability that a thing mask also covers the nearest other thing region whose bounding box lies
+    within ``pair_merge_gap_px`` of its own (:func:`adjacent_partner`): one mask over two adjacent objects
+    (a rider and the bicycle, a person and the car behind), labeled as the first."""
+    pair_merge_gap_px: int = 0
+    """Largest gap in pixels between two bounding boxes for their objects to count as adjacent."""
+    stuff_grow_prob: float = 0.0
+    """Probability that a stuff mask is over-large: dilated by a radius drawn uniformly from
+    ``1..stuff_grow_px`` (instead of its bleed when larger), so it covers the border of its neighbours."""
+    stuff_grow_px: int = 0
+    """Largest dilation radius in pixels of an over-large stuff mask."""
+    stuff_tile_px: int = 0
+    """When > 0, a stuff region's confusion is drawn per image tile of this many pixels (:func:`tile_split`)
+    rather than once for the whole region: the confused tiles form a second mask labeled as the partner,
+    as SAM splits a large surface into parts and the detector names some of them wrongly. The share of a
+    surface confused then follows the confusion probability closely, where one draw per region flips whole
+    roads at once."""
 
     def __post_init__(self) -> None:
-        for name in ("recall", "confusion_prob", "partner_share"):
+        for name in ("recall", "confusion_prob", "partner_share", "box_leak_prob", "pair_merge_prob",
+                     "stuff_grow_prob"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
-        for cname, v in self.class_recall.items():
-            if not 0.0 <= float(v) <= 1.0:
-                raise ConfigError(f"must be in [0, 1], got {v}", field=("class_recall", cname))
+        for table in ("class_recall", "class_confusion"):
+            for cname, v in getattr(self, table).items():
+                if not 0.0 <= float(v) <= 1.0:
+                    raise ConfigError(f"must be in [0, 1], got {v}", field=(table, cname))
         for name in ("peak_prob", "confidence"):
             lo, hi = getattr(self, name)
             if not 0.0 < lo <= hi <= 1.0:
@@ -210,11 +246,23 @@ class SimulatedLabelerConfig:
             "jitter_px",
             "jitter_deg",
             "match_temperature",
+            "small_region_px",
+            "box_leak_margin",
+            "pair_merge_gap_px",
+            "stuff_grow_px",
+            "stuff_tile_px",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
         _check_strength_table(self.match_detection, "match_detection", positive=False)
         _check_strength_table(self.match_confidence, "match_confidence", positive=True)
+
+    @classmethod
+    def from_preset(cls, name: str) -> SimulatedLabelerConfig:
+        """The config of a named preset (:data:`SIMULATED_PRESETS`); in a config dict, the key ``preset``
+        of the ``simulated`` section (``leap_core.config.config_from_dict`` applies the section's other
+        keys on top)."""
+        return simulated_preset(name)
 
     @classmethod
     def exact(cls, seed: int = 0) -> SimulatedLabelerConfig:
@@ -235,6 +283,48 @@ class SimulatedLabelerConfig:
             match_confidence=dict.fromkeys(STRENGTHS, 1.0),
             match_temperature=0.0,
         )
+
+
+_LATER_TERMS_OFF: dict[str, object] = {
+    "class_confusion": {},
+    "small_region_px": 0,
+    "box_leak_prob": 0.0,
+    "box_leak_margin": 0.0,
+    "pair_merge_prob": 0.0,
+    "pair_merge_gap_px": 0,
+    "stuff_grow_prob": 0.0,
+    "stuff_grow_px": 0,
+    "stuff_tile_px": 0,
+}
+"""The noise terms added with the "paper" preset and their off values (the defaults)."""
+
+
+def simulated_preset(name: str) -> SimulatedLabelerConfig:
+    """The simulated labeler's config of preset ``name`` (:data:`SIMULATED_PRESETS`).
+
+    Raises:
+        ConfigError: ``field = ("preset",)`` for an unknown name.
+    """
+    if name not in SIMULATED_PRESETS:
+        known = ", ".join(repr(n) for n in SIMULATED_PRESETS)
+        raise ConfigError(f"unknown preset {name!r} (known: {known})", field=("preset",))
+    return SIMULATED_PRESETS[name]()
+
+
+def _paper_preset() -> SimulatedLabelerConfig:
+    from leap_core.labelers.simulated_paper import PAPER_PRESET  # noqa: PLC0415  written by the fit script
+
+    return SimulatedLabelerConfig(**PAPER_PRESET)
+
+
+SIMULATED_PRESETS: dict[str, typing.Callable[[], SimulatedLabelerConfig]] = {
+    "default": SimulatedLabelerConfig,
+    "paper": _paper_preset,
+}
+"""Named simulated-labeler settings: ``default`` (the milder noise model, :class:`SimulatedLabelerConfig`'s
+defaults) and ``paper`` (fitted so the demo-like street sequences' point row approaches the paper's Table 1
+point row; ``leap_core/labelers/simulated_paper.py``, written by ``benchmarks/fit_labeler.py``). A project
+file picks one with ``pipeline: {simulated: {preset: paper}}``, ``leap run`` with ``--labeler-preset``."""
 
 
 @dataclass(frozen=True)
@@ -323,6 +413,67 @@ def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> 
             crop = lab[y0 : y0 + bh, x0 : x0 + bw] == j
             regions.append(_Region(nid, False, rank[j], by0 + y0, x0, crop))
     return regions
+
+
+def size_recall(area: npt.ArrayLike, small_px: int) -> npt.NDArray[np.float64]:
+    """(R,) factor on the recall of regions of ``area`` (R,) pixels: ``min(1, a / small_px)``; all ones
+    when ``small_px`` is 0 (the term is off)."""
+    a = np.asarray(area, dtype=np.float64)
+    if small_px <= 0:
+        return np.ones_like(a)
+    out: npt.NDArray[np.float64] = np.minimum(1.0, a / float(small_px))
+    return out
+
+
+def box_leak_crop(
+    box_h: int, box_w: int, y0: int, x0: int, margin: float, h: int, w: int
+) -> tuple[npt.NDArray[np.bool_], int, int]:
+    """A leaked mask: the full bounding box (rows ``y0..y0+box_h-1``, columns ``x0..x0+box_w-1``) grown by
+    ``round(margin·box_h)`` rows above and below and ``round(margin·box_w)`` columns left and right,
+    clipped to the ``h`` × ``w`` image. Returns the all-True crop and its origin ``(y0', x0')``."""
+    my, mx = round(margin * box_h), round(margin * box_w)
+    ny0, nx0 = max(0, y0 - my), max(0, x0 - mx)
+    ny1, nx1 = min(h, y0 + box_h + my), min(w, x0 + box_w + mx)
+    return np.ones((max(0, ny1 - ny0), max(0, nx1 - nx0)), dtype=bool), ny0, nx0
+
+
+def tile_split(
+    crop: npt.NDArray[np.bool_], y0: int, x0: int, tile_px: int, u_tiles: npt.NDArray[np.float64], prob: float
+) -> npt.NDArray[np.bool_]:
+    """The pixels of a region's ``crop`` (origin ``(y0, x0)`` in the image) whose image tile is confused:
+    pixel (y, x) lies in tile ``(y // tile_px, x // tile_px)``, which is confused when its draw
+    ``u_tiles[ty, tx]`` (uniform in [0, 1), one per tile of the image) is below ``prob``."""
+    ty = (y0 + np.arange(crop.shape[0])) // tile_px
+    tx = (x0 + np.arange(crop.shape[1])) // tile_px
+    out: npt.NDArray[np.bool_] = crop & (u_tiles[np.ix_(ty, tx)] < prob)
+    return out
+
+
+def box_gaps(boxes: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """(R, R) gap in pixels between bounding boxes ``boxes`` (R, 4) = (y0, x0, y1, x1), ends exclusive:
+    ``max(gap_y, gap_x)`` with ``gap_y = max(0, y0_j − y1_i, y0_i − y1_j)`` (0 where the boxes touch or
+    overlap on that axis), so boxes within g pixels of each other in both directions have gap ≤ g."""
+    b = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    y0, x0, y1, x1 = (b[:, k] for k in range(4))
+    gy = np.maximum(0, np.maximum(y0[None, :] - y1[:, None], y0[:, None] - y1[None, :]))
+    gx = np.maximum(0, np.maximum(x0[None, :] - x1[:, None], x0[:, None] - x1[None, :]))
+    out: npt.NDArray[np.int64] = np.maximum(gy, gx)
+    return out
+
+
+def adjacent_partner(boxes: npt.ArrayLike, eligible: npt.ArrayLike, max_gap: int) -> npt.NDArray[np.int64]:
+    """(R,) for each region i, the eligible region j ≠ i whose box is nearest to i's (:func:`box_gaps`),
+    if that gap is ≤ ``max_gap``, else -1; equal gaps go to the lower index."""
+    gaps = box_gaps(boxes).astype(np.float64)
+    ok = np.asarray(eligible, dtype=bool).reshape(-1)
+    n = ok.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    gaps[:, ~ok] = np.inf
+    np.fill_diagonal(gaps, np.inf)
+    best = gaps.argmin(axis=1)  # the first minimum: the lower index on ties
+    out: npt.NDArray[np.int64] = np.where(gaps[np.arange(n), best] <= max_gap, best, -1).astype(np.int64)
+    return out
 
 
 def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> dict[int, list[int]]:
@@ -470,6 +621,11 @@ class SimulatedLabeler:
         prompts and negative prompts: a prompt edit changes the masks, so it must re-run the 2D stage)."""
         cfg = asdict(self.cfg)
         cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
+        # Terms added after version 3 enter the hash only when on, so the fingerprints (and 2D caches) of
+        # configs that leave them off stay what they were.
+        for name, off in _LATER_TERMS_OFF.items():
+            if cfg[name] == off:
+                del cfg[name]
         parts = {
             "labeler": self.name,
             "version": 3,
@@ -500,6 +656,10 @@ class SimulatedLabeler:
         for cname, r in cfg.class_recall.items():
             if cname in names:
                 recall_of[names.index(cname)] = float(r)
+        confusion_of = np.full(num_classes, cfg.confusion_prob, dtype=np.float64)
+        for cname, q in cfg.class_confusion.items():
+            if cname in names:
+                confusion_of[names.index(cname)] = float(q)
         partners = _partners(names, cfg.confusion_pairs)
 
         n = len(regions)
@@ -517,6 +677,23 @@ class SimulatedLabeler:
         u_bleed = rng_bleed.random(n)
         lo_c, hi_c = cfg.confidence
         conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
+        # The shape terms (box leak, pair merge, over-large stuff) draw from their own persistent stream,
+        # and only when on, so the default preset's draws and masks stay as they were.
+        shaped = cfg.box_leak_prob > 0 or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
+        u_shape = (
+            np.array([
+                np.random.default_rng(
+                    np.random.SeedSequence([seed, block, _STREAM_SHAPE, r.name, int(r.thing), r.ident])
+                ).random(4)
+                for r in regions
+            ]).reshape(n, 4)
+            if shaped else np.ones((n, 4))
+        )
+        size_factor = size_recall([r.crop.sum() for r in regions], cfg.small_region_px)
+        merge_with = np.full(n, -1, np.int64)
+        if cfg.pair_merge_prob > 0 and n:
+            boxes = [(r.y0, r.x0, r.y0 + r.crop.shape[0], r.x0 + r.crop.shape[1]) for r in regions]
+            merge_with = adjacent_partner(boxes, [r.thing for r in regions], cfg.pair_merge_gap_px)
 
         bits, probs, confs = [], [], []
         flat = np.zeros(h * w, dtype=bool)
@@ -530,21 +707,58 @@ class SimulatedLabeler:
             # Every class whose prompts name the region is one more chance for the detector to box it.
             missed = np.prod([1.0 - cfg.match_detection[STRENGTHS[kj]] for _, kj in cands])
             keep = recall_of[cls] * (1.0 - missed)
+            if cfg.small_region_px:
+                keep *= size_factor[i]
             if u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
                 continue
             pred = cls
             cand = partners.get(cls)
-            if cand and u_obj[i, 1] < cfg.confusion_prob:
+            # Tiled stuff: the confusion is drawn per image tile instead of for the whole region.
+            tiled = bool(cand) and not reg.thing and cfg.stuff_tile_px > 0
+            if cand and not tiled and u_obj[i, 1] < confusion_of[cls]:
                 pred = cand[min(int(u_obj[i, 2] * len(cand)), len(cand) - 1)]
-            probs.append(
-                _distribution(
-                    cls, pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg, rng=dist_rng
-                )
-            )
-            confs.append(np.float32(conf[i] * cfg.match_confidence[strength]))
+            conf_i = np.float32(conf[i] * cfg.match_confidence[strength])
             max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
             radius = min(int(u_bleed[i] * (max_r + 1)), max_r)
-            bits.append(np.packbits(self._paint(flat, reg, radius, h, w)))
+            shape = reg
+            if reg.thing and u_shape[i, 0] < cfg.box_leak_prob:
+                box, by0, bx0 = box_leak_crop(*reg.crop.shape, reg.y0, reg.x0, cfg.box_leak_margin, h, w)
+                shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
+            if not reg.thing and u_shape[i, 2] < cfg.stuff_grow_prob and cfg.stuff_grow_px > 0:
+                grow = 1 + min(int(u_shape[i, 3] * cfg.stuff_grow_px), cfg.stuff_grow_px - 1)
+                radius = max(radius, grow)
+            parts = [(shape, pred)]
+            if tiled and cand:
+                t = cfg.stuff_tile_px
+                u_tiles = np.random.default_rng(
+                    np.random.SeedSequence([seed, block, _STREAM_TILE, reg.name, reg.ident])
+                ).random((-(-h // t), -(-w // t)))
+                moved = tile_split(shape.crop, shape.y0, shape.x0, t, u_tiles, float(confusion_of[cls]))
+                partner = cand[min(int(u_obj[i, 2] * len(cand)), len(cand) - 1)]
+                parts = [
+                    (dataclasses.replace(shape, crop=shape.crop & ~moved), cls),
+                    (dataclasses.replace(shape, crop=moved), partner),
+                ]
+            rng_i = dist_rng
+            for part, part_pred in parts:
+                if part is not shape and not part.crop.any():
+                    continue
+                probs.append(
+                    _distribution(
+                        cls, part_pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg, rng=rng_i
+                    )
+                )
+                rng_i = np.random.default_rng(dist_rng.integers(0, 2**63))
+                confs.append(conf_i)
+                mask = self._paint(flat, part, radius, h, w)
+                j = int(merge_with[i])
+                if reg.thing and j >= 0 and u_shape[i, 1] < cfg.pair_merge_prob:
+                    other = regions[j]
+                    img = mask.reshape(h, w)
+                    img[other.y0 : other.y0 + other.crop.shape[0], other.x0 : other.x0 + other.crop.shape[1]] |= (
+                        other.crop
+                    )
+                bits.append(np.packbits(mask))
         if not bits:
             return SoftMasks.empty(h, w, num_classes)
         return SoftMasks(
@@ -578,4 +792,15 @@ class SimulatedLabeler:
         return flat
 
 
-__all__ = ["SimulatedLabeler", "SimulatedLabelerConfig", "prompt_matches"]
+__all__ = [
+    "SIMULATED_PRESETS",
+    "SimulatedLabeler",
+    "SimulatedLabelerConfig",
+    "adjacent_partner",
+    "box_gaps",
+    "box_leak_crop",
+    "prompt_matches",
+    "simulated_preset",
+    "size_recall",
+    "tile_split",
+]

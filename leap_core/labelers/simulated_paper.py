@@ -1,0 +1,3 @@
+"""Placeholder: overwritten by benchmarks/fit_labeler.py --write."""
+
+PAPER_PRESET: dict = {}
