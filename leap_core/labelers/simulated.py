@@ -132,6 +132,22 @@ def _check_strength_table(table: dict[str, float], name: str, *, positive: bool)
             raise ConfigError(f"must be in {'(0, 1]' if positive else '[0, 1]'}, got {v}", field=(name, k))
 
 
+def _check_confusion(pairs: tuple[tuple[str, str], ...], table: dict[str, dict[str, float]]) -> None:
+    """``confusion_pairs``: two different names each; ``confusion_targets``: every weight >= 0 and of a
+    class other than its row's."""
+    for pair in pairs:
+        if len(pair) != 2 or pair[0] == pair[1]:
+            raise ConfigError(f"entries must be two different class names, got {list(pair)}",
+                              field=("confusion_pairs",))
+    for cname, targets in table.items():
+        for tname, wt in targets.items():
+            if not float(wt) >= 0.0 or tname == cname:
+                raise ConfigError(
+                    f"must be a weight >= 0 of another class, got {wt}",
+                    field=("confusion_targets", cname, tname),
+                )
+
+
 @dataclass(frozen=True)
 class SimulatedLabelerConfig:
     """Noise model of the simulated labeler (module docstring gives the exact procedure).
@@ -188,6 +204,11 @@ class SimulatedLabelerConfig:
     class_confusion: dict[str, float] = field(default_factory=dict)
     """Per-class confusion probability overriding ``confusion_prob``, by class name (names not in the
     schema are ignored); a class still needs a partner in ``confusion_pairs`` to be confused."""
+    confusion_targets: dict[str, dict[str, float]] = field(default_factory=dict)
+    """Directed confusion, by class name: class → {class it is mistaken for: weight}. A confused region of a
+    class listed here takes a target drawn with probability ∝ weight (instead of a partner of
+    ``confusion_pairs`` drawn uniformly); the class's confusion probability is still ``class_confusion`` /
+    ``confusion_prob``. Names not in the schema are ignored."""
     small_region_px: int = 0
     """Size-dependent recall: a region of a pixels is kept with its recall times ``min(1, a /
     small_region_px)`` (:func:`size_recall`), so small and far objects are missed more often; 0 = off."""
@@ -230,11 +251,7 @@ class SimulatedLabelerConfig:
             lo, hi = getattr(self, name)
             if not 0.0 < lo <= hi <= 1.0:
                 raise ConfigError(f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})", field=(name,))
-        for pair in self.confusion_pairs:
-            if len(pair) != 2 or pair[0] == pair[1]:
-                raise ConfigError(
-                    f"entries must be two different class names, got {list(pair)}", field=("confusion_pairs",)
-                )
+        _check_confusion(self.confusion_pairs, self.confusion_targets)
         if not self.dirichlet_alpha > 0:
             raise ConfigError(f"must be > 0, got {self.dirichlet_alpha}", field=("dirichlet_alpha",))
         if self.persistence_frames < 1:
@@ -287,6 +304,7 @@ class SimulatedLabelerConfig:
 
 _LATER_TERMS_OFF: dict[str, object] = {
     "class_confusion": {},
+    "confusion_targets": {},
     "small_region_px": 0,
     "box_leak_prob": 0.0,
     "box_leak_margin": 0.0,
@@ -426,11 +444,12 @@ def size_recall(area: npt.ArrayLike, small_px: int) -> npt.NDArray[np.float64]:
 
 
 def box_leak_crop(
-    box_h: int, box_w: int, y0: int, x0: int, margin: float, h: int, w: int
+    box_h: int, box_w: int, y0: int, x0: int, margin: float, size: tuple[int, int]
 ) -> tuple[npt.NDArray[np.bool_], int, int]:
     """A leaked mask: the full bounding box (rows ``y0..y0+box_h-1``, columns ``x0..x0+box_w-1``) grown by
     ``round(margin·box_h)`` rows above and below and ``round(margin·box_w)`` columns left and right,
-    clipped to the ``h`` × ``w`` image. Returns the all-True crop and its origin ``(y0', x0')``."""
+    clipped to the image of ``size`` = (h, w). Returns the all-True crop and its origin ``(y0', x0')``."""
+    h, w = size
     my, mx = round(margin * box_h), round(margin * box_w)
     ny0, nx0 = max(0, y0 - my), max(0, x0 - mx)
     ny1, nx1 = min(h, y0 + box_h + my), min(w, x0 + box_w + mx)
@@ -485,6 +504,30 @@ def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> di
             out.setdefault(index[a], set()).add(index[b])
             out.setdefault(index[b], set()).add(index[a])
     return {k: sorted(v) for k, v in out.items()}
+
+
+def confusion_targets(
+    schema_names: list[str], table: dict[str, dict[str, float]]
+) -> dict[int, tuple[list[int], npt.NDArray[np.float64]]]:
+    """Class index → (target class indices, their cumulative normalised weights) of the directed confusion
+    ``table`` (class name → {target name: weight}); entries naming a class not in the schema, and classes
+    left with no positive weight, are dropped."""
+    index = {n: i for i, n in enumerate(schema_names)}
+    out: dict[int, tuple[list[int], npt.NDArray[np.float64]]] = {}
+    for cname, row in table.items():
+        pairs = [(index[t], float(wt)) for t, wt in row.items() if t in index and float(wt) > 0]
+        if cname in index and pairs:
+            wts = np.array([wt for _, wt in pairs])
+            out[index[cname]] = ([t for t, _ in pairs], np.cumsum(wts / wts.sum()))
+    return out
+
+
+def _pick(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: float) -> int:
+    """The confused class for the draw ``u`` ~ U(0, 1): from the cumulative weights of a directed target
+    row, else uniform over the pair partners ``cand``."""
+    if target is not None:
+        return target[0][min(int(np.searchsorted(target[1], u, side="right")), len(target[0]) - 1)]
+    return cand[min(int(u * len(cand)), len(cand) - 1)]
 
 
 def prompt_matches(schema: Schema) -> dict[int, list[tuple[int, int]]]:
@@ -607,6 +650,60 @@ def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     return names
 
 
+def _per_class(names: list[str], default: float, table: dict[str, float]) -> npt.NDArray[np.float64]:
+    """(C,) ``default`` per class, overridden by the by-name ``table`` (names not in ``names`` ignored)."""
+    out = np.full(len(names), default, dtype=np.float64)
+    for cname, v in table.items():
+        if cname in names:
+            out[names.index(cname)] = float(v)
+    return out
+
+
+def _object_draws(regions: list[_Region], seed: int, block: int, stream: int) -> npt.NDArray[np.float64]:
+    """(R, 4) uniform draws per region that belong to the object (its name, kind and identity) and the
+    block of frames, so they persist over ``persistence_frames``."""
+    out = np.array(
+        [
+            np.random.default_rng(
+                np.random.SeedSequence([seed, block, stream, r.name, int(r.thing), r.ident])
+            ).random(4)
+            for r in regions
+        ]
+    ).reshape(len(regions), 4)
+    return out
+
+
+def _merge_partners(regions: list[_Region], cfg: SimulatedLabelerConfig) -> npt.NDArray[np.int64]:
+    """(R,) the thing region a pair merge of region i would add (:func:`adjacent_partner`); all -1 when the
+    term is off."""
+    if not (cfg.pair_merge_prob > 0 and regions):
+        return np.full(len(regions), -1, np.int64)
+    boxes = [(r.y0, r.x0, r.y0 + r.crop.shape[0], r.x0 + r.crop.shape[1]) for r in regions]
+    return adjacent_partner(boxes, [r.thing for r in regions], cfg.pair_merge_gap_px)
+
+
+@dataclass(frozen=True)
+class _Draws:
+    """One frame's per-region draws (row i = region i) and per-class tables, read by the mask shaping."""
+
+    h: int
+    w: int
+    seed: int
+    block: int
+    u_obj: npt.NDArray[np.float64]
+    """(R, 4) persistent: recall, confusion, partner choice, competition."""
+    u_bleed: npt.NDArray[np.float64]
+    """(R,) per frame: the bleed radius."""
+    u_shape: npt.NDArray[np.float64]
+    """(R, 4) persistent: box leak, pair merge, stuff growth, growth radius (ones when every term is off)."""
+    merge_with: npt.NDArray[np.int64]
+    """(R,) the adjacent thing region a pair merge would add, -1 = none."""
+    confusion_of: npt.NDArray[np.float64]
+    """(C,) confusion probability per class."""
+    partners: dict[int, list[int]]
+    targets: dict[int, tuple[list[int], npt.NDArray[np.float64]]]
+
+
 class SimulatedLabeler:
     """Soft masks from 2D ground truth, steered by the prompts, with the noise model of
     :class:`SimulatedLabelerConfig`."""
@@ -648,52 +745,30 @@ class SimulatedLabeler:
         names_img, inst = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER))
         h, w = names_img.shape
         names = list(schema.names)
-        num_classes = len(names)
-        regions = _regions(names_img, inst)
-        matches = prompt_matches(schema)
+        num_classes, regions, matches = len(names), _regions(names_img, inst), prompt_matches(schema)
 
-        recall_of = np.full(num_classes, cfg.recall, dtype=np.float64)
-        for cname, r in cfg.class_recall.items():
-            if cname in names:
-                recall_of[names.index(cname)] = float(r)
-        confusion_of = np.full(num_classes, cfg.confusion_prob, dtype=np.float64)
-        for cname, q in cfg.class_confusion.items():
-            if cname in names:
-                confusion_of[names.index(cname)] = float(q)
+        recall_of = _per_class(names, cfg.recall, cfg.class_recall)
         partners = _partners(names, cfg.confusion_pairs)
 
         n = len(regions)
         rng_probs, rng_bleed = (_rng(seed, idx, s) for s in (_STREAM_PROBS, _STREAM_BLEED))
         # Per object and block of frames: (recall draw, confusion draw, partner choice, competition draw).
         block = idx // cfg.persistence_frames
-        u_obj = np.array(
-            [
-                np.random.default_rng(
-                    np.random.SeedSequence([seed, block, _STREAM_OBJECT, r.name, int(r.thing), r.ident])
-                ).random(4)
-                for r in regions
-            ]
-        ).reshape(n, 4)
+        u_obj = _object_draws(regions, seed, block, _STREAM_OBJECT)
         u_bleed = rng_bleed.random(n)
         lo_c, hi_c = cfg.confidence
         conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
         # The shape terms (box leak, pair merge, over-large stuff) draw from their own persistent stream,
         # and only when on, so the default preset's draws and masks stay as they were.
         shaped = cfg.box_leak_prob > 0 or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
-        u_shape = (
-            np.array([
-                np.random.default_rng(
-                    np.random.SeedSequence([seed, block, _STREAM_SHAPE, r.name, int(r.thing), r.ident])
-                ).random(4)
-                for r in regions
-            ]).reshape(n, 4)
-            if shaped else np.ones((n, 4))
+        draws = _Draws(
+            h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed,
+            u_shape=_object_draws(regions, seed, block, _STREAM_SHAPE) if shaped else np.ones((n, 4)),
+            merge_with=_merge_partners(regions, cfg),
+            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion),
+            partners=partners, targets=confusion_targets(names, cfg.confusion_targets),
         )
         size_factor = size_recall([r.crop.sum() for r in regions], cfg.small_region_px)
-        merge_with = np.full(n, -1, np.int64)
-        if cfg.pair_merge_prob > 0 and n:
-            boxes = [(r.y0, r.x0, r.y0 + r.crop.shape[0], r.x0 + r.crop.shape[1]) for r in regions]
-            merge_with = adjacent_partner(boxes, [r.thing for r in regions], cfg.pair_merge_gap_px)
 
         bits, probs, confs = [], [], []
         flat = np.zeros(h * w, dtype=bool)
@@ -703,7 +778,6 @@ class SimulatedLabeler:
             if not cands:
                 continue  # no prompt names this region: the detector is never asked for it
             cls, k, rival = _compete(cands, cfg, float(u_obj[i, 3]))
-            strength = STRENGTHS[k]
             # Every class whose prompts name the region is one more chance for the detector to box it.
             missed = np.prod([1.0 - cfg.match_detection[STRENGTHS[kj]] for _, kj in cands])
             keep = recall_of[cls] * (1.0 - missed)
@@ -711,53 +785,24 @@ class SimulatedLabeler:
                 keep *= size_factor[i]
             if u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
                 continue
-            pred = cls
-            cand = partners.get(cls)
-            # Tiled stuff: the confusion is drawn per image tile instead of for the whole region.
-            tiled = bool(cand) and not reg.thing and cfg.stuff_tile_px > 0
-            if cand and not tiled and u_obj[i, 1] < confusion_of[cls]:
-                pred = cand[min(int(u_obj[i, 2] * len(cand)), len(cand) - 1)]
-            conf_i = np.float32(conf[i] * cfg.match_confidence[strength])
-            max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
-            radius = min(int(u_bleed[i] * (max_r + 1)), max_r)
-            shape = reg
-            if reg.thing and u_shape[i, 0] < cfg.box_leak_prob:
-                box, by0, bx0 = box_leak_crop(*reg.crop.shape, reg.y0, reg.x0, cfg.box_leak_margin, h, w)
-                shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
-            if not reg.thing and u_shape[i, 2] < cfg.stuff_grow_prob and cfg.stuff_grow_px > 0:
-                grow = 1 + min(int(u_shape[i, 3] * cfg.stuff_grow_px), cfg.stuff_grow_px - 1)
-                radius = max(radius, grow)
-            parts = [(shape, pred)]
-            if tiled and cand:
-                t = cfg.stuff_tile_px
-                u_tiles = np.random.default_rng(
-                    np.random.SeedSequence([seed, block, _STREAM_TILE, reg.name, reg.ident])
-                ).random((-(-h // t), -(-w // t)))
-                moved = tile_split(shape.crop, shape.y0, shape.x0, t, u_tiles, float(confusion_of[cls]))
-                partner = cand[min(int(u_obj[i, 2] * len(cand)), len(cand) - 1)]
-                parts = [
-                    (dataclasses.replace(shape, crop=shape.crop & ~moved), cls),
-                    (dataclasses.replace(shape, crop=moved), partner),
-                ]
+            parts, radius = self._parts(draws, i, reg, cls)
             rng_i = dist_rng
             for part, part_pred in parts:
-                if part is not shape and not part.crop.any():
-                    continue
                 probs.append(
                     _distribution(
-                        cls, part_pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg, rng=rng_i
+                        cls, part_pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg,
+                        rng=rng_i,
                     )
                 )
                 rng_i = np.random.default_rng(dist_rng.integers(0, 2**63))
-                confs.append(conf_i)
+                confs.append(np.float32(conf[i] * cfg.match_confidence[STRENGTHS[k]]))
                 mask = self._paint(flat, part, radius, h, w)
-                j = int(merge_with[i])
-                if reg.thing and j >= 0 and u_shape[i, 1] < cfg.pair_merge_prob:
+                j = int(draws.merge_with[i])
+                if reg.thing and j >= 0 and draws.u_shape[i, 1] < cfg.pair_merge_prob:
                     other = regions[j]
                     img = mask.reshape(h, w)
-                    img[other.y0 : other.y0 + other.crop.shape[0], other.x0 : other.x0 + other.crop.shape[1]] |= (
-                        other.crop
-                    )
+                    rows = slice(other.y0, other.y0 + other.crop.shape[0])
+                    img[rows, other.x0 : other.x0 + other.crop.shape[1]] |= other.crop
                 bits.append(np.packbits(mask))
         if not bits:
             return SoftMasks.empty(h, w, num_classes)
@@ -768,6 +813,40 @@ class SimulatedLabeler:
             probs=np.stack(probs),
             confidence=np.asarray(confs, dtype=np.float32),
         )
+
+    def _parts(self, d: _Draws, i: int, reg: _Region, cls: int) -> tuple[list[tuple[_Region, int]], int]:
+        """Region ``i`` (kept, won by class ``cls``) as masks to paint: [(shape, predicted class)] (two
+        parts when its stuff tiles split it), and the dilation radius (steps 3 and 5 and the shape terms)."""
+        cfg = self.cfg
+        pred = cls
+        target = d.targets.get(cls)
+        cand = target[0] if target is not None else d.partners.get(cls)
+        # Tiled stuff: the confusion is drawn per image tile instead of for the whole region.
+        tiled = bool(cand) and not reg.thing and cfg.stuff_tile_px > 0
+        if cand and not tiled and d.u_obj[i, 1] < d.confusion_of[cls]:
+            pred = _pick(cand, target, float(d.u_obj[i, 2]))
+        max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
+        radius = min(int(d.u_bleed[i] * (max_r + 1)), max_r)
+        shape = reg
+        if reg.thing and d.u_shape[i, 0] < cfg.box_leak_prob:
+            box, by0, bx0 = box_leak_crop(*reg.crop.shape, reg.y0, reg.x0, cfg.box_leak_margin, (d.h, d.w))
+            shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
+        if not reg.thing and d.u_shape[i, 2] < cfg.stuff_grow_prob and cfg.stuff_grow_px > 0:
+            grow = 1 + min(int(d.u_shape[i, 3] * cfg.stuff_grow_px), cfg.stuff_grow_px - 1)
+            radius = max(radius, grow)
+        if not (tiled and cand):
+            return [(shape, pred)], radius
+        t = cfg.stuff_tile_px
+        u_tiles = np.random.default_rng(
+            np.random.SeedSequence([d.seed, d.block, _STREAM_TILE, reg.name, reg.ident])
+        ).random((-(-d.h // t), -(-d.w // t)))
+        moved = tile_split(shape.crop, shape.y0, shape.x0, t, u_tiles, float(d.confusion_of[cls]))
+        partner = _pick(cand, target, float(d.u_obj[i, 2]))
+        parts = [
+            (dataclasses.replace(shape, crop=shape.crop & ~moved), cls),
+            (dataclasses.replace(shape, crop=moved), partner),
+        ]
+        return [(part, c) for part, c in parts if part.crop.any()], radius
 
     @staticmethod
     def _paint(
@@ -799,6 +878,7 @@ __all__ = [
     "adjacent_partner",
     "box_gaps",
     "box_leak_crop",
+    "confusion_targets",
     "prompt_matches",
     "simulated_preset",
     "size_recall",
