@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -120,7 +122,7 @@ def paper_row(conf: npt.NDArray[np.int64], schema: Schema) -> dict[str, float]:
     camera-view confusion, unlabeled predictions ignored (the paper's protocol)."""
     mapping = PAPER_VIEW.mapping(schema.names)
     if mapping is None:
-        raise SystemExit(f"the paper's view needs SemanticKITTI's classes: {PAPER_VIEW.problem(schema.names)}")
+        raise SystemExit(f"the paper's view does not apply: {PAPER_VIEW.problem(schema.names)}")
     merged = merge_confusion(conf, mapping, len(PAPER_VIEW.classes))
     met = metrics_from_confusion(merged, PAPER_VIEW.names, PAPER_VIEW.categories, ignore_unlabeled_pred=True)
     present = merged[:, :-1].sum(axis=1) > 0  # the class has ground-truth points in view
@@ -183,16 +185,33 @@ def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds:
     return best[1], best[2], log
 
 
-def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], tuning: list[str], path: Path) -> None:
+def _literal(value: Any, depth: int) -> str:
+    """``value`` (numbers, strings, tuples, dicts) as a Python literal, one item a line for containers."""
+    pad, inner = "    " * depth, "    " * (depth + 1)
+    if isinstance(value, dict):
+        if not value:
+            return "{}"
+        items = "".join(f"{inner}{json.dumps(k)}: {_literal(v, depth + 1)},\n" for k, v in value.items())
+        return "{\n" + items + pad + "}"
+    if isinstance(value, tuple):
+        if all(not isinstance(v, (tuple, dict)) for v in value):
+            return "(" + ", ".join(_literal(v, depth) for v in value) + ("," if len(value) == 1 else "") + ")"
+        return "(\n" + "".join(f"{inner}{_literal(v, depth + 1)},\n" for v in value) + pad + ")"
+    return json.dumps(value) if isinstance(value, str) else repr(value)
+
+
+def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], tuning: str, path: Path) -> None:
     fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
     present = [n for n, v in row.items() if not math.isnan(v)]
     miou = float(np.mean([row[n] for n in present]))
-    body = "\n".join(f"    {k!r}: {v!r}," for k, v in fields.items())
+    para = textwrap.fill(f"Fitted on the tuning sequences {tuning} (never on the demo, seed 0): the point "
+                         "row (camera view, the paper's merged classes) of these settings there, against the "
+                         "paper's Table 1:", width=108)
+    body = "\n".join(f"    {json.dumps(k)}: {_literal(v, 1)}," for k, v in fields.items())
     table = "\n".join(f"    {n:14s} {PAPER_POINT[n]:5.1f}  {row[n]:5.1f}" for n in present)
     text = f'''"""The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.
 
-Fitted on the tuning sequences {", ".join(tuning)} (never on the demo, seed 0): the point row
-(camera view, the paper's merged classes) of these settings there, against the paper's Table 1:
+{para}
 
     class          paper  fitted
 {table}
@@ -228,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--step", type=float, default=1.2, help="q change per 100 IoU points of misfit")
     ap.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame of the tuning sequences")
     ap.add_argument("--write", action="store_true", help="rewrite leap_core/labelers/simulated_paper.py")
+    ap.add_argument("--label", help="how the preset's docstring names the tuning sequences (default: paths)")
     ap.add_argument("--report", nargs="*", default=None, help="sequence folders to report (no fit)")
     args = ap.parse_args(argv)
     preset = builtin_preset("semantickitti")
@@ -242,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     print("best:", _row_text(row))
     if args.write:
         path = Path(__file__).resolve().parents[1] / "leap_core" / "labelers" / "simulated_paper.py"
-        _write_preset(cfg, row, [str(p) for p in args.tuning], path)
+        _write_preset(cfg, row, args.label or ", ".join(args.tuning), path)
         print(f"wrote {path}")
     return 0
 

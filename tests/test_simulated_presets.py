@@ -117,17 +117,18 @@ def test_box_gaps_and_adjacent_partner() -> None:
 
 
 def test_tile_split() -> None:
-    # A 4 x 4 region at (2, 2) of an 8 x 8 image in 4-pixel tiles: tiles (0, 0) and (1, 1) are confused.
+    # A 4 x 4 region at row 2, column 6 of an 8 x 12 image in 4-pixel tiles (2 x 3 tiles): tiles (0, 1) and
+    # (1, 2) are confused.
     crop = np.ones((4, 4), bool)
-    u = np.array([[0.1, 0.9], [0.9, 0.1]])
-    moved = tile_split(crop, 2, 2, 4, u, 0.5)
+    u = np.array([[0.9, 0.1, 0.9], [0.9, 0.9, 0.1]])
+    moved = tile_split(crop, 2, 6, 4, u, 0.5)
     expected = np.zeros((4, 4), bool)
-    expected[:2, :2] = True  # image rows 2-3, columns 2-3: tile (0, 0)
-    expected[2:, 2:] = True  # image rows 4-5, columns 4-5: tile (1, 1)
+    expected[:2, :2] = True  # image rows 2-3, columns 6-7: tile (0, 1)
+    expected[2:, 2:] = True  # image rows 4-5, columns 8-9: tile (1, 2)
     np.testing.assert_array_equal(moved, expected)
     # Only the region's own pixels move.
     crop[0, 0] = False
-    assert not tile_split(crop, 2, 2, 4, u, 0.5)[0, 0]
+    assert not tile_split(crop, 2, 6, 4, u, 0.5)[0, 0]
 
 
 def test_confusion_targets_and_pick() -> None:
