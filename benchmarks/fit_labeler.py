@@ -157,10 +157,18 @@ def _row_text(row: dict[str, float]) -> str:
     return " ".join(f"{n} {v:5.1f}" for n, v in row.items() if not math.isnan(v))
 
 
-def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds: int, step: float,
-        stride: int) -> tuple[SimulatedLabelerConfig, dict[str, float], list[str]]:
-    """The fit of the module docstring; returns the best config, its row and a log of the rounds."""
-    q: dict[str, float] = {}
+def preset_q() -> dict[str, float]:
+    """The merged-class confusion q of the current paper preset (a warm start for a refit)."""
+    conf = simulated_preset("paper").class_confusion
+    return {mc.name: conf[src] for mc in PAPER_VIEW.classes for src in mc.sources if src in conf}
+
+
+def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds: int, step: float, *,
+        stride: int = 1, start: dict[str, float] | None = None,
+        ) -> tuple[SimulatedLabelerConfig, dict[str, float], list[str]]:
+    """The fit of the module docstring, from q = ``start`` (default 0); returns the best config, its row
+    and a log of the rounds."""
+    q: dict[str, float] = dict(start or {})
     best: tuple[float, SimulatedLabelerConfig, dict[str, float]] | None = None
     log: list[str] = []
     for r in range(rounds):
@@ -228,7 +236,10 @@ PAPER_PRESET: dict[str, Any] = {{
 
 
 def report(paths: list[str], schema: Schema, base: PipelineConfig) -> None:
-    """Print the point row of the default and the paper preset on each sequence."""
+    """Print the point row of the default and the paper preset on each sequence, then, over several
+    sequences, the paper preset's per-class mean and standard deviation across them (the spread one
+    sequence's row has around the fit)."""
+    rows: list[dict[str, float]] = []
     for p in paths:
         seq = KittiSequence(Path(p))
         for name in ("default", "paper"):
@@ -238,6 +249,12 @@ def report(paths: list[str], schema: Schema, base: PipelineConfig) -> None:
             miou = float(np.mean([row[n] for n in present]))
             print(f"{p} {name:8s} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) | {_row_text(row)}",
                   flush=True)
+            if name == "paper":
+                rows.append({**row, "mIoU": miou})
+    if len(rows) > 1:
+        keys = [k for k in rows[0] if all(not math.isnan(r.get(k, math.nan)) for r in rows)]
+        print("paper preset across the sequences (mean ± std): " + " ".join(
+            f"{k} {np.mean([r[k] for r in rows]):.1f}±{np.std([r[k] for r in rows]):.1f}" for k in keys))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -247,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--step", type=float, default=1.2, help="q change per 100 IoU points of misfit")
     ap.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame of the tuning sequences")
     ap.add_argument("--write", action="store_true", help="rewrite leap_core/labelers/simulated_paper.py")
+    ap.add_argument("--warm", action="store_true", help="start from the current paper preset's q")
     ap.add_argument("--label", help="how the preset's docstring names the tuning sequences (default: paths)")
     ap.add_argument("--report", nargs="*", default=None, help="sequence folders to report (no fit)")
     args = ap.parse_args(argv)
@@ -258,7 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.tuning:
         ap.error("give tuning sequence folders or --report")
     seqs = [KittiSequence(Path(p)) for p in args.tuning]
-    cfg, row, _ = fit(seqs, schema, base, args.rounds, args.step, args.stride)
+    cfg, row, _ = fit(seqs, schema, base, args.rounds, args.step, stride=args.stride,
+                      start=preset_q() if args.warm else None)
     print("best:", _row_text(row))
     if args.write:
         path = Path(__file__).resolve().parents[1] / "leap_core" / "labelers" / "simulated_paper.py"

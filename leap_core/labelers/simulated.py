@@ -829,7 +829,8 @@ class SimulatedLabeler:
         radius = min(int(d.u_bleed[i] * (max_r + 1)), max_r)
         shape = reg
         if reg.thing and d.u_shape[i, 0] < cfg.box_leak_prob:
-            box, by0, bx0 = box_leak_crop(*reg.crop.shape, reg.y0, reg.x0, cfg.box_leak_margin, (d.h, d.w))
+            bh, bw = reg.crop.shape
+            box, by0, bx0 = box_leak_crop(bh, bw, reg.y0, reg.x0, cfg.box_leak_margin, (d.h, d.w))
             shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
         if not reg.thing and d.u_shape[i, 2] < cfg.stuff_grow_prob and cfg.stuff_grow_px > 0:
             grow = 1 + min(int(d.u_shape[i, 3] * cfg.stuff_grow_px), cfg.stuff_grow_px - 1)
