@@ -48,6 +48,14 @@ Noise model, applied per image in this order (every parameter lives in :class:`S
    (stuff masks: ``0..stuff_bleed_px``), so it spills onto the background around it. Per-mask depth
    clustering in the projection stage is what removes the spill of foreground objects onto points behind.
 
+Terms of the "paper" preset (:data:`SIMULATED_PRESETS`; off by default, and then nothing of them is drawn
+or hashed, so the default masks and fingerprint stay byte for byte): per-class confusion
+(``class_confusion``) and directed confusion (``confusion_targets``, :func:`confusion_targets`) in step 3,
+size-dependent recall (``small_region_px``, :func:`size_recall`) in step 2, and in step 5 background leaks
+(``box_leak_prob``: a thing mask becomes its grown bounding box, :func:`box_leak_crop`), one mask over two
+adjacent objects (``pair_merge_prob``, :func:`adjacent_partner`), over-large stuff (``stuff_grow_prob``) and
+tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`). docs/METHOD.md A.7-A.8 give the details.
+
 With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
 distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
 the per-pixel argmax reproduces the mapped ground truth exactly.
