@@ -21,6 +21,7 @@ from leap_core.errors import Cancelled, ConfigError, LeapError, PosesMissingErro
 from leap_core.labelers import LABELERS
 from leap_core.labelers.cache import default_cache_dir, image_digest
 from leap_core.labelers.grounded_sam import GroundedSamLabeler
+from leap_core.labelers.simulated import SIMULATED_PRESETS
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.presets import Preset, load_preset
 from leap_core.runtime import Runtime
@@ -373,6 +374,11 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     project_file: str | None = typer.Option(
         None, "--project-file", help="Project YAML: classes plus a 'pipeline:' section of config overrides."
     ),
+    labeler_preset: str | None = typer.Option(
+        None, "--labeler-preset", help="Simulated labeler's noise preset: default (mild) or paper (fitted to "
+        "the paper's point row; pipeline.simulated.preset). Replaces the project's simulated settings.",
+        autocompletion=lambda: list(SIMULATED_PRESETS),
+    ),
     consistency: bool | None = typer.Option(
         None, "--3dcn/--no-3dcn", help="Run the 3D Consistency Network (default: the project's setting, off)."
     ),
@@ -435,6 +441,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
 
     if len(datasets) > 1:
         _run_multi(datasets, Path(out), schema=schema, project_file=project_file, labeler=labeler,
+                   labeler_preset=labeler_preset,
                    consistency=consistency, cn_iterations=cn_iterations, frames=frames, cache=cache,
                    models=models, device=device, allow_download=allow_download, export_to=export_to,
                    zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses,
@@ -447,7 +454,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         if is_multi_run(out):
             raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
                             "folder, or name all its sequences")
-        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset)
         runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
@@ -560,7 +567,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     consistency: bool | None, cn_iterations: int | None, frames: str | None, cache: str | None,
     models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
     with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None,
-    ray_cpus: int | None = None, frame_threads: int = 4,
+    ray_cpus: int | None = None, frame_threads: int = 4, labeler_preset: str | None = None,
 ) -> None:
     """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
     sequence's stages run on that Ray cluster (one connection for the whole run)."""
@@ -571,7 +578,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     layout = MultiRunLayout(out)
     with _run_errors(out, poses="run `leap poses` on that sequence"):
         specs = _multi_specs(datasets, frames)
-        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset)
         runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
         names = [s.name for s in specs]
         # Refuse a target before a long run, not after it.
@@ -783,6 +790,7 @@ def _run_config(
     labeler: str | None,
     consistency: bool | None,
     cn_iterations: int | None = None,
+    labeler_preset: str | None = None,
 ) -> tuple[Schema, PipelineConfig]:
     """``leap run``'s classes and config: --schema's file gives the classes (and a base config),
     --project-file's pipeline applies on top, then --labeler, --3dcn and --3dcn-iterations (which turns the
@@ -799,6 +807,8 @@ def _run_config(
     flags: dict[str, Any] = {}
     if labeler is not None:
         flags["labeler"] = labeler
+    if labeler_preset is not None:
+        flags["simulated"] = {"preset": labeler_preset}
     if consistency is not None:
         flags["consistency"] = {"enabled": consistency}
     if cn_iterations is not None:

@@ -252,12 +252,31 @@ RETIRED_FIELDS: dict[tuple[str, ...], RetiredField] = {
 (:class:`~leap_core.runtime.Runtime`)."""
 
 
+def _preset_section(
+    obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]
+) -> tuple[Any, Mapping[str, Any]]:
+    """A section whose dataclass has ``from_preset`` (the simulated labeler's) and whose overrides name a
+    ``preset``: that preset replaces ``obj`` and the section's other keys are left to apply on top."""
+    from_preset = getattr(type(obj), "from_preset", None)
+    if from_preset is None or "preset" not in overrides:
+        return obj, overrides
+    name = overrides["preset"]
+    if not isinstance(name, str):
+        raise ConfigError(f"must be a preset name, got {_short(name)}", field=(*path, "preset"))
+    try:
+        preset = from_preset(name)
+    except ConfigError as exc:
+        raise exc.within(*path) from None
+    return preset, {k: v for k, v in overrides.items() if k != "preset"}
+
+
 def _apply(obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]) -> Any:
     """``obj`` with ``overrides`` applied; every error carries the absolute field path."""
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"must be a mapping of settings, got {_short(overrides)}", field=path)
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
+    obj, overrides = _preset_section(obj, overrides, path)
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
         where = (*path, str(key))

@@ -20,6 +20,7 @@ from leap_core.datasets.kitti import (
     read_png16,
     read_poses,
     read_scan,
+    scan_point_count,
     write_calib,
     write_image,
     write_label,
@@ -648,6 +649,32 @@ def test_frame_caches_its_arrays(tmp_path: Path, make_tiny_sequence) -> None:
     first = frame.points
     (seq.root / "velodyne" / "000000.bin").unlink()
     assert frame.points is first
+
+
+def test_frame_counts_and_checks_labels_without_reading_the_scan(tmp_path: Path, make_tiny_sequence) -> None:
+    """num_points comes from the scan's size (16 bytes a point), so labels are checked against the scan
+    without its 16 bytes a point being read (evaluate reads only the labels of a run without the 3D-CN)."""
+    seq = make_tiny_sequence(tmp_path, n_frames=2, n_points=37)
+    frame = KittiSequence(seq.root).frame(0)
+    assert scan_point_count(seq.root / "velodyne" / "000000.bin") == 37
+    assert frame.num_points == 37
+    assert frame.labels.shape == (37,)
+    assert "points" not in frame.__dict__
+    read = KittiSequence(seq.root).frame(1)
+    assert read.points.shape == (37, 4)
+    (seq.root / "velodyne" / "000001.bin").write_bytes(b"")  # the points already read are the count
+    assert read.num_points == 37
+    bad = seq.root / "velodyne" / "000000.bin"
+    bad.write_bytes(b"\0" * 33)
+    with pytest.raises(DatasetError, match="33 bytes is not a multiple of 16") as exc:
+        scan_point_count(bad)
+    assert_names(exc, bad)
+    bad.write_bytes(b"\0" * 32)
+    with pytest.raises(DatasetError, match="label count 37 != point count 2") as exc:
+        _ = KittiSequence(seq.root).frame(0).labels
+    with pytest.raises(DatasetError, match="cannot read scan") as exc:
+        scan_point_count(tmp_path / "000404.bin")
+    assert_names(exc, tmp_path / "000404.bin")
 
 
 # ------------------------------------------------------------------------- edges the mutants found

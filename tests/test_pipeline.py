@@ -28,7 +28,7 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
-from leap_core.errors import Cancelled, LeapError, PosesMissingError
+from leap_core.errors import Cancelled, DatasetError, LeapError, PosesMissingError
 from leap_core.labelers.simulated import SimulatedLabelerConfig
 from leap_core.metrics import evaluate, metrics_from_confusion
 from leap_core.pipeline import (
@@ -499,6 +499,23 @@ def test_bad_inputs_are_one_line_errors(street: Path, schema, tmp_path: Path) ->
         run_pipeline(tmp_path, schema, PipelineConfig(), tmp_path / "r")
     with pytest.raises(LeapError, match="until"):
         run_pipeline(street, schema, PipelineConfig(), tmp_path / "r", until="nope")
+
+
+@pytest.mark.parametrize("damaged", ["points", "observations"])
+def test_evaluate_names_a_damaged_run_file(
+    baseline, street: Path, schema, tmp_path: Path, damaged: str
+) -> None:
+    """evaluate reads two members of a frame's points/ and observations/ files: a damaged one is a
+    one-line error naming it, and the stages before keep their outputs."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(baseline[0], run_dir)
+    bad = sorted((run_dir / damaged).glob("*.npz"))[2]
+    bad.write_bytes(bad.read_bytes()[:100])
+    (run_dir / "metrics.json").unlink()
+    with pytest.raises(DatasetError, match="unreadable") as exc:
+        run_pipeline(street, schema, PipelineConfig(), run_dir)
+    assert str(bad) in str(exc.value)
+    assert json.loads((run_dir / "stages.json").read_text())["label_points"]["status"] == "done"
 
 
 # ------------------------------------------------------------------------------------- stage records

@@ -60,6 +60,22 @@ def read_scan(path: str | Path) -> npt.NDArray[np.float32]:
     return pts
 
 
+def scan_point_count(path: str | Path) -> int:
+    """The number of points of a ``.bin`` scan, from its size alone (16 bytes a point; nothing is read).
+
+    Raises:
+        DatasetError: naming the file when it is missing or not a whole number of points.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read scan ({exc.strerror or exc})") from exc
+    if size % 16:
+        raise DatasetError(path, f"size {size} bytes is not a multiple of 16 (float32 x,y,z,remission)")
+    return size // 16
+
+
 def write_scan(path: str | Path, points: npt.ArrayLike) -> None:
     """Write (N, 4) points as float32 ``.bin`` (atomic)."""
     pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32))
@@ -315,6 +331,14 @@ class Frame:
         """(N, 4) float32 x, y, z, remission in the LiDAR frame."""
         return read_scan(self.seq.scan_path(self.index))
 
+    @functools.cached_property
+    def num_points(self) -> int:
+        """N, the scan's point count: from :attr:`points` when they were read, else from the file's size
+        (reading a scan only to count it was most of the bytes ``evaluate`` read per frame)."""
+        if "points" in self.__dict__:
+            return int(self.points.shape[0])
+        return scan_point_count(self.seq.scan_path(self.index))
+
     @property
     def pose(self) -> npt.NDArray[np.float64]:
         """(4, 4) LiDAR → world (world = LiDAR frame of pose line 0)."""
@@ -343,7 +367,7 @@ class Frame:
     @functools.cached_property
     def labels(self) -> npt.NDArray[np.uint32]:
         """(N,) uint32 raw SemanticKITTI labels (semantic | instance << 16)."""
-        return read_label(self.seq.label_path(self.index), num_points=self.points.shape[0])
+        return read_label(self.seq.label_path(self.index), num_points=self.num_points)
 
     @functools.cached_property
     def gt2d_semantic(self) -> npt.NDArray[np.uint16]:
@@ -560,6 +584,7 @@ __all__ = [
     "read_png16",
     "read_poses",
     "read_scan",
+    "scan_point_count",
     "write_calib",
     "write_image",
     "write_label",

@@ -48,6 +48,14 @@ Noise model, applied per image in this order (every parameter lives in :class:`S
    (stuff masks: ``0..stuff_bleed_px``), so it spills onto the background around it. Per-mask depth
    clustering in the projection stage is what removes the spill of foreground objects onto points behind.
 
+Terms of the "paper" preset (:data:`SIMULATED_PRESETS`; off by default, and then nothing of them is drawn
+or hashed, so the default masks and fingerprint stay byte for byte): per-class confusion
+(``class_confusion``) and directed confusion (``confusion_targets``, :func:`confusion_targets`) in step 3,
+size-dependent recall (``small_region_px``, :func:`size_recall`) in step 2, and in step 5 background leaks
+(``box_leak_prob``: a thing mask becomes its grown bounding box, :func:`box_leak_crop`), one mask over two
+adjacent objects (``pair_merge_prob``, :func:`adjacent_partner`), over-large stuff (``stuff_grow_prob``) and
+tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`). docs/METHOD.md A.7-A.8 give the details.
+
 With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
 distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
 the per-pixel argmax reproduces the mapped ground truth exactly.
@@ -61,8 +69,10 @@ reshuffle the draws of the others.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import typing
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
@@ -80,7 +90,7 @@ if TYPE_CHECKING:
     from leap_core.schema import Schema
 
 # Independent random streams per noise step (see the module docstring, "Determinism").
-_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED = range(4)
+_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED, _STREAM_SHAPE, _STREAM_TILE = range(6)
 
 _DEFAULT_CLASS_RECALL: dict[str, float] = {
     # Small or thin objects are the ones open-vocabulary detectors miss most often.
@@ -128,6 +138,22 @@ def _check_strength_table(table: dict[str, float], name: str, *, positive: bool)
         ok = 0.0 < float(v) <= 1.0 if positive else 0.0 <= float(v) <= 1.0
         if not ok:
             raise ConfigError(f"must be in {'(0, 1]' if positive else '[0, 1]'}, got {v}", field=(name, k))
+
+
+def _check_confusion(pairs: tuple[tuple[str, str], ...], table: dict[str, dict[str, float]]) -> None:
+    """``confusion_pairs``: two different names each; ``confusion_targets``: every weight >= 0 and of a
+    class other than its row's."""
+    for pair in pairs:
+        if len(pair) != 2 or pair[0] == pair[1]:
+            raise ConfigError(f"entries must be two different class names, got {list(pair)}",
+                              field=("confusion_pairs",))
+    for cname, targets in table.items():
+        for tname, wt in targets.items():
+            if not float(wt) >= 0.0 or tname == cname:
+                raise ConfigError(
+                    f"must be a weight >= 0 of another class, got {wt}",
+                    field=("confusion_targets", cname, tname),
+                )
 
 
 @dataclass(frozen=True)
@@ -181,24 +207,59 @@ class SimulatedLabelerConfig:
     match_temperature: float = 0.1
     """Softness of that competition: class c wins with probability ∝ exp(match_confidence[k(c)] / T);
     0 = the strongest strength always wins (ties drawn uniformly)."""
+    # The terms below are off by default (the default preset's masks and fingerprint do not see them); the
+    # "paper" preset (:data:`SIMULATED_PRESETS`) turns them on to reach real Grounding DINO + SAM errors.
+    class_confusion: dict[str, float] = field(default_factory=dict)
+    """Per-class confusion probability overriding ``confusion_prob``, by class name (names not in the
+    schema are ignored); a class still needs a partner in ``confusion_pairs`` to be confused."""
+    confusion_targets: dict[str, dict[str, float]] = field(default_factory=dict)
+    """Directed confusion, by class name: class → {class it is mistaken for: weight}. A confused region of a
+    class listed here takes a target drawn with probability ∝ weight (instead of a partner of
+    ``confusion_pairs`` drawn uniformly); the class's confusion probability is still ``class_confusion`` /
+    ``confusion_prob``. Names not in the schema are ignored."""
+    small_region_px: int = 0
+    """Size-dependent recall: a region of a pixels is kept with its recall times ``min(1, a /
+    small_region_px)`` (:func:`size_recall`), so small and far objects are missed more often; 0 = off."""
+    box_leak_prob: float = 0.0
+    """Probability that a thing mask becomes its whole bounding box grown by ``box_leak_margin``
+    (:func:`box_leak_crop`): SAM segmenting the box rather than the object, the background inside the
+    box leaks into the mask."""
+    box_leak_margin: float = 0.0
+    """Growth of the leaked box on each side, as a fraction of the box's height (top, bottom) and width
+    (left, right)."""
+    pair_merge_prob: float = 0.0
+    """Probability that a thing mask also covers the nearest other thing region whose bounding box lies
+    within ``pair_merge_gap_px`` of its own (:func:`adjacent_partner`): one mask over two adjacent objects
+    (a rider and the bicycle, a person and the car behind), labeled as the first."""
+    pair_merge_gap_px: int = 0
+    """Largest gap in pixels between two bounding boxes for their objects to count as adjacent."""
+    stuff_grow_prob: float = 0.0
+    """Probability that a stuff mask is over-large: dilated by a radius drawn uniformly from
+    ``1..stuff_grow_px`` (instead of its bleed when larger), so it covers the border of its neighbours."""
+    stuff_grow_px: int = 0
+    """Largest dilation radius in pixels of an over-large stuff mask."""
+    stuff_tile_px: int = 0
+    """When > 0, a stuff region's confusion is drawn per image tile of this many pixels (:func:`tile_split`)
+    rather than once for the whole region: the confused tiles form a second mask labeled as the partner,
+    as SAM splits a large surface into parts and the detector names some of them wrongly. The share of a
+    surface confused then follows the confusion probability closely, where one draw per region flips whole
+    roads at once."""
 
     def __post_init__(self) -> None:
-        for name in ("recall", "confusion_prob", "partner_share"):
+        for name in ("recall", "confusion_prob", "partner_share", "box_leak_prob", "pair_merge_prob",
+                     "stuff_grow_prob"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
-        for cname, v in self.class_recall.items():
-            if not 0.0 <= float(v) <= 1.0:
-                raise ConfigError(f"must be in [0, 1], got {v}", field=("class_recall", cname))
+        for table in ("class_recall", "class_confusion"):
+            for cname, v in getattr(self, table).items():
+                if not 0.0 <= float(v) <= 1.0:
+                    raise ConfigError(f"must be in [0, 1], got {v}", field=(table, cname))
         for name in ("peak_prob", "confidence"):
             lo, hi = getattr(self, name)
             if not 0.0 < lo <= hi <= 1.0:
                 raise ConfigError(f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})", field=(name,))
-        for pair in self.confusion_pairs:
-            if len(pair) != 2 or pair[0] == pair[1]:
-                raise ConfigError(
-                    f"entries must be two different class names, got {list(pair)}", field=("confusion_pairs",)
-                )
+        _check_confusion(self.confusion_pairs, self.confusion_targets)
         if not self.dirichlet_alpha > 0:
             raise ConfigError(f"must be > 0, got {self.dirichlet_alpha}", field=("dirichlet_alpha",))
         if self.persistence_frames < 1:
@@ -210,11 +271,23 @@ class SimulatedLabelerConfig:
             "jitter_px",
             "jitter_deg",
             "match_temperature",
+            "small_region_px",
+            "box_leak_margin",
+            "pair_merge_gap_px",
+            "stuff_grow_px",
+            "stuff_tile_px",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
         _check_strength_table(self.match_detection, "match_detection", positive=False)
         _check_strength_table(self.match_confidence, "match_confidence", positive=True)
+
+    @classmethod
+    def from_preset(cls, name: str) -> SimulatedLabelerConfig:
+        """The config of a named preset (:data:`SIMULATED_PRESETS`); in a config dict, the key ``preset``
+        of the ``simulated`` section (``leap_core.config.config_from_dict`` applies the section's other
+        keys on top)."""
+        return simulated_preset(name)
 
     @classmethod
     def exact(cls, seed: int = 0) -> SimulatedLabelerConfig:
@@ -235,6 +308,49 @@ class SimulatedLabelerConfig:
             match_confidence=dict.fromkeys(STRENGTHS, 1.0),
             match_temperature=0.0,
         )
+
+
+_LATER_TERMS_OFF: dict[str, object] = {
+    "class_confusion": {},
+    "confusion_targets": {},
+    "small_region_px": 0,
+    "box_leak_prob": 0.0,
+    "box_leak_margin": 0.0,
+    "pair_merge_prob": 0.0,
+    "pair_merge_gap_px": 0,
+    "stuff_grow_prob": 0.0,
+    "stuff_grow_px": 0,
+    "stuff_tile_px": 0,
+}
+"""The noise terms added with the "paper" preset and their off values (the defaults)."""
+
+
+def simulated_preset(name: str) -> SimulatedLabelerConfig:
+    """The simulated labeler's config of preset ``name`` (:data:`SIMULATED_PRESETS`).
+
+    Raises:
+        ConfigError: ``field = ("preset",)`` for an unknown name.
+    """
+    if name not in SIMULATED_PRESETS:
+        known = ", ".join(repr(n) for n in SIMULATED_PRESETS)
+        raise ConfigError(f"unknown preset {name!r} (known: {known})", field=("preset",))
+    return SIMULATED_PRESETS[name]()
+
+
+def _paper_preset() -> SimulatedLabelerConfig:
+    from leap_core.labelers.simulated_paper import PAPER_PRESET  # noqa: PLC0415  written by the fit script
+
+    return SimulatedLabelerConfig(**PAPER_PRESET)
+
+
+SIMULATED_PRESETS: dict[str, typing.Callable[[], SimulatedLabelerConfig]] = {
+    "default": SimulatedLabelerConfig,
+    "paper": _paper_preset,
+}
+"""Named simulated-labeler settings: ``default`` (the milder noise model, :class:`SimulatedLabelerConfig`'s
+defaults) and ``paper`` (fitted so the demo-like street sequences' point row approaches the paper's Table 1
+point row; ``leap_core/labelers/simulated_paper.py``, written by ``benchmarks/fit_labeler.py``). A project
+file picks one with ``pipeline: {simulated: {preset: paper}}``, ``leap run`` with ``--labeler-preset``."""
 
 
 @dataclass(frozen=True)
@@ -325,6 +441,68 @@ def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> 
     return regions
 
 
+def size_recall(area: npt.ArrayLike, small_px: int) -> npt.NDArray[np.float64]:
+    """(R,) factor on the recall of regions of ``area`` (R,) pixels: ``min(1, a / small_px)``; all ones
+    when ``small_px`` is 0 (the term is off)."""
+    a = np.asarray(area, dtype=np.float64)
+    if small_px <= 0:
+        return np.ones_like(a)
+    out: npt.NDArray[np.float64] = np.minimum(1.0, a / float(small_px))
+    return out
+
+
+def box_leak_crop(
+    box_h: int, box_w: int, y0: int, x0: int, margin: float, size: tuple[int, int]
+) -> tuple[npt.NDArray[np.bool_], int, int]:
+    """A leaked mask: the full bounding box (rows ``y0..y0+box_h-1``, columns ``x0..x0+box_w-1``) grown by
+    ``round(margin·box_h)`` rows above and below and ``round(margin·box_w)`` columns left and right,
+    clipped to the image of ``size`` = (h, w). Returns the all-True crop and its origin ``(y0', x0')``."""
+    h, w = size
+    my, mx = round(margin * box_h), round(margin * box_w)
+    ny0, nx0 = max(0, y0 - my), max(0, x0 - mx)
+    ny1, nx1 = min(h, y0 + box_h + my), min(w, x0 + box_w + mx)
+    return np.ones((max(0, ny1 - ny0), max(0, nx1 - nx0)), dtype=bool), ny0, nx0
+
+
+def tile_split(
+    crop: npt.NDArray[np.bool_], y0: int, x0: int, tile_px: int, u_tiles: npt.NDArray[np.float64], prob: float
+) -> npt.NDArray[np.bool_]:
+    """The pixels of a region's ``crop`` (origin ``(y0, x0)`` in the image) whose image tile is confused:
+    pixel (y, x) lies in tile ``(y // tile_px, x // tile_px)``, which is confused when its draw
+    ``u_tiles[ty, tx]`` (uniform in [0, 1), one per tile of the image) is below ``prob``."""
+    ty = (y0 + np.arange(crop.shape[0])) // tile_px
+    tx = (x0 + np.arange(crop.shape[1])) // tile_px
+    out: npt.NDArray[np.bool_] = crop & (u_tiles[np.ix_(ty, tx)] < prob)
+    return out
+
+
+def box_gaps(boxes: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """(R, R) gap in pixels between bounding boxes ``boxes`` (R, 4) = (y0, x0, y1, x1), ends exclusive:
+    ``max(gap_y, gap_x)`` with ``gap_y = max(0, y0_j − y1_i, y0_i − y1_j)`` (0 where the boxes touch or
+    overlap on that axis), so boxes within g pixels of each other in both directions have gap ≤ g."""
+    b = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    y0, x0, y1, x1 = (b[:, k] for k in range(4))
+    gy = np.maximum(0, np.maximum(y0[None, :] - y1[:, None], y0[:, None] - y1[None, :]))
+    gx = np.maximum(0, np.maximum(x0[None, :] - x1[:, None], x0[:, None] - x1[None, :]))
+    out: npt.NDArray[np.int64] = np.maximum(gy, gx)
+    return out
+
+
+def adjacent_partner(boxes: npt.ArrayLike, eligible: npt.ArrayLike, max_gap: int) -> npt.NDArray[np.int64]:
+    """(R,) for each region i, the eligible region j ≠ i whose box is nearest to i's (:func:`box_gaps`),
+    if that gap is ≤ ``max_gap``, else -1; equal gaps go to the lower index."""
+    gaps = box_gaps(boxes).astype(np.float64)
+    ok = np.asarray(eligible, dtype=bool).reshape(-1)
+    n = ok.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    gaps[:, ~ok] = np.inf
+    np.fill_diagonal(gaps, np.inf)
+    best = gaps.argmin(axis=1)  # the first minimum: the lower index on ties
+    out: npt.NDArray[np.int64] = np.where(gaps[np.arange(n), best] <= max_gap, best, -1).astype(np.int64)
+    return out
+
+
 def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> dict[int, list[int]]:
     """Class index → sorted partner indices, from the name pairs present in the schema."""
     index = {n: i for i, n in enumerate(schema_names)}
@@ -334,6 +512,30 @@ def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> di
             out.setdefault(index[a], set()).add(index[b])
             out.setdefault(index[b], set()).add(index[a])
     return {k: sorted(v) for k, v in out.items()}
+
+
+def confusion_targets(
+    schema_names: list[str], table: dict[str, dict[str, float]]
+) -> dict[int, tuple[list[int], npt.NDArray[np.float64]]]:
+    """Class index → (target class indices, their cumulative normalised weights) of the directed confusion
+    ``table`` (class name → {target name: weight}); entries naming a class not in the schema, and classes
+    left with no positive weight, are dropped."""
+    index = {n: i for i, n in enumerate(schema_names)}
+    out: dict[int, tuple[list[int], npt.NDArray[np.float64]]] = {}
+    for cname, row in table.items():
+        pairs = [(index[t], float(wt)) for t, wt in row.items() if t in index and float(wt) > 0]
+        if cname in index and pairs:
+            wts = np.array([wt for _, wt in pairs])
+            out[index[cname]] = ([t for t, _ in pairs], np.cumsum(wts / wts.sum()))
+    return out
+
+
+def _pick(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: float) -> int:
+    """The confused class for the draw ``u`` ~ U(0, 1): from the cumulative weights of a directed target
+    row, else uniform over the pair partners ``cand``."""
+    if target is not None:
+        return target[0][min(int(np.searchsorted(target[1], u, side="right")), len(target[0]) - 1)]
+    return cand[min(int(u * len(cand)), len(cand) - 1)]
 
 
 def prompt_matches(schema: Schema) -> dict[int, list[tuple[int, int]]]:
@@ -456,6 +658,60 @@ def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     return names
 
 
+def _per_class(names: list[str], default: float, table: dict[str, float]) -> npt.NDArray[np.float64]:
+    """(C,) ``default`` per class, overridden by the by-name ``table`` (names not in ``names`` ignored)."""
+    out = np.full(len(names), default, dtype=np.float64)
+    for cname, v in table.items():
+        if cname in names:
+            out[names.index(cname)] = float(v)
+    return out
+
+
+def _object_draws(regions: list[_Region], seed: int, block: int, stream: int) -> npt.NDArray[np.float64]:
+    """(R, 4) uniform draws per region that belong to the object (its name, kind and identity) and the
+    block of frames, so they persist over ``persistence_frames``."""
+    out = np.array(
+        [
+            np.random.default_rng(
+                np.random.SeedSequence([seed, block, stream, r.name, int(r.thing), r.ident])
+            ).random(4)
+            for r in regions
+        ]
+    ).reshape(len(regions), 4)
+    return out
+
+
+def _merge_partners(regions: list[_Region], cfg: SimulatedLabelerConfig) -> npt.NDArray[np.int64]:
+    """(R,) the thing region a pair merge of region i would add (:func:`adjacent_partner`); all -1 when the
+    term is off."""
+    if not (cfg.pair_merge_prob > 0 and regions):
+        return np.full(len(regions), -1, np.int64)
+    boxes = [(r.y0, r.x0, r.y0 + r.crop.shape[0], r.x0 + r.crop.shape[1]) for r in regions]
+    return adjacent_partner(boxes, [r.thing for r in regions], cfg.pair_merge_gap_px)
+
+
+@dataclass(frozen=True)
+class _Draws:
+    """One frame's per-region draws (row i = region i) and per-class tables, read by the mask shaping."""
+
+    h: int
+    w: int
+    seed: int
+    block: int
+    u_obj: npt.NDArray[np.float64]
+    """(R, 4) persistent: recall, confusion, partner choice, competition."""
+    u_bleed: npt.NDArray[np.float64]
+    """(R,) per frame: the bleed radius."""
+    u_shape: npt.NDArray[np.float64]
+    """(R, 4) persistent: box leak, pair merge, stuff growth, growth radius (ones when every term is off)."""
+    merge_with: npt.NDArray[np.int64]
+    """(R,) the adjacent thing region a pair merge would add, -1 = none."""
+    confusion_of: npt.NDArray[np.float64]
+    """(C,) confusion probability per class."""
+    partners: dict[int, list[int]]
+    targets: dict[int, tuple[list[int], npt.NDArray[np.float64]]]
+
+
 class SimulatedLabeler:
     """Soft masks from 2D ground truth, steered by the prompts, with the noise model of
     :class:`SimulatedLabelerConfig`."""
@@ -470,6 +726,11 @@ class SimulatedLabeler:
         prompts and negative prompts: a prompt edit changes the masks, so it must re-run the 2D stage)."""
         cfg = asdict(self.cfg)
         cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
+        # Terms added after version 3 enter the hash only when on, so the fingerprints (and 2D caches) of
+        # configs that leave them off stay what they were.
+        for name, off in _LATER_TERMS_OFF.items():
+            if cfg[name] == off:
+                del cfg[name]
         parts = {
             "labeler": self.name,
             "version": 3,
@@ -492,31 +753,30 @@ class SimulatedLabeler:
         names_img, inst = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER))
         h, w = names_img.shape
         names = list(schema.names)
-        num_classes = len(names)
-        regions = _regions(names_img, inst)
-        matches = prompt_matches(schema)
+        num_classes, regions, matches = len(names), _regions(names_img, inst), prompt_matches(schema)
 
-        recall_of = np.full(num_classes, cfg.recall, dtype=np.float64)
-        for cname, r in cfg.class_recall.items():
-            if cname in names:
-                recall_of[names.index(cname)] = float(r)
+        recall_of = _per_class(names, cfg.recall, cfg.class_recall)
         partners = _partners(names, cfg.confusion_pairs)
 
         n = len(regions)
         rng_probs, rng_bleed = (_rng(seed, idx, s) for s in (_STREAM_PROBS, _STREAM_BLEED))
         # Per object and block of frames: (recall draw, confusion draw, partner choice, competition draw).
         block = idx // cfg.persistence_frames
-        u_obj = np.array(
-            [
-                np.random.default_rng(
-                    np.random.SeedSequence([seed, block, _STREAM_OBJECT, r.name, int(r.thing), r.ident])
-                ).random(4)
-                for r in regions
-            ]
-        ).reshape(n, 4)
+        u_obj = _object_draws(regions, seed, block, _STREAM_OBJECT)
         u_bleed = rng_bleed.random(n)
         lo_c, hi_c = cfg.confidence
         conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
+        # The shape terms (box leak, pair merge, over-large stuff) draw from their own persistent stream,
+        # and only when on, so the default preset's draws and masks stay as they were.
+        shaped = cfg.box_leak_prob > 0 or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
+        draws = _Draws(
+            h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed,
+            u_shape=_object_draws(regions, seed, block, _STREAM_SHAPE) if shaped else np.ones((n, 4)),
+            merge_with=_merge_partners(regions, cfg),
+            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion),
+            partners=partners, targets=confusion_targets(names, cfg.confusion_targets),
+        )
+        size_factor = size_recall([r.crop.sum() for r in regions], cfg.small_region_px)
 
         bits, probs, confs = [], [], []
         flat = np.zeros(h * w, dtype=bool)
@@ -526,25 +786,32 @@ class SimulatedLabeler:
             if not cands:
                 continue  # no prompt names this region: the detector is never asked for it
             cls, k, rival = _compete(cands, cfg, float(u_obj[i, 3]))
-            strength = STRENGTHS[k]
             # Every class whose prompts name the region is one more chance for the detector to box it.
             missed = np.prod([1.0 - cfg.match_detection[STRENGTHS[kj]] for _, kj in cands])
             keep = recall_of[cls] * (1.0 - missed)
+            if cfg.small_region_px:
+                keep *= size_factor[i]
             if u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
                 continue
-            pred = cls
-            cand = partners.get(cls)
-            if cand and u_obj[i, 1] < cfg.confusion_prob:
-                pred = cand[min(int(u_obj[i, 2] * len(cand)), len(cand) - 1)]
-            probs.append(
-                _distribution(
-                    cls, pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg, rng=dist_rng
+            parts, radius = self._parts(draws, i, reg, cls)
+            rng_i = dist_rng
+            for part, part_pred in parts:
+                probs.append(
+                    _distribution(
+                        cls, part_pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg,
+                        rng=rng_i,
+                    )
                 )
-            )
-            confs.append(np.float32(conf[i] * cfg.match_confidence[strength]))
-            max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
-            radius = min(int(u_bleed[i] * (max_r + 1)), max_r)
-            bits.append(np.packbits(self._paint(flat, reg, radius, h, w)))
+                rng_i = np.random.default_rng(dist_rng.integers(0, 2**63))
+                confs.append(np.float32(conf[i] * cfg.match_confidence[STRENGTHS[k]]))
+                mask = self._paint(flat, part, radius, h, w)
+                j = int(draws.merge_with[i])
+                if reg.thing and j >= 0 and draws.u_shape[i, 1] < cfg.pair_merge_prob:
+                    other = regions[j]
+                    img = mask.reshape(h, w)
+                    rows = slice(other.y0, other.y0 + other.crop.shape[0])
+                    img[rows, other.x0 : other.x0 + other.crop.shape[1]] |= other.crop
+                bits.append(np.packbits(mask))
         if not bits:
             return SoftMasks.empty(h, w, num_classes)
         return SoftMasks(
@@ -554,6 +821,41 @@ class SimulatedLabeler:
             probs=np.stack(probs),
             confidence=np.asarray(confs, dtype=np.float32),
         )
+
+    def _parts(self, d: _Draws, i: int, reg: _Region, cls: int) -> tuple[list[tuple[_Region, int]], int]:
+        """Region ``i`` (kept, won by class ``cls``) as masks to paint: [(shape, predicted class)] (two
+        parts when its stuff tiles split it), and the dilation radius (steps 3 and 5 and the shape terms)."""
+        cfg = self.cfg
+        pred = cls
+        target = d.targets.get(cls)
+        cand = target[0] if target is not None else d.partners.get(cls)
+        # Tiled stuff: the confusion is drawn per image tile instead of for the whole region.
+        tiled = bool(cand) and not reg.thing and cfg.stuff_tile_px > 0
+        if cand and not tiled and d.u_obj[i, 1] < d.confusion_of[cls]:
+            pred = _pick(cand, target, float(d.u_obj[i, 2]))
+        max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
+        radius = min(int(d.u_bleed[i] * (max_r + 1)), max_r)
+        shape = reg
+        if reg.thing and d.u_shape[i, 0] < cfg.box_leak_prob:
+            bh, bw = reg.crop.shape
+            box, by0, bx0 = box_leak_crop(bh, bw, reg.y0, reg.x0, cfg.box_leak_margin, (d.h, d.w))
+            shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
+        if not reg.thing and d.u_shape[i, 2] < cfg.stuff_grow_prob and cfg.stuff_grow_px > 0:
+            grow = 1 + min(int(d.u_shape[i, 3] * cfg.stuff_grow_px), cfg.stuff_grow_px - 1)
+            radius = max(radius, grow)
+        if not (tiled and cand):
+            return [(shape, pred)], radius
+        t = cfg.stuff_tile_px
+        u_tiles = np.random.default_rng(
+            np.random.SeedSequence([d.seed, d.block, _STREAM_TILE, reg.name, reg.ident])
+        ).random((-(-d.h // t), -(-d.w // t)))
+        moved = tile_split(shape.crop, shape.y0, shape.x0, t, u_tiles, float(d.confusion_of[cls]))
+        partner = _pick(cand, target, float(d.u_obj[i, 2]))
+        parts = [
+            (dataclasses.replace(shape, crop=shape.crop & ~moved), cls),
+            (dataclasses.replace(shape, crop=moved), partner),
+        ]
+        return [(part, c) for part, c in parts if part.crop.any()], radius
 
     @staticmethod
     def _paint(
@@ -578,4 +880,16 @@ class SimulatedLabeler:
         return flat
 
 
-__all__ = ["SimulatedLabeler", "SimulatedLabelerConfig", "prompt_matches"]
+__all__ = [
+    "SIMULATED_PRESETS",
+    "SimulatedLabeler",
+    "SimulatedLabelerConfig",
+    "adjacent_partner",
+    "box_gaps",
+    "box_leak_crop",
+    "confusion_targets",
+    "prompt_matches",
+    "simulated_preset",
+    "size_recall",
+    "tile_split",
+]

@@ -302,13 +302,31 @@ def frame_input_digest(seq: KittiSequence, index: int) -> str:
 def load_observation(path: Path) -> tuple[Painted, int, npt.NDArray[np.bool_]]:
     """An ``observations/`` file: the painted points, the scan's point count and its in-image mask (N,)
     (one read of the file)."""
+    arrays = _read_observation(path, None)
+    n, in_view = _view_of(path, arrays)
+    return Painted.from_arrays(path, arrays), n, in_view
+
+
+def load_view(path: Path) -> tuple[int, npt.NDArray[np.bool_]]:
+    """An ``observations/`` file's scan point count and in-image mask (N,), without its painted points
+    (two small members of the file read, for the stages that only count and mask points)."""
+    return _view_of(path, _read_observation(path, ("n_points", "in_view")))
+
+
+def _read_observation(path: Path, names: tuple[str, ...] | None) -> dict[str, npt.NDArray[Any]]:
     try:
-        arrays = read_npz(path)
-        n = int(arrays["n_points"])
-        in_view = np.unpackbits(arrays["in_view"], count=n).astype(bool)
+        return read_npz(path, names)
     except (OSError, KeyError, ValueError) as exc:
         raise DatasetError(path, f"unreadable observation file ({exc})") from exc
-    return Painted.from_arrays(path, arrays), n, in_view
+
+
+def _view_of(path: Path, arrays: dict[str, npt.NDArray[Any]]) -> tuple[int, npt.NDArray[np.bool_]]:
+    try:
+        n = int(arrays["n_points"])
+        in_view = np.unpackbits(arrays["in_view"], count=n).astype(bool)
+    except (KeyError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable observation file ({exc})") from exc
+    return n, in_view
 
 
 __all__ = [
@@ -323,5 +341,6 @@ __all__ = [
     "frame_input_digest",
     "hash_json",
     "load_observation",
+    "load_view",
     "read_state",
 ]

@@ -32,7 +32,7 @@ from leap_core.errors import DatasetError
 from leap_core.export import raw_id_counts
 from leap_core.fusion import rows_in_sorted, voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
-from leap_core.pipeline.context import hash_json, load_observation, read_state
+from leap_core.pipeline.context import hash_json, load_view, read_state
 from leap_core.run_layout import RunLayout
 from leap_core.types import UNLABELED
 
@@ -141,7 +141,7 @@ def export_coverage(
     for i in idx:
         fid = seq.frame_ids[i]
         obs_path = lay.observation(fid)
-        _, n, in_view = load_observation(obs_path)
+        n, in_view = load_view(obs_path)
         path = lay.points(fid)
         try:
             with np.load(path) as z:

@@ -21,9 +21,9 @@ import numpy.typing as npt
 from leap_core.errors import DatasetError, LeapError
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys, world_points
-from leap_core.io_utils import atomic_write_json
+from leap_core.io_utils import atomic_write_json, read_npz
 from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_confusion, metrics_from_confusion
-from leap_core.pipeline.context import load_observation, ordered_map
+from leap_core.pipeline.context import load_view, ordered_map
 from leap_core.run_layout import RunLayout
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -109,14 +109,14 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         """One frame's confusion matrices (protocol → row → (C, C+1)), labeled points per row, points and
         points in view: integers, so their sum does not depend on the order frames finish."""
         frame = seq.frame(i)
-        pts = frame.points
+        n, in_view = load_view(lay.observation(ctx.fid(i)))
+        stored = _read_point_labels(lay.points(ctx.fid(i)), final_row)
+        # The scan itself is read only to place its points in the grid: its size gives the count, and
+        # it is most of the bytes a frame has.
+        if n != frame.num_points or stored[ROW_POINT].shape[0] != n:
+            raise DatasetError(seq.scan_path(i), f"{frame.num_points} points but the run's outputs have {n}")
         gt = schema.map_gt(frame.labels)
-        _, n, in_view = load_observation(lay.observation(ctx.fid(i)))
-        with np.load(lay.points(ctx.fid(i))) as z:
-            stored = {ROW_POINT: z["point_label"], final_row: z["label"]}
-        if n != pts.shape[0] or stored[ROW_POINT].shape[0] != n:
-            raise DatasetError(seq.scan_path(i), f"{pts.shape[0]} points but the run's outputs have {n}")
-        keys = voxel_keys(world_points(pts, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
+        keys = voxel_keys(world_points(frame.points, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
         conf: dict[str, dict[str, npt.NDArray[np.int64]]] = {p: {} for p in PROTOCOLS}
         labeled: dict[str, int] = {}
         for name, grid in rows.items():
@@ -168,6 +168,15 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
     add_paper_protocol(out)
     atomic_write_json(lay.metrics, out)
     return {}
+
+
+def _read_point_labels(path: Path, final_row: str) -> dict[str, npt.NDArray[np.int16]]:
+    """A ``points/`` file's projection-only labels (row ``point``) and final labels (``final_row``)."""
+    try:
+        z = read_npz(path, ("point_label", "label"))
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable point labels ({exc})") from exc
+    return {ROW_POINT: z["point_label"], final_row: z["label"]}
 
 
 def all_points_labeled_share(metrics: Mapping[str, Any]) -> dict[str, float | None]:

@@ -1,0 +1,290 @@
+"""Fit the simulated labeler's "paper" preset to the paper's point row (Table 1, SemanticKITTI, point).
+
+The point row is the camera-view IoU of the labels that projection alone gives (no fusion), on the paper's
+11 merged classes (``leap_core.eval_view.PAPER_VIEW``, the ``paper`` key of ``metrics.json``). It only
+needs the 2D labels, the projection and the painting, so :func:`point_confusion` computes it in process,
+frame by frame, without a run folder (the same functions the ``labels2d``, ``project``, ``label_points``
+and ``evaluate`` stages call; ``--check-run`` compares it with a real run's ``metrics.json``).
+
+The fit: the shape terms of the noise model (box leaks, pair merges, over-large stuff, size-dependent
+recall) are set to the values of :data:`SHAPE_TERMS` (chosen by hand as plausible for box-prompted SAM);
+then each merged class m gets one confusion probability q_m, applied to all its member classes
+(``class_confusion``), with the partners of :data:`PAIRS`. Starting from q = 0, each round measures the
+point row on the tuning sequences and moves ``q_m ← clip(q_m + step · (IoU_m − paper_m) / 100, 0, 1)``
+for the merged classes the tuning data contain (a class above the paper's IoU is confused more). The
+round with the smallest ``Σ_m (IoU_m − paper_m)² + (mIoU − paper mIoU)²`` is kept.
+
+FIT ON TUNING DATA, NOT ON THE DEMO: the tuning sequences are generated with other seeds
+(``leap synth DIR --frames 30 --seed 21`` and ``--seed 22``); the demo (seed 0) is only reported.
+
+    .venv/bin/python benchmarks/fit_labeler.py T21/sequences/00 T22/sequences/00 --write
+    .venv/bin/python benchmarks/fit_labeler.py --report data/demo/sequences/00
+
+``--write`` rewrites ``leap_core/labelers/simulated_paper.py`` (the preset, with the fit's figures in its
+docstring); ``--report`` prints the point row of the default and paper presets on the given sequences.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from leap_core.config import PipelineConfig
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.eval_view import PAPER_VIEW
+from leap_core.labelers.simulated import SimulatedLabeler, SimulatedLabelerConfig, simulated_preset
+from leap_core.metrics import confusion_matrix, merge_confusion, metrics_from_confusion
+from leap_core.presets import builtin_preset
+from leap_core.projection import paint, project_points
+from leap_core.schema import Schema
+
+PAPER_POINT: dict[str, float] = {
+    "car": 77.2, "bicycle": 25.5, "motorcycle": 15.1, "other-vehicle": 30.3, "person": 31.9, "road": 87.1,
+    "sidewalk": 46.1, "other-ground": 0.0, "manmade": 64.3, "vegetation": 64.7, "terrain": 72.3,
+}
+"""The paper's Table 1, SemanticKITTI, row "point" (mIoU 46.8 over the 11 classes)."""
+
+PAIRS: tuple[tuple[str, str], ...] = (
+    ("car", "truck"), ("car", "other-vehicle"), ("bicycle", "person"), ("bicyclist", "person"),
+    ("motorcycle", "bicycle"), ("road", "sidewalk"), ("road", "parking"), ("sidewalk", "terrain"),
+    ("other-ground", "sidewalk"), ("terrain", "vegetation"), ("fence", "vegetation"), ("building", "fence"),
+    ("pole", "trunk"), ("pole", "traffic-sign"), ("vegetation", "trunk"),
+)
+"""The paper preset's ambiguous pairs: the class that takes ``partner_share`` of a mask's spare mass (the
+paper's Fig. 5 errors: terrain / vegetation, sidewalk / road, riders / bicycles, fences / plants)."""
+
+TARGETS: dict[str, dict[str, float]] = {
+    "car": {"truck": 1.0, "other-vehicle": 1.0},
+    "truck": {"car": 1.0}, "other-vehicle": {"car": 1.0},
+    "bicycle": {"person": 1.0, "motorcycle": 1.0}, "bicyclist": {"person": 1.0},
+    "motorcycle": {"bicycle": 1.0}, "motorcyclist": {"person": 1.0},
+    "person": {"bicyclist": 0.5, "pole": 1.0, "car": 1.0},
+    "road": {"sidewalk": 2.0, "parking": 1.0}, "parking": {"road": 1.0, "sidewalk": 1.0},
+    "sidewalk": {"road": 2.0, "other-ground": 1.0, "building": 1.0},
+    "other-ground": {"sidewalk": 2.0, "road": 1.0},
+    "building": {"road": 2.0, "sidewalk": 2.0, "vegetation": 1.0, "fence": 1.0},
+    "fence": {"vegetation": 1.0, "sidewalk": 1.0, "building": 1.0},
+    "pole": {"trunk": 1.0, "traffic-sign": 1.0, "building": 1.0},
+    "traffic-sign": {"pole": 1.0, "building": 1.0},
+    "vegetation": {"building": 2.0, "trunk": 1.0}, "trunk": {"vegetation": 1.0, "pole": 1.0},
+    "terrain": {"vegetation": 1.0, "sidewalk": 1.0},
+}
+"""Directed confusion (``confusion_targets``): what a confused region of each class is labeled as, with
+weights. Chosen by hand before the fit, so the mass a large class loses lands mostly on large classes
+(the synthetic street has far more building than vegetation in view, unlike SemanticKITTI: building
+errors sent only to vegetation would swamp it)."""
+
+SHAPE_TERMS: dict[str, Any] = {
+    "box_leak_prob": 0.2,
+    "box_leak_margin": 0.1,
+    "pair_merge_prob": 0.3,
+    "pair_merge_gap_px": 4,
+    "stuff_grow_prob": 0.0,
+    "stuff_grow_px": 6,
+    "small_region_px": 150,
+    "stuff_tile_px": 32,
+}
+"""The shape terms, fixed before the confusion fit (not fitted: plausible for box-prompted SAM)."""
+
+
+def point_confusion(seq: KittiSequence, schema: Schema, cfg: PipelineConfig,
+                    frames: Sequence[int] | None = None) -> npt.NDArray[np.int64]:
+    """(C, C+1) camera-view confusion of the projection-only labels ("point" row) over ``frames``
+    (indices; default all): per frame, the labeler's masks, :func:`project_points`, :func:`paint` and
+    ``Painted.point_labels``, counted over the points in the image (``confusion_matrix``), summed."""
+    labeler = SimulatedLabeler(cfg.simulated)
+    m = seq.calib.lidar_to_image
+    c = schema.num_classes
+    conf = np.zeros((c, c + 1), np.int64)
+    for i in range(len(seq)) if frames is None else frames:
+        frame = seq.frame(i)
+        soft = labeler.label(frame, schema)
+        pts = frame.points
+        proj = project_points(pts, m, soft.height, soft.width, cfg.projection.min_depth)
+        pred = paint(soft, proj, cfg.projection).point_labels(pts.shape[0])
+        gt = schema.map_gt(frame.labels)
+        conf += confusion_matrix(gt[proj.idx], pred[proj.idx], c)
+    return conf
+
+
+def paper_row(conf: npt.NDArray[np.int64], schema: Schema) -> dict[str, float]:
+    """Merged class → IoU in percent (NaN: absent from ground truth and predictions) of a (C, C+1)
+    camera-view confusion, unlabeled predictions ignored (the paper's protocol)."""
+    mapping = PAPER_VIEW.mapping(schema.names)
+    if mapping is None:
+        raise SystemExit(f"the paper's view does not apply: {PAPER_VIEW.problem(schema.names)}")
+    merged = merge_confusion(conf, mapping, len(PAPER_VIEW.classes))
+    met = metrics_from_confusion(merged, PAPER_VIEW.names, PAPER_VIEW.categories, ignore_unlabeled_pred=True)
+    present = merged[:, :-1].sum(axis=1) > 0  # the class has ground-truth points in view
+    return {n: (100.0 * float(v) if ok else math.nan) for n, v, ok in zip(PAPER_VIEW.names, met.iou, present,
+                                                                          strict=True)}
+
+
+def paper_miou(classes: Sequence[str]) -> float:
+    """The paper's point-row mIoU over ``classes`` (the merged classes a sequence contains)."""
+    return float(np.mean([PAPER_POINT[n] for n in classes]))
+
+
+def misfit(row: dict[str, float]) -> tuple[float, list[str]]:
+    """``Σ_m (IoU_m − paper_m)² + (mIoU − paper mIoU)²`` over the classes present in ``row``, and those."""
+    present = [n for n, v in row.items() if not math.isnan(v)]
+    ours = float(np.mean([row[n] for n in present]))
+    return sum((row[n] - PAPER_POINT[n]) ** 2 for n in present) + (ours - paper_miou(present)) ** 2, present
+
+
+def paper_config(q: dict[str, float], base: SimulatedLabelerConfig) -> SimulatedLabelerConfig:
+    """``base`` with the shape terms, the pairs and the merged-class confusion ``q`` spread over members."""
+    members: dict[str, str] = {}
+    for cls in PAPER_VIEW.classes:
+        for src in cls.sources:
+            members[src] = cls.name
+    class_conf = {src: round(q.get(m, 0.0), 3) for src, m in sorted(members.items()) if q.get(m, 0.0) > 0}
+    return dataclasses.replace(base, confusion_prob=0.0, confusion_pairs=PAIRS, class_confusion=class_conf,
+                               confusion_targets=TARGETS, **SHAPE_TERMS)
+
+
+def _row_text(row: dict[str, float]) -> str:
+    return " ".join(f"{n} {v:5.1f}" for n, v in row.items() if not math.isnan(v))
+
+
+def preset_q() -> dict[str, float]:
+    """The merged-class confusion q of the current paper preset (a warm start for a refit)."""
+    conf = simulated_preset("paper").class_confusion
+    return {mc.name: conf[src] for mc in PAPER_VIEW.classes for src in mc.sources if src in conf}
+
+
+def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds: int, step: float, *,
+        stride: int = 1, start: dict[str, float] | None = None,
+        ) -> tuple[SimulatedLabelerConfig, dict[str, float], list[str]]:
+    """The fit of the module docstring, from q = ``start`` (default 0); returns the best config, its row
+    and a log of the rounds."""
+    q: dict[str, float] = dict(start or {})
+    best: tuple[float, SimulatedLabelerConfig, dict[str, float]] | None = None
+    log: list[str] = []
+    for r in range(rounds):
+        sim = paper_config(q, base.simulated)
+        cfg = dataclasses.replace(base, simulated=sim)
+        conf = sum(point_confusion(s, schema, cfg, range(0, len(s), stride)) for s in seqs)
+        row = paper_row(np.asarray(conf, np.int64), schema)
+        err, present = misfit(row)
+        miou = float(np.mean([row[n] for n in present]))
+        line = (f"round {r}: misfit {err:7.1f} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) | "
+                f"{_row_text(row)}")
+        print(line, flush=True)
+        print("  q:", {n: round(v, 3) for n, v in q.items()}, flush=True)
+        log.append(line)
+        if best is None or err < best[0]:
+            best = (err, sim, row)
+        for n in present:
+            # The step shrinks over the rounds so the coupled classes settle.
+            q[n] = float(np.clip(q.get(n, 0.0) + step / (1 + r / 3) * (row[n] - PAPER_POINT[n]) / 100.0,
+                                 0.0, 1.0))
+    assert best is not None
+    return best[1], best[2], log
+
+
+def _literal(value: Any, depth: int) -> str:
+    """``value`` (numbers, strings, tuples, dicts) as a Python literal, one item a line for containers."""
+    pad, inner = "    " * depth, "    " * (depth + 1)
+    if isinstance(value, dict):
+        if not value:
+            return "{}"
+        items = "".join(f"{inner}{json.dumps(k)}: {_literal(v, depth + 1)},\n" for k, v in value.items())
+        return "{\n" + items + pad + "}"
+    if isinstance(value, tuple):
+        if all(not isinstance(v, (tuple, dict)) for v in value):
+            return "(" + ", ".join(_literal(v, depth) for v in value) + ("," if len(value) == 1 else "") + ")"
+        return "(\n" + "".join(f"{inner}{_literal(v, depth + 1)},\n" for v in value) + pad + ")"
+    return json.dumps(value) if isinstance(value, str) else repr(value)
+
+
+def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], tuning: str, path: Path) -> None:
+    fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+    present = [n for n, v in row.items() if not math.isnan(v)]
+    miou = float(np.mean([row[n] for n in present]))
+    para = textwrap.fill(f"Fitted on the tuning sequences {tuning} (never on the demo, seed 0): the point "
+                         "row (camera view, the paper's merged classes) of these settings there, against the "
+                         "paper's Table 1:", width=108)
+    body = "\n".join(f"    {json.dumps(k)}: {_literal(v, 1)}," for k, v in fields.items())
+    table = "\n".join(f"    {n:14s} {PAPER_POINT[n]:5.1f}  {row[n]:5.1f}" for n in present)
+    text = f'''"""The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.
+
+{para}
+
+    class          paper  fitted
+{table}
+    mIoU           {paper_miou(present):5.1f}  {miou:5.1f}   (over the classes above)
+"""
+
+from typing import Any
+
+PAPER_PRESET: dict[str, Any] = {{
+{body}
+}}
+'''
+    path.write_text(text)
+
+
+def report(paths: list[str], schema: Schema, base: PipelineConfig) -> None:
+    """Print the point row of the default and the paper preset on each sequence, then, over several
+    sequences, the paper preset's per-class mean and standard deviation across them (the spread one
+    sequence's row has around the fit)."""
+    rows: list[dict[str, float]] = []
+    for p in paths:
+        seq = KittiSequence(Path(p))
+        for name in ("default", "paper"):
+            cfg = dataclasses.replace(base, simulated=simulated_preset(name))
+            row = paper_row(point_confusion(seq, schema, cfg), schema)
+            _, present = misfit(row)
+            miou = float(np.mean([row[n] for n in present]))
+            print(f"{p} {name:8s} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) | {_row_text(row)}",
+                  flush=True)
+            if name == "paper":
+                rows.append({**row, "mIoU": miou})
+    if len(rows) > 1:
+        keys = [k for k in rows[0] if all(not math.isnan(r.get(k, math.nan)) for r in rows)]
+        print("paper preset across the sequences (mean ± std): " + " ".join(
+            f"{k} {np.mean([r[k] for r in rows]):.1f}±{np.std([r[k] for r in rows]):.1f}" for k in keys))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("tuning", nargs="*", help="tuning sequence folders (seeds other than the demo's)")
+    ap.add_argument("--rounds", type=int, default=10)
+    ap.add_argument("--step", type=float, default=1.2, help="q change per 100 IoU points of misfit")
+    ap.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame of the tuning sequences")
+    ap.add_argument("--write", action="store_true", help="rewrite leap_core/labelers/simulated_paper.py")
+    ap.add_argument("--warm", action="store_true", help="start from the current paper preset's q")
+    ap.add_argument("--label", help="how the preset's docstring names the tuning sequences (default: paths)")
+    ap.add_argument("--report", nargs="*", default=None, help="sequence folders to report (no fit)")
+    args = ap.parse_args(argv)
+    preset = builtin_preset("semantickitti")
+    schema, base = preset.schema, preset.pipeline
+    if args.report is not None:
+        report(args.report, schema, base)
+        return 0
+    if not args.tuning:
+        ap.error("give tuning sequence folders or --report")
+    seqs = [KittiSequence(Path(p)) for p in args.tuning]
+    cfg, row, _ = fit(seqs, schema, base, args.rounds, args.step, stride=args.stride,
+                      start=preset_q() if args.warm else None)
+    print("best:", _row_text(row))
+    if args.write:
+        path = Path(__file__).resolve().parents[1] / "leap_core" / "labelers" / "simulated_paper.py"
+        _write_preset(cfg, row, args.label or ", ".join(args.tuning), path)
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""benchmarks/fit_labeler.py: its in-process point row is the pipeline's, and its fit's pieces."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leap_core.config import PipelineConfig
+from leap_core.datasets.kitti import KittiSequence
+from leap_core.labelers.simulated import SimulatedLabelerConfig
+from leap_core.pipeline import run_pipeline
+from leap_core.schema import builtin_schema
+from tests.test_pipeline import make_street
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import fit_labeler
+
+
+def test_point_confusion_is_the_runs_camera_point_row(tmp_path: Path) -> None:
+    # The fit iterates on point_confusion instead of whole runs: it must count what the evaluate stage
+    # counts for the "point" row (camera view), here with the paper preset's noise.
+    street = make_street(tmp_path / "sequences" / "00", n_frames=3)
+    schema = builtin_schema("semantickitti")
+    cfg = dataclasses.replace(PipelineConfig(), simulated=SimulatedLabelerConfig.from_preset("paper"))
+    metrics = run_pipeline(street, schema, cfg, tmp_path / "run", until="evaluate").metrics
+    assert metrics is not None
+    conf = fit_labeler.point_confusion(KittiSequence(street), schema, cfg)
+    assert conf.sum() > 0
+    np.testing.assert_array_equal(conf, np.asarray(metrics["camera"]["point"]["confusion"]))
+    row = fit_labeler.paper_row(conf, schema)
+    paper = metrics["paper"]["point"]["iou"]
+    compared = [name for name, v in row.items() if not math.isnan(v)]
+    assert compared
+    for name in compared:
+        assert row[name] == pytest.approx(100.0 * paper[name])
+
+
+def test_misfit_and_paper_miou_use_only_present_classes() -> None:
+    row = dict.fromkeys(fit_labeler.PAPER_POINT, math.nan)
+    row.update({"car": 80.2, "road": 87.1})  # car 3 above the paper, road on it
+    err, present = fit_labeler.misfit(row)
+    assert present == ["car", "road"]
+    assert fit_labeler.paper_miou(present) == pytest.approx((77.2 + 87.1) / 2)
+    # (3)² for car, 0 for road, and the mIoU is 1.5 above the paper's over these two.
+    assert err == pytest.approx(9.0 + 1.5**2)
+
+
+def test_paper_config_spreads_a_merged_class_q_over_its_members() -> None:
+    cfg = fit_labeler.paper_config({"manmade": 0.4, "car": 0.0}, SimulatedLabelerConfig())
+    assert cfg.class_confusion == {"building": 0.4, "fence": 0.4, "pole": 0.4, "traffic-sign": 0.4}
+    assert cfg.confusion_prob == 0.0 and cfg.confusion_targets == fit_labeler.TARGETS

@@ -1,0 +1,233 @@
+"""The simulated labeler's named presets and the noise terms the "paper" preset uses (hand-computed cases),
+and the default preset's output pinned byte for byte."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
+from leap_core.errors import ConfigError
+from leap_core.labelers.simulated import (
+    SIMULATED_PRESETS,
+    SimulatedLabeler,
+    SimulatedLabelerConfig,
+    _pick,
+    adjacent_partner,
+    box_gaps,
+    box_leak_crop,
+    confusion_targets,
+    size_recall,
+    tile_split,
+)
+from leap_core.presets import load_preset
+from tests.test_simulated_labeler import CAR, ROAD, SCHEMA, SIDEWALK, TRUCK, _argmax_image, make_sequence
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory: pytest.TempPathFactory):
+    return make_sequence(tmp_path_factory.mktemp("preset_seq"))
+
+
+# ------------------------------------------------------------------------------------- the default preset
+def test_default_preset_output_and_fingerprint_are_unchanged(seq) -> None:
+    # Digests taken before the paper preset's terms existed: the default masks (and so every existing run's
+    # 2D labels, caches and fingerprints) must not move when terms are added that it leaves off.
+    lab = SimulatedLabeler(SimulatedLabelerConfig(seed=7))
+    h = hashlib.sha256()
+    for f in seq:
+        m = lab.label(f, SCHEMA)
+        for a in (m.bits, m.probs, m.confidence):
+            h.update(a.tobytes())
+    assert h.hexdigest()[:16] == "4c8c1284077fa811"
+    assert SimulatedLabeler().fingerprint(SCHEMA) == "1253efe3866bbb09"
+    assert SIMULATED_PRESETS["default"]() == SimulatedLabelerConfig()
+
+
+# -------------------------------------------------------------------------------------- choosing a preset
+def test_paper_preset_loads_and_differs_from_default() -> None:
+    paper = SimulatedLabelerConfig.from_preset("paper")
+    default = SimulatedLabelerConfig.from_preset("default")
+    assert default == SimulatedLabelerConfig()
+    assert paper != default
+    # It uses the terms the default leaves off, so its labels and fingerprint differ.
+    assert paper.class_confusion and paper.confusion_targets and paper.box_leak_prob > 0
+    assert SimulatedLabeler(paper).fingerprint(SCHEMA) != SimulatedLabeler(default).fingerprint(SCHEMA)
+
+
+def test_preset_key_in_a_config_dict_replaces_the_section_then_applies_the_rest() -> None:
+    cfg = config_from_dict({"simulated": {"preset": "paper", "seed": 5}})
+    assert cfg.simulated == dataclasses.replace(SimulatedLabelerConfig.from_preset("paper"), seed=5)
+    # The stored dict form has every value and no preset key, and reads back to the same config.
+    assert "preset" not in config_to_dict(cfg)["simulated"]
+    assert config_from_dict(config_to_dict(cfg)) == cfg
+    # A base config's other sections survive.
+    base = config_from_dict({"fusion": {"voxel_size": 0.5}})
+    assert config_from_dict({"simulated": {"preset": "paper"}}, base).fusion.voxel_size == 0.5
+
+
+@pytest.mark.parametrize("value", ["nope", 3])
+def test_unknown_preset_names_the_field(value: object) -> None:
+    with pytest.raises(ConfigError) as err:
+        config_from_dict({"simulated": {"preset": value}})
+    assert err.value.field == ("pipeline", "simulated", "preset")
+
+
+def test_project_file_and_cli_pick_the_preset(tmp_path: Path) -> None:
+    from app.cli import _run_config
+
+    project = tmp_path / "p.yaml"
+    base = Path(__file__).resolve().parents[1] / "projects" / "semantickitti.yaml"
+    project.write_text(base.read_text() + "\npipeline:\n  simulated:\n    preset: paper\n")
+    assert load_preset(project).pipeline.simulated == SimulatedLabelerConfig.from_preset("paper")
+    _, cfg = _run_config("semantickitti", None, None, None, None, "paper")
+    assert cfg.simulated == SimulatedLabelerConfig.from_preset("paper")
+    _, cfg = _run_config("semantickitti", None, None, None, None, None)
+    assert cfg.simulated == PipelineConfig().simulated
+
+
+# ------------------------------------------------------------------------------------ pure noise functions
+def test_size_recall() -> None:
+    np.testing.assert_allclose(size_recall([0, 75, 150, 300], 150), [0.0, 0.5, 1.0, 1.0])
+    np.testing.assert_array_equal(size_recall([3, 5], 0), [1.0, 1.0])
+
+
+def test_box_leak_crop() -> None:
+    # 4 x 10 box at (5, 20), margin 0.5: 2 rows and 5 columns more on each side.
+    crop, y0, x0 = box_leak_crop(4, 10, 5, 20, 0.5, (48, 64))
+    assert (y0, x0, crop.shape, bool(crop.all())) == (3, 15, (8, 20), True)
+    # At the image's top-right corner the grown box is clipped: rows 0..5, columns 58..63.
+    crop, y0, x0 = box_leak_crop(4, 4, 0, 60, 0.5, (48, 64))
+    assert (y0, x0, crop.shape) == (0, 58, (6, 6))
+
+
+def test_box_gaps_and_adjacent_partner() -> None:
+    boxes = [(0, 0, 10, 10), (0, 12, 10, 20), (30, 30, 40, 40), (11, 0, 20, 10)]
+    gaps = box_gaps(boxes)
+    assert gaps[0, 1] == 2 and gaps[0, 3] == 1 and gaps[0, 2] == 20 and gaps[1, 3] == 2
+    assert gaps[0, 0] == 0 and (gaps == gaps.T).all()
+    # B's nearest are A and D (both 2): the lower index wins; C has nobody within 2 px.
+    np.testing.assert_array_equal(adjacent_partner(boxes, [True] * 4, 2), [3, 0, -1, 0])
+    np.testing.assert_array_equal(adjacent_partner(boxes, [True, True, True, False], 2), [1, 0, -1, 0])
+    np.testing.assert_array_equal(adjacent_partner(boxes, [True] * 4, 1), [3, -1, -1, 0])
+
+
+def test_tile_split() -> None:
+    # A 4 x 4 region at row 2, column 6 of an 8 x 12 image in 4-pixel tiles (2 x 3 tiles): tiles (0, 1) and
+    # (1, 2) are confused.
+    crop = np.ones((4, 4), bool)
+    u = np.array([[0.9, 0.1, 0.9], [0.9, 0.9, 0.1]])
+    moved = tile_split(crop, 2, 6, 4, u, 0.5)
+    expected = np.zeros((4, 4), bool)
+    expected[:2, :2] = True  # image rows 2-3, columns 6-7: tile (0, 1)
+    expected[2:, 2:] = True  # image rows 4-5, columns 8-9: tile (1, 2)
+    np.testing.assert_array_equal(moved, expected)
+    # Only the region's own pixels move.
+    crop[0, 0] = False
+    assert not tile_split(crop, 2, 6, 4, u, 0.5)[0, 0]
+
+
+def test_confusion_targets_and_pick() -> None:
+    table = {"a": {"b": 1.0, "c": 3.0}, "x": {"a": 1.0}, "b": {"c": 0.0, "zz": 2.0}}
+    out = confusion_targets(["a", "b", "c"], table)
+    assert list(out) == [0]
+    assert out[0][0] == [1, 2]
+    np.testing.assert_allclose(out[0][1], [0.25, 1.0])
+    assert _pick([7], out[0], 0.2) == 1 and _pick([7], out[0], 0.3) == 2
+    assert _pick([4, 5], None, 0.2) == 4 and _pick([4, 5], None, 0.7) == 5
+
+
+# ------------------------------------------------------------------------------- the terms in the labeler
+def _exact(**kw: object) -> SimulatedLabeler:
+    return SimulatedLabeler(dataclasses.replace(SimulatedLabelerConfig.exact(), **kw))
+
+
+def test_class_confusion_and_targets_direct_the_confusion(seq) -> None:
+    gt = _argmax_image(_exact().label(seq.frame(0), SCHEMA))
+    pairs = (("car", "truck"), ("road", "sidewalk"))
+    # Only the classes with a confusion probability are confused (confusion_prob is 0).
+    lab = _exact(confusion_pairs=pairs, class_confusion={"car": 1.0})
+    img = _argmax_image(lab.label(seq.frame(0), SCHEMA))
+    assert (img[gt == CAR] == TRUCK).all() and (img[gt == ROAD] == ROAD).all()
+    # A directed target replaces the pair partner: road is taken for terrain here, not for sidewalk.
+    lab = _exact(
+        confusion_pairs=pairs, class_confusion={"road": 1.0}, confusion_targets={"road": {"terrain": 1.0}}
+    )
+    img = _argmax_image(lab.label(seq.frame(0), SCHEMA))
+    assert (img[gt == ROAD] == SCHEMA.names.index("terrain")).all()
+
+
+def test_box_leak_turns_thing_masks_into_grown_boxes(seq) -> None:
+    masks = _exact(box_leak_prob=1.0, box_leak_margin=0.5).label(seq.frame(0), SCHEMA)
+    dense = masks.dense()
+    car = [m for m, p in zip(dense, masks.probs, strict=True) if p.argmax() == CAR]
+    # Car 2 is rows 26-35, columns 35-54 (10 x 20): grown by 5 rows and 10 columns each side, clipped to
+    # the 48 x 64 image: rows 21-40, columns 25-63.
+    big = max(car, key=lambda m: int(m[:, 60:].sum()))
+    ys, xs = np.nonzero(big)
+    assert (ys.min(), ys.max(), xs.min(), xs.max(), int(big.sum())) == (21, 40, 25, 63, 20 * 39)
+    # Stuff masks are not boxes.
+    road = [m for m, p in zip(dense, masks.probs, strict=True) if p.argmax() == ROAD]
+    assert int(road[0].sum()) < 16 * 64
+
+
+def test_pair_merge_covers_the_adjacent_object(seq) -> None:
+    frame = seq.frame(0)
+    plain = [m for m, p in zip(_exact().label(frame, SCHEMA).dense(), _exact().label(frame, SCHEMA).probs,
+                               strict=True) if p.argmax() == CAR]
+    masks = _exact(pair_merge_prob=1.0, pair_merge_gap_px=20).label(frame, SCHEMA)
+    car = [m for m, p in zip(masks.dense(), masks.probs, strict=True) if p.argmax() == CAR]
+    # Cars 1 (rows 30-37, columns 5-19) and 2 (rows 26-35, columns 35-54) are 15 px apart: each mask now
+    # covers both cars.
+    union = plain[0] | plain[1]
+    assert len(car) == 2 and all((m == union).all() for m in car)
+    # With a gap below 15 px they stay apart.
+    masks = _exact(pair_merge_prob=1.0, pair_merge_gap_px=14).label(frame, SCHEMA)
+    car = [m for m, p in zip(masks.dense(), masks.probs, strict=True) if p.argmax() == CAR]
+    assert sorted(int(m.sum()) for m in car) == sorted(int(m.sum()) for m in plain)
+
+
+def test_stuff_tiles_confuse_part_of_a_surface(seq) -> None:
+    frame = seq.frame(0)
+    gt = _argmax_image(_exact().label(frame, SCHEMA))
+    lab = _exact(confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5}, stuff_tile_px=8)
+    img = _argmax_image(lab.label(frame, SCHEMA))
+    road = gt == ROAD
+    moved = img[road] == SIDEWALK
+    assert 0 < moved.sum() < road.sum()
+    # Whole 8 x 8 tiles move: inside each tile the road pixels agree.
+    ys, xs = np.nonzero(road)
+    for t in {(y // 8, x // 8) for y, x in zip(ys, xs, strict=True)}:
+        sel = (ys // 8 == t[0]) & (xs // 8 == t[1])
+        assert len(set(img[ys[sel], xs[sel]].tolist())) == 1
+    # Off (0): the whole region keeps one class, drawn once.
+    img0 = _argmax_image(_exact(confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5})
+                         .label(frame, SCHEMA))
+    assert len(set(img0[road].tolist())) == 1
+
+
+def test_small_region_recall_drops_small_regions_more(seq) -> None:
+    frame = seq.frame(0)
+    full = _exact().label(frame, SCHEMA).num_masks
+    assert _exact(small_region_px=1).label(frame, SCHEMA).num_masks == full
+    # Recall = area / 10^6 for every region here: (almost) nothing is kept.
+    assert _exact(small_region_px=10**6).label(frame, SCHEMA).num_masks == 0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"class_confusion": {"car": 1.5}}, ("class_confusion", "car")),
+        ({"box_leak_prob": 2.0}, ("box_leak_prob",)),
+        ({"stuff_tile_px": -1}, ("stuff_tile_px",)),
+        ({"confusion_targets": {"car": {"truck": -1.0}}}, ("confusion_targets", "car", "truck")),
+    ],
+)
+def test_new_fields_are_validated(kwargs: dict, field: tuple[str, ...]) -> None:
+    with pytest.raises(ConfigError) as err:
+        SimulatedLabelerConfig(**kwargs)
+    assert err.value.field == field
