@@ -146,6 +146,11 @@ def test_2d_3d_ground_truth_agree(agri) -> None:
         inner[ok] = same[v[ok], u[ok]]
         assert inner.mean() > 0.8
         assert (gt[v[inner], u[inner]] == sem[inner]).mean() >= 0.97
+        # Over all points in view, edges included (the camera sits 4 cm from the LiDAR): a camera tilted
+        # by one degree more than calib.txt says drops these to 0.92 and 0.57-0.69.
+        assert (gt[v[ok], u[ok]] == sem[ok]).mean() >= 0.96
+        objects = ok & (sem != 7)
+        assert (gt[v[objects], u[objects]] == sem[objects]).mean() >= 0.85
         inst = f.labels >> 16
         thing = inner & (inst > 0)
         assert thing.any()
@@ -205,6 +210,8 @@ def test_reader_preset_and_evaluation(agri, tmp_path) -> None:
     assert point["miou"] > 0.7, point["iou"]
     assert min(point["iou"][c] for c in ("tree", "building", "ground")) > 0.9, point["iou"]
     assert metrics["camera"]["voxel"]["miou"] > point["miou"]
+    # Every named surface gets a mask: nearly every point in view is labeled (0.99 here).
+    assert point["labeled_share"] > 0.975
 
 
 def test_cli_domain(tmp_path) -> None:
