@@ -128,6 +128,18 @@ def test_every_class_in_2d_and_3d(agri) -> None:
     assert ids2 - {0} == set(AGRI_CLASS_IDS)
 
 
+def test_every_farm_primitive_is_named_in_its_class() -> None:
+    """Every primitive of the farm (people included) carries an agri name whose raw ids hold its class, and
+    every agri name is used."""
+    scene = build_farm(TINY.farm, TINY.survey, TINY.frames, TINY.hz, TINY.seed)
+    prims = scene.primitives_at(0)
+    for nid in np.unique(prims.name):
+        assert set(np.unique(prims.semantic[prims.name == nid]).tolist()) <= set(
+            NAMES_BY_ID[int(nid)].raw_ids
+        )
+    assert {int(n) for n in np.unique(prims.name)} == {n.id for n in AGRI_VOCABULARY}
+
+
 def test_2d_3d_ground_truth_agree(agri) -> None:
     """Points project into the image through calib.txt (P2·Tr) and land, away from class edges, on pixels
     whose 2D class is their 3D class (and, for people, buildings and trees, their instance)."""
