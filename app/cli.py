@@ -1023,18 +1023,29 @@ def _app_settings(
 @cli.command("synth")
 def synth(
     out: str = typer.Argument(..., help="Dataset root to write (the sequence goes to OUT/sequences/NN)."),
-    frames: int = typer.Option(60, "--frames", min=1, help="Number of frames (10 Hz)."),
+    *,
+    frames: int = typer.Option(60, "--frames", min=1, help="Number of frames (10 Hz street, 5 Hz agri-uav)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the scene, the route and all sensor noise."),
     sequence: str = typer.Option("00", "--sequence", help="Sequence folder name."),
     force: bool = typer.Option(False, "--force", help="Replace an existing non-empty sequence folder."),
     workers: int = typer.Option(0, "--workers", min=0, help="Worker processes (0 = up to 2, by core count)."),
+    domain: str = typer.Option(
+        "street", "--domain", help="street: a car with a spinning 64-beam LiDAR in a town (10 Hz); "
+        "agri-uav: a survey drone over a farm with a pitched camera and a 70°×30° solid-state LiDAR (5 Hz; "
+        "classes of projects/agri_uav.yaml).", autocompletion=lambda: ["street", "agri-uav"],
+    ),
 ) -> None:
-    """Generate the embedded demo sequence: a procedural street in the KITTI / SemanticKITTI layout."""
+    """Generate a demo sequence in the KITTI / SemanticKITTI layout: a procedural street (default) or, with
+    --domain agri-uav, a drone survey of a farm."""
     import time
 
     from tqdm import tqdm
 
     from leap_core.synth import SynthConfig, default_workers, generate_sequence
+    from leap_core.synth.agri import AgriSynthConfig
+
+    if domain not in ("street", "agri-uav"):
+        raise fail(f"--domain: unknown domain {domain!r} (street or agri-uav)")
 
     start = time.perf_counter()
     bars: list[tqdm] = []  # opened at the first progress call, so a refusal prints only the error
@@ -1045,8 +1056,13 @@ def synth(
         bars[0].update(done - bars[0].n)
 
     try:
+        config = (
+            SynthConfig(frames=frames, seed=seed)
+            if domain == "street"
+            else AgriSynthConfig(frames=frames, seed=seed)
+        )
         stats = generate_sequence(
-            out, SynthConfig(frames=frames, seed=seed), sequence, force=force,
+            out, config, sequence, force=force,
             workers=workers or default_workers(), progress=progress,
         )
     except LeapError as exc:

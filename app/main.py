@@ -29,7 +29,7 @@ from app.core.db import ConnectionPool, init_db, set_size_cap
 from app.core.errors import AppError, InvalidField, disk_full_message, printable, validation_errors
 from app.core.instance import StartupRefused, WorkDirLock, bind_socket
 from app.core.security import UNSAFE_METHODS, cross_origin_reason
-from app.demo import seed_demo_project
+from app.demo import seed_agri_demo_project, seed_demo_project
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager
 from leap_core import __version__
@@ -153,6 +153,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         jobs.start()
         if settings.seed_demo:
             seed_demo_project(settings, jobs)
+            if settings.seed_agri_demo:
+                seed_agri_demo_project(settings, jobs)
         announce = getattr(app.state, "announce", None)
         if announce:
             # Its own line on stdout, apart from the log lines and any progress bar on stderr.

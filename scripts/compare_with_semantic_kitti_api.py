@@ -108,9 +108,10 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"error: {metrics_path}: no row {row!r} (rows: {', '.join(metrics['rows'])})")
     leap = metrics["all"][row]
     names: list[str] = metrics["class_names"]
-    start, stop, step = metrics["frames"]
-
-    gt_files = sorted((args.sequence / "labels").glob("*.label"))[start:stop:step]
+    # metrics.json "frames" is [first, stop) of the frame numbers (older runs added a step).
+    start, stop, *rest = metrics["frames"]
+    numbers = set(range(start, stop, rest[0] if rest else 1))
+    gt_files = [f for f in sorted((args.sequence / "labels").glob("*.label")) if int(f.stem) in numbers]
     pred_files = [args.run / "export" / f.name for f in gt_files]
     missing = [p.name for p in pred_files if not p.is_file()]
     if missing:

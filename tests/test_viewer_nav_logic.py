@@ -28,6 +28,21 @@ def test_follow_view_of_a_sensor_pointing_up_looks_along_x() -> None:
     assert tgt == pytest.approx([1, 0, 0]) and pos == pytest.approx([-1, 0, 0])
 
 
+def test_follow_view_of_a_drone_looks_at_the_ground_ahead() -> None:
+    """A sensor 25 m above the ground (a survey drone) is followed looking at the ground 8 + 25 m ahead,
+    from 22 + 25 m away; a car's sensor 1.73 m up is followed as without the ground height."""
+    pose = np.eye(4)
+    pose[:3, 3] = (5, 0, 25)
+    pos, tgt = nl.follow_view(pose, distance=22.0, elevation_deg=35.0, ahead=8.0, ground_z=0.0)
+    assert tgt == pytest.approx([5 + 33, 0, 0])
+    e = math.radians(35)
+    assert pos == pytest.approx([38 - 47 * math.cos(e), 0, 47 * math.sin(e)])
+    car = np.eye(4)
+    car[:3, 3] = (1, 2, 1.73)
+    assert np.array_equal(nl.follow_view(car, ground_z=0.0)[0], nl.follow_view(car)[0])
+    assert np.array_equal(nl.follow_view(car, ground_z=0.0)[1], nl.follow_view(car)[1])
+
+
 def test_fit_view_frames_the_percentile_box() -> None:
     # 101 points on x ∈ [0, 100] (y = z = 0): the 2..98 percentile box is x ∈ [2, 98], centre x = 50,
     # diagonal 96 → distance 0.85 · 96 = 81.6.

@@ -21,8 +21,18 @@ INSPECT_RGB: tuple[int, int, int] = (0, 255, 255)
 (the selection highlight is near-black)."""
 
 
+HIGH_SENSOR_M = 5.0
+"""A sensor more than this far above the ground under it (a drone, not a car's roof) is followed from above
+the ground it looks at rather than from its own height (:func:`follow_view`)."""
+
+
 def follow_view(
-    pose: npt.ArrayLike, *, distance: float = 22.0, elevation_deg: float = 35.0, ahead: float = 8.0
+    pose: npt.ArrayLike,
+    *,
+    distance: float = 22.0,
+    elevation_deg: float = 35.0,
+    ahead: float = 8.0,
+    ground_z: float | None = None,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """Camera ``(position, look_at)`` behind and above the ego vehicle, looking along its heading.
 
@@ -32,11 +42,18 @@ def follow_view(
     ``position = look_at - distance · cos(e) · f + distance · sin(e) · ẑ``.
     A sensor pointing straight up (no horizontal heading) looks along world +x.
 
+    A sensor high above the ground (``h = t_z − ground_z > HIGH_SENSOR_M``: a drone) would put ``look_at``
+    in the empty air at its own height, with its points out of view below. Then ``look_at`` is on the
+    ground, ``ahead + h`` in front of the sensor's foot (where a forward-and-down sensor looks), and the
+    camera stands ``distance + h`` from it. A car's sensor (h ≈ 1.7 m) is followed as without ``ground_z``.
+
     Args:
         pose: (4, 4) sensor-to-world transform of the scan.
         distance: camera distance from ``look_at`` (metres).
         elevation_deg: angle of the camera above the ground plane.
         ahead: how far ahead of the ego position the camera looks (metres).
+        ground_z: world height of the ground under the sensor (e.g. a low percentile of the scan's point
+            heights), or None when unknown.
     """
     m = np.asarray(pose, dtype=np.float64).reshape(4, 4)
     f = np.array([m[0, 0], m[1, 0], 0.0])
@@ -44,6 +61,11 @@ def follow_view(
     f = f / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])
     e = math.radians(elevation_deg)
     target = m[:3, 3] + ahead * f
+    h = 0.0 if ground_z is None else float(m[2, 3] - ground_z)
+    if h > HIGH_SENSOR_M:
+        target = target + h * f
+        target[2] = float(ground_z)  # type: ignore[arg-type]  # h > 0 only when ground_z is given
+        distance += h
     position = target - distance * math.cos(e) * f + np.array([0.0, 0.0, distance * math.sin(e)])
     return position, target
 
@@ -116,4 +138,12 @@ def confidence_histograms(
     return flat.reshape(num_classes, bins).astype(np.int64)
 
 
-__all__ = ["INSPECT_RGB", "SCAN_GREY_RGB", "confidence_histograms", "fit_view", "follow_view", "scan_colors"]
+__all__ = [
+    "HIGH_SENSOR_M",
+    "INSPECT_RGB",
+    "SCAN_GREY_RGB",
+    "confidence_histograms",
+    "fit_view",
+    "follow_view",
+    "scan_colors",
+]

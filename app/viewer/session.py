@@ -927,7 +927,9 @@ class ReviewSession:
         """Move the camera behind and above the shown scan's ego pose (:func:`nav_logic.follow_view`)."""
         view = self.scan_view
         if view is not None and view.ego_pose is not None:
-            self.scene.look_at(*nl.follow_view(view.ego_pose))
+            # The ground under a drone is far below it: follow_view then looks at the ground ahead.
+            ground = float(np.percentile(view.points[:, 2], 20)) if len(view.points) else None
+            self.scene.look_at(*nl.follow_view(view.ego_pose, ground_z=ground))
 
     # ------------------------------------------------------------------------------------ scan browser
     @property

@@ -559,6 +559,27 @@ def _albedo(  # noqa: PLR0912, PLR0915  one short branch per material, read as a
         panel = box_pattern(along + 0.02, 1.2, 0.03, fp[i])
         g = noise("smooth", along, loc[i, 2], 0.3, fp[i])
         out[i] = base[i] * ((0.92 + 0.06 * g) * (1 - 0.3 * panel))[:, None]
+    i = sel(M.SOIL)
+    if i.size:
+        g = noise("grain", x[i], y[i], 0.03, fp[i])
+        s = noise("smooth", x[i] * 0.8, y[i] * 0.8, 1.5, fp[i])
+        ang = param[i, 1]
+        across = -x[i] * np.sin(ang) + y[i] * np.cos(ang)
+        spacing = np.maximum(param[i, 0], np.float32(0.1))
+        furrow = np.where(param[i, 0] > 0, box_pattern(across / spacing, 1.0, 0.4, fp[i] / spacing), 0)
+        out[i] = base[i] * ((0.88 + 0.1 * g + 0.1 * s) * (1 - 0.25 * furrow))[:, None]
+    i = sel(M.CROP)
+    if i.size:
+        ang = param[i, 1]
+        across = -x[i] * np.sin(ang) + y[i] * np.cos(ang)
+        spacing = np.maximum(param[i, 0], np.float32(0.1))
+        rows = box_pattern(across / spacing, 1.0, 0.35 + 0.5 * param[i, 2], fp[i] / spacing)
+        rows = np.where(face[i] == 4, rows, np.float32(0.8))
+        g = noise("leaf", x[i], y[i], 0.04, fp[i])
+        s = noise("smooth", x[i], y[i], 3.0, fp[i])
+        soil = np.array([0.36, 0.27, 0.18], np.float32)
+        leaf = base[i] * (0.85 + 0.15 * g + 0.12 * s)[:, None]
+        out[i] = leaf * rows[:, None] + soil * (1 - rows)[:, None]
     return np.asarray(np.clip(out, 0, 1.2), dtype=np.float32)
 
 

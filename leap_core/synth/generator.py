@@ -18,6 +18,7 @@ import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -34,10 +35,13 @@ from leap_core.datasets.kitti import (
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
-from leap_core.synth.camera import CameraConfig, SunShadows, camera_to_world, pixel_rays, render
-from leap_core.synth.lidar import LidarConfig, ray_grid, scan
+from leap_core.synth.camera import CameraConfig, CameraFrame, SunShadows, camera_to_world, pixel_rays, render
+from leap_core.synth.lidar import LidarConfig, Scan, ray_grid, scan
 from leap_core.synth.route import EgoConfig
 from leap_core.synth.scene import Scene, SceneConfig, build_scene
+
+if TYPE_CHECKING:
+    from leap_core.synth.agri import AgriSynthConfig, AgriWorker
 
 SYNTH_VERSION = 2
 """Version of what the generator writes for a given config; bumped whenever the same config would produce
@@ -45,6 +49,16 @@ different files (a new object kind, a new ground-truth image). A demo folder wit
 ``synth_version.txt`` is stale and is generated again. 2: the demo world with names (issue 12)."""
 
 VERSION_FILE = "synth_version.txt"
+
+
+def synth_stamp(seq_dir: str | Path) -> str | None:
+    """The text of a sequence folder's ``synth_version.txt``, stripped (None: no such file): a bare
+    :data:`SYNTH_VERSION` number for the street demo, ``leap_core.synth.agri.AGRI_SYNTH_STAMP`` for
+    agri-uav."""
+    try:
+        return (Path(seq_dir) / VERSION_FILE).read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def synth_version(seq_dir: str | Path) -> int | None:
@@ -145,6 +159,7 @@ class _Worker:
         )
         self.poses = lidar_poses(self.scene, cfg)
         self.calib = calibration(cfg)
+        self.version_text = f"{SYNTH_VERSION}\n"
 
     def frame(self, i: int) -> tuple[int, int, int]:
         cfg, scene = self.cfg, self.scene
@@ -163,19 +178,34 @@ class _Worker:
             rng=rng_c,
             rays=self.pixel_rays,
         )
-        stem = f"{i:06d}"
-        d = self.seq_dir
-        write_scan(d / "velodyne" / f"{stem}.bin", sc.points)
-        write_label(d / "labels" / f"{stem}.label", sc.semantic, sc.instance)
-        write_image(d / "image_2" / f"{stem}.png", cam.rgb)
-        write_png16(d / "gt2d" / "semantic" / f"{stem}.png", cam.semantic)
-        write_png16(d / "gt2d" / "instance" / f"{stem}.png", cam.instance)
-        write_png16(d / "gt2d" / "name" / f"{stem}.png", cam.name)
+        write_frame(self.seq_dir, i, sc, cam)
         return (
             i,
             len(sc.points),
             count_in_image(sc.points[:, :3], self.calib, cfg.camera.width, cfg.camera.height),
         )
+
+
+def write_frame(seq_dir: Path, i: int, sc: Scan, cam: CameraFrame) -> None:
+    """Write frame ``i``'s scan, labels, image and 2D ground truth (name ``{i:06d}``) under ``seq_dir``."""
+    stem = f"{i:06d}"
+    d = seq_dir
+    write_scan(d / "velodyne" / f"{stem}.bin", sc.points)
+    write_label(d / "labels" / f"{stem}.label", sc.semantic, sc.instance)
+    write_image(d / "image_2" / f"{stem}.png", cam.rgb)
+    write_png16(d / "gt2d" / "semantic" / f"{stem}.png", cam.semantic)
+    write_png16(d / "gt2d" / "instance" / f"{stem}.png", cam.instance)
+    write_png16(d / "gt2d" / "name" / f"{stem}.png", cam.name)
+
+
+def make_worker(cfg: SynthConfig | AgriSynthConfig, seq_dir: Path) -> _Worker | AgriWorker:
+    """The per-process frame writer of ``cfg``'s domain (street or agri-uav)."""
+    # agri imports this module's frame writers, so it is loaded here, when first needed.
+    from leap_core.synth.agri import AgriSynthConfig, AgriWorker  # noqa: PLC0415
+
+    if isinstance(cfg, AgriSynthConfig):
+        return AgriWorker(cfg, seq_dir)
+    return _Worker(cfg, seq_dir)
 
 
 def count_in_image(xyz: npt.NDArray[np.float32], calib: Calib, width: int, height: int) -> int:
@@ -189,12 +219,12 @@ def count_in_image(xyz: npt.NDArray[np.float32], calib: Calib, width: int, heigh
     return int(((u >= 0) & (u < width) & (v >= 0) & (v < height)).sum())
 
 
-_WORKER: _Worker | None = None
+_WORKER: _Worker | AgriWorker | None = None
 
 
-def _init_worker(cfg: SynthConfig, seq_dir: Path) -> None:
+def _init_worker(cfg: SynthConfig | AgriSynthConfig, seq_dir: Path) -> None:
     global _WORKER  # noqa: PLW0603  a pool initializer can only leave per-process state in a module global
-    _WORKER = _Worker(cfg, seq_dir)
+    _WORKER = make_worker(cfg, seq_dir)
 
 
 def _run_frame(i: int) -> tuple[int, int, int]:
@@ -204,7 +234,7 @@ def _run_frame(i: int) -> tuple[int, int, int]:
 
 def generate_sequence(
     root: str | Path,
-    cfg: SynthConfig = SynthConfig(),
+    cfg: SynthConfig | AgriSynthConfig = SynthConfig(),
     sequence: str = "00",
     *,
     force: bool = False,
@@ -215,7 +245,8 @@ def generate_sequence(
 
     Args:
         root: dataset root (the folder that holds ``sequences/``).
-        cfg: generator configuration.
+        cfg: generator configuration: a street (:class:`SynthConfig`) or an agri-uav
+            (:class:`leap_core.synth.agri.AgriSynthConfig`) sequence.
         sequence: sequence name (two digits in KITTI).
         force: replace an existing non-empty sequence folder (it is deleted first).
         workers: processes rendering frames in parallel (1 = in this process). The output does not depend
@@ -241,7 +272,7 @@ def generate_sequence(
     in_image = np.zeros(cfg.frames, np.int64)
     workers = max(1, min(int(workers), cfg.frames))
     global _WORKER  # noqa: PLW0603  forked pool children inherit the built scene through this global
-    worker = _Worker(cfg, seq_dir)
+    worker = make_worker(cfg, seq_dir)
     if workers == 1:
         _collect((worker.frame(i) for i in range(cfg.frames)), points, in_image, cfg.frames, progress)
     else:
@@ -260,13 +291,12 @@ def generate_sequence(
                 _collect(pool.imap(_run_frame, range(cfg.frames)), points, in_image, cfg.frames, progress)
         finally:
             _WORKER = None
-    scene = worker.scene
-    calib = calibration(cfg)
+    calib = worker.calib
     write_calib(seq_dir / "calib.txt", calib)
-    write_poses(seq_dir / "poses.txt", camera_poses_kitti(lidar_poses(scene, cfg), calib.Tr))
+    write_poses(seq_dir / "poses.txt", camera_poses_kitti(worker.poses, calib.Tr))
     times = "".join(f"{i / cfg.hz:.6e}\n" for i in range(cfg.frames))
     atomic_write_bytes(seq_dir / "times.txt", times.encode())
-    atomic_write_bytes(seq_dir / VERSION_FILE, f"{SYNTH_VERSION}\n".encode())
+    atomic_write_bytes(seq_dir / VERSION_FILE, worker.version_text.encode())
     return SynthStats(path=seq_dir, points=points, in_image=in_image)
 
 

@@ -156,6 +156,40 @@ VOCABULARY: Final[tuple[Name, ...]] = (
 # fmt: on
 """The names the demo generator uses (ids 1..99)."""
 
+AGRI_RAW_IDS: Mapping[int, str] = MappingProxyType(
+    {1: "tree", 2: "pole", 3: "fence", 4: "wire", 5: "person", 6: "building", 7: "ground"}
+)
+"""Raw id -> class of the agri-uav domain (``leap synth --domain agri-uav``): the export / ground-truth ids
+of ``projects/agri_uav.yaml``. They overlap SemanticKITTI's 0..259 range, so an agri-uav sequence is read
+with the agri-uav schema only."""
+
+_AGRI_TREE = ("vegetation", "plant")
+# fmt: off
+AGRI_VOCABULARY: Final[tuple[Name, ...]] = (
+    Name(40, "orchard tree", (1,), ("tree", "fruit tree"), ("tree canopy", "treetop", "foliage"), _AGRI_TREE),
+    Name(41, "field tree", (1,), ("tree", "oak tree"), ("tree canopy", "treetop", "foliage"), _AGRI_TREE),
+    Name(42, "utility pole", (2,), ("telegraph pole", "power pole"), ("wooden pole",), ("pole", "post")),
+    Name(43, "paddock fence", (3,), ("fence", "livestock fence", "farm fence"), ("wooden railing",),
+         ("railing", "barrier")),
+    Name(44, "power line", (4,), ("wire", "overhead cable", "overhead line", "electric cable"), ("cable",),
+         ("line",)),
+    Name(45, "farmer", (5,), ("person", "worker", "farm worker"), ("man", "woman"),
+         ("human", "people", "pedestrian")),
+    Name(46, "barn", (6,), ("farm building", "building"), ("wall",), ("structure", "house")),
+    Name(47, "farmhouse", (6,), ("house", "building"), ("facade", "wall"), ("structure",)),
+    Name(48, "shed", (6,), ("storage shed", "building"), ("wall",), ("structure", "house")),
+    Name(49, "farm roof", (6,), ("roof", "rooftop"), ("tiled roof", "metal roof"), ("building", "house")),
+    Name(50, "crop field", (7,), ("field", "cropland", "farmland"), ("crop rows", "crops"),
+         ("ground", "terrain", "vegetation")),
+    Name(51, "pasture", (7,), ("meadow", "grass", "grassland"), ("grass field",),
+         ("ground", "terrain", "field")),
+    Name(52, "bare soil", (7,), ("soil", "dirt", "ploughed field"), ("bare ground", "earth"),
+         ("ground", "terrain", "field")),
+    Name(53, "dirt track", (7,), ("farm track", "dirt road"), ("track",), ("ground", "road")),
+)
+# fmt: on
+"""The names the agri-uav generator uses (ids 40..99; not part of the street demo's :data:`VOCABULARY`)."""
+
 # Generic names of raw SemanticKITTI ids (and the demo extras), for 2D ground truth without a name image.
 _GENERIC: Final[dict[int, tuple[str, tuple[str, ...], tuple[str, ...]]]] = {
     # raw id: (name, synonyms, hypernyms)
@@ -201,17 +235,23 @@ GENERIC_NAMES: Final[tuple[Name, ...]] = tuple(
 )
 """The fallback vocabulary: one generic name per raw id (name id = ``GENERIC_NAME_ID_BASE`` + raw id)."""
 
-NAMES_BY_ID: Final[Mapping[int, Name]] = MappingProxyType({n.id: n for n in VOCABULARY + GENERIC_NAMES})
-"""Every name (demo and generic) by its id."""
+NAMES_BY_ID: Final[Mapping[int, Name]] = MappingProxyType(
+    {n.id: n for n in VOCABULARY + AGRI_VOCABULARY + GENERIC_NAMES}
+)
+"""Every name (street demo, agri-uav and generic) by its id."""
 
 NAME_IDS: Final[Mapping[str, int]] = MappingProxyType({n.name: n.id for n in VOCABULARY})
 """Demo name -> name id (what the generator writes)."""
 
 
+AGRI_NAME_IDS: Final[Mapping[str, int]] = MappingProxyType({n.name: n.id for n in AGRI_VOCABULARY})
+"""Agri-uav name -> name id."""
+
+
 def name_id(name: str) -> int:
-    """The id of a demo name; raises KeyError naming the unknown name."""
+    """The id of a demo name (street or agri-uav); raises KeyError naming the unknown name."""
     try:
-        return NAME_IDS[name]
+        return NAME_IDS[name] if name in NAME_IDS else AGRI_NAME_IDS[name]
     except KeyError:
         raise KeyError(f"unknown demo name {name!r} (see leap_core/synth/names.py)") from None
 
@@ -252,16 +292,20 @@ def match(prompt: str, name: Name) -> Strength | None:
 
 
 def _check() -> None:
-    ids = [n.id for n in VOCABULARY]
+    both = VOCABULARY + AGRI_VOCABULARY
+    ids = [n.id for n in both]
     if len(set(ids)) != len(ids) or not all(0 < i < GENERIC_NAME_ID_BASE for i in ids):
         raise AssertionError("demo name ids must be unique and below GENERIC_NAME_ID_BASE")
-    if len({n.name for n in VOCABULARY}) != len(VOCABULARY):
+    if len({n.name for n in both}) != len(both):
         raise AssertionError("demo names must be unique")
 
 
 _check()
 
 __all__ = [
+    "AGRI_NAME_IDS",
+    "AGRI_RAW_IDS",
+    "AGRI_VOCABULARY",
     "DEMO_EXTRA_RAW_IDS",
     "GENERIC_NAMES",
     "GENERIC_NAME_ID_BASE",

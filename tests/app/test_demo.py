@@ -31,7 +31,8 @@ TINY_DEMO = {**SMALL_DEMO, "frames": 3}
 @pytest.mark.slow
 def test_first_start_seeds_a_demo_project_with_a_finished_run(data_root: Path) -> None:
     settings = Settings(
-        data_roots=[data_root], work_dir=data_root / "studio", seed_demo=True, demo_synth=TINY_DEMO
+        data_roots=[data_root], work_dir=data_root / "studio", seed_demo=True, seed_agri_demo=False,
+        demo_synth=TINY_DEMO,
     )
     with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
         projects = client.get(f"{API}/projects").json()
@@ -55,6 +56,36 @@ def test_first_start_seeds_a_demo_project_with_a_finished_run(data_root: Path) -
         client.delete(f"{API}/projects/{demo['id']}")
     with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
         assert client.get(f"{API}/projects").json()["count"] == 0
+
+
+@pytest.mark.slow
+def test_first_start_also_seeds_the_farm_drone_demo(data_root: Path) -> None:
+    """The second demo project: the agri_uav preset with the simulated labeler, on a farm sequence its
+    first run generates (under work_dir/demo-agri), queued after the street's; it labels and evaluates."""
+    from app.demo import AGRI_DEMO_PROJECT_NAME, demo_exists
+    from leap_core.synth.agri import AGRI_SYNTH_STAMP
+    from leap_core.synth.generator import synth_stamp
+
+    settings = Settings(
+        data_roots=[data_root],
+        work_dir=data_root / "studio",
+        seed_demo=True,
+        demo_synth={**TINY_DEMO, "frames": 2},
+    )
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
+        projects = client.get(f"{API}/projects").json()
+        assert projects["count"] == 2
+        farm = next(p for p in projects["data"] if p["name"] == AGRI_DEMO_PROJECT_NAME)
+        assert farm["is_demo"] and farm["dataset"]["kind"] == "demo" and farm["schema_name"] == "agri_uav"
+        assert farm["form"]["labeler"] == "simulated"
+        run = client.get(f"{API}/projects/{farm['id']}/runs").json()["data"][0]
+        run = wait_run(client, run["id"], timeout=300)
+        assert run["status"] == "done", run["error"]
+        assert [s["name"] for s in run["progress"]["stages"]][:2] == ["generate demo", "labels2d"]
+        assert run["has_metrics"] and run["summary"]["camera"]["voxel"] > 0.3
+        assert synth_stamp(settings.demo_agri_dataset) == AGRI_SYNTH_STAMP
+        assert demo_exists(settings.demo_agri_dataset) and not demo_exists(settings.demo_dataset.parent / "x")
+        assert (settings.demo_agri_dataset / "velodyne" / "000001.bin").is_file()
 
 
 def test_bad_demo_settings_are_refused(data_root: Path) -> None:

@@ -124,6 +124,7 @@ def running_app(
         work_dir=root / "work",
         data_roots=[root],
         seed_demo=True,
+        seed_agri_demo=False,  # the farm drone demo's run would queue behind the street's and slow these
         demo_synth={"frames": frames},
     )
     # Generate the demo sequence here, in one process: the app then finds it instead of generating it.
