@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import sys
 from pathlib import Path
@@ -77,3 +78,26 @@ def test_analyse_checks_and_extrapolation(bench: ModuleType) -> None:
     tables = bench.report_tables({"results": results, "analysis": an})
     assert [t[0] for t in tables][-1] == "checks"
     assert "NO" in {row[-1] for row in tables[-1][2]}
+
+
+def test_repeated_3d_stages_count_their_least_time(bench: ModuleType, tmp_path: Path) -> None:
+    """--repeat: each 3D stage's figure is its least wall and CPU time over the runs; the stages before
+    `fuse` ran once, so their figures are the cold run's; invalidate_3d_stages stales exactly the 3D
+    stages' fingerprints."""
+    def run(wall: float, cpu: float, early_cpu: float) -> dict[str, Any]:
+        return {s: {"status": "done", "wall_s": wall if s != "labels2d" else 9.0,
+                    "cpu_s": cpu if s != "labels2d" else early_cpu, "peak_rss_b": 1, "voxels": 5}
+                for s in STAGES if s != "3dcn"} | {
+            "3dcn": {"status": "skipped", "wall_s": 0.0, "cpu_s": math.nan, "peak_rss_b": 0, "voxels": None}}
+    least = bench.least_of([run(3.0, 2.0, 7.0), run(1.0, 4.0, 0.0), run(2.0, 1.5, 0.0)])
+    assert least["fuse"]["wall_s"] == 1.0 and least["fuse"]["cpu_s"] == 1.5
+    assert least["export"]["wall_s"] == 1.0 and least["export"]["cpu_s"] == 1.5
+    assert least["labels2d"]["cpu_s"] == 7.0 and least["project"]["wall_s"] == 3.0
+    assert least["3dcn"]["status"] == "skipped"
+
+    state = {s: {"status": "done", "fingerprint": "f"} for s in STAGES}
+    (tmp_path / "stages.json").write_text(json.dumps(state))
+    bench.invalidate_3d_stages(tmp_path)
+    after = json.loads((tmp_path / "stages.json").read_text())
+    first3d = STAGES.index("fuse")
+    assert [after[s]["fingerprint"] == "f" for s in STAGES] == [i < first3d for i in range(len(STAGES))]
