@@ -25,7 +25,7 @@ from leap_core.datasets.kitti import Calib
 from leap_core.errors import ConfigError
 from leap_core.synth.camera import CameraConfig, SunShadows, camera_to_world, pixel_rays, render
 from leap_core.synth.farm import FarmConfig, FarmScene, build_farm
-from leap_core.synth.generator import count_in_image, write_frame
+from leap_core.synth.frame_io import count_in_image, write_frame
 from leap_core.synth.raycast import rotation_xyz
 from leap_core.synth.solid_state import SolidStateLidarConfig, solid_state_scan
 from leap_core.synth.survey import SurveyConfig

@@ -26,17 +26,14 @@ import numpy.typing as npt
 from leap_core.datasets.kitti import (
     Calib,
     write_calib,
-    write_image,
-    write_label,
-    write_png16,
     write_poses,
-    write_scan,
 )
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
-from leap_core.synth.camera import CameraConfig, CameraFrame, SunShadows, camera_to_world, pixel_rays, render
-from leap_core.synth.lidar import LidarConfig, Scan, ray_grid, scan
+from leap_core.synth.camera import CameraConfig, SunShadows, camera_to_world, pixel_rays, render
+from leap_core.synth.frame_io import count_in_image, write_frame
+from leap_core.synth.lidar import LidarConfig, ray_grid, scan
 from leap_core.synth.route import EgoConfig
 from leap_core.synth.scene import Scene, SceneConfig, build_scene
 
@@ -186,37 +183,14 @@ class _Worker:
         )
 
 
-def write_frame(seq_dir: Path, i: int, sc: Scan, cam: CameraFrame) -> None:
-    """Write frame ``i``'s scan, labels, image and 2D ground truth (name ``{i:06d}``) under ``seq_dir``."""
-    stem = f"{i:06d}"
-    d = seq_dir
-    write_scan(d / "velodyne" / f"{stem}.bin", sc.points)
-    write_label(d / "labels" / f"{stem}.label", sc.semantic, sc.instance)
-    write_image(d / "image_2" / f"{stem}.png", cam.rgb)
-    write_png16(d / "gt2d" / "semantic" / f"{stem}.png", cam.semantic)
-    write_png16(d / "gt2d" / "instance" / f"{stem}.png", cam.instance)
-    write_png16(d / "gt2d" / "name" / f"{stem}.png", cam.name)
-
-
 def make_worker(cfg: SynthConfig | AgriSynthConfig, seq_dir: Path) -> _Worker | AgriWorker:
     """The per-process frame writer of ``cfg``'s domain (street or agri-uav)."""
-    # agri imports this module's frame writers, so it is loaded here, when first needed.
+    # Loaded when first needed: a street run never imports the farm's modules.
     from leap_core.synth.agri import AgriSynthConfig, AgriWorker  # noqa: PLC0415
 
     if isinstance(cfg, AgriSynthConfig):
         return AgriWorker(cfg, seq_dir)
     return _Worker(cfg, seq_dir)
-
-
-def count_in_image(xyz: npt.NDArray[np.float32], calib: Calib, width: int, height: int) -> int:
-    """Number of points with positive depth whose rounded projection ``P2·Tr·X`` lies in the image."""
-    m = calib.lidar_to_image.astype(np.float32)
-    x, y, zc = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    q = [m[k, 0] * x + m[k, 1] * y + m[k, 2] * zc + m[k, 3] for k in range(3)]
-    ok = q[2] > 0.1
-    u = np.rint(q[0][ok] / q[2][ok])
-    v = np.rint(q[1][ok] / q[2][ok])
-    return int(((u >= 0) & (u < width) & (v >= 0) & (v < height)).sum())
 
 
 _WORKER: _Worker | AgriWorker | None = None
