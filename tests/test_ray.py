@@ -224,7 +224,10 @@ def test_cancel_on_ray_then_resume_gives_the_local_bytes(ray_instance, dataset: 
         run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY, progress=cancel_mid_project)
     assert stage_status(run_dir)["project"]["status"] == "cancelled"
     kept = len(list((run_dir / "observations").glob("*.npz")))
-    assert 0 < kept < len(FRAMES)
+    # Ray tasks already running when the cancel comes finish their frames, and on a busy machine that can
+    # be every frame (the CI run of 2026-11-27: 8 of 8); their files are kept, which is what resuming uses.
+    # A partial stage is resumed deterministically by test_pipeline's local cancel test.
+    assert 0 < kept <= len(FRAMES)
     result = run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY)
     assert not result.stages["labels2d"].ran
     computed = result.stages["project"].frames_computed
