@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
@@ -74,15 +74,12 @@ class FusionConfig:
 
 @dataclass(frozen=True)
 class FusionPaths:
-    """Where :func:`fuse`, :func:`fuse_dense` and :func:`apply_overrides` switch between two implementations
-    of the same maths. The result does not depend on them (tests/test_fusion.py checks each pair of paths
-    agrees exactly); they exist so tests can reach both sides of each switch on small data. Not part of
-    :class:`FusionConfig` (nor of a run's fingerprint), since they change speed, never output."""
+    """Where a fusion chunk's reduction (:func:`fuse`, :func:`fuse_to_file`, :func:`reduce_block`) switches
+    between two implementations of the same maths. The result does not depend on them (tests/test_fusion.py
+    checks each pair of paths agrees exactly); they exist so tests can reach both sides of each switch on
+    small data. Not part of :class:`FusionConfig` (nor of a run's fingerprint): they change speed, never
+    output."""
 
-    torch_min_elements: int = 4_000_000
-    """Grids of at least this many (voxel × class) elements are finalised (row shift to max 0, clip, float16
-    cast) with torch, smaller ones with numpy: on large grids torch's row max and cast are ≈ 3× faster; on
-    small ones its thread wake-up costs more than it saves. 0 = always torch."""
     pack_max_bits: int = 62
     """A fusion chunk packs (voxel, table row) into one int64 per point when its per-axis key ranges plus the
     row bits fit in this many bits; otherwise voxels are first numbered with ``np.unique`` (wide extents,
@@ -91,8 +88,6 @@ class FusionPaths:
     """Elements per block in the in-place key-packing passes (the temporaries stay in L2 cache)."""
 
     def __post_init__(self) -> None:
-        if self.torch_min_elements < 0:
-            raise ConfigError(f"must be ≥ 0, got {self.torch_min_elements}", field=("torch_min_elements",))
         if not 0 <= self.pack_max_bits <= 62:
             raise ConfigError(f"must be in 0..62, got {self.pack_max_bits}", field=("pack_max_bits",))
         if self.block < 1:
@@ -595,37 +590,28 @@ def _merge(
     return keys, acc
 
 
-def _finalise(
-    keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig, paths: FusionPaths
-) -> VoxelGrid:
-    """Shift each row to max 0, clip at -logp_clip, store float16 (numpy or torch: same values).
+def _finalise(keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig) -> VoxelGrid:
+    """Shift each row to max 0, clip at -logp_clip, store float16.
 
     Works over blocks of rows and, when ``acc`` owns its memory, writes the float16 rows into the front of
     ``acc``'s own buffer (block [s, e)'s float16 bytes lie inside float32 rows [s/2, e/2), already done)
     and shrinks it, so the float32 and float16 grids never both exist whole.
+
+    numpy only: torch's row max and float16 cast are ≈ 3.6× faster on one thread (25 against 91 ms for
+    687k voxels × 20 classes), but importing torch costs ≈ 1.7 s, which a run without the 3D-CN never pays
+    otherwise (the break-even is ≈ 18 M voxels, 7× a whole SemanticKITTI sequence), and with two threads
+    on busy cores it was 4× slower than numpy (433 against 94 ms).
     """
     v, c = acc.shape
-    use_torch = acc.size >= paths.torch_min_elements
-    torch: Any = None
-    if use_torch:
-        # Why two paths: see FusionPaths.torch_min_elements. torch is imported where tensors are made, so
-        # reading a config (FusionConfig) does not load it.
-        import torch  # noqa: PLC0415  imported where tensors are made (see the comment above)
     in_place = bool(acc.flags.owndata and acc.flags.c_contiguous and acc.base is None and v > 0)
     out16 = None if in_place else np.empty((v, c), np.float16)
     flat16 = acc.reshape(-1).view(np.float16) if in_place else None
     block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
     for s in range(0, v, block):
         rows = acc[s : s + block]
-        if use_torch:
-            t = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float32))
-            t.sub_(t.amax(dim=1, keepdim=True))
-            t.clamp_(min=-cfg.logp_clip)
-            half = t.half().numpy()
-        else:
-            rows -= rows.max(axis=1, keepdims=True)
-            np.maximum(rows, np.float32(-cfg.logp_clip), out=rows)
-            half = rows.astype(np.float16)
+        rows -= rows.max(axis=1, keepdims=True)
+        np.maximum(rows, np.float32(-cfg.logp_clip), out=rows)
+        half = rows.astype(np.float16)
         if flat16 is not None:
             flat16[s * c : s * c + half.size] = half.reshape(-1)
         else:
@@ -733,7 +719,7 @@ def fuse(
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
     for chunk in _chunked(_checked(batches, num_classes), cfg.chunk_points):
         acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(chunk, weight, paths))
-    return _finalise(acc_keys, acc, cfg, paths)
+    return _finalise(acc_keys, acc, cfg)
 
 
 def fuse_dense(
@@ -743,8 +729,6 @@ def fuse_dense(
     num_classes: int,
     cfg: FusionConfig | None = None,
     weight: float = 1.0,
-    *,
-    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Fuse per-point log-probabilities (e.g. 3D-CN predictions fused back with temperature T, weight = 1/T).
 
@@ -758,7 +742,6 @@ def fuse_dense(
         num_classes: C.
         cfg: grid and clipping parameters.
         weight: multiplies every log-probability.
-        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
     """
     import torch  # noqa: PLC0415  imported where tensors are made: reading a FusionConfig must not load it
 
@@ -785,7 +768,7 @@ def fuse_dense(
         sums = torch.zeros((int(first.sum()), num_classes), dtype=torch.float32)
         sums.index_add_(0, torch.from_numpy(inv), lp)
         acc_keys, acc = _merge(acc_keys, acc, sk[first], sums.numpy())
-    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+    return _finalise(acc_keys, acc, cfg)
 
 
 def fuse_unique(
@@ -795,8 +778,6 @@ def fuse_unique(
     num_classes: int,
     cfg: FusionConfig | None = None,
     weight: float = 1.0,
-    *,
-    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """:func:`fuse_dense` for one row per voxel (``keys`` sorted and unique), working in ``logp`` itself.
 
@@ -818,7 +799,7 @@ def fuse_unique(
         if weight != 1.0:
             logp *= np.float32(weight)
         acc_keys, acc = _merge(acc_keys, acc, keys, logp)
-    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+    return _finalise(acc_keys, acc, cfg)
 
 
 FILE_BLOCK_VOXELS = 1 << 20
@@ -907,9 +888,6 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
         if overrides is not None:
             o_keys, o_obs = _override_obs(overrides[0], overrides[1], num_classes, overrides[2])
         out_keys = union_sorted(all_keys, o_keys) if len(o_keys) else all_keys
-        # fuse's choice of finalising path depends on the whole grid's size (both give the same values).
-        fused_paths = _whole_size_paths(paths, all_keys.size * num_classes)
-        final_paths = _whole_size_paths(paths, out_keys.size * num_classes)
 
         spilled = [(np.load(kp, mmap_mode="r"), np.load(sp, mmap_mode="r")) for kp, sp in chunk_files]
 
@@ -930,13 +908,13 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
                             acc[pos] += cs[lo:hi]
                         release(ck)
                         release(cs)
-                grid = _finalise(fk, acc, cfg, fused_paths)
+                grid = _finalise(fk, acc, cfg)
                 if len(o_keys):
                     lo_o, hi_o = np.searchsorted(o_keys, first), np.searchsorted(o_keys, last, side="right")
                     if hi_o > lo_o:
                         ka, acc_a = fk.copy(), np.asarray(grid.logp, dtype=np.float32)
                         ka, acc_a = _merge(ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy())
-                        grid = _finalise(ka, acc_a, cfg, final_paths)
+                        grid = _finalise(ka, acc_a, cfg)
                 yield np.asarray(grid.logp, np.float16)
 
         save_npz(path, keys=out_keys,
@@ -950,20 +928,12 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
             sp.unlink(missing_ok=True)
 
 
-def _whole_size_paths(paths: FusionPaths, elements: int) -> FusionPaths:
-    """``paths`` with the torch switch decided once for a grid of ``elements`` elements, so that blocks of
-    it finalise on the path the whole grid would take (their values are the same either way)."""
-    return replace(paths, torch_min_elements=0 if elements >= paths.torch_min_elements else 1 << 62)
-
-
 def apply_overrides(
     grid: VoxelGrid,
     keys: npt.ArrayLike,
     class_idx: npt.ArrayLike,
     strength: float = 50.0,
     cfg: FusionConfig | None = None,
-    *,
-    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """Apply manual corrections as overriding observations.
 
@@ -978,7 +948,6 @@ def apply_overrides(
         class_idx: (N,) class index per key.
         strength: log-odds of each correction.
         cfg: clipping parameters (``voxel_size`` must match the grid's); default FusionConfig().
-        paths: implementation switches (:class:`FusionPaths`); the result does not depend on them.
     """
     cfg = cfg or FusionConfig(voxel_size=grid.voxel_size)
     k = np.asarray(keys, dtype=np.int64).reshape(-1)
@@ -993,7 +962,7 @@ def apply_overrides(
     if len(k):
         uk, obs = _override_obs(k, c, grid.num_classes, strength)
         acc_keys, acc = _merge(acc_keys, acc, uk, obs)
-    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+    return _finalise(acc_keys, acc, cfg)
 
 
 # ------------------------------------------------------------------------- fusion in blocks (distributed)
@@ -1039,8 +1008,6 @@ def fold_blocks(
     cfg: FusionConfig | None = None,
     grid: VoxelGrid | None = None,
     weight: float = 1.0,
-    *,
-    paths: FusionPaths | None = None,
 ) -> VoxelGrid:
     """``grid`` plus the :func:`reduce_block` partials, added in the order given, stored as :func:`fuse`
     stores (row max 0, clip, float16). float32 sums are not associative: fold in :func:`fusion_blocks`
@@ -1061,7 +1028,7 @@ def fold_blocks(
             # _merge hands the first partial back as the accumulator, which later merges write into.
             k, s = k.copy(), s.copy()
         acc_keys, acc = _merge(acc_keys, acc, k, s)
-    return _finalise(acc_keys, acc, cfg, paths or FusionPaths())
+    return _finalise(acc_keys, acc, cfg)
 
 
 __all__ = [

@@ -281,7 +281,6 @@ def test_extent_too_wide_to_pack_gives_the_same_result() -> None:
 # ------------------------------------------------------------------------- implementation switches
 # Each FusionPaths switch picks one of two implementations of the same maths; the defaults only reach one
 # side on small data, so each test forces the other side and requires the same bytes.
-TORCH_ALWAYS = FusionPaths(torch_min_elements=0)
 
 
 def _confident_batches(seed: int = 3) -> tuple[int, list[Observations]]:
@@ -295,29 +294,6 @@ def _confident_batches(seed: int = 3) -> tuple[int, list[Observations]]:
         table = np.vstack([rng.dirichlet(np.ones(c), 6), np.eye(c)[:2] * 0.999 + 0.0002])
         out.append(_obs(voxel_keys((coords + 0.5) * 0.2, 0.2), rng.integers(0, len(table), p), table))
     return c, out
-
-
-def test_large_grid_finalise_path_equals_the_small_grid_path() -> None:
-    """fuse/fuse_dense/apply_overrides above FusionPaths.torch_min_elements (torch: every full-length KITTI
-    sequence) store exactly the bytes of the numpy path used on small grids."""
-    c, batches = _confident_batches()
-    small = fuse(batches, c)
-    large = fuse(batches, c, paths=TORCH_ALWAYS)
-    assert small.logp.min() == -20.0  # the clip acts
-    np.testing.assert_array_equal(large.keys, small.keys)
-    np.testing.assert_array_equal(large.logp, small.logp)
-
-    rng = np.random.default_rng(4)
-    keys = np.concatenate([o.keys for o in batches])
-    logp = np.log(rng.dirichlet(np.full(c, 0.2), len(keys))).astype(np.float32)
-    dense_small = fuse_dense(small, keys, logp, c, weight=0.7)
-    dense_large = fuse_dense(small, keys, logp, c, weight=0.7, paths=TORCH_ALWAYS)
-    np.testing.assert_array_equal(dense_large.logp, dense_small.logp)
-    assert dense_small.logp.min() == -20.0
-
-    corr_small = apply_overrides(small, small.keys[:9], np.arange(9) % c)
-    corr_large = apply_overrides(small, small.keys[:9], np.arange(9) % c, paths=TORCH_ALWAYS)
-    np.testing.assert_array_equal(corr_large.logp, corr_small.logp)
 
 
 def test_unique_numbering_and_block_size_give_the_same_sums() -> None:
@@ -338,8 +314,6 @@ def test_fusion_paths_reject_bad_values() -> None:
         FusionPaths(pack_max_bits=63)
     with pytest.raises(ValueError, match="block: must be"):
         FusionPaths(block=0)
-    with pytest.raises(ValueError, match="torch_min_elements: must be"):
-        FusionPaths(torch_min_elements=-1)
 
 
 # ------------------------------------------------------------------------------------ labels at keys
