@@ -20,6 +20,7 @@ from leap_core.datasets.kitti import (
     read_png16,
     read_poses,
     read_scan,
+    read_scan_rows,
     scan_point_count,
     write_calib,
     write_image,
@@ -70,6 +71,27 @@ def test_scan_round_trip(tmp_path: Path) -> None:
     out = read_scan(path)
     assert out.dtype == np.float32 and out.shape == (3, 4)
     np.testing.assert_array_equal(out, pts)
+
+
+def test_scan_rows_are_the_rows_of_the_whole_scan(tmp_path: Path) -> None:
+    pts = np.arange(40, dtype=np.float32).reshape(10, 4)
+    pts[7, 2] = np.nan  # a row never asked for: not checked (the project stage read the whole scan)
+    path = tmp_path / "000000.bin"
+    path.write_bytes(pts.tobytes())
+    rows = np.array([9, 0, 3, 3, 5])
+    got = read_scan_rows(path, rows)
+    assert got.dtype == np.float32 and got.shape == (5, 4)
+    np.testing.assert_array_equal(got, pts[rows])
+    assert read_scan_rows(path, np.zeros(0, np.int64)).shape == (0, 4)
+    with pytest.raises(DatasetError, match=r"000000\.bin.*point 10 asked for, the scan holds 10"):
+        read_scan_rows(path, [1, 10])
+    with pytest.raises(DatasetError, match=r"point -1 asked for"):
+        read_scan_rows(path, [-1])
+    with pytest.raises(DatasetError, match=r"1 points have non-finite"):
+        read_scan_rows(path, [6, 7])
+    (tmp_path / "000001.bin").write_bytes(pts.tobytes()[:-4])
+    with pytest.raises(DatasetError, match=r"000001\.bin.*not a multiple of 16"):
+        read_scan_rows(tmp_path / "000001.bin", [0])
 
 
 def test_empty_scan_round_trip(tmp_path: Path) -> None:

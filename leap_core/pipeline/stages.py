@@ -166,7 +166,7 @@ def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
     for i in ctx.frames:
         painted = Painted.load(ctx.layout.observation(ctx.fid(i)))
         frame = ctx.seq.frame(i)
-        pts = frame.points[painted.point_idx]
+        pts = frame.points_at(painted.point_idx)
         yield painted, voxel_keys(world_points(pts, frame.pose), ctx.cfg.fusion.voxel_size)
 
 
