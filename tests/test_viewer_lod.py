@@ -159,6 +159,31 @@ def _street(seed: int = 0, n: int = 30_000) -> tuple[np.ndarray, np.ndarray, flo
     return keys, label, vs
 
 
+def test_sorted_tables_count_what_block_tables_count_and_follow_new_arrays() -> None:
+    """The index's counting in sorted order (its sorted copies of label and score kept between calls) gives
+    :func:`lod.block_tables` of the rows in grid order, for every threshold and after the arrays change."""
+    keys, label, vs = _street()
+    rng = np.random.default_rng(7)
+    index = lod.build_index(key_centres(keys, vs), vs)
+    blocks = index.blocks(index.overview_level(3000, 0.5))
+    score = rng.random(keys.size).astype(np.float32)
+    for lab, sc in ((label, score), (label, score), ((label + 1) % 3, score), (label, score[::-1].copy())):
+        for thr in (0.0, 0.3, 0.9):
+            want_h, want_s = lod.block_tables(blocks.of_row, blocks.count, lab, 3,
+                                              keep=sc >= np.float32(thr) if thr > 0 else None, score=sc)
+            for chunk in (1 << 16, 7, 1):  # one chunk, several, one block each
+                got_h, got_s = index.sorted_tables(blocks, lab, 3, threshold=thr, score=sc,
+                                                   chunk_blocks=chunk)
+                assert got_s is not None and want_s is not None
+                np.testing.assert_array_equal(got_h, want_h)
+                np.testing.assert_allclose(got_s, want_s, rtol=1e-5)
+    assert blocks.count > 7
+    with pytest.raises(ValueError, match="threshold needs the score"):
+        index.sorted_tables(blocks, label, 3, threshold=0.5)
+    with pytest.raises(ValueError, match="chunk_blocks must be"):
+        index.sorted_tables(blocks, label, 3, chunk_blocks=0)
+
+
 def test_plan_respects_the_budget_and_keeps_every_voxel_near_the_focus() -> None:
     keys, label, vs = _street()
     centres = key_centres(keys, vs)

@@ -675,8 +675,8 @@ class ReviewSession:
         thr = np.float32(state.threshold)
         hist_ssum = self._tables_after_edit(blocks, key, label, score, thr, num_classes)
         if hist_ssum is None:
-            keep = score >= thr if state.threshold > 0 else None
-            hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, keep=keep, score=score)
+            hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, threshold=float(thr),
+                                                    score=score)
             assert ssum is not None
         else:
             hist, ssum = hist_ssum
