@@ -453,6 +453,21 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
                                           keep=session.conf >= 0.9, score=session.conf)
         np.testing.assert_array_equal(cached[1], want_h)
         np.testing.assert_allclose(cached[2], want_s, atol=1e-3)
+        # With the overview drawn (threshold 0), a small correction recolours only the blocks it touched:
+        # the kept overview colours are a recount's.
+        session.set_state(threshold=0.0)
+        assert session.wait_drawn()
+        assert 0 < session.select_rect(beside + np.array([-8.0, 0, 0]), down, fov_small, 1.0, (0.0, 0.0),
+                                       (1.0, 1.0)) < keys.size // 20
+        session.assign_selection("road")
+        assert session.wait_drawn()
+        tables, kept = session._lod_tables, session._lod_colors
+        assert tables is not None and kept is not None and kept[0][0] is tables[1]
+        want_h, _ = lod.block_tables(blocks.of_row, blocks.count, session.label, 3)
+        np.testing.assert_array_equal(tables[1], want_h)
+        columns = lod.enabled_columns(session.state.enabled, 3)
+        want_colors = vl.class_colors(lod.majority_class(want_h, columns), session.palette)
+        np.testing.assert_array_equal(kept[1], want_colors)
         # "Limit points" below the budget: the full-resolution disc shrinks to what fits.
         session.set_state(max_points=1000, threshold=0.0)
         assert session.wait_drawn() and 900 < sent() <= 1000

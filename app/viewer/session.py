@@ -700,15 +700,32 @@ class ReviewSession:
         rows = np.flatnonzero((old_label != label) | (old_score != score))
         if rows.size > label.shape[0] // 20:
             return None
-        hist, ssum = cached[1], cached[2]  # updated in place: the colours made from them go too
-        self._lod_colors = None
+        hist, ssum = cached[1], cached[2]  # updated in place, and the colours made from them
         counted_old = old_score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
         counted_new = score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
+        changed = blocks.of_row[rows]
         lod.update_tables(
-            hist, ssum, blocks.of_row[rows], num_classes,
+            hist, ssum, changed, num_classes,
             (old_label[rows], old_score[rows], counted_old), (label[rows], score[rows], counted_new),
         )
+        self._recolor_blocks(hist, ssum, np.unique(changed))
         return hist, ssum
+
+    def _recolor_blocks(
+        self, hist: npt.NDArray[np.float32], ssum: npt.NDArray[np.float32], changed: npt.NDArray[Any]
+    ) -> None:
+        """After an in-place table update, the cached overview colours of the ``changed`` blocks only (the
+        other blocks' tables did not move): recolouring every block after a correction took 60-400 ms at
+        10 M voxels, most of a correction's or an undo's time."""
+        cached = self._lod_colors
+        if cached is None or cached[0][0] is not hist:
+            return
+        (_, columns_bytes, mode, palette), colors = cached
+        columns = np.frombuffer(columns_bytes, np.float32)
+        if mode == "class":
+            colors[changed] = vl.class_colors(lod.majority_class(hist, columns, changed), palette)
+        else:
+            colors[changed] = vl.scalar_colors(lod.mean_score(hist, ssum, columns, changed))
 
     def _all_block_colors(
         self, hist: npt.NDArray[np.float32], ssum: npt.NDArray[np.float32], columns: npt.NDArray[np.float32],
