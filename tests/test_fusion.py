@@ -221,6 +221,32 @@ def test_fuse_dense_matches_fuse_on_the_same_observations() -> None:
     np.testing.assert_allclose(a.logp.astype(float), b.logp.astype(float), atol=F16_ATOL)
 
 
+def test_fuse_dense_takes_any_numeric_input_and_refuses_wrong_shapes() -> None:
+    """fuse_dense casts keys to int64 and log-probabilities to float32 (float64 and int32 arrays give
+    the float32 result), applies any weight (2 as well as 0.5), and names the expected shapes when one
+    dimension alone is wrong. (Survivors of the fusion mutation run of 2026-11-27.)"""
+    rng = np.random.default_rng(5)
+    keys = rng.integers(0, 30, 200)
+    logp = np.log(rng.dirichlet(np.ones(4), 200))
+    ref = fuse_dense(None, keys.astype(np.int64), logp.astype(np.float32), 4, weight=2.0)
+    got = fuse_dense(None, keys.astype(np.int32), logp, 4, weight=2.0)  # int32 keys, float64
+    assert got.keys.dtype == np.int64 and got.logp.tobytes() == ref.logp.tobytes()
+    once = fuse_dense(None, keys, logp, 4)
+    twice = fuse_dense(once, keys, logp, 4)
+    assert ref.logp.tobytes() == twice.logp.tobytes() != once.logp.tobytes()  # weight 2 = the same twice
+    for bad_keys, bad_logp in ((keys, logp[:, :3]), (keys, logp[:-1]), (keys.reshape(20, 10), logp),
+                               (keys, logp[:, 0])):
+        with pytest.raises(ValueError, match=r"keys \(N,\) and logp \(N, 4\) expected"):
+            fuse_dense(None, bad_keys, bad_logp, 4)
+
+
+def test_empty_grid_has_the_documented_layout() -> None:
+    g = VoxelGrid.empty(3)
+    assert g.voxel_size == 0.2 and VoxelGrid.empty(3, 0.5).voxel_size == 0.5
+    assert g.keys.dtype == np.int64 and g.keys.shape == (0,)
+    assert g.logp.dtype == np.float16 and g.logp.shape == (0, 3) and g.num_classes == 3
+
+
 # ---------------------------------------------------------------------------------------------- grid
 def test_grid_lookup_nbytes_and_save_load(tmp_path) -> None:
     g = fuse([_obs([5, 10, 20], [0, 0, 0], [[0.5, 0.25, 0.25]])], 3)
