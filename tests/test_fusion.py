@@ -18,12 +18,15 @@ from leap_core.fusion import (
     VoxelGrid,
     VoxelLabels,
     apply_overrides,
+    fold_blocks,
     fuse,
     fuse_dense,
+    fusion_blocks,
     key_centres,
     key_coords,
     last_per_key,
     log_table,
+    reduce_block,
     rows_in_sorted,
     union_sorted,
     voxel_keys,
@@ -451,3 +454,50 @@ def test_union_sorted_by_hand_and_against_union1d() -> None:
         got = union_sorted(x, y)
         assert got.dtype == np.int64
         np.testing.assert_array_equal(got, np.union1d(x, y))
+
+
+# -------------------------------------------------------------- fusion in blocks (the Ray engine's fusion)
+def _random_obs(rng: np.random.Generator, n: int, c: int) -> Observations:
+    keys = rng.integers(0, 40, n).astype(np.int64) * 7919 + (1 << 62) // 3
+    table = rng.dirichlet(np.ones(c), size=5).astype(np.float32)
+    return Observations(keys, rng.integers(0, 5, n).astype(np.int32), np.log(table))
+
+
+def test_fusion_blocks_follow_fuse_chunking() -> None:
+    assert fusion_blocks([5, 0, 4, 3], 8) == [[0, 2], [3]]
+    assert fusion_blocks([9, 1, 1], 8) == [[0], [1, 2]]
+    assert fusion_blocks([0, 0], 8) == []
+
+
+def test_blocks_folded_in_order_are_fuse_byte_for_byte() -> None:
+    rng = np.random.default_rng(3)
+    c = 6
+    batches = [_random_obs(rng, int(n), c) for n in (300, 0, 250, 400, 120, 380, 90)]
+    cfg = FusionConfig(chunk_points=500)
+    blocks = fusion_blocks([len(b.keys) for b in batches], cfg.chunk_points)
+    assert len(blocks) >= 3
+    partials = [reduce_block([batches[i] for i in block], c) for block in blocks]
+    for keys, sums in partials:  # as Ray's object store hands them out: read-only
+        keys.setflags(write=False)
+        sums.setflags(write=False)
+    folded = fold_blocks(partials, c, cfg)
+    expected = fuse(batches, c, cfg)
+    assert folded.keys.tobytes() == expected.keys.tobytes()
+    assert folded.logp.tobytes() == expected.logp.tobytes()
+
+
+def test_fold_order_matters_and_is_kept() -> None:
+    """Three one-voxel chunks whose float32 sum depends on the order: (1e8 - 1e8) + 1 = 1, but
+    (1 - 1e8) + 1e8 = 0. The fold must add them in block order, as fuse does."""
+    c = 2
+    key = np.array([5], np.int64)
+    rows = np.zeros(1, np.int32)
+    tables = [np.array([[v, 0.0]], np.float32) for v in (1e8, -1e8, 1.0)]
+    batches = [Observations(key, rows, t) for t in tables]
+    cfg = FusionConfig(chunk_points=1, logp_clip=20.0)
+    blocks = fusion_blocks([1, 1, 1], cfg.chunk_points)
+    partials = [reduce_block([batches[i] for i in b], c) for b in blocks]
+    expected = fuse(batches, c, cfg)
+    assert expected.logp.tolist() == [[0.0, -1.0]]
+    assert fold_blocks(partials, c, cfg).logp.tobytes() == expected.logp.tobytes()
+    assert fold_blocks(partials[::-1], c, cfg).logp.tobytes() != expected.logp.tobytes()

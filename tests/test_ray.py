@@ -1,7 +1,7 @@
 """The Ray engine (``Runtime.ray_address``, :mod:`leap_core.pipeline.executor`) writes the same bytes as the
 local engine: every exported ``.label`` / ``.conf``, every per-frame file and the grids, also after a run
-cancelled mid-stage on Ray is resumed there; fusion's blocks fold to exactly :func:`fuse`'s grid; a run
-without Ray never imports ray.
+cancelled mid-stage on Ray is resumed there; a run without Ray never imports ray. (That fusion's blocks fold
+to exactly :func:`fuse`'s grid is tested in tests/test_fusion.py, with the fusion tests.)
 
 The Ray tests share one local Ray instance of 2 CPUs (module fixture, shut down at the end)."""
 
@@ -14,20 +14,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from leap_core.config import PipelineConfig
 from leap_core.errors import Cancelled
-from leap_core.fusion import (
-    FusionConfig,
-    Observations,
-    fold_blocks,
-    fuse,
-    fusion_blocks,
-    reduce_block,
-)
 from leap_core.pipeline import run_pipeline, stage_status
 from leap_core.pipeline.executor import frame_blocks, merge_records
 from leap_core.presets import builtin_preset
@@ -40,53 +31,6 @@ SMALL = SynthConfig(frames=10, seed=0, lidar=LidarConfig(beams=16, azimuth_step_
 """The demo street (seed 0), coarse LiDAR, half-size camera: about 400-700 observed points per frame."""
 FRAMES = range(0, 8)
 RAY = Runtime(ray_address="auto")
-
-
-# ------------------------------------------------------------------------------- fusion blocks (no Ray)
-def _random_obs(rng: np.random.Generator, n: int, c: int) -> Observations:
-    keys = rng.integers(0, 40, n).astype(np.int64) * 7919 + (1 << 62) // 3
-    table = rng.dirichlet(np.ones(c), size=5).astype(np.float32)
-    return Observations(keys, rng.integers(0, 5, n).astype(np.int32), np.log(table))
-
-
-def test_fusion_blocks_follow_fuse_chunking() -> None:
-    assert fusion_blocks([5, 0, 4, 3], 8) == [[0, 2], [3]]
-    assert fusion_blocks([9, 1, 1], 8) == [[0], [1, 2]]
-    assert fusion_blocks([0, 0], 8) == []
-
-
-def test_blocks_folded_in_order_are_fuse_byte_for_byte() -> None:
-    rng = np.random.default_rng(3)
-    c = 6
-    batches = [_random_obs(rng, int(n), c) for n in (300, 0, 250, 400, 120, 380, 90)]
-    cfg = FusionConfig(chunk_points=500)
-    blocks = fusion_blocks([len(b.keys) for b in batches], cfg.chunk_points)
-    assert len(blocks) >= 3
-    partials = [reduce_block([batches[i] for i in block], c) for block in blocks]
-    for keys, sums in partials:  # as Ray's object store hands them out: read-only
-        keys.setflags(write=False)
-        sums.setflags(write=False)
-    folded = fold_blocks(partials, c, cfg)
-    expected = fuse(batches, c, cfg)
-    assert folded.keys.tobytes() == expected.keys.tobytes()
-    assert folded.logp.tobytes() == expected.logp.tobytes()
-
-
-def test_fold_order_matters_and_is_kept() -> None:
-    """Three one-voxel chunks whose float32 sum depends on the order: (1e8 - 1e8) + 1 = 1, but
-    (1 - 1e8) + 1e8 = 0. The fold must add them in block order, as fuse does."""
-    c = 2
-    key = np.array([5], np.int64)
-    rows = np.zeros(1, np.int32)
-    tables = [np.array([[v, 0.0]], np.float32) for v in (1e8, -1e8, 1.0)]
-    batches = [Observations(key, rows, t) for t in tables]
-    cfg = FusionConfig(chunk_points=1, logp_clip=20.0)
-    blocks = fusion_blocks([1, 1, 1], cfg.chunk_points)
-    partials = [reduce_block([batches[i] for i in b], c) for b in blocks]
-    expected = fuse(batches, c, cfg)
-    assert expected.logp.tolist() == [[0.0, -1.0]]
-    assert fold_blocks(partials, c, cfg).logp.tobytes() == expected.logp.tobytes()
-    assert fold_blocks(partials[::-1], c, cfg).logp.tobytes() != expected.logp.tobytes()
 
 
 def test_frame_blocks_and_records() -> None:
