@@ -143,3 +143,10 @@ def test_link_base_shares_stage_outputs_but_not_the_runs_own_files(tmp_path: Pat
     (run / "grid.npz").unlink()
     t1.link_base(base, run)
     assert not (run / "grid.npz").exists()
+
+
+def test_readme_has_the_table1_markers_that_readme_writes_into() -> None:
+    text = (ROOT / "README.md").read_text()
+    assert text.count("<!-- table:table1 -->") == 1
+    assert text.count("<!-- /table:table1 -->") == 1
+    assert text.index("<!-- table:table1 -->") < text.index("<!-- /table:table1 -->")
