@@ -1,0 +1,413 @@
+"""The paper's Table 1 reproduced on the two synthetic domains: point, voxel, +3D-CN x1 and x2 per training
+seed of the 3D Consistency Network, next to the paper's figures (issue 16, item 5).
+
+Domains (each a generated sequence and the CLI's own ``leap run``):
+
+- ``street``: the demo street, ``leap synth DATA/demo --frames 60 --seed 0``, labeled by the simulated
+  labeler with the ``paper`` preset (README, "A paper-calibrated simulated labeler"), evaluated on the
+  paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``);
+- ``agri``: the farm drone, ``leap synth DATA/agri40 --domain agri-uav --frames 40 --seed 0`` with
+  ``projects/agri_uav.yaml`` and the simulated labeler (its default preset: the ``paper`` preset's
+  confusions are street classes), evaluated in camera view over its 7 classes (``metrics.json`` key
+  ``camera``; the paper's AgriUAV column is the same 7 classes).
+
+Sharing the work across training seeds: the 2D labels, the projection, the fused and the smoothed grids do
+not read ``consistency`` (each stage's fingerprint covers only its own config section), so one *base* run
+per domain (3D-CN off) computes them, and each seed's run folder starts as hard links of the base run
+(``leap run`` then skips every stage whose fingerprint matches; a stage that reruns replaces its files
+atomically, so the base run's files are never written through the links). The seed's run differs only in
+its project file, a copy of the domain's with ``pipeline.consistency.seed`` (and any ``--set``) added,
+written next to the runs. Compute: one base run per domain, then ``--iterations`` 3D-CN rounds per seed.
+Running with ``--iterations 1`` first and ``2`` later reuses round 1's checkpoint (its fingerprint does not
+include the round count) and redoes only round 1's inference.
+
+Usage (from the repository root)::
+
+    .venv/bin/python benchmarks/table1.py --data /work/data --runs runs/table1          # everything
+    .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1      # one cell first
+    .venv/bin/python benchmarks/table1.py --cached-only --readme   # tabulate finished runs, README table
+    .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1 \\
+        --set consistency.class_balance=false --tag nobalance     # a variant, in its own run folders
+
+Prints the Markdown table (per seed, the mean, and the paper's row; gains = +3D-CN minus voxel) and, per
+domain, whether issue 16's acceptance holds (+3D-CN x1 > voxel for every seed, mean gain >= 5 points).
+``--readme`` writes the table between ``<!-- table:table1 -->`` markers of README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from leap_core.io_utils import atomic_write_bytes  # noqa: E402  after the sys.path line
+from leap_core.pipeline.evaluation import read_metrics_json  # noqa: E402
+from leap_core.run_layout import RunLayout  # noqa: E402
+
+ROWS = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
+"""``metrics.json`` columns, in Table 1's order (x2 is ours: the paper reports one round)."""
+MIN_MEAN_GAIN = 5.0
+"""Issue 16's acceptance: mean +3D-CN x1 gain over voxel, in mIoU points."""
+
+
+@dataclass(frozen=True)
+class Domain:
+    """One column group of Table 1: how its data is generated, run and scored."""
+
+    key: str
+    title: str
+    data: str
+    """Folder under ``--data`` that ``leap synth`` writes."""
+    synth: tuple[str, ...]
+    """``leap synth`` arguments after the output folder."""
+    project: str
+    """Project file (relative to the repository root) the seed's copy is made of."""
+    run_flags: tuple[str, ...]
+    protocol: str
+    """``metrics.json`` key of the table scored: ``paper`` (11 merged classes) or ``camera``."""
+    protocol_title: str
+    paper: tuple[float, float, float]
+    """The paper's Table 1 mIoU (%): point, voxel, +3D-CN (one round)."""
+    paper_title: str
+
+
+DOMAINS: dict[str, Domain] = {
+    "street": Domain(
+        key="street", title="street demo, `paper` labeler preset", data="demo",
+        synth=("--frames", "60", "--seed", "0"), project="projects/semantickitti.yaml",
+        run_flags=("--labeler", "simulated", "--labeler-preset", "paper"),
+        protocol="paper", protocol_title="the paper's 11 merged classes, camera view",
+        paper=(46.8, 48.9, 57.6), paper_title="paper, SemanticKITTI",
+    ),
+    "agri": Domain(
+        key="agri", title="farm drone (agri-uav), `default` labeler preset", data="agri40",
+        synth=("--domain", "agri-uav", "--frames", "40", "--seed", "0"), project="projects/agri_uav.yaml",
+        run_flags=("--labeler", "simulated"),
+        protocol="camera", protocol_title="7 classes, camera view",
+        paper=(38.0, 49.7, 61.5), paper_title="paper, AgriUAV",
+    ),
+}
+
+
+# ----------------------------------------------------------------------------------------- pure logic
+@dataclass(frozen=True)
+class SeedRow:
+    """One training seed's mIoU (%) on a domain; ``None`` where the run has no such column."""
+
+    seed: int
+    point: float
+    voxel: float
+    x1: float | None
+    x2: float | None
+
+    @property
+    def gain1(self) -> float | None:
+        """+3D-CN x1 minus voxel (points)."""
+        return None if self.x1 is None else self.x1 - self.voxel
+
+    @property
+    def gain2(self) -> float | None:
+        """+3D-CN x2 minus voxel (points)."""
+        return None if self.x2 is None else self.x2 - self.voxel
+
+
+def seed_row(seed: int, metrics: Mapping[str, Any], protocol: str) -> SeedRow:
+    """``metrics.json``'s mIoU of ``protocol`` as percentages: ``metrics[protocol][row]["miou"]`` × 100.
+
+    Raises:
+        KeyError: ``protocol`` or the point / voxel column is missing (naming which).
+    """
+    try:
+        table = metrics[protocol]
+    except KeyError:
+        raise KeyError(f"metrics have no {protocol!r} table (keys: {sorted(metrics)})") from None
+    if table is None:
+        raise KeyError(f"metrics' {protocol!r} table is empty (schema without it?)")
+
+    def pct(row: str, required: bool) -> float | None:
+        cell = table.get(row)
+        if cell is None or cell.get("miou") is None:
+            if required:
+                raise KeyError(f"metrics' {protocol!r} table has no {row!r} column")
+            return None
+        return 100.0 * float(cell["miou"])
+
+    point, voxel = pct("point", True), pct("voxel", True)
+    assert point is not None and voxel is not None
+    return SeedRow(seed, point, voxel, pct("+3D-CN x1", False), pct("+3D-CN x2", False))
+
+
+def check_shared(rows: Sequence[SeedRow], tol: float = 1e-6) -> None:
+    """The point and voxel columns of every seed must agree: they come from the one base run (the 3D-CN
+    seed does not enter them). A difference means a seed's run recomputed them from other settings.
+
+    Raises:
+        ValueError: naming the seeds and the column that differ.
+    """
+    for r in rows[1:]:
+        for name in ("point", "voxel"):
+            a, b = getattr(rows[0], name), getattr(r, name)
+            if abs(a - b) > tol:
+                raise ValueError(f"{name} mIoU differs between seed {rows[0].seed} ({a:.3f}) and seed "
+                                 f"{r.seed} ({b:.3f}): the runs do not share one base run")
+
+
+def _mean(xs: Sequence[float | None]) -> float | None:
+    vals = [x for x in xs if x is not None]
+    return sum(vals) / len(vals) if vals and len(vals) == len(xs) else None
+
+
+def _std(xs: Sequence[float | None]) -> float | None:
+    """Sample standard deviation (n − 1); None below two values or when one is missing."""
+    m = _mean(xs)
+    if m is None or len(xs) < 2:
+        return None
+    vals = [x for x in xs if x is not None]
+    return math.sqrt(sum((x - m) ** 2 for x in vals) / (len(vals) - 1))
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Issue 16's acceptance on one domain: +3D-CN x1 > voxel for every seed, mean x1 gain >= 5."""
+
+    every_seed: bool
+    mean_gain: float | None
+    passed: bool
+
+
+def verdict(rows: Sequence[SeedRow], min_mean_gain: float = MIN_MEAN_GAIN) -> Verdict:
+    """Acceptance over ``rows`` (False when a seed has no x1 column or there are no rows)."""
+    gains = [r.gain1 for r in rows]
+    every = bool(rows) and all(g is not None and g > 0 for g in gains)
+    mean = _mean(gains) if rows else None
+    return Verdict(every, mean, every and mean is not None and mean >= min_mean_gain)
+
+
+def _f(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.1f}"
+
+
+def _g(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:+.1f}"
+
+
+def _pm(m: float | None, s: float | None, fmt: Any) -> str:
+    return fmt(m) if s is None else f"{fmt(m)} ± {s:.1f}"
+
+
+def domain_lines(dom: Domain, rows: Sequence[SeedRow]) -> list[str]:
+    """Markdown rows of one domain: a line per seed, the mean (± sample std) over seeds, the paper's row.
+
+    Columns: domain / protocol, seed, point, voxel, +3D-CN x1, +3D-CN x2, gain x1, gain x2 (gains are
+    +3D-CN minus voxel; the paper's x1 gain is its +3D-CN minus its voxel; it has no x2 column).
+    """
+    check_shared(rows)
+    lines = []
+    for i, r in enumerate(rows):
+        head = f"{dom.title} ({dom.protocol_title})" if i == 0 else ""
+        lines.append(f"| {head} | {r.seed} | {_f(r.point)} | {_f(r.voxel)} | {_f(r.x1)} | {_f(r.x2)} "
+                     f"| {_g(r.gain1)} | {_g(r.gain2)} |")
+    if len(rows) > 1:
+        x1 = [r.x1 for r in rows]
+        x2 = [r.x2 for r in rows]
+        g1 = [r.gain1 for r in rows]
+        g2 = [r.gain2 for r in rows]
+        lines.append(f"| | mean | {_f(rows[0].point)} | {_f(rows[0].voxel)} | {_pm(_mean(x1), _std(x1), _f)} "
+                     f"| {_pm(_mean(x2), _std(x2), _f)} | {_pm(_mean(g1), _std(g1), _g)} "
+                     f"| {_pm(_mean(g2), _std(g2), _g)} |")
+    p, v, cn = dom.paper
+    lines.append(f"| | *{dom.paper_title}* | *{p:.1f}* | *{v:.1f}* | *{cn:.1f}* | — | *{cn - v:+.1f}* | — |")
+    return lines
+
+
+def table_markdown(results: Sequence[tuple[Domain, Sequence[SeedRow]]]) -> str:
+    """The whole Table 1 (Markdown), one block of rows per domain with at least one seed measured."""
+    lines = [
+        "| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 | gain ×1 | gain ×2 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for dom, rows in results:
+        if rows:
+            lines += domain_lines(dom, rows)
+    return "\n".join(lines)
+
+
+def verdict_line(dom: Domain, rows: Sequence[SeedRow]) -> str:
+    """One sentence: issue 16's acceptance on this domain, over the seeds measured."""
+    v = verdict(rows)
+    seeds = ", ".join(str(r.seed) for r in rows)
+    return (f"{dom.key}: +3D-CN x1 > voxel for every seed ({seeds}): {'yes' if v.every_seed else 'no'}; "
+            f"mean gain {_g(v.mean_gain)} (needs >= {MIN_MEAN_GAIN:.0f}): "
+            f"{'PASS' if v.passed else 'not met'}")
+
+
+# --------------------------------------------------------------------------------------------- runs
+def leap(args: Sequence[str]) -> None:
+    """Run ``leap ARGS`` (this checkout's CLI) in the repository root; stop on failure."""
+    print("$ leap " + " ".join(args), flush=True)
+    done = subprocess.run([sys.executable, "-m", "app.cli", *args], cwd=ROOT, check=False)
+    if done.returncode != 0:
+        sys.exit(f"table1: `leap {' '.join(args)}` failed (exit {done.returncode})")
+
+
+def parse_sets(items: Sequence[str]) -> dict[str, Any]:
+    """``--set a.b=VALUE`` (VALUE as JSON, else a string) → nested ``{"a": {"b": VALUE}}``."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            sys.exit(f"--set {item!r}: expected KEY=VALUE, e.g. consistency.class_balance=false")
+        try:
+            value: Any = json.loads(raw)
+        except ValueError:
+            value = raw
+        node = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    return out
+
+
+def _merge(base: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out.get(k) or {}, v) if isinstance(v, Mapping) else v
+    return out
+
+
+def seed_project(dom: Domain, seed: int, sets: Mapping[str, Any], folder: Path, tag: str) -> Path:
+    """A copy of the domain's project file with ``pipeline.consistency.seed = seed`` and ``sets`` added."""
+    doc = yaml.safe_load((ROOT / dom.project).read_text())
+    pipeline = _merge(doc.get("pipeline") or {}, sets)
+    doc["pipeline"] = _merge(pipeline, {"consistency": {"seed": seed}})
+    path = folder / f"{dom.key}_seed{seed}{tag}.yaml"
+    folder.mkdir(parents=True, exist_ok=True)
+    text = f"# written by benchmarks/table1.py from {dom.project}\n" + yaml.safe_dump(doc, sort_keys=False)
+    atomic_write_bytes(path, text.encode())
+    return path
+
+
+def link_base(base: Path, run: Path) -> None:
+    """Hard-link the base run's stage outputs into a new seed run folder (copies across file systems);
+    the run's own files (log, lock, params, corrections) and hidden temporaries are not carried."""
+    if RunLayout(run).state.is_file():
+        return
+    if not RunLayout(base).state.is_file():
+        sys.exit(f"table1: {base} has no {RunLayout.STATE}: the base run did not finish")
+
+    def ignore(folder: str, names: list[str]) -> set[str]:
+        top = Path(folder) == base
+        return {n for n in names if n.startswith(".") or (top and n in RunLayout.RUN_OWN_FILES)}
+
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+    tmp = run.with_name(run.name + ".linking")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(base, tmp, ignore=ignore, copy_function=link)
+    tmp.rename(run)
+
+
+def measure(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list[SeedRow]:
+    """Run (or resume) the base run and each seed's run of ``dom``; the seeds' rows."""
+    seq = Path(args.data) / dom.data / "sequences" / "00"
+    runs = Path(args.runs) / dom.key
+    if not (seq / "velodyne").is_dir():
+        leap(["synth", str(Path(args.data) / dom.data), *dom.synth])
+    base = runs / "base"
+    leap(["run", str(seq), "--project-file", dom.project, *dom.run_flags, "--no-3dcn", "--out", str(base)])
+    rows = []
+    for s in seeds:
+        run = runs / f"seed{s}{args.tag}"
+        link_base(base, run)
+        project = seed_project(dom, s, parse_sets(args.set), runs / "projects", args.tag)
+        leap(["run", str(seq), "--project-file", str(project), *dom.run_flags,
+              "--3dcn-iterations", str(args.iterations), "--out", str(run)])
+        rows.append(read_row(run, s, dom))
+    return rows
+
+
+def read_row(run: Path, seed: int, dom: Domain) -> SeedRow:
+    data = read_metrics_json(run)
+    if data is None:
+        sys.exit(f"table1: {run} has no metrics.json")
+    return seed_row(seed, data, dom.protocol)
+
+
+def cached(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list[SeedRow]:
+    """Rows of the seeds whose run folder holds 3D-CN figures (nothing is run)."""
+    rows = []
+    for s in seeds:
+        run = Path(args.runs) / dom.key / f"seed{s}{args.tag}"
+        data = read_metrics_json(run) if RunLayout(run).metrics.is_file() else None
+        if data is not None:
+            row = seed_row(s, data, dom.protocol)
+            if row.x1 is not None:
+                rows.append(row)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(ROOT / "data"), help="Folder of the generated sequences.")
+    ap.add_argument("--runs", default=str(ROOT / "runs" / "table1"), help="Folder of the run folders.")
+    ap.add_argument("--domains", default="street,agri", help=f"Among {', '.join(DOMAINS)}.")
+    ap.add_argument("--seeds", default="0,1,2", help="3D-CN training seeds (consistency.seed).")
+    ap.add_argument("--iterations", type=int, default=2, choices=(1, 2), help="3D-CN rounds per seed.")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="Extra pipeline setting for the seed runs, e.g. consistency.class_balance=false.")
+    ap.add_argument("--tag", default="", help="Suffix of the seed run folders (for --set variants).")
+    ap.add_argument("--cached-only", action="store_true", help="Run nothing; tabulate finished seed runs.")
+    ap.add_argument("--readme", action="store_true", help="Write the table into README.md's markers.")
+    args = ap.parse_args()
+    if args.set and not args.tag:
+        sys.exit("--set needs --tag (a variant gets its own run folders)")
+    names = [d.strip() for d in args.domains.split(",") if d.strip()]
+    unknown = [d for d in names if d not in DOMAINS]
+    if unknown:
+        sys.exit(f"--domains: unknown {', '.join(unknown)} (known: {', '.join(DOMAINS)})")
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    results = []
+    for name in names:
+        dom = DOMAINS[name]
+        rows = cached(dom, seeds, args) if args.cached_only else measure(dom, seeds, args)
+        results.append((dom, rows))
+    table = table_markdown(results)
+    print(table)
+    for dom, rows in results:
+        if rows:
+            print(verdict_line(dom, rows))
+    if args.readme:
+        # scripts/ is no package: load readme_tables.py for its marker replacement (same rule, same errors).
+        spec = importlib.util.spec_from_file_location("readme_tables", ROOT / "scripts" / "readme_tables.py")
+        assert spec is not None and spec.loader is not None
+        rt = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(rt)
+        readme: Path = rt.README
+        text = readme.read_text()
+        new = rt.replace_tables(text, {"table1": table})
+        if new != text:
+            atomic_write_bytes(readme, new.encode())
+            print(f"rewrote the table1 table of {readme}")
+
+
+if __name__ == "__main__":
+    main()

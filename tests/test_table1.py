@@ -1,0 +1,152 @@
+"""benchmarks/table1.py: Table 1's rows, gains, means and acceptance from hand-made metrics dicts, and the
+seed project files and base-run links that let every seed share one base run."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("table1", ROOT / "benchmarks" / "table1.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["table1"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _metrics(point: float, voxel: float, x1: float | None, x2: float | None = None,
+             protocol: str = "paper") -> dict[str, Any]:
+    table: dict[str, Any] = {"point": {"miou": point}, "voxel": {"miou": voxel}}
+    if x1 is not None:
+        table["+3D-CN x1"] = {"miou": x1}
+    if x2 is not None:
+        table["+3D-CN x2"] = {"miou": x2}
+    # A decoy protocol with other figures: the row must come from the protocol asked for.
+    return {protocol: table, "decoy": {r: {"miou": 0.01} for r in ("point", "voxel", "+3D-CN x1")}}
+
+
+def test_seed_row_reads_the_protocol_in_percent_and_computes_gains() -> None:
+    t1 = _module()
+    r = t1.seed_row(3, _metrics(0.434, 0.622, 0.70, 0.715), "paper")
+    assert (r.seed, r.point, r.voxel, r.x1, r.x2) == pytest.approx((3, 43.4, 62.2, 70.0, 71.5))
+    assert r.gain1 == pytest.approx(7.8)
+    assert r.gain2 == pytest.approx(9.3)
+    # A run with one round has no x2 column: no x2 gain, no error.
+    r1 = t1.seed_row(0, _metrics(0.4, 0.5, 0.45), "paper")
+    assert r1.x2 is None and r1.gain2 is None and r1.gain1 == pytest.approx(-5.0)
+    with pytest.raises(KeyError, match="camera"):
+        t1.seed_row(0, _metrics(0.4, 0.5, 0.6), "camera")
+    with pytest.raises(KeyError, match="voxel"):
+        t1.seed_row(0, {"paper": {"point": {"miou": 0.4}}}, "paper")
+
+
+def test_check_shared_refuses_seeds_that_did_not_share_the_base_run() -> None:
+    t1 = _module()
+    a = t1.seed_row(0, _metrics(0.4, 0.5, 0.6), "paper")
+    b = t1.seed_row(1, _metrics(0.4, 0.5, 0.55), "paper")
+    t1.check_shared([a, b])
+    c = t1.seed_row(2, _metrics(0.4, 0.51, 0.55), "paper")
+    with pytest.raises(ValueError, match="voxel mIoU differs between seed 0"):
+        t1.check_shared([a, b, c])
+
+
+def test_verdict_needs_every_seed_above_voxel_and_a_mean_gain_of_five() -> None:
+    t1 = _module()
+
+    def rows(*x1: float | None) -> list[Any]:
+        return [t1.seed_row(s, _metrics(0.40, 0.50, x), "paper") for s, x in enumerate(x1)]
+
+    v = t1.verdict(rows(0.56, 0.57, 0.55))  # gains 6, 7, 5
+    assert v.every_seed and v.passed and v.mean_gain == pytest.approx(6.0)
+    v = t1.verdict(rows(0.53, 0.54, 0.52))  # every seed gains, mean 3 < 5
+    assert v.every_seed and not v.passed and v.mean_gain == pytest.approx(3.0)
+    v = t1.verdict(rows(0.70, 0.70, 0.49))  # mean 13 but seed 2 loses a point
+    assert not v.every_seed and not v.passed
+    v = t1.verdict(rows(0.70, 0.50))  # a tie is no gain
+    assert not v.every_seed
+    v = t1.verdict(rows(0.70, None))  # a seed without its x1 column cannot pass
+    assert not v.every_seed and not v.passed and v.mean_gain is None
+    assert not t1.verdict([]).passed
+
+
+def test_table_markdown_rows_mean_std_and_paper_figures() -> None:
+    t1 = _module()
+    street = t1.DOMAINS["street"]
+    agri = t1.DOMAINS["agri"]
+    s_rows = [t1.seed_row(s, _metrics(0.434, 0.622, x1, x2), "paper")
+              for s, x1, x2 in ((0, 0.70, 0.72), (1, 0.66, 0.69), (2, 0.68, 0.70))]
+    a_rows = [t1.seed_row(0, _metrics(0.795, 0.888, 0.808, protocol="camera"), "camera")]
+    text = t1.table_markdown([(street, s_rows), (agri, a_rows)])
+    lines = text.splitlines()
+    assert lines[0].startswith("| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 |")
+    assert lines[2] == ("| street demo, `paper` labeler preset (the paper's 11 merged classes, camera view) "
+                        "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 |")
+    assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 |"
+    assert lines[4] == "|  | 2 | 43.4 | 62.2 | 68.0 | 70.0 | +5.8 | +7.8 |"
+    # mean ± sample std over seeds: x1 68.0 ± 2.0, x2 70.33 ± 1.53, gains 5.8 ± 2.0 and 8.13 ± 1.53
+    assert lines[5] == "| | mean | 43.4 | 62.2 | 68.0 ± 2.0 | 70.3 ± 1.5 | +5.8 ± 2.0 | +8.1 ± 1.5 |"
+    assert lines[6] == "| | *paper, SemanticKITTI* | *46.8* | *48.9* | *57.6* | — | *+8.7* | — |"
+    # One agri seed, one round: no mean line, n/a for x2.
+    assert lines[7] == ("| farm drone (agri-uav), `default` labeler preset (7 classes, camera view) "
+                        "| 0 | 79.5 | 88.8 | 80.8 | n/a | -8.0 | n/a |")
+    assert lines[8] == "| | *paper, AgriUAV* | *38.0* | *49.7* | *61.5* | — | *+11.8* | — |"
+    assert len(lines) == 9
+    # A domain with no seed measured is left out.
+    assert "AgriUAV" not in t1.table_markdown([(street, s_rows), (agri, [])])
+    line = t1.verdict_line(street, s_rows)
+    assert "every seed (0, 1, 2): yes" in line and "+5.8" in line and "PASS" in line
+
+
+def test_parse_sets_and_seed_project_keep_the_domain_file_and_add_the_seed(tmp_path: Path) -> None:
+    t1 = _module()
+    sets = t1.parse_sets(["consistency.class_balance=false", "consistency.temperature=1.5"])
+    assert sets == {"consistency": {"class_balance": False, "temperature": 1.5}}
+    path = t1.seed_project(t1.DOMAINS["agri"], 2, sets, tmp_path, "_nb")
+    assert path.name == "agri_seed2_nb.yaml"
+    doc = yaml.safe_load(path.read_text())
+    orig = yaml.safe_load((ROOT / "projects" / "agri_uav.yaml").read_text())
+    assert doc["classes"] == orig["classes"]
+    assert doc["pipeline"]["grounded_sam"] == orig["pipeline"]["grounded_sam"]
+    assert doc["pipeline"]["consistency"] == {"class_balance": False, "temperature": 1.5, "seed": 2}
+    # The file is a valid project for the CLI's loader, and the seed reaches the 3D-CN's config.
+    from leap_core.presets import load_preset
+
+    cfg = load_preset(path).pipeline.consistency
+    assert (cfg.seed, cfg.class_balance, cfg.temperature) == (2, False, 1.5)
+
+
+def test_link_base_shares_stage_outputs_but_not_the_runs_own_files(tmp_path: Path) -> None:
+    t1 = _module()
+    base = tmp_path / "base"
+    (base / "points").mkdir(parents=True)
+    (base / "stages.json").write_text("{}")
+    (base / "grid.npz").write_bytes(b"grid")
+    (base / "points" / "000000.npz").write_bytes(b"p")
+    (base / "run.log").write_text("log")
+    (base / ".tmp-spill").write_text("x")
+    run = tmp_path / "seed1"
+    t1.link_base(base, run)
+    assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
+        "grid.npz", "points", "points/000000.npz", "stages.json"]
+    assert (run / "grid.npz").stat().st_ino == (base / "grid.npz").stat().st_ino
+    # An existing seed run is left as it is (it resumes).
+    (run / "grid.npz").unlink()
+    t1.link_base(base, run)
+    assert not (run / "grid.npz").exists()
+
+
+def test_readme_has_the_table1_markers_that_readme_writes_into() -> None:
+    text = (ROOT / "README.md").read_text()
+    assert text.count("<!-- table:table1 -->") == 1
+    assert text.count("<!-- /table:table1 -->") == 1
+    assert text.index("<!-- table:table1 -->") < text.index("<!-- /table:table1 -->")
