@@ -950,18 +950,9 @@ def apply_overrides(
         cfg: clipping parameters (``voxel_size`` must match the grid's); default FusionConfig().
     """
     cfg = cfg or FusionConfig(voxel_size=grid.voxel_size)
-    k = np.asarray(keys, dtype=np.int64).reshape(-1)
-    c = np.asarray(class_idx, dtype=np.int64).reshape(-1)
-    if k.shape != c.shape:
-        raise ValueError(f"keys {k.shape} and class_idx {c.shape} must have the same length")
-    if len(c) and (c.min() < 0 or c.max() >= grid.num_classes):
-        raise ValueError(f"class_idx must be in 0..{grid.num_classes - 1}")
-    if not strength > 0:
-        raise ValueError(f"override strength must be > 0, got {strength}")
+    uk, obs = _override_obs(keys, class_idx, grid.num_classes, strength)  # checks the arguments first
     acc_keys, acc = _start(grid, grid.num_classes, cfg, 1.0)
-    if len(k):
-        uk, obs = _override_obs(k, c, grid.num_classes, strength)
-        acc_keys, acc = _merge(acc_keys, acc, uk, obs)
+    acc_keys, acc = _merge(acc_keys, acc, uk, obs)
     return _finalise(acc_keys, acc, cfg)
 
 

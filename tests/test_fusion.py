@@ -250,6 +250,24 @@ def test_empty_grid_has_the_documented_layout() -> None:
     assert g.logp.dtype == np.float16 and g.logp.shape == (0, 3) and g.num_classes == 3
 
 
+def test_apply_overrides_by_hand_and_its_argument_checks() -> None:
+    """Each correction adds -strength to every class but its own (no clip at strength 1): voxel 7 corrected
+    once to class 0 gets [0, -1, -1]; voxel 9 corrected to classes 0 and 1 gets -(2 - hits) = [-1, -1, -2],
+    stored as [0, 0, -1]. Bad arguments are refused before anything is computed."""
+    empty = VoxelGrid.empty(3)
+    g = apply_overrides(empty, [9, 7, 9], [0, 0, 1], strength=1.0)
+    assert g.keys.tolist() == [7, 9]
+    assert g.logp.tolist() == [[0.0, -1.0, -1.0], [0.0, 0.0, -1.0]]
+    assert apply_overrides(empty, [], [], strength=0.5).num_voxels == 0
+    for keys, cls, strength, msg in (([1, 2], [0], 1.0, "must have the same length"),
+                                     ([1], [3], 1.0, r"class_idx must be in 0\.\.2"),
+                                     ([1], [-1], 1.0, r"class_idx must be in 0\.\.2"),
+                                     ([1], [0], 0.0, "strength must be > 0"),
+                                     ([], [], -1.0, "strength must be > 0")):
+        with pytest.raises(ValueError, match=msg):
+            apply_overrides(empty, keys, cls, strength=strength)
+
+
 # ---------------------------------------------------------------------------------------------- grid
 def test_grid_lookup_nbytes_and_save_load(tmp_path) -> None:
     g = fuse([_obs([5, 10, 20], [0, 0, 0], [[0.5, 0.25, 0.25]])], 3)
