@@ -519,3 +519,24 @@ def test_fold_order_matters_and_is_kept() -> None:
     assert expected.logp.tolist() == [[0.0, -1.0]]
     assert fold_blocks(partials, c, cfg).logp.tobytes() == expected.logp.tobytes()
     assert fold_blocks(partials[::-1], c, cfg).logp.tobytes() != expected.logp.tobytes()
+
+
+def test_fold_blocks_adds_to_a_prior_grid_with_the_given_config() -> None:
+    """fold_blocks starts from ``grid`` and stores with ``cfg`` (its clip), as fuse does; empty blocks give an
+    empty partial of the documented layout."""
+    rng = np.random.default_rng(11)
+    c = 4
+    batches = [_random_obs(rng, n, c) for n in (200, 150, 300)]
+    prior = fuse(batches[:1], c)
+    cfg = FusionConfig(chunk_points=180, logp_clip=3.0)
+    blocks = fusion_blocks([len(b.keys) for b in batches[1:]], cfg.chunk_points)
+    partials = [reduce_block([batches[1:][i] for i in block], c) for block in blocks]
+    folded = fold_blocks(partials, c, cfg, grid=prior, weight=1.0)
+    expected = fuse(batches[1:], c, cfg, grid=prior)
+    assert folded.logp.min() == -3.0  # the given clip acted
+    assert folded.keys.tobytes() == expected.keys.tobytes()
+    assert folded.logp.tobytes() == expected.logp.tobytes()
+    keys, sums = reduce_block([Observations(np.zeros(0, np.int64), np.zeros(0, np.int32),
+                                            np.zeros((1, c), np.float32))], c)
+    assert keys.dtype == np.int64 and keys.shape == (0,)
+    assert sums.dtype == np.float32 and sums.shape == (0, c)
