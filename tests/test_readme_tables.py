@@ -3,23 +3,17 @@ computes has its markers in README.md, and the table text is built from metrics.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+from scripthelpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("readme_tables", ROOT / "scripts" / "readme_tables.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["readme_tables"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/readme_tables.py")
 
 
 def test_replace_tables_rewrites_only_between_each_pair_of_markers() -> None:

@@ -3,25 +3,19 @@ seed project files and base-run links that let every seed share one base run."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import pytest
 import yaml
+from scripthelpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("table1", ROOT / "benchmarks" / "table1.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["table1"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/table1.py")
 
 
 def _metrics(point: float, voxel: float, x1: float | None, x2: float | None = None,

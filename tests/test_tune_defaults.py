@@ -2,21 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import ModuleType
 
-ROOT = Path(__file__).resolve().parents[1]
+from scripthelpers import load_script
 
 
 def _module() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("tune_defaults", ROOT / "benchmarks" / "tune_defaults.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["tune_defaults"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/tune_defaults.py")
 
 
 def _figs(cam: float) -> dict[str, float]:
