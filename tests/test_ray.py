@@ -20,7 +20,16 @@ from typer.testing import CliRunner
 from leap_core.config import PipelineConfig
 from leap_core.errors import Cancelled
 from leap_core.pipeline import run_pipeline, stage_status
-from leap_core.pipeline.executor import frame_blocks, merge_records
+from leap_core.pipeline.executor import (
+    RunJob,
+    Stopped,
+    StopSignal,
+    frame_blocks,
+    merge_records,
+    run_task,
+    stage_task,
+    worker_context,
+)
 from leap_core.presets import builtin_preset
 from leap_core.runtime import Runtime
 from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence
@@ -156,9 +165,15 @@ def test_ray_run_writes_the_local_bytes(ray_instance, dataset: Path, preset_conf
 
 @pytest.mark.slow
 def test_cancel_on_ray_then_resume_gives_the_local_bytes(ray_instance, dataset: Path, preset_config,
-                                                         local_run: Path, tmp_path: Path) -> None:
+                                                         local_run: Path, tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     schema, cfg = preset_config
     run_dir = tmp_path / "run"
+
+    def no_ray_cancel(*_args: Any, **_kwargs: Any) -> None:
+        raise AssertionError("ray.cancel races with a finishing task and can abort the driver (StopSignal)")
+
+    monkeypatch.setattr(ray_instance, "cancel", no_ray_cancel)
 
     def cancel_mid_project(stage: str, done: int, total: int) -> None:
         if stage == "project" and 0 < done < total:
@@ -172,11 +187,35 @@ def test_cancel_on_ray_then_resume_gives_the_local_bytes(ray_instance, dataset: 
     # be every frame (the CI run of 2026-11-27: 8 of 8); their files are kept, which is what resuming uses.
     # A partial stage is resumed deterministically by test_pipeline's local cancel test.
     assert 0 < kept <= len(FRAMES)
+    assert not list(run_dir.glob(".ray-stop-*"))  # every task returned, so the stop signal was cleared
     result = run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY)
     assert not result.stages["labels2d"].ran
     computed = result.stages["project"].frames_computed
     assert len(FRAMES) - kept <= computed < len(FRAMES)  # resumed: the kept frames were not recomputed
     _same_outputs(run_dir, local_run)
+
+
+def test_a_stopped_task_computes_no_frame(dataset: Path, preset_config, tmp_path: Path) -> None:
+    """The worker's side of a stop, without Ray: a task whose signal is set returns ``Stopped`` without
+    calling its function; a stage task's frame loop looks at the signal before every frame."""
+    schema, cfg = preset_config
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    stop = StopSignal(run_dir)
+    job = RunJob(dataset, schema, cfg, run_dir, Runtime(), stop)
+    record, _ = run_task(stop, stage_task, job, "labels2d", range(0, 2))
+    assert record["frames_computed"] == 2
+
+    stop.set()
+    calls: list[int] = []
+    assert run_task(stop, calls.append, 1) == Stopped()
+    assert run_task(None, calls.append, Stopped()) == Stopped()  # an upstream task's stop is passed on
+    assert calls == []
+    with pytest.raises(Cancelled):  # the frame loop's own look, before its first frame
+        stage_task(job, "labels2d", range(2, 4))
+    assert worker_context(job, range(0, 4)).missing_frames("labels2d") == [2, 3]
+    stop.clear()
+    assert not stop.is_set() and not list(run_dir.glob(".ray-stop-*"))
 
 
 @pytest.mark.slow

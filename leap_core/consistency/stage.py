@@ -565,7 +565,9 @@ def voxel_mean_log_probs(
             cnt[old_rows.numpy()] = ck_cnt
             ck_keys, ck_sum, ck_cnt = grown, sums, cnt
         rows = np.searchsorted(ck_keys, keys)
-        lp = torch.from_numpy(np.asarray(logp, dtype=np.float32)).clamp_min(floor)
+        # A prediction that came back from Ray is a read-only view of the object store, which torch
+        # warns about; clamp_min copies anyway, so the copy here costs only the read-only case.
+        lp = torch.from_numpy(np.require(logp, np.float32, "W")).clamp_min(floor)
         ck_sum.index_add_(0, torch.from_numpy(rows), lp)
         ck_cnt += np.bincount(rows, minlength=len(ck_keys))
 

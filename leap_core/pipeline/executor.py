@@ -13,7 +13,8 @@ local run's (``tests/test_ray.py``):
   sub-range (:func:`worker_context`: the run folder and the dataset must be on storage every node sees at
   the same path) and calls the stage's own function, which computes and atomically writes exactly those
   frames, as it does locally. The driver reports progress as tasks finish; a ``Cancelled`` from the
-  progress callback cancels the tasks not yet finished (finished frames are kept: a rerun resumes).
+  progress callback stops the tasks not yet finished at their next frame (:class:`StopSignal`; finished
+  frames are kept: a rerun resumes).
   2D labeling by a labeler that runs models (it reads camera images) asks for one GPU per task when
   the cluster has GPUs and the runtime's device is not ``cpu``.
 * **Fusion**: float32 sums are not associative, so partial grids may not be added in any order. The
@@ -43,6 +44,7 @@ import math
 import os
 import socket
 import traceback
+import uuid
 import zipfile
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -53,7 +55,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from leap_core.config import PipelineConfig
-from leap_core.errors import DatasetError, LeapError
+from leap_core.errors import Cancelled, DatasetError, LeapError
 from leap_core.fusion import Observations, Partial, fold_blocks, fusion_blocks, log_table, reduce_block
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, StageInfo
@@ -79,6 +81,10 @@ balancing uneven frames, few enough that each task's start (context, labeler, fi
 INFER_TASK_FRAMES = 8
 """At most this many frames per 3D-CN inference task: a frame's predictions are ≈ 4·C bytes per point
 (≈ 8 MB for a 106k-point scan at C = 20), held in the object store until the driver fuses them."""
+
+STOP_WAIT_S = 600.0
+"""After a stop (a cancel, or another task's error) the driver waits up to this long for the running tasks
+to reach their next frame and return; a frame of Grounding DINO + SAM on a CPU takes about a minute."""
 
 LOCAL_OBJECT_STORE_BYTES = 512 * 1024 * 1024
 """Object store of a local instance started for ``"auto"``: a task's results (one chunk's observations,
@@ -174,6 +180,41 @@ def merge_records(parts: Sequence[dict[str, Any]], total: int, computed: int) ->
 
 
 # ------------------------------------------------------------------------------- the worker's side
+class StopSignal:
+    """Tells a batch of Ray tasks to stop: a file that the driver creates in a folder every worker sees
+    (the run folder, the 2D cache) and that each task looks for before its next frame.
+
+    Tasks are never cancelled through Ray: ``ray.cancel`` of a task that is just finishing races with the
+    task's reply in Ray's core worker, which then aborts the whole driver process (the CLI, or the app's
+    worker) with ``Check failed: it != submissible_tasks_.end()`` (ray-project/ray#54846; seen here with
+    Ray 2.60 in the cancel tests). Asking the tasks to stop has no such race, and a task stops where a local
+    run would: between frames, whose files are whole.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.path = Path(folder) / f".ray-stop-{uuid.uuid4().hex}"
+
+    def set(self) -> None:
+        """Ask the tasks to stop (idempotent)."""
+        self.path.touch()
+
+    def is_set(self) -> bool:
+        return self.path.exists()
+
+    def clear(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+    def check(self) -> None:
+        """Raise :class:`~leap_core.errors.Cancelled` when the driver asked to stop (a task's frame loop)."""
+        if self.is_set():
+            raise Cancelled()
+
+
+@dataclass(frozen=True)
+class Stopped:
+    """What a task returns when it stopped (or never started) because of its :class:`StopSignal`."""
+
+
 @dataclass(frozen=True)
 class RunJob:
     """What a worker needs to rebuild a run's context: the run's inputs, never its state."""
@@ -184,14 +225,19 @@ class RunJob:
     run_dir: Path
     runtime: Runtime
     """The run's runtime without its Ray address (a worker computes in its own process)."""
+    stop: StopSignal | None = None
+    """Checked at each frame's progress report: a set signal ends the task's frame loop."""
 
 
 def worker_context(job: RunJob, frames: range) -> Ctx:
     """The run context of ``job`` restricted to the frame numbers ``frames``, as a worker builds it: the
-    same sequence (with the run's estimated poses when the dataset has none), no progress, no records."""
+    same sequence (with the run's estimated poses when the dataset has none), no records; its progress
+    reports only look at ``job.stop``, so a stopped task ends before its next frame."""
     layout = RunLayout(job.run_dir)
     seq = layout.open_sequence(job.dataset)
-    return Ctx(seq, job.schema, job.config, layout, seq.select(frames), job.runtime, None,
+    stop = job.stop
+    progress = None if stop is None else lambda _stage, _done, _total: stop.check()
+    return Ctx(seq, job.schema, job.config, layout, seq.select(frames), job.runtime, progress,
                {s.name: s for s in STAGE_TABLE})
 
 
@@ -243,10 +289,10 @@ def reduce_task(num_classes: int, *parts: list[Observations]) -> Partial:
 
 
 def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
-                     frame_ids: list[str]) -> tuple[int, int]:
+                     frame_ids: list[str], stop: StopSignal | None = None) -> tuple[int, int]:
     """``leap labels2d``'s work on some frames (a Ray task): Grounding DINO + SAM into the 2D cache of
-    ``runtime.cache_dir``, ``config.batch_size`` images per forward pass. Returns (detector, SAM encoder)
-    forward passes."""
+    ``runtime.cache_dir``, ``config.batch_size`` images per forward pass, ``stop`` checked before each
+    batch. Returns (detector, SAM encoder) forward passes."""
     # Imported here: the labeler's module is only needed where this task runs.
     from leap_core.datasets.kitti import KittiSequence  # noqa: PLC0415
     from leap_core.labelers.grounded_sam import GroundedSamLabeler  # noqa: PLC0415
@@ -256,6 +302,8 @@ def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, r
     index = {fid: i for i, fid in enumerate(seq.frame_ids)}
     frames = [seq.frame(index[fid]) for fid in frame_ids]
     for start in range(0, len(frames), config.batch_size):
+        if stop is not None:
+            stop.check()
         chunk = frames[start : start + config.batch_size]
         labeler.label_frames(chunk, schema)
         for f in chunk:
@@ -301,14 +349,20 @@ class TaskError:
         return exc
 
 
-def run_task(fn: Callable[..., Any], *args: Any) -> Any:
+def run_task(stop: StopSignal | None, fn: Callable[..., Any], *args: Any) -> Any:
     """What every Ray task runs: ``fn(*args)``, a :class:`LeapError` returned as a :class:`TaskError`
-    (and a :class:`TaskError` among the arguments, an upstream task's, passed on instead of calling)."""
+    (and a :class:`TaskError` or :class:`Stopped` among the arguments, an upstream task's, passed on instead
+    of calling). :class:`Stopped` without calling when ``stop`` is set, or when ``fn`` raised
+    :class:`~leap_core.errors.Cancelled` (its frame loop saw ``stop``)."""
     for arg in args:
-        if isinstance(arg, TaskError):
+        if isinstance(arg, (TaskError, Stopped)):
             return arg
+    if stop is not None and stop.is_set():
+        return Stopped()
     try:
         return fn(*args)
+    except Cancelled:
+        return Stopped()
     except LeapError as exc:
         return TaskError.of(exc)
 
@@ -404,10 +458,10 @@ class RayExecutor:
         """The 3D-CN's inference as Ray tasks (:class:`RayPredictor`)."""
         return RayPredictor(self, cfg)
 
-    def _job(self, ctx: Ctx) -> RunJob:
+    def _job(self, ctx: Ctx, stop: StopSignal) -> RunJob:
         return RunJob(ctx.seq.root, ctx.schema, ctx.cfg, ctx.layout.run_dir,
                       # A task holds one Ray CPU: it computes its frames one at a time.
-                      dataclasses.replace(ctx.runtime or Runtime(), ray_address=None, frame_threads=1))
+                      dataclasses.replace(ctx.runtime or Runtime(), ray_address=None, frame_threads=1), stop)
 
     def _cpus(self) -> int:
         return max(1, int(self.ray.cluster_resources().get("CPU", 1)))
@@ -433,17 +487,25 @@ class RayExecutor:
         if isinstance(result, TaskError):
             log.debug("task failed:\n%s", result.traceback)
             raise result.rebuild() from None
+        if isinstance(result, Stopped):  # only after a stop of this batch, whose results are not read
+            raise Cancelled()
         return result
 
-    def _stop(self, refs: Sequence[Any]) -> None:
-        """Cancel unfinished tasks and wait (bounded) for the running ones to stop, so none still writes
-        into the run folder after the stage returned."""
-        for ref in refs:
-            self.ray.cancel(ref)
+    def _stop(self, refs: Sequence[Any], stop: StopSignal) -> None:
+        """Ask the unfinished tasks to stop and wait (up to :data:`STOP_WAIT_S`) until they have returned,
+        so none still writes into the run folder after the stage returned (never ``ray.cancel``: see
+        :class:`StopSignal`)."""
+        stop.set()
+        running: Sequence[Any] = ()
         if refs:
-            self.ray.wait(list(refs), num_returns=len(refs), timeout=30)
+            _, running = self.ray.wait(list(refs), num_returns=len(refs), timeout=STOP_WAIT_S)
+        if running:  # the signal stays, so that these stop too when they reach their next frame
+            log.warning("%d Ray task(s) still running %.0f s after the stop; they end at their next frame",
+                        len(running), STOP_WAIT_S)
+        else:
+            stop.clear()
 
-    def _drain(self, pending: dict[Any, int], finished: Callable[[Any, int], None]) -> None:
+    def _drain(self, pending: dict[Any, int], finished: Callable[[Any, int], None], stop: StopSignal) -> None:
         """``finished(result, weight)`` for each task of ``pending`` (ref → weight) as it ends, in the order
         they end; an error (a task's, or ``Cancelled`` from ``finished``) stops the others first."""
         try:
@@ -453,7 +515,7 @@ class RayExecutor:
                     n = pending.pop(ref)
                     finished(self._get(ref), n)
         except BaseException:
-            self._stop(list(pending))
+            self._stop(list(pending), stop)
             raise
 
     # ----------------------------------------------------------------------------- per-frame stages
@@ -467,9 +529,10 @@ class RayExecutor:
         # the models more often.
         slots = int(self.ray.cluster_resources().get("GPU", 1)) if options else self._cpus()
         size = math.ceil(len(todo) / (TASKS_PER_CPU * slots))
-        job = self._job(ctx)
+        stop = StopSignal(ctx.layout.run_dir)
+        job = self._job(ctx, stop)
         task = self._task.options(**options)
-        pending = {task.remote(stage_task, job, stage.name, number_range(ctx, block)): len(block)
+        pending = {task.remote(stop, stage_task, job, stage.name, number_range(ctx, block)): len(block)
                    for block in frame_blocks(todo, size)}
         done = total - len(todo)
         parts: list[dict[str, Any]] = []
@@ -484,7 +547,7 @@ class RayExecutor:
             done += n
             ctx.tick(stage.name, done, total)
 
-        self._drain(pending, finished)
+        self._drain(pending, finished, stop)
         record = merge_records(parts, total, len(todo))
         record["ray_tasks"] = len(parts)
         if options:
@@ -498,15 +561,22 @@ class RayExecutor:
     ) -> tuple[int, int]:
         """:func:`label_cache_task` over ``frame_ids`` cut into runs of whole batches, one GPU per task when
         the cluster has GPUs (and ``runtime.device`` is not ``cpu``); ``progress(frames)`` as each ends.
-        Returns the (detector, SAM encoder) forward passes of all tasks."""
+        Returns the (detector, SAM encoder) forward passes of all tasks.
+
+        Raises:
+            ValueError: ``runtime.cache_dir`` is not set (the cache is where the tasks write).
+        """
+        if runtime.cache_dir is None:
+            raise ValueError("label_cache needs runtime.cache_dir: the 2D cache the tasks fill")
+        stop = StopSignal(runtime.cache_dir)
         gpus = self.ray.cluster_resources().get("GPU", 0) >= 1 and runtime.device != "cpu"
         slots = int(self.ray.cluster_resources().get("GPU", 1)) if gpus else self._cpus()
         per_task = math.ceil(len(frame_ids) / (TASKS_PER_CPU * slots) / config.batch_size) * config.batch_size
         task = self._task.options(num_gpus=1 if gpus else 0)
         worker_runtime = dataclasses.replace(runtime, ray_address=None, frame_threads=1)
         pending = {
-            task.remote(label_cache_task, dataset, schema, config, worker_runtime,
-                        list(frame_ids[s : s + per_task])):
+            task.remote(stop, label_cache_task, dataset, schema, config, worker_runtime,
+                        list(frame_ids[s : s + per_task]), stop):
                 len(frame_ids[s : s + per_task])
             for s in range(0, len(frame_ids), max(per_task, 1))
         }
@@ -518,7 +588,7 @@ class RayExecutor:
             if progress is not None:
                 progress(n)
 
-        self._drain(pending, finished)
+        self._drain(pending, finished, stop)
         return calls[0], calls[1]
 
     # ---------------------------------------------------------------------------------------- fusion
@@ -528,7 +598,8 @@ class RayExecutor:
         counts = [observed_count(ctx.layout.observation(ctx.fid(i))) for i in frames]
         chunks = fusion_blocks(counts, ctx.cfg.fusion.chunk_points)
         size = max(1, math.ceil(total / (TASKS_PER_CPU * self._cpus())))
-        job = self._job(ctx)
+        stop = StopSignal(ctx.layout.run_dir)
+        job = self._job(ctx, stop)
         c = ctx.schema.num_classes
         partials: list[tuple[Any, int]] = []
         refs: list[Any] = []
@@ -536,8 +607,9 @@ class RayExecutor:
             # A chunk spans consecutive frames (the empty ones between its members add nothing).
             span = frames[chunk[0] : chunk[-1] + 1]
             blocks = frame_blocks(span, size)
-            parts = [self._task.remote(observations_task, job, number_range(ctx, block)) for block in blocks]
-            partials.append((self._task.remote(reduce_task, c, *parts), chunk[-1] + 1))
+            parts = [self._task.remote(stop, observations_task, job, number_range(ctx, block))
+                     for block in blocks]
+            partials.append((self._task.remote(stop, reduce_task, c, *parts), chunk[-1] + 1))
             refs += [*parts, partials[-1][0]]
         ctx.tick("fuse", 0, total)
 
@@ -550,7 +622,7 @@ class RayExecutor:
         try:
             grid = fold_blocks(in_order(), c, ctx.cfg.fusion)
         except BaseException:
-            self._stop(refs)
+            self._stop(refs, stop)
             raise
         record = finish_fuse(ctx, grid)
         record["ray_tasks"] = len(refs)
@@ -598,13 +670,14 @@ class RayPredictor:
         size = min(INFER_TASK_FRAMES, max(1, math.ceil(len(frames) / (TASKS_PER_CPU * slots))))
         blocks = iter(frame_blocks(list(frames), size))
         task = ex._task.options(**options)
+        stop = StopSignal(Path(checkpoint).parent)
         seq_ref = ray.put(seq)
         pending: deque[Any] = deque()
 
         def submit() -> None:
             block = next(blocks, None)
             if block is not None:
-                pending.append(task.remote(predict_task, seq_ref, block, Path(checkpoint), self.cfg,
+                pending.append(task.remote(stop, predict_task, seq_ref, block, Path(checkpoint), self.cfg,
                                            self.voxel_size, threads))
 
         try:
@@ -617,11 +690,11 @@ class RayPredictor:
                 yield from result
                 del result
         except BaseException:  # an error, a Cancelled from progress, or the consumer closing the generator
-            ex._stop(list(pending))
+            ex._stop(list(pending), stop)
             raise
 
 
-__all__ = ["INFER_TASK_FRAMES", "TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor", "RayPredictor",
-           "RunJob", "TaskError", "connect", "frame_blocks",
+__all__ = ["INFER_TASK_FRAMES", "STOP_WAIT_S", "TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor",
+           "RayPredictor", "RunJob", "StopSignal", "Stopped", "TaskError", "connect", "frame_blocks",
            "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count",
            "predict_task", "run_task", "worker_context"]
