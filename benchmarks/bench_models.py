@@ -96,17 +96,20 @@ def real_sam(large: bool = False):
     return model, SamProcessor(image_processor=SamImageProcessorPil())
 
 
-def make_labeler(folder: Path, det: tuple, seg: tuple, cache: Path) -> GroundedSamLabeler:
-    """A labeler whose folders hold the models' configs and processors and whose weights are in memory."""
+def make_labeler(
+    folder: Path, det: tuple, seg: tuple, cache: Path, device: str = "cpu"
+) -> GroundedSamLabeler:
+    """A labeler whose folders hold the models' configs and processors and whose weights are in memory
+    (moved to ``device``)."""
     det_dir, seg_dir = folder / "grounding-dino-tiny", folder / "sam-vit-base"
     for d, (model, proc) in ((det_dir, det), (seg_dir, seg)):
         d.mkdir(parents=True, exist_ok=True)
         model.config.save_pretrained(d)
         proc.save_pretrained(d)
     lab = GroundedSamLabeler(
-        GroundedSamConfig(), Runtime(models_dir=folder, device="cpu"), cache=LabelCache(cache)
+        GroundedSamConfig(), Runtime(models_dir=folder, device=device), cache=LabelCache(cache)
     )
-    lab._models = LoadedModels(det[0], lab.detector_processor, seg[0], seg[1], "cpu")
+    lab._models = LoadedModels(det[0].to(device), lab.detector_processor, seg[0].to(device), seg[1], device)
     return lab
 
 
@@ -123,9 +126,18 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per row (after one warm-up run)")
     ap.add_argument("--sam-large", action="store_true", help="also time SAM ViT-L (the paper's SAM)")
     ap.add_argument("--quick", action="store_true", help="tiny random models instead of real-size ones")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                    help="where the models run (results of cuda go to models_cuda.json)")
     args = ap.parse_args()
 
     import torch
+
+    dev = args.device
+
+    def timed(fn):  # a CUDA call returns before the GPU is done: wait for it inside the timed function
+        if dev != "cuda":
+            return fn
+        return lambda: (fn(), torch.cuda.synchronize())
 
     schema, _ = load_project_file(projects_dir() / "semantickitti_expanded.yaml")
     words = sorted(
@@ -147,24 +159,24 @@ def main() -> None:
         det_name = "Grounding DINO Swin-T"
 
     rows, results = [], {}
-    lab = make_labeler(tmp / "m0", det, next(iter(segs.values())), tmp / "cache")
+    lab = make_labeler(tmp / "m0", det, next(iter(segs.values())), tmp / "cache", dev)
     plans = lab.plan(schema)
-    t_det = time_it(lambda: lab._detect([image], plans[0]), repeat=args.repeat, warmup=1)
+    t_det = time_it(timed(lambda: lab._detect([image], plans[0])), repeat=args.repeat, warmup=1)
     n_q = det[0].config.num_queries
     results["detector"] = {
         **t_det.to_dict(), "passes": len(plans), "text_tokens": plans[0].num_tokens, "queries": n_q
     }
     seg_times = {}
     for name, seg in segs.items():
-        slab = make_labeler(tmp / name.replace(" ", "_"), det, seg, tmp / "cache")
-        pix = seg[1](images=[image], return_tensors="pt")["pixel_values"]
+        slab = make_labeler(tmp / name.replace(" ", "_"), det, seg, tmp / "cache", dev)
+        pix = seg[1](images=[image], return_tensors="pt")["pixel_values"].to(dev)
 
         def encode(m=seg[0], p=pix) -> None:
             with torch.inference_mode():
                 m.get_image_embeddings(p)
 
-        t_enc = time_it(encode, repeat=args.repeat, warmup=1)
-        t_full = time_it(lambda s=slab: s._segment([image], [boxes]), repeat=args.repeat, warmup=1)
+        t_enc = time_it(timed(encode), repeat=args.repeat, warmup=1)
+        t_full = time_it(timed(lambda s=slab: s._segment([image], [boxes])), repeat=args.repeat, warmup=1)
         seg_times[name] = (t_enc, t_full)
         results[name] = {
             "encoder": t_enc.to_dict(), "encoder_plus_decoder": t_full.to_dict(), "boxes": args.boxes
@@ -202,16 +214,17 @@ def main() -> None:
         rows.append(row(f"total compute, {det_name} + {name}", t_det.median + t_full.median,
                         t_det.cpu_median + t_full.cpu_median, baseline))
     rows.append(row("2D cache hit (read + assemble)", t_hit.median, t_hit.cpu_median, baseline))
-    title = (f"grounded-sam per image, {KITTI_HW[1]}x{KITTI_HW[0]} px, "
-             f"{torch.get_num_threads()} torch threads, "
+    where = torch.cuda.get_device_name() if dev == "cuda" else f"{torch.get_num_threads()} torch threads"
+    title = (f"grounded-sam per image, {KITTI_HW[1]}x{KITTI_HW[0]} px, {where}, "
              f"text {plans[0].num_tokens} tokens in {len(plans)} pass(es), Q={n_q}; "
              f"ratio = total compute ({det_name} + {next(iter(seg_times))}) / row")
     print_table(title, ["step", "median s", "cpu s", "x faster than compute"], rows)
     n_classes = schema.num_classes
     print(f"per-class mode runs the detector {n_classes}x per image: "
           f"about {n_classes * t_det.median:.0f} s here.\n")
-    path = write_results("models_quick" if args.quick else "models",
-                         {"image_hw": KITTI_HW, "schema": "semantickitti_expanded", "results": results})
+    name = ("models_quick" if args.quick else "models") + ("_cuda" if dev == "cuda" else "")
+    path = write_results(name, {"image_hw": KITTI_HW, "schema": "semantickitti_expanded", "device": where,
+                                "results": results})
     print(f"wrote {path}")
 
 
