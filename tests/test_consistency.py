@@ -29,6 +29,7 @@ from leap_core.consistency.stage import (
     voxel_mean_log_probs,
 )
 from leap_core.consistency.train import (
+    class_weights,
     config_from_dict,
     config_to_dict,
     draw_points,
@@ -570,3 +571,15 @@ def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> 
     empty = VoxelGrid.empty(c, 0.2)
     with pytest.raises(ValueError, match="no point of any scan has a voxel label"):
         run_3dcn_iteration(seq, empty, empty, c, TINY, FusionConfig(), tmp_path / "w", 1)
+
+
+def test_class_weights_by_hand() -> None:
+    """w_c ∝ n_c^(-p), mean 1 over the present classes, 1 for absent ones; p = 0 or disabled: all 1."""
+    assert class_weights([100, 1, 0]).tolist() == pytest.approx([2 / 11, 20 / 11, 1.0])
+    # p = 0.25: raw 100^-0.25 = 1/sqrt(10) and 1; mean (1/sqrt(10) + 1) / 2
+    m = (10 ** -0.5 + 1) / 2
+    assert class_weights([100, 1, 0], power=0.25).tolist() == pytest.approx([10 ** -0.5 / m, 1 / m, 1.0])
+    assert class_weights([100, 1, 0], power=0.0).tolist() == [1.0, 1.0, 1.0]
+    assert class_weights([100, 1, 0], enabled=False).tolist() == [1.0, 1.0, 1.0]
+    with pytest.raises(ConfigError, match="must be in"):
+        ConsistencyConfig(class_balance_power=1.5)

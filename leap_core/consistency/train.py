@@ -77,16 +77,18 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(old)
 
 
-def class_weights(counts: npt.ArrayLike, enabled: bool = True) -> torch.Tensor:
-    """Cross-entropy class weights ``w_c ∝ 1 / sqrt(n_c)``, normalised to mean 1 over present classes.
+def class_weights(counts: npt.ArrayLike, enabled: bool = True, power: float = 0.5) -> torch.Tensor:
+    """Cross-entropy class weights ``w_c ∝ n_c^(-power)`` (``power`` 0.5: ``1 / sqrt(n_c)``), normalised to
+    mean 1 over present classes.
 
     Absent classes (``n_c = 0``) get weight 1 (they never occur as targets). ``enabled=False`` gives all 1.
+    Example: counts [100, 1, 0], power 0.5 → raw [0.1, 1] → [2/11, 20/11, 1].
     """
     n = np.asarray(counts, dtype=np.float64)
     w = np.ones_like(n)
     present = n > 0
     if enabled and present.any():
-        w[present] = 1.0 / np.sqrt(n[present])
+        w[present] = n[present] ** -power
         w[present] /= w[present].mean()
     return torch.as_tensor(w, dtype=torch.float32)
 
@@ -179,7 +181,7 @@ def train_model(
         model = PointSegmenter(cfg.backbone, num_classes).to(device)
         weights = None
         if class_counts is not None:
-            weights = class_weights(class_counts, cfg.class_balance).to(device)
+            weights = class_weights(class_counts, cfg.class_balance, cfg.class_balance_power).to(device)
             model.trained_classes.copy_(torch.as_tensor(np.asarray(class_counts) > 0))
         opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total))
