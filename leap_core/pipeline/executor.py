@@ -195,8 +195,14 @@ class StopSignal:
         self.path = Path(folder) / f".ray-stop-{uuid.uuid4().hex}"
 
     def set(self) -> None:
-        """Ask the tasks to stop (idempotent)."""
-        self.path.touch()
+        """Ask the tasks to stop (idempotent). A folder that cannot take the file leaves the tasks to run to
+        their end, which the driver then waits for (logged)."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.touch()
+        except OSError as exc:
+            log.warning("cannot write the stop signal %s (%s): the running Ray tasks finish their frames",
+                        self.path, exc)
 
     def is_set(self) -> bool:
         return self.path.exists()
