@@ -88,7 +88,9 @@ def class_weights(counts: npt.ArrayLike, enabled: bool = True, power: float = 0.
     w = np.ones_like(n)
     present = n > 0
     if enabled and present.any():
-        w[present] = n[present] ** -power
+        # The default keeps the former expression bit for bit (1/sqrt and pow(-0.5) can differ in the last
+        # bit), so a 3D-CN retrained after this setting appeared gives the same weights and labels.
+        w[present] = 1.0 / np.sqrt(n[present]) if power == 0.5 else n[present] ** -power
         w[present] /= w[present].mean()
     return torch.as_tensor(w, dtype=torch.float32)
 
