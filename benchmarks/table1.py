@@ -28,6 +28,8 @@ Usage (from the repository root)::
     .venv/bin/python benchmarks/table1.py --cached-only --readme   # tabulate finished runs, README table
     .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1 \\
         --set consistency.class_balance=false --tag nobalance     # a variant, in its own run folders
+    .venv/bin/python benchmarks/table1.py --domains agri --sequence-seed 101 --frames 30 --seeds 0 \
+        --iterations 1 --set consistency.class_balance_power=0.25 --tag _p25   # on a tuning sequence
 
 Prints the Markdown table (per seed, the mean, and the paper's row; gains = +3D-CN minus voxel) and, per
 domain, whether issue 16's acceptance holds (+3D-CN x1 > voxel for every seed, mean gain >= 5 points).
@@ -37,6 +39,7 @@ domain, whether issue 16's acceptance holds (+3D-CN x1 > voxel for every seed, m
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import math
@@ -104,6 +107,22 @@ DOMAINS: dict[str, Domain] = {
 
 
 # ----------------------------------------------------------------------------------------- pure logic
+def retarget(dom: Domain, sequence_seed: int | None = None, frames: int | None = None) -> Domain:
+    """The domain on another generated sequence: ``leap synth``'s ``--seed`` and/or ``--frames`` replaced,
+    with data and run folders of its own (``agri`` → ``agri_seq101_f30``), so that runs on a tuning sequence
+    never share a folder with the report runs. Unchanged when both are None."""
+    if sequence_seed is None and frames is None:
+        return dom
+    synth = list(dom.synth)
+    for flag, value in (("--seed", sequence_seed), ("--frames", frames)):
+        if value is not None:
+            synth[synth.index(flag) + 1] = str(value)
+    seed, n = synth[synth.index("--seed") + 1], synth[synth.index("--frames") + 1]
+    name = f"{dom.key}_seq{seed}_f{n}"
+    return dataclasses.replace(dom, key=name, data=name, synth=tuple(synth),
+                               title=f"{dom.title}, sequence seed {seed}, {n} frames")
+
+
 @dataclass(frozen=True)
 class SeedRow:
     """One training seed's mIoU (%) on a domain; ``None`` where the run has no such column."""
@@ -375,11 +394,16 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="Extra pipeline setting for the seed runs, e.g. consistency.class_balance=false.")
     ap.add_argument("--tag", default="", help="Suffix of the seed run folders (for --set variants).")
+    ap.add_argument("--sequence-seed", type=int, default=None,
+                    help="Generate the domain's sequence with this seed (a tuning sequence, e.g. 101).")
+    ap.add_argument("--frames", type=int, default=None, help="Generate the domain's sequence this long.")
     ap.add_argument("--cached-only", action="store_true", help="Run nothing; tabulate finished seed runs.")
     ap.add_argument("--readme", action="store_true", help="Write the table into README.md's markers.")
     args = ap.parse_args()
     if args.set and not args.tag:
         sys.exit("--set needs --tag (a variant gets its own run folders)")
+    if args.readme and (args.sequence_seed is not None or args.frames is not None):
+        sys.exit("--readme writes the report sequences' table: not with --sequence-seed / --frames")
     names = [d.strip() for d in args.domains.split(",") if d.strip()]
     unknown = [d for d in names if d not in DOMAINS]
     if unknown:
@@ -387,7 +411,7 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     results = []
     for name in names:
-        dom = DOMAINS[name]
+        dom = retarget(DOMAINS[name], args.sequence_seed, args.frames)
         rows = cached(dom, seeds, args) if args.cached_only else measure(dom, seeds, args)
         results.append((dom, rows))
     table = table_markdown(results)

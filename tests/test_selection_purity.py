@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from tests.scripthelpers import load_script
+from scripthelpers import load_script
 
 sp = load_script("benchmarks/selection_purity.py")
 

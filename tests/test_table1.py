@@ -144,3 +144,15 @@ def test_readme_has_the_table1_markers_that_readme_writes_into() -> None:
     assert text.count("<!-- table:table1 -->") == 1
     assert text.count("<!-- /table:table1 -->") == 1
     assert text.index("<!-- table:table1 -->") < text.index("<!-- /table:table1 -->")
+
+
+def test_retarget_moves_a_domain_to_its_own_sequence_and_folders() -> None:
+    t1 = _module()
+    agri = t1.DOMAINS["agri"]
+    assert t1.retarget(agri) is agri
+    tuned = t1.retarget(agri, 101, 30)
+    assert tuned.synth == ("--domain", "agri-uav", "--frames", "30", "--seed", "101")
+    assert tuned.key == tuned.data == "agri_seq101_f30"
+    assert (tuned.project, tuned.protocol, tuned.run_flags) == (agri.project, agri.protocol, agri.run_flags)
+    street = t1.retarget(t1.DOMAINS["street"], sequence_seed=7)  # the length stays the report's
+    assert street.synth == ("--frames", "60", "--seed", "7") and street.data == "street_seq7_f60"
