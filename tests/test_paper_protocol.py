@@ -13,20 +13,25 @@ import pytest
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.eval_view import PAPER_VIEW
+from leap_core.fusion import voxel_keys, world_points
 from leap_core.metrics import confusion_matrix, evaluate, merge_confusion, metrics_from_confusion
 from leap_core.pipeline import run_pipeline
 from leap_core.pipeline.context import load_observation
 from leap_core.pipeline.evaluation import (
+    COMMON,
     PAPER,
     PROTOCOLS,
     add_paper_protocol,
+    common_points,
     format_result_tables,
     load_metrics,
+    metrics_tables,
     overall_metrics,
     result_tables,
 )
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema, builtin_schema
+from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
 from tests.test_pipeline import make_street
 
@@ -140,7 +145,7 @@ def test_paper_protocol_by_hand_on_the_19_classes() -> None:
     conf[ix("bicycle"), ix("bicyclist")] = 2        # bicycle TP
     data = _metrics_of(conf, names, schema.categories())
     add_paper_protocol(data)
-    assert set(data["protocols"]) == {"camera", "all", PAPER} and "protocol_notes" not in data
+    assert set(data["protocols"]) == {*PROTOCOLS, PAPER} and "protocol_notes" not in data
     assert data["paper_view"]["merge"] == EXPECTED_MERGE
     iou = data[PAPER]["point"]["iou"]
     assert iou["other-vehicle"] == pytest.approx(5 / 5)
@@ -172,7 +177,7 @@ def test_paper_protocol_absent_with_a_note_for_another_schema() -> None:
     conf = np.arange(c * (c + 1)).reshape(c, c + 1)
     data = _metrics_of(conf, schema.names, schema.categories())
     add_paper_protocol(data)
-    assert PAPER not in data and "paper_view" not in data and set(data["protocols"]) == {"camera", "all"}
+    assert PAPER not in data and "paper_view" not in data and set(data["protocols"]) == set(PROTOCOLS)
     assert data["protocol_notes"][PAPER].startswith("not computed: the schema lacks")
     assert set(load_metrics_from(data)) == {"camera", "all"}
     assert "paper protocol not computed" in format_result_tables(data)
@@ -194,7 +199,7 @@ def test_pipeline_paper_protocol_is_the_merged_camera_protocol(run, street: Path
     run_dir, result = run
     m = json.loads(RunLayout(run_dir).metrics.read_text())
     assert m == result.metrics
-    assert set(m["protocols"]) == {"camera", "all", PAPER} and "protocol_notes" not in m
+    assert set(m["protocols"]) == {*PROTOCOLS, PAPER} and "protocol_notes" not in m
     assert m["paper_view"]["class_names"] == list(EXPECTED_MERGE)
     schema = builtin_schema("semantickitti")
     mapping = np.array([list(EXPECTED_MERGE).index(next(k for k, v in EXPECTED_MERGE.items() if n in v))
@@ -227,6 +232,53 @@ def test_pipeline_paper_protocol_is_the_merged_camera_protocol(run, street: Path
     assert both[PAPER]["voxel"]["confusion"] == (2 * np.asarray(m[PAPER]["voxel"]["confusion"])).tolist()
 
 
+def test_common_points_by_hand() -> None:
+    u = UNLABELED
+    in_view = np.array([True, True, True, True, False])
+    point = np.array([0, u, 2, 1, 3], np.int16)
+    voxel = np.array([1, 1, u, 1, 3], np.int16)
+    assert common_points(in_view, [point, voxel]).tolist() == [True, False, False, True, False]
+    assert common_points(in_view, []).tolist() == in_view.tolist()
+    assert in_view.tolist() == [True, True, True, True, False]  # the input is not written to
+
+
+def test_common_protocol_scores_every_row_on_the_points_all_rows_label(run, street: Path) -> None:
+    run_dir, _ = run
+    m = json.loads(RunLayout(run_dir).metrics.read_text())
+    assert m["rows"] == ["point", "voxel"]
+    schema = builtin_schema("semantickitti")
+    seq, lay = KittiSequence(street), RunLayout(run_dir)
+    voxel = SmoothedGrid.load(lay.grid_smooth)
+    gts, points, voxels, in_views = [], [], [], []
+    for i, fid in enumerate(seq.frame_ids):
+        frame = seq.frame(i)
+        _, _, in_view = load_observation(lay.observation(fid))
+        with np.load(lay.points(fid)) as z:
+            points.append(z["point_label"])
+        voxels.append(voxel.labels_at(voxel_keys(world_points(frame.points, frame.pose), 0.2))[0])
+        gts.append(schema.map_gt(frame.labels))
+        in_views.append(in_view)
+    gt, point, vox, in_view = map(np.concatenate, (gts, points, voxels, in_views))
+    common = in_view & (point != UNLABELED) & (vox != UNLABELED)
+    # The rows label different points in view (else the protocol would say nothing camera does not) ...
+    assert ((vox != UNLABELED) & in_view).sum() > common.sum() > 0
+    for row, pred in (("point", point), ("voxel", vox)):
+        expected = evaluate(gt[common], pred[common], schema.names, schema.categories(),
+                            ignore_unlabeled_pred=True)
+        assert m[COMMON][row] == expected.to_dict()
+    # ... and here each row is scored on the same points.
+    assert np.sum(m[COMMON]["point"]["confusion"]) == np.sum(m[COMMON]["voxel"]["confusion"]) == (
+        (gt[common] != UNLABELED).sum())
+    # A file written before the protocol existed still reads, and a sum with it leaves the protocol out.
+    old = {k: v for k, v in m.items() if k != COMMON}
+    old["protocols"] = {k: v for k, v in m["protocols"].items() if k != COMMON}
+    assert COMMON not in metrics_tables(old) and "camera" in metrics_tables(old)
+    both = overall_metrics({"a": m, "b": old})
+    assert both is not None and COMMON not in both and COMMON not in both["protocols"]
+    assert overall_metrics({"a": m, "b": m})[COMMON]["voxel"]["confusion"] == (
+        2 * np.asarray(m[COMMON]["voxel"]["confusion"])).tolist()
+
+
 def test_pipeline_without_the_classes_has_no_paper_protocol(street: Path, tmp_path: Path) -> None:
     full = builtin_schema("semantickitti")
     schema = Schema("no-trunk", tuple(c for c in full.classes if c.name != "trunk"))
@@ -249,3 +301,7 @@ def test_the_merge_is_part_of_the_evaluate_fingerprint(street: Path, tmp_path: P
     after = stage_fingerprints(street, schema, PipelineConfig(), tmp_path)
     assert after["evaluate"] != before["evaluate"]
     assert {s for s in before if before[s] != after[s]} == {"evaluate"}
+    # So is the layout of metrics.json: a new one evaluates finished runs again, and only that.
+    monkeypatch.setattr(stages, "METRICS_VERSION", stages.METRICS_VERSION + 1)
+    again = stage_fingerprints(street, schema, PipelineConfig(), tmp_path)
+    assert {s for s in after if after[s] != again[s]} == {"evaluate"}

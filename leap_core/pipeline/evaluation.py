@@ -2,7 +2,8 @@
 
 Rows: ``point`` (projection only), ``voxel`` (the smoothed fused grid) and, with the 3D-CN, ``+3D-CN x{i}``
 per round. Protocols (:data:`PROTOCOLS`): ``camera`` (points inside the image, unlabeled predictions
-ignored: the paper's) and ``all`` (every point, unlabeled = miss), over the schema's classes; and
+ignored: the paper's), ``common`` (the camera view's points that every row labels, so the rows are scored
+on the same points) and ``all`` (every point, unlabeled = miss), over the schema's classes; and
 ``paper`` (:data:`PAPER`): the camera protocol's confusion matrices summed into the 11 merged classes of
 the paper's Table 1 (:data:`leap_core.eval_view.PAPER_VIEW`), present only for a SemanticKITTI schema.
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,20 +34,31 @@ if TYPE_CHECKING:
 
 ROW_POINT = "point"
 ROW_VOXEL = "voxel"
+COMMON = "common"
 PROTOCOLS: dict[str, str] = {
     "camera": "camera view: points inside the image, unlabeled predictions ignored (the paper's protocol)",
+    COMMON: "camera view, same points: only the points inside the image that every row labels",
     "all": "all points: every point of every scan, an unlabeled prediction counts as a miss",
 }
 """metrics.json keys of the protocols counted point by point over the schema's classes, and what they
-measure."""
+measure. ``camera`` scores each row on the points it labels, so a row that labels more points (the voxel
+row over the point row, the 3D-CN over the voxel row, which labels every point) is scored on more, and
+harder, points; ``common`` compares the rows on one set of points. Files written before ``common`` existed
+lack it (:data:`OPTIONAL_PROTOCOLS`)."""
 
 PAPER = "paper"
 """metrics.json key of the paper's protocol: ``camera`` merged into the 11 classes of the paper's Table 1."""
+OPTIONAL_PROTOCOLS = (COMMON, PAPER)
+"""Protocols a ``metrics.json`` may lack: ``paper`` for a schema other than SemanticKITTI's, ``common`` in
+files written before it existed."""
+METRICS_VERSION = 2
+"""Layout of ``metrics.json`` (2: the ``common`` protocol). Part of the evaluate stage's fingerprint, so a
+finished run is evaluated again, from its stored outputs, on its next ``leap run``."""
 PAPER_DESCRIPTION = (
     "the paper's Table 1: camera view, unlabeled predictions ignored, SemanticKITTI's 19 classes merged into "
     f"{len(PAPER_VIEW.classes)} ({', '.join(PAPER_VIEW.names)})"
 )
-IGNORES_UNLABELED: dict[str, bool] = {"camera": True, "all": False, PAPER: True}
+IGNORES_UNLABELED: dict[str, bool] = {"camera": True, COMMON: True, "all": False, PAPER: True}
 """Per protocol key: whether an unlabeled prediction is ignored (True) or a miss (False)."""
 
 
@@ -74,6 +86,16 @@ def add_paper_protocol(out: dict[str, Any]) -> None:
                                   ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER]).to_dict()
         for r in out["rows"]
     }
+
+
+def common_points(in_view: npt.NDArray[np.bool_], preds: Iterable[npt.NDArray[np.int16]]
+                  ) -> npt.NDArray[np.bool_]:
+    """(N,) bool: the points of the ``common`` protocol, ``in_view ∧ ⋀_r (pred_r ≠ UNLABELED)`` over the
+    rows' (N,) predictions."""
+    out = np.array(in_view, dtype=bool)
+    for pred in preds:
+        out &= pred != UNLABELED
+    return out
 
 
 def cn_row(iteration: int) -> str:
@@ -117,13 +139,16 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
             raise DatasetError(seq.scan_path(i), f"{frame.num_points} points but the run's outputs have {n}")
         gt = schema.map_gt(frame.labels)
         keys = voxel_keys(world_points(frame.points, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
+        preds = {name: stored[name] if grid is None else grid.labels_at(keys)[0]
+                 for name, grid in rows.items()}
+        common = common_points(in_view, preds.values())
         conf: dict[str, dict[str, npt.NDArray[np.int64]]] = {p: {} for p in PROTOCOLS}
         labeled: dict[str, int] = {}
-        for name, grid in rows.items():
-            pred = stored[name] if grid is None else grid.labels_at(keys)[0]
+        for name, pred in preds.items():
             labeled[name] = int((pred != UNLABELED).sum())
             conf["all"][name] = confusion_matrix(gt, pred, c)
             conf["camera"][name] = confusion_matrix(gt[in_view], pred[in_view], c)
+            conf[COMMON][name] = confusion_matrix(gt[common], pred[common], c)
         return conf, labeled, n, int(in_view.sum())
 
     conf = {p: {r: np.zeros((c, c + 1), np.int64) for r in rows} for p in PROTOCOLS}
@@ -220,12 +245,12 @@ def load_metrics(run_dir: str | Path) -> dict[str, dict[str, Metrics]] | None:
 
 def metrics_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> dict[str, dict[str, Metrics]]:
     """``{protocol: {row: Metrics}}`` rebuilt from the content of a ``metrics.json`` (or an ``overall``
-    entry of a multi-sequence run's): :data:`PROTOCOLS`, then ``paper`` when the file has it; ``source``
-    names it in errors."""
+    entry of a multi-sequence run's): :data:`PROTOCOLS`, then ``paper``; the :data:`OPTIONAL_PROTOCOLS`
+    only when the file has them. ``source`` names it in errors."""
     try:
         tables: dict[str, dict[str, Metrics]] = {}
         for p in (*PROTOCOLS, PAPER):
-            if p == PAPER and PAPER not in data:
+            if p in OPTIONAL_PROTOCOLS and p not in data:
                 continue
             view = data["paper_view"] if p == PAPER else data
             names, cats = view["class_names"], view["categories"]
@@ -315,6 +340,9 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
     n = out["n_points"]
     out["labeled_share_all_points"] = {r: (labeled[r] / n if n else None) for r in rows}
     for p in PROTOCOLS:
+        if p in OPTIONAL_PROTOCOLS and not all(p in m for m in have.values()):
+            out["protocols"].pop(p)  # a sequence evaluated before the protocol existed
+            continue
         out[p] = {}
         for r in rows:
             conf = sum(np.asarray(m[p][r]["confusion"], np.int64) for m in have.values())
@@ -327,7 +355,26 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
     return out
 
 
-__all__ = ["IGNORES_UNLABELED", "PAPER", "PAPER_DESCRIPTION", "PROTOCOLS", "ROW_POINT", "ROW_VOXEL",
-           "add_paper_protocol", "all_points_labeled_share", "cn_row",
-           "format_result_tables", "load_metrics", "metrics_tables", "overall_metrics", "read_metrics_file",
-           "read_metrics_json", "result_tables", "stage_evaluate"]
+__all__ = [
+    "COMMON",
+    "IGNORES_UNLABELED",
+    "METRICS_VERSION",
+    "OPTIONAL_PROTOCOLS",
+    "PAPER",
+    "PAPER_DESCRIPTION",
+    "PROTOCOLS",
+    "ROW_POINT",
+    "ROW_VOXEL",
+    "add_paper_protocol",
+    "all_points_labeled_share",
+    "cn_row",
+    "common_points",
+    "format_result_tables",
+    "load_metrics",
+    "metrics_tables",
+    "overall_metrics",
+    "read_metrics_file",
+    "read_metrics_json",
+    "result_tables",
+    "stage_evaluate",
+]

@@ -46,7 +46,7 @@ from leap_core.pipeline.context import (
     hash_json,
     load_observation,
 )
-from leap_core.pipeline.evaluation import stage_evaluate
+from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import MultiRunLayout, RunLayout, load_corrections
 from leap_core.smoothing import SmoothedGrid, smooth_grid_blocks
@@ -499,9 +499,9 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
     StageInfo(
         "evaluate", "Evaluation", "point / voxel / 3D-CN metrics against ground truth", False, stage_evaluate,
         upstream=("project", "smooth", "3dcn", "label_points"),
-        # The paper's merge is an input too: a changed merge table re-evaluates.
+        # The paper's merge and the file's layout are inputs too: a change of either re-evaluates.
         inputs=lambda ctx: [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
-        + [PAPER_VIEW.to_dict()],
+        + [PAPER_VIEW.to_dict(), {"metrics_version": METRICS_VERSION}],
         outputs=lambda lay, _cfg: (lay.metrics,),
         needs_poses=True,
     ),

@@ -57,7 +57,7 @@ function protocolClasses(all, protocol) {
   return view ? view.class_names : all[all.length - 1].class_names;
 }
 
-const PROTOCOL_LABELS = { camera: "camera view", all: "all points", paper: "paper's 11 classes (camera view)" };
+const PROTOCOL_LABELS = { camera: "camera view", common: "camera view, same points", all: "all points", paper: "paper's 11 classes (camera view)" };
 
 function classTable(state, runs, all, comparison) {
   const names = protocolClasses(all, state.protocol);
