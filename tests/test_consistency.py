@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from leap_core.consistency.backbone import CloudTensors, KnnEmbedding, PlaneIndex, PointSegmenter
-from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
-from leap_core.consistency.data import LOCAL_SCALE, collate, prepare_cloud
+from leap_core.consistency.config import BackboneConfig, ConsistencyConfig, fingerprint_form
+from leap_core.consistency.data import LOCAL_SCALE, collate, inference_view, prepare_cloud
 from leap_core.consistency.selection import (
     lookup_counts,
     per_class_quota,
@@ -272,6 +272,25 @@ def test_prepare_cloud_cells_and_neighbours_from_the_full_scan() -> None:
     assert int(xy.occupied[xy.inverse[-1]]) == 11
 
 
+def test_without_position_inputs_the_features_do_not_depend_on_the_sensor_height() -> None:
+    pts, _ = synthetic_scan(4, 200)
+    full_cfg = BackboneConfig(channels=8, layers=1, knn=4)
+    cfg = replace(full_cfg, position_inputs=False)
+    assert (full_cfg.in_features, cfg.in_features) == (11, 7)
+    full, rel = prepare_cloud(pts, full_cfg), prepare_cloud(pts, cfg)
+    # The same features without x, y, z and range (the first four) ...
+    np.testing.assert_array_equal(rel.feats, full.feats[:, 4:])
+    np.testing.assert_array_equal(rel.local, full.local)
+    # ... so a scan seen from 25 m higher gives the same inputs, where z and range change.
+    higher = pts.copy()
+    higher[:, 2] -= 25.0
+    np.testing.assert_allclose(prepare_cloud(higher, cfg).feats, rel.feats, atol=1e-5)
+    assert not np.allclose(prepare_cloud(higher, full_cfg).feats[:, :4], full.feats[:, :4])
+    # The network is built for the narrower input.
+    model = PointSegmenter(cfg, num_classes=3)
+    assert model(collate([rel])).shape == (200, 3)
+
+
 def test_backbone_forward_shape_gradients_and_point_order() -> None:
     torch.manual_seed(0)
     pts, _ = synthetic_scan(0, 300)
@@ -317,6 +336,7 @@ def test_config_validation_names_the_field() -> None:
     for bad, field in [
         (lambda: ConsistencyConfig(iterations=3), ("iterations",)),
         (lambda: ConsistencyConfig(temperature=0.0), ("temperature",)),
+        (lambda: ConsistencyConfig(test_time_views=0), ("test_time_views",)),
         (
             lambda: ConsistencyConfig(network_evidence="pixel"),  # type: ignore[arg-type]  # invalid on purpose
             ("network_evidence",),
@@ -360,6 +380,55 @@ def test_tiny_training_reduces_the_loss_and_is_deterministic() -> None:
     assert (pred == lab).mean() > 0.9
     _, stats2 = train_model(scans.__getitem__, list(scans), 3, cfg)
     assert stats2.losses == stats.losses
+
+
+def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -> None:
+    def fp(cfg: ConsistencyConfig) -> str:
+        return training_fingerprint(cfg, 3, range(2), [np.zeros(2, np.int16), np.ones(2, np.int16)])
+
+    # The hash these inputs had before test_time_views and backbone.position_inputs existed (and still
+    # have): a checkpoint trained then is reused now. A field added without an entry in ADDED_FIELDS
+    # changes it and fails here.
+    assert fp(TINY) == "2294347dae8d1c79d40245986403d4c8e1ed76f7ff315bf0bf17ef940f6bb912"
+    assert fp(replace(TINY, backbone=replace(TINY_BACKBONE, position_inputs=False))) != fp(TINY)
+    plain = config_to_dict(TINY)
+    form = fingerprint_form(plain)
+    assert set(form) == set(plain) - {"test_time_views"}
+    assert set(form["backbone"]) == set(plain["backbone"]) - {"position_inputs"}
+    assert plain["test_time_views"] == 1 and plain["backbone"]["position_inputs"] is True  # not written to
+    other = fingerprint_form(config_to_dict(replace(TINY, test_time_views=2,
+                                                    backbone=replace(TINY_BACKBONE, position_inputs=False))))
+    assert other["test_time_views"] == 2 and other["backbone"]["position_inputs"] is False
+
+
+def test_test_time_views_by_hand() -> None:
+    p = np.array([[1.0, 2.0, 3.0, 0.5]], np.float32)
+    # View j of 4: mirror y when j is odd, then turn by j · 90° about z; z and remission stay.
+    expected = [[1, 2], [2, 1], [-1, -2], [-2, -1]]
+    for j, xy in enumerate(expected):
+        v = inference_view(p, j, 4)
+        np.testing.assert_allclose(v, [[*xy, 3.0, 0.5]], atol=1e-6)
+    assert inference_view(p, 0, 1) is not p
+    with pytest.raises(ValueError, match="view 4 of 4"):
+        inference_view(p, 4, 4)
+
+
+def test_predictions_are_averaged_over_test_time_views() -> None:
+    scans = _scans()
+    model, _ = train_model(scans.__getitem__, list(scans), 3, replace(TINY, epochs=2),
+                           class_counts=[100, 10, 0])
+    pts = synthetic_scan(99)[0]
+    one = predict_log_probs(model, pts)
+    assert np.array_equal(predict_log_probs(model, pts, views=1), one)
+    views = [predict_log_probs(model, inference_view(pts, j, 3)) for j in range(3)]
+    mean = predict_log_probs(model, pts, views=3)
+    # log of the mean probability; the untrained class stays -inf
+    np.testing.assert_allclose(np.exp(mean[:, :2]), np.mean([np.exp(v[:, :2]) for v in views], axis=0),
+                               rtol=1e-5, atol=1e-7)
+    assert np.isneginf(mean[:, 2]).all()
+    assert not np.allclose(mean, one)
+    with pytest.raises(ValueError, match="views must be >= 1"):
+        predict_log_probs(model, pts, views=0)
 
 
 def test_training_with_subsampling_augmentation_and_class_weights_runs() -> None:
@@ -555,6 +624,16 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     again = run_3dcn_iteration(seq, fused, grid, c, cfg, FusionConfig(), tmp_path / "work", 1)
     assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
     assert np.array_equal(again.keys, out.keys) and np.array_equal(again.logp, out.logp)
+    # Test-time views change the predictions, not the weights: the checkpoint is reused, and the grid takes
+    # the view-averaged predictions.
+    cfg4 = replace(cfg, test_time_views=4)
+    four = run_3dcn_iteration(seq, fused, grid, c, cfg4, FusionConfig(), tmp_path / "work", 1)
+    assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
+    preds4 = [(k, predict_log_probs(ck.model, seq.frame(i).points, views=4))
+              for i, (k, _) in zip(frames, preds, strict=True)]
+    expected4 = fuse_back(fused, preds4, c, cfg.temperature, FusionConfig(), cfg.network_evidence)
+    assert np.array_equal(four.keys, expected4.keys) and np.array_equal(four.logp, expected4.logp)
+    assert not np.array_equal(four.logp, out.logp)
     # T = ∞ ignores the network entirely.
     assert run_3dcn_iteration(seq, fused, grid, c, replace(cfg, temperature=math.inf), FusionConfig(),
                               tmp_path / "work", 1) is fused

@@ -8,10 +8,35 @@ sizes the paper uses, for a GPU.
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 from leap_core.errors import ConfigError
+
+ADDED_FIELDS: dict[tuple[str, ...], Any] = {
+    ("test_time_views",): 1,
+    ("backbone", "position_inputs"): True,
+}
+"""Fields added to :class:`ConsistencyConfig` after runs and checkpoints had been written, each with the
+value that computes what was computed before the field existed. Fingerprints (the 3D-CN stage's, a
+checkpoint's training inputs) leave a field out at that value (:func:`fingerprint_form`), so a new field
+does not make every finished run retrain its network."""
+
+
+def fingerprint_form(plain: Mapping[str, Any]) -> dict[str, Any]:
+    """A copy of a :class:`ConsistencyConfig`'s plain form (``train.config_to_dict``, or the
+    ``consistency`` section of the pipeline's) without the :data:`ADDED_FIELDS` that hold their former
+    value: what fingerprints hash."""
+    out = copy.deepcopy(dict(plain))
+    for path, former in ADDED_FIELDS.items():
+        node: Any = out
+        for key in path[:-1]:
+            node = node.get(key) if isinstance(node, dict) else None
+        if isinstance(node, dict) and path[-1] in node and node[path[-1]] == former:
+            del node[path[-1]]
+    return out
 
 
 @dataclass(frozen=True)
@@ -38,6 +63,14 @@ class BackboneConfig:
     a few hundred steps, remission is what lets a small network tell road, sidewalk and terrain apart
     (tuning seeds 101-103, camera-view mIoU after one round: 71.9 with remission, 64.7 from XYZ alone;
     docs/METHOD.md, "How defaults were chosen")."""
+    position_inputs: bool = True
+    """Feed each point's position in the sensor frame (x, y, z and range) to the network, besides its
+    height above the ground and neighbourhood shape. On a car the LiDAR rides at a fixed height, so z and
+    range place a point relative to the road; on a survey drone flying at 10-40 m they mostly say how high
+    it flew, so the same z is ground in one scan and a person's head in another. ``False`` keeps only the
+    inputs that do not depend on the sensor's height. Measured on the farm's tuning sequences 101-103
+    (one round, camera-view mIoU): 91.6 on the mean either way, so the default keeps them
+    (docs/METHOD.md C.5)."""
     drop_path: float = 0.0
     """Stochastic-depth probability at the last layer (linear ramp from 0); 0 disables it."""
     layer_scale: float = 1.0
@@ -61,9 +94,9 @@ class BackboneConfig:
 
     @property
     def in_features(self) -> int:
-        """Per-point input width: x, y, z, range, height above ground, 5 neighbourhood shape descriptors
+        """Per-point input width: (x, y, z, range,) height above ground, 5 neighbourhood shape descriptors
         (+ remission); see :func:`leap_core.consistency.data.prepare_cloud`."""
-        return 11 if self.use_intensity else 10
+        return 6 + 4 * self.position_inputs + self.use_intensity
 
 
 @dataclass(frozen=True)
@@ -107,6 +140,12 @@ class ConsistencyConfig:
     observation (like each painted camera point); the network's votes then grow with point density and
     sequence length while a fused grid's stored camera evidence is clipped at ``logp_clip``, so it
     overrides almost every voxel unless ``temperature`` is large."""
+    test_time_views: int = 1
+    """Views of each scan whose predictions are averaged at inference (test-time augmentation): view j of n
+    turns the scan by 2πj/n about z and mirrors y when j is odd
+    (:func:`~leap_core.consistency.data.inference_view`), and a point's probabilities are the mean over
+    the views. 1 predicts the scan as it is. Costs n forward passes per scan; inference only, so changing
+    it reuses the trained weights."""
     epochs: int = 1
     """Passes over the training scans (the paper: one epoch)."""
     min_steps: int = 500
@@ -154,6 +193,7 @@ class ConsistencyConfig:
             ("selection_scope", self.selection_scope in ("scan", "sequence"), "must be 'scan' or 'sequence'"),
             ("network_evidence", self.network_evidence in ("voxel", "point"), "must be 'voxel' or 'point'"),
             ("temperature", self.temperature > 0, "must be > 0"),
+            ("test_time_views", self.test_time_views >= 1, "must be >= 1"),
             ("epochs", self.epochs >= 1, "must be >= 1"),
             ("min_steps", self.min_steps >= 0, "must be >= 0"),
             ("lr", self.lr > 0, "must be > 0"),

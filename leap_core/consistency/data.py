@@ -65,6 +65,24 @@ def augment_points(points: npt.NDArray[np.float32], rng: np.random.Generator) ->
     return out
 
 
+def inference_view(points: npt.NDArray[np.float32], j: int, n: int) -> npt.NDArray[np.float32]:
+    """View ``j`` of ``n`` of a scan for test-time averaging: a turn about z by ``2πj/n``, and a mirror of y
+    in odd views (x, y, z only; remission kept).
+
+    ``p' = R_z(2πj/n) · diag(1, (-1)^j, 1) · p``. View 0 is the scan itself (a copy). The views are the
+    rotations and mirrors :func:`augment_points` trains on, without its scale.
+    """
+    if not 0 <= j < n:
+        raise ValueError(f"view {j} of {n}: need 0 <= j < n")
+    theta = 2.0 * np.pi * j / n
+    c, s = np.cos(theta), np.sin(theta)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, (-1.0) ** j, 1.0])
+    out = np.copy(points, order="C")
+    if j:
+        out[:, :3] = (points[:, :3].astype(np.float64) @ rot.T).astype(np.float32)
+    return out
+
+
 def shape_features(offsets: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     """Covariance (PCA) shape descriptors of each point's neighbourhood.
 
@@ -139,8 +157,9 @@ def prepare_cloud(
         workers: threads of the kd-tree query.
 
     Returns:
-        Per point n of the subset: ``feats = [x/S, y/S, z/H, ‖p‖/S, height above ground/H,``
-        :func:`shape_features` ``(+ remission)]`` with S = ``POSITION_SCALE``, H = ``HEIGHT_SCALE``,
+        Per point n of the subset: ``feats = [(x/S, y/S, z/H, ‖p‖/S,) height above ground/H,``
+        :func:`shape_features` ``(+ remission)]`` (the first four with ``cfg.position_inputs``) with
+        S = ``POSITION_SCALE``, H = ``HEIGHT_SCALE``,
         ``local[n, j] = [(p_m - p_n) / LOCAL_SCALE, ‖p_m - p_n‖ / LOCAL_SCALE (+ r_m - r_n)]`` for its j-th
         nearest neighbour m (itself first), and its (u, v) cell on each plane:
         ``u = floor((clip(p_a) - min_a) / cell_p)`` over the subset's minimum.
@@ -168,6 +187,8 @@ def prepare_cloud(
         xyz[:, :2] / POSITION_SCALE,
         xyz[:, 2:3] / HEIGHT_SCALE,
         np.linalg.norm(xyz, axis=1, keepdims=True) / POSITION_SCALE,
+    ] if cfg.position_inputs else []
+    feat_parts += [
         height_above_ground(xyz_all)[subset if subset is not None else slice(None), None] / HEIGHT_SCALE,
         shape_features(offsets),
     ]

@@ -23,7 +23,7 @@ import numpy.typing as npt
 import torch
 
 from leap_core.consistency.backbone import PointSegmenter
-from leap_core.consistency.config import ConsistencyConfig
+from leap_core.consistency.config import ConsistencyConfig, fingerprint_form
 from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
     config_to_dict,
@@ -79,9 +79,11 @@ def training_fingerprint(
     time). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
     joint round over several sequences (:func:`iter_3dcn_round`)."""
     h = hashlib.sha256()
-    # Fields that only matter after training (T, device, threads) are left out: changing them reuses weights.
-    untrained = ("enabled", "iterations", "temperature", "network_evidence", "device", "num_threads")
-    trained = {k: v for k, v in config_to_dict(cfg).items() if k not in untrained}
+    # Fields that only matter after training (T, test-time views, device, threads) are left out: changing
+    # them reuses the weights.
+    untrained = ("enabled", "iterations", "temperature", "network_evidence", "test_time_views", "device",
+                 "num_threads")
+    trained = {k: v for k, v in fingerprint_form(config_to_dict(cfg)).items() if k not in untrained}
     head: dict[str, object] = {"cfg": trained, "C": num_classes}
     if isinstance(frames, range):
         head["frames"] = [frames.start, frames.stop, frames.step]
@@ -424,8 +426,9 @@ def predict_frames(
 ) -> Iterator[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]]:
     """Step 3's inference, one scan at a time: per frame of ``frames``, the (N,) voxel keys of its points
     in world coordinates and their (N, C) network log-probabilities (:func:`predict_log_probs`, on
-    ``model``'s device, ``cfg.num_threads`` torch threads). Only the scan being predicted is held; the
-    memory its forward pass freed goes back to the system before the scan is yielded
+    ``model``'s device, ``cfg.num_threads`` torch threads, averaged over ``cfg.test_time_views`` views).
+    Only the scan being predicted is held; the memory its forward pass freed goes back to the system
+    before the scan is yielded
     (:func:`~leap_core.heap.release_free_memory`). ``tick()`` after each scan."""
     device = next(model.parameters()).device
     with torch_threads(cfg.num_threads):
@@ -433,7 +436,8 @@ def predict_frames(
         for i in frames:
             frame = seq.frame(i)
             keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
-            logp = predict_log_probs(model, frame.points, device=device, workers=workers)
+            logp = predict_log_probs(model, frame.points, device=device, workers=workers,
+                                     views=cfg.test_time_views)
             del frame
             release_free_memory()  # the forward pass's activations, freed by now
             if tick is not None:

@@ -22,7 +22,13 @@ from torch.nn import functional as F_
 
 from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
-from leap_core.consistency.data import PreparedCloud, augment_points, collate, prepare_cloud
+from leap_core.consistency.data import (
+    PreparedCloud,
+    augment_points,
+    collate,
+    inference_view,
+    prepare_cloud,
+)
 from leap_core.errors import ModelLoadError
 from leap_core.heap import release_free_memory
 from leap_core.io_utils import atomic_write
@@ -269,25 +275,40 @@ def predict_log_probs(
     points: npt.NDArray[np.float32],
     device: torch.device | str = "cpu",
     workers: int = 1,
+    views: int = 1,
 ) -> npt.NDArray[np.float32]:
-    """Per-point class log-probabilities ``log_softmax(model(scan))`` for every point of one scan.
+    """Per-point class log-probabilities of every point of one scan, averaged over ``views`` views of it.
+
+    With ``P_j = softmax(model(inference_view(scan, j, views)))``: ``log((1/views) · Σ_j P_j)``, computed
+    as a log-sum-exp; ``views = 1`` is ``log_softmax(model(scan))`` itself.
 
     Args:
         model: a trained segmenter (moved to ``device`` by the caller).
         points: (N, 4) float32 scan in its LiDAR frame.
         device: where the forward pass runs.
         workers: kd-tree query threads.
+        views: test-time views (:func:`~leap_core.consistency.data.inference_view`), ≥ 1.
 
     Returns:
         (N, C) float32 log-probabilities (rows log-sum-exp to 0); ``-inf`` for classes the model had no
         training label of (``model.trained_classes``).
     """
+    if views < 1:
+        raise ValueError(f"views must be >= 1, got {views}")
     was_training = model.training
     model.eval()
     try:
-        batch = collate([prepare_cloud(points, model.cfg, None, workers=workers)]).to(device)
-        logits = model(batch).float().masked_fill(~model.trained_classes, -math.inf)
-        return F_.log_softmax(logits, dim=1).cpu().numpy()
+        acc: torch.Tensor | None = None
+        for j in range(views):
+            view = points if views == 1 else inference_view(points, j, views)
+            batch = collate([prepare_cloud(view, model.cfg, None, workers=workers)]).to(device)
+            logits = model(batch).float().masked_fill(~model.trained_classes, -math.inf)
+            logp = F_.log_softmax(logits, dim=1)
+            acc = logp if acc is None else torch.logaddexp(acc, logp)
+        assert acc is not None
+        if views > 1:
+            acc -= math.log(views)
+        return acc.cpu().numpy()
     finally:
         model.train(was_training)
 

@@ -48,6 +48,7 @@ from typing import Any
 import yaml
 
 from leap_core.config import PipelineConfig, config_to_dict
+from leap_core.consistency.config import fingerprint_form
 from leap_core.errors import Cancelled, ConfigError, DatasetError, LeapError
 from leap_core.export import (
     CONFIDENCES,
@@ -348,7 +349,8 @@ def _joint_fingerprints(
         fps[spec.name] = fp
         members.append([spec.name, fp["project"], fp["smooth"]])
     joint = hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes,
-                       "consistency": config_to_dict(config)["consistency"], "members": members})
+                       "consistency": fingerprint_form(config_to_dict(config)["consistency"]),
+                       "members": members})
     return joint, fps
 
 

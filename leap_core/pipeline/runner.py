@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from leap_core.config import PipelineConfig, config_to_dict
+from leap_core.consistency.config import fingerprint_form
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import Cancelled, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
@@ -107,6 +108,7 @@ def _fingerprints(ctx: Ctx) -> dict[str, str]:
     """Every stage's fingerprint: the config sections it reads, its upstream stages' fingerprints and its
     other inputs (cheap: nothing the stages wrote is read)."""
     sections = config_to_dict(ctx.cfg)
+    sections["consistency"] = fingerprint_form(sections["consistency"])
     fp: dict[str, str] = {}
     for stage in STAGE_TABLE:
         parts: dict[str, Any] = {"v": PIPELINE_VERSION, "C": ctx.schema.num_classes, "stage": stage.name,
