@@ -3,6 +3,7 @@ seed project files and base-run links that let every seed share one base run."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -44,6 +45,46 @@ def test_seed_row_reads_the_protocol_in_percent_and_computes_gains() -> None:
         t1.seed_row(0, {"paper": {"point": {"miou": 0.4}}}, "paper")
 
 
+def _conf(rows: list[list[int]]) -> list[list[int]]:
+    return [[*r, 0] for r in rows]  # no unlabeled column entries: every row labels the common points
+
+
+def test_same_points_gain_from_the_common_table_by_hand() -> None:
+    t1 = _module()
+    names, cats = ["a", "b"], ["x", "x"]
+    # voxel: a 8/10 right, b 5/6 right; x1: a all right, b 3/6 right.
+    voxel = _conf([[8, 2], [1, 5]])  # IoU a 8/11, b 5/8
+    x1 = _conf([[10, 0], [3, 3]])    # IoU a 10/13, b 3/6
+    m = _metrics(0.5, 0.6, 0.7, protocol="camera")
+    m.update(class_names=names, categories=cats,
+             common={"voxel": {"confusion": voxel}, "+3D-CN x1": {"confusion": x1}})
+    same = t1.same_points(m, "camera")
+    assert same["voxel"] == pytest.approx(100 * (8 / 11 + 5 / 8) / 2)
+    assert same["+3D-CN x1"] == pytest.approx(100 * (10 / 13 + 3 / 6) / 2)
+    r = t1.seed_row(0, m, "camera")
+    assert r.same1 == pytest.approx(same["+3D-CN x1"] - same["voxel"]) and r.gain1 == pytest.approx(10.0)
+    # Without a common table (a file older than it): no same-points gain.
+    assert t1.same_points(_metrics(0.5, 0.6, 0.7), "paper") == {} and t1.seed_row(
+        0, _metrics(0.5, 0.6, 0.7), "paper").same1 is None
+
+
+def test_same_points_on_the_paper_protocol_merges_first() -> None:
+    t1 = _module()
+    from leap_core.schema import builtin_schema
+
+    schema = builtin_schema("semantickitti")
+    c, ix = schema.num_classes, schema.index
+    conf = [[0] * (c + 1) for _ in range(c)]
+    conf[ix("truck")][ix("other-vehicle")] = 4  # other-vehicle after the merge: right
+    conf[ix("car")][ix("car")] = 2
+    m = _metrics(0.5, 0.6, 0.7)
+    m.update(class_names=schema.names, categories=schema.categories(),
+             common={"voxel": {"confusion": conf}, "+3D-CN x1": {"confusion": conf}})
+    # Merged: car 1.0 and other-vehicle 1.0 (19 classes: truck 0 and other-vehicle 0 would pull it down).
+    assert t1.same_points(m, "paper")["voxel"] == pytest.approx(100.0)
+    assert t1.same_points(m, "camera")["voxel"] == pytest.approx(100 / 3)
+
+
 def test_check_shared_refuses_seeds_that_did_not_share_the_base_run() -> None:
     t1 = _module()
     a = t1.seed_row(0, _metrics(0.4, 0.5, 0.6), "paper")
@@ -79,21 +120,23 @@ def test_table_markdown_rows_mean_std_and_paper_figures() -> None:
     agri = t1.DOMAINS["agri"]
     s_rows = [t1.seed_row(s, _metrics(0.434, 0.622, x1, x2), "paper")
               for s, x1, x2 in ((0, 0.70, 0.72), (1, 0.66, 0.69), (2, 0.68, 0.70))]
-    a_rows = [t1.seed_row(0, _metrics(0.795, 0.888, 0.808, protocol="camera"), "camera")]
+    a_rows = [dataclasses.replace(t1.seed_row(0, _metrics(0.795, 0.888, 0.808, protocol="camera"), "camera"),
+                                  same1=1.5)]
     text = t1.table_markdown([(street, s_rows), (agri, a_rows)])
     lines = text.splitlines()
     assert lines[0].startswith("| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 |")
+    assert lines[0].endswith("| gain ×1, same points |") and lines[1].count("---") == 9
     assert lines[2] == ("| street demo, `paper` labeler preset (the paper's 11 merged classes, camera view) "
-                        "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 |")
-    assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 |"
-    assert lines[4] == "|  | 2 | 43.4 | 62.2 | 68.0 | 70.0 | +5.8 | +7.8 |"
+                        "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 | n/a |")
+    assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 | n/a |"
+    assert lines[4] == "|  | 2 | 43.4 | 62.2 | 68.0 | 70.0 | +5.8 | +7.8 | n/a |"
     # mean ± sample std over seeds: x1 68.0 ± 2.0, x2 70.33 ± 1.53, gains 5.8 ± 2.0 and 8.13 ± 1.53
-    assert lines[5] == "| | mean | 43.4 | 62.2 | 68.0 ± 2.0 | 70.3 ± 1.5 | +5.8 ± 2.0 | +8.1 ± 1.5 |"
-    assert lines[6] == "| | *paper, SemanticKITTI* | *46.8* | *48.9* | *57.6* | — | *+8.7* | — |"
-    # One agri seed, one round: no mean line, n/a for x2.
+    assert lines[5] == "| | mean | 43.4 | 62.2 | 68.0 ± 2.0 | 70.3 ± 1.5 | +5.8 ± 2.0 | +8.1 ± 1.5 | n/a |"
+    assert lines[6] == "| | *paper, SemanticKITTI* | *46.8* | *48.9* | *57.6* | — | *+8.7* | — | — |"
+    # One agri seed, one round: no mean line, n/a for x2; its same-points gain from the common table.
     assert lines[7] == ("| farm drone (agri-uav), `default` labeler preset (7 classes, camera view) "
-                        "| 0 | 79.5 | 88.8 | 80.8 | n/a | -8.0 | n/a |")
-    assert lines[8] == "| | *paper, AgriUAV* | *38.0* | *49.7* | *61.5* | — | *+11.8* | — |"
+                        "| 0 | 79.5 | 88.8 | 80.8 | n/a | -8.0 | n/a | +1.5 |")
+    assert lines[8] == "| | *paper, AgriUAV* | *38.0* | *49.7* | *61.5* | — | *+11.8* | — | — |"
     assert len(lines) == 9
     # A domain with no seed measured is left out.
     assert "AgriUAV" not in t1.table_markdown([(street, s_rows), (agri, [])])
@@ -111,7 +154,8 @@ def test_parse_sets_and_seed_project_keep_the_domain_file_and_add_the_seed(tmp_p
     orig = yaml.safe_load((ROOT / "projects" / "agri_uav.yaml").read_text())
     assert doc["classes"] == orig["classes"]
     assert doc["pipeline"]["grounded_sam"] == orig["pipeline"]["grounded_sam"]
-    assert doc["pipeline"]["consistency"] == {"class_balance": False, "temperature": 1.5, "seed": 2}
+    assert doc["pipeline"]["consistency"] == {**orig["pipeline"]["consistency"], "class_balance": False,
+                                            "temperature": 1.5, "seed": 2}
     # The file is a valid project for the CLI's loader, and the seed reaches the 3D-CN's config.
     from leap_core.presets import load_preset
 
