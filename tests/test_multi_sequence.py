@@ -345,9 +345,11 @@ def test_switching_the_3dcn_off_gives_the_ordinary_runs_again(joint, plain, stre
 
 def test_an_ordinary_runs_3dcn_fingerprint_is_unchanged_by_the_joint_input(plain, streets, schema) -> None:
     """The joint record is an optional input of the 3dcn stage: an ordinary 3D-CN run's fingerprint is the
-    one it had before multi-sequence runs existed (config section + upstream only), so existing run
-    folders keep their 3D-CN, and the record, when present, changes it."""
+    one it had before multi-sequence runs existed (config section, less the fields added at their former
+    value, and upstream only), so existing run folders keep their 3D-CN, and the record, when present,
+    changes it."""
     from leap_core.config import config_to_dict
+    from leap_core.consistency.config import fingerprint_form
     from leap_core.pipeline import PIPELINE_VERSION, stage_fingerprints
     from leap_core.pipeline.context import hash_json
 
@@ -357,7 +359,7 @@ def test_an_ordinary_runs_3dcn_fingerprint_is_unchanged_by_the_joint_input(plain
     fp = stage_fingerprints(streets["00"], schema, cfg, run_dir)
     before = hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes, "stage": "3dcn",
                         "up": [fp["project"], fp["fuse"], fp["smooth"]],
-                        "config": {"consistency": config_to_dict(cfg)["consistency"]}})
+                        "config": {"consistency": fingerprint_form(config_to_dict(cfg)["consistency"])}})
     assert fp["3dcn"] == before
     note = RunLayout(run_dir).joint_3dcn
     note.write_text("{}")

@@ -75,7 +75,7 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
         tiny_dataset
     )
     assert run["has_metrics"] and run["has_export"] and not run["resumable"]
-    assert set(run["summary"]) == {"camera", "all", "paper"}
+    assert set(run["summary"]) == {"camera", "common", "all", "paper"}
     assert set(run["summary"]["camera"]) == {"point", "voxel"}
 
     metrics = client.get(f"{API}/runs/{run['id']}/metrics").json()

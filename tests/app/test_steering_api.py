@@ -164,7 +164,7 @@ def test_preview_note_and_comparison(env) -> None:
     texts = [c["text"] for c in cmp["changes"]]
     assert "kNN smoothing k (smoothing.k): 9 → 4" in texts
     assert any(t.startswith("class thing added") for t in texts)
-    assert {(r["protocol"], r["row"]) for r in cmp["rows"]} == {(p_, r_) for p_ in ("camera", "all")
+    assert {(r["protocol"], r["row"]) for r in cmp["rows"]} == {(p_, r_) for p_ in ("camera", "common", "all")
                                                                  for r_ in ("point", "voxel")}
     m1 = client.get(f"/runs/{run1['id']}/metrics").json()["metrics"]["protocols"]
     m2 = client.get(f"/runs/{run2['id']}/metrics").json()["metrics"]["protocols"]
