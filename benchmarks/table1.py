@@ -64,8 +64,8 @@ import numpy as np  # noqa: E402
 
 from leap_core.eval_view import PAPER_VIEW  # noqa: E402  after the sys.path line
 from leap_core.io_utils import atomic_write_bytes  # noqa: E402
-from leap_core.metrics import merge_confusion, metrics_from_confusion  # noqa: E402
-from leap_core.pipeline.evaluation import COMMON, PAPER, read_metrics_json  # noqa: E402
+from leap_core.metrics import metrics_from_confusion  # noqa: E402
+from leap_core.pipeline.evaluation import COMMON, PAPER, paper_metrics, read_metrics_json  # noqa: E402
 from leap_core.run_layout import RunLayout  # noqa: E402
 
 ROWS = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
@@ -164,14 +164,12 @@ def same_points(metrics: Mapping[str, Any], protocol: str) -> dict[str, float]:
         return {}
     names, cats = list(metrics["class_names"]), list(metrics["categories"])
     mapping = PAPER_VIEW.mapping(names) if protocol == PAPER else None
-    if mapping is not None:
-        names, cats = PAPER_VIEW.names, list(PAPER_VIEW.categories)
     out = {}
     for row, cell in table.items():
-        conf = np.asarray(cell["confusion"], np.int64)
-        if mapping is not None:
-            conf = merge_confusion(conf, mapping, len(names))
-        out[row] = 100.0 * float(metrics_from_confusion(conf, names, cats, ignore_unlabeled_pred=True).miou)
+        m = (metrics_from_confusion(np.asarray(cell["confusion"], np.int64), names, cats,
+                                    ignore_unlabeled_pred=True)
+             if mapping is None else paper_metrics(cell["confusion"], mapping))
+        out[row] = 100.0 * float(m.miou)
     return out
 
 

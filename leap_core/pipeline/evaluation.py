@@ -76,16 +76,18 @@ def add_paper_protocol(out: dict[str, Any]) -> None:
     if problem is not None or mapping is None:
         out.setdefault("protocol_notes", {})[PAPER] = f"not computed: {problem}"
         return
-    m = len(PAPER_VIEW.classes)
     out["protocols"][PAPER] = PAPER_DESCRIPTION
     out["paper_view"] = PAPER_VIEW.to_dict()
-    out[PAPER] = {
-        r: metrics_from_confusion(merge_confusion(np.asarray(out["camera"][r]["confusion"], np.int64),
-                                                  mapping, m),
-                                  PAPER_VIEW.names, PAPER_VIEW.categories,
-                                  ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER]).to_dict()
-        for r in out["rows"]
-    }
+    out[PAPER] = {r: paper_metrics(out["camera"][r]["confusion"], mapping).to_dict() for r in out["rows"]}
+
+
+def paper_metrics(confusion: npt.ArrayLike, mapping: npt.NDArray[np.int64]) -> Metrics:
+    """The paper's view of a (C, C+1) confusion matrix over the schema's classes: merged into the 11
+    classes (``merge_confusion`` with ``mapping = PAPER_VIEW.mapping(class_names)``) and scored with
+    unlabeled predictions ignored."""
+    merged = merge_confusion(np.asarray(confusion, np.int64), mapping, len(PAPER_VIEW.classes))
+    return metrics_from_confusion(merged, PAPER_VIEW.names, PAPER_VIEW.categories,
+                                  ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER])
 
 
 def common_points(in_view: npt.NDArray[np.bool_], preds: Iterable[npt.NDArray[np.int16]]
@@ -373,6 +375,7 @@ __all__ = [
     "load_metrics",
     "metrics_tables",
     "overall_metrics",
+    "paper_metrics",
     "read_metrics_file",
     "read_metrics_json",
     "result_tables",
