@@ -4,8 +4,8 @@
 #
 #   scripts/mutation.sh [--fresh] [--survivors] [MODULE ...]
 #
-# MODULE: fusion smoothing projection metrics cn-selection cn-stage stages runner simulated export kitti
-# (default: all, one after the other). Each module's mutants run against the fast tests that reach the
+# MODULE: fusion smoothing projection metrics cn-selection cn-stage stages runner evaluation simulated
+# export kitti (default: all, one after the other). Each module's mutants run against the fast tests that reach the
 # mutated function (no slow, browser or app-server tests). Prints the score per module and overall.
 #   --fresh      delete mutants/ first (mutmut otherwise reuses its copy and its test-to-function map)
 #   --survivors  re-test only the mutants that survived the last run (after adding tests)
@@ -26,11 +26,12 @@ declare -A FILE=(
     [cn-stage]=leap_core/consistency/stage.py
     [stages]=leap_core/pipeline/stages.py
     [runner]=leap_core/pipeline/runner.py
+    [evaluation]=leap_core/pipeline/evaluation.py
     [simulated]=leap_core/labelers/simulated.py
     [export]=leap_core/export.py
     [kitti]=leap_core/datasets/kitti.py
 )
-ORDER=(cn-selection metrics smoothing projection fusion cn-stage stages runner simulated export kitti)
+ORDER=(cn-selection metrics evaluation smoothing projection fusion cn-stage stages runner simulated export kitti)
 
 fresh=0
 survivors=0
