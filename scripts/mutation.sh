@@ -5,8 +5,8 @@
 #   scripts/mutation.sh [--fresh] [--survivors] [MODULE ...]
 #
 # MODULE: fusion smoothing projection metrics cn-selection cn-stage stages runner evaluation simulated
-# export kitti (default: all, one after the other). Each module's mutants run against the fast tests that reach the
-# mutated function (no slow, browser or app-server tests). Prints the score per module and overall.
+# export kitti (default: all, one after the other). Each module's mutants run against the fast tests that
+# reach the mutated function (no slow, browser or app-server tests). Prints the score per module and overall.
 #   --fresh      delete mutants/ first (mutmut otherwise reuses its copy and its test-to-function map)
 #   --survivors  re-test only the mutants that survived the last run (after adding tests)
 # Environment: MUTMUT (default .venv/bin/mutmut), MUTMUT_CHILDREN (parallel mutants, default 2).
@@ -40,7 +40,7 @@ for arg in "$@"; do
     case "$arg" in
         --fresh) fresh=1 ;;
         --survivors) survivors=1 ;;
-        -h|--help) sed -n '2,13p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
         *)
             if [[ -z "${FILE[$arg]:-}" ]]; then
                 echo "unknown module '$arg' (one of: ${ORDER[*]})" >&2
