@@ -23,6 +23,7 @@ from leap_core.consistency.selection import (
 from leap_core.consistency.stage import (
     checkpoint_path,
     fuse_back,
+    keep_known_or_sure,
     reliable_targets,
     run_3dcn_iteration,
     training_fingerprint,
@@ -337,6 +338,8 @@ def test_config_validation_names_the_field() -> None:
         (lambda: ConsistencyConfig(iterations=3), ("iterations",)),
         (lambda: ConsistencyConfig(temperature=0.0), ("temperature",)),
         (lambda: ConsistencyConfig(test_time_views=0), ("test_time_views",)),
+        (lambda: ConsistencyConfig(new_voxel_margin=-1.0), ("new_voxel_margin",)),
+        (lambda: ConsistencyConfig(network_evidence="point"), ("new_voxel_margin",)),
         (
             lambda: ConsistencyConfig(network_evidence="pixel"),  # type: ignore[arg-type]  # invalid on purpose
             ("network_evidence",),
@@ -399,6 +402,12 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     other = fingerprint_form(config_to_dict(replace(TINY, test_time_views=2,
                                                     backbone=replace(TINY_BACKBONE, position_inputs=False))))
     assert other["test_time_views"] == 2 and other["backbone"]["position_inputs"] is False
+    # new_voxel_margin: 0 computes what was computed before it existed, so stage fingerprints leave it out
+    # there; the default (4) is in them (a finished run fuses its network again); never in the training
+    # fingerprint (it acts after training).
+    assert "new_voxel_margin" not in fingerprint_form(config_to_dict(replace(TINY, new_voxel_margin=0.0)))
+    assert form["new_voxel_margin"] == 4.0
+    assert fp(replace(TINY, new_voxel_margin=0.0)) == fp(TINY) == fp(replace(TINY, new_voxel_margin=6.0))
 
 
 def test_test_time_views_by_hand() -> None:
@@ -540,6 +549,44 @@ def test_voxel_evidence_is_the_mean_and_point_evidence_the_sum() -> None:
         fuse_back(grid, [(key, p1)], 3, 1.0, FusionConfig(), "pixel")
 
 
+def test_keep_known_or_sure_by_hand() -> None:
+    known = np.array([2, 5], np.int64)
+    keys = np.array([1, 2, 3, 5, 7], np.int64)
+    means = np.array([
+        [-0.1, -5.0, -6.9],  # new, margin 4.9: kept
+        [-1.0, -1.1, -3.0],  # known, margin 0.1: kept
+        [-0.5, -3.0, -6.9],  # new, margin 2.5: dropped
+        [-6.9, -6.9, -0.2],  # known: kept
+        [-6.5, -3.0, -7.0],  # new, margin 3.5 (class 1 over class 0): dropped
+    ], np.float32)
+    for chunk in (1, 2, 100):
+        k, m = keep_known_or_sure(known, keys.copy(), means.copy(), 4.0, chunk=chunk)
+        assert k.tolist() == [1, 2, 5] and m.tolist() == means[[0, 1, 3]].tolist()
+    k, m = keep_known_or_sure(known, keys.copy(), means.copy(), 3.5, chunk=2)
+    assert k.tolist() == [1, 2, 5, 7]  # a margin equal to the threshold is sure enough
+    k, m = keep_known_or_sure(known, keys.copy(), means.copy(), 0.0)
+    assert k.tolist() == keys.tolist()
+    k, _ = keep_known_or_sure(np.zeros(0, np.int64), keys.copy(), means.copy(), 4.0)
+    assert k.tolist() == [1, 5]  # an empty grid: only the sure voxels (margins 4.9 and 6.7)
+
+
+def test_fuse_back_creates_a_voxel_no_camera_saw_only_where_the_network_is_sure() -> None:
+    grid, key = _one_voxel_grid()
+    sure_key, unsure_key = voxel_keys(np.array([[5.0, 5.0, 5.0], [9.0, 9.0, 9.0]]), 0.2)[:, None]
+    sure = np.log(np.array([[0.998, 0.001, 0.001]], np.float32))  # margin log(998) = 6.9
+    unsure = np.log(np.array([[0.05, 0.9, 0.05]], np.float32))  # margin log(18) = 2.9
+    known = np.log(np.array([[0.5, 0.3, 0.2]], np.float32))  # the camera's voxel: margin 0.5, still fused
+    preds = [(key, known), (sure_key, sure), (unsure_key, unsure)]
+    out = fuse_back(grid, preds, 3, 2.0, FusionConfig(), new_voxel_margin=4.0)
+    assert sorted(out.keys.tolist()) == sorted([int(key[0]), int(sure_key[0])])
+    every = fuse_back(grid, preds, 3, 2.0, FusionConfig())
+    assert every.num_voxels == 3
+    for k in (key, sure_key):
+        np.testing.assert_array_equal(out.logp[out.lookup(k)[0]], every.logp[every.lookup(k)[0]])
+    with pytest.raises(ValueError, match="voxel evidence only"):
+        fuse_back(grid, preds, 3, 2.0, FusionConfig(), "point", new_voxel_margin=4.0)
+
+
 def test_fuse_back_in_chunks_equals_one_call() -> None:
     grid, _ = _one_voxel_grid()
     rng = np.random.default_rng(0)
@@ -591,7 +638,8 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     # The fused grid (evidence goes here) and the smoothed one (labels are read here) differ: the fused one
     # has every label moved to the next class, so a mix-up of the two shows in the result.
     fused = VoxelGrid(grid.keys, np.roll(grid.logp, 1, axis=1), grid.voxel_size)
-    cfg = replace(TINY, epochs=2, temperature=1.0)
+    # Margin 0: every voxel the network predicts is created (the default margin is checked below).
+    cfg = replace(TINY, epochs=2, temperature=1.0, new_voxel_margin=0.0)
     calls: list[tuple[int, int]] = []
     out = run_3dcn_iteration(seq, fused, grid, c, cfg, FusionConfig(), tmp_path / "work", 1,
                              progress=lambda d, t: calls.append((d, t)))
@@ -605,7 +653,8 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     # ... and its predictions fused into the fused grid.
     preds = [(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2),
               predict_log_probs(ck.model, seq.frame(i).points)) for i in frames]
-    expected = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), cfg.network_evidence)
+    expected = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), cfg.network_evidence,
+                         new_voxel_margin=cfg.new_voxel_margin)
     assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
     assert calls[-1] == (3 + 2 * 3 + 3, 3 + 2 * 3 + 3)
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)
@@ -634,6 +683,18 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     expected4 = fuse_back(fused, preds4, c, cfg.temperature, FusionConfig(), cfg.network_evidence)
     assert np.array_equal(four.keys, expected4.keys) and np.array_equal(four.logp, expected4.logp)
     assert not np.array_equal(four.logp, out.logp)
+    # The margin for new voxels is applied after training too (checkpoint reused): the grid keeps every
+    # camera voxel and creates fewer new ones, each one of margin 0's.
+    vkeys, means, _ = voxel_mean_log_probs(preds, c, FusionConfig().prob_floor)
+    top = np.sort(means, axis=1)
+    margin = float(np.median((top[:, -1] - top[:, -2])[~np.isin(vkeys, fused.keys)]))  # half the new ones
+    sure = run_3dcn_iteration(seq, fused, grid, c, replace(cfg, new_voxel_margin=margin), FusionConfig(),
+                              tmp_path / "work", 1)
+    assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
+    expected_sure = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), new_voxel_margin=margin)
+    assert np.array_equal(sure.keys, expected_sure.keys) and np.array_equal(sure.logp, expected_sure.logp)
+    assert np.isin(fused.keys, sure.keys).all() and np.isin(sure.keys, out.keys).all()
+    assert fused.num_voxels < sure.num_voxels < out.num_voxels
     # T = ∞ ignores the network entirely.
     assert run_3dcn_iteration(seq, fused, grid, c, replace(cfg, temperature=math.inf), FusionConfig(),
                               tmp_path / "work", 1) is fused

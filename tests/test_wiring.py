@@ -203,7 +203,8 @@ def test_3dcn_grid_is_the_fused_grid_plus_network_evidence(run: Run) -> None:
             preds.append((voxel_keys(world_points(frame.points, frame.pose), fcfg.voxel_size),
                           predict_log_probs(model, frame.points)))
     fused = VoxelGrid.load(run.lay.grid)
-    expected = fuse_back(fused, preds, run.c, cn.temperature, fcfg, cn.network_evidence)
+    expected = fuse_back(fused, preds, run.c, cn.temperature, fcfg, cn.network_evidence,
+                         new_voxel_margin=cn.new_voxel_margin)
     stored = VoxelGrid.load(run.lay.grid_3dcn(1))
     np.testing.assert_array_equal(stored.keys, expected.keys)
     np.testing.assert_array_equal(stored.logp, expected.logp)

@@ -79,10 +79,10 @@ def training_fingerprint(
     time). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
     joint round over several sequences (:func:`iter_3dcn_round`)."""
     h = hashlib.sha256()
-    # Fields that only matter after training (T, test-time views, device, threads) are left out: changing
+    # Fields that only matter after training (T, new voxels' margin, test-time views, device, threads) are left out: changing
     # them reuses the weights.
-    untrained = ("enabled", "iterations", "temperature", "network_evidence", "test_time_views", "device",
-                 "num_threads")
+    untrained = ("enabled", "iterations", "temperature", "network_evidence", "new_voxel_margin",
+                 "test_time_views", "device", "num_threads")
     trained = {k: v for k, v in fingerprint_form(config_to_dict(cfg)).items() if k not in untrained}
     head: dict[str, object] = {"cfg": trained, "C": num_classes}
     if isinstance(frames, range):
@@ -324,7 +324,8 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
        **fusion back** into that part's ``fused`` (:func:`fuse_back`, ``cfg.network_evidence``): by default
        each voxel adds the mean of its points' floored network log-probabilities with weight ``1/T``,
        ``L_n(i) ← L_n(i) + (1/T) · mean_{p in n} max(log P_net(i | p), log prob_floor)``. A point whose
-       voxel is not in ``fused`` creates it, which is how points no camera saw get labels from 3D shape.
+       voxel is not in ``fused`` creates it where the network is sure of it (``cfg.new_voxel_margin``),
+       which is how points no camera saw get labels from 3D shape.
        ``T = ∞`` (weight 0) yields every ``fused`` unchanged.
 
     With one part this is exactly the single-sequence round (:func:`run_3dcn_iteration`): the scans are
@@ -409,7 +410,8 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
         fused = check(_grid(part.fused), "fused", part)
         scans = (predict_frames(model, part.seq, frames, cfg, fusion_cfg.voxel_size, tick) if predict is None
                  else _ticked(predict(part.seq, frames, ckpt_path), tick))
-        grid = fuse_back(fused, scans, num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence)
+        grid = fuse_back(fused, scans, num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence,
+                         new_voxel_margin=cfg.new_voxel_margin)
         del fused
         release_free_memory()
         yield grid
@@ -601,7 +603,57 @@ def voxel_mean_log_probs(
     return acc_keys, acc_sum, acc_cnt
 
 
-def fuse_back(
+def keep_known_or_sure(
+    known: npt.NDArray[np.int64],
+    keys: npt.NDArray[np.int64],
+    means: npt.NDArray[np.float32],
+    min_margin: float,
+    chunk: int = 1 << 20,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    """The rows of per-voxel network means to fuse: every voxel the grid already has, and a new one only
+    where the network is sure of it.
+
+    Row n is kept when ``keys[n] ∈ known`` or ``m_n(c1) − m_n(c2) ≥ min_margin``, with ``m_n`` the voxel's
+    mean floored log-probabilities (:func:`voxel_mean_log_probs`) and c1, c2 its best and second-best
+    class: the network's mean evidence for its class beats the runner-up by ``min_margin`` nats (at most
+    ``−log prob_floor``). ``min_margin ≤ 0`` keeps every row.
+
+    Compacts in place: ``keys`` and ``means`` are overwritten chunk by chunk and views of their first kept
+    rows are returned, so no second (V, C) array is made.
+
+    Args:
+        known: (K,) int64 sorted unique keys of the grid the means are fused into.
+        keys: (V,) int64 sorted unique keys of the means.
+        means: (V, C) float32.
+        min_margin: nats.
+        chunk: rows handled at once (the result does not depend on it).
+
+    Returns:
+        ``(keys[:w], means[:w])``: the kept rows, in their order.
+    """
+    if min_margin <= 0 or len(keys) == 0:
+        return keys, means
+    w = 0
+    for s in range(0, len(keys), chunk):
+        k = keys[s : s + chunk]
+        m = means[s : s + chunk]
+        pos = np.searchsorted(known, k)
+        seen = known[np.minimum(pos, max(len(known) - 1, 0))] == k if len(known) else np.zeros(len(k), bool)
+        if m.shape[1] > 1:
+            top = np.partition(m, -2, axis=1)
+            margin = top[:, -1] - top[:, -2]
+        else:  # one class: nothing to confuse it with
+            margin = np.full(len(m), np.inf, np.float32)
+        keep = seen | (margin >= min_margin)
+        n = int(keep.sum())
+        # w <= s: the kept rows move up over rows already read, never over unread ones.
+        keys[w : w + n] = k[keep]
+        means[w : w + n] = m[keep]
+        w += n
+    return keys[:w], means[:w]
+
+
+def fuse_back(  # noqa: PLR0913  the fusion's inputs, each named in the docstring
     grid: VoxelGrid,
     predictions: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]],
     num_classes: int,
@@ -609,6 +661,7 @@ def fuse_back(
     fusion_cfg: FusionConfig,
     evidence: str = "voxel",
     *,
+    new_voxel_margin: float = 0.0,
     chunk_points: int = FUSE_CHUNK_POINTS,
 ) -> VoxelGrid:
     """Tempered Bayesian fusion of per-point network log-probabilities into a grid.
@@ -623,7 +676,9 @@ def fuse_back(
     Then stored as every grid (row max 0, clipped at ``-logp_clip``, float16). ``T = 1`` trusts the network
     like one camera observation; ``T → ∞`` ignores it: ``T = inf`` returns ``grid`` itself (no new voxels
     either, since zero-weight evidence carries no class information). Voxels of ``P`` missing from ``grid``
-    are created, so points no camera saw get the network's label.
+    are created, so points no camera saw get the network's label; with ``new_voxel_margin > 0`` (voxel
+    evidence only) only those where the network is sure (:func:`keep_known_or_sure`), the others stay
+    unlabeled.
 
     Args:
         grid: grid to update (not modified).
@@ -632,17 +687,23 @@ def fuse_back(
         temperature: T > 0 (``math.inf`` allowed).
         fusion_cfg: voxel size, probability floor and clipping.
         evidence: "voxel" or "point" (see above).
+        new_voxel_margin: nats; a voxel not in ``grid`` is created only where its mean network
+            log-probability beats the runner-up class's by this much (0: every one). Voxel evidence only.
         chunk_points: points per reduction / :func:`fuse_dense` call.
     """
     if not temperature > 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
     if evidence not in ("voxel", "point"):
         raise ValueError(f"evidence must be 'voxel' or 'point', got {evidence!r}")
+    if new_voxel_margin > 0 and evidence != "voxel":
+        raise ValueError(f"new_voxel_margin applies to voxel evidence only, got {new_voxel_margin} with "
+                         f"{evidence!r}")
     if temperature == math.inf:
         return grid
     weight = 1.0 / temperature
     if evidence == "voxel":
         keys, means, _ = voxel_mean_log_probs(predictions, num_classes, fusion_cfg.prob_floor, chunk_points)
+        keys, means = keep_known_or_sure(grid.keys, keys, means, new_voxel_margin)
         # One row per voxel: fuse_dense's values, computed in the means' own buffer (fuse_unique).
         return fuse_unique(grid, keys, means, num_classes, fusion_cfg, weight=weight)
     out = grid
@@ -676,6 +737,7 @@ __all__ = [
     "iter_3dcn_round",
     "iter_reliable_targets",
     "iteration_config",
+    "keep_known_or_sure",
     "predict_frames",
     "reliable_targets",
     "run_3dcn_iteration",
