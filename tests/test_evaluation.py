@@ -59,7 +59,8 @@ def test_overall_metrics_by_hand() -> None:
     assert (out["class_names"], out["categories"], out["rows"]) == (NAMES, CATS, ROWS)
     assert out["n_points"] == 30 and out["n_points_in_view"] == 24
     assert out["labeled_points"] == {"point": 12, "voxel": 18}
-    assert out["labeled_share_all_points"] == {"point": pytest.approx(12 / 30), "voxel": pytest.approx(18 / 30)}
+    assert out["labeled_share_all_points"] == {"point": pytest.approx(12 / 30),
+                                               "voxel": pytest.approx(18 / 30)}
     assert out["coverage_ratio"] == {"point": 1.0, "voxel": pytest.approx(18 / 12)}
     assert out["protocols"] == PROTOCOLS
     # Voxel row, summed: 3·base + 2 on the diagonal = [[11, 3, 6], [0, 14, 3]].

@@ -79,8 +79,8 @@ def training_fingerprint(
     time). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
     joint round over several sequences (:func:`iter_3dcn_round`)."""
     h = hashlib.sha256()
-    # Fields that only matter after training (T, new voxels' margin, test-time views, device, threads) are left out: changing
-    # them reuses the weights.
+    # Fields that only matter after training (T, new voxels' margin, test-time views, device, threads)
+    # are left out: changing them reuses the weights.
     untrained = ("enabled", "iterations", "temperature", "network_evidence", "new_voxel_margin",
                  "test_time_views", "device", "num_threads")
     trained = {k: v for k, v in fingerprint_form(config_to_dict(cfg)).items() if k not in untrained}
@@ -653,7 +653,7 @@ def keep_known_or_sure(
     return keys[:w], means[:w]
 
 
-def fuse_back(  # noqa: PLR0913  the fusion's inputs, each named in the docstring
+def fuse_back(
     grid: VoxelGrid,
     predictions: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]],
     num_classes: int,
