@@ -568,6 +568,14 @@ def test_keep_known_or_sure_by_hand() -> None:
     assert k.tolist() == keys.tolist()
     k, _ = keep_known_or_sure(np.zeros(0, np.int64), keys.copy(), means.copy(), 4.0)
     assert k.tolist() == [1, 5]  # an empty grid: only the sure voxels (margins 4.9 and 6.7)
+    # The margin applies inside the camera view only: a new voxel outside it is kept however unsure.
+    for chunk in (1, 100):
+        k, m = keep_known_or_sure(known, keys.copy(), means.copy(), 4.0, np.array([3], np.int64), chunk)
+        assert k.tolist() == [1, 2, 5, 7] and m.tolist() == means[[0, 1, 3, 4]].tolist()
+    k, _ = keep_known_or_sure(known, keys.copy(), means.copy(), 4.0, keys.copy())
+    assert k.tolist() == [1, 2, 5]
+    k, _ = keep_known_or_sure(known, keys.copy(), means.copy(), 4.0, np.zeros(0, np.int64))
+    assert k.tolist() == keys.tolist()
 
 
 def test_fuse_back_creates_a_voxel_no_camera_saw_only_where_the_network_is_sure() -> None:
@@ -581,6 +589,10 @@ def test_fuse_back_creates_a_voxel_no_camera_saw_only_where_the_network_is_sure(
     assert sorted(out.keys.tolist()) == sorted([int(key[0]), int(sure_key[0])])
     every = fuse_back(grid, preds, 3, 2.0, FusionConfig())
     assert every.num_voxels == 3
+    # Outside the camera view (not in `in_view`) the unsure voxel is created all the same.
+    out_of_view = fuse_back(grid, preds, 3, 2.0, FusionConfig(), new_voxel_margin=4.0,
+                            in_view=np.sort(np.concatenate([key, sure_key])))
+    assert out_of_view.keys.tolist() == every.keys.tolist()
     for k in (key, sure_key):
         np.testing.assert_array_equal(out.logp[out.lookup(k)[0]], every.logp[every.lookup(k)[0]])
     with pytest.raises(ValueError, match="voxel evidence only"):

@@ -39,6 +39,7 @@ from leap_core.fusion import (
 )
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline import run_pipeline
+from leap_core.pipeline.context import load_view
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import RunLayout, load_corrections, save_corrections
 from leap_core.schema import Schema, builtin_schema
@@ -196,15 +197,19 @@ def test_3dcn_grid_is_the_fused_grid_plus_network_evidence(run: Run) -> None:
     = its knn_smooth with the corrections re-imposed."""
     cn, fcfg = run.cfg.consistency, run.cfg.fusion
     model = load_checkpoint(checkpoint_path(run.lay.cn_dir, 1)).model
-    preds = []
+    preds, in_view = [], []
     with torch_threads(cn.num_threads):  # the stage's thread count: matmul sums in the same order
         for i in run.frames:
             frame = run.seq.frame(i)
-            preds.append((voxel_keys(world_points(frame.points, frame.pose), fcfg.voxel_size),
-                          predict_log_probs(model, frame.points)))
+            keys = voxel_keys(world_points(frame.points, frame.pose), fcfg.voxel_size)
+            preds.append((keys, predict_log_probs(model, frame.points)))
+            in_view.append(keys[load_view(run.lay.observation(f"{i:06d}"))[1]])
     fused = VoxelGrid.load(run.lay.grid)
+    # The margin applies to the new voxels inside the camera view; some lie outside it here.
+    in_view_keys = np.unique(np.concatenate(in_view))
+    assert not np.isin(np.concatenate([k for k, _ in preds]), in_view_keys).all()
     expected = fuse_back(fused, preds, run.c, cn.temperature, fcfg, cn.network_evidence,
-                         new_voxel_margin=cn.new_voxel_margin)
+                         new_voxel_margin=cn.new_voxel_margin, in_view=in_view_keys)
     stored = VoxelGrid.load(run.lay.grid_3dcn(1))
     np.testing.assert_array_equal(stored.keys, expected.keys)
     np.testing.assert_array_equal(stored.logp, expected.logp)

@@ -142,17 +142,18 @@ class ConsistencyConfig:
     sequence length while a fused grid's stored camera evidence is clipped at ``logp_clip``, so it
     overrides almost every voxel unless ``temperature`` is large."""
     new_voxel_margin: float = 4.0
-    """A voxel no camera observed is created by the network only where it is sure of it: its mean
-    log-probability (``voxel`` evidence: the mean over the voxel's points of ``max(log P_net, log
-    prob_floor)``) for its class beats the runner-up class's by at least this many nats (at most ``−log
-    prob_floor`` ≈ 6.9); its points stay unlabeled otherwise. No camera evidence weighs against the network
-    there, and where it is wrong it is mostly less sure: on the farm's tuning sequences 101-103 most of the
-    in-view points no camera mask labeled are ground under tree crowns (depth clustering takes them out of
-    the crown's mask), which the network called ground, tree, fence or person. 0 creates every such voxel
-    (as before this field). Needs ``network_evidence: voxel``; acts after training (a changed value reuses
-    the checkpoint). Chosen on those tuning sequences (one round, camera-view mIoU, mean of the three, for
-    0 / 2 / 3 / 4 / 5 / 6: 91.6 / 92.5 / 93.4 / 93.9 / 93.8 / 93.8; voxel labels 92.3; docs/METHOD.md C.3,
-    C.5)."""
+    """A voxel inside the camera view that no camera mask labeled is created by the network only where it
+    is sure of it: its mean log-probability (``voxel`` evidence: the mean over the voxel's points of
+    ``max(log P_net, log prob_floor)``) for its class beats the runner-up class's by at least this many nats
+    (at most ``−log prob_floor`` ≈ 6.9); its points stay unlabeled otherwise. Voxels outside every camera
+    view are always created (the network is all there is). In view, no camera evidence weighs against the
+    network in such a voxel, and where it is wrong it is mostly less sure: on the farm's tuning sequences
+    101-103 most of the in-view points no camera mask labeled are ground under tree crowns (depth
+    clustering takes them out of the crown's mask), which the network called ground, tree, fence or person.
+    0 creates every such voxel (as before this field). Needs ``network_evidence: voxel``; acts after
+    training (a changed value reuses the checkpoint). Chosen on those tuning sequences (one round,
+    camera-view mIoU, mean of the three, for 0 / 2 / 3 / 4 / 5 / 6: 91.6 / 92.5 / 93.4 / 93.9 / 93.8 /
+    93.8; voxel labels 92.3; docs/METHOD.md C.3, C.5)."""
     test_time_views: int = 1
     """Views of each scan whose predictions are averaged at inference (test-time augmentation): view j of n
     turns the scan by 2πj/n about z and mirrors y when j is odd

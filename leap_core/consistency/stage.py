@@ -233,8 +233,16 @@ GridSource = VoxelGrid | Callable[[], VoxelGrid]
 a time)."""
 
 
+KeySource = npt.NDArray[np.int64] | Callable[[], npt.NDArray[np.int64]]
+"""Sorted voxel keys, or a function that makes them when the round needs them."""
+
+
 def _grid(source: GridSource) -> VoxelGrid:
     return source if isinstance(source, VoxelGrid) else source()
+
+
+def _keys(source: KeySource | None) -> npt.NDArray[np.int64] | None:
+    return source if source is None or isinstance(source, np.ndarray) else source()
 
 
 @dataclass(frozen=True)
@@ -260,6 +268,10 @@ class RoundPart:
     name: str = ""
     """The sequence's name in a joint round (part of the checkpoint's fingerprint when there are several
     parts)."""
+    in_view: KeySource | None = None
+    """Sorted unique keys of the voxels that hold a point inside a camera image in some frame (or a
+    function that makes them): ``cfg.new_voxel_margin`` applies to the new voxels among them
+    (:func:`keep_known_or_sure`). None counts every voxel as in view."""
 
 
 def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named in the docstring
@@ -275,6 +287,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
     frames: range | None = None,
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None,
     erased: npt.NDArray[np.int64] | None = None,
+    in_view: npt.NDArray[np.int64] | None = None,
 ) -> VoxelGrid:
     """Self-train the 3D Consistency Network once on one sequence and fuse its predictions into ``fused``:
     :func:`iter_3dcn_round` with one :class:`RoundPart` (whose fields document the arguments).
@@ -293,7 +306,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
     Raises:
         LeapError: when no point of any scan has a label to train on.
     """
-    part = RoundPart(seq, fused, smoothed, frames, views, erased)
+    part = RoundPart(seq, fused, smoothed, frames, views, erased, in_view=in_view)
     return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress))
 
 
@@ -324,8 +337,8 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
        **fusion back** into that part's ``fused`` (:func:`fuse_back`, ``cfg.network_evidence``): by default
        each voxel adds the mean of its points' floored network log-probabilities with weight ``1/T``,
        ``L_n(i) ← L_n(i) + (1/T) · mean_{p in n} max(log P_net(i | p), log prob_floor)``. A point whose
-       voxel is not in ``fused`` creates it where the network is sure of it (``cfg.new_voxel_margin``),
-       which is how points no camera saw get labels from 3D shape.
+       voxel is not in ``fused`` creates it (inside the camera view, ``part.in_view``, only where the network
+       is sure of it: ``cfg.new_voxel_margin``), which is how points no camera saw get labels from 3D shape.
        ``T = ∞`` (weight 0) yields every ``fused`` unchanged.
 
     With one part this is exactly the single-sequence round (:func:`run_3dcn_iteration`): the scans are
@@ -410,8 +423,9 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
         fused = check(_grid(part.fused), "fused", part)
         scans = (predict_frames(model, part.seq, frames, cfg, fusion_cfg.voxel_size, tick) if predict is None
                  else _ticked(predict(part.seq, frames, ckpt_path), tick))
+        in_view = _keys(part.in_view) if cfg.new_voxel_margin > 0 else None
         grid = fuse_back(fused, scans, num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence,
-                         new_voxel_margin=cfg.new_voxel_margin)
+                         new_voxel_margin=cfg.new_voxel_margin, in_view=in_view)
         del fused
         release_free_memory()
         yield grid
@@ -603,20 +617,31 @@ def voxel_mean_log_probs(
     return acc_keys, acc_sum, acc_cnt
 
 
+def _members(sorted_keys: npt.NDArray[np.int64], k: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
+    """``k ∈ sorted_keys`` per entry of ``k`` (``sorted_keys`` sorted unique)."""
+    if len(sorted_keys) == 0:
+        return np.zeros(len(k), bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, k), len(sorted_keys) - 1)
+    return np.asarray(sorted_keys[pos] == k)
+
+
 def keep_known_or_sure(
     known: npt.NDArray[np.int64],
     keys: npt.NDArray[np.int64],
     means: npt.NDArray[np.float32],
     min_margin: float,
+    in_view: npt.NDArray[np.int64] | None = None,
     chunk: int = 1 << 20,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
-    """The rows of per-voxel network means to fuse: every voxel the grid already has, and a new one only
-    where the network is sure of it.
+    """The rows of per-voxel network means to fuse: every voxel the grid already has, every voxel outside
+    the camera view, and a new voxel inside it only where the network is sure of it.
 
-    Row n is kept when ``keys[n] ∈ known`` or ``m_n(c1) − m_n(c2) ≥ min_margin``, with ``m_n`` the voxel's
-    mean floored log-probabilities (:func:`voxel_mean_log_probs`) and c1, c2 its best and second-best
-    class: the network's mean evidence for its class beats the runner-up by ``min_margin`` nats (at most
-    ``−log prob_floor``). ``min_margin ≤ 0`` keeps every row.
+    Row n is kept when ``keys[n] ∈ known``, or ``keys[n] ∉ in_view``, or ``m_n(c1) − m_n(c2) ≥
+    min_margin``, with ``m_n`` the voxel's mean floored log-probabilities (:func:`voxel_mean_log_probs`) and
+    c1, c2 its best and second-best class: the network's mean evidence for its class beats the runner-up by
+    ``min_margin`` nats (at most ``−log prob_floor``). A voxel in view that is not in ``known`` held points
+    that a camera saw and no mask labeled (or depth clustering took out of its mask); one outside every
+    view no camera could label, and the network is all there is. ``min_margin ≤ 0`` keeps every row.
 
     Compacts in place: ``keys`` and ``means`` are overwritten chunk by chunk and views of their first kept
     rows are returned, so no second (V, C) array is made.
@@ -626,6 +651,8 @@ def keep_known_or_sure(
         keys: (V,) int64 sorted unique keys of the means.
         means: (V, C) float32.
         min_margin: nats.
+        in_view: sorted unique keys of the voxels holding a point inside a camera image (in any frame);
+            None counts every voxel as in view.
         chunk: rows handled at once (the result does not depend on it).
 
     Returns:
@@ -637,14 +664,14 @@ def keep_known_or_sure(
     for s in range(0, len(keys), chunk):
         k = keys[s : s + chunk]
         m = means[s : s + chunk]
-        pos = np.searchsorted(known, k)
-        seen = known[np.minimum(pos, max(len(known) - 1, 0))] == k if len(known) else np.zeros(len(k), bool)
         if m.shape[1] > 1:
             top = np.partition(m, -2, axis=1)
             margin = top[:, -1] - top[:, -2]
         else:  # one class: nothing to confuse it with
             margin = np.full(len(m), np.inf, np.float32)
-        keep = seen | (margin >= min_margin)
+        keep = _members(known, k) | (margin >= min_margin)
+        if in_view is not None:
+            keep |= ~_members(in_view, k)
         n = int(keep.sum())
         # w <= s: the kept rows move up over rows already read, never over unread ones.
         keys[w : w + n] = k[keep]
@@ -653,7 +680,7 @@ def keep_known_or_sure(
     return keys[:w], means[:w]
 
 
-def fuse_back(
+def fuse_back(  # noqa: PLR0913  the fusion's inputs, each named in the docstring
     grid: VoxelGrid,
     predictions: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]],
     num_classes: int,
@@ -662,6 +689,7 @@ def fuse_back(
     evidence: str = "voxel",
     *,
     new_voxel_margin: float = 0.0,
+    in_view: npt.NDArray[np.int64] | None = None,
     chunk_points: int = FUSE_CHUNK_POINTS,
 ) -> VoxelGrid:
     """Tempered Bayesian fusion of per-point network log-probabilities into a grid.
@@ -677,8 +705,8 @@ def fuse_back(
     like one camera observation; ``T → ∞`` ignores it: ``T = inf`` returns ``grid`` itself (no new voxels
     either, since zero-weight evidence carries no class information). Voxels of ``P`` missing from ``grid``
     are created, so points no camera saw get the network's label; with ``new_voxel_margin > 0`` (voxel
-    evidence only) only those where the network is sure (:func:`keep_known_or_sure`), the others stay
-    unlabeled.
+    evidence only), those inside the camera view only where the network is sure (:func:`keep_known_or_sure`),
+    the others stay unlabeled.
 
     Args:
         grid: grid to update (not modified).
@@ -689,6 +717,8 @@ def fuse_back(
         evidence: "voxel" or "point" (see above).
         new_voxel_margin: nats; a voxel not in ``grid`` is created only where its mean network
             log-probability beats the runner-up class's by this much (0: every one). Voxel evidence only.
+        in_view: sorted unique keys of the voxels inside a camera view (the margin applies to those only);
+            None: to every new voxel.
         chunk_points: points per reduction / :func:`fuse_dense` call.
     """
     if not temperature > 0:
@@ -703,7 +733,7 @@ def fuse_back(
     weight = 1.0 / temperature
     if evidence == "voxel":
         keys, means, _ = voxel_mean_log_probs(predictions, num_classes, fusion_cfg.prob_floor, chunk_points)
-        keys, means = keep_known_or_sure(grid.keys, keys, means, new_voxel_margin)
+        keys, means = keep_known_or_sure(grid.keys, keys, means, new_voxel_margin, in_view)
         # One row per voxel: fuse_dense's values, computed in the means' own buffer (fuse_unique).
         return fuse_unique(grid, keys, means, num_classes, fusion_cfg, weight=weight)
     out = grid
@@ -729,6 +759,7 @@ def fuse_back(
 __all__ = [
     "FUSE_CHUNK_POINTS",
     "GridSource",
+    "KeySource",
     "Predict",
     "RoundPart",
     "TargetFile",

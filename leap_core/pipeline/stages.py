@@ -45,6 +45,7 @@ from leap_core.pipeline.context import (
     frame_input_digest,
     hash_json,
     load_observation,
+    load_view,
 )
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
 from leap_core.projection import Painted, paint, project_points
@@ -168,6 +169,17 @@ def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
         frame = ctx.seq.frame(i)
         pts = frame.points_at(painted.point_idx)
         yield painted, voxel_keys(world_points(pts, frame.pose), ctx.cfg.fusion.voxel_size)
+
+
+def camera_view_keys(ctx: Ctx) -> npt.NDArray[np.int64]:
+    """Sorted unique world voxel keys of the points inside a camera image, over the run's frames (the
+    observations' ``in_view`` masks): where the camera could have labeled a voxel."""
+    def per_frame() -> Iterator[npt.NDArray[np.int64]]:
+        for i in ctx.frames:
+            _, in_view = load_view(ctx.layout.observation(ctx.fid(i)))
+            yield frame_keys(ctx.seq.frame(i), ctx.cfg.fusion.voxel_size)[in_view]
+
+    return view_counts(per_frame())[0]
 
 
 # ---------------------------------------------------------------------------------------------- fuse
@@ -331,9 +343,12 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
             if cn.rank_by_views:
                 views = [v if v is not None else view_counts(keys for _, keys in observed_keys(m.ctx))
                          for m, v in zip(members, views, strict=True)]
+            # The margin for new voxels applies inside the camera view (keep_known_or_sure); the keys are
+            # made when the round fuses that member, one member's at a time.
             parts = [
                 RoundPart(m.ctx.seq, partial(VoxelGrid.load, f, mmap=True),
-                          partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name)
+                          partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name,
+                          in_view=partial(camera_view_keys, m.ctx))
                 for m, f, s, v, e in zip(members, fused, smoothed, views, erased, strict=True)
             ]
             round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog,
@@ -517,6 +532,6 @@ STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)
 """Stage names in execution order."""
 
 
-__all__ = ["STAGES", "STAGE_TABLE", "CnMember", "cn_rounds", "finish_fuse", "observed_keys", "stage_3dcn",
-           "stage_export", "stage_fuse", "stage_label_points", "stage_labels2d", "stage_project",
-           "stage_smooth"]
+__all__ = ["STAGES", "STAGE_TABLE", "CnMember", "camera_view_keys", "cn_rounds", "finish_fuse",
+           "observed_keys", "stage_3dcn", "stage_export", "stage_fuse", "stage_label_points",
+           "stage_labels2d", "stage_project", "stage_smooth"]
