@@ -154,7 +154,7 @@ class ConsistencyConfig:
     of the three, for 0 / 2 / 3 / 4 / 5 / 6: 91.6 / 92.5 / 93.4 / 93.9 / 93.8 / 93.8; voxel labels 92.3;
     all points 91.6 → 93.0). The default, 0, creates every such voxel: on the street demo with the `paper`
     labeler, whose masks leave most of the view unlabeled, 4 raised camera-view mIoU (paper's classes,
-    +1.1) but left 18 % of all points unlabeled and lowered all-points mIoU by 6 (docs/METHOD.md C.3,
+    +1.0) but left 18 % of all points unlabeled and lowered all-points mIoU by 6 (docs/METHOD.md C.3,
     C.5). Needs ``network_evidence: voxel``; acts after training (a changed value reuses the checkpoint)."""
     test_time_views: int = 1
     """Views of each scan whose predictions are averaged at inference (test-time augmentation): view j of n
