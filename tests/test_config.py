@@ -215,7 +215,6 @@ def test_presets_read_classes_and_pipeline_section() -> None:
     assert agri.source == projects_dir() / "agri_uav.yaml" and agri.schema.num_classes == 7
     assert agri.pipeline.labeler == "grounded-sam" and agri.pipeline.grounded_sam.box_threshold == 0.2
     assert agri.pipeline.consistency.class_balance_power == 0.0  # the farm's choice on its tuning sequences
-    assert agri.pipeline.consistency.new_voxel_margin == 4.0  # likewise
     assert load_preset(projects_dir() / "agri_uav.yaml") == agri == builtin_preset("agri_uav")
     assert load_preset("semantickitti").pipeline == PipelineConfig()
     # The section applies onto a base: fields it does not name keep the base's values.

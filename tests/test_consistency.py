@@ -339,7 +339,7 @@ def test_config_validation_names_the_field() -> None:
         (lambda: ConsistencyConfig(temperature=0.0), ("temperature",)),
         (lambda: ConsistencyConfig(test_time_views=0), ("test_time_views",)),
         (lambda: ConsistencyConfig(new_voxel_margin=-1.0), ("new_voxel_margin",)),
-        (lambda: ConsistencyConfig(network_evidence="point", new_voxel_margin=4.0), ("new_voxel_margin",)),
+        (lambda: ConsistencyConfig(network_evidence="point"), ("new_voxel_margin",)),
         (
             lambda: ConsistencyConfig(network_evidence="pixel"),  # type: ignore[arg-type]  # invalid on purpose
             ("network_evidence",),
@@ -396,18 +396,18 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     assert fp(replace(TINY, backbone=replace(TINY_BACKBONE, position_inputs=False))) != fp(TINY)
     plain = config_to_dict(TINY)
     form = fingerprint_form(plain)
-    assert set(form) == set(plain) - {"test_time_views", "new_voxel_margin"}
+    assert set(form) == set(plain) - {"test_time_views"}
     assert set(form["backbone"]) == set(plain["backbone"]) - {"position_inputs"}
     assert plain["test_time_views"] == 1 and plain["backbone"]["position_inputs"] is True  # not written to
     other = fingerprint_form(config_to_dict(replace(TINY, test_time_views=2,
                                                     backbone=replace(TINY_BACKBONE, position_inputs=False))))
     assert other["test_time_views"] == 2 and other["backbone"]["position_inputs"] is False
-    # new_voxel_margin: 0 (the default) computes what was computed before it existed, so stage fingerprints
-    # leave it out there; another value is in them (a finished run fuses its network again); never in the
-    # training fingerprint (it acts after training).
-    assert "new_voxel_margin" not in form and plain["new_voxel_margin"] == 0.0
-    assert fingerprint_form(config_to_dict(replace(TINY, new_voxel_margin=4.0)))["new_voxel_margin"] == 4.0
-    assert fp(replace(TINY, new_voxel_margin=4.0)) == fp(TINY) == fp(replace(TINY, new_voxel_margin=6.0))
+    # new_voxel_margin: 0 computes what was computed before it existed, so stage fingerprints leave it out
+    # there; the default (4) is in them (a finished run fuses its network again); never in the training
+    # fingerprint (it acts after training).
+    assert "new_voxel_margin" not in fingerprint_form(config_to_dict(replace(TINY, new_voxel_margin=0.0)))
+    assert form["new_voxel_margin"] == 4.0
+    assert fp(replace(TINY, new_voxel_margin=0.0)) == fp(TINY) == fp(replace(TINY, new_voxel_margin=6.0))
 
 
 def test_test_time_views_by_hand() -> None:

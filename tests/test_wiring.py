@@ -45,10 +45,8 @@ from leap_core.run_layout import RunLayout, load_corrections, save_corrections
 from leap_core.schema import Schema, builtin_schema
 from leap_core.smoothing import SmoothedGrid, knn_smooth
 
-# new_voxel_margin (the farm preset's 4): the 3D-CN stage then also hands the camera view's voxels to the
-# fusion back, which the wiring test below checks.
 TINY_3DCN = {"enabled": True, "iterations": 1, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
-             "new_voxel_margin": 4.0, "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+             "backbone": {"channels": 8, "layers": 1, "knn": 4}}
 
 
 class Run:
