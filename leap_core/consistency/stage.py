@@ -43,6 +43,7 @@ from leap_core.fusion import (
     fuse_dense,
     fuse_unique,
     merge_sparse,
+    rows_in_sorted,
     voxel_keys,
     world_points,
 )
@@ -617,14 +618,6 @@ def voxel_mean_log_probs(
     return acc_keys, acc_sum, acc_cnt
 
 
-def _members(sorted_keys: npt.NDArray[np.int64], k: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
-    """``k ∈ sorted_keys`` per entry of ``k`` (``sorted_keys`` sorted unique)."""
-    if len(sorted_keys) == 0:
-        return np.zeros(len(k), bool)
-    pos = np.minimum(np.searchsorted(sorted_keys, k), len(sorted_keys) - 1)
-    return np.asarray(sorted_keys[pos] == k)
-
-
 def keep_known_or_sure(
     known: npt.NDArray[np.int64],
     keys: npt.NDArray[np.int64],
@@ -669,9 +662,9 @@ def keep_known_or_sure(
             margin = top[:, -1] - top[:, -2]
         else:  # one class: nothing to confuse it with
             margin = np.full(len(m), np.inf, np.float32)
-        keep = _members(known, k) | (margin >= min_margin)
+        keep = (rows_in_sorted(known, k) >= 0) | (margin >= min_margin)
         if in_view is not None:
-            keep |= ~_members(in_view, k)
+            keep |= rows_in_sorted(in_view, k) < 0
         n = int(keep.sum())
         # w <= s: the kept rows move up over rows already read, never over unread ones.
         keys[w : w + n] = k[keep]

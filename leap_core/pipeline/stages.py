@@ -10,7 +10,7 @@ import json
 import shutil
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from functools import partial
+from functools import cache, partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -326,6 +326,9 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
     # points would train the network on the very labels the user removed.
     erased = [RunCorrections.of_run(m.ctx.layout, c).erased_keys() for m in members]
     views: list[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None] = [None] * len(members)
+    # The margin for new voxels applies inside the camera view (keep_known_or_sure): each member's keys
+    # are made when a round first fuses that member, and kept for a second round (as the view counts are).
+    in_view = [cache(partial(camera_view_keys, m.ctx)) for m in members]
     total = cn.iterations * _3DCN_GRID_SCALE
 
     def tick(done: int, tot: int) -> None:
@@ -343,13 +346,10 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
             if cn.rank_by_views:
                 views = [v if v is not None else view_counts(keys for _, keys in observed_keys(m.ctx))
                          for m, v in zip(members, views, strict=True)]
-            # The margin for new voxels applies inside the camera view (keep_known_or_sure); the keys are
-            # made when the round fuses that member, one member's at a time.
             parts = [
                 RoundPart(m.ctx.seq, partial(VoxelGrid.load, f, mmap=True),
-                          partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name,
-                          in_view=partial(camera_view_keys, m.ctx))
-                for m, f, s, v, e in zip(members, fused, smoothed, views, erased, strict=True)
+                          partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name, in_view=iv)
+                for m, f, s, v, e, iv in zip(members, fused, smoothed, views, erased, in_view, strict=True)
             ]
             round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog,
                                           predict=predict)
