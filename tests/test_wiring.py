@@ -386,3 +386,64 @@ def test_a_round_missing_its_smoothed_grid_is_computed_again(run: Run, tmp_path:
     assert run_pipeline(run.seq.root, run.schema, run.cfg, run_dir, until="3dcn").ran == ["3dcn"]
     assert RunLayout(run_dir).grid_smooth_3dcn(1).read_bytes() == run.lay.grid_smooth_3dcn(1).read_bytes()
     assert RunLayout(run_dir).grid_3dcn(1).read_bytes() == run.lay.grid_3dcn(1).read_bytes()
+
+
+def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) -> None:
+    """metrics.json of a two-round run: row ``voxel`` is each point's voxel in the smoothed camera grid, row
+    ``+3D-CN x1`` its voxel in round 1's smoothed grid, the final row ``+3D-CN x2`` and ``point`` the
+    points/ files; ``common`` the in-view points every row labels. The run's own round-1 grid gives the
+    final labels, so round 1's grid is replaced by a different one (every other voxel dropped, the
+    classes of the rest rolled by one): a stage that read a row from the wrong source scores differently.
+    Fast stand-in for the slow two-round runs (the stage only reads files)."""
+    import json
+    import shutil
+
+    from leap_core.metrics import confusion_matrix
+    from leap_core.pipeline.context import Ctx
+    from leap_core.pipeline.evaluation import stage_evaluate
+
+    run_dir = tmp_path / "two_rounds"
+    shutil.copytree(run.lay.run_dir, run_dir)
+    lay = RunLayout(run_dir)
+    own = SmoothedGrid.load(lay.grid_smooth_3dcn(1))
+    round1 = SmoothedGrid(own.keys[::2], np.roll(own.probs[::2], 1, axis=1), own.voxel_size)
+    round1.save(lay.grid_smooth_3dcn(1))
+    lay.metrics.unlink()
+    cfg = dataclasses.replace(run.cfg, consistency=dataclasses.replace(run.cfg.consistency, iterations=2))
+    ctx = Ctx(seq=run.seq, schema=run.schema, cfg=cfg, layout=lay, frames=run.frames, runtime=None,
+              progress=None, table={})
+    assert stage_evaluate(ctx) == {}
+
+    rows = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
+    voxel = SmoothedGrid.load(lay.grid_smooth)
+    want = {p: {r: np.zeros((run.c, run.c + 1), np.int64) for r in rows} for p in ("all", "camera", "common")}
+    labeled = dict.fromkeys(rows, 0)
+    n_points = n_view = 0
+    for i in run.frames:
+        frame = run.seq.frame(i)
+        _, in_view = load_view(lay.observation(frame.frame_id))
+        keys = voxel_keys(world_points(frame.points, frame.pose), cfg.fusion.voxel_size)
+        with np.load(lay.points(frame.frame_id)) as z:
+            preds = {"point": z["point_label"], "voxel": voxel.labels_at(keys)[0],
+                     "+3D-CN x1": round1.labels_at(keys)[0], "+3D-CN x2": z["label"]}
+        gt = run.schema.map_gt(frame.labels)
+        common = in_view & np.logical_and.reduce([p >= 0 for p in preds.values()])
+        for r, pred in preds.items():
+            want["all"][r] += confusion_matrix(gt, pred, run.c)
+            want["camera"][r] += confusion_matrix(gt[in_view], pred[in_view], run.c)
+            want["common"][r] += confusion_matrix(gt[common], pred[common], run.c)
+            labeled[r] += int((pred >= 0).sum())
+        n_points += len(gt)
+        n_view += int(in_view.sum())
+    # The replaced round-1 grid scores unlike the final row, and the common points are fewer than the view.
+    assert not np.array_equal(want["camera"]["+3D-CN x1"], want["camera"]["+3D-CN x2"])
+    assert labeled["+3D-CN x1"] < labeled["+3D-CN x2"]
+    assert want["common"]["+3D-CN x2"].sum() < want["camera"]["+3D-CN x2"].sum()
+
+    got = json.loads(lay.metrics.read_text())
+    assert got["rows"] == list(rows)
+    assert (got["n_points"], got["n_points_in_view"]) == (n_points, n_view)
+    assert got["labeled_points"] == labeled
+    for p in ("all", "camera", "common"):
+        for r in rows:
+            np.testing.assert_array_equal(np.asarray(got[p][r]["confusion"]), want[p][r], err_msg=f"{p} {r}")
