@@ -410,9 +410,12 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     round1.save(lay.grid_smooth_3dcn(1))
     lay.metrics.unlink()
     cfg = dataclasses.replace(run.cfg, consistency=dataclasses.replace(run.cfg.consistency, iterations=2))
+    calls: list[tuple[str, int, int]] = []
     ctx = Ctx(seq=run.seq, schema=run.schema, cfg=cfg, layout=lay, frames=run.frames, runtime=None,
-              progress=None, table={})
+              progress=lambda *a: calls.append(a), table={})
     assert stage_evaluate(ctx) == {}
+    n = len(run.frames)
+    assert calls == [("evaluate", k, n) for k in range(n + 1)]
 
     rows = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
     voxel = SmoothedGrid.load(lay.grid_smooth)
@@ -444,6 +447,46 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     assert got["rows"] == list(rows)
     assert (got["n_points"], got["n_points_in_view"]) == (n_points, n_view)
     assert got["labeled_points"] == labeled
+    assert got["labeled_share_all_points"] == {r: labeled[r] / n_points for r in rows}
+    assert got["coverage_ratio"] == {r: labeled[r] / labeled["point"] for r in rows}
+    assert got["frames"] == [run.seq.frame_numbers[0], run.seq.frame_numbers[-1] + 1]
+    assert (got["class_names"], got["labeler"]) == (run.schema.names, cfg.labeler)
     for p in ("all", "camera", "common"):
         for r in rows:
             np.testing.assert_array_equal(np.asarray(got[p][r]["confusion"]), want[p][r], err_msg=f"{p} {r}")
+
+
+def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_size(run: Run,
+                                                                                    tmp_path: Path) -> None:
+    """A frame without its .label file: the stage is skipped and writes nothing. A points/ file whose labels
+    are not one per point of the scan: an error naming the scan, as for an observation of another size."""
+    import shutil
+
+    from leap_core.errors import DatasetError
+    from leap_core.pipeline.context import Ctx
+    from leap_core.pipeline.evaluation import stage_evaluate
+
+    street = tmp_path / "street"
+    shutil.copytree(run.seq.root, street)
+    run_dir = tmp_path / "run"
+    shutil.copytree(run.lay.run_dir, run_dir)
+    lay = RunLayout(run_dir)
+    lay.metrics.unlink()
+    seq = KittiSequence(street)
+
+    def evaluate() -> dict[str, object]:
+        ctx = Ctx(seq=KittiSequence(street), schema=run.schema, cfg=run.cfg, layout=lay, frames=run.frames,
+                  runtime=None, progress=None, table={})
+        return stage_evaluate(ctx)
+
+    fid = seq.frame_ids[1]
+    points = lay.points(fid)
+    with np.load(points) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(points, **{k: v[:-1] for k, v in arrays.items()})
+    with pytest.raises(DatasetError, match=str(seq.scan_path(1).name)):
+        evaluate()
+    label = seq.label_path(2)
+    label.unlink()
+    assert evaluate() == {"status": "skipped", "note": "no ground truth"}
+    assert not lay.metrics.exists()
