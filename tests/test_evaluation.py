@@ -105,12 +105,24 @@ def test_overall_metrics_refuse_other_classes_or_rows_and_leave_out_a_missing_pr
     assert list(out["protocols"]) == ["camera", "all"]
 
 
+def test_overall_metrics_count_what_older_files_lack_as_zero() -> None:
+    """Files written before the in-view and labeled counts existed add nothing to those sums."""
+    one = _sequence(1)
+    two = {k: v for k, v in _sequence(2).items() if k not in ("n_points_in_view", "labeled_points")}
+    three = {**_sequence(3), "labeled_points": {"point": 5}}
+    out = overall_metrics({"s1": one, "s2": two, "s3": three})
+    assert out is not None
+    assert (out["n_points"], out["n_points_in_view"]) == (60, 8 + 24)
+    assert out["labeled_points"] == {"point": 4 + 5, "voxel": 6}
+
+
 def test_all_points_labeled_share() -> None:
     assert all_points_labeled_share({"labeled_share_all_points": {"voxel": 0.5, "point": None}}) == {
         "voxel": 0.5, "point": None}
     # Older files: computed from the counts.
     assert all_points_labeled_share({"labeled_points": {"voxel": 3, "point": 1}, "n_points": 4}) == {
         "voxel": 0.75, "point": 0.25}
+    assert all_points_labeled_share({"labeled_points": {"voxel": 1}, "n_points": 1}) == {"voxel": 1.0}
     assert all_points_labeled_share({"labeled_points": {"voxel": 3}, "n_points": 0}) == {"voxel": None}
     assert all_points_labeled_share({"labeled_points": {"voxel": 3}}) == {"voxel": None}
     assert all_points_labeled_share({}) == {}

@@ -458,8 +458,8 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
 
 def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_size(run: Run,
                                                                                     tmp_path: Path) -> None:
-    """A frame without its .label file: the stage is skipped and writes nothing. A points/ file whose labels
-    are not one per point of the scan: an error naming the scan, as for an observation of another size."""
+    """A frame without its .label file: the stage is skipped and writes nothing. A points/ file without its
+    labels, or whose labels are not one per point of the scan: an error naming the file or the scan."""
     import shutil
 
     from leap_core.errors import DatasetError
@@ -483,6 +483,9 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     points = lay.points(fid)
     with np.load(points) as z:
         arrays = {k: z[k] for k in z.files}
+    np.savez(points, **{k: v for k, v in arrays.items() if k != "label"})
+    with pytest.raises(DatasetError, match=f"{points.name}.*unreadable point labels"):
+        evaluate()
     np.savez(points, **{k: v[:-1] for k, v in arrays.items()})
     with pytest.raises(DatasetError, match=str(seq.scan_path(1).name)):
         evaluate()
