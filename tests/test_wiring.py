@@ -451,9 +451,13 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     assert got["coverage_ratio"] == {r: labeled[r] / labeled["point"] for r in rows}
     assert got["frames"] == [run.seq.frame_numbers[0], run.seq.frame_numbers[-1] + 1]
     assert (got["class_names"], got["labeler"]) == (run.schema.names, cfg.labeler)
+    assert got["categories"] == run.schema.categories()
+    assert list(got["protocols"]) == ["all", "camera", "common", "paper"]
     for p in ("all", "camera", "common"):
         for r in rows:
-            np.testing.assert_array_equal(np.asarray(got[p][r]["confusion"]), want[p][r], err_msg=f"{p} {r}")
+            conf = got[p][r]["confusion"]
+            np.testing.assert_array_equal(np.asarray(conf), want[p][r], err_msg=f"{p} {r}")
+            assert all(type(v) is int for line in conf for v in line), "counts are written as integers"
 
 
 def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_size(run: Run,
