@@ -126,7 +126,8 @@ def test_table_markdown_rows_mean_std_and_paper_figures() -> None:
     lines = text.splitlines()
     assert lines[0].startswith("| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 |")
     assert lines[0].endswith("| gain ×1, same points |") and lines[1].count("---") == 9
-    assert lines[2] == ("| street demo, `paper` labeler preset (the paper's 11 merged classes, camera view) "
+    assert lines[2] == ("| street demo, `paper` labeler preset, `consistency.temperature=0.5` (the paper's "
+                        "11 merged classes, camera view) "
                         "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 | n/a |")
     assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 | n/a |"
     assert lines[4] == "|  | 2 | 43.4 | 62.2 | 68.0 | 70.0 | +5.8 | +7.8 | n/a |"
@@ -200,3 +201,25 @@ def test_retarget_moves_a_domain_to_its_own_sequence_and_folders() -> None:
     assert (tuned.project, tuned.protocol, tuned.run_flags) == (agri.project, agri.protocol, agri.run_flags)
     street = t1.retarget(t1.DOMAINS["street"], sequence_seed=7)  # the length stays the report's
     assert street.synth == ("--frames", "60", "--seed", "7") and street.data == "street_seq7_f60"
+
+
+def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path) -> None:
+    """The street's seed runs get its temperature (chosen on its tuning sequences); ``--set`` overrides
+    it; the table names it; the farm has none."""
+    from leap_core.presets import load_preset
+
+    t1 = _module()
+    street, agri = t1.DOMAINS["street"], t1.DOMAINS["agri"]
+    assert street.settings == ("consistency.temperature=0.5",) and agri.settings == ()
+
+    def consistency(dom: Any, extra: list[str]) -> Any:
+        path = t1.seed_project(dom, 1, t1.run_settings(dom, extra), tmp_path, "")
+        return load_preset(path).pipeline.consistency
+
+    assert (consistency(street, []).temperature, consistency(street, []).seed) == (0.5, 1)
+    assert consistency(street, ["consistency.temperature=2"]).temperature == 2.0
+    assert consistency(agri, []).temperature == 2.0  # the default
+    row = t1.SeedRow(seed=0, point=40.0, voxel=50.0, x1=55.0, x2=None, same1=4.0)
+    assert t1.domain_lines(street, [row])[0].startswith(
+        "| street demo, `paper` labeler preset, `consistency.temperature=0.5` (")
+    assert t1.domain_lines(agri, [row])[0].startswith("| farm drone (agri-uav), `default` labeler preset (")
