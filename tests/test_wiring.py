@@ -463,7 +463,9 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
 def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_size(run: Run,
                                                                                     tmp_path: Path) -> None:
     """A frame without its .label file: the stage is skipped and writes nothing. A points/ file without its
-    labels, or whose labels are not one per point of the scan: an error naming the file or the scan."""
+    labels, or whose labels are not one per point of the scan: an error naming the file or the scan. No
+    point labeled by projection: the coverage ratios are None."""
+    import json
     import shutil
 
     from leap_core.errors import DatasetError
@@ -482,6 +484,17 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
         ctx = Ctx(seq=KittiSequence(street), schema=run.schema, cfg=run.cfg, layout=lay, frames=run.frames,
                   runtime=None, progress=None, table={})
         return stage_evaluate(ctx)
+
+    # No point labeled by projection alone (a labeler that found nothing): no coverage ratio, no error.
+    for i in run.frames:
+        path = lay.points(seq.frame_ids[i])
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+        np.savez(path, **{**arrays, "point_label": np.full_like(arrays["point_label"], -1)})
+    assert evaluate() == {}
+    got = json.loads(lay.metrics.read_text())
+    assert got["labeled_points"]["point"] == 0 and set(got["coverage_ratio"].values()) == {None}
+    lay.metrics.unlink()
 
     fid = seq.frame_ids[1]
     points = lay.points(fid)
