@@ -149,6 +149,20 @@ def _run_errors(out: str | Path, *, poses: str) -> Iterator[None]:
         raise fail(str(exc)) from None
 
 
+@contextlib.contextmanager
+def _run_folder_lock(out: Path) -> Iterator[None]:
+    """Hold the run folder's lock while ``leap run`` works in it: the app's worker takes the same ``flock``,
+    and two processes in one folder would each delete the other's temporaries and stage outputs."""
+    from app.jobs.worker import RunDirBusy, run_dir_lock
+
+    try:
+        with run_dir_lock(out):
+            yield
+    except RunDirBusy as exc:
+        raise LeapError(f"{exc} (another `leap run`, or the app's worker); wait for it to finish, or give "
+                        "this run another --out") from None
+
+
 def fail(message: str) -> typer.Exit:
     """Print a one-line error to stderr and return the exit to raise (``raise fail(...)``)."""
     typer.secho(f"error: {message}", err=True, fg=typer.colors.RED)
@@ -459,12 +473,13 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
-        if estimate_poses:
-            _estimate_run_poses(Path(dataset), Path(out))
-        typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
-        with progress:
-            result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range,
-                                  runtime=runtime)
+        with _run_folder_lock(Path(out)):
+            if estimate_poses:
+                _estimate_run_poses(Path(dataset), Path(out))
+            typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
+            with progress:
+                result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress,
+                                      frames=frame_range, runtime=runtime)
 
     timing = ", ".join(
         f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
@@ -589,12 +604,14 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
                 more = "; add --overwrite to replace them" if "already holds" in str(exc) else ""
                 raise LeapError(f"--export-to: {exc}{more}") from None
         targets = _export_targets(None, zip_path, overwrite)
-        if estimate_poses:
-            for spec in specs:
-                _estimate_run_poses(spec.dataset, layout.sequence(spec.name).run_dir)
-        typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences {', '.join(names)}")
-        with SequenceBars(out, concurrent=ray is not None and len(specs) > 1) as bars:
-            result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
+        with _run_folder_lock(out):
+            if estimate_poses:
+                for spec in specs:
+                    _estimate_run_poses(spec.dataset, layout.sequence(spec.name).run_dir)
+            typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences "
+                       f"{', '.join(names)}")
+            with SequenceBars(out, concurrent=ray is not None and len(specs) > 1) as bars:
+                result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
 
     for name, res in result.per_sequence.items():
         timing = ", ".join(

@@ -413,6 +413,14 @@ def test_cli_runs_several_sequences_and_exports_their_layout(streets, tmp_path) 
     assert res.exit_code == 2 and "a multi-sequence run folder" in res.output
     res = _cli("run", str(streets["00"]), str(streets["01"]), "--out", str(out / "sequences" / "00"))
     assert res.exit_code == 2 and "a single-sequence run folder" in res.output
+    # Another process in the folder (the app's worker, another `leap run`): refused, nothing touched.
+    from app.jobs.worker import run_dir_lock
+
+    state = (out / "sequences" / "00" / "stages.json").read_bytes()
+    with run_dir_lock(out):
+        res = _cli("run", str(streets["00"]), str(streets["01"]), "--out", str(out), "--no-3dcn")
+    assert res.exit_code == 2 and "another process is working in this run folder" in res.output, res.output
+    assert (out / "sequences" / "00" / "stages.json").read_bytes() == state
 
 
 def test_cli_refuses_duplicate_names_and_non_sequences(streets, tmp_path) -> None:

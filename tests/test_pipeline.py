@@ -832,6 +832,16 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
     again = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
                                      "--frames", "0:4"])
     assert again.exit_code == 0 and "labels2d cached" in again.output
+    # While another process works in the folder (the app's worker, another `leap run`), a run is refused
+    # before it touches anything: two runs in one folder delete each other's temporaries.
+    from app.jobs.worker import run_dir_lock
+
+    state = (out / "stages.json").read_bytes()
+    with run_dir_lock(out):
+        busy = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
+                                        "--frames", "0:4", "--no-3dcn"])
+    assert busy.exit_code == 2 and "another process is working in this run folder" in busy.output, busy.output
+    assert (out / "stages.json").read_bytes() == state
 
 
 def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) -> None:
