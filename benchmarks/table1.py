@@ -352,6 +352,13 @@ def _merge(base: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def with_settings(dom: Domain, extra: Sequence[str]) -> Domain:
+    """``dom`` with ``extra`` (``--set``) added to its own settings, a key given again replacing the earlier
+    value: what its seed runs use and its table rows name."""
+    by_key = {kv.split("=", 1)[0]: kv for kv in (*dom.settings, *extra)}
+    return dataclasses.replace(dom, settings=tuple(by_key.values()))
+
+
 def run_settings(dom: Domain, extra: Sequence[str]) -> dict[str, Any]:
     """The pipeline settings of ``dom``'s seed runs: its own (:attr:`Domain.settings`), then ``extra``
     (``--set``), which adds to and overrides them."""
@@ -460,7 +467,7 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     results = []
     for name in names:
-        dom = retarget(DOMAINS[name], args.sequence_seed, args.frames)
+        dom = with_settings(retarget(DOMAINS[name], args.sequence_seed, args.frames), args.set)
         rows = cached(dom, seeds, args) if args.cached_only else measure(dom, seeds, args)
         results.append((dom, rows))
     table = table_markdown(results)

@@ -219,6 +219,11 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
     assert (consistency(street, []).temperature, consistency(street, []).seed) == (0.5, 1)
     assert consistency(street, ["consistency.temperature=2"]).temperature == 2.0
     assert consistency(agri, []).temperature == 2.0  # the default
+    # A --set variant names its own value, not the domain's.
+    variant = t1.with_settings(street, ["consistency.temperature=1", "consistency.seed=3"])
+    assert variant.settings == ("consistency.temperature=1", "consistency.seed=3")
+    assert t1.run_settings(variant, [])["consistency"] == {"temperature": 1, "seed": 3}
+    assert t1.with_settings(agri, []) == agri
     row = t1.SeedRow(seed=0, point=40.0, voxel=50.0, x1=55.0, x2=None, same1=4.0)
     assert t1.domain_lines(street, [row])[0].startswith(
         "| street demo, `paper` labeler preset, `consistency.temperature=0.5` (")
