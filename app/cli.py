@@ -153,14 +153,21 @@ def _run_errors(out: str | Path, *, poses: str) -> Iterator[None]:
 def _run_folder_lock(out: Path) -> Iterator[None]:
     """Hold the run folder's lock while ``leap run`` works in it: the app's worker takes the same ``flock``,
     and two processes in one folder would each delete the other's temporaries and stage outputs."""
-    from app.jobs.worker import RunDirBusy, run_dir_lock
+    from app.jobs.worker import LOCK_NAME, RunDirBusy, run_dir_lock
 
+    created = not out.exists()
     try:
         with run_dir_lock(out):
             yield
     except RunDirBusy as exc:
         raise LeapError(f"{exc} (another `leap run`, or the app's worker); wait for it to finish, or give "
                         "this run another --out") from None
+    finally:
+        # A run refused before its first stage (no poses, say) leaves no folder behind, as before the lock.
+        if created and [p.name for p in out.iterdir()] == [LOCK_NAME]:
+            with contextlib.suppress(OSError):
+                (out / LOCK_NAME).unlink()
+                out.rmdir()
 
 
 def fail(message: str) -> typer.Exit:
