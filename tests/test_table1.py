@@ -126,7 +126,7 @@ def test_table_markdown_rows_mean_std_and_paper_figures() -> None:
     lines = text.splitlines()
     assert lines[0].startswith("| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 |")
     assert lines[0].endswith("| gain ×1, same points |") and lines[1].count("---") == 9
-    assert lines[2] == ("| street demo, `paper` labeler preset, `consistency.temperature=0.5` (the paper's "
+    assert lines[2] == ("| street demo, `paper` labeler preset, `consistency.temperature=1` (the paper's "
                         "11 merged classes, camera view) "
                         "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 | n/a |")
     assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 | n/a |"
@@ -210,13 +210,13 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
 
     t1 = _module()
     street, agri = t1.DOMAINS["street"], t1.DOMAINS["agri"]
-    assert street.settings == ("consistency.temperature=0.5",) and agri.settings == ()
+    assert street.settings == ("consistency.temperature=1",) and agri.settings == ()
 
     def consistency(dom: Any, extra: list[str]) -> Any:
         path = t1.seed_project(dom, 1, t1.run_settings(dom, extra), tmp_path, "")
         return load_preset(path).pipeline.consistency
 
-    assert (consistency(street, []).temperature, consistency(street, []).seed) == (0.5, 1)
+    assert (consistency(street, []).temperature, consistency(street, []).seed) == (1.0, 1)
     assert consistency(street, ["consistency.temperature=2"]).temperature == 2.0
     assert consistency(agri, []).temperature == 2.0  # the default
     # A --set variant names its own value, not the domain's.
@@ -226,5 +226,5 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
     assert t1.with_settings(agri, []) == agri
     row = t1.SeedRow(seed=0, point=40.0, voxel=50.0, x1=55.0, x2=None, same1=4.0)
     assert t1.domain_lines(street, [row])[0].startswith(
-        "| street demo, `paper` labeler preset, `consistency.temperature=0.5` (")
+        "| street demo, `paper` labeler preset, `consistency.temperature=1` (")
     assert t1.domain_lines(agri, [row])[0].startswith("| farm drone (agri-uav), `default` labeler preset (")
