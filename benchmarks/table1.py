@@ -5,7 +5,9 @@ Domains (each a generated sequence and the CLI's own ``leap run``):
 
 - ``street``: the demo street, ``leap synth DATA/demo --frames 60 --seed 0``, labeled by the simulated
   labeler with the ``paper`` preset (README, "A paper-calibrated simulated labeler"), evaluated on the
-  paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``);
+  paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``); its seed runs
+  set the 3D-CN temperature to 1 (:attr:`Domain.settings`, chosen on street tuning sequences 21-23 for
+  labels this noisy; docs/METHOD.md C.5);
 - ``agri``: the farm drone, ``leap synth DATA/agri40 --domain agri-uav --frames 40 --seed 0`` with
   ``projects/agri_uav.yaml`` and the simulated labeler (its default preset: the ``paper`` preset's
   confusions are street classes), evaluated in camera view over its 7 classes (``metrics.json`` key
