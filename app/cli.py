@@ -164,7 +164,7 @@ def _run_folder_lock(out: Path) -> Iterator[None]:
                         "this run another --out") from None
     finally:
         # A run refused before its first stage (no poses, say) leaves no folder behind, as before the lock.
-        if created and [p.name for p in out.iterdir()] == [LOCK_NAME]:
+        if created and out.is_dir() and [p.name for p in out.iterdir()] == [LOCK_NAME]:
             with contextlib.suppress(OSError):
                 (out / LOCK_NAME).unlink()
                 out.rmdir()

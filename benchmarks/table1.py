@@ -361,12 +361,6 @@ def with_settings(dom: Domain, extra: Sequence[str]) -> Domain:
     return dataclasses.replace(dom, settings=tuple(by_key.values()))
 
 
-def run_settings(dom: Domain, extra: Sequence[str]) -> dict[str, Any]:
-    """The pipeline settings of ``dom``'s seed runs: its own (:attr:`Domain.settings`), then ``extra``
-    (``--set``), which adds to and overrides them."""
-    return _merge(parse_sets(dom.settings), parse_sets(extra))
-
-
 def seed_project(dom: Domain, seed: int, sets: Mapping[str, Any], folder: Path, tag: str) -> Path:
     """A copy of the domain's project file with ``pipeline.consistency.seed = seed`` and ``sets`` added."""
     doc = yaml.safe_load((ROOT / dom.project).read_text())
@@ -415,7 +409,7 @@ def measure(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list
     for s in seeds:
         run = runs / f"seed{s}{args.tag}"
         link_base(base, run)
-        project = seed_project(dom, s, run_settings(dom, args.set), runs / "projects", args.tag)
+        project = seed_project(dom, s, parse_sets(dom.settings), runs / "projects", args.tag)
         leap(["run", str(seq), "--project-file", str(project), *dom.run_flags,
               "--3dcn-iterations", str(args.iterations), "--out", str(run)])
         rows.append(read_row(run, s, dom))

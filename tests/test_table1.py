@@ -213,7 +213,7 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
     assert street.settings == ("consistency.temperature=1",) and agri.settings == ()
 
     def consistency(dom: Any, extra: list[str]) -> Any:
-        path = t1.seed_project(dom, 1, t1.run_settings(dom, extra), tmp_path, "")
+        path = t1.seed_project(dom, 1, t1.parse_sets(t1.with_settings(dom, extra).settings), tmp_path, "")
         return load_preset(path).pipeline.consistency
 
     assert (consistency(street, []).temperature, consistency(street, []).seed) == (1.0, 1)
@@ -222,7 +222,7 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
     # A --set variant names its own value, not the domain's.
     variant = t1.with_settings(street, ["consistency.temperature=1", "consistency.seed=3"])
     assert variant.settings == ("consistency.temperature=1", "consistency.seed=3")
-    assert t1.run_settings(variant, [])["consistency"] == {"temperature": 1, "seed": 3}
+    assert t1.parse_sets(variant.settings)["consistency"] == {"temperature": 1, "seed": 3}
     assert t1.with_settings(agri, []) == agri
     row = t1.SeedRow(seed=0, point=40.0, voxel=50.0, x1=55.0, x2=None, same1=4.0)
     assert t1.domain_lines(street, [row])[0].startswith(

@@ -10,6 +10,7 @@ run and score well on a loose mIoU bound).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -388,6 +389,22 @@ def test_a_round_missing_its_smoothed_grid_is_computed_again(run: Run, tmp_path:
     assert RunLayout(run_dir).grid_3dcn(1).read_bytes() == run.lay.grid_3dcn(1).read_bytes()
 
 
+def _evaluate(run: Run, lay: RunLayout, cfg: PipelineConfig, seq: KittiSequence,
+              progress: Callable[..., None] | None = None) -> dict[str, object]:
+    """The evaluate stage on run folder ``lay`` (the stage only reads files; no stage table needed)."""
+    from leap_core.pipeline.context import Ctx
+    from leap_core.pipeline.evaluation import stage_evaluate
+
+    return stage_evaluate(Ctx(seq=seq, schema=run.schema, cfg=cfg, layout=lay, frames=run.frames,
+                              runtime=None, progress=progress, table={}))
+
+
+def _rewrite_npz(path: Path, change: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]) -> None:
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(path, **change(arrays))
+
+
 def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) -> None:
     """metrics.json of a two-round run: row ``voxel`` is each point's voxel in the smoothed camera grid, row
     ``+3D-CN x1`` its voxel in round 1's smoothed grid, the final row ``+3D-CN x2`` and ``point`` the
@@ -399,8 +416,6 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     import shutil
 
     from leap_core.metrics import confusion_matrix
-    from leap_core.pipeline.context import Ctx
-    from leap_core.pipeline.evaluation import stage_evaluate
 
     run_dir = tmp_path / "two_rounds"
     shutil.copytree(run.lay.run_dir, run_dir)
@@ -411,9 +426,7 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     lay.metrics.unlink()
     cfg = dataclasses.replace(run.cfg, consistency=dataclasses.replace(run.cfg.consistency, iterations=2))
     calls: list[tuple[str, int, int]] = []
-    ctx = Ctx(seq=run.seq, schema=run.schema, cfg=cfg, layout=lay, frames=run.frames, runtime=None,
-              progress=lambda *a: calls.append(a), table={})
-    assert stage_evaluate(ctx) == {}
+    assert _evaluate(run, lay, cfg, run.seq, progress=lambda *a: calls.append(a)) == {}
     n = len(run.frames)
     assert calls == [("evaluate", k, n) for k in range(n + 1)]
 
@@ -469,8 +482,6 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     import shutil
 
     from leap_core.errors import DatasetError
-    from leap_core.pipeline.context import Ctx
-    from leap_core.pipeline.evaluation import stage_evaluate
 
     street = tmp_path / "street"
     shutil.copytree(run.seq.root, street)
@@ -481,16 +492,12 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     seq = KittiSequence(street)
 
     def evaluate() -> dict[str, object]:
-        ctx = Ctx(seq=KittiSequence(street), schema=run.schema, cfg=run.cfg, layout=lay, frames=run.frames,
-                  runtime=None, progress=None, table={})
-        return stage_evaluate(ctx)
+        return _evaluate(run, lay, run.cfg, seq)
 
     # No point labeled by projection alone (a labeler that found nothing): no coverage ratio, no error.
     for i in run.frames:
-        path = lay.points(seq.frame_ids[i])
-        with np.load(path) as z:
-            arrays = {k: z[k] for k in z.files}
-        np.savez(path, **{**arrays, "point_label": np.full_like(arrays["point_label"], -1)})
+        _rewrite_npz(lay.points(seq.frame_ids[i]),
+                     lambda a: {**a, "point_label": np.full_like(a["point_label"], -1)})
     assert evaluate() == {}
     got = json.loads(lay.metrics.read_text())
     assert got["labeled_points"]["point"] == 0 and set(got["coverage_ratio"].values()) == {None}
@@ -500,7 +507,7 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     points = lay.points(fid)
     with np.load(points) as z:
         arrays = {k: z[k] for k in z.files}
-    np.savez(points, **{k: v for k, v in arrays.items() if k != "label"})
+    _rewrite_npz(points, lambda a: {k: v for k, v in a.items() if k != "label"})
     with pytest.raises(DatasetError, match=f"{points.name}.*unreadable point labels"):
         evaluate()
     np.savez(points, **{k: v[:-1] for k, v in arrays.items()})
