@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,11 +22,17 @@ from leap_core.consistency.selection import (
     view_counts,
 )
 from leap_core.consistency.stage import (
+    RoundPart,
+    TargetFile,
     checkpoint_path,
     fuse_back,
+    iter_3dcn_round,
+    iter_reliable_targets,
+    iteration_config,
     keep_known_or_sure,
     reliable_targets,
     run_3dcn_iteration,
+    targets_path,
     training_fingerprint,
     voxel_mean_log_probs,
 )
@@ -41,7 +48,7 @@ from leap_core.consistency.train import (
     train_model,
 )
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.errors import ConfigError, ModelLoadError
+from leap_core.errors import ConfigError, LeapError, ModelLoadError
 from leap_core.fusion import FusionConfig, VoxelGrid, voxel_keys, world_points
 from leap_core.types import UNLABELED
 
@@ -393,6 +400,10 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     # have): a checkpoint trained then is reused now. A field added without an entry in ADDED_FIELDS
     # changes it and fails here.
     assert fp(TINY) == "2294347dae8d1c79d40245986403d4c8e1ed76f7ff315bf0bf17ef940f6bb912"
+    # A joint round's form (frames per named sequence) is pinned too: changing it retrains every saved
+    # multi-sequence checkpoint.
+    joint = training_fingerprint(TINY, 3, [("a", range(2))], [np.zeros(2, np.int16), np.ones(2, np.int16)])
+    assert joint == "b66c14e93b1ee4ad502e141e0cf97bd81ff92e12c9f6d3766997be2e613c372d"
     assert fp(replace(TINY, backbone=replace(TINY_BACKBONE, position_inputs=False))) != fp(TINY)
     plain = config_to_dict(TINY)
     form = fingerprint_form(plain)
@@ -549,6 +560,35 @@ def test_voxel_evidence_is_the_mean_and_point_evidence_the_sum() -> None:
         fuse_back(grid, [(key, p1)], 3, 1.0, FusionConfig(), "pixel")
 
 
+def test_voxel_mean_log_probs_of_nothing_bad_shapes_and_foreign_arrays() -> None:
+    keys, means, counts = voxel_mean_log_probs([], 3, prob_floor=1e-3)
+    assert (keys.dtype, means.dtype, counts.dtype) == (np.int64, np.float32, np.int64)
+    assert keys.shape == (0,) and means.shape == (0, 3) and counts.shape == (0,)
+    key = np.array([4], np.int64)
+    for logp in (np.zeros((1, 4), np.float32), np.zeros((2, 3), np.float32), np.zeros(3, np.float32)):
+        with pytest.raises(ValueError, match=r"predictions must be keys \(N,\) and logp \(N, 3\)"):
+            voxel_mean_log_probs([(key, logp)], 3, prob_floor=1e-3)
+    # A read-only (Ray object store) or float64 prediction is taken as float32, without a warning.
+    ro = np.log(np.array([[0.2, 0.7, 0.1]], np.float32))
+    ro.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, ro_means, _ = voxel_mean_log_probs([(key, ro), (key, ro.astype(np.float64))], 3, prob_floor=1e-3)
+    assert ro_means.dtype == np.float32 and np.array_equal(ro_means, ro)
+
+
+def test_fuse_back_uses_the_fusion_configs_floor_and_clip() -> None:
+    """Floor 0.2 and clip 2: prior [0, -1, -2] + max(log [0.2, 0.7, 0.1], log 0.2) = [-1.609, -1.357,
+    -3.609] → minus the max → [-0.252, 0, -2.252] → clipped at -2."""
+    grid, key = _one_voxel_grid()
+    net = np.log(np.array([[0.2, 0.7, 0.1]], np.float32))
+    for evidence, chunk in (("voxel", 10**6), ("point", 10**6), ("point", 1)):
+        out = fuse_back(grid, [(key, net)], 3, 1.0, FusionConfig(prob_floor=0.2, logp_clip=2.0), evidence,
+                        chunk_points=chunk)
+        np.testing.assert_allclose(out.logp[0].astype(np.float64), [1 + np.log(0.2 / 0.7), 0.0, -2.0],
+                                   atol=4e-3)
+
+
 def test_keep_known_or_sure_by_hand() -> None:
     known = np.array([2, 5], np.int64)
     keys = np.array([1, 2, 3, 5, 7], np.int64)
@@ -576,6 +616,21 @@ def test_keep_known_or_sure_by_hand() -> None:
     assert k.tolist() == [1, 2, 5]
     k, _ = keep_known_or_sure(known, keys.copy(), means.copy(), 4.0, np.zeros(0, np.int64))
     assert k.tolist() == keys.tolist()
+    # One new voxel alone is filtered too; one class has nothing to confuse it with (kept); two and four
+    # classes take the margin between the best two.
+    one = np.array([[-0.5, -3.0, -6.9]], np.float32)
+    assert keep_known_or_sure(known, np.array([3], np.int64), one.copy(), 4.0)[0].tolist() == []
+    k, m = keep_known_or_sure(known, keys.copy(), np.full((5, 1), -2.0, np.float32), 4.0)
+    assert k.tolist() == keys.tolist() and m.shape == (5, 1)
+    k, _ = keep_known_or_sure(known, keys.copy(), means[:, :2].copy(), 4.0)
+    assert k.tolist() == [1, 2, 5]  # margins 4.9, 0.1, 2.5, 0, 3.5
+    four = np.array([[-6.0, -0.1, -5.0, -4.5],   # new, best two -0.1 and -4.5: margin 4.4, kept
+                     [-6.0, -6.0, -6.0, -6.0],   # known
+                     [-0.1, -5.0, -3.0, -6.0],   # new, margin 2.9: dropped
+                     [-6.0, -6.0, -6.0, -6.0],   # known
+                     [-1.0, -6.0, -6.5, -6.9]], np.float32)  # new, margin 5.0: kept
+    k, _ = keep_known_or_sure(known, keys.copy(), four.copy(), 4.0)
+    assert k.tolist() == [1, 2, 5, 7]
 
 
 def test_fuse_back_creates_a_voxel_no_camera_saw_only_where_the_network_is_sure() -> None:
@@ -723,6 +778,220 @@ def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> 
     empty = VoxelGrid.empty(c, 0.2)
     with pytest.raises(ValueError, match="no point of any scan has a voxel label"):
         run_3dcn_iteration(seq, empty, empty, c, TINY, FusionConfig(), tmp_path / "w", 1)
+
+
+def _predictions(seq: KittiSequence, frames: range, model: PointSegmenter, roll: int = 0
+                 ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per frame, the voxel keys of its points and the model's log-probabilities (classes rolled by
+    ``roll``: predictions unlike the round's own)."""
+    out = []
+    for i in frames:
+        pts = seq.frame(i).points
+        out.append((voxel_keys(world_points(pts, seq.poses[i]), 0.2),
+                    np.roll(predict_log_probs(model, pts), roll, axis=1)))
+    return out
+
+
+def _tie_views(grid: VoxelGrid) -> tuple[np.ndarray, np.ndarray]:
+    """View counts that rank the tiny grid's equally confident voxels unlike the seeded random order."""
+    return grid.keys, (np.arange(grid.num_voxels, dtype=np.int64) * 7) % 5
+
+
+def test_reliable_targets_ticks_per_scan_and_never_labels_erased_voxels(tmp_path: Path, make_tiny_sequence
+                                                                       ) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    erased = grid.keys[::3]
+    ticks: list[int] = []
+    targets = reliable_targets(seq, grid, c, replace(TINY, share=1.0), 0.2, range(3), None,
+                               progress=lambda: ticks.append(1), erased=erased)
+    assert len(ticks) == 3
+    for i, t in enumerate(targets):
+        keys = voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2)
+        hit = np.isin(keys, erased)
+        assert hit.any() and (t[hit] == UNLABELED).all()
+        # share 1: every other point with a voxel is a label, its voxel's class
+        rows = grid.lookup(keys)
+        keep = ~hit & (rows >= 0)
+        assert np.array_equal(t[keep], grid.logp[rows[keep]].argmax(axis=1))
+        assert (t[rows < 0] == UNLABELED).all()
+
+
+def test_reliable_targets_are_the_selection_of_each_scans_voxel_labels_in_both_scopes(
+        tmp_path: Path, make_tiny_sequence) -> None:
+    """Per scan: the points' voxel labels and confidences (``voxel_labels().at``), selected per scan
+    (seed + frame number, view counts as support) or over the frames together."""
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    views, frames = _tie_views(grid), range(1, 3)  # frames 1, 2: their numbers seed the tie order
+    at = grid.voxel_labels().at
+    scans = [at(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2)) for i in frames]
+    support = [lookup_counts(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2), *views)
+               for i in frames]
+    cfg = replace(TINY, share=0.3, seed=11)
+    for scope in ("scan", "sequence"):
+        for v in (views, None):
+            got = list(iter_reliable_targets(seq, grid, c, replace(cfg, selection_scope=scope), 0.2, frames,
+                                             v))
+            masks = select_reliable_scans([lab for lab, _ in scans], [conf for _, conf in scans], c, 0.3,
+                                          scope, seed=11, support=support if v is not None else None,
+                                          scan_numbers=[1, 2])
+            assert len(got) == 2
+            for t, m, (lab, _) in zip(got, masks, scans, strict=True):
+                assert t.dtype == np.int16 and np.array_equal(t, np.where(m, lab, UNLABELED))
+                assert (t >= 0).sum() > 10
+    # the scopes, the view counts and the frame numbers each change what is selected here
+    def run(v: tuple[np.ndarray, np.ndarray] | None = views, **kw: object) -> np.ndarray:
+        return np.concatenate(list(iter_reliable_targets(seq, grid, c, replace(cfg, **kw), 0.2, frames, v)))
+
+    base = run()
+    assert not np.array_equal(base, run(selection_scope="sequence"))
+    assert not np.array_equal(base, run(None))
+    assert not np.array_equal(base, run(seed=12))
+
+
+def test_iteration_config_offsets_the_seed_by_1000_per_later_round() -> None:
+    cfg = replace(TINY, seed=5)
+    assert iteration_config(cfg, 1) is cfg
+    assert iteration_config(cfg, 2) == replace(cfg, seed=1005)
+    assert iteration_config(cfg, 3).seed == 2005
+
+
+def test_target_file_round_trip(tmp_path: Path) -> None:
+    """Any integer targets are stored as int16 (2 bytes per point) and read back one scan at a time; the
+    work folder is made as needed and closing twice is fine."""
+    path = tmp_path / "a" / "b" / "t.i16"
+    store = TargetFile.write(path, [np.array([3, -1, 0], np.int64), np.zeros(0, np.int16),
+                                    np.array([7], np.int32)])
+    assert path.stat().st_size == 2 * 4 and len(store) == 3 and store.offsets == [0, 3, 3, 4]
+    assert [t.tolist() for t in store] == [[3, -1, 0], [], [7]]
+    assert store.read(2).dtype == np.int16
+    store.close()
+    store.close()
+    assert not path.exists()
+
+
+def test_fuse_back_refuses_a_bad_temperature_and_a_margin_on_point_evidence() -> None:
+    grid = VoxelGrid.empty(3, 0.2)
+    for t in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="temperature must be > 0"):
+            fuse_back(grid, [], 3, t, FusionConfig())
+    with pytest.raises(ValueError, match="voxel evidence only"):
+        fuse_back(grid, [], 3, 1.0, FusionConfig(), "point", new_voxel_margin=0.5)
+    with pytest.raises(ValueError, match="'voxel' or 'point'"):
+        fuse_back(grid, [], 3, 1.0, FusionConfig(), "points")
+
+
+def test_run_3dcn_iteration_hands_frames_views_and_in_view_to_its_round(tmp_path: Path, make_tiny_sequence
+                                                                       ) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    views, frames = _tie_views(grid), range(1, 3)
+    # Margin 100: no voxel the network creates inside the camera view survives; in_view = the camera's own
+    # voxels, so every new voxel is outside it and created.
+    cfg = replace(TINY, temperature=1.0, new_voxel_margin=100.0)
+    work = tmp_path / "work"
+    work.mkdir()
+    checkpoint_path(work, 1).write_bytes(b"not a checkpoint")  # unreadable: trained again, replaced
+    out = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), work, 1, frames=frames, views=views,
+                             in_view=grid.keys)
+    ck = load_checkpoint(checkpoint_path(work, 1))
+    targets = reliable_targets(seq, grid, c, cfg, 0.2, frames, views)
+    assert not all(np.array_equal(a, b) for a, b in
+                   zip(targets, reliable_targets(seq, grid, c, cfg, 0.2, frames, None), strict=True))
+    assert ck.meta["fingerprint"] == training_fingerprint(cfg, c, frames, targets)
+    assert ck.meta["frames"] == [1, 3, 1] and ck.meta["iteration"] == 1
+    preds = _predictions(seq, frames, ck.model)
+    expected = fuse_back(grid, preds, c, 1.0, FusionConfig(), cfg.network_evidence, new_voxel_margin=100.0,
+                         in_view=grid.keys)
+    assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
+    assert out.num_voxels > grid.num_voxels
+    every_voxel_in_view = fuse_back(grid, preds, c, 1.0, FusionConfig(), cfg.network_evidence,
+                                    new_voxel_margin=100.0)
+    assert every_voxel_in_view.num_voxels == grid.num_voxels
+    # The camera view applies at margins below 1 nat too, and point evidence reaches fuse_back (the
+    # checkpoint is reused: neither acts before training).
+    half = run_3dcn_iteration(seq, grid, grid, c, replace(cfg, new_voxel_margin=0.5), FusionConfig(), work, 1,
+                              frames=frames, views=views, in_view=grid.keys)
+    assert np.array_equal(half.keys, out.keys) and np.array_equal(half.logp, out.logp)
+    assert fuse_back(grid, preds, c, 1.0, FusionConfig(), new_voxel_margin=0.5).num_voxels < out.num_voxels
+    by_point = replace(cfg, new_voxel_margin=0.0, network_evidence="point")
+    point = run_3dcn_iteration(seq, grid, grid, c, by_point, FusionConfig(), work, 1, frames=frames,
+                               views=views)
+    expected_point = fuse_back(grid, preds, c, 1.0, FusionConfig(), "point")
+    assert np.array_equal(point.keys, expected_point.keys) and np.array_equal(point.logp, expected_point.logp)
+    assert not np.array_equal(point.logp, fuse_back(grid, preds, c, 1.0, FusionConfig()).logp)
+
+
+def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back(
+        tmp_path: Path, make_tiny_sequence) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    other = VoxelGrid(grid.keys, np.roll(grid.logp, 1, axis=1), grid.voxel_size)
+    fa, fb = range(0, 2), range(1, 3)
+    erased = grid.keys[::4]
+    parts = [RoundPart(seq, grid, grid, fa, _tie_views(grid), name="a"),
+             RoundPart(seq, other, lambda: grid, fb, erased=erased, name="b")]
+    cfg = replace(TINY, temperature=1.0, new_voxel_margin=0.0)
+    work = tmp_path / "work"
+    calls: list[tuple[int, int, bool]] = []
+    predicted: list[tuple[list[int], Path]] = []
+
+    def predict(s: KittiSequence, frames: range, ckpt: Path):
+        predicted.append((list(frames), ckpt))
+        yield from _predictions(s, frames, load_checkpoint(ckpt).model, roll=1)
+
+    out = list(iter_3dcn_round(parts, c, cfg, FusionConfig(), work, 2,
+                               lambda d, t: calls.append((d, t, targets_path(work, 2).is_file())), predict))
+    # One network, trained on both parts' reliable labels (round 2's seed) ...
+    cfg2 = iteration_config(cfg, 2)
+    targets = (reliable_targets(seq, grid, c, cfg2, 0.2, fa, _tie_views(grid))
+               + reliable_targets(seq, grid, c, cfg2, 0.2, fb, None, erased=erased))
+    ck = load_checkpoint(checkpoint_path(work, 2))
+    assert ck.meta["fingerprint"] == training_fingerprint(cfg2, c, [("a", fa), ("b", fb)], targets)
+    assert ck.meta["fingerprint"] != training_fingerprint(cfg2, c, [("b", fa), ("a", fb)], targets)
+    assert ck.meta["iteration"] == 2 and ck.meta["frames"] == [["a", 0, 2, 1], ["b", 1, 3, 1]]
+    counts = sum(np.bincount(t[t >= 0], minlength=c) for t in targets)
+    assert counts.min() > 0 and ck.meta["class_counts"] == counts.tolist()
+    assert all(type(n) is int for n in ck.meta["class_counts"])
+    # the weights are train_model's on the scans of a then b, class weights from both parts' counts
+    scans = [(i, t) for i, t in zip([*fa, *fb], targets, strict=True)]
+    model, stats = train_model(lambda j: (seq.frame(scans[j][0]).points, scans[j][1]), range(4), c, cfg2,
+                               class_counts=counts)
+    for name, value in model.state_dict().items():
+        assert torch.equal(value, ck.model.state_dict()[name]), name
+    assert ck.meta["steps"] == stats.steps and ck.meta["losses"] == pytest.approx(stats.losses)
+    assert ck.meta["seconds"] >= 0
+    # ... each part's predictions (from the round's predict, here unlike local inference) fused into its own
+    # grid.
+    assert predicted == [([0, 1], checkpoint_path(work, 2)), ([1, 2], checkpoint_path(work, 2))]
+    for grid_in, frames, got in zip([grid, other], [fa, fb], out, strict=True):
+        expected = fuse_back(grid_in, _predictions(seq, frames, ck.model, roll=1), c, 1.0, FusionConfig(),
+                             cfg.network_evidence, new_voxel_margin=0.0)
+        assert np.array_equal(got.keys, expected.keys) and np.array_equal(got.logp, expected.logp)
+    # Progress: every step of selection (4 scans), training and inference (4 scans) once, in order; the
+    # targets are spilled to round 2's file while the network trains, and the file is gone after.
+    total = calls[-1][1]
+    steps = total - 8
+    assert steps >= 2 and [d for d, _, _ in calls] == sorted(d for d, _, _ in calls)
+    assert {d for d, _, _ in calls} == set(range(1, total + 1))
+    assert all(spilled for d, _, spilled in calls if 4 < d < 4 + steps)
+    assert not targets_path(work, 2).exists()
+
+
+def test_a_round_names_the_grid_and_sequence_of_another_class_count(tmp_path: Path, make_tiny_sequence
+                                                                   ) -> None:
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    two = VoxelGrid(grid.keys, grid.logp[:, :2], 0.2)
+    cfg = replace(TINY, temperature=1.0)
+    never = replace(cfg, temperature=math.inf)
+    cases = [
+        ([RoundPart(seq, two, grid)], never, "the fused grid has 2 classes, schema has 3"),
+        ([RoundPart(seq, grid, grid, name="a"), RoundPart(seq, two, grid, name="b")], never,
+         "the fused grid of sequence b has 2 classes"),
+        ([RoundPart(seq, grid, two, name="a")], cfg, "the smoothed grid of sequence a has 2 classes"),
+        ([RoundPart(seq, two, grid)], cfg, "the fused grid has 2 classes"),  # checked after training
+        ([], cfg, "a round needs at least one sequence"),
+    ]
+    for parts, c_cfg, message in cases:
+        with pytest.raises(LeapError, match=f"^3D-CN: {message}"):
+            list(iter_3dcn_round(parts, c, c_cfg, FusionConfig(), tmp_path / "w", 1))
 
 
 def test_class_weights_by_hand() -> None:
