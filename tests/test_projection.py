@@ -12,10 +12,13 @@ from leap_core.projection import (
     Painted,
     Projected,
     ProjectionConfig,
+    cluster_pairs,
+    combination_words,
     depth_cluster_filter,
     largest_depth_cluster,
     paint,
     project_points,
+    unique_word_rows,
 )
 from leap_core.types import UNLABELED
 
@@ -206,6 +209,7 @@ def test_largest_cluster_flattens_its_input() -> None:
     expected = [False, True, True, False, True]
     np.testing.assert_array_equal(largest_depth_cluster(depth[None, :], 1.0), expected)  # a (1, P) row
     np.testing.assert_array_equal(largest_depth_cluster(depth[:, None], 1.0), expected)  # a (P, 1) column
+    assert largest_depth_cluster(depth, 1.0).dtype == np.bool_  # a mask callers index with
 
 
 def test_painted_types_empty_and_full() -> None:
@@ -335,6 +339,48 @@ def test_projection_config_bounds_and_painted_load_checks(tmp_path) -> None:
         np.savez(path, point_idx=idx, rows=rows, table=table)
         with pytest.raises(DatasetError, match="inconsistent shapes"):
             Painted.load(path)
-    np.savez(path, point_idx=np.array([0]), rows=np.array([-1]), table=np.ones((2, 2)))
-    with pytest.raises(DatasetError, match="rows index outside"):
-        Painted.load(path)
+    # A row index one past the table, or between its row and column counts, is refused; the error names
+    # the file.
+    for rows, table in ((np.array([-1]), np.ones((2, 2))), (np.array([2]), np.ones((2, 2))),
+                        (np.array([3]), np.ones((2, 5)))):
+        np.savez(path, point_idx=np.array([0]), rows=rows, table=table)
+        with pytest.raises(DatasetError, match=r"obs\.npz.*rows index outside"):
+            Painted.load(path)
+
+
+def test_unique_word_rows_equals_numpys_unique_over_rows() -> None:
+    rng = np.random.default_rng(3)
+    for width in (1, 2, 3):
+        # few distinct rows, repeated, with words that differ in every column
+        base = rng.integers(0, 2**63, (6, width), dtype=np.uint64)
+        words = base[rng.integers(0, 6, 200)]
+        words[:, -1] ^= rng.integers(0, 2, 200, dtype=np.uint64)
+        uniq, inv = unique_word_rows(words)
+        want, want_inv = np.unique(words, axis=0, return_inverse=True)
+        np.testing.assert_array_equal(uniq, want)
+        np.testing.assert_array_equal(inv, want_inv.reshape(-1))
+        assert inv.dtype == np.int64 and uniq.dtype == np.uint64
+    uniq, inv = unique_word_rows(np.zeros((0, 2), np.uint64))
+    assert uniq.shape == (0, 2) and inv.shape == (0,) and inv.dtype == np.int64
+
+
+def test_combination_words_are_the_packed_membership_bits() -> None:
+    """For 65 masks (two words, the second holding one bit): point p's row is ``np.packbits(member, axis=0).T`` padded to 16 bytes and
+    read as little-endian uint64."""
+    rng = np.random.default_rng(4)
+    member = rng.random((65, 30)) < 0.2
+    member[64, :5] = True  # the last mask covers some points
+    m_idx, p_idx = np.nonzero(member)
+    words = combination_words(m_idx, p_idx, 30, 65)
+    assert words.shape == (30, 2) and words.dtype == np.uint64
+    packed = np.zeros((30, 16), np.uint8)
+    packed[:, :9] = np.packbits(member, axis=0).T
+    np.testing.assert_array_equal(words, packed.view("<u8"))
+
+
+def test_cluster_pairs_compares_depths_in_float64() -> None:
+    """float32 depths 0.1 and 0.6 are 0.50000002 m apart (in float64), more than a 0.5 m gap: two clusters of
+    one point each, the nearer kept. (In float32 the difference rounds to exactly 0.5: one cluster.)"""
+    depth = np.array([0.1, 0.6], np.float32)
+    ms, ps = cluster_pairs(np.array([0, 0]), np.array([0, 1]), depth, 1, 0.5)
+    assert ms.tolist() == [0] and ps.tolist() == [0]

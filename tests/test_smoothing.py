@@ -10,7 +10,15 @@ import pytest
 
 from leap_core.errors import DatasetError
 from leap_core.fusion import VoxelGrid, voxel_keys
-from leap_core.smoothing import SmoothedGrid, SmoothingConfig, knn_smooth, knn_weights, smooth_grid
+from leap_core.smoothing import (
+    SmoothedGrid,
+    SmoothingConfig,
+    grid_row_probs,
+    knn_smooth,
+    knn_smooth_blocks,
+    knn_weights,
+    smooth_grid,
+)
 
 
 def test_knn_weights_softmax_of_negative_distance() -> None:
@@ -172,6 +180,38 @@ def test_knn_smooth_shape_checks_and_empty_input() -> None:
     assert out.shape == (0, 4) and out.dtype == np.float32
     with pytest.raises(ValueError, match="centres"):  # probs for another number of voxels
         knn_smooth(np.zeros((3, 3)), np.zeros((2, 4)))
+    for centres, probs in ((np.zeros(3), np.zeros((3, 4))), (np.zeros((3, 2)), np.zeros((3, 4))),
+                           (np.zeros((3, 3)), np.zeros(3))):
+        with pytest.raises(ValueError, match=r"centres \(V, 3\)"):
+            knn_smooth(centres, probs)
+
+
+def test_knn_smooth_blocks_on_its_own() -> None:
+    """The chunked form checks its centres and rounds them to float32 itself (the 0.6 m bound example of
+    the float32 test), and smooths a single voxel into itself."""
+    rows = lambda r: np.eye(2, dtype=np.float32)[r]  # noqa: E731
+    for bad in (np.zeros(3), np.zeros((2, 2)), np.zeros((2, 3, 1))):
+        with pytest.raises(ValueError, match=r"centres \(V, 3\)"):
+            list(knn_smooth_blocks(bad, rows))
+    two = np.array([[0.0, 0.0, 0.0], [0.5999999999, 0.0, 0.0]])
+    blocks = list(knn_smooth_blocks(two, rows, SmoothingConfig(max_distance=0.6), chunk=1))
+    assert [s for s, _ in blocks] == [0, 1]
+    np.testing.assert_array_equal(np.concatenate([b for _, b in blocks]), np.eye(2))
+    one = list(knn_smooth_blocks(np.zeros((1, 3)), lambda r: np.array([[0.25, 0.75]], np.float32)[r]))
+    assert len(one) == 1 and one[0][0] == 0 and one[0][1].tolist() == [[0.25, 0.75]]
+    np.testing.assert_array_equal(knn_smooth(np.zeros((1, 3)), np.array([[0.25, 0.75]])), [[0.25, 0.75]])
+    assert list(knn_smooth_blocks(np.zeros((0, 3)), rows)) == []
+
+
+def test_grid_row_probs_shift_each_row_by_its_own_maximum() -> None:
+    """A row far below 0 (here -110: exp underflows in float32 unless the row's own maximum is taken off
+    first) gets the distribution of the same row at 0; the values are grid.probs()'s."""
+    logp = np.array([[0.0, -1.0, -2.0], [-110.0, -111.0, -112.0], [3.0, 2.0, 1.0]], np.float16)
+    grid = VoxelGrid(np.array([1, 2, 3], np.int64), logp, 0.2)
+    got = grid_row_probs(grid)(np.array([2, 0, 1], np.int64))
+    np.testing.assert_array_equal(got, grid.probs()[[2, 0, 1]])
+    np.testing.assert_array_equal(got[2], got[1])
+    np.testing.assert_array_equal(got[0], got[1])
 
 
 def test_knn_weights_of_one_neighbour_and_of_none() -> None:
