@@ -365,8 +365,8 @@ def test_unique_word_rows_equals_numpys_unique_over_rows() -> None:
 
 
 def test_combination_words_are_the_packed_membership_bits() -> None:
-    """For 65 masks (two words, the second holding one bit): point p's row is ``np.packbits(member, axis=0).T`` padded to 16 bytes and
-    read as little-endian uint64."""
+    """For 65 masks (two words, the second holding one bit): point p's row is
+    ``np.packbits(member, axis=0).T`` padded to 16 bytes and read as little-endian uint64."""
     rng = np.random.default_rng(4)
     member = rng.random((65, 30)) < 0.2
     member[64, :5] = True  # the last mask covers some points
