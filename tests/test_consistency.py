@@ -838,7 +838,7 @@ def test_reliable_targets_are_the_selection_of_each_scans_voxel_labels_in_both_s
             for t, m, (lab, _) in zip(got, masks, scans, strict=True):
                 assert t.dtype == np.int16 and np.array_equal(t, np.where(m, lab, UNLABELED))
                 assert (t >= 0).sum() > 10
-    # the scopes, the view counts and the frame numbers each change what is selected here
+    # the scope, the view counts and the seed each change what is selected here
     def run(v: tuple[np.ndarray, np.ndarray] | None = views, **kw: object) -> np.ndarray:
         return np.concatenate(list(iter_reliable_targets(seq, grid, c, replace(cfg, **kw), 0.2, frames, v)))
 
@@ -951,7 +951,7 @@ def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back
     assert counts.min() > 0 and ck.meta["class_counts"] == counts.tolist()
     assert all(type(n) is int for n in ck.meta["class_counts"])
     # the weights are train_model's on the scans of a then b, class weights from both parts' counts
-    scans = [(i, t) for i, t in zip([*fa, *fb], targets, strict=True)]
+    scans = list(zip([*fa, *fb], targets, strict=True))
     model, stats = train_model(lambda j: (seq.frame(scans[j][0]).points, scans[j][1]), range(4), c, cfg2,
                                class_counts=counts)
     for name, value in model.state_dict().items():

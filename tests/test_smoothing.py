@@ -189,7 +189,9 @@ def test_knn_smooth_shape_checks_and_empty_input() -> None:
 def test_knn_smooth_blocks_on_its_own() -> None:
     """The chunked form checks its centres and rounds them to float32 itself (the 0.6 m bound example of
     the float32 test), and smooths a single voxel into itself."""
-    rows = lambda r: np.eye(2, dtype=np.float32)[r]  # noqa: E731
+    def rows(r: np.ndarray) -> np.ndarray:
+        return np.eye(2, dtype=np.float32)[r]
+
     for bad in (np.zeros(3), np.zeros((2, 2)), np.zeros((2, 3, 1))):
         with pytest.raises(ValueError, match=r"centres \(V, 3\)"):
             list(knn_smooth_blocks(bad, rows))
