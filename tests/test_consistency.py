@@ -700,6 +700,23 @@ def _tiny_stage_inputs(tmp_path: Path, make_tiny_sequence) -> tuple[KittiSequenc
     return seq, VoxelGrid(keys, logp, 0.2), 3
 
 
+def _predictions(seq: KittiSequence, frames: range, model: PointSegmenter, roll: int = 0
+                 ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per frame, the voxel keys of its points and the model's log-probabilities (classes rolled by
+    ``roll``: predictions unlike the round's own)."""
+    out = []
+    for i in frames:
+        pts = seq.frame(i).points
+        out.append((voxel_keys(world_points(pts, seq.poses[i]), 0.2),
+                    np.roll(predict_log_probs(model, pts), roll, axis=1)))
+    return out
+
+
+def _tie_views(grid: VoxelGrid) -> tuple[np.ndarray, np.ndarray]:
+    """View counts that rank the tiny grid's equally confident voxels unlike the seeded random order."""
+    return grid.keys, (np.arange(grid.num_voxels, dtype=np.int64) * 7) % 5
+
+
 def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path, make_tiny_sequence) -> None:
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     # The fused grid (evidence goes here) and the smoothed one (labels are read here) differ: the fused one
@@ -718,8 +735,7 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     other = reliable_targets(seq, fused, c, cfg, 0.2, frames, None)
     assert training_fingerprint(cfg, c, frames, other) != ck.meta["fingerprint"]
     # ... and its predictions fused into the fused grid.
-    preds = [(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2),
-              predict_log_probs(ck.model, seq.frame(i).points)) for i in frames]
+    preds = _predictions(seq, frames, ck.model)
     expected = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), cfg.network_evidence,
                          new_voxel_margin=cfg.new_voxel_margin)
     assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
@@ -778,23 +794,6 @@ def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> 
     empty = VoxelGrid.empty(c, 0.2)
     with pytest.raises(ValueError, match="no point of any scan has a voxel label"):
         run_3dcn_iteration(seq, empty, empty, c, TINY, FusionConfig(), tmp_path / "w", 1)
-
-
-def _predictions(seq: KittiSequence, frames: range, model: PointSegmenter, roll: int = 0
-                 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per frame, the voxel keys of its points and the model's log-probabilities (classes rolled by
-    ``roll``: predictions unlike the round's own)."""
-    out = []
-    for i in frames:
-        pts = seq.frame(i).points
-        out.append((voxel_keys(world_points(pts, seq.poses[i]), 0.2),
-                    np.roll(predict_log_probs(model, pts), roll, axis=1)))
-    return out
-
-
-def _tie_views(grid: VoxelGrid) -> tuple[np.ndarray, np.ndarray]:
-    """View counts that rank the tiny grid's equally confident voxels unlike the seeded random order."""
-    return grid.keys, (np.arange(grid.num_voxels, dtype=np.int64) * 7) % 5
 
 
 def test_reliable_targets_ticks_per_scan_and_never_labels_erased_voxels(tmp_path: Path, make_tiny_sequence

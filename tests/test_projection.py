@@ -351,7 +351,7 @@ def test_projection_config_bounds_and_painted_load_checks(tmp_path) -> None:
 def test_unique_word_rows_equals_numpys_unique_over_rows() -> None:
     rng = np.random.default_rng(3)
     for width in (1, 2, 3):
-        # few distinct rows, repeated, with words that differ in every column
+        # six rows repeated; flipping the last word's low bit splits rows that share their first words
         base = rng.integers(0, 2**63, (6, width), dtype=np.uint64)
         words = base[rng.integers(0, 6, 200)]
         words[:, -1] ^= rng.integers(0, 2, 200, dtype=np.uint64)
