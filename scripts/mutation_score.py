@@ -2,8 +2,11 @@
 
 score = killed / (total − equivalent), where killed counts mutmut's "killed" and "timeout" (a mutant that
 makes the tests run past mutmut's limit is caught by them), and the equivalent mutants are the ones
-docs/MUTATION.md lists in its table rows ``| `MUTANT` | equivalent | reason |``. A mutant with no
-result yet ("not checked": a run stopped early) makes the module's line say "incomplete".
+docs/MUTATION.md lists in its table rows ``| `MUTANT` | equivalent | reason |``. Rows
+``| `MUTANT` | killed on a GPU | reason |`` name mutants that only tests/test_cuda.py tells apart (skipped
+where torch sees no GPU, as here and in CI): seen killed on a GPU machine, they count as killed when mutmut
+reports them survived. A mutant with no result yet ("not checked": a run stopped early) makes the module's
+line say "incomplete".
 
 Usage: python scripts/mutation_score.py [--survivors] [MODULE_PATH ...]   (from the repository root)
   --survivors   also print every surviving / untested mutant that docs/MUTATION.md does not list as
@@ -21,14 +24,16 @@ from mutmut.stats import status_by_exit_code
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "MUTATION.md"
-_EQUIVALENT_ROW = re.compile(r"^\|\s*`([^`]+__mutmut_\d+)`\s*\|\s*equivalent\s*\|")
+_ROW = re.compile(r"^\|\s*`([^`]+__mutmut_\d+)`\s*\|\s*([^|]*?)\s*\|")
 
 
-def equivalent_mutants(doc: Path = DOC) -> set[str]:
-    """Mutant names docs/MUTATION.md marks equivalent (one table row each)."""
+def listed_mutants(status: str, doc: Path = DOC) -> set[str]:
+    """Mutant names docs/MUTATION.md lists with ``status`` ("equivalent", "killed on a GPU"), one table row
+    each."""
     if not doc.exists():
         return set()
-    return {m.group(1) for line in doc.read_text().splitlines() if (m := _EQUIVALENT_ROW.match(line))}
+    return {m.group(1) for line in doc.read_text().splitlines()
+            if (m := _ROW.match(line)) and m.group(2) == status}
 
 
 def module_results(path: str) -> dict[str, str]:
@@ -46,7 +51,8 @@ def main(argv: list[str]) -> int:
     if not paths:
         paths = sorted(str(p.relative_to(ROOT / "mutants"))[: -len(".meta")]
                        for p in (ROOT / "mutants" / "leap_core").rglob("*.py.meta"))
-    equivalent = equivalent_mutants()
+    equivalent = listed_mutants("equivalent")
+    on_gpu = listed_mutants("killed on a GPU")
     head = ("mutants", "killed", "survived", "no tests", "equiv.")
     print(f"{'module':38} " + " ".join(f"{h:>8}" for h in head) + f" {'score':>7}")
     tot = {"n": 0, "killed": 0, "equiv": 0, "survived": 0, "untested": 0}
@@ -58,19 +64,20 @@ def main(argv: list[str]) -> int:
         if not res:
             print(f"{path:38} (no results: run scripts/mutation.sh first)")
             continue
-        killed = sum(s in ("killed", "timeout") for s in res.values())
+        gpu = sum(1 for n, s in res.items() if s == "survived" and n in on_gpu)
+        killed = sum(s in ("killed", "timeout") for s in res.values()) + gpu
         eq = sum(1 for name in res if name in equivalent)
-        survived = [n for n, s in res.items() if s == "survived" and n not in equivalent]
+        survived = [n for n, s in res.items() if s == "survived" and n not in equivalent | on_gpu]
         untested = [n for n, s in res.items()
                     if s not in ("killed", "timeout", "survived", "not checked") and n not in equivalent]
-        stale += [n for n in res if n in equivalent and res[n] in ("killed", "timeout")]
+        stale += [n for n in res if n in equivalent | on_gpu and res[n] in ("killed", "timeout")]
         incomplete = any(s == "not checked" for s in res.values())
         incomplete_any |= incomplete
         denom = len(res) - eq
         score = f"{100 * killed / denom:6.1f}%" if denom else "    -  "
         cells = (len(res), killed, len(survived), len(untested), eq)
         print(f"{path:38} " + " ".join(f"{v:8d}" for v in cells) + f" {score}"
-              + ("  incomplete" if incomplete else ""))
+              + ("  incomplete" if incomplete else "") + (f"  ({gpu} killed on a GPU)" if gpu else ""))
         tot["n"] += len(res)
         tot["killed"] += killed
         tot["equiv"] += eq
@@ -86,7 +93,7 @@ def main(argv: list[str]) -> int:
         print("\nnot killed and not listed as equivalent in docs/MUTATION.md:")
         print("\n".join(f"  {line}" for line in left) or "  (none)")
         if stale:
-            print("\nlisted as equivalent but killed now (remove from docs/MUTATION.md):")
+            print("\nlisted as equivalent or GPU-only but killed here now (remove from docs/MUTATION.md):")
             print("\n".join(f"  {n}" for n in stale))
     return 0
 
