@@ -199,7 +199,9 @@ def test_fuse_rejects_inconsistent_input() -> None:
         fuse([Observations(np.array([1]), np.array([2], np.int32), np.zeros((2, 2), np.float32))], 2)
     with pytest.raises(ValueError, match="voxel_size"):
         fuse([], 2, FusionConfig(voxel_size=0.5), grid=VoxelGrid.empty(2, 0.2))
-    assert len(fuse([], 4)) == 0
+    empty = fuse([], 4)  # no grid, no observations: an empty grid of the documented dtypes
+    assert empty.keys.shape == (0,) and empty.logp.shape == (0, 4)
+    assert empty.keys.dtype == np.int64 and empty.logp.dtype == np.float16
 
 
 def test_fuse_dense_with_weight_and_floor() -> None:
@@ -540,3 +542,82 @@ def test_fold_blocks_adds_to_a_prior_grid_with_the_given_config() -> None:
                                             np.zeros((1, c), np.float32))], c)
     assert keys.dtype == np.int64 and keys.shape == (0,)
     assert sums.dtype == np.float32 and sums.shape == (0, c)
+
+
+def test_grow_resizes_an_owned_array_in_place_and_copies_a_view() -> None:
+    from leap_core.fusion import _grow
+
+    # An array that owns its memory grows in place (no second copy of a large accumulator) ...
+    owned = np.arange(6, dtype=np.float32).reshape(3, 2).copy()  # reshape alone returns a view
+    grown = _grow(owned, 5)
+    assert grown is owned and grown.shape == (5, 2)
+    np.testing.assert_array_equal(grown[:3], np.arange(6).reshape(3, 2))
+    # ... a view of another array is copied (resizing would move memory its base still points at).
+    base = np.arange(10, dtype=np.int64)
+    view = base[2:8].reshape(3, 2)
+    copy = _grow(view, 4)
+    assert copy is not view and copy.dtype == np.int64 and copy.shape == (4, 2)
+    np.testing.assert_array_equal(copy, [[2, 3], [4, 5], [6, 7], [0, 0]])
+    np.testing.assert_array_equal(base, np.arange(10))
+
+
+def test_labels_and_confidence_and_probs_are_the_softmax_of_any_row() -> None:
+    """The softmax is taken of each row as stored, also of rows whose maximum is not 0 (a grid made by
+    hand), computed in float32: label = argmax, conf = 1 / Σ_j exp(logp_j - max logp)."""
+    logp = np.array([[-1.0, -2.0, -4.0], [-3.0, -1.0, -1.5], [0.5, 2.0, 2.0]], np.float16)
+    grid = VoxelGrid(np.array([3, 8, 9], np.int64), logp)
+    x = logp.astype(np.float64)
+    want = np.exp(x - x.max(1, keepdims=True))
+    want /= want.sum(1, keepdims=True)
+    labels, conf = grid.labels_and_confidence()
+    assert labels.tolist() == [0, 1, 1]  # a tie goes to the lower index
+    assert conf.dtype == np.float32
+    np.testing.assert_allclose(conf, want.max(1), rtol=1e-6)
+    np.testing.assert_allclose(grid.probs(), want, rtol=1e-6)
+    chunked = grid.labels_and_confidence(chunk=2)
+    assert chunked[0].tolist() == labels.tolist() and chunked[1].tobytes() == conf.tobytes()
+
+
+def test_fold_blocks_skips_empty_partials_and_refuses_malformed_ones() -> None:
+    c = 2
+    one = (np.array([4, 7], np.int64), np.array([[0.0, -2.0], [-1.0, 0.0]], np.float32))
+    empty = (np.zeros(0, np.int64), np.zeros((0, c), np.float32))
+    alone = fold_blocks([one], c)
+    for partials in ([empty, one], [empty, one, empty]):
+        got = fold_blocks(partials, c)
+        assert got.keys.tobytes() == alone.keys.tobytes() and got.logp.tobytes() == alone.logp.tobytes()
+    with pytest.raises(ValueError, match="partial keys"):
+        fold_blocks([(one[0], one[1][:, :1])], c)  # sums of another class count
+    with pytest.raises(ValueError, match="partial keys"):
+        fold_blocks([(one[0][:, None], one[1])], c)  # keys not 1-D
+
+
+def test_last_per_key_and_overrides_take_column_vectors() -> None:
+    keys, vals = np.array([4, 1, 4, 2]), np.array([10, 11, 12, 13])
+    flat = last_per_key(keys, vals)
+    column = last_per_key(keys[:, None], vals[:, None])
+    assert column[0].tolist() == flat[0].tolist() == [1, 2, 4] and column[1].tolist() == flat[1].tolist()
+    grid = VoxelGrid(np.array([1, 2], np.int64), np.zeros((2, 3), np.float16))
+    want = apply_overrides(grid, [2, 5], [1, 2])
+    got = apply_overrides(grid, np.array([[2], [5]]), np.array([[1], [2]]))
+    assert got.keys.tolist() == want.keys.tolist() == [1, 2, 5]
+    assert got.logp.tobytes() == want.logp.tobytes()
+
+
+def test_merge_sparse_refuses_accumulator_lists_of_different_lengths() -> None:
+    from leap_core.fusion import merge_sparse
+
+    a = [np.ones((2, 2), np.float32), np.ones(2, np.int32)]
+    b = [np.ones((1, 2), np.float32)]
+    for keys_b in (np.array([3]), np.array([4])):  # every key of b in a; a new key
+        with pytest.raises(ValueError, match="zip"):
+            merge_sparse(np.array([3, 7]), [x.copy() for x in a], keys_b, b)
+
+
+def test_weight_zero_adds_the_voxels_without_evidence() -> None:
+    k = _key(1, 2, 3)
+    grid = fuse([_obs([k], [0], [[0.9, 0.1]])], 2, weight=0.0)
+    assert grid.keys.tolist() == [k] and grid.logp.tolist() == [[0.0, 0.0]]
+    for bad in (-0.5, math.inf, math.nan):
+        with pytest.raises(ValueError, match="finite number"):
+            fuse([], 2, weight=bad)

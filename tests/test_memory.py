@@ -206,7 +206,7 @@ def test_target_file_round_trip(tmp_path) -> None:
     assert not (tmp_path / "t.i16").exists()
 
 
-@pytest.mark.parametrize("weight", [1.0, 0.5, 1 / 3])
+@pytest.mark.parametrize("weight", [1.0, 0.5, 1 / 3, 2.0])
 def test_fuse_unique_equals_fuse_dense(weight: float) -> None:
     rng = np.random.default_rng(4)
     c = 4
@@ -222,8 +222,17 @@ def test_fuse_unique_equals_fuse_dense(weight: float) -> None:
         got = fusion.fuse_unique(grid, keys, logp.copy(), c, weight=weight)
         assert got.keys.tobytes() == ref.keys.tobytes()
         assert got.logp.tobytes() == ref.logp.tobytes()
+    if weight == 1.0:  # the default weight is 1 in both
+        ref = fusion.fuse_dense(None, keys, logp.copy(), c)
+        assert fusion.fuse_unique(None, keys, logp.copy(), c).logp.tobytes() == ref.logp.tobytes()
     with pytest.raises(ValueError, match="sorted unique"):
         fusion.fuse_unique(None, keys[::-1].copy(), logp.copy(), c)
+    with pytest.raises(ValueError, match="sorted unique"):  # two keys are checked too
+        fusion.fuse_unique(None, keys[1::-1].copy(), logp[:2].copy(), c)
+    with pytest.raises(ValueError, match="float32 expected"):
+        fusion.fuse_unique(None, keys, logp.astype(np.float64), c)
+    with pytest.raises(ValueError, match="float32 expected"):
+        fusion.fuse_unique(None, keys[:, None], logp.copy(), c)
 
 
 def _observations(seed: int, frames: int = 60, c: int = 5) -> list[fusion.Observations]:
@@ -268,3 +277,42 @@ def test_fuse_to_file_writes_the_grid_fuse_and_apply_overrides_give(tmp_path, pa
     empty = tmp_path / "empty.npz"
     assert fusion.fuse_to_file(iter([]), c, empty, tmp_path / "spill") == 0
     assert VoxelGrid.load(empty).logp.shape == (0, c)
+
+
+def test_fuse_to_file_one_voxel_blocks_and_an_override_block_no_observation_reached(tmp_path) -> None:
+    """Blocks of one voxel: the last ones hold only corrected voxels that no chunk has (no chunk file is
+    read for them); the spill folder is made with its parents."""
+    obs = _observations(8, frames=6)
+    c = 5
+    cfg = FusionConfig(chunk_points=1200)
+    fused = fusion.fuse(iter(obs), c, cfg)
+    far = voxel_keys(np.array([[40.0, 40, 40], [41.0, 40, 40]]), 0.2)  # above every observed key
+    overrides = (np.concatenate([fused.keys[:3], far]), np.array([0, 1, 2, 3, 4]), 50.0)
+    ref = fusion.apply_overrides(fused, *overrides, cfg)
+    out = tmp_path / "g.npz"
+    spill = tmp_path / "not" / "yet" / "spill"
+    assert fusion.fuse_to_file(iter(obs), c, out, spill, cfg, overrides=overrides, block_voxels=1) == len(ref)
+    got = VoxelGrid.load(out)
+    assert got.keys.tobytes() == ref.keys.tobytes() and got.logp.tobytes() == ref.logp.tobytes()
+    assert list(spill.iterdir()) == []
+    with pytest.raises(ValueError, match="block_voxels"):
+        fusion.fuse_to_file(iter(obs), c, out, spill, cfg, block_voxels=0)
+
+
+def test_fuse_to_file_reads_its_chunk_files_memory_mapped(tmp_path) -> None:
+    """Step 2 maps the chunk files instead of reading them: traced allocations stay far below the chunks'
+    summed size (read whole, every chunk file would be in memory at once)."""
+    import tracemalloc
+
+    obs = _observations(9, frames=120)
+    c = 5
+    cfg = FusionConfig(chunk_points=600)
+    spilled = sum(len(np.unique(o.keys)) for o in obs) * (8 + 4 * c)  # about the chunk files' size
+    tracemalloc.start()
+    try:
+        fusion.fuse_to_file(iter(obs), c, tmp_path / "g.npz", tmp_path / "spill", cfg, block_voxels=256)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    print(f"peak {peak / 1e6:.2f} MB, chunk files about {spilled / 1e6:.2f} MB")
+    assert peak < spilled / 3
