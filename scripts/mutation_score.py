@@ -1,12 +1,12 @@
 """Mutation score per module from mutmut's results (scripts/mutation.sh runs it after mutmut).
 
-score = killed / (total − equivalent), where killed counts mutmut's "killed" and "timeout" (a mutant that
-makes the tests run past mutmut's limit is caught by them), and the equivalent mutants are the ones
-docs/MUTATION.md lists in its table rows ``| `MUTANT` | equivalent | reason |``. Rows
-``| `MUTANT` | killed on a GPU | reason |`` name mutants that only tests/test_cuda.py tells apart (skipped
-where torch sees no GPU, as here and in CI): seen killed on a GPU machine, they count as killed when mutmut
-reports them survived. A mutant with no result yet ("not checked": a run stopped early) makes the module's
-line say "incomplete".
+score = killed / (total − equivalent), where killed counts mutmut's "killed", "timeout" and "segfault" (a
+mutant that makes the tests run past mutmut's limit, or crashes their process, is caught by them), and the
+equivalent mutants are the ones docs/MUTATION.md lists in its table rows
+``| `MUTANT` | equivalent | reason |``. Rows ``| `MUTANT` | killed on a GPU | reason |`` name mutants that
+only tests/test_cuda.py tells apart (skipped where torch sees no GPU, as here and in CI): seen killed on a
+GPU machine, they count as killed when mutmut reports them survived. A mutant with no result yet ("not
+checked": a run stopped early) makes the module's line say "incomplete".
 
 Usage: python scripts/mutation_score.py [--survivors] [MODULE_PATH ...]   (from the repository root)
   --survivors   also print every surviving / untested mutant that docs/MUTATION.md does not list as
@@ -24,6 +24,8 @@ from mutmut.stats import status_by_exit_code
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "MUTATION.md"
+# A mutant that made the tests fail, run past mutmut's time limit or crash the test process was caught.
+CAUGHT = ("killed", "timeout", "segfault")
 _ROW = re.compile(r"^\|\s*`([^`]+__mutmut_\d+)`\s*\|\s*([^|]*?)\s*\|")
 
 
@@ -65,12 +67,12 @@ def main(argv: list[str]) -> int:
             print(f"{path:38} (no results: run scripts/mutation.sh first)")
             continue
         gpu = sum(1 for n, s in res.items() if s == "survived" and n in on_gpu)
-        killed = sum(s in ("killed", "timeout") for s in res.values()) + gpu
+        killed = sum(s in CAUGHT for s in res.values()) + gpu
         eq = sum(1 for name in res if name in equivalent)
         survived = [n for n, s in res.items() if s == "survived" and n not in equivalent | on_gpu]
         untested = [n for n, s in res.items()
-                    if s not in ("killed", "timeout", "survived", "not checked") and n not in equivalent]
-        stale += [n for n in res if n in equivalent | on_gpu and res[n] in ("killed", "timeout")]
+                    if s not in (*CAUGHT, "survived", "not checked") and n not in equivalent]
+        stale += [n for n in res if n in equivalent | on_gpu and res[n] in CAUGHT]
         incomplete = any(s == "not checked" for s in res.values())
         incomplete_any |= incomplete
         denom = len(res) - eq

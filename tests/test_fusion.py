@@ -53,6 +53,7 @@ def test_voxel_keys_with_negative_coordinates_and_round_trip() -> None:
     centres = key_centres(keys, 0.2)
     np.testing.assert_allclose(centres, [[0.1, 0.1, 0.1], [-0.1, 0.3, -0.5], [-0.3, -0.1, 0.5]], atol=1e-6)
     np.testing.assert_array_equal(voxel_keys(centres, 0.2), keys)
+    assert key_coords(keys).dtype == np.int64 and centres.dtype == np.float32
 
 
 def test_voxel_keys_sort_by_x_then_y_then_z() -> None:
@@ -75,6 +76,7 @@ def test_log_table_floor_clips_and_renormalises() -> None:
     lt = log_table(np.array([[0.5, 0.5, 0.0], [1 / 3, 1 / 3, 1 / 3]]), 1e-3)
     np.testing.assert_allclose(lt[0], np.log([0.5 / 1.001, 0.5 / 1.001, 0.001 / 1.001]), rtol=1e-6)
     np.testing.assert_allclose(lt[1], np.log([1 / 3] * 3), rtol=1e-6)
+    assert lt.dtype == np.float32  # the dtype Observations hold (fuse's chunks are float32 sums)
 
 
 # -------------------------------------------------------------------------------------------- fusion
@@ -299,6 +301,19 @@ def test_grid_load_rejects_bad_files(tmp_path) -> None:
     np.savez(bad, keys=np.array([1, 3], np.int64), logp=np.zeros((2, 2), np.float16))
     with pytest.raises(DatasetError, match="voxel_size"):
         VoxelGrid.load(bad)
+    for keys, logp, what in (
+        (np.array([1.0, 3.0]), np.zeros((2, 2), np.float16), "'keys' must be 1-D int64"),
+        (np.array([1, 3], np.int64), np.zeros((2, 2), np.float32), "'logp' must be"),
+    ):
+        np.savez(bad, keys=keys, logp=logp, voxel_size=0.2)
+        with pytest.raises(DatasetError, match=what):
+            VoxelGrid.load(bad)
+    for vs in (0.0, -0.2, np.inf):
+        np.savez(bad, keys=np.array([1, 3], np.int64), logp=np.zeros((2, 2), np.float16), voxel_size=vs)
+        with pytest.raises(DatasetError, match="'voxel_size' must be positive"):
+            VoxelGrid.load(bad)
+    np.savez(bad, keys=np.array([1, 3], np.int64), logp=np.zeros((2, 2), np.float16), voxel_size=0.5)
+    assert VoxelGrid.load(bad).voxel_size == 0.5
 
 
 def test_apply_overrides() -> None:
@@ -621,3 +636,54 @@ def test_weight_zero_adds_the_voxels_without_evidence() -> None:
     for bad in (-0.5, math.inf, math.nan):
         with pytest.raises(ValueError, match="finite number"):
             fuse([], 2, weight=bad)
+
+
+def test_union_sorted_with_one_key_on_either_side() -> None:
+    assert union_sorted(np.array([5]), np.array([3])).tolist() == [3, 5]
+    assert union_sorted(np.array([3, 8]), np.array([5])).tolist() == [3, 5, 8]
+    assert union_sorted(np.zeros(0, np.int64), np.array([2, 4])).tolist() == [2, 4]
+    assert union_sorted(np.array([1, 4, 9]), np.array([0, 4, 10])).tolist() == [0, 1, 4, 9, 10]
+
+
+def test_a_chunk_closes_when_its_points_reach_chunk_points() -> None:
+    assert fusion_blocks([7, 1], 8) == [[0, 1]]  # 7 + 1 reaches 8 with the second batch, not before
+    assert fusion_blocks([7, 1, 1], 8) == [[0, 1], [2]]
+
+
+def test_a_bad_batch_is_named_by_its_position() -> None:
+    good = _obs([_key(0, 0, 0)], [0], [[0.5, 0.5]])
+    bad = Observations(np.array([1, 2], np.int64), np.zeros(3, np.int32), np.zeros((1, 2), np.float32))
+    with pytest.raises(ValueError, match=r"observation batch 1: keys \(2,\) and rows \(3,\)"):
+        fuse([good, bad], 2)
+
+
+def test_fusion_config_refuses_floors_and_clips_outside_their_ranges() -> None:
+    for kwargs in ({"prob_floor": 0.0}, {"prob_floor": 1.0}, {"prob_floor": 1.5}, {"logp_clip": 0.0}):
+        with pytest.raises(ValueError):
+            FusionConfig(**kwargs)
+    FusionConfig(prob_floor=0.999, logp_clip=1e-3)  # just inside
+
+
+def test_keys_sorted_unique_checks_every_pair_across_chunks() -> None:
+    from leap_core.fusion import keys_sorted_unique
+
+    assert keys_sorted_unique(np.array([1, 3, 4, 8, 9], np.int64), chunk=2)
+    assert not keys_sorted_unique(np.array([1, 1, 2], np.int64))  # a repeated key
+    assert not keys_sorted_unique(np.array([1, 3, 2], np.int64))  # not only the first is compared
+    for i in range(4):  # a step down at every position, chunk boundaries included
+        keys = np.arange(6, dtype=np.int64)
+        keys[i + 1] = keys[i] - 1
+        assert not keys_sorted_unique(keys, chunk=2), i
+    assert keys_sorted_unique(np.zeros(0, np.int64)) and keys_sorted_unique(np.array([7], np.int64))
+
+
+def test_grids_keep_the_voxel_size_and_many_classes() -> None:
+    cfg = FusionConfig(voxel_size=0.5)
+    assert fuse([], 3, cfg).voxel_size == 0.5  # the empty grid (not stored in place)
+    k = voxel_keys(np.array([[1.0, 2.0, 3.0]]), 0.5)
+    assert fuse([_obs(k, [0], [[0.7, 0.2, 0.1]])], 3, cfg).voxel_size == 0.5  # stored in place
+    c = 100  # more than 64 classes: _finalise's rows per block are 2²² // C
+    table = np.full((1, c), 0.5 / (c - 1))
+    table[0, 7] = 0.5
+    grid = fuse([_obs(k, [0], table)], c, cfg)
+    assert grid.num_classes == c and grid.labels_and_confidence()[0].tolist() == [7]
