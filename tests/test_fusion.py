@@ -648,6 +648,7 @@ def test_union_sorted_with_one_key_on_either_side() -> None:
 def test_a_chunk_closes_when_its_points_reach_chunk_points() -> None:
     assert fusion_blocks([7, 1], 8) == [[0, 1]]  # 7 + 1 reaches 8 with the second batch, not before
     assert fusion_blocks([7, 1, 1], 8) == [[0, 1], [2]]
+    assert fusion_blocks([8, 7, 1, 1], 8) == [[0], [1, 2], [3]]  # the count starts again at 0
 
 
 def test_a_bad_batch_is_named_by_its_position() -> None:
@@ -687,3 +688,13 @@ def test_grids_keep_the_voxel_size_and_many_classes() -> None:
     table[0, 7] = 0.5
     grid = fuse([_obs(k, [0], table)], c, cfg)
     assert grid.num_classes == c and grid.labels_and_confidence()[0].tolist() == [7]
+
+
+def test_voxel_keys_ignore_extra_columns_and_stop_at_the_last_packable_index() -> None:
+    xyz = np.array([[0.1, 0.3, -0.5, np.nan], [1.0, 2.0, 3.0, 1e30]])  # a 4th column (remission) ignored
+    np.testing.assert_array_equal(voxel_keys(xyz, 0.2), voxel_keys(xyz[:, :3], 0.2))
+    top = (AXIS_OFFSET - 1) * 0.5 + 0.25  # centre of the last index that fits in 21 bits
+    assert voxel_keys(np.array([[top, 0.0, 0.0]]), 0.5).tolist() == [_key(AXIS_OFFSET - 1, 0, 0)]
+    for x in (AXIS_OFFSET * 0.5 + 0.25, -AXIS_OFFSET * 0.5 - 0.25):  # one index beyond either end
+        with pytest.raises(ValueError, match="within"):
+            voxel_keys(np.array([[x, 0.0, 0.0]]), 0.5)
