@@ -233,3 +233,71 @@ def test_new_fields_are_validated(kwargs: dict, field: tuple[str, ...]) -> None:
     with pytest.raises(ConfigError) as err:
         SimulatedLabelerConfig(**kwargs)
     assert err.value.field == field
+
+
+def test_noise_terms_at_the_edges_of_their_domains() -> None:
+    # A box at the image's left edge: the leaked crop starts at column 0, rows 0.. (not 1), all True.
+    crop, y0, x0 = box_leak_crop(4, 4, 0, 1, 0.5, (48, 64))
+    assert (y0, x0, crop.shape, crop.dtype) == (0, 0, (6, 7), np.dtype(bool))
+    # A tile whose draw equals the probability is not confused ("below prob").
+    assert not tile_split(np.ones((1, 1), bool), 0, 0, 1, np.array([[0.5]]), 0.5).any()
+    # Eligibility given as integers, and no or one region.
+    boxes = [(0, 0, 10, 10), (0, 12, 10, 20), (11, 0, 20, 10)]
+    np.testing.assert_array_equal(adjacent_partner(boxes, [1, 0, 1], 2), [2, 0, 0])
+    for n, want in ((0, []), (1, [-1])):
+        got = adjacent_partner(boxes[:n], [True] * n, 2)
+        assert got.dtype == np.int64 and got.tolist() == want
+    assert adjacent_partner(boxes, [True] * 3, 2).dtype == np.int64
+
+
+def test_pick_at_a_cumulative_weight_and_past_the_last() -> None:
+    target = ([3, 5], np.array([0.5, 1.0]))
+    assert _pick([], target, 0.5) == 5  # a draw equal to a cumulative weight belongs to the next target
+    assert _pick([], target, 0.4999) == 3
+    # float rounding can leave the last cumulative weight just below 1: a draw above it picks the last
+    assert _pick([], ([3, 5], np.array([0.5, np.nextafter(1.0, 0)])), np.nextafter(1.0, 2) - 1e-16) == 5
+
+
+def test_unknown_preset_lists_the_known_ones() -> None:
+    from leap_core.labelers.simulated import simulated_preset
+
+    with pytest.raises(ConfigError, match=r"unknown preset 'x' \(known: 'default', 'paper'\)"):
+        simulated_preset("x")
+
+
+def test_exact_turns_every_noise_knob_off_and_keeps_the_seed() -> None:
+    cfg = SimulatedLabelerConfig.exact()
+    assert cfg.seed == 0 and SimulatedLabelerConfig.exact(seed=7).seed == 7
+    assert (cfg.recall, cfg.class_recall, cfg.min_region_px, cfg.confusion_prob) == (1.0, {}, 0, 0.0)
+    assert (cfg.peak_prob, cfg.confidence, cfg.bleed_px, cfg.stuff_bleed_px) == ((1.0, 1.0), (1.0, 1.0), 0, 0)
+    assert (cfg.jitter_px, cfg.jitter_deg, cfg.match_temperature) == (0.0, 0.0, 0.0)
+    assert set(cfg.match_detection.values()) == set(cfg.match_confidence.values()) == {1.0}
+
+
+def _dist(true_c: int, pred_c: int, c: int, *, partners: dict[int, list[int]] | None = None, seed: int = 0
+          ) -> np.ndarray:
+    from leap_core.labelers.simulated import _distribution
+
+    cfg = dataclasses.replace(SimulatedLabelerConfig(), peak_prob=(0.6, 0.6), partner_share=0.5,
+                              dirichlet_alpha=1.0)
+    return _distribution(true_c, pred_c, rival=None, partners=partners or {}, num_classes=c, cfg=cfg,
+                         rng=np.random.default_rng(seed))
+
+
+def test_distribution_peak_partner_share_and_rest_by_hand() -> None:
+    # Two classes, confused: the peak on the predicted class, all the rest on the true one.
+    p = _dist(0, 1, 2)
+    assert p.dtype == np.float32
+    np.testing.assert_allclose(p, [0.4, 0.6], rtol=1e-6)
+    # Three classes, confused: half the rest (0.2) on the true class, the other half on the third.
+    np.testing.assert_allclose(_dist(0, 1, 3), [0.2, 0.6, 0.2], rtol=1e-6)
+    # One class: all of it.
+    p = _dist(0, 0, 1)
+    assert p.dtype == np.float32 and p.tolist() == [1.0]
+    # Not confused, two pair partners: the partner draw picks each for some seeds.
+    picked = set()
+    for seed in range(12):
+        p = _dist(0, 0, 4, partners={0: [2, 3]}, seed=seed)
+        picked.add(2 if p[2] >= 0.2 - 1e-6 else 3)
+        assert max(p[2], p[3]) >= 0.2 - 1e-6
+    assert picked == {2, 3}
