@@ -333,3 +333,33 @@ def test_directed_confusion_targets_decide_the_confused_class_by_weight(seq) -> 
         assert (pred[true != CAR] == true[true != CAR]).all()  # no pairs: the other classes stay
         cars += int((true == CAR).sum())
     assert cars >= 6
+
+
+def test_over_large_stuff_masks_are_dilated_by_one_to_stuff_grow_px(seq) -> None:
+    import cv2
+
+    frame = seq.frame(0)
+    exact = SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA)
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), stuff_grow_prob=1.0, stuff_grow_px=3)
+    grown = SimulatedLabeler(cfg).label(frame, SCHEMA)
+    assert grown.num_masks == exact.num_masks
+    stuff = ~np.isin(exact.probs.argmax(axis=1), [CAR, TRUCK])
+    assert stuff.any() and (~stuff).any()
+    radii = []
+    for m in range(exact.num_masks):
+        src = exact.dense()[m].astype(np.uint8)
+        if not stuff[m]:  # thing masks are left as they are (their bleed is 0 here)
+            np.testing.assert_array_equal(grown.dense()[m], exact.dense()[m])
+            continue
+        match = [r for r in range(1, 4) if np.array_equal(grown.dense()[m], cv2.dilate(
+            src, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))).astype(bool))]
+        assert match, f"stuff mask {m} is no dilation of radius 1..3 of its exact mask"
+        radii.append(match[0])
+    assert len(set(radii)) > 1  # the radius is drawn per region
+    one = SimulatedLabeler(dataclasses.replace(cfg, stuff_grow_px=1)).label(frame, SCHEMA)  # radius 1 only
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+    for m in np.flatnonzero(stuff):
+        want = cv2.dilate(exact.dense()[m].astype(np.uint8), disc).astype(bool)
+        np.testing.assert_array_equal(one.dense()[m], want)
+    off = dataclasses.replace(cfg, stuff_grow_px=0)  # no radius: the term is off whatever its probability
+    np.testing.assert_array_equal(SimulatedLabeler(off).label(frame, SCHEMA).bits, exact.bits)
