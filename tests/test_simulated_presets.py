@@ -363,3 +363,18 @@ def test_over_large_stuff_masks_are_dilated_by_one_to_stuff_grow_px(seq) -> None
         np.testing.assert_array_equal(one.dense()[m], want)
     off = dataclasses.replace(cfg, stuff_grow_px=0)  # no radius: the term is off whatever its probability
     np.testing.assert_array_equal(SimulatedLabeler(off).label(frame, SCHEMA).bits, exact.bits)
+
+
+def test_tiled_stuff_moves_its_confused_tiles_to_the_weighted_target(seq) -> None:
+    # Every tile of a road region confused (probability 1): all of it goes to the confusion target, chosen by
+    # weight (sidewalk, all but a millionth) for every seed, not uniformly among the targets.
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), confusion_prob=1.0, peak_prob=(0.8, 0.8),
+                              confusion_pairs=(), stuff_tile_px=8,
+                              confusion_targets={"road": {"sidewalk": 1.0, "terrain": 1e-6}})
+    frame = seq.frame(0)
+    true = _argmax_image(SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA))
+    assert (true == ROAD).any()
+    for seed in range(6):
+        got = _argmax_image(SimulatedLabeler(dataclasses.replace(cfg, seed=seed)).label(frame, SCHEMA))
+        assert (got[true == ROAD] == SIDEWALK).all(), seed
+        np.testing.assert_array_equal(got[true != ROAD], true[true != ROAD])
