@@ -378,3 +378,36 @@ def test_tiled_stuff_moves_its_confused_tiles_to_the_weighted_target(seq) -> Non
         got = _argmax_image(SimulatedLabeler(dataclasses.replace(cfg, seed=seed)).label(frame, SCHEMA))
         assert (got[true == ROAD] == SIDEWALK).all(), seed
         np.testing.assert_array_equal(got[true != ROAD], true[true != ROAD])
+
+
+def test_jitter_shifts_and_rotates_about_the_image_centre() -> None:
+    from leap_core.labelers.simulated import _jitter
+
+    h, w = 21, 31
+    names = np.zeros((h, w), np.uint16)
+    names[10, 15] = 1  # the centre pixel
+    names[3, 4] = 2
+    inst = names.copy()
+    exact = SimulatedLabelerConfig.exact()
+    # Rotation only (1 and 20 degrees per unit draw; seed 69 draws 2.66 units): the centre stays, an
+    # off-centre pixel moves to its rotated place (to within the nearest-neighbour rounding).
+    for deg in (1.0, 20.0):
+        cfg = dataclasses.replace(exact, jitter_deg=deg)
+        theta = np.random.default_rng(69).normal(0.0, 1.0, size=3)[2] * deg
+        got, got_inst = _jitter(names, inst, cfg, np.random.default_rng(69))
+        np.testing.assert_array_equal(got, got_inst)
+        assert got[10, 15] == 1
+        a = np.deg2rad(theta)  # (3, 4) rotated by theta about (15, 10), counter-clockwise as seen, y down
+        x = 15 + (4 - 15) * np.cos(a) + (3 - 10) * np.sin(a)
+        y = 10 - (4 - 15) * np.sin(a) + (3 - 10) * np.cos(a)
+        (ys,), (xs,) = np.nonzero(got == 2)
+        assert (ys, xs) != (3, 4) and np.hypot(ys - y, xs - x) < 1.0, (theta, ys, xs, y, x)
+    # Shift only, one pixel per unit draw: both images move together by the rounded draws.
+    cfg = dataclasses.replace(exact, jitter_px=1.0)
+    dx, dy = np.random.default_rng(69).normal(0.0, 1.0, size=2)  # 0.71, 0.34 pixels
+    got, _ = _jitter(names, inst, cfg, np.random.default_rng(69))
+    assert (round(dx), round(dy)) != (0, 0)
+    assert got[10 + round(dy), 15 + round(dx)] == 1
+    # Both terms off: the images themselves, unchanged.
+    same = _jitter(names, inst, exact, np.random.default_rng(0))
+    assert same[0] is names and same[1] is inst
