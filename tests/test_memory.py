@@ -307,7 +307,7 @@ def test_fuse_to_file_reads_its_chunk_files_memory_mapped(tmp_path) -> None:
     obs = _observations(9, frames=120)
     c = 5
     cfg = FusionConfig(chunk_points=600)
-    spilled = sum(len(np.unique(o.keys)) for o in obs) * (8 + 4 * c)  # about the chunk files' size
+    spilled = sum(len(np.unique(o.keys)) for o in obs) * (8 + 4 * c)  # the chunk files hold at most this
     tracemalloc.start()
     try:
         fusion.fuse_to_file(iter(obs), c, tmp_path / "g.npz", tmp_path / "spill", cfg, block_voxels=256)
