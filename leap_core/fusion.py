@@ -878,9 +878,9 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
             k, sums = _reduce_chunk(chunk, 1.0, paths)
             chunk.clear()  # the chunk's observations go now, not when the next one starts
             kp, sp = spill / f"chunk{len(chunk_files)}.keys.npy", spill / f"chunk{len(chunk_files)}.sums.npy"
+            chunk_files.append((kp, sp))  # listed before writing, so a failed write's half still goes
             np.save(kp, k)
             np.save(sp, sums)
-            chunk_files.append((kp, sp))
             all_keys = union_sorted(all_keys, k)
 
         o_keys = np.zeros(0, np.int64)

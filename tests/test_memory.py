@@ -299,6 +299,27 @@ def test_fuse_to_file_one_voxel_blocks_and_an_override_block_no_observation_reac
         fusion.fuse_to_file(iter(obs), c, out, spill, cfg, block_voxels=0)
 
 
+@pytest.mark.parametrize("failing", ["chunk1.keys.npy", "chunk1.sums.npy"])
+def test_fuse_to_file_deletes_a_half_written_chunk_pair_when_a_write_fails(tmp_path, monkeypatch,
+                                                                            failing: str) -> None:
+    """A full disk while the second chunk's keys or sums are written: the error goes up, and every chunk
+    file already written is deleted (the file that failed was never made); no grid file is left."""
+    obs = _observations(8, frames=6)
+    real_save = np.save
+
+    def save(file, arr, *args, **kwargs):
+        if str(file).endswith(failing):
+            raise OSError(28, "No space left on device")
+        return real_save(file, arr, *args, **kwargs)
+
+    monkeypatch.setattr(fusion.np, "save", save)
+    spill = tmp_path / "spill"
+    with pytest.raises(OSError, match="No space left"):
+        fusion.fuse_to_file(iter(obs), 5, tmp_path / "g.npz", spill, FusionConfig(chunk_points=1200))
+    assert list(spill.iterdir()) == []
+    assert not (tmp_path / "g.npz").exists()
+
+
 def test_fuse_to_file_reads_its_chunk_files_memory_mapped(tmp_path) -> None:
     """Step 2 maps the chunk files instead of reading them: traced allocations stay far below the chunks'
     summed size (read whole, every chunk file would be in memory at once)."""
