@@ -413,3 +413,72 @@ def test_unknown_name_ids_are_a_clear_error(tmp_path: Path) -> None:
     write_png16(tmp_path / "s" / "gt2d" / "name" / "000000.png", np.full((H, W), 999, np.uint16))
     with pytest.raises(LeapError, match=r"name.000000\.png: unknown name ids \[999\]"):
         SimulatedLabeler().label(seq.frame(0), SCHEMA)
+
+
+_PROBS = ("recall", "confusion_prob", "partner_share", "box_leak_prob", "pair_merge_prob", "stuff_grow_prob")
+_NON_NEGATIVE = ("min_region_px", "bleed_px", "stuff_bleed_px", "jitter_px", "jitter_deg",
+                 "match_temperature", "small_region_px", "box_leak_margin", "pair_merge_gap_px",
+                 "stuff_grow_px", "stuff_tile_px")
+_ONES = {"exact": 1.0, "synonym": 1.0, "descriptive": 1.0, "hypernym": 1.0}
+
+
+def _accepted(**kwargs: object) -> None:
+    SimulatedLabelerConfig(**kwargs)  # raises if refused
+
+
+def _refused(field: tuple[str, ...], **kwargs: object) -> str:
+    with pytest.raises(LeapError) as err:
+        SimulatedLabelerConfig(**kwargs)
+    assert err.value.field == field, (kwargs, err.value.field)
+    return str(err.value)
+
+
+def test_config_validation_edges_of_every_range() -> None:
+    """Each range's ends are accepted and the values just outside are refused, field by field (a check
+    with ``<`` for ``<=``, or the wrong field, fails here)."""
+    for name in _PROBS:
+        _accepted(**{name: 0.0})
+        _accepted(**{name: 1.0})
+        _refused((name,), **{name: -0.01})
+        _refused((name,), **{name: 1.01})
+    for table in ("class_recall", "class_confusion"):
+        _accepted(**{table: {"car": 0.0, "road": 1.0}})
+        _refused((table, "car"), **{table: {"road": 0.5, "car": -0.01}})
+        _refused((table, "car"), **{table: {"car": 1.01}})
+    for name in ("peak_prob", "confidence"):
+        for ok in ((1.0, 1.0), (0.5, 0.5), (1e-9, 1.0)):
+            _accepted(**{name: ok})
+        for bad in ((0.0, 0.5), (0.6, 0.5), (0.5, 1.01)):
+            _refused((name,), **{name: bad})
+    _accepted(dirichlet_alpha=1e-9)
+    _refused(("dirichlet_alpha",), dirichlet_alpha=0.0)
+    _refused(("dirichlet_alpha",), dirichlet_alpha=float("nan"))
+    _accepted(persistence_frames=1)
+    _refused(("persistence_frames",), persistence_frames=0)
+    for name in _NON_NEGATIVE:
+        _accepted(**{name: 0})
+        _refused((name,), **{name: -1})
+
+
+def test_strength_tables_need_the_four_strengths_in_range() -> None:
+    """``match_detection`` takes [0, 1], ``match_confidence`` (0, 1]; both need exactly the four strengths,
+    and the message lists the keys given ("none" for an empty table)."""
+    _accepted(match_detection={**_ONES, "hypernym": 0.0}, match_confidence=_ONES)
+    _refused(("match_detection", "hypernym"), match_detection={**_ONES, "hypernym": -0.01})
+    _refused(("match_detection", "exact"), match_detection={**_ONES, "exact": 1.01})
+    _refused(("match_confidence", "hypernym"), match_confidence={**_ONES, "hypernym": 0.0})
+    _refused(("match_confidence", "exact"), match_confidence={**_ONES, "exact": 1.01})
+    _accepted(match_confidence={**_ONES, "exact": 1e-9})
+    assert _refused(("match_detection",), match_detection={}).endswith("got none")
+    msg = _refused(("match_confidence",), match_confidence={**_ONES, "fuzzy": 1.0})
+    assert msg.endswith("got exact, synonym, descriptive, hypernym, fuzzy")
+
+
+def test_confusion_tables_need_two_different_names_and_weights_of_other_classes() -> None:
+    _accepted(confusion_pairs=(("car", "truck"),), confusion_targets={"car": {"truck": 0.0, "road": 2.0}})
+    _refused(("confusion_pairs",), confusion_pairs=(("car", "truck", "road"),))
+    _refused(("confusion_pairs",), confusion_pairs=(("car", "truck"), ("road",)))
+    _refused(("confusion_pairs",), confusion_pairs=(("car", "truck"), ("road", "road")))
+    _refused(("confusion_targets", "car", "car"), confusion_targets={"car": {"truck": 1.0, "car": 1.0}})
+    _refused(("confusion_targets", "road", "car"),
+             confusion_targets={"car": {"truck": 1.0}, "road": {"car": float("nan")}})

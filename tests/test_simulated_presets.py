@@ -402,6 +402,11 @@ def test_jitter_shifts_and_rotates_about_the_image_centre() -> None:
         y = 10 - (4 - 15) * np.sin(a) + (3 - 10) * np.cos(a)
         (ys,), (xs,) = np.nonzero(got == 2)
         assert (ys, xs) != (3, 4) and np.hypot(ys - y, xs - x) < 1.0, (theta, ys, xs, y, x)
+    # A half turn about the centre of an image with odd sides is the image flipped both ways, pixel for
+    # pixel (a centre half a pixel off would move every row by one).
+    z = np.random.default_rng(69).normal(0.0, 1.0, size=3)[2]
+    got, _ = _jitter(names, inst, dataclasses.replace(exact, jitter_deg=180.0 / z), np.random.default_rng(69))
+    np.testing.assert_array_equal(got, names[::-1, ::-1])
     # Shift only, one pixel per unit draw: both images move together by the rounded draws.
     cfg = dataclasses.replace(exact, jitter_px=1.0)
     dx, dy = np.random.default_rng(69).normal(0.0, 1.0, size=2)  # 0.71, 0.34 pixels
@@ -411,3 +416,164 @@ def test_jitter_shifts_and_rotates_about_the_image_centre() -> None:
     # Both terms off: the images themselves, unchanged.
     same = _jitter(names, inst, exact, np.random.default_rng(0))
     assert same[0] is names and same[1] is inst
+
+
+def test_noise_helpers_past_their_usual_inputs() -> None:
+    # A box wholly outside the image leaks no pixel (an empty crop, not one row or column).
+    for y0, x0 in ((50, 10), (10, 70), (50, 70)):
+        crop, _, _ = box_leak_crop(4, 4, y0, x0, 0.0, (48, 64))
+        assert crop.size == 0, (y0, x0)
+    # Eligibility as a column vector reads as one flag per region.
+    boxes = [(0, 0, 10, 10), (0, 12, 10, 20), (11, 0, 20, 10)]
+    np.testing.assert_array_equal(adjacent_partner(boxes, np.array([[1], [0], [1]]), 2), [2, 0, 0])
+    # A draw of exactly 1 picks the last pair partner.
+    assert _pick([4, 5], None, 1.0) == 5 and _pick([4, 5, 6], None, 0.999) == 6
+
+
+def test_one_pixel_tiles_confuse_single_pixels(seq) -> None:
+    # stuff_tile_px = 1 is on: each road pixel is drawn apart, so for every seed part of the road is taken for
+    # sidewalk and part stays (one draw for the whole region gives all or nothing).
+    frame = seq.frame(0)
+    road = _argmax_image(_exact().label(frame, SCHEMA)) == ROAD
+    for seed in range(3):
+        lab = _exact(seed=seed, confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5},
+                     stuff_tile_px=1)
+        got = _argmax_image(lab.label(frame, SCHEMA))[road]
+        share = float((got == SIDEWALK).mean())
+        assert 0.3 < share < 0.7 and ((got == SIDEWALK) | (got == ROAD)).all(), (seed, share)
+
+
+def test_the_confused_partner_is_the_partner_draw_of_the_object(seq) -> None:
+    # Each region's persistent draws are (recall, confusion, partner choice, competition): a confused car
+    # with three partners takes the one its third draw picks, whatever its fourth.
+    from leap_core.labelers.simulated import (
+        _STREAM_OBJECT,
+        _name_image,
+        _object_draws,
+        _regions,
+        prompt_matches,
+    )
+
+    pairs = (("car", "truck"), ("car", "road"), ("car", "sidewalk"))
+    partners = sorted(SCHEMA.names.index(n) for n in ("truck", "road", "sidewalk"))
+    frame = seq.frame(0)
+    regions = _regions(_name_image(frame, frame.gt2d_semantic), frame.gt2d_instance)
+    named = [i for i, r in enumerate(regions) if prompt_matches(SCHEMA).get(r.name)]
+    true = _exact().label(frame, SCHEMA).probs.argmax(axis=1)
+    assert len(true) == len(named) and (true == CAR).sum() >= 2
+    picks = []
+    for seed in range(6):
+        lab = _exact(seed=seed, confusion_pairs=pairs, class_confusion={"car": 1.0}, peak_prob=(0.8, 0.8))
+        pred = lab.label(frame, SCHEMA).probs.argmax(axis=1)
+        u = _object_draws(regions, seed, 0, _STREAM_OBJECT)
+        for m in np.flatnonzero(true == CAR):
+            assert pred[m] == _pick(partners, None, float(u[named[m], 2])), (seed, m)
+            picks.append(int(pred[m]))
+    assert len(set(picks)) == 3
+
+
+def test_over_large_stuff_draws_whether_and_how_far_apart(seq) -> None:
+    # At probability 1/2 a stuff mask grows or not on one draw and takes its radius 1..4 from another: the
+    # grown masks reach radii 3 and 4 too (were one draw to decide both, a grown mask's radius would be 1-2).
+    import cv2
+
+    frame = seq.frame(0)
+    exact = _exact().label(frame, SCHEMA)
+    stuff = np.flatnonzero(~np.isin(exact.probs.argmax(axis=1), [CAR, TRUCK]))
+    radii = []
+    for seed in range(12):
+        grown = _exact(seed=seed, stuff_grow_prob=0.5, stuff_grow_px=4).label(frame, SCHEMA).dense()
+        for m in stuff:
+            src = exact.dense()[m].astype(np.uint8)
+            r = [r for r in range(5) if np.array_equal(grown[m], cv2.dilate(
+                src, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))).astype(bool))]
+            radii.append(r[0])
+    assert 0 in radii and {3, 4} & set(radii), sorted(set(radii))
+
+
+# --------------------------------------------------------------------- the helpers, by hand, at their edges
+def test_size_recall_dtype_shape_and_small_thresholds() -> None:
+    off = size_recall([0, 3, 5], 0)  # off: ones of the input's shape, as floats (also for an empty region)
+    assert off.dtype == np.float64 and off.shape == (3,) and off.tolist() == [1.0, 1.0, 1.0]
+    # One pixel is a threshold like any other: an empty region has recall 0 there.
+    assert size_recall([0, 2], 1).tolist() == [0.0, 1.0]
+
+
+def test_per_class_takes_float_values_over_an_integer_default() -> None:
+    from leap_core.labelers.simulated import _per_class
+
+    # A YAML file's "recall: 1" arrives as an int; a class's 0.5 must not be cut to 0.
+    got = _per_class(["car", "road", "sky"], 1, {"road": 0.5, "boat": 0.1})
+    assert got.dtype == np.float64 and got.tolist() == [1.0, 0.5, 1.0]
+
+
+def test_merge_partners_of_objects_stacked_vertically() -> None:
+    from leap_core.labelers.simulated import _merge_partners, _Region
+
+    # A rider (rows 0-9, columns 0-3) above a bicycle (rows 12-21, columns 0-3): 2 px apart vertically; a
+    # stuff region 3 px to their right is never a partner and has none. Boxes are taller than wide, so
+    # height and width cannot be swapped unnoticed.
+    tall = np.ones((10, 4), bool)
+    regions = [_Region(8, True, 1, 0, 0, tall), _Region(7, True, 2, 12, 0, tall),
+               _Region(10, False, 0, 0, 7, np.ones((22, 3), bool))]
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), pair_merge_prob=0.5, pair_merge_gap_px=2)
+    assert _merge_partners(regions, cfg).tolist() == [1, 0, -1]
+    assert _merge_partners(regions, dataclasses.replace(cfg, pair_merge_gap_px=1)).tolist() == [-1, -1, -1]
+    off = _merge_partners(regions, dataclasses.replace(cfg, pair_merge_prob=0.0))
+    assert off.dtype == np.int64 and off.tolist() == [-1, -1, -1]
+
+
+def test_compete_by_hand() -> None:
+    from leap_core.labelers.simulated import _compete
+
+    base = SimulatedLabelerConfig.exact()
+    conf = {"exact": 1.0, "synonym": 0.5, "descriptive": 0.5, "hypernym": 0.5}
+    # Alone: its own class and strength, no rival.
+    assert _compete([(4, 1)], base, 0.7) == (4, 1, None)
+    # T = 0: the strongest strength always wins; equal strengths share the win (a draw at the boundary goes
+    # to the second, a draw of 1 to the last); the rival is the other class.
+    assert _compete([(2, 0), (5, 3)], base, 0.99) == (2, 0, 5)
+    assert _compete([(2, 1), (5, 1)], base, 0.4999) == (2, 1, 5)
+    assert _compete([(2, 1), (5, 1)], base, 0.5) == (5, 1, 2)
+    assert _compete([(2, 1), (5, 1)], base, 1.0) == (5, 1, 2)
+    # T = 1: P(exact wins) = e^1 / (e^1 + e^0.5) = 0.6225.
+    soft = dataclasses.replace(base, match_temperature=1.0, match_confidence=conf)
+    assert _compete([(2, 0), (5, 1)], soft, 0.62) == (2, 0, 5)
+    assert _compete([(2, 0), (5, 1)], soft, 0.63) == (5, 1, 2)
+    # A small T in any order: exp of the similarities minus their maximum stays finite, the strong one wins.
+    sharp = dataclasses.replace(soft, match_temperature=0.001)
+    assert _compete([(5, 1), (2, 0)], sharp, 0.5) == (2, 0, 5)
+
+
+def test_prompt_matches_order_and_negative_prompt_ties() -> None:
+    from leap_core.labelers.simulated import prompt_matches
+    from leap_core.schema import ClassDef, Schema
+
+    sedan = 1  # leap_core/synth/names.py: "sedan", synonyms "car", "automobile", hypernym "vehicle"
+    schema = Schema(name="m", classes=(
+        ClassDef("veh", (1, 2, 3), ("vehicle",), 10, (10,), "vehicle"),
+        ClassDef("exact", (1, 2, 3), ("sedan",), 11, (11,), "vehicle"),
+        ClassDef("syn", (1, 2, 3), ("car",), 12, (12,), "vehicle", negative_prompts=("automobile",)),
+    ))
+    # Strongest first (exact, synonym, hypernym), not in class order; a negative prompt as strong as the
+    # positive one does not rule the class out (only a strictly stronger one does).
+    assert prompt_matches(schema)[sedan] == [(1, 0), (2, 1), (0, 3)]
+
+
+def test_regions_names_ids_and_canonical_order() -> None:
+    from leap_core.labelers.simulated import _regions
+
+    names = np.zeros((8, 12), np.uint16)
+    inst = np.zeros((8, 12), np.uint16)
+    inst[0:2, 0:2] = 9  # an instance id on unnamed pixels: no region
+    names[6:8, 0:3] = 1  # name id 1 (the first of the lexicon) is a name like any other
+    inst[6:8, 0:3] = 4
+    # Two stuff components of name 10 that start on row 0: B at columns 6-7 of row 0 only; A at columns 9-10
+    # of rows 0-1 and columns 4-10 of rows 2-3 (its box starts left of B, its first pixel right of B). In
+    # raster order of first pixels B comes first.
+    names[0, 6:8] = 10
+    names[0:2, 9:11] = 10
+    names[2:4, 4:11] = 10
+    regions = _regions(names, inst)
+    assert [(r.name, r.thing, r.ident) for r in regions] == [(1, True, 4), (10, False, 1), (10, False, 0)]
+    assert [(r.y0, r.x0, r.crop.shape) for r in regions[1:]] == [(0, 6, (1, 2)), (0, 4, (4, 7))]
