@@ -482,3 +482,44 @@ def test_confusion_tables_need_two_different_names_and_weights_of_other_classes(
     _refused(("confusion_targets", "car", "car"), confusion_targets={"car": {"truck": 1.0, "car": 1.0}})
     _refused(("confusion_targets", "road", "car"),
              confusion_targets={"car": {"truck": 1.0}, "road": {"car": float("nan")}})
+
+
+def _exact(**kw: object) -> SimulatedLabeler:
+    return SimulatedLabeler(dataclasses.replace(SimulatedLabelerConfig.exact(), **kw))
+
+
+def test_regions_no_prompt_names_are_skipped_and_the_rest_labeled(seq: KittiSequence) -> None:
+    # The car regions come first (thing regions precede stuff); with no prompt naming them, the regions after
+    # them still get their masks.
+    frame = seq.frame(0)
+    full = _argmax_image(_exact().label(frame, SCHEMA))
+    got = _argmax_image(_exact().label(frame, _schema(car=("zebra",))))
+    assert (full == CAR).any() and not (got == CAR).any()
+    np.testing.assert_array_equal(got[full != CAR], full[full != CAR])
+
+
+def test_small_region_recall_multiplies_the_class_recall(seq: KittiSequence) -> None:
+    # small_region_px = 1 leaves every region's size factor at 1: a class recall of 0 still drops the cars.
+    got = _argmax_image(_exact(small_region_px=1, class_recall={"car": 0.0}).label(seq.frame(0), SCHEMA))
+    assert not (got == CAR).any() and (got == ROAD).any()
+
+
+def test_min_region_px_keeps_a_region_of_exactly_that_size(seq: KittiSequence) -> None:
+    # The smallest region of frame 0 is the second terrain strip, 3 x 10 pixels.
+    frame = seq.frame(0)
+    n = _exact().label(frame, SCHEMA).num_masks
+    assert _exact(min_region_px=30).label(frame, SCHEMA).num_masks == n
+    assert _exact(min_region_px=31).label(frame, SCHEMA).num_masks == n - 1
+
+
+def test_unnamed_pixels_of_a_name_image_are_no_region(tmp_path: Path) -> None:
+    # Name id 0 (no name, e.g. sky) is allowed in gt2d/name and gets no mask; the named pixels are labeled.
+    from leap_core.datasets.kitti import read_png16
+
+    seq = _named_sequence(tmp_path / "s")
+    path = tmp_path / "s" / "gt2d" / "name" / "000000.png"
+    names = read_png16(path)
+    names[:4] = 0
+    write_png16(path, names)
+    got = _argmax_image(_exact().label(seq.frame(0), _schema(terrain=("lawn",), road=("asphalt",))))
+    assert (got[:4] == -1).all() and (got[4:10] == TERRAIN).all() and (got[10:, 4:] >= 0).all()

@@ -25,7 +25,16 @@ from leap_core.labelers.simulated import (
     tile_split,
 )
 from leap_core.presets import load_preset
-from tests.test_simulated_labeler import CAR, ROAD, SCHEMA, SIDEWALK, TRUCK, _argmax_image, make_sequence
+from tests.test_simulated_labeler import (
+    CAR,
+    ROAD,
+    SCHEMA,
+    SIDEWALK,
+    TRUCK,
+    _argmax_image,
+    _schema,
+    make_sequence,
+)
 
 
 @pytest.fixture(scope="module")
@@ -33,11 +42,11 @@ def seq(tmp_path_factory: pytest.TempPathFactory):
     return make_sequence(tmp_path_factory.mktemp("preset_seq"))
 
 
-def _masks_digest(lab: SimulatedLabeler, seq) -> str:
+def _masks_digest(lab: SimulatedLabeler, seq, schema=SCHEMA) -> str:
     """First 16 hex digits of the SHA-256 of every frame's mask bits, probabilities and confidences."""
     h = hashlib.sha256()
     for f in seq:
-        m = lab.label(f, SCHEMA)
+        m = lab.label(f, schema)
         for a in (m.bits, m.probs, m.confidence):
             h.update(a.tobytes())
     return h.hexdigest()[:16]
@@ -49,6 +58,9 @@ def test_default_preset_output_and_fingerprint_are_unchanged(seq) -> None:
     # 2D labels, caches and fingerprints) must not move when terms are added that it leaves off.
     lab = SimulatedLabeler(SimulatedLabelerConfig(seed=7))
     assert _masks_digest(lab, seq) == "4c8c1284077fa811"
+    # Prompts that name the regions loosely (hypernyms, synonyms): confidences scaled by a match factor < 1.
+    loose = _schema(car=("vehicle",), road=("street",), vegetation=("plants",))
+    assert _masks_digest(lab, seq, loose) == "b03fc46611d14a9c"
     # The fingerprint hashes the lexicon, which gained the agri-uav domain's names (2026-11-27; the masks
     # above did not move): was 1253efe3866bbb09.
     assert SimulatedLabeler().fingerprint(SCHEMA) == "a06e41a427719ec4"
