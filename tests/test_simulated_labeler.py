@@ -523,3 +523,62 @@ def test_unnamed_pixels_of_a_name_image_are_no_region(tmp_path: Path) -> None:
     write_png16(path, names)
     got = _argmax_image(_exact().label(seq.frame(0), _schema(terrain=("lawn",), road=("asphalt",))))
     assert (got[:4] == -1).all() and (got[4:10] == TERRAIN).all() and (got[10:, 4:] >= 0).all()
+
+
+def test_the_rival_class_takes_the_second_share(tmp_path: Path) -> None:
+    # Every van is named loosely by "car" and by "truck": the class that loses the competition gets the
+    # partner share (0.5 of the 0.4 left by a 0.6 peak), also with no confusion pairs at all.
+    frame = _named_sequence(tmp_path / "s").frame(0)
+    lab = _exact(confusion_pairs=(), peak_prob=(0.6, 0.6), partner_share=0.5)
+    probs = lab.label(frame, SCHEMA).probs
+    vans = probs[np.isin(probs.argmax(axis=1), [CAR, TRUCK])]
+    assert len(vans) == 12
+    rival = np.where(vans.argmax(axis=1) == CAR, vans[:, TRUCK], vans[:, CAR])
+    assert (rival >= 0.2 - 1e-6).all(), rival
+
+
+def _one_frame(root: Path, sem: np.ndarray, inst: np.ndarray) -> KittiSequence:
+    make_sequence(root, n_frames=1)
+    write_png16(root / "gt2d" / "semantic" / "000000.png", sem)
+    write_png16(root / "gt2d" / "instance" / "000000.png", inst)
+    return KittiSequence(root)
+
+
+def test_a_merged_mask_keeps_its_own_pixels_inside_the_other_objects_box(tmp_path: Path) -> None:
+    # A car (rows 10-20, columns 10-30) and an L-shaped truck in front of it (column 25, rows 5-25, and an
+    # arm along rows 5-7 to column 35): each box holds pixels of the other object. One mask over both is
+    # their union, the pixels of each inside the other's box included.
+    sem = np.full((H, W), 40, np.uint16)
+    inst = np.zeros((H, W), np.uint16)
+    sem[10:21, 10:31], inst[10:21, 10:31] = 10, 1
+    sem[5:26, 25], inst[5:26, 25] = 18, 2
+    sem[5:8, 25:36], inst[5:8, 25:36] = 18, 2
+    frame = _one_frame(tmp_path / "s", sem, inst).frame(0)
+    exact = _exact().label(frame, SCHEMA)
+    cls = exact.probs.argmax(axis=1)
+    union = exact.dense()[cls == CAR][0] | exact.dense()[cls == TRUCK][0]
+    merged = _exact(pair_merge_prob=1.0, pair_merge_gap_px=5).label(frame, SCHEMA)
+    things = merged.dense()[np.isin(merged.probs.argmax(axis=1), [CAR, TRUCK])]
+    assert len(things) == 2 and all(np.array_equal(m, union) for m in things)
+
+
+def test_pair_merges_follow_the_objects_merge_draw(seq: KittiSequence) -> None:
+    # Each region's shape draws are (box leak, pair merge, stuff growth, growth radius): at probability 1/2
+    # a car mask covers the other car exactly when its second draw is below 1/2.
+    from leap_core.labelers.simulated import _STREAM_SHAPE, _name_image, _object_draws, _regions
+
+    frame = seq.frame(0)
+    regions = _regions(_name_image(frame, frame.gt2d_semantic), frame.gt2d_instance)
+    plain = _exact().label(frame, SCHEMA)
+    cars = np.flatnonzero(plain.probs.argmax(axis=1) == CAR)
+    assert list(cars) == [0, 1] and all(r.thing for r in regions[:2])  # the two cars are regions 0 and 1
+    sizes = plain.dense()[cars].sum(axis=(1, 2))
+    seen = set()
+    for seed in range(10):
+        masks = _exact(seed=seed, pair_merge_prob=0.5, pair_merge_gap_px=20).label(frame, SCHEMA).dense()
+        u = _object_draws(regions, seed, 0, _STREAM_SHAPE)
+        for m in cars:
+            merged = bool(masks[m].sum() > sizes[m])
+            assert merged == (u[m, 1] < 0.5), (seed, m)
+            seen.add(merged)
+    assert seen == {True, False}

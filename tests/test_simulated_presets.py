@@ -61,6 +61,9 @@ def test_default_preset_output_and_fingerprint_are_unchanged(seq) -> None:
     # Prompts that name the regions loosely (hypernyms, synonyms): confidences scaled by a match factor < 1.
     loose = _schema(car=("vehicle",), road=("street",), vegetation=("plants",))
     assert _masks_digest(lab, seq, loose) == "b03fc46611d14a9c"
+    # Tiled stuff: each part of a split region draws its probabilities from a generator of its own.
+    tiled = dataclasses.replace(lab.cfg, class_confusion={"road": 0.5, "terrain": 0.5}, stuff_tile_px=8)
+    assert _masks_digest(SimulatedLabeler(tiled), seq) == "58fef08ec0fffaee"
     # The fingerprint hashes the lexicon, which gained the agri-uav domain's names (2026-11-27; the masks
     # above did not move): was 1253efe3866bbb09.
     assert SimulatedLabeler().fingerprint(SCHEMA) == "a06e41a427719ec4"
