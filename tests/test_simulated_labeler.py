@@ -485,6 +485,7 @@ def test_confusion_tables_need_two_different_names_and_weights_of_other_classes(
 
 
 def _exact(**kw: object) -> SimulatedLabeler:
+    """The labeler with every noise knob off but those given."""
     return SimulatedLabeler(dataclasses.replace(SimulatedLabelerConfig.exact(), **kw))
 
 

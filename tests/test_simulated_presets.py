@@ -32,6 +32,7 @@ from tests.test_simulated_labeler import (
     SIDEWALK,
     TRUCK,
     _argmax_image,
+    _exact,
     _schema,
     make_sequence,
 )
@@ -172,10 +173,6 @@ def test_confusion_targets_and_pick() -> None:
 
 
 # ------------------------------------------------------------------------------- the terms in the labeler
-def _exact(**kw: object) -> SimulatedLabeler:
-    return SimulatedLabeler(dataclasses.replace(SimulatedLabelerConfig.exact(), **kw))
-
-
 def test_class_confusion_and_targets_direct_the_confusion(seq) -> None:
     gt = _argmax_image(_exact().label(seq.frame(0), SCHEMA))
     pairs = (("car", "truck"), ("road", "sidewalk"))
