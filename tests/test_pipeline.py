@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 import time
 from pathlib import Path
@@ -667,7 +668,11 @@ def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: 
     run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 2), until="labels2d",
                  runtime=cache)
     entries = sorted((tmp_path / "cache" / "labels2d").glob("*/*.npz"))
+    # The layout docs/METHOD.md gives (entries of other versions would be orphaned by any other):
+    # labels2d/<16 hex digits of the labeler's fingerprint and C>/<frame id>-<20 hex digits of its inputs>.npz
     assert [e.name[:7] for e in entries] == ["000000-", "000001-"]
+    assert all(re.fullmatch(r"[0-9a-f]{16}", e.parent.name) and re.fullmatch(r"\d{6}-[0-9a-f]{20}\.npz", e.name)
+               for e in entries)
     good = entries[0].read_bytes()
     entries[0].write_bytes(b"damaged")
     run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 2), until="labels2d",
@@ -677,11 +682,27 @@ def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: 
     assert (tmp_path / "b" / "labels2d" / "000000.npz").read_bytes() == good
 
 
+def test_the_2d_cache_is_keyed_by_the_labeler_config(street: Path, schema, tmp_path: Path) -> None:
+    """Two labeler settings share a cache folder but never its entries: a run with another simulated seed
+    finds nothing to reuse and gets its own masks; the first setting then still hits its own."""
+    cache = Runtime(cache_dir=tmp_path / "cache")
+    other = config_from_dict({"simulated": {"seed": 5}})
+    for name, cfg in (("a", PipelineConfig()), ("b", other), ("c", PipelineConfig())):
+        run_pipeline(street, schema, cfg, tmp_path / name, frames=range(0, 2), until="labels2d", runtime=cache)
+    hits = {n: stage_status(tmp_path / n)["labels2d"]["cache_hits"] for n in "abc"}
+    assert hits == {"a": 0, "b": 0, "c": 2}
+    assert len(list((tmp_path / "cache" / "labels2d").iterdir())) == 2
+    masks = {n: (tmp_path / n / "labels2d" / "000000.npz").read_bytes() for n in "abc"}
+    assert masks["a"] == masks["c"] != masks["b"]
+
+
 def test_stage_errors_name_their_file(baseline, street: Path, schema, tmp_path: Path) -> None:
     no_gt2d = tmp_path / "00"
     shutil.copytree(street, no_gt2d)
     shutil.rmtree(no_gt2d / "gt2d")
-    with pytest.raises(LeapError, match=r"gt2d/semantic"):
+    # Refused before any frame is read, with what the labeler needs and the other choice.
+    with pytest.raises(LeapError, match=r"gt2d/semantic: the simulated labeler needs 2D ground truth .* "
+                                        r"choose the grounded-sam labeler"):
         run_pipeline(no_gt2d, schema, PipelineConfig(), tmp_path / "r0", frames=range(0, 1), until="labels2d")
     run_dir = tmp_path / "r"
     shutil.copytree(baseline[0], run_dir)

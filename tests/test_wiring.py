@@ -95,7 +95,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     # Non-default settings in every section a stage reads: a stage that used a default config would differ.
     cfg = config_from_dict({"consistency": TINY_3DCN, "smoothing": {"k": 6},
                             "fusion": {"prob_floor": 0.002, "logp_clip": 12.0},
-                            "projection": {"cluster_gap": 0.8}})
+                            "projection": {"cluster_gap": 0.8, "min_depth": 4.0}})
     assert cfg.smoothing != PipelineConfig().smoothing
     calls: list[tuple[str, int, int]] = []
     result = run_pipeline(street, schema, cfg, run_dir, progress=lambda *a: calls.append(a))
