@@ -671,8 +671,8 @@ def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: 
     # The layout docs/METHOD.md gives (entries of other versions would be orphaned by any other):
     # labels2d/<16 hex digits of the labeler's fingerprint and C>/<frame id>-<20 hex digits of its inputs>.npz
     assert [e.name[:7] for e in entries] == ["000000-", "000001-"]
-    assert all(re.fullmatch(r"[0-9a-f]{16}", e.parent.name) and re.fullmatch(r"\d{6}-[0-9a-f]{20}\.npz", e.name)
-               for e in entries)
+    assert all(re.fullmatch(r"[0-9a-f]{16}", e.parent.name) for e in entries)
+    assert all(re.fullmatch(r"\d{6}-[0-9a-f]{20}\.npz", e.name) for e in entries)
     good = entries[0].read_bytes()
     entries[0].write_bytes(b"damaged")
     run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 2), until="labels2d",
@@ -688,7 +688,8 @@ def test_the_2d_cache_is_keyed_by_the_labeler_config(street: Path, schema, tmp_p
     cache = Runtime(cache_dir=tmp_path / "cache")
     other = config_from_dict({"simulated": {"seed": 5}})
     for name, cfg in (("a", PipelineConfig()), ("b", other), ("c", PipelineConfig())):
-        run_pipeline(street, schema, cfg, tmp_path / name, frames=range(0, 2), until="labels2d", runtime=cache)
+        run_pipeline(street, schema, cfg, tmp_path / name, frames=range(0, 2), until="labels2d",
+                     runtime=cache)
     hits = {n: stage_status(tmp_path / n)["labels2d"]["cache_hits"] for n in "abc"}
     assert hits == {"a": 0, "b": 0, "c": 2}
     assert len(list((tmp_path / "cache" / "labels2d").iterdir())) == 2
