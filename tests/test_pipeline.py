@@ -167,6 +167,7 @@ def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
     assert list(result.stages) == list(STAGES)
     assert result.ran == [s for s in STAGES if s != "3dcn"]
     assert result.stages["3dcn"].status == "skipped"
+    assert not (run_dir / ".fuse_spill").exists()  # the fuse stage's chunk folder goes when it ends
     # Each report names its stage; per-frame stages computed every frame, whole-run stages count none.
     assert [r.name for r in result.stages.values()] == list(STAGES)
     assert {s: r.frames_computed for s, r in result.stages.items()} == {

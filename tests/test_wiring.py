@@ -517,3 +517,34 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     label.unlink()
     assert evaluate() == {"status": "skipped", "note": "no ground truth"}
     assert not lay.metrics.exists()
+
+
+def test_smoothing_reimposes_class_0_and_leaves_erased_voxels_smoothed(run: Run, tmp_path: Path) -> None:
+    """A correction to class 0 is imposed like any other, an erase (-1) imposes nothing (its voxel keeps its
+    smoothed row), and without corrections the stored grid is knn_smooth exactly, its first row included."""
+    from leap_core.pipeline.runner import _context
+    from leap_core.pipeline.stages import _fuse_overrides, _smooth_and_save
+
+    grid = VoxelGrid.load(run.lay.grid)
+    smooth = knn_smooth(grid.centres(), grid.probs(), run.cfg.smoothing).astype(np.float16)
+    run_dir = tmp_path / "r"
+    run_dir.mkdir()
+    ctx = _context(run.seq.root, run.schema, run.cfg, run_dir, progress=None, frames=None,
+                   runtime=None)
+    _smooth_and_save(grid, ctx, tmp_path / "plain.npz")
+    np.testing.assert_array_equal(SmoothedGrid.load(tmp_path / "plain.npz").probs, smooth)
+    assert _fuse_overrides(ctx) == (None, 0)
+
+    rows, cls = np.array([3, 10, 20]), np.array([0, -1, 5])
+    assert smooth[3].argmax() != 0 and smooth[20].argmax() != 5 and smooth[10].argmax() != run.c - 1
+    save_corrections(run_dir / "corrections.npz", grid.keys[rows], cls)
+    _smooth_and_save(grid, ctx, tmp_path / "corrected.npz")
+    expected = smooth.copy()
+    for r, c in ((3, 0), (20, 5)):
+        expected[r] = 0.0
+        expected[r, c] = 1.0
+    np.testing.assert_array_equal(SmoothedGrid.load(tmp_path / "corrected.npz").probs, expected)
+    overrides, n = _fuse_overrides(ctx)
+    assert overrides is not None and n == 3
+    np.testing.assert_array_equal(overrides[0], grid.keys[[3, 20]])
+    np.testing.assert_array_equal(overrides[1], [0, 5])
