@@ -5,10 +5,11 @@ mutant that makes the tests run past mutmut's limit, or crashes their process, i
 equivalent mutants are the ones docs/MUTATION.md lists in its table rows
 ``| `MUTANT` | equivalent | reason |``. Rows ``| `MUTANT` | killed on a GPU | reason |`` name mutants that
 only tests/test_cuda.py tells apart (skipped where torch sees no GPU, as here and in CI): seen killed on a
-GPU machine, they count as killed when mutmut reports them survived. Rows ``| `MUTANT` | killed by an
-unmapped test | TEST |`` name mutants that a fast test fails on, run with the mutant switched on, but that
-mutmut never ran against them (it maps code a module-scoped fixture runs to the fixture's first test only):
-they count as killed too. A mutant with no result yet ("not
+GPU machine, they count as killed when mutmut reports them survived. Rows ``| `MUTANT` | killed by a
+test mutmut did not run | TEST |`` name mutants that a fast test fails on, run by hand with the mutant
+switched on, but that mutmut did not run against them (it maps code a module-scoped fixture runs to the
+fixture's first test only, and a test added after a run has no place in that run's map): they count as
+killed too. A mutant with no result yet ("not
 checked": a run stopped early) makes the module's line say "incomplete".
 
 Usage: python scripts/mutation_score.py [--survivors] [MODULE_PATH ...]   (from the repository root)
@@ -58,7 +59,7 @@ def main(argv: list[str]) -> int:
                        for p in (ROOT / "mutants" / "leap_core").rglob("*.py.meta"))
     equivalent = listed_mutants("equivalent")
     # Killed by tests mutmut does not run against them: on a GPU machine, or by a test its map misses.
-    outside = listed_mutants("killed on a GPU") | listed_mutants("killed by an unmapped test")
+    outside = listed_mutants("killed on a GPU") | listed_mutants("killed by a test mutmut did not run")
     head = ("mutants", "killed", "survived", "no tests", "equiv.")
     print(f"{'module':38} " + " ".join(f"{h:>8}" for h in head) + f" {'score':>7}")
     tot = {"n": 0, "killed": 0, "equiv": 0, "survived": 0, "untested": 0}

@@ -441,6 +441,38 @@ def test_corrections_override_voxels(baseline, street: Path, schema, tmp_path: P
         run_pipeline(street, schema, PipelineConfig(), run_dir, until="fuse")
 
 
+def test_scan_corrections_reach_their_scan_and_an_index_past_it_is_refused(
+    baseline, street: Path, schema, tmp_path: Path
+) -> None:
+    """A scan-scope correction relabels the points it names in its own scan only (label, confidence 1); one
+    that names a point past its scan's end stops the stage with the corrections file and the frame named."""
+    import shutil
+
+    from leap_core.corrections import ScanCorrections
+    from leap_core.datasets.kitti import KittiSequence
+
+    run_dir = tmp_path / "scan_corr"
+    shutil.copytree(baseline[0], run_dir)
+    lay = RunLayout(run_dir)
+    pole = schema.index("pole")
+    before = {f: np.load(lay.points(f)) for f in ("000000", "000001")}
+    assert (before["000001"]["label"][[0, 5]] != pole).all()
+    ScanCorrections.merge([("000001", [0, 5], pole)]).save(lay.corrections_scan)
+    run_pipeline(street, schema, PipelineConfig(), run_dir)
+    after = {f: np.load(lay.points(f)) for f in ("000000", "000001")}
+    assert after["000001"]["label"][[0, 5]].tolist() == [pole, pole]
+    assert after["000001"]["conf"].dtype == np.float16 and after["000001"]["conf"][[0, 5]].tolist() == [1, 1]
+    keep = np.ones(len(after["000001"]["label"]), bool)
+    keep[[0, 5]] = False
+    np.testing.assert_array_equal(after["000001"]["label"][keep], before["000001"]["label"][keep])
+    np.testing.assert_array_equal(after["000000"]["label"], before["000000"]["label"])
+    n = KittiSequence(street).frame(1).points.shape[0]
+    ScanCorrections.merge([("000001", [n], pole)]).save(lay.corrections_scan)
+    with pytest.raises(DatasetError, match=rf"corrections_scan\.npz: frame 000001: point index {n}, the scan "
+                                           rf"has {n}"):
+        run_pipeline(street, schema, PipelineConfig(), run_dir)
+
+
 def test_corrections_survive_smoothing_and_latest_wins(
     baseline, street: Path, schema, tmp_path: Path
 ) -> None:
