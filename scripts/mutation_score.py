@@ -9,8 +9,8 @@ GPU machine, they count as killed when mutmut reports them survived. Rows ``| `M
 test mutmut did not run | TEST |`` name mutants that a fast test fails on, run by hand with the mutant
 switched on, but that mutmut did not run against them (it maps code a module-scoped fixture runs to the
 fixture's first test only, and a test added after a run has no place in that run's map): they count as
-killed too. A mutant with no result yet ("not
-checked": a run stopped early) makes the module's line say "incomplete".
+killed too. A mutant with no result yet ("not checked": a run stopped early) makes the module's line say
+"incomplete".
 
 Usage: python scripts/mutation_score.py [--survivors] [MODULE_PATH ...]   (from the repository root)
   --survivors   also print every surviving / untested mutant that docs/MUTATION.md does not list as
