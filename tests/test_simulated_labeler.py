@@ -76,6 +76,23 @@ def _argmax_image(masks) -> np.ndarray:
     return out
 
 
+def _dilation_radius(got: np.ndarray, src: np.ndarray, radii: range) -> int | None:
+    """The smallest radius r in ``radii`` whose elliptical dilation of mask ``src`` is mask ``got`` (None: no
+    such r)."""
+    for r in radii:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        if np.array_equal(got, cv2.dilate(src.astype(np.uint8), k).astype(bool)):
+            return r
+    return None
+
+
+def _frame_regions(frame) -> list:
+    """The simulated labeler's ground-truth regions of ``frame``, in its order (no jitter)."""
+    from leap_core.labelers.simulated import _name_image, _regions
+
+    return _regions(_name_image(frame, frame.gt2d_semantic), frame.gt2d_instance)
+
+
 def test_zero_noise_reproduces_ground_truth(seq: KittiSequence) -> None:
     lab = SimulatedLabeler(SimulatedLabelerConfig.exact())
     for frame in seq:
@@ -156,12 +173,9 @@ def test_bleed_dilates_thing_masks_onto_background(seq: KittiSequence) -> None:
     # to the image), and at least one mask really grew.
     radii = []
     for m in np.flatnonzero(is_car):
-        src = exact.dense()[m].astype(np.uint8)
-        dilated = [cv2.dilate(src, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-                   for r in range(4)]
-        match = [r for r in range(4) if np.array_equal(bled.dense()[m], dilated[r].astype(bool))]
-        assert match, f"mask {m} is no dilation of radius 0..3 of its exact mask"
-        radii.append(match[-1])
+        r = _dilation_radius(bled.dense()[m], exact.dense()[m], range(4))
+        assert r is not None, f"mask {m} is no dilation of radius 0..3 of its exact mask"
+        radii.append(r)
     assert max(radii) > 0 and (grow[is_car] > 0).any()
 
 
@@ -566,10 +580,10 @@ def test_a_merged_mask_keeps_its_own_pixels_inside_the_other_objects_box(tmp_pat
 def test_pair_merges_follow_the_objects_merge_draw(seq: KittiSequence) -> None:
     # Each region's shape draws are (box leak, pair merge, stuff growth, growth radius): at probability 1/2
     # a car mask covers the other car exactly when its second draw is below 1/2.
-    from leap_core.labelers.simulated import _STREAM_SHAPE, _name_image, _object_draws, _regions
+    from leap_core.labelers.simulated import _STREAM_SHAPE, _object_draws
 
     frame = seq.frame(0)
-    regions = _regions(_name_image(frame, frame.gt2d_semantic), frame.gt2d_instance)
+    regions = _frame_regions(frame)
     plain = _exact().label(frame, SCHEMA)
     cars = np.flatnonzero(plain.probs.argmax(axis=1) == CAR)
     assert list(cars) == [0, 1] and all(r.thing for r in regions[:2])  # the two cars are regions 0 and 1

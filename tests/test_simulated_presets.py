@@ -32,7 +32,9 @@ from tests.test_simulated_labeler import (
     SIDEWALK,
     TRUCK,
     _argmax_image,
+    _dilation_radius,
     _exact,
+    _frame_regions,
     _schema,
     make_sequence,
 )
@@ -359,14 +361,12 @@ def test_over_large_stuff_masks_are_dilated_by_one_to_stuff_grow_px(seq) -> None
     assert stuff.any() and (~stuff).any()
     radii = []
     for m in range(exact.num_masks):
-        src = exact.dense()[m].astype(np.uint8)
         if not stuff[m]:  # thing masks are left as they are (their bleed is 0 here)
             np.testing.assert_array_equal(grown.dense()[m], exact.dense()[m])
             continue
-        match = [r for r in range(1, 4) if np.array_equal(grown.dense()[m], cv2.dilate(
-            src, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))).astype(bool))]
-        assert match, f"stuff mask {m} is no dilation of radius 1..3 of its exact mask"
-        radii.append(match[0])
+        r = _dilation_radius(grown.dense()[m], exact.dense()[m], range(1, 4))
+        assert r is not None, f"stuff mask {m} is no dilation of radius 1..3 of its exact mask"
+        radii.append(r)
     assert len(set(radii)) > 1  # the radius is drawn per region
     one = SimulatedLabeler(dataclasses.replace(cfg, stuff_grow_px=1)).label(frame, SCHEMA)  # radius 1 only
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
@@ -458,18 +458,12 @@ def test_one_pixel_tiles_confuse_single_pixels(seq) -> None:
 def test_the_confused_partner_is_the_partner_draw_of_the_object(seq) -> None:
     # Each region's persistent draws are (recall, confusion, partner choice, competition): a confused car
     # with three partners takes the one its third draw picks, whatever its fourth.
-    from leap_core.labelers.simulated import (
-        _STREAM_OBJECT,
-        _name_image,
-        _object_draws,
-        _regions,
-        prompt_matches,
-    )
+    from leap_core.labelers.simulated import _STREAM_OBJECT, _object_draws, prompt_matches
 
     pairs = (("car", "truck"), ("car", "road"), ("car", "sidewalk"))
     partners = sorted(SCHEMA.names.index(n) for n in ("truck", "road", "sidewalk"))
     frame = seq.frame(0)
-    regions = _regions(_name_image(frame, frame.gt2d_semantic), frame.gt2d_instance)
+    regions = _frame_regions(frame)
     named = [i for i, r in enumerate(regions) if prompt_matches(SCHEMA).get(r.name)]
     true = _exact().label(frame, SCHEMA).probs.argmax(axis=1)
     assert len(true) == len(named) and (true == CAR).sum() >= 2
@@ -487,8 +481,6 @@ def test_the_confused_partner_is_the_partner_draw_of_the_object(seq) -> None:
 def test_over_large_stuff_draws_whether_and_how_far_apart(seq) -> None:
     # At probability 1/2 a stuff mask grows or not on one draw and takes its radius 1..4 from another: the
     # grown masks reach radii 3 and 4 too (were one draw to decide both, a grown mask's radius would be 1-2).
-    import cv2
-
     frame = seq.frame(0)
     exact = _exact().label(frame, SCHEMA)
     stuff = np.flatnonzero(~np.isin(exact.probs.argmax(axis=1), [CAR, TRUCK]))
@@ -496,10 +488,9 @@ def test_over_large_stuff_draws_whether_and_how_far_apart(seq) -> None:
     for seed in range(12):
         grown = _exact(seed=seed, stuff_grow_prob=0.5, stuff_grow_px=4).label(frame, SCHEMA).dense()
         for m in stuff:
-            src = exact.dense()[m].astype(np.uint8)
-            r = [r for r in range(5) if np.array_equal(grown[m], cv2.dilate(
-                src, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))).astype(bool))]
-            radii.append(r[0])
+            r = _dilation_radius(grown[m], exact.dense()[m], range(5))
+            assert r is not None, (seed, m)
+            radii.append(r)
     assert 0 in radii and {3, 4} & set(radii), sorted(set(radii))
 
 
