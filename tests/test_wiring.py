@@ -519,9 +519,7 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     assert not lay.metrics.exists()
 
 
-def test_smoothing_reimposes_class_0_and_leaves_erased_voxels_smoothed(
-    run: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_smoothing_reimposes_class_0_and_leaves_erased_voxels_smoothed(run: Run, tmp_path: Path) -> None:
     """A correction to class 0 is imposed like any other, an erase (-1) imposes nothing (its voxel keeps its
     smoothed row), and without corrections the stored grid is knn_smooth exactly, its first row included;
     also when the rows are smoothed in several blocks."""
@@ -548,13 +546,7 @@ def test_smoothing_reimposes_class_0_and_leaves_erased_voxels_smoothed(
         expected[r, c] = 1.0
     np.testing.assert_array_equal(SmoothedGrid.load(tmp_path / "corrected.npz").probs, expected)
     # In blocks of 7 rows the corrected rows lie in the first, second and third block: the same grid.
-    import functools
-
-    from leap_core.pipeline import stages
-    from leap_core.smoothing import smooth_grid_blocks
-
-    monkeypatch.setattr(stages, "smooth_grid_blocks", functools.partial(smooth_grid_blocks, chunk=7))
-    _smooth_and_save(grid, ctx, tmp_path / "blocks.npz")
+    _smooth_and_save(grid, ctx, tmp_path / "blocks.npz", chunk=7)
     np.testing.assert_array_equal(SmoothedGrid.load(tmp_path / "blocks.npz").probs, expected)
     overrides, n = _fuse_overrides(ctx)
     assert overrides is not None and n == 3

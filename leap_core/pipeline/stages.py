@@ -50,7 +50,7 @@ from leap_core.pipeline.context import (
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import MultiRunLayout, RunLayout, load_corrections
-from leap_core.smoothing import SmoothedGrid, smooth_grid_blocks
+from leap_core.smoothing import SMOOTH_CHUNK, SmoothedGrid, smooth_grid_blocks
 
 if TYPE_CHECKING:
     from leap_core.consistency.stage import Predict
@@ -245,16 +245,16 @@ def _fuse_inputs(ctx: Ctx) -> dict[str, Any]:
 
 
 # -------------------------------------------------------------------------------------------- smooth
-def _smooth_and_save(grid: VoxelGrid, ctx: Ctx, path: Path) -> None:
+def _smooth_and_save(grid: VoxelGrid, ctx: Ctx, path: Path, chunk: int = SMOOTH_CHUNK) -> None:
     """kNN-smooth ``grid`` and save it; corrected voxels are then reset to their corrected class.
 
     A manual correction is the user's final word: kNN smoothing (and a later 3D-CN round) must not move
     it, so it is re-imposed as a one-hot distribution on the smoothed grid, not only fused as evidence.
 
     Streams (docs/METHOD.md, "Memory"): rows are smoothed a chunk at a time
-    (:func:`~leap_core.smoothing.smooth_grid_blocks`), corrected, cast to float16 and written to the file
-    as they come, so besides the grid and its kd-tree only one chunk is held; the file is the one
-    :meth:`SmoothedGrid.save` writes.
+    (:func:`~leap_core.smoothing.smooth_grid_blocks`, ``chunk`` rows each), corrected, cast to float16 and
+    written to the file as they come, so besides the grid and its kd-tree only one chunk is held; the file
+    is the one :meth:`SmoothedGrid.save` writes.
     """
     rows = np.zeros(0, np.int64)
     cls = np.zeros(0, np.int64)
@@ -266,7 +266,7 @@ def _smooth_and_save(grid: VoxelGrid, ctx: Ctx, path: Path) -> None:
         rows, cls = rows[hit][order], cls[hit][order]
 
     def blocks() -> Iterator[npt.NDArray[np.float16]]:
-        for s, probs in smooth_grid_blocks(grid, ctx.cfg.smoothing):
+        for s, probs in smooth_grid_blocks(grid, ctx.cfg.smoothing, chunk):
             lo, hi = np.searchsorted(rows, [s, s + len(probs)])
             r = rows[lo:hi] - s
             probs[r] = 0.0
