@@ -52,5 +52,22 @@ def test_misfit_and_paper_miou_use_only_present_classes() -> None:
 
 def test_paper_config_spreads_a_merged_class_q_over_its_members() -> None:
     cfg = fit_labeler.paper_config({"manmade": 0.4, "car": 0.0}, SimulatedLabelerConfig())
-    assert cfg.class_confusion == {"building": 0.4, "fence": 0.4, "pole": 0.4, "traffic-sign": 0.4}
+    # Person's confusion is fixed (LEAK_FITTED), and with no q for it, none of its masks leak.
+    manmade = {"building": 0.4, "fence": 0.4, "pole": 0.4, "traffic-sign": 0.4}
+    assert cfg.class_confusion == {**manmade, "person": 0.1}
+    assert cfg.class_box_leak == {}
     assert cfg.confusion_prob == 0.0 and cfg.confusion_targets == fit_labeler.TARGETS
+
+
+def test_paper_config_fits_the_box_leak_of_leak_fitted_classes() -> None:
+    assert fit_labeler.LEAK_FITTED == {"person": 0.1}
+    cfg = fit_labeler.paper_config({"person": 0.35, "car": 0.2}, SimulatedLabelerConfig())
+    # Person's q is its members' box-leak probability; its confusion stays at the fixed value.
+    assert cfg.class_box_leak == {"person": 0.35}
+    assert cfg.class_confusion["person"] == 0.1 and cfg.class_confusion["car"] == 0.2
+    assert "car" not in cfg.class_box_leak
+    # A warm start reads the q back from the same places: the committed preset round-trips.
+    q = fit_labeler.preset_q()
+    paper = SimulatedLabelerConfig.from_preset("paper")
+    again = fit_labeler.paper_config(q, paper)
+    assert (again.class_box_leak, again.class_confusion) == (paper.class_box_leak, paper.class_confusion)

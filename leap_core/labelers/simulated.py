@@ -52,7 +52,8 @@ Terms of the "paper" preset (:data:`SIMULATED_PRESETS`; off by default, and then
 or hashed, so the default masks and fingerprint stay byte for byte): per-class confusion
 (``class_confusion``) and directed confusion (``confusion_targets``, :func:`confusion_targets`) in step 3,
 size-dependent recall (``small_region_px``, :func:`size_recall`) in step 2, and in step 5 background leaks
-(``box_leak_prob``: a thing mask becomes its grown bounding box, :func:`box_leak_crop`), one mask over two
+(``box_leak_prob``, per class ``class_box_leak``: a thing mask of the winning class becomes its grown
+bounding box, :func:`box_leak_crop`), one mask over two
 adjacent objects (``pair_merge_prob``, :func:`adjacent_partner`), over-large stuff (``stuff_grow_prob``) and
 tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`). docs/METHOD.md A.7-A.8 give the details.
 
@@ -224,6 +225,9 @@ class SimulatedLabelerConfig:
     """Probability that a thing mask becomes its whole bounding box grown by ``box_leak_margin``
     (:func:`box_leak_crop`): SAM segmenting the box rather than the object, the background inside the
     box leaks into the mask."""
+    class_box_leak: dict[str, float] = field(default_factory=dict)
+    """Per-class box-leak probability overriding ``box_leak_prob``, by class name (names not in the schema
+    are ignored): a detector boxes some classes (thin or small objects, people) more loosely than others."""
     box_leak_margin: float = 0.0
     """Growth of the leaked box on each side, as a fraction of the box's height (top, bottom) and width
     (left, right)."""
@@ -251,7 +255,7 @@ class SimulatedLabelerConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
-        for table in ("class_recall", "class_confusion"):
+        for table in ("class_recall", "class_confusion", "class_box_leak"):
             for cname, v in getattr(self, table).items():
                 if not 0.0 <= float(v) <= 1.0:
                     raise ConfigError(f"must be in [0, 1], got {v}", field=(table, cname))
@@ -315,6 +319,7 @@ _LATER_TERMS_OFF: dict[str, object] = {
     "confusion_targets": {},
     "small_region_px": 0,
     "box_leak_prob": 0.0,
+    "class_box_leak": {},
     "box_leak_margin": 0.0,
     "pair_merge_prob": 0.0,
     "pair_merge_gap_px": 0,
@@ -708,6 +713,8 @@ class _Draws:
     """(R,) the adjacent thing region a pair merge would add, -1 = none."""
     confusion_of: npt.NDArray[np.float64]
     """(C,) confusion probability per class."""
+    leak_of: npt.NDArray[np.float64]
+    """(C,) box-leak probability per class."""
     partners: dict[int, list[int]]
     targets: dict[int, tuple[list[int], npt.NDArray[np.float64]]]
 
@@ -768,12 +775,13 @@ class SimulatedLabeler:
         conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
         # The shape terms (box leak, pair merge, over-large stuff) draw from their own persistent stream,
         # and only when on, so the default preset's draws and masks stay as they were.
-        shaped = cfg.box_leak_prob > 0 or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
+        leak_of = _per_class(names, cfg.box_leak_prob, cfg.class_box_leak)
+        shaped = bool(leak_of.any()) or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
         draws = _Draws(
             h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed,
             u_shape=_object_draws(regions, seed, block, _STREAM_SHAPE) if shaped else np.ones((n, 4)),
             merge_with=_merge_partners(regions, cfg),
-            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion),
+            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion), leak_of=leak_of,
             partners=partners, targets=confusion_targets(names, cfg.confusion_targets),
         )
         size_factor = size_recall([r.crop.sum() for r in regions], cfg.small_region_px)
@@ -836,7 +844,7 @@ class SimulatedLabeler:
         max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
         radius = min(int(d.u_bleed[i] * (max_r + 1)), max_r)
         shape = reg
-        if reg.thing and d.u_shape[i, 0] < cfg.box_leak_prob:
+        if reg.thing and d.u_shape[i, 0] < d.leak_of[cls]:
             bh, bw = reg.crop.shape
             box, by0, bx0 = box_leak_crop(bh, bw, reg.y0, reg.x0, cfg.box_leak_margin, (d.h, d.w))
             shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
