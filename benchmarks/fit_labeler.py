@@ -102,8 +102,8 @@ LEAK_FITTED: dict[str, float] = {"person": 0.1}
 instead of the confusion probability, which is fixed at the value given: SAM on a person's box takes in
 the background, and the paper's person row rises most from point to +3D-CN (31.9 → 43.2 → 69.6), as
 errors on the background around a person do and a whole person taken for another class would not. With
-the confusion fitted instead, three quarters of the persons were another class in every frame and the
-3D-CN had almost no right person to learn from."""
+the confusion fitted instead (0.76), a person was another class in three of every four five-frame blocks,
+and the 3D-CN had almost no right person to learn from."""
 
 
 def point_confusion(seq: KittiSequence, schema: Schema, cfg: PipelineConfig,
