@@ -7,17 +7,21 @@ frame by frame, without a run folder (the same functions the ``labels2d``, ``pro
 and ``evaluate`` stages call; ``--check-run`` compares it with a real run's ``metrics.json``).
 
 The fit: the shape terms of the noise model (box leaks, pair merges, over-large stuff, size-dependent
-recall) are set to the values of :data:`SHAPE_TERMS` (chosen by hand as plausible for box-prompted SAM);
-then each merged class m gets one confusion probability q_m, applied to all its member classes
-(``class_confusion``), with the partners of :data:`PAIRS`. Starting from q = 0, each round measures the
-point row on the tuning sequences and moves ``q_m ← clip(q_m + step · (IoU_m − paper_m) / 100, 0, 1)``
-for the merged classes the tuning data contain (a class above the paper's IoU is confused more). The
-round with the smallest ``Σ_m (IoU_m − paper_m)² + (mIoU − paper mIoU)²`` is kept.
+recall) and the stratified draws are set to the values of :data:`SHAPE_TERMS` (chosen by hand as plausible
+for box-prompted SAM); then each merged class m gets one parameter q_m, applied to all its member classes:
+its confusion probability (``class_confusion``, with the partners of :data:`PAIRS` and the targets of
+:data:`TARGETS`), or for the classes of :data:`LEAK_FITTED` its box-leak probability (``class_box_leak``).
+Starting from q = 0 (or the committed preset's, ``--warm``), each round measures the point row on every
+tuning sequence, averages each class's IoU over the sequences that contain it (:func:`mean_row`), and
+moves ``q_m ← clip(q_m + step · (IoU_m − paper_m) / 100, 0, 1)`` for the merged classes the tuning data
+contain (a class above the paper's IoU is confused, or leaks, more). The round with the smallest
+``Σ_m (IoU_m − paper_m)² + (mIoU − paper mIoU)²`` is kept.
 
-FIT ON TUNING DATA, NOT ON THE DEMO: the tuning sequences are generated with other seeds
-(``leap synth DIR --frames 30 --seed 21`` and ``--seed 22``); the demo (seed 0) is only reported.
+FIT ON TUNING DATA, NOT ON THE DEMO: the tuning sequences are generated like the demo (60 frames) with
+other seeds (``leap synth DIR --frames 60 --seed 21`` ... ``--seed 28``); the demo (seed 0) is only
+reported.
 
-    .venv/bin/python benchmarks/fit_labeler.py T21/sequences/00 T22/sequences/00 --write
+    .venv/bin/python benchmarks/fit_labeler.py T21/sequences/00 T22/sequences/00 --stride 2 --write
     .venv/bin/python benchmarks/fit_labeler.py --report data/demo/sequences/00
 
 ``--write`` rewrites ``leap_core/labelers/simulated_paper.py`` (the preset, with the fit's figures in its
@@ -65,14 +69,14 @@ paper's Fig. 5 errors: terrain / vegetation, sidewalk / road, riders / bicycles,
 
 TARGETS: dict[str, dict[str, float]] = {
     "car": {"truck": 1.0, "other-vehicle": 1.0},
-    "truck": {"car": 1.0}, "other-vehicle": {"car": 1.0},
-    "bicycle": {"person": 1.0, "motorcycle": 1.0}, "bicyclist": {"person": 1.0},
+    "truck": {"car": 1.0, "building": 3.0}, "other-vehicle": {"car": 1.0, "building": 3.0},
+    "bicycle": {"person": 1.0, "pole": 1.0, "fence": 1.0}, "bicyclist": {"person": 1.0},
     "motorcycle": {"bicycle": 1.0}, "motorcyclist": {"person": 1.0},
     "person": {"bicyclist": 0.5, "pole": 1.0, "car": 1.0},
     "road": {"sidewalk": 2.0, "parking": 1.0}, "parking": {"road": 1.0, "sidewalk": 1.0},
     "sidewalk": {"road": 2.0, "other-ground": 1.0, "building": 1.0},
     "other-ground": {"sidewalk": 2.0, "road": 1.0},
-    "building": {"road": 2.0, "sidewalk": 2.0, "vegetation": 0.5, "fence": 1.0},
+    "building": {"road": 1.0, "sidewalk": 2.0, "vegetation": 0.1, "fence": 1.0},
     "fence": {"vegetation": 1.0, "sidewalk": 1.0, "building": 1.0},
     "pole": {"trunk": 1.0, "traffic-sign": 1.0, "building": 1.0},
     "traffic-sign": {"pole": 1.0, "building": 1.0},
@@ -80,10 +84,15 @@ TARGETS: dict[str, dict[str, float]] = {
     "terrain": {"vegetation": 1.0, "sidewalk": 1.0},
 }
 """Directed confusion (``confusion_targets``): what a confused region of each class is labeled as, with
-weights. Chosen by hand before the fit, so the mass a large class loses lands mostly on large classes
-(the synthetic street has far more building than vegetation in view, unlike SemanticKITTI: building
-errors sent only to vegetation would swamp it; building → vegetation has weight 0.5 since the refit of
-2026-11-29: with 1, buildings taken for vegetation were most of vegetation's false positives)."""
+weights. Chosen by hand before the fit, so the mass a class loses lands where it disturbs the other
+classes' IoU least on this street, which has far more building and trucks in view than SemanticKITTI
+(where a truck taken for a car or a wall for a hedge barely registers against the many cars and plants).
+Three choices of the refit of 2026-11-29 (second), each from the tuning sequences' confusion: trucks and
+buses go to building 3 : 1 over car (trucks taken for cars were 128k of car's 194k false positives, so car
+could not rise above 68 with its own errors at 0); building → road 1 and → vegetation 0.1 (buildings taken
+for vegetation were most of vegetation's false positives); bicycle → person, pole and fence alike, and no
+longer → motorcycle (the street has no motorcycle: a class that is only predicted enters a report's mIoU at
+0, and :func:`misfit`, which counts the classes of the ground truth, cannot see it)."""
 
 SHAPE_TERMS: dict[str, Any] = {
     "box_leak_prob": 0.1,
@@ -94,16 +103,20 @@ SHAPE_TERMS: dict[str, Any] = {
     "stuff_grow_px": 6,
     "small_region_px": 150,
     "stuff_tile_px": 32,
+    "stratified_draws": True,
 }
-"""The shape terms, fixed before the confusion fit (not fitted: plausible for box-prompted SAM)."""
+"""The shape terms, fixed before the confusion fit (not fitted: plausible for box-prompted SAM), and the
+stratified draws of the object errors (so one sequence's error shares follow the fitted rates)."""
 
-LEAK_FITTED: dict[str, float] = {"person": 0.1}
+LEAK_FITTED: dict[str, float] = {"person": 0.1, "car": 0.0}
 """Merged classes whose fitted parameter is the box-leak probability (``class_box_leak``) of their members
-instead of the confusion probability, which is fixed at the value given: SAM on a person's box takes in
-the background, and the paper's person row rises most from point to +3D-CN (31.9 → 43.2 → 69.6), as
-errors on the background around a person do and a whole person taken for another class would not. With
-the confusion fitted instead (0.76), a person was another class in three of every four five-frame blocks,
-and the 3D-CN had almost no right person to learn from."""
+instead of the confusion probability, which is fixed at the value given. Person: SAM on a person's box
+takes in the background, and the paper's person row rises most from point to +3D-CN (31.9 → 43.2 → 69.6),
+as errors on the background around a person do and a whole person taken for another class would not; with
+the confusion fitted instead (0.76), a person was another class in 0.76 of its five-frame blocks, and the
+3D-CN had almost no right person to learn from. Car: its errors on the tuning data are other classes'
+(trucks, leaks onto it) and the global leak onto the road; fitting its own leak lets the fit lower that
+one below the global ``box_leak_prob`` (a value of 0 is kept in the table for that reason)."""
 
 
 def point_confusion(seq: KittiSequence, schema: Schema, cfg: PipelineConfig,
@@ -139,6 +152,18 @@ def paper_row(conf: npt.NDArray[np.int64], schema: Schema) -> dict[str, float]:
                                                                           strict=True)}
 
 
+def mean_row(rows: Sequence[dict[str, float]]) -> dict[str, float]:
+    """Per merged class, the mean of its IoU over the ``rows`` (one per sequence) where it is present (NaN
+    where it is in none). The fit matches this per-sequence mean, not the IoU of the pooled confusion: a
+    report is one sequence, and a small class's IoU averaged over sequences lies below its pooled IoU
+    (a sequence with few of its points and many false positives counts as much as one with many)."""
+    out = {}
+    for name in rows[0]:
+        vals = [r[name] for r in rows if not math.isnan(r[name])]
+        out[name] = float(np.mean(vals)) if vals else math.nan
+    return out
+
+
 def paper_miou(classes: Sequence[str]) -> float:
     """The paper's point-row mIoU over ``classes`` (the merged classes a sequence contains)."""
     return float(np.mean([PAPER_POINT[n] for n in classes]))
@@ -158,10 +183,11 @@ def paper_config(q: dict[str, float], base: SimulatedLabelerConfig) -> Simulated
         for src in cls.sources:
             members[src] = cls.name
     class_conf = {src: round(LEAK_FITTED.get(m, q.get(m, 0.0)), 3) for src, m in sorted(members.items())}
+    # A leak-fitted class keeps its value even at 0: it overrides the global box_leak_prob.
     leak = {src: round(q.get(m, 0.0), 3) for src, m in sorted(members.items()) if m in LEAK_FITTED}
     return dataclasses.replace(base, confusion_prob=0.0, confusion_pairs=PAIRS,
                                class_confusion={k: v for k, v in class_conf.items() if v > 0},
-                               class_box_leak={k: v for k, v in leak.items() if v > 0},
+                               class_box_leak=leak,
                                confusion_targets=TARGETS, **SHAPE_TERMS)
 
 
@@ -193,8 +219,8 @@ def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds:
     for r in range(rounds):
         sim = paper_config(q, base.simulated)
         cfg = dataclasses.replace(base, simulated=sim)
-        conf = sum(point_confusion(s, schema, cfg, range(0, len(s), stride)) for s in seqs)
-        row = paper_row(np.asarray(conf, np.int64), schema)
+        row = mean_row([paper_row(point_confusion(s, schema, cfg, range(0, len(s), stride)), schema)
+                        for s in seqs])
         err, present = misfit(row)
         miou = float(np.mean([row[n] for n in present]))
         line = (f"round {r}: misfit {err:7.1f} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) | "
@@ -232,8 +258,9 @@ def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], tuning: st
     present = [n for n, v in row.items() if not math.isnan(v)]
     miou = float(np.mean([row[n] for n in present]))
     para = textwrap.fill(f"Fitted on the tuning sequences {tuning} (never on the demo, seed 0): the point "
-                         "row (camera view, the paper's merged classes) of these settings there, against the "
-                         "paper's Table 1:", width=108)
+                         "row (camera view, the paper's merged classes) of these settings there, each "
+                         "class's IoU averaged over the sequences that contain it, against the paper's "
+                         "Table 1:", width=108)
     body = "\n".join(f"    {json.dumps(k)}: {_literal(v, 1)}," for k, v in fields.items())
     table = "\n".join(f"    {n:14s} {PAPER_POINT[n]:5.1f}  {row[n]:5.1f}" for n in present)
     text = f'''"""The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.

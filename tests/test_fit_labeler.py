@@ -50,22 +50,36 @@ def test_misfit_and_paper_miou_use_only_present_classes() -> None:
     assert err == pytest.approx(9.0 + 1.5**2)
 
 
+def test_mean_row_averages_each_class_over_the_sequences_that_contain_it() -> None:
+    rows = [{"car": 80.0, "bicycle": math.nan, "person": math.nan},
+            {"car": 60.0, "bicycle": 20.0, "person": math.nan}]
+    got = fit_labeler.mean_row(rows)
+    assert got["car"] == pytest.approx(70.0) and got["bicycle"] == pytest.approx(20.0)
+    assert math.isnan(got["person"])
+
+
 def test_paper_config_spreads_a_merged_class_q_over_its_members() -> None:
     cfg = fit_labeler.paper_config({"manmade": 0.4, "car": 0.0}, SimulatedLabelerConfig())
-    # Person's confusion is fixed (LEAK_FITTED), and with no q for it, none of its masks leak.
+    # Person's confusion is fixed (LEAK_FITTED), and with no q for it, none of its masks leak: its 0 and
+    # car's stay in the table, or the global box_leak_prob would apply to them instead.
     manmade = {"building": 0.4, "fence": 0.4, "pole": 0.4, "traffic-sign": 0.4}
     assert cfg.class_confusion == {**manmade, "person": 0.1}
-    assert cfg.class_box_leak == {}
+    assert cfg.class_box_leak == {"car": 0.0, "person": 0.0}
     assert cfg.confusion_prob == 0.0 and cfg.confusion_targets == fit_labeler.TARGETS
 
 
 def test_paper_config_fits_the_box_leak_of_leak_fitted_classes() -> None:
-    assert fit_labeler.LEAK_FITTED == {"person": 0.1}
-    cfg = fit_labeler.paper_config({"person": 0.35, "car": 0.2}, SimulatedLabelerConfig())
-    # Person's q is its members' box-leak probability; its confusion stays at the fixed value.
-    assert cfg.class_box_leak == {"person": 0.35}
-    assert cfg.class_confusion["person"] == 0.1 and cfg.class_confusion["car"] == 0.2
-    assert "car" not in cfg.class_box_leak
+    assert fit_labeler.LEAK_FITTED == {"person": 0.1, "car": 0.0}
+    cfg = fit_labeler.paper_config({"person": 0.35, "car": 0.05, "other-vehicle": 0.2},
+                                   SimulatedLabelerConfig())
+    # Person's and car's q are their members' box-leak probabilities; their confusions stay at the fixed
+    # values (0 leaves car out of the table); other-vehicle's q is its members' confusion.
+    assert cfg.class_box_leak == {"person": 0.35, "car": 0.05}
+    assert cfg.class_confusion["person"] == 0.1 and "car" not in cfg.class_confusion
+    assert cfg.class_confusion["other-vehicle"] == cfg.class_confusion["truck"] == 0.2
+    assert "truck" not in cfg.class_box_leak
+    # The fixed terms come with it: stratified draws are on.
+    assert cfg.stratified_draws
     # A warm start reads the q back from the same places: the committed preset round-trips.
     q = fit_labeler.preset_q()
     paper = SimulatedLabelerConfig.from_preset("paper")

@@ -21,6 +21,7 @@ from leap_core.labelers.simulated import (
     box_gaps,
     box_leak_crop,
     confusion_targets,
+    lattice_draws,
     size_recall,
     tile_split,
 )
@@ -78,7 +79,57 @@ def test_paper_preset_output_is_unchanged(seq) -> None:
     # draw decides a leak, a merge, a tile or a confusion target moves its masks and so its calibration.
     # Refit the preset, and then update this digest, when that is meant.
     lab = SimulatedLabeler(dataclasses.replace(SimulatedLabelerConfig.from_preset("paper"), seed=7))
-    assert _masks_digest(lab, seq) == "166d93ea488df0b2"
+    assert _masks_digest(lab, seq) == "37bab39c093f6162"
+
+
+# ------------------------------------------------------------------------------------- stratified draws
+def test_lattice_draws_hand_computed() -> None:
+    # frac(0.1 + k·0.25 + 2·0.5) for k = 0..3.
+    np.testing.assert_allclose(lattice_draws([0, 1, 2, 3], 2, 0.1, (0.25, 0.5)), [0.1, 0.35, 0.6, 0.85])
+    # With irrational steps the share below q is close to q along keys and along blocks: 40 objects x 12
+    # blocks at q = 0.3 give 11-13 hits per block (12 expected) and 3-5 per object (3.6).
+    steps = (2**0.5 % 1.0, 3**0.5 % 1.0)
+    hits = np.array([lattice_draws(np.arange(1, 41), b, 0.37, steps) for b in range(12)]) < 0.3
+    assert set(hits.sum(axis=1)) <= {11, 12, 13} and set(hits.sum(axis=0)) <= {3, 4, 5}
+    # Large keys (instance ids up to 65535) keep full precision: frac taken before the sum.
+    assert 0.0 <= float(lattice_draws([65535], 10**6, 0.999, steps)[0]) < 1.0
+
+
+def _confused(tmp_path: Path, strat: bool, **kw: object) -> list[list[int]]:
+    """Per labeler seed 0-9, the predicted class of every car mask of a 12-frame sequence (two cars) with
+    car confused half the time, drawn anew in every frame."""
+    seq = make_sequence(tmp_path / f"twelve_{strat}", n_frames=12)
+    out = []
+    for seed in range(10):
+        lab = _exact(seed=seed, class_confusion={"car": 0.5}, persistence_frames=1, stratified_draws=strat,
+                     **kw)
+        preds = []
+        for f in seq:
+            m = lab.label(f, SCHEMA)
+            # The car masks are the first two (thing regions come first); stuff masks are never cars.
+            preds += [int(c) for c in m.probs.argmax(1)[:2]]
+        out.append(preds)
+    return out
+
+
+def test_stratified_draws_keep_the_confused_share_near_the_rate(tmp_path: Path) -> None:
+    pairs = {"confusion_pairs": (("car", "truck"),)}
+    strat = [sum(c == TRUCK for c in p) for p in _confused(tmp_path, True, **pairs)]
+    indep = [sum(c == TRUCK for c in p) for p in _confused(tmp_path, False, **pairs)]
+    # 24 car masks at rate 0.5: 12 expected. Stratified, every seed lands within one of it; independent
+    # draws spread as a binomial (std 2.4; 8-15 over these seeds).
+    assert all(abs(n - 12) <= 1 for n in strat), strat
+    assert max(indep) - min(indep) >= 4, indep
+
+
+def test_stratified_draws_of_one_object_are_independent_across_decisions(tmp_path: Path) -> None:
+    # A confused car takes truck or sidewalk with equal weight. The target draw has a lattice of its own;
+    # were it the confusion's lattice shifted by a phase, the confused cars (u < 0.5) would have their
+    # target draws in one half-width window and take mostly one target for a given seed.
+    preds = _confused(tmp_path, True, confusion_pairs=(("car", "truck"), ("car", "sidewalk")),
+                      confusion_targets={"car": {"truck": 1.0, "sidewalk": 1.0}})
+    shares = [sum(c == TRUCK for c in p) / max(1, sum(c != CAR for c in p)) for p in preds]
+    assert all(0.25 <= s <= 0.75 for s in shares), shares
 
 
 # -------------------------------------------------------------------------------------- choosing a preset

@@ -1,21 +1,21 @@
 """The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.
 
-Fitted on the tuning sequences `leap synth T --frames 30 --seed S` for S = 21 ... 28 (every 2nd frame)
+Fitted on the tuning sequences `leap synth T --frames 60 --seed S` for S = 21 ... 28 (every 2nd frame)
 (never on the demo, seed 0): the point row (camera view, the paper's merged classes) of these settings
-there, against the paper's Table 1:
+there, each class's IoU averaged over the sequences that contain it, against the paper's Table 1:
 
     class          paper  fitted
-    car             77.2   75.3
-    bicycle         25.5   27.1
-    other-vehicle   30.3   31.8
-    person          31.9   29.1
-    road            87.1   83.5
-    sidewalk        46.1   45.5
-    other-ground     0.0    1.5
-    manmade         64.3   64.5
-    vegetation      64.7   66.3
-    terrain         72.3   71.6
-    mIoU            49.9   49.6   (over the classes above)
+    car             77.2   76.2
+    bicycle         25.5   25.3
+    other-vehicle   30.3   31.0
+    person          31.9   31.9
+    road            87.1   86.8
+    sidewalk        46.1   46.3
+    other-ground     0.0    0.3
+    manmade         64.3   64.3
+    vegetation      64.7   64.5
+    terrain         72.3   72.2
+    mIoU            49.9   49.9   (over the classes above)
 """
 
 from typing import Any
@@ -77,19 +77,22 @@ PAPER_PRESET: dict[str, Any] = {
     },
     "match_temperature": 0.1,
     "class_confusion": {
-        "bicycle": 0.699,
-        "bicyclist": 0.699,
-        "building": 0.4,
-        "fence": 0.4,
-        "other-ground": 0.77,
-        "other-vehicle": 0.663,
+        "bicycle": 0.545,
+        "bicyclist": 0.545,
+        "building": 0.243,
+        "fence": 0.243,
+        "other-ground": 1.0,
+        "other-vehicle": 0.674,
+        "parking": 0.012,
         "person": 0.1,
-        "pole": 0.4,
-        "sidewalk": 0.365,
-        "traffic-sign": 0.4,
-        "truck": 0.663,
-        "trunk": 0.074,
-        "vegetation": 0.074,
+        "pole": 0.243,
+        "road": 0.012,
+        "sidewalk": 0.37,
+        "terrain": 0.021,
+        "traffic-sign": 0.243,
+        "truck": 0.674,
+        "trunk": 0.39,
+        "vegetation": 0.39,
     },
     "confusion_targets": {
         "car": {
@@ -98,13 +101,16 @@ PAPER_PRESET: dict[str, Any] = {
         },
         "truck": {
             "car": 1.0,
+            "building": 3.0,
         },
         "other-vehicle": {
             "car": 1.0,
+            "building": 3.0,
         },
         "bicycle": {
             "person": 1.0,
-            "motorcycle": 1.0,
+            "pole": 1.0,
+            "fence": 1.0,
         },
         "bicyclist": {
             "person": 1.0,
@@ -138,9 +144,9 @@ PAPER_PRESET: dict[str, Any] = {
             "road": 1.0,
         },
         "building": {
-            "road": 2.0,
+            "road": 1.0,
             "sidewalk": 2.0,
-            "vegetation": 0.5,
+            "vegetation": 0.1,
             "fence": 1.0,
         },
         "fence": {
@@ -173,7 +179,8 @@ PAPER_PRESET: dict[str, Any] = {
     "small_region_px": 150,
     "box_leak_prob": 0.1,
     "class_box_leak": {
-        "person": 0.297,
+        "car": 0.078,
+        "person": 0.66,
     },
     "box_leak_margin": 0.3,
     "pair_merge_prob": 0.3,
@@ -181,4 +188,5 @@ PAPER_PRESET: dict[str, Any] = {
     "stuff_grow_prob": 0.0,
     "stuff_grow_px": 6,
     "stuff_tile_px": 32,
+    "stratified_draws": True,
 }
