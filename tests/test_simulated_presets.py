@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -91,8 +92,9 @@ def test_lattice_draws_hand_computed() -> None:
     steps = (2**0.5 % 1.0, 3**0.5 % 1.0)
     hits = np.array([lattice_draws(np.arange(1, 41), b, 0.37, steps) for b in range(12)]) < 0.3
     assert set(hits.sum(axis=1)) <= {11, 12, 13} and set(hits.sum(axis=0)) <= {3, 4, 5}
-    # Large keys (instance ids up to 65535) keep full precision: frac taken before the sum.
-    assert 0.0 <= float(lattice_draws([65535], 10**6, 0.999, steps)[0]) < 1.0
+    # Large keys and blocks (instance ids up to 65535) against exact rational arithmetic on the same floats.
+    exact = (Fraction(0.999) + 65535 * Fraction(steps[0]) + 10**6 * Fraction(steps[1])) % 1
+    assert float(lattice_draws([65535], 10**6, 0.999, steps)[0]) == pytest.approx(float(exact), abs=1e-9)
 
 
 def _confused(tmp_path: Path, strat: bool, **kw: object) -> list[list[int]]:

@@ -76,6 +76,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
@@ -705,6 +706,11 @@ give its lattice steps (frac √p, frac √q). Square roots of distinct primes a
 the rationals, so the four decisions of one object are jointly equidistributed (asymptotically
 independent) where one lattice with four phases would make them shifts of each other."""
 
+_LATTICE_STEPS: tuple[tuple[float, float], ...] = tuple(
+    (math.sqrt(p) % 1.0, math.sqrt(q) % 1.0) for p, q in _LATTICE_PRIMES
+)
+"""The steps (a1, a2) of :func:`lattice_draws` per stratified decision, from :data:`_LATTICE_PRIMES`."""
+
 
 def lattice_draws(keys: npt.ArrayLike, block: int, phase: float,
                   steps: tuple[float, float]) -> npt.NDArray[np.float64]:
@@ -719,8 +725,7 @@ def lattice_draws(keys: npt.ArrayLike, block: int, phase: float,
     """
     k = np.asarray(keys, dtype=np.float64).reshape(-1)
     a1, a2 = steps
-    # The integer parts of key·a1 and block·a2 drop out of frac; taking them mod 1 first keeps precision.
-    out: npt.NDArray[np.float64] = np.mod(phase + np.mod(k * a1, 1.0) + np.mod(block * a2, 1.0), 1.0)
+    out: npt.NDArray[np.float64] = np.mod(phase + k * a1 + block * a2, 1.0)
     return out
 
 
@@ -732,8 +737,7 @@ def _stratify(u_obj: npt.NDArray[np.float64], u_shape: npt.NDArray[np.float64], 
     keys = [r.ident if r.thing else (r.name << 8) + r.ident for r in regions]
     phases = np.random.default_rng(np.random.SeedSequence([seed, _STREAM_LATTICE])).random(4)
     cols = ((u_obj, 1), (u_obj, 2), (u_shape, 0), (u_shape, 1))
-    for (arr, col), (p, q), phase in zip(cols, _LATTICE_PRIMES, phases, strict=True):
-        steps = (float(np.sqrt(p)) % 1.0, float(np.sqrt(q)) % 1.0)
+    for (arr, col), steps, phase in zip(cols, _LATTICE_STEPS, phases, strict=True):
         arr[:, col] = lattice_draws(keys, block, float(phase), steps)
 
 
