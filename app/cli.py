@@ -178,9 +178,12 @@ def fail(message: str) -> typer.Exit:
 
 def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool,
              ray: str | None = None, ray_cpus: int | None = None, *,
-             frame_threads: int = Runtime.frame_threads) -> Runtime:
-    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``
-    or ``--frame-threads``)."""
+             frame_threads: int = Runtime.frame_threads, init_3dcn: str | None = None) -> Runtime:
+    """The run's deployment values from the command-line flags (one-line error for a bad ``--device``,
+    ``--frame-threads`` or a ``--3dcn-init`` that is not a file)."""
+    if init_3dcn is not None and not Path(init_3dcn).is_file():
+        raise LeapError(f"--3dcn-init {init_3dcn}: no such file (give a 3D-CN checkpoint a run wrote, "
+                        "e.g. RUN/3dcn/3dcn_iter1.pt)")
     try:
         return Runtime(
             models_dir=None if models is None else Path(models),
@@ -190,6 +193,7 @@ def _runtime(models: str | None, cache: str | Path | None, device: str, allow_do
             ray_address=ray,
             ray_cpus=ray_cpus,
             frame_threads=frame_threads,
+            init_3dcn=None if init_3dcn is None else Path(init_3dcn),
         )
     except ConfigError as exc:
         raise LeapError(f"--{exc.field[-1].replace('_', '-')} {exc.problem}") from None
@@ -450,6 +454,12 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         help="Frames the projection, point-label and export stages compute at a time (threads; the same "
         "files for any value, 1 = one after another).",
     ),
+    init_3dcn: str | None = typer.Option(
+        None, "--3dcn-init", metavar="CKPT",
+        help="Start every 3D-CN round from this network (a checkpoint a run wrote, RUN/3dcn/3dcn_iter1.pt; "
+        "same classes and backbone) and fine-tune it for one epoch at consistency.finetune_lr, instead of "
+        "training from random weights for consistency.min_steps. Implies --3dcn.",
+    ),
 ) -> None:
     """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files.
@@ -466,7 +476,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
                    consistency=consistency, cn_iterations=cn_iterations, frames=frames, cache=cache,
                    models=models, device=device, allow_download=allow_download, export_to=export_to,
                    zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses,
-                   ray=ray, ray_cpus=ray_cpus, frame_threads=frame_threads)
+                   ray=ray, ray_cpus=ray_cpus, frame_threads=frame_threads, init_3dcn=init_3dcn)
         return
     dataset = datasets[0]
     progress = StageBars(Path(out))
@@ -475,8 +485,10 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         if is_multi_run(out):
             raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
                             "folder, or name all its sequences")
-        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset)
-        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset,
+                               init_3dcn=init_3dcn)
+        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads,
+                           init_3dcn=init_3dcn)
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
@@ -590,6 +602,7 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
     with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None,
     ray_cpus: int | None = None, frame_threads: int = 4, labeler_preset: str | None = None,
+    init_3dcn: str | None = None,
 ) -> None:
     """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
     sequence's stages run on that Ray cluster (one connection for the whole run)."""
@@ -600,8 +613,10 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     layout = MultiRunLayout(out)
     with _run_errors(out, poses="run `leap poses` on that sequence"):
         specs = _multi_specs(datasets, frames)
-        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset)
-        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads)
+        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset,
+                               init_3dcn=init_3dcn)
+        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads,
+                           init_3dcn=init_3dcn)
         names = [s.name for s in specs]
         # Refuse a target before a long run, not after it.
         if export_to is not None:
@@ -815,10 +830,16 @@ def _run_config(
     consistency: bool | None,
     cn_iterations: int | None = None,
     labeler_preset: str | None = None,
+    *,
+    init_3dcn: str | None = None,
 ) -> tuple[Schema, PipelineConfig]:
     """``leap run``'s classes and config: --schema's file gives the classes (and a base config),
-    --project-file's pipeline applies on top, then --labeler, --3dcn and --3dcn-iterations (which turns the
-    3D-CN on; with --no-3dcn it is a contradiction, refused)."""
+    --project-file's pipeline applies on top, then --labeler, --3dcn and --3dcn-iterations or --3dcn-init
+    (which turn the 3D-CN on; with --no-3dcn they are a contradiction, refused)."""
+    if init_3dcn is not None:
+        if consistency is False:
+            raise LeapError("--3dcn-init fine-tunes the 3D-CN: drop --no-3dcn or --3dcn-init")
+        consistency = True
     cfg = None
     sch = None
     if schema is not None or project_file is None:

@@ -41,6 +41,14 @@ class Runtime:
     the same for every value (progress counts frames in frame order); 1 computes one frame after another.
     The 2D labeler always labels one frame at a time (its models are not shared between threads)."""
 
+    init_3dcn: Path | None = None
+    """A 3D-CN checkpoint (one a run wrote, ``RUN/3dcn/3dcn_iter1.pt``) whose weights every 3D-CN round
+    starts from instead of random ones: the round fine-tunes it on its own reliable labels, at
+    ``consistency.finetune_lr`` for ``consistency.finetune_min_steps`` (default one epoch), as the paper
+    fine-tunes a pre-trained network. Its backbone and class count must match the run's. A path, so it is a
+    runtime value and never a project setting; its content is part of the 3D-CN's fingerprints (another file
+    trains again). None = random weights."""
+
     # --- the distributed engine (leap_core.pipeline.executor)
     ray_address: str | None = None
     """Run per-frame stages, fusion and the 3D-CN's inference as Ray tasks, and a multi-sequence run's

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 import warnings
 from dataclasses import replace
@@ -42,7 +43,9 @@ from leap_core.consistency.train import (
     config_to_dict,
     draw_points,
     load_checkpoint,
+    load_source,
     lr_factor,
+    num_train_steps,
     predict_log_probs,
     save_checkpoint,
     train_model,
@@ -407,7 +410,7 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     assert fp(replace(TINY, backbone=replace(TINY_BACKBONE, position_inputs=False))) != fp(TINY)
     plain = config_to_dict(TINY)
     form = fingerprint_form(plain)
-    assert set(form) == set(plain) - {"test_time_views"}
+    assert set(form) == set(plain) - {"test_time_views", "finetune_lr", "finetune_min_steps"}
     assert set(form["backbone"]) == set(plain["backbone"]) - {"position_inputs"}
     assert plain["test_time_views"] == 1 and plain["backbone"]["position_inputs"] is True  # not written to
     other = fingerprint_form(config_to_dict(replace(TINY, test_time_views=2,
@@ -489,6 +492,64 @@ def test_checkpoint_reloads_to_identical_predictions(tmp_path: Path) -> None:
     assert ck.config == TINY and ck.num_classes == 3 and ck.meta["fingerprint"] == "abc"
     pts, _ = synthetic_scan(7)
     assert np.array_equal(predict_log_probs(ck.model, pts), predict_log_probs(model, pts))
+
+
+def _weights(model: PointSegmenter) -> dict[str, torch.Tensor]:
+    """The learned parameters (not the buffers: batch-norm statistics move in training whatever the lr)."""
+    return {k: v.detach().clone() for k, v in model.named_parameters()}
+
+
+def test_fine_tuning_starts_from_the_source_and_takes_its_own_schedule() -> None:
+    scans = _scans()
+    source, _ = train_model(scans.__getitem__, list(scans), 3, replace(TINY, epochs=2))
+    before = _weights(source)
+    # finetune_lr (not lr) drives the optimiser: at 1e-12 the network stays the source's weights.
+    frozen = replace(TINY, lr=1e-2, finetune_lr=1e-12, min_steps=9, seed=5)
+    tuned, stats = train_model(scans.__getitem__, list(scans), 3, frozen, init=source)
+    for k, v in _weights(tuned).items():
+        torch.testing.assert_close(v, before[k], rtol=0, atol=1e-7)
+    # One epoch over the 4 scans: finetune_min_steps (0) replaces min_steps (9).
+    assert stats.steps == 4 == num_train_steps(4, frozen, finetune=True)
+    assert num_train_steps(4, frozen) == 9
+    assert num_train_steps(4, replace(frozen, finetune_min_steps=6), finetune=True) == 6
+    # The source itself is not trained further.
+    for k, v in _weights(source).items():
+        assert torch.equal(v, before[k])
+    # From random weights (same seed, same steps) the network is not the source.
+    fresh, _ = train_model(scans.__getitem__, list(scans), 3, replace(frozen, min_steps=4))
+    assert any(not torch.allclose(v, before[k]) for k, v in _weights(fresh).items())
+    # A real fine-tune moves the weights and keeps what the source predicts on an unseen scan.
+    moved, _ = train_model(scans.__getitem__, list(scans), 3, replace(TINY, finetune_lr=1e-3), init=source)
+    assert any(not torch.allclose(v, before[k]) for k, v in _weights(moved).items())
+    pts, lab = synthetic_scan(99)
+    assert (predict_log_probs(moved, pts).argmax(axis=1) == lab).mean() > 0.9
+
+
+def test_load_source_checks_backbone_and_classes_and_names_the_file(tmp_path: Path) -> None:
+    scans = _scans(2)
+    model, _ = train_model(scans.__getitem__, [0, 1], 3, TINY)
+    path = tmp_path / "src.pt"
+    save_checkpoint(path, model, TINY)
+    src = load_source(path, TINY_BACKBONE, 3)
+    assert src.digest == hashlib.sha256(path.read_bytes()).hexdigest()
+    pts = synthetic_scan(7)[0]
+    assert np.array_equal(predict_log_probs(src.model, pts), predict_log_probs(model, pts))
+    with pytest.raises(ModelLoadError, match=r"src\.pt: .*has 3 classes, this run's schema 4"):
+        load_source(path, TINY_BACKBONE, 4)
+    with pytest.raises(ModelLoadError, match=r"src\.pt: .*backbone differs .*channels 16 \(run: 32\)"):
+        load_source(path, replace(TINY_BACKBONE, channels=32), 3)
+    with pytest.raises(ModelLoadError, match="not found"):
+        load_source(tmp_path / "none.pt", TINY_BACKBONE, 3)
+
+
+def test_a_source_is_part_of_the_training_fingerprint() -> None:
+    targets = [np.zeros(2, np.int16), np.ones(2, np.int16)]
+    plain = training_fingerprint(TINY, 3, range(2), targets)
+    a = training_fingerprint(TINY, 3, range(2), targets, "a" * 64)
+    assert len({plain, a, training_fingerprint(TINY, 3, range(2), targets, "b" * 64)}) == 3
+    assert training_fingerprint(TINY, 3, range(2), targets, None) == plain
+    # The schedule's fields count once set away from their defaults.
+    assert training_fingerprint(replace(TINY, finetune_lr=1e-3), 3, range(2), targets, "a" * 64) != a
 
 
 def test_checkpoint_errors_name_the_file(tmp_path: Path) -> None:

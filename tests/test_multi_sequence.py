@@ -293,6 +293,28 @@ def test_a_change_in_one_sequence_reruns_the_3dcn_of_all(joint, streets, schema,
     assert MultiRunLayout(out).sequence("00").grid_3dcn(1).read_bytes() != old
 
 
+def test_a_source_network_starts_the_joint_3dcn_and_is_part_of_its_fingerprint(joint, streets, schema,
+                                                                               tmp_path) -> None:
+    from leap_core.consistency.train import load_checkpoint
+    from leap_core.io_utils import file_digest
+    from leap_core.runtime import Runtime
+
+    result, cfg, _ = joint
+    out = tmp_path / "multi"
+    shutil.copytree(result.root, out)
+    source = tmp_path / "source.pt"
+    shutil.copy(MultiRunLayout(out).cn_dir / "3dcn_iter1.pt", source)
+    runtime = Runtime(init_3dcn=source)
+    tuned = run_sequences(_specs(streets), schema, cfg, out, runtime=runtime)
+    assert all(r.ran == ["3dcn", "label_points", "evaluate", "export"] for r in tuned.per_sequence.values())
+    meta = load_checkpoint(MultiRunLayout(out).cn_dir / "3dcn_iter1.pt").meta
+    assert meta["source"] == file_digest(source)
+    again = run_sequences(_specs(streets), schema, cfg, out, runtime=runtime)
+    assert all(r.ran == [] for r in again.per_sequence.values())
+    back = run_sequences(_specs(streets), schema, cfg, out)  # no source: the random-weight network again
+    assert all(r.ran == ["3dcn", "label_points", "evaluate", "export"] for r in back.per_sequence.values())
+
+
 @pytest.mark.slow
 def test_sequences_seeded_from_an_earlier_run_keep_their_joint_3dcn(joint, streets, schema, tmp_path) -> None:
     """The app starts a run by linking the last run's sequence folders into a fresh root: with nothing

@@ -29,7 +29,7 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
-from leap_core.errors import Cancelled, DatasetError, LeapError, PosesMissingError
+from leap_core.errors import Cancelled, DatasetError, LeapError, ModelLoadError, PosesMissingError
 from leap_core.labelers.simulated import SimulatedLabelerConfig
 from leap_core.metrics import evaluate, metrics_from_confusion
 from leap_core.pipeline import (
@@ -41,7 +41,7 @@ from leap_core.pipeline import (
     run_pipeline,
     stage_status,
 )
-from leap_core.pipeline.context import hash_json
+from leap_core.pipeline.context import file_digest, hash_json
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
     UNCHANGED,
@@ -345,6 +345,39 @@ def test_erased_voxels_are_never_3dcn_training_labels(baseline, street: Path, sc
     cfg = config_from_dict({"consistency": {"enabled": True, "device": "cpu", "num_threads": 1}})
     with pytest.raises(LeapError, match="no point of any scan has a voxel label"):
         run_pipeline(street, schema, cfg, run_dir, until="3dcn")
+
+
+def test_a_source_network_starts_every_round_and_is_an_input_of_the_3dcn(baseline, street: Path, schema,
+                                                                         tmp_path: Path) -> None:
+    from leap_core.consistency.train import load_checkpoint
+
+    cn = {"enabled": True, "device": "cpu", "num_threads": 1, "min_steps": 9, "points_per_scan": 2000,
+          "backbone": {"channels": 16, "layers": 2}}
+    cfg = config_from_dict({"consistency": cn})
+    run_dir = tmp_path / "run"
+    shutil.copytree(baseline[0], run_dir)
+    run_pipeline(street, schema, cfg, run_dir, until="3dcn")
+    ckpt = run_dir / "3dcn" / "3dcn_iter1.pt"
+    assert load_checkpoint(ckpt).meta["steps"] == 9 and "source" not in load_checkpoint(ckpt).meta
+    source = tmp_path / "source.pt"
+    shutil.copy(ckpt, source)
+    with_source = Runtime(init_3dcn=source)
+    assert plan_stages(street, schema, cfg, run_dir, runtime=with_source)["3dcn"]
+    result = run_pipeline(street, schema, cfg, run_dir, until="3dcn", runtime=with_source)
+    assert "3dcn" in result.ran
+    meta = load_checkpoint(ckpt).meta
+    # Fine-tuned for one epoch over the 6 frames (finetune_min_steps 0 replaces min_steps 9).
+    assert meta["source"] == file_digest(source) and meta["steps"] == 6
+    assert not plan_stages(street, schema, cfg, run_dir, runtime=with_source)["3dcn"]
+    assert plan_stages(street, schema, cfg, run_dir)["3dcn"]  # without it: from random weights again
+    tuned = ckpt.read_bytes()
+    # A source of another backbone is refused, naming the file, before anything is written.
+    other = config_from_dict({"consistency": {**cn, "backbone": {"channels": 8, "layers": 2}}})
+    with pytest.raises(ModelLoadError, match=r"source\.pt: the 3D-CN source network's backbone differs"):
+        run_pipeline(street, schema, other, run_dir, until="3dcn", runtime=with_source)
+    assert ckpt.read_bytes() == tuned
+    with pytest.raises(ModelLoadError, match=r"gone\.pt: 3D-CN source network \(--3dcn-init\) cannot"):
+        plan_stages(street, schema, cfg, run_dir, runtime=Runtime(init_3dcn=tmp_path / "gone.pt"))
 
 
 def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, tmp_path: Path) -> None:
@@ -948,6 +981,8 @@ def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) 
         (["--schema", "nope"], "--schema nope"),
         (["--3dcn-iterations", "3"], "--3dcn-iterations: must be 1 or 2, got 3"),
         (["--no-3dcn", "--3dcn-iterations", "2"], "drop --no-3dcn or --3dcn-iterations"),
+        (["--3dcn-init", "nowhere.pt"], "--3dcn-init nowhere.pt: no such file"),
+        (["--no-3dcn", "--3dcn-init", "x.pt"], "drop --no-3dcn or --3dcn-init"),
     ],
 )
 def test_cli_run_bad_inputs(street: Path, tmp_path: Path, args: list[str], message: str) -> None:
@@ -972,6 +1007,8 @@ def test_cli_3dcn_iterations_sets_the_rounds() -> None:
     assert cfg.consistency.enabled and cfg.consistency.iterations == 1
     _, base = _run_config(None, None, None, None)
     assert not base.consistency.enabled and base.consistency.iterations == 1
+    _, tuned = _run_config(None, None, None, None, init_3dcn="some.pt")
+    assert tuned.consistency.enabled and tuned.consistency.iterations == 1
     _, demo = _run_config(None, "demo", None, None, 2)
     _, demo_base = _run_config(None, "demo", None, None)
     assert demo.consistency == dataclasses.replace(demo_base.consistency, enabled=True, iterations=2)

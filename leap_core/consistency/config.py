@@ -19,6 +19,8 @@ ADDED_FIELDS: dict[tuple[str, ...], Any] = {
     ("test_time_views",): 1,
     ("new_voxel_margin",): 0.0,
     ("backbone", "position_inputs"): True,
+    ("finetune_lr",): 5e-4,
+    ("finetune_min_steps",): 0,
 }
 """Fields added to :class:`ConsistencyConfig` after runs and checkpoints had been written, each with the
 value that computes what was computed before the field existed. Fingerprints (the 3D-CN stage's, a
@@ -168,6 +170,16 @@ class ConsistencyConfig:
     sequence is 60 steps, too few to train a network from scratch. 0 = exactly ``epochs`` passes."""
     lr: float = 5e-3
     """Peak AdamW learning rate (linear warm-up over the first 5% of steps, cosine decay after)."""
+    finetune_lr: float = 5e-4
+    """Peak learning rate instead of ``lr`` when a round starts from a source network (``leap run
+    --3dcn-init CKPT``, :attr:`leap_core.runtime.Runtime.init_3dcn`) rather than from random weights: a
+    tenth of ``lr``, so fine-tuning adapts what the source knows instead of overwriting it. On street tuning
+    sequence 21 (camera view, the paper's protocol, voxel labels 71.4), a source trained on another
+    sequence's ground truth gave 76.8 after 500 steps at ``lr`` and 86.6 after one epoch at 5e-4
+    (docs/METHOD.md C.2, C.5). Unused without a source."""
+    finetune_min_steps: int = 0
+    """``min_steps`` instead when a round starts from a source network: 0 trains exactly ``epochs``
+    passes over the scans, the paper's one epoch of fine-tuning. Unused without a source."""
     weight_decay: float = 1e-3
     """AdamW decoupled weight decay."""
     scans_per_step: int = 1
@@ -214,6 +226,8 @@ class ConsistencyConfig:
             ("epochs", self.epochs >= 1, "must be >= 1"),
             ("min_steps", self.min_steps >= 0, "must be >= 0"),
             ("lr", self.lr > 0, "must be > 0"),
+            ("finetune_lr", self.finetune_lr > 0, "must be > 0"),
+            ("finetune_min_steps", self.finetune_min_steps >= 0, "must be >= 0"),
             ("weight_decay", self.weight_decay >= 0, "must be >= 0"),
             ("scans_per_step", self.scans_per_step >= 1, "must be >= 1"),
             ("points_per_scan", self.points_per_scan >= 0, "must be >= 0"),

@@ -26,6 +26,7 @@ from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import ConsistencyConfig, fingerprint_form
 from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
+    SourceNetwork,
     config_to_dict,
     load_checkpoint,
     num_train_steps,
@@ -71,8 +72,11 @@ def training_fingerprint(
     num_classes: int,
     frames: range | Sequence[tuple[str, range]],
     targets: Iterable[npt.NDArray[np.int16]],
+    source: str | None = None,
 ) -> str:
-    """Hash of everything the trained weights depend on: config, classes, frames and selected labels.
+    """Hash of everything the trained weights depend on: config, classes, frames, selected labels and, for a
+    network fine-tuned from a source, the source file's digest (``source``; None: random weights, hashed as
+    before sources existed).
 
     Stored as ``meta["fingerprint"]`` in each checkpoint; ``cfg`` is the iteration's config (seed offset
     included, as :func:`run_3dcn_iteration` derives it) and ``targets`` are :func:`reliable_targets` (of
@@ -86,6 +90,8 @@ def training_fingerprint(
                  "test_time_views", "device", "num_threads")
     trained = {k: v for k, v in fingerprint_form(config_to_dict(cfg)).items() if k not in untrained}
     head: dict[str, object] = {"cfg": trained, "C": num_classes}
+    if source is not None:
+        head["source"] = source
     if isinstance(frames, range):
         head["frames"] = [frames.start, frames.stop, frames.step]
     else:
@@ -311,7 +317,7 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
     return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress))
 
 
-def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a counter
+def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 share a counter
     parts: Sequence[RoundPart],
     num_classes: int,
     cfg: ConsistencyConfig,
@@ -320,6 +326,7 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
     iteration: int,
     progress: Callable[[int, int], None] | None = None,
     predict: Predict | None = None,
+    source: SourceNetwork | None = None,
 ) -> Iterator[VoxelGrid]:
     """One 3D-CN round over one or several sequences: ONE network trained on the reliable labels of every
     part, its predictions fused back into each part's own grid. Yields each part's new grid in order;
@@ -331,7 +338,8 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
        ``views``) become training labels (:func:`reliable_targets`, per scan or over the part's sequence by
        ``cfg.selection_scope``: each sequence ranks its own points, its grid's confidences).
     2. **Training** (:func:`~leap_core.consistency.train.train_model`) on the scans of all parts, in part
-       order, class weights from the labels of all parts; checkpoint ``work_dir/3dcn_iter{iteration}.pt``.
+       order, class weights from the labels of all parts, from random weights or fine-tuning ``source``;
+       checkpoint ``work_dir/3dcn_iter{iteration}.pt``.
        A checkpoint whose fingerprint (config, classes, frames of every part, selected labels) matches is
        reused instead of retraining, so an interrupted run resumes here.
     3. **Inference** on every point of every scan of a part (inside and outside the camera view) and
@@ -355,6 +363,8 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
         progress: ``progress(done, total)`` over selection + training steps + inference scans (all parts).
         predict: step 3's predictions from the checkpoint instead of this process (:data:`Predict`; the
             same values in the same order, so the same grids); None = here.
+        source: the network training starts from (``finetune_lr``, ``finetune_min_steps``); None = random
+            weights.
 
     Raises:
         LeapError: when no point of any scan has a label to train on, or a grid has another C.
@@ -366,7 +376,7 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
     work_dir = Path(work_dir)
     ckpt_path = checkpoint_path(work_dir, iteration)
     cfg_it = iteration_config(cfg, iteration)
-    train_steps = num_train_steps(n, cfg)
+    train_steps = num_train_steps(n, cfg, finetune=source is not None)
     total = n + train_steps + n
     done = 0
 
@@ -408,7 +418,7 @@ def iter_3dcn_round(  # noqa: PLR0917  a round's inputs; its steps 1-3 share a c
     targets = TargetFile.write(targets_path(work_dir, iteration), all_targets())
     try:
         model = _train(parts, frame_sets, targets, counts, num_classes, cfg_it, ckpt_path, iteration,
-                       progress, done, total)
+                       progress, done, total, source)
     finally:
         targets.close()  # the labels are in the weights now
 
@@ -482,9 +492,10 @@ def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names ea
     progress: Callable[[int, int], None] | None,
     done: int,
     total: int,
+    source: SourceNetwork | None = None,
 ) -> PointSegmenter:
-    """Step 2 of :func:`iter_3dcn_round`: the round's network, trained on ``targets`` (or a checkpoint
-    whose fingerprint matches)."""
+    """Step 2 of :func:`iter_3dcn_round`: the round's network, trained on ``targets`` from random weights or
+    from ``source`` (or a checkpoint whose fingerprint matches)."""
     if counts.sum() == 0:
         raise LeapError(
             "3D-CN: no point of any scan has a voxel label to train on (is the fused grid empty?)"
@@ -493,7 +504,8 @@ def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names ea
     named: range | list[tuple[str, range]] = (
         frame_sets[0] if len(parts) == 1 else [(p.name, f) for p, f in zip(parts, frame_sets, strict=True)]
     )
-    fingerprint = training_fingerprint(cfg_it, num_classes, named, targets)
+    fingerprint = training_fingerprint(cfg_it, num_classes, named, targets,
+                                       None if source is None else source.digest)
     model = None
     if ckpt_path.is_file():
         try:
@@ -519,6 +531,7 @@ def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names ea
             cfg_it,
             progress=(lambda d, _t: progress(base + d, total)) if progress is not None else None,
             class_counts=counts,
+            init=None if source is None else source.model,
         )
         save_checkpoint(
             ckpt_path,
@@ -531,6 +544,7 @@ def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names ea
                 "losses": stats.losses,
                 "seconds": stats.seconds,
                 "class_counts": counts.tolist(),
+                **({} if source is None else {"source": source.digest}),
                 "frames": (
                     [named.start, named.stop, named.step] if isinstance(named, range)
                     else [[name, f.start, f.stop, f.step] for name, f in named]

@@ -31,7 +31,7 @@ from leap_core.consistency.data import (
 )
 from leap_core.errors import ModelLoadError
 from leap_core.heap import release_free_memory
-from leap_core.io_utils import atomic_write
+from leap_core.io_utils import atomic_write, file_digest
 from leap_core.progress import ProgressFn, report
 from leap_core.types import UNLABELED
 
@@ -112,12 +112,13 @@ def lr_factor(step: int, total: int) -> float:
     return 0.5 * (1.0 + math.cos(math.pi * (step - warm) / max(1, total - warm)))
 
 
-def num_train_steps(num_scans: int, cfg: ConsistencyConfig) -> int:
-    """Optimisation steps of :func:`train_model`: ``max(epochs · ceil(S / scans_per_step), min_steps)``
-    (0 without scans)."""
+def num_train_steps(num_scans: int, cfg: ConsistencyConfig, finetune: bool = False) -> int:
+    """Optimisation steps of :func:`train_model`: ``max(epochs · ceil(S / scans_per_step), m)`` with
+    ``m = min_steps``, or ``finetune_min_steps`` when the network starts from a source (0 without scans)."""
     if num_scans <= 0:
         return 0
-    return max(cfg.epochs * math.ceil(num_scans / cfg.scans_per_step), cfg.min_steps)
+    floor = cfg.finetune_min_steps if finetune else cfg.min_steps
+    return max(cfg.epochs * math.ceil(num_scans / cfg.scans_per_step), floor)
 
 
 def draw_points(
@@ -158,8 +159,11 @@ def train_model(
     cfg: ConsistencyConfig,
     progress: ProgressFn | None = None,
     class_counts: npt.ArrayLike | None = None,
+    *,
+    init: PointSegmenter | None = None,
 ) -> tuple[PointSegmenter, TrainStats]:
-    """Train a fresh :class:`PointSegmenter` on the selected labels of the given scans.
+    """Train a :class:`PointSegmenter` on the selected labels of the given scans: a fresh one, or a copy
+    of ``init`` fine-tuned (``finetune_lr``, ``finetune_min_steps`` instead of ``lr``, ``min_steps``).
 
     Per pass the scans are visited in a seeded random order, ``cfg.scans_per_step`` per step, for
     :func:`num_train_steps` steps (``epochs`` passes, more if ``min_steps`` asks for it). From every
@@ -174,6 +178,8 @@ def train_model(
         progress: ``progress(step, total_steps)`` after every step.
         class_counts: (C,) selected-label count per class, for the class weights and to mark the classes
             without any label (``model.trained_classes``); None = unweighted, every class kept.
+        init: a source network (:func:`load_source`) whose weights the network starts from; it is not
+            modified. None = random weights (seeded).
 
     Returns:
         The trained model (in eval mode, on CPU) and its :class:`TrainStats`.
@@ -181,17 +187,23 @@ def train_model(
     device = resolve_device(cfg)
     indices = list(scan_indices)
     per_epoch = math.ceil(len(indices) / cfg.scans_per_step) if indices else 0
-    total = num_train_steps(len(indices), cfg)
+    total = num_train_steps(len(indices), cfg, finetune=init is not None)
     stats = TrainStats()
     t0 = time.perf_counter()
     with torch.random.fork_rng(devices=[]), torch_threads(cfg.num_threads):
         rng = _seed_all(cfg.seed)
-        model = PointSegmenter(cfg.backbone, num_classes).to(device)
+        # Built (and its random init drawn) either way, so sampling and augmentation draw the same numbers
+        # whether or not a source replaces the weights.
+        model = PointSegmenter(cfg.backbone, num_classes)
+        if init is not None:
+            model.load_state_dict(init.state_dict())
+        model = model.to(device)
         weights = None
         if class_counts is not None:
             weights = class_weights(class_counts, cfg.class_balance, cfg.class_balance_power).to(device)
             model.trained_classes.copy_(torch.as_tensor(np.asarray(class_counts) > 0))
-        opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        lr = cfg.lr if init is None else cfg.finetune_lr
+        opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total))
         model.train()
         step = 0
@@ -393,15 +405,46 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Che
     return Checkpoint(model=model.to(device), config=cfg, num_classes=num_classes, meta=dict(payload["meta"]))
 
 
+@dataclass(frozen=True)
+class SourceNetwork:
+    """A network that 3D-CN rounds start from instead of random weights (:func:`load_source`)."""
+
+    model: PointSegmenter
+    """Its weights, on the CPU (never trained further itself: :func:`train_model` copies them)."""
+    digest: str
+    """SHA-256 of its checkpoint file: part of the training fingerprint of each network fine-tuned from it."""
+
+
+def load_source(path: str | Path, backbone: BackboneConfig, num_classes: int) -> SourceNetwork:
+    """The network of a checkpoint that a round is to start from (fine-tuning), with its file's digest.
+
+    Raises:
+        ModelLoadError: naming the file, when :func:`load_checkpoint` refuses it, or when its backbone or
+            class count differs from the run's (the weights would not fit; the message names the fields).
+    """
+    ck = load_checkpoint(path)
+    if ck.num_classes != num_classes:
+        raise ModelLoadError(f"{path}: the 3D-CN source network has {ck.num_classes} classes, this run's "
+                             f"schema {num_classes}; start from a network trained with the same classes")
+    if ck.config.backbone != backbone:
+        mine, theirs = asdict(backbone), asdict(ck.config.backbone)
+        diff = ", ".join(f"{k} {theirs[k]!r} (run: {mine[k]!r})" for k in mine if mine[k] != theirs[k])
+        raise ModelLoadError(f"{path}: the 3D-CN source network's backbone differs from "
+                             f"consistency.backbone: {diff}")
+    return SourceNetwork(ck.model, file_digest(path))
+
+
 __all__ = [
     "Checkpoint",
     "ScanLoader",
+    "SourceNetwork",
     "TrainStats",
     "class_weights",
     "config_from_dict",
     "config_to_dict",
     "draw_points",
     "load_checkpoint",
+    "load_source",
     "lr_factor",
     "num_train_steps",
     "predict_log_probs",

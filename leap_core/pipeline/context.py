@@ -21,7 +21,7 @@ import numpy.typing as npt
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError
-from leap_core.io_utils import atomic_write_json, read_npz
+from leap_core.io_utils import atomic_write_json, file_digest, read_npz
 from leap_core.labelers import make_labeler
 from leap_core.projection import Painted
 from leap_core.run_layout import RunLayout
@@ -252,15 +252,6 @@ def read_state(layout: RunLayout) -> dict[str, dict[str, Any]]:
 def hash_json(obj: Any) -> str:
     """24 hex digits of the SHA-256 of ``obj``'s sorted-key JSON."""
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:24]
-
-
-def file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def dataset_identity(seq: KittiSequence) -> str:

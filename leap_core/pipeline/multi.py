@@ -74,7 +74,7 @@ from leap_core.pipeline.runner import (
     run_pipeline,
     stage_fingerprints,
 )
-from leap_core.pipeline.stages import STAGE_TABLE, STAGES, CnMember, cn_rounds
+from leap_core.pipeline.stages import STAGE_TABLE, STAGES, CnMember, cn_rounds, source_digest
 from leap_core.run_layout import MultiRunLayout, RunLayout, sequence_name_problem
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -348,9 +348,12 @@ def _joint_fingerprints(
                                 frames=spec.frames, runtime=runtime)
         fps[spec.name] = fp
         members.append([spec.name, fp["project"], fp["smooth"]])
-    joint = hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes,
-                       "consistency": fingerprint_form(config_to_dict(config)["consistency"]),
-                       "members": members})
+    head: dict[str, Any] = {"v": PIPELINE_VERSION, "C": schema.num_classes,
+                            "consistency": fingerprint_form(config_to_dict(config)["consistency"]),
+                            "members": members}
+    if runtime is not None and runtime.init_3dcn is not None:
+        head["source"] = source_digest(runtime.init_3dcn)
+    joint = hash_json(head)
     return joint, fps
 
 

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.consistency.selection import view_counts
-from leap_core.errors import DatasetError, LeapError
+from leap_core.errors import DatasetError, LeapError, ModelLoadError
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.export import export_labels
 from leap_core.fusion import (
@@ -54,6 +54,7 @@ from leap_core.smoothing import SMOOTH_CHUNK, SmoothedGrid, smooth_grid_blocks
 
 if TYPE_CHECKING:
     from leap_core.consistency.stage import Predict
+    from leap_core.consistency.train import SourceNetwork
 
 _3DCN_GRID_SCALE = 1000
 """3D-CN progress is reported in thousandths of an iteration (its own step count is not known upfront)."""
@@ -320,6 +321,9 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
     cn = cfg.consistency
     c = members[0].ctx.schema.num_classes
     clip = cfg.fusion.logp_clip
+    # Loaded (and checked against the run's backbone and classes) before the first round's selection, so a
+    # wrong file fails at once rather than after it.
+    source = _source_network(members[0].ctx)
     fused: list[Path] = [m.ctx.layout.grid for m in members]
     smoothed: list[Path] = [m.ctx.layout.grid_smooth for m in members]
     # Erased voxels keep their fused evidence (fuse imposes no class on them), so without this their
@@ -352,7 +356,7 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
                 for m, f, s, v, e, iv in zip(members, fused, smoothed, views, erased, in_view, strict=True)
             ]
             round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog,
-                                          predict=predict)
+                                          predict=predict, source=source)
             for m, grid, (grid_path, smooth_path) in zip(members, round_grids, paths, strict=True):
                 grid.save(grid_path)
                 _smooth_and_save(grid, m.ctx, smooth_path)
@@ -360,6 +364,29 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
         smoothed = [sm for _, sm in paths]
         tick(it * _3DCN_GRID_SCALE, total)
     return [VoxelGrid.load(f).num_voxels for f in fused]
+
+
+def source_digest(path: Path) -> str:
+    """SHA-256 of a source network's checkpoint (``runtime.init_3dcn``), for the 3D-CN's fingerprints.
+
+    Raises:
+        ModelLoadError: naming the file, when it cannot be read.
+    """
+    try:
+        return file_digest(path)
+    except OSError as exc:
+        raise ModelLoadError(f"{path}: 3D-CN source network (--3dcn-init) cannot be read "
+                             f"({exc.strerror or exc})") from None
+
+
+def _source_network(ctx: Ctx) -> SourceNetwork | None:
+    """The network of ``runtime.init_3dcn`` that every round starts from (None: random weights)."""
+    path = None if ctx.runtime is None else ctx.runtime.init_3dcn
+    if path is None:
+        return None
+    from leap_core.consistency.train import load_source  # noqa: PLC0415  loads torch
+
+    return load_source(path, ctx.cfg.consistency.backbone, ctx.schema.num_classes)
 
 
 def _load_smoothed(path: Path, clip: float) -> VoxelGrid:
@@ -414,12 +441,17 @@ def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
             "joint": fingerprint}
 
 
-def _3dcn_inputs(ctx: Ctx) -> str | None:
+def _3dcn_inputs(ctx: Ctx) -> str | dict[str, str | None] | None:
     # A sequence of a multi-sequence run takes its 3D-CN from the joint round its record names, so the
     # record's digest is part of the stage's fingerprint; None (an ordinary run) leaves the fingerprint as
-    # it was before multi-sequence runs existed.
+    # it was before multi-sequence runs existed. A source network (runtime.init_3dcn) adds its file's
+    # digest, so another file, or none, trains again.
     note = ctx.layout.joint_3dcn
-    return file_digest(note) if note.is_file() else None
+    joint = file_digest(note) if note.is_file() else None
+    source = None if ctx.runtime is None else ctx.runtime.init_3dcn
+    if source is None:
+        return joint
+    return {"joint": joint, "source": source_digest(source)}
 
 
 def _3dcn_outputs(lay: RunLayout, cfg: PipelineConfig) -> tuple[Path, ...]:
