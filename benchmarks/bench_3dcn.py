@@ -23,6 +23,11 @@ Usage::
     .venv/bin/python benchmarks/bench_3dcn.py --sequence /tmp/demo/sequences/00
     .venv/bin/python benchmarks/bench_3dcn.py
 
+With ``--source CKPT`` (a 3D-CN another run wrote, e.g. of a tuning sequence) a second iteration on the
+same inputs starts from that network and fine-tunes it (``leap run --3dcn-init``: one epoch at
+``finetune_lr``); its time and labels are printed beside the random-weight iteration's, with the ratio of
+the two totals, both measured in this process.
+
 Prints a table and writes ``benchmarks/results/bench_3dcn.json``.
 """
 
@@ -48,7 +53,7 @@ from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.data import collate, prepare_cloud
 from leap_core.consistency.selection import view_counts
 from leap_core.consistency.stage import run_3dcn_iteration
-from leap_core.consistency.train import num_train_steps
+from leap_core.consistency.train import load_source, num_train_steps
 from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_label, write_poses, write_scan
 from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
@@ -304,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
                     help='JSON overrides of ConsistencyConfig, e.g. \'{"temperature": 2}\'')
     ap.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"])
     ap.add_argument("--paper-scale", action="store_true", help="WaffleIron sizes (GPU)")
+    ap.add_argument("--source", type=Path, default=None,
+                    help="also time an iteration fine-tuned from this 3D-CN checkpoint (--3dcn-init)")
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_3dcn.json")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -355,6 +362,14 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
                                  progress=lambda d, _t: marks.append((time.perf_counter(), d)), frames=frames,
                                  views=seen)
         total_s = time.perf_counter() - t_start
+    tuned, tuned_s = None, None
+    if args.source is not None:
+        src = load_source(args.source, cfg.backbone, c)
+        with tempfile.TemporaryDirectory(prefix="bench3dcn_work_") as work:
+            t_tuned = time.perf_counter()
+            tuned = run_3dcn_iteration(seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1, frames=frames,
+                                       views=seen, source=src)
+            tuned_s = time.perf_counter() - t_tuned
     load_after = os.getloadavg()[0]
     steps = num_train_steps(n, cfg)
 
@@ -374,7 +389,10 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
                   for i in frames]
     else:
         before = smoothed_labels(seq, frames, fused)
-    for name, labels in (("voxel", before), ("+3D-CN x1", smoothed_labels(seq, frames, new))):
+    columns = [("voxel", before), ("+3D-CN x1", smoothed_labels(seq, frames, new))]
+    if tuned is not None:
+        columns.append(("+3D-CN x1, from source", smoothed_labels(seq, frames, tuned)))
+    for name, labels in columns:
         pred = np.concatenate(labels)
         cam = evaluate(gt_f[view_f], pred[view_f], schema.names, schema.categories(),
                        ignore_unlabeled_pred=True)
@@ -390,6 +408,9 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
     for k, v in phases.items():
         print(f"{k:<24}{v:>10.1f}")
     print(f"{'target (train+infer)':<24}{600:>10.1f}   ratio total/target = {total_s / 600:.2f}")
+    if tuned_s is not None:
+        print(f"{'fine-tuned from source':<24}{tuned_s:>10.1f}   ratio to the random-weight total = "
+              f"{tuned_s / total_s:.2f} ({num_train_steps(n, cfg, finetune=True)} steps against {steps})")
     print_step_times(base)
     print(f"\n{'labels':<24}{'mIoU cam':>10}{'cat cam':>10}{'mIoU all':>10}{'labeled':>10}")
     for name, r in rows.items():
@@ -408,6 +429,10 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
             (base["prepare_s"] + base["backbone_step_s"]) / base["mlp_step_s"],
         "labels": rows,
     }
+    if tuned_s is not None:
+        result["source_network"] = {"path": str(args.source), "total_s": tuned_s,
+                                    "ratio_to_random_total": tuned_s / total_s,
+                                    "train_steps": num_train_steps(n, cfg, finetune=True)}
     atomic_write_json(args.out, result)
     print(f"\nwrote {args.out}")
     if tmp is not None:

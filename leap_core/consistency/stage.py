@@ -295,9 +295,11 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None,
     erased: npt.NDArray[np.int64] | None = None,
     in_view: npt.NDArray[np.int64] | None = None,
+    source: SourceNetwork | None = None,
 ) -> VoxelGrid:
     """Self-train the 3D Consistency Network once on one sequence and fuse its predictions into ``fused``:
-    :func:`iter_3dcn_round` with one :class:`RoundPart` (whose fields document the arguments).
+    :func:`iter_3dcn_round` with one :class:`RoundPart` (whose fields document the arguments; ``source``
+    as there).
 
     Args:
         num_classes: C.
@@ -314,7 +316,8 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
         LeapError: when no point of any scan has a label to train on.
     """
     part = RoundPart(seq, fused, smoothed, frames, views, erased, in_view=in_view)
-    return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress))
+    return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress,
+                                source=source))
 
 
 def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 share a counter
