@@ -104,10 +104,14 @@ SHAPE_TERMS: dict[str, Any] = {
     "stuff_grow_px": 6,
     "small_region_px": 150,
     "stuff_tile_px": 32,
+    "stuff_world_tile": 1,
     "stratified_draws": True,
 }
-"""The shape terms, fixed before the confusion fit (not fitted: plausible for box-prompted SAM), and the
-stratified draws of the object errors (so one sequence's error shares follow the fitted rates)."""
+"""The shape terms, fixed before the confusion fit (not fitted: plausible for box-prompted SAM), the
+stratified draws of the object errors (so one sequence's error shares follow the fitted rates), and stuff
+errors per 2 m world tile for the whole sequence (``stuff_world_tile`` 1, which replaces the 32-px image
+tiles: a patch of pavement a detector misnames is misnamed in every frame, so the fusion cannot average the
+error away; docs/METHOD.md A.7, term 13)."""
 
 LEAK_FITTED: dict[str, float] = {"person": 0.1, "car": 0.0}
 """Merged classes whose fitted parameter is the box-leak probability (``class_box_leak``) of their members

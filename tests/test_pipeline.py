@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import shutil
 import time
@@ -23,6 +24,7 @@ from leap_core.datasets.kitti import (
     Calib,
     KittiSequence,
     read_label,
+    read_png16,
     write_calib,
     write_label,
     write_png16,
@@ -54,6 +56,7 @@ from leap_core.pipeline.runner import (
 from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
+from leap_core.synth.camera import world_cells
 
 # ------------------------------------------------------------------------------------ a tiny street
 # World: z up, ground z = 0. Road |y| < 4, sidewalk 4..6, terrain beyond; building walls at y = ±9;
@@ -126,9 +129,13 @@ def make_street(root: Path, n_frames: int = 6, step: float = 1.5) -> Path:
         fid = f"{i:06d}"
         write_scan(root / "velodyne" / f"{fid}.bin", pts)
         write_label(root / "labels" / f"{fid}.label", sem[hit], inst[hit])
-        _, psem, pinst = _raycast(origin, pdirs)
+        pt, psem, pinst = _raycast(origin, pdirs)
         write_png16(root / "gt2d" / "semantic" / f"{fid}.png", psem.reshape(H, W))
         write_png16(root / "gt2d" / "instance" / f"{fid}.png", pinst.reshape(H, W))
+        seen = np.isfinite(pt)
+        cells = np.zeros(H * W, np.uint16)  # the world cell each pixel sees, as leap synth writes them
+        cells[seen] = world_cells(origin + pdirs[seen] * pt[seen, None])
+        write_png16(root / "gt2d" / "cell" / f"{fid}.png", cells.reshape(H, W))
         img = np.zeros((H, W, 3), np.uint8)
         img[..., 0] = (psem.reshape(H, W) * 3 % 256).astype(np.uint8)
         from leap_core.datasets.kitti import write_image
@@ -708,6 +715,35 @@ def test_fingerprints_hash_the_documented_parts(baseline, street: Path, schema) 
     assert fp["smooth"] == parts("smooth", ["fuse"], config={"smoothing": sections["smoothing"]})
     assert fp["3dcn"] == parts("3dcn", ["project", "fuse", "smooth"], enabled=False)
     assert {s: r["fingerprint"] for s, r in stage_status(run_dir).items()} == fp
+
+
+def test_world_cells_are_an_input_of_the_2d_labels_only_where_present(street: Path, tmp_path: Path) -> None:
+    """The simulated labeler's world tiles read ``gt2d/cell``: a changed cell image changes that frame's
+    labels2d input digest and the dataset identity; a sequence without the folder (real data, or one
+    generated before it existed) hashes as it did before the folder existed."""
+    from leap_core.pipeline.context import dataset_identity, frame_input_digest
+
+    copy = tmp_path / "00"
+    shutil.copytree(street, copy)
+    seq = KittiSequence(copy)
+    before = [frame_input_digest(seq, i) for i in range(2)]
+    ident = dataset_identity(seq)
+    cell = copy / "gt2d" / "cell" / "000000.png"
+    write_png16(cell, read_png16(cell) + 1)
+    after = [frame_input_digest(KittiSequence(copy), i) for i in range(2)]
+    assert after[0] != before[0] and after[1] == before[1]
+    assert dataset_identity(KittiSequence(copy)) != ident
+    # Without the folder: the identity of the folder list before gt2d/cell existed.
+    shutil.rmtree(copy / "gt2d" / "cell")
+    bare = KittiSequence(copy)
+    root = copy.resolve()
+    legacy = [str(root), file_digest(root / "calib.txt"), file_digest(bare.poses_path)]
+    for name in ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]:
+        folder = root / name
+        entries = None if not folder.is_dir() else sorted(
+            (e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in os.scandir(folder) if e.is_file())
+        legacy.append([name, entries])
+    assert dataset_identity(bare) == hash_json(legacy)
 
 
 def test_stage_records_and_progress(baseline) -> None:

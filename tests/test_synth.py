@@ -23,7 +23,7 @@ from leap_core.synth import (
     build_scene,
     generate_sequence,
 )
-from leap_core.synth.camera import pixel_rays
+from leap_core.synth.camera import pixel_rays, world_cells
 from leap_core.synth.generator import SYNTH_VERSION, camera_poses_kitti, lidar_poses, synth_version
 from leap_core.synth.lidar import beam_elevations, ray_grid, scan
 from leap_core.synth.materials import REQUIRED_IDS, Material, SemanticId
@@ -291,8 +291,8 @@ def test_deterministic_bytes(sequences) -> None:
     a, b, c = sequences
     da, db, dc = _digest(a.path), _digest(b.path), _digest(c.path)
     assert (
-        len(da) == 3 * 6 + 4
-    )  # velodyne, labels, image_2, gt2d/{semantic,instance,name}; 4 files per sequence
+        len(da) == 3 * 7 + 4
+    )  # velodyne, labels, image_2, gt2d/{semantic,instance,name,cell}; 4 files per sequence
     assert da == db  # same seed, one or two worker processes
     differing = [k for k in da if da[k] != dc.get(k)]
     assert "velodyne/000000.bin" in differing and "image_2/000000.png" in differing
@@ -373,6 +373,48 @@ def test_2d_3d_ground_truth_agree(sequences) -> None:
         thing = inner & (inst > 0)
         if thing.any():
             assert (f.gt2d_instance[v[thing], u[thing]] == inst[thing]).mean() > 0.8
+
+
+def test_world_cells_hand_computed() -> None:
+    # 2 m cells: (x, y) = (5.0, -0.5) is cell (2, -1) -> (2, 255); (513.0, 3.9) is cell (256, 1) -> (0, 1).
+    got = world_cells(np.array([[5.0, -0.5, 9.0], [513.0, 3.9, 0.0], [0.0, 0.0, 0.0]]))
+    assert got.dtype == np.uint16
+    assert got.tolist() == [(2 << 8) | 255, (0 << 8) | 1, 0]
+
+
+def test_cell_images_are_fixed_to_the_world(sequences) -> None:
+    """A static point seen in two frames lands on the same world cell in both cell images (≥ 90 % of
+    the points away from cell borders): the cells move with the world, not with the camera."""
+    seq = KittiSequence(sequences[0].path)
+
+    def inner_cells(img: np.ndarray) -> np.ndarray:
+        pad = np.pad(img, 1, mode="edge")
+        same = np.ones_like(img, bool)
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                same &= pad[dy : dy + img.shape[0], dx : dx + img.shape[1]] == img
+        return same
+
+    for a, b in ((0, 1), (1, 2)):
+        fa, fb = seq.frame(a), seq.frame(b)
+        cells_a, cells_b = fa.gt2d_cell, fb.gt2d_cell
+        assert cells_a is not None and cells_b is not None and cells_a.shape == fa.gt2d_semantic.shape
+        static = (fa.labels >> 16) == 0
+        pts = fa.points[static, :3].astype(np.float64)
+        world = pts @ fa.pose[:3, :3].T + fa.pose[:3, 3]
+        inv = np.linalg.inv(fb.pose)
+        in_b = world @ inv[:3, :3].T + inv[:3, 3]
+        h, w = cells_a.shape
+        ua, va, oka, _ = project_points(pts, seq.calib.lidar_to_image, w, h)
+        ub, vb, okb, _ = project_points(in_b, seq.calib.lidar_to_image, w, h)
+        ok = oka & okb
+        ok[ok] = inner_cells(cells_a)[va[ok], ua[ok]] & inner_cells(cells_b)[vb[ok], ub[ok]]
+        ok[ok] &= fa.gt2d_semantic[va[ok], ua[ok]] > 0
+        assert ok.sum() > 100
+        agree = (cells_a[va[ok], ua[ok]] == cells_b[vb[ok], ub[ok]]).mean()
+        assert agree >= 0.9, (a, b, agree)
+        # And the ids are not all one cell: the street spans several.
+        assert len(np.unique(cells_a[va[ok], ua[ok]])) > 5
 
 
 def test_moving_car_points_move(sequences) -> None:

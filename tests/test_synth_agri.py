@@ -57,7 +57,7 @@ def test_deterministic_bytes(agri) -> None:
     changes the data."""
     a, b, c = agri
     da, db, dc = _digest(a.path), _digest(b.path), _digest(c.path)
-    assert len(da) == 3 * 6 + 4
+    assert len(da) == 3 * 7 + 4  # 7 files a frame (gt2d/cell included), 4 per sequence
     assert da == db
     differing = [k for k in da if da[k] != dc.get(k)]
     assert "velodyne/000000.bin" in differing and "image_2/000000.png" in differing

@@ -417,6 +417,13 @@ class Frame:
         """(H, W) instance id per pixel (0 = none)."""
         return read_png16(self.seq.root / "gt2d" / "instance" / f"{self.frame_id}.png")
 
+    @functools.cached_property
+    def gt2d_cell(self) -> npt.NDArray[np.uint16] | None:
+        """(H, W) world cell id per pixel (``leap_core.synth.camera.world_cells``; generated data only), or
+        None when the sequence has no ``gt2d/cell`` folder (real data, or generated before it existed)."""
+        folder = self.seq.root / "gt2d" / "cell"
+        return read_png16(folder / f"{self.frame_id}.png") if folder.is_dir() else None
+
 
 def _sort_frame_ids(stems: Iterable[str]) -> list[str]:
     """Numeric order when every stem is a number ("9" before "10"), else lexicographic."""

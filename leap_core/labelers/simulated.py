@@ -55,7 +55,8 @@ size-dependent recall (``small_region_px``, :func:`size_recall`) in step 2, and 
 (``box_leak_prob``, per class ``class_box_leak``: a thing mask of the winning class becomes its grown
 bounding box, :func:`box_leak_crop`), one mask over two
 adjacent objects (``pair_merge_prob``, :func:`adjacent_partner`), over-large stuff (``stuff_grow_prob``) and
-tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`), and stratified draws of the object errors
+tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`; per tile of the world for the whole sequence
+with ``stuff_world_tile``, :func:`world_tile_draws`), and stratified draws of the object errors
 (``stratified_draws``, :func:`lattice_draws`). docs/METHOD.md A.7-A.8 give the details.
 
 With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
@@ -65,7 +66,8 @@ the per-pixel argmax reproduces the mapped ground truth exactly.
 Determinism: all draws come from ``SeedSequence([seed, frame.number, stream])`` (steps 1, 4, 5) or
 ``SeedSequence([seed, frame.number // persistence_frames, stream, object])`` (steps 2, 3; with
 ``stratified_draws``, four of them from a lattice in the object and ``frame.number // persistence_frames``
-with phases from ``SeedSequence([seed, stream])``), so a frame's
+with phases from ``SeedSequence([seed, stream])``; world tiles from the tile and
+``SeedSequence([seed, stream, name])``), so a frame's
 output depends only on the seed, its frame number (its file number, ``Frame.number``) and its images,
 never on which other frames are present, were labeled or in which order, and turning one knob does not
 reshuffle the draws of the others.
@@ -96,7 +98,7 @@ if TYPE_CHECKING:
 
 # Independent random streams per noise step (see the module docstring, "Determinism").
 (_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED, _STREAM_SHAPE, _STREAM_TILE,
- _STREAM_LATTICE) = range(7)
+ _STREAM_LATTICE, _STREAM_WORLD) = range(8)
 
 _DEFAULT_CLASS_RECALL: dict[str, float] = {
     # Small or thin objects are the ones open-vocabulary detectors miss most often.
@@ -253,6 +255,14 @@ class SimulatedLabelerConfig:
     as SAM splits a large surface into parts and the detector names some of them wrongly. The share of a
     surface confused then follows the confusion probability closely, where one draw per region flips whole
     roads at once."""
+    stuff_world_tile: int = 0
+    """When > 0, the tiled stuff confusion (``stuff_tile_px``, which must then be > 0 too) is drawn per
+    world tile of this many world cells a side (``gt2d/cell``: 2 m cells of generated data, so 2 = 4 m
+    tiles) instead of per image tile, and once for the whole sequence instead of per block of frames
+    (:func:`world_tile_draws`): a patch of pavement or hedge taken for another class is taken so in every
+    frame that sees it, as a detector's errors on a surface follow its appearance. Image tiles move over
+    the world as the camera does, so their errors average out in the voxel fusion where a real detector's
+    do not (docs/METHOD.md A.7, term 13). Needs the ``gt2d/cell`` images of ``leap synth``."""
     stratified_draws: bool = False
     """When on, the persistent draws that decide an object's confusion (and its target), box leak and pair
     merge come from a 2D lattice over (object, block of frames) (:func:`lattice_draws`) instead of
@@ -293,9 +303,13 @@ class SimulatedLabelerConfig:
             "pair_merge_gap_px",
             "stuff_grow_px",
             "stuff_tile_px",
+            "stuff_world_tile",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
+        if self.stuff_world_tile > 0 and self.stuff_tile_px == 0:
+            raise ConfigError("world tiles replace the image tiles of the tiled stuff confusion: set "
+                              "stuff_tile_px > 0 too", field=("stuff_world_tile",))
         _check_strength_table(self.match_detection, "match_detection", positive=False)
         _check_strength_table(self.match_confidence, "match_confidence", positive=True)
 
@@ -340,6 +354,7 @@ _LATER_TERMS_OFF: dict[str, object] = {
     "stuff_grow_px": 0,
     "stuff_tile_px": 0,
     "stratified_draws": False,
+    "stuff_world_tile": 0,
 }
 """The noise terms added with the "paper" preset and their off values (the defaults)."""
 
@@ -395,12 +410,14 @@ def _jitter(
     inst: npt.NDArray[np.uint16],
     cfg: SimulatedLabelerConfig,
     rng: np.random.Generator,
-) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16]]:
-    """Move both label images by one random rigid transform (shift + rotation about the centre)."""
+    cells: npt.NDArray[np.uint16] | None = None,
+) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.uint16] | None]:
+    """Move the label images (and the world-cell image, if given) by one random rigid transform (shift +
+    rotation about the centre)."""
     dx, dy = rng.normal(0.0, 1.0, size=2) * cfg.jitter_px
     theta = float(rng.normal(0.0, 1.0)) * cfg.jitter_deg
     if cfg.jitter_px == 0 and cfg.jitter_deg == 0:
-        return names, inst
+        return names, inst, cells
     h, w = names.shape
     m = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), theta, 1.0)
     m[:, 2] += (dx, dy)
@@ -411,7 +428,7 @@ def _jitter(
         )
         return np.asarray(warped, dtype=np.uint16)  # already uint16 (cv2 keeps the dtype): no copy
 
-    return warp(names), warp(inst)
+    return warp(names), warp(inst), None if cells is None else warp(cells)
 
 
 def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> list[_Region]:
@@ -493,6 +510,31 @@ def tile_split(
     tx = (x0 + np.arange(crop.shape[1])) // tile_px
     out: npt.NDArray[np.bool_] = crop & (u_tiles[np.ix_(ty, tx)] < prob)
     return out
+
+
+def world_tile_draws(cells: npt.ArrayLike, tile: int, phases: tuple[float, float],
+                     stratified: bool = True, seed_key: tuple[int, ...] = ()) -> npt.NDArray[np.float64]:
+    """(2, ...) two draws in [0, 1) per pixel of ``cells`` (any shape; uint16 world cell ids
+    ``ix · 256 + iy``, ``leap_core.synth.camera.world_cells``), equal for every pixel of one world tile
+    ``(tx, ty) = (ix // tile, iy // tile)`` in every frame: draw 0 decides the confusion, draw 1 its target.
+
+    Stratified: ``u_d = frac(phases[d] + tx · a1 + ty · a2)`` with decision d's lattice steps
+    (:func:`lattice_draws`, steps of decisions 0 and 1), so the confused share of any sizeable patch of
+    tiles is close to the probability. Otherwise independent uniforms per tile, seeded by ``seed_key`` and
+    the tile (``phases`` unused).
+    """
+    c = np.asarray(cells, dtype=np.int64)
+    tx, ty = (c >> 8) // tile, (c & 255) // tile
+    if stratified:
+        out: npt.NDArray[np.float64] = np.stack(
+            [np.mod(phases[d] + tx * _LATTICE_STEPS[d][0] + ty * _LATTICE_STEPS[d][1], 1.0) for d in range(2)]
+        )
+        return out
+    key = tx * 256 + ty
+    uniq, inv = np.unique(key, return_inverse=True)
+    table = np.array([np.random.default_rng(np.random.SeedSequence([*seed_key, int(k)])).random(2)
+                      for k in uniq]).reshape(-1, 2)
+    return np.moveaxis(table[inv.reshape(c.shape)], -1, 0)
 
 
 def box_gaps(boxes: npt.ArrayLike) -> npt.NDArray[np.int64]:
@@ -677,6 +719,19 @@ def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     return names
 
 
+def _cell_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
+    """The frame's per-pixel world cells (``gt2d/cell/<frame>.png``), which world tiles need."""
+    cells = frame.gt2d_cell
+    folder = frame.seq.root / "gt2d" / "cell"
+    if cells is None:
+        raise LeapError(f"{folder}: missing; stuff_world_tile needs the world-cell images that `leap synth` "
+                        "writes (regenerate the sequence, or set stuff_world_tile: 0)")
+    if cells.shape != semantic.shape:
+        raise LeapError(f"{folder / (frame.frame_id + '.png')}: cell image {cells.shape} and semantic mask "
+                        f"{semantic.shape} differ in size")
+    return cells
+
+
 def _per_class(names: list[str], default: float, table: dict[str, float]) -> npt.NDArray[np.float64]:
     """(C,) ``default`` per class, overridden by the by-name ``table`` (names not in ``names`` ignored)."""
     out = np.full(len(names), default, dtype=np.float64)
@@ -777,6 +832,8 @@ class _Draws:
     """(R,) per frame: the bleed radius."""
     u_shape: npt.NDArray[np.float64]
     """(R, 4) persistent: box leak, pair merge, stuff growth, growth radius (ones when every term is off)."""
+    cells: npt.NDArray[np.uint16] | None
+    """(H, W) world cell per pixel (jittered with the label images) when world tiles are on, else None."""
     merge_with: npt.NDArray[np.int64]
     """(R,) the adjacent thing region a pair merge would add, -1 = none."""
     confusion_of: npt.NDArray[np.float64]
@@ -825,7 +882,8 @@ class SimulatedLabeler:
                 f"{inst.shape} masks differ in size"
             )
         seed, idx = cfg.seed, frame.number
-        names_img, inst = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER))
+        names_img, inst, cells = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER),
+                                         _cell_image(frame, sem) if cfg.stuff_world_tile > 0 else None)
         h, w = names_img.shape
         names = list(schema.names)
         num_classes, regions, matches = len(names), _regions(names_img, inst), prompt_matches(schema)
@@ -846,7 +904,7 @@ class SimulatedLabeler:
         shaped = bool(leak_of.any()) or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
         u_obj, u_shape = _persistent_draws(regions, cfg, seed, block, shaped=shaped)
         draws = _Draws(
-            h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed, u_shape=u_shape,
+            h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed, u_shape=u_shape, cells=cells,
             merge_with=_merge_partners(regions, cfg),
             confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion), leak_of=leak_of,
             partners=partners, targets=confusion_targets(names, cfg.confusion_targets),
@@ -920,6 +978,8 @@ class SimulatedLabeler:
             radius = max(radius, grow)
         if not (tiled and cand):
             return [(shape, pred)], radius
+        if d.cells is not None:
+            return self._world_parts(d, shape, cls, cand, target), radius
         t = cfg.stuff_tile_px
         u_tiles = np.random.default_rng(
             np.random.SeedSequence([d.seed, d.block, _STREAM_TILE, reg.name, reg.ident])
@@ -931,6 +991,33 @@ class SimulatedLabeler:
             (dataclasses.replace(shape, crop=moved), partner),
         ]
         return [(part, c) for part, c in parts if part.crop.any()], radius
+
+    def _world_parts(self, d: _Draws, shape: _Region, cls: int, cand: list[int],
+                     target: tuple[list[int], npt.NDArray[np.float64]] | None) -> list[tuple[_Region, int]]:
+        """Stuff region ``shape`` split by world tiles (term 13): the pixels whose tile is confused, one
+        part per target they take (:func:`world_tile_draws`, keyed by the region's name and the seed, not
+        the frame), and the rest, labeled ``cls``."""
+        assert d.cells is not None
+        cfg = self.cfg
+        ch, cw = shape.crop.shape
+        cells = d.cells[shape.y0 : shape.y0 + ch, shape.x0 : shape.x0 + cw]
+        phases = np.random.default_rng(np.random.SeedSequence([d.seed, _STREAM_WORLD, shape.name])).random(2)
+        u = world_tile_draws(cells, cfg.stuff_world_tile, (float(phases[0]), float(phases[1])),
+                             cfg.stratified_draws, (d.seed, _STREAM_WORLD, shape.name))
+        moved = shape.crop & (u[0] < d.confusion_of[cls])
+        parts = [(dataclasses.replace(shape, crop=shape.crop & ~moved), cls)]
+        if moved.any():
+            v = u[1][moved]
+            if target is not None:
+                at = np.minimum(np.searchsorted(target[1], v, side="right"), len(target[0]) - 1)
+                picks = np.asarray(target[0])[at]
+            else:
+                picks = np.asarray(cand)[np.minimum((v * len(cand)).astype(np.int64), len(cand) - 1)]
+            for c in np.unique(picks):
+                part = np.zeros_like(moved)
+                part[moved] = picks == c
+                parts.append((dataclasses.replace(shape, crop=part), int(c)))
+        return [(part, c) for part, c in parts if part.crop.any()]
 
     @staticmethod
     def _paint(
@@ -968,4 +1055,5 @@ __all__ = [
     "simulated_preset",
     "size_recall",
     "tile_split",
+    "world_tile_draws",
 ]

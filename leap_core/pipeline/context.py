@@ -261,6 +261,8 @@ def dataset_identity(seq: KittiSequence) -> str:
     poses = file_digest(seq.poses_path) if seq.has_poses else None
     parts: list[Any] = [str(root), file_digest(root / "calib.txt"), poses]
     folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]
+    # Newer optional folders count only where present, so older sequences keep their identity.
+    folders += [name for name in ("gt2d/cell",) if (root / name).is_dir()]
     for name in folders:
         folder = root / name
         if not folder.is_dir():
@@ -272,7 +274,7 @@ def dataset_identity(seq: KittiSequence) -> str:
     return hash_json(parts)
 
 
-GT2D_KINDS = ("semantic", "instance", "name")
+GT2D_KINDS = ("semantic", "instance", "name", "cell")
 """Per-frame 2D ground-truth images a labeler may read (``gt2d/<kind>/<frame>.png``)."""
 
 

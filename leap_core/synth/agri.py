@@ -30,7 +30,7 @@ from leap_core.synth.raycast import rotation_xyz
 from leap_core.synth.solid_state import SolidStateLidarConfig, solid_state_scan
 from leap_core.synth.survey import SurveyConfig
 
-AGRI_SYNTH_STAMP = "agri-uav 1"
+AGRI_SYNTH_STAMP = "agri-uav 2"
 """What an agri-uav sequence's ``synth_version.txt`` holds (the street demo's holds a bare number); bumped
 whenever the same config would produce different files."""
 

@@ -126,7 +126,8 @@ class CameraFrame:
     Attributes:
         rgb: (H, W, 3) uint8 image. semantic: (H, W) uint16 raw class id (0 = sky / nothing).
         instance: (H, W) uint16 instance id (0 = stuff). name: (H, W) uint16 name id of the surface
-        (``leap_core.synth.names``; 0 = sky). depth: (H, W) float32 z-depth (inf = sky).
+        (``leap_core.synth.names``; 0 = sky). depth: (H, W) float32 z-depth (inf = sky). cell: (H, W)
+        uint16 world cell of the surface seen (:func:`world_cells`; 0 for sky, like cell (0, 0)).
     """
 
     rgb: npt.NDArray[np.uint8]
@@ -134,6 +135,23 @@ class CameraFrame:
     instance: npt.NDArray[np.uint16]
     name: npt.NDArray[np.uint16]
     depth: npt.NDArray[np.float32]
+    cell: npt.NDArray[np.uint16]
+
+
+WORLD_CELL_M = 2.0
+"""Edge of the square world cells of :func:`world_cells`, in metres."""
+
+
+def world_cells(world: npt.ArrayLike) -> npt.NDArray[np.uint16]:
+    """(N,) uint16 id of the ``WORLD_CELL_M`` × ``WORLD_CELL_M`` world cell under each of the points
+    ``world`` (N, >= 2): ``(ix mod 256) · 256 + (iy mod 256)`` with ``ix = floor(x / WORLD_CELL_M)`` (iy
+    likewise), so ids repeat every 512 m along each axis. The simulated labeler keys persistent stuff
+    errors by it (docs/METHOD.md A.7, term 13): a surface patch looks the same from every frame that sees it.
+    """
+    xy = np.asarray(world, dtype=np.float64).reshape(-1, np.shape(world)[-1])[:, :2]
+    ij = np.floor(xy / WORLD_CELL_M).astype(np.int64) & 255
+    out: npt.NDArray[np.uint16] = ((ij[:, 0] << 8) | ij[:, 1]).astype(np.uint16)
+    return out
 
 
 def pixel_rays(cfg: CameraConfig) -> F32:
@@ -312,9 +330,7 @@ def render(
     rgb = _sensor_image(linear.reshape(h, w, 3), cfg.noise_std, rng)
 
     def gt(column: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
-        img = np.zeros(h * w, np.uint16)
-        img[idx] = column[p]
-        return img.reshape(h, w)
+        return _scatter(column[p], idx, h, w)
 
     depth_out = np.where(pid >= 0, depth, np.float32(np.inf)).astype(np.float32)
     return CameraFrame(
@@ -323,7 +339,16 @@ def render(
         instance=gt(prims.instance),
         name=gt(prims.name),
         depth=depth_out,
+        cell=_scatter(world_cells(world), idx, h, w),
     )
+
+
+def _scatter(values: npt.NDArray[np.uint16], idx: npt.NDArray[np.int64], h: int, w: int
+             ) -> npt.NDArray[np.uint16]:
+    """(H, W) image holding ``values`` at the flat pixel indices ``idx`` and 0 elsewhere."""
+    img = np.zeros(h * w, np.uint16)
+    img[idx] = values
+    return img.reshape(h, w)
 
 
 def _sensor_image(linear: F32, noise_std: float, rng: np.random.Generator) -> npt.NDArray[np.uint8]:

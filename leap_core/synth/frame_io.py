@@ -23,6 +23,7 @@ def write_frame(seq_dir: Path, i: int, sc: Scan, cam: CameraFrame) -> None:
     write_png16(d / "gt2d" / "semantic" / f"{stem}.png", cam.semantic)
     write_png16(d / "gt2d" / "instance" / f"{stem}.png", cam.instance)
     write_png16(d / "gt2d" / "name" / f"{stem}.png", cam.name)
+    write_png16(d / "gt2d" / "cell" / f"{stem}.png", cam.cell)
 
 
 def count_in_image(xyz: npt.NDArray[np.float32], calib: Calib, width: int, height: int) -> int:

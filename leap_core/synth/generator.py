@@ -2,8 +2,9 @@
 
 ``OUT/sequences/NN/`` receives ``velodyne/*.bin``, ``labels/*.label`` (semantic | instance << 16),
 ``image_2/*.png``, ``calib.txt`` (P2, Tr), ``poses.txt`` (camera-frame poses relative to the first
-frame, as KITTI stores them), ``times.txt``, the 2D ground truth ``gt2d/{semantic,instance,name}/*.png``
-(uint16; ``name`` holds the fine-grained name id of every pixel, see ``leap_core.synth.names``) and
+frame, as KITTI stores them), ``times.txt``, the 2D ground truth ``gt2d/{semantic,instance,name,cell}/*.png``
+(uint16; ``name`` holds the fine-grained name id of every pixel, see ``leap_core.synth.names``; ``cell`` the
+2 m world cell each pixel sees, ``leap_core.synth.camera.world_cells``) and
 ``synth_version.txt`` (:data:`SYNTH_VERSION`). Output is byte-identical for the same configuration,
 whatever the number of worker processes: every frame draws its noise from its own generator seeded by
 (seed, frame).
@@ -40,10 +41,11 @@ from leap_core.synth.scene import Scene, SceneConfig, build_scene
 if TYPE_CHECKING:
     from leap_core.synth.agri import AgriSynthConfig, AgriWorker
 
-SYNTH_VERSION = 2
+SYNTH_VERSION = 3
 """Version of what the generator writes for a given config; bumped whenever the same config would produce
 different files (a new object kind, a new ground-truth image). A demo folder with another (or no)
-``synth_version.txt`` is stale and is generated again. 2: the demo world with names (issue 12)."""
+``synth_version.txt`` is stale and is generated again. 2: the demo world with names (issue 12); 3: the
+world-cell images ``gt2d/cell`` (issue 16)."""
 
 VERSION_FILE = "synth_version.txt"
 
