@@ -518,18 +518,16 @@ def world_tile_draws(cells: npt.ArrayLike, tile: int, phases: tuple[float, float
     ``ix · 256 + iy``, ``leap_core.synth.camera.world_cells``), equal for every pixel of one world tile
     ``(tx, ty) = (ix // tile, iy // tile)`` in every frame: draw 0 decides the confusion, draw 1 its target.
 
-    Stratified: ``u_d = frac(phases[d] + tx · a1 + ty · a2)`` with decision d's lattice steps
-    (:func:`lattice_draws`, steps of decisions 0 and 1), so the confused share of any sizeable patch of
-    tiles is close to the probability. Otherwise independent uniforms per tile, seeded by ``seed_key`` and
+    Stratified: :func:`lattice_draws` with key tx and block ty, ``u_d = frac(phases[d] + tx · a1 + ty ·
+    a2)`` with the lattice steps of decisions 0 and 1, so the confused share of any sizeable patch of tiles
+    is close to the probability. Otherwise independent uniforms per tile, seeded by ``seed_key`` and
     the tile (``phases`` unused).
     """
     c = np.asarray(cells, dtype=np.int64)
     tx, ty = (c >> 8) // tile, (c & 255) // tile
     if stratified:
-        out: npt.NDArray[np.float64] = np.stack(
-            [np.mod(phases[d] + tx * _LATTICE_STEPS[d][0] + ty * _LATTICE_STEPS[d][1], 1.0) for d in range(2)]
-        )
-        return out
+        return np.stack([lattice_draws(tx, ty, phases[d], _LATTICE_STEPS[d]).reshape(c.shape)
+                         for d in range(2)])
     key = tx * 256 + ty
     uniq, inv = np.unique(key, return_inverse=True)
     table = np.array([np.random.default_rng(np.random.SeedSequence([*seed_key, int(k)])).random(2)
@@ -591,12 +589,20 @@ def confusion_targets(
     return out
 
 
-def _pick(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: float) -> int:
-    """The confused class for the draw ``u`` ~ U(0, 1): from the cumulative weights of a directed target
-    row, else uniform over the pair partners ``cand``."""
+def _pick_many(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None,
+               u: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """The confused class for each draw of ``u`` ~ U(0, 1) (any shape): from the cumulative weights of a
+    directed target row, else uniform over the pair partners ``cand``."""
+    v = np.asarray(u, dtype=np.float64)
     if target is not None:
-        return target[0][min(int(np.searchsorted(target[1], u, side="right")), len(target[0]) - 1)]
-    return cand[min(int(u * len(cand)), len(cand) - 1)]
+        at = np.minimum(np.searchsorted(target[1], v, side="right"), len(target[0]) - 1)
+        return np.asarray(target[0], dtype=np.int64)[at]
+    return np.asarray(cand, dtype=np.int64)[np.minimum((v * len(cand)).astype(np.int64), len(cand) - 1)]
+
+
+def _pick(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: float) -> int:
+    """:func:`_pick_many` for one draw."""
+    return int(_pick_many(cand, target, u))
 
 
 def prompt_matches(schema: Schema) -> dict[int, list[tuple[int, int]]]:
@@ -767,11 +773,11 @@ _LATTICE_STEPS: tuple[tuple[float, float], ...] = tuple(
 """The steps (a1, a2) of :func:`lattice_draws` per stratified decision, from :data:`_LATTICE_PRIMES`."""
 
 
-def lattice_draws(keys: npt.ArrayLike, block: int, phase: float,
+def lattice_draws(keys: npt.ArrayLike, block: int | npt.ArrayLike, phase: float,
                   steps: tuple[float, float]) -> npt.NDArray[np.float64]:
-    """(R,) draws in [0, 1) of objects ``keys`` (R,) integers in the block of frames ``block``:
-    ``u = frac(phase + key · a1 + block · a2)`` with ``(a1, a2) = steps``, irrational and independent
-    over the rationals.
+    """(R,) draws in [0, 1) of objects ``keys`` (R,) integers in the block of frames ``block`` (one, or
+    (R,) of them): ``u = frac(phase + key · a1 + block · a2)`` with ``(a1, a2) = steps``, irrational and
+    independent over the rationals.
 
     For a fixed key the values over consecutive blocks, and for a fixed block the values over consecutive
     keys, are spread evenly over [0, 1) (a Kronecker sequence), so the share of (key, block) pairs with
@@ -779,8 +785,9 @@ def lattice_draws(keys: npt.ArrayLike, block: int, phase: float,
     ``phase`` ~ U(0, 1) (one per seed and decision) shifts the whole lattice.
     """
     k = np.asarray(keys, dtype=np.float64).reshape(-1)
+    b = np.asarray(block, dtype=np.float64).reshape(-1)
     a1, a2 = steps
-    out: npt.NDArray[np.float64] = np.mod(phase + k * a1 + block * a2, 1.0)
+    out: npt.NDArray[np.float64] = np.mod(phase + k * a1 + b * a2, 1.0)
     return out
 
 
@@ -1007,12 +1014,7 @@ class SimulatedLabeler:
         moved = shape.crop & (u[0] < d.confusion_of[cls])
         parts = [(dataclasses.replace(shape, crop=shape.crop & ~moved), cls)]
         if moved.any():
-            v = u[1][moved]
-            if target is not None:
-                at = np.minimum(np.searchsorted(target[1], v, side="right"), len(target[0]) - 1)
-                picks = np.asarray(target[0])[at]
-            else:
-                picks = np.asarray(cand)[np.minimum((v * len(cand)).astype(np.int64), len(cand) - 1)]
+            picks = _pick_many(cand, target, u[1][moved])
             for c in np.unique(picks):
                 part = np.zeros_like(moved)
                 part[moved] = picks == c

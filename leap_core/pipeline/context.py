@@ -261,8 +261,9 @@ def dataset_identity(seq: KittiSequence) -> str:
     poses = file_digest(seq.poses_path) if seq.has_poses else None
     parts: list[Any] = [str(root), file_digest(root / "calib.txt"), poses]
     folders = ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]
-    # Newer optional folders count only where present, so older sequences keep their identity.
-    folders += [name for name in ("gt2d/cell",) if (root / name).is_dir()]
+    # A newer optional folder counts only where present, so older sequences keep their identity.
+    if (root / "gt2d" / "cell").is_dir():
+        folders.append("gt2d/cell")
     for name in folders:
         folder = root / name
         if not folder.is_dir():
