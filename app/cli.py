@@ -26,6 +26,7 @@ from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.presets import Preset, load_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
+from leap_core.synth.domains import DOMAINS as SYNTH_DOMAINS
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -749,6 +750,84 @@ def poses_cmd(
     )
 
 
+@cli.command("train-3dcn")
+def train_3dcn_cmd(
+    datasets: list[str] = typer.Argument(..., help="Labeled sequence folders (.../sequences/NN) to train."),
+    *,
+    out: str = typer.Option(
+        ..., "--out", metavar="CKPT", help="Checkpoint to write (for leap run --3dcn-init)."
+    ),
+    schema: str | None = typer.Option(
+        None, "--schema",
+        help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti).",
+    ),
+    project_file: str | None = typer.Option(
+        None, "--project-file", help="Project YAML of the runs that will start from the network: its classes "
+        "and its 'pipeline: consistency:' settings (backbone, schedule)."
+    ),
+    steps: int | None = typer.Option(
+        None, "--steps", min=1,
+        help="Optimisation steps, at least one epoch (default: consistency.min_steps).",
+    ),
+    seed: int | None = typer.Option(None, "--seed", help="Training seed (default: consistency.seed)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing checkpoint file."),
+) -> None:
+    """Train the 3D-CN's network on the ground-truth labels of labeled sequences (another dataset or domain,
+    e.g. `leap synth --domain street-32`), to start the 3D-CN of unlabeled sequences from it with
+    `leap run --3dcn-init CKPT`, as the paper fine-tunes a network trained before. The classes and the
+    backbone are the project's (give the project file the runs will use)."""
+    import dataclasses
+    import time
+
+    from tqdm import tqdm
+
+    from leap_core.consistency.pretrain import ground_truth_scans, train_on_ground_truth
+    from leap_core.consistency.train import save_checkpoint
+
+    target = Path(out)
+    try:
+        # Refused before the work, not after it.
+        if target.exists() and not force:
+            raise LeapError(f"{target}: already exists; add --force to replace it")
+        if target.exists() and not target.is_file():
+            raise LeapError(f"{target}: not a file")
+        sch, pcfg = _run_config(schema, project_file, None, None)
+        cfg = pcfg.consistency
+        cfg = dataclasses.replace(cfg, min_steps=cfg.min_steps if steps is None else steps,
+                                  seed=cfg.seed if seed is None else seed)
+        seqs = [KittiSequence(d) for d in datasets]
+        data = ground_truth_scans(seqs, sch)
+        start = time.perf_counter()
+        with tqdm(desc="train-3dcn", unit="step", dynamic_ncols=True) as bar:
+            def tick(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done - bar.n)
+
+            model, stats = train_on_ground_truth(data, sch, cfg, progress=tick)
+        save_checkpoint(target, model, cfg, meta={
+            "kind": "ground-truth",
+            "sequences": [str(s.root.resolve()) for s in seqs],
+            "scans": len(data.scans),
+            "class_names": sch.names,
+            "class_counts": data.class_counts.tolist(),
+            "steps": stats.steps,
+            "losses": stats.losses,
+            "seconds": stats.seconds,
+        })
+    except KeyboardInterrupt:
+        raise fail("interrupted; nothing was written") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    missing = [n for n, c in zip(sch.names, data.class_counts, strict=True) if c == 0]
+    tail = stats.losses[-50:]
+    typer.echo(
+        f"wrote {target}: {len(data.scans)} scans of {len(seqs)} sequence(s), {stats.steps} steps in "
+        f"{time.perf_counter() - start:.1f} s, mean loss of the last {len(tail)} steps "
+        f"{sum(tail) / max(len(tail), 1):.3f}"
+        + (f"; no ground truth for {', '.join(missing)}" if missing else "")
+    )
+
+
 class _Targets(TypedDict):
     folder: Path | None
     zip: Path | None
@@ -1075,22 +1154,22 @@ def synth(
     force: bool = typer.Option(False, "--force", help="Replace an existing non-empty sequence folder."),
     workers: int = typer.Option(0, "--workers", min=0, help="Worker processes (0 = up to 2, by core count)."),
     domain: str = typer.Option(
-        "street", "--domain", help="street: a car with a spinning 64-beam LiDAR in a town (10 Hz); "
-        "agri-uav: a survey drone over a farm with a pitched camera and a 70°×30° solid-state LiDAR (5 Hz; "
-        "classes of projects/agri_uav.yaml).", autocompletion=lambda: ["street", "agri-uav"],
+        "street", "--domain", help="; ".join(f"{k}: {v}" for k, v in SYNTH_DOMAINS.items()) + ".",
+        autocompletion=lambda: list(SYNTH_DOMAINS),
     ),
 ) -> None:
-    """Generate a demo sequence in the KITTI / SemanticKITTI layout: a procedural street (default) or, with
-    --domain agri-uav, a drone survey of a farm."""
+    """Generate a demo sequence in the KITTI / SemanticKITTI layout: a procedural street (default), with
+    --domain street-32 another town seen by a 32-beam LiDAR, or with --domain agri-uav a drone survey of a
+    farm."""
     import time
 
     from tqdm import tqdm
 
-    from leap_core.synth import SynthConfig, default_workers, generate_sequence
-    from leap_core.synth.agri import AgriSynthConfig
+    from leap_core.synth import default_workers, generate_sequence
+    from leap_core.synth.domains import domain_config
 
-    if domain not in ("street", "agri-uav"):
-        raise fail(f"--domain: unknown domain {domain!r} (street or agri-uav)")
+    if domain not in SYNTH_DOMAINS:
+        raise fail(f"--domain: unknown domain {domain!r} ({', '.join(SYNTH_DOMAINS)})")
 
     start = time.perf_counter()
     bars: list[tqdm] = []  # opened at the first progress call, so a refusal prints only the error
@@ -1101,11 +1180,7 @@ def synth(
         bars[0].update(done - bars[0].n)
 
     try:
-        config = (
-            SynthConfig(frames=frames, seed=seed)
-            if domain == "street"
-            else AgriSynthConfig(frames=frames, seed=seed)
-        )
+        config = domain_config(domain, frames, seed)
         stats = generate_sequence(
             out, config, sequence, force=force,
             workers=workers or default_workers(), progress=progress,

@@ -5,9 +5,11 @@ Domains (each a generated sequence and the CLI's own ``leap run``):
 
 - ``street``: the demo street, ``leap synth DATA/demo --frames 60 --seed 0``, labeled by the simulated
   labeler with the ``paper`` preset (README, "A paper-calibrated simulated labeler"), evaluated on the
-  paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``); its seed runs
-  set the 3D-CN temperature to 1 (:attr:`Domain.settings`, chosen on street tuning sequences 21-23 for
-  labels this noisy; docs/METHOD.md C.5);
+  paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``); its 3D-CN
+  rounds start from a *source network* (:attr:`Domain.source`), trained by ``leap train-3dcn`` on the ground
+  truth of three ``street-32`` sequences (another LiDAR, another town: ``leap_core.synth.domains``), as the
+  paper fine-tunes a network trained on another data set, and its seed runs set the 3D-CN temperature
+  (:attr:`Domain.settings`, chosen on street tuning sequences 21-23; docs/METHOD.md C.5);
 - ``agri``: the farm drone, ``leap synth DATA/agri40 --domain agri-uav --frames 40 --seed 0`` with
   ``projects/agri_uav.yaml`` and the simulated labeler (its default preset: the ``paper`` preset's
   confusions are street classes), evaluated in camera view over its 7 classes (``metrics.json`` key
@@ -19,7 +21,9 @@ per domain (3D-CN off) computes them, and each seed's run folder starts as hard 
 (``leap run`` then skips every stage whose fingerprint matches; a stage that reruns replaces its files
 atomically, so the base run's files are never written through the links). The seed's run differs only in
 its project file, a copy of the domain's with ``pipeline.consistency.seed`` (and any ``--set``) added,
-written next to the runs. Compute: one base run per domain, then ``--iterations`` 3D-CN rounds per seed.
+written next to the runs. Compute: one base run per domain, the source network once (``RUNS/sources/``,
+shared by the report and the tuning sequences of the domain), then ``--iterations`` 3D-CN rounds per seed.
+``--from-scratch`` (with ``--tag``) starts the rounds from random weights instead, for comparison.
 Running with ``--iterations 1`` first and ``2`` later reuses round 1's checkpoint (its fingerprint does not
 include the round count) and redoes only round 1's inference.
 
@@ -38,7 +42,8 @@ gain once more on the same points: the camera view's points every row labels, ``
 ``common`` table, since the camera protocol scores the 3D-CN, which labels every point, on points the
 voxel row leaves unlabeled and is not scored on) and, per domain, whether issue 16's acceptance holds
 (+3D-CN x1 > voxel for every seed, mean gain >= 5 points).
-``--readme`` writes the table between ``<!-- table:table1 -->`` markers of README.md.
+``--readme`` writes the table between ``<!-- table:table1 -->`` markers of README.md: the rows of the domains
+measured replace theirs, the other domains' rows stay (:func:`merged_table`).
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ import importlib.util
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -69,11 +75,44 @@ from leap_core.io_utils import atomic_write_bytes  # noqa: E402
 from leap_core.metrics import metrics_from_confusion  # noqa: E402
 from leap_core.pipeline.evaluation import COMMON, PAPER, paper_metrics, read_metrics_json  # noqa: E402
 from leap_core.run_layout import RunLayout  # noqa: E402
+from leap_core.synth.generator import VERSION_FILE  # noqa: E402
 
 ROWS = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
 """``metrics.json`` columns, in Table 1's order (x2 is ours: the paper reports one round)."""
 MIN_MEAN_GAIN = 5.0
 """Issue 16's acceptance: mean +3D-CN x1 gain over voxel, in mIoU points."""
+
+
+@dataclass(frozen=True)
+class Source:
+    """A network trained on the ground truth of *another* domain, that the domain's 3D-CN rounds start from
+    (``leap train-3dcn``, then ``leap run --3dcn-init``), as the paper fine-tunes a network trained before."""
+
+    domain: str
+    """``leap synth --domain`` of the source sequences."""
+    seeds: tuple[int, ...]
+    """Their ``--seed``s (one sequence each, never the report sequence's)."""
+    frames: int
+    """Their length."""
+    steps: int
+    """``leap train-3dcn --steps``."""
+    settings: tuple[str, ...] = ()
+    """``KEY=VALUE`` settings of the seed runs that start from this network, over the domain's own (which
+    were chosen for rounds from random weights); chosen on the domain's tuning sequences."""
+
+    def data(self, seed: int) -> str:
+        """Folder under ``--data`` of the source sequence of ``seed``."""
+        return f"{self.domain}_seed{seed}_f{self.frames}"
+
+    @property
+    def checkpoint(self) -> str:
+        """File name of the source network, in ``RUNS/sources``."""
+        return f"source_{self.domain}_{'-'.join(map(str, self.seeds))}_f{self.frames}_s{self.steps}.pt"
+
+    @property
+    def title(self) -> str:
+        return (f"3D-CN fine-tuned from a network trained on {self.domain}'s ground truth "
+                f"({len(self.seeds)} × {self.frames} scans)")
 
 
 @dataclass(frozen=True)
@@ -98,6 +137,8 @@ class Domain:
     settings: tuple[str, ...] = ()
     """``KEY=VALUE`` pipeline settings of the domain's seed runs (as ``--set`` takes them; ``--set`` adds to
     and overrides them), each chosen on the domain's tuning sequences, never on the report sequence."""
+    source: Source | None = None
+    """The network the seed runs' 3D-CN starts from (None, or ``--from-scratch``: random weights)."""
 
 
 DOMAINS: dict[str, Domain] = {
@@ -110,6 +151,11 @@ DOMAINS: dict[str, Domain] = {
         # The 3D-CN's temperature for camera labels as noisy as the paper preset's (docs/METHOD.md C.5:
         # chosen on the street's tuning sequences 21-23; the default, 2, was chosen with the milder labeler).
         settings=("consistency.temperature=1",),
+        # The paper fine-tunes a network trained before (docs/METHOD.md C.2): here one trained on the ground
+        # truth of another street domain (32 beams, another town; leap_core.synth.domains), never this one.
+        # Fine-tuned from it, the network is trusted more: T = 0.25 (tuning sequences 21-23, C.5).
+        source=Source(domain="street-32", seeds=(201, 202, 203), frames=60, steps=600,
+                      settings=("consistency.temperature=0.25",)),
     ),
     "agri": Domain(
         key="agri", title="farm drone (agri-uav), `default` labeler preset", data="agri40",
@@ -279,7 +325,8 @@ def domain_lines(dom: Domain, rows: Sequence[SeedRow]) -> list[str]:
     lines = []
     for i, r in enumerate(rows):
         settings = "".join(f", `{kv}`" for kv in dom.settings)
-        head = f"{dom.title}{settings} ({dom.protocol_title})" if i == 0 else ""
+        origin = "" if dom.source is None else f", {dom.source.title}"
+        head = f"{dom.title}{origin}{settings} ({dom.protocol_title})" if i == 0 else ""
         lines.append(f"| {head} | {r.seed} | {_f(r.point)} | {_f(r.voxel)} | {_f(r.x1)} | {_f(r.x2)} "
                      f"| {_g(r.gain1)} | {_g(r.gain2)} | {_g(r.same1)} |")
     if len(rows) > 1:
@@ -308,6 +355,34 @@ def table_markdown(results: Sequence[tuple[Domain, Sequence[SeedRow]]]) -> str:
         if rows:
             lines += domain_lines(dom, rows)
     return "\n".join(lines)
+
+
+def table_blocks(table: str) -> list[list[str]]:
+    """The body rows of a :func:`table_markdown` table, one block per domain (a row whose first cell is not
+    empty starts a block)."""
+    blocks: list[list[str]] = []
+    for line in table.splitlines()[2:]:
+        if line.split("|")[1].strip() or not blocks:
+            blocks.append([])
+        blocks[-1].append(line)
+    return blocks
+
+
+def block_domain(block: Sequence[str]) -> str | None:
+    """The :data:`DOMAINS` key whose title the block's first cell starts with (None: no such domain)."""
+    first = block[0].split("|")[1].strip()
+    return next((k for k, d in DOMAINS.items() if first.startswith(d.title)), None)
+
+
+def merged_table(old: str, new: str) -> str:
+    """``new`` (a :func:`table_markdown` table) with the blocks of ``old`` kept for the domains ``new`` has
+    no rows of (in :data:`DOMAINS` order; blocks of unknown domains last), so that measuring one domain
+    rewrites its rows and keeps the others'."""
+    fresh = {block_domain(b): b for b in table_blocks(new)}
+    kept = {block_domain(b): b for b in table_blocks(old)}
+    ordered = [*DOMAINS, None]
+    body = [line for key in ordered for line in fresh.get(key) or kept.get(key) or []]
+    return "\n".join([*new.splitlines()[:2], *body])
 
 
 def verdict_line(dom: Domain, rows: Sequence[SeedRow]) -> str:
@@ -361,6 +436,17 @@ def with_settings(dom: Domain, extra: Sequence[str]) -> Domain:
     return dataclasses.replace(dom, settings=tuple(by_key.values()))
 
 
+def as_run(dom: Domain, extra: Sequence[str] = (), *, from_scratch: bool = False) -> Domain:
+    """The domain as its seed runs are made: from its source network with the source's settings over the
+    domain's (or, ``from_scratch``, from random weights with the domain's own), then ``extra`` (``--set``)
+    over both."""
+    if from_scratch:
+        dom = dataclasses.replace(dom, source=None)
+    elif dom.source is not None:
+        dom = with_settings(dom, dom.source.settings)
+    return with_settings(dom, extra)
+
+
 def seed_project(dom: Domain, seed: int, sets: Mapping[str, Any], folder: Path, tag: str) -> Path:
     """A copy of the domain's project file with ``pipeline.consistency.seed = seed`` and ``sets`` added."""
     doc = yaml.safe_load((ROOT / dom.project).read_text())
@@ -397,12 +483,39 @@ def link_base(base: Path, run: Path) -> None:
     tmp.rename(run)
 
 
+def synth(root: Path, synth_args: Sequence[str]) -> Path:
+    """``root``'s sequence 00, generated unless a finished one is there (``synth_version.txt`` is written
+    last: a folder without it is an interrupted generation, replaced)."""
+    seq = root / "sequences" / "00"
+    if not (seq / VERSION_FILE).is_file():
+        leap(["synth", str(root), *synth_args, *(["--force"] if seq.exists() else [])])
+    return seq
+
+
+def source_network(dom: Domain, args: argparse.Namespace) -> Path | None:
+    """The domain's source network (:attr:`Domain.source`): generated and trained unless its checkpoint is
+    there. None: the domain has none (its rounds start from random weights)."""
+    src = dom.source
+    if src is None:
+        return None
+    # One file for every sequence of the domain (the report's and the tuning ones): it reads none of them.
+    ckpt = Path(args.runs) / "sources" / src.checkpoint
+    if not ckpt.is_file():
+        seqs = [synth(Path(args.data) / src.data(s),
+                      ["--domain", src.domain, "--frames", str(src.frames), "--seed", str(s)])
+                for s in src.seeds]
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        leap(["train-3dcn", *map(str, seqs), "--out", str(ckpt), "--project-file", dom.project,
+              "--steps", str(src.steps)])
+    return ckpt
+
+
 def measure(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list[SeedRow]:
-    """Run (or resume) the base run and each seed's run of ``dom``; the seeds' rows."""
-    seq = Path(args.data) / dom.data / "sequences" / "00"
+    """Run (or resume) the base run, the source network and each seed's run of ``dom``; the seeds' rows."""
+    seq = synth(Path(args.data) / dom.data, dom.synth)
     runs = Path(args.runs) / dom.key
-    if not (seq / "velodyne").is_dir():
-        leap(["synth", str(Path(args.data) / dom.data), *dom.synth])
+    ckpt = source_network(dom, args) if seeds else None
+    init = [] if ckpt is None else ["--3dcn-init", str(ckpt)]
     base = runs / "base"
     leap(["run", str(seq), "--project-file", dom.project, *dom.run_flags, "--no-3dcn", "--out", str(base)])
     rows = []
@@ -411,7 +524,7 @@ def measure(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list
         link_base(base, run)
         project = seed_project(dom, s, parse_sets(dom.settings), runs / "projects", args.tag)
         leap(["run", str(seq), "--project-file", str(project), *dom.run_flags,
-              "--3dcn-iterations", str(args.iterations), "--out", str(run)])
+              "--3dcn-iterations", str(args.iterations), *init, "--out", str(run)])
         rows.append(read_row(run, s, dom))
     return rows
 
@@ -449,13 +562,16 @@ def main() -> None:
     ap.add_argument("--sequence-seed", type=int, default=None,
                     help="Generate the domain's sequence with this seed (a tuning sequence, e.g. 101).")
     ap.add_argument("--frames", type=int, default=None, help="Generate the domain's sequence this long.")
+    ap.add_argument("--from-scratch", action="store_true",
+                    help="Start the 3D-CN from random weights where a domain has a source network "
+                    "(needs --tag).")
     ap.add_argument("--cached-only", action="store_true", help="Run nothing; tabulate finished seed runs.")
     ap.add_argument("--readme", action="store_true", help="Write the table into README.md's markers.")
     args = ap.parse_args()
-    if args.set and not args.tag:
-        sys.exit("--set needs --tag (a variant gets its own run folders)")
-    if args.readme and (args.sequence_seed is not None or args.frames is not None):
-        sys.exit("--readme writes the report sequences' table: not with --sequence-seed / --frames")
+    if (args.set or args.from_scratch) and not args.tag:
+        sys.exit("--set and --from-scratch need --tag (a variant gets its own run folders)")
+    if args.readme and (args.sequence_seed is not None or args.frames is not None or args.tag):
+        sys.exit("--readme writes the report sequences' table: not with --sequence-seed / --frames / --tag")
     names = [d.strip() for d in args.domains.split(",") if d.strip()]
     unknown = [d for d in names if d not in DOMAINS]
     if unknown:
@@ -463,7 +579,8 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     results = []
     for name in names:
-        dom = with_settings(retarget(DOMAINS[name], args.sequence_seed, args.frames), args.set)
+        dom = as_run(retarget(DOMAINS[name], args.sequence_seed, args.frames), args.set,
+                     from_scratch=args.from_scratch)
         rows = cached(dom, seeds, args) if args.cached_only else measure(dom, seeds, args)
         results.append((dom, rows))
     table = table_markdown(results)
@@ -479,7 +596,8 @@ def main() -> None:
         spec.loader.exec_module(rt)
         readme: Path = rt.README
         text = readme.read_text()
-        new = rt.replace_tables(text, {"table1": table})
+        old = re.search(r"<!-- table:table1 -->\n(.*?)\n<!-- /table:table1 -->", text, re.DOTALL)
+        new = rt.replace_tables(text, {"table1": table if old is None else merged_table(old.group(1), table)})
         if new != text:
             atomic_write_bytes(readme, new.encode())
             print(f"rewrote the table1 table of {readme}")

@@ -24,6 +24,7 @@ from leap_core.synth import (
     generate_sequence,
 )
 from leap_core.synth.camera import pixel_rays, world_cells
+from leap_core.synth.domains import STREET_32_LIDAR, STREET_32_SCENE, domain_config
 from leap_core.synth.generator import SYNTH_VERSION, camera_poses_kitti, lidar_poses, synth_version
 from leap_core.synth.lidar import beam_elevations, ray_grid, scan
 from leap_core.synth.materials import REQUIRED_IDS, Material, SemanticId
@@ -443,3 +444,37 @@ def test_refuses_to_overwrite(tmp_path, sequences) -> None:
     stats = generate_sequence(tmp_path, replace(SMALL, frames=1), force=True)
     assert not (seq / "keep.txt").exists()
     assert read_scan(stats.path / "velodyne" / "000000.bin").shape[0] == stats.points[0]
+
+
+# --------------------------------------------------------------------------------- the street-32 domain
+def test_street_32_beam_layout() -> None:
+    elev = np.rad2deg(beam_elevations(STREET_32_LIDAR))
+    assert len(elev) == 32 and (np.diff(elev) < 0).all()
+    assert elev[0] == pytest.approx(10.0) and elev[-1] == pytest.approx(-30.0)
+    # Evenly about 1.3° apart, across the two blocks too (nuScenes' HDL-32E: 1.33°).
+    np.testing.assert_allclose(np.diff(elev), -1.29, atol=0.02)
+
+
+def test_domain_configs() -> None:
+    assert domain_config("street", 7, 3) == SynthConfig(frames=7, seed=3)
+    s32 = domain_config("street-32", 7, 3)
+    assert isinstance(s32, SynthConfig) and (s32.frames, s32.seed) == (7, 3)
+    assert s32.lidar == STREET_32_LIDAR and s32.lidar.height == 1.84
+    assert s32.scene == STREET_32_SCENE != SceneConfig()
+    # Only the sensor and the town differ from the street: same camera, driving and frame rate.
+    assert replace(s32, lidar=LidarConfig(), scene=SceneConfig()) == SynthConfig(frames=7, seed=3)
+    assert type(domain_config("agri-uav", 2, 0)).__name__ == "AgriSynthConfig"
+    with pytest.raises(ValueError, match=r"unknown domain 'moon' \(known: street, street-32, agri-uav\)"):
+        domain_config("moon", 1, 0)
+
+
+def test_cli_street_32_scans_have_32_rings_from_plus_10_to_minus_30(tmp_path) -> None:
+    result = CliRunner().invoke(app, ["synth", str(tmp_path), "--frames", "1", "--domain", "street-32"])
+    assert result.exit_code == 0, result.output
+    pts = read_scan(tmp_path / "sequences" / "00" / "velodyne" / "000000.bin")
+    # The range noise lies along each ray, so a return keeps its beam's elevation.
+    elev = np.rad2deg(np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1])))
+    rings = np.unique(np.round(elev, 1))
+    assert 20 <= len(rings) <= 32
+    assert elev.max() == pytest.approx(10.0, abs=0.1) and elev.min() == pytest.approx(-30.0, abs=0.1)
+    assert synth_version(tmp_path / "sequences" / "00") == SYNTH_VERSION

@@ -122,12 +122,13 @@ def test_table_markdown_rows_mean_std_and_paper_figures() -> None:
               for s, x1, x2 in ((0, 0.70, 0.72), (1, 0.66, 0.69), (2, 0.68, 0.70))]
     a_rows = [dataclasses.replace(t1.seed_row(0, _metrics(0.795, 0.888, 0.808, protocol="camera"), "camera"),
                                   same1=1.5)]
-    text = t1.table_markdown([(street, s_rows), (agri, a_rows)])
+    text = t1.table_markdown([(t1.as_run(street), s_rows), (agri, a_rows)])
     lines = text.splitlines()
     assert lines[0].startswith("| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 |")
     assert lines[0].endswith("| gain ×1, same points |") and lines[1].count("---") == 9
-    assert lines[2] == ("| street demo, `paper` labeler preset, `consistency.temperature=1` (the paper's "
-                        "11 merged classes, camera view) "
+    assert lines[2] == ("| street demo, `paper` labeler preset, 3D-CN fine-tuned from a network trained on "
+                        "street-32's ground truth (3 × 60 scans), `consistency.temperature=0.25` "
+                        "(the paper's 11 merged classes, camera view) "
                         "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 | n/a |")
     assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 | n/a |"
     assert lines[4] == "|  | 2 | 43.4 | 62.2 | 68.0 | 70.0 | +5.8 | +7.8 | n/a |"
@@ -225,6 +226,69 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
     assert t1.parse_sets(variant.settings)["consistency"] == {"temperature": 1, "seed": 3}
     assert t1.with_settings(agri, []) == agri
     row = t1.SeedRow(seed=0, point=40.0, voxel=50.0, x1=55.0, x2=None, same1=4.0)
-    assert t1.domain_lines(street, [row])[0].startswith(
+    assert t1.domain_lines(t1.as_run(street), [row])[0].startswith(
+        "| street demo, `paper` labeler preset, 3D-CN fine-tuned from a network trained on street-32's "
+        "ground truth (3 × 60 scans), `consistency.temperature=0.25` (")
+    scratch = t1.as_run(street, from_scratch=True)
+    assert scratch.source is None and scratch.settings == ("consistency.temperature=1",)
+    assert t1.domain_lines(scratch, [row])[0].startswith(
         "| street demo, `paper` labeler preset, `consistency.temperature=1` (")
+    # The source's temperature replaces the domain's; --set replaces both; the farm has no source.
+    assert t1.as_run(street).settings == ("consistency.temperature=0.25",)
+    assert t1.as_run(street, ["consistency.temperature=0.5"]).settings == ("consistency.temperature=0.5",)
+    assert t1.as_run(agri) == agri
     assert t1.domain_lines(agri, [row])[0].startswith("| farm drone (agri-uav), `default` labeler preset (")
+
+
+def test_merged_table_rewrites_the_measured_domains_and_keeps_the_others() -> None:
+    t1 = _module()
+    street, agri = t1.DOMAINS["street"], t1.DOMAINS["agri"]
+
+    def rows(x1: float) -> list[Any]:
+        return [t1.seed_row(s, _metrics(0.4, 0.5, x1), "paper") for s in (0, 1)]
+
+    old = t1.table_markdown([(street, rows(0.55)), (agri, rows(0.60))])
+    blocks = t1.table_blocks(old)
+    # Per domain: its seeds, the mean and the paper's row.
+    assert [len(b) for b in blocks] == [4, 4]
+    assert [t1.block_domain(b) for b in blocks] == ["street", "agri"]
+    new_street = t1.table_markdown([(street, rows(0.57))])
+    merged = t1.merged_table(old, new_street)
+    assert merged.splitlines()[:2] == old.splitlines()[:2]
+    assert t1.table_blocks(merged) == [t1.table_blocks(new_street)[0], blocks[1]]
+    # The farm measured alone: the street's old rows stay first.
+    new_agri = t1.table_markdown([(agri, rows(0.65))])
+    assert t1.table_blocks(t1.merged_table(old, new_agri)) == [blocks[0], t1.table_blocks(new_agri)[0]]
+    # Everything measured: nothing of the old table stays.
+    both = t1.table_markdown([(street, rows(0.57)), (agri, rows(0.65))])
+    assert t1.merged_table(old, both) == both
+
+
+def test_the_street_starts_from_a_network_of_another_domain(tmp_path: Path) -> None:
+    """The street's source: street-32 sequences of their own seeds (never the report's), trained once
+    into RUNS/sources by `leap train-3dcn` and reused; a checkpoint the street's runs accept."""
+    from argparse import Namespace
+
+    from leap_core.consistency.train import load_checkpoint, load_source
+    from leap_core.presets import load_preset
+
+    t1 = _module()
+    street = t1.DOMAINS["street"]
+    src = street.source
+    assert src.domain == "street-32" and "0" not in map(str, src.seeds)
+    assert t1.DOMAINS["agri"].source is None
+    assert src.data(201) == "street-32_seed201_f60"
+    assert src.checkpoint == "source_street-32_201-202-203_f60_s600.pt"
+    # A tiny source, run for real: one 1-frame sequence, 2 steps.
+    tiny = dataclasses.replace(street, source=t1.Source(domain="street-32", seeds=(5,), frames=1, steps=2))
+    args = Namespace(data=str(tmp_path / "data"), runs=str(tmp_path / "runs"))
+    ckpt = t1.source_network(tiny, args)
+    assert ckpt == tmp_path / "runs" / "sources" / "source_street-32_5_f1_s2.pt"
+    assert (tmp_path / "data" / "street-32_seed5_f1" / "sequences" / "00" / "synth_version.txt").is_file()
+    ck = load_checkpoint(ckpt)
+    assert ck.meta["kind"] == "ground-truth" and ck.meta["steps"] == 2
+    preset = load_preset(ROOT / street.project)
+    load_source(ckpt, preset.pipeline.consistency.backbone, preset.schema.num_classes)
+    stamp = ckpt.stat().st_mtime_ns
+    assert t1.source_network(tiny, args) == ckpt and ckpt.stat().st_mtime_ns == stamp
+    assert t1.source_network(t1.DOMAINS["agri"], args) is None
