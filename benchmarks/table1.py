@@ -54,7 +54,6 @@ import importlib.util
 import json
 import math
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -380,9 +379,9 @@ def merged_table(old: str, new: str) -> str:
     rewrites its rows and keeps the others'."""
     fresh = {block_domain(b): b for b in table_blocks(new)}
     kept = {block_domain(b): b for b in table_blocks(old)}
-    ordered = [*DOMAINS, None]
-    body = [line for key in ordered for line in fresh.get(key) or kept.get(key) or []]
-    return "\n".join([*new.splitlines()[:2], *body])
+    body = [line for key in DOMAINS for line in fresh.get(key) or kept.get(key) or []]
+    unknown = [line for b in table_blocks(old) if block_domain(b) is None for line in b]
+    return "\n".join([*new.splitlines()[:2], *body, *unknown])
 
 
 def verdict_line(dom: Domain, rows: Sequence[SeedRow]) -> str:
@@ -596,8 +595,8 @@ def main() -> None:
         spec.loader.exec_module(rt)
         readme: Path = rt.README
         text = readme.read_text()
-        old = re.search(r"<!-- table:table1 -->\n(.*?)\n<!-- /table:table1 -->", text, re.DOTALL)
-        new = rt.replace_tables(text, {"table1": table if old is None else merged_table(old.group(1), table)})
+        old = rt.table_body(text, "table1")
+        new = rt.replace_tables(text, {"table1": table if old is None else merged_table(old, table)})
         if new != text:
             atomic_write_bytes(readme, new.encode())
             print(f"rewrote the table1 table of {readme}")

@@ -157,15 +157,26 @@ def compute(only: list[str]) -> dict[str, str]:
     return tables
 
 
+def _markers(name: str) -> re.Pattern[str]:
+    """Table ``name``'s opening marker (group 1), body (group 2) and closing marker (group 3)."""
+    return re.compile(
+        rf"(<!-- table:{re.escape(name)} -->\n)(.*?)(\n<!-- /table:{re.escape(name)} -->)", re.DOTALL
+    )
+
+
+def table_body(text: str, name: str) -> str | None:
+    """The body between table ``name``'s markers in ``text`` (None: no such markers)."""
+    found = _markers(name).search(text)
+    return None if found is None else found.group(2)
+
+
 def replace_tables(text: str, tables: dict[str, str]) -> str:
     """``text`` with the body between each table's markers replaced; a missing marker pair is an error."""
     for name, body in tables.items():
-        pattern = re.compile(
-            rf"(<!-- table:{re.escape(name)} -->\n).*?(\n<!-- /table:{re.escape(name)} -->)", re.DOTALL
-        )
+        pattern = _markers(name)
         if not pattern.search(text):
             sys.exit(f"readme_tables: {README}: no <!-- table:{name} --> ... <!-- /table:{name} --> markers")
-        text = pattern.sub(lambda mt, body=body: mt.group(1) + body + mt.group(2), text)
+        text = pattern.sub(lambda mt, body=body: mt.group(1) + body + mt.group(3), text)
     return text
 
 

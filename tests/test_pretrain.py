@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from app.cli import cli
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
-from leap_core.consistency.pretrain import class_counts, ground_truth_scans, train_on_ground_truth
-from leap_core.consistency.train import load_checkpoint, load_source, predict_log_probs
+from leap_core.consistency.pretrain import ground_truth_scans, train_on_ground_truth
+from leap_core.consistency.train import class_counts, load_checkpoint, load_source, predict_log_probs
 from leap_core.datasets.kitti import KittiSequence, write_calib, write_label, write_poses, write_scan
 from leap_core.errors import DatasetError, LeapError
 from leap_core.schema import builtin_schema

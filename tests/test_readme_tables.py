@@ -29,6 +29,10 @@ def test_replace_tables_rewrites_only_between_each_pair_of_markers() -> None:
     )
     # Replacing with what is there changes nothing (what --check relies on).
     assert rt.replace_tables(out, {"a": "new a", "b": "new b"}) == out
+    # What lies between a table's markers, read back.
+    assert rt.table_body(text, "b") == "old b\nmore b"
+    assert rt.table_body(out, "a") == "new a"
+    assert rt.table_body(text, "c") is None
 
 
 def test_replace_tables_refuses_a_table_without_markers() -> None:

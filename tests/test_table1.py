@@ -262,6 +262,11 @@ def test_merged_table_rewrites_the_measured_domains_and_keeps_the_others() -> No
     # Everything measured: nothing of the old table stays.
     both = t1.table_markdown([(street, rows(0.57)), (agri, rows(0.65))])
     assert t1.merged_table(old, both) == both
+    # Rows of a domain this script no longer knows are kept, every block of them, after the known ones.
+    strays = ["| an old variant | 0 | 1.0 |", "|  | 1 | 2.0 |", "| another one | 0 | 3.0 |"]
+    merged = t1.merged_table("\n".join([old, *strays]), new_street)
+    assert merged.splitlines()[-3:] == strays
+    assert t1.table_blocks(merged)[:2] == [t1.table_blocks(new_street)[0], blocks[1]]
 
 
 def test_the_street_starts_from_a_network_of_another_domain(tmp_path: Path) -> None:

@@ -18,12 +18,11 @@ import numpy.typing as npt
 
 from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import ConsistencyConfig
-from leap_core.consistency.train import TrainStats, train_model
+from leap_core.consistency.train import TrainStats, class_counts, train_model
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError, LeapError
 from leap_core.progress import ProgressFn
 from leap_core.schema import Schema
-from leap_core.types import UNLABELED
 
 
 @dataclass(frozen=True)
@@ -34,13 +33,6 @@ class GroundTruthScans:
     """(sequence, frame index) of every scan."""
     class_counts: npt.NDArray[np.int64]
     """(C,) ground-truth points per schema class over all scans (points of unmapped raw ids not counted)."""
-
-
-def class_counts(targets: npt.ArrayLike, num_classes: int) -> npt.NDArray[np.int64]:
-    """(C,) ``counts[c] = #{i : targets[i] = c}``; ``UNLABELED`` (−1) targets are not counted."""
-    t = np.asarray(targets).reshape(-1)
-    t = t[t != UNLABELED].astype(np.int64)
-    return np.bincount(t, minlength=num_classes).astype(np.int64)
 
 
 def ground_truth_scans(sequences: Sequence[KittiSequence], schema: Schema) -> GroundTruthScans:
@@ -101,4 +93,4 @@ def train_on_ground_truth(
                        class_counts=data.class_counts)
 
 
-__all__ = ["GroundTruthScans", "class_counts", "ground_truth_scans", "train_on_ground_truth"]
+__all__ = ["GroundTruthScans", "ground_truth_scans", "train_on_ground_truth"]

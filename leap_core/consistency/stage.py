@@ -27,6 +27,7 @@ from leap_core.consistency.config import ConsistencyConfig, fingerprint_form
 from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
     SourceNetwork,
+    class_counts,
     config_to_dict,
     load_checkpoint,
     num_train_steps,
@@ -414,7 +415,7 @@ def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 
             smoothed = check(_grid(part.smoothed), "smoothed", part)
             for t in iter_reliable_targets(part.seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size,
                                            frames, part.views, progress=tick, erased=part.erased):
-                counts[:] += np.bincount(t[t >= 0], minlength=num_classes)
+                counts[:] += class_counts(t, num_classes)
                 yield t
             del smoothed
 

@@ -83,6 +83,13 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(old)
 
 
+def class_counts(targets: npt.ArrayLike, num_classes: int) -> npt.NDArray[np.int64]:
+    """(C,) ``counts[c] = #{i : targets[i] = c}``; ``UNLABELED`` (−1) targets are not counted."""
+    t = np.asarray(targets).reshape(-1)
+    t = t[t != UNLABELED].astype(np.int64)
+    return np.bincount(t, minlength=num_classes).astype(np.int64)
+
+
 def class_weights(counts: npt.ArrayLike, enabled: bool = True, power: float = 0.5) -> torch.Tensor:
     """Cross-entropy class weights ``w_c ∝ n_c^(-power)`` (``power`` 0.5: ``1 / sqrt(n_c)``), normalised to
     mean 1 over present classes.
@@ -439,6 +446,7 @@ __all__ = [
     "ScanLoader",
     "SourceNetwork",
     "TrainStats",
+    "class_counts",
     "class_weights",
     "config_from_dict",
     "config_to_dict",
