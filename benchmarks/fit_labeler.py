@@ -8,25 +8,31 @@ and ``evaluate`` stages call: on the demo with the ``paper`` preset ``--report``
 ``paper`` point row of the ``leap run`` there, ``metrics.json``, mIoU 47.7 on 2026-11-29).
 
 The fit: the shape terms of the noise model (box leaks, pair merges, over-large stuff, size-dependent
-recall) and the stratified draws are set to the values of :data:`SHAPE_TERMS` (chosen by hand as plausible
-for box-prompted SAM); then each merged class m gets one parameter q_m, applied to all its member classes:
-its confusion probability (``class_confusion``, with the partners of :data:`PAIRS` and the targets of
-:data:`TARGETS`), or for the classes of :data:`LEAK_FITTED` its box-leak probability (``class_box_leak``).
-Starting from q = 0 (or the committed preset's, ``--warm``), each round measures the point row on every
-tuning sequence, averages each class's IoU over the sequences that contain it (:func:`mean_row`), and
-moves ``q_m ← clip(q_m + step · (IoU_m − paper_m) / 100, 0, 1)`` for the merged classes the tuning data
-contain (a class above the paper's IoU is confused, or leaks, more). The round with the smallest
-``Σ_m (IoU_m − paper_m)² + (mIoU − paper mIoU)²`` is kept.
+recall), the stratified and drifting draws are set to the values of :data:`SHAPE_TERMS` (chosen by hand as
+plausible for box-prompted SAM); then each merged class m gets one parameter q_m, applied to all its member
+classes: its confusion probability (``class_confusion``, with the partners of :data:`PAIRS` and the targets
+of :data:`TARGETS`), or for the classes of :data:`LEAK_FITTED` its box-leak probability
+(``class_box_leak``). Starting from q = 0 (or the committed preset's, ``--warm``), each round measures the
+point row on every given sequence, averages each class's IoU over the sequences that contain it
+(:func:`mean_row`), and moves ``q_m ← clip(q_m + step · (IoU_m − paper_m) / 100, 0, 1)`` for the merged
+classes present (a class above the paper's IoU is confused, or leaks, more). The round kept is the one with
+the smallest ``Σ_m (IoU_m − paper_m)² + (mIoU − paper mIoU)²`` among those within issue 16's bands
+(:func:`in_band`), or among all rounds when none is.
 
-FIT ON TUNING DATA, NOT ON THE DEMO: the tuning sequences are generated like the demo (60 frames) with
-other seeds (``leap synth DIR --frames 60 --seed 21`` ... ``--seed 28``); the demo (seed 0) is only
-reported.
+FITTED ON THE DEMO, as issue 16 defines the preset: the demo's point row is to land within ±5 IoU of the
+paper's per class and ±3 in mIoU. The point row is Table 1's input condition (how wrong the 2D labels
+are), not a result of the method: no fusion, 3D-CN or threshold enters it, and the settings of those were
+chosen on tuning sequences of other seeds, never on the demo. Sequences of other seeds
+(``leap synth DIR --frames 60 --seed 41`` ... ``--seed 48``) report how the demo's fit carries over.
 
-    .venv/bin/python benchmarks/fit_labeler.py T21/sequences/00 T22/sequences/00 --stride 2 --write
-    .venv/bin/python benchmarks/fit_labeler.py --report data/demo/sequences/00
+    .venv/bin/python benchmarks/fit_labeler.py data/demo/sequences/00 --warm --rounds 12 --step 1.0 --write
+    .venv/bin/python benchmarks/fit_labeler.py --report data/demo/sequences/00 held/h4{1..8}/sequences/00
+    .venv/bin/python benchmarks/fit_labeler.py --report data/demo/sequences/00 --labeler-seeds 0-7 [--blocks]
 
 ``--write`` rewrites ``leap_core/labelers/simulated_paper.py`` (the preset, with the fit's figures in its
-docstring); ``--report`` prints the point row of the default and paper presets on the given sequences.
+docstring); ``--report`` prints the point row of the default and paper presets on the given sequences (the
+paper preset per ``--labeler-seeds``, with ``--blocks`` its drifting draws off), whether each is within the
+bands, and the paper rows' mean, spread and count within the bands (:func:`spread`).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
+from leap_core.errors import LeapError
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.labelers.simulated import SimulatedLabeler, SimulatedLabelerConfig, simulated_preset
 from leap_core.metrics import confusion_matrix, merge_confusion, metrics_from_confusion
@@ -106,6 +113,7 @@ SHAPE_TERMS: dict[str, Any] = {
     "stuff_tile_px": 32,
     "stuff_world_tile": 1,
     "stratified_draws": True,
+    "drift_draws": True,
 }
 """The shape terms, fixed before the confusion fit (not fitted: plausible for box-prompted SAM), the
 stratified draws of the object errors (so one sequence's error shares follow the fitted rates), and stuff
@@ -181,6 +189,30 @@ def misfit(row: dict[str, float]) -> tuple[float, list[str]]:
     return sum((row[n] - PAPER_POINT[n]) ** 2 for n in present) + (ours - paper_miou(present)) ** 2, present
 
 
+BAND_CLASS = 5.0
+"""Issue 16: each merged class's point-row IoU within this many points of the paper's."""
+BAND_MIOU = 3.0
+"""Issue 16: the point row's mIoU, over the classes present, within this many points of the paper's."""
+
+
+def in_band(row: dict[str, float]) -> list[str]:
+    """The bands of issue 16 that ``row`` misses (empty: within every band): each present class whose IoU
+    is more than :data:`BAND_CLASS` from the paper's, then ``"mIoU"`` if the mean over the present classes
+    is more than :data:`BAND_MIOU` from the paper's mean over the same classes."""
+    present = [n for n, v in row.items() if not math.isnan(v)]
+    out = [n for n in present if abs(row[n] - PAPER_POINT[n]) > BAND_CLASS]
+    if abs(float(np.mean([row[n] for n in present])) - paper_miou(present)) > BAND_MIOU:
+        out.append("mIoU")
+    return out
+
+
+def best_round(rows: Sequence[dict[str, float]]) -> int:
+    """Index of the round the fit keeps, of the point rows ``rows`` (one per round): the smallest
+    :func:`misfit` among the rounds within every band (:func:`in_band`), or among all when none is."""
+    inside = [i for i, r in enumerate(rows) if not in_band(r)]
+    return min(inside or range(len(rows)), key=lambda i: misfit(rows[i])[0])
+
+
 def paper_config(q: dict[str, float], base: SimulatedLabelerConfig) -> SimulatedLabelerConfig:
     """``base`` with the shape terms, the pairs and the merged-class confusion ``q`` spread over members."""
     members: dict[str, str] = {}
@@ -219,7 +251,7 @@ def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds:
     """The fit of the module docstring, from q = ``start`` (default 0); returns the best config, its row
     and a log of the rounds."""
     q: dict[str, float] = dict(start or {})
-    best: tuple[float, SimulatedLabelerConfig, dict[str, float]] | None = None
+    tried: list[tuple[SimulatedLabelerConfig, dict[str, float]]] = []
     log: list[str] = []
     for r in range(rounds):
         sim = paper_config(q, base.simulated)
@@ -228,19 +260,19 @@ def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds:
                         for s in seqs])
         err, present = misfit(row)
         miou = float(np.mean([row[n] for n in present]))
-        line = (f"round {r}: misfit {err:7.1f} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) | "
-                f"{_row_text(row)}")
+        out = in_band(row)
+        line = (f"round {r}: misfit {err:7.1f} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) "
+                f"{'in band' if not out else 'out: ' + ', '.join(out)} | {_row_text(row)}")
         print(line, flush=True)
         print("  q:", {n: round(v, 3) for n, v in q.items()}, flush=True)
         log.append(line)
-        if best is None or err < best[0]:
-            best = (err, sim, row)
+        tried.append((sim, row))
         for n in present:
             # The step shrinks over the rounds so the coupled classes settle.
             q[n] = float(np.clip(q.get(n, 0.0) + step / (1 + r / 3) * (row[n] - PAPER_POINT[n]) / 100.0,
                                  0.0, 1.0))
-    assert best is not None
-    return best[1], best[2], log
+    sim, row = tried[best_round([r for _, r in tried])]
+    return sim, row, log
 
 
 def _literal(value: Any, depth: int) -> str:
@@ -258,14 +290,14 @@ def _literal(value: Any, depth: int) -> str:
     return json.dumps(value) if isinstance(value, str) else repr(value)
 
 
-def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], tuning: str, path: Path) -> None:
+def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], fitted_on: str, path: Path) -> None:
     fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
     present = [n for n, v in row.items() if not math.isnan(v)]
     miou = float(np.mean([row[n] for n in present]))
-    para = textwrap.fill(f"Fitted on the tuning sequences {tuning} (never on the demo, seed 0): the point "
-                         "row (camera view, the paper's merged classes) of these settings there, each "
-                         "class's IoU averaged over the sequences that contain it, against the paper's "
-                         "Table 1:", width=108)
+    para = textwrap.fill(f"Fitted on {fitted_on} (issue 16 defines the preset by the demo's point row; "
+                         "benchmarks/fit_labeler.py): the point row (camera view, the paper's merged "
+                         "classes) of these settings there, each class's IoU averaged over the sequences "
+                         "that contain it, against the paper's Table 1:", width=108)
     body = "\n".join(f"    {json.dumps(k)}: {_literal(v, 1)}," for k, v in fields.items())
     table = "\n".join(f"    {n:14s} {PAPER_POINT[n]:5.1f}  {row[n]:5.1f}" for n in present)
     text = f'''"""The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.
@@ -286,53 +318,98 @@ PAPER_PRESET: dict[str, Any] = {{
     path.write_text(text)
 
 
-def report(paths: list[str], schema: Schema, base: PipelineConfig) -> None:
-    """Print the point row of the default and the paper preset on each sequence, then, over several
-    sequences, the paper preset's per-class mean and standard deviation across them (the spread one
-    sequence's row has around the fit)."""
+def spread(rows: Sequence[dict[str, float]]) -> dict[str, tuple[float, float, int, int]]:
+    """Per key of ``rows`` (per-sequence point rows, with ``mIoU``), over the rows where it is present:
+    (mean, standard deviation, rows within issue 16's band of the paper's, rows present). A class's band
+    is ±:data:`BAND_CLASS` of :data:`PAPER_POINT`; the mIoU's, ±:data:`BAND_MIOU` of the paper's mean
+    over that row's classes."""
+    out = {}
+    for key in rows[0]:
+        vals, inside = [], 0
+        for r in rows:
+            if math.isnan(r[key]):
+                continue
+            vals.append(r[key])
+            if key == "mIoU":
+                present = [n for n, v in r.items() if n != "mIoU" and not math.isnan(v)]
+                inside += abs(r[key] - paper_miou(present)) <= BAND_MIOU
+            else:
+                inside += abs(r[key] - PAPER_POINT[key]) <= BAND_CLASS
+        if vals:
+            out[key] = (float(np.mean(vals)), float(np.std(vals)), inside, len(vals))
+    return out
+
+
+def report(paths: list[str], schema: Schema, base: PipelineConfig, seeds: Sequence[int] = (0,),
+           drift: bool | None = None) -> list[dict[str, float]]:
+    """Print the point row of the default preset and, per labeler seed in ``seeds``, of the paper preset
+    (``drift``: its ``drift_draws`` replaced, None keeps it) on each sequence, and with several rows the
+    paper rows' :func:`spread`; returns the paper rows (with ``mIoU``)."""
     rows: list[dict[str, float]] = []
+    paper = simulated_preset("paper")
+    if drift is not None:
+        paper = dataclasses.replace(paper, drift_draws=drift)
     for p in paths:
         seq = KittiSequence(Path(p))
-        for name in ("default", "paper"):
-            cfg = dataclasses.replace(base, simulated=simulated_preset(name))
-            row = paper_row(point_confusion(seq, schema, cfg), schema)
+        runs = [("default", simulated_preset("default"))]
+        runs += [(f"paper/{s}" if len(seeds) > 1 else "paper", dataclasses.replace(paper, seed=s))
+                 for s in seeds]
+        for name, sim in runs:
+            row = paper_row(point_confusion(seq, schema, dataclasses.replace(base, simulated=sim)), schema)
             _, present = misfit(row)
             miou = float(np.mean([row[n] for n in present]))
-            print(f"{p} {name:8s} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) | {_row_text(row)}",
-                  flush=True)
-            if name == "paper":
+            out = in_band(row)
+            print(f"{p} {name:8s} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) "
+                  f"{'in band' if not out else 'out: ' + ', '.join(out)} | {_row_text(row)}", flush=True)
+            if name != "default":
                 rows.append({**row, "mIoU": miou})
     if len(rows) > 1:
-        keys = [k for k in rows[0] if all(not math.isnan(r.get(k, math.nan)) for r in rows)]
-        print("paper preset across the sequences (mean ± std): " + " ".join(
-            f"{k} {np.mean([r[k] for r in rows]):.1f}±{np.std([r[k] for r in rows]):.1f}" for k in keys))
+        summary = " ".join(f"{k} {m:.1f}±{sd:.1f} ({k_in}/{n})"
+                           for k, (m, sd, k_in, n) in spread(rows).items())
+        print(f"paper preset over the {len(rows)} rows (mean ± std, rows within the band / rows): {summary}")
+    return rows
+
+
+def _seed_list(text: str) -> list[int]:
+    """``"0-7"`` or ``"0,3,5"`` → the labeler seeds."""
+    if "-" in text:
+        lo, hi = (int(x) for x in text.split("-", 1))
+        return list(range(lo, hi + 1))
+    return [int(x) for x in text.split(",")]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("tuning", nargs="*", help="tuning sequence folders (seeds other than the demo's)")
+    ap.add_argument("sequences", nargs="*", help="sequence folders to fit on (issue 16: the demo's)")
     ap.add_argument("--rounds", type=int, default=10)
     ap.add_argument("--step", type=float, default=1.2, help="q change per 100 IoU points of misfit")
-    ap.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame of the tuning sequences")
+    ap.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame of the sequences")
     ap.add_argument("--write", action="store_true", help="rewrite leap_core/labelers/simulated_paper.py")
     ap.add_argument("--warm", action="store_true", help="start from the current paper preset's q")
-    ap.add_argument("--label", help="how the preset's docstring names the tuning sequences (default: paths)")
+    ap.add_argument("--label", help="how the preset's docstring names the sequences (default: paths)")
     ap.add_argument("--report", nargs="*", default=None, help="sequence folders to report (no fit)")
+    ap.add_argument("--labeler-seeds", type=_seed_list, default=[0], metavar="A-B|A,B,...",
+                    help="with --report: the paper preset's labeler seeds to report (default 0)")
+    ap.add_argument("--blocks", action="store_true",
+                    help="with --report: the paper preset with drift_draws off (whole blocks), to compare")
     args = ap.parse_args(argv)
     preset = builtin_preset("semantickitti")
     schema, base = preset.schema, preset.pipeline
-    if args.report is not None:
-        report(args.report, schema, base)
-        return 0
-    if not args.tuning:
-        ap.error("give tuning sequence folders or --report")
-    seqs = [KittiSequence(Path(p)) for p in args.tuning]
-    cfg, row, _ = fit(seqs, schema, base, args.rounds, args.step, stride=args.stride,
-                      start=preset_q() if args.warm else None)
+    try:
+        if args.report is not None:
+            report(args.report, schema, base, args.labeler_seeds, False if args.blocks else None)
+            return 0
+        if not args.sequences:
+            ap.error("give sequence folders to fit on, or --report")
+        seqs = [KittiSequence(Path(p)) for p in args.sequences]
+        cfg, row, _ = fit(seqs, schema, base, args.rounds, args.step, stride=args.stride,
+                          start=preset_q() if args.warm else None)
+    except LeapError as e:  # a missing or broken sequence: its path and problem, not a traceback
+        raise SystemExit(f"fit_labeler: {e}") from None
     print("best:", _row_text(row))
     if args.write:
         path = Path(__file__).resolve().parents[1] / "leap_core" / "labelers" / "simulated_paper.py"
-        _write_preset(cfg, row, args.label or ", ".join(args.tuning), path)
+        _write_preset(cfg, row, args.label or ", ".join(args.sequences), path)
         print(f"wrote {path}")
     return 0
 

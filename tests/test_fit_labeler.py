@@ -85,3 +85,53 @@ def test_paper_config_fits_the_box_leak_of_leak_fitted_classes() -> None:
     paper = SimulatedLabelerConfig.from_preset("paper")
     again = fit_labeler.paper_config(q, paper)
     assert (again.class_box_leak, again.class_confusion) == (paper.class_box_leak, paper.class_confusion)
+
+
+def test_in_band_names_the_classes_and_the_miou_outside_issue_16s_bands() -> None:
+    row = dict.fromkeys(fit_labeler.PAPER_POINT, math.nan)
+    row.update({"car": 82.2, "road": 87.1})  # car 5.0 above the paper's: on the edge, inside
+    assert fit_labeler.in_band(row) == []
+    row["car"] = 82.3  # 5.1 above, and the mIoU 2.55 above the paper's over car and road: inside
+    assert fit_labeler.in_band(row) == ["car"]
+    row.update({"car": 81.0, "road": 90.5})  # 3.8 and 3.4 above: each inside, the mIoU 3.6 above: outside
+    assert fit_labeler.in_band(row) == ["mIoU"]
+    row.update({"bicycle": 10.0})  # 15.5 below; the mIoU over three classes is then within 3
+    assert fit_labeler.in_band(row) == ["bicycle"]
+
+
+def test_best_round_prefers_a_round_within_the_bands_to_a_smaller_misfit() -> None:
+    paper = fit_labeler.PAPER_POINT
+    rows = [{"car": paper["car"] + 5.5, "road": paper["road"]},  # car out by 0.5; misfit 5.5² + 2.75²
+            {"car": paper["car"] + 4.9, "road": paper["road"] - 4.9},  # in every band; misfit 2 · 4.9²
+            {"car": paper["car"] - 9.0, "road": paper["road"]}]  # out
+    assert fit_labeler.misfit(rows[0])[0] < fit_labeler.misfit(rows[1])[0]
+    assert fit_labeler.best_round(rows) == 1
+    # Among rounds within the bands, the smaller misfit; with none within them, the smallest misfit.
+    assert fit_labeler.best_round([*rows, {"car": paper["car"] + 1.0, "road": paper["road"]}]) == 3
+    assert fit_labeler.best_round([rows[0], rows[2]]) == 0
+
+
+def test_spread_counts_each_class_over_the_rows_that_contain_it() -> None:
+    paper = fit_labeler.PAPER_POINT
+    nan = math.nan
+    rows = [{"car": paper["car"] + 4.0, "bicycle": nan, "mIoU": (paper["car"] + 4.0)},
+            {"car": paper["car"] - 6.0, "bicycle": 20.0, "mIoU": (paper["car"] - 6.0 + 20.0) / 2}]
+    got = fit_labeler.spread(rows)
+    # car: mean paper − 1, std 5, within ±5 in the first row only; bicycle: one row, 5.5 below: outside.
+    assert got["car"] == pytest.approx((paper["car"] - 1.0, 5.0, 1, 2))
+    assert got["bicycle"] == pytest.approx((20.0, 0.0, 0, 1))
+    # mIoU: row 1 is 4 above the paper's car alone (outside ±3); row 2 is (−6 − 5.5) / 2 = −5.75 below the
+    # paper's mean over car and bicycle (outside).
+    assert got["mIoU"][2:] == (0, 2)
+
+
+def test_seed_list_reads_ranges_and_lists() -> None:
+    assert fit_labeler._seed_list("0-3") == [0, 1, 2, 3]
+    assert fit_labeler._seed_list("2,5") == [2, 5] and fit_labeler._seed_list("4") == [4]
+
+
+def test_a_missing_sequence_is_named_not_a_traceback(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match=f"fit_labeler: {tmp_path / 'nope'}: dataset folder does not exist"):
+        fit_labeler.main(["--report", str(tmp_path / "nope")])
+    with pytest.raises(SystemExit, match="dataset folder does not exist"):
+        fit_labeler.main([str(tmp_path / "nope")])

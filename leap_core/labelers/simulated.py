@@ -57,7 +57,8 @@ bounding box, :func:`box_leak_crop`), one mask over two
 adjacent objects (``pair_merge_prob``, :func:`adjacent_partner`), over-large stuff (``stuff_grow_prob``) and
 tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`; per tile of the world for the whole sequence
 with ``stuff_world_tile``, :func:`world_tile_draws`), and stratified draws of the object errors
-(``stratified_draws``, :func:`lattice_draws`). docs/METHOD.md A.7-A.8 give the details.
+(``stratified_draws``, :func:`lattice_draws`; drifting from frame to frame with ``drift_draws``).
+docs/METHOD.md A.7-A.8 give the details.
 
 With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
 distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
@@ -66,6 +67,7 @@ the per-pixel argmax reproduces the mapped ground truth exactly.
 Determinism: all draws come from ``SeedSequence([seed, frame.number, stream])`` (steps 1, 4, 5) or
 ``SeedSequence([seed, frame.number // persistence_frames, stream, object])`` (steps 2, 3; with
 ``stratified_draws``, four of them from a lattice in the object and ``frame.number // persistence_frames``
+(``frame.number / persistence_frames`` with ``drift_draws``)
 with phases from ``SeedSequence([seed, stream])``; world tiles from the tile and
 ``SeedSequence([seed, stream, name])``), so a frame's
 output depends only on the seed, its frame number (its file number, ``Frame.number``) and its images,
@@ -271,6 +273,14 @@ class SimulatedLabelerConfig:
     IoU over labeler seeds 0-7 has a standard deviation of 6.2 with them, 11.1 without). Each error still
     lasts its block, but an object's errors are spread evenly over its blocks, so the voxel fusion's
     majority recovers them more easily (docs/METHOD.md A.7, term 12)."""
+    drift_draws: bool = False
+    """With ``stratified_draws``: the lattice's time coordinate is ``frame.number / persistence_frames``
+    instead of its block ``frame.number // persistence_frames``, so an object's lattice draw drifts by
+    ``a2 / persistence_frames`` a frame (0.15 for the confusion) instead of jumping once a block. Its
+    wrong frames then come in runs (about ``q · persistence_frames / a2`` frames at confusion probability q)
+    and their share of the object's frames follows q for any lifetime, where block-wise decisions move a
+    short-lived object's share a whole block at a time (the demo's one bicycle, six blocks: point-row IoU
+    15.0 or 42.6 and nothing between as q moves; docs/METHOD.md A.7, term 14)."""
 
     def __post_init__(self) -> None:
         for name in ("recall", "confusion_prob", "partner_share", "box_leak_prob", "pair_merge_prob",
@@ -307,9 +317,7 @@ class SimulatedLabelerConfig:
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
-        if self.stuff_world_tile > 0 and self.stuff_tile_px == 0:
-            raise ConfigError("world tiles replace the image tiles of the tiled stuff confusion: set "
-                              "stuff_tile_px > 0 too", field=("stuff_world_tile",))
+        _check_needs(self)
         _check_strength_table(self.match_detection, "match_detection", positive=False)
         _check_strength_table(self.match_confidence, "match_confidence", positive=True)
 
@@ -341,6 +349,18 @@ class SimulatedLabelerConfig:
         )
 
 
+def _check_needs(cfg: SimulatedLabelerConfig) -> None:
+    """Refuse a term that is on while the term it works through is off, naming the first."""
+    for name, needs, why in (
+        ("stuff_world_tile", "stuff_tile_px", "world tiles replace the image tiles of the tiled stuff "
+         "confusion: set stuff_tile_px > 0 too"),
+        ("drift_draws", "stratified_draws", "drifting draws move the stratified lattice over time: set "
+         "stratified_draws too"),
+    ):
+        if getattr(cfg, name) and not getattr(cfg, needs):
+            raise ConfigError(why, field=(name,))
+
+
 _LATER_TERMS_OFF: dict[str, object] = {
     "class_confusion": {},
     "confusion_targets": {},
@@ -355,6 +375,7 @@ _LATER_TERMS_OFF: dict[str, object] = {
     "stuff_tile_px": 0,
     "stratified_draws": False,
     "stuff_world_tile": 0,
+    "drift_draws": False,
 }
 """The noise terms added with the "paper" preset and their off values (the defaults)."""
 
@@ -382,7 +403,7 @@ SIMULATED_PRESETS: dict[str, typing.Callable[[], SimulatedLabelerConfig]] = {
     "paper": _paper_preset,
 }
 """Named simulated-labeler settings: ``default`` (the milder noise model, :class:`SimulatedLabelerConfig`'s
-defaults) and ``paper`` (fitted so the demo-like street sequences' point row approaches the paper's Table 1
+defaults) and ``paper`` (fitted so the demo's point row lands within ±5 IoU per class of the paper's Table 1
 point row; ``leap_core/labelers/simulated_paper.py``, written by ``benchmarks/fit_labeler.py``). A project
 file picks one with ``pipeline: {simulated: {preset: paper}}``, ``leap run`` with ``--labeler-preset``."""
 
@@ -773,11 +794,11 @@ _LATTICE_STEPS: tuple[tuple[float, float], ...] = tuple(
 """The steps (a1, a2) of :func:`lattice_draws` per stratified decision, from :data:`_LATTICE_PRIMES`."""
 
 
-def lattice_draws(keys: npt.ArrayLike, block: int | npt.ArrayLike, phase: float,
+def lattice_draws(keys: npt.ArrayLike, block: float | npt.ArrayLike, phase: float,
                   steps: tuple[float, float]) -> npt.NDArray[np.float64]:
     """(R,) draws in [0, 1) of objects ``keys`` (R,) integers in the block of frames ``block`` (one, or
-    (R,) of them): ``u = frac(phase + key · a1 + block · a2)`` with ``(a1, a2) = steps``, irrational and
-    independent over the rationals.
+    (R,) of them; a fraction with ``drift_draws``): ``u = frac(phase + key · a1 + block · a2)`` with
+    ``(a1, a2) = steps``, irrational and independent over the rationals.
 
     For a fixed key the values over consecutive blocks, and for a fixed block the values over consecutive
     keys, are spread evenly over [0, 1) (a Kronecker sequence), so the share of (key, block) pairs with
@@ -792,27 +813,29 @@ def lattice_draws(keys: npt.ArrayLike, block: int | npt.ArrayLike, phase: float,
 
 
 def _stratify(u_obj: npt.NDArray[np.float64], u_shape: npt.NDArray[np.float64], regions: list[_Region],
-              seed: int, block: int) -> None:
+              seed: int, when: float) -> None:
     """Replace, in place, the confusion and target draws (``u_obj[:, 1:3]``) and the box-leak and
     pair-merge draws (``u_shape[:, 0:2]``) by :func:`lattice_draws` keyed by the object (a thing's instance
-    id; a stuff region's name and area rank), one lattice per decision (:data:`_LATTICE_PRIMES`)."""
+    id; a stuff region's name and area rank), one lattice per decision (:data:`_LATTICE_PRIMES`), at time
+    ``when``: the block of frames, or with ``drift_draws`` the frame number over ``persistence_frames``."""
     keys = [r.ident if r.thing else (r.name << 8) + r.ident for r in regions]
     phases = np.random.default_rng(np.random.SeedSequence([seed, _STREAM_LATTICE])).random(4)
     cols = ((u_obj, 1), (u_obj, 2), (u_shape, 0), (u_shape, 1))
     for (arr, col), steps, phase in zip(cols, _LATTICE_STEPS, phases, strict=True):
-        arr[:, col] = lattice_draws(keys, block, float(phase), steps)
+        arr[:, col] = lattice_draws(keys, when, float(phase), steps)
 
 
-def _persistent_draws(regions: list[_Region], cfg: SimulatedLabelerConfig, seed: int, block: int, *,
+def _persistent_draws(regions: list[_Region], cfg: SimulatedLabelerConfig, seed: int, frame: int, *,
                       shaped: bool) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """(R, 4) object draws and (R, 4) shape draws of a frame's regions in the block of frames ``block``
+    """(R, 4) object draws and (R, 4) shape draws of a frame's regions in frame number ``frame``'s block
     (:func:`_object_draws`; the shape draws only when a shape term is on, else ones), four of them
     replaced by lattice draws when ``stratified_draws`` is on (:func:`_stratify`)."""
+    block = frame // cfg.persistence_frames
     u_obj = _object_draws(regions, seed, block, _STREAM_OBJECT)
     n = len(regions)
     u_shape = _object_draws(regions, seed, block, _STREAM_SHAPE) if shaped else np.ones((n, 4))
     if cfg.stratified_draws:
-        _stratify(u_obj, u_shape, regions, seed, block)
+        _stratify(u_obj, u_shape, regions, seed, frame / cfg.persistence_frames if cfg.drift_draws else block)
     return u_obj, u_shape
 
 
@@ -909,7 +932,7 @@ class SimulatedLabeler:
         # and only when on, so the default preset's draws and masks stay as they were.
         leak_of = _per_class(names, cfg.box_leak_prob, cfg.class_box_leak)
         shaped = bool(leak_of.any()) or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
-        u_obj, u_shape = _persistent_draws(regions, cfg, seed, block, shaped=shaped)
+        u_obj, u_shape = _persistent_draws(regions, cfg, seed, idx, shaped=shaped)
         draws = _Draws(
             h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed, u_shape=u_shape, cells=cells,
             merge_with=_merge_partners(regions, cfg),
