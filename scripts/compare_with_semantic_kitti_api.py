@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<14}  {shown:>9}  {theirs:>9.6f}  {d:>9.2e}")
     m_ours, m_theirs = float(leap["miou_all_classes"]), float(scores["iou_mean"])
     d_m = abs(m_ours - m_theirs)
-    print(f"{'mIoU (all 19)':<14}  {m_ours:>9.6f}  {m_theirs:>9.6f}  {d_m:>9.2e}")
+    print(f"{f'mIoU (all {len(names)})':<14}  {m_ours:>9.6f}  {m_theirs:>9.6f}  {d_m:>9.2e}")
     print(f"\nevaluator printout: IoU avg {printed.group(1) if printed else '?'}; "
           f"leap miou_all_classes {m_ours:.6f}, miou (defined classes) {leap['miou']:.6f}")
     worst = max(worst, d_m)
