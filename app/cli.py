@@ -84,8 +84,9 @@ class StageBars:
                 return
             self._close_bars()
             unit = "step" if stage in ("3dcn", "synth") else "frame"
-            bar = self.bars[stage] = tqdm(total=total, desc=f"{self.label}{stage:<12}", unit=unit, leave=True,
-                                          dynamic_ncols=True)
+            bar = self.bars[stage] = tqdm(
+                total=total, desc=f"{self.label}{stage:<12}", unit=unit, leave=True, dynamic_ncols=True
+            )
         bar.total = total
         bar.n = done
         bar.refresh()
@@ -106,8 +107,9 @@ class StageBars:
             tqdm.write(f"{self.label}{stage:<12} skipped ({reason})", file=sys.stderr)
         else:
             unit = "step" if stage in ("3dcn", "synth") else "frame"
-            with tqdm(total=total, initial=total, desc=f"{self.label}{stage:<12}", unit=unit,
-                      dynamic_ncols=True):
+            with tqdm(
+                total=total, initial=total, desc=f"{self.label}{stage:<12}", unit=unit, dynamic_ncols=True
+            ):
                 pass
 
     def _close_bars(self) -> None:
@@ -161,8 +163,10 @@ def _run_folder_lock(out: Path) -> Iterator[None]:
         with run_dir_lock(out):
             yield
     except RunDirBusy as exc:
-        raise LeapError(f"{exc} (another `leap run`, or the app's worker); wait for it to finish, or give "
-                        "this run another --out") from None
+        raise LeapError(
+            f"{exc} (another `leap run`, or the app's worker); wait for it to finish, or give "
+            "this run another --out"
+        ) from None
     finally:
         # A run refused before its first stage (no poses, say) leaves no folder behind, as before the lock.
         if created and out.is_dir() and [p.name for p in out.iterdir()] == [LOCK_NAME]:
@@ -177,14 +181,24 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-def _runtime(models: str | None, cache: str | Path | None, device: str, allow_download: bool,
-             ray: str | None = None, ray_cpus: int | None = None, *,
-             frame_threads: int = Runtime.frame_threads, init_3dcn: str | None = None) -> Runtime:
+def _runtime(
+    models: str | None,
+    cache: str | Path | None,
+    device: str,
+    allow_download: bool,
+    ray: str | None = None,
+    ray_cpus: int | None = None,
+    *,
+    frame_threads: int = Runtime.frame_threads,
+    init_3dcn: str | None = None,
+) -> Runtime:
     """The run's deployment values from the command-line flags (one-line error for a bad ``--device``,
     ``--frame-threads`` or a ``--3dcn-init`` that is not a file)."""
     if init_3dcn is not None and not Path(init_3dcn).is_file():
-        raise LeapError(f"--3dcn-init {init_3dcn}: no such file (give a 3D-CN checkpoint a run wrote, "
-                        "e.g. RUN/3dcn/3dcn_iter1.pt)")
+        raise LeapError(
+            f"--3dcn-init {init_3dcn}: no such file (give a 3D-CN checkpoint a run wrote, "
+            "e.g. RUN/3dcn/3dcn_iter1.pt)"
+        )
     try:
         return Runtime(
             models_dir=None if models is None else Path(models),
@@ -254,8 +268,9 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
         cfg = config_from_dict(
             {"grounded_sam": {k: v for k, v in flags.items() if v is not None}}, preset.pipeline
         ).grounded_sam
-        runtime = _runtime(models, cache if cache else default_cache_dir(seq.root), device, allow_download,
-                           ray, ray_cpus)
+        runtime = _runtime(
+            models, cache if cache else default_cache_dir(seq.root), device, allow_download, ray, ray_cpus
+        )
         labeler = GroundedSamLabeler(cfg, runtime)
         store = labeler.cache
         assert store is not None  # runtime.cache_dir is set
@@ -275,10 +290,13 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
         )
         if runtime.ray_address is not None:
             with tqdm(total=len(todo), desc="labels2d (ray)", unit="frame") as bar:
-                calls = _labels2d_on_ray(Path(dataset), sch, cfg, runtime, [f.frame_id for f in todo],
-                                         bar.update)
-            typer.echo(f"done: {len(todo)} frames labeled, {calls[0]} detector and {calls[1]} SAM encoder "
-                       "forward passes (Ray tasks)")
+                calls = _labels2d_on_ray(
+                    Path(dataset), sch, cfg, runtime, [f.frame_id for f in todo], bar.update
+                )
+            typer.echo(
+                f"done: {len(todo)} frames labeled, {calls[0]} detector and {calls[1]} SAM encoder "
+                "forward passes (Ray tasks)"
+            )
             return
         with tqdm(total=len(todo), desc="labels2d", unit="frame") as bar:
             for start in range(0, len(todo), cfg.batch_size):
@@ -295,14 +313,21 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
     )
 
 
-def _labels2d_on_ray(dataset: Path, sch: Schema, cfg: GroundedSamConfig, runtime: Runtime,
-                     frame_ids: list[str], update: Callable[[int], Any]) -> tuple[int, int]:
+def _labels2d_on_ray(
+    dataset: Path,
+    sch: Schema,
+    cfg: GroundedSamConfig,
+    runtime: Runtime,
+    frame_ids: list[str],
+    update: Callable[[int], Any],
+) -> tuple[int, int]:
     """``leap labels2d --ray``: the frames to label as Ray tasks (a GPU each when the cluster has GPUs)."""
     from leap_core.pipeline.executor import RayExecutor  # the pipeline (and ray) only when asked for
 
     assert runtime.ray_address is not None
     return RayExecutor(runtime.ray_address, runtime.ray_cpus).label_cache(
-        dataset, sch, cfg, runtime, frame_ids, update)
+        dataset, sch, cfg, runtime, frame_ids, update
+    )
 
 
 @cli.command("make-tiny-models")
@@ -331,8 +356,11 @@ def check_cmd(
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
     *,
     labeler: str | None = typer.Option(
-        None, "--labeler", help="Judge the stages for this 2D labeler (default: the project file's, else the "
-        "first labeler that can run).", autocompletion=lambda: list(LABELERS),
+        None,
+        "--labeler",
+        help="Judge the stages for this 2D labeler (default: the project file's, else the "
+        "first labeler that can run).",
+        autocompletion=lambda: list(LABELERS),
     ),
     project_file: str | None = typer.Option(
         None, "--project-file", help="Project YAML whose 'pipeline:' section the run would use."
@@ -376,14 +404,17 @@ def _labeler_help() -> str:
 @cli.command("run")
 def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     datasets: list[str] = typer.Argument(
-        ..., help="Sequence folder in KITTI layout (.../sequences/NN). Several folders = one multi-sequence "
+        ...,
+        help="Sequence folder in KITTI layout (.../sequences/NN). Several folders = one multi-sequence "
         "run (one schema and config; each sequence named after its folder, names must differ).",
         metavar="DATASET...",
     ),
     *,
     out: str = typer.Option(
-        ..., "--out", help="Run folder (created; rerunning on it resumes / reuses stages). A multi-sequence "
-        "run holds OUT/sequences/<name>/ per sequence."
+        ...,
+        "--out",
+        help="Run folder (created; rerunning on it resumes / reuses stages). A multi-sequence "
+        "run holds OUT/sequences/<name>/ per sequence.",
     ),
     schema: str | None = typer.Option(
         None,
@@ -401,7 +432,9 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         None, "--project-file", help="Project YAML: classes plus a 'pipeline:' section of config overrides."
     ),
     labeler_preset: str | None = typer.Option(
-        None, "--labeler-preset", help="Simulated labeler's noise preset: default (mild) or paper (fitted to "
+        None,
+        "--labeler-preset",
+        help="Simulated labeler's noise preset: default (mild) or paper (fitted to "
         "the paper's point row; pipeline.simulated.preset). Replaces the project's simulated settings.",
         autocompletion=lambda: list(SIMULATED_PRESETS),
     ),
@@ -456,7 +489,9 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         "files for any value, 1 = one after another).",
     ),
     init_3dcn: str | None = typer.Option(
-        None, "--3dcn-init", metavar="CKPT",
+        None,
+        "--3dcn-init",
+        metavar="CKPT",
         help="Start every 3D-CN round from this network (a checkpoint a run wrote, RUN/3dcn/3dcn_iter1.pt; "
         "same classes and backbone) and fine-tune it for one epoch at consistency.finetune_lr, instead of "
         "training from random weights for consistency.min_steps. Implies --3dcn.",
@@ -472,24 +507,53 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     from leap_core.run_layout import is_multi_run
 
     if len(datasets) > 1:
-        _run_multi(datasets, Path(out), schema=schema, project_file=project_file, labeler=labeler,
-                   labeler_preset=labeler_preset,
-                   consistency=consistency, cn_iterations=cn_iterations, frames=frames, cache=cache,
-                   models=models, device=device, allow_download=allow_download, export_to=export_to,
-                   zip_path=zip_path, with_conf=with_conf, overwrite=overwrite, estimate_poses=estimate_poses,
-                   ray=ray, ray_cpus=ray_cpus, frame_threads=frame_threads, init_3dcn=init_3dcn)
+        _run_multi(
+            datasets,
+            Path(out),
+            schema=schema,
+            project_file=project_file,
+            labeler=labeler,
+            labeler_preset=labeler_preset,
+            consistency=consistency,
+            cn_iterations=cn_iterations,
+            frames=frames,
+            cache=cache,
+            models=models,
+            device=device,
+            allow_download=allow_download,
+            export_to=export_to,
+            zip_path=zip_path,
+            with_conf=with_conf,
+            overwrite=overwrite,
+            estimate_poses=estimate_poses,
+            ray=ray,
+            ray_cpus=ray_cpus,
+            frame_threads=frame_threads,
+            init_3dcn=init_3dcn,
+        )
         return
     dataset = datasets[0]
     progress = StageBars(Path(out))
 
     with _run_errors(out, poses=f"run `leap poses {dataset}`"):
         if is_multi_run(out):
-            raise LeapError(f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
-                            "folder, or name all its sequences")
-        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset,
-                               init_3dcn=init_3dcn)
-        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads,
-                           init_3dcn=init_3dcn)
+            raise LeapError(
+                f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
+                "folder, or name all its sequences"
+            )
+        sch, cfg = _run_config(
+            schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
+        )
+        runtime = _runtime(
+            models,
+            cache,
+            device,
+            allow_download,
+            ray,
+            ray_cpus,
+            frame_threads=frame_threads,
+            init_3dcn=init_3dcn,
+        )
         frame_range = None if frames is None else _frame_range(frames, dataset)
         # Refuse a target before a long run, not after it.
         targets = _export_targets(export_to, zip_path, overwrite)
@@ -498,12 +562,14 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
                 _estimate_run_poses(Path(dataset), Path(out))
             typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
             with progress:
-                result = run_pipeline(Path(dataset), sch, cfg, Path(out), progress=progress,
-                                      frames=frame_range, runtime=runtime)
+                result = run_pipeline(
+                    Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range, runtime=runtime
+                )
 
     timing = ", ".join(
         f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
-        for s, r in result.stages.items() if s in STAGES
+        for s, r in result.stages.items()
+        if s in STAGES
     )
     typer.echo(f"stages: {timing}")
     tables = result_tables(result.run_dir)
@@ -516,8 +582,16 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         n = len(list(result.export_dir.glob("*.label")))
         typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
         try:
-            _write_exports(result.run_dir, Path(dataset), sch, cfg, frame_range, targets,
-                           with_conf=with_conf, overwrite=overwrite)
+            _write_exports(
+                result.run_dir,
+                Path(dataset),
+                sch,
+                cfg,
+                frame_range,
+                targets,
+                with_conf=with_conf,
+                overwrite=overwrite,
+            )
         except LeapError as exc:
             raise fail(str(exc)) from None
 
@@ -554,8 +628,10 @@ class SequenceBars:
                 run_dir = None if name == JOINT else MultiRunLayout(self.root).sequence(name).run_dir
                 self.bars[name] = StageBars(run_dir, f"{name} " if self.concurrent else "")
             if not self.concurrent:
-                tqdm.write("== joint 3D-CN (all sequences)" if name == JOINT else f"== sequence {name}",
-                           file=sys.stderr)
+                tqdm.write(
+                    "== joint 3D-CN (all sequences)" if name == JOINT else f"== sequence {name}",
+                    file=sys.stderr,
+                )
         self.bars[name](stage, done, total)
         if total > 0 and done >= total:
             self.complete.add(key)
@@ -598,11 +674,28 @@ def _multi_specs(datasets: list[str], frames: str | None) -> list[SequenceSpec]:
 
 
 def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
-    datasets: list[str], out: Path, *, schema: str | None, project_file: str | None, labeler: str | None,
-    consistency: bool | None, cn_iterations: int | None, frames: str | None, cache: str | None,
-    models: str | None, device: str, allow_download: bool, export_to: str | None, zip_path: str | None,
-    with_conf: bool, overwrite: bool, estimate_poses: bool, ray: str | None = None,
-    ray_cpus: int | None = None, frame_threads: int = 4, labeler_preset: str | None = None,
+    datasets: list[str],
+    out: Path,
+    *,
+    schema: str | None,
+    project_file: str | None,
+    labeler: str | None,
+    consistency: bool | None,
+    cn_iterations: int | None,
+    frames: str | None,
+    cache: str | None,
+    models: str | None,
+    device: str,
+    allow_download: bool,
+    export_to: str | None,
+    zip_path: str | None,
+    with_conf: bool,
+    overwrite: bool,
+    estimate_poses: bool,
+    ray: str | None = None,
+    ray_cpus: int | None = None,
+    frame_threads: int = 4,
+    labeler_preset: str | None = None,
     init_3dcn: str | None = None,
 ) -> None:
     """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
@@ -614,10 +707,19 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     layout = MultiRunLayout(out)
     with _run_errors(out, poses="run `leap poses` on that sequence"):
         specs = _multi_specs(datasets, frames)
-        sch, cfg = _run_config(schema, project_file, labeler, consistency, cn_iterations, labeler_preset,
-                               init_3dcn=init_3dcn)
-        runtime = _runtime(models, cache, device, allow_download, ray, ray_cpus, frame_threads=frame_threads,
-                           init_3dcn=init_3dcn)
+        sch, cfg = _run_config(
+            schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
+        )
+        runtime = _runtime(
+            models,
+            cache,
+            device,
+            allow_download,
+            ray,
+            ray_cpus,
+            frame_threads=frame_threads,
+            init_3dcn=init_3dcn,
+        )
         names = [s.name for s in specs]
         # Refuse a target before a long run, not after it.
         if export_to is not None:
@@ -631,8 +733,9 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
             if estimate_poses:
                 for spec in specs:
                     _estimate_run_poses(spec.dataset, layout.sequence(spec.name).run_dir)
-            typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences "
-                       f"{', '.join(names)}")
+            typer.echo(
+                f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences {', '.join(names)}"
+            )
             with SequenceBars(out, concurrent=ray is not None and len(specs) > 1) as bars:
                 result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
 
@@ -648,15 +751,23 @@ def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
     typer.echo("")
     typer.echo(tables if tables else "no ground-truth labels: nothing to evaluate")
     try:
-        _write_multi_exports(result, specs, sch, cfg, export_to, targets["zip"], with_conf=with_conf,
-                             overwrite=overwrite)
+        _write_multi_exports(
+            result, specs, sch, cfg, export_to, targets["zip"], with_conf=with_conf, overwrite=overwrite
+        )
     except LeapError as exc:
         raise fail(str(exc)) from None
 
 
 def _write_multi_exports(  # the run and the export options
-    result: MultiRunResult, specs: list[SequenceSpec], sch: Schema, cfg: PipelineConfig,
-    export_to: str | None, zip_file: Path | None, *, with_conf: bool, overwrite: bool,
+    result: MultiRunResult,
+    specs: list[SequenceSpec],
+    sch: Schema,
+    cfg: PipelineConfig,
+    export_to: str | None,
+    zip_file: Path | None,
+    *,
+    with_conf: bool,
+    overwrite: bool,
 ) -> None:
     """Print each sequence's unlabeled counts, then write ``--export-to`` / ``--zip`` of a multi run."""
     from leap_core import __version__
@@ -667,21 +778,33 @@ def _write_multi_exports(  # the run and the export options
     for spec in specs:
         res = result.per_sequence[spec.name]
         cov = cached_export_coverage(res.run_dir, spec.dataset, spec.frames, cfg.fusion.voxel_size)
-        typer.echo(f"sequence {spec.name}: {cov.labeled} of {cov.points} points labeled; {cov.unlabeled} "
-                   f"unlabeled: {cov.outside_view} outside every camera view, {cov.no_mask} in view but no "
-                   f"mask ({res.export_dir})")
+        typer.echo(
+            f"sequence {spec.name}: {cov.labeled} of {cov.points} points labeled; {cov.unlabeled} "
+            f"unlabeled: {cov.outside_view} outside every camera view, {cov.no_mask} in view but no "
+            f"mask ({res.export_dir})"
+        )
         for k, v in cov.raw_counts.items():
             raw[k] = raw.get(k, 0) + v
     if export_to is not None:
         written = export_sequences(result.root, Path(export_to), with_conf=with_conf, overwrite=overwrite)
         target = Path(export_to).expanduser().resolve()
-        typer.echo(f"wrote {sum(written.values())} files to {target}/sequences/"
-                   f"{{{','.join(written)}}}/predictions/")
+        typer.echo(
+            f"wrote {sum(written.values())} files to {target}/sequences/{{{','.join(written)}}}/predictions/"
+        )
     if zip_file is not None:
-        n = export_zip(result.root, zip_file, sch, config=cfg, with_conf=with_conf, overwrite=overwrite,
-                       raw_counts=raw, version=__version__)
-        typer.echo(f"wrote {zip_file} ({n} files in sequences/<name>/predictions/, label-map.yaml, "
-                   "summary.yaml)")
+        n = export_zip(
+            result.root,
+            zip_file,
+            sch,
+            config=cfg,
+            with_conf=with_conf,
+            overwrite=overwrite,
+            raw_counts=raw,
+            version=__version__,
+        )
+        typer.echo(
+            f"wrote {zip_file} ({n} files in sequences/<name>/predictions/, label-map.yaml, summary.yaml)"
+        )
 
 
 def _estimate_run_poses(dataset: Path, out: Path) -> None:
@@ -698,6 +821,7 @@ def _estimate_run_poses(dataset: Path, out: Path) -> None:
         return
     target = RunLayout(out).poses
     with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
+
         def tick(done: int, total: int) -> None:
             bar.total = total
             bar.update(done - bar.n)
@@ -733,6 +857,7 @@ def poses_cmd(
             raise LeapError(f"{target}: already exists; add --force to replace it")
         start = time.perf_counter()
         with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
+
             def tick(done: int, total: int) -> None:
                 bar.total = total
                 bar.update(done - bar.n)
@@ -758,15 +883,20 @@ def train_3dcn_cmd(
         ..., "--out", metavar="CKPT", help="Checkpoint to write (for leap run --3dcn-init)."
     ),
     schema: str | None = typer.Option(
-        None, "--schema",
+        None,
+        "--schema",
         help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti).",
     ),
     project_file: str | None = typer.Option(
-        None, "--project-file", help="Project YAML of the runs that will start from the network: its classes "
-        "and its 'pipeline: consistency:' settings (backbone, schedule)."
+        None,
+        "--project-file",
+        help="Project YAML of the runs that will start from the network: its classes "
+        "and its 'pipeline: consistency:' settings (backbone, schedule).",
     ),
     steps: int | None = typer.Option(
-        None, "--steps", min=1,
+        None,
+        "--steps",
+        min=1,
         help="Optimisation steps, at least one epoch (default: consistency.min_steps).",
     ),
     seed: int | None = typer.Option(None, "--seed", help="Training seed (default: consistency.seed)."),
@@ -793,27 +923,34 @@ def train_3dcn_cmd(
             raise LeapError(f"{target}: not a file")
         sch, pcfg = _run_config(schema, project_file, None, None)
         cfg = pcfg.consistency
-        cfg = dataclasses.replace(cfg, min_steps=cfg.min_steps if steps is None else steps,
-                                  seed=cfg.seed if seed is None else seed)
+        cfg = dataclasses.replace(
+            cfg, min_steps=cfg.min_steps if steps is None else steps, seed=cfg.seed if seed is None else seed
+        )
         seqs = [KittiSequence(d) for d in datasets]
         data = ground_truth_scans(seqs, sch)
         start = time.perf_counter()
         with tqdm(desc="train-3dcn", unit="step", dynamic_ncols=True) as bar:
+
             def tick(done: int, total: int) -> None:
                 bar.total = total
                 bar.update(done - bar.n)
 
             model, stats = train_on_ground_truth(data, sch, cfg, progress=tick)
-        save_checkpoint(target, model, cfg, meta={
-            "kind": "ground-truth",
-            "sequences": [str(s.root.resolve()) for s in seqs],
-            "scans": len(data.scans),
-            "class_names": sch.names,
-            "class_counts": data.class_counts.tolist(),
-            "steps": stats.steps,
-            "losses": stats.losses,
-            "seconds": stats.seconds,
-        })
+        save_checkpoint(
+            target,
+            model,
+            cfg,
+            meta={
+                "kind": "ground-truth",
+                "sequences": [str(s.root.resolve()) for s in seqs],
+                "scans": len(data.scans),
+                "class_names": sch.names,
+                "class_counts": data.class_counts.tolist(),
+                "steps": stats.steps,
+                "losses": stats.losses,
+                "seconds": stats.seconds,
+            },
+        )
     except KeyboardInterrupt:
         raise fail("interrupted; nothing was written") from None
     except LeapError as exc:
@@ -845,8 +982,10 @@ def _export_targets(export_to: str | None, zip_path: str | None, overwrite: bool
             raise LeapError(f"--export-to: {problem}")
         old = existing_export_files(folder)
         if old and not overwrite:
-            raise LeapError(f"--export-to: {folder} already holds {len(old)} files (e.g. {old[0]}); "
-                            "add --overwrite to replace them")
+            raise LeapError(
+                f"--export-to: {folder} already holds {len(old)} files (e.g. {old[0]}); "
+                "add --overwrite to replace them"
+            )
     if zfile is not None:
         problem = export_target_problem(zfile.parent)
         if problem is not None:
@@ -857,8 +996,15 @@ def _export_targets(export_to: str | None, zip_path: str | None, overwrite: bool
 
 
 def _write_exports(
-    run_dir: Path, dataset: Path, sch: Schema, cfg: PipelineConfig, frames: range | None, targets: _Targets,
-    *, with_conf: bool, overwrite: bool,
+    run_dir: Path,
+    dataset: Path,
+    sch: Schema,
+    cfg: PipelineConfig,
+    frames: range | None,
+    targets: _Targets,
+    *,
+    with_conf: bool,
+    overwrite: bool,
 ) -> None:
     """Print the unlabeled counts, then write ``--export-to`` / ``--zip``."""
     import datetime
@@ -880,8 +1026,10 @@ def _write_exports(
     lay = RunLayout(run_dir)
     # Counted once per export, then read from the run folder (a cached rerun reads no scan).
     cov = cached_export_coverage(run_dir, dataset, frames, cfg.fusion.voxel_size)
-    typer.echo(f"{cov.labeled} of {cov.points} points labeled; {cov.unlabeled} unlabeled: "
-               f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask")
+    typer.echo(
+        f"{cov.labeled} of {cov.points} points labeled; {cov.unlabeled} unlabeled: "
+        f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask"
+    )
     if targets["folder"] is not None:
         suffixes = (".label", ".conf") if with_conf else (".label",)
         files = sorted(p for p in lay.export_dir.iterdir() if p.suffix in suffixes)
@@ -890,15 +1038,27 @@ def _write_exports(
         typer.echo(f"wrote {len(files)} files to {targets['folder']}{note}")
     if targets["zip"] is not None:
         summary = summary_yaml(
-            project={"schema": sch.name}, run={"folder": str(run_dir)}, dataset=dataset, frames=frames,
-            schema=sch, pipeline=config_to_dict(cfg), counts=coverage_counts(cov), with_confidence=with_conf,
+            project={"schema": sch.name},
+            run={"folder": str(run_dir)},
+            dataset=dataset,
+            frames=frames,
+            schema=sch,
+            pipeline=config_to_dict(cfg),
+            counts=coverage_counts(cov),
+            with_confidence=with_conf,
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         )
         lmap = label_map(sch, cov.raw_counts, name=sch.name, sequence=dataset.name)
         extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}
-        n = write_export_zip(targets["zip"], lay.export_dir, dataset.name, extra,
-                             include_confidence=with_conf, overwrite=overwrite)
+        n = write_export_zip(
+            targets["zip"],
+            lay.export_dir,
+            dataset.name,
+            extra,
+            include_confidence=with_conf,
+            overwrite=overwrite,
+        )
         typer.echo(f"wrote {targets['zip']} ({n} files, {LABEL_MAP_FILE}, {SUMMARY_FILE})")
 
 
@@ -1154,7 +1314,9 @@ def synth(
     force: bool = typer.Option(False, "--force", help="Replace an existing non-empty sequence folder."),
     workers: int = typer.Option(0, "--workers", min=0, help="Worker processes (0 = up to 2, by core count)."),
     domain: str = typer.Option(
-        "street", "--domain", help="; ".join(f"{k}: {v}" for k, v in SYNTH_DOMAINS.items()) + ".",
+        "street",
+        "--domain",
+        help="; ".join(f"{k}: {v}" for k, v in SYNTH_DOMAINS.items()) + ".",
         autocompletion=lambda: list(SYNTH_DOMAINS),
     ),
 ) -> None:
@@ -1182,8 +1344,12 @@ def synth(
     try:
         config = domain_config(domain, frames, seed)
         stats = generate_sequence(
-            out, config, sequence, force=force,
-            workers=workers or default_workers(), progress=progress,
+            out,
+            config,
+            sequence,
+            force=force,
+            workers=workers or default_workers(),
+            progress=progress,
         )
     except LeapError as exc:
         raise fail(str(exc)) from None

@@ -48,16 +48,15 @@ class _Bar:
 
 @import_cli.command("rosbag")
 def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
-    bag: str = typer.Argument(
-        ..., help="ROS 1 .bag file, or ROS 2 bag folder (or its .db3 / .mcap file)."
-    ),
+    bag: str = typer.Argument(..., help="ROS 1 .bag file, or ROS 2 bag folder (or its .db3 / .mcap file)."),
     *,
     lidar_topic: str = typer.Option(..., "--lidar-topic", help="sensor_msgs/PointCloud2 topic."),
     camera_topic: str = typer.Option(
         ..., "--camera-topic", help="sensor_msgs/Image or sensor_msgs/CompressedImage topic."
     ),
     calib: str | None = typer.Option(
-        None, "--calib",
+        None,
+        "--calib",
         help="Calibration YAML (docs/IMPORT.md) or KITTI calib.txt; default: the bag's CameraInfo + "
         "/tf_static.",
     ),
@@ -65,15 +64,18 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         None, "--out", help="Sequence folder to write (default data/<bag name>/sequences/00)."
     ),
     max_offset_ms: float = typer.Option(
-        50.0, "--max-offset-ms",
+        50.0,
+        "--max-offset-ms",
         help="Largest scan-to-camera stamp difference; scans without a partner are dropped.",
     ),
     camera_info_topic: str | None = typer.Option(
-        None, "--camera-info-topic",
+        None,
+        "--camera-info-topic",
         help="sensor_msgs/CameraInfo topic (default: the one of the images' frame).",
     ),
     fixed_frame: str | None = typer.Option(
-        None, "--fixed-frame",
+        None,
+        "--fixed-frame",
         help="/tf frame the poses are taken in (default: the root of the LiDAR's tree).",
     ),
     force: bool = typer.Option(False, "--force", help="Replace a non-empty output folder."),
@@ -89,8 +91,11 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     bar = _Bar("import", "msg")
     try:
         cfg = RosbagImportConfig(
-            lidar_topic=lidar_topic, camera_topic=camera_topic, camera_info_topic=camera_info_topic,
-            calib_file=None if calib is None else Path(calib), max_offset_ms=max_offset_ms,
+            lidar_topic=lidar_topic,
+            camera_topic=camera_topic,
+            camera_info_topic=camera_info_topic,
+            calib_file=None if calib is None else Path(calib),
+            max_offset_ms=max_offset_ms,
             fixed_frame=fixed_frame,
         )
         summary = import_rosbag(bag_path, target, cfg, force=force, progress=bar)

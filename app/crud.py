@@ -83,8 +83,17 @@ def create_project(  # noqa: PLR0913  one keyword per column, and the sequences
         cursor = db.execute(
             "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
             "estimate_poses, created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            [name, dataset_kind, seqs[0][1], _dumps(schema), _dumps(pipeline), int(is_demo),
-             int(estimate_poses), now, now],
+            [
+                name,
+                dataset_kind,
+                seqs[0][1],
+                _dumps(schema),
+                _dumps(pipeline),
+                int(is_demo),
+                int(estimate_poses),
+                now,
+                now,
+            ],
         )
         project_id = _inserted_id(cursor)
         for position, (seq_name, seq_path) in enumerate(seqs):
@@ -169,11 +178,15 @@ def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> No
     sequence. A project left with one sequence has that one's review marks keyed by region alone again
     (:func:`review_key`). Call inside :func:`~app.core.db.transaction` (the caller keeps one sequence)."""
     now = utcnow()
-    db.execute("UPDATE project_sequences SET removed_at = ? WHERE project_id = ? AND name = ?",
-               [now, project_id, name])
+    db.execute(
+        "UPDATE project_sequences SET removed_at = ? WHERE project_id = ? AND name = ?",
+        [now, project_id, name],
+    )
     after = list_sequences(db, project_id)
-    db.execute("UPDATE projects SET dataset_path = ?, updated_at = ? WHERE id = ?",
-               [after[0]["dataset_path"], now, project_id])
+    db.execute(
+        "UPDATE projects SET dataset_path = ?, updated_at = ? WHERE id = ?",
+        [after[0]["dataset_path"], now, project_id],
+    )
     if len(after) == 1:
         prefix = f"{after[0]['name']}/"
         db.execute(
@@ -215,8 +228,11 @@ def require_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any
 def list_projects(db: sqlite_utils.Database) -> list[dict[str, Any]]:
     projects = _rows(db, "SELECT * FROM projects ORDER BY id")
     by_project: dict[int, list[dict[str, Any]]] = {}
-    for row in _rows(db, "SELECT project_id, name, dataset_path, position FROM project_sequences "
-                         "WHERE removed_at IS NULL ORDER BY project_id, position"):
+    for row in _rows(
+        db,
+        "SELECT project_id, name, dataset_path, position FROM project_sequences "
+        "WHERE removed_at IS NULL ORDER BY project_id, position",
+    ):
         by_project.setdefault(int(row.pop("project_id")), []).append(row)
     for p in projects:
         p["sequences"] = by_project.get(int(p["id"]), [])
@@ -454,8 +470,18 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     cursor = db.execute(
         "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
         "frame_id, points, author, sequence) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?)",
-        [project_id, utcnow(), class_name, float(voxel_size), arr.tobytes(), scope, frame_id, blob, author,
-         seq],
+        [
+            project_id,
+            utcnow(),
+            class_name,
+            float(voxel_size),
+            arr.tobytes(),
+            scope,
+            frame_id,
+            blob,
+            author,
+            seq,
+        ],
     )
     return _inserted_id(cursor)
 
@@ -564,7 +590,7 @@ def list_review_marks(
         # A one-sequence project's marks are bare regions; "<name>/..." ones are a removed sequence's.
         if (prefix and not r[0].startswith(prefix)) or (not prefix and "/" in r[0]):
             continue
-        region = r[0][len(prefix):]
+        region = r[0][len(prefix) :]
         out[region] = ReviewMark(region, r[1], r[2], None if r[3] is None else int(r[3]), r[4])
     return out
 

@@ -128,8 +128,15 @@ def seed_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, 
     Returns the new project, or None when the demo was seeded before (also when the user deleted it).
     """
     preset = builtin_preset("semantickitti")
-    return _seed(settings, jobs, SEEDED_KEY, DEMO_PROJECT_NAME, settings.demo_dataset,
-                 schema=preset.schema.to_dict(), pipeline=config_to_dict(preset.pipeline))
+    return _seed(
+        settings,
+        jobs,
+        SEEDED_KEY,
+        DEMO_PROJECT_NAME,
+        settings.demo_dataset,
+        schema=preset.schema.to_dict(),
+        pipeline=config_to_dict(preset.pipeline),
+    )
 
 
 def seed_agri_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, Any] | None:
@@ -140,12 +147,25 @@ def seed_agri_demo_project(settings: Settings, jobs: Any | None = None) -> dict[
     """
     preset = builtin_preset("agri_uav")
     pipeline = dataclasses.replace(preset.pipeline, labeler="simulated")
-    return _seed(settings, jobs, AGRI_SEEDED_KEY, AGRI_DEMO_PROJECT_NAME, settings.demo_agri_dataset,
-                 schema=preset.schema.to_dict(), pipeline=config_to_dict(pipeline))
+    return _seed(
+        settings,
+        jobs,
+        AGRI_SEEDED_KEY,
+        AGRI_DEMO_PROJECT_NAME,
+        settings.demo_agri_dataset,
+        schema=preset.schema.to_dict(),
+        pipeline=config_to_dict(pipeline),
+    )
 
 
 def _seed(
-    settings: Settings, jobs: Any | None, key: str, name: str, dataset: Path, *, schema: dict[str, Any],
+    settings: Settings,
+    jobs: Any | None,
+    key: str,
+    name: str,
+    dataset: Path,
+    *,
+    schema: dict[str, Any],
     pipeline: dict[str, Any],
 ) -> dict[str, Any] | None:
     """Create a demo project once (``key`` in the meta table remembers it) and queue its first run."""

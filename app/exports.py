@@ -160,9 +160,12 @@ def coverage(run: dict[str, Any]) -> ExportCoverage:
         for k, v in c.raw_counts.items():
             raw[k] = raw.get(k, 0) + v
     return ExportCoverage(
-        frames=sum(c.frames for c in parts), points=sum(c.points for c in parts),
-        labeled=sum(c.labeled for c in parts), outside_view=sum(c.outside_view for c in parts),
-        no_mask=sum(c.no_mask for c in parts), raw_counts=dict(sorted(raw.items())),
+        frames=sum(c.frames for c in parts),
+        points=sum(c.points for c in parts),
+        labeled=sum(c.labeled for c in parts),
+        outside_view=sum(c.outside_view for c in parts),
+        no_mask=sum(c.no_mask for c in parts),
+        raw_counts=dict(sorted(raw.items())),
     )
 
 
@@ -201,12 +204,18 @@ def export_info(settings: Settings, run: dict[str, Any], project: dict[str, Any]
     schema = _schema(run)
     by_reason = {"outside_view": cov.outside_view, "no_mask": cov.no_mask}
     names = [n for n, _ in run_sequences_of(run["params"]) or []]
-    predictions = Path(project["dataset_path"]) / PREDICTIONS if not names else default_multi_target(
-        settings, project, run)
+    predictions = (
+        Path(project["dataset_path"]) / PREDICTIONS
+        if not names
+        else default_multi_target(settings, project, run)
+    )
     target: Path | None
     try:
-        target = export_target(settings, project, None) if not names else multi_target(
-            settings, project, run, None)
+        target = (
+            export_target(settings, project, None)
+            if not names
+            else multi_target(settings, project, run, None)
+        )
     except Forbidden:
         target = None
     if target is None:
@@ -291,8 +300,16 @@ def _build_multi_zip(run: dict[str, Any], include_confidence: bool) -> Path:
             return target
         cfg = pipeline_config(run["params"]["pipeline"], loc=("run", "params", "pipeline"))
         try:
-            export_zip(Path(run["run_dir"]), target, _schema(run), config=cfg, with_conf=include_confidence,
-                       overwrite=True, raw_counts=cov.raw_counts, version=__version__)
+            export_zip(
+                Path(run["run_dir"]),
+                target,
+                _schema(run),
+                config=cfg,
+                with_conf=include_confidence,
+                overwrite=True,
+                raw_counts=cov.raw_counts,
+                version=__version__,
+            )
         except LeapError as exc:
             raise Conflict(f"Run {run['id']}: cannot build its zip ({exc})") from None
     return target
@@ -384,18 +401,34 @@ def _write_multi_export(
     _sequence_exports(run)
     target = multi_target(settings, project, run, payload.path)
     names = [n for n, _ in run_sequences_of(run["params"]) or []]
-    replaced = sum(len(existing_export_files(folder)) for folders in export_targets(
-        target, names, with_conf=payload.include_confidence).values() for folder in folders)
+    replaced = sum(
+        len(existing_export_files(folder))
+        for folders in export_targets(target, names, with_conf=payload.include_confidence).values()
+        for folder in folders
+    )
     try:
-        written = export_sequences(Path(run["run_dir"]), target, with_conf=payload.include_confidence,
-                                   overwrite=payload.overwrite)
+        written = export_sequences(
+            Path(run["run_dir"]), target, with_conf=payload.include_confidence, overwrite=payload.overwrite
+        )
     except ExportConflict as exc:
         raise Conflict(str(exc)) from None
     except LeapError as exc:
         raise Forbidden(f"export path {str(target)!r}: {exc}") from None
-    return models.ExportWritten(run_id=run["id"], path=str(target), files=sum(written.values()),
-                                replaced=replaced if payload.overwrite else 0)
+    return models.ExportWritten(
+        run_id=run["id"],
+        path=str(target),
+        files=sum(written.values()),
+        replaced=replaced if payload.overwrite else 0,
+    )
 
 
-__all__ = ["REASONS", "build_zip", "coverage", "export_info", "export_target", "exports_dir", "invalidate",
-           "write_export"]
+__all__ = [
+    "REASONS",
+    "build_zip",
+    "coverage",
+    "export_info",
+    "export_target",
+    "exports_dir",
+    "invalidate",
+    "write_export",
+]

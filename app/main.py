@@ -95,8 +95,12 @@ class SameOriginGuard:
                 headers.setdefault(key.decode("latin-1").lower(), value.decode("latin-1"))
             reason = cross_origin_reason(headers)
             if reason is not None:
-                log.warning("refused a cross-origin %s %s: %s", scope.get("method", "websocket"),
-                            scope.get("path", ""), reason)
+                log.warning(
+                    "refused a cross-origin %s %s: %s",
+                    scope.get("method", "websocket"),
+                    scope.get("path", ""),
+                    reason,
+                )
                 if kind == "http":
                     detail = f"Cross-origin request refused ({reason})"
                     await JSONResponse({"detail": detail}, status_code=403)(scope, receive, send)

@@ -214,7 +214,8 @@ class SequenceRef(_Input):
 
     path: str = Field(min_length=1, max_length=4096, description="sequence folder inside a data root")
     name: str | None = Field(
-        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        default=None,
+        pattern=SEQUENCE_NAME_PATTERN,
         description="name in runs, metrics and exports (default: the folder's name, e.g. `00`)",
     )
 
@@ -226,7 +227,9 @@ class ProjectCreate(_Input):
         description="the project's one sequence (or the built-in demo); give this or `sequences`",
     )
     sequences: list[SequenceRef] | None = Field(
-        default=None, min_length=1, max_length=MAX_SEQUENCES,
+        default=None,
+        min_length=1,
+        max_length=MAX_SEQUENCES,
         description="several sequence folders labeled with one class schema (e.g. SemanticKITTI 00-10); a "
         "run labels them all, metrics come per sequence and overall; give this or `dataset`",
     )
@@ -512,11 +515,13 @@ class MetricsPublic(BaseModel):
         "apply-corrections job); these figures describe the labels before them until a re-run",
     )
     sequence: str | None = Field(
-        default=None, description="the sequence these figures are of (null: the run's own, overall for a "
+        default=None,
+        description="the sequence these figures are of (null: the run's own, overall for a "
         "run of several sequences)",
     )
     sequences: list[str] = Field(
-        default_factory=list, description="a run of several sequences: those with metrics of their own "
+        default_factory=list,
+        description="a run of several sequences: those with metrics of their own "
         "(`?sequence=`), in run order; empty for a run of one sequence",
     )
 
@@ -642,7 +647,8 @@ class ExportInfo(BaseModel):
     predictions_allowed: bool = Field(description="whether that folder may receive an export")
     predictions_existing: int = Field(description="entries it holds now (writing them needs overwrite)")
     sequences: list[str] = Field(
-        default_factory=list, description="a run of several sequences: their names; the export writes "
+        default_factory=list,
+        description="a run of several sequences: their names; the export writes "
         "`<predictions_path>/sequences/<name>/predictions/` for each (empty for a run of one sequence)",
     )
 
@@ -748,15 +754,20 @@ class CorrectionCreate(_Input):
         default="map", description="'map': all scans' points in the voxels; 'scan': listed points of one scan"
     )
     frame_id: str | None = Field(
-        default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
+        default=None,
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9_.-]+$",
         description="scan scope: the scan's frame id (file stem)",
     )
     points: list[Annotated[int, Field(ge=0, le=2**31 - 1)]] | None = Field(
-        default=None, max_length=CORRECTION_MAX_ITEMS,
+        default=None,
+        max_length=CORRECTION_MAX_ITEMS,
         description="scan scope: indices into the scan's points",
     )
     sequence: str | None = Field(
-        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        default=None,
+        pattern=SEQUENCE_NAME_PATTERN,
         description="the project sequence it corrects (default: the first; keys and frame ids are per "
         "sequence)",
     )

@@ -156,16 +156,24 @@ def dataset_check(
     gs = None if config is None else config.grounded_sam
     key = (
         dataset_stamp(path),
-        None if config is None else (config.labeler, gs.detector_id if gs else None,
-                                     gs.segmenter_id if gs else None, config.consistency.enabled),
-        str(settings.models_dir), estimate_poses,
+        None
+        if config is None
+        else (
+            config.labeler,
+            gs.detector_id if gs else None,
+            gs.segmenter_id if gs else None,
+            config.consistency.enabled,
+        ),
+        str(settings.models_dir),
+        estimate_poses,
     )
     with _check_lock:
         hit = _check_cache.get(key)
     if hit is not None:
         return hit
-    report = check_dataset(path, config=config, runtime=Runtime(models_dir=settings.models_dir),
-                           estimate_poses=estimate_poses)
+    report = check_dataset(
+        path, config=config, runtime=Runtime(models_dir=settings.models_dir), estimate_poses=estimate_poses
+    )
     public = models.DatasetCheck.model_validate(report_dict(report, "app"))
     with _check_lock:
         if len(_check_cache) >= _CHECK_CACHE_SIZE:
@@ -252,8 +260,9 @@ def create_project(
     config = pipeline_config(payload.pipeline, preset.pipeline)
     if kind == "folder":
         for name, path, loc in sequences:
-            check = dataset_check(settings, path, config, estimate_poses=project_estimates_poses(
-                payload.model_dump()))
+            check = dataset_check(
+                settings, path, config, estimate_poses=project_estimates_poses(payload.model_dump())
+            )
             if check.verdict == "none":
                 what = f"dataset path {str(path)!r}" + (f" (sequence {name!r})" if len(sequences) > 1 else "")
                 raise InvalidField(loc, f"{what}: {check_problem(check)}")
@@ -285,7 +294,8 @@ def _project_sequences(
         raise InvalidField(
             ["body", field],
             "give either dataset (one sequence folder, or the demo) or sequences (several folders), not both"
-            if payload.dataset is not None else "dataset is required (or sequences, for several folders)",
+            if payload.dataset is not None
+            else "dataset is required (or sequences, for several folders)",
         )
     if payload.dataset is not None:
         kind, path = resolve_dataset(settings, payload.dataset)
@@ -411,8 +421,9 @@ def add_sequence(
         )
     project = crud.require_project(db, project_id)
     # Checked before the write transaction, which a large folder's check would hold for long.
-    check = dataset_check(settings, path, project_config(project),
-                          estimate_poses=project_estimates_poses(project))
+    check = dataset_check(
+        settings, path, project_config(project), estimate_poses=project_estimates_poses(project)
+    )
     with transaction(db):
         project = crud.require_project(db, project_id)
         _refuse_sequence_edit(db, project)
@@ -421,11 +432,17 @@ def add_sequence(
             raise Conflict(f"Project {project_id} has {len(sequences)} sequences, the most one project holds")
         for s in sequences:
             if s["name"] == name:
-                raise InvalidField(("body", "name"), f"sequence name {name!r} is taken in project "
-                                   f"{project_id}; give the new sequence its own name")
+                raise InvalidField(
+                    ("body", "name"),
+                    f"sequence name {name!r} is taken in project "
+                    f"{project_id}; give the new sequence its own name",
+                )
             if Path(s["dataset_path"]).resolve() == path:
-                raise InvalidField(loc, f"dataset path {payload.path!r} is sequence {s['name']!r} of project "
-                                   f"{project_id} already")
+                raise InvalidField(
+                    loc,
+                    f"dataset path {payload.path!r} is sequence {s['name']!r} of project "
+                    f"{project_id} already",
+                )
         removed = crud.removed_sequence(db, project_id, name)
         if removed is not None and Path(removed["dataset_path"]).resolve() != path:
             raise InvalidField(
@@ -455,8 +472,10 @@ def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> di
             raise NotFound(f"Project {project_id} has no sequence {name!r} (it has {', '.join(names)})")
         _refuse_sequence_edit(db, project)
         if len(names) == 1:
-            raise Conflict(f"Sequence {name!r} is project {project_id}'s last; a project keeps one sequence "
-                           "at least (delete the project instead)")
+            raise Conflict(
+                f"Sequence {name!r} is project {project_id}'s last; a project keeps one sequence "
+                "at least (delete the project instead)"
+            )
         crud.remove_sequence(db, project_id, name)
     return crud.require_project(db, project_id)
 
@@ -489,8 +508,9 @@ def project_check(
     folder = Path(project["dataset_path"] if path is None else path)
     if project["dataset_kind"] == "demo" and not (folder / "velodyne").is_dir():
         return None
-    return dataset_check(settings, folder, project_config(project),
-                         estimate_poses=project_estimates_poses(project))
+    return dataset_check(
+        settings, folder, project_config(project), estimate_poses=project_estimates_poses(project)
+    )
 
 
 def stale_results(project: dict[str, Any], runs: list[dict[str, Any]]) -> models.StaleResults | None:
@@ -512,13 +532,15 @@ def stale_results(project: dict[str, Any], runs: list[dict[str, Any]]) -> models
     if not added and not removed:
         return None
     parts = ([f"added {', '.join(added)}"] if added else []) + (
-        [f"removed {', '.join(removed)}"] if removed else [])
+        [f"removed {', '.join(removed)}"] if removed else []
+    )
     message = (
         f"The sequences changed since run {run['number']} ({'; '.join(parts)}): its results describe the "
         "sequences it labeled, not the project's now. Run the pipeline to label the current sequences."
     )
-    return models.StaleResults(run_id=run["id"], run_number=run["number"], added=added, removed=removed,
-                               message=message)
+    return models.StaleResults(
+        run_id=run["id"], run_number=run["number"], added=added, removed=removed, message=message
+    )
 
 
 def project_public(
@@ -528,13 +550,15 @@ def project_public(
     runs = crud.list_runs(db, project["id"])
     sequences = project.get("sequences") or crud.list_sequences(db, project["id"])
     # One check per sequence folder (each is cached per folder state); the project's own is the first's.
-    checks = [None if settings is None else project_check(settings, project, s["dataset_path"])
-              for s in sequences]
+    checks = [
+        None if settings is None else project_check(settings, project, s["dataset_path"]) for s in sequences
+    ]
     return models.ProjectPublic(
         id=project["id"],
         name=project["name"],
-        dataset=dataset_public(project["dataset_kind"], project["dataset_path"],
-                               checks[0] if checks else None),
+        dataset=dataset_public(
+            project["dataset_kind"], project["dataset_path"], checks[0] if checks else None
+        ),
         sequences=[
             models.SequencePublic(
                 name=s["name"], dataset=dataset_public(project["dataset_kind"], s["dataset_path"], check)
@@ -740,8 +764,11 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         "n_points": metrics.get("n_points"),
         "n_points_in_view": metrics.get("n_points_in_view"),
         "labeler": metrics.get("labeler"),
-        "views": ({PAPER: metrics["paper_view"]}
-                  if PAPER in out and isinstance(metrics.get("paper_view"), dict) else {}),
+        "views": (
+            {PAPER: metrics["paper_view"]}
+            if PAPER in out and isinstance(metrics.get("paper_view"), dict)
+            else {}
+        ),
         "notes": dict(metrics.get("protocol_notes") or {}),
     }
 
@@ -777,8 +804,9 @@ def sequence_metrics(
         return normalise_metrics(metrics)
     names = [n for n, _ in listed]
     if sequence not in names:
-        raise InvalidField(["query", "sequence"],
-                           f"run {run['id']} has no sequence {sequence!r} (it has {', '.join(names)})")
+        raise InvalidField(
+            ["query", "sequence"], f"run {run['id']} has no sequence {sequence!r} (it has {', '.join(names)})"
+        )
     per = (metrics or {}).get("sequences") or {}
     return normalise_metrics(per.get(sequence))
 
@@ -804,7 +832,8 @@ def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPu
         params={k: v for k, v in run["params"].items() if k != "stages"},
         progress=run_progress(run, live),
         has_metrics=run.get("metrics") is not None,
-        has_export=run["status"] == "done" and all(
+        has_export=run["status"] == "done"
+        and all(
             RunLayout(sequence_run_dir(run_dir, run["params"], name)).export_dir.is_dir()
             for name in _sequence_names(run)
         ),
@@ -840,8 +869,14 @@ def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
     labels = folder / "labels"
     names = raw_id_names()
     if not labels.is_dir():
-        return models.RawIdsPublic(data=[], count=0, has_ground_truth=False, frames_read=0, frames_total=0,
-                                   names={str(k): v for k, v in names.items()})
+        return models.RawIdsPublic(
+            data=[],
+            count=0,
+            has_ground_truth=False,
+            frames_read=0,
+            frames_total=0,
+            names={str(k): v for k, v in names.items()},
+        )
     key = (str(labels.resolve()), *_labels_signature(labels))
     with _RAW_ID_LOCK:
         cached = _RAW_ID_CACHE.get(key)
@@ -862,5 +897,11 @@ def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
         models.RawIdPublic(id=i, name=names.get(i), points=n, classes=users.get(i, []))
         for i, n in sorted(counts.items())
     ]
-    return models.RawIdsPublic(data=data, count=len(data), has_ground_truth=True, frames_read=read,
-                               frames_total=total, names={str(k): v for k, v in names.items()})
+    return models.RawIdsPublic(
+        data=data,
+        count=len(data),
+        has_ground_truth=True,
+        frames_read=read,
+        frames_total=total,
+        names={str(k): v for k, v in names.items()},
+    )

@@ -40,8 +40,12 @@ def _change_public(change: Change) -> models.ChangePublic:
 
 def project_snapshot(project: dict[str, Any]) -> dict[str, Any]:
     """The inputs a new run of all frames would snapshot (the parts :func:`run_changes` compares)."""
-    snapshot = {"dataset": project["dataset_path"], "frames": None, "schema": project["schema"],
-                "pipeline": project["pipeline"]}
+    snapshot = {
+        "dataset": project["dataset_path"],
+        "frames": None,
+        "schema": project["schema"],
+        "pipeline": project["pipeline"],
+    }
     sequences = snapshot_sequences(project.get("sequences") or [])
     return snapshot if sequences is None else {**snapshot, "sequences": sequences}
 
@@ -59,10 +63,18 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     stale = None if base is not None else stale_results(project, crud.list_runs(db, project_id))
 
     def everything(reason: str, problem: str | None = None) -> models.RunPreview:
-        stages = [models.StagePlanPublic(name=s.name, label=s.label, action="recompute", reason=reason)
-                  for s in STAGE_TABLE]
-        return models.RunPreview(base_run=basis, stages=stages, recompute=[s.name for s in stages],
-                                 changes=changes, problem=problem, stale=stale)
+        stages = [
+            models.StagePlanPublic(name=s.name, label=s.label, action="recompute", reason=reason)
+            for s in STAGE_TABLE
+        ]
+        return models.RunPreview(
+            base_run=basis,
+            stages=stages,
+            recompute=[s.name for s in stages],
+            changes=changes,
+            problem=problem,
+            stale=stale,
+        )
 
     # Per sequence (one for a single-sequence project): its dataset, the base run's folder of it.
     listed = run_sequences_of(snapshot)
@@ -73,8 +85,11 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     sections = (
         [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
     )
-    kinds = {"class": "the classes or prompts changed", "dataset": "the dataset changed",
-             "frames": "the frames changed"}
+    kinds = {
+        "class": "the classes or prompts changed",
+        "dataset": "the dataset changed",
+        "frames": "the frames changed",
+    }
     hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
     per_sequence = []
     try:
@@ -86,28 +101,43 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
                 corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
                 lay = RunLayout(Path(tmp))
                 run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
-                base_lay = None if base is None else RunLayout(
-                    sequence_run_dir(Path(base["run_dir"]), base["params"], name))
+                base_lay = (
+                    None
+                    if base is None
+                    else RunLayout(sequence_run_dir(Path(base["run_dir"]), base["params"], name))
+                )
                 if base_lay is not None and name is not None and base_lay.joint_3dcn.is_file():
                     # A sequence's 3D-CN fingerprint covers the joint round it took; a change anywhere
                     # that reruns the joint round shows up as another sequence's recompute (merged below).
                     shutil.copyfile(base_lay.joint_3dcn, lay.joint_3dcn)
                 fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
             previous = None if base_lay is None else read_state(base_lay)
-            per_sequence.append((name, recompute_plan(config, fps, previous, sections,
-                                                      **({"input_hint": hint} if hint else {}))))
+            per_sequence.append(
+                (
+                    name,
+                    recompute_plan(config, fps, previous, sections, **({"input_hint": hint} if hint else {})),
+                )
+            )
     except LeapError as exc:
         return everything("its inputs could not be fingerprinted", problem=str(exc))
     plans = _merged_plans(per_sequence)
     if stale is not None:
-        plans = [dataclasses.replace(p, reason=f"the sequences changed since run {stale.run_number}")
-                 if p.action == "recompute" else p for p in plans]
+        plans = [
+            dataclasses.replace(p, reason=f"the sequences changed since run {stale.run_number}")
+            if p.action == "recompute"
+            else p
+            for p in plans
+        ]
     stages = [
         models.StagePlanPublic(name=p.name, label=p.label, action=p.action, reason=p.reason) for p in plans
     ]
-    return models.RunPreview(base_run=basis, stages=stages,
-                             recompute=[p.name for p in plans if p.action == "recompute"], changes=changes,
-                             stale=stale)
+    return models.RunPreview(
+        base_run=basis,
+        stages=stages,
+        recompute=[p.name for p in plans if p.action == "recompute"],
+        changes=changes,
+        stale=stale,
+    )
 
 
 def _merged_plans(per_sequence: list[tuple[str | None, list[StagePlan]]]) -> list[StagePlan]:
@@ -157,8 +187,12 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
                 view = ma["views"].get(protocol)
                 order = list(view["class_names"]) if view else names
                 classes = [
-                    models.ClassDelta(name=n, iou=_num(ia.get(n)), base_iou=_num(ib.get(n)),
-                                      delta=_delta(_num(ia.get(n)), _num(ib.get(n))))
+                    models.ClassDelta(
+                        name=n,
+                        iou=_num(ia.get(n)),
+                        base_iou=_num(ib.get(n)),
+                        delta=_delta(_num(ia.get(n)), _num(ib.get(n))),
+                    )
                     for n in order
                 ]
                 a, b = _num(values.get("miou")), _num(other[row].get("miou"))

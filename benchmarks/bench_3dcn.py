@@ -255,11 +255,13 @@ def print_step_times(base: dict[str, float]) -> None:
     print(f"{'data preparation (kNN, grid)':<32}{'':>10}{base['prepare_s']:>10.3f}")
     print(f"{'3D-CN backbone step':<32}{base['backbone_params']:>10,}{base['backbone_step_s']:>10.3f}")
     print(f"{'plain MLP step (baseline)':<32}{base['mlp_params']:>10,}{base['mlp_step_s']:>10.3f}")
-    print(f"ratio backbone step / MLP step (same prepared batch): "
-          f"{base['backbone_step_s'] / base['mlp_step_s']:.1f}x; "
-          f"(preparation + backbone step) / MLP step: "
-          f"{(base['prepare_s'] + base['backbone_step_s']) / base['mlp_step_s']:.1f}x "
-          f"({base['points_per_step']:,} points/step)")
+    print(
+        f"ratio backbone step / MLP step (same prepared batch): "
+        f"{base['backbone_step_s'] / base['mlp_step_s']:.1f}x; "
+        f"(preparation + backbone step) / MLP step: "
+        f"{(base['prepare_s'] + base['backbone_step_s']) / base['mlp_step_s']:.1f}x "
+        f"({base['points_per_step']:,} points/step)"
+    )
 
 
 # ----------------------------------------------------------------------------------------------- main
@@ -298,19 +300,30 @@ def smoothed_labels(seq: KittiSequence, frames: range, grid: VoxelGrid) -> list[
 def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run and report, top to bottom
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sequence", type=Path, default=None, help="KITTI sequence folder (default: a stand-in)")
-    ap.add_argument("--run-dir", type=Path, default=None,
-                    help="finished `leap run` folder of --sequence: use its fused/smoothed grids and "
-                         "camera view")
+    ap.add_argument(
+        "--run-dir",
+        type=Path,
+        default=None,
+        help="finished `leap run` folder of --sequence: use its fused/smoothed grids and camera view",
+    )
     ap.add_argument("--frames", type=int, default=60, help="scans of the stand-in / first scans used")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--noise", type=float, default=0.15, help="without --run-dir: camera label noise")
     ap.add_argument("--fov", type=float, default=90.0, help="without --run-dir: camera field of view (deg)")
-    ap.add_argument("--config", type=str, default="{}",
-                    help='JSON overrides of ConsistencyConfig, e.g. \'{"temperature": 2}\'')
+    ap.add_argument(
+        "--config",
+        type=str,
+        default="{}",
+        help="JSON overrides of ConsistencyConfig, e.g. '{\"temperature\": 2}'",
+    )
     ap.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"])
     ap.add_argument("--paper-scale", action="store_true", help="WaffleIron sizes (GPU)")
-    ap.add_argument("--source", type=Path, default=None,
-                    help="also time an iteration fine-tuned from this 3D-CN checkpoint (--3dcn-init)")
+    ap.add_argument(
+        "--source",
+        type=Path,
+        default=None,
+        help="also time an iteration fine-tuned from this 3D-CN checkpoint (--3dcn-init)",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_3dcn.json")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -358,17 +371,28 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench3dcn_work_") as work:
         t_start = time.perf_counter()
-        new = run_3dcn_iteration(seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1,
-                                 progress=lambda d, _t: marks.append((time.perf_counter(), d)), frames=frames,
-                                 views=seen)
+        new = run_3dcn_iteration(
+            seq,
+            fused,
+            smoothed,
+            c,
+            cfg,
+            fusion_cfg,
+            Path(work),
+            1,
+            progress=lambda d, _t: marks.append((time.perf_counter(), d)),
+            frames=frames,
+            views=seen,
+        )
         total_s = time.perf_counter() - t_start
     tuned, tuned_s = None, None
     if args.source is not None:
         src = load_source(args.source, cfg.backbone, c)
         with tempfile.TemporaryDirectory(prefix="bench3dcn_work_") as work:
             t_tuned = time.perf_counter()
-            tuned = run_3dcn_iteration(seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1, frames=frames,
-                                       views=seen, source=src)
+            tuned = run_3dcn_iteration(
+                seq, fused, smoothed, c, cfg, fusion_cfg, Path(work), 1, frames=frames, views=seen, source=src
+            )
             tuned_s = time.perf_counter() - t_tuned
     load_after = os.getloadavg()[0]
     steps = num_train_steps(n, cfg)
@@ -377,16 +401,22 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
         return next(t for t, d in marks if d >= done) - t_start
 
     sel_s, train_end = at(n), at(n + steps)
-    phases = {"selection_s": sel_s, "training_s": train_end - sel_s,
-              "inference_fusion_s": total_s - train_end, "total_s": total_s}
+    phases = {
+        "selection_s": sel_s,
+        "training_s": train_end - sel_s,
+        "inference_fusion_s": total_s - train_end,
+        "total_s": total_s,
+    }
 
     gt_f = np.concatenate(gt)
     view_f = np.concatenate(views)
     rows = {}
     if args.run_dir is not None:
         smooth_lookup = smoothed.voxel_labels()
-        before = [smooth_lookup.at(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2))[0]
-                  for i in frames]
+        before = [
+            smooth_lookup.at(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2))[0]
+            for i in frames
+        ]
     else:
         before = smoothed_labels(seq, frames, fused)
     columns = [("voxel", before), ("+3D-CN x1", smoothed_labels(seq, frames, new))]
@@ -394,45 +424,73 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
         columns.append(("+3D-CN x1, from source", smoothed_labels(seq, frames, tuned)))
     for name, labels in columns:
         pred = np.concatenate(labels)
-        cam = evaluate(gt_f[view_f], pred[view_f], schema.names, schema.categories(),
-                       ignore_unlabeled_pred=True)
+        cam = evaluate(
+            gt_f[view_f], pred[view_f], schema.names, schema.categories(), ignore_unlabeled_pred=True
+        )
         every = evaluate(gt_f, pred, schema.names, schema.categories(), ignore_unlabeled_pred=False)
-        rows[name] = {"miou_camera_view": cam.miou, "category_miou_camera_view": cam.category_miou,
-                      "miou_all_points": every.miou, "labeled_share_all": float((pred >= 0).mean())}
+        rows[name] = {
+            "miou_camera_view": cam.miou,
+            "category_miou_camera_view": cam.category_miou,
+            "miou_all_points": every.miou,
+            "labeled_share_all": float((pred >= 0).mean()),
+        }
     base = step_times(cfg, seq.frame(frames[0]).points, c)
 
     print(f"3D-CN benchmark on {source}: {n} scans, {n_points:,} points; inputs: {inputs}")
-    print(f"torch threads {args.threads}, {platform.machine()}, device {cfg.device}, "
-          f"load average {load_before:.1f} -> {load_after:.1f} (other processes share the cores)")
+    print(
+        f"torch threads {args.threads}, {platform.machine()}, device {cfg.device}, "
+        f"load average {load_before:.1f} -> {load_after:.1f} (other processes share the cores)"
+    )
     print(f"{'phase':<24}{'seconds':>10}")
     for k, v in phases.items():
         print(f"{k:<24}{v:>10.1f}")
     print(f"{'target (train+infer)':<24}{600:>10.1f}   ratio total/target = {total_s / 600:.2f}")
     if tuned_s is not None:
-        print(f"{'fine-tuned from source':<24}{tuned_s:>10.1f}   ratio to the random-weight total = "
-              f"{tuned_s / total_s:.2f} ({num_train_steps(n, cfg, finetune=True)} steps against {steps})")
+        print(
+            f"{'fine-tuned from source':<24}{tuned_s:>10.1f}   ratio to the random-weight total = "
+            f"{tuned_s / total_s:.2f} ({num_train_steps(n, cfg, finetune=True)} steps against {steps})"
+        )
     print_step_times(base)
     print(f"\n{'labels':<24}{'mIoU cam':>10}{'cat cam':>10}{'mIoU all':>10}{'labeled':>10}")
     for name, r in rows.items():
-        print(f"{name:<24}{100 * r['miou_camera_view']:>10.1f}{100 * r['category_miou_camera_view']:>10.1f}"
-              f"{100 * r['miou_all_points']:>10.1f}{100 * r['labeled_share_all']:>9.1f}%")
+        print(
+            f"{name:<24}{100 * r['miou_camera_view']:>10.1f}{100 * r['category_miou_camera_view']:>10.1f}"
+            f"{100 * r['miou_all_points']:>10.1f}{100 * r['labeled_share_all']:>9.1f}%"
+        )
     result = {
-        "source": source, "inputs": inputs, "scans": n, "points": n_points, "threads": args.threads,
-        "load_average": [load_before, load_after], "stand_in_seconds": gen_s,
-        "config": {"temperature": cfg.temperature, "points_per_scan": cfg.points_per_scan,
-                   "min_steps": cfg.min_steps, "channels": cfg.backbone.channels,
-                   "layers": cfg.backbone.layers,
-                   "use_intensity": cfg.backbone.use_intensity, "device": cfg.device, "train_steps": steps},
-        "phases": phases, "target_s": 600.0, "ratio_to_target": total_s / 600.0,
-        "baseline": base, "ratio_backbone_to_mlp_step": base["backbone_step_s"] / base["mlp_step_s"],
-        "ratio_prepare_and_backbone_to_mlp_step":
-            (base["prepare_s"] + base["backbone_step_s"]) / base["mlp_step_s"],
+        "source": source,
+        "inputs": inputs,
+        "scans": n,
+        "points": n_points,
+        "threads": args.threads,
+        "load_average": [load_before, load_after],
+        "stand_in_seconds": gen_s,
+        "config": {
+            "temperature": cfg.temperature,
+            "points_per_scan": cfg.points_per_scan,
+            "min_steps": cfg.min_steps,
+            "channels": cfg.backbone.channels,
+            "layers": cfg.backbone.layers,
+            "use_intensity": cfg.backbone.use_intensity,
+            "device": cfg.device,
+            "train_steps": steps,
+        },
+        "phases": phases,
+        "target_s": 600.0,
+        "ratio_to_target": total_s / 600.0,
+        "baseline": base,
+        "ratio_backbone_to_mlp_step": base["backbone_step_s"] / base["mlp_step_s"],
+        "ratio_prepare_and_backbone_to_mlp_step": (base["prepare_s"] + base["backbone_step_s"])
+        / base["mlp_step_s"],
         "labels": rows,
     }
     if tuned_s is not None:
-        result["source_network"] = {"path": str(args.source), "total_s": tuned_s,
-                                    "ratio_to_random_total": tuned_s / total_s,
-                                    "train_steps": num_train_steps(n, cfg, finetune=True)}
+        result["source_network"] = {
+            "path": str(args.source),
+            "total_s": tuned_s,
+            "ratio_to_random_total": tuned_s / total_s,
+            "train_steps": num_train_steps(n, cfg, finetune=True),
+        }
     atomic_write_json(args.out, result)
     print(f"\nwrote {args.out}")
     if tmp is not None:

@@ -284,18 +284,33 @@ def main() -> None:
     gc.freeze()
     proc, base = start_server(data_root)
     try:
-        run_once(base, data_root, dataset, "warm-up", clients=0, interval=args.poll_interval,
-                 server_pid=proc.pid)
+        run_once(
+            base, data_root, dataset, "warm-up", clients=0, interval=args.poll_interval, server_pid=proc.pid
+        )
         baseline: list[dict[str, Any]] = []
         loaded: list[dict[str, Any]] = []
         for i in range(args.pairs):
             baseline.append(
-                run_once(base, data_root, dataset, f"baseline {i}", clients=0, interval=args.poll_interval,
-                         server_pid=proc.pid)
+                run_once(
+                    base,
+                    data_root,
+                    dataset,
+                    f"baseline {i}",
+                    clients=0,
+                    interval=args.poll_interval,
+                    server_pid=proc.pid,
+                )
             )
             loaded.append(
-                run_once(base, data_root, dataset, f"loaded {i}", clients=args.clients,
-                         interval=args.poll_interval, server_pid=proc.pid)
+                run_once(
+                    base,
+                    data_root,
+                    dataset,
+                    f"loaded {i}",
+                    clients=args.clients,
+                    interval=args.poll_interval,
+                    server_pid=proc.pid,
+                )
             )
             print(
                 f"pair {i + 1}: baseline {baseline[-1]['wall_s']:.2f} s, "

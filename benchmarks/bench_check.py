@@ -71,17 +71,34 @@ def main() -> None:
         for n in args.frames:
             root = make_sequence(Path(tmp) / f"f{n}" / "sequences" / "00", n)
             base = time_it(lambda root=root: KittiSequence(root), repeat=args.repeat)
-            check = time_it(lambda root=root: check_dataset(root, config=config, check_models=False),
-                            repeat=args.repeat)
+            check = time_it(
+                lambda root=root: check_dataset(root, config=config, check_models=False), repeat=args.repeat
+            )
             stamp = time_it(lambda root=root: dataset_stamp(root), repeat=args.repeat)
             report = check_dataset(root, config=config, check_models=False)
             assert report.verdict == "full", report.findings
-            rows.append([n, f"{base.median * 1e3:.1f}", f"{check.median * 1e3:.1f}",
-                         f"{check.median / base.median:.2f}", f"{stamp.median * 1e6:.0f}"])
-            results.append({"frames": n, "kitti_open": base.to_dict(), "check": check.to_dict(),
-                            "stamp": stamp.to_dict()})
-    print_table("dataset check (median of runs)",
-                ["frames", "KittiSequence open ms", "check ms", "check / open", "cached (stamp) µs"], rows)
+            rows.append(
+                [
+                    n,
+                    f"{base.median * 1e3:.1f}",
+                    f"{check.median * 1e3:.1f}",
+                    f"{check.median / base.median:.2f}",
+                    f"{stamp.median * 1e6:.0f}",
+                ]
+            )
+            results.append(
+                {
+                    "frames": n,
+                    "kitti_open": base.to_dict(),
+                    "check": check.to_dict(),
+                    "stamp": stamp.to_dict(),
+                }
+            )
+    print_table(
+        "dataset check (median of runs)",
+        ["frames", "KittiSequence open ms", "check ms", "check / open", "cached (stamp) µs"],
+        rows,
+    )
     write_results("bench_check", {"results": results})
 
 

@@ -134,8 +134,13 @@ def naive_full(obs: list[Observations]) -> np.ndarray:
 
 def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list, dict]:
     n = images * points
-    results: dict = {"points": n, "images": images, "points_per_image": points, "rows_per_image": rows,
-                     "classes": C}
+    results: dict = {
+        "points": n,
+        "images": images,
+        "points_per_image": points,
+        "rows_per_image": rows,
+        "classes": C,
+    }
     table_rows = []
     for coherent in (True, False):
         label = "coherent rows" if coherent else "random rows (worst case)"
@@ -157,8 +162,9 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
         t_best = base_t[best].median
         results["coherent" if coherent else "random_rows"] = {
             "fuse": t_fuse.to_dict(),
-            "baselines": {k: {**t.to_dict(), "max_abs_diff_vs_fuse": base_diff[k]}
-                          for k, t in base_t.items()},
+            "baselines": {
+                k: {**t.to_dict(), "max_abs_diff_vs_fuse": base_diff[k]} for k, t in base_t.items()
+            },
             "best_baseline": best,
             "naive_full": t_full.to_dict(),
             "points_per_s": n / t_fuse.median,
@@ -180,8 +186,10 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
             table_rows.append(_row(f"  {name}, index+logp given{mark}", t, n, t_best, None))
         table_rows.append(_row("  naive full (unique+gather+add.at)", t_full, n, t_best, None))
         diffs = ", ".join(f"{k} {d:.3g}" for k, d in base_diff.items())
-        table_rows.append([f"  {len(grid):,} voxels, working memory {mem.added / n:.1f} B/point; "
-                           f"max|Δ| vs fuse: {diffs}"] + [""] * 6)
+        table_rows.append(
+            [f"  {len(grid):,} voxels, working memory {mem.added / n:.1f} B/point; max|Δ| vs fuse: {diffs}"]
+            + [""] * 6
+        )
         if coherent:
             xyz = _xyz_cache(images, points)
             t_keys = time_it(partial(voxel_keys, xyz, 0.2), repeat=3)
@@ -192,8 +200,15 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
 
 def _row(what: str, t, n: int, baseline_s: float | None, mem: int | None) -> list:
     """Table row: median s, best s, CPU s, M items/s (median), ratio to the baseline, peak MiB."""
-    return [what, t.median, t.best, t.cpu_median, n / t.median / 1e6,
-            "" if baseline_s is None else baseline_s / t.median, "" if mem is None else mem / 2**20]
+    return [
+        what,
+        t.median,
+        t.best,
+        t.cpu_median,
+        n / t.median / 1e6,
+        "" if baseline_s is None else baseline_s / t.median,
+        "" if mem is None else mem / 2**20,
+    ]
 
 
 _XYZ: dict = {}
@@ -211,8 +226,10 @@ def bench_smoothing(voxels: int, repeat: int) -> tuple[list, dict]:
     rng = np.random.default_rng(1)
     probs = rng.dirichlet(np.full(C, 0.3), len(centres)).astype(np.float32)
     rows, res = [], {"voxels": len(centres)}
-    for name, cfg in (("default (k 9, max 0.6 m, 2 workers)", SmoothingConfig()),
-                      ("paper (k 9, unbounded, 2 workers)", SmoothingConfig(max_distance=None))):
+    for name, cfg in (
+        ("default (k 9, max 0.6 m, 2 workers)", SmoothingConfig()),
+        ("paper (k 9, unbounded, 2 workers)", SmoothingConfig(max_distance=None)),
+    ):
         t = time_it(lambda cfg=cfg: knn_smooth(centres, probs, cfg), repeat=repeat)
         _, mem = peak_memory(lambda cfg=cfg: knn_smooth(centres, probs, cfg))
         key = "bounded" if cfg.max_distance else "unbounded"
@@ -242,19 +259,30 @@ def main() -> None:
     srows, sres = bench_smoothing(args.voxels, args.repeat)
     header = ["what", "median s", "best s", "CPU s", "M items/s", "× best baseline", "peak MiB added"]
     load = os.getloadavg()
-    print_table(f"Fusion: {fres['points']:,} points, {C} classes, {args.rows} table rows per image "
-                f"(load average at start {load_start[0]:.1f}, now {load[0]:.1f} on {os.cpu_count()} cores)",
-                header, frows)
+    print_table(
+        f"Fusion: {fres['points']:,} points, {C} classes, {args.rows} table rows per image "
+        f"(load average at start {load_start[0]:.1f}, now {load[0]:.1f} on {os.cpu_count()} cores)",
+        header,
+        frows,
+    )
     print_table("Smoothing", header, srows)
 
     co, rnd = fres["coherent"], fres["random_rows"]
     sm = sres["bounded"]
     targets = [
         ["fusion ≥ 10 M points/s", co["points_per_s"] / 1e6, co["points_per_s_best"] / 1e6, 10.0],
-        [f"fusion ≥ 1× best baseline ({co['best_baseline']})", co["ratio_vs_best_baseline"],
-         co["ratio_vs_best_baseline_best"], 1.0],
-        [f"  random rows, ≥ 1× best ({rnd['best_baseline']})", rnd["ratio_vs_best_baseline"],
-         rnd["ratio_vs_best_baseline_best"], 1.0],
+        [
+            f"fusion ≥ 1× best baseline ({co['best_baseline']})",
+            co["ratio_vs_best_baseline"],
+            co["ratio_vs_best_baseline_best"],
+            1.0,
+        ],
+        [
+            f"  random rows, ≥ 1× best ({rnd['best_baseline']})",
+            rnd["ratio_vs_best_baseline"],
+            rnd["ratio_vs_best_baseline_best"],
+            1.0,
+        ],
         ["smoothing 1M voxels ≤ 3 s", sm["median_s"], sm["best_s"], 3.0],
         ["  (unbounded kNN, paper)", sres["unbounded"]["median_s"], sres["unbounded"]["best_s"], 3.0],
     ]
@@ -265,17 +293,34 @@ def main() -> None:
         if args.quick:
             t[-2:] = ["(quick)", "(quick)"]
     print_table("Targets", ["target", "median", "best", "limit", "met (median)", "met (best)"], targets)
-    print(f"Ratio to the best baseline (coherent rows): {co['ratio_vs_best_baseline']:.2f}× "
-          f"{co['best_baseline']} (np.add.at: {co['ratio_vs_naive_add_at']:.1f}×).")
-    print(f"Stored grid: {co['stored_bytes_per_voxel']:.0f} B/voxel = 8 B key + 2·{C} B float16 logp (fixed "
-          f"by the format, not a measurement); fuse's working memory: "
-          f"{co['peak_memory_added_bytes_per_point']:.1f} B per input point (peak RSS added).")
+    print(
+        f"Ratio to the best baseline (coherent rows): {co['ratio_vs_best_baseline']:.2f}× "
+        f"{co['best_baseline']} (np.add.at: {co['ratio_vs_naive_add_at']:.1f}×)."
+    )
+    print(
+        f"Stored grid: {co['stored_bytes_per_voxel']:.0f} B/voxel = 8 B key + 2·{C} B float16 logp (fixed "
+        f"by the format, not a measurement); fuse's working memory: "
+        f"{co['peak_memory_added_bytes_per_point']:.1f} B per input point (peak RSS added)."
+    )
     path = write_results(
         "fusion" if not args.quick else "fusion_quick",
-        {"args": vars(args), "fusion": fres, "smoothing": sres,
-         "load_average_start": load_start,
-         "targets": [{"target": t[0], "median": t[1], "best": t[2], "limit": t[3], "met_median": t[4],
-                      "met_best": t[5]} for t in targets]},
+        {
+            "args": vars(args),
+            "fusion": fres,
+            "smoothing": sres,
+            "load_average_start": load_start,
+            "targets": [
+                {
+                    "target": t[0],
+                    "median": t[1],
+                    "best": t[2],
+                    "limit": t[3],
+                    "met_median": t[4],
+                    "met_best": t[5],
+                }
+                for t in targets
+            ],
+        },
     )
     print(f"wrote {path}")
 

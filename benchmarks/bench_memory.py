@@ -102,13 +102,29 @@ def _stage_at(state: dict[str, Any], when: float) -> str:
 
 
 def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
-    code_root: Path, sequence: Path, run_dir: Path, cache: Path, cn: bool, interval: float,
+    code_root: Path,
+    sequence: Path,
+    run_dir: Path,
+    cache: Path,
+    cn: bool,
+    interval: float,
     project: Path | None = None,
 ) -> RunMemory:
     """Run ``leap run`` from ``code_root`` in a child process and sample its memory."""
     hwm_file = run_dir.with_name(run_dir.name + ".hwm")
-    cmd = [sys.executable, "-c", _RUN_CHILD, str(hwm_file), "run", str(sequence), "--out", str(run_dir),
-           "--cache", str(cache), "--3dcn" if cn else "--no-3dcn"]
+    cmd = [
+        sys.executable,
+        "-c",
+        _RUN_CHILD,
+        str(hwm_file),
+        "run",
+        str(sequence),
+        "--out",
+        str(run_dir),
+        "--cache",
+        str(cache),
+        "--3dcn" if cn else "--no-3dcn",
+    ]
     if project is not None:
         cmd += ["--project-file", str(project)]
     env = {**os.environ, "PYTHONPATH": str(code_root)}
@@ -148,22 +164,35 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
     when, rss = max(samples, key=lambda x: x[1]) if samples else (0.0, 0)
     hwm = int(hwm_file.read_text()) if hwm_file.is_file() else 0
     hwm_file.unlink(missing_ok=True)
-    return RunMemory(peak_sampled=rss, peak_kernel=hwm, seconds=end - t0,
-                     voxels=voxels, peak_stage=_stage_at(state, when), stage_peaks=stage_peaks)
+    return RunMemory(
+        peak_sampled=rss,
+        peak_kernel=hwm,
+        seconds=end - t0,
+        voxels=voxels,
+        peak_stage=_stage_at(state, when),
+        stage_peaks=stage_peaks,
+    )
 
 
 def baseline_tree(commit: str, where: Path) -> Path:
     """A detached worktree of ``commit`` under ``where`` (removed by :func:`drop_tree`)."""
     path = where / f"baseline-{commit}"
     if not path.exists():
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(path), commit], check=True,
-                       stdout=subprocess.DEVNULL)
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(path), commit],
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
     return path
 
 
 def drop_tree(path: Path) -> None:
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(path)], check=False,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(path)],
+        check=False,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 def project_file(work: Path, voxel_size: float | None, cn_steps: int | None) -> Path | None:
@@ -183,8 +212,17 @@ def project_file(work: Path, voxel_size: float | None, cn_steps: int | None) -> 
     return path
 
 
-STAGE_COLUMNS = ("other", "labels2d", "project", "fuse", "smooth", "3dcn", "label_points", "evaluate",
-                 "export")
+STAGE_COLUMNS = (
+    "other",
+    "labels2d",
+    "project",
+    "fuse",
+    "smooth",
+    "3dcn",
+    "label_points",
+    "evaluate",
+    "export",
+)
 
 
 _HWM = """
@@ -195,16 +233,21 @@ def _hwm():
     return 0
 """
 
-_RUN_CHILD = _HWM + """
+_RUN_CHILD = (
+    _HWM
+    + """
 import atexit, runpy, sys
 out = sys.argv.pop(1)
 atexit.register(lambda: open(out, "w").write(str(_hwm())))
 sys.argv[0] = "leap"
 runpy.run_module("app.cli", run_name="__main__", alter_sys=True)
 """
+)
 """``leap run`` (the CLI module as ``python -m app.cli`` runs it) writing its ``VmHWM`` to a file at exit."""
 
-_SMOOTH_CHILD = _HWM + """
+_SMOOTH_CHILD = (
+    _HWM
+    + """
 import sys, time
 import numpy as np
 from leap_core.fusion import VoxelGrid
@@ -221,6 +264,7 @@ else:  # the baseline's stage_smooth
     sm.SmoothedGrid(grid.keys, probs.astype(np.float16), grid.voxel_size).save(out)
 print(_hwm(), time.perf_counter() - t)
 """
+)
 
 
 def synthetic_grid(path: Path, voxels: int, num_classes: int = 20) -> None:
@@ -245,8 +289,14 @@ def smooth_peak(code_root: Path, grid: Path, out: Path) -> tuple[int, float]:
     """Peak RSS (bytes, ``VmHWM``) and seconds of the smooth stage's work in a child running
     ``code_root``'s code."""
     env = {**os.environ, "PYTHONPATH": str(code_root)}
-    res = subprocess.run([sys.executable, "-c", _SMOOTH_CHILD, str(grid), str(out)], cwd=code_root, env=env,
-                         check=True, capture_output=True, text=True)
+    res = subprocess.run(
+        [sys.executable, "-c", _SMOOTH_CHILD, str(grid), str(out)],
+        cwd=code_root,
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
     peak, seconds = res.stdout.split()[-2:]
     return int(peak), float(seconds)
 
@@ -269,14 +319,32 @@ def smooth_table(sizes: list[int], base: Path | None, work: Path) -> list[dict[s
             with np.load(work / "smooth-this.npz") as a, np.load(work / "smooth-baseline.npz") as b:
                 same = "yes" if all(a[k].tobytes() == b[k].tobytes() for k in a.files) else "NO"
         this, old = peaks["this"], peaks.get("baseline")
-        rows.append([f"{n:,}", f"{this[0] / 1e6:,.0f}", f"{this[1]:.1f}",
-                     f"{old[0] / 1e6:,.0f}" if old else "-", f"{old[1]:.1f}" if old else "-",
-                     f"{this[0] / old[0]:.2f}" if old else "-", same])
-        results.append({"voxels": n, "this_peak_bytes": this[0], "this_seconds": this[1],
-                        "baseline_peak_bytes": old[0] if old else None,
-                        "baseline_seconds": old[1] if old else None, "identical_output": same == "yes"})
-    print_table("Smooth stage alone, synthetic surface grid (20 classes): child peak RSS (MB), seconds",
-                ["voxels", "peak", "s", "baseline peak", "baseline s", "ratio", "same bytes"], rows)
+        rows.append(
+            [
+                f"{n:,}",
+                f"{this[0] / 1e6:,.0f}",
+                f"{this[1]:.1f}",
+                f"{old[0] / 1e6:,.0f}" if old else "-",
+                f"{old[1]:.1f}" if old else "-",
+                f"{this[0] / old[0]:.2f}" if old else "-",
+                same,
+            ]
+        )
+        results.append(
+            {
+                "voxels": n,
+                "this_peak_bytes": this[0],
+                "this_seconds": this[1],
+                "baseline_peak_bytes": old[0] if old else None,
+                "baseline_seconds": old[1] if old else None,
+                "identical_output": same == "yes",
+            }
+        )
+    print_table(
+        "Smooth stage alone, synthetic surface grid (20 classes): child peak RSS (MB), seconds",
+        ["voxels", "peak", "s", "baseline peak", "baseline s", "ratio", "same bytes"],
+        rows,
+    )
     if len(results) >= 2:
         a, b = results[0], results[-1]
         dv = b["voxels"] - a["voxels"]
@@ -294,19 +362,32 @@ def target(voxels: int, cn: bool) -> float:
 
 def main() -> None:  # noqa: PLR0912  one branch per optional part of the report
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sequence", type=Path, action="append", default=[],
-                    help="sequence folder (repeatable)")
-    ap.add_argument("--smooth-voxels", type=int, action="append", default=[],
-                    help="also the smooth stage alone on a synthetic grid of this many voxels (repeatable)")
+    ap.add_argument("--sequence", type=Path, action="append", default=[], help="sequence folder (repeatable)")
+    ap.add_argument(
+        "--smooth-voxels",
+        type=int,
+        action="append",
+        default=[],
+        help="also the smooth stage alone on a synthetic grid of this many voxels (repeatable)",
+    )
     ap.add_argument("--3dcn", dest="cn", action="store_true", help="run with the 3D-CN on")
     ap.add_argument("--baseline", default="c472ae0", help="commit of the baseline code")
     ap.add_argument("--no-baseline", action="store_true", help="measure this code only")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--interval", type=float, default=0.1, help="RSS sampling period in seconds")
-    ap.add_argument("--cn-steps", type=int, default=None,
-                    help="consistency.min_steps of the runs (fewer 3D-CN training steps; default: 500)")
-    ap.add_argument("--voxel-size", type=float, action="append", default=None,
-                    help="fusion.voxel_size of the runs (repeatable; default: the schema's default, 0.2 m)")
+    ap.add_argument(
+        "--cn-steps",
+        type=int,
+        default=None,
+        help="consistency.min_steps of the runs (fewer 3D-CN training steps; default: 500)",
+    )
+    ap.add_argument(
+        "--voxel-size",
+        type=float,
+        action="append",
+        default=None,
+        help="fusion.voxel_size of the runs (repeatable; default: the schema's default, 0.2 m)",
+    )
     args = ap.parse_args()
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_memory-"))
@@ -333,20 +414,40 @@ def main() -> None:  # noqa: PLR0912  one branch per optional part of the report
             this = runs["this"]
             tgt = target(this.voxels, args.cn)
             old = runs.get("baseline")
-            rows.append([
-                f"{name}{' +3D-CN' if args.cn else ''}", f"{this.voxels:,}", f"{tgt / 1e6:,.0f}",
-                f"{this.peak / 1e6:,.0f}", this.peak_stage,
-                f"{old.peak / 1e6:,.0f}" if old else "-", old.peak_stage if old else "-",
-                f"{this.peak / old.peak:.2f}" if old else "-", "yes" if this.peak <= tgt else "NO",
-            ])
-            results.append({
-                "sequence": str(seq), "voxel_size": vs, "3dcn": args.cn, "voxels": this.voxels,
-                "target_bytes": tgt,
-                "runs": {k: {"peak_bytes": r.peak, "peak_sampled_bytes": r.peak_sampled,
-                             "peak_kernel_bytes": r.peak_kernel, "seconds": r.seconds, "voxels": r.voxels,
-                             "peak_stage": r.peak_stage, "stage_peaks_bytes": r.stage_peaks}
-                         for k, r in runs.items()},
-            })
+            rows.append(
+                [
+                    f"{name}{' +3D-CN' if args.cn else ''}",
+                    f"{this.voxels:,}",
+                    f"{tgt / 1e6:,.0f}",
+                    f"{this.peak / 1e6:,.0f}",
+                    this.peak_stage,
+                    f"{old.peak / 1e6:,.0f}" if old else "-",
+                    old.peak_stage if old else "-",
+                    f"{this.peak / old.peak:.2f}" if old else "-",
+                    "yes" if this.peak <= tgt else "NO",
+                ]
+            )
+            results.append(
+                {
+                    "sequence": str(seq),
+                    "voxel_size": vs,
+                    "3dcn": args.cn,
+                    "voxels": this.voxels,
+                    "target_bytes": tgt,
+                    "runs": {
+                        k: {
+                            "peak_bytes": r.peak,
+                            "peak_sampled_bytes": r.peak_sampled,
+                            "peak_kernel_bytes": r.peak_kernel,
+                            "seconds": r.seconds,
+                            "voxels": r.voxels,
+                            "peak_stage": r.peak_stage,
+                            "stage_peaks_bytes": r.stage_peaks,
+                        }
+                        for k, r in runs.items()
+                    },
+                }
+            )
     finally:
         if base is not None:
             drop_tree(base)
@@ -356,8 +457,12 @@ def main() -> None:  # noqa: PLR0912  one branch per optional part of the report
     for r in results:
         for label, run in r["runs"].items():
             peaks = run["stage_peaks_bytes"]
-            stage_rows.append([f"{Path(r['sequence']).parent.parent.name} vs={r['voxel_size']} {label}",
-                               *(f"{peaks.get(s, 0) / 1e6:,.0f}" for s in STAGE_COLUMNS)])
+            stage_rows.append(
+                [
+                    f"{Path(r['sequence']).parent.parent.name} vs={r['voxel_size']} {label}",
+                    *(f"{peaks.get(s, 0) / 1e6:,.0f}" for s in STAGE_COLUMNS),
+                ]
+            )
     print_table("Peak RSS per stage (MB, sampled)", ["run", *STAGE_COLUMNS], stage_rows)
     print_table(
         f"Peak RSS of `leap run` (MB), target {'3' if args.cn else '1.5'} GB + {PER_VOXEL} B × voxels; "

@@ -89,8 +89,12 @@ def real_sam(large: bool = False):
 
     vision = {}
     if large:  # ViT-L: facebook/sam-vit-large's encoder
-        vision = {"hidden_size": 1024, "num_hidden_layers": 24, "num_attention_heads": 16,
-                  "global_attn_indexes": [5, 11, 17, 23]}
+        vision = {
+            "hidden_size": 1024,
+            "num_hidden_layers": 24,
+            "num_attention_heads": 16,
+            "global_attn_indexes": [5, 11, 17, 23],
+        }
     torch.manual_seed(1)
     model = SamModel(SamConfig(vision_config=vision)).eval()
     return model, SamProcessor(image_processor=SamImageProcessorPil())
@@ -126,8 +130,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per row (after one warm-up run)")
     ap.add_argument("--sam-large", action="store_true", help="also time SAM ViT-L (the paper's SAM)")
     ap.add_argument("--quick", action="store_true", help="tiny random models instead of real-size ones")
-    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
-                    help="where the models run (results of cuda go to models_cuda.json)")
+    ap.add_argument(
+        "--device",
+        choices=("cpu", "cuda"),
+        default="cpu",
+        help="where the models run (results of cuda go to models_cuda.json)",
+    )
     args = ap.parse_args()
 
     import torch
@@ -164,7 +172,10 @@ def main() -> None:
     t_det = time_it(timed(lambda: lab._detect([image], plans[0])), repeat=args.repeat, warmup=1)
     n_q = det[0].config.num_queries
     results["detector"] = {
-        **t_det.to_dict(), "passes": len(plans), "text_tokens": plans[0].num_tokens, "queries": n_q
+        **t_det.to_dict(),
+        "passes": len(plans),
+        "text_tokens": plans[0].num_tokens,
+        "queries": n_q,
     }
     seg_times = {}
     for name, seg in segs.items():
@@ -179,7 +190,9 @@ def main() -> None:
         t_full = time_it(timed(lambda s=slab: s._segment([image], [boxes])), repeat=args.repeat, warmup=1)
         seg_times[name] = (t_enc, t_full)
         results[name] = {
-            "encoder": t_enc.to_dict(), "encoder_plus_decoder": t_full.to_dict(), "boxes": args.boxes
+            "encoder": t_enc.to_dict(),
+            "encoder_plus_decoder": t_full.to_dict(),
+            "boxes": args.boxes,
         }
 
     # Cache hit: pass results with --boxes regions in all, stored under the keys the labeler computes.
@@ -193,8 +206,9 @@ def main() -> None:
             masks[j, y0:y1, x0:x1] = True
         k = len(plan.class_names)
         logits = rng.normal(0, 2, (len(part), k)).astype(np.float32)
-        res = PassResult(h, w, plan.class_names, boxes[part], logits,
-                         np.packbits(masks.reshape(len(part), -1), axis=1))
+        res = PassResult(
+            h, w, plan.class_names, boxes[part], logits, np.packbits(masks.reshape(len(part), -1), axis=1)
+        )
         cache.put(lab.pass_key(digest, plan), res)
     calls_before = lab.detector_calls
     t_hit = time_it(lambda: lab.label_images([image], schema), repeat=5, warmup=1)
@@ -209,22 +223,34 @@ def main() -> None:
     rows.append(row(f"{det_name}: 1 joint pass", t_det.median, t_det.cpu_median, baseline))
     for name, (t_enc, t_full) in seg_times.items():
         rows.append(row(f"{name} encoder", t_enc.median, t_enc.cpu_median, baseline))
-        rows.append(row(f"{name} encoder + decoder ({args.boxes} boxes)", t_full.median, t_full.cpu_median,
-                        baseline))
-        rows.append(row(f"total compute, {det_name} + {name}", t_det.median + t_full.median,
-                        t_det.cpu_median + t_full.cpu_median, baseline))
+        rows.append(
+            row(f"{name} encoder + decoder ({args.boxes} boxes)", t_full.median, t_full.cpu_median, baseline)
+        )
+        rows.append(
+            row(
+                f"total compute, {det_name} + {name}",
+                t_det.median + t_full.median,
+                t_det.cpu_median + t_full.cpu_median,
+                baseline,
+            )
+        )
     rows.append(row("2D cache hit (read + assemble)", t_hit.median, t_hit.cpu_median, baseline))
     where = torch.cuda.get_device_name() if dev == "cuda" else f"{torch.get_num_threads()} torch threads"
-    title = (f"grounded-sam per image, {KITTI_HW[1]}x{KITTI_HW[0]} px, {where}, "
-             f"text {plans[0].num_tokens} tokens in {len(plans)} pass(es), Q={n_q}; "
-             f"ratio = total compute ({det_name} + {next(iter(seg_times))}) / row")
+    title = (
+        f"grounded-sam per image, {KITTI_HW[1]}x{KITTI_HW[0]} px, {where}, "
+        f"text {plans[0].num_tokens} tokens in {len(plans)} pass(es), Q={n_q}; "
+        f"ratio = total compute ({det_name} + {next(iter(seg_times))}) / row"
+    )
     print_table(title, ["step", "median s", "cpu s", "x faster than compute"], rows)
     n_classes = schema.num_classes
-    print(f"per-class mode runs the detector {n_classes}x per image: "
-          f"about {n_classes * t_det.median:.0f} s here.\n")
+    print(
+        f"per-class mode runs the detector {n_classes}x per image: "
+        f"about {n_classes * t_det.median:.0f} s here.\n"
+    )
     name = ("models_quick" if args.quick else "models") + ("_cuda" if dev == "cuda" else "")
-    path = write_results(name, {"image_hw": KITTI_HW, "schema": "semantickitti_expanded", "device": where,
-                                "results": results})
+    path = write_results(
+        name, {"image_hw": KITTI_HW, "schema": "semantickitti_expanded", "device": where, "results": results}
+    )
     print(f"wrote {path}")
 
 

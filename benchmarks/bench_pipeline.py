@@ -127,9 +127,13 @@ def main() -> None:
             "k_change_ran": k_run.ran,
             "peak_memory_added_bytes": pm.added,
             "peak_memory_exact": pm.exact,
-            "metrics": None if metrics is None else {
-                p: {r: {"miou": m.miou, "category_miou": m.category_miou, "labeled_share": m.labeled_share}
-                    for r, m in rows_.items()}
+            "metrics": None
+            if metrics is None
+            else {
+                p: {
+                    r: {"miou": m.miou, "category_miou": m.category_miou, "labeled_share": m.labeled_share}
+                    for r, m in rows_.items()
+                }
                 for p, rows_ in metrics.items()
             },
             "coverage_ratio": (cold.metrics or {}).get("coverage_ratio"),

@@ -124,12 +124,18 @@ def bench_sequence(seq_dir: Path, work: Path, preset: str, config: OdometryConfi
         "frames": n,
         "path_m": float(path_distances(gt)[-1]),
         "kiss_icp": est.note()["settings"],
-        "kitti_lengths": {"lengths_m": list(KITTI_SEGMENT_LENGTHS), "segments": kitti.count,
-                          "translation_pct": _num(kitti.translation_pct),
-                          "rotation_deg_per_100m": _num(kitti.rotation_deg_per_100m)},
-        "fitted_lengths": {"lengths_m": list(lengths), "segments": fitted.count,
-                           "translation_pct": fitted.translation_pct,
-                           "rotation_deg_per_100m": fitted.rotation_deg_per_100m},
+        "kitti_lengths": {
+            "lengths_m": list(KITTI_SEGMENT_LENGTHS),
+            "segments": kitti.count,
+            "translation_pct": _num(kitti.translation_pct),
+            "rotation_deg_per_100m": _num(kitti.rotation_deg_per_100m),
+        },
+        "fitted_lengths": {
+            "lengths_m": list(lengths),
+            "segments": fitted.count,
+            "translation_pct": fitted.translation_pct,
+            "rotation_deg_per_100m": fitted.rotation_deg_per_100m,
+        },
         "ate_rmse_m": ate_rmse(gt, est.lidar),
         "kiss_icp_ms_per_frame": 1000.0 * est.seconds / n,
         "read_scans_ms_per_frame": 1000.0 * floor / n,
@@ -142,8 +148,12 @@ def bench_sequence(seq_dir: Path, work: Path, preset: str, config: OdometryConfi
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sequence", action="append", required=True, help="Sequence folder with true poses "
-                    "and ground truth (repeatable).")
+    ap.add_argument(
+        "--sequence",
+        action="append",
+        required=True,
+        help="Sequence folder with true poses and ground truth (repeatable).",
+    )
     ap.add_argument("--schema", default="semantickitti", help="Preset of the runs (the demo project's).")
     ap.add_argument("--work", default=None, help="Folder for copies and runs (default: a temp folder).")
     ap.add_argument("--name", default="bench_poses", help="Result file: benchmarks/results/NAME.json.")
@@ -165,20 +175,30 @@ def main() -> None:
         fl, kl = r["fitted_lengths"], r["kitti_lengths"]
         vt, ve = r["miou_true"]["camera"]["voxel"], r["miou_estimated"]["camera"]["voxel"]
         at, ae = r["miou_true"]["all"]["voxel"], r["miou_estimated"]["all"]["voxel"]
-        rows.append([
-            f"{Path(r['sequence']).parent.parent.name} ({r['frames']} frames, {r['path_m']:.0f} m)",
-            f"{fl['lengths_m'][0]:.0f}-{fl['lengths_m'][-1]:.0f} m: {fl['translation_pct']:.2f} %",
-            f"{fmt(kl['translation_pct'])} %",
-            f"{fl['rotation_deg_per_100m']:.2f}",
-            f"{100 * r['ate_rmse_m']:.1f} cm",
-            f"{r['kiss_icp_ms_per_frame']:.0f} ({r['read_scans_ms_per_frame']:.0f})",
-            f"{vt:.1f} / {ve:.1f} ({ve - vt:+.1f})",
-            f"{at:.1f} / {ae:.1f} ({ae - at:+.1f})",
-        ])
+        rows.append(
+            [
+                f"{Path(r['sequence']).parent.parent.name} ({r['frames']} frames, {r['path_m']:.0f} m)",
+                f"{fl['lengths_m'][0]:.0f}-{fl['lengths_m'][-1]:.0f} m: {fl['translation_pct']:.2f} %",
+                f"{fmt(kl['translation_pct'])} %",
+                f"{fl['rotation_deg_per_100m']:.2f}",
+                f"{100 * r['ate_rmse_m']:.1f} cm",
+                f"{r['kiss_icp_ms_per_frame']:.0f} ({r['read_scans_ms_per_frame']:.0f})",
+                f"{vt:.1f} / {ve:.1f} ({ve - vt:+.1f})",
+                f"{at:.1f} / {ae:.1f} ({ae - at:+.1f})",
+            ]
+        )
     print_table(
         "Estimated (KISS-ICP) vs true poses",
-        ["sequence", "transl. err (segments)", "at 100-800 m", "rot. deg/100 m", "ATE RMSE",
-         "ms/frame (read only)", "voxel mIoU cam: true / est", "voxel mIoU all: true / est"],
+        [
+            "sequence",
+            "transl. err (segments)",
+            "at 100-800 m",
+            "rot. deg/100 m",
+            "ATE RMSE",
+            "ms/frame (read only)",
+            "voxel mIoU cam: true / est",
+            "voxel mIoU all: true / est",
+        ],
         rows,
     )
     path = write_results(args.name, {"sequences": results})

@@ -70,8 +70,10 @@ def _training_seconds(run_dir: Path) -> float:
     """The training loops' seconds of a run's 3D-CN rounds (``meta["seconds"]`` of its checkpoints)."""
     import torch
 
-    return sum(float(torch.load(p, weights_only=True)["meta"]["seconds"])
-               for p in sorted((run_dir / "3dcn").glob("3dcn_iter*.pt")))
+    return sum(
+        float(torch.load(p, weights_only=True)["meta"]["seconds"])
+        for p in sorted((run_dir / "3dcn").glob("3dcn_iter*.pt"))
+    )
 
 
 def _multi_outputs(root: Path) -> dict[str, bytes]:
@@ -96,8 +98,14 @@ def _first_pass_spans(root: Path) -> dict[str, tuple[float, float]]:
     return spans
 
 
-def bench_multi(args: argparse.Namespace, cfg: PipelineConfig, schema, frames: range, tmp: Path,
-                engines: dict[str, Runtime]) -> dict[str, object]:
+def bench_multi(
+    args: argparse.Namespace,
+    cfg: PipelineConfig,
+    schema,
+    frames: range,
+    tmp: Path,
+    engines: dict[str, Runtime],
+) -> dict[str, object]:
     """The two-sequence run, local then Ray, ``--repeat`` times each (fresh folders)."""
     specs = [SequenceSpec("a", args.sequence, frames), SequenceSpec("b", args.second)]
     walls: dict[str, list[float]] = {e: [] for e in engines}
@@ -118,18 +126,40 @@ def bench_multi(args: argparse.Namespace, cfg: PipelineConfig, schema, frames: r
             overlap[name].append(max(0.0, min(a1, b1) - max(a0, b0)))
             outputs[name] = _multi_outputs(root)
     same = outputs["local"] == outputs["ray"]
-    med = {k: {e: statistics.median(v[e]) for e in engines} for k, v in
-           (("first pass", first), ("joint 3D-CN", joint), ("whole run", walls), ("overlap", overlap))}
-    rows = [[k, f"{m['local']:.2f}", f"{m['ray']:.2f}",
-             f"{m['ray'] / m['local']:.2f}" if m["local"] > 0.005 else "-"] for k, m in med.items()]
+    med = {
+        k: {e: statistics.median(v[e]) for e in engines}
+        for k, v in (
+            ("first pass", first),
+            ("joint 3D-CN", joint),
+            ("whole run", walls),
+            ("overlap", overlap),
+        )
+    }
+    rows = [
+        [
+            k,
+            f"{m['local']:.2f}",
+            f"{m['ray']:.2f}",
+            f"{m['ray'] / m['local']:.2f}" if m["local"] > 0.005 else "-",
+        ]
+        for k, m in med.items()
+    ]
     print_table(
         f"two sequences ({args.sequence} {args.frames} + {args.second}): local (in turn) vs Ray (at once), "
         f"median of {args.repeat}; 'overlap' = seconds both sequences were in their first pass; outputs "
         f"identical: {same}",
-        ["part", "local s", "ray s", "ray / local"], rows,
+        ["part", "local s", "ray s", "ray / local"],
+        rows,
     )
-    return {"second": str(args.second), "wall_s": walls, "joint_s": joint, "first_pass_s": first,
-            "overlap_s": overlap, "outputs_identical": same, "files_compared": len(outputs["ray"])}
+    return {
+        "second": str(args.second),
+        "wall_s": walls,
+        "joint_s": joint,
+        "first_pass_s": first,
+        "overlap_s": overlap,
+        "outputs_identical": same,
+        "files_compared": len(outputs["ray"]),
+    }
 
 
 def bench_inference(args: argparse.Namespace, cfg: PipelineConfig, tmp: Path) -> dict[str, object]:
@@ -152,8 +182,9 @@ def bench_inference(args: argparse.Namespace, cfg: PipelineConfig, tmp: Path) ->
     predictor = RayExecutor("auto").predictor(cfg)
 
     def local() -> list[tuple[object, object]]:
-        return list(predict_from_checkpoint(seq, list(frames), checkpoint, cn, cfg.fusion.voxel_size,
-                                            threads))
+        return list(
+            predict_from_checkpoint(seq, list(frames), checkpoint, cn, cfg.fusion.voxel_size, threads)
+        )
 
     def on_ray() -> list[tuple[object, object]]:
         return list(predictor(seq, frames, checkpoint))
@@ -165,16 +196,20 @@ def bench_inference(args: argparse.Namespace, cfg: PipelineConfig, tmp: Path) ->
             t = time.perf_counter()
             outs[name] = fn()
             walls[name].append(time.perf_counter() - t)
-    same = all(k.tobytes() == k2.tobytes() and v.tobytes() == v2.tobytes()  # type: ignore[attr-defined]
-               for (k, v), (k2, v2) in zip(outs["local"], outs["ray"], strict=True))
+    same = all(
+        k.tobytes() == k2.tobytes() and v.tobytes() == v2.tobytes()  # type: ignore[attr-defined]
+        for (k, v), (k2, v2) in zip(outs["local"], outs["ray"], strict=True)
+    )
     lo, ra = statistics.median(walls["local"]), statistics.median(walls["ray"])
     print_table(
         f"3D-CN inference of {args.sequence} frames 0:{args.inference}: this process ({threads} torch "
         f"threads) vs Ray tasks ({predictor.tasks // args.repeat} per pass), median of {args.repeat}; "
         f"identical: {same}",
         ["", "local s", "ray s", "ray / local"],
-        [["inference", f"{lo:.2f}", f"{ra:.2f}", f"{ra / lo:.2f}"],
-         ["per frame", f"{lo / len(frames):.3f}", f"{ra / len(frames):.3f}", ""]],
+        [
+            ["inference", f"{lo:.2f}", f"{ra:.2f}", f"{ra / lo:.2f}"],
+            ["per frame", f"{lo / len(frames):.3f}", f"{ra / len(frames):.3f}", ""],
+        ],
     )
     return {"frames": args.inference, "threads": threads, "wall_s": walls, "identical": same}
 
@@ -200,15 +235,23 @@ def main() -> None:
 
     t0 = time.perf_counter()
     # address="local": a new instance of --cpus CPUs even where a cluster runs (ray.init would join it).
-    ray.init(address="local", num_cpus=args.cpus, include_dashboard=False, logging_level="ERROR",
-             log_to_driver=False, object_store_memory=512 * 1024 * 1024)
+    ray.init(
+        address="local",
+        num_cpus=args.cpus,
+        include_dashboard=False,
+        logging_level="ERROR",
+        log_to_driver=False,
+        object_store_memory=512 * 1024 * 1024,
+    )
     ray_start = time.perf_counter() - t0
     if args.inference is not None:
         with tempfile.TemporaryDirectory(prefix="bench_ray_") as tmp:
             result = bench_inference(args, cfg, Path(tmp))
         ray.shutdown()
-        write_results("bench_ray_inference", {"machine": machine_info(), "cpus": args.cpus,
-                                              "ray_init_s": ray_start, **result})
+        write_results(
+            "bench_ray_inference",
+            {"machine": machine_info(), "cpus": args.cpus, "ray_init_s": ray_start, **result},
+        )
         return
 
     engines = {"local": Runtime(), "ray": Runtime(ray_address="auto")}
@@ -221,8 +264,9 @@ def main() -> None:
             for name, runtime in engines.items():  # alternate, so load changes hit both alike
                 run_dir = Path(tmp) / f"{name}{rep}"
                 t = time.perf_counter()
-                result = run_pipeline(args.sequence, preset.schema, cfg, run_dir, frames=frames,
-                                      runtime=runtime)
+                result = run_pipeline(
+                    args.sequence, preset.schema, cfg, run_dir, frames=frames, runtime=runtime
+                )
                 walls[name].append(time.perf_counter() - t)
                 for s, r in result.stages.items():
                     stage_s[name][s].append(r.seconds)
@@ -231,8 +275,11 @@ def main() -> None:
                     exports[name].update({p.name: p.read_bytes() for p in sorted(run_dir.glob("grid*.npz"))})
                     tasks[name] = read_state(RunLayout(run_dir))["3dcn"].get("ray_tasks", 0)
                     stage_s[name][TRAINING].append(_training_seconds(run_dir))
-        multi = (bench_multi(args, cfg, preset.schema, frames, Path(tmp), engines)
-                 if args.second is not None else None)
+        multi = (
+            bench_multi(args, cfg, preset.schema, frames, Path(tmp), engines)
+            if args.second is not None
+            else None
+        )
     ray.shutdown()
     same = exports["local"] == exports["ray"]
 
@@ -246,15 +293,27 @@ def main() -> None:
         f"{args.sequence} frames {args.frames}: local vs Ray ({args.cpus} CPUs), median of {args.repeat} "
         f"(ray.init {ray_start:.1f} s apart); 3D-CN {'on' if cfg.consistency.enabled else 'off'} "
         f"(inference tasks on Ray: {tasks.get('ray', 0)}); exports and grids identical: {same}",
-        ["stage", "local s", "ray s", "ray / local"], rows,
+        ["stage", "local s", "ray s", "ray / local"],
+        rows,
     )
-    write_results("bench_ray", {
-        "machine": machine_info(), "sequence": str(args.sequence), "frames": args.frames, "cpus": args.cpus,
-        "ray_init_s": ray_start, "wall_s": walls, "stage_s": stage_s, "exports_identical": same,
-        "label_files": len([n for n in exports["ray"] if n.endswith(".label")]),
-        "consistency": cfg.consistency.enabled, "cn_min_steps": cfg.consistency.min_steps,
-        "inference_tasks": tasks.get("ray", 0), "multi": multi,
-    })
+    write_results(
+        "bench_ray",
+        {
+            "machine": machine_info(),
+            "sequence": str(args.sequence),
+            "frames": args.frames,
+            "cpus": args.cpus,
+            "ray_init_s": ray_start,
+            "wall_s": walls,
+            "stage_s": stage_s,
+            "exports_identical": same,
+            "label_files": len([n for n in exports["ray"] if n.endswith(".label")]),
+            "consistency": cfg.consistency.enabled,
+            "cn_min_steps": cfg.consistency.min_steps,
+            "inference_tasks": tasks.get("ray", 0),
+            "multi": multi,
+        },
+    )
 
 
 if __name__ == "__main__":

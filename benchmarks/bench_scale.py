@@ -170,7 +170,7 @@ class Watch:
         s = np.asarray(self.samples)
         lo = max(int(np.searchsorted(s[:, 0], t0)) - 1, 0)
         hi = int(np.searchsorted(s[:, 0], t1, side="right"))
-        return int(s[lo:max(hi, lo + 1), 2].max())
+        return int(s[lo : max(hi, lo + 1), 2].max())
 
 
 def run_child(cmd: list[str], log: Path, interval: float) -> dict[str, Any]:
@@ -224,8 +224,22 @@ def ensure_sequence(root: Path, frames: int, seed: int, interval: float) -> Path
         return seq
     print(f"generating {frames} frames (seed {seed}) into {root} with leap synth ...", flush=True)
     root.mkdir(parents=True, exist_ok=True)
-    run_child([sys.executable, "-m", "app.cli", "synth", str(root), "--frames", str(frames), "--seed",
-               str(seed), "--force"], root / "synth.log", interval)
+    run_child(
+        [
+            sys.executable,
+            "-m",
+            "app.cli",
+            "synth",
+            str(root),
+            "--frames",
+            str(frames),
+            "--seed",
+            str(seed),
+            "--force",
+        ],
+        root / "synth.log",
+        interval,
+    )
     return seq
 
 
@@ -259,7 +273,7 @@ def invalidate_3d_stages(run_dir: Path) -> None:
     observations stay)."""
     path = run_dir / "stages.json"
     state = json.loads(path.read_text())
-    for name in STAGES[STAGES.index(FIRST_3D_STAGE):]:
+    for name in STAGES[STAGES.index(FIRST_3D_STAGE) :]:
         if isinstance(state.get(name), dict):
             state[name]["fingerprint"] = "bench_scale: run again"
     path.write_text(json.dumps(state))
@@ -270,22 +284,36 @@ def least_of(runs: list[dict[str, Any]]) -> dict[str, Any]:
     in every run gets its least wall and its least CPU seconds over the runs (the stages before were
     computed once: the later runs' records of them are the first run's)."""
     out = dict(runs[0])
-    for name in STAGES[STAGES.index(FIRST_3D_STAGE):]:
+    for name in STAGES[STAGES.index(FIRST_3D_STAGE) :]:
         if all(r[name]["status"] == "done" for r in runs):
-            out[name] = {**runs[0][name], "wall_s": min(r[name]["wall_s"] for r in runs),
-                         "cpu_s": min(r[name]["cpu_s"] for r in runs)}
+            out[name] = {
+                **runs[0][name],
+                "wall_s": min(r[name]["wall_s"] for r in runs),
+                "cpu_s": min(r[name]["cpu_s"] for r in runs),
+            }
     return out
 
 
-def measure_length(seq: Path, work: Path, cn: bool, interval: float, cached: bool,
-                   repeat: int = 1) -> dict[str, Any]:
+def measure_length(
+    seq: Path, work: Path, cn: bool, interval: float, cached: bool, repeat: int = 1
+) -> dict[str, Any]:
     """One cold ``leap run`` on ``seq`` into a fresh folder, its 3D stages ``repeat - 1`` more times on
     the same folder (per stage the least time counts), then the cached reruns."""
     frames = count_frames(seq)
     run_dir = work / f"run-{frames}"
     shutil.rmtree(run_dir, ignore_errors=True)
-    cmd = [sys.executable, "-m", "app.cli", "run", str(seq), "--out", str(run_dir), "--labeler", "simulated",
-           "--3dcn" if cn else "--no-3dcn"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "app.cli",
+        "run",
+        str(seq),
+        "--out",
+        str(run_dir),
+        "--labeler",
+        "simulated",
+        "--3dcn" if cn else "--no-3dcn",
+    ]
     print(f"{frames} frames: leap run ...", flush=True)
     cold = run_child(cmd, work / f"run-{frames}.log", interval)
     watch: Watch = cold.pop("watch")
@@ -371,7 +399,7 @@ def analyse(results: list[dict[str, Any]], cn: bool = False) -> dict[str, Any]:
     wall = np.array([r["cold"]["wall_s"] for r in results], np.float64)
     cpu = np.array([r["cold"]["cpu_s"] for r in results], np.float64)
     va, vb = power_law_fit(n, vox)
-    vox_x = va * FULL_SEQUENCE ** vb
+    vox_x = va * FULL_SEQUENCE**vb
     ma, mb = linear_fit(vox, peak)
     pa, pb = power_law_fit(n, peak)
     wa, wb = power_law_fit(n, wall)
@@ -387,18 +415,21 @@ def analyse(results: list[dict[str, Any]], cn: bool = False) -> dict[str, Any]:
         "frames": FULL_SEQUENCE,
         "voxels": vox_x,
         "peak_rss_b_from_voxels": ma + mb * vox_x,
-        "peak_rss_b_from_frames": pa * FULL_SEQUENCE ** pb,
-        "wall_s": wa * FULL_SEQUENCE ** wb,
-        "cpu_s": ca * FULL_SEQUENCE ** cb,
+        "peak_rss_b_from_frames": pa * FULL_SEQUENCE**pb,
+        "wall_s": wa * FULL_SEQUENCE**wb,
+        "cpu_s": ca * FULL_SEQUENCE**cb,
         "memory_target_b": memory_target(vox_x, cn),
     }
     x = out["extrapolated"]
     worst = max(x["peak_rss_b_from_voxels"], x["peak_rss_b_from_frames"])
     x["memory_ok"] = bool(worst <= x["memory_target_b"])
     out["memory"] = [
-        {"frames": r["frames"], "peak_rss_b": r["cold"]["peak_rss_b"],
-         "target_b": memory_target(r["voxels"], cn),
-         "ok": bool(r["cold"]["peak_rss_b"] <= memory_target(r["voxels"], cn))}
+        {
+            "frames": r["frames"],
+            "peak_rss_b": r["cold"]["peak_rss_b"],
+            "target_b": memory_target(r["voxels"], cn),
+            "ok": bool(r["cold"]["peak_rss_b"] <= memory_target(r["voxels"], cn)),
+        }
         for r in results
     ]
     return out
@@ -425,63 +456,108 @@ def report_tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[A
     d3 = set(an["three_d_stages"])
     tables = []
 
-    header = ["stage (ms per scan, wall / CPU)", *(f"{f:,} frames" for f in lengths),
-              "exponent b (wall / CPU)", f"{lengths[-1]:,} vs {lengths[0]:,} (wall / CPU)",
-              f"{FULL_SEQUENCE:,} frames (extrap.)"]
+    header = [
+        "stage (ms per scan, wall / CPU)",
+        *(f"{f:,} frames" for f in lengths),
+        "exponent b (wall / CPU)",
+        f"{lengths[-1]:,} vs {lengths[0]:,} (wall / CPU)",
+        f"{FULL_SEQUENCE:,} frames (extrap.)",
+    ]
     rows = []
     for s, e in an["stages"].items():
         w, c = e["wall_s"], e["cpu_s"]
-        rows.append([
-            s + (" (3D)" if s in d3 else ""),
-            *(f"{_ms(pw)} / {_ms(pc)}" for pw, pc in zip(w["per_scan"], c["per_scan"], strict=True)),
-            f"{w['fit_b']:.2f} / {c['fit_b']:.2f}",
-            f"{w['growth']:.2f}x / {c['growth']:.2f}x",
-            f"{_ms(w['extrapolated_per_scan'])} / {_ms(c['extrapolated_per_scan'])}",
-        ])
+        rows.append(
+            [
+                s + (" (3D)" if s in d3 else ""),
+                *(f"{_ms(pw)} / {_ms(pc)}" for pw, pc in zip(w["per_scan"], c["per_scan"], strict=True)),
+                f"{w['fit_b']:.2f} / {c['fit_b']:.2f}",
+                f"{w['growth']:.2f}x / {c['growth']:.2f}x",
+                f"{_ms(w['extrapolated_per_scan'])} / {_ms(c['extrapolated_per_scan'])}",
+            ]
+        )
     tw, tc = an["totals"]["wall_s"], an["totals"]["cpu_s"]
-    rows.append([
-        "3D stages together",
-        *(f"{_ms(a)} / {_ms(b)}"
-          for a, b in zip(tw["three_d_per_scan"], tc["three_d_per_scan"], strict=True)),
-        "", "",
-        f"{_ms(tw['three_d_extrapolated_per_scan'])} / {_ms(tc['three_d_extrapolated_per_scan'])}",
-    ])
+    rows.append(
+        [
+            "3D stages together",
+            *(
+                f"{_ms(a)} / {_ms(b)}"
+                for a, b in zip(tw["three_d_per_scan"], tc["three_d_per_scan"], strict=True)
+            ),
+            "",
+            "",
+            f"{_ms(tw['three_d_extrapolated_per_scan'])} / {_ms(tc['three_d_extrapolated_per_scan'])}",
+        ]
+    )
     repeat = max(len(r.get("stage_runs", [None])) for r in results)
-    title = ("time per scan by stage (cold run)" if repeat <= 1 else
-             f"time per scan by stage (cold run; each 3D stage: the least of {repeat} runs)")
+    title = (
+        "time per scan by stage (cold run)"
+        if repeat <= 1
+        else f"time per scan by stage (cold run; each 3D stage: the least of {repeat} runs)"
+    )
     tables.append((title, header, rows))
 
-    header = ["frames", "points / scan", "voxels", "wall s", "CPU s", "before / after stages s",
-              "peak RSS MB (sampled / wait4)", "peak RSS / target", "cached rerun s (counts kept / counted)"]
+    header = [
+        "frames",
+        "points / scan",
+        "voxels",
+        "wall s",
+        "CPU s",
+        "before / after stages s",
+        "peak RSS MB (sampled / wait4)",
+        "peak RSS / target",
+        "cached rerun s (counts kept / counted)",
+    ]
     rows = []
     for r, m in zip(results, an["memory"], strict=True):
         cold = r["cold"]
-        cached = (f"{r['cached']['wall_s']:.1f} / {r['cached_recount']['wall_s']:.1f}"
-                  if "cached" in r else "-")
-        rows.append([
-            f"{r['frames']:,}", f"{r['points'] / r['frames']:,.0f}", f"{r['voxels']:,}",
-            f"{cold['wall_s']:.1f}", f"{cold['cpu_s']:.1f}",
-            f"{r['before_stages_s']:.1f} / {r['after_stages_s']:.1f}",
-            f"{_mb(cold['sampled_peak_rss_b'])} / {_mb(cold['maxrss_b'])}",
-            f"{_mb(m['peak_rss_b'])} / {_mb(m['target_b'])} ({_ok(m['ok'])})", cached,
-        ])
+        cached = (
+            f"{r['cached']['wall_s']:.1f} / {r['cached_recount']['wall_s']:.1f}" if "cached" in r else "-"
+        )
+        rows.append(
+            [
+                f"{r['frames']:,}",
+                f"{r['points'] / r['frames']:,.0f}",
+                f"{r['voxels']:,}",
+                f"{cold['wall_s']:.1f}",
+                f"{cold['cpu_s']:.1f}",
+                f"{r['before_stages_s']:.1f} / {r['after_stages_s']:.1f}",
+                f"{_mb(cold['sampled_peak_rss_b'])} / {_mb(cold['maxrss_b'])}",
+                f"{_mb(m['peak_rss_b'])} / {_mb(m['target_b'])} ({_ok(m['ok'])})",
+                cached,
+            ]
+        )
     x = an["extrapolated"]
-    rows.append([
-        f"{FULL_SEQUENCE:,} (extrap.)", "", f"{x['voxels']:,.0f}", f"{x['wall_s']:,.0f}",
-        f"{x['cpu_s']:,.0f}", "",
-        f"{_mb(x['peak_rss_b_from_voxels'])} (a + b·voxels) / {_mb(x['peak_rss_b_from_frames'])} (power law)",
-        f"{_mb(max(x['peak_rss_b_from_voxels'], x['peak_rss_b_from_frames']))} / {_mb(x['memory_target_b'])} "
-        f"({_ok(x['memory_ok'])})", "",
-    ])
+    rows.append(
+        [
+            f"{FULL_SEQUENCE:,} (extrap.)",
+            "",
+            f"{x['voxels']:,.0f}",
+            f"{x['wall_s']:,.0f}",
+            f"{x['cpu_s']:,.0f}",
+            "",
+            f"{_mb(x['peak_rss_b_from_voxels'])} (a + b·voxels) / "
+            f"{_mb(x['peak_rss_b_from_frames'])} (power law)",
+            f"{_mb(max(x['peak_rss_b_from_voxels'], x['peak_rss_b_from_frames']))} / "
+            f"{_mb(x['memory_target_b'])} "
+            f"({_ok(x['memory_ok'])})",
+            "",
+        ]
+    )
     tables.append(("whole run (cold), memory and cached reruns", header, rows))
 
     f = an["fits"]
     rows = [
         ["voxels = a · frames^b", f"{f['voxels_vs_frames'][0]:,.4g}", f"{f['voxels_vs_frames'][1]:.3f}"],
-        ["peak RSS bytes = a + b · voxels", f"{f['peak_rss_vs_voxels_linear'][0]:,.4g}",
-         f"{f['peak_rss_vs_voxels_linear'][1]:.1f}"],
-        ["peak RSS bytes = a · frames^b", f"{f['peak_rss_vs_frames'][0]:,.4g}",
-         f"{f['peak_rss_vs_frames'][1]:.3f}"],
+        [
+            "peak RSS bytes = a + b · voxels",
+            f"{f['peak_rss_vs_voxels_linear'][0]:,.4g}",
+            f"{f['peak_rss_vs_voxels_linear'][1]:.1f}",
+        ],
+        [
+            "peak RSS bytes = a · frames^b",
+            f"{f['peak_rss_vs_frames'][0]:,.4g}",
+            f"{f['peak_rss_vs_frames'][1]:.3f}",
+        ],
         ["wall s = a · frames^b", f"{f['wall_vs_frames'][0]:.4g}", f"{f['wall_vs_frames'][1]:.3f}"],
         ["CPU s = a · frames^b", f"{f['cpu_vs_frames'][0]:.4g}", f"{f['cpu_vs_frames'][1]:.3f}"],
     ]
@@ -492,32 +568,55 @@ def report_tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[A
         t = an["totals"][kind]
         growth = t["check2_growth"]
         worst = max(growth.items(), key=lambda kv: kv[1]) if growth else ("-", math.nan)
-        rows.append([f"(1) 3D stages ≤ {1000 * BUDGET_S_PER_SCAN:.0f} ms per scan at {lengths[-1]:,} frames, "
-                     f"{label}", f"{_ms(t['three_d_per_scan'][-1])} ms", _ok(t["check1_budget_ok"])])
-        rows.append([f"(2) every 3D stage within {MAX_PER_SCAN_GROWTH}x per scan, {lengths[-1]:,} vs "
-                     f"{lengths[0]:,} frames, {label}", f"worst {worst[0]} {worst[1]:.2f}x",
-                     _ok(t["check2_ok"])])
+        rows.append(
+            [
+                f"(1) 3D stages ≤ {1000 * BUDGET_S_PER_SCAN:.0f} ms per scan at {lengths[-1]:,} frames, "
+                f"{label}",
+                f"{_ms(t['three_d_per_scan'][-1])} ms",
+                _ok(t["check1_budget_ok"]),
+            ]
+        )
+        rows.append(
+            [
+                f"(2) every 3D stage within {MAX_PER_SCAN_GROWTH}x per scan, {lengths[-1]:,} vs "
+                f"{lengths[0]:,} frames, {label}",
+                f"worst {worst[0]} {worst[1]:.2f}x",
+                _ok(t["check2_ok"]),
+            ]
+        )
     mem_ok = all(m["ok"] for m in an["memory"]) and x["memory_ok"]
-    rows.append([f"memory: peak RSS ≤ {MEMORY_BASE_B / 1e9:.1f} GB + {MEMORY_PER_VOXEL_B:.0f} B × voxels "
-                 f"(measured lengths and {FULL_SEQUENCE:,} extrapolated)", "", _ok(mem_ok)])
+    rows.append(
+        [
+            f"memory: peak RSS ≤ {MEMORY_BASE_B / 1e9:.1f} GB + {MEMORY_PER_VOXEL_B:.0f} B × voxels "
+            f"(measured lengths and {FULL_SEQUENCE:,} extrapolated)",
+            "",
+            _ok(mem_ok),
+        ]
+    )
     tables.append(("checks", ["check", "value", "met"], rows))
     return tables
 
 
 def markdown(title: str, header: list[str], rows: list[list[Any]]) -> str:
-    lines = [f"**{title}**", "", "| " + " | ".join(header) + " |",
-             "|" + "|".join("---" for _ in header) + "|"]
+    lines = [
+        f"**{title}**",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join("---" for _ in header) + "|",
+    ]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in rows]
     return "\n".join(lines)
 
 
 def print_report(doc: dict[str, Any], as_markdown: bool) -> None:
     m = doc.get("machine", {})
-    note = (f"{doc.get('config', {}).get('labeler', 'simulated')} labeler, 3D-CN "
-            f"{'on' if doc.get('config', {}).get('3dcn') else 'off'}; {m.get('cpu', '?')}, "
-            f"{m.get('affinity_cpus', '?')} cores, OPENBLAS_NUM_THREADS "
-            f"{doc.get('config', {}).get('openblas_threads') or 'unset'}, load average at the end "
-            f"{m.get('load_average_1_5_15_min')}")
+    note = (
+        f"{doc.get('config', {}).get('labeler', 'simulated')} labeler, 3D-CN "
+        f"{'on' if doc.get('config', {}).get('3dcn') else 'off'}; {m.get('cpu', '?')}, "
+        f"{m.get('affinity_cpus', '?')} cores, OPENBLAS_NUM_THREADS "
+        f"{doc.get('config', {}).get('openblas_threads') or 'unset'}, load average at the end "
+        f"{m.get('load_average_1_5_15_min')}"
+    )
     for title, header, rows in report_tables(doc):
         if as_markdown:
             sys.stdout.write(markdown(title, header, rows) + "\n\n")
@@ -529,24 +628,51 @@ def print_report(doc: dict[str, Any], as_markdown: bool) -> None:
 # ------------------------------------------------------------------------------------------ main
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", nargs="+", type=Path, default=None,
-                    help="Sequence folders (.../sequences/NN) to run, each complete (synth_version.txt).")
-    ap.add_argument("--frames", nargs="+", type=int, default=[60, 240, 1000],
-                    help="Without --data: lengths to generate with leap synth (default 60 240 1000).")
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 11, 12],
-                    help="Without --data: the seed of each length (default 0 11 12).")
+    ap.add_argument(
+        "--data",
+        nargs="+",
+        type=Path,
+        default=None,
+        help="Sequence folders (.../sequences/NN) to run, each complete (synth_version.txt).",
+    )
+    ap.add_argument(
+        "--frames",
+        nargs="+",
+        type=int,
+        default=[60, 240, 1000],
+        help="Without --data: lengths to generate with leap synth (default 60 240 1000).",
+    )
+    ap.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=[0, 11, 12],
+        help="Without --data: the seed of each length (default 0 11 12).",
+    )
     ap.add_argument("--3dcn", dest="cn", action="store_true", help="Run with the 3D Consistency Network.")
-    ap.add_argument("--work", type=Path, default=None,
-                    help="Folder for the runs (and generated data); default: a temporary folder, removed.")
+    ap.add_argument(
+        "--work",
+        type=Path,
+        default=None,
+        help="Folder for the runs (and generated data); default: a temporary folder, removed.",
+    )
     ap.add_argument("--interval", type=float, default=0.05, help="psutil sampling interval, seconds.")
     ap.add_argument("--no-cached", dest="cached", action="store_false", help="Skip the cached reruns.")
-    ap.add_argument("--repeat", type=int, default=None,
-                    help="Runs of the 3D stages per length: the cold run, then its 3D stages again on the "
-                         "same folder; each stage's figure is its least time (default 3; 1 with --3dcn). "
-                         "On shared cores a single run of a few-second stage varies by ±30 %%.")
-    ap.add_argument("--blas-threads", type=int, default=None,
-                    help="OPENBLAS_NUM_THREADS of the runs (default: inherited). On a loaded machine numpy's "
-                         "threaded matrix products of N×3 points by 3×3 rotations wait on each other.")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=None,
+        help="Runs of the 3D stages per length: the cold run, then its 3D stages again on the "
+        "same folder; each stage's figure is its least time (default 3; 1 with --3dcn). "
+        "On shared cores a single run of a few-second stage varies by ±30 %%.",
+    )
+    ap.add_argument(
+        "--blas-threads",
+        type=int,
+        default=None,
+        help="OPENBLAS_NUM_THREADS of the runs (default: inherited). On a loaded machine numpy's "
+        "threaded matrix products of N×3 points by 3×3 rotations wait on each other.",
+    )
     ap.add_argument("--markdown", action="store_true", help="Print the tables as Markdown (the README's).")
     ap.add_argument("--report", action="store_true", help="Only print the last results file again.")
     ap.add_argument("--name", default=None, help="Result file benchmarks/results/NAME.json.")
@@ -563,13 +689,17 @@ def main() -> None:
         seqs = [Path(d) for d in args.data]
         for s in seqs:
             if not is_complete(s):
-                sys.exit(f"{s}: not a complete sequence (no {SYNTH_VERSION_FILE}); generate it with "
-                         "leap synth or leave out --data")
+                sys.exit(
+                    f"{s}: not a complete sequence (no {SYNTH_VERSION_FILE}); generate it with "
+                    "leap synth or leave out --data"
+                )
     else:
         if len(args.seeds) != len(args.frames):
             sys.exit(f"--seeds: {len(args.seeds)} seeds for {len(args.frames)} lengths")
-        seqs = [ensure_sequence(work / "data" / f"f{n}-s{seed}", n, seed, args.interval)
-                for n, seed in zip(args.frames, args.seeds, strict=True)]
+        seqs = [
+            ensure_sequence(work / "data" / f"f{n}-s{seed}", n, seed, args.interval)
+            for n, seed in zip(args.frames, args.seeds, strict=True)
+        ]
 
     if args.blas_threads is not None:
         os.environ["OPENBLAS_NUM_THREADS"] = str(args.blas_threads)  # the children inherit it
@@ -577,9 +707,16 @@ def main() -> None:
     if repeat < 1:
         sys.exit("--repeat: at least 1")
     results = [measure_length(s, work, args.cn, args.interval, args.cached, repeat) for s in seqs]
-    doc = {"config": {"labeler": "simulated", "3dcn": bool(args.cn), "repeat": repeat,
-                      "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS")}, "results": results,
-           "analysis": analyse(results, args.cn)}
+    doc = {
+        "config": {
+            "labeler": "simulated",
+            "3dcn": bool(args.cn),
+            "repeat": repeat,
+            "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+        },
+        "results": results,
+        "analysis": analyse(results, args.cn),
+    }
     path = write_results(name, doc)
     doc = json.loads(path.read_text())
     print_report(doc, args.markdown)

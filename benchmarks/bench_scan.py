@@ -63,8 +63,12 @@ from leap_core.schema import builtin_schema
 REPO = Path(__file__).resolve().parents[1]
 TIMED = ("project", "fuse", "label_points", "export")
 """The per-scan 3D stages of the target, in pipeline order (each reads the previous one's files)."""
-OUTPUTS = {"project": ("observations",), "fuse": ("grid.npz",), "label_points": ("points",),
-           "export": ("export",)}
+OUTPUTS = {
+    "project": ("observations",),
+    "fuse": ("grid.npz",),
+    "label_points": ("points",),
+    "export": ("export",),
+}
 """What each timed stage writes in a run folder (removed before it runs, compared after)."""
 SHARED = ("calib.txt", "poses.txt", "times.txt", "image_2", "gt2d")
 
@@ -85,8 +89,9 @@ class Version:
 def import_baseline(commit: str, into: Path) -> Version:
     """``leap_core`` and ``projects/`` as of ``commit``, imported as ``leap_base_<commit>``."""
     name = f"leap_base_{re.sub(r'[^0-9A-Za-z]', '_', commit)}"
-    tar = subprocess.run(["git", "-C", str(REPO), "archive", commit, "leap_core", "projects"],
-                         check=True, capture_output=True).stdout
+    tar = subprocess.run(
+        ["git", "-C", str(REPO), "archive", commit, "leap_core", "projects"], check=True, capture_output=True
+    ).stdout
     root = into / "baseline"
     shutil.rmtree(root, ignore_errors=True)
     root.mkdir(parents=True)
@@ -96,10 +101,11 @@ def import_baseline(commit: str, into: Path) -> Version:
     for py in (root / name).rglob("*.py"):
         py.write_text(re.sub(r"\bleap_core\b", name, py.read_text()))
     sys.path.insert(0, str(root))
-    mods = {m: importlib.import_module(f"{name}.{m}") for m in ("pipeline.runner", "pipeline.stages",
-                                                                "config", "schema")}
-    return Version(commit, mods["pipeline.runner"], mods["pipeline.stages"], mods["config"],
-                   mods["schema"])
+    mods = {
+        m: importlib.import_module(f"{name}.{m}")
+        for m in ("pipeline.runner", "pipeline.stages", "config", "schema")
+    }
+    return Version(commit, mods["pipeline.runner"], mods["pipeline.stages"], mods["config"], mods["schema"])
 
 
 def current_version(threads: int) -> Version:
@@ -108,9 +114,14 @@ def current_version(threads: int) -> Version:
     import leap_core.pipeline.stages
     import leap_core.schema
 
-    return Version(f"{threads} thread{'s' if threads > 1 else ''}", leap_core.pipeline.runner,
-                   leap_core.pipeline.stages, leap_core.config, leap_core.schema,
-                   Runtime(frame_threads=threads))
+    return Version(
+        f"{threads} thread{'s' if threads > 1 else ''}",
+        leap_core.pipeline.runner,
+        leap_core.pipeline.stages,
+        leap_core.config,
+        leap_core.schema,
+        Runtime(frame_threads=threads),
+    )
 
 
 # ------------------------------------------------------------------------------------------- data
@@ -134,8 +145,14 @@ def padded_copy(src: Path, dst: Path, points: int, seed: int = 0) -> Path:
 def prepare(seq_dir: Path, run_dir: Path, cache: Path) -> None:
     """Run the current pipeline up to ``smooth`` (untimed): the timed stages' inputs. The 2D labels go
     through a shared cache, so the padded copy (same images) reuses the demo's."""
-    run_pipeline(seq_dir, builtin_schema("semantickitti"), PipelineConfig(), run_dir, until="smooth",
-                 runtime=Runtime(cache_dir=cache))
+    run_pipeline(
+        seq_dir,
+        builtin_schema("semantickitti"),
+        PipelineConfig(),
+        run_dir,
+        until="smooth",
+        runtime=Runtime(cache_dir=cache),
+    )
 
 
 def digest_outputs(run_dir: Path) -> dict[str, str]:
@@ -171,8 +188,9 @@ def run_once(
             shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
     schema = version.schema.builtin_schema("semantickitti")
     cfg = version.config.config_from_dict(config_to_dict(PipelineConfig()))
-    ctx = version.runner._context(seq_dir, schema, cfg, run_dir, progress=None, frames=None,
-                                  runtime=version.runtime)
+    ctx = version.runner._context(
+        seq_dir, schema, cfg, run_dir, progress=None, frames=None, runtime=version.runtime
+    )
     table = {s.name: s for s in version.stages.STAGE_TABLE}
     n = len(ctx.frames)
     for stage in TIMED:
@@ -183,8 +201,9 @@ def run_once(
     return digest_outputs(run_dir)
 
 
-def bench_sequence(label: str, seq_dir: Path, prepared: Path, versions: list[Version], repeat: int,
-                   work: Path) -> dict[str, Any]:
+def bench_sequence(
+    label: str, seq_dir: Path, prepared: Path, versions: list[Version], repeat: int, work: Path
+) -> dict[str, Any]:
     seq = KittiSequence(seq_dir)
     n_pts = statistics.mean(seq.frame(i).points.shape[0] for i in range(len(seq)))
     times = {v.name: StageTimes() for v in versions}
@@ -198,8 +217,10 @@ def bench_sequence(label: str, seq_dir: Path, prepared: Path, versions: list[Ver
     cpu = {v.name: {s: 1e3 * statistics.median(times[v.name].cpu[s]) for s in TIMED} for v in versions}
     rows = []
     for s in (*TIMED, "total"):
+
         def get(d: dict[str, float], s: str = s) -> float:
             return sum(d.values()) if s == "total" else d[s]
+
         walls = [get(ms[v.name]) for v in versions]
         rows.append([s, *walls, f"{walls[0] / walls[-1]:.2f}x", get(cpu[base.name]), get(cpu[new.name])])
     print_table(
@@ -208,10 +229,15 @@ def bench_sequence(label: str, seq_dir: Path, prepared: Path, versions: list[Ver
         ["stage", *(f"{v.name} wall" for v in versions), "ratio", "baseline CPU", "new CPU"],
         rows,
     )
-    return {"sequence": str(seq_dir), "scans": len(seq), "points_per_scan": n_pts, "identical": identical,
-            "wall_ms_per_scan": ms, "cpu_ms_per_scan": cpu,
-            "runs_s_per_scan": {v.name: {"wall": times[v.name].wall, "cpu": times[v.name].cpu}
-                                for v in versions}}
+    return {
+        "sequence": str(seq_dir),
+        "scans": len(seq),
+        "points_per_scan": n_pts,
+        "identical": identical,
+        "wall_ms_per_scan": ms,
+        "cpu_ms_per_scan": cpu,
+        "runs_s_per_scan": {v.name: {"wall": times[v.name].wall, "cpu": times[v.name].cpu} for v in versions},
+    }
 
 
 def main() -> None:
@@ -219,8 +245,9 @@ def main() -> None:
     ap.add_argument("--sequence", default="/tmp/demo/sequences/00", help="KITTI-layout sequence folder.")
     ap.add_argument("--points", type=int, default=120_000, help="Points per scan of the padded copy.")
     ap.add_argument("--repeat", type=int, default=3, help="Timed runs per version and sequence.")
-    ap.add_argument("--threads", type=int, default=Runtime().frame_threads,
-                    help="frame_threads of this tree.")
+    ap.add_argument(
+        "--threads", type=int, default=Runtime().frame_threads, help="frame_threads of this tree."
+    )
     ap.add_argument("--baseline", default="c472ae0", help="Git commit of the baseline.")
     ap.add_argument("--work", default=None, help="Folder for data and runs (default: a temp folder).")
     ap.add_argument("--name", default="bench_scan", help="Result file: benchmarks/results/NAME.json.")
@@ -244,16 +271,21 @@ def main() -> None:
 
     results = {
         "demo": bench_sequence("demo", seq_dir, demo_run, versions, args.repeat, work),
-        "padded": bench_sequence(f"padded to {args.points} points", padded, padded_run, versions, args.repeat,
-                                 work),
+        "padded": bench_sequence(
+            f"padded to {args.points} points", padded, padded_run, versions, args.repeat, work
+        ),
     }
     total = sum(results["padded"]["wall_ms_per_scan"][versions[-1].name].values())
     cpu_total = sum(results["padded"]["cpu_ms_per_scan"][versions[-1].name].values())
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"this tree, {args.points} points per scan: {total:.1f} ms wall, {cpu_total:.1f} ms CPU per scan "
-          f"for the four stages (target 40 ms); load average {load} (1, 5, 15 min) on {os.cpu_count()} CPUs")
-    path = write_results(args.name, {"baseline": args.baseline, "frame_threads": args.threads,
-                                     "repeat": args.repeat, **results})
+    print(
+        f"this tree, {args.points} points per scan: {total:.1f} ms wall, {cpu_total:.1f} ms CPU per scan "
+        f"for the four stages (target 40 ms); load average {load} (1, 5, 15 min) on {os.cpu_count()} CPUs"
+    )
+    path = write_results(
+        args.name,
+        {"baseline": args.baseline, "frame_threads": args.threads, "repeat": args.repeat, **results},
+    )
     print(f"wrote {path}")
     if not args.work:
         shutil.rmtree(work, ignore_errors=True)

@@ -66,14 +66,17 @@ RESULTS = Path(__file__).resolve().parent / "results" / "bench_viewer.json"
 def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGrid:
     """A street-sized map: voxels on a 400 m × 400 m × 8 m block at 0.2 m, random class posteriors."""
     rng = np.random.default_rng(seed)
-    ijk = np.stack(
-        [
-            rng.integers(0, 2000, num_voxels * 2),
-            rng.integers(0, 2000, num_voxels * 2),
-            rng.integers(0, 40, num_voxels * 2),
-        ],
-        axis=1,
-    ) + AXIS_OFFSET
+    ijk = (
+        np.stack(
+            [
+                rng.integers(0, 2000, num_voxels * 2),
+                rng.integers(0, 2000, num_voxels * 2),
+                rng.integers(0, 40, num_voxels * 2),
+            ],
+            axis=1,
+        )
+        + AXIS_OFFSET
+    )
     keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])[:num_voxels]
     logits = rng.normal(0.0, 1.5, (keys.shape[0], num_classes)).astype(np.float32)
     logits[np.arange(keys.shape[0]), rng.integers(0, num_classes, keys.shape[0])] += 2.5
@@ -143,7 +146,11 @@ def naive_loop(
 
 
 def old_rank_regions(
-    centres: np.ndarray, score: np.ndarray, candidates: np.ndarray, cell_size: float, min_count: int,
+    centres: np.ndarray,
+    score: np.ndarray,
+    candidates: np.ndarray,
+    cell_size: float,
+    min_count: int,
     ascending: bool,
 ) -> list[tuple[float, int]]:
     """Baseline: the ranking before issue 11 (cells grouped with a row-wise ``np.unique(axis=0)``)."""
@@ -184,9 +191,9 @@ def synthetic_scans(
     return out
 
 
-def _disagreement(grid: ReviewGrid, scans: list[dict[str, np.ndarray]], camera_only: bool) -> tuple[
-    np.ndarray, np.ndarray
-]:
+def _disagreement(
+    grid: ReviewGrid, scans: list[dict[str, np.ndarray]], camera_only: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """The per-scan pass of :meth:`app.viewer.data.RunOutputs.disagreement` on in-memory scans;
     ``camera_only=False`` is the old pass over every point."""
     pose = np.eye(4)
@@ -215,14 +222,16 @@ def bench_queues(grid: ReviewGrid, repeats: int, scans: int = 40, points: int = 
         return statistics.median(runs), out
 
     def conf_new() -> list[vl.Region]:
-        regions = vl.rank_regions(grid.centres, grid.conf, vl.lowest_share(grid.conf, share), cell,
-                                  min_count=min_count)
+        regions = vl.rank_regions(
+            grid.centres, grid.conf, vl.lowest_share(grid.conf, share), cell, min_count=min_count
+        )
         review.region_signatures(grid.centres, grid.keys, grid.label, [r.cell for r in regions], cell)
         return regions
 
     def conf_old() -> list[tuple[float, int]]:
-        return old_rank_regions(grid.centres, grid.conf, vl.lowest_share(grid.conf, share), cell, min_count,
-                                True)
+        return old_rank_regions(
+            grid.centres, grid.conf, vl.lowest_share(grid.conf, share), cell, min_count, True
+        )
 
     def dis_rank(rate: np.ndarray, observed: np.ndarray, new: bool) -> Any:
         seen = observed > 0
@@ -254,8 +263,10 @@ def bench_queues(grid: ReviewGrid, repeats: int, scans: int = 40, points: int = 
         "disagreement_cached_s": cached_s,
         "target_s": 1.0,
     }
-    print(f"\nreview queues: {grid.num_voxels:,} voxels; disagreement over {scans} scans × {points:,} points "
-          f"(8 % camera-labelled), median of {repeats}\n")
+    print(
+        f"\nreview queues: {grid.num_voxels:,} voxels; disagreement over {scans} scans × {points:,} points "
+        f"(8 % camera-labelled), median of {repeats}\n"
+    )
     print(f"{'queue':36s} {'ours':>8s} {'before':>8s} {'ratio':>7s}")
     for name, ours_s, old_s in (
         ("lowest confidence", conf_new_s, conf_old_s),
@@ -309,16 +320,18 @@ def bench_selection(grid: ReviewGrid, repeats: int) -> dict[str, Any]:
 
     def ours() -> int:
         mask = sel.polygon_mask(polygon, camera.width_px, camera.height_px)
-        picked = sel.select_points(grid.centres, camera, mask, depth_mode="front", distance=0.5,
-                                   splat_size=grid.voxel_size)
+        picked = sel.select_points(
+            grid.centres, camera, mask, depth_mode="front", distance=0.5, splat_size=grid.voxel_size
+        )
         keys = grid.keys[picked]
         vl.apply_corrections(grid.keys, grid.label, grid.conf, keys, np.full(keys.shape[0], corr_label))
         return int(picked.sum())
 
     def baseline() -> int:
         cam = sel.camera_coords(grid.centres, camera.position, camera.wxyz)
-        uv, in_front = sel.project_to_screen(grid.centres, camera.position, camera.wxyz, camera.fov_y,
-                                             camera.aspect)
+        uv, in_front = sel.project_to_screen(
+            grid.centres, camera.position, camera.wxyz, camera.fov_y, camera.aspect
+        )
         col, row, on = sel.pixel_of(uv, camera.width_px, camera.height_px)
         cand = in_front & on & crossing_number(uv, polygon)
         depth = np.linalg.norm(cam, axis=1)
@@ -340,17 +353,31 @@ def bench_selection(grid: ReviewGrid, repeats: int) -> dict[str, Any]:
 
     ours_s, n_ours = timed(ours)
     base_s, n_base = timed(baseline)
-    print(f"\nselection at {grid.num_voxels:,} voxels (lasso of {polygon.shape[0]} vertices, "
-          f"front surface 0.5 m, + apply): ours {ours_s * 1e3:.0f} ms ({n_ours:,} selected), "
-          f"per-edge crossing baseline "
-          f"{base_s * 1e3:.0f} ms ({n_base:,} selected) = {base_s / ours_s:.1f}x; target ≤ 300 ms: "
-          f"{'PASS' if ours_s <= 0.3 else 'FAIL'}")
-    return {"voxels": grid.num_voxels, "polygon_vertices": int(polygon.shape[0]), "ours_s": ours_s,
-            "baseline_crossing_s": base_s, "selected": n_ours, "baseline_selected": n_base, "target_s": 0.3}
+    print(
+        f"\nselection at {grid.num_voxels:,} voxels (lasso of {polygon.shape[0]} vertices, "
+        f"front surface 0.5 m, + apply): ours {ours_s * 1e3:.0f} ms ({n_ours:,} selected), "
+        f"per-edge crossing baseline "
+        f"{base_s * 1e3:.0f} ms ({n_base:,} selected) = {base_s / ours_s:.1f}x; target ≤ 300 ms: "
+        f"{'PASS' if ours_s <= 0.3 else 'FAIL'}"
+    )
+    return {
+        "voxels": grid.num_voxels,
+        "polygon_vertices": int(polygon.shape[0]),
+        "ours_s": ours_s,
+        "baseline_crossing_s": base_s,
+        "selected": n_ours,
+        "baseline_selected": n_base,
+        "target_s": 0.3,
+    }
 
 
 def bench_apply_export(
-    work: Path, *, frames: int = 60, points: int = 100_000, voxels: int = 2_000_000, correction: int = 10_000,
+    work: Path,
+    *,
+    frames: int = 60,
+    points: int = 100_000,
+    voxels: int = 2_000_000,
+    correction: int = 10_000,
     repeats: int = 3,
 ) -> dict[str, Any]:
     """The "apply corrections" job, from the request to the rewritten ``.label`` / ``.conf`` files, on a
@@ -400,11 +427,23 @@ def bench_apply_export(
     # A finished run of a project in a real database, its folder holding the map and the export.
     settings = Settings(work_dir=work / "studio", data_roots=[work])
     init_db(settings.database)
-    params = {"dataset": str(seq_root), "dataset_kind": "folder", "schema": schema.to_dict(), "pipeline": {},
-              "frames": None, "stages": []}
+    params = {
+        "dataset": str(seq_root),
+        "dataset_kind": "folder",
+        "schema": schema.to_dict(),
+        "pipeline": {},
+        "frames": None,
+        "stages": [],
+    }
     with open_db(settings.database) as db:
-        project = crud.create_project(db, name="bench", dataset_kind="folder", dataset_path=str(seq_root),
-                                      schema=params["schema"], pipeline={})
+        project = crud.create_project(
+            db,
+            name="bench",
+            dataset_kind="folder",
+            dataset_path=str(seq_root),
+            schema=params["schema"],
+            pipeline={},
+        )
         pid = int(project["id"])
         run = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.work_dir / "runs")
         crud.update_run(db, run["id"], status="done", finished_at="bench")
@@ -420,8 +459,12 @@ def bench_apply_export(
         for i in range(frames):
             fid = seq.frame_ids[i]
             lab, conf = point_labels(grid, frame_keys(seq.frame(i), 0.2), fid, none)
-            atomic_save_npz(lay.points(fid), label=lab, conf=conf.astype(np.float16),
-                            point_label=np.full(lab.shape, -1, np.int16))
+            atomic_save_npz(
+                lay.points(fid),
+                label=lab,
+                conf=conf.astype(np.float16),
+                point_label=np.full(lab.shape, -1, np.int16),
+            )
             export_labels(lay.export_label(fid), lay.export_conf(fid), lab, conf.astype(np.float16), ids)
         return time.perf_counter() - t0
 
@@ -437,8 +480,14 @@ def bench_apply_export(
     def request(r: int) -> tuple[float, Any]:
         t0 = time.perf_counter()
         with open_db(settings.database) as db:
-            crud.add_correction(db, project_id=pid, class_name=names[r % len(names)], voxel_size=0.2,
-                                keys=keys, author="bench")
+            crud.add_correction(
+                db,
+                project_id=pid,
+                class_name=names[r % len(names)],
+                voxel_size=0.2,
+                keys=keys,
+                author="bench",
+            )
         applier.request(pid)
         state = applier.wait(pid, timeout=600)
         if state.status != "done":
@@ -453,20 +502,33 @@ def bench_apply_export(
         runs.append(seconds)
         touched.append(state.frames)
     out = {
-        "frames": frames, "points_per_frame": points, "voxels": grid.num_voxels,
-        "correction_voxels": correction, "first_request_s": cold_s,
-        "apply_s": statistics.median(runs), "frames_rewritten": statistics.median(touched),
-        "baseline_all_frames_s": statistics.median(base), "target_s": 1.0,
+        "frames": frames,
+        "points_per_frame": points,
+        "voxels": grid.num_voxels,
+        "correction_voxels": correction,
+        "first_request_s": cold_s,
+        "apply_s": statistics.median(runs),
+        "frames_rewritten": statistics.median(touched),
+        "baseline_all_frames_s": statistics.median(base),
+        "target_s": 1.0,
     }
-    print(f"\napply corrections to the export: {frames} scans × {points:,} points, "
-          f"{grid.num_voxels:,}-voxel map, {correction:,}-voxel correction, median of {repeats}")
-    print(f"  request → export files written: {out['apply_s'] * 1e3:.0f} ms "
-          f"({out['frames_rewritten']:.0f} scans rewritten) "
-          f"(target ≤ 1 s: {'PASS' if out['apply_s'] <= 1.0 else 'FAIL'})")
-    print(f"  first request of a run, loading the final grid + voxel → frames index: {cold_s:.2f} s "
-          "(the viewer loads them when it opens)")
-    print(f"  baseline, label_points + export of every scan: {out['baseline_all_frames_s']:.2f} s "
-          f"= {out['baseline_all_frames_s'] / out['apply_s']:.1f}x")
+    print(
+        f"\napply corrections to the export: {frames} scans × {points:,} points, "
+        f"{grid.num_voxels:,}-voxel map, {correction:,}-voxel correction, median of {repeats}"
+    )
+    print(
+        f"  request → export files written: {out['apply_s'] * 1e3:.0f} ms "
+        f"({out['frames_rewritten']:.0f} scans rewritten) "
+        f"(target ≤ 1 s: {'PASS' if out['apply_s'] <= 1.0 else 'FAIL'})"
+    )
+    print(
+        f"  first request of a run, loading the final grid + voxel → frames index: {cold_s:.2f} s "
+        "(the viewer loads them when it opens)"
+    )
+    print(
+        f"  baseline, label_points + export of every scan: {out['baseline_all_frames_s']:.2f} s "
+        f"= {out['baseline_all_frames_s'] / out['apply_s']:.1f}x"
+    )
     return out
 
 
@@ -485,8 +547,10 @@ def bench_recolour(grid: ReviewGrid, repeats: int, build_s: float) -> dict[str, 
         ("mode: confidence", vl.ViewState("confidence", threshold=0.5, enabled=all_on)),
         ("mode: P(class 3)", vl.ViewState("class_probability", class_index=3, threshold=0.5, enabled=all_on)),
         ("P(class 3) ≥ 0.2", vl.ViewState("class_probability", class_index=3, threshold=0.2, enabled=all_on)),
-        ("P(class 5), threshold 0",
-         vl.ViewState("class_probability", class_index=5, threshold=0.0, enabled=all_on)),
+        (
+            "P(class 5), threshold 0",
+            vl.ViewState("class_probability", class_index=5, threshold=0.0, enabled=all_on),
+        ),
         ("back to classes", vl.ViewState("class", threshold=0.0, enabled=all_on)),
     ]
 
@@ -568,10 +632,14 @@ def bench_recolour(grid: ReviewGrid, repeats: int, build_s: float) -> dict[str, 
     finally:
         scene.stop()
 
-    print(f"\nviewer recolouring: {grid.num_voxels:,} voxels, {c} classes (grid built in {build_s:.1f} s), "
-          f"median of {repeats}\n")
-    header = (f"{'change':24s} {'shown':>10s} {'ours srv':>9s} {'ours dlv':>9s} {'re-add srv':>10s} "
-              f"{'re-add dlv':>10s} {'dlv ratio':>9s}")
+    print(
+        f"\nviewer recolouring: {grid.num_voxels:,} voxels, {c} classes (grid built in {build_s:.1f} s), "
+        f"median of {repeats}\n"
+    )
+    header = (
+        f"{'change':24s} {'shown':>10s} {'ours srv':>9s} {'ours dlv':>9s} {'re-add srv':>10s} "
+        f"{'re-add dlv':>10s} {'dlv ratio':>9s}"
+    )
     print(header)
     print("-" * len(header))
     for row in table:
@@ -583,11 +651,15 @@ def bench_recolour(grid: ReviewGrid, repeats: int, build_s: float) -> dict[str, 
             f"{row['readd_delivered_s'] * 1e3:>8.0f}ms {ratio:>8.1f}x"
         )
     thr = table[1]
-    print(f"\nnaive per-voxel Python loop (threshold 0.5): {naive_s * 1e3:.0f} ms server "
-          f"= {naive_s / thr['ours_server_s']:.0f}x ours ({thr['ours_server_s'] * 1e3:.0f} ms)")
+    print(
+        f"\nnaive per-voxel Python loop (threshold 0.5): {naive_s * 1e3:.0f} ms server "
+        f"= {naive_s / thr['ours_server_s']:.0f}x ours ({thr['ours_server_s'] * 1e3:.0f} ms)"
+    )
     worst = max(r["ours_server_s"] for r in table)
-    print(f"worst server time over all changes: {worst * 1e3:.0f} ms (target ≤ 300 ms): "
-          f"{'PASS' if worst <= 0.3 else 'FAIL'}")
+    print(
+        f"worst server time over all changes: {worst * 1e3:.0f} ms (target ≤ 300 ms): "
+        f"{'PASS' if worst <= 0.3 else 'FAIL'}"
+    )
     return {
         "classes": c,
         "grid_build_s": build_s,
@@ -600,8 +672,15 @@ def bench_recolour(grid: ReviewGrid, repeats: int, build_s: float) -> dict[str, 
 
 
 # ------------------------------------------------------------------------------------ level of detail
-STREET_CLASSES = {"road": 8, "sidewalk": 10, "building": 12, "car": 0, "vegetation": 14, "trunk": 15,
-                  "pole": 17}
+STREET_CLASSES = {
+    "road": 8,
+    "sidewalk": 10,
+    "building": 12,
+    "car": 0,
+    "vegetation": 14,
+    "trunk": 15,
+    "pole": 17,
+}
 """Classes of the synthetic street map (indices of the built-in SemanticKITTI schema)."""
 
 
@@ -616,9 +695,9 @@ def _box_shell(x0: int, y0: int, z0: int, dx: int, dy: int, dz: int) -> np.ndarr
     return np.concatenate(faces)
 
 
-def street_map(num_voxels: int, voxel_size: float = 0.2, seed: int = 0, spacing_m: float = 100.0) -> tuple[
-    np.ndarray, np.ndarray, float
-]:
+def street_map(
+    num_voxels: int, voxel_size: float = 0.2, seed: int = 0, spacing_m: float = 100.0
+) -> tuple[np.ndarray, np.ndarray, float]:
     """A town of streets at ``voxel_size``: a Manhattan grid of 18 m wide streets (12 m road, 3 m raised
     sidewalks) every ``spacing_m``, building facades 6-24 m high around each block, parked cars (box
     surfaces), trees (trunk + crown shell) and poles on the sidewalks; the town grows until it holds 1.15 ×
@@ -647,8 +726,11 @@ def street_map(num_voxels: int, voxel_size: float = 0.2, seed: int = 0, spacing_
                 a, b = np.meshgrid(line, across, indexing="ij")
                 off = np.abs(b - k * sp)
                 z = (off >= road).astype(np.int32)  # the sidewalk is one voxel up
-                ijk = np.stack([a.ravel(), b.ravel(), z.ravel()], 1) if axis == 0 else np.stack(
-                    [b.ravel(), a.ravel(), z.ravel()], 1)
+                ijk = (
+                    np.stack([a.ravel(), b.ravel(), z.ravel()], 1)
+                    if axis == 0
+                    else np.stack([b.ravel(), a.ravel(), z.ravel()], 1)
+                )
                 sidewalk = off.ravel() >= road
                 add(ijk[~sidewalk], STREET_CLASSES["road"])
                 add(ijk[sidewalk], STREET_CLASSES["sidewalk"])
@@ -671,8 +753,12 @@ def street_map(num_voxels: int, voxel_size: float = 0.2, seed: int = 0, spacing_
                 x0, x1 = bi * sp + half, (bi + 1) * sp - half
                 y0, y1 = bj * sp + half, (bj + 1) * sp - half
                 zs = np.arange(1, int(rng.uniform(6, 24) * per_m))
-                for fixed, run, swap in ((y0, np.arange(x0, x1), False), (y1, np.arange(x0, x1), False),
-                                         (x0, np.arange(y0, y1), True), (x1, np.arange(y0, y1), True)):
+                for fixed, run, swap in (
+                    (y0, np.arange(x0, x1), False),
+                    (y1, np.arange(x0, x1), False),
+                    (x0, np.arange(y0, y1), True),
+                    (x1, np.arange(y0, y1), True),
+                ):
                     a, zz = np.meshgrid(run, zs, indexing="ij")
                     wall = np.stack([a.ravel(), np.full(a.size, fixed), zz.ravel()], 1)
                     add(wall[:, [1, 0, 2]] if swap else wall, STREET_CLASSES["building"])
@@ -806,8 +892,12 @@ def street_scans(work: Path, grid: ReviewGrid, side_m: float, frames: int, point
         write_scan(seq_root / "velodyne" / f"{i:06d}.bin", pts)
         label = grid.label[pick].astype(np.int16)
         cam = np.where(rng.random(points) < 0.1, label, -1).astype(np.int16)
-        atomic_save_npz(run_dir / "points" / f"{i:06d}.npz", label=label, point_label=cam,
-                        conf=grid.conf[pick].astype(np.float16))
+        atomic_save_npz(
+            run_dir / "points" / f"{i:06d}.npz",
+            label=label,
+            point_label=cam,
+            conf=grid.conf[pick].astype(np.float16),
+        )
     return seq_root, run_dir
 
 
@@ -825,7 +915,13 @@ def _look_camera(target: np.ndarray, distance: float, width: int = 1280, height:
 
 
 def _lod_session_run(
-    grid: ReviewGrid, schema: Any, seq_root: Path, run_dir: Path, *, budget: int | None, repeats: int,
+    grid: ReviewGrid,
+    schema: Any,
+    seq_root: Path,
+    run_dir: Path,
+    *,
+    budget: int | None,
+    repeats: int,
     side_m: float,
 ) -> dict[str, Any]:
     """One session on the grid (level of detail with ``budget``, or the exact draw when None): the first
@@ -897,10 +993,12 @@ def _lod_session_run(
         session.set_tools(depth_mode="front")
         selected = {}
         for _ in range(repeats):
-            selected["lasso near"] = timed("lasso near (front)", lambda: session.select_screen("lasso", lasso,
-                                                                                              near_cam))
-            selected["box far"] = timed("box far (front)", lambda: session.select_screen(
-                "box", [(0.3, 0.3), (0.7, 0.7)], far_cam))
+            selected["lasso near"] = timed(
+                "lasso near (front)", lambda: session.select_screen("lasso", lasso, near_cam)
+            )
+            selected["box far"] = timed(
+                "box far (front)", lambda: session.select_screen("box", [(0.3, 0.3), (0.7, 0.7)], far_cam)
+            )
         timed("assign far box", lambda: session.assign_selection("road"))
         timed("undo", session.undo)
         t = time.perf_counter()
@@ -911,10 +1009,12 @@ def _lod_session_run(
         session.clear_focus()
         session.wait_drawn(600)
         out["selected"] = selected
-        out["interactions"] = {k: {"median_s": statistics.median(v), "max_s": max(v), "n": len(v)}
-                               for k, v in times.items()}
+        out["interactions"] = {
+            k: {"median_s": statistics.median(v), "max_s": max(v), "n": len(v)} for k, v in times.items()
+        }
         out["last_points_sent"] = session.scene.voxels.count + (
-            session.scene.overview.count if session.lod_plan else 0)
+            session.scene.overview.count if session.lod_plan else 0
+        )
         out["lod_seconds"] = dict(session.lod_seconds)
     finally:
         session.close()
@@ -928,8 +1028,9 @@ def _rss_peak_mb() -> float:
     return float("nan")
 
 
-def bench_lod(num_voxels: int, repeats: int, budget: int = 2_000_000, frames: int = 20,
-              points: int = 60_000) -> dict[str, Any]:
+def bench_lod(
+    num_voxels: int, repeats: int, budget: int = 2_000_000, frames: int = 20, points: int = 60_000
+) -> dict[str, Any]:
     """Level of detail of a big map in a real session (viser server + websocket client): the first draw
     and the interactions with ``budget`` points against the old exact draw of every voxel (same process,
     same grid, same actions)."""
@@ -939,45 +1040,70 @@ def bench_lod(num_voxels: int, repeats: int, budget: int = 2_000_000, frames: in
     t = time.perf_counter()
     grid, side_m = street_grid(num_voxels, schema.num_classes)
     build_s = time.perf_counter() - t
-    print(f"\nlevel of detail: street map of {grid.num_voxels:,} voxels ({side_m:.0f} m square town, made in "
-          f"{build_s:.1f} s), budget {budget:,} points, median of {repeats}")
+    print(
+        f"\nlevel of detail: street map of {grid.num_voxels:,} voxels ({side_m:.0f} m square town, made in "
+        f"{build_s:.1f} s), budget {budget:,} points, median of {repeats}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         seq_root, run_dir = street_scans(Path(tmp), grid, side_m, frames, points)
-        ours = _lod_session_run(grid, schema, seq_root, run_dir, budget=budget, repeats=repeats,
-                                side_m=side_m)
+        ours = _lod_session_run(
+            grid, schema, seq_root, run_dir, budget=budget, repeats=repeats, side_m=side_m
+        )
         rss_lod = _rss_peak_mb()
         base = _lod_session_run(grid, schema, seq_root, run_dir, budget=None, repeats=repeats, side_m=side_m)
     header = f"{'step':24s} {'ours':>9s} {'exact':>9s} {'ratio':>7s}"
     print(f"\n{header}\n{'-' * len(header)}")
-    rows = [("first draw (server)", ours["first_draw_server_s"], base["first_draw_server_s"]),
-            ("first draw (delivered)", ours["first_draw_delivered_s"], base["first_draw_delivered_s"]),
-            ("level-of-detail view", ours["lod_view_server_s"], base["first_draw_server_s"])]
+    rows = [
+        ("first draw (server)", ours["first_draw_server_s"], base["first_draw_server_s"]),
+        ("first draw (delivered)", ours["first_draw_delivered_s"], base["first_draw_delivered_s"]),
+        ("level-of-detail view", ours["lod_view_server_s"], base["first_draw_server_s"]),
+    ]
     rows += [(k, v["median_s"], base["interactions"][k]["median_s"]) for k, v in ours["interactions"].items()]
     for name, a, b in rows:
         if name == "camera refine":  # the exact draw has nothing to refine
             print(f"{name:24s} {a * 1e3:>7.0f}ms {'-':>9s} {'-':>7s}")
             continue
         print(f"{name:24s} {a * 1e3:>7.0f}ms {b * 1e3:>7.0f}ms {b / a:>6.1f}x")
-    print(f"showing the run (first draw, middle scan, redraw around it): ours {ours['show_run_s']:.2f} s, "
-          f"exact {base['show_run_s']:.2f} s")
-    print(f"points sent: ours {ours['points_sent']:,} in the first (strided) draw, "
-          f"{ours['last_points_sent']:,} in the last level-of-detail one; exact {base['points_sent']:,}; "
-          f"index built in {ours['index_s']:.2f} s on a thread after the first draw")
+    print(
+        f"showing the run (first draw, middle scan, redraw around it): ours {ours['show_run_s']:.2f} s, "
+        f"exact {base['show_run_s']:.2f} s"
+    )
+    print(
+        f"points sent: ours {ours['points_sent']:,} in the first (strided) draw, "
+        f"{ours['last_points_sent']:,} in the last level-of-detail one; exact {base['points_sent']:,}; "
+        f"index built in {ours['index_s']:.2f} s on a thread after the first draw"
+    )
     print(f"selected voxels, ours / exact: {ours['selected']} / {base['selected']}")
-    print(f"review queue ranked in {ours['queue_build_s']:.2f} s "
-          f"(exact session {base['queue_build_s']:.2f} s)")
+    print(
+        f"review queue ranked in {ours['queue_build_s']:.2f} s (exact session {base['queue_build_s']:.2f} s)"
+    )
     targets = {"first draw (server)": 5.0}
-    worst = max(v["max_s"] for k, v in ours["interactions"].items()
-                if k in ("scan change", "region select", "class toggle", "colour switch", "camera refine"))
-    print(f"first draw {ours['first_draw_server_s']:.2f} s (target ≤ 5 s): "
-          f"{'PASS' if ours['first_draw_server_s'] <= 5.0 else 'FAIL'}; worst interaction (scan, region, "
-          f"toggle, colour, refine) {worst * 1e3:.0f} ms (target ≤ 300 ms): "
-          f"{'PASS' if worst <= 0.3 else 'FAIL'}")
+    worst = max(
+        v["max_s"]
+        for k, v in ours["interactions"].items()
+        if k in ("scan change", "region select", "class toggle", "colour switch", "camera refine")
+    )
+    print(
+        f"first draw {ours['first_draw_server_s']:.2f} s (target ≤ 5 s): "
+        f"{'PASS' if ours['first_draw_server_s'] <= 5.0 else 'FAIL'}; worst interaction (scan, region, "
+        f"toggle, colour, refine) {worst * 1e3:.0f} ms (target ≤ 300 ms): "
+        f"{'PASS' if worst <= 0.3 else 'FAIL'}"
+    )
     print(f"peak RSS: {rss_lod:.0f} MB after the level-of-detail session, {_rss_peak_mb():.0f} MB after both")
-    return {"voxels": grid.num_voxels, "side_m": side_m, "grid_build_s": build_s, "budget": budget,
-            "frames": frames, "points_per_frame": points, "ours": ours, "exact": base,
-            "worst_interaction_s": worst, "targets_s": {**targets, "interaction": 0.3},
-            "peak_rss_mb_lod": rss_lod, "peak_rss_mb_both": _rss_peak_mb()}
+    return {
+        "voxels": grid.num_voxels,
+        "side_m": side_m,
+        "grid_build_s": build_s,
+        "budget": budget,
+        "frames": frames,
+        "points_per_frame": points,
+        "ours": ours,
+        "exact": base,
+        "worst_interaction_s": worst,
+        "targets_s": {**targets, "interaction": 0.3},
+        "peak_rss_mb_lod": rss_lod,
+        "peak_rss_mb_both": _rss_peak_mb(),
+    }
 
 
 PARTS = ("recolour", "selection", "queues", "apply", "lod")
@@ -988,8 +1114,12 @@ def main() -> None:
     parser.add_argument("--voxels", type=int, default=2_000_000)
     parser.add_argument("--classes", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--only", choices=PARTS, action="append",
-                        help="run only this part (repeatable; default all); others keep stored results")
+    parser.add_argument(
+        "--only",
+        choices=PARTS,
+        action="append",
+        help="run only this part (repeatable; default all); others keep stored results",
+    )
     parser.add_argument("--apply-frames", type=int, default=60)
     parser.add_argument("--apply-points", type=int, default=100_000)
     parser.add_argument("--budget", type=int, default=2_000_000, help="level-of-detail point budget (lod)")
@@ -1003,7 +1133,10 @@ def main() -> None:
     if "apply" in parts:
         with tempfile.TemporaryDirectory() as tmp:
             results["apply_export"] = bench_apply_export(
-                Path(tmp), frames=args.apply_frames, points=args.apply_points, voxels=args.voxels,
+                Path(tmp),
+                frames=args.apply_frames,
+                points=args.apply_points,
+                voxels=args.voxels,
                 repeats=args.repeats,
             )
     if "lod" in parts:

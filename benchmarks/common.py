@@ -47,8 +47,14 @@ class Timing:
         return statistics.median(self.cpu) if self.cpu else float("nan")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"best_s": self.best, "median_s": self.median, "runs_s": self.runs, "cold_s": self.cold,
-                "cpu_median_s": self.cpu_median, "cpu_runs_s": self.cpu}
+        return {
+            "best_s": self.best,
+            "median_s": self.median,
+            "runs_s": self.runs,
+            "cold_s": self.cold,
+            "cpu_median_s": self.cpu_median,
+            "cpu_runs_s": self.cpu,
+        }
 
 
 def time_it(fn: Callable[[], Any], repeat: int = 5, warmup: int = 1) -> Timing:

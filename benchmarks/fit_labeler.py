@@ -61,34 +61,59 @@ from leap_core.projection import paint, project_points
 from leap_core.schema import Schema
 
 PAPER_POINT: dict[str, float] = {
-    "car": 77.2, "bicycle": 25.5, "motorcycle": 15.1, "other-vehicle": 30.3, "person": 31.9, "road": 87.1,
-    "sidewalk": 46.1, "other-ground": 0.0, "manmade": 64.3, "vegetation": 64.7, "terrain": 72.3,
+    "car": 77.2,
+    "bicycle": 25.5,
+    "motorcycle": 15.1,
+    "other-vehicle": 30.3,
+    "person": 31.9,
+    "road": 87.1,
+    "sidewalk": 46.1,
+    "other-ground": 0.0,
+    "manmade": 64.3,
+    "vegetation": 64.7,
+    "terrain": 72.3,
 }
 """The paper's Table 1, SemanticKITTI, row "point" (mIoU 46.8 over the 11 classes)."""
 
 PAIRS: tuple[tuple[str, str], ...] = (
-    ("car", "truck"), ("car", "other-vehicle"), ("bicycle", "person"), ("bicyclist", "person"),
-    ("motorcycle", "bicycle"), ("road", "sidewalk"), ("road", "parking"), ("sidewalk", "terrain"),
-    ("other-ground", "sidewalk"), ("terrain", "vegetation"), ("fence", "vegetation"), ("building", "fence"),
-    ("pole", "trunk"), ("pole", "traffic-sign"), ("vegetation", "trunk"),
+    ("car", "truck"),
+    ("car", "other-vehicle"),
+    ("bicycle", "person"),
+    ("bicyclist", "person"),
+    ("motorcycle", "bicycle"),
+    ("road", "sidewalk"),
+    ("road", "parking"),
+    ("sidewalk", "terrain"),
+    ("other-ground", "sidewalk"),
+    ("terrain", "vegetation"),
+    ("fence", "vegetation"),
+    ("building", "fence"),
+    ("pole", "trunk"),
+    ("pole", "traffic-sign"),
+    ("vegetation", "trunk"),
 )
 """The paper preset's ambiguous pairs: the class that takes ``partner_share`` of a mask's spare mass (the
 paper's Fig. 5 errors: terrain / vegetation, sidewalk / road, riders / bicycles, fences / plants)."""
 
 TARGETS: dict[str, dict[str, float]] = {
     "car": {"truck": 1.0, "other-vehicle": 1.0},
-    "truck": {"car": 1.0, "building": 3.0}, "other-vehicle": {"car": 1.0, "building": 3.0},
-    "bicycle": {"person": 1.0, "pole": 1.0, "fence": 1.0}, "bicyclist": {"person": 1.0},
-    "motorcycle": {"bicycle": 1.0}, "motorcyclist": {"person": 1.0},
+    "truck": {"car": 1.0, "building": 3.0},
+    "other-vehicle": {"car": 1.0, "building": 3.0},
+    "bicycle": {"person": 1.0, "pole": 1.0, "fence": 1.0},
+    "bicyclist": {"person": 1.0},
+    "motorcycle": {"bicycle": 1.0},
+    "motorcyclist": {"person": 1.0},
     "person": {"bicyclist": 0.5, "pole": 1.0, "car": 1.0},
-    "road": {"sidewalk": 2.0, "parking": 1.0}, "parking": {"road": 1.0, "sidewalk": 1.0},
+    "road": {"sidewalk": 2.0, "parking": 1.0},
+    "parking": {"road": 1.0, "sidewalk": 1.0},
     "sidewalk": {"road": 2.0, "other-ground": 1.0, "building": 1.0},
     "other-ground": {"sidewalk": 2.0, "road": 1.0},
     "building": {"road": 1.0, "sidewalk": 2.0, "vegetation": 0.1, "fence": 1.0},
     "fence": {"vegetation": 1.0, "sidewalk": 1.0, "building": 1.0},
     "pole": {"trunk": 1.0, "traffic-sign": 1.0, "building": 1.0},
     "traffic-sign": {"pole": 1.0, "building": 1.0},
-    "vegetation": {"building": 2.0, "trunk": 1.0}, "trunk": {"vegetation": 1.0, "pole": 1.0},
+    "vegetation": {"building": 2.0, "trunk": 1.0},
+    "trunk": {"vegetation": 1.0, "pole": 1.0},
     "terrain": {"vegetation": 1.0, "sidewalk": 1.0},
 }
 """Directed confusion (``confusion_targets``): what a confused region of each class is labeled as, with
@@ -132,8 +157,9 @@ the confusion fitted instead (0.76), a person was another class in 0.76 of its f
 one below the global ``box_leak_prob`` (a value of 0 is kept in the table for that reason)."""
 
 
-def point_confusion(seq: KittiSequence, schema: Schema, cfg: PipelineConfig,
-                    frames: Sequence[int] | None = None) -> npt.NDArray[np.int64]:
+def point_confusion(
+    seq: KittiSequence, schema: Schema, cfg: PipelineConfig, frames: Sequence[int] | None = None
+) -> npt.NDArray[np.int64]:
     """(C, C+1) camera-view confusion of the projection-only labels ("point" row) over ``frames``
     (indices; default all): per frame, the labeler's masks, :func:`project_points`, :func:`paint` and
     ``Painted.point_labels``, counted over the points in the image (``confusion_matrix``), summed."""
@@ -161,8 +187,10 @@ def paper_row(conf: npt.NDArray[np.int64], schema: Schema) -> dict[str, float]:
     merged = merge_confusion(conf, mapping, len(PAPER_VIEW.classes))
     met = metrics_from_confusion(merged, PAPER_VIEW.names, PAPER_VIEW.categories, ignore_unlabeled_pred=True)
     present = merged[:, :-1].sum(axis=1) > 0  # the class has ground-truth points in view
-    return {n: (100.0 * float(v) if ok else math.nan) for n, v, ok in zip(PAPER_VIEW.names, met.iou, present,
-                                                                          strict=True)}
+    return {
+        n: (100.0 * float(v) if ok else math.nan)
+        for n, v, ok in zip(PAPER_VIEW.names, met.iou, present, strict=True)
+    }
 
 
 def mean_row(rows: Sequence[dict[str, float]]) -> dict[str, float]:
@@ -222,10 +250,15 @@ def paper_config(q: dict[str, float], base: SimulatedLabelerConfig) -> Simulated
     class_conf = {src: round(LEAK_FITTED.get(m, q.get(m, 0.0)), 3) for src, m in sorted(members.items())}
     # A leak-fitted class keeps its value even at 0: it overrides the global box_leak_prob.
     leak = {src: round(q.get(m, 0.0), 3) for src, m in sorted(members.items()) if m in LEAK_FITTED}
-    return dataclasses.replace(base, confusion_prob=0.0, confusion_pairs=PAIRS,
-                               class_confusion={k: v for k, v in class_conf.items() if v > 0},
-                               class_box_leak=leak,
-                               confusion_targets=TARGETS, **SHAPE_TERMS)
+    return dataclasses.replace(
+        base,
+        confusion_prob=0.0,
+        confusion_pairs=PAIRS,
+        class_confusion={k: v for k, v in class_conf.items() if v > 0},
+        class_box_leak=leak,
+        confusion_targets=TARGETS,
+        **SHAPE_TERMS,
+    )
 
 
 def _row_text(row: dict[str, float]) -> str:
@@ -245,9 +278,16 @@ def preset_q() -> dict[str, float]:
     return q
 
 
-def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds: int, step: float, *,
-        stride: int = 1, start: dict[str, float] | None = None,
-        ) -> tuple[SimulatedLabelerConfig, dict[str, float], list[str]]:
+def fit(
+    seqs: list[KittiSequence],
+    schema: Schema,
+    base: PipelineConfig,
+    rounds: int,
+    step: float,
+    *,
+    stride: int = 1,
+    start: dict[str, float] | None = None,
+) -> tuple[SimulatedLabelerConfig, dict[str, float], list[str]]:
     """The fit of the module docstring, from q = ``start`` (default 0); returns the best config, its row
     and a log of the rounds."""
     q: dict[str, float] = dict(start or {})
@@ -256,21 +296,25 @@ def fit(seqs: list[KittiSequence], schema: Schema, base: PipelineConfig, rounds:
     for r in range(rounds):
         sim = paper_config(q, base.simulated)
         cfg = dataclasses.replace(base, simulated=sim)
-        row = mean_row([paper_row(point_confusion(s, schema, cfg, range(0, len(s), stride)), schema)
-                        for s in seqs])
+        row = mean_row(
+            [paper_row(point_confusion(s, schema, cfg, range(0, len(s), stride)), schema) for s in seqs]
+        )
         err, present = misfit(row)
         miou = float(np.mean([row[n] for n in present]))
         out = in_band(row)
-        line = (f"round {r}: misfit {err:7.1f} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) "
-                f"{'in band' if not out else 'out: ' + ', '.join(out)} | {_row_text(row)}")
+        line = (
+            f"round {r}: misfit {err:7.1f} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) "
+            f"{'in band' if not out else 'out: ' + ', '.join(out)} | {_row_text(row)}"
+        )
         print(line, flush=True)
         print("  q:", {n: round(v, 3) for n, v in q.items()}, flush=True)
         log.append(line)
         tried.append((sim, row))
         for n in present:
             # The step shrinks over the rounds so the coupled classes settle.
-            q[n] = float(np.clip(q.get(n, 0.0) + step / (1 + r / 3) * (row[n] - PAPER_POINT[n]) / 100.0,
-                                 0.0, 1.0))
+            q[n] = float(
+                np.clip(q.get(n, 0.0) + step / (1 + r / 3) * (row[n] - PAPER_POINT[n]) / 100.0, 0.0, 1.0)
+            )
     sim, row = tried[best_round([r for _, r in tried])]
     return sim, row, log
 
@@ -294,10 +338,13 @@ def _write_preset(cfg: SimulatedLabelerConfig, row: dict[str, float], fitted_on:
     fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
     present = [n for n, v in row.items() if not math.isnan(v)]
     miou = float(np.mean([row[n] for n in present]))
-    para = textwrap.fill(f"Fitted on {fitted_on} (issue 16 defines the preset by the demo's point row; "
-                         "benchmarks/fit_labeler.py): the point row (camera view, the paper's merged "
-                         "classes) of these settings there, each class's IoU averaged over the sequences "
-                         "that contain it, against the paper's Table 1:", width=108)
+    para = textwrap.fill(
+        f"Fitted on {fitted_on} (issue 16 defines the preset by the demo's point row; "
+        "benchmarks/fit_labeler.py): the point row (camera view, the paper's merged "
+        "classes) of these settings there, each class's IoU averaged over the sequences "
+        "that contain it, against the paper's Table 1:",
+        width=108,
+    )
     body = "\n".join(f"    {json.dumps(k)}: {_literal(v, 1)}," for k, v in fields.items())
     table = "\n".join(f"    {n:14s} {PAPER_POINT[n]:5.1f}  {row[n]:5.1f}" for n in present)
     text = f'''"""The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.
@@ -340,8 +387,13 @@ def spread(rows: Sequence[dict[str, float]]) -> dict[str, tuple[float, float, in
     return out
 
 
-def report(paths: list[str], schema: Schema, base: PipelineConfig, seeds: Sequence[int] = (0,),
-           drift: bool | None = None) -> list[dict[str, float]]:
+def report(
+    paths: list[str],
+    schema: Schema,
+    base: PipelineConfig,
+    seeds: Sequence[int] = (0,),
+    drift: bool | None = None,
+) -> list[dict[str, float]]:
     """Print the point row of the default preset and, per labeler seed in ``seeds``, of the paper preset
     (``drift``: its ``drift_draws`` replaced, None keeps it) on each sequence, and with several rows the
     paper rows' :func:`spread`; returns the paper rows (with ``mIoU``)."""
@@ -352,20 +404,25 @@ def report(paths: list[str], schema: Schema, base: PipelineConfig, seeds: Sequen
     for p in paths:
         seq = KittiSequence(Path(p))
         runs = [("default", simulated_preset("default"))]
-        runs += [(f"paper/{s}" if len(seeds) > 1 else "paper", dataclasses.replace(paper, seed=s))
-                 for s in seeds]
+        runs += [
+            (f"paper/{s}" if len(seeds) > 1 else "paper", dataclasses.replace(paper, seed=s)) for s in seeds
+        ]
         for name, sim in runs:
             row = paper_row(point_confusion(seq, schema, dataclasses.replace(base, simulated=sim)), schema)
             _, present = misfit(row)
             miou = float(np.mean([row[n] for n in present]))
             out = in_band(row)
-            print(f"{p} {name:8s} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) "
-                  f"{'in band' if not out else 'out: ' + ', '.join(out)} | {_row_text(row)}", flush=True)
+            print(
+                f"{p} {name:8s} mIoU {miou:5.1f} (paper {paper_miou(present):.1f}) "
+                f"{'in band' if not out else 'out: ' + ', '.join(out)} | {_row_text(row)}",
+                flush=True,
+            )
             if name != "default":
                 rows.append({**row, "mIoU": miou})
     if len(rows) > 1:
-        summary = " ".join(f"{k} {m:.1f}±{sd:.1f} ({k_in}/{n})"
-                           for k, (m, sd, k_in, n) in spread(rows).items())
+        summary = " ".join(
+            f"{k} {m:.1f}±{sd:.1f} ({k_in}/{n})" for k, (m, sd, k_in, n) in spread(rows).items()
+        )
         print(f"paper preset over the {len(rows)} rows (mean ± std, rows within the band / rows): {summary}")
     return rows
 
@@ -388,10 +445,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warm", action="store_true", help="start from the current paper preset's q")
     ap.add_argument("--label", help="how the preset's docstring names the sequences (default: paths)")
     ap.add_argument("--report", nargs="*", default=None, help="sequence folders to report (no fit)")
-    ap.add_argument("--labeler-seeds", type=_seed_list, default=[0], metavar="A-B|A,B,...",
-                    help="with --report: the paper preset's labeler seeds to report (default 0)")
-    ap.add_argument("--blocks", action="store_true",
-                    help="with --report: the paper preset with drift_draws off (whole blocks), to compare")
+    ap.add_argument(
+        "--labeler-seeds",
+        type=_seed_list,
+        default=[0],
+        metavar="A-B|A,B,...",
+        help="with --report: the paper preset's labeler seeds to report (default 0)",
+    )
+    ap.add_argument(
+        "--blocks",
+        action="store_true",
+        help="with --report: the paper preset with drift_draws off (whole blocks), to compare",
+    )
     args = ap.parse_args(argv)
     preset = builtin_preset("semantickitti")
     schema, base = preset.schema, preset.pipeline
@@ -402,8 +467,15 @@ def main(argv: list[str] | None = None) -> int:
         if not args.sequences:
             ap.error("give sequence folders to fit on, or --report")
         seqs = [KittiSequence(Path(p)) for p in args.sequences]
-        cfg, row, _ = fit(seqs, schema, base, args.rounds, args.step, stride=args.stride,
-                          start=preset_q() if args.warm else None)
+        cfg, row, _ = fit(
+            seqs,
+            schema,
+            base,
+            args.rounds,
+            args.step,
+            stride=args.stride,
+            start=preset_q() if args.warm else None,
+        )
     except LeapError as e:  # a missing or broken sequence: its path and problem, not a traceback
         raise SystemExit(f"fit_labeler: {e}") from None
     print("best:", _row_text(row))

@@ -55,8 +55,9 @@ def taught_counts(gt: npt.ArrayLike, targets: npt.ArrayLike, num_classes: int) -
     return np.bincount(flat, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
 
 
-def purity_lines(taught: npt.NDArray[np.int64], gt_points: npt.NDArray[np.int64], names: Sequence[str],
-                 top: int = 2) -> list[str]:
+def purity_lines(
+    taught: npt.NDArray[np.int64], gt_points: npt.NDArray[np.int64], names: Sequence[str], top: int = 2
+) -> list[str]:
     """The Markdown table of :func:`taught_counts` ``taught`` (C, C) and each class's ground-truth point
     count ``gt_points`` (C,): one row per class that has ground truth.
 
@@ -84,8 +85,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", help="The run's sequence folder (with labels/).")
     ap.add_argument("run", help="A finished run folder (grid_smooth.npz, observations/).")
-    ap.add_argument("--project-file", default=str(ROOT / "projects" / "semantickitti.yaml"),
-                    help="The run's project file (its classes and consistency settings).")
+    ap.add_argument(
+        "--project-file",
+        default=str(ROOT / "projects" / "semantickitti.yaml"),
+        help="The run's project file (its classes and consistency settings).",
+    )
     args = ap.parse_args()
     preset = load_preset(Path(args.project_file))
     schema, cfg = preset.schema, preset.pipeline
@@ -98,20 +102,25 @@ def main() -> None:
     cn = cfg.consistency
     views = None
     if cn.rank_by_views:  # the round's tie-break, from the run's own observations
-        ctx = worker_context(RunJob(Path(args.sequence), schema, cfg, layout.run_dir, Runtime()),
-                             range(seq.frame_numbers[0], seq.frame_numbers[-1] + 1))
+        ctx = worker_context(
+            RunJob(Path(args.sequence), schema, cfg, layout.run_dir, Runtime()),
+            range(seq.frame_numbers[0], seq.frame_numbers[-1] + 1),
+        )
         views = view_counts(keys for _, keys in observed_keys(ctx))
     smoothed = SmoothedGrid.load(layout.grid_smooth)
     taught = np.zeros((c, c), np.int64)
     gt_points = np.zeros(c, np.int64)
-    for i, t in zip(frames, iter_reliable_targets(seq, smoothed, c, cn, cfg.fusion.voxel_size, frames, views),
-                    strict=True):
+    for i, t in zip(
+        frames, iter_reliable_targets(seq, smoothed, c, cn, cfg.fusion.voxel_size, frames, views), strict=True
+    ):
         g = schema.map_gt(seq.frame(i).labels)
         gt_points += np.bincount(g[g >= 0], minlength=c)
         taught += taught_counts(g, t, c)
     tie = "views" if views is not None else "no view"
-    print(f"3D-CN training labels of {args.run} (share {cn.share}, scope {cn.selection_scope}, {tie} "
-          f"tie-break), against {args.sequence}'s ground truth:")
+    print(
+        f"3D-CN training labels of {args.run} (share {cn.share}, scope {cn.selection_scope}, {tie} "
+        f"tie-break), against {args.sequence}'s ground truth:"
+    )
     print("\n".join(purity_lines(taught, gt_points, schema.names)))
     right = np.trace(taught) / max(int(taught.sum()), 1)
     print(f"\nall classes: {int(taught.sum()):,} training labels, {100 * right:.1f} % right")

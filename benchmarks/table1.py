@@ -110,8 +110,10 @@ class Source:
 
     @property
     def title(self) -> str:
-        return (f"3D-CN fine-tuned from a network trained on {self.domain}'s ground truth "
-                f"({len(self.seeds)} × {self.frames} scans)")
+        return (
+            f"3D-CN fine-tuned from a network trained on {self.domain}'s ground truth "
+            f"({len(self.seeds)} × {self.frames} scans)"
+        )
 
 
 @dataclass(frozen=True)
@@ -142,26 +144,41 @@ class Domain:
 
 DOMAINS: dict[str, Domain] = {
     "street": Domain(
-        key="street", title="street demo, `paper` labeler preset", data="demo",
-        synth=("--frames", "60", "--seed", "0"), project="projects/semantickitti.yaml",
+        key="street",
+        title="street demo, `paper` labeler preset",
+        data="demo",
+        synth=("--frames", "60", "--seed", "0"),
+        project="projects/semantickitti.yaml",
         run_flags=("--labeler", "simulated", "--labeler-preset", "paper"),
-        protocol="paper", protocol_title="the paper's 11 merged classes, camera view",
-        paper=(46.8, 48.9, 57.6), paper_title="paper, SemanticKITTI",
+        protocol="paper",
+        protocol_title="the paper's 11 merged classes, camera view",
+        paper=(46.8, 48.9, 57.6),
+        paper_title="paper, SemanticKITTI",
         # The 3D-CN's temperature for camera labels as noisy as the paper preset's (docs/METHOD.md C.5:
         # chosen on the street's tuning sequences 21-23; the default, 2, was chosen with the milder labeler).
         settings=("consistency.temperature=1",),
         # The paper fine-tunes a network trained before (docs/METHOD.md C.2): here one trained on the ground
         # truth of another street domain (32 beams, another town; leap_core.synth.domains), never this one.
         # Fine-tuned from it, the network is trusted more: T = 0.25 (tuning sequences 21-23, C.5).
-        source=Source(domain="street-32", seeds=(201, 202, 203), frames=60, steps=600,
-                      settings=("consistency.temperature=0.25",)),
+        source=Source(
+            domain="street-32",
+            seeds=(201, 202, 203),
+            frames=60,
+            steps=600,
+            settings=("consistency.temperature=0.25",),
+        ),
     ),
     "agri": Domain(
-        key="agri", title="farm drone (agri-uav), `default` labeler preset", data="agri40",
-        synth=("--domain", "agri-uav", "--frames", "40", "--seed", "0"), project="projects/agri_uav.yaml",
+        key="agri",
+        title="farm drone (agri-uav), `default` labeler preset",
+        data="agri40",
+        synth=("--domain", "agri-uav", "--frames", "40", "--seed", "0"),
+        project="projects/agri_uav.yaml",
         run_flags=("--labeler", "simulated"),
-        protocol="camera", protocol_title="7 classes, camera view",
-        paper=(38.0, 49.7, 61.5), paper_title="paper, AgriUAV",
+        protocol="camera",
+        protocol_title="7 classes, camera view",
+        paper=(38.0, 49.7, 61.5),
+        paper_title="paper, AgriUAV",
     ),
 }
 
@@ -179,8 +196,9 @@ def retarget(dom: Domain, sequence_seed: int | None = None, frames: int | None =
             synth[synth.index(flag) + 1] = str(value)
     seed, n = synth[synth.index("--seed") + 1], synth[synth.index("--frames") + 1]
     name = f"{dom.key}_seq{seed}_f{n}"
-    return dataclasses.replace(dom, key=name, data=name, synth=tuple(synth),
-                               title=f"{dom.title}, sequence seed {seed}, {n} frames")
+    return dataclasses.replace(
+        dom, key=name, data=name, synth=tuple(synth), title=f"{dom.title}, sequence seed {seed}, {n} frames"
+    )
 
 
 @dataclass(frozen=True)
@@ -219,9 +237,13 @@ def same_points(metrics: Mapping[str, Any], protocol: str) -> dict[str, float]:
     mapping = PAPER_VIEW.mapping(names) if protocol == PAPER else None
     out = {}
     for row, cell in table.items():
-        m = (metrics_from_confusion(np.asarray(cell["confusion"], np.int64), names, cats,
-                                    ignore_unlabeled_pred=True)
-             if mapping is None else paper_metrics(cell["confusion"], mapping))
+        m = (
+            metrics_from_confusion(
+                np.asarray(cell["confusion"], np.int64), names, cats, ignore_unlabeled_pred=True
+            )
+            if mapping is None
+            else paper_metrics(cell["confusion"], mapping)
+        )
         out[row] = 100.0 * float(m.miou)
     return out
 
@@ -266,8 +288,10 @@ def check_shared(rows: Sequence[SeedRow], tol: float = 1e-6) -> None:
         for name in ("point", "voxel"):
             a, b = getattr(rows[0], name), getattr(r, name)
             if abs(a - b) > tol:
-                raise ValueError(f"{name} mIoU differs between seed {rows[0].seed} ({a:.3f}) and seed "
-                                 f"{r.seed} ({b:.3f}): the runs do not share one base run")
+                raise ValueError(
+                    f"{name} mIoU differs between seed {rows[0].seed} ({a:.3f}) and seed "
+                    f"{r.seed} ({b:.3f}): the runs do not share one base run"
+                )
 
 
 def _mean(xs: Sequence[float | None]) -> float | None:
@@ -326,20 +350,25 @@ def domain_lines(dom: Domain, rows: Sequence[SeedRow]) -> list[str]:
         settings = "".join(f", `{kv}`" for kv in dom.settings)
         origin = "" if dom.source is None else f", {dom.source.title}"
         head = f"{dom.title}{origin}{settings} ({dom.protocol_title})" if i == 0 else ""
-        lines.append(f"| {head} | {r.seed} | {_f(r.point)} | {_f(r.voxel)} | {_f(r.x1)} | {_f(r.x2)} "
-                     f"| {_g(r.gain1)} | {_g(r.gain2)} | {_g(r.same1)} |")
+        lines.append(
+            f"| {head} | {r.seed} | {_f(r.point)} | {_f(r.voxel)} | {_f(r.x1)} | {_f(r.x2)} "
+            f"| {_g(r.gain1)} | {_g(r.gain2)} | {_g(r.same1)} |"
+        )
     if len(rows) > 1:
         x1 = [r.x1 for r in rows]
         x2 = [r.x2 for r in rows]
         g1 = [r.gain1 for r in rows]
         g2 = [r.gain2 for r in rows]
         s1 = [r.same1 for r in rows]
-        lines.append(f"| | mean | {_f(rows[0].point)} | {_f(rows[0].voxel)} | {_pm(_mean(x1), _std(x1), _f)} "
-                     f"| {_pm(_mean(x2), _std(x2), _f)} | {_pm(_mean(g1), _std(g1), _g)} "
-                     f"| {_pm(_mean(g2), _std(g2), _g)} | {_pm(_mean(s1), _std(s1), _g)} |")
+        lines.append(
+            f"| | mean | {_f(rows[0].point)} | {_f(rows[0].voxel)} | {_pm(_mean(x1), _std(x1), _f)} "
+            f"| {_pm(_mean(x2), _std(x2), _f)} | {_pm(_mean(g1), _std(g1), _g)} "
+            f"| {_pm(_mean(g2), _std(g2), _g)} | {_pm(_mean(s1), _std(s1), _g)} |"
+        )
     p, v, cn = dom.paper
-    lines.append(f"| | *{dom.paper_title}* | *{p:.1f}* | *{v:.1f}* | *{cn:.1f}* | — | *{cn - v:+.1f}* "
-                 "| — | — |")
+    lines.append(
+        f"| | *{dom.paper_title}* | *{p:.1f}* | *{v:.1f}* | *{cn:.1f}* | — | *{cn - v:+.1f}* | — | — |"
+    )
     return lines
 
 
@@ -388,9 +417,11 @@ def verdict_line(dom: Domain, rows: Sequence[SeedRow]) -> str:
     """One sentence: issue 16's acceptance on this domain, over the seeds measured."""
     v = verdict(rows)
     seeds = ", ".join(str(r.seed) for r in rows)
-    return (f"{dom.key}: +3D-CN x1 > voxel for every seed ({seeds}): {'yes' if v.every_seed else 'no'}; "
-            f"mean gain {_g(v.mean_gain)} (needs >= {MIN_MEAN_GAIN:.0f}): "
-            f"{'PASS' if v.passed else 'not met'}")
+    return (
+        f"{dom.key}: +3D-CN x1 > voxel for every seed ({seeds}): {'yes' if v.every_seed else 'no'}; "
+        f"mean gain {_g(v.mean_gain)} (needs >= {MIN_MEAN_GAIN:.0f}): "
+        f"{'PASS' if v.passed else 'not met'}"
+    )
 
 
 # --------------------------------------------------------------------------------------------- runs
@@ -500,12 +531,26 @@ def source_network(dom: Domain, args: argparse.Namespace) -> Path | None:
     # One file for every sequence of the domain (the report's and the tuning ones): it reads none of them.
     ckpt = Path(args.runs) / "sources" / src.checkpoint
     if not ckpt.is_file():
-        seqs = [synth(Path(args.data) / src.data(s),
-                      ["--domain", src.domain, "--frames", str(src.frames), "--seed", str(s)])
-                for s in src.seeds]
+        seqs = [
+            synth(
+                Path(args.data) / src.data(s),
+                ["--domain", src.domain, "--frames", str(src.frames), "--seed", str(s)],
+            )
+            for s in src.seeds
+        ]
         ckpt.parent.mkdir(parents=True, exist_ok=True)
-        leap(["train-3dcn", *map(str, seqs), "--out", str(ckpt), "--project-file", dom.project,
-              "--steps", str(src.steps)])
+        leap(
+            [
+                "train-3dcn",
+                *map(str, seqs),
+                "--out",
+                str(ckpt),
+                "--project-file",
+                dom.project,
+                "--steps",
+                str(src.steps),
+            ]
+        )
     return ckpt
 
 
@@ -522,8 +567,20 @@ def measure(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list
         run = runs / f"seed{s}{args.tag}"
         link_base(base, run)
         project = seed_project(dom, s, parse_sets(dom.settings), runs / "projects", args.tag)
-        leap(["run", str(seq), "--project-file", str(project), *dom.run_flags,
-              "--3dcn-iterations", str(args.iterations), *init, "--out", str(run)])
+        leap(
+            [
+                "run",
+                str(seq),
+                "--project-file",
+                str(project),
+                *dom.run_flags,
+                "--3dcn-iterations",
+                str(args.iterations),
+                *init,
+                "--out",
+                str(run),
+            ]
+        )
         rows.append(read_row(run, s, dom))
     return rows
 
@@ -555,15 +612,26 @@ def main() -> None:
     ap.add_argument("--domains", default="street,agri", help=f"Among {', '.join(DOMAINS)}.")
     ap.add_argument("--seeds", default="0,1,2", help="3D-CN training seeds (consistency.seed).")
     ap.add_argument("--iterations", type=int, default=2, choices=(1, 2), help="3D-CN rounds per seed.")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="Extra pipeline setting for the seed runs, e.g. consistency.class_balance=false.")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="Extra pipeline setting for the seed runs, e.g. consistency.class_balance=false.",
+    )
     ap.add_argument("--tag", default="", help="Suffix of the seed run folders (for --set variants).")
-    ap.add_argument("--sequence-seed", type=int, default=None,
-                    help="Generate the domain's sequence with this seed (a tuning sequence, e.g. 101).")
+    ap.add_argument(
+        "--sequence-seed",
+        type=int,
+        default=None,
+        help="Generate the domain's sequence with this seed (a tuning sequence, e.g. 101).",
+    )
     ap.add_argument("--frames", type=int, default=None, help="Generate the domain's sequence this long.")
-    ap.add_argument("--from-scratch", action="store_true",
-                    help="Start the 3D-CN from random weights where a domain has a source network "
-                    "(needs --tag).")
+    ap.add_argument(
+        "--from-scratch",
+        action="store_true",
+        help="Start the 3D-CN from random weights where a domain has a source network (needs --tag).",
+    )
     ap.add_argument("--cached-only", action="store_true", help="Run nothing; tabulate finished seed runs.")
     ap.add_argument("--readme", action="store_true", help="Write the table into README.md's markers.")
     args = ap.parse_args()
@@ -578,8 +646,9 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     results = []
     for name in names:
-        dom = as_run(retarget(DOMAINS[name], args.sequence_seed, args.frames), args.set,
-                     from_scratch=args.from_scratch)
+        dom = as_run(
+            retarget(DOMAINS[name], args.sequence_seed, args.frames), args.set, from_scratch=args.from_scratch
+        )
         rows = cached(dom, seeds, args) if args.cached_only else measure(dom, seeds, args)
         results.append((dom, rows))
     table = table_markdown(results)

@@ -123,7 +123,13 @@ def read_caches(root: Path) -> dict[str, Any]:
 
 
 def sweep_seed(  # noqa: PLR0917  one worker's whole job, picklable arguments
-    seed: int, frames: int, work: str, only: list[str], device: str, threads: int, sets: dict[str, Any],
+    seed: int,
+    frames: int,
+    work: str,
+    only: list[str],
+    device: str,
+    threads: int,
+    sets: dict[str, Any],
     run: bool = True,
 ) -> dict[str, Any]:
     """Every value of every setting in ``only`` on the sequence of ``seed``: ``{setting: {value: figures}}``
@@ -155,9 +161,12 @@ def sweep_seed(  # noqa: PLR0917  one worker's whole job, picklable arguments
         figs = cache.get(key)
         out[name][value] = figs
         if figs is not None:
-            print(f"seed {seed} {name}={value}: camera x1 {figs['camera_3dcn']:.1f} "
-                  f"(voxel {figs['camera_voxel']:.1f}), all x1 {figs['all_3dcn']:.1f}, "
-                  f"{figs['seconds']:.0f} s", flush=True)
+            print(
+                f"seed {seed} {name}={value}: camera x1 {figs['camera_3dcn']:.1f} "
+                f"(voxel {figs['camera_voxel']:.1f}), all x1 {figs['all_3dcn']:.1f}, "
+                f"{figs['seconds']:.0f} s",
+                flush=True,
+            )
     return out
 
 
@@ -170,6 +179,7 @@ def choose(values: dict[str, dict[int, Any]], default: str, tune: list[int], tie
 
     def mean(v: str) -> float:
         return sum(values[v][s]["camera_3dcn"] for s in tune) / len(tune)
+
     best = max(values, key=mean)
     return default if default in values and mean(best) - mean(default) <= tie else best
 
@@ -194,10 +204,13 @@ def report(results: dict[str, Any], tie: float) -> dict[str, str | None]:
             def mean(seeds: list[int], key: str) -> str:
                 got = [table[v][s][key] for s in seeds if table[v][s] is not None]
                 return f"{sum(got) / len(got):.1f}" if len(got) == len(seeds) else "n/a"
+
             return (
                 [label]
-                + [one(s, cam) for s in tune] + [mean(tune, cam)]
-                + [one(s, cam) for s in rep] + [mean(rep, cam)]
+                + [one(s, cam) for s in tune]
+                + [mean(tune, cam)]
+                + [one(s, cam) for s in rep]
+                + [mean(rep, cam)]
                 + [mean(tune, all_), mean(rep, all_)]
             )
 
@@ -208,14 +221,17 @@ def report(results: dict[str, Any], tie: float) -> dict[str, str | None]:
         rows.append(row("(voxel, no 3D-CN)", default, "camera_voxel", "all_voxel"))
         head = (
             [path]
-            + [f"tune {s}" for s in tune] + ["tune mean"]
-            + [f"report {s}" for s in rep] + ["report mean"]
+            + [f"tune {s}" for s in tune]
+            + ["tune mean"]
+            + [f"report {s}" for s in rep]
+            + ["report mean"]
             + ["all pts: tune", "all pts: report"]
         )
         print_table(
             f"{name}: camera-view mIoU of +3D-CN x1 ({results['frames']} frames per seed; chosen on the "
             f"tuning seeds, tie margin {tie}); last two columns: all-points mIoU, group means",
-            head, rows,
+            head,
+            rows,
         )
     return chosen
 
@@ -231,12 +247,20 @@ def main() -> None:
     ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="3D-CN device.")
     ap.add_argument("--threads", type=int, default=0, help="Torch threads per process (0 = torch's choice).")
     ap.add_argument("--tie", type=float, default=0.5, help="mIoU points within which the default is kept.")
-    ap.add_argument("--set", action="append", default=[], metavar="PATH=JSON",
-                    help="Extra override of every run, e.g. consistency.min_steps=5 (a quick smoke test).")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="PATH=JSON",
+        help="Extra override of every run, e.g. consistency.min_steps=5 (a quick smoke test).",
+    )
     ap.add_argument("--from-json", default=None, help="Print the tables of a results file; run nothing.")
-    ap.add_argument("--cached-only", action="store_true",
-                    help="Run nothing: tables from the figures cached under --work (e.g. copied from the "
-                    "machine that ran the sweep); values without figures show n/a.")
+    ap.add_argument(
+        "--cached-only",
+        action="store_true",
+        help="Run nothing: tables from the figures cached under --work (e.g. copied from the "
+        "machine that ran the sweep); values without figures show n/a.",
+    )
     ap.add_argument("--name", default="tune_defaults", help="Result file: benchmarks/results/NAME.json.")
     args = ap.parse_args()
 
@@ -263,9 +287,20 @@ def main() -> None:
         sets[key.strip()] = json.loads(val)
     start = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futs = {s: pool.submit(sweep_seed, s, args.frames, args.work, only, args.device, args.threads,
-                           sets, not args.cached_only)
-                for s in seeds}
+        futs = {
+            s: pool.submit(
+                sweep_seed,
+                s,
+                args.frames,
+                args.work,
+                only,
+                args.device,
+                args.threads,
+                sets,
+                not args.cached_only,
+            )
+            for s in seeds
+        }
         per_seed = {str(s): f.result() for s, f in futs.items()}
     base = base_config(args.device, args.threads, sets)
     results: dict[str, Any] = {

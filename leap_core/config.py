@@ -92,24 +92,62 @@ class FormField:
 
 
 FORM_FIELDS: dict[str, FormField] = {
-    "labeler": FormField("labeler", "2D labeler", "select", "which model turns camera images into 2D labels",
-                         choices=tuple((name, spec.label) for name, spec in LABELERS.items())),
-    "threshold": FormField("grounded_sam.box_threshold", "Box threshold", "number",
-                           "Grounding DINO boxes below this similarity are dropped", 0.0, 1.0, 0.01),
-    "voxel_size": FormField("fusion.voxel_size", "Voxel size (m)", "number",
-                            "edge of the fusion grid's voxels", 0.01, None, 0.05),
+    "labeler": FormField(
+        "labeler",
+        "2D labeler",
+        "select",
+        "which model turns camera images into 2D labels",
+        choices=tuple((name, spec.label) for name, spec in LABELERS.items()),
+    ),
+    "threshold": FormField(
+        "grounded_sam.box_threshold",
+        "Box threshold",
+        "number",
+        "Grounding DINO boxes below this similarity are dropped",
+        0.0,
+        1.0,
+        0.01,
+    ),
+    "voxel_size": FormField(
+        "fusion.voxel_size", "Voxel size (m)", "number", "edge of the fusion grid's voxels", 0.01, None, 0.05
+    ),
     "k": FormField("smoothing.k", "kNN smoothing k", "integer", "neighbours averaged per voxel", 1, None, 1),
-    "cluster_gap": FormField("projection.cluster_gap", "Depth-cluster gap (m)", "number",
-                             "depth gap that splits a mask's points into clusters", 0.0, None, 0.1),
-    "consistency": FormField("consistency.enabled", "3D Consistency Network", "checkbox",
-                             "train a 3D network on the most confident voxels and fuse it back"),
-    "share": FormField("consistency.share", "3D-CN label share", "number",
-                       "share of each class's most confident points used for training", 0.0, 1.0, 0.05),
-    "temperature": FormField("consistency.temperature", "3D-CN temperature", "number",
-                             "weight of the network's evidence when fused back (lower = stronger)", 0.0, None,
-                             0.1),
-    "iterations": FormField("consistency.iterations", "3D-CN iterations", "integer",
-                            "self-training rounds", 1, None, 1),
+    "cluster_gap": FormField(
+        "projection.cluster_gap",
+        "Depth-cluster gap (m)",
+        "number",
+        "depth gap that splits a mask's points into clusters",
+        0.0,
+        None,
+        0.1,
+    ),
+    "consistency": FormField(
+        "consistency.enabled",
+        "3D Consistency Network",
+        "checkbox",
+        "train a 3D network on the most confident voxels and fuse it back",
+    ),
+    "share": FormField(
+        "consistency.share",
+        "3D-CN label share",
+        "number",
+        "share of each class's most confident points used for training",
+        0.0,
+        1.0,
+        0.05,
+    ),
+    "temperature": FormField(
+        "consistency.temperature",
+        "3D-CN temperature",
+        "number",
+        "weight of the network's evidence when fused back (lower = stronger)",
+        0.0,
+        None,
+        0.1,
+    ),
+    "iterations": FormField(
+        "consistency.iterations", "3D-CN iterations", "integer", "self-training rounds", 1, None, 1
+    ),
 }
 """The app form's flat parameter names → their :class:`FormField` (dotted path, label, widget)."""
 
@@ -238,7 +276,8 @@ RETIRED_FIELDS: dict[tuple[str, ...], RetiredField] = {
         "LEAP_MODELS_DIR or `leap serve --models DIR` (the app)",
     ),
     ("grounded_sam", "cache_dir"): RetiredField(
-        None, "the 2D cache folder is given per run: `--cache DIR` (leap run, leap labels2d); the app keeps "
+        None,
+        "the 2D cache folder is given per run: `--cache DIR` (leap run, leap labels2d); the app keeps "
         "one per project",
     ),
     ("grounded_sam", "device"): RetiredField(

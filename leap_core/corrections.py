@@ -289,8 +289,9 @@ class FrameVoxelIndex:
         """Read :meth:`save`'s file. Raises DatasetError when it is unreadable or inconsistent."""
         try:
             with np.load(path, allow_pickle=False) as z:
-                out = cls(np.asarray(z["keys"], np.int64), np.asarray(z["frame"], np.int32),
-                          int(z["num_frames"]))
+                out = cls(
+                    np.asarray(z["keys"], np.int64), np.asarray(z["frame"], np.int32), int(z["num_frames"])
+                )
         except (OSError, KeyError, ValueError, TypeError) as exc:
             raise DatasetError(path, f"unreadable frame-voxel index ({exc})") from exc
         if out.keys.shape != out.frame.shape:
@@ -298,5 +299,12 @@ class FrameVoxelIndex:
         return out
 
 
-__all__ = ["ERASE", "FrameVoxelIndex", "ScanCorrections", "changed_keys", "class_in_keys", "correct_points",
-           "set_points"]
+__all__ = [
+    "ERASE",
+    "FrameVoxelIndex",
+    "ScanCorrections",
+    "changed_keys",
+    "class_in_keys",
+    "correct_points",
+    "set_points",
+]

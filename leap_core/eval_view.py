@@ -112,38 +112,60 @@ PAPER_VIEW = MergedView(
     classes=(
         MergedClass("car", ("car",), "vehicle", "a Table 1 column as is"),
         MergedClass(
-            "bicycle", ("bicycle", "bicyclist"), "vehicle",
+            "bicycle",
+            ("bicycle", "bicyclist"),
+            "vehicle",
             "Table 1 has no bicyclist column and the paper does not say where it went; this is our reading. "
             "The merge pairs SemanticKITTI with nuScenes, whose bicycle annotations include the rider (its "
             "boxes enclose bicycle and rider), so a ridden bike is one bicycle there; and the paper's remark "
             "that the 2D models 'may split a moving bike into separate person and bicycle labels' "
-            "(Experiments, Pseudo-label quality) reads as an error against one-class ground truth"),
+            "(Experiments, Pseudo-label quality) reads as an error against one-class ground truth",
+        ),
         MergedClass(
-            "motorcycle", ("motorcycle", "motorcyclist"), "vehicle",
+            "motorcycle",
+            ("motorcycle", "motorcyclist"),
+            "vehicle",
             "as bicycle: nuScenes' motorcycle annotations include the rider; Table 1 has no motorcyclist "
-            "column"),
+            "column",
+        ),
         MergedClass(
-            "other-vehicle", ("truck", "other-vehicle"), "vehicle",
+            "other-vehicle",
+            ("truck", "other-vehicle"),
+            "vehicle",
             "Table 1 has no truck column; nuScenes' truck, bus, trailer and construction vehicle all pair "
             "with a non-car vehicle class, and the paper's prompt expansion already describes other-vehicle "
-            "by its kinds (bus, train)"),
+            "by its kinds (bus, train)",
+        ),
         MergedClass("person", ("person",), "human", "a Table 1 column as is (nuScenes: pedestrian)"),
         MergedClass(
-            "road", ("road", "parking"), "flat",
+            "road",
+            ("road", "parking"),
+            "flat",
             "parking is not a Table 1 column and the paper is silent; nuScenes' driveable_surface covers "
             "parking lots, and Table 1's other-ground figures (0.0 for every method, 2.8 for the oracle in "
-            "Table 2) are those of a class without parking, which models segment far better than that"),
+            "Table 2) are those of a class without parking, which models segment far better than that",
+        ),
         MergedClass("sidewalk", ("sidewalk",), "flat", "a Table 1 column as is"),
-        MergedClass("other-ground", ("other-ground",), "flat",
-                    "a Table 1 column as is (nuScenes: other_flat); parking is in road, see there"),
         MergedClass(
-            "manmade", ("building", "fence", "pole", "traffic-sign"), "construction",
+            "other-ground",
+            ("other-ground",),
+            "flat",
+            "a Table 1 column as is (nuScenes: other_flat); parking is in road, see there",
+        ),
+        MergedClass(
+            "manmade",
+            ("building", "fence", "pole", "traffic-sign"),
+            "construction",
             "nuScenes' static.manmade covers buildings, walls, fences, poles and signs; Table 1 colours the "
             "column with SemanticKITTI's building colour. Its category: construction (KITTI-360's object "
-            "category of pole and traffic-sign has no class of its own left)"),
+            "category of pole and traffic-sign has no class of its own left)",
+        ),
         MergedClass(
-            "vegetation", ("vegetation", "trunk"), "nature",
-            "nuScenes' vegetation includes tree trunks; Table 1 has no trunk column"),
+            "vegetation",
+            ("vegetation", "trunk"),
+            "nature",
+            "nuScenes' vegetation includes tree trunks; Table 1 has no trunk column",
+        ),
         MergedClass("terrain", ("terrain",), "nature", "a Table 1 column as is"),
     ),
 )

@@ -168,8 +168,9 @@ _LABEL_MAP_HEADER = """\
 
 def label_map_yaml(mapping: Mapping[str, Any]) -> str:
     """:func:`label_map`'s result as YAML text (integer keys, key order kept), with a header comment."""
-    return _LABEL_MAP_HEADER + yaml.safe_dump(dict(mapping), sort_keys=False, default_flow_style=None,
-                                              allow_unicode=True)
+    return _LABEL_MAP_HEADER + yaml.safe_dump(
+        dict(mapping), sort_keys=False, default_flow_style=None, allow_unicode=True
+    )
 
 
 @dataclass(frozen=True)
@@ -276,8 +277,11 @@ def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
     summary = {
         "project": dict(project),
         "run": dict(run),
-        "dataset": {"path": str(dataset), "sequence": seq,
-                    "frames": "all" if frames is None else [frames.start, frames.stop]},
+        "dataset": {
+            "path": str(dataset),
+            "sequence": seq,
+            "frames": "all" if frames is None else [frames.start, frames.stop],
+        },
         "files": {
             "labels": f"sequences/{seq}/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 above)",
             "confidences": (
@@ -294,7 +298,8 @@ def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
         "written_at": written_at,
     }
     return "# LeAP Studio export summary (README, 'Exports').\n" + yaml.safe_dump(
-        summary, sort_keys=False, allow_unicode=True)
+        summary, sort_keys=False, allow_unicode=True
+    )
 
 
 def write_export_zip(
@@ -316,8 +321,9 @@ def write_export_zip(
         ExportConflict: ``path`` exists and ``overwrite`` is off (nothing is written).
     """
     if path.exists() and not overwrite:
-        raise ExportConflict(f"{path} already exists; nothing was written. Export again with overwrite to "
-                             "replace it", 1)
+        raise ExportConflict(
+            f"{path} already exists; nothing was written. Export again with overwrite to replace it", 1
+        )
     suffixes = EXPORT_SUFFIXES if include_confidence else (".label",)
     files = sorted(p for p in export_dir.iterdir() if p.suffix in suffixes and p.is_file())
     with (
@@ -382,12 +388,16 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
     if old and not overwrite:
         raise ExportConflict(
             f"{target} already holds {len(old)} files (e.g. {old[0]}); nothing was written. "
-            "Export again with overwrite to replace them", len(old))
+            "Export again with overwrite to replace them",
+            len(old),
+        )
     foreign = [n for n in old if not (n.endswith(EXPORT_SUFFIXES) and (target / n).is_file())]
     if foreign:
         raise ExportConflict(
             f"{target} holds {foreign[0]!r}, which an export does not write; nothing was written "
-            "(move it away, or export elsewhere)", len(old))
+            "(move it away, or export elsewhere)",
+            len(old),
+        )
     if target.exists() and not target.is_dir():
         raise ExportConflict(f"{target} is a file, not a folder; nothing was written", 1)
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -416,8 +426,10 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
                 # rename() replaces an empty folder and fails on a non-empty one (someone wrote there since).
                 os.rename(fresh, target)
             except OSError as exc:
-                raise ExportConflict(f"{target} changed while exporting ({exc.strerror}); nothing written",
-                                     len(existing_export_files(target))) from None
+                raise ExportConflict(
+                    f"{target} changed while exporting ({exc.strerror}); nothing written",
+                    len(existing_export_files(target)),
+                ) from None
     finally:
         if fresh.exists():
             shutil.rmtree(fresh, ignore_errors=True)

@@ -917,9 +917,12 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
                         grid = _finalise(ka, acc_a, cfg)
                 yield np.asarray(grid.logp, np.float16)
 
-        save_npz(path, keys=out_keys,
-                 logp=Streamed((len(out_keys), num_classes), np.dtype(np.float16), blocks()),
-                 voxel_size=np.float64(cfg.voxel_size))
+        save_npz(
+            path,
+            keys=out_keys,
+            logp=Streamed((len(out_keys), num_classes), np.dtype(np.float16), blocks()),
+            voxel_size=np.float64(cfg.voxel_size),
+        )
         spilled.clear()  # unmaps the chunk files before they are deleted
         return len(out_keys)
     finally:

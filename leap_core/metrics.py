@@ -100,8 +100,9 @@ def merge_confusion(conf: npt.ArrayLike, mapping: npt.ArrayLike, num_merged: int
     to = np.asarray(mapping).reshape(-1).astype(np.int64)
     c, m = to.shape[0], int(num_merged)
     if cm.shape != (c, c + 1):
-        raise ValueError(f"confusion {cm.shape} does not match a mapping of {c} classes "
-                         f"(needs ({c}, {c + 1}))")
+        raise ValueError(
+            f"confusion {cm.shape} does not match a mapping of {c} classes (needs ({c}, {c + 1}))"
+        )
     if c and (to.min() < 0 or to.max() >= m):
         raise ValueError(f"mapping entries must be in 0..{m - 1}, got {to.min()}..{to.max()}")
     onehot = np.zeros((c, m), np.int64)

@@ -57,8 +57,11 @@ def _write_member(zf: zipfile.ZipFile, name: str, value: npt.ArrayLike | Streame
             release(arr)  # a memory-mapped source: written, so its pages can go
             return
         dtype = np.dtype(value.dtype)
-        header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
-                  "shape": tuple(int(s) for s in value.shape)}
+        header = {
+            "descr": np.lib.format.dtype_to_descr(dtype),
+            "fortran_order": False,
+            "shape": tuple(int(s) for s in value.shape),
+        }
         np.lib.format.write_array_header_1_0(fh, header)
         row_shape = tuple(value.shape[1:])
         rows = 0

@@ -113,7 +113,8 @@ def _kiss(config: OdometryConfig) -> Any:
             voxel_size=config.voxel, max_points_per_voxel=config.max_points_per_voxel
         ),
         registration=kiss_sections.RegistrationConfig(
-            max_num_iterations=config.max_iterations, convergence_criterion=config.convergence,
+            max_num_iterations=config.max_iterations,
+            convergence_criterion=config.convergence,
             max_num_threads=config.threads,
         ),
         adaptive_threshold=kiss_sections.AdaptiveThresholdConfig(
@@ -124,7 +125,9 @@ def _kiss(config: OdometryConfig) -> Any:
 
 
 def estimate_lidar_poses(
-    scans: Iterable[npt.NDArray[np.floating[Any]]], total: int, config: OdometryConfig | None = None,
+    scans: Iterable[npt.NDArray[np.floating[Any]]],
+    total: int,
+    config: OdometryConfig | None = None,
     progress: ProgressFn | None = None,
 ) -> npt.NDArray[np.float64]:
     """LiDAR odometry of consecutive scans.
@@ -234,8 +237,9 @@ def estimate_sequence_poses(
     t0 = time.perf_counter()
     lidar = estimate_lidar_poses((f.points for f in seq), len(seq), cfg, progress)
     seconds = time.perf_counter() - t0
-    return EstimatedPoses(list(seq.frame_ids), lidar, camera_poses(lidar, seq.calib.Tr), seconds, cfg,
-                          scans_signature(seq))
+    return EstimatedPoses(
+        list(seq.frame_ids), lidar, camera_poses(lidar, seq.calib.Tr), seconds, cfg, scans_signature(seq)
+    )
 
 
 def write_estimated_poses(poses_path: str | Path, est: EstimatedPoses, *, force: bool = False) -> Path:
@@ -284,13 +288,18 @@ def reusable_estimate(seq: KittiSequence, poses_path: str | Path, config: Odomet
     except DatasetError:
         return False
     return (
-        path.is_file() and note is not None and note.get("method") == METHOD
-        and note.get("scans") == scans_signature(seq) and note.get("settings") == config.settings()
+        path.is_file()
+        and note is not None
+        and note.get("method") == METHOD
+        and note.get("scans") == scans_signature(seq)
+        and note.get("settings") == config.settings()
     )
 
 
 def estimate_into(
-    seq: KittiSequence, poses_path: str | Path, config: OdometryConfig | None = None,
+    seq: KittiSequence,
+    poses_path: str | Path,
+    config: OdometryConfig | None = None,
     progress: ProgressFn | None = None,
 ) -> tuple[dict[str, Any], bool]:
     """Estimated poses of ``seq`` at ``poses_path`` (a work folder's own file, replaced when stale):

@@ -277,8 +277,9 @@ class Painted:
         except KeyError as exc:
             raise DatasetError(path, f"unreadable observation file (no array {exc})") from exc
         if idx.ndim != 1 or rows.shape != idx.shape or table.ndim != 2:
-            raise DatasetError(path, f"inconsistent shapes point_idx {idx.shape}, rows {rows.shape}, "
-                                     f"table {table.shape}")
+            raise DatasetError(
+                path, f"inconsistent shapes point_idx {idx.shape}, rows {rows.shape}, table {table.shape}"
+            )
         if len(rows) and (rows.min() < 0 or rows.max() >= table.shape[0]):
             raise DatasetError(path, f"rows index outside the {table.shape[0]}-row table")
         return cls(idx.astype(np.int64), rows.astype(np.int32), table.astype(np.float32))
@@ -363,8 +364,9 @@ def paint(soft: SoftMasks, proj: Projected, cfg: ProjectionConfig | None = None)
         raise ValueError(f"projected pixels exceed the {soft.height}×{soft.width} mask size")
     m_idx, p_idx = covering_pairs(soft, proj.u, proj.v)
     if cfg.depth_clustering:
-        m_idx, p_idx = cluster_pairs(m_idx, p_idx, proj.depth, soft.num_masks, cfg.cluster_gap,
-                                     cfg.min_cluster_points)
+        m_idx, p_idx = cluster_pairs(
+            m_idx, p_idx, proj.depth, soft.num_masks, cfg.cluster_gap, cfg.min_cluster_points
+        )
     if len(m_idx) == 0:
         return Painted.empty(c)
     words = combination_words(m_idx, p_idx, len(proj), soft.num_masks)

@@ -188,9 +188,7 @@ def best_observer(in_image: npt.ArrayLike, total: npt.ArrayLike) -> int | None:
     return int(order[0])
 
 
-def image_box(
-    uv: npt.ArrayLike, width: int, height: int, pad: int = 6
-) -> tuple[int, int, int, int] | None:
+def image_box(uv: npt.ArrayLike, width: int, height: int, pad: int = 6) -> tuple[int, int, int, int] | None:
     """Pixel box ``(u0, v0, u1, v1)`` (inclusive) around projected points, padded and clipped to the image.
 
     ``u0 = max(0, floor(min u) - pad)``, ``u1 = min(width-1, ceil(max u) + pad)``, same for v. None

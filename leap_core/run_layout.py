@@ -103,8 +103,19 @@ class RunLayout:
     POSES_DIR: ClassVar[str] = "poses"
     JOINT_3DCN: ClassVar[str] = "3dcn_joint.json"
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
-        {PARAMS, CORRECTIONS, CORRECTIONS_SCAN, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, EXPORT_COVERAGE,
-         APPLIED_CORRECTIONS, APPLIED_CORRECTIONS_SCAN, FRAME_VOXELS}
+        {
+            PARAMS,
+            CORRECTIONS,
+            CORRECTIONS_SCAN,
+            LOG,
+            LOCK,
+            EXPORT_ZIP,
+            EXPORT_CONF_ZIP,
+            EXPORT_COVERAGE,
+            APPLIED_CORRECTIONS,
+            APPLIED_CORRECTIONS_SCAN,
+            FRAME_VOXELS,
+        }
     )
     """Top-level files that belong to one run only (never carried over into a later run's folder)."""
 
@@ -279,8 +290,10 @@ def sequence_name_problem(name: str) -> str | None:
     """Why ``name`` cannot name a sequence of a multi-sequence run (a folder under ``sequences/``), or
     None: 1-64 characters, letters, digits, ``_``, ``-`` and ``.``, starting with a letter or digit."""
     if not isinstance(name, str) or not _SEQUENCE_NAME.fullmatch(name):
-        return (f"must be 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit "
-                f"(a folder name), got {name!r}")
+        return (
+            f"must be 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit "
+            f"(a folder name), got {name!r}"
+        )
     return None
 
 
@@ -334,8 +347,11 @@ class MultiRunLayout:
             return [n for n in listed if (self.sequences_dir / n).is_dir()]
         if not self.sequences_dir.is_dir():
             return []
-        return sorted(p.name for p in self.sequences_dir.iterdir()
-                      if p.is_dir() and sequence_name_problem(p.name) is None)
+        return sorted(
+            p.name
+            for p in self.sequences_dir.iterdir()
+            if p.is_dir() and sequence_name_problem(p.name) is None
+        )
 
     def _listed(self) -> list[str] | None:
         if not self.spec.is_file():
@@ -404,5 +420,12 @@ def load_corrections(
     return keys.astype(np.int64), cls.astype(np.int64)
 
 
-__all__ = ["ConsistencySwitch", "MultiRunLayout", "RunLayout", "is_multi_run", "load_corrections",
-           "save_corrections", "sequence_name_problem"]
+__all__ = [
+    "ConsistencySwitch",
+    "MultiRunLayout",
+    "RunLayout",
+    "is_multi_run",
+    "load_corrections",
+    "save_corrections",
+    "sequence_name_problem",
+]

@@ -68,10 +68,15 @@ class Runtime:
             raise ConfigError("must be 'auto' or a Ray cluster address, got ''", field=("ray_address",))
         if self.ray_cpus is not None and self.ray_cpus < 1:
             raise ConfigError(f"must be >= 1, got {self.ray_cpus}", field=("ray_cpus",))
-        if isinstance(self.frame_threads, bool) or not isinstance(self.frame_threads, int) \
-                or not 1 <= self.frame_threads <= MAX_FRAME_THREADS:
-            raise ConfigError(f"must be an integer in 1..{MAX_FRAME_THREADS}, got {self.frame_threads!r}",
-                              field=("frame_threads",))
+        if (
+            isinstance(self.frame_threads, bool)
+            or not isinstance(self.frame_threads, int)
+            or not 1 <= self.frame_threads <= MAX_FRAME_THREADS
+        ):
+            raise ConfigError(
+                f"must be an integer in 1..{MAX_FRAME_THREADS}, got {self.frame_threads!r}",
+                field=("frame_threads",),
+            )
 
 
 __all__ = ["MAX_FRAME_THREADS", "Device", "Runtime"]

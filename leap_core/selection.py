@@ -271,9 +271,7 @@ def front_surface(
     crow = (row / cell).astype(np.int64)
     c0, c1 = ccol[cand].min() - 1, ccol[cand].max() + 1
     r0, r1 = crow[cand].min() - 1, crow[cand].max() + 1
-    occ = np.flatnonzero(
-        occluder & (ccol >= c0) & (ccol <= c1) & (crow >= r0) & (crow <= r1)
-    )
+    occ = np.flatnonzero(occluder & (ccol >= c0) & (ccol <= c1) & (crow >= r0) & (crow <= r1))
     gw, gh = c1 - c0 + 1, r1 - r0 + 1
     zbuf = np.full(gh * gw, np.inf)
     np.minimum.at(zbuf, (crow[occ] - r0) * gw + (ccol[occ] - c0), depth[occ])

@@ -129,8 +129,11 @@ def knn_smooth_blocks(
         # rows the chunk's neighbours hit; columns renumbered, entries kept in neighbour order.
         cols, inv = np.unique(idx, return_inverse=True)
         mat = scipy.sparse.csr_matrix(
-            (w.reshape(-1), inv.reshape(-1).astype(np.int64, copy=False),
-             np.arange(0, n * k + 1, k, dtype=np.int64)),
+            (
+                w.reshape(-1),
+                inv.reshape(-1).astype(np.int64, copy=False),
+                np.arange(0, n * k + 1, k, dtype=np.int64),
+            ),
             shape=(n, len(cols)),
         )
         p = np.asarray(row_probs(cols.astype(np.int64, copy=False)), dtype=np.float32)
@@ -341,5 +344,15 @@ class SmoothedGrid:
             raise DatasetError(path, str(exc)) from exc
 
 
-__all__ = ["SMOOTH_CHUNK", "RowProbs", "SmoothedGrid", "SmoothingConfig", "grid_row_probs", "knn_smooth",
-           "knn_smooth_blocks", "knn_weights", "smooth_grid", "smooth_grid_blocks"]
+__all__ = [
+    "SMOOTH_CHUNK",
+    "RowProbs",
+    "SmoothedGrid",
+    "SmoothingConfig",
+    "grid_row_probs",
+    "knn_smooth",
+    "knn_smooth_blocks",
+    "knn_weights",
+    "smooth_grid",
+    "smooth_grid_blocks",
+]

@@ -124,8 +124,10 @@ def segment_errors(
             t_err.append(float(np.linalg.norm(d[:3, 3])) / length)
             r_err.append(rotation_angle(d) / length)
     return SegmentErrors(
-        np.asarray(firsts, dtype=np.int64), np.asarray(lens, dtype=np.float64),
-        np.asarray(t_err, dtype=np.float64), np.asarray(r_err, dtype=np.float64),
+        np.asarray(firsts, dtype=np.int64),
+        np.asarray(lens, dtype=np.float64),
+        np.asarray(t_err, dtype=np.float64),
+        np.asarray(r_err, dtype=np.float64),
     )
 
 

@@ -38,13 +38,24 @@ import yaml
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--evaluator", required=True, type=Path, help="semantic-kitti-api checkout folder")
-    ap.add_argument("--sequence", required=True, type=Path,
-                    help="ground-truth sequence folder (.../sequences/NN, with labels/)")
+    ap.add_argument(
+        "--sequence",
+        required=True,
+        type=Path,
+        help="ground-truth sequence folder (.../sequences/NN, with labels/)",
+    )
     ap.add_argument("--run", required=True, type=Path, help="leap run folder (metrics.json, export/)")
-    ap.add_argument("--row", default=None, help="metrics.json row to compare (default: the final one, "
-                    "i.e. the labels the export stage wrote)")
-    ap.add_argument("--datacfg", type=Path, default=None,
-                    help="evaluator data config (default: <evaluator>/config/semantic-kitti.yaml)")
+    ap.add_argument(
+        "--row",
+        default=None,
+        help="metrics.json row to compare (default: the final one, i.e. the labels the export stage wrote)",
+    )
+    ap.add_argument(
+        "--datacfg",
+        type=Path,
+        default=None,
+        help="evaluator data config (default: <evaluator>/config/semantic-kitti.yaml)",
+    )
     ap.add_argument("--split", default="valid", choices=["train", "valid", "test"])
     ap.add_argument("--python", default=sys.executable, help="interpreter for the evaluator")
     ap.add_argument("--tol", type=float, default=1e-3, help="largest allowed |IoU difference|")
@@ -80,9 +91,20 @@ def _run_evaluator(
         _link_tree(root, seq_name, gt_files, pred_files)
         scores_dir = root / "scores"
         scores_dir.mkdir()
-        cmd = [args.python, str(script), "--dataset", str(root / "dataset"),
-               "--predictions", str(root / "predictions"), "--split", args.split,
-               "--datacfg", str(datacfg), "--codalab", str(scores_dir)]
+        cmd = [
+            args.python,
+            str(script),
+            "--dataset",
+            str(root / "dataset"),
+            "--predictions",
+            str(root / "predictions"),
+            "--split",
+            args.split,
+            "--datacfg",
+            str(datacfg),
+            "--codalab",
+            str(scores_dir),
+        ]
         # cwd = the checkout: the evaluator imports its auxiliary/ package relative to it.
         proc = subprocess.run(cmd, cwd=script.parent, capture_output=True, text=True, check=False)
         if proc.returncode != 0:
@@ -126,16 +148,20 @@ def main(argv: list[str] | None = None) -> int:
     scores, printout, shown_cmd = _run_evaluator(args, script, datacfg, seq_name, gt_files, pred_files)
     printed = re.search(r"IoU avg ([0-9.]+)", printout)
     print("$ " + shown_cmd)
-    print(f"{len(gt_files)} scans, sequence {args.sequence} as {seq_name}, "
-          f"leap row {row!r}, all-points protocol\n")
+    print(
+        f"{len(gt_files)} scans, sequence {args.sequence} as {seq_name}, "
+        f"leap row {row!r}, all-points protocol\n"
+    )
     print(f"{'class':<14}  {'leap':>9}  {'evaluator':>9}  {'|diff|':>9}")
     print(f"{'-' * 14}  {'-' * 9}  {'-' * 9}  {'-' * 9}")
     worst = 0.0
     for name in names:
         key = f"iou_{name}"
         if key not in scores:
-            sys.exit(f"error: evaluator has no class {name!r}; its classes: "
-                     + ", ".join(k[4:] for k in scores if k.startswith("iou_") and k != "iou_mean"))
+            sys.exit(
+                f"error: evaluator has no class {name!r}; its classes: "
+                + ", ".join(k[4:] for k in scores if k.startswith("iou_") and k != "iou_mean")
+            )
         ours = leap["iou"][name]
         # LeAP leaves a class absent from gt and prediction undefined (None); the evaluator's 1e-15 in the
         # denominator turns the same 0/0 into 0, so None compares as 0.
@@ -148,8 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     m_ours, m_theirs = float(leap["miou_all_classes"]), float(scores["iou_mean"])
     d_m = abs(m_ours - m_theirs)
     print(f"{f'mIoU (all {len(names)})':<14}  {m_ours:>9.6f}  {m_theirs:>9.6f}  {d_m:>9.2e}")
-    print(f"\nevaluator printout: IoU avg {printed.group(1) if printed else '?'}; "
-          f"leap miou_all_classes {m_ours:.6f}, miou (defined classes) {leap['miou']:.6f}")
+    print(
+        f"\nevaluator printout: IoU avg {printed.group(1) if printed else '?'}; "
+        f"leap miou_all_classes {m_ours:.6f}, miou (defined classes) {leap['miou']:.6f}"
+    )
     worst = max(worst, d_m)
     ok = worst <= args.tol and not math.isnan(worst)
     print(f"max |diff| = {worst:.3e}  ({'OK' if ok else 'FAIL'}, tolerance {args.tol:g})")

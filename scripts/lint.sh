@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Lint and type checks CI runs beside the tests: ruff (rule set and documented exceptions in
-# pyproject.toml), mypy --strict on leap_core and mypy (checked, not strict) on app.
+# pyproject.toml), ruff's formatter (check only) and mypy.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ ! -x .venv/bin/mypy ]; then bash scripts/install.sh --test; fi
 .venv/bin/ruff check .
+.venv/bin/ruff format --check .
 .venv/bin/mypy --strict leap_core
 .venv/bin/mypy app
 echo "lint: ruff and mypy clean"

@@ -38,8 +38,11 @@ def listed_mutants(status: str, doc: Path = DOC) -> set[str]:
     each."""
     if not doc.exists():
         return set()
-    return {m.group(1) for line in doc.read_text().splitlines()
-            if (m := _ROW.match(line)) and m.group(2) == status}
+    return {
+        m.group(1)
+        for line in doc.read_text().splitlines()
+        if (m := _ROW.match(line)) and m.group(2) == status
+    }
 
 
 def module_results(path: str) -> dict[str, str]:
@@ -55,8 +58,10 @@ def main(argv: list[str]) -> int:
     show = "--survivors" in argv
     paths = [a for a in argv if not a.startswith("--")]
     if not paths:
-        paths = sorted(str(p.relative_to(ROOT / "mutants"))[: -len(".meta")]
-                       for p in (ROOT / "mutants" / "leap_core").rglob("*.py.meta"))
+        paths = sorted(
+            str(p.relative_to(ROOT / "mutants"))[: -len(".meta")]
+            for p in (ROOT / "mutants" / "leap_core").rglob("*.py.meta")
+        )
     equivalent = listed_mutants("equivalent")
     # Killed by tests mutmut does not run against them: on a GPU machine, or by a test its map misses.
     outside = listed_mutants("killed on a GPU") | listed_mutants("killed by a test mutmut did not run")
@@ -75,17 +80,22 @@ def main(argv: list[str]) -> int:
         killed = sum(s in CAUGHT for s in res.values()) + n_outside
         eq = sum(1 for name in res if name in equivalent)
         survived = [n for n, s in res.items() if s == "survived" and n not in equivalent | outside]
-        untested = [n for n, s in res.items()
-                    if s not in (*CAUGHT, "survived", "not checked") and n not in equivalent]
+        untested = [
+            n for n, s in res.items() if s not in (*CAUGHT, "survived", "not checked") and n not in equivalent
+        ]
         stale += [n for n in res if n in equivalent | outside and res[n] in CAUGHT]
         incomplete = any(s == "not checked" for s in res.values())
         incomplete_any |= incomplete
         denom = len(res) - eq
         score = f"{100 * killed / denom:6.1f}%" if denom else "    -  "
         cells = (len(res), killed, len(survived), len(untested), eq)
-        print(f"{path:38} " + " ".join(f"{v:8d}" for v in cells) + f" {score}"
-              + ("  incomplete" if incomplete else "")
-              + (f"  ({n_outside} killed outside mutmut's run)" if n_outside else ""))
+        print(
+            f"{path:38} "
+            + " ".join(f"{v:8d}" for v in cells)
+            + f" {score}"
+            + ("  incomplete" if incomplete else "")
+            + (f"  ({n_outside} killed outside mutmut's run)" if n_outside else "")
+        )
         tot["n"] += len(res)
         tot["killed"] += killed
         tot["equiv"] += eq
@@ -95,14 +105,20 @@ def main(argv: list[str]) -> int:
     denom = tot["n"] - tot["equiv"]
     if denom:
         cells = (tot["n"], tot["killed"], tot["survived"], tot["untested"], tot["equiv"])
-        print(f"{'overall':38} " + " ".join(f"{v:8d}" for v in cells)
-              + f" {100 * tot['killed'] / denom:6.1f}%" + ("  incomplete" if incomplete_any else ""))
+        print(
+            f"{'overall':38} "
+            + " ".join(f"{v:8d}" for v in cells)
+            + f" {100 * tot['killed'] / denom:6.1f}%"
+            + ("  incomplete" if incomplete_any else "")
+        )
     if show:
         print("\nnot killed and not listed as equivalent in docs/MUTATION.md:")
         print("\n".join(f"  {line}" for line in left) or "  (none)")
         if stale:
-            print("\nlisted as equivalent or killed outside mutmut's run, but killed by mutmut now "
-                  "(remove from docs/MUTATION.md):")
+            print(
+                "\nlisted as equivalent or killed outside mutmut's run, but killed by mutmut now "
+                "(remove from docs/MUTATION.md):"
+            )
             print("\n".join(f"  {n}" for n in stale))
     return 0
 

@@ -48,14 +48,51 @@ SEQ = f"{DEMO}/sequences/00"
 DEMO_FRAMES, DEMO_SEED = 60, 0
 
 SYNTH = ["synth", DEMO, "--frames", str(DEMO_FRAMES), "--seed", str(DEMO_SEED)]
-RUN_DEMO = ["run", SEQ, "--schema", "semantickitti", "--labeler", "simulated", "--out", "runs/demo",
-            "--3dcn-iterations", "2"]
-RUN_BARE = ["run", SEQ, "--project-file", "projects/semantickitti_bare.yaml", "--labeler", "simulated",
-            "--no-3dcn", "--out", "runs/bare"]
-RUN_SHORT = ["run", SEQ, "--project-file", "projects/semantickitti.yaml", "--labeler", "simulated",
-             "--no-3dcn", "--out", "runs/short"]
-RUN_EXPANDED = ["run", SEQ, "--project-file", "projects/semantickitti_expanded.yaml", "--labeler",
-                "simulated", "--no-3dcn", "--out", "runs/expanded"]
+RUN_DEMO = [
+    "run",
+    SEQ,
+    "--schema",
+    "semantickitti",
+    "--labeler",
+    "simulated",
+    "--out",
+    "runs/demo",
+    "--3dcn-iterations",
+    "2",
+]
+RUN_BARE = [
+    "run",
+    SEQ,
+    "--project-file",
+    "projects/semantickitti_bare.yaml",
+    "--labeler",
+    "simulated",
+    "--no-3dcn",
+    "--out",
+    "runs/bare",
+]
+RUN_SHORT = [
+    "run",
+    SEQ,
+    "--project-file",
+    "projects/semantickitti.yaml",
+    "--labeler",
+    "simulated",
+    "--no-3dcn",
+    "--out",
+    "runs/short",
+]
+RUN_EXPANDED = [
+    "run",
+    SEQ,
+    "--project-file",
+    "projects/semantickitti_expanded.yaml",
+    "--labeler",
+    "simulated",
+    "--no-3dcn",
+    "--out",
+    "runs/expanded",
+]
 ROWS = ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
 TABLES = ("demo-miou", "prompt-expansion")
 """Names of the README tables this script writes (each between its markers)."""
@@ -76,8 +113,10 @@ def ensure_demo() -> None:
         leap(SYNTH)
     n = len(list(scans.glob("*.bin")))
     if n != DEMO_FRAMES:
-        sys.exit(f"readme_tables: {ROOT / SEQ} has {n} scans, the README's demo has {DEMO_FRAMES}; "
-                 f"move it away or regenerate it with `leap {' '.join(SYNTH)} --force`")
+        sys.exit(
+            f"readme_tables: {ROOT / SEQ} has {n} scans, the README's demo has {DEMO_FRAMES}; "
+            f"move it away or regenerate it with `leap {' '.join(SYNTH)} --force`"
+        )
 
 
 def metrics_of(run: list[str]) -> dict[str, Any]:
@@ -117,8 +156,15 @@ def demo_miou(m: dict[str, Any]) -> str:
         "| mIoU | point | voxel | +3D-CN ×1 | +3D-CN ×2 |",
         "|---|---|---|---|---|",
         "| camera view | " + " | ".join(_pct(cam[r]["miou"]) for r in ROWS) + " |",
-        *(["| paper's 11 classes (camera view) | " + " | ".join(_pct(paper[r]["miou"]) for r in ROWS) + " |"]
-          if paper else []),
+        *(
+            [
+                "| paper's 11 classes (camera view) | "
+                + " | ".join(_pct(paper[r]["miou"]) for r in ROWS)
+                + " |"
+            ]
+            if paper
+            else []
+        ),
         "| all points | " + " | ".join(_pct(all_[r]["miou"]) for r in ROWS) + " |",
         "| points labeled | " + " | ".join(_share(all_[r]["labeled_share"]) for r in ROWS) + " |",
     ]
@@ -127,6 +173,7 @@ def demo_miou(m: dict[str, Any]) -> str:
 
 def prompt_expansion(bare: dict[str, Any], short: dict[str, Any], full: dict[str, Any]) -> str:
     """The ``prompt-expansion`` table: point and voxel mIoU per prompt file, both protocols."""
+
     def row(label: str, m: dict[str, Any]) -> str:
         cells = [m[p][r]["miou"] for p in ("camera", "all") for r in ("point", "voxel")]
         return f"| {label} | " + " | ".join(_pct(c) for c in cells) + " |"
@@ -194,8 +241,11 @@ def main() -> None:
     new = replace_tables(old, tables)
     if args.check:
         if new != old:
-            sys.stdout.writelines(difflib.unified_diff(
-                old.splitlines(keepends=True), new.splitlines(keepends=True), "README.md", "computed"))
+            sys.stdout.writelines(
+                difflib.unified_diff(
+                    old.splitlines(keepends=True), new.splitlines(keepends=True), "README.md", "computed"
+                )
+            )
             sys.exit("readme_tables: README.md's tables differ from the runs (see the diff above)")
         print("README.md's tables match the runs")
         return

@@ -40,10 +40,22 @@ def _result(frames: int, per_scan: dict[str, float], peak: float, voxels: int) -
     for s, t in per_scan.items():
         stages[s] = {"status": "done", "wall_s": t * frames, "cpu_s": t * frames / 2, "voxels": None}
     stages["fuse"]["voxels"] = voxels
-    cold = {"peak_rss_b": peak, "sampled_peak_rss_b": peak, "maxrss_b": peak, "wall_s": 1.0 * frames,
-            "cpu_s": 0.5 * frames}
-    return {"frames": frames, "voxels": voxels, "points": 100 * frames, "stages": stages, "cold": cold,
-            "before_stages_s": 1.0, "after_stages_s": 1.0}
+    cold = {
+        "peak_rss_b": peak,
+        "sampled_peak_rss_b": peak,
+        "maxrss_b": peak,
+        "wall_s": 1.0 * frames,
+        "cpu_s": 0.5 * frames,
+    }
+    return {
+        "frames": frames,
+        "voxels": voxels,
+        "points": 100 * frames,
+        "stages": stages,
+        "cold": cold,
+        "before_stages_s": 1.0,
+        "after_stages_s": 1.0,
+    }
 
 
 def test_analyse_checks_and_extrapolation(bench: ModuleType) -> None:
@@ -79,11 +91,20 @@ def test_repeated_3d_stages_count_their_least_time(bench: ModuleType, tmp_path: 
     """--repeat: each 3D stage's figure is its least wall and CPU time over the runs; the stages before
     `fuse` ran once, so their figures are the cold run's; invalidate_3d_stages stales exactly the 3D
     stages' fingerprints."""
+
     def run(wall: float, cpu: float, early_cpu: float) -> dict[str, Any]:
-        return {s: {"status": "done", "wall_s": wall if s != "labels2d" else 9.0,
-                    "cpu_s": cpu if s != "labels2d" else early_cpu, "peak_rss_b": 1, "voxels": 5}
-                for s in STAGES if s != "3dcn"} | {
-            "3dcn": {"status": "skipped", "wall_s": 0.0, "cpu_s": math.nan, "peak_rss_b": 0, "voxels": None}}
+        return {
+            s: {
+                "status": "done",
+                "wall_s": wall if s != "labels2d" else 9.0,
+                "cpu_s": cpu if s != "labels2d" else early_cpu,
+                "peak_rss_b": 1,
+                "voxels": 5,
+            }
+            for s in STAGES
+            if s != "3dcn"
+        } | {"3dcn": {"status": "skipped", "wall_s": 0.0, "cpu_s": math.nan, "peak_rss_b": 0, "voxels": None}}
+
     least = bench.least_of([run(3.0, 2.0, 7.0), run(1.0, 4.0, 0.0), run(2.0, 1.5, 0.0)])
     assert least["fuse"]["wall_s"] == 1.0 and least["fuse"]["cpu_s"] == 1.5
     assert least["export"]["wall_s"] == 1.0 and least["export"]["cpu_s"] == 1.5

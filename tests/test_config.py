@@ -29,13 +29,19 @@ REPO = Path(__file__).resolve().parents[1]
     ("overrides", "field", "problem"),
     [
         # PipelineConfig's own fields
-        ({"labeler": "sam"}, ("pipeline", "labeler"),
-         "must be one of 'simulated', 'grounded-sam', got 'sam'"),
+        (
+            {"labeler": "sam"},
+            ("pipeline", "labeler"),
+            "must be one of 'simulated', 'grounded-sam', got 'sam'",
+        ),
         ({"correction_strength": 0}, ("pipeline", "correction_strength"), "must be > 0"),
         ({"bogus": 1}, ("pipeline", "bogus"), "unknown setting"),
         # one level down: every section's own check
-        ({"fusion": {"voxel_size": 0}}, ("pipeline", "fusion", "voxel_size"),
-         "must be a positive number, got 0"),
+        (
+            {"fusion": {"voxel_size": 0}},
+            ("pipeline", "fusion", "voxel_size"),
+            "must be a positive number, got 0",
+        ),
         ({"projection": {"cluster_gap": -1}}, ("pipeline", "projection", "cluster_gap"), "must be > 0"),
         ({"smoothing": {"workers": 0}}, ("pipeline", "smoothing", "workers"), "must be ≥ 1 or -1"),
         ({"grounded_sam": {"match_iou": 0}}, ("pipeline", "grounded_sam", "match_iou"), "must be in (0, 1]"),
@@ -44,14 +50,26 @@ REPO = Path(__file__).resolve().parents[1]
         ({"smoothing": {"k": "9"}}, ("pipeline", "smoothing", "k"), "must be an integer"),
         ({"projection": 3}, ("pipeline", "projection"), "must be a mapping of settings"),
         # two levels down
-        ({"simulated": {"class_recall": {"car": 2}}}, ("pipeline", "simulated", "class_recall", "car"),
-         "must be in [0, 1]"),
-        ({"consistency": {"backbone": {"channels": 2}}}, ("pipeline", "consistency", "backbone", "channels"),
-         "must be >= 4, got 2"),
-        ({"consistency": {"backbone": {"kernel_size": 4}}},
-         ("pipeline", "consistency", "backbone", "kernel_size"), "must be odd"),
-        ({"consistency": {"backbone": {"chanels": 8}}}, ("pipeline", "consistency", "backbone", "chanels"),
-         "unknown setting (did you mean 'channels'?)"),
+        (
+            {"simulated": {"class_recall": {"car": 2}}},
+            ("pipeline", "simulated", "class_recall", "car"),
+            "must be in [0, 1]",
+        ),
+        (
+            {"consistency": {"backbone": {"channels": 2}}},
+            ("pipeline", "consistency", "backbone", "channels"),
+            "must be >= 4, got 2",
+        ),
+        (
+            {"consistency": {"backbone": {"kernel_size": 4}}},
+            ("pipeline", "consistency", "backbone", "kernel_size"),
+            "must be odd",
+        ),
+        (
+            {"consistency": {"backbone": {"chanels": 8}}},
+            ("pipeline", "consistency", "backbone", "chanels"),
+            "unknown setting (did you mean 'channels'?)",
+        ),
         ({"consistency": {"backbone": 8}}, ("pipeline", "consistency", "backbone"), "must be a mapping"),
     ],
 )
@@ -72,7 +90,11 @@ def test_configs_raise_relative_paths_that_config_from_dict_makes_absolute() -> 
         BackboneConfig(channels=2)
     assert err.value.field == ("channels",) and str(err.value) == "channels: must be >= 4, got 2"
     assert err.value.within("pipeline", "consistency", "backbone").field == (
-        "pipeline", "consistency", "backbone", "channels")
+        "pipeline",
+        "consistency",
+        "backbone",
+        "channels",
+    )
     # A bad override of a valid base keeps the base untouched and names the field.
     base = config_from_dict({"fusion": {"voxel_size": 0.3}})
     with pytest.raises(ConfigError):
@@ -188,8 +210,16 @@ def test_the_registry_drives_labeler_validation(monkeypatch: pytest.MonkeyPatch)
         built.append(config)
         return SimulatedLabeler(SimulatedLabelerConfig.exact())
 
-    spec = LabelerSpec("exact", "exact", "2D ground truth without noise", "simulated", SimulatedLabelerConfig,
-                       exact, "gt2d", "needs 2D ground truth")
+    spec = LabelerSpec(
+        "exact",
+        "exact",
+        "2D ground truth without noise",
+        "simulated",
+        SimulatedLabelerConfig,
+        exact,
+        "gt2d",
+        "needs 2D ground truth",
+    )
     monkeypatch.setitem(labelers.LABELERS, "exact", spec)
     cfg = config_from_dict({"labeler": "exact"})
     assert isinstance(make_labeler(cfg), SimulatedLabeler) and built == [cfg.simulated]

@@ -57,8 +57,14 @@ from leap_core.types import UNLABELED
 
 TINY_BACKBONE = BackboneConfig(channels=16, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4)
 TINY = ConsistencyConfig(
-    enabled=True, backbone=TINY_BACKBONE, points_per_scan=0, min_steps=0, lr=1e-2, augment=False,
-    device="cpu", num_threads=1
+    enabled=True,
+    backbone=TINY_BACKBONE,
+    points_per_scan=0,
+    min_steps=0,
+    lr=1e-2,
+    augment=False,
+    device="cpu",
+    num_threads=1,
 )
 
 
@@ -235,12 +241,21 @@ def test_selection_on_a_hand_made_grid_per_scan_and_per_sequence() -> None:
     order = np.argsort(keys)
     grid = VoxelGrid(keys[order], logp[order], 0.2)
     # Scan A: 5 points in voxel 0, 5 in voxel 1, 2 in voxel 2, 1 point in no voxel.
-    pts_a = np.concatenate([np.repeat(centres[[0]], 5, 0), np.repeat(centres[[1]], 5, 0),
-                            np.repeat(centres[[2]], 2, 0), [[5.0, 5.0, 5.0]]])
+    pts_a = np.concatenate(
+        [
+            np.repeat(centres[[0]], 5, 0),
+            np.repeat(centres[[1]], 5, 0),
+            np.repeat(centres[[2]], 2, 0),
+            [[5.0, 5.0, 5.0]],
+        ]
+    )
     lab_a, conf_a = grid.labels_at(voxel_keys(pts_a, 0.2))
     assert lab_a.tolist() == [0] * 10 + [1] * 2 + [UNLABELED]
-    np.testing.assert_allclose(conf_a[[0, 5, 10]], [1 / (1 + math.exp(-1)), 1 / (1 + math.exp(-3)),
-                                                    1 / (1 + math.exp(-2))], rtol=1e-3)
+    np.testing.assert_allclose(
+        conf_a[[0, 5, 10]],
+        [1 / (1 + math.exp(-1)), 1 / (1 + math.exp(-3)), 1 / (1 + math.exp(-2))],
+        rtol=1e-3,
+    )
     assert conf_a[12] == 0.0
     # Scan B: 5 points in voxel 3 (class 1, conf 1/(1+e^-0.5)).
     pts_b = np.repeat(centres[[3]], 5, 0)
@@ -413,8 +428,11 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     assert set(form) == set(plain) - {"test_time_views", "finetune_lr", "finetune_min_steps"}
     assert set(form["backbone"]) == set(plain["backbone"]) - {"position_inputs"}
     assert plain["test_time_views"] == 1 and plain["backbone"]["position_inputs"] is True  # not written to
-    other = fingerprint_form(config_to_dict(replace(TINY, test_time_views=2,
-                                                    backbone=replace(TINY_BACKBONE, position_inputs=False))))
+    other = fingerprint_form(
+        config_to_dict(
+            replace(TINY, test_time_views=2, backbone=replace(TINY_BACKBONE, position_inputs=False))
+        )
+    )
     assert other["test_time_views"] == 2 and other["backbone"]["position_inputs"] is False
     # new_voxel_margin: 0 computes what was computed before it existed, so stage fingerprints leave it out
     # there; the default (4) is in them (a finished run fuses its network again); never in the training
@@ -438,16 +456,18 @@ def test_test_time_views_by_hand() -> None:
 
 def test_predictions_are_averaged_over_test_time_views() -> None:
     scans = _scans()
-    model, _ = train_model(scans.__getitem__, list(scans), 3, replace(TINY, epochs=2),
-                           class_counts=[100, 10, 0])
+    model, _ = train_model(
+        scans.__getitem__, list(scans), 3, replace(TINY, epochs=2), class_counts=[100, 10, 0]
+    )
     pts = synthetic_scan(99)[0]
     one = predict_log_probs(model, pts)
     assert np.array_equal(predict_log_probs(model, pts, views=1), one)
     views = [predict_log_probs(model, inference_view(pts, j, 3)) for j in range(3)]
     mean = predict_log_probs(model, pts, views=3)
     # log of the mean probability; the untrained class stays -inf
-    np.testing.assert_allclose(np.exp(mean[:, :2]), np.mean([np.exp(v[:, :2]) for v in views], axis=0),
-                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        np.exp(mean[:, :2]), np.mean([np.exp(v[:, :2]) for v in views], axis=0), rtol=1e-5, atol=1e-7
+    )
     assert np.isneginf(mean[:, 2]).all()
     assert not np.allclose(mean, one)
     with pytest.raises(ValueError, match="views must be >= 1"):
@@ -458,8 +478,14 @@ def test_training_with_subsampling_augmentation_and_class_weights_runs() -> None
     scans = _scans(3)
     cfg = replace(TINY, points_per_scan=200, augment=True, scans_per_step=2, epochs=2)
     calls: list[tuple[int, int]] = []
-    model, stats = train_model(scans.__getitem__, list(scans), 3, cfg,
-                               progress=lambda d, t: calls.append((d, t)), class_counts=[100, 10, 0])
+    model, stats = train_model(
+        scans.__getitem__,
+        list(scans),
+        3,
+        cfg,
+        progress=lambda d, t: calls.append((d, t)),
+        class_counts=[100, 10, 0],
+    )
     # Class 2 had no selected label: the model gives it probability 0, the others still sum to 1.
     assert model.trained_classes.tolist() == [True, True, False]
     logp = predict_log_probs(model, synthetic_scan(5)[0])
@@ -591,8 +617,9 @@ def test_fuse_back_temperature_scales_the_evidence_and_infinity_ignores_the_netw
     expected = np.array([0.0, -1.0, -2.0]) + 0.5 * np.log([0.2, 0.7, 0.1])
     np.testing.assert_allclose(out2.logp[0].astype(np.float64), expected - expected.max(), atol=2e-3)
     new_key = voxel_keys(np.array([[5.0, 5.0, 5.0]]), 0.2)
-    out_inf = fuse_back(grid, [(np.concatenate([key, new_key]), np.repeat(net, 2, 0))], 3, math.inf,
-                        FusionConfig())
+    out_inf = fuse_back(
+        grid, [(np.concatenate([key, new_key]), np.repeat(net, 2, 0))], 3, math.inf, FusionConfig()
+    )
     assert out_inf is grid  # unchanged, and no voxel created from zero-weight evidence
     # Finite T creates voxels the camera never saw.
     out_new = fuse_back(grid, [(new_key, net)], 3, 1.0, FusionConfig())
@@ -644,22 +671,33 @@ def test_fuse_back_uses_the_fusion_configs_floor_and_clip() -> None:
     grid, key = _one_voxel_grid()
     net = np.log(np.array([[0.2, 0.7, 0.1]], np.float32))
     for evidence, chunk in (("voxel", 10**6), ("point", 10**6), ("point", 1)):
-        out = fuse_back(grid, [(key, net)], 3, 1.0, FusionConfig(prob_floor=0.2, logp_clip=2.0), evidence,
-                        chunk_points=chunk)
-        np.testing.assert_allclose(out.logp[0].astype(np.float64), [1 + np.log(0.2 / 0.7), 0.0, -2.0],
-                                   atol=4e-3)
+        out = fuse_back(
+            grid,
+            [(key, net)],
+            3,
+            1.0,
+            FusionConfig(prob_floor=0.2, logp_clip=2.0),
+            evidence,
+            chunk_points=chunk,
+        )
+        np.testing.assert_allclose(
+            out.logp[0].astype(np.float64), [1 + np.log(0.2 / 0.7), 0.0, -2.0], atol=4e-3
+        )
 
 
 def test_keep_known_or_sure_by_hand() -> None:
     known = np.array([2, 5], np.int64)
     keys = np.array([1, 2, 3, 5, 7], np.int64)
-    means = np.array([
-        [-0.1, -5.0, -6.9],  # new, margin 4.9: kept
-        [-1.0, -1.1, -3.0],  # known, margin 0.1: kept
-        [-0.5, -3.0, -6.9],  # new, margin 2.5: dropped
-        [-6.9, -6.9, -0.2],  # known: kept
-        [-6.5, -3.0, -7.0],  # new, margin 3.5 (class 1 over class 0): dropped
-    ], np.float32)
+    means = np.array(
+        [
+            [-0.1, -5.0, -6.9],  # new, margin 4.9: kept
+            [-1.0, -1.1, -3.0],  # known, margin 0.1: kept
+            [-0.5, -3.0, -6.9],  # new, margin 2.5: dropped
+            [-6.9, -6.9, -0.2],  # known: kept
+            [-6.5, -3.0, -7.0],  # new, margin 3.5 (class 1 over class 0): dropped
+        ],
+        np.float32,
+    )
     for chunk in (1, 2, 100):
         k, m = keep_known_or_sure(known, keys.copy(), means.copy(), 4.0, chunk=chunk)
         assert k.tolist() == [1, 2, 5] and m.tolist() == means[[0, 1, 3]].tolist()
@@ -685,11 +723,16 @@ def test_keep_known_or_sure_by_hand() -> None:
     assert k.tolist() == keys.tolist() and m.shape == (5, 1)
     k, _ = keep_known_or_sure(known, keys.copy(), means[:, :2].copy(), 4.0)
     assert k.tolist() == [1, 2, 5]  # margins 4.9, 0.1, 2.5, 0, 3.5
-    four = np.array([[-6.0, -0.1, -5.0, -4.5],   # new, best two -0.1 and -4.5: margin 4.4, kept
-                     [-6.0, -6.0, -6.0, -6.0],   # known
-                     [-0.1, -5.0, -3.0, -6.0],   # new, margin 2.9: dropped
-                     [-6.0, -6.0, -6.0, -6.0],   # known
-                     [-1.0, -6.0, -6.5, -6.9]], np.float32)  # new, margin 5.0: kept
+    four = np.array(
+        [
+            [-6.0, -0.1, -5.0, -4.5],  # new, best two -0.1 and -4.5: margin 4.4, kept
+            [-6.0, -6.0, -6.0, -6.0],  # known
+            [-0.1, -5.0, -3.0, -6.0],  # new, margin 2.9: dropped
+            [-6.0, -6.0, -6.0, -6.0],  # known
+            [-1.0, -6.0, -6.5, -6.9],
+        ],
+        np.float32,
+    )  # new, margin 5.0: kept
     k, _ = keep_known_or_sure(known, keys.copy(), four.copy(), 4.0)
     assert k.tolist() == [1, 2, 5, 7]
 
@@ -706,8 +749,15 @@ def test_fuse_back_creates_a_voxel_no_camera_saw_only_where_the_network_is_sure(
     every = fuse_back(grid, preds, 3, 2.0, FusionConfig())
     assert every.num_voxels == 3
     # Outside the camera view (not in `in_view`) the unsure voxel is created all the same.
-    out_of_view = fuse_back(grid, preds, 3, 2.0, FusionConfig(), new_voxel_margin=4.0,
-                            in_view=np.sort(np.concatenate([key, sure_key])))
+    out_of_view = fuse_back(
+        grid,
+        preds,
+        3,
+        2.0,
+        FusionConfig(),
+        new_voxel_margin=4.0,
+        in_view=np.sort(np.concatenate([key, sure_key])),
+    )
     assert out_of_view.keys.tolist() == every.keys.tolist()
     for k in (key, sure_key):
         np.testing.assert_array_equal(out.logp[out.lookup(k)[0]], every.logp[every.lookup(k)[0]])
@@ -761,15 +811,20 @@ def _tiny_stage_inputs(tmp_path: Path, make_tiny_sequence) -> tuple[KittiSequenc
     return seq, VoxelGrid(keys, logp, 0.2), 3
 
 
-def _predictions(seq: KittiSequence, frames: range, model: PointSegmenter, roll: int = 0
-                 ) -> list[tuple[np.ndarray, np.ndarray]]:
+def _predictions(
+    seq: KittiSequence, frames: range, model: PointSegmenter, roll: int = 0
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per frame, the voxel keys of its points and the model's log-probabilities (classes rolled by
     ``roll``: predictions unlike the round's own)."""
     out = []
     for i in frames:
         pts = seq.frame(i).points
-        out.append((voxel_keys(world_points(pts, seq.poses[i]), 0.2),
-                    np.roll(predict_log_probs(model, pts), roll, axis=1)))
+        out.append(
+            (
+                voxel_keys(world_points(pts, seq.poses[i]), 0.2),
+                np.roll(predict_log_probs(model, pts), roll, axis=1),
+            )
+        )
     return out
 
 
@@ -786,8 +841,17 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     # Margin 0: every voxel the network predicts is created (the default margin is checked below).
     cfg = replace(TINY, epochs=2, temperature=1.0, new_voxel_margin=0.0)
     calls: list[tuple[int, int]] = []
-    out = run_3dcn_iteration(seq, fused, grid, c, cfg, FusionConfig(), tmp_path / "work", 1,
-                             progress=lambda d, t: calls.append((d, t)))
+    out = run_3dcn_iteration(
+        seq,
+        fused,
+        grid,
+        c,
+        cfg,
+        FusionConfig(),
+        tmp_path / "work",
+        1,
+        progress=lambda d, t: calls.append((d, t)),
+    )
     # Trained on the smoothed grid's labels (the checkpoint's fingerprint hashes them) ...
     ck = load_checkpoint(checkpoint_path(tmp_path / "work", 1))
     frames = range(len(seq))
@@ -797,8 +861,15 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     assert training_fingerprint(cfg, c, frames, other) != ck.meta["fingerprint"]
     # ... and its predictions fused into the fused grid.
     preds = _predictions(seq, frames, ck.model)
-    expected = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), cfg.network_evidence,
-                         new_voxel_margin=cfg.new_voxel_margin)
+    expected = fuse_back(
+        fused,
+        preds,
+        c,
+        cfg.temperature,
+        FusionConfig(),
+        cfg.network_evidence,
+        new_voxel_margin=cfg.new_voxel_margin,
+    )
     assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
     assert calls[-1] == (3 + 2 * 3 + 3, 3 + 2 * 3 + 3)
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)
@@ -822,8 +893,10 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     cfg4 = replace(cfg, test_time_views=4)
     four = run_3dcn_iteration(seq, fused, grid, c, cfg4, FusionConfig(), tmp_path / "work", 1)
     assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
-    preds4 = [(k, predict_log_probs(ck.model, seq.frame(i).points, views=4))
-              for i, (k, _) in zip(frames, preds, strict=True)]
+    preds4 = [
+        (k, predict_log_probs(ck.model, seq.frame(i).points, views=4))
+        for i, (k, _) in zip(frames, preds, strict=True)
+    ]
     expected4 = fuse_back(fused, preds4, c, cfg.temperature, FusionConfig(), cfg.network_evidence)
     assert np.array_equal(four.keys, expected4.keys) and np.array_equal(four.logp, expected4.logp)
     assert not np.array_equal(four.logp, out.logp)
@@ -832,16 +905,21 @@ def test_run_3dcn_iteration_labels_points_outside_the_camera_view(tmp_path: Path
     vkeys, means, _ = voxel_mean_log_probs(preds, c, FusionConfig().prob_floor)
     top = np.sort(means, axis=1)
     margin = float(np.median((top[:, -1] - top[:, -2])[~np.isin(vkeys, fused.keys)]))  # half the new ones
-    sure = run_3dcn_iteration(seq, fused, grid, c, replace(cfg, new_voxel_margin=margin), FusionConfig(),
-                              tmp_path / "work", 1)
+    sure = run_3dcn_iteration(
+        seq, fused, grid, c, replace(cfg, new_voxel_margin=margin), FusionConfig(), tmp_path / "work", 1
+    )
     assert checkpoint_path(tmp_path / "work", 1).stat().st_mtime_ns == mtime
     expected_sure = fuse_back(fused, preds, c, cfg.temperature, FusionConfig(), new_voxel_margin=margin)
     assert np.array_equal(sure.keys, expected_sure.keys) and np.array_equal(sure.logp, expected_sure.logp)
     assert np.isin(fused.keys, sure.keys).all() and np.isin(sure.keys, out.keys).all()
     assert fused.num_voxels < sure.num_voxels < out.num_voxels
     # T = ∞ ignores the network entirely.
-    assert run_3dcn_iteration(seq, fused, grid, c, replace(cfg, temperature=math.inf), FusionConfig(),
-                              tmp_path / "work", 1) is fused
+    assert (
+        run_3dcn_iteration(
+            seq, fused, grid, c, replace(cfg, temperature=math.inf), FusionConfig(), tmp_path / "work", 1
+        )
+        is fused
+    )
 
 
 def test_run_3dcn_iteration_never_trains_on_erased_voxels(tmp_path: Path, make_tiny_sequence) -> None:
@@ -857,13 +935,23 @@ def test_run_3dcn_iteration_needs_labels(tmp_path: Path, make_tiny_sequence) -> 
         run_3dcn_iteration(seq, empty, empty, c, TINY, FusionConfig(), tmp_path / "w", 1)
 
 
-def test_reliable_targets_ticks_per_scan_and_never_labels_erased_voxels(tmp_path: Path, make_tiny_sequence
-                                                                       ) -> None:
+def test_reliable_targets_ticks_per_scan_and_never_labels_erased_voxels(
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     erased = grid.keys[::3]
     ticks: list[int] = []
-    targets = reliable_targets(seq, grid, c, replace(TINY, share=1.0), 0.2, range(3), None,
-                               progress=lambda: ticks.append(1), erased=erased)
+    targets = reliable_targets(
+        seq,
+        grid,
+        c,
+        replace(TINY, share=1.0),
+        0.2,
+        range(3),
+        None,
+        progress=lambda: ticks.append(1),
+        erased=erased,
+    )
     assert len(ticks) == 3
     for i, t in enumerate(targets):
         keys = voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2)
@@ -877,27 +965,39 @@ def test_reliable_targets_ticks_per_scan_and_never_labels_erased_voxels(tmp_path
 
 
 def test_reliable_targets_are_the_selection_of_each_scans_voxel_labels_in_both_scopes(
-        tmp_path: Path, make_tiny_sequence) -> None:
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     """Per scan: the points' voxel labels and confidences (``voxel_labels().at``), selected per scan
     (seed + frame number, view counts as support) or over the frames together."""
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     views, frames = _tie_views(grid), range(1, 3)  # frames 1, 2: their numbers seed the tie order
     at = grid.voxel_labels().at
     scans = [at(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2)) for i in frames]
-    support = [lookup_counts(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2), *views)
-               for i in frames]
+    support = [
+        lookup_counts(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2), *views)
+        for i in frames
+    ]
     cfg = replace(TINY, share=0.3, seed=11)
     for scope in ("scan", "sequence"):
         for v in (views, None):
-            got = list(iter_reliable_targets(seq, grid, c, replace(cfg, selection_scope=scope), 0.2, frames,
-                                             v))
-            masks = select_reliable_scans([lab for lab, _ in scans], [conf for _, conf in scans], c, 0.3,
-                                          scope, seed=11, support=support if v is not None else None,
-                                          scan_numbers=[1, 2])
+            got = list(
+                iter_reliable_targets(seq, grid, c, replace(cfg, selection_scope=scope), 0.2, frames, v)
+            )
+            masks = select_reliable_scans(
+                [lab for lab, _ in scans],
+                [conf for _, conf in scans],
+                c,
+                0.3,
+                scope,
+                seed=11,
+                support=support if v is not None else None,
+                scan_numbers=[1, 2],
+            )
             assert len(got) == 2
             for t, m, (lab, _) in zip(got, masks, scans, strict=True):
                 assert t.dtype == np.int16 and np.array_equal(t, np.where(m, lab, UNLABELED))
                 assert (t >= 0).sum() > 10
+
     # the scope, the view counts and the seed each change what is selected here
     def run(v: tuple[np.ndarray, np.ndarray] | None = views, **kw: object) -> np.ndarray:
         return np.concatenate(list(iter_reliable_targets(seq, grid, c, replace(cfg, **kw), 0.2, frames, v)))
@@ -919,8 +1019,9 @@ def test_target_file_round_trip(tmp_path: Path) -> None:
     """Any integer targets are stored as int16 (2 bytes per point) and read back one scan at a time; the
     work folder is made as needed and closing twice is fine."""
     path = tmp_path / "a" / "b" / "t.i16"
-    store = TargetFile.write(path, [np.array([3, -1, 0], np.int64), np.zeros(0, np.int16),
-                                    np.array([7], np.int32)])
+    store = TargetFile.write(
+        path, [np.array([3, -1, 0], np.int64), np.zeros(0, np.int16), np.array([7], np.int32)]
+    )
     assert path.stat().st_size == 2 * 4 and len(store) == 3 and store.offsets == [0, 3, 3, 4]
     assert [t.tolist() for t in store] == [[3, -1, 0], [], [7]]
     assert store.read(2).dtype == np.int16
@@ -940,8 +1041,9 @@ def test_fuse_back_refuses_a_bad_temperature_and_a_margin_on_point_evidence() ->
         fuse_back(grid, [], 3, 1.0, FusionConfig(), "points")
 
 
-def test_run_3dcn_iteration_hands_frames_views_and_in_view_to_its_round(tmp_path: Path, make_tiny_sequence
-                                                                       ) -> None:
+def test_run_3dcn_iteration_hands_frames_views_and_in_view_to_its_round(
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     views, frames = _tie_views(grid), range(1, 3)
     # Margin 100: no voxel the network creates inside the camera view survives; in_view = the camera's own
@@ -950,44 +1052,64 @@ def test_run_3dcn_iteration_hands_frames_views_and_in_view_to_its_round(tmp_path
     work = tmp_path / "work"
     work.mkdir()
     checkpoint_path(work, 1).write_bytes(b"not a checkpoint")  # unreadable: trained again, replaced
-    out = run_3dcn_iteration(seq, grid, grid, c, cfg, FusionConfig(), work, 1, frames=frames, views=views,
-                             in_view=grid.keys)
+    out = run_3dcn_iteration(
+        seq, grid, grid, c, cfg, FusionConfig(), work, 1, frames=frames, views=views, in_view=grid.keys
+    )
     ck = load_checkpoint(checkpoint_path(work, 1))
     targets = reliable_targets(seq, grid, c, cfg, 0.2, frames, views)
-    assert not all(np.array_equal(a, b) for a, b in
-                   zip(targets, reliable_targets(seq, grid, c, cfg, 0.2, frames, None), strict=True))
+    assert not all(
+        np.array_equal(a, b)
+        for a, b in zip(targets, reliable_targets(seq, grid, c, cfg, 0.2, frames, None), strict=True)
+    )
     assert ck.meta["fingerprint"] == training_fingerprint(cfg, c, frames, targets)
     assert ck.meta["frames"] == [1, 3, 1] and ck.meta["iteration"] == 1
     preds = _predictions(seq, frames, ck.model)
-    expected = fuse_back(grid, preds, c, 1.0, FusionConfig(), cfg.network_evidence, new_voxel_margin=100.0,
-                         in_view=grid.keys)
+    expected = fuse_back(
+        grid, preds, c, 1.0, FusionConfig(), cfg.network_evidence, new_voxel_margin=100.0, in_view=grid.keys
+    )
     assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
     assert out.num_voxels > grid.num_voxels
-    every_voxel_in_view = fuse_back(grid, preds, c, 1.0, FusionConfig(), cfg.network_evidence,
-                                    new_voxel_margin=100.0)
+    every_voxel_in_view = fuse_back(
+        grid, preds, c, 1.0, FusionConfig(), cfg.network_evidence, new_voxel_margin=100.0
+    )
     assert every_voxel_in_view.num_voxels == grid.num_voxels
     # The camera view applies at margins below 1 nat too, and point evidence reaches fuse_back (the
     # checkpoint is reused: neither acts before training).
-    half = run_3dcn_iteration(seq, grid, grid, c, replace(cfg, new_voxel_margin=0.5), FusionConfig(), work, 1,
-                              frames=frames, views=views, in_view=grid.keys)
+    half = run_3dcn_iteration(
+        seq,
+        grid,
+        grid,
+        c,
+        replace(cfg, new_voxel_margin=0.5),
+        FusionConfig(),
+        work,
+        1,
+        frames=frames,
+        views=views,
+        in_view=grid.keys,
+    )
     assert np.array_equal(half.keys, out.keys) and np.array_equal(half.logp, out.logp)
     assert fuse_back(grid, preds, c, 1.0, FusionConfig(), new_voxel_margin=0.5).num_voxels < out.num_voxels
     by_point = replace(cfg, new_voxel_margin=0.0, network_evidence="point")
-    point = run_3dcn_iteration(seq, grid, grid, c, by_point, FusionConfig(), work, 1, frames=frames,
-                               views=views)
+    point = run_3dcn_iteration(
+        seq, grid, grid, c, by_point, FusionConfig(), work, 1, frames=frames, views=views
+    )
     expected_point = fuse_back(grid, preds, c, 1.0, FusionConfig(), "point")
     assert np.array_equal(point.keys, expected_point.keys) and np.array_equal(point.logp, expected_point.logp)
     assert not np.array_equal(point.logp, fuse_back(grid, preds, c, 1.0, FusionConfig()).logp)
 
 
 def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back(
-        tmp_path: Path, make_tiny_sequence) -> None:
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     other = VoxelGrid(grid.keys, np.roll(grid.logp, 1, axis=1), grid.voxel_size)
     fa, fb = range(0, 2), range(1, 3)
     erased = grid.keys[::4]
-    parts = [RoundPart(seq, grid, grid, fa, _tie_views(grid), name="a"),
-             RoundPart(seq, other, lambda: grid, fb, erased=erased, name="b")]
+    parts = [
+        RoundPart(seq, grid, grid, fa, _tie_views(grid), name="a"),
+        RoundPart(seq, other, lambda: grid, fb, erased=erased, name="b"),
+    ]
     cfg = replace(TINY, temperature=1.0, new_voxel_margin=0.0)
     work = tmp_path / "work"
     calls: list[tuple[int, int, bool]] = []
@@ -997,12 +1119,23 @@ def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back
         predicted.append((list(frames), ckpt))
         yield from _predictions(s, frames, load_checkpoint(ckpt).model, roll=1)
 
-    out = list(iter_3dcn_round(parts, c, cfg, FusionConfig(), work, 2,
-                               lambda d, t: calls.append((d, t, targets_path(work, 2).is_file())), predict))
+    out = list(
+        iter_3dcn_round(
+            parts,
+            c,
+            cfg,
+            FusionConfig(),
+            work,
+            2,
+            lambda d, t: calls.append((d, t, targets_path(work, 2).is_file())),
+            predict,
+        )
+    )
     # One network, trained on both parts' reliable labels (round 2's seed) ...
     cfg2 = iteration_config(cfg, 2)
-    targets = (reliable_targets(seq, grid, c, cfg2, 0.2, fa, _tie_views(grid))
-               + reliable_targets(seq, grid, c, cfg2, 0.2, fb, None, erased=erased))
+    targets = reliable_targets(seq, grid, c, cfg2, 0.2, fa, _tie_views(grid)) + reliable_targets(
+        seq, grid, c, cfg2, 0.2, fb, None, erased=erased
+    )
     ck = load_checkpoint(checkpoint_path(work, 2))
     assert ck.meta["fingerprint"] == training_fingerprint(cfg2, c, [("a", fa), ("b", fb)], targets)
     assert ck.meta["fingerprint"] != training_fingerprint(cfg2, c, [("b", fa), ("a", fb)], targets)
@@ -1012,8 +1145,9 @@ def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back
     assert all(type(n) is int for n in ck.meta["class_counts"])
     # the weights are train_model's on the scans of a then b, class weights from both parts' counts
     scans = list(zip([*fa, *fb], targets, strict=True))
-    model, stats = train_model(lambda j: (seq.frame(scans[j][0]).points, scans[j][1]), range(4), c, cfg2,
-                               class_counts=counts)
+    model, stats = train_model(
+        lambda j: (seq.frame(scans[j][0]).points, scans[j][1]), range(4), c, cfg2, class_counts=counts
+    )
     for name, value in model.state_dict().items():
         assert torch.equal(value, ck.model.state_dict()[name]), name
     assert ck.meta["steps"] == stats.steps and ck.meta["losses"] == pytest.approx(stats.losses)
@@ -1022,8 +1156,15 @@ def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back
     # grid.
     assert predicted == [([0, 1], checkpoint_path(work, 2)), ([1, 2], checkpoint_path(work, 2))]
     for grid_in, frames, got in zip([grid, other], [fa, fb], out, strict=True):
-        expected = fuse_back(grid_in, _predictions(seq, frames, ck.model, roll=1), c, 1.0, FusionConfig(),
-                             cfg.network_evidence, new_voxel_margin=0.0)
+        expected = fuse_back(
+            grid_in,
+            _predictions(seq, frames, ck.model, roll=1),
+            c,
+            1.0,
+            FusionConfig(),
+            cfg.network_evidence,
+            new_voxel_margin=0.0,
+        )
         assert np.array_equal(got.keys, expected.keys) and np.array_equal(got.logp, expected.logp)
     # Progress: every step of selection (4 scans), training and inference (4 scans) once, in order; the
     # targets are spilled to round 2's file while the network trains, and the file is gone after.
@@ -1035,16 +1176,20 @@ def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back
     assert not targets_path(work, 2).exists()
 
 
-def test_a_round_names_the_grid_and_sequence_of_another_class_count(tmp_path: Path, make_tiny_sequence
-                                                                   ) -> None:
+def test_a_round_names_the_grid_and_sequence_of_another_class_count(
+    tmp_path: Path, make_tiny_sequence
+) -> None:
     seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
     two = VoxelGrid(grid.keys, grid.logp[:, :2], 0.2)
     cfg = replace(TINY, temperature=1.0)
     never = replace(cfg, temperature=math.inf)
     cases = [
         ([RoundPart(seq, two, grid)], never, "the fused grid has 2 classes, schema has 3"),
-        ([RoundPart(seq, grid, grid, name="a"), RoundPart(seq, two, grid, name="b")], never,
-         "the fused grid of sequence b has 2 classes"),
+        (
+            [RoundPart(seq, grid, grid, name="a"), RoundPart(seq, two, grid, name="b")],
+            never,
+            "the fused grid of sequence b has 2 classes",
+        ),
         ([RoundPart(seq, grid, two, name="a")], cfg, "the smoothed grid of sequence a has 2 classes"),
         ([RoundPart(seq, two, grid)], cfg, "the fused grid has 2 classes"),  # checked after training
         ([], cfg, "a round needs at least one sequence"),
@@ -1058,8 +1203,8 @@ def test_class_weights_by_hand() -> None:
     """w_c ∝ n_c^(-p), mean 1 over the present classes, 1 for absent ones; p = 0 or disabled: all 1."""
     assert class_weights([100, 1, 0]).tolist() == pytest.approx([2 / 11, 20 / 11, 1.0])
     # p = 0.25: raw 100^-0.25 = 1/sqrt(10) and 1; mean (1/sqrt(10) + 1) / 2
-    m = (10 ** -0.5 + 1) / 2
-    assert class_weights([100, 1, 0], power=0.25).tolist() == pytest.approx([10 ** -0.5 / m, 1 / m, 1.0])
+    m = (10**-0.5 + 1) / 2
+    assert class_weights([100, 1, 0], power=0.25).tolist() == pytest.approx([10**-0.5 / m, 1 / m, 1.0])
     assert class_weights([100, 1, 0], power=0.0).tolist() == [1.0, 1.0, 1.0]
     assert class_weights([100, 1, 0], enabled=False).tolist() == [1.0, 1.0, 1.0]
     with pytest.raises(ConfigError, match="must be in"):

@@ -25,8 +25,14 @@ from leap_core.heap import _glibc
 from leap_core.types import UNLABELED
 
 TINY = ConsistencyConfig(
-    enabled=True, backbone=BackboneConfig(channels=8, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4),
-    points_per_scan=0, min_steps=0, lr=1e-2, augment=False, device="cpu", num_threads=1,
+    enabled=True,
+    backbone=BackboneConfig(channels=8, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4),
+    points_per_scan=0,
+    min_steps=0,
+    lr=1e-2,
+    augment=False,
+    device="cpu",
+    num_threads=1,
 )
 
 
@@ -191,8 +197,13 @@ print(json.dumps({"held": (freed - rss0) / mib, "after_trim": (after - rss0) / m
 
 
 def _heap_child(mode: str) -> dict[str, float]:
-    out = subprocess.run([sys.executable, "-c", _HEAP_CHILD, mode], capture_output=True, text=True,
-                         check=True, cwd=Path(__file__).resolve().parent.parent)
+    out = subprocess.run(
+        [sys.executable, "-c", _HEAP_CHILD, mode],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
     result: dict[str, float] = json.loads(out.stdout)
     return result
 

@@ -29,8 +29,15 @@ def test_correct_points_map_then_scan_and_erase() -> None:
     label = np.array([0, 1, 1, 3], np.int16)
     conf = np.array([0.5, 0.6, 0.7, 0.8], np.float32)
     keys = np.array([5, 7, 9, 7])
-    lab, cf = correct_points(label, conf, keys, np.array([7, 9]), np.array([2, ERASE]),
-                             scan_points=np.array([2, 3]), scan_class=np.array([0, ERASE]))
+    lab, cf = correct_points(
+        label,
+        conf,
+        keys,
+        np.array([7, 9]),
+        np.array([2, ERASE]),
+        scan_points=np.array([2, 3]),
+        scan_class=np.array([0, ERASE]),
+    )
     # point 0 untouched; 1: map → 2 (conf 1); 2: map erase, then scan → 0 (conf 1); 3: map → 2, scan erase.
     assert lab.tolist() == [0, 2, 0, -1]
     assert cf.tolist() == [0.5, 1.0, 1.0, 0.0]
@@ -38,8 +45,15 @@ def test_correct_points_map_then_scan_and_erase() -> None:
     lab, cf = correct_points(np.array([1]), np.array([0.5]), np.array([9]), np.array([9]), np.array([ERASE]))
     assert lab.tolist() == [-1] and cf.tolist() == [0.0]  # a map-scope erase alone unlabels the point
     with pytest.raises(ValueError, match="out of range"):
-        correct_points(label, conf, keys, np.zeros(0, np.int64), np.zeros(0, np.int16),
-                       scan_points=np.array([4]), scan_class=np.array([0]))
+        correct_points(
+            label,
+            conf,
+            keys,
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int16),
+            scan_points=np.array([4]),
+            scan_class=np.array([0]),
+        )
 
 
 def test_changed_keys() -> None:

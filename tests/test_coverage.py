@@ -155,8 +155,10 @@ def test_cli_rerun_prints_the_counts_from_the_run_folder(street: Path, tmp_path:
 
     first = run()
     fresh = export_coverage(out, street, None, VOXEL)
-    assert first.startswith(f"{fresh.labeled} of {fresh.points} points labeled; {fresh.unlabeled} unlabeled: "
-                            f"{fresh.outside_view} outside")
+    assert first.startswith(
+        f"{fresh.labeled} of {fresh.points} points labeled; {fresh.unlabeled} unlabeled: "
+        f"{fresh.outside_view} outside"
+    )
     data = _cached_file(out)
     assert data["key"] == coverage_key(out, street, None, VOXEL)
     data["no_mask"] += 1000

@@ -49,8 +49,15 @@ def test_3dcn_round_trains_and_predicts_on_the_gpu(tmp_path: Path, make_tiny_seq
     print(f"largest CPU/GPU log-probability difference: {worst:.2e}")
     assert worst < 1e-3
     # The round's grid is the fusion of those predictions (up to the grid's float16 rounding).
-    expected = fuse_back(fused, _predictions(seq, frames, ck.model), c, cfg.temperature, FusionConfig(),
-                         cfg.network_evidence, new_voxel_margin=0.0)
+    expected = fuse_back(
+        fused,
+        _predictions(seq, frames, ck.model),
+        c,
+        cfg.temperature,
+        FusionConfig(),
+        cfg.network_evidence,
+        new_voxel_margin=0.0,
+    )
     assert np.array_equal(out.keys, expected.keys)
     np.testing.assert_allclose(out.logp.astype(np.float32), expected.logp.astype(np.float32), atol=1e-2)
 

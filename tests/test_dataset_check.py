@@ -45,8 +45,16 @@ def test_a_complete_sequence_can_run_every_stage(seq: TinySequence) -> None:
     assert r.verdict == "full" and r.frames == 4 and (r.first_frame, r.last_frame) == ("000000", "000003")
     assert (r.images.kind, r.ground_truth.kind, r.gt2d.kind) == ("all", "all", "all")
     assert r.calib.valid and r.poses.source == "file" and r.poses.lines == 4
-    assert _stages(r) == {"labels2d": "runs", "project": "runs", "fuse": "runs", "smooth": "runs",
-                          "3dcn": "skipped", "label_points": "runs", "evaluate": "runs", "export": "runs"}
+    assert _stages(r) == {
+        "labels2d": "runs",
+        "project": "runs",
+        "fuse": "runs",
+        "smooth": "runs",
+        "3dcn": "skipped",
+        "label_points": "runs",
+        "evaluate": "runs",
+        "export": "runs",
+    }
     assert not [f for f in r.findings if f.severity != "info"]
 
 
@@ -105,7 +113,8 @@ def test_folders_nothing_can_run_on_are_reported_not_raised(seq: TinySequence, t
     assert v == "none" and codes == ["unreadable"]
     r = check_dataset(times, check_models=False)
     assert r.findings[-1].path == str(times / "times.txt") or any(
-        f.path == str(times / "times.txt") for f in r.findings)
+        f.path == str(times / "times.txt") for f in r.findings
+    )
 
     damaged = shutil.copytree(seq.root, tmp_path / "damaged")
     (damaged / "velodyne" / "000001.bin").write_bytes(b"\0" * 17)
@@ -129,7 +138,8 @@ def test_labelers_and_their_inputs(seq: TinySequence, tmp_path: Path) -> None:
     assert advice(f, "cli", r) == "use --labeler grounded-sam"
     # Where the chosen labeler runs, missing models are only a fact.
     f = check_dataset(seq.root, config=SIMULATED, runtime=Runtime(models_dir=tmp_path / "models")).finding(
-        "models_missing")
+        "models_missing"
+    )
     assert f is not None and f.severity == "info"
 
     models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=8)).models_dir
@@ -155,8 +165,13 @@ def test_poses_are_indexed_by_frame_number(seq: TinySequence, tmp_path: Path) ->
     """Frames 000001 and 000003 alone with the full 4-line poses.txt: every scan has its line."""
     sub = shutil.copytree(seq.root, tmp_path / "sub")
     for fid in ("000000", "000002"):
-        for part in ("velodyne/{}.bin", "image_2/{}.png", "labels/{}.label", "gt2d/semantic/{}.png",
-                     "gt2d/instance/{}.png"):
+        for part in (
+            "velodyne/{}.bin",
+            "image_2/{}.png",
+            "labels/{}.label",
+            "gt2d/semantic/{}.png",
+            "gt2d/instance/{}.png",
+        ):
             (sub / part.format(fid)).unlink()
     r = check_dataset(sub, config=SIMULATED, check_models=False)
     assert r.frames == 2 and r.poses.lines == 4 and r.finding("poses_short") is None
@@ -172,8 +187,9 @@ def test_poses_are_indexed_by_frame_number(seq: TinySequence, tmp_path: Path) ->
 def test_app_wording_never_names_a_flag(seq: TinySequence, tmp_path: Path) -> None:
     variants = []
     for drop in ("poses.txt", "gt2d", "image_2", "calib.txt", "labels"):
-        folder = shutil.copytree(seq.root, tmp_path / drop.replace(".", "_"),
-                                 ignore=shutil.ignore_patterns(drop))
+        folder = shutil.copytree(
+            seq.root, tmp_path / drop.replace(".", "_"), ignore=shutil.ignore_patterns(drop)
+        )
         variants.append(check_dataset(folder, config=SIMULATED, runtime=Runtime(models_dir=tmp_path / "m")))
     variants.append(check_dataset(tmp_path / "nope"))
     for r in variants:

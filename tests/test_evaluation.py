@@ -36,9 +36,14 @@ def _sequence(scale: int, *, common: bool = True, frames: list[str] | None = Non
     ground truth a, b; columns: predicted a, b, unlabeled), plus 1 on the diagonal for the voxel row."""
     base = np.array([[3, 1, 2], [0, 4, 1]], np.int64)
     out: dict[str, Any] = {
-        "class_names": NAMES, "categories": CATS, "rows": ROWS, "labeler": f"simulated x{scale}",
+        "class_names": NAMES,
+        "categories": CATS,
+        "rows": ROWS,
+        "labeler": f"simulated x{scale}",
         "protocols": {p: d for p, d in PROTOCOLS.items() if common or p != COMMON},
-        "frames": frames or [f"{scale:06d}"], "n_points": 10 * scale, "n_points_in_view": 8 * scale,
+        "frames": frames or [f"{scale:06d}"],
+        "n_points": 10 * scale,
+        "n_points_in_view": 8 * scale,
         "labeled_points": {"point": 4 * scale, "voxel": 6 * scale},
     }
     for p in out["protocols"]:
@@ -59,8 +64,10 @@ def test_overall_metrics_by_hand() -> None:
     assert (out["class_names"], out["categories"], out["rows"]) == (NAMES, CATS, ROWS)
     assert out["n_points"] == 30 and out["n_points_in_view"] == 24
     assert out["labeled_points"] == {"point": 12, "voxel": 18}
-    assert out["labeled_share_all_points"] == {"point": pytest.approx(12 / 30),
-                                               "voxel": pytest.approx(18 / 30)}
+    assert out["labeled_share_all_points"] == {
+        "point": pytest.approx(12 / 30),
+        "voxel": pytest.approx(18 / 30),
+    }
     assert out["coverage_ratio"] == {"point": 1.0, "voxel": pytest.approx(18 / 12)}
     assert out["protocols"] == PROTOCOLS
     # Voxel row, summed: 3·base + 2 on the diagonal = [[11, 3, 6], [0, 14, 3]].
@@ -118,10 +125,14 @@ def test_overall_metrics_count_what_older_files_lack_as_zero() -> None:
 
 def test_all_points_labeled_share() -> None:
     assert all_points_labeled_share({"labeled_share_all_points": {"voxel": 0.5, "point": None}}) == {
-        "voxel": 0.5, "point": None}
+        "voxel": 0.5,
+        "point": None,
+    }
     # Older files: computed from the counts.
     assert all_points_labeled_share({"labeled_points": {"voxel": 3, "point": 1}, "n_points": 4}) == {
-        "voxel": 0.75, "point": 0.25}
+        "voxel": 0.75,
+        "point": 0.25,
+    }
     assert all_points_labeled_share({"labeled_points": {"voxel": 1}, "n_points": 1}) == {"voxel": 1.0}
     assert all_points_labeled_share({"labeled_points": {"voxel": 3}, "n_points": 0}) == {"voxel": None}
     assert all_points_labeled_share({"labeled_points": {"voxel": 3}}) == {"voxel": None}

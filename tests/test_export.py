@@ -115,8 +115,13 @@ def test_label_map_yaml_round_trip() -> None:
 
 def test_label_map_export_id_wins_over_another_class_gt_id() -> None:
     for a_gt, b_gt in (((7, 8), ()), ((), (7, 8))):  # the clash in either class order
-        schema = Schema("s", classes=(ClassDef("a", (1, 2, 3), ("a",), export_id=7, gt_ids=a_gt),
-                                      ClassDef("b", (4, 5, 6), ("b",), export_id=8, gt_ids=b_gt)))
+        schema = Schema(
+            "s",
+            classes=(
+                ClassDef("a", (1, 2, 3), ("a",), export_id=7, gt_ids=a_gt),
+                ClassDef("b", (4, 5, 6), ("b",), export_id=8, gt_ids=b_gt),
+            ),
+        )
         assert label_map(schema)["learning_map"] == {0: 0, 7: 1, 8: 2}
 
 
@@ -213,31 +218,63 @@ def test_write_export_folder_failure_leaves_the_old_folder(tmp_path, monkeypatch
 
 
 def test_summary_yaml_holds_every_part_in_order() -> None:
-    schema = Schema("mini", classes=(ClassDef("car", (1, 2, 3), ("car",), export_id=10),
-                                     ClassDef("röad", (4, 5, 6), ("road",), export_id=40),
-                                     ClassDef("pole", (7, 8, 9), ("pole",), export_id=80)))
-    counts = {"scans": 3, "points": 90, "labeled": 70, "unlabeled": 20,
-              "unlabeled_by_reason": {"outside_view": 15, "no_mask": 5},
-              "raw_counts": {"0": 20, "10": 30, 40: 40, 99: 7}}  # keys as read back from JSON, or ints
-    common = {"project": {"name": "démo", "id": 1}, "run": {"id": 7}, "dataset": Path("/data/seq/08"),
-              "schema": schema, "pipeline": {"voxel_size": 0.1}, "counts": counts, "version": "1.2.3",
-              "written_at": "2026-11-27T00:00:00Z"}
+    schema = Schema(
+        "mini",
+        classes=(
+            ClassDef("car", (1, 2, 3), ("car",), export_id=10),
+            ClassDef("röad", (4, 5, 6), ("road",), export_id=40),
+            ClassDef("pole", (7, 8, 9), ("pole",), export_id=80),
+        ),
+    )
+    counts = {
+        "scans": 3,
+        "points": 90,
+        "labeled": 70,
+        "unlabeled": 20,
+        "unlabeled_by_reason": {"outside_view": 15, "no_mask": 5},
+        "raw_counts": {"0": 20, "10": 30, 40: 40, 99: 7},
+    }  # keys as read back from JSON, or ints
+    common = {
+        "project": {"name": "démo", "id": 1},
+        "run": {"id": 7},
+        "dataset": Path("/data/seq/08"),
+        "schema": schema,
+        "pipeline": {"voxel_size": 0.1},
+        "counts": counts,
+        "version": "1.2.3",
+        "written_at": "2026-11-27T00:00:00Z",
+    }
     text = summary_yaml(frames=range(2, 5), with_confidence=True, **common)
     assert text.startswith("# LeAP Studio export summary (README, 'Exports').\n")
     assert "démo" in text and "röad" in text  # allow_unicode: names stay readable, not \xe9 escapes
     data = yaml.safe_load(text)
-    assert list(data) == ["project", "run", "dataset", "files", "counts", "settings", "leap_studio_version",
-                          "written_at"]  # sort_keys=False: the order written above
+    assert list(data) == [
+        "project",
+        "run",
+        "dataset",
+        "files",
+        "counts",
+        "settings",
+        "leap_studio_version",
+        "written_at",
+    ]  # sort_keys=False: the order written above
     assert data == {
         "project": {"name": "démo", "id": 1},
         "run": {"id": 7},
         "dataset": {"path": "/data/seq/08", "sequence": "08", "frames": [2, 5]},
-        "files": {"labels": "sequences/08/predictions/<frame>.label (uint32: raw id, instance 0 above)",
-                  "confidences": "sequences/08/confidences/<frame>.conf (float32 per point)",
-                  "label_map": "label-map.yaml"},
-        "counts": {"scans": 3, "points": 90, "labeled": 70, "unlabeled": 20,
-                   "unlabeled_by_reason": {"outside_view": 15, "no_mask": 5},
-                   "per_class": {"car": 30, "röad": 40, "pole": 0}},
+        "files": {
+            "labels": "sequences/08/predictions/<frame>.label (uint32: raw id, instance 0 above)",
+            "confidences": "sequences/08/confidences/<frame>.conf (float32 per point)",
+            "label_map": "label-map.yaml",
+        },
+        "counts": {
+            "scans": 3,
+            "points": 90,
+            "labeled": 70,
+            "unlabeled": 20,
+            "unlabeled_by_reason": {"outside_view": 15, "no_mask": 5},
+            "per_class": {"car": 30, "röad": 40, "pole": 0},
+        },
         "settings": {"schema": "mini", "pipeline": {"voxel_size": 0.1}},
         "leap_studio_version": "1.2.3",
         "written_at": "2026-11-27T00:00:00Z",
@@ -248,8 +285,13 @@ def test_summary_yaml_holds_every_part_in_order() -> None:
 
 
 def test_label_map_defaults_and_the_tables_for_unlabeled() -> None:
-    schema = Schema("mini", classes=(ClassDef("car", (1, 2, 3), ("car",), export_id=10),
-                                     ClassDef("road", (4, 5, 6), ("road",), export_id=40)))
+    schema = Schema(
+        "mini",
+        classes=(
+            ClassDef("car", (1, 2, 3), ("car",), export_id=10),
+            ClassDef("road", (4, 5, 6), ("road",), export_id=40),
+        ),
+    )
     lm = label_map(schema, {})
     assert lm["name"] == "mini"  # no name given: the schema's
     assert lm["content"] == {0: 0.0, 10: 0.0, 40: 0.0} and lm["counts"] == {0: 0, 10: 0, 40: 0}  # no point
@@ -271,26 +313,39 @@ def test_label_map_yaml_text_is_readable_unicode_with_flow_style_colours() -> No
 @pytest.mark.parametrize(
     ("text", "match"),
     [
-        ("labels: {car: 10}\ncolor_map: {}\nlearning_map: {}\nlearning_map_inv: {}\n",
-         r"'labels' has a key that is not an integer id"),
-        ("labels: {true: car}\ncolor_map: {}\nlearning_map: {}\nlearning_map_inv: {}\n",
-         r"'labels' has a key that is not an integer id"),
-        ("labels: {10: car}\ncolor_map: {10: [0, 0, 256]}\nlearning_map: {}\nlearning_map_inv: {}\n",
-         r"color_map\[10\] must be"),
-        ("labels: {10: car}\ncolor_map: {10: [300, 0, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
-         r"color_map\[10\] must be"),
-        ("labels: {10: car}\ncolor_map: {10: [0, -1, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
-         r"color_map\[10\] must be"),
-        ("labels: {10: car}\ncolor_map: {10: [0, true, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
-         r"color_map\[10\] must be"),
+        (
+            "labels: {car: 10}\ncolor_map: {}\nlearning_map: {}\nlearning_map_inv: {}\n",
+            r"'labels' has a key that is not an integer id",
+        ),
+        (
+            "labels: {true: car}\ncolor_map: {}\nlearning_map: {}\nlearning_map_inv: {}\n",
+            r"'labels' has a key that is not an integer id",
+        ),
+        (
+            "labels: {10: car}\ncolor_map: {10: [0, 0, 256]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+            r"color_map\[10\] must be",
+        ),
+        (
+            "labels: {10: car}\ncolor_map: {10: [300, 0, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+            r"color_map\[10\] must be",
+        ),
+        (
+            "labels: {10: car}\ncolor_map: {10: [0, -1, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+            r"color_map\[10\] must be",
+        ),
+        (
+            "labels: {10: car}\ncolor_map: {10: [0, true, 0]}\nlearning_map: {}\nlearning_map_inv: {}\n",
+            r"color_map\[10\] must be",
+        ),
     ],
 )
 def test_load_label_map_refuses_non_integer_ids_and_colours_out_of_range(text: str, match: str) -> None:
     with pytest.raises(DatasetError, match=match):
         load_label_map(text, "cfg.yaml")
     # The highest colour value is fine.
-    ok = load_label_map("labels: {10: car}\ncolor_map: {10: [255, 0, 1]}\nlearning_map: {}\n"
-                        "learning_map_inv: {}\n")
+    ok = load_label_map(
+        "labels: {10: car}\ncolor_map: {10: [255, 0, 1]}\nlearning_map: {}\nlearning_map_inv: {}\n"
+    )
     assert ok.colors_rgb == {10: (1, 0, 255)}
 
 
@@ -312,8 +367,13 @@ def test_zip_member_puts_labels_and_confidences_in_their_folders() -> None:
 def test_write_export_zip_holds_the_frame_files_and_the_extras(tmp_path) -> None:
     export_dir = tmp_path / "export"
     export_dir.mkdir()
-    for name, data in (("000000.label", b"L0" * 400), ("000000.conf", b"C0" * 400),
-                       ("000001.label", b"L1" * 400), ("000001.conf", b"C1" * 400), ("notes.txt", b"no")):
+    for name, data in (
+        ("000000.label", b"L0" * 400),
+        ("000000.conf", b"C0" * 400),
+        ("000001.label", b"L1" * 400),
+        ("000001.conf", b"C1" * 400),
+        ("notes.txt", b"no"),
+    ):
         (export_dir / name).write_bytes(data)
     (export_dir / "sub.label").mkdir()  # a folder named like a frame file is not one
     extra = {"label-map.yaml": "labels: {}\n", "summary.yaml": "a: 1\n"}
@@ -321,8 +381,13 @@ def test_write_export_zip_holds_the_frame_files_and_the_extras(tmp_path) -> None
     assert write_export_zip(out, export_dir, "08", extra, include_confidence=True) == 4
     with zipfile.ZipFile(out) as zf:
         assert sorted(zf.namelist()) == [
-            "label-map.yaml", "sequences/08/confidences/000000.conf", "sequences/08/confidences/000001.conf",
-            "sequences/08/predictions/000000.label", "sequences/08/predictions/000001.label", "summary.yaml"]
+            "label-map.yaml",
+            "sequences/08/confidences/000000.conf",
+            "sequences/08/confidences/000001.conf",
+            "sequences/08/predictions/000000.label",
+            "sequences/08/predictions/000001.label",
+            "summary.yaml",
+        ]
         assert zf.read("sequences/08/predictions/000001.label") == b"L1" * 400
         assert zf.read("summary.yaml") == b"a: 1\n"
         assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}
@@ -332,8 +397,10 @@ def test_write_export_zip_holds_the_frame_files_and_the_extras(tmp_path) -> None
     assert out.read_bytes() == before
     assert write_export_zip(out, export_dir, "08", {}, include_confidence=False, overwrite=True) == 2
     with zipfile.ZipFile(out) as zf:
-        assert sorted(zf.namelist()) == ["sequences/08/predictions/000000.label",
-                                         "sequences/08/predictions/000001.label"]
+        assert sorted(zf.namelist()) == [
+            "sequences/08/predictions/000000.label",
+            "sequences/08/predictions/000001.label",
+        ]
 
 
 def _frame_files(folder, **files):
@@ -431,8 +498,10 @@ def test_two_exports_into_one_folder_at_once_do_not_share_a_scratch_folder(tmp_p
         write_export_folder(target, first)
     monkeypatch.undo()
     assert calls == [0]
-    assert {p.name: p.read_bytes() for p in target.iterdir()} == {"000000.label": b"second",
-                                                                  "000001.label": b"second1"}
+    assert {p.name: p.read_bytes() for p in target.iterdir()} == {
+        "000000.label": b"second",
+        "000001.label": b"second1",
+    }
     assert sorted(p.name for p in target.parent.iterdir()) == ["predictions"]
 
 

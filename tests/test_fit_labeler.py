@@ -51,8 +51,10 @@ def test_misfit_and_paper_miou_use_only_present_classes() -> None:
 
 
 def test_mean_row_averages_each_class_over_the_sequences_that_contain_it() -> None:
-    rows = [{"car": 80.0, "bicycle": math.nan, "person": math.nan},
-            {"car": 60.0, "bicycle": 20.0, "person": math.nan}]
+    rows = [
+        {"car": 80.0, "bicycle": math.nan, "person": math.nan},
+        {"car": 60.0, "bicycle": 20.0, "person": math.nan},
+    ]
     got = fit_labeler.mean_row(rows)
     assert got["car"] == pytest.approx(70.0) and got["bicycle"] == pytest.approx(20.0)
     assert math.isnan(got["person"])
@@ -70,8 +72,9 @@ def test_paper_config_spreads_a_merged_class_q_over_its_members() -> None:
 
 def test_paper_config_fits_the_box_leak_of_leak_fitted_classes() -> None:
     assert fit_labeler.LEAK_FITTED == {"person": 0.1, "car": 0.0}
-    cfg = fit_labeler.paper_config({"person": 0.35, "car": 0.05, "other-vehicle": 0.2},
-                                   SimulatedLabelerConfig())
+    cfg = fit_labeler.paper_config(
+        {"person": 0.35, "car": 0.05, "other-vehicle": 0.2}, SimulatedLabelerConfig()
+    )
     # Person's and car's q are their members' box-leak probabilities; their confusions stay at the fixed
     # values (0 leaves car out of the table); other-vehicle's q is its members' confusion.
     assert cfg.class_box_leak == {"person": 0.35, "car": 0.05}
@@ -101,9 +104,11 @@ def test_in_band_names_the_classes_and_the_miou_outside_issue_16s_bands() -> Non
 
 def test_best_round_prefers_a_round_within_the_bands_to_a_smaller_misfit() -> None:
     paper = fit_labeler.PAPER_POINT
-    rows = [{"car": paper["car"] + 5.5, "road": paper["road"]},  # car out by 0.5; misfit 5.5² + 2.75²
-            {"car": paper["car"] + 4.9, "road": paper["road"] - 4.9},  # in every band; misfit 2 · 4.9²
-            {"car": paper["car"] - 9.0, "road": paper["road"]}]  # out
+    rows = [
+        {"car": paper["car"] + 5.5, "road": paper["road"]},  # car out by 0.5; misfit 5.5² + 2.75²
+        {"car": paper["car"] + 4.9, "road": paper["road"] - 4.9},  # in every band; misfit 2 · 4.9²
+        {"car": paper["car"] - 9.0, "road": paper["road"]},
+    ]  # out
     assert fit_labeler.misfit(rows[0])[0] < fit_labeler.misfit(rows[1])[0]
     assert fit_labeler.best_round(rows) == 1
     # Among rounds within the bands, the smaller misfit; with none within them, the smallest misfit.
@@ -114,8 +119,10 @@ def test_best_round_prefers_a_round_within_the_bands_to_a_smaller_misfit() -> No
 def test_spread_counts_each_class_over_the_rows_that_contain_it() -> None:
     paper = fit_labeler.PAPER_POINT
     nan = math.nan
-    rows = [{"car": paper["car"] + 4.0, "bicycle": nan, "mIoU": (paper["car"] + 4.0)},
-            {"car": paper["car"] - 6.0, "bicycle": 20.0, "mIoU": (paper["car"] - 6.0 + 20.0) / 2}]
+    rows = [
+        {"car": paper["car"] + 4.0, "bicycle": nan, "mIoU": (paper["car"] + 4.0)},
+        {"car": paper["car"] - 6.0, "bicycle": 20.0, "mIoU": (paper["car"] - 6.0 + 20.0) / 2},
+    ]
     got = fit_labeler.spread(rows)
     # car: mean paper − 1, std 5, within ±5 in the first row only; bicycle: one row, 5.5 below: outside.
     assert got["car"] == pytest.approx((paper["car"] - 1.0, 5.0, 1, 2))

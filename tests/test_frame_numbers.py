@@ -110,8 +110,14 @@ def test_frames_option_takes_frame_numbers_on_a_copy(subset: Path, tmp_path: Pat
     res = runner.invoke(cli, ["run", str(subset), "--out", str(tmp_path / "r"), "--frames", "3:5"])
     assert res.exit_code == 2
     assert "frames 3:5 out of range: the sequence has frames 10..19" in res.output.strip().splitlines()[-1]
-    run_pipeline(subset, builtin_preset("semantickitti").schema, PipelineConfig(), tmp_path / "r",
-                 frames=range(12, 14), until="labels2d")
+    run_pipeline(
+        subset,
+        builtin_preset("semantickitti").schema,
+        PipelineConfig(),
+        tmp_path / "r",
+        frames=range(12, 14),
+        until="labels2d",
+    )
     assert sorted(p.name for p in (tmp_path / "r" / "labels2d").iterdir()) == ["000012.npz", "000013.npz"]
     assert _frame_range("12:", str(subset)) == range(12, 20)  # "A:" runs to the last scan's number
     assert _frame_range("12", str(subset)) == range(12, 13)
@@ -134,8 +140,11 @@ def test_stages_without_poses_run_without_them(no_poses: Path, tmp_path: Path) -
 
 def test_a_run_without_poses_stops_before_any_work(no_poses: Path, tmp_path: Path) -> None:
     schema = builtin_preset("semantickitti").schema
-    with pytest.raises(PosesMissingError, match=r"poses\.txt: no poses: the 3D stages \(fuse, label_points, "
-                                                 r"evaluate\) need one pose per scan") as exc:
+    with pytest.raises(
+        PosesMissingError,
+        match=r"poses\.txt: no poses: the 3D stages \(fuse, label_points, "
+        r"evaluate\) need one pose per scan",
+    ) as exc:
         run_pipeline(no_poses, schema, PipelineConfig(), tmp_path / "run")
     assert exc.value.path == str(no_poses / "poses.txt")
     assert not (tmp_path / "run").exists()  # refused before the run folder, the labeler or any stage
@@ -151,8 +160,16 @@ def test_copy_labels_like_the_whole_sequence_with_the_3dcn_on(
     whole: Path, subset: Path, tmp_path: Path
 ) -> None:
     """The same with a (small, fast) 3D-CN round: its selection, training and fusion see the same frames."""
-    cfg = config_from_dict({"consistency": {"enabled": True, "min_steps": 20, "points_per_scan": 2048,
-                                            "backbone": {"channels": 16, "layers": 2}}})
+    cfg = config_from_dict(
+        {
+            "consistency": {
+                "enabled": True,
+                "min_steps": 20,
+                "points_per_scan": 2048,
+                "backbone": {"channels": 16, "layers": 2},
+            }
+        }
+    )
     schema = builtin_preset("semantickitti").schema
     a = run_pipeline(whole, schema, cfg, tmp_path / "whole", frames=SUBSET)
     b = run_pipeline(subset, schema, cfg, tmp_path / "copy")

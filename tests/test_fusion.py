@@ -177,8 +177,10 @@ def test_fusion_is_order_and_batching_independent(data) -> None:
     split = []
     for b in shuffled:
         cut = int(rng.integers(0, len(b.keys) + 1))
-        split += [Observations(b.keys[:cut], b.rows[:cut], b.log_table),
-                  Observations(b.keys[cut:], b.rows[cut:], b.log_table)]
+        split += [
+            Observations(b.keys[:cut], b.rows[:cut], b.log_table),
+            Observations(b.keys[cut:], b.rows[cut:], b.log_table),
+        ]
     other = fuse(split, c, FusionConfig(chunk_points=int(rng.integers(1, 30))))
     np.testing.assert_array_equal(other.keys, base.keys)
     np.testing.assert_allclose(other.logp.astype(np.float64), base.logp, atol=F16_ATOL)
@@ -241,8 +243,12 @@ def test_fuse_dense_takes_any_numeric_input_and_refuses_wrong_shapes() -> None:
     once = fuse_dense(None, keys, logp, 4)
     twice = fuse_dense(once, keys, logp, 4)
     assert ref.logp.tobytes() == twice.logp.tobytes() != once.logp.tobytes()  # weight 2 = the same twice
-    for bad_keys, bad_logp in ((keys, logp[:, :3]), (keys, logp[:-1]), (keys.reshape(20, 10), logp),
-                               (keys, logp[:, 0])):
+    for bad_keys, bad_logp in (
+        (keys, logp[:, :3]),
+        (keys, logp[:-1]),
+        (keys.reshape(20, 10), logp),
+        (keys, logp[:, 0]),
+    ):
         with pytest.raises(ValueError, match=r"keys \(N,\) and logp \(N, 4\) expected"):
             fuse_dense(None, bad_keys, bad_logp, 4)
 
@@ -263,11 +269,13 @@ def test_apply_overrides_by_hand_and_its_argument_checks() -> None:
     assert g.keys.tolist() == [7, 9]
     assert g.logp.tolist() == [[0.0, -1.0, -1.0], [0.0, 0.0, -1.0]]
     assert apply_overrides(empty, [], [], strength=0.5).num_voxels == 0
-    for keys, cls, strength, msg in (([1, 2], [0], 1.0, "must have the same length"),
-                                     ([1], [3], 1.0, r"class_idx must be in 0\.\.2"),
-                                     ([1], [-1], 1.0, r"class_idx must be in 0\.\.2"),
-                                     ([1], [0], 0.0, "strength must be > 0"),
-                                     ([], [], -1.0, "strength must be > 0")):
+    for keys, cls, strength, msg in (
+        ([1, 2], [0], 1.0, "must have the same length"),
+        ([1], [3], 1.0, r"class_idx must be in 0\.\.2"),
+        ([1], [-1], 1.0, r"class_idx must be in 0\.\.2"),
+        ([1], [0], 0.0, "strength must be > 0"),
+        ([], [], -1.0, "strength must be > 0"),
+    ):
         with pytest.raises(ValueError, match=msg):
             apply_overrides(empty, keys, cls, strength=strength)
 
@@ -332,8 +340,9 @@ def test_apply_overrides() -> None:
 def test_extent_too_wide_to_pack_gives_the_same_result() -> None:
     # Axis ranges of 2^21 voxels leave no bits for table rows in one int64: the np.unique path runs.
     rng = np.random.default_rng(5)
-    coords = np.concatenate([rng.integers(-3, 3, (60, 3)), [[-AXIS_OFFSET, -AXIS_OFFSET, -AXIS_OFFSET],
-                                                           [AXIS_OFFSET - 1] * 3]])
+    coords = np.concatenate(
+        [rng.integers(-3, 3, (60, 3)), [[-AXIS_OFFSET, -AXIS_OFFSET, -AXIS_OFFSET], [AXIS_OFFSET - 1] * 3]]
+    )
     keys = voxel_keys((coords + 0.5) * 0.2, 0.2)
     obs = _obs(keys, rng.integers(0, 3, len(keys)), rng.dirichlet(np.ones(4), 3))
     grid = fuse([obs], 4)
@@ -384,8 +393,9 @@ def test_fusion_paths_reject_bad_values() -> None:
 def test_voxel_labels_from_probs_ties_and_absent_keys() -> None:
     # float16 probabilities as stored: row 2 is an exact tie; row 3 ties only after float16 rounding
     # (0.35 and 0.35001 are one float16), so both take the lowest index, as numpy's argmax does.
-    probs = np.array([[0.6, 0.4, 0.0], [0.1, 0.2, 0.7], [0.25, 0.375, 0.375], [0.35, 0.35001, 0.3]],
-                     np.float32).astype(np.float16)
+    probs = np.array(
+        [[0.6, 0.4, 0.0], [0.1, 0.2, 0.7], [0.25, 0.375, 0.375], [0.35, 0.35001, 0.3]], np.float32
+    ).astype(np.float16)
     labels = VoxelLabels.from_probs([10, 20, 30, 40], probs)
     assert labels.label.dtype == np.int16 and labels.conf.dtype == np.float32
     assert labels.label.tolist() == [0, 2, 1, 0]
@@ -553,8 +563,9 @@ def test_fold_blocks_adds_to_a_prior_grid_with_the_given_config() -> None:
     assert folded.logp.min() == -3.0  # the given clip acted
     assert folded.keys.tobytes() == expected.keys.tobytes()
     assert folded.logp.tobytes() == expected.logp.tobytes()
-    keys, sums = reduce_block([Observations(np.zeros(0, np.int64), np.zeros(0, np.int32),
-                                            np.zeros((1, c), np.float32))], c)
+    keys, sums = reduce_block(
+        [Observations(np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros((1, c), np.float32))], c
+    )
     assert keys.dtype == np.int64 and keys.shape == (0,)
     assert sums.dtype == np.float32 and sums.shape == (0, c)
 

@@ -96,7 +96,9 @@ def test_assemble_maps_pass_columns_to_schema_order_fills_and_drops_empty_masks(
     empty = np.zeros((1, 2, 2), dtype=bool)
     p_road = _result(("road",), [[0, 0, 2, 2]], [[0.0]], full)
     p_car = _result(
-        ("car", "truck"), [[0, 0, 2, 2], [0, 0, 1, 1]], [[math.log(2), 0.0], [5.0, 5.0]],
+        ("car", "truck"),
+        [[0, 0, 2, 2], [0, 0, 1, 1]],
+        [[math.log(2), 0.0], [5.0, 5.0]],
         np.concatenate([full, empty]),
     )
     sm = assemble_soft_masks([p_road, p_car], ["car", "truck", "road"], match_iou=0.9)
@@ -122,9 +124,7 @@ def small_schema(**edits: tuple[str, ...]) -> Schema:
         ("road", (0, 0, 255), ("road", "street"), 40),
         ("pole", (0, 255, 0), ("pole", "lamp post"), 80),
     ]
-    return Schema(
-        "small", tuple(ClassDef(n, c, edits.get(n, p), e) for n, c, p, e in classes)
-    )
+    return Schema("small", tuple(ClassDef(n, c, edits.get(n, p), e) for n, c, p, e in classes))
 
 
 def images(n: int = 2, hw: tuple[int, int] = (40, 96)) -> list[np.ndarray]:
@@ -182,7 +182,12 @@ def test_labeler_matches_a_direct_transformers_computation(tiny_dir: Path, tmp_p
     img = images(1)[0]
     det_dir = tiny_dir / "grounding-dino-tiny"
     phrase_classes = [
-        ("car", 0), ("automobile", 0), ("road", 1), ("street", 1), ("pole", 2), ("lamp post", 2)
+        ("car", 0),
+        ("automobile", 0),
+        ("road", 1),
+        ("street", 1),
+        ("pole", 2),
+        ("lamp post", 2),
     ]
     text = "car . automobile . road . street . pole . lamp post ."
     s, boxes = direct_scores(det_dir, img, text, phrase_classes, 3)
@@ -283,7 +288,9 @@ def test_per_class_mode_reruns_only_the_edited_class(tiny_dir: Path, tmp_path: P
     before = lab.label_images(images(1), small_schema())[0]
     assert calls == {"detector": 3, "sam": 1}  # one detector pass per class, one SAM encoding per image
     assert [p.text for p in lab.plan(small_schema())] == [
-        "car . automobile .", "road . street .", "pole . lamp post ."
+        "car . automobile .",
+        "road . street .",
+        "pole . lamp post .",
     ]
     edited = small_schema(road=("road", "asphalt"))
     after = lab.label_images(images(1), edited)[0]
@@ -422,8 +429,18 @@ def test_labels2d_command_precomputes_and_resumes(tiny_dir: Path, tmp_path: Path
     save_schema(
         small_schema(), schema, pipeline={"grounded_sam": {"box_threshold": 0.05, "mode": "per-class"}}
     )
-    args = ["labels2d", str(root), "--schema", str(schema), "--models", str(tiny_dir), "--cache", str(cache),
-            "--batch-size", "2"]
+    args = [
+        "labels2d",
+        str(root),
+        "--schema",
+        str(schema),
+        "--models",
+        str(tiny_dir),
+        "--cache",
+        str(cache),
+        "--batch-size",
+        "2",
+    ]
     runner = CliRunner()
     first = runner.invoke(app, args)
     assert first.exit_code == 0, first.output
@@ -467,8 +484,20 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(
         f.write_bytes(b"\0" * f.stat().st_size)
     run = runner.invoke(
         app,
-        ["run", str(root), "--out", str(tmp_path / "run"), "--project-file", str(proj),
-         "--labeler", "grounded-sam", "--cache", str(cache), "--models", str(models)],
+        [
+            "run",
+            str(root),
+            "--out",
+            str(tmp_path / "run"),
+            "--project-file",
+            str(proj),
+            "--labeler",
+            "grounded-sam",
+            "--cache",
+            str(cache),
+            "--models",
+            str(models),
+        ],
     )
     assert run.exit_code == 0, run.output
     assert "2D labels: grounded-sam" in run.output and "3 .label files" in run.output
@@ -485,8 +514,18 @@ def test_leap_run_with_grounded_sam_end_to_end_reads_the_labels2d_cache(
     # Without the cache the (now broken) weights are needed: a one-line error, not a crash.
     bad = runner.invoke(
         app,
-        ["run", str(root), "--out", str(tmp_path / "run2"), "--project-file", str(proj),
-         "--labeler", "grounded-sam", "--models", str(models)],
+        [
+            "run",
+            str(root),
+            "--out",
+            str(tmp_path / "run2"),
+            "--project-file",
+            str(proj),
+            "--labeler",
+            "grounded-sam",
+            "--models",
+            str(models),
+        ],
     )
     assert bad.exit_code == 2 and "cannot load IDEA-Research/grounding-dino-tiny weights" in bad.output
 

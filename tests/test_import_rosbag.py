@@ -127,8 +127,14 @@ class Msgs:
         names = [n for n, _ in spec.fields]
         dt = np.dtype({"names": names, "formats": [order + c for _, c in spec.fields]})
         step = dt.itemsize + spec.pad
-        dt = np.dtype({"names": names, "formats": [order + c for _, c in spec.fields],
-                       "offsets": [dt.fields[n][1] for n in names], "itemsize": step})
+        dt = np.dtype(
+            {
+                "names": names,
+                "formats": [order + c for _, c in spec.fields],
+                "offsets": [dt.fields[n][1] for n in names],
+                "itemsize": step,
+            }
+        )
         rec = np.zeros(len(pts), dt)
         for name, code in spec.fields:
             col = pts[:, "xyzi".index(name[0])] if name != "intensity" else pts[:, 3]
@@ -142,8 +148,14 @@ class Msgs:
         pf = self.t["sensor_msgs/msg/PointField"]
         fields = [pf(name=n, offset=dt.fields[n][1], datatype=codes[c], count=1) for n, c in spec.fields]
         return self.t["sensor_msgs/msg/PointCloud2"](
-            header=self.header(ns, "velodyne"), height=spec.height, width=width, fields=fields,
-            is_bigendian=spec.bigendian, point_step=step, row_step=width * step + row_pad, data=data,
+            header=self.header(ns, "velodyne"),
+            height=spec.height,
+            width=width,
+            fields=fields,
+            is_bigendian=spec.bigendian,
+            point_step=step,
+            row_step=width * step + row_pad,
+            data=data,
             is_dense=False,
         )
 
@@ -158,9 +170,15 @@ class Msgs:
         ch = px.shape[2]
         # Rows padded by 4 bytes (step > width · channels).
         rows = np.hstack([np.ascontiguousarray(px).reshape(h, w * ch), np.zeros((h, 4), np.uint8)])
-        return self.t["sensor_msgs/msg/Image"](header=hdr, height=h, width=w, encoding=kind,
-                                               is_bigendian=False,
-                                               step=w * ch + 4, data=rows.ravel())
+        return self.t["sensor_msgs/msg/Image"](
+            header=hdr,
+            height=h,
+            width=w,
+            encoding=kind,
+            is_bigendian=False,
+            step=w * ch + 4,
+            data=rows.ravel(),
+        )
 
     def camera_info(self, ns: int, calib: Calib, hw: tuple[int, int]) -> Any:
         hw = (hw[0] + self.info_pad, hw[1])
@@ -169,8 +187,13 @@ class Msgs:
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         )
         return self.t["sensor_msgs/msg/CameraInfo"](
-            header=self.header(ns, "camera_optical"), height=hw[0], width=hw[1], distortion_model="plumb_bob",
-            binning_x=0, binning_y=0, roi=roi,
+            header=self.header(ns, "camera_optical"),
+            height=hw[0],
+            width=hw[1],
+            distortion_model="plumb_bob",
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
             **{(k.upper() if self.ros1 else k): v.astype(np.float64) for k, v in mats.items()},
         )
 
@@ -179,11 +202,16 @@ class Msgs:
         out = []
         for parent, child, m in items:
             q = Rotation.from_matrix(m[:3, :3]).as_quat()
-            out.append(g["geometry_msgs/msg/TransformStamped"](
-                header=self.header(ns, parent), child_frame_id=child,
-                transform=g["geometry_msgs/msg/Transform"](
-                    translation=g["geometry_msgs/msg/Vector3"](x=m[0, 3], y=m[1, 3], z=m[2, 3]),
-                    rotation=g["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))))
+            out.append(
+                g["geometry_msgs/msg/TransformStamped"](
+                    header=self.header(ns, parent),
+                    child_frame_id=child,
+                    transform=g["geometry_msgs/msg/Transform"](
+                        translation=g["geometry_msgs/msg/Vector3"](x=m[0, 3], y=m[1, 3], z=m[2, 3]),
+                        rotation=g["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+                    ),
+                )
+            )
         return g["tf2_msgs/msg/TFMessage"](transforms=out)
 
 
@@ -223,20 +251,41 @@ def write_bag(seq: KittiSequence, path: Path, spec: BagSpec = BagSpec()) -> Path
         cam_ns = int(stamps[i] + round(offset * 1e6))
         msgs.append((cam_ns + 1_000_000, cam_topic, m.image(cam_ns, frame.image, spec.image)))
         if spec.camera_info:
-            msgs.append((cam_ns + 1_000_000, "/camera/camera_info",
-                         m.camera_info(cam_ns, seq.calib, frame.image.shape[:2])))
+            msgs.append(
+                (
+                    cam_ns + 1_000_000,
+                    "/camera/camera_info",
+                    m.camera_info(cam_ns, seq.calib, frame.image.shape[:2]),
+                )
+            )
     tr = seq.calib.Tr
     if spec.tf_static:
         base_cam = BASE_VELO @ np.linalg.inv(tr) @ np.linalg.inv(OPTICAL)
-        msgs.append((int(stamps[0]) - 10**9, "/tf_static", m.tf(int(stamps[0]) - 10**9, [
-            ("base_link", "velodyne", BASE_VELO), ("base_link", "camera_link", base_cam),
-            ("camera_link", "camera_optical", OPTICAL)])))
+        msgs.append(
+            (
+                int(stamps[0]) - 10**9,
+                "/tf_static",
+                m.tf(
+                    int(stamps[0]) - 10**9,
+                    [
+                        ("base_link", "velodyne", BASE_VELO),
+                        ("base_link", "camera_link", base_cam),
+                        ("camera_link", "camera_optical", OPTICAL),
+                    ],
+                ),
+            )
+        )
     if spec.tf:
         lidar = np.linalg.inv(tr)[None] @ seq.cam_poses @ tr[None]
         t_end = (stamps[-1] - T0_NS) * 1e-9
         for i in range(spec.tf_start_frame, len(seq)):
-            msgs.append((int(stamps[i]), "/tf", m.tf(int(stamps[i]), [
-                ("odom", "base_link", lidar[i] @ np.linalg.inv(BASE_VELO))])))
+            msgs.append(
+                (
+                    int(stamps[i]),
+                    "/tf",
+                    m.tf(int(stamps[i]), [("odom", "base_link", lidar[i] @ np.linalg.inv(BASE_VELO))]),
+                )
+            )
         for t_s in (-0.5, t_end + 0.5):
             ns = T0_NS + round(t_s * 1e9)
             edge = map_odom(t_s, t_end) if spec.moving_map else np.eye(4)
@@ -319,18 +368,30 @@ def test_round_trip_points_images_calibration_poses_times(
     assert summary.calib_source == "CameraInfo /camera/camera_info + /tf_static velodyne → camera_optical"
     assert summary.pose_source == "/tf map → velodyne"
     assert got.pose_source == "file"
-    assert sorted(p.name for p in got.root.iterdir()) == ["calib.txt", "image_2", "poses.txt", "times.txt",
-                                                          "velodyne"]
+    assert sorted(p.name for p in got.root.iterdir()) == [
+        "calib.txt",
+        "image_2",
+        "poses.txt",
+        "times.txt",
+        "velodyne",
+    ]
 
 
 @pytest.mark.parametrize(
     "spec",
     [
         BagSpec(fields=(("intensity", "f4"), ("z", "f4"), ("x", "f4"), ("y", "f4")), pad=4),
-        BagSpec(kind="sqlite3", fields=(("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f8")),
-                bigendian=True),
-        BagSpec(kind="ros1", fields=(("y", "f4"), ("x", "f4"), ("z", "f4"), ("intensity", "u2")), height=4,
-                nan_every=7),
+        BagSpec(
+            kind="sqlite3",
+            fields=(("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f8")),
+            bigendian=True,
+        ),
+        BagSpec(
+            kind="ros1",
+            fields=(("y", "f4"), ("x", "f4"), ("z", "f4"), ("intensity", "u2")),
+            height=4,
+            nan_every=7,
+        ),
     ],
     ids=["reordered-padded", "float64-bigendian", "uint16-organised-nan"],
 )
@@ -412,8 +473,10 @@ def test_fixed_frame_option(demo: KittiSequence, tmp_path: Path) -> None:
     assert_same_sequence(got, demo, range(len(demo)), BagSpec(moving_map=False))
     with pytest.raises(DatasetError) as err:
         do_import(demo, tmp_path / "bad", BagSpec(), fixed_frame="camera_link")
-    assert "fixed frame 'camera_link' is not above the LiDAR frame in /tf and /tf_static (its chain: " \
-           "velodyne → base_link → odom → map)" in str(err.value)
+    assert (
+        "fixed frame 'camera_link' is not above the LiDAR frame in /tf and /tf_static (its chain: "
+        "velodyne → base_link → odom → map)" in str(err.value)
+    )
 
 
 def test_without_tf_there_are_no_poses(demo: KittiSequence, tmp_path: Path) -> None:
@@ -464,8 +527,10 @@ def test_missing_calibration_names_what_is_missing(demo: KittiSequence, tmp_path
     with pytest.raises(DatasetError) as err:
         do_import(demo, tmp_path, BagSpec(camera_info=False, tf_static=False, tf=False))
     msg = str(err.value)
-    assert "missing calibration: camera intrinsics (no sensor_msgs/CameraInfo topic for camera frame " \
-           "'camera_optical')" in msg
+    assert (
+        "missing calibration: camera intrinsics (no sensor_msgs/CameraInfo topic for camera frame "
+        "'camera_optical')" in msg
+    )
     assert "LiDAR → camera transform (no /tf_static chain from 'velodyne' to 'camera_optical'" in msg
     assert "--calib FILE" in msg
     assert not (tmp_path / "out" / "sequences" / "00").exists()
@@ -475,8 +540,10 @@ def test_camera_info_for_another_image_size_is_refused(demo: KittiSequence, tmp_
     h, w = demo.frame(0).image.shape[:2]
     with pytest.raises(DatasetError) as err:
         do_import(demo, tmp_path, BagSpec(info_pad=2))
-    assert f"CameraInfo on /camera/camera_info is for {w}×{h + 2} images, /camera/image_raw has {w}×{h}" \
+    assert (
+        f"CameraInfo on /camera/camera_info is for {w}×{h + 2} images, /camera/image_raw has {w}×{h}"
         in str(err.value)
+    )
 
 
 @pytest.mark.parametrize(
@@ -597,18 +664,54 @@ def test_cli_imports_and_prints_one_summary_line(demo: KittiSequence, tmp_path: 
     bag = write_bag(demo, tmp_path / "rec.bag", BagSpec(kind="ros1", tf=False))
     out = tmp_path / "seq"
     runner = CliRunner()
-    res = runner.invoke(cli, ["import", "rosbag", str(bag), "--lidar-topic", "/velodyne_points",
-                              "--camera-topic", "/camera/image_raw", "--out", str(out)])
+    res = runner.invoke(
+        cli,
+        [
+            "import",
+            "rosbag",
+            str(bag),
+            "--lidar-topic",
+            "/velodyne_points",
+            "--camera-topic",
+            "/camera/image_raw",
+            "--out",
+            str(out),
+        ],
+    )
     assert res.exit_code == 0, res.output
     last = res.stdout.strip().splitlines()[-1]
     assert last.startswith(f"wrote 5 frames of 5 scans to {out} (none dropped)")
     assert f"estimate them with `leap poses {out}`" in last
     assert len(KittiSequence(out)) == 5
-    bad = runner.invoke(cli, ["import", "rosbag", str(bag), "--lidar-topic", "/nope",
-                              "--camera-topic", "/camera/image_raw", "--out", str(tmp_path / "x")])
+    bad = runner.invoke(
+        cli,
+        [
+            "import",
+            "rosbag",
+            str(bag),
+            "--lidar-topic",
+            "/nope",
+            "--camera-topic",
+            "/camera/image_raw",
+            "--out",
+            str(tmp_path / "x"),
+        ],
+    )
     assert bad.exit_code == 2 and "no LiDAR topic '/nope'" in bad.output
-    again = runner.invoke(cli, ["import", "rosbag", str(bag), "--lidar-topic", "/velodyne_points",
-                                "--camera-topic", "/camera/image_raw", "--out", str(out)])
+    again = runner.invoke(
+        cli,
+        [
+            "import",
+            "rosbag",
+            str(bag),
+            "--lidar-topic",
+            "/velodyne_points",
+            "--camera-topic",
+            "/camera/image_raw",
+            "--out",
+            str(out),
+        ],
+    )
     assert again.exit_code == 2 and "pass --force" in again.output
 
 
@@ -628,19 +731,37 @@ def test_imported_bags_label_like_the_source_frames(
     from leap_core.schema import ClassDef, Schema, save_schema
 
     models = make_tiny_models(tmp_path_factory.mktemp("models"), TinyModelsConfig(num_queries=12)).models_dir
-    schema = Schema("small", (
-        ClassDef("car", (255, 0, 0), ("car", "automobile"), 10),
-        ClassDef("road", (0, 0, 255), ("road", "street"), 40),
-        ClassDef("building", (0, 255, 0), ("building", "house"), 50),
-    ))
+    schema = Schema(
+        "small",
+        (
+            ClassDef("car", (255, 0, 0), ("car", "automobile"), 10),
+            ClassDef("road", (0, 0, 255), ("road", "street"), 40),
+            ClassDef("building", (0, 255, 0), ("building", "house"), 50),
+        ),
+    )
     project = tmp_path / "small.yaml"
     # A low box threshold: the random-weight detector's boxes must label a good share of the points.
     save_schema(schema, project, pipeline={"grounded_sam": {"box_threshold": 0.05, "mode": "per-class"}})
     runner = CliRunner()
 
     def run(seq: Path, out: Path) -> list[np.ndarray]:
-        res = runner.invoke(cli, ["run", str(seq), "--out", str(out), "--project-file", str(project),
-                                  "--labeler", "grounded-sam", "--models", str(models), "--device", "cpu"])
+        res = runner.invoke(
+            cli,
+            [
+                "run",
+                str(seq),
+                "--out",
+                str(out),
+                "--project-file",
+                str(project),
+                "--labeler",
+                "grounded-sam",
+                "--models",
+                str(models),
+                "--device",
+                "cpu",
+            ],
+        )
         assert res.exit_code == 0, res.output
         return [read_label(out / "export" / f"{i:06d}.label") for i in range(len(demo))]
 
@@ -651,8 +772,20 @@ def test_imported_bags_label_like_the_source_frames(
         spec = BagSpec(kind=kind)
         bag = write_bag(demo, bag_path(tmp_path, spec, f"demo-{kind}"), spec)
         out = tmp_path / f"import-{kind}" / "sequences" / "00"
-        res = runner.invoke(cli, ["import", "rosbag", str(bag), "--lidar-topic", "/velodyne_points",
-                                  "--camera-topic", "/camera/image_raw", "--out", str(out)])
+        res = runner.invoke(
+            cli,
+            [
+                "import",
+                "rosbag",
+                str(bag),
+                "--lidar-topic",
+                "/velodyne_points",
+                "--camera-topic",
+                "/camera/image_raw",
+                "--out",
+                str(out),
+            ],
+        )
         assert res.exit_code == 0, res.output
         got = run(out, tmp_path / f"run-{kind}")
         same = np.concatenate([a == b for a, b in zip(got, source, strict=True)])

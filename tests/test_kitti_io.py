@@ -873,8 +873,10 @@ def test_tracking_format_folds_r_rect_into_tr(tmp_path: Path) -> None:
     r_rect = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     velo = np.hstack([AXIS_SWAP, [[0.1], [0.2], [0.3]]])
     path = tmp_path / "0002.txt"
-    path.write_text(f"P2: {P2_ROW}\nR_rect {' '.join(str(v) for v in r_rect.ravel())}\n"
-                    f"Tr_velo_cam {' '.join(str(v) for v in velo.ravel())}\n")
+    path.write_text(
+        f"P2: {P2_ROW}\nR_rect {' '.join(str(v) for v in r_rect.ravel())}\n"
+        f"Tr_velo_cam {' '.join(str(v) for v in velo.ravel())}\n"
+    )
     np.testing.assert_allclose(read_calib(path).Tr[:3], r_rect @ velo, atol=1e-12)
 
 

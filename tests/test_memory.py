@@ -117,9 +117,13 @@ def test_mmap_load_equals_normal_load_and_old_compressed_files_still_load(tmp_pa
 
 def test_npzio_round_trip_of_shapes_dtypes_and_missing_names(tmp_path) -> None:
     path = tmp_path / "a.npz"
-    arrays = {"i": np.arange(10, dtype=np.int64), "f": np.ones((3, 4), np.float16),
-              "empty": np.zeros((0, 4), np.float32), "scalar": np.float64(2.5), "fort": np.asfortranarray(
-                  np.arange(6, dtype=np.int32).reshape(2, 3))}
+    arrays = {
+        "i": np.arange(10, dtype=np.int64),
+        "f": np.ones((3, 4), np.float16),
+        "empty": np.zeros((0, 4), np.float32),
+        "scalar": np.float64(2.5),
+        "fort": np.asfortranarray(np.arange(6, dtype=np.int32).reshape(2, 3)),
+    }
     save_npz(path, **arrays, s=Streamed((5, 2), np.dtype(np.int16), [np.ones((2, 2)), np.zeros((3, 2))]))
     with np.load(path) as z:
         assert z["s"].tolist() == [[1, 1], [1, 1], [0, 0], [0, 0], [0, 0]]
@@ -266,8 +270,16 @@ def test_fuse_to_file_writes_the_grid_fuse_and_apply_overrides_give(tmp_path, pa
             ref = fused if overrides is None else fusion.apply_overrides(fused, *overrides, cfg)
             for block in (997, 10**6):
                 out = tmp_path / f"g{chunk_points}-{block}.npz"
-                n = fusion.fuse_to_file(iter(obs), c, out, tmp_path / "spill", cfg, overrides=overrides,
-                                        paths=paths, block_voxels=block)
+                n = fusion.fuse_to_file(
+                    iter(obs),
+                    c,
+                    out,
+                    tmp_path / "spill",
+                    cfg,
+                    overrides=overrides,
+                    paths=paths,
+                    block_voxels=block,
+                )
                 got = VoxelGrid.load(out)
                 assert n == ref.num_voxels
                 assert got.keys.tobytes() == ref.keys.tobytes(), (chunk_points, block)
@@ -300,8 +312,9 @@ def test_fuse_to_file_one_voxel_blocks_and_an_override_block_no_observation_reac
 
 
 @pytest.mark.parametrize("failing", ["chunk1.keys.npy", "chunk1.sums.npy"])
-def test_fuse_to_file_deletes_a_half_written_chunk_pair_when_a_write_fails(tmp_path, monkeypatch,
-                                                                            failing: str) -> None:
+def test_fuse_to_file_deletes_a_half_written_chunk_pair_when_a_write_fails(
+    tmp_path, monkeypatch, failing: str
+) -> None:
     """A full disk while the second chunk's keys or sums are written: the error goes up, and every chunk
     file already written is deleted (the file that failed was never made); no grid file is left."""
     obs = _observations(8, frames=6)

@@ -163,8 +163,17 @@ def test_to_dict_keys_and_values() -> None:
     """The metrics file's fields (runs' metrics.json, the API, the app's result table read them by name)."""
     gt, pred = _points()
     d = evaluate(gt, pred, NAMES, CATS, ignore_unlabeled_pred=False).to_dict()
-    assert set(d) == {"miou", "miou_all_classes", "category_miou", "labeled_share", "n_points",
-                      "ignore_unlabeled_pred", "iou", "category_iou", "confusion"}
+    assert set(d) == {
+        "miou",
+        "miou_all_classes",
+        "category_miou",
+        "labeled_share",
+        "n_points",
+        "ignore_unlabeled_pred",
+        "iou",
+        "category_iou",
+        "confusion",
+    }
     assert d["miou"] == pytest.approx((0.4 + 3 / 7 + 0.5) / 3)
     assert d["miou_all_classes"] == pytest.approx((0.4 + 3 / 7 + 0.5) / 4)
     assert d["category_miou"] == pytest.approx(0.5)

@@ -30,8 +30,15 @@ from leap_core.pipeline.context import read_state
 from leap_core.run_layout import MultiRunLayout, RunLayout, is_multi_run, save_corrections
 from leap_core.schema import builtin_schema
 
-TINY_3DCN = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
-             "device": "cpu", "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+TINY_3DCN = {
+    "enabled": True,
+    "iterations": 2,
+    "points_per_scan": 1024,
+    "num_threads": 1,
+    "min_steps": 0,
+    "device": "cpu",
+    "backbone": {"channels": 8, "layers": 1, "knn": 4},
+}
 """A 3D-CN small enough to train in seconds on the streets."""
 
 
@@ -39,8 +46,10 @@ TINY_3DCN = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_thr
 def streets(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Two sequences of different length and step, in two datasets: ``00`` and ``01``."""
     base = tmp_path_factory.mktemp("streets")
-    return {"00": make_street(base / "x" / "sequences" / "00", n_frames=5),
-            "01": make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0)}
+    return {
+        "00": make_street(base / "x" / "sequences" / "00", n_frames=5),
+        "01": make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -61,10 +70,13 @@ def plain(streets, schema, tmp_path_factory: pytest.TempPathFactory):
     """A multi run without the 3D-CN, and an ordinary run of each sequence."""
     runs = tmp_path_factory.mktemp("plain")
     calls: list[tuple[str, str, int, int]] = []
-    multi = run_sequences(_specs(streets), schema, PipelineConfig(), runs / "multi",
-                          progress=lambda *a: calls.append(a))
-    singles = {name: run_pipeline(path, schema, PipelineConfig(), runs / f"single-{name}")
-               for name, path in streets.items()}
+    multi = run_sequences(
+        _specs(streets), schema, PipelineConfig(), runs / "multi", progress=lambda *a: calls.append(a)
+    )
+    singles = {
+        name: run_pipeline(path, schema, PipelineConfig(), runs / f"single-{name}")
+        for name, path in streets.items()
+    }
     return multi, singles, calls
 
 
@@ -199,8 +211,10 @@ def test_resume_after_cancel_is_byte_identical(plain, streets, schema, tmp_path)
     multi, _, _ = plain
     out = tmp_path / "resumed"
     for seq, stage, at in (("00", "label_points", 3), ("01", "labels2d", 2)):
-        def cancel(name: str, s: str, done: int, _total: int, seq: str = seq, stage: str = stage,
-                   at: int = at) -> None:
+
+        def cancel(
+            name: str, s: str, done: int, _total: int, seq: str = seq, stage: str = stage, at: int = at
+        ) -> None:
             if (name, s, done) == (seq, stage, at):
                 raise Cancelled()
 
@@ -211,8 +225,9 @@ def test_resume_after_cancel_is_byte_identical(plain, streets, schema, tmp_path)
     assert result.per_sequence["00"].ran == []
     assert result.per_sequence["01"].stages["labels2d"].frames_computed == 2  # 2 of 4 were kept
     for name in ("00", "01"):
-        assert _files(MultiRunLayout(out).sequence(name).export_dir) == \
-            _files(MultiRunLayout(multi.root).sequence(name).export_dir)
+        assert _files(MultiRunLayout(out).sequence(name).export_dir) == _files(
+            MultiRunLayout(multi.root).sequence(name).export_dir
+        )
     assert result.metrics == multi.metrics
 
 
@@ -246,8 +261,13 @@ def joint(streets, schema, tmp_path_factory: pytest.TempPathFactory):
     # new_voxel_margin 0: every voxel the network predicts is created (this tiny network is sure of few).
     cfg = config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1, "new_voxel_margin": 0.0}})
     calls: list[tuple[str, str, int, int]] = []
-    result = run_sequences(_specs(streets), schema, cfg, tmp_path_factory.mktemp("joint") / "multi",
-                           progress=lambda *a: calls.append(a))
+    result = run_sequences(
+        _specs(streets),
+        schema,
+        cfg,
+        tmp_path_factory.mktemp("joint") / "multi",
+        progress=lambda *a: calls.append(a),
+    )
     return result, cfg, calls
 
 
@@ -293,8 +313,9 @@ def test_a_change_in_one_sequence_reruns_the_3dcn_of_all(joint, streets, schema,
     assert MultiRunLayout(out).sequence("00").grid_3dcn(1).read_bytes() != old
 
 
-def test_a_source_network_starts_the_joint_3dcn_and_is_part_of_its_fingerprint(joint, streets, schema,
-                                                                               tmp_path) -> None:
+def test_a_source_network_starts_the_joint_3dcn_and_is_part_of_its_fingerprint(
+    joint, streets, schema, tmp_path
+) -> None:
     from leap_core.consistency.train import load_checkpoint
     from leap_core.io_utils import file_digest
     from leap_core.runtime import Runtime
@@ -346,13 +367,15 @@ def test_joint_3dcn_resumes_after_cancel(joint, streets, schema, tmp_path) -> No
     assert ckpt.stat().st_mtime_ns == trained  # the checkpoint was reused, not retrained
     assert again.per_sequence["00"].ran == ["3dcn", "label_points", "evaluate", "export"]
     for name in ("00", "01"):
-        assert _files(MultiRunLayout(out).sequence(name).export_dir) == \
-            _files(MultiRunLayout(result.root).sequence(name).export_dir)
+        assert _files(MultiRunLayout(out).sequence(name).export_dir) == _files(
+            MultiRunLayout(result.root).sequence(name).export_dir
+        )
 
 
 @pytest.mark.slow
-def test_switching_the_3dcn_off_gives_the_ordinary_runs_again(joint, plain, streets, schema,
-                                                             tmp_path) -> None:
+def test_switching_the_3dcn_off_gives_the_ordinary_runs_again(
+    joint, plain, streets, schema, tmp_path
+) -> None:
     result, _, _ = joint
     multi, _, _ = plain
     out = tmp_path / "multi"
@@ -380,9 +403,15 @@ def test_an_ordinary_runs_3dcn_fingerprint_is_unchanged_by_the_joint_input(plain
     cfg = config_from_dict({"consistency": TINY_3DCN})
     run_dir = singles["00"].run_dir
     fp = stage_fingerprints(streets["00"], schema, cfg, run_dir)
-    before = hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes, "stage": "3dcn",
-                        "up": [fp["project"], fp["fuse"], fp["smooth"]],
-                        "config": {"consistency": fingerprint_form(config_to_dict(cfg)["consistency"])}})
+    before = hash_json(
+        {
+            "v": PIPELINE_VERSION,
+            "C": schema.num_classes,
+            "stage": "3dcn",
+            "up": [fp["project"], fp["fuse"], fp["smooth"]],
+            "config": {"consistency": fingerprint_form(config_to_dict(cfg)["consistency"])},
+        }
+    )
     assert fp["3dcn"] == before
     note = RunLayout(run_dir).joint_3dcn
     note.write_text("{}")
@@ -414,8 +443,19 @@ def _cli(*args: str):
 
 def test_cli_runs_several_sequences_and_exports_their_layout(streets, tmp_path) -> None:
     out, target, zpath = tmp_path / "run", tmp_path / "export", tmp_path / "all.zip"
-    res = _cli("run", str(streets["00"]), str(streets["01"]), "--out", str(out), "--labeler", "simulated",
-               "--export-to", str(target), "--zip", str(zpath))
+    res = _cli(
+        "run",
+        str(streets["00"]),
+        str(streets["01"]),
+        "--out",
+        str(out),
+        "--labeler",
+        "simulated",
+        "--export-to",
+        str(target),
+        "--zip",
+        str(zpath),
+    )
     assert res.exit_code == 0, res.output
     assert "== sequence 00" in res.output and "== sequence 01" in res.output
     assert "== overall (confusion matrices of 00, 01 summed)" in res.output

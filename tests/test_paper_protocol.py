@@ -111,7 +111,8 @@ def test_paper_view_is_table_1s_merge_of_the_19_classes() -> None:
     mapping = PAPER_VIEW.mapping(sk)
     assert mapping is not None
     assert [PAPER_VIEW.names[j] for j in mapping] == [
-        next(k for k, v in EXPECTED_MERGE.items() if n in v) for n in sk]
+        next(k for k, v in EXPECTED_MERGE.items() if n in v) for n in sk
+    ]
 
 
 def test_paper_view_does_not_apply_to_other_schemas() -> None:
@@ -124,8 +125,14 @@ def test_paper_view_does_not_apply_to_other_schemas() -> None:
 
 def _metrics_of(camera_conf: np.ndarray, names: list[str], cats: list[str]) -> dict:
     m = metrics_from_confusion(camera_conf, names, cats, ignore_unlabeled_pred=True).to_dict()
-    return {"class_names": names, "categories": cats, "rows": ["point"], "protocols": dict(PROTOCOLS),
-            "camera": {"point": m}, "all": {"point": m}}
+    return {
+        "class_names": names,
+        "categories": cats,
+        "rows": ["point"],
+        "protocols": dict(PROTOCOLS),
+        "camera": {"point": m},
+        "all": {"point": m},
+    }
 
 
 def test_paper_protocol_by_hand_on_the_19_classes() -> None:
@@ -133,16 +140,16 @@ def test_paper_protocol_by_hand_on_the_19_classes() -> None:
     names, c = schema.names, schema.num_classes
     conf = np.zeros((c, c + 1), np.int64)
     ix = schema.index
-    conf[ix("truck"), ix("other-vehicle")] = 4      # merged: other-vehicle TP
+    conf[ix("truck"), ix("other-vehicle")] = 4  # merged: other-vehicle TP
     conf[ix("other-vehicle"), ix("other-vehicle")] = 1
-    conf[ix("parking"), ix("road")] = 3             # road TP
-    conf[ix("road"), ix("sidewalk")] = 2            # road FN, sidewalk FP
-    conf[ix("road"), c] = 50                        # unlabeled prediction: ignored
-    conf[ix("building"), ix("pole")] = 6            # manmade TP
-    conf[ix("trunk"), ix("terrain")] = 1            # vegetation FN, terrain FP
-    conf[ix("vegetation"), ix("trunk")] = 5         # vegetation TP
-    conf[ix("bicyclist"), ix("person")] = 2         # bicycle FN, person FP
-    conf[ix("bicycle"), ix("bicyclist")] = 2        # bicycle TP
+    conf[ix("parking"), ix("road")] = 3  # road TP
+    conf[ix("road"), ix("sidewalk")] = 2  # road FN, sidewalk FP
+    conf[ix("road"), c] = 50  # unlabeled prediction: ignored
+    conf[ix("building"), ix("pole")] = 6  # manmade TP
+    conf[ix("trunk"), ix("terrain")] = 1  # vegetation FN, terrain FP
+    conf[ix("vegetation"), ix("trunk")] = 5  # vegetation TP
+    conf[ix("bicyclist"), ix("person")] = 2  # bicycle FN, person FP
+    conf[ix("bicycle"), ix("bicyclist")] = 2  # bicycle TP
     data = _metrics_of(conf, names, schema.categories())
     add_paper_protocol(data)
     assert set(data["protocols"]) == {*PROTOCOLS, PAPER} and "protocol_notes" not in data
@@ -202,8 +209,12 @@ def test_pipeline_paper_protocol_is_the_merged_camera_protocol(run, street: Path
     assert set(m["protocols"]) == {*PROTOCOLS, PAPER} and "protocol_notes" not in m
     assert m["paper_view"]["class_names"] == list(EXPECTED_MERGE)
     schema = builtin_schema("semantickitti")
-    mapping = np.array([list(EXPECTED_MERGE).index(next(k for k, v in EXPECTED_MERGE.items() if n in v))
-                        for n in schema.names])
+    mapping = np.array(
+        [
+            list(EXPECTED_MERGE).index(next(k for k, v in EXPECTED_MERGE.items() if n in v))
+            for n in schema.names
+        ]
+    )
     for row in m["rows"]:
         merged = merge_confusion(np.asarray(m["camera"][row]["confusion"]), mapping, 11)
         assert m[PAPER][row]["confusion"] == merged.tolist()
@@ -263,20 +274,26 @@ def test_common_protocol_scores_every_row_on_the_points_all_rows_label(run, stre
     # The rows label different points in view (else the protocol would say nothing camera does not) ...
     assert ((vox != UNLABELED) & in_view).sum() > common.sum() > 0
     for row, pred in (("point", point), ("voxel", vox)):
-        expected = evaluate(gt[common], pred[common], schema.names, schema.categories(),
-                            ignore_unlabeled_pred=True)
+        expected = evaluate(
+            gt[common], pred[common], schema.names, schema.categories(), ignore_unlabeled_pred=True
+        )
         assert m[COMMON][row] == expected.to_dict()
     # ... and here each row is scored on the same points.
-    assert np.sum(m[COMMON]["point"]["confusion"]) == np.sum(m[COMMON]["voxel"]["confusion"]) == (
-        (gt[common] != UNLABELED).sum())
+    assert (
+        np.sum(m[COMMON]["point"]["confusion"])
+        == np.sum(m[COMMON]["voxel"]["confusion"])
+        == ((gt[common] != UNLABELED).sum())
+    )
     # A file written before the protocol existed still reads, and a sum with it leaves the protocol out.
     old = {k: v for k, v in m.items() if k != COMMON}
     old["protocols"] = {k: v for k, v in m["protocols"].items() if k != COMMON}
     assert COMMON not in metrics_tables(old) and "camera" in metrics_tables(old)
     both = overall_metrics({"a": m, "b": old})
     assert both is not None and COMMON not in both and COMMON not in both["protocols"]
-    assert overall_metrics({"a": m, "b": m})[COMMON]["voxel"]["confusion"] == (
-        2 * np.asarray(m[COMMON]["voxel"]["confusion"])).tolist()
+    assert (
+        overall_metrics({"a": m, "b": m})[COMMON]["voxel"]["confusion"]
+        == (2 * np.asarray(m[COMMON]["voxel"]["confusion"])).tolist()
+    )
 
 
 def test_pipeline_without_the_classes_has_no_paper_protocol(street: Path, tmp_path: Path) -> None:
@@ -290,8 +307,9 @@ def test_pipeline_without_the_classes_has_no_paper_protocol(street: Path, tmp_pa
     assert "paper protocol not computed" in (result_tables(run_dir) or "")
 
 
-def test_the_merge_is_part_of_the_evaluate_fingerprint(street: Path, tmp_path: Path,
-                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_merge_is_part_of_the_evaluate_fingerprint(
+    street: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from leap_core.pipeline import stage_fingerprints, stages
 
     schema = builtin_schema("semantickitti")

@@ -178,7 +178,8 @@ def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
     # Each report names its stage; per-frame stages computed every frame, whole-run stages count none.
     assert [r.name for r in result.stages.values()] == list(STAGES)
     assert {s: r.frames_computed for s, r in result.stages.items()} == {
-        s.name: 6 if s.per_frame else 0 for s in STAGE_TABLE}
+        s.name: 6 if s.per_frame else 0 for s in STAGE_TABLE
+    }
     # The record keeps the report's seconds to the millisecond, the finish time and a disabled stage's note.
     records = stage_status(run_dir)
     assert all(records[s]["seconds"] == round(r.seconds, 3) for s, r in result.stages.items())
@@ -221,8 +222,13 @@ def test_exported_ids_match_metrics(baseline, street: Path, schema) -> None:
         gt_all.append(schema.map_gt(frame.labels))
         raw = read_label(run_dir / "export" / f"{fid}.label") & 0xFFFF
         pred_all.append(np.array([raw_to_idx.get(int(r), -1) for r in raw], np.int16))
-    m = evaluate(np.concatenate(gt_all), np.concatenate(pred_all), schema.names, schema.categories(),
-                 ignore_unlabeled_pred=False)
+    m = evaluate(
+        np.concatenate(gt_all),
+        np.concatenate(pred_all),
+        schema.names,
+        schema.categories(),
+        ignore_unlabeled_pred=False,
+    )
     stored = result.metrics["all"]["voxel"]
     assert m.miou == pytest.approx(stored["miou"], abs=1e-9)
 
@@ -281,8 +287,10 @@ def _downstream(names: set[str]) -> set[str]:
 @pytest.mark.parametrize(
     ("overrides", "expected"),
     [
-        ({"projection": {"min_depth": 0.8}}, ["project", "fuse", "smooth", "3dcn", "label_points", "evaluate",
-                                              "export"]),
+        (
+            {"projection": {"min_depth": 0.8}},
+            ["project", "fuse", "smooth", "3dcn", "label_points", "evaluate", "export"],
+        ),
         ({"fusion": {"prob_floor": 0.002}}, ["fuse", "smooth", "3dcn", "label_points", "evaluate", "export"]),
         ({"smoothing": {"k": 4}}, ["smooth", "3dcn", "label_points", "evaluate", "export"]),
         ({"consistency": {"enabled": True}}, ["3dcn", "label_points", "evaluate", "export"]),
@@ -311,9 +319,7 @@ def test_a_config_change_reruns_its_readers_and_their_downstream(
     assert set(expected) == _downstream(readers)
 
 
-def test_a_prompt_edit_reruns_the_2d_stage_and_a_colour_edit_nothing(
-    baseline, street: Path, schema
-) -> None:
+def test_a_prompt_edit_reruns_the_2d_stage_and_a_colour_edit_nothing(baseline, street: Path, schema) -> None:
     """The simulated labeler reads the prompts (docs/METHOD.md A.7): a prompt edit must not reuse masks."""
     run_dir, _, _ = baseline
     car = schema.names.index("car")
@@ -354,12 +360,19 @@ def test_erased_voxels_are_never_3dcn_training_labels(baseline, street: Path, sc
         run_pipeline(street, schema, cfg, run_dir, until="3dcn")
 
 
-def test_a_source_network_starts_every_round_and_is_an_input_of_the_3dcn(baseline, street: Path, schema,
-                                                                         tmp_path: Path) -> None:
+def test_a_source_network_starts_every_round_and_is_an_input_of_the_3dcn(
+    baseline, street: Path, schema, tmp_path: Path
+) -> None:
     from leap_core.consistency.train import load_checkpoint
 
-    cn = {"enabled": True, "device": "cpu", "num_threads": 1, "min_steps": 9, "points_per_scan": 2000,
-          "backbone": {"channels": 16, "layers": 2}}
+    cn = {
+        "enabled": True,
+        "device": "cpu",
+        "num_threads": 1,
+        "min_steps": 9,
+        "points_per_scan": 2000,
+        "backbone": {"channels": 16, "layers": 2},
+    }
     cfg = config_from_dict({"consistency": cn})
     run_dir = tmp_path / "run"
     shutil.copytree(baseline[0], run_dir)
@@ -392,6 +405,7 @@ def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, t
     run_dir = tmp_path / "interrupted"
     running: list[dict] = []
     for stage, at in (("labels2d", 3), ("project", 2), ("fuse", 2), ("label_points", 4)):
+
         def cancel(s: str, done: int, total: int, stage: str = stage, at: int = at) -> None:
             if s == stage and done == at:
                 running.append(stage_status(run_dir)[stage])
@@ -400,8 +414,9 @@ def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, t
         # One frame at a time: with frames in flight the cancelled stage may finish every frame
         # (tests/test_scan_speed.py covers the threaded case).
         with pytest.raises(Cancelled):
-            run_pipeline(street, schema, PipelineConfig(), run_dir, progress=cancel,
-                         runtime=Runtime(frame_threads=1))
+            run_pipeline(
+                street, schema, PipelineConfig(), run_dir, progress=cancel, runtime=Runtime(frame_threads=1)
+            )
         assert stage_status(run_dir)[stage]["status"] == "cancelled"
     # While a stage runs, its record says so (and since when) under the fingerprint it computes for.
     assert [sorted(r) for r in running] == [["fingerprint", "started", "status"]] * 4
@@ -420,16 +435,28 @@ def test_resume_after_cancel_is_byte_identical(baseline, street: Path, schema, t
 
 def test_frames_subset_and_shared_2d_cache(street: Path, schema, tmp_path: Path) -> None:
     cache = tmp_path / "cache"
-    a = run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 3),
-                     runtime=Runtime(cache_dir=cache),
-                     until="fuse")
+    a = run_pipeline(
+        street,
+        schema,
+        PipelineConfig(),
+        tmp_path / "a",
+        frames=range(0, 3),
+        runtime=Runtime(cache_dir=cache),
+        until="fuse",
+    )
     assert a.frames == (0, 1, 2)
     assert a.metrics is None and a.export_dir is None  # neither stage was reached
     names = sorted(p.name for p in (tmp_path / "a" / "labels2d").iterdir())
     assert names == [f"{i:06d}.npz" for i in range(3)]
-    b = run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 4),
-                     runtime=Runtime(cache_dir=cache),
-                     until="labels2d")
+    b = run_pipeline(
+        street,
+        schema,
+        PipelineConfig(),
+        tmp_path / "b",
+        frames=range(0, 4),
+        runtime=Runtime(cache_dir=cache),
+        until="labels2d",
+    )
     assert stage_status(tmp_path / "b")["labels2d"]["cache_hits"] == 3
     assert b.stages["labels2d"].frames_computed == 4
     same = [(tmp_path / d / "labels2d" / "000001.npz").read_bytes() for d in ("a", "b")]
@@ -508,8 +535,11 @@ def test_scan_corrections_reach_their_scan_and_an_index_past_it_is_refused(
     np.testing.assert_array_equal(after["000000"]["label"], before["000000"]["label"])
     n = KittiSequence(street).frame(1).points.shape[0]
     ScanCorrections.merge([("000001", [n], pole)]).save(lay.corrections_scan)
-    with pytest.raises(DatasetError, match=rf"corrections_scan\.npz: frame 000001: point index {n}, the scan "
-                                           rf"has {n}"):
+    with pytest.raises(
+        DatasetError,
+        match=rf"corrections_scan\.npz: frame 000001: point index {n}, the scan "
+        rf"has {n}",
+    ):
         run_pipeline(street, schema, PipelineConfig(), run_dir)
 
 
@@ -529,8 +559,11 @@ def test_corrections_survive_smoothing_and_latest_wins(
     grid = VoxelGrid.load(run_dir / "grid.npz")
     trunk, pole = schema.index("trunk"), schema.index("pole")
     keys = grid.keys[::7][:200]  # scattered voxels: each one is surrounded by uncorrected neighbours
-    np.savez(run_dir / "corrections.npz", keys=np.concatenate([keys, keys[:20]]),
-             class_idx=np.concatenate([np.full(len(keys), trunk), np.full(20, pole)]))
+    np.savez(
+        run_dir / "corrections.npz",
+        keys=np.concatenate([keys, keys[:20]]),
+        class_idx=np.concatenate([np.full(len(keys), trunk), np.full(20, pole)]),
+    )
     result = run_pipeline(street, schema, PipelineConfig(), run_dir)
     assert "smooth" in result.ran and "export" in result.ran
     expected = {int(k): trunk for k in keys} | {int(k): pole for k in keys[:20]}
@@ -556,9 +589,12 @@ def test_metrics_from_confusion_equals_evaluate() -> None:
 
     for ignore in (True, False):
         a = evaluate(gt, pred, names, cats, ignore_unlabeled_pred=ignore)
-        b = metrics_from_confusion(confusion_matrix(gt[:200], pred[:200], 4)
-                                   + confusion_matrix(gt[200:], pred[200:], 4), names, cats,
-                                   ignore_unlabeled_pred=ignore)
+        b = metrics_from_confusion(
+            confusion_matrix(gt[:200], pred[:200], 4) + confusion_matrix(gt[200:], pred[200:], 4),
+            names,
+            cats,
+            ignore_unlabeled_pred=ignore,
+        )
         assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
 
 
@@ -607,24 +643,35 @@ def test_failed_cancelled_and_done_records(street: Path, schema, tmp_path: Path)
 
     def labels2d(stop: BaseException | None) -> tuple[dict, float]:
         """Run the 2D stage on two frames, ``stop`` raised by the progress callback after the first."""
+
         def progress(stage: str, done: int, total: int) -> None:
             if stop is not None and stage == "labels2d" and done == 1:
                 raise stop
 
         t0 = time.perf_counter()
         try:
-            run_pipeline(street, schema, PipelineConfig(), run_dir, progress=progress, frames=range(0, 2),
-                         until="labels2d", runtime=Runtime(frame_threads=1))
+            run_pipeline(
+                street,
+                schema,
+                PipelineConfig(),
+                run_dir,
+                progress=progress,
+                frames=range(0, 2),
+                until="labels2d",
+                runtime=Runtime(frame_threads=1),
+            )
         except BaseException as exc:
             assert exc is stop  # the stage's own exception, not one raised while recording it
         else:
             assert stop is None
         return stage_status(run_dir)["labels2d"], time.perf_counter() - t0
 
-    cases = [(RuntimeError("first line\nsecond line"), "failed", "first line"),
-             (RuntimeError(), "failed", "RuntimeError"),
-             (Cancelled(), "cancelled", None),
-             (None, "done", None)]
+    cases = [
+        (RuntimeError("first line\nsecond line"), "failed", "first line"),
+        (RuntimeError(), "failed", "RuntimeError"),
+        (Cancelled(), "cancelled", None),
+        (None, "done", None),
+    ]
     for stop, status, error in cases:
         rec, elapsed = labels2d(stop)
         assert (rec["status"], rec.get("error")) == (status, error)
@@ -642,19 +689,22 @@ def test_frames_without_a_camera_image_are_named_in_a_warning(
         assert warn_missing_images(KittiSequence(copy), range(3, 6), "simulated") == []
     assert [r.getMessage() for r in caplog.records] == [
         f"1 of 6 frames have no camera image in {copy / 'image_2'} (frames 000002): the simulated labeler "
-        "labels them from the 2D ground truth only"]
+        "labels them from the 2D ground truth only"
+    ]
     caplog.clear()
     for p in (copy / "image_2").iterdir():
         p.unlink()
     with caplog.at_level("WARNING", logger="leap_core.pipeline.runner"):
         assert len(warn_missing_images(KittiSequence(copy), range(0, 6), "grounded-sam")) == 6
         assert warn_missing_images(KittiSequence(copy), range(1, 6), "grounded-sam") == [
-            f"{i:06d}" for i in range(1, 6)]
+            f"{i:06d}" for i in range(1, 6)
+        ]
     assert [r.getMessage() for r in caplog.records] == [
         f"6 of 6 frames have no camera image in {copy / 'image_2'} (frames 000000, 000001, 000002, 000003, "
         "000004, …): the 2D labeler cannot label them",
         f"5 of 5 frames have no camera image in {copy / 'image_2'} (frames 000001, 000002, 000003, 000004, "
-        "000005): the 2D labeler cannot label them"]
+        "000005): the 2D labeler cannot label them",
+    ]
 
 
 def test_a_run_without_poses_is_refused_only_when_an_enabled_stage_needs_them(
@@ -666,8 +716,10 @@ def test_a_run_without_poses_is_refused_only_when_an_enabled_stage_needs_them(
     seq, on = KittiSequence(copy), config_from_dict({"consistency": {"enabled": True}})
     require_poses(seq, PipelineConfig(), STAGE_TABLE[:2])  # the 2D labels and the projection need none
     require_poses(KittiSequence(street), on, STAGE_TABLE)
-    for cfg, needing in ((PipelineConfig(), "fuse, label_points, evaluate"),
-                         (on, "fuse, 3dcn, label_points, evaluate")):
+    for cfg, needing in (
+        (PipelineConfig(), "fuse, label_points, evaluate"),
+        (on, "fuse, 3dcn, label_points, evaluate"),
+    ):
         with pytest.raises(PosesMissingError, match=rf"poses\.txt: no poses: the 3D stages \({needing}\)"):
             require_poses(seq, cfg, STAGE_TABLE)
 
@@ -684,7 +736,8 @@ def test_a_run_without_poses_stops_before_any_stage_but_a_2d_run_warns_and_runs(
         result = run_pipeline(copy, schema, PipelineConfig(), run_dir, frames=range(0, 2), until="project")
     assert result.ran == ["labels2d", "project"]
     assert [r.getMessage().split(":")[0] for r in caplog.records] == [
-        f"1 of 2 frames have no camera image in {copy / 'image_2'} (frames 000001)"]
+        f"1 of 2 frames have no camera image in {copy / 'image_2'} (frames 000001)"
+    ]
     with pytest.raises(PosesMissingError, match=r"poses\.txt"):
         run_pipeline(copy, schema, PipelineConfig(), run_dir, frames=range(0, 2))
     assert stage_status(run_dir)["fuse"] == {"status": "pending"}  # refused before the stage started
@@ -705,13 +758,24 @@ def test_fingerprints_hash_the_documented_parts(baseline, street: Path, schema) 
     sections = config_to_dict(cfg)
 
     def parts(stage: str, up: list[str], **rest: object) -> str:
-        return hash_json({"v": PIPELINE_VERSION, "C": schema.num_classes, "stage": stage,
-                          "up": [fp[u] for u in up], **rest})
+        return hash_json(
+            {
+                "v": PIPELINE_VERSION,
+                "C": schema.num_classes,
+                "stage": stage,
+                "up": [fp[u] for u in up],
+                **rest,
+            }
+        )
 
     frames = hash_json([f"{i:06d}" for i in range(6)])
     assert fp["project"] == parts("project", ["labels2d"], config={"projection": sections["projection"]})
-    assert fp["fuse"] == parts("fuse", ["project"], config={"fusion": sections["fusion"]},
-                               inputs={"frames": frames, "corrections": None, "strength": None})
+    assert fp["fuse"] == parts(
+        "fuse",
+        ["project"],
+        config={"fusion": sections["fusion"]},
+        inputs={"frames": frames, "corrections": None, "strength": None},
+    )
     assert fp["smooth"] == parts("smooth", ["fuse"], config={"smoothing": sections["smoothing"]})
     assert fp["3dcn"] == parts("3dcn", ["project", "fuse", "smooth"], enabled=False)
     assert {s: r["fingerprint"] for s, r in stage_status(run_dir).items()} == fp
@@ -740,8 +804,13 @@ def test_world_cells_are_an_input_of_the_2d_labels_only_where_present(street: Pa
     legacy = [str(root), file_digest(root / "calib.txt"), file_digest(bare.poses_path)]
     for name in ["velodyne", "labels", "image_2", "gt2d/semantic", "gt2d/instance", "gt2d/name"]:
         folder = root / name
-        entries = None if not folder.is_dir() else sorted(
-            (e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in os.scandir(folder) if e.is_file())
+        entries = (
+            None
+            if not folder.is_dir()
+            else sorted(
+                (e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in os.scandir(folder) if e.is_file()
+            )
+        )
         legacy.append([name, entries])
     assert dataset_identity(bare) == hash_json(legacy)
 
@@ -767,8 +836,9 @@ def test_stage_records_and_progress(baseline) -> None:
 
 def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: Path) -> None:
     cache = Runtime(cache_dir=tmp_path / "cache")
-    run_pipeline(street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 2), until="labels2d",
-                 runtime=cache)
+    run_pipeline(
+        street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 2), until="labels2d", runtime=cache
+    )
     entries = sorted((tmp_path / "cache" / "labels2d").glob("*/*.npz"))
     # The layout docs/METHOD.md gives (entries of other versions would be orphaned by any other):
     # labels2d/<16 hex digits of the labeler's fingerprint and C>/<frame id>-<20 hex digits of its inputs>.npz
@@ -777,8 +847,9 @@ def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: 
     assert all(re.fullmatch(r"\d{6}-[0-9a-f]{20}\.npz", e.name) for e in entries)
     good = entries[0].read_bytes()
     entries[0].write_bytes(b"damaged")
-    run_pipeline(street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 2), until="labels2d",
-                 runtime=cache)
+    run_pipeline(
+        street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 2), until="labels2d", runtime=cache
+    )
     assert stage_status(tmp_path / "b")["labels2d"]["cache_hits"] == 1
     assert entries[0].read_bytes() == good
     assert (tmp_path / "b" / "labels2d" / "000000.npz").read_bytes() == good
@@ -790,8 +861,9 @@ def test_the_2d_cache_is_keyed_by_the_labeler_config(street: Path, schema, tmp_p
     cache = Runtime(cache_dir=tmp_path / "cache")
     other = config_from_dict({"simulated": {"seed": 5}})
     for name, cfg in (("a", PipelineConfig()), ("b", other), ("c", PipelineConfig())):
-        run_pipeline(street, schema, cfg, tmp_path / name, frames=range(0, 2), until="labels2d",
-                     runtime=cache)
+        run_pipeline(
+            street, schema, cfg, tmp_path / name, frames=range(0, 2), until="labels2d", runtime=cache
+        )
     hits = {n: stage_status(tmp_path / n)["labels2d"]["cache_hits"] for n in "abc"}
     assert hits == {"a": 0, "b": 0, "c": 2}
     assert len(list((tmp_path / "cache" / "labels2d").iterdir())) == 2
@@ -804,8 +876,11 @@ def test_stage_errors_name_their_file(baseline, street: Path, schema, tmp_path: 
     shutil.copytree(street, no_gt2d)
     shutil.rmtree(no_gt2d / "gt2d")
     # Refused before any frame is read, with what the labeler needs and the other choice.
-    with pytest.raises(LeapError, match=r"gt2d/semantic: the simulated labeler needs 2D ground truth .* "
-                                        r"choose the grounded-sam labeler"):
+    with pytest.raises(
+        LeapError,
+        match=r"gt2d/semantic: the simulated labeler needs 2D ground truth .* "
+        r"choose the grounded-sam labeler",
+    ):
         run_pipeline(no_gt2d, schema, PipelineConfig(), tmp_path / "r0", frames=range(0, 1), until="labels2d")
     run_dir = tmp_path / "r"
     shutil.copytree(baseline[0], run_dir)
@@ -840,13 +915,17 @@ def test_skip_reason_reads_the_stage_record(tmp_path: Path) -> None:
     have left, including a skipped record without a note and a failed one that carries a finish time."""
     lay = RunLayout(tmp_path / "r")
     lay.run_dir.mkdir()
-    lay.state.write_text(json.dumps({
-        "labels2d": {"status": "done", "finished": 100.0},
-        "project": {"status": "skipped"},
-        "fuse": {"status": "failed", "finished": 100.0},
-        "smooth": {"status": "skipped", "note": "no ground truth"},
-        "3dcn": {"status": "done"},
-    }))
+    lay.state.write_text(
+        json.dumps(
+            {
+                "labels2d": {"status": "done", "finished": 100.0},
+                "project": {"status": "skipped"},
+                "fuse": {"status": "failed", "finished": 100.0},
+                "smooth": {"status": "skipped", "note": "no ground truth"},
+                "3dcn": {"status": "done"},
+            }
+        )
+    )
     assert skip_reason(lay.run_dir, "labels2d", 100.5) == UNCHANGED
     assert skip_reason(lay.run_dir, "labels2d", 100.0) is None
     assert skip_reason(lay.run_dir, "project", 100.5) == "nothing to do"
@@ -879,8 +958,13 @@ def test_a_model_labeler_fingerprint_follows_the_runtime_models(street: Path, sc
 
 # -------------------------------------------------------------------------------------------- config
 def test_config_roundtrip_through_json() -> None:
-    cfg = config_from_dict({"fusion": {"voxel_size": 0.3}, "simulated": {"peak_prob": [0.6, 0.7]},
-                            "consistency": {"enabled": True, "backbone": {"channels": 32}}})
+    cfg = config_from_dict(
+        {
+            "fusion": {"voxel_size": 0.3},
+            "simulated": {"peak_prob": [0.6, 0.7]},
+            "consistency": {"enabled": True, "backbone": {"channels": 32}},
+        }
+    )
     d = json.loads(json.dumps(config_to_dict(cfg)))
     assert config_from_dict(d) == cfg
     assert cfg.fusion.voxel_size == 0.3 and cfg.simulated.peak_prob == (0.6, 0.7)
@@ -944,8 +1028,21 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
     text = (projects_dir() / "semantickitti.yaml").read_text()
     project.write_text(text + "\npipeline:\n  smoothing: {k: 5}\n  simulated: {recall: 0.95}\n")
     out = tmp_path / "run"
-    res = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
-                                   "--frames", "0:4", "--labeler", "simulated"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "run",
+            str(street),
+            "--out",
+            str(out),
+            "--project-file",
+            str(project),
+            "--frames",
+            "0:4",
+            "--labeler",
+            "simulated",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "2D labels: simulated" in res.output
     assert "point" in res.output and "voxel" in res.output and "mIoU" in res.output
@@ -953,8 +1050,9 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
     assert f"4 .label files (+ .conf confidences) in {out / 'export'}" in res.output
     assert json.loads((out / "stages.json").read_text())["smooth"]["status"] == "done"
     assert len(list((out / "export").glob("*.label"))) == 4
-    again = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
-                                     "--frames", "0:4"])
+    again = CliRunner().invoke(
+        app, ["run", str(street), "--out", str(out), "--project-file", str(project), "--frames", "0:4"]
+    )
     assert again.exit_code == 0 and "labels2d cached" in again.output
     # While another process works in the folder (the app's worker, another `leap run`), a run is refused
     # before it touches anything: two runs in one folder delete each other's temporaries.
@@ -962,8 +1060,20 @@ def test_cli_run_prints_table_and_export(street: Path, tmp_path: Path) -> None:
 
     state = (out / "stages.json").read_bytes()
     with run_dir_lock(out):
-        busy = CliRunner().invoke(app, ["run", str(street), "--out", str(out), "--project-file", str(project),
-                                        "--frames", "0:4", "--no-3dcn"])
+        busy = CliRunner().invoke(
+            app,
+            [
+                "run",
+                str(street),
+                "--out",
+                str(out),
+                "--project-file",
+                str(project),
+                "--frames",
+                "0:4",
+                "--no-3dcn",
+            ],
+        )
     assert busy.exit_code == 2 and "another process is working in this run folder" in busy.output, busy.output
     assert (out / "stages.json").read_bytes() == state
 
@@ -978,8 +1088,20 @@ def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) 
     from leap_core.export import load_label_map
 
     def run(*args: str) -> Result:
-        return CliRunner().invoke(app, ["run", str(street), "--out", str(tmp_path / "run"), "--frames", "0:2",
-                                        "--labeler", "simulated", *args])
+        return CliRunner().invoke(
+            app,
+            [
+                "run",
+                str(street),
+                "--out",
+                str(tmp_path / "run"),
+                "--frames",
+                "0:2",
+                "--labeler",
+                "simulated",
+                *args,
+            ],
+        )
 
     gt = {p.name: p.read_bytes() for p in (street / "labels").iterdir()}
     for bad in (street / "labels", street / "velodyne", street):
@@ -1068,8 +1190,15 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
     run_dir = tmp_path / "cn"
     shutil.copytree(baseline[0], run_dir)
     # new_voxel_margin 0: every voxel the network predicts is created (this tiny network is sure of few).
-    tiny = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
-            "new_voxel_margin": 0.0, "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+    tiny = {
+        "enabled": True,
+        "iterations": 2,
+        "points_per_scan": 1024,
+        "num_threads": 1,
+        "min_steps": 0,
+        "new_voxel_margin": 0.0,
+        "backbone": {"channels": 8, "layers": 1, "knn": 4},
+    }
     cfg = config_from_dict({"consistency": tiny})
     result = run_pipeline(street, schema, cfg, run_dir)
     assert result.ran == ["3dcn", "label_points", "evaluate", "export"]
@@ -1109,23 +1238,40 @@ def test_written_files_get_the_mode_open_gives_under_the_umask(
     run_dir, cache = tmp_path / "run", tmp_path / "cache"
     old = os.umask(umask)
     try:
-        result = run_pipeline(street, schema, PipelineConfig(), run_dir, frames=range(0, 2),
-                              runtime=Runtime(cache_dir=cache))
+        result = run_pipeline(
+            street, schema, PipelineConfig(), run_dir, frames=range(0, 2), runtime=Runtime(cache_dir=cache)
+        )
         assert result.export_dir is not None
         labels = sorted(result.export_dir.glob("*.label"))
         write_export_folder(tmp_path / "out" / "predictions", labels)
-        write_export_zip(tmp_path / "out" / "labels.zip", result.export_dir, "00", {"summary.yaml": "a: 1\n"},
-                         include_confidence=True)
+        write_export_zip(
+            tmp_path / "out" / "labels.zip",
+            result.export_dir,
+            "00",
+            {"summary.yaml": "a: 1\n"},
+            include_confidence=True,
+        )
     finally:
         os.umask(old)
     files = [p for p in tmp_path.rglob("*") if p.is_file()]
     names = {p.relative_to(tmp_path).as_posix() for p in files}
-    for must in ("run/export/000001.label", "run/export/000001.conf", "run/points/000000.npz", "run/grid.npz",
-                 "run/stages.json", "run/metrics.json", "out/predictions/000000.label", "out/labels.zip"):
+    for must in (
+        "run/export/000001.label",
+        "run/export/000001.conf",
+        "run/points/000000.npz",
+        "run/grid.npz",
+        "run/stages.json",
+        "run/metrics.json",
+        "out/predictions/000000.label",
+        "out/labels.zip",
+    ):
         assert must in names
     assert any(n.startswith("cache/") for n in names)
     modes = {p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode)) for p in files}
     assert set(modes.values()) == {oct(0o666 & ~umask)}, modes
-    folders = {p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode))
-               for p in tmp_path.rglob("*") if p.is_dir()}
+    folders = {
+        p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode))
+        for p in tmp_path.rglob("*")
+        if p.is_dir()
+    }
     assert set(folders.values()) == {oct(0o777 & ~umask)}, folders

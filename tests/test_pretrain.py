@@ -25,8 +25,16 @@ ROAD, BUILDING, POLE = 40, 50, 80
 """Raw SemanticKITTI ids of the three shapes of :func:`_scene_scan`."""
 
 TINY_BACKBONE = BackboneConfig(channels=16, layers=2, grid_cells=(1.0, 1.0, 1.0), knn=4)
-TINY = ConsistencyConfig(enabled=True, backbone=TINY_BACKBONE, points_per_scan=0, min_steps=0, lr=1e-2,
-                         augment=False, device="cpu", num_threads=1)
+TINY = ConsistencyConfig(
+    enabled=True,
+    backbone=TINY_BACKBONE,
+    points_per_scan=0,
+    min_steps=0,
+    lr=1e-2,
+    augment=False,
+    device="cpu",
+    num_threads=1,
+)
 
 
 def _scene_scan(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +123,21 @@ def test_cli_writes_a_source_network_for_3dcn_init_and_never_replaces_one_unaske
     project = _project(tmp_path)
     out = tmp_path / "src.pt"
     run = CliRunner().invoke
-    res = run(cli, ["train-3dcn", str(seq.root), "--out", str(out), "--project-file", str(project),
-                    "--steps", "5", "--seed", "3"])
+    res = run(
+        cli,
+        [
+            "train-3dcn",
+            str(seq.root),
+            "--out",
+            str(out),
+            "--project-file",
+            str(project),
+            "--steps",
+            "5",
+            "--seed",
+            "3",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert f"wrote {out}: 3 scans of 1 sequence(s), 5 steps" in res.output
     ck = load_checkpoint(out)
@@ -130,8 +151,22 @@ def test_cli_writes_a_source_network_for_3dcn_init_and_never_replaces_one_unaske
     res = run(cli, ["train-3dcn", str(seq.root), "--out", str(out), "--project-file", str(project)])
     assert res.exit_code == 2 and "already exists; add --force" in res.output
     assert out.read_bytes() == before
-    res = run(cli, ["train-3dcn", str(seq.root), "--out", str(out), "--project-file", str(project),
-                    "--steps", "5", "--seed", "4", "--force"])
+    res = run(
+        cli,
+        [
+            "train-3dcn",
+            str(seq.root),
+            "--out",
+            str(out),
+            "--project-file",
+            str(project),
+            "--steps",
+            "5",
+            "--seed",
+            "4",
+            "--force",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert out.read_bytes() != before
 

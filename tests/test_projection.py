@@ -341,8 +341,11 @@ def test_projection_config_bounds_and_painted_load_checks(tmp_path) -> None:
             Painted.load(path)
     # A row index one past the table, or between its row and column counts, is refused; the error names
     # the file.
-    for rows, table in ((np.array([-1]), np.ones((2, 2))), (np.array([2]), np.ones((2, 2))),
-                        (np.array([3]), np.ones((2, 5)))):
+    for rows, table in (
+        (np.array([-1]), np.ones((2, 2))),
+        (np.array([2]), np.ones((2, 2))),
+        (np.array([3]), np.ones((2, 5))),
+    ):
         np.savez(path, point_idx=np.array([0]), rows=rows, table=table)
         with pytest.raises(DatasetError, match=r"obs\.npz.*rows index outside"):
             Painted.load(path)

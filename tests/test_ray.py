@@ -35,8 +35,9 @@ from leap_core.runtime import Runtime
 from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = SynthConfig(frames=10, seed=0, lidar=LidarConfig(beams=16, azimuth_step_deg=1.0),
-                    camera=CameraConfig().scaled(0.5))
+SMALL = SynthConfig(
+    frames=10, seed=0, lidar=LidarConfig(beams=16, azimuth_step_deg=1.0), camera=CameraConfig().scaled(0.5)
+)
 """The demo street (seed 0), coarse LiDAR, half-size camera: about 400-700 observed points per frame."""
 FRAMES = range(0, 8)
 RAY = Runtime(ray_address="auto")
@@ -45,8 +46,10 @@ RAY = Runtime(ray_address="auto")
 def test_frame_blocks_and_records() -> None:
     assert frame_blocks([0, 1, 2, 5, 6, 7, 8], 3) == [[0, 1, 2], [5, 6, 7], [8]]
     assert frame_blocks([], 2) == []
-    parts = [{"frames_done": 3, "frames_computed": 3, "cache_hits": 1, "labeler": "simulated"},
-             {"frames_done": 2, "frames_computed": 2, "cache_hits": 2, "labeler": "simulated"}]
+    parts = [
+        {"frames_done": 3, "frames_computed": 3, "cache_hits": 1, "labeler": "simulated"},
+        {"frames_done": 2, "frames_computed": 2, "cache_hits": 2, "labeler": "simulated"},
+    ]
     rec = merge_records(parts, 8, 5)
     assert rec == {"frames_done": 8, "frames_computed": 5, "cache_hits": 3, "labeler": "simulated"}
 
@@ -80,8 +83,9 @@ def test_an_address_nobody_answers_at_is_a_one_line_error_at_once() -> None:
         "except LeapError as exc:\n"
         "    print(exc)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True,
-                         timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True, timeout=120
+    )
     assert out.stdout.splitlines() == ["ray_address '127.0.0.1:1': no Ray cluster answers at 127.0.0.1:1"]
 
 
@@ -92,8 +96,15 @@ def ray_instance():
 
     # address="local": a new instance of 2 CPUs even where a cluster runs (ray.init would join it).
     # One logical GPU (this machine has none): tasks that ask for a GPU can be scheduled, and run on the CPU.
-    ray.init(address="local", num_cpus=2, num_gpus=1, include_dashboard=False,
-             object_store_memory=256 * 1024 * 1024, logging_level="ERROR", log_to_driver=False)
+    ray.init(
+        address="local",
+        num_cpus=2,
+        num_gpus=1,
+        include_dashboard=False,
+        object_store_memory=256 * 1024 * 1024,
+        logging_level="ERROR",
+        log_to_driver=False,
+    )
     yield ray
     ray.shutdown()
 
@@ -124,8 +135,11 @@ OUTPUT_FILES = ("grid.npz", "grid_smooth.npz", "metrics.json")
 
 
 def _outputs(run_dir: Path) -> dict[str, bytes]:
-    out = {f"{folder}/{p.name}": p.read_bytes() for folder in OUTPUT_FOLDERS
-           for p in sorted((run_dir / folder).iterdir())}
+    out = {
+        f"{folder}/{p.name}": p.read_bytes()
+        for folder in OUTPUT_FOLDERS
+        for p in sorted((run_dir / folder).iterdir())
+    }
     out.update({name: (run_dir / name).read_bytes() for name in OUTPUT_FILES})
     return out
 
@@ -139,12 +153,20 @@ def _same_outputs(run_dir: Path, local_run: Path) -> None:
 
 
 @pytest.mark.slow
-def test_ray_run_writes_the_local_bytes(ray_instance, dataset: Path, preset_config, local_run: Path,
-                                        tmp_path: Path) -> None:
+def test_ray_run_writes_the_local_bytes(
+    ray_instance, dataset: Path, preset_config, local_run: Path, tmp_path: Path
+) -> None:
     schema, cfg = preset_config
     calls: list[tuple[str, int, int]] = []
-    result = run_pipeline(dataset, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY,
-                          progress=lambda *a: calls.append(a))
+    result = run_pipeline(
+        dataset,
+        schema,
+        cfg,
+        tmp_path / "run",
+        frames=FRAMES,
+        runtime=RAY,
+        progress=lambda *a: calls.append(a),
+    )
     _same_outputs(tmp_path / "run", local_run)
     records = stage_status(tmp_path / "run")
     for stage in ("labels2d", "project", "label_points", "export"):
@@ -164,9 +186,14 @@ def test_ray_run_writes_the_local_bytes(ray_instance, dataset: Path, preset_conf
 
 
 @pytest.mark.slow
-def test_cancel_on_ray_then_resume_gives_the_local_bytes(ray_instance, dataset: Path, preset_config,
-                                                         local_run: Path, tmp_path: Path,
-                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+def test_cancel_on_ray_then_resume_gives_the_local_bytes(
+    ray_instance,
+    dataset: Path,
+    preset_config,
+    local_run: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     schema, cfg = preset_config
     run_dir = tmp_path / "run"
 
@@ -228,8 +255,22 @@ def test_cli_run_with_ray(ray_instance, dataset: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     outs = {}
     for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
-        res = runner.invoke(cli, ["run", str(dataset), "--schema", "demo", "--labeler", "simulated",
-                                  "--out", str(tmp_path / name), "--frames", "2:6", *extra])
+        res = runner.invoke(
+            cli,
+            [
+                "run",
+                str(dataset),
+                "--schema",
+                "demo",
+                "--labeler",
+                "simulated",
+                "--out",
+                str(tmp_path / name),
+                "--frames",
+                "2:6",
+                *extra,
+            ],
+        )
         assert res.exit_code == 0, res.output
         outs[name] = {p.name: p.read_bytes() for p in sorted((tmp_path / name / "export").iterdir())}
     assert len(outs["ray"]) == 8
@@ -238,8 +279,14 @@ def test_cli_run_with_ray(ray_instance, dataset: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_app_setting_sends_the_worker_run_to_ray(ray_instance, dataset: Path, preset_config, local_run: Path,
-                                                 tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_app_setting_sends_the_worker_run_to_ray(
+    ray_instance,
+    dataset: Path,
+    preset_config,
+    local_run: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """``LEAP_RAY_ADDRESS`` → ``Settings.ray_address`` → the worker's ``RunSpec`` → its ``Runtime``."""
     from app.core.config import Settings
     from app.jobs.manager import JobManager
@@ -251,9 +298,17 @@ def test_app_setting_sends_the_worker_run_to_ray(ray_instance, dataset: Path, pr
     monkeypatch.setenv("LEAP_RAY_ADDRESS", "auto")
     settings = Settings(work_dir=tmp_path / "work")
     assert settings.ray_address == "auto"
-    run = {"id": 1, "project_id": 1, "run_dir": str(tmp_path / "run"),
-           "params": {"dataset": str(dataset), "schema": schema.to_dict(), "pipeline": config_to_dict(cfg),
-                      "frames": [FRAMES.start, FRAMES.stop]}}
+    run = {
+        "id": 1,
+        "project_id": 1,
+        "run_dir": str(tmp_path / "run"),
+        "params": {
+            "dataset": str(dataset),
+            "schema": schema.to_dict(),
+            "pipeline": config_to_dict(cfg),
+            "frames": [FRAMES.start, FRAMES.stop],
+        },
+    }
     spec = decode_to_worker(JobManager(settings)._spec(run).to_line())
     assert spec.ray_address == "auto"
     outcome = execute(spec, emit=lambda _message: None, should_cancel=lambda: False)
@@ -274,16 +329,34 @@ def test_labels2d_command_on_ray_fills_the_cache_as_locally(ray_instance, tmp_pa
 
     root = build_tiny_sequence(tmp_path, n_frames=4).root
     models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=12)).models_dir
-    schema = Schema("small", (ClassDef("car", (255, 0, 0), ("car",), 10),
-                              ClassDef("road", (0, 0, 255), ("road", "street"), 40)))
+    schema = Schema(
+        "small",
+        (ClassDef("car", (255, 0, 0), ("car",), 10), ClassDef("road", (0, 0, 255), ("road", "street"), 40)),
+    )
     project = tmp_path / "small.yaml"
     save_schema(schema, project, pipeline={"grounded_sam": {"box_threshold": 0.05}})
     runner = CliRunner()
     caches = {}
     for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
         cache = tmp_path / f"cache-{name}"
-        res = runner.invoke(cli, ["labels2d", str(root), "--schema", str(project), "--models", str(models),
-                                  "--cache", str(cache), "--batch-size", "2", "--device", "cpu", *extra])
+        res = runner.invoke(
+            cli,
+            [
+                "labels2d",
+                str(root),
+                "--schema",
+                str(project),
+                "--models",
+                str(models),
+                "--cache",
+                str(cache),
+                "--batch-size",
+                "2",
+                "--device",
+                "cpu",
+                *extra,
+            ],
+        )
         assert res.exit_code == 0, res.output
         assert "done: 4 frames labeled" in res.output
         caches[name] = {p.relative_to(cache).as_posix(): p.read_bytes() for p in sorted(cache.rglob("*.npz"))}
@@ -293,8 +366,9 @@ def test_labels2d_command_on_ray_fills_the_cache_as_locally(ray_instance, tmp_pa
 
 
 @pytest.mark.slow
-def test_an_error_in_a_task_is_the_stage_error(ray_instance, dataset: Path, preset_config,
-                                               tmp_path: Path) -> None:
+def test_an_error_in_a_task_is_the_stage_error(
+    ray_instance, dataset: Path, preset_config, tmp_path: Path
+) -> None:
     """A task's LeapError reaches the caller as itself (one line naming the file), not as Ray's wrapper."""
     from leap_core.errors import DatasetError
 
@@ -322,13 +396,17 @@ def test_model_2d_labels_ask_for_a_gpu_per_task(ray_instance, tmp_path: Path) ->
 
     root = build_tiny_sequence(tmp_path, n_frames=3).root
     models = make_tiny_models(tmp_path / "models", TinyModelsConfig(num_queries=12)).models_dir
-    schema = Schema("small", (ClassDef("car", (255, 0, 0), ("car",), 10),
-                              ClassDef("road", (0, 0, 255), ("road", "street"), 40)))
+    schema = Schema(
+        "small",
+        (ClassDef("car", (255, 0, 0), ("car",), 10), ClassDef("road", (0, 0, 255), ("road", "street"), 40)),
+    )
     cfg = config_from_dict({"labeler": "grounded-sam", "grounded_sam": {"box_threshold": 0.05}})
     runs = {}
-    for name, runtime in (("local", Runtime(models_dir=models, device="cpu")),
-                          ("gpu", Runtime(models_dir=models, ray_address="auto")),
-                          ("cpu", Runtime(models_dir=models, device="cpu", ray_address="auto"))):
+    for name, runtime in (
+        ("local", Runtime(models_dir=models, device="cpu")),
+        ("gpu", Runtime(models_dir=models, ray_address="auto")),
+        ("cpu", Runtime(models_dir=models, device="cpu", ray_address="auto")),
+    ):
         run_pipeline(root, schema, cfg, tmp_path / name, runtime=runtime, until="labels2d")
         runs[name] = {p.name: p.read_bytes() for p in sorted((tmp_path / name / "labels2d").iterdir())}
     assert stage_status(tmp_path / "gpu")["labels2d"]["ray_gpus_per_task"] == 1
@@ -338,8 +416,15 @@ def test_model_2d_labels_ask_for_a_gpu_per_task(ray_instance, tmp_path: Path) ->
 
 
 # ------------------------------------------------------------------------- 3D-CN inference, sequences
-TINY_3DCN = {"enabled": True, "iterations": 2, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
-             "device": "cpu", "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+TINY_3DCN = {
+    "enabled": True,
+    "iterations": 2,
+    "points_per_scan": 1024,
+    "num_threads": 1,
+    "min_steps": 0,
+    "device": "cpu",
+    "backbone": {"channels": 8, "layers": 1, "knn": 4},
+}
 """A 3D-CN that trains in seconds; one torch thread, so two inference tasks share the 2 CPUs."""
 CN_FILES = ("grid_3dcn1.npz", "grid_smooth_3dcn1.npz", "grid_3dcn2.npz", "grid_smooth_3dcn2.npz")
 
@@ -361,13 +446,21 @@ def local_3dcn_run(dataset: Path, preset_config, tmp_path_factory: pytest.TempPa
 
 
 @pytest.mark.slow
-def test_3dcn_inference_runs_as_ray_tasks_with_the_local_bytes(ray_instance, dataset: Path, preset_config,
-                                                                local_3dcn_run: Path, tmp_path: Path) -> None:
+def test_3dcn_inference_runs_as_ray_tasks_with_the_local_bytes(
+    ray_instance, dataset: Path, preset_config, local_3dcn_run: Path, tmp_path: Path
+) -> None:
     schema, cfg = preset_config
     run_dir = tmp_path / "run"
     calls: list[tuple[str, int, int]] = []
-    run_pipeline(dataset, schema, _with_3dcn(cfg), run_dir, frames=FRAMES, runtime=RAY,
-                 progress=lambda *a: calls.append(a))
+    run_pipeline(
+        dataset,
+        schema,
+        _with_3dcn(cfg),
+        run_dir,
+        frames=FRAMES,
+        runtime=RAY,
+        progress=lambda *a: calls.append(a),
+    )
     ray_out, local_out = _outputs(run_dir), _outputs(local_3dcn_run)
     for name in CN_FILES:
         ray_out[name], local_out[name] = (run_dir / name).read_bytes(), (local_3dcn_run / name).read_bytes()
@@ -381,8 +474,9 @@ def test_3dcn_inference_runs_as_ray_tasks_with_the_local_bytes(ray_instance, dat
 
 
 @pytest.mark.slow
-def test_3dcn_inference_asks_for_a_gpu_per_task(ray_instance, dataset: Path, preset_config,
-                                                local_3dcn_run: Path, tmp_path: Path) -> None:
+def test_3dcn_inference_asks_for_a_gpu_per_task(
+    ray_instance, dataset: Path, preset_config, local_3dcn_run: Path, tmp_path: Path
+) -> None:
     """consistency.device "auto" on a cluster with a (logical) GPU: each inference task asks for one (and
     computes on the CPU here, torch seeing no CUDA device): the local bytes."""
     schema, cfg = preset_config
@@ -395,9 +489,9 @@ def test_3dcn_inference_asks_for_a_gpu_per_task(ray_instance, dataset: Path, pre
 
 
 @pytest.mark.slow
-def test_ray_predictions_come_back_in_frame_order(ray_instance, dataset: Path, preset_config,
-                                                  local_3dcn_run: Path, monkeypatch: pytest.MonkeyPatch
-                                                  ) -> None:
+def test_ray_predictions_come_back_in_frame_order(
+    ray_instance, dataset: Path, preset_config, local_3dcn_run: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The predictor yields exactly the local loop's (keys, log-probabilities), frame after frame, when
     every frame is its own task (so tasks end in any order and the window of tasks in flight moves)."""
     from leap_core.consistency.remote import predict_from_checkpoint
@@ -412,8 +506,9 @@ def test_ray_predictions_come_back_in_frame_order(ray_instance, dataset: Path, p
     monkeypatch.setattr(engine, "INFER_TASK_FRAMES", 1)
     predictor = engine.RayExecutor("auto").predictor(cfg)
     got = list(predictor(seq, frames, checkpoint))
-    expected = predict_from_checkpoint(seq, list(frames), checkpoint, cfg.consistency, cfg.fusion.voxel_size,
-                                       1)
+    expected = predict_from_checkpoint(
+        seq, list(frames), checkpoint, cfg.consistency, cfg.fusion.voxel_size, 1
+    )
     assert predictor.tasks == len(frames)
     assert len(got) == len(expected) == len(frames)
     for (keys, logp), (k, lp) in zip(got, expected, strict=True):
@@ -432,8 +527,10 @@ def streets(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     from test_pipeline import make_street
 
     base = tmp_path_factory.mktemp("streets")
-    return [make_street(base / "x" / "sequences" / "00", n_frames=5),
-            make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0)]
+    return [
+        make_street(base / "x" / "sequences" / "00", n_frames=5),
+        make_street(base / "y" / "sequences" / "01", n_frames=4, step=2.0),
+    ]
 
 
 MULTI_FILES = ("grid.npz", "grid_smooth.npz", "grid_3dcn1.npz", "grid_smooth_3dcn1.npz", "metrics.json")
@@ -444,8 +541,11 @@ def _multi_setup(streets: list[Path]) -> tuple[list[Any], Any, PipelineConfig]:
     from leap_core.pipeline import SequenceSpec
     from leap_core.schema import builtin_schema
 
-    return ([SequenceSpec.of(path) for path in streets], builtin_schema("semantickitti"),
-            config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1}}))
+    return (
+        [SequenceSpec.of(path) for path in streets],
+        builtin_schema("semantickitti"),
+        config_from_dict({"consistency": {**TINY_3DCN, "iterations": 1}}),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -455,8 +555,9 @@ def local_multi(streets: list[Path], tmp_path_factory: pytest.TempPathFactory) -
 
     specs, schema, cfg = _multi_setup(streets)
     calls: list[Any] = []
-    return run_sequences(specs, schema, cfg, tmp_path_factory.mktemp("multi") / "local",
-                         progress=lambda *a: calls.append(a)), calls
+    return run_sequences(
+        specs, schema, cfg, tmp_path_factory.mktemp("multi") / "local", progress=lambda *a: calls.append(a)
+    ), calls
 
 
 def _same_multi_outputs(root: Path, local_root: Path, names: list[str]) -> None:
@@ -474,8 +575,9 @@ def _same_multi_outputs(root: Path, local_root: Path, names: list[str]) -> None:
 
 
 @pytest.mark.slow
-def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, streets: list[Path], local_multi,
-                                                               tmp_path: Path) -> None:
+def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(
+    ray_instance, streets: list[Path], local_multi, tmp_path: Path
+) -> None:
     """A two-sequence project with the 3D-CN: on Ray both sequences' stages before the joint 3D-CN run at
     the same time (their stages.json spans overlap; locally they follow each other), the joint inference
     runs as tasks, and every file is the local multi-sequence run's."""
@@ -486,8 +588,9 @@ def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, str
     first = ("labels2d", "project", "fuse", "smooth")
     local, local_calls = local_multi
     calls: list[Any] = []
-    result = run_sequences(specs, schema, cfg, tmp_path / "ray", runtime=RAY,
-                           progress=lambda *a: calls.append(a))
+    result = run_sequences(
+        specs, schema, cfg, tmp_path / "ray", runtime=RAY, progress=lambda *a: calls.append(a)
+    )
     spans = {}
     for name, root in (("local", local.root), ("ray", result.root)):
         spans[name] = [_seq_span(MultiRunLayout(root).sequence(s.name).run_dir, first) for s in specs]
@@ -506,8 +609,9 @@ def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(ray_instance, str
 
 
 @pytest.mark.slow
-def test_sequences_at_once_cancel_together_and_resume(ray_instance, streets: list[Path], local_multi,
-                                                      tmp_path: Path) -> None:
+def test_sequences_at_once_cancel_together_and_resume(
+    ray_instance, streets: list[Path], local_multi, tmp_path: Path
+) -> None:
     """A cancel in one sequence stops the other at its next report; each keeps its own stages.json, and
     the rerun resumes both (kept frames not recomputed) to the local bytes."""
     from leap_core.pipeline import run_sequences
@@ -541,12 +645,15 @@ def test_cli_runs_sequences_at_once_on_ray(ray_instance, streets: list[Path], tm
     runner = CliRunner()
     outs, outputs = {}, {}
     for name, extra in (("local", []), ("ray", ["--ray", "auto"])):
-        res = runner.invoke(cli, ["run", *map(str, streets), "--labeler", "simulated",
-                                  "--out", str(tmp_path / name), *extra])
+        res = runner.invoke(
+            cli, ["run", *map(str, streets), "--labeler", "simulated", "--out", str(tmp_path / name), *extra]
+        )
         assert res.exit_code == 0, res.output
         outputs[name] = res.output
-        outs[name] = {p.relative_to(tmp_path / name).as_posix(): p.read_bytes()
-                      for p in sorted((tmp_path / name).glob("sequences/*/export/*"))}
+        outs[name] = {
+            p.relative_to(tmp_path / name).as_posix(): p.read_bytes()
+            for p in sorted((tmp_path / name).glob("sequences/*/export/*"))
+        }
     assert len(outs["ray"]) == 2 * (5 + 4)
     assert outs["ray"] == outs["local"]
     # The result tables' heading only (locally also the bars' headers).

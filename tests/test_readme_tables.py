@@ -62,8 +62,9 @@ def _metrics(camera: list[float], all_: list[float], share: list[float]) -> dict
 
 def test_demo_table_rows_are_the_camera_and_all_points_miou_and_the_ground_truth_labeled_share() -> None:
     rt = _module()
-    table = rt.demo_miou(_metrics([0.779, 0.8534, 0.79, None], [0.128, 0.441, 0.6194, 0.62],
-                                  [0.1224, 0.584, 1.0, 1.0]))
+    table = rt.demo_miou(
+        _metrics([0.779, 0.8534, 0.79, None], [0.128, 0.441, 0.6194, 0.62], [0.1224, 0.584, 1.0, 1.0])
+    )
     lines = table.splitlines()
     assert "Report seed 0" in lines[0] and "--3dcn-iterations 2" in lines[0]
     assert lines[-3] == "| camera view | 77.9 | 85.3 | 79.0 | n/a |"
@@ -71,8 +72,10 @@ def test_demo_table_rows_are_the_camera_and_all_points_miou_and_the_ground_truth
     assert lines[-1] == "| points labeled | 12.2 % | 58.4 % | 100 % | 100 % |"
     # A run with the paper's protocol (a SemanticKITTI schema) gets its row after the camera view's.
     m = _metrics([0.779, 0.8534, 0.79, None], [0.128, 0.441, 0.6194, 0.62], [0.1224, 0.584, 1.0, 1.0])
-    m["paper"] = {r: {"miou": v} for r, v in zip(["point", "voxel", "+3D-CN x1", "+3D-CN x2"],
-                                                  [0.5, 0.61, 0.7, 0.71], strict=True)}
+    m["paper"] = {
+        r: {"miou": v}
+        for r, v in zip(["point", "voxel", "+3D-CN x1", "+3D-CN x2"], [0.5, 0.61, 0.7, 0.71], strict=True)
+    }
     lines = rt.demo_miou(m).splitlines()
     assert lines[-4] == "| camera view | 77.9 | 85.3 | 79.0 | n/a |"
     assert lines[-3] == "| paper's 11 classes (camera view) | 50.0 | 61.0 | 70.0 | 71.0 |"

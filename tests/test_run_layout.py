@@ -22,16 +22,22 @@ def test_paths(tmp_path: Path) -> None:
     assert lay.grid_3dcn(2) == tmp_path / "grid_3dcn2.npz"
     assert lay.grid_smooth_3dcn(2) == tmp_path / "grid_smooth_3dcn2.npz"
     assert lay.cn_dir == tmp_path / "3dcn"
-    assert (lay.export_zip(), lay.export_zip(with_confidence=True)) == (tmp_path / "export.zip",
-                                                                        tmp_path / "export-conf.zip")
+    assert (lay.export_zip(), lay.export_zip(with_confidence=True)) == (
+        tmp_path / "export.zip",
+        tmp_path / "export-conf.zip",
+    )
     assert RunLayout(str(tmp_path)).run_dir == tmp_path  # type: ignore[arg-type]  # a str path works at run time
     assert {lay.params.name, lay.log.name, lay.lock.name, lay.corrections.name} <= RunLayout.RUN_OWN_FILES
 
 
 @pytest.mark.parametrize(
     ("enabled", "iterations", "name"),
-    [(False, 1, "grid_smooth.npz"), (False, 2, "grid_smooth.npz"), (True, 1, "grid_smooth_3dcn1.npz"),
-     (True, 2, "grid_smooth_3dcn2.npz")],
+    [
+        (False, 1, "grid_smooth.npz"),
+        (False, 2, "grid_smooth.npz"),
+        (True, 1, "grid_smooth_3dcn1.npz"),
+        (True, 2, "grid_smooth_3dcn2.npz"),
+    ],
 )
 def test_final_grid_follows_the_config(tmp_path: Path, enabled: bool, iterations: int, name: str) -> None:
     cfg = ConsistencyConfig(enabled=enabled, iterations=iterations)
@@ -41,13 +47,23 @@ def test_final_grid_follows_the_config(tmp_path: Path, enabled: bool, iterations
 def test_final_grid_on_disk_takes_the_last_smoothed_round(tmp_path: Path) -> None:
     lay = RunLayout(tmp_path)
     assert lay.final_grid_on_disk() == lay.grid_smooth
-    for name in ("grid.npz", "grid_smooth.npz", "grid_smooth_3dcn2.npz", "grid_smooth_3dcn10.npz",
-                 "grid_3dcn11.npz", "grid_smooth_3dcnx.npz", "old_grid_smooth_3dcn12.npz"):
+    for name in (
+        "grid.npz",
+        "grid_smooth.npz",
+        "grid_smooth_3dcn2.npz",
+        "grid_smooth_3dcn10.npz",
+        "grid_3dcn11.npz",
+        "grid_smooth_3dcnx.npz",
+        "old_grid_smooth_3dcn12.npz",
+    ):
         (tmp_path / name).write_bytes(b"")
     # 10 > 2 as numbers; a fused-only round (11) and names that are not round files do not count.
     assert lay.final_grid_on_disk() == tmp_path / "grid_smooth_3dcn10.npz"
-    assert [p.name for p in lay.cn_grids()] == ["grid_3dcn11.npz", "grid_smooth_3dcn10.npz",
-                                                "grid_smooth_3dcn2.npz"]
+    assert [p.name for p in lay.cn_grids()] == [
+        "grid_3dcn11.npz",
+        "grid_smooth_3dcn10.npz",
+        "grid_smooth_3dcn2.npz",
+    ]
     assert RunLayout(tmp_path / "missing").cn_grids() == []
 
 

@@ -57,8 +57,12 @@ def ref_project(xyz: np.ndarray, m: np.ndarray, h: int, w: int, min_depth: float
     u = np.floor(cam[:, 0] / d + 0.5)
     v = np.floor(cam[:, 1] / d + 0.5)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    return Projected(front[inside].astype(np.int64), u[inside].astype(np.int32), v[inside].astype(np.int32),
-                     d[inside].astype(np.float32))
+    return Projected(
+        front[inside].astype(np.int64),
+        u[inside].astype(np.int32),
+        v[inside].astype(np.int32),
+        d[inside].astype(np.float32),
+    )
 
 
 def ref_cluster(member: np.ndarray, depth: np.ndarray, gap: float, min_points: int) -> np.ndarray:
@@ -137,9 +141,12 @@ def random_soft(rng: np.random.Generator, m: int, h: int = 29, w: int = 43, c: i
 def random_projection(rng: np.random.Generator, n: int, h: int, w: int) -> Projected:
     """Points on random pixels (several per pixel) at depths with exact ties (0.25 m steps) and gaps."""
     depth = np.abs(np.round((rng.choice([4.0, 9.0, 20.0], n) + rng.normal(0, 0.8, n)) * 4) / 4) + 0.5
-    return Projected(np.sort(rng.choice(10 * n, n, replace=False)).astype(np.int64),
-                     rng.integers(0, w, n).astype(np.int32), rng.integers(0, h, n).astype(np.int32),
-                     depth.astype(np.float32))
+    return Projected(
+        np.sort(rng.choice(10 * n, n, replace=False)).astype(np.int64),
+        rng.integers(0, w, n).astype(np.int32),
+        rng.integers(0, h, n).astype(np.int32),
+        depth.astype(np.float32),
+    )
 
 
 # ---------------------------------------------------------------------------------------- geometry
@@ -188,8 +195,11 @@ def test_paint_is_the_straightforward_painting(num_masks: int) -> None:
     rng = np.random.default_rng(num_masks)
     soft = random_soft(rng, num_masks)
     proj = random_projection(rng, 900, soft.height, soft.width)
-    for cfg in (ProjectionConfig(), ProjectionConfig(cluster_gap=0.3, min_cluster_points=0),
-                ProjectionConfig(depth_clustering=False)):
+    for cfg in (
+        ProjectionConfig(),
+        ProjectionConfig(cluster_gap=0.3, min_cluster_points=0),
+        ProjectionConfig(depth_clustering=False),
+    ):
         got, want = paint(soft, proj, cfg), ref_paint(soft, proj, cfg)
         assert_same_painting(got, want)
         if num_masks >= 5:
@@ -301,8 +311,14 @@ def runs(street: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[int, tu
     for threads in (1, 4):
         run_dir = tmp_path_factory.mktemp("runs") / f"t{threads}"
         calls: list[tuple[str, int, int]] = []
-        run_pipeline(street, schema, PipelineConfig(), run_dir, runtime=Runtime(frame_threads=threads),
-                     progress=lambda *a, calls=calls: calls.append(a))
+        run_pipeline(
+            street,
+            schema,
+            PipelineConfig(),
+            run_dir,
+            runtime=Runtime(frame_threads=threads),
+            progress=lambda *a, calls=calls: calls.append(a),
+        )
         out[threads] = (run_dir, calls)
     return out
 
@@ -334,8 +350,9 @@ def test_run_files_are_the_reference_computation(runs, street: Path) -> None:
         frame = seq.frame(i)
         fid = frame.frame_id
         soft = SoftMasks.load(run_dir / "labels2d" / f"{fid}.npz")
-        proj = ref_project(frame.points, seq.calib.lidar_to_image, soft.height, soft.width,
-                           cfg.projection.min_depth)
+        proj = ref_project(
+            frame.points, seq.calib.lidar_to_image, soft.height, soft.width, cfg.projection.min_depth
+        )
         want = ref_paint(soft, proj, cfg.projection)
         with np.load(run_dir / "observations" / f"{fid}.npz") as z:
             assert_same_painting(Painted(z["point_idx"], z["rows"], z["table"]), want)

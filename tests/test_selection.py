@@ -101,35 +101,35 @@ def test_front_surface_keeps_the_first_hit_within_distance() -> None:
     occ = np.ones(4, bool)
     cand = np.array([True, True, True, False])
     np.testing.assert_array_equal(
-        front_surface(
-            col, row, depth, splat, occluder=occ, candidate=cand, distance=0.5
-        ), [True, True, False, False]
+        front_surface(col, row, depth, splat, occluder=occ, candidate=cand, distance=0.5),
+        [True, True, False, False],
     )
     np.testing.assert_array_equal(
-        front_surface(
-            col, row, depth, splat, occluder=occ, candidate=cand, distance=6.0
-        ), [True, True, True, False]
+        front_surface(col, row, depth, splat, occluder=occ, candidate=cand, distance=6.0),
+        [True, True, True, False],
     )
     # A front point that is not a candidate still hides the one behind it.
     cand2 = np.array([False, False, True, False])
     np.testing.assert_array_equal(
-        front_surface(
-            col, row, depth, splat, occluder=occ, candidate=cand2, distance=0.5
-        ), [False, False, False, False]
+        front_surface(col, row, depth, splat, occluder=occ, candidate=cand2, distance=0.5),
+        [False, False, False, False],
     )
     # A point three pixels away (beyond the 3×3 erosion at 1 px cells) hides nothing.
     col3, row3 = np.array([0, 3]), np.array([0, 0])
     np.testing.assert_array_equal(
         front_surface(
-            col3, row3, np.array([1.0, 9.0]), np.ones(2),
-            occluder=np.ones(2, bool), candidate=np.array([False, True]), distance=0.5,
+            col3,
+            row3,
+            np.array([1.0, 9.0]),
+            np.ones(2),
+            occluder=np.ones(2, bool),
+            candidate=np.array([False, True]),
+            distance=0.5,
         ),
         [False, True],
     )
     with pytest.raises(ValueError, match="distance"):
-        front_surface(
-            col, row, depth, splat, occluder=occ, candidate=cand, distance=-1.0
-        )
+        front_surface(col, row, depth, splat, occluder=occ, candidate=cand, distance=-1.0)
 
 
 def _camera(width: int = 9, height: int = 9) -> PinholeCamera:

@@ -23,7 +23,7 @@ def test_purity_lines_by_hand() -> None:
     gt_points = np.array([20, 5, 8])
     lines = sp.purity_lines(taught, gt_points, ["car", "truck", "person"], top=1)
     assert lines[2:] == [
-        "| car | 20 | 50.0 % | 60.0 % | truck 30 % |",   # 10 of 20 selected, 6 of them right
+        "| car | 20 | 50.0 % | 60.0 % | truck 30 % |",  # 10 of 20 selected, 6 of them right
         "| truck | 5 | 0 | - | - |",
         "| person | 8 | 50.0 % | 0.0 % | truck 100 % |",
     ]

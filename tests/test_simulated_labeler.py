@@ -430,9 +430,19 @@ def test_unknown_name_ids_are_a_clear_error(tmp_path: Path) -> None:
 
 
 _PROBS = ("recall", "confusion_prob", "partner_share", "box_leak_prob", "pair_merge_prob", "stuff_grow_prob")
-_NON_NEGATIVE = ("min_region_px", "bleed_px", "stuff_bleed_px", "jitter_px", "jitter_deg",
-                 "match_temperature", "small_region_px", "box_leak_margin", "pair_merge_gap_px",
-                 "stuff_grow_px", "stuff_tile_px")
+_NON_NEGATIVE = (
+    "min_region_px",
+    "bleed_px",
+    "stuff_bleed_px",
+    "jitter_px",
+    "jitter_deg",
+    "match_temperature",
+    "small_region_px",
+    "box_leak_margin",
+    "pair_merge_gap_px",
+    "stuff_grow_px",
+    "stuff_tile_px",
+)
 _ONES = {"exact": 1.0, "synonym": 1.0, "descriptive": 1.0, "hypernym": 1.0}
 
 
@@ -494,8 +504,10 @@ def test_confusion_tables_need_two_different_names_and_weights_of_other_classes(
     _refused(("confusion_pairs",), confusion_pairs=(("car", "truck"), ("road",)))
     _refused(("confusion_pairs",), confusion_pairs=(("car", "truck"), ("road", "road")))
     _refused(("confusion_targets", "car", "car"), confusion_targets={"car": {"truck": 1.0, "car": 1.0}})
-    _refused(("confusion_targets", "road", "car"),
-             confusion_targets={"car": {"truck": 1.0}, "road": {"car": float("nan")}})
+    _refused(
+        ("confusion_targets", "road", "car"),
+        confusion_targets={"car": {"truck": 1.0}, "road": {"car": float("nan")}},
+    )
 
 
 def _exact(**kw: object) -> SimulatedLabeler:

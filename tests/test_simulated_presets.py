@@ -108,8 +108,9 @@ def _confused(tmp_path: Path, strat: bool, **kw: object) -> list[list[int]]:
     seq = make_sequence(tmp_path / f"twelve_{strat}", n_frames=12)
     out = []
     for seed in range(10):
-        lab = _exact(seed=seed, class_confusion={"car": 0.5}, persistence_frames=1, stratified_draws=strat,
-                     **kw)
+        lab = _exact(
+            seed=seed, class_confusion={"car": 0.5}, persistence_frames=1, stratified_draws=strat, **kw
+        )
         preds = []
         for f in seq:
             m = lab.label(f, SCHEMA)
@@ -133,8 +134,12 @@ def test_stratified_draws_of_one_object_are_independent_across_decisions(tmp_pat
     # A confused car takes truck or sidewalk with equal weight. The target draw has a lattice of its own;
     # were it the confusion's lattice shifted by a phase, the confused cars (u < 0.5) would have their
     # target draws in one half-width window and take mostly one target for a given seed.
-    preds = _confused(tmp_path, True, confusion_pairs=(("car", "truck"), ("car", "sidewalk")),
-                      confusion_targets={"car": {"truck": 1.0, "sidewalk": 1.0}})
+    preds = _confused(
+        tmp_path,
+        True,
+        confusion_pairs=(("car", "truck"), ("car", "sidewalk")),
+        confusion_targets={"car": {"truck": 1.0, "sidewalk": 1.0}},
+    )
     shares = [sum(c == TRUCK for c in p) / max(1, sum(c != CAR for c in p)) for p in preds]
     assert all(0.25 <= s <= 0.75 for s in shares), shares
 
@@ -142,8 +147,14 @@ def test_stratified_draws_of_one_object_are_independent_across_decisions(tmp_pat
 def _car_flags(seq, drift: bool, q: float, seed: int) -> np.ndarray:
     """(2, frames) whether each of the two cars is confused (taken for a truck) in each frame, with car
     confused at rate ``q``, stratified draws, and blocks of six frames (two blocks in twelve frames)."""
-    lab = _exact(seed=seed, class_confusion={"car": q}, confusion_pairs=(("car", "truck"),),
-                 persistence_frames=6, stratified_draws=True, drift_draws=drift)
+    lab = _exact(
+        seed=seed,
+        class_confusion={"car": q},
+        confusion_pairs=(("car", "truck"),),
+        persistence_frames=6,
+        stratified_draws=True,
+        drift_draws=drift,
+    )
     return np.array([lab.label(f, SCHEMA).probs.argmax(1)[:2] == TRUCK for f in seq]).T
 
 
@@ -318,8 +329,13 @@ def test_class_box_leak_grows_only_the_named_class_masks(seq) -> None:
 
 def test_pair_merge_covers_the_adjacent_object(seq) -> None:
     frame = seq.frame(0)
-    plain = [m for m, p in zip(_exact().label(frame, SCHEMA).dense(), _exact().label(frame, SCHEMA).probs,
-                               strict=True) if p.argmax() == CAR]
+    plain = [
+        m
+        for m, p in zip(
+            _exact().label(frame, SCHEMA).dense(), _exact().label(frame, SCHEMA).probs, strict=True
+        )
+        if p.argmax() == CAR
+    ]
     masks = _exact(pair_merge_prob=1.0, pair_merge_gap_px=20).label(frame, SCHEMA)
     car = [m for m, p in zip(masks.dense(), masks.probs, strict=True) if p.argmax() == CAR]
     # Cars 1 (rows 30-37, columns 5-19) and 2 (rows 26-35, columns 35-54) are 15 px apart: each mask now
@@ -346,8 +362,9 @@ def test_stuff_tiles_confuse_part_of_a_surface(seq) -> None:
         sel = (ys // 8 == t[0]) & (xs // 8 == t[1])
         assert len(set(img[ys[sel], xs[sel]].tolist())) == 1
     # Off (0): the whole region keeps one class, drawn once.
-    img0 = _argmax_image(_exact(confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5})
-                         .label(frame, SCHEMA))
+    img0 = _argmax_image(
+        _exact(confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5}).label(frame, SCHEMA)
+    )
     assert len(set(img0[road].tolist())) == 1
 
 
@@ -416,14 +433,29 @@ def test_exact_turns_every_noise_knob_off_and_keeps_the_seed() -> None:
     assert set(cfg.match_detection.values()) == set(cfg.match_confidence.values()) == {1.0}
 
 
-def _dist(true_c: int, pred_c: int, c: int, *, partners: dict[int, list[int]] | None = None, seed: int = 0,
-          alpha: float = 1.0) -> np.ndarray:
+def _dist(
+    true_c: int,
+    pred_c: int,
+    c: int,
+    *,
+    partners: dict[int, list[int]] | None = None,
+    seed: int = 0,
+    alpha: float = 1.0,
+) -> np.ndarray:
     from leap_core.labelers.simulated import _distribution
 
-    cfg = dataclasses.replace(SimulatedLabelerConfig(), peak_prob=(0.6, 0.6), partner_share=0.5,
-                              dirichlet_alpha=alpha)
-    return _distribution(true_c, pred_c, rival=None, partners=partners or {}, num_classes=c, cfg=cfg,
-                         rng=np.random.default_rng(seed))
+    cfg = dataclasses.replace(
+        SimulatedLabelerConfig(), peak_prob=(0.6, 0.6), partner_share=0.5, dirichlet_alpha=alpha
+    )
+    return _distribution(
+        true_c,
+        pred_c,
+        rival=None,
+        partners=partners or {},
+        num_classes=c,
+        cfg=cfg,
+        rng=np.random.default_rng(seed),
+    )
 
 
 def test_distribution_peak_partner_share_and_rest_by_hand() -> None:
@@ -451,8 +483,13 @@ def test_distribution_peak_partner_share_and_rest_by_hand() -> None:
 def test_directed_confusion_targets_decide_the_confused_class_by_weight(seq) -> None:
     # Every car region confused (probability 1), towards sidewalk with all but a millionth of the weight and
     # no confusion pairs: the directed table, and its weights, not a uniform pick, decide the class.
-    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), confusion_prob=1.0, peak_prob=(0.8, 0.8),
-                              confusion_pairs=(), confusion_targets={"car": {"sidewalk": 1.0, "road": 1e-6}})
+    cfg = dataclasses.replace(
+        SimulatedLabelerConfig.exact(),
+        confusion_prob=1.0,
+        peak_prob=(0.8, 0.8),
+        confusion_pairs=(),
+        confusion_targets={"car": {"sidewalk": 1.0, "road": 1e-6}},
+    )
     frame = seq.frame(0)
     true = SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA).probs.argmax(axis=1)
     assert (true == CAR).sum() >= 2
@@ -493,9 +530,14 @@ def test_over_large_stuff_masks_are_dilated_by_one_to_stuff_grow_px(seq) -> None
 def test_tiled_stuff_moves_its_confused_tiles_to_the_weighted_target(seq) -> None:
     # Every tile of a road region confused (probability 1): all of it goes to the confusion target, chosen by
     # weight (sidewalk, all but a millionth) for every seed, not uniformly among the targets.
-    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), confusion_prob=1.0, peak_prob=(0.8, 0.8),
-                              confusion_pairs=(), stuff_tile_px=8,
-                              confusion_targets={"road": {"sidewalk": 1.0, "terrain": 1e-6}})
+    cfg = dataclasses.replace(
+        SimulatedLabelerConfig.exact(),
+        confusion_prob=1.0,
+        peak_prob=(0.8, 0.8),
+        confusion_pairs=(),
+        stuff_tile_px=8,
+        confusion_targets={"road": {"sidewalk": 1.0, "terrain": 1e-6}},
+    )
     frame = seq.frame(0)
     true = _argmax_image(SimulatedLabeler(SimulatedLabelerConfig.exact()).label(frame, SCHEMA))
     assert (true == ROAD).any()
@@ -564,8 +606,9 @@ def test_one_pixel_tiles_confuse_single_pixels(seq) -> None:
     frame = seq.frame(0)
     road = _argmax_image(_exact().label(frame, SCHEMA)) == ROAD
     for seed in range(3):
-        lab = _exact(seed=seed, confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5},
-                     stuff_tile_px=1)
+        lab = _exact(
+            seed=seed, confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5}, stuff_tile_px=1
+        )
         got = _argmax_image(lab.label(frame, SCHEMA))[road]
         share = float((got == SIDEWALK).mean())
         assert 0.3 < share < 0.7 and ((got == SIDEWALK) | (got == ROAD)).all(), (seed, share)
@@ -633,8 +676,11 @@ def test_merge_partners_of_objects_stacked_vertically() -> None:
     # stuff region 3 px to their right is never a partner and has none. Boxes are taller than wide, so
     # height and width cannot be swapped unnoticed.
     tall = np.ones((10, 4), bool)
-    regions = [_Region(8, True, 1, 0, 0, tall), _Region(7, True, 2, 12, 0, tall),
-               _Region(10, False, 0, 0, 7, np.ones((22, 3), bool))]
+    regions = [
+        _Region(8, True, 1, 0, 0, tall),
+        _Region(7, True, 2, 12, 0, tall),
+        _Region(10, False, 0, 0, 7, np.ones((22, 3), bool)),
+    ]
     cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), pair_merge_prob=0.5, pair_merge_gap_px=2)
     assert _merge_partners(regions, cfg).tolist() == [1, 0, -1]
     assert _merge_partners(regions, dataclasses.replace(cfg, pair_merge_gap_px=1)).tolist() == [-1, -1, -1]
@@ -669,11 +715,14 @@ def test_prompt_matches_order_and_negative_prompt_ties() -> None:
     from leap_core.schema import ClassDef, Schema
 
     sedan = 1  # leap_core/synth/names.py: "sedan", synonyms "car", "automobile", hypernym "vehicle"
-    schema = Schema(name="m", classes=(
-        ClassDef("veh", (1, 2, 3), ("vehicle",), 10, (10,), "vehicle"),
-        ClassDef("exact", (1, 2, 3), ("sedan",), 11, (11,), "vehicle"),
-        ClassDef("syn", (1, 2, 3), ("car",), 12, (12,), "vehicle", negative_prompts=("automobile",)),
-    ))
+    schema = Schema(
+        name="m",
+        classes=(
+            ClassDef("veh", (1, 2, 3), ("vehicle",), 10, (10,), "vehicle"),
+            ClassDef("exact", (1, 2, 3), ("sedan",), 11, (11,), "vehicle"),
+            ClassDef("syn", (1, 2, 3), ("car",), 12, (12,), "vehicle", negative_prompts=("automobile",)),
+        ),
+    )
     # Strongest first (exact, synonym, hypernym), not in class order; a negative prompt as strong as the
     # positive one does not rule the class out (only a strictly stronger one does).
     assert prompt_matches(schema)[sedan] == [(1, 0), (2, 1), (0, 3)]
@@ -752,8 +801,12 @@ def _confused_cells(lab: SimulatedLabeler, seq) -> list[dict[int, bool]]:
 
 @pytest.mark.parametrize("stratified", [True, False])
 def test_world_tiles_confuse_the_same_patch_in_every_frame(tmp_path: Path, stratified: bool) -> None:
-    kw = dict(confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5}, stuff_tile_px=8,
-              stratified_draws=stratified)
+    kw = dict(
+        confusion_pairs=(("road", "sidewalk"),),
+        class_confusion={"road": 0.5},
+        stuff_tile_px=8,
+        stratified_draws=stratified,
+    )
     seq = _world_sequence(tmp_path)
     world = _confused_cells(_exact(stuff_world_tile=1, **kw), seq)
     decided: dict[int, bool] = {}
@@ -776,8 +829,12 @@ def test_world_tiles_confuse_the_same_patch_in_every_frame(tmp_path: Path, strat
 
 
 def test_world_tiles_need_the_cell_images_and_image_tiles(tmp_path: Path, seq) -> None:
-    lab = _exact(confusion_pairs=(("road", "sidewalk"),), class_confusion={"road": 0.5}, stuff_tile_px=8,
-                 stuff_world_tile=2)
+    lab = _exact(
+        confusion_pairs=(("road", "sidewalk"),),
+        class_confusion={"road": 0.5},
+        stuff_tile_px=8,
+        stuff_world_tile=2,
+    )
     with pytest.raises(LeapError, match=r"gt2d/cell: missing"):
         lab.label(seq.frame(0), SCHEMA)
     with pytest.raises(ConfigError) as err:

@@ -84,8 +84,9 @@ def test_smooth_grid_by_hand() -> None:
     p = grid.probs()
     a, b = 1 / (1 + math.exp(-0.5)), 1 / (1 + math.exp(-2.0))
     out = smooth_grid(grid, SmoothingConfig(k=2, max_distance=None))
-    np.testing.assert_allclose(out, [a * p[0] + (1 - a) * p[1], a * p[1] + (1 - a) * p[0],
-                                     b * p[2] + (1 - b) * p[1]], rtol=1e-6)
+    np.testing.assert_allclose(
+        out, [a * p[0] + (1 - a) * p[1], a * p[1] + (1 - a) * p[0], b * p[2] + (1 - b) * p[1]], rtol=1e-6
+    )
     bounded = smooth_grid(grid, SmoothingConfig(k=2))
     np.testing.assert_allclose(bounded[:2], out[:2], rtol=1e-6)
     np.testing.assert_allclose(bounded[2], p[2], rtol=1e-6)
@@ -180,8 +181,11 @@ def test_knn_smooth_shape_checks_and_empty_input() -> None:
     assert out.shape == (0, 4) and out.dtype == np.float32
     with pytest.raises(ValueError, match="centres"):  # probs for another number of voxels
         knn_smooth(np.zeros((3, 3)), np.zeros((2, 4)))
-    for centres, probs in ((np.zeros(3), np.zeros((3, 4))), (np.zeros((3, 2)), np.zeros((3, 4))),
-                           (np.zeros((3, 3)), np.zeros(3))):
+    for centres, probs in (
+        (np.zeros(3), np.zeros((3, 4))),
+        (np.zeros((3, 2)), np.zeros((3, 4))),
+        (np.zeros((3, 3)), np.zeros(3)),
+    ):
         with pytest.raises(ValueError, match=r"centres \(V, 3\)"):
             knn_smooth(centres, probs)
 
@@ -189,6 +193,7 @@ def test_knn_smooth_shape_checks_and_empty_input() -> None:
 def test_knn_smooth_blocks_on_its_own() -> None:
     """The chunked form checks its centres and rounds them to float32 itself (the 0.6 m bound example of
     the float32 test), and smooths a single voxel into itself."""
+
     def rows(r: np.ndarray) -> np.ndarray:
         return np.eye(2, dtype=np.float32)[r]
 

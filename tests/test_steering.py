@@ -96,8 +96,10 @@ def test_raw_id_counts_use_the_low_16_bits() -> None:
     assert raw_id_counts(labels) == {0: 1, 10: 2, 300: 2}
 
 
-@pytest.mark.parametrize(("total", "k", "expected"), [(10, 4, [0, 3, 6, 9]), (3, 5, [0, 1, 2]), (5, 1, [0]),
-                                                      (0, 3, []), (7, 2, [0, 6])])
+@pytest.mark.parametrize(
+    ("total", "k", "expected"),
+    [(10, 4, [0, 3, 6, 9]), (3, 5, [0, 1, 2]), (5, 1, [0]), (0, 3, []), (7, 2, [0, 6])],
+)
 def test_sample_indices(total: int, k: int, expected: list[int]) -> None:
     assert sample_indices(total, k) == expected
 
@@ -136,22 +138,36 @@ def test_setting_scopes_come_from_the_labeler_and_stage_records() -> None:
 
 # ------------------------------------------------------------------------------------- run changes
 def _snapshot(schema, cfg: PipelineConfig, frames=None) -> dict:
-    return {"dataset": "/d/seq", "frames": frames, "schema": schema.to_dict(),
-            "pipeline": config_to_dict(cfg)}
+    return {
+        "dataset": "/d/seq",
+        "frames": frames,
+        "schema": schema.to_dict(),
+        "pipeline": config_to_dict(cfg),
+    }
 
 
 def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     schema = builtin_schema("semantickitti")
     car = schema.classes[0]
-    edited = schema.with_classes([
-        dataclasses.replace(car, prompts=(*car.prompts[:-1], "sedan")),
-        *schema.classes[1:],
-        ClassDef(name="traffic-cone", color=(255, 120, 0), prompts=("traffic cone",), export_id=300,
-                 gt_ids=(300,)),
-    ])
+    edited = schema.with_classes(
+        [
+            dataclasses.replace(car, prompts=(*car.prompts[:-1], "sedan")),
+            *schema.classes[1:],
+            ClassDef(
+                name="traffic-cone",
+                color=(255, 120, 0),
+                prompts=("traffic cone",),
+                export_id=300,
+                gt_ids=(300,),
+            ),
+        ]
+    )
     old = _snapshot(schema, PipelineConfig())
-    new = _snapshot(edited, config_from_dict({"smoothing": {"k": 4}, "grounded_sam": {"box_threshold": 0.3}}),
-                    frames=[0, 3])
+    new = _snapshot(
+        edited,
+        config_from_dict({"smoothing": {"k": 4}, "grounded_sam": {"box_threshold": 0.3}}),
+        frames=[0, 3],
+    )
     texts = {c.text: c for c in run_changes(old, new)}
     assert "frames: all → 0..2" in texts
     assert 'prompts of car: + "sedan", − "jeep"' in texts
@@ -185,9 +201,18 @@ def finished(street: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _cone_schema():
     schema = builtin_schema("semantickitti")
-    return schema.with_classes([*schema.classes, ClassDef(name="traffic-cone", color=(255, 120, 0),
-                                                          prompts=("traffic cone",), export_id=300,
-                                                          gt_ids=(300,))])
+    return schema.with_classes(
+        [
+            *schema.classes,
+            ClassDef(
+                name="traffic-cone",
+                color=(255, 120, 0),
+                prompts=("traffic cone",),
+                export_id=300,
+                gt_ids=(300,),
+            ),
+        ]
+    )
 
 
 VARIANTS = {
@@ -216,8 +241,12 @@ def test_the_preview_agrees_with_the_runner(
     fps = stage_fingerprints(street, schema, cfg, fresh)
     assert fps == stage_fingerprints(street, schema, cfg, seeded)
     previous = read_state(RunLayout(finished))
-    plan = {p.name: p for p in recompute_plan(cfg, fps, previous, changed_sections(
-        config_to_dict(PipelineConfig()), config_to_dict(cfg)))}
+    plan = {
+        p.name: p
+        for p in recompute_plan(
+            cfg, fps, previous, changed_sections(config_to_dict(PipelineConfig()), config_to_dict(cfg))
+        )
+    }
     truth = plan_stages(street, schema, cfg, seeded)
     for stage in STAGE_TABLE:
         if stage.is_enabled(cfg):
@@ -263,8 +292,10 @@ def test_all_points_labeled_share(finished: Path, street: Path) -> None:
     n = metrics["n_points"]
     assert share["voxel"] == pytest.approx(metrics["labeled_points"]["voxel"] / n)
     # What the exported .label files label is that share of the final row.
-    labeled = sum(int((np.fromfile(p, np.uint32) & 0xFFFF).astype(bool).sum())
-                  for p in sorted(RunLayout(finished).export_dir.glob("*.label")))
+    labeled = sum(
+        int((np.fromfile(p, np.uint32) & 0xFFFF).astype(bool).sum())
+        for p in sorted(RunLayout(finished).export_dir.glob("*.label"))
+    )
     assert labeled / n == pytest.approx(share["voxel"])
     older = {k: v for k, v in metrics.items() if k != "labeled_share_all_points"}
     assert all_points_labeled_share(older) == pytest.approx(share)

@@ -19,8 +19,9 @@ def _module() -> ModuleType:
     return load_script("benchmarks/table1.py")
 
 
-def _metrics(point: float, voxel: float, x1: float | None, x2: float | None = None,
-             protocol: str = "paper") -> dict[str, Any]:
+def _metrics(
+    point: float, voxel: float, x1: float | None, x2: float | None = None, protocol: str = "paper"
+) -> dict[str, Any]:
     table: dict[str, Any] = {"point": {"miou": point}, "voxel": {"miou": voxel}}
     if x1 is not None:
         table["+3D-CN x1"] = {"miou": x1}
@@ -54,18 +55,23 @@ def test_same_points_gain_from_the_common_table_by_hand() -> None:
     names, cats = ["a", "b"], ["x", "x"]
     # voxel: a 8/10 right, b 5/6 right; x1: a all right, b 3/6 right.
     voxel = _conf([[8, 2], [1, 5]])  # IoU a 8/11, b 5/8
-    x1 = _conf([[10, 0], [3, 3]])    # IoU a 10/13, b 3/6
+    x1 = _conf([[10, 0], [3, 3]])  # IoU a 10/13, b 3/6
     m = _metrics(0.5, 0.6, 0.7, protocol="camera")
-    m.update(class_names=names, categories=cats,
-             common={"voxel": {"confusion": voxel}, "+3D-CN x1": {"confusion": x1}})
+    m.update(
+        class_names=names,
+        categories=cats,
+        common={"voxel": {"confusion": voxel}, "+3D-CN x1": {"confusion": x1}},
+    )
     same = t1.same_points(m, "camera")
     assert same["voxel"] == pytest.approx(100 * (8 / 11 + 5 / 8) / 2)
     assert same["+3D-CN x1"] == pytest.approx(100 * (10 / 13 + 3 / 6) / 2)
     r = t1.seed_row(0, m, "camera")
     assert r.same1 == pytest.approx(same["+3D-CN x1"] - same["voxel"]) and r.gain1 == pytest.approx(10.0)
     # Without a common table (a file older than it): no same-points gain.
-    assert t1.same_points(_metrics(0.5, 0.6, 0.7), "paper") == {} and t1.seed_row(
-        0, _metrics(0.5, 0.6, 0.7), "paper").same1 is None
+    assert (
+        t1.same_points(_metrics(0.5, 0.6, 0.7), "paper") == {}
+        and t1.seed_row(0, _metrics(0.5, 0.6, 0.7), "paper").same1 is None
+    )
 
 
 def test_same_points_on_the_paper_protocol_merges_first() -> None:
@@ -78,8 +84,11 @@ def test_same_points_on_the_paper_protocol_merges_first() -> None:
     conf[ix("truck")][ix("other-vehicle")] = 4  # other-vehicle after the merge: right
     conf[ix("car")][ix("car")] = 2
     m = _metrics(0.5, 0.6, 0.7)
-    m.update(class_names=schema.names, categories=schema.categories(),
-             common={"voxel": {"confusion": conf}, "+3D-CN x1": {"confusion": conf}})
+    m.update(
+        class_names=schema.names,
+        categories=schema.categories(),
+        common={"voxel": {"confusion": conf}, "+3D-CN x1": {"confusion": conf}},
+    )
     # Merged: car 1.0 and other-vehicle 1.0 (19 classes: truck 0 and other-vehicle 0 would pull it down).
     assert t1.same_points(m, "paper")["voxel"] == pytest.approx(100.0)
     assert t1.same_points(m, "camera")["voxel"] == pytest.approx(100 / 3)
@@ -118,26 +127,35 @@ def test_table_markdown_rows_mean_std_and_paper_figures() -> None:
     t1 = _module()
     street = t1.DOMAINS["street"]
     agri = t1.DOMAINS["agri"]
-    s_rows = [t1.seed_row(s, _metrics(0.434, 0.622, x1, x2), "paper")
-              for s, x1, x2 in ((0, 0.70, 0.72), (1, 0.66, 0.69), (2, 0.68, 0.70))]
-    a_rows = [dataclasses.replace(t1.seed_row(0, _metrics(0.795, 0.888, 0.808, protocol="camera"), "camera"),
-                                  same1=1.5)]
+    s_rows = [
+        t1.seed_row(s, _metrics(0.434, 0.622, x1, x2), "paper")
+        for s, x1, x2 in ((0, 0.70, 0.72), (1, 0.66, 0.69), (2, 0.68, 0.70))
+    ]
+    a_rows = [
+        dataclasses.replace(
+            t1.seed_row(0, _metrics(0.795, 0.888, 0.808, protocol="camera"), "camera"), same1=1.5
+        )
+    ]
     text = t1.table_markdown([(t1.as_run(street), s_rows), (agri, a_rows)])
     lines = text.splitlines()
     assert lines[0].startswith("| domain (protocol) | 3D-CN seed | point | voxel | +3D-CN ×1 | +3D-CN ×2 |")
     assert lines[0].endswith("| gain ×1, same points |") and lines[1].count("---") == 9
-    assert lines[2] == ("| street demo, `paper` labeler preset, 3D-CN fine-tuned from a network trained on "
-                        "street-32's ground truth (3 × 60 scans), `consistency.temperature=0.25` "
-                        "(the paper's 11 merged classes, camera view) "
-                        "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 | n/a |")
+    assert lines[2] == (
+        "| street demo, `paper` labeler preset, 3D-CN fine-tuned from a network trained on "
+        "street-32's ground truth (3 × 60 scans), `consistency.temperature=0.25` "
+        "(the paper's 11 merged classes, camera view) "
+        "| 0 | 43.4 | 62.2 | 70.0 | 72.0 | +7.8 | +9.8 | n/a |"
+    )
     assert lines[3] == "|  | 1 | 43.4 | 62.2 | 66.0 | 69.0 | +3.8 | +6.8 | n/a |"
     assert lines[4] == "|  | 2 | 43.4 | 62.2 | 68.0 | 70.0 | +5.8 | +7.8 | n/a |"
     # mean ± sample std over seeds: x1 68.0 ± 2.0, x2 70.33 ± 1.53, gains 5.8 ± 2.0 and 8.13 ± 1.53
     assert lines[5] == "| | mean | 43.4 | 62.2 | 68.0 ± 2.0 | 70.3 ± 1.5 | +5.8 ± 2.0 | +8.1 ± 1.5 | n/a |"
     assert lines[6] == "| | *paper, SemanticKITTI* | *46.8* | *48.9* | *57.6* | — | *+8.7* | — | — |"
     # One agri seed, one round: no mean line, n/a for x2; its same-points gain from the common table.
-    assert lines[7] == ("| farm drone (agri-uav), `default` labeler preset (7 classes, camera view) "
-                        "| 0 | 79.5 | 88.8 | 80.8 | n/a | -8.0 | n/a | +1.5 |")
+    assert lines[7] == (
+        "| farm drone (agri-uav), `default` labeler preset (7 classes, camera view) "
+        "| 0 | 79.5 | 88.8 | 80.8 | n/a | -8.0 | n/a | +1.5 |"
+    )
     assert lines[8] == "| | *paper, AgriUAV* | *38.0* | *49.7* | *61.5* | — | *+11.8* | — | — |"
     assert len(lines) == 9
     # A domain with no seed measured is left out.
@@ -156,8 +174,12 @@ def test_parse_sets_and_seed_project_keep_the_domain_file_and_add_the_seed(tmp_p
     orig = yaml.safe_load((ROOT / "projects" / "agri_uav.yaml").read_text())
     assert doc["classes"] == orig["classes"]
     assert doc["pipeline"]["grounded_sam"] == orig["pipeline"]["grounded_sam"]
-    assert doc["pipeline"]["consistency"] == {**orig["pipeline"]["consistency"], "class_balance": False,
-                                            "temperature": 1.5, "seed": 2}
+    assert doc["pipeline"]["consistency"] == {
+        **orig["pipeline"]["consistency"],
+        "class_balance": False,
+        "temperature": 1.5,
+        "seed": 2,
+    }
     # The file is a valid project for the CLI's loader, and the seed reaches the 3D-CN's config.
     from leap_core.presets import load_preset
 
@@ -177,7 +199,11 @@ def test_link_base_shares_stage_outputs_but_not_the_runs_own_files(tmp_path: Pat
     run = tmp_path / "seed1"
     t1.link_base(base, run)
     assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
-        "grid.npz", "points", "points/000000.npz", "stages.json"]
+        "grid.npz",
+        "points",
+        "points/000000.npz",
+        "stages.json",
+    ]
     assert (run / "grid.npz").stat().st_ino == (base / "grid.npz").stat().st_ino
     # An existing seed run is left as it is (it resumes).
     (run / "grid.npz").unlink()
@@ -228,11 +254,13 @@ def test_a_domains_own_settings_reach_its_seed_runs_and_its_title(tmp_path: Path
     row = t1.SeedRow(seed=0, point=40.0, voxel=50.0, x1=55.0, x2=None, same1=4.0)
     assert t1.domain_lines(t1.as_run(street), [row])[0].startswith(
         "| street demo, `paper` labeler preset, 3D-CN fine-tuned from a network trained on street-32's "
-        "ground truth (3 × 60 scans), `consistency.temperature=0.25` (")
+        "ground truth (3 × 60 scans), `consistency.temperature=0.25` ("
+    )
     scratch = t1.as_run(street, from_scratch=True)
     assert scratch.source is None and scratch.settings == ("consistency.temperature=1",)
     assert t1.domain_lines(scratch, [row])[0].startswith(
-        "| street demo, `paper` labeler preset, `consistency.temperature=1` (")
+        "| street demo, `paper` labeler preset, `consistency.temperature=1` ("
+    )
     # The source's temperature replaces the domain's; --set replaces both; the farm has no source.
     assert t1.as_run(street).settings == ("consistency.temperature=0.25",)
     assert t1.as_run(street, ["consistency.temperature=0.5"]).settings == ("consistency.temperature=0.5",)

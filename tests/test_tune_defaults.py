@@ -43,8 +43,12 @@ def test_variants_change_one_setting_at_a_time_around_the_centre() -> None:
     base = td.base_config("cpu", 0, {"consistency.temperature": 0.25})
     vs = td.variants(base, ["temperature", "selection_scope"])
     assert [(n, v) for n, v, _, _ in vs] == [
-        ("temperature", "0.25"), ("temperature", "0.5"), ("temperature", "1.0"), ("temperature", "2.0"),
-        ("selection_scope", '"sequence"'), ("selection_scope", '"scan"'),
+        ("temperature", "0.25"),
+        ("temperature", "0.5"),
+        ("temperature", "1.0"),
+        ("temperature", "2.0"),
+        ("selection_scope", '"sequence"'),
+        ("selection_scope", '"scan"'),
     ]
     for name, _, cfg, _ in vs:
         cn = cfg.consistency

@@ -28,8 +28,9 @@ def _morton_reference(x: int, y: int, z: int) -> int:
 
 
 def test_morton_codes_interleave_bits() -> None:
-    ijk = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [2, 0, 0], [3, 5, 6],
-                    [(1 << 21) - 1, 12345, 777777]])
+    ijk = np.array(
+        [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [2, 0, 0], [3, 5, 6], [(1 << 21) - 1, 12345, 777777]]
+    )
     codes = lod.morton3(ijk)
     assert codes.dtype == np.uint64
     assert codes[:5].tolist() == [1, 2, 4, 7, 8]
@@ -57,8 +58,9 @@ def test_blocks_group_the_voxels_of_each_cube() -> None:
     b01 = blocks.of_row[0]
     assert blocks.of_row[1] == b01 and len(set(blocks.of_row.tolist())) == 4
     np.testing.assert_allclose(blocks.mean[b01], [1.0, 1.0, 1.0])  # mean of (0.5,0.5,0.5) and (1.5,1.5,1.5)
-    np.testing.assert_allclose(blocks.lower[blocks.of_row[[0, 2, 3, 4]]], [[0, 0, 0], [2, 0, 0], [2, 2, 2],
-                                                                            [0, 0, 4]])
+    np.testing.assert_allclose(
+        blocks.lower[blocks.of_row[[0, 2, 3, 4]]], [[0, 0, 0], [2, 0, 0], [2, 2, 2], [0, 0, 4]]
+    )
     assert index.blocks(1) is blocks  # built once
     assert index.blocks(3).count == 1  # one 8-voxel cube holds them all
     assert lod.block_counts(index.codes, 1) == 4 and lod.block_counts(index.codes, 0) == 5
@@ -118,8 +120,14 @@ def test_update_tables_equals_a_recount(threshold: float) -> None:
     label2[rows] = rng.integers(-1, c, rows.size)
     score2[rows] = rng.random(rows.size)
     keep2 = score2 >= threshold
-    lod.update_tables(hist, ssum, of_row[rows], c, (label[rows], score[rows], keep[rows]),
-                      (label2[rows], score2[rows], keep2[rows]))
+    lod.update_tables(
+        hist,
+        ssum,
+        of_row[rows],
+        c,
+        (label[rows], score[rows], keep[rows]),
+        (label2[rows], score2[rows], keep2[rows]),
+    )
     want_h, want_s = lod.block_tables(of_row, nb, label2, c, keep=keep2, score=score2)
     np.testing.assert_array_equal(hist, want_h)
     np.testing.assert_allclose(ssum, want_s, atol=1e-5)
@@ -169,11 +177,13 @@ def test_sorted_tables_count_what_block_tables_count_and_follow_new_arrays() -> 
     score = rng.random(keys.size).astype(np.float32)
     for lab, sc in ((label, score), (label, score), ((label + 1) % 3, score), (label, score[::-1].copy())):
         for thr in (0.0, 0.3, 0.9):
-            want_h, want_s = lod.block_tables(blocks.of_row, blocks.count, lab, 3,
-                                              keep=sc >= np.float32(thr) if thr > 0 else None, score=sc)
+            want_h, want_s = lod.block_tables(
+                blocks.of_row, blocks.count, lab, 3, keep=sc >= np.float32(thr) if thr > 0 else None, score=sc
+            )
             for chunk in (1 << 16, 7, 1):  # one chunk, several, one block each
-                got_h, got_s = index.sorted_tables(blocks, lab, 3, threshold=thr, score=sc,
-                                                   chunk_blocks=chunk)
+                got_h, got_s = index.sorted_tables(
+                    blocks, lab, 3, threshold=thr, score=sc, chunk_blocks=chunk
+                )
                 assert got_s is not None and want_s is not None
                 np.testing.assert_array_equal(got_h, want_h)
                 np.testing.assert_allclose(got_s, want_s, rtol=1e-5)
@@ -188,9 +198,11 @@ def test_plan_respects_the_budget_and_keeps_every_voxel_near_the_focus() -> None
     keys, label, vs = _street()
     centres = key_centres(keys, vs)
     index = lod.build_index(centres, vs)
-    for budget, radius, focus, room in ((8000, 10.0, (20.0, 12.0, 0.0), True),
-                                        (14000, 25.0, (150.0, 2.0, 0.0), True),
-                                        (1500, 60.0, (80.0, 12.0, 0.0), False)):
+    for budget, radius, focus, room in (
+        (8000, 10.0, (20.0, 12.0, 0.0), True),
+        (14000, 25.0, (150.0, 2.0, 0.0), True),
+        (1500, 60.0, (80.0, 12.0, 0.0), False),
+    ):
         blocks = index.blocks(index.overview_level(budget, 0.5))
         assert blocks.count <= budget // 2
         hist, _ = lod.block_tables(blocks.of_row, blocks.count, label, 3)
@@ -240,11 +252,22 @@ def test_culled_selection_equals_the_full_selection(depth_mode: str) -> None:
         mask = sel.polygon_mask(np.stack([c[0] + r * np.cos(t), c[1] + r * np.sin(t)], 1), 320, 200)
         rows = np.flatnonzero(visible)
         filt = eligible[rows] if trial % 2 else None
-        full = rows[sel.select_points(centres[rows], camera, mask, depth_mode=depth_mode, distance=0.5,
-                                      splat_size=vs, eligible=filt)]
-        got = lod.select_culled(index, cubes, camera, mask, visible=visible,
-                                eligible=eligible if trial % 2 else None, depth_mode=depth_mode,
-                                distance=0.5, splat_size=vs)
+        full = rows[
+            sel.select_points(
+                centres[rows], camera, mask, depth_mode=depth_mode, distance=0.5, splat_size=vs, eligible=filt
+            )
+        ]
+        got = lod.select_culled(
+            index,
+            cubes,
+            camera,
+            mask,
+            visible=visible,
+            eligible=eligible if trial % 2 else None,
+            depth_mode=depth_mode,
+            distance=0.5,
+            splat_size=vs,
+        )
         sizes.append(full.size)
         np.testing.assert_array_equal(got, full)
     assert sum(n > 0 for n in sizes) >= 4  # the lassos mostly catch something
@@ -270,8 +293,9 @@ def test_culled_selection_keeps_the_occluders_beside_the_lasso() -> None:
     mask = sel.rect_mask((0.3, 0.3), (0.51, 0.7), 400, 400)
     visible = np.ones(centres.shape[0], bool)
     full = sel.select_points(centres, camera, mask, depth_mode="front", distance=0.5, splat_size=vs)
-    got = lod.select_culled(index, index.blocks(0), camera, mask, visible=visible, depth_mode="front",
-                            distance=0.5, splat_size=vs)
+    got = lod.select_culled(
+        index, index.blocks(0), camera, mask, visible=visible, depth_mode="front", distance=0.5, splat_size=vs
+    )
     in_rect = sel.select_points(centres, camera, mask, depth_mode="through")
     assert 0 < full.sum() < in_rect.sum()  # the platform hides some of the ground the lasso covers
     np.testing.assert_array_equal(got, np.flatnonzero(full))
@@ -355,8 +379,14 @@ def big_store(tmp_path, make_tiny_sequence):
     probs = np.full((keys.size, 3), 0.1, np.float32)
     probs[np.arange(keys.size), label] = 0.8
     with open_db(settings.database) as db:
-        project = crud.create_project(db, name="street", dataset_kind="folder", dataset_path=str(seq.root),
-                                      schema=SCHEMA3, pipeline={"fusion": {"voxel_size": vs}})
+        project = crud.create_project(
+            db,
+            name="street",
+            dataset_kind="folder",
+            dataset_path=str(seq.root),
+            schema=SCHEMA3,
+            pipeline={"fusion": {"voxel_size": vs}},
+        )
         params = {"schema": SCHEMA3, "dataset": str(seq.root)}
         run = crud.create_run(db, project_id=project["id"], params=params, runs_dir=settings.runs_dir)
         crud.update_run(db, run["id"], status="done")
@@ -449,16 +479,22 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         cached = session._lod_tables
         assert cached is not None
         blocks = cached[0][0]
-        want_h, want_s = lod.block_tables(blocks.of_row, blocks.count, session.label, 3,
-                                          keep=session.conf >= 0.9, score=session.conf)
+        want_h, want_s = lod.block_tables(
+            blocks.of_row, blocks.count, session.label, 3, keep=session.conf >= 0.9, score=session.conf
+        )
         np.testing.assert_array_equal(cached[1], want_h)
         np.testing.assert_allclose(cached[2], want_s, atol=1e-3)
         # With the overview drawn (threshold 0), a small correction recolours only the blocks it touched:
         # the kept overview colours are a recount's.
         session.set_state(threshold=0.0)
         assert session.wait_drawn()
-        assert 0 < session.select_rect(beside + np.array([-8.0, 0, 0]), down, fov_small, 1.0, (0.0, 0.0),
-                                       (1.0, 1.0)) < keys.size // 20
+        assert (
+            0
+            < session.select_rect(
+                beside + np.array([-8.0, 0, 0]), down, fov_small, 1.0, (0.0, 0.0), (1.0, 1.0)
+            )
+            < keys.size // 20
+        )
         session.assign_selection("road")
         assert session.wait_drawn()
         tables, kept = session._lod_tables, session._lod_colors
@@ -489,7 +525,8 @@ def test_small_map_is_drawn_exactly(big_store) -> None:
         assert session.scene.voxels.count == keys.size and session.scene.overview.handle is None
         rows, colors = session.compute_view()
         np.testing.assert_array_equal(session.scene.voxels.handle.points, session.grid.centres[rows])
-        np.testing.assert_array_equal(colors, vl.class_colors(label, np.array(
-            [c["color"] for c in SCHEMA3["classes"]], np.uint8)))
+        np.testing.assert_array_equal(
+            colors, vl.class_colors(label, np.array([c["color"] for c in SCHEMA3["classes"]], np.uint8))
+        )
     finally:
         session.close()

@@ -288,8 +288,12 @@ def test_review_grid_errors_name_the_file(tmp_path) -> None:
     atomic_save_npz(tmp_path / "grid_smooth.npz", keys=unsorted_keys, probs=np.ones((2, 2), np.float16))
     with pytest.raises(DatasetError, match=r"grid_smooth\.npz: no voxel_size"):
         ReviewGrid.load(tmp_path)
-    atomic_save_npz(tmp_path / "grid_smooth.npz", keys=unsorted_keys, probs=np.ones((2, 2), np.float16),
-                    voxel_size=np.float64(0.2))
+    atomic_save_npz(
+        tmp_path / "grid_smooth.npz",
+        keys=unsorted_keys,
+        probs=np.ones((2, 2), np.float16),
+        voxel_size=np.float64(0.2),
+    )
     with pytest.raises(DatasetError, match="not sorted"):
         ReviewGrid.load(tmp_path)
     (tmp_path / "grid_smooth.npz").write_bytes(b"junk")
@@ -367,8 +371,9 @@ def test_scene_updates_handles_in_place_and_frees_its_port() -> None:
             scene.voxels.set_colors(cols)
         with pytest.raises(ValueError, match="must both be"):
             scene.voxels.set(pts, cols[:1])
-        scene.camera.set(position=(0, 0, 0), wxyz=(1, 0, 0, 0), fov_y=1.0, aspect=2.0,
-                         image=np.zeros((4, 8, 3), np.uint8))
+        scene.camera.set(
+            position=(0, 0, 0), wxyz=(1, 0, 0, 0), fov_y=1.0, aspect=2.0, image=np.zeros((4, 8, 3), np.uint8)
+        )
         frustum = scene.camera.handle
         scene.camera.set(position=(1, 0, 0), wxyz=(1, 0, 0, 0), fov_y=0.5, aspect=2.0, image=None)
         assert scene.camera.handle is frustum and frustum.fov == 0.5
@@ -428,13 +433,19 @@ def review_store(tmp_path, make_tiny_sequence):
     probs[np.arange(keys.size), (cls + 1) % 3] = 1.0 - conf
     with open_db(settings.database) as db:
         project = crud.create_project(
-            db, name="tiny <b>", dataset_kind="folder", dataset_path=str(seq.root), schema=SCHEMA3,
+            db,
+            name="tiny <b>",
+            dataset_kind="folder",
+            dataset_path=str(seq.root),
+            schema=SCHEMA3,
             pipeline={"fusion": {"voxel_size": 0.5}},
         )
         # The dataset snapshot every run the app queues has: the viewer shows a run only over the
         # sequences it labeled (app.jobs.multi.covered_sequences).
         run = crud.create_run(
-            db, project_id=project["id"], params={"schema": SCHEMA3, "dataset": str(seq.root)},
+            db,
+            project_id=project["id"],
+            params={"schema": SCHEMA3, "dataset": str(seq.root)},
             runs_dir=settings.runs_dir,
         )
         crud.update_run(db, run["id"], status="done")
@@ -445,8 +456,12 @@ def review_store(tmp_path, make_tiny_sequence):
         rows = np.searchsorted(keys, voxel_keys(world[i], 0.5))
         label = cls[rows].astype(np.int16)
         point_label = np.where(np.arange(60) % 3 == 0, (label + 1) % 3, label).astype(np.int16)
-        atomic_save_npz(run_dir / "points" / f"{fid}.npz", label=label, point_label=point_label,
-                        conf=conf[rows].astype(np.float16))
+        atomic_save_npz(
+            run_dir / "points" / f"{fid}.npz",
+            label=label,
+            point_label=point_label,
+            conf=conf[rows].astype(np.float16),
+        )
     return settings, project["id"], run["id"], keys, cls
 
 
@@ -581,14 +596,18 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
             assert len(first) > keys.size * 15
         client.cookies.clear()
         # The handshake itself is answered 403.
-        with pytest.raises(WebSocketDenialResponse) as refused, client.websocket_connect(
-            ws_url, subprotocols=[proto]
-        ) as ws:
+        with (
+            pytest.raises(WebSocketDenialResponse) as refused,
+            client.websocket_connect(ws_url, subprotocols=[proto]) as ws,
+        ):
             ws.receive_bytes()
         assert refused.value.status_code == 403
-        with pytest.raises(WebSocketDisconnect) as cross_site, client.websocket_connect(
-            ws_url + f"?token={token}", subprotocols=[proto], headers={"origin": "http://evil.example"}
-        ) as ws:
+        with (
+            pytest.raises(WebSocketDisconnect) as cross_site,
+            client.websocket_connect(
+                ws_url + f"?token={token}", subprotocols=[proto], headers={"origin": "http://evil.example"}
+            ) as ws,
+        ):
             ws.receive_bytes()
         assert cross_site.value.code == 1008
         from app import crud
@@ -701,9 +720,13 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
             (corr,) = crud.list_corrections(db, pid)
             stored = crud.list_review_marks(db, pid)[regions[0].id]
         np.testing.assert_array_equal(corr.keys, keys[regions[0].rows])
-        assert stored.signature == again.signatures[0] != review.region_signatures(
-            again.grid.centres, again.grid.keys, again.grid.label, [regions[0].cell], 2.0
-        )[0]
+        assert (
+            stored.signature
+            == again.signatures[0]
+            != review.region_signatures(
+                again.grid.centres, again.grid.keys, again.grid.label, [regions[0].cell], 2.0
+            )[0]
+        )
         # Re-ranked: the relabelled voxels are certain now; if the cell still ranks, it stays accepted.
         ranked = [r.id for r in again.build_queue("confidence")]
         if regions[0].id in ranked:

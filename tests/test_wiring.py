@@ -46,8 +46,14 @@ from leap_core.run_layout import RunLayout, load_corrections, save_corrections
 from leap_core.schema import Schema, builtin_schema
 from leap_core.smoothing import SmoothedGrid, knn_smooth
 
-TINY_3DCN = {"enabled": True, "iterations": 1, "points_per_scan": 1024, "num_threads": 1, "min_steps": 0,
-             "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+TINY_3DCN = {
+    "enabled": True,
+    "iterations": 1,
+    "points_per_scan": 1024,
+    "num_threads": 1,
+    "min_steps": 0,
+    "backbone": {"channels": 8, "layers": 1, "knn": 4},
+}
 
 
 class Run:
@@ -69,8 +75,9 @@ class Run:
         for i in self.frames:
             frame = self.seq.frame(i)
             painted = Painted.load(self.lay.observation(frame.frame_id))
-            keys = voxel_keys(world_points(frame.points[painted.point_idx], frame.pose),
-                              self.cfg.fusion.voxel_size)
+            keys = voxel_keys(
+                world_points(frame.points[painted.point_idx], frame.pose), self.cfg.fusion.voxel_size
+            )
             out.append((painted, keys))
         return out
 
@@ -90,12 +97,20 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     f0 = seq.frame(0)
     keys = np.unique(voxel_keys(world_points(f0.points, f0.pose), 0.2))[::97]
     trunk, pole = schema.index("trunk"), schema.index("pole")
-    save_corrections(run_dir / "corrections.npz", np.concatenate([keys, keys[:1]]),
-                     np.concatenate([np.full(len(keys), trunk), [pole]]))
+    save_corrections(
+        run_dir / "corrections.npz",
+        np.concatenate([keys, keys[:1]]),
+        np.concatenate([np.full(len(keys), trunk), [pole]]),
+    )
     # Non-default settings in every section a stage reads: a stage that used a default config would differ.
-    cfg = config_from_dict({"consistency": TINY_3DCN, "smoothing": {"k": 6},
-                            "fusion": {"prob_floor": 0.002, "logp_clip": 12.0},
-                            "projection": {"cluster_gap": 0.8, "min_depth": 4.0}})
+    cfg = config_from_dict(
+        {
+            "consistency": TINY_3DCN,
+            "smoothing": {"k": 6},
+            "fusion": {"prob_floor": 0.002, "logp_clip": 12.0},
+            "projection": {"cluster_gap": 0.8, "min_depth": 4.0},
+        }
+    )
     assert cfg.smoothing != PipelineConfig().smoothing
     calls: list[tuple[str, int, int]] = []
     result = run_pipeline(street, schema, cfg, run_dir, progress=lambda *a: calls.append(a))
@@ -141,16 +156,18 @@ def test_observations_are_projection_depth_clustering_and_painting(run: Run) -> 
     for i in run.frames:
         frame = run.seq.frame(i)
         soft = SoftMasks.load(run.lay.labels2d(frame.frame_id))
-        proj = project_points(frame.points, run.seq.calib.lidar_to_image, soft.height, soft.width,
-                              pcfg.min_depth)
+        proj = project_points(
+            frame.points, run.seq.calib.lidar_to_image, soft.height, soft.width, pcfg.min_depth
+        )
         expected = paint(soft, proj, pcfg)
         stored = Painted.load(run.lay.observation(frame.frame_id))
         np.testing.assert_array_equal(stored.point_idx, expected.point_idx)
         np.testing.assert_array_equal(stored.rows, expected.rows)
         np.testing.assert_array_equal(stored.table, expected.table)
         plain = paint(soft, proj, dataclasses.replace(pcfg, depth_clustering=False))
-        unclustered_differs += int(len(plain.point_idx) != len(expected.point_idx)
-                                   or not np.array_equal(plain.rows, expected.rows))
+        unclustered_differs += int(
+            len(plain.point_idx) != len(expected.point_idx) or not np.array_equal(plain.rows, expected.rows)
+        )
     assert unclustered_differs > 0  # guard: clustering changes the painting of this street
 
 
@@ -158,8 +175,9 @@ def test_fused_grid_is_fusion_of_the_observations_then_corrections(run: Run) -> 
     """grid.npz = apply_overrides(fuse(every stored observation), corrections) with the run's config; the
     last correction of a voxel replaces earlier ones (an erase, -1, then adds nothing)."""
     fcfg = run.cfg.fusion
-    batches = [Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor))
-               for p, keys in run.observations()]
+    batches = [
+        Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor)) for p, keys in run.observations()
+    ]
     keys, cls = last_per_key(*run.corrections())
     keys, cls = keys[cls >= 0], cls[cls >= 0]
     expected = apply_overrides(fuse(batches, run.c, fcfg), keys, cls, run.cfg.correction_strength, fcfg)
@@ -209,8 +227,16 @@ def test_3dcn_grid_is_the_fused_grid_plus_network_evidence(run: Run) -> None:
     # The margin applies to the new voxels inside the camera view; some lie outside it here.
     in_view_keys = np.unique(np.concatenate(in_view))
     assert not np.isin(np.concatenate([k for k, _ in preds]), in_view_keys).all()
-    expected = fuse_back(fused, preds, run.c, cn.temperature, fcfg, cn.network_evidence,
-                         new_voxel_margin=cn.new_voxel_margin, in_view=in_view_keys)
+    expected = fuse_back(
+        fused,
+        preds,
+        run.c,
+        cn.temperature,
+        fcfg,
+        cn.network_evidence,
+        new_voxel_margin=cn.new_voxel_margin,
+        in_view=in_view_keys,
+    )
     stored = VoxelGrid.load(run.lay.grid_3dcn(1))
     np.testing.assert_array_equal(stored.keys, expected.keys)
     np.testing.assert_array_equal(stored.logp, expected.logp)
@@ -287,8 +313,9 @@ def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_p
 
     def link(note: object) -> None:
         lay.joint_3dcn.write_text(note if isinstance(note, str) else json.dumps(note))
-        run_pipeline(run.seq.root, run.schema, run.cfg, lay.run_dir, until="3dcn",
-                     progress=lambda *a: calls.append(a))
+        run_pipeline(
+            run.seq.root, run.schema, run.cfg, lay.run_dir, until="3dcn", progress=lambda *a: calls.append(a)
+        )
 
     link({"fingerprint": "f1", "name": "00", "sequences": ["00"]})
     assert [c for c in calls if c[0] == "3dcn"] == [("3dcn", 1, 1)]
@@ -328,11 +355,19 @@ def test_the_distributed_fusion_ends_with_the_grid_the_fuse_stage_wrote(run: Run
     shutil.copytree(run.lay.run_dir, run_dir)
     RunLayout(run_dir).grid.unlink()
     calls: list[tuple[str, int, int]] = []
-    ctx = _context(run.seq.root, run.schema, run.cfg, run_dir, progress=lambda *a: calls.append(a),
-                   frames=None, runtime=None)
+    ctx = _context(
+        run.seq.root,
+        run.schema,
+        run.cfg,
+        run_dir,
+        progress=lambda *a: calls.append(a),
+        frames=None,
+        runtime=None,
+    )
     fcfg = run.cfg.fusion
-    batches = [Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor))
-               for p, keys in run.observations()]
+    batches = [
+        Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor)) for p, keys in run.observations()
+    ]
     record = finish_fuse(ctx, fuse(batches, run.c, fcfg))
     assert RunLayout(run_dir).grid.read_bytes() == run.lay.grid.read_bytes()
     n_corrected = len(last_per_key(*run.corrections())[0])
@@ -389,14 +424,29 @@ def test_a_round_missing_its_smoothed_grid_is_computed_again(run: Run, tmp_path:
     assert RunLayout(run_dir).grid_3dcn(1).read_bytes() == run.lay.grid_3dcn(1).read_bytes()
 
 
-def _evaluate(run: Run, lay: RunLayout, cfg: PipelineConfig, seq: KittiSequence,
-              progress: Callable[..., None] | None = None) -> dict[str, object]:
+def _evaluate(
+    run: Run,
+    lay: RunLayout,
+    cfg: PipelineConfig,
+    seq: KittiSequence,
+    progress: Callable[..., None] | None = None,
+) -> dict[str, object]:
     """The evaluate stage on run folder ``lay`` (the stage only reads files; no stage table needed)."""
     from leap_core.pipeline.context import Ctx
     from leap_core.pipeline.evaluation import stage_evaluate
 
-    return stage_evaluate(Ctx(seq=seq, schema=run.schema, cfg=cfg, layout=lay, frames=run.frames,
-                              runtime=None, progress=progress, table={}))
+    return stage_evaluate(
+        Ctx(
+            seq=seq,
+            schema=run.schema,
+            cfg=cfg,
+            layout=lay,
+            frames=run.frames,
+            runtime=None,
+            progress=progress,
+            table={},
+        )
+    )
 
 
 def _rewrite_npz(path: Path, change: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]) -> None:
@@ -440,8 +490,12 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
         _, in_view = load_view(lay.observation(frame.frame_id))
         keys = voxel_keys(world_points(frame.points, frame.pose), cfg.fusion.voxel_size)
         with np.load(lay.points(frame.frame_id)) as z:
-            preds = {"point": z["point_label"], "voxel": voxel.labels_at(keys)[0],
-                     "+3D-CN x1": round1.labels_at(keys)[0], "+3D-CN x2": z["label"]}
+            preds = {
+                "point": z["point_label"],
+                "voxel": voxel.labels_at(keys)[0],
+                "+3D-CN x1": round1.labels_at(keys)[0],
+                "+3D-CN x2": z["label"],
+            }
         gt = run.schema.map_gt(frame.labels)
         common = in_view & np.logical_and.reduce([p >= 0 for p in preds.values()])
         for r, pred in preds.items():
@@ -473,8 +527,9 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
             assert all(type(v) is int for line in conf for v in line), "counts are written as integers"
 
 
-def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_size(run: Run,
-                                                                                    tmp_path: Path) -> None:
+def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_size(
+    run: Run, tmp_path: Path
+) -> None:
     """A frame without its .label file: the stage is skipped and writes nothing. A points/ file without its
     labels, or whose labels are not one per point of the scan: an error naming the file or the scan. No
     point labeled by projection: the coverage ratios are None."""
@@ -496,8 +551,9 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
 
     # No point labeled by projection alone (a labeler that found nothing): no coverage ratio, no error.
     for i in run.frames:
-        _rewrite_npz(lay.points(seq.frame_ids[i]),
-                     lambda a: {**a, "point_label": np.full_like(a["point_label"], -1)})
+        _rewrite_npz(
+            lay.points(seq.frame_ids[i]), lambda a: {**a, "point_label": np.full_like(a["point_label"], -1)}
+        )
     assert evaluate() == {}
     got = json.loads(lay.metrics.read_text())
     assert got["labeled_points"]["point"] == 0 and set(got["coverage_ratio"].values()) == {None}
@@ -530,8 +586,7 @@ def test_smoothing_reimposes_class_0_and_leaves_erased_voxels_smoothed(run: Run,
     smooth = knn_smooth(grid.centres(), grid.probs(), run.cfg.smoothing).astype(np.float16)
     run_dir = tmp_path / "r"
     run_dir.mkdir()
-    ctx = _context(run.seq.root, run.schema, run.cfg, run_dir, progress=None, frames=None,
-                   runtime=None)
+    ctx = _context(run.seq.root, run.schema, run.cfg, run_dir, progress=None, frames=None, runtime=None)
     _smooth_and_save(grid, ctx, tmp_path / "plain.npz")
     np.testing.assert_array_equal(SmoothedGrid.load(tmp_path / "plain.npz").probs, smooth)
     assert _fuse_overrides(ctx) == (None, 0)

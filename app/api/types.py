@@ -96,8 +96,10 @@ RunId = Annotated[int, Path(ge=1, le=MAX_INT, description="run id")]
 PromptIndex = Annotated[int, Path(ge=0, le=MAX_INT, description="index of the prompt in the class's list")]
 SequenceQuery = Annotated[
     str | None,
-    Query(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
-          description="one of the project's sequences (default: the run's own figures / the first sequence)"),
+    Query(
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
+        description="one of the project's sequences (default: the run's own figures / the first sequence)",
+    ),
 ]
 """``?sequence=`` of a project with several sequences (its names: ``app.models.SEQUENCE_NAME_PATTERN``)."""
 SequenceName = Annotated[

@@ -92,8 +92,9 @@ class CorrectionApplier:
 
     def warm(self, project_id: int) -> None:
         """Load the latest run's grid and voxel → frames index in the background (no files change)."""
-        threading.Thread(target=self._warm, args=(project_id,), name=f"leap-apply-warm-p{project_id}",
-                         daemon=True).start()
+        threading.Thread(
+            target=self._warm, args=(project_id,), name=f"leap-apply-warm-p{project_id}", daemon=True
+        ).start()
 
     def state(self, project_id: int) -> ApplyState:
         with self._lock:
@@ -148,9 +149,14 @@ class CorrectionApplier:
                 return None, []
             covered = covered_sequences(run["params"], crud.list_sequences(db, project_id))
             if run_sequences_of(run["params"]) is None:
-                targets = [(RunLayout(Path(run["run_dir"])), Path(run["params"]["dataset"]),
-                            crud.list_corrections(db, project_id, active_only=True, sequence=name))
-                           for name in covered]
+                targets = [
+                    (
+                        RunLayout(Path(run["run_dir"])),
+                        Path(run["params"]["dataset"]),
+                        crud.list_corrections(db, project_id, active_only=True, sequence=name),
+                    )
+                    for name in covered
+                ]
             else:
                 targets = [
                     (lay, dataset, crud.list_corrections(db, project_id, active_only=True, sequence=name))
@@ -195,8 +201,9 @@ class CorrectionApplier:
                 continue
             seq = lay.open_sequence(dataset)
             cache = self._cache(project_id, run, lay, dataset)
-            result = apply_to_run(lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(),
-                                  new=new, cache=cache)
+            result = apply_to_run(
+                lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(), new=new, cache=cache
+            )
             if result.frames:
                 exports.invalidate(lay.run_dir)
                 if lay.run_dir != Path(run["run_dir"]):

@@ -400,8 +400,9 @@ class JobManager:
                 "pipeline": project["pipeline"],
                 "frames": None,
                 "estimate_poses": estimate,
-                "stages": run_stages([s["name"] for s in sequences], self.stages, joint_3dcn=joint,
-                                     estimate=estimated),
+                "stages": run_stages(
+                    [s["name"] for s in sequences], self.stages, joint_3dcn=joint, estimate=estimated
+                ),
             }
         return {
             "dataset": project["dataset_path"],
@@ -410,7 +411,8 @@ class JobManager:
             "pipeline": project["pipeline"],
             "frames": None if frames is None else [int(frames[0]), int(frames[1])],
             "estimate_poses": estimate,
-            "stages": ([SYNTH_STAGE] if generate else []) + ([POSES_STAGE] if estimate_now else [])
+            "stages": ([SYNTH_STAGE] if generate else [])
+            + ([POSES_STAGE] if estimate_now else [])
             + self.stages,
         }
 
@@ -425,8 +427,13 @@ class JobManager:
         atomic_write_json(RunLayout(run_dir).params, params)
         previous = seed_source(db, run["project_id"], params)
         if run_sequences_of(params) is not None:
-            linked = prepare_sequences(db, run["project_id"], params, run_dir,
-                                       None if previous is None else Path(previous["run_dir"]))
+            linked = prepare_sequences(
+                db,
+                run["project_id"],
+                params,
+                run_dir,
+                None if previous is None else Path(previous["run_dir"]),
+            )
         else:
             write_run_corrections(db, run["project_id"], params, run_dir)
             linked = 0 if previous is None else seed_run_dir(Path(previous["run_dir"]), run_dir)
@@ -1049,7 +1056,9 @@ def run_corrections(corrections: Sequence[crud.Correction], params: dict[str, An
     scan = ScanCorrections.merge(
         (c.frame_id, c.points, index)
         for c in corrections
-        if c.scope == "scan" and c.frame_id and c.points is not None
+        if c.scope == "scan"
+        and c.frame_id
+        and c.points is not None
         and (index := _class_index(c.class_name, names)) != -2
     )
     return RunCorrections(keys, classes, scan)

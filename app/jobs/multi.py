@@ -57,8 +57,9 @@ def run_sequences_of(params: Mapping[str, Any]) -> list[tuple[str, Path]] | None
     return [(str(s["name"]), Path(s["dataset"])) for s in listed]
 
 
-def run_stages(names: Sequence[str], stages: Sequence[str], *, joint_3dcn: bool,
-               estimate: Sequence[str] = ()) -> list[str]:
+def run_stages(
+    names: Sequence[str], stages: Sequence[str], *, joint_3dcn: bool, estimate: Sequence[str] = ()
+) -> list[str]:
     """A multi-sequence run's progress stages in the order it reaches them.
 
     Args:
@@ -147,14 +148,20 @@ def execute_sequences(  # one keyword per part of the run spec it reads
     layout = MultiRunLayout(run_dir)
     for name, dataset in sequences.items():
         prepare_run_poses(
-            dataset, layout.sequence(name).run_dir, estimate=estimate_poses, cache_root=poses_cache,
+            dataset,
+            layout.sequence(name).run_dir,
+            estimate=estimate_poses,
+            cache_root=poses_cache,
             progress=lambda done, total, n=name: reporter(stage_name(n, POSES), done, total),
         )
     schema = Schema.from_dict(schema_doc, source="project schema")
     config = config_from_dict(pipeline)
     specs = [SequenceSpec(name, dataset) for name, dataset in sequences.items()]
     run_sequences(
-        specs, schema, config, run_dir,
+        specs,
+        schema,
+        config,
+        run_dir,
         progress=lambda seq, stage, done, total: reporter(stage_name(seq, stage), done, total),
         runtime=runtime,
     )
@@ -201,11 +208,30 @@ def skipped_stages(run_dir: Path, params: Mapping[str, Any]) -> dict[str, str | 
             state = stage_status(lay.run_dir)
         except LeapError:
             continue
-        out.update({stage_name(name, stage): rec.get("note") for stage, rec in state.items()
-                    if rec.get("status") == "skipped"})
+        out.update(
+            {
+                stage_name(name, stage): rec.get("note")
+                for stage, rec in state.items()
+                if rec.get("status") == "skipped"
+            }
+        )
     return out
 
 
-__all__ = ["JOINT", "SEPARATOR", "covered_sequences", "execute_sequences", "read_run_metrics",
-           "run_sequence_folders", "run_sequences_of", "run_stages", "sequence_layouts", "sequence_run_dir",
-           "skipped_stages", "snapshot_sequences", "split_stage", "stage_dir", "stage_name"]
+__all__ = [
+    "JOINT",
+    "SEPARATOR",
+    "covered_sequences",
+    "execute_sequences",
+    "read_run_metrics",
+    "run_sequence_folders",
+    "run_sequences_of",
+    "run_stages",
+    "sequence_layouts",
+    "sequence_run_dir",
+    "skipped_stages",
+    "snapshot_sequences",
+    "split_stage",
+    "stage_dir",
+    "stage_name",
+]

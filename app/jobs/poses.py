@@ -37,7 +37,11 @@ def needs_estimate(dataset: Path) -> bool:
 
 
 def prepare_run_poses(
-    dataset: Path, run_dir: Path, *, estimate: bool, cache_root: Path | None,
+    dataset: Path,
+    run_dir: Path,
+    *,
+    estimate: bool,
+    cache_root: Path | None,
     progress: ProgressFn | None = None,
 ) -> None:
     """Put the poses a run uses in place before its pipeline starts.
@@ -60,5 +64,8 @@ def prepare_run_poses(
     how = "reused the estimate cached" if reused else f"estimated them in {note['seconds']:.1f} s, cached"
     notice_log.warning(
         "poses: the dataset has no poses.txt; KISS-ICP %s LiDAR odometry %s in %s (%d scans)",
-        note["version"], how, cached.parent, note["frames"],
+        note["version"],
+        how,
+        cached.parent,
+        note["frames"],
     )

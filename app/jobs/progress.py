@@ -271,8 +271,13 @@ class ProgressTracker:
         return {
             "order": [s.name for s in self.stages],
             "stages": {
-                s.name: {"status": s.status, "done": s.done, "total": s.total, "seconds": s.seconds,
-                         **({"note": s.note} if s.note else {})}
+                s.name: {
+                    "status": s.status,
+                    "done": s.done,
+                    "total": s.total,
+                    "seconds": s.seconds,
+                    **({"note": s.note} if s.note else {}),
+                }
                 for s in self.stages
             },
             "warnings": list(self.warnings),

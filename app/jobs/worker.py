@@ -113,8 +113,14 @@ def _run_logger(run_dir: Path) -> tuple[logging.Logger, logging.Handler]:
 class _Reporter:
     """The pipeline's progress callback: throttles messages and turns a cancel request into ``Cancelled``."""
 
-    def __init__(self, emit: Emit, should_cancel: Callable[[], bool], interval: float, log: logging.Logger,
-                 run_dir: Path | None = None):
+    def __init__(
+        self,
+        emit: Emit,
+        should_cancel: Callable[[], bool],
+        interval: float,
+        log: logging.Logger,
+        run_dir: Path | None = None,
+    ):
         self.emit = emit
         self.should_cancel = should_cancel
         self.interval = interval
@@ -231,20 +237,31 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
 
     # Deployment values come from the server's settings only (the spec), never from the project.
     runtime = Runtime(
-        models_dir=spec.models_dir, cache_dir=spec.cache_dir, allow_download=spec.allow_download,
+        models_dir=spec.models_dir,
+        cache_dir=spec.cache_dir,
+        allow_download=spec.allow_download,
         ray_address=spec.ray_address,
     )
     if spec.sequences:
         reporter.multi = True
         execute_sequences(
-            spec.run_dir, spec.sequences, spec.schema, spec.pipeline, reporter, runtime=runtime,
-            estimate_poses=spec.estimate_poses, poses_cache=spec.poses_cache,
+            spec.run_dir,
+            spec.sequences,
+            spec.schema,
+            spec.pipeline,
+            reporter,
+            runtime=runtime,
+            estimate_poses=spec.estimate_poses,
+            poses_cache=spec.poses_cache,
         )
         return
     if spec.demo:
         ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
     prepare_run_poses(
-        spec.dataset, spec.run_dir, estimate=spec.estimate_poses, cache_root=spec.poses_cache,
+        spec.dataset,
+        spec.run_dir,
+        estimate=spec.estimate_poses,
+        cache_root=spec.poses_cache,
         progress=lambda done, total: reporter(POSES_STAGE, done, total),
     )
     schema = Schema.from_dict(spec.schema, source="project schema")

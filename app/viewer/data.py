@@ -295,7 +295,6 @@ class RunOutputs:
         uv = np.stack([proj.u, proj.v], axis=1).astype(np.float64)
         return int(inside.size), int(uv.shape[0]), uv
 
-
     def view_counts(self, grid: ReviewGrid) -> npt.NDArray[np.int64]:
         """(V,) number of this run's scans that observed each voxel of ``grid``.
 

@@ -308,8 +308,12 @@ class LodIndex:
             v0, v1 = int(blocks.starts[b0]), int(blocks.starts[b1])
             part = None if sc is None else sc[v0:v1]
             h, sm = block_tables(
-                blocks.of_sorted[v0:v1] - np.int32(b0), b1 - b0, lab[v0:v1], num_classes,
-                keep=None if threshold <= 0 or part is None else part >= thr, score=part,
+                blocks.of_sorted[v0:v1] - np.int32(b0),
+                b1 - b0,
+                lab[v0:v1],
+                num_classes,
+                keep=None if threshold <= 0 or part is None else part >= thr,
+                score=part,
             )
             hist[b0:b1] = h
             if ssum is not None and sm is not None:
@@ -404,7 +408,8 @@ def block_tables(
     if score is not None:
         sc = score if rows is None else score[rows]
         ssum = (
-            np.bincount(key, weights=sc, minlength=num_blocks * width).astype(np.float32)
+            np.bincount(key, weights=sc, minlength=num_blocks * width)
+            .astype(np.float32)
             .reshape(num_blocks, width)
         )
     return hist, ssum
@@ -604,8 +609,9 @@ def select_culled(  # noqa: PLR0913 (select_points' own keywords, plus the index
     if depth_mode == "front" and rows.size:
         w, h = camera.width_px, camera.height_px
         cam = camera_coords(centres[rows], camera.position, camera.wxyz)
-        uv, in_front = project_to_screen(centres[rows], camera.position, camera.wxyz, camera.fov_y,
-                                         camera.aspect)
+        uv, in_front = project_to_screen(
+            centres[rows], camera.position, camera.wxyz, camera.fov_y, camera.aspect
+        )
         col, row, on = pixel_of(uv, w, h)
         cand = in_front & on & mask[row, col]
         if cand.any():
@@ -620,7 +626,12 @@ def select_culled(  # noqa: PLR0913 (select_points' own keywords, plus the index
             rows = np.union1d(rows, rows_in((u0, v0), (u1, v1)))
     rows = np.sort(rows)
     picked = select_points(
-        centres[rows], camera, mask, depth_mode=depth_mode, distance=distance, splat_size=splat_size,
+        centres[rows],
+        camera,
+        mask,
+        depth_mode=depth_mode,
+        distance=distance,
+        splat_size=splat_size,
         eligible=None if eligible is None else eligible[rows],
     )
     return rows[picked]
@@ -684,8 +695,10 @@ def plan_view(
     # Only blocks whose footprint meets the square around the disc need their exact distance.
     lo, edge = blocks.lower, blocks.edge
     box = np.flatnonzero(
-        (lo[:, 0] <= f[0] + radius) & (lo[:, 0] + edge >= f[0] - radius)
-        & (lo[:, 1] <= f[1] + radius) & (lo[:, 1] + edge >= f[1] - radius)
+        (lo[:, 0] <= f[0] + radius)
+        & (lo[:, 0] + edge >= f[0] - radius)
+        & (lo[:, 1] <= f[1] + radius)
+        & (lo[:, 1] + edge >= f[1] - radius)
     )
     dist = np.full(blocks.count, np.inf)
     dist[box] = footprint_distance(lo[box], edge, f)

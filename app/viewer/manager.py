@@ -135,8 +135,10 @@ class AppBackend:
         if int(run["project_id"]) != self.project_id:
             raise NotFound(f"Run {run_id} not found in project {self.project_id}")
         if not self._covers(run):
-            raise Conflict(f"Run {run_id} did not label sequence {self.sequence!r} (added since); run the "
-                           "pipeline to label it")
+            raise Conflict(
+                f"Run {run_id} did not label sequence {self.sequence!r} (added since); run the "
+                "pipeline to label it"
+            )
         return self._info(run)
 
     def latest_finished_run(self) -> RunInfo | None:
@@ -162,8 +164,15 @@ class AppBackend:
             rows = crud.list_corrections(db, self.project_id, active_only=False, sequence=self.sequence)
         return [
             CorrectionRecord(
-                c.id, c.class_name, c.voxel_size, c.keys, c.active, c.created_at,
-                scope=c.scope, frame_id=c.frame_id, points=c.points,
+                c.id,
+                c.class_name,
+                c.voxel_size,
+                c.keys,
+                c.active,
+                c.created_at,
+                scope=c.scope,
+                frame_id=c.frame_id,
+                points=c.points,
             )
             for c in rows
         ]
@@ -182,8 +191,16 @@ class AppBackend:
         in the background (:mod:`app.jobs.apply`)."""
         with open_db(self.settings.database) as db:
             cid = crud.add_correction(
-                db, project_id=self.project_id, class_name=class_name, voxel_size=voxel_size, keys=keys,
-                scope=scope, frame_id=frame_id, points=points, author="viewer", sequence=self.sequence,
+                db,
+                project_id=self.project_id,
+                class_name=class_name,
+                voxel_size=voxel_size,
+                keys=keys,
+                scope=scope,
+                frame_id=frame_id,
+                points=points,
+                author="viewer",
+                sequence=self.sequence,
             )
         applier(self.settings).request(self.project_id)
         return cid
@@ -203,7 +220,12 @@ class AppBackend:
     def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None:
         with open_db(self.settings.database) as db:
             crud.set_review_mark(
-                db, self.project_id, region=region, signature=signature, state=state, run_id=run_id,
+                db,
+                self.project_id,
+                region=region,
+                signature=signature,
+                state=state,
+                run_id=run_id,
                 sequence=self.sequence,
             )
 
@@ -285,8 +307,12 @@ class ViewerManager:
                 latest = session.backend.latest_finished_run()
                 if latest is not None:
                     session.load_run(latest)
-        return ViewerInfo(project_id, None if session.run is None else session.run.run_id, session.port,
-                          _shown_sequence(session))
+        return ViewerInfo(
+            project_id,
+            None if session.run is None else session.run.run_id,
+            session.port,
+            _shown_sequence(session),
+        )
 
     @staticmethod
     def _check_run(backend: ProjectBackend, run_id: int) -> RunInfo:

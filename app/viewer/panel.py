@@ -79,8 +79,11 @@ class ReviewPanel:
         with gui.add_folder("Run", order=0):
             self.status = gui.add_markdown("Loading…")
             self.progress = gui.add_progress_bar(0.0, visible=False)
-            self.rerun_button = gui.add_button("Re-run", hint="Start a new run with the current classes, "
-                                               "prompts and corrections", color="blue")
+            self.rerun_button = gui.add_button(
+                "Re-run",
+                hint="Start a new run with the current classes, prompts and corrections",
+                color="blue",
+            )
 
         with gui.add_folder("View", order=1):
             self.color_by = gui.add_dropdown("Color by", COLOR_BY, initial_value="class")
@@ -95,8 +98,9 @@ class ReviewPanel:
         with self.scan_folder:
             self.scan_slider = gui.add_slider("Scan", min=0, max=1, step=1, initial_value=0, disabled=True)
             self.scan_info = gui.add_markdown("")
-            self.scan_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="camera + labels",
-                                            format="jpeg", visible=False)
+            self.scan_image = gui.add_image(
+                np.zeros((8, 8, 3), np.uint8), label="camera + labels", format="jpeg", visible=False
+            )
 
         with gui.add_folder("Review queue", order=4, expand_by_default=False):
             self.review = ReviewQueuePanel(self)

@@ -107,7 +107,7 @@ def histogram_html(hist: npt.NDArray[np.int64], names: Sequence[str], palette: n
         colour = _hex(pal[c]) if c < pal.shape[0] else "#888888"
         bars = "".join(
             f'<span title="{int(n):,}" style="display:inline-block;width:7px;margin-right:1px;'
-            f'height:{max(1.0, 16.0 * float(n) / peak):.0f}px;background:{colour};'
+            f"height:{max(1.0, 16.0 * float(n) / peak):.0f}px;background:{colour};"
             'vertical-align:bottom"></span>'
             for n in counts
         )
@@ -140,8 +140,10 @@ class NavPanel:
             self.browse = gui.add_button_group("Browse", BROWSE, order=-3)
             self.fit = gui.add_button_group("Fit view", FIT, order=-2)
             self.follow = gui.add_checkbox(
-                "Follow ego", session.follow_ego, order=-1, hint="Move the camera behind the ego vehicle on "
-                "every scan change (key G)"
+                "Follow ego",
+                session.follow_ego,
+                order=-1,
+                hint="Move the camera behind the ego vehicle on every scan change (key G)",
             )
             self.enlarge = gui.add_button("Enlarge image", hint="Show the image across the view (key I)")
         # Right under Run: a click's answer shows without scrolling, whatever else is expanded.

@@ -39,13 +39,18 @@ class ReviewQueuePanel:
         self.queue_kind = gui.add_dropdown("Order by", QUEUE_KINDS, initial_value=QUEUE_KINDS[0])
         self.next_button = gui.add_button("Next region", hint="Key: N")
         self.prev_button = gui.add_button("Previous region", hint="Key: P")
-        self.accept_button = gui.add_button("Accept region", hint="Mark reviewed and go on (key: A)",
-                                            color="green", disabled=True)
-        self.skip_button = gui.add_button("Skip region", hint="Mark skipped and go on (key: S)",
-                                          disabled=True)
+        self.accept_button = gui.add_button(
+            "Accept region", hint="Mark reviewed and go on (key: A)", color="green", disabled=True
+        )
+        self.skip_button = gui.add_button(
+            "Skip region", hint="Mark skipped and go on (key: S)", disabled=True
+        )
         self.relabel_class = gui.add_dropdown("Relabel as", ["-"], initial_value="-")
-        self.relabel_button = gui.add_button("Relabel region", hint="Assign the class to the highlighted "
-                                             "voxels (key: R opens the class picker)", disabled=True)
+        self.relabel_button = gui.add_button(
+            "Relabel region",
+            hint="Assign the class to the highlighted voxels (key: R opens the class picker)",
+            disabled=True,
+        )
         self.queue_info = gui.add_markdown("")
         self.progress = gui.add_markdown("")
         self.queue_kind.on_update(g(lambda _: self._in_background(self._build)))
@@ -103,8 +108,7 @@ class ReviewQueuePanel:
             fid = s.outputs.seq.frame_ids[s.outputs.frame_indices[s.focus_frame]]
             seen = f" Seen best in scan {html.escape(fid)} (boxed in the image)."
         self.queue_info.content = (
-            f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels "
-            f"({state}).{seen}"
+            f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels ({state}).{seen}"
         )
         self.progress.content = progress_text(s.review_progress())
         for b in (self.accept_button, self.skip_button, self.relabel_button):

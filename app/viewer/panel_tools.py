@@ -33,21 +33,39 @@ class ToolsPanel:
         gui = panel.gui
         self._syncing = False
         with gui.add_folder("Selection tools", order=5.5, expand_by_default=False):
-            self.tool = gui.add_dropdown("Tool", TOOLS, initial_value=TOOLS[0],
-                                         hint="Lasso (L), brush (B) or box (M); then drag on the view")
-            self.depth = gui.add_dropdown("Depth", DEPTHS, initial_value=DEPTHS[0],
-                                          hint="Front surface only: what is hidden behind is not selected")
+            self.tool = gui.add_dropdown(
+                "Tool",
+                TOOLS,
+                initial_value=TOOLS[0],
+                hint="Lasso (L), brush (B) or box (M); then drag on the view",
+            )
+            self.depth = gui.add_dropdown(
+                "Depth",
+                DEPTHS,
+                initial_value=DEPTHS[0],
+                hint="Front surface only: what is hidden behind is not selected",
+            )
             self.distance = gui.add_number("Front distance (m)", 0.5, min=0.0, max=100.0, step=0.1)
             self.class_filter = gui.add_dropdown("Only class", [ANY_CLASS], initial_value=ANY_CLASS)
             self.target = gui.add_dropdown("Select from", TARGETS, initial_value=TARGETS[0])
-            self.scope = gui.add_dropdown("Correction scope", SCOPES, initial_value=SCOPES[0],
-                                          hint="This scan only: for moving objects the voxel map smears")
+            self.scope = gui.add_dropdown(
+                "Correction scope",
+                SCOPES,
+                initial_value=SCOPES[0],
+                hint="This scan only: for moving objects the voxel map smears",
+            )
             self.brush = gui.add_slider("Brush radius", min=0.005, max=0.2, step=0.005, initial_value=0.03)
             self.erase_button = gui.add_button("Erase to unlabeled", disabled=True)
             self.info = gui.add_markdown("Keys: L lasso, B brush, M box, 1-9 assign, E erase, Esc clear.")
         g = panel._guard
         widgets = (
-            self.tool, self.depth, self.distance, self.class_filter, self.target, self.scope, self.brush
+            self.tool,
+            self.depth,
+            self.distance,
+            self.class_filter,
+            self.target,
+            self.scope,
+            self.brush,
         )
         for widget in widgets:
             widget.on_update(g(lambda _: self._changed()))

@@ -293,8 +293,11 @@ def camera_of(camera: Any) -> sel.PinholeCamera:
     p = np.asarray(camera.position, dtype=np.float64).reshape(3)
     q = np.asarray(camera.wxyz, dtype=np.float64).reshape(4)
     return sel.PinholeCamera(
-        (float(p[0]), float(p[1]), float(p[2])), (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-        float(camera.fov), max(1, int(w * scale)), max(1, int(h * scale)),
+        (float(p[0]), float(p[1]), float(p[2])),
+        (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+        float(camera.fov),
+        max(1, int(w * scale)),
+        max(1, int(h * scale)),
     )
 
 
@@ -382,6 +385,7 @@ class ReviewSession:
         """The review region shown highlighted (its voxels at full colour, the rest dimmed)."""
         self.focus_frame: int | None = None
         """Position (in the scan slider) of the scan the focused region was seen best in."""
+
     def _init_lod(self) -> None:
         self.lod_index: lod.LodIndex | None = None
         """Spatial index of the shown grid when it has more voxels than ``config.lod.budget`` (else None:
@@ -645,8 +649,12 @@ class ReviewSession:
         return budget if state.max_points is None else max(2, min(budget, state.max_points))
 
     def _view_score(
-        self, grid: ReviewGrid, state: vl.ViewState, label: npt.NDArray[np.int16],
-        conf: npt.NDArray[np.float32], corrected: npt.NDArray[np.bool_],
+        self,
+        grid: ReviewGrid,
+        state: vl.ViewState,
+        label: npt.NDArray[np.int16],
+        conf: npt.NDArray[np.float32],
+        corrected: npt.NDArray[np.bool_],
     ) -> tuple[npt.NDArray[np.floating], npt.NDArray[np.floating] | None]:
         """``(score, class_prob)`` of the view: the value the threshold applies to, and the probability of
         ``state.class_index`` (corrections applied; None outside ``class_probability`` mode)."""
@@ -655,28 +663,45 @@ class ReviewSession:
         return vl.view_score(state, conf, class_prob), class_prob
 
     def _block_tables(
-        self, blocks: lod.Blocks, *, state: vl.ViewState, label: npt.NDArray[np.int16],
-        conf: npt.NDArray[np.float32], corrected: npt.NDArray[np.bool_], score: npt.NDArray[np.floating],
+        self,
+        blocks: lod.Blocks,
+        *,
+        state: vl.ViewState,
+        label: npt.NDArray[np.int16],
+        conf: npt.NDArray[np.float32],
+        corrected: npt.NDArray[np.bool_],
+        score: npt.NDArray[np.floating],
         num_classes: int,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """Per block and class counts and score sums of the voxels passing the threshold, kept until the
         labels, the scored quantity or the threshold change (a class toggle or a new focus reuses them; the
         class and confidence views share one table: both threshold and sum the confidence)."""
         prob = state.mode == "class_probability"
-        key = (blocks, label, conf, corrected if prob else None, state.class_index if prob else -1,
-               state.threshold)
+        key = (
+            blocks,
+            label,
+            conf,
+            corrected if prob else None,
+            state.class_index if prob else -1,
+            state.threshold,
+        )
         cached = self._lod_tables
-        if cached is not None and len(cached[0]) == len(key) and all(
-            a is b if isinstance(a, (np.ndarray, lod.Blocks)) else a == b
-            for a, b in zip(cached[0], key, strict=True)
+        if (
+            cached is not None
+            and len(cached[0]) == len(key)
+            and all(
+                a is b if isinstance(a, (np.ndarray, lod.Blocks)) else a == b
+                for a, b in zip(cached[0], key, strict=True)
+            )
         ):
             return cached[1], cached[2]
         t0 = time.perf_counter()
         thr = np.float32(state.threshold)
         hist_ssum = self._tables_after_edit(blocks, key, label, score, thr, num_classes)
         if hist_ssum is None:
-            hist, ssum = blocks.index.sorted_tables(blocks, label, num_classes, threshold=float(thr),
-                                                    score=score)
+            hist, ssum = blocks.index.sorted_tables(
+                blocks, label, num_classes, threshold=float(thr), score=score
+            )
             assert ssum is not None
         else:
             hist, ssum = hist_ssum
@@ -686,8 +711,13 @@ class ReviewSession:
         return hist, ssum
 
     def _tables_after_edit(
-        self, blocks: lod.Blocks, key: tuple[Any, ...], label: npt.NDArray[np.int16],
-        score: npt.NDArray[np.floating], thr: np.float32, num_classes: int,
+        self,
+        blocks: lod.Blocks,
+        key: tuple[Any, ...],
+        label: npt.NDArray[np.int16],
+        score: npt.NDArray[np.floating],
+        thr: np.float32,
+        num_classes: int,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None:
         """The cached tables moved to new labels / scores when only those changed, and in few voxels (a
         correction, an undo); None when they must be counted afresh."""
@@ -705,8 +735,12 @@ class ReviewSession:
         counted_new = score[rows] >= thr if thr > 0 else np.ones(rows.size, bool)
         changed = blocks.of_row[rows]
         lod.update_tables(
-            hist, ssum, changed, num_classes,
-            (old_label[rows], old_score[rows], counted_old), (label[rows], score[rows], counted_new),
+            hist,
+            ssum,
+            changed,
+            num_classes,
+            (old_label[rows], old_score[rows], counted_old),
+            (label[rows], score[rows], counted_new),
         )
         self._recolor_blocks(hist, ssum, np.unique(changed))
         return hist, ssum
@@ -728,8 +762,12 @@ class ReviewSession:
             colors[changed] = vl.scalar_colors(lod.mean_score(hist, ssum, columns, changed))
 
     def _all_block_colors(
-        self, hist: npt.NDArray[np.float32], ssum: npt.NDArray[np.float32], columns: npt.NDArray[np.float32],
-        mode: vl.ColorMode, palette: npt.NDArray[np.uint8],
+        self,
+        hist: npt.NDArray[np.float32],
+        ssum: npt.NDArray[np.float32],
+        columns: npt.NDArray[np.float32],
+        mode: vl.ColorMode,
+        palette: npt.NDArray[np.uint8],
     ) -> npt.NDArray[np.uint8]:
         """(B, 3) overview colour of every block (majority class or mean score of its visible voxels), kept
         until the tables, the class toggles, the mode or the palette change (a new focus reuses it)."""
@@ -758,7 +796,12 @@ class ReviewSession:
         blocks = index.blocks(index.overview_level(budget, cfg.overview_share))
         score, class_prob = self._view_score(grid, state, label, conf, corrected)
         hist, ssum = self._block_tables(
-            blocks, state=state, label=label, conf=conf, corrected=corrected, score=score,
+            blocks,
+            state=state,
+            label=label,
+            conf=conf,
+            corrected=corrected,
+            score=score,
             num_classes=grid.num_classes,
         )
         t0 = time.perf_counter()
@@ -1141,7 +1184,11 @@ class ReviewSession:
             if kind == "confidence":
                 candidates = vl.lowest_share(conf, cfg.queue_share)
                 regions = vl.rank_regions(
-                    grid.centres, conf, candidates, cfg.queue_cell, min_count=cfg.queue_min_count,
+                    grid.centres,
+                    conf,
+                    candidates,
+                    cfg.queue_cell,
+                    min_count=cfg.queue_min_count,
                     ascending=True,
                 )
             else:
@@ -1152,7 +1199,11 @@ class ReviewSession:
                 top = vl.lowest_share(np.where(seen, -rate, np.inf), cfg.queue_share)
                 candidates = seen & (rate > 0) & top
                 regions = vl.rank_regions(
-                    grid.centres, rate, candidates, cfg.queue_cell, min_count=cfg.queue_min_count,
+                    grid.centres,
+                    rate,
+                    candidates,
+                    cfg.queue_cell,
+                    min_count=cfg.queue_min_count,
                     ascending=False,
                 )
             signatures = review.region_signatures(
@@ -1396,9 +1447,15 @@ class ReviewSession:
         if tools.target == "map" and index is not None:
             # A big map: the full grid's visible voxels, culled by coarse cubes first (same result).
             chosen = lod.select_culled(
-                index, index.blocks(index.query_level(self.config.lod.query_edge)), camera, mask,
-                visible=self._visible_mask(grid), eligible=None if cls is None else label == cls,
-                depth_mode=tools.depth_mode, distance=tools.distance, splat_size=grid.voxel_size,
+                index,
+                index.blocks(index.query_level(self.config.lod.query_edge)),
+                camera,
+                mask,
+                visible=self._visible_mask(grid),
+                eligible=None if cls is None else label == cls,
+                depth_mode=tools.depth_mode,
+                distance=tools.distance,
+                splat_size=grid.voxel_size,
             )
             return self._set_selection(chosen, tools.target, None, add)
         if tools.target == "map":
@@ -1412,7 +1469,12 @@ class ReviewSession:
             points, splat, frame_id = view.points, float(self.scene.scan.point_size), view.frame_id
             eligible = None if cls is None else scan_label == cls
         picked = sel.select_points(
-            points, camera, mask, depth_mode=tools.depth_mode, distance=tools.distance, splat_size=splat,
+            points,
+            camera,
+            mask,
+            depth_mode=tools.depth_mode,
+            distance=tools.distance,
+            splat_size=splat,
             eligible=eligible,
         )
         return self._set_selection(rows[picked], tools.target, frame_id, add)
@@ -1452,8 +1514,11 @@ class ReviewSession:
         p = np.asarray(position, dtype=np.float64).reshape(3)
         q = np.asarray(wxyz, dtype=np.float64).reshape(4)
         camera = sel.PinholeCamera(
-            (float(p[0]), float(p[1]), float(p[2])), (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-            float(fov_y), max(1, round(height_px * aspect)), height_px,
+            (float(p[0]), float(p[1]), float(p[2])),
+            (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+            float(fov_y),
+            max(1, round(height_px * aspect)),
+            height_px,
         )
         return self.select_screen("box", [rect_min, rect_max], camera)
 
@@ -1499,7 +1564,11 @@ class ReviewSession:
                 scan_keys = voxel_keys(view.points.astype(np.float64), grid.voxel_size)
                 points = np.flatnonzero(np.isin(scan_keys, keys))
             cid = self.backend.add_correction(
-                class_name, grid.voxel_size, keys, scope="scan", frame_id=view.frame_id,
+                class_name,
+                grid.voxel_size,
+                keys,
+                scope="scan",
+                frame_id=view.frame_id,
                 points=points.astype(np.int64),
             )
         self.history.push(cid)
@@ -1536,8 +1605,11 @@ class ReviewSession:
         n = label.shape[0]
         for rec in self.corrections:
             if (
-                rec.scope == "scan" and rec.active and rec.frame_id == view.frame_id
-                and rec.points is not None and rec.class_name in names
+                rec.scope == "scan"
+                and rec.active
+                and rec.frame_id == view.frame_id
+                and rec.points is not None
+                and rec.class_name in names
             ):
                 pts = rec.points[(rec.points >= 0) & (rec.points < n)]
                 label[pts] = names[rec.class_name]

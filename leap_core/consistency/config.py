@@ -220,8 +220,11 @@ class ConsistencyConfig:
             ("network_evidence", self.network_evidence in ("voxel", "point"), "must be 'voxel' or 'point'"),
             ("temperature", self.temperature > 0, "must be > 0"),
             ("new_voxel_margin", self.new_voxel_margin >= 0, "must be >= 0"),
-            ("new_voxel_margin", self.new_voxel_margin == 0 or self.network_evidence == "voxel",
-             "must be 0 with network_evidence 'point' (it applies to voxel evidence only)"),
+            (
+                "new_voxel_margin",
+                self.new_voxel_margin == 0 or self.network_evidence == "voxel",
+                "must be 0 with network_evidence 'point' (it applies to voxel evidence only)",
+            ),
             ("test_time_views", self.test_time_views >= 1, "must be >= 1"),
             ("epochs", self.epochs >= 1, "must be >= 1"),
             ("min_steps", self.min_steps >= 0, "must be >= 0"),

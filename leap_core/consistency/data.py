@@ -183,11 +183,15 @@ def prepare_cloud(
     offsets = xyz_all[nbr] - xyz[:, None, :]
     dist = np.linalg.norm(offsets, axis=2, keepdims=True)
     local_parts = [offsets / LOCAL_SCALE, dist / LOCAL_SCALE]
-    feat_parts = [
-        xyz[:, :2] / POSITION_SCALE,
-        xyz[:, 2:3] / HEIGHT_SCALE,
-        np.linalg.norm(xyz, axis=1, keepdims=True) / POSITION_SCALE,
-    ] if cfg.position_inputs else []
+    feat_parts = (
+        [
+            xyz[:, :2] / POSITION_SCALE,
+            xyz[:, 2:3] / HEIGHT_SCALE,
+            np.linalg.norm(xyz, axis=1, keepdims=True) / POSITION_SCALE,
+        ]
+        if cfg.position_inputs
+        else []
+    )
     feat_parts += [
         height_above_ground(xyz_all)[subset if subset is not None else slice(None), None] / HEIGHT_SCALE,
         shape_features(offsets),

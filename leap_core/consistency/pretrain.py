@@ -50,14 +50,19 @@ def ground_truth_scans(sequences: Sequence[KittiSequence], schema: Schema) -> Gr
         for i in range(len(seq)):
             frame = seq.frame(i)
             if not frame.has_labels:
-                raise DatasetError(seq.label_path(i), "missing ground-truth label file (training on ground "
-                                   "truth needs a .label file for every scan)")
+                raise DatasetError(
+                    seq.label_path(i),
+                    "missing ground-truth label file (training on ground "
+                    "truth needs a .label file for every scan)",
+                )
             counts += class_counts(schema.map_gt(frame.labels), schema.num_classes)
             scans.append((seq, i))
     if counts.sum() == 0:
         where = ", ".join(str(s.root) for s in sequences)
-        raise LeapError(f"{where}: no ground-truth point maps to a class of the schema "
-                        f"({', '.join(schema.names)}); is it the schema the labels were made for?")
+        raise LeapError(
+            f"{where}: no ground-truth point maps to a class of the schema "
+            f"({', '.join(schema.names)}); is it the schema the labels were made for?"
+        )
     return GroundTruthScans(tuple(scans), counts)
 
 
@@ -89,8 +94,14 @@ def train_on_ground_truth(
         frame = seq.frame(i)
         return frame.points, schema.map_gt(frame.labels)
 
-    return train_model(load, range(len(data.scans)), schema.num_classes, cfg, progress=progress,
-                       class_counts=data.class_counts)
+    return train_model(
+        load,
+        range(len(data.scans)),
+        schema.num_classes,
+        cfg,
+        progress=progress,
+        class_counts=data.class_counts,
+    )
 
 
 __all__ = ["GroundTruthScans", "ground_truth_scans", "train_on_ground_truth"]

@@ -52,4 +52,5 @@ def predict_from_checkpoint(
     model = load_checkpoint(checkpoint, device).model
     return list(predict_frames(model, seq, indices, replace(cfg, num_threads=threads), voxel_size))
 
+
 __all__ = ["inference_threads", "predict_from_checkpoint"]

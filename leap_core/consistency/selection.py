@@ -209,5 +209,11 @@ def select_reliable_scans(
     return list(np.split(mask, np.cumsum(sizes)[:-1]))
 
 
-__all__ = ["VIEW_COUNT_BATCH", "lookup_counts", "per_class_quota", "select_reliable", "select_reliable_scans",
-           "view_counts"]
+__all__ = [
+    "VIEW_COUNT_BATCH",
+    "lookup_counts",
+    "per_class_quota",
+    "select_reliable",
+    "select_reliable_scans",
+    "view_counts",
+]

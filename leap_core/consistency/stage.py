@@ -87,8 +87,16 @@ def training_fingerprint(
     h = hashlib.sha256()
     # Fields that only matter after training (T, new voxels' margin, test-time views, device, threads)
     # are left out: changing them reuses the weights.
-    untrained = ("enabled", "iterations", "temperature", "network_evidence", "new_voxel_margin",
-                 "test_time_views", "device", "num_threads")
+    untrained = (
+        "enabled",
+        "iterations",
+        "temperature",
+        "network_evidence",
+        "new_voxel_margin",
+        "test_time_views",
+        "device",
+        "num_threads",
+    )
     trained = {k: v for k, v in fingerprint_form(config_to_dict(cfg)).items() if k not in untrained}
     head: dict[str, object] = {"cfg": trained, "C": num_classes}
     if source is not None:
@@ -178,8 +186,9 @@ def iter_reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, ea
     if cfg.selection_scope == "scan":
         for i in frames:
             lab, conf, support = scan(i)
-            mask = select_reliable(lab, conf, num_classes, cfg.share, cfg.seed + int(seq.frame_numbers[i]),
-                                   support)
+            mask = select_reliable(
+                lab, conf, num_classes, cfg.share, cfg.seed + int(seq.frame_numbers[i]), support
+            )
             yield np.where(mask, lab, np.int16(UNLABELED)).astype(np.int16)
         return
     labels: list[np.ndarray] = []
@@ -192,8 +201,14 @@ def iter_reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, ea
         if support is not None:
             supports.append(support)
     masks = select_reliable_scans(
-        labels, confs, num_classes, cfg.share, cfg.selection_scope, seed=cfg.seed,
-        support=supports if views is not None else None, scan_numbers=[seq.frame_numbers[i] for i in frames],
+        labels,
+        confs,
+        num_classes,
+        cfg.share,
+        cfg.selection_scope,
+        seed=cfg.seed,
+        support=supports if views is not None else None,
+        scan_numbers=[seq.frame_numbers[i] for i in frames],
     )
     for m, lab in zip(masks, labels, strict=True):
         yield np.where(m, lab, np.int16(UNLABELED)).astype(np.int16)
@@ -220,8 +235,11 @@ def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each na
     whatever class the fused evidence gives the voxel. The pipeline streams the same targets to disk
     (:func:`iter_reliable_targets`, :class:`TargetFile`) instead of holding this list.
     """
-    return list(iter_reliable_targets(seq, smoothed, num_classes, cfg, voxel_size, frames, views,
-                                      progress=progress, erased=erased))
+    return list(
+        iter_reliable_targets(
+            seq, smoothed, num_classes, cfg, voxel_size, frames, views, progress=progress, erased=erased
+        )
+    )
 
 
 def iteration_config(cfg: ConsistencyConfig, iteration: int) -> ConsistencyConfig:
@@ -317,8 +335,9 @@ def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named 
         LeapError: when no point of any scan has a label to train on.
     """
     part = RoundPart(seq, fused, smoothed, frames, views, erased, in_view=in_view)
-    return next(iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress,
-                                source=source))
+    return next(
+        iter_3dcn_round([part], num_classes, cfg, fusion_cfg, work_dir, iteration, progress, source=source)
+    )
 
 
 def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 share a counter
@@ -393,8 +412,9 @@ def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 
     def check(grid: VoxelGrid, what: str, part: RoundPart) -> VoxelGrid:
         if grid.num_classes != num_classes:
             where = f" of sequence {part.name}" if part.name else ""
-            raise LeapError(f"3D-CN: the {what} grid{where} has {grid.num_classes} classes, schema has "
-                            f"{num_classes}")
+            raise LeapError(
+                f"3D-CN: the {what} grid{where} has {grid.num_classes} classes, schema has {num_classes}"
+            )
         return grid
 
     if cfg.temperature == math.inf:
@@ -413,16 +433,37 @@ def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 
     def all_targets() -> Iterator[npt.NDArray[np.int16]]:
         for part, frames in zip(parts, frame_sets, strict=True):
             smoothed = check(_grid(part.smoothed), "smoothed", part)
-            for t in iter_reliable_targets(part.seq, smoothed, num_classes, cfg_it, fusion_cfg.voxel_size,
-                                           frames, part.views, progress=tick, erased=part.erased):
+            for t in iter_reliable_targets(
+                part.seq,
+                smoothed,
+                num_classes,
+                cfg_it,
+                fusion_cfg.voxel_size,
+                frames,
+                part.views,
+                progress=tick,
+                erased=part.erased,
+            ):
                 counts[:] += class_counts(t, num_classes)
                 yield t
             del smoothed
 
     targets = TargetFile.write(targets_path(work_dir, iteration), all_targets())
     try:
-        model = _train(parts, frame_sets, targets, counts, num_classes, cfg_it, ckpt_path, iteration,
-                       progress, done, total, source)
+        model = _train(
+            parts,
+            frame_sets,
+            targets,
+            counts,
+            num_classes,
+            cfg_it,
+            ckpt_path,
+            iteration,
+            progress,
+            done,
+            total,
+            source,
+        )
     finally:
         targets.close()  # the labels are in the weights now
 
@@ -436,11 +477,22 @@ def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 
 
     for part, frames in zip(parts, frame_sets, strict=True):
         fused = check(_grid(part.fused), "fused", part)
-        scans = (predict_frames(model, part.seq, frames, cfg, fusion_cfg.voxel_size, tick) if predict is None
-                 else _ticked(predict(part.seq, frames, ckpt_path), tick))
+        scans = (
+            predict_frames(model, part.seq, frames, cfg, fusion_cfg.voxel_size, tick)
+            if predict is None
+            else _ticked(predict(part.seq, frames, ckpt_path), tick)
+        )
         in_view = _keys(part.in_view) if cfg.new_voxel_margin > 0 else None
-        grid = fuse_back(fused, scans, num_classes, cfg.temperature, fusion_cfg, cfg.network_evidence,
-                         new_voxel_margin=cfg.new_voxel_margin, in_view=in_view)
+        grid = fuse_back(
+            fused,
+            scans,
+            num_classes,
+            cfg.temperature,
+            fusion_cfg,
+            cfg.network_evidence,
+            new_voxel_margin=cfg.new_voxel_margin,
+            in_view=in_view,
+        )
         del fused
         release_free_memory()
         yield grid
@@ -467,8 +519,9 @@ def predict_frames(
         for i in frames:
             frame = seq.frame(i)
             keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
-            logp = predict_log_probs(model, frame.points, device=device, workers=workers,
-                                     views=cfg.test_time_views)
+            logp = predict_log_probs(
+                model, frame.points, device=device, workers=workers, views=cfg.test_time_views
+            )
             del frame
             release_free_memory()  # the forward pass's activations, freed by now
             if tick is not None:
@@ -476,8 +529,9 @@ def predict_frames(
             yield keys, logp
 
 
-def _ticked(pairs: Iterable[tuple[np.ndarray, np.ndarray]], tick: Callable[[], None]
-            ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _ticked(
+    pairs: Iterable[tuple[np.ndarray, np.ndarray]], tick: Callable[[], None]
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """``pairs``, calling ``tick()`` before each (one per scan predicted, as the local loop reports)."""
     for pair in pairs:
         tick()
@@ -508,8 +562,9 @@ def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names ea
     named: range | list[tuple[str, range]] = (
         frame_sets[0] if len(parts) == 1 else [(p.name, f) for p, f in zip(parts, frame_sets, strict=True)]
     )
-    fingerprint = training_fingerprint(cfg_it, num_classes, named, targets,
-                                       None if source is None else source.digest)
+    fingerprint = training_fingerprint(
+        cfg_it, num_classes, named, targets, None if source is None else source.digest
+    )
     model = None
     if ckpt_path.is_file():
         try:
@@ -550,7 +605,8 @@ def _train(  # noqa: PLR0913, PLR0917  step 2 of iter_3dcn_round, which names ea
                 "class_counts": counts.tolist(),
                 **({} if source is None else {"source": source.digest}),
                 "frames": (
-                    [named.start, named.stop, named.step] if isinstance(named, range)
+                    [named.start, named.stop, named.step]
+                    if isinstance(named, range)
                     else [[name, f.start, f.stop, f.step] for name, f in named]
                 ),
             },
@@ -614,8 +670,9 @@ def voxel_mean_log_probs(
         nonlocal acc_keys, acc_sum, acc_cnt, ck_keys, ck_sum, ck_cnt
         # In place (fusion.merge_sparse): the (V, C) sums are grown, never copied whole; new voxels get
         # 0 + chunk sums, as a zero-filled merge would give them.
-        acc_keys, (acc_sum, acc_cnt) = merge_sparse(acc_keys, [acc_sum, acc_cnt], ck_keys,
-                                                    [np.array(ck_sum.numpy()), ck_cnt])
+        acc_keys, (acc_sum, acc_cnt) = merge_sparse(
+            acc_keys, [acc_sum, acc_cnt], ck_keys, [np.array(ck_sum.numpy()), ck_cnt]
+        )
         ck_keys = np.zeros(0, np.int64)
         ck_sum = torch.zeros((0, num_classes), dtype=torch.float32)
         ck_cnt = np.zeros(0, np.int64)
@@ -737,8 +794,9 @@ def fuse_back(  # noqa: PLR0913  the fusion's inputs, each named in the docstrin
     if evidence not in ("voxel", "point"):
         raise ValueError(f"evidence must be 'voxel' or 'point', got {evidence!r}")
     if new_voxel_margin > 0 and evidence != "voxel":
-        raise ValueError(f"new_voxel_margin applies to voxel evidence only, got {new_voxel_margin} with "
-                         f"{evidence!r}")
+        raise ValueError(
+            f"new_voxel_margin applies to voxel evidence only, got {new_voxel_margin} with {evidence!r}"
+        )
     if temperature == math.inf:
         return grid
     weight = 1.0 / temperature
@@ -757,13 +815,18 @@ def fuse_back(  # noqa: PLR0913  the fusion's inputs, each named in the docstrin
         pending += len(keys)
         if pending >= chunk_points:
             out = fuse_dense(
-                out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,
+                out,
+                np.concatenate(pend_keys),
+                np.concatenate(pend_logp),
+                num_classes,
+                fusion_cfg,
                 weight=weight,
             )
             pend_keys, pend_logp, pending = [], [], 0
     if pend_keys:
-        out = fuse_dense(out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg,
-                         weight=weight)
+        out = fuse_dense(
+            out, np.concatenate(pend_keys), np.concatenate(pend_logp), num_classes, fusion_cfg, weight=weight
+        )
     return out
 
 

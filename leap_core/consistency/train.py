@@ -431,13 +431,16 @@ def load_source(path: str | Path, backbone: BackboneConfig, num_classes: int) ->
     """
     ck = load_checkpoint(path)
     if ck.num_classes != num_classes:
-        raise ModelLoadError(f"{path}: the 3D-CN source network has {ck.num_classes} classes, this run's "
-                             f"schema {num_classes}; start from a network trained with the same classes")
+        raise ModelLoadError(
+            f"{path}: the 3D-CN source network has {ck.num_classes} classes, this run's "
+            f"schema {num_classes}; start from a network trained with the same classes"
+        )
     if ck.config.backbone != backbone:
         mine, theirs = asdict(backbone), asdict(ck.config.backbone)
         diff = ", ".join(f"{k} {theirs[k]!r} (run: {mine[k]!r})" for k in mine if mine[k] != theirs[k])
-        raise ModelLoadError(f"{path}: the 3D-CN source network's backbone differs from "
-                             f"consistency.backbone: {diff}")
+        raise ModelLoadError(
+            f"{path}: the 3D-CN source network's backbone differs from consistency.backbone: {diff}"
+        )
     return SourceNetwork(ck.model, file_digest(path))
 
 

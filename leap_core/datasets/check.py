@@ -215,8 +215,19 @@ def dataset_stamp(root: str | Path, poses_path: str | Path | None = None) -> tup
     and size of the folder and of every entry it reads (a file added to or removed from a folder changes
     the folder's mtime). For caching reports (the app's dataset list)."""
     root = Path(root)
-    names = ("", "velodyne", "image_2", "labels", "gt2d", "gt2d/semantic", "gt2d/instance", "calib.txt",
-             "poses.txt", "times.txt", POSES_NOTE)
+    names = (
+        "",
+        "velodyne",
+        "image_2",
+        "labels",
+        "gt2d",
+        "gt2d/semantic",
+        "gt2d/instance",
+        "calib.txt",
+        "poses.txt",
+        "times.txt",
+        POSES_NOTE,
+    )
     paths = [root / n if n else root for n in names]
     if poses_path is not None:
         paths += [Path(poses_path), Path(poses_path).parent / POSES_NOTE]
@@ -265,8 +276,19 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
 
     def early(code: str, path: Path, detail: str) -> DatasetReport:
         findings.append(Finding(code, "blocker", str(path), detail))
-        return _assemble(root, [], empty, empty, empty, CalibCheck(False, False),
-                         PosesCheck("missing", str(poses_file)), cfg, chosen, findings, {})
+        return _assemble(
+            root,
+            [],
+            empty,
+            empty,
+            empty,
+            CalibCheck(False, False),
+            PosesCheck("missing", str(poses_file)),
+            cfg,
+            chosen,
+            findings,
+            {},
+        )
 
     if not root.is_dir():
         return early("not_a_folder", root, "no such folder" if not root.exists() else "not a folder")
@@ -275,16 +297,24 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         inner = sorted(p.parent.name for p in root.glob("sequences/*/velodyne") if p.is_dir())
         inner += sorted(p.parent.name for p in root.glob("*/velodyne") if p.is_dir())
         hint = f"; it holds sequence folders: {', '.join(inner[:5])}" if inner else ""
-        return early("not_a_sequence", vel,
-                     f"no velodyne/ folder, so this is not a KITTI sequence folder{hint}")
+        return early(
+            "not_a_sequence", vel, f"no velodyne/ folder, so this is not a KITTI sequence folder{hint}"
+        )
     sizes = _scan_sizes(vel)
     frames = _ordered(sizes)
     if not frames:
         return early("no_scans", vel, "no .bin scans")
     damaged = [f for f in frames if sizes[f] < 0 or sizes[f] % 16]
     if damaged:
-        findings.append(_per_frame("scans_damaged", "blocker", vel, "scans whose size is not a whole number "
-                                   "of points (16 bytes: float32 x, y, z, remission)", damaged))
+        findings.append(
+            _per_frame(
+                "scans_damaged",
+                "blocker",
+                vel,
+                "scans whose size is not a whole number of points (16 bytes: float32 x, y, z, remission)",
+                damaged,
+            )
+        )
 
     images = _stems(root / "image_2", IMAGE_SUFFIXES)
     labels = _stems(root / "labels", (".label",))
@@ -321,8 +351,9 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         if seq.has_poses:
             source = seq.pose_source
             method = _note_method(poses_file) if source == "estimated" else None
-            poses = PosesCheck("estimated" if source == "estimated" else "file", str(poses_file),
-                               seq.pose_lines, method)
+            poses = PosesCheck(
+                "estimated" if source == "estimated" else "file", str(poses_file), seq.pose_lines, method
+            )
         else:
             poses = PosesCheck("missing", str(poses_file))
     if poses is None:  # the reader stopped before (or without) reading the poses: read them here
@@ -338,59 +369,121 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
     if poses.source == "missing":
         if estimate_poses:
             poses = PosesCheck("will-estimate", str(poses_file))
-            findings.append(Finding("poses_will_estimate", "info", str(poses_file),
-                                    "no poses file: the poses will be estimated (KISS-ICP) before the 3D "
-                                    "stages"))
+            findings.append(
+                Finding(
+                    "poses_will_estimate",
+                    "info",
+                    str(poses_file),
+                    "no poses file: the poses will be estimated (KISS-ICP) before the 3D stages",
+                )
+            )
         else:
-            findings.append(Finding("poses_missing", "warning", str(poses_file),
-                                    "no poses file: the 3D stages need one pose per scan"))
+            findings.append(
+                Finding(
+                    "poses_missing",
+                    "warning",
+                    str(poses_file),
+                    "no poses file: the 3D stages need one pose per scan",
+                )
+            )
     elif poses.lines is not None:
         # A scan NNNNNN takes pose line NNNNNN (the frame's number), so the file may hold more lines than
         # there are scans (a subset copied out of a sequence) but not fewer than the highest number + 1.
         numbered = all(f.isdigit() for f in frames)
-        beyond = [f for f in frames if int(f) >= poses.lines] if numbered else (
-            frames[poses.lines:] if poses.lines < len(frames) else [])
+        beyond = (
+            [f for f in frames if int(f) >= poses.lines]
+            if numbered
+            else (frames[poses.lines :] if poses.lines < len(frames) else [])
+        )
         if beyond:
-            findings.append(_per_frame(
-                "poses_short", "warning", poses_file,
-                f"{poses.lines} poses, but scans are numbered up to {frames[-1]}: frames past the last line "
-                "have no pose", beyond))
+            findings.append(
+                _per_frame(
+                    "poses_short",
+                    "warning",
+                    poses_file,
+                    f"{poses.lines} poses, but scans are numbered up to {frames[-1]}: "
+                    "frames past the last line have no pose",
+                    beyond,
+                )
+            )
         elif poses.lines > len(frames):
-            findings.append(Finding("poses_extra", "info", str(poses_file),
-                                    f"{poses.lines} poses for {len(frames)} scans: scan NNNNNN takes pose "
-                                    "line NNNNNN (counted from 0)"))
+            findings.append(
+                Finding(
+                    "poses_extra",
+                    "info",
+                    str(poses_file),
+                    f"{poses.lines} poses for {len(frames)} scans: scan NNNNNN takes pose "
+                    "line NNNNNN (counted from 0)",
+                )
+            )
         if poses.source == "estimated":
-            findings.append(Finding("poses_estimated", "info", str(poses_file),
-                                    f"estimated poses ({poses.method or 'method not recorded'}; note "
-                                    f"{POSES_NOTE})"))
+            findings.append(
+                Finding(
+                    "poses_estimated",
+                    "info",
+                    str(poses_file),
+                    f"estimated poses ({poses.method or 'method not recorded'}; note {POSES_NOTE})",
+                )
+            )
 
     # 2D inputs: camera images (grounded-sam), 2D ground truth (simulated).
     if cover_img.kind == "none":
         findings.append(Finding("images_missing", "warning", str(root / "image_2"), "no camera images"))
     elif cover_img.kind == "some":
-        findings.append(_per_frame("images_partial", "warning", root / "image_2",
-                                   "scans without a camera image of the same number",
-                                   _missing(frames, images)))
+        findings.append(
+            _per_frame(
+                "images_partial",
+                "warning",
+                root / "image_2",
+                "scans without a camera image of the same number",
+                _missing(frames, images),
+            )
+        )
     if cover_2d.kind == "none":
         findings.append(Finding("gt2d_missing", "info", str(root / "gt2d"), "no 2D ground truth"))
     elif cover_2d.kind == "some":
-        findings.append(_per_frame("gt2d_partial", "warning", root / "gt2d",
-                                   "scans without 2D ground truth (gt2d/semantic and gt2d/instance)",
-                                   _missing(frames, gt2d)))
+        findings.append(
+            _per_frame(
+                "gt2d_partial",
+                "warning",
+                root / "gt2d",
+                "scans without 2D ground truth (gt2d/semantic and gt2d/instance)",
+                _missing(frames, gt2d),
+            )
+        )
     if cover_img.kind == "none" and cover_2d.kind == "none":
-        findings.append(Finding("no_2d_input", "blocker", str(root),
-                                "neither camera images (image_2/) nor 2D ground truth (gt2d/): no 2D labeler "
-                                "has anything to label"))
+        findings.append(
+            Finding(
+                "no_2d_input",
+                "blocker",
+                str(root),
+                "neither camera images (image_2/) nor 2D ground truth (gt2d/): no 2D labeler "
+                "has anything to label",
+            )
+        )
     if cover_gt.kind == "none":
-        findings.append(Finding("labels_missing", "info", str(root / "labels"),
-                                "no ground-truth labels: the run is not evaluated"))
+        findings.append(
+            Finding(
+                "labels_missing",
+                "info",
+                str(root / "labels"),
+                "no ground-truth labels: the run is not evaluated",
+            )
+        )
     elif cover_gt.kind == "some":
-        findings.append(_per_frame("labels_partial", "warning", root / "labels",
-                                   "scans without a ground-truth .label file: the run is not evaluated",
-                                   _missing(frames, labels)))
+        findings.append(
+            _per_frame(
+                "labels_partial",
+                "warning",
+                root / "labels",
+                "scans without a ground-truth .label file: the run is not evaluated",
+                _missing(frames, labels),
+            )
+        )
     model_codes = _check_models(cfg, rt, findings) if check_models else {}
-    return _assemble(root, frames, cover_img, cover_gt, cover_2d, calib, poses, cfg, chosen, findings,
-                     model_codes)
+    return _assemble(
+        root, frames, cover_img, cover_gt, cover_2d, calib, poses, cfg, chosen, findings, model_codes
+    )
 
 
 def _note_method(poses_file: Path) -> str | None:
@@ -413,24 +506,44 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
             missing.append(model_id)
             continue
         if is_tiny_random(folder):
-            findings.append(Finding("models_random", "warning", str(folder),
-                                    f"{model_id}: a tiny RANDOM-weight test model; its labels are "
-                                    "meaningless"))
+            findings.append(
+                Finding(
+                    "models_random",
+                    "warning",
+                    str(folder),
+                    f"{model_id}: a tiny RANDOM-weight test model; its labels are meaningless",
+                )
+            )
     if not missing:
         return {"grounded-sam": ()}
     if rt.models_dir is not None:
         names = ", ".join(f"{model_folder_name(m)}/ ({m})" for m in missing)
-        findings.append(Finding("models_missing", "warning", str(rt.models_dir),
-                                f"no model folder with a config.json for {names}"))
+        findings.append(
+            Finding(
+                "models_missing",
+                "warning",
+                str(rt.models_dir),
+                f"no model folder with a config.json for {names}",
+            )
+        )
     else:
-        findings.append(Finding("models_missing", "warning", None,
-                                f"no models folder is set and {', '.join(missing)} "
-                                f"{'is' if len(missing) == 1 else 'are'} not in the Hugging Face cache"))
+        findings.append(
+            Finding(
+                "models_missing",
+                "warning",
+                None,
+                f"no models folder is set and {', '.join(missing)} "
+                f"{'is' if len(missing) == 1 else 'are'} not in the Hugging Face cache",
+            )
+        )
     return {"grounded-sam": ("models_missing",)}
 
 
 def _labeler_checks(
-    frames: list[str], img: FrameCoverage, gt2d: FrameCoverage, model_codes: dict[str, tuple[str, ...]],
+    frames: list[str],
+    img: FrameCoverage,
+    gt2d: FrameCoverage,
+    model_codes: dict[str, tuple[str, ...]],
 ) -> tuple[LabelerCheck, ...]:
     out = []
     for name, spec in LABELERS.items():
@@ -453,12 +566,21 @@ def _alternative(labelers: Iterable[LabelerCheck], besides: str | None) -> Label
     folder has and that lacks only its models."""
     others = [lab for lab in labelers if lab.name != besides]
     return next((lab for lab in others if lab.can_run), None) or next(
-        (lab for lab in others if set(lab.reasons) <= {"models_missing"}), None)
+        (lab for lab in others if set(lab.reasons) <= {"models_missing"}), None
+    )
 
 
 def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gathered
-    root: Path, frames: list[str], img: FrameCoverage, gt: FrameCoverage, gt2d: FrameCoverage,
-    calib: CalibCheck, poses: PosesCheck, cfg: PipelineConfig, chosen: bool, findings: list[Finding],
+    root: Path,
+    frames: list[str],
+    img: FrameCoverage,
+    gt: FrameCoverage,
+    gt2d: FrameCoverage,
+    calib: CalibCheck,
+    poses: PosesCheck,
+    cfg: PipelineConfig,
+    chosen: bool,
+    findings: list[Finding],
     model_codes: dict[str, tuple[str, ...]],
 ) -> DatasetReport:
     labelers = _labeler_checks(frames, img, gt2d, model_codes)
@@ -469,19 +591,28 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
         labeler = pick.name if pick is not None else labeler
     if labeler not in model_codes and by_name[labeler].can_run:
         # The models concern only runs with the grounded-sam labeler: a fact here, not a warning.
-        findings[:] = [replace(f, severity="info") if f.code in ("models_missing", "models_random") else f
-                       for f in findings]
+        findings[:] = [
+            replace(f, severity="info") if f.code in ("models_missing", "models_random") else f
+            for f in findings
+        ]
     blockers = [f.code for f in findings if f.severity == "blocker"]
     alt = _alternative(labelers, labeler)
     if not by_name[labeler].can_run and not blockers and alt is not None:
         # Only with another labeler to suggest: otherwise the findings behind it carry the fixes.
         why = ", ".join(reason_text(r) for r in by_name[labeler].reasons)
-        findings.append(Finding(
-            "labeler_cannot_run", "warning", None,
-            f"the {labeler} labeler cannot run ({why})"
-            + (f"; the {alt.name} labeler can" if alt.can_run else
-               f"; the {alt.name} labeler could, given its models"),
-        ))
+        findings.append(
+            Finding(
+                "labeler_cannot_run",
+                "warning",
+                None,
+                f"the {labeler} labeler cannot run ({why})"
+                + (
+                    f"; the {alt.name} labeler can"
+                    if alt.can_run
+                    else f"; the {alt.name} labeler could, given its models"
+                ),
+            )
+        )
     codes = {f.code for f in findings}
     pose_codes = tuple(c for c in ("poses_missing", "poses_invalid", "poses_short") if c in codes)
     stages: list[StageCheck] = []
@@ -514,10 +645,21 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
     else:
         verdict = "full"
     return DatasetReport(
-        root=str(root), verdict=verdict, frames=len(frames),
-        first_frame=frames[0] if frames else None, last_frame=frames[-1] if frames else None,
-        images=img, ground_truth=gt, gt2d=gt2d, calib=calib, poses=poses, labeler=labeler,
-        labeler_chosen=chosen, labelers=labelers, stages=tuple(stages), findings=tuple(findings),
+        root=str(root),
+        verdict=verdict,
+        frames=len(frames),
+        first_frame=frames[0] if frames else None,
+        last_frame=frames[-1] if frames else None,
+        images=img,
+        ground_truth=gt,
+        gt2d=gt2d,
+        calib=calib,
+        poses=poses,
+        labeler=labeler,
+        labeler_chosen=chosen,
+        labelers=labelers,
+        stages=tuple(stages),
+        findings=tuple(findings),
     )
 
 
@@ -535,73 +677,113 @@ class Advice:
 
 
 ADVICE: dict[str, Advice] = {
-    "not_a_folder": Advice("give the path of a sequence folder (…/sequences/NN)",
-                           "pick an existing sequence folder inside a data root", "no such folder"),
-    "not_a_sequence": Advice("give a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
-                             "pick a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
-                             "not a sequence folder"),
-    "no_scans": Advice("add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
-                       "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)", "no scans"),
+    "not_a_folder": Advice(
+        "give the path of a sequence folder (…/sequences/NN)",
+        "pick an existing sequence folder inside a data root",
+        "no such folder",
+    ),
+    "not_a_sequence": Advice(
+        "give a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
+        "pick a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
+        "not a sequence folder",
+    ),
+    "no_scans": Advice(
+        "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
+        "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
+        "no scans",
+    ),
     "scans_damaged": Advice("replace the damaged scans", "replace the damaged scans", "damaged scans"),
     "calib_missing": Advice(
         "write calib.txt with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' line (the 3×4 "
         "LiDAR→camera transform)",
         "add calib.txt to the dataset, with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' "
-        "line (the 3×4 LiDAR→camera transform)", "no calibration"),
-    "calib_invalid": Advice("fix calib.txt ('P2:' and 'Tr:', 12 numbers each)",
-                            "fix calib.txt in the dataset ('P2:' and 'Tr:', 12 numbers each)",
-                            "unusable calibration"),
-    "unreadable": Advice("fix the file named above", "fix the file named above in the dataset",
-                         "a file the reader refuses"),
-    "no_2d_input": Advice("add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
-                          "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "
-                          "Grounding DINO + SAM labeler", "nothing to label from"),
-    "images_missing": Advice("add camera images as image_2/NNNNNN.png (or .jpg) to use "
-                             "--labeler grounded-sam",
-                             "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset to use the "
-                             "Grounding DINO + SAM labeler", "no camera images"),
-    "images_partial": Advice("add the missing images, or label only frames that have one (--frames A:B)",
-                             "add the missing images to the dataset's image_2/ folder",
-                             "frames without a camera image"),
+        "line (the 3×4 LiDAR→camera transform)",
+        "no calibration",
+    ),
+    "calib_invalid": Advice(
+        "fix calib.txt ('P2:' and 'Tr:', 12 numbers each)",
+        "fix calib.txt in the dataset ('P2:' and 'Tr:', 12 numbers each)",
+        "unusable calibration",
+    ),
+    "unreadable": Advice(
+        "fix the file named above", "fix the file named above in the dataset", "a file the reader refuses"
+    ),
+    "no_2d_input": Advice(
+        "add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
+        "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "
+        "Grounding DINO + SAM labeler",
+        "nothing to label from",
+    ),
+    "images_missing": Advice(
+        "add camera images as image_2/NNNNNN.png (or .jpg) to use --labeler grounded-sam",
+        "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset to use the "
+        "Grounding DINO + SAM labeler",
+        "no camera images",
+    ),
+    "images_partial": Advice(
+        "add the missing images, or label only frames that have one (--frames A:B)",
+        "add the missing images to the dataset's image_2/ folder",
+        "frames without a camera image",
+    ),
     "gt2d_missing": Advice("", "", "no 2D ground truth"),
-    "gt2d_partial": Advice("add the missing gt2d/semantic and gt2d/instance masks, or use "
-                           "--labeler grounded-sam",
-                           "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM "
-                           "labeler under Parameters", "frames without 2D ground truth"),
+    "gt2d_partial": Advice(
+        "add the missing gt2d/semantic and gt2d/instance masks, or use --labeler grounded-sam",
+        "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM labeler under Parameters",
+        "frames without 2D ground truth",
+    ),
     "labels_missing": Advice("", "", "no ground truth"),
-    "labels_partial": Advice("add the missing labels/NNNNNN.label files (evaluation needs one per scan)",
-                             "add the missing labels/NNNNNN.label files to the dataset (evaluation needs one "
-                             "per scan)", "ground truth for only some scans"),
+    "labels_partial": Advice(
+        "add the missing labels/NNNNNN.label files (evaluation needs one per scan)",
+        "add the missing labels/NNNNNN.label files to the dataset (evaluation needs one per scan)",
+        "ground truth for only some scans",
+    ),
     "poses_missing": Advice(
         "estimate them with `leap poses {seq}` (KISS-ICP LiDAR odometry), or add --estimate-poses to "
         "`leap run`",
-        "turn on \"Estimate poses (KISS-ICP)\" (on the project page, or when creating the project), or add "
+        'turn on "Estimate poses (KISS-ICP)" (on the project page, or when creating the project), or add '
         "a poses.txt to the dataset",
-        "no poses"),
+        "no poses",
+    ),
     "poses_will_estimate": Advice("", "", ""),
-    "poses_invalid": Advice("fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",
-                            "fix or remove the dataset's poses.txt, then create the project with \"Estimate "
-                            "poses (KISS-ICP)\" ticked", "unreadable poses"),
-    "poses_unreadable": Advice("fix or remove poses.txt (then `leap poses {seq}` estimates new ones)",
-                               "fix or remove the dataset's poses.txt, then create the project with "
-                               "\"Estimate poses (KISS-ICP)\" ticked", "unreadable poses"),
-    "poses_short": Advice("poses.txt needs one line per frame number: add the missing lines, or estimate "
-                          "poses with `leap poses {seq} --force`",
-                          "poses.txt needs one line per frame number: add the missing lines, or remove it "
-                          "and create the project with \"Estimate poses (KISS-ICP)\" ticked",
-                          "frames without a pose"),
+    "poses_invalid": Advice(
+        "fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",
+        "fix or remove the dataset's poses.txt, then create the project with \"Estimate "
+        'poses (KISS-ICP)" ticked',
+        "unreadable poses",
+    ),
+    "poses_unreadable": Advice(
+        "fix or remove poses.txt (then `leap poses {seq}` estimates new ones)",
+        "fix or remove the dataset's poses.txt, then create the project with "
+        '"Estimate poses (KISS-ICP)" ticked',
+        "unreadable poses",
+    ),
+    "poses_short": Advice(
+        "poses.txt needs one line per frame number: add the missing lines, or estimate "
+        "poses with `leap poses {seq} --force`",
+        "poses.txt needs one line per frame number: add the missing lines, or remove it "
+        'and create the project with "Estimate poses (KISS-ICP)" ticked',
+        "frames without a pose",
+    ),
     "poses_extra": Advice("", "", ""),
     "poses_estimated": Advice("", "", ""),
     "models_missing": Advice(
         "pass --models DIR with grounding-dino-tiny/ and sam-vit-base/ (README 'Real 2D labels'); "
         "`leap make-tiny-models DIR` writes random-weight stand-ins to try the code path",
         "the server needs a models folder holding grounding-dino-tiny/ and sam-vit-base/: whoever runs it "
-        "sets it (LEAP_MODELS_DIR) and restarts it", "its models are not found"),
-    "models_random": Advice("use real weights (README 'Real 2D labels')",
-                            "the server's models folder holds test models with random weights: ask whoever "
-                            "runs it for real weights", ""),
-    "labeler_cannot_run": Advice("use --labeler {alt}", "choose \"{alt_label}\" as the 2D labeler under "
-                                 "Parameters", "the chosen labeler cannot run"),
+        "sets it (LEAP_MODELS_DIR) and restarts it",
+        "its models are not found",
+    ),
+    "models_random": Advice(
+        "use real weights (README 'Real 2D labels')",
+        "the server's models folder holds test models with random weights: ask whoever "
+        "runs it for real weights",
+        "",
+    ),
+    "labeler_cannot_run": Advice(
+        "use --labeler {alt}",
+        'choose "{alt_label}" as the 2D labeler under Parameters',
+        "the chosen labeler cannot run",
+    ),
     "off": Advice("", "", "3D-CN off"),
 }
 """Every finding code with its fix for the command line and for the app."""
@@ -616,8 +798,11 @@ def advice(finding: Finding, audience: Audience, report: DatasetReport) -> str:
     if finding.code == "labeler_cannot_run":
         alt = _alternative(report.labelers, report.labeler)
         if alt is None:
-            return "fix the problems listed for the labelers" if audience == "cli" else (
-                "fix the problems listed for the 2D labelers")
+            return (
+                "fix the problems listed for the labelers"
+                if audience == "cli"
+                else ("fix the problems listed for the 2D labelers")
+            )
         return text.format(alt=alt.name, alt_label=alt.label)
     return text.format(seq=report.root)
 
@@ -666,8 +851,10 @@ def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = No
         lines.append(f"frames    {report.frames} scan{plural} ({report.first_frame} … {report.last_frame})")
         lines.append(f"images    {_coverage_line(report.images, 'a camera image (image_2/)')}")
         cal = report.calib
-        lines.append("calib     " + ("calib.txt: P2 and Tr read" if cal.valid else
-                                    f"calib.txt: {cal.problem or 'missing'}"))
+        lines.append(
+            "calib     "
+            + ("calib.txt: P2 and Tr read" if cal.valid else f"calib.txt: {cal.problem or 'missing'}")
+        )
         p = report.poses
         pose_text = {
             "file": f"poses.txt, {p.lines} poses",
@@ -677,8 +864,10 @@ def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = No
             "will-estimate": "missing: estimated before the 3D stages",
         }[p.source]
         lines.append(f"poses     {pose_text}")
-        lines.append(f"labels    {report.ground_truth.kind}: "
-                     f"{_coverage_line(report.ground_truth, 'ground truth (labels/)')}")
+        lines.append(
+            f"labels    {report.ground_truth.kind}: "
+            f"{_coverage_line(report.ground_truth, 'ground truth (labels/)')}"
+        )
         gt2d = _coverage_line(report.gt2d, "2D ground truth (gt2d/)")
         lines.append(f"gt2d      {report.gt2d.kind}: {gt2d}")
         lines.append("")

@@ -247,6 +247,7 @@ def read_calib(path: str | Path) -> Calib:
 
 def write_calib(path: str | Path, calib: Calib) -> None:
     """Write a KITTI ``calib.txt`` (P0..P3 with P2 for all cameras; only P2 and Tr are used)."""
+
     def fmt(m: npt.NDArray[np.float64]) -> str:
         return " ".join(f"{v:.12e}" for v in m.reshape(-1))
 
@@ -443,16 +444,20 @@ def _rows_of_frames(path: Path, n_lines: int, what: str, seq: KittiSequence) -> 
     rows = np.asarray(seq.frame_numbers, dtype=np.int64)
     if not seq.numbered:
         if n_lines != len(rows):
-            raise DatasetError(path, f"{n_lines} {what} but {len(rows)} scans (scans without numeric names "
-                                     "need exactly one line each, in name order)")
+            raise DatasetError(
+                path,
+                f"{n_lines} {what} but {len(rows)} scans (scans without numeric names "
+                "need exactly one line each, in name order)",
+            )
         return rows
     past = np.flatnonzero(rows >= n_lines)
     if past.size:
         first = int(past[0])
         more = f" (and {past.size - 1} more scans past the end)" if past.size > 1 else ""
         raise DatasetError(
-            path, f"{n_lines} {what} (frames 0..{n_lines - 1}) but scan {seq.frame_ids[first]}.bin is frame "
-            f"{int(rows[first])}{more}"
+            path,
+            f"{n_lines} {what} (frames 0..{n_lines - 1}) but scan {seq.frame_ids[first]}.bin is frame "
+            f"{int(rows[first])}{more}",
         )
     return rows
 

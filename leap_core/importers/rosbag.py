@@ -189,8 +189,17 @@ def pointcloud_xyzi(msg: Any) -> tuple[npt.NDArray[np.float32], int, bool]:
 
 
 # ------------------------------------------------------------------------------------------- images
-_CHANNELS = {"rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8uc1": 1, "mono16": 1,
-             "16uc1": 1}
+_CHANNELS = {
+    "rgb8": 3,
+    "bgr8": 3,
+    "8uc3": 3,
+    "rgba8": 4,
+    "bgra8": 4,
+    "mono8": 1,
+    "8uc1": 1,
+    "mono16": 1,
+    "16uc1": 1,
+}
 
 
 def image_rgb(msg: Any) -> npt.NDArray[np.uint8]:
@@ -438,8 +447,9 @@ def _extrinsic_part(path: Path, ext: dict[str, Any] | None) -> F64 | None:
         return None
     if "matrix" in ext:
         if set(ext) != {"matrix"}:
-            raise DatasetError(path, "'lidar_to_camera' takes 'matrix' or 'translation' + 'rotation', "
-                               "not both")
+            raise DatasetError(
+                path, "'lidar_to_camera' takes 'matrix' or 'translation' + 'rotation', not both"
+            )
         m = _numbers(path, "lidar_to_camera.matrix", ext["matrix"], (12, 16))
         tr = np.eye(4)
         tr[:3] = m[:12].reshape(3, 4)
@@ -499,7 +509,12 @@ def read_calib_file(path: str | Path) -> PartialCalib:
 # What a damaged bag raises past AnyReader: rosbags' sqlite3 storage reads through apsw (a page that does not
 # parse is an apsw.CorruptError), a damaged mcap record can fail to decode (UnicodeDecodeError, a ValueError).
 _READ_ERRORS: tuple[type[BaseException], ...] = (
-    apsw.Error, OSError, KeyError, ValueError, IndexError, EOFError
+    apsw.Error,
+    OSError,
+    KeyError,
+    ValueError,
+    IndexError,
+    EOFError,
 )
 
 
@@ -563,8 +578,12 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
         info_conns = _topic(reader, bag, cfg.camera_info_topic, (CAMERA_INFO,), "camera info")
     else:
         info_conns = [c for t in topics.values() if t.msgtype == CAMERA_INFO for c in t.connections]
-    tf_conns = [c for name in (TF_TOPIC, TF_STATIC_TOPIC) if name in topics
-                and topics[name].msgtype == TF_MESSAGE for c in topics[name].connections]
+    tf_conns = [
+        c
+        for name in (TF_TOPIC, TF_STATIC_TOPIC)
+        if name in topics and topics[name].msgtype == TF_MESSAGE
+        for c in topics[name].connections
+    ]
     scans: list[_Msg] = []
     cams: list[_Msg] = []
     infos: dict[str, Any] = {}
@@ -586,8 +605,16 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
                 size = (int(msg.width), int(msg.height))
         else:
             infos.setdefault(conn.topic, msg)
-    return {"scans": scans, "cams": cams, "cam_frame": cams[0].frame if cams else "", "infos": infos,
-            "tree": tree, "lidar": lidar, "camera": camera, "size": size}
+    return {
+        "scans": scans,
+        "cams": cams,
+        "cam_frame": cams[0].frame if cams else "",
+        "infos": infos,
+        "tree": tree,
+        "lidar": lidar,
+        "camera": camera,
+        "size": size,
+    }
 
 
 def _camera_info(cfg: RosbagImportConfig, infos: dict[str, Any], cam_frame: str) -> tuple[str, Any] | None:
@@ -603,7 +630,10 @@ def _camera_info(cfg: RosbagImportConfig, infos: dict[str, Any], cam_frame: str)
 
 
 def _p2_from_info(
-    cfg: RosbagImportConfig, first: dict[str, Any], info: tuple[str, Any], problems: list[str],
+    cfg: RosbagImportConfig,
+    first: dict[str, Any],
+    info: tuple[str, Any],
+    problems: list[str],
     notes: list[str],
 ) -> F64 | None:
     """P2 = CameraInfo.P, or None with the reason appended to ``problems``."""
@@ -615,12 +645,16 @@ def _p2_from_info(
         problems.append(f"camera intrinsics (CameraInfo on {topic} has no valid P matrix)")
         return None
     if first["size"] is not None and all(info_size) and info_size != first["size"]:
-        problems.append(f"camera intrinsics (CameraInfo on {topic} is for {info_size[0]}×{info_size[1]} "
-                        f"images, {cfg.camera_topic} has {first['size'][0]}×{first['size'][1]})")
+        problems.append(
+            f"camera intrinsics (CameraInfo on {topic} is for {info_size[0]}×{info_size[1]} "
+            f"images, {cfg.camera_topic} has {first['size'][0]}×{first['size'][1]})"
+        )
         return None
     if np.any(np.asarray(msg.d if hasattr(msg, "d") else msg.D, np.float64) != 0):
-        notes.append(f"CameraInfo {topic} has lens distortion: the images are used as recorded, "
-                     "so import a rectified image topic")
+        notes.append(
+            f"CameraInfo {topic} has lens distortion: the images are used as recorded, "
+            "so import a rectified image topic"
+        )
     return p
 
 
@@ -641,8 +675,11 @@ def _calibration(
     if p2 is not None:
         sources.append(f"{cfg.calib_file} (camera)")
     elif info is None:
-        where = (f"no CameraInfo message on {cfg.camera_info_topic}" if cfg.camera_info_topic
-                 else f"no sensor_msgs/CameraInfo topic for camera frame {cam_frame!r}")
+        where = (
+            f"no CameraInfo message on {cfg.camera_info_topic}"
+            if cfg.camera_info_topic
+            else f"no sensor_msgs/CameraInfo topic for camera frame {cam_frame!r}"
+        )
         problems.append(f"camera intrinsics ({where})")
     else:
         p2 = _p2_from_info(cfg, first, info, problems, notes)
@@ -654,13 +691,19 @@ def _calibration(
         tr = first["tree"].lookup_static(cam_frame, lidar_frame)
         if tr is None:
             static = ", ".join(sorted(first["tree"].static)) or "none"
-            problems.append(f"LiDAR → camera transform (no {TF_STATIC_TOPIC} chain from {lidar_frame!r} to "
-                            f"{cam_frame!r}; frames with a static parent: {static})")
+            problems.append(
+                f"LiDAR → camera transform (no {TF_STATIC_TOPIC} chain from {lidar_frame!r} to "
+                f"{cam_frame!r}; frames with a static parent: {static})"
+            )
         else:
             sources.append(f"{TF_STATIC_TOPIC} {lidar_frame} → {cam_frame}")
     if problems:
-        raise DatasetError(bag, "missing calibration: " + "; ".join(problems)
-                           + "; give them with --calib FILE (YAML, see docs/IMPORT.md)")
+        raise DatasetError(
+            bag,
+            "missing calibration: "
+            + "; ".join(problems)
+            + "; give them with --calib FILE (YAML, see docs/IMPORT.md)",
+        )
     assert p2 is not None and tr is not None
     return Calib(P2=p2, Tr=tr), " + ".join(sources), notes
 
@@ -673,8 +716,11 @@ def _poses(
     chain = tree.chain(lidar_frame)
     root = chain[-1] if cfg.fixed_frame is None else _frame(cfg.fixed_frame)
     if root not in chain:
-        raise DatasetError(bag, f"fixed frame {root!r} is not above the LiDAR frame in /tf and /tf_static "
-                           f"(its chain: {' → '.join(chain)})")
+        raise DatasetError(
+            bag,
+            f"fixed frame {root!r} is not above the LiDAR frame in /tf and /tf_static "
+            f"(its chain: {' → '.join(chain)})",
+        )
     if not tree.is_moving(lidar_frame, root):
         return None, np.ones(len(stamps), bool), None
     mats, ok = tree.to_ancestor(lidar_frame, root, stamps)
@@ -749,8 +795,11 @@ def import_rosbag(
             plan = _Plan(first["lidar"], first["camera"], todo, wanted)
             written = _write_frames(reader, bag, plan, fresh, summary, progress)
             if not written:
-                raise DatasetError(bag, "no scan has a camera frame within "
-                                   f"{cfg.max_offset_ms:g} ms (or a pose): nothing to write")
+                raise DatasetError(
+                    bag,
+                    "no scan has a camera frame within "
+                    f"{cfg.max_offset_ms:g} ms (or a pose): nothing to write",
+                )
             kept = np.asarray(written, np.int64)
             write_calib(fresh / "calib.txt", calib)
             times = (stamps[kept] - stamps[kept[0]]).astype(np.float64) * 1e-9
@@ -780,8 +829,9 @@ class _Plan:
     """Scan indices written, in frame order."""
 
 
-def _write_frames(reader: Any, bag: Path, plan: _Plan, seq: Path, summary: ImportSummary,
-                  progress: ProgressFn | None) -> list[int]:
+def _write_frames(
+    reader: Any, bag: Path, plan: _Plan, seq: Path, summary: ImportSummary, progress: ProgressFn | None
+) -> list[int]:
     """Second pass: write the kept scans and their camera frames; returns the scan indices written."""
     lidar_ids = {c.id for c in plan.lidar}
     total = len(plan.todo) + len(plan.wanted)
@@ -809,7 +859,10 @@ def _write_frames(reader: Any, bag: Path, plan: _Plan, seq: Path, summary: Impor
 
 
 def _write_scan(
-    plan: _Plan, scan_i: int, cloud: tuple[npt.NDArray[np.float32], int, bool], seq: Path,
+    plan: _Plan,
+    scan_i: int,
+    cloud: tuple[npt.NDArray[np.float32], int, bool],
+    seq: Path,
     summary: ImportSummary,
 ) -> None:
     pts, nan, _ = cloud

@@ -99,8 +99,16 @@ if TYPE_CHECKING:
     from leap_core.schema import Schema
 
 # Independent random streams per noise step (see the module docstring, "Determinism").
-(_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED, _STREAM_SHAPE, _STREAM_TILE,
- _STREAM_LATTICE, _STREAM_WORLD) = range(8)
+(
+    _STREAM_JITTER,
+    _STREAM_OBJECT,
+    _STREAM_PROBS,
+    _STREAM_BLEED,
+    _STREAM_SHAPE,
+    _STREAM_TILE,
+    _STREAM_LATTICE,
+    _STREAM_WORLD,
+) = range(8)
 
 _DEFAULT_CLASS_RECALL: dict[str, float] = {
     # Small or thin objects are the ones open-vocabulary detectors miss most often.
@@ -155,8 +163,9 @@ def _check_confusion(pairs: tuple[tuple[str, str], ...], table: dict[str, dict[s
     class other than its row's."""
     for pair in pairs:
         if len(pair) != 2 or pair[0] == pair[1]:
-            raise ConfigError(f"entries must be two different class names, got {list(pair)}",
-                              field=("confusion_pairs",))
+            raise ConfigError(
+                f"entries must be two different class names, got {list(pair)}", field=("confusion_pairs",)
+            )
     for cname, targets in table.items():
         for tname, wt in targets.items():
             if not float(wt) >= 0.0 or tname == cname:
@@ -283,8 +292,14 @@ class SimulatedLabelerConfig:
     15.0 or 42.6 and nothing between as q moves; docs/METHOD.md A.7, term 14)."""
 
     def __post_init__(self) -> None:
-        for name in ("recall", "confusion_prob", "partner_share", "box_leak_prob", "pair_merge_prob",
-                     "stuff_grow_prob"):
+        for name in (
+            "recall",
+            "confusion_prob",
+            "partner_share",
+            "box_leak_prob",
+            "pair_merge_prob",
+            "stuff_grow_prob",
+        ):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
@@ -352,10 +367,16 @@ class SimulatedLabelerConfig:
 def _check_needs(cfg: SimulatedLabelerConfig) -> None:
     """Refuse a term that is on while the term it works through is off, naming the first."""
     for name, needs, why in (
-        ("stuff_world_tile", "stuff_tile_px", "world tiles replace the image tiles of the tiled stuff "
-         "confusion: set stuff_tile_px > 0 too"),
-        ("drift_draws", "stratified_draws", "drifting draws move the stratified lattice over time: set "
-         "stratified_draws too"),
+        (
+            "stuff_world_tile",
+            "stuff_tile_px",
+            "world tiles replace the image tiles of the tiled stuff confusion: set stuff_tile_px > 0 too",
+        ),
+        (
+            "drift_draws",
+            "stratified_draws",
+            "drifting draws move the stratified lattice over time: set stratified_draws too",
+        ),
     ):
         if getattr(cfg, name) and not getattr(cfg, needs):
             raise ConfigError(why, field=(name,))
@@ -533,8 +554,13 @@ def tile_split(
     return out
 
 
-def world_tile_draws(cells: npt.ArrayLike, tile: int, phases: tuple[float, float],
-                     stratified: bool = True, seed_key: tuple[int, ...] = ()) -> npt.NDArray[np.float64]:
+def world_tile_draws(
+    cells: npt.ArrayLike,
+    tile: int,
+    phases: tuple[float, float],
+    stratified: bool = True,
+    seed_key: tuple[int, ...] = (),
+) -> npt.NDArray[np.float64]:
     """(2, ...) two draws in [0, 1) per pixel of ``cells`` (any shape; uint16 world cell ids
     ``ix · 256 + iy``, ``leap_core.synth.camera.world_cells``), equal for every pixel of one world tile
     ``(tx, ty) = (ix // tile, iy // tile)`` in every frame: draw 0 decides the confusion, draw 1 its target.
@@ -547,12 +573,14 @@ def world_tile_draws(cells: npt.ArrayLike, tile: int, phases: tuple[float, float
     c = np.asarray(cells, dtype=np.int64)
     tx, ty = (c >> 8) // tile, (c & 255) // tile
     if stratified:
-        return np.stack([lattice_draws(tx, ty, phases[d], _LATTICE_STEPS[d]).reshape(c.shape)
-                         for d in range(2)])
+        return np.stack(
+            [lattice_draws(tx, ty, phases[d], _LATTICE_STEPS[d]).reshape(c.shape) for d in range(2)]
+        )
     key = tx * 256 + ty
     uniq, inv = np.unique(key, return_inverse=True)
-    table = np.array([np.random.default_rng(np.random.SeedSequence([*seed_key, int(k)])).random(2)
-                      for k in uniq]).reshape(-1, 2)
+    table = np.array(
+        [np.random.default_rng(np.random.SeedSequence([*seed_key, int(k)])).random(2) for k in uniq]
+    ).reshape(-1, 2)
     return np.moveaxis(table[inv.reshape(c.shape)], -1, 0)
 
 
@@ -610,8 +638,9 @@ def confusion_targets(
     return out
 
 
-def _pick_many(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None,
-               u: npt.ArrayLike) -> npt.NDArray[np.int64]:
+def _pick_many(
+    cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: npt.ArrayLike
+) -> npt.NDArray[np.int64]:
     """The confused class for each draw of ``u`` ~ U(0, 1) (any shape): from the cumulative weights of a
     directed target row, else uniform over the pair partners ``cand``."""
     v = np.asarray(u, dtype=np.float64)
@@ -751,11 +780,15 @@ def _cell_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     cells = frame.gt2d_cell
     folder = frame.seq.root / "gt2d" / "cell"
     if cells is None:
-        raise LeapError(f"{folder}: missing; stuff_world_tile needs the world-cell images that `leap synth` "
-                        "writes (regenerate the sequence, or set stuff_world_tile: 0)")
+        raise LeapError(
+            f"{folder}: missing; stuff_world_tile needs the world-cell images that `leap synth` "
+            "writes (regenerate the sequence, or set stuff_world_tile: 0)"
+        )
     if cells.shape != semantic.shape:
-        raise LeapError(f"{folder / (frame.frame_id + '.png')}: cell image {cells.shape} and semantic mask "
-                        f"{semantic.shape} differ in size")
+        raise LeapError(
+            f"{folder / (frame.frame_id + '.png')}: cell image {cells.shape} and semantic mask "
+            f"{semantic.shape} differ in size"
+        )
     return cells
 
 
@@ -794,8 +827,9 @@ _LATTICE_STEPS: tuple[tuple[float, float], ...] = tuple(
 """The steps (a1, a2) of :func:`lattice_draws` per stratified decision, from :data:`_LATTICE_PRIMES`."""
 
 
-def lattice_draws(keys: npt.ArrayLike, block: float | npt.ArrayLike, phase: float,
-                  steps: tuple[float, float]) -> npt.NDArray[np.float64]:
+def lattice_draws(
+    keys: npt.ArrayLike, block: float | npt.ArrayLike, phase: float, steps: tuple[float, float]
+) -> npt.NDArray[np.float64]:
     """(R,) draws in [0, 1) of objects ``keys`` (R,) integers in the block of frames ``block`` (one, or
     (R,) of them; a fraction with ``drift_draws``): ``u = frac(phase + key · a1 + block · a2)`` with
     ``(a1, a2) = steps``, irrational and independent over the rationals.
@@ -812,8 +846,13 @@ def lattice_draws(keys: npt.ArrayLike, block: float | npt.ArrayLike, phase: floa
     return out
 
 
-def _stratify(u_obj: npt.NDArray[np.float64], u_shape: npt.NDArray[np.float64], regions: list[_Region],
-              seed: int, when: float) -> None:
+def _stratify(
+    u_obj: npt.NDArray[np.float64],
+    u_shape: npt.NDArray[np.float64],
+    regions: list[_Region],
+    seed: int,
+    when: float,
+) -> None:
     """Replace, in place, the confusion and target draws (``u_obj[:, 1:3]``) and the box-leak and
     pair-merge draws (``u_shape[:, 0:2]``) by :func:`lattice_draws` keyed by the object (a thing's instance
     id; a stuff region's name and area rank), one lattice per decision (:data:`_LATTICE_PRIMES`), at time
@@ -825,8 +864,9 @@ def _stratify(u_obj: npt.NDArray[np.float64], u_shape: npt.NDArray[np.float64], 
         arr[:, col] = lattice_draws(keys, when, float(phase), steps)
 
 
-def _persistent_draws(regions: list[_Region], cfg: SimulatedLabelerConfig, seed: int, frame: int, *,
-                      shaped: bool) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+def _persistent_draws(
+    regions: list[_Region], cfg: SimulatedLabelerConfig, seed: int, frame: int, *, shaped: bool
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """(R, 4) object draws and (R, 4) shape draws of a frame's regions in frame number ``frame``'s block
     (:func:`_object_draws`; the shape draws only when a shape term is on, else ones), four of them
     replaced by lattice draws when ``stratified_draws`` is on (:func:`_stratify`)."""
@@ -912,8 +952,13 @@ class SimulatedLabeler:
                 f"{inst.shape} masks differ in size"
             )
         seed, idx = cfg.seed, frame.number
-        names_img, inst, cells = _jitter(_name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER),
-                                         _cell_image(frame, sem) if cfg.stuff_world_tile > 0 else None)
+        names_img, inst, cells = _jitter(
+            _name_image(frame, sem),
+            inst,
+            cfg,
+            _rng(seed, idx, _STREAM_JITTER),
+            _cell_image(frame, sem) if cfg.stuff_world_tile > 0 else None,
+        )
         h, w = names_img.shape
         names = list(schema.names)
         num_classes, regions, matches = len(names), _regions(names_img, inst), prompt_matches(schema)
@@ -934,10 +979,19 @@ class SimulatedLabeler:
         shaped = bool(leak_of.any()) or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
         u_obj, u_shape = _persistent_draws(regions, cfg, seed, idx, shaped=shaped)
         draws = _Draws(
-            h=h, w=w, seed=seed, block=block, u_obj=u_obj, u_bleed=u_bleed, u_shape=u_shape, cells=cells,
+            h=h,
+            w=w,
+            seed=seed,
+            block=block,
+            u_obj=u_obj,
+            u_bleed=u_bleed,
+            u_shape=u_shape,
+            cells=cells,
             merge_with=_merge_partners(regions, cfg),
-            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion), leak_of=leak_of,
-            partners=partners, targets=confusion_targets(names, cfg.confusion_targets),
+            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion),
+            leak_of=leak_of,
+            partners=partners,
+            targets=confusion_targets(names, cfg.confusion_targets),
         )
         size_factor = size_recall([r.crop.sum() for r in regions], cfg.small_region_px)
 
@@ -961,7 +1015,12 @@ class SimulatedLabeler:
             for part, part_pred in parts:
                 probs.append(
                     _distribution(
-                        cls, part_pred, rival=rival, partners=partners, num_classes=num_classes, cfg=cfg,
+                        cls,
+                        part_pred,
+                        rival=rival,
+                        partners=partners,
+                        num_classes=num_classes,
+                        cfg=cfg,
                         rng=rng_i,
                     )
                 )
@@ -1022,8 +1081,14 @@ class SimulatedLabeler:
         ]
         return [(part, c) for part, c in parts if part.crop.any()], radius
 
-    def _world_parts(self, d: _Draws, shape: _Region, cls: int, cand: list[int],
-                     target: tuple[list[int], npt.NDArray[np.float64]] | None) -> list[tuple[_Region, int]]:
+    def _world_parts(
+        self,
+        d: _Draws,
+        shape: _Region,
+        cls: int,
+        cand: list[int],
+        target: tuple[list[int], npt.NDArray[np.float64]] | None,
+    ) -> list[tuple[_Region, int]]:
         """Stuff region ``shape`` split by world tiles (term 13): the pixels whose tile is confused, one
         part per target they take (:func:`world_tile_draws`, keyed by the region's name and the seed, not
         the frame), and the rest, labeled ``cls``."""
@@ -1032,8 +1097,13 @@ class SimulatedLabeler:
         ch, cw = shape.crop.shape
         cells = d.cells[shape.y0 : shape.y0 + ch, shape.x0 : shape.x0 + cw]
         phases = np.random.default_rng(np.random.SeedSequence([d.seed, _STREAM_WORLD, shape.name])).random(2)
-        u = world_tile_draws(cells, cfg.stuff_world_tile, (float(phases[0]), float(phases[1])),
-                             cfg.stratified_draws, (d.seed, _STREAM_WORLD, shape.name))
+        u = world_tile_draws(
+            cells,
+            cfg.stuff_world_tile,
+            (float(phases[0]), float(phases[1])),
+            cfg.stratified_draws,
+            (d.seed, _STREAM_WORLD, shape.name),
+        )
         moved = shape.crop & (u[0] < d.confusion_of[cls])
         parts = [(dataclasses.replace(shape, crop=shape.crop & ~moved), cls)]
         if moved.any():

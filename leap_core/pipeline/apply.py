@@ -88,8 +88,10 @@ class RunCorrections:
 
     def differs(self, other: RunCorrections) -> bool:
         """Whether any point would get another label under ``other`` (a voxel or a scan's points differ)."""
-        return bool(changed_keys(self.map_keys, self.map_class, other.map_keys, other.map_class).size
-                    or self.scan.changed_frames(other.scan))
+        return bool(
+            changed_keys(self.map_keys, self.map_class, other.map_keys, other.map_class).size
+            or self.scan.changed_frames(other.scan)
+        )
 
     def write(self, map_path: Path, scan_path: Path) -> None:
         save_corrections(map_path, self.map_keys, self.map_class)
@@ -170,9 +172,7 @@ def check_scan_points(path: Path, frame_id: str, corr: RunCorrections, n_points:
         raise DatasetError(path, f"frame {frame_id}: point index {int(pts.max())}, the scan has {n_points}")
 
 
-def build_frame_index(
-    seq: KittiSequence, frames: Iterable[int], voxel_size: float
-) -> FrameVoxelIndex:
+def build_frame_index(seq: KittiSequence, frames: Iterable[int], voxel_size: float) -> FrameVoxelIndex:
     """The voxel → frames index over ``frames`` (positions follow their order)."""
     return FrameVoxelIndex.build(frame_keys(seq.frame(i), voxel_size) for i in frames)
 
@@ -273,8 +273,9 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
             sel = np.flatnonzero(rows_in_sorted(diff, keys) >= 0).astype(np.int64)
             lab[sel], conf[sel] = point_labels(cache.final, keys, fid, new, subset=sel)
         atomic_save_npz(path, label=lab, conf=conf.astype(np.float16), point_label=point_label)
-        export_labels(layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16),
-                      export_ids)
+        export_labels(
+            layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16), export_ids
+        )
 
     # Frames are independent files; numpy's lookups and the fsyncs of the atomic writes release the GIL,
     # so a few threads overlap one frame's disk waits with another's arithmetic.
@@ -291,6 +292,16 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
     )
 
 
-__all__ = ["ApplyResult", "RunCache", "RunCorrections", "apply_to_run", "build_frame_index",
-           "check_scan_points", "export_ahead_of_metrics", "frame_keys", "grid_labels_at", "load_run_cache",
-           "point_labels"]
+__all__ = [
+    "ApplyResult",
+    "RunCache",
+    "RunCorrections",
+    "apply_to_run",
+    "build_frame_index",
+    "check_scan_points",
+    "export_ahead_of_metrics",
+    "frame_keys",
+    "grid_labels_at",
+    "load_run_cache",
+    "point_labels",
+]

@@ -113,8 +113,9 @@ class StageInfo:
     table)."""
     frame_files: FrameFiles | None = None
     """Per-frame stages: their files (the folder is removed when the fingerprint changes)."""
-    outputs: Callable[[RunLayout, PipelineConfig], tuple[Path, ...]] = field(default=_no_files, repr=False,
-                                                                            compare=False)
+    outputs: Callable[[RunLayout, PipelineConfig], tuple[Path, ...]] = field(
+        default=_no_files, repr=False, compare=False
+    )
     """Whole-run stages: the files a finished run of the stage has (a stage recorded as skipped has none)."""
     stale: Callable[[RunLayout], Iterable[Path]] | None = field(default=None, repr=False, compare=False)
     """Files removed when the fingerprint changes; None = :attr:`outputs` (for the current config)."""
@@ -202,7 +203,8 @@ class Ctx:
         if files is None:
             raise ValueError(f"stage {stage} is not per-frame")
         return [
-            i for i in self.frames
+            i
+            for i in self.frames
             if not all(self.layout.frame_file(files.folder, self.fid(i), s).is_file() for s in files.suffixes)
         ]
 

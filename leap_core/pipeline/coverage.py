@@ -204,8 +204,9 @@ class _KeyCounts:
             bk, bc = self.parts[0]
         else:
             bk, inverse = np.unique(np.concatenate([k for k, _ in self.parts]), return_inverse=True)
-            bc = np.bincount(inverse.reshape(-1), weights=np.concatenate([c for _, c in self.parts]),
-                             minlength=bk.size).astype(np.int64)
+            bc = np.bincount(
+                inverse.reshape(-1), weights=np.concatenate([c for _, c in self.parts]), minlength=bk.size
+            ).astype(np.int64)
         self.parts, self.pending = [], 0
         pos = np.searchsorted(self.keys, bk)
         hit = np.zeros(bk.size, bool)
@@ -241,9 +242,16 @@ def coverage_key(run_dir: Path, dataset: Path, frames: range | None, voxel_size:
     if not isinstance(rec, dict) or rec.get("status") != "done" or not rec.get("fingerprint"):
         return None
     span = None if frames is None else [frames.start, frames.stop, frames.step]
-    return hash_json({"format": COVERAGE_FORMAT, "export": rec["fingerprint"],
-                      "finished": rec.get("finished"), "dataset": str(Path(dataset).resolve()),
-                      "frames": span, "voxel_size": float(voxel_size)})
+    return hash_json(
+        {
+            "format": COVERAGE_FORMAT,
+            "export": rec["fingerprint"],
+            "finished": rec.get("finished"),
+            "dataset": str(Path(dataset).resolve()),
+            "frames": span,
+            "voxel_size": float(voxel_size),
+        }
+    )
 
 
 def read_coverage_file(path: Path, key: str | None = None) -> ExportCoverage | None:
@@ -287,5 +295,14 @@ def cached_export_coverage(
     return cov
 
 
-__all__ = ["COVERAGE_FORMAT", "ExportCoverage", "cached_export_coverage", "coverage_counts", "coverage_key",
-           "export_coverage", "read_coverage_file", "unlabeled_reasons", "write_coverage_file"]
+__all__ = [
+    "COVERAGE_FORMAT",
+    "ExportCoverage",
+    "cached_export_coverage",
+    "coverage_counts",
+    "coverage_key",
+    "export_coverage",
+    "read_coverage_file",
+    "unlabeled_reasons",
+    "write_coverage_file",
+]

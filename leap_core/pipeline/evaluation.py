@@ -86,12 +86,14 @@ def paper_metrics(confusion: npt.ArrayLike, mapping: npt.NDArray[np.int64]) -> M
     classes (``merge_confusion`` with ``mapping = PAPER_VIEW.mapping(class_names)``) and scored with
     unlabeled predictions ignored."""
     merged = merge_confusion(np.asarray(confusion, np.int64), mapping, len(PAPER_VIEW.classes))
-    return metrics_from_confusion(merged, PAPER_VIEW.names, PAPER_VIEW.categories,
-                                  ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER])
+    return metrics_from_confusion(
+        merged, PAPER_VIEW.names, PAPER_VIEW.categories, ignore_unlabeled_pred=IGNORES_UNLABELED[PAPER]
+    )
 
 
-def common_points(in_view: npt.NDArray[np.bool_], preds: Iterable[npt.NDArray[np.int16]]
-                  ) -> npt.NDArray[np.bool_]:
+def common_points(
+    in_view: npt.NDArray[np.bool_], preds: Iterable[npt.NDArray[np.int16]]
+) -> npt.NDArray[np.bool_]:
     """(N,) bool: the points of the ``common`` protocol, ``in_view ∧ ⋀_r (pred_r ≠ UNLABELED)`` over the
     rows' (N,) predictions."""
     out = np.array(in_view, dtype=bool)
@@ -141,8 +143,9 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
             raise DatasetError(seq.scan_path(i), f"{frame.num_points} points but the run's outputs have {n}")
         gt = schema.map_gt(frame.labels)
         keys = voxel_keys(world_points(frame.points, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
-        preds = {name: stored[name] if grid is None else grid.labels_at(keys)[0]
-                 for name, grid in rows.items()}
+        preds = {
+            name: stored[name] if grid is None else grid.labels_at(keys)[0] for name, grid in rows.items()
+        }
         common = common_points(in_view, preds.values())
         conf: dict[str, dict[str, npt.NDArray[np.int64]]] = {p: {} for p in PROTOCOLS}
         labeled: dict[str, int] = {}
@@ -187,11 +190,17 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         "labeler": ctx.cfg.labeler,
         "coverage_ratio": {r: (labeled_any[r] / pl if pl else None) for r in rows},
     }
-    out.update({
-        p: {r: metrics_from_confusion(conf[p][r], schema.names, schema.categories(),
-                                      ignore_unlabeled_pred=IGNORES_UNLABELED[p]).to_dict() for r in rows}
-        for p in PROTOCOLS
-    })
+    out.update(
+        {
+            p: {
+                r: metrics_from_confusion(
+                    conf[p][r], schema.names, schema.categories(), ignore_unlabeled_pred=IGNORES_UNLABELED[p]
+                ).to_dict()
+                for r in rows
+            }
+            for p in PROTOCOLS
+        }
+    )
     add_paper_protocol(out)
     atomic_write_json(lay.metrics, out)
     return {}
@@ -257,8 +266,12 @@ def metrics_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> d
             view = data["paper_view"] if p == PAPER else data
             names, cats = view["class_names"], view["categories"]
             tables[p] = {
-                r: metrics_from_confusion(np.asarray(data[p][r]["confusion"], np.int64), names, cats,
-                                          ignore_unlabeled_pred=IGNORES_UNLABELED[p])
+                r: metrics_from_confusion(
+                    np.asarray(data[p][r]["confusion"], np.int64),
+                    names,
+                    cats,
+                    ignore_unlabeled_pred=IGNORES_UNLABELED[p],
+                )
                 for r in data["rows"]
             }
         return tables
@@ -321,9 +334,11 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
     for name, m in have.items():
         for key in ("class_names", "rows"):
             if list(m.get(key, [])) != list(first.get(key, [])):
-                raise LeapError(f"sequence {name}: metrics {key} {m.get(key)} differ from sequence "
-                                f"{first_name}'s {first.get(key)}; evaluate every sequence with one schema "
-                                "and one config")
+                raise LeapError(
+                    f"sequence {name}: metrics {key} {m.get(key)} differ from sequence "
+                    f"{first_name}'s {first.get(key)}; evaluate every sequence with one schema "
+                    "and one config"
+                )
     names, cats, rows = list(first["class_names"]), list(first["categories"]), list(first["rows"])
     out: dict[str, Any] = {
         "class_names": names,
@@ -336,8 +351,7 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
     }
     for key in _SUMMED:
         out[key] = int(sum(int(m.get(key, 0)) for m in have.values()))
-    labeled = {r: int(sum(int(m.get("labeled_points", {}).get(r, 0)) for m in have.values()))
-               for r in rows}
+    labeled = {r: int(sum(int(m.get("labeled_points", {}).get(r, 0)) for m in have.values())) for r in rows}
     out["labeled_points"] = labeled
     n = out["n_points"]
     out["labeled_share_all_points"] = {r: (labeled[r] / n if n else None) for r in rows}
@@ -348,8 +362,9 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
         out[p] = {}
         for r in rows:
             conf = sum(np.asarray(m[p][r]["confusion"], np.int64) for m in have.values())
-            out[p][r] = metrics_from_confusion(conf, names, cats,
-                                               ignore_unlabeled_pred=IGNORES_UNLABELED[p]).to_dict()
+            out[p][r] = metrics_from_confusion(
+                conf, names, cats, ignore_unlabeled_pred=IGNORES_UNLABELED[p]
+            ).to_dict()
     # Merging is linear, so the merge of the summed camera matrices is the sum of the sequences' merges.
     add_paper_protocol(out)
     pl = labeled.get(ROW_POINT, 0)

@@ -154,8 +154,11 @@ def observed_count(path: Path) -> int:
     try:
         with zipfile.ZipFile(path) as zf, zf.open("point_idx.npy") as fh:
             version = np.lib.format.read_magic(fh)
-            header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                      else np.lib.format.read_array_header_2_0)
+            header = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
             shape, _, _ = header(fh)
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise DatasetError(path, f"unreadable observation file ({exc})") from exc
@@ -201,8 +204,11 @@ class StopSignal:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.path.touch()
         except OSError as exc:
-            log.warning("cannot write the stop signal %s (%s): the running Ray tasks finish their frames",
-                        self.path, exc)
+            log.warning(
+                "cannot write the stop signal %s (%s): the running Ray tasks finish their frames",
+                self.path,
+                exc,
+            )
 
     def is_set(self) -> bool:
         return self.path.exists()
@@ -243,8 +249,16 @@ def worker_context(job: RunJob, frames: range) -> Ctx:
     seq = layout.open_sequence(job.dataset)
     stop = job.stop
     progress = None if stop is None else lambda _stage, _done, _total: stop.check()
-    return Ctx(seq, job.schema, job.config, layout, seq.select(frames), job.runtime, progress,
-               {s.name: s for s in STAGE_TABLE})
+    return Ctx(
+        seq,
+        job.schema,
+        job.config,
+        layout,
+        seq.select(frames),
+        job.runtime,
+        progress,
+        {s.name: s for s in STAGE_TABLE},
+    )
 
 
 class _Collect(logging.Handler):
@@ -285,8 +299,10 @@ def observations_task(job: RunJob, frames: range) -> list[Observations]:
     them to the fusion (a Ray task)."""
     ctx = worker_context(job, frames)
     floor = ctx.cfg.fusion.prob_floor
-    return [Observations(keys, painted.rows, log_table(painted.table, floor))
-            for painted, keys in observed_keys(ctx)]
+    return [
+        Observations(keys, painted.rows, log_table(painted.table, floor))
+        for painted, keys in observed_keys(ctx)
+    ]
 
 
 def reduce_task(num_classes: int, *parts: list[Observations]) -> Partial:
@@ -294,8 +310,14 @@ def reduce_task(num_classes: int, *parts: list[Observations]) -> Partial:
     return reduce_block((o for part in parts for o in part), num_classes)
 
 
-def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
-                     frame_ids: list[str], stop: StopSignal | None = None) -> tuple[int, int]:
+def label_cache_task(
+    dataset: Path,
+    schema: Schema,
+    config: GroundedSamConfig,
+    runtime: Runtime,
+    frame_ids: list[str],
+    stop: StopSignal | None = None,
+) -> tuple[int, int]:
     """``leap labels2d``'s work on some frames (a Ray task): Grounding DINO + SAM into the 2D cache of
     ``runtime.cache_dir``, ``config.batch_size`` images per forward pass, ``stop`` checked before each
     batch. Returns (detector, SAM encoder) forward passes."""
@@ -317,8 +339,14 @@ def label_cache_task(dataset: Path, schema: Schema, config: GroundedSamConfig, r
     return labeler.detector_calls, labeler.segmenter_calls
 
 
-def predict_task(seq: KittiSequence, indices: list[int], checkpoint: Path, cfg: ConsistencyConfig,
-                 voxel_size: float, threads: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def predict_task(
+    seq: KittiSequence,
+    indices: list[int],
+    checkpoint: Path,
+    cfg: ConsistencyConfig,
+    voxel_size: float,
+    threads: int,
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """The 3D-CN's predictions of some frames (a Ray task):
     :func:`leap_core.consistency.remote.predict_from_checkpoint`."""
     # Imported here: the 3D-CN needs torch, which only the processes that run it load.
@@ -343,8 +371,13 @@ class TaskError:
     @classmethod
     def of(cls, exc: BaseException) -> TaskError:
         kind = type(exc)
-        return cls(kind.__module__, kind.__qualname__, exc.args, dict(vars(exc)),
-                   "".join(traceback.format_exception(exc)))
+        return cls(
+            kind.__module__,
+            kind.__qualname__,
+            exc.args,
+            dict(vars(exc)),
+            "".join(traceback.format_exception(exc)),
+        )
 
     def rebuild(self) -> BaseException:
         """The same exception: same class, ``args`` (its message) and attributes (``path``, ``field``)."""
@@ -386,8 +419,12 @@ def connect(address: str, cpus: int | None) -> ModuleType:
         raise LeapError(f"ray_address {address!r}: the ray package is not installed ({exc})") from None
     if ray.is_initialized():
         return ray
-    common: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR,
-                              "log_to_driver": False, "configure_logging": True}
+    common: dict[str, Any] = {
+        "include_dashboard": False,
+        "logging_level": logging.ERROR,
+        "log_to_driver": False,
+        "configure_logging": True,
+    }
     target = _cluster_address(address)
     # ray.init retries an address nobody answers at for minutes (a cluster stopped without `ray stop`
     # leaves its address behind for "auto"), so the address is first tried with a short connect.
@@ -465,9 +502,15 @@ class RayExecutor:
         return RayPredictor(self, cfg)
 
     def _job(self, ctx: Ctx, stop: StopSignal) -> RunJob:
-        return RunJob(ctx.seq.root, ctx.schema, ctx.cfg, ctx.layout.run_dir,
-                      # A task holds one Ray CPU: it computes its frames one at a time.
-                      dataclasses.replace(ctx.runtime or Runtime(), ray_address=None, frame_threads=1), stop)
+        return RunJob(
+            ctx.seq.root,
+            ctx.schema,
+            ctx.cfg,
+            ctx.layout.run_dir,
+            # A task holds one Ray CPU: it computes its frames one at a time.
+            dataclasses.replace(ctx.runtime or Runtime(), ray_address=None, frame_threads=1),
+            stop,
+        )
 
     def _cpus(self) -> int:
         return max(1, int(self.ray.cluster_resources().get("CPU", 1)))
@@ -476,8 +519,12 @@ class RayExecutor:
         # Only a labeler that runs models on camera images uses a GPU; a task that asks for one waits for
         # a free GPU, so nothing else may ask.
         runtime = ctx.runtime or Runtime()
-        if (stage.name == "labels2d" and LABELERS[ctx.cfg.labeler].needs == "images"
-                and runtime.device != "cpu" and self.ray.cluster_resources().get("GPU", 0) >= 1):
+        if (
+            stage.name == "labels2d"
+            and LABELERS[ctx.cfg.labeler].needs == "images"
+            and runtime.device != "cpu"
+            and self.ray.cluster_resources().get("GPU", 0) >= 1
+        ):
             return {"num_gpus": 1}
         return {}
 
@@ -506,8 +553,11 @@ class RayExecutor:
         if refs:
             _, running = self.ray.wait(list(refs), num_returns=len(refs), timeout=STOP_WAIT_S)
         if running:  # the signal stays, so that these stop too when they reach their next frame
-            log.warning("%d Ray task(s) still running %.0f s after the stop; they end at their next frame",
-                        len(running), STOP_WAIT_S)
+            log.warning(
+                "%d Ray task(s) still running %.0f s after the stop; they end at their next frame",
+                len(running),
+                STOP_WAIT_S,
+            )
         else:
             stop.clear()
 
@@ -538,8 +588,10 @@ class RayExecutor:
         stop = StopSignal(ctx.layout.run_dir)
         job = self._job(ctx, stop)
         task = self._task.options(**options)
-        pending = {task.remote(stop, stage_task, job, stage.name, number_range(ctx, block)): len(block)
-                   for block in frame_blocks(todo, size)}
+        pending = {
+            task.remote(stop, stage_task, job, stage.name, number_range(ctx, block)): len(block)
+            for block in frame_blocks(todo, size)
+        }
         done = total - len(todo)
         parts: list[dict[str, Any]] = []
         ctx.tick(stage.name, done, total)
@@ -562,8 +614,13 @@ class RayExecutor:
 
     # ---------------------------------------------------------------------------- leap labels2d
     def label_cache(
-        self, dataset: Path, schema: Schema, config: GroundedSamConfig, runtime: Runtime,
-        frame_ids: Sequence[str], progress: Callable[[int], None] | None = None,
+        self,
+        dataset: Path,
+        schema: Schema,
+        config: GroundedSamConfig,
+        runtime: Runtime,
+        frame_ids: Sequence[str],
+        progress: Callable[[int], None] | None = None,
     ) -> tuple[int, int]:
         """:func:`label_cache_task` over ``frame_ids`` cut into runs of whole batches, one GPU per task when
         the cluster has GPUs (and ``runtime.device`` is not ``cpu``); ``progress(frames)`` as each ends.
@@ -581,9 +638,16 @@ class RayExecutor:
         task = self._task.options(num_gpus=1 if gpus else 0)
         worker_runtime = dataclasses.replace(runtime, ray_address=None, frame_threads=1)
         pending = {
-            task.remote(stop, label_cache_task, dataset, schema, config, worker_runtime,
-                        list(frame_ids[s : s + per_task]), stop):
-                len(frame_ids[s : s + per_task])
+            task.remote(
+                stop,
+                label_cache_task,
+                dataset,
+                schema,
+                config,
+                worker_runtime,
+                list(frame_ids[s : s + per_task]),
+                stop,
+            ): len(frame_ids[s : s + per_task])
             for s in range(0, len(frame_ids), max(per_task, 1))
         }
         calls = [0, 0]
@@ -613,8 +677,9 @@ class RayExecutor:
             # A chunk spans consecutive frames (the empty ones between its members add nothing).
             span = frames[chunk[0] : chunk[-1] + 1]
             blocks = frame_blocks(span, size)
-            parts = [self._task.remote(stop, observations_task, job, number_range(ctx, block))
-                     for block in blocks]
+            parts = [
+                self._task.remote(stop, observations_task, job, number_range(ctx, block)) for block in blocks
+            ]
             partials.append((self._task.remote(stop, reduce_task, c, *parts), chunk[-1] + 1))
             refs += [*parts, partials[-1][0]]
         ctx.tick("fuse", 0, total)
@@ -683,8 +748,18 @@ class RayPredictor:
         def submit() -> None:
             block = next(blocks, None)
             if block is not None:
-                pending.append(task.remote(stop, predict_task, seq_ref, block, Path(checkpoint), self.cfg,
-                                           self.voxel_size, threads))
+                pending.append(
+                    task.remote(
+                        stop,
+                        predict_task,
+                        seq_ref,
+                        block,
+                        Path(checkpoint),
+                        self.cfg,
+                        self.voxel_size,
+                        threads,
+                    )
+                )
 
         try:
             for _ in range(2 * slots + 1):
@@ -700,7 +775,26 @@ class RayPredictor:
             raise
 
 
-__all__ = ["INFER_TASK_FRAMES", "STOP_WAIT_S", "TASKS_PER_CPU", "Executor", "LocalExecutor", "RayExecutor",
-           "RayPredictor", "RunJob", "StopSignal", "Stopped", "TaskError", "connect", "frame_blocks",
-           "label_cache_task", "make_executor", "merge_records", "number_range", "observed_count",
-           "predict_task", "run_task", "worker_context"]
+__all__ = [
+    "INFER_TASK_FRAMES",
+    "STOP_WAIT_S",
+    "TASKS_PER_CPU",
+    "Executor",
+    "LocalExecutor",
+    "RayExecutor",
+    "RayPredictor",
+    "RunJob",
+    "StopSignal",
+    "Stopped",
+    "TaskError",
+    "connect",
+    "frame_blocks",
+    "label_cache_task",
+    "make_executor",
+    "merge_records",
+    "number_range",
+    "observed_count",
+    "predict_task",
+    "run_task",
+    "worker_context",
+]

@@ -106,8 +106,9 @@ class SequenceSpec:
             raise ConfigError(problem, field=("name",))
         object.__setattr__(self, "dataset", Path(self.dataset))
         if self.frames is not None and not isinstance(self.frames, range):
-            raise ConfigError(f"must be a range of frame numbers or None, got {self.frames!r}",
-                              field=("frames",))
+            raise ConfigError(
+                f"must be a range of frame numbers or None, got {self.frames!r}", field=("frames",)
+            )
 
     @classmethod
     def of(cls, dataset: str | Path, frames: range | None = None, name: str | None = None) -> SequenceSpec:
@@ -140,12 +141,15 @@ def check_specs(specs: Sequence[SequenceSpec]) -> None:
     seen: dict[str, SequenceSpec] = {}
     for k, spec in enumerate(specs):
         if not isinstance(spec, SequenceSpec):
-            raise ConfigError(f"must be a SequenceSpec, got {type(spec).__name__}",
-                              field=("sequences", str(k)))
+            raise ConfigError(
+                f"must be a SequenceSpec, got {type(spec).__name__}", field=("sequences", str(k))
+            )
         if spec.name in seen:
             raise ConfigError(
                 f"duplicate sequence name {spec.name!r} ({seen[spec.name].dataset} and {spec.dataset}); "
-                "give each sequence its own name", field=("sequences", str(k), "name"))
+                "give each sequence its own name",
+                field=("sequences", str(k), "name"),
+            )
         seen[spec.name] = spec
 
 
@@ -158,11 +162,19 @@ def _check_root(out: Path) -> MultiRunLayout:
 
 
 def _write_spec(layout: MultiRunLayout, specs: Sequence[SequenceSpec]) -> None:
-    atomic_write_json(layout.spec, {"sequences": [
-        {"name": s.name, "dataset": str(s.dataset.resolve()),
-         "frames": None if s.frames is None else [s.frames.start, s.frames.stop]}
-        for s in specs
-    ]})
+    atomic_write_json(
+        layout.spec,
+        {
+            "sequences": [
+                {
+                    "name": s.name,
+                    "dataset": str(s.dataset.resolve()),
+                    "frames": None if s.frames is None else [s.frames.start, s.frames.stop],
+                }
+                for s in specs
+            ]
+        },
+    )
 
 
 def run_sequences(
@@ -219,9 +231,16 @@ def run_sequences(
     each = _Concurrently(progress) if executor.name == "ray" and len(specs) > 1 else _InTurn(progress)
 
     def run(spec: SequenceSpec, stop: str) -> RunResult:
-        return run_pipeline(spec.dataset, schema, config, layout.sequence(spec.name).run_dir,
-                            progress=each.progress(spec.name), frames=spec.frames, runtime=runtime,
-                            until=stop)
+        return run_pipeline(
+            spec.dataset,
+            schema,
+            config,
+            layout.sequence(spec.name).run_dir,
+            progress=each.progress(spec.name),
+            frames=spec.frames,
+            runtime=runtime,
+            until=stop,
+        )
 
     joint = config.consistency.enabled and last >= STAGES.index("3dcn")
     results: dict[str, RunResult] = {}
@@ -234,10 +253,13 @@ def run_sequences(
         seconds = each.run(specs, lambda spec: run(spec, STAGES[last]))
         for spec in specs:
             second = seconds[spec.name]
-            stages = {**first[spec.name].stages,
-                      **{k: v for k, v in second.stages.items() if k not in first[spec.name].stages}}
-            results[spec.name] = RunResult(second.run_dir, stages, second.frames, second.export_dir,
-                                           second.metrics)
+            stages = {
+                **first[spec.name].stages,
+                **{k: v for k, v in second.stages.items() if k not in first[spec.name].stages},
+            }
+            results[spec.name] = RunResult(
+                second.run_dir, stages, second.frames, second.export_dir, second.metrics
+            )
     else:
         for spec in specs:
             # A joint record left by an earlier run with the 3D-CN on would make this folder's 3D-CN differ
@@ -262,8 +284,9 @@ class _InTurn:
             return None
         return lambda stage, done, total: report(name, stage, done, total)
 
-    def run(self, specs: Sequence[SequenceSpec], fn: Callable[[SequenceSpec], RunResult]
-            ) -> dict[str, RunResult]:
+    def run(
+        self, specs: Sequence[SequenceSpec], fn: Callable[[SequenceSpec], RunResult]
+    ) -> dict[str, RunResult]:
         return {spec.name: fn(spec) for spec in specs}
 
 
@@ -290,8 +313,9 @@ class _Concurrently(_InTurn):
 
         return report
 
-    def run(self, specs: Sequence[SequenceSpec], fn: Callable[[SequenceSpec], RunResult]
-            ) -> dict[str, RunResult]:
+    def run(
+        self, specs: Sequence[SequenceSpec], fn: Callable[[SequenceSpec], RunResult]
+    ) -> dict[str, RunResult]:
         def guarded(spec: SequenceSpec) -> RunResult:
             try:
                 return fn(spec)
@@ -312,23 +336,29 @@ class _Concurrently(_InTurn):
         return {spec.name: f.result() for spec, f in zip(specs, futures, strict=True)}
 
 
-def write_metrics(layout: MultiRunLayout, per_sequence: Mapping[str, Mapping[str, Any] | None]
-                  ) -> dict[str, Any] | None:
+def write_metrics(
+    layout: MultiRunLayout, per_sequence: Mapping[str, Mapping[str, Any] | None]
+) -> dict[str, Any] | None:
     """Write ``<root>/metrics.json`` = ``{"overall": overall_metrics(...), "sequences": per_sequence}``
     and return it; remove a stale one and return None when no sequence has metrics."""
     overall = overall_metrics(per_sequence)
     if overall is None:
         layout.metrics.unlink(missing_ok=True)
         return None
-    data = {"overall": overall, "sequences": {n: (None if m is None else dict(m))
-                                              for n, m in per_sequence.items()}}
+    data = {
+        "overall": overall,
+        "sequences": {n: (None if m is None else dict(m)) for n, m in per_sequence.items()},
+    }
     atomic_write_json(layout.metrics, data)
     return data
 
 
 # --------------------------------------------------------------------------------------- joint 3D-CN
 def joint_fingerprint(
-    specs: Sequence[SequenceSpec], schema: Schema, config: PipelineConfig, layout: MultiRunLayout,
+    specs: Sequence[SequenceSpec],
+    schema: Schema,
+    config: PipelineConfig,
+    layout: MultiRunLayout,
     runtime: Runtime | None,
 ) -> str:
     """What the joint 3D-CN rounds depend on: the 3D-CN settings, C, and each sequence's name and
@@ -338,19 +368,31 @@ def joint_fingerprint(
 
 
 def _joint_fingerprints(
-    specs: Sequence[SequenceSpec], schema: Schema, config: PipelineConfig, layout: MultiRunLayout,
+    specs: Sequence[SequenceSpec],
+    schema: Schema,
+    config: PipelineConfig,
+    layout: MultiRunLayout,
     runtime: Runtime | None,
 ) -> tuple[str, dict[str, dict[str, str]]]:
     """:func:`joint_fingerprint` and every sequence's stage fingerprints (with its joint record as it is)."""
     members, fps = [], {}
     for spec in specs:
-        fp = stage_fingerprints(spec.dataset, schema, config, layout.sequence(spec.name).run_dir,
-                                frames=spec.frames, runtime=runtime)
+        fp = stage_fingerprints(
+            spec.dataset,
+            schema,
+            config,
+            layout.sequence(spec.name).run_dir,
+            frames=spec.frames,
+            runtime=runtime,
+        )
         fps[spec.name] = fp
         members.append([spec.name, fp["project"], fp["smooth"]])
-    head: dict[str, Any] = {"v": PIPELINE_VERSION, "C": schema.num_classes,
-                            "consistency": fingerprint_form(config_to_dict(config)["consistency"]),
-                            "members": members}
+    head: dict[str, Any] = {
+        "v": PIPELINE_VERSION,
+        "C": schema.num_classes,
+        "consistency": fingerprint_form(config_to_dict(config)["consistency"]),
+        "members": members,
+    }
     if runtime is not None and runtime.init_3dcn is not None:
         head["source"] = source_digest(runtime.init_3dcn)
     joint = hash_json(head)
@@ -369,8 +411,13 @@ def _read_json(path: Path) -> Any:
         raise DatasetError(path, f"unreadable joint 3D-CN record ({exc}); delete it to recompute") from exc
 
 
-def _all_linked(layout: MultiRunLayout, specs: Sequence[SequenceSpec], config: PipelineConfig,
-                fingerprint: str, fps: Mapping[str, Mapping[str, str]]) -> bool:
+def _all_linked(
+    layout: MultiRunLayout,
+    specs: Sequence[SequenceSpec],
+    config: PipelineConfig,
+    fingerprint: str,
+    fps: Mapping[str, Mapping[str, str]],
+) -> bool:
     """True when every sequence already holds this joint round's 3D-CN: its record names it, its 3dcn
     stage is done under the fingerprint that record gives, and its round grids exist. (A run folder seeded
     from an earlier run, e.g. by the app, then needs neither the staged grids nor the checkpoints.)"""
@@ -388,8 +435,13 @@ def _all_linked(layout: MultiRunLayout, specs: Sequence[SequenceSpec], config: P
 
 
 def _joint_3dcn(  # noqa: PLR0917  the run's parts, each as run_sequences has it
-    layout: MultiRunLayout, specs: Sequence[SequenceSpec], schema: Schema, config: PipelineConfig,
-    runtime: Runtime | None, progress: MultiProgress | None, executor: Executor,
+    layout: MultiRunLayout,
+    specs: Sequence[SequenceSpec],
+    schema: Schema,
+    config: PipelineConfig,
+    runtime: Runtime | None,
+    progress: MultiProgress | None,
+    executor: Executor,
 ) -> None:
     """The joint rounds into ``<root>/3dcn/rounds/<name>/`` (their inference where ``executor`` puts it),
     then each sequence's ``3dcn_joint.json``."""
@@ -410,8 +462,9 @@ def _joint_3dcn(  # noqa: PLR0917  the run's parts, each as run_sequences has it
     for spec in specs:
         lay = layout.sequence(spec.name)
         seq = lay.open_sequence(spec.dataset)
-        ctx = Ctx(seq, schema, config, lay, seq.select(spec.frames), runtime, None,
-                  {s.name: s for s in STAGE_TABLE})
+        ctx = Ctx(
+            seq, schema, config, lay, seq.select(spec.frames), runtime, None, {s.name: s for s in STAGE_TABLE}
+        )
         members.append(CnMember(ctx, layout.joint_rounds(spec.name), spec.name))
     predict = executor.predictor(config)
     cn_rounds(members, layout.cn_dir, tick, predict)
@@ -438,8 +491,9 @@ def _members(out: str | Path, names: Sequence[str] | None) -> tuple[MultiRunLayo
     return layout, chosen
 
 
-def export_targets(target_dir: Path, names: Sequence[str], *,
-                   with_conf: bool = False) -> dict[str, list[Path]]:
+def export_targets(
+    target_dir: Path, names: Sequence[str], *, with_conf: bool = False
+) -> dict[str, list[Path]]:
     """Per sequence, the folders :func:`export_sequences` writes: ``target_dir/sequences/<name>/predictions``
     (and ``confidences``)."""
     out: dict[str, list[Path]] = {}
@@ -449,8 +503,9 @@ def export_targets(target_dir: Path, names: Sequence[str], *,
     return out
 
 
-def check_export_target(target_dir: Path, names: Sequence[str], *, with_conf: bool = False,
-                        overwrite: bool = False) -> None:
+def check_export_target(
+    target_dir: Path, names: Sequence[str], *, with_conf: bool = False, overwrite: bool = False
+) -> None:
     """Refuse, before writing anything, a target whose sequence folders may not receive an export
     (:func:`leap_core.export.export_target_problem`: a dataset's input folders, a run folder) or already
     hold files while ``overwrite`` is off."""
@@ -462,12 +517,19 @@ def check_export_target(target_dir: Path, names: Sequence[str], *, with_conf: bo
                 raise LeapError(problem)
             old = existing_export_files(folder)
             if old and not overwrite:
-                raise ExportConflict(f"{folder} already holds {len(old)} files (e.g. {old[0]}); nothing was "
-                                     "written. Export again with overwrite to replace them", len(old))
+                raise ExportConflict(
+                    f"{folder} already holds {len(old)} files (e.g. {old[0]}); nothing was "
+                    "written. Export again with overwrite to replace them",
+                    len(old),
+                )
 
 
 def export_sequences(
-    out: str | Path, target_dir: str | Path, *, names: Sequence[str] | None = None, with_conf: bool = False,
+    out: str | Path,
+    target_dir: str | Path,
+    *,
+    names: Sequence[str] | None = None,
+    with_conf: bool = False,
     overwrite: bool = False,
 ) -> dict[str, int]:
     """Copy a multi-sequence run's ``.label`` files to ``target_dir/sequences/<name>/predictions/`` (and
@@ -500,9 +562,16 @@ def export_sequences(
 
 
 def export_zip(  # noqa: PLR0913  # keyword-only: what goes in
-    out: str | Path, path: str | Path, schema: Schema, *, config: PipelineConfig | None = None,
-    names: Sequence[str] | None = None, with_conf: bool = False, overwrite: bool = False,
-    raw_counts: Mapping[int, int] | None = None, version: str = "",
+    out: str | Path,
+    path: str | Path,
+    schema: Schema,
+    *,
+    config: PipelineConfig | None = None,
+    names: Sequence[str] | None = None,
+    with_conf: bool = False,
+    overwrite: bool = False,
+    raw_counts: Mapping[int, int] | None = None,
+    version: str = "",
 ) -> int:
     """Write a multi-sequence run's export as one zip, atomically: ``sequences/<name>/predictions/
     <frame>.label`` (and ``confidences/<frame>.conf``) per sequence (:func:`leap_core.export.zip_member`),
@@ -520,8 +589,9 @@ def export_zip(  # noqa: PLR0913  # keyword-only: what goes in
     layout, chosen = _members(out, names)
     path = Path(path)
     if path.exists() and not overwrite:
-        raise ExportConflict(f"{path} already exists; nothing was written. Export again with overwrite to "
-                             "replace it", 1)
+        raise ExportConflict(
+            f"{path} already exists; nothing was written. Export again with overwrite to replace it", 1
+        )
     suffixes = (".label", ".conf") if with_conf else (".label",)
     lmap = label_map(schema, raw_counts, name=schema.name)
     numbered = [int(n) for n in chosen if n.isdigit()]
@@ -529,18 +599,20 @@ def export_zip(  # noqa: PLR0913  # keyword-only: what goes in
         lmap["split"] = {"train": [], "valid": numbered, "test": []}
     spec = {}
     if layout.spec.is_file():
-            spec = {s["name"]: s for s in json.loads(layout.spec.read_text())["sequences"]}
+        spec = {s["name"]: s for s in json.loads(layout.spec.read_text())["sequences"]}
     summary = {
         "run": {"folder": str(layout.root)},
         "sequences": [
-            {"name": n, "dataset": spec.get(n, {}).get("dataset"),
-             "frames": spec.get(n, {}).get("frames") or "all",
-             "labels": f"sequences/{n}/{PREDICTIONS}/<frame>.label"}
+            {
+                "name": n,
+                "dataset": spec.get(n, {}).get("dataset"),
+                "frames": spec.get(n, {}).get("frames") or "all",
+                "labels": f"sequences/{n}/{PREDICTIONS}/<frame>.label",
+            }
             for n in chosen
         ],
         "label_map": LABEL_MAP_FILE,
-        "settings": {"schema": schema.name,
-                     "pipeline": None if config is None else config_to_dict(config)},
+        "settings": {"schema": schema.name, "pipeline": None if config is None else config_to_dict(config)},
         "leap_studio_version": version,
         "written_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
@@ -555,8 +627,11 @@ def export_zip(  # noqa: PLR0913  # keyword-only: what goes in
                 zf.write(f, zip_member(name, f.stem, f.suffix))
                 n += 1
         zf.writestr(LABEL_MAP_FILE, label_map_yaml(lmap))
-        zf.writestr(SUMMARY_FILE, "# LeAP Studio multi-sequence export summary.\n"
-                    + yaml.safe_dump(summary, sort_keys=False, allow_unicode=True))
+        zf.writestr(
+            SUMMARY_FILE,
+            "# LeAP Studio multi-sequence export summary.\n"
+            + yaml.safe_dump(summary, sort_keys=False, allow_unicode=True),
+        )
     return n
 
 

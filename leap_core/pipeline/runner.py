@@ -111,8 +111,12 @@ def _fingerprints(ctx: Ctx) -> dict[str, str]:
     sections["consistency"] = fingerprint_form(sections["consistency"])
     fp: dict[str, str] = {}
     for stage in STAGE_TABLE:
-        parts: dict[str, Any] = {"v": PIPELINE_VERSION, "C": ctx.schema.num_classes, "stage": stage.name,
-                                 "up": [fp[u] for u in stage.upstream]}
+        parts: dict[str, Any] = {
+            "v": PIPELINE_VERSION,
+            "C": ctx.schema.num_classes,
+            "stage": stage.name,
+            "up": [fp[u] for u in stage.upstream],
+        }
         if stage.is_enabled(ctx.cfg):
             parts["config"] = {s: sections[s] for s in stage.reads}
             inputs = None if stage.inputs is None else stage.inputs(ctx)
@@ -166,8 +170,11 @@ def _run_stage(ctx: Ctx, stage: StageInfo, executor: Executor | None = None) -> 
     t0 = time.perf_counter()
     try:
         engine = executor or LocalExecutor()
-        extra = engine.run_stage(ctx, stage) if stage.is_enabled(ctx.cfg) else {
-            "status": "skipped", "note": f"{stage.label} disabled"}
+        extra = (
+            engine.run_stage(ctx, stage)
+            if stage.is_enabled(ctx.cfg)
+            else {"status": "skipped", "note": f"{stage.label} disabled"}
+        )
     except (Cancelled, KeyboardInterrupt):
         ctx.state[name].update(status="cancelled", seconds=time.perf_counter() - t0)
         ctx.save_state()
@@ -205,7 +212,11 @@ def warn_missing_images(seq: KittiSequence, frames: range, labeler: str) -> list
         )
         log.warning(
             "%d of %d frames have no camera image in %s (frames %s): %s",
-            len(missing), len(frames), seq.root / "image_2", shown, consequence,
+            len(missing),
+            len(frames),
+            seq.root / "image_2",
+            shown,
+            consequence,
         )
     return missing
 
@@ -228,8 +239,14 @@ def require_poses(seq: KittiSequence, config: PipelineConfig, stages: Iterable[S
 
 
 def _context(
-    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *,
-    progress: ProgressCallback | None, frames: range | None, runtime: Runtime | None,
+    dataset: Path,
+    schema: Schema,
+    config: PipelineConfig,
+    run_dir: Path,
+    *,
+    progress: ProgressCallback | None,
+    frames: range | None,
+    runtime: Runtime | None,
     until: str | None = None,
 ) -> Ctx:
     """The run's context; with ``until`` (a run, not a preview) first :func:`require_poses` for the
@@ -244,15 +261,21 @@ def _context(
         raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
     run_dir.mkdir(parents=True, exist_ok=True)
     layout = RunLayout(run_dir)
-    ctx = Ctx(seq, schema, config, layout, seq.select(frames), runtime, progress,
-              {s.name: s for s in STAGE_TABLE})
+    ctx = Ctx(
+        seq, schema, config, layout, seq.select(frames), runtime, progress, {s.name: s for s in STAGE_TABLE}
+    )
     ctx.state = read_state(layout)
     ctx.fp = _fingerprints(ctx)
     return ctx
 
 
 def plan_stages(
-    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *, frames: range | None = None,
+    dataset: Path,
+    schema: Schema,
+    config: PipelineConfig,
+    run_dir: Path,
+    *,
+    frames: range | None = None,
     runtime: Runtime | None = None,
 ) -> dict[str, bool]:
     """Which stages :func:`run_pipeline` would compute (True) or skip as cached (False); writes nothing
@@ -262,14 +285,20 @@ def plan_stages(
 
 
 def stage_fingerprints(
-    dataset: Path, schema: Schema, config: PipelineConfig, run_dir: Path, *, frames: range | None = None,
+    dataset: Path,
+    schema: Schema,
+    config: PipelineConfig,
+    run_dir: Path,
+    *,
+    frames: range | None = None,
     runtime: Runtime | None = None,
 ) -> dict[str, str]:
     """Each stage's fingerprint for a run of these inputs in ``run_dir`` (whose ``corrections.npz``, if
     any, is part of the fuse stage's); compared with a ``stages.json`` they say which stages a run would
     recompute (:func:`leap_core.pipeline.steering.recompute_plan`). Reads no stage output."""
-    ctx = _context(Path(dataset), schema, config, Path(run_dir), progress=None, frames=frames,
-                   runtime=runtime)
+    ctx = _context(
+        Path(dataset), schema, config, Path(run_dir), progress=None, frames=frames, runtime=runtime
+    )
     return dict(ctx.fp)
 
 
@@ -314,7 +343,13 @@ def run_pipeline(
         raise LeapError(f"until: unknown stage {until!r} (stages: {', '.join(STAGES)})")
     last = STAGES.index(until) if until else len(STAGES) - 1
     ctx = _context(
-        Path(dataset), schema, config, Path(run_dir), progress=progress, frames=frames, runtime=runtime,
+        Path(dataset),
+        schema,
+        config,
+        Path(run_dir),
+        progress=progress,
+        frames=frames,
+        runtime=runtime,
         until=STAGES[last],
     )
     warn_missing_images(ctx.seq, ctx.frames, config.labeler)
@@ -329,5 +364,15 @@ def run_pipeline(
     return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
 
 
-__all__ = ["PIPELINE_VERSION", "UNCHANGED", "RunResult", "StageReport", "plan_stages", "require_poses",
-           "run_pipeline", "skip_reason", "stage_fingerprints", "stage_status"]
+__all__ = [
+    "PIPELINE_VERSION",
+    "UNCHANGED",
+    "RunResult",
+    "StageReport",
+    "plan_stages",
+    "require_poses",
+    "run_pipeline",
+    "skip_reason",
+    "stage_fingerprints",
+    "stage_status",
+]

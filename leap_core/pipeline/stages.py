@@ -175,6 +175,7 @@ def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
 def camera_view_keys(ctx: Ctx) -> npt.NDArray[np.int64]:
     """Sorted unique world voxel keys of the points inside a camera image, over the run's frames (the
     observations' ``in_view`` masks): where the camera could have labeled a voxel."""
+
     def per_frame() -> Iterator[npt.NDArray[np.int64]]:
         for i in ctx.frames:
             _, in_view = load_view(ctx.layout.observation(ctx.fid(i)))
@@ -241,8 +242,11 @@ def finish_fuse(ctx: Ctx, grid: VoxelGrid) -> dict[str, Any]:
 def _fuse_inputs(ctx: Ctx) -> dict[str, Any]:
     corr = ctx.layout.corrections
     digest = file_digest(corr) if corr.is_file() else None
-    return {"frames": hash_json(ctx.frame_ids()), "corrections": digest,
-            "strength": ctx.cfg.correction_strength if digest else None}
+    return {
+        "frames": hash_json(ctx.frame_ids()),
+        "corrections": digest,
+        "strength": ctx.cfg.correction_strength if digest else None,
+    }
 
 
 # -------------------------------------------------------------------------------------------- smooth
@@ -300,9 +304,12 @@ class CnMember:
     name: str = ""
 
 
-def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
-              progress: Callable[[int, int], None] | None = None,
-              predict: Predict | None = None) -> list[int]:
+def cn_rounds(
+    members: Sequence[CnMember],
+    checkpoints: Path,
+    progress: Callable[[int, int], None] | None = None,
+    predict: Predict | None = None,
+) -> list[int]:
     """The 3D Consistency Network's ``consistency.iterations`` rounds over one or several sequences (one
     network per round: :func:`~leap_core.consistency.stage.iter_3dcn_round`).
 
@@ -348,15 +355,26 @@ def cn_rounds(members: Sequence[CnMember], checkpoints: Path,
                 tick(offset + (done * _3DCN_GRID_SCALE) // max(tot, 1), total)
 
             if cn.rank_by_views:
-                views = [v if v is not None else view_counts(keys for _, keys in observed_keys(m.ctx))
-                         for m, v in zip(members, views, strict=True)]
+                views = [
+                    v if v is not None else view_counts(keys for _, keys in observed_keys(m.ctx))
+                    for m, v in zip(members, views, strict=True)
+                ]
             parts = [
-                RoundPart(m.ctx.seq, partial(VoxelGrid.load, f, mmap=True),
-                          partial(_load_smoothed, s, clip), m.ctx.frames, v, e, m.name, in_view=iv)
+                RoundPart(
+                    m.ctx.seq,
+                    partial(VoxelGrid.load, f, mmap=True),
+                    partial(_load_smoothed, s, clip),
+                    m.ctx.frames,
+                    v,
+                    e,
+                    m.name,
+                    in_view=iv,
+                )
                 for m, f, s, v, e, iv in zip(members, fused, smoothed, views, erased, in_view, strict=True)
             ]
-            round_grids = iter_3dcn_round(parts, c, cn, cfg.fusion, checkpoints, it, progress=prog,
-                                          predict=predict, source=source)
+            round_grids = iter_3dcn_round(
+                parts, c, cn, cfg.fusion, checkpoints, it, progress=prog, predict=predict, source=source
+            )
             for m, grid, (grid_path, smooth_path) in zip(members, round_grids, paths, strict=True):
                 grid.save(grid_path)
                 _smooth_and_save(grid, m.ctx, smooth_path)
@@ -375,8 +393,9 @@ def source_digest(path: Path) -> str:
     try:
         return file_digest(path)
     except OSError as exc:
-        raise ModelLoadError(f"{path}: 3D-CN source network (--3dcn-init) cannot be read "
-                             f"({exc.strerror or exc})") from None
+        raise ModelLoadError(
+            f"{path}: 3D-CN source network (--3dcn-init) cannot be read ({exc.strerror or exc})"
+        ) from None
 
 
 def _source_network(ctx: Ctx) -> SourceNetwork | None:
@@ -403,8 +422,12 @@ def stage_3dcn(ctx: Ctx, predict: Predict | None = None) -> dict[str, Any]:
     """
     if ctx.layout.joint_3dcn.is_file():
         return _link_joint_rounds(ctx)
-    sizes = cn_rounds([CnMember(ctx, ctx.layout)], ctx.layout.cn_dir,
-                      lambda done, total: ctx.tick("3dcn", done, total), predict)
+    sizes = cn_rounds(
+        [CnMember(ctx, ctx.layout)],
+        ctx.layout.cn_dir,
+        lambda done, total: ctx.tick("3dcn", done, total),
+        predict,
+    )
     return {"iterations": ctx.cfg.consistency.iterations, "voxels": sizes[0]}
 
 
@@ -421,8 +444,11 @@ def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
     staged = root.joint_rounds(name)
     state = root.joint_state
     try:
-        current = (name == ctx.layout.run_dir.name and state.is_file()
-                   and json.loads(state.read_text()).get("fingerprint") == fingerprint)
+        current = (
+            name == ctx.layout.run_dir.name
+            and state.is_file()
+            and json.loads(state.read_text()).get("fingerprint") == fingerprint
+        )
     except (OSError, ValueError, AttributeError) as exc:
         raise DatasetError(state, f"unreadable joint 3D-CN record ({exc})") from exc
     iterations = ctx.cfg.consistency.iterations
@@ -437,8 +463,11 @@ def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
     for src, dst in files:
         link_or_copy(src, dst)
     ctx.tick("3dcn", 1, 1)
-    return {"iterations": iterations, "voxels": VoxelGrid.load(ctx.layout.grid_3dcn(iterations)).num_voxels,
-            "joint": fingerprint}
+    return {
+        "iterations": iterations,
+        "voxels": VoxelGrid.load(ctx.layout.grid_3dcn(iterations)).num_voxels,
+        "joint": fingerprint,
+    }
 
 
 def _3dcn_inputs(ctx: Ctx) -> str | dict[str, str | None] | None:
@@ -480,8 +509,12 @@ def stage_label_points(ctx: Ctx) -> dict[str, Any]:
             raise DatasetError(ctx.seq.scan_path(i), f"{keys.shape[0]} points but its observation has {n}")
         check_scan_points(ctx.layout.corrections_scan, ctx.fid(i), corr, n)
         lab, conf = point_labels(final, keys, ctx.fid(i), corr)
-        atomic_save_npz(ctx.layout.points(ctx.fid(i)), label=lab, conf=conf.astype(np.float16),
-                        point_label=painted.point_labels(n))
+        atomic_save_npz(
+            ctx.layout.points(ctx.fid(i)),
+            label=lab,
+            conf=conf.astype(np.float16),
+            point_label=painted.point_labels(n),
+        )
 
     return ctx.each_frame("label_points", work, parallel=True)
 
@@ -514,47 +547,95 @@ def stage_export(ctx: Ctx) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------- the table
 STAGE_TABLE: tuple[StageInfo, ...] = (
     StageInfo(
-        "labels2d", "2D labels", "the 2D labeler's soft masks per frame", True, stage_labels2d,
-        reads=("labeler",), inputs=_labeler_inputs, frame_files=FrameFiles(RunLayout.LABELS2D),
+        "labels2d",
+        "2D labels",
+        "the 2D labeler's soft masks per frame",
+        True,
+        stage_labels2d,
+        reads=("labeler",),
+        inputs=_labeler_inputs,
+        frame_files=FrameFiles(RunLayout.LABELS2D),
     ),
     StageInfo(
-        "project", "Projection", "projection, per-mask depth clustering and painting per frame", True,
-        stage_project, reads=("projection",), upstream=("labels2d",),
+        "project",
+        "Projection",
+        "projection, per-mask depth clustering and painting per frame",
+        True,
+        stage_project,
+        reads=("projection",),
+        upstream=("labels2d",),
         frame_files=FrameFiles(RunLayout.OBSERVATIONS),
     ),
     StageInfo(
-        "fuse", "Voxel fusion", "Bayesian fusion of every observation into the voxel grid", False, stage_fuse,
-        reads=("fusion",), upstream=("project",), inputs=_fuse_inputs, outputs=lambda lay, _cfg: (lay.grid,),
+        "fuse",
+        "Voxel fusion",
+        "Bayesian fusion of every observation into the voxel grid",
+        False,
+        stage_fuse,
+        reads=("fusion",),
+        upstream=("project",),
+        inputs=_fuse_inputs,
+        outputs=lambda lay, _cfg: (lay.grid,),
         needs_poses=True,
     ),
     StageInfo(
-        "smooth", "kNN smoothing", "distance-weighted kNN smoothing of the fused grid", False, stage_smooth,
-        reads=("smoothing",), upstream=("fuse",), outputs=lambda lay, _cfg: (lay.grid_smooth,),
+        "smooth",
+        "kNN smoothing",
+        "distance-weighted kNN smoothing of the fused grid",
+        False,
+        stage_smooth,
+        reads=("smoothing",),
+        upstream=("fuse",),
+        outputs=lambda lay, _cfg: (lay.grid_smooth,),
     ),
     StageInfo(
-        "3dcn", "3D-CN", "3D Consistency Network rounds (when enabled)", False, stage_3dcn,
-        reads=("consistency",), upstream=("project", "fuse", "smooth"), outputs=_3dcn_outputs,
-        stale=lambda lay: lay.cn_grids(), switch="consistency.enabled", inputs=_3dcn_inputs,
+        "3dcn",
+        "3D-CN",
+        "3D Consistency Network rounds (when enabled)",
+        False,
+        stage_3dcn,
+        reads=("consistency",),
+        upstream=("project", "fuse", "smooth"),
+        outputs=_3dcn_outputs,
+        stale=lambda lay: lay.cn_grids(),
+        switch="consistency.enabled",
+        inputs=_3dcn_inputs,
         needs_poses=True,
     ),
     StageInfo(
-        "label_points", "Point labels", "label and confidence of every point from the final grid", True,
-        stage_label_points, upstream=("project", "smooth", "3dcn"), inputs=_label_points_inputs,
+        "label_points",
+        "Point labels",
+        "label and confidence of every point from the final grid",
+        True,
+        stage_label_points,
+        upstream=("project", "smooth", "3dcn"),
+        inputs=_label_points_inputs,
         frame_files=FrameFiles(RunLayout.POINTS),
         needs_poses=True,
     ),
     StageInfo(
-        "evaluate", "Evaluation", "point / voxel / 3D-CN metrics against ground truth", False, stage_evaluate,
+        "evaluate",
+        "Evaluation",
+        "point / voxel / 3D-CN metrics against ground truth",
+        False,
+        stage_evaluate,
         upstream=("project", "smooth", "3dcn", "label_points"),
         # The paper's merge and the file's layout are inputs too: a change of either re-evaluates.
-        inputs=lambda ctx: [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
-        + [PAPER_VIEW.to_dict(), {"metrics_version": METRICS_VERSION}],
+        inputs=lambda ctx: (
+            [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
+            + [PAPER_VIEW.to_dict(), {"metrics_version": METRICS_VERSION}]
+        ),
         outputs=lambda lay, _cfg: (lay.metrics,),
         needs_poses=True,
     ),
     StageInfo(
-        "export", "Export", "SemanticKITTI .label and .conf files per scan", True, stage_export,
-        upstream=("label_points",), inputs=lambda ctx: [int(x) for x in ctx.schema.export_ids()],
+        "export",
+        "Export",
+        "SemanticKITTI .label and .conf files per scan",
+        True,
+        stage_export,
+        upstream=("label_points",),
+        inputs=lambda ctx: [int(x) for x in ctx.schema.export_ids()],
         frame_files=FrameFiles(RunLayout.EXPORT, (".label", ".conf")),
     ),
 )
@@ -564,6 +645,19 @@ STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)
 """Stage names in execution order."""
 
 
-__all__ = ["STAGES", "STAGE_TABLE", "CnMember", "camera_view_keys", "cn_rounds", "finish_fuse",
-           "observed_keys", "stage_3dcn", "stage_export", "stage_fuse", "stage_label_points",
-           "stage_labels2d", "stage_project", "stage_smooth"]
+__all__ = [
+    "STAGES",
+    "STAGE_TABLE",
+    "CnMember",
+    "camera_view_keys",
+    "cn_rounds",
+    "finish_fuse",
+    "observed_keys",
+    "stage_3dcn",
+    "stage_export",
+    "stage_fuse",
+    "stage_label_points",
+    "stage_labels2d",
+    "stage_project",
+    "stage_smooth",
+]

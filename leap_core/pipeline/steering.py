@@ -58,8 +58,10 @@ def ignored_reason(cfg: PipelineConfig, path: str) -> str | None:
     """Why ``cfg`` ignores the setting at ``path``, or None when the setting has an effect."""
     scope = setting_scope(path)
     if scope.labeler is not None and scope.labeler != cfg.labeler:
-        return (f"only the {LABELERS[scope.labeler].label} labeler uses it; "
-                f"the {LABELERS[cfg.labeler].label} labeler ignores it")
+        return (
+            f"only the {LABELERS[scope.labeler].label} labeler uses it; "
+            f"the {LABELERS[cfg.labeler].label} labeler ignores it"
+        )
     if scope.stage is not None:
         stage = next(s for s in STAGE_TABLE if s.name == scope.stage)
         if not stage.is_enabled(cfg):
@@ -143,8 +145,11 @@ def recompute_plan(
             own = [s for s in stage.reads if s in changed_sections]
             if own:
                 parts.append(f"settings changed: {', '.join(own)}")
-            ups = [label[u] + (" (switched off)" if not by_name[u].is_enabled(cfg) else "")
-                   for u in stage.upstream if changed[u]]
+            ups = [
+                label[u] + (" (switched off)" if not by_name[u].is_enabled(cfg) else "")
+                for u in stage.upstream
+                if changed[u]
+            ]
             if ups:
                 parts.append(f"after {', '.join(ups)}")
             reason = "; ".join(parts) or input_hint
@@ -206,8 +211,11 @@ def _class_changes(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, 
         if c["name"] not in before:
             ids = ", ".join(str(i) for i in c.get("gt_ids", [])) or "none"
             prompts = ", ".join(_fmt(p) for p in c.get("prompts", []))
-            out.append(Change("class", c["name"], f"class {c['name']} added (prompts {prompts}; "
-                                                  f"ground-truth ids {ids})"))
+            out.append(
+                Change(
+                    "class", c["name"], f"class {c['name']} added (prompts {prompts}; ground-truth ids {ids})"
+                )
+            )
     for c in old:
         if c["name"] not in after:
             out.append(Change("class", c["name"], f"class {c['name']} removed"))
@@ -242,8 +250,10 @@ def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
     if old.get("dataset") != new.get("dataset"):
         out.append(Change("dataset", "dataset", f"dataset: {old.get('dataset')} → {new.get('dataset')}"))
     if old.get("frames") != new.get("frames"):
+
         def frames(v: Any) -> str:
             return "all" if v is None else f"{v[0]}..{v[1] - 1}"
+
         text = f"frames: {frames(old.get('frames'))} → {frames(new.get('frames'))}"
         out.append(Change("frames", "frames", text))
     classes_old = (old.get("schema") or {}).get("classes", [])

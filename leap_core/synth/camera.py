@@ -343,8 +343,9 @@ def render(
     )
 
 
-def _scatter(values: npt.NDArray[np.uint16], idx: npt.NDArray[np.int64], h: int, w: int
-             ) -> npt.NDArray[np.uint16]:
+def _scatter(
+    values: npt.NDArray[np.uint16], idx: npt.NDArray[np.int64], h: int, w: int
+) -> npt.NDArray[np.uint16]:
     """(H, W) image holding ``values`` at the flat pixel indices ``idx`` and 0 elsewhere."""
     img = np.zeros(h * w, np.uint16)
     img[idx] = values

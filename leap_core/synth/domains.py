@@ -37,8 +37,15 @@ STREET_32_LIDAR = LidarConfig(height=1.84, beams=32, upper_deg=(10.0, -9.4), low
 :class:`LidarConfig` laid end to end), mounted 1.84 m above the road."""
 
 STREET_32_SCENE = SceneConfig(
-    block_x=(56.0, 72.0), block_y=(60.0, 80.0), lane_width=3.2, sidewalk_width=2.6, truck_rate=0.15,
-    tree_row_rate=0.45, yard_rate=0.3, bicycles_per_side=1.2, persons_per_side=1.0,
+    block_x=(56.0, 72.0),
+    block_y=(60.0, 80.0),
+    lane_width=3.2,
+    sidewalk_width=2.6,
+    truck_rate=0.15,
+    tree_row_rate=0.45,
+    yard_rate=0.3,
+    bicycles_per_side=1.2,
+    persons_per_side=1.0,
 )
 """The ``street-32`` town (the fields it changes from :class:`SceneConfig`'s defaults)."""
 

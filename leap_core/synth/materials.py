@@ -144,16 +144,34 @@ class Material(IntEnum):
 
 
 REFLECTIVITY: Final = np.array(
-    [0.16, 0.22, 0.27, 0.42, 0.46, 0.32, 0.30, 0.24, 0.38, 0.92, 0.28, 0.06, 0.07, 0.30, 0.36, 0.28, 0.34,
-     0.24, 0.44],
+    [
+        0.16,
+        0.22,
+        0.27,
+        0.42,
+        0.46,
+        0.32,
+        0.30,
+        0.24,
+        0.38,
+        0.92,
+        0.28,
+        0.06,
+        0.07,
+        0.30,
+        0.36,
+        0.28,
+        0.34,
+        0.24,
+        0.44,
+    ],
     dtype=np.float32,
 )
 """Base LiDAR remission (KITTI scale, 0..1) per :class:`Material` value (index = material id).
 Vegetation is bright in near infrared, retro-reflective signs near 1, glass and tyres dark."""
 
 DROPOUT: Final = np.array(
-    [0.0, 0.0, 0.0, 0.01, 0.03, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01, 0.55, 0.10, 0.01, 0.01, 0.05, 0.0,
-     0.0, 0.02],
+    [0.0, 0.0, 0.0, 0.01, 0.03, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01, 0.55, 0.10, 0.01, 0.01, 0.05, 0.0, 0.0, 0.02],
     dtype=np.float32,
 )
 """Probability that a LiDAR return from each material is lost (specular glass, black rubber)."""

@@ -35,8 +35,9 @@ def add_gt2d(seq_root: Path, frame_ids: list[str], hw: tuple[int, int]) -> None:
         write_png16(seq_root / "gt2d" / "instance" / f"{fid}.png", inst)
 
 
-def kitti_sequences(data_root: Path, make_tiny_sequence: Callable[..., Any], build: Path,
-                    frames: tuple[int, ...]) -> list[Path]:
+def kitti_sequences(
+    data_root: Path, make_tiny_sequence: Callable[..., Any], build: Path, frames: tuple[int, ...]
+) -> list[Path]:
     """``data_root/kitti/sequences/00``, ``01``, ... with ``frames[i]`` frames each (400 points, seed i),
     images, labels and 2D ground truth; built under ``build`` and moved into place."""
     out = []

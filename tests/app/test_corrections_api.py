@@ -27,8 +27,9 @@ FRAMES = 4
 
 
 class Studio:
-    def __init__(self, data: Path, c: httpx.Client, dataset: Path, project: dict[str, Any],
-                 run: dict[str, Any]) -> None:
+    def __init__(
+        self, data: Path, c: httpx.Client, dataset: Path, project: dict[str, Any], run: dict[str, Any]
+    ) -> None:
         self.data, self.c, self.dataset, self.project, self.run = data, c, dataset, project, run
 
     @property
@@ -103,10 +104,15 @@ def test_a_correction_reaches_the_export_without_a_run_and_undo_reverts_it(studi
     names = [c["name"] for c in st.run["params"]["schema"]["classes"]]
     # A class the points of frame 0's first 30 voxels do not have everywhere already.
     keys = np.unique(point_keys(st, 0)[:30])
-    target = next(n for n in names if not all((before[f][m] == st.class_id(n)).all()
-                                              for f, m in in_keys(st, keys).items() if m.any()))
-    r = st.c.post(f"/projects/{st.pid}/corrections",
-                  json={"class_name": target, "voxel_size": _voxel_size(st), "keys": keys.tolist()})
+    target = next(
+        n
+        for n in names
+        if not all((before[f][m] == st.class_id(n)).all() for f, m in in_keys(st, keys).items() if m.any())
+    )
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": target, "voxel_size": _voxel_size(st), "keys": keys.tolist()},
+    )
     assert r.status_code == 201, r.text
     corr = r.json()
     assert corr["author"] == "api" and corr["scope"] == "map" and corr["voxels"] == keys.size
@@ -141,28 +147,36 @@ def test_a_correction_reaches_the_export_without_a_run_and_undo_reverts_it(studi
 def test_routes_refuse_bad_input_with_the_field_named(studio: Studio) -> None:
     st = studio
     vs = _voxel_size(st)
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "keys": [1], "scope": "scan"})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": "car", "voxel_size": vs, "keys": [1], "scope": "scan"},
+    )
     assert r.status_code == 422 and "frame_id" in r.text, r.text
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "keys": [1], "colour": 1})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": "car", "voxel_size": vs, "keys": [1], "colour": 1},
+    )
     assert r.status_code == 422 and "colour" in r.text, r.text
     r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "a/b", "voxel_size": vs, "keys": []})
     assert r.status_code == 422 and "class_name" in r.text, r.text
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "scope": "scan", "frame_id": "000000",
-                                                          "points": [-1]})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": "car", "voxel_size": vs, "scope": "scan", "frame_id": "000000", "points": [-1]},
+    )
     assert r.status_code == 422 and "points" in r.text, r.text
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "keys": [2**63]})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs, "keys": [2**63]}
+    )
     assert r.status_code == 422 and "keys" in r.text, r.text
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "scope": "scan", "frame_id": "999999",
-                                                          "points": [1]})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": "car", "voxel_size": vs, "scope": "scan", "frame_id": "999999", "points": [1]},
+    )
     assert r.status_code == 422 and "frame_id" in r.text and "999999" in r.text, r.text
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={"class_name": "car", "voxel_size": vs,
-                                                          "scope": "scan", "frame_id": "000000",
-                                                          "points": [400]})  # the scans have 400 points
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": "car", "voxel_size": vs, "scope": "scan", "frame_id": "000000", "points": [400]},
+    )  # the scans have 400 points
     assert r.status_code == 422 and "points" in r.text and "past scan 000000" in r.text, r.text
     r = st.c.patch(f"/projects/{st.pid}/corrections/999999", json={"active": True})
     assert r.status_code == 404, r.text
@@ -177,14 +191,24 @@ def test_scan_scope_and_erase_survive_and_win_in_a_real_run(studio: Studio) -> N
     names = [c["name"] for c in st.run["params"]["schema"]["classes"]]
     target = names[-1]
     scan_points = list(range(0, 40, 2))
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={
-        "class_name": target, "voxel_size": _voxel_size(st), "keys": [], "scope": "scan",
-        "frame_id": "000001", "points": scan_points})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={
+            "class_name": target,
+            "voxel_size": _voxel_size(st),
+            "keys": [],
+            "scope": "scan",
+            "frame_id": "000001",
+            "points": scan_points,
+        },
+    )
     assert r.status_code == 201, r.text
     assert r.json()["scope"] == "scan" and r.json()["points"] == len(scan_points)
     erase = np.unique(point_keys(st, 2)[100:160])
-    r = st.c.post(f"/projects/{st.pid}/corrections",
-                  json={"class_name": "", "voxel_size": _voxel_size(st), "keys": erase.tolist()})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={"class_name": "", "voxel_size": _voxel_size(st), "keys": erase.tolist()},
+    )
     assert r.status_code == 201, r.text
     st.wait_apply()
     # Applied at once to the finished run...
@@ -206,9 +230,17 @@ def test_scan_scope_and_erase_survive_and_win_in_a_real_run(studio: Studio) -> N
     conf = np.fromfile(st.run_dir(run) / "export" / "000001.conf", dtype="<f4")
     assert np.allclose(conf[scan_points], 1.0)
     # Only the scan-scope change next: the run after reruns label_points and export but not the fusion.
-    r = st.c.post(f"/projects/{st.pid}/corrections", json={
-        "class_name": target, "voxel_size": _voxel_size(st), "keys": [], "scope": "scan",
-        "frame_id": "000003", "points": [5]})
+    r = st.c.post(
+        f"/projects/{st.pid}/corrections",
+        json={
+            "class_name": target,
+            "voxel_size": _voxel_size(st),
+            "keys": [],
+            "scope": "scan",
+            "frame_id": "000003",
+            "points": [5],
+        },
+    )
     assert r.status_code == 201
     preview = st.c.get(f"/projects/{st.pid}/runs/preview").json()
     text = repr(preview)
@@ -229,8 +261,17 @@ def test_a_correction_made_while_a_run_works_reaches_that_runs_export_when_it_en
     database = Settings(work_dir=st.data / "studio", data_roots=[st.data]).database
     points = list(range(1, 30, 3))
     with dbmod.open_db(database) as db:
-        crud.add_correction(db, project_id=st.pid, class_name=target, voxel_size=_voxel_size(st), keys=[],
-                            scope="scan", frame_id="000000", points=points, author="api")
+        crud.add_correction(
+            db,
+            project_id=st.pid,
+            class_name=target,
+            voxel_size=_voxel_size(st),
+            keys=[],
+            scope="scan",
+            frame_id="000000",
+            points=points,
+            author="api",
+        )
     assert st.c.get(f"/runs/{run['id']}").json()["status"] in ("queued", "running")
     run = wait_run(st.c, run["id"], api="")
     assert run["status"] == "done", run
@@ -245,16 +286,23 @@ def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:
     path = tmp_path / "old.db"
     db = dbmod.connect(path)
     try:
-        db.execute("CREATE TABLE schema_version (version INTEGER PRIMARY KEY, description TEXT NOT NULL, "
-                   "applied_at TEXT NOT NULL)")
+        db.execute(
+            "CREATE TABLE schema_version (version INTEGER PRIMARY KEY, description TEXT NOT NULL, "
+            "applied_at TEXT NOT NULL)"
+        )
         for number, description, apply in dbmod.MIGRATIONS[:2]:
             with dbmod.transaction(db):
                 apply(db)
                 db.execute("INSERT INTO schema_version VALUES (?, ?, ?)", [number, description, "x"])
-        db.execute("INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, "
-                   "created_at, updated_at) VALUES ('p', 'folder', '/x', '{}', '{}', 'x', 'x')")
-        db.execute("INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys) "
-                   "VALUES (1, 'x', 'car', 0.2, ?)", [np.array([7], np.int64).tobytes()])
+        db.execute(
+            "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, "
+            "created_at, updated_at) VALUES ('p', 'folder', '/x', '{}', '{}', 'x', 'x')"
+        )
+        db.execute(
+            "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys) "
+            "VALUES (1, 'x', 'car', 0.2, ?)",
+            [np.array([7], np.int64).tobytes()],
+        )
     finally:
         db.close()
     assert dbmod.init_db(path) >= 3
@@ -263,8 +311,17 @@ def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:
     with dbmod.open_db(path) as db:
         (old,) = crud.list_corrections(db, 1)
         assert (old.scope, old.frame_id, old.points, old.author) == ("map", None, None, None)
-        cid = crud.add_correction(db, project_id=1, class_name="", voxel_size=0.2, keys=[1], scope="scan",
-                                  frame_id="000004", points=[3, 4], author="viewer")
+        cid = crud.add_correction(
+            db,
+            project_id=1,
+            class_name="",
+            voxel_size=0.2,
+            keys=[1],
+            scope="scan",
+            frame_id="000004",
+            points=[3, 4],
+            author="viewer",
+        )
         new = crud.get_correction(db, cid)
         assert new.scope == "scan" and new.frame_id == "000004" and new.points is not None
         assert new.points.tolist() == [3, 4] and new.author == "viewer" and new.class_name == ""

@@ -125,8 +125,13 @@ def test_a_single_scan_copied_out_with_the_full_poses(client: TestClient, tiny_d
     """Frame 000002 alone, with the sequence's 4-line poses.txt and times.txt: the reader takes a frame's
     pose by its file number, so the project is created with a full check."""
     single = tiny_dataset.parents[2] / "single" / "sequences" / "00"
-    for sub, suffix in (("velodyne", ".bin"), ("image_2", ".png"), ("labels", ".label"),
-                        ("gt2d/semantic", ".png"), ("gt2d/instance", ".png")):
+    for sub, suffix in (
+        ("velodyne", ".bin"),
+        ("image_2", ".png"),
+        ("labels", ".label"),
+        ("gt2d/semantic", ".png"),
+        ("gt2d/instance", ".png"),
+    ):
         (single / sub).mkdir(parents=True)
         shutil.copy(tiny_dataset / sub / f"000002{suffix}", single / sub)
     for name in ("calib.txt", "poses.txt", "times.txt"):
@@ -163,11 +168,23 @@ def test_the_run_shows_skipped_stages_with_their_reason(client: TestClient, tiny
 @pytest.mark.slow
 def test_random_weight_models_warn_in_the_run_log_and_on_the_run(data_root: Path, tiny_dataset: Path) -> None:
     models = make_tiny_models(data_root.parent / "models", TinyModelsConfig(num_queries=8)).models_dir
-    settings = Settings(data_roots=[data_root], work_dir=data_root / "studio", seed_demo=False,
-                        progress_interval_s=0.02, prewarm_workers=False, models_dir=models)
+    settings = Settings(
+        data_roots=[data_root],
+        work_dir=data_root / "studio",
+        seed_demo=False,
+        progress_interval_s=0.02,
+        prewarm_workers=False,
+        models_dir=models,
+    )
     with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
-        r = client.post(f"{API}/projects", json={
-            "name": "p", "dataset": {"kind": "folder", "path": str(tiny_dataset)}, "schema_name": "agri_uav"})
+        r = client.post(
+            f"{API}/projects",
+            json={
+                "name": "p",
+                "dataset": {"kind": "folder", "path": str(tiny_dataset)},
+                "schema_name": "agri_uav",
+            },
+        )
         assert r.status_code == 201, r.text
         check = r.json()["dataset"]["check"]
         assert check["labeler"] == "grounded-sam"
@@ -184,8 +201,14 @@ def test_random_weight_models_warn_in_the_run_log_and_on_the_run(data_root: Path
 def test_a_run_without_models_fails_with_the_servers_side_of_the_fix(
     client: TestClient, tiny_dataset: Path
 ) -> None:
-    r = client.post(f"{API}/projects", json={
-        "name": "p", "dataset": {"kind": "folder", "path": str(tiny_dataset)}, "schema_name": "agri_uav"})
+    r = client.post(
+        f"{API}/projects",
+        json={
+            "name": "p",
+            "dataset": {"kind": "folder", "path": str(tiny_dataset)},
+            "schema_name": "agri_uav",
+        },
+    )
     assert r.status_code == 201, r.text
     assert r.json()["dataset"]["check"]["verdict"] == "partial"  # warned at creation: no models folder
     run = client.post(f"{API}/projects/{r.json()['id']}/runs", json={}).json()

@@ -31,7 +31,10 @@ TINY_DEMO = {**SMALL_DEMO, "frames": 3}
 @pytest.mark.slow
 def test_first_start_seeds_a_demo_project_with_a_finished_run(data_root: Path) -> None:
     settings = Settings(
-        data_roots=[data_root], work_dir=data_root / "studio", seed_demo=True, seed_agri_demo=False,
+        data_roots=[data_root],
+        work_dir=data_root / "studio",
+        seed_demo=True,
+        seed_agri_demo=False,
         demo_synth=TINY_DEMO,
     )
     with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
@@ -96,6 +99,7 @@ def test_bad_demo_settings_are_refused(data_root: Path) -> None:
 @pytest.mark.slow
 def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
     env = {**os.environ, "LEAP_DEMO_SYNTH": json.dumps(TINY_DEMO)}
+
     def demo() -> subprocess.CompletedProcess[str]:
         return subprocess.run(
             [sys.executable, "-m", "app.cli", "demo", "--no-serve"],

@@ -174,8 +174,10 @@ def test_a_planted_circle_is_found_even_behind_a_function_local_import(tmp_path:
     ("panel", "expected"),
     [
         ("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.session import Session\n", []),
-        ("import typing\nif typing.TYPE_CHECKING:\n    pass\nelse:\n    from pkg import session\n",
-         [["pkg.panel", "pkg.session", "pkg.panel"]]),
+        (
+            "import typing\nif typing.TYPE_CHECKING:\n    pass\nelse:\n    from pkg import session\n",
+            [["pkg.panel", "pkg.session", "pkg.panel"]],
+        ),
         ("def build():\n    from pkg.session import Session\n", [["pkg.panel", "pkg.session", "pkg.panel"]]),
     ],
 )

@@ -45,9 +45,15 @@ def test_sequences_running_at_once_keep_each_others_stages() -> None:
     t.update("00/labels2d", 4, 4, now=2.0, stamp="s3")
     t.update("01/project", 1, 3, now=2.5, stamp="s4")  # 01/labels2d ends unreported, 00/project waits
     status = {s["name"]: s["status"] for s in t.snapshot(now=3.0)["stages"]}
-    assert status == {"00/labels2d": "done", "00/project": "pending", "01/labels2d": "done",
-                      "01/project": "running", "*/3dcn": "pending", "00/export": "pending",
-                      "01/export": "pending"}
+    assert status == {
+        "00/labels2d": "done",
+        "00/project": "pending",
+        "01/labels2d": "done",
+        "01/project": "running",
+        "*/3dcn": "pending",
+        "00/export": "pending",
+        "01/export": "pending",
+    }
     t.update("00/project", 2, 4, now=3.0, stamp="s5")
     assert t.snapshot(now=3.0)["stages"][1]["status"] == "running"
     t.update("*/3dcn", 0, 10, now=4.0, stamp="s6")

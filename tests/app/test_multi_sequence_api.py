@@ -40,15 +40,15 @@ def two_sequences(data_root: Path, make_tiny_sequence: Callable[..., Any], tmp_p
     return appfixtures.kitti_sequences(data_root, make_tiny_sequence, tmp_path, (4, 3))
 
 
-def create_multi(client: TestClient, folders: list[Path], name: str = "multi", **extra: Any
-                 ) -> dict[str, Any]:
+def create_multi(
+    client: TestClient, folders: list[Path], name: str = "multi", **extra: Any
+) -> dict[str, Any]:
     r = client.post(
         f"{API}/projects",
         json={"name": name, "sequences": [{"path": str(f)} for f in folders], **extra},
     )
     assert r.status_code == 201, r.text
     return r.json()
-
 
 
 # ------------------------------------------------------------------------------------------- creation
@@ -71,8 +71,16 @@ def test_single_sequence_project_has_one_sequence(client: TestClient, tiny_datas
 
 
 def test_names_given_and_refused(client: TestClient, two_sequences: list[Path], data_root: Path) -> None:
-    r = client.post(f"{API}/projects", json={"name": "m", "sequences": [
-        {"path": str(two_sequences[0]), "name": "city"}, {"path": str(two_sequences[1]), "name": "road"}]})
+    r = client.post(
+        f"{API}/projects",
+        json={
+            "name": "m",
+            "sequences": [
+                {"path": str(two_sequences[0]), "name": "city"},
+                {"path": str(two_sequences[1]), "name": "road"},
+            ],
+        },
+    )
     assert r.status_code == 201, r.text
     assert [s["name"] for s in r.json()["sequences"]] == ["city", "road"]
 
@@ -81,42 +89,59 @@ def test_names_given_and_refused(client: TestClient, two_sequences: list[Path], 
     assert loc_of(r) == ["body", "sequences", 1, "name"] and "taken" in r.text
     twice = [{"path": str(two_sequences[0])}, {"path": str(two_sequences[0]), "name": "b"}]
     assert loc_of(client.post(f"{API}/projects", json={"name": "m", "sequences": twice})) == [
-        "body", "sequences", 1, "path"]
+        "body",
+        "sequences",
+        1,
+        "path",
+    ]
     for bad in ("../x", ".hidden", "a/b", "", "x" * 65):
         body = {"name": "m", "sequences": [{"path": str(two_sequences[0]), "name": bad}]}
         assert loc_of(client.post(f"{API}/projects", json=body))[:4] == ["body", "sequences", 0, "name"]
 
 
-def test_each_folder_is_confined_and_checked(client: TestClient, two_sequences: list[Path], tmp_path: Path,
-                                             data_root: Path) -> None:
+def test_each_folder_is_confined_and_checked(
+    client: TestClient, two_sequences: list[Path], tmp_path: Path, data_root: Path
+) -> None:
     outside = tmp_path / "outside" / "sequences" / "05"
     shutil.copytree(two_sequences[1], outside)
-    r = client.post(f"{API}/projects", json={"name": "m", "sequences": [
-        {"path": str(two_sequences[0])}, {"path": str(outside)}]})
+    r = client.post(
+        f"{API}/projects",
+        json={"name": "m", "sequences": [{"path": str(two_sequences[0])}, {"path": str(outside)}]},
+    )
     assert r.status_code == 403, r.text
     assert "outside" in r.json()["detail"]
     not_kitti = data_root / "kitti" / "notes"
     not_kitti.mkdir()
-    r = client.post(f"{API}/projects", json={"name": "m", "sequences": [
-        {"path": str(two_sequences[0])}, {"path": str(not_kitti)}]})
+    r = client.post(
+        f"{API}/projects",
+        json={"name": "m", "sequences": [{"path": str(two_sequences[0])}, {"path": str(not_kitti)}]},
+    )
     assert loc_of(r) == ["body", "sequences", 1, "path"] and "velodyne" in r.text
     # A sequence the pipeline cannot run on (no calibration) is refused, naming it.
     (two_sequences[1] / "calib.txt").unlink()
-    r = client.post(f"{API}/projects", json={"name": "m", "sequences": [
-        {"path": str(two_sequences[0])}, {"path": str(two_sequences[1])}]})
+    r = client.post(
+        f"{API}/projects",
+        json={"name": "m", "sequences": [{"path": str(two_sequences[0])}, {"path": str(two_sequences[1])}]},
+    )
     assert loc_of(r) == ["body", "sequences", 1, "path"] and "'01'" in r.text
     assert client.get(f"{API}/projects").json()["count"] == 0  # nothing half-created
 
 
 def test_dataset_or_sequences(client: TestClient, two_sequences: list[Path]) -> None:
     assert loc_of(client.post(f"{API}/projects", json={"name": "m"})) == ["body", "dataset"]
-    both = {"name": "m", "dataset": {"kind": "folder", "path": str(two_sequences[0])},
-            "sequences": [{"path": str(two_sequences[1])}]}
+    both = {
+        "name": "m",
+        "dataset": {"kind": "folder", "path": str(two_sequences[0])},
+        "sequences": [{"path": str(two_sequences[1])}],
+    }
     assert loc_of(client.post(f"{API}/projects", json=both)) == ["body", "sequences"]
     assert loc_of(client.post(f"{API}/projects", json={"name": "m", "sequences": []}))[:2] == [
-        "body", "sequences"]
-    r = client.post(f"{API}/projects", json={"name": "m", "sequences": [{"path": str(two_sequences[0]),
-                                                                          "extra": 1}]})
+        "body",
+        "sequences",
+    ]
+    r = client.post(
+        f"{API}/projects", json={"name": "m", "sequences": [{"path": str(two_sequences[0]), "extra": 1}]}
+    )
     assert loc_of(r)[:3] == ["body", "sequences", 0]
 
 
@@ -135,23 +160,37 @@ def test_migration_6_gives_existing_projects_their_sequence(tmp_path: Path) -> N
         for name, folder in (("a", "/data/kitti/sequences/07"), ("b", "/data/other/sequences/00")):
             db.execute(
                 "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, "
-                "created_at, updated_at) VALUES (?, 'folder', ?, '{}', '{}', 'then', 'then')", [name, folder])
-        db.execute("INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys) "
-                   "VALUES (1, 'then', 'car', 0.2, x'0500000000000000')")
+                "created_at, updated_at) VALUES (?, 'folder', ?, '{}', '{}', 'then', 'then')",
+                [name, folder],
+            )
+        db.execute(
+            "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys) "
+            "VALUES (1, 'then', 'car', 0.2, x'0500000000000000')"
+        )
         db.execute("INSERT INTO review_marks VALUES (2, '4m:0,0,0', 'sig', 'accepted', NULL, 'then')")
-        db.execute("INSERT INTO review_queues VALUES (2, 'confidence', NULL, '[[\"4m:0,0,0\", \"sig\"]]', "
-                   "'then')")
+        db.execute(
+            "INSERT INTO review_queues VALUES (2, 'confidence', NULL, '[[\"4m:0,0,0\", \"sig\"]]', 'then')"
+        )
     assert dbmod.init_db(path) == dbmod.SCHEMA_VERSION >= 6
     with dbmod.open_db(path) as db:
         assert crud.list_sequences(db, 1) == [
-            {"name": "07", "dataset_path": "/data/kitti/sequences/07", "position": 0}]
+            {"name": "07", "dataset_path": "/data/kitti/sequences/07", "position": 0}
+        ]
         assert crud.list_sequences(db, 2)[0]["name"] == "00"
         (c,) = crud.list_corrections(db, 1)
         assert c.class_name == "car" and c.sequence == "07" and c.keys.tolist() == [5]
         assert crud.list_corrections(db, 1, sequence="07") == [c]
         assert set(crud.list_review_marks(db, 2)) == {"4m:0,0,0"}
-        assert crud.review_progress(db, 2) == [{"kind": "confidence", "run_id": None, "total": 1,
-                                                "reviewed": 1, "skipped": 0, "updated_at": "then"}]
+        assert crud.review_progress(db, 2) == [
+            {
+                "kind": "confidence",
+                "run_id": None,
+                "total": 1,
+                "reviewed": 1,
+                "skipped": 0,
+                "updated_at": "then",
+            }
+        ]
         crud.delete_project(db, 2)  # sequences and queues go with their project
         assert db.execute("SELECT COUNT(*) FROM project_sequences WHERE project_id = 2").fetchone()[0] == 0
         assert db.execute("SELECT COUNT(*) FROM review_queues").fetchone()[0] == 0
@@ -161,9 +200,15 @@ def test_corrections_and_marks_are_per_sequence(tmp_path: Path) -> None:
     path = tmp_path / "s.db"
     dbmod.init_db(path)
     with dbmod.open_db(path) as db:
-        p = crud.create_project(db, name="m", dataset_kind="folder", dataset_path="/d/sequences/00",
-                                schema={}, pipeline={},
-                                sequences=[("00", "/d/sequences/00"), ("01", "/d/sequences/01")])
+        p = crud.create_project(
+            db,
+            name="m",
+            dataset_kind="folder",
+            dataset_path="/d/sequences/00",
+            schema={},
+            pipeline={},
+            sequences=[("00", "/d/sequences/00"), ("01", "/d/sequences/01")],
+        )
         pid = int(p["id"])
         crud.add_correction(db, project_id=pid, class_name="car", voxel_size=0.2, keys=[1])
         crud.add_correction(db, project_id=pid, class_name="road", voxel_size=0.2, keys=[1], sequence="01")
@@ -183,8 +228,9 @@ def test_corrections_and_marks_are_per_sequence(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ runs
-def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path], tiny_dataset: Path,
-                                   tmp_path: Path, settings: Settings) -> None:
+def test_run_labels_every_sequence(
+    client: TestClient, two_sequences: list[Path], tiny_dataset: Path, tmp_path: Path, settings: Settings
+) -> None:
     # Listed 01 first: run order is not name order (stored JSON sorts its keys; the API must not).
     two_sequences = two_sequences[::-1]
     project = create_multi(client, two_sequences)
@@ -195,8 +241,10 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     r = client.post(f"{API}/projects/{pid}/runs", json={})
     assert r.status_code == 202, r.text
     run = r.json()
-    assert run["params"]["sequences"] == [{"name": "01", "dataset": str(two_sequences[0])},
-                                          {"name": "00", "dataset": str(two_sequences[1])}]
+    assert run["params"]["sequences"] == [
+        {"name": "01", "dataset": str(two_sequences[0])},
+        {"name": "00", "dataset": str(two_sequences[1])},
+    ]
     expected = [f"{n}/{s}" for n in ("01", "00") for s in STAGES]
     assert [s["name"] for s in run["progress"]["stages"]] == expected
     run = wait_run(client, run["id"], timeout=300)
@@ -216,23 +264,31 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     # Metrics: overall (the summed confusion matrices) by default, per sequence on request.
     overall = client.get(f"{API}/runs/{run['id']}/metrics").json()
     assert overall["sequences"] == ["01", "00"] and overall["sequence"] is None
-    per = {n: client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": n}).json()
-           for n in ("00", "01")}
+    per = {
+        n: client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": n}).json() for n in ("00", "01")
+    }
     assert per["00"]["sequence"] == "00"
     stored = json.loads((run_dir / "metrics.json").read_text())
     for n in ("00", "01"):
         assert per[n]["metrics"]["protocols"]["camera"]["voxel"]["miou"] == pytest.approx(
-            stored["sequences"][n]["camera"]["voxel"]["miou"])
+            stored["sequences"][n]["camera"]["voxel"]["miou"]
+        )
     assert overall["metrics"]["protocols"]["camera"]["voxel"]["miou"] == pytest.approx(
-        stored["overall"]["camera"]["voxel"]["miou"])
+        stored["overall"]["camera"]["voxel"]["miou"]
+    )
     assert per["00"]["metrics"] != per["01"]["metrics"]
     assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "07"})) == [
-        "query", "sequence"]
+        "query",
+        "sequence",
+    ]
     assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "../x"}))[:2] == [
-        "query", "sequence"]
+        "query",
+        "sequence",
+    ]
     listed = client.get(f"{API}/projects/{pid}/runs").json()["data"][0]
     assert listed["has_export"] and listed["summary"]["camera"]["voxel"] == pytest.approx(
-        stored["overall"]["camera"]["voxel"]["miou"])
+        stored["overall"]["camera"]["voxel"]["miou"]
+    )
 
     # The zip: sequences/<name>/predictions/<frame>.label for every sequence.
     z = client.get(f"{API}/runs/{run['id']}/export.zip")
@@ -242,8 +298,10 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
         for scan in (folder / "velodyne").glob("*.bin"):
             member = f"sequences/{name}/predictions/{scan.stem}.label"
             assert member in names
-            assert zipfile.ZipFile(io.BytesIO(z.content)).read(member) == (
-                run_dir / "sequences" / name / "export" / f"{scan.stem}.label").read_bytes()
+            assert (
+                zipfile.ZipFile(io.BytesIO(z.content)).read(member)
+                == (run_dir / "sequences" / name / "export" / f"{scan.stem}.label").read_bytes()
+            )
 
     # The folder export: by default into each dataset's predictions/ (the sequences share a root).
     info = client.get(f"{API}/runs/{run['id']}/export").json()
@@ -255,7 +313,8 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     assert w.json()["files"] == 7
     for name, folder in zip(("01", "00"), two_sequences, strict=True):
         assert sorted(p.name for p in (folder / "predictions").iterdir()) == sorted(
-            p.name for p in (run_dir / "sequences" / name / "export").glob("*.label"))
+            p.name for p in (run_dir / "sequences" / name / "export").glob("*.label")
+        )
     again = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert again.status_code == 409
     assert client.post(f"{API}/runs/{run['id']}/export", json={"overwrite": True}).json()["replaced"] == 7
@@ -264,7 +323,9 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     w = client.post(f"{API}/runs/{run['id']}/export", json={"path": str(own)})
     assert w.status_code == 200, w.text
     assert {p.relative_to(own).parts[:3] for p in own.rglob("*.label")} == {
-        ("sequences", "00", "predictions"), ("sequences", "01", "predictions")}
+        ("sequences", "00", "predictions"),
+        ("sequences", "01", "predictions"),
+    }
     # Anywhere else in a data root is refused (not a dataset's predictions/ folder).
     bad = client.post(f"{API}/runs/{run['id']}/export", json={"path": str(tiny_dataset.parent)})
     assert bad.status_code == 403
@@ -274,25 +335,37 @@ def test_run_labels_every_sequence(client: TestClient, two_sequences: list[Path]
     assert preview["base_run"]["id"] == run["id"] and "fuse" not in preview["recompute"], preview
 
     # Corrections are per sequence: one in 00 changes 00's export only.
-    before = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
-              for n in ("01", "00")}
+    before = {
+        n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
+        for n in ("01", "00")
+    }
     keys = _voxel_keys_of(two_sequences[1], "000000", run["params"]["pipeline"])
-    c = client.post(f"{API}/projects/{pid}/corrections", json={
-        "class_name": "building", "voxel_size": 0.2, "keys": keys, "sequence": "00"})
+    c = client.post(
+        f"{API}/projects/{pid}/corrections",
+        json={"class_name": "building", "voxel_size": 0.2, "keys": keys, "sequence": "00"},
+    )
     assert c.status_code == 201, c.text
     assert c.json()["sequence"] == "00"
     assert client.get(f"{API}/projects/{pid}/corrections").json()["corrections"] == []
-    assert len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "00"}).json()[
-        "corrections"]) == 1
-    assert loc_of(client.post(f"{API}/projects/{pid}/corrections", json={
-        "class_name": "car", "voxel_size": 0.2, "keys": [1], "sequence": "09"})) == ["body", "sequence"]
+    assert (
+        len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "00"}).json()["corrections"])
+        == 1
+    )
+    assert loc_of(
+        client.post(
+            f"{API}/projects/{pid}/corrections",
+            json={"class_name": "car", "voxel_size": 0.2, "keys": [1], "sequence": "09"},
+        )
+    ) == ["body", "sequence"]
     preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
     fuse = next(st for st in preview["stages"] if st["name"] == "fuse")
     assert fuse["action"] == "recompute" and fuse["reason"].startswith("sequence 00: "), fuse
     state = applier(settings).wait(pid)
     assert state.status == "done" and state.frames >= 1, state
-    after = {n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
-             for n in ("01", "00")}
+    after = {
+        n: {p.name: p.read_bytes() for p in (run_dir / "sequences" / n / "export").glob("*.label")}
+        for n in ("01", "00")
+    }
     assert after["01"] == before["01"] and after["00"] != before["00"]
 
     # The viewer opens the sequence asked for: its run folder, its dataset, its corrections.
@@ -322,14 +395,24 @@ def _voxel_keys_of(folder: Path, frame_id: str, pipeline: dict[str, Any]) -> lis
 def test_joint_3dcn_run_reports_its_rounds_between_the_sequences(
     client: TestClient, two_sequences: list[Path]
 ) -> None:
-    tiny_3dcn = {"enabled": True, "iterations": 1, "points_per_scan": 512, "num_threads": 1, "min_steps": 0,
-                 "device": "cpu", "backbone": {"channels": 8, "layers": 1, "knn": 4}}
+    tiny_3dcn = {
+        "enabled": True,
+        "iterations": 1,
+        "points_per_scan": 512,
+        "num_threads": 1,
+        "min_steps": 0,
+        "device": "cpu",
+        "backbone": {"channels": 8, "layers": 1, "knn": 4},
+    }
     project = create_multi(client, two_sequences, pipeline={"consistency": tiny_3dcn})
     run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
     # Every sequence up to smoothing, the rounds trained on both, then each sequence from its 3D-CN on.
     cut = STAGES.index("3dcn")
-    expected = ([f"{n}/{s}" for n in ("00", "01") for s in STAGES[:cut]] + ["*/3dcn"]
-                + [f"{n}/{s}" for n in ("00", "01") for s in STAGES[cut:]])
+    expected = (
+        [f"{n}/{s}" for n in ("00", "01") for s in STAGES[:cut]]
+        + ["*/3dcn"]
+        + [f"{n}/{s}" for n in ("00", "01") for s in STAGES[cut:]]
+    )
     assert [s["name"] for s in run["progress"]["stages"]] == expected
     run = wait_run(client, run["id"], timeout=600)
     assert run["status"] == "done", run["error"]

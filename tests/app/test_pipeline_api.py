@@ -36,8 +36,13 @@ def test_stages_come_from_the_stage_table_after_the_demo_generation(client: Test
     assert stages[1]["name"] == "estimate poses" and "KISS-ICP" in stages[1]["description"]
     switches = stage_switches()
     assert stages[2:] == [
-        {"name": s.name, "label": s.label, "description": s.description, "per_frame": s.per_frame,
-         "switch": switches.get(s.name)}
+        {
+            "name": s.name,
+            "label": s.label,
+            "description": s.description,
+            "per_frame": s.per_frame,
+            "switch": switches.get(s.name),
+        }
         for s in STAGE_TABLE
     ]
     # The 3D-CN is switched by the form's checkbox, whose field sets its stage's switch path.
@@ -69,8 +74,12 @@ def test_the_form_fields_are_the_projects_form_values_and_its_limits_are_enforce
         scope = setting_scope(spec.path)
         assert (f["labeler"], f["stage"]) == (scope.labeler, scope.stage)
     scoped = {f["name"]: (f["labeler"], f["stage"]) for f in fields if f["labeler"] or f["stage"]}
-    assert scoped == {"threshold": ("grounded-sam", None), "share": (None, "3dcn"),
-                      "temperature": (None, "3dcn"), "iterations": (None, "3dcn")}
+    assert scoped == {
+        "threshold": ("grounded-sam", None),
+        "share": (None, "3dcn"),
+        "temperature": (None, "3dcn"),
+        "iterations": (None, "3dcn"),
+    }
     labeler = next(f for f in fields if f["name"] == "labeler")
     assert [c["value"] for c in labeler["choices"]] == [lab["name"] for lab in body["labelers"]]
     assert [lab["name"] for lab in body["labelers"]] == list(LABELERS)

@@ -44,8 +44,12 @@ def no_poses(drive: Path, data_root: Path) -> Path:
 
 
 def _create(client: TestClient, dataset: Path, **extra: object) -> dict:
-    body = {"name": "drive", "dataset": {"kind": "folder", "path": str(dataset)},
-            "pipeline": {"labeler": "simulated"}, **extra}
+    body = {
+        "name": "drive",
+        "dataset": {"kind": "folder", "path": str(dataset)},
+        "pipeline": {"labeler": "simulated"},
+        **extra,
+    }
     r = client.post(f"{API}/projects", json=body)
     assert r.status_code == 201, r.text
     return r.json()
@@ -85,8 +89,9 @@ def test_estimated_poses_go_to_the_work_folder_and_are_reused(
     assert layout.poses.read_bytes() == cached.read_bytes()
     assert layout.open_sequence(no_poses).pose_source == "estimated"
     warnings = done["progress"]["warnings"]
-    assert any("poses: the dataset has no poses.txt; KISS-ICP" in w and "estimated them" in w
-               for w in warnings), warnings
+    assert any(
+        "poses: the dataset has no poses.txt; KISS-ICP" in w and "estimated them" in w for w in warnings
+    ), warnings
     assert "KISS-ICP" in layout.log.read_text()
     stages = {s["name"]: s for s in done["progress"]["stages"]}
     assert stages[POSES_STAGE]["status"] == "done"

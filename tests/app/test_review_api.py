@@ -44,9 +44,7 @@ def test_migration_4_upgrades_a_version_2_database(tmp_path: Path) -> None:
         pid = _project(db)
         crud.set_review_mark(db, pid, region="4m:0,0,0", signature="ab", state="accepted", run_id=None)
         with pytest.raises(Exception, match="CHECK"):
-            db.execute(
-                "INSERT INTO review_marks VALUES (?, 'r', 's', 'maybe', NULL, 'now')", [pid]
-            )
+            db.execute("INSERT INTO review_marks VALUES (?, 'r', 's', 'maybe', NULL, 'now')", [pid])
         # Marks go with their project.
         crud.delete_project(db, pid)
         assert db.execute("SELECT COUNT(*) FROM review_marks").fetchone()[0] == 0
@@ -66,7 +64,11 @@ def test_progress_counts_marks_on_unchanged_content_only(tmp_path: Path) -> None
         crud.set_review_mark(db, other, region="a", signature="s1", state="skipped")  # other project
         (row,) = crud.review_progress(db, pid)
         assert (row["kind"], row["run_id"], row["total"], row["reviewed"], row["skipped"]) == (
-            "confidence", 7, 3, 1, 1
+            "confidence",
+            7,
+            3,
+            1,
+            1,
         )
         # Re-marking replaces; a re-ranked queue replaces the saved one.
         crud.set_review_mark(db, pid, region="b", signature="s2", state="accepted")

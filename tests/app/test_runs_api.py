@@ -116,7 +116,10 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     written = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert written.status_code == 200, written.text
     assert written.json() == {
-        "run_id": run["id"], "path": str(tiny_dataset / "predictions"), "files": 4, "replaced": 0
+        "run_id": run["id"],
+        "path": str(tiny_dataset / "predictions"),
+        "files": 4,
+        "replaced": 0,
     }
     for fid in seq.frame_ids:
         assert (tiny_dataset / "predictions" / f"{fid}.label").is_file()

@@ -51,7 +51,6 @@ def remove(client: TestClient, pid: int, name: str) -> Any:
     return client.delete(f"{API}/projects/{pid}/sequences/{name}")
 
 
-
 def names_of(project: dict[str, Any]) -> list[str]:
     return [s["name"] for s in project["sequences"]]
 
@@ -78,7 +77,8 @@ def test_add_and_remove_keep_every_sequence_checked(client: TestClient, folders:
     assert [c["verdict"] for c in checks] == ["full", "partial"]
     assert not [f for f in checks[0]["findings"] if f["severity"] != "info"]
     assert [f["path"] for f in checks[1]["findings"] if f["code"] == "poses_missing"] == [
-        str(folders[1] / "poses.txt")]
+        str(folders[1] / "poses.txt")
+    ]
     assert project["dataset"]["check"] == checks[0]  # the project's own stays its first sequence's
     listed = client.get(f"{API}/projects/{pid}/sequences").json()
     assert [s["name"] for s in listed["data"]] == ["00", "01"] and listed["count"] == 2
@@ -110,8 +110,9 @@ def test_add_and_remove_keep_every_sequence_checked(client: TestClient, folders:
     assert loc_of(remove(client, pid, ".hidden"))[:2] == ["path", "name"]
 
 
-def test_added_folders_are_confined_and_checked(client: TestClient, folders: list[Path], tmp_path: Path,
-                                                data_root: Path) -> None:
+def test_added_folders_are_confined_and_checked(
+    client: TestClient, folders: list[Path], tmp_path: Path, data_root: Path
+) -> None:
     pid = create_project(client, folders[0])["id"]
     outside = tmp_path / "outside" / "sequences" / "05"
     shutil.copytree(folders[1], outside)
@@ -143,7 +144,8 @@ def test_added_folders_are_confined_and_checked(client: TestClient, folders: lis
     for bad in ("../x", ".hidden", "a/b", "x" * 65):
         assert loc_of(add(client, pid, folders[1], name=bad))[:2] == ["body", "name"]
     assert loc_of(client.post(f"{API}/projects/{pid}/sequences", json={"path": str(folders[1]), "x": 1}))[
-        :2] == ["body", "x"]
+        :2
+    ] == ["body", "x"]
     assert names_of(client.get(f"{API}/projects/{pid}").json()) == ["00"]  # nothing was added
 
 
@@ -183,8 +185,9 @@ def test_the_demo_project_keeps_its_one_sequence(client: TestClient, folders: li
 
 
 # ---------------------------------------------------------------------------- stale results, no mixing
-def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[Path],
-                                               settings: Settings) -> None:
+def test_results_go_stale_and_are_never_mixed(
+    client: TestClient, folders: list[Path], settings: Settings
+) -> None:
     project = create_project(client, folders[0])
     pid = project["id"]
     with open_db(settings.database) as db:  # a reviewer's mark in the one-sequence project
@@ -209,12 +212,17 @@ def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[
     preview = client.get(f"{API}/projects/{pid}/runs/preview").json()
     assert preview["stale"] == stale and preview["base_run"] is None
     assert client.get(f"{API}/projects/{pid}/sequences").json()["stale"] == stale
-    assert all(s["reason"] == "the sequences changed since run 1" for s in preview["stages"]
-               if s["action"] == "recompute"), preview
+    assert all(
+        s["reason"] == "the sequences changed since run 1"
+        for s in preview["stages"]
+        if s["action"] == "recompute"
+    ), preview
     # The one-sequence run labeled 00 only: no figures of it are 01's.
     assert client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "00"}).status_code == 200
     assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "01"})) == [
-        "query", "sequence"]
+        "query",
+        "sequence",
+    ]
     # The viewer shows a sequence only the runs that labeled it.
     assert AppBackend(settings, pid, sequence="01").latest_finished_run() is None
     assert AppBackend(settings, pid, sequence="00").latest_finished_run().run_id == run["id"]
@@ -226,8 +234,10 @@ def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[
         assert crud.list_review_marks(db, pid, "01") == {}
     # A correction of 01 (on keys that are 00's voxels too) never reaches the run's export, which
     # labeled 00: neither now nor once 00 is removed and 01 is the project's first sequence.
-    c = client.post(f"{API}/projects/{pid}/corrections", json={
-        "class_name": "building", "voxel_size": 0.2, "keys": _voxel_keys(folders[0]), "sequence": "01"})
+    c = client.post(
+        f"{API}/projects/{pid}/corrections",
+        json={"class_name": "building", "voxel_size": 0.2, "keys": _voxel_keys(folders[0]), "sequence": "01"},
+    )
     assert c.status_code == 201, c.text
     assert applier(settings).wait(pid).frames == 0
 
@@ -235,14 +245,18 @@ def test_results_go_stale_and_are_never_mixed(client: TestClient, folders: list[
     project = remove(client, pid, "00").json()
     assert (project["stale"]["added"], project["stale"]["removed"]) == (["01"], [str(folders[0])])
     assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "01"})) == [
-        "query", "sequence"]
+        "query",
+        "sequence",
+    ]
     applier(settings).request(pid)
     assert applier(settings).wait(pid).frames == 0
     assert {p.name: p.read_bytes() for p in (run_dir / "export").glob("*.label")} == export
     assert client.get(f"{API}/runs/{run['id']}").json()["status"] == "done"
     assert {p.name: p.read_bytes() for p in (run_dir / "export").glob("*.label")} == export
-    assert len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "01"}).json()[
-        "corrections"]) == 1
+    assert (
+        len(client.get(f"{API}/projects/{pid}/corrections", params={"sequence": "01"}).json()["corrections"])
+        == 1
+    )
     # 00's name stays bound to its folder: another folder cannot take it over ...
     r = add(client, pid, folders[2], name="00")
     assert loc_of(r) == ["body", "name"] and "removed sequence" in r.text

@@ -83,9 +83,10 @@ def test_a_new_class_without_colour_gets_the_most_distinct_one(env) -> None:
     p = _project(client, data / "tiny" / "sequences" / "00", "colours")
     before = client.get(f"/projects/{p['id']}/classes").json()
     suggested = before["next_color"]
-    r = client.post(f"/projects/{p['id']}/classes",
-                    json={"name": "traffic-cone", "prompts": ["traffic cone"], "export_id": 300,
-                          "gt_ids": [300]})
+    r = client.post(
+        f"/projects/{p['id']}/classes",
+        json={"name": "traffic-cone", "prompts": ["traffic cone"], "export_id": 300, "gt_ids": [300]},
+    )
     assert r.status_code == 201, r.text
     cone = r.json()["data"][-1]
     assert cone["hex"] == suggested and cone["gt_ids"] == [300]
@@ -95,11 +96,15 @@ def test_a_new_class_without_colour_gets_the_most_distinct_one(env) -> None:
     assert np.linalg.norm(srgb_to_lab(np.asarray(UNLABELED_RGB, float)) - lab) > 30
     # The next suggestion moves on, and an explicit colour is kept.
     assert r.json()["next_color"] != suggested
-    r2 = client.post(f"/projects/{p['id']}/classes",
-                     json={"name": "bench", "prompts": ["bench"], "export_id": 301, "color": "#123456"})
+    r2 = client.post(
+        f"/projects/{p['id']}/classes",
+        json={"name": "bench", "prompts": ["bench"], "export_id": 301, "color": "#123456"},
+    )
     assert r2.json()["data"][-1]["hex"] == "#123456"
-    bad = client.post(f"/projects/{p['id']}/classes",
-                      json={"name": "x", "prompts": ["x"], "export_id": 302, "color": "grey"})
+    bad = client.post(
+        f"/projects/{p['id']}/classes",
+        json={"name": "x", "prompts": ["x"], "export_id": 302, "color": "grey"},
+    )
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "color"
 
 
@@ -137,8 +142,10 @@ def test_preview_note_and_comparison(env) -> None:
     assert reasons["smooth"] == "settings changed: smoothing" and reasons["export"] == "after Point labels"
 
     # A class evaluated against id 99 (other-object): the 2D labels and everything after them.
-    client.post(f"/projects/{pid}/classes",
-                json={"name": "thing", "prompts": ["odd thing"], "export_id": 99, "gt_ids": [99]})
+    client.post(
+        f"/projects/{pid}/classes",
+        json={"name": "thing", "prompts": ["odd thing"], "export_id": 99, "gt_ids": [99]},
+    )
     added = client.get(f"/projects/{pid}/runs/preview").json()
     assert added["recompute"] == [s for s in STAGES if s != "3dcn"]
     assert {s["name"]: s["reason"] for s in added["stages"]}["labels2d"] == "the classes or prompts changed"
@@ -164,8 +171,9 @@ def test_preview_note_and_comparison(env) -> None:
     texts = [c["text"] for c in cmp["changes"]]
     assert "kNN smoothing k (smoothing.k): 9 → 4" in texts
     assert any(t.startswith("class thing added") for t in texts)
-    assert {(r["protocol"], r["row"]) for r in cmp["rows"]} == {(p_, r_) for p_ in ("camera", "common", "all")
-                                                                 for r_ in ("point", "voxel")}
+    assert {(r["protocol"], r["row"]) for r in cmp["rows"]} == {
+        (p_, r_) for p_ in ("camera", "common", "all") for r_ in ("point", "voxel")
+    }
     m1 = client.get(f"/runs/{run1['id']}/metrics").json()["metrics"]["protocols"]
     m2 = client.get(f"/runs/{run2['id']}/metrics").json()["metrics"]["protocols"]
     for row in cmp["rows"]:

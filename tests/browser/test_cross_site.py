@@ -116,8 +116,10 @@ def test_a_page_of_another_origin_cannot_start_runs_open_viewers_or_read_the_vie
             assert opened.status_code == 200, opened.text
             protocol = json.dumps(f"viser-v{viser.__version__}")
             relay = srv.base.replace("http://", "ws://") + opened.json()["url"].rstrip("/")
-            pages["/viser"] = WEBSOCKET % {"url": json.dumps(f"ws://127.0.0.1:{opened.json()['port']}"),
-                                           "protocol": protocol}
+            pages["/viser"] = WEBSOCKET % {
+                "url": json.dumps(f"ws://127.0.0.1:{opened.json()['port']}"),
+                "protocol": protocol,
+            }
             pages["/relay"] = WEBSOCKET % {"url": json.dumps(relay), "protocol": protocol}
             page.goto(f"{base}/viser")
             direct = page.evaluate("window.done")

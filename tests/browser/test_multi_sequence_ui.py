@@ -88,8 +88,9 @@ def test_sequences_in_the_form_metrics_and_viewer(server, browser, artifacts: Pa
     assert picker.locator("option").all_inner_texts() == ["overall", "city", "01"]
     expect(page.locator("#metrics-headline")).to_contain_text("overall")
     for name in ("01", "city"):
-        miou = httpx.get(f"{api}/runs/{run['id']}/metrics", params={"sequence": name}).json()[
-            "metrics"]["protocols"]["camera"]["voxel"]["miou"]
+        miou = httpx.get(f"{api}/runs/{run['id']}/metrics", params={"sequence": name}).json()["metrics"][
+            "protocols"
+        ]["camera"]["voxel"]["miou"]
         picker.select_option(name)
         expect(page.locator("#metrics-headline")).to_contain_text(f"sequence {name}")
         expect(page.locator("#metrics-headline")).to_contain_text(f"camera view mIoU {100 * miou:.1f} %")
@@ -110,8 +111,10 @@ def test_sequences_in_the_form_metrics_and_viewer(server, browser, artifacts: Pa
         page.click("#viewer-button")
     popup = popup_info.value
     viewer = browserfixtures.wait_until(
-        lambda: (r := httpx.get(f"{api}/projects/{pid}/viewer")).status_code == 200 and r.json(), 60,
-        "the viewer to start")
+        lambda: (r := httpx.get(f"{api}/projects/{pid}/viewer")).status_code == 200 and r.json(),
+        60,
+        "the viewer to start",
+    )
     assert viewer["sequence"] == "01" and viewer["run_id"] == run["id"]
     popup.close()
     assert errors == []

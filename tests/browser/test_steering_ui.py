@@ -126,9 +126,7 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
 
     # ---- the next run recomputes from the 2D labels on, and says what changed
     expect(labels2d).to_have_attribute("data-action", "recompute")
-    expect(labels2d.locator(".plan-reason")).to_have_text(
-        "the classes or prompts changed"
-    )
+    expect(labels2d.locator(".plan-reason")).to_have_text("the classes or prompts changed")
     expect(page.locator("#pending-changes")).to_contain_text("class traffic-cone added")
     page.fill("#run-note", "traffic cones")
     page.click("#run-button")

@@ -140,6 +140,7 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
         # The correction is stored before the session relabels its voxels: wait for the relabel, not
         # only for the row (under load the check could otherwise run in between).
         rows = session.grid.rows_of(correction.keys)
+
         def relabelled() -> bool:
             return bool((session.label[rows] == names.index(CORRECTED_CLASS)).all())
 

@@ -86,9 +86,11 @@ def _open(api: Any, app: Any, base: str, browser: Any) -> tuple[Any, Any, dict[s
     )
     pid = project["id"]
     run = wait_until(
-        lambda: (r := api.get(f"/projects/{pid}/runs").json()["data"])
-        and r[0]["status"] in ("done", "failed")
-        and r[0],
+        lambda: (
+            (r := api.get(f"/projects/{pid}/runs").json()["data"])
+            and r[0]["status"] in ("done", "failed")
+            and r[0]
+        ),
         600,
         "the first run",
     )
@@ -164,15 +166,18 @@ def test_lasso_front_surface_corrects_only_the_front_wall(tools_app: dict[str, A
         # Level with the walls, 3 m in front of the front one (nothing stands between), looking through both.
         cam = _look(session, page, to_world([15.0, 0.0, -0.5]), to_world([18.0, 0.0, -0.5]))
         (fc, fh) = WALLS["front"]
-        corners = [(fc[0] - fh[0], fc[1] + sy * fh[1], fc[2] + sz * fh[2]) for sy, sz in
-                   ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        corners = [
+            (fc[0] - fh[0], fc[1] + sy * fh[1], fc[2] + sz * fh[2])
+            for sy, sz in ((-1, -1), (1, -1), (1, 1), (-1, 1))
+        ]
         uv, front = project_to_screen(to_world(corners), cam.position, cam.wxyz, cam.fov_y, cam.aspect)
         assert front.all()
         centre = uv.mean(axis=0)
         polygon = [tuple(centre + 0.75 * (p - centre)) for p in uv]
         # The lasso's outline covers part of the back wall too (it stands right behind).
-        buv, bfront = project_to_screen(grid.centres[grid.rows_of(back_keys)], cam.position, cam.wxyz,
-                                        cam.fov_y, cam.aspect)
+        buv, bfront = project_to_screen(
+            grid.centres[grid.rows_of(back_keys)], cam.position, cam.wxyz, cam.fov_y, cam.aspect
+        )
         lo, hi = np.min(polygon, axis=0), np.max(polygon, axis=0)
         assert (bfront & (buv >= lo).all(axis=1) & (buv <= hi).all(axis=1)).sum() > 20
 
@@ -187,16 +192,24 @@ def test_lasso_front_surface_corrects_only_the_front_wall(tools_app: dict[str, A
         _drag(page, [*polygon, polygon[0]])
         selected = wait_until(lambda: session.selection.rows.size, 20, "the lasso selection")
         page.wait_for_timeout(1000)
-        page.screenshot(path=str(browserfixtures.Path(__file__).resolve().parents[2] / "test-artifacts" /
-                                 "viewer-tools-lasso.png"))
+        page.screenshot(
+            path=str(
+                browserfixtures.Path(__file__).resolve().parents[2]
+                / "test-artifacts"
+                / "viewer-tools-lasso.png"
+            )
+        )
         keys = grid.keys[session.selection.rows]
         other = keys[~np.isin(keys, front_keys)]
         where = (grid.centres[grid.rows_of(other)] - pose0[:3, 3]) @ pose0[:3, :3]
-        assert other.size == 0, f"off the front wall: {np.isin(other, back_keys).sum()} of the back wall, " \
+        assert other.size == 0, (
+            f"off the front wall: {np.isin(other, back_keys).sum()} of the back wall, "
             f"{other.size} in all, at {where[:10].round(2).tolist()}"
+        )
         assert selected >= 10
-        export_id = next(c["export_id"] for c in api.get(f"/projects/{pid}/classes").json()["data"]
-                         if c["name"] == target)
+        export_id = next(
+            c["export_id"] for c in api.get(f"/projects/{pid}/classes").json()["data"] if c["name"] == target
+        )
         with open_db(settings.database) as db:
             export_dir = Path(crud.require_run(db, first["id"])["run_dir"]) / "export"
         seq = KittiSequence(seq_dir)
@@ -253,8 +266,11 @@ def test_brush_with_a_class_filter_changes_only_that_class(tools_app: dict[str, 
         page.get_by_text("Selection tools", exact=True).click()
         browserfixtures.pick(page, "Depth", "through")
         browserfixtures.pick(page, "Only class", "road")
-        wait_until(lambda: session.tools.class_filter == "road" and session.tools.depth_mode == "through", 20,
-                   "the class filter")
+        wait_until(
+            lambda: session.tools.class_filter == "road" and session.tools.depth_mode == "through",
+            20,
+            "the class filter",
+        )
         label_before = session.label.copy()
         page.mouse.move(5, 5)
         page.keyboard.press("b")

@@ -88,9 +88,16 @@ def add_correction(
         dataset = next(s["dataset_path"] for s in crud.list_sequences(db, project_id) if s["name"] == name)
         _check_scan(FilePath(dataset), payload.frame_id, payload.points)
     cid = crud.add_correction(
-        db, project_id=project_id, class_name=payload.class_name, voxel_size=payload.voxel_size,
-        keys=payload.keys, scope=payload.scope, frame_id=payload.frame_id, points=payload.points,
-        author="api", sequence=name,
+        db,
+        project_id=project_id,
+        class_name=payload.class_name,
+        voxel_size=payload.voxel_size,
+        keys=payload.keys,
+        scope=payload.scope,
+        frame_id=payload.frame_id,
+        points=payload.points,
+        author="api",
+        sequence=name,
     )
     applier(settings).request(project_id)
     return _public(crud.get_correction(db, cid))

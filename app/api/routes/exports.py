@@ -11,9 +11,7 @@ from app.api.deps import DbDep, SettingsDep
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.types import RunId
 
-router = APIRouter(
-    prefix="/runs/{run_id}/export", tags=["exports"], responses={**NOT_FOUND, **CONFLICT}
-)
+router = APIRouter(prefix="/runs/{run_id}/export", tags=["exports"], responses={**NOT_FOUND, **CONFLICT})
 
 
 @router.get("", response_model=models.ExportInfo)

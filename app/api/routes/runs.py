@@ -179,23 +179,26 @@ def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> mo
     table = services.sequence_metrics(run, sequence, labeled)
     if table is None:
         what = f"Sequence {sequence!r} of run {run_id}" if sequence is not None else f"Run {run_id}"
-        raise NotFound(
-            f"{what} has no metrics (it is not finished, or its dataset has no ground truth)"
-        )
+        raise NotFound(f"{what} has no metrics (it is not finished, or its dataset has no ground truth)")
     names = [c["name"] for c in run["params"]["schema"]["classes"]]
     listed = run_sequences_of(run["params"])
     chosen = [n for n, _ in listed] if listed is not None and sequence is None else [sequence]
     try:
         stale = any(
-            export_ahead_of_metrics(RunLayout(sequence_run_dir(Path(run["run_dir"]), run["params"], n)),
-                                    len(names))
+            export_ahead_of_metrics(
+                RunLayout(sequence_run_dir(Path(run["run_dir"]), run["params"], n)), len(names)
+            )
             for n in chosen
         )
     except LeapError:
         stale = True  # unreadable applied-corrections files: do not claim the figures are current
     return models.MetricsPublic(
-        run_id=run_id, class_names=names, metrics=table, before_corrections=stale,
-        sequence=sequence, sequences=services.metrics_sequences(run),
+        run_id=run_id,
+        class_names=names,
+        metrics=table,
+        before_corrections=stale,
+        sequence=sequence,
+        sequences=services.metrics_sequences(run),
     )
 
 

@@ -69,7 +69,8 @@ class ViewerOpen(BaseModel):
         default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"
     )
     sequence: str | None = Field(
-        default=None, pattern=SEQUENCE_NAME_PATTERN,
+        default=None,
+        pattern=SEQUENCE_NAME_PATTERN,
         description="the project sequence to review (default: the one shown, else the first); another "
         "sequence than the running viewer's replaces it",
     )
@@ -219,8 +220,14 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
         # connection after 40 s. Reading eagerly keeps this local hop alive (the scene is bounded by
         # viewer_max_points); liveness of the browser is checked on the browser's own socket.
         upstream_cm = connect(
-            f"ws://127.0.0.1:{port}", subprotocols=offered or None, max_size=None, compression=None,
-            open_timeout=10, max_queue=None, ping_interval=None, additional_headers={SECRET_HEADER: secret},
+            f"ws://127.0.0.1:{port}",
+            subprotocols=offered or None,
+            max_size=None,
+            compression=None,
+            open_timeout=10,
+            max_queue=None,
+            ping_interval=None,
+            additional_headers={SECRET_HEADER: secret},
         )
         upstream = await upstream_cm.__aenter__()
     except (OSError, asyncio.TimeoutError) as exc:
@@ -259,7 +266,9 @@ async def viewer_relay(ws: WebSocket, project_id: int) -> None:
             # The browser reconnects on its own; the reason is the only trace of why it had to.
             log.warning(
                 "viewer relay for project %d: viser closed the connection (%s %s)",
-                project_id, code, upstream.close_reason or "",
+                project_id,
+                code,
+                upstream.close_reason or "",
             )
     finally:
         await upstream_cm.__aexit__(None, None, None)

@@ -99,7 +99,11 @@ def _state(session: ReviewSession) -> ReviewStatePublic:
         if session.focus_frame is not None and session.outputs is not None:
             frame_id = session.outputs.seq.frame_ids[session.outputs.frame_indices[session.focus_frame]]
         region = RegionPublic(
-            id=r.id, position=pos, score=r.score, count=r.count, state=session.region_state(pos),
+            id=r.id,
+            position=pos,
+            score=r.score,
+            count=r.count,
+            state=session.region_state(pos),
             frame_id=frame_id,
         )
     return ReviewStatePublic(
@@ -164,8 +168,13 @@ async def relabel_region(
     if payload.class_name not in session.class_names():
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_ENTITY,
-            detail=[{"loc": ["body", "class_name"], "msg": f"unknown class {payload.class_name!r}",
-                     "type": "value_error"}],
+            detail=[
+                {
+                    "loc": ["body", "class_name"],
+                    "msg": f"unknown class {payload.class_name!r}",
+                    "type": "value_error",
+                }
+            ],
         )
     return await _on_region(session, session.relabel_region, payload.class_name)
 

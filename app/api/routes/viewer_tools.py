@@ -27,9 +27,7 @@ router = APIRouter(
 MAX_OUTLINE_POINTS = 20_000
 """Most points of one lasso or brush outline (a minute of dragging at 60 Hz stays below it)."""
 
-ScreenPoint = tuple[
-    Annotated[float, Field(ge=-10.0, le=10.0)], Annotated[float, Field(ge=-10.0, le=10.0)]
-]
+ScreenPoint = tuple[Annotated[float, Field(ge=-10.0, le=10.0)], Annotated[float, Field(ge=-10.0, le=10.0)]]
 
 
 class ToolsState(BaseModel):
@@ -90,9 +88,15 @@ class EditResult(BaseModel):
 def _state(session: ReviewSession) -> ToolsState:
     t: ToolSettings = session.tools
     return ToolsState(
-        tool=t.tool, depth_mode=t.depth_mode, distance=t.distance, class_filter=t.class_filter,
-        target=t.target, scope=t.scope, brush_radius=t.brush_radius,
-        selected=int(session.selection.rows.size), classes=session.class_names(),
+        tool=t.tool,
+        depth_mode=t.depth_mode,
+        distance=t.distance,
+        class_filter=t.class_filter,
+        target=t.target,
+        scope=t.scope,
+        brush_radius=t.brush_radius,
+        selected=int(session.selection.rows.size),
+        classes=session.class_names(),
     )
 
 
