@@ -1,6 +1,6 @@
 """Benchmark of one 3D-CN iteration (selection + training + inference + fusion back) on a demo-sized sequence.
 
-Target (issue 5): training + inference on the default demo sequence (≈ 60 scans × ~100k points) ≤ 10 min
+Target: training + inference on the default demo sequence (≈ 60 scans × ~100k points) ≤ 10 min
 on the 2-core CPU. Baseline, in the same process: the training step of a plain per-point MLP with about the
 same number of parameters on the same points. Both steps (forward, backward, optimiser) run on the same
 prepared batch; the data preparation (``prepare_cloud`` + ``collate``: the kNN graph and grid indices the

@@ -14,7 +14,7 @@ Figures: request latency p50/p99/max per endpoint as the client sees it and as t
 transport errors, streams that end without their ``end`` event), stream time-to-first-event and event lag
 (client receive time minus the event's ``updated_at``; streams send at most four events a second, so this
 includes up to 0.25 s of coalescing), the run's wall and CPU seconds with vs without load (their ratio, from
-the same process), and the CPU the server and the load clients used. Targets (issue 6): p99 < 100 ms,
+the same process), and the CPU the server and the load clients used. Targets: p99 < 100 ms,
 zero errors, run slowdown ≤ 10 %. The load clients run on the same 2 cores as the worker (loopback), so their
 CPU (reported) is part of what slows the run.
 

@@ -1,6 +1,6 @@
 """Peak resident memory of ``leap run`` against the bounded-memory target, beside the baseline code.
 
-Target (issue 14, "Bounded memory on one machine"): the peak RSS of ``leap run`` (3D stages, 3D-CN off)
+Target (bounded memory on one machine): the peak RSS of ``leap run`` (3D stages, 3D-CN off)
 stays within ``1.5 GB + 64 B × voxels`` at any sequence length; with the 3D-CN on within
 ``3 GB + 64 B × voxels``.
 

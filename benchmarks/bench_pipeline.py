@@ -1,6 +1,6 @@
 """End-to-end time of ``run_pipeline`` on the demo sequence, per stage, plus cache and resume behaviour.
 
-Target (issue 3 / pipeline brief): the default demo (≈ 60 frames × ~100k points, simulated labeler,
+Target: the default demo (≈ 60 frames × ~100k points, simulated labeler,
 no 3D-CN) runs end to end in well under a minute on 2 cores. Baseline, in the same process: the I/O
 floor, i.e. just reading every scan, ground-truth label file and 2D ground-truth PNG once (what any
 pipeline must at least do); the ratio says how much the labeling work costs on top of reading the data.

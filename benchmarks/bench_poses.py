@@ -13,7 +13,7 @@ them; then
   settings otherwise (the schema's preset, simulated labeler, 3D-CN off): mIoU of the point and voxel
   labels on both protocols, and the difference.
 
-Acceptance (issue 13): translation drift ≤ 2 % and voxel mIoU within 2 points of the true-pose run.
+Target: translation drift ≤ 2 % and voxel mIoU within 2 points of the true-pose run.
 
 Usage::
 

@@ -1,6 +1,6 @@
 """Benchmark: time per scan of the 3D stages (project, fuse, label_points, export) against a baseline commit.
 
-Target (issue 14, item 2): projection + depth clustering + painting (``project``) + fusion (``fuse``) +
+Target: projection + depth clustering + painting (``project``) + fusion (``fuse``) +
 point labeling (``label_points``) + export ≤ 40 ms per 120 000-point scan on the project's 2 cores.
 
 Baseline, in the same process on the same data: the package as it was at ``--baseline`` (default

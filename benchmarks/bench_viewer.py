@@ -153,7 +153,7 @@ def old_rank_regions(
     min_count: int,
     ascending: bool,
 ) -> list[tuple[float, int]]:
-    """Baseline: the ranking before issue 11 (cells grouped with a row-wise ``np.unique(axis=0)``)."""
+    """Baseline: the former ranking (cells grouped with a row-wise ``np.unique(axis=0)``)."""
     rows = np.flatnonzero(candidates)
     xyz = np.asarray(centres, dtype=np.float64)[rows]
     cells = np.floor(xyz / cell_size).astype(np.int64)

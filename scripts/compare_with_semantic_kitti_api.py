@@ -4,7 +4,7 @@
 Runs the external evaluator (an unmodified checkout, given by path; nothing of it is copied here) on the
 run's ``export/`` folder against the sequence's ground truth, then prints its per-class IoU beside LeAP's
 all-points figures from ``metrics.json`` and the largest absolute difference. Exit status 1 when that
-difference exceeds ``--tol`` (issue 3's acceptance: 0.001).
+difference exceeds ``--tol`` (default 0.001).
 
 Usage::
 

@@ -1,4 +1,4 @@
-"""The 3D-CN's bounded memory (issue 14): no autograd graph outlives a training step or exists at inference,
+"""The 3D-CN's bounded memory: no autograd graph outlives a training step or exists at inference,
 inference and fusion back hold one scan at a time, the streamed voxel means are the same bytes as summing
 each chunk's scans concatenated, and freed heap memory goes back to the system (leap_core.heap)."""
 

@@ -1,4 +1,4 @@
-"""The dataset check (leap_core/datasets/check.py) and ``leap check`` on the bad folders of issue 13: what
+"""The dataset check (leap_core/datasets/check.py) and ``leap check`` on bad folders: what
 is missing, what still runs, the fix worded for the command line or the app, and the exit codes."""
 
 from __future__ import annotations

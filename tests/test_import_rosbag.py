@@ -720,7 +720,7 @@ def test_cli_imports_and_prints_one_summary_line(demo: KittiSequence, tmp_path: 
 def test_imported_bags_label_like_the_source_frames(
     demo: KittiSequence, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
-    """Issue 13's acceptance: bags (ROS 2 mcap and ROS 1) written from demo frames with CameraInfo,
+    """End to end: bags (ROS 2 mcap and ROS 1) written from demo frames with CameraInfo,
     /tf_static and /tf poses, imported, then `leap run --labeler grounded-sam` with the tiny test models:
     the same label on >= 99.9 % of points as the same run on the source frames."""
     from typer.testing import CliRunner

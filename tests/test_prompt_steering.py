@@ -1,4 +1,4 @@
-"""Prompt expansion steers the simulated labeler on the generated demo world (issue 12).
+"""Prompt expansion steers the simulated labeler on the generated demo world.
 
 A few half-size demo frames, labeled in 2D and scored against the mapped 2D ground truth with the paper's
 camera-view rule (pixels without a prediction are ignored): fast, and the same labeler and metrics that

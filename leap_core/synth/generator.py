@@ -44,8 +44,8 @@ if TYPE_CHECKING:
 SYNTH_VERSION = 3
 """Version of what the generator writes for a given config; bumped whenever the same config would produce
 different files (a new object kind, a new ground-truth image). A demo folder with another (or no)
-``synth_version.txt`` is stale and is generated again. 2: the demo world with names (issue 12); 3: the
-world-cell images ``gt2d/cell`` (issue 16)."""
+``synth_version.txt`` is stale and is generated again. 2: the demo world with names; 3: the
+world-cell images ``gt2d/cell``."""
 
 VERSION_FILE = "synth_version.txt"
 

@@ -89,8 +89,8 @@ REQUIRED_IDS: Final = frozenset(
         SemanticId.BOLLARD,
     }
 )
-"""Every class a default scene must contain (issue 2, item 4; the bus, gravel and the demo's own objects
-since the demo has names, issue 12)."""
+"""Every class a default scene must contain (the bus, gravel and the demo's own
+named objects included)."""
 
 
 class Material(IntEnum):

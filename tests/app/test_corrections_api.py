@@ -1,5 +1,5 @@
 """Manual corrections on a real server (``python -m app.main``, real SQLite, HTTP on 127.0.0.1) with a tiny
-generated sequence (issue 11, items 2, 3, 8): the corrections routes, the immediate "apply corrections" job
+generated sequence: the corrections routes, the immediate "apply corrections" job
 (the export changes without a run; undo reverts it), and scan scope + erase through a real pipeline run.
 Also migration 3 on a version-2 database file.
 """

@@ -1,4 +1,4 @@
-"""Issue 17, defect 4: pages of other origins cannot change state, and viser's own port streams only to the
+"""Pages of other origins cannot change state, and viser's own port streams only to the
 app's relay.
 
 Each test runs the real server (``python -m app.main``, real SQLite, real HTTP on 127.0.0.1) and speaks to

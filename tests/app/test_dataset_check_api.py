@@ -1,7 +1,7 @@
 """The dataset check in the app (real app, real SQLite): project creation refuses a folder the pipeline
 cannot run on (422 naming the file), creates one where only some stages can run and shows the check with
 app-worded fixes on the project, and ``/datasets`` lists the check of every dataset. A run's page shows
-skipped stages with their reason and the labeler's warnings (issue 13, items 4 and 5)."""
+skipped stages with their reason and the labeler's warnings."""
 
 from __future__ import annotations
 

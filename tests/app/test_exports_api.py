@@ -1,8 +1,8 @@
 """Exports on a real server (``python -m app.main``, real SQLite, HTTP on 127.0.0.1) in the default layout:
 the work folder inside the data root, a dataset copy with ground-truth labels in the same root.
 
-Issue 17, defect 1: an export could replace a dataset's ground-truth ``labels/`` and another project's run
-folder. Issue 12: the export dialog's counts, the confirmation before writing into ``predictions/``, and
+An export could replace a dataset's ground-truth ``labels/`` and another project's run
+folder. The export dialog's counts, the confirmation before writing into ``predictions/``, and
 a zip that stands alone (read with its label-map YAML only).
 """
 

@@ -1,4 +1,4 @@
-"""Issue 12's small items: the CLI's stage lines, viser's silent start and the dataset picker."""
+"""Small things a user meets: the CLI's stage lines, viser's silent start and the dataset picker."""
 
 from __future__ import annotations
 

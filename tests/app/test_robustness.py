@@ -1,4 +1,4 @@
-"""Issue 17 on a real server (``python -m app.main``, real SQLite, HTTP on 127.0.0.1): a full disk, a second
+"""Robustness on a real server (``python -m app.main``, real SQLite, HTTP on 127.0.0.1): a full disk, a second
 server on the same work folder, a server that cannot bind, a stray module in the server's current folder
 and a deleted camera image."""
 

@@ -1,4 +1,4 @@
-"""Editing a project's sequences after creation (issue 14, item 4): ``POST /projects/{id}/sequences`` and
+"""Editing a project's sequences after creation: ``POST /projects/{id}/sequences`` and
 ``DELETE /projects/{id}/sequences/{name}`` against the real app, real SQLite and real sequence folders.
 
 Adding confines and checks a folder as creation does; names are unique; edits wait for a queued or

@@ -1,4 +1,4 @@
-"""Issue 17, defect 3: a project's settings cannot send a run outside the data roots or trigger downloads.
+"""A project's settings cannot send a run outside the data roots or trigger downloads.
 
 Each test runs the real server (``python -m app.main``, real SQLite, real HTTP on 127.0.0.1). Where models
 are, where 2D caches live and whether models may be downloaded are the server's settings; a project can

@@ -1,6 +1,6 @@
 """Input validation on a real server (``python -m app.main``: real SQLite, real HTTP on 127.0.0.1).
 
-One test per defect of the hardening probe (issue 17, items 6 and 7): each sends what made the server
+One test per defect of the hardening probe: each sends what made the server
 answer 500, take a 200 MB body, echo a 50 MB one, list a folder outside the data roots, or accept a name
 that breaks paths and URLs, and checks the answer the API now gives instead.
 """

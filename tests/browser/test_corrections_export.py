@@ -1,5 +1,5 @@
 """A correction made in the 3D viewer reaches the latest run's exported ``.label`` files at once, without a
-run (the "apply corrections" job, issue 11 item 3), and the web UI's project page lists it; unticking it
+run (the "apply corrections" job), and the web UI's project page lists it; unticking it
 there reverts the export. Real app, SQLite, pipeline, viser and Chromium, on a short generated demo."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 17, defect 4 as a browser meets it: a page served from another origin (``127.0.0.2``) tries to start
+"""Cross-site writes as a browser meets them: a page served from another origin (``127.0.0.2``) tries to start
 a run and open a viewer with ``no-cors`` POSTs, and to read viser's own port with a websocket.
 
 Real Chromium (Debian's, driven by Playwright), the real server in a subprocess on 127.0.0.1 (real SQLite,

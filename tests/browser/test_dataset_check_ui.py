@@ -1,4 +1,4 @@
-"""The dataset check and the run log in a real Chromium against a real server (issue 13, items 4 and 5).
+"""The dataset check and the run log in a real Chromium against a real server.
 
 A 3-frame street with one camera image deleted: the create form shows the check of the picked folder, a
 folder without calib.txt is refused with the file named, the created project's page shows the warning
