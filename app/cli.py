@@ -36,9 +36,10 @@ if TYPE_CHECKING:
 
     from app.core.config import Settings
     from app.core.instance import WorkDirLock
+    from app.rows import RunRow
     from leap_core.datasets.check import Verdict
     from leap_core.labelers.grounded_sam import GroundedSamConfig
-    from leap_core.pipeline.multi import MultiRunResult, SequenceSpec
+    from leap_core.pipeline.run import RunResult, SequenceSpec
 
 cli = typer.Typer(
     name="leap",
@@ -55,16 +56,16 @@ class StageBars:
     (the pipeline's warnings) are written above the bars instead of onto them.
 
     The pipeline reports a stage it does not compute (cached from an earlier run, or disabled) as complete
-    at once. With ``run_dir`` given, such a stage is held back until the pipeline has recorded it, then
-    printed as one ``skipped`` line instead of a full bar (a stage that really computed in one step still
-    gets its bar).
+    at once. With ``folder`` (the sequence's folder in the run) given, such a stage is held back until the
+    pipeline has recorded it, then printed as one ``skipped`` line instead of a full bar (a stage that
+    really computed in one step still gets its bar).
     """
 
-    def __init__(self, run_dir: Path | None = None, label: str = "") -> None:
+    def __init__(self, folder: Path | None = None, label: str = "") -> None:
         import time
 
         self.bars: dict[str, tqdm[Any]] = {}
-        self.run_dir = run_dir
+        self.folder = folder
         self.label = label
         """Put before each stage's name (a sequence's bars among others')."""
         self.started = time.time()
@@ -78,7 +79,7 @@ class StageBars:
             self._settle()
         bar = self.bars.get(stage)
         if bar is None:
-            if self.run_dir is not None and total > 0 and done >= total and self._held is None:
+            if self.folder is not None and total > 0 and done >= total and self._held is None:
                 self._close_bars()
                 self._held = (stage, total)
                 return
@@ -97,10 +98,10 @@ class StageBars:
 
         from leap_core.pipeline.runner import UNCHANGED, skip_reason
 
-        assert self._held is not None and self.run_dir is not None
+        assert self._held is not None and self.folder is not None
         stage, total = self._held
         self._held = None
-        reason = skip_reason(self.run_dir, stage, self.started)
+        reason = skip_reason(self.folder, stage, self.started)
         if reason == UNCHANGED:
             reason += " in this folder"
         if reason is not None:
@@ -405,16 +406,16 @@ def _labeler_help() -> str:
 def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     datasets: list[str] = typer.Argument(
         ...,
-        help="Sequence folder in KITTI layout (.../sequences/NN). Several folders = one multi-sequence "
-        "run (one schema and config; each sequence named after its folder, names must differ).",
+        help="Sequence folder in KITTI layout (.../sequences/NN), or several: one run of them all (one "
+        "schema and config; each sequence named after its folder, names must differ).",
         metavar="DATASET...",
     ),
     *,
     out: str = typer.Option(
         ...,
         "--out",
-        help="Run folder (created; rerunning on it resumes / reuses stages). A multi-sequence "
-        "run holds OUT/sequences/<name>/ per sequence.",
+        help="Run folder (created; rerunning on it resumes / reuses stages): OUT/sequences/<name>/ per "
+        "sequence. A folder an earlier version wrote is moved into this layout.",
     ),
     schema: str | None = typer.Option(
         None,
@@ -457,10 +458,10 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     export_to: str | None = typer.Option(
         None,
         "--export-to",
-        help="Also copy the .label files into this folder, e.g. the sequence's predictions/ (written as a "
-        "fresh folder renamed into place); with several sequences into DIR/sequences/<name>/predictions/. "
-        "Refused: a dataset's labels/, velodyne/, image_2/, a run folder; "
-        "a folder that already holds files unless --overwrite.",
+        help="Also copy the .label files into DIR/sequences/<name>/predictions/ (SemanticKITTI's layout: "
+        "DIR = the dataset folder holding sequences/ writes each sequence's own predictions/; each folder "
+        "written fresh and renamed into place). Refused: a dataset's labels/, velodyne/, image_2/, a run "
+        "folder; a folder that already holds files unless --overwrite.",
     ),
     zip_path: str | None = typer.Option(
         None,
@@ -477,8 +478,9 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     estimate_poses: bool = typer.Option(
         False,
         "--estimate-poses",
-        help="When the sequence has no poses.txt, estimate poses with KISS-ICP first, into OUT/poses/ "
-        "(the dataset is not written; reused by later runs in OUT while the scans are unchanged).",
+        help="When a sequence has no poses.txt, estimate poses with KISS-ICP first, into "
+        "OUT/sequences/<name>/poses/ (the dataset is not written; reused by later runs in OUT while the "
+        "scans are unchanged).",
     ),
     ray: str | None = typer.Option(None, "--ray", metavar="auto|ADDRESS", help=_RAY_HELP),
     ray_cpus: int | None = typer.Option(None, "--ray-cpus", min=1, help=_RAY_CPUS_HELP),
@@ -497,50 +499,20 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         "training from random weights for consistency.min_steps. Implies --3dcn.",
     ),
 ) -> None:
-    """Label a sequence: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
+    """Label sequences: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files.
 
-    With several sequence folders: one multi-sequence run (the 3D-CN trains one network on all of them),
-    result tables per sequence and overall, exports in the sequences/<name>/predictions/ layout."""
+    A run is a list of sequences (often one), each named after its folder: OUT/sequences/<name>/ per
+    sequence, the 3D-CN trains one network on all of them, result tables per sequence and overall,
+    exports in the sequences/<name>/predictions/ layout."""
     # The pipeline imports torch: loaded by the command that runs it, not by `leap --help`.
-    from leap_core.pipeline import STAGES, result_tables, run_pipeline
-    from leap_core.run_layout import is_multi_run
+    from leap_core.export import check_export_targets, export_targets
+    from leap_core.pipeline import run_pipeline, run_result_tables
+    from leap_core.pipeline.run import open_run_folder
 
-    if len(datasets) > 1:
-        _run_multi(
-            datasets,
-            Path(out),
-            schema=schema,
-            project_file=project_file,
-            labeler=labeler,
-            labeler_preset=labeler_preset,
-            consistency=consistency,
-            cn_iterations=cn_iterations,
-            frames=frames,
-            cache=cache,
-            models=models,
-            device=device,
-            allow_download=allow_download,
-            export_to=export_to,
-            zip_path=zip_path,
-            with_conf=with_conf,
-            overwrite=overwrite,
-            estimate_poses=estimate_poses,
-            ray=ray,
-            ray_cpus=ray_cpus,
-            frame_threads=frame_threads,
-            init_3dcn=init_3dcn,
-        )
-        return
-    dataset = datasets[0]
-    progress = StageBars(Path(out))
-
-    with _run_errors(out, poses=f"run `leap poses {dataset}`"):
-        if is_multi_run(out):
-            raise LeapError(
-                f"--out {out}: a multi-sequence run folder; give a single-sequence run its own "
-                "folder, or name all its sequences"
-            )
+    root = Path(out)
+    with _run_errors(out, poses="run `leap poses` on that sequence"):
+        specs = _sequence_specs(datasets, frames)
         sch, cfg = _run_config(
             schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
         )
@@ -554,57 +526,54 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
             frame_threads=frame_threads,
             init_3dcn=init_3dcn,
         )
-        frame_range = None if frames is None else _frame_range(frames, dataset)
+        names = [s.name for s in specs]
         # Refuse a target before a long run, not after it.
-        targets = _export_targets(export_to, zip_path, overwrite)
-        with _run_folder_lock(Path(out)):
+        if export_to is not None:
+            try:
+                folders = export_targets(Path(export_to).expanduser().resolve(), names, with_conf=with_conf)
+                check_export_targets(folders, overwrite=overwrite)
+            except LeapError as exc:
+                more = "; add --overwrite to replace them" if "already holds" in str(exc) else ""
+                raise LeapError(f"--export-to: {exc}{more}") from None
+        zip_file = _zip_target(zip_path, overwrite)
+        with _run_folder_lock(root):
+            layout = open_run_folder(root, specs)
             if estimate_poses:
-                _estimate_run_poses(Path(dataset), Path(out))
-            typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label})")
-            with progress:
-                result = run_pipeline(
-                    Path(dataset), sch, cfg, Path(out), progress=progress, frames=frame_range, runtime=runtime
-                )
+                for spec in specs:
+                    _estimate_run_poses(spec.dataset, layout.sequence(spec.name).poses)
+            shown = f"; sequences {', '.join(names)}" if len(specs) > 1 else ""
+            typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}){shown}")
+            with SequenceBars(root, names, concurrent=ray is not None and len(specs) > 1) as bars:
+                result = run_pipeline(specs, sch, cfg, root, progress=bars, runtime=runtime)
 
-    timing = ", ".join(
-        f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
-        for s, r in result.stages.items()
-        if s in STAGES
-    )
-    typer.echo(f"stages: {timing}")
-    tables = result_tables(result.run_dir)
-    if tables:
-        typer.echo("")
-        typer.echo(tables)
-    else:
-        typer.echo("no ground-truth labels: nothing to evaluate")
-    if result.export_dir is not None:
-        n = len(list(result.export_dir.glob("*.label")))
-        typer.echo(f"\n{n} .label files (+ .conf confidences) in {result.export_dir}")
-        try:
-            _write_exports(
-                result.run_dir,
-                Path(dataset),
-                sch,
-                cfg,
-                frame_range,
-                targets,
-                with_conf=with_conf,
-                overwrite=overwrite,
-            )
-        except LeapError as exc:
-            raise fail(str(exc)) from None
+    for name, res in result.sequences.items():
+        timing = ", ".join(
+            f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
+            for s, r in res.stages.items()
+        )
+        typer.echo(f"stages: {timing}" if len(specs) == 1 else f"sequence {name}: {timing}")
+    if cfg.consistency.enabled:
+        typer.echo(f"3D-CN rounds (one network per round, all sequences): {result.joint_seconds:.1f}s")
+    tables = run_result_tables(root)
+    typer.echo("")
+    typer.echo(tables if tables else "no ground-truth labels: nothing to evaluate")
+    try:
+        _write_exports(result, specs, sch, cfg, export_to, zip_file, with_conf=with_conf, overwrite=overwrite)
+    except LeapError as exc:
+        raise fail(str(exc)) from None
 
 
 class SequenceBars:
-    """:class:`StageBars` for a multi-sequence run (``progress(sequence, stage, done, total)``): one set of
-    bars per sequence (and one for the joint 3D-CN), a header line when the sequence changes; a stage that
-    reports complete again in the run's second pass (after the joint 3D-CN) is not printed twice. With
-    ``concurrent`` (sequences running at once on Ray, their reports interleaved) no header: each bar
-    starts with its sequence's name and a sequence's bars stay open while another reports."""
+    """:class:`StageBars` for a run (``progress(sequence, stage, done, total)``): one set of bars per
+    sequence and one for the 3D-CN's rounds, with a header line when the sequence changes in a run of
+    several. A stage that reports complete again in the run's second pass (after the 3D-CN's rounds) is
+    not printed twice, nor a sequence's ``3dcn`` stage once the rounds were shown (it only links their
+    grids). With ``concurrent`` (sequences running at once on Ray, their reports interleaved) no header:
+    each bar starts with its sequence's name and a sequence's bars stay open while another reports."""
 
-    def __init__(self, root: Path, concurrent: bool = False) -> None:
+    def __init__(self, root: Path, names: list[str], concurrent: bool = False) -> None:
         self.root = root
+        self.headers = len(names) > 1 and not concurrent
         self.concurrent = concurrent
         self.bars: dict[str, StageBars] = {}
         self.name: str | None = None
@@ -615,21 +584,21 @@ class SequenceBars:
         from tqdm import tqdm
 
         from leap_core.pipeline import JOINT
-        from leap_core.run_layout import MultiRunLayout
+        from leap_core.run_layout import RunLayout
 
         key = (name, stage)
-        if key in self.complete:
+        if key in self.complete or (stage == "3dcn" and (JOINT, stage) in self.complete):
             return
         if name != self.name:
             if self.name is not None and not self.concurrent:
                 self.bars[self.name].close()
             self.name = name
             if name not in self.bars:
-                run_dir = None if name == JOINT else MultiRunLayout(self.root).sequence(name).run_dir
-                self.bars[name] = StageBars(run_dir, f"{name} " if self.concurrent else "")
-            if not self.concurrent:
+                folder = None if name == JOINT else RunLayout(self.root).sequence(name).folder
+                self.bars[name] = StageBars(folder, f"{name} " if self.concurrent else "")
+            if self.headers:
                 tqdm.write(
-                    "== joint 3D-CN (all sequences)" if name == JOINT else f"== sequence {name}",
+                    "== 3D-CN rounds (all sequences)" if name == JOINT else f"== sequence {name}",
                     file=sys.stderr,
                 )
         self.bars[name](stage, done, total)
@@ -651,10 +620,10 @@ class SequenceBars:
             self._redirect = None
 
 
-def _multi_specs(datasets: list[str], frames: str | None) -> list[SequenceSpec]:
-    """The sequences of ``leap run A B ...``, each named after its folder; one-line errors for a folder
+def _sequence_specs(datasets: list[str], frames: str | None) -> list[SequenceSpec]:
+    """The sequences of ``leap run A [B ...]``, each named after its folder; one-line errors for a folder
     that is not a sequence, a name that cannot be a folder, two sequences of one name."""
-    from leap_core.pipeline.multi import SequenceSpec, check_specs
+    from leap_core.pipeline.run import SequenceSpec, check_specs
 
     specs = []
     for d in datasets:
@@ -673,153 +642,18 @@ def _multi_specs(datasets: list[str], frames: str | None) -> list[SequenceSpec]:
     return specs
 
 
-def _run_multi(  # noqa: PLR0913  # `leap run`'s options, passed on by name
-    datasets: list[str],
-    out: Path,
-    *,
-    schema: str | None,
-    project_file: str | None,
-    labeler: str | None,
-    consistency: bool | None,
-    cn_iterations: int | None,
-    frames: str | None,
-    cache: str | None,
-    models: str | None,
-    device: str,
-    allow_download: bool,
-    export_to: str | None,
-    zip_path: str | None,
-    with_conf: bool,
-    overwrite: bool,
-    estimate_poses: bool,
-    ray: str | None = None,
-    ray_cpus: int | None = None,
-    frame_threads: int = 4,
-    labeler_preset: str | None = None,
-    init_3dcn: str | None = None,
-) -> None:
-    """``leap run A B ... --out OUT``: one multi-sequence run (leap_core.pipeline.multi); with ``ray``, every
-    sequence's stages run on that Ray cluster (one connection for the whole run)."""
-    from leap_core.pipeline import multi_result_tables
-    from leap_core.pipeline.multi import check_export_target, run_sequences
-    from leap_core.run_layout import MultiRunLayout
-
-    layout = MultiRunLayout(out)
-    with _run_errors(out, poses="run `leap poses` on that sequence"):
-        specs = _multi_specs(datasets, frames)
-        sch, cfg = _run_config(
-            schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
-        )
-        runtime = _runtime(
-            models,
-            cache,
-            device,
-            allow_download,
-            ray,
-            ray_cpus,
-            frame_threads=frame_threads,
-            init_3dcn=init_3dcn,
-        )
-        names = [s.name for s in specs]
-        # Refuse a target before a long run, not after it.
-        if export_to is not None:
-            try:
-                check_export_target(Path(export_to), names, with_conf=with_conf, overwrite=overwrite)
-            except LeapError as exc:
-                more = "; add --overwrite to replace them" if "already holds" in str(exc) else ""
-                raise LeapError(f"--export-to: {exc}{more}") from None
-        targets = _export_targets(None, zip_path, overwrite)
-        with _run_folder_lock(out):
-            if estimate_poses:
-                for spec in specs:
-                    _estimate_run_poses(spec.dataset, layout.sequence(spec.name).run_dir)
-            typer.echo(
-                f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}); sequences {', '.join(names)}"
-            )
-            with SequenceBars(out, concurrent=ray is not None and len(specs) > 1) as bars:
-                result = run_sequences(specs, sch, cfg, out, progress=bars, runtime=runtime)
-
-    for name, res in result.per_sequence.items():
-        timing = ", ".join(
-            f"{s} {r.seconds:.1f}s" if r.ran else f"{s} {'cached' if r.status == 'done' else r.status}"
-            for s, r in res.stages.items()
-        )
-        typer.echo(f"sequence {name}: {timing}")
-    if cfg.consistency.enabled:
-        typer.echo(f"joint 3D-CN (one network per round, all sequences): {result.joint_seconds:.1f}s")
-    tables = multi_result_tables(out)
-    typer.echo("")
-    typer.echo(tables if tables else "no ground-truth labels: nothing to evaluate")
-    try:
-        _write_multi_exports(
-            result, specs, sch, cfg, export_to, targets["zip"], with_conf=with_conf, overwrite=overwrite
-        )
-    except LeapError as exc:
-        raise fail(str(exc)) from None
-
-
-def _write_multi_exports(  # the run and the export options
-    result: MultiRunResult,
-    specs: list[SequenceSpec],
-    sch: Schema,
-    cfg: PipelineConfig,
-    export_to: str | None,
-    zip_file: Path | None,
-    *,
-    with_conf: bool,
-    overwrite: bool,
-) -> None:
-    """Print each sequence's unlabeled counts, then write ``--export-to`` / ``--zip`` of a multi run."""
-    from leap_core import __version__
-    from leap_core.pipeline.coverage import cached_export_coverage
-    from leap_core.pipeline.multi import export_sequences, export_zip
-
-    raw: dict[int, int] = {}
-    for spec in specs:
-        res = result.per_sequence[spec.name]
-        cov = cached_export_coverage(res.run_dir, spec.dataset, spec.frames, cfg.fusion.voxel_size)
-        typer.echo(
-            f"sequence {spec.name}: {cov.labeled} of {cov.points} points labeled; {cov.unlabeled} "
-            f"unlabeled: {cov.outside_view} outside every camera view, {cov.no_mask} in view but no "
-            f"mask ({res.export_dir})"
-        )
-        for k, v in cov.raw_counts.items():
-            raw[k] = raw.get(k, 0) + v
-    if export_to is not None:
-        written = export_sequences(result.root, Path(export_to), with_conf=with_conf, overwrite=overwrite)
-        target = Path(export_to).expanduser().resolve()
-        typer.echo(
-            f"wrote {sum(written.values())} files to {target}/sequences/{{{','.join(written)}}}/predictions/"
-        )
-    if zip_file is not None:
-        n = export_zip(
-            result.root,
-            zip_file,
-            sch,
-            config=cfg,
-            with_conf=with_conf,
-            overwrite=overwrite,
-            raw_counts=raw,
-            version=__version__,
-        )
-        typer.echo(
-            f"wrote {zip_file} ({n} files in sequences/<name>/predictions/, label-map.yaml, summary.yaml)"
-        )
-
-
-def _estimate_run_poses(dataset: Path, out: Path) -> None:
-    """``leap run --estimate-poses``: KISS-ICP poses into the run folder when the dataset has none
-    (reused when the run folder already holds an estimate of the same scans)."""
+def _estimate_run_poses(dataset: Path, target: Path) -> None:
+    """``leap run --estimate-poses``: KISS-ICP poses into ``target`` (the sequence's ``poses/poses.txt``
+    in the run folder) when the dataset has none (reused when it already holds an estimate of the same
+    scans)."""
     from tqdm import tqdm
 
     from leap_core.odometry import estimate_into
-    from leap_core.run_layout import RunLayout
 
     seq = KittiSequence(dataset)
     if seq.has_poses:
         typer.echo(f"poses: {seq.poses_path} (--estimate-poses not needed)")
         return
-    target = RunLayout(out).poses
     with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
 
         def tick(done: int, total: int) -> None:
@@ -965,48 +799,33 @@ def train_3dcn_cmd(
     )
 
 
-class _Targets(TypedDict):
-    folder: Path | None
-    zip: Path | None
+def _zip_target(zip_path: str | None, overwrite: bool) -> Path | None:
+    """Check ``--zip`` (resolved) before the run; the write checks again."""
+    from leap_core.export import export_target_problem
+
+    if zip_path is None:
+        return None
+    zfile = Path(zip_path).expanduser().resolve()
+    problem = export_target_problem(zfile.parent)
+    if problem is not None:
+        raise LeapError(f"--zip: {problem}")
+    if zfile.exists() and not overwrite:
+        raise LeapError(f"--zip: {zfile} already exists; add --overwrite to replace it")
+    return zfile
 
 
-def _export_targets(export_to: str | None, zip_path: str | None, overwrite: bool) -> _Targets:
-    """Check ``--export-to`` / ``--zip`` (resolved) before the run; the writes check again."""
-    from leap_core.export import existing_export_files, export_target_problem
-
-    folder = None if export_to is None else Path(export_to).expanduser().resolve()
-    zfile = None if zip_path is None else Path(zip_path).expanduser().resolve()
-    if folder is not None:
-        problem = export_target_problem(folder)
-        if problem is not None:
-            raise LeapError(f"--export-to: {problem}")
-        old = existing_export_files(folder)
-        if old and not overwrite:
-            raise LeapError(
-                f"--export-to: {folder} already holds {len(old)} files (e.g. {old[0]}); "
-                "add --overwrite to replace them"
-            )
-    if zfile is not None:
-        problem = export_target_problem(zfile.parent)
-        if problem is not None:
-            raise LeapError(f"--zip: {problem}")
-        if zfile.exists() and not overwrite:
-            raise LeapError(f"--zip: {zfile} already exists; add --overwrite to replace it")
-    return {"folder": folder, "zip": zfile}
-
-
-def _write_exports(
-    run_dir: Path,
-    dataset: Path,
+def _write_exports(  # the run and the export options
+    result: RunResult,
+    specs: list[SequenceSpec],
     sch: Schema,
     cfg: PipelineConfig,
-    frames: range | None,
-    targets: _Targets,
+    export_to: str | None,
+    zip_file: Path | None,
     *,
     with_conf: bool,
     overwrite: bool,
 ) -> None:
-    """Print the unlabeled counts, then write ``--export-to`` / ``--zip``."""
+    """Print each sequence's export folder and unlabeled counts, then write ``--export-to`` / ``--zip``."""
     import datetime
 
     from leap_core import __version__
@@ -1014,34 +833,44 @@ def _write_exports(
     from leap_core.export import (
         LABEL_MAP_FILE,
         SUMMARY_FILE,
+        export_targets,
         label_map,
         label_map_yaml,
+        run_export,
         summary_yaml,
-        write_export_folder,
         write_export_zip,
+        write_run_export,
     )
-    from leap_core.pipeline.coverage import cached_export_coverage, coverage_counts
-    from leap_core.run_layout import RunLayout
+    from leap_core.pipeline.coverage import cached_export_coverage, coverage_counts, summed_coverage
 
-    lay = RunLayout(run_dir)
-    # Counted once per export, then read from the run folder (a cached rerun reads no scan).
-    cov = cached_export_coverage(run_dir, dataset, frames, cfg.fusion.voxel_size)
-    typer.echo(
-        f"{cov.labeled} of {cov.points} points labeled; {cov.unlabeled} unlabeled: "
-        f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask"
-    )
-    if targets["folder"] is not None:
-        suffixes = (".label", ".conf") if with_conf else (".label",)
-        files = sorted(p for p in lay.export_dir.iterdir() if p.suffix in suffixes)
-        replaced = write_export_folder(targets["folder"], files, overwrite=overwrite)
-        note = f" (replaced {replaced})" if replaced else ""
-        typer.echo(f"wrote {len(files)} files to {targets['folder']}{note}")
-    if targets["zip"] is not None:
+    covs = []
+    for spec in specs:
+        res = result.sequences[spec.name]
+        if res.export_dir is None:
+            return
+        n = len(list(res.export_dir.glob("*.label")))
+        # Counted once per export, then read from the run folder (a cached rerun reads no scan).
+        cov = cached_export_coverage(res.folder, spec.dataset, spec.frames, cfg.fusion.voxel_size)
+        covs.append(cov)
+        head = "" if len(specs) == 1 else f"sequence {spec.name}: "
+        typer.echo(
+            f"\n{head}{n} .label files (+ .conf confidences) in {res.export_dir}\n"
+            f"{cov.labeled} of {cov.points} points labeled; {cov.unlabeled} unlabeled: "
+            f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask"
+        )
+    exported = run_export(result.root)
+    if export_to is not None:
+        target = Path(export_to).expanduser().resolve()
+        folders = export_targets(target, [s.name for s in exported], with_conf=with_conf)
+        written = write_run_export(folders, exported, with_conf=with_conf, overwrite=overwrite)
+        typer.echo(
+            f"wrote {sum(written.values())} files to {target}/sequences/{{{','.join(written)}}}/predictions/"
+        )
+    if zip_file is not None:
+        cov = summed_coverage(covs)
         summary = summary_yaml(
-            project={"schema": sch.name},
-            run={"folder": str(run_dir)},
-            dataset=dataset,
-            frames=frames,
+            run={"folder": str(result.root)},
+            sequences=exported,
             schema=sch,
             pipeline=config_to_dict(cfg),
             counts=coverage_counts(cov),
@@ -1049,17 +878,12 @@ def _write_exports(
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         )
-        lmap = label_map(sch, cov.raw_counts, name=sch.name, sequence=dataset.name)
+        lmap = label_map(sch, cov.raw_counts, name=sch.name, sequences=[s.name for s in exported])
         extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}
-        n = write_export_zip(
-            targets["zip"],
-            lay.export_dir,
-            dataset.name,
-            extra,
-            include_confidence=with_conf,
-            overwrite=overwrite,
+        n = write_export_zip(zip_file, exported, extra, include_confidence=with_conf, overwrite=overwrite)
+        typer.echo(
+            f"wrote {zip_file} ({n} files in sequences/<name>/predictions/, {LABEL_MAP_FILE}, {SUMMARY_FILE})"
         )
-        typer.echo(f"wrote {targets['zip']} ({n} files, {LABEL_MAP_FILE}, {SUMMARY_FILE})")
 
 
 def _run_config(
@@ -1182,58 +1006,75 @@ def demo_cmd(
     the browser then shows the demo project with a finished run and its metrics."""
     from app import crud
     from app.core.db import init_db, open_db
-    from app.demo import DEMO_PROJECT_NAME, ensure_demo_sequence, seed_demo_project
-    from app.jobs.manager import JobManager
-    from app.jobs.worker import RunDirBusy, run_dir_lock
+    from app.demo import ensure_demo_sequence, seed_demo_project
+    from app.jobs.folders import migrate_run_folders
     from app.main import serve
-    from leap_core.pipeline import result_tables
+    from leap_core.pipeline import run_result_tables
 
     settings = _app_settings(port=port, data_root=data_root, work_dir=work_dir)
-    progress = StageBars()
+    generating = StageBars()
     lock = _lock_work_dir(settings)
 
     try:
-        ensure_demo_sequence(settings.demo_dataset, dict(settings.demo_synth), progress=progress)
+        ensure_demo_sequence(settings.demo_dataset, dict(settings.demo_synth), progress=generating)
     except LeapError as exc:
         raise fail(str(exc)) from None
+    generating.close()
     init_db(settings.database)
+    migrate_run_folders(settings.database)
     seed_demo_project(settings)
     with open_db(settings.database) as db:
         project = crud.find_demo_project(db)
         if project is None:
             raise fail(f"the demo project was deleted from {settings.database}; use another --work-dir")
-        finished = crud.last_finished_run(db, project["id"])
-        active = crud.active_run(db, project["id"])
+        finished = crud.last_finished_run(db, project.id)
+        active = crud.active_run(db, project.id)
     if finished is None:
-        manager = JobManager(settings)
-        if active is not None:
-            # Left "running" by a killed `leap demo`, unless a live process holds its folder's lock.
-            try:
-                with run_dir_lock(Path(active["run_dir"])):
-                    pass
-            except RunDirBusy:
-                raise fail(f"demo run {active['id']} is in use (is a server running?)") from None
-            with open_db(settings.database) as db:
-                crud.update_run(db, active["id"], status="interrupted")
-        with open_db(settings.database) as db:
-            resumable = [
-                r for r in crud.list_runs(db, project["id"]) if r["status"] in ("interrupted", "cancelled")
-            ]
-        run = manager.resume_run(resumable[0]["id"]) if resumable else manager.start_run(project["id"])
-        typer.echo(f"labeling the demo sequence (run #{run['number']} of project {DEMO_PROJECT_NAME!r})")
-        progress.run_dir = Path(run["run_dir"])
-        with progress:
-            status = manager.run_now(run["id"], on_progress=progress)
-        with open_db(settings.database) as db:
-            finished = crud.require_run(db, run["id"])
-        if status != "done":
-            raise fail(f"the demo run {status}: {finished['error']}")
-    tables = result_tables(finished["run_dir"])
+        finished = _label_demo(settings, project.id, active)
+    tables = run_result_tables(finished.run_dir)
     if tables:
         typer.echo(tables)
     if no_serve:
         return
     serve(settings, lock=lock)
+
+
+def _label_demo(settings: Settings, project_id: int, active: RunRow | None) -> RunRow:
+    """``leap demo``'s first run of the demo project, in this process with progress bars (``active``: a
+    run a killed ``leap demo`` left running is resumed); returns the finished run."""
+    from app import crud
+    from app.core.db import open_db
+    from app.demo import DEMO_PROJECT_NAME
+    from app.jobs.manager import JobManager
+    from app.jobs.stages import split_stage
+    from app.jobs.worker import RunDirBusy, run_dir_lock
+
+    manager = JobManager(settings)
+    if active is not None:
+        # Left "running" by a killed `leap demo`, unless a live process holds its folder's lock.
+        try:
+            with run_dir_lock(active.run_dir):
+                pass
+        except RunDirBusy:
+            raise fail(f"demo run {active.id} is in use (is a server running?)") from None
+        with open_db(settings.database) as db:
+            crud.update_run(db, active.id, status="interrupted")
+    with open_db(settings.database) as db:
+        resumable = [r for r in crud.list_runs(db, project_id) if r.status in ("interrupted", "cancelled")]
+    run = manager.resume_run(resumable[0].id) if resumable else manager.start_run(project_id)
+    typer.echo(f"labeling the demo sequence (run #{run.number} of project {DEMO_PROJECT_NAME!r})")
+    with SequenceBars(run.run_dir, run.params.names) as bars:
+
+        def report(name: str, done: int, total: int) -> None:
+            sequence, stage = split_stage(name)
+            bars(sequence or run.params.names[0], stage, done, total)
+
+        status = manager.run_now(run.id, on_progress=report)
+    with open_db(settings.database) as db:
+        finished = crud.require_run(db, run.id)
+    if status != "done":
+        raise fail(f"the demo run {status}: {finished.error}")
+    return finished
 
 
 def _lock_work_dir(settings: Settings) -> WorkDirLock:

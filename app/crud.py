@@ -1,4 +1,5 @@
-"""Plain database functions (no HTTP, no pipeline). Rows come back as dicts with JSON columns decoded.
+"""Plain database functions (no HTTP, no pipeline). Rows come back typed (:mod:`app.rows`) with their JSON
+columns decoded.
 
 Every function takes the sqlite-utils ``Database`` first and its other arguments by keyword.
 """
@@ -10,14 +11,15 @@ import sqlite3
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 import numpy.typing as npt
 import sqlite_utils
 
-from app.core.db import default_sequence_name, transaction, utcnow
+from app.core.db import transaction, utcnow
 from app.core.errors import InvalidField, NotFound
+from app.rows import DatasetKind, ProjectRow, RunParams, RunRow, RunStatus, SequenceRow
 
 _JSON_COLUMNS = {
     "schema_json": "schema",
@@ -62,23 +64,26 @@ def _dumps(value: Any) -> str:
 
 
 # -------------------------------------------------------------------------------------------- projects
-def create_project(  # noqa: PLR0913  one keyword per column, and the sequences
+def create_project(
     db: sqlite_utils.Database,
     *,
     name: str,
-    dataset_kind: str,
-    dataset_path: str,
+    dataset_kind: DatasetKind,
+    sequences: Sequence[tuple[str, str]],
     schema: dict[str, Any],
     pipeline: dict[str, Any],
     is_demo: bool = False,
     estimate_poses: bool = False,
-    sequences: Sequence[tuple[str, str]] | None = None,
-) -> dict[str, Any]:
-    """Insert a project and its sequences: ``sequences`` (name, dataset path) in order, default one named
-    after ``dataset_path``'s folder. ``dataset_path`` is the first sequence's (what single-sequence code
-    reads)."""
+) -> ProjectRow:
+    """Insert a project and its ``sequences`` (name, dataset path), in order (at least one).
+
+    Raises:
+        ValueError: no sequence.
+    """
     now = utcnow()
-    seqs = list(sequences) if sequences else [(default_sequence_name(dataset_path), dataset_path)]
+    seqs = list(sequences)
+    if not seqs:
+        raise ValueError("a project needs at least one sequence")
     with transaction(db):
         cursor = db.execute(
             "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
@@ -107,47 +112,64 @@ def create_project(  # noqa: PLR0913  one keyword per column, and the sequences
     return project
 
 
-def _with_sequences(db: sqlite_utils.Database, project: dict[str, Any] | None) -> dict[str, Any] | None:
-    if project is not None:
-        project["sequences"] = list_sequences(db, int(project["id"]))
-    return project
+def _project(row: dict[str, Any], sequences: Sequence[SequenceRow]) -> ProjectRow:
+    return ProjectRow(
+        id=int(row["id"]),
+        name=str(row["name"]),
+        dataset_kind=cast("DatasetKind", row["dataset_kind"]),
+        schema=row["schema"],
+        pipeline=row["pipeline"],
+        is_demo=bool(row["is_demo"]),
+        estimate_poses=bool(row["estimate_poses"]),
+        created_at=str(row["created_at"]),
+        updated_at=str(row["updated_at"]),
+        sequences=tuple(sequences),
+    )
 
 
-def get_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
-    """The project row with ``sequences`` (:func:`list_sequences`)."""
+def _sequence(row: dict[str, Any]) -> SequenceRow:
+    return SequenceRow(str(row["name"]), str(row["dataset_path"]), int(row["position"]))
+
+
+def _with_sequences(db: sqlite_utils.Database, row: dict[str, Any] | None) -> ProjectRow | None:
+    return None if row is None else _project(row, list_sequences(db, int(row["id"])))
+
+
+def get_project(db: sqlite_utils.Database, project_id: int) -> ProjectRow | None:
+    """The project with its sequences (:func:`list_sequences`)."""
     return _with_sequences(db, _one(db, "SELECT * FROM projects WHERE id = ?", [project_id]))
 
 
-def list_sequences(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
-    """The project's sequences in order: ``{"name", "dataset_path", "position"}`` each (removed ones
-    left out)."""
-    return _rows(
-        db,
-        "SELECT name, dataset_path, position FROM project_sequences WHERE project_id = ? "
-        "AND removed_at IS NULL ORDER BY position",
-        [project_id],
-    )
+def list_sequences(db: sqlite_utils.Database, project_id: int) -> list[SequenceRow]:
+    """The project's current sequences in order (removed ones left out)."""
+    return [
+        _sequence(r)
+        for r in _rows(
+            db,
+            "SELECT name, dataset_path, position FROM project_sequences WHERE project_id = ? "
+            "AND removed_at IS NULL ORDER BY position",
+            [project_id],
+        )
+    ]
 
 
-def removed_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> dict[str, Any] | None:
-    """The removed sequence ``name`` of the project (``{"name", "dataset_path", "removed_at"}``), if any:
-    the folder its kept corrections and review marks belong to."""
-    return _one(
+def removed_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> SequenceRow | None:
+    """The removed sequence ``name`` of the project, if any: the folder its kept corrections and review
+    marks belong to."""
+    row = _one(
         db,
-        "SELECT name, dataset_path, removed_at FROM project_sequences WHERE project_id = ? AND name = ? "
+        "SELECT name, dataset_path, position FROM project_sequences WHERE project_id = ? AND name = ? "
         "AND removed_at IS NOT NULL",
         [project_id, name],
     )
+    return None if row is None else _sequence(row)
 
 
 def add_sequence(db: sqlite_utils.Database, project_id: int, *, name: str, dataset_path: str) -> None:
     """Append the sequence ``name`` on ``dataset_path`` to the project (a removed sequence of that name
-    comes back, with its corrections and review marks; the caller checked it is the same folder).
-
-    A project going from one sequence to two has its review marks re-keyed ``<first>/<region>``
-    (:func:`review_key`). Call inside :func:`~app.core.db.transaction` with the checks it relies on.
+    comes back, with its corrections and review marks; the caller checked it is the same folder). Call
+    inside :func:`~app.core.db.transaction` with the checks it relies on.
     """
-    before = list_sequences(db, project_id)
     position = db.execute(
         "SELECT COALESCE(MAX(position), -1) + 1 FROM project_sequences WHERE project_id = ?", [project_id]
     ).fetchone()[0]
@@ -162,21 +184,13 @@ def add_sequence(db: sqlite_utils.Database, project_id: int, *, name: str, datas
             "INSERT INTO project_sequences (project_id, name, dataset_path, position) VALUES (?, ?, ?, ?)",
             [project_id, name, dataset_path, position],
         )
-    if len(before) == 1:
-        first = str(before[0]["name"])
-        db.execute(
-            "UPDATE review_marks SET region = ? || '/' || region WHERE project_id = ? "
-            "AND instr(region, '/') = 0",
-            [first, project_id],
-        )
     db.execute("UPDATE projects SET updated_at = ? WHERE id = ?", [utcnow(), project_id])
 
 
 def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> None:
     """Take the sequence ``name`` out of the project. Its row stays (``removed_at``), and so do its
     corrections, review marks and queues and every run; ``projects.dataset_path`` follows the new first
-    sequence. A project left with one sequence has that one's review marks keyed by region alone again
-    (:func:`review_key`). Call inside :func:`~app.core.db.transaction` (the caller keeps one sequence)."""
+    sequence. Call inside :func:`~app.core.db.transaction` (the caller keeps one sequence)."""
     now = utcnow()
     db.execute(
         "UPDATE project_sequences SET removed_at = ? WHERE project_id = ? AND name = ?",
@@ -185,15 +199,8 @@ def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> No
     after = list_sequences(db, project_id)
     db.execute(
         "UPDATE projects SET dataset_path = ?, updated_at = ? WHERE id = ?",
-        [after[0]["dataset_path"], now, project_id],
+        [after[0].dataset_path, now, project_id],
     )
-    if len(after) == 1:
-        prefix = f"{after[0]['name']}/"
-        db.execute(
-            "UPDATE review_marks SET region = substr(region, ?) WHERE project_id = ? "
-            "AND substr(region, 1, ?) = ?",
-            [len(prefix) + 1, project_id, len(prefix), prefix],
-        )
 
 
 def sequence_name(
@@ -206,7 +213,7 @@ def sequence_name(
         NotFound: unknown project.
         InvalidField: ``name`` is not one of the project's sequences (``loc`` names the field).
     """
-    names = [s["name"] for s in list_sequences(db, project_id)]
+    names = [s.name for s in list_sequences(db, project_id)]
     if not names:
         require_project(db, project_id)
         raise NotFound(f"Project {project_id} has no sequences")
@@ -217,7 +224,7 @@ def sequence_name(
     return name
 
 
-def require_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any]:
+def require_project(db: sqlite_utils.Database, project_id: int) -> ProjectRow:
     """The project row, or :class:`NotFound`."""
     project = get_project(db, project_id)
     if project is None:
@@ -225,18 +232,17 @@ def require_project(db: sqlite_utils.Database, project_id: int) -> dict[str, Any
     return project
 
 
-def list_projects(db: sqlite_utils.Database) -> list[dict[str, Any]]:
-    projects = _rows(db, "SELECT * FROM projects ORDER BY id")
-    by_project: dict[int, list[dict[str, Any]]] = {}
+def list_projects(db: sqlite_utils.Database) -> list[ProjectRow]:
+    by_project: dict[int, list[SequenceRow]] = {}
     for row in _rows(
         db,
         "SELECT project_id, name, dataset_path, position FROM project_sequences "
         "WHERE removed_at IS NULL ORDER BY project_id, position",
     ):
-        by_project.setdefault(int(row.pop("project_id")), []).append(row)
-    for p in projects:
-        p["sequences"] = by_project.get(int(p["id"]), [])
-    return projects
+        by_project.setdefault(int(row["project_id"]), []).append(_sequence(row))
+    return [
+        _project(p, by_project.get(int(p["id"]), [])) for p in _rows(db, "SELECT * FROM projects ORDER BY id")
+    ]
 
 
 def update_project(
@@ -247,7 +253,7 @@ def update_project(
     schema: dict[str, Any] | None = None,
     pipeline: dict[str, Any] | None = None,
     estimate_poses: bool | None = None,
-) -> dict[str, Any]:
+) -> ProjectRow:
     sets: list[str] = []
     params: list[Any] = []
     for column, value in (("name", name), ("schema_json", schema), ("pipeline_json", pipeline)):
@@ -267,14 +273,35 @@ def delete_project(db: sqlite_utils.Database, project_id: int) -> None:
     db.execute("DELETE FROM projects WHERE id = ?", [project_id])
 
 
-def find_demo_project(db: sqlite_utils.Database) -> dict[str, Any] | None:
+def find_demo_project(db: sqlite_utils.Database) -> ProjectRow | None:
     return _with_sequences(db, _one(db, "SELECT * FROM projects WHERE is_demo = 1 ORDER BY id LIMIT 1"))
 
 
 # ------------------------------------------------------------------------------------------------ runs
-def create_run(
-    db: sqlite_utils.Database, *, project_id: int, params: dict[str, Any], runs_dir: Path
-) -> dict[str, Any]:
+def _run(row: dict[str, Any]) -> RunRow:
+    return RunRow(
+        id=int(row["id"]),
+        project_id=int(row["project_id"]),
+        number=int(row["number"]),
+        status=cast("RunStatus", row["status"]),
+        params=RunParams.from_dict(row["params"]),
+        run_dir=Path(row["run_dir"]),
+        created_at=str(row["created_at"]),
+        started_at=row["started_at"],
+        finished_at=row["finished_at"],
+        error=row["error"],
+        attempts=int(row["attempts"]),
+        stages=row["stages"] or None,
+        metrics=row["metrics"],
+        note=row.get("note"),
+    )
+
+
+def _runs(db: sqlite_utils.Database, sql: str, params: Sequence[Any] = ()) -> list[RunRow]:
+    return [_run(r) for r in _rows(db, sql, params)]
+
+
+def create_run(db: sqlite_utils.Database, *, project_id: int, params: RunParams, runs_dir: Path) -> RunRow:
     """Insert a queued run numbered after the project's earlier ones; its folder is ``runs_dir/p<P>/r<R>``."""
     with transaction(db):
         number = db.execute(
@@ -283,7 +310,7 @@ def create_run(
         cursor = db.execute(
             "INSERT INTO runs (project_id, number, status, params_json, run_dir, created_at) "
             "VALUES (?, ?, 'queued', ?, '', ?)",
-            [project_id, number, _dumps(params), utcnow()],
+            [project_id, number, _dumps(params.to_dict()), utcnow()],
         )
         run_id = _inserted_id(cursor)
         run_dir = runs_dir / f"p{project_id}" / f"r{run_id}"
@@ -293,11 +320,12 @@ def create_run(
     return run
 
 
-def get_run(db: sqlite_utils.Database, run_id: int) -> dict[str, Any] | None:
-    return _one(db, "SELECT * FROM runs WHERE id = ?", [run_id])
+def get_run(db: sqlite_utils.Database, run_id: int) -> RunRow | None:
+    rows = _runs(db, "SELECT * FROM runs WHERE id = ?", [run_id])
+    return rows[0] if rows else None
 
 
-def require_run(db: sqlite_utils.Database, run_id: int) -> dict[str, Any]:
+def require_run(db: sqlite_utils.Database, run_id: int) -> RunRow:
     """The run row, or :class:`NotFound`."""
     run = get_run(db, run_id)
     if run is None:
@@ -305,42 +333,51 @@ def require_run(db: sqlite_utils.Database, run_id: int) -> dict[str, Any]:
     return run
 
 
-def list_runs(db: sqlite_utils.Database, project_id: int) -> list[dict[str, Any]]:
+def list_runs(db: sqlite_utils.Database, project_id: int) -> list[RunRow]:
     """Runs of a project, newest first."""
-    return _rows(db, "SELECT * FROM runs WHERE project_id = ? ORDER BY id DESC", [project_id])
+    return _runs(db, "SELECT * FROM runs WHERE project_id = ? ORDER BY id DESC", [project_id])
 
 
-def runs_with_status(db: sqlite_utils.Database, statuses: Iterable[str]) -> list[dict[str, Any]]:
+def runs_with_status(db: sqlite_utils.Database, statuses: Iterable[str]) -> list[RunRow]:
     statuses = list(statuses)
     marks = ", ".join("?" for _ in statuses)
-    return _rows(db, f"SELECT * FROM runs WHERE status IN ({marks}) ORDER BY id", statuses)
+    return _runs(db, f"SELECT * FROM runs WHERE status IN ({marks}) ORDER BY id", statuses)
 
 
-def active_run(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
+def all_runs(db: sqlite_utils.Database) -> list[RunRow]:
+    """Every run of every project, oldest first."""
+    return _runs(db, "SELECT * FROM runs ORDER BY id")
+
+
+def active_run(db: sqlite_utils.Database, project_id: int) -> RunRow | None:
     """The project's queued or running run, if any."""
-    return _one(
+    rows = _runs(
         db,
         "SELECT * FROM runs WHERE project_id = ? AND status IN ('queued', 'running') ORDER BY id LIMIT 1",
         [project_id],
     )
+    return rows[0] if rows else None
 
 
-def last_finished_run(db: sqlite_utils.Database, project_id: int) -> dict[str, Any] | None:
-    return _one(
+def last_finished_run(db: sqlite_utils.Database, project_id: int) -> RunRow | None:
+    rows = _runs(
         db,
         "SELECT * FROM runs WHERE project_id = ? AND status = 'done' ORDER BY id DESC LIMIT 1",
         [project_id],
     )
+    return rows[0] if rows else None
 
 
 def update_run(db: sqlite_utils.Database, run_id: int, **fields: Any) -> None:
-    """Set columns of a run; ``stages``, ``metrics`` and ``params`` are stored as JSON."""
+    """Set columns of a run; ``stages``, ``metrics`` and ``params`` (a :class:`RunParams`) are stored as
+    JSON."""
     sets: list[str] = []
     params: list[Any] = []
     for key, value in fields.items():
         column = f"{key}_json" if key in ("stages", "metrics", "params") else key
+        stored = value.to_dict() if isinstance(value, RunParams) else value
         sets.append(f"{column} = ?")
-        params.append(_dumps(value) if column.endswith("_json") and value is not None else value)
+        params.append(_dumps(stored) if column.endswith("_json") and stored is not None else stored)
     if sets:
         db.execute(f"UPDATE runs SET {', '.join(sets)} WHERE id = ?", [*params, run_id])
 
@@ -566,13 +603,9 @@ def set_review_mark(
 
 def review_key(db: sqlite_utils.Database, project_id: int, sequence: str | None, region: str) -> str:
     """How a mark on ``region`` of ``sequence`` (None: the first) is stored in ``review_marks.region``:
-    the region itself in a single-sequence project (as before sequences existed), ``<sequence>/<region>``
-    in a project with several (sequence names hold no ``/``)."""
-    count = len(list_sequences(db, project_id))
-    if sequence is None and count <= 1:
-        return region
-    seq = sequence_name(db, project_id, sequence)
-    return region if count <= 1 else f"{seq}/{region}"
+    ``<sequence>/<region>`` (sequence names hold no ``/``; a region's identity is a place in that
+    sequence's world frame)."""
+    return f"{sequence_name(db, project_id, sequence)}/{region}"
 
 
 def list_review_marks(
@@ -587,8 +620,7 @@ def list_review_marks(
     ).fetchall()
     out = {}
     for r in rows:
-        # A one-sequence project's marks are bare regions; "<name>/..." ones are a removed sequence's.
-        if (prefix and not r[0].startswith(prefix)) or (not prefix and "/" in r[0]):
+        if not r[0].startswith(prefix):
             continue
         region = r[0][len(prefix) :]
         out[region] = ReviewMark(region, r[1], r[2], None if r[3] is None else int(r[3]), r[4])

@@ -23,8 +23,10 @@ from typing import Any
 
 from app import crud
 from app.core.config import Settings
-from app.core.db import open_db, transaction
+from app.core.db import default_sequence_name, open_db, transaction
 from app.core.demo_synth import synth_config
+from app.jobs.stages import SYNTH
+from app.rows import ProjectRow
 from leap_core.config import config_to_dict
 from leap_core.presets import builtin_preset
 from leap_core.synth import SYNTH_VERSION, SynthConfig, default_workers, generate_sequence, synth_version
@@ -33,7 +35,6 @@ from leap_core.synth.generator import synth_stamp
 
 DEMO_PROJECT_NAME = "Demo street (simulated labeler)"
 SEEDED_KEY = "demo_seeded"
-SYNTH_STAGE = "generate demo"
 AGRI_DEMO_PROJECT_NAME = "Demo farm drone (simulated labeler)"
 AGRI_SEEDED_KEY = "demo_agri_seeded"
 AGRI_DEMO_FOLDER = "demo-agri"
@@ -109,7 +110,7 @@ def ensure_demo_sequence(
 
         def report(done: int, total: int) -> None:
             if progress is not None:
-                progress(SYNTH_STAGE, done, total)
+                progress(SYNTH, done, total)
 
         report(0, config.frames)
         generate_sequence(
@@ -122,7 +123,7 @@ def ensure_demo_sequence(
     return dataset
 
 
-def seed_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, Any] | None:
+def seed_demo_project(settings: Settings, jobs: Any | None = None) -> ProjectRow | None:
     """On first start, create the demo project (and queue its first run when ``jobs`` is given).
 
     Returns the new project, or None when the demo was seeded before (also when the user deleted it).
@@ -139,7 +140,7 @@ def seed_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, 
     )
 
 
-def seed_agri_demo_project(settings: Settings, jobs: Any | None = None) -> dict[str, Any] | None:
+def seed_agri_demo_project(settings: Settings, jobs: Any | None = None) -> ProjectRow | None:
     """On first start, create the farm drone demo project (and queue its first run, which generates the
     sequence, when ``jobs`` is given): the ``agri_uav`` preset with the simulated labeler.
 
@@ -167,7 +168,7 @@ def _seed(
     *,
     schema: dict[str, Any],
     pipeline: dict[str, Any],
-) -> dict[str, Any] | None:
+) -> ProjectRow | None:
     """Create a demo project once (``key`` in the meta table remembers it) and queue its first run."""
     with open_db(settings.database) as db, transaction(db):
         if crud.get_meta(db, key) is not None:
@@ -176,17 +177,17 @@ def _seed(
             db,
             name=name,
             dataset_kind="demo",
-            dataset_path=str(dataset),
+            sequences=[(default_sequence_name(str(dataset)), str(dataset))],
             schema=schema,
             pipeline=pipeline,
             is_demo=True,
         )
-        crud.set_meta(db, key, str(project["id"]))
-    log.info("seeded the demo project %r (id %d)", name, project["id"])
+        crud.set_meta(db, key, str(project.id))
+    log.info("seeded the demo project %r (id %d)", name, project.id)
     if jobs is not None:
         finished = None
         with open_db(settings.database) as db:
-            finished = crud.last_finished_run(db, project["id"])
+            finished = crud.last_finished_run(db, project.id)
         if finished is None:
-            jobs.start_run(project["id"])
+            jobs.start_run(project.id)
     return project

@@ -1,4 +1,5 @@
-"""API schemas (pydantic). Database rows are plain dicts handled in :mod:`app.crud`; only these leave the API.
+"""API schemas (pydantic): the only shapes that leave the API. Database rows are :mod:`app.rows`
+(:mod:`app.crud`).
 
 Per resource: ``XCreate`` / ``XUpdate`` inputs, ``XPublic`` outputs and ``XsPublic(data, count)`` lists.
 """
@@ -10,11 +11,10 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from app.rows import DatasetKind, RunStatus
 from leap_core.schema import class_name_problem
 
-RunStatus = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
 StageStatus = Literal["pending", "running", "done", "skipped", "failed", "cancelled"]
-DatasetKind = Literal["demo", "folder"]
 
 ACTIVE_STATUSES: tuple[str, ...] = ("queued", "running")
 RESUMABLE_STATUSES: tuple[str, ...] = ("interrupted", "cancelled", "failed")
@@ -600,8 +600,10 @@ class ExportWrite(_Input):
     path: str | None = Field(
         default=None,
         max_length=4096,
-        description="a dataset's predictions/ folder or a folder inside the app's export folder "
-        "(<work_dir>/exports); default: the project dataset's predictions/",
+        description="a folder that receives <path>/sequences/<name>/predictions/ for each sequence of the "
+        "run (SemanticKITTI's layout): the datasets' common root (each sequence's own predictions/) or a "
+        "folder inside the app's export folder (<work_dir>/exports); default: each sequence's own "
+        "predictions/ folder, beside its velodyne/",
     )
     include_confidence: bool = Field(default=False, description="also copy the .conf files")
     overwrite: bool = Field(
@@ -613,7 +615,7 @@ class ExportWrite(_Input):
 
 class ExportWritten(BaseModel):
     run_id: int
-    path: str
+    path: str = Field(description="the folder given, or the first sequence's predictions/ folder")
     files: int = Field(description="files written")
     replaced: int = Field(description="files the folder held before (0 unless overwrite was set)")
 
@@ -632,6 +634,12 @@ class ExportClassCount(BaseModel):
     points: int
 
 
+class ExportTargetPublic(BaseModel):
+    sequence: str
+    path: str
+    existing: int = Field(description="entries it holds now (writing them needs overwrite)")
+
+
 class ExportInfo(BaseModel):
     """A finished run's export: point counts, why points stay unlabeled, and the default target folder."""
 
@@ -643,14 +651,11 @@ class ExportInfo(BaseModel):
     reasons: list[UnlabeledReason] = Field(description="unlabeled points by reason; they sum to `unlabeled`")
     threshold_note: str = Field(description="why there is no 'below threshold' count")
     classes: list[ExportClassCount]
-    predictions_path: str = Field(description="the project dataset's predictions/ folder")
-    predictions_allowed: bool = Field(description="whether that folder may receive an export")
-    predictions_existing: int = Field(description="entries it holds now (writing them needs overwrite)")
-    sequences: list[str] = Field(
-        default_factory=list,
-        description="a run of several sequences: their names; the export writes "
-        "`<predictions_path>/sequences/<name>/predictions/` for each (empty for a run of one sequence)",
+    targets: list[ExportTargetPublic] = Field(
+        description="per sequence of the run, its own predictions/ folder (where an export without a path "
+        "writes)"
     )
+    predictions_allowed: bool = Field(description="whether those folders may receive an export")
 
 
 # -------------------------------------------------------------------------------------------- pipeline

@@ -20,8 +20,8 @@ from app.core.config import Settings
 from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
-from app.jobs.multi import covered_sequences, run_sequence_folders, run_sequences_of, sequence_run_dir
 from app.jobs.progress import ProgressTracker
+from app.rows import ProjectRow, RunRow, labeled_sequences
 from leap_core.colors import distinct_color
 from leap_core.config import (
     FORM_FIELDS,
@@ -37,7 +37,6 @@ from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
 from leap_core.pipeline import PAPER, all_points_labeled_share
 from leap_core.presets import builtin_preset
-from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -67,9 +66,9 @@ def _below_pipeline(path: tuple[str, ...]) -> tuple[str, ...]:
     return path[1:] if path[:1] == ("pipeline",) else path
 
 
-def project_config(project: dict[str, Any]) -> PipelineConfig:
+def project_config(project: ProjectRow) -> PipelineConfig:
     """A project row's pipeline config (stored as a dict)."""
-    return pipeline_config(project["pipeline"], loc=("project", "pipeline"))
+    return pipeline_config(project.pipeline, loc=("project", "pipeline"))
 
 
 # --------------------------------------------------------------------------------------------- datasets
@@ -189,12 +188,6 @@ def check_problem(check: models.DatasetCheck) -> str:
     return f"the pipeline cannot run on this dataset: {'; '.join(parts)}"
 
 
-def project_estimates_poses(project: Mapping[str, Any]) -> bool:
-    """Whether the project estimates missing poses before its 3D stages (its "Estimate poses (KISS-ICP)"
-    option; a project row or creation payload without the option does not)."""
-    return bool(project.get("estimate_poses") or False)
-
-
 def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> list[models.DatasetCandidate]:
     """KITTI-layout sequence folders (with ``velodyne/``) inside the data roots, for the create form (the
     demo street too, once generated, when the work folder lies inside a data root)."""
@@ -248,7 +241,7 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
 # --------------------------------------------------------------------------------------------- projects
 def create_project(
     db: sqlite_utils.Database, settings: Settings, payload: models.ProjectCreate
-) -> dict[str, Any]:
+) -> ProjectRow:
     """A new project with the classes and the ``pipeline:`` section of the built-in preset
     ``payload.schema_name``, the payload's ``pipeline`` overrides applied on top, on one sequence
     (``payload.dataset``) or several (``payload.sequences``, each confined and checked like one)."""
@@ -260,9 +253,7 @@ def create_project(
     config = pipeline_config(payload.pipeline, preset.pipeline)
     if kind == "folder":
         for name, path, loc in sequences:
-            check = dataset_check(
-                settings, path, config, estimate_poses=project_estimates_poses(payload.model_dump())
-            )
+            check = dataset_check(settings, path, config, estimate_poses=payload.estimate_poses)
             if check.verdict == "none":
                 what = f"dataset path {str(path)!r}" + (f" (sequence {name!r})" if len(sequences) > 1 else "")
                 raise InvalidField(loc, f"{what}: {check_problem(check)}")
@@ -270,11 +261,10 @@ def create_project(
         db,
         name=payload.name,
         dataset_kind=kind,
-        dataset_path=str(sequences[0][1]),
+        sequences=[(name, str(path)) for name, path, _ in sequences],
         schema=preset.schema.to_dict(),
         pipeline=config_to_dict(config),
         estimate_poses=payload.estimate_poses,
-        sequences=[(name, str(path)) for name, path, _ in sequences],
     )
 
 
@@ -345,9 +335,7 @@ def validate_form(form: Mapping[str, Any], base: PipelineConfig) -> PipelineConf
         raise InvalidField(loc, str(exc)) from None
 
 
-def update_project(
-    db: sqlite_utils.Database, project_id: int, payload: models.ProjectUpdate
-) -> dict[str, Any]:
+def update_project(db: sqlite_utils.Database, project_id: int, payload: models.ProjectUpdate) -> ProjectRow:
     project = crud.require_project(db, project_id)
     config = None
     if payload.pipeline is not None or payload.form is not None:
@@ -370,36 +358,36 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
     crud.require_project(db, project_id)
     active = crud.active_run(db, project_id)
     if active is not None:
-        raise Conflict(f"Project {project_id} has run {active['id']} {active['status']}; cancel it first")
+        raise Conflict(f"Project {project_id} has run {active.id} {active.status}; cancel it first")
     crud.delete_project(db, project_id)
     # After the rows are gone: a crash in between leaves orphan files, never rows pointing at nothing.
     remove_tree(settings.runs_dir / f"p{project_id}")
 
 
 # -------------------------------------------------------------------------------------------- sequences
-def _refuse_sequence_edit(db: sqlite_utils.Database, project: dict[str, Any]) -> None:
+def _refuse_sequence_edit(db: sqlite_utils.Database, project: ProjectRow) -> None:
     """Sequence edits need a project on folders and no queued or running run (whose snapshot and run
     folder were made from the sequences as they were).
 
     Raises:
         Conflict: a run of the project is queued or running, or the project labels the built-in demo.
     """
-    active = crud.active_run(db, project["id"])
+    active = crud.active_run(db, project.id)
     if active is not None:
         raise Conflict(
-            f"Project {project['id']} has run {active['id']} {active['status']}; its sequences can change "
+            f"Project {project.id} has run {active.id} {active.status}; its sequences can change "
             "once it ends (or is cancelled)"
         )
-    if project["dataset_kind"] == "demo":
+    if project.dataset_kind == "demo":
         raise Conflict(
-            f"Project {project['id']} labels the built-in demo street, which is generated for it; create a "
+            f"Project {project.id} labels the built-in demo street, which is generated for it; create a "
             "project on sequence folders to label several"
         )
 
 
 def add_sequence(
     db: sqlite_utils.Database, settings: Settings, project_id: int, payload: models.SequenceRef
-) -> dict[str, Any]:
+) -> ProjectRow:
     """Append a sequence folder to an existing project, confined and checked as at creation
     (:func:`resolve_dataset`, the dataset check for the project's settings). A name not given is the
     folder's. The name of a removed sequence brings that sequence back only on its own folder.
@@ -421,33 +409,30 @@ def add_sequence(
         )
     project = crud.require_project(db, project_id)
     # Checked before the write transaction, which a large folder's check would hold for long.
-    check = dataset_check(
-        settings, path, project_config(project), estimate_poses=project_estimates_poses(project)
-    )
+    check = dataset_check(settings, path, project_config(project), estimate_poses=project.estimate_poses)
     with transaction(db):
         project = crud.require_project(db, project_id)
         _refuse_sequence_edit(db, project)
-        sequences = project["sequences"]
+        sequences = project.sequences
         if len(sequences) >= models.MAX_SEQUENCES:
             raise Conflict(f"Project {project_id} has {len(sequences)} sequences, the most one project holds")
         for s in sequences:
-            if s["name"] == name:
+            if s.name == name:
                 raise InvalidField(
                     ("body", "name"),
                     f"sequence name {name!r} is taken in project "
                     f"{project_id}; give the new sequence its own name",
                 )
-            if Path(s["dataset_path"]).resolve() == path:
+            if Path(s.dataset_path).resolve() == path:
                 raise InvalidField(
                     loc,
-                    f"dataset path {payload.path!r} is sequence {s['name']!r} of project "
-                    f"{project_id} already",
+                    f"dataset path {payload.path!r} is sequence {s.name!r} of project {project_id} already",
                 )
         removed = crud.removed_sequence(db, project_id, name)
-        if removed is not None and Path(removed["dataset_path"]).resolve() != path:
+        if removed is not None and Path(removed.dataset_path).resolve() != path:
             raise InvalidField(
                 ("body", "name"),
-                f"sequence name {name!r} belonged to the removed sequence on {removed['dataset_path']!r}, "
+                f"sequence name {name!r} belonged to the removed sequence on {removed.dataset_path!r}, "
                 "whose corrections and review marks are kept under that name; give this folder another name",
             )
         if check.verdict == "none":
@@ -456,7 +441,7 @@ def add_sequence(
     return crud.require_project(db, project_id)
 
 
-def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> dict[str, Any]:
+def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> ProjectRow:
     """Take a sequence out of a project. Nothing is deleted: the dataset, every run (their folders hold
     the removed sequence's results) and the sequence's corrections and review marks stay, the latter to
     come back if the same folder is added again under this name.
@@ -467,7 +452,7 @@ def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> di
     """
     with transaction(db):
         project = crud.require_project(db, project_id)
-        names = [s["name"] for s in project["sequences"]]
+        names = project.names
         if name not in names:
             raise NotFound(f"Project {project_id} has no sequence {name!r} (it has {', '.join(names)})")
         _refuse_sequence_edit(db, project)
@@ -480,103 +465,91 @@ def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> di
     return crud.require_project(db, project_id)
 
 
-def _brief(run: dict[str, Any] | None) -> models.RunBrief | None:
+def _brief(run: RunRow | None) -> models.RunBrief | None:
     if run is None:
         return None
-    table = normalise_metrics(run.get("metrics"))
+    table = normalise_metrics(run.metrics)
     row = miou = None
     if table is not None and "camera" in table["protocols"]:
         rows = table["protocols"]["camera"]
         row = (table["rows"] or list(rows))[-1]
         miou = rows.get(row, {}).get("miou")
     return models.RunBrief(
-        id=run["id"],
-        number=run["number"],
-        status=run["status"],
-        created_at=run["created_at"],
-        finished_at=run["finished_at"],
+        id=run.id,
+        number=run.number,
+        status=run.status,
+        created_at=run.created_at,
+        finished_at=run.finished_at,
         miou=miou,
         miou_row=row,
     )
 
 
-def project_check(
-    settings: Settings, project: dict[str, Any], path: str | None = None
-) -> models.DatasetCheck | None:
-    """The dataset check of one of the project's sequence folders (``path``; default its first) for the
-    project's own settings (None while the demo street is not generated)."""
-    folder = Path(project["dataset_path"] if path is None else path)
-    if project["dataset_kind"] == "demo" and not (folder / "velodyne").is_dir():
+def project_check(settings: Settings, project: ProjectRow, path: str) -> models.DatasetCheck | None:
+    """The dataset check of one of the project's sequence folders (``path``) for the project's own settings
+    (None while the demo street is not generated)."""
+    folder = Path(path)
+    if project.dataset_kind == "demo" and not (folder / "velodyne").is_dir():
         return None
-    return dataset_check(
-        settings, folder, project_config(project), estimate_poses=project_estimates_poses(project)
-    )
+    return dataset_check(settings, folder, project_config(project), estimate_poses=project.estimate_poses)
 
 
-def stale_results(project: dict[str, Any], runs: list[dict[str, Any]]) -> models.StaleResults | None:
+def stale_results(project: ProjectRow, runs: list[RunRow]) -> models.StaleResults | None:
     """Whether the project's latest finished run (``runs``: newest first) labeled other sequences than
-    the project has now (:func:`app.jobs.multi.covered_sequences`), and how; None when it labeled exactly
-    them, or when there is no finished run."""
-    run = next((r for r in runs if r["status"] == "done"), None)
+    the project has now (:func:`app.rows.labeled_sequences`), and how; None when it labeled exactly them,
+    or when there is no finished run."""
+    run = next((r for r in runs if r.status == "done"), None)
     if run is None:
         return None
-    sequences = project.get("sequences") or []
-    covered = covered_sequences(run["params"], sequences)
-    added = [str(s["name"]) for s in sequences if s["name"] not in covered]
-    labeled = run_sequence_folders(run["params"])
-    removed = [
-        name if name is not None else folder
-        for name, folder in labeled
-        if not any(str(s["dataset_path"]) == folder and name in (None, s["name"]) for s in sequences)
-    ]
+    covered = [s.name for s in labeled_sequences(run, project.sequences)]
+    added = [s.name for s in project.sequences if s.name not in covered]
+    removed = [s.name for s in run.params.sequences if s.name not in covered]
     if not added and not removed:
         return None
     parts = ([f"added {', '.join(added)}"] if added else []) + (
         [f"removed {', '.join(removed)}"] if removed else []
     )
     message = (
-        f"The sequences changed since run {run['number']} ({'; '.join(parts)}): its results describe the "
+        f"The sequences changed since run {run.number} ({'; '.join(parts)}): its results describe the "
         "sequences it labeled, not the project's now. Run the pipeline to label the current sequences."
     )
     return models.StaleResults(
-        run_id=run["id"], run_number=run["number"], added=added, removed=removed, message=message
+        run_id=run.id, run_number=run.number, added=added, removed=removed, message=message
     )
 
 
 def project_public(
-    db: sqlite_utils.Database, project: dict[str, Any], settings: Settings | None = None
+    db: sqlite_utils.Database, project: ProjectRow, settings: Settings | None = None
 ) -> models.ProjectPublic:
-    """A project row as the API shows it; with ``settings``, its dataset carries the dataset check."""
-    runs = crud.list_runs(db, project["id"])
-    sequences = project.get("sequences") or crud.list_sequences(db, project["id"])
+    """A project row as the API shows it; with ``settings``, its datasets carry the dataset check."""
+    runs = crud.list_runs(db, project.id)
     # One check per sequence folder (each is cached per folder state); the project's own is the first's.
     checks = [
-        None if settings is None else project_check(settings, project, s["dataset_path"]) for s in sequences
+        None if settings is None else project_check(settings, project, s.dataset_path)
+        for s in project.sequences
     ]
     return models.ProjectPublic(
-        id=project["id"],
-        name=project["name"],
-        dataset=dataset_public(
-            project["dataset_kind"], project["dataset_path"], checks[0] if checks else None
-        ),
+        id=project.id,
+        name=project.name,
+        dataset=dataset_public(project.dataset_kind, project.dataset_path, checks[0]),
         sequences=[
             models.SequencePublic(
-                name=s["name"], dataset=dataset_public(project["dataset_kind"], s["dataset_path"], check)
+                name=s.name, dataset=dataset_public(project.dataset_kind, s.dataset_path, check)
             )
-            for s, check in zip(sequences, checks, strict=True)
+            for s, check in zip(project.sequences, checks, strict=True)
         ],
-        schema_name=project["schema"]["name"],
-        num_classes=len(project["schema"]["classes"]),
-        pipeline=project["pipeline"],
+        schema_name=project.schema["name"],
+        num_classes=len(project.schema["classes"]),
+        pipeline=project.pipeline,
         form=form_values(project_config(project)),
-        estimate_poses=bool(project.get("estimate_poses")),
-        is_demo=bool(project["is_demo"]),
-        created_at=project["created_at"],
-        updated_at=project["updated_at"],
-        active_run=_brief(next((r for r in runs if r["status"] in models.ACTIVE_STATUSES), None)),
+        estimate_poses=project.estimate_poses,
+        is_demo=project.is_demo,
+        created_at=project.created_at,
+        updated_at=project.updated_at,
+        active_run=_brief(next((r for r in runs if r.status in models.ACTIVE_STATUSES), None)),
         last_run=_brief(runs[0] if runs else None),
         runs_count=len(runs),
-        stale=stale_results({**project, "sequences": sequences}, runs),
+        stale=stale_results(project, runs),
     )
 
 
@@ -590,8 +563,8 @@ def next_color(classes: list[dict[str, Any]]) -> list[int]:
     return list(distinct_color([c["color"] for c in classes]))
 
 
-def classes_public(project: dict[str, Any]) -> models.ClassesPublic:
-    classes = project["schema"]["classes"]
+def classes_public(project: ProjectRow) -> models.ClassesPublic:
+    classes = project.schema["classes"]
     data = [models.ClassPublic(index=i, hex=_hex(c["color"]), **c) for i, c in enumerate(classes)]
     return models.ClassesPublic(data=data, count=len(data), next_color=_hex(next_color(classes)))
 
@@ -609,14 +582,14 @@ def save_classes(
     classes: list[dict[str, Any]],
     *,
     loc: tuple[str | int, ...] = ("body",),
-) -> dict[str, Any]:
+) -> ProjectRow:
     """Validate the whole class list with the pipeline's schema rules and store it.
 
     Raises:
         InvalidField: naming the class entry and the problem (duplicate name, prompt in two classes, ...).
     """
     project = crud.require_project(db, project_id)
-    doc = {**project["schema"], "classes": classes}
+    doc = {**project.schema, "classes": classes}
     try:
         schema = Schema.from_dict(doc, source="classes")
     except SchemaError as exc:
@@ -626,9 +599,9 @@ def save_classes(
     return crud.update_project(db, project_id, schema=schema.to_dict())
 
 
-def add_class(db: sqlite_utils.Database, project_id: int, payload: models.ClassCreate) -> dict[str, Any]:
+def add_class(db: sqlite_utils.Database, project_id: int, payload: models.ClassCreate) -> ProjectRow:
     project = crud.require_project(db, project_id)
-    classes = list(project["schema"]["classes"])
+    classes = list(project.schema["classes"])
     entry = payload.model_dump(exclude={"position"})
     if entry["color"] is None:
         entry["color"] = next_color(classes)
@@ -639,9 +612,9 @@ def add_class(db: sqlite_utils.Database, project_id: int, payload: models.ClassC
 
 def update_class(
     db: sqlite_utils.Database, project_id: int, name: str, payload: models.ClassUpdate
-) -> dict[str, Any]:
+) -> ProjectRow:
     project = crud.require_project(db, project_id)
-    classes = [dict(c) for c in project["schema"]["classes"]]
+    classes = [dict(c) for c in project.schema["classes"]]
     i = _class_position(classes, name, project_id)
     changes = payload.model_dump(exclude_unset=True, exclude={"position"})
     for key, value in changes.items():
@@ -654,9 +627,9 @@ def update_class(
     return save_classes(db, project_id, classes)
 
 
-def delete_class(db: sqlite_utils.Database, project_id: int, name: str) -> dict[str, Any]:
+def delete_class(db: sqlite_utils.Database, project_id: int, name: str) -> ProjectRow:
     project = crud.require_project(db, project_id)
-    classes = list(project["schema"]["classes"])
+    classes = list(project.schema["classes"])
     i = _class_position(classes, name, project_id)
     if len(classes) == 1:
         raise Conflict("A project needs at least one class; add another before removing this one")
@@ -664,30 +637,28 @@ def delete_class(db: sqlite_utils.Database, project_id: int, name: str) -> dict[
     return save_classes(db, project_id, classes)
 
 
-def replace_classes(
-    db: sqlite_utils.Database, project_id: int, payload: models.SchemaReplace
-) -> dict[str, Any]:
+def replace_classes(db: sqlite_utils.Database, project_id: int, payload: models.SchemaReplace) -> ProjectRow:
     return save_classes(db, project_id, [c.model_dump() for c in payload.classes])
 
 
-def set_prompts(db: sqlite_utils.Database, project_id: int, name: str, prompts: list[str]) -> dict[str, Any]:
+def set_prompts(db: sqlite_utils.Database, project_id: int, name: str, prompts: list[str]) -> ProjectRow:
     project = crud.require_project(db, project_id)
-    classes = [dict(c) for c in project["schema"]["classes"]]
+    classes = [dict(c) for c in project.schema["classes"]]
     i = _class_position(classes, name, project_id)
     classes[i]["prompts"] = prompts
     return save_classes(db, project_id, classes)
 
 
-def add_prompt(db: sqlite_utils.Database, project_id: int, name: str, prompt: str) -> dict[str, Any]:
+def add_prompt(db: sqlite_utils.Database, project_id: int, name: str, prompt: str) -> ProjectRow:
     project = crud.require_project(db, project_id)
-    classes = project["schema"]["classes"]
+    classes = project.schema["classes"]
     i = _class_position(classes, name, project_id)
     return set_prompts(db, project_id, name, [*classes[i]["prompts"], prompt.strip()])
 
 
-def delete_prompt(db: sqlite_utils.Database, project_id: int, name: str, index: int) -> dict[str, Any]:
+def delete_prompt(db: sqlite_utils.Database, project_id: int, name: str, index: int) -> ProjectRow:
     project = crud.require_project(db, project_id)
-    classes = project["schema"]["classes"]
+    classes = project.schema["classes"]
     prompts = list(classes[_class_position(classes, name, project_id)]["prompts"])
     if not 0 <= index < len(prompts):
         raise NotFound(f"Prompt {index} not found in class {name!r}")
@@ -698,17 +669,17 @@ def delete_prompt(db: sqlite_utils.Database, project_id: int, name: str, index: 
 
 
 # ------------------------------------------------------------------------------------------------- runs
-def run_progress(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunProgress:
-    if live is not None and live["status"] == run["status"]:
+def run_progress(run: RunRow, live: dict[str, Any] | None) -> models.RunProgress:
+    if live is not None and live["status"] == run.status:
         return models.RunProgress(**live)
     tracker = ProgressTracker.from_record(
-        run["id"],
-        run["project_id"],
-        run["status"],
-        run.get("stages"),
-        run["params"].get("stages") or [],
-        error=run["error"],
-        stamp=run["finished_at"] or run["started_at"] or run["created_at"],
+        run.id,
+        run.project_id,
+        run.status,
+        run.stages,
+        run.params.stages,
+        error=run.error,
+        stamp=run.finished_at or run.started_at or run.created_at,
     )
     return models.RunProgress(**tracker.snapshot())
 
@@ -725,10 +696,13 @@ def metrics_summary(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
 
 
 def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The parts of ``metrics.json`` the UI shows (confusion matrices dropped).
+    """The parts of a run's or a sequence's metrics the UI shows (confusion matrices dropped).
 
-    ``metrics.json`` (leap_core.pipeline's evaluate stage) holds ``protocols`` ({name: description}),
-    ``rows`` (ordered row names: point, voxel, +3D-CN xN) and, per protocol, ``{row: Metrics.to_dict()}``.
+    A run's metrics (``<run>/metrics.json``) are ``{"overall": ..., "sequences": {name: ...}}``; its
+    ``overall`` (the sequences' confusion matrices summed) and each sequence's entry have the layout of a
+    sequence's ``metrics.json`` (leap_core.pipeline's evaluate stage): ``protocols`` ({name:
+    description}), ``rows`` (ordered row names: point, voxel, +3D-CN xN) and, per protocol,
+    ``{row: Metrics.to_dict()}``. Either may be given.
 
     Returns:
         ``{"protocols": {protocol: {row: {miou, category_miou, labeled_share, iou: {class: v}, ...}}},
@@ -737,8 +711,8 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
         categories, merge: {class: [schema classes]}}}); ``notes`` ({protocol: text}) says why a protocol
         is absent.
     """
-    if metrics and isinstance(metrics.get("overall"), dict) and "protocols" not in metrics:
-        metrics = metrics["overall"]  # a multi-sequence run's metrics: the summed confusion matrices
+    if metrics and isinstance(metrics.get("overall"), dict):
+        metrics = metrics["overall"]
     if not metrics or not isinstance(metrics.get("protocols"), dict):
         return None
     rows = list(metrics.get("rows") or [])
@@ -773,73 +747,51 @@ def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
-def metrics_sequences(run: dict[str, Any]) -> list[str]:
-    """The sequences with metrics of their own in a multi-sequence run (in run order: the stored JSON's
-    keys are sorted); empty for a single-sequence run."""
-    metrics = run.get("metrics")
-    listed = run_sequences_of(run["params"])
-    if listed is None or not metrics or not isinstance(metrics.get("sequences"), dict):
+def metrics_sequences(run: RunRow) -> list[str]:
+    """The run's sequences with metrics of their own, in run order (the stored JSON's keys are sorted)."""
+    per = (run.metrics or {}).get("sequences")
+    if not isinstance(per, dict):
         return []
-    return [name for name, _ in listed if isinstance(metrics["sequences"].get(name), dict)]
+    return [name for name in run.params.names if isinstance(per.get(name), dict)]
 
 
-def sequence_metrics(
-    run: dict[str, Any], sequence: str | None, project_sequences: list[str]
-) -> dict[str, Any] | None:
+def sequence_metrics(run: RunRow, sequence: str | None) -> dict[str, Any] | None:
     """The metrics table (:func:`normalise_metrics`) of one sequence of the run, or, with ``sequence``
-    None, the run's own (a multi-sequence run's: overall). A single-sequence run's one sequence is the
-    first of ``project_sequences`` (the project's sequences it labeled,
-    :func:`app.jobs.multi.covered_sequences`).
+    None, the run's own (the sequences' confusion matrices summed).
 
     Raises:
         InvalidField: ``sequence`` is not one of the run's sequences (``[query, sequence]``).
     """
-    metrics = run.get("metrics")
     if sequence is None:
-        return normalise_metrics(metrics)
-    listed = run_sequences_of(run["params"])
-    if listed is None:
-        if sequence not in project_sequences[:1]:
-            raise InvalidField(["query", "sequence"], f"run {run['id']} has one sequence, not {sequence!r}")
-        return normalise_metrics(metrics)
-    names = [n for n, _ in listed]
+        return normalise_metrics(run.metrics)
+    names = run.params.names
     if sequence not in names:
         raise InvalidField(
-            ["query", "sequence"], f"run {run['id']} has no sequence {sequence!r} (it has {', '.join(names)})"
+            ["query", "sequence"], f"run {run.id} has no sequence {sequence!r} (it has {', '.join(names)})"
         )
-    per = (metrics or {}).get("sequences") or {}
+    per = (run.metrics or {}).get("sequences") or {}
     return normalise_metrics(per.get(sequence))
 
 
-def _sequence_names(run: dict[str, Any]) -> list[str | None]:
-    """The run's sequences (``[None]``: a single-sequence run's one)."""
-    listed = run_sequences_of(run["params"])
-    return [None] if listed is None else [n for n, _ in listed]
-
-
-def run_public(run: dict[str, Any], live: dict[str, Any] | None) -> models.RunPublic:
-    run_dir = Path(run["run_dir"])
+def run_public(run: RunRow, live: dict[str, Any] | None) -> models.RunPublic:
     return models.RunPublic(
-        id=run["id"],
-        project_id=run["project_id"],
-        number=run["number"],
-        status=run["status"],
-        created_at=run["created_at"],
-        started_at=run["started_at"],
-        finished_at=run["finished_at"],
-        attempts=run["attempts"],
-        error=run["error"],
-        params={k: v for k, v in run["params"].items() if k != "stages"},
+        id=run.id,
+        project_id=run.project_id,
+        number=run.number,
+        status=run.status,
+        created_at=run.created_at,
+        started_at=run.started_at,
+        finished_at=run.finished_at,
+        attempts=run.attempts,
+        error=run.error,
+        params=run.params.public(),
         progress=run_progress(run, live),
-        has_metrics=run.get("metrics") is not None,
-        has_export=run["status"] == "done"
-        and all(
-            RunLayout(sequence_run_dir(run_dir, run["params"], name)).export_dir.is_dir()
-            for name in _sequence_names(run)
-        ),
-        resumable=run["status"] in models.RESUMABLE_STATUSES,
-        summary=metrics_summary(run.get("metrics")),
-        note=run.get("note"),
+        has_metrics=run.metrics is not None,
+        has_export=run.status == "done"
+        and all(run.sequence_layout(name).export_dir.is_dir() for name in run.params.names),
+        resumable=run.status in models.RESUMABLE_STATUSES,
+        summary=metrics_summary(run.metrics),
+        note=run.note,
     )
 
 
@@ -859,13 +811,13 @@ def _labels_signature(labels: Path) -> tuple[int, int]:
     return newest, count
 
 
-def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
+def raw_ids_public(project: ProjectRow) -> models.RawIdsPublic:
     """The raw ids in the project dataset's labels with their names and the classes mapping them.
 
     The scan (:func:`leap_core.datasets.raw_ids.scan_raw_ids`, at most 200 evenly spaced files) is cached
     per labels folder until a file in it changes.
     """
-    folder = Path(project["dataset_path"])
+    folder = Path(project.dataset_path)
     labels = folder / "labels"
     names = raw_id_names()
     if not labels.is_dir():
@@ -890,7 +842,7 @@ def raw_ids_public(project: dict[str, Any]) -> models.RawIdsPublic:
             _RAW_ID_CACHE[key] = cached
     counts, read, total = cached
     users: dict[int, list[str]] = {}
-    for c in project["schema"]["classes"]:
+    for c in project.schema["classes"]:
         for g in c.get("gt_ids", []):
             users.setdefault(int(g), []).append(c["name"])
     data = [

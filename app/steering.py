@@ -20,13 +20,13 @@ from app import crud, models
 from app.core.config import Settings
 from app.core.errors import InvalidField
 from app.jobs.manager import run_corrections, seed_source
-from app.jobs.multi import run_sequences_of, sequence_run_dir, snapshot_sequences
+from app.rows import ProjectRow, RunParams, RunSequence
 from app.services import normalise_metrics, project_config, stale_results
 from leap_core.errors import LeapError
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
 from leap_core.pipeline.steering import Change, StagePlan, changed_sections, recompute_plan, run_changes
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -38,16 +38,15 @@ def _change_public(change: Change) -> models.ChangePublic:
     )
 
 
-def project_snapshot(project: dict[str, Any]) -> dict[str, Any]:
-    """The inputs a new run of all frames would snapshot (the parts :func:`run_changes` compares)."""
-    snapshot = {
-        "dataset": project["dataset_path"],
-        "frames": None,
-        "schema": project["schema"],
-        "pipeline": project["pipeline"],
-    }
-    sequences = snapshot_sequences(project.get("sequences") or [])
-    return snapshot if sequences is None else {**snapshot, "sequences": sequences}
+def project_snapshot(project: ProjectRow) -> RunParams:
+    """The inputs a new run of all frames would snapshot (what :func:`run_changes` compares; no stages)."""
+    return RunParams(
+        sequences=tuple(RunSequence(s.name, Path(s.dataset_path)) for s in project.sequences),
+        dataset_kind=project.dataset_kind,
+        schema=project.schema,
+        pipeline=project.pipeline,
+        estimate_poses=project.estimate_poses,
+    )
 
 
 def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) -> models.RunPreview:
@@ -57,8 +56,12 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     project = crud.require_project(db, project_id)
     snapshot = project_snapshot(project)
     base = seed_source(db, project_id, snapshot)
-    changes = [] if base is None else [_change_public(c) for c in run_changes(base["params"], snapshot)]
-    basis = None if base is None else models.RunBasis(id=base["id"], number=base["number"])
+    changes = (
+        []
+        if base is None
+        else [_change_public(c) for c in run_changes(base.params.to_dict(), snapshot.to_dict())]
+    )
+    basis = None if base is None else models.RunBasis(id=base.id, number=base.number)
     # A run of other sequences seeds nothing (seed_source): say why instead of "no earlier run".
     stale = None if base is not None else stale_results(project, crud.list_runs(db, project_id))
 
@@ -76,15 +79,10 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
             stale=stale,
         )
 
-    # Per sequence (one for a single-sequence project): its dataset, the base run's folder of it.
-    listed = run_sequences_of(snapshot)
-    targets = [(None, Path(project["dataset_path"]))] if listed is None else listed
-    if not all((dataset / "velodyne").is_dir() for _, dataset in targets):
+    if not all((s.dataset / "velodyne").is_dir() for s in snapshot.sequences):
         return everything("the dataset does not exist yet")
     config = project_config(project)
-    sections = (
-        [] if base is None else changed_sections(base["params"].get("pipeline") or {}, project["pipeline"])
-    )
+    sections = [] if base is None else changed_sections(base.params.pipeline, project.pipeline)
     kinds = {
         "class": "the classes or prompts changed",
         "dataset": "the dataset changed",
@@ -93,22 +91,19 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
     per_sequence = []
     try:
-        schema = Schema.from_dict(project["schema"], source="classes")
+        schema = Schema.from_dict(project.schema, source="classes")
         runtime = Runtime(models_dir=settings.models_dir, cache_dir=settings.cache_dir / f"p{project_id}")
         settings.work_dir.mkdir(parents=True, exist_ok=True)
-        for name, dataset in targets:
+        for seq in snapshot.sequences:
+            name, dataset = seq.name, seq.dataset
             with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
                 corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
-                lay = RunLayout(Path(tmp))
+                lay = SequenceLayout(Path(tmp))
                 run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
-                base_lay = (
-                    None
-                    if base is None
-                    else RunLayout(sequence_run_dir(Path(base["run_dir"]), base["params"], name))
-                )
-                if base_lay is not None and name is not None and base_lay.joint_3dcn.is_file():
-                    # A sequence's 3D-CN fingerprint covers the joint round it took; a change anywhere
-                    # that reruns the joint round shows up as another sequence's recompute (merged below).
+                base_lay = None if base is None else base.sequence_layout(name)
+                if base_lay is not None and base_lay.joint_3dcn.is_file():
+                    # A sequence's 3D-CN fingerprint covers the round it took; a change anywhere that
+                    # reruns the rounds shows up as another sequence's recompute (merged below).
                     shutil.copyfile(base_lay.joint_3dcn, lay.joint_3dcn)
                 fps = stage_fingerprints(dataset, schema, config, Path(tmp), runtime=runtime)
             previous = None if base_lay is None else read_state(base_lay)
@@ -140,7 +135,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     )
 
 
-def _merged_plans(per_sequence: list[tuple[str | None, list[StagePlan]]]) -> list[StagePlan]:
+def _merged_plans(per_sequence: list[tuple[str, list[StagePlan]]]) -> list[StagePlan]:
     """One plan per stage over every sequence: a stage any sequence recomputes is recomputed (the reason
     names the first such sequence); else the first sequence's plan."""
     if len(per_sequence) == 1:
@@ -169,14 +164,14 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
     (classes matched by name: a class only one run has gets a null delta), and the input changes."""
     run = crud.require_run(db, run_id)
     base = crud.require_run(db, base_id)
-    if run["project_id"] != base["project_id"]:
+    if run.project_id != base.project_id:
         raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
-    changes = [_change_public(c) for c in run_changes(base["params"], run["params"])]
+    changes = [_change_public(c) for c in run_changes(base.params.to_dict(), run.params.to_dict())]
     rows: list[models.RowDelta] = []
-    ma, mb = normalise_metrics(run.get("metrics")), normalise_metrics(base.get("metrics"))
+    ma, mb = normalise_metrics(run.metrics), normalise_metrics(base.metrics)
     if ma is not None and mb is not None:
-        names = [c["name"] for c in run["params"]["schema"]["classes"]]
-        names += [c["name"] for c in base["params"]["schema"]["classes"] if c["name"] not in names]
+        names = [c["name"] for c in run.params.schema["classes"]]
+        names += [c["name"] for c in base.params.schema["classes"] if c["name"] not in names]
         for protocol, table in ma["protocols"].items():
             other = mb["protocols"].get(protocol, {})
             for row, values in table.items():

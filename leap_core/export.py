@@ -5,7 +5,7 @@ that reads them, and the rules for where an export may be written.
 instance 0 in the high 16, and 0 ("unlabeled") for points without a label.
 ``.conf``: float32 per point, the label's posterior probability, 0 where unlabeled.
 Both are raw little-endian arrays in scan order, written atomically (temp file + rename). A run writes them
-as ``export/<frame_id>.label`` / ``.conf`` (:class:`~leap_core.run_layout.RunLayout`).
+as ``export/<frame_id>.label`` / ``.conf`` (:class:`~leap_core.run_layout.SequenceLayout`).
 
 A stand-alone export (zip) holds them in the SemanticKITTI folder layout (:func:`zip_member`) beside a
 label-map YAML in the style of PRBonn/semantic-kitti-api's ``config/semantic-kitti.yaml``
@@ -15,6 +15,7 @@ label-map YAML in the style of PRBonn/semantic-kitti-api's ``config/semantic-kit
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import uuid
@@ -31,7 +32,7 @@ import yaml
 from leap_core.datasets.kitti import write_label
 from leap_core.errors import DatasetError, LeapError
 from leap_core.io_utils import atomic_write, atomic_write_bytes
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.schema import Schema
 from leap_core.types import UNLABELED
 
@@ -106,7 +107,7 @@ def read_confidence(path: str | Path, num_points: int | None = None) -> npt.NDAr
 
 # ------------------------------------------------------------------------------------- label map
 def label_map(
-    schema: Schema, counts: Mapping[int, int] | None = None, *, name: str = "", sequence: str | None = None
+    schema: Schema, counts: Mapping[int, int] | None = None, *, name: str = "", sequences: Sequence[str] = ()
 ) -> dict[str, Any]:
     """The label map of an export, as semantic-kitti-api's ``config/semantic-kitti.yaml`` lays one out.
 
@@ -123,14 +124,15 @@ def label_map(
       maps to the class it is the export id of, because that is what the ``.label`` files mean.
     - ``learning_map_inv``: learning id → export id (0 → 0).
     - ``learning_ignore``: learning id → ignored in evaluation (only 0).
-    - ``split``: ``{train: [], valid: [<sequence>], test: []}`` when ``sequence`` is a number (``"00"``), so
-      semantic-kitti-api's ``evaluate_semantics.py --split valid`` finds the exported sequence.
+    - ``split``: ``{train: [], valid: [<sequence>, ...], test: []}`` listing the exported sequences whose
+      names are numbers (``"00"``), so semantic-kitti-api's ``evaluate_semantics.py --split valid`` finds
+      them.
 
     Args:
         schema: the run's classes.
         counts: raw id → points in the export (ids absent from it count 0).
         name: written as ``name`` (semantic-kitti-api's files carry one too).
-        sequence: the exported sequence's folder name.
+        sequences: the exported sequences' names.
     """
     ids = [int(c.export_id) for c in schema.classes]
     labels: dict[int, str] = {0: "unlabeled"}
@@ -152,8 +154,9 @@ def label_map(
     out["learning_map"] = dict(sorted(learning.items()))
     out["learning_map_inv"] = {0: 0, **{k + 1: ids[k] for k in range(len(ids))}}
     out["learning_ignore"] = {0: True, **{k + 1: False for k in range(len(ids))}}
-    if sequence is not None and sequence.isdigit():
-        out["split"] = {"train": [], "valid": [int(sequence)], "test": []}
+    numbered = [int(n) for n in sequences if n.isdigit()]
+    if numbered:
+        out["split"] = {"train": [], "valid": numbered, "test": []}
     return out
 
 
@@ -253,50 +256,112 @@ def zip_member(sequence: str, frame_id: str, suffix: str) -> str:
     return f"sequences/{sequence}/{folder}/{frame_id}{suffix}"
 
 
+@dataclass(frozen=True)
+class ExportedSequence:
+    """One sequence of a run's export: its name, its export folder and where its scans came from."""
+
+    name: str
+    """The sequence's name in the run (``sequences/<name>/`` in every export layout)."""
+    export_dir: Path
+    """Its ``.label`` / ``.conf`` files (``<run>/sequences/<name>/export``)."""
+    dataset: Path | None = None
+    """The dataset folder it labeled (None when unknown)."""
+    frames: range | None = None
+    """The frame numbers it labeled (None = all)."""
+
+    def files(self, with_confidence: bool) -> list[Path]:
+        """Its ``.label`` files (and ``.conf`` files), in name order."""
+        suffixes = EXPORT_SUFFIXES if with_confidence else (".label",)
+        return sorted(p for p in self.export_dir.iterdir() if p.suffix in suffixes and p.is_file())
+
+
+def run_export(out: Path, names: Sequence[str] | None = None) -> list[ExportedSequence]:
+    """The exported sequences of the run folder ``out`` (``names``, default all, in run order), read from
+    its ``run.json``.
+
+    Raises:
+        LeapError: ``out`` is not a run folder, or a sequence has no exported ``.label`` files.
+    """
+    layout = RunLayout(Path(out))
+    if not RunLayout.is_run(layout.root):
+        raise LeapError(f"{layout.root}: not a run folder (no {RunLayout.SPEC})")
+    listed = {str(e["name"]): e for e in _read_spec(layout)}
+    chosen = layout.names() if names is None else list(names)
+    out_list = []
+    for name in chosen:
+        export = layout.sequence(name).export_dir
+        if not export.is_dir() or not any(export.glob("*.label")):
+            raise LeapError(f"{export}: sequence {name} has no exported .label files (run it to the end)")
+        entry = listed.get(name, {})
+        dataset, frames = entry.get("dataset"), entry.get("frames")
+        out_list.append(
+            ExportedSequence(
+                name,
+                export,
+                None if dataset is None else Path(dataset),
+                None if frames is None else range(int(frames[0]), int(frames[1])),
+            )
+        )
+    return out_list
+
+
+def _read_spec(layout: RunLayout) -> list[dict[str, Any]]:
+    try:
+        data = json.loads(layout.spec.read_text())
+        entries = list(data["sequences"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(layout.spec, f"unreadable run record ({exc})") from exc
+    return [e for e in entries if isinstance(e, dict)]
+
+
 def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
     *,
-    project: Mapping[str, Any],
-    run: Mapping[str, Any],
-    dataset: Path,
-    frames: range | None,
+    sequences: Sequence[ExportedSequence],
     schema: Schema,
     pipeline: Mapping[str, Any],
     counts: Mapping[str, Any],
     with_confidence: bool,
     version: str,
     written_at: str,
+    project: Mapping[str, Any] | None = None,
+    run: Mapping[str, Any] | None = None,
 ) -> str:
-    """An export's ``summary.yaml``: which project and run, the dataset and frames, where the files are, the
-    point counts and the run's full settings (``pipeline``: :func:`~leap_core.config.config_to_dict`).
+    """An export's ``summary.yaml``: which project and run, each sequence's dataset and frames, where the
+    files are, the point counts and the run's full settings (``pipeline``:
+    :func:`~leap_core.config.config_to_dict`).
 
-    ``counts`` holds ``scans``, ``points``, ``labeled``, ``unlabeled``, ``unlabeled_by_reason`` and
-    ``raw_counts`` (raw id → points); ``per_class`` (class name → points) is derived here.
+    ``counts`` (summed over the sequences) holds ``scans``, ``points``, ``labeled``, ``unlabeled``,
+    ``unlabeled_by_reason`` and ``raw_counts`` (raw id → points); ``per_class`` (class name → points) is
+    derived here.
     """
     raw = {int(k): int(v) for k, v in counts["raw_counts"].items()}
-    seq = dataset.name
-    summary = {
-        "project": dict(project),
-        "run": dict(run),
-        "dataset": {
-            "path": str(dataset),
-            "sequence": seq,
-            "frames": "all" if frames is None else [frames.start, frames.stop],
-        },
-        "files": {
-            "labels": f"sequences/{seq}/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 above)",
-            "confidences": (
-                f"sequences/{seq}/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence else None
-            ),
-            "label_map": LABEL_MAP_FILE,
-        },
-        "counts": {
-            **{k: counts[k] for k in ("scans", "points", "labeled", "unlabeled", "unlabeled_by_reason")},
-            "per_class": {c.name: raw.get(int(c.export_id), 0) for c in schema.classes},
-        },
-        "settings": {"schema": schema.name, "pipeline": dict(pipeline)},
-        "leap_studio_version": version,
-        "written_at": written_at,
+    summary: dict[str, Any] = {}
+    if project is not None:
+        summary["project"] = dict(project)
+    if run is not None:
+        summary["run"] = dict(run)
+    summary["sequences"] = [
+        {
+            "name": s.name,
+            "dataset": None if s.dataset is None else str(s.dataset),
+            "frames": "all" if s.frames is None else [s.frames.start, s.frames.stop],
+        }
+        for s in sequences
+    ]
+    summary["files"] = {
+        "labels": f"sequences/<name>/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 above)",
+        "confidences": (
+            f"sequences/<name>/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence else None
+        ),
+        "label_map": LABEL_MAP_FILE,
     }
+    summary["counts"] = {
+        **{k: counts[k] for k in ("scans", "points", "labeled", "unlabeled", "unlabeled_by_reason")},
+        "per_class": {c.name: raw.get(int(c.export_id), 0) for c in schema.classes},
+    }
+    summary["settings"] = {"schema": schema.name, "pipeline": dict(pipeline)}
+    summary["leap_studio_version"] = version
+    summary["written_at"] = written_at
     return "# LeAP Studio export summary (README, 'Exports').\n" + yaml.safe_dump(
         summary, sort_keys=False, allow_unicode=True
     )
@@ -304,14 +369,13 @@ def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
 
 def write_export_zip(
     path: Path,
-    export_dir: Path,
-    sequence: str,
+    sequences: Sequence[ExportedSequence],
     extra: Mapping[str, str],
     *,
     include_confidence: bool,
     overwrite: bool = False,
 ) -> int:
-    """Write a stand-alone export zip atomically: each ``.label`` (and ``.conf``) file of ``export_dir`` at
+    """Write a stand-alone export zip atomically: each sequence's ``.label`` (and ``.conf``) files at
     :func:`zip_member`, plus ``extra`` (zip name → text, e.g. the label map and summary).
 
     Returns:
@@ -324,17 +388,18 @@ def write_export_zip(
         raise ExportConflict(
             f"{path} already exists; nothing was written. Export again with overwrite to replace it", 1
         )
-    suffixes = EXPORT_SUFFIXES if include_confidence else (".label",)
-    files = sorted(p for p in export_dir.iterdir() if p.suffix in suffixes and p.is_file())
+    n = 0
     with (
         atomic_write(path, "wb") as fh,
         zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, compresslevel=6) as zf,
     ):
-        for f in files:
-            zf.write(f, zip_member(sequence, f.stem, f.suffix))
+        for seq in sequences:
+            for f in seq.files(include_confidence):
+                zf.write(f, zip_member(seq.name, f.stem, f.suffix))
+                n += 1
         for name, text in extra.items():
             zf.writestr(name, text)
-    return len(files)
+    return n
 
 
 # ------------------------------------------------------------------------------- where exports go
@@ -358,7 +423,7 @@ def export_target_problem(target: Path) -> str | None:
     for folder in (target, *target.parents):
         if folder.name in DATASET_INPUT_FOLDERS and (folder.parent / "velodyne").is_dir():
             return f"{target} is inside the dataset folder {folder} (its input data or ground truth)"
-        if (folder / RunLayout.STATE).is_file():
+        if (folder / SequenceLayout.STATE).is_file() or (folder / RunLayout.SPEC).is_file():
             return f"{target} is inside the pipeline run folder {folder}"
     return None
 
@@ -436,6 +501,72 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
     return len(old)
 
 
+def export_targets(
+    target_dir: Path, names: Sequence[str], *, with_conf: bool = False
+) -> dict[str, list[Path]]:
+    """Per sequence, the folders of an export into ``target_dir`` in the layout SemanticKITTI tools read:
+    ``target_dir/sequences/<name>/predictions`` (and ``confidences``; for :func:`write_run_export`)."""
+    out: dict[str, list[Path]] = {}
+    for name in names:
+        base = Path(target_dir) / "sequences" / name
+        out[name] = [base / PREDICTIONS, *([base / CONFIDENCES] if with_conf else [])]
+    return out
+
+
+def check_export_targets(targets: Mapping[str, Sequence[Path]], *, overwrite: bool = False) -> None:
+    """Refuse, before writing anything, export folders (sequence name → its folders, as
+    :func:`export_targets` gives them) that may not receive an export (:func:`export_target_problem`: a
+    dataset's input folders, a run folder) or already hold files while ``overwrite`` is off.
+
+    Raises:
+        LeapError: naming the folder refused.
+        ExportConflict: a folder holds files and ``overwrite`` is off.
+    """
+    for folders in targets.values():
+        for folder in folders:
+            problem = export_target_problem(Path(folder).expanduser().resolve())
+            if problem is not None:
+                raise LeapError(problem)
+            old = existing_export_files(folder)
+            if old and not overwrite:
+                raise ExportConflict(
+                    f"{folder} already holds {len(old)} files (e.g. {old[0]}); nothing was written. "
+                    "Export again with overwrite to replace them",
+                    len(old),
+                )
+
+
+def write_run_export(
+    targets: Mapping[str, Sequence[Path]],
+    sequences: Sequence[ExportedSequence],
+    *,
+    with_conf: bool = False,
+    overwrite: bool = False,
+) -> dict[str, int]:
+    """Copy each sequence's ``.label`` files into the first of its ``targets`` folders (and its ``.conf``
+    files into the second, with ``with_conf``): ``<dir>/sequences/<name>/predictions/`` for the folders of
+    :func:`export_targets`. Each folder is written by :func:`write_export_folder` (a fresh folder renamed
+    into place); every folder is checked before anything is written (:func:`check_export_targets`).
+
+    Returns:
+        Sequence name → files written.
+
+    Raises:
+        LeapError: a target is a dataset's input folder or a run folder.
+        ExportConflict: a target holds files and ``overwrite`` is off (nothing is written).
+    """
+    check_export_targets(targets, overwrite=overwrite)
+    written: dict[str, int] = {}
+    for seq in sequences:
+        n = 0
+        for folder, suffix in zip(targets[seq.name], EXPORT_SUFFIXES, strict=False):
+            files = [f for f in seq.files(with_conf) if f.suffix == suffix]
+            write_export_folder(Path(folder), files, overwrite=overwrite)
+            n += len(files)
+        written[seq.name] = n
+    return written
+
+
 __all__ = [
     "CONFIDENCES",
     "DATASET_INPUT_FOLDERS",
@@ -444,18 +575,23 @@ __all__ = [
     "PREDICTIONS",
     "SUMMARY_FILE",
     "ExportConflict",
+    "ExportedSequence",
     "LabelMap",
+    "check_export_targets",
     "existing_export_files",
     "export_labels",
     "export_target_problem",
+    "export_targets",
     "label_map",
     "label_map_yaml",
     "labels_to_raw",
     "load_label_map",
     "raw_id_counts",
     "read_confidence",
+    "run_export",
     "summary_yaml",
     "write_export_folder",
     "write_export_zip",
+    "write_run_export",
     "zip_member",
 ]

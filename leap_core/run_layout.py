@@ -1,9 +1,23 @@
 """Every path of a run folder, in one place: the pipeline writes and the app, the viewer and the exports read
-through :class:`RunLayout`, so no other module spells a run-folder file name.
+through :class:`RunLayout` and :class:`SequenceLayout`, so no other module spells a run-folder file name.
 
-::
+A run labels a list of sequences (often one) with one class schema and one config. Its folder::
 
-    <run_dir>/
+    <root>/
+      run.json                    the run's sequences: name, dataset folder, frames (in run order)
+      metrics.json                {"overall": metrics of the summed confusion matrices, "sequences": {...}}
+      sequences/<name>/           one sequence's folder (below)
+      3dcn/3dcn_iter{i}.pt        the 3D-CN's checkpoints (one network per round, trained on every sequence)
+      3dcn/joint.json             the fingerprint the staged rounds below belong to (and ray_tasks: the
+                                  inference tasks of the last rounds computed on Ray)
+      3dcn/rounds/<name>/grid_3dcn{i}.npz, grid_smooth_3dcn{i}.npz
+                                  round i's grids of each sequence, hard-linked into sequences/<name>/
+      params.json, run.log, .lock, export.zip, export-conf.zip
+                                  the app's files of this run
+
+One sequence's folder::
+
+    <root>/sequences/<name>/
       stages.json                 stage records (status, fingerprint, seconds, ...)
       labels2d/<frame_id>.npz     the 2D labeler's SoftMasks per frame
       observations/<frame_id>.npz projection + painting per frame
@@ -14,40 +28,28 @@ through :class:`RunLayout`, so no other module spells a run-folder file name.
       grid_smooth.npz             SmoothedGrid (keys, probs float16, voxel_size) after kNN smoothing
       grid_3dcn{i}.npz            3D-CN round i: fused grid + network evidence
       grid_smooth_3dcn{i}.npz     ... smoothed (the final grid when the 3D-CN is on)
-      3dcn/3dcn_iter{i}.pt        3D-CN checkpoints
+      3dcn_joint.json             with the 3D-CN on: the round its 3D-CN grids come from (its digest is part
+                                  of the 3dcn stage's fingerprint)
       points/<frame_id>.npz       label, conf, point_label per point
       metrics.json                result tables
       export/<frame_id>.label     raw export ids, instance 0
       export/<frame_id>.conf      float32 per-point confidence
-      params.json, run.log, .lock, export.zip, export-conf.zip, export-coverage.json
-                                  the app's files of this run
+      export-coverage.json        the export's point counts (labeled, unlabeled by reason, per raw id)
       applied_corrections.npz, applied_corrections_scan.npz, frame_voxels.npz
                                   the app's "apply corrections" job: the corrections the points and export
                                   now carry, and the voxel → frames index (leap_core.pipeline.apply)
       poses/poses.txt, poses/poses_estimated.json
-                                  estimated poses (KISS-ICP) the run uses because its dataset has none
-      3dcn_joint.json             only in a sequence of a multi-sequence run with the 3D-CN on: the joint
-                                  3D-CN round it takes its 3D-CN grids from (its digest is part of the
-                                  3dcn stage's fingerprint)
+                                  estimated poses (KISS-ICP) the sequence uses because its dataset has none
 
-A multi-sequence run (:class:`MultiRunLayout`, ``leap_core.pipeline.multi``) holds one such run folder per
-sequence::
-
-    <root>/
-      multi.json                  the run's sequences: name, dataset folder, frames (in run order)
-      metrics.json                {"overall": metrics of the summed confusion matrices, "sequences": {...}}
-      sequences/<name>/           a complete run folder (above) per sequence
-      3dcn/3dcn_iter{i}.pt        the joint 3D-CN's checkpoints (one network per round, all sequences)
-      3dcn/joint.json             the fingerprint the staged rounds below belong to (and ray_tasks: the
-                                  inference tasks of the last rounds computed on Ray)
-      3dcn/rounds/<name>/grid_3dcn{i}.npz, grid_smooth_3dcn{i}.npz
-                                  round i's grids of each sequence, hard-linked into sequences/<name>/
+Folders written before runs had this one shape (a single sequence's files directly in the run folder, or
+``multi.json`` instead of ``run.json``) are moved into it by :func:`migrate_run_folder`.
 """
 
 from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Protocol
@@ -57,7 +59,7 @@ import numpy.typing as npt
 
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import DatasetError, LeapError
-from leap_core.io_utils import atomic_save_npz
+from leap_core.io_utils import atomic_save_npz, atomic_write_json
 
 
 class ConsistencySwitch(Protocol):
@@ -74,18 +76,18 @@ _CN_GRID = re.compile(r"grid(_smooth)?_3dcn(\d+)\.npz")
 
 
 @dataclass(frozen=True)
-class RunLayout:
-    """The paths of one run folder (nothing is created or read here, except :meth:`final_grid_on_disk`)."""
+class SequenceLayout:
+    """The paths of one sequence's folder in a run (nothing is created or read here, except
+    :meth:`final_grid_on_disk`)."""
 
-    run_dir: Path
-    """The run folder."""
+    folder: Path
+    """The sequence's folder (``<run>/sequences/<name>``)."""
 
     STATE: ClassVar[str] = "stages.json"
     LABELS2D: ClassVar[str] = "labels2d"
     OBSERVATIONS: ClassVar[str] = "observations"
     POINTS: ClassVar[str] = "points"
     EXPORT: ClassVar[str] = "export"
-    CN_DIR: ClassVar[str] = "3dcn"
     GRID: ClassVar[str] = "grid.npz"
     GRID_SMOOTH: ClassVar[str] = "grid_smooth.npz"
     METRICS: ClassVar[str] = "metrics.json"
@@ -94,37 +96,27 @@ class RunLayout:
     APPLIED_CORRECTIONS: ClassVar[str] = "applied_corrections.npz"
     APPLIED_CORRECTIONS_SCAN: ClassVar[str] = "applied_corrections_scan.npz"
     FRAME_VOXELS: ClassVar[str] = "frame_voxels.npz"
-    PARAMS: ClassVar[str] = "params.json"
-    LOG: ClassVar[str] = "run.log"
-    LOCK: ClassVar[str] = ".lock"
-    EXPORT_ZIP: ClassVar[str] = "export.zip"
-    EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
     EXPORT_COVERAGE: ClassVar[str] = "export-coverage.json"
     POSES_DIR: ClassVar[str] = "poses"
     JOINT_3DCN: ClassVar[str] = "3dcn_joint.json"
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset(
         {
-            PARAMS,
             CORRECTIONS,
             CORRECTIONS_SCAN,
-            LOG,
-            LOCK,
-            EXPORT_ZIP,
-            EXPORT_CONF_ZIP,
             EXPORT_COVERAGE,
             APPLIED_CORRECTIONS,
             APPLIED_CORRECTIONS_SCAN,
             FRAME_VOXELS,
         }
     )
-    """Top-level files that belong to one run only (never carried over into a later run's folder)."""
+    """Files of the folder that belong to one run only (never carried over into a later run's folder)."""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "run_dir", Path(self.run_dir))
+        object.__setattr__(self, "folder", Path(self.folder))
 
     # ------------------------------------------------------------------------------- whole-run files
     def _file(self, name: str) -> Path:
-        return self.run_dir / name
+        return self.folder / name
 
     @property
     def state(self) -> Path:
@@ -150,14 +142,9 @@ class RunLayout:
 
     def cn_grids(self) -> list[Path]:
         """Every 3D-CN grid file present, of any round (fused and smoothed)."""
-        if not self.run_dir.is_dir():
+        if not self.folder.is_dir():
             return []
-        return sorted(p for p in self.run_dir.iterdir() if _CN_GRID.fullmatch(p.name))
-
-    @property
-    def cn_dir(self) -> Path:
-        """Folder of the 3D-CN checkpoints."""
-        return self._file(self.CN_DIR)
+        return sorted(p for p in self.folder.iterdir() if _CN_GRID.fullmatch(p.name))
 
     @property
     def metrics(self) -> Path:
@@ -190,39 +177,20 @@ class RunLayout:
         return self._file(self.FRAME_VOXELS)
 
     @property
-    def params(self) -> Path:
-        """The app's parameter snapshot of the run."""
-        return self._file(self.PARAMS)
-
-    @property
-    def log(self) -> Path:
-        """The app worker's log of the run."""
-        return self._file(self.LOG)
-
-    @property
-    def lock(self) -> Path:
-        """The file the app worker holds ``flock`` on while it works in this folder."""
-        return self._file(self.LOCK)
-
-    def export_zip(self, with_confidence: bool = False) -> Path:
-        """The app's cached zip of the export (``.label`` files, plus ``.conf`` files if asked)."""
-        return self._file(self.EXPORT_CONF_ZIP if with_confidence else self.EXPORT_ZIP)
-
-    @property
     def export_coverage(self) -> Path:
-        """The app's cached point counts of the export (labeled, unlabeled by reason, per raw id)."""
+        """The export's cached point counts (labeled, unlabeled by reason, per raw id)."""
         return self._file(self.EXPORT_COVERAGE)
 
     @property
     def poses(self) -> Path:
         """Estimated poses (``poses/poses.txt``, the note beside it) for a dataset without its own, written
         by ``leap run --estimate-poses`` or the app's run of a project that estimates poses."""
-        return self.run_dir / self.POSES_DIR / "poses.txt"
+        return self.folder / self.POSES_DIR / "poses.txt"
 
     @property
     def joint_3dcn(self) -> Path:
-        """In a sequence of a multi-sequence run with the 3D-CN on: which joint 3D-CN round its 3D-CN
-        grids come from (:mod:`leap_core.pipeline.multi`); absent in an ordinary run."""
+        """With the 3D-CN on: which round of the run's 3D-CN its 3D-CN grids come from
+        (:mod:`leap_core.pipeline.run`)."""
         return self._file(self.JOINT_3DCN)
 
     def open_sequence(self, dataset: str | Path) -> KittiSequence:
@@ -234,13 +202,13 @@ class RunLayout:
         return KittiSequence(dataset)
 
     # ------------------------------------------------------------------------------- per-frame files
-    def folder(self, name: str) -> Path:
+    def frame_folder(self, name: str) -> Path:
         """A per-frame folder (:attr:`LABELS2D`, :attr:`OBSERVATIONS`, :attr:`POINTS`, :attr:`EXPORT`)."""
-        return self.run_dir / name
+        return self.folder / name
 
     def frame_file(self, folder: str, frame_id: str, suffix: str = ".npz") -> Path:
-        """``<run_dir>/<folder>/<frame_id><suffix>``."""
-        return self.run_dir / folder / f"{frame_id}{suffix}"
+        """``<folder>/<per-frame folder>/<frame_id><suffix>``."""
+        return self.folder / folder / f"{frame_id}{suffix}"
 
     def labels2d(self, frame_id: str) -> Path:
         return self.frame_file(self.LABELS2D, frame_id)
@@ -253,11 +221,11 @@ class RunLayout:
 
     @property
     def points_dir(self) -> Path:
-        return self.folder(self.POINTS)
+        return self.frame_folder(self.POINTS)
 
     @property
     def export_dir(self) -> Path:
-        return self.folder(self.EXPORT)
+        return self.frame_folder(self.EXPORT)
 
     def export_label(self, frame_id: str) -> Path:
         return self.frame_file(self.EXPORT, frame_id, ".label")
@@ -282,13 +250,13 @@ class RunLayout:
         return self.grid_smooth_3dcn(max(rounds)) if rounds else self.grid_smooth
 
 
-# ------------------------------------------------------------------------------- multi-sequence runs
+# ------------------------------------------------------------------------------------------- the run
 _SEQUENCE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
 def sequence_name_problem(name: str) -> str | None:
-    """Why ``name`` cannot name a sequence of a multi-sequence run (a folder under ``sequences/``), or
-    None: 1-64 characters, letters, digits, ``_``, ``-`` and ``.``, starting with a letter or digit."""
+    """Why ``name`` cannot name a sequence of a run (a folder under ``sequences/``), or None: 1-64
+    characters, letters, digits, ``_``, ``-`` and ``.``, starting with a letter or digit."""
     if not isinstance(name, str) or not _SEQUENCE_NAME.fullmatch(name):
         return (
             f"must be 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit "
@@ -298,24 +266,35 @@ def sequence_name_problem(name: str) -> str | None:
 
 
 @dataclass(frozen=True)
-class MultiRunLayout:
-    """The paths of a multi-sequence run folder (module docstring): one ordinary run folder per sequence
-    under ``sequences/``, the joint 3D-CN's files under ``3dcn/`` and the overall metrics."""
+class RunLayout:
+    """The paths of a run folder (module docstring): one :class:`SequenceLayout` per sequence under
+    ``sequences/``, the 3D-CN's files under ``3dcn/``, the overall metrics and the app's files."""
 
     root: Path
-    """The multi-sequence run folder."""
+    """The run folder."""
 
-    SPEC: ClassVar[str] = "multi.json"
+    SPEC: ClassVar[str] = "run.json"
     SEQUENCES: ClassVar[str] = "sequences"
     METRICS: ClassVar[str] = "metrics.json"
     CN_DIR: ClassVar[str] = "3dcn"
+    PARAMS: ClassVar[str] = "params.json"
+    LOG: ClassVar[str] = "run.log"
+    LOCK: ClassVar[str] = ".lock"
+    EXPORT_ZIP: ClassVar[str] = "export.zip"
+    EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
+    RUN_FILES: ClassVar[frozenset[str]] = frozenset(
+        {SPEC, SEQUENCES, METRICS, CN_DIR, PARAMS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP}
+    )
+    """The entries of the run folder itself (everything else lives in a sequence's folder)."""
+    RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset({PARAMS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP})
+    """Top-level files that belong to one run only (never carried over into a later run's folder)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))
 
     @property
     def spec(self) -> Path:
-        """``multi.json``: the run's sequences (name, dataset, frames), written when the run starts."""
+        """``run.json``: the run's sequences (name, dataset, frames), written when the run starts."""
         return self.root / self.SPEC
 
     @property
@@ -328,8 +307,8 @@ class MultiRunLayout:
     def sequences_dir(self) -> Path:
         return self.root / self.SEQUENCES
 
-    def sequence(self, name: str) -> RunLayout:
-        """The run folder of sequence ``name`` (``root/sequences/<name>``), a complete ordinary run folder.
+    def sequence(self, name: str) -> SequenceLayout:
+        """The folder of sequence ``name`` (``root/sequences/<name>``).
 
         Raises:
             LeapError: ``name`` is not a folder-safe sequence name (:func:`sequence_name_problem`).
@@ -337,11 +316,11 @@ class MultiRunLayout:
         problem = sequence_name_problem(name)
         if problem is not None:
             raise LeapError(f"sequence name: {problem}", field=("name",))
-        return RunLayout(self.sequences_dir / name)
+        return SequenceLayout(self.sequences_dir / name)
 
     def names(self) -> list[str]:
-        """The run's sequences: in ``multi.json``'s order when it exists (those whose folder is present),
-        else every run folder under ``sequences/`` in name order."""
+        """The run's sequences: in ``run.json``'s order when it exists (those whose folder is present),
+        else every sequence folder under ``sequences/`` in name order."""
         listed = self._listed()
         if listed is not None:
             return [n for n in listed if (self.sequences_dir / n).is_dir()]
@@ -360,34 +339,97 @@ class MultiRunLayout:
             data = json.loads(self.spec.read_text())
             return [str(s["name"]) for s in data["sequences"]]
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise DatasetError(self.spec, f"unreadable multi-sequence run record ({exc})") from exc
+            raise DatasetError(self.spec, f"unreadable run record ({exc})") from exc
 
-    # ------------------------------------------------------------------------------- joint 3D-CN
+    def first(self) -> SequenceLayout:
+        """The folder of the run's first sequence.
+
+        Raises:
+            LeapError: the run has no sequence folder.
+        """
+        names = self.names()
+        if not names:
+            raise LeapError(f"{self.root}: not a run folder (no sequences/ with a sequence in it)")
+        return self.sequence(names[0])
+
+    # ------------------------------------------------------------------------------- the 3D-CN
     @property
     def cn_dir(self) -> Path:
-        """The joint 3D-CN's checkpoints (``3dcn_iter{i}.pt``)."""
+        """The 3D-CN's checkpoints (``3dcn_iter{i}.pt``)."""
         return self.root / self.CN_DIR
 
     @property
     def joint_state(self) -> Path:
-        """``3dcn/joint.json``: the fingerprint of the joint round whose grids ``3dcn/rounds/`` holds."""
+        """``3dcn/joint.json``: the fingerprint of the 3D-CN round whose grids ``3dcn/rounds/`` holds."""
         return self.cn_dir / "joint.json"
 
-    def joint_rounds(self, name: str) -> RunLayout:
-        """Where the joint 3D-CN stages sequence ``name``'s round grids (``grid_3dcn{i}.npz``,
-        ``grid_smooth_3dcn{i}.npz``) before its run folder links them in."""
+    def joint_rounds(self, name: str) -> SequenceLayout:
+        """Where the 3D-CN stages sequence ``name``'s round grids (``grid_3dcn{i}.npz``,
+        ``grid_smooth_3dcn{i}.npz``) before its folder links them in."""
         self.sequence(name)  # checks the name
-        return RunLayout(self.cn_dir / "rounds" / name)
+        return SequenceLayout(self.cn_dir / "rounds" / name)
+
+    # ------------------------------------------------------------------------------- the app's files
+    @property
+    def params(self) -> Path:
+        """The app's parameter snapshot of the run."""
+        return self.root / self.PARAMS
+
+    @property
+    def log(self) -> Path:
+        """The app worker's log of the run."""
+        return self.root / self.LOG
+
+    @property
+    def lock(self) -> Path:
+        """The file a process holds ``flock`` on while it works in this folder."""
+        return self.root / self.LOCK
+
+    def export_zip(self, with_confidence: bool = False) -> Path:
+        """The cached zip of the export (``.label`` files, plus ``.conf`` files if asked)."""
+        return self.root / (self.EXPORT_CONF_ZIP if with_confidence else self.EXPORT_ZIP)
 
     @staticmethod
-    def is_multi_run(path: str | Path) -> bool:
-        """True when ``path`` is a multi-sequence run folder (it holds ``multi.json``)."""
-        return (Path(path) / MultiRunLayout.SPEC).is_file()
+    def is_run(path: str | Path) -> bool:
+        """True when ``path`` holds a run of this layout (its ``run.json``)."""
+        return (Path(path) / RunLayout.SPEC).is_file()
 
 
-def is_multi_run(path: str | Path) -> bool:
-    """:meth:`MultiRunLayout.is_multi_run`."""
-    return MultiRunLayout.is_multi_run(path)
+def write_run_spec(layout: RunLayout, sequences: Sequence[tuple[str, Path | None, range | None]]) -> None:
+    """Write ``run.json``: (name, dataset folder or None when unknown, frame numbers or None = all) per
+    sequence, in run order."""
+    atomic_write_json(
+        layout.spec,
+        {
+            "sequences": [
+                {
+                    "name": name,
+                    "dataset": None if dataset is None else str(Path(dataset).resolve()),
+                    "frames": None if frames is None else [frames.start, frames.stop],
+                }
+                for name, dataset, frames in sequences
+            ]
+        },
+    )
+
+
+# -------------------------------------------------------------------------------------- old folders
+FORMER_MULTI_SPEC = "multi.json"
+"""What a former multi-sequence run folder called its :attr:`RunLayout.SPEC`."""
+
+
+def former_layout(path: str | Path) -> str | None:
+    """How an existing folder written before runs had one shape is laid out: ``"single"`` (one sequence's
+    files directly in the folder, its ``stages.json`` at the top), ``"multi"`` (the sequences under
+    ``sequences/`` and ``multi.json``), or None (this layout, an empty or a missing folder)."""
+    path = Path(path)
+    if (path / RunLayout.SPEC).is_file():
+        return None
+    if (path / SequenceLayout.STATE).is_file():
+        return "single"
+    if (path / FORMER_MULTI_SPEC).is_file():
+        return "multi"
+    return None
 
 
 # ------------------------------------------------------------------------------------ corrections
@@ -421,11 +463,13 @@ def load_corrections(
 
 
 __all__ = [
+    "FORMER_MULTI_SPEC",
     "ConsistencySwitch",
-    "MultiRunLayout",
     "RunLayout",
-    "is_multi_run",
+    "SequenceLayout",
+    "former_layout",
     "load_corrections",
     "save_corrections",
     "sequence_name_problem",
+    "write_run_spec",
 ]

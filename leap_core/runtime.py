@@ -51,7 +51,7 @@ class Runtime:
 
     # --- the distributed engine (leap_core.pipeline.executor)
     ray_address: str | None = None
-    """Run per-frame stages, fusion and the 3D-CN's inference as Ray tasks, and a multi-sequence run's
+    """Run per-frame stages, fusion and the 3D-CN's inference as Ray tasks, and a run's several
     sequences at once: ``"auto"`` joins the Ray cluster this machine belongs
     to (``ray start --head`` / ``--address``) or, when there is none, starts a private local instance of
     :attr:`ray_cpus` CPUs; any other value is a cluster address (``"10.0.0.5:6379"``,

@@ -10,11 +10,14 @@ Connections are cheap (WAL mode, no shared cache): every request and every job t
 from __future__ import annotations
 
 import datetime as dt
+import functools
+import json
 import sqlite3
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import sqlite_utils
 
@@ -187,6 +190,84 @@ def _v7_sequence_removal(db: sqlite_utils.Database) -> None:
     db.execute("ALTER TABLE project_sequences ADD COLUMN removed_at TEXT")
 
 
+def _v8_one_run_shape(db: sqlite_utils.Database) -> None:
+    # Every run labels a list of sequences (often one). Runs of one sequence stored their dataset and
+    # frames at the top of their parameters and plain stage names; they get the list (the sequence named
+    # as the project calls the sequence on that folder), "<sequence>/<stage>" progress stages and
+    # metrics of the run's shape ({"overall", "sequences"}). Review marks always carry their sequence
+    # ("<sequence>/<region>"); a project of one sequence stored bare regions. Run folders move to the
+    # same shape when the server starts (app.jobs.folders).
+    names: dict[tuple[int, str], str] = {}
+    for project_id, name, path in db.execute(
+        "SELECT project_id, name, dataset_path FROM project_sequences "
+        "ORDER BY removed_at IS NOT NULL, position"
+    ).fetchall():
+        names.setdefault((int(project_id), str(path)), str(name))
+    for run_id, project_id, params_json, stages_json, metrics_json in db.execute(
+        "SELECT id, project_id, params_json, stages_json, metrics_json FROM runs"
+    ).fetchall():
+        params = json.loads(params_json)
+        if "sequences" in params and "dataset" not in params:
+            continue
+        updates = one_run_shape(
+            params,
+            None if stages_json is None else json.loads(stages_json),
+            None if metrics_json is None else json.loads(metrics_json),
+            functools.partial(_name_of, names, int(project_id)),
+        )
+        db.execute(
+            "UPDATE runs SET params_json = ?, stages_json = ?, metrics_json = ? WHERE id = ?",
+            [*(None if u is None else _dumps(u) for u in updates), run_id],
+        )
+    db.execute(
+        "UPDATE review_marks SET region = (SELECT s.name FROM project_sequences s WHERE "
+        "s.project_id = review_marks.project_id AND s.removed_at IS NULL ORDER BY s.position LIMIT 1) "
+        "|| '/' || region WHERE instr(region, '/') = 0"
+    )
+
+
+def _name_of(names: dict[tuple[int, str], str], project_id: int, path: str) -> str | None:
+    return names.get((project_id, path))
+
+
+def one_run_shape(
+    params: dict[str, Any],
+    stages: dict[str, Any] | None,
+    metrics: dict[str, Any] | None,
+    name_of: Callable[[str], str | None],
+) -> tuple[dict[str, Any], dict[str, Any] | None, dict[str, Any] | None]:
+    """A run's stored parameters, progress record and metrics of an earlier shape in today's (see
+    :func:`_v8_one_run_shape`); ``name_of(dataset_path)`` is the project's name of the sequence on that
+    folder (None: the folder's own name)."""
+    from leap_core.pipeline.evaluation import overall_metrics  # noqa: PLC0415  loads numpy: only here
+
+    params = dict(params)
+    dataset, frames = params.pop("dataset", None), params.pop("frames", None)
+    if "sequences" in params:
+        params["sequences"] = [{**s, "frames": s.get("frames")} for s in params["sequences"]]
+        return params, stages, metrics
+    name = name_of(str(dataset)) or default_sequence_name(str(dataset))
+    params = {"sequences": [{"name": name, "dataset": str(dataset), "frames": frames}], **params}
+
+    def staged(stage: str) -> str:
+        return f"{name}/{stage}"
+
+    params["stages"] = [staged(s) for s in params.get("stages") or []]
+    if stages:
+        stages = {
+            **stages,
+            "order": [staged(s) for s in stages.get("order") or []],
+            "stages": {staged(k): v for k, v in (stages.get("stages") or {}).items()},
+        }
+    if metrics is not None and "overall" not in metrics:
+        metrics = {"overall": overall_metrics({name: metrics}), "sequences": {name: metrics}}
+    return params, stages, metrics
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"))
+
+
 def default_sequence_name(dataset_path: str) -> str:
     """The name a sequence gets from its folder when none is given: the folder's own name (``00`` for
     ``.../sequences/00``), or ``"00"`` for a path without one."""
@@ -204,6 +285,7 @@ MIGRATIONS: list[Migration] = [
     (5, "projects.estimate_poses", _v5_estimate_poses),
     (6, "project_sequences; corrections and review queues per sequence", _v6_project_sequences),
     (7, "project_sequences.removed_at", _v7_sequence_removal),
+    (8, "runs of one shape: a list of sequences; review marks per sequence", _v8_one_run_shape),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -25,12 +25,10 @@ from app.core.config import Settings
 from app.core.db import open_db, utcnow
 from app.core.errors import AppError
 from app.jobs.manager import run_corrections
-from app.jobs.multi import covered_sequences, run_sequences_of, sequence_layouts
+from app.rows import Labeled, RunRow, labeled_sequences
 from app.services import pipeline_config
-from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import LeapError
 from leap_core.pipeline.apply import RunCache, RunCorrections, apply_to_run, load_run_cache
-from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 
 log = logging.getLogger("leap.corrections")
@@ -136,88 +134,76 @@ class CorrectionApplier:
                 self._threads.pop(project_id, None)
                 self._idle.notify_all()
 
-    def _latest(
-        self, project_id: int
-    ) -> tuple[dict[str, Any] | None, list[tuple[RunLayout, Path, list[crud.Correction]]]]:
-        """The latest finished run and, per sequence of it (one for a single-sequence run), its run
-        layout, dataset and the sequence's active corrections. Only the project's sequences the run
-        labeled (:func:`~app.jobs.multi.covered_sequences`): one added since has no results there, one
-        removed since keeps the export it had."""
+    def _latest(self, project_id: int) -> tuple[RunRow | None, list[tuple[Labeled, list[crud.Correction]]]]:
+        """The latest finished run and, per sequence of it, its folder and dataset with the sequence's
+        active corrections. Only the project's sequences the run labeled
+        (:func:`~app.rows.labeled_sequences`): one added since has no results there, one removed since
+        keeps the export it had."""
         with open_db(self.settings.database) as db:
             run = crud.last_finished_run(db, project_id)
             if run is None:
                 return None, []
-            covered = covered_sequences(run["params"], crud.list_sequences(db, project_id))
-            if run_sequences_of(run["params"]) is None:
-                targets = [
-                    (
-                        RunLayout(Path(run["run_dir"])),
-                        Path(run["params"]["dataset"]),
-                        crud.list_corrections(db, project_id, active_only=True, sequence=name),
-                    )
-                    for name in covered
-                ]
-            else:
-                targets = [
-                    (lay, dataset, crud.list_corrections(db, project_id, active_only=True, sequence=name))
-                    for name, dataset, lay in sequence_layouts(Path(run["run_dir"]), run["params"])
-                    if name in covered
-                ]
+            targets = [
+                (seq, crud.list_corrections(db, project_id, active_only=True, sequence=seq.name))
+                for seq in labeled_sequences(run, crud.list_sequences(db, project_id))
+            ]
         return run, targets
 
-    def _cache(self, project_id: int, run: dict[str, Any], lay: RunLayout, dataset: Path) -> RunCache:
+    def _cache(self, project_id: int, run: RunRow, seq: Labeled) -> RunCache:
         # One cache per project (its latest run; of several sequences, the one applied last): the grid
         # and index of a large sequence take much memory.
         with self._lock:
             held = self._caches.get(project_id)
-        if held is not None and held[0] == lay.run_dir:
+        if held is not None and held[0] == seq.layout.folder:
             return held[1]
-        params = run["params"]
-        seq = lay.open_sequence(dataset)
-        cache = load_run_cache(lay, seq, _frames(params, seq), _voxel_size(params))
+        sequence = seq.layout.open_sequence(seq.dataset)
+        cache = load_run_cache(seq.layout, sequence, sequence.select(seq.frames), _voxel_size(run))
         with self._lock:
-            self._caches[project_id] = (lay.run_dir, cache)
+            self._caches[project_id] = (seq.layout.folder, cache)
         return cache
 
     def _warm(self, project_id: int) -> None:
         try:
             run, targets = self._latest(project_id)
-            if run is not None and targets and targets[0][0].export_dir.is_dir():
-                self._cache(project_id, run, targets[0][0], targets[0][1])
+            if run is not None and targets and targets[0][0].layout.export_dir.is_dir():
+                self._cache(project_id, run, targets[0][0])
         except (LeapError, AppError, OSError, ValueError, KeyError) as exc:
             log.info("could not prepare corrections of project %d: %s", project_id, exc)
 
     def _pass(self, project_id: int, asked: float) -> ApplyState:
         run, targets = self._latest(project_id)
-        if run is None or not targets or not all(lay.export_dir.is_dir() for lay, _, _ in targets):
+        if run is None or not targets or not all(seq.layout.export_dir.is_dir() for seq, _ in targets):
             return ApplyState(status="no_run", finished_at=utcnow())
-        params = run["params"]
-        schema = Schema.from_dict(params["schema"], source=f"run {run['id']} schema")
+        schema = Schema.from_dict(run.params.schema, source=f"run {run.id} schema")
         frames = changed = baked = 0
-        for lay, dataset, corrections in targets:
-            new = run_corrections(corrections, params)
-            if not new.differs(RunCorrections.applied(lay, schema.num_classes)):
+        for seq, corrections in targets:
+            new = run_corrections(corrections, run.params)
+            if not new.differs(RunCorrections.applied(seq.layout, schema.num_classes)):
                 # The usual case after a run ends (the hook of app.main): nothing to load or rewrite.
                 continue
-            seq = lay.open_sequence(dataset)
-            cache = self._cache(project_id, run, lay, dataset)
+            sequence = seq.layout.open_sequence(seq.dataset)
+            cache = self._cache(project_id, run, seq)
             result = apply_to_run(
-                lay, seq, _frames(params, seq), _voxel_size(params), schema.export_ids(), new=new, cache=cache
+                seq.layout,
+                sequence,
+                sequence.select(seq.frames),
+                _voxel_size(run),
+                schema.export_ids(),
+                new=new,
+                cache=cache,
             )
             if result.frames:
-                exports.invalidate(lay.run_dir)
-                if lay.run_dir != Path(run["run_dir"]):
-                    exports.invalidate(Path(run["run_dir"]))  # the run's zips of every sequence
+                exports.invalidate(run.run_dir)
             frames += len(result.frames)
             changed += result.changed_voxels
             baked += result.baked_reverts
         seconds = time.perf_counter() - asked
         if frames:
-            log.info("corrections applied to run %s: %d scans in %.2f s", run["number"], frames, seconds)
+            log.info("corrections applied to run %s: %d scans in %.2f s", run.number, frames, seconds)
         return ApplyState(
             status="done",
-            run_id=int(run["id"]),
-            run_number=int(run["number"]),
+            run_id=run.id,
+            run_number=run.number,
             frames=frames,
             changed_voxels=changed,
             baked_reverts=baked,
@@ -226,14 +212,8 @@ class CorrectionApplier:
         )
 
 
-def _frames(params: dict[str, Any], seq: KittiSequence) -> range:
-    """The run's frames as indices into ``seq`` (the run stores frame numbers)."""
-    frames = params.get("frames")
-    return seq.select(None if frames is None else range(int(frames[0]), int(frames[1])))
-
-
-def _voxel_size(params: dict[str, Any]) -> float:
-    return pipeline_config(params["pipeline"], loc=("run", "params", "pipeline")).fusion.voxel_size
+def _voxel_size(run: RunRow) -> float:
+    return pipeline_config(run.params.pipeline, loc=("run", "params", "pipeline")).fusion.voxel_size
 
 
 _appliers: dict[Path, CorrectionApplier] = {}

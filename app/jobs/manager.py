@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -37,8 +38,9 @@ from app.core.config import Settings
 from app.core.db import open_db, transaction, utcnow
 from app.core.errors import Conflict, InsufficientStorage, InvalidField, disk_full_message
 from app.core.security import resolve_in_roots
-from app.demo import SYNTH_STAGE, demo_exists
+from app.demo import demo_exists
 from app.jobs import worker
+from app.jobs.folders import migrate_run_folders
 from app.jobs.messages import (
     CancelRun,
     FromWorker,
@@ -49,26 +51,20 @@ from app.jobs.messages import (
     StageProgress,
     decode_from_worker,
 )
-from app.jobs.multi import (
-    read_run_metrics,
-    run_sequences_of,
-    run_stages,
-    sequence_layouts,
-    skipped_stages,
-    snapshot_sequences,
-)
 from app.jobs.notify import ChangeNotifier
-from app.jobs.poses import POSES_STAGE, needs_estimate
+from app.jobs.poses import needs_estimate
 from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
+from app.jobs.stages import run_stages, skipped_stages
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
+from app.rows import ProjectRow, RunParams, RunRow, RunSequence
 from leap_core.config import config_from_dict
 from leap_core.corrections import ERASE, ScanCorrections
 from leap_core.errors import LeapError
 from leap_core.fusion import last_per_key
 from leap_core.io_utils import atomic_write_json, link_or_copy, remove_tree
-from leap_core.pipeline import STAGES, read_metrics_json, stage_status
+from leap_core.pipeline import STAGES, read_run_metrics
 from leap_core.pipeline.apply import RunCorrections
-from leap_core.run_layout import MultiRunLayout, RunLayout
+from leap_core.run_layout import SequenceLayout
 
 log = logging.getLogger("leap.jobs")
 
@@ -156,7 +152,8 @@ class JobManager:
 
     # ------------------------------------------------------------------------------------- lifecycle
     def start(self) -> list[int]:
-        """Mark runs left over by a previous server as interrupted and start the workers."""
+        """Mark runs left over by a previous server as interrupted, move run folders of earlier versions
+        into today's layout (:func:`~app.jobs.folders.migrate_run_folders`) and start the workers."""
         with open_db(self.settings.database) as db:
             interrupted = crud.mark_stale_runs_interrupted(db)
             for run_id in interrupted:
@@ -164,10 +161,11 @@ class JobManager:
                 if run is not None:
                     log.warning(
                         "run #%d of project %d (id %d) was interrupted by a server stop; it can be resumed",
-                        run["number"],
-                        run["project_id"],
+                        run.number,
+                        run.project_id,
                         run_id,
                     )
+        migrate_run_folders(self.settings.database)
         with self._lock:
             self._stopping = False
             self._started = True
@@ -206,7 +204,7 @@ class JobManager:
         _set_current(None)
 
     # ------------------------------------------------------------------------------------- requests
-    def start_run(self, project_id: int, *, frames: tuple[int, int] | None = None) -> dict[str, Any]:
+    def start_run(self, project_id: int, *, frames: tuple[int, int] | None = None) -> RunRow:
         """Queue a new run of the project's current settings.
 
         Raises:
@@ -220,20 +218,20 @@ class JobManager:
         with open_db(self.settings.database) as db:
             with transaction(db):
                 project = crud.require_project(db, project_id)
-                for seq in project["sequences"] or [{"dataset_path": project["dataset_path"]}]:
-                    self._confine_dataset(project["dataset_kind"], seq["dataset_path"])
-                if frames is not None and len(project["sequences"]) > 1:
+                for seq in project.sequences:
+                    self._confine_dataset(project.dataset_kind, seq.dataset_path)
+                if frames is not None and len(project.sequences) > 1:
                     raise InvalidField(
                         ["body", "frames"],
-                        f"project {project_id} has {len(project['sequences'])} sequences: its runs label "
+                        f"project {project_id} has {len(project.sequences)} sequences: its runs label "
                         "every frame of each (frames are for a project of one sequence)",
                     )
                 active = crud.active_run(db, project_id)
                 if active is not None:
                     # Inside this transaction a retry of the stored end would wait for its own lock.
-                    self._refuse_when_unsaved(active["id"], flush=False)
+                    self._refuse_when_unsaved(active.id, flush=False)
                     raise Conflict(
-                        f"Project {project_id} already has run {active['id']} {active['status']}; "
+                        f"Project {project_id} already has run {active.id} {active.status}; "
                         "cancel it or wait for it to finish"
                     )
                 params = self._snapshot(project, frames)
@@ -246,7 +244,7 @@ class JobManager:
             self._enqueue(run, expected)
         return run
 
-    def resume_run(self, run_id: int) -> dict[str, Any]:
+    def resume_run(self, run_id: int) -> RunRow:
         """Queue an interrupted, cancelled or failed run again in its own folder with its own snapshot.
 
         Raises:
@@ -259,30 +257,25 @@ class JobManager:
         with open_db(self.settings.database) as db:
             with transaction(db):
                 run = crud.require_run(db, run_id)
-                params = run["params"]
-                if params.get("dataset") is not None:
-                    self._confine_dataset(params.get("dataset_kind", "folder"), params["dataset"])
-                for _, dataset in run_sequences_of(params) or []:
-                    self._confine_dataset(params.get("dataset_kind", "folder"), str(dataset))
-                if run["status"] not in RESUMABLE_STATUSES:
+                for seq in run.params.sequences:
+                    self._confine_dataset(run.params.dataset_kind, str(seq.dataset))
+                if run.status not in RESUMABLE_STATUSES:
                     raise Conflict(
-                        f"Run {run_id} is {run['status']}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
+                        f"Run {run_id} is {run.status}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
                     )
-                active = crud.active_run(db, run["project_id"])
+                active = crud.active_run(db, run.project_id)
                 if active is not None:
-                    raise Conflict(
-                        f"Project {run['project_id']} already has run {active['id']} {active['status']}"
-                    )
+                    raise Conflict(f"Project {run.project_id} already has run {active.id} {active.status}")
                 crud.update_run(db, run_id, status="queued", error=None, finished_at=None)
                 run = crud.require_run(db, run_id)
-            expected = self._expected_seconds(db, run["project_id"])
+            expected = self._expected_seconds(db, run.project_id)
         with self._lock:
             previous = self._finished.pop(run_id, None)
             self._payloads.pop(run_id, None)
             self._enqueue(run, expected, after_version=0 if previous is None else previous.version)
         return run
 
-    def cancel_run(self, run_id: int) -> dict[str, Any]:
+    def cancel_run(self, run_id: int) -> RunRow:
         """Cancel a queued run at once, or ask a running one to stop at its next progress report.
 
         Raises:
@@ -292,10 +285,8 @@ class JobManager:
         self._refuse_when_unsaved(run_id)
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
-            if run["status"] not in ACTIVE_STATUSES:
-                raise Conflict(
-                    f"Run {run_id} is {run['status']}; only queued or running runs can be cancelled"
-                )
+            if run.status not in ACTIVE_STATUSES:
+                raise Conflict(f"Run {run_id} is {run.status}; only queued or running runs can be cancelled")
             # queued -> cancelled and queued -> running (_execute) are both conditional updates, so
             # exactly one of them wins.
             if crud.transition_run(db, run_id, "queued", status="cancelled", finished_at=utcnow()):
@@ -330,12 +321,12 @@ class JobManager:
         with open_db(self.settings.database) as db:
             return services.run_progress(crud.require_run(db, run_id), None).model_dump()
 
-    def as_stored(self, run: dict[str, Any]) -> dict[str, Any]:
-        """``run`` (a row) with the end the database has refused so far laid over it, so that readers see
-        the run as it will be stored (e.g. ``failed`` with its reason), not the stale ``running`` row."""
+    def as_stored(self, run: RunRow) -> RunRow:
+        """``run`` with the end the database has refused so far laid over it, so that readers see the run
+        as it will be stored (e.g. ``failed`` with its reason), not the stale ``running`` row."""
         with self._lock:
-            pending = self._unsaved.get(run["id"])
-        return run if pending is None else {**run, **pending}
+            pending = self._unsaved.get(run.id)
+        return run if pending is None else dataclasses.replace(run, **pending)
 
     def progress(self, run_id: int) -> dict[str, Any] | None:
         """Live (or recently finished) progress snapshot; None when the run is not in memory."""
@@ -383,66 +374,53 @@ class JobManager:
         if kind != "demo":
             resolve_in_roots(path, self.settings.data_roots, what="dataset path")
 
-    def _snapshot(self, project: dict[str, Any], frames: tuple[int, int] | None) -> dict[str, Any]:
-        generate = project["dataset_kind"] == "demo" and not demo_exists(Path(project["dataset_path"]))
-        estimate = bool(project.get("estimate_poses"))
-        estimate_now = estimate and not generate and needs_estimate(Path(project["dataset_path"]))
-        sequences = snapshot_sequences(project.get("sequences") or [])
-        if sequences is not None:
-            # Only a project of several sequences records them: a one-sequence snapshot stays as it was.
-            joint = config_from_dict(project["pipeline"]).consistency.enabled
-            estimated = [s["name"] for s in sequences if estimate and needs_estimate(Path(s["dataset"]))]
-            return {
-                "dataset": project["dataset_path"],
-                "dataset_kind": project["dataset_kind"],
-                "sequences": sequences,
-                "schema": project["schema"],
-                "pipeline": project["pipeline"],
-                "frames": None,
-                "estimate_poses": estimate,
-                "stages": run_stages(
-                    [s["name"] for s in sequences], self.stages, joint_3dcn=joint, estimate=estimated
-                ),
-            }
-        return {
-            "dataset": project["dataset_path"],
-            "dataset_kind": project["dataset_kind"],
-            "schema": project["schema"],
-            "pipeline": project["pipeline"],
-            "frames": None if frames is None else [int(frames[0]), int(frames[1])],
-            "estimate_poses": estimate,
-            "stages": ([SYNTH_STAGE] if generate else [])
-            + ([POSES_STAGE] if estimate_now else [])
-            + self.stages,
-        }
+    def _snapshot(self, project: ProjectRow, frames: tuple[int, int] | None) -> RunParams:
+        """What a new run of ``project`` labels (``frames`` only for a project of one sequence) and the
+        progress stages it will go through."""
+        demo = project.dataset_kind == "demo"
+        generate = [s.name for s in project.sequences if demo and not demo_exists(Path(s.dataset_path))]
+        estimate = [
+            s.name
+            for s in project.sequences
+            if project.estimate_poses and s.name not in generate and needs_estimate(Path(s.dataset_path))
+        ]
+        joint = config_from_dict(project.pipeline).consistency.enabled
+        return RunParams(
+            sequences=tuple(RunSequence(s.name, Path(s.dataset_path), frames) for s in project.sequences),
+            dataset_kind=project.dataset_kind,
+            schema=project.schema,
+            pipeline=project.pipeline,
+            estimate_poses=project.estimate_poses,
+            stages=tuple(
+                run_stages(project.names, self.stages, joint_3dcn=joint, estimate=estimate, generate=generate)
+            ),
+        )
 
-    def _prepare_run_dir(self, db: Any, run: dict[str, Any]) -> None:
-        """Write the parameter snapshot and the project's active corrections into the new run folder."""
-        run_dir = Path(run["run_dir"])
+    def _prepare_run_dir(self, db: Any, run: RunRow) -> None:
+        """Write the parameter snapshot into the new run folder, and into each sequence's folder its active
+        corrections and the stage outputs of the finished run it starts from (:func:`seed_source`)."""
         # SQLite reuses the highest ids after a delete, so p<P>/r<R> may hold a deleted project's files
         # (left behind if that delete was interrupted); stale stage outputs must never leak into this run.
-        remove_tree(run_dir)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        params = run["params"]
-        atomic_write_json(RunLayout(run_dir).params, params)
-        previous = seed_source(db, run["project_id"], params)
-        if run_sequences_of(params) is not None:
-            linked = prepare_sequences(
-                db,
-                run["project_id"],
-                params,
-                run_dir,
-                None if previous is None else Path(previous["run_dir"]),
-            )
-        else:
-            write_run_corrections(db, run["project_id"], params, run_dir)
-            linked = 0 if previous is None else seed_run_dir(Path(previous["run_dir"]), run_dir)
+        remove_tree(run.run_dir)
+        run.run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(run.layout.params, run.params.to_dict())
+        previous = seed_source(db, run.project_id, run.params)
+        linked = 0
+        for seq in run.params.sequences:
+            lay = run.sequence_layout(seq.name)
+            lay.folder.mkdir(parents=True, exist_ok=True)
+            corrections = crud.list_corrections(db, run.project_id, active_only=True, sequence=seq.name)
+            run_corrections(corrections, run.params).write(lay.corrections, lay.corrections_scan)
+            if previous is not None:
+                linked += seed_sequence(previous.sequence_layout(seq.name), lay)
         if previous is not None:
+            # The 3D-CN's checkpoints and staged rounds, reused while their fingerprints match.
+            linked += link_tree(previous.layout.cn_dir, run.layout.cn_dir)
             log.info(
                 "run #%d of project %d starts from run #%d's stage outputs (%d files linked)",
-                run["number"],
-                run["project_id"],
-                previous["number"],
+                run.number,
+                run.project_id,
+                previous.number,
                 linked,
             )
 
@@ -450,22 +428,19 @@ class JobManager:
         last = crud.last_finished_run(db, project_id)
         if last is None:
             return {}
-        stages = (last.get("stages") or {}).get("stages") or {}
+        stages = (last.stages or {}).get("stages") or {}
         return {k: float(v["seconds"]) for k, v in stages.items() if v.get("seconds") is not None}
 
-    def _enqueue(self, run: dict[str, Any], expected: dict[str, float], after_version: int = 0) -> None:
+    def _enqueue(self, run: RunRow, expected: dict[str, float], after_version: int = 0) -> None:
         tracker = ProgressTracker.create(
-            run["id"],
-            run["project_id"],
-            run["params"].get("stages") or self.stages,
-            expected_seconds=expected,
+            run.id, run.project_id, run.params.stages or self.stages, expected_seconds=expected
         )
         tracker.version = after_version  # a resumed run's versions continue, so streams see only news
         tracker.on_change = self.changes.notify
         tracker.set_status("queued", utcnow())
-        label = f"run #{run['number']} of project {run['project_id']} (id {run['id']})"
-        self._live[run["id"]] = _Live(tracker=tracker, label=label)
-        self._queue.append(run["id"])
+        label = f"run #{run.number} of project {run.project_id} (id {run.id})"
+        self._live[run.id] = _Live(tracker=tracker, label=label)
+        self._queue.append(run.id)
         self._wake.notify()
 
     def _retire(self, run_id: int) -> None:
@@ -705,7 +680,7 @@ class JobManager:
         with open_db(self.settings.database) as db:
             run = crud.get_run(db, run_id)
             started = run is not None and crud.transition_run(
-                db, run_id, "queued", status="running", started_at=utcnow(), attempts=run["attempts"] + 1
+                db, run_id, "queued", status="running", started_at=utcnow(), attempts=run.attempts + 1
             )
         if not started:  # cancelled (or deleted) while it waited
             with self._lock:
@@ -714,7 +689,7 @@ class JobManager:
             return
         assert run is not None
         spec = self._spec(run)
-        Path(run["run_dir"]).mkdir(parents=True, exist_ok=True)
+        run.run_dir.mkdir(parents=True, exist_ok=True)
         process = proc.process
         with self._lock:
             live = self._live[run_id]
@@ -747,25 +722,22 @@ class JobManager:
             process.stdin.write(CancelRun().to_line())
             process.stdin.flush()
 
-    def _spec(self, run: dict[str, Any]) -> RunSpec:
-        params = run["params"]
-        frames = params.get("frames")
+    def _spec(self, run: RunRow) -> RunSpec:
+        params = run.params
         return RunSpec(
-            run_id=int(run["id"]),
-            run_dir=Path(run["run_dir"]),
-            dataset=Path(params["dataset"]),
-            demo=params.get("dataset_kind") == "demo",
+            run_id=run.id,
+            run_dir=run.run_dir,
+            sequences=[(s.name, s.dataset, s.frames) for s in params.sequences],
+            demo=params.dataset_kind == "demo",
             demo_synth=dict(self.settings.demo_synth),
-            schema=params["schema"],
-            pipeline=params["pipeline"],
-            frames=None if frames is None else (int(frames[0]), int(frames[1])),
+            schema=params.schema,
+            pipeline=params.pipeline,
             models_dir=self.settings.models_dir,
-            cache_dir=self.settings.cache_dir / f"p{run['project_id']}",
+            cache_dir=self.settings.cache_dir / f"p{run.project_id}",
             progress_interval_s=self.settings.progress_interval_s,
             allow_download=self.settings.allow_download,
-            estimate_poses=bool(params.get("estimate_poses")),
+            estimate_poses=params.estimate_poses,
             poses_cache=self.settings.cache_dir,
-            sequences=None if (listed := run_sequences_of(params)) is None else dict(listed),
             ray_address=self.settings.ray_address,
         )
 
@@ -850,9 +822,8 @@ class JobManager:
         error = outcome.error
         with open_db(self.settings.database) as db:
             row = crud.require_run(db, run_id)
-        run_dir, project_id = Path(row["run_dir"]), int(row["project_id"])
-        multi = run_sequences_of(row["params"]) is not None
-        skipped = skipped_stages(run_dir, row["params"]) if multi else pipeline_skipped_stages(run_dir)
+        run_dir, project_id = row.run_dir, row.project_id
+        skipped = skipped_stages(run_dir, row.params.names)
         with self._lock:
             live = self._live[run_id]
             if status != "done" and self._stopping and not live.cancel_requested:
@@ -860,7 +831,7 @@ class JobManager:
             final = live.tracker.clone()
         final.set_status(status, utcnow(), error)
         final.mark_skipped(skipped)
-        metrics = None if status != "done" else read_run_metrics(run_dir) if multi else read_metrics(run_dir)
+        metrics = None if status != "done" else read_metrics(run_dir)
         try:
             with open_db(self.settings.database) as db:
                 crud.update_run(
@@ -910,7 +881,7 @@ class JobManager:
             live = self._live[run_id]
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
-            crud.update_run(db, run_id, status="running", started_at=utcnow(), attempts=run["attempts"] + 1)
+            crud.update_run(db, run_id, status="running", started_at=utcnow(), attempts=run.attempts + 1)
         live.tracker.set_status("running", utcnow())
 
         def emit(message: FromWorker) -> None:
@@ -946,8 +917,9 @@ def worker_env() -> dict[str, str]:
     return env
 
 
-def seed_run_dir(previous: Path, run_dir: Path) -> int:
-    """Hard-link a finished run's stage outputs and ``stages.json`` into a new run folder.
+def seed_sequence(previous: SequenceLayout, folder: SequenceLayout) -> int:
+    """Hard-link a finished run's stage outputs and ``stages.json`` of one sequence into the same
+    sequence's folder of a new run.
 
     The pipeline then skips every stage whose fingerprint still matches (a class colour or a prompt the
     simulated labeler does not read changes nothing; a smoothing ``k`` edit reruns ``smooth`` onwards)
@@ -959,64 +931,35 @@ def seed_run_dir(previous: Path, run_dir: Path) -> int:
     Returns:
         Number of files linked or copied.
     """
-    if not RunLayout(previous).state.is_file():
+    if not previous.state.is_file():
         return 0
 
     def stage_output(rel: Path) -> bool:
-        # Hidden files are a run's temporaries (spills, partial writes); the run's own files (log, lock,
-        # corrections) belong to the run that wrote them.
+        # Hidden files are a run's temporaries (spills, partial writes); the run's own files
+        # (corrections, counts) belong to the run that wrote them.
         if any(part.startswith(".") for part in rel.parts):
             return False
-        return not (len(rel.parts) == 1 and rel.name in RunLayout.RUN_OWN_FILES)
+        return not (len(rel.parts) == 1 and rel.name in SequenceLayout.RUN_OWN_FILES)
 
-    return link_tree(previous, run_dir, keep=stage_output)
-
-
-def pipeline_skipped_stages(run_dir: Path) -> dict[str, str | None]:
-    """Stages the pipeline recorded as skipped (3D-CN off, no ground truth to evaluate), with their note."""
-    try:
-        state = stage_status(run_dir)
-    except LeapError:
-        return {}
-    return {name: rec.get("note") for name, rec in state.items() if rec.get("status") == "skipped"}
+    return link_tree(previous.folder, folder.folder, keep=stage_output)
 
 
 def read_metrics(run_dir: Path) -> dict[str, Any] | None:
-    """The run's stored result tables (None when the dataset has no ground truth or they are unreadable)."""
+    """The run's stored result tables (None when no sequence has ground truth or they are unreadable)."""
     try:
-        return read_metrics_json(run_dir)
+        return read_run_metrics(run_dir)
     except LeapError:
         return None
 
 
-def seed_source(db: Any, project_id: int, params: dict[str, Any]) -> dict[str, Any] | None:
+def seed_source(db: Any, project_id: int, params: RunParams) -> RunRow | None:
     """The finished run a new run with ``params`` starts from: the project's latest finished run when it
-    covered the same dataset and frames (its stage outputs are linked in and reused where the
-    fingerprints still match); None when there is none."""
+    labeled the same sequences on the same folders and frames (its stage outputs are linked in and reused
+    where the fingerprints still match); None when there is none."""
     previous = crud.last_finished_run(db, project_id)
-    if previous is None:
+    if previous is None or previous.params.sequences != params.sequences:
         return None
-    same = previous["params"].get("dataset") == params["dataset"]
-    same = same and previous["params"].get("sequences") == params.get("sequences")
-    return previous if same and previous["params"].get("frames") == params["frames"] else None
-
-
-def prepare_sequences(
-    db: Any, project_id: int, params: dict[str, Any], run_dir: Path, previous: Path | None
-) -> int:
-    """A new multi-sequence run folder: each sequence's folder gets its own active corrections and the
-    previous run's stage outputs of that sequence (:func:`seed_run_dir`), the root the joint 3D-CN's
-    checkpoints and staged rounds (reused while their fingerprints match). Returns the files linked."""
-    linked = 0
-    for name, _, lay in sequence_layouts(run_dir, params):
-        lay.run_dir.mkdir(parents=True, exist_ok=True)
-        corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
-        run_corrections(corrections, params).write(lay.corrections, lay.corrections_scan)
-        if previous is not None:
-            linked += seed_run_dir(MultiRunLayout(previous).sequence(name).run_dir, lay.run_dir)
-    if previous is not None:
-        linked += link_tree(MultiRunLayout(previous).cn_dir, MultiRunLayout(run_dir).cn_dir)
-    return linked
+    return previous
 
 
 def link_tree(source: Path, target: Path, keep: Callable[[Path], bool] | None = None) -> int:
@@ -1038,21 +981,12 @@ def link_tree(source: Path, target: Path, keep: Callable[[Path], bool] | None = 
     return count
 
 
-def write_run_corrections(db: Any, project_id: int, params: dict[str, Any], run_dir: Path) -> None:
-    """Write the project's active corrections, as a run with ``params`` applies them, into ``run_dir``
-    (``corrections.npz`` map scope, ``corrections_scan.npz`` scan scope)."""
-    lay = RunLayout(run_dir)
-    run_corrections(crud.list_corrections(db, project_id, active_only=True), params).write(
-        lay.corrections, lay.corrections_scan
-    )
-
-
-def run_corrections(corrections: Sequence[crud.Correction], params: dict[str, Any]) -> RunCorrections:
-    """The active corrections of a project as a run with ``params`` (its ``schema`` and ``pipeline``)
-    applies them: map scope flattened by :func:`corrections_for_run`, scan scope by
+def run_corrections(corrections: Sequence[crud.Correction], params: RunParams) -> RunCorrections:
+    """The active corrections of a project's sequence as a run with ``params`` (its ``schema`` and
+    ``pipeline``) applies them: map scope flattened by :func:`corrections_for_run`, scan scope by
     :meth:`ScanCorrections.merge` (later corrections win on the same voxel / point)."""
-    keys, classes = corrections_for_run(corrections, params["schema"], params["pipeline"])
-    names = [c["name"] for c in params["schema"]["classes"]]
+    keys, classes = corrections_for_run(corrections, params.schema, params.pipeline)
+    names = [c["name"] for c in params.schema["classes"]]
     scan = ScanCorrections.merge(
         (c.frame_id, c.points, index)
         for c in corrections

@@ -65,8 +65,9 @@ class RunSpec(Message):
     """Row id of the run (for log lines)."""
     run_dir: Path
     """The run's folder: outputs, ``run.log``, the folder lock."""
-    dataset: Path
-    """Sequence folder (``.../sequences/NN``)."""
+    sequences: list[tuple[str, Path, tuple[int, int] | None]]
+    """(name, sequence folder, frame numbers ``start <= n < stop`` or None = all) per sequence, in run
+    order."""
     demo: bool
     """The dataset is the built-in demo sequence: generate it first if it is missing."""
     demo_synth: dict[str, Any]
@@ -75,8 +76,6 @@ class RunSpec(Message):
     """The class schema (``Schema.to_dict`` form)."""
     pipeline: dict[str, Any]
     """Pipeline parameter overrides (``config_to_dict`` form, possibly partial)."""
-    frames: tuple[int, int] | None
-    """Label only frames ``start <= i < stop``; None = all."""
     models_dir: Path | None
     """The server's models folder (a deployment value: projects cannot name one); None = none configured."""
     cache_dir: Path | None
@@ -90,10 +89,6 @@ class RunSpec(Message):
     """The project estimates poses with KISS-ICP when its dataset has none (``app.jobs.poses``)."""
     poses_cache: Path | None = None
     """Where estimated poses are cached across runs (the server's cache folder)."""
-    sequences: dict[str, Path] | None = None
-    """A project of several sequences: name → sequence folder, in run order (``dataset`` is the first);
-    the run is :func:`leap_core.pipeline.multi.run_sequences` into ``run_dir`` (:mod:`app.jobs.multi`).
-    None for a project of one sequence."""
     ray_address: str | None = None
     """The server's Ray cluster (its ``ray_address`` setting, ``Runtime.ray_address``); None = the
     worker computes the run itself."""
@@ -222,7 +217,7 @@ def _excerpt(line: bytes | str) -> str:
 def _encode(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
-    if isinstance(value, tuple):
+    if isinstance(value, (tuple, list)):
         return [_encode(v) for v in value]
     if isinstance(value, dict):
         return {k: _encode(v) for k, v in value.items()}
@@ -240,7 +235,7 @@ _SCALARS: dict[Any, tuple[Callable[[Any], bool], str]] = {
 """Annotation → (accepts the JSON value, what it expects in words)."""
 
 
-def _decode(value: Any, tp: Any, where: str) -> Any:
+def _decode(value: Any, tp: Any, where: str) -> Any:  # noqa: PLR0911  one return per kind of annotation
     """``value`` from JSON checked against (and converted to) the annotation ``tp``."""
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
@@ -260,6 +255,10 @@ def _decode(value: Any, tp: Any, where: str) -> Any:
         if not isinstance(value, dict):
             raise MessageError(f"{where}: expected an object, got {value!r}")
         return {k: _decode(v, args[1], f"{where}.{k}") for k, v in value.items()}
+    if origin is list:
+        if not isinstance(value, list):
+            raise MessageError(f"{where}: expected a list, got {value!r}")
+        return [_decode(v, args[0], f"{where}[{i}]") for i, v in enumerate(value)]
     if tp not in _SCALARS:
         raise TypeError(f"{where}: no JSON decoding for annotation {tp!r}")  # a message class's own bug
     accepts, expected = _SCALARS[tp]

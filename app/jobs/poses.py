@@ -2,9 +2,9 @@
 
 The estimate is made once per dataset into the work folder's cache (``<work_dir>/cache/poses/<key>/``,
 ``key`` from the dataset's resolved path), reused by every later run while the scans, calibration and
-settings are unchanged (:func:`leap_core.odometry.estimate_into`), and linked into the run folder's
-``poses/`` (:attr:`leap_core.run_layout.RunLayout.poses`), where the pipeline, the exports, the
-corrections job and the viewer read it. The dataset folder is never written.
+settings are unchanged (:func:`leap_core.odometry.estimate_into`), and linked into ``poses/`` of the
+sequence's folder in the run (:attr:`leap_core.run_layout.SequenceLayout.poses`), where the pipeline, the
+exports, the corrections job and the viewer read it. The dataset folder is never written.
 """
 
 from __future__ import annotations
@@ -16,10 +16,7 @@ from pathlib import Path
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
 from leap_core.io_utils import link_or_copy, remove_tree
 from leap_core.progress import ProgressFn
-from leap_core.run_layout import RunLayout
-
-POSES_STAGE = "estimate poses"
-"""The progress stage the job manager puts before the pipeline's stages when a run estimates poses."""
+from leap_core.run_layout import SequenceLayout
 
 #: Reports the user sees; the worker sends them to the run log and the UI's run warnings.
 notice_log = logging.getLogger("leap_core.poses")
@@ -38,7 +35,7 @@ def needs_estimate(dataset: Path) -> bool:
 
 def prepare_run_poses(
     dataset: Path,
-    run_dir: Path,
+    folder: Path,
     *,
     estimate: bool,
     cache_root: Path | None,
@@ -46,10 +43,11 @@ def prepare_run_poses(
 ) -> None:
     """Put the poses a run uses in place before its pipeline starts.
 
-    Without ``estimate`` (or when the dataset has its own ``poses.txt``) the run folder's ``poses/`` is
-    removed, so poses estimated for an earlier run (carried over with its stage outputs) are not used.
+    ``folder`` is the sequence's folder in the run. Without ``estimate`` (or when the dataset has its own
+    ``poses.txt``) its ``poses/`` is removed, so poses estimated for an earlier run (carried over with its
+    stage outputs) are not used.
     """
-    layout = RunLayout(run_dir)
+    layout = SequenceLayout(folder)
     if not estimate or not needs_estimate(dataset) or cache_root is None:
         remove_tree(layout.poses.parent)
         return

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.jobs.multi import JOINT, SEPARATOR
+from app.jobs.stages import JOINT, SEPARATOR
 
 TERMINAL_STATUSES = frozenset({"done", "failed", "cancelled", "interrupted"})
 MAX_WARNINGS = 20
@@ -72,11 +72,11 @@ class StageState:
 
 
 def precedes(earlier: str, later: str) -> bool:
-    """Whether the stage listed before ``later`` has ended when ``later`` starts. Always in a one-sequence
-    run. A multi-sequence run's stages are ``<sequence>/<stage>`` (:mod:`app.jobs.multi`) and its
-    sequences may run at the same time (on a Ray cluster), so only a stage of the same sequence precedes,
-    or one across the joint 3D-CN (sequence ``*``), which starts after every sequence's first stages and
-    ends before any of their later ones."""
+    """Whether the stage listed before ``later`` has ended when ``later`` starts. A run's stages are
+    ``<sequence>/<stage>`` (:mod:`app.jobs.stages`) and its sequences may run at the same time (on a Ray
+    cluster), so only a stage of the same sequence precedes, or one across the 3D-CN rounds (sequence
+    ``*``), which start after every sequence's first stages and end before any of their later ones.
+    Stage names without a sequence (runs stored before runs had sequences) always do."""
     seq_e, sep_e, _ = earlier.partition(SEPARATOR)
     seq_l, sep_l, _ = later.partition(SEPARATOR)
     return not (sep_e and sep_l) or JOINT in (seq_e, seq_l) or seq_e == seq_l
@@ -182,9 +182,9 @@ class ProgressTracker:
         """Record a report; returns True when the stage changed state (started or finished).
 
         Stages run in order, so earlier stages still marked running are closed and earlier stages that
-        never reported are marked skipped (in a multi-sequence run only those that precede it:
-        :func:`precedes`). ``skipped`` (the reason) marks a stage that reports completion without computing
-        anything as skipped rather than done.
+        never reported are marked skipped (only those that precede it: :func:`precedes`). ``skipped`` (the
+        reason) marks a stage that reports completion without computing anything as skipped rather than
+        done.
         """
         state = self._stage(stage)
         changed = False

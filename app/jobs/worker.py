@@ -44,8 +44,8 @@ from app.jobs.messages import (
     StageProgress,
     decode_to_worker,
 )
-from app.jobs.multi import execute_sequences, stage_dir
-from app.jobs.poses import POSES_STAGE, prepare_run_poses
+from app.jobs.poses import prepare_run_poses
+from app.jobs.stages import POSES, SYNTH, stage_folder, stage_name
 from leap_core.config import config_from_dict
 from leap_core.errors import Cancelled, LeapError, ModelLoadError, PosesMissingError
 from leap_core.run_layout import RunLayout
@@ -126,10 +126,8 @@ class _Reporter:
         self.interval = interval
         self.log = log
         self.run_dir = run_dir
-        """The pipeline's run folder (None for the demo generation): a stage's completion is checked there
-        for a skip (its ``stages.json`` record)."""
-        self.multi = False
-        """The run is a multi-sequence run: stage names are ``<sequence>/<stage>`` (:mod:`app.jobs.multi`)."""
+        """The run folder: a stage's completion is checked in its sequence's ``stages.json`` for a skip
+        (stage names are ``<sequence>/<stage>``, :mod:`app.jobs.stages`)."""
         self.since = time.time()
         self._last: dict[str, float] = {}
         self._started: dict[str, float] = {}
@@ -161,10 +159,8 @@ class _Reporter:
                 self.log.info("stage %s done (%d units) in %.2f s", stage, total, seconds)
 
     def _stage_record(self, stage: str) -> tuple[Path, str] | None:
-        """(run folder, stage name) whose ``stages.json`` records the progress stage ``stage``."""
-        if self.run_dir is None:
-            return None
-        return stage_dir(self.run_dir, stage) if self.multi else (self.run_dir, stage)
+        """(sequence folder, stage name) whose ``stages.json`` records the progress stage ``stage``."""
+        return None if self.run_dir is None else stage_folder(self.run_dir, stage)
 
 
 def execute(spec: RunSpec, emit: Emit, should_cancel: Callable[[], bool]) -> RunOutcome:
@@ -231,9 +227,12 @@ def _in_app_words(exc: LeapError) -> str:
 
 
 def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
+    """The run: each sequence generated (the demo's) and its poses put in place, then the pipeline over
+    every sequence, each report named ``<sequence>/<stage>``."""
     # Imported here, not at the top: the worker process must load the pipeline (torch) only once it dies
     # with the server (child_main), and the server imports this module for execute() and LOG_NAME.
-    from leap_core.pipeline import run_pipeline  # noqa: PLC0415  # loaded by a run only, see above
+    from leap_core.pipeline import SequenceSpec, run_pipeline  # noqa: PLC0415  # loaded by a run only
+    from leap_core.pipeline.run import open_run_folder  # noqa: PLC0415
 
     # Deployment values come from the server's settings only (the spec), never from the project.
     runtime = Runtime(
@@ -242,39 +241,49 @@ def _run(spec: RunSpec, reporter: _Reporter, log: logging.Logger) -> None:
         allow_download=spec.allow_download,
         ray_address=spec.ray_address,
     )
-    if spec.sequences:
-        reporter.multi = True
-        execute_sequences(
-            spec.run_dir,
-            spec.sequences,
-            spec.schema,
-            spec.pipeline,
-            reporter,
-            runtime=runtime,
-            estimate_poses=spec.estimate_poses,
-            poses_cache=spec.poses_cache,
+    specs = [
+        SequenceSpec(name, dataset, None if frames is None else range(*frames))
+        for name, dataset, frames in spec.sequences
+    ]
+    layout = open_run_folder(spec.run_dir, specs)
+
+    for seq in specs:
+        if spec.demo:
+            generated = _Named(reporter, seq.name, SYNTH)
+            ensure_demo_sequence(seq.dataset, spec.demo_synth, progress=generated.staged, log=log)
+        prepare_run_poses(
+            seq.dataset,
+            layout.sequence(seq.name).folder,
+            estimate=spec.estimate_poses,
+            cache_root=spec.poses_cache,
+            progress=_Named(reporter, seq.name, POSES),
         )
-        return
-    if spec.demo:
-        ensure_demo_sequence(spec.dataset, spec.demo_synth, progress=reporter, log=log)
-    prepare_run_poses(
-        spec.dataset,
-        spec.run_dir,
-        estimate=spec.estimate_poses,
-        cache_root=spec.poses_cache,
-        progress=lambda done, total: reporter(POSES_STAGE, done, total),
-    )
     schema = Schema.from_dict(spec.schema, source="project schema")
     config = config_from_dict(spec.pipeline)  # the run spec stores config_to_dict(); parsed once, here
     run_pipeline(
-        spec.dataset,
+        specs,
         schema,
         config,
         spec.run_dir,
-        progress=reporter,
-        frames=None if spec.frames is None else range(*spec.frames),
+        progress=lambda sequence, stage, done, total: reporter(stage_name(sequence, stage), done, total),
         runtime=runtime,
     )
+
+
+class _Named:
+    """The progress callback of one sequence's step before its pipeline (the demo's generation, the pose
+    estimation): reports ``<sequence>/<stage>`` to the run's reporter."""
+
+    def __init__(self, reporter: _Reporter, sequence: str, stage: str) -> None:
+        self.reporter = reporter
+        self.name = stage_name(sequence, stage)
+
+    def __call__(self, done: int, total: int) -> None:
+        self.reporter(self.name, done, total)
+
+    def staged(self, _stage: str, done: int, total: int) -> None:
+        """The demo generator's ``progress(stage, done, total)``."""
+        self(done, total)
 
 
 class _ForwardLogs(logging.Handler):

@@ -1,6 +1,6 @@
 """Reading a finished run for review: the final voxel grid, per-scan labels, camera geometry.
 
-The run folder's files come from :class:`leap_core.run_layout.RunLayout`: the final grid (a
+The run's files of the sequence come from :class:`leap_core.run_layout.SequenceLayout`: the final grid (a
 :class:`~leap_core.smoothing.SmoothedGrid`) is the map, else the fused ``VoxelGrid``;
 ``points/<frame_id>.npz`` holds per-point ``label`` (final), ``conf`` and ``point_label`` (camera projection
 only). Arrays are read once and kept; per-class probability columns are extracted on demand and cached.
@@ -23,7 +23,7 @@ from leap_core.consistency.selection import lookup_counts, view_counts
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
 from leap_core.projection import project_points
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.smoothing import SmoothedGrid
 
 
@@ -39,9 +39,10 @@ def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
 
 
 def final_grid_path(run_dir: str | Path, pipeline: Mapping[str, Any] | None = None) -> Path:
-    """The run's final grid (:meth:`RunLayout.final_grid`) under the run's pipeline parameters, or, without
-    usable parameters, the one found in the folder (:meth:`RunLayout.final_grid_on_disk`)."""
-    layout = RunLayout(Path(run_dir))
+    """The final grid of the run's sequence folder ``run_dir`` (:meth:`SequenceLayout.final_grid`) under
+    the run's pipeline parameters, or, without usable parameters, the one found in the folder
+    (:meth:`SequenceLayout.final_grid_on_disk`)."""
+    layout = SequenceLayout(Path(run_dir))
     if pipeline:
         try:
             return layout.final_grid(config_from_dict(pipeline).consistency)
@@ -112,21 +113,21 @@ class ReviewGrid:
         """The final grid of a run (see :func:`final_grid_path`), else the fused grid (softmax of logp).
 
         Args:
-            run_dir: the run folder.
+            run_dir: the run's folder of the sequence shown.
             pipeline: the run's pipeline parameters (to know whether 3D-CN made the final grid).
 
         Raises:
             DatasetError: the run has no grid, or a grid file is malformed.
         """
-        layout = RunLayout(Path(run_dir))
-        final_path = final_grid_path(layout.run_dir, pipeline)
+        layout = SequenceLayout(Path(run_dir))
+        final_path = final_grid_path(layout.folder, pipeline)
         fused = VoxelGrid.load(layout.grid) if layout.grid.is_file() else None
         if final_path.is_file():
             vs = None if fused is None else fused.voxel_size
             return cls(SmoothedGrid.load(final_path, voxel_size=vs), str(final_path))
         if fused is None:
             missing = f"{final_path.name} or {layout.grid.name}"
-            raise DatasetError(layout.run_dir, f"run has no voxel grid ({missing}); has it finished?")
+            raise DatasetError(layout.folder, f"run has no voxel grid ({missing}); has it finished?")
         return cls(SmoothedGrid.from_voxel_grid(fused), str(layout.grid))
 
 
@@ -182,7 +183,7 @@ class RunOutputs:
 
     def __init__(self, run_dir: str | Path, dataset: str | Path) -> None:
         self.run_dir = Path(run_dir)
-        self.layout = RunLayout(self.run_dir)
+        self.layout = SequenceLayout(self.run_dir)
         self.seq = self.layout.open_sequence(dataset)
         points_dir = self.layout.points_dir
         done = {p.stem for p in points_dir.glob("*.npz")} if points_dir.is_dir() else set()

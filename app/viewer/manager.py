@@ -22,7 +22,7 @@ from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager, current_manager
-from app.jobs.multi import covered_sequences, sequence_run_dir
+from app.rows import ProjectRow, RunRow, labeled_sequences
 from app.viewer.lod import LodConfig
 from app.viewer.panel import ReviewPanel
 from app.viewer.session import (
@@ -67,9 +67,9 @@ class AppBackend:
         self.project_id = project_id
         self._jobs = jobs
         with open_db(settings.database) as db:
-            crud.require_project(db, project_id)
+            project = crud.require_project(db, project_id)
             self.sequence = crud.sequence_name(db, project_id, sequence, loc=("body", "sequence"))
-            self.multi = len(crud.list_sequences(db, project_id)) > 1
+            self.several = len(project.sequences) > 1
         # Corrections made in this viewer reach the export at once: load what that needs now.
         applier(settings).warm(project_id)
 
@@ -82,57 +82,58 @@ class AppBackend:
         except RuntimeError:
             return None
 
-    def _project(self) -> dict[str, Any]:
+    def _project(self) -> ProjectRow:
         with open_db(self.settings.database) as db:
             return crud.require_project(db, self.project_id)
 
     def project_name(self) -> str:
-        name = str(self._project()["name"])
-        return f"{name} · {self.sequence}" if self.multi else name
+        name = self._project().name
+        return f"{name} · {self.sequence}" if self.several else name
 
     def dataset_path(self) -> Path:
-        project = self._project()
-        return Path(next(s["dataset_path"] for s in project["sequences"] if s["name"] == self.sequence))
+        seq = self._project().sequence(self.sequence)
+        if seq is None:
+            raise NotFound(f"Project {self.project_id} has no sequence {self.sequence!r}")
+        return Path(seq.dataset_path)
 
     def load_schema(self) -> Schema:
-        return Schema.from_dict(self._project()["schema"], source=f"project {self.project_id} schema")
+        return Schema.from_dict(self._project().schema, source=f"project {self.project_id} schema")
 
     def save_schema(self, schema: Schema) -> None:
         with open_db(self.settings.database) as db:
             services.save_classes(db, self.project_id, schema.to_dict()["classes"], loc=("viewer",))
 
-    def _info(self, run: dict[str, Any]) -> RunInfo:
-        status, percent, stage, error = str(run["status"]), 0.0, None, run.get("error")
+    def _info(self, run: RunRow) -> RunInfo:
+        status, percent, stage, error = str(run.status), 0.0, None, run.error
         manager = self._jobs_manager()
         if manager is not None:
-            progress = manager.run_status(int(run["id"]))
+            progress = manager.run_status(run.id)
             status = str(progress.get("status", status))
             percent = float(progress.get("percent") or 0.0)
             stage = progress.get("stage")
             error = progress.get("error") or error
         if status == "done":
             percent = 100.0
-        params = run.get("params") or {}
         return RunInfo(
-            run_id=int(run["id"]),
-            number=int(run["number"]),
+            run_id=run.id,
+            number=run.number,
             status=status,
             percent=percent,
             stage=stage,
             error=error,
-            run_dir=sequence_run_dir(Path(run["run_dir"]), params, self.sequence),
-            schema=_schema_or_none(params.get("schema")),
-            pipeline=params.get("pipeline") if isinstance(params.get("pipeline"), dict) else None,
+            run_dir=run.sequence_layout(self.sequence).folder,
+            schema=_schema_or_none(run.params.schema),
+            pipeline=run.params.pipeline,
         )
 
-    def _covers(self, run: dict[str, Any]) -> bool:
+    def _covers(self, run: RunRow) -> bool:
         """Whether the run labeled this sequence (it may predate the sequence's addition)."""
-        return self.sequence in covered_sequences(run.get("params") or {}, self._project()["sequences"])
+        return any(s.name == self.sequence for s in labeled_sequences(run, self._project().sequences))
 
     def run_info(self, run_id: int) -> RunInfo:
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
-        if int(run["project_id"]) != self.project_id:
+        if run.project_id != self.project_id:
             raise NotFound(f"Run {run_id} not found in project {self.project_id}")
         if not self._covers(run):
             raise Conflict(
@@ -144,7 +145,7 @@ class AppBackend:
     def latest_finished_run(self) -> RunInfo | None:
         """The newest finished run that labeled this sequence."""
         with open_db(self.settings.database) as db:
-            runs = [r for r in crud.list_runs(db, self.project_id) if r["status"] == "done"]
+            runs = [r for r in crud.list_runs(db, self.project_id) if r.status == "done"]
         run = next((r for r in runs if self._covers(r)), None)
         return None if run is None else self._info(run)
 
@@ -157,7 +158,7 @@ class AppBackend:
         manager = self._jobs_manager()
         if manager is None:
             raise RuntimeError("runs can only be started while the app's job manager is running")
-        return int(manager.start_run(self.project_id)["id"])
+        return manager.start_run(self.project_id).id
 
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:

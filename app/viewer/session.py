@@ -88,7 +88,7 @@ class RunInfo:
     error: str | None
     """Failure message."""
     run_dir: Path
-    """Folder with the run's outputs."""
+    """The run's folder of the sequence shown (its outputs)."""
     schema: Schema | None
     """Class schema the run was made with (its class indices index the run's grid)."""
     pipeline: dict[str, Any] | None = None

@@ -1,9 +1,9 @@
 """One 3D-CN iteration: select reliable labels, train, predict every point, fuse back
 (docs/METHOD.md stage C).
 
-The pipeline runs one round per iteration (1 by default, 2 allowed): :func:`iter_3dcn_round` over one
-sequence, or over several in a multi-sequence run (one network per round, trained on the reliable labels
-of every sequence, fused back into each sequence's own grid); :func:`run_3dcn_iteration` is its
+The pipeline runs one round per iteration (1 by default, 2 allowed): :func:`iter_3dcn_round` over the
+sequences of a run (one network per round, trained on the reliable labels of every sequence, fused back
+into each sequence's own grid); :func:`run_3dcn_iteration` is its
 one-sequence form. It reads
 labels from the *smoothed* grid but adds the network's evidence to the *un-smoothed* fused grid, so the
 smoothing that the pipeline applies afterwards is not applied twice.

@@ -1,7 +1,7 @@
 """The labeling pipeline as separable, cached, resumable stages on a run directory.
 
-Stages (:data:`STAGE_TABLE`, in order) and what each writes into the run folder
-(:class:`~leap_core.run_layout.RunLayout`); the labels in brackets are sections of docs/METHOD.md:
+Stages (:data:`STAGE_TABLE`, in order) and what each writes into a sequence's folder of the run
+(:class:`~leap_core.run_layout.SequenceLayout`); the labels in brackets are sections of docs/METHOD.md:
 
 ============  ================================================================================================
 labels2d      ``labels2d/<frame_id>.npz``: the 2D labeler's :class:`SoftMasks` per frame (stage A)
@@ -28,13 +28,13 @@ cancelled through the progress callback) and run again yields byte-identical fin
 A shared 2D cache (``Runtime.cache_dir``) lets runs of one project reuse 2D results: entries are keyed by
 the labeler's fingerprint and a digest of the frame's input files, and hard-linked into the run folder.
 
-Several sequences with one schema and config form a multi-sequence run (:mod:`.multi`:
-:func:`run_sequences`, one run folder per sequence, a joint 3D-CN, overall metrics, exports in the
-``sequences/NN/predictions/`` layout).
+A run labels one or several sequences with one schema and config (:func:`run_pipeline`, the entry point:
+one folder per sequence, a 3D-CN trained on all of them, overall metrics); exports keep the
+``sequences/<name>/predictions/`` layout (:mod:`leap_core.export`).
 
 Modules: :mod:`.context` (stage record, run context), :mod:`.stages` (stage functions, the table),
-:mod:`.evaluation` (evaluate stage, result tables), :mod:`.runner` (fingerprints, run / plan / status),
-:mod:`.multi` (multi-sequence runs).
+:mod:`.evaluation` (evaluate stage, result tables), :mod:`.runner` (fingerprints, one sequence's stages,
+plan / status), :mod:`.run` (the run), :mod:`.migration` (run folders of earlier versions).
 """
 
 from __future__ import annotations
@@ -53,22 +53,21 @@ from leap_core.pipeline.evaluation import (
     read_metrics_json,
     result_tables,
 )
-from leap_core.pipeline.multi import (
+from leap_core.pipeline.migration import migrate_run_folder
+from leap_core.pipeline.run import (
     JOINT,
-    MultiRunResult,
+    RunProgress,
+    RunResult,
     SequenceSpec,
-    export_sequences,
-    export_zip,
-    multi_result_tables,
-    read_multi_metrics,
-    run_sequences,
+    read_run_metrics,
+    run_pipeline,
+    run_result_tables,
 )
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
-    RunResult,
+    SequenceResult,
     StageReport,
     plan_stages,
-    run_pipeline,
     skip_reason,
     stage_fingerprints,
     stage_status,
@@ -85,26 +84,25 @@ __all__ = [
     "STAGES",
     "STAGE_TABLE",
     "FrameFiles",
-    "MultiRunResult",
     "ProgressCallback",
+    "RunProgress",
     "RunResult",
+    "SequenceResult",
     "SequenceSpec",
     "StageInfo",
     "StageReport",
     "all_points_labeled_share",
     "cn_row",
     "dataset_identity",
-    "export_sequences",
-    "export_zip",
     "load_metrics",
-    "multi_result_tables",
+    "migrate_run_folder",
     "overall_metrics",
     "plan_stages",
     "read_metrics_json",
-    "read_multi_metrics",
+    "read_run_metrics",
     "result_tables",
     "run_pipeline",
-    "run_sequences",
+    "run_result_tables",
     "skip_reason",
     "stage_fingerprints",
     "stage_status",

@@ -36,7 +36,7 @@ from leap_core.export import export_labels
 from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys
 from leap_core.geometry import affine_points, row_blocks
 from leap_core.io_utils import atomic_save_npz
-from leap_core.run_layout import RunLayout, load_corrections, save_corrections
+from leap_core.run_layout import SequenceLayout, load_corrections, save_corrections
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
 
@@ -70,12 +70,12 @@ class RunCorrections:
         return cls(keys, cls_, scan)
 
     @classmethod
-    def of_run(cls, layout: RunLayout, num_classes: int) -> RunCorrections:
+    def of_run(cls, layout: SequenceLayout, num_classes: int) -> RunCorrections:
         """The corrections the run's stages applied (``corrections.npz`` + ``corrections_scan.npz``)."""
         return cls.read(layout.corrections, layout.corrections_scan, num_classes)
 
     @classmethod
-    def applied(cls, layout: RunLayout, num_classes: int) -> RunCorrections:
+    def applied(cls, layout: SequenceLayout, num_classes: int) -> RunCorrections:
         """The corrections the run's points and export carry now (after any immediate apply)."""
         if layout.applied_corrections.is_file():
             return cls.read(layout.applied_corrections, layout.applied_corrections_scan, num_classes)
@@ -98,7 +98,7 @@ class RunCorrections:
         self.scan.save(scan_path)
 
 
-def export_ahead_of_metrics(layout: RunLayout, num_classes: int) -> bool:
+def export_ahead_of_metrics(layout: SequenceLayout, num_classes: int) -> bool:
     """Whether the run's points and export carry corrections its ``metrics.json`` does not (the app's
     apply job changed labels after the run's evaluation: the metrics describe the labels before them)."""
     if not layout.applied_corrections.is_file():
@@ -187,7 +187,7 @@ class RunCache:
     """Voxel → frame positions."""
 
 
-def load_run_cache(layout: RunLayout, seq: KittiSequence, frames: range, voxel_size: float) -> RunCache:
+def load_run_cache(layout: SequenceLayout, seq: KittiSequence, frames: range, voxel_size: float) -> RunCache:
     """Load the final grid and the voxel → frames index (built and saved in the run folder when missing
     or built over other frames)."""
     final = SmoothedGrid.load(layout.final_grid_on_disk())
@@ -220,7 +220,7 @@ class ApplyResult:
 
 
 def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corrections, the cache, knobs
-    layout: RunLayout,
+    layout: SequenceLayout,
     seq: KittiSequence,
     frames: range,
     voxel_size: float,

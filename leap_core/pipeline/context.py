@@ -24,7 +24,7 @@ from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_json, file_digest, read_npz
 from leap_core.labelers import make_labeler
 from leap_core.projection import Painted
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -72,16 +72,16 @@ StageFn = Callable[["Ctx"], dict[str, Any]]
 (``{"status": "skipped", "note": ...}`` when it had nothing to do)."""
 
 
-def _no_files(_layout: RunLayout, _cfg: PipelineConfig) -> tuple[Path, ...]:
+def _no_files(_layout: SequenceLayout, _cfg: PipelineConfig) -> tuple[Path, ...]:
     return ()
 
 
 @dataclass(frozen=True)
 class FrameFiles:
-    """Where a per-frame stage writes: ``<run_dir>/<folder>/<frame_id><suffix>`` for every suffix."""
+    """Where a per-frame stage writes: ``<sequence folder>/<folder>/<frame_id><suffix>`` for every suffix."""
 
     folder: str
-    """A :class:`~leap_core.run_layout.RunLayout` per-frame folder name."""
+    """A :class:`~leap_core.run_layout.SequenceLayout` per-frame folder name."""
     suffixes: tuple[str, ...] = (".npz",)
     """One file per suffix and frame; a frame is done when all exist."""
 
@@ -113,11 +113,11 @@ class StageInfo:
     table)."""
     frame_files: FrameFiles | None = None
     """Per-frame stages: their files (the folder is removed when the fingerprint changes)."""
-    outputs: Callable[[RunLayout, PipelineConfig], tuple[Path, ...]] = field(
+    outputs: Callable[[SequenceLayout, PipelineConfig], tuple[Path, ...]] = field(
         default=_no_files, repr=False, compare=False
     )
     """Whole-run stages: the files a finished run of the stage has (a stage recorded as skipped has none)."""
-    stale: Callable[[RunLayout], Iterable[Path]] | None = field(default=None, repr=False, compare=False)
+    stale: Callable[[SequenceLayout], Iterable[Path]] | None = field(default=None, repr=False, compare=False)
     """Files removed when the fingerprint changes; None = :attr:`outputs` (for the current config)."""
     inputs: Callable[[Ctx], Any] | None = field(default=None, repr=False, compare=False)
     """Other fingerprint parts (JSON-able): labeler identity, dataset identity, frames, corrections, schema
@@ -155,12 +155,13 @@ def config_value(cfg: PipelineConfig, path: str) -> Any:
 # ------------------------------------------------------------------------------------------ context
 @dataclass
 class Ctx:
-    """One :func:`~leap_core.pipeline.run_pipeline` call: inputs, run folder, records, progress."""
+    """One sequence of a run in one :func:`~leap_core.pipeline.runner.run_sequence` call: inputs, its folder,
+    records, progress."""
 
     seq: KittiSequence
     schema: Schema
     cfg: PipelineConfig
-    layout: RunLayout
+    layout: SequenceLayout
     frames: range
     runtime: Runtime | None
     progress: ProgressCallback | None
@@ -236,7 +237,7 @@ class Ctx:
         return {"frames_done": total, "frames_computed": len(todo)}
 
 
-def read_state(layout: RunLayout) -> dict[str, dict[str, Any]]:
+def read_state(layout: SequenceLayout) -> dict[str, dict[str, Any]]:
     """``stages.json`` ({} when the run has none)."""
     path = layout.state
     if not path.is_file():

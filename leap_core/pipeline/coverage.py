@@ -21,6 +21,7 @@ whose stages are all cached, and the app's export dialog, read them instead of c
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ from leap_core.export import raw_id_counts
 from leap_core.fusion import rows_in_sorted, voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
 from leap_core.pipeline.context import hash_json, load_view, read_state
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.types import UNLABELED
 
 
@@ -81,6 +82,23 @@ class ExportCoverage:
         )
 
 
+def summed_coverage(parts: Iterable[ExportCoverage]) -> ExportCoverage:
+    """The counts of several sequences' exports taken together (a run's export)."""
+    parts = list(parts)
+    raw: dict[int, int] = {}
+    for c in parts:
+        for k, v in c.raw_counts.items():
+            raw[k] = raw.get(k, 0) + v
+    return ExportCoverage(
+        frames=sum(c.frames for c in parts),
+        points=sum(c.points for c in parts),
+        labeled=sum(c.labeled for c in parts),
+        outside_view=sum(c.outside_view for c in parts),
+        no_mask=sum(c.no_mask for c in parts),
+        raw_counts=dict(sorted(raw.items())),
+    )
+
+
 def coverage_counts(cov: ExportCoverage) -> dict[str, object]:
     """The ``counts`` :func:`leap_core.export.summary_yaml` takes."""
     return {
@@ -111,7 +129,7 @@ def unlabeled_reasons(label: npt.ArrayLike, keys: npt.ArrayLike, seen_keys: npt.
 
 
 def export_coverage(
-    run_dir: Path, dataset: Path, frames: range | None, voxel_size: float, *, merge_at: int = 1 << 19
+    folder: Path, dataset: Path, frames: range | None, voxel_size: float, *, merge_at: int = 1 << 19
 ) -> ExportCoverage:
     """Count a finished run's exported points by label and the unlabeled ones by reason (module docstring).
 
@@ -121,7 +139,7 @@ def export_coverage(
     stay near the number of distinct unlabeled voxels), and split by reason at the end.
 
     Args:
-        run_dir: the run folder.
+        folder: the sequence's folder in the run.
         dataset: the run's sequence folder.
         frames: the run's frame numbers (None: all), as given to the run.
         voxel_size: the run's ``fusion.voxel_size``.
@@ -131,7 +149,7 @@ def export_coverage(
     Raises:
         DatasetError: a missing or unreadable run file, naming it.
     """
-    lay = RunLayout(run_dir)
+    lay = SequenceLayout(folder)
     seq = lay.open_sequence(dataset)
     idx = seq.select(frames)
     seen = _KeyCounts(merge_at)
@@ -229,7 +247,7 @@ COVERAGE_FORMAT = 1
 """Version of the counting rule and of ``export-coverage.json``'s fields (part of :func:`coverage_key`)."""
 
 
-def coverage_key(run_dir: Path, dataset: Path, frames: range | None, voxel_size: float) -> str | None:
+def coverage_key(folder: Path, dataset: Path, frames: range | None, voxel_size: float) -> str | None:
     """What the counts of a run's current export depend on, hashed; None while its export is not done.
 
     The export stage's ``stages.json`` record: its fingerprint (which chains every upstream input: the
@@ -238,7 +256,7 @@ def coverage_key(run_dir: Path, dataset: Path, frames: range | None, voxel_size:
     :func:`export_coverage`. The app's "apply corrections" job rewrites the export without a stage record
     and deletes the counts file instead (``app.exports.invalidate``).
     """
-    rec = read_state(RunLayout(run_dir)).get("export")
+    rec = read_state(SequenceLayout(folder)).get("export")
     if not isinstance(rec, dict) or rec.get("status") != "done" or not rec.get("fingerprint"):
         return None
     span = None if frames is None else [frames.start, frames.stop, frames.step]
@@ -275,7 +293,7 @@ def write_coverage_file(path: Path, cov: ExportCoverage, key: str | None) -> Non
 
 
 def cached_export_coverage(
-    run_dir: Path, dataset: Path, frames: range | None, voxel_size: float
+    folder: Path, dataset: Path, frames: range | None, voxel_size: float
 ) -> ExportCoverage:
     """:func:`export_coverage`, read from the run's ``export-coverage.json`` when it was written for the
     current :func:`coverage_key`, else counted and written there (when the export is done).
@@ -283,13 +301,13 @@ def cached_export_coverage(
     Counting reads every scan and run file of the run again; a rerun whose stages are all cached would pay
     that for the same numbers.
     """
-    path = RunLayout(run_dir).export_coverage
-    key = coverage_key(run_dir, dataset, frames, voxel_size)
+    path = SequenceLayout(folder).export_coverage
+    key = coverage_key(folder, dataset, frames, voxel_size)
     if key is not None:
         cached = read_coverage_file(path, key)
         if cached is not None:
             return cached
-    cov = export_coverage(run_dir, dataset, frames, voxel_size)
+    cov = export_coverage(folder, dataset, frames, voxel_size)
     if key is not None:
         write_coverage_file(path, cov, key)
     return cov
@@ -303,6 +321,7 @@ __all__ = [
     "coverage_key",
     "export_coverage",
     "read_coverage_file",
+    "summed_coverage",
     "unlabeled_reasons",
     "write_coverage_file",
 ]

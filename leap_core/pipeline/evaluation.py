@@ -25,7 +25,7 @@ from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json, read_npz
 from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_confusion, metrics_from_confusion
 from leap_core.pipeline.context import load_view, ordered_map
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
 
@@ -230,13 +230,13 @@ def all_points_labeled_share(metrics: Mapping[str, Any]) -> dict[str, float | No
     return {str(r): (float(v) / n if isinstance(n, int) and n > 0 else None) for r, v in counts.items()}
 
 
-def read_metrics_json(run_dir: str | Path) -> dict[str, Any] | None:
-    """The run's ``metrics.json`` as written (None when the run has none)."""
-    return read_metrics_file(RunLayout(Path(run_dir)).metrics)
+def read_metrics_json(folder: str | Path) -> dict[str, Any] | None:
+    """A sequence's ``metrics.json`` in a run, as written (None when it has none)."""
+    return read_metrics_file(SequenceLayout(Path(folder)).metrics)
 
 
 def read_metrics_file(path: Path) -> dict[str, Any] | None:
-    """A metrics file (a run's or a multi-sequence run's) as written (None when there is none)."""
+    """A metrics file (a sequence's or a run's) as written (None when there is none)."""
     if not path.is_file():
         return None
     try:
@@ -246,17 +246,17 @@ def read_metrics_file(path: Path) -> dict[str, Any] | None:
     return data
 
 
-def load_metrics(run_dir: str | Path) -> dict[str, dict[str, Metrics]] | None:
+def load_metrics(folder: str | Path) -> dict[str, dict[str, Metrics]] | None:
     """``{protocol: {row: Metrics}}`` rebuilt from ``metrics.json`` (None when the run has none)."""
-    data = read_metrics_json(run_dir)
+    data = read_metrics_json(folder)
     if data is None:
         return None
-    return metrics_tables(data, RunLayout(Path(run_dir)).metrics)
+    return metrics_tables(data, SequenceLayout(Path(folder)).metrics)
 
 
 def metrics_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> dict[str, dict[str, Metrics]]:
     """``{protocol: {row: Metrics}}`` rebuilt from the content of a ``metrics.json`` (or an ``overall``
-    entry of a multi-sequence run's): :data:`PROTOCOLS`, then ``paper``; the :data:`OPTIONAL_PROTOCOLS`
+    entry of a run's): :data:`PROTOCOLS`, then ``paper``; the :data:`OPTIONAL_PROTOCOLS`
     only when the file has them. ``source`` names it in errors."""
     try:
         tables: dict[str, dict[str, Metrics]] = {}
@@ -297,12 +297,12 @@ def format_result_tables(data: Mapping[str, Any], source: str | Path = "metrics"
     return "\n\n".join(parts)
 
 
-def result_tables(run_dir: str | Path) -> str | None:
-    """The run's result tables as text (one per protocol), or None without metrics."""
-    data = read_metrics_json(run_dir)
+def result_tables(folder: str | Path) -> str | None:
+    """A sequence's result tables as text (one per protocol), or None without metrics."""
+    data = read_metrics_json(folder)
     if data is None:
         return None
-    return format_result_tables(data, RunLayout(Path(run_dir)).metrics)
+    return format_result_tables(data, SequenceLayout(Path(folder)).metrics)
 
 
 # ------------------------------------------------------------------------------- several sequences
@@ -372,6 +372,23 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
     return out
 
 
+def write_run_metrics(
+    layout: RunLayout, per_sequence: Mapping[str, Mapping[str, Any] | None]
+) -> dict[str, Any] | None:
+    """Write ``<root>/metrics.json`` = ``{"overall": overall_metrics(...), "sequences": per_sequence}``
+    and return it; remove a stale one and return None when no sequence has metrics."""
+    overall = overall_metrics(per_sequence)
+    if overall is None:
+        layout.metrics.unlink(missing_ok=True)
+        return None
+    data = {
+        "overall": overall,
+        "sequences": {n: (None if m is None else dict(m)) for n, m in per_sequence.items()},
+    }
+    atomic_write_json(layout.metrics, data)
+    return data
+
+
 __all__ = [
     "COMMON",
     "IGNORES_UNLABELED",
@@ -395,4 +412,5 @@ __all__ = [
     "read_metrics_json",
     "result_tables",
     "stage_evaluate",
+    "write_run_metrics",
 ]

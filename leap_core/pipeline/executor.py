@@ -2,7 +2,7 @@
 
 :func:`make_executor` picks the engine from :attr:`leap_core.runtime.Runtime.ray_address`: None =
 :class:`LocalExecutor` (each stage's function in this process; ray is never imported), else
-:class:`RayExecutor`. The runner (:func:`leap_core.pipeline.runner.run_pipeline`) keeps everything else:
+:class:`RayExecutor`. The runner (:func:`leap_core.pipeline.runner.run_sequence`) keeps everything else:
 fingerprints, ``stages.json``, clearing, resuming.
 
 The Ray engine changes where work runs, never what it computes, so a run's files are the same bytes as a
@@ -59,8 +59,8 @@ from leap_core.errors import Cancelled, DatasetError, LeapError
 from leap_core.fusion import Observations, Partial, fold_blocks, fusion_blocks, log_table, reduce_block
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, StageInfo
-from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys, stage_3dcn
-from leap_core.run_layout import RunLayout
+from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys
+from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -234,7 +234,8 @@ class RunJob:
     dataset: Path
     schema: Schema
     config: PipelineConfig
-    run_dir: Path
+    folder: Path
+    """The sequence's folder in the run."""
     runtime: Runtime
     """The run's runtime without its Ray address (a worker computes in its own process)."""
     stop: StopSignal | None = None
@@ -245,7 +246,7 @@ def worker_context(job: RunJob, frames: range) -> Ctx:
     """The run context of ``job`` restricted to the frame numbers ``frames``, as a worker builds it: the
     same sequence (with the run's estimated poses when the dataset has none), no records; its progress
     reports only look at ``job.stop``, so a stopped task ends before its next frame."""
-    layout = RunLayout(job.run_dir)
+    layout = SequenceLayout(job.folder)
     seq = layout.open_sequence(job.dataset)
     stop = job.stop
     progress = None if stop is None else lambda _stage, _done, _total: stop.check()
@@ -487,14 +488,6 @@ class RayExecutor:
             return self._per_frame(ctx, stage)
         if stage.name == "fuse":
             return self._fuse(ctx)
-        if stage.name == "3dcn":
-            predict = self.predictor(ctx.cfg)
-            record = stage_3dcn(ctx, predict)
-            if predict.tasks:  # none when the rounds were kept, or the grids linked from a joint round
-                record["ray_tasks"] = predict.tasks
-                if predict.gpus:
-                    record["ray_gpus_per_task"] = predict.gpus
-            return record
         return stage.run(ctx)
 
     def predictor(self, cfg: PipelineConfig) -> RayPredictor:
@@ -506,7 +499,7 @@ class RayExecutor:
             ctx.seq.root,
             ctx.schema,
             ctx.cfg,
-            ctx.layout.run_dir,
+            ctx.layout.folder,
             # A task holds one Ray CPU: it computes its frames one at a time.
             dataclasses.replace(ctx.runtime or Runtime(), ray_address=None, frame_threads=1),
             stop,
@@ -585,7 +578,7 @@ class RayExecutor:
         # the models more often.
         slots = int(self.ray.cluster_resources().get("GPU", 1)) if options else self._cpus()
         size = math.ceil(len(todo) / (TASKS_PER_CPU * slots))
-        stop = StopSignal(ctx.layout.run_dir)
+        stop = StopSignal(ctx.layout.folder)
         job = self._job(ctx, stop)
         task = self._task.options(**options)
         pending = {
@@ -668,7 +661,7 @@ class RayExecutor:
         counts = [observed_count(ctx.layout.observation(ctx.fid(i))) for i in frames]
         chunks = fusion_blocks(counts, ctx.cfg.fusion.chunk_points)
         size = max(1, math.ceil(total / (TASKS_PER_CPU * self._cpus())))
-        stop = StopSignal(ctx.layout.run_dir)
+        stop = StopSignal(ctx.layout.folder)
         job = self._job(ctx, stop)
         c = ctx.schema.num_classes
         partials: list[tuple[Any, int]] = []

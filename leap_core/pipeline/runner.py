@@ -1,5 +1,7 @@
-"""Running the stage table on a run folder: fingerprints, the stage records in ``stages.json``, skipping,
-clearing and resuming, all derived from :data:`~leap_core.pipeline.stages.STAGE_TABLE`."""
+"""Running the stage table on one sequence's folder of a run: fingerprints, the stage records in
+``stages.json``, skipping, clearing and resuming, all derived from
+:data:`~leap_core.pipeline.stages.STAGE_TABLE`. A run (:func:`leap_core.pipeline.run.run_pipeline`) calls
+:func:`run_sequence` for each of its sequences."""
 
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_js
 from leap_core.pipeline.evaluation import read_metrics_json
 from leap_core.pipeline.executor import Executor, LocalExecutor, make_executor
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -32,7 +34,7 @@ PIPELINE_VERSION = 1
 
 @dataclass(frozen=True)
 class StageReport:
-    """What one stage did in one :func:`run_pipeline` call."""
+    """What one stage did in one :func:`run_sequence` call."""
 
     name: str
     ran: bool
@@ -46,10 +48,10 @@ class StageReport:
 
 
 @dataclass(frozen=True)
-class RunResult:
-    """Outcome of :func:`run_pipeline`."""
+class SequenceResult:
+    """What :func:`run_sequence` did in one sequence's folder."""
 
-    run_dir: Path
+    folder: Path
     stages: dict[str, StageReport]
     """Per stage, in :data:`STAGES` order (only stages up to ``until``)."""
     frames: tuple[int, ...]
@@ -68,14 +70,15 @@ class RunResult:
         return [n for n, r in self.stages.items() if not r.ran]
 
 
-def stage_status(run_dir: str | Path) -> dict[str, dict[str, Any]]:
-    """Each stage's record from ``stages.json`` (``{"status": "pending"}`` for stages never started).
+def stage_status(folder: str | Path) -> dict[str, dict[str, Any]]:
+    """Each stage's record from a sequence folder's ``stages.json`` (``{"status": "pending"}`` for stages
+    never started).
 
     Statuses: ``pending``, ``running`` (also what a killed run leaves behind), ``cancelled``, ``failed``
     (with ``error``), ``done``, ``skipped`` (3dcn off, evaluate without ground truth). Records also carry
     ``fingerprint``, ``seconds`` and, for per-frame stages, ``frames_done``.
     """
-    state = read_state(RunLayout(Path(run_dir)))
+    state = read_state(SequenceLayout(Path(folder)))
     return {name: dict(state.get(name, {"status": "pending"})) for name in STAGES}
 
 
@@ -83,7 +86,7 @@ UNCHANGED = "unchanged since the last run"
 """:func:`skip_reason` of a stage whose outputs an earlier run (or attempt) in the folder left current."""
 
 
-def skip_reason(run_dir: str | Path, stage: str, since: float) -> str | None:
+def skip_reason(folder: str | Path, stage: str, since: float) -> str | None:
     """Why a stage that reported itself complete computed nothing in a run started at ``since``
     (``time.time()``), or None when it computed.
 
@@ -93,7 +96,7 @@ def skip_reason(run_dir: str | Path, stage: str, since: float) -> str | None:
     this when a stage reports completion, so a skipped stage reads "skipped (reason)" and not "done 0 s".
     """
     try:
-        record = stage_status(run_dir).get(stage, {})
+        record = stage_status(folder).get(stage, {})
     except LeapError:
         return None
     if record.get("status") == "skipped":
@@ -145,7 +148,7 @@ def _is_current(ctx: Ctx, stage: StageInfo) -> bool:
 def _clear(ctx: Ctx, stage: StageInfo) -> None:
     """Remove a stage's outputs (its fingerprint changed, so they belong to other settings)."""
     if stage.frame_files is not None:
-        shutil.rmtree(ctx.layout.folder(stage.frame_files.folder), ignore_errors=True)
+        shutil.rmtree(ctx.layout.frame_folder(stage.frame_files.folder), ignore_errors=True)
         return
     stale = stage.outputs(ctx.layout, ctx.cfg) if stage.stale is None else stage.stale(ctx.layout)
     for path in stale:
@@ -163,7 +166,7 @@ def _run_stage(ctx: Ctx, stage: StageInfo, executor: Executor | None = None) -> 
         _clear(ctx, stage)
     elif stage.frame_files is not None:
         # Temp files a killed run left behind (atomic writes that never reached their rename).
-        for tmp in ctx.layout.folder(stage.frame_files.folder).glob(".*.tmp"):
+        for tmp in ctx.layout.frame_folder(stage.frame_files.folder).glob(".*.tmp"):
             tmp.unlink(missing_ok=True)
     ctx.state[name] = {"status": "running", "fingerprint": ctx.fp[name], "started": time.time()}
     ctx.save_state()
@@ -242,7 +245,7 @@ def _context(
     dataset: Path,
     schema: Schema,
     config: PipelineConfig,
-    run_dir: Path,
+    folder: Path,
     *,
     progress: ProgressCallback | None,
     frames: range | None,
@@ -252,15 +255,15 @@ def _context(
     """The run's context; with ``until`` (a run, not a preview) first :func:`require_poses` for the
     stages up to it, so a missing poses file stops the run before anything (the labeler included) loads.
     The sequence reads the dataset's poses, else estimated ones in the run folder
-    (:meth:`RunLayout.open_sequence`)."""
-    run_dir = Path(run_dir)
-    seq = RunLayout(run_dir).open_sequence(dataset)
+    (:meth:`SequenceLayout.open_sequence`)."""
+    folder = Path(folder)
+    seq = SequenceLayout(folder).open_sequence(dataset)
     if until is not None:
         require_poses(seq, config, STAGE_TABLE[: STAGES.index(until) + 1])
-    if run_dir.exists() and not run_dir.is_dir():
-        raise LeapError(f"{run_dir}: run folder path exists and is not a folder")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    layout = RunLayout(run_dir)
+    if folder.exists() and not folder.is_dir():
+        raise LeapError(f"{folder}: run folder path exists and is not a folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    layout = SequenceLayout(folder)
     ctx = Ctx(
         seq, schema, config, layout, seq.select(frames), runtime, progress, {s.name: s for s in STAGE_TABLE}
     )
@@ -273,14 +276,14 @@ def plan_stages(
     dataset: Path,
     schema: Schema,
     config: PipelineConfig,
-    run_dir: Path,
+    folder: Path,
     *,
     frames: range | None = None,
     runtime: Runtime | None = None,
 ) -> dict[str, bool]:
-    """Which stages :func:`run_pipeline` would compute (True) or skip as cached (False); writes nothing
-    but the run folder itself."""
-    ctx = _context(dataset, schema, config, run_dir, progress=None, frames=frames, runtime=runtime)
+    """Which stages :func:`run_sequence` would compute (True) or skip as cached (False) in the sequence's
+    folder ``folder``; writes nothing but the folder itself."""
+    ctx = _context(dataset, schema, config, folder, progress=None, frames=frames, runtime=runtime)
     return {s.name: not _is_current(ctx, s) for s in STAGE_TABLE}
 
 
@@ -288,38 +291,39 @@ def stage_fingerprints(
     dataset: Path,
     schema: Schema,
     config: PipelineConfig,
-    run_dir: Path,
+    folder: Path,
     *,
     frames: range | None = None,
     runtime: Runtime | None = None,
 ) -> dict[str, str]:
-    """Each stage's fingerprint for a run of these inputs in ``run_dir`` (whose ``corrections.npz``, if
-    any, is part of the fuse stage's); compared with a ``stages.json`` they say which stages a run would
-    recompute (:func:`leap_core.pipeline.steering.recompute_plan`). Reads no stage output."""
-    ctx = _context(
-        Path(dataset), schema, config, Path(run_dir), progress=None, frames=frames, runtime=runtime
-    )
+    """Each stage's fingerprint for these inputs in the sequence's folder ``folder`` (whose
+    ``corrections.npz``, if any, is part of the fuse stage's); compared with a ``stages.json`` they say
+    which stages a run would recompute (:func:`leap_core.pipeline.steering.recompute_plan`). Reads no
+    stage output."""
+    ctx = _context(Path(dataset), schema, config, Path(folder), progress=None, frames=frames, runtime=runtime)
     return dict(ctx.fp)
 
 
-def run_pipeline(
+def run_sequence(
     dataset: Path,
     schema: Schema,
     config: PipelineConfig,
-    run_dir: Path,
+    folder: Path,
     *,
     progress: ProgressCallback | None = None,
     frames: range | None = None,
     runtime: Runtime | None = None,
     until: str | None = None,
-) -> RunResult:
-    """Run (or resume) every stage on ``run_dir``, skipping stages whose cached outputs are current.
+) -> SequenceResult:
+    """Run (or resume) the stages of one sequence of a run in its folder, skipping stages whose cached
+    outputs are current; :func:`leap_core.pipeline.run.run_pipeline` calls it for each sequence (the
+    3D-CN's rounds, which span the run's sequences, run between two such calls).
 
     Args:
         dataset: a KITTI-layout sequence folder (``.../sequences/NN``).
         schema: the class schema.
         config: pipeline parameters.
-        run_dir: the run folder (created if missing); see :mod:`leap_core.run_layout` for its layout.
+        folder: the sequence's folder in the run (created if missing); see :mod:`leap_core.run_layout`.
         progress: ``progress(stage, done, total)`` after each unit of work; raising
             :class:`~leap_core.errors.Cancelled` stops the run cleanly (finished frames are kept).
         frames: the frame numbers to process (``range(10, 20)`` = scans 000010..000019, gaps allowed;
@@ -331,7 +335,7 @@ def run_pipeline(
         until: stop after this stage (e.g. "smooth" to only build the grid).
 
     Returns:
-        :class:`RunResult` with per-stage reports, the export folder and the metrics (when GT exists).
+        :class:`SequenceResult` with per-stage reports, the export folder and the metrics (when GT exists).
 
     Raises:
         LeapError: bad dataset, schema/config or run folder (one line, naming the file or field).
@@ -346,7 +350,7 @@ def run_pipeline(
         Path(dataset),
         schema,
         config,
-        Path(run_dir),
+        Path(folder),
         progress=progress,
         frames=frames,
         runtime=runtime,
@@ -359,19 +363,19 @@ def run_pipeline(
         reports[stage.name] = _run_stage(ctx, stage, executor)
     metrics = None
     if "evaluate" in reports and reports["evaluate"].status == "done":
-        metrics = read_metrics_json(ctx.layout.run_dir)
+        metrics = read_metrics_json(ctx.layout.folder)
     export_dir = ctx.layout.export_dir if "export" in reports else None
-    return RunResult(ctx.layout.run_dir, reports, tuple(ctx.frames), export_dir, metrics)
+    return SequenceResult(ctx.layout.folder, reports, tuple(ctx.frames), export_dir, metrics)
 
 
 __all__ = [
     "PIPELINE_VERSION",
     "UNCHANGED",
-    "RunResult",
+    "SequenceResult",
     "StageReport",
     "plan_stages",
     "require_poses",
-    "run_pipeline",
+    "run_sequence",
     "skip_reason",
     "stage_fingerprints",
     "stage_status",

@@ -49,7 +49,7 @@ from leap_core.pipeline.context import (
 )
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
 from leap_core.projection import Painted, paint, project_points
-from leap_core.run_layout import MultiRunLayout, RunLayout, load_corrections
+from leap_core.run_layout import RunLayout, SequenceLayout, load_corrections
 from leap_core.smoothing import SMOOTH_CHUNK, SmoothedGrid, smooth_grid_blocks
 
 if TYPE_CHECKING:
@@ -203,7 +203,7 @@ def stage_fuse(ctx: Ctx) -> dict[str, Any]:
             yield Observations(keys, painted.rows, log_table(painted.table, fcfg.prob_floor))
 
     overrides, n_corr = _fuse_overrides(ctx)
-    spill = ctx.layout.run_dir / ".fuse_spill"
+    spill = ctx.layout.folder / ".fuse_spill"
     try:
         voxels = fuse_to_file(batches(), c, ctx.layout.grid, spill, fcfg, overrides=overrides)
     finally:
@@ -298,9 +298,9 @@ class CnMember:
     rounds read) and where its round grids go."""
 
     ctx: Ctx
-    rounds: RunLayout
-    """``grid_3dcn{i}.npz`` / ``grid_smooth_3dcn{i}.npz`` are written here: the run folder itself in a
-    single run, the joint staging folder in a multi-sequence run."""
+    rounds: SequenceLayout
+    """``grid_3dcn{i}.npz`` / ``grid_smooth_3dcn{i}.npz`` are written here (the run's staging folder of
+    the sequence)."""
     name: str = ""
 
 
@@ -412,53 +412,44 @@ def _load_smoothed(path: Path, clip: float) -> VoxelGrid:
     return SmoothedGrid.load(path, mmap=True).to_voxel_grid(clip)
 
 
-def stage_3dcn(ctx: Ctx, predict: Predict | None = None) -> dict[str, Any]:
-    """The 3D Consistency Network, ``consistency.iterations`` rounds (the table skips it unless enabled):
-    :func:`cn_rounds` over this run's sequence, checkpoints in ``3dcn/``.
+def stage_3dcn(ctx: Ctx) -> dict[str, Any]:
+    """The 3D Consistency Network's grids of this sequence (the table skips it unless enabled).
 
-    In a sequence of a multi-sequence run (``3dcn_joint.json`` present) the rounds ran over every
-    sequence at once (:mod:`leap_core.pipeline.multi`); the stage then takes this sequence's round grids
-    from the joint run's staging folder. ``predict``: as for :func:`cn_rounds` (the Ray engine's).
+    The rounds train one network on every sequence of the run at once (:func:`cn_rounds`, run by
+    :func:`leap_core.pipeline.run.run_pipeline` between the sequences' ``smooth`` and ``3dcn`` stages);
+    this stage hard-links the sequence's round grids from the run's staging folder
+    (``<run>/3dcn/rounds/<name>/``) after checking that they belong to the round the sequence's
+    ``3dcn_joint.json`` names.
     """
-    if ctx.layout.joint_3dcn.is_file():
-        return _link_joint_rounds(ctx)
-    sizes = cn_rounds(
-        [CnMember(ctx, ctx.layout)],
-        ctx.layout.cn_dir,
-        lambda done, total: ctx.tick("3dcn", done, total),
-        predict,
-    )
-    return {"iterations": ctx.cfg.consistency.iterations, "voxels": sizes[0]}
-
-
-def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
-    """Hard-link this sequence's joint round grids from ``<root>/3dcn/rounds/<name>/`` into the run
-    folder, after checking they belong to the joint round ``3dcn_joint.json`` names."""
     note_path = ctx.layout.joint_3dcn
+    if not note_path.is_file():
+        raise LeapError(
+            f"{ctx.layout.folder}: no 3D-CN round for this sequence ({note_path.name} is missing); the "
+            "3D-CN runs over a whole run: leap run SEQ ... --out RUN"
+        )
     try:
         note = json.loads(note_path.read_text())
         name, fingerprint = str(note["name"]), str(note["fingerprint"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise DatasetError(note_path, f"unreadable joint 3D-CN record ({exc})") from exc
-    root = MultiRunLayout(ctx.layout.run_dir.parent.parent)
+        raise DatasetError(note_path, f"unreadable 3D-CN record ({exc})") from exc
+    root = RunLayout(ctx.layout.folder.parent.parent)
     staged = root.joint_rounds(name)
     state = root.joint_state
     try:
         current = (
-            name == ctx.layout.run_dir.name
+            name == ctx.layout.folder.name
             and state.is_file()
             and json.loads(state.read_text()).get("fingerprint") == fingerprint
         )
     except (OSError, ValueError, AttributeError) as exc:
-        raise DatasetError(state, f"unreadable joint 3D-CN record ({exc})") from exc
+        raise DatasetError(state, f"unreadable 3D-CN record ({exc})") from exc
     iterations = ctx.cfg.consistency.iterations
     files = [(staged.grid_3dcn(i), ctx.layout.grid_3dcn(i)) for i in range(1, iterations + 1)]
     files += [(staged.grid_smooth_3dcn(i), ctx.layout.grid_smooth_3dcn(i)) for i in range(1, iterations + 1)]
     if not current or not all(src.is_file() for src, _ in files):
         raise LeapError(
-            f"{ctx.layout.run_dir}: sequence {name} of the multi-sequence run {root.root}, whose joint 3D-CN "
-            "has not run for these settings; run the multi-sequence run again (leap run SEQ SEQ ... --out "
-            f"{root.root})"
+            f"{ctx.layout.folder}: sequence {name} of the run {root.root}, whose 3D-CN has not run for "
+            f"these settings; run it again (leap run SEQ ... --out {root.root})"
         )
     for src, dst in files:
         link_or_copy(src, dst)
@@ -471,10 +462,9 @@ def _link_joint_rounds(ctx: Ctx) -> dict[str, Any]:
 
 
 def _3dcn_inputs(ctx: Ctx) -> str | dict[str, str | None] | None:
-    # A sequence of a multi-sequence run takes its 3D-CN from the joint round its record names, so the
-    # record's digest is part of the stage's fingerprint; None (an ordinary run) leaves the fingerprint as
-    # it was before multi-sequence runs existed. A source network (runtime.init_3dcn) adds its file's
-    # digest, so another file, or none, trains again.
+    # The sequence takes its 3D-CN from the round its record names, so the record's digest is part of the
+    # stage's fingerprint (None before the rounds ran). A source network (runtime.init_3dcn) adds its
+    # file's digest, so another file, or none, trains again.
     note = ctx.layout.joint_3dcn
     joint = file_digest(note) if note.is_file() else None
     source = None if ctx.runtime is None else ctx.runtime.init_3dcn
@@ -483,7 +473,7 @@ def _3dcn_inputs(ctx: Ctx) -> str | dict[str, str | None] | None:
     return {"joint": joint, "source": source_digest(source)}
 
 
-def _3dcn_outputs(lay: RunLayout, cfg: PipelineConfig) -> tuple[Path, ...]:
+def _3dcn_outputs(lay: SequenceLayout, cfg: PipelineConfig) -> tuple[Path, ...]:
     return tuple(lay.grid_smooth_3dcn(i) for i in range(1, cfg.consistency.iterations + 1))
 
 
@@ -554,7 +544,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         stage_labels2d,
         reads=("labeler",),
         inputs=_labeler_inputs,
-        frame_files=FrameFiles(RunLayout.LABELS2D),
+        frame_files=FrameFiles(SequenceLayout.LABELS2D),
     ),
     StageInfo(
         "project",
@@ -564,7 +554,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         stage_project,
         reads=("projection",),
         upstream=("labels2d",),
-        frame_files=FrameFiles(RunLayout.OBSERVATIONS),
+        frame_files=FrameFiles(SequenceLayout.OBSERVATIONS),
     ),
     StageInfo(
         "fuse",
@@ -610,7 +600,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         stage_label_points,
         upstream=("project", "smooth", "3dcn"),
         inputs=_label_points_inputs,
-        frame_files=FrameFiles(RunLayout.POINTS),
+        frame_files=FrameFiles(SequenceLayout.POINTS),
         needs_poses=True,
     ),
     StageInfo(
@@ -636,7 +626,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         stage_export,
         upstream=("label_points",),
         inputs=lambda ctx: [int(x) for x in ctx.schema.export_ids()],
-        frame_files=FrameFiles(RunLayout.EXPORT, (".label", ".conf")),
+        frame_files=FrameFiles(SequenceLayout.EXPORT, (".label", ".conf")),
     ),
 )
 """Every stage in execution order."""

@@ -177,7 +177,7 @@ class Change:
 
     kind: ChangeKind
     subject: str
-    """Class name, dotted parameter path, ``dataset`` or ``frames``."""
+    """Class name, dotted parameter path, or the sequence's name (a ``dataset`` or ``frames`` change)."""
     text: str
     """One line for people (``prompts of car: + "sedan", − "jeep"``)."""
     ignored: str | None = None
@@ -242,20 +242,35 @@ def _class_changes(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, 
     return out
 
 
-def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
-    """What differs between two runs' input snapshots (``{"dataset", "frames", "schema": {"classes"},
-    "pipeline"}``, as the app stores them), older run first: dataset, frames, classes and prompts, then
-    parameters (dotted paths, each marked when ``new``'s config ignores it)."""
+def _sequence_changes(old: list[Mapping[str, Any]], new: list[Mapping[str, Any]]) -> list[Change]:
+    def frames(v: Any) -> str:
+        return "all" if v is None else f"{v[0]}..{v[1] - 1}"
+
+    before = {str(s["name"]): s for s in old}
+    after = {str(s["name"]): s for s in new}
     out: list[Change] = []
-    if old.get("dataset") != new.get("dataset"):
-        out.append(Change("dataset", "dataset", f"dataset: {old.get('dataset')} → {new.get('dataset')}"))
-    if old.get("frames") != new.get("frames"):
+    for name in list(after) + [n for n in before if n not in after]:
+        a, b = before.get(name), after.get(name)
+        if a is None:
+            out.append(Change("dataset", name, f"sequence {name} added ({b['dataset'] if b else ''})"))
+        elif b is None:
+            out.append(Change("dataset", name, f"sequence {name} removed ({a['dataset']})"))
+        else:
+            if a.get("dataset") != b.get("dataset"):
+                text = f"sequence {name}: dataset {a.get('dataset')} → {b.get('dataset')}"
+                out.append(Change("dataset", name, text))
+            if a.get("frames") != b.get("frames"):
+                text = f"sequence {name}: frames {frames(a.get('frames'))} → {frames(b.get('frames'))}"
+                out.append(Change("frames", name, text))
+    return out
 
-        def frames(v: Any) -> str:
-            return "all" if v is None else f"{v[0]}..{v[1] - 1}"
 
-        text = f"frames: {frames(old.get('frames'))} → {frames(new.get('frames'))}"
-        out.append(Change("frames", "frames", text))
+def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
+    """What differs between two runs' input snapshots (``{"sequences": [{"name", "dataset", "frames"}],
+    "schema": {"classes"}, "pipeline"}``, as the app stores them), older run first: sequences (added,
+    removed, another folder, other frames), classes and prompts, then parameters (dotted paths, each
+    marked when ``new``'s config ignores it)."""
+    out = _sequence_changes(old.get("sequences") or [], new.get("sequences") or [])
     classes_old = (old.get("schema") or {}).get("classes", [])
     out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
     fa, fb = _flatten(old.get("pipeline") or {}), _flatten(new.get("pipeline") or {})

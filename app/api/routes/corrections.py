@@ -85,7 +85,7 @@ def add_correction(
     crud.require_project(db, project_id)
     name = crud.sequence_name(db, project_id, payload.sequence, loc=("body", "sequence"))
     if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
-        dataset = next(s["dataset_path"] for s in crud.list_sequences(db, project_id) if s["name"] == name)
+        dataset = next(s.dataset_path for s in crud.list_sequences(db, project_id) if s.name == name)
         _check_scan(FilePath(dataset), payload.frame_id, payload.points)
     cid = crud.add_correction(
         db,

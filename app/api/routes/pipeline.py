@@ -15,9 +15,8 @@ import typing
 from fastapi import APIRouter
 
 from app import models
-from app.demo import SYNTH_STAGE
-from app.jobs.poses import POSES_STAGE
 from app.jobs.progress import TERMINAL_STATUSES
+from app.jobs.stages import POSES, SYNTH
 from leap_core.config import FORM_FIELDS
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
@@ -26,7 +25,7 @@ from leap_core.pipeline.steering import setting_scope, stage_switches
 router = APIRouter(prefix="/pipeline", tags=["pipeline"])
 
 DEMO_STAGE = models.StageInfoPublic(
-    name=SYNTH_STAGE,
+    name=SYNTH,
     label="Generate demo",
     description="generate the built-in demo sequence (before the first run of a demo project)",
     per_frame=True,
@@ -34,7 +33,7 @@ DEMO_STAGE = models.StageInfoPublic(
 """The stage the job manager puts first in a run of a demo project whose sequence does not exist yet."""
 
 POSES_STAGE_INFO = models.StageInfoPublic(
-    name=POSES_STAGE,
+    name=POSES,
     label="Estimate poses",
     description="KISS-ICP LiDAR odometry into the work folder (projects that estimate poses, on a dataset "
     "without poses.txt; cached for later runs)",

@@ -20,12 +20,9 @@ from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import NotFound
 from app.jobs.manager import JobManager
-from app.jobs.multi import covered_sequences, run_sequences_of, sequence_run_dir
 from app.jobs.progress import TERMINAL_STATUSES
-from app.jobs.worker import LOG_NAME
 from leap_core.errors import LeapError
 from leap_core.pipeline.apply import export_ahead_of_metrics
-from leap_core.run_layout import RunLayout
 
 router = APIRouter(tags=["runs"], responses={**NOT_FOUND, **CONFLICT})
 
@@ -47,8 +44,8 @@ def start_run(
     )
     run = jobs.start_run(project_id, frames=frames)
     if payload is not None and payload.note:
-        crud.update_run(db, run["id"], note=payload.note)
-    return services.run_public(crud.require_run(db, run["id"]), jobs.progress(run["id"]))
+        crud.update_run(db, run.id, note=payload.note)
+    return services.run_public(crud.require_run(db, run.id), jobs.progress(run.id))
 
 
 @router.get("/projects/{project_id}/runs/preview", response_model=models.RunPreview)
@@ -79,7 +76,7 @@ def compare_runs(run_id: RunId, base_id: RunId, db: DbDep) -> models.ComparePubl
 async def list_runs(project_id: ProjectId, db: ReadDbDep, jobs: JobsDep) -> Response:
     crud.require_project(db, project_id)
     data = [
-        services.run_public(jobs.as_stored(r), jobs.progress(r["id"])) for r in crud.list_runs(db, project_id)
+        services.run_public(jobs.as_stored(r), jobs.progress(r.id)) for r in crud.list_runs(db, project_id)
     ]
     return Response(
         models.RunsPublic(data=data, count=len(data)).model_dump_json(), media_type="application/json"
@@ -174,22 +171,14 @@ def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> mo
     """The run's result tables; a run of several sequences has them overall (the sequences' confusion
     matrices summed) and, with ``sequence``, per sequence."""
     run = crud.require_run(db, run_id)
-    # A single-sequence run's one sequence is the project sequence on its folder, if any is still.
-    labeled = covered_sequences(run["params"], crud.list_sequences(db, run["project_id"]))
-    table = services.sequence_metrics(run, sequence, labeled)
+    table = services.sequence_metrics(run, sequence)
     if table is None:
         what = f"Sequence {sequence!r} of run {run_id}" if sequence is not None else f"Run {run_id}"
         raise NotFound(f"{what} has no metrics (it is not finished, or its dataset has no ground truth)")
-    names = [c["name"] for c in run["params"]["schema"]["classes"]]
-    listed = run_sequences_of(run["params"])
-    chosen = [n for n, _ in listed] if listed is not None and sequence is None else [sequence]
+    names = [c["name"] for c in run.params.schema["classes"]]
+    chosen = run.params.names if sequence is None else [sequence]
     try:
-        stale = any(
-            export_ahead_of_metrics(
-                RunLayout(sequence_run_dir(Path(run["run_dir"]), run["params"], n)), len(names)
-            )
-            for n in chosen
-        )
+        stale = any(export_ahead_of_metrics(run.sequence_layout(n), len(names)) for n in chosen)
     except LeapError:
         stale = True  # unreadable applied-corrections files: do not claim the figures are current
     return models.MetricsPublic(
@@ -205,7 +194,7 @@ def read_metrics(run_id: RunId, db: DbDep, sequence: SequenceQuery = None) -> mo
 @router.get("/runs/{run_id}/logs", response_model=models.LogPublic)
 def read_logs(run_id: RunId, db: DbDep) -> models.LogPublic:
     run = crud.require_run(db, run_id)
-    path = Path(run["run_dir"]) / LOG_NAME
+    path = run.layout.log
     try:
         size = path.stat().st_size
         with path.open("rb") as fh:
