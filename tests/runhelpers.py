@@ -16,7 +16,7 @@ from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
 
-def label(  # noqa: PLR0913  # run_pipeline's keywords, passed on
+def label(
     dataset: Path,
     schema: Schema,
     config: PipelineConfig,
@@ -34,7 +34,7 @@ def label(  # noqa: PLR0913  # run_pipeline's keywords, passed on
 
     def report(sequence: str, stage: str, done: int, total: int) -> None:
         assert progress is not None
-        if sequence == JOINT or sequence == spec.name:
+        if sequence in (JOINT, spec.name):
             progress(stage, done, total)
 
     spec = SequenceSpec.of(dataset, frames, name)
