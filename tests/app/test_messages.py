@@ -35,6 +35,7 @@ from app.jobs.messages import (
     decode_to_worker,
 )
 from app.jobs.progress import ProgressTracker
+from app.rows import RunParams, RunSequence
 
 settings, data_root = appfixtures.settings, appfixtures.data_root
 
@@ -42,12 +43,11 @@ EXAMPLES: list[Message] = [
     RunSpec(
         run_id=7,
         run_dir=Path("/work/runs/p1/r7"),
-        dataset=Path("/data/sequences/00"),
+        sequences=[("00", Path("/data/sequences/00"), (2, 9)), ("«ü»", Path("/data/b"), None)],
         demo=True,
         demo_synth={"frames": 4, "lidar": {"beams": 32}},
         schema={"classes": [{"name": "car", "color": [1, 2, 3], "prompts": ["car", "van"]}]},
         pipeline={"fusion": {"voxel_size": 0.25}, "labeler": "simulated"},
-        frames=(2, 9),
         models_dir=Path("/models"),
         cache_dir=Path("/work/cache/p1"),
         progress_interval_s=0.05,
@@ -55,12 +55,11 @@ EXAMPLES: list[Message] = [
     RunSpec(
         run_id=1,
         run_dir=Path("r"),
-        dataset=Path("d"),
+        sequences=[("00", Path("d"), None)],
         demo=False,
         demo_synth={},
         schema={},
         pipeline={},
-        frames=None,
         models_dir=None,
         cache_dir=None,
         progress_interval_s=1.0,
@@ -130,13 +129,19 @@ def test_a_malformed_line_raises_a_message_error_that_says_why(line: bytes, erro
 
 def test_a_malformed_run_spec_names_the_field() -> None:
     doc = json.loads(EXAMPLES[0].to_line())
-    doc["frames"] = [1, "x"]
-    with pytest.raises(MessageError, match=r"run\.frames\[1\]: expected an integer"):
+    doc["sequences"][0][2] = [1, "x"]
+    with pytest.raises(MessageError, match=r"run\.sequences\[0\]\[2\]\[1\]: expected an integer"):
         decode(json.dumps(doc))
-    doc["frames"] = [1]
-    with pytest.raises(MessageError, match=r"run\.frames: expected a list of 2 values"):
+    doc["sequences"][0][2] = [1]
+    with pytest.raises(MessageError, match=r"run\.sequences\[0\]\[2\]: expected a list of 2 values"):
         decode(json.dumps(doc))
-    doc["frames"] = None
+    doc["sequences"][0] = ["00", "/d"]
+    with pytest.raises(MessageError, match=r"run\.sequences\[0\]: expected a list of 3 values"):
+        decode(json.dumps(doc))
+    doc["sequences"] = {"00": "/d"}
+    with pytest.raises(MessageError, match=r"run\.sequences: expected a list"):
+        decode(json.dumps(doc))
+    doc["sequences"] = [["00", "/d", None]]
     doc["demo_synth"] = ["frames", 4]
     with pytest.raises(MessageError, match=r"run\.demo_synth: expected an object"):
         decode(json.dumps(doc))
@@ -152,12 +157,15 @@ def test_the_relay_survives_malformed_lines_and_logs_worker_warnings(
     init_db(settings.database)
     with open_db(settings.database) as db:
         project = crud.create_project(
-            db, name="p", dataset_kind="folder", dataset_path="/d", schema={"classes": []}, pipeline={}
+            db, name="p", dataset_kind="folder", sequences=[("d", "/d")], schema={"classes": []}, pipeline={}
         )
-        run = crud.create_run(db, project_id=project["id"], params={}, runs_dir=settings.runs_dir)
+        params = RunParams(
+            sequences=(RunSequence("d", Path("/d")),), dataset_kind="folder", schema={}, pipeline={}
+        )
+        run = crud.create_run(db, project_id=project.id, params=params, runs_dir=settings.runs_dir)
     manager = JobManager(settings)
-    label = f"run #{run['number']} of project {project['id']} (id {run['id']})"
-    live = _Live(tracker=ProgressTracker.create(run["id"], project["id"], ["labels2d", "fuse"]), label=label)
+    label = f"run #{run.number} of project {project.id} (id {run.id})"
+    live = _Live(tracker=ProgressTracker.create(run.id, project.id, ["labels2d", "fuse"]), label=label)
     read_fd, write_fd = os.pipe()
     lines = [
         b"not json at all\n",
@@ -181,7 +189,7 @@ def test_the_relay_survives_malformed_lines_and_logs_worker_warnings(
     process = subprocess.Popen([sys.executable, "-c", "pass"])
     with caplog.at_level(logging.INFO, logger="leap.jobs"):
         writer.start()
-        outcome = manager._relay(run["id"], live, read_fd, process)
+        outcome = manager._relay(run.id, live, read_fd, process)
         writer.join()
     os.close(read_fd)
     process.wait()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 import appfixtures
 import pytest
@@ -12,7 +13,8 @@ from apphelpers import API, wait_run
 from fastapi.testclient import TestClient
 
 from app.core.config import Settings
-from app.jobs.poses import POSES_STAGE, cache_folder
+from app.jobs.poses import cache_folder
+from app.jobs.stages import POSES
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
 from leap_core.pipeline import STAGES
 from leap_core.run_layout import RunLayout
@@ -59,11 +61,18 @@ def _files(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
+def _stages(project: dict[str, Any], *before: str) -> list[str]:
+    """A run's progress stages on the project's one sequence: ``before`` (e.g. the pose estimation), then
+    the pipeline's."""
+    name = project["sequences"][0]["name"]
+    return [f"{name}/{stage}" for stage in (*before, *STAGES)]
+
+
 def test_a_project_without_the_option_fails_with_app_advice(client: TestClient, no_poses: Path) -> None:
     project = _create(client, no_poses)
     assert project["estimate_poses"] is False
     run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
-    assert [s["name"] for s in run["progress"]["stages"]] == list(STAGES)
+    assert [s["name"] for s in run["progress"]["stages"]] == _stages(project)
     done = wait_run(client, run["id"], timeout=120)
     assert done["status"] == "failed"
     error = done["error"]
@@ -78,23 +87,24 @@ def test_estimated_poses_go_to_the_work_folder_and_are_reused(
     project = _create(client, no_poses, estimate_poses=True)
     assert project["estimate_poses"] is True
     run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
-    assert [s["name"] for s in run["progress"]["stages"]] == [POSES_STAGE, *STAGES]
+    assert [s["name"] for s in run["progress"]["stages"]] == _stages(project, POSES)
     done = wait_run(client, run["id"], timeout=180)
     assert done["status"] == "done", done["error"]
     assert _files(no_poses) == before  # the dataset is never written
 
     cached = cache_folder(settings.cache_dir, no_poses) / "poses.txt"
     assert cached.is_file() and (cached.parent / POSES_NOTE).is_file()
-    layout = RunLayout(settings.runs_dir / f"p{project['id']}" / f"r{done['id']}")
+    run_layout = RunLayout(settings.runs_dir / f"p{project['id']}" / f"r{done['id']}")
+    layout = run_layout.sequence(project["sequences"][0]["name"])
     assert layout.poses.read_bytes() == cached.read_bytes()
     assert layout.open_sequence(no_poses).pose_source == "estimated"
     warnings = done["progress"]["warnings"]
     assert any(
         "poses: the dataset has no poses.txt; KISS-ICP" in w and "estimated them" in w for w in warnings
     ), warnings
-    assert "KISS-ICP" in layout.log.read_text()
+    assert "KISS-ICP" in run_layout.log.read_text()
     stages = {s["name"]: s for s in done["progress"]["stages"]}
-    assert stages[POSES_STAGE]["status"] == "done"
+    assert stages[_stages(project, POSES)[0]]["status"] == "done"
 
     second = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
     done2 = wait_run(client, second["id"], timeout=180)
@@ -118,7 +128,7 @@ def test_a_dataset_with_poses_keeps_its_own(client: TestClient, drive: Path, dat
     shutil.copytree(drive, seq)
     project = _create(client, seq, estimate_poses=True)
     run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
-    assert [s["name"] for s in run["progress"]["stages"]] == list(STAGES)  # nothing to estimate
+    assert [s["name"] for s in run["progress"]["stages"]] == _stages(project)  # nothing to estimate
     done = wait_run(client, run["id"], timeout=180)
     assert done["status"] == "done", done["error"]
     assert KittiSequence(seq).pose_source == "file"

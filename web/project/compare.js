@@ -108,10 +108,10 @@ async function metricsOf(state, runId, sequence = null) {
   return state.metrics.get(key);
 }
 
-/** The sequence picker of the metrics card (runs of several sequences): overall or one sequence. */
+/** The sequence picker of the metrics card (a run of several sequences): overall or one sequence. */
 function sequenceSelect(ctx, names) {
   const { state } = ctx;
-  if (!names.length) return null;
+  if (names.length < 2) return null;
   return h(
     "label",
     { class: "inline" },

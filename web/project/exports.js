@@ -1,6 +1,6 @@
 // A finished run's export dialog: how many points stay unlabeled and why, the stand-alone zip download,
-// and writing the .label files into the dataset's predictions/ folder after an explicit confirmation
-// (a second, louder one when files are already there: they are only replaced with overwrite).
+// and writing each sequence's .label files into its dataset's predictions/ folder after an explicit
+// confirmation (a second, louder one when files are already there: they are only replaced with overwrite).
 
 import { ApiError, get, post, url } from "../api.js";
 import { h, replace } from "../dom.js";
@@ -70,15 +70,16 @@ function writeSection(ctx, run, info, dialog) {
   const start = h("button", { class: "btn small", dataset: { action: "predictions" }, disabled: !info.predictions_allowed }, "Write to predictions/…");
 
   const ask = () => {
-    const existing = info.predictions_existing;
+    const existing = info.targets.reduce((sum, t) => sum + t.existing, 0);
     const n = conf.checked ? 2 * info.frames : info.frames;
+    const where = info.targets.length === 1 ? info.targets[0].path : `the ${info.targets.length} sequences' predictions/ folders`;
     const question = existing
       ? h(
           "p",
           { class: "confirm-text warn" },
-          `${info.predictions_path} already holds ${fmt(existing)} files. Replace them with this run's ${fmt(n)} files? The old files are deleted.`,
+          `${where} already ${info.targets.length === 1 ? "holds" : "hold"} ${fmt(existing)} files. Replace them with this run's ${fmt(n)} files? The old files are deleted.`,
         )
-      : h("p", { class: "confirm-text" }, `Write ${fmt(n)} files into ${info.predictions_path}?`);
+      : h("p", { class: "confirm-text" }, `Write ${fmt(n)} files into ${where}?`);
     const yes = h(
       "button",
       { class: existing ? "btn small danger" : "btn small primary", dataset: { action: "confirm-write" } },
@@ -89,8 +90,9 @@ function writeSection(ctx, run, info, dialog) {
       yes.disabled = true;
       try {
         const res = await post(`/runs/${run.id}/export`, { include_confidence: conf.checked, overwrite: existing > 0 });
-        replace(box, h("p", { class: "write-result" }, `Wrote ${fmt(res.files)} files to ${res.path}` + (res.replaced ? ` (replaced ${fmt(res.replaced)}).` : ".")));
-        info.predictions_existing = res.files;
+        const shown = info.targets.length === 1 ? res.path : `the ${info.targets.length} sequences' predictions/ folders`;
+        replace(box, h("p", { class: "write-result" }, `Wrote ${fmt(res.files)} files to ${shown}` + (res.replaced ? ` (replaced ${fmt(res.replaced)}).` : ".")));
+        info.targets = (await get(`/runs/${run.id}/export`)).targets;
         ctx.toast(`Wrote ${res.files} files to ${res.path}`);
       } catch (err) {
         // 409: the folder changed since the dialog opened; show the server's reason and ask again.
@@ -107,10 +109,12 @@ function writeSection(ctx, run, info, dialog) {
     "section",
     {},
     h("h3", {}, "Write into the dataset"),
-    h("p", { class: "muted small" }, info.predictions_allowed ? info.predictions_path : `${info.predictions_path} cannot receive exports.`),
-    info.sequences && info.sequences.length
-      ? h("p", { class: "muted small", id: "export-sequences" }, `Each sequence into sequences/<name>/predictions/ there: ${info.sequences.join(", ")}`)
-      : null,
+    h(
+      "ul",
+      { class: "muted small export-targets", id: "export-targets" },
+      info.targets.map((t) => h("li", { dataset: { sequence: t.sequence } }, info.targets.length > 1 ? `${t.sequence}: ${t.path}` : t.path)),
+    ),
+    info.predictions_allowed ? null : h("p", { class: "muted small" }, "These folders cannot receive exports."),
     h("label", { class: "small" }, conf, " with .conf files"),
     " ",
     start,

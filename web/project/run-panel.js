@@ -3,19 +3,25 @@
 import { duration, fmtSeconds, h, replace } from "../dom.js";
 import { latestRun } from "./context.js";
 
-/** A stage's label: "Fuse", or in a run of several sequences "01 · Fuse" ("all · 3D-CN" for the 3D-CN
- * rounds trained on every sequence at once; the server names those stages "<sequence>/<stage>"). */
-function stageLabel(ctx, name) {
+/** The sequence and stage of a progress stage name: the server names a run's stages "<sequence>/<stage>"
+ * ("*" for the 3D-CN rounds, trained on every sequence at once); runs stored before runs had sequences
+ * have bare stage names. */
+function splitStage(name) {
   const cut = name.indexOf("/");
-  const seq = cut < 0 ? null : name.slice(0, cut);
-  const base = cut < 0 ? name : name.slice(cut + 1);
-  const info = ctx.stages.get(base);
-  const label = info ? info.label : base;
-  return { info, text: seq === null ? label : `${seq === "*" ? "all" : seq} · ${label}` };
+  return cut < 0 ? [null, name] : [name.slice(0, cut), name.slice(cut + 1)];
 }
 
-function stageRow(ctx, stage) {
-  const { info, text } = stageLabel(ctx, stage.name);
+/** A stage's label: "Fuse", or in a run of several sequences "01 · Fuse" ("all · 3D-CN" for the 3D-CN
+ * rounds). */
+function stageLabel(ctx, name, several) {
+  const [seq, base] = splitStage(name);
+  const info = ctx.stages.get(base);
+  const label = info ? info.label : base;
+  return { info, text: seq === null || !several ? label : `${seq === "*" ? "all" : seq} · ${label}` };
+}
+
+function stageRow(ctx, stage, several) {
+  const { info, text } = stageLabel(ctx, stage.name, several);
   const pct = Math.max(0, Math.min(100, stage.percent));
   let detail = "";
   if (stage.status === "running") {
@@ -50,6 +56,8 @@ export function renderRunPanel(ctx) {
   }
   const pr = run.progress;
   const status = pr.status;
+  const sequences = new Set(pr.stages.map((st) => splitStage(st.name)[0]).filter((seq) => seq !== null && seq !== "*"));
+  const several = sequences.size > 1;
   const active = ctx.active.has(status);
   const eta = pr.eta_s !== null && pr.eta_s !== undefined ? ` · about ${fmtSeconds(pr.eta_s)} left` : "";
   const dur = duration(run);
@@ -77,7 +85,7 @@ export function renderRunPanel(ctx) {
     el,
     head,
     overall,
-    h("ol", { class: "stages" }, pr.stages.map((stage) => stageRow(ctx, stage))),
+    h("ol", { class: "stages" }, pr.stages.map((stage) => stageRow(ctx, stage, several))),
     pr.error ? h("p", { class: "error run-error", role: "alert" }, pr.error) : null,
     pr.warnings && pr.warnings.length
       ? h("ul", { class: "run-warnings", "aria-label": "Warnings" }, pr.warnings.map((w) => h("li", {}, w)))
