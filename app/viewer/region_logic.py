@@ -15,6 +15,10 @@ import numpy.typing as npt
 
 from leap_core import review
 
+REVIEW_BOX_RGB = (0, 255, 255)
+"""Outline of the focused review region (3D box and image box): cyan, which no SemanticKITTI class uses
+(magenta would vanish on the road)."""
+
 
 @dataclass(frozen=True, eq=False)
 class Region:
@@ -120,4 +124,4 @@ def disagreement_rate(
     return rate, observed
 
 
-__all__ = ["Region", "disagreement_rate", "lowest_share", "rank_regions"]
+__all__ = ["REVIEW_BOX_RGB", "Region", "disagreement_rate", "lowest_share", "rank_regions"]
