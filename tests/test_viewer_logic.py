@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import socket
+import time
 from itertools import pairwise
 from pathlib import Path
 
@@ -630,6 +631,84 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
         assert client.get(base, headers=auth).json()["run_id"] == run_id  # still showing the good run
         assert client.delete(base, headers=auth).status_code == 204
         assert client.delete(base, headers=auth).status_code == 404
+
+
+def test_scan_scope_correction_relabels_only_its_points_of_its_scan(review_store) -> None:
+    """A correction made on the shown scan's points in scan scope: stored as those point indices of that
+    scan; the scan layer shows the class on exactly those points, other scans and the voxel map keep the
+    run's labels, and undo takes it back."""
+    from viser.transforms import SO3
+
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, _run_id, _keys, cls = review_store
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        player, tools = session.player, session.tools
+        view = player.show_scan(0)
+        assert view is not None and session.renderer.wait_drawn()
+        run_labels = view.label.copy()
+        down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
+        above = view.points.mean(axis=0) + np.array([0, 0, 200.0])
+        tools.set_tools(target="scan", scope="scan", depth_mode="through")
+        n = tools.select_rect(above, down, math.radians(60), 1.0, (0.0, 0.0), (0.5, 1.0))
+        picked = tools.selection.rows.copy()
+        assert 0 < n == picked.size < view.points.shape[0] and tools.selection.frame_id == view.frame_id
+        cid = session.corrections.assign_selection("building")
+        assert cid is not None and session.renderer.wait_drawn()
+        with open_db(settings.database) as db:
+            (corr,) = crud.list_corrections(db, pid)
+        assert (corr.scope, corr.frame_id) == ("scan", view.frame_id)
+        np.testing.assert_array_equal(corr.points, picked)
+        expected = run_labels.copy()
+        expected[picked] = 2
+        np.testing.assert_array_equal(session.shared.scan_label, expected)
+        np.testing.assert_array_equal(session.scene.scan.handle.colors, np.array(SCHEMA3_COLORS)[expected])
+        np.testing.assert_array_equal(session.label, cls)  # the voxel map is not corrected
+        assert not session.corrected.any() and tools.selection.rows.size == 0
+        other = player.show_scan(1)
+        assert other is not None
+        np.testing.assert_array_equal(session.shared.scan_label, other.label)
+        player.show_scan(0)
+        np.testing.assert_array_equal(session.shared.scan_label, expected)
+        assert session.corrections.undo() == cid
+        np.testing.assert_array_equal(session.shared.scan_label, run_labels)
+    finally:
+        session.close()
+
+
+def test_scan_player_plays_from_the_first_scan_and_stops_at_the_last(review_store) -> None:
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.panel_nav import BROWSE
+    from app.viewer.records import SessionConfig
+    from app.viewer.session import ReviewSession
+
+    settings, pid, *_ = review_store
+    session = ReviewSession(
+        AppBackend(settings, pid), panel=ReviewPanel, config=SessionConfig(play_interval_s=0.05)
+    )
+    try:
+        player = session.player
+        assert player.scan_count == 3
+        player.show_scan(2)
+        shown: list[int] = []
+        assert player.set_playing(None) is True  # from the last scan: starts again at the first
+        assert player.frame_pos == 0
+        deadline = time.monotonic() + 10
+        while player.playing and time.monotonic() < deadline:
+            shown.append(player.frame_pos)
+            time.sleep(0.005)
+        assert not player.playing and player.frame_pos == 2 and shown[0] == 0 and 1 in shown
+        assert tuple(session.panel.nav.browse.options) == BROWSE  # "Play" again, not "Pause"
+        assert player.set_playing(True) is True and player.frame_pos == 0
+        assert player.set_playing(None) is False and not player.playing
+    finally:
+        session.close()
 
 
 def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:
