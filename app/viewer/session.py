@@ -17,12 +17,12 @@ call (as viser's ``server.scene`` / ``server.gui``):
   re-runs and the run watcher.
 
 The rooms share one :class:`~app.viewer.shared.SharedState` (the shown run, its corrected labels, the view,
-the selection, the focused region and the shown scan; each field has one writing room) and report through
-one :class:`~app.viewer.shared.Notifier` (the panel and the event listeners). Each is handed the rooms it
-calls at construction, in dependency order (renderer ← player ← tools ← corrections ← queue), never the
-session. The session loads runs, changes the view and wires the rooms to the scene and the panel. The panel
-(:class:`app.viewer.panel.ReviewPanel`) is given as a constructor, so it imports the session and not the
-reverse.
+the selection, the focused region and the shown scan; each field names the rooms that write it) and report
+through one :class:`~app.viewer.shared.Notifier` (the panel and the event listeners). Each is handed the
+rooms it calls at construction, in dependency order (renderer ← player ← tools ← corrections ← queue),
+never the session. The session loads runs, changes the view and wires the rooms to the scene and the
+panel. The panel (:class:`app.viewer.panel.ReviewPanel`) is given as a constructor, so it imports the
+session and not the reverse.
 
 Locks (one discipline):
 
@@ -30,10 +30,10 @@ Locks (one discipline):
   session's one lock. It guards every field of the shared state, and the rooms' fields that other threads
   read together: the queue's regions, signatures, marks, position and building flag, the tool settings, and
   the renderer's level-of-detail index (set by the index thread). It is held to read or replace those
-  references (a load also reads the project's schema and corrections under it), never while waiting for
-  another thread. Arrays are replaced, never changed in place, so references taken under the lock stay a
-  consistent snapshot after it is released; single references are also read without it (an assignment is
-  atomic).
+  references; a load, a correction and a scan change also do the store read or scene update that goes with
+  the new state under it, as one step. No code holding it waits for another thread. Arrays are replaced,
+  never changed in place, so references taken under the lock stay a consistent snapshot after it is
+  released; single references are also read without it (an assignment is atomic).
 - The player's scan lock (re-entrant) serialises scan changes (show, step, play) so that a step reads the
   position and shows the next scan as one move. It is taken before ``shared.lock``, never inside it.
 - The renderer's draw request (an event) and ``drawn`` condition coalesce redraws and wake

@@ -2,7 +2,7 @@
 
 :class:`SharedState` holds the data every room reads: the shown run and grid, its labels with the project's
 corrections overlaid, the view the user asked for, the selection, the focused review region and the shown
-scan. Each field has one writer (named on the field); the others only read it. :class:`Notifier` carries
+scan. Each field names the rooms that write it; the others only read it. :class:`Notifier` carries
 what the rooms tell the GUI panel and the session's event listeners.
 """
 
