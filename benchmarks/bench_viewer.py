@@ -52,6 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from app.viewer import region_logic as rl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid
 from app.viewer.scene import SECRET_HEADER, ReviewScene
@@ -204,7 +205,7 @@ def _disagreement(
         rows_all.append(grid.rows_of(keys))
         cam_all.append(s["point_label"][take])
         fin_all.append(s["label"][take])
-    return vl.disagreement_rate(
+    return rl.disagreement_rate(
         np.concatenate(rows_all), np.concatenate(cam_all), np.concatenate(fin_all), grid.num_voxels
     )
 
@@ -221,24 +222,24 @@ def bench_queues(grid: ReviewGrid, repeats: int, scans: int = 40, points: int = 
             runs.append(time.perf_counter() - t0)
         return statistics.median(runs), out
 
-    def conf_new() -> list[vl.Region]:
-        regions = vl.rank_regions(
-            grid.centres, grid.conf, vl.lowest_share(grid.conf, share), cell, min_count=min_count
+    def conf_new() -> list[rl.Region]:
+        regions = rl.rank_regions(
+            grid.centres, grid.conf, rl.lowest_share(grid.conf, share), cell, min_count=min_count
         )
         review.region_signatures(grid.centres, grid.keys, grid.label, [r.cell for r in regions], cell)
         return regions
 
     def conf_old() -> list[tuple[float, int]]:
         return old_rank_regions(
-            grid.centres, grid.conf, vl.lowest_share(grid.conf, share), cell, min_count, True
+            grid.centres, grid.conf, rl.lowest_share(grid.conf, share), cell, min_count, True
         )
 
     def dis_rank(rate: np.ndarray, observed: np.ndarray, new: bool) -> Any:
         seen = observed > 0
-        cand = seen & (rate > 0) & vl.lowest_share(np.where(seen, -rate, np.inf), share)
+        cand = seen & (rate > 0) & rl.lowest_share(np.where(seen, -rate, np.inf), share)
         if not new:
             return old_rank_regions(grid.centres, rate, cand, cell, min_count, False)
-        regions = vl.rank_regions(grid.centres, rate, cand, cell, min_count=min_count, ascending=False)
+        regions = rl.rank_regions(grid.centres, rate, cand, cell, min_count=min_count, ascending=False)
         review.region_signatures(grid.centres, grid.keys, grid.label, [r.cell for r in regions], cell)
         return regions
 
@@ -839,7 +840,7 @@ class MemoryBackend:
         return list(self.rows)
 
     def add_correction(self, class_name: str, voxel_size: float, keys: np.ndarray, **kw: Any) -> int:
-        from app.viewer.session import CorrectionRecord
+        from app.viewer.records import CorrectionRecord
 
         self.rows.append(CorrectionRecord(len(self.rows) + 1, class_name, voxel_size, keys, True, **kw))
         return len(self.rows)
@@ -853,7 +854,7 @@ class MemoryBackend:
         return dict(self.marks)
 
     def set_review_mark(self, region: str, signature: str, state: str, run_id: int | None) -> None:
-        from app.viewer.session import ReviewMarkRecord
+        from app.viewer.records import ReviewMarkRecord
 
         del run_id  # one run only
 
@@ -929,7 +930,8 @@ def _lod_session_run(
     from app.viewer.data import RunOutputs
     from app.viewer.lod import LodConfig
     from app.viewer.panel import ReviewPanel
-    from app.viewer.session import ReviewSession, RunInfo, SessionConfig
+    from app.viewer.records import RunInfo, SessionConfig
+    from app.viewer.session import ReviewSession
 
     cfg = SessionConfig(lod=LodConfig(budget=budget if budget is not None else 1 << 62), follow_ego=False)
     session = ReviewSession(MemoryBackend(schema, seq_root), panel=ReviewPanel, config=cfg)
@@ -942,16 +944,18 @@ def _lod_session_run(
 
         def on_drawn(name: str) -> None:
             if name == "drawn" and not first:
-                shown = session.scene.voxels.count + (session.scene.overview.count if session.lod_plan else 0)
+                shown = session.scene.voxels.count + (
+                    session.scene.overview.count if session.renderer.lod_plan else 0
+                )
                 first.append((time.perf_counter(), shown))
-            if name == "drawn" and session.lod_plan is not None and not lod_ready:
+            if name == "drawn" and session.renderer.lod_plan is not None and not lod_ready:
                 lod_ready.append(time.perf_counter())
 
         session.on_event(on_drawn)
         start = client.mark()
         t0 = time.perf_counter()
         session.show_grid(run, grid, RunOutputs(run_dir, seq_root))
-        assert session.wait_drawn(600)
+        assert session.renderer.wait_drawn(600)
         t1 = time.perf_counter()
         sent = first[0][1]
         t2 = client.wait_for(start, sent * 15, timeout=600)
@@ -960,29 +964,29 @@ def _lod_session_run(
         out["first_draw_delivered_s"] = t2 - t0
         out["show_run_s"] = t1 - t0
         out["points_sent"] = sent
-        out["index_s"] = session.lod_seconds.get("index", 0.0)
+        out["index_s"] = session.renderer.lod_seconds.get("index", 0.0)
         times: dict[str, list[float]] = {}
 
         def timed(name: str, action: Any) -> Any:
             t = time.perf_counter()
             result = action()
-            assert session.wait_drawn(600)
+            assert session.renderer.wait_drawn(600)
             times.setdefault(name, []).append(time.perf_counter() - t)
             return result
 
-        scans = session.scan_count
+        scans = session.player.scan_count
         building = STREET_CLASSES["building"]
         for r in range(repeats):
-            timed("scan change", lambda r=r: session.show_scan((r * 7 + 3) % scans))
-            timed("class toggle", lambda: session.set_class_enabled(building, False))
-            timed("class toggle", lambda: session.set_class_enabled(building, True))
+            timed("scan change", lambda r=r: session.player.show_scan((r * 7 + 3) % scans))
+            timed("class toggle", lambda: session.renderer.set_class_enabled(building, False))
+            timed("class toggle", lambda: session.renderer.set_class_enabled(building, True))
             timed("colour switch", lambda: session.set_state(mode="confidence"))
             timed("colour switch", lambda: session.set_state(mode="class"))
             timed("threshold", lambda: session.set_state(threshold=0.6))
             timed("threshold", lambda: session.set_state(threshold=0.0))
             far = np.array([side_m * (0.2 + 0.6 * ((r * 3) % 5) / 4), side_m * 0.7, 0.0])
-            timed("camera refine", lambda far=far: session._camera_moved(far))
-        view = session.scan_view
+            timed("camera refine", lambda far=far: session.renderer.camera_moved(far))
+        view = session.player.scan_view
         assert view is not None and view.ego_pose is not None
         ego = view.ego_pose[:3, 3]
         t = np.linspace(0, 2 * np.pi, 120, endpoint=False)
@@ -990,32 +994,33 @@ def _lod_session_run(
         near_cam = _look_camera(ego, 40.0)
         far_target = np.array([side_m * 0.8, side_m * 0.2, 0.0])
         far_cam = _look_camera(far_target, 60.0)
-        session.set_tools(depth_mode="front")
+        session.tools.set_tools(depth_mode="front")
         selected = {}
         for _ in range(repeats):
             selected["lasso near"] = timed(
-                "lasso near (front)", lambda: session.select_screen("lasso", lasso, near_cam)
+                "lasso near (front)", lambda: session.tools.select_screen("lasso", lasso, near_cam)
             )
             selected["box far"] = timed(
-                "box far (front)", lambda: session.select_screen("box", [(0.3, 0.3), (0.7, 0.7)], far_cam)
+                "box far (front)",
+                lambda: session.tools.select_screen("box", [(0.3, 0.3), (0.7, 0.7)], far_cam),
             )
-        timed("assign far box", lambda: session.assign_selection("road"))
-        timed("undo", session.undo)
+        timed("assign far box", lambda: session.corrections.assign_selection("road"))
+        timed("undo", session.corrections.undo)
         t = time.perf_counter()
-        regions = session.build_queue("confidence")
+        regions = session.queue.build_queue("confidence")
         out["queue_build_s"] = time.perf_counter() - t
         for i in range(min(len(regions), repeats * 2)):
-            timed("region select", lambda i=i: session.show_region(i))
-        session.clear_focus()
-        session.wait_drawn(600)
+            timed("region select", lambda i=i: session.queue.show_region(i))
+        session.queue.clear_focus()
+        session.renderer.wait_drawn(600)
         out["selected"] = selected
         out["interactions"] = {
             k: {"median_s": statistics.median(v), "max_s": max(v), "n": len(v)} for k, v in times.items()
         }
         out["last_points_sent"] = session.scene.voxels.count + (
-            session.scene.overview.count if session.lod_plan else 0
+            session.scene.overview.count if session.renderer.lod_plan else 0
         )
-        out["lod_seconds"] = dict(session.lod_seconds)
+        out["lod_seconds"] = dict(session.renderer.lod_seconds)
     finally:
         session.close()
     return out

@@ -7,6 +7,7 @@ import hashlib
 import numpy as np
 import pytest
 
+from app.viewer import region_logic as rl
 from app.viewer import view_logic as vl
 from leap_core import review
 from leap_core.fusion import voxel_keys
@@ -49,7 +50,7 @@ def test_rank_cells_groups_rows_and_breaks_ties() -> None:
 
 def test_view_logic_regions_carry_identity_and_rows() -> None:
     score = np.array([0.25, 0.75, 0.0, 1.0, 0.5, 0.0], np.float32)
-    regions = vl.rank_regions(CENTRES, score, np.array([True] * 5 + [False]), 4.0)
+    regions = rl.rank_regions(CENTRES, score, np.array([True] * 5 + [False]), 4.0)
     assert [(r.id, r.count, r.rows.tolist()) for r in regions] == [
         ("4m:2,0,0", 3, [2, 3, 4]),
         ("4m:0,0,0", 2, [0, 1]),

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.viewer import lod
+from app.viewer import lod, lod_cull, lod_plan
 from app.viewer import view_logic as vl
 from app.viewer.data import matrix_to_wxyz
 from leap_core import selection as sel
@@ -83,26 +83,26 @@ def test_majority_class_and_mean_score_by_hand() -> None:
     score = np.array([0.9, 0.7, 0.2, 0.5, 0.6, 0.8, 0.1, 0.3, 1.0], np.float32)
     hist, ssum = lod.block_tables(of_row, 2, label, 3, score=score)
     assert hist.tolist() == [[1, 2, 1, 0], [2, 0, 1, 2]]
-    all_on = lod.enabled_columns((), 3)
+    all_on = lod_plan.enabled_columns((), 3)
     assert all_on.tolist() == [1, 1, 1, 1]
     blocks = np.array([0, 1])
-    assert lod.visible_counts(hist, all_on).tolist() == [4, 5]
+    assert lod_plan.visible_counts(hist, all_on).tolist() == [4, 5]
     # Block 1: class 2 and unlabeled tie (2 each): the lower index, unlabeled, wins.
-    assert lod.majority_class(hist, all_on, blocks).tolist() == [0, -1]
+    assert lod_plan.majority_class(hist, all_on, blocks).tolist() == [0, -1]
     assert ssum is not None
-    np.testing.assert_allclose(lod.mean_score(hist, ssum, all_on, blocks), [2.3 / 4, 2.8 / 5], rtol=1e-6)
+    np.testing.assert_allclose(lod_plan.mean_score(hist, ssum, all_on, blocks), [2.3 / 4, 2.8 / 5], rtol=1e-6)
     # Class 0 hidden: block 0 is class 1 vs unlabeled (1 each) -> unlabeled; mean of 0.2 and 0.5.
-    no0 = lod.enabled_columns((False, True, True), 3)
+    no0 = lod_plan.enabled_columns((False, True, True), 3)
     assert no0.tolist() == [1, 0, 1, 1]
-    assert lod.majority_class(hist, no0, blocks).tolist() == [-1, -1]
-    np.testing.assert_allclose(lod.mean_score(hist, ssum, no0, blocks), [0.35, 2.8 / 5], rtol=1e-6)
+    assert lod_plan.majority_class(hist, no0, blocks).tolist() == [-1, -1]
+    np.testing.assert_allclose(lod_plan.mean_score(hist, ssum, no0, blocks), [0.35, 2.8 / 5], rtol=1e-6)
     # Threshold 0.5 keeps rows 0, 1, 3, 4, 5, 8: block 1 becomes class 2 (2) over class 1 (1).
     kept, _ = lod.block_tables(of_row, 2, label, 3, keep=score >= 0.5)
     assert kept.tolist() == [[1, 2, 0, 0], [0, 0, 1, 2]]
-    assert lod.majority_class(kept, all_on, blocks).tolist() == [0, 2]
+    assert lod_plan.majority_class(kept, all_on, blocks).tolist() == [0, 2]
     # A block with no visible voxel has mean 0 (not NaN).
-    only2 = lod.enabled_columns((False, False, True), 3)
-    assert lod.mean_score(kept, ssum, only2 * np.array([0, 1, 1, 1], np.float32), blocks)[0] == 0.0
+    only2 = lod_plan.enabled_columns((False, False, True), 3)
+    assert lod_plan.mean_score(kept, ssum, only2 * np.array([0, 1, 1, 1], np.float32), blocks)[0] == 0.0
 
 
 @pytest.mark.parametrize("threshold", [0.0, 0.5])
@@ -120,7 +120,7 @@ def test_update_tables_equals_a_recount(threshold: float) -> None:
     label2[rows] = rng.integers(-1, c, rows.size)
     score2[rows] = rng.random(rows.size)
     keep2 = score2 >= threshold
-    lod.update_tables(
+    lod_plan.update_tables(
         hist,
         ssum,
         of_row[rows],
@@ -138,17 +138,17 @@ def test_full_blocks_take_the_nearest_within_the_budget() -> None:
     counts = np.array([3, 4, 0, 2, 1])
     # Shown blocks: 0, 1, 3, 4 (4 points). Block 0 at full resolution: 3 + 3 = 6 points; then block 1 (tie
     # at 5 m with block 4: the lower id first): 3 + 4 + 2 = 9; then block 4: 3 + 4 + 1 + 1 = 9.
-    assert lod.full_blocks(distance, counts, 20.0, 9).tolist() == [0, 1, 4]
-    assert lod.full_blocks(distance, counts, 20.0, 8).tolist() == [0]
-    assert lod.full_blocks(distance, counts, 20.0, 6).tolist() == [0]
-    assert lod.full_blocks(distance, counts, 20.0, 5).tolist() == []
-    assert lod.full_blocks(distance, counts, 2.0, 100).tolist() == [0]
-    assert lod.full_blocks(distance, counts, 200.0, 100).tolist() == [0, 1, 3, 4]
+    assert lod_plan.full_blocks(distance, counts, 20.0, 9).tolist() == [0, 1, 4]
+    assert lod_plan.full_blocks(distance, counts, 20.0, 8).tolist() == [0]
+    assert lod_plan.full_blocks(distance, counts, 20.0, 6).tolist() == [0]
+    assert lod_plan.full_blocks(distance, counts, 20.0, 5).tolist() == []
+    assert lod_plan.full_blocks(distance, counts, 2.0, 100).tolist() == [0]
+    assert lod_plan.full_blocks(distance, counts, 200.0, 100).tolist() == [0, 1, 3, 4]
 
 
 def test_footprint_distance_is_horizontal_and_zero_inside() -> None:
     lower = np.array([[0.0, 0.0, 50.0], [10.0, 0.0, 0.0], [-8.0, -8.0, 0.0]])
-    d = lod.footprint_distance(lower, 4.0, [2.0, 1.0, 0.0])
+    d = lod_plan.footprint_distance(lower, 4.0, [2.0, 1.0, 0.0])
     np.testing.assert_allclose(d, [0.0, 8.0, math.hypot(6.0, 5.0)])
 
 
@@ -206,8 +206,8 @@ def test_plan_respects_the_budget_and_keeps_every_voxel_near_the_focus() -> None
         blocks = index.blocks(index.overview_level(budget, 0.5))
         assert blocks.count <= budget // 2
         hist, _ = lod.block_tables(blocks.of_row, blocks.count, label, 3)
-        counts = lod.visible_counts(hist, lod.enabled_columns((), 3))
-        plan = lod.plan_view(blocks, index.order, counts, focus, radius, budget)
+        counts = lod_plan.visible_counts(hist, lod_plan.enabled_columns((), 3))
+        plan = lod_plan.plan_view(blocks, index.order, counts, focus, radius, budget)
         assert plan.rows.shape[0] + plan.blocks.shape[0] <= budget
         assert not np.isin(plan.blocks, plan.full).any()
         near = np.flatnonzero(np.hypot(*(centres[:, :2] - focus[:2]).T) <= radius)
@@ -257,7 +257,7 @@ def test_culled_selection_equals_the_full_selection(depth_mode: str) -> None:
                 centres[rows], camera, mask, depth_mode=depth_mode, distance=0.5, splat_size=vs, eligible=filt
             )
         ]
-        got = lod.select_culled(
+        got = lod_cull.select_culled(
             index,
             cubes,
             camera,
@@ -293,7 +293,7 @@ def test_culled_selection_keeps_the_occluders_beside_the_lasso() -> None:
     mask = sel.rect_mask((0.3, 0.3), (0.51, 0.7), 400, 400)
     visible = np.ones(centres.shape[0], bool)
     full = sel.select_points(centres, camera, mask, depth_mode="front", distance=0.5, splat_size=vs)
-    got = lod.select_culled(
+    got = lod_cull.select_culled(
         index, index.blocks(0), camera, mask, visible=visible, depth_mode="front", distance=0.5, splat_size=vs
     )
     in_rect = sel.select_points(centres, camera, mask, depth_mode="through")
@@ -314,7 +314,7 @@ def test_frustum_culling_never_drops_a_point_in_the_rectangle() -> None:
         lo, hi = tuple(rng.uniform(0, 0.5, 2)), tuple(rng.uniform(0.5, 1, 2))
         uv, front = sel.project_to_screen(centres, camera.position, camera.wxyz, camera.fov_y, camera.aspect)
         inside = front & (uv >= lo).all(axis=1) & (uv <= hi).all(axis=1)
-        kept = lod.frustum_blocks(cubes.cube_centres, cubes.edge, camera, lo, hi)
+        kept = lod_cull.frustum_blocks(cubes.cube_centres, cubes.edge, camera, lo, hi)
         rows = lod.segment_rows(index.order, cubes.starts, np.flatnonzero(kept))
         assert np.isin(np.flatnonzero(inside), rows).all()
         assert rows.size < keys.size  # it culls something
@@ -330,7 +330,7 @@ def test_ray_rows_hold_the_voxel_a_click_picks() -> None:
         origin = np.array([rng.uniform(0, 160), rng.uniform(-20, 40), 30.0])
         direction = centres[rng.integers(keys.size)] - origin
         full = pick_voxel(origin, direction, centres, vs)
-        rows = lod.ray_rows(index, cubes, origin, direction)
+        rows = lod_cull.ray_rows(index, cubes, origin, direction)
         assert rows.size < keys.size and np.all(np.diff(rows) > 0)
         culled = pick_voxel(origin, direction, centres[rows], vs)
         assert full is not None and culled is not None
@@ -341,10 +341,10 @@ def test_thin_rows_marks_overview_voxels_by_their_block() -> None:
     index, centres = _hand_index()
     blocks = index.blocks(1)
     full = np.sort(blocks.of_row[[0]].astype(np.int64))  # the block of rows 0 and 1 is at full resolution
-    pts = lod.thin_rows(blocks, full, centres, np.array([0, 1, 2, 3]))
+    pts = lod_cull.thin_rows(blocks, full, centres, np.array([0, 1, 2, 3]))
     # Rows 0 and 1 as themselves; rows 2 and 3 by their (one-voxel) blocks' means.
     np.testing.assert_allclose(pts, centres[[0, 1, 2, 3]])
-    assert lod.thin_rows(blocks, np.zeros(0, np.int64), centres, np.array([0, 1])).shape == (1, 3)
+    assert lod_cull.thin_rows(blocks, np.zeros(0, np.int64), centres, np.array([0, 1])).shape == (1, 3)
 
 
 def test_lod_config_names_the_bad_field() -> None:
@@ -404,14 +404,15 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
     from app.core.db import open_db
     from app.viewer.manager import AppBackend
     from app.viewer.panel import ReviewPanel
-    from app.viewer.session import ReviewSession, SessionConfig
+    from app.viewer.records import SessionConfig
+    from app.viewer.session import ReviewSession
 
     settings, pid, keys, _, _ = big_store
     budget = 8000
     config = SessionConfig(lod=lod.LodConfig(budget=budget, radius=6.0, refine_distance=5.0))
     session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
     try:
-        assert session.wait_drawn() and session.lod_index is not None
+        assert session.renderer.wait_drawn() and session.renderer.lod_index is not None
         voxels, overview = session.scene.voxels.handle, session.scene.overview.handle
         assert voxels is not None and overview is not None
 
@@ -423,21 +424,21 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         assert voxels.points.shape[0] > 0 and overview.points.shape[0] > 0 and sent() <= budget
         # The camera's look-at point moves far down the street: the full resolution follows it.
         far = np.array([150.0, 12.0, 0.0])
-        session._camera_moved(far)
-        assert session.wait_drawn() and sent() <= budget
+        session.renderer.camera_moved(far)
+        assert session.renderer.wait_drawn() and sent() <= budget
         centres = session.grid.centres
         near = np.flatnonzero(np.hypot(*(centres[:, :2] - far[:2]).T) <= 6.0)
         assert 0 < near.size < budget / 2  # room for the whole disc beside the overview
         drawn = {tuple(p) for p in np.asarray(voxels.points).tolist()}
         assert all(tuple(centres[r].tolist()) in drawn for r in near)
         # Class toggle and colour switch keep the budget and the handles (updated in place).
-        session.set_class_enabled(0, False)
+        session.renderer.set_class_enabled(0, False)
         session.set_state(mode="confidence")
-        assert session.wait_drawn() and sent() <= budget
+        assert session.renderer.wait_drawn() and sent() <= budget
         assert session.scene.voxels.handle is voxels and session.scene.overview.handle is overview
-        session.set_class_enabled(0, True)
+        session.renderer.set_class_enabled(0, True)
         session.set_state(mode="class")
-        assert session.wait_drawn()
+        assert session.renderer.wait_drawn()
 
         # A box looking straight down at the street's other end, drawn only as overview blocks there.
         from viser.transforms import SO3
@@ -448,16 +449,17 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         above = area + np.array([0, 0, 100.0])
         uv, front = vl.project_to_screen(centres, above, down, fov, 1.0)
         expected = np.flatnonzero(front & (uv >= 0).all(axis=1) & (uv <= 1).all(axis=1))
-        assert not np.isin(expected, session.lod_plan.rows).any()  # nothing there is at full resolution
+        plan = session.renderer.lod_plan
+        assert not np.isin(expected, plan.rows).any()  # nothing there is at full resolution
         overview_pts = np.asarray(overview.points)
         shown_there = int((np.abs(overview_pts[:, 0] - area[0]) <= 16).sum())
-        session.set_tools(depth_mode="through")
-        n = session.select_rect(above, down, fov, 1.0, (0.0, 0.0), (1.0, 1.0))
+        session.tools.set_tools(depth_mode="through")
+        n = session.tools.select_rect(above, down, fov, 1.0, (0.0, 0.0), (1.0, 1.0))
         assert n == expected.size > 10 * shown_there  # every voxel under the box, not the drawn blocks
-        np.testing.assert_array_equal(session.selection.rows, expected)
+        np.testing.assert_array_equal(session.tools.selection.rows, expected)
         assert session.scene.selection.count <= budget
-        cid = session.assign_selection("building")
-        assert cid is not None and session.wait_drawn()
+        cid = session.corrections.assign_selection("building")
+        assert cid is not None and session.renderer.wait_drawn()
         with open_db(settings.database) as db:
             (corr,) = crud.list_corrections(db, pid)
         np.testing.assert_array_equal(corr.keys, keys[expected])
@@ -469,14 +471,14 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         # A small correction moves its voxels in the block tables instead of recounting: same tables.
         fov_small = 2 * math.atan(3.0 / 100.0)
         beside = above + np.array([40.0, 0, 0])
-        n_small = session.select_rect(beside, down, fov_small, 1.0, (0.0, 0.0), (1.0, 1.0))
+        n_small = session.tools.select_rect(beside, down, fov_small, 1.0, (0.0, 0.0), (1.0, 1.0))
         assert 0 < n_small < keys.size // 20
         # With a threshold the corrected voxels (confidence 0.8 -> 1) also enter the count.
         session.set_state(threshold=0.9)
-        assert session.wait_drawn()
-        session.assign_selection("sidewalk")
-        assert session.wait_drawn()
-        cached = session._lod_tables
+        assert session.renderer.wait_drawn()
+        session.corrections.assign_selection("sidewalk")
+        assert session.renderer.wait_drawn()
+        cached = session.renderer.cache.tables
         assert cached is not None
         blocks = cached[0][0]
         want_h, want_s = lod.block_tables(
@@ -487,26 +489,26 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
         # With the overview drawn (threshold 0), a small correction recolours only the blocks it touched:
         # the kept overview colours are a recount's.
         session.set_state(threshold=0.0)
-        assert session.wait_drawn()
+        assert session.renderer.wait_drawn()
         assert (
             0
-            < session.select_rect(
+            < session.tools.select_rect(
                 beside + np.array([-8.0, 0, 0]), down, fov_small, 1.0, (0.0, 0.0), (1.0, 1.0)
             )
             < keys.size // 20
         )
-        session.assign_selection("road")
-        assert session.wait_drawn()
-        tables, kept = session._lod_tables, session._lod_colors
+        session.corrections.assign_selection("road")
+        assert session.renderer.wait_drawn()
+        tables, kept = session.renderer.cache.tables, session.renderer.cache.colors
         assert tables is not None and kept is not None and kept[0][0] is tables[1]
         want_h, _ = lod.block_tables(blocks.of_row, blocks.count, session.label, 3)
         np.testing.assert_array_equal(tables[1], want_h)
-        columns = lod.enabled_columns(session.state.enabled, 3)
-        want_colors = vl.class_colors(lod.majority_class(want_h, columns), session.palette)
+        columns = lod_plan.enabled_columns(session.state.enabled, 3)
+        want_colors = vl.class_colors(lod_plan.majority_class(want_h, columns), session.palette)
         np.testing.assert_array_equal(kept[1], want_colors)
         # "Limit points" below the budget: the full-resolution disc shrinks to what fits.
         session.set_state(max_points=1000, threshold=0.0)
-        assert session.wait_drawn() and 900 < sent() <= 1000
+        assert session.renderer.wait_drawn() and 900 < sent() <= 1000
         assert session.scene.voxels.count > 0 and session.scene.overview.count > 0
     finally:
         session.close()
@@ -515,15 +517,16 @@ def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) 
 def test_small_map_is_drawn_exactly(big_store) -> None:
     from app.viewer.manager import AppBackend
     from app.viewer.panel import ReviewPanel
-    from app.viewer.session import ReviewSession, SessionConfig
+    from app.viewer.records import SessionConfig
+    from app.viewer.session import ReviewSession
 
     settings, pid, keys, label, _ = big_store
     config = SessionConfig(lod=lod.LodConfig(budget=keys.size))
     session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
     try:
-        assert session.wait_drawn() and session.lod_index is None
+        assert session.renderer.wait_drawn() and session.renderer.lod_index is None
         assert session.scene.voxels.count == keys.size and session.scene.overview.handle is None
-        rows, colors = session.compute_view()
+        rows, colors = session.renderer.compute_view()
         np.testing.assert_array_equal(session.scene.voxels.handle.points, session.grid.centres[rows])
         np.testing.assert_array_equal(
             colors, vl.class_colors(label, np.array([c["color"] for c in SCHEMA3["classes"]], np.uint8))

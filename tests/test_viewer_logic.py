@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import socket
+import time
 from itertools import pairwise
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from app.viewer import region_logic as rl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, matrix_to_wxyz
 from app.viewer.panel import legend_html
@@ -179,36 +181,36 @@ def test_rank_regions_orders_cells_by_mean_score() -> None:
     )
     score = np.array([0.25, 0.75, 0.0, 1.0, 0.5, 0.0], np.float32)
     cand = np.array([True, True, True, True, True, False])
-    regions = vl.rank_regions(centres, score, cand, cell_size=4.0)
+    regions = rl.rank_regions(centres, score, cand, cell_size=4.0)
     assert [r.count for r in regions] == [3, 2]  # both cells average 0.5: the larger one first
     assert regions[0].score == 0.5 and regions[1].score == 0.5
-    regions = vl.rank_regions(centres, score, cand, cell_size=4.0, min_count=3)
+    regions = rl.rank_regions(centres, score, cand, cell_size=4.0, min_count=3)
     assert len(regions) == 1 and regions[0].centre == pytest.approx((11.0, 0.5, 0.0))
     assert regions[0].extent == pytest.approx(math.hypot(0.5, 0.5))
     cand2 = np.array([True, True, True, False, False, False])
-    lowest = vl.rank_regions(centres, score, cand2, 4.0)
+    lowest = rl.rank_regions(centres, score, cand2, 4.0)
     assert [r.score for r in lowest] == [0.0, 0.5]
-    highest = vl.rank_regions(centres, score, cand2, 4.0, ascending=False)
+    highest = rl.rank_regions(centres, score, cand2, 4.0, ascending=False)
     assert [r.score for r in highest] == [0.5, 0.0]
-    assert vl.rank_regions(centres, score, np.zeros(6, bool), 4.0) == []
+    assert rl.rank_regions(centres, score, np.zeros(6, bool), 4.0) == []
     with pytest.raises(ValueError, match="cell_size"):
-        vl.rank_regions(centres, score, cand, 0.0)
+        rl.rank_regions(centres, score, cand, 0.0)
 
 
 def test_lowest_share() -> None:
     s = np.array([0.5, 0.1, 0.9, 0.3, 0.7], np.float32)
-    assert vl.lowest_share(s, 0.4).tolist() == [False, True, False, True, False]
-    assert vl.lowest_share(s, 0.01).tolist() == [False, True, False, False, False]
-    assert vl.lowest_share(s, 1.0).all()
+    assert rl.lowest_share(s, 0.4).tolist() == [False, True, False, True, False]
+    assert rl.lowest_share(s, 0.01).tolist() == [False, True, False, False, False]
+    assert rl.lowest_share(s, 1.0).all()
     with pytest.raises(ValueError, match="share"):
-        vl.lowest_share(s, 0.0)
+        rl.lowest_share(s, 0.0)
 
 
 def test_disagreement_rate() -> None:
     rows = np.array([0, 0, 0, 1, 1, -1, 2], np.int64)
     cam = np.array([1, 1, -1, 2, 2, 1, -1], np.int16)
     fin = np.array([1, 0, 0, 2, 2, 0, 1], np.int16)
-    rate, observed = vl.disagreement_rate(rows, cam, fin, 4)
+    rate, observed = rl.disagreement_rate(rows, cam, fin, 4)
     assert observed.tolist() == [2, 2, 0, 0]
     np.testing.assert_allclose(rate, [0.5, 0.0, 0.0, 0.0])
 
@@ -470,7 +472,8 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
     from app.core.db import open_db
     from app.viewer.manager import AppBackend
     from app.viewer.panel import ReviewPanel
-    from app.viewer.session import ReviewSession, SessionConfig
+    from app.viewer.records import SessionConfig
+    from app.viewer.session import ReviewSession
 
     settings, pid, run_id, keys, cls = review_store
     session = ReviewSession(
@@ -479,74 +482,74 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
     try:
         assert session.run is not None and session.run.run_id == run_id
         assert session.class_names() == ["road", "car", "building"]
-        assert session.wait_drawn()
+        assert session.renderer.wait_drawn()
         handle = session.scene.voxels.handle
         assert handle is not None and handle.points.shape[0] == keys.size
         np.testing.assert_array_equal(handle.colors, np.array(SCHEMA3_COLORS)[cls])
 
         session.set_state(threshold=0.7)
-        assert session.wait_drawn()
+        assert session.renderer.wait_drawn()
         assert session.scene.voxels.handle is handle  # updated in place
         assert handle.points.shape[0] == int((session.conf >= 0.7).sum()) < keys.size
 
         session.set_state(mode="class_probability", class_index=1, threshold=0.0)
-        assert session.wait_drawn()
+        assert session.renderer.wait_drawn()
         expected = vl.scalar_colors(session.grid.class_prob(1))
         np.testing.assert_array_equal(handle.colors, expected)
 
         # Scan browser: points, frustum and label overlay of the second scan.
-        view = session.show_scan(1)
+        view = session.player.show_scan(1)
         assert view is not None and session.scene.scan.count == 60
         assert session.scene.camera.handle is not None and view.overlay is not None
 
         # Review queue: lowest-confidence regions first; the camera target moves there.
-        regions = session.build_queue("confidence")
+        regions = session.queue.build_queue("confidence")
         assert regions and all(a.score <= b.score for a, b in pairwise(regions))
-        assert session.next_region() == regions[0]
-        session.clear_focus()
-        dis = session.build_queue("disagreement")
+        assert session.queue.next_region() == regions[0]
+        session.queue.clear_focus()
+        dis = session.queue.build_queue("disagreement")
         assert dis and all(a.score >= b.score for a, b in pairwise(dis))
 
         # Steering: a renamed, recoloured, re-prompted class lands in the project's SQLite row.
-        session.update_class(1, name="vehicle", color=(1, 2, 3), prompts=["car", "van"])
+        session.classes.update_class(1, name="vehicle", color=(1, 2, 3), prompts=["car", "van"])
         with open_db(settings.database) as db:
             stored = crud.require_project(db, pid)["schema"]["classes"][1]
         assert stored["name"] == "vehicle" and stored["color"] == [1, 2, 3]
         assert stored["prompts"] == ["car", "van"]
-        session.add_class("pole")
-        session.remove_class(0)
+        session.classes.add_class("pole")
+        session.classes.remove_class(0)
         with open_db(settings.database) as db:
             names = [c["name"] for c in crud.require_project(db, pid)["schema"]["classes"]]
         assert names == ["vehicle", "building", "pole"]
         with pytest.raises(Exception, match="duplicate name"):
-            session.update_class(0, name="building")
+            session.classes.update_class(0, name="building")
 
         # Corrections: select with a camera looking straight down on everything, assign, undo, redo.
         session.set_state(mode="class", threshold=0.0)
-        assert session.wait_drawn()
+        assert session.renderer.wait_drawn()
         centre = session.grid.centres.mean(axis=0)
         from viser.transforms import SO3
 
         down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
         above = centre + np.array([0, 0, 200.0])
-        session.set_tools(depth_mode="through")
-        n = session.select_rect(above, down, math.radians(60), 1.0, (0.0, 0.0), (1.0, 1.0))
+        session.tools.set_tools(depth_mode="through")
+        n = session.tools.select_rect(above, down, math.radians(60), 1.0, (0.0, 0.0), (1.0, 1.0))
         assert n == keys.size
-        cid = session.assign_selection("building")
-        assert cid is not None and session.wait_drawn()
+        cid = session.corrections.assign_selection("building")
+        assert cid is not None and session.renderer.wait_drawn()
         with open_db(settings.database) as db:
             (corr,) = crud.list_corrections(db, pid)
         assert corr.class_name == "building" and corr.voxel_size == 0.5
         np.testing.assert_array_equal(corr.keys, keys)
         assert (session.label == 2).all() and session.corrected.all()
         np.testing.assert_array_equal(handle.colors[0], SCHEMA3_COLORS[2])
-        session.undo()
-        assert session.wait_drawn() and not session.corrected.any()
+        session.corrections.undo()
+        assert session.renderer.wait_drawn() and not session.corrected.any()
         with open_db(settings.database) as db:
             assert crud.list_corrections(db, pid) == []
         np.testing.assert_array_equal(session.label, cls)
-        session.redo()
-        assert session.wait_drawn() and session.corrected.all()
+        session.corrections.redo()
+        assert session.renderer.wait_drawn() and session.corrected.all()
         with open_db(settings.database) as db:
             assert len(crud.list_corrections(db, pid)) == 1
     finally:
@@ -630,6 +633,84 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
         assert client.delete(base, headers=auth).status_code == 404
 
 
+def test_scan_scope_correction_relabels_only_its_points_of_its_scan(review_store) -> None:
+    """A correction made on the shown scan's points in scan scope: stored as those point indices of that
+    scan; the scan layer shows the class on exactly those points, other scans and the voxel map keep the
+    run's labels, and undo takes it back."""
+    from viser.transforms import SO3
+
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, _run_id, _keys, cls = review_store
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        player, tools = session.player, session.tools
+        view = player.show_scan(0)
+        assert view is not None and session.renderer.wait_drawn()
+        run_labels = view.label.copy()
+        down = SO3.from_matrix(np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])).wxyz
+        above = view.points.mean(axis=0) + np.array([0, 0, 200.0])
+        tools.set_tools(target="scan", scope="scan", depth_mode="through")
+        n = tools.select_rect(above, down, math.radians(60), 1.0, (0.0, 0.0), (0.5, 1.0))
+        picked = tools.selection.rows.copy()
+        assert 0 < n == picked.size < view.points.shape[0] and tools.selection.frame_id == view.frame_id
+        cid = session.corrections.assign_selection("building")
+        assert cid is not None and session.renderer.wait_drawn()
+        with open_db(settings.database) as db:
+            (corr,) = crud.list_corrections(db, pid)
+        assert (corr.scope, corr.frame_id) == ("scan", view.frame_id)
+        np.testing.assert_array_equal(corr.points, picked)
+        expected = run_labels.copy()
+        expected[picked] = 2
+        np.testing.assert_array_equal(session.shared.scan_label, expected)
+        np.testing.assert_array_equal(session.scene.scan.handle.colors, np.array(SCHEMA3_COLORS)[expected])
+        np.testing.assert_array_equal(session.label, cls)  # the voxel map is not corrected
+        assert not session.corrected.any() and tools.selection.rows.size == 0
+        other = player.show_scan(1)
+        assert other is not None
+        np.testing.assert_array_equal(session.shared.scan_label, other.label)
+        player.show_scan(0)
+        np.testing.assert_array_equal(session.shared.scan_label, expected)
+        assert session.corrections.undo() == cid
+        np.testing.assert_array_equal(session.shared.scan_label, run_labels)
+    finally:
+        session.close()
+
+
+def test_scan_player_plays_from_the_first_scan_and_stops_at_the_last(review_store) -> None:
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.panel_nav import BROWSE
+    from app.viewer.records import SessionConfig
+    from app.viewer.session import ReviewSession
+
+    settings, pid, *_ = review_store
+    session = ReviewSession(
+        AppBackend(settings, pid), panel=ReviewPanel, config=SessionConfig(play_interval_s=0.05)
+    )
+    try:
+        player = session.player
+        assert player.scan_count == 3
+        player.show_scan(2)
+        shown: list[int] = []
+        assert player.set_playing(None) is True  # from the last scan: starts again at the first
+        assert player.frame_pos == 0
+        deadline = time.monotonic() + 10
+        while player.playing and time.monotonic() < deadline:
+            shown.append(player.frame_pos)
+            time.sleep(0.005)
+        assert not player.playing and player.frame_pos == 2 and shown[0] == 0 and 1 in shown
+        assert tuple(session.panel.nav.browse.options) == BROWSE  # "Play" again, not "Pause"
+        assert player.set_playing(True) is True and player.frame_pos == 0
+        assert player.set_playing(None) is False and not player.playing
+    finally:
+        session.close()
+
+
 def test_final_grid_path_follows_the_run_parameters(tmp_path) -> None:
     from app.viewer.data import final_grid_path
 
@@ -655,19 +736,21 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
     from app.core.db import open_db
     from app.viewer.manager import AppBackend
     from app.viewer.panel import ReviewPanel
-    from app.viewer.session import REVIEW_BOX_RGB, ReviewSession, SessionConfig
+    from app.viewer.records import SessionConfig
+    from app.viewer.region_logic import REVIEW_BOX_RGB
+    from app.viewer.session import ReviewSession
     from leap_core import review
 
     settings, pid, _run_id, keys, cls = review_store
     config = SessionConfig(queue_share=0.3, queue_min_count=1, queue_cell=2.0)
     session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
     try:
-        regions = session.build_queue("confidence")
+        regions = session.queue.build_queue("confidence")
         assert len(regions) >= 3
-        assert session.review_progress() == {"total": len(regions), "reviewed": 0, "skipped": 0}
-        region = session.next_region()
-        assert region is regions[0] and session.focus is region
-        assert session.wait_drawn()
+        assert session.queue.review_progress() == {"total": len(regions), "reviewed": 0, "skipped": 0}
+        region = session.queue.next_region()
+        assert region is regions[0] and session.queue.focus is region
+        assert session.renderer.wait_drawn()
         handle = session.scene.voxels.handle
         full = np.array(SCHEMA3_COLORS, np.uint8)[cls]
         inside = np.isin(np.arange(keys.size), region.rows)
@@ -682,20 +765,20 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
         out = session.outputs
         counts = [out.region_observers(f, keys[region.rows], 0.5) for f in out.frame_indices]
         best = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
-        assert best is not None and session.focus_frame == best and session.frame_pos == best
+        assert best is not None and session.queue.focus_frame == best and session.player.frame_pos == best
         # The image shows where the region is: its projected points boxed in magenta.
         assert counts[best][1] > 0, "the tiny scene's camera should see the region"
         plain = out.scan_view(out.frame_indices[best], session.palette)
-        boxed = session._mark_region_in_image(plain, best)
+        boxed = session.player.mark_region_in_image(plain, best)
         u0, v0, u1, v1 = review.image_box(counts[best][2], plain.overlay.shape[1], plain.overlay.shape[0])
         assert boxed.overlay[v0, u0].tolist() == list(REVIEW_BOX_RGB)
         assert boxed.overlay[v1, (u0 + u1) // 2].tolist() == list(REVIEW_BOX_RGB)
 
         # Accept, then skip: stored in SQLite, the next unmarked region is shown each time.
-        nxt = session.mark_region("accepted")
-        assert nxt is regions[1] and session.region_pos == 1
-        session.mark_region("skipped")
-        assert session.review_progress() == {"total": len(regions), "reviewed": 1, "skipped": 1}
+        nxt = session.queue.mark_region("accepted")
+        assert nxt is regions[1] and session.queue.region_pos == 1
+        session.queue.mark_region("skipped")
+        assert session.queue.review_progress() == {"total": len(regions), "reviewed": 1, "skipped": 1}
         with open_db(settings.database) as db:
             marks = crud.list_review_marks(db, pid)
             (progress,) = crud.review_progress(db, pid)
@@ -707,29 +790,29 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
     # A new session on the same store (the server restarted) ranks the same queue and sees the marks.
     again = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel, config=config)
     try:
-        regions2 = again.build_queue("confidence")
+        regions2 = again.queue.build_queue("confidence")
         assert [r.id for r in regions2] == [r.id for r in regions]
-        assert again.review_progress() == {"total": len(regions), "reviewed": 1, "skipped": 1}
-        assert again.region_state(0) == "accepted" and again.region_state(1) == "skipped"
+        assert again.queue.review_progress() == {"total": len(regions), "reviewed": 1, "skipped": 1}
+        assert again.queue.region_state(0) == "accepted" and again.queue.region_state(1) == "skipped"
         # Relabel the first region (a correction): its content changed, so its old mark no longer counts
         # until it is accepted on the new content (relabel accepts it).
-        again.show_region(0)
-        cid = again.relabel_region("building")
-        assert cid is not None and again.region_state(0) == "accepted"
+        again.queue.show_region(0)
+        cid = again.queue.relabel_region("building")
+        assert cid is not None and again.queue.region_state(0) == "accepted"
         with open_db(settings.database) as db:
             (corr,) = crud.list_corrections(db, pid)
             stored = crud.list_review_marks(db, pid)[regions[0].id]
         np.testing.assert_array_equal(corr.keys, keys[regions[0].rows])
         assert (
             stored.signature
-            == again.signatures[0]
+            == again.queue.signatures[0]
             != review.region_signatures(
                 again.grid.centres, again.grid.keys, again.grid.label, [regions[0].cell], 2.0
             )[0]
         )
         # Re-ranked: the relabelled voxels are certain now; if the cell still ranks, it stays accepted.
-        ranked = [r.id for r in again.build_queue("confidence")]
+        ranked = [r.id for r in again.queue.build_queue("confidence")]
         if regions[0].id in ranked:
-            assert again.region_state(ranked.index(regions[0].id)) == "accepted"
+            assert again.queue.region_state(ranked.index(regions[0].id)) == "accepted"
     finally:
         again.close()

@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.viewer import view_logic as vl
+from app.viewer.region_logic import disagreement_rate
 from leap_core.config import config_from_dict
 from leap_core.consistency.selection import lookup_counts, view_counts
 from leap_core.errors import DatasetError, LeapError
@@ -174,8 +175,9 @@ def matrix_to_wxyz(rot: npt.ArrayLike) -> npt.NDArray[np.float64]:
     else:
         s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    out = np.asarray(q)
-    return out / np.linalg.norm(out)
+    out = np.asarray(q, dtype=np.float64)
+    unit: npt.NDArray[np.float64] = out / np.linalg.norm(out)
+    return unit
 
 
 class RunOutputs:
@@ -238,7 +240,7 @@ class RunOutputs:
 
     def disagreement(self, grid: ReviewGrid) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
         """Per-voxel share of camera-labelled points whose final label differs (see
-        :func:`app.viewer.view_logic.disagreement_rate`), over every labelled scan of the run.
+        :func:`app.viewer.region_logic.disagreement_rate`), over every labelled scan of the run.
 
         Reads every scan once; the result is kept for this grid. Only the points the camera labelled
         (``point_label ≥ 0``, a tenth of a scan or less: the camera sees a narrow wedge) can disagree, so
@@ -269,7 +271,7 @@ class RunOutputs:
         if not rows_all:
             rate, observed = np.zeros(grid.num_voxels, np.float32), np.zeros(grid.num_voxels, np.int64)
         else:
-            rate, observed = vl.disagreement_rate(
+            rate, observed = disagreement_rate(
                 np.concatenate(rows_all), np.concatenate(cam_all), np.concatenate(fin_all), grid.num_voxels
             )
         self._disagreement = (grid, rate, observed)

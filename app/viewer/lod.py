@@ -1,9 +1,11 @@
-"""Level of detail for voxel maps larger than the browser budget: pure functions on arrays.
+"""Level of detail for voxel maps larger than the browser budget: the spatial index (pure functions).
 
 A map of V voxels above :attr:`LodConfig.budget` is sent as at most ``budget`` points: every voxel of the
 blocks near the *focus* (the shown scan, the focused review region, or the camera's look-at point) at full
 resolution, and one point per block elsewhere (the *overview*). The review queue, selections and
-corrections keep working on every voxel of the grid; only what is drawn is thinned.
+corrections keep working on every voxel of the grid; only what is drawn is thinned. This module builds the
+index and counts blocks; :mod:`app.viewer.lod_plan` chooses and colours what is drawn from the counts, and
+:mod:`app.viewer.lod_cull` culls selections and clicks with the index's coarse cubes.
 
 **Index** (:func:`build_index`, once per grid). Voxel indices ``ijk = ⌊centre / s⌋ - min`` (s the voxel edge)
 are interleaved bit by bit into a Morton code ``m = Σ_b x_b·2^(3b) + y_b·2^(3b+1) + z_b·2^(3b+2)``, and the
@@ -12,22 +14,10 @@ the voxels with the same ``m >> 3n``; in Morton order every block, at every leve
 a block's voxels are ``order[starts[b]:starts[b + 1]]``.
 
 **Overview level** (:func:`choose_level`): the finest ``n ≥ 1`` whose number of non-empty blocks is at
-most ``overview_share · budget``. Each overview point sits at the mean centre of its block's voxels and is
-drawn with the block's edge; it carries the majority class (class view) or the mean score (confidence and
-probability views) of its *visible* voxels, read from per-block, per-class tables (:func:`block_tables`):
-``hist[b, c + 1]`` voxels of class c (column 0: unlabeled) passing the threshold, ``ssum[b, c + 1]`` the sum
-of their scores. A class toggle then only masks columns: ``count_b = Σ_c hist[b, c]·e_c``,
-``majority_b = argmax_c hist[b, c]·e_c``, ``mean_b = Σ_c ssum[b, c]·e_c / count_b``.
+most ``overview_share · budget``.
 
-**Full resolution** (:func:`full_blocks`): the overview blocks whose cube lies within ``radius`` (horizontal
-distance from the focus to the cube's footprint) are replaced by their voxels, nearest block first, while
-the total ``Σ_{b∈F} count_b + #{b ∉ F : count_b > 0}`` stays within the budget (adding block b changes it
-by ``count_b - 1 ≥ 0``, so a prefix of the nearest blocks is taken). Every visible voxel within
-``radius`` of the focus is thus drawn unless the budget ran out first.
-
-**Culling** (:func:`frustum_blocks`, :func:`ray_blocks`): selections and clicks test coarse cubes (edge ≥
-:attr:`LodConfig.query_edge`) against the selection's frustum or the click ray first and only then look at
-the voxels inside the cubes that pass, with a test that never drops a voxel the full test would keep.
+**Block tables** (:func:`block_tables`, :meth:`LodIndex.sorted_tables`): ``hist[b, c + 1]`` voxels of class c
+(column 0: unlabeled) passing the threshold, ``ssum[b, c + 1]`` the sum of their scores.
 """
 
 from __future__ import annotations
@@ -39,17 +29,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
-from leap_core.picking import ray_box_entry
-from leap_core.selection import (
-    DepthMode,
-    PinholeCamera,
-    camera_coords,
-    pixel_of,
-    project_to_screen,
-    quat_to_matrix,
-    select_points,
-)
 
 MAX_AXIS = 1 << 21
 """Voxels per axis a Morton code holds (21 bits each in 63 bits: 419 km at 0.2 m)."""
@@ -184,7 +163,8 @@ def segment_rows(
     total = int(lengths.sum())
     # Position k of block j reads order[lo_j + k]: one arange shifted per block.
     shift = np.repeat(lo - (np.cumsum(lengths) - lengths), lengths)
-    return order[np.arange(total, dtype=np.int64) + shift].astype(np.int64, copy=False)
+    rows: npt.NDArray[np.int64] = order[np.arange(total, dtype=np.int64) + shift].astype(np.int64, copy=False)
+    return rows
 
 
 # ------------------------------------------------------------------------------------------- index
@@ -415,324 +395,16 @@ def block_tables(
     return hist, ssum
 
 
-def update_tables(
-    hist: npt.NDArray[np.float32],
-    ssum: npt.NDArray[np.float32],
-    block: npt.NDArray[np.int32],
-    num_classes: int,
-    before: tuple[npt.NDArray[np.int16], npt.NDArray[np.floating], npt.NDArray[np.bool_]],
-    after: tuple[npt.NDArray[np.int16], npt.NDArray[np.floating], npt.NDArray[np.bool_]],
-) -> None:
-    """Move changed voxels in :func:`block_tables`' tables, in place: each voxel's old entry (class, score,
-    counted) is taken out of its block's row and its new one put in (a correction changes a few voxels; a
-    full recount reads them all).
-
-    Args:
-        hist, ssum: (B, C + 1) tables to update.
-        block: (K,) block of each changed voxel.
-        num_classes: C.
-        before, after: ``(label (K,), score (K,), counted (K,) bool)`` of the changed voxels.
-    """
-    width = num_classes + 1
-    flat_h, flat_s = hist.reshape(-1), ssum.reshape(-1)
-    for (lab, sc, counted), sign in ((before, -1.0), (after, 1.0)):
-        idx = block[counted].astype(np.int64) * width + lab[counted].astype(np.int64) + 1
-        np.add.at(flat_h, idx, np.float32(sign))
-        np.add.at(flat_s, idx, (sign * np.asarray(sc)[counted]).astype(np.float32))
-
-
-def enabled_columns(enabled: tuple[bool, ...], num_classes: int) -> npt.NDArray[np.float32]:
-    """(C + 1,) 1/0 weight of each table column: unlabeled (column 0) always on, class c per its toggle
-    (every class when ``enabled`` is empty, as :func:`app.viewer.view_logic.visible_mask`)."""
-    e = np.ones(num_classes + 1, np.float32)
-    if len(enabled):
-        e[1:] = np.asarray(enabled, bool)[:num_classes]
-    return e
-
-
-def visible_counts(hist: npt.NDArray[np.float32], columns: npt.NDArray[np.float32]) -> npt.NDArray[np.int64]:
-    """(B,) visible voxels per block: ``Σ_c hist[b, c] · e_c``."""
-    return np.rint(hist @ columns).astype(np.int64)
-
-
-def majority_class(
-    hist: npt.NDArray[np.float32],
-    columns: npt.NDArray[np.float32],
-    blocks: npt.NDArray[np.int64] | None = None,
-) -> npt.NDArray[np.int16]:
-    """(M,) the most frequent visible class of each of ``blocks`` (every block when None; -1 unlabeled).
-    Ties go to the lower class index, unlabeled lowest."""
-    sub = (hist if blocks is None else hist[blocks]) * columns
-    return (np.argmax(sub, axis=1) - 1).astype(np.int16)
-
-
-def mean_score(
-    hist: npt.NDArray[np.float32],
-    ssum: npt.NDArray[np.float32],
-    columns: npt.NDArray[np.float32],
-    blocks: npt.NDArray[np.int64] | None = None,
-) -> npt.NDArray[np.float32]:
-    """(M,) mean score of the visible voxels of each of ``blocks`` (every block when None; 0 for a block with
-    none)."""
-    n = (hist if blocks is None else hist[blocks]) @ columns
-    s = (ssum if blocks is None else ssum[blocks]) @ columns
-    return np.divide(s, n, out=np.zeros_like(s), where=n > 0).astype(np.float32)
-
-
-# ----------------------------------------------------------------------------------- full resolution
-def footprint_distance(
-    lower: npt.NDArray[np.float64], edge: float, point: npt.ArrayLike
-) -> npt.NDArray[np.float64]:
-    """(B,) horizontal distance from ``point`` (x, y, …) to each cube's footprint
-    ``[lower_x, lower_x + edge] × [lower_y, lower_y + edge]`` (0 inside)."""
-    p = np.asarray(point, dtype=np.float64).reshape(-1)[:2]
-    d = np.maximum(np.maximum(lower[:, :2] - p, p - (lower[:, :2] + edge)), 0.0)
-    return np.sqrt(np.einsum("ij,ij->i", d, d))
-
-
-def full_blocks(
-    distance: npt.NDArray[np.float64], counts: npt.NDArray[np.int64], radius: float, budget: int
-) -> npt.NDArray[np.int64]:
-    """Blocks drawn at full resolution, ascending: the visible blocks within ``radius``, nearest first
-    (ties: lower block), while ``Σ_{b∈F} count_b + #{b ∉ F : count_b > 0} ≤ budget``.
-
-    Args:
-        distance: (B,) distance of each block from the focus (:func:`footprint_distance`).
-        counts: (B,) visible voxels per block.
-        radius: largest distance drawn at full resolution (m).
-        budget: most points in all.
-
-    Returns:
-        (F,) int64 block ids, ascending (empty when even the overview exceeds the budget).
-    """
-    shown = int(np.count_nonzero(counts))
-    near = np.flatnonzero((distance <= radius) & (counts > 0))
-    near = near[np.lexsort((near, distance[near]))]
-    grow = np.cumsum(counts[near] - 1)
-    take = int(np.searchsorted(grow, budget - shown, side="right"))
-    return np.sort(near[:take])
-
-
-# -------------------------------------------------------------------------------------------- culling
-def frustum_blocks(
-    cube_centres: npt.NDArray[np.float64],
-    edge: float,
-    camera: PinholeCamera,
-    rect_min: tuple[float, float],
-    rect_max: tuple[float, float],
-) -> npt.NDArray[np.bool_]:
-    """(B,) bool: cubes that may hold a point in front of ``camera`` projecting into the screen rectangle
-    (normalised corners, see :func:`leap_core.selection.project_to_screen`).
-
-    Conservative (never drops such a cube): a cube is kept unless its bounding sphere (radius ``edge·√3/2``)
-    lies wholly behind the camera or wholly outside one of the four planes through the camera centre and
-    the rectangle's edges. In camera coordinates a point projects into ``u ∈ [u0, u1]`` iff
-    ``a0·z ≤ x ≤ a1·z`` with ``a = (2u - 1)·aspect·tan(fov_y / 2)`` (likewise y with v and ``tan(fov_y/2)``).
-    """
-    rho = edge * math.sqrt(3.0) / 2.0
-    rot = quat_to_matrix(camera.wxyz)
-    cam = (np.asarray(cube_centres, dtype=np.float64) - np.asarray(camera.position)) @ rot
-    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
-    ty = math.tan(camera.fov_y / 2.0)
-    tx = camera.aspect * ty
-    u0, u1 = sorted((rect_min[0], rect_max[0]))
-    v0, v1 = sorted((rect_min[1], rect_max[1]))
-    keep = z > -rho
-    for a, sign, coord in (
-        ((2 * u0 - 1) * tx, 1.0, x),
-        ((2 * u1 - 1) * tx, -1.0, x),
-        ((2 * v0 - 1) * ty, 1.0, y),
-        ((2 * v1 - 1) * ty, -1.0, y),
-    ):
-        # Inside the half-space: sign·(coord - a·z) ≥ 0; its plane's unit normal has length √(1 + a²).
-        keep &= sign * (coord - a * z) >= -rho * math.sqrt(1.0 + a * a)
-    return keep
-
-
-def ray_blocks(
-    cube_centres: npt.NDArray[np.float64], edge: float, origin: npt.ArrayLike, direction: npt.ArrayLike
-) -> npt.NDArray[np.bool_]:
-    """(B,) bool: cubes the ray enters in front of its origin (every voxel it enters lies in one)."""
-    if cube_centres.shape[0] == 0:
-        return np.zeros(0, bool)
-    return np.isfinite(ray_box_entry(origin, direction, cube_centres, edge))
-
-
-def mask_rect(mask: npt.NDArray[np.bool_]) -> tuple[tuple[float, float], tuple[float, float]] | None:
-    """Normalised corners of the bounding rectangle of a screen mask's True pixels (None when empty)."""
-    cols = np.flatnonzero(mask.any(axis=0))
-    rows = np.flatnonzero(mask.any(axis=1))
-    if cols.size == 0:
-        return None
-    h, w = mask.shape
-    return (cols[0] / w, rows[0] / h), ((cols[-1] + 1) / w, (rows[-1] + 1) / h)
-
-
-def select_culled(  # noqa: PLR0913 (select_points' own keywords, plus the index and its cubes)
-    index: LodIndex,
-    cubes: Blocks,
-    camera: PinholeCamera,
-    mask: npt.NDArray[np.bool_],
-    *,
-    visible: npt.NDArray[np.bool_],
-    eligible: npt.NDArray[np.bool_] | None = None,
-    depth_mode: DepthMode = "front",
-    distance: float = 0.5,
-    splat_size: float = 0.2,
-) -> npt.NDArray[np.int64]:
-    """Rows (ascending) :func:`leap_core.selection.select_points` selects among the ``visible`` voxels, found
-    without projecting the voxels of cubes that cannot matter.
-
-    The candidates lie in the mask's bounding rectangle, so the cubes passing :func:`frustum_blocks` for it
-    hold them all. In ``front`` mode the z-buffer also reads occluders in the candidates' cell box grown by
-    one cell (:func:`leap_core.selection.front_surface`; cell = median on-screen size of the candidates), so
-    the cubes of that wider window are added before the exact test runs on the union.
-
-    Args:
-        index: the grid's index; ``cubes`` one of its levels (the culling cubes).
-        camera, mask: the tool's camera and (H, W) screen mask.
-        visible: (V,) bool, the voxels shown (the only ones selectable or occluding).
-        eligible: (V,) bool class filter applied after the depth test, or None.
-        depth_mode, distance, splat_size: as :func:`~leap_core.selection.select_points`.
-    """
-    rect = mask_rect(mask)
-    if rect is None:
-        return np.zeros(0, np.int64)
-    centres = index.centres
-
-    def rows_in(lo: tuple[float, float], hi: tuple[float, float]) -> npt.NDArray[np.int64]:
-        keep = frustum_blocks(cubes.cube_centres, cubes.edge, camera, lo, hi)
-        rows = segment_rows(index.order, cubes.starts, np.flatnonzero(keep))
-        return rows[visible[rows]]
-
-    rows = rows_in(*rect)
-    if depth_mode == "front" and rows.size:
-        w, h = camera.width_px, camera.height_px
-        cam = camera_coords(centres[rows], camera.position, camera.wxyz)
-        uv, in_front = project_to_screen(
-            centres[rows], camera.position, camera.wxyz, camera.fov_y, camera.aspect
-        )
-        col, row, on = pixel_of(uv, w, h)
-        cand = in_front & on & mask[row, col]
-        if cand.any():
-            splat = splat_size * camera.focal_px / cam[cand, 2]
-            cell = max(1.0, float(np.median(splat)))
-            ccol, crow = (col[cand] / cell).astype(np.int64), (row[cand] / cell).astype(np.int64)
-            # Occluder pixels: columns [(c0 - 1)·cell, (c1 + 2)·cell), one pixel of slack each side.
-            u0 = ((ccol.min() - 1) * cell - 1) / w
-            u1 = ((ccol.max() + 2) * cell + 1) / w
-            v0 = ((crow.min() - 1) * cell - 1) / h
-            v1 = ((crow.max() + 2) * cell + 1) / h
-            rows = np.union1d(rows, rows_in((u0, v0), (u1, v1)))
-    rows = np.sort(rows)
-    picked = select_points(
-        centres[rows],
-        camera,
-        mask,
-        depth_mode=depth_mode,
-        distance=distance,
-        splat_size=splat_size,
-        eligible=None if eligible is None else eligible[rows],
-    )
-    return rows[picked]
-
-
-def ray_rows(
-    index: LodIndex, cubes: Blocks, origin: npt.ArrayLike, direction: npt.ArrayLike
-) -> npt.NDArray[np.int64]:
-    """Rows (ascending) of the voxels in the cubes a click ray enters: every voxel the ray can hit."""
-    hit = ray_blocks(cubes.cube_centres, cubes.edge, origin, direction)
-    return np.sort(segment_rows(index.order, cubes.starts, np.flatnonzero(hit)))
-
-
-def thin_rows(
-    blocks: Blocks,
-    full: npt.NDArray[np.int64],
-    centres: npt.NDArray[np.float32],
-    rows: npt.NDArray[np.int64],
-) -> npt.NDArray[np.float32]:
-    """Points marking ``rows``: the centres of those in the ``full`` (ascending) blocks, then the mean centre
-    of each other block holding one of them (so a selection over the overview stays within the budget)."""
-    b = blocks.of_row[rows].astype(np.int64)
-    pos = np.minimum(np.searchsorted(full, b), max(full.shape[0] - 1, 0))
-    inside = full[pos] == b if full.size else np.zeros(b.shape[0], bool)
-    return np.concatenate([centres[rows[inside]], blocks.mean[np.unique(b[~inside])]]).astype(np.float32)
-
-
-# ---------------------------------------------------------------------------------------------- plan
-@dataclass(frozen=True, eq=False)
-class LodPlan:
-    """What to draw of a big map for one focus and view (:func:`plan_view`)."""
-
-    full: npt.NDArray[np.int64]
-    """(F,) the full-resolution blocks, ascending."""
-    rows: npt.NDArray[np.int64]
-    """Rows of every voxel of the full-resolution blocks (visible or not), block by block."""
-    blocks: npt.NDArray[np.int64]
-    """(K,) overview blocks drawn: visible and not at full resolution, ascending."""
-    level: int
-    """Level of the blocks."""
-
-
-def plan_view(
-    blocks: Blocks,
-    order: npt.NDArray[np.int64],
-    counts: npt.NDArray[np.int64],
-    focus: npt.ArrayLike,
-    radius: float,
-    budget: int,
-) -> LodPlan:
-    """The full-resolution blocks around ``focus`` (:func:`full_blocks`), the rows of their voxels (the
-    caller keeps the visible ones: ``Σ_{b∈F} counts_b`` of them) and the overview blocks.
-
-    Args:
-        blocks: the overview level's blocks; ``order`` the index's sorted rows.
-        counts: (B,) visible voxels per block (:func:`visible_counts`).
-        focus: (3,) world point the full resolution is centred on.
-        radius, budget: :class:`LodConfig` values.
-    """
-    f = np.asarray(focus, dtype=np.float64).reshape(-1)
-    # Only blocks whose footprint meets the square around the disc need their exact distance.
-    lo, edge = blocks.lower, blocks.edge
-    box = np.flatnonzero(
-        (lo[:, 0] <= f[0] + radius)
-        & (lo[:, 0] + edge >= f[0] - radius)
-        & (lo[:, 1] <= f[1] + radius)
-        & (lo[:, 1] + edge >= f[1] - radius)
-    )
-    dist = np.full(blocks.count, np.inf)
-    dist[box] = footprint_distance(lo[box], edge, f)
-    full = full_blocks(dist, counts, radius, budget)
-    shown = counts > 0
-    shown[full] = False
-    return LodPlan(full, segment_rows(order, blocks.starts, full), np.flatnonzero(shown), blocks.level)
-
-
 __all__ = [
     "MAX_AXIS",
     "Blocks",
     "LodConfig",
     "LodIndex",
-    "LodPlan",
     "block_counts",
     "block_starts",
     "block_tables",
     "build_index",
     "choose_level",
-    "enabled_columns",
-    "footprint_distance",
-    "frustum_blocks",
-    "full_blocks",
-    "majority_class",
-    "mask_rect",
-    "mean_score",
     "morton3",
-    "plan_view",
-    "ray_blocks",
-    "ray_rows",
     "segment_rows",
-    "select_culled",
-    "thin_rows",
-    "update_tables",
-    "visible_counts",
 ]

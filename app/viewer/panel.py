@@ -1,7 +1,7 @@
 """The viewer's GUI panel: typed viser widgets wired to a :class:`~app.viewer.session.ReviewSession`.
 
 Widgets only translate user actions into session calls and show what the session reports back
-(``on_*`` methods, the session's :class:`~app.viewer.session.SessionView` protocol). Errors from an action
+(``on_*`` methods, the session's :class:`~app.viewer.records.SessionView` protocol). Errors from an action
 (an invalid class name, a failed save) are shown in the status line instead of breaking the viewer.
 """
 
@@ -21,7 +21,10 @@ from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
 from app.viewer.panel_review import QUEUE_KINDS, ReviewQueuePanel
 from app.viewer.panel_tools import ToolsPanel
-from app.viewer.session import Inspection, ReviewSession, RunInfo, camera_of
+from app.viewer.records import Inspection, RunInfo
+from app.viewer.region_logic import Region
+from app.viewer.selection_tool import camera_of
+from app.viewer.session import ReviewSession
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +128,7 @@ class ReviewPanel:
             self.add_class = gui.add_button("Add class")
             self.steer_info = gui.add_markdown("")
 
-        self.nav = NavPanel(session, gui, self.scan_folder, self._guard)
+        self.nav = NavPanel(session, gui, self.scan_folder, self.guard)
         self._wire()
         self.on_schema()
         self.tools = ToolsPanel(self)
@@ -144,7 +147,7 @@ class ReviewPanel:
             self.stats = gui.add_markdown("")
 
     # ------------------------------------------------------------------------------------ wiring
-    def _guard(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+    def guard(self, fn: Callable[..., Any]) -> Callable[..., Any]:
         @functools.wraps(fn)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             try:
@@ -157,21 +160,21 @@ class ReviewPanel:
         return wrapper
 
     def _wire(self) -> None:
-        s, g = self.s, self._guard
+        s, g = self.s, self.guard
         self.color_by.on_update(g(lambda _: self._mode_changed()))
         self.prob_class.on_update(g(lambda _: self._mode_changed()))
         self.threshold.on_update(g(lambda _: s.set_state(threshold=float(self.threshold.value))))
-        self.point_size.on_update(g(lambda _: s.set_point_size(self.point_size.value)))
+        self.point_size.on_update(g(lambda _: s.renderer.set_point_size(self.point_size.value)))
         self.limit.on_update(g(lambda _: self._limit_changed()))
         self.max_points.on_update(g(lambda _: self._limit_changed()))
         self.scan_slider.on_update(g(lambda _: self._slider_moved()))
         self.show_scan.on_update(g(lambda _: self._scan_visibility()))
-        self.show_map.on_update(g(lambda _: s.set_map_visible(self.show_map.value)))
-        self.select_button.on_click(g(lambda _: self._arm_select()))
-        self.apply_button.on_click(g(lambda _: s.assign_selection(str(self.assign_class.value))))
-        self.clear_button.on_click(g(lambda _: s.clear_selection()))
-        self.undo_button.on_click(g(lambda _: s.undo()))
-        self.redo_button.on_click(g(lambda _: s.redo()))
+        self.show_map.on_update(g(lambda _: s.renderer.set_map_visible(self.show_map.value)))
+        self.select_button.on_click(g(lambda _: self.arm_select()))
+        self.apply_button.on_click(g(lambda _: s.corrections.assign_selection(str(self.assign_class.value))))
+        self.clear_button.on_click(g(lambda _: s.tools.clear_selection()))
+        self.undo_button.on_click(g(lambda _: s.corrections.undo()))
+        self.redo_button.on_click(g(lambda _: s.corrections.redo()))
         self.edit_class.on_update(g(lambda _: self._fill_class_editor()))
         self.save_class.on_click(g(lambda _: self._save_class()))
         self.remove_class.on_click(g(lambda _: self._remove_class()))
@@ -193,28 +196,29 @@ class ReviewPanel:
 
     def _slider_moved(self) -> None:
         # The session moves the slider itself after a key or button step: that echo must not reload.
-        if int(self.scan_slider.value) != self.s.frame_pos:
-            self.s.show_scan(int(self.scan_slider.value))
+        if int(self.scan_slider.value) != self.s.player.frame_pos:
+            self.s.player.show_scan(int(self.scan_slider.value))
 
     def _scan_visibility(self) -> None:
         on = bool(self.show_scan.value)
         self.s.scene.scan.visible = on
         self.s.scene.camera.visible = on
 
-    def _arm_select(self) -> None:
+    def arm_select(self) -> None:
+        """Arm viser's rectangle selection: the next box dragged on the canvas selects (the box tool)."""
         s = self.s
 
         def on_rect(event: viser.SceneRectSelectEvent) -> None:
             s.scene.disarm_rect_select()
-            s.select_screen("box", [event.screen_min, event.screen_max], camera_of(event.client.camera))
-            if s.tools.tool == "box":
-                s.set_tools(tool=None)
+            s.tools.select_screen("box", [event.screen_min, event.screen_max], camera_of(event.client.camera))
+            if s.tools.settings.tool == "box":
+                s.tools.set_tools(tool=None)
 
-        s.scene.arm_rect_select(self._guard(on_rect))
+        s.scene.arm_rect_select(self.guard(on_rect))
         self.corr_info.content = "Drag a box over the voxels to select them."
 
     def _fill_class_editor(self) -> None:
-        schema = self.s.project_schema
+        schema = self.s.classes.schema
         if self.edit_class.value not in schema.names:
             return
         c = schema.classes[schema.index(str(self.edit_class.value))]
@@ -225,26 +229,26 @@ class ReviewPanel:
         self.class_prompts.value = prompts  # type: ignore[misc]  # viser: split setter, see class note
 
     def _save_class(self) -> None:
-        schema = self.s.project_schema
+        schema = self.s.classes.schema
         index = schema.index(str(self.edit_class.value))
         prompts = [p.strip() for p in str(self.class_prompts.value).split(",") if p.strip()]
         name = str(self.class_name.value).strip()
         r, g, b = (int(v) for v in self.class_color.value)
-        self.s.update_class(index, name=name, color=(r, g, b), prompts=prompts)
+        self.s.classes.update_class(index, name=name, color=(r, g, b), prompts=prompts)
         self.edit_class.value = name  # type: ignore[misc]  # viser: split setter, see class note
         self.steer_info.content = f"Saved class **{html.escape(name)}**; press *Re-run* to apply prompts."
 
     def _remove_class(self) -> None:
-        schema = self.s.project_schema
+        schema = self.s.classes.schema
         name = str(self.edit_class.value)
-        self.s.remove_class(schema.index(name))
+        self.s.classes.remove_class(schema.index(name))
         self.steer_info.content = f"Removed class **{html.escape(name)}**."
 
     def _add_class(self) -> None:
         name = str(self.new_class.value).strip()
         if not name:
             raise ValueError("type a name for the new class first")
-        self.s.add_class(name)
+        self.s.classes.add_class(name)
         self.new_class.value = ""  # type: ignore[misc]  # viser: split setter, see class note
         self.edit_class.value = name  # type: ignore[misc]  # viser: split setter, see class note
         self.steer_info.content = f"Added class **{html.escape(name)}**."
@@ -252,7 +256,7 @@ class ReviewPanel:
     def _rerun(self) -> None:
         self.rerun_button.disabled = True
         try:
-            run_id = self.s.rerun()
+            run_id = self.s.runs.rerun()
         except Exception:
             self.rerun_button.disabled = False
             raise
@@ -287,7 +291,7 @@ class ReviewPanel:
         with self.classes_folder:
             for i, n in enumerate(names):
                 box = self.gui.add_checkbox(n, True)
-                box.on_update(self._guard(functools.partial(self._toggle_class, i)))
+                box.on_update(self.guard(functools.partial(self._toggle_class, i)))
                 self._class_boxes.append(box)
         size = round(float(grid.voxel_size), 2)
         self.point_size.value = size  # type: ignore[misc]  # viser: split setter, see class note
@@ -298,14 +302,14 @@ class ReviewPanel:
             f"Run **{run.number}** (id {run.run_id}): {grid.num_voxels:,} voxels, "
             f"{len(names)} classes, voxel {grid.voxel_size:g} m."
         )
-        self.rerun_button.disabled = s.watched_run is not None
+        self.rerun_button.disabled = s.runs.watched_run is not None
         self._update_legend()
         self.on_history()
         self.nav.inspect_folder.visible = False
         self.nav.on_nav()
 
     def _toggle_class(self, index: int, event: Any) -> None:
-        self.s.set_class_enabled(index, bool(event.target.value))
+        self.s.renderer.set_class_enabled(index, bool(event.target.value))
 
     def on_drawn(self, *, shown: int, total: int, seconds: float) -> None:
         self.stats.content = f"Showing {shown:,} of {total:,} voxels (drawn in {seconds * 1000:.0f} ms)."
@@ -324,7 +328,7 @@ class ReviewPanel:
         if int(self.scan_slider.value) != pos:
             self.scan_slider.value = pos  # type: ignore[misc]  # viser: split setter, see class note
 
-    def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None:
+    def on_region(self, region: Region, pos: int, count: int, kind: str) -> None:
         self.review.on_region(region, pos, count, kind)
 
     def on_queue(self, building: bool) -> None:
@@ -336,11 +340,11 @@ class ReviewPanel:
         self.corr_info.content = f"{count:,} voxels selected." if count else self._corr_summary()
 
     def _corr_summary(self) -> str:
-        return f"{self.s.correction_count()} active corrections (applied in every later run)."
+        return f"{self.s.corrections.correction_count()} active corrections (applied in every later run)."
 
     def on_history(self) -> None:
-        self.undo_button.disabled = not self.s.history.can_undo
-        self.redo_button.disabled = not self.s.history.can_redo
+        self.undo_button.disabled = not self.s.corrections.history.can_undo
+        self.redo_button.disabled = not self.s.corrections.history.can_redo
         self.corr_info.content = self._corr_summary()
         if self.s.grid is not None:
             self.nav.update_histogram()
@@ -352,7 +356,7 @@ class ReviewPanel:
         self.nav.on_nav()
 
     def on_schema(self) -> None:
-        names = self.s.project_schema.names
+        names = self.s.classes.schema.names
         current = self.edit_class.value
         self.edit_class.options = names
         shown = current if current in names else names[0]

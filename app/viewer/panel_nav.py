@@ -17,7 +17,8 @@ import numpy as np
 import numpy.typing as npt
 import viser
 
-from app.viewer.session import CorrectionRecord, Inspection, ReviewSession
+from app.viewer.records import CorrectionRecord, Inspection
+from app.viewer.session import ReviewSession
 
 BROWSE = ("◀ Previous", "Play", "Next ▶")
 """Options of the "Browse" button group (the middle one reads "Pause" while playing)."""
@@ -141,7 +142,7 @@ class NavPanel:
             self.fit = gui.add_button_group("Fit view", FIT, order=-2)
             self.follow = gui.add_checkbox(
                 "Follow ego",
-                session.follow_ego,
+                session.player.follow_ego,
                 order=-1,
                 hint="Move the camera behind the ego vehicle on every scan change (key G)",
             )
@@ -153,31 +154,33 @@ class NavPanel:
         with gui.add_folder("Confidence by class", order=7, expand_by_default=False):
             self.histogram = gui.add_html("")
 
-        s = session
+        s, player = session, session.player
         self.browse.on_click(guard(lambda e: self._browse(str(e.target.value))))
-        self.fit.on_click(guard(lambda e: s.fit_scan() if e.target.value == "Scan" else s.fit_map()))
+        self.fit.on_click(
+            guard(lambda e: player.fit_scan() if e.target.value == "Scan" else player.fit_map())
+        )
         self.follow.on_update(guard(lambda _: self._follow_changed()))
-        self.enlarge.on_click(guard(lambda _: s.set_image_open(None)))
+        self.enlarge.on_click(guard(lambda _: player.set_image_open(None)))
         s.scene.on_click(guard(self._clicked))
 
     def _browse(self, option: str) -> None:
         if option == BROWSE[0]:
-            self.s.step_scan(-1)
+            self.s.player.step_scan(-1)
         elif option == BROWSE[2]:
-            self.s.step_scan(1)
+            self.s.player.step_scan(1)
         else:
-            self.s.set_playing(None)
+            self.s.player.set_playing(None)
 
     def _follow_changed(self) -> None:
-        if bool(self.follow.value) != self.s.follow_ego:
-            self.s.set_follow(bool(self.follow.value))
+        if bool(self.follow.value) != self.s.player.follow_ego:
+            self.s.player.set_follow(bool(self.follow.value))
 
     def _clicked(self, event: viser.SceneClickEvent) -> None:
-        self.s.inspect_ray(event.ray_origin, event.ray_direction)
+        self.s.tools.inspect_ray(event.ray_origin, event.ray_direction)
 
     # ---------------------------------------------------------------------------- session → panel
     def on_nav(self) -> None:
-        s = self.s
+        s = self.s.player
         options = (BROWSE[0], "Pause" if s.playing else BROWSE[1], BROWSE[2])
         if tuple(self.browse.options) != options:
             self.browse.options = options
@@ -198,7 +201,7 @@ class NavPanel:
         """Recount the confidence histograms: at once for a map drawn exactly, on a thread for a big one (a
         pass over every voxel, which must not hold up its first draw or a correction)."""
         run = self._histogram_latest = next(self._histogram_runs)
-        if self.s.lod_index is None:
+        if self.s.renderer.lod_index is None:
             self._fill_histogram(run)
         else:
             fill = threading.Thread(target=self._fill_histogram, args=(run,), name="viewer-histogram")
@@ -207,7 +210,7 @@ class NavPanel:
 
     def _fill_histogram(self, run: int) -> None:
         s = self.s
-        content = histogram_html(s.confidence_histograms(), s.class_names(), s.palette)
+        content = histogram_html(s.shared.confidence_histograms(), s.class_names(), s.palette)
         if run == self._histogram_latest:  # a later recount has started: its result wins
             self.histogram.content = content
 

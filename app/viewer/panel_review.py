@@ -10,8 +10,8 @@ import html
 import threading
 from typing import TYPE_CHECKING, Any
 
-from app.viewer import view_logic as vl
-from app.viewer.session import QueueKind
+from app.viewer.records import QueueKind
+from app.viewer.region_logic import Region
 
 if TYPE_CHECKING:
     from app.viewer.panel import ReviewPanel
@@ -35,7 +35,7 @@ class ReviewQueuePanel:
 
     def __init__(self, panel: ReviewPanel) -> None:
         self.p = panel
-        s, gui, g = panel.s, panel.gui, panel._guard
+        q, gui, g = panel.s.queue, panel.gui, panel.guard
         self.queue_kind = gui.add_dropdown("Order by", QUEUE_KINDS, initial_value=QUEUE_KINDS[0])
         self.next_button = gui.add_button("Next region", hint="Key: N")
         self.prev_button = gui.add_button("Previous region", hint="Key: P")
@@ -56,28 +56,28 @@ class ReviewQueuePanel:
         self.queue_kind.on_update(g(lambda _: self._in_background(self._build)))
         self.next_button.on_click(g(lambda _: self._in_background(lambda: self.step(1))))
         self.prev_button.on_click(g(lambda _: self._in_background(lambda: self.step(-1))))
-        self.accept_button.on_click(g(lambda _: s.mark_region("accepted")))
-        self.skip_button.on_click(g(lambda _: s.mark_region("skipped")))
-        self.relabel_button.on_click(g(lambda _: s.relabel_region(str(self.relabel_class.value))))
+        self.accept_button.on_click(g(lambda _: q.mark_region("accepted")))
+        self.skip_button.on_click(g(lambda _: q.mark_region("skipped")))
+        self.relabel_button.on_click(g(lambda _: q.relabel_region(str(self.relabel_class.value))))
 
     def _in_background(self, fn: Any) -> None:
         # Ranking the disagreement queue reads every scan: keep viser's callback thread free meanwhile.
-        threading.Thread(target=self.p._guard(fn), name="viewer-queue", daemon=True).start()
+        threading.Thread(target=self.p.guard(fn), name="viewer-queue", daemon=True).start()
 
     def kind(self) -> QueueKind:
         return QUEUE_OF[str(self.queue_kind.value)]
 
     def _build(self) -> None:
-        s = self.p.s
-        s.build_queue(self.kind())
-        self.queue_info.content = f"{len(s.regions)} regions; press *Next region* (N)."
+        q = self.p.s.queue
+        q.build_queue(self.kind())
+        self.queue_info.content = f"{len(q.regions)} regions; press *Next region* (N)."
 
-    def step(self, step: int) -> vl.Region | None:
+    def step(self, step: int) -> Region | None:
         """Show the next / previous region, ranking the chosen queue first when needed."""
-        s = self.p.s
-        if not s.regions or s.queue_kind != self.kind() or not s.queue_built:
-            s.build_queue(self.kind())
-        region = s.next_region(step)
+        q = self.p.s.queue
+        if not q.regions or q.queue_kind != self.kind() or not q.queue_built:
+            q.build_queue(self.kind())
+        region = q.next_region(step)
         if region is None:
             self.queue_info.content = "Nothing to review."
         return region
@@ -97,20 +97,21 @@ class ReviewQueuePanel:
         if building:
             self.queue_info.content = "⏳ Ranking regions…"
         else:
-            self.progress.content = progress_text(self.p.s.review_progress())
+            self.progress.content = progress_text(self.p.s.queue.review_progress())
 
-    def on_region(self, region: vl.Region, pos: int, count: int, kind: str) -> None:
+    def on_region(self, region: Region, pos: int, count: int, kind: str) -> None:
         s = self.p.s
+        q = s.queue
         what = "mean confidence" if kind == "confidence" else "disagreement"
-        state = STATE_TEXT[s.region_state(pos)]
+        state = STATE_TEXT[q.region_state(pos)]
         seen = ""
-        if s.focus_frame is not None and s.outputs is not None:
-            fid = s.outputs.seq.frame_ids[s.outputs.frame_indices[s.focus_frame]]
+        if q.focus_frame is not None and s.outputs is not None:
+            fid = s.outputs.seq.frame_ids[s.outputs.frame_indices[q.focus_frame]]
             seen = f" Seen best in scan {html.escape(fid)} (boxed in the image)."
         self.queue_info.content = (
             f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels ({state}).{seen}"
         )
-        self.progress.content = progress_text(s.review_progress())
+        self.progress.content = progress_text(q.review_progress())
         for b in (self.accept_button, self.skip_button, self.relabel_button):
             b.disabled = False
 

@@ -1,15 +1,17 @@
 """The panel's "Selection tools" folder: tool, depth mode, distance, class filter, target, scope, brush size.
 
-The widgets write :class:`~app.viewer.session.ToolSettings` through
-:meth:`~app.viewer.session.ReviewSession.set_tools`, and follow the session's ``"tools"`` events, so the
-viewer page's keys (web/viewer/tools.js, through app/api/routes/viewer_tools.py) and the panel always show
-the same settings. Arming "box" arms viser's own rectangle selection; lasso and brush are drawn by the page.
+The widgets write :class:`~app.viewer.records.ToolSettings` through
+:meth:`~app.viewer.selection_tool.SelectionTool.set_tools`, and follow the session's ``"tools"`` events, so
+the viewer page's keys (web/viewer/tools.js, through app/api/routes/viewer_tools.py) and the panel always
+show the same settings. Arming "box" arms viser's own rectangle selection; lasso and brush are drawn by the
+page.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from app.viewer.selection_tool import SelectionTool
 from app.viewer.session import ReviewSession
 
 if TYPE_CHECKING:
@@ -30,6 +32,7 @@ class ToolsPanel:
     def __init__(self, panel: ReviewPanel) -> None:
         self.panel = panel
         self.s: ReviewSession = panel.s
+        self.tools: SelectionTool = panel.s.tools
         gui = panel.gui
         self._syncing = False
         with gui.add_folder("Selection tools", order=5.5, expand_by_default=False):
@@ -57,7 +60,7 @@ class ToolsPanel:
             self.brush = gui.add_slider("Brush radius", min=0.005, max=0.2, step=0.005, initial_value=0.03)
             self.erase_button = gui.add_button("Erase to unlabeled", disabled=True)
             self.info = gui.add_markdown("Keys: L lasso, B brush, M box, 1-9 assign, E erase, Esc clear.")
-        g = panel._guard
+        g = panel.guard
         widgets = (
             self.tool,
             self.depth,
@@ -69,7 +72,7 @@ class ToolsPanel:
         )
         for widget in widgets:
             widget.on_update(g(lambda _: self._changed()))
-        self.erase_button.on_click(g(lambda _: self.s.assign_selection("")))
+        self.erase_button.on_click(g(lambda _: self.s.corrections.assign_selection("")))
         self.s.on_event(self._on_event)
 
     def _changed(self) -> None:
@@ -77,7 +80,7 @@ class ToolsPanel:
             return
         tool = str(self.tool.value)
         cls = str(self.class_filter.value)
-        self.s.set_tools(
+        self.tools.set_tools(
             tool=None if tool == TOOLS[0] else tool,
             depth_mode=_DEPTH_OF[str(self.depth.value)],
             distance=float(self.distance.value),
@@ -93,7 +96,7 @@ class ToolsPanel:
         elif name == "tools":
             self._show()
         elif name in ("selection", "corrected"):
-            self.erase_button.disabled = self.s.selection.rows.size == 0
+            self.erase_button.disabled = self.tools.selection.rows.size == 0
 
     def _fill_classes(self) -> None:
         names = [ANY_CLASS, *self.s.class_names()]
@@ -107,7 +110,7 @@ class ToolsPanel:
 
     def _show(self) -> None:
         """Reflect the session's settings (changed by a key on the page, or by these widgets)."""
-        t = self.s.tools
+        t = self.tools.settings
         self._syncing = True
         try:
             self._set(self.tool, t.tool or TOOLS[0])
@@ -122,7 +125,7 @@ class ToolsPanel:
             self._syncing = False
         if t.tool == "box":
             if not self.s.scene.rect_select_armed:
-                self.panel._arm_select()
+                self.panel.arm_select()
         elif self.s.scene.rect_select_armed:
             self.s.scene.disarm_rect_select()
 

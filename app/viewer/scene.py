@@ -28,6 +28,7 @@ import rich
 import viser
 
 from app.viewer import view_logic as vl
+from app.viewer.region_logic import Region
 
 RectSelectFn = Callable[[viser.SceneRectSelectEvent], None]
 ClickFn = Callable[[viser.SceneClickEvent], None]
@@ -286,7 +287,7 @@ class ReviewScene:
                 client.camera.position = pos
                 client.camera.look_at = tgt
 
-    def frame_region(self, region: vl.Region, *, min_distance: float = 14.0) -> None:
+    def frame_region(self, region: Region, *, min_distance: float = 14.0) -> None:
         """Point the camera at a review region from above and to the side, with its surroundings in view."""
         distance = max(min_distance, 4.0 * region.extent)
         pos, tgt = vl.orbit_view(region.centre, distance, elevation_deg=40.0)

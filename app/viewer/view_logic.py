@@ -1,21 +1,21 @@
-"""Pure view maths of the 3D review viewer: colours, visibility, corrections, review regions, undo/redo.
+"""Pure view maths of the 3D review viewer: colours, visibility, corrections, focus dimming, undo/redo.
 
 Everything here takes and returns numpy arrays (or small frozen records) and does no I/O, so the scene
 facade (:mod:`app.viewer.scene`) only moves the results into viser handles. Shapes use V voxels, N points
-and C classes; class index arrays are int16 with ``UNLABELED = -1``.
+and C classes; class index arrays are int16 with ``UNLABELED = -1``. The review queue's region maths lives
+beside it in :mod:`app.viewer.region_logic`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Generic, Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from leap_core import review
 from leap_core.fusion import last_per_key
 from leap_core.selection import project_to_screen, quat_to_matrix
 from leap_core.types import UNLABELED
@@ -59,7 +59,8 @@ def make_lut(anchors: Sequence[Sequence[int]] = SCALE_ANCHORS, size: int = 256) 
     t = np.linspace(0.0, 1.0, size) * (a.shape[0] - 1)
     k = np.minimum(np.floor(t).astype(np.int64), a.shape[0] - 2)
     s = (t - k)[:, None]
-    return np.rint((1.0 - s) * a[k] + s * a[k + 1]).astype(np.uint8)
+    lut: npt.NDArray[np.uint8] = np.rint((1.0 - s) * a[k] + s * a[k + 1]).astype(np.uint8)
+    return lut
 
 
 CONFIDENCE_LUT: npt.NDArray[np.uint8] = make_lut()
@@ -86,7 +87,8 @@ def scalar_colors(
     idx = (v - np.float32(vmin)) * scale + np.float32(0.5)
     np.clip(idx, 0, lut.shape[0] - 1, out=idx)
     idx = np.nan_to_num(idx, nan=0.0)
-    return lut[idx.astype(np.intp)]
+    colors: npt.NDArray[np.uint8] = lut[idx.astype(np.intp)]
+    return colors
 
 
 def class_colors(
@@ -171,7 +173,8 @@ def decimate_indices(indices: npt.NDArray[np.int64], max_points: int | None) -> 
     if max_points <= 0:
         return indices[:0]
     step = n / max_points
-    return indices[(np.arange(max_points) * step).astype(np.int64)]
+    kept: npt.NDArray[np.int64] = indices[(np.arange(max_points) * step).astype(np.int64)]
+    return kept
 
 
 def view_colors(
@@ -332,7 +335,8 @@ def select_in_rect(
     lo = np.minimum(rect_min, rect_max)
     hi = np.maximum(rect_min, rect_max)
     inside = (uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1])
-    return in_front & inside
+    selected: npt.NDArray[np.bool_] = in_front & inside
+    return selected
 
 
 def orbit_view(
@@ -348,69 +352,7 @@ def orbit_view(
     return t + offset, t
 
 
-# ----------------------------------------------------------------------------------- review regions
-@dataclass(frozen=True, eq=False)
-class Region:
-    """A place worth reviewing: the voxels of the candidate set that fall in one coarse cell."""
-
-    centre: tuple[float, float, float]
-    """Mean position of the region's candidate voxels (metres)."""
-    extent: float
-    """Largest distance of a candidate voxel from the centre (metres), for framing the camera."""
-    score: float
-    """Mean score of the region's candidate voxels (confidence, or disagreement rate)."""
-    count: int
-    """Number of candidate voxels in the region."""
-    id: str = ""
-    """Stable identity across runs (:func:`leap_core.review.region_id`)."""
-    rows: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    """(count,) grid rows of the candidate voxels (the ones highlighted)."""
-    cell: int = 0
-    """Packed cell key (:func:`leap_core.review.rank_cells`)."""
-
-
-def rank_regions(
-    centres: npt.NDArray[np.floating],
-    score: npt.NDArray[np.floating],
-    candidates: npt.NDArray[np.bool_],
-    cell_size: float,
-    *,
-    min_count: int = 1,
-    ascending: bool = True,
-    limit: int = 100,
-) -> list[Region]:
-    """Cluster candidate voxels into coarse cells and order the cells by their mean score
-    (:func:`leap_core.review.rank_cells`; ties: more candidates first, then the smaller cell key).
-
-    Args:
-        centres: (V, 3) voxel centres.
-        score: (V,) per-voxel score.
-        candidates: (V,) bool, the voxels to cluster (e.g. the least confident share).
-        cell_size: cell edge in metres (> 0).
-        min_count: cells with fewer candidates are dropped (isolated voxels are noise, not regions).
-        ascending: lowest score first (confidence) or highest first (disagreement).
-        limit: return at most this many regions.
-
-    Returns:
-        Regions, best first, each with its identity and candidate rows.
-    """
-    cells = review.rank_cells(
-        centres, score, candidates, cell_size, min_count=min_count, ascending=ascending, limit=limit
-    )
-    return [
-        Region(
-            centre=c.centre,
-            extent=c.extent,
-            score=c.score,
-            count=int(c.rows.shape[0]),
-            id=review.region_id(c.cell, cell_size),
-            rows=c.rows,
-            cell=c.cell,
-        )
-        for c in cells
-    ]
-
-
+# ------------------------------------------------------------------------------------------- focus
 def dim_outside(
     colors: npt.NDArray[np.uint8],
     rows: npt.NDArray[np.int64],
@@ -432,47 +374,6 @@ def dim_outside(
     out = blend(colors, toward, alpha)
     out[keep] = colors[keep]
     return out
-
-
-def lowest_share(score: npt.NDArray[np.floating], share: float) -> npt.NDArray[np.bool_]:
-    """(V,) bool: the ``share`` (0..1] of voxels with the lowest score (at least one if V > 0)."""
-    if not 0 < share <= 1:
-        raise ValueError(f"share must be in (0, 1], got {share}")
-    n = score.shape[0]
-    if n == 0:
-        return np.zeros(0, bool)
-    k = max(1, round(share * n))
-    if k >= n:
-        return np.ones(n, bool)
-    cut = np.partition(score, k - 1)[k - 1]
-    return score <= cut
-
-
-def disagreement_rate(
-    voxel_rows: npt.NDArray[np.int64],
-    camera_label: npt.NDArray[np.int16],
-    final_label: npt.NDArray[np.int16],
-    num_voxels: int,
-) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
-    """Per voxel, the share of camera-labelled points whose final label differs from the camera label.
-
-    ``rate[n] = #{p in n : cam_p ≥ 0, final_p ≠ cam_p} / #{p in n : cam_p ≥ 0}`` (0 where no camera label).
-
-    Args:
-        voxel_rows: (N,) grid row of each point (-1 when its voxel is not in the grid).
-        camera_label: (N,) projection-only (camera) label per point, -1 when the camera did not see it.
-        final_label: (N,) final label per point (voxel / 3D-CN).
-        num_voxels: V.
-
-    Returns:
-        ``(rate (V,) float32, observed (V,) int64)``.
-    """
-    ok = (voxel_rows >= 0) & (camera_label >= 0)
-    rows = voxel_rows[ok]
-    observed = np.bincount(rows, minlength=num_voxels).astype(np.int64)
-    differ = np.bincount(rows, weights=(final_label[ok] != camera_label[ok]), minlength=num_voxels)
-    rate = np.divide(differ, observed, out=np.zeros(num_voxels), where=observed > 0).astype(np.float32)
-    return rate, observed
 
 
 # --------------------------------------------------------------------------------------- images
@@ -503,7 +404,7 @@ def draw_label_overlay(
     Returns:
         (H, W, 3) uint8, a new image.
     """
-    out = image.copy()
+    out: npt.NDArray[np.uint8] = image.copy()
     h, w = image.shape[:2]
     uv_arr = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     lab = np.asarray(labels).reshape(-1)
@@ -595,7 +496,6 @@ __all__ = [
     "CONFIDENCE_LUT",
     "ColorMode",
     "EditHistory",
-    "Region",
     "ViewState",
     "apply_corrections",
     "blend",
@@ -603,14 +503,11 @@ __all__ = [
     "corrected_class_prob",
     "decimate_indices",
     "dim_outside",
-    "disagreement_rate",
     "draw_label_overlay",
-    "lowest_share",
     "make_lut",
     "orbit_view",
     "project_to_screen",
     "quat_to_matrix",
-    "rank_regions",
     "render_view",
     "scalar_colors",
     "select_in_rect",

@@ -1,4 +1,4 @@
-"""No import circles in ``app`` and ``leap_core``, function-local imports included.
+"""No import circles in ``app`` and ``leap_core`` (function-local imports included) or in ``web``'s modules.
 
 A circle hidden behind an import inside a function works until someone moves that import to the top of
 its module (or imports the modules in the other order), so the check is static: it reads every module's
@@ -9,12 +9,21 @@ imports with ``ast``, wherever they stand, and looks for cycles in the module gr
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("app", "leap_core")
+WEB = ROOT / "web"
+
+_JS_IMPORT = re.compile(
+    r"""(?:^|;)\s*(?:import|export)\s+(?:[^'";]*?\s+from\s+)?["']([^"']+\.js)["']"""
+    r"""|\bimport\(\s*["']([^"']+\.js)["']\s*\)""",
+    re.MULTILINE,
+)
+"""A static ``import``/``export ... from`` of a ``.js`` module, or a dynamic ``import("...js")``."""
 
 
 def module_files(root: Path, packages: tuple[str, ...]) -> dict[str, Path]:
@@ -200,3 +209,48 @@ def test_a_package_init_importing_its_modules_is_no_circle(tmp_path: Path) -> No
         },
     )
     assert find_cycles(import_graph(modules)) == []
+
+
+def web_import_graph(web: Path) -> dict[str, set[str]]:
+    """Module of the web UI (its path under ``web``, e.g. ``viewer/nav.js``) → the modules of ``web`` it
+    imports, statically or dynamically (``./x.js`` relative to it, ``/x.js`` from the web root it is
+    served from)."""
+    graph: dict[str, set[str]] = {}
+    root = web.resolve()
+    for path in sorted(web.rglob("*.js")):
+        targets: set[str] = set()
+        for match in _JS_IMPORT.finditer(path.read_text()):
+            spec = match.group(1) or match.group(2)
+            target = root / spec.lstrip("/") if spec.startswith("/") else path.resolve().parent / spec
+            targets.add(target.resolve().relative_to(root).as_posix())
+        graph[path.resolve().relative_to(root).as_posix()] = targets
+    return {module: targets & graph.keys() for module, targets in graph.items()}
+
+
+def test_web_modules_have_no_import_circles() -> None:
+    # A module imported by the module it imports runs before that module's body: what it reads from it is
+    # not set yet (the viewer page's feature modules once deferred their first request for that reason).
+    graph = web_import_graph(WEB)
+    assert {"viewer/overlay.js", "viewer/nav.js", "viewer/viewer-api.js"} <= graph.keys()
+    assert "viewer/viewer-api.js" in graph["viewer/nav.js"]
+    cycles = find_cycles(graph)
+    assert cycles == [], "import circles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_a_planted_web_import_circle_is_found(tmp_path: Path) -> None:
+    files = {
+        "api.js": "export function api() {}\n",
+        "viewer/overlay.js": 'import { api } from "/api.js";\nimport "./nav.js";\nexport const id = 1;\n',
+        "viewer/nav.js": 'import { bind } from "./keys.js"; import { id } from "./overlay.js";\n',
+        "viewer/keys.js": 'export function bind() {}\nconst later = () => import("./tools.js");\n',
+        "viewer/tools.js": 'export * from "./keys.js";\n',
+    }
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    graph = web_import_graph(tmp_path)
+    assert graph["viewer/overlay.js"] == {"api.js", "viewer/nav.js"}
+    assert find_cycles(graph) == [
+        ["viewer/keys.js", "viewer/tools.js", "viewer/keys.js"],
+        ["viewer/nav.js", "viewer/overlay.js", "viewer/nav.js"],
+    ]

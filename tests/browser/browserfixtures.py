@@ -174,7 +174,7 @@ def box_select_centre(page: Any, session: Any) -> int:
     page.mouse.move(cx, cy, steps=8)
     page.mouse.move(cx + 90, cy + 50, steps=8)
     page.mouse.up()
-    return int(wait_until(lambda: session.selection.rows.size, 20, "voxels to be selected"))
+    return int(wait_until(lambda: session.tools.selection.rows.size, 20, "voxels to be selected"))
 
 
 def open_viewer(browser: Any, url: str, project_name: str, session: Any) -> Any:
@@ -190,5 +190,5 @@ def open_viewer(browser: Any, url: str, project_name: str, session: Any) -> Any:
     alert = page.get_by_role("alert")
     if alert.count():
         alert.get_by_role("button").first.click()
-    assert session.wait_drawn(30)
+    assert session.renderer.wait_drawn(30)
     return page

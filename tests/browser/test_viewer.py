@@ -100,7 +100,7 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
             "the road probability view",
         )
         page.get_by_text("P(road)").wait_for(timeout=10_000)
-        assert session.wait_drawn(30)
+        assert session.renderer.wait_drawn(30)
         page.wait_for_timeout(2500)
         _shot(page, artifacts, "viewer-2-road-probability.png")
 
@@ -110,7 +110,7 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
         threshold.fill("0.5")
         threshold.press("Enter")
         wait_until(lambda: abs(session.state.threshold - 0.5) < 1e-9, 20, "the threshold to reach the server")
-        assert session.wait_drawn(30)
+        assert session.renderer.wait_drawn(30)
         road_prob = session.grid.class_prob(names.index("road"))
         assert session.scene.voxels.count == int((road_prob >= 0.5).sum()) < shown_before
         page.wait_for_timeout(2500)
@@ -145,7 +145,7 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
             return bool((session.label[rows] == names.index(CORRECTED_CLASS)).all())
 
         wait_until(relabelled, 30, "the corrected labels")
-        assert session.wait_drawn(30)
+        assert session.renderer.wait_drawn(30)
 
         # 6. Edit a class's prompts; it lands in the project (the same data the web UI edits).
         page.get_by_text("Classes and prompts", exact=True).click()
@@ -180,7 +180,7 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
         assert session.scene_version == version + 1 and session.run is not None
         assert session.run.run_id == second["id"]
         page.get_by_text(f"Run {second['number']}", exact=False).first.wait_for(timeout=30_000)
-        assert session.wait_drawn(30)
+        assert session.renderer.wait_drawn(30)
         page.wait_for_timeout(4000)
         _shot(page, artifacts, "viewer-6-after-rerun.png")
 
@@ -188,8 +188,8 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
         page.get_by_text("Review queue", exact=True).click()
         page.get_by_role("button", name="Next region").click()
         page.get_by_text(re.compile(r"Region 1/\d+: mean confidence")).wait_for(timeout=30_000)
-        region = session.regions[0]
-        assert region.score == min(r.score for r in session.regions)
+        region = session.queue.regions[0]
+        assert region.score == min(r.score for r in session.queue.regions)
         page.wait_for_timeout(3000)
         _shot(page, artifacts, "viewer-7-review-queue.png")
 

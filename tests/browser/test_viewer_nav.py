@@ -63,7 +63,7 @@ def viewer(live_app: dict[str, Any]) -> Iterator[dict[str, Any]]:
         if alert.count():
             alert.get_by_role("button").first.click()
         wait_until(session.scene.clients, 30, "the browser's viser client")
-        assert session.wait_drawn(30)
+        assert session.renderer.wait_drawn(30)
         page.wait_for_timeout(3000)  # software WebGL draws the map
         yield {"page": page, "session": session, "api": api, "pid": pid}
 
@@ -80,15 +80,15 @@ def _screen_of(session: Any, points: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 def test_arrow_keys_change_the_scan_and_the_camera_follows_the_ego_pose(viewer: dict[str, Any]) -> None:
     page, session = viewer["page"], viewer["session"]
-    assert session.follow_ego
-    start = session.frame_pos
-    assert 0 < start < session.scan_count - 1
+    assert session.player.follow_ego
+    start = session.player.frame_pos
+    assert 0 < start < session.player.scan_count - 1
     before = np.array(_client_camera(session).position)
 
     page.keyboard.press("ArrowRight")
-    wait_until(lambda: session.frame_pos == start + 1, 20, "the next scan")
-    ego = session.scan_view.ego_pose[:3, 3]
-    expected, _ = nl.follow_view(session.scan_view.ego_pose)
+    wait_until(lambda: session.player.frame_pos == start + 1, 20, "the next scan")
+    ego = session.player.scan_view.ego_pose[:3, 3]
+    expected, _ = nl.follow_view(session.player.scan_view.ego_pose)
 
     def camera_follows() -> bool:
         cam = _client_camera(session)
@@ -101,13 +101,13 @@ def test_arrow_keys_change_the_scan_and_the_camera_follows_the_ego_pose(viewer: 
     assert in_front[0] and 0.2 < uv[0, 0] < 0.8 and 0.2 < uv[0, 1] < 0.9, uv
 
     page.keyboard.press(",")
-    wait_until(lambda: session.frame_pos == start, 20, "the previous scan again")
-    back, _ = nl.follow_view(session.scan_view.ego_pose)
+    wait_until(lambda: session.player.frame_pos == start, 20, "the previous scan again")
+    back, _ = nl.follow_view(session.player.scan_view.ego_pose)
     wait_until(
         lambda: np.linalg.norm(np.array(_client_camera(session).position) - back) < 1.0, 20, "the camera back"
     )
     page.keyboard.press(".")
-    wait_until(lambda: session.frame_pos == start + 1, 20, "'.' to step forward")
+    wait_until(lambda: session.player.frame_pos == start + 1, 20, "'.' to step forward")
 
 
 def test_enlarged_image_stays_open_while_navigating(viewer: dict[str, Any]) -> None:
@@ -121,9 +121,9 @@ def test_enlarged_image_stays_open_while_navigating(viewer: dict[str, Any]) -> N
     canvas = page.locator("canvas").first.bounding_box()
     assert width >= 0.95 * canvas["width"] > 600
     src = img.get_attribute("src")
-    pos = session.frame_pos
+    pos = session.player.frame_pos
     page.keyboard.press("ArrowLeft")
-    wait_until(lambda: session.frame_pos == pos - 1, 20, "the previous scan")
+    wait_until(lambda: session.player.frame_pos == pos - 1, 20, "the previous scan")
     wait_until(lambda: img.get_attribute("src") != src, 10, "the image of the new scan")
     assert box.is_visible()
     page.keyboard.press("i")
@@ -133,10 +133,10 @@ def test_enlarged_image_stays_open_while_navigating(viewer: dict[str, Any]) -> N
 def test_clicking_a_voxel_shows_its_distribution(viewer: dict[str, Any], artifacts: Path) -> None:
     page, session = viewer["page"], viewer["session"]
     page.keyboard.press("g")  # stop following so the map view below stays put
-    wait_until(lambda: not session.follow_ego, 10, "following off")
+    wait_until(lambda: not session.player.follow_ego, 10, "following off")
     page.keyboard.press("Shift+F")
     grid = session.grid
-    rows, _ = session.compute_view()
+    rows, _ = session.renderer.compute_view()
     centres = grid.centres[rows]
 
     def settled() -> bool:
@@ -156,7 +156,7 @@ def test_clicking_a_voxel_shows_its_distribution(viewer: dict[str, Any], artifac
     y = box["y"] + uv[target, 1] * box["height"]
     page.mouse.click(x, y)
 
-    found = wait_until(lambda: session.inspected, 20, "the clicked voxel to be inspected")
+    found = wait_until(lambda: session.tools.inspected, 20, "the clicked voxel to be inspected")
     # The picked voxel is the one under the cursor (within a voxel's size on screen).
     got_uv, _ = _screen_of(session, grid.centres[found.row][None, :])
     assert abs((got_uv[0, 0] - uv[target, 0]) * box["width"]) < 12
@@ -213,10 +213,12 @@ def test_probability_view_draws_the_scan_grey(viewer: dict[str, Any]) -> None:
     # A newly shown scan is grey too. The dropdown keeps the focus, and keys typed into an input are not
     # shortcuts: leave it first, as a user clicking back into the view would.
     page.evaluate("document.activeElement && document.activeElement.blur()")
-    pos = session.frame_pos
-    page.keyboard.press("ArrowLeft" if pos == session.scan_count - 1 else "ArrowRight")
-    wait_until(lambda: session.frame_pos != pos, 20, "a scan change")
-    wait_until(lambda: session.scene.scan.count == session.scan_view.points.shape[0], 20, "the new scan")
+    pos = session.player.frame_pos
+    page.keyboard.press("ArrowLeft" if pos == session.player.scan_count - 1 else "ArrowRight")
+    wait_until(lambda: session.player.frame_pos != pos, 20, "a scan change")
+    wait_until(
+        lambda: session.scene.scan.count == session.player.scan_view.points.shape[0], 20, "the new scan"
+    )
     assert (np.asarray(scan.colors) == nl.SCAN_GREY_RGB).all()
     browserfixtures.pick(page, "Color by", "class")
     wait_until(lambda: len({tuple(c) for c in np.asarray(scan.colors)}) > 1, 20, "class colours again")

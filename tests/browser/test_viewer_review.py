@@ -19,6 +19,8 @@ import browserfixtures
 import numpy as np
 import pytest
 
+from app.viewer.render import blend_dim
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
 artifacts = browserfixtures.artifacts
@@ -76,7 +78,7 @@ def _open_viewer(page: Any, live: LiveApp, pid: int, api: Any) -> Any:
     page.goto(live.base + opened.json()["url"])
     page.get_by_text("Color by", exact=True).wait_for(timeout=60_000)
     session = live.app.state.viewers.get(pid)
-    assert session is not None and session.wait_drawn(30)
+    assert session is not None and session.renderer.wait_drawn(30)
     page.locator("#leap-review").wait_for(state="attached", timeout=30_000)  # review.js bound its keys
     return session
 
@@ -123,16 +125,16 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             badge = page.locator("#leap-review")
             expect(badge).to_contain_text(re.compile(r"0 / \d+ reviewed"), timeout=60_000)
             expect(badge).to_contain_text("region 1/")
-            region = session.focus
-            assert region is not None and region is session.regions[0] and region.rows.size > 0
-            total = len(session.regions)
+            region = session.queue.focus
+            assert region is not None and region is session.queue.regions[0] and region.rows.size > 0
+            total = len(session.queue.regions)
 
             # Highlighted: the region's voxels keep their colours, every other voxel is dimmed.
-            assert session.wait_drawn(30)
+            assert session.renderer.wait_drawn(30)
             colors = session.scene.voxels.handle.colors
             inside = np.isin(np.arange(grid.num_voxels), region.rows)
             np.testing.assert_array_equal(colors[inside], full[inside])
-            np.testing.assert_array_equal(colors[~inside], session.blend_dim(full[~inside]))
+            np.testing.assert_array_equal(colors[~inside], blend_dim(full[~inside]))
             box = session.scene.review_box
             assert box is not None and box.visible
 
@@ -146,7 +148,7 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             found = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
             assert found is not None and counts[found][1] > 0, "the region should be in some camera image"
             best = int(near[found])
-            assert session.frame_pos == best
+            assert session.player.frame_pos == best
             fid = out.seq.frame_ids[out.frame_indices[best]]
             expect(page.get_by_text(f"Seen best in scan {fid}", exact=False)).to_be_visible(timeout=20_000)
             scan_info = page.get_by_text(re.compile(rf"Scan {fid} \({best + 1}/{FRAMES}\)"))
@@ -161,7 +163,7 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             expect(badge).to_contain_text("region 2/", timeout=30_000)
             page.keyboard.press("s")
             expect(badge).to_contain_text(f"1 / {total} reviewed, 1 skipped", timeout=30_000)
-            accepted_id, skipped_id = session.regions[0].id, session.regions[1].id
+            accepted_id, skipped_id = session.queue.regions[0].id, session.queue.regions[1].id
             with open_db(live.settings.database) as db:
                 marks = crud.list_review_marks(db, pid)
             assert marks[accepted_id].state == "accepted" and marks[skipped_id].state == "skipped"
@@ -181,27 +183,27 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
                 f"1 / {total} reviewed, 1 skipped", timeout=30_000
             )
             session = _open_viewer(page, live, pid, api)
-            assert session.regions == []  # nothing in memory: a fresh viewer
+            assert session.queue.regions == []  # nothing in memory: a fresh viewer
             page.keyboard.press("n")
             badge = page.locator("#leap-review")
             expect(badge).to_contain_text(f"1 / {total} reviewed, 1 skipped", timeout=60_000)
             expect(badge).to_contain_text(f"region 1/{total} (accepted")
-            assert [session.region_state(i) for i in (0, 1)] == ["accepted", "skipped"]
-            assert (session.regions[0].id, session.regions[1].id) == (accepted_id, skipped_id)
+            assert [session.queue.region_state(i) for i in (0, 1)] == ["accepted", "skipped"]
+            assert (session.queue.regions[0].id, session.queue.regions[1].id) == (accepted_id, skipped_id)
             page.keyboard.press("n")
             expect(badge).to_contain_text(f"region 2/{total} (skipped", timeout=30_000)
 
             # r opens the class picker on the region; a class relabels it (a correction) and accepts it.
             page.keyboard.press("r")
             picker = page.locator("#leap-review-picker")
-            expect(picker).to_contain_text(f"Relabel region 2 ({session.regions[1].count} voxels) as")
+            expect(picker).to_contain_text(f"Relabel region 2 ({session.queue.regions[1].count} voxels) as")
             picker.get_by_role("button", name="building", exact=True).click()
             expect(badge).to_contain_text(f"2 / {total} reviewed", timeout=30_000)
             with open_db(live.settings.database) as db:
                 (correction,) = crud.list_corrections(db, pid)
                 assert crud.list_review_marks(db, pid)[skipped_id].state == "accepted"
             assert correction.class_name == "building"
-            np.testing.assert_array_equal(correction.keys, session.grid.keys[session.regions[1].rows])
+            np.testing.assert_array_equal(correction.keys, session.grid.keys[session.queue.regions[1].rows])
             page.wait_for_timeout(1500)
             page.screenshot(path=str(artifacts / "viewer-review-2-after-restart.png"))
     finally:

@@ -106,7 +106,7 @@ def _open(api: Any, app: Any, base: str, browser: Any) -> tuple[Any, Any, dict[s
     close = page.get_by_role("alert").get_by_role("button")
     if close.count() and close.first.is_visible():
         close.first.click(timeout=5000)
-    assert session.wait_drawn(30)
+    assert session.renderer.wait_drawn(30)
     return page, session, {"project": project, "run": run}
 
 
@@ -116,14 +116,14 @@ def _look(session: Any, page: Any, position: np.ndarray, target: np.ndarray) -> 
 
     def arrived() -> Any:
         try:
-            cam = session.latest_camera()
+            cam = session.tools.latest_camera()
         except LookupError:
             return None
         return cam if np.allclose(cam.position, position, atol=0.05) else None
 
     wait_until(arrived, 20, "the browser's camera")
     page.wait_for_timeout(1500)
-    return session.latest_camera()
+    return session.tools.latest_camera()
 
 
 def _drag(page: Any, points_uv: list[tuple[float, float]]) -> None:
@@ -185,12 +185,12 @@ def test_lasso_front_surface_corrects_only_the_front_wall(tools_app: dict[str, A
         before = set(session.label[grid.rows_of(np.concatenate([front_keys, back_keys]))].tolist())
         slot = next(i + 1 for i, n in enumerate(names[:9]) if i not in before)
         target = names[slot - 1]
-        assert session.tools.depth_mode == "front"  # the default: front surface only
+        assert session.tools.settings.depth_mode == "front"  # the default: front surface only
         page.keyboard.press("l")
-        wait_until(lambda: session.tools.tool == "lasso", 10, "the lasso to be armed")
+        wait_until(lambda: session.tools.settings.tool == "lasso", 10, "the lasso to be armed")
         page.locator("#leap-tool-canvas").wait_for(timeout=10_000)
         _drag(page, [*polygon, polygon[0]])
-        selected = wait_until(lambda: session.selection.rows.size, 20, "the lasso selection")
+        selected = wait_until(lambda: session.tools.selection.rows.size, 20, "the lasso selection")
         page.wait_for_timeout(1000)
         page.screenshot(
             path=str(
@@ -199,7 +199,7 @@ def test_lasso_front_surface_corrects_only_the_front_wall(tools_app: dict[str, A
                 / "viewer-tools-lasso.png"
             )
         )
-        keys = grid.keys[session.selection.rows]
+        keys = grid.keys[session.tools.selection.rows]
         other = keys[~np.isin(keys, front_keys)]
         where = (grid.centres[grid.rows_of(other)] - pose0[:3, 3]) @ pose0[:3, :3]
         assert other.size == 0, (
@@ -258,8 +258,10 @@ def test_brush_with_a_class_filter_changes_only_that_class(tools_app: dict[str, 
         stroke = [(0.2, 0.6), (0.5, 0.55), (0.8, 0.6)]
 
         # Without a filter the same stroke would take voxels of other classes as well.
-        rows, _ = session.compute_view()
-        mask = stroke_mask(stroke, session.tools.brush_radius * cam.height_px, cam.width_px, cam.height_px)
+        rows, _ = session.renderer.compute_view()
+        mask = stroke_mask(
+            stroke, session.tools.settings.brush_radius * cam.height_px, cam.width_px, cam.height_px
+        )
         under = rows[select_points(session.grid.centres[rows], cam, mask, depth_mode="through")]
         assert (session.label[under] == road).sum() > 0 and (session.label[under] != road).sum() > 0
 
@@ -267,7 +269,10 @@ def test_brush_with_a_class_filter_changes_only_that_class(tools_app: dict[str, 
         browserfixtures.pick(page, "Depth", "through")
         browserfixtures.pick(page, "Only class", "road")
         wait_until(
-            lambda: session.tools.class_filter == "road" and session.tools.depth_mode == "through",
+            lambda: (
+                session.tools.settings.class_filter == "road"
+                and session.tools.settings.depth_mode == "through"
+            ),
             20,
             "the class filter",
         )
@@ -276,8 +281,8 @@ def test_brush_with_a_class_filter_changes_only_that_class(tools_app: dict[str, 
         page.keyboard.press("b")
         page.locator("#leap-tool-canvas").wait_for(timeout=10_000)
         _drag(page, stroke)
-        wait_until(lambda: session.selection.rows.size, 20, "the brush selection")
-        picked = session.selection.rows.copy()
+        wait_until(lambda: session.tools.selection.rows.size, 20, "the brush selection")
+        picked = session.tools.selection.rows.copy()
         assert (label_before[picked] == road).all()
         page.keyboard.press("e")  # erase to unlabeled
         wait_until(lambda: bool((session.label[picked] == -1).all()), 20, "the erased voxels")

@@ -6,7 +6,7 @@
 // scan change (keys, panel slider, play) and opens or closes from the panel's button too.
 
 import { bind, notify } from "./keys.js";
-import { projectId, viewerApi } from "./overlay.js";
+import { projectId, viewerApi } from "./viewer-api.js";
 
 const GROUP = "Scans and camera";
 const POLL_MS = 800;
@@ -90,7 +90,4 @@ bind(["i"], "Enlarge / shrink the scan's camera image", async () => {
 }, GROUP);
 window.addEventListener("resize", () => render());
 
-// Deferred: overlay.js imports this module before its own body (and projectId) has run.
-setTimeout(() => {
-  if (projectId !== null) poll();
-}, 0);
+if (projectId !== null) poll();

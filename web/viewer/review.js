@@ -6,7 +6,7 @@
 // A small badge shows the progress ("12 / 100 reviewed") and a busy sign while a queue is being ranked.
 
 import { bind, notify } from "./keys.js";
-import { viewerApi } from "./overlay.js";
+import { projectId, viewerApi } from "./viewer-api.js";
 
 const GROUP = "Review queue";
 let badge = null;
@@ -130,7 +130,6 @@ bind(["p"], "Previous review region", () => act("step", { step: -1 }, "Ranking r
 // The badge exists (hidden) from the start: tests wait for it to know the keys are bound.
 ensureBadge();
 // Show the progress once the page is up (a viewer reopened after a restart shows the stored marks).
-// Deferred: overlay.js imports this module before its own body ran, so its `projectId` is not set yet.
-setTimeout(() => {
+if (projectId !== null) {
   viewerApi("GET", "review").then((state) => { if (state.total) show(state); }).catch(() => {});
-}, 0);
+}

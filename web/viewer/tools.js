@@ -8,7 +8,7 @@
 // module polls them so a tool armed from the panel shows here too.
 
 import { bind, notify } from "./keys.js";
-import { viewerApi } from "./overlay.js";
+import { projectId, viewerApi } from "./viewer-api.js";
 
 const POLL_MS = 400;
 let state = { tool: null, brush_radius: 0.03, classes: [] };
@@ -154,4 +154,4 @@ bind(["escape"], "Clear the selection and put the tool down", async () => {
 }, "Selection and corrections");
 
 window.addEventListener("resize", place);
-poll();
+if (projectId !== null) poll();

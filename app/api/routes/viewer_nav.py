@@ -1,7 +1,7 @@
 """Scan navigation of the running viewer, for the page's keys (web/viewer/nav.js).
 
 The viser panel's Browse / Fit view / Follow ego / Enlarge image widgets call the same
-:class:`~app.viewer.session.ReviewSession` methods, so keys and widgets act on one state. The camera moves
+:class:`~app.viewer.player.ScanPlayer` methods, so keys and widgets act on one state. The camera moves
 of every browser showing the viewer follow (viser's ``client.camera``).
 """
 
@@ -59,14 +59,15 @@ def _session(viewers: ViewersDep, project_id: int) -> ReviewSession:
 
 
 def _state(session: ReviewSession) -> NavState:
-    view = session.scan_view
+    player = session.player
+    view = player.scan_view
     return NavState(
-        pos=session.frame_pos,
-        count=session.scan_count,
+        pos=player.frame_pos,
+        count=player.scan_count,
         frame_id=None if view is None else view.frame_id,
-        follow=session.follow_ego,
-        playing=session.playing,
-        image_open=session.image_open,
+        follow=player.follow_ego,
+        playing=player.playing,
+        image_open=player.image_open,
         has_image=view is not None and view.overlay is not None,
     )
 
@@ -81,7 +82,7 @@ async def nav_state(project_id: ProjectId, viewers: ViewersDep) -> NavState:
 async def step_scan(project_id: ProjectId, body: StepBody, viewers: ViewersDep) -> NavState:
     """Show the next (``step`` > 0) or previous scan; the camera follows the ego pose when following."""
     session = _session(viewers, project_id)
-    await run_blocking(session.step_scan, body.step)
+    await run_blocking(session.player.step_scan, body.step)
     return _state(session)
 
 
@@ -89,7 +90,7 @@ async def step_scan(project_id: ProjectId, body: StepBody, viewers: ViewersDep) 
 async def play(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
     """Play through the scans or pause."""
     session = _session(viewers, project_id)
-    await run_blocking(session.set_playing, body.on)
+    await run_blocking(session.player.set_playing, body.on)
     return _state(session)
 
 
@@ -97,7 +98,7 @@ async def play(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> 
 async def follow(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
     """Make the camera follow the ego pose on scan changes (turning it on moves the camera now)."""
     session = _session(viewers, project_id)
-    await run_blocking(session.set_follow, body.on)
+    await run_blocking(session.player.set_follow, body.on)
     return _state(session)
 
 
@@ -105,7 +106,8 @@ async def follow(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -
 async def fit(project_id: ProjectId, body: FitBody, viewers: ViewersDep) -> NavState:
     """Move the camera to show the whole shown scan or the whole map."""
     session = _session(viewers, project_id)
-    await run_blocking(session.fit_scan if body.target == "scan" else session.fit_map)
+    player = session.player
+    await run_blocking(player.fit_scan if body.target == "scan" else player.fit_map)
     return _state(session)
 
 
@@ -113,7 +115,7 @@ async def fit(project_id: ProjectId, body: FitBody, viewers: ViewersDep) -> NavS
 async def image_open(project_id: ProjectId, body: ToggleBody, viewers: ViewersDep) -> NavState:
     """Show or hide the enlarged image of the shown scan in the page."""
     session = _session(viewers, project_id)
-    session.set_image_open(body.on)
+    session.player.set_image_open(body.on)
     return _state(session)
 
 
@@ -126,7 +128,7 @@ async def image_open(project_id: ProjectId, body: ToggleBody, viewers: ViewersDe
 async def scan_image(project_id: ProjectId, viewers: ViewersDep) -> Response:
     """The shown scan's camera image with its labels drawn over it, as JPEG (404 when it has none)."""
     session = _session(viewers, project_id)
-    data = await run_blocking(session.scan_image_jpeg)
+    data = await run_blocking(session.player.scan_image_jpeg)
     if data is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail="The shown scan has no camera image")
     return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})

@@ -20,7 +20,8 @@ from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.routes.viewer import ViewersDep, run_blocking, running_session
 from app.api.types import ProjectId, SequenceQuery
 from app.viewer.panel_review import progress_text
-from app.viewer.session import QueueKind, ReviewSession
+from app.viewer.records import QueueKind
+from app.viewer.session import ReviewSession
 
 router = APIRouter(prefix="/projects/{project_id}", tags=["viewer"], responses={**NOT_FOUND, **CONFLICT})
 
@@ -90,25 +91,26 @@ class ReviewProgressPublic(BaseModel):
 
 
 def _state(session: ReviewSession) -> ReviewStatePublic:
-    progress = session.review_progress()
+    queue = session.queue
+    progress = queue.review_progress()
     region = None
-    pos = session.region_pos
-    if session.focus is not None and 0 <= pos < len(session.regions):
-        r = session.regions[pos]
+    pos = queue.region_pos
+    if queue.focus is not None and 0 <= pos < len(queue.regions):
+        r = queue.regions[pos]
         frame_id = None
-        if session.focus_frame is not None and session.outputs is not None:
-            frame_id = session.outputs.seq.frame_ids[session.outputs.frame_indices[session.focus_frame]]
+        if queue.focus_frame is not None and session.outputs is not None:
+            frame_id = session.outputs.seq.frame_ids[session.outputs.frame_indices[queue.focus_frame]]
         region = RegionPublic(
             id=r.id,
             position=pos,
             score=r.score,
             count=r.count,
-            state=session.region_state(pos),
+            state=queue.region_state(pos),
             frame_id=frame_id,
         )
     return ReviewStatePublic(
-        kind=session.queue_kind,
-        building=session.queue_building,
+        kind=queue.queue_kind,
+        building=queue.queue_building,
         progress=progress_text(progress),
         region=region,
         classes=session.class_names(),
@@ -135,7 +137,7 @@ async def review_state(project_id: ProjectId, viewers: ViewersDep) -> ReviewStat
 async def build_queue(project_id: ProjectId, payload: QueueBuild, viewers: ViewersDep) -> ReviewStatePublic:
     """Rank the regions of a queue (the disagreement queue reads every scan once per run)."""
     session = running_session(viewers, project_id)
-    await run_blocking(session.build_queue, payload.kind)
+    await run_blocking(session.queue.build_queue, payload.kind)
     return _state(session)
 
 
@@ -143,10 +145,11 @@ async def build_queue(project_id: ProjectId, payload: QueueBuild, viewers: Viewe
 async def step_region(project_id: ProjectId, payload: QueueStep, viewers: ViewersDep) -> ReviewStatePublic:
     """Highlight the next / previous region (ranking the queue first when there is none yet)."""
     session = running_session(viewers, project_id)
-    kind = payload.kind or session.queue_kind
-    if not session.queue_built or not session.regions or session.queue_kind != kind:
-        await run_blocking(session.build_queue, kind)
-    await run_blocking(session.next_region, payload.step)
+    queue = session.queue
+    kind = payload.kind or queue.queue_kind
+    if not queue.queue_built or not queue.regions or queue.queue_kind != kind:
+        await run_blocking(queue.build_queue, kind)
+    await run_blocking(queue.next_region, payload.step)
     return _state(session)
 
 
@@ -155,7 +158,7 @@ async def mark_region(project_id: ProjectId, payload: RegionMark, viewers: Viewe
     """Accept (reviewed) or skip the highlighted region, stored in the project; then highlight the next
     region without a mark. 409 when no region is highlighted."""
     session = running_session(viewers, project_id)
-    return await _on_region(session, session.mark_region, payload.state)
+    return await _on_region(session, session.queue.mark_region, payload.state)
 
 
 @router.post("/viewer/review/relabel", response_model=ReviewStatePublic)
@@ -176,7 +179,7 @@ async def relabel_region(
                 }
             ],
         )
-    return await _on_region(session, session.relabel_region, payload.class_name)
+    return await _on_region(session, session.queue.relabel_region, payload.class_name)
 
 
 @router.get("/review", response_model=ReviewProgressPublic)

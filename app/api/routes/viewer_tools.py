@@ -1,11 +1,11 @@
 """Selection tools of the 3D viewer page: lasso, brush, box, their settings, assign / erase, undo / redo.
 
 The viewer page (web/viewer/tools.js) draws a lasso or brush outline on a canvas over viser's and sends it
-here in normalised screen coordinates; the selection is made server-side on the project's
-:class:`~app.viewer.session.ReviewSession` with the camera of the browser that moved its camera last
-(:meth:`~app.viewer.session.ReviewSession.latest_camera`): with several browsers on one viewer, the one the
-user is drawing on. The settings (depth mode, distance, class filter, target, scope, armed tool) live in the
-session, so the panel's widgets and the page's keys show and change the same values.
+here in normalised screen coordinates; the selection is made server-side by the project's
+:class:`~app.viewer.selection_tool.SelectionTool` with the camera of the browser that moved its camera
+last (:meth:`~app.viewer.selection_tool.SelectionTool.latest_camera`): with several browsers on one viewer,
+the one the user is drawing on. The settings (depth mode, distance, class filter, target, scope, armed
+tool) live in the session, so the panel's widgets and the page's keys show and change the same values.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.routes.viewer import ViewersDep, run_blocking, running_session
 from app.api.types import ProjectId
-from app.viewer.session import ReviewSession, ToolSettings
+from app.viewer.records import ToolSettings
+from app.viewer.session import ReviewSession
 
 router = APIRouter(
     prefix="/projects/{project_id}/viewer/tools", tags=["viewer"], responses={**NOT_FOUND, **CONFLICT}
@@ -86,7 +87,7 @@ class EditResult(BaseModel):
 
 
 def _state(session: ReviewSession) -> ToolsState:
-    t: ToolSettings = session.tools
+    t: ToolSettings = session.tools.settings
     return ToolsState(
         tool=t.tool,
         depth_mode=t.depth_mode,
@@ -95,7 +96,7 @@ def _state(session: ReviewSession) -> ToolsState:
         target=t.target,
         scope=t.scope,
         brush_radius=t.brush_radius,
-        selected=int(session.selection.rows.size),
+        selected=int(session.tools.selection.rows.size),
         classes=session.class_names(),
     )
 
@@ -120,7 +121,7 @@ async def patch_tools(project_id: ProjectId, payload: ToolsPatch, viewers: Viewe
     if "class_filter" in changes and changes["class_filter"] == "":
         changes["class_filter"] = None
     try:
-        session.set_tools(**changes)
+        session.tools.set_tools(**changes)
     except ValueError as exc:
         raise _unprocessable("body", exc) from None
     return _state(session)
@@ -131,16 +132,16 @@ async def select(project_id: ProjectId, payload: SelectBody, viewers: ViewersDep
     """Select with a tool outline drawn on the canvas of the browser whose camera moved last."""
     session = running_session(viewers, project_id)
     try:
-        camera = session.latest_camera()
+        camera = session.tools.latest_camera()
     except LookupError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     try:
         count = await run_blocking(
-            session.select_screen, payload.tool, payload.points, camera, add=payload.add
+            session.tools.select_screen, payload.tool, payload.points, camera, add=payload.add
         )
     except ValueError as exc:
         raise _unprocessable("points", exc) from None
-    return SelectResult(count=count, target=session.selection.target)
+    return SelectResult(count=count, target=session.tools.selection.target)
 
 
 @router.post("/assign", response_model=EditResult)
@@ -151,10 +152,10 @@ async def assign(project_id: ProjectId, payload: AssignBody, viewers: ViewersDep
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, detail="body: give either slot or erase")
     try:
         if payload.erase:
-            cid = await run_blocking(session.assign_selection, "")
+            cid = await run_blocking(session.corrections.assign_selection, "")
         else:
             assert payload.slot is not None
-            cid = await run_blocking(session.assign_slot, payload.slot)
+            cid = await run_blocking(session.corrections.assign_slot, payload.slot)
     except ValueError as exc:
         raise _unprocessable("slot" if payload.slot is not None else "erase", exc) from None
     return EditResult(correction_id=cid)
@@ -163,19 +164,19 @@ async def assign(project_id: ProjectId, payload: AssignBody, viewers: ViewersDep
 @router.post("/undo", response_model=EditResult)
 async def undo(project_id: ProjectId, viewers: ViewersDep) -> EditResult:
     """Undo the viewer's last correction."""
-    return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).undo))
+    return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).corrections.undo))
 
 
 @router.post("/redo", response_model=EditResult)
 async def redo(project_id: ProjectId, viewers: ViewersDep) -> EditResult:
     """Redo the last undone correction."""
-    return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).redo))
+    return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).corrections.redo))
 
 
 @router.post("/clear", response_model=ToolsState)
 async def clear(project_id: ProjectId, viewers: ViewersDep) -> ToolsState:
     """Clear the selection and disarm the tool (the Escape key)."""
     session = running_session(viewers, project_id)
-    session.clear_selection()
-    session.set_tools(tool=None)
+    session.tools.clear_selection()
+    session.tools.set_tools(tool=None)
     return _state(session)

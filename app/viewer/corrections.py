@@ -1,0 +1,167 @@
+"""Corrections in the viewer: a selection + class becomes a stored correction, undo / redo toggle it, and the
+project's active corrections are overlaid on the shown grid and scan.
+
+A correction's scope is the map (voxel keys: every point in those voxels in every scan) or the shown scan
+only (its point indices). Each one is a row of the project's store
+(:class:`~app.viewer.records.ProjectBackend`), so the web UI and every later run see it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.viewer import view_logic as vl
+from app.viewer.player import ScanPlayer
+from app.viewer.records import ProjectBackend, Scope, Selection
+from app.viewer.render import LodRenderer
+from app.viewer.selection_tool import SelectionTool
+from app.viewer.shared import Notifier, SharedState
+from leap_core.fusion import voxel_keys
+
+
+class Corrections:
+    """Assigning classes to selections, undo / redo, and the corrections overlaid on the grid.
+
+    Args:
+        shared: the session's shared state (writes ``label`` / ``conf`` / ``corrected`` / ``corrections``;
+            clears ``selection`` after a correction).
+        backend: the project store the corrections are kept in.
+        renderer: redraws after a change.
+        player: relabels the shown scan after a change.
+        tools: the selection tools (their default scope).
+        notify: where changes are reported (panel ``on_selection`` / ``on_history``, event ``corrected``).
+    """
+
+    def __init__(
+        self,
+        shared: SharedState,
+        backend: ProjectBackend,
+        renderer: LodRenderer,
+        player: ScanPlayer,
+        tools: SelectionTool,
+        notify: Notifier,
+    ) -> None:
+        self.shared = shared
+        self.backend = backend
+        self.renderer = renderer
+        self.player = player
+        self.tools = tools
+        self.notify = notify
+        self.history: vl.EditHistory[int] = vl.EditHistory()
+        """Ids of the corrections this viewer made, for undo / redo."""
+
+    def apply_locked(self) -> None:
+        """Read the project's corrections and overlay the active map-scope ones on the shown grid (caller
+        holds the shared lock; a grid is shown)."""
+        sh = self.shared
+        grid = sh.grid
+        assert grid is not None
+        names = sh.class_ids()
+        keys_all, labels_all = [], []
+        sh.corrections = self.backend.corrections()
+        for rec in sh.corrections:
+            if rec.scope != "map" or not rec.active or rec.class_name not in names or rec.keys.size == 0:
+                continue
+            keys = sh.grid_keys(rec)
+            keys_all.append(keys)
+            labels_all.append(np.full(keys.shape[0], names[rec.class_name], np.int16))
+        ck = np.concatenate(keys_all) if keys_all else np.zeros(0, np.int64)
+        cl = np.concatenate(labels_all) if labels_all else np.zeros(0, np.int16)
+        sh.label, sh.conf, sh.corrected = vl.apply_corrections(grid.keys, grid.label, grid.conf, ck, cl)
+
+    def assign_selection(
+        self, class_name: str, *, scope: Scope | None = None, selection: Selection | None = None
+    ) -> int | None:
+        """Store a correction assigning ``class_name`` (``""``: erase to unlabeled) to the selection;
+        returns its id (None when nothing is selected).
+
+        ``scope`` (default :attr:`ToolSettings.scope <app.viewer.records.ToolSettings.scope>`): ``map``
+        stores the voxels (of the selected voxels, or of the voxels holding the selected scan points);
+        ``scan`` stores the shown scan's points (the selected points, or the scan's points inside the
+        selected voxels). ``selection`` defaults to the current one; either way the current selection is
+        cleared once the correction is stored.
+        """
+        scope = self.tools.settings.scope if scope is None else scope
+        if scope not in ("map", "scan"):
+            raise ValueError(f"scope must be 'map' or 'scan', got {scope!r}")
+        sh = self.shared
+        with sh.lock:
+            grid, view = sh.grid, sh.scan_view
+            selection = sh.selection if selection is None else selection
+        rows = selection.rows
+        if grid is None or rows.size == 0:
+            return None
+        if class_name != "" and class_name not in sh.class_names():
+            raise ValueError(f"unknown class {class_name!r}")
+        if selection.target == "map":
+            keys = grid.keys[rows]
+        else:
+            if view is None or view.frame_id != selection.frame_id:
+                raise ValueError("the selected scan is no longer shown; select again")
+            keys = np.unique(voxel_keys(view.points[rows].astype(np.float64), grid.voxel_size))
+        if scope == "map":
+            cid = self.backend.add_correction(class_name, grid.voxel_size, keys)
+        else:
+            if view is None:
+                raise ValueError("no scan is shown: a scan-scope correction needs one")
+            if selection.target == "scan":
+                points = rows
+            else:
+                scan_keys = voxel_keys(view.points.astype(np.float64), grid.voxel_size)
+                points = np.flatnonzero(np.isin(scan_keys, keys))
+            cid = self.backend.add_correction(
+                class_name,
+                grid.voxel_size,
+                keys,
+                scope="scan",
+                frame_id=view.frame_id,
+                points=points.astype(np.int64),
+            )
+        self.history.push(cid)
+        with sh.lock:
+            sh.selection = Selection.empty()
+            self.apply_locked()
+        self.player.recolour_scan()
+        self.notify.panel.on_selection(0)
+        self.notify.panel.on_history()
+        self.renderer.request_draw()
+        self.notify.emit("corrected")
+        return cid
+
+    def assign_slot(self, slot: int) -> int | None:
+        """Assign the ``slot``-th class (1-based, the order of the class picker) to the selection."""
+        names = self.shared.class_names()
+        if not 1 <= slot <= len(names):
+            raise ValueError(f"slot must lie in [1, {len(names)}], got {slot}")
+        return self.assign_selection(names[slot - 1])
+
+    def undo(self) -> int | None:
+        """Deactivate the last correction made here; returns its id (None: nothing to undo)."""
+        cid = self.history.undo()
+        if cid is not None:
+            self.backend.set_correction_active(cid, False)
+            self._after_history()
+        return cid
+
+    def redo(self) -> int | None:
+        """Reactivate the last undone correction; returns its id (None: nothing to redo)."""
+        cid = self.history.redo()
+        if cid is not None:
+            self.backend.set_correction_active(cid, True)
+            self._after_history()
+        return cid
+
+    def _after_history(self) -> None:
+        with self.shared.lock:
+            if self.shared.grid is not None:
+                self.apply_locked()
+        self.player.recolour_scan()
+        self.notify.panel.on_history()
+        self.renderer.request_draw()
+
+    def correction_count(self) -> int:
+        """Number of the project's active corrections."""
+        return sum(1 for c in self.shared.corrections if c.active)
+
+
+__all__ = ["Corrections"]
