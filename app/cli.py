@@ -1175,7 +1175,7 @@ def synth(
         raise fail(f"--domain: unknown domain {domain!r} ({', '.join(SYNTH_DOMAINS)})")
 
     start = time.perf_counter()
-    bars: list[tqdm] = []  # opened at the first progress call, so a refusal prints only the error
+    bars: list[tqdm[Any]] = []  # opened at the first progress call, so a refusal prints only the error
 
     def progress(done: int, total: int) -> None:
         if not bars:

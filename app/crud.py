@@ -20,6 +20,7 @@ import sqlite_utils
 from app.core.db import transaction, utcnow
 from app.core.errors import InvalidField, NotFound
 from app.rows import DatasetKind, ProjectRow, RunParams, RunRow, RunStatus, SequenceRow
+from leap_core.pipeline.metrics_file import RunMetrics
 
 _JSON_COLUMNS = {
     "schema_json": "schema",
@@ -292,7 +293,7 @@ def _run(row: dict[str, Any]) -> RunRow:
         error=row["error"],
         attempts=int(row["attempts"]),
         stages=row["stages"] or None,
-        metrics=row["metrics"],
+        metrics=None if row["metrics"] is None else RunMetrics.from_dict(row["metrics"], f"run {row['id']}"),
         note=row.get("note"),
     )
 
@@ -369,13 +370,13 @@ def last_finished_run(db: sqlite_utils.Database, project_id: int) -> RunRow | No
 
 
 def update_run(db: sqlite_utils.Database, run_id: int, **fields: Any) -> None:
-    """Set columns of a run; ``stages``, ``metrics`` and ``params`` (a :class:`RunParams`) are stored as
-    JSON."""
+    """Set columns of a run; ``stages``, ``metrics`` (a :class:`RunMetrics`) and ``params`` (a
+    :class:`RunParams`) are stored as JSON."""
     sets: list[str] = []
     params: list[Any] = []
     for key, value in fields.items():
         column = f"{key}_json" if key in ("stages", "metrics", "params") else key
-        stored = value.to_dict() if isinstance(value, RunParams) else value
+        stored = value.to_dict() if isinstance(value, (RunParams, RunMetrics)) else value
         sets.append(f"{column} = ?")
         params.append(_dumps(stored) if column.endswith("_json") and stored is not None else stored)
     if sets:

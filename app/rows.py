@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
 
+from leap_core.pipeline.metrics_file import RunMetrics
 from leap_core.run_layout import RunLayout, SequenceLayout
 
 DatasetKind = Literal["demo", "folder"]
@@ -194,8 +195,8 @@ class RunRow:
     attempts: int = 0
     stages: dict[str, Any] | None = None
     """The progress tracker's record (``ProgressTracker.stages_record``)."""
-    metrics: dict[str, Any] | None = None
-    """The run's ``metrics.json``: ``{"overall": ..., "sequences": {name: ...}}``."""
+    metrics: RunMetrics | None = None
+    """The run's ``metrics.json`` (None without ground truth, or before the run finished)."""
     note: str | None = None
 
     @property

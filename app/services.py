@@ -21,7 +21,7 @@ from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
 from app.jobs.progress import ProgressTracker
-from app.rows import ProjectRow, RunRow, labeled_sequences
+from app.rows import DatasetKind, ProjectRow, RunRow, labeled_sequences
 from leap_core.colors import distinct_color
 from leap_core.config import (
     FORM_FIELDS,
@@ -35,7 +35,7 @@ from leap_core.datasets.check import check_dataset, dataset_stamp, report_dict
 from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
-from leap_core.pipeline import PAPER, all_points_labeled_share
+from leap_core.pipeline import PAPER, SequenceMetrics
 from leap_core.presets import builtin_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -94,7 +94,7 @@ def escaping_entry(folder: Path, roots: list[Path]) -> tuple[str, Path] | None:
 
 def resolve_dataset(
     settings: Settings, ref: models.DatasetRef, loc: tuple[str | int, ...] = ("body", "dataset", "path")
-) -> tuple[models.DatasetKind, Path]:
+) -> tuple[DatasetKind, Path]:
     """(kind, absolute sequence folder) of a dataset reference (``loc``: the payload field naming it).
 
     Raises:
@@ -124,7 +124,7 @@ def resolve_dataset(
 
 
 def dataset_public(
-    kind: models.DatasetKind, path: str, check: models.DatasetCheck | None = None
+    kind: DatasetKind, path: str, check: models.DatasetCheck | None = None
 ) -> models.DatasetPublic:
     folder = Path(path)
     velodyne = folder / "velodyne"
@@ -270,7 +270,7 @@ def create_project(
 
 def _project_sequences(
     settings: Settings, payload: models.ProjectCreate
-) -> tuple[models.DatasetKind, list[tuple[str, Path, tuple[str | int, ...]]]]:
+) -> tuple[DatasetKind, list[tuple[str, Path, tuple[str | int, ...]]]]:
     """(kind, [(name, resolved folder, payload field)]) of a new project's sequences.
 
     Raises:
@@ -468,12 +468,12 @@ def remove_sequence(db: sqlite_utils.Database, project_id: int, name: str) -> Pr
 def _brief(run: RunRow | None) -> models.RunBrief | None:
     if run is None:
         return None
-    table = normalise_metrics(run.metrics)
+    metrics = overall(run)
     row = miou = None
-    if table is not None and "camera" in table["protocols"]:
-        rows = table["protocols"]["camera"]
-        row = (table["rows"] or list(rows))[-1]
-        miou = rows.get(row, {}).get("miou")
+    if metrics is not None and "camera" in metrics.tables:
+        rows = metrics.tables["camera"]
+        row = (metrics.rows or list(rows))[-1]
+        miou = rows[row].miou if row in rows else None
     return models.RunBrief(
         id=run.id,
         number=run.number,
@@ -684,93 +684,75 @@ def run_progress(run: RunRow, live: dict[str, Any] | None) -> models.RunProgress
     return models.RunProgress(**tracker.snapshot())
 
 
-def metrics_summary(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
+def metrics_summary(metrics: SequenceMetrics | None) -> dict[str, Any] | None:
     """{protocol: {row: mIoU}} for the run history table."""
-    table = normalise_metrics(metrics)
-    if table is None:
+    if metrics is None:
         return None
-    return {
-        protocol: {row: values.get("miou") for row, values in rows.items()}
-        for protocol, rows in table["protocols"].items()
-    }
+    return {protocol: {row: s.miou for row, s in rows.items()} for protocol, rows in metrics.tables.items()}
 
 
-def normalise_metrics(metrics: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The parts of a run's or a sequence's metrics the UI shows (confusion matrices dropped).
-
-    A run's metrics (``<run>/metrics.json``) are ``{"overall": ..., "sequences": {name: ...}}``; its
-    ``overall`` (the sequences' confusion matrices summed) and each sequence's entry have the layout of a
-    sequence's ``metrics.json`` (leap_core.pipeline's evaluate stage): ``protocols`` ({name:
-    description}), ``rows`` (ordered row names: point, voxel, +3D-CN xN) and, per protocol,
-    ``{row: Metrics.to_dict()}``. Either may be given.
+def metrics_public(metrics: SequenceMetrics | None) -> dict[str, Any] | None:
+    """What the UI shows of a sequence's metrics or a run's ``overall`` (the confusion matrices dropped).
 
     Returns:
         ``{"protocols": {protocol: {row: {miou, category_miou, labeled_share, iou: {class: v}, ...}}},
-        "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}`` or None.
-        A protocol over merged classes (the paper's) has its classes in ``views`` ({protocol: {class_names,
-        categories, merge: {class: [schema classes]}}}); ``notes`` ({protocol: text}) says why a protocol
-        is absent.
+        "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}``, or None
+        without metrics or without any protocol's table. A protocol over merged classes (the paper's) has
+        its classes in ``views`` ({protocol: {class_names, categories, merge: {class: [schema classes]}}});
+        ``notes`` ({protocol: text}) says why a protocol is absent.
     """
-    if metrics and isinstance(metrics.get("overall"), dict):
-        metrics = metrics["overall"]
-    if not metrics or not isinstance(metrics.get("protocols"), dict):
+    if metrics is None or not metrics.tables:
         return None
-    rows = list(metrics.get("rows") or [])
-    out: dict[str, dict[str, Any]] = {}
-    for protocol in metrics["protocols"]:
-        table = metrics.get(protocol)
-        if not isinstance(table, dict):
-            continue
-        out[protocol] = {
-            row: {k: v for k, v in table[row].items() if k != "confusion"}
-            for row in (rows or list(table))
-            if isinstance(table.get(row), dict)
-        }
-    if not out:
-        return None
+    protocols = {
+        protocol: {row: {k: v for k, v in s.to_dict().items() if k != "confusion"} for row, s in rows.items()}
+        for protocol, rows in metrics.tables.items()
+    }
     return {
-        "protocols": out,
-        "descriptions": dict(metrics["protocols"]),
-        "rows": rows,
-        "coverage_ratio": metrics.get("coverage_ratio") or {},
-        "labeled_points": metrics.get("labeled_points") or {},
-        "labeled_share_all_points": all_points_labeled_share(metrics),
-        "n_points": metrics.get("n_points"),
-        "n_points_in_view": metrics.get("n_points_in_view"),
-        "labeler": metrics.get("labeler"),
+        "protocols": protocols,
+        "descriptions": dict(metrics.protocols),
+        "rows": list(metrics.rows),
+        "coverage_ratio": dict(metrics.coverage_ratio),
+        "labeled_points": dict(metrics.labeled_points),
+        "labeled_share_all_points": metrics.all_points_labeled_share(),
+        "n_points": metrics.n_points,
+        "n_points_in_view": metrics.n_points_in_view,
+        "labeler": metrics.labeler,
         "views": (
-            {PAPER: metrics["paper_view"]}
-            if PAPER in out and isinstance(metrics.get("paper_view"), dict)
+            {PAPER: metrics.paper_view.to_dict()}
+            if PAPER in protocols and metrics.paper_view is not None
             else {}
         ),
-        "notes": dict(metrics.get("protocol_notes") or {}),
+        "notes": dict(metrics.protocol_notes),
     }
+
+
+def overall(run: RunRow) -> SequenceMetrics | None:
+    """The run's own metrics: its sequences' confusion matrices summed."""
+    return None if run.metrics is None else run.metrics.overall
 
 
 def metrics_sequences(run: RunRow) -> list[str]:
     """The run's sequences with metrics of their own, in run order (the stored JSON's keys are sorted)."""
-    per = (run.metrics or {}).get("sequences")
-    if not isinstance(per, dict):
+    if run.metrics is None:
         return []
-    return [name for name in run.params.names if isinstance(per.get(name), dict)]
+    return [name for name in run.params.names if run.metrics.sequence(name) is not None]
 
 
 def sequence_metrics(run: RunRow, sequence: str | None) -> dict[str, Any] | None:
-    """The metrics table (:func:`normalise_metrics`) of one sequence of the run, or, with ``sequence``
-    None, the run's own (the sequences' confusion matrices summed).
+    """The metrics table (:func:`metrics_public`) of one sequence of the run, or, with ``sequence`` None,
+    the run's own (the sequences' confusion matrices summed).
 
     Raises:
         InvalidField: ``sequence`` is not one of the run's sequences (``[query, sequence]``).
     """
     if sequence is None:
-        return normalise_metrics(run.metrics)
+        return metrics_public(overall(run))
     names = run.params.names
     if sequence not in names:
         raise InvalidField(
             ["query", "sequence"], f"run {run.id} has no sequence {sequence!r} (it has {', '.join(names)})"
         )
-    per = (run.metrics or {}).get("sequences") or {}
-    return normalise_metrics(per.get(sequence))
+    return metrics_public(None if run.metrics is None else run.metrics.sequence(sequence))
 
 
 def run_public(run: RunRow, live: dict[str, Any] | None) -> models.RunPublic:
@@ -790,7 +772,7 @@ def run_public(run: RunRow, live: dict[str, Any] | None) -> models.RunPublic:
         has_export=run.status == "done"
         and all(run.sequence_layout(name).export_dir.is_dir() for name in run.params.names),
         resumable=run.status in models.RESUMABLE_STATUSES,
-        summary=metrics_summary(run.metrics),
+        summary=metrics_summary(overall(run)),
         note=run.note,
     )
 

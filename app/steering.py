@@ -21,7 +21,7 @@ from app.core.config import Settings
 from app.core.errors import InvalidField
 from app.jobs.manager import run_corrections, seed_source
 from app.rows import ProjectRow, RunParams, RunSequence
-from app.services import normalise_metrics, project_config, stale_results
+from app.services import metrics_public, overall, project_config, stale_results
 from leap_core.errors import LeapError
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
@@ -168,7 +168,7 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
         raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
     changes = [_change_public(c) for c in run_changes(base.params.to_dict(), run.params.to_dict())]
     rows: list[models.RowDelta] = []
-    ma, mb = normalise_metrics(run.metrics), normalise_metrics(base.metrics)
+    ma, mb = metrics_public(overall(run)), metrics_public(overall(base))
     if ma is not None and mb is not None:
         names = [c["name"] for c in run.params.schema["classes"]]
         names += [c["name"] for c in base.params.schema["classes"] if c["name"] not in names]

@@ -66,7 +66,13 @@ def test_a_move_stopped_half_way_is_finished_by_the_next_call(former: Path) -> N
     assert former_layout(single) == "single"  # stages.json moves last, so the folder still says so
     assert migrate_run_folder(single, "00")
     assert _files(seq.folder)[Path("grid.npz")] == before[Path("grid.npz")]
-    assert sorted(p.name for p in single.iterdir()) == [".lock", "3dcn", "metrics.json", "run.json", "sequences"]
+    assert sorted(p.name for p in single.iterdir()) == [
+        ".lock",
+        "3dcn",
+        "metrics.json",
+        "run.json",
+        "sequences",
+    ]
 
 
 def test_an_entry_in_the_way_stops_the_move_and_names_it(former: Path) -> None:

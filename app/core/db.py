@@ -240,6 +240,7 @@ def one_run_shape(
     :func:`_v8_one_run_shape`); ``name_of(dataset_path)`` is the project's name of the sequence on that
     folder (None: the folder's own name)."""
     from leap_core.pipeline.evaluation import overall_metrics  # noqa: PLC0415  loads numpy: only here
+    from leap_core.pipeline.metrics_file import SequenceMetrics  # noqa: PLC0415
 
     params = dict(params)
     dataset, frames = params.pop("dataset", None), params.pop("frames", None)
@@ -260,7 +261,8 @@ def one_run_shape(
             "stages": {staged(k): v for k, v in (stages.get("stages") or {}).items()},
         }
     if metrics is not None and "overall" not in metrics:
-        metrics = {"overall": overall_metrics({name: metrics}), "sequences": {name: metrics}}
+        summed = overall_metrics({name: SequenceMetrics.from_dict(metrics, f"run metrics of {dataset}")})
+        metrics = {"overall": None if summed is None else summed.to_dict(), "sequences": {name: metrics}}
     return params, stages, metrics
 
 

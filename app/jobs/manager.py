@@ -64,6 +64,7 @@ from leap_core.fusion import last_per_key
 from leap_core.io_utils import atomic_write_json, link_or_copy, remove_tree
 from leap_core.pipeline import STAGES, read_run_metrics
 from leap_core.pipeline.apply import RunCorrections
+from leap_core.pipeline.metrics_file import RunMetrics
 from leap_core.run_layout import SequenceLayout
 
 log = logging.getLogger("leap.jobs")
@@ -944,7 +945,7 @@ def seed_sequence(previous: SequenceLayout, folder: SequenceLayout) -> int:
     return link_tree(previous.folder, folder.folder, keep=stage_output)
 
 
-def read_metrics(run_dir: Path) -> dict[str, Any] | None:
+def read_metrics(run_dir: Path) -> RunMetrics | None:
     """The run's stored result tables (None when no sequence has ground truth or they are unreadable)."""
     try:
         return read_run_metrics(run_dir)

@@ -46,13 +46,13 @@ from leap_core.pipeline.evaluation import (
     PROTOCOLS,
     ROW_POINT,
     ROW_VOXEL,
-    all_points_labeled_share,
     cn_row,
     load_metrics,
     overall_metrics,
     read_metrics_json,
     result_tables,
 )
+from leap_core.pipeline.metrics_file import RowScores, RunMetrics, SequenceMetrics
 from leap_core.pipeline.migration import migrate_run_folder
 from leap_core.pipeline.run import (
     JOINT,
@@ -85,13 +85,15 @@ __all__ = [
     "STAGE_TABLE",
     "FrameFiles",
     "ProgressCallback",
+    "RowScores",
+    "RunMetrics",
     "RunProgress",
     "RunResult",
+    "SequenceMetrics",
     "SequenceResult",
     "SequenceSpec",
     "StageInfo",
     "StageReport",
-    "all_points_labeled_share",
     "cn_row",
     "dataset_identity",
     "load_metrics",

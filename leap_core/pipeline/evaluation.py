@@ -11,6 +11,7 @@ the paper's Table 1 (:data:`leap_core.eval_view.PAPER_VIEW`), present only for a
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -25,6 +26,7 @@ from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json, read_npz
 from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_confusion, metrics_from_confusion
 from leap_core.pipeline.context import load_view, ordered_map
+from leap_core.pipeline.metrics_file import RowScores, RunMetrics, SequenceMetrics, ViewSpec
 from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -62,23 +64,28 @@ IGNORES_UNLABELED: dict[str, bool] = {"camera": True, COMMON: True, "all": False
 """Per protocol key: whether an unlabeled prediction is ignored (True) or a miss (False)."""
 
 
-def add_paper_protocol(out: dict[str, Any]) -> None:
-    """Add the paper's protocol to the content of a ``metrics.json`` (in place), from its ``camera``
-    confusion matrices: per row ``merge_confusion(camera confusion, PAPER_VIEW mapping)`` → ``out["paper"]``,
-    the view's classes → ``out["paper_view"]``, the description → ``out["protocols"]["paper"]``.
+def with_paper_protocol(m: SequenceMetrics) -> SequenceMetrics:
+    """``m`` with the paper's protocol, from its ``camera`` confusion matrices: per row
+    ``merge_confusion(camera confusion, PAPER_VIEW mapping)`` → ``tables["paper"]``, the view's classes →
+    ``paper_view``, the description → ``protocols["paper"]``.
 
-    When the view does not apply to ``out["class_names"]`` (not SemanticKITTI's 19 classes), nothing of the
-    protocol is added but ``out["protocol_notes"]["paper"]``, a sentence saying why.
+    When the view does not apply to ``m.class_names`` (not SemanticKITTI's 19 classes), nothing of the
+    protocol is added but ``protocol_notes["paper"]``, a sentence saying why.
     """
-    names = list(out["class_names"])
-    problem = PAPER_VIEW.problem(names)
-    mapping = PAPER_VIEW.mapping(names)
+    problem = PAPER_VIEW.problem(m.class_names)
+    mapping = PAPER_VIEW.mapping(m.class_names)
     if problem is not None or mapping is None:
-        out.setdefault("protocol_notes", {})[PAPER] = f"not computed: {problem}"
-        return
-    out["protocols"][PAPER] = PAPER_DESCRIPTION
-    out["paper_view"] = PAPER_VIEW.to_dict()
-    out[PAPER] = {r: paper_metrics(out["camera"][r]["confusion"], mapping).to_dict() for r in out["rows"]}
+        return dataclasses.replace(m, protocol_notes={**m.protocol_notes, PAPER: f"not computed: {problem}"})
+    camera = m.table("camera")
+    return dataclasses.replace(
+        m,
+        protocols={**m.protocols, PAPER: PAPER_DESCRIPTION},
+        tables={
+            **m.tables,
+            PAPER: {r: RowScores.of(paper_metrics(camera[r].confusion_matrix, mapping)) for r in m.rows},
+        },
+        paper_view=ViewSpec.from_dict(PAPER_VIEW.to_dict()),
+    )
 
 
 def paper_metrics(confusion: npt.ArrayLike, mapping: npt.NDArray[np.int64]) -> Metrics:
@@ -174,35 +181,37 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
                 ctx.tick("evaluate", k, total)
     ctx.tick("evaluate", total, total)
     pl = labeled_any[ROW_POINT]
-    out: dict[str, Any] = {
-        "class_names": schema.names,
-        "categories": schema.categories(),
-        "rows": list(rows),
-        "protocols": dict(PROTOCOLS),
-        # Frame numbers (first, last + 1), as --frames takes them; positions would shift with a subset.
-        "frames": [seq.frame_numbers[ctx.frames[0]], seq.frame_numbers[ctx.frames[-1]] + 1],
-        "n_points": n_points,
-        "n_points_in_view": n_view,
-        # Points (ground truth or not) that got a label, per row, and their share of all points: what the
-        # exported .label files leave unlabeled is 1 - that share of the final row.
-        "labeled_points": {r: labeled_any[r] for r in rows},
-        "labeled_share_all_points": {r: (labeled_any[r] / n_points if n_points else None) for r in rows},
-        "labeler": ctx.cfg.labeler,
-        "coverage_ratio": {r: (labeled_any[r] / pl if pl else None) for r in rows},
-    }
-    out.update(
-        {
+    out = SequenceMetrics(
+        class_names=schema.names,
+        categories=schema.categories(),
+        rows=list(rows),
+        protocols=dict(PROTOCOLS),
+        tables={
             p: {
-                r: metrics_from_confusion(
-                    conf[p][r], schema.names, schema.categories(), ignore_unlabeled_pred=IGNORES_UNLABELED[p]
-                ).to_dict()
+                r: RowScores.of(
+                    metrics_from_confusion(
+                        conf[p][r],
+                        schema.names,
+                        schema.categories(),
+                        ignore_unlabeled_pred=IGNORES_UNLABELED[p],
+                    )
+                )
                 for r in rows
             }
             for p in PROTOCOLS
-        }
+        },
+        # Frame numbers (first, last + 1), as --frames takes them; positions would shift with a subset.
+        frames=[seq.frame_numbers[ctx.frames[0]], seq.frame_numbers[ctx.frames[-1]] + 1],
+        n_points=n_points,
+        n_points_in_view=n_view,
+        # Points (ground truth or not) that got a label, per row, and their share of all points: what the
+        # exported .label files leave unlabeled is 1 - that share of the final row.
+        labeled_points={r: labeled_any[r] for r in rows},
+        labeled_share_all_points={r: (labeled_any[r] / n_points if n_points else None) for r in rows},
+        labeler=ctx.cfg.labeler,
+        coverage_ratio={r: (labeled_any[r] / pl if pl else None) for r in rows},
     )
-    add_paper_protocol(out)
-    atomic_write_json(lay.metrics, out)
+    atomic_write_json(lay.metrics, with_paper_protocol(out).to_dict())
     return {}
 
 
@@ -215,28 +224,19 @@ def _read_point_labels(path: Path, final_row: str) -> dict[str, npt.NDArray[np.i
     return {ROW_POINT: z["point_label"], final_row: z["label"]}
 
 
-def all_points_labeled_share(metrics: Mapping[str, Any]) -> dict[str, float | None]:
-    """Row → share of all points of the evaluated scans that got a label (``labeled_points / n_points``).
-
-    Unlike ``labeled_share`` in a protocol's table (the share of *ground-truth-labeled* points, inside the
-    camera view for ``camera``), this counts every point, as an exported ``.label`` file does. Read from
-    ``labeled_share_all_points`` when ``metrics.json`` has it, else computed (files of older runs).
-    """
-    stored = metrics.get("labeled_share_all_points")
-    if isinstance(stored, Mapping):
-        return {str(r): (None if v is None else float(v)) for r, v in stored.items()}
-    counts = metrics.get("labeled_points") or {}
-    n = metrics.get("n_points")
-    return {str(r): (float(v) / n if isinstance(n, int) and n > 0 else None) for r, v in counts.items()}
-
-
-def read_metrics_json(folder: str | Path) -> dict[str, Any] | None:
-    """A sequence's ``metrics.json`` in a run, as written (None when it has none)."""
-    return read_metrics_file(SequenceLayout(Path(folder)).metrics)
+def read_metrics_json(folder: str | Path) -> SequenceMetrics | None:
+    """A sequence's ``metrics.json`` in a run (None when it has none)."""
+    path = SequenceLayout(Path(folder)).metrics
+    data = read_metrics_file(path)
+    return None if data is None else SequenceMetrics.from_dict(data, path)
 
 
 def read_metrics_file(path: Path) -> dict[str, Any] | None:
-    """A metrics file (a sequence's or a run's) as written (None when there is none)."""
+    """A metrics file's JSON (a sequence's or a run's; None when there is none).
+
+    Raises:
+        DatasetError: the file is not JSON.
+    """
     if not path.is_file():
         return None
     try:
@@ -247,51 +247,44 @@ def read_metrics_file(path: Path) -> dict[str, Any] | None:
 
 
 def load_metrics(folder: str | Path) -> dict[str, dict[str, Metrics]] | None:
-    """``{protocol: {row: Metrics}}`` rebuilt from ``metrics.json`` (None when the run has none)."""
+    """``{protocol: {row: Metrics}}`` rebuilt from a sequence's ``metrics.json`` (None when it has none)."""
     data = read_metrics_json(folder)
-    if data is None:
-        return None
-    return metrics_tables(data, SequenceLayout(Path(folder)).metrics)
+    return None if data is None else metrics_tables(data)
 
 
-def metrics_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> dict[str, dict[str, Metrics]]:
-    """``{protocol: {row: Metrics}}`` rebuilt from the content of a ``metrics.json`` (or an ``overall``
-    entry of a run's): :data:`PROTOCOLS`, then ``paper``; the :data:`OPTIONAL_PROTOCOLS`
-    only when the file has them. ``source`` names it in errors."""
-    try:
-        tables: dict[str, dict[str, Metrics]] = {}
-        for p in (*PROTOCOLS, PAPER):
-            if p in OPTIONAL_PROTOCOLS and p not in data:
-                continue
-            view = data["paper_view"] if p == PAPER else data
-            names, cats = view["class_names"], view["categories"]
-            tables[p] = {
-                r: metrics_from_confusion(
-                    np.asarray(data[p][r]["confusion"], np.int64),
-                    names,
-                    cats,
-                    ignore_unlabeled_pred=IGNORES_UNLABELED[p],
-                )
-                for r in data["rows"]
-            }
-        return tables
-    except (ValueError, KeyError, TypeError) as exc:
-        raise DatasetError(source, f"unreadable metrics ({exc})") from exc
+def metrics_tables(data: SequenceMetrics) -> dict[str, dict[str, Metrics]]:
+    """``{protocol: {row: Metrics}}`` rebuilt from the confusion matrices of a sequence's metrics (or a
+    run's ``overall``): :data:`PROTOCOLS` and ``paper``, those the file has, in that order."""
+    tables: dict[str, dict[str, Metrics]] = {}
+    for p in (*PROTOCOLS, PAPER):
+        if p not in data.tables:
+            continue
+        view = data.paper_view if p == PAPER else None
+        names = data.class_names if view is None else view.class_names
+        cats = data.categories if view is None else view.categories
+        tables[p] = {
+            r: metrics_from_confusion(
+                data.tables[p][r].confusion_matrix, names, cats, ignore_unlabeled_pred=IGNORES_UNLABELED[p]
+            )
+            for r in data.rows
+        }
+    return tables
 
 
-def format_result_tables(data: Mapping[str, Any], source: str | Path = "metrics") -> str:
-    """The result tables (one per protocol) of the content of a ``metrics.json`` as text; a protocol the
-    file notes as not computed (the paper's, for a schema other than SemanticKITTI's) gets its note."""
-    tables = metrics_tables(data, source)
-    labeler = data.get("labeler", "?")
-    described = {**PROTOCOLS, PAPER: PAPER_DESCRIPTION, **(data.get("protocols") or {})}
+def format_result_tables(data: SequenceMetrics) -> str:
+    """The result tables (one per protocol) of a sequence's metrics (or a run's ``overall``) as text; a
+    protocol the file notes as not computed (the paper's, for a schema other than SemanticKITTI's) gets its
+    note."""
+    tables = metrics_tables(data)
+    labeler = data.labeler or "?"
+    described = {**PROTOCOLS, PAPER: PAPER_DESCRIPTION, **data.protocols}
     parts = []
     for p, rows in tables.items():
         names = next(iter(rows.values())).class_names
         parts.append(f"{described[p]}; 2D labels: {labeler}\n{format_table(rows, names)}")
-    for p, note in (data.get("protocol_notes") or {}).items():
+    for p, note in data.protocol_notes.items():
         parts.append(f"{p} protocol {note}")
-    ratio = data.get("coverage_ratio", {}).get(ROW_VOXEL)
+    ratio = data.coverage_ratio.get(ROW_VOXEL)
     if ratio:
         parts.append(f"voxel labels cover {ratio:.2f}x as many points as projection alone")
     return "\n\n".join(parts)
@@ -300,28 +293,24 @@ def format_result_tables(data: Mapping[str, Any], source: str | Path = "metrics"
 def result_tables(folder: str | Path) -> str | None:
     """A sequence's result tables as text (one per protocol), or None without metrics."""
     data = read_metrics_json(folder)
-    if data is None:
-        return None
-    return format_result_tables(data, SequenceLayout(Path(folder)).metrics)
+    return None if data is None else format_result_tables(data)
 
 
 # ------------------------------------------------------------------------------- several sequences
 _SUMMED = ("n_points", "n_points_in_view")
 
 
-def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dict[str, Any] | None:
+def overall_metrics(per_sequence: Mapping[str, SequenceMetrics | None]) -> SequenceMetrics | None:
     """The metrics of several sequences taken together: each protocol's and row's confusion matrices
     summed over the sequences, then IoU / mIoU computed from the sum (``IoU_c = TP_c / (TP_c + FP_c +
     FN_c)`` of the summed counts; not a mean of the sequences' mIoUs, which would weigh a short sequence
     like a long one).
 
     Args:
-        per_sequence: sequence name → its ``metrics.json`` content, None for a sequence without ground
-            truth (left out).
+        per_sequence: sequence name → its metrics, None for a sequence without ground truth (left out).
 
     Returns:
-        A dict in ``metrics.json``'s layout (``class_names``, ``rows``, one entry per protocol, point
-        counts summed), plus ``sequences`` (the names summed) and ``frames`` (name → that sequence's
+        The summed metrics, with ``sequences`` (the names summed) and ``frames`` (name → that sequence's
         frames); None when no sequence has metrics.
 
     Raises:
@@ -333,59 +322,58 @@ def overall_metrics(per_sequence: Mapping[str, Mapping[str, Any] | None]) -> dic
     first_name, first = next(iter(have.items()))
     for name, m in have.items():
         for key in ("class_names", "rows"):
-            if list(m.get(key, [])) != list(first.get(key, [])):
+            if getattr(m, key) != getattr(first, key):
                 raise LeapError(
-                    f"sequence {name}: metrics {key} {m.get(key)} differ from sequence "
-                    f"{first_name}'s {first.get(key)}; evaluate every sequence with one schema "
+                    f"sequence {name}: metrics {key} {getattr(m, key)} differ from sequence "
+                    f"{first_name}'s {getattr(first, key)}; evaluate every sequence with one schema "
                     "and one config"
                 )
-    names, cats, rows = list(first["class_names"]), list(first["categories"]), list(first["rows"])
-    out: dict[str, Any] = {
-        "class_names": names,
-        "categories": cats,
-        "rows": rows,
-        "protocols": dict(PROTOCOLS),
-        "sequences": list(have),
-        "frames": {n: m.get("frames") for n, m in have.items()},
-        "labeler": first.get("labeler"),
-    }
-    for key in _SUMMED:
-        out[key] = int(sum(int(m.get(key, 0)) for m in have.values()))
-    labeled = {r: int(sum(int(m.get("labeled_points", {}).get(r, 0)) for m in have.values())) for r in rows}
-    out["labeled_points"] = labeled
-    n = out["n_points"]
-    out["labeled_share_all_points"] = {r: (labeled[r] / n if n else None) for r in rows}
+    names, cats, rows = list(first.class_names), list(first.categories), list(first.rows)
+    labeled = {r: sum(m.labeled_points.get(r, 0) for m in have.values()) for r in rows}
+    n = sum(m.n_points for m in have.values())
+    protocols = dict(PROTOCOLS)
+    tables: dict[str, dict[str, RowScores]] = {}
     for p in PROTOCOLS:
-        if p in OPTIONAL_PROTOCOLS and not all(p in m for m in have.values()):
-            out["protocols"].pop(p)  # a sequence evaluated before the protocol existed
+        if p in OPTIONAL_PROTOCOLS and not all(p in m.tables for m in have.values()):
+            protocols.pop(p)  # a sequence evaluated before the protocol existed
             continue
-        out[p] = {}
+        tables[p] = {}
         for r in rows:
-            conf = sum(np.asarray(m[p][r]["confusion"], np.int64) for m in have.values())
-            out[p][r] = metrics_from_confusion(
-                conf, names, cats, ignore_unlabeled_pred=IGNORES_UNLABELED[p]
-            ).to_dict()
-    # Merging is linear, so the merge of the summed camera matrices is the sum of the sequences' merges.
-    add_paper_protocol(out)
+            conf = sum(m.tables[p][r].confusion_matrix for m in have.values())
+            tables[p][r] = RowScores.of(
+                metrics_from_confusion(conf, names, cats, ignore_unlabeled_pred=IGNORES_UNLABELED[p])
+            )
     pl = labeled.get(ROW_POINT, 0)
-    out["coverage_ratio"] = {r: (labeled[r] / pl if pl else None) for r in rows}
-    return out
+    out = SequenceMetrics(
+        class_names=names,
+        categories=cats,
+        rows=rows,
+        protocols=protocols,
+        tables=tables,
+        frames={name: (list(m.frames) if isinstance(m.frames, list) else None) for name, m in have.items()},
+        n_points=n,
+        n_points_in_view=sum(m.n_points_in_view for m in have.values()),
+        labeled_points=labeled,
+        labeled_share_all_points={r: (labeled[r] / n if n else None) for r in rows},
+        labeler=first.labeler,
+        coverage_ratio={r: (labeled[r] / pl if pl else None) for r in rows},
+        sequences=list(have),
+    )
+    # Merging is linear, so the merge of the summed camera matrices is the sum of the sequences' merges.
+    return with_paper_protocol(out)
 
 
 def write_run_metrics(
-    layout: RunLayout, per_sequence: Mapping[str, Mapping[str, Any] | None]
-) -> dict[str, Any] | None:
+    layout: RunLayout, per_sequence: Mapping[str, SequenceMetrics | None]
+) -> RunMetrics | None:
     """Write ``<root>/metrics.json`` = ``{"overall": overall_metrics(...), "sequences": per_sequence}``
     and return it; remove a stale one and return None when no sequence has metrics."""
     overall = overall_metrics(per_sequence)
     if overall is None:
         layout.metrics.unlink(missing_ok=True)
         return None
-    data = {
-        "overall": overall,
-        "sequences": {n: (None if m is None else dict(m)) for n, m in per_sequence.items()},
-    }
-    atomic_write_json(layout.metrics, data)
+    data = RunMetrics(overall, dict(per_sequence))
+    atomic_write_json(layout.metrics, data.to_dict())
     return data
 
 
@@ -399,8 +387,6 @@ __all__ = [
     "PROTOCOLS",
     "ROW_POINT",
     "ROW_VOXEL",
-    "add_paper_protocol",
-    "all_points_labeled_share",
     "cn_row",
     "common_points",
     "format_result_tables",
@@ -412,5 +398,6 @@ __all__ = [
     "read_metrics_json",
     "result_tables",
     "stage_evaluate",
+    "with_paper_protocol",
     "write_run_metrics",
 ]

@@ -9,12 +9,11 @@ on the folder it is given, the app on every run folder when it starts.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
-from leap_core.errors import DatasetError, LeapError
-from leap_core.pipeline.evaluation import write_run_metrics
+from leap_core.errors import LeapError
+from leap_core.pipeline.evaluation import read_metrics_json, write_run_metrics
 from leap_core.run_layout import FORMER_MULTI_SPEC, RunLayout, SequenceLayout, former_layout, write_run_spec
 
 
@@ -65,12 +64,9 @@ def migrate_run_folder(
                 "them away, then run again"
             )
         os.replace(entry, target)
-    if seq.metrics.is_file():
-        try:
-            data = json.loads(seq.metrics.read_text())
-        except (OSError, ValueError) as exc:
-            raise DatasetError(seq.metrics, f"unreadable metrics ({exc})") from exc
-        write_run_metrics(layout, {name: data})
+    metrics = read_metrics_json(seq.folder)
+    if metrics is not None:
+        write_run_metrics(layout, {name: metrics})
     os.replace(root / SequenceLayout.STATE, seq.state)
     write_run_spec(layout, [(name, dataset, frames)])
     return True

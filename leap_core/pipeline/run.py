@@ -47,6 +47,7 @@ from leap_core.io_utils import atomic_write_json, remove_tree
 from leap_core.pipeline.context import Ctx, hash_json, read_state
 from leap_core.pipeline.evaluation import format_result_tables, read_metrics_file, write_run_metrics
 from leap_core.pipeline.executor import Executor, make_executor
+from leap_core.pipeline.metrics_file import RunMetrics
 from leap_core.pipeline.migration import migrate_run_folder
 from leap_core.pipeline.runner import (
     PIPELINE_VERSION,
@@ -109,9 +110,8 @@ class RunResult:
     """The run folder."""
     sequences: dict[str, SequenceResult]
     """Per sequence (run order), what its stages did (from both passes when the 3D-CN was on)."""
-    metrics: dict[str, Any] | None
-    """Content of ``<root>/metrics.json`` (None when no sequence has ground truth or evaluation did not
-    run)."""
+    metrics: RunMetrics | None
+    """``<root>/metrics.json`` (None when no sequence has ground truth or evaluation did not run)."""
     joint_seconds: float = 0.0
     """Wall time of the 3D-CN rounds in this call (≈ 0 when the 3D-CN is off or its rounds were kept from
     an earlier call); each sequence's own ``3dcn`` stage only links their grids."""
@@ -456,9 +456,15 @@ def _joint_3dcn(  # noqa: PLR0917  the run's parts, each as run_pipeline has it
 
 
 # ------------------------------------------------------------------------------------------ reading
-def read_run_metrics(out: str | Path) -> dict[str, Any] | None:
-    """``<root>/metrics.json`` of a run (None when it has none)."""
-    return read_metrics_file(RunLayout(Path(out)).metrics)
+def read_run_metrics(out: str | Path) -> RunMetrics | None:
+    """``<root>/metrics.json`` of a run (None when it has none).
+
+    Raises:
+        DatasetError: the file is unreadable.
+    """
+    path = RunLayout(Path(out)).metrics
+    data = read_metrics_file(path)
+    return None if data is None else RunMetrics.from_dict(data, path)
 
 
 def run_result_tables(out: str | Path) -> str | None:
@@ -467,20 +473,15 @@ def run_result_tables(out: str | Path) -> str | None:
     data = read_run_metrics(out)
     if data is None:
         return None
-    path = RunLayout(Path(out)).metrics
-    per_sequence = data.get("sequences", {})
-    if len(per_sequence) == 1:
-        only = next(iter(per_sequence.values()))
-        return None if only is None else format_result_tables(only, path)
+    if len(data.sequences) == 1:
+        only = next(iter(data.sequences.values()))
+        return None if only is None else format_result_tables(only)
     parts = []
-    for name, m in per_sequence.items():
-        body = "no ground-truth labels: nothing to evaluate" if m is None else format_result_tables(m, path)
+    for name, m in data.sequences.items():
+        body = "no ground-truth labels: nothing to evaluate" if m is None else format_result_tables(m)
         parts.append(f"== sequence {name}\n{body}")
-    overall = data.get("overall")
-    if overall is not None:
-        summed = ", ".join(overall.get("sequences", []))
-        table = format_result_tables(overall, path)
-        parts.append(f"== overall (confusion matrices of {summed} summed)\n{table}")
+    summed = ", ".join(data.overall.sequences or [])
+    parts.append(f"== overall (confusion matrices of {summed} summed)\n{format_result_tables(data.overall)}")
     return "\n\n".join(parts)
 
 

@@ -21,6 +21,7 @@ from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_json, read_state
 from leap_core.pipeline.evaluation import read_metrics_json
 from leap_core.pipeline.executor import Executor, LocalExecutor, make_executor
+from leap_core.pipeline.metrics_file import SequenceMetrics
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES
 from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
@@ -58,8 +59,8 @@ class SequenceResult:
     """Indices (positions in ``KittiSequence.frame_ids``) of the frames processed."""
     export_dir: Path | None
     """Folder of the ``.label`` / ``.conf`` files, when the export stage ran or was cached."""
-    metrics: dict[str, Any] | None
-    """Content of ``metrics.json`` (None without ground truth)."""
+    metrics: SequenceMetrics | None
+    """Its ``metrics.json`` (None without ground truth)."""
 
     @property
     def ran(self) -> list[str]:

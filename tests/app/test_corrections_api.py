@@ -37,7 +37,9 @@ class Studio:
         return int(self.project["id"])
 
     def run_dir(self, run: dict[str, Any]) -> Path:
-        return self.data / "studio" / "runs" / f"p{self.pid}" / f"r{run['id']}"
+        """The run's folder of the project's one sequence."""
+        name = self.project["sequences"][0]["name"]
+        return self.data / "studio" / "runs" / f"p{self.pid}" / f"r{run['id']}" / "sequences" / name
 
     def labels(self, run: dict[str, Any]) -> dict[str, np.ndarray]:
         export = self.run_dir(run) / "export"

@@ -148,10 +148,10 @@ def test_the_run_shows_skipped_stages_with_their_reason(client: TestClient, tiny
     run = wait_run(client, run["id"])
     assert run["status"] == "done", run["error"]
     stages = {s["name"]: s for s in run["progress"]["stages"]}
-    assert stages["3dcn"]["status"] == "skipped" and stages["3dcn"]["note"] == "3D-CN disabled"
-    assert stages["fuse"]["status"] == "done" and stages["fuse"]["note"] is None
+    assert stages["00/3dcn"]["status"] == "skipped" and stages["00/3dcn"]["note"] == "3D-CN disabled"
+    assert stages["00/fuse"]["status"] == "done" and stages["00/fuse"]["note"] is None
     log = client.get(f"{API}/runs/{run['id']}/logs").json()["text"]
-    assert "stage 3dcn skipped (3D-CN disabled)" in log and "stage 3dcn done" not in log, log
+    assert "stage 00/3dcn skipped (3D-CN disabled)" in log and "stage 00/3dcn done" not in log, log
 
     # A second run reuses every stage: each says so instead of "done in 0.00 s".
     again = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
@@ -159,10 +159,12 @@ def test_the_run_shows_skipped_stages_with_their_reason(client: TestClient, tiny
     assert again["status"] == "done", again["error"]
     stages = {s["name"]: s for s in again["progress"]["stages"]}
     for name in ("labels2d", "project", "fuse", "smooth", "label_points", "evaluate", "export"):
-        assert stages[name]["status"] == "skipped", stages[name]
-        assert stages[name]["note"] == "unchanged since the last run", stages[name]
+        assert stages[f"00/{name}"]["status"] == "skipped", stages[f"00/{name}"]
+        assert stages[f"00/{name}"]["note"] == "unchanged since the last run", stages[f"00/{name}"]
     log = client.get(f"{API}/runs/{again['id']}/logs").json()["text"]
-    assert "stage fuse skipped (unchanged since the last run)" in log and "stage fuse done" not in log, log
+    assert (
+        "stage 00/fuse skipped (unchanged since the last run)" in log and "stage 00/fuse done" not in log
+    ), log
 
 
 @pytest.mark.slow

@@ -51,21 +51,23 @@ def test_corrections_round_trip(tmp_path: Path) -> None:
     path = tmp_path / "s.db"
     dbmod.init_db(path)
     with dbmod.open_db(path) as db:
-        p = crud.create_project(db, name="p", dataset_kind="demo", dataset_path="/x", schema={}, pipeline={})
+        p = crud.create_project(
+            db, name="p", dataset_kind="demo", sequences=[("x", "/x")], schema={}, pipeline={}
+        )
         keys = np.array([5, -3, 1 << 40], dtype=np.int64)
-        cid = crud.add_correction(db, project_id=p["id"], class_name="car", voxel_size=0.2, keys=keys)
-        crud.add_correction(db, project_id=p["id"], class_name="road", voxel_size=0.2, keys=[7])
-        got = crud.list_corrections(db, p["id"])
+        cid = crud.add_correction(db, project_id=p.id, class_name="car", voxel_size=0.2, keys=keys)
+        crud.add_correction(db, project_id=p.id, class_name="road", voxel_size=0.2, keys=[7])
+        got = crud.list_corrections(db, p.id)
         assert [c.class_name for c in got] == ["car", "road"]
         assert got[0].keys.dtype == np.int64 and np.array_equal(got[0].keys, keys) and got[0].active
         crud.set_correction_active(db, cid, False)
-        assert [c.class_name for c in crud.list_corrections(db, p["id"])] == ["road"]
-        assert [c.active for c in crud.list_corrections(db, p["id"], active_only=False)] == [False, True]
+        assert [c.class_name for c in crud.list_corrections(db, p.id)] == ["road"]
+        assert [c.active for c in crud.list_corrections(db, p.id, active_only=False)] == [False, True]
         crud.set_correction_active(db, cid, True)
-        assert len(crud.list_corrections(db, p["id"])) == 2
+        assert len(crud.list_corrections(db, p.id)) == 2
         with pytest.raises(NotFound):
             crud.set_correction_active(db, 999, False)
         with pytest.raises(NotFound):
             crud.add_correction(db, project_id=999, class_name="car", voxel_size=0.2, keys=[1])
-        crud.delete_project(db, p["id"])
-        assert crud.list_corrections(db, p["id"], active_only=False) == []  # cascade
+        crud.delete_project(db, p.id)
+        assert crud.list_corrections(db, p.id, active_only=False) == []  # cascade

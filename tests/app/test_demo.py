@@ -49,7 +49,7 @@ def test_first_start_seeds_a_demo_project_with_a_finished_run(data_root: Path) -
         run = wait_run(client, run["id"], timeout=180)
         assert run["status"] == "done", run["error"]
         stages = [s["name"] for s in run["progress"]["stages"]]
-        assert stages[0] == "generate demo" and stages[1] == "labels2d"
+        assert stages[0] == "00/generate demo" and stages[1] == "00/labels2d"
         assert run["has_metrics"] and run["summary"]["camera"]["voxel"] > 0.3
         assert (settings.demo_dataset / "velodyne" / "000002.bin").is_file()
         assert client.get(f"{API}/projects/{demo['id']}").json()["last_run"]["miou"] > 0.3
@@ -84,7 +84,7 @@ def test_first_start_also_seeds_the_farm_drone_demo(data_root: Path) -> None:
         run = client.get(f"{API}/projects/{farm['id']}/runs").json()["data"][0]
         run = wait_run(client, run["id"], timeout=300)
         assert run["status"] == "done", run["error"]
-        assert [s["name"] for s in run["progress"]["stages"]][:2] == ["generate demo", "labels2d"]
+        assert [s["name"] for s in run["progress"]["stages"]][:2] == ["00/generate demo", "00/labels2d"]
         assert run["has_metrics"] and run["summary"]["camera"]["voxel"] > 0.3
         assert synth_stamp(settings.demo_agri_dataset) == AGRI_SYNTH_STAMP
         assert demo_exists(settings.demo_agri_dataset) and not demo_exists(settings.demo_dataset.parent / "x")
@@ -120,8 +120,8 @@ def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
     with open_db(tmp_path / "data" / "studio" / "studio.db") as db:
         project = crud.find_demo_project(db)
         assert project is not None
-        runs = crud.list_runs(db, project["id"])
-        assert [r["status"] for r in runs] == ["done"] and runs[0]["metrics"] is not None
+        runs = crud.list_runs(db, project.id)
+        assert [r.status for r in runs] == ["done"] and runs[0].metrics is not None
     # Run again: nothing to do, the finished run is reused and its table printed.
     again = demo()
     assert again.returncode == 0 and "labeling the demo" not in again.stdout and "voxel" in again.stdout

@@ -75,8 +75,14 @@ def clean_predictions(studio: Studio) -> Path:
 
 
 def run_dir(studio: Studio, name: str) -> Path:
+    """The run folder of the run of project ``name``."""
     run = studio.runs[name]
     return studio.data / "studio" / "runs" / f"p{run['project_id']}" / f"r{run['id']}"
+
+
+def sequence_dir(studio: Studio, name: str) -> Path:
+    """That run's folder of its one sequence (``00``)."""
+    return run_dir(studio, name) / "sequences" / "00"
 
 
 def export(studio: Studio, name: str, **body: Any) -> httpx.Response:
@@ -100,16 +106,17 @@ def test_export_never_writes_into_a_datasets_ground_truth_or_inputs(studio: Stud
 def test_export_never_writes_into_another_run_or_the_work_folder(studio: Studio) -> None:
     a_dir = run_dir(studio, "A")
     before = tree_digest(a_dir)
-    assert sum(k.startswith("export/") for k in before) == 2 * FRAMES
+    assert sum(k.startswith("sequences/00/export/") for k in before) == 2 * FRAMES
     work = studio.data / "studio"
     for target in (
-        a_dir / "export",
+        sequence_dir(studio, "A") / "export",
+        sequence_dir(studio, "A"),
         a_dir,
-        "studio/runs/p1/r1/export",
+        "studio/runs/p1/r1",
         work,
         work / "runs",
         work / "somewhere-new",
-        run_dir(studio, "B") / "export",
+        run_dir(studio, "B"),
         studio.data / "not-a-dataset",
     ):
         r = export(studio, "B", path=str(target), overwrite=True)
@@ -121,7 +128,7 @@ def test_export_never_writes_into_another_run_or_the_work_folder(studio: Studio)
 def test_existing_predictions_are_replaced_only_with_overwrite(
     studio: Studio, clean_predictions: Path
 ) -> None:
-    b_export = run_dir(studio, "B") / "export"
+    b_export = sequence_dir(studio, "B") / "export"
     first = export(studio, "A")
     assert first.status_code == 200, first.text
     assert first.json()["files"] == FRAMES and first.json()["replaced"] == 0
@@ -143,7 +150,12 @@ def test_existing_predictions_are_replaced_only_with_overwrite(
         "files": 2 * FRAMES,
         "replaced": FRAMES,
     }
-    assert tree_digest(clean_predictions) == tree_digest(b_export)
+    # The labels go to predictions/, their confidences to confidences/ beside it (as in the zip).
+    exported = tree_digest(b_export)
+    assert tree_digest(clean_predictions) == {k: v for k, v in exported.items() if k.endswith(".label")}
+    confidences = clean_predictions.parent / "confidences"
+    assert tree_digest(confidences) == {k: v for k, v in exported.items() if k.endswith(".conf")}
+    shutil.rmtree(confidences)
     # No temp or backup folder is left beside it.
     assert sorted(p.name for p in clean_predictions.parent.iterdir() if p.name.startswith(".")) == []
 
@@ -159,8 +171,12 @@ def test_app_export_folder_takes_new_folders(studio: Studio) -> None:
     target = studio.data / "studio" / "exports" / "b-run"
     r = export(studio, "B", path=str(target))
     assert r.status_code == 200, r.text
+    assert r.json()["path"] == str(target)
+    # SemanticKITTI's layout: the folder holds sequences/<name>/predictions/.
     assert tree_digest(target) == {
-        k: v for k, v in tree_digest(run_dir(studio, "B") / "export").items() if k.endswith(".label")
+        f"sequences/00/predictions/{k}": v
+        for k, v in tree_digest(sequence_dir(studio, "B") / "export").items()
+        if k.endswith(".label")
     }
     again = export(studio, "B", path=str(target))
     assert again.status_code == 409
@@ -169,8 +185,8 @@ def test_app_export_folder_takes_new_folders(studio: Studio) -> None:
 def test_dialog_counts_and_confirmation_state(studio: Studio, clean_predictions: Path) -> None:
     run = studio.runs["B"]
     info = studio.c.get(f"/runs/{run['id']}/export").json()
-    assert info["predictions_path"] == str(clean_predictions) and info["predictions_allowed"]
-    assert info["predictions_existing"] == 0
+    assert info["targets"] == [{"sequence": "00", "path": str(clean_predictions), "existing": 0}]
+    assert info["predictions_allowed"]
     assert info["frames"] == FRAMES and info["points"] == FRAMES * 400
     assert info["labeled"] + info["unlabeled"] == info["points"]
     reasons = {r["key"]: r["points"] for r in info["reasons"]}
@@ -179,7 +195,7 @@ def test_dialog_counts_and_confirmation_state(studio: Studio, clean_predictions:
     assert reasons["outside_view"] > 0 and info["labeled"] > 0
 
     # The same counts from the run's own files: labels per point and the camera mask per scan.
-    rd = run_dir(studio, "B")
+    rd = sequence_dir(studio, "B")
     labels = [np.load(rd / "points" / f"{i:06d}.npz")["label"] for i in range(FRAMES)]
     assert info["labeled"] == sum(int((lab >= 0).sum()) for lab in labels)
     raw = np.concatenate([np.fromfile(rd / "export" / f"{i:06d}.label", "<u4") for i in range(FRAMES)])
@@ -187,9 +203,9 @@ def test_dialog_counts_and_confirmation_state(studio: Studio, clean_predictions:
         c["name"]: int((raw == c["export_id"]).sum()) for c in info["classes"]
     }
 
-    # The UI asks before writing and says when files would be replaced: it reads predictions_existing.
+    # The UI asks before writing and says when files would be replaced: it reads each target's count.
     assert export(studio, "B").status_code == 200
-    assert studio.c.get(f"/runs/{run['id']}/export").json()["predictions_existing"] == FRAMES
+    assert studio.c.get(f"/runs/{run['id']}/export").json()["targets"][0]["existing"] == FRAMES
 
 
 def test_zip_stands_alone_with_its_label_map(studio: Studio, tmp_path: Path) -> None:

@@ -11,7 +11,8 @@ import pytest
 from apphelpers import wait_run
 from serverproc import Server, make_small_street, process_gone
 
-PER_FRAME_STAGES = ("labels2d", "project", "label_points", "export")
+PER_FRAME_STAGES = ("00/labels2d", "00/project", "00/label_points", "00/export")
+"""The run's per-frame stages of its one sequence (``00``), as its progress names them."""
 FRAMES = 16
 
 
@@ -50,8 +51,10 @@ def test_kill_9_mid_run_then_resume_is_byte_identical(tmp_path: Path) -> None:
         server.kill9()
         # The worker dies with the server: nothing keeps writing into the run folder.
         assert process_gone(worker_pid), "the worker process outlived the killed server"
-        stages_at_kill = json.loads((run_dir / "stages.json").read_text())
-        assert stages_at_kill[killed_in[0]]["status"] == "running"
+        sequence_dir = run_dir / "sequences" / "00"
+        stage = killed_in[0].split("/")[1]
+        stages_at_kill = json.loads((sequence_dir / "stages.json").read_text())
+        assert stages_at_kill[stage]["status"] == "running"
 
         server = Server(data, port=server.port).start()
         with server.client() as c:
@@ -73,10 +76,11 @@ def test_kill_9_mid_run_then_resume_is_byte_identical(tmp_path: Path) -> None:
             clean = c.post(f"/projects/{b['id']}/runs", json={}).json()
             clean = wait_run(c, clean["id"], 180.0, ("done", "failed"), api="")
             assert clean["status"] == "done", clean["error"]
-        clean_dir = data / "studio" / "runs" / f"p{b['id']}" / f"r{clean['id']}"
+        clean_dir = data / "studio" / "runs" / f"p{b['id']}" / f"r{clean['id']}" / "sequences" / "00"
+        run_dir = sequence_dir
 
         # The resumed stage computed only the frames the killed attempt had not finished.
-        resumed = json.loads((run_dir / "stages.json").read_text())[killed_in[0]]
+        resumed = json.loads((run_dir / "stages.json").read_text())[stage]
         assert resumed["status"] == "done" and 0 < resumed["frames_computed"] < FRAMES
 
         names = sorted(p.name for p in (clean_dir / "export").iterdir())

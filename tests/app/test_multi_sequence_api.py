@@ -23,6 +23,7 @@ from app.core import db as dbmod
 from app.core.config import Settings
 from app.core.db import open_db
 from app.jobs.apply import applier
+from app.rows import SequenceRow
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.fusion import voxel_keys
 from leap_core.pipeline import STAGES, world_points
@@ -173,14 +174,14 @@ def test_migration_6_gives_existing_projects_their_sequence(tmp_path: Path) -> N
         )
     assert dbmod.init_db(path) == dbmod.SCHEMA_VERSION >= 6
     with dbmod.open_db(path) as db:
-        assert crud.list_sequences(db, 1) == [
-            {"name": "07", "dataset_path": "/data/kitti/sequences/07", "position": 0}
-        ]
-        assert crud.list_sequences(db, 2)[0]["name"] == "00"
+        assert crud.list_sequences(db, 1) == [SequenceRow("07", "/data/kitti/sequences/07", 0)]
+        assert crud.list_sequences(db, 2)[0].name == "00"
         (c,) = crud.list_corrections(db, 1)
         assert c.class_name == "car" and c.sequence == "07" and c.keys.tolist() == [5]
         assert crud.list_corrections(db, 1, sequence="07") == [c]
         assert set(crud.list_review_marks(db, 2)) == {"4m:0,0,0"}
+        # Marks carry their sequence in the table (migration 8), whatever the project's size.
+        assert db.execute("SELECT region FROM review_marks").fetchall() == [("00/4m:0,0,0",)]
         assert crud.review_progress(db, 2) == [
             {
                 "kind": "confidence",
@@ -204,12 +205,11 @@ def test_corrections_and_marks_are_per_sequence(tmp_path: Path) -> None:
             db,
             name="m",
             dataset_kind="folder",
-            dataset_path="/d/sequences/00",
             schema={},
             pipeline={},
             sequences=[("00", "/d/sequences/00"), ("01", "/d/sequences/01")],
         )
-        pid = int(p["id"])
+        pid = p.id
         crud.add_correction(db, project_id=pid, class_name="car", voxel_size=0.2, keys=[1])
         crud.add_correction(db, project_id=pid, class_name="road", voxel_size=0.2, keys=[1], sequence="01")
         assert [c.class_name for c in crud.list_corrections(db, pid)] == ["car"]
@@ -242,8 +242,8 @@ def test_run_labels_every_sequence(
     assert r.status_code == 202, r.text
     run = r.json()
     assert run["params"]["sequences"] == [
-        {"name": "01", "dataset": str(two_sequences[0])},
-        {"name": "00", "dataset": str(two_sequences[1])},
+        {"name": "01", "dataset": str(two_sequences[0]), "frames": None},
+        {"name": "00", "dataset": str(two_sequences[1]), "frames": None},
     ]
     expected = [f"{n}/{s}" for n in ("01", "00") for s in STAGES]
     assert [s["name"] for s in run["progress"]["stages"]] == expected
@@ -253,7 +253,7 @@ def test_run_labels_every_sequence(
     assert stages["00/labels2d"]["total"] == 4 and stages["01/labels2d"]["total"] == 3
     assert stages["01/export"]["status"] == "done" and stages["00/3dcn"]["status"] == "skipped"
     with open_db(settings.database) as db:
-        run_dir = Path(crud.require_run(db, run["id"])["run_dir"])
+        run_dir = crud.require_run(db, run["id"]).run_dir
     for name, folder in zip(("01", "00"), two_sequences, strict=True):
         exported = sorted(p.name for p in (run_dir / "sequences" / name / "export").glob("*.label"))
         assert exported == sorted(f"{p.stem}.label" for p in (folder / "velodyne").glob("*.bin"))
@@ -303,10 +303,12 @@ def test_run_labels_every_sequence(
                 == (run_dir / "sequences" / name / "export" / f"{scan.stem}.label").read_bytes()
             )
 
-    # The folder export: by default into each dataset's predictions/ (the sequences share a root).
+    # The folder export: by default into each dataset's predictions/.
     info = client.get(f"{API}/runs/{run['id']}/export").json()
-    assert info["sequences"] == ["01", "00"]
-    assert info["predictions_path"] == str(two_sequences[0].parent.parent)
+    assert info["targets"] == [
+        {"sequence": name, "path": str(folder / "predictions"), "existing": 0}
+        for name, folder in zip(("01", "00"), two_sequences, strict=True)
+    ]
     assert info["frames"] == 7 and info["predictions_allowed"]
     w = client.post(f"{API}/runs/{run['id']}/export", json={})
     assert w.status_code == 200, w.text

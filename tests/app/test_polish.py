@@ -13,10 +13,10 @@ import pytest
 from apphelpers import API
 from fastapi.testclient import TestClient
 
-from app.cli import StageBars
+from app.cli import SequenceBars
 from app.core.config import Settings
 from leap_core.config import PipelineConfig
-from leap_core.pipeline import run_pipeline
+from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.presets import load_preset
 
 client, data_root, settings, tiny_dataset = (
@@ -48,19 +48,20 @@ def test_cli_shows_skipped_stages_as_lines_and_logs_above_the_bars(
     out = tmp_path / "run"
     err = io.StringIO()
     monkeypatch.setattr("sys.stderr", err)  # tqdm and the logging handler write to sys.stderr
-    with StageBars(out) as bars:
-        run_pipeline(tiny_dataset, preset.schema, cfg, out, progress=bars)
+    specs = [SequenceSpec.of(tiny_dataset)]
+    with SequenceBars(out, ["00"]) as bars:
+        run_pipeline(specs, preset.schema, cfg, out, progress=bars)
     first = err.getvalue()
     assert "3dcn         skipped (3D-CN disabled)" in first, first
     assert "labels2d" in first and "skipped (unchanged" not in first
 
     err.truncate(0)
     err.seek(0)
-    with StageBars(out) as bars:
-        bars("labels2d", 0, 4)
+    with SequenceBars(out, ["00"]) as bars:
+        bars("00", "labels2d", 0, 4)
         logging.getLogger("leap_core.test").warning("a warning during a bar")
-        bars("labels2d", 4, 4)
-        run_pipeline(tiny_dataset, preset.schema, cfg, out, progress=bars)
+        bars("00", "labels2d", 4, 4)
+        run_pipeline(specs, preset.schema, cfg, out, progress=bars)
     second = err.getvalue()
     for stage in ("project", "fuse", "smooth", "label_points", "evaluate", "export"):
         assert f"{stage:<12} skipped (unchanged since the last run in this folder)" in second, second

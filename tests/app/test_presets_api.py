@@ -96,6 +96,6 @@ def test_the_servers_models_folder_reaches_a_grounded_sam_run(data_root: Path, t
         run = wait_run(client, run["id"], timeout=240)
         assert run["status"] == "done", run["error"]
         logs = client.get(f"{API}/runs/{run['id']}/logs").json()["text"]
-        assert "stage labels2d done" in logs
+        assert "stage 00/labels2d done" in logs
     # Per-pass results went to the project's shared 2D cache, under the server's cache folder.
     assert list((settings.cache_dir / f"p{project['id']}" / "passes").rglob("*"))

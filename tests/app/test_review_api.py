@@ -21,9 +21,9 @@ SCHEMA = {"name": "s", "classes": [{"name": "car", "color": [1, 2, 3], "prompts"
 
 def _project(db, name: str = "p") -> int:  # type: ignore[no-untyped-def]
     p = crud.create_project(
-        db, name=name, dataset_kind="folder", dataset_path="/x", schema=SCHEMA, pipeline={}
+        db, name=name, dataset_kind="folder", sequences=[("x", "/x")], schema=SCHEMA, pipeline={}
     )
-    return int(p["id"])
+    return p.id
 
 
 def test_migration_4_upgrades_a_version_2_database(tmp_path: Path) -> None:

@@ -21,7 +21,8 @@ from serverproc import SMALL_DEMO, Server, free_port, make_small_street
 data_root = appfixtures.data_root
 tiny_dataset = appfixtures.tiny_dataset
 
-PER_FRAME_STAGES = ("labels2d", "project", "label_points", "export")
+PER_FRAME_STAGES = ("00/labels2d", "00/project", "00/label_points", "00/export")
+"""The run's per-frame stages of its one sequence (``00``), as its progress names them."""
 
 
 def _wait(check: Callable[[], Any], timeout: float, what: str) -> Any:

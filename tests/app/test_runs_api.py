@@ -52,7 +52,7 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert r.status_code == 202, r.text
     run = r.json()
     assert run["status"] in ("queued", "running") and run["number"] == 1
-    assert [s["name"] for s in run["progress"]["stages"]] == list(STAGES)
+    assert [s["name"] for s in run["progress"]["stages"]] == [f"00/{s}" for s in STAGES]
     # One active run per project.
     again = client.post(f"{API}/projects/{project['id']}/runs", json={})
     assert again.status_code == 409 and "already has run" in again.json()["detail"]
@@ -66,14 +66,13 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
 
     run = client.get(f"{API}/runs/{run['id']}").json()
     assert run["status"] == "done" and run["error"] is None and run["attempts"] == 1
-    stages = {s["name"]: s for s in run["progress"]["stages"]}
+    stages = {s["name"].removeprefix("00/"): s for s in run["progress"]["stages"]}
     assert stages["3dcn"]["status"] == "skipped"  # 3D-CN is off by default
     for name in ("labels2d", "project", "label_points", "export"):
         assert stages[name]["status"] == "done" and stages[name]["done"] == stages[name]["total"] == 4
         assert stages[name]["seconds"] is not None
-    assert run["params"]["schema"]["name"] == "semantickitti" and run["params"]["dataset"] == str(
-        tiny_dataset
-    )
+    assert run["params"]["schema"]["name"] == "semantickitti"
+    assert run["params"]["sequences"] == [{"name": "00", "dataset": str(tiny_dataset), "frames": None}]
     assert run["has_metrics"] and run["has_export"] and not run["resumable"]
     assert set(run["summary"]) == {"camera", "common", "all", "paper"}
     assert set(run["summary"]["camera"]) == {"point", "voxel"}
@@ -94,7 +93,7 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert paper["miou"] == stored["paper"]["voxel"]["miou"] == run["summary"]["paper"]["voxel"]
 
     logs = client.get(f"{API}/runs/{run['id']}/logs").json()
-    assert "stage export done" in logs["text"] and "run finished" in logs["text"]
+    assert "stage 00/export done" in logs["text"] and "run finished" in logs["text"]
 
     seq = KittiSequence(tiny_dataset)
     z = client.get(f"{API}/runs/{run['id']}/export.zip")
@@ -138,9 +137,11 @@ def app_settings(client: TestClient) -> Settings:
     return settings
 
 
-def crud_run_dir(client: TestClient, run_id: int) -> str:
+def crud_run_dir(client: TestClient, run_id: int) -> Path:
+    """The run's folder of its first sequence."""
     with open_db(app_settings(client).database) as db:
-        return crud.require_run(db, run_id)["run_dir"]
+        run = crud.require_run(db, run_id)
+    return run.sequence_layout(run.params.names[0]).folder
 
 
 def test_deleting_a_project_removes_its_run_folders(client: TestClient, tiny_dataset: Path) -> None:
@@ -149,22 +150,25 @@ def test_deleting_a_project_removes_its_run_folders(client: TestClient, tiny_dat
     assert wait_run(client, run["id"])["status"] == "done"
     run_dir = Path(crud_run_dir(client, run["id"]))
     assert (run_dir / "export" / "000000.label").is_file()
+    run_root = run_dir.parents[1]  # the run folder, p<P>/r<R>
 
     assert client.delete(f"{API}/projects/{project['id']}").status_code == 200
-    assert not run_dir.parent.exists()
-    assert list(run_dir.parent.parent.iterdir()) == []  # nothing half-deleted left beside it
+    assert not run_root.parent.exists()
+    assert list(run_root.parent.parent.iterdir()) == []  # nothing half-deleted left beside it
     assert (tiny_dataset / "velodyne" / "000000.bin").is_file()  # the user's dataset stays
 
     # SQLite hands the highest ids out again, so the next project's first run gets the same folder. Files a
     # crash left there (mid-delete) must not leak into it: the new run starts from an empty folder.
     run_dir.mkdir(parents=True)
     (run_dir / "left-by-a-deleted-project.txt").write_text("stale")
+    (run_root / "left-by-a-deleted-project.txt").write_text("stale")
     again = create_project(client, tiny_dataset, name="reborn")
     rerun = client.post(f"{API}/projects/{again['id']}/runs", json={"frames": {"start": 0, "stop": 2}})
     rerun = rerun.json()
     assert wait_run(client, rerun["id"])["status"] == "done"
     assert Path(crud_run_dir(client, rerun["id"])) == run_dir
     assert not (run_dir / "left-by-a-deleted-project.txt").exists()
+    assert not (run_root / "left-by-a-deleted-project.txt").exists()
     assert sorted(p.name for p in (run_dir / "export").glob("*.label")) == ["000000.label", "000001.label"]
 
 

@@ -17,6 +17,7 @@ from fastapi import APIRouter
 from app import models
 from app.jobs.progress import TERMINAL_STATUSES
 from app.jobs.stages import POSES, SYNTH
+from app.rows import RunStatus
 from leap_core.config import FORM_FIELDS
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
@@ -73,7 +74,7 @@ def pipeline_public() -> models.PipelinePublic:
         for name, f in FORM_FIELDS.items()
     ]
     labels = {value: label for f in FORM_FIELDS.values() if f.path == "labeler" for value, label in f.choices}
-    statuses = typing.get_args(models.RunStatus)
+    statuses = typing.get_args(RunStatus)
     return models.PipelinePublic(
         stages=stages,
         form=form,
