@@ -4,7 +4,7 @@ seed of the 3D Consistency Network, next to the paper's figures (issue 16, item 
 Domains (each a generated sequence and the CLI's own ``leap run``):
 
 - ``street``: the demo street, ``leap synth DATA/demo --frames 60 --seed 0``, labeled by the simulated
-  labeler with the ``paper`` preset (README, "A paper-calibrated simulated labeler"), evaluated on the
+  labeler with the ``paper`` preset (docs/RESULTS.md, "The paper-calibrated ..."), evaluated on the
   paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``); its 3D-CN
   rounds start from a *source network* (:attr:`Domain.source`), trained by ``leap train-3dcn`` on the ground
   truth of three ``street-32`` sequences (another LiDAR, another town: ``leap_core.synth.domains``), as the
@@ -31,7 +31,7 @@ Usage (from the repository root)::
 
     .venv/bin/python benchmarks/table1.py --data /work/data --runs runs/table1          # everything
     .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1      # one cell first
-    .venv/bin/python benchmarks/table1.py --cached-only --readme   # tabulate finished runs, README table
+    .venv/bin/python benchmarks/table1.py --cached-only --readme   # tabulate finished runs, docs/RESULTS.md
     .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1 \\
         --set consistency.class_balance=false --tag nobalance     # a variant, in its own run folders
     .venv/bin/python benchmarks/table1.py --domains agri --sequence-seed 101 --frames 30 --seeds 0 \
@@ -42,7 +42,7 @@ gain once more on the same points: the camera view's points every row labels, ``
 ``common`` table, since the camera protocol scores the 3D-CN, which labels every point, on points the
 voxel row leaves unlabeled and is not scored on) and, per domain, whether issue 16's acceptance holds
 (+3D-CN x1 > voxel for every seed, mean gain >= 5 points).
-``--readme`` writes the table between ``<!-- table:table1 -->`` markers of README.md: the rows of the domains
+``--readme`` writes the table between the ``table:table1`` markers of docs/RESULTS.md: the rows of the domains
 measured replace theirs, the other domains' rows stay (:func:`merged_table`).
 """
 
@@ -633,7 +633,7 @@ def main() -> None:
         help="Start the 3D-CN from random weights where a domain has a source network (needs --tag).",
     )
     ap.add_argument("--cached-only", action="store_true", help="Run nothing; tabulate finished seed runs.")
-    ap.add_argument("--readme", action="store_true", help="Write the table into README.md's markers.")
+    ap.add_argument("--readme", action="store_true", help="Write the table into docs/RESULTS.md's markers.")
     args = ap.parse_args()
     if (args.set or args.from_scratch) and not args.tag:
         sys.exit("--set and --from-scratch need --tag (a variant gets its own run folders)")
@@ -662,7 +662,7 @@ def main() -> None:
         assert spec is not None and spec.loader is not None
         rt = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(rt)
-        readme: Path = rt.README
+        readme: Path = rt.RESULTS
         text = readme.read_text()
         old = rt.table_body(text, "table1")
         new = rt.replace_tables(text, {"table1": table if old is None else merged_table(old, table)})

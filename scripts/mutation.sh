@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Mutation testing of the core modules with mutmut (config: pyproject.toml [tool.mutmut]; results and the
-# list of equivalent mutants: docs/MUTATION.md). Not part of CI: a full run takes hours on 2 cores.
+# list of equivalent mutants: docs/MUTATION.md, docs/mutation-survivors.csv). Not part of CI: hours on 2 cores.
 #
 #   scripts/mutation.sh [--fresh] [--survivors] [MODULE ...]
 #

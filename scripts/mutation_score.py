@@ -2,47 +2,54 @@
 
 score = killed / (total − equivalent), where killed counts mutmut's "killed", "timeout" and "segfault" (a
 mutant that makes the tests run past mutmut's limit, or crashes their process, is caught by them), and the
-equivalent mutants are the ones docs/MUTATION.md lists in its table rows
-``| `MUTANT` | equivalent | reason |``. Rows ``| `MUTANT` | killed on a GPU | reason |`` name mutants that
-only tests/test_cuda.py tells apart (skipped where torch sees no GPU, as here and in CI): seen killed on a
-GPU machine, they count as killed when mutmut reports them survived. Rows ``| `MUTANT` | killed by a
-test mutmut did not run | TEST |`` name mutants that a fast test fails on, run by hand with the mutant
-switched on, but that mutmut did not run against them (it maps code a module-scoped fixture runs to the
-fixture's first test only, and a test added after a run has no place in that run's map): they count as
-killed too. A mutant with no result yet ("not checked": a run stopped early) makes the module's line say
-"incomplete".
+equivalent mutants are the rows of docs/mutation-survivors.csv (columns module, mutant, status, reason)
+whose status is ``equivalent``. Rows of status ``killed on a GPU`` name mutants that only tests/test_cuda.py
+tells apart (skipped where torch sees no GPU, as here and in CI): seen killed on a GPU machine, they count
+as killed when mutmut reports them survived. Rows of status ``killed by a test mutmut did not run`` (the
+reason names the test) name mutants that a fast test fails on, run by hand with the mutant switched on, but
+that mutmut did not run against them (it maps code a module-scoped fixture runs to the fixture's first test
+only, and a test added after a run has no place in that run's map): they count as killed too. Rows of
+status ``not equivalent`` are survivors kept with the reason they are accepted; they count as not killed.
+A mutant with no result yet ("not checked": a run stopped early) makes the module's line say "incomplete".
 
 Usage: python scripts/mutation_score.py [--survivors] [MODULE_PATH ...]   (from the repository root)
-  --survivors   also print every surviving / untested mutant that docs/MUTATION.md does not list as
-                equivalent, and listed equivalents that are no longer survivors (stale entries).
+  --survivors   also print every surviving / untested mutant that docs/mutation-survivors.csv does not list
+                as equivalent, and listed equivalents that are no longer survivors (stale entries).
 """
 
 from __future__ import annotations
 
+import csv
 import json
-import re
 import sys
 from pathlib import Path
 
 from mutmut.stats import status_by_exit_code
 
 ROOT = Path(__file__).resolve().parents[1]
-DOC = ROOT / "docs" / "MUTATION.md"
+SURVIVORS = ROOT / "docs" / "mutation-survivors.csv"
 # A mutant that made the tests fail, run past mutmut's time limit or crash the test process was caught.
 CAUGHT = ("killed", "timeout", "segfault")
-_ROW = re.compile(r"^\|\s*`([^`]+__mutmut_\d+)`\s*\|\s*([^|]*?)\s*\|")
+COLUMNS = ["module", "mutant", "status", "reason"]
+STATUSES = ("equivalent", "killed on a GPU", "killed by a test mutmut did not run", "not equivalent")
 
 
-def listed_mutants(status: str, doc: Path = DOC) -> set[str]:
-    """Mutant names docs/MUTATION.md lists with ``status`` ("equivalent", "killed on a GPU"), one table row
-    each."""
-    if not doc.exists():
+def listed_mutants(status: str, path: Path = SURVIVORS) -> set[str]:
+    """Mutant names docs/mutation-survivors.csv lists with ``status`` ("equivalent", "killed on a GPU", ...),
+    one row each. A file with other columns or an unknown status is an error naming the file and row."""
+    if not path.exists():
         return set()
-    return {
-        m.group(1)
-        for line in doc.read_text().splitlines()
-        if (m := _ROW.match(line)) and m.group(2) == status
-    }
+    with path.open(newline="", encoding="utf-8") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames != COLUMNS:
+            sys.exit(f"{path}: columns must be {', '.join(COLUMNS)}, not {reader.fieldnames}")
+        names = set()
+        for line, row in enumerate(reader, start=2):
+            if row["status"] not in STATUSES:
+                sys.exit(f"{path}:{line}: unknown status {row['status']!r} (one of: {', '.join(STATUSES)})")
+            if row["status"] == status:
+                names.add(row["mutant"])
+    return names
 
 
 def module_results(path: str) -> dict[str, str]:
@@ -112,12 +119,12 @@ def main(argv: list[str]) -> int:
             + ("  incomplete" if incomplete_any else "")
         )
     if show:
-        print("\nnot killed and not listed as equivalent in docs/MUTATION.md:")
+        print("\nnot killed and not listed as equivalent in docs/mutation-survivors.csv:")
         print("\n".join(f"  {line}" for line in left) or "  (none)")
         if stale:
             print(
                 "\nlisted as equivalent or killed outside mutmut's run, but killed by mutmut now "
-                "(remove from docs/MUTATION.md):"
+                "(remove from docs/mutation-survivors.csv):"
             )
             print("\n".join(f"  {n}" for n in stale))
     return 0

@@ -1,6 +1,6 @@
-"""Regenerate the result tables of README.md by running the commands the README names.
+"""Regenerate the result tables of docs/RESULTS.md by running the commands that page names.
 
-Every table of figures in README.md sits between ``<!-- table:NAME -->`` and ``<!-- /table:NAME -->``;
+Every regenerated table in docs/RESULTS.md sits between ``<!-- table:NAME -->`` and ``<!-- /table:NAME -->``;
 this script runs the commands of each (``leap synth``, ``leap run``, through ``python -m app.cli`` so
 they are exactly the CLI's), reads the runs' ``metrics.json`` and writes the tables back in place. Run
 folders are reused (``leap run`` on an existing ``--out`` resumes and skips finished stages), so a second
@@ -13,18 +13,18 @@ Tables:
 
 Both are on the demo's seed 0, a *report* seed: no default was chosen on it (the 3D-CN defaults were
 chosen on tuning seeds 101-103 by ``benchmarks/tune_defaults.py``; the simulated labeler's lexicon on seed
-1). The README's other figures are not regenerated here: the speed and timing figures come from the
+1). The page's other figures are not regenerated here: the speed and timing figures come from the
 ``benchmarks/*.py`` scripts (machine-dependent), and the models' speed table needs real Grounding DINO /
 SAM weights, which cannot be downloaded on the build machines.
 
 Usage (from the repository root; about 20 min on 2 CPU cores for the first run, seconds afterwards)::
 
-    .venv/bin/python scripts/readme_tables.py            # run what is missing, rewrite README.md's tables
-    .venv/bin/python scripts/readme_tables.py --check    # exit 1 when README.md differs from the runs
+    .venv/bin/python scripts/readme_tables.py            # run what is missing, rewrite the tables
+    .venv/bin/python scripts/readme_tables.py --check    # exit 1 when docs/RESULTS.md differs from the runs
     .venv/bin/python scripts/readme_tables.py --only prompt-expansion   # one table (no 3D-CN: minutes)
 
 The 3D-CN trains on the CPU here; its figures depend on the machine's float rounding (thread count,
-torch version), so ``--check`` is meant for the machine that regenerated the README.
+torch version), so ``--check`` is meant for the machine that regenerated the tables.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 
 from leap_core.pipeline.evaluation import read_metrics_json  # noqa: E402  after the sys.path line
 
-README = ROOT / "README.md"
+RESULTS = ROOT / "docs" / "RESULTS.md"
 DEMO = "data/demo"
 SEQ = f"{DEMO}/sequences/00"
 DEMO_FRAMES, DEMO_SEED = 60, 0
@@ -95,7 +95,7 @@ RUN_EXPANDED = [
 ]
 ROWS = ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
 TABLES = ("demo-miou", "prompt-expansion")
-"""Names of the README tables this script writes (each between its markers)."""
+"""Names of the docs/RESULTS.md tables this script writes (each between its markers)."""
 
 
 def leap(args: list[str]) -> None:
@@ -114,7 +114,7 @@ def ensure_demo() -> None:
     n = len(list(scans.glob("*.bin")))
     if n != DEMO_FRAMES:
         sys.exit(
-            f"readme_tables: {ROOT / SEQ} has {n} scans, the README's demo has {DEMO_FRAMES}; "
+            f"readme_tables: {ROOT / SEQ} has {n} scans, the demo of docs/RESULTS.md has {DEMO_FRAMES}; "
             f"move it away or regenerate it with `leap {' '.join(SYNTH)} --force`"
         )
 
@@ -222,40 +222,45 @@ def replace_tables(text: str, tables: dict[str, str]) -> str:
     for name, body in tables.items():
         pattern = _markers(name)
         if not pattern.search(text):
-            sys.exit(f"readme_tables: {README}: no <!-- table:{name} --> ... <!-- /table:{name} --> markers")
+            sys.exit(f"readme_tables: {RESULTS}: no <!-- table:{name} --> ... <!-- /table:{name} --> markers")
         text = pattern.sub(lambda mt, body=body: mt.group(1) + body + mt.group(3), text)
     return text
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--check", action="store_true", help="Write nothing; exit 1 when README.md differs.")
+    ap.add_argument(
+        "--check", action="store_true", help="Write nothing; exit 1 when docs/RESULTS.md differs."
+    )
     ap.add_argument("--only", default=",".join(TABLES), help=f"Tables to compute: {', '.join(TABLES)}.")
     args = ap.parse_args()
     only = [t.strip() for t in args.only.split(",") if t.strip()]
     unknown = [t for t in only if t not in TABLES]
     if unknown:
         sys.exit(f"--only: unknown table(s) {', '.join(unknown)} (tables: {', '.join(TABLES)})")
-    tables = compute(only)  # minutes to hours: README.md is read after, so edits made meanwhile are kept
-    old = README.read_text()
+    tables = compute(only)  # minutes to hours: the page is read after, so edits made meanwhile are kept
+    old = RESULTS.read_text()
     new = replace_tables(old, tables)
     if args.check:
         if new != old:
             sys.stdout.writelines(
                 difflib.unified_diff(
-                    old.splitlines(keepends=True), new.splitlines(keepends=True), "README.md", "computed"
+                    old.splitlines(keepends=True),
+                    new.splitlines(keepends=True),
+                    "docs/RESULTS.md",
+                    "computed",
                 )
             )
-            sys.exit("readme_tables: README.md's tables differ from the runs (see the diff above)")
-        print("README.md's tables match the runs")
+            sys.exit("readme_tables: docs/RESULTS.md's tables differ from the runs (see the diff above)")
+        print("docs/RESULTS.md's tables match the runs")
         return
     if new != old:
-        tmp = README.with_suffix(".md.tmp")
+        tmp = RESULTS.with_suffix(".md.tmp")
         tmp.write_text(new)
-        tmp.replace(README)
-        print(f"rewrote the tables of {README}")
+        tmp.replace(RESULTS)
+        print(f"rewrote the tables of {RESULTS}")
     else:
-        print(f"{README}: tables already up to date")
+        print(f"{RESULTS}: tables already up to date")
 
 
 if __name__ == "__main__":

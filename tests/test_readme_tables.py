@@ -1,5 +1,5 @@
-"""scripts/readme_tables.py: README tables are replaced between their markers only, every table the script
-computes has its markers in README.md, and the table text is built from metrics.json as documented."""
+"""scripts/readme_tables.py: result tables are replaced between their markers only, every table the script
+computes has its markers in docs/RESULTS.md, and the table text is built from metrics.json as documented."""
 
 from __future__ import annotations
 
@@ -41,9 +41,10 @@ def test_replace_tables_refuses_a_table_without_markers() -> None:
         rt.replace_tables("<!-- table:a -->\nx\n<!-- /table:a -->\n", {"a": "y", "b": "z"})
 
 
-def test_readme_has_the_markers_of_every_table_the_script_writes() -> None:
+def test_results_page_has_the_markers_of_every_table_the_script_writes() -> None:
     rt = _module()
-    text = (ROOT / "README.md").read_text()
+    assert rt.RESULTS == ROOT / "docs" / "RESULTS.md"
+    text = rt.RESULTS.read_text()
     for name in rt.TABLES:
         assert text.count(f"<!-- table:{name} -->") == 1, name
         assert text.count(f"<!-- /table:{name} -->") == 1, name

@@ -211,8 +211,8 @@ def test_link_base_shares_stage_outputs_but_not_the_runs_own_files(tmp_path: Pat
     assert not (run / "grid.npz").exists()
 
 
-def test_readme_has_the_table1_markers_that_readme_writes_into() -> None:
-    text = (ROOT / "README.md").read_text()
+def test_results_page_has_the_table1_markers_that_readme_writes_into() -> None:
+    text = (ROOT / "docs" / "RESULTS.md").read_text()
     assert text.count("<!-- table:table1 -->") == 1
     assert text.count("<!-- /table:table1 -->") == 1
     assert text.index("<!-- table:table1 -->") < text.index("<!-- /table:table1 -->")
