@@ -41,11 +41,11 @@ def test_viewer_correction_is_in_the_export_without_a_run(live_app: dict[str, An
 
     first = wait_until(lambda: (r := runs()) and r[0]["status"] in ("done", "failed") and r[0], 600, "run 1")
     assert first["status"] == "done", first.get("error")
-    run_dir = Path(first["run_dir"]) if "run_dir" in first else None
+    run_dir = None
     seq = KittiSequence(settings.demo_dataset)
     voxel_size = float(first["params"]["pipeline"]["fusion"]["voxel_size"])
     if run_dir is None:
-        run_dir = settings.work_dir / "runs" / f"p{pid}" / f"r{first['id']}"
+        run_dir = settings.work_dir / "runs" / f"p{pid}" / f"r{first['id']}" / "sequences" / "00"
 
     def exported() -> dict[str, np.ndarray]:
         return {fid: read_label(run_dir / "export" / f"{fid}.label") & 0xFFFF for fid in seq.frame_ids}

@@ -76,13 +76,13 @@ def test_check_at_creation_and_the_run_log(server, browser, artifacts: Path) -> 
     # Run: the skipped stage says why; the run's log has the labeler's warning and the skip.
     page.click("#run-button")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=180_000)
-    skipped = page.locator('.stage[data-stage="3dcn"]')
+    skipped = page.locator('.stage[data-stage="00/3dcn"]')
     expect(skipped).to_have_attribute("data-status", "skipped")
     expect(skipped.locator(".stage-detail")).to_have_text("skipped (3D-CN disabled)")
     expect(page.locator("#run-panel .run-warnings")).to_contain_text("have no camera image")
     page.locator("#runs button", has_text="Log").first.click()
     log = page.locator("#runs pre.log")
-    expect(log).to_contain_text("stage 3dcn skipped (3D-CN disabled)")
+    expect(log).to_contain_text("stage 00/3dcn skipped (3D-CN disabled)")
     expect(log).to_contain_text("1 of 3 frames have no camera image")
     page.screenshot(path=str(artifacts / "dataset-check-run.png"))
     assert not errors, errors

@@ -55,9 +55,9 @@ def test_create_with_estimate_poses_and_run(server, browser) -> None:
 
     # The estimate comes first in the stage list (the default simulated labeler keeps the run short).
     page.click("#run-button")
-    stage = page.locator('.stage[data-stage="estimate poses"]')
+    stage = page.locator('.stage[data-stage="00/estimate poses"]')
     expect(stage.locator(".stage-name")).to_have_text("Estimate poses")
-    expect(page.locator(".stage").first).to_have_attribute("data-stage", "estimate poses")
+    expect(page.locator(".stage").first).to_have_attribute("data-stage", "00/estimate poses")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=120_000)
     expect(stage).to_have_attribute("data-status", "done")
     assert not (dataset / "poses.txt").exists()

@@ -197,8 +197,8 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
     run = api.get(f"/runs/{second['id']}").json()
     assert run["status"] == "done"
     with open_db(settings.database) as db:
-        run_dir = Path(crud.require_run(db, second["id"])["run_dir"])
-        first_dir = Path(crud.require_run(db, first["id"])["run_dir"])
+        run_dir = crud.require_run(db, second["id"]).sequence_layout("00").folder
+        first_dir = crud.require_run(db, first["id"]).sequence_layout("00").folder
     seq = KittiSequence(project["dataset"]["path"])
     voxel_size = session.grid.voxel_size
     hit_new = hit_old = total = 0

@@ -211,7 +211,7 @@ def test_lasso_front_surface_corrects_only_the_front_wall(tools_app: dict[str, A
             c["export_id"] for c in api.get(f"/projects/{pid}/classes").json()["data"] if c["name"] == target
         )
         with open_db(settings.database) as db:
-            export_dir = Path(crud.require_run(db, first["id"])["run_dir"]) / "export"
+            export_dir = crud.require_run(db, first["id"]).sequence_layout("00").export_dir
         seq = KittiSequence(seq_dir)
         sizes = [w.shape[0] for w in world]
         pairs = zip(seq.frame_ids, sizes, strict=True)
