@@ -58,8 +58,9 @@ from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_la
 from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
 from leap_core.metrics import evaluate
+from leap_core.pipeline import SequenceSpec
 from leap_core.projection import Painted
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.schema import builtin_schema
 from leap_core.smoothing import SmoothedGrid, SmoothingConfig, knn_smooth
 
@@ -268,9 +269,14 @@ def print_step_times(base: dict[str, float]) -> None:
 def load_run_inputs(
     run_dir: Path, seq: KittiSequence, frames: range, logp_clip: float
 ) -> tuple[VoxelGrid, VoxelGrid, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """The fused and smoothed grids of a finished ``leap run``, each scan's camera-view mask, and how many
+    """The fused and smoothed grids of ``seq`` in a finished ``leap run`` (its run folder, where the
+    sequence's folder is ``sequences/<name of seq's folder>``), each scan's camera-view mask, and how many
     frames observed each voxel (the selection's tie-break, as the pipeline computes it)."""
-    layout = RunLayout(run_dir)
+    if not RunLayout.is_run(run_dir):
+        raise SystemExit(f"{run_dir}: not a run folder (no {RunLayout.SPEC}); give the --out of `leap run`")
+    layout = RunLayout(run_dir).sequence(SequenceSpec.of(seq.root).name)
+    if not layout.grid_smooth.is_file():
+        raise SystemExit(f"{layout.folder}: no {SequenceLayout.GRID_SMOOTH}; run `leap run` on the sequence")
     fused = VoxelGrid.load(layout.grid)
     smoothed = SmoothedGrid.load(layout.grid_smooth).to_voxel_grid(logp_clip)
     views = []

@@ -101,6 +101,17 @@ def _stage_at(state: dict[str, Any], when: float) -> str:
     return "other"
 
 
+def _stage_file(run_dir: Path, sequence: Path) -> Path:
+    """The ``stages.json`` of ``sequence`` in a ``leap run`` folder: in ``sequences/<name>/`` (a run of
+    this code), or at the top of a baseline run written before every run had that one shape."""
+    top = run_dir / "stages.json"
+    return (
+        top
+        if top.is_file()
+        else run_dir / "sequences" / os.path.basename(os.path.abspath(sequence)) / top.name
+    )
+
+
 def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
     code_root: Path,
     sequence: Path,
@@ -155,7 +166,7 @@ def measure(  # noqa: PLR0917  the code, its inputs and the sampling period
     child.returncode = os.waitstatus_to_exitcode(status)
     if child.returncode != 0:
         raise SystemExit(f"leap run from {code_root} failed ({child.returncode}):\n{err[-3000:]}")
-    state = json.loads((run_dir / "stages.json").read_text())
+    state = json.loads(_stage_file(run_dir, sequence).read_text())
     voxels = int(state.get("fuse", {}).get("voxels", 0))
     stage_peaks: dict[str, int] = {}
     for when, rss in samples:

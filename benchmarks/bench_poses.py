@@ -44,7 +44,7 @@ from common import print_table, write_results
 from leap_core.config import config_from_dict
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.odometry import OdometryConfig, estimate_sequence_poses, write_estimated_poses
-from leap_core.pipeline import run_pipeline
+from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.presets import load_preset
 from leap_core.runtime import Runtime
 from leap_core.trajectory import (
@@ -79,13 +79,19 @@ def read_floor(seq: KittiSequence) -> float:
     return time.perf_counter() - t
 
 
-def mious(run_dir: Path) -> dict[str, dict[str, float]]:
+def mious(folder: Path) -> dict[str, dict[str, float]]:
+    """Protocol → row → mIoU (%) of a run's sequence folder."""
     from leap_core.pipeline.evaluation import read_metrics_json
 
-    m = read_metrics_json(run_dir)
+    m = read_metrics_json(folder)
     if m is None:
-        raise SystemExit(f"{run_dir}: no metrics (the sequence needs ground-truth labels)")
-    return {p: {r: 100.0 * float(m[p][r]["miou"]) for r in m["rows"]} for p in ("camera", "all")}
+        raise SystemExit(f"{folder}: no metrics (the sequence needs ground-truth labels)")
+    return {p: {r: _pct(m.miou(p, r)) for r in m.rows} for p in ("camera", "all")}
+
+
+def _pct(v: float | None) -> float:
+    """A share in percent; NaN where the row has none (no class to average)."""
+    return math.nan if v is None else 100.0 * v
 
 
 def _num(v: float) -> float | None:
@@ -112,12 +118,13 @@ def bench_sequence(seq_dir: Path, work: Path, preset: str, config: OdometryConfi
     p = load_preset(preset)
     cfg = config_from_dict({"labeler": "simulated", "consistency": {"enabled": False}}, p.pipeline)
     runtime = Runtime(cache_dir=work / "cache2d")  # the 2D labels are computed once, for both runs
-    seconds = {}
+    seconds, folders = {}, {}
     for name, dataset in (("true", seq_dir), ("estimated", copy)):
         t = time.perf_counter()
-        run_pipeline(dataset, p.schema, cfg, work / f"run-{name}", runtime=runtime)
+        run = run_pipeline([SequenceSpec.of(dataset)], p.schema, cfg, work / f"run-{name}", runtime=runtime)
         seconds[name] = time.perf_counter() - t
-    m_true, m_est = mious(work / "run-true"), mious(work / "run-estimated")
+        folders[name] = run.only().folder
+    m_true, m_est = mious(folders["true"]), mious(folders["estimated"])
     n = len(true_seq)
     return {
         "sequence": str(seq_dir),

@@ -8,9 +8,9 @@ folders; the table shows the median wall seconds per stage and the ratio Ray / l
 
 ``--3dcn`` turns the 3D-CN on (``--cn-steps N``: N training steps, the preset's ``min_steps``); its
 inference then runs as Ray tasks too, its training in the driver either way. ``--second SEQ`` adds a
-two-sequence run (``--sequence``'s frames and all of ``SEQ``, one multi-sequence run folder), locally (one
-sequence after the other) and on Ray (both at once), with the wall seconds of its first pass (every
-sequence up to ``smooth``), the joint 3D-CN and its second pass.
+two-sequence run (``--sequence``'s frames and all of ``SEQ``, one run folder), locally (one sequence after
+the other) and on Ray (both at once), with the wall seconds of its first pass (every sequence up to
+``smooth``), the 3D-CN's rounds and its second pass.
 
 ``--inference N`` times only the 3D-CN's inference on the first N frames of ``--sequence`` (a seeded,
 untrained network of the preset's backbone saved as a checkpoint: the cost does not depend on the
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import statistics
 import sys
 import tempfile
@@ -42,15 +43,16 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.common import machine_info, print_table, write_results  # noqa: E402
 from leap_core.config import PipelineConfig  # noqa: E402
-from leap_core.pipeline import STAGES, SequenceSpec, run_pipeline, run_sequences  # noqa: E402
+from leap_core.pipeline import STAGES, SequenceSpec, run_pipeline  # noqa: E402
 from leap_core.pipeline.context import read_state  # noqa: E402
 from leap_core.presets import builtin_preset  # noqa: E402
-from leap_core.run_layout import MultiRunLayout, RunLayout  # noqa: E402
+from leap_core.run_layout import RunLayout  # noqa: E402
 from leap_core.runtime import Runtime  # noqa: E402
 
 
-def _exports(run_dir: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted((run_dir / "export").iterdir())}
+def _exports(folder: Path) -> dict[str, bytes]:
+    """The export files of a run's sequence folder."""
+    return {p.name: p.read_bytes() for p in sorted((folder / "export").iterdir())}
 
 
 def _config(base: PipelineConfig, cn: bool, cn_steps: int | None) -> PipelineConfig:
@@ -63,36 +65,42 @@ def _config(base: PipelineConfig, cn: bool, cn_steps: int | None) -> PipelineCon
 
 
 TRAINING = "3dcn training"
-"""The 3D-CN's training (in the driver on either engine), part of the 3dcn stage's seconds."""
+"""The 3D-CN's training (in the driver on either engine), part of the 3dcn row's seconds."""
 
 
-def _training_seconds(run_dir: Path) -> float:
+def _training_seconds(root: Path) -> float:
     """The training loops' seconds of a run's 3D-CN rounds (``meta["seconds"]`` of its checkpoints)."""
     import torch
 
     return sum(
         float(torch.load(p, weights_only=True)["meta"]["seconds"])
-        for p in sorted((run_dir / "3dcn").glob("3dcn_iter*.pt"))
+        for p in sorted(RunLayout(root).cn_dir.glob("3dcn_iter*.pt"))
     )
 
 
+def _ray_tasks(root: Path) -> int:
+    """The inference tasks of a run's last 3D-CN rounds computed on Ray (its ``3dcn/joint.json``)."""
+    state = RunLayout(root).joint_state
+    return int(json.loads(state.read_text()).get("ray_tasks", 0)) if state.is_file() else 0
+
+
 def _multi_outputs(root: Path) -> dict[str, bytes]:
-    """Every sequence's exports and grids of a multi-sequence run folder."""
-    layout = MultiRunLayout(root)
+    """Every sequence's exports and grids of a run folder."""
+    layout = RunLayout(root)
     out = {}
     for name in layout.names():
         lay = layout.sequence(name)
         out.update({f"{name}/export/{p.name}": p.read_bytes() for p in sorted(lay.export_dir.iterdir())})
-        out.update({f"{name}/{p.name}": p.read_bytes() for p in sorted(lay.run_dir.glob("grid*.npz"))})
+        out.update({f"{name}/{p.name}": p.read_bytes() for p in sorted(lay.folder.glob("grid*.npz"))})
     return out
 
 
 def _first_pass_spans(root: Path) -> dict[str, tuple[float, float]]:
-    """Per sequence, (start, end) of its stages before the joint 3D-CN, from its ``stages.json``."""
-    layout = MultiRunLayout(root)
+    """Per sequence, (start, end) of its stages before the 3D-CN's rounds, from its ``stages.json``."""
+    layout = RunLayout(root)
     spans = {}
     for name in layout.names():
-        rec = read_state(RunLayout(layout.sequence(name).run_dir))
+        rec = read_state(layout.sequence(name))
         first = [rec[s] for s in STAGES[: STAGES.index("3dcn")] if "started" in rec.get(s, {})]
         spans[name] = (min(r["started"] for r in first), max(r["finished"] for r in first))
     return spans
@@ -117,7 +125,7 @@ def bench_multi(
         for name, runtime in engines.items():
             root = tmp / f"multi-{name}{rep}"
             t = time.perf_counter()
-            result = run_sequences(specs, schema, cfg, root, runtime=runtime)
+            result = run_pipeline(specs, schema, cfg, root, runtime=runtime)
             walls[name].append(time.perf_counter() - t)
             joint[name].append(result.joint_seconds)
             spans = _first_pass_spans(root)
@@ -130,7 +138,7 @@ def bench_multi(
         k: {e: statistics.median(v[e]) for e in engines}
         for k, v in (
             ("first pass", first),
-            ("joint 3D-CN", joint),
+            ("3D-CN rounds", joint),
             ("whole run", walls),
             ("overlap", overlap),
         )
@@ -262,19 +270,22 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_ray_") as tmp:
         for rep in range(args.repeat):
             for name, runtime in engines.items():  # alternate, so load changes hit both alike
-                run_dir = Path(tmp) / f"{name}{rep}"
+                root = Path(tmp) / f"{name}{rep}"
                 t = time.perf_counter()
-                result = run_pipeline(
-                    args.sequence, preset.schema, cfg, run_dir, frames=frames, runtime=runtime
+                run = run_pipeline(
+                    [SequenceSpec.of(args.sequence, frames)], preset.schema, cfg, root, runtime=runtime
                 )
                 walls[name].append(time.perf_counter() - t)
+                result = run.only()
                 for s, r in result.stages.items():
-                    stage_s[name][s].append(r.seconds)
-                exports[name] = _exports(run_dir)
+                    # The 3D-CN's rounds are the run's (its sequences' 3dcn stages only link their grids).
+                    stage_s[name][s].append(r.seconds + (run.joint_seconds if s == "3dcn" else 0.0))
+                exports[name] = _exports(result.folder)
                 if cfg.consistency.enabled:
-                    exports[name].update({p.name: p.read_bytes() for p in sorted(run_dir.glob("grid*.npz"))})
-                    tasks[name] = read_state(RunLayout(run_dir))["3dcn"].get("ray_tasks", 0)
-                    stage_s[name][TRAINING].append(_training_seconds(run_dir))
+                    grids = sorted(result.folder.glob("grid*.npz"))
+                    exports[name].update({p.name: p.read_bytes() for p in grids})
+                    tasks[name] = _ray_tasks(root)
+                    stage_s[name][TRAINING].append(_training_seconds(root))
         multi = (
             bench_multi(args, cfg, preset.schema, frames, Path(tmp), engines)
             if args.second is not None

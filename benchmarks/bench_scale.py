@@ -67,7 +67,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import RESULTS_DIR, print_table, write_results
 
+from leap_core.pipeline import SequenceSpec
 from leap_core.pipeline.stages import STAGES
+from leap_core.run_layout import RunLayout
 
 REPO = Path(__file__).resolve().parents[1]
 """The child processes run this checkout's code (its folder first on PYTHONPATH)."""
@@ -248,18 +250,25 @@ def count_frames(seq: Path) -> int:
 
 
 # ------------------------------------------------------------------------------------------ one length
-def stage_times(run_dir: Path, watch: Watch) -> dict[str, Any]:
-    """Per stage of the run's ``stages.json``: status, wall seconds, the child tree's CPU seconds between
-    the stage's start and finish, the sampled peak RSS in that span and the record's voxels."""
-    state = json.loads((run_dir / "stages.json").read_text())
+def stage_times(seq_dir: Path, watch: Watch) -> dict[str, Any]:
+    """Per stage of the sequence's ``stages.json`` (``seq_dir``: its folder in the run): status, wall
+    seconds, the child tree's CPU seconds between the stage's start and finish, the sampled peak RSS in
+    that span and the record's voxels. The 3D-CN's rounds run between the sequence's ``smooth`` and
+    ``3dcn`` stages (that stage only links their grids), so in this run of one sequence the ``3dcn`` span
+    starts when ``smooth`` finished."""
+    state = json.loads((seq_dir / "stages.json").read_text())
     stages: dict[str, Any] = {}
     for name in STAGES:
         rec = state.get(name, {})
         started, finished = rec.get("started"), rec.get("finished")
+        wall = float(rec.get("seconds", 0.0))
+        if name == "3dcn" and rec.get("status") == "done" and finished is not None:
+            started = state.get("smooth", {}).get("finished", started)
+            wall = float(finished) - float(started)
         timed = started is not None and finished is not None
         stages[name] = {
             "status": rec.get("status"),
-            "wall_s": float(rec.get("seconds", 0.0)),
+            "wall_s": wall,
             "cpu_s": watch.cpu_at(finished) - watch.cpu_at(started) if timed else math.nan,
             "peak_rss_b": watch.peak_between(started, finished) if timed else 0,
             "voxels": rec.get("voxels"),
@@ -267,11 +276,11 @@ def stage_times(run_dir: Path, watch: Watch) -> dict[str, Any]:
     return stages
 
 
-def invalidate_3d_stages(run_dir: Path) -> None:
-    """Make the next ``leap run`` on ``run_dir`` compute its 3D stages again: their ``stages.json``
-    fingerprints no longer match, so the runner clears their outputs and reruns them (the 2D labels and
-    observations stay)."""
-    path = run_dir / "stages.json"
+def invalidate_3d_stages(seq_dir: Path) -> None:
+    """Make the next ``leap run`` compute the 3D stages of the sequence whose folder is ``seq_dir`` again:
+    their ``stages.json`` fingerprints no longer match, so the runner clears their outputs and reruns them
+    (the 2D labels and observations stay)."""
+    path = seq_dir / "stages.json"
     state = json.loads(path.read_text())
     for name in STAGES[STAGES.index(FIRST_3D_STAGE) :]:
         if isinstance(state.get(name), dict):
@@ -317,13 +326,14 @@ def measure_length(
     print(f"{frames} frames: leap run ...", flush=True)
     cold = run_child(cmd, work / f"run-{frames}.log", interval)
     watch: Watch = cold.pop("watch")
-    state = json.loads((run_dir / "stages.json").read_text())
-    runs = [stage_times(run_dir, watch)]
+    seq_dir = RunLayout(run_dir).sequence(SequenceSpec.of(seq).name).folder
+    state = json.loads((seq_dir / "stages.json").read_text())
+    runs = [stage_times(seq_dir, watch)]
     for k in range(1, repeat):
         print(f"{frames} frames: 3D stages again ({k}/{repeat - 1}) ...", flush=True)
-        invalidate_3d_stages(run_dir)
+        invalidate_3d_stages(seq_dir)
         again = run_child(cmd, work / f"run-{frames}-3d{k}.log", interval)
-        runs.append(stage_times(run_dir, again.pop("watch")))
+        runs.append(stage_times(seq_dir, again.pop("watch")))
     stages = least_of(runs) if repeat > 1 else runs[0]
     voxels = max(int(stages[s]["voxels"] or 0) for s in STAGES)
     firsts = [state[s]["started"] for s in STAGES if "started" in state.get(s, {})]
@@ -341,7 +351,7 @@ def measure_length(
         "samples": [list(s) for s in watch.samples],
     }
     if cached:
-        cov = run_dir / "export-coverage.json"
+        cov = seq_dir / "export-coverage.json"
         print(f"{frames} frames: cached reruns ...", flush=True)
         cov.unlink(missing_ok=True)
         recount = run_child(cmd, work / f"run-{frames}-recount.log", interval)

@@ -56,7 +56,7 @@ from common import print_table, write_results
 
 from leap_core.config import PipelineConfig, config_to_dict
 from leap_core.datasets.kitti import KittiSequence, write_scan
-from leap_core.pipeline import run_pipeline
+from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
 
@@ -142,17 +142,19 @@ def padded_copy(src: Path, dst: Path, points: int, seed: int = 0) -> Path:
     return dst
 
 
-def prepare(seq_dir: Path, run_dir: Path, cache: Path) -> None:
-    """Run the current pipeline up to ``smooth`` (untimed): the timed stages' inputs. The 2D labels go
-    through a shared cache, so the padded copy (same images) reuses the demo's."""
-    run_pipeline(
-        seq_dir,
+def prepare(seq_dir: Path, root: Path, cache: Path) -> Path:
+    """Run the current pipeline up to ``smooth`` (untimed) in the run folder ``root``: the timed stages'
+    inputs, in the sequence's folder of the run (returned). The 2D labels go through a shared cache, so the
+    padded copy (same images) reuses the demo's."""
+    run = run_pipeline(
+        [SequenceSpec.of(seq_dir)],
         builtin_schema("semantickitti"),
         PipelineConfig(),
-        run_dir,
+        root,
         until="smooth",
         runtime=Runtime(cache_dir=cache),
     )
+    return run.only().folder
 
 
 def digest_outputs(run_dir: Path) -> dict[str, str]:
@@ -261,13 +263,11 @@ def main() -> None:
     if args.threads != 1:
         versions.append(current_version(args.threads))
 
-    demo_run = work / "prepared_demo"
-    if not (demo_run / "grid_smooth.npz").is_file():
-        prepare(seq_dir, demo_run, work / "cache2d")
+    # The stage functions of both versions run on a copy of the prepared sequence folder (the baseline's
+    # run folder held its one sequence's files at the top: the same files).
+    demo_run = prepare(seq_dir, work / "prepared_demo", work / "cache2d")
     padded = padded_copy(seq_dir, work / "padded" / "sequences" / "00", args.points)
-    padded_run = work / "prepared_padded"
-    if not (padded_run / "grid_smooth.npz").is_file():
-        prepare(padded, padded_run, work / "cache2d")
+    padded_run = prepare(padded, work / "prepared_padded", work / "cache2d")
 
     results = {
         "demo": bench_sequence("demo", seq_dir, demo_run, versions, args.repeat, work),

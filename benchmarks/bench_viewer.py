@@ -396,11 +396,11 @@ def bench_apply_export(
     from app.core.config import Settings
     from app.core.db import init_db, open_db
     from app.jobs.apply import CorrectionApplier
+    from app.rows import RunParams, RunSequence
     from leap_core.datasets.kitti import KittiSequence, write_scan
     from leap_core.export import export_labels
     from leap_core.io_utils import atomic_save_npz
     from leap_core.pipeline.apply import RunCorrections, frame_keys, point_labels
-    from leap_core.run_layout import RunLayout
     from leap_core.schema import builtin_schema
 
     schema = builtin_schema()
@@ -428,27 +428,22 @@ def bench_apply_export(
     # A finished run of a project in a real database, its folder holding the map and the export.
     settings = Settings(work_dir=work / "studio", data_roots=[work])
     init_db(settings.database)
-    params = {
-        "dataset": str(seq_root),
-        "dataset_kind": "folder",
-        "schema": schema.to_dict(),
-        "pipeline": {},
-        "frames": None,
-        "stages": [],
-    }
+    params = RunParams(
+        sequences=(RunSequence("00", seq_root),), dataset_kind="folder", schema=schema.to_dict(), pipeline={}
+    )
     with open_db(settings.database) as db:
         project = crud.create_project(
             db,
             name="bench",
             dataset_kind="folder",
-            dataset_path=str(seq_root),
-            schema=params["schema"],
+            sequences=[("00", str(seq_root))],
+            schema=params.schema,
             pipeline={},
         )
-        pid = int(project["id"])
+        pid = project.id
         run = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.work_dir / "runs")
-        crud.update_run(db, run["id"], status="done", finished_at="bench")
-    lay = RunLayout(Path(run["run_dir"]))
+        crud.update_run(db, run.id, status="done", finished_at="bench")
+    lay = run.sequence_layout("00")  # the map and the export of the run's one sequence
     lay.export_dir.mkdir(parents=True, exist_ok=True)
     lay.points(seq.frame_ids[0]).parent.mkdir(parents=True, exist_ok=True)
     grid.save(lay.grid_smooth)

@@ -7,8 +7,9 @@ voxel row; where they are right but the voxel row is not, it can. This script ma
 finished run (the same function, settings and view counts as the round) and counts, per ground-truth class,
 how many of its points were selected and which class they were taught as.
 
-Usage (from the repository root; the run needs ``grid_smooth.npz`` and ``observations/``, i.e. any finished
-run, with or without the 3D-CN)::
+Usage (from the repository root; the run folder, ``leap run``'s ``--out``, needs the sequence's
+``grid_smooth.npz`` and ``observations/`` in ``sequences/<name>/``, i.e. any finished run, with or without the
+3D-CN)::
 
     .venv/bin/python benchmarks/selection_purity.py DATA/demo/sequences/00 RUNS/street/base \\
         --project-file projects/semantickitti.yaml
@@ -32,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from leap_core.consistency.selection import view_counts  # noqa: E402  after the sys.path line
 from leap_core.consistency.stage import iter_reliable_targets  # noqa: E402
+from leap_core.pipeline import SequenceSpec  # noqa: E402
 from leap_core.pipeline.executor import RunJob, worker_context  # noqa: E402
 from leap_core.pipeline.stages import observed_keys  # noqa: E402
 from leap_core.presets import load_preset  # noqa: E402
@@ -84,7 +86,7 @@ def purity_lines(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", help="The run's sequence folder (with labels/).")
-    ap.add_argument("run", help="A finished run folder (grid_smooth.npz, observations/).")
+    ap.add_argument("run", help="A finished run folder of the sequence (`leap run --out`).")
     ap.add_argument(
         "--project-file",
         default=str(ROOT / "projects" / "semantickitti.yaml"),
@@ -93,7 +95,9 @@ def main() -> None:
     args = ap.parse_args()
     preset = load_preset(Path(args.project_file))
     schema, cfg = preset.schema, preset.pipeline
-    layout = RunLayout(Path(args.run))
+    if not RunLayout.is_run(Path(args.run)):
+        sys.exit(f"{args.run}: not a run folder (no {RunLayout.SPEC}); give the --out of `leap run`")
+    layout = RunLayout(Path(args.run)).sequence(SequenceSpec.of(args.sequence).name)
     if not layout.grid_smooth.is_file():
         sys.exit(f"{layout.grid_smooth}: missing (the run has not finished its smoothing stage)")
     seq = layout.open_sequence(Path(args.sequence))
@@ -103,7 +107,7 @@ def main() -> None:
     views = None
     if cn.rank_by_views:  # the round's tie-break, from the run's own observations
         ctx = worker_context(
-            RunJob(Path(args.sequence), schema, cfg, layout.run_dir, Runtime()),
+            RunJob(Path(args.sequence), schema, cfg, layout.folder, Runtime()),
             range(seq.frame_numbers[0], seq.frame_numbers[-1] + 1),
         )
         views = view_counts(keys for _, keys in observed_keys(ctx))

@@ -73,7 +73,7 @@ from leap_core.eval_view import PAPER_VIEW  # noqa: E402  after the sys.path lin
 from leap_core.io_utils import atomic_write_bytes  # noqa: E402
 from leap_core.metrics import metrics_from_confusion  # noqa: E402
 from leap_core.pipeline.evaluation import COMMON, PAPER, paper_metrics, read_metrics_json  # noqa: E402
-from leap_core.run_layout import RunLayout  # noqa: E402
+from leap_core.run_layout import RunLayout, SequenceLayout, former_layout  # noqa: E402
 from leap_core.synth.generator import VERSION_FILE  # noqa: E402
 
 ROWS = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
@@ -490,16 +490,24 @@ def seed_project(dom: Domain, seed: int, sets: Mapping[str, Any], folder: Path, 
 
 
 def link_base(base: Path, run: Path) -> None:
-    """Hard-link the base run's stage outputs into a new seed run folder (copies across file systems);
-    the run's own files (log, lock, params, corrections) and hidden temporaries are not carried."""
-    if RunLayout(run).state.is_file():
+    """Hard-link the stage outputs of the base run's sequence folders into a new seed run folder (copies
+    across file systems); the run's own files (its log, lock, parameters, zips, metrics; a sequence's
+    corrections and export counts) and hidden temporaries are not carried. A seed run folder that exists
+    is left as it is (it resumes; ``leap run`` moves one an earlier version wrote)."""
+    if RunLayout(run).sequences_dir.is_dir() or former_layout(run) is not None:
         return
-    if not RunLayout(base).state.is_file():
-        sys.exit(f"table1: {base} has no {RunLayout.STATE}: the base run did not finish")
+    layout = RunLayout(base)
+    names = layout.names()
+    if not names or not layout.sequence(names[0]).state.is_file():
+        sys.exit(
+            f"table1: {base} has no sequence with its {SequenceLayout.STATE}: the base run did not finish"
+        )
 
-    def ignore(folder: str, names: list[str]) -> set[str]:
-        top = Path(folder) == base
-        return {n for n in names if n.startswith(".") or (top and n in RunLayout.RUN_OWN_FILES)}
+    def ignore(folder: str, entries: list[str]) -> set[str]:
+        in_sequence = Path(folder).parent == layout.sequences_dir
+        return {
+            n for n in entries if n.startswith(".") or (in_sequence and n in SequenceLayout.RUN_OWN_FILES)
+        }
 
     def link(src: str, dst: str) -> None:
         try:
@@ -509,7 +517,7 @@ def link_base(base: Path, run: Path) -> None:
 
     tmp = run.with_name(run.name + ".linking")
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(base, tmp, ignore=ignore, copy_function=link)
+    shutil.copytree(layout.sequences_dir, tmp / RunLayout.SEQUENCES, ignore=ignore, copy_function=link)
     tmp.rename(run)
 
 
@@ -585,8 +593,16 @@ def measure(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list
     return rows
 
 
+def sequence_metrics(run: Path) -> dict[str, Any] | None:
+    """The ``metrics.json`` of the run's (one) sequence as written; None when it has none."""
+    layout = RunLayout(run)
+    names = layout.names()
+    data = read_metrics_json(layout.sequence(names[0]).folder) if names else None
+    return None if data is None else data.to_dict()
+
+
 def read_row(run: Path, seed: int, dom: Domain) -> SeedRow:
-    data = read_metrics_json(run)
+    data = sequence_metrics(run)
     if data is None:
         sys.exit(f"table1: {run} has no metrics.json")
     return seed_row(seed, data, dom.protocol)
@@ -597,7 +613,7 @@ def cached(dom: Domain, seeds: Sequence[int], args: argparse.Namespace) -> list[
     rows = []
     for s in seeds:
         run = Path(args.runs) / dom.key / f"seed{s}{args.tag}"
-        data = read_metrics_json(run) if RunLayout(run).metrics.is_file() else None
+        data = sequence_metrics(run)
         if data is not None:
             row = seed_row(s, data, dom.protocol)
             if row.x1 is not None:

@@ -47,7 +47,7 @@ from common import print_table, write_results
 
 from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.io_utils import atomic_write_json
-from leap_core.pipeline import run_pipeline
+from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.schema import builtin_schema
 
 SETTINGS: dict[str, tuple[str, list[Any]]] = {
@@ -154,8 +154,10 @@ def sweep_seed(  # noqa: PLR0917  one worker's whole job, picklable arguments
             if not scans.is_dir() or len(list(scans.glob("*.bin"))) != frames:
                 generate_sequence(root, SynthConfig(frames=frames, seed=seed), "00", force=True, workers=1)
             t = time.perf_counter()
-            res = run_pipeline(seq_dir, schema, cfg, run_dir, until="evaluate")
-            cache[key] = _figures(res.metrics or {}) | {"seconds": time.perf_counter() - t}
+            res = run_pipeline([SequenceSpec.of(seq_dir)], schema, cfg, run_dir, until="evaluate").only()
+            if res.metrics is None:
+                raise SystemExit(f"{seq_dir}: no metrics (the sequence needs ground-truth labels)")
+            cache[key] = _figures(res.metrics.to_dict()) | {"seconds": time.perf_counter() - t}
             own = json.loads(cache_path.read_text()) if cache_path.is_file() else {}
             atomic_write_json(cache_path, own | {key: cache[key]})
         figs = cache.get(key)

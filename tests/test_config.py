@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import build_tiny_sequence
 
 from leap_core import labelers
 from leap_core.config import FORM_FIELDS, RETIRED_FIELDS, PipelineConfig, config_from_dict, config_to_dict
@@ -167,9 +168,10 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
         load_preset(bad)
     assert err.value.field == ("pipeline", "grounded_sam", "models_dir")
     assert str(err.value).startswith(f"{bad}: pipeline.grounded_sam.models_dir: no longer a pipeline setting")
-    args = ["run", str(tmp_path), "--out", str(tmp_path / "r"), "--project-file", str(bad)]
+    seq = build_tiny_sequence(tmp_path, n_frames=1).root  # a sequence: the project file is what is wrong
+    args = ["run", str(seq), "--out", str(tmp_path / "r"), "--project-file", str(bad)]
     res = CliRunner().invoke(cli, args)
-    assert res.exit_code == 2
+    assert res.exit_code == 2 and not (tmp_path / "r").exists()
     last = res.output.strip().splitlines()[-1]
     assert last.startswith(f"error: --project-file {bad}: pipeline.grounded_sam.models_dir: no longer")
     assert "--models DIR" in last
@@ -268,12 +270,14 @@ def test_cli_errors_name_the_option(tmp_path: Path) -> None:
 
     from app.cli import cli
 
+    seq = build_tiny_sequence(tmp_path, n_frames=1).root  # a sequence: the option is what is wrong
     for args, message in [
         (["--schema", "nope"], "error: --schema nope: no such file"),
         (["--device", "gpu"], "error: --device must be 'auto', 'cpu' or 'cuda', got 'gpu'"),
     ]:
-        res = CliRunner().invoke(cli, ["run", str(tmp_path), "--out", str(tmp_path / "r"), *args])
+        res = CliRunner().invoke(cli, ["run", str(seq), "--out", str(tmp_path / "r"), *args])
         assert res.exit_code == 2 and res.output.strip().splitlines()[-1].startswith(message), res.output
+    assert not (tmp_path / "r").exists()
 
 
 # ------------------------------------------------------------------------------------------ no torch

@@ -418,8 +418,8 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     # have): a checkpoint trained then is reused now. A field added without an entry in ADDED_FIELDS
     # changes it and fails here.
     assert fp(TINY) == "2294347dae8d1c79d40245986403d4c8e1ed76f7ff315bf0bf17ef940f6bb912"
-    # A joint round's form (frames per named sequence) is pinned too: changing it retrains every saved
-    # multi-sequence checkpoint.
+    # The form of a round over several sequences (frames per named sequence) is pinned too: changing it
+    # retrains every saved checkpoint of a run of several sequences.
     joint = training_fingerprint(TINY, 3, [("a", range(2))], [np.zeros(2, np.int16), np.ones(2, np.int16)])
     assert joint == "b66c14e93b1ee4ad502e141e0cf97bd81ff92e12c9f6d3766997be2e613c372d"
     assert fp(replace(TINY, backbone=replace(TINY_BACKBONE, position_inputs=False))) != fp(TINY)

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import folder, label
 from test_pipeline import make_street
 
 from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.fusion import voxel_keys, world_points
-from leap_core.pipeline import run_pipeline
 from leap_core.pipeline.context import load_observation
 from leap_core.pipeline.coverage import (
     ExportCoverage,
@@ -21,8 +21,9 @@ from leap_core.pipeline.coverage import (
     coverage_key,
     export_coverage,
     read_coverage_file,
+    summed_coverage,
 )
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.schema import builtin_schema
 from leap_core.types import UNLABELED
 
@@ -35,13 +36,15 @@ def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _run(street: Path, run_dir: Path, cfg: PipelineConfig | None = None) -> None:
-    run_pipeline(street, builtin_schema("semantickitti"), cfg or PipelineConfig(), run_dir)
+    """Label ``street`` in the run whose folder of it is ``run_dir`` (``<run>/sequences/00``)."""
+    assert run_dir == folder(run_dir.parent.parent)
+    label(street, builtin_schema("semantickitti"), cfg or PipelineConfig(), run_dir.parent.parent)
 
 
 def reference_counts(run_dir: Path, dataset: Path) -> ExportCoverage:
     """The module docstring's definition, point by point: seen voxels over every frame first, then each
     unlabeled point's reason."""
-    lay = RunLayout(run_dir)
+    lay = SequenceLayout(run_dir)
     seq = KittiSequence(dataset)
     keys = [voxel_keys(world_points(f.points, f.pose), VOXEL) for f in seq]
     seen: set[int] = set()
@@ -53,9 +56,9 @@ def reference_counts(run_dir: Path, dataset: Path) -> ExportCoverage:
     for i, fid in enumerate(seq.frame_ids):
         with np.load(lay.points(fid)) as z:
             lab = z["label"]
-        for key, label in zip(keys[i].tolist(), lab.tolist(), strict=True):
+        for key, cls in zip(keys[i].tolist(), lab.tolist(), strict=True):
             points += 1
-            if label != UNLABELED:
+            if cls != UNLABELED:
                 labeled += 1
             elif key in seen:
                 no_mask += 1
@@ -68,7 +71,7 @@ def reference_counts(run_dir: Path, dataset: Path) -> ExportCoverage:
 
 @pytest.mark.parametrize("merge_at", [1, 3, 1 << 19])
 def test_export_coverage_matches_the_definition(street: Path, tmp_path: Path, merge_at: int) -> None:
-    run_dir = tmp_path / "run"
+    run_dir = folder(tmp_path / "run")
     _run(street, run_dir)
     ref = reference_counts(run_dir, street)
     assert ref.outside_view > 0 and ref.no_mask > 0 and ref.labeled > 0  # every branch is exercised
@@ -76,12 +79,12 @@ def test_export_coverage_matches_the_definition(street: Path, tmp_path: Path, me
 
 
 def _cached_file(run_dir: Path) -> dict:
-    return json.loads(RunLayout(run_dir).export_coverage.read_text())
+    return json.loads(SequenceLayout(run_dir).export_coverage.read_text())
 
 
 def test_cached_counts_equal_a_fresh_count_as_the_export_changes(street: Path, tmp_path: Path) -> None:
-    run_dir = tmp_path / "run"
-    lay = RunLayout(run_dir)
+    run_dir = folder(tmp_path / "run")
+    lay = SequenceLayout(run_dir)
     _run(street, run_dir)
     fresh = export_coverage(run_dir, street, None, VOXEL)
     assert cached_export_coverage(run_dir, street, None, VOXEL) == fresh
@@ -119,8 +122,8 @@ def test_cached_counts_equal_a_fresh_count_as_the_export_changes(street: Path, t
 
 
 def test_no_cache_while_the_export_is_not_done(street: Path, tmp_path: Path) -> None:
-    run_dir = tmp_path / "run"
-    lay = RunLayout(run_dir)
+    run_dir = folder(tmp_path / "run")
+    lay = SequenceLayout(run_dir)
     _run(street, run_dir)
     state = json.loads(lay.state.read_text())
     state["export"]["status"] = "running"
@@ -131,8 +134,8 @@ def test_no_cache_while_the_export_is_not_done(street: Path, tmp_path: Path) -> 
 
 
 def test_a_file_of_the_app_without_a_key_is_counted_again(street: Path, tmp_path: Path) -> None:
-    run_dir = tmp_path / "run"
-    lay = RunLayout(run_dir)
+    run_dir = folder(tmp_path / "run")
+    lay = SequenceLayout(run_dir)
     _run(street, run_dir)
     fresh = export_coverage(run_dir, street, None, VOXEL)
     data = fresh.to_dict() | {"labeled": 1, "raw_counts": {"0": 1}}
@@ -154,16 +157,28 @@ def test_cli_rerun_prints_the_counts_from_the_run_folder(street: Path, tmp_path:
         return next(line for line in res.output.splitlines() if "points labeled;" in line)
 
     first = run()
-    fresh = export_coverage(out, street, None, VOXEL)
+    seq_dir = folder(out)
+    fresh = export_coverage(seq_dir, street, None, VOXEL)
     assert first.startswith(
         f"{fresh.labeled} of {fresh.points} points labeled; {fresh.unlabeled} unlabeled: "
         f"{fresh.outside_view} outside"
     )
-    data = _cached_file(out)
-    assert data["key"] == coverage_key(out, street, None, VOXEL)
+    data = _cached_file(seq_dir)
+    assert data["key"] == coverage_key(seq_dir, street, None, VOXEL)
     data["no_mask"] += 1000
-    RunLayout(out).export_coverage.write_text(json.dumps(data))
+    SequenceLayout(seq_dir).export_coverage.write_text(json.dumps(data))
     assert run().endswith(f"{fresh.no_mask + 1000} in view but no mask")
+
+
+def test_a_runs_counts_are_its_sequences_counts_summed() -> None:
+    """An export of several sequences counts each field over all of them, raw ids merged in order."""
+    a = ExportCoverage(3, 100, 60, 30, 10, {0: 40, 40: 50, 10: 10})
+    b = ExportCoverage(2, 50, 45, 1, 4, {0: 5, 48: 45})
+    both = summed_coverage([a, b])
+    assert both == ExportCoverage(5, 150, 105, 31, 14, {0: 45, 10: 10, 40: 50, 48: 45})
+    assert list(both.raw_counts) == [0, 10, 40, 48] and both.unlabeled == 45
+    assert summed_coverage([a]) == a
+    assert summed_coverage([]) == ExportCoverage(0, 0, 0, 0, 0, {})
 
 
 @pytest.mark.parametrize("merge_at", [1, 5, 1000])

@@ -12,24 +12,30 @@ import pytest
 import yaml
 
 from leap_core.datasets.kitti import read_label
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, LeapError
 from leap_core.export import (
     ExportConflict,
+    ExportedSequence,
+    check_export_targets,
     export_labels,
     export_target_problem,
+    export_targets,
     label_map,
     label_map_yaml,
     labels_to_raw,
     load_label_map,
     raw_id_counts,
     read_confidence,
+    run_export,
     summary_yaml,
     write_export_folder,
     write_export_zip,
+    write_run_export,
     zip_member,
 )
 from leap_core.pipeline.coverage import unlabeled_reasons
 from leap_core.presets import builtin_preset
+from leap_core.run_layout import RunLayout, write_run_spec
 from leap_core.schema import ClassDef, Schema
 
 EXPORT_IDS = np.array([10, 40, 48], np.uint32)  # car, road, sidewalk
@@ -110,7 +116,10 @@ def test_label_map_yaml_round_trip() -> None:
     assert raw["content"][0] == pytest.approx(0.25) and raw["learning_ignore"][0] is True
     assert list(raw)[:3] == ["name", "labels", "color_map"] and raw["name"] == "demo run 3"
     assert "split" not in raw
-    assert label_map(schema, sequence="08")["split"] == {"train": [], "valid": [8], "test": []}
+    assert label_map(schema, sequences=["08"])["split"] == {"train": [], "valid": [8], "test": []}
+    # semantic-kitti-api's split lists sequence numbers: names that are not numbers stay out of it.
+    assert label_map(schema, sequences=["08", "town", "10"])["split"]["valid"] == [8, 10]
+    assert "split" not in label_map(schema, sequences=["town"])
 
 
 def test_label_map_export_id_wins_over_another_class_gt_id() -> None:
@@ -163,6 +172,13 @@ def test_export_target_problem(tmp_path) -> None:
     run.mkdir(parents=True)
     (run / "stages.json").write_text("{}")
     assert "run folder" in (export_target_problem(run / "export") or "")
+    # A run folder (its run.json) and anything inside it: its own folders, its sequences' folders.
+    root = RunLayout(tmp_path / "runs" / "r2")
+    root.sequence("00").folder.mkdir(parents=True)
+    write_run_spec(root, [("00", seq, None)])
+    for inside in (root.root, root.root / "exports", root.cn_dir, root.sequence("00").folder / "export"):
+        assert f"inside the pipeline run folder {root.root}" in (export_target_problem(inside) or ""), inside
+    assert export_target_problem(tmp_path / "runs" / "elsewhere") is None
     # A folder merely named labels, outside any sequence, is fine.
     assert export_target_problem(tmp_path / "my" / "labels") is None
 
@@ -237,21 +253,24 @@ def test_summary_yaml_holds_every_part_in_order() -> None:
     common = {
         "project": {"name": "démo", "id": 1},
         "run": {"id": 7},
-        "dataset": Path("/data/seq/08"),
         "schema": schema,
         "pipeline": {"voxel_size": 0.1},
         "counts": counts,
         "version": "1.2.3",
         "written_at": "2026-11-27T00:00:00Z",
     }
-    text = summary_yaml(frames=range(2, 5), with_confidence=True, **common)
+    sequences = [
+        ExportedSequence("08", Path("/runs/r7/sequences/08/export"), Path("/data/seq/08"), range(2, 5)),
+        ExportedSequence("town", Path("/runs/r7/sequences/town/export")),
+    ]
+    text = summary_yaml(sequences=sequences, with_confidence=True, **common)
     assert text.startswith("# LeAP Studio export summary (README, 'Exports').\n")
     assert "démo" in text and "röad" in text  # allow_unicode: names stay readable, not \xe9 escapes
     data = yaml.safe_load(text)
     assert list(data) == [
         "project",
         "run",
-        "dataset",
+        "sequences",
         "files",
         "counts",
         "settings",
@@ -261,10 +280,13 @@ def test_summary_yaml_holds_every_part_in_order() -> None:
     assert data == {
         "project": {"name": "démo", "id": 1},
         "run": {"id": 7},
-        "dataset": {"path": "/data/seq/08", "sequence": "08", "frames": [2, 5]},
+        "sequences": [
+            {"name": "08", "dataset": "/data/seq/08", "frames": [2, 5]},
+            {"name": "town", "dataset": None, "frames": "all"},
+        ],
         "files": {
-            "labels": "sequences/08/predictions/<frame>.label (uint32: raw id, instance 0 above)",
-            "confidences": "sequences/08/confidences/<frame>.conf (float32 per point)",
+            "labels": "sequences/<name>/predictions/<frame>.label (uint32: raw id, instance 0 above)",
+            "confidences": "sequences/<name>/confidences/<frame>.conf (float32 per point)",
             "label_map": "label-map.yaml",
         },
         "counts": {
@@ -280,8 +302,9 @@ def test_summary_yaml_holds_every_part_in_order() -> None:
         "written_at": "2026-11-27T00:00:00Z",
     }
     assert list(data["counts"]["per_class"]) == ["car", "röad", "pole"]
-    bare = yaml.safe_load(summary_yaml(frames=None, with_confidence=False, **common))
-    assert bare["dataset"]["frames"] == "all" and bare["files"]["confidences"] is None
+    bare = yaml.safe_load(summary_yaml(sequences=sequences[1:], with_confidence=False, **common))
+    assert bare["sequences"] == [{"name": "town", "dataset": None, "frames": "all"}]
+    assert bare["files"]["confidences"] is None
 
 
 def test_label_map_defaults_and_the_tables_for_unlabeled() -> None:
@@ -376,9 +399,14 @@ def test_write_export_zip_holds_the_frame_files_and_the_extras(tmp_path) -> None
     ):
         (export_dir / name).write_bytes(data)
     (export_dir / "sub.label").mkdir()  # a folder named like a frame file is not one
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "000007.label").write_bytes(b"T7" * 10)
+    (other / "000007.conf").write_bytes(b"D7" * 10)
+    sequences = [ExportedSequence("08", export_dir), ExportedSequence("town", other)]
     extra = {"label-map.yaml": "labels: {}\n", "summary.yaml": "a: 1\n"}
     out = tmp_path / "labels.zip"
-    assert write_export_zip(out, export_dir, "08", extra, include_confidence=True) == 4
+    assert write_export_zip(out, sequences, extra, include_confidence=True) == 6
     with zipfile.ZipFile(out) as zf:
         assert sorted(zf.namelist()) == [
             "label-map.yaml",
@@ -386,21 +414,84 @@ def test_write_export_zip_holds_the_frame_files_and_the_extras(tmp_path) -> None
             "sequences/08/confidences/000001.conf",
             "sequences/08/predictions/000000.label",
             "sequences/08/predictions/000001.label",
+            "sequences/town/confidences/000007.conf",
+            "sequences/town/predictions/000007.label",
             "summary.yaml",
         ]
         assert zf.read("sequences/08/predictions/000001.label") == b"L1" * 400
+        assert zf.read("sequences/town/confidences/000007.conf") == b"D7" * 10
         assert zf.read("summary.yaml") == b"a: 1\n"
         assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}
     before = out.read_bytes()
     with pytest.raises(ExportConflict, match="already exists"):
-        write_export_zip(out, export_dir, "08", extra, include_confidence=False)
+        write_export_zip(out, sequences, extra, include_confidence=False)
     assert out.read_bytes() == before
-    assert write_export_zip(out, export_dir, "08", {}, include_confidence=False, overwrite=True) == 2
+    assert write_export_zip(out, sequences[:1], {}, include_confidence=False, overwrite=True) == 2
     with zipfile.ZipFile(out) as zf:
         assert sorted(zf.namelist()) == [
             "sequences/08/predictions/000000.label",
             "sequences/08/predictions/000001.label",
         ]
+
+
+def test_a_run_export_goes_to_each_sequences_folders_checked_before_any_is_written(tmp_path) -> None:
+    """export_targets: ``DIR/sequences/<name>/predictions`` (and ``confidences``); write_run_export copies
+    each sequence's files there, after check_export_targets found every folder free: one folder in the way
+    and nothing is written, not even the other sequences' folders."""
+    runs = tmp_path / "run" / "sequences"
+    a = ExportedSequence("00", runs / "00" / "export")
+    b = ExportedSequence("01", runs / "01" / "export")
+    _frame_files(a.export_dir, **{"000000.label": b"a0", "000000.conf": b"c0", "000001.label": b"a1"})
+    _frame_files(b.export_dir, **{"000005.label": b"b5", "000005.conf": b"d5"})
+    target = tmp_path / "dataset"
+    targets = export_targets(target, ["00", "01"], with_conf=True)
+    assert targets == {
+        n: [target / "sequences" / n / "predictions", target / "sequences" / n / "confidences"]
+        for n in ("00", "01")
+    }
+    assert export_targets(target, ["01"]) == {"01": [target / "sequences" / "01" / "predictions"]}
+    (target / "sequences" / "01" / "confidences").mkdir(parents=True)
+    (target / "sequences" / "01" / "confidences" / "000005.conf").write_bytes(b"mine")
+    with pytest.raises(ExportConflict, match=r"01/confidences already holds 1 files"):
+        write_run_export(targets, [a, b], with_conf=True)
+    assert not (target / "sequences" / "00").exists()  # refused before anything was written
+    assert write_run_export(targets, [a, b], with_conf=True, overwrite=True) == {"00": 3, "01": 2}
+    assert sorted(p.name for p in (target / "sequences" / "00" / "predictions").iterdir()) == [
+        "000000.label",
+        "000001.label",
+    ]
+    assert (target / "sequences" / "01" / "confidences" / "000005.conf").read_bytes() == b"d5"
+    # A target inside a dataset's own folders is refused whatever overwrite says.
+    (tmp_path / "data" / "sequences" / "00" / "velodyne").mkdir(parents=True)
+    bad = export_targets(tmp_path / "data" / "sequences" / "00" / "labels", ["00"])
+    with pytest.raises(LeapError, match="input data or ground truth"):
+        check_export_targets(bad, overwrite=True)
+    with pytest.raises(LeapError, match="input data or ground truth"):
+        write_run_export(bad, [a], overwrite=True)
+    assert not (tmp_path / "data" / "sequences" / "00" / "labels").exists()
+
+
+def test_run_export_reads_the_run_record(tmp_path) -> None:
+    """run_export: the run's sequences in its record's order (or the names asked for), each with its export
+    folder, dataset and frames; a folder that is not a run, or a sequence without .label files, refused."""
+    root = RunLayout(tmp_path / "run")
+    for name in ("a", "b"):
+        _frame_files(root.sequence(name).export_dir, **{"000002.label": b"l", "000002.conf": b"c"})
+    write_run_spec(root, [("b", tmp_path / "data" / "b", range(2, 5)), ("a", None, None)])
+    got = run_export(root.root)
+    assert [(s.name, s.export_dir, s.dataset, s.frames) for s in got] == [
+        ("b", root.sequence("b").export_dir, (tmp_path / "data" / "b").resolve(), range(2, 5)),
+        ("a", root.sequence("a").export_dir, None, None),
+    ]
+    assert [s.name for s in run_export(root.root, ["a"])] == ["a"]
+    assert [p.name for p in got[0].files(True)] == ["000002.conf", "000002.label"]
+    assert [p.name for p in got[0].files(False)] == ["000002.label"]
+    with pytest.raises(LeapError, match="not a run folder"):
+        run_export(root.sequence("a").folder)
+    (root.sequence("a").export_dir / "000002.label").unlink()
+    with pytest.raises(LeapError, match=r"sequence a has no exported \.label files"):
+        run_export(root.root)
+    assert [s.name for s in run_export(root.root, ["b"])] == ["b"]
 
 
 def _frame_files(folder, **files):

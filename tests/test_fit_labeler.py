@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import label
 
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.labelers.simulated import SimulatedLabelerConfig
-from leap_core.pipeline import run_pipeline
 from leap_core.schema import builtin_schema
 from tests.test_pipeline import make_street
 
@@ -27,13 +27,13 @@ def test_point_confusion_is_the_runs_camera_point_row(tmp_path: Path) -> None:
     street = make_street(tmp_path / "sequences" / "00", n_frames=3)
     schema = builtin_schema("semantickitti")
     cfg = dataclasses.replace(PipelineConfig(), simulated=SimulatedLabelerConfig.from_preset("paper"))
-    metrics = run_pipeline(street, schema, cfg, tmp_path / "run", until="evaluate").metrics
+    metrics = label(street, schema, cfg, tmp_path / "run", until="evaluate").metrics
     assert metrics is not None
     conf = fit_labeler.point_confusion(KittiSequence(street), schema, cfg)
     assert conf.sum() > 0
-    np.testing.assert_array_equal(conf, np.asarray(metrics["camera"]["point"]["confusion"]))
+    np.testing.assert_array_equal(conf, metrics.table("camera")["point"].confusion_matrix)
     row = fit_labeler.paper_row(conf, schema)
-    paper = metrics["paper"]["point"]["iou"]
+    paper = metrics.table("paper")["point"].iou
     compared = [name for name, v in row.items() if not math.isnan(v)]
     assert compared
     for name in compared:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import folder, label
 from typer.testing import CliRunner
 
 from app.cli import _frame_range, cli
@@ -18,7 +19,6 @@ from leap_core.consistency.stage import reliable_targets
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import PosesMissingError
 from leap_core.labelers.simulated import SimulatedLabeler
-from leap_core.pipeline import run_pipeline
 from leap_core.presets import builtin_preset
 from leap_core.smoothing import SmoothedGrid
 from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence
@@ -47,11 +47,11 @@ def copy_frames(src: Path, dst: Path, frames: range) -> Path:
     for name in ("calib.txt", "poses.txt", "times.txt"):
         dst.mkdir(parents=True, exist_ok=True)
         shutil.copy2(src / name, dst / name)
-    for folder in PER_FRAME:
-        (dst / folder).mkdir(parents=True)
-        for path in (src / folder).iterdir():
+    for sub in PER_FRAME:
+        (dst / sub).mkdir(parents=True)
+        for path in (src / sub).iterdir():
             if path.stem.isdigit() and int(path.stem) in frames:
-                shutil.copy2(path, dst / folder / path.name)
+                shutil.copy2(path, dst / sub / path.name)
     return dst
 
 
@@ -60,8 +60,9 @@ def subset(whole: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return copy_frames(whole, tmp_path_factory.mktemp("copy") / "sequences" / "00", SUBSET)
 
 
-def _exports(run_dir: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted((run_dir / "export").iterdir())}
+def _exports(out: Path) -> dict[str, bytes]:
+    """The export files of the run folder ``out``'s sequence 00."""
+    return {p.name: p.read_bytes() for p in sorted((folder(out) / "export").iterdir())}
 
 
 def test_copy_of_frames_10_19_labels_like_those_frames_of_the_whole_sequence(
@@ -78,11 +79,13 @@ def test_copy_of_frames_10_19_labels_like_those_frames_of_the_whole_sequence(
     assert sorted(exported) == sorted(f"{i:06d}{s}" for i in SUBSET for s in (".label", ".conf"))
     assert exported == _exports(tmp_path / "whole")
     # The fused grids agree too: same world frame (pose line 0), same voxels.
-    assert (tmp_path / "copy" / "grid.npz").read_bytes() == (tmp_path / "whole" / "grid.npz").read_bytes()
+    assert (folder(tmp_path / "copy") / "grid.npz").read_bytes() == (
+        folder(tmp_path / "whole") / "grid.npz"
+    ).read_bytes()
 
     # The 3D-CN's per-scan selection of frame 13 does not depend on where 13 sits in the run's frames.
     seq = KittiSequence(whole)
-    smoothed = SmoothedGrid.load(tmp_path / "whole" / "grid_smooth.npz").to_voxel_grid(30.0)
+    smoothed = SmoothedGrid.load(folder(tmp_path / "whole") / "grid_smooth.npz").to_voxel_grid(30.0)
     cfg = ConsistencyConfig(selection_scope="scan", share=0.2)
     c = builtin_preset("semantickitti").schema.num_classes
     late = reliable_targets(seq, smoothed, c, cfg, 0.2, seq.select(range(12, 20)), None)
@@ -110,7 +113,7 @@ def test_frames_option_takes_frame_numbers_on_a_copy(subset: Path, tmp_path: Pat
     res = runner.invoke(cli, ["run", str(subset), "--out", str(tmp_path / "r"), "--frames", "3:5"])
     assert res.exit_code == 2
     assert "frames 3:5 out of range: the sequence has frames 10..19" in res.output.strip().splitlines()[-1]
-    run_pipeline(
+    label(
         subset,
         builtin_preset("semantickitti").schema,
         PipelineConfig(),
@@ -118,7 +121,10 @@ def test_frames_option_takes_frame_numbers_on_a_copy(subset: Path, tmp_path: Pat
         frames=range(12, 14),
         until="labels2d",
     )
-    assert sorted(p.name for p in (tmp_path / "r" / "labels2d").iterdir()) == ["000012.npz", "000013.npz"]
+    assert sorted(p.name for p in (folder(tmp_path / "r") / "labels2d").iterdir()) == [
+        "000012.npz",
+        "000013.npz",
+    ]
     assert _frame_range("12:", str(subset)) == range(12, 20)  # "A:" runs to the last scan's number
     assert _frame_range("12", str(subset)) == range(12, 13)
 
@@ -133,9 +139,9 @@ def no_poses(subset: Path, tmp_path: Path) -> Path:
 
 def test_stages_without_poses_run_without_them(no_poses: Path, tmp_path: Path) -> None:
     schema = builtin_preset("semantickitti").schema
-    result = run_pipeline(no_poses, schema, PipelineConfig(), tmp_path / "run", until="project")
+    result = label(no_poses, schema, PipelineConfig(), tmp_path / "run", until="project")
     assert result.ran == ["labels2d", "project"]
-    assert len(list((tmp_path / "run" / "observations").glob("*.npz"))) == len(SUBSET)
+    assert len(list((folder(tmp_path / "run") / "observations").glob("*.npz"))) == len(SUBSET)
 
 
 def test_a_run_without_poses_stops_before_any_work(no_poses: Path, tmp_path: Path) -> None:
@@ -145,7 +151,7 @@ def test_a_run_without_poses_stops_before_any_work(no_poses: Path, tmp_path: Pat
         match=r"poses\.txt: no poses: the 3D stages \(fuse, label_points, "
         r"evaluate\) need one pose per scan",
     ) as exc:
-        run_pipeline(no_poses, schema, PipelineConfig(), tmp_path / "run")
+        label(no_poses, schema, PipelineConfig(), tmp_path / "run")
     assert exc.value.path == str(no_poses / "poses.txt")
     assert not (tmp_path / "run").exists()  # refused before the run folder, the labeler or any stage
     res = CliRunner().invoke(cli, ["run", str(no_poses), "--out", str(tmp_path / "cli")])
@@ -171,7 +177,7 @@ def test_copy_labels_like_the_whole_sequence_with_the_3dcn_on(
         }
     )
     schema = builtin_preset("semantickitti").schema
-    a = run_pipeline(whole, schema, cfg, tmp_path / "whole", frames=SUBSET)
-    b = run_pipeline(subset, schema, cfg, tmp_path / "copy")
+    a = label(whole, schema, cfg, tmp_path / "whole", frames=SUBSET)
+    b = label(subset, schema, cfg, tmp_path / "copy")
     assert a.stages["3dcn"].status == b.stages["3dcn"].status == "done"
     assert _exports(tmp_path / "copy") == _exports(tmp_path / "whole")

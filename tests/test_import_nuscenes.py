@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from pyquaternion import Quaternion
+from runhelpers import folder
 from typer.testing import CliRunner
 
 from app.cli import cli
@@ -641,5 +642,5 @@ def test_leap_run_on_an_imported_scene_with_the_nuscenes_preset(demo: KittiSeque
     assert "2D labels: grounded-sam" in res.output and "3 .label files" in res.output
     assert "driveable_surface" in res.output  # the result table: the imported lidarseg labels were evaluated
     for fid in ("000000", "000001", "000002"):
-        exported = read_label(tmp_path / "run" / "export" / f"{fid}.label")
+        exported = read_label(folder(tmp_path / "run", seq.name) / "export" / f"{fid}.label")
         assert exported.shape == (len(src.points[int(fid)]),) and set(np.unique(exported)) <= set(range(17))

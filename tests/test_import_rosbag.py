@@ -12,6 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from runhelpers import folder
 from scipy.spatial.transform import Rotation
 from test_synth import SMALL as SYNTH_SMALL
 
@@ -763,7 +764,7 @@ def test_imported_bags_label_like_the_source_frames(
             ],
         )
         assert res.exit_code == 0, res.output
-        return [read_label(out / "export" / f"{i:06d}.label") for i in range(len(demo))]
+        return [read_label(folder(out, seq.name) / "export" / f"{i:06d}.label") for i in range(len(demo))]
 
     source = run(demo.root, tmp_path / "run-source")
     labeled = np.concatenate(source) > 0

@@ -9,27 +9,28 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import label
 
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.metrics import confusion_matrix, evaluate, merge_confusion, metrics_from_confusion
-from leap_core.pipeline import run_pipeline
 from leap_core.pipeline.context import load_observation
 from leap_core.pipeline.evaluation import (
     COMMON,
     PAPER,
     PROTOCOLS,
-    add_paper_protocol,
     common_points,
     format_result_tables,
     load_metrics,
     metrics_tables,
     overall_metrics,
     result_tables,
+    with_paper_protocol,
 )
-from leap_core.run_layout import RunLayout
+from leap_core.pipeline.metrics_file import SequenceMetrics
+from leap_core.run_layout import SequenceLayout
 from leap_core.schema import Schema, builtin_schema
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -150,8 +151,9 @@ def test_paper_protocol_by_hand_on_the_19_classes() -> None:
     conf[ix("vegetation"), ix("trunk")] = 5  # vegetation TP
     conf[ix("bicyclist"), ix("person")] = 2  # bicycle FN, person FP
     conf[ix("bicycle"), ix("bicyclist")] = 2  # bicycle TP
-    data = _metrics_of(conf, names, schema.categories())
-    add_paper_protocol(data)
+    plain = SequenceMetrics.from_dict(_metrics_of(conf, names, schema.categories()))
+    data = with_paper_protocol(plain).to_dict()
+    assert PAPER not in plain.tables  # a new object: the one given is not changed
     assert set(data["protocols"]) == {*PROTOCOLS, PAPER} and "protocol_notes" not in data
     assert data["paper_view"]["merge"] == EXPECTED_MERGE
     iou = data[PAPER]["point"]["iou"]
@@ -169,25 +171,26 @@ def test_paper_protocol_by_hand_on_the_19_classes() -> None:
     # The tables read back and print it.
     tables = load_metrics_from(data)
     assert tables[PAPER]["point"].class_names == tuple(EXPECTED_MERGE)
-    assert "manmade" in format_result_tables(data)
+    assert "manmade" in format_result_tables(SequenceMetrics.from_dict(data))
 
 
 def load_metrics_from(data: dict) -> dict:
-    from leap_core.pipeline.evaluation import metrics_tables
-
-    return metrics_tables(json.loads(json.dumps(data)))
+    """The tables of ``data`` written to JSON and read back."""
+    return metrics_tables(SequenceMetrics.from_dict(json.loads(json.dumps(data))))
 
 
 def test_paper_protocol_absent_with_a_note_for_another_schema() -> None:
     schema = builtin_schema("agri_uav")
     c = schema.num_classes
     conf = np.arange(c * (c + 1)).reshape(c, c + 1)
-    data = _metrics_of(conf, schema.names, schema.categories())
-    add_paper_protocol(data)
+    data = with_paper_protocol(
+        SequenceMetrics.from_dict(_metrics_of(conf, schema.names, schema.categories()))
+    )
+    data = data.to_dict()
     assert PAPER not in data and "paper_view" not in data and set(data["protocols"]) == set(PROTOCOLS)
     assert data["protocol_notes"][PAPER].startswith("not computed: the schema lacks")
     assert set(load_metrics_from(data)) == {"camera", "all"}
-    assert "paper protocol not computed" in format_result_tables(data)
+    assert "paper protocol not computed" in format_result_tables(SequenceMetrics.from_dict(data))
 
 
 # ------------------------------------------------------------------------------------------ pipeline
@@ -198,14 +201,15 @@ def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def run(street: Path, tmp_path_factory: pytest.TempPathFactory):
-    run_dir = tmp_path_factory.mktemp("runs") / "paper"
-    return run_dir, run_pipeline(street, builtin_schema("semantickitti"), PipelineConfig(), run_dir)
+    """(the street's folder in the run, the result)."""
+    result = label(street, builtin_schema("semantickitti"), PipelineConfig(), tmp_path_factory.mktemp("runs"))
+    return result.folder, result
 
 
 def test_pipeline_paper_protocol_is_the_merged_camera_protocol(run, street: Path) -> None:
     run_dir, result = run
-    m = json.loads(RunLayout(run_dir).metrics.read_text())
-    assert m == result.metrics
+    m = json.loads(SequenceLayout(run_dir).metrics.read_text())
+    assert m == result.metrics.to_dict()
     assert set(m["protocols"]) == {*PROTOCOLS, PAPER} and "protocol_notes" not in m
     assert m["paper_view"]["class_names"] == list(EXPECTED_MERGE)
     schema = builtin_schema("semantickitti")
@@ -220,7 +224,7 @@ def test_pipeline_paper_protocol_is_the_merged_camera_protocol(run, street: Path
         assert m[PAPER][row]["confusion"] == merged.tolist()
     # Point by point, independently of the stored matrices: in-view points, both label sets mapped through
     # the merge, unlabeled predictions ignored.
-    seq, lay = KittiSequence(street), RunLayout(run_dir)
+    seq, lay = KittiSequence(street), SequenceLayout(run_dir)
     lut = np.append(mapping, UNLABELED)
     gts, preds = [], []
     for i, fid in enumerate(seq.frame_ids):
@@ -233,13 +237,14 @@ def test_pipeline_paper_protocol_is_the_merged_camera_protocol(run, street: Path
     assert (pred == UNLABELED).any() and (gt != UNLABELED).any()  # the unlabeled rule is exercised
     expected = evaluate(gt, pred, list(EXPECTED_MERGE), PAPER_VIEW.categories, ignore_unlabeled_pred=True)
     assert m[PAPER]["point"] == expected.to_dict()
-    # The printed tables show it; a multi-sequence sum keeps it.
+    # The printed tables show it; the sum over a run's sequences keeps it.
     text = result_tables(run_dir)
     assert text is not None and "the paper's Table 1" in text and "manmade" in text
     tables = load_metrics(run_dir)
     assert tables is not None and tables[PAPER]["voxel"].miou == pytest.approx(m[PAPER]["voxel"]["miou"])
-    both = overall_metrics({"a": m, "b": m})
-    assert both is not None
+    summed = overall_metrics({"a": result.metrics, "b": result.metrics})
+    assert summed is not None
+    both = summed.to_dict()
     assert both[PAPER]["voxel"]["confusion"] == (2 * np.asarray(m[PAPER]["voxel"]["confusion"])).tolist()
 
 
@@ -254,11 +259,11 @@ def test_common_points_by_hand() -> None:
 
 
 def test_common_protocol_scores_every_row_on_the_points_all_rows_label(run, street: Path) -> None:
-    run_dir, _ = run
-    m = json.loads(RunLayout(run_dir).metrics.read_text())
+    run_dir, result = run
+    m = json.loads(SequenceLayout(run_dir).metrics.read_text())
     assert m["rows"] == ["point", "voxel"]
     schema = builtin_schema("semantickitti")
-    seq, lay = KittiSequence(street), RunLayout(run_dir)
+    seq, lay = KittiSequence(street), SequenceLayout(run_dir)
     voxel = SmoothedGrid.load(lay.grid_smooth)
     gts, points, voxels, in_views = [], [], [], []
     for i, fid in enumerate(seq.frame_ids):
@@ -287,24 +292,26 @@ def test_common_protocol_scores_every_row_on_the_points_all_rows_label(run, stre
     # A file written before the protocol existed still reads, and a sum with it leaves the protocol out.
     old = {k: v for k, v in m.items() if k != COMMON}
     old["protocols"] = {k: v for k, v in m["protocols"].items() if k != COMMON}
-    assert COMMON not in metrics_tables(old) and "camera" in metrics_tables(old)
-    both = overall_metrics({"a": m, "b": old})
-    assert both is not None and COMMON not in both and COMMON not in both["protocols"]
+    older = SequenceMetrics.from_dict(old)
+    assert COMMON not in metrics_tables(older) and "camera" in metrics_tables(older)
+    both = overall_metrics({"a": result.metrics, "b": older})
+    assert both is not None and COMMON not in both.tables and COMMON not in both.protocols
+    twice = overall_metrics({"a": result.metrics, "b": result.metrics})
+    assert twice is not None
     assert (
-        overall_metrics({"a": m, "b": m})[COMMON]["voxel"]["confusion"]
-        == (2 * np.asarray(m[COMMON]["voxel"]["confusion"])).tolist()
+        twice.table(COMMON)["voxel"].confusion == (2 * np.asarray(m[COMMON]["voxel"]["confusion"])).tolist()
     )
 
 
 def test_pipeline_without_the_classes_has_no_paper_protocol(street: Path, tmp_path: Path) -> None:
     full = builtin_schema("semantickitti")
     schema = Schema("no-trunk", tuple(c for c in full.classes if c.name != "trunk"))
-    run_dir = tmp_path / "run"
-    m = run_pipeline(street, schema, PipelineConfig(), run_dir, until="evaluate").metrics
-    assert m is not None
+    result = label(street, schema, PipelineConfig(), tmp_path / "run", until="evaluate")
+    assert result.metrics is not None
+    m = result.metrics.to_dict()
     assert set(m["protocols"]) == set(PROTOCOLS) and PAPER not in m and "paper_view" not in m
     assert "lacks trunk" in m["protocol_notes"][PAPER]
-    assert "paper protocol not computed" in (result_tables(run_dir) or "")
+    assert "paper protocol not computed" in (result_tables(result.folder) or "")
 
 
 def test_the_merge_is_part_of_the_evaluate_fingerprint(

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import folder
 from typer.testing import CliRunner
 
 from app.cli import cli
@@ -82,8 +83,9 @@ def test_leap_run_without_poses_names_both_ways_out(no_poses: Path, tmp_path: Pa
     res = CliRunner().invoke(cli, ["run", str(no_poses), "--out", str(tmp_path / "run"), *RUN])
     assert res.exit_code == 2
     last = res.output.strip().splitlines()[-1]
-    assert "poses.txt: no poses" in last
-    assert f"run `leap poses {no_poses}` or pass --estimate-poses" in last
+    assert last.startswith(f"error: {no_poses / 'poses.txt'}: no poses")  # names the sequence
+    assert "run `leap poses` on that sequence or pass --estimate-poses" in last
+    assert not (tmp_path / "run").exists()
 
 
 def test_leap_run_estimate_poses_labels_like_true_poses_and_leaves_the_dataset_alone(
@@ -93,9 +95,10 @@ def test_leap_run_estimate_poses_labels_like_true_poses_and_leaves_the_dataset_a
     out = tmp_path / "est"
     res = CliRunner().invoke(cli, ["run", str(no_poses), "--out", str(out), "--estimate-poses", *RUN])
     assert res.exit_code == 0, res.output
-    assert "poses: estimated in" in res.output and str(out / "poses" / "poses.txt") in res.output
+    poses = folder(out, no_poses.name) / "poses"  # the sequence's own, in its folder of the run
+    assert "poses: estimated in" in res.output and str(poses / "poses.txt") in res.output
     assert _files(no_poses) == dataset_before  # nothing written into the dataset
-    assert json.loads((out / "poses" / POSES_NOTE).read_text())["method"] == "kiss-icp"
+    assert json.loads((poses / POSES_NOTE).read_text())["method"] == "kiss-icp"
 
     # A second run in the same folder reuses the estimate (same scans, same settings).
     again = CliRunner().invoke(cli, ["run", str(no_poses), "--out", str(out), "--estimate-poses", *RUN])
@@ -104,7 +107,7 @@ def test_leap_run_estimate_poses_labels_like_true_poses_and_leaves_the_dataset_a
     ref = tmp_path / "true"
     res = CliRunner().invoke(cli, ["run", str(drive), "--out", str(ref), *RUN])
     assert res.exit_code == 0, res.output
-    est_m, true_m = read_metrics_json(out), read_metrics_json(ref)
+    est_m, true_m = read_metrics_json(folder(out, no_poses.name)), read_metrics_json(folder(ref, drive.name))
     assert est_m is not None and true_m is not None
-    est_miou, true_miou = est_m["camera"]["voxel"]["miou"], true_m["camera"]["voxel"]["miou"]
+    est_miou, true_miou = est_m.miou("camera", "voxel"), true_m.miou("camera", "voxel")
     assert abs(est_miou - true_miou) < 0.02, (est_miou, true_miou)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from runhelpers import folder, label
 from typer.testing import CliRunner
 
 from leap_core.config import PipelineConfig
@@ -31,6 +32,7 @@ from leap_core.pipeline.executor import (
     worker_context,
 )
 from leap_core.presets import builtin_preset
+from leap_core.run_layout import RunLayout
 from leap_core.runtime import Runtime
 from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence
 
@@ -58,14 +60,14 @@ def test_a_local_run_never_imports_ray(tmp_path: Path) -> None:
     code = (
         "import sys\n"
         "from pathlib import Path\n"
-        "from leap_core.pipeline import run_pipeline\n"
+        "from leap_core.pipeline import SequenceSpec, run_pipeline\n"
         "from leap_core.presets import builtin_preset\n"
         "from leap_core.synth import CameraConfig, LidarConfig, SynthConfig, generate_sequence\n"
         f"seq = generate_sequence(Path({str(tmp_path)!r}), SynthConfig(frames=2, seed=0, "
         "lidar=LidarConfig(beams=8, azimuth_step_deg=2.0), camera=CameraConfig().scaled(0.25))).path\n"
         "p = builtin_preset('demo')\n"
-        f"run_pipeline(seq, p.schema, p.pipeline, Path({str(tmp_path / 'run')!r}))\n"
-        "assert (Path(" + repr(str(tmp_path / "run")) + ") / 'export').is_dir()\n"
+        f"r = run_pipeline([SequenceSpec.of(seq)], p.schema, p.pipeline, Path({str(tmp_path / 'run')!r}))\n"
+        "assert r.only().export_dir.is_dir() and r.only().folder.parent.parent == r.root\n"
         "print('ray' in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
@@ -124,10 +126,9 @@ def preset_config() -> tuple[Any, PipelineConfig]:
 
 @pytest.fixture(scope="module")
 def local_run(dataset: Path, preset_config, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The local run's sequence folder."""
     schema, cfg = preset_config
-    run_dir = tmp_path_factory.mktemp("local") / "run"
-    run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES)
-    return run_dir
+    return label(dataset, schema, cfg, tmp_path_factory.mktemp("local") / "run", frames=FRAMES).folder
 
 
 OUTPUT_FOLDERS = ("labels2d", "observations", "points", "export")
@@ -135,10 +136,9 @@ OUTPUT_FILES = ("grid.npz", "grid_smooth.npz", "metrics.json")
 
 
 def _outputs(run_dir: Path) -> dict[str, bytes]:
+    """The outputs of a run's sequence folder ``run_dir``."""
     out = {
-        f"{folder}/{p.name}": p.read_bytes()
-        for folder in OUTPUT_FOLDERS
-        for p in sorted((run_dir / folder).iterdir())
+        f"{sub}/{p.name}": p.read_bytes() for sub in OUTPUT_FOLDERS for p in sorted((run_dir / sub).iterdir())
     }
     out.update({name: (run_dir / name).read_bytes() for name in OUTPUT_FILES})
     return out
@@ -158,7 +158,7 @@ def test_ray_run_writes_the_local_bytes(
 ) -> None:
     schema, cfg = preset_config
     calls: list[tuple[str, int, int]] = []
-    result = run_pipeline(
+    result = label(
         dataset,
         schema,
         cfg,
@@ -167,8 +167,8 @@ def test_ray_run_writes_the_local_bytes(
         runtime=RAY,
         progress=lambda *a: calls.append(a),
     )
-    _same_outputs(tmp_path / "run", local_run)
-    records = stage_status(tmp_path / "run")
+    _same_outputs(result.folder, local_run)
+    records = stage_status(result.folder)
     for stage in ("labels2d", "project", "label_points", "export"):
         assert records[stage]["ray_tasks"] >= 2, stage  # really cut into sub-ranges on Ray
         assert records[stage]["frames_computed"] == len(FRAMES)
@@ -195,7 +195,7 @@ def test_cancel_on_ray_then_resume_gives_the_local_bytes(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     schema, cfg = preset_config
-    run_dir = tmp_path / "run"
+    run_dir = folder(tmp_path / "run", dataset.name)
 
     def no_ray_cancel(*_args: Any, **_kwargs: Any) -> None:
         raise AssertionError("ray.cancel races with a finishing task and can abort the driver (StopSignal)")
@@ -207,7 +207,7 @@ def test_cancel_on_ray_then_resume_gives_the_local_bytes(
             raise Cancelled()
 
     with pytest.raises(Cancelled):
-        run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY, progress=cancel_mid_project)
+        label(dataset, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY, progress=cancel_mid_project)
     assert stage_status(run_dir)["project"]["status"] == "cancelled"
     kept = len(list((run_dir / "observations").glob("*.npz")))
     # Ray tasks already running when the cancel comes finish their frames, and on a busy machine that can
@@ -215,7 +215,7 @@ def test_cancel_on_ray_then_resume_gives_the_local_bytes(
     # A partial stage is resumed deterministically by test_pipeline's local cancel test.
     assert 0 < kept <= len(FRAMES)
     assert not list(run_dir.glob(".ray-stop-*"))  # every task returned, so the stop signal was cleared
-    result = run_pipeline(dataset, schema, cfg, run_dir, frames=FRAMES, runtime=RAY)
+    result = label(dataset, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY)
     assert not result.stages["labels2d"].ran
     computed = result.stages["project"].frames_computed
     assert len(FRAMES) - kept <= computed < len(FRAMES)  # resumed: the kept frames were not recomputed
@@ -272,10 +272,12 @@ def test_cli_run_with_ray(ray_instance, dataset: Path, tmp_path: Path) -> None:
             ],
         )
         assert res.exit_code == 0, res.output
-        outs[name] = {p.name: p.read_bytes() for p in sorted((tmp_path / name / "export").iterdir())}
+        seq_dir = folder(tmp_path / name, dataset.name)
+        outs[name] = {p.name: p.read_bytes() for p in sorted((seq_dir / "export").iterdir())}
     assert len(outs["ray"]) == 8
     assert outs["ray"] == outs["local"]
-    assert "ray_tasks" in json.loads((tmp_path / "ray" / "stages.json").read_text())["project"]
+    state = json.loads((folder(tmp_path / "ray", dataset.name) / "stages.json").read_text())
+    assert "ray_tasks" in state["project"]
 
 
 @pytest.mark.slow
@@ -292,29 +294,27 @@ def test_app_setting_sends_the_worker_run_to_ray(
     from app.jobs.manager import JobManager
     from app.jobs.messages import decode_to_worker
     from app.jobs.worker import execute
+    from app.rows import RunParams, RunRow, RunSequence
     from leap_core.config import config_to_dict
 
     schema, cfg = preset_config
     monkeypatch.setenv("LEAP_RAY_ADDRESS", "auto")
     settings = Settings(work_dir=tmp_path / "work")
     assert settings.ray_address == "auto"
-    run = {
-        "id": 1,
-        "project_id": 1,
-        "run_dir": str(tmp_path / "run"),
-        "params": {
-            "dataset": str(dataset),
-            "schema": schema.to_dict(),
-            "pipeline": config_to_dict(cfg),
-            "frames": [FRAMES.start, FRAMES.stop],
-        },
-    }
+    params = RunParams(
+        sequences=(RunSequence(dataset.name, dataset, (FRAMES.start, FRAMES.stop)),),
+        dataset_kind="folder",
+        schema=schema.to_dict(),
+        pipeline=config_to_dict(cfg),
+    )
+    run = RunRow(1, 1, 1, "queued", params, tmp_path / "run", created_at="now")
     spec = decode_to_worker(JobManager(settings)._spec(run).to_line())
     assert spec.ray_address == "auto"
     outcome = execute(spec, emit=lambda _message: None, should_cancel=lambda: False)
     assert outcome.status == "done", outcome
-    assert stage_status(tmp_path / "run")["export"]["ray_tasks"] >= 2
-    _same_outputs(tmp_path / "run", local_run)
+    seq_dir = folder(tmp_path / "run", dataset.name)
+    assert stage_status(seq_dir)["export"]["ray_tasks"] >= 2
+    _same_outputs(seq_dir, local_run)
 
 
 @pytest.mark.slow
@@ -378,10 +378,10 @@ def test_an_error_in_a_task_is_the_stage_error(
     for name in ("velodyne", "image_2", "calib.txt", "poses.txt", "times.txt"):
         (copy / name).symlink_to(dataset / name)
     with pytest.raises(DatasetError) as err:
-        run_pipeline(copy, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY)
+        label(copy, schema, cfg, tmp_path / "run", frames=FRAMES, runtime=RAY)
     assert type(err.value) is DatasetError
     assert "gt2d" in str(err.value) and "\n" not in str(err.value)
-    assert stage_status(tmp_path / "run")["labels2d"]["status"] == "failed"
+    assert stage_status(folder(tmp_path / "run", "seq"))["labels2d"]["status"] == "failed"
 
 
 @pytest.mark.slow
@@ -407,10 +407,10 @@ def test_model_2d_labels_ask_for_a_gpu_per_task(ray_instance, tmp_path: Path) ->
         ("gpu", Runtime(models_dir=models, ray_address="auto")),
         ("cpu", Runtime(models_dir=models, device="cpu", ray_address="auto")),
     ):
-        run_pipeline(root, schema, cfg, tmp_path / name, runtime=runtime, until="labels2d")
-        runs[name] = {p.name: p.read_bytes() for p in sorted((tmp_path / name / "labels2d").iterdir())}
-    assert stage_status(tmp_path / "gpu")["labels2d"]["ray_gpus_per_task"] == 1
-    assert "ray_gpus_per_task" not in stage_status(tmp_path / "cpu")["labels2d"]
+        seq_dir = label(root, schema, cfg, tmp_path / name, runtime=runtime, until="labels2d").folder
+        runs[name] = {p.name: p.read_bytes() for p in sorted((seq_dir / "labels2d").iterdir())}
+    assert stage_status(folder(tmp_path / "gpu"))["labels2d"]["ray_gpus_per_task"] == 1
+    assert "ray_gpus_per_task" not in stage_status(folder(tmp_path / "cpu"))["labels2d"]
     assert len(runs["gpu"]) == 3
     assert runs["gpu"] == runs["local"] == runs["cpu"]
 
@@ -439,10 +439,15 @@ def _with_3dcn(cfg: PipelineConfig, **over: Any) -> PipelineConfig:
 
 @pytest.fixture(scope="module")
 def local_3dcn_run(dataset: Path, preset_config, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The local run's sequence folder (its run folder holds the 3D-CN's checkpoints)."""
     schema, cfg = preset_config
-    run_dir = tmp_path_factory.mktemp("local3dcn") / "run"
-    run_pipeline(dataset, schema, _with_3dcn(cfg), run_dir, frames=FRAMES)
-    return run_dir
+    out = tmp_path_factory.mktemp("local3dcn") / "run"
+    return label(dataset, schema, _with_3dcn(cfg), out, frames=FRAMES).folder
+
+
+def _joint_record(run_dir: Path) -> dict[str, Any]:
+    """The 3D-CN rounds' record of the run whose sequence folder is ``run_dir``."""
+    return dict(json.loads(RunLayout(run_dir.parent.parent).joint_state.read_text()))
 
 
 @pytest.mark.slow
@@ -450,26 +455,29 @@ def test_3dcn_inference_runs_as_ray_tasks_with_the_local_bytes(
     ray_instance, dataset: Path, preset_config, local_3dcn_run: Path, tmp_path: Path
 ) -> None:
     schema, cfg = preset_config
-    run_dir = tmp_path / "run"
     calls: list[tuple[str, int, int]] = []
-    run_pipeline(
+    run_dir = label(
         dataset,
         schema,
         _with_3dcn(cfg),
-        run_dir,
+        tmp_path / "run",
         frames=FRAMES,
         runtime=RAY,
         progress=lambda *a: calls.append(a),
-    )
+    ).folder
     ray_out, local_out = _outputs(run_dir), _outputs(local_3dcn_run)
     for name in CN_FILES:
         ray_out[name], local_out[name] = (run_dir / name).read_bytes(), (local_3dcn_run / name).read_bytes()
     assert sorted(ray_out) == sorted(local_out)
     assert [name for name in local_out if ray_out[name] != local_out[name]] == []
     # Counted as results come back from Ray: a silent fallback to the driver's own loop leaves it out.
-    record = stage_status(run_dir)["3dcn"]
+    # The rounds' own record, in the run's 3dcn/ (the sequence's 3dcn stage only links their grids).
+    record = _joint_record(run_dir)
     assert record["ray_tasks"] >= 2 * 2  # two rounds, each cut into several tasks
     assert "ray_gpus_per_task" not in record  # consistency.device "cpu"
+    assert "ray_tasks" not in stage_status(run_dir)["3dcn"] and "ray_tasks" not in _joint_record(
+        local_3dcn_run
+    )
     assert ("3dcn", 2000, 2000) in calls
 
 
@@ -480,9 +488,9 @@ def test_3dcn_inference_asks_for_a_gpu_per_task(
     """consistency.device "auto" on a cluster with a (logical) GPU: each inference task asks for one (and
     computes on the CPU here, torch seeing no CUDA device): the local bytes."""
     schema, cfg = preset_config
-    run_dir = tmp_path / "run"
-    run_pipeline(dataset, schema, _with_3dcn(cfg, device="auto"), run_dir, frames=FRAMES, runtime=RAY)
-    record = stage_status(run_dir)["3dcn"]
+    out = tmp_path / "run"
+    run_dir = label(dataset, schema, _with_3dcn(cfg, device="auto"), out, frames=FRAMES, runtime=RAY).folder
+    record = _joint_record(run_dir)
     assert record["ray_gpus_per_task"] == 1 and record["ray_tasks"] >= 2
     for name in CN_FILES:
         assert (run_dir / name).read_bytes() == (local_3dcn_run / name).read_bytes(), name
@@ -500,7 +508,7 @@ def test_ray_predictions_come_back_in_frame_order(
 
     _, cfg = preset_config
     cfg = _with_3dcn(cfg)
-    checkpoint = local_3dcn_run / "3dcn" / "3dcn_iter1.pt"
+    checkpoint = RunLayout(local_3dcn_run.parent.parent).cn_dir / "3dcn_iter1.pt"
     seq = KittiSequence(dataset)
     frames = seq.select(FRAMES)
     monkeypatch.setattr(engine, "INFER_TASK_FRAMES", 1)
@@ -523,7 +531,7 @@ def _seq_span(run_dir: Path, stages: tuple[str, ...]) -> tuple[float, float]:
 
 @pytest.fixture(scope="module")
 def streets(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    """Two tiny ray-cast streets, ``00`` and ``01`` (as tests/test_multi_sequence.py)."""
+    """Two tiny ray-cast streets, ``00`` and ``01`` (as tests/test_runs.py)."""
     from test_pipeline import make_street
 
     base = tmp_path_factory.mktemp("streets")
@@ -550,27 +558,23 @@ def _multi_setup(streets: list[Path]) -> tuple[list[Any], Any, PipelineConfig]:
 
 @pytest.fixture(scope="module")
 def local_multi(streets: list[Path], tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, list[Any]]:
-    """The two streets' multi-sequence run with the 3D-CN, locally, and its progress reports."""
-    from leap_core.pipeline import run_sequences
-
+    """The two streets' run with the 3D-CN, locally, and its progress reports."""
     specs, schema, cfg = _multi_setup(streets)
     calls: list[Any] = []
-    return run_sequences(
+    return run_pipeline(
         specs, schema, cfg, tmp_path_factory.mktemp("multi") / "local", progress=lambda *a: calls.append(a)
     ), calls
 
 
 def _same_multi_outputs(root: Path, local_root: Path, names: list[str]) -> None:
-    from leap_core.run_layout import MultiRunLayout
-
     for name in names:
-        lay, ref = MultiRunLayout(root).sequence(name), MultiRunLayout(local_root).sequence(name)
-        for folder in ("labels2d", "observations", "points", "export"):
-            local_files = {p.name: p.read_bytes() for p in sorted(ref.folder(folder).iterdir())}
-            ray_files = {p.name: p.read_bytes() for p in sorted(lay.folder(folder).iterdir())}
-            assert ray_files == local_files, (name, folder)
+        lay, ref = RunLayout(root).sequence(name), RunLayout(local_root).sequence(name)
+        for sub in ("labels2d", "observations", "points", "export"):
+            local_files = {p.name: p.read_bytes() for p in sorted(ref.frame_folder(sub).iterdir())}
+            ray_files = {p.name: p.read_bytes() for p in sorted(lay.frame_folder(sub).iterdir())}
+            assert ray_files == local_files, (name, sub)
         for f in MULTI_FILES:
-            assert (lay.run_dir / f).read_bytes() == (ref.run_dir / f).read_bytes(), (name, f)
+            assert (lay.folder / f).read_bytes() == (ref.folder / f).read_bytes(), (name, f)
     assert (root / "metrics.json").read_bytes() == (local_root / "metrics.json").read_bytes()
 
 
@@ -578,29 +582,26 @@ def _same_multi_outputs(root: Path, local_root: Path, names: list[str]) -> None:
 def test_two_sequences_run_at_once_on_ray_with_the_local_bytes(
     ray_instance, streets: list[Path], local_multi, tmp_path: Path
 ) -> None:
-    """A two-sequence project with the 3D-CN: on Ray both sequences' stages before the joint 3D-CN run at
-    the same time (their stages.json spans overlap; locally they follow each other), the joint inference
-    runs as tasks, and every file is the local multi-sequence run's."""
-    from leap_core.pipeline import run_sequences
-    from leap_core.run_layout import MultiRunLayout
-
+    """A two-sequence project with the 3D-CN: on Ray both sequences' stages before the 3D-CN's rounds run
+    at the same time (their stages.json spans overlap; locally they follow each other), the rounds'
+    inference runs as tasks, and every file is the local run's."""
     specs, schema, cfg = _multi_setup(streets)
     first = ("labels2d", "project", "fuse", "smooth")
     local, local_calls = local_multi
     calls: list[Any] = []
-    result = run_sequences(
+    result = run_pipeline(
         specs, schema, cfg, tmp_path / "ray", runtime=RAY, progress=lambda *a: calls.append(a)
     )
     spans = {}
     for name, root in (("local", local.root), ("ray", result.root)):
-        spans[name] = [_seq_span(MultiRunLayout(root).sequence(s.name).run_dir, first) for s in specs]
+        spans[name] = [_seq_span(RunLayout(root).sequence(s.name).folder, first) for s in specs]
     (a0, a1), (b0, b1) = spans["local"]
     assert a1 <= b0  # locally one after the other
     (a0, a1), (b0, b1) = spans["ray"]
     assert a0 < b1 and b0 < a1  # on Ray at the same time
     _same_multi_outputs(result.root, local.root, [s.name for s in specs])
     assert result.metrics == local.metrics
-    joint_state = json.loads(MultiRunLayout(result.root).joint_state.read_text())
+    joint_state = json.loads(RunLayout(result.root).joint_state.read_text())
     assert joint_state["ray_tasks"] >= 2
     # Every stage of every sequence reported its end, however the reports interleaved.
     for reports in (local_calls, calls):
@@ -614,9 +615,6 @@ def test_sequences_at_once_cancel_together_and_resume(
 ) -> None:
     """A cancel in one sequence stops the other at its next report; each keeps its own stages.json, and
     the rerun resumes both (kept frames not recomputed) to the local bytes."""
-    from leap_core.pipeline import run_sequences
-    from leap_core.run_layout import MultiRunLayout
-
     specs, schema, cfg = _multi_setup(streets)
     out = tmp_path / "ray"
 
@@ -625,14 +623,14 @@ def test_sequences_at_once_cancel_together_and_resume(
             raise Cancelled()
 
     with pytest.raises(Cancelled):
-        run_sequences(specs, schema, cfg, out, runtime=RAY, progress=cancel_in_01)
-    layout = MultiRunLayout(out)
-    assert stage_status(layout.sequence("01").run_dir)["project"]["status"] == "cancelled"
-    kept = len(list(layout.sequence("01").folder("observations").glob("*.npz")))
+        run_pipeline(specs, schema, cfg, out, runtime=RAY, progress=cancel_in_01)
+    layout = RunLayout(out)
+    assert stage_status(layout.sequence("01").folder)["project"]["status"] == "cancelled"
+    kept = len(list(layout.sequence("01").frame_folder("observations").glob("*.npz")))
     assert 0 < kept < 4
-    assert not layout.joint_state.exists()  # stopped before the joint 3D-CN
-    result = run_sequences(specs, schema, cfg, out, runtime=RAY)
-    assert result.per_sequence["01"].stages["project"].frames_computed == 4 - kept
+    assert not layout.joint_state.exists()  # stopped before the 3D-CN's rounds
+    result = run_pipeline(specs, schema, cfg, out, runtime=RAY)
+    assert result.sequences["01"].stages["project"].frames_computed == 4 - kept
     _same_multi_outputs(out, local_multi[0].root, [s.name for s in specs])
 
 

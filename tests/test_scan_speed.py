@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import folder, label
 from test_pipeline import make_street
 from typer.testing import CliRunner
 
@@ -29,7 +30,7 @@ from leap_core.fusion import voxel_keys, world_points
 from leap_core.geometry import ROW_BLOCK, affine_points, row_blocks
 from leap_core.io_utils import read_npz
 from leap_core.labelers.base import SoftMasks
-from leap_core.pipeline import run_pipeline, stage_status
+from leap_core.pipeline import stage_status
 from leap_core.pipeline.apply import frame_keys
 from leap_core.pipeline.context import ordered_map
 from leap_core.projection import (
@@ -309,24 +310,23 @@ def runs(street: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[int, tu
     schema = builtin_schema("semantickitti")
     out = {}
     for threads in (1, 4):
-        run_dir = tmp_path_factory.mktemp("runs") / f"t{threads}"
         calls: list[tuple[str, int, int]] = []
-        run_pipeline(
+        result = label(
             street,
             schema,
             PipelineConfig(),
-            run_dir,
+            tmp_path_factory.mktemp("runs") / f"t{threads}",
             runtime=Runtime(frame_threads=threads),
             progress=lambda *a, calls=calls: calls.append(a),
         )
-        out[threads] = (run_dir, calls)
+        out[threads] = (result.folder, calls)
     return out
 
 
 def _files(run_dir: Path) -> dict[str, bytes]:
     names = ["grid.npz", "grid_smooth.npz", "metrics.json"]  # metrics: evaluate reads frames on threads
-    for folder in ("observations", "points", "export"):
-        names += [f"{folder}/{p.name}" for p in sorted((run_dir / folder).iterdir())]
+    for sub in ("observations", "points", "export"):
+        names += [f"{sub}/{p.name}" for p in sorted((run_dir / sub).iterdir())]
     return {n: (run_dir / n).read_bytes() for n in names}
 
 
@@ -381,7 +381,7 @@ def test_cancelled_threaded_stage_stops_and_resumes(runs, street: Path, tmp_path
     """Cancelled from progress in a threaded stage: no frame starts after it, the stage is recorded
     cancelled, and the resumed run writes the uninterrupted run's files."""
     schema = builtin_schema("semantickitti")
-    run_dir = tmp_path / "cancelled"
+    run_dir = folder(tmp_path / "cancelled")
     runtime = Runtime(frame_threads=2)
 
     def cancel(stage: str, done: int, total: int) -> None:
@@ -389,13 +389,13 @@ def test_cancelled_threaded_stage_stops_and_resumes(runs, street: Path, tmp_path
             raise Cancelled()
 
     with pytest.raises(Cancelled):
-        run_pipeline(street, schema, PipelineConfig(), run_dir, runtime=runtime, progress=cancel)
+        label(street, schema, PipelineConfig(), tmp_path / "cancelled", runtime=runtime, progress=cancel)
     assert stage_status(run_dir)["label_points"]["status"] == "cancelled"
     written = sorted(p.name for p in (run_dir / "points").iterdir())
     # Frames 0 and 1 reported, frame 2 in flight (it finishes); 3, 4 and 5 never started.
     assert written[:2] == ["000000.npz", "000001.npz"] and 2 <= len(written) <= 3
     assert not list((run_dir / "points").glob(".*.tmp"))
-    result = run_pipeline(street, schema, PipelineConfig(), run_dir, runtime=runtime)
+    result = label(street, schema, PipelineConfig(), tmp_path / "cancelled", runtime=runtime)
     assert result.stages["label_points"].frames_computed == 6 - len(written)
     assert _files(run_dir) == _files(runs[1][0])
 
@@ -414,7 +414,7 @@ def test_cli_frame_threads_flag(street: Path, tmp_path: Path) -> None:
     res = CliRunner().invoke(cli, ["run", str(street), "--out", str(out), "--frame-threads", "0"])
     assert res.exit_code == 2
     assert "--frame-threads must be an integer in 1..64, got 0" in res.output
-    assert not (out / "stages.json").exists()
+    assert not out.exists()
 
 
 def test_ordered_map_keeps_order_runs_concurrently_and_stops_when_closed() -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import folder, label
 from test_pipeline import make_street
 
 from leap_core.colors import CANDIDATES, UNLABELED_RGB, distinct_color, srgb_to_lab
@@ -25,9 +26,8 @@ from leap_core.datasets.raw_ids import (
 from leap_core.errors import DatasetError
 from leap_core.pipeline import (
     STAGE_TABLE,
-    all_points_labeled_share,
+    SequenceMetrics,
     plan_stages,
-    run_pipeline,
     stage_fingerprints,
 )
 from leap_core.pipeline.context import read_state
@@ -39,7 +39,7 @@ from leap_core.pipeline.steering import (
     setting_scope,
     stage_switches,
 )
-from leap_core.run_layout import RunLayout
+from leap_core.run_layout import SequenceLayout
 from leap_core.schema import ClassDef, builtin_schema
 from leap_core.synth.names import DEMO_EXTRA_RAW_IDS
 
@@ -137,10 +137,10 @@ def test_setting_scopes_come_from_the_labeler_and_stage_records() -> None:
 
 
 # ------------------------------------------------------------------------------------- run changes
-def _snapshot(schema, cfg: PipelineConfig, frames=None) -> dict:
+def _snapshot(schema, cfg: PipelineConfig, frames=None, *more: dict) -> dict:
+    """A run's input snapshot as the app stores it: sequence 00 of /d/seq (``frames``), then ``more``."""
     return {
-        "dataset": "/d/seq",
-        "frames": frames,
+        "sequences": [{"name": "00", "dataset": "/d/seq", "frames": frames}, *more],
         "schema": schema.to_dict(),
         "pipeline": config_to_dict(cfg),
     }
@@ -169,7 +169,8 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
         frames=[0, 3],
     )
     texts = {c.text: c for c in run_changes(old, new)}
-    assert "frames: all → 0..2" in texts
+    frames = texts["sequence 00: frames all → 0..2"]
+    assert (frames.kind, frames.subject) == ("frames", "00")
     assert 'prompts of car: + "sedan", − "jeep"' in texts
     assert 'class traffic-cone added (prompts "traffic cone"; ground-truth ids 300)' in texts
     k = texts["kNN smoothing k (smoothing.k): 9 → 4"]
@@ -186,6 +187,34 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert sections == ["grounded_sam", "smoothing"]
 
 
+def test_run_changes_list_the_sequences_added_removed_and_moved() -> None:
+    """Sequences are matched by name: one added or removed, one whose folder or frames changed; each
+    change names the sequence as its subject, the sequences' changes coming first."""
+    schema, cfg = builtin_schema("semantickitti"), PipelineConfig()
+    old = _snapshot(schema, cfg, [0, 5], {"name": "01", "dataset": "/d/one", "frames": None})
+    new = _snapshot(schema, config_from_dict({"smoothing": {"k": 4}}), [0, 5])
+    new["sequences"] = [
+        {"name": "02", "dataset": "/d/two", "frames": None},
+        {"name": "00", "dataset": "/e/seq", "frames": [2, 5]},
+    ]
+    changes = run_changes(old, new)
+    assert [(c.kind, c.subject, c.text) for c in changes[:4]] == [
+        ("dataset", "02", "sequence 02 added (/d/two)"),
+        ("dataset", "00", "sequence 00: dataset /d/seq → /e/seq"),
+        ("frames", "00", "sequence 00: frames 0..4 → 2..4"),
+        ("dataset", "01", "sequence 01 removed (/d/one)"),
+    ]
+    assert [c.subject for c in changes[4:]] == ["smoothing.k"]
+    # The order of the sequences alone changes nothing; neither does a snapshot without sequences.
+    swapped = {**old, "sequences": old["sequences"][::-1]}
+    assert run_changes(old, swapped) == []
+    bare = {k: v for k, v in old.items() if k != "sequences"}
+    assert [c.text for c in run_changes(bare, old)] == [
+        "sequence 00 added (/d/seq)",
+        "sequence 01 added (/d/one)",
+    ]
+
+
 # -------------------------------------------------------------------------------------- recompute plan
 @pytest.fixture(scope="module")
 def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -194,9 +223,9 @@ def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def finished(street: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    run_dir = tmp_path_factory.mktemp("runs") / "base"
-    run_pipeline(street, builtin_schema("semantickitti"), PipelineConfig(), run_dir)
-    return run_dir
+    """The street's folder in a finished run."""
+    out = tmp_path_factory.mktemp("runs") / "base"
+    return label(street, builtin_schema("semantickitti"), PipelineConfig(), out).folder
 
 
 def _cone_schema():
@@ -235,12 +264,12 @@ def test_the_preview_agrees_with_the_runner(
     make_schema, overrides = VARIANTS[variant]
     schema = make_schema() if make_schema else builtin_schema("semantickitti")
     cfg = config_from_dict(overrides)
-    seeded = tmp_path / "seeded"
-    shutil.copytree(finished, seeded)
+    shutil.copytree(finished.parent.parent, tmp_path / "seeded")
+    seeded = folder(tmp_path / "seeded")
     fresh = tmp_path / "fresh"  # the preview's folder: no outputs, only what fingerprints read
     fps = stage_fingerprints(street, schema, cfg, fresh)
     assert fps == stage_fingerprints(street, schema, cfg, seeded)
-    previous = read_state(RunLayout(finished))
+    previous = read_state(SequenceLayout(finished))
     plan = {
         p.name: p
         for p in recompute_plan(
@@ -286,17 +315,18 @@ def test_plan_reasons_without_a_previous_run_and_for_unfinished_stages() -> None
 def test_all_points_labeled_share(finished: Path, street: Path) -> None:
     import json
 
-    metrics = json.loads(RunLayout(finished).metrics.read_text())
-    share = all_points_labeled_share(metrics)
+    metrics = json.loads(SequenceLayout(finished).metrics.read_text())
+    share = SequenceMetrics.from_dict(metrics).all_points_labeled_share()
     assert share == metrics["labeled_share_all_points"]
     n = metrics["n_points"]
     assert share["voxel"] == pytest.approx(metrics["labeled_points"]["voxel"] / n)
     # What the exported .label files label is that share of the final row.
     labeled = sum(
         int((np.fromfile(p, np.uint32) & 0xFFFF).astype(bool).sum())
-        for p in sorted(RunLayout(finished).export_dir.glob("*.label"))
+        for p in sorted(SequenceLayout(finished).export_dir.glob("*.label"))
     )
     assert labeled / n == pytest.approx(share["voxel"])
     older = {k: v for k, v in metrics.items() if k != "labeled_share_all_points"}
-    assert all_points_labeled_share(older) == pytest.approx(share)
-    assert all_points_labeled_share({"labeled_points": {"voxel": 3}, "n_points": 0}) == {"voxel": None}
+    assert SequenceMetrics.from_dict(older).all_points_labeled_share() == pytest.approx(share)
+    empty = {**older, "labeled_points": {"voxel": 3}, "n_points": 0}
+    assert SequenceMetrics.from_dict(empty).all_points_labeled_share() == {"voxel": None}

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import label
 from typer.testing import CliRunner
 
 from app.cli import cli as app
 from leap_core.datasets.kitti import KittiSequence, read_png16
 from leap_core.labelers.simulated import SimulatedLabelerConfig
-from leap_core.pipeline.runner import run_pipeline
 from leap_core.presets import builtin_preset
 from leap_core.synth.agri import (
     AGRI_SYNTH_STAMP,
@@ -213,17 +213,17 @@ def test_reader_preset_and_evaluation(agri, tmp_path) -> None:
     for f in seq:
         assert (lut[f.labels & 0xFFFF] >= 0).all()
     cfg = replace(preset.pipeline, labeler="simulated", simulated=SimulatedLabelerConfig.exact())
-    result = run_pipeline(agri[0].path, preset.schema, cfg, tmp_path / "run", until="evaluate")
+    result = label(agri[0].path, preset.schema, cfg, tmp_path / "run", until="evaluate")
     metrics = result.metrics
     assert metrics is not None
-    point = metrics["camera"]["point"]
-    assert set(point["iou"]) == {c.name for c in preset.schema.classes}
-    assert all(sum(row) > 0 for row in point["confusion"])
-    assert point["miou"] > 0.7, point["iou"]
-    assert min(point["iou"][c] for c in ("tree", "building", "ground")) > 0.9, point["iou"]
-    assert metrics["camera"]["voxel"]["miou"] > point["miou"]
+    point = metrics.table("camera")["point"]
+    assert set(point.iou) == {c.name for c in preset.schema.classes}
+    assert all(sum(row) > 0 for row in point.confusion)
+    assert point.miou > 0.7, point.iou
+    assert min(point.iou[c] for c in ("tree", "building", "ground")) > 0.9, point.iou
+    assert metrics.miou("camera", "voxel") > point.miou
     # Every named surface gets a mask: nearly every point in view is labeled (0.99 here).
-    assert point["labeled_share"] > 0.975
+    assert point.labeled_share > 0.975
 
 
 def test_cli_domain(tmp_path) -> None:

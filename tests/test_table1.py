@@ -4,13 +4,18 @@ seed project files and base-run links that let every seed share one base run."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 from scripthelpers import load_script
+
+from leap_core.metrics import metrics_from_confusion
+from leap_core.run_layout import RunLayout, write_run_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -190,25 +195,61 @@ def test_parse_sets_and_seed_project_keep_the_domain_file_and_add_the_seed(tmp_p
 def test_link_base_shares_stage_outputs_but_not_the_runs_own_files(tmp_path: Path) -> None:
     t1 = _module()
     base = tmp_path / "base"
-    (base / "points").mkdir(parents=True)
-    (base / "stages.json").write_text("{}")
-    (base / "grid.npz").write_bytes(b"grid")
-    (base / "points" / "000000.npz").write_bytes(b"p")
-    (base / "run.log").write_text("log")
-    (base / ".tmp-spill").write_text("x")
+    seq = base / "sequences" / "00"
+    (seq / "points").mkdir(parents=True)
+    (seq / "stages.json").write_text("{}")
+    (seq / "grid.npz").write_bytes(b"grid")
+    (seq / "points" / "000000.npz").write_bytes(b"p")
+    (seq / "corrections.npz").write_bytes(b"c")
+    (seq / "export-coverage.json").write_text("{}")
+    (seq / ".fuse_spill").mkdir()
+    write_run_spec(RunLayout(base), [("00", tmp_path / "data" / "00", None)])
+    for name in ("metrics.json", "run.log", "params.json", ".lock"):
+        (base / name).write_text("{}")
     run = tmp_path / "seed1"
     t1.link_base(base, run)
     assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
-        "grid.npz",
-        "points",
-        "points/000000.npz",
-        "stages.json",
+        "sequences",
+        "sequences/00",
+        "sequences/00/grid.npz",
+        "sequences/00/points",
+        "sequences/00/points/000000.npz",
+        "sequences/00/stages.json",
     ]
-    assert (run / "grid.npz").stat().st_ino == (base / "grid.npz").stat().st_ino
+    assert (run / "sequences" / "00" / "grid.npz").stat().st_ino == (seq / "grid.npz").stat().st_ino
     # An existing seed run is left as it is (it resumes).
-    (run / "grid.npz").unlink()
+    (run / "sequences" / "00" / "grid.npz").unlink()
     t1.link_base(base, run)
-    assert not (run / "grid.npz").exists()
+    assert not (run / "sequences" / "00" / "grid.npz").exists()
+    # A base run that did not finish a sequence stops the benchmark, naming the base run.
+    (seq / "stages.json").unlink()
+    with pytest.raises(SystemExit, match=f"{base} has no sequence"):
+        t1.link_base(base, tmp_path / "seed2")
+
+
+def test_a_seed_rows_metrics_are_those_of_the_runs_sequence(tmp_path: Path) -> None:
+    t1 = _module()
+    run = tmp_path / "seed0"
+    assert t1.sequence_metrics(run) is None
+    (run / "sequences" / "00").mkdir(parents=True)
+    assert t1.sequence_metrics(run) is None
+    cell = metrics_from_confusion(
+        np.array([[3, 1, 0], [0, 4, 1]]), ["a", "b"], ["x", "y"], ignore_unlabeled_pred=True
+    ).to_dict()
+    data = {
+        "class_names": ["a", "b"],
+        "categories": ["x", "y"],
+        "rows": ["point", "voxel"],
+        "protocols": {"camera": "camera view"},
+        "n_points": 9,
+        "n_points_in_view": 9,
+        "labeled_points": {"point": 8, "voxel": 8},
+        "coverage_ratio": {"point": 1.0, "voxel": 1.0},
+        "camera": {"point": cell, "voxel": cell},
+    }
+    (run / "sequences" / "00" / "metrics.json").write_text(json.dumps(data))
+    assert t1.sequence_metrics(run) == data
+    assert t1.seed_row(0, data, "camera").voxel == pytest.approx(100.0 * cell["miou"])
 
 
 def test_results_page_has_the_table1_markers_that_readme_writes_into() -> None:

@@ -10,11 +10,13 @@ run and score well on a loose mIoU bound).
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import folder, label
 from test_pipeline import make_street
 
 from leap_core.config import PipelineConfig, config_from_dict
@@ -39,10 +41,10 @@ from leap_core.fusion import (
     world_points,
 )
 from leap_core.labelers.base import SoftMasks
-from leap_core.pipeline import run_pipeline
+from leap_core.pipeline import JOINT, SequenceSpec, run_pipeline
 from leap_core.pipeline.context import load_view
 from leap_core.projection import Painted, paint, project_points
-from leap_core.run_layout import RunLayout, load_corrections, save_corrections
+from leap_core.run_layout import RunLayout, SequenceLayout, load_corrections, save_corrections
 from leap_core.schema import Schema, builtin_schema
 from leap_core.smoothing import SmoothedGrid, knn_smooth
 
@@ -59,15 +61,24 @@ TINY_3DCN = {
 class Run:
     """The finished run and what the checks need from it."""
 
-    def __init__(self, street: Path, run_dir: Path, schema: Schema, cfg: PipelineConfig) -> None:
+    def __init__(self, street: Path, root: Path, schema: Schema, cfg: PipelineConfig) -> None:
         self.seq = KittiSequence(street)
-        self.lay = RunLayout(run_dir)
+        self.root = root
+        """The run folder."""
+        self.lay = SequenceLayout(folder(root))
+        """The street's folder in it."""
+        self.cn_dir = RunLayout(root).cn_dir
         self.schema = schema
         self.cfg = cfg
         self.c = schema.num_classes
         self.frames = range(len(self.seq))
-        self.calls: list[tuple[str, int, int]] = []
-        """The run's progress calls."""
+        self.calls: list[tuple[str, str, int, int]] = []
+        """The run's progress calls (sequence, stage, done, total)."""
+
+    def copy(self, out: Path) -> SequenceLayout:
+        """A copy of the run folder at ``out``: its street's folder."""
+        shutil.copytree(self.root, out)
+        return SequenceLayout(folder(out))
 
     def observations(self) -> list[tuple[Painted, np.ndarray]]:
         """Per frame: the stored observation and the world voxel key of each painted point."""
@@ -89,8 +100,8 @@ class Run:
 def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     street = make_street(tmp_path_factory.mktemp("street") / "sequences" / "00", n_frames=4)
     schema = builtin_schema("semantickitti")
-    run_dir = tmp_path_factory.mktemp("runs") / "wired"
-    run_dir.mkdir(parents=True, exist_ok=True)
+    root = tmp_path_factory.mktemp("runs") / "wired"
+    folder(root).mkdir(parents=True, exist_ok=True)
     # Corrections made before the run: scattered voxels of frame 0 (each amid uncorrected neighbours, so
     # smoothing would move them), one voxel corrected twice (the later entry wins).
     seq = KittiSequence(street)
@@ -98,7 +109,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     keys = np.unique(voxel_keys(world_points(f0.points, f0.pose), 0.2))[::97]
     trunk, pole = schema.index("trunk"), schema.index("pole")
     save_corrections(
-        run_dir / "corrections.npz",
+        folder(root) / "corrections.npz",
         np.concatenate([keys, keys[:1]]),
         np.concatenate([np.full(len(keys), trunk), [pole]]),
     )
@@ -112,10 +123,10 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
         }
     )
     assert cfg.smoothing != PipelineConfig().smoothing
-    calls: list[tuple[str, int, int]] = []
-    result = run_pipeline(street, schema, cfg, run_dir, progress=lambda *a: calls.append(a))
-    assert "3dcn" in result.ran
-    out = Run(street, run_dir, schema, cfg)
+    calls: list[tuple[str, str, int, int]] = []
+    result = run_pipeline([SequenceSpec.of(street)], schema, cfg, root, progress=lambda *a: calls.append(a))
+    assert "3dcn" in result.only().ran
+    out = Run(street, root, schema, cfg)
     out.calls = calls
     return out
 
@@ -204,7 +215,7 @@ def test_3dcn_trains_on_the_smoothed_grid_and_the_view_counts(run: Run) -> None:
         targets = reliable_targets(run.seq, grid, run.c, cn, vs, run.frames, views_used)
         return training_fingerprint(cn, run.c, run.frames, targets)
 
-    meta = load_checkpoint(checkpoint_path(run.lay.cn_dir, 1)).meta
+    meta = load_checkpoint(checkpoint_path(run.cn_dir, 1)).meta
     assert meta["fingerprint"] == fingerprint(smoothed, views)
     # Guards: the unsmoothed grid, or no view counts, select other labels on this data.
     assert fingerprint(VoxelGrid.load(run.lay.grid), views) != meta["fingerprint"]
@@ -215,7 +226,7 @@ def test_3dcn_grid_is_the_fused_grid_plus_network_evidence(run: Run) -> None:
     """grid_3dcn1.npz = fuse_back(grid.npz, the checkpoint's predictions of every scan); grid_smooth_3dcn1.npz
     = its knn_smooth with the corrections re-imposed."""
     cn, fcfg = run.cfg.consistency, run.cfg.fusion
-    model = load_checkpoint(checkpoint_path(run.lay.cn_dir, 1)).model
+    model = load_checkpoint(checkpoint_path(run.cn_dir, 1)).model
     preds, in_view = [], []
     with torch_threads(cn.num_threads):  # the stage's thread count: matmul sums in the same order
         for i in run.frames:
@@ -261,49 +272,42 @@ def test_point_labels_come_from_the_final_grid(run: Run) -> None:
 def test_a_changed_3dcn_setting_removes_every_round_grid(run: Run, tmp_path: Path) -> None:
     """The 3D-CN's outputs are its smoothed round grids, but what a changed fingerprint clears is every
     round's grids (fused ones too): none of them belongs to the new settings."""
-    import shutil
-
-    run_dir = tmp_path / "copy"
-    shutil.copytree(run.lay.run_dir, run_dir)
-    assert {p.name for p in RunLayout(run_dir).cn_grids()} == {"grid_3dcn1.npz", "grid_smooth_3dcn1.npz"}
+    lay = run.copy(tmp_path / "copy")
+    assert {p.name for p in lay.cn_grids()} == {"grid_3dcn1.npz", "grid_smooth_3dcn1.npz"}
     off = dataclasses.replace(run.cfg, consistency=dataclasses.replace(run.cfg.consistency, enabled=False))
-    result = run_pipeline(run.seq.root, run.schema, off, run_dir, until="3dcn")
+    result = label(run.seq.root, run.schema, off, tmp_path / "copy", until="3dcn")
     assert result.ran == []  # the 3D-CN is now skipped, the stages before it are current
-    assert RunLayout(run_dir).cn_grids() == []
+    assert lay.cn_grids() == []
 
 
 def test_the_3dcn_is_current_only_while_its_last_smoothed_round_grid_exists(run: Run, tmp_path: Path) -> None:
     """A finished 3D-CN stage is cached as long as its outputs (the smoothed grid of each round) exist; a
     deleted one makes it run again, and only it (the later stages' inputs are its fingerprint)."""
-    import shutil
-
     from leap_core.pipeline import plan_stages
 
-    run_dir = tmp_path / "copy"
-    shutil.copytree(run.lay.run_dir, run_dir)
-    assert not any(plan_stages(run.seq.root, run.schema, run.cfg, run_dir).values())
-    RunLayout(run_dir).grid_smooth_3dcn(1).unlink()
-    plan = plan_stages(run.seq.root, run.schema, run.cfg, run_dir)
+    lay = run.copy(tmp_path / "copy")
+    assert not any(plan_stages(run.seq.root, run.schema, run.cfg, lay.folder).values())
+    lay.grid_smooth_3dcn(1).unlink()
+    plan = plan_stages(run.seq.root, run.schema, run.cfg, lay.folder)
     assert [s for s, todo in plan.items() if todo] == ["3dcn"]
 
 
-def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_path: Path) -> None:
-    """In a multi-sequence run the 3D-CN stage of a sequence takes its round grids from the joint round's
-    staging folder (hard links), once its record (``3dcn_joint.json``) matches the joint state; otherwise
-    it refuses, naming the run."""
+def test_a_sequence_links_its_staged_round_grids(run: Run, tmp_path: Path) -> None:
+    """The 3D-CN stage of a sequence takes its round grids from the run's staging folder of the round
+    (hard links), once its record (``3dcn_joint.json``) matches the run's round record; otherwise it
+    refuses, naming the run."""
     import json
     import os
-    import shutil
 
     from leap_core.errors import DatasetError, LeapError
     from leap_core.pipeline import stage_status
-    from leap_core.run_layout import MultiRunLayout
+    from leap_core.pipeline.runner import run_sequence
 
-    root = MultiRunLayout(tmp_path / "multi")
+    root = RunLayout(tmp_path / "multi")
     lay = root.sequence("00")
-    shutil.copytree(run.lay.run_dir, lay.run_dir)
+    shutil.copytree(run.lay.folder, lay.folder)
     staged = root.joint_rounds("00")
-    staged.run_dir.mkdir(parents=True)
+    staged.folder.mkdir(parents=True)
     # Staged grids that differ from the run's own rounds, so a link is told apart from the files left there.
     shutil.copyfile(run.lay.grid, staged.grid_3dcn(1))
     shutil.copyfile(run.lay.grid_smooth, staged.grid_smooth_3dcn(1))
@@ -313,18 +317,18 @@ def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_p
 
     def link(note: object) -> None:
         lay.joint_3dcn.write_text(note if isinstance(note, str) else json.dumps(note))
-        run_pipeline(
-            run.seq.root, run.schema, run.cfg, lay.run_dir, until="3dcn", progress=lambda *a: calls.append(a)
+        run_sequence(
+            run.seq.root, run.schema, run.cfg, lay.folder, until="3dcn", progress=lambda *a: calls.append(a)
         )
 
     link({"fingerprint": "f1", "name": "00", "sequences": ["00"]})
     assert [c for c in calls if c[0] == "3dcn"] == [("3dcn", 1, 1)]
     assert os.path.samefile(staged.grid_3dcn(1), lay.grid_3dcn(1))
     assert os.path.samefile(staged.grid_smooth_3dcn(1), lay.grid_smooth_3dcn(1))
-    record = stage_status(lay.run_dir)["3dcn"]
+    record = stage_status(lay.folder)["3dcn"]
     assert (record["joint"], record["iterations"]) == ("f1", 1)
     assert record["voxels"] == VoxelGrid.load(run.lay.grid).num_voxels
-    # A record of another joint round, or of another sequence, or with the staged grids gone: refused.
+    # A record of another round, or of another sequence, or with the staged grids gone: refused.
     for note in ({"fingerprint": "f0", "name": "00"}, {"fingerprint": "f1", "name": "01"}):
         with pytest.raises(LeapError, match=r"multi/sequences/00: sequence .* has not run"):
             link(note)
@@ -333,33 +337,30 @@ def test_a_sequence_of_a_joint_3dcn_links_its_staged_round_grids(run: Run, tmp_p
         link({"fingerprint": "f1", "name": "00", "sequences": ["00", "01"]})
     # Unreadable records name their file.
     for bad in ("{not json", json.dumps({"name": "00"}), json.dumps(["f1"])):
-        with pytest.raises(DatasetError, match=r"3dcn_joint\.json: unreadable joint 3D-CN record"):
+        with pytest.raises(DatasetError, match=r"3dcn_joint\.json: unreadable 3D-CN record"):
             link(bad)
     root.joint_state.write_text("{not json")
-    with pytest.raises(DatasetError, match=r"3dcn/joint\.json: unreadable joint 3D-CN record"):
+    with pytest.raises(DatasetError, match=r"3dcn/joint\.json: unreadable 3D-CN record"):
         link({"fingerprint": "f1", "name": "00"})
     root.joint_state.write_text(json.dumps(["f1"]))
-    with pytest.raises(DatasetError, match=r"3dcn/joint\.json: unreadable joint 3D-CN record"):
+    with pytest.raises(DatasetError, match=r"3dcn/joint\.json: unreadable 3D-CN record"):
         link({"fingerprint": "f1", "name": "00", "x": 1})
 
 
 def test_the_distributed_fusion_ends_with_the_grid_the_fuse_stage_wrote(run: Run, tmp_path: Path) -> None:
     """finish_fuse, the Ray engine's last fusion step (its partial grids already summed: here fuse() of
     every stored observation), applies the corrections and writes the fuse stage's grid.npz byte for byte."""
-    import shutil
-
     from leap_core.pipeline.runner import _context
     from leap_core.pipeline.stages import finish_fuse
 
-    run_dir = tmp_path / "copy"
-    shutil.copytree(run.lay.run_dir, run_dir)
-    RunLayout(run_dir).grid.unlink()
+    lay = run.copy(tmp_path / "copy")
+    lay.grid.unlink()
     calls: list[tuple[str, int, int]] = []
     ctx = _context(
         run.seq.root,
         run.schema,
         run.cfg,
-        run_dir,
+        lay.folder,
         progress=lambda *a: calls.append(a),
         frames=None,
         runtime=None,
@@ -369,22 +370,24 @@ def test_the_distributed_fusion_ends_with_the_grid_the_fuse_stage_wrote(run: Run
         Observations(keys, p.rows, log_table(p.table, fcfg.prob_floor)) for p, keys in run.observations()
     ]
     record = finish_fuse(ctx, fuse(batches, run.c, fcfg))
-    assert RunLayout(run_dir).grid.read_bytes() == run.lay.grid.read_bytes()
+    assert lay.grid.read_bytes() == run.lay.grid.read_bytes()
     n_corrected = len(last_per_key(*run.corrections())[0])
     assert record == {"voxels": VoxelGrid.load(run.lay.grid).num_voxels, "corrections": n_corrected}
     assert calls == [("fuse", len(run.frames), len(run.frames))]
 
 
 def test_3dcn_record_and_progress(run: Run) -> None:
-    """The 3D-CN's record (rounds, voxels of the last round's grid; fuse's: the corrected voxels) and its
-    progress in thousandths of a round, rising to 1000 per round."""
+    """The 3D-CN's record (rounds, voxels of the last round's grid; fuse's: the corrected voxels) and the
+    progress of its rounds in thousandths of a round, rising to 1000 per round, then the sequence's link of
+    them."""
     from leap_core.pipeline import stage_status
 
-    records = stage_status(run.lay.run_dir)
+    records = stage_status(run.lay.folder)
     assert records["3dcn"]["iterations"] == 1
     assert records["3dcn"]["voxels"] == VoxelGrid.load(run.lay.grid_3dcn(1)).num_voxels
     assert records["fuse"]["corrections"] == len(last_per_key(*run.corrections())[0])
-    ticks = [(done, total) for stage, done, total in run.calls if stage == "3dcn"]
+    ticks = [(done, total) for name, stage, done, total in run.calls if (name, stage) == (JOINT, "3dcn")]
+    assert [c for c in run.calls if c[:2] == ("00", "3dcn")] == [("00", "3dcn", 1, 1)]
     assert {total for _, total in ticks} == {1000} and ticks[-1] == (1000, 1000)
     assert all(type(d) is int for d, _ in ticks)  # whole thousandths, as progress(stage, done, total) counts
     done = [d for d, _ in ticks]
@@ -394,9 +397,8 @@ def test_3dcn_record_and_progress(run: Run) -> None:
 def test_3dcn_of_a_frame_subset_trains_on_those_frames_only(run: Run, tmp_path: Path) -> None:
     """A run over some of the scans trains its 3D-CN on the reliable labels of those scans only."""
     frames = range(0, 3)
-    run_dir = tmp_path / "subset"
-    run_pipeline(run.seq.root, run.schema, run.cfg, run_dir, frames=frames, until="3dcn")
-    lay = RunLayout(run_dir)
+    out = tmp_path / "subset"
+    lay = SequenceLayout(label(run.seq.root, run.schema, run.cfg, out, frames=frames, until="3dcn").folder)
     cn = iteration_config(run.cfg.consistency, 1)
     vs, clip = run.cfg.fusion.voxel_size, run.cfg.fusion.logp_clip
     observed = []
@@ -407,26 +409,28 @@ def test_3dcn_of_a_frame_subset_trains_on_those_frames_only(run: Run, tmp_path: 
     views = view_counts(iter(observed))
     smoothed = SmoothedGrid.load(lay.grid_smooth).to_voxel_grid(clip)
     targets = reliable_targets(run.seq, smoothed, run.c, cn, vs, frames, views)
-    meta = load_checkpoint(checkpoint_path(lay.cn_dir, 1)).meta
+    meta = load_checkpoint(checkpoint_path(RunLayout(out).cn_dir, 1)).meta
     assert meta["fingerprint"] == training_fingerprint(cn, run.c, frames, targets)
 
 
 def test_a_round_missing_its_smoothed_grid_is_computed_again(run: Run, tmp_path: Path) -> None:
     """A 3D-CN round is kept on resume only when both its grids exist: one whose smoothed grid is gone is
     computed again (its checkpoint reused), to the same bytes."""
-    import shutil
-
-    run_dir = tmp_path / "copy"
-    shutil.copytree(run.lay.run_dir, run_dir)
-    RunLayout(run_dir).grid_smooth_3dcn(1).unlink()
-    assert run_pipeline(run.seq.root, run.schema, run.cfg, run_dir, until="3dcn").ran == ["3dcn"]
-    assert RunLayout(run_dir).grid_smooth_3dcn(1).read_bytes() == run.lay.grid_smooth_3dcn(1).read_bytes()
-    assert RunLayout(run_dir).grid_3dcn(1).read_bytes() == run.lay.grid_3dcn(1).read_bytes()
+    lay = run.copy(tmp_path / "copy")
+    staged = RunLayout(tmp_path / "copy").joint_rounds("00")
+    staged.grid_smooth_3dcn(1).unlink()
+    lay.grid_smooth_3dcn(1).unlink()
+    trained = (RunLayout(tmp_path / "copy").cn_dir / "3dcn_iter1.pt").stat().st_mtime_ns
+    assert label(run.seq.root, run.schema, run.cfg, tmp_path / "copy", until="3dcn").ran == ["3dcn"]
+    assert (RunLayout(tmp_path / "copy").cn_dir / "3dcn_iter1.pt").stat().st_mtime_ns == trained
+    assert lay.grid_smooth_3dcn(1).read_bytes() == run.lay.grid_smooth_3dcn(1).read_bytes()
+    assert lay.grid_3dcn(1).read_bytes() == run.lay.grid_3dcn(1).read_bytes()
+    assert lay.grid_smooth_3dcn(1).samefile(staged.grid_smooth_3dcn(1))
 
 
 def _evaluate(
     run: Run,
-    lay: RunLayout,
+    lay: SequenceLayout,
     cfg: PipelineConfig,
     seq: KittiSequence,
     progress: Callable[..., None] | None = None,
@@ -463,13 +467,10 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     classes of the rest rolled by one): a stage that read a row from the wrong source scores differently.
     Fast stand-in for the slow two-round runs (the stage only reads files)."""
     import json
-    import shutil
 
     from leap_core.metrics import confusion_matrix
 
-    run_dir = tmp_path / "two_rounds"
-    shutil.copytree(run.lay.run_dir, run_dir)
-    lay = RunLayout(run_dir)
+    lay = run.copy(tmp_path / "two_rounds")
     own = SmoothedGrid.load(lay.grid_smooth_3dcn(1))
     round1 = SmoothedGrid(own.keys[::2], np.roll(own.probs[::2], 1, axis=1), own.voxel_size)
     round1.save(lay.grid_smooth_3dcn(1))
@@ -534,15 +535,12 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     labels, or whose labels are not one per point of the scan: an error naming the file or the scan. No
     point labeled by projection: the coverage ratios are None."""
     import json
-    import shutil
 
     from leap_core.errors import DatasetError
 
     street = tmp_path / "street"
     shutil.copytree(run.seq.root, street)
-    run_dir = tmp_path / "run"
-    shutil.copytree(run.lay.run_dir, run_dir)
-    lay = RunLayout(run_dir)
+    lay = run.copy(tmp_path / "run")
     lay.metrics.unlink()
     seq = KittiSequence(street)
 

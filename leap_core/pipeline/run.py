@@ -152,8 +152,10 @@ def open_run_folder(out: Path, specs: Sequence[SequenceSpec]) -> RunLayout:
     the name of the run's one sequence).
 
     Raises:
-        LeapError: ``out`` is a file, or a former one-sequence folder given several sequences.
+        LeapError: bad specs (:func:`check_specs`), ``out`` is a file, or a former one-sequence folder given
+            several sequences.
     """
+    check_specs(specs)
     if out.exists() and not out.is_dir():
         raise LeapError(f"{out}: run folder path exists and is not a folder")
     if former_layout(out) == "single" and len(specs) != 1:
