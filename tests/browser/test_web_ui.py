@@ -106,7 +106,9 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     page.click("#run-button")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "running", timeout=60_000)
     expect(page.locator(".stage")).to_have_count(8)
-    expect(page.locator('.stage[data-stage="00/smooth"] .stage-name')).to_have_text("Smoothing (served label)")
+    expect(page.locator('.stage[data-stage="00/smooth"] .stage-name')).to_have_text(
+        "Smoothing (served label)"
+    )
     labels2d = next(s for s in served[0]["stages"] if s["name"] == "labels2d")
     expect(page.locator('.stage[data-stage="00/labels2d"] .stage-name')).to_have_text(labels2d["label"])
     expect(page.locator('.stage[data-stage="00/labels2d"] .stage-name')).to_have_attribute(
@@ -182,7 +184,9 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     page.screenshot(path=str(artifacts / "web_ui_projects.png"), full_page=True)
     # Back to the project: the page is built again from the pipeline description it already has.
     card.click()
-    expect(page.locator('.stage[data-stage="00/smooth"] .stage-name')).to_have_text("Smoothing (served label)")
+    expect(page.locator('.stage[data-stage="00/smooth"] .stage-name')).to_have_text(
+        "Smoothing (served label)"
+    )
     assert len(served) == 1  # fetched once per page load
     assert errors == []
     page.close()

@@ -48,8 +48,8 @@ def main(out: Path) -> None:
     from app.core.config import Settings
     from app.core.db import init_db, open_db
     from app.jobs.manager import JobManager
-    from leap_core.presets import builtin_preset
     from leap_core.config import config_to_dict
+    from leap_core.presets import builtin_preset
 
     base = Path(tempfile.mkdtemp(prefix="leap-former-")) / "former"
     data = base / "data" / "street" / "sequences"
@@ -58,7 +58,10 @@ def main(out: Path) -> None:
     leap = [sys.executable, "-m", "app.cli"]
     project_file = base / "small-3dcn.yaml"
     project_file.write_text((ROOT / "projects" / "semantickitti.yaml").read_text() + CN)
-    subprocess.run([*leap, "run", data / "00", "--project-file", project_file, "--out", base / "cli" / "single"], check=True)
+    subprocess.run(
+        [*leap, "run", data / "00", "--project-file", project_file, "--out", base / "cli" / "single"],
+        check=True,
+    )
     subprocess.run([*leap, "run", data / "00", data / "01", "--out", base / "cli" / "multi"], check=True)
 
     settings = Settings(work_dir=base / "studio", data_roots=[base / "data"], seed_demo=False)
@@ -67,12 +70,20 @@ def main(out: Path) -> None:
     pipeline = config_to_dict(preset.pipeline)
     with open_db(settings.database) as db:
         one = crud.create_project(
-            db, name="one street", dataset_kind="folder", dataset_path=str(data / "00"),
-            schema=preset.schema.to_dict(), pipeline=pipeline,
+            db,
+            name="one street",
+            dataset_kind="folder",
+            dataset_path=str(data / "00"),
+            schema=preset.schema.to_dict(),
+            pipeline=pipeline,
         )
         two = crud.create_project(
-            db, name="two streets", dataset_kind="folder", dataset_path=str(data / "00"),
-            schema=preset.schema.to_dict(), pipeline=pipeline,
+            db,
+            name="two streets",
+            dataset_kind="folder",
+            dataset_path=str(data / "00"),
+            schema=preset.schema.to_dict(),
+            pipeline=pipeline,
             sequences=[("00", str(data / "00")), ("01", str(data / "01"))],
         )
     manager = JobManager(settings)
@@ -82,10 +93,17 @@ def main(out: Path) -> None:
             assert manager.run_now(run["id"]) == "done"
             if i == 0:
                 with open_db(settings.database) as db:
-                    grid = np.load(Path(run["run_dir"]) / ("grid.npz" if project is one else "sequences/00/grid.npz"))
+                    grid = np.load(
+                        Path(run["run_dir"]) / ("grid.npz" if project is one else "sequences/00/grid.npz")
+                    )
                     crud.add_correction(
-                        db, project_id=project["id"], class_name="vegetation", voxel_size=0.2,
-                        keys=grid["keys"][:5], author="api", sequence="00",
+                        db,
+                        project_id=project["id"],
+                        class_name="vegetation",
+                        voxel_size=0.2,
+                        keys=grid["keys"][:5],
+                        author="api",
+                        sequence="00",
                     )
     (base / "root.txt").write_text(str(base))
     with tarfile.open(out, "w:gz") as tar:
