@@ -19,6 +19,7 @@ import sqlite_utils
 from app import crud, models
 from app.core.config import Settings
 from app.core.errors import InvalidField
+from app.forms import PATH_LABELS
 from app.jobs.manager import run_corrections, seed_source
 from app.jobs.multi import run_sequences_of, sequence_run_dir, snapshot_sequences
 from app.services import normalise_metrics, project_config, stale_results
@@ -57,7 +58,11 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     project = crud.require_project(db, project_id)
     snapshot = project_snapshot(project)
     base = seed_source(db, project_id, snapshot)
-    changes = [] if base is None else [_change_public(c) for c in run_changes(base["params"], snapshot)]
+    changes = (
+        []
+        if base is None
+        else [_change_public(c) for c in run_changes(base["params"], snapshot, PATH_LABELS)]
+    )
     basis = None if base is None else models.RunBasis(id=base["id"], number=base["number"])
     # A run of other sequences seeds nothing (seed_source): say why instead of "no earlier run".
     stale = None if base is not None else stale_results(project, crud.list_runs(db, project_id))
@@ -171,7 +176,7 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
     base = crud.require_run(db, base_id)
     if run["project_id"] != base["project_id"]:
         raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
-    changes = [_change_public(c) for c in run_changes(base["params"], run["params"])]
+    changes = [_change_public(c) for c in run_changes(base["params"], run["params"], PATH_LABELS)]
     rows: list[models.RowDelta] = []
     ma, mb = normalise_metrics(run.get("metrics")), normalise_metrics(base.get("metrics"))
     if ma is not None and mb is not None:

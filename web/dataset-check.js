@@ -1,4 +1,4 @@
-// The dataset check (GET /datasets and a project's dataset.check; leap_core/datasets/check.py): what the
+// The dataset check (GET /datasets and a project's dataset.check; leap_core/pipeline/preflight.py, wording in app/advice.py): what the
 // pipeline can do with a dataset, each problem with its fix in the app's words. Shown under the dataset
 // picker of the create-project form and as a card on the project page.
 

@@ -4,13 +4,16 @@ recompute, and what changed between two runs.
 Everything here is derived from the registries, so no rule is written twice:
 
 - A setting belongs to a **labeler** when its top-level config section is that labeler's
-  ``LabelerSpec.config_field`` (``grounded_sam.box_threshold`` → ``grounded-sam``), and to a **switchable
+  ``LabelerSpec.section`` (``grounded_sam.box_threshold`` → ``grounded-sam``), and to a **switchable
   stage** when the stage's ``StageInfo.reads`` holds its section and the stage has a ``switch``
   (``consistency.share`` → ``3dcn``, whose switch is ``consistency.enabled``). It is ignored when another
   labeler is chosen or that stage is switched off.
 - A stage is **recomputed** when the fingerprint a new run would give it differs from the one recorded in the
   latest run's ``stages.json`` (the rule :func:`~leap_core.pipeline.run_pipeline` applies when it reuses a
   seeded run folder), or when that run did not finish it.
+
+Settings are named by their dotted config paths. A caller that shows them under human names (the app's
+form) passes those names as data, ``labels``: dotted path → label.
 """
 
 from __future__ import annotations
@@ -20,9 +23,9 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from leap_core.config import FORM_FIELDS, PipelineConfig, config_from_dict
+from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.errors import LeapError
-from leap_core.labelers import LABELERS
+from leap_core.labelers import LABELERS, labeler_by_section
 from leap_core.pipeline.stages import STAGE_TABLE
 
 
@@ -40,7 +43,8 @@ class SettingScope:
 def setting_scope(path: str) -> SettingScope:
     """The scope of the dotted config path ``path`` (``"grounded_sam.box_threshold"``)."""
     section = path.split(".", maxsplit=1)[0]
-    labeler = next((s.name for s in LABELERS.values() if s.config_field == section), None)
+    spec = labeler_by_section(section)
+    labeler = None if spec is None else spec.name
     stage = next(
         (s.name for s in STAGE_TABLE if s.switch is not None and section in s.reads and path != s.switch),
         None,
@@ -48,14 +52,13 @@ def setting_scope(path: str) -> SettingScope:
     return SettingScope(labeler=labeler, stage=stage)
 
 
-def stage_switches() -> dict[str, str]:
-    """Stage name → flat name of the form field that switches it (stages whose switch is a form field)."""
-    by_path = {f.path: name for name, f in FORM_FIELDS.items()}
-    return {s.name: by_path[s.switch] for s in STAGE_TABLE if s.switch is not None and s.switch in by_path}
+def ignored_reason(cfg: PipelineConfig, path: str, labels: Mapping[str, str] | None = None) -> str | None:
+    """Why ``cfg`` ignores the setting at ``path``, or None when the setting has an effect.
 
-
-def ignored_reason(cfg: PipelineConfig, path: str) -> str | None:
-    """Why ``cfg`` ignores the setting at ``path``, or None when the setting has an effect."""
+    Args:
+        labels: dotted path → human name of the settings the caller shows; a switched-off stage's reason
+            names its switch by this name (``"(3D Consistency Network is unticked)"``) when given.
+    """
     scope = setting_scope(path)
     if scope.labeler is not None and scope.labeler != cfg.labeler:
         return (
@@ -65,20 +68,10 @@ def ignored_reason(cfg: PipelineConfig, path: str) -> str | None:
     if scope.stage is not None:
         stage = next(s for s in STAGE_TABLE if s.name == scope.stage)
         if not stage.is_enabled(cfg):
-            switch = stage_switches().get(stage.name)
-            how = f" ({FORM_FIELDS[switch].label} is unticked)" if switch is not None else ""
+            switch = (labels or {}).get(stage.switch or "")
+            how = f" ({switch} is unticked)" if switch is not None else ""
             return f"the {stage.label} stage is off{how}"
     return None
-
-
-def ignored_settings(cfg: PipelineConfig) -> dict[str, str]:
-    """Flat form name → why ``cfg`` ignores it, for every form field (:data:`FORM_FIELDS`) it ignores."""
-    out: dict[str, str] = {}
-    for name, f in FORM_FIELDS.items():
-        reason = ignored_reason(cfg, f.path)
-        if reason is not None:
-            out[name] = reason
-    return out
 
 
 # ----------------------------------------------------------------------------------- recompute plan
@@ -242,10 +235,13 @@ def _class_changes(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, 
     return out
 
 
-def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
+def run_changes(
+    old: Mapping[str, Any], new: Mapping[str, Any], labels: Mapping[str, str] | None = None
+) -> list[Change]:
     """What differs between two runs' input snapshots (``{"dataset", "frames", "schema": {"classes"},
     "pipeline"}``, as the app stores them), older run first: dataset, frames, classes and prompts, then
-    parameters (dotted paths, each marked when ``new``'s config ignores it)."""
+    parameters (dotted paths, each marked when ``new``'s config ignores it; ``labels``: dotted path →
+    human name, shown before the path of the settings it names)."""
     out: list[Change] = []
     if old.get("dataset") != new.get("dataset"):
         out.append(Change("dataset", "dataset", f"dataset: {old.get('dataset')} → {new.get('dataset')}"))
@@ -263,12 +259,12 @@ def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
         cfg: PipelineConfig | None = config_from_dict(new.get("pipeline") or {})
     except LeapError:
         cfg = None  # a snapshot from an older version: list its changes without the "ignored" notes
-    labels = {f.path: f.label for f in FORM_FIELDS.values()}
+    labels = labels or {}
     for path in list(fb) + [p for p in fa if p not in fb]:
         if _canon(fa.get(path)) == _canon(fb.get(path)):
             continue
         name = f"{labels[path]} ({path})" if path in labels else path
-        ignored = None if cfg is None else ignored_reason(cfg, path)
+        ignored = None if cfg is None else ignored_reason(cfg, path, labels)
         out.append(Change("parameter", path, f"{name}: {_fmt(fa.get(path))} → {_fmt(fb.get(path))}", ignored))
     return out
 
@@ -279,9 +275,7 @@ __all__ = [
     "StagePlan",
     "changed_sections",
     "ignored_reason",
-    "ignored_settings",
     "recompute_plan",
     "run_changes",
     "setting_scope",
-    "stage_switches",
 ]
