@@ -147,7 +147,8 @@ class Domain:
 DOMAINS: dict[str, Domain] = {
     "street": Domain(
         key="street",
-        title="street demo, `simulated-paper` labeler, `paper` preset",
+        # The README's table names its blocks by these titles (block_domain): kept as they were.
+        title="street demo, `paper` labeler preset",
         data="demo",
         synth=("--frames", "60", "--seed", "0"),
         project="projects/semantickitti.yaml",

@@ -13,7 +13,7 @@ import pytest
 from test_pipeline import make_street
 
 from leap_core.colors import CANDIDATES, UNLABELED_RGB, distinct_color, srgb_to_lab
-from leap_core.config import FORM_FIELDS, PipelineConfig, config_from_dict, config_to_dict
+from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.datasets.kitti import write_label
 from leap_core.datasets.raw_ids import (
     SEMANTIC_KITTI_RAW_NAMES,
@@ -33,11 +33,10 @@ from leap_core.pipeline import (
 from leap_core.pipeline.context import read_state
 from leap_core.pipeline.steering import (
     changed_sections,
-    ignored_settings,
+    ignored_reason,
     recompute_plan,
     run_changes,
     setting_scope,
-    stage_switches,
 )
 from leap_core.run_layout import RunLayout
 from leap_core.schema import ClassDef, builtin_schema
@@ -83,12 +82,16 @@ def test_distinct_colors_added_one_by_one_stay_apart() -> None:
 
 
 # ------------------------------------------------------------------------------------------ raw ids
-def test_raw_id_names_merge_semantic_kitti_and_the_demo() -> None:
-    names = raw_id_names()
+def test_raw_id_names_merge_semantic_kitti_and_the_ids_a_caller_passes() -> None:
+    # The demo world's ids reach the names as data (the app passes them); leap_core/datasets knows none.
+    names = raw_id_names(DEMO_EXTRA_RAW_IDS)
     assert names[10] == "car" and names[252] == "moving-car" and names[81] == "traffic-sign"
     assert names[300] == "traffic-cone" and names[301] == "bench" and names[302] == "bollard"
     assert len(SEMANTIC_KITTI_RAW_NAMES) == 34 and set(DEMO_EXTRA_RAW_IDS) <= set(names)
     assert not set(SEMANTIC_KITTI_RAW_NAMES) & set(DEMO_EXTRA_RAW_IDS)
+    assert raw_id_names() == dict(SEMANTIC_KITTI_RAW_NAMES) and 300 not in raw_id_names()
+    # A dataset's own name of an id wins over SemanticKITTI's.
+    assert raw_id_names({10: "sedan", 400: "tractor"})[10] == "sedan"
 
 
 def test_raw_id_counts_use_the_low_16_bits() -> None:
@@ -126,14 +129,18 @@ def test_setting_scopes_come_from_the_labeler_and_stage_records() -> None:
     assert setting_scope("consistency.share").stage == "3dcn"
     assert setting_scope("consistency.enabled").stage is None  # the switch itself always applies
     assert setting_scope("smoothing.k") == setting_scope("fusion.voxel_size") == setting_scope("labeler")
-    assert stage_switches() == {"3dcn": "consistency"}
 
-    default = ignored_settings(PipelineConfig())
-    assert set(default) == {"threshold", "share", "temperature", "iterations"}
-    assert "simulated" in default["threshold"] and "3D Consistency Network" in default["share"]
+    default = PipelineConfig()
+    threshold = ignored_reason(default, "grounded_sam.box_threshold")
+    assert threshold is not None and "simulated" in threshold
+    assert ignored_reason(default, "consistency.share") == "the 3D-CN stage is off"
+    # A caller's names of the settings (dotted path → label) name the switch.
+    named = ignored_reason(default, "consistency.share", {"consistency.enabled": "3D-CN on"})
+    assert named == "the 3D-CN stage is off (3D-CN on is unticked)"
+    assert ignored_reason(default, "smoothing.k") is None
     gsam = config_from_dict({"labeler": "grounded-sam", "consistency": {"enabled": True}})
-    assert ignored_settings(gsam) == {}
-    assert set(FORM_FIELDS) >= set(default)
+    assert ignored_reason(gsam, "grounded_sam.box_threshold") is None
+    assert ignored_reason(gsam, "consistency.share") is None
 
 
 # ------------------------------------------------------------------------------------- run changes
@@ -168,7 +175,8 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
         config_from_dict({"smoothing": {"k": 4}, "grounded_sam": {"box_threshold": 0.3}}),
         frames=[0, 3],
     )
-    texts = {c.text: c for c in run_changes(old, new)}
+    labels = {"smoothing.k": "kNN smoothing k", "grounded_sam.box_threshold": "Box threshold"}
+    texts = {c.text: c for c in run_changes(old, new, labels)}
     assert "frames: all → 0..2" in texts
     assert 'prompts of car: + "sedan", − "jeep"' in texts
     assert 'class traffic-cone added (prompts "traffic cone"; ground-truth ids 300)' in texts
@@ -176,6 +184,8 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert k.kind == "parameter" and k.ignored is None
     thr = texts["Box threshold (grounded_sam.box_threshold): 0.25 → 0.3"]
     assert thr.ignored is not None and "simulated" in thr.ignored
+    # Without names, a parameter is its dotted path.
+    assert "smoothing.k: 9 → 4" in {c.text for c in run_changes(old, new)}
     assert run_changes(old, old) == []
     back = {c.text for c in run_changes(new, old)}
     assert "class traffic-cone removed" in back

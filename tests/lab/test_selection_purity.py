@@ -1,12 +1,11 @@
-"""benchmarks/selection_purity.py's pure parts: the taught-as counts and their table, by hand."""
+"""lab/selection_purity.py's pure parts: the taught-as counts and their table, by hand."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from scripthelpers import load_script
 
-sp = load_script("benchmarks/selection_purity.py")
+from lab import selection_purity as sp
 
 
 def test_taught_counts_by_hand() -> None:

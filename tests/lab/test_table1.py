@@ -1,4 +1,4 @@
-"""benchmarks/table1.py: Table 1's rows, gains, means and acceptance from hand-made metrics dicts, and the
+"""lab/table1.py: Table 1's rows, gains, means and acceptance from hand-made metrics dicts, and the
 seed project files and base-run links that let every seed share one base run."""
 
 from __future__ import annotations
@@ -10,13 +10,14 @@ from typing import Any
 
 import pytest
 import yaml
-from scripthelpers import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
+from lab import table1
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _module() -> ModuleType:
-    return load_script("benchmarks/table1.py")
+    return table1
 
 
 def _metrics(
