@@ -322,6 +322,18 @@ def _is_former_default(value: Any, default: Any) -> bool:
     return type(value) is type(default) and bool(value == default)
 
 
+def without_retired(d: Mapping[str, Any]) -> dict[str, Any]:
+    """A config dict (any subset of :func:`config_to_dict`'s form) without the retired fields that hold
+    their former defaults (:data:`RETIRED_FIELDS`): the settings :func:`config_from_dict` reads from it,
+    so that a dict stored by an older version compares equal to today's form of the same config."""
+    out = dict(d)
+    for (section, name), retired in RETIRED_FIELDS.items():
+        value = out.get(section)
+        if isinstance(value, Mapping) and name in value and _is_former_default(value[name], retired.default):
+            out[section] = {k: v for k, v in value.items() if k != name}
+    return out
+
+
 def _preset_section(
     obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]
 ) -> tuple[Any, Mapping[str, Any]]:
@@ -417,4 +429,5 @@ __all__ = [
     "RetiredField",
     "config_from_dict",
     "config_to_dict",
+    "without_retired",
 ]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import shutil
 from pathlib import Path
 
@@ -194,6 +195,27 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert [c.text for c in ids] == ["ground-truth ids of car: [10, 252] → none"]
     sections = changed_sections(config_to_dict(PipelineConfig()), new["pipeline"])
     assert sections == ["grounded_sam", "smoothing"]
+
+
+def test_a_snapshot_stored_before_the_noise_terms_moved_shows_no_spurious_change() -> None:
+    # A run of an older version stored the simulated section with every moved term at its off value: the
+    # next run's snapshot (today's form, without them) changed nothing.
+    schema = builtin_schema("semantickitti")
+    stored = json.loads(
+        (Path(__file__).parent / "data" / "pipeline_config_with_simulated_terms.json").read_text()
+    )
+    old = {**_snapshot(schema, PipelineConfig()), "pipeline": stored}
+    new = _snapshot(schema, PipelineConfig())
+    assert (
+        "box_leak_prob" in old["pipeline"]["simulated"]
+        and "box_leak_prob" not in new["pipeline"]["simulated"]
+    )
+    assert run_changes(old, new) == [] and run_changes(new, old) == []
+    assert changed_sections(old["pipeline"], new["pipeline"]) == []
+    # A term that was on (a run with the former paper preset) did change the labels: it is listed.
+    stored["simulated"]["box_leak_prob"] = 0.1
+    assert [c.text for c in run_changes(old, new)] == ["simulated.box_leak_prob: 0.1 → null"]
+    assert changed_sections(stored, new["pipeline"]) == ["simulated"]
 
 
 # -------------------------------------------------------------------------------------- recompute plan

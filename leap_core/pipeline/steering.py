@@ -23,7 +23,7 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from leap_core.config import PipelineConfig, config_from_dict
+from leap_core.config import PipelineConfig, config_from_dict, without_retired
 from leap_core.errors import LeapError
 from leap_core.labelers import LABELERS, labeler_by_section
 from leap_core.pipeline.stages import STAGE_TABLE
@@ -151,7 +151,10 @@ def recompute_plan(
 
 
 def changed_sections(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order)."""
+    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order; fields
+    an older version stored at the value that meant "off" do not count, :func:`~leap_core.config.
+    without_retired`)."""
+    old, new = without_retired(old), without_retired(new)
     keys = list(new) + [k for k in old if k not in new]
     return [k for k in keys if _canon(old.get(k)) != _canon(new.get(k))]
 
@@ -254,7 +257,10 @@ def run_changes(
         out.append(Change("frames", "frames", text))
     classes_old = (old.get("schema") or {}).get("classes", [])
     out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
-    fa, fb = _flatten(old.get("pipeline") or {}), _flatten(new.get("pipeline") or {})
+    # A snapshot stored by an older version may hold fields that left the config at their former defaults:
+    # they changed nothing, so they are no parameter change.
+    fa = _flatten(without_retired(old.get("pipeline") or {}))
+    fb = _flatten(without_retired(new.get("pipeline") or {}))
     try:
         cfg: PipelineConfig | None = config_from_dict(new.get("pipeline") or {})
     except LeapError:
