@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import labfixtures
 import numpy as np
 import pytest
 
@@ -15,6 +16,8 @@ from leap_core.datasets.kitti import KittiSequence
 from leap_core.pipeline import run_pipeline
 from leap_core.schema import builtin_schema
 from tests.test_pipeline import make_street
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 
 def test_point_confusion_is_the_runs_camera_point_row(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import math
 from fractions import Fraction
 from pathlib import Path
 
+import labfixtures
 import numpy as np
 import pytest
 
@@ -53,6 +54,8 @@ from tests.test_simulated_labeler import (
     make_sequence,
 )
 from tests.test_simulated_presets import _masks_digest
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 ROOT = Path(__file__).resolve().parents[2]
 

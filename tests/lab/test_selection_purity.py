@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import labfixtures
 import numpy as np
 import pytest
 
 from lab import selection_purity as sp
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 
 def test_taught_counts_by_hand() -> None:

@@ -8,10 +8,13 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import labfixtures
 import pytest
 import yaml
 
 from lab import table1
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 ROOT = Path(__file__).resolve().parents[2]
 

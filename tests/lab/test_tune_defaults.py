@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from types import ModuleType
 
+import labfixtures
+
 from lab import tune_defaults
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 
 def _module() -> ModuleType:

@@ -2,8 +2,10 @@
 
 Importing ``lab`` registers its ``simulated-paper`` labeler into leap_core's registry. The product's tests
 run in the same session and must see the product's labelers only (the CLI's help, the app's form, the
-dataset check list what is registered), so this file, imported before the lab's test modules, takes the
-registration back at once, and each lab test registers the labeler for its own span.
+dataset check list what is registered), so the first import of this module (by the first lab test module
+collected) takes the registration back, and :func:`lab_labeler`, which every lab test module uses
+(``lab_labeler = labfixtures.lab_labeler``), registers the labeler for each test's span. (A module, not a
+conftest.py: the tests import tests/conftest.py by its bare name, which a second conftest.py would take.)
 """
 
 from __future__ import annotations
