@@ -20,8 +20,7 @@ from leap_core.datasets.kitti import Frame, KittiSequence
 from leap_core.errors import Cancelled, ConfigError, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
 from leap_core.labelers.cache import default_cache_dir, image_digest
-from leap_core.labelers.grounded_sam import GroundedSamLabeler
-from leap_core.labelers.simulated import SIMULATED_PRESETS
+from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.presets import Preset, load_preset
 from leap_core.runtime import Runtime
@@ -37,8 +36,8 @@ if TYPE_CHECKING:
     from app.core.config import Settings
     from app.core.instance import WorkDirLock
     from app.rows import RunRow
-    from leap_core.datasets.check import Verdict
     from leap_core.labelers.grounded_sam import GroundedSamConfig
+    from leap_core.pipeline.preflight import Verdict
     from leap_core.pipeline.run import RunResult, SequenceSpec
 
 cli = typer.Typer(
@@ -268,7 +267,7 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
         flags = {"mode": mode, "batch_size": batch_size, "box_threshold": threshold}
         cfg = config_from_dict(
             {"grounded_sam": {k: v for k, v in flags.items() if v is not None}}, preset.pipeline
-        ).grounded_sam
+        ).labeler_config(GroundedSamConfig)
         runtime = _runtime(
             models, cache if cache else default_cache_dir(seq.root), device, allow_download, ray, ray_cpus
         )
@@ -381,7 +380,8 @@ def check_cmd(
     all; 2 a usage error."""
     import json
 
-    from leap_core.datasets.check import check_dataset, render_cli, report_dict
+    from app.advice import render_cli, report_dict
+    from leap_core.pipeline.preflight import check_dataset
 
     try:
         config = None
@@ -400,6 +400,10 @@ def check_cmd(
 
 def _labeler_help() -> str:
     return "2D labeler: " + "; ".join(f"{name} ({spec.description})" for name, spec in LABELERS.items()) + "."
+
+
+def _presets_help() -> str:
+    return "; ".join(f"{name}: {', '.join(spec.presets)}" for name, spec in LABELERS.items() if spec.presets)
 
 
 @cli.command("run")
@@ -435,9 +439,9 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     labeler_preset: str | None = typer.Option(
         None,
         "--labeler-preset",
-        help="Simulated labeler's noise preset: default (mild) or paper (fitted to "
-        "the paper's point row; pipeline.simulated.preset). Replaces the project's simulated settings.",
-        autocompletion=lambda: list(SIMULATED_PRESETS),
+        help="A named setting of the chosen labeler's config section, replacing the project's settings of "
+        f"it (pipeline.<section>.preset): {_presets_help()}.",
+        autocompletion=lambda: sorted({p for spec in LABELERS.values() for p in spec.presets}),
     ),
     consistency: bool | None = typer.Option(
         None, "--3dcn/--no-3dcn", help="Run the 3D Consistency Network (default: the project's setting, off)."
@@ -897,8 +901,9 @@ def _run_config(
     init_3dcn: str | None = None,
 ) -> tuple[Schema, PipelineConfig]:
     """``leap run``'s classes and config: --schema's file gives the classes (and a base config),
-    --project-file's pipeline applies on top, then --labeler, --3dcn and --3dcn-iterations or --3dcn-init
-    (which turn the 3D-CN on; with --no-3dcn they are a contradiction, refused)."""
+    --project-file's pipeline applies on top, then --labeler, --labeler-preset (a preset of the chosen
+    labeler's section), --3dcn and --3dcn-iterations or --3dcn-init (which turn the 3D-CN on; with
+    --no-3dcn they are a contradiction, refused)."""
     if init_3dcn is not None:
         if consistency is False:
             raise LeapError("--3dcn-init fine-tunes the 3D-CN: drop --no-3dcn or --3dcn-init")
@@ -915,8 +920,10 @@ def _run_config(
     flags: dict[str, Any] = {}
     if labeler is not None:
         flags["labeler"] = labeler
-    if labeler_preset is not None:
-        flags["simulated"] = {"preset": labeler_preset}
+    chosen = LABELERS.get(labeler or cfg.labeler)
+    if labeler_preset is not None and chosen is not None:
+        # An unknown labeler name is refused by the config (its usual one-line error) before this applies.
+        flags[chosen.section] = {"preset": labeler_preset}
     if consistency is not None:
         flags["consistency"] = {"enabled": consistency}
     if cn_iterations is not None:

@@ -281,7 +281,7 @@ class CheckPoses(BaseModel):
 
 
 class CheckFinding(BaseModel):
-    code: str = Field(description="stable identifier (leap_core.datasets.check.ADVICE)")
+    code: str = Field(description="stable identifier (leap_core.pipeline.preflight.REASONS)")
     severity: Literal["blocker", "warning", "info"]
     path: str | None = None
     detail: str
@@ -308,7 +308,7 @@ class CheckStage(BaseModel):
 
 
 class DatasetCheck(BaseModel):
-    """What the pipeline can do with a dataset (leap_core.datasets.check; `leap check` prints the same)."""
+    """What the pipeline can do with a dataset (leap_core.pipeline.preflight; `leap check` prints it)."""
 
     root: str
     verdict: Literal["full", "partial", "none"]

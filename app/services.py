@@ -16,29 +16,26 @@ from typing import Any
 import sqlite_utils
 
 from app import crud, models
+from app.advice import report_dict
 from app.core.config import Settings
 from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
 from app.core.security import resolve_in_roots
+from app.forms import FORM_FIELDS, form_values, overrides_from_form
 from app.jobs.progress import ProgressTracker
 from app.rows import DatasetKind, ProjectRow, RunRow, labeled_sequences
 from leap_core.colors import distinct_color
-from leap_core.config import (
-    FORM_FIELDS,
-    PipelineConfig,
-    config_from_dict,
-    config_to_dict,
-    form_values,
-    overrides_from_form,
-)
-from leap_core.datasets.check import check_dataset, dataset_stamp, report_dict
+from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
+from leap_core.labelers.grounded_sam import GroundedSamConfig
 from leap_core.pipeline import PAPER, SequenceMetrics
+from leap_core.pipeline.preflight import check_dataset, dataset_stamp
 from leap_core.presets import builtin_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
+from leap_core.synth.names import DEMO_EXTRA_RAW_IDS
 
 
 # -------------------------------------------------------------------------------------- pipeline config
@@ -148,11 +145,11 @@ _check_lock = threading.Lock()
 def dataset_check(
     settings: Settings, path: Path, config: PipelineConfig | None = None, *, estimate_poses: bool = False
 ) -> models.DatasetCheck:
-    """:func:`leap_core.datasets.check.check_dataset` of a sequence folder, worded for the app (its
+    """:func:`leap_core.pipeline.preflight.check_dataset` of a sequence folder, worded for the app (its
     options, never a command-line flag), with the server's models folder. Cached per folder state
-    (:func:`~leap_core.datasets.check.dataset_stamp`: the mtimes of the folder and the entries it reads)
+    (:func:`~leap_core.pipeline.preflight.dataset_stamp`: the mtimes of the folder and the entries it reads)
     and per setting that changes the answer, so the dataset list and project pages stay fast."""
-    gs = None if config is None else config.grounded_sam
+    gs = None if config is None else config.labeler_config(GroundedSamConfig)
     key = (
         dataset_stamp(path),
         None
@@ -801,7 +798,7 @@ def raw_ids_public(project: ProjectRow) -> models.RawIdsPublic:
     """
     folder = Path(project.dataset_path)
     labels = folder / "labels"
-    names = raw_id_names()
+    names = raw_id_names(DEMO_EXTRA_RAW_IDS)
     if not labels.is_dir():
         return models.RawIdsPublic(
             data=[],

@@ -19,6 +19,7 @@ import sqlite_utils
 from app import crud, models
 from app.core.config import Settings
 from app.core.errors import InvalidField
+from app.forms import PATH_LABELS
 from app.jobs.manager import run_corrections, seed_source
 from app.rows import ProjectRow, RunParams, RunSequence
 from app.services import metrics_public, overall, project_config, stale_results
@@ -59,7 +60,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     changes = (
         []
         if base is None
-        else [_change_public(c) for c in run_changes(base.params.to_dict(), snapshot.to_dict())]
+        else [_change_public(c) for c in run_changes(base.params.to_dict(), snapshot.to_dict(), PATH_LABELS)]
     )
     basis = None if base is None else models.RunBasis(id=base.id, number=base.number)
     # A run of other sequences seeds nothing (seed_source): say why instead of "no earlier run".
@@ -166,7 +167,9 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
     base = crud.require_run(db, base_id)
     if run.project_id != base.project_id:
         raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
-    changes = [_change_public(c) for c in run_changes(base.params.to_dict(), run.params.to_dict())]
+    changes = [
+        _change_public(c) for c in run_changes(base.params.to_dict(), run.params.to_dict(), PATH_LABELS)
+    ]
     rows: list[models.RowDelta] = []
     ma, mb = metrics_public(overall(run)), metrics_public(overall(base))
     if ma is not None and mb is not None:

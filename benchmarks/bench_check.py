@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import print_table, time_it, write_results
 
 from leap_core.config import config_from_dict
-from leap_core.datasets.check import check_dataset, dataset_stamp
 from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_image, write_poses
+from leap_core.pipeline.preflight import check_dataset, dataset_stamp
 
 
 def make_sequence(root: Path, frames: int) -> Path:

@@ -14,9 +14,18 @@ keys and types itself and re-raises every error with the absolute path
 ``pipeline.fusion.voxel_size: must be a positive number, got 0`` and callers such as the app map
 ``exc.field`` onto their own error locations without reading the message.
 
+Labelers. Each 2D labeler registered in :data:`~leap_core.labelers.LABELERS` brings its own config section
+(``LabelerSpec.section`` and ``config_type``): ``PipelineConfig.labelers`` holds one config per registered
+section, and the dict form has each as a top-level key beside ``labeler``
+(``{labeler: simulated, simulated: {...}, grounded_sam: {...}, projection: {...}, ...}``), as it had when
+the sections were fields. A labeler registered from beside leap_core (the research lab's) adds its section.
+
 Deployment values (models folder, 2D cache folder, device, model downloads) are not config fields; they
 are the run's :class:`~leap_core.runtime.Runtime`. A dict that still sets one of the former
 ``grounded_sam`` fields is refused with a message that names its replacement (:data:`RETIRED_FIELDS`).
+So is a dict whose ``simulated`` section sets a noise term that moved to the research lab's
+``simulated-paper`` labeler to anything but the value that left it off; dicts stored before the move hold
+every such term at that value, and are read as if it were absent.
 
 Reading a config imports no torch: the nested configs' modules import it only where tensors are made.
 """
@@ -30,16 +39,22 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.errors import ConfigError, LeapError
 from leap_core.fusion import FusionConfig
-from leap_core.labelers import LABELERS
-from leap_core.labelers.grounded_sam import GroundedSamConfig
-from leap_core.labelers.simulated import SimulatedLabelerConfig
+from leap_core.labelers import LABELERS, labeler_by_section
+from leap_core.labelers.simulated import MOVED_TERMS, MOVED_TERMS_FIX
 from leap_core.projection import ProjectionConfig
 from leap_core.smoothing import SmoothingConfig
+
+
+def _default_sections() -> dict[str, object]:
+    return {spec.section: spec.config_type() for spec in LABELERS.values()}
+
+
+C = TypeVar("C")
 
 
 @dataclass(frozen=True)
@@ -48,11 +63,12 @@ class PipelineConfig:
 
     labeler: str = "simulated"
     """2D labeler, a name in :data:`leap_core.labelers.LABELERS`: "simulated" (from a dataset's 2D ground
-    truth, with a noise model) or "grounded-sam"."""
-    simulated: SimulatedLabelerConfig = field(default_factory=SimulatedLabelerConfig)
-    """Noise model of the simulated labeler."""
-    grounded_sam: GroundedSamConfig = field(default_factory=GroundedSamConfig)
-    """Grounding DINO + SAM models and thresholds."""
+    truth, with a noise model) or "grounded-sam" (or one registered beside leap_core)."""
+    labelers: Mapping[str, object] = field(default_factory=_default_sections)
+    """Every registered labeler's settings, by its config section (``LabelerSpec.section``: ``simulated``,
+    ``grounded_sam``), each an instance of its ``LabelerSpec.config_type``; sections left out get their
+    defaults. In the dict form each section is a top-level key (:func:`config_to_dict`). Read one with
+    :meth:`labeler_config` (typed) or ``LabelerSpec.config_of``."""
     projection: ProjectionConfig = field(default_factory=ProjectionConfig)
     """Point projection and per-mask depth clustering."""
     fusion: FusionConfig = field(default_factory=FusionConfig)
@@ -70,86 +86,66 @@ class PipelineConfig:
             raise ConfigError(f"must be one of {names}, got {_short(self.labeler)}", field=("labeler",))
         if not self.correction_strength > 0:
             raise ConfigError(f"must be > 0, got {self.correction_strength}", field=("correction_strength",))
+        own = {f.name for f in dataclasses.fields(self)}
+        for section, value in self.labelers.items():
+            spec = labeler_by_section(section)
+            if spec is None:
+                known = ", ".join(s.section for s in LABELERS.values())
+                raise ConfigError(
+                    f"no registered labeler has this config section (known: {known})", field=(section,)
+                )
+            if section in own:
+                raise LeapError(f"labeler {spec.name!r}: its config section {section!r} is a pipeline field")
+            if type(value) is not spec.config_type:
+                raise ConfigError(
+                    f"must be a {spec.config_type.__name__}, got a {type(value).__name__}", field=(section,)
+                )
+        # Every registered section, in the registry's order (the dict form's order): defaults where absent.
+        full: dict[str, object] = {}
+        for spec in LABELERS.values():
+            value = self.labelers.get(spec.section)
+            full[spec.section] = spec.config_type() if value is None else value
+        object.__setattr__(self, "labelers", full)
 
+    def labeler_section(self, section: str, config_type: type[C]) -> C:
+        """The settings of config section ``section``, which hold a ``config_type`` (its defaults when this
+        config was made before that section's labeler was registered).
 
-@dataclass(frozen=True)
-class FormField:
-    """One parameter of the app's pipeline form: a flat name for a dotted :class:`PipelineConfig` path."""
+        Raises:
+            LeapError: no registered labeler has that section, or its config is of another type.
+        """
+        spec = labeler_by_section(section)
+        if spec is None or spec.config_type is not config_type:
+            raise LeapError(
+                f"no registered labeler has a config section {section!r} of {config_type.__name__}"
+            )
+        value = self.labelers.get(section)
+        if value is None:
+            return config_type()
+        assert isinstance(value, config_type)  # __post_init__ checked every section's type
+        return value
 
-    path: str
-    """Dotted path in :class:`PipelineConfig` (``"fusion.voxel_size"``)."""
-    label: str
-    """Short human label."""
-    kind: Literal["select", "number", "integer", "checkbox"]
-    """Input widget."""
-    help: str = ""
-    """One line on what the setting changes."""
-    minimum: float | None = None
-    maximum: float | None = None
-    step: float | None = None
-    choices: tuple[tuple[str, str], ...] = ()
-    """``select`` only: (value, label) pairs."""
+    def labeler_config(self, config_type: type[C]) -> C:
+        """The settings of the registered labeler whose config is a ``config_type``
+        (``cfg.labeler_config(SimulatedLabelerConfig)``).
 
+        Raises:
+            LeapError: no registered labeler, or several, have that config type.
+        """
+        specs = [s for s in LABELERS.values() if s.config_type is config_type]
+        if len(specs) != 1:
+            raise LeapError(f"{len(specs)} registered labelers have a {config_type.__name__} config")
+        return self.labeler_section(specs[0].section, config_type)
 
-FORM_FIELDS: dict[str, FormField] = {
-    "labeler": FormField(
-        "labeler",
-        "2D labeler",
-        "select",
-        "which model turns camera images into 2D labels",
-        choices=tuple((name, spec.label) for name, spec in LABELERS.items()),
-    ),
-    "threshold": FormField(
-        "grounded_sam.box_threshold",
-        "Box threshold",
-        "number",
-        "Grounding DINO boxes below this similarity are dropped",
-        0.0,
-        1.0,
-        0.01,
-    ),
-    "voxel_size": FormField(
-        "fusion.voxel_size", "Voxel size (m)", "number", "edge of the fusion grid's voxels", 0.01, None, 0.05
-    ),
-    "k": FormField("smoothing.k", "kNN smoothing k", "integer", "neighbours averaged per voxel", 1, None, 1),
-    "cluster_gap": FormField(
-        "projection.cluster_gap",
-        "Depth-cluster gap (m)",
-        "number",
-        "depth gap that splits a mask's points into clusters",
-        0.0,
-        None,
-        0.1,
-    ),
-    "consistency": FormField(
-        "consistency.enabled",
-        "3D Consistency Network",
-        "checkbox",
-        "train a 3D network on the most confident voxels and fuse it back",
-    ),
-    "share": FormField(
-        "consistency.share",
-        "3D-CN label share",
-        "number",
-        "share of each class's most confident points used for training",
-        0.0,
-        1.0,
-        0.05,
-    ),
-    "temperature": FormField(
-        "consistency.temperature",
-        "3D-CN temperature",
-        "number",
-        "weight of the network's evidence when fused back (lower = stronger)",
-        0.0,
-        None,
-        0.1,
-    ),
-    "iterations": FormField(
-        "consistency.iterations", "3D-CN iterations", "integer", "self-training rounds", 1, None, 1
-    ),
-}
-"""The app form's flat parameter names → their :class:`FormField` (dotted path, label, widget)."""
+    def with_labeler_config(self, config: object, section: str | None = None) -> PipelineConfig:
+        """This config with one labeler's settings replaced by ``config``, in ``section`` (default: the
+        section of the one registered labeler whose config type is ``type(config)``)."""
+        if section is None:
+            specs = [s for s in LABELERS.values() if s.config_type is type(config)]
+            if len(specs) != 1:
+                raise LeapError(f"{len(specs)} registered labelers have a {type(config).__name__} config")
+            section = specs[0].section
+        return dataclasses.replace(self, labelers={**self.labelers, section: config})
 
 
 # ------------------------------------------------------------------------------------------ to dict
@@ -164,8 +160,21 @@ def _plain(value: Any) -> Any:
 
 
 def config_to_dict(cfg: PipelineConfig) -> dict[str, Any]:
-    """JSON/YAML-ready nested dict of every field (tuples become lists); see :func:`config_from_dict`."""
-    out: dict[str, Any] = _plain(cfg)
+    """JSON/YAML-ready nested dict of every field (tuples become lists), each labeler's section a top-level
+    key after ``labeler`` (``{labeler, simulated, grounded_sam, projection, ...}``); see
+    :func:`config_from_dict`."""
+    return {key: _plain(value) for key, value in _settings(cfg).items()}
+
+
+def _settings(cfg: PipelineConfig) -> dict[str, Any]:
+    """The top-level settings of ``cfg`` by their dict-form key: its fields, with the labeler sections in
+    place of ``labelers``."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        if f.name == "labelers":
+            out.update(cfg.labelers)
+        else:
+            out[f.name] = getattr(cfg, f.name)
     return out
 
 
@@ -266,7 +275,9 @@ class RetiredField:
     default: Any
     """Its former default; dicts stored by older versions carry it and are read as if it were absent."""
     replacement: str
-    """Where the value is given now, completing "no longer a pipeline setting; ..."."""
+    """Where the value is given now, completing "<problem>; ..."."""
+    problem: str = "no longer a pipeline setting"
+    """What the message says first."""
 
 
 RETIRED_FIELDS: dict[tuple[str, ...], RetiredField] = {
@@ -286,9 +297,41 @@ RETIRED_FIELDS: dict[tuple[str, ...], RetiredField] = {
     ("grounded_sam", "allow_download"): RetiredField(
         False, "model downloads are allowed per run: `--allow-download` (leap run, leap labels2d)"
     ),
+    **{
+        ("simulated", name): RetiredField(
+            off, MOVED_TERMS_FIX, "no longer a setting of the simulated labeler"
+        )
+        for name, off in MOVED_TERMS.items()
+    },
 }
-"""Former config fields (path below ``pipeline``) that are deployment values now
-(:class:`~leap_core.runtime.Runtime`)."""
+"""Former config fields (path below ``pipeline``): deployment values now
+(:class:`~leap_core.runtime.Runtime`), and the simulated labeler's noise terms that moved to the research
+lab's labeler (:data:`~leap_core.labelers.simulated.MOVED_TERMS`)."""
+
+
+def _is_former_default(value: Any, default: Any) -> bool:
+    """Whether a stored ``value`` is a retired field's former ``default``: the same truth value for a
+    switch, the same number for a number (``0`` for ``0.0``), an equal mapping for a table, else an equal
+    value of the same type."""
+    if isinstance(default, bool):
+        return isinstance(value, bool) and value == default
+    if isinstance(default, (int, float)):
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and value == default
+    if isinstance(default, Mapping):
+        return isinstance(value, Mapping) and dict(value) == dict(default)
+    return type(value) is type(default) and bool(value == default)
+
+
+def without_retired(d: Mapping[str, Any]) -> dict[str, Any]:
+    """A config dict (any subset of :func:`config_to_dict`'s form) without the retired fields that hold
+    their former defaults (:data:`RETIRED_FIELDS`): the settings :func:`config_from_dict` reads from it,
+    so that a dict stored by an older version compares equal to today's form of the same config."""
+    out = dict(d)
+    for (section, name), retired in RETIRED_FIELDS.items():
+        value = out.get(section)
+        if isinstance(value, Mapping) and name in value and _is_former_default(value[name], retired.default):
+            out[section] = {k: v for k, v in value.items() if k != name}
+    return out
 
 
 def _preset_section(
@@ -309,28 +352,47 @@ def _preset_section(
     return preset, {k: v for k, v in overrides.items() if k != "preset"}
 
 
+def _current(obj: Any) -> dict[str, Any]:
+    """The settings of a config object by key: its fields; for :class:`PipelineConfig`, its dict form's
+    top-level keys (each labeler's section in place of ``labelers``)."""
+    if isinstance(obj, PipelineConfig):
+        return _settings(obj)
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+
+def _replace(obj: Any, changes: dict[str, Any]) -> Any:
+    """``dataclasses.replace`` by the keys of :func:`_current`."""
+    if isinstance(obj, PipelineConfig):
+        sections = {k: v for k, v in changes.items() if labeler_by_section(k) is not None}
+        rest = {k: v for k, v in changes.items() if k not in sections}
+        if sections:
+            rest["labelers"] = {**obj.labelers, **sections}
+        return dataclasses.replace(obj, **rest)
+    return dataclasses.replace(obj, **changes)
+
+
 def _apply(obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]) -> Any:
     """``obj`` with ``overrides`` applied; every error carries the absolute field path."""
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"must be a mapping of settings, got {_short(overrides)}", field=path)
-    hints = typing.get_type_hints(type(obj))
-    names = [f.name for f in dataclasses.fields(obj)]
     obj, overrides = _preset_section(obj, overrides, path)
+    hints = typing.get_type_hints(type(obj))
+    current = _current(obj)
+    names = list(current)
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
         where = (*path, str(key))
-        if key not in names:
+        if key not in current:
             retired = RETIRED_FIELDS.get(where[1:])
             if retired is not None:
-                if value == retired.default and type(value) is type(retired.default):
+                if _is_former_default(value, retired.default):
                     continue
-                raise ConfigError(f"no longer a pipeline setting; {retired.replacement}", field=where)
+                raise ConfigError(f"{retired.problem}; {retired.replacement}", field=where)
             close = difflib.get_close_matches(str(key), names, n=1)
             hint = f"did you mean {close[0]!r}?" if close else f"known: {', '.join(names)}"
             raise ConfigError(f"unknown setting ({hint})", field=where)
-        current = getattr(obj, key)
-        if dataclasses.is_dataclass(current):
-            changes[key] = _apply(current, value, where)
+        if dataclasses.is_dataclass(current[key]):
+            changes[key] = _apply(current[key], value, where)
             continue
         try:
             changes[key] = _coerce(value, hints[key])
@@ -339,7 +401,7 @@ def _apply(obj: Any, overrides: Mapping[str, Any], path: tuple[str, ...]) -> Any
     if not changes:
         return obj
     try:
-        return dataclasses.replace(obj, **changes)
+        return _replace(obj, changes)
     except ConfigError as exc:
         raise exc.within(*path) from None
 
@@ -361,46 +423,11 @@ def config_from_dict(d: Mapping[str, Any] | None, base: PipelineConfig | None = 
     return cfg
 
 
-def overrides_from_form(form: Mapping[str, Any]) -> dict[str, Any]:
-    """Nested overrides from the app form's flat names (:data:`FORM_FIELDS`).
-
-    Raises:
-        LeapError: ``field = ("form", name)`` for a name that is not a form field.
-    """
-    out: dict[str, Any] = {}
-    for name, value in form.items():
-        if name not in FORM_FIELDS:
-            raise LeapError(
-                f"pipeline form: unknown field {name!r} (known: {', '.join(FORM_FIELDS)})",
-                field=("form", str(name)),
-            )
-        *parents, leaf = FORM_FIELDS[name].path.split(".")
-        node = out
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
-    return out
-
-
-def form_values(cfg: PipelineConfig) -> dict[str, Any]:
-    """The app form's flat values read from ``cfg``."""
-    out: dict[str, Any] = {}
-    for name, form_field in FORM_FIELDS.items():
-        node: Any = cfg
-        for part in form_field.path.split("."):
-            node = getattr(node, part)
-        out[name] = node
-    return out
-
-
 __all__ = [
-    "FORM_FIELDS",
     "RETIRED_FIELDS",
-    "FormField",
     "PipelineConfig",
     "RetiredField",
     "config_from_dict",
     "config_to_dict",
-    "form_values",
-    "overrides_from_form",
+    "without_retired",
 ]

@@ -12,7 +12,7 @@ Tables:
 - ``prompt-expansion``: bare, short and full prompt expansion, 3D-CN off.
 
 Both are on the demo's seed 0, a *report* seed: no default was chosen on it (the 3D-CN defaults were
-chosen on tuning seeds 101-103 by ``benchmarks/tune_defaults.py``; the simulated labeler's lexicon on seed
+chosen on tuning seeds 101-103 by ``lab/tune_defaults.py``; the simulated labeler's lexicon on seed
 1). The page's other figures are not regenerated here: the speed and timing figures come from the
 ``benchmarks/*.py`` scripts (machine-dependent), and the models' speed table needs real Grounding DINO /
 SAM weights, which cannot be downloaded on the build machines.

@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_script(relpath: str) -> ModuleType:
-    """``ROOT / relpath`` (e.g. ``benchmarks/table1.py``) imported under its file stem and registered in
+    """``ROOT / relpath`` (e.g. ``benchmarks/bench_scale.py``) imported under its file stem and registered in
     ``sys.modules`` (dataclasses defined in it need their module there)."""
     path = ROOT / relpath
     spec = importlib.util.spec_from_file_location(path.stem, path)

@@ -4,6 +4,7 @@ that reading a config stays free of torch."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -11,13 +12,12 @@ from pathlib import Path
 import pytest
 from conftest import build_tiny_sequence
 
-from leap_core import labelers
-from leap_core.config import FORM_FIELDS, RETIRED_FIELDS, PipelineConfig, config_from_dict, config_to_dict
+from leap_core.config import RETIRED_FIELDS, PipelineConfig, config_from_dict, config_to_dict
 from leap_core.errors import ConfigError, LeapError, SchemaError
-from leap_core.labelers import LABELERS, LabelerSpec, make_labeler
+from leap_core.labelers import LABELERS, LabelerSpec, make_labeler, register_labeler, unregister_labeler
 from leap_core.labelers.cache import pass_cache_dir
-from leap_core.labelers.grounded_sam import GroundedSamLabeler
-from leap_core.labelers.simulated import SimulatedLabeler, SimulatedLabelerConfig
+from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
+from leap_core.labelers.simulated import MOVED_TERMS, SimulatedLabeler, SimulatedLabelerConfig
 from leap_core.presets import builtin_preset, list_presets, load_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import projects_dir
@@ -150,7 +150,7 @@ def test_deployment_fields_in_a_config_say_what_replaces_them(
 def test_dicts_stored_by_older_versions_still_read() -> None:
     """Old SQLite rows and run specs hold every former field at its default: those say nothing."""
     old = config_to_dict(PipelineConfig())
-    old["grounded_sam"].update({k[1]: r.default for k, r in RETIRED_FIELDS.items()})
+    old["grounded_sam"].update({k[1]: r.default for k, r in RETIRED_FIELDS.items() if k[0] == "grounded_sam"})
     assert config_from_dict(old) == PipelineConfig()
     with pytest.raises(ConfigError):  # but a value that would have meant something is refused
         config_from_dict({"grounded_sam": {"device": "cpu"}})
@@ -177,9 +177,59 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
     assert "--models DIR" in last
 
 
+STORED = Path(__file__).resolve().parent / "data" / "pipeline_config_with_simulated_terms.json"
+"""``config_to_dict(PipelineConfig())`` as SQLite rows, run specs and project files stored it while the
+simulated labeler's config still held the paper preset's noise terms (each at its off value)."""
+
+
+def test_a_stored_dict_with_the_moved_noise_terms_at_their_defaults_still_reads() -> None:
+    stored = json.loads(STORED.read_text())
+    assert set(MOVED_TERMS) <= set(stored["simulated"])  # the file is of that shape
+    cfg = config_from_dict(stored)
+    assert cfg == PipelineConfig()
+    # Read back, it is today's dict form: the same sections, the simulated one without the moved terms.
+    now = config_to_dict(cfg)
+    assert list(now) == list(stored)
+    assert now["simulated"] == {k: v for k, v in stored["simulated"].items() if k not in MOVED_TERMS}
+    # Written by hand, a number term may be an integer (YAML "0"), a switch must be a switch.
+    assert config_from_dict({"simulated": {"box_leak_prob": 0, "stratified_draws": False}}) == cfg
+    with pytest.raises(ConfigError):
+        config_from_dict({"simulated": {"stratified_draws": 0}})
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("box_leak_prob", 0.1),
+        ("class_confusion", {"car": 0.2}),
+        ("stratified_draws", True),
+        ("stuff_tile_px", 32),
+    ],
+)
+def test_a_moved_noise_term_that_is_on_is_refused_naming_the_field_and_the_labs_labeler(
+    name: str, value: object
+) -> None:
+    stored = json.loads(STORED.read_text())
+    stored["simulated"][name] = value
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(stored)
+    assert err.value.field == ("pipeline", "simulated", name)
+    message = str(err.value)
+    assert message.startswith(f"pipeline.simulated.{name}: no longer a setting of the simulated labeler; ")
+    assert "simulated-paper" in message and "simulated_paper" in message and "python -m lab" in message
+
+
+def test_the_stored_dicts_labeler_keeps_its_fingerprint() -> None:
+    # The 2D stage's fingerprint hashes the labeler's name and its fingerprint (never the section's dict):
+    # with this one pinned before the terms moved, a run folder made from a stored dict stays current.
+    cfg = config_from_dict(json.loads(STORED.read_text()))
+    schema = builtin_preset("semantickitti").schema
+    assert make_labeler(cfg).fingerprint(schema) == "0a4824aaa8fea028"
+
+
 def test_runtime_values_reach_the_labeler_and_not_the_config(tmp_path: Path) -> None:
     assert not {"models_dir", "cache_dir", "device", "allow_download"} & {
-        f.name for f in dataclasses.fields(PipelineConfig().grounded_sam)
+        f.name for f in dataclasses.fields(GroundedSamConfig)
     }
     rt = Runtime(models_dir=tmp_path / "m", cache_dir=tmp_path / "c", device="cpu", allow_download=True)
     lab = make_labeler(PipelineConfig(labeler="grounded-sam"), rt)
@@ -193,40 +243,86 @@ def test_runtime_values_reach_the_labeler_and_not_the_config(tmp_path: Path) -> 
 
 # ------------------------------------------------------------------------------------ labeler registry
 def test_every_registered_labeler_has_its_config_section_and_builds() -> None:
-    fields = {f.name: f for f in dataclasses.fields(PipelineConfig)}
+    assert list(LABELERS) == ["simulated", "grounded-sam"]  # the product's; the lab's registers on import
+    own = {f.name for f in dataclasses.fields(PipelineConfig)}
+    default = PipelineConfig()
+    assert list(default.labelers) == [spec.section for spec in LABELERS.values()]
     for name, spec in LABELERS.items():
         assert spec.name == name and spec.needs in ("gt2d", "images") and spec.missing and spec.description
-        assert isinstance(getattr(PipelineConfig(), spec.config_field), spec.config_type), name
-        assert fields[spec.config_field].default_factory is spec.config_type
+        assert spec.section not in own
+        assert type(default.labelers[spec.section]) is spec.config_type, name
+        assert spec.config_of(default) == spec.config_type() == default.labeler_config(spec.config_type)
         labeler = make_labeler(PipelineConfig(labeler=name))
         assert labeler.name == name
-    assert FORM_FIELDS["labeler"].choices == tuple((n, s.label) for n, s in LABELERS.items())
+    # The dict form keeps the shape of the time the sections were fields.
+    assert list(config_to_dict(default))[:3] == ["labeler", "simulated", "grounded_sam"]
 
 
-def test_the_registry_drives_labeler_validation(monkeypatch: pytest.MonkeyPatch) -> None:
+@dataclasses.dataclass(frozen=True)
+class ExactConfig:
+    """A test labeler's section: the simulated labeler with every knob off, at a seed."""
+
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.seed < 0:
+            raise ConfigError(f"must be >= 0, got {self.seed}", field=("seed",))
+
+
+def _exact_spec(built: list[ExactConfig], section: str = "exact") -> LabelerSpec[ExactConfig]:
+    def factory(config: ExactConfig, runtime: Runtime) -> SimulatedLabeler:
+        built.append(config)
+        return SimulatedLabeler(SimulatedLabelerConfig.exact(config.seed))
+
+    return LabelerSpec(
+        "exact", "exact", "2D ground truth without noise", section, ExactConfig, factory, "gt2d", "-"
+    )
+
+
+def test_a_registered_labeler_brings_its_config_section() -> None:
     with pytest.raises(ConfigError):
         PipelineConfig(labeler="exact")
-    built: list[SimulatedLabelerConfig] = []
-
-    def exact(config: SimulatedLabelerConfig, runtime: Runtime) -> SimulatedLabeler:
-        built.append(config)
-        return SimulatedLabeler(SimulatedLabelerConfig.exact())
-
-    spec = LabelerSpec(
-        "exact",
-        "exact",
-        "2D ground truth without noise",
-        "simulated",
-        SimulatedLabelerConfig,
-        exact,
-        "gt2d",
-        "needs 2D ground truth",
-    )
-    monkeypatch.setitem(labelers.LABELERS, "exact", spec)
-    cfg = config_from_dict({"labeler": "exact"})
-    assert isinstance(make_labeler(cfg), SimulatedLabeler) and built == [cfg.simulated]
-    with pytest.raises(ConfigError, match="must be one of 'simulated', 'grounded-sam', 'exact', got 'x'"):
-        config_from_dict({"labeler": "x"})
+    with pytest.raises(ConfigError, match=r"pipeline\.exact: unknown setting"):
+        config_from_dict({"exact": {"seed": 3}})
+    built: list[ExactConfig] = []
+    spec = _exact_spec(built)
+    register_labeler(spec)
+    try:
+        register_labeler(spec)  # again: nothing changes
+        assert list(LABELERS) == ["simulated", "grounded-sam", "exact"]
+        with pytest.raises(ValueError, match="named 'exact'"):
+            register_labeler(_exact_spec([]))
+        with pytest.raises(ValueError, match="section 'simulated' belongs to the 'simulated' labeler"):
+            register_labeler(dataclasses.replace(_exact_spec([], "simulated"), name="other"))
+        cfg = config_from_dict({"labeler": "exact", "exact": {"seed": 3}})
+        assert cfg.labeler_config(ExactConfig) == ExactConfig(3) == spec.config_of(cfg)
+        labeler = make_labeler(cfg)
+        assert isinstance(labeler, SimulatedLabeler) and labeler.cfg.seed == 3 and built == [ExactConfig(3)]
+        d = config_to_dict(cfg)
+        assert list(d)[:4] == ["labeler", "simulated", "grounded_sam", "exact"] and d["exact"] == {"seed": 3}
+        assert config_from_dict(d) == cfg
+        # Its fields are checked like any section's, with the absolute path.
+        with pytest.raises(ConfigError) as err:
+            config_from_dict({"exact": {"seed": -1}})
+        assert err.value.field == ("pipeline", "exact", "seed")
+        with pytest.raises(
+            ConfigError, match=r"pipeline\.exact\.sed: unknown setting \(did you mean 'seed'\?\)"
+        ):
+            config_from_dict({"exact": {"sed": 1}})
+        # A section holds its own type only; a config made before the registration reads its defaults.
+        with pytest.raises(ConfigError) as err:
+            PipelineConfig(labelers={"exact": SimulatedLabelerConfig()})
+        assert err.value.field == ("exact",)
+        with pytest.raises(ConfigError, match="must be one of 'simulated', 'grounded-sam', 'exact', got 'x'"):
+            config_from_dict({"labeler": "x"})
+        with_section = dataclasses.replace(PipelineConfig(), labelers={"simulated": SimulatedLabelerConfig()})
+        assert with_section.labeler_config(ExactConfig) == ExactConfig()
+        assert with_section.with_labeler_config(ExactConfig(5)).labeler_config(ExactConfig).seed == 5
+    finally:
+        unregister_labeler("exact")
+    assert "exact" not in LABELERS and "exact" not in PipelineConfig().labelers
+    with pytest.raises(ValueError, match="part of leap_core"):
+        unregister_labeler("simulated")
 
 
 def test_cli_labeler_help_lists_the_registry() -> None:
@@ -245,14 +341,15 @@ def test_presets_read_classes_and_pipeline_section() -> None:
     assert {"agri_uav", "demo", "semantickitti", "semantickitti_expanded"} <= set(list_presets())
     agri = load_preset("agri_uav")
     assert agri.source == projects_dir() / "agri_uav.yaml" and agri.schema.num_classes == 7
-    assert agri.pipeline.labeler == "grounded-sam" and agri.pipeline.grounded_sam.box_threshold == 0.2
+    agri_gs = agri.pipeline.labeler_config(GroundedSamConfig)
+    assert agri.pipeline.labeler == "grounded-sam" and agri_gs.box_threshold == 0.2
     assert agri.pipeline.consistency.class_balance_power == 0.0  # the farm's choice on its tuning sequences
     assert load_preset(projects_dir() / "agri_uav.yaml") == agri == builtin_preset("agri_uav")
     assert load_preset("semantickitti").pipeline == PipelineConfig()
     # The section applies onto a base: fields it does not name keep the base's values.
     base = config_from_dict({"smoothing": {"k": 3}, "grounded_sam": {"box_threshold": 0.4}})
     on_base = load_preset("agri_uav", base).pipeline
-    assert on_base.smoothing.k == 3 and on_base.grounded_sam.box_threshold == 0.2
+    assert on_base.smoothing.k == 3 and on_base.labeler_config(GroundedSamConfig).box_threshold == 0.2
 
 
 def test_unknown_presets_and_paths_for_names_are_refused() -> None:

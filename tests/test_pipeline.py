@@ -14,13 +14,7 @@ import numpy as np
 import pytest
 from runhelpers import folder, label
 
-from leap_core.config import (
-    PipelineConfig,
-    config_from_dict,
-    config_to_dict,
-    form_values,
-    overrides_from_form,
-)
+from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.datasets.kitti import (
     Calib,
     KittiSequence,
@@ -486,7 +480,7 @@ def test_plans_and_fingerprints_are_for_the_frames_asked_for(street: Path, schem
 
 def test_zero_noise_point_labels_match_ground_truth(street: Path, schema, tmp_path: Path) -> None:
     """Exact 2D labels, no depth-clustering loss: projected labels equal the 3D ground truth."""
-    cfg = dataclasses.replace(PipelineConfig(), simulated=SimulatedLabelerConfig.exact())
+    cfg = PipelineConfig().with_labeler_config(SimulatedLabelerConfig.exact())
     result = label(street, schema, cfg, tmp_path / "exact", until="evaluate")
     cam = result.metrics.table("camera")["point"]
     # Points straddling an object edge may land on a pixel whose ray hits the neighbour, so allow a little.
@@ -931,13 +925,14 @@ def test_skip_reason_reads_the_stage_record(tmp_path: Path) -> None:
 def test_a_model_labeler_fingerprint_follows_the_runtime_models(street: Path, schema, tmp_path: Path) -> None:
     """The models folder is part of the run's runtime, not its config: planning and fingerprints must use
     the runtime they are given (another model folder content = other 2D labels, everything reruns)."""
-    from leap_core.labelers.grounded_sam import model_folder_name
+    from leap_core.labelers.grounded_sam import GroundedSamConfig, model_folder_name
 
     cfg = config_from_dict({"labeler": "grounded-sam"})
+    gs = cfg.labeler_config(GroundedSamConfig)
     fps = []
     for version in ("a", "b"):
         models = tmp_path / f"models_{version}"
-        for model_id in (cfg.grounded_sam.detector_id, cfg.grounded_sam.segmenter_id):
+        for model_id in (gs.detector_id, gs.segmenter_id):
             folder = models / model_folder_name(model_id)
             folder.mkdir(parents=True)
             (folder / "config.json").write_text(json.dumps({"version": version}))
@@ -958,7 +953,7 @@ def test_config_roundtrip_through_json() -> None:
     )
     d = json.loads(json.dumps(config_to_dict(cfg)))
     assert config_from_dict(d) == cfg
-    assert cfg.fusion.voxel_size == 0.3 and cfg.simulated.peak_prob == (0.6, 0.7)
+    assert cfg.fusion.voxel_size == 0.3 and cfg.labeler_config(SimulatedLabelerConfig).peak_prob == (0.6, 0.7)
     assert cfg.consistency.backbone.channels == 32 and cfg.consistency.backbone.layers == 6
     # Overrides apply on a base, keeping the base's other values.
     again = config_from_dict({"smoothing": {"k": 3}}, cfg)
@@ -996,16 +991,6 @@ def test_config_errors_name_the_field(overrides: dict, message: str) -> None:
         config_from_dict(overrides)
     assert str(info.value).startswith(message)
     assert "\n" not in str(info.value)
-
-
-def test_form_fields() -> None:
-    form = {"k": 5, "threshold": 0.3, "consistency": True, "cluster_gap": 2.0}
-    cfg = config_from_dict(overrides_from_form(form))
-    vals = form_values(cfg)
-    assert vals["k"] == 5 and vals["threshold"] == 0.3 and vals["consistency"] is True
-    assert vals["cluster_gap"] == 2.0 and vals["voxel_size"] == 0.2
-    with pytest.raises(LeapError, match="unknown field 'kk'"):
-        overrides_from_form({"kk": 1})
 
 
 # ----------------------------------------------------------------------------------------------- CLI

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from leap_core.errors import SchemaError
+from leap_core.labelers.grounded_sam import GroundedSamConfig
 from leap_core.labelers.prompts import (
     ClassPrompts,
     apply_negatives,
@@ -214,7 +215,7 @@ def test_expanded_semantickitti_preset_keeps_the_ids_and_never_shares_a_word() -
     assert all(len(c.prompts) >= 2 for c in schema.classes)  # every class is expanded
     assert {w: o for w, o in _words_by_class(schema).items() if len(o) > 1} == {}
     cfg = config_from_dict(pipeline)
-    assert cfg.labeler == "grounded-sam" and cfg.grounded_sam.box_threshold == 0.25
+    assert cfg.labeler == "grounded-sam" and cfg.labeler_config(GroundedSamConfig).box_threshold == 0.25
     # One pass of 256 tokens holds every prompt when each word is one word piece.
     classes = [ClassPrompts(i, c.name, c.prompts, c.negative_prompts) for i, c in enumerate(schema.classes)]
     assert len(plan_passes(classes, words, budget=256)) == 1
@@ -228,4 +229,4 @@ def test_agri_uav_preset_uses_the_paper_threshold_and_seven_classes() -> None:
     assert schema.names == ["tree", "pole", "fence", "wire", "person", "building", "ground"]
     assert {w: o for w, o in _words_by_class(schema).items() if len(o) > 1} == {}
     cfg = config_from_dict(pipeline)
-    assert cfg.labeler == "grounded-sam" and cfg.grounded_sam.box_threshold == 0.2
+    assert cfg.labeler == "grounded-sam" and cfg.labeler_config(GroundedSamConfig).box_threshold == 0.2

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import shutil
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from runhelpers import folder, label
 from test_pipeline import make_street
 
 from leap_core.colors import CANDIDATES, UNLABELED_RGB, distinct_color, srgb_to_lab
-from leap_core.config import FORM_FIELDS, PipelineConfig, config_from_dict, config_to_dict
+from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.datasets.kitti import write_label
 from leap_core.datasets.raw_ids import (
     SEMANTIC_KITTI_RAW_NAMES,
@@ -33,11 +34,10 @@ from leap_core.pipeline import (
 from leap_core.pipeline.context import read_state
 from leap_core.pipeline.steering import (
     changed_sections,
-    ignored_settings,
+    ignored_reason,
     recompute_plan,
     run_changes,
     setting_scope,
-    stage_switches,
 )
 from leap_core.run_layout import SequenceLayout
 from leap_core.schema import ClassDef, builtin_schema
@@ -83,12 +83,16 @@ def test_distinct_colors_added_one_by_one_stay_apart() -> None:
 
 
 # ------------------------------------------------------------------------------------------ raw ids
-def test_raw_id_names_merge_semantic_kitti_and_the_demo() -> None:
-    names = raw_id_names()
+def test_raw_id_names_merge_semantic_kitti_and_the_ids_a_caller_passes() -> None:
+    # The demo world's ids reach the names as data (the app passes them); leap_core/datasets knows none.
+    names = raw_id_names(DEMO_EXTRA_RAW_IDS)
     assert names[10] == "car" and names[252] == "moving-car" and names[81] == "traffic-sign"
     assert names[300] == "traffic-cone" and names[301] == "bench" and names[302] == "bollard"
     assert len(SEMANTIC_KITTI_RAW_NAMES) == 34 and set(DEMO_EXTRA_RAW_IDS) <= set(names)
     assert not set(SEMANTIC_KITTI_RAW_NAMES) & set(DEMO_EXTRA_RAW_IDS)
+    assert raw_id_names() == dict(SEMANTIC_KITTI_RAW_NAMES) and 300 not in raw_id_names()
+    # A dataset's own name of an id wins over SemanticKITTI's.
+    assert raw_id_names({10: "sedan", 400: "tractor"})[10] == "sedan"
 
 
 def test_raw_id_counts_use_the_low_16_bits() -> None:
@@ -126,14 +130,18 @@ def test_setting_scopes_come_from_the_labeler_and_stage_records() -> None:
     assert setting_scope("consistency.share").stage == "3dcn"
     assert setting_scope("consistency.enabled").stage is None  # the switch itself always applies
     assert setting_scope("smoothing.k") == setting_scope("fusion.voxel_size") == setting_scope("labeler")
-    assert stage_switches() == {"3dcn": "consistency"}
 
-    default = ignored_settings(PipelineConfig())
-    assert set(default) == {"threshold", "share", "temperature", "iterations"}
-    assert "simulated" in default["threshold"] and "3D Consistency Network" in default["share"]
+    default = PipelineConfig()
+    threshold = ignored_reason(default, "grounded_sam.box_threshold")
+    assert threshold is not None and "simulated" in threshold
+    assert ignored_reason(default, "consistency.share") == "the 3D-CN stage is off"
+    # A caller's names of the settings (dotted path → label) name the switch.
+    named = ignored_reason(default, "consistency.share", {"consistency.enabled": "3D-CN on"})
+    assert named == "the 3D-CN stage is off (3D-CN on is unticked)"
+    assert ignored_reason(default, "smoothing.k") is None
     gsam = config_from_dict({"labeler": "grounded-sam", "consistency": {"enabled": True}})
-    assert ignored_settings(gsam) == {}
-    assert set(FORM_FIELDS) >= set(default)
+    assert ignored_reason(gsam, "grounded_sam.box_threshold") is None
+    assert ignored_reason(gsam, "consistency.share") is None
 
 
 # ------------------------------------------------------------------------------------- run changes
@@ -168,7 +176,8 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
         config_from_dict({"smoothing": {"k": 4}, "grounded_sam": {"box_threshold": 0.3}}),
         frames=[0, 3],
     )
-    texts = {c.text: c for c in run_changes(old, new)}
+    labels = {"smoothing.k": "kNN smoothing k", "grounded_sam.box_threshold": "Box threshold"}
+    texts = {c.text: c for c in run_changes(old, new, labels)}
     frames = texts["sequence 00: frames all → 0..2"]
     assert (frames.kind, frames.subject) == ("frames", "00")
     assert 'prompts of car: + "sedan", − "jeep"' in texts
@@ -177,6 +186,8 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert k.kind == "parameter" and k.ignored is None
     thr = texts["Box threshold (grounded_sam.box_threshold): 0.25 → 0.3"]
     assert thr.ignored is not None and "simulated" in thr.ignored
+    # Without names, a parameter is its dotted path.
+    assert "smoothing.k: 9 → 4" in {c.text for c in run_changes(old, new)}
     assert run_changes(old, old) == []
     back = {c.text for c in run_changes(new, old)}
     assert "class traffic-cone removed" in back
@@ -213,6 +224,27 @@ def test_run_changes_list_the_sequences_added_removed_and_moved() -> None:
         "sequence 00 added (/d/seq)",
         "sequence 01 added (/d/one)",
     ]
+
+
+def test_a_snapshot_stored_before_the_noise_terms_moved_shows_no_spurious_change() -> None:
+    # A run of an older version stored the simulated section with every moved term at its off value: the
+    # next run's snapshot (today's form, without them) changed nothing.
+    schema = builtin_schema("semantickitti")
+    stored = json.loads(
+        (Path(__file__).parent / "data" / "pipeline_config_with_simulated_terms.json").read_text()
+    )
+    old = {**_snapshot(schema, PipelineConfig()), "pipeline": stored}
+    new = _snapshot(schema, PipelineConfig())
+    assert (
+        "box_leak_prob" in old["pipeline"]["simulated"]
+        and "box_leak_prob" not in new["pipeline"]["simulated"]
+    )
+    assert run_changes(old, new) == [] and run_changes(new, old) == []
+    assert changed_sections(old["pipeline"], new["pipeline"]) == []
+    # A term that was on (a run with the former paper preset) did change the labels: it is listed.
+    stored["simulated"]["box_leak_prob"] = 0.1
+    assert [c.text for c in run_changes(old, new)] == ["simulated.box_leak_prob: 0.1 → null"]
+    assert changed_sections(stored, new["pipeline"]) == ["simulated"]
 
 
 # -------------------------------------------------------------------------------------- recompute plan

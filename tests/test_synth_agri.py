@@ -212,7 +212,7 @@ def test_reader_preset_and_evaluation(agri, tmp_path) -> None:
     seq = KittiSequence(agri[0].path)
     for f in seq:
         assert (lut[f.labels & 0xFFFF] >= 0).all()
-    cfg = replace(preset.pipeline, labeler="simulated", simulated=SimulatedLabelerConfig.exact())
+    cfg = replace(preset.pipeline, labeler="simulated").with_labeler_config(SimulatedLabelerConfig.exact())
     result = label(agri[0].path, preset.schema, cfg, tmp_path / "run", until="evaluate")
     metrics = result.metrics
     assert metrics is not None

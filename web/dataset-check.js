@@ -1,6 +1,7 @@
-// The dataset check (GET /datasets and a project's dataset.check; leap_core/datasets/check.py): what the
-// pipeline can do with a dataset, each problem with its fix in the app's words. Shown under the dataset
-// picker of the create-project form and as a card on the project page.
+// The dataset check (GET /datasets and a project's dataset.check; leap_core/pipeline/preflight.py, its
+// fixes worded in app/advice.py): what the pipeline can do with a dataset, each problem with its fix in
+// the app's words. Shown under the dataset picker of the create-project form and as a card on the project
+// page.
 
 import { h, replace } from "./dom.js";
 

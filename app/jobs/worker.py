@@ -217,7 +217,7 @@ def _in_app_words(exc: LeapError) -> str:
     """A run's error as the app shows it. A missing model's own advice is for the command line (`hf
     download`, `--models`); the app's users get the server's side of it (the dataset check's wording). A
     dataset without poses names only the file; the app adds its own option."""
-    from leap_core.datasets.check import ADVICE  # noqa: PLC0415  a run has loaded the pipeline by now
+    from app.advice import ADVICE  # noqa: PLC0415  a run has loaded the pipeline by now
 
     if isinstance(exc, ModelLoadError):
         return f"{str(exc).split('; ')[0]}; {ADVICE['models_missing'].app}"

@@ -2,8 +2,9 @@
 
 A class's ``gt_ids`` are raw ids (the low 16 bits of a ``.label`` value). To let a person pick them by name,
 :data:`SEMANTIC_KITTI_RAW_NAMES` names SemanticKITTI's raw ids (the ``labels:`` table of the dataset's
-definition, PRBonn/semantic-kitti-api ``config/semantic-kitti.yaml``) and :func:`raw_id_names` adds the demo
-world's own ids (:data:`leap_core.synth.names.DEMO_EXTRA_RAW_IDS`).
+definition, PRBonn/semantic-kitti-api ``config/semantic-kitti.yaml``); :func:`raw_id_names` adds the names of
+ids a dataset defines beyond those, which its caller passes as data (the app passes the generated demo
+world's: 300 traffic-cone, 301 bench, 302 bollard, ``leap_core.synth.names.DEMO_EXTRA_RAW_IDS``).
 
 :func:`scan_raw_ids` counts the raw ids in a sequence's labels. Reading every file of a long sequence costs
 seconds (SemanticKITTI's sequence 00: 4,541 files, 2 GB), so it reads at most ``max_frames`` evenly spaced
@@ -21,7 +22,6 @@ import numpy as np
 import numpy.typing as npt
 
 from leap_core.datasets.kitti import read_label
-from leap_core.synth.names import DEMO_EXTRA_RAW_IDS
 
 SEMANTIC_KITTI_RAW_NAMES: Mapping[int, str] = MappingProxyType(
     {
@@ -65,9 +65,10 @@ SEMANTIC_KITTI_RAW_NAMES: Mapping[int, str] = MappingProxyType(
 never evaluated)."""
 
 
-def raw_id_names() -> dict[int, str]:
-    """Every raw id this program can name: SemanticKITTI's plus the demo world's (300 traffic-cone, ...)."""
-    return {**SEMANTIC_KITTI_RAW_NAMES, **DEMO_EXTRA_RAW_IDS}
+def raw_id_names(extra: Mapping[int, str] | None = None) -> dict[int, str]:
+    """SemanticKITTI's raw id names plus ``extra`` (raw id → name: the ids a dataset adds, e.g. the demo
+    world's 300 traffic-cone); ``extra`` names win where both name an id."""
+    return {**SEMANTIC_KITTI_RAW_NAMES, **(extra or {})}
 
 
 @dataclass(frozen=True)

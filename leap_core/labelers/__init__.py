@@ -1,9 +1,12 @@
 """2D labelers: the :class:`~leap_core.labelers.base.Labeler` protocol, the implementations, their registry.
 
 :data:`LABELERS` holds one :class:`LabelerSpec` per labeler. Everything that names or builds labelers
-derives from it: ``PipelineConfig.labeler`` validation, :func:`make_labeler`, the ``--labeler`` help of
-the CLI and the labeler choices of the app's form. Adding a labeler is one record here, its config
-dataclass (a field of :class:`~leap_core.config.PipelineConfig`) and its class.
+derives from it: ``PipelineConfig.labeler`` validation, the config sections of
+:class:`~leap_core.config.PipelineConfig` (one per labeler, named :attr:`LabelerSpec.section`, holding a
+:attr:`LabelerSpec.config_type`), :func:`make_labeler`, the ``--labeler`` help of the CLI and the labeler
+choices of the app's form. Adding a labeler is one record, its config dataclass and its class: here for
+the product's labelers, or :func:`register_labeler` from a package beside leap_core (the research lab's
+``simulated-paper`` registers itself when imported).
 
 Importing this module loads the labelers' configs and classes but not their model stacks: torch and
 transformers are imported by the grounded-sam labeler only when it first needs its models.
@@ -13,11 +16,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from leap_core.labelers.base import Labeler, SoftMasks
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
-from leap_core.labelers.simulated import SimulatedLabeler, SimulatedLabelerConfig
+from leap_core.labelers.simulated import SIMULATED_PRESETS, SimulatedLabeler, SimulatedLabelerConfig
 from leap_core.runtime import Runtime
 
 if TYPE_CHECKING:
@@ -27,9 +30,12 @@ LabelerInput = Literal["gt2d", "images"]
 """What a labeler reads per frame: ``gt2d`` = the dataset's 2D ground truth (``gt2d/semantic``,
 ``gt2d/instance``), ``images`` = the camera images (``image_2/``)."""
 
+C = TypeVar("C")
+"""A labeler's config dataclass."""
+
 
 @dataclass(frozen=True)
-class LabelerSpec:
+class LabelerSpec(Generic[C]):
     """One 2D labeler: its name, its config section, how to build it and what it needs."""
 
     name: str
@@ -38,17 +44,26 @@ class LabelerSpec:
     """Short human name (the app form's choice)."""
     description: str
     """One line on what it does (CLI help)."""
-    config_field: str
-    """Attribute of :class:`~leap_core.config.PipelineConfig` holding its settings."""
-    config_type: type
-    """Type of that attribute, the labeler's config dataclass."""
-    factory: Callable[[Any, Runtime], Labeler]
+    section: str
+    """Its config section: the key of its settings in the config dict (``pipeline: {<section>: {...}}``)
+    and in ``PipelineConfig.labelers``."""
+    config_type: type[C]
+    """The section's config dataclass (its defaults are the section's defaults)."""
+    factory: Callable[[C, Runtime], Labeler]
     """``factory(section_config, runtime)``: the labeler for its config section and the run's deployment
     values (models folder, 2D cache folder, device)."""
     needs: LabelerInput
     """The input it reads from a dataset."""
     missing: str
     """One line for a dataset that lacks ``needs``, e.g. to follow the folder's name in an error."""
+    presets: tuple[str, ...] = ()
+    """Names of whole settings of its section (``pipeline: {<section>: {preset: NAME}}``, ``leap run
+    --labeler-preset NAME``): the names its config type's ``from_preset`` accepts."""
+
+    def config_of(self, config: PipelineConfig) -> C:
+        """This labeler's section of ``config`` (its defaults when ``config`` was made before this
+        labeler was registered)."""
+        return config.labeler_section(self.section, self.config_type)
 
 
 def _simulated(config: SimulatedLabelerConfig, runtime: Runtime) -> Labeler:  # noqa: ARG001 - no deployment values
@@ -59,33 +74,68 @@ def _grounded_sam(config: GroundedSamConfig, runtime: Runtime) -> Labeler:
     return GroundedSamLabeler(config, runtime)
 
 
-LABELERS: dict[str, LabelerSpec] = {
-    spec.name: spec
-    for spec in (
-        LabelerSpec(
-            name="simulated",
-            label="simulated (from 2D ground truth)",
-            description="noisy 2D labels made from the dataset's 2D ground truth (demo data, no models)",
-            config_field="simulated",
-            config_type=SimulatedLabelerConfig,
-            factory=_simulated,
-            needs="gt2d",
-            missing="the simulated labeler needs 2D ground truth (gt2d/semantic, gt2d/instance); "
-            "for real camera images choose the grounded-sam labeler",
-        ),
-        LabelerSpec(
-            name="grounded-sam",
-            label="Grounding DINO + SAM",
-            description="Grounding DINO boxes for the class prompts, SAM masks inside them (camera images)",
-            config_field="grounded_sam",
-            config_type=GroundedSamConfig,
-            factory=_grounded_sam,
-            needs="images",
-            missing="the grounded-sam labeler needs camera images (image_2/)",
-        ),
-    )
-}
-"""Every 2D labeler by name, in the order forms and help texts list them."""
+_SIMULATED: LabelerSpec[SimulatedLabelerConfig] = LabelerSpec(
+    name="simulated",
+    label="simulated (from 2D ground truth)",
+    description="noisy 2D labels made from the dataset's 2D ground truth (demo data, no models)",
+    section="simulated",
+    config_type=SimulatedLabelerConfig,
+    factory=_simulated,
+    needs="gt2d",
+    missing="the simulated labeler needs 2D ground truth (gt2d/semantic, gt2d/instance); "
+    "for real camera images choose the grounded-sam labeler",
+    presets=tuple(SIMULATED_PRESETS),
+)
+_GROUNDED_SAM: LabelerSpec[GroundedSamConfig] = LabelerSpec(
+    name="grounded-sam",
+    label="Grounding DINO + SAM",
+    description="Grounding DINO boxes for the class prompts, SAM masks inside them (camera images)",
+    section="grounded_sam",
+    config_type=GroundedSamConfig,
+    factory=_grounded_sam,
+    needs="images",
+    missing="the grounded-sam labeler needs camera images (image_2/)",
+)
+
+LABELERS: dict[str, LabelerSpec[Any]] = {spec.name: spec for spec in (_SIMULATED, _GROUNDED_SAM)}
+"""Every 2D labeler by name, in the order forms and help texts list them (the product's first, then those
+registered by :func:`register_labeler`)."""
+
+
+def register_labeler(spec: LabelerSpec[Any]) -> None:
+    """Add ``spec`` to :data:`LABELERS`; registering the same record again changes nothing.
+
+    Config objects made before the call get the new section's defaults when they are read
+    (:meth:`LabelerSpec.config_of`); dicts read after it may hold the section.
+
+    Raises:
+        ValueError: another record has the same name, or another labeler's section has the same name.
+    """
+    if LABELERS.get(spec.name) is spec:
+        return
+    if spec.name in LABELERS:
+        raise ValueError(f"a labeler named {spec.name!r} is registered already")
+    taken = next((s.name for s in LABELERS.values() if s.section == spec.section), None)
+    if taken is not None:
+        raise ValueError(f"config section {spec.section!r} belongs to the {taken!r} labeler already")
+    LABELERS[spec.name] = spec
+
+
+def unregister_labeler(name: str) -> None:
+    """Remove a labeler :func:`register_labeler` added (a test that registers one for its own span); the
+    product's own labelers stay.
+
+    Raises:
+        ValueError: ``name`` is one of the product's labelers.
+    """
+    if name in (_SIMULATED.name, _GROUNDED_SAM.name):
+        raise ValueError(f"the {name!r} labeler is part of leap_core and stays registered")
+    LABELERS.pop(name, None)
+
+
+def labeler_by_section(section: str) -> LabelerSpec[Any] | None:
+    """The registered labeler whose config section is ``section``, or None."""
+    return next((s for s in LABELERS.values() if s.section == section), None)
 
 
 def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labeler:
@@ -93,7 +143,17 @@ def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labe
     ``runtime`` says (models folder, shared 2D cache, device). ``PipelineConfig`` accepts only names in
     :data:`LABELERS`, so the lookup cannot miss."""
     spec = LABELERS[config.labeler]
-    return spec.factory(getattr(config, spec.config_field), runtime or Runtime())
+    return spec.factory(spec.config_of(config), runtime or Runtime())
 
 
-__all__ = ["LABELERS", "Labeler", "LabelerInput", "LabelerSpec", "SoftMasks", "make_labeler"]
+__all__ = [
+    "LABELERS",
+    "Labeler",
+    "LabelerInput",
+    "LabelerSpec",
+    "SoftMasks",
+    "labeler_by_section",
+    "make_labeler",
+    "register_labeler",
+    "unregister_labeler",
+]

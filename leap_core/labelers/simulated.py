@@ -48,39 +48,29 @@ Noise model, applied per image in this order (every parameter lives in :class:`S
    (stuff masks: ``0..stuff_bleed_px``), so it spills onto the background around it. Per-mask depth
    clustering in the projection stage is what removes the spill of foreground objects onto points behind.
 
-Terms of the "paper" preset (:data:`SIMULATED_PRESETS`; off by default, and then nothing of them is drawn
-or hashed, so the default masks and fingerprint stay byte for byte): per-class confusion
-(``class_confusion``) and directed confusion (``confusion_targets``, :func:`confusion_targets`) in step 3,
-size-dependent recall (``small_region_px``, :func:`size_recall`) in step 2, and in step 5 background leaks
-(``box_leak_prob``, per class ``class_box_leak``: a thing mask of the winning class becomes its grown
-bounding box, :func:`box_leak_crop`), one mask over two
-adjacent objects (``pair_merge_prob``, :func:`adjacent_partner`), over-large stuff (``stuff_grow_prob``) and
-tiled stuff confusion (``stuff_tile_px``, :func:`tile_split`; per tile of the world for the whole sequence
-with ``stuff_world_tile``, :func:`world_tile_draws`), and stratified draws of the object errors
-(``stratified_draws``, :func:`lattice_draws`; drifting from frame to frame with ``drift_draws``).
-docs/METHOD.md A.7-A.8 give the details.
-
 With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
 distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
 the per-pixel argmax reproduces the mapped ground truth exactly.
 
 Determinism: all draws come from ``SeedSequence([seed, frame.number, stream])`` (steps 1, 4, 5) or
-``SeedSequence([seed, frame.number // persistence_frames, stream, object])`` (steps 2, 3; with
-``stratified_draws``, four of them from a lattice in the object and ``frame.number // persistence_frames``
-(``frame.number / persistence_frames`` with ``drift_draws``)
-with phases from ``SeedSequence([seed, stream])``; world tiles from the tile and
-``SeedSequence([seed, stream, name])``), so a frame's
+``SeedSequence([seed, frame.number // persistence_frames, stream, object])`` (steps 2, 3), so a frame's
 output depends only on the seed, its frame number (its file number, ``Frame.number``) and its images,
 never on which other frames are present, were labeled or in which order, and turning one knob does not
 reshuffle the draws of the others.
+
+Extending it. A subclass adds noise terms through the labeler's steps, each a method it may override:
+:meth:`SimulatedLabeler.extra_image` (one more per-pixel image, jittered with the label images),
+:meth:`~SimulatedLabeler.frame_draws` (the frame's per-region draws, :class:`FrameDraws`),
+:meth:`~SimulatedLabeler.keep_probability` (step 2), :meth:`~SimulatedLabeler.mask_parts` (steps 3 and 5:
+the masks a kept region becomes) and :meth:`~SimulatedLabeler.paint_part`. Its streams are numbered from
+:data:`FIRST_FREE_STREAM`, so the draws here stay what they are. The research lab's paper-calibrated
+labeler (``simulated-paper``, beside leap_core; docs/METHOD.md A.7-A.8) is such a subclass.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
-import math
 import typing
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
@@ -99,16 +89,11 @@ if TYPE_CHECKING:
     from leap_core.schema import Schema
 
 # Independent random streams per noise step (see the module docstring, "Determinism").
-(
-    _STREAM_JITTER,
-    _STREAM_OBJECT,
-    _STREAM_PROBS,
-    _STREAM_BLEED,
-    _STREAM_SHAPE,
-    _STREAM_TILE,
-    _STREAM_LATTICE,
-    _STREAM_WORLD,
-) = range(8)
+_STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED = range(4)
+
+FIRST_FREE_STREAM = 4
+"""The first stream number this labeler does not draw from: a subclass's terms draw from streams numbered
+from here, so they never share a draw with the steps above."""
 
 _DEFAULT_CLASS_RECALL: dict[str, float] = {
     # Small or thin objects are the ones open-vocabulary detectors miss most often.
@@ -158,21 +143,13 @@ def _check_strength_table(table: dict[str, float], name: str, *, positive: bool)
             raise ConfigError(f"must be in {'(0, 1]' if positive else '[0, 1]'}, got {v}", field=(name, k))
 
 
-def _check_confusion(pairs: tuple[tuple[str, str], ...], table: dict[str, dict[str, float]]) -> None:
-    """``confusion_pairs``: two different names each; ``confusion_targets``: every weight >= 0 and of a
-    class other than its row's."""
+def _check_pairs(pairs: tuple[tuple[str, str], ...]) -> None:
+    """``confusion_pairs``: two different names each."""
     for pair in pairs:
         if len(pair) != 2 or pair[0] == pair[1]:
             raise ConfigError(
                 f"entries must be two different class names, got {list(pair)}", field=("confusion_pairs",)
             )
-    for cname, targets in table.items():
-        for tname, wt in targets.items():
-            if not float(wt) >= 0.0 or tname == cname:
-                raise ConfigError(
-                    f"must be a weight >= 0 of another class, got {wt}",
-                    field=("confusion_targets", cname, tname),
-                )
 
 
 @dataclass(frozen=True)
@@ -226,92 +203,20 @@ class SimulatedLabelerConfig:
     match_temperature: float = 0.1
     """Softness of that competition: class c wins with probability ∝ exp(match_confidence[k(c)] / T);
     0 = the strongest strength always wins (ties drawn uniformly)."""
-    # The terms below are off by default (the default preset's masks and fingerprint do not see them); the
-    # "paper" preset (:data:`SIMULATED_PRESETS`) turns them on to reach real Grounding DINO + SAM errors.
-    class_confusion: dict[str, float] = field(default_factory=dict)
-    """Per-class confusion probability overriding ``confusion_prob``, by class name (names not in the
-    schema are ignored); a class still needs a partner in ``confusion_pairs`` to be confused."""
-    confusion_targets: dict[str, dict[str, float]] = field(default_factory=dict)
-    """Directed confusion, by class name: class → {class it is mistaken for: weight}. A confused region of a
-    class listed here takes a target drawn with probability ∝ weight (instead of a partner of
-    ``confusion_pairs`` drawn uniformly); the class's confusion probability is still ``class_confusion`` /
-    ``confusion_prob``. Names not in the schema are ignored."""
-    small_region_px: int = 0
-    """Size-dependent recall: a region of a pixels is kept with its recall times ``min(1, a /
-    small_region_px)`` (:func:`size_recall`), so small and far objects are missed more often; 0 = off."""
-    box_leak_prob: float = 0.0
-    """Probability that a thing mask becomes its whole bounding box grown by ``box_leak_margin``
-    (:func:`box_leak_crop`): SAM segmenting the box rather than the object, the background inside the
-    box leaks into the mask."""
-    class_box_leak: dict[str, float] = field(default_factory=dict)
-    """Per-class box-leak probability overriding ``box_leak_prob``, by class name (names not in the schema
-    are ignored): a detector boxes some classes (thin or small objects, people) more loosely than others."""
-    box_leak_margin: float = 0.0
-    """Growth of the leaked box on each side, as a fraction of the box's height (top, bottom) and width
-    (left, right)."""
-    pair_merge_prob: float = 0.0
-    """Probability that a thing mask also covers the nearest other thing region whose bounding box lies
-    within ``pair_merge_gap_px`` of its own (:func:`adjacent_partner`): one mask over two adjacent objects
-    (a rider and the bicycle, a person and the car behind), labeled as the first."""
-    pair_merge_gap_px: int = 0
-    """Largest gap in pixels between two bounding boxes for their objects to count as adjacent."""
-    stuff_grow_prob: float = 0.0
-    """Probability that a stuff mask is over-large: dilated by a radius drawn uniformly from
-    ``1..stuff_grow_px`` (instead of its bleed when larger), so it covers the border of its neighbours."""
-    stuff_grow_px: int = 0
-    """Largest dilation radius in pixels of an over-large stuff mask."""
-    stuff_tile_px: int = 0
-    """When > 0, a stuff region's confusion is drawn per image tile of this many pixels (:func:`tile_split`)
-    rather than once for the whole region: the confused tiles form a second mask labeled as the partner,
-    as SAM splits a large surface into parts and the detector names some of them wrongly. The share of a
-    surface confused then follows the confusion probability closely, where one draw per region flips whole
-    roads at once."""
-    stuff_world_tile: int = 0
-    """When > 0, the tiled stuff confusion (``stuff_tile_px``, which must then be > 0 too) is drawn per
-    world tile of this many world cells a side (``gt2d/cell``: 2 m cells of generated data, so 2 = 4 m
-    tiles) instead of per image tile, and once for the whole sequence instead of per block of frames
-    (:func:`world_tile_draws`): a patch of pavement or hedge taken for another class is taken so in every
-    frame that sees it, as a detector's errors on a surface follow its appearance. Image tiles move over
-    the world as the camera does, so their errors average out in the voxel fusion where a real detector's
-    do not (docs/METHOD.md A.7, term 13). Needs the ``gt2d/cell`` images of ``leap synth``."""
-    stratified_draws: bool = False
-    """When on, the persistent draws that decide an object's confusion (and its target), box leak and pair
-    merge come from a 2D lattice over (object, block of frames) (:func:`lattice_draws`) instead of
-    independent uniforms, so the share of a class's object-blocks hit by an error follows its probability
-    closely in every sequence and for every seed (on the demo with the "paper" preset, person's point-row
-    IoU over labeler seeds 0-7 has a standard deviation of 6.2 with them, 11.1 without). Each error still
-    lasts its block, but an object's errors are spread evenly over its blocks, so the voxel fusion's
-    majority recovers them more easily (docs/METHOD.md A.7, term 12)."""
-    drift_draws: bool = False
-    """With ``stratified_draws``: the lattice's time coordinate is ``frame.number / persistence_frames``
-    instead of its block ``frame.number // persistence_frames``, so an object's lattice draw drifts by
-    ``a2 / persistence_frames`` a frame (0.15 for the confusion) instead of jumping once a block. Its
-    wrong frames then come in runs (about ``q · persistence_frames / a2`` frames at confusion probability q)
-    and their share of the object's frames follows q for any lifetime, where block-wise decisions move a
-    short-lived object's share a whole block at a time (the demo's one bicycle, six blocks: point-row IoU
-    15.0 or 42.6 and nothing between as q moves; docs/METHOD.md A.7, term 14)."""
 
     def __post_init__(self) -> None:
-        for name in (
-            "recall",
-            "confusion_prob",
-            "partner_share",
-            "box_leak_prob",
-            "pair_merge_prob",
-            "stuff_grow_prob",
-        ):
+        for name in ("recall", "confusion_prob", "partner_share"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
-        for table in ("class_recall", "class_confusion", "class_box_leak"):
-            for cname, v in getattr(self, table).items():
-                if not 0.0 <= float(v) <= 1.0:
-                    raise ConfigError(f"must be in [0, 1], got {v}", field=(table, cname))
+        for cname, v in self.class_recall.items():
+            if not 0.0 <= float(v) <= 1.0:
+                raise ConfigError(f"must be in [0, 1], got {v}", field=("class_recall", cname))
         for name in ("peak_prob", "confidence"):
             lo, hi = getattr(self, name)
             if not 0.0 < lo <= hi <= 1.0:
                 raise ConfigError(f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})", field=(name,))
-        _check_confusion(self.confusion_pairs, self.confusion_targets)
+        _check_pairs(self.confusion_pairs)
         if not self.dirichlet_alpha > 0:
             raise ConfigError(f"must be > 0, got {self.dirichlet_alpha}", field=("dirichlet_alpha",))
         if self.persistence_frames < 1:
@@ -323,16 +228,9 @@ class SimulatedLabelerConfig:
             "jitter_px",
             "jitter_deg",
             "match_temperature",
-            "small_region_px",
-            "box_leak_margin",
-            "pair_merge_gap_px",
-            "stuff_grow_px",
-            "stuff_tile_px",
-            "stuff_world_tile",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
-        _check_needs(self)
         _check_strength_table(self.match_detection, "match_detection", positive=False)
         _check_strength_table(self.match_confidence, "match_confidence", positive=True)
 
@@ -364,25 +262,7 @@ class SimulatedLabelerConfig:
         )
 
 
-def _check_needs(cfg: SimulatedLabelerConfig) -> None:
-    """Refuse a term that is on while the term it works through is off, naming the first."""
-    for name, needs, why in (
-        (
-            "stuff_world_tile",
-            "stuff_tile_px",
-            "world tiles replace the image tiles of the tiled stuff confusion: set stuff_tile_px > 0 too",
-        ),
-        (
-            "drift_draws",
-            "stratified_draws",
-            "drifting draws move the stratified lattice over time: set stratified_draws too",
-        ),
-    ):
-        if getattr(cfg, name) and not getattr(cfg, needs):
-            raise ConfigError(why, field=(name,))
-
-
-_LATER_TERMS_OFF: dict[str, object] = {
+MOVED_TERMS: dict[str, object] = {
     "class_confusion": {},
     "confusion_targets": {},
     "small_region_px": 0,
@@ -394,43 +274,55 @@ _LATER_TERMS_OFF: dict[str, object] = {
     "stuff_grow_prob": 0.0,
     "stuff_grow_px": 0,
     "stuff_tile_px": 0,
-    "stratified_draws": False,
     "stuff_world_tile": 0,
+    "stratified_draws": False,
     "drift_draws": False,
 }
-"""The noise terms added with the "paper" preset and their off values (the defaults)."""
+"""Noise terms this labeler's config had, which only the paper-calibrated preset turned on, and the value
+that left each off. They belong to the research lab's ``simulated-paper`` labeler now (beside leap_core;
+docs/METHOD.md A.7 terms 6-14). Config dicts stored before they moved hold every one of them at this value:
+``leap_core.config.config_from_dict`` reads such a dict as if they were absent and refuses any other
+value, naming the field and that labeler."""
+
+MOVED_TERMS_FIX = (
+    "it is a noise term of the paper-calibrated labeler, which the research lab holds now: choose "
+    "`labeler: simulated-paper` and set it in the `simulated_paper` section (run with `python -m lab`; "
+    "docs/METHOD.md A.7), or remove it here"
+)
+"""What a config dict that sets a moved term (:data:`MOVED_TERMS`) to another value is told to do."""
+
+
+MOVED_PRESETS: dict[str, str] = {
+    "paper": "the paper preset belongs to the research lab's simulated-paper labeler now: choose "
+    "`labeler: simulated-paper` with `simulated_paper: {preset: paper}` and run it with `python -m lab` "
+    "(`python -m lab run SEQ --labeler simulated-paper --labeler-preset paper`)",
+}
+"""Presets this labeler had and a labeler beside leap_core has now: the name → how to get it."""
 
 
 def simulated_preset(name: str) -> SimulatedLabelerConfig:
     """The simulated labeler's config of preset ``name`` (:data:`SIMULATED_PRESETS`).
 
     Raises:
-        ConfigError: ``field = ("preset",)`` for an unknown name.
+        ConfigError: ``field = ("preset",)`` for an unknown name (naming where a moved preset lives).
     """
     if name not in SIMULATED_PRESETS:
         known = ", ".join(repr(n) for n in SIMULATED_PRESETS)
-        raise ConfigError(f"unknown preset {name!r} (known: {known})", field=("preset",))
+        moved = f"; {MOVED_PRESETS[name]}" if name in MOVED_PRESETS else ""
+        raise ConfigError(f"unknown preset {name!r} (known: {known}){moved}", field=("preset",))
     return SIMULATED_PRESETS[name]()
-
-
-def _paper_preset() -> SimulatedLabelerConfig:
-    from leap_core.labelers.simulated_paper import PAPER_PRESET  # noqa: PLC0415  written by the fit script
-
-    return SimulatedLabelerConfig(**PAPER_PRESET)
 
 
 SIMULATED_PRESETS: dict[str, typing.Callable[[], SimulatedLabelerConfig]] = {
     "default": SimulatedLabelerConfig,
-    "paper": _paper_preset,
 }
-"""Named simulated-labeler settings: ``default`` (the milder noise model, :class:`SimulatedLabelerConfig`'s
-defaults) and ``paper`` (fitted so the demo's point row lands within ±5 IoU per class of the paper's Table 1
-point row; ``leap_core/labelers/simulated_paper.py``, written by ``benchmarks/fit_labeler.py``). A project
-file picks one with ``pipeline: {simulated: {preset: paper}}``, ``leap run`` with ``--labeler-preset``."""
+"""Named simulated-labeler settings: ``default`` (the noise model of :class:`SimulatedLabelerConfig`'s
+defaults). A project file picks one with ``pipeline: {simulated: {preset: default}}``, ``leap run`` with
+``--labeler-preset default``."""
 
 
 @dataclass(frozen=True)
-class _Region:
+class Region:
     """One ground-truth region: its name id, bounding box origin and the boolean crop inside the box."""
 
     name: int
@@ -452,14 +344,14 @@ def _jitter(
     inst: npt.NDArray[np.uint16],
     cfg: SimulatedLabelerConfig,
     rng: np.random.Generator,
-    cells: npt.NDArray[np.uint16] | None = None,
+    extra: npt.NDArray[np.uint16] | None = None,
 ) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.uint16] | None]:
-    """Move the label images (and the world-cell image, if given) by one random rigid transform (shift +
-    rotation about the centre)."""
+    """Move the label images (and ``extra``, a subclass's per-pixel image, if given) by one random rigid
+    transform (shift + rotation about the centre)."""
     dx, dy = rng.normal(0.0, 1.0, size=2) * cfg.jitter_px
     theta = float(rng.normal(0.0, 1.0)) * cfg.jitter_deg
     if cfg.jitter_px == 0 and cfg.jitter_deg == 0:
-        return names, inst, cells
+        return names, inst, extra
     h, w = names.shape
     m = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), theta, 1.0)
     m[:, 2] += (dx, dy)
@@ -470,13 +362,13 @@ def _jitter(
         )
         return np.asarray(warped, dtype=np.uint16)  # already uint16 (cv2 keeps the dtype): no copy
 
-    return warp(names), warp(inst), None if cells is None else warp(cells)
+    return warp(names), warp(inst), None if extra is None else warp(extra)
 
 
-def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> list[_Region]:
+def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> list[Region]:
     """Thing regions (name, instance) first, sorted by key, then stuff components by name id and label."""
     _, w = name_img.shape
-    regions: list[_Region] = []
+    regions: list[Region] = []
     valid = name_img > 0
     thing = valid & (inst > 0)
 
@@ -494,7 +386,7 @@ def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> 
             crop = np.zeros((int(ys.max()) - y0 + 1, int(xs.max()) - x0 + 1), dtype=bool)
             crop[ys - y0, xs - x0] = True
             key_s = int(key_sorted[s])
-            regions.append(_Region(key_s >> 16, True, key_s & 0xFFFF, y0, x0, crop))
+            regions.append(Region(key_s >> 16, True, key_s & 0xFFFF, y0, x0, crop))
 
     stuff_name = np.where(valid & ~thing, name_img, np.uint16(0))
     for nid in (int(v) for v in np.unique(stuff_name) if v):
@@ -515,100 +407,8 @@ def _regions(name_img: npt.NDArray[np.uint16], inst: npt.NDArray[np.uint16]) -> 
         for y0, _, j in first:
             x0, bw, bh = int(stats[j, 0]), int(stats[j, 2]), int(stats[j, 3])
             crop = lab[y0 : y0 + bh, x0 : x0 + bw] == j
-            regions.append(_Region(nid, False, rank[j], by0 + y0, x0, crop))
+            regions.append(Region(nid, False, rank[j], by0 + y0, x0, crop))
     return regions
-
-
-def size_recall(area: npt.ArrayLike, small_px: int) -> npt.NDArray[np.float64]:
-    """(R,) factor on the recall of regions of ``area`` (R,) pixels: ``min(1, a / small_px)``; all ones
-    when ``small_px`` is 0 (the term is off)."""
-    a = np.asarray(area, dtype=np.float64)
-    if small_px <= 0:
-        return np.ones_like(a)
-    out: npt.NDArray[np.float64] = np.minimum(1.0, a / float(small_px))
-    return out
-
-
-def box_leak_crop(
-    box_h: int, box_w: int, y0: int, x0: int, margin: float, size: tuple[int, int]
-) -> tuple[npt.NDArray[np.bool_], int, int]:
-    """A leaked mask: the full bounding box (rows ``y0..y0+box_h-1``, columns ``x0..x0+box_w-1``) grown by
-    ``round(margin·box_h)`` rows above and below and ``round(margin·box_w)`` columns left and right,
-    clipped to the image of ``size`` = (h, w). Returns the all-True crop and its origin ``(y0', x0')``."""
-    h, w = size
-    my, mx = round(margin * box_h), round(margin * box_w)
-    ny0, nx0 = max(0, y0 - my), max(0, x0 - mx)
-    ny1, nx1 = min(h, y0 + box_h + my), min(w, x0 + box_w + mx)
-    return np.ones((max(0, ny1 - ny0), max(0, nx1 - nx0)), dtype=bool), ny0, nx0
-
-
-def tile_split(
-    crop: npt.NDArray[np.bool_], y0: int, x0: int, tile_px: int, u_tiles: npt.NDArray[np.float64], prob: float
-) -> npt.NDArray[np.bool_]:
-    """The pixels of a region's ``crop`` (origin ``(y0, x0)`` in the image) whose image tile is confused:
-    pixel (y, x) lies in tile ``(y // tile_px, x // tile_px)``, which is confused when its draw
-    ``u_tiles[ty, tx]`` (uniform in [0, 1), one per tile of the image) is below ``prob``."""
-    ty = (y0 + np.arange(crop.shape[0])) // tile_px
-    tx = (x0 + np.arange(crop.shape[1])) // tile_px
-    out: npt.NDArray[np.bool_] = crop & (u_tiles[np.ix_(ty, tx)] < prob)
-    return out
-
-
-def world_tile_draws(
-    cells: npt.ArrayLike,
-    tile: int,
-    phases: tuple[float, float],
-    stratified: bool = True,
-    seed_key: tuple[int, ...] = (),
-) -> npt.NDArray[np.float64]:
-    """(2, ...) two draws in [0, 1) per pixel of ``cells`` (any shape; uint16 world cell ids
-    ``ix · 256 + iy``, ``leap_core.synth.camera.world_cells``), equal for every pixel of one world tile
-    ``(tx, ty) = (ix // tile, iy // tile)`` in every frame: draw 0 decides the confusion, draw 1 its target.
-
-    Stratified: :func:`lattice_draws` with key tx and block ty, ``u_d = frac(phases[d] + tx · a1 + ty ·
-    a2)`` with the lattice steps of decisions 0 and 1, so the confused share of any sizeable patch of tiles
-    is close to the probability. Otherwise independent uniforms per tile, seeded by ``seed_key`` and
-    the tile (``phases`` unused).
-    """
-    c = np.asarray(cells, dtype=np.int64)
-    tx, ty = (c >> 8) // tile, (c & 255) // tile
-    if stratified:
-        return np.stack(
-            [lattice_draws(tx, ty, phases[d], _LATTICE_STEPS[d]).reshape(c.shape) for d in range(2)]
-        )
-    key = tx * 256 + ty
-    uniq, inv = np.unique(key, return_inverse=True)
-    table = np.array(
-        [np.random.default_rng(np.random.SeedSequence([*seed_key, int(k)])).random(2) for k in uniq]
-    ).reshape(-1, 2)
-    return np.moveaxis(table[inv.reshape(c.shape)], -1, 0)
-
-
-def box_gaps(boxes: npt.ArrayLike) -> npt.NDArray[np.int64]:
-    """(R, R) gap in pixels between bounding boxes ``boxes`` (R, 4) = (y0, x0, y1, x1), ends exclusive:
-    ``max(gap_y, gap_x)`` with ``gap_y = max(0, y0_j − y1_i, y0_i − y1_j)`` (0 where the boxes touch or
-    overlap on that axis), so boxes within g pixels of each other in both directions have gap ≤ g."""
-    b = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
-    y0, x0, y1, x1 = (b[:, k] for k in range(4))
-    gy = np.maximum(0, np.maximum(y0[None, :] - y1[:, None], y0[:, None] - y1[None, :]))
-    gx = np.maximum(0, np.maximum(x0[None, :] - x1[:, None], x0[:, None] - x1[None, :]))
-    out: npt.NDArray[np.int64] = np.maximum(gy, gx)
-    return out
-
-
-def adjacent_partner(boxes: npt.ArrayLike, eligible: npt.ArrayLike, max_gap: int) -> npt.NDArray[np.int64]:
-    """(R,) for each region i, the eligible region j ≠ i whose box is nearest to i's (:func:`box_gaps`),
-    if that gap is ≤ ``max_gap``, else -1; equal gaps go to the lower index."""
-    gaps = box_gaps(boxes).astype(np.float64)
-    ok = np.asarray(eligible, dtype=bool).reshape(-1)
-    n = ok.shape[0]
-    if n == 0:
-        return np.zeros(0, np.int64)
-    gaps[:, ~ok] = np.inf
-    np.fill_diagonal(gaps, np.inf)
-    best = gaps.argmin(axis=1)  # the first minimum: the lower index on ties
-    out: npt.NDArray[np.int64] = np.where(gaps[np.arange(n), best] <= max_gap, best, -1).astype(np.int64)
-    return out
 
 
 def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> dict[int, list[int]]:
@@ -620,39 +420,6 @@ def _partners(schema_names: list[str], pairs: tuple[tuple[str, str], ...]) -> di
             out.setdefault(index[a], set()).add(index[b])
             out.setdefault(index[b], set()).add(index[a])
     return {k: sorted(v) for k, v in out.items()}
-
-
-def confusion_targets(
-    schema_names: list[str], table: dict[str, dict[str, float]]
-) -> dict[int, tuple[list[int], npt.NDArray[np.float64]]]:
-    """Class index → (target class indices, their cumulative normalised weights) of the directed confusion
-    ``table`` (class name → {target name: weight}); entries naming a class not in the schema, and classes
-    left with no positive weight, are dropped."""
-    index = {n: i for i, n in enumerate(schema_names)}
-    out: dict[int, tuple[list[int], npt.NDArray[np.float64]]] = {}
-    for cname, row in table.items():
-        pairs = [(index[t], float(wt)) for t, wt in row.items() if t in index and float(wt) > 0]
-        if cname in index and pairs:
-            wts = np.array([wt for _, wt in pairs])
-            out[index[cname]] = ([t for t, _ in pairs], np.cumsum(wts / wts.sum()))
-    return out
-
-
-def _pick_many(
-    cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: npt.ArrayLike
-) -> npt.NDArray[np.int64]:
-    """The confused class for each draw of ``u`` ~ U(0, 1) (any shape): from the cumulative weights of a
-    directed target row, else uniform over the pair partners ``cand``."""
-    v = np.asarray(u, dtype=np.float64)
-    if target is not None:
-        at = np.minimum(np.searchsorted(target[1], v, side="right"), len(target[0]) - 1)
-        return np.asarray(target[0], dtype=np.int64)[at]
-    return np.asarray(cand, dtype=np.int64)[np.minimum((v * len(cand)).astype(np.int64), len(cand) - 1)]
-
-
-def _pick(cand: list[int], target: tuple[list[int], npt.NDArray[np.float64]] | None, u: float) -> int:
-    """:func:`_pick_many` for one draw."""
-    return int(_pick_many(cand, target, u))
 
 
 def prompt_matches(schema: Schema) -> dict[int, list[tuple[int, int]]]:
@@ -775,24 +542,7 @@ def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     return names
 
 
-def _cell_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
-    """The frame's per-pixel world cells (``gt2d/cell/<frame>.png``), which world tiles need."""
-    cells = frame.gt2d_cell
-    folder = frame.seq.root / "gt2d" / "cell"
-    if cells is None:
-        raise LeapError(
-            f"{folder}: missing; stuff_world_tile needs the world-cell images that `leap synth` "
-            "writes (regenerate the sequence, or set stuff_world_tile: 0)"
-        )
-    if cells.shape != semantic.shape:
-        raise LeapError(
-            f"{folder / (frame.frame_id + '.png')}: cell image {cells.shape} and semantic mask "
-            f"{semantic.shape} differ in size"
-        )
-    return cells
-
-
-def _per_class(names: list[str], default: float, table: dict[str, float]) -> npt.NDArray[np.float64]:
+def per_class(names: list[str], default: float, table: dict[str, float]) -> npt.NDArray[np.float64]:
     """(C,) ``default`` per class, overridden by the by-name ``table`` (names not in ``names`` ignored)."""
     out = np.full(len(names), default, dtype=np.float64)
     for cname, v in table.items():
@@ -801,7 +551,7 @@ def _per_class(names: list[str], default: float, table: dict[str, float]) -> npt
     return out
 
 
-def _object_draws(regions: list[_Region], seed: int, block: int, stream: int) -> npt.NDArray[np.float64]:
+def object_draws(regions: list[Region], seed: int, block: int, stream: int) -> npt.NDArray[np.float64]:
     """(R, 4) uniform draws per region that belong to the object (its name, kind and identity) and the
     block of frames, so they persist over ``persistence_frames``."""
     out = np.array(
@@ -815,103 +565,38 @@ def _object_draws(regions: list[_Region], seed: int, block: int, stream: int) ->
     return out
 
 
-_LATTICE_PRIMES: tuple[tuple[int, int], ...] = ((2, 3), (5, 7), (11, 13), (17, 19))
-"""Per stratified decision (confusion, its target, box leak, pair merge): the primes p, q whose square roots
-give its lattice steps (frac √p, frac √q). Square roots of distinct primes are linearly independent over
-the rationals, so the four decisions of one object are jointly equidistributed (asymptotically
-independent) where one lattice with four phases would make them shifts of each other."""
-
-_LATTICE_STEPS: tuple[tuple[float, float], ...] = tuple(
-    (math.sqrt(p) % 1.0, math.sqrt(q) % 1.0) for p, q in _LATTICE_PRIMES
-)
-"""The steps (a1, a2) of :func:`lattice_draws` per stratified decision, from :data:`_LATTICE_PRIMES`."""
-
-
-def lattice_draws(
-    keys: npt.ArrayLike, block: float | npt.ArrayLike, phase: float, steps: tuple[float, float]
-) -> npt.NDArray[np.float64]:
-    """(R,) draws in [0, 1) of objects ``keys`` (R,) integers in the block of frames ``block`` (one, or
-    (R,) of them; a fraction with ``drift_draws``): ``u = frac(phase + key · a1 + block · a2)`` with
-    ``(a1, a2) = steps``, irrational and independent over the rationals.
-
-    For a fixed key the values over consecutive blocks, and for a fixed block the values over consecutive
-    keys, are spread evenly over [0, 1) (a Kronecker sequence), so the share of (key, block) pairs with
-    ``u < q`` is close to q in any sizeable set of them, where independent uniforms make it binomial.
-    ``phase`` ~ U(0, 1) (one per seed and decision) shifts the whole lattice.
-    """
-    k = np.asarray(keys, dtype=np.float64).reshape(-1)
-    b = np.asarray(block, dtype=np.float64).reshape(-1)
-    a1, a2 = steps
-    out: npt.NDArray[np.float64] = np.mod(phase + k * a1 + b * a2, 1.0)
-    return out
-
-
-def _stratify(
-    u_obj: npt.NDArray[np.float64],
-    u_shape: npt.NDArray[np.float64],
-    regions: list[_Region],
-    seed: int,
-    when: float,
-) -> None:
-    """Replace, in place, the confusion and target draws (``u_obj[:, 1:3]``) and the box-leak and
-    pair-merge draws (``u_shape[:, 0:2]``) by :func:`lattice_draws` keyed by the object (a thing's instance
-    id; a stuff region's name and area rank), one lattice per decision (:data:`_LATTICE_PRIMES`), at time
-    ``when``: the block of frames, or with ``drift_draws`` the frame number over ``persistence_frames``."""
-    keys = [r.ident if r.thing else (r.name << 8) + r.ident for r in regions]
-    phases = np.random.default_rng(np.random.SeedSequence([seed, _STREAM_LATTICE])).random(4)
-    cols = ((u_obj, 1), (u_obj, 2), (u_shape, 0), (u_shape, 1))
-    for (arr, col), steps, phase in zip(cols, _LATTICE_STEPS, phases, strict=True):
-        arr[:, col] = lattice_draws(keys, when, float(phase), steps)
-
-
-def _persistent_draws(
-    regions: list[_Region], cfg: SimulatedLabelerConfig, seed: int, frame: int, *, shaped: bool
-) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """(R, 4) object draws and (R, 4) shape draws of a frame's regions in frame number ``frame``'s block
-    (:func:`_object_draws`; the shape draws only when a shape term is on, else ones), four of them
-    replaced by lattice draws when ``stratified_draws`` is on (:func:`_stratify`)."""
-    block = frame // cfg.persistence_frames
-    u_obj = _object_draws(regions, seed, block, _STREAM_OBJECT)
-    n = len(regions)
-    u_shape = _object_draws(regions, seed, block, _STREAM_SHAPE) if shaped else np.ones((n, 4))
-    if cfg.stratified_draws:
-        _stratify(u_obj, u_shape, regions, seed, frame / cfg.persistence_frames if cfg.drift_draws else block)
-    return u_obj, u_shape
-
-
-def _merge_partners(regions: list[_Region], cfg: SimulatedLabelerConfig) -> npt.NDArray[np.int64]:
-    """(R,) the thing region a pair merge of region i would add (:func:`adjacent_partner`); all -1 when the
-    term is off."""
-    if not (cfg.pair_merge_prob > 0 and regions):
-        return np.full(len(regions), -1, np.int64)
-    boxes = [(r.y0, r.x0, r.y0 + r.crop.shape[0], r.x0 + r.crop.shape[1]) for r in regions]
-    return adjacent_partner(boxes, [r.thing for r in regions], cfg.pair_merge_gap_px)
+def _pick_partner(cand: list[int], u: float) -> int:
+    """The partner of ``cand`` that a draw ``u`` ~ U(0, 1) picks, uniformly."""
+    return cand[min(int(u * len(cand)), len(cand) - 1)]
 
 
 @dataclass(frozen=True)
-class _Draws:
-    """One frame's per-region draws (row i = region i) and per-class tables, read by the mask shaping."""
+class FrameDraws:
+    """One frame's regions, their draws (row i = region i) and per-class tables, read by the labeler's
+    steps (:meth:`SimulatedLabeler.keep_probability`, :meth:`~SimulatedLabeler.mask_parts`,
+    :meth:`~SimulatedLabeler.paint_part`). A subclass's :meth:`~SimulatedLabeler.frame_draws` may return
+    a subclass of it carrying the draws of its own terms."""
 
     h: int
     w: int
     seed: int
+    frame: int
+    """The frame number (``Frame.number``)."""
     block: int
+    """``frame // persistence_frames``: the block the persistent draws belong to."""
+    regions: list[Region]
+    names: list[str]
+    """The schema's class names (column i of the distributions = class i)."""
     u_obj: npt.NDArray[np.float64]
     """(R, 4) persistent: recall, confusion, partner choice, competition."""
     u_bleed: npt.NDArray[np.float64]
     """(R,) per frame: the bleed radius."""
-    u_shape: npt.NDArray[np.float64]
-    """(R, 4) persistent: box leak, pair merge, stuff growth, growth radius (ones when every term is off)."""
-    cells: npt.NDArray[np.uint16] | None
-    """(H, W) world cell per pixel (jittered with the label images) when world tiles are on, else None."""
-    merge_with: npt.NDArray[np.int64]
-    """(R,) the adjacent thing region a pair merge would add, -1 = none."""
+    partners: dict[int, list[int]]
+    """Class index → its partner classes (``confusion_pairs``)."""
     confusion_of: npt.NDArray[np.float64]
     """(C,) confusion probability per class."""
-    leak_of: npt.NDArray[np.float64]
-    """(C,) box-leak probability per class."""
-    partners: dict[int, list[int]]
-    targets: dict[int, tuple[list[int], npt.NDArray[np.float64]]]
+    extra: npt.NDArray[np.uint16] | None
+    """The subclass's per-pixel image (:meth:`SimulatedLabeler.extra_image`), jittered, or None."""
 
 
 class SimulatedLabeler:
@@ -926,21 +611,20 @@ class SimulatedLabeler:
     def fingerprint(self, schema: Schema) -> str:
         """Hash of the noise config, the lexicon and the schema parts the output depends on (class names,
         prompts and negative prompts: a prompt edit changes the masks, so it must re-run the 2D stage)."""
-        cfg = asdict(self.cfg)
-        cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
-        # Terms added after version 3 enter the hash only when on, so the fingerprints (and 2D caches) of
-        # configs that leave them off stay what they were.
-        for name, off in _LATER_TERMS_OFF.items():
-            if cfg[name] == off:
-                del cfg[name]
         parts = {
             "labeler": self.name,
             "version": 3,
             "lexicon": lexicon_digest(),
-            "config": cfg,
+            "config": self.fingerprint_config(),
             "classes": [[c.name, list(c.prompts), list(c.negative_prompts)] for c in schema.classes],
         }
         return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+
+    def fingerprint_config(self) -> dict[str, object]:
+        """The config as the fingerprint hashes it: every field, the pairs as lists."""
+        cfg = asdict(self.cfg)
+        cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
+        return cfg
 
     def label(self, frame: Frame, schema: Schema) -> SoftMasks:
         """Masks of one frame (reads ``gt2d/semantic``, ``gt2d/instance`` and ``gt2d/name`` if present)."""
@@ -952,18 +636,14 @@ class SimulatedLabeler:
                 f"{inst.shape} masks differ in size"
             )
         seed, idx = cfg.seed, frame.number
-        names_img, inst, cells = _jitter(
-            _name_image(frame, sem),
-            inst,
-            cfg,
-            _rng(seed, idx, _STREAM_JITTER),
-            _cell_image(frame, sem) if cfg.stuff_world_tile > 0 else None,
+        names_img, inst, extra = _jitter(
+            _name_image(frame, sem), inst, cfg, _rng(seed, idx, _STREAM_JITTER), self.extra_image(frame, sem)
         )
         h, w = names_img.shape
         names = list(schema.names)
         num_classes, regions, matches = len(names), _regions(names_img, inst), prompt_matches(schema)
 
-        recall_of = _per_class(names, cfg.recall, cfg.class_recall)
+        recall_of = per_class(names, cfg.recall, cfg.class_recall)
         partners = _partners(names, cfg.confusion_pairs)
 
         n = len(regions)
@@ -973,27 +653,22 @@ class SimulatedLabeler:
         u_bleed = rng_bleed.random(n)
         lo_c, hi_c = cfg.confidence
         conf = (lo_c + (hi_c - lo_c) * rng_probs.random(n)).astype(np.float32)
-        # The shape terms (box leak, pair merge, over-large stuff) draw from their own persistent stream,
-        # and only when on, so the default preset's draws and masks stay as they were.
-        leak_of = _per_class(names, cfg.box_leak_prob, cfg.class_box_leak)
-        shaped = bool(leak_of.any()) or cfg.pair_merge_prob > 0 or cfg.stuff_grow_prob > 0
-        u_obj, u_shape = _persistent_draws(regions, cfg, seed, idx, shaped=shaped)
-        draws = _Draws(
-            h=h,
-            w=w,
-            seed=seed,
-            block=block,
-            u_obj=u_obj,
-            u_bleed=u_bleed,
-            u_shape=u_shape,
-            cells=cells,
-            merge_with=_merge_partners(regions, cfg),
-            confusion_of=_per_class(names, cfg.confusion_prob, cfg.class_confusion),
-            leak_of=leak_of,
-            partners=partners,
-            targets=confusion_targets(names, cfg.confusion_targets),
+        draws = self.frame_draws(
+            FrameDraws(
+                h=h,
+                w=w,
+                seed=seed,
+                frame=idx,
+                block=block,
+                regions=regions,
+                names=names,
+                u_obj=object_draws(regions, seed, block, _STREAM_OBJECT),
+                u_bleed=u_bleed,
+                partners=partners,
+                confusion_of=per_class(names, cfg.confusion_prob, {}),
+                extra=extra,
+            )
         )
-        size_factor = size_recall([r.crop.sum() for r in regions], cfg.small_region_px)
 
         bits, probs, confs = [], [], []
         flat = np.zeros(h * w, dtype=bool)
@@ -1002,15 +677,13 @@ class SimulatedLabeler:
             cands = matches.get(reg.name)
             if not cands:
                 continue  # no prompt names this region: the detector is never asked for it
-            cls, k, rival = _compete(cands, cfg, float(u_obj[i, 3]))
+            cls, k, rival = _compete(cands, cfg, float(draws.u_obj[i, 3]))
             # Every class whose prompts name the region is one more chance for the detector to box it.
             missed = np.prod([1.0 - cfg.match_detection[STRENGTHS[kj]] for _, kj in cands])
-            keep = recall_of[cls] * (1.0 - missed)
-            if cfg.small_region_px:
-                keep *= size_factor[i]
-            if u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
+            keep = self.keep_probability(draws, i, recall_of[cls] * (1.0 - missed))
+            if draws.u_obj[i, 0] >= keep or reg.crop.sum() < cfg.min_region_px:
                 continue
-            parts, radius = self._parts(draws, i, reg, cls)
+            parts, radius = self.mask_parts(draws, i, cls)
             rng_i = dist_rng
             for part, part_pred in parts:
                 probs.append(
@@ -1024,16 +697,11 @@ class SimulatedLabeler:
                         rng=rng_i,
                     )
                 )
+                # A region painted as several masks draws each one's distribution from a generator of
+                # its own, so the first mask's draws are those of an unsplit region.
                 rng_i = np.random.default_rng(dist_rng.integers(0, 2**63))
                 confs.append(np.float32(conf[i] * cfg.match_confidence[STRENGTHS[k]]))
-                mask = self._paint(flat, part, radius, h, w)
-                j = int(draws.merge_with[i])
-                if reg.thing and j >= 0 and draws.u_shape[i, 1] < cfg.pair_merge_prob:
-                    other = regions[j]
-                    img = mask.reshape(h, w)
-                    rows = slice(other.y0, other.y0 + other.crop.shape[0])
-                    img[rows, other.x0 : other.x0 + other.crop.shape[1]] |= other.crop
-                bits.append(np.packbits(mask))
+                bits.append(np.packbits(self.paint_part(flat, draws, i, part, radius)))
         if not bits:
             return SoftMasks.empty(h, w, num_classes)
         return SoftMasks(
@@ -1044,111 +712,81 @@ class SimulatedLabeler:
             confidence=np.asarray(confs, dtype=np.float32),
         )
 
-    def _parts(self, d: _Draws, i: int, reg: _Region, cls: int) -> tuple[list[tuple[_Region, int]], int]:
-        """Region ``i`` (kept, won by class ``cls``) as masks to paint: [(shape, predicted class)] (two
-        parts when its stuff tiles split it), and the dilation radius (steps 3 and 5 and the shape terms)."""
+    # ------------------------------------------------------------------------- steps a subclass extends
+    def extra_image(self, frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16] | None:
+        """One more per-pixel image of ``frame`` that the jitter moves with the label images and
+        :attr:`FrameDraws.extra` carries (``semantic``: the frame's semantic mask, for its size); none
+        here."""
+        del frame, semantic
+        return None
+
+    def frame_draws(self, draws: FrameDraws) -> FrameDraws:
+        """The frame's draws: ``draws`` as the steps above drew them (a subclass adds its own)."""
+        return draws
+
+    def keep_probability(self, draws: FrameDraws, i: int, keep: float) -> float:
+        """Step 2: the probability that region ``i`` is kept, given ``keep``, its recall times the chance
+        that a naming prompt finds it."""
+        del draws, i
+        return keep
+
+    def mask_parts(self, draws: FrameDraws, i: int, cls: int) -> tuple[list[tuple[Region, int]], int]:
+        """Steps 3 and 5 for region ``i``, kept and won by class ``cls``: the masks to paint, [(shape,
+        predicted class)] (here one: the region), and their dilation radius."""
         cfg = self.cfg
+        reg = draws.regions[i]
         pred = cls
-        target = d.targets.get(cls)
-        cand = target[0] if target is not None else d.partners.get(cls)
-        # Tiled stuff: the confusion is drawn per image tile instead of for the whole region.
-        tiled = bool(cand) and not reg.thing and cfg.stuff_tile_px > 0
-        if cand and not tiled and d.u_obj[i, 1] < d.confusion_of[cls]:
-            pred = _pick(cand, target, float(d.u_obj[i, 2]))
+        cand = draws.partners.get(cls)
+        if cand and draws.u_obj[i, 1] < draws.confusion_of[cls]:
+            pred = _pick_partner(cand, float(draws.u_obj[i, 2]))
         max_r = cfg.bleed_px if reg.thing else cfg.stuff_bleed_px
-        radius = min(int(d.u_bleed[i] * (max_r + 1)), max_r)
-        shape = reg
-        if reg.thing and d.u_shape[i, 0] < d.leak_of[cls]:
-            bh, bw = reg.crop.shape
-            box, by0, bx0 = box_leak_crop(bh, bw, reg.y0, reg.x0, cfg.box_leak_margin, (d.h, d.w))
-            shape = _Region(reg.name, True, reg.ident, by0, bx0, box)
-        if not reg.thing and d.u_shape[i, 2] < cfg.stuff_grow_prob and cfg.stuff_grow_px > 0:
-            grow = 1 + min(int(d.u_shape[i, 3] * cfg.stuff_grow_px), cfg.stuff_grow_px - 1)
-            radius = max(radius, grow)
-        if not (tiled and cand):
-            return [(shape, pred)], radius
-        if d.cells is not None:
-            return self._world_parts(d, shape, cls, cand, target), radius
-        t = cfg.stuff_tile_px
-        u_tiles = np.random.default_rng(
-            np.random.SeedSequence([d.seed, d.block, _STREAM_TILE, reg.name, reg.ident])
-        ).random((-(-d.h // t), -(-d.w // t)))
-        moved = tile_split(shape.crop, shape.y0, shape.x0, t, u_tiles, float(d.confusion_of[cls]))
-        partner = _pick(cand, target, float(d.u_obj[i, 2]))
-        parts = [
-            (dataclasses.replace(shape, crop=shape.crop & ~moved), cls),
-            (dataclasses.replace(shape, crop=moved), partner),
-        ]
-        return [(part, c) for part, c in parts if part.crop.any()], radius
+        radius = min(int(draws.u_bleed[i] * (max_r + 1)), max_r)
+        return [(reg, pred)], radius
 
-    def _world_parts(
-        self,
-        d: _Draws,
-        shape: _Region,
-        cls: int,
-        cand: list[int],
-        target: tuple[list[int], npt.NDArray[np.float64]] | None,
-    ) -> list[tuple[_Region, int]]:
-        """Stuff region ``shape`` split by world tiles (term 13): the pixels whose tile is confused, one
-        part per target they take (:func:`world_tile_draws`, keyed by the region's name and the seed, not
-        the frame), and the rest, labeled ``cls``."""
-        assert d.cells is not None
-        cfg = self.cfg
-        ch, cw = shape.crop.shape
-        cells = d.cells[shape.y0 : shape.y0 + ch, shape.x0 : shape.x0 + cw]
-        phases = np.random.default_rng(np.random.SeedSequence([d.seed, _STREAM_WORLD, shape.name])).random(2)
-        u = world_tile_draws(
-            cells,
-            cfg.stuff_world_tile,
-            (float(phases[0]), float(phases[1])),
-            cfg.stratified_draws,
-            (d.seed, _STREAM_WORLD, shape.name),
-        )
-        moved = shape.crop & (u[0] < d.confusion_of[cls])
-        parts = [(dataclasses.replace(shape, crop=shape.crop & ~moved), cls)]
-        if moved.any():
-            picks = _pick_many(cand, target, u[1][moved])
-            for c in np.unique(picks):
-                part = np.zeros_like(moved)
-                part[moved] = picks == c
-                parts.append((dataclasses.replace(shape, crop=part), int(c)))
-        return [(part, c) for part, c in parts if part.crop.any()]
-
-    @staticmethod
-    def _paint(
-        flat: npt.NDArray[np.bool_], reg: _Region, radius: int, h: int, w: int
+    def paint_part(
+        self, flat: npt.NDArray[np.bool_], draws: FrameDraws, i: int, part: Region, radius: int
     ) -> npt.NDArray[np.bool_]:
-        """Full-image flat mask of a region dilated by ``radius`` px (``flat`` is a reused zero buffer)."""
-        crop, y0, x0 = reg.crop, reg.y0, reg.x0
-        if radius > 0:
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-            padded = np.pad(crop, radius).astype(np.uint8)
-            crop = cv2.dilate(padded, k).astype(bool)
-            y0, x0 = y0 - radius, x0 - radius
-            # Clip the dilated crop to the image.
-            cy0, cx0 = max(0, -y0), max(0, -x0)
-            cy1 = crop.shape[0] - max(0, y0 + crop.shape[0] - h)
-            cx1 = crop.shape[1] - max(0, x0 + crop.shape[1] - w)
-            crop = crop[cy0:cy1, cx0:cx1]
-            y0, x0 = y0 + cy0, x0 + cx0
-        img = flat.reshape(h, w)
-        img[:] = False
-        img[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]] = crop
-        return flat
+        """The flat full-image mask of ``part`` (a shape of region ``i``) dilated by ``radius`` pixels;
+        ``flat`` is a reused zero buffer, returned."""
+        del i
+        return paint_region(flat, part, radius, draws.h, draws.w)
+
+
+def paint_region(
+    flat: npt.NDArray[np.bool_], reg: Region, radius: int, h: int, w: int
+) -> npt.NDArray[np.bool_]:
+    """Full-image flat mask of a region dilated by ``radius`` px (``flat`` is a reused zero buffer)."""
+    crop, y0, x0 = reg.crop, reg.y0, reg.x0
+    if radius > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        padded = np.pad(crop, radius).astype(np.uint8)
+        crop = cv2.dilate(padded, k).astype(bool)
+        y0, x0 = y0 - radius, x0 - radius
+        # Clip the dilated crop to the image.
+        cy0, cx0 = max(0, -y0), max(0, -x0)
+        cy1 = crop.shape[0] - max(0, y0 + crop.shape[0] - h)
+        cx1 = crop.shape[1] - max(0, x0 + crop.shape[1] - w)
+        crop = crop[cy0:cy1, cx0:cx1]
+        y0, x0 = y0 + cy0, x0 + cx0
+    img = flat.reshape(h, w)
+    img[:] = False
+    img[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]] = crop
+    return flat
 
 
 __all__ = [
+    "FIRST_FREE_STREAM",
+    "MOVED_PRESETS",
+    "MOVED_TERMS",
+    "MOVED_TERMS_FIX",
     "SIMULATED_PRESETS",
+    "FrameDraws",
+    "Region",
     "SimulatedLabeler",
     "SimulatedLabelerConfig",
-    "adjacent_partner",
-    "box_gaps",
-    "box_leak_crop",
-    "confusion_targets",
-    "lattice_draws",
+    "object_draws",
+    "paint_region",
+    "per_class",
     "prompt_matches",
     "simulated_preset",
-    "size_recall",
-    "tile_split",
-    "world_tile_draws",
 ]

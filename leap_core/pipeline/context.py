@@ -145,9 +145,11 @@ class StageInfo:
 
 
 def config_value(cfg: PipelineConfig, path: str) -> Any:
-    """The value at a dotted path of ``cfg`` (``"consistency.enabled"``)."""
-    node: Any = cfg
-    for part in path.split("."):
+    """The value at a dotted path of ``cfg``'s dict form (``"consistency.enabled"``,
+    ``"grounded_sam.box_threshold"``: a labeler's section is a top-level key)."""
+    first, *rest = path.split(".")
+    node: Any = cfg.labelers[first] if first in cfg.labelers else getattr(cfg, first)
+    for part in rest:
         node = getattr(node, part)
     return node
 

@@ -4,13 +4,16 @@ recompute, and what changed between two runs.
 Everything here is derived from the registries, so no rule is written twice:
 
 - A setting belongs to a **labeler** when its top-level config section is that labeler's
-  ``LabelerSpec.config_field`` (``grounded_sam.box_threshold`` → ``grounded-sam``), and to a **switchable
+  ``LabelerSpec.section`` (``grounded_sam.box_threshold`` → ``grounded-sam``), and to a **switchable
   stage** when the stage's ``StageInfo.reads`` holds its section and the stage has a ``switch``
   (``consistency.share`` → ``3dcn``, whose switch is ``consistency.enabled``). It is ignored when another
   labeler is chosen or that stage is switched off.
 - A stage is **recomputed** when the fingerprint a new run would give it differs from the one recorded in the
   latest run's ``stages.json`` (the rule :func:`~leap_core.pipeline.run_pipeline` applies when it reuses a
   seeded run folder), or when that run did not finish it.
+
+Settings are named by their dotted config paths. A caller that shows them under human names (the app's
+form) passes those names as data, ``labels``: dotted path → label.
 """
 
 from __future__ import annotations
@@ -20,9 +23,9 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from leap_core.config import FORM_FIELDS, PipelineConfig, config_from_dict
+from leap_core.config import PipelineConfig, config_from_dict, without_retired
 from leap_core.errors import LeapError
-from leap_core.labelers import LABELERS
+from leap_core.labelers import LABELERS, labeler_by_section
 from leap_core.pipeline.stages import STAGE_TABLE
 
 
@@ -40,7 +43,8 @@ class SettingScope:
 def setting_scope(path: str) -> SettingScope:
     """The scope of the dotted config path ``path`` (``"grounded_sam.box_threshold"``)."""
     section = path.split(".", maxsplit=1)[0]
-    labeler = next((s.name for s in LABELERS.values() if s.config_field == section), None)
+    spec = labeler_by_section(section)
+    labeler = None if spec is None else spec.name
     stage = next(
         (s.name for s in STAGE_TABLE if s.switch is not None and section in s.reads and path != s.switch),
         None,
@@ -48,14 +52,13 @@ def setting_scope(path: str) -> SettingScope:
     return SettingScope(labeler=labeler, stage=stage)
 
 
-def stage_switches() -> dict[str, str]:
-    """Stage name → flat name of the form field that switches it (stages whose switch is a form field)."""
-    by_path = {f.path: name for name, f in FORM_FIELDS.items()}
-    return {s.name: by_path[s.switch] for s in STAGE_TABLE if s.switch is not None and s.switch in by_path}
+def ignored_reason(cfg: PipelineConfig, path: str, labels: Mapping[str, str] | None = None) -> str | None:
+    """Why ``cfg`` ignores the setting at ``path``, or None when the setting has an effect.
 
-
-def ignored_reason(cfg: PipelineConfig, path: str) -> str | None:
-    """Why ``cfg`` ignores the setting at ``path``, or None when the setting has an effect."""
+    Args:
+        labels: dotted path → human name of the settings the caller shows; a switched-off stage's reason
+            names its switch by this name (``"(3D Consistency Network is unticked)"``) when given.
+    """
     scope = setting_scope(path)
     if scope.labeler is not None and scope.labeler != cfg.labeler:
         return (
@@ -65,20 +68,10 @@ def ignored_reason(cfg: PipelineConfig, path: str) -> str | None:
     if scope.stage is not None:
         stage = next(s for s in STAGE_TABLE if s.name == scope.stage)
         if not stage.is_enabled(cfg):
-            switch = stage_switches().get(stage.name)
-            how = f" ({FORM_FIELDS[switch].label} is unticked)" if switch is not None else ""
+            switch = (labels or {}).get(stage.switch or "")
+            how = f" ({switch} is unticked)" if switch is not None else ""
             return f"the {stage.label} stage is off{how}"
     return None
-
-
-def ignored_settings(cfg: PipelineConfig) -> dict[str, str]:
-    """Flat form name → why ``cfg`` ignores it, for every form field (:data:`FORM_FIELDS`) it ignores."""
-    out: dict[str, str] = {}
-    for name, f in FORM_FIELDS.items():
-        reason = ignored_reason(cfg, f.path)
-        if reason is not None:
-            out[name] = reason
-    return out
 
 
 # ----------------------------------------------------------------------------------- recompute plan
@@ -158,7 +151,10 @@ def recompute_plan(
 
 
 def changed_sections(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order)."""
+    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order; fields
+    an older version stored at the value that meant "off" do not count, :func:`~leap_core.config.
+    without_retired`)."""
+    old, new = without_retired(old), without_retired(new)
     keys = list(new) + [k for k in old if k not in new]
     return [k for k in keys if _canon(old.get(k)) != _canon(new.get(k))]
 
@@ -265,25 +261,31 @@ def _sequence_changes(old: list[Mapping[str, Any]], new: list[Mapping[str, Any]]
     return out
 
 
-def run_changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
+def run_changes(
+    old: Mapping[str, Any], new: Mapping[str, Any], labels: Mapping[str, str] | None = None
+) -> list[Change]:
     """What differs between two runs' input snapshots (``{"sequences": [{"name", "dataset", "frames"}],
     "schema": {"classes"}, "pipeline"}``, as the app stores them), older run first: sequences (added,
     removed, another folder, other frames), classes and prompts, then parameters (dotted paths, each
-    marked when ``new``'s config ignores it)."""
+    marked when ``new``'s config ignores it; ``labels``: dotted path → human name, shown before the path
+    of the settings it names)."""
     out = _sequence_changes(old.get("sequences") or [], new.get("sequences") or [])
     classes_old = (old.get("schema") or {}).get("classes", [])
     out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
-    fa, fb = _flatten(old.get("pipeline") or {}), _flatten(new.get("pipeline") or {})
+    # A snapshot stored by an older version may hold fields that left the config at their former defaults:
+    # they changed nothing, so they are no parameter change.
+    fa = _flatten(without_retired(old.get("pipeline") or {}))
+    fb = _flatten(without_retired(new.get("pipeline") or {}))
     try:
         cfg: PipelineConfig | None = config_from_dict(new.get("pipeline") or {})
     except LeapError:
         cfg = None  # a snapshot from an older version: list its changes without the "ignored" notes
-    labels = {f.path: f.label for f in FORM_FIELDS.values()}
+    labels = labels or {}
     for path in list(fb) + [p for p in fa if p not in fb]:
         if _canon(fa.get(path)) == _canon(fb.get(path)):
             continue
         name = f"{labels[path]} ({path})" if path in labels else path
-        ignored = None if cfg is None else ignored_reason(cfg, path)
+        ignored = None if cfg is None else ignored_reason(cfg, path, labels)
         out.append(Change("parameter", path, f"{name}: {_fmt(fa.get(path))} → {_fmt(fb.get(path))}", ignored))
     return out
 
@@ -294,9 +296,7 @@ __all__ = [
     "StagePlan",
     "changed_sections",
     "ignored_reason",
-    "ignored_settings",
     "recompute_plan",
     "run_changes",
     "setting_scope",
-    "stage_switches",
 ]

@@ -1,4 +1,5 @@
-"""No import circles in ``app`` and ``leap_core`` (function-local imports included) or in ``web``'s modules.
+"""No import circles in ``app``, ``leap_core`` and ``lab`` (function-local imports included) or in ``web``'s
+modules, and the imports between the packages go one way: ``lab`` → ``app`` → ``leap_core``.
 
 A circle hidden behind an import inside a function works until someone moves that import to the top of
 its module (or imports the modules in the other order), so the check is static: it reads every module's
@@ -15,7 +16,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("app", "leap_core")
+PACKAGES = ("app", "leap_core", "lab")
 WEB = ROOT / "web"
 
 _JS_IMPORT = re.compile(
@@ -154,6 +155,45 @@ def test_app_and_leap_core_have_no_import_circles() -> None:
     assert {"app.main", "app.jobs.worker", "app.viewer.session", "leap_core.config"} <= set(modules)
     cycles = find_cycles(import_graph(modules))
     assert cycles == [], "import circles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def _importers_of(graph: dict[str, set[str]], package: str, among: str) -> dict[str, list[str]]:
+    """Module of ``among`` → the modules of ``package`` it imports (static, function-local included)."""
+    out = {}
+    for module, targets in graph.items():
+        if module == among or module.startswith(among + "."):
+            hits = sorted(t for t in targets if t == package or t.startswith(package + "."))
+            if hits:
+                out[module] = hits
+    return out
+
+
+def test_the_product_never_imports_the_lab_and_leap_core_never_the_app() -> None:
+    # The lab (research code: fitting the simulated labeler, Table 1) sits beside the product and imports
+    # it; leap_core and app must run without it, and leap_core without the app.
+    modules = module_files(ROOT, PACKAGES)
+    assert {"lab", "lab.paper_labeler", "lab.table1"} <= set(modules)
+    graph = import_graph(modules)
+    assert _importers_of(graph, "lab", "leap_core") == {}
+    assert _importers_of(graph, "lab", "app") == {}
+    assert _importers_of(graph, "app", "leap_core") == {}
+    # The lab reaches the app only for its command line (python -m lab).
+    assert set(_importers_of(graph, "app", "lab")) == {"lab.__main__"}
+
+
+def test_a_planted_import_of_the_lab_is_found_behind_a_function(tmp_path: Path) -> None:
+    files = {
+        "leap_core/__init__.py": "",
+        "leap_core/stage.py": "def run():\n    from lab.paper_labeler import X\n    return X\n",
+        "lab/__init__.py": "",
+        "lab/paper_labeler.py": "import leap_core.stage\nX = 1\n",
+    }
+    for name, text in files.items():
+        path = tmp_path / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    graph = import_graph(module_files(tmp_path, ("leap_core", "lab")))
+    assert _importers_of(graph, "lab", "leap_core") == {"leap_core.stage": ["lab", "lab.paper_labeler"]}
 
 
 def _package(tmp_path: Path, files: dict[str, str]) -> dict[str, Path]:

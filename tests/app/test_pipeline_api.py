@@ -8,10 +8,10 @@ import appfixtures
 from apphelpers import API, create_project
 from fastapi.testclient import TestClient
 
-from leap_core.config import FORM_FIELDS
+from app.forms import FORM_FIELDS, stage_switches
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
-from leap_core.pipeline.steering import setting_scope, stage_switches
+from leap_core.pipeline.steering import setting_scope
 
 client, data_root, settings, tiny_dataset = (
     appfixtures.client,

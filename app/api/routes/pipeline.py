@@ -2,10 +2,10 @@
 and which run states are active, ended or resumable.
 
 The web UI builds its stage list and its parameter form from this answer, so a stage or a parameter is
-declared once, in leap_core (``STAGE_TABLE``, ``FORM_FIELDS``), and nowhere in the browser code. Each form
-field says which labeler or switchable stage it belongs to (``leap_core.pipeline.steering.setting_scope``)
-and each switchable stage which form field switches it, so the form greys out what the chosen settings
-ignore without knowing any setting by name.
+declared once (``STAGE_TABLE`` in leap_core, ``FORM_FIELDS`` in ``app/forms.py``), and nowhere in the browser
+code. Each form field says which labeler or switchable stage it belongs to
+(``leap_core.pipeline.steering.setting_scope``) and each switchable stage which form field switches it, so
+the form greys out what the chosen settings ignore without knowing any setting by name.
 """
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ import typing
 from fastapi import APIRouter
 
 from app import models
+from app.forms import FORM_FIELDS, stage_switches
 from app.jobs.progress import TERMINAL_STATUSES
 from app.jobs.stages import POSES, SYNTH
 from app.rows import RunStatus
-from leap_core.config import FORM_FIELDS
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
-from leap_core.pipeline.steering import setting_scope, stage_switches
+from leap_core.pipeline.steering import setting_scope
 
 router = APIRouter(prefix="/pipeline", tags=["pipeline"])
 

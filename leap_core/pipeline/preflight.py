@@ -8,10 +8,11 @@ becomes a :class:`Finding` with a code, the file it concerns and a neutral descr
 read (only their sizes are checked), so the check costs a few directory listings whatever the sequence
 length.
 
-Advice depends on where it is shown: :func:`advice` words each finding's fix for the command line (it
-may name ``leap`` commands and flags) or for the web app (it names the app's own options, never a
-command-line flag). :func:`render_cli` prints a whole report; the app sends the structured report with
-the app wording (:func:`report_dict`).
+It judges the pipeline's stages (:data:`~leap_core.pipeline.stages.STAGE_TABLE`) and labelers
+(:data:`~leap_core.labelers.LABELERS`) against the folder, so it lives with the pipeline. Its results are
+neutral: finding codes (:data:`REASONS`), the files concerned and what is wrong. How to fix a finding is
+worded by whoever shows it: ``leap check`` and the app (``app/advice.py``: the CLI's advice names
+``leap`` commands and flags, the app's names its own options, never a command-line flag).
 
 Verdict (:attr:`DatasetReport.verdict`):
 
@@ -36,7 +37,7 @@ from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import IMAGE_SUFFIXES, POSES_NOTE, KittiSequence, read_calib, read_poses
 from leap_core.errors import DatasetError, ModelLoadError
 from leap_core.labelers import LABELERS
-from leap_core.labelers.grounded_sam import model_folder_name, resolve_model_folder
+from leap_core.labelers.grounded_sam import GroundedSamConfig, model_folder_name, resolve_model_folder
 from leap_core.labelers.tiny_models import is_tiny_random
 from leap_core.pipeline.stages import STAGE_TABLE
 from leap_core.runtime import Runtime
@@ -47,7 +48,6 @@ Verdict = Literal["full", "partial", "none"]
 StageState = Literal["runs", "skipped", "blocked"]
 """``runs``: the stage can compute; ``skipped``: it will run as a no-op (evaluation without ground truth,
 3D-CN switched off); ``blocked``: it cannot run on this dataset."""
-Audience = Literal["cli", "app"]
 PoseSource = Literal["file", "estimated", "missing", "invalid", "will-estimate"]
 
 SHOWN_FRAMES = 5
@@ -62,12 +62,12 @@ class Finding:
     """One fact about the folder that limits what can run (or that a user should know)."""
 
     code: str
-    """Stable identifier (``poses_missing``, ``calib_invalid``, ...: the keys of :data:`ADVICE`)."""
+    """Stable identifier (``poses_missing``, ``calib_invalid``, ...: the keys of :data:`REASONS`)."""
     severity: Severity
     path: str | None
     """The file or folder it concerns."""
     detail: str
-    """What is wrong, neutral (no advice; :func:`advice` adds that for the place it is shown)."""
+    """What is wrong, neutral (no advice: the place it is shown adds that)."""
     frames: tuple[str, ...] = ()
     """Frame ids concerned (the first :data:`SHOWN_FRAMES`), when per frame."""
     count: int = 0
@@ -497,7 +497,7 @@ def _note_method(poses_file: Path) -> str | None:
 
 def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> dict[str, tuple[str, ...]]:
     """Findings on the grounded-sam model folders; returns {labeler: codes that stop it}."""
-    gs = cfg.grounded_sam
+    gs = cfg.labeler_config(GroundedSamConfig)
     missing: list[str] = []
     for model_id in (gs.detector_id, gs.segmenter_id):
         try:
@@ -664,147 +664,37 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
 
 
 # ------------------------------------------------------------------------------------------ wording
-@dataclass(frozen=True)
-class Advice:
-    """How to fix one finding code, worded for each place it is shown."""
-
-    cli: str
-    """For the command line: may name ``leap`` commands and flags. ``{seq}`` = the sequence folder."""
-    app: str
-    """For the web app: names the app's own options; never a command-line flag."""
-    reason: str = ""
-    """Short phrase for a stage or labeler that it stops ("no poses")."""
-
-
-ADVICE: dict[str, Advice] = {
-    "not_a_folder": Advice(
-        "give the path of a sequence folder (…/sequences/NN)",
-        "pick an existing sequence folder inside a data root",
-        "no such folder",
-    ),
-    "not_a_sequence": Advice(
-        "give a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
-        "pick a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
-        "not a sequence folder",
-    ),
-    "no_scans": Advice(
-        "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
-        "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
-        "no scans",
-    ),
-    "scans_damaged": Advice("replace the damaged scans", "replace the damaged scans", "damaged scans"),
-    "calib_missing": Advice(
-        "write calib.txt with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' line (the 3×4 "
-        "LiDAR→camera transform)",
-        "add calib.txt to the dataset, with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' "
-        "line (the 3×4 LiDAR→camera transform)",
-        "no calibration",
-    ),
-    "calib_invalid": Advice(
-        "fix calib.txt ('P2:' and 'Tr:', 12 numbers each)",
-        "fix calib.txt in the dataset ('P2:' and 'Tr:', 12 numbers each)",
-        "unusable calibration",
-    ),
-    "unreadable": Advice(
-        "fix the file named above", "fix the file named above in the dataset", "a file the reader refuses"
-    ),
-    "no_2d_input": Advice(
-        "add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
-        "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "
-        "Grounding DINO + SAM labeler",
-        "nothing to label from",
-    ),
-    "images_missing": Advice(
-        "add camera images as image_2/NNNNNN.png (or .jpg) to use --labeler grounded-sam",
-        "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset to use the "
-        "Grounding DINO + SAM labeler",
-        "no camera images",
-    ),
-    "images_partial": Advice(
-        "add the missing images, or label only frames that have one (--frames A:B)",
-        "add the missing images to the dataset's image_2/ folder",
-        "frames without a camera image",
-    ),
-    "gt2d_missing": Advice("", "", "no 2D ground truth"),
-    "gt2d_partial": Advice(
-        "add the missing gt2d/semantic and gt2d/instance masks, or use --labeler grounded-sam",
-        "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM labeler under Parameters",
-        "frames without 2D ground truth",
-    ),
-    "labels_missing": Advice("", "", "no ground truth"),
-    "labels_partial": Advice(
-        "add the missing labels/NNNNNN.label files (evaluation needs one per scan)",
-        "add the missing labels/NNNNNN.label files to the dataset (evaluation needs one per scan)",
-        "ground truth for only some scans",
-    ),
-    "poses_missing": Advice(
-        "estimate them with `leap poses {seq}` (KISS-ICP LiDAR odometry), or add --estimate-poses to "
-        "`leap run`",
-        'turn on "Estimate poses (KISS-ICP)" (on the project page, or when creating the project), or add '
-        "a poses.txt to the dataset",
-        "no poses",
-    ),
-    "poses_will_estimate": Advice("", "", ""),
-    "poses_invalid": Advice(
-        "fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",
-        "fix or remove the dataset's poses.txt, then create the project with \"Estimate "
-        'poses (KISS-ICP)" ticked',
-        "unreadable poses",
-    ),
-    "poses_unreadable": Advice(
-        "fix or remove poses.txt (then `leap poses {seq}` estimates new ones)",
-        "fix or remove the dataset's poses.txt, then create the project with "
-        '"Estimate poses (KISS-ICP)" ticked',
-        "unreadable poses",
-    ),
-    "poses_short": Advice(
-        "poses.txt needs one line per frame number: add the missing lines, or estimate "
-        "poses with `leap poses {seq} --force`",
-        "poses.txt needs one line per frame number: add the missing lines, or remove it "
-        'and create the project with "Estimate poses (KISS-ICP)" ticked',
-        "frames without a pose",
-    ),
-    "poses_extra": Advice("", "", ""),
-    "poses_estimated": Advice("", "", ""),
-    "models_missing": Advice(
-        "pass --models DIR with grounding-dino-tiny/ and sam-vit-base/ (README 'Real 2D labels'); "
-        "`leap make-tiny-models DIR` writes random-weight stand-ins to try the code path",
-        "the server needs a models folder holding grounding-dino-tiny/ and sam-vit-base/: whoever runs it "
-        "sets it (LEAP_MODELS_DIR) and restarts it",
-        "its models are not found",
-    ),
-    "models_random": Advice(
-        "use real weights (README 'Real 2D labels')",
-        "the server's models folder holds test models with random weights: ask whoever "
-        "runs it for real weights",
-        "",
-    ),
-    "labeler_cannot_run": Advice(
-        "use --labeler {alt}",
-        'choose "{alt_label}" as the 2D labeler under Parameters',
-        "the chosen labeler cannot run",
-    ),
-    "off": Advice("", "", "3D-CN off"),
+REASONS: dict[str, str] = {
+    "not_a_folder": "no such folder",
+    "not_a_sequence": "not a sequence folder",
+    "no_scans": "no scans",
+    "scans_damaged": "damaged scans",
+    "calib_missing": "no calibration",
+    "calib_invalid": "unusable calibration",
+    "unreadable": "a file the reader refuses",
+    "no_2d_input": "nothing to label from",
+    "images_missing": "no camera images",
+    "images_partial": "frames without a camera image",
+    "gt2d_missing": "no 2D ground truth",
+    "gt2d_partial": "frames without 2D ground truth",
+    "labels_missing": "no ground truth",
+    "labels_partial": "ground truth for only some scans",
+    "poses_missing": "no poses",
+    "poses_will_estimate": "",
+    "poses_invalid": "unreadable poses",
+    "poses_unreadable": "unreadable poses",
+    "poses_short": "frames without a pose",
+    "poses_extra": "",
+    "poses_estimated": "",
+    "models_missing": "its models are not found",
+    "models_random": "",
+    "labeler_cannot_run": "the chosen labeler cannot run",
+    "off": "3D-CN off",
 }
-"""Every finding code with its fix for the command line and for the app."""
-
-
-def advice(finding: Finding, audience: Audience, report: DatasetReport) -> str:
-    """The fix for ``finding`` worded for the command line or the app ('' when there is nothing to do)."""
-    entry = ADVICE.get(finding.code)
-    if entry is None:
-        return ""
-    text = entry.cli if audience == "cli" else entry.app
-    if finding.code == "labeler_cannot_run":
-        alt = _alternative(report.labelers, report.labeler)
-        if alt is None:
-            return (
-                "fix the problems listed for the labelers"
-                if audience == "cli"
-                else ("fix the problems listed for the 2D labelers")
-            )
-        return text.format(alt=alt.name, alt_label=alt.label)
-    return text.format(seq=report.root)
+"""Every finding code (:attr:`Finding.code`; also the reason codes of stages and labelers), with a short
+neutral phrase for a stage or labeler that it stops (``"no poses"``; empty where the code never stops
+one). How to fix a finding depends on where it is shown (a command-line flag, an option of the app), so
+that wording is the caller's: the ``leap`` CLI's and the app's live in ``app/advice.py``."""
 
 
 def describe(finding: Finding) -> str:
@@ -820,8 +710,7 @@ def reason_text(code: str) -> str:
     """A stage's or labeler's reason code as a short phrase."""
     if code.startswith("needs:"):
         return f"needs {code.split(':', 1)[1]}"
-    entry = ADVICE.get(code)
-    return entry.reason if entry is not None and entry.reason else code.replace("_", " ")
+    return REASONS.get(code) or code.replace("_", " ")
 
 
 VERDICT_TEXT: dict[Verdict, str] = {
@@ -839,73 +728,20 @@ def stage_line(stage: StageCheck) -> str:
     return f"skipped ({why})" if stage.state == "skipped" else f"cannot run ({why})"
 
 
-def _coverage_line(cover: FrameCoverage, what: str) -> str:
-    return f"{cover.present} of {cover.total} scans have {what}"
+def alternative_labeler(report: DatasetReport) -> LabelerCheck | None:
+    """The labeler to suggest instead of the report's (:func:`_alternative`), or None."""
+    return _alternative(report.labelers, report.labeler)
 
 
-def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = None) -> str:
-    """The report as ``leap check`` prints it (advice names commands and flags)."""
-    lines = [f"dataset   {report.root}"]
-    if report.frames:
-        plural = "s" if report.frames != 1 else ""
-        lines.append(f"frames    {report.frames} scan{plural} ({report.first_frame} … {report.last_frame})")
-        lines.append(f"images    {_coverage_line(report.images, 'a camera image (image_2/)')}")
-        cal = report.calib
-        lines.append(
-            "calib     "
-            + ("calib.txt: P2 and Tr read" if cal.valid else f"calib.txt: {cal.problem or 'missing'}")
-        )
-        p = report.poses
-        pose_text = {
-            "file": f"poses.txt, {p.lines} poses",
-            "estimated": f"poses.txt, {p.lines} poses, estimated ({p.method or 'method not recorded'})",
-            "missing": "missing (no poses.txt)",
-            "invalid": "poses.txt cannot be read",
-            "will-estimate": "missing: estimated before the 3D stages",
-        }[p.source]
-        lines.append(f"poses     {pose_text}")
-        lines.append(
-            f"labels    {report.ground_truth.kind}: "
-            f"{_coverage_line(report.ground_truth, 'ground truth (labels/)')}"
-        )
-        gt2d = _coverage_line(report.gt2d, "2D ground truth (gt2d/)")
-        lines.append(f"gt2d      {report.gt2d.kind}: {gt2d}")
-        lines.append("")
-        lines.append("labelers")
-        for lab in report.labelers:
-            why = ", ".join(map(reason_text, lab.reasons))
-            state = "can run" if lab.can_run else f"cannot run ({why})"
-            lines.append(f"  {lab.name:<14} {state}")
-        how = "" if report.labeler_chosen else ", picked by the check; --labeler picks another"
-        lines.append("")
-        lines.append(f"stages (labeler {report.labeler}{how})")
-        for st in report.stages:
-            lines.append(f"  {st.name:<14} {stage_line(st)}")
-    order = {"blocker": 0, "warning": 1, "info": 2}
-    if report.findings:
-        lines.append("")
-        lines.append("findings")
-    for f in sorted(report.findings, key=lambda f: order[f.severity]):
-        lines.append(f"  {f.severity:<8} {describe(f)}")
-        fix = advice(f, "cli", report) if f.severity != "info" else ""
-        if fix:
-            lines.append(f"           fix: {fix}")
-    lines.append("")
-    code = f" (exit code {exit_codes[report.verdict]})" if exit_codes else ""
-    lines.append(f"verdict: {VERDICT_TEXT[report.verdict]}{code}")
-    return "\n".join(lines)
-
-
-def report_dict(report: DatasetReport, audience: Audience) -> dict[str, Any]:
-    """The report as plain JSON-able data, each finding with its ``message`` and ``fix`` and each stage
-    and labeler with its ``reason`` worded for ``audience`` (the app sends ``"app"``)."""
+def report_data(report: DatasetReport) -> dict[str, Any]:
+    """The report as plain JSON-able data: each finding with its one-line ``message``
+    (:func:`describe`), each stage and labeler with its ``reason`` (:func:`reason_text`), the verdict's
+    ``summary`` and each coverage's ``kind``. A caller adds the fixes in its own words."""
     data = asdict(report)
     data["summary"] = VERDICT_TEXT[report.verdict]
     for cover in ("images", "ground_truth", "gt2d"):
         data[cover]["kind"] = getattr(report, cover).kind
-    data["findings"] = [
-        {**asdict(f), "message": describe(f), "fix": advice(f, audience, report)} for f in report.findings
-    ]
+    data["findings"] = [{**asdict(f), "message": describe(f)} for f in report.findings]
     data["stages"] = [
         {**asdict(s), "reason": "" if s.state == "runs" else ", ".join(map(reason_text, s.reasons))}
         for s in report.stages
@@ -917,10 +753,9 @@ def report_dict(report: DatasetReport, audience: Audience) -> dict[str, Any]:
 
 
 __all__ = [
-    "ADVICE",
     "POSES_STAGES",
-    "Advice",
-    "Audience",
+    "REASONS",
+    "VERDICT_TEXT",
     "CalibCheck",
     "DatasetReport",
     "Finding",
@@ -929,12 +764,11 @@ __all__ = [
     "PosesCheck",
     "StageCheck",
     "Verdict",
-    "advice",
+    "alternative_labeler",
     "check_dataset",
     "dataset_stamp",
     "describe",
     "reason_text",
-    "render_cli",
-    "report_dict",
+    "report_data",
     "stage_line",
 ]

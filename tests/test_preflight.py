@@ -1,5 +1,6 @@
-"""The dataset check (leap_core/datasets/check.py) and ``leap check`` on bad folders: what
-is missing, what still runs, the fix worded for the command line or the app, and the exit codes."""
+"""The pre-flight dataset check (leap_core/pipeline/preflight.py) and ``leap check`` on bad folders: what
+is missing, what still runs, the fix worded for the command line or the app (app/advice.py), and the exit
+codes."""
 
 from __future__ import annotations
 
@@ -11,11 +12,12 @@ import pytest
 from conftest import TinySequence, build_tiny_sequence
 from typer.testing import CliRunner
 
+from app.advice import ADVICE, advice, render_cli, report_dict
 from app.cli import CHECK_EXIT_CODES, cli
 from leap_core.config import config_from_dict
-from leap_core.datasets.check import advice, check_dataset, dataset_stamp, render_cli, report_dict
 from leap_core.datasets.kitti import POSES_NOTE, write_png16
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+from leap_core.pipeline.preflight import REASONS, check_dataset, dataset_stamp, report_data
 from leap_core.runtime import Runtime
 
 SIMULATED = config_from_dict({"labeler": "simulated"})
@@ -198,6 +200,23 @@ def test_app_wording_never_names_a_flag(seq: TinySequence, tmp_path: Path) -> No
             assert "--" not in f["fix"] and "leap " not in f["fix"], f
         cli_text = render_cli(r)
         assert "verdict:" in cli_text
+
+
+def test_leap_core_reports_codes_and_the_app_words_their_fixes(seq: TinySequence, tmp_path: Path) -> None:
+    # Every finding code has its fix in both wordings, and no other code has one.
+    assert set(ADVICE) == set(REASONS)
+    folder = shutil.copytree(seq.root, tmp_path / "np", ignore=shutil.ignore_patterns("poses.txt"))
+    r = check_dataset(folder, config=SIMULATED)
+    neutral = report_data(r)
+    assert [f["code"] for f in neutral["findings"]] == [f.code for f in r.findings] and neutral["findings"]
+    assert all("fix" not in f for f in neutral["findings"])  # leap_core gives no advice
+    for audience in ("cli", "app"):
+        worded = report_dict(r, audience)
+        assert [{k: v for k, v in f.items() if k != "fix"} for f in worded["findings"]] == neutral["findings"]
+        assert [f["fix"] for f in worded["findings"]] == [advice(f, audience, r) for f in r.findings]
+        assert {k: v for k, v in worded.items() if k != "findings"} == {
+            k: v for k, v in neutral.items() if k != "findings"
+        }
 
 
 def test_the_stamp_follows_the_folder(seq: TinySequence) -> None:

@@ -1,4 +1,5 @@
-"""What the 3D-CN is taught: its reliable training labels against the ground truth, per class (issue 16).
+"""What the 3D-CN is taught: its reliable training labels against the ground truth, per class (a check
+behind the Table 1 acceptance that the 3D-CN must lift the voxel row: it can only where it is taught right).
 
 The 3D Consistency Network learns from the labels that the round selects (docs/METHOD.md, stage C: per class,
 the ``consistency.share`` most confident points of the smoothed grid). Where those labels are wrong for most
@@ -11,7 +12,7 @@ Usage (from the repository root; the run folder, ``leap run``'s ``--out``, needs
 ``grid_smooth.npz`` and ``observations/`` in ``sequences/<name>/``, i.e. any finished run, with or without the
 3D-CN)::
 
-    .venv/bin/python benchmarks/selection_purity.py DATA/demo/sequences/00 RUNS/street/base \\
+    .venv/bin/python -m lab.selection_purity DATA/demo/sequences/00 RUNS/street/base \\
         --project-file projects/semantickitti.yaml
 
 Prints a Markdown table: per class with ground-truth points, its points, the share selected, the share of
@@ -28,18 +29,17 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from leap_core.consistency.selection import view_counts
+from leap_core.consistency.stage import iter_reliable_targets
+from leap_core.pipeline import SequenceSpec
+from leap_core.pipeline.executor import RunJob, worker_context
+from leap_core.pipeline.stages import observed_keys
+from leap_core.presets import load_preset
+from leap_core.run_layout import RunLayout
+from leap_core.runtime import Runtime
+from leap_core.smoothing import SmoothedGrid
 
-from leap_core.consistency.selection import view_counts  # noqa: E402  after the sys.path line
-from leap_core.consistency.stage import iter_reliable_targets  # noqa: E402
-from leap_core.pipeline import SequenceSpec  # noqa: E402
-from leap_core.pipeline.executor import RunJob, worker_context  # noqa: E402
-from leap_core.pipeline.stages import observed_keys  # noqa: E402
-from leap_core.presets import load_preset  # noqa: E402
-from leap_core.run_layout import RunLayout  # noqa: E402
-from leap_core.runtime import Runtime  # noqa: E402
-from leap_core.smoothing import SmoothedGrid  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def taught_counts(gt: npt.ArrayLike, targets: npt.ArrayLike, num_classes: int) -> npt.NDArray[np.int64]:

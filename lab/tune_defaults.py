@@ -19,15 +19,16 @@ and one run elsewhere (a GPU machine) can be tabulated here with ``--cached-only
 
 Usage::
 
-    .venv/bin/python benchmarks/tune_defaults.py --work /tmp/tune        # the whole sweep (long on a CPU)
-    .venv/bin/python benchmarks/tune_defaults.py --work /tmp/tune --only temperature --frames 30
+    .venv/bin/python -m lab.tune_defaults --work /tmp/tune        # the whole sweep (long on a CPU)
+    .venv/bin/python -m lab.tune_defaults --work /tmp/tune --only temperature --frames 30
     # the sweep of record (docs/METHOD.md): around the former defaults, 3D-CN on a GPU, 6 seeds at once
-    .venv/bin/python benchmarks/tune_defaults.py --work /tmp/tune --jobs 6 --device cuda --threads 2 \
+    .venv/bin/python -m lab.tune_defaults --work /tmp/tune --jobs 6 --device cuda --threads 2 \
         --set consistency.temperature=0.25 --set 'consistency.selection_scope="sequence"'
-    .venv/bin/python benchmarks/tune_defaults.py --from-json benchmarks/results/tune_defaults.json
+    .venv/bin/python -m lab.tune_defaults --from-json benchmarks/results/tune_defaults.json
 
 Prints one table per setting (rows: values; columns: mIoU per seed and the mean of each seed group) and
-writes ``benchmarks/results/tune_defaults.json``.
+writes ``benchmarks/results/tune_defaults.json`` (the benchmarks' results folder and its JSON form,
+``benchmarks/common.py``).
 """
 
 from __future__ import annotations
@@ -40,11 +41,10 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# benchmarks/ is a folder of scripts, not an installed package: its helpers import from the checkout.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import print_table, write_results
-
+from benchmarks.common import print_table, write_results
 from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.io_utils import atomic_write_json
 from leap_core.pipeline import SequenceSpec, run_pipeline

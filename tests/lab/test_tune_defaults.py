@@ -1,14 +1,18 @@
-"""benchmarks/tune_defaults.py: the rule that picks a default from the tuning seeds only."""
+"""lab/tune_defaults.py: the rule that picks a default from the tuning seeds only."""
 
 from __future__ import annotations
 
 from types import ModuleType
 
-from scripthelpers import load_script
+import labfixtures
+
+from lab import tune_defaults
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 
 def _module() -> ModuleType:
-    return load_script("benchmarks/tune_defaults.py")
+    return tune_defaults
 
 
 def _figs(cam: float) -> dict[str, float]:

@@ -1,15 +1,17 @@
 """The paper's Table 1 reproduced on the two synthetic domains: point, voxel, +3D-CN x1 and x2 per training
-seed of the 3D Consistency Network, next to the paper's figures (issue 16, item 5).
+seed of the 3D Consistency Network, next to the paper's figures.
 
-Domains (each a generated sequence and the CLI's own ``leap run``):
+Domains (each a generated sequence and the CLI's own ``leap run``, through ``python -m lab``: the ``leap``
+command line with the lab's labelers):
 
-- ``street``: the demo street, ``leap synth DATA/demo --frames 60 --seed 0``, labeled by the simulated
-  labeler with the ``paper`` preset (docs/RESULTS.md, "The paper-calibrated ..."), evaluated on the
-  paper's protocol: camera view, Table 1's 11 merged classes (``metrics.json`` key ``paper``); its 3D-CN
-  rounds start from a *source network* (:attr:`Domain.source`), trained by ``leap train-3dcn`` on the ground
-  truth of three ``street-32`` sequences (another LiDAR, another town: ``leap_core.synth.domains``), as the
-  paper fine-tunes a network trained on another data set, and its seed runs set the 3D-CN temperature
-  (:attr:`Domain.settings`, chosen on street tuning sequences 21-23; docs/METHOD.md C.5);
+- ``street``: the demo street, ``leap synth DATA/demo --frames 60 --seed 0``, labeled by the lab's
+  ``simulated-paper`` labeler with its ``paper`` preset (docs/RESULTS.md, "A paper-calibrated simulated
+  labeler"; ``lab.paper_labeler``), evaluated on the paper's protocol: camera view, Table 1's 11 merged
+  classes (``metrics.json`` key ``paper``); its 3D-CN rounds start from a *source network*
+  (:attr:`Domain.source`), trained by ``leap train-3dcn`` on the ground truth of three ``street-32`` sequences
+  (another LiDAR, another town: ``leap_core.synth.domains``), as the paper fine-tunes a network trained on
+  another data set, and its seed runs set the 3D-CN temperature (:attr:`Domain.settings`, chosen on street
+  tuning sequences 21-23; docs/METHOD.md C.5);
 - ``agri``: the farm drone, ``leap synth DATA/agri40 --domain agri-uav --frames 40 --seed 0`` with
   ``projects/agri_uav.yaml`` and the simulated labeler (its default preset: the ``paper`` preset's
   confusions are street classes), evaluated in camera view over its 7 classes (``metrics.json`` key
@@ -29,19 +31,20 @@ include the round count) and redoes only round 1's inference.
 
 Usage (from the repository root)::
 
-    .venv/bin/python benchmarks/table1.py --data /work/data --runs runs/table1          # everything
-    .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1      # one cell first
-    .venv/bin/python benchmarks/table1.py --cached-only --readme   # tabulate finished runs, docs/RESULTS.md
-    .venv/bin/python benchmarks/table1.py --domains agri --seeds 0 --iterations 1 \\
+    .venv/bin/python -m lab.table1 --data /work/data --runs runs/table1          # everything
+    .venv/bin/python -m lab.table1 --domains agri --seeds 0 --iterations 1      # one cell first
+    .venv/bin/python -m lab.table1 --cached-only --readme   # tabulate finished runs, docs/RESULTS.md
+    .venv/bin/python -m lab.table1 --domains agri --seeds 0 --iterations 1 \\
         --set consistency.class_balance=false --tag nobalance     # a variant, in its own run folders
-    .venv/bin/python benchmarks/table1.py --domains agri --sequence-seed 101 --frames 30 --seeds 0 \
+    .venv/bin/python -m lab.table1 --domains agri --sequence-seed 101 --frames 30 --seeds 0 \
         --iterations 1 --set consistency.class_balance_power=0.25 --tag _p25   # on a tuning sequence
 
 Prints the Markdown table (per seed, the mean, and the paper's row; gains = +3D-CN minus voxel, and the x1
 gain once more on the same points: the camera view's points every row labels, ``metrics.json``'s
 ``common`` table, since the camera protocol scores the 3D-CN, which labels every point, on points the
-voxel row leaves unlabeled and is not scored on) and, per domain, whether issue 16's acceptance holds
-(+3D-CN x1 > voxel for every seed, mean gain >= 5 points).
+voxel row leaves unlabeled and is not scored on) and, per domain, whether the acceptance of the
+reproduction holds (+3D-CN x1 > voxel for every seed, mean gain >= 5 points: the 3D-CN must improve on the
+voxel row as the paper's does).
 ``--readme`` writes the table between the ``table:table1`` markers of docs/RESULTS.md: the rows of the domains
 measured replace theirs, the other domains' rows stay (:func:`merged_table`).
 """
@@ -62,24 +65,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
+from leap_core.eval_view import PAPER_VIEW
+from leap_core.io_utils import atomic_write_bytes
+from leap_core.metrics import metrics_from_confusion
+from leap_core.pipeline.evaluation import COMMON, PAPER, paper_metrics, read_metrics_json
+from leap_core.run_layout import RunLayout, SequenceLayout, former_layout
+from leap_core.synth.generator import VERSION_FILE
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-
-from leap_core.eval_view import PAPER_VIEW  # noqa: E402  after the sys.path line
-from leap_core.io_utils import atomic_write_bytes  # noqa: E402
-from leap_core.metrics import metrics_from_confusion  # noqa: E402
-from leap_core.pipeline.evaluation import COMMON, PAPER, paper_metrics, read_metrics_json  # noqa: E402
-from leap_core.run_layout import RunLayout, SequenceLayout, former_layout  # noqa: E402
-from leap_core.synth.generator import VERSION_FILE  # noqa: E402
 
 ROWS = ("point", "voxel", "+3D-CN x1", "+3D-CN x2")
 """``metrics.json`` columns, in Table 1's order (x2 is ours: the paper reports one round)."""
 MIN_MEAN_GAIN = 5.0
-"""Issue 16's acceptance: mean +3D-CN x1 gain over voxel, in mIoU points."""
+"""The reproduction's acceptance: mean +3D-CN x1 gain over voxel, in mIoU points (the 3D-CN must lift the
+voxel row clearly, as the paper's does: +8.7 on SemanticKITTI, +11.8 on AgriUAV)."""
 
 
 @dataclass(frozen=True)
@@ -145,11 +147,12 @@ class Domain:
 DOMAINS: dict[str, Domain] = {
     "street": Domain(
         key="street",
+        # The README's table names its blocks by these titles (block_domain): kept as they were.
         title="street demo, `paper` labeler preset",
         data="demo",
         synth=("--frames", "60", "--seed", "0"),
         project="projects/semantickitti.yaml",
-        run_flags=("--labeler", "simulated", "--labeler-preset", "paper"),
+        run_flags=("--labeler", "simulated-paper", "--labeler-preset", "paper"),
         protocol="paper",
         protocol_title="the paper's 11 merged classes, camera view",
         paper=(46.8, 48.9, 57.6),
@@ -310,7 +313,7 @@ def _std(xs: Sequence[float | None]) -> float | None:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Issue 16's acceptance on one domain: +3D-CN x1 > voxel for every seed, mean x1 gain >= 5."""
+    """The reproduction's acceptance on one domain: +3D-CN x1 > voxel for every seed, mean x1 gain >= 5."""
 
     every_seed: bool
     mean_gain: float | None
@@ -414,7 +417,8 @@ def merged_table(old: str, new: str) -> str:
 
 
 def verdict_line(dom: Domain, rows: Sequence[SeedRow]) -> str:
-    """One sentence: issue 16's acceptance on this domain, over the seeds measured."""
+    """One sentence: the reproduction's acceptance on this domain (:func:`verdict`), over the seeds
+    measured."""
     v = verdict(rows)
     seeds = ", ".join(str(r.seed) for r in rows)
     return (
@@ -426,9 +430,10 @@ def verdict_line(dom: Domain, rows: Sequence[SeedRow]) -> str:
 
 # --------------------------------------------------------------------------------------------- runs
 def leap(args: Sequence[str]) -> None:
-    """Run ``leap ARGS`` (this checkout's CLI) in the repository root; stop on failure."""
-    print("$ leap " + " ".join(args), flush=True)
-    done = subprocess.run([sys.executable, "-m", "app.cli", *args], cwd=ROOT, check=False)
+    """Run ``leap ARGS`` (this checkout's CLI, with the lab's labelers: ``python -m lab``) in the
+    repository root; stop on failure."""
+    print("$ python -m lab " + " ".join(args), flush=True)
+    done = subprocess.run([sys.executable, "-m", "lab", *args], cwd=ROOT, check=False)
     if done.returncode != 0:
         sys.exit(f"table1: `leap {' '.join(args)}` failed (exit {done.returncode})")
 
@@ -484,7 +489,7 @@ def seed_project(dom: Domain, seed: int, sets: Mapping[str, Any], folder: Path, 
     doc["pipeline"] = _merge(pipeline, {"consistency": {"seed": seed}})
     path = folder / f"{dom.key}_seed{seed}{tag}.yaml"
     folder.mkdir(parents=True, exist_ok=True)
-    text = f"# written by benchmarks/table1.py from {dom.project}\n" + yaml.safe_dump(doc, sort_keys=False)
+    text = f"# written by lab/table1.py from {dom.project}\n" + yaml.safe_dump(doc, sort_keys=False)
     atomic_write_bytes(path, text.encode())
     return path
 

@@ -1,12 +1,14 @@
-"""benchmarks/selection_purity.py's pure parts: the taught-as counts and their table, by hand."""
+"""lab/selection_purity.py's pure parts: the taught-as counts and their table, by hand."""
 
 from __future__ import annotations
 
+import labfixtures
 import numpy as np
 import pytest
-from scripthelpers import load_script
 
-sp = load_script("benchmarks/selection_purity.py")
+from lab import selection_purity as sp
+
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 
 def test_taught_counts_by_hand() -> None:

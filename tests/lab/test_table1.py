@@ -1,4 +1,4 @@
-"""benchmarks/table1.py: Table 1's rows, gains, means and acceptance from hand-made metrics dicts, and the
+"""lab/table1.py: Table 1's rows, gains, means and acceptance from hand-made metrics dicts, and the
 seed project files and base-run links that let every seed share one base run."""
 
 from __future__ import annotations
@@ -9,19 +9,22 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import labfixtures
 import numpy as np
 import pytest
 import yaml
-from scripthelpers import load_script
 
+from lab import table1
 from leap_core.metrics import metrics_from_confusion
 from leap_core.run_layout import RunLayout, write_run_spec
 
-ROOT = Path(__file__).resolve().parents[1]
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _module() -> ModuleType:
-    return load_script("benchmarks/table1.py")
+    return table1
 
 
 def _metrics(

@@ -1,9 +1,9 @@
-"""The simulated labeler's "paper" preset, written by ``benchmarks/fit_labeler.py --write``.
+"""The ``paper`` preset of the lab's simulated-paper labeler, written by lab/fit_labeler.py.
 
 Fitted on the demo (`leap synth data/demo --frames 60 --seed 0`, every frame; warm from the former preset,
-which was fitted on tuning sequences 21-28) (issue 16 defines the preset by the demo's point row;
-benchmarks/fit_labeler.py): the point row (camera view, the paper's merged classes) of these settings there,
-each class's IoU averaged over the sequences that contain it, against the paper's Table 1:
+which was fitted on tuning sequences 21-28) (the preset is defined by the demo's point row: python -m
+lab.fit_labeler): the point row (camera view, the paper's merged classes) of these settings there, each
+class's IoU averaged over the sequences that contain it, against the paper's Table 1:
 
     class          paper  fitted
     car             77.2   77.6

@@ -1,24 +1,23 @@
-"""benchmarks/fit_labeler.py: its in-process point row is the pipeline's, and its fit's pieces."""
+"""lab/fit_labeler.py: its in-process point row is the pipeline's, and its fit's pieces."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import sys
 from pathlib import Path
 
+import labfixtures
 import numpy as np
 import pytest
 from runhelpers import label
 
+from lab import fit_labeler
+from lab.paper_labeler import SimulatedPaperConfig
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.labelers.simulated import SimulatedLabelerConfig
 from leap_core.schema import builtin_schema
 from tests.test_pipeline import make_street
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import fit_labeler
+lab_labeler = labfixtures.lab_labeler  # registers the lab's labeler for each test here
 
 
 def test_point_confusion_is_the_runs_camera_point_row(tmp_path: Path) -> None:
@@ -26,7 +25,8 @@ def test_point_confusion_is_the_runs_camera_point_row(tmp_path: Path) -> None:
     # counts for the "point" row (camera view), here with the paper preset's noise.
     street = make_street(tmp_path / "sequences" / "00", n_frames=3)
     schema = builtin_schema("semantickitti")
-    cfg = dataclasses.replace(PipelineConfig(), simulated=SimulatedLabelerConfig.from_preset("paper"))
+    cfg = fit_labeler.with_labeler(PipelineConfig(), SimulatedPaperConfig.from_preset("paper"))
+    assert cfg.labeler == "simulated-paper"
     metrics = label(street, schema, cfg, tmp_path / "run", until="evaluate").metrics
     assert metrics is not None
     conf = fit_labeler.point_confusion(KittiSequence(street), schema, cfg)
@@ -61,7 +61,7 @@ def test_mean_row_averages_each_class_over_the_sequences_that_contain_it() -> No
 
 
 def test_paper_config_spreads_a_merged_class_q_over_its_members() -> None:
-    cfg = fit_labeler.paper_config({"manmade": 0.4, "car": 0.0}, SimulatedLabelerConfig())
+    cfg = fit_labeler.paper_config({"manmade": 0.4, "car": 0.0}, SimulatedPaperConfig())
     # Person's confusion is fixed (LEAK_FITTED), and with no q for it, none of its masks leak: its 0 and
     # car's stay in the table, or the global box_leak_prob would apply to them instead.
     manmade = {"building": 0.4, "fence": 0.4, "pole": 0.4, "traffic-sign": 0.4}
@@ -73,7 +73,7 @@ def test_paper_config_spreads_a_merged_class_q_over_its_members() -> None:
 def test_paper_config_fits_the_box_leak_of_leak_fitted_classes() -> None:
     assert fit_labeler.LEAK_FITTED == {"person": 0.1, "car": 0.0}
     cfg = fit_labeler.paper_config(
-        {"person": 0.35, "car": 0.05, "other-vehicle": 0.2}, SimulatedLabelerConfig()
+        {"person": 0.35, "car": 0.05, "other-vehicle": 0.2}, SimulatedPaperConfig()
     )
     # Person's and car's q are their members' box-leak probabilities; their confusions stay at the fixed
     # values (0 leaves car out of the table); other-vehicle's q is its members' confusion.
@@ -85,12 +85,12 @@ def test_paper_config_fits_the_box_leak_of_leak_fitted_classes() -> None:
     assert cfg.stratified_draws
     # A warm start reads the q back from the same places: the committed preset round-trips.
     q = fit_labeler.preset_q()
-    paper = SimulatedLabelerConfig.from_preset("paper")
+    paper = SimulatedPaperConfig.from_preset("paper")
     again = fit_labeler.paper_config(q, paper)
     assert (again.class_box_leak, again.class_confusion) == (paper.class_box_leak, paper.class_confusion)
 
 
-def test_in_band_names_the_classes_and_the_miou_outside_issue_16s_bands() -> None:
+def test_in_band_names_the_classes_and_the_miou_outside_the_bands() -> None:
     row = dict.fromkeys(fit_labeler.PAPER_POINT, math.nan)
     row.update({"car": 82.2, "road": 87.1})  # car 5.0 above the paper's: on the edge, inside
     assert fit_labeler.in_band(row) == []
@@ -142,3 +142,20 @@ def test_a_missing_sequence_is_named_not_a_traceback(tmp_path: Path) -> None:
         fit_labeler.main(["--report", str(tmp_path / "nope")])
     with pytest.raises(SystemExit, match="dataset folder does not exist"):
         fit_labeler.main([str(tmp_path / "nope")])
+
+
+def test_the_preset_file_the_fit_writes_reads_back_to_its_config(tmp_path: Path) -> None:
+    import runpy
+
+    paper = SimulatedPaperConfig.from_preset("paper")
+    row = dict.fromkeys(fit_labeler.PAPER_POINT, math.nan)
+    row.update({"car": 77.6, "road": 86.6})
+    path = tmp_path / "paper_preset.py"
+    fit_labeler._write_preset(paper, row, "a test sequence", path)
+    assert SimulatedPaperConfig(**runpy.run_path(str(path))["PAPER_PRESET"]) == paper
+    text = path.read_text()
+    assert "Fitted on a test sequence" in text and "    car             77.2   77.6" in text
+    # The committed preset is the writer's text for its own values (the fit's figures above aside).
+    body = text[text.index("from typing import Any") :]
+    committed = fit_labeler.PRESET_FILE.read_text()
+    assert committed[committed.index("from typing import Any") :] == body

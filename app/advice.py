@@ -1,0 +1,247 @@
+"""How to fix what the pre-flight check finds, worded for where it is shown: the ``leap`` command line (it
+may name ``leap`` commands and flags) or the web app (it names the app's own options, never a command-line
+flag).
+
+The check itself (:mod:`leap_core.pipeline.preflight`) reports neutral findings: a code, the file and what
+is wrong. :data:`ADVICE` holds each code's fix for both places; :func:`render_cli` prints a whole report as
+``leap check`` does, and :func:`report_dict` is the structured report the app sends (and ``leap check
+--json`` prints), with the fixes in the audience's words.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from leap_core.pipeline.preflight import (
+    VERDICT_TEXT,
+    DatasetReport,
+    Finding,
+    FrameCoverage,
+    Verdict,
+    alternative_labeler,
+    describe,
+    reason_text,
+    report_data,
+    stage_line,
+)
+
+Audience = Literal["cli", "app"]
+
+
+@dataclass(frozen=True)
+class Advice:
+    """How to fix one finding code, worded for each place it is shown."""
+
+    cli: str
+    """For the command line: may name ``leap`` commands and flags. ``{seq}`` = the sequence folder."""
+    app: str
+    """For the web app: names the app's own options; never a command-line flag."""
+
+
+ADVICE: dict[str, Advice] = {
+    "not_a_folder": Advice(
+        "give the path of a sequence folder (…/sequences/NN)",
+        "pick an existing sequence folder inside a data root",
+    ),
+    "not_a_sequence": Advice(
+        "give a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
+        "pick a KITTI sequence folder, the one holding velodyne/ (e.g. …/sequences/00)",
+    ),
+    "no_scans": Advice(
+        "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
+        "add the LiDAR scans as velodyne/NNNNNN.bin (float32 x, y, z, remission)",
+    ),
+    "scans_damaged": Advice(
+        "replace the damaged scans",
+        "replace the damaged scans",
+    ),
+    "calib_missing": Advice(
+        "write calib.txt with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' line (the 3×4 "
+        "LiDAR→camera transform)",
+        "add calib.txt to the dataset, with a 'P2:' line (the colour camera's 3×4 projection) and a 'Tr:' "
+        "line (the 3×4 LiDAR→camera transform)",
+    ),
+    "calib_invalid": Advice(
+        "fix calib.txt ('P2:' and 'Tr:', 12 numbers each)",
+        "fix calib.txt in the dataset ('P2:' and 'Tr:', 12 numbers each)",
+    ),
+    "unreadable": Advice(
+        "fix the file named above",
+        "fix the file named above in the dataset",
+    ),
+    "no_2d_input": Advice(
+        "add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
+        "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "
+        "Grounding DINO + SAM labeler",
+    ),
+    "images_missing": Advice(
+        "add camera images as image_2/NNNNNN.png (or .jpg) to use --labeler grounded-sam",
+        "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset to use the "
+        "Grounding DINO + SAM labeler",
+    ),
+    "images_partial": Advice(
+        "add the missing images, or label only frames that have one (--frames A:B)",
+        "add the missing images to the dataset's image_2/ folder",
+    ),
+    "gt2d_missing": Advice(
+        "",
+        "",
+    ),
+    "gt2d_partial": Advice(
+        "add the missing gt2d/semantic and gt2d/instance masks, or use --labeler grounded-sam",
+        "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM labeler under Parameters",
+    ),
+    "labels_missing": Advice(
+        "",
+        "",
+    ),
+    "labels_partial": Advice(
+        "add the missing labels/NNNNNN.label files (evaluation needs one per scan)",
+        "add the missing labels/NNNNNN.label files to the dataset (evaluation needs one per scan)",
+    ),
+    "poses_missing": Advice(
+        "estimate them with `leap poses {seq}` (KISS-ICP LiDAR odometry), or add --estimate-poses to "
+        "`leap run`",
+        'turn on "Estimate poses (KISS-ICP)" (on the project page, or when creating the project), or add '
+        "a poses.txt to the dataset",
+    ),
+    "poses_will_estimate": Advice(
+        "",
+        "",
+    ),
+    "poses_invalid": Advice(
+        "fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",
+        "fix or remove the dataset's poses.txt, then create the project with \"Estimate "
+        'poses (KISS-ICP)" ticked',
+    ),
+    "poses_unreadable": Advice(
+        "fix or remove poses.txt (then `leap poses {seq}` estimates new ones)",
+        "fix or remove the dataset's poses.txt, then create the project with "
+        '"Estimate poses (KISS-ICP)" ticked',
+    ),
+    "poses_short": Advice(
+        "poses.txt needs one line per frame number: add the missing lines, or estimate "
+        "poses with `leap poses {seq} --force`",
+        "poses.txt needs one line per frame number: add the missing lines, or remove it "
+        'and create the project with "Estimate poses (KISS-ICP)" ticked',
+    ),
+    "poses_extra": Advice(
+        "",
+        "",
+    ),
+    "poses_estimated": Advice(
+        "",
+        "",
+    ),
+    "models_missing": Advice(
+        "pass --models DIR with grounding-dino-tiny/ and sam-vit-base/ (README 'Real 2D labels'); "
+        "`leap make-tiny-models DIR` writes random-weight stand-ins to try the code path",
+        "the server needs a models folder holding grounding-dino-tiny/ and sam-vit-base/: whoever runs it "
+        "sets it (LEAP_MODELS_DIR) and restarts it",
+    ),
+    "models_random": Advice(
+        "use real weights (README 'Real 2D labels')",
+        "the server's models folder holds test models with random weights: ask whoever "
+        "runs it for real weights",
+    ),
+    "labeler_cannot_run": Advice(
+        "use --labeler {alt}",
+        'choose "{alt_label}" as the 2D labeler under Parameters',
+    ),
+    "off": Advice(
+        "",
+        "",
+    ),
+}
+"""Every finding code (``leap_core.pipeline.preflight.REASONS``) with its fix for the command line and for
+the app ('' where there is nothing to do)."""
+
+
+def advice(finding: Finding, audience: Audience, report: DatasetReport) -> str:
+    """The fix for ``finding`` worded for the command line or the app ('' when there is nothing to do)."""
+    entry = ADVICE.get(finding.code)
+    if entry is None:
+        return ""
+    text = entry.cli if audience == "cli" else entry.app
+    if finding.code == "labeler_cannot_run":
+        alt = alternative_labeler(report)
+        if alt is None:
+            return (
+                "fix the problems listed for the labelers"
+                if audience == "cli"
+                else ("fix the problems listed for the 2D labelers")
+            )
+        return text.format(alt=alt.name, alt_label=alt.label)
+    return text.format(seq=report.root)
+
+
+def _coverage_line(cover: FrameCoverage, what: str) -> str:
+    return f"{cover.present} of {cover.total} scans have {what}"
+
+
+def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = None) -> str:
+    """The report as ``leap check`` prints it (advice names commands and flags)."""
+    lines = [f"dataset   {report.root}"]
+    if report.frames:
+        plural = "s" if report.frames != 1 else ""
+        lines.append(f"frames    {report.frames} scan{plural} ({report.first_frame} … {report.last_frame})")
+        lines.append(f"images    {_coverage_line(report.images, 'a camera image (image_2/)')}")
+        cal = report.calib
+        lines.append(
+            "calib     "
+            + ("calib.txt: P2 and Tr read" if cal.valid else f"calib.txt: {cal.problem or 'missing'}")
+        )
+        p = report.poses
+        pose_text = {
+            "file": f"poses.txt, {p.lines} poses",
+            "estimated": f"poses.txt, {p.lines} poses, estimated ({p.method or 'method not recorded'})",
+            "missing": "missing (no poses.txt)",
+            "invalid": "poses.txt cannot be read",
+            "will-estimate": "missing: estimated before the 3D stages",
+        }[p.source]
+        lines.append(f"poses     {pose_text}")
+        lines.append(
+            f"labels    {report.ground_truth.kind}: "
+            f"{_coverage_line(report.ground_truth, 'ground truth (labels/)')}"
+        )
+        gt2d = _coverage_line(report.gt2d, "2D ground truth (gt2d/)")
+        lines.append(f"gt2d      {report.gt2d.kind}: {gt2d}")
+        lines.append("")
+        lines.append("labelers")
+        for lab in report.labelers:
+            why = ", ".join(map(reason_text, lab.reasons))
+            state = "can run" if lab.can_run else f"cannot run ({why})"
+            lines.append(f"  {lab.name:<14} {state}")
+        how = "" if report.labeler_chosen else ", picked by the check; --labeler picks another"
+        lines.append("")
+        lines.append(f"stages (labeler {report.labeler}{how})")
+        for st in report.stages:
+            lines.append(f"  {st.name:<14} {stage_line(st)}")
+    order = {"blocker": 0, "warning": 1, "info": 2}
+    if report.findings:
+        lines.append("")
+        lines.append("findings")
+    for f in sorted(report.findings, key=lambda f: order[f.severity]):
+        lines.append(f"  {f.severity:<8} {describe(f)}")
+        fix = advice(f, "cli", report) if f.severity != "info" else ""
+        if fix:
+            lines.append(f"           fix: {fix}")
+    lines.append("")
+    code = f" (exit code {exit_codes[report.verdict]})" if exit_codes else ""
+    lines.append(f"verdict: {VERDICT_TEXT[report.verdict]}{code}")
+    return "\n".join(lines)
+
+
+def report_dict(report: DatasetReport, audience: Audience) -> dict[str, Any]:
+    """The report as plain JSON-able data (``leap_core.pipeline.preflight.report_data``), each finding
+    with its ``fix`` worded for ``audience`` (the app sends ``"app"``)."""
+    data = report_data(report)
+    data["findings"] = [
+        {**entry, "fix": advice(f, audience, report)}
+        for entry, f in zip(data["findings"], report.findings, strict=True)
+    ]
+    return data
+
+
+__all__ = ["ADVICE", "Advice", "Audience", "advice", "render_cli", "report_dict"]

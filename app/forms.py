@@ -1,0 +1,159 @@
+"""The app's pipeline form: its flat parameter names, their widgets and the dotted config paths they set.
+
+The form shows a few settings of :class:`~leap_core.config.PipelineConfig` under flat names
+(``voxel_size`` → ``fusion.voxel_size``). The web UI builds its parameter form from :data:`FORM_FIELDS`
+(``GET /pipeline``); the API turns a form's values into config overrides (:func:`overrides_from_form`) and
+a config into form values (:func:`form_values`). Which settings a config ignores is leap_core's rule
+(:mod:`leap_core.pipeline.steering`, by dotted path); :func:`ignored_settings` and :func:`stage_switches`
+put it in the form's names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from leap_core.config import PipelineConfig
+from leap_core.errors import LeapError
+from leap_core.labelers import LABELERS
+from leap_core.pipeline.context import config_value
+from leap_core.pipeline.stages import STAGE_TABLE
+from leap_core.pipeline.steering import ignored_reason
+
+
+@dataclass(frozen=True)
+class FormField:
+    """One parameter of the app's pipeline form: a flat name for a dotted :class:`PipelineConfig` path."""
+
+    path: str
+    """Dotted path in :class:`PipelineConfig` (``"fusion.voxel_size"``)."""
+    label: str
+    """Short human label."""
+    kind: Literal["select", "number", "integer", "checkbox"]
+    """Input widget."""
+    help: str = ""
+    """One line on what the setting changes."""
+    minimum: float | None = None
+    maximum: float | None = None
+    step: float | None = None
+    choices: tuple[tuple[str, str], ...] = ()
+    """``select`` only: (value, label) pairs."""
+
+
+FORM_FIELDS: dict[str, FormField] = {
+    "labeler": FormField(
+        "labeler",
+        "2D labeler",
+        "select",
+        "which model turns camera images into 2D labels",
+        choices=tuple((name, spec.label) for name, spec in LABELERS.items()),
+    ),
+    "threshold": FormField(
+        "grounded_sam.box_threshold",
+        "Box threshold",
+        "number",
+        "Grounding DINO boxes below this similarity are dropped",
+        0.0,
+        1.0,
+        0.01,
+    ),
+    "voxel_size": FormField(
+        "fusion.voxel_size", "Voxel size (m)", "number", "edge of the fusion grid's voxels", 0.01, None, 0.05
+    ),
+    "k": FormField("smoothing.k", "kNN smoothing k", "integer", "neighbours averaged per voxel", 1, None, 1),
+    "cluster_gap": FormField(
+        "projection.cluster_gap",
+        "Depth-cluster gap (m)",
+        "number",
+        "depth gap that splits a mask's points into clusters",
+        0.0,
+        None,
+        0.1,
+    ),
+    "consistency": FormField(
+        "consistency.enabled",
+        "3D Consistency Network",
+        "checkbox",
+        "train a 3D network on the most confident voxels and fuse it back",
+    ),
+    "share": FormField(
+        "consistency.share",
+        "3D-CN label share",
+        "number",
+        "share of each class's most confident points used for training",
+        0.0,
+        1.0,
+        0.05,
+    ),
+    "temperature": FormField(
+        "consistency.temperature",
+        "3D-CN temperature",
+        "number",
+        "weight of the network's evidence when fused back (lower = stronger)",
+        0.0,
+        None,
+        0.1,
+    ),
+    "iterations": FormField(
+        "consistency.iterations", "3D-CN iterations", "integer", "self-training rounds", 1, None, 1
+    ),
+}
+"""The app form's flat parameter names → their :class:`FormField` (dotted path, label, widget)."""
+
+
+PATH_LABELS: dict[str, str] = {f.path: f.label for f in FORM_FIELDS.values()}
+"""Dotted config path → the form's label of it: the human names steering's reasons and run changes use."""
+
+
+def overrides_from_form(form: Mapping[str, Any]) -> dict[str, Any]:
+    """Nested overrides from the app form's flat names (:data:`FORM_FIELDS`).
+
+    Raises:
+        LeapError: ``field = ("form", name)`` for a name that is not a form field.
+    """
+    out: dict[str, Any] = {}
+    for name, value in form.items():
+        if name not in FORM_FIELDS:
+            raise LeapError(
+                f"pipeline form: unknown field {name!r} (known: {', '.join(FORM_FIELDS)})",
+                field=("form", str(name)),
+            )
+        *parents, leaf = FORM_FIELDS[name].path.split(".")
+        node = out
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return out
+
+
+def form_values(cfg: PipelineConfig) -> dict[str, Any]:
+    """The app form's flat values read from ``cfg``."""
+    return {name: config_value(cfg, f.path) for name, f in FORM_FIELDS.items()}
+
+
+def stage_switches() -> dict[str, str]:
+    """Stage name → flat name of the form field that switches it (stages whose switch is a form field)."""
+    by_path = {f.path: name for name, f in FORM_FIELDS.items()}
+    return {s.name: by_path[s.switch] for s in STAGE_TABLE if s.switch is not None and s.switch in by_path}
+
+
+def ignored_settings(cfg: PipelineConfig) -> dict[str, str]:
+    """Flat form name → why ``cfg`` ignores it, for every form field it ignores."""
+    out: dict[str, str] = {}
+    for name, f in FORM_FIELDS.items():
+        reason = ignored_reason(cfg, f.path, PATH_LABELS)
+        if reason is not None:
+            out[name] = reason
+    return out
+
+
+__all__ = [
+    "FORM_FIELDS",
+    "PATH_LABELS",
+    "FormField",
+    "form_values",
+    "ignored_settings",
+    "overrides_from_form",
+    "stage_switches",
+]
