@@ -83,7 +83,10 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     """Convert a ROS bag (ROS 1, ROS 2 sqlite3 or mcap) into a KITTI sequence folder: scans paired with the
     nearest camera frame, calib.txt, times.txt, and poses.txt when /tf moves the LiDAR frame."""
     # rosbags and scipy load with the command that needs them, not with `leap --help`.
-    from leap_core.importers.rosbag import RosbagImportConfig, import_rosbag
+    try:
+        from leap_core.importers.rosbag import RosbagImportConfig, import_rosbag
+    except LeapError as exc:  # MissingExtra: rosbags is not installed
+        raise _fail(str(exc)) from None
 
     bag_path = Path(bag)
     name = bag_path.parent.name if bag_path.suffix in (".db3", ".mcap", ".yaml") else bag_path.stem
@@ -128,7 +131,10 @@ def nuscenes_cmd(
 ) -> None:
     """Write one nuScenes scene's LIDAR_TOP keyframes, camera images, calibration, ego poses and
     lidarseg labels as a KITTI-layout sequence (label it with --project-file nuscenes)."""
-    from leap_core.importers.nuscenes import import_nuscenes  # loads the devkit (matplotlib, sklearn)
+    try:
+        from leap_core.importers.nuscenes import import_nuscenes  # loads the devkit (matplotlib, sklearn)
+    except LeapError as exc:  # MissingExtra: the devkit or one of its imports is not installed
+        raise _fail(str(exc)) from None
 
     target = Path(out) if out is not None else Path("data") / "nuscenes" / scene
     typer.echo(f"reading the {version} tables of {dataroot} (nuscenes-devkit)")

@@ -12,6 +12,7 @@ import sqlite3
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
 from contextlib import asynccontextmanager
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,9 @@ from app.jobs.manager import JobManager
 from leap_core import __version__
 
 API_PREFIX = "/api/v1"
-WEB_DIR = Path(__file__).resolve().parents[1] / "web"
+WEB_DIR = Path(str(resources.files("app.web")))
+"""The web UI: the repository's ``web/``, installed as the package ``app.web`` (pyproject.toml's
+package-dir), so that an editable install serves the repository's folder and a regular install its copy."""
 
 log = logging.getLogger("leap.app")
 

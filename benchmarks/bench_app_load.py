@@ -44,13 +44,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import httpx
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import print_table, write_results
 
+from leap_core.extras import MissingExtra
 from leap_core.run_layout import RunLayout
+
+try:  # the bench extra
+    import httpx
+except ModuleNotFoundError as exc:
+    raise SystemExit(f"error: {MissingExtra('bench', exc.name)}") from None
 
 SMALL_STREET: dict[str, Any] = {
     "shadows": False,

@@ -39,11 +39,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import psutil
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import print_table, write_results
+
+from leap_core.extras import MissingExtra
+
+try:  # the bench extra
+    import psutil
+except ModuleNotFoundError as exc:
+    raise SystemExit(f"error: {MissingExtra('bench', exc.name)}") from None
 
 ROOT = Path(__file__).resolve().parent.parent
 GB = 1e9

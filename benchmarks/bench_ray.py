@@ -43,6 +43,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.common import machine_info, print_table, write_results  # noqa: E402
 from leap_core.config import PipelineConfig  # noqa: E402
+from leap_core.extras import MissingExtra  # noqa: E402
 from leap_core.pipeline import STAGES, SequenceSpec, run_pipeline  # noqa: E402
 from leap_core.pipeline.context import read_state  # noqa: E402
 from leap_core.presets import builtin_preset  # noqa: E402
@@ -239,7 +240,10 @@ def main() -> None:
     preset = builtin_preset(args.preset)
     cfg = _config(preset.pipeline, args.cn or args.cn_steps is not None, args.cn_steps)
 
-    import ray
+    try:
+        import ray
+    except ModuleNotFoundError as exc:  # the ray extra
+        raise SystemExit(f"error: {MissingExtra('ray', exc.name)}") from None
 
     t0 = time.perf_counter()
     # address="local": a new instance of --cpus CPUs even where a cluster runs (ray.init would join it).

@@ -60,16 +60,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import RESULTS_DIR, print_table, write_results
 
+from leap_core.extras import MissingExtra
 from leap_core.pipeline import SequenceSpec
 from leap_core.pipeline.stages import STAGES
 from leap_core.run_layout import RunLayout
+
+try:  # the bench extra
+    import psutil
+except ModuleNotFoundError as exc:
+    raise SystemExit(f"error: {MissingExtra('bench', exc.name)}") from None
 
 REPO = Path(__file__).resolve().parents[1]
 """The child processes run this checkout's code (its folder first on PYTHONPATH)."""

@@ -31,6 +31,7 @@ import numbers
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any, TypeGuard
 
@@ -527,8 +528,10 @@ def save_schema(schema: Schema, path: str | Path, pipeline: Mapping[str, Any] | 
 
 
 def projects_dir() -> Path:
-    """The repository's ``projects/`` folder holding the built-in schemas."""
-    return Path(__file__).resolve().parents[1] / "projects"
+    """The folder of the built-in project files: the repository's ``projects/``, installed as the package
+    ``leap_core.projects`` (pyproject.toml's package-dir), so that an editable install reads the
+    repository's folder and a regular install its own copy."""
+    return Path(str(resources.files("leap_core.projects")))
 
 
 def builtin_names() -> list[str]:

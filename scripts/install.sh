@@ -10,10 +10,13 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 # The CPU wheel of torch first: an unpinned torch would pull a multi-GB CUDA build.
 .venv/bin/python -m pip install -q "torch==2.13.0"
-extras=""
+# Every optional stack (pyproject.toml's extras: ray, ros, nuscenes, bench), so every command works here;
+# [test] includes them all and adds the test, lint and type-check tools.
+extras="[ray,ros,nuscenes,bench]"
 if [ "${1:-}" = "--test" ]; then extras="[test]"; fi
+# Editable: the checkout's code, presets (projects/) and web UI (web/) are what runs.
 .venv/bin/python -m pip install -q -e ".${extras}"
-# nuScenes devkit without its numpy<2 pin (see pyproject.toml); its imports are project dependencies.
+# nuScenes devkit without its numpy<2 pin (see the nuscenes extra in pyproject.toml, which holds its imports).
 .venv/bin/python -m pip install -q --no-deps "nuscenes-devkit==1.2.0"
 if [ "${1:-}" = "--test" ] && [ ! -x /usr/bin/chromium ]; then
   # Real-browser tests drive Debian's Chromium (no browser download is possible here).

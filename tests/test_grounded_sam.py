@@ -282,6 +282,7 @@ def test_cache_hit_calls_no_model(tiny_dir: Path, tmp_path: Path) -> None:
     assert third.detector_calls == 1
 
 
+@pytest.mark.slow
 def test_per_class_mode_reruns_only_the_edited_class(tiny_dir: Path, tmp_path: Path) -> None:
     cfg = GroundedSamConfig(box_threshold=0.05, mode="per-class")
     lab = GroundedSamLabeler(cfg, Runtime(models_dir=tiny_dir, cache_dir=tmp_path))

@@ -118,6 +118,7 @@ def _project(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_cli_writes_a_source_network_for_3dcn_init_and_never_replaces_one_unasked(tmp_path: Path) -> None:
     seq = _labeled_sequence(tmp_path / "d", [1, 2, 3])
     project = _project(tmp_path)

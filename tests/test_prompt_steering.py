@@ -67,6 +67,7 @@ def _with_car_prompts(schema: Schema, prompts: tuple[str, ...]) -> Schema:
     )
 
 
+@pytest.mark.slow
 def test_removing_van_and_jeep_from_car_lowers_car_iou(demo: KittiSequence) -> None:
     """The demo project's car prompts are [car, automobile, van, jeep]. Without the helper prompts "van" and
     "jeep", the demo's vans and jeeps (the lead car is one) are named only loosely by "car", and just as
@@ -82,6 +83,7 @@ def test_removing_van_and_jeep_from_car_lowers_car_iou(demo: KittiSequence) -> N
     assert all_full[car] - all_cut[car] > 0.05, (all_full[car], all_cut[car])
 
 
+@pytest.mark.slow
 def test_an_added_traffic_cone_class_finds_the_cones(demo: KittiSequence) -> None:
     """A class added with the demo's raw id 300 and the prompt "traffic cone" labels the cones; without it,
     nothing in the SemanticKITTI schema names them."""

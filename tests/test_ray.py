@@ -222,6 +222,7 @@ def test_cancel_on_ray_then_resume_gives_the_local_bytes(
     _same_outputs(run_dir, local_run)
 
 
+@pytest.mark.slow
 def test_a_stopped_task_computes_no_frame(dataset: Path, preset_config, tmp_path: Path) -> None:
     """The worker's side of a stop, without Ray: a task whose signal is set returns ``Stopped`` without
     calling its function; a stage task's frame loop looks at the signal before every frame."""

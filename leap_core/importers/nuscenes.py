@@ -38,11 +38,6 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
-from nuscenes.nuscenes import NuScenes  # type: ignore[import-untyped]
-from nuscenes.utils.data_classes import LidarPointCloud  # type: ignore[import-untyped]
-from nuscenes.utils.data_io import load_bin_file  # type: ignore[import-untyped]
-from nuscenes.utils.geometry_utils import transform_matrix  # type: ignore[import-untyped]
-from pyquaternion import Quaternion  # type: ignore[import-untyped]
 
 from leap_core.datasets.kitti import (
     IMAGE_SUFFIXES,
@@ -53,9 +48,19 @@ from leap_core.datasets.kitti import (
     write_scan,
 )
 from leap_core.errors import DatasetError
+from leap_core.extras import MissingExtra
 from leap_core.importers.folder import IMPORT_NOTE, check_output, staged_output
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
+
+try:  # the nuscenes extra and the devkit: only `leap import nuscenes` imports this module
+    from nuscenes.nuscenes import NuScenes  # type: ignore[import-untyped]
+    from nuscenes.utils.data_classes import LidarPointCloud  # type: ignore[import-untyped]
+    from nuscenes.utils.data_io import load_bin_file  # type: ignore[import-untyped]
+    from nuscenes.utils.geometry_utils import transform_matrix  # type: ignore[import-untyped]
+    from pyquaternion import Quaternion  # type: ignore[import-untyped]
+except ModuleNotFoundError as exc:
+    raise MissingExtra("nuscenes", exc.name) from None
 
 LIDAR_CHANNEL = "LIDAR_TOP"
 """nuScenes' only LiDAR (the five radars are not LiDARs)."""

@@ -32,20 +32,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import apsw
 import cv2
 import numpy as np
 import numpy.typing as npt
 import yaml
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation, Slerp
 
 from leap_core.datasets.kitti import Calib, read_calib, write_calib, write_image, write_poses, write_scan
 from leap_core.errors import ConfigError, DatasetError, LeapError
+from leap_core.extras import MissingExtra
 from leap_core.importers.folder import check_output, staged_output
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
+
+try:  # the ros extra: only `leap import rosbag` imports this module
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+except ModuleNotFoundError as exc:
+    raise MissingExtra("ros", exc.name) from None
+try:  # rosbags' sqlite3 reader, after rosbags: without the extra the message names rosbags, not this
+    import apsw
+except ModuleNotFoundError as exc:
+    raise MissingExtra("ros", exc.name) from None
 
 F64 = npt.NDArray[np.float64]
 

@@ -56,6 +56,7 @@ import numpy as np
 
 from leap_core.config import PipelineConfig
 from leap_core.errors import Cancelled, DatasetError, LeapError
+from leap_core.extras import MissingExtra
 from leap_core.fusion import Observations, Partial, fold_blocks, fusion_blocks, log_table, reduce_block
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, StageInfo
@@ -416,8 +417,8 @@ def connect(address: str, cpus: int | None) -> ModuleType:
     stage code come back with the results)."""
     try:
         import ray  # noqa: PLC0415  imported only by a run that asks for Ray (the local engine never does)
-    except ImportError as exc:
-        raise LeapError(f"ray_address {address!r}: the ray package is not installed ({exc})") from None
+    except ModuleNotFoundError as exc:  # the ray extra
+        raise MissingExtra("ray", exc.name) from None
     if ray.is_initialized():
         return ray
     common: dict[str, Any] = {

@@ -64,6 +64,7 @@ def tiny_data(tmp_path: Path, make_tiny_sequence: Any) -> tuple[Path, Path]:
     return data, seq.root
 
 
+@pytest.mark.slow
 def test_state_changes_from_other_origins_are_refused_without_a_token(tiny_data: tuple[Path, Path]) -> None:
     data, seq = tiny_data
     server = Server(data, extra_env={"LEAP_PREWARM_WORKERS": "false"}).start()

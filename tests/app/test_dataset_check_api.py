@@ -142,6 +142,7 @@ def test_a_single_scan_copied_out_with_the_full_poses(client: TestClient, tiny_d
     assert check["verdict"] == "full" and check["frames"] == 1 and check["poses"]["lines"] == 4
 
 
+@pytest.mark.slow
 def test_the_run_shows_skipped_stages_with_their_reason(client: TestClient, tiny_dataset: Path) -> None:
     project = create_project(client, tiny_dataset)
     run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()

@@ -127,6 +127,7 @@ def test_leap_demo_command_labels_the_demo(tmp_path: Path) -> None:
     assert again.returncode == 0 and "labeling the demo" not in again.stdout and "voxel" in again.stdout
 
 
+@pytest.mark.slow
 def test_a_demo_from_an_older_generator_is_generated_again(tmp_path: Path) -> None:
     """A demo folder without the current ``synth_version.txt`` (written before the demo world had names) is
     stale: ``ensure_demo_sequence`` replaces it, so the simulated labeler finds ``gt2d/name``."""

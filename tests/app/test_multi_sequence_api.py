@@ -394,6 +394,7 @@ def _voxel_keys_of(folder: Path, frame_id: str, pipeline: dict[str, Any]) -> lis
     return sorted({int(k) for k in voxel_keys(world_points(frame.points, frame.pose), 0.2)})
 
 
+@pytest.mark.slow
 def test_joint_3dcn_run_reports_its_rounds_between_the_sequences(
     client: TestClient, two_sequences: list[Path]
 ) -> None:

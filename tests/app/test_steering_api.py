@@ -108,6 +108,7 @@ def test_a_new_class_without_colour_gets_the_most_distinct_one(env) -> None:
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "color"
 
 
+@pytest.mark.slow
 def test_preview_note_and_comparison(env) -> None:
     client, data = env
     p = _project(client, data / "tiny" / "sequences" / "00", "steer")

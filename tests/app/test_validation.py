@@ -313,6 +313,7 @@ def test_access_tokens_need_entropy(tmp_path: Path) -> None:
         assert Settings(host="0.0.0.0", access_token=strong, data_roots=[tmp_path]).token == strong
 
 
+@pytest.mark.slow
 def test_a_weak_token_stops_the_server_and_new_token_makes_a_strong_one(tmp_path: Path) -> None:
     data = tmp_path / "data"
     data.mkdir()

@@ -341,6 +341,7 @@ def test_merged_table_rewrites_the_measured_domains_and_keeps_the_others() -> No
     assert t1.table_blocks(merged)[:2] == [t1.table_blocks(new_street)[0], blocks[1]]
 
 
+@pytest.mark.slow
 def test_the_street_starts_from_a_network_of_another_domain(tmp_path: Path) -> None:
     """The street's source: street-32 sequences of their own seeds (never the report's), trained once
     into RUNS/sources by `leap train-3dcn` and reused; a checkpoint the street's runs accept."""
