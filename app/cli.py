@@ -137,9 +137,9 @@ class StageBars:
 
 
 @contextlib.contextmanager
-def _run_errors(out: str | Path, *, poses: str) -> Iterator[None]:
-    """A `leap run`'s one-line endings: interrupted or cancelled (run again to resume), no poses (``poses``
-    names the fix besides --estimate-poses), any other LeapError."""
+def _run_errors(out: str | Path) -> Iterator[None]:
+    """A `leap run`'s one-line endings: interrupted or cancelled (run again to resume), no poses (naming
+    `leap poses` on that sequence and --estimate-poses), any other LeapError."""
     try:
         yield
     except KeyboardInterrupt:
@@ -147,7 +147,8 @@ def _run_errors(out: str | Path, *, poses: str) -> Iterator[None]:
     except Cancelled:
         raise fail(f"cancelled; run the same command again to resume from {out}") from None
     except PosesMissingError as exc:
-        raise fail(f"{exc}; {poses} or pass --estimate-poses") from None
+        sequence = Path(exc.path).parent
+        raise fail(f"{exc}; run `leap poses {sequence}` or pass --estimate-poses") from None
     except LeapError as exc:
         raise fail(str(exc)) from None
 
@@ -515,7 +516,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     from leap_core.pipeline.run import open_run_folder
 
     root = Path(out)
-    with _run_errors(out, poses="run `leap poses` on that sequence"):
+    with _run_errors(out):
         specs = _sequence_specs(datasets, frames)
         sch, cfg = _run_config(
             schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
@@ -866,9 +867,11 @@ def _write_exports(  # the run and the export options
     if export_to is not None:
         target = Path(export_to).expanduser().resolve()
         folders = export_targets(target, [s.name for s in exported], with_conf=with_conf)
-        written = write_run_export(folders, exported, with_conf=with_conf, overwrite=overwrite)
+        done = write_run_export(folders, exported, with_conf=with_conf, overwrite=overwrite)
+        note = f" (replaced {done.replaced})" if done.replaced else ""
         typer.echo(
-            f"wrote {sum(written.values())} files to {target}/sequences/{{{','.join(written)}}}/predictions/"
+            f"wrote {sum(done.files.values())} files to {target}/sequences/{{{','.join(done.files)}}}/"
+            f"predictions/{note}"
         )
     if zip_file is not None:
         cov = summed_coverage(covs)

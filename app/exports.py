@@ -315,7 +315,6 @@ def write_export(
     """
     exported = _exported(run)
     folders = targets(settings, project, run, payload.path, with_conf=payload.include_confidence)
-    replaced = sum(len(existing_export_files(f)) for fs in folders.values() for f in fs)
     try:
         written = write_run_export(
             folders, exported, with_conf=payload.include_confidence, overwrite=payload.overwrite
@@ -328,8 +327,8 @@ def write_export(
     return models.ExportWritten(
         run_id=run.id,
         path=shown,
-        files=sum(written.values()),
-        replaced=replaced if payload.overwrite else 0,
+        files=sum(written.files.values()),
+        replaced=written.replaced,
     )
 
 

@@ -415,8 +415,10 @@ def export_target_problem(target: Path) -> str | None:
     """Why the folder ``target`` (absolute, resolved) may not receive an export, or None.
 
     Refused: a sequence folder itself, a sequence's input folders (:data:`DATASET_INPUT_FOLDERS`, e.g.
-    ``labels/``, ``velodyne/``, ``image_2/``) and anything inside them, and any pipeline run folder (it
-    holds ``stages.json``) or a folder inside one. A sequence is a folder with a ``velodyne/`` folder.
+    ``labels/``, ``velodyne/``, ``image_2/``) and anything inside them, any folder deeper inside a sequence
+    than its own ``predictions/`` and ``confidences/``, and any run folder (it holds ``run.json``), a
+    sequence's folder in one (``stages.json``) or a folder inside them. A sequence is a folder with a
+    ``velodyne/`` folder.
     """
     if (target / "velodyne").is_dir():
         return f"{target} is a dataset sequence folder; export into its {PREDICTIONS}/ folder"
@@ -425,6 +427,12 @@ def export_target_problem(target: Path) -> str | None:
             return f"{target} is inside the dataset folder {folder} (its input data or ground truth)"
         if (folder / SequenceLayout.STATE).is_file() or (folder / RunLayout.SPEC).is_file():
             return f"{target} is inside the pipeline run folder {folder}"
+    for folder in target.parents[1:]:
+        if (folder / "velodyne").is_dir():
+            return (
+                f"{target} is inside the dataset sequence folder {folder}; an export of a run goes into the "
+                f"folder that holds sequences/ (or straight into {folder / PREDICTIONS})"
+            )
     return None
 
 
@@ -536,20 +544,27 @@ def check_export_targets(targets: Mapping[str, Sequence[Path]], *, overwrite: bo
                 )
 
 
+@dataclass(frozen=True)
+class RunExportWritten:
+    """What :func:`write_run_export` wrote."""
+
+    files: dict[str, int]
+    """Sequence name → files written."""
+    replaced: int
+    """Files the target folders held before (0 unless ``overwrite``)."""
+
+
 def write_run_export(
     targets: Mapping[str, Sequence[Path]],
     sequences: Sequence[ExportedSequence],
     *,
     with_conf: bool = False,
     overwrite: bool = False,
-) -> dict[str, int]:
+) -> RunExportWritten:
     """Copy each sequence's ``.label`` files into the first of its ``targets`` folders (and its ``.conf``
     files into the second, with ``with_conf``): ``<dir>/sequences/<name>/predictions/`` for the folders of
     :func:`export_targets`. Each folder is written by :func:`write_export_folder` (a fresh folder renamed
     into place); every folder is checked before anything is written (:func:`check_export_targets`).
-
-    Returns:
-        Sequence name → files written.
 
     Raises:
         LeapError: a target is a dataset's input folder or a run folder.
@@ -557,14 +572,15 @@ def write_run_export(
     """
     check_export_targets(targets, overwrite=overwrite)
     written: dict[str, int] = {}
+    replaced = 0
     for seq in sequences:
         n = 0
         for folder, suffix in zip(targets[seq.name], EXPORT_SUFFIXES, strict=False):
             files = [f for f in seq.files(with_conf) if f.suffix == suffix]
-            write_export_folder(Path(folder), files, overwrite=overwrite)
+            replaced += write_export_folder(Path(folder), files, overwrite=overwrite)
             n += len(files)
         written[seq.name] = n
-    return written
+    return RunExportWritten(written, replaced)
 
 
 __all__ = [
@@ -577,6 +593,7 @@ __all__ = [
     "ExportConflict",
     "ExportedSequence",
     "LabelMap",
+    "RunExportWritten",
     "check_export_targets",
     "existing_export_files",
     "export_labels",

@@ -423,12 +423,21 @@ def former_layout(path: str | Path) -> str | None:
     files directly in the folder, its ``stages.json`` at the top), ``"multi"`` (the sequences under
     ``sequences/`` and ``multi.json``), or None (this layout, an empty or a missing folder)."""
     path = Path(path)
-    if (path / RunLayout.SPEC).is_file():
+    if (path / RunLayout.SPEC).is_file() or run_holding(path) is not None:
         return None
     if (path / SequenceLayout.STATE).is_file():
         return "single"
     if (path / FORMER_MULTI_SPEC).is_file():
         return "multi"
+    return None
+
+
+# ------------------------------------------------------------------------------------ corrections
+def run_holding(path: str | Path) -> RunLayout | None:
+    """The run whose sequence folder ``path`` is (``<run>/sequences/<name>``), or None."""
+    path = Path(path)
+    if path.parent.name == RunLayout.SEQUENCES and RunLayout.is_run(path.parent.parent):
+        return RunLayout(path.parent.parent)
     return None
 
 
@@ -469,6 +478,7 @@ __all__ = [
     "SequenceLayout",
     "former_layout",
     "load_corrections",
+    "run_holding",
     "save_corrections",
     "sequence_name_problem",
     "write_run_spec",

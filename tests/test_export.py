@@ -455,7 +455,8 @@ def test_a_run_export_goes_to_each_sequences_folders_checked_before_any_is_writt
     with pytest.raises(ExportConflict, match=r"01/confidences already holds 1 files"):
         write_run_export(targets, [a, b], with_conf=True)
     assert not (target / "sequences" / "00").exists()  # refused before anything was written
-    assert write_run_export(targets, [a, b], with_conf=True, overwrite=True) == {"00": 3, "01": 2}
+    done = write_run_export(targets, [a, b], with_conf=True, overwrite=True)
+    assert done.files == {"00": 3, "01": 2} and done.replaced > 0
     assert sorted(p.name for p in (target / "sequences" / "00" / "predictions").iterdir()) == [
         "000000.label",
         "000001.label",

@@ -1111,10 +1111,6 @@ def test_cli_exports_never_replace_files_silently(street: Path, tmp_path: Path) 
     assert (preds / "000000.label").read_bytes() != b"mine"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="export_target_problem accepts DIR/sequences/<name>/predictions under a sequence folder DIR",
-)
 def test_cli_refuses_a_sequence_folder_as_the_export_folder(street: Path, tmp_path: Path) -> None:
     """--export-to names the dataset folder holding sequences/: a sequence folder given instead (the
     place a one-sequence export used to go) would get a sequences/<name>/predictions/ tree inside the

@@ -57,7 +57,7 @@ from leap_core.pipeline.runner import (
     stage_fingerprints,
 )
 from leap_core.pipeline.stages import STAGE_TABLE, STAGES, CnMember, cn_rounds, source_digest
-from leap_core.run_layout import RunLayout, former_layout, sequence_name_problem, write_run_spec
+from leap_core.run_layout import RunLayout, former_layout, run_holding, sequence_name_problem, write_run_spec
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
 
@@ -152,12 +152,18 @@ def open_run_folder(out: Path, specs: Sequence[SequenceSpec]) -> RunLayout:
     the name of the run's one sequence).
 
     Raises:
-        LeapError: bad specs (:func:`check_specs`), ``out`` is a file, or a former one-sequence folder given
-            several sequences.
+        LeapError: bad specs (:func:`check_specs`), ``out`` is a file or a sequence's folder of a run, or a
+            former one-sequence folder given several sequences.
     """
     check_specs(specs)
     if out.exists() and not out.is_dir():
         raise LeapError(f"{out}: run folder path exists and is not a folder")
+    holder = run_holding(out)
+    if holder is not None:
+        raise LeapError(
+            f"{out}: the folder of sequence {out.name} of the run {holder.root}; give the run folder "
+            f"({holder.root}) instead"
+        )
     if former_layout(out) == "single" and len(specs) != 1:
         raise LeapError(
             f"{out}: a run folder of one sequence written by an earlier version; run it with its one "
