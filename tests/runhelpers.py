@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+from app.rows import RunParams, RunSequence
 from leap_core.config import PipelineConfig
 from leap_core.pipeline import JOINT, SequenceResult, SequenceSpec, run_pipeline
 from leap_core.runtime import Runtime
@@ -50,9 +52,17 @@ def label(
     return result.only()
 
 
+def run_params(schema: dict[str, Any], dataset: Path, name: str = "00") -> RunParams:
+    """An app run's parameters of one sequence ``name`` on ``dataset`` with the class schema ``schema``
+    (``Schema.to_dict`` form) and default settings."""
+    return RunParams(
+        sequences=(RunSequence(name, Path(dataset)),), dataset_kind="folder", schema=schema, pipeline={}
+    )
+
+
 def folder(out: Path, name: str = "00") -> Path:
     """The folder of sequence ``name`` in the run folder ``out``."""
     return Path(out) / "sequences" / name
 
 
-__all__ = ["folder", "label"]
+__all__ = ["folder", "label", "run_params"]

@@ -227,7 +227,7 @@ def test_a_regular_install_runs_from_another_folder_without_any_extra(tmp_path: 
     assert synth.returncode == 0, synth.stderr
     run = leap("run", str(demo / "sequences" / "00"), "--out", str(tmp_path / "run"))
     assert run.returncode == 0, run.stderr
-    assert len(list((tmp_path / "run" / "export").glob("*.label"))) == 3
+    assert len(list((tmp_path / "run" / "sequences" / "00" / "export").glob("*.label"))) == 3
     ray = leap("run", str(demo / "sequences" / "00"), "--out", str(tmp_path / "ray"), "--ray", "auto")
     assert ray.returncode == 2 and "Ray is not installed: pip install 'leap-studio[ray]'" in ray.stderr
 

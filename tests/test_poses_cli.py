@@ -84,7 +84,7 @@ def test_leap_run_without_poses_names_both_ways_out(no_poses: Path, tmp_path: Pa
     assert res.exit_code == 2
     last = res.output.strip().splitlines()[-1]
     assert last.startswith(f"error: {no_poses / 'poses.txt'}: no poses")  # names the sequence
-    assert "run `leap poses` on that sequence or pass --estimate-poses" in last
+    assert f"run `leap poses {no_poses}` or pass --estimate-poses" in last
     assert not (tmp_path / "run").exists()
 
 

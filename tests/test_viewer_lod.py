@@ -5,10 +5,10 @@ selection and picking; then a real session (viser server, SQLite store) on a map
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from runhelpers import run_params
 
 from app.viewer import lod, lod_cull, lod_plan
 from app.viewer import view_logic as vl
@@ -383,20 +383,20 @@ def big_store(tmp_path, make_tiny_sequence):
             db,
             name="street",
             dataset_kind="folder",
-            dataset_path=str(seq.root),
+            sequences=[("00", str(seq.root))],
             schema=SCHEMA3,
             pipeline={"fusion": {"voxel_size": vs}},
         )
-        params = {"schema": SCHEMA3, "dataset": str(seq.root)}
-        run = crud.create_run(db, project_id=project["id"], params=params, runs_dir=settings.runs_dir)
-        crud.update_run(db, run["id"], status="done")
-    run_dir = Path(run["run_dir"])
+        params = run_params(SCHEMA3, seq.root)
+        run = crud.create_run(db, project_id=project.id, params=params, runs_dir=settings.runs_dir)
+        crud.update_run(db, run.id, status="done")
+    run_dir = run.sequence_layout("00").folder
     run_dir.mkdir(parents=True)
     logp = np.log(probs).astype(np.float16)
     logp -= logp.max(axis=1, keepdims=True)
     VoxelGrid(keys=keys, logp=logp, voxel_size=vs).save(run_dir / "grid.npz")
     atomic_save_npz(run_dir / "grid_smooth.npz", keys=keys, probs=probs.astype(np.float16))
-    return settings, project["id"], keys, label, vs
+    return settings, project.id, keys, label, vs
 
 
 def test_session_sends_at_most_the_budget_and_corrects_the_full_grid(big_store) -> None:

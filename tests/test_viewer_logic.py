@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from runhelpers import run_params
 
 from app.viewer import region_logic as rl
 from app.viewer import view_logic as vl
@@ -438,20 +439,17 @@ def review_store(tmp_path, make_tiny_sequence):
             db,
             name="tiny <b>",
             dataset_kind="folder",
-            dataset_path=str(seq.root),
+            sequences=[("00", str(seq.root))],
             schema=SCHEMA3,
             pipeline={"fusion": {"voxel_size": 0.5}},
         )
-        # The dataset snapshot every run the app queues has: the viewer shows a run only over the
-        # sequences it labeled (app.jobs.multi.covered_sequences).
+        # The sequences every run the app queues lists: the viewer shows a run only over the sequences it
+        # labeled (app.rows.labeled_sequences).
         run = crud.create_run(
-            db,
-            project_id=project["id"],
-            params={"schema": SCHEMA3, "dataset": str(seq.root)},
-            runs_dir=settings.runs_dir,
+            db, project_id=project.id, params=run_params(SCHEMA3, seq.root), runs_dir=settings.runs_dir
         )
-        crud.update_run(db, run["id"], status="done")
-    run_dir = Path(run["run_dir"])
+        crud.update_run(db, run.id, status="done")
+    run_dir = run.sequence_layout("00").folder
     run_dir.mkdir(parents=True)
     _write_grid(run_dir, keys, probs, voxel_size=0.5)
     for i, fid in enumerate(seq.frame_ids):
@@ -464,7 +462,7 @@ def review_store(tmp_path, make_tiny_sequence):
             point_label=point_label,
             conf=conf[rows].astype(np.float16),
         )
-    return settings, project["id"], run["id"], keys, cls
+    return settings, project.id, run.id, keys, cls
 
 
 def test_session_shows_edits_and_corrects_through_the_store(review_store) -> None:
@@ -513,13 +511,13 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
         # Steering: a renamed, recoloured, re-prompted class lands in the project's SQLite row.
         session.classes.update_class(1, name="vehicle", color=(1, 2, 3), prompts=["car", "van"])
         with open_db(settings.database) as db:
-            stored = crud.require_project(db, pid)["schema"]["classes"][1]
+            stored = crud.require_project(db, pid).schema["classes"][1]
         assert stored["name"] == "vehicle" and stored["color"] == [1, 2, 3]
         assert stored["prompts"] == ["car", "van"]
         session.classes.add_class("pole")
         session.classes.remove_class(0)
         with open_db(settings.database) as db:
-            names = [c["name"] for c in crud.require_project(db, pid)["schema"]["classes"]]
+            names = [c["name"] for c in crud.require_project(db, pid).schema["classes"]]
         assert names == ["vehicle", "building", "pole"]
         with pytest.raises(Exception, match="duplicate name"):
             session.classes.update_class(0, name="building")
@@ -619,14 +617,14 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
         with open_db(settings.database) as db:
             project = crud.get_project(db, pid)
             assert project is not None
-            params = {"schema": SCHEMA3, "dataset": project["dataset_path"]}
+            params = run_params(SCHEMA3, Path(project.dataset_path))
             queued = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.runs_dir)
             empty = crud.create_run(db, project_id=pid, params=params, runs_dir=settings.runs_dir)
-            crud.update_run(db, empty["id"], status="done")
-            crud.update_run(db, queued["id"], status="cancelled")
-        r = client.post(base, json={"run_id": queued["id"]}, headers=auth)
+            crud.update_run(db, empty.id, status="done")
+            crud.update_run(db, queued.id, status="cancelled")
+        r = client.post(base, json={"run_id": queued.id}, headers=auth)
         assert r.status_code == 409 and "only finished runs" in r.json()["detail"]
-        r = client.post(base, json={"run_id": empty["id"]}, headers=auth)
+        r = client.post(base, json={"run_id": empty.id}, headers=auth)
         assert r.status_code == 409 and "has no voxel grid" in r.json()["detail"]
         assert client.get(base, headers=auth).json()["run_id"] == run_id  # still showing the good run
         assert client.delete(base, headers=auth).status_code == 204

@@ -182,7 +182,7 @@ def test_lab_run_gives_the_former_paper_presets_2d_labels(tmp_path: Path) -> Non
     seq = KittiSequence(street)
     schema = load_preset(ROOT / "projects" / "semantickitti.yaml").schema
     for frame in seq:
-        got = SoftMasks.load(out / "labels2d" / f"{frame.frame_id}.npz")
+        got = SoftMasks.load(out / "sequences" / "00" / "labels2d" / f"{frame.frame_id}.npz")
         want = lab.label(frame, schema)
         assert got.bits.tobytes() == want.bits.tobytes() and got.probs.tobytes() == want.probs.tobytes()
     # The product's own CLI does not know the lab's labeler.
