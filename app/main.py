@@ -13,15 +13,16 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
 from contextlib import asynccontextmanager
 from importlib import resources
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import uvicorn
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
+from starlette.responses import Response
 
 from app.api.main import api_router
 from app.core.body_limit import BodyLimit
@@ -45,6 +46,20 @@ log = logging.getLogger("leap.app")
 Scope = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
 Send = Callable[[MutableMapping[str, Any]], Awaitable[None]]
+
+
+WEB_SUFFIXES = frozenset({"", ".html", ".js", ".css"})
+"""What the web UI's folder serves: its pages, modules and styles (a folder path serves its index page). The
+folder is also the Python package ``app.web`` (its ``__init__.py`` is how it ships), which is not served."""
+
+
+class WebFiles(StaticFiles):
+    """:class:`StaticFiles` of the web UI that serves only :data:`WEB_SUFFIXES` (404 for anything else)."""
+
+    async def get_response(self, path: str, scope: Scope) -> Response:
+        if PurePosixPath(path).suffix not in WEB_SUFFIXES:
+            raise HTTPException(status_code=404)
+        return await super().get_response(path, scope)
 
 
 class LoopbackHostGuard:
@@ -216,7 +231,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return FileResponse(WEB_DIR / "api-docs.html")
 
     if WEB_DIR.is_dir():
-        app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
+        app.mount("/", WebFiles(directory=WEB_DIR, html=True), name="web")
     if settings.token is None:
         allowed = set(LOOPBACK_NAMES) | {settings.host.lower()}
         app.add_middleware(LoopbackHostGuard, allowed=allowed)

@@ -114,3 +114,13 @@ def test_health(client: TestClient) -> None:
     body = client.get(f"{API}/health").json()
     assert body["status"] == "ok" and body["db_schema_version"] == SCHEMA_VERSION
     assert body["queued"] == body["running"] == 0 and body["auth_required"] is False
+
+
+def test_the_web_folder_serves_only_the_ui(client: TestClient) -> None:
+    """The web UI's folder is also a Python package (how it ships); only its pages, modules and styles
+    are served."""
+    assert client.get("/").status_code == 200
+    assert client.get("/app.js").status_code == 200 and client.get("/style.css").status_code == 200
+    assert client.get("/viewer/viewer-api.js").status_code == 200
+    for path in ("/__init__.py", "/viewer/../__init__.py", "/__pycache__/"):
+        assert client.get(path).status_code == 404, path
