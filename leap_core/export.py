@@ -443,6 +443,22 @@ def existing_export_files(target: Path) -> list[str]:
     return sorted(p.name for p in target.iterdir())
 
 
+def refuse_existing(target: Path, *, overwrite: bool) -> list[str]:
+    """The entries of the folder ``target`` (:func:`existing_export_files`).
+
+    Raises:
+        ExportConflict: it holds some and ``overwrite`` is off.
+    """
+    old = existing_export_files(target)
+    if old and not overwrite:
+        raise ExportConflict(
+            f"{target} already holds {len(old)} files (e.g. {old[0]}); nothing was written. "
+            "Export again with overwrite to replace them",
+            len(old),
+        )
+    return old
+
+
 def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool = False) -> int:
     """Copy ``files`` into the folder ``target``: written into a fresh hidden sibling folder, then renamed
     into place, so ``target`` never holds a half-written export.
@@ -457,13 +473,7 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
         ExportConflict: ``target`` holds files and ``overwrite`` is off, or holds something an export does
             not write (then even ``overwrite`` refuses).
     """
-    old = existing_export_files(target)
-    if old and not overwrite:
-        raise ExportConflict(
-            f"{target} already holds {len(old)} files (e.g. {old[0]}); nothing was written. "
-            "Export again with overwrite to replace them",
-            len(old),
-        )
+    old = refuse_existing(target, overwrite=overwrite)
     foreign = [n for n in old if not (n.endswith(EXPORT_SUFFIXES) and (target / n).is_file())]
     if foreign:
         raise ExportConflict(
@@ -535,13 +545,7 @@ def check_export_targets(targets: Mapping[str, Sequence[Path]], *, overwrite: bo
             problem = export_target_problem(Path(folder).expanduser().resolve())
             if problem is not None:
                 raise LeapError(problem)
-            old = existing_export_files(folder)
-            if old and not overwrite:
-                raise ExportConflict(
-                    f"{folder} already holds {len(old)} files (e.g. {old[0]}); nothing was written. "
-                    "Export again with overwrite to replace them",
-                    len(old),
-                )
+            refuse_existing(Path(folder), overwrite=overwrite)
 
 
 @dataclass(frozen=True)
@@ -605,6 +609,7 @@ __all__ = [
     "load_label_map",
     "raw_id_counts",
     "read_confidence",
+    "refuse_existing",
     "run_export",
     "summary_yaml",
     "write_export_folder",
