@@ -57,7 +57,6 @@ from app.jobs.progress import TERMINAL_STATUSES, ProgressTracker
 from app.jobs.stages import run_stages, skipped_stages
 from app.models import ACTIVE_STATUSES, RESUMABLE_STATUSES
 from app.rows import ProjectRow, RunParams, RunRow, RunSequence
-from leap_core.config import config_from_dict
 from leap_core.corrections import ERASE, ScanCorrections
 from leap_core.errors import LeapError
 from leap_core.fusion import last_per_key
@@ -385,7 +384,7 @@ class JobManager:
             for s in project.sequences
             if project.estimate_poses and s.name not in generate and needs_estimate(Path(s.dataset_path))
         ]
-        joint = config_from_dict(project.pipeline).consistency.enabled
+        joint = services.project_config(project).consistency.enabled
         return RunParams(
             sequences=tuple(RunSequence(s.name, Path(s.dataset_path), frames) for s in project.sequences),
             dataset_kind=project.dataset_kind,
