@@ -1,0 +1,81 @@
+"""A real server on 127.0.0.1 facing untrusted settings: a size, count or distance past its bound is a 422
+naming the field, the value and the range (never a worker running out of memory)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from appfixtures import add_gt2d
+from conftest import build_tiny_sequence
+from serverproc import Server
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``data/`` (the server's one data root) with ``tiny/sequences/00``."""
+    root = tmp_path_factory.mktemp("integrity")
+    data = root / "data"
+    seq = build_tiny_sequence(data / "tiny", n_frames=4, n_points=400)
+    add_gt2d(seq.root, seq.frame_ids, (48, 64))
+    return data
+
+
+@pytest.fixture(scope="module")
+def api(data: Path) -> Iterator[httpx.Client]:
+    server = Server(data, extra_env={"LEAP_PREWARM_WORKERS": "false"}).start()
+    try:
+        with server.client() as client:
+            yield client
+    finally:
+        server.stop()
+
+
+def _create(api: httpx.Client, path: Path, **extra: Any) -> httpx.Response:
+    return api.post(
+        "/projects", json={"name": path.parts[-3], "dataset": {"kind": "folder", "path": str(path)}, **extra}
+    )
+
+
+def test_settings_past_their_bounds_are_422_naming_field_value_and_range(
+    api: httpx.Client, data: Path
+) -> None:
+    seq = data / "tiny" / "sequences" / "00"
+    r = _create(api, seq, pipeline={"smoothing": {"k": 1_000_000_000}})
+    assert r.status_code == 422, r.text
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["body", "pipeline", "smoothing", "k"]
+    assert err["msg"] == "pipeline.smoothing.k: must be in [1, 64], got 1000000000"
+
+    r = _create(api, seq)
+    assert r.status_code == 201, r.text
+    project = r.json()
+    for body, loc, msg in (
+        (
+            {"pipeline": {"fusion": {"voxel_size": 1e-320}}},
+            ["body", "pipeline", "fusion", "voxel_size"],
+            "pipeline.fusion.voxel_size: must be in [0.01, 10] m, got 1e-320",
+        ),
+        (
+            {"pipeline": {"consistency": {"backbone": {"grid_cells": [0.8, 0.8, 0.001]}}}},
+            ["body", "pipeline", "consistency", "backbone", "grid_cells"],
+            "pipeline.consistency.backbone.grid_cells: must be in [0.1, 10] m, got 0.001",
+        ),
+        ({"form": {"k": 65}}, ["body", "form", "k"], "pipeline.smoothing.k: must be in [1, 64], got 65"),
+        (
+            {"form": {"voxel_size": 50.0}},
+            ["body", "form", "voxel_size"],
+            "pipeline.fusion.voxel_size: must be in [0.01, 10] m, got 50.0",
+        ),
+    ):
+        r = api.patch(f"/projects/{project['id']}", json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert r.json()["detail"][0]["loc"] == loc and r.json()["detail"][0]["msg"] == msg
+    assert api.get(f"/projects/{project['id']}").json()["form"] == project["form"]  # nothing changed
+    # The form offers the same ranges.
+    form = {f["name"]: f for f in api.get("/pipeline").json()["form"]}
+    assert (form["k"]["minimum"], form["k"]["maximum"]) == (1, 64)
+    assert (form["voxel_size"]["minimum"], form["voxel_size"]["maximum"]) == (0.01, 10)
