@@ -512,7 +512,7 @@ def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     folder = frame.seq.root / "gt2d" / "name"
     if not folder.is_dir():
         return generic_name_ids(semantic)
-    names = read_png16(folder / f"{frame.frame_id}.png")
+    names = read_png16(frame.seq.confined(folder / f"{frame.frame_id}.png"))
     if names.shape != semantic.shape:
         raise LeapError(
             f"{folder / (frame.frame_id + '.png')}: name image {names.shape} and semantic mask "
