@@ -80,6 +80,15 @@ ADVICE: dict[str, Advice] = {
         "put the file itself in place of each entry named (or remove the entry)",
         "put the file itself in place of each entry named in the dataset (or remove the entry)",
     ),
+    "images_damaged": Advice(
+        "replace the damaged images (a complete PNG or JPEG each)",
+        "replace the damaged images in the dataset's image_2/ folder (a complete PNG or JPEG each)",
+    ),
+    "images_size": Advice(
+        "give every image the size the calibration (calib.txt P2) was made for",
+        "give every image in the dataset's image_2/ folder the size the calibration (calib.txt P2) was "
+        "made for",
+    ),
     "no_2d_input": Advice(
         "add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
         "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "

@@ -1,6 +1,6 @@
 """Per-frame files the reader must not trust: links leading out of the sequence folder (never opened, named
-by the check and by ``leap run``), entries that are directories or pipes. The app's side (a real server)
-is tests/app/test_dataset_integrity_api.py."""
+by the check and by ``leap run``), entries that are directories or pipes, truncated camera images and
+images of another size. The app's side (a real server) is tests/app/test_dataset_integrity_api.py."""
 
 from __future__ import annotations
 
@@ -18,6 +18,9 @@ from app.cli import cli
 from leap_core.datasets.kitti import (
     LINK_OUTSIDE,
     KittiSequence,
+    image_size,
+    read_image,
+    write_image,
     write_png16,
 )
 from leap_core.errors import DatasetError
@@ -169,3 +172,55 @@ def test_a_scan_that_is_a_directory_blocks_the_run(seq: TinySequence) -> None:
     assert [f.detail for f in report.findings if f.code == "not_a_file"] == [
         "000002.bin is a directory, not a file"
     ]
+
+
+# -------------------------------------------------------------------------------------- camera images
+def _truncate(path: Path, keep: float = 0.6) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_image_size_reads_the_header_of_complete_images(tmp_path: Path, suffix: str) -> None:
+    rgb = np.random.default_rng(0).integers(0, 255, (37, 53, 3), dtype=np.uint8)
+    path = tmp_path / f"a{suffix}"
+    write_image(path, rgb)
+    assert image_size(path) == (53, 37) == read_image(path).shape[1::-1]
+    # Zero bytes after a JPEG's end marker are padding some writers add; the image is complete.
+    if suffix == ".jpg":
+        path.write_bytes(path.read_bytes() + b"\x00" * 10)
+        assert image_size(path) == (53, 37)
+
+
+@pytest.mark.parametrize(("suffix", "what"), [(".png", "a truncated PNG"), (".jpg", "a truncated JPEG")])
+def test_a_truncated_image_is_named_by_the_check_and_refused_by_the_reader(
+    seq: TinySequence, suffix: str, what: str
+) -> None:
+    rgb = np.random.default_rng(1).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    (seq.root / "image_2" / "000002.png").unlink()
+    path = seq.root / "image_2" / f"000002{suffix}"
+    write_image(path, rgb)
+    _truncate(path)
+    with pytest.raises(DatasetError) as err:
+        read_image(path)
+    assert err.value.path == str(path) and what in err.value.problem
+    with pytest.raises(DatasetError, match=what):
+        _ = KittiSequence(seq.root).frame(2).image
+
+    report = check_dataset(seq.root, config=None, check_models=False)
+    (finding,) = [f for f in report.findings if f.code == "images_damaged"]
+    assert finding.severity == "warning" and finding.path == str(seq.root / "image_2")
+    assert finding.detail.startswith(f"{path.name} is {what}") and finding.frames == ("000002",)
+    gsam = next(lab for lab in report.labelers if lab.name == "grounded-sam")
+    assert not gsam.can_run and "images_damaged" in gsam.reasons
+
+
+def test_an_image_of_another_size_is_named(seq: TinySequence) -> None:
+    write_image(seq.root / "image_2" / "000001.png", np.zeros((24, 32, 3), np.uint8))
+    report = check_dataset(seq.root, check_models=False)
+    (finding,) = [f for f in report.findings if f.code == "images_size"]
+    assert finding.detail == "000001.png is 32×24 pixels, the sequence's other images 64×48"
+    assert finding.frames == ("000001",) and finding.severity == "warning"
+    gsam = next(lab for lab in report.labelers if lab.name == "grounded-sam")
+    assert "images_size" in gsam.reasons
+    assert not [f for f in check_dataset(seq.root, check_models=False).findings if f.code == "images_damaged"]

@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import bisect
 import functools
+import io
 import os
 import re
 import stat
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -388,14 +390,118 @@ def lidar_poses(cam_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64])
 
 
 # -------------------------------------------------------------------------------------------- images
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+"""The last 12 bytes of every complete PNG: its empty IEND chunk (length 0, type, CRC)."""
+JPEG_START, JPEG_END = b"\xff\xd8", b"\xff\xd9"
+_JPEG_FRAMES = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+"""JPEG start-of-frame markers (SOF0-SOF15 but DHT C4, JPG C8 and DAC CC): they hold the image size."""
+_JPEG_ALONE = frozenset({0x01, *range(0xD0, 0xD8)})
+"""JPEG markers without a length field (TEM, RST0-7)."""
+_JPEG_MAX_SEGMENTS = 4096
+
+
+def _png_size(fh: BinaryIO, size: int) -> tuple[int, int]:
+    fh.seek(8)
+    head = fh.read(16)
+    if len(head) < 16 or head[4:8] != b"IHDR":
+        raise ValueError("a PNG without its IHDR header chunk")
+    width, height = int.from_bytes(head[8:12], "big"), int.from_bytes(head[12:16], "big")
+    fh.seek(max(size - len(PNG_END), 0))
+    if fh.read(len(PNG_END)) != PNG_END:
+        raise ValueError("a truncated PNG (it does not end with its IEND chunk)")
+    return width, height
+
+
+def _jpeg_size(fh: BinaryIO, size: int) -> tuple[int, int]:
+    pos = 2
+    for _ in range(_JPEG_MAX_SEGMENTS):
+        fh.seek(pos)
+        marker = fh.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            raise ValueError(f"a truncated or damaged JPEG (no marker at byte {pos})")
+        code = marker[1]
+        if code == 0xFF:  # a fill byte before the marker
+            pos += 1
+            continue
+        if code in _JPEG_ALONE:
+            pos += 2
+            continue
+        if code in (0xD9, 0xDA):  # the end, or the scan data, before any frame header
+            raise ValueError("a JPEG without a frame header")
+        length = int.from_bytes(fh.read(2), "big")
+        if code in _JPEG_FRAMES:
+            frame = fh.read(5)
+            if len(frame) < 5:
+                break
+            height, width = int.from_bytes(frame[1:3], "big"), int.from_bytes(frame[3:5], "big")
+            fh.seek(max(size - 64, 0))
+            # Some writers pad a JPEG with zero bytes after its end-of-image marker.
+            if not fh.read(64).rstrip(b"\x00").endswith(JPEG_END):
+                raise ValueError("a truncated JPEG (it does not end with its end-of-image marker)")
+            return width, height
+        if length < 2:
+            raise ValueError(f"a damaged JPEG (segment length {length} at byte {pos})")
+        pos += 2 + length
+    raise ValueError("a truncated or damaged JPEG (no frame header)")
+
+
+def read_image_size(fh: BinaryIO, size: int) -> tuple[int, int]:
+    """``(width, height)`` of the PNG or JPEG in ``fh`` (``size`` bytes long), from its header alone, after
+    checking that it is complete: a PNG must end with its IEND chunk, a JPEG with its end-of-image marker
+    (trailing zero bytes allowed). Reads a few small pieces, never the pixel data.
+
+    Raises:
+        ValueError: what is wrong ("a truncated PNG (...)", "not a PNG or JPEG", ...).
+    """
+    fh.seek(0)
+    magic = fh.read(len(PNG_SIGNATURE))
+    if magic == PNG_SIGNATURE:
+        width, height = _png_size(fh, size)
+    elif magic[:2] == JPEG_START:
+        width, height = _jpeg_size(fh, size)
+    else:
+        raise ValueError("not a PNG or JPEG image" if magic else "an empty file")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"an image of {width}×{height} pixels")
+    return width, height
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """``(width, height)`` of the image file ``path``, from its header (:func:`read_image_size`).
+
+    Raises:
+        DatasetError: naming the file when it is unreadable, not a PNG or JPEG, or truncated.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            return read_image_size(fh, os.fstat(fh.fileno()).st_size)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from exc
+    except ValueError as exc:
+        raise DatasetError(path, f"unreadable image: {exc}") from None
+
+
 def read_image(path: str | Path) -> npt.NDArray[np.uint8]:
-    """Read a colour image as (H, W, 3) uint8 RGB."""
+    """Read a colour image as (H, W, 3) uint8 RGB.
+
+    Raises:
+        DatasetError: naming the file when it is missing, empty, not a PNG or JPEG, or truncated (a
+            decoder fills a cut-off JPEG with grey and says nothing: it is refused here instead).
+    """
     path = Path(path)
     try:
         data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
     except OSError as exc:
         raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from exc
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data is not None and data.size else None
+    if data is None or not data.size:
+        raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
+    try:
+        read_image_size(io.BytesIO(data.tobytes()), int(data.size))
+    except ValueError as exc:
+        raise DatasetError(path, f"unreadable image: {exc}") from None
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
     if img is None:
         raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
     return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
@@ -764,9 +870,11 @@ __all__ = [
     "atomic_write",
     "entry_problem",
     "folder_problems",
+    "image_size",
     "lidar_poses",
     "read_calib",
     "read_image",
+    "read_image_size",
     "read_label",
     "read_png16",
     "read_poses",

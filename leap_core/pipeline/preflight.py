@@ -7,7 +7,9 @@ so the check refuses exactly what a run would refuse) and never raises for a bad
 becomes a :class:`Finding` with a code, the file it concerns and a neutral description. Each per-frame
 file is looked at without being read: a link leading outside the sequence folder or a pipe is named (the
 reader refuses the folder), as is a directory in place of a file. Scans are not read (only their sizes
-are checked), so the check costs a few directory listings whatever the sequence length.
+are checked) and of the camera images only the header and the last bytes (a truncated PNG or JPEG, an
+image of another size than the others), so the check costs a few directory listings and small reads
+whatever the sequence length.
 
 It judges the pipeline's stages (:data:`~leap_core.pipeline.stages.STAGE_TABLE`) and labelers
 (:data:`~leap_core.labelers.LABELERS`) against the folder, so it lives with the pipeline. Its results are
@@ -43,6 +45,7 @@ from leap_core.datasets.kitti import (
     POSES_NOTE,
     KittiSequence,
     folder_problems,
+    image_size,
     read_calib,
     read_poses,
     sequence_roots,
@@ -227,6 +230,46 @@ def _files_finding(code: str, severity: Severity, folder: Path, items: list[tupl
     return Finding(code, severity, str(folder), shown + more, tuple(stems[:SHOWN_FRAMES]), len(stems))
 
 
+def _image_files(folder: Path, frames: Iterable[str], skip: set[str]) -> dict[str, Path]:
+    """Frame id → its camera image in ``folder`` (as the reader indexes them), for ``frames`` not in
+    ``skip``."""
+    wanted = set(frames) - skip
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError:
+        return {}
+    return {p.stem: p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES and p.stem in wanted}
+
+
+def _image_findings(folder: Path, images: dict[str, Path]) -> list[Finding]:
+    """``images_damaged``: images whose header the reader refuses (not a PNG or JPEG, truncated);
+    ``images_size``: images of another size than most of the sequence's (the calibration projects into
+    one image size). Only headers and the files' last bytes are read."""
+    sizes: dict[str, tuple[int, int]] = {}
+    damaged: list[tuple[str, str]] = []
+    for fid, path in images.items():
+        try:
+            sizes[fid] = image_size(path)
+        except DatasetError as exc:
+            damaged.append((path.name, exc.problem.removeprefix("unreadable image: ")))
+    out = []
+    if damaged:
+        out.append(_files_finding("images_damaged", "warning", folder, damaged))
+    if sizes:
+        counts: dict[tuple[int, int], int] = {}
+        for size in sizes.values():
+            counts[size] = counts.get(size, 0) + 1
+        usual = max(counts, key=lambda k: counts[k])  # the most common; ties: the first frame's
+        odd = [
+            (images[fid].name, f"{w}×{h} pixels, the sequence's other images {usual[0]}×{usual[1]}")
+            for fid, (w, h) in sizes.items()
+            if (w, h) != usual
+        ]
+        if odd:
+            out.append(_files_finding("images_size", "warning", folder, odd))
+    return out
+
+
 def _scan_sizes(vel: Path) -> dict[str, int]:
     out: dict[str, int] = {}
     try:
@@ -370,6 +413,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
     gt2d = (_stems(root / "gt2d" / "semantic", (".png",)) - unusable["gt2d/semantic"]) & (
         _stems(root / "gt2d" / "instance", (".png",)) - unusable["gt2d/instance"]
     )
+    findings += _image_findings(root / "image_2", _image_files(root / "image_2", frames, unusable["image_2"]))
     cover_img = FrameCoverage(len(set(frames) & images), len(frames))
     cover_gt = FrameCoverage(len(set(frames) & labels), len(frames))
     cover_2d = FrameCoverage(len(set(frames) & gt2d), len(frames))
@@ -591,11 +635,17 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
     return {"grounded-sam": ("models_missing",)}
 
 
+IMAGE_CODES = ("images_damaged", "images_size")
+"""Findings on the camera images that stop a labeler reading them (a damaged image fails its frame; one of
+another size is projected with the calibration of the others, so its labels land on the wrong points)."""
+
+
 def _labeler_checks(
     frames: list[str],
     img: FrameCoverage,
     gt2d: FrameCoverage,
     model_codes: dict[str, tuple[str, ...]],
+    image_codes: tuple[str, ...] = (),
 ) -> tuple[LabelerCheck, ...]:
     out = []
     for name, spec in LABELERS.items():
@@ -608,6 +658,8 @@ def _labeler_checks(
             reasons = ("images_partial",) if spec.needs == "images" else ("gt2d_partial",)
         else:
             reasons = ()
+        if spec.needs == "images":
+            reasons += image_codes
         reasons += model_codes.get(name, ())
         out.append(LabelerCheck(name, spec.label, not reasons, reasons))
     return tuple(out)
@@ -635,7 +687,8 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
     findings: list[Finding],
     model_codes: dict[str, tuple[str, ...]],
 ) -> DatasetReport:
-    labelers = _labeler_checks(frames, img, gt2d, model_codes)
+    image_codes = tuple(c for c in IMAGE_CODES if any(f.code == c for f in findings))
+    labelers = _labeler_checks(frames, img, gt2d, model_codes, image_codes)
     by_name = {lab.name: lab for lab in labelers}
     labeler = cfg.labeler
     if not chosen:
@@ -726,6 +779,8 @@ REASONS: dict[str, str] = {
     "unreadable": "a file the reader refuses",
     "linked_outside": "files linked outside the sequence folder",
     "not_a_file": "entries that are not files",
+    "images_damaged": "damaged camera images",
+    "images_size": "camera images of another size",
     "no_2d_input": "nothing to label from",
     "images_missing": "no camera images",
     "images_partial": "frames without a camera image",

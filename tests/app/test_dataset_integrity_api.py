@@ -1,7 +1,7 @@
 """A real server on 127.0.0.1 facing untrusted settings and dataset files: a size, count or distance past
 its bound is a 422 naming the field, the value and the range (never a worker running out of memory); a
-per-frame file linked out of the data roots is named, never read; a label that is a directory is named by
-the dataset check."""
+per-frame file linked out of the data roots is named, never read; a label that is a directory and a
+truncated camera image are named by the dataset check."""
 
 from __future__ import annotations
 
@@ -128,3 +128,18 @@ def test_a_label_that_is_a_directory_is_named(api: httpx.Client, data: Path) -> 
     assert finding["severity"] == "warning" and finding["path"] == str(label.parent)
     assert finding["message"].startswith(f"{label.parent}: 000003.label is a directory, not a file")
     assert "put the file itself in place" in finding["fix"]
+
+
+def test_a_truncated_camera_image_is_named(api: httpx.Client, data: Path) -> None:
+    seq = _copy(data, "truncated")
+    image = seq / "image_2" / "000002.png"
+    image.write_bytes(image.read_bytes()[:-40])
+    r = _create(api, seq)
+    assert r.status_code == 201, r.text  # the simulated labeler reads the 2D ground truth, not the images
+    check = r.json()["dataset"]["check"]
+    (finding,) = _findings(check, "images_damaged")
+    assert finding["frames"] == ["000002"]
+    assert "000002.png is a truncated PNG" in finding["message"] and "image_2" in finding["fix"]
+    gsam = next(lab for lab in check["labelers"] if lab["name"] == "grounded-sam")
+    assert not gsam["can_run"] and "damaged camera images" in gsam["reason"]
+    assert check["images"]["present"] == 4
