@@ -6,12 +6,14 @@ produced by :func:`config_to_dict`; :func:`config_from_dict` reads it back, appl
 a base config. Programs parse that dict once, where they read it, and pass the typed config on.
 
 Validation, one style for every config dataclass: the checks live in ``__post_init__``, so a config
-object that exists is valid (``dataclasses.replace`` checks again). A failed check raises
+object that exists is valid (``dataclasses.replace`` checks again). Every numeric setting declares its
+allowed range beside its field, and ``__post_init__`` checks them all in one call
+(:func:`~leap_core.bounds.check_bounds`; :func:`setting_bounds` lists them). A failed check raises
 :class:`~leap_core.errors.ConfigError` with ``field`` = the field's path relative to the dataclass
 (``("voxel_size",)``, ``("class_recall", "car")``). :func:`config_from_dict` descends the tree, checks
 keys and types itself and re-raises every error with the absolute path
 (``("pipeline", "consistency", "backbone", "channels")``), so the message reads
-``pipeline.fusion.voxel_size: must be a positive number, got 0`` and callers such as the app map
+``pipeline.fusion.voxel_size: must be in [0.01, 10] m, got 0`` and callers such as the app map
 ``exc.field`` onto their own error locations without reading the message.
 
 Labelers. Each 2D labeler registered in :data:`~leap_core.labelers.LABELERS` brings its own config section
