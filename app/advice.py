@@ -70,6 +70,25 @@ ADVICE: dict[str, Advice] = {
         "fix the file named above",
         "fix the file named above in the dataset",
     ),
+    "linked_outside": Advice(
+        "replace each link with a copy of the file it points to, or link the whole folder instead of its "
+        "files (the pipeline reads no file linked out of the sequence folder)",
+        "replace each link with a copy of the file it points to (the app reads no file linked out of the "
+        "sequence folder)",
+    ),
+    "not_a_file": Advice(
+        "put the file itself in place of each entry named (or remove the entry)",
+        "put the file itself in place of each entry named in the dataset (or remove the entry)",
+    ),
+    "images_damaged": Advice(
+        "replace the damaged images (a complete PNG or JPEG each)",
+        "replace the damaged images in the dataset's image_2/ folder (a complete PNG or JPEG each)",
+    ),
+    "images_size": Advice(
+        "give every image the size the calibration (calib.txt P2) was made for",
+        "give every image in the dataset's image_2/ folder the size the calibration (calib.txt P2) was "
+        "made for",
+    ),
     "no_2d_input": Advice(
         "add camera images as image_2/NNNNNN.png (or .jpg) for --labeler grounded-sam",
         "add camera images as image_2/NNNNNN.png (or .jpg) to the dataset for the "

@@ -14,7 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from leap_core.config import PipelineConfig
+from leap_core.bounds import Bound
+from leap_core.config import PipelineConfig, setting_bounds
 from leap_core.errors import LeapError
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import config_value
@@ -35,10 +36,25 @@ class FormField:
     help: str = ""
     """One line on what the setting changes."""
     minimum: float | None = None
+    """Smallest value the input offers (the setting's bound, :func:`bounded`)."""
     maximum: float | None = None
+    """Largest value the input offers."""
     step: float | None = None
     choices: tuple[tuple[str, str], ...] = ()
     """``select`` only: (value, label) pairs."""
+
+
+BOUNDS: dict[str, Bound] = dict(setting_bounds())
+"""Dotted config path → its allowed range (leap_core's, :func:`~leap_core.config.setting_bounds`)."""
+
+
+def bounded(
+    path: str, label: str, kind: Literal["number", "integer"], help_text: str, step: float
+) -> FormField:
+    """A number input for the setting at ``path`` offering the ends of its bound (the config refuses an
+    open end itself, naming the field)."""
+    bound = BOUNDS[path]
+    return FormField(path, label, kind, help_text, bound.low, bound.high, step)
 
 
 FORM_FIELDS: dict[str, FormField] = {
@@ -49,26 +65,22 @@ FORM_FIELDS: dict[str, FormField] = {
         "which model turns camera images into 2D labels",
         choices=tuple((name, spec.label) for name, spec in LABELERS.items()),
     ),
-    "threshold": FormField(
+    "threshold": bounded(
         "grounded_sam.box_threshold",
         "Box threshold",
         "number",
         "Grounding DINO boxes below this similarity are dropped",
-        0.0,
-        1.0,
         0.01,
     ),
-    "voxel_size": FormField(
-        "fusion.voxel_size", "Voxel size (m)", "number", "edge of the fusion grid's voxels", 0.01, None, 0.05
+    "voxel_size": bounded(
+        "fusion.voxel_size", "Voxel size (m)", "number", "edge of the fusion grid's voxels", 0.05
     ),
-    "k": FormField("smoothing.k", "kNN smoothing k", "integer", "neighbours averaged per voxel", 1, None, 1),
-    "cluster_gap": FormField(
+    "k": bounded("smoothing.k", "kNN smoothing k", "integer", "neighbours averaged per voxel", 1),
+    "cluster_gap": bounded(
         "projection.cluster_gap",
         "Depth-cluster gap (m)",
         "number",
         "depth gap that splits a mask's points into clusters",
-        0.0,
-        None,
         0.1,
     ),
     "consistency": FormField(
@@ -77,27 +89,21 @@ FORM_FIELDS: dict[str, FormField] = {
         "checkbox",
         "train a 3D network on the most confident voxels and fuse it back",
     ),
-    "share": FormField(
+    "share": bounded(
         "consistency.share",
         "3D-CN label share",
         "number",
         "share of each class's most confident points used for training",
-        0.0,
-        1.0,
         0.05,
     ),
-    "temperature": FormField(
+    "temperature": bounded(
         "consistency.temperature",
         "3D-CN temperature",
         "number",
         "weight of the network's evidence when fused back (lower = stronger)",
-        0.0,
-        None,
         0.1,
     ),
-    "iterations": FormField(
-        "consistency.iterations", "3D-CN iterations", "integer", "self-training rounds", 1, None, 1
-    ),
+    "iterations": bounded("consistency.iterations", "3D-CN iterations", "integer", "self-training rounds", 1),
 }
 """The app form's flat parameter names → their :class:`FormField` (dotted path, label, widget)."""
 
@@ -149,9 +155,11 @@ def ignored_settings(cfg: PipelineConfig) -> dict[str, str]:
 
 
 __all__ = [
+    "BOUNDS",
     "FORM_FIELDS",
     "PATH_LABELS",
     "FormField",
+    "bounded",
     "form_values",
     "ignored_settings",
     "overrides_from_form",

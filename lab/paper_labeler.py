@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.bounds import within
 from leap_core.errors import ConfigError, LeapError
 from leap_core.labelers import LabelerSpec
 from leap_core.labelers.base import Labeler
@@ -69,45 +70,47 @@ class SimulatedPaperConfig(SimulatedLabelerConfig):
     """The simulated labeler's noise model plus the terms of docs/METHOD.md A.7 6-14, all off by default
     (then its masks are those of :class:`~leap_core.labelers.simulated.SimulatedLabelerConfig`'s)."""
 
-    class_confusion: dict[str, float] = field(default_factory=dict)
+    class_confusion: dict[str, float] = field(default_factory=dict, metadata=within(0, 1))
     """Per-class confusion probability overriding ``confusion_prob``, by class name (names not in the
     schema are ignored); a class still needs a partner in ``confusion_pairs`` to be confused."""
-    confusion_targets: dict[str, dict[str, float]] = field(default_factory=dict)
+    confusion_targets: dict[str, dict[str, float]] = field(
+        default_factory=dict, metadata=within(0, 1_000_000)
+    )
     """Directed confusion, by class name: class → {class it is mistaken for: weight}. A confused region of a
     class listed here takes a target drawn with probability ∝ weight (instead of a partner of
     ``confusion_pairs`` drawn uniformly); the class's confusion probability is still ``class_confusion`` /
     ``confusion_prob``. Names not in the schema are ignored."""
-    small_region_px: int = 0
+    small_region_px: int = field(default=0, metadata=within(0, 100_000_000, unit="px"))
     """Size-dependent recall: a region of a pixels is kept with its recall times ``min(1, a /
     small_region_px)`` (:func:`size_recall`), so small and far objects are missed more often; 0 = off."""
-    box_leak_prob: float = 0.0
+    box_leak_prob: float = field(default=0.0, metadata=within(0, 1))
     """Probability that a thing mask becomes its whole bounding box grown by ``box_leak_margin``
     (:func:`box_leak_crop`): SAM segmenting the box rather than the object, the background inside the
     box leaks into the mask."""
-    class_box_leak: dict[str, float] = field(default_factory=dict)
+    class_box_leak: dict[str, float] = field(default_factory=dict, metadata=within(0, 1))
     """Per-class box-leak probability overriding ``box_leak_prob``, by class name (names not in the schema
     are ignored): a detector boxes some classes (thin or small objects, people) more loosely than others."""
-    box_leak_margin: float = 0.0
+    box_leak_margin: float = field(default=0.0, metadata=within(0, 10))
     """Growth of the leaked box on each side, as a fraction of the box's height (top, bottom) and width
     (left, right)."""
-    pair_merge_prob: float = 0.0
+    pair_merge_prob: float = field(default=0.0, metadata=within(0, 1))
     """Probability that a thing mask also covers the nearest other thing region whose bounding box lies
     within ``pair_merge_gap_px`` of its own (:func:`adjacent_partner`): one mask over two adjacent objects
     (a rider and the bicycle, a person and the car behind), labeled as the first."""
-    pair_merge_gap_px: int = 0
+    pair_merge_gap_px: int = field(default=0, metadata=within(0, 10_000, unit="px"))
     """Largest gap in pixels between two bounding boxes for their objects to count as adjacent."""
-    stuff_grow_prob: float = 0.0
+    stuff_grow_prob: float = field(default=0.0, metadata=within(0, 1))
     """Probability that a stuff mask is over-large: dilated by a radius drawn uniformly from
     ``1..stuff_grow_px`` (instead of its bleed when larger), so it covers the border of its neighbours."""
-    stuff_grow_px: int = 0
+    stuff_grow_px: int = field(default=0, metadata=within(0, 100, unit="px"))
     """Largest dilation radius in pixels of an over-large stuff mask."""
-    stuff_tile_px: int = 0
+    stuff_tile_px: int = field(default=0, metadata=within(0, 100_000, unit="px"))
     """When > 0, a stuff region's confusion is drawn per image tile of this many pixels (:func:`tile_split`)
     rather than once for the whole region: the confused tiles form a second mask labeled as the partner,
     as SAM splits a large surface into parts and the detector names some of them wrongly. The share of a
     surface confused then follows the confusion probability closely, where one draw per region flips whole
     roads at once."""
-    stuff_world_tile: int = 0
+    stuff_world_tile: int = field(default=0, metadata=within(0, 100_000))
     """When > 0, the tiled stuff confusion (``stuff_tile_px``, which must then be > 0 too) is drawn per
     world tile of this many world cells a side (``gt2d/cell``: 2 m cells of generated data, so 2 = 4 m
     tiles) instead of per image tile, and once for the whole sequence instead of per block of frames
@@ -133,26 +136,8 @@ class SimulatedPaperConfig(SimulatedLabelerConfig):
     15.0 or 42.6 and nothing between as q moves; docs/METHOD.md A.7, term 14)."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        for name in ("box_leak_prob", "pair_merge_prob", "stuff_grow_prob"):
-            v = getattr(self, name)
-            if not 0.0 <= v <= 1.0:
-                raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
-        for table in ("class_confusion", "class_box_leak"):
-            for cname, v in getattr(self, table).items():
-                if not 0.0 <= float(v) <= 1.0:
-                    raise ConfigError(f"must be in [0, 1], got {v}", field=(table, cname))
+        super().__post_init__()  # checks every field's range, these terms' too
         _check_targets(self.confusion_targets)
-        for name in (
-            "small_region_px",
-            "box_leak_margin",
-            "pair_merge_gap_px",
-            "stuff_grow_px",
-            "stuff_tile_px",
-            "stuff_world_tile",
-        ):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
         _check_needs(self)
 
     @classmethod
@@ -178,12 +163,13 @@ class SimulatedPaperConfig(SimulatedLabelerConfig):
 
 
 def _check_targets(table: dict[str, dict[str, float]]) -> None:
-    """``confusion_targets``: every weight >= 0 and of a class other than its row's."""
+    """``confusion_targets``: every weight is of a class other than its row's (its range is the field's
+    bound)."""
     for cname, targets in table.items():
         for tname, wt in targets.items():
-            if not float(wt) >= 0.0 or tname == cname:
+            if tname == cname:
                 raise ConfigError(
-                    f"must be a weight >= 0 of another class, got {wt}",
+                    f"must be a weight of another class, got {wt} for {cname} itself",
                     field=("confusion_targets", cname, tname),
                 )
 

@@ -6,12 +6,14 @@ produced by :func:`config_to_dict`; :func:`config_from_dict` reads it back, appl
 a base config. Programs parse that dict once, where they read it, and pass the typed config on.
 
 Validation, one style for every config dataclass: the checks live in ``__post_init__``, so a config
-object that exists is valid (``dataclasses.replace`` checks again). A failed check raises
+object that exists is valid (``dataclasses.replace`` checks again). Every numeric setting declares its
+allowed range beside its field, and ``__post_init__`` checks them all in one call
+(:func:`~leap_core.bounds.check_bounds`; :func:`setting_bounds` lists them). A failed check raises
 :class:`~leap_core.errors.ConfigError` with ``field`` = the field's path relative to the dataclass
 (``("voxel_size",)``, ``("class_recall", "car")``). :func:`config_from_dict` descends the tree, checks
 keys and types itself and re-raises every error with the absolute path
 (``("pipeline", "consistency", "backbone", "channels")``), so the message reads
-``pipeline.fusion.voxel_size: must be a positive number, got 0`` and callers such as the app map
+``pipeline.fusion.voxel_size: must be in [0.01, 10] m, got 0`` and callers such as the app map
 ``exc.field`` onto their own error locations without reading the message.
 
 Labelers. Each 2D labeler registered in :data:`~leap_core.labelers.LABELERS` brings its own config section
@@ -41,6 +43,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
+from leap_core.bounds import Bound, bounds_rows, check_bounds, field_bound, within
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.errors import ConfigError, LeapError
 from leap_core.fusion import FusionConfig
@@ -77,15 +80,14 @@ class PipelineConfig:
     """kNN smoothing of the fused grid."""
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
     """3D Consistency Network (off unless ``consistency.enabled``)."""
-    correction_strength: float = 50.0
+    correction_strength: float = field(default=50.0, metadata=within(0, 1000, low_open=True, unit="nats"))
     """Log-odds of one manual correction (``corrections.npz`` in the run folder) when it is fused in."""
 
     def __post_init__(self) -> None:
         if self.labeler not in LABELERS:
             names = ", ".join(repr(n) for n in LABELERS)
             raise ConfigError(f"must be one of {names}, got {_short(self.labeler)}", field=("labeler",))
-        if not self.correction_strength > 0:
-            raise ConfigError(f"must be > 0, got {self.correction_strength}", field=("correction_strength",))
+        check_bounds(self)
         own = {f.name for f in dataclasses.fields(self)}
         for section, value in self.labelers.items():
             spec = labeler_by_section(section)
@@ -146,6 +148,28 @@ class PipelineConfig:
                 raise LeapError(f"{len(specs)} registered labelers have a {type(config).__name__} config")
             section = specs[0].section
         return dataclasses.replace(self, labelers={**self.labelers, section: config})
+
+
+def setting_bounds(sections: Mapping[str, type] | None = None) -> list[tuple[str, Bound]]:
+    """``(dotted setting path, allowed range)`` of every bounded setting of :class:`PipelineConfig`, in the
+    dict form's order (``correction_strength``, ``simulated.recall``, ..., ``consistency.backbone.knn``).
+
+    Args:
+        sections: labeler config section → its config type; default every registered labeler's.
+    """
+    chosen = sections if sections is not None else {s.section: s.config_type for s in LABELERS.values()}
+    default = PipelineConfig()
+    rows: list[tuple[str, Bound]] = []
+    for f in dataclasses.fields(PipelineConfig):
+        value = getattr(default, f.name)
+        if f.name == "labelers":
+            for section, config_type in chosen.items():
+                rows += bounds_rows(config_type, f"{section}.")
+        elif (bound := field_bound(PipelineConfig, f.name)) is not None:
+            rows.append((f.name, bound))
+        elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+            rows += bounds_rows(type(value), f"{f.name}.")
+    return rows
 
 
 # ------------------------------------------------------------------------------------------ to dict
@@ -429,5 +453,6 @@ __all__ = [
     "RetiredField",
     "config_from_dict",
     "config_to_dict",
+    "setting_bounds",
     "without_retired",
 ]

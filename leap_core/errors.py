@@ -22,9 +22,9 @@ class ConfigError(LeapError):
     """A configuration value is invalid: ``problem`` says what is wrong with the setting at ``field``.
 
     The message is ``"<field joined by dots>: <problem>"``. A config dataclass raises it with the field
-    path relative to itself (``ConfigError("must be a positive number, got 0", field=("voxel_size",))``);
+    path relative to itself (``ConfigError("must be in [0.01, 10] m, got 0", field=("voxel_size",))``);
     :func:`leap_core.config.config_from_dict` re-raises it with the absolute path through :meth:`within`
-    (``pipeline.fusion.voxel_size: must be a positive number, got 0``), so no caller parses messages.
+    (``pipeline.fusion.voxel_size: must be in [0.01, 10] m, got 0``), so no caller parses messages.
     """
 
     def __init__(self, problem: str, *, field: tuple[str, ...]) -> None:

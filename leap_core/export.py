@@ -15,12 +15,15 @@ label-map YAML in the style of PRBonn/semantic-kitti-api's ``config/semantic-kit
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import json
 import os
+import re
 import shutil
 import uuid
 import zipfile
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -459,12 +462,88 @@ def refuse_existing(target: Path, *, overwrite: bool) -> list[str]:
     return old
 
 
+SCRATCH = re.compile(r"\.(?P<target>.+)\.leap-(?:new|old)-[0-9a-f]{8}")
+"""The hidden siblings of an export's folder ``NAME``: ``.NAME.leap-new-XXXXXXXX``, where the export is
+copied before it is renamed into place, and ``.NAME.leap-old-XXXXXXXX``, the folder it replaces, until it
+is deleted (:func:`write_export_folder`)."""
+
+_DIR_FLAGS = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
+
+
+@contextlib.contextmanager
+def _folder_lock(folder: Path, *, wait: bool = True) -> Iterator[bool]:
+    """Hold an exclusive ``flock`` on the folder ``folder`` while the block runs; yields False without
+    waiting when ``wait`` is off and another open of it holds the lock (then ``folder`` may not be a link
+    either: only a scratch folder is tried so). The lock follows the folder through renames and dies with
+    its process, kill -9 included: a scratch folder nobody holds is a dead export's."""
+    fd = os.open(folder, _DIR_FLAGS if wait else _DIR_FLAGS | os.O_NOFOLLOW)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)
+
+
+def _only_export_files(folder: Path) -> bool:
+    """Whether ``folder`` holds nothing but regular ``.label`` / ``.conf`` files (what an export copies)."""
+    try:
+        with os.scandir(folder) as it:
+            return all(e.is_file(follow_symlinks=False) and e.name.endswith(EXPORT_SUFFIXES) for e in it)
+    except OSError:
+        return False
+
+
+def remove_export_leftovers(target: Path) -> list[str]:
+    """Delete what exports into the folder ``target`` left beside it when they were killed: its scratch
+    siblings (:data:`SCRATCH`) that no running export holds. Nothing else is touched: a sibling named
+    otherwise, a link, a folder holding anything but ``.label`` / ``.conf`` files (a user's own folder
+    that happens to carry such a name) or the scratch folder of an export still running stays.
+
+    Returns:
+        The names deleted.
+    """
+    parent = target.parent
+    try:
+        with os.scandir(parent) as it:
+            names = sorted(
+                e.name
+                for e in it
+                if e.is_dir(follow_symlinks=False)
+                and (m := SCRATCH.fullmatch(e.name)) is not None
+                and m["target"] == target.name
+            )
+    except OSError:
+        return []
+    removed = []
+    for name in names:
+        folder = parent / name
+        try:
+            with _folder_lock(folder, wait=False) as mine:
+                if mine and _only_export_files(folder):
+                    shutil.rmtree(folder)
+                    removed.append(name)
+        except OSError:
+            continue  # gone meanwhile, or not ours to open: left as it is
+    return removed
+
+
 def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool = False) -> int:
     """Copy ``files`` into the folder ``target``: written into a fresh hidden sibling folder, then renamed
     into place, so ``target`` never holds a half-written export.
 
     An existing ``target`` is replaced only when it is empty, or with ``overwrite`` when it holds nothing
     but ``.label`` / ``.conf`` files (what an export writes); the old folder is removed after the swap.
+
+    An export killed on the way (kill -9, a power cut) cannot clean up after itself: its hidden sibling
+    folders (:data:`SCRATCH`) stay, and the next export to ``target`` deletes them
+    (:func:`remove_export_leftovers`). Each export holds a lock on its scratch folders, so one still running
+    is never taken for dead; the lock on ``target``'s parent covers the moment a scratch folder is made.
 
     Returns:
         The number of files the previous ``target`` held (0 when it was new or empty).
@@ -473,6 +552,9 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
         ExportConflict: ``target`` holds files and ``overwrite`` is off, or holds something an export does
             not write (then even ``overwrite`` refuses).
     """
+    if target.parent.is_dir():
+        with _folder_lock(target.parent):
+            remove_export_leftovers(target)
     old = refuse_existing(target, overwrite=overwrite)
     foreign = [n for n in old if not (n.endswith(EXPORT_SUFFIXES) and (target / n).is_file())]
     if foreign:
@@ -486,7 +568,18 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
     target.parent.mkdir(parents=True, exist_ok=True)
     tag = uuid.uuid4().hex[:8]
     fresh = target.parent / f".{target.name}.leap-new-{tag}"
-    fresh.mkdir()
+    with contextlib.ExitStack() as held:
+        # Made and locked in one step under the parent's lock, so no other export's clean-up sees it unheld.
+        with _folder_lock(target.parent):
+            fresh.mkdir()
+            held.enter_context(_folder_lock(fresh))
+        _fill_and_swap(target, fresh, files, old, tag)
+    return len(old)
+
+
+def _fill_and_swap(target: Path, fresh: Path, files: Sequence[Path], old: Sequence[str], tag: str) -> None:
+    """Copy ``files`` into the (locked) folder ``fresh``, then rename it to ``target``; an ``old`` target is
+    renamed aside (locked, so it is not taken for a dead export's) and deleted after the swap."""
     try:
         for path in files:
             shutil.copyfile(path, fresh / path.name)
@@ -497,13 +590,14 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
                 os.close(fd)
         if old:
             stale = target.parent / f".{target.name}.leap-old-{tag}"
-            os.rename(target, stale)
-            try:
-                os.rename(fresh, target)
-            except OSError:
-                os.rename(stale, target)
-                raise
-            shutil.rmtree(stale, ignore_errors=True)
+            with _folder_lock(target):
+                os.rename(target, stale)
+                try:
+                    os.rename(fresh, target)
+                except OSError:
+                    os.rename(stale, target)
+                    raise
+                shutil.rmtree(stale, ignore_errors=True)
         else:
             try:
                 # rename() replaces an empty folder and fails on a non-empty one (someone wrote there since).
@@ -516,7 +610,6 @@ def write_export_folder(target: Path, files: Sequence[Path], *, overwrite: bool 
     finally:
         if fresh.exists():
             shutil.rmtree(fresh, ignore_errors=True)
-    return len(old)
 
 
 def export_targets(
@@ -593,6 +686,7 @@ __all__ = [
     "EXPORT_SUFFIXES",
     "LABEL_MAP_FILE",
     "PREDICTIONS",
+    "SCRATCH",
     "SUMMARY_FILE",
     "ExportConflict",
     "ExportedSequence",
@@ -610,6 +704,7 @@ __all__ = [
     "raw_id_counts",
     "read_confidence",
     "refuse_existing",
+    "remove_export_leftovers",
     "run_export",
     "summary_yaml",
     "write_export_folder",

@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse
 
+from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError, DatasetError
 from leap_core.geometry import affine_points
 from leap_core.io_utils import atomic_save_npz
@@ -46,30 +47,26 @@ _AXIS_MASK = (1 << AXIS_BITS) - 1
 class FusionConfig:
     """Parameters of the voxel grid and of the Bayesian update."""
 
-    voxel_size: float = 0.2
-    """Voxel edge length in metres (the paper uses 0.2 m)."""
-    prob_floor: float = 1e-3
+    voxel_size: float = field(default=0.2, metadata=within(0.01, 10, unit="m"))
+    """Voxel edge length in metres (the paper uses 0.2 m). At least 1 cm, below a LiDAR's precision; a
+    voxel key holds ±2²⁰ voxels per axis, ±10 km at that size."""
+    prob_floor: float = field(default=1e-3, metadata=within(0, 1, low_open=True, high_open=True))
     """Observation probabilities are clipped to ≥ this before the log (then renormalised), so one confident
     wrong mask adds at most log(1/floor) ≈ 6.9 nats against a class and cannot veto it forever."""
-    logp_clip: float = 20.0
+    logp_clip: float = field(default=20.0, metadata=within(0, 100, low_open=True, unit="nats"))
     """Stored log-posteriors are shifted to a row max of 0 and clipped below at ``-logp_clip``: e⁻²⁰ ≈ 2e-9
-    is probability zero for labelling, and the bound keeps float16 storage exact to ≈ 0.016 nats."""
-    chunk_points: int = 2_000_000
+    is probability zero for labelling, and the bound keeps float16 storage exact to ≈ 0.016 nats (at the
+    upper bound of 100, to ≈ 0.06)."""
+    chunk_points: int = field(default=2_000_000, metadata=within(1, 20_000_000))
     """:func:`fuse` reduces observations in chunks of about this many points; bounds working memory
-    (≈ 36 bytes per point of a chunk) without changing the result beyond float32 rounding. 2 M (≈ 72 MB;
-    ≈ 150 demo frames of painted points): on the 1,000-frame scale sequence fuse took 3.8 s with 2 M-point
-    chunks against 4.2-4.8 s with 8 M and 4.2-5.5 s with 1 M (larger chunks sort more keys at once, smaller
-    ones fold into the run's key set more often), and its chunk working set fell by ≈ 200 MB."""
+    (≈ 36 bytes per point of a chunk, ≈ 720 MB at the upper bound) without changing the result beyond
+    float32 rounding. 2 M (≈ 72 MB; ≈ 150 demo frames of painted points): on the 1,000-frame scale sequence
+    fuse took 3.8 s with 2 M-point chunks against 4.2-4.8 s with 8 M and 4.2-5.5 s with 1 M (larger chunks
+    sort more keys at once, smaller ones fold into the run's key set more often), and its chunk working set
+    fell by ≈ 200 MB."""
 
     def __post_init__(self) -> None:
-        if not (self.voxel_size > 0 and math.isfinite(self.voxel_size)):
-            raise ConfigError(f"must be a positive number, got {self.voxel_size}", field=("voxel_size",))
-        if not 0 < self.prob_floor < 1:
-            raise ConfigError(f"must be in (0, 1), got {self.prob_floor}", field=("prob_floor",))
-        if not self.logp_clip > 0:
-            raise ConfigError(f"must be > 0, got {self.logp_clip}", field=("logp_clip",))
-        if self.chunk_points < 1:
-            raise ConfigError(f"must be ≥ 1, got {self.chunk_points}", field=("chunk_points",))
+        check_bounds(self)
 
 
 @dataclass(frozen=True)

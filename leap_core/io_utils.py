@@ -73,6 +73,14 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
         json.dump(obj, fh, indent=2, sort_keys=True)
 
 
+def atomic_copy(src: str | Path, dst: str | Path) -> None:
+    """Copy the file ``src`` to ``dst`` through :func:`atomic_write`: ``dst`` gets the mode ``open()`` gives
+    under the umask, whatever ``src`` has. For files another library wrote (``save_pretrained`` writes
+    its weights through a 0600 temp file of its own) into a staging folder, published here."""
+    with open(src, "rb") as fin, atomic_write(dst, "wb") as fout:
+        shutil.copyfileobj(fin, fout, 1 << 20)
+
+
 def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> None:
     """``np.savez`` (uncompressed: these are read back often) through :func:`atomic_write`."""
     with atomic_write(path, "wb") as fh:

@@ -12,14 +12,15 @@ per point (docs/METHOD.md "Performance facts").
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import ConfigError, DatasetError
+from leap_core.bounds import check_bounds, within
+from leap_core.errors import DatasetError
 from leap_core.fusion import Observations, log_table
 from leap_core.geometry import affine_points
 from leap_core.io_utils import atomic_save_npz, read_npz
@@ -31,30 +32,25 @@ from leap_core.types import UNLABELED
 class ProjectionConfig:
     """Parameters of projection and of the per-mask depth clustering."""
 
-    min_depth: float = 0.5
+    min_depth: float = field(default=0.5, metadata=within(0, 1000, unit="m"))
     """Points closer than this (metres along the camera's optical axis) are not projected; it also drops
     every point behind the camera."""
     depth_clustering: bool = True
     """Apply the paper's per-mask depth clustering filter (keep only each mask's largest depth cluster)."""
-    cluster_gap: float = 1.0
+    cluster_gap: float = field(default=1.0, metadata=within(0.01, 1000, unit="m"))
     """Metres: a gap larger than this between consecutive sorted depths of a mask's points splits them
     into clusters. 1 m sits between the depth spread of neighbouring returns on one surface (centimetres
     to a few tens of centimetres, even on oblique surfaces 40 m away) and the usual separation of an object
     from what stands behind it (a person before a wall, a car before a building: metres). Ground masks
     spanning the image do not split either: one LiDAR ring spreads over a wide depth range across the
     image's width, which bridges the gap to the next ring."""
-    min_cluster_points: int = 3
+    min_cluster_points: int = field(default=3, metadata=within(0, 1_000_000))
     """Masks covering fewer points are kept whole: with one or two points "largest cluster" carries no
     evidence about which depth the object is at (small far-away objects such as poles often get 1-2
     returns)."""
 
     def __post_init__(self) -> None:
-        if not self.min_depth >= 0:
-            raise ConfigError(f"must be ≥ 0, got {self.min_depth}", field=("min_depth",))
-        if not self.cluster_gap > 0:
-            raise ConfigError(f"must be > 0, got {self.cluster_gap}", field=("cluster_gap",))
-        if self.min_cluster_points < 0:
-            raise ConfigError(f"must be ≥ 0, got {self.min_cluster_points}", field=("min_cluster_points",))
+        check_bounds(self)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
@@ -18,7 +18,8 @@ import numpy.typing as npt
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-from leap_core.errors import ConfigError, DatasetError
+from leap_core.bounds import check_bounds, within
+from leap_core.errors import DatasetError
 from leap_core.fusion import VoxelGrid, VoxelLabels, key_centres, keys_sorted_unique
 from leap_core.io_utils import atomic_save_npz
 from leap_core.npzio import Streamed, has_member, load_npz, release, save_npz
@@ -28,23 +29,19 @@ from leap_core.npzio import Streamed, has_member, load_npz, release, save_npz
 class SmoothingConfig:
     """Parameters of the kNN smoothing."""
 
-    k: int = 9
-    """Neighbours per voxel, the voxel itself included (the paper uses 9)."""
-    max_distance: float | None = 0.6
+    k: int = field(default=9, metadata=within(1, 64))
+    """Neighbours per voxel, the voxel itself included (the paper uses 9). At most 64: each chunk of
+    voxels queries and mixes k neighbours apiece, so memory and time grow with k."""
+    max_distance: float | None = field(default=0.6, metadata=within(0.01, 100, unit="m"))
     """Neighbours farther than this (metres) get no weight; None = plain kNN as in the paper. 0.6 m is
     three 0.2 m voxels: on surfaces the 9th nearest voxel centre lies 0.28 m away (median; 99th percentile
     0.40 m, max 0.57 m on benchmarks/bench_fusion.py's street surfaces), so the bound only acts on isolated
     voxels (sparse far returns), which would otherwise take labels from other objects metres away."""
-    workers: int = 2
+    workers: int = field(default=2, metadata=within(1, 256, also=(-1,)))
     """Threads for the cKDTree query (-1 = all cores)."""
 
     def __post_init__(self) -> None:
-        if self.k < 1:
-            raise ConfigError(f"must be ≥ 1, got {self.k}", field=("k",))
-        if self.max_distance is not None and not self.max_distance > 0:
-            raise ConfigError(f"must be > 0 or None, got {self.max_distance}", field=("max_distance",))
-        if self.workers == 0 or self.workers < -1:
-            raise ConfigError(f"must be ≥ 1 or -1, got {self.workers}", field=("workers",))
+        check_bounds(self)
 
 
 def knn_weights(dists: npt.ArrayLike) -> npt.NDArray[np.float32]:

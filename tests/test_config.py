@@ -12,7 +12,15 @@ from pathlib import Path
 import pytest
 from conftest import build_tiny_sequence
 
-from leap_core.config import RETIRED_FIELDS, PipelineConfig, config_from_dict, config_to_dict
+from leap_core.bounds import Bound
+from leap_core.config import (
+    RETIRED_FIELDS,
+    PipelineConfig,
+    config_from_dict,
+    config_to_dict,
+    setting_bounds,
+    without_retired,
+)
 from leap_core.errors import ConfigError, LeapError, SchemaError
 from leap_core.labelers import LABELERS, LabelerSpec, make_labeler, register_labeler, unregister_labeler
 from leap_core.labelers.cache import pass_cache_dir
@@ -35,18 +43,22 @@ REPO = Path(__file__).resolve().parents[1]
             ("pipeline", "labeler"),
             "must be one of 'simulated', 'grounded-sam', got 'sam'",
         ),
-        ({"correction_strength": 0}, ("pipeline", "correction_strength"), "must be > 0"),
+        ({"correction_strength": 0}, ("pipeline", "correction_strength"), "must be in (0, 1000] nats, got 0"),
         ({"bogus": 1}, ("pipeline", "bogus"), "unknown setting"),
         # one level down: every section's own check
         (
             {"fusion": {"voxel_size": 0}},
             ("pipeline", "fusion", "voxel_size"),
-            "must be a positive number, got 0",
+            "must be in [0.01, 10] m, got 0",
         ),
-        ({"projection": {"cluster_gap": -1}}, ("pipeline", "projection", "cluster_gap"), "must be > 0"),
-        ({"smoothing": {"workers": 0}}, ("pipeline", "smoothing", "workers"), "must be ≥ 1 or -1"),
+        (
+            {"projection": {"cluster_gap": -1}},
+            ("pipeline", "projection", "cluster_gap"),
+            "must be in [0.01, 1000] m, got -1",
+        ),
+        ({"smoothing": {"workers": 0}}, ("pipeline", "smoothing", "workers"), "must be in [1, 256] or -1"),
         ({"grounded_sam": {"match_iou": 0}}, ("pipeline", "grounded_sam", "match_iou"), "must be in (0, 1]"),
-        ({"simulated": {"jitter_px": -1}}, ("pipeline", "simulated", "jitter_px"), "must be >= 0"),
+        ({"simulated": {"jitter_px": -1}}, ("pipeline", "simulated", "jitter_px"), "must be in [0, 100] px"),
         ({"consistency": {"share": 1.5}}, ("pipeline", "consistency", "share"), "must be in (0, 1]"),
         ({"smoothing": {"k": "9"}}, ("pipeline", "smoothing", "k"), "must be an integer"),
         ({"projection": 3}, ("pipeline", "projection"), "must be a mapping of settings"),
@@ -59,7 +71,7 @@ REPO = Path(__file__).resolve().parents[1]
         (
             {"consistency": {"backbone": {"channels": 2}}},
             ("pipeline", "consistency", "backbone", "channels"),
-            "must be >= 4, got 2",
+            "must be in [4, 1024], got 2",
         ),
         (
             {"consistency": {"backbone": {"kernel_size": 4}}},
@@ -89,7 +101,7 @@ def test_configs_raise_relative_paths_that_config_from_dict_makes_absolute() -> 
 
     with pytest.raises(ConfigError) as err:
         BackboneConfig(channels=2)
-    assert err.value.field == ("channels",) and str(err.value) == "channels: must be >= 4, got 2"
+    assert err.value.field == ("channels",) and str(err.value) == "channels: must be in [4, 1024], got 2"
     assert err.value.within("pipeline", "consistency", "backbone").field == (
         "pipeline",
         "consistency",
@@ -122,6 +134,162 @@ def test_config_errors_survive_pickling() -> None:
     err = ConfigError("must be > 0", field=("pipeline", "fusion", "logp_clip"))
     back = pickle.loads(pickle.dumps(err))
     assert back.field == err.field and str(back) == str(err) and back.problem == err.problem
+
+
+# ------------------------------------------------------------------------------------------ bounds
+PRODUCT_SECTIONS: dict[str, type] = {"simulated": SimulatedLabelerConfig, "grounded_sam": GroundedSamConfig}
+"""The config sections of leap_core's own labelers."""
+
+
+@pytest.mark.parametrize(
+    ("overrides", "field", "problem"),
+    [
+        # k neighbours are queried and mixed per voxel of a chunk: 10⁹ took a worker to 4.8 GiB.
+        ({"smoothing": {"k": 10**9}}, ("pipeline", "smoothing", "k"), "must be in [1, 64], got 1000000000"),
+        # A denormal voxel edge: every point its own voxel, and coordinates past the key's range.
+        (
+            {"fusion": {"voxel_size": 1e-320}},
+            ("pipeline", "fusion", "voxel_size"),
+            "must be in [0.01, 10] m, got 1e-320",
+        ),
+        (
+            {"fusion": {"chunk_points": 10**12}},
+            ("pipeline", "fusion", "chunk_points"),
+            "must be in [1, 20000000], got 1000000000000",
+        ),
+        (
+            {"consistency": {"backbone": {"grid_cells": [0.8, 0.001, 0.8]}}},
+            ("pipeline", "consistency", "backbone", "grid_cells"),
+            "must be in [0.1, 10] m, got 0.001",
+        ),
+        (
+            {"simulated": {"bleed_px": 10**6}},
+            ("pipeline", "simulated", "bleed_px"),
+            "must be in [0, 100] px, got 1000000",
+        ),
+        (
+            {"simulated": {"seed": -1}},
+            ("pipeline", "simulated", "seed"),
+            "must be in [0, 4294967295], got -1",
+        ),
+        (
+            {"grounded_sam": {"batch_size": 4096}},
+            ("pipeline", "grounded_sam", "batch_size"),
+            "must be in [1, 64], got 4096",
+        ),
+        (
+            {"consistency": {"epochs": 10**6}},
+            ("pipeline", "consistency", "epochs"),
+            "must be in [1, 1000], got 1000000",
+        ),
+        (
+            {
+                "simulated": {
+                    "match_detection": {"exact": 1.0, "synonym": 2.0, "descriptive": 1, "hypernym": 1}
+                }
+            },
+            ("pipeline", "simulated", "match_detection", "synonym"),
+            "must be in [0, 1], got 2.0",
+        ),
+    ],
+)
+def test_sizes_counts_and_rates_are_refused_past_their_bounds_naming_field_value_and_range(
+    overrides: dict, field: tuple[str, ...], problem: str
+) -> None:
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(overrides)
+    assert err.value.field == field
+    assert str(err.value) == ".".join(field) + ": " + problem
+
+
+def _filled(default: object, value: float) -> object:
+    """A setting's value with every number of ``default`` replaced by ``value`` (an empty table gets one
+    entry)."""
+    if isinstance(default, dict):
+        return {k: _filled(v, value) for k, v in default.items()} or {"car": value}
+    if isinstance(default, tuple):
+        return [value] * len(default)
+    return value
+
+
+def _setting(cfg: object, path: str) -> object:
+    for part in path.split("."):
+        cfg = (
+            cfg.labelers[part]
+            if isinstance(cfg, PipelineConfig) and part in cfg.labelers
+            else getattr(cfg, part)
+        )
+    return cfg
+
+
+def _nested(path: str, value: object) -> dict:
+    out: dict = value  # type: ignore[assignment]
+    for part in reversed(path.split(".")):
+        out = {part: out}
+    return out
+
+
+def _ends(bound: Bound, integer: bool) -> tuple[list[float], list[float]]:
+    """Values a bound takes (its closed ends, a point just inside an open one) and values just beyond."""
+    step = 1 if integer else 1e-6 * max(1.0, abs(bound.high - bound.low))
+    inside = [
+        bound.low + step if bound.low_open else bound.low,
+        bound.high - step if bound.high_open else bound.high,
+    ]
+    beyond = [
+        bound.high if bound.high_open else bound.high + step,
+        bound.low if bound.low_open else bound.low - step,
+    ]
+    if integer:
+        return [int(v) for v in inside], [int(v) for v in beyond]
+    return inside, beyond
+
+
+def test_every_bounded_setting_takes_its_ends_and_refuses_values_beyond() -> None:
+    default = PipelineConfig()
+    rows = setting_bounds(PRODUCT_SECTIONS)  # a labeler registered by another test module is not checked
+    assert len(rows) > 50
+    assert {"smoothing.k", "fusion.voxel_size", "consistency.backbone.channels"} <= {p for p, _ in rows}
+    for path, bound in rows:
+        parts = tuple(path.split("."))
+        current = _setting(default, path)
+        sample = next(iter(current.values())) if isinstance(current, dict) and current else current
+        sample = sample[0] if isinstance(sample, tuple) else sample
+        inside, beyond = _ends(bound, isinstance(sample, int) and not isinstance(sample, bool))
+        for value in inside:
+            cfg = config_from_dict(_nested(path, _filled(current, value)))
+            assert _setting(cfg, path) == _setting(config_from_dict(config_to_dict(cfg)), path), path
+        for value in beyond:
+            with pytest.raises(ConfigError) as err:
+                config_from_dict(_nested(path, _filled(current, value)))
+            assert err.value.field[1 : len(parts) + 1] == parts, (path, err.value.field)
+            assert f"must be in {bound.text()}, got " in str(err.value), (path, str(err.value))
+
+
+def test_the_default_config_and_stored_configs_inside_the_bounds_read_unchanged() -> None:
+    stored = json.loads(STORED.read_text())
+    assert config_to_dict(config_from_dict(stored)) == without_retired(stored)
+    for name in list_presets():
+        preset = builtin_preset(name)
+        assert config_from_dict(config_to_dict(preset.pipeline)) == preset.pipeline, name
+
+
+BOUNDS_TABLE = ("<!-- table:bounds -->", "<!-- /table:bounds -->")
+"""The markers of the allowed ranges' table in docs/METHOD.md (section F)."""
+
+
+def bounds_markdown() -> str:
+    """docs/METHOD.md's table of every bounded setting of leap_core's own config sections."""
+    lines = ["| setting | allowed |", "|---|---|"]
+    lines += [f"| `{path}` | {bound.text()} |" for path, bound in setting_bounds(PRODUCT_SECTIONS)]
+    return "\n".join(lines)
+
+
+def test_method_md_lists_every_settings_allowed_range() -> None:
+    text = (REPO / "docs" / "METHOD.md").read_text()
+    start, end = (text.index(m) for m in BOUNDS_TABLE)
+    body = text[start + len(BOUNDS_TABLE[0]) : end].strip()
+    assert body == bounds_markdown(), "docs/METHOD.md's table:bounds should read:\n" + bounds_markdown()
 
 
 # ------------------------------------------------------------------------- retired deployment fields

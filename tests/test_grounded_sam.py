@@ -335,6 +335,44 @@ def test_fingerprint_tracks_prompts_settings_and_weights(tiny_dir: Path, tmp_pat
     assert fp != GroundedSamLabeler(cfg, Runtime(models_dir=other.models_dir)).fingerprint(small_schema())
 
 
+@pytest.mark.parametrize("umask", [0o022, 0o002])
+def test_make_tiny_models_and_folder_exports_write_files_with_the_umasks_mode(
+    tmp_path: Path, umask: int
+) -> None:
+    """``leap make-tiny-models`` writes every file with 0o666 & ~umask (0644, 0664) like ``open()``, not the
+    0600 of the temp file transformers writes weights through; a folder export of a 0600 ``.label`` file
+    gets the umask's mode too (a colleague can read what is exported)."""
+    import os
+    import stat
+
+    from typer.testing import CliRunner
+
+    from app.cli import cli
+    from leap_core.export import write_export_folder
+    from leap_core.io_utils import atomic_copy
+
+    private = tmp_path / "run" / "000000.label"
+    private.parent.mkdir()
+    private.write_bytes(b"\x0a\x00\x00\x00")
+    private.chmod(0o600)
+    old = os.umask(umask)
+    try:
+        res = CliRunner().invoke(cli, ["make-tiny-models", str(tmp_path / "models")])
+        write_export_folder(tmp_path / "out" / "predictions", [private])
+        atomic_copy(private, tmp_path / "copy" / "000000.label")
+    finally:
+        os.umask(old)
+    assert res.exit_code == 0, res.output
+    written = [tmp_path / "out" / "predictions" / "000000.label", tmp_path / "copy" / "000000.label"]
+    written += [p for p in (tmp_path / "models").rglob("*") if p.is_file()]
+    assert {p.name for p in written} >= {"model.safetensors", "config.json", "README.txt", "000000.label"}
+    modes = {str(p.relative_to(tmp_path)): oct(stat.S_IMODE(p.stat().st_mode)) for p in written}
+    assert set(modes.values()) == {oct(0o666 & ~umask)}, modes
+    folders = [p for p in (tmp_path / "models").rglob("*") if p.is_dir()]
+    assert {oct(stat.S_IMODE(p.stat().st_mode)) for p in folders} == {oct(0o777 & ~umask)}
+    assert (tmp_path / "copy" / "000000.label").read_bytes() == private.read_bytes()
+
+
 # ============================================================================== loading errors
 def test_missing_model_folder_says_where_and_how_to_download(tmp_path: Path) -> None:
     lab = GroundedSamLabeler(GroundedSamConfig(), Runtime(models_dir=tmp_path / "models"))

@@ -973,7 +973,7 @@ def test_config_roundtrip_through_json() -> None:
         ({"consistency": {"share": 1.5}}, "pipeline.consistency.share: must be in (0, 1]"),
         (
             {"consistency": {"backbone": {"channels": 2}}},
-            "pipeline.consistency.backbone.channels: must be >= 4",
+            "pipeline.consistency.backbone.channels: must be in [4, 1024], got 2",
         ),
         ({"grounded_sam": {"box_threshold": 1.5}}, "pipeline.grounded_sam.box_threshold: must be in (0, 1)"),
         ({"labeler": "sam"}, "pipeline.labeler: must be one of 'simulated', 'grounded-sam'"),

@@ -322,8 +322,16 @@ def test_paint_passes_the_gap_and_the_minimum_to_depth_clustering() -> None:
 
 
 def test_projection_config_bounds_and_painted_load_checks(tmp_path) -> None:
-    ProjectionConfig(min_depth=0.0, cluster_gap=1e-6, min_cluster_points=0)  # the smallest valid values
-    for bad in ({"min_depth": -0.1}, {"cluster_gap": 0.0}, {"min_cluster_points": -1}):
+    ProjectionConfig(min_depth=0.0, cluster_gap=0.01, min_cluster_points=0)  # the smallest valid values
+    ProjectionConfig(min_depth=1000.0, cluster_gap=1000.0, min_cluster_points=10**6)  # the largest
+    for bad in (
+        {"min_depth": -0.1},
+        {"min_depth": 1e4},
+        {"cluster_gap": 0.0},
+        {"cluster_gap": 1e-320},
+        {"min_cluster_points": -1},
+        {"min_cluster_points": 10**6 + 1},
+    ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             ProjectionConfig(**bad)
     path = tmp_path / "obs.npz"

@@ -265,8 +265,18 @@ def test_smoothed_grid_checks_each_array_on_its_own() -> None:
 
 
 def test_config_and_voxel_size_bounds() -> None:
-    assert SmoothingConfig(k=1, max_distance=1e-6, workers=-1).k == 1  # the smallest valid values
-    for bad in ({"max_distance": 0.0}, {"workers": 0}, {"workers": -2}):
+    assert SmoothingConfig(k=1, max_distance=0.01, workers=-1).k == 1  # the smallest valid values
+    assert SmoothingConfig(k=64, max_distance=100.0, workers=256).k == 64  # the largest
+    for bad in (
+        {"k": 65},
+        {"k": 10**9},
+        {"max_distance": 0.0},
+        {"max_distance": 1e-6},
+        {"max_distance": 101.0},
+        {"workers": 0},
+        {"workers": -2},
+        {"workers": 257},
+    ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SmoothingConfig(**bad)
     keys, probs = np.array([1], np.int64), np.ones((1, 2), np.float16)

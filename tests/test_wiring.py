@@ -571,6 +571,8 @@ def test_evaluate_skips_without_ground_truth_and_refuses_point_files_of_another_
     label.unlink()
     assert evaluate() == {"status": "skipped", "note": "no ground truth"}
     assert not lay.metrics.exists()
+    label.mkdir()  # a directory where the file should be: the note names it
+    assert evaluate() == {"status": "skipped", "note": f"no ground truth: {label} is a directory, not a file"}
 
 
 def test_smoothing_reimposes_class_0_and_leaves_erased_voxels_smoothed(run: Run, tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
+from leap_core.bounds import SEED_MAX, check_bounds, within
 from leap_core.errors import ConfigError
 
 ADDED_FIELDS: dict[tuple[str, ...], Any] = {
@@ -46,20 +47,23 @@ def fingerprint_form(plain: Mapping[str, Any]) -> dict[str, Any]:
 class BackboneConfig:
     """Sizes of the WaffleIron-style backbone (:mod:`leap_core.consistency.backbone`)."""
 
-    channels: int = 64
+    channels: int = field(default=64, metadata=within(4, 1024))
     """Width F of every point token (WaffleIron: 256)."""
-    layers: int = 6
+    layers: int = field(default=6, metadata=within(1, 128))
     """Number of (channel-mixing MLP + spatial-mixing) layer pairs (WaffleIron: 48 on SemanticKITTI)."""
-    grid_cells: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    grid_cells: tuple[float, float, float] = field(
+        default=(0.8, 0.8, 0.8), metadata=within(0.1, 10, unit="m")
+    )
     """2D grid cell size in metres for the planes (xy, xz, yz). Layer ``l`` mixes on plane ``l % 3``
-    (WaffleIron: 0.4 m on every plane)."""
-    knn: int = 16
+    (WaffleIron: 0.4 m on every plane). At least 0.1 m: a plane spans the ±100 m the coordinates are
+    clipped to (``consistency.data.GRID_EXTENT``), 2000² cells of ``channels`` features at that size."""
+    knn: int = field(default=16, metadata=within(1, 64))
     """Neighbours of each point used by the kNN point embedding (WaffleIron: 16)."""
-    embed_channels: int = 32
+    embed_channels: int = field(default=32, metadata=within(1, 1024))
     """Hidden width of the per-neighbour layer of the kNN embedding, before the max over neighbours."""
-    mlp_ratio: int = 2
+    mlp_ratio: int = field(default=2, metadata=within(1, 16))
     """Hidden width of the channel-mixing MLP as a multiple of ``channels`` (WaffleIron: 2)."""
-    kernel_size: int = 3
+    kernel_size: int = field(default=3, metadata=within(1, 15))
     """Kernel size of the depth-wise 2D convolutions of the spatial mixing (WaffleIron: 3)."""
     use_intensity: bool = True
     """Also feed the LiDAR remission. The paper trains on XYZ only (``paper_scale`` does); on a CPU budget of
@@ -74,26 +78,18 @@ class BackboneConfig:
     inputs that do not depend on the sensor's height. Measured on the farm's tuning sequences 101-103
     (one round, camera-view mIoU): 91.6 on the mean either way, so the default keeps them
     (docs/METHOD.md C.5)."""
-    drop_path: float = 0.0
+    drop_path: float = field(default=0.0, metadata=within(0, 1, high_open=True))
     """Stochastic-depth probability at the last layer (linear ramp from 0); 0 disables it."""
-    layer_scale: float = 1.0
+    layer_scale: float = field(default=1.0, metadata=within(0, 10))
     """Initial value of the per-channel residual scales (LayerScale). 1 suits a shallow stack; deep ones
     (``paper_scale``: 1e-4) start near identity to train stably."""
 
     def __post_init__(self) -> None:
-        if self.channels < 4:
-            raise ConfigError(f"must be >= 4, got {self.channels}", field=("channels",))
-        if self.layers < 1:
-            raise ConfigError(f"must be >= 1, got {self.layers}", field=("layers",))
-        if len(self.grid_cells) != 3 or any(not c > 0 for c in self.grid_cells):
-            raise ConfigError(f"must be 3 positive sizes, got {self.grid_cells}", field=("grid_cells",))
-        for name in ("knn", "embed_channels", "mlp_ratio"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"must be >= 1, got {getattr(self, name)}", field=(name,))
-        if self.kernel_size < 1 or self.kernel_size % 2 == 0:
-            raise ConfigError(f"must be odd and >= 1, got {self.kernel_size}", field=("kernel_size",))
-        if not 0.0 <= self.drop_path < 1.0:
-            raise ConfigError(f"must be in [0, 1), got {self.drop_path}", field=("drop_path",))
+        if len(self.grid_cells) != 3:
+            raise ConfigError(f"must be 3 sizes (xy, xz, yz), got {self.grid_cells}", field=("grid_cells",))
+        check_bounds(self)
+        if self.kernel_size % 2 == 0:
+            raise ConfigError(f"must be odd, got {self.kernel_size}", field=("kernel_size",))
 
     @property
     def in_features(self) -> int:
@@ -113,9 +109,9 @@ class ConsistencyConfig:
 
     enabled: bool = False
     """Run stage C at all (``leap run --3dcn`` turns it on)."""
-    iterations: int = 1
+    iterations: int = field(default=1, metadata=within(1, 2))
     """Self-training rounds: 1 (default) or 2 (the paper: the second adds little and can reinforce errors)."""
-    share: float = 0.2
+    share: float = field(default=0.2, metadata=within(0, 1, low_open=True))
     """Per class, the fraction of its labeled points (the most confident ones) used as training labels."""
     selection_scope: Literal["scan", "sequence"] = "scan"
     """Where the per-class top-``share`` ranking happens: within each scan, or over all points of the sequence
@@ -129,7 +125,7 @@ class ConsistencyConfig:
     confidences saturate, and a voxel one image painted with many points (a moving object's track, a
     mistaken mask) saturates as fast as one many views agreed on. Kept on the tuning seeds 101-103 (a tie:
     camera-view mIoU after one round 71.9 with, 72.1 without; docs/METHOD.md, "How defaults were chosen")."""
-    temperature: float = 2.0
+    temperature: float = field(default=2.0, metadata=within(0.01, 1000))
     """Trust in the network when fusing back: its log-probabilities enter with weight ``1/temperature``.
     ``T = 1`` counts the network's view of a voxel like one camera observation; ``T → ∞`` ignores it.
     2.0 (half an observation, up to ½·ln(1/prob_floor) ≈ 3.5 nats) lets the network decide the voxels no
@@ -143,7 +139,7 @@ class ConsistencyConfig:
     observation (like each painted camera point); the network's votes then grow with point density and
     sequence length while a fused grid's stored camera evidence is clipped at ``logp_clip``, so it
     overrides almost every voxel unless ``temperature`` is large."""
-    new_voxel_margin: float = 4.0
+    new_voxel_margin: float = field(default=4.0, metadata=within(0, 1000, unit="nats"))
     """A voxel inside the camera view that no camera mask labeled is created by the network only where it
     is sure of it: its mean log-probability (``voxel`` evidence: the mean over the voxel's points of
     ``max(log P_net, log prob_floor)``) for its class beats the runner-up class's by at least this many nats
@@ -156,89 +152,73 @@ class ConsistencyConfig:
     training (a changed value reuses the checkpoint). Chosen on those tuning sequences (one round,
     camera-view mIoU, mean of the three, for 0 / 2 / 3 / 4 / 5 / 6: 91.6 / 92.5 / 93.4 / 93.9 / 93.8 /
     93.8; voxel labels 92.3; all points 91.6 → 93.0; docs/METHOD.md C.3, C.5)."""
-    test_time_views: int = 1
+    test_time_views: int = field(default=1, metadata=within(1, 32))
     """Views of each scan whose predictions are averaged at inference (test-time augmentation): view j of n
     turns the scan by 2πj/n about z and mirrors y when j is odd
     (:func:`~leap_core.consistency.data.inference_view`), and a point's probabilities are the mean over
     the views. 1 predicts the scan as it is. Costs n forward passes per scan; inference only, so changing
     it reuses the trained weights."""
-    epochs: int = 1
+    epochs: int = field(default=1, metadata=within(1, 1000))
     """Passes over the training scans (the paper: one epoch)."""
-    min_steps: int = 500
+    min_steps: int = field(default=500, metadata=within(0, 1_000_000))
     """Training takes at least this many steps, cycling over the scans again when ``epochs`` passes are
     fewer. The paper's one epoch covers thousands of SemanticKITTI scans; one pass over a 60-scan demo
     sequence is 60 steps, too few to train a network from scratch. 0 = exactly ``epochs`` passes."""
-    lr: float = 5e-3
+    lr: float = field(default=5e-3, metadata=within(0, 1, low_open=True))
     """Peak AdamW learning rate (linear warm-up over the first 5% of steps, cosine decay after)."""
-    finetune_lr: float = 5e-4
+    finetune_lr: float = field(default=5e-4, metadata=within(0, 1, low_open=True))
     """Peak learning rate instead of ``lr`` when a round starts from a source network (``leap run
     --3dcn-init CKPT``, :attr:`leap_core.runtime.Runtime.init_3dcn`) rather than from random weights: a
     tenth of ``lr``, so fine-tuning adapts what the source knows instead of overwriting it. On street tuning
     sequence 21 (camera view, the paper's protocol, voxel labels 71.4), a source trained on another
     sequence's ground truth gave 76.8 after 500 steps at ``lr`` and 86.6 after one epoch at 5e-4
     (docs/METHOD.md C.2, C.5). Unused without a source."""
-    finetune_min_steps: int = 0
+    finetune_min_steps: int = field(default=0, metadata=within(0, 1_000_000))
     """``min_steps`` instead when a round starts from a source network: 0 trains exactly ``epochs``
     passes over the scans, the paper's one epoch of fine-tuning. Unused without a source."""
-    weight_decay: float = 1e-3
+    weight_decay: float = field(default=1e-3, metadata=within(0, 1))
     """AdamW decoupled weight decay."""
-    scans_per_step: int = 1
+    scans_per_step: int = field(default=1, metadata=within(1, 64))
     """Scans in one optimisation step (each scan is its own point cloud; gradients are averaged)."""
-    points_per_scan: int = 16384
+    points_per_scan: int = field(default=16384, metadata=within(0, 10_000_000))
     """Points drawn at random from a scan for a training step (all its selected labels compete for them:
     selected points are drawn first); ``0`` uses every point. Bounds CPU time per step."""
-    labeled_share: float = 0.5
+    labeled_share: float = field(default=0.5, metadata=within(0, 1))
     """Share of a scan's ``points_per_scan`` draw reserved for points with a selected label (drawn first, at
     random); the rest is drawn uniformly from the other points as context. 0 draws uniformly from all
     points, which leaves only ~``share`` × labeled fraction of each step with a loss."""
     augment: bool = True
     """Random rotation about z, random flip of y and small scaling during training."""
-    label_smoothing: float = 0.0
+    label_smoothing: float = field(default=0.0, metadata=within(0, 1, high_open=True))
     """Cross-entropy label smoothing."""
     class_balance: bool = True
     """Weight the cross-entropy by an inverse power of the class frequency of the selected labels
     (``class_balance_power``), so rare classes that survive the per-class selection also keep a voice in
     the loss."""
-    class_balance_power: float = 0.5
+    class_balance_power: float = field(default=0.5, metadata=within(0, 1))
     """The power p of the class weights ``w_c ∝ n_c^(-p)`` (mean 1 over the classes present): 0.5 weighs
     a class 100× rarer 10× more, 0.25 about 3×, 0 not at all (as ``class_balance: false``)."""
-    seed: int = 0
+    seed: int = field(default=0, metadata=within(0, SEED_MAX))
     """Seed of weight init, point sampling and augmentation: same seed + same data = same checkpoint on
     CPU."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Torch device; ``auto`` takes CUDA when available."""
-    num_threads: int = 0
+    num_threads: int = field(default=0, metadata=within(0, 1024))
     """``torch.set_num_threads`` during training/inference on CPU; ``0`` leaves torch's setting alone."""
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     """Backbone sizes (CPU-friendly defaults; see :meth:`paper_scale`)."""
 
     def __post_init__(self) -> None:
+        check_bounds(self)
         checks: tuple[tuple[str, bool, str], ...] = (
-            ("iterations", self.iterations in (1, 2), "must be 1 or 2"),
-            ("share", 0.0 < self.share <= 1.0, "must be in (0, 1]"),
             ("selection_scope", self.selection_scope in ("scan", "sequence"), "must be 'scan' or 'sequence'"),
             ("network_evidence", self.network_evidence in ("voxel", "point"), "must be 'voxel' or 'point'"),
-            ("temperature", self.temperature > 0, "must be > 0"),
-            ("new_voxel_margin", self.new_voxel_margin >= 0, "must be >= 0"),
             (
                 "new_voxel_margin",
                 self.new_voxel_margin == 0 or self.network_evidence == "voxel",
                 "must be 0 with network_evidence 'point' (it applies to voxel evidence only)",
             ),
-            ("test_time_views", self.test_time_views >= 1, "must be >= 1"),
-            ("epochs", self.epochs >= 1, "must be >= 1"),
-            ("min_steps", self.min_steps >= 0, "must be >= 0"),
-            ("lr", self.lr > 0, "must be > 0"),
-            ("finetune_lr", self.finetune_lr > 0, "must be > 0"),
-            ("finetune_min_steps", self.finetune_min_steps >= 0, "must be >= 0"),
-            ("weight_decay", self.weight_decay >= 0, "must be >= 0"),
-            ("scans_per_step", self.scans_per_step >= 1, "must be >= 1"),
-            ("points_per_scan", self.points_per_scan >= 0, "must be >= 0"),
-            ("labeled_share", 0.0 <= self.labeled_share <= 1.0, "must be in [0, 1]"),
-            ("label_smoothing", 0.0 <= self.label_smoothing < 1.0, "must be in [0, 1)"),
-            ("class_balance_power", 0.0 <= self.class_balance_power <= 1.0, "must be in [0, 1]"),
             ("device", self.device in ("auto", "cpu", "cuda"), "must be 'auto', 'cpu' or 'cuda'"),
-            ("num_threads", self.num_threads >= 0, "must be >= 0"),
         )
         for name, ok, rule in checks:
             if not ok:

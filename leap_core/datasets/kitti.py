@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import bisect
 import functools
+import io
+import os
 import re
-from collections.abc import Iterable, Iterator
+import stat
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -36,6 +40,97 @@ from leap_core.io_utils import atomic_write, atomic_write_bytes
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: Written beside an estimated ``poses.txt``: JSON saying the poses are estimated, by what and how.
 POSES_NOTE = "poses_estimated.json"
+
+FRAME_FOLDERS: dict[str, tuple[str, ...]] = {
+    "velodyne": (".bin",),
+    "labels": (".label",),
+    "image_2": IMAGE_SUFFIXES,
+    "gt2d/semantic": (".png",),
+    "gt2d/instance": (".png",),
+    "gt2d/name": (".png",),
+    "gt2d/cell": (".png",),
+}
+"""The folders of per-frame files a sequence is read from, with the suffixes of those files."""
+
+
+# ------------------------------------------------------------------------------------- containment
+LINK_OUTSIDE = "a link leading outside the sequence folder"
+"""What a per-frame file that is a symbolic link to a place outside the sequence's roots is."""
+NOT_REGULAR = "not a regular file (a pipe, socket or device)"
+A_DIRECTORY = "a directory, not a file"
+DANGLING = "a link to nothing"
+NEVER_READ = frozenset({LINK_OUTSIDE, NOT_REGULAR})
+"""Problems of a per-frame file that refuse the sequence: the reader never opens such a file (one linked
+outside may be anyone's, and reading a pipe blocks)."""
+UNREADABLE_FIX = "the pipeline does not read it: put the file itself in its place (or link the whole folder)"
+"""How to fix a per-frame file the reader refuses (:func:`entry_problem`)."""
+
+
+def sequence_roots(root: str | Path) -> tuple[Path, ...]:
+    """Where the per-frame files of the sequence folder ``root`` may lie: the folder itself and each of its
+    folders of per-frame files (:data:`FRAME_FOLDERS`), all resolved.
+
+    A ``velodyne/`` linked to another disk is part of the sequence (the layout is its owner's choice, and
+    the app confines these entries to its data roots); a scan inside it linked elsewhere is not.
+    """
+    root = Path(root)
+    out = [root.resolve()]
+    for name in FRAME_FOLDERS:
+        entry = root / name
+        if entry.exists():
+            out.append(entry.resolve())
+    return tuple(dict.fromkeys(out))
+
+
+def _inside(path: Path, roots: Sequence[Path]) -> bool:
+    return any(path == r or path.is_relative_to(r) for r in roots)
+
+
+def entry_problem(path: Path, roots: Sequence[Path]) -> str | None:
+    """Why the reader may not read the per-frame file ``path``, or None for a regular file it may read.
+
+    A symbolic link must lead inside ``roots`` (:func:`sequence_roots`), so a file linked to
+    ``/etc/passwd`` is never opened; a directory, a dangling link, a pipe, a socket or a device is no file
+    of a sequence (reading a pipe would block).
+    """
+    try:
+        st = path.lstat()
+    except OSError:
+        return None  # absent: whoever needs it says so
+    if stat.S_ISLNK(st.st_mode):
+        if not _inside(path.resolve(), roots):
+            return LINK_OUTSIDE
+        try:
+            st = path.stat()
+        except OSError:
+            return DANGLING
+    if stat.S_ISDIR(st.st_mode):
+        return A_DIRECTORY
+    if not stat.S_ISREG(st.st_mode):
+        return NOT_REGULAR
+    return None
+
+
+def folder_problems(folder: Path, suffixes: Iterable[str], roots: Sequence[Path]) -> list[tuple[str, str]]:
+    """``(name, problem)`` of each entry of ``folder`` ending in one of ``suffixes`` (case-insensitive) that
+    the reader may not read (:func:`entry_problem`), in name order; [] for a missing folder."""
+    allowed = tuple(s.lower() for s in suffixes)
+    try:
+        with os.scandir(folder) as it:
+            # A plain file (the directory listing says so: no extra system call) lies in its folder.
+            odd = sorted(
+                e.name
+                for e in it
+                if e.name.lower().endswith(allowed) and not e.is_file(follow_symlinks=False)
+            )
+    except OSError:
+        return []
+    out = []
+    for name in odd:
+        problem = entry_problem(folder / name, roots)
+        if problem is not None:
+            out.append((name, problem))
+    return out
 
 
 # --------------------------------------------------------------------------------------------- scans
@@ -295,14 +390,118 @@ def lidar_poses(cam_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64])
 
 
 # -------------------------------------------------------------------------------------------- images
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+"""The last 12 bytes of every complete PNG: its empty IEND chunk (length 0, type, CRC)."""
+JPEG_START, JPEG_END = b"\xff\xd8", b"\xff\xd9"
+_JPEG_FRAMES = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+"""JPEG start-of-frame markers (SOF0-SOF15 but DHT C4, JPG C8 and DAC CC): they hold the image size."""
+_JPEG_ALONE = frozenset({0x01, *range(0xD0, 0xD8)})
+"""JPEG markers without a length field (TEM, RST0-7)."""
+_JPEG_MAX_SEGMENTS = 4096
+
+
+def _png_size(fh: BinaryIO, size: int) -> tuple[int, int]:
+    fh.seek(8)
+    head = fh.read(16)
+    if len(head) < 16 or head[4:8] != b"IHDR":
+        raise ValueError("a PNG without its IHDR header chunk")
+    width, height = int.from_bytes(head[8:12], "big"), int.from_bytes(head[12:16], "big")
+    fh.seek(max(size - len(PNG_END), 0))
+    if fh.read(len(PNG_END)) != PNG_END:
+        raise ValueError("a truncated PNG (it does not end with its IEND chunk)")
+    return width, height
+
+
+def _jpeg_size(fh: BinaryIO, size: int) -> tuple[int, int]:
+    pos = 2
+    for _ in range(_JPEG_MAX_SEGMENTS):
+        fh.seek(pos)
+        marker = fh.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            raise ValueError(f"a truncated or damaged JPEG (no marker at byte {pos})")
+        code = marker[1]
+        if code == 0xFF:  # a fill byte before the marker
+            pos += 1
+            continue
+        if code in _JPEG_ALONE:
+            pos += 2
+            continue
+        if code in (0xD9, 0xDA):  # the end, or the scan data, before any frame header
+            raise ValueError("a JPEG without a frame header")
+        length = int.from_bytes(fh.read(2), "big")
+        if code in _JPEG_FRAMES:
+            frame = fh.read(5)
+            if len(frame) < 5:
+                break
+            height, width = int.from_bytes(frame[1:3], "big"), int.from_bytes(frame[3:5], "big")
+            fh.seek(max(size - 64, 0))
+            # Some writers pad a JPEG with zero bytes after its end-of-image marker.
+            if not fh.read(64).rstrip(b"\x00").endswith(JPEG_END):
+                raise ValueError("a truncated JPEG (it does not end with its end-of-image marker)")
+            return width, height
+        if length < 2:
+            raise ValueError(f"a damaged JPEG (segment length {length} at byte {pos})")
+        pos += 2 + length
+    raise ValueError("a truncated or damaged JPEG (no frame header)")
+
+
+def read_image_size(fh: BinaryIO, size: int) -> tuple[int, int]:
+    """``(width, height)`` of the PNG or JPEG in ``fh`` (``size`` bytes long), from its header alone, after
+    checking that it is complete: a PNG must end with its IEND chunk, a JPEG with its end-of-image marker
+    (trailing zero bytes allowed). Reads a few small pieces, never the pixel data.
+
+    Raises:
+        ValueError: what is wrong ("a truncated PNG (...)", "not a PNG or JPEG", ...).
+    """
+    fh.seek(0)
+    magic = fh.read(len(PNG_SIGNATURE))
+    if magic == PNG_SIGNATURE:
+        width, height = _png_size(fh, size)
+    elif magic[:2] == JPEG_START:
+        width, height = _jpeg_size(fh, size)
+    else:
+        raise ValueError("not a PNG or JPEG image" if magic else "an empty file")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"an image of {width}×{height} pixels")
+    return width, height
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """``(width, height)`` of the image file ``path``, from its header (:func:`read_image_size`).
+
+    Raises:
+        DatasetError: naming the file when it is unreadable, not a PNG or JPEG, or truncated.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            return read_image_size(fh, os.fstat(fh.fileno()).st_size)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from exc
+    except ValueError as exc:
+        raise DatasetError(path, f"unreadable image: {exc}") from None
+
+
 def read_image(path: str | Path) -> npt.NDArray[np.uint8]:
-    """Read a colour image as (H, W, 3) uint8 RGB."""
+    """Read a colour image as (H, W, 3) uint8 RGB.
+
+    Raises:
+        DatasetError: naming the file when it is missing, empty, not a PNG or JPEG, or truncated (a
+            decoder fills a cut-off JPEG with grey and says nothing: it is refused here instead).
+    """
     path = Path(path)
     try:
         data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
     except OSError as exc:
         raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from exc
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data is not None and data.size else None
+    if data is None or not data.size:
+        raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
+    try:
+        read_image_size(io.BytesIO(data.tobytes()), int(data.size))
+    except ValueError as exc:
+        raise DatasetError(path, f"unreadable image: {exc}") from None
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
     if img is None:
         raise DatasetError(path, "unreadable image (missing, empty or not a PNG/JPEG)")
     return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
@@ -361,14 +560,14 @@ class Frame:
     @functools.cached_property
     def points(self) -> npt.NDArray[np.float32]:
         """(N, 4) float32 x, y, z, remission in the LiDAR frame."""
-        return read_scan(self.seq.scan_path(self.index))
+        return read_scan(self.seq.confined(self.seq.scan_path(self.index)))
 
     def points_at(self, rows: npt.ArrayLike) -> npt.NDArray[np.float32]:
         """(M, 4) float32 points ``rows`` of the scan: from :attr:`points` when they were read, else only
         those rows from the file (:func:`read_scan_rows`)."""
         if "points" in self.__dict__:
             return self.points[np.asarray(rows, dtype=np.int64)]
-        return read_scan_rows(self.seq.scan_path(self.index), rows)
+        return read_scan_rows(self.seq.confined(self.seq.scan_path(self.index)), rows)
 
     @functools.cached_property
     def num_points(self) -> int:
@@ -376,7 +575,7 @@ class Frame:
         (reading a scan only to count it was most of the bytes ``evaluate`` read per frame)."""
         if "points" in self.__dict__:
             return int(self.points.shape[0])
-        return scan_point_count(self.seq.scan_path(self.index))
+        return scan_point_count(self.seq.confined(self.seq.scan_path(self.index)))
 
     @property
     def pose(self) -> npt.NDArray[np.float64]:
@@ -397,33 +596,35 @@ class Frame:
         p = self.seq.image_path(self.index)
         if p is None:
             raise DatasetError(self.seq.root / "image_2", f"no image for frame {self.frame_id}")
-        return read_image(p)
+        return read_image(self.seq.confined(p))
 
     @property
     def has_labels(self) -> bool:
+        """Whether the frame has a ground-truth ``.label`` file (a regular file: a directory of that name
+        is none; :meth:`KittiSequence.label_problem` says what it is)."""
         return self.seq.label_path(self.index).is_file()
 
     @functools.cached_property
     def labels(self) -> npt.NDArray[np.uint32]:
         """(N,) uint32 raw SemanticKITTI labels (semantic | instance << 16)."""
-        return read_label(self.seq.label_path(self.index), num_points=self.num_points)
+        return read_label(self.seq.confined(self.seq.label_path(self.index)), num_points=self.num_points)
 
     @functools.cached_property
     def gt2d_semantic(self) -> npt.NDArray[np.uint16]:
         """(H, W) raw semantic id per pixel (synthetic data's 2D ground truth; 0 = none)."""
-        return read_png16(self.seq.root / "gt2d" / "semantic" / f"{self.frame_id}.png")
+        return read_png16(self.seq.confined(self.seq.root / "gt2d" / "semantic" / f"{self.frame_id}.png"))
 
     @functools.cached_property
     def gt2d_instance(self) -> npt.NDArray[np.uint16]:
         """(H, W) instance id per pixel (0 = none)."""
-        return read_png16(self.seq.root / "gt2d" / "instance" / f"{self.frame_id}.png")
+        return read_png16(self.seq.confined(self.seq.root / "gt2d" / "instance" / f"{self.frame_id}.png"))
 
     @functools.cached_property
     def gt2d_cell(self) -> npt.NDArray[np.uint16] | None:
         """(H, W) world cell id per pixel (``leap_core.synth.camera.world_cells``; generated data only), or
         None when the sequence has no ``gt2d/cell`` folder (real data, or generated before it existed)."""
         folder = self.seq.root / "gt2d" / "cell"
-        return read_png16(folder / f"{self.frame_id}.png") if folder.is_dir() else None
+        return read_png16(self.seq.confined(folder / f"{self.frame_id}.png")) if folder.is_dir() else None
 
 
 def _sort_frame_ids(stems: Iterable[str]) -> list[str]:
@@ -466,7 +667,9 @@ class KittiSequence:
     """A KITTI-layout sequence folder (``.../sequences/NN``), validated on open, read lazily.
 
     Opening checks the structure (calib, a pose and timestamp line for every scan's frame number,
-    label/image pairing); per-frame data is read only when a :class:`Frame` attribute is accessed, so a
+    label/image pairing) and the per-frame files: none may be a link leading outside the sequence's roots
+    (:func:`sequence_roots`) or a pipe, socket or device, and every scan must be a file. Per-frame data is
+    read only when a :class:`Frame` attribute is accessed (each file checked again, :meth:`confined`), so a
     sequence is never held in memory.
     """
 
@@ -497,6 +700,9 @@ class KittiSequence:
         if same:
             a, b = self.frame_ids[same[0] - 1], self.frame_ids[same[0]]
             raise DatasetError(vel, f"scans {a}.bin and {b}.bin are both frame {self.frame_numbers[same[0]]}")
+        self.roots = sequence_roots(self.root)
+        """Where its files may lie (:func:`sequence_roots`)."""
+        self._refuse_unreadable_entries()
         self.calib = read_calib(self.root / "calib.txt")
         self.poses_path = Path(poses_path) if poses_path is not None else self.root / "poses.txt"
         self._cam_poses: npt.NDArray[np.float64] | None = None
@@ -527,6 +733,38 @@ class KittiSequence:
             if not np.isfinite(all_times).all():
                 raise DatasetError(times, "timestamps have non-finite values")
             self.times = all_times[_rows_of_frames(times, all_times.shape[0], "timestamps", self)]
+
+    def _refuse_unreadable_entries(self) -> None:
+        """Refuse a per-frame file linked outside :attr:`roots` or that no file read can take (a pipe, a
+        socket, a device), and a scan that is not a file: nothing of them is ever read.
+
+        Raises:
+            DatasetError: naming the first such file and what it is.
+        """
+        for name, suffixes in FRAME_FOLDERS.items():
+            for entry, problem in folder_problems(self.root / name, suffixes, self.roots):
+                # A label or image folder entry that is a directory only takes that frame's file away,
+                # which the stages that need it report; a scan is needed by every stage.
+                if problem in NEVER_READ or name == "velodyne":
+                    raise DatasetError(self.root / name / entry, f"{problem}; {UNREADABLE_FIX}")
+
+    def confined(self, path: Path) -> Path:
+        """``path`` (a per-frame file of this sequence), once checked again as it is about to be read: a
+        link to a place outside :attr:`roots`, or a pipe, socket or device, is refused (such a file may
+        have appeared since the sequence was opened).
+
+        Raises:
+            DatasetError: naming the file and what it is.
+        """
+        problem = entry_problem(path, self.roots)
+        if problem in NEVER_READ:
+            raise DatasetError(path, f"{problem}; {UNREADABLE_FIX}")
+        return path
+
+    def label_problem(self, index: int) -> str | None:
+        """Why scan ``index`` has no ground truth although ``labels/`` holds an entry of its name (``"a
+        directory, not a file"``), or None (no such entry, or a readable file)."""
+        return entry_problem(self.label_path(index), self.roots)
 
     @property
     def pose_source(self) -> str:
@@ -622,19 +860,27 @@ class KittiSequence:
 
 
 __all__ = [
+    "FRAME_FOLDERS",
+    "LINK_OUTSIDE",
+    "NEVER_READ",
     "POSES_NOTE",
     "Calib",
     "Frame",
     "KittiSequence",
     "atomic_write",
+    "entry_problem",
+    "folder_problems",
+    "image_size",
     "lidar_poses",
     "read_calib",
     "read_image",
+    "read_image_size",
     "read_label",
     "read_png16",
     "read_poses",
     "read_scan",
     "scan_point_count",
+    "sequence_roots",
     "write_calib",
     "write_image",
     "write_label",

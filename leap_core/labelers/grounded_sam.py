@@ -41,13 +41,14 @@ import json
 import logging
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
 from leap_core.labelers.base import SoftMasks
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
@@ -96,16 +97,16 @@ class GroundedSamConfig:
     segmenter_id: str = "facebook/sam-vit-base"
     """Hugging Face id of the SAM checkpoint (e.g. facebook/sam-vit-huge, nielsr/slimsam-77-uniform)."""
 
-    box_threshold: float = 0.25
+    box_threshold: float = field(default=0.25, metadata=within(0, 1, low_open=True, high_open=True))
     """Keep regions whose max sigmoid region↔token similarity reaches this (paper: 0.25 KITTI, 0.2 UAV)."""
 
     mode: Literal["joint", "per-class"] = "joint"
     """"joint": all classes' prompts in one text (the paper); "per-class": one detector pass per class."""
 
-    max_text_tokens: int = 256
+    max_text_tokens: int = field(default=256, metadata=within(4, 1024))
     """Text-token budget of one detector pass, [CLS] and [SEP] included (the model's max_text_len)."""
 
-    batch_size: int = 1
+    batch_size: int = field(default=1, metadata=within(1, 64))
     """Images per forward pass of the detector and SAM's image encoder."""
 
     use_negative_prompts: bool = True
@@ -115,23 +116,16 @@ class GroundedSamConfig:
     multimask: bool = True
     """Ask SAM for 3 candidate masks per box and keep the one with the highest predicted IoU."""
 
-    mask_threshold: float = 0.0
+    mask_threshold: float = field(default=0.0, metadata=within(-100, 100))
     """Threshold on SAM's mask logits when binarising the upscaled masks."""
 
-    match_iou: float = 0.7
+    match_iou: float = field(default=0.7, metadata=within(0, 1, low_open=True))
     """Box IoU at which a region of one pass takes the class logits of a region of another pass."""
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.box_threshold < 1.0:
-            raise ConfigError(f"must be in (0, 1), got {self.box_threshold}", field=("box_threshold",))
+        check_bounds(self)
         if self.mode not in ("joint", "per-class"):
             raise ConfigError(f"must be 'joint' or 'per-class', got {self.mode!r}", field=("mode",))
-        if self.max_text_tokens < 4:
-            raise ConfigError(f"must be >= 4, got {self.max_text_tokens}", field=("max_text_tokens",))
-        if self.batch_size < 1:
-            raise ConfigError(f"must be >= 1, got {self.batch_size}", field=("batch_size",))
-        if not 0.0 < self.match_iou <= 1.0:
-            raise ConfigError(f"must be in (0, 1], got {self.match_iou}", field=("match_iou",))
         for name in ("detector_id", "segmenter_id"):
             check_model_id(getattr(self, name), field=name)
 

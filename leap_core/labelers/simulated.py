@@ -79,6 +79,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.bounds import SEED_MAX, check_bounds, within
 from leap_core.datasets.kitti import read_png16
 from leap_core.errors import ConfigError, LeapError
 from leap_core.labelers.base import SoftMasks
@@ -131,16 +132,12 @@ _DEFAULT_CONFUSION_PAIRS: tuple[tuple[str, str], ...] = (
 )
 
 
-def _check_strength_table(table: dict[str, float], name: str, *, positive: bool) -> None:
-    """A per-strength table has exactly the four strengths as keys and values in [0, 1] ((0, 1] if
-    ``positive``)."""
+def _check_strength_table(table: dict[str, float], name: str) -> None:
+    """A per-strength table has exactly the four strengths as keys (its values' range is the field's
+    bound)."""
     if set(table) != set(STRENGTHS):
         got = ", ".join(map(str, table)) or "none"
         raise ConfigError(f"needs exactly the keys {', '.join(STRENGTHS)}, got {got}", field=(name,))
-    for k, v in table.items():
-        ok = 0.0 < float(v) <= 1.0 if positive else 0.0 <= float(v) <= 1.0
-        if not ok:
-            raise ConfigError(f"must be in {'(0, 1]' if positive else '[0, 1]'}, got {v}", field=(name, k))
 
 
 def _check_pairs(pairs: tuple[tuple[str, str], ...]) -> None:
@@ -160,79 +157,67 @@ class SimulatedLabelerConfig:
     to any result. :meth:`exact` turns every knob off.
     """
 
-    seed: int = 0
+    seed: int = field(default=0, metadata=within(0, SEED_MAX))
     """Base seed; a frame's draws depend only on (seed, frame number)."""
-    recall: float = 0.9
+    recall: float = field(default=0.9, metadata=within(0, 1))
     """Probability that a region (object instance or connected stuff area) gets a mask at all."""
-    class_recall: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_CLASS_RECALL))
+    class_recall: dict[str, float] = field(
+        default_factory=lambda: dict(_DEFAULT_CLASS_RECALL), metadata=within(0, 1)
+    )
     """Per-class recall overriding ``recall``, by class name; names not in the schema are ignored."""
-    min_region_px: int = 16
+    min_region_px: int = field(default=16, metadata=within(0, 100_000_000, unit="px"))
     """Regions with fewer pixels than this are never detected (tiny fragments); 0 keeps every region."""
-    confusion_prob: float = 0.1
+    confusion_prob: float = field(default=0.1, metadata=within(0, 1))
     """Probability that a region of a class in ``confusion_pairs`` is labeled as its partner class."""
-    persistence_frames: int = 5
+    persistence_frames: int = field(default=5, metadata=within(1, 100_000))
     """Misses and confusions of one object are drawn once per block of this many consecutive frames
     (frame number // persistence_frames), as a detector's errors depend on an object's appearance, which
     changes slowly; 1 draws them independently in every frame (noise that fusion would average away too
     easily)."""
     confusion_pairs: tuple[tuple[str, str], ...] = _DEFAULT_CONFUSION_PAIRS
     """Ambiguous class pairs (symmetric), by class name; pairs with a name not in the schema are ignored."""
-    peak_prob: tuple[float, float] = (0.5, 0.9)
+    peak_prob: tuple[float, float] = field(default=(0.5, 0.9), metadata=within(0, 1, low_open=True))
     """Range (low, high) of the uniform draw of the predicted class's probability."""
-    partner_share: float = 0.5
+    partner_share: float = field(default=0.5, metadata=within(0, 1))
     """Share of the non-peak mass given to the confusable partner class (when the class has one)."""
-    dirichlet_alpha: float = 1.0
+    dirichlet_alpha: float = field(default=1.0, metadata=within(0, 1000, low_open=True))
     """Concentration of the Dirichlet draw that spreads the remaining mass over the other classes."""
-    confidence: tuple[float, float] = (0.3, 0.9)
+    confidence: tuple[float, float] = field(default=(0.3, 0.9), metadata=within(0, 1, low_open=True))
     """Range (low, high) of the uniform draw of a mask's confidence (its weight where masks overlap)."""
-    bleed_px: int = 3
+    bleed_px: int = field(default=3, metadata=within(0, 100, unit="px"))
     """Largest dilation radius in pixels of thing (instance) masks onto their surroundings; 0 = no bleed."""
-    stuff_bleed_px: int = 1
+    stuff_bleed_px: int = field(default=1, metadata=within(0, 100, unit="px"))
     """Largest dilation radius in pixels of stuff (region) masks."""
-    jitter_px: float = 1.0
+    jitter_px: float = field(default=1.0, metadata=within(0, 100, unit="px"))
     """Standard deviation in pixels of the per-image shift of all masks (calibration error)."""
-    jitter_deg: float = 0.1
+    jitter_deg: float = field(default=0.1, metadata=within(0, 180, unit="degrees"))
     """Standard deviation in degrees of the per-image rotation of all masks about the image centre."""
-    match_detection: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_MATCH_DETECTION))
+    match_detection: dict[str, float] = field(
+        default_factory=lambda: dict(_DEFAULT_MATCH_DETECTION), metadata=within(0, 1)
+    )
     """Per match strength (exact, synonym, descriptive, hypernym): the chance that a prompt naming a region
     with that strength gets it detected (combined over the naming classes, times the class recall). A
     looser name finds its object less often."""
-    match_confidence: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_MATCH_CONFIDENCE))
+    match_confidence: dict[str, float] = field(
+        default_factory=lambda: dict(_DEFAULT_MATCH_CONFIDENCE), metadata=within(0, 1, low_open=True)
+    )
     """Per match strength: factor on the mask's confidence draw, and the similarity that decides which
     class wins a region that prompts of several classes name."""
-    match_temperature: float = 0.1
+    match_temperature: float = field(default=0.1, metadata=within(0, 10))
     """Softness of that competition: class c wins with probability ∝ exp(match_confidence[k(c)] / T);
     0 = the strongest strength always wins (ties drawn uniformly)."""
 
     def __post_init__(self) -> None:
-        for name in ("recall", "confusion_prob", "partner_share"):
-            v = getattr(self, name)
-            if not 0.0 <= v <= 1.0:
-                raise ConfigError(f"must be in [0, 1], got {v}", field=(name,))
-        for cname, v in self.class_recall.items():
-            if not 0.0 <= float(v) <= 1.0:
-                raise ConfigError(f"must be in [0, 1], got {v}", field=("class_recall", cname))
+        check_bounds(self)
         for name in ("peak_prob", "confidence"):
             lo, hi = getattr(self, name)
-            if not 0.0 < lo <= hi <= 1.0:
-                raise ConfigError(f"must be a range 0 < low <= high <= 1, got ({lo}, {hi})", field=(name,))
+            if not lo <= hi:
+                raise ConfigError(
+                    f"must be a range (low, high) with low <= high, got ({lo}, {hi})", field=(name,)
+                )
         _check_pairs(self.confusion_pairs)
-        if not self.dirichlet_alpha > 0:
-            raise ConfigError(f"must be > 0, got {self.dirichlet_alpha}", field=("dirichlet_alpha",))
-        if self.persistence_frames < 1:
-            raise ConfigError(f"must be >= 1, got {self.persistence_frames}", field=("persistence_frames",))
-        for name in (
-            "min_region_px",
-            "bleed_px",
-            "stuff_bleed_px",
-            "jitter_px",
-            "jitter_deg",
-            "match_temperature",
-        ):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"must be >= 0, got {getattr(self, name)}", field=(name,))
-        _check_strength_table(self.match_detection, "match_detection", positive=False)
-        _check_strength_table(self.match_confidence, "match_confidence", positive=True)
+        _check_strength_table(self.match_detection, "match_detection")
+        _check_strength_table(self.match_confidence, "match_confidence")
 
     @classmethod
     def from_preset(cls, name: str) -> SimulatedLabelerConfig:
@@ -527,7 +512,7 @@ def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[n
     folder = frame.seq.root / "gt2d" / "name"
     if not folder.is_dir():
         return generic_name_ids(semantic)
-    names = read_png16(folder / f"{frame.frame_id}.png")
+    names = read_png16(frame.seq.confined(folder / f"{frame.frame_id}.png"))
     if names.shape != semantic.shape:
         raise LeapError(
             f"{folder / (frame.frame_id + '.png')}: name image {names.shape} and semantic mask "

@@ -17,11 +17,12 @@ Details that a tiny Grounding DINO must get right (docs/METHOD.md, "Facts about 
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from leap_core.io_utils import atomic_write_bytes
+from leap_core.io_utils import atomic_copy, atomic_write_bytes
 
 MARKER_FILE = "LEAP_TINY_RANDOM_MODEL.txt"
 """Present in every folder written here; its presence means "random weights, meaningless labels"."""
@@ -302,8 +303,13 @@ def make_tiny_models(
     seg_model, seg_proc = build_tiny_segmenter(cfg)
     for folder, model, proc in ((det_dir, det_model, det_proc), (seg_dir, seg_model, seg_proc)):
         folder.mkdir(parents=True, exist_ok=True)
-        model.save_pretrained(folder)
-        proc.save_pretrained(folder)
+        # transformers writes the weights through a temp file of its own, whose 0600 mode the rename
+        # keeps: written to a staging folder, each file is copied in by leap's atomic writer instead.
+        with tempfile.TemporaryDirectory(prefix="leap-tiny-") as staging:
+            model.save_pretrained(staging)
+            proc.save_pretrained(staging)
+            for path in sorted(p for p in Path(staging).rglob("*") if p.is_file()):
+                atomic_copy(path, folder / path.relative_to(staging))
         atomic_write_bytes(folder / MARKER_FILE, _MARKER_TEXT.encode())
     atomic_write_bytes(root / "README.txt", _MARKER_TEXT.encode())
     return TinyModelPaths(models_dir=root, detector=det_dir, segmenter=seg_dir)

@@ -293,7 +293,7 @@ def frame_input_digest(seq: KittiSequence, index: int) -> str:
     for p in paths:
         if p is not None and p.is_file():
             h.update(p.name.encode())
-            h.update(file_digest(p).encode())
+            h.update(file_digest(seq.confined(p)).encode())
     return h.hexdigest()[:32]
 
 

@@ -32,6 +32,7 @@ from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
 
 if TYPE_CHECKING:
+    from leap_core.datasets.kitti import KittiSequence
     from leap_core.pipeline.context import Ctx
 
 ROW_POINT = "point"
@@ -114,14 +115,31 @@ def cn_row(iteration: int) -> str:
     return f"+3D-CN x{iteration}"
 
 
+def no_ground_truth(seq: KittiSequence, frames: Iterable[int]) -> str | None:
+    """Why the scans ``frames`` (indices) of ``seq`` cannot be evaluated, or None when each has its
+    ``.label`` file: ``no ground truth``, followed by the first entry of ``labels/`` that stands where a
+    file should (``: .../labels/000003.label is a directory, not a file``)."""
+    missing = [i for i in frames if not seq.label_path(i).is_file()]
+    if not missing:
+        return None
+    for i in missing:
+        problem = seq.label_problem(i)
+        if problem is not None:
+            return f"no ground truth: {seq.label_path(i)} is {problem}"
+    return "no ground truth"
+
+
 def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
     """Point / voxel / +3D-CN rows against ground truth, every protocol → ``metrics.json``.
 
-    Skipped (status "skipped") when a processed frame has no ground-truth ``.label`` file.
+    Skipped (status "skipped") when a processed frame has no ground-truth ``.label`` file; the note says
+    which entry of ``labels/`` stands in place of one, when one does (``labels/000003.label is a
+    directory, not a file``).
     """
     seq, schema, lay = ctx.seq, ctx.schema, ctx.layout
-    if not all(seq.label_path(i).is_file() for i in ctx.frames):
-        return {"status": "skipped", "note": "no ground truth"}
+    note = no_ground_truth(seq, ctx.frames)
+    if note is not None:
+        return {"status": "skipped", "note": note}
     c = schema.num_classes
     # None: read from points/ (the projection-only labels, and the final grid's labels that label_points
     # already looked up); a grid: looked up here (the voxel row when the 3D-CN came after it).

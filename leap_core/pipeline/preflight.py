@@ -4,9 +4,12 @@ app's project creation and dataset list).
 :func:`check_dataset` is a pure inspection: it lists the folder's entries, reads ``calib.txt`` and the
 poses, opens the folder with :class:`~leap_core.datasets.kitti.KittiSequence` (the reader every run uses,
 so the check refuses exactly what a run would refuse) and never raises for a bad folder: every problem
-becomes a :class:`Finding` with a code, the file it concerns and a neutral description. Scans are not
-read (only their sizes are checked), so the check costs a few directory listings whatever the sequence
-length.
+becomes a :class:`Finding` with a code, the file it concerns and a neutral description. Each per-frame
+file is looked at without being read: a link leading outside the sequence folder or a pipe is named (the
+reader refuses the folder), as is a directory in place of a file. Scans are not read (only their sizes
+are checked) and of the camera images only the header and the last bytes (a truncated PNG or JPEG, an
+image of another size than the others), so the check costs a few directory listings and small reads
+whatever the sequence length.
 
 It judges the pipeline's stages (:data:`~leap_core.pipeline.stages.STAGE_TABLE`) and labelers
 (:data:`~leap_core.labelers.LABELERS`) against the folder, so it lives with the pipeline. Its results are
@@ -34,7 +37,19 @@ from pathlib import Path
 from typing import Any, Literal
 
 from leap_core.config import PipelineConfig
-from leap_core.datasets.kitti import IMAGE_SUFFIXES, POSES_NOTE, KittiSequence, read_calib, read_poses
+from leap_core.datasets.kitti import (
+    FRAME_FOLDERS,
+    IMAGE_SUFFIXES,
+    LINK_OUTSIDE,
+    NOT_REGULAR,
+    POSES_NOTE,
+    KittiSequence,
+    folder_problems,
+    image_size,
+    read_calib,
+    read_poses,
+    sequence_roots,
+)
 from leap_core.errors import DatasetError, ModelLoadError
 from leap_core.labelers import LABELERS
 from leap_core.labelers.grounded_sam import GroundedSamConfig, model_folder_name, resolve_model_folder
@@ -180,6 +195,81 @@ def _stems(folder: Path, suffixes: Iterable[str]) -> set[str]:
         return set()
 
 
+def _entry_findings(root: Path) -> tuple[list[Finding], dict[str, set[str]]]:
+    """Findings on the per-frame files the reader may not read (:func:`~leap_core.datasets.kitti.
+    folder_problems`), one per folder and kind, and per folder the stems of those files (they count as
+    absent).
+
+    ``linked_outside`` (a blocker): links leading outside the sequence's roots. ``not_a_file``: a pipe,
+    socket or device anywhere, or a scan that is not a file, blocks (the reader refuses the sequence);
+    a directory or dangling link in place of a label, image or 2D mask is a warning (that frame lacks it).
+    """
+    roots = sequence_roots(root)
+    findings: list[Finding] = []
+    unusable: dict[str, set[str]] = {}
+    for name, suffixes in FRAME_FOLDERS.items():
+        problems = folder_problems(root / name, suffixes, roots)
+        unusable[name] = {os.path.splitext(entry)[0] for entry, _ in problems}
+        outside = [(e, p) for e, p in problems if p == LINK_OUTSIDE]
+        other = [(e, p) for e, p in problems if p != LINK_OUTSIDE]
+        if outside:
+            findings.append(_files_finding("linked_outside", "blocker", root / name, outside))
+        if other:
+            blocks = name == "velodyne" or any(p == NOT_REGULAR for _, p in other)
+            findings.append(
+                _files_finding("not_a_file", "blocker" if blocks else "warning", root / name, other)
+            )
+    return findings, unusable
+
+
+def _files_finding(code: str, severity: Severity, folder: Path, items: list[tuple[str, str]]) -> Finding:
+    """A finding naming each file of ``folder`` and what it is (the first :data:`SHOWN_FRAMES`)."""
+    shown = "; ".join(f"{entry} is {problem}" for entry, problem in items[:SHOWN_FRAMES])
+    more = f"; and {len(items) - SHOWN_FRAMES} more" if len(items) > SHOWN_FRAMES else ""
+    stems = [os.path.splitext(entry)[0] for entry, _ in items]
+    return Finding(code, severity, str(folder), shown + more, tuple(stems[:SHOWN_FRAMES]), len(stems))
+
+
+def _image_files(folder: Path, frames: Iterable[str], skip: set[str]) -> dict[str, Path]:
+    """Frame id → its camera image in ``folder`` (as the reader indexes them), for ``frames`` not in
+    ``skip``."""
+    wanted = set(frames) - skip
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError:
+        return {}
+    return {p.stem: p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES and p.stem in wanted}
+
+
+def _image_findings(folder: Path, images: dict[str, Path]) -> list[Finding]:
+    """``images_damaged``: images whose header the reader refuses (not a PNG or JPEG, truncated);
+    ``images_size``: images of another size than most of the sequence's (the calibration projects into
+    one image size). Only headers and the files' last bytes are read."""
+    sizes: dict[str, tuple[int, int]] = {}
+    damaged: list[tuple[str, str]] = []
+    for fid, path in images.items():
+        try:
+            sizes[fid] = image_size(path)
+        except DatasetError as exc:
+            damaged.append((path.name, exc.problem.removeprefix("unreadable image: ")))
+    out = []
+    if damaged:
+        out.append(_files_finding("images_damaged", "warning", folder, damaged))
+    if sizes:
+        counts: dict[tuple[int, int], int] = {}
+        for size in sizes.values():
+            counts[size] = counts.get(size, 0) + 1
+        usual = max(counts, key=lambda k: counts[k])  # the most common; ties: the first frame's
+        odd = [
+            (images[fid].name, f"{w}×{h} pixels, the sequence's other images {usual[0]}×{usual[1]}")
+            for fid, (w, h) in sizes.items()
+            if (w, h) != usual
+        ]
+        if odd:
+            out.append(_files_finding("images_size", "warning", folder, odd))
+    return out
+
+
 def _scan_sizes(vel: Path) -> dict[str, int]:
     out: dict[str, int] = {}
     try:
@@ -304,7 +394,9 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
     frames = _ordered(sizes)
     if not frames:
         return early("no_scans", vel, "no .bin scans")
-    damaged = [f for f in frames if sizes[f] < 0 or sizes[f] % 16]
+    entry_findings, unusable = _entry_findings(root)
+    findings += entry_findings
+    damaged = [f for f in frames if f not in unusable["velodyne"] and (sizes[f] < 0 or sizes[f] % 16)]
     if damaged:
         findings.append(
             _per_frame(
@@ -316,9 +408,12 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
             )
         )
 
-    images = _stems(root / "image_2", IMAGE_SUFFIXES)
-    labels = _stems(root / "labels", (".label",))
-    gt2d = _stems(root / "gt2d" / "semantic", (".png",)) & _stems(root / "gt2d" / "instance", (".png",))
+    images = _stems(root / "image_2", IMAGE_SUFFIXES) - unusable["image_2"]
+    labels = _stems(root / "labels", (".label",)) - unusable["labels"]
+    gt2d = (_stems(root / "gt2d" / "semantic", (".png",)) - unusable["gt2d/semantic"]) & (
+        _stems(root / "gt2d" / "instance", (".png",)) - unusable["gt2d/instance"]
+    )
+    findings += _image_findings(root / "image_2", _image_files(root / "image_2", frames, unusable["image_2"]))
     cover_img = FrameCoverage(len(set(frames) & images), len(frames))
     cover_gt = FrameCoverage(len(set(frames) & labels), len(frames))
     cover_2d = FrameCoverage(len(set(frames) & gt2d), len(frames))
@@ -343,9 +438,10 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
     except (DatasetError, OSError, ValueError) as exc:
         where = Path(getattr(exc, "path", root))
         problem = getattr(exc, "problem", str(exc))
+        said = {Path(f.path) for f in findings if f.severity == "blocker" and f.path is not None}
         if where == poses_file:
             findings.append(Finding("poses_unreadable", "blocker", str(poses_file), problem))
-        elif not any(f.path == str(where) and f.severity == "blocker" for f in findings):
+        elif where not in said and where.parent not in said:  # a file a finding above names already
             findings.append(Finding("unreadable", "blocker", str(where), problem))
     else:
         if seq.has_poses:
@@ -539,11 +635,17 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
     return {"grounded-sam": ("models_missing",)}
 
 
+IMAGE_CODES = ("images_damaged", "images_size")
+"""Findings on the camera images that stop a labeler reading them (a damaged image fails its frame; one of
+another size is projected with the calibration of the others, so its labels land on the wrong points)."""
+
+
 def _labeler_checks(
     frames: list[str],
     img: FrameCoverage,
     gt2d: FrameCoverage,
     model_codes: dict[str, tuple[str, ...]],
+    image_codes: tuple[str, ...] = (),
 ) -> tuple[LabelerCheck, ...]:
     out = []
     for name, spec in LABELERS.items():
@@ -556,6 +658,8 @@ def _labeler_checks(
             reasons = ("images_partial",) if spec.needs == "images" else ("gt2d_partial",)
         else:
             reasons = ()
+        if spec.needs == "images":
+            reasons += image_codes
         reasons += model_codes.get(name, ())
         out.append(LabelerCheck(name, spec.label, not reasons, reasons))
     return tuple(out)
@@ -583,7 +687,8 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
     findings: list[Finding],
     model_codes: dict[str, tuple[str, ...]],
 ) -> DatasetReport:
-    labelers = _labeler_checks(frames, img, gt2d, model_codes)
+    image_codes = tuple(c for c in IMAGE_CODES if any(f.code == c for f in findings))
+    labelers = _labeler_checks(frames, img, gt2d, model_codes, image_codes)
     by_name = {lab.name: lab for lab in labelers}
     labeler = cfg.labeler
     if not chosen:
@@ -672,6 +777,10 @@ REASONS: dict[str, str] = {
     "calib_missing": "no calibration",
     "calib_invalid": "unusable calibration",
     "unreadable": "a file the reader refuses",
+    "linked_outside": "files linked outside the sequence folder",
+    "not_a_file": "entries that are not files",
+    "images_damaged": "damaged camera images",
+    "images_size": "camera images of another size",
     "no_2d_input": "nothing to label from",
     "images_missing": "no camera images",
     "images_partial": "frames without a camera image",

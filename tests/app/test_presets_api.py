@@ -61,7 +61,7 @@ def test_pipeline_errors_locate_the_field(client: TestClient, tiny_dataset: Path
 
     nested = error({"consistency": {"backbone": {"channels": 2}}})
     assert nested["loc"] == ["body", "pipeline", "consistency", "backbone", "channels"]
-    assert nested["msg"] == "pipeline.consistency.backbone.channels: must be >= 4, got 2"
+    assert nested["msg"] == "pipeline.consistency.backbone.channels: must be in [4, 1024], got 2"
     retired = error({"grounded_sam": {"models_dir": "/models"}})
     assert retired["loc"] == ["body", "pipeline", "grounded_sam", "models_dir"]
     assert "LEAP_MODELS_DIR" in retired["msg"]
