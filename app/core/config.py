@@ -16,8 +16,18 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from app.core.demo_synth import synth_config
+from app.core.security import UnusablePath, real_path
 
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
+
+
+def _real(path: str | Path, what: str) -> Path:
+    """:func:`~app.core.security.real_path` of a configured folder; a ValueError naming it otherwise (pydantic
+    reports it as the setting's error)."""
+    try:
+        return real_path(path)
+    except UnusablePath as exc:
+        raise ValueError(f"{what} {path} {exc}") from None
 
 
 def is_loopback(host: str) -> bool:
@@ -141,7 +151,7 @@ class Settings(BaseSettings):
     def _roots(cls, value: list[Path]) -> list[Path]:
         if not value:
             raise ValueError("at least one data root is needed")
-        roots = [Path(p).expanduser().resolve() for p in value]
+        roots = [_real(p, "data root") for p in value]
         for root in roots:
             if root.exists() and not root.is_dir():
                 raise ValueError(f"data root {root} is a file, not a folder")
@@ -154,7 +164,7 @@ class Settings(BaseSettings):
     def _abs_dir(cls, value: Path | None) -> Path | None:
         if value is None:
             return None
-        path = Path(value).expanduser().resolve()
+        path = _real(value, "folder")
         if path.exists() and not path.is_dir():
             raise ValueError(f"{path} is a file, not a folder")
         return path
@@ -187,7 +197,7 @@ class Settings(BaseSettings):
         if self.db_path is None:
             object.__setattr__(self, "db_path", self.work_dir / "studio.db")
         else:
-            object.__setattr__(self, "db_path", Path(self.db_path).expanduser().resolve())
+            object.__setattr__(self, "db_path", _real(self.db_path, "db_path"))
         return self
 
     # ----------------------------------------------------------------------------------- derived paths

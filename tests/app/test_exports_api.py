@@ -245,3 +245,18 @@ def test_zip_stands_alone_with_its_label_map(studio: Studio, tmp_path: Path) -> 
     assert summary["project"]["name"] == "B" and summary["run"]["id"] == run["id"]
     assert summary["counts"]["unlabeled"] == info["unlabeled"]
     assert summary["settings"]["pipeline"]["fusion"]["voxel_size"] == pytest.approx(0.2)
+
+
+def test_a_symlink_loop_as_export_path_is_refused_naming_the_field(studio: Studio) -> None:
+    exports_dir = studio.data / "studio" / "exports"
+    exports_dir.mkdir(parents=True, exist_ok=True)
+    loop = exports_dir / "loop"
+    loop.symlink_to(loop)
+    try:
+        for path in (loop, loop / "below"):
+            r = export(studio, "A", path=str(path))
+            assert r.status_code == 422, r.text
+            (error,) = r.json()["detail"]
+            assert error["loc"] == ["body", "path"] and "symlink loop" in error["msg"], error
+    finally:
+        loop.unlink()
