@@ -214,6 +214,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # fails on a lone surrogate in it: answer with the errors only, each input cut short.
         return JSONResponse({"detail": validation_errors(exc.errors())}, status_code=422)
 
+    @app.exception_handler(OSError)
+    async def _file_error(_request: Request, exc: OSError) -> JSONResponse:
+        # Reads write files too (an export's zip and counts, a run preview's scratch folder): a full disk
+        # is the user's to fix wherever it is met; any other file error stays a 500.
+        message = disk_full_message(exc)
+        if message is None:
+            log.error("file error", exc_info=exc)
+            return JSONResponse({"detail": "Internal Server Error"}, status_code=500)
+        return JSONResponse({"detail": printable(message)}, status_code=507)
+
     @app.exception_handler(sqlite3.OperationalError)
     async def _db_error(_request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
         # A full disk is the user's to fix, so it gets a message; other database errors stay a 500.
