@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from tqdm import tqdm
 
     from app.core.config import Settings
-    from app.core.instance import WorkDirLock
+    from app.core.instance import ServerLock
     from app.rows import RunRow
     from leap_core.labelers.grounded_sam import GroundedSamConfig
     from leap_core.pipeline.preflight import Verdict
@@ -1101,12 +1101,12 @@ def _label_demo(settings: Settings, project_id: int, active: RunRow | None) -> R
     return finished
 
 
-def _lock_work_dir(settings: Settings) -> WorkDirLock:
-    """The work folder's lock, held from before the database is opened until the process ends (one
-    process per work folder; a one-line error when another holds it)."""
-    from app.core.instance import StartupRefused, WorkDirLock
+def _lock_work_dir(settings: Settings) -> ServerLock:
+    """The work folder's and the database's lock, held from before the database is opened until the process
+    ends (one process per work folder and per database; a one-line error when another holds either)."""
+    from app.core.instance import ServerLock, StartupRefused
 
-    lock = WorkDirLock(settings.work_dir)
+    lock = ServerLock(settings.work_dir, settings.database)
     try:
         lock.acquire(f"leap demo, port {settings.port}")
     except StartupRefused as exc:

@@ -29,7 +29,7 @@ from app.core.body_limit import BodyLimit
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db, set_size_cap
 from app.core.errors import AppError, InvalidField, disk_full_message, printable, validation_errors
-from app.core.instance import StartupRefused, WorkDirLock, bind_socket
+from app.core.instance import ServerLock, StartupRefused, bind_socket
 from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_agri_demo_project, seed_demo_project
 from app.jobs.apply import applier
@@ -262,14 +262,14 @@ def _close_viewers(app: FastAPI) -> None:
     close_viewers(app)
 
 
-def serve(settings: Settings | None = None, lock: WorkDirLock | None = None) -> None:
+def serve(settings: Settings | None = None, lock: ServerLock | None = None) -> None:
     """Run the server in the foreground until interrupted.
 
     Refused with a one-line message (exit status 1) and without touching the database when another
-    server owns the work folder or the port cannot be bound (see :mod:`app.core.instance`).
+    server owns the work folder or the database, or the port cannot be bound (see :mod:`app.core.instance`).
 
     Args:
-        lock: the work folder's lock when the caller already holds it (``leap demo``).
+        lock: the work folder's and database's lock when the caller already holds it (``leap demo``).
     """
     settings = settings or get_settings()
     logging.basicConfig(
@@ -278,7 +278,7 @@ def serve(settings: Settings | None = None, lock: WorkDirLock | None = None) -> 
     scheme_host = f"[{settings.host}]" if ":" in settings.host else settings.host
     try:
         if lock is None:
-            lock = WorkDirLock(settings.work_dir)
+            lock = ServerLock(settings.work_dir, settings.database)
             lock.acquire(f"{scheme_host}:{settings.port}")
         sock = bind_socket(settings.host, settings.port)
     except StartupRefused as exc:

@@ -245,3 +245,38 @@ def test_a_deleted_image_gives_the_run_a_warning(tiny_dataset: Path) -> None:
             assert "no camera image" in log and image.stem in log
     finally:
         server.stop()
+
+
+@pytest.mark.slow
+def test_a_second_server_on_the_same_database_is_refused(tmp_path: Path, tiny_dataset: Path) -> None:
+    """``LEAP_DB_PATH`` lets a server keep its database outside its work folder. A second server with a
+    work folder of its own but the first one's database exits with a message naming the first server and
+    the fix, without opening the database: the first one's active runs stay as they are (a second server
+    used to mark them interrupted)."""
+    data = tiny_dataset.parents[2]
+    db_path = data / "studio" / "studio.db"
+    first = Server(data).start()
+    try:
+        with first.client() as c:
+            project = _project(c, tiny_dataset, "shared database")
+            run = c.post(f"/projects/{project['id']}/runs", json={}).json()
+            wait_run(c, run["id"], 120.0, ("done", "failed"), api="")
+            # Active as far as the database says: what a second server's start-up would mark interrupted.
+            with sqlite3.connect(db_path) as conn:
+                conn.execute(
+                    "UPDATE runs SET status = 'running', finished_at = NULL WHERE id = ?", [run["id"]]
+                )
+            second = Server(
+                data,
+                extra_env={"LEAP_DB_PATH": str(db_path), "LEAP_WORK_DIR": str(tmp_path / "own-work")},
+                log=tmp_path / "second.log",
+            )
+            code, output = second.refused(timeout=45)
+            assert code not in (None, 0), output
+            assert f"database {db_path} is in use by another LeAP Studio server" in output, output
+            assert str(first.port) in output and "LEAP_DB_PATH" in output, output
+            with sqlite3.connect(db_path) as conn:
+                status = conn.execute("SELECT status FROM runs WHERE id = ?", [run["id"]]).fetchone()[0]
+            assert status == "running"
+    finally:
+        first.stop()
