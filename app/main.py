@@ -30,6 +30,7 @@ from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db, set_size_cap
 from app.core.errors import AppError, InvalidField, disk_full_message, printable, validation_errors
 from app.core.instance import ServerLock, StartupRefused, bind_socket
+from app.core.request_head import KEEP_ALIVE_S, head_limit_protocol
 from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_agri_demo_project, seed_demo_project
 from app.jobs.apply import applier
@@ -295,7 +296,13 @@ def serve(settings: Settings | None = None, lock: ServerLock | None = None) -> N
         gc.collect()
         gc.freeze()
         config = uvicorn.Config(
-            app, host=settings.host, port=settings.port, log_level=settings.log_level, access_log=False
+            app,
+            host=settings.host,
+            port=settings.port,
+            log_level=settings.log_level,
+            access_log=False,
+            http=head_limit_protocol(settings.request_head_timeout_s),
+            timeout_keep_alive=KEEP_ALIVE_S,
         )
         uvicorn.Server(config).run(sockets=[sock])
     finally:

@@ -137,6 +137,10 @@ class Settings(BaseSettings):
     disk (the run that needed it fails, the server stays up). None: no cap beyond the disk's size."""
     max_body_bytes: int = Field(default=1024 * 1024, ge=1024, le=1024**3)
     """Largest request body accepted (bytes); a larger one is answered 413 before it is read."""
+    request_head_timeout_s: float = Field(default=10.0, gt=0, le=300)
+    """Seconds a connection has to send a request's line and headers, from its start or from the end of
+    its previous response; a slower one is answered 408 and closed, so a client that trickles a head
+    cannot hold connections open forever (``app.core.request_head``)."""
 
     @field_validator("host")
     @classmethod
