@@ -366,8 +366,16 @@ def update_project(db: sqlite_utils.Database, project_id: int, payload: models.P
     )
 
 
-def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> None:
-    """Delete the project, its runs and corrections, and its run folders under the work dir.
+def project_folders(settings: Settings, project_id: int) -> list[Path]:
+    """The work folder's folders of one project: its runs (``runs/p<P>``) and its stage caches
+    (``cache/p<P>``, the 2D labels its runs and run previews computed)."""
+    return [settings.runs_dir / f"p{project_id}", settings.cache_dir / f"p{project_id}"]
+
+
+def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> list[Path]:
+    """Delete the project, its runs and corrections, and its folders under the work dir
+    (:func:`project_folders`); returns those folders (the caller makes sure no background job writes
+    into them again: :meth:`app.jobs.apply.CorrectionApplier.forget`).
 
     The dataset and anything exported into its ``predictions/`` folder are the user's and stay.
     """
@@ -377,7 +385,10 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
         raise Conflict(f"Project {project_id} has run {active.id} {active.status}; cancel it first")
     crud.delete_project(db, project_id)
     # After the rows are gone: a crash in between leaves orphan files, never rows pointing at nothing.
-    remove_tree(settings.runs_dir / f"p{project_id}")
+    folders = project_folders(settings, project_id)
+    for folder in folders:
+        remove_tree(folder)
+    return folders
 
 
 # -------------------------------------------------------------------------------------------- sequences

@@ -399,8 +399,9 @@ class JobManager:
     def _prepare_run_dir(self, db: Any, run: RunRow) -> None:
         """Write the parameter snapshot into the new run folder, and into each sequence's folder its active
         corrections and the stage outputs of the finished run it starts from (:func:`seed_source`)."""
-        # SQLite reuses the highest ids after a delete, so p<P>/r<R> may hold a deleted project's files
-        # (left behind if that delete was interrupted); stale stage outputs must never leak into this run.
+        # Ids are never handed out twice (crud._new_id), but a database restored from a backup, or one whose
+        # rows were deleted by an older version, may give p<P>/r<R> whose folder holds another run's files:
+        # stale stage outputs must never leak into this run.
         remove_tree(run.run_dir)
         run.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_json(run.layout.params, run.params.to_dict())
