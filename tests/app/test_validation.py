@@ -305,6 +305,60 @@ def test_symlink_loops_are_422_naming_the_field(server: Server, api: httpx.Clien
         (entry / "times.txt").unlink()
 
 
+def test_values_of_another_json_type_are_refused(api: httpx.Client, project: dict[str, Any]) -> None:
+    """No coercion: ``true`` is no integer, ``"2"`` and ``2.0`` no integer, ``1`` no boolean. An integer
+    stays a number (the web UI sends ``Number(...)`` for a number field)."""
+    pid = project["id"]
+    klass = {"name": "strict", "prompts": ["strict thing"], "color": "#102030"}
+    correction = {"class_name": "car", "voxel_size": 0.2, "keys": []}
+    runs, classes, corrections = (
+        f"/projects/{pid}/runs",
+        f"/projects/{pid}/classes",
+        f"/projects/{pid}/corrections",
+    )
+    viewer = f"/projects/{pid}/viewer"
+    for method, path, body, loc in (
+        ("POST", runs, {"frames": {"start": True, "stop": 2}}, ["body", "frames", "start"]),
+        ("POST", runs, {"frames": {"start": 0, "stop": "2"}}, ["body", "frames", "stop"]),
+        ("POST", runs, {"frames": {"start": 0.0, "stop": 2}}, ["body", "frames", "start"]),
+        ("PATCH", f"/projects/{pid}", {"estimate_poses": 1}, ["body", "estimate_poses"]),
+        ("PATCH", f"/projects/{pid}", {"name": 5}, ["body", "name"]),
+        ("POST", classes, {**klass, "export_id": "900"}, ["body", "export_id"]),
+        ("POST", classes, {**klass, "export_id": True}, ["body", "export_id"]),
+        ("POST", classes, {**klass, "export_id": 900, "gt_ids": [True]}, ["body", "gt_ids", 0]),
+        ("PATCH", f"{classes}/car", {"position": "1"}, ["body", "position"]),
+        ("POST", corrections, {**correction, "voxel_size": "0.2"}, ["body", "voxel_size"]),
+        ("POST", corrections, {**correction, "keys": [False]}, ["body", "keys", 0]),
+        ("PATCH", f"{corrections}/1", {"active": 1}, ["body", "active"]),
+        ("POST", "/runs/1/export", {"include_confidence": "true"}, ["body", "include_confidence"]),
+        ("POST", f"{viewer}/nav/step", {"step": True}, ["body", "step"]),
+        ("POST", f"{viewer}/nav/play", {"on": 0}, ["body", "on"]),
+        (
+            "POST",
+            f"{viewer}/tools/select",
+            {"tool": "box", "points": [[True, 0.5], [1, 1]]},
+            ["body", "points", 0, 0],
+        ),
+    ):
+        assert_422(api.request(method, path, json=body), loc)
+    assert api.patch(f"/projects/{pid}", json={"estimate_poses": False}).status_code == 200
+    r = api.post(corrections, json={**correction, "voxel_size": 1})
+    assert r.status_code == 201, r.text
+
+
+def test_a_correction_for_a_class_the_project_lacks_is_refused(
+    api: httpx.Client, project: dict[str, Any]
+) -> None:
+    pid = project["id"]
+    before = api.get(f"/projects/{pid}/corrections").json()["corrections"]
+    body = {"class_name": "unicorn", "voxel_size": 0.2, "keys": [1, 2]}
+    (error,) = assert_422(api.post(f"/projects/{pid}/corrections", json=body), ["body", "class_name"])
+    names = [c["name"] for c in api.get(f"/projects/{pid}/classes").json()["data"]]
+    assert "'unicorn'" in error["msg"] and ", ".join(names) in error["msg"], error
+    assert api.get(f"/projects/{pid}/corrections").json()["corrections"] == before
+    assert api.post(f"/projects/{pid}/corrections", json={**body, "class_name": ""}).status_code == 201
+
+
 def test_control_characters_in_names_are_refused(api: httpx.Client, project: dict[str, Any]) -> None:
     pid = project["id"]
     for bad in ("a\u0000b", "bell\u0007", "two\nlines", "tab\there", "del\u007f"):
