@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from tqdm import tqdm
 
     from app.core.config import Settings
-    from app.core.instance import WorkDirLock
+    from app.core.instance import ServerLock
     from app.rows import RunRow
     from leap_core.labelers.grounded_sam import GroundedSamConfig
     from leap_core.pipeline.preflight import Verdict
@@ -174,6 +174,20 @@ def _run_folder_lock(out: Path) -> Iterator[None]:
             with contextlib.suppress(OSError):
                 (out / LOCK_NAME).unlink()
                 out.rmdir()
+
+
+def _cli_path(raw: str | Path, option: str) -> Path:
+    """The path an option names, resolved (:func:`app.core.security.real_path`).
+
+    Raises:
+        LeapError: ``option`` and why the path cannot be used (a symlink loop, ...), printed as one line.
+    """
+    from app.core.security import UnusablePath, real_path
+
+    try:
+        return real_path(raw)
+    except UnusablePath as exc:
+        raise LeapError(f"{option}: path {str(raw)!r} {exc}") from None
 
 
 def fail(message: str) -> typer.Exit:
@@ -535,7 +549,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         # Refuse a target before a long run, not after it.
         if export_to is not None:
             try:
-                folders = export_targets(Path(export_to).expanduser().resolve(), names, with_conf=with_conf)
+                folders = export_targets(_cli_path(export_to, "--export-to"), names, with_conf=with_conf)
                 check_export_targets(folders, overwrite=overwrite)
             except LeapError as exc:
                 more = "; add --overwrite to replace them" if "already holds" in str(exc) else ""
@@ -781,7 +795,7 @@ def train_3dcn_cmd(
             cfg,
             meta={
                 "kind": "ground-truth",
-                "sequences": [str(s.root.resolve()) for s in seqs],
+                "sequences": [str(_cli_path(s.root, "sequence")) for s in seqs],
                 "scans": len(data.scans),
                 "class_names": sch.names,
                 "class_counts": data.class_counts.tolist(),
@@ -810,7 +824,7 @@ def _zip_target(zip_path: str | None, overwrite: bool) -> Path | None:
 
     if zip_path is None:
         return None
-    zfile = Path(zip_path).expanduser().resolve()
+    zfile = _cli_path(zip_path, "--zip")
     problem = export_target_problem(zfile.parent)
     if problem is not None:
         raise LeapError(f"--zip: {problem}")
@@ -865,7 +879,7 @@ def _write_exports(  # the run and the export options
         )
     exported = run_export(result.root)
     if export_to is not None:
-        target = Path(export_to).expanduser().resolve()
+        target = _cli_path(export_to, "--export-to")
         folders = export_targets(target, [s.name for s in exported], with_conf=with_conf)
         done = write_run_export(folders, exported, with_conf=with_conf, overwrite=overwrite)
         note = f" (replaced {done.replaced})" if done.replaced else ""
@@ -1087,12 +1101,12 @@ def _label_demo(settings: Settings, project_id: int, active: RunRow | None) -> R
     return finished
 
 
-def _lock_work_dir(settings: Settings) -> WorkDirLock:
-    """The work folder's lock, held from before the database is opened until the process ends (one
-    process per work folder; a one-line error when another holds it)."""
-    from app.core.instance import StartupRefused, WorkDirLock
+def _lock_work_dir(settings: Settings) -> ServerLock:
+    """The work folder's and the database's lock, held from before the database is opened until the process
+    ends (one process per work folder and per database; a one-line error when another holds either)."""
+    from app.core.instance import ServerLock, StartupRefused
 
-    lock = WorkDirLock(settings.work_dir)
+    lock = ServerLock(settings.work_dir, settings.database)
     try:
         lock.acquire(f"leap demo, port {settings.port}")
     except StartupRefused as exc:

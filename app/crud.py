@@ -64,6 +64,36 @@ def _dumps(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"))
 
 
+_ID_TABLES = ("projects", "runs")
+"""Tables whose ids are never handed out twice (:func:`_new_id`)."""
+
+
+def _last_id_key(table: str) -> str:
+    return f"last_id.{table}"
+
+
+def _new_id(db: sqlite_utils.Database, table: str) -> int:
+    """An id of ``table`` never handed out before: one past the highest it holds or held (kept in ``meta``).
+
+    SQLite's own choice (the highest present + 1) gives a deleted row's id to the next row, and a project's
+    or run's id names its folders (``runs/p<P>/r<R>``, ``cache/p<P>``) and the app's in-memory state (the
+    corrections job's grid, viewers): a new project must never meet what the deleted one left. Call inside
+    the transaction that inserts the row.
+    """
+    assert table in _ID_TABLES
+    held = int(db.execute(f"SELECT COALESCE(MAX(id), 0) FROM {table}").fetchone()[0])
+    new = max(held, int(get_meta(db, _last_id_key(table)) or 0)) + 1
+    set_meta(db, _last_id_key(table), str(new))
+    return new
+
+
+def _retire_ids(db: sqlite_utils.Database, table: str, highest: int) -> None:
+    """Record that ids up to ``highest`` of ``table`` were handed out (before deleting rows that were
+    created before ids were recorded)."""
+    if highest > int(get_meta(db, _last_id_key(table)) or 0):
+        set_meta(db, _last_id_key(table), str(highest))
+
+
 # -------------------------------------------------------------------------------------------- projects
 def create_project(
     db: sqlite_utils.Database,
@@ -87,9 +117,10 @@ def create_project(
         raise ValueError("a project needs at least one sequence")
     with transaction(db):
         cursor = db.execute(
-            "INSERT INTO projects (name, dataset_kind, dataset_path, schema_json, pipeline_json, is_demo, "
-            "estimate_poses, created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            "INSERT INTO projects (id, name, dataset_kind, dataset_path, schema_json, pipeline_json, "
+            "is_demo, estimate_poses, created_at, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             [
+                _new_id(db, "projects"),
                 name,
                 dataset_kind,
                 seqs[0][1],
@@ -271,7 +302,13 @@ def update_project(
 
 
 def delete_project(db: sqlite_utils.Database, project_id: int) -> None:
-    db.execute("DELETE FROM projects WHERE id = ?", [project_id])
+    """Delete the project and, by cascade, its runs, sequences, corrections and review marks; their ids are
+    never handed out again (:func:`_new_id`)."""
+    with transaction(db):
+        last_run = db.execute("SELECT COALESCE(MAX(id), 0) FROM runs WHERE project_id = ?", [project_id])
+        _retire_ids(db, "runs", int(last_run.fetchone()[0]))
+        _retire_ids(db, "projects", project_id)
+        db.execute("DELETE FROM projects WHERE id = ?", [project_id])
 
 
 def find_demo_project(db: sqlite_utils.Database) -> ProjectRow | None:
@@ -309,9 +346,9 @@ def create_run(db: sqlite_utils.Database, *, project_id: int, params: RunParams,
             "SELECT COALESCE(MAX(number), 0) + 1 FROM runs WHERE project_id = ?", [project_id]
         ).fetchone()[0]
         cursor = db.execute(
-            "INSERT INTO runs (project_id, number, status, params_json, run_dir, created_at) "
-            "VALUES (?, ?, 'queued', ?, '', ?)",
-            [project_id, number, _dumps(params.to_dict()), utcnow()],
+            "INSERT INTO runs (id, project_id, number, status, params_json, run_dir, created_at) "
+            "VALUES (?, ?, ?, 'queued', ?, '', ?)",
+            [_new_id(db, "runs"), project_id, number, _dumps(params.to_dict()), utcnow()],
         )
         run_id = _inserted_id(cursor)
         run_dir = runs_dir / f"p{project_id}" / f"r{run_id}"

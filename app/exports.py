@@ -20,7 +20,7 @@ from pathlib import Path
 from app import models
 from app.core.config import Settings
 from app.core.errors import Conflict, Forbidden, NotFound
-from app.core.security import resolve_in_roots
+from app.core.security import UnusablePath, real_path, real_path_or_none, resolve_in_roots
 from app.rows import ProjectRow, RunRow
 from app.services import pipeline_config
 from leap_core import __version__
@@ -93,6 +93,22 @@ def _inside(path: Path, folder: Path) -> bool:
     return path == folder or path.is_relative_to(folder)
 
 
+def _server_folder(path: Path, what: str) -> Path:
+    """:func:`~app.core.security.real_path` of one of the server's own folders.
+
+    Raises:
+        Conflict: the folder cannot be looked up (it was made a symlink loop); nothing is written.
+    """
+    try:
+        return real_path(path)
+    except UnusablePath as exc:
+        raise Conflict(f"{what} {path} {exc}; whoever runs the server must fix it") from None
+
+
+def _own_exports(settings: Settings) -> Path:
+    return _server_folder(exports_dir(settings), "the app's export folder")
+
+
 def export_target(settings: Settings, project: ProjectRow, raw: str) -> Path:
     """The resolved folder ``raw`` names, when one sequence's export may be written into it: a dataset's
     ``predictions/`` folder (beside its ``velodyne/``) inside a data root (or the demo's), or a folder
@@ -102,10 +118,11 @@ def export_target(settings: Settings, project: ProjectRow, raw: str) -> Path:
         Forbidden: outside the data roots and the app's export folder; a dataset input folder, a run
             folder, the work folder; or neither a dataset's ``predictions/`` nor inside the app's exports.
     """
-    own = exports_dir(settings).resolve()
-    work = settings.work_dir.resolve()
+    own = _own_exports(settings)
+    work = _server_folder(settings.work_dir, "the work folder")
     roots = [*settings.data_roots, own]
-    demo = [Path(s.dataset_path).resolve() / PREDICTIONS for s in project.sequences]
+    folders = [real_path_or_none(s.dataset_path) for s in project.sequences]
+    demo = [folder / PREDICTIONS for folder in folders if folder is not None]
     if project.dataset_kind == "demo":
         # The built-in demo lives in the work folder; its predictions/ folder is allowed too.
         roots += demo
@@ -191,7 +208,7 @@ def targets(
             out[seq.name] = [base, *([base.parent / CONFIDENCES] if with_conf else [])]
         shown: dict[str, str] = {name: str(folders[0]) for name, folders in out.items()}
     else:
-        roots = [*settings.data_roots, exports_dir(settings).resolve()]
+        roots = [*settings.data_roots, _own_exports(settings)]
         base = resolve_in_roots(raw, roots, what="export path")
         out = export_targets(base, run.params.names, with_conf=with_conf)
         shown = {name: raw for name in out}

@@ -29,7 +29,8 @@ from app.core.body_limit import BodyLimit
 from app.core.config import LOOPBACK_NAMES, Settings, get_settings
 from app.core.db import ConnectionPool, init_db, set_size_cap
 from app.core.errors import AppError, InvalidField, disk_full_message, printable, validation_errors
-from app.core.instance import StartupRefused, WorkDirLock, bind_socket
+from app.core.instance import ServerLock, StartupRefused, bind_socket
+from app.core.request_head import KEEP_ALIVE_S, head_limit_protocol
 from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_agri_demo_project, seed_demo_project
 from app.jobs.apply import applier
@@ -214,6 +215,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # fails on a lone surrogate in it: answer with the errors only, each input cut short.
         return JSONResponse({"detail": validation_errors(exc.errors())}, status_code=422)
 
+    @app.exception_handler(OSError)
+    async def _file_error(_request: Request, exc: OSError) -> JSONResponse:
+        # Reads write files too (an export's zip and counts, a run preview's scratch folder): a full disk
+        # is the user's to fix wherever it is met; any other file error stays a 500.
+        message = disk_full_message(exc)
+        if message is None:
+            log.error("file error", exc_info=exc)
+            return JSONResponse({"detail": "Internal Server Error"}, status_code=500)
+        return JSONResponse({"detail": printable(message)}, status_code=507)
+
     @app.exception_handler(sqlite3.OperationalError)
     async def _db_error(_request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
         # A full disk is the user's to fix, so it gets a message; other database errors stay a 500.
@@ -252,14 +263,14 @@ def _close_viewers(app: FastAPI) -> None:
     close_viewers(app)
 
 
-def serve(settings: Settings | None = None, lock: WorkDirLock | None = None) -> None:
+def serve(settings: Settings | None = None, lock: ServerLock | None = None) -> None:
     """Run the server in the foreground until interrupted.
 
     Refused with a one-line message (exit status 1) and without touching the database when another
-    server owns the work folder or the port cannot be bound (see :mod:`app.core.instance`).
+    server owns the work folder or the database, or the port cannot be bound (see :mod:`app.core.instance`).
 
     Args:
-        lock: the work folder's lock when the caller already holds it (``leap demo``).
+        lock: the work folder's and database's lock when the caller already holds it (``leap demo``).
     """
     settings = settings or get_settings()
     logging.basicConfig(
@@ -268,7 +279,7 @@ def serve(settings: Settings | None = None, lock: WorkDirLock | None = None) -> 
     scheme_host = f"[{settings.host}]" if ":" in settings.host else settings.host
     try:
         if lock is None:
-            lock = WorkDirLock(settings.work_dir)
+            lock = ServerLock(settings.work_dir, settings.database)
             lock.acquire(f"{scheme_host}:{settings.port}")
         sock = bind_socket(settings.host, settings.port)
     except StartupRefused as exc:
@@ -285,7 +296,13 @@ def serve(settings: Settings | None = None, lock: WorkDirLock | None = None) -> 
         gc.collect()
         gc.freeze()
         config = uvicorn.Config(
-            app, host=settings.host, port=settings.port, log_level=settings.log_level, access_log=False
+            app,
+            host=settings.host,
+            port=settings.port,
+            log_level=settings.log_level,
+            access_log=False,
+            http=head_limit_protocol(settings.request_head_timeout_s),
+            timeout_keep_alive=KEEP_ALIVE_S,
         )
         uvicorn.Server(config).run(sockets=[sock])
     finally:

@@ -25,9 +25,12 @@ _BAD_NAME_CHARS = re.compile(r"[/\\\x00-\x1f\x7f]")
 
 class _Input(BaseModel):
     """Base of every request body. Ids, strings and numbers inside bodies are bounded for every route by
-    :func:`app.api.deps.require_plain_body` (64-bit integers, finite numbers, no control characters)."""
+    :func:`app.api.deps.require_plain_body` (64-bit integers, finite numbers, no control characters).
 
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, allow_inf_nan=False)
+    Strict: a value must have its field's JSON type (``true`` is no integer, ``"3"`` no number, ``1`` no
+    boolean); an integer is accepted where a number is meant."""
+
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, allow_inf_nan=False, strict=True)
 
 
 # --------------------------------------------------------------------------------------------- classes

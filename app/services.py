@@ -20,7 +20,7 @@ from app.advice import report_dict
 from app.core.config import Settings
 from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
-from app.core.security import resolve_in_roots
+from app.core.security import UnusablePath, real_path, real_path_or_none, resolve_in_roots
 from app.forms import FORM_FIELDS, form_values, overrides_from_form
 from app.jobs.progress import ProgressTracker
 from app.rows import DatasetKind, ProjectRow, RunRow, labeled_sequences
@@ -79,11 +79,18 @@ def _inside(path: Path, roots: list[Path]) -> bool:
 
 def escaping_entry(folder: Path, roots: list[Path]) -> tuple[str, Path] | None:
     """(name, real target) of the first entry of the sequence ``folder`` (itself resolved inside a root)
-    that is a symbolic link leading outside every data root, or None."""
+    that is a symbolic link leading outside every data root, or None.
+
+    Raises:
+        UnusablePath: an entry is a link that cannot be followed (a loop); the message starts with its name.
+    """
     for name in SEQUENCE_ENTRIES:
         entry = folder / name
         if entry.is_symlink():
-            target = entry.resolve()
+            try:
+                target = real_path(entry)
+            except UnusablePath as exc:
+                raise UnusablePath(f"{name} {exc}") from None
             if not _inside(target, roots):
                 return name, target
     return None
@@ -111,11 +118,15 @@ def resolve_dataset(
             f"dataset path {ref.path!r}: not a KITTI sequence folder (it has no velodyne/ folder; "
             "pick a folder like .../sequences/00)",
         )
-    escape = escaping_entry(path, settings.data_roots)
+    try:
+        escape = escaping_entry(path, settings.data_roots)
+    except UnusablePath as exc:
+        raise InvalidField(loc, f"dataset path {ref.path!r}: {exc}") from None
     if escape is not None:
         name, target = escape
         raise Forbidden(
-            f"dataset path {ref.path!r}: {name} is a link to {str(target)!r}, outside the allowed data roots"
+            f"dataset path {ref.path!r}: {name} is a symlink to {str(target)!r}, which is outside the "
+            "allowed data roots"
         )
     return "folder", path
 
@@ -190,9 +201,15 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
     demo street too, once generated, when the work folder lies inside a data root)."""
     found: list[models.DatasetCandidate] = []
     seen: set[Path] = set()
-    work = settings.work_dir.resolve()
+    work = real_path_or_none(settings.work_dir) or settings.work_dir
 
     roots = list(settings.data_roots)
+
+    def listable(folder: Path) -> bool:
+        try:
+            return escaping_entry(folder, roots) is None
+        except UnusablePath:
+            return False
 
     def visit(folder: Path, depth: int) -> None:
         if len(found) >= limit or depth > max_depth:
@@ -202,9 +219,9 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
         except OSError:
             return
         if (folder / "velodyne").is_dir():
-            real = folder.resolve()
+            real = real_path_or_none(folder)
             # A listed folder must be one a project can be created on (resolve_dataset's rules).
-            if real not in seen and escaping_entry(folder, roots) is None:
+            if real is not None and real not in seen and listable(folder):
                 seen.add(real)
                 check = dataset_check(settings, folder)
                 found.append(
@@ -218,7 +235,9 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
                 )
             return
         for child in children:
-            real = child.resolve()
+            real = real_path_or_none(child)
+            if real is None:  # a link that cannot be followed (a loop) leads to no dataset
+                continue
             # The app's own work folder holds runs and caches, not datasets to label (of it only the
             # generated demo street, work_dir/demo/sequences/00, is offered); a link leading out of the
             # data roots is not followed (the listing would show folders nobody may use).
@@ -307,7 +326,7 @@ def _project_sequences(
                 f"sequence name {name!r} is taken by sequences[{names[name]}]; give each sequence its "
                 "own name",
             )
-        real = path.resolve()
+        real = path  # resolved by resolve_dataset
         if real in folders:
             raise InvalidField(loc, f"dataset path {ref.path!r} is sequences[{folders[real]}] again")
         names[name], folders[real] = i, i
@@ -347,8 +366,16 @@ def update_project(db: sqlite_utils.Database, project_id: int, payload: models.P
     )
 
 
-def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> None:
-    """Delete the project, its runs and corrections, and its run folders under the work dir.
+def project_folders(settings: Settings, project_id: int) -> list[Path]:
+    """The work folder's folders of one project: its runs (``runs/p<P>``) and its stage caches
+    (``cache/p<P>``, the 2D labels its runs and run previews computed)."""
+    return [settings.runs_dir / f"p{project_id}", settings.cache_dir / f"p{project_id}"]
+
+
+def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> list[Path]:
+    """Delete the project, its runs and corrections, and its folders under the work dir
+    (:func:`project_folders`); returns those folders (the caller makes sure no background job writes
+    into them again: :meth:`app.jobs.apply.CorrectionApplier.forget`).
 
     The dataset and anything exported into its ``predictions/`` folder are the user's and stay.
     """
@@ -358,7 +385,10 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
         raise Conflict(f"Project {project_id} has run {active.id} {active.status}; cancel it first")
     crud.delete_project(db, project_id)
     # After the rows are gone: a crash in between leaves orphan files, never rows pointing at nothing.
-    remove_tree(settings.runs_dir / f"p{project_id}")
+    folders = project_folders(settings, project_id)
+    for folder in folders:
+        remove_tree(folder)
+    return folders
 
 
 # -------------------------------------------------------------------------------------------- sequences
@@ -420,13 +450,13 @@ def add_sequence(
                     f"sequence name {name!r} is taken in project "
                     f"{project_id}; give the new sequence its own name",
                 )
-            if Path(s.dataset_path).resolve() == path:
+            if real_path_or_none(s.dataset_path) == path:
                 raise InvalidField(
                     loc,
                     f"dataset path {payload.path!r} is sequence {s.name!r} of project {project_id} already",
                 )
         removed = crud.removed_sequence(db, project_id, name)
-        if removed is not None and Path(removed.dataset_path).resolve() != path:
+        if removed is not None and real_path_or_none(removed.dataset_path) != path:
             raise InvalidField(
                 ("body", "name"),
                 f"sequence name {name!r} belonged to the removed sequence on {removed.dataset_path!r}, "
@@ -808,7 +838,11 @@ def raw_ids_public(project: ProjectRow) -> models.RawIdsPublic:
             frames_total=0,
             names={str(k): v for k, v in names.items()},
         )
-    key = (str(labels.resolve()), *_labels_signature(labels))
+    try:
+        real = real_path(labels)
+    except UnusablePath as exc:
+        raise InvalidField(["dataset", "labels"], f"{labels} {exc}; fix or remove it") from None
+    key = (str(real), *_labels_signature(labels))
     with _RAW_ID_LOCK:
         cached = _RAW_ID_CACHE.get(key)
     if cached is None:

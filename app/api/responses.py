@@ -48,10 +48,12 @@ CONFLICT = _error(409, "The request conflicts with the resource's state (e.g. a 
 
 FULL_DISK = _error(
     507,
-    "The disk holding the database is full (or `LEAP_DB_MAX_MB` is reached), or a run would start with "
-    "less free space than `LEAP_MIN_FREE_DISK_MB`",
+    "The disk is full: the database's (or `LEAP_DB_MAX_MB` is reached), or the one a file the request "
+    "writes goes to (an export folder, an export's zip or counts, a run preview's scratch files), or a "
+    "run would start with less free space than `LEAP_MIN_FREE_DISK_MB`",
 )
 
 COMMON_RESPONSES: Responses = {**BAD_REQUEST, **FORBIDDEN, **TOO_LARGE, **INVALID, **FULL_DISK}
 """What any API route can answer besides its success: every route is behind the token check, the body
-limit and request validation, and any database write can meet a full disk."""
+limit and request validation, and any database or file write (reads included: an export's zip is built
+on its first download) can meet a full disk."""

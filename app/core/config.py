@@ -16,8 +16,18 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from app.core.demo_synth import synth_config
+from app.core.security import UnusablePath, real_path
 
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
+
+
+def _real(path: str | Path, what: str) -> Path:
+    """:func:`~app.core.security.real_path` of a configured folder; a ValueError naming it otherwise (pydantic
+    reports it as the setting's error)."""
+    try:
+        return real_path(path)
+    except UnusablePath as exc:
+        raise ValueError(f"{what} {path} {exc}") from None
 
 
 def is_loopback(host: str) -> bool:
@@ -127,6 +137,10 @@ class Settings(BaseSettings):
     disk (the run that needed it fails, the server stays up). None: no cap beyond the disk's size."""
     max_body_bytes: int = Field(default=1024 * 1024, ge=1024, le=1024**3)
     """Largest request body accepted (bytes); a larger one is answered 413 before it is read."""
+    request_head_timeout_s: float = Field(default=10.0, gt=0, le=300)
+    """Seconds a connection has to send a request's line and headers, from its start or from the end of
+    its previous response; a slower one is answered 408 and closed, so a client that trickles a head
+    cannot hold connections open forever (``app.core.request_head``)."""
 
     @field_validator("host")
     @classmethod
@@ -141,7 +155,7 @@ class Settings(BaseSettings):
     def _roots(cls, value: list[Path]) -> list[Path]:
         if not value:
             raise ValueError("at least one data root is needed")
-        roots = [Path(p).expanduser().resolve() for p in value]
+        roots = [_real(p, "data root") for p in value]
         for root in roots:
             if root.exists() and not root.is_dir():
                 raise ValueError(f"data root {root} is a file, not a folder")
@@ -154,7 +168,7 @@ class Settings(BaseSettings):
     def _abs_dir(cls, value: Path | None) -> Path | None:
         if value is None:
             return None
-        path = Path(value).expanduser().resolve()
+        path = _real(value, "folder")
         if path.exists() and not path.is_dir():
             raise ValueError(f"{path} is a file, not a folder")
         return path
@@ -187,7 +201,7 @@ class Settings(BaseSettings):
         if self.db_path is None:
             object.__setattr__(self, "db_path", self.work_dir / "studio.db")
         else:
-            object.__setattr__(self, "db_path", Path(self.db_path).expanduser().resolve())
+            object.__setattr__(self, "db_path", _real(self.db_path, "db_path"))
         return self
 
     # ----------------------------------------------------------------------------------- derived paths

@@ -4,7 +4,9 @@ paths to the configured data roots."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import hmac
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -22,6 +24,60 @@ def token_matches(expected: str | None, given: str | None) -> bool:
     return hmac.compare_digest(expected.encode(), given.encode("utf-8", "surrogatepass"))
 
 
+class UnusablePath(ValueError):
+    """A path the system cannot look up: a symbolic link loop, a name too long, a NUL byte; the message
+    completes "path X ..." (e.g. ``is a symlink loop ...``)."""
+
+
+def real_path(path: str | Path) -> Path:
+    """``path`` made absolute with ``~`` expanded and every symbolic link followed, as :meth:`Path.resolve`
+    (parts that do not exist are allowed). The one way the app resolves a path a user gave or stored.
+
+    :meth:`Path.resolve` reports a symlink loop as ``RuntimeError`` on Python 3.11 (``OSError`` ELOOP on
+    later versions) and ``~nobody`` as ``RuntimeError`` too; an uncaught one is a 500. Here each becomes
+    :class:`UnusablePath` with a reason the caller puts in its own message (naming the field).
+
+    Raises:
+        UnusablePath: a loop, an unknown ``~user``, a name too long, a NUL byte.
+    """
+    try:
+        expanded = Path(str(path)).expanduser()
+    except RuntimeError:  # "Could not determine home directory"
+        raise UnusablePath("starts with '~' of a user this system does not know") from None
+    try:
+        resolved = expanded.resolve()
+        # resolve() skips what does not exist; stat raises what later checks (is_dir) would hide.
+        with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+            resolved.stat()
+    except RuntimeError:  # Python 3.11's report of a loop
+        raise UnusablePath(_loop_reason(expanded)) from None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UnusablePath(_loop_reason(expanded)) from None
+        raise UnusablePath(f"cannot be looked up ({exc.strerror or exc})") from None
+    except ValueError as exc:  # "embedded null byte"
+        raise UnusablePath(f"cannot be looked up ({exc})") from None
+    return resolved
+
+
+LOOP = "a symlink loop (a link that leads back to itself, or too many links in a row)"
+
+
+def _loop_reason(path: Path) -> str:
+    """How ``path`` (absolute or relative to the current folder) meets a loop: it is one, or a folder on
+    the way is."""
+    prefix = Path(path.anchor) if path.is_absolute() else Path()
+    for part in path.parts[1:] if path.is_absolute() else path.parts:
+        prefix = prefix / part
+        try:
+            os.stat(prefix)
+        except OSError as exc:
+            if exc.errno != errno.ELOOP:
+                break
+            return f"is {LOOP}" if prefix == path else f"goes through {printable(str(prefix), 200)!r}, {LOOP}"
+    return f"leads into {LOOP}"
+
+
 def resolve_in_roots(
     raw: str | Path,
     roots: Iterable[Path],
@@ -31,29 +87,67 @@ def resolve_in_roots(
 ) -> Path:
     """Resolve ``raw`` (relative paths are taken inside the first root) and check it lies in a root.
 
-    Symlinks are resolved first, so a link inside a root that points outside it is refused too.
+    Symlinks are resolved first, so a link inside a root that points outside it is refused too; the
+    refusal then names the link and where it leads.
 
     Raises:
         Forbidden: naming the path and the allowed roots.
-        InvalidField: at ``loc``, a path the system cannot even look up (a NUL byte, a name too long).
+        InvalidField: at ``loc``, a path the system cannot even look up (a symlink loop, a NUL byte, a
+            name too long).
     """
-    roots = [Path(r).resolve() for r in roots]
+    given = list(roots)
+    # A root that cannot be looked up (a stored folder turned into a loop) holds nothing.
+    roots = [r for r in map(real_path_or_none, given) if r is not None]
+    candidate = Path(str(raw))
+    if not candidate.is_absolute() and not str(raw).startswith("~"):
+        candidate = Path(given[0]) / candidate
     try:
-        candidate = Path(str(raw)).expanduser()
-        if not candidate.is_absolute():
-            candidate = roots[0] / candidate
-        resolved = candidate.resolve()
-        # Raises what later checks (is_dir) would: a name too long, a loop. Absent is fine here.
-        with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-            resolved.stat()
-    except (OSError, ValueError) as exc:  # ENAMETOOLONG, ELOOP, "embedded null byte"
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise InvalidField(loc, f"{what} {printable(str(raw), 120)!r} cannot be used: {reason}") from None
-    for root in roots:
-        if resolved == root or resolved.is_relative_to(root):
-            return resolved
+        resolved = real_path(candidate)
+    except UnusablePath as exc:
+        raise InvalidField(loc, f"{what} {printable(str(raw), 120)!r} {exc}; name a real folder") from None
+    if _inside(resolved, roots):
+        return resolved
     allowed = ", ".join(str(r) for r in roots)
+    link = _escaping_link(candidate, roots)
+    if link is not None:
+        where, target = link
+        via = "is" if where == candidate.expanduser() else f"goes through {str(where)!r},"
+        raise Forbidden(
+            f"{what} {str(raw)!r} {via} a symlink to {str(target)!r}, which is outside the allowed "
+            f"data roots ({allowed})"
+        )
     raise Forbidden(f"{what} {str(raw)!r} is outside the allowed data roots ({allowed})")
+
+
+def real_path_or_none(path: str | Path) -> Path | None:
+    """:func:`real_path`, or None for a path that cannot be looked up (a stored folder that has become a
+    symlink loop holds nothing and equals no other folder)."""
+    try:
+        return real_path(path)
+    except UnusablePath:
+        return None
+
+
+def _inside(path: Path, roots: Sequence[Path]) -> bool:
+    return any(path == root or path.is_relative_to(root) for root in roots)
+
+
+def _escaping_link(path: Path, roots: Sequence[Path]) -> tuple[Path, Path] | None:
+    """(link, its real target) of the first symbolic link along ``path`` (itself included) that leads
+    outside every root, or None: what a refusal names instead of the typed path."""
+    path = path.expanduser()
+    prefix = Path(path.anchor)
+    for part in path.parts[1:]:
+        prefix = prefix / part
+        if not prefix.is_symlink():  # lstat: the link itself, never followed
+            continue
+        try:
+            target = real_path(prefix)
+        except UnusablePath:
+            return None
+        if not _inside(target, roots):
+            return prefix, target
+    return None
 
 
 UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from app import crud, services
+from app.advice import ADVICE
 from app.core.config import Settings
 from app.core.db import open_db, transaction, utcnow
 from app.core.errors import Conflict, InsufficientStorage, InvalidField, disk_full_message
@@ -220,6 +221,7 @@ class JobManager:
                 project = crud.require_project(db, project_id)
                 for seq in project.sequences:
                     self._confine_dataset(project.dataset_kind, seq.dataset_path)
+                _refuse_without_poses(project)
                 if frames is not None and len(project.sequences) > 1:
                     raise InvalidField(
                         ["body", "frames"],
@@ -399,8 +401,9 @@ class JobManager:
     def _prepare_run_dir(self, db: Any, run: RunRow) -> None:
         """Write the parameter snapshot into the new run folder, and into each sequence's folder its active
         corrections and the stage outputs of the finished run it starts from (:func:`seed_source`)."""
-        # SQLite reuses the highest ids after a delete, so p<P>/r<R> may hold a deleted project's files
-        # (left behind if that delete was interrupted); stale stage outputs must never leak into this run.
+        # Ids are never handed out twice (crud._new_id), but a database restored from a backup, or one whose
+        # rows were deleted by an older version, may give p<P>/r<R> whose folder holds another run's files:
+        # stale stage outputs must never leak into this run.
         remove_tree(run.run_dir)
         run.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_json(run.layout.params, run.params.to_dict())
@@ -900,6 +903,26 @@ class JobManager:
 
 _CODE_ROOT = Path(__file__).resolve().parents[2]
 """The folder holding the ``app`` and ``leap_core`` packages this server runs."""
+
+
+def _refuse_without_poses(project: ProjectRow) -> None:
+    """Refuse a run that would fail at its first 3D stage: a sequence folder without ``poses.txt`` in a
+    project that does not estimate poses (as ``leap run`` refuses one before any work).
+
+    Raises:
+        Conflict: naming the sequence, its missing poses file and the fixes in the app's words.
+    """
+    if project.dataset_kind == "demo" or project.estimate_poses:
+        return  # the demo street is generated with its poses; estimated poses are made by the run
+    missing = [s for s in project.sequences if needs_estimate(Path(s.dataset_path))]
+    if missing:
+        seq = missing[0]
+        which = f"sequence {seq.name!r}: " if len(project.sequences) > 1 else ""
+        raise Conflict(
+            f"{which}{Path(seq.dataset_path) / 'poses.txt'}: no poses, and the 3D stages need one pose per "
+            f"scan; {ADVICE['poses_missing'].app} (through the API: PATCH /api/v1/projects/{project.id} "
+            'with {"estimate_poses": true}), then start the run again'
+        )
 
 
 def worker_command(message_fd: int) -> list[str]:

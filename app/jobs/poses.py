@@ -13,6 +13,7 @@ import hashlib
 import logging
 from pathlib import Path
 
+from app.core.security import real_path_or_none
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
 from leap_core.io_utils import link_or_copy, remove_tree
 from leap_core.progress import ProgressFn
@@ -24,7 +25,8 @@ notice_log = logging.getLogger("leap_core.poses")
 
 def cache_folder(cache_root: Path, dataset: Path) -> Path:
     """The cache folder of one dataset's estimate."""
-    key = hashlib.sha256(str(Path(dataset).resolve()).encode()).hexdigest()[:16]
+    real = real_path_or_none(dataset) or Path(dataset).absolute()  # a loop fails the run's own reading
+    key = hashlib.sha256(str(real).encode()).hexdigest()[:16]
     return cache_root / "poses" / key
 
 

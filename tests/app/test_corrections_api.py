@@ -329,3 +329,86 @@ def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:
         assert new.points.tolist() == [3, 4] and new.author == "viewer" and new.class_name == ""
         with pytest.raises(Exception, match="CHECK"):
             db.execute("UPDATE corrections SET scope = 'world' WHERE id = ?", [cid])
+
+
+def _wait_apply(c: httpx.Client, pid: int, timeout: float = 60.0) -> dict[str, Any]:
+    """The project's corrections once its apply job is not running (its last pass done)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        body = c.get(f"/projects/{pid}/corrections").json()
+        if body["apply"]["status"] != "running":
+            return dict(body)
+        time.sleep(0.05)
+    raise AssertionError(f"the apply-corrections job of project {pid} did not finish")
+
+
+def _labeled_project(c: httpx.Client, dataset: Path, name: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A project on ``dataset`` with one finished run: (project, run)."""
+    p = c.post("/projects", json={"name": name, "dataset": {"kind": "folder", "path": str(dataset)}})
+    assert p.status_code == 201, p.text
+    run = wait_run(c, c.post(f"/projects/{p.json()['id']}/runs", json={}).json()["id"], api="")
+    assert run["status"] == "done", run
+    return p.json(), run
+
+
+def _export_labels(data: Path, run: dict[str, Any]) -> dict[str, np.ndarray]:
+    run_dir = data / "studio" / "runs" / f"p{run['project_id']}" / f"r{run['id']}"
+    export = run_dir / "sequences" / "00" / "export"
+    return {p.stem: read_label(p) for p in sorted(export.glob("*.label"))}
+
+
+def _frame_keys(dataset: Path, frame: int, voxel_size: float) -> np.ndarray:
+    f = KittiSequence(dataset).frame(frame)
+    return np.unique(voxel_keys(world_points(f.points, f.pose), voxel_size))
+
+
+@pytest.mark.slow
+def test_a_deleted_projects_grid_never_relabels_a_new_projects_export(tmp_path: Path) -> None:
+    """The corrections job keeps a run's grid in memory. A project deleted and another created after it
+    (which SQLite alone would give the same ids, hence the same run folder) must get its own: undoing a
+    correction of the new project restores exactly its run's export, as a freshly started server does."""
+    data = tmp_path / "data"
+    first = build_tiny_sequence(data / "first", n_frames=FRAMES, n_points=400, seed=0)
+    second = build_tiny_sequence(data / "second", n_frames=FRAMES, n_points=400, seed=1)
+    for seq in (first, second):
+        add_gt2d(seq.root, seq.frame_ids, (48, 64))
+    server = Server(data).start()
+    try:
+        with server.client() as c:
+            old, old_run = _labeled_project(c, first.root, "deleted")
+            vs = float(old_run["params"]["pipeline"]["fusion"]["voxel_size"])
+            target = old_run["params"]["schema"]["classes"][0]["name"]
+            keys = _frame_keys(first.root, 0, vs)[:40]
+            body = {"class_name": target, "voxel_size": vs, "keys": keys.tolist()}
+            assert c.post(f"/projects/{old['id']}/corrections", json=body).status_code == 201
+            assert _wait_apply(c, old["id"])["apply"]["status"] == "done"  # the job holds its grid now
+            assert c.delete(f"/projects/{old['id']}").status_code == 200
+
+            new, new_run = _labeled_project(c, second.root, "created after")
+            own = _export_labels(data, new_run)
+            keys = _frame_keys(second.root, 0, vs)[:40]
+            body = {"class_name": target, "voxel_size": vs, "keys": keys.tolist()}
+            r = c.post(f"/projects/{new['id']}/corrections", json=body)
+            assert r.status_code == 201, r.text
+            assert _wait_apply(c, new["id"])["apply"]["frames"] > 0
+            r = c.patch(f"/projects/{new['id']}/corrections/{r.json()['id']}", json={"active": False})
+            assert r.status_code == 200, r.text
+            assert _wait_apply(c, new["id"])["apply"]["status"] == "done"
+            undone = _export_labels(data, new_run)
+        assert undone.keys() == own.keys()
+        wrong = [f for f in own if not np.array_equal(undone[f], own[f])]
+        assert not wrong, f"undo did not restore the run's labels in {wrong}"
+
+        # A freshly started server (no grid in memory) gives the same export for redo then undo.
+        server.stop()
+        server.start()
+        with server.client() as c:
+            correction = c.get(f"/projects/{new['id']}/corrections").json()["corrections"][0]
+            for active in (True, False):
+                r = c.patch(f"/projects/{new['id']}/corrections/{correction['id']}", json={"active": active})
+                assert r.status_code == 200, r.text
+                assert _wait_apply(c, new["id"])["apply"]["status"] == "done"
+            fresh = _export_labels(data, new_run)
+        assert all(np.array_equal(fresh[f], undone[f]) for f in own)
+    finally:
+        server.stop()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import resource
 import shutil
 import zipfile
 from collections.abc import Iterator
@@ -245,3 +246,61 @@ def test_zip_stands_alone_with_its_label_map(studio: Studio, tmp_path: Path) -> 
     assert summary["project"]["name"] == "B" and summary["run"]["id"] == run["id"]
     assert summary["counts"]["unlabeled"] == info["unlabeled"]
     assert summary["settings"]["pipeline"]["fusion"]["voxel_size"] == pytest.approx(0.2)
+
+
+def test_a_full_disk_is_507_on_every_route_that_writes_files(studio: Studio) -> None:
+    """Reads write files too: the export's counts and its zip are built on first use, a run preview
+    fingerprints in a scratch folder. With the server unable to write more than one byte to any file
+    (``RLIMIT_FSIZE`` set on its process: every larger write fails with EFBIG, as on a full disk), each of
+    them and a folder export answer 507 saying the disk is full; the server lives on and, with the
+    limit lifted, each works."""
+    run = studio.runs["A"]
+    for cached in run_dir(studio, "A").rglob("*"):
+        if cached.name == "export-coverage.json" or cached.suffix == ".zip":
+            cached.unlink()
+    requests = {
+        "export counts": lambda: studio.c.get(f"/runs/{run['id']}/export"),
+        "export zip": lambda: studio.c.get(f"/runs/{run['id']}/export.zip"),
+        "folder export": lambda: export(studio, "A", path=str(studio.data / "studio" / "exports" / "full")),
+        "run preview": lambda: studio.c.get(f"/projects/{run['project_id']}/runs/preview"),
+    }
+    assert studio.server.proc is not None
+    pid = studio.server.proc.pid
+    limits = resource.prlimit(pid, resource.RLIMIT_FSIZE)
+    resource.prlimit(pid, resource.RLIMIT_FSIZE, (1, limits[1]))
+    try:
+        answers = {what: send() for what, send in requests.items()}
+    finally:
+        resource.prlimit(pid, resource.RLIMIT_FSIZE, limits)
+    for what, r in answers.items():
+        assert r.status_code == 507, (what, r.status_code, r.text)
+        assert "the disk is full" in r.json()["detail"] and "free some space" in r.json()["detail"], r.text
+    full = studio.data / "studio" / "exports" / "full"
+    assert not [p for p in full.rglob("*") if p.is_file()]  # nothing half-written is left
+    for what, send in requests.items():
+        assert send().status_code == 200, what
+
+    # The API declares the answer on each of them.
+    paths = studio.c.get("/openapi.json").json()["paths"]
+    for path, method in (
+        ("/api/v1/runs/{run_id}/export", "get"),
+        ("/api/v1/runs/{run_id}/export.zip", "get"),
+        ("/api/v1/runs/{run_id}/export", "post"),
+        ("/api/v1/projects/{project_id}/runs/preview", "get"),
+    ):
+        assert "507" in paths[path][method]["responses"], (path, method)
+
+
+def test_a_symlink_loop_as_export_path_is_refused_naming_the_field(studio: Studio) -> None:
+    exports_dir = studio.data / "studio" / "exports"
+    exports_dir.mkdir(parents=True, exist_ok=True)
+    loop = exports_dir / "loop"
+    loop.symlink_to(loop)
+    try:
+        for path in (loop, loop / "below"):
+            r = export(studio, "A", path=str(path))
+            assert r.status_code == 422, r.text
+            (error,) = r.json()["detail"]
+            assert error["loc"] == ["body", "path"] and "symlink loop" in error["msg"], error
+    finally:
+        loop.unlink()

@@ -68,16 +68,37 @@ def _stages(project: dict[str, Any], *before: str) -> list[str]:
     return [f"{name}/{stage}" for stage in (*before, *STAGES)]
 
 
-def test_a_project_without_the_option_fails_with_app_advice(client: TestClient, no_poses: Path) -> None:
+def test_a_run_without_poses_is_refused_with_app_advice(
+    client: TestClient, no_poses: Path, drive: Path
+) -> None:
+    """As ``leap run`` refuses a sequence without poses before any work, the app refuses the run when it is
+    started (no run row, no failed run): 409 naming the poses file and the fixes in the app's words."""
     project = _create(client, no_poses)
     assert project["estimate_poses"] is False
-    run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
-    assert [s["name"] for s in run["progress"]["stages"]] == _stages(project)
-    done = wait_run(client, run["id"], timeout=120)
-    assert done["status"] == "failed"
-    error = done["error"]
-    assert "poses.txt: no poses" in error and "Estimate poses (KISS-ICP)" in error, error
+    r = client.post(f"{API}/projects/{project['id']}/runs", json={})
+    assert r.status_code == 409, r.text[:300]
+    error = r.json()["detail"]
+    assert f"{no_poses / 'poses.txt'}: no poses" in error, error
+    assert "Estimate poses (KISS-ICP)" in error and '"estimate_poses": true' in error, error
     assert "--estimate-poses" not in error and "leap poses" not in error  # no CLI advice in the app
+    assert client.get(f"{API}/projects/{project['id']}/runs").json()["count"] == 0
+
+    # Either fix lets the run start: the option (through the API here) ...
+    r = client.patch(f"{API}/projects/{project['id']}", json={"estimate_poses": True})
+    assert r.status_code == 200, r.text
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={})
+    assert run.status_code == 202, run.text
+    assert client.post(f"{API}/runs/{run.json()['id']}/cancel").status_code == 200
+    wait_run(client, run.json()["id"], timeout=120)
+    # ... or a poses file in the dataset.
+    r = client.patch(f"{API}/projects/{project['id']}", json={"estimate_poses": False})
+    assert r.status_code == 200, r.text
+    assert client.post(f"{API}/projects/{project['id']}/runs", json={}).status_code == 409
+    shutil.copyfile(drive / "poses.txt", no_poses / "poses.txt")
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={})
+    assert run.status_code == 202, run.text
+    assert client.post(f"{API}/runs/{run.json()['id']}/cancel").status_code == 200
+    wait_run(client, run.json()["id"], timeout=120)
 
 
 def test_estimated_poses_go_to_the_work_folder_and_are_reused(

@@ -5,6 +5,7 @@ and a deleted camera image."""
 from __future__ import annotations
 
 import json
+import select
 import socket
 import sqlite3
 import time
@@ -17,6 +18,8 @@ import httpx
 import pytest
 from apphelpers import wait_run
 from serverproc import SMALL_DEMO, Server, free_port, make_small_street
+
+from app.core.request_head import MAX_HEAD_BYTES
 
 data_root = appfixtures.data_root
 tiny_dataset = appfixtures.tiny_dataset
@@ -243,5 +246,122 @@ def test_a_deleted_image_gives_the_run_a_warning(tiny_dataset: Path) -> None:
             assert image.stem in warnings[0]
             log = c.get(f"/runs/{run['id']}/logs").json()["text"]
             assert "no camera image" in log and image.stem in log
+    finally:
+        server.stop()
+
+
+@pytest.mark.slow
+def test_a_second_server_on_the_same_database_is_refused(tmp_path: Path, tiny_dataset: Path) -> None:
+    """``LEAP_DB_PATH`` lets a server keep its database outside its work folder. A second server with a
+    work folder of its own but the first one's database exits with a message naming the first server and
+    the fix, without opening the database: the first one's active runs stay as they are (a second server
+    used to mark them interrupted)."""
+    data = tiny_dataset.parents[2]
+    db_path = data / "studio" / "studio.db"
+    first = Server(data).start()
+    try:
+        with first.client() as c:
+            project = _project(c, tiny_dataset, "shared database")
+            run = c.post(f"/projects/{project['id']}/runs", json={}).json()
+            wait_run(c, run["id"], 120.0, ("done", "failed"), api="")
+            # Active as far as the database says: what a second server's start-up would mark interrupted.
+            with sqlite3.connect(db_path) as conn:
+                conn.execute(
+                    "UPDATE runs SET status = 'running', finished_at = NULL WHERE id = ?", [run["id"]]
+                )
+            second = Server(
+                data,
+                extra_env={"LEAP_DB_PATH": str(db_path), "LEAP_WORK_DIR": str(tmp_path / "own-work")},
+                log=tmp_path / "second.log",
+            )
+            code, output = second.refused(timeout=45)
+            assert code not in (None, 0), output
+            assert f"database {db_path} is in use by another LeAP Studio server" in output, output
+            assert str(first.port) in output and "LEAP_DB_PATH" in output, output
+            with sqlite3.connect(db_path) as conn:
+                status = conn.execute("SELECT status FROM runs WHERE id = ?", [run["id"]]).fetchone()[0]
+            assert status == "running"
+    finally:
+        first.stop()
+
+
+def _closed_after(s: socket.socket, trickle: bytes = b"", timeout: float = 60.0) -> tuple[bytes, bool]:
+    """Read from ``s`` until the server closes it, sending one byte of ``trickle`` (cyclically) every
+    0.1 s meanwhile: ``(what the server sent, True)``, or ``(..., False)`` when it was still open after
+    ``timeout`` seconds. A reset counts as closed."""
+    answer, sent = b"", 0
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        readable, _, _ = select.select([s], [], [], 0.1)
+        try:
+            if readable:
+                part = s.recv(65536)
+                if not part:
+                    return answer, True
+                answer += part
+            elif trickle:
+                s.sendall(trickle[sent % len(trickle) :][:1])
+                sent += 1
+        except (BrokenPipeError, ConnectionResetError):
+            return answer, True
+    return answer, False
+
+
+def _response(s: socket.socket) -> bytes:
+    """One whole response (head and ``content-length`` bytes of body) read from ``s``."""
+    data = b""
+    while b"\r\n\r\n" not in data:
+        part = s.recv(65536)
+        assert part, data
+        data += part
+    head, body = data.split(b"\r\n\r\n", 1)
+    length = next(
+        int(line.split(b":")[1])
+        for line in head.split(b"\r\n")
+        if line.lower().startswith(b"content-length:")
+    )
+    while len(body) < length:
+        part = s.recv(65536)
+        assert part, data
+        body += part
+    return head + b"\r\n\r\n" + body
+
+
+@pytest.mark.slow
+def test_a_request_head_sent_slowly_or_too_long_is_cut_off(tmp_path: Path) -> None:
+    """A client that sends part of a request head and keeps the connection open (a byte now and then, or
+    nothing) is disconnected once ``LEAP_REQUEST_HEAD_TIMEOUT_S`` has passed, with 408 when it sent part of
+    a head; a head past the size limit gets 431. Requests sent in one go are served as before."""
+    data = tmp_path / "data"
+    data.mkdir()
+    server = Server(data, extra_env={"LEAP_REQUEST_HEAD_TIMEOUT_S": "1", "LEAP_PREWARM_WORKERS": "false"})
+    server.start()
+    head = b"GET /api/v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=60) as s:
+            s.sendall(head)
+            answer, closed = _closed_after(s)
+        assert closed and answer.startswith(b"HTTP/1.1 408 Request Timeout\r\n"), answer
+        with socket.create_connection(("127.0.0.1", server.port), timeout=60) as s:
+            s.sendall(head)
+            answer, closed = _closed_after(s, trickle=b"X-Slow: yes\r\n")
+        assert closed and (answer == b"" or answer.startswith(b"HTTP/1.1 408 ")), answer
+        with socket.create_connection(("127.0.0.1", server.port), timeout=60) as s:
+            answer, closed = _closed_after(s)
+        assert closed and answer == b""
+        with socket.create_connection(("127.0.0.1", server.port), timeout=60) as s:
+            # One byte over the limit and nothing after it: the server has read everything when it closes.
+            big = head + b"X-Big: "
+            s.sendall(big + b"a" * (MAX_HEAD_BYTES + 1 - len(big)))
+            answer, closed = _closed_after(s)
+        assert closed and answer.startswith(b"HTTP/1.1 431 "), answer
+
+        # A keep-alive connection serves several requests, each head sent in one go.
+        with socket.create_connection(("127.0.0.1", server.port), timeout=60) as s:
+            for _ in range(3):
+                s.sendall(head + b"\r\n")
+                assert _response(s).startswith(b"HTTP/1.1 200 OK\r\n")
+        with server.client() as c:
+            assert c.get("/health").status_code == 200
     finally:
         server.stop()

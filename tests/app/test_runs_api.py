@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import io
 import json
+import os
+import time
 import zipfile
 from pathlib import Path
 
@@ -17,6 +20,7 @@ from fastapi.testclient import TestClient
 from app import crud
 from app.core.config import Settings
 from app.core.db import open_db
+from app.jobs.apply import applier
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys
@@ -144,32 +148,106 @@ def crud_run_dir(client: TestClient, run_id: int) -> Path:
     return run.sequence_layout(run.params.names[0]).folder
 
 
-def test_deleting_a_project_removes_its_run_folders(client: TestClient, tiny_dataset: Path) -> None:
+def test_deleting_a_project_removes_its_folders_and_its_ids_are_never_reused(
+    client: TestClient, tiny_dataset: Path
+) -> None:
     project = create_project(client, tiny_dataset, name="doomed")
     run = client.post(f"{API}/projects/{project['id']}/runs", json={"frames": {"start": 0, "stop": 2}}).json()
     assert wait_run(client, run["id"])["status"] == "done"
     run_dir = Path(crud_run_dir(client, run["id"]))
     assert (run_dir / "export" / "000000.label").is_file()
     run_root = run_dir.parents[1]  # the run folder, p<P>/r<R>
+    cache = app_settings(client).cache_dir / f"p{project['id']}"
+    assert any(cache.rglob("*")), "the run keeps its 2D labels in the project's cache folder"
 
     assert client.delete(f"{API}/projects/{project['id']}").status_code == 200
     assert not run_root.parent.exists()
     assert list(run_root.parent.parent.iterdir()) == []  # nothing half-deleted left beside it
+    assert not cache.exists()
     assert (tiny_dataset / "velodyne" / "000000.bin").is_file()  # the user's dataset stays
 
-    # SQLite hands the highest ids out again, so the next project's first run gets the same folder. Files a
-    # crash left there (mid-delete) must not leak into it: the new run starts from an empty folder.
-    run_dir.mkdir(parents=True)
-    (run_dir / "left-by-a-deleted-project.txt").write_text("stale")
-    (run_root / "left-by-a-deleted-project.txt").write_text("stale")
+    # The next project and its run get ids of their own (SQLite alone would hand the deleted ones out
+    # again), so nothing keyed by an id (folders, the corrections job's grid, viewers) is shared.
     again = create_project(client, tiny_dataset, name="reborn")
+    assert again["id"] == project["id"] + 1
+    # Files already at a new run's folder (a database restored from a backup may hand out an id whose
+    # folder is in use) must not leak into it: the new run starts from an empty folder.
+    new_root = run_root.parent.parent / f"p{again['id']}" / f"r{run['id'] + 1}"
+    new_dir = new_root / run_dir.relative_to(run_root)
+    new_dir.mkdir(parents=True)
+    (new_dir / "left-by-a-deleted-project.txt").write_text("stale")
+    (new_root / "left-by-a-deleted-project.txt").write_text("stale")
     rerun = client.post(f"{API}/projects/{again['id']}/runs", json={"frames": {"start": 0, "stop": 2}})
     rerun = rerun.json()
+    assert rerun["id"] == run["id"] + 1
     assert wait_run(client, rerun["id"])["status"] == "done"
-    assert Path(crud_run_dir(client, rerun["id"])) == run_dir
-    assert not (run_dir / "left-by-a-deleted-project.txt").exists()
-    assert not (run_root / "left-by-a-deleted-project.txt").exists()
-    assert sorted(p.name for p in (run_dir / "export").glob("*.label")) == ["000000.label", "000001.label"]
+    assert Path(crud_run_dir(client, rerun["id"])) == new_dir
+    assert not (new_dir / "left-by-a-deleted-project.txt").exists()
+    assert not (new_root / "left-by-a-deleted-project.txt").exists()
+    assert sorted(p.name for p in (new_dir / "export").glob("*.label")) == ["000000.label", "000001.label"]
+    assert client.delete(f"{API}/projects/{again['id']}").status_code == 200
+    assert create_project(client, tiny_dataset, name="third")["id"] == again["id"] + 1
+
+
+def _open_fifo_writer(fifo: Path, timeout: float = 60.0) -> int:
+    """A write end of ``fifo`` once something has it open for reading (ENXIO until then)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            return os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError as exc:
+            if exc.errno != errno.ENXIO:
+                raise
+        time.sleep(0.02)
+    raise AssertionError(f"nothing opened {fifo} for reading within {timeout} s")
+
+
+def test_a_corrections_pass_in_flight_at_a_delete_leaves_no_folder_behind(
+    client: TestClient, tiny_dataset: Path
+) -> None:
+    """The first corrections pass after a run reads every scan (the voxel → frames index) before it writes
+    into the run folder. A project deleted meanwhile must not get its run folder back from that pass,
+    and nothing is applied for it afterwards.
+
+    The pass is held at a real gate: one scan of the dataset is made a named pipe, whose read waits until
+    the test writes the scan's bytes into it."""
+    settings = app_settings(client)
+    project = create_project(client, tiny_dataset)
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
+    run = wait_run(client, run["id"])
+    assert run["status"] == "done", run["error"]
+    applier(settings).wait(project["id"])  # the run-done pass (nothing to apply yet)
+    run_root = settings.runs_dir / f"p{project['id']}"
+    assert run_root.is_dir()
+
+    voxel_size = float(run["params"]["pipeline"]["fusion"]["voxel_size"])
+    first = KittiSequence(tiny_dataset).frame(0)
+    keys = np.unique(voxel_keys(world_points(first.points, first.pose), voxel_size))[:30]
+    gate = tiny_dataset / "velodyne" / "000003.bin"
+    scan = gate.read_bytes()
+    gate.unlink()
+    os.mkfifo(gate)
+    try:
+        body = {"class_name": "car", "voxel_size": voxel_size, "keys": keys.tolist()}
+        assert client.post(f"{API}/projects/{project['id']}/corrections", json=body).status_code == 201
+        writer = _open_fifo_writer(gate)  # the pass is reading the scans now, before any write
+        try:
+            assert client.delete(f"{API}/projects/{project['id']}").status_code == 200
+            assert not run_root.exists()
+        finally:
+            os.set_blocking(writer, True)
+            os.write(writer, scan)
+            os.close(writer)
+        applier(settings).wait(project["id"])
+        assert not run_root.exists(), sorted(str(p.relative_to(run_root)) for p in run_root.rglob("*"))
+        # Asked again (a viewer left open on the deleted project): nothing runs, nothing is written.
+        applier(settings).request(project["id"])
+        applier(settings).warm(project["id"])
+        assert applier(settings).wait(project["id"]).status == "idle"
+        assert not run_root.exists()
+    finally:
+        gate.unlink()
+        gate.write_bytes(scan)
 
 
 def test_unknown_runs_are_404(client: TestClient) -> None:

@@ -124,7 +124,7 @@ def test_added_folders_are_confined_and_checked(
     shutil.copy(folders[1] / "calib.txt", linked / "calib.txt")
     os.symlink(outside / "velodyne", linked / "velodyne")
     r = add(client, pid, linked)
-    assert r.status_code == 403 and "velodyne is a link" in r.json()["detail"], r.text
+    assert r.status_code == 403 and "velodyne is a symlink to" in r.json()["detail"], r.text
     # A link inside the roots leading out of them is resolved, then refused.
     os.symlink(outside, data_root / "kitti" / "sequences" / "07")
     assert add(client, pid, data_root / "kitti" / "sequences" / "07").status_code == 403
@@ -147,6 +147,23 @@ def test_added_folders_are_confined_and_checked(
         :2
     ] == ["body", "x"]
     assert names_of(client.get(f"{API}/projects/{pid}").json()) == ["00"]  # nothing was added
+
+
+def test_symlink_loops_are_refused_naming_the_field(
+    client: TestClient, folders: list[Path], data_root: Path
+) -> None:
+    pid = create_project(client, folders[0])["id"]
+    loop = data_root / "kitti" / "sequences" / "loop"
+    loop.symlink_to(loop)
+    for path in (loop, loop / "inner"):
+        r = add(client, pid, path)
+        assert loc_of(r) == ["body", "path"] and "symlink loop" in r.json()["detail"][0]["msg"], r.text
+    # A sequence folder of the project that has become a loop since does not break the next add.
+    folders[0].rename(data_root / "kitti" / "moved")
+    folders[0].symlink_to(folders[0])
+    r = add(client, pid, folders[1])
+    assert r.status_code == 201, r.text[:500]
+    assert names_of(r.json()) == ["00", "01"]
 
 
 def test_a_cross_site_page_cannot_edit_sequences(client: TestClient, folders: list[Path]) -> None:

@@ -253,15 +253,110 @@ def test_links_out_of_the_data_roots_are_neither_listed_nor_accepted(
     assert sneaky.resolve() not in listed
 
     r = api.post("/projects", json={"name": "s", "dataset": {"kind": "folder", "path": str(sneaky)}})
-    assert r.status_code == 403 and "velodyne is a link to" in r.json()["detail"], r.text
-    r = api.post(
-        "/projects", json={"name": "o", "dataset": {"kind": "folder", "path": "linked/sequences/00"}}
-    )
     assert r.status_code == 403, r.text
+    assert f"velodyne is a symlink to '{outside / 'velodyne'}', which is outside" in r.json()["detail"]
+    # The refusal names the link on the way and where it leads, not the typed path as if it were outside.
+    link, target = root / "linked", (tmp_path / "outside").resolve()
+    for path, says in (
+        ("linked/sequences/00", f"goes through '{link}', a symlink to '{target}', which is outside"),
+        (str(link), f"'{link}' is a symlink to '{target}', which is outside the allowed data roots"),
+    ):
+        r = api.post("/projects", json={"name": "o", "dataset": {"kind": "folder", "path": path}})
+        assert r.status_code == 403 and says in r.json()["detail"], r.text
+    r = api.post("/projects", json={"name": "o", "dataset": {"kind": "folder", "path": str(tmp_path)}})
+    assert r.status_code == 403 and "is outside the allowed data roots" in r.json()["detail"], r.text
     r = api.post(
         "/projects", json={"name": "i", "dataset": {"kind": "folder", "path": "in-root-link/sequences/00"}}
     )
     assert r.status_code == 201, r.text
+
+
+def test_symlink_loops_are_422_naming_the_field(server: Server, api: httpx.Client) -> None:
+    """A path through a symbolic link loop (``Path.resolve`` raises RuntimeError for one) is refused with
+    the field and the reason, wherever it is given; the dataset list skips such folders."""
+    root: Path = server.data_root  # type: ignore[attr-defined]
+    loop = root / "loop"
+    loop.symlink_to(loop)
+    good = _sequence(root / "looped" / "sequences" / "00")
+    entry = _sequence(root / "entry-loop" / "sequences" / "00")
+    (entry / "times.txt").unlink()
+    (entry / "times.txt").symlink_to(entry / "times.txt")
+    try:
+        for path, says in (
+            (str(loop), "is a symlink loop"),
+            ("loop", "is a symlink loop"),
+            (str(loop / "sequences" / "00"), f"goes through '{loop}', a symlink loop"),
+        ):
+            r = api.post("/projects", json={"name": "l", "dataset": {"kind": "folder", "path": path}})
+            (error,) = assert_422(r, ["body", "dataset", "path"])
+            assert f"dataset path '{path}' {says}" in error["msg"], error
+        body = {"name": "l", "sequences": [{"path": str(good)}, {"path": str(loop), "name": "b"}]}
+        (error,) = assert_422(api.post("/projects", json=body), ["body", "sequences", 1, "path"])
+        assert "symlink loop" in error["msg"], error
+        r = api.post("/projects", json={"name": "l", "dataset": {"kind": "folder", "path": str(entry)}})
+        (error,) = assert_422(r, ["body", "dataset", "path"])
+        assert "times.txt is a symlink loop" in error["msg"], error
+        r = api.get("/datasets")
+        assert r.status_code == 200, r.text
+        listed = {d["path"] for d in r.json()["data"]}
+        assert str(good) in listed and str(entry) not in listed
+    finally:
+        loop.unlink()
+        (entry / "times.txt").unlink()
+
+
+def test_values_of_another_json_type_are_refused(api: httpx.Client, project: dict[str, Any]) -> None:
+    """No coercion: ``true`` is no integer, ``"2"`` and ``2.0`` no integer, ``1`` no boolean. An integer
+    stays a number (the web UI sends ``Number(...)`` for a number field)."""
+    pid = project["id"]
+    klass = {"name": "strict", "prompts": ["strict thing"], "color": "#102030"}
+    correction = {"class_name": "car", "voxel_size": 0.2, "keys": []}
+    runs, classes, corrections = (
+        f"/projects/{pid}/runs",
+        f"/projects/{pid}/classes",
+        f"/projects/{pid}/corrections",
+    )
+    viewer = f"/projects/{pid}/viewer"
+    for method, path, body, loc in (
+        ("POST", runs, {"frames": {"start": True, "stop": 2}}, ["body", "frames", "start"]),
+        ("POST", runs, {"frames": {"start": 0, "stop": "2"}}, ["body", "frames", "stop"]),
+        ("POST", runs, {"frames": {"start": 0.0, "stop": 2}}, ["body", "frames", "start"]),
+        ("PATCH", f"/projects/{pid}", {"estimate_poses": 1}, ["body", "estimate_poses"]),
+        ("PATCH", f"/projects/{pid}", {"name": 5}, ["body", "name"]),
+        ("POST", classes, {**klass, "export_id": "900"}, ["body", "export_id"]),
+        ("POST", classes, {**klass, "export_id": True}, ["body", "export_id"]),
+        ("POST", classes, {**klass, "export_id": 900, "gt_ids": [True]}, ["body", "gt_ids", 0]),
+        ("PATCH", f"{classes}/car", {"position": "1"}, ["body", "position"]),
+        ("POST", corrections, {**correction, "voxel_size": "0.2"}, ["body", "voxel_size"]),
+        ("POST", corrections, {**correction, "keys": [False]}, ["body", "keys", 0]),
+        ("PATCH", f"{corrections}/1", {"active": 1}, ["body", "active"]),
+        ("POST", "/runs/1/export", {"include_confidence": "true"}, ["body", "include_confidence"]),
+        ("POST", f"{viewer}/nav/step", {"step": True}, ["body", "step"]),
+        ("POST", f"{viewer}/nav/play", {"on": 0}, ["body", "on"]),
+        (
+            "POST",
+            f"{viewer}/tools/select",
+            {"tool": "box", "points": [[True, 0.5], [1, 1]]},
+            ["body", "points", 0, 0],
+        ),
+    ):
+        assert_422(api.request(method, path, json=body), loc)
+    assert api.patch(f"/projects/{pid}", json={"estimate_poses": False}).status_code == 200
+    r = api.post(corrections, json={**correction, "voxel_size": 1})
+    assert r.status_code == 201, r.text
+
+
+def test_a_correction_for_a_class_the_project_lacks_is_refused(
+    api: httpx.Client, project: dict[str, Any]
+) -> None:
+    pid = project["id"]
+    before = api.get(f"/projects/{pid}/corrections").json()["corrections"]
+    body = {"class_name": "unicorn", "voxel_size": 0.2, "keys": [1, 2]}
+    (error,) = assert_422(api.post(f"/projects/{pid}/corrections", json=body), ["body", "class_name"])
+    names = [c["name"] for c in api.get(f"/projects/{pid}/classes").json()["data"]]
+    assert "'unicorn'" in error["msg"] and ", ".join(names) in error["msg"], error
+    assert api.get(f"/projects/{pid}/corrections").json()["corrections"] == before
+    assert api.post(f"/projects/{pid}/corrections", json={**body, "class_name": ""}).status_code == 201
 
 
 def test_control_characters_in_names_are_refused(api: httpx.Client, project: dict[str, Any]) -> None:

@@ -16,6 +16,7 @@ from app.api.responses import NOT_FOUND
 from app.api.types import MAX_INT, ProjectId, SequenceQuery
 from app.core.errors import InvalidField, NotFound
 from app.jobs.apply import applier
+from app.rows import ProjectRow
 
 router = APIRouter(tags=["corrections"], responses={**NOT_FOUND})
 
@@ -35,6 +36,18 @@ def _public(c: crud.Correction) -> models.CorrectionPublic:
         active=c.active,
         sequence=c.sequence,
     )
+
+
+def _check_class(project: ProjectRow, class_name: str) -> None:
+    """A correction assigns one of the project's classes (or erases, ``""``): one for a class the project
+    does not have would be stored and then dropped by every run and every apply pass."""
+    names = [str(c["name"]) for c in project.schema["classes"]]
+    if class_name != "" and class_name not in names:
+        raise InvalidField(
+            ("body", "class_name"),
+            f"project {project.id} has no class {class_name!r}; its classes are {', '.join(names)} "
+            "('' erases to unlabeled)",
+        )
 
 
 def _check_scan(dataset: FilePath, frame_id: str, points: list[int]) -> None:
@@ -81,8 +94,9 @@ def list_corrections(
 def add_correction(
     project_id: ProjectId, payload: models.CorrectionCreate, db: DbDep, settings: SettingsDep
 ) -> models.CorrectionPublic:
-    """Store a correction (author "api") and apply it to the latest run's export in the background."""
-    crud.require_project(db, project_id)
+    """Store a correction (author "api") and apply it to the latest run's export in the background. 422
+    naming ``class_name`` for a class the project does not have."""
+    _check_class(crud.require_project(db, project_id), payload.class_name)
     name = crud.sequence_name(db, project_id, payload.sequence, loc=("body", "sequence"))
     if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
         dataset = next(s.dataset_path for s in crud.list_sequences(db, project_id) if s.name == name)

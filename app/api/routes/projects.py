@@ -8,6 +8,7 @@ from app import crud, models, services
 from app.api.deps import DbDep, SettingsDep
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.types import ProjectId
+from app.jobs.apply import applier
 
 router = APIRouter(prefix="/projects", tags=["projects"], responses={**NOT_FOUND, **CONFLICT})
 
@@ -39,7 +40,9 @@ def update_project(
 def delete_project(
     project_id: ProjectId, request: Request, db: DbDep, settings: SettingsDep
 ) -> models.Message:
-    services.delete_project(db, settings, project_id)
+    folders = services.delete_project(db, settings, project_id)
+    # A corrections pass in flight may still write into the run folder: it is removed again after it.
+    applier(settings).forget(project_id, folders)
     viewers = getattr(request.app.state, "viewers", None)  # created on first viewer use only
     if viewers is not None:
         viewers.close(project_id)

@@ -63,7 +63,7 @@ def client_page() -> bytes:
 
 
 class ViewerOpen(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     run_id: int | None = Field(
         default=None, ge=1, le=MAX_INT, description="finished run to review (default: the latest)"

@@ -34,19 +34,19 @@ class NavState(BaseModel):
 
 
 class StepBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     step: int = Field(ge=-10_000, le=10_000, description="scans to move (< 0: back), clipped at the ends")
 
 
 class ToggleBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     on: bool | None = Field(default=None, description="true / false, or null to toggle")
 
 
 class FitBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     target: Literal["scan", "map"] = Field(description="frame the shown scan or the whole voxel map")
 

@@ -27,7 +27,7 @@ router = APIRouter(prefix="/projects/{project_id}", tags=["viewer"], responses={
 
 
 class QueueBuild(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     kind: QueueKind = Field(
         description="confidence (least confident first) or disagreement (camera vs final)"
@@ -35,20 +35,20 @@ class QueueBuild(BaseModel):
 
 
 class QueueStep(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     step: Literal[-1, 1] = Field(description="1: next region, -1: previous region")
     kind: QueueKind | None = Field(default=None, description="queue to rank first when it is not the current")
 
 
 class RegionMark(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     state: Literal["accepted", "skipped"] = Field(description="verdict on the highlighted region")
 
 
 class RegionRelabel(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     class_name: str = Field(
         min_length=1, max_length=64, description="class assigned to the highlighted region's voxels"

@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, status
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, Strict
 
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.routes.viewer import ViewersDep, run_blocking, running_session
@@ -28,7 +28,10 @@ router = APIRouter(
 MAX_OUTLINE_POINTS = 20_000
 """Most points of one lasso or brush outline (a minute of dragging at 60 Hz stays below it)."""
 
-ScreenPoint = tuple[Annotated[float, Field(ge=-10.0, le=10.0)], Annotated[float, Field(ge=-10.0, le=10.0)]]
+ScreenPoint = Annotated[
+    tuple[Annotated[float, Field(ge=-10.0, le=10.0)], Annotated[float, Field(ge=-10.0, le=10.0)]],
+    Strict(False),  # a JSON array is a list: strict mode would take only a tuple; the numbers stay strict
+]
 
 
 class ToolsState(BaseModel):
@@ -44,7 +47,7 @@ class ToolsState(BaseModel):
 
 
 class ToolsPatch(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     tool: Literal["lasso", "brush", "box", "none"] | None = Field(
         default=None, description="arm a tool ('none' disarms)"
@@ -58,7 +61,7 @@ class ToolsPatch(BaseModel):
 
 
 class SelectBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     tool: Literal["lasso", "brush", "box"] = Field(description="how to read `points`")
     points: list[ScreenPoint] = Field(
@@ -76,7 +79,7 @@ class SelectResult(BaseModel):
 
 
 class AssignBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     slot: int | None = Field(default=None, ge=1, le=99, description="n-th class of the picker (keys 1-9)")
     erase: bool = Field(default=False, description="erase to unlabeled instead of assigning a class")
