@@ -461,6 +461,12 @@ class StagePublic(BaseModel):
     eta_s: float | None = None
     percent: float = 0.0
     note: str | None = Field(default=None, description="why a skipped stage computed nothing")
+    expected_s: float | None = Field(
+        default=None,
+        description="the stage's expected seconds in all, its weight in the run's percent: what it took "
+        "(done), its own rate's projection (running), the previous run's time or its expected cost (to "
+        "come); 0 when skipped",
+    )
 
 
 class RunProgress(BaseModel):
@@ -470,8 +476,14 @@ class RunProgress(BaseModel):
     project_id: int
     status: RunStatus
     stage: str | None = None
-    percent: float = 0.0
-    eta_s: float | None = None
+    percent: float = Field(
+        default=0.0, description="Σ expected_s · stage percent / Σ expected_s: stages weighted by their cost"
+    )
+    eta_s: float | None = Field(
+        default=None,
+        description="seconds left: the running stages' own rates plus the expected_s of those to come; "
+        "null until some stage has a rate",
+    )
     stages: list[StagePublic] = Field(default_factory=list)
     error: str | None = None
     warnings: list[str] = Field(

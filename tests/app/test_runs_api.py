@@ -5,7 +5,9 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import appfixtures
 import numpy as np
@@ -142,6 +144,40 @@ def crud_run_dir(client: TestClient, run_id: int) -> Path:
     with open_db(app_settings(client).database) as db:
         run = crud.require_run(db, run_id)
     return run.sequence_layout(run.params.names[0]).folder
+
+
+def test_first_run_progress_weighs_stages_by_cost_and_has_an_eta(
+    client: TestClient, data_root: Path, make_tiny_sequence: Callable[..., Any]
+) -> None:
+    """A project's first run (no earlier times to go by): its percent weighs each stage by its expected
+    seconds, and once a stage has a rate it has an ETA for the rest (the stages' own rates and the costs
+    of those to come), where it used to stay empty until the last stage."""
+    seq = make_tiny_sequence(data_root / "longer", n_frames=24, n_points=400)
+    appfixtures.add_gt2d(seq.root, seq.frame_ids, (48, 64))
+    project = create_project(client, seq.root)
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
+    progress = [e for k, e in read_events(client, run["id"]) if k == "progress"]
+    assert progress[-1]["status"] == "done" and progress[-1]["percent"] == 100.0
+    running = [e for e in progress if e["status"] == "running"]
+    measured = [
+        e
+        for e in running
+        if any(s["status"] == "done" or (s["status"] == "running" and s["done"] > 0) for s in e["stages"])
+        and any(s["status"] == "pending" for s in e["stages"])
+    ]
+    assert measured, progress  # the stream saw the run between its first rate and its last stage
+    for e in measured:
+        assert e["eta_s"] is not None, e
+    for e in running:
+        weights = [s["expected_s"] for s in e["stages"]]
+        assert all(w is not None and w >= 0 for w in weights), e
+        if sum(weights) > 0:
+            weighted = sum(w * s["percent"] for w, s in zip(weights, e["stages"], strict=True)) / sum(weights)
+            assert e["percent"] == pytest.approx(weighted, abs=0.2), e
+        pending = {s["name"]: s["expected_s"] for s in e["stages"] if s["status"] == "pending"}
+        if "00/project" in pending and "00/export" in pending:
+            # Before they run, stages weigh their cost: projection costs more per frame than the export.
+            assert pending["00/project"] > pending["00/export"] > 0, e
 
 
 def test_deleting_a_project_removes_its_run_folders(client: TestClient, tiny_dataset: Path) -> None:
