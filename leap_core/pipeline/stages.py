@@ -33,7 +33,7 @@ from leap_core.fusion import (
     world_points,
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy, read_npz
-from leap_core.labelers import LABELERS
+from leap_core.labelers import LABELERS, LabelerInput, missing_input
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
@@ -80,7 +80,8 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     labeler = ctx.labeler()
     spec = LABELERS[ctx.cfg.labeler]
     if spec.needs == "gt2d" and not ctx.seq.has_gt2d:
-        raise DatasetError(ctx.seq.root / "gt2d" / "semantic", spec.missing)
+        has: list[LabelerInput] = ["images"] if ctx.seq.has_images else []
+        raise DatasetError(ctx.seq.root / "gt2d" / "semantic", missing_input(spec, has))
     lfp = labeler.fingerprint(ctx.schema)
     cache_root = None
     if ctx.cache_dir is not None:
