@@ -21,6 +21,7 @@ from leap_core.errors import DatasetError
 from leap_core.labelers.base import SoftMasks
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.pipeline import SequenceSpec, run_pipeline
+from leap_core.pipeline.class_presence import class_pixels, silent_classes, warning_text
 from leap_core.pipeline.preflight import LabelerCheck, check_dataset, pick_labeler, report_data, summary_text
 from leap_core.presets import load_preset
 from leap_core.run_layout import RunLayout, read_run_pipeline
@@ -212,6 +213,34 @@ def test_seed_reaches_the_labeler_and_the_stored_config(with_gt2d: TinySequence,
     )
     assert code == 2 and "--seed: the grounded-sam labeler draws nothing at random" in out
     assert not (tmp_path / "gs").exists()
+
+
+# ------------------------------------------------------------------------------- silent classes
+def test_classes_the_2d_labeler_never_found_are_warned_about(with_gt2d: TinySequence, tmp_path: Path) -> None:
+    code, out = _invoke("run", with_gt2d.root, "--out", tmp_path / "r")
+    assert code == 0, out
+    # The 2D ground truth has no sidewalk and no vegetation; the 3D ground truth has both.
+    for name in ("sidewalk", "vegetation"):
+        assert f"class '{name}' got no pixels from the 2D labeler in 3 frames, though the ground truth" in out
+    assert "try other prompts" in out
+    # A class absent from the ground truth too is not a prompt problem: not named.
+    assert "class 'motorcycle'" not in out
+
+
+def test_class_pixels_and_the_silent_rule() -> None:
+    masks = np.zeros((2, 4, 4), bool)
+    masks[0, :2] = True  # 8 pixels
+    masks[1, 3, :2] = True  # 2 pixels
+    soft = SoftMasks.from_dense(masks, [[0.75, 0.25, 0.0], [0.0, 0.4, 0.6]], [1.0, 1.0])
+    np.testing.assert_allclose(class_pixels(soft), [8.0, 0.0, 2.0])  # each mask's area to its argmax
+    names, prompts = ["a", "b", "c"], [["a"], ["bee", "b"], ["c"]]
+    silent = silent_classes(names, prompts, [1e6, 10.0, 0.0], frames=5)
+    assert [s.name for s in silent] == ["b", "c"]  # 10 px of a million is "almost no pixels"
+    assert "almost no pixels" in warning_text(silent[0]) and "'bee', 'b'" in warning_text(silent[0])
+    assert "it may be absent from these images" in warning_text(silent[1], "00")
+    assert warning_text(silent[1], "00").startswith("sequence 00: class 'c' got no pixels")
+    # With ground truth, only classes it holds.
+    assert [s.name for s in silent_classes(names, prompts, [1e6, 10.0, 0.0], 5, [50, 0, 50])] == ["c"]
 
 
 def test_a_run_with_several_sequences_needs_a_labeler_for_all(

@@ -119,7 +119,7 @@ def _labeler_inputs(ctx: Ctx) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------- project
-def _load_soft(path: Path) -> SoftMasks:
+def load_soft(path: Path) -> SoftMasks:
     """:meth:`SoftMasks.load` through :func:`~leap_core.io_utils.read_npz`: the packed masks (compressed,
     ≈ 5 MB unpacked for a demo image) in one zlib call instead of about 20."""
     try:
@@ -142,7 +142,7 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
 
     def work(i: int) -> None:
         soft_path = ctx.layout.labels2d(ctx.fid(i))
-        soft = _load_soft(soft_path)
+        soft = load_soft(soft_path)
         if soft.num_classes != ctx.schema.num_classes:
             raise DatasetError(
                 soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}"

@@ -68,6 +68,11 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
 
     run = client.get(f"{API}/runs/{run['id']}").json()
     assert run["status"] == "done" and run["error"] is None and run["attempts"] == 1
+    # The tiny dataset's 2D ground truth has no sidewalk, its 3D ground truth has: the run says so.
+    assert any(
+        "class 'sidewalk' got no pixels from the 2D labeler" in w and "try other prompts" in w
+        for w in run["progress"]["warnings"]
+    ), run["progress"]["warnings"]
     stages = {s["name"].removeprefix("00/"): s for s in run["progress"]["stages"]}
     assert stages["3dcn"]["status"] == "skipped"  # 3D-CN is off by default
     for name in ("labels2d", "project", "label_points", "export"):
