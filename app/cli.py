@@ -870,6 +870,7 @@ def _write_exports(  # the run and the export options
         write_run_export,
     )
     from leap_core.pipeline.coverage import cached_export_coverage, coverage_counts, summed_coverage
+    from leap_core.pipeline.provenance import provenance_lines, run_provenance
 
     covs = []
     for spec in specs:
@@ -887,6 +888,8 @@ def _write_exports(  # the run and the export options
             f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask"
         )
     exported = run_export(result.root)
+    prov = run_provenance(result.root, sch, cfg, [(s.name, s.dataset) for s in exported])
+    typer.echo("\nprovenance\n" + "\n".join(f"  {line}" for line in provenance_lines(prov)))
     if export_to is not None:
         target = Path(export_to).expanduser().resolve()
         folders = export_targets(target, [s.name for s in exported], with_conf=with_conf)
@@ -907,6 +910,7 @@ def _write_exports(  # the run and the export options
             with_confidence=with_conf,
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            provenance=prov,
         )
         lmap = label_map(sch, cov.raw_counts, name=sch.name, sequences=[s.name for s in exported])
         extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}

@@ -668,6 +668,14 @@ class ExportInfo(BaseModel):
         "writes)"
     )
     predictions_allowed: bool = Field(description="whether those folders may receive an export")
+    provenance: dict[str, Any] = Field(
+        default_factory=dict,
+        description="where the labels came from, as the zip's summary.yaml records it: the labeler and "
+        "whether its weights are real or random test models, each sequence's poses (file or estimated, and "
+        "how), the corrections applied (counts and a digest), classes the 2D labeler never found, the code "
+        "version",
+    )
+    provenance_lines: list[str] = Field(default_factory=list, description="`provenance` in a few lines")
 
 
 # -------------------------------------------------------------------------------------------- pipeline

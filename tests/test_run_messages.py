@@ -5,6 +5,7 @@ run header, ``--seed``, the export's provenance and the classes the 2D labeler n
 from __future__ import annotations
 
 import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -215,9 +216,38 @@ def test_seed_reaches_the_labeler_and_the_stored_config(with_gt2d: TinySequence,
     assert not (tmp_path / "gs").exists()
 
 
+# ------------------------------------------------------------------------------------ provenance
+def test_the_zip_says_where_the_labels_came_from(
+    images_only: TinySequence, models: Path, tmp_path: Path
+) -> None:
+    zip_path = tmp_path / "out.zip"
+    code, out = _invoke(
+        "run", images_only.root, "--models", models, "--out", tmp_path / "r", "--zip", zip_path
+    )
+    assert code == 0, out
+    assert "labels: grounded-sam labeler, RANDOM-weight test models" in out
+    assert f"poses: from the file {images_only.root / 'poses.txt'}" in out
+    assert "corrections: none applied" in out and "code: leap-studio " in out
+    with zipfile.ZipFile(zip_path) as zf:
+        summary = yaml.safe_load(zf.read("summary.yaml"))
+    prov = summary["provenance"]
+    assert prov["labeler"]["name"] == "grounded-sam" and prov["labeler"]["weights"] == "random"
+    assert prov["labeler"]["models"]["detector"] == "IDEA-Research/grounding-dino-tiny"
+    assert prov["poses"] == [
+        {"sequence": "00", "source": "file", "file": str(images_only.root / "poses.txt")}
+    ]
+    assert prov["corrections"] == [
+        {"sequence": "00", "map_voxels": 0, "scan_points": 0, "scan_frames": 0, "digest": None}
+    ]
+    assert prov["code"]["package"] == summary["leap_studio_version"]
+    # The fields an export had stay.
+    assert {"sequences", "files", "counts", "settings", "leap_studio_version", "written_at"} <= set(summary)
+
+
 # ------------------------------------------------------------------------------- silent classes
 def test_classes_the_2d_labeler_never_found_are_warned_about(with_gt2d: TinySequence, tmp_path: Path) -> None:
-    code, out = _invoke("run", with_gt2d.root, "--out", tmp_path / "r")
+    zip_path = tmp_path / "out.zip"
+    code, out = _invoke("run", with_gt2d.root, "--out", tmp_path / "r", "--zip", zip_path)
     assert code == 0, out
     # The 2D ground truth has no sidewalk and no vegetation; the 3D ground truth has both.
     for name in ("sidewalk", "vegetation"):
@@ -225,6 +255,12 @@ def test_classes_the_2d_labeler_never_found_are_warned_about(with_gt2d: TinySequ
     assert "try other prompts" in out
     # A class absent from the ground truth too is not a prompt problem: not named.
     assert "class 'motorcycle'" not in out
+    with zipfile.ZipFile(zip_path) as zf:
+        silent = yaml.safe_load(zf.read("summary.yaml"))["provenance"]["silent_classes"]
+    named = [s["class"] for s in silent]
+    assert {"sidewalk", "vegetation"} <= set(named) and "motorcycle" not in named
+    assert all(s["pixels"] == 0 and s["ground_truth_points"] > 0 and s["prompts"] for s in silent)
+    assert f"classes the 2D labeler (almost) never found: {', '.join(named)}" in out
 
 
 def test_class_pixels_and_the_silent_rule() -> None:

@@ -169,6 +169,19 @@ def missing_input(spec: LabelerSpec[Any], has: Collection[LabelerInput]) -> str:
     )
 
 
+Weights = Literal["real", "random", "none"]
+"""What a labeler's 2D labels rest on: ``real`` model weights, ``random`` ones (tiny test models of ``leap
+make-tiny-models``: meaningless labels), or ``none`` (no model: the simulated labelers read 2D ground
+truth)."""
+
+
+def labeler_weights(labeler: Labeler) -> Weights:
+    """:data:`Weights` of ``labeler`` (resolves a model labeler's folders; loads no model)."""
+    if isinstance(labeler, GroundedSamLabeler):
+        return "random" if labeler.uses_random_weights else "real"
+    return "none"
+
+
 def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labeler:
     """The labeler selected by ``config.labeler``, configured by its section of ``config`` and run where
     ``runtime`` says (models folder, shared 2D cache, device). ``PipelineConfig`` accepts only names in
@@ -184,7 +197,9 @@ __all__ = [
     "LabelerInput",
     "LabelerSpec",
     "SoftMasks",
+    "Weights",
     "labeler_by_section",
+    "labeler_weights",
     "make_labeler",
     "missing_input",
     "register_labeler",

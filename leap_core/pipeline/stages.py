@@ -33,7 +33,7 @@ from leap_core.fusion import (
     world_points,
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy, read_npz
-from leap_core.labelers import LABELERS, LabelerInput, missing_input
+from leap_core.labelers import LABELERS, LabelerInput, labeler_weights, missing_input
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
@@ -110,6 +110,7 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     extra = ctx.each_frame("labels2d", work)
     extra["cache_hits"] = hits
     extra["labeler"] = labeler.name
+    extra["weights"] = labeler_weights(labeler)  # the export's provenance: real or random-weight models
     return extra
 
 

@@ -12,10 +12,12 @@ from typing import Any
 import appfixtures
 import numpy as np
 import pytest
+import yaml
 from apphelpers import API, create_project, wait_run
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
+import leap_core
 from app import crud
 from app.core.config import Settings
 from app.core.db import open_db
@@ -366,6 +368,29 @@ def test_corrections_reach_the_exported_labels(client: TestClient, tiny_dataset:
     raw = np.fromfile(run_dir / "export" / "000000.label", dtype=np.uint32)
     in_chosen = np.isin(keys, chosen)
     assert in_chosen.any() and (raw[in_chosen] & 0xFFFF == 80).all()  # pole's export id
+
+    # The export says which corrections its labels carry, and where the rest came from.
+    info = client.get(f"{API}/runs/{run['id']}/export").json()
+    prov = info["provenance"]
+    (corr,) = prov["corrections"]
+    assert corr["map_voxels"] == len(chosen) and corr["scan_points"] == 0 and len(corr["digest"]) == 16
+    assert prov["labeler"] == {
+        "name": "simulated",
+        "description": "simulated (from 2D ground truth)",
+        "weights": "none",
+        "seed": 0,
+    }
+    assert prov["poses"] == [{"sequence": "00", "source": "file", "file": str(tiny_dataset / "poses.txt")}]
+    assert prov["code"]["package"] == leap_core.__version__
+    assert (
+        f"corrections: {len(chosen)} voxels and 0 scan points in 0 frames (digest {corr['digest']})"
+        in (info["provenance_lines"])
+    )
+    archive = client.get(f"{API}/runs/{run['id']}/export.zip")
+    with zipfile.ZipFile(io.BytesIO(archive.content)) as zf:
+        summary = yaml.safe_load(zf.read("summary.yaml"))
+    assert summary["provenance"]["corrections"] == prov["corrections"]
+    assert summary["provenance"]["labeler"]["weights"] == "none"
 
 
 @pytest.mark.slow
