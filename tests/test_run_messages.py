@@ -24,6 +24,7 @@ from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.pipeline.class_presence import class_pixels, silent_classes, warning_text
 from leap_core.pipeline.preflight import LabelerCheck, check_dataset, pick_labeler, report_data, summary_text
+from leap_core.pipeline.provenance import code_version
 from leap_core.presets import load_preset
 from leap_core.run_layout import RunLayout, read_run_pipeline
 from leap_core.runtime import Runtime
@@ -242,6 +243,23 @@ def test_the_zip_says_where_the_labels_came_from(
     assert prov["code"]["package"] == summary["leap_studio_version"]
     # The fields an export had stay.
     assert {"sequences", "files", "counts", "settings", "leap_studio_version", "written_at"} <= set(summary)
+
+
+def test_the_code_version_is_the_checkouts_commit_or_none() -> None:
+    import subprocess
+
+    import leap_core
+
+    version = code_version()
+    assert version["package"] == leap_core.__version__
+    source = Path(leap_core.__file__).resolve().parent.parent
+    head = subprocess.run(
+        ["git", "-C", str(source), "rev-parse", "HEAD"], capture_output=True, text=True, check=False
+    )
+    if (source / ".git").exists() and head.returncode == 0:
+        assert version["commit"] is not None and version["commit"].split("+")[0] == head.stdout.strip()
+    else:  # an installed package, or a copy without git: no commit to name
+        assert version["commit"] is None
 
 
 # ------------------------------------------------------------------------------- silent classes

@@ -37,34 +37,30 @@ from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.schema import Schema
 
 
+def _git(source: Path, *args: str) -> str | None:
+    """``git -C source ARGS``'s output, None when git fails or is missing."""
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(source), *args], capture_output=True, text=True, timeout=10, check=False
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
 @functools.cache
 def code_version() -> dict[str, str | None]:
     """``{"package": leap_core.__version__, "commit": <git commit> | None}``; the commit is the checkout's
-    HEAD when the package runs from a git work tree (``+modified`` when it has uncommitted changes),
-    None for an installed package."""
+    HEAD when ``leap_core`` runs from the top of a git work tree (``+modified`` when tracked files have
+    uncommitted changes), None for an installed package (whose folder may lie inside some other
+    repository: only a work tree whose top is the package's parent folder counts)."""
     source = Path(leap_core.__file__).resolve().parent.parent
     commit = None
-    try:
-        head = subprocess.run(
-            ["git", "-C", str(source), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=False,
-        )
-        if head.returncode == 0 and head.stdout.strip():
-            commit = head.stdout.strip()
-            status = subprocess.run(
-                ["git", "-C", str(source), "status", "--porcelain", "--untracked-files=no"],
-                capture_output=True,
-                text=True,
-                timeout=10,
-                check=False,
-            )
-            if status.returncode == 0 and status.stdout.strip():
-                commit += "+modified"
-    except (OSError, subprocess.SubprocessError):
-        commit = None
+    top = _git(source, "rev-parse", "--show-toplevel")
+    if top and Path(top).resolve() == source:
+        commit = _git(source, "rev-parse", "HEAD") or None
+        if commit and _git(source, "status", "--porcelain", "--untracked-files=no"):
+            commit += "+modified"
     return {"package": leap_core.__version__, "commit": commit}
 
 
