@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from leap_core.pipeline.preflight import (
-    VERDICT_TEXT,
     DatasetReport,
     Finding,
     FrameCoverage,
@@ -24,6 +23,7 @@ from leap_core.pipeline.preflight import (
     reason_text,
     report_data,
     stage_line,
+    summary_text,
 )
 
 Audience = Literal["cli", "app"]
@@ -248,7 +248,7 @@ def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = No
             lines.append(f"           fix: {fix}")
     lines.append("")
     code = f" (exit code {exit_codes[report.verdict]})" if exit_codes else ""
-    lines.append(f"verdict: {VERDICT_TEXT[report.verdict]}{code}")
+    lines.append(f"verdict: {summary_text(report)}{code}")
     return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ stays fast."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypedDict
@@ -156,24 +157,30 @@ def _run_errors(out: str | Path) -> Iterator[None]:
 @contextlib.contextmanager
 def _run_folder_lock(out: Path) -> Iterator[None]:
     """Hold the run folder's lock while ``leap run`` works in it: the app's worker takes the same ``flock``,
-    and two processes in one folder would each delete the other's temporaries and stage outputs."""
-    from app.jobs.worker import LOCK_NAME, RunDirBusy, run_dir_lock
+    and two processes in one folder would each delete the other's temporaries and stage outputs.
+
+    A run that fails before any stage finished (a refused labeler, a model that does not load, no poses)
+    leaves no folder behind when it created the folder; a folder that existed before is never removed."""
+    from app.jobs.worker import RunDirBusy, run_dir_lock
+    from leap_core.io_utils import remove_tree
+    from leap_core.run_layout import RunLayout
 
     created = not out.exists()
+    failed = True
     try:
         with run_dir_lock(out):
             yield
+        failed = False
     except RunDirBusy as exc:
+        created = False  # another process made it, or works in it
         raise LeapError(
             f"{exc} (another `leap run`, or the app's worker); wait for it to finish, or give "
             "this run another --out"
         ) from None
     finally:
-        # A run refused before its first stage (no poses, say) leaves no folder behind, as before the lock.
-        if created and out.is_dir() and [p.name for p in out.iterdir()] == [LOCK_NAME]:
+        if created and failed and out.is_dir() and not RunLayout(out).holds_results():
             with contextlib.suppress(OSError):
-                (out / LOCK_NAME).unlink()
-                out.rmdir()
+                remove_tree(out)
 
 
 def _cli_path(raw: str | Path, option: str) -> Path:
@@ -399,13 +406,14 @@ def check_cmd(
     from leap_core.pipeline.preflight import check_dataset
 
     try:
-        config = None
-        if labeler is not None or project_file is not None:
-            _, config = _run_config(None, project_file, labeler, None)
+        # The config `leap run` would use with these options, and the same rule for its labeler.
+        _, config, named = _run_choice(None, project_file, labeler, None)
         runtime = _runtime(models, None, "auto", False)
     except LeapError as exc:
         raise fail(str(exc)) from None
-    report = check_dataset(dataset, config=config, runtime=runtime, estimate_poses=estimate_poses)
+    report = check_dataset(
+        dataset, config=config, runtime=runtime, estimate_poses=estimate_poses, labeler_named=named
+    )
     if as_json:
         typer.echo(json.dumps(report_dict(report, "cli"), indent=2))
     else:
@@ -414,7 +422,12 @@ def check_cmd(
 
 
 def _labeler_help() -> str:
-    return "2D labeler: " + "; ".join(f"{name} ({spec.description})" for name, spec in LABELERS.items()) + "."
+    return (
+        "2D labeler: "
+        + "; ".join(f"{name} ({spec.description})" for name, spec in LABELERS.items())
+        + ". Default: the project file's, else the first that can run on every sequence (as `leap check` "
+        "picks)."
+    )
 
 
 def _presets_help() -> str:
@@ -517,6 +530,13 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
         "same classes and backbone) and fine-tune it for one epoch at consistency.finetune_lr, instead of "
         "training from random weights for consistency.min_steps. Implies --3dcn.",
     ),
+    seed: int | None = typer.Option(
+        None,
+        "--seed",
+        min=0,
+        help="Seed of the 2D labeler's random draws (pipeline.<labeler section>.seed; the simulated "
+        "labelers have one, default: the project's, 0). Another seed gives other 2D labels.",
+    ),
 ) -> None:
     """Label sequences: 2D labels → projection → voxel fusion → smoothing (→ 3D-CN) → per-point labels,
     then evaluate against ground truth when it exists and export SemanticKITTI .label files.
@@ -532,7 +552,7 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     root = Path(out)
     with _run_errors(out):
         specs = _sequence_specs(datasets, frames)
-        sch, cfg = _run_config(
+        sch, cfg, named = _run_choice(
             schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
         )
         runtime = _runtime(
@@ -555,13 +575,16 @@ def run_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
                 more = "; add --overwrite to replace them" if "already holds" in str(exc) else ""
                 raise LeapError(f"--export-to: {exc}{more}") from None
         zip_file = _zip_target(zip_path, overwrite)
+        # Every refusal the pre-flight can make comes before the run folder exists.
+        chosen, notes = _pick_labeler(specs, cfg, runtime, named=named, estimate_poses=estimate_poses)
+        cfg = _with_labeler(cfg, chosen, seed)
         with _run_folder_lock(root):
             layout = open_run_folder(root, specs)
             if estimate_poses:
                 for spec in specs:
                     _estimate_run_poses(spec.dataset, layout.sequence(spec.name).poses)
             shown = f"; sequences {', '.join(names)}" if len(specs) > 1 else ""
-            typer.echo(f"2D labels: {cfg.labeler} ({LABELERS[cfg.labeler].label}){shown}")
+            typer.echo(f"2D labels: {LABELERS[cfg.labeler].title}{''.join(notes)}{shown}")
             with SequenceBars(root, names, concurrent=ray is not None and len(specs) > 1) as bars:
                 result = run_pipeline(specs, sch, cfg, root, progress=bars, runtime=runtime)
 
@@ -861,6 +884,7 @@ def _write_exports(  # the run and the export options
         write_run_export,
     )
     from leap_core.pipeline.coverage import cached_export_coverage, coverage_counts, summed_coverage
+    from leap_core.pipeline.provenance import provenance_lines, run_provenance
 
     covs = []
     for spec in specs:
@@ -878,6 +902,8 @@ def _write_exports(  # the run and the export options
             f"{cov.outside_view} outside every camera view, {cov.no_mask} in view but no mask"
         )
     exported = run_export(result.root)
+    prov = run_provenance(result.root, sch, cfg, [(s.name, s.dataset) for s in exported])
+    typer.echo("\nprovenance\n" + "\n".join(f"  {line}" for line in provenance_lines(prov)))
     if export_to is not None:
         target = _cli_path(export_to, "--export-to")
         folders = export_targets(target, [s.name for s in exported], with_conf=with_conf)
@@ -898,6 +924,7 @@ def _write_exports(  # the run and the export options
             with_confidence=with_conf,
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            provenance=prov,
         )
         lmap = label_map(sch, cov.raw_counts, name=sch.name, sequences=[s.name for s in exported])
         extra = {LABEL_MAP_FILE: label_map_yaml(lmap), SUMMARY_FILE: summary}
@@ -917,22 +944,47 @@ def _run_config(
     *,
     init_3dcn: str | None = None,
 ) -> tuple[Schema, PipelineConfig]:
+    """``leap run``'s classes and config (:func:`_run_choice` without whether the labeler was named)."""
+    sch, cfg, _ = _run_choice(
+        schema, project_file, labeler, consistency, cn_iterations, labeler_preset, init_3dcn=init_3dcn
+    )
+    return sch, cfg
+
+
+def _run_choice(
+    schema: str | None,
+    project_file: str | None,
+    labeler: str | None,
+    consistency: bool | None,
+    cn_iterations: int | None = None,
+    labeler_preset: str | None = None,
+    *,
+    init_3dcn: str | None = None,
+) -> tuple[Schema, PipelineConfig, bool]:
     """``leap run``'s classes and config: --schema's file gives the classes (and a base config),
     --project-file's pipeline applies on top, then --labeler, --labeler-preset (a preset of the chosen
     labeler's section), --3dcn and --3dcn-iterations or --3dcn-init (which turn the 3D-CN on; with
-    --no-3dcn they are a contradiction, refused)."""
+    --no-3dcn they are a contradiction, refused).
+
+    Returns:
+        (classes, config, named): ``named`` is True when the labeler was named (--labeler, or a
+        ``labeler:`` in either file's ``pipeline:`` section); otherwise the run picks it
+        (:func:`_pick_labeler`), as ``leap check`` does.
+    """
     if init_3dcn is not None:
         if consistency is False:
             raise LeapError("--3dcn-init fine-tunes the 3D-CN: drop --no-3dcn or --3dcn-init")
         consistency = True
     cfg = None
     sch = None
+    # A --labeler-preset is a setting of the configured labeler: that labeler is meant.
+    named = labeler is not None or labeler_preset is not None
     if schema is not None or project_file is None:
         base = _preset("--schema", schema or "semantickitti")
-        sch, cfg = base.schema, base.pipeline
+        sch, cfg, named = base.schema, base.pipeline, named or base.names_labeler
     if project_file is not None:
         project = _preset("--project-file", project_file, cfg)
-        sch, cfg = sch or project.schema, project.pipeline
+        sch, cfg, named = sch or project.schema, project.pipeline, named or project.names_labeler
     assert sch is not None and cfg is not None
     flags: dict[str, Any] = {}
     if labeler is not None:
@@ -949,7 +1001,91 @@ def _run_config(
         if cn_iterations not in (1, 2):
             raise LeapError(f"--3dcn-iterations: must be 1 or 2, got {cn_iterations}")
         flags["consistency"] = {"enabled": True, "iterations": cn_iterations}
-    return sch, config_from_dict(flags, cfg)
+    return sch, config_from_dict(flags, cfg), named
+
+
+def _with_labeler(cfg: PipelineConfig, name: str, seed: int | None) -> PipelineConfig:
+    """``cfg`` running the labeler ``name``, with ``--seed`` in that labeler's section.
+
+    Raises:
+        LeapError: ``--seed`` for a labeler whose settings have no seed (it draws nothing at random).
+    """
+    flags: dict[str, Any] = {"labeler": name}
+    if seed is not None:
+        spec = LABELERS[name]
+        if "seed" not in {f.name for f in dataclasses.fields(spec.config_type)}:
+            seeded = ", ".join(
+                n
+                for n, sp in LABELERS.items()
+                if "seed" in {f.name for f in dataclasses.fields(sp.config_type)}
+            )
+            raise LeapError(
+                f"--seed: the {name} labeler draws nothing at random, so it has no seed; drop --seed "
+                f"(labelers with one: {seeded})"
+            )
+        flags[spec.section] = {"seed": seed}
+    return config_from_dict(flags, cfg)
+
+
+def _pick_labeler(
+    specs: list[SequenceSpec],
+    cfg: PipelineConfig,
+    runtime: Runtime,
+    *,
+    named: bool,
+    estimate_poses: bool,
+) -> tuple[str, list[str]]:
+    """``leap run``'s pre-flight: the labeler the run uses (the one rule ``leap check`` follows:
+    :func:`~leap_core.pipeline.preflight.pick_labeler`), checked against every sequence before the run
+    folder is touched.
+
+    Returns:
+        (labeler, notes): the notes are the lines to print (how the labeler was picked).
+
+    Raises:
+        LeapError: a sequence the pipeline cannot run on at all (its blockers, each with the fix), or one
+            that lacks the labeler's input entirely (naming the --labeler that works, or what to add).
+    """
+    from app.advice import advice
+    from leap_core.pipeline.preflight import check_dataset, describe, pick_labeler, reason_text
+
+    reports = [
+        check_dataset(
+            s.dataset, config=cfg, runtime=runtime, estimate_poses=estimate_poses, labeler_named=named
+        )
+        for s in specs
+    ]
+    for report in reports:
+        blockers = [f for f in report.findings if f.severity == "blocker"]
+        if blockers:
+            fixes = [
+                f"{describe(f)}" + (f" (fix: {fix})" if (fix := advice(f, "cli", report)) else "")
+                for f in blockers
+            ]
+            raise LeapError("; ".join(fixes))
+    per_sequence = [r.labelers for r in reports]
+    name = pick_labeler(per_sequence, cfg.labeler if named else None) or cfg.labeler
+    notes = []
+    if not named and name != cfg.labeler:
+        where = "this folder" if len(specs) == 1 else "every sequence"
+        notes.append(f", picked as the first labeler that can run on {where} (--labeler picks another)")
+    # A labeler whose input a whole sequence lacks cannot label it; a partial input (some frames without
+    # an image) is left to the run, since --frames may keep to the frames that have one.
+    whole = {"images_missing", "gt2d_missing"}
+    for report in reports:
+        lab = next(lab for lab in report.labelers if lab.name == name)
+        missing = [r for r in lab.reasons if r in whole]
+        if not missing:
+            continue
+        others = pick_labeler([[lab for lab in labs if lab.name != name] for labs in per_sequence])
+        why = ", ".join(reason_text(r) for r in missing)
+        if others is not None:
+            fix = f"use --labeler {others}"
+        else:
+            finding = report.finding(missing[0])
+            fix = advice(finding, "cli", report) if finding is not None else ""
+        raise LeapError(f"{report.root}: the {name} labeler cannot run ({why}); {fix or 'see `leap check`'}")
+    return name, notes
 
 
 def _frame_range(frames: str, dataset: str) -> range:

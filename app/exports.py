@@ -16,6 +16,7 @@ import datetime
 import threading
 import zipfile
 from pathlib import Path
+from typing import Any
 
 from app import models
 from app.core.config import Settings
@@ -50,6 +51,7 @@ from leap_core.pipeline.coverage import (
     summed_coverage,
     write_coverage_file,
 )
+from leap_core.pipeline.provenance import provenance_lines, run_provenance
 from leap_core.run_layout import RunLayout
 from leap_core.schema import Schema
 
@@ -221,10 +223,17 @@ def targets(
     return out
 
 
+def provenance(run: RunRow) -> dict[str, Any]:
+    """Where the run's labels came from (:func:`leap_core.pipeline.provenance.run_provenance`)."""
+    cfg = pipeline_config(run.params.pipeline, loc=("run", "params", "pipeline"))
+    return run_provenance(run.run_dir, _schema(run), cfg, [(s.name, s.dataset) for s in run.params.sequences])
+
+
 def export_info(settings: Settings, run: RunRow, project: ProjectRow) -> models.ExportInfo:
-    """What the export dialog shows: the counts, the reasons for unlabeled points, and where "write into
-    the dataset" puts each sequence's files (its own ``predictions/``)."""
+    """What the export dialog shows: the counts, the reasons for unlabeled points, where "write into
+    the dataset" puts each sequence's files (its own ``predictions/``), and where the labels came from."""
     cov = coverage(run)
+    prov = provenance(run)
     schema = _schema(run)
     by_reason = {"outside_view": cov.outside_view, "no_mask": cov.no_mask}
     try:
@@ -262,6 +271,8 @@ def export_info(settings: Settings, run: RunRow, project: ProjectRow) -> models.
             for name, paths in folders.items()
         ],
         predictions_allowed=allowed,
+        provenance=prov,
+        provenance_lines=provenance_lines(prov),
     )
 
 
@@ -288,6 +299,7 @@ def build_zip(run: RunRow, project: ProjectRow, include_confidence: bool) -> Pat
             with_confidence=include_confidence,
             version=__version__,
             written_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            provenance=provenance(run),
         )
         lmap = label_map(
             schema, cov.raw_counts, name=f"{project.name} run {run.number}", sequences=run.params.names
@@ -357,6 +369,7 @@ __all__ = [
     "export_target",
     "exports_dir",
     "invalidate",
+    "provenance",
     "targets",
     "write_export",
 ]

@@ -464,6 +464,12 @@ class StagePublic(BaseModel):
     eta_s: float | None = None
     percent: float = 0.0
     note: str | None = Field(default=None, description="why a skipped stage computed nothing")
+    expected_s: float | None = Field(
+        default=None,
+        description="the stage's expected seconds in all, its weight in the run's percent: what it took "
+        "(done), its own rate's projection (running), the previous run's time or its expected cost (to "
+        "come); 0 when skipped",
+    )
 
 
 class RunProgress(BaseModel):
@@ -473,8 +479,14 @@ class RunProgress(BaseModel):
     project_id: int
     status: RunStatus
     stage: str | None = None
-    percent: float = 0.0
-    eta_s: float | None = None
+    percent: float = Field(
+        default=0.0, description="Σ expected_s · stage percent / Σ expected_s: stages weighted by their cost"
+    )
+    eta_s: float | None = Field(
+        default=None,
+        description="seconds left: the running stages' own rates plus the expected_s of those to come; "
+        "null until some stage has a rate",
+    )
     stages: list[StagePublic] = Field(default_factory=list)
     error: str | None = None
     warnings: list[str] = Field(
@@ -659,6 +671,14 @@ class ExportInfo(BaseModel):
         "writes)"
     )
     predictions_allowed: bool = Field(description="whether those folders may receive an export")
+    provenance: dict[str, Any] = Field(
+        default_factory=dict,
+        description="where the labels came from, as the zip's summary.yaml records it: the labeler and "
+        "whether its weights are real or random test models, each sequence's poses (file or estimated, and "
+        "how), the corrections applied (counts and a digest), classes the 2D labeler never found, the code "
+        "version",
+    )
+    provenance_lines: list[str] = Field(default_factory=list, description="`provenance` in a few lines")
 
 
 # -------------------------------------------------------------------------------------------- pipeline

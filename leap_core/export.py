@@ -328,10 +328,13 @@ def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
     written_at: str,
     project: Mapping[str, Any] | None = None,
     run: Mapping[str, Any] | None = None,
+    provenance: Mapping[str, Any] | None = None,
 ) -> str:
     """An export's ``summary.yaml``: which project and run, each sequence's dataset and frames, where the
-    files are, the point counts and the run's full settings (``pipeline``:
-    :func:`~leap_core.config.config_to_dict`).
+    files are, the point counts, the run's full settings (``pipeline``:
+    :func:`~leap_core.config.config_to_dict`) and, when given, where the labels came from (``provenance``:
+    :func:`leap_core.pipeline.provenance.run_provenance`: labeler and its weights, poses, corrections,
+    classes the 2D labeler never found, code version).
 
     ``counts`` (summed over the sequences) holds ``scans``, ``points``, ``labeled``, ``unlabeled``,
     ``unlabeled_by_reason`` and ``raw_counts`` (raw id → points); ``per_class`` (class name → points) is
@@ -363,6 +366,8 @@ def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
         "per_class": {c.name: raw.get(int(c.export_id), 0) for c in schema.classes},
     }
     summary["settings"] = {"schema": schema.name, "pipeline": dict(pipeline)}
+    if provenance is not None:
+        summary["provenance"] = dict(provenance)
     summary["leap_studio_version"] = version
     summary["written_at"] = written_at
     return "# LeAP Studio export summary (README, 'Exports').\n" + yaml.safe_dump(

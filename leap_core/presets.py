@@ -26,6 +26,9 @@ class Preset:
     """Its ``pipeline:`` section applied onto the base config (default ``PipelineConfig()``)."""
     source: Path
     """The file it was read from."""
+    names_labeler: bool = False
+    """Its ``pipeline:`` section sets ``labeler`` (otherwise the labeler is the base config's, and a run
+    that nobody named one for picks the one that can run: ``leap_core.pipeline.preflight.pick_labeler``)."""
 
 
 def load_preset(name_or_path: str | Path, base: PipelineConfig | None = None) -> Preset:
@@ -68,7 +71,7 @@ def _read(path: Path, base: PipelineConfig | None) -> Preset:
         pipeline = config_from_dict(section, base)
     except ConfigError as exc:
         raise LeapError(f"{path}: {exc}", field=exc.field) from None
-    return Preset(schema, pipeline, path)
+    return Preset(schema, pipeline, path, "labeler" in section)
 
 
 __all__ = ["Preset", "builtin_preset", "list_presets", "load_preset"]

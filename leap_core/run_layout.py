@@ -4,7 +4,8 @@ through :class:`RunLayout` and :class:`SequenceLayout`, so no other module spell
 A run labels a list of sequences (often one) with one class schema and one config. Its folder::
 
     <root>/
-      run.json                    the run's sequences: name, dataset folder, frames (in run order)
+      run.json                    the run's sequences: name, dataset folder, frames (in run order), and
+                                  its settings (pipeline: the config it labels with)
       metrics.json                {"overall": metrics of the summed confusion matrices, "sequences": {...}}
       sequences/<name>/           one sequence's folder (below)
       3dcn/3dcn_iter{i}.pt        the 3D-CN's checkpoints (one network per round, trained on every sequence)
@@ -49,10 +50,10 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -389,28 +390,68 @@ class RunLayout:
         """The cached zip of the export (``.label`` files, plus ``.conf`` files if asked)."""
         return self.root / (self.EXPORT_CONF_ZIP if with_confidence else self.EXPORT_ZIP)
 
+    def holds_results(self) -> bool:
+        """Whether the folder holds anything a run computed: False when it holds only what a run writes
+        before its first stage finishes (the lock, ``run.json``, stage records of stages that did not
+        finish, empty folders), so a run refused at its start may remove a folder it created."""
+        for path in self.root.rglob("*"):
+            if path.is_dir():
+                continue
+            rel = path.relative_to(self.root).parts
+            if rel in ((self.LOCK,), (self.SPEC,)):
+                continue
+            if len(rel) == 3 and rel[0] == self.SEQUENCES and rel[2] == SequenceLayout.STATE:
+                try:
+                    state = json.loads(path.read_text())
+                except (OSError, ValueError):
+                    return True
+                records = state.values() if isinstance(state, dict) else ()
+                if any(not isinstance(r, dict) or r.get("status") in ("done", "skipped") for r in records):
+                    return True
+                continue
+            return True
+        return False
+
     @staticmethod
     def is_run(path: str | Path) -> bool:
         """True when ``path`` holds a run of this layout (its ``run.json``)."""
         return (Path(path) / RunLayout.SPEC).is_file()
 
 
-def write_run_spec(layout: RunLayout, sequences: Sequence[tuple[str, Path | None, range | None]]) -> None:
+def write_run_spec(
+    layout: RunLayout,
+    sequences: Sequence[tuple[str, Path | None, range | None]],
+    *,
+    pipeline: Mapping[str, Any] | None = None,
+) -> None:
     """Write ``run.json``: (name, dataset folder or None when unknown, frame numbers or None = all) per
-    sequence, in run order."""
-    atomic_write_json(
-        layout.spec,
-        {
-            "sequences": [
-                {
-                    "name": name,
-                    "dataset": None if dataset is None else str(Path(dataset).resolve()),
-                    "frames": None if frames is None else [frames.start, frames.stop],
-                }
-                for name, dataset, frames in sequences
-            ]
-        },
-    )
+    sequence, in run order, and the run's settings when given (``pipeline``: ``config_to_dict`` of the
+    config the run labels with, the labeler's seed included)."""
+    data: dict[str, Any] = {
+        "sequences": [
+            {
+                "name": name,
+                "dataset": None if dataset is None else str(Path(dataset).resolve()),
+                "frames": None if frames is None else [frames.start, frames.stop],
+            }
+            for name, dataset, frames in sequences
+        ]
+    }
+    if pipeline is not None:
+        data["pipeline"] = dict(pipeline)
+    atomic_write_json(layout.spec, data)
+
+
+def read_run_pipeline(layout: RunLayout) -> dict[str, Any] | None:
+    """The settings ``run.json`` records (None for a run written before it recorded them, or none)."""
+    if not layout.spec.is_file():
+        return None
+    try:
+        data = json.loads(layout.spec.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(layout.spec, f"unreadable run record ({exc})") from exc
+    pipeline = data.get("pipeline") if isinstance(data, dict) else None
+    return pipeline if isinstance(pipeline, dict) else None
 
 
 # -------------------------------------------------------------------------------------- old folders
@@ -478,6 +519,7 @@ __all__ = [
     "SequenceLayout",
     "former_layout",
     "load_corrections",
+    "read_run_pipeline",
     "run_holding",
     "save_corrections",
     "sequence_name_problem",

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from runhelpers import folder
 from typer.testing import CliRunner
 
@@ -100,9 +102,19 @@ def test_leap_run_estimate_poses_labels_like_true_poses_and_leaves_the_dataset_a
     assert _files(no_poses) == dataset_before  # nothing written into the dataset
     assert json.loads((poses / POSES_NOTE).read_text())["method"] == "kiss-icp"
 
-    # A second run in the same folder reuses the estimate (same scans, same settings).
-    again = CliRunner().invoke(cli, ["run", str(no_poses), "--out", str(out), "--estimate-poses", *RUN])
+    # A second run in the same folder reuses the estimate (same scans, same settings), and its export
+    # says the poses were estimated, how and by whom.
+    zip_path = tmp_path / "est.zip"
+    again = CliRunner().invoke(
+        cli, ["run", str(no_poses), "--out", str(out), "--estimate-poses", "--zip", str(zip_path), *RUN]
+    )
     assert again.exit_code == 0 and "poses: reused" in again.output, again.output
+    by_run = "the run (into its own folder)"
+    assert "poses: estimated (kiss-icp " in again.output and f"by {by_run}" in again.output
+    with zipfile.ZipFile(zip_path) as zf:
+        (told,) = yaml.safe_load(zf.read("summary.yaml"))["provenance"]["poses"]
+    assert told["source"] == "estimated" and told["method"].startswith("kiss-icp ")
+    assert told["file"] == str(poses / "poses.txt") and told["estimated_by"] == by_run
 
     ref = tmp_path / "true"
     res = CliRunner().invoke(cli, ["run", str(drive), "--out", str(ref), *RUN])

@@ -62,6 +62,7 @@ from leap_core.corrections import ERASE, ScanCorrections
 from leap_core.errors import LeapError
 from leap_core.fusion import last_per_key
 from leap_core.io_utils import atomic_write_json, link_or_copy, remove_tree
+from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGES, read_run_metrics
 from leap_core.pipeline.apply import RunCorrections
 from leap_core.pipeline.metrics_file import RunMetrics
@@ -435,8 +436,13 @@ class JobManager:
         return {k: float(v["seconds"]) for k, v in stages.items() if v.get("seconds") is not None}
 
     def _enqueue(self, run: RunRow, expected: dict[str, float], after_version: int = 0) -> None:
+        labeler = LABELERS.get(str((run.params.pipeline or {}).get("labeler") or "simulated"))
         tracker = ProgressTracker.create(
-            run.id, run.project_id, run.params.stages or self.stages, expected_seconds=expected
+            run.id,
+            run.project_id,
+            run.params.stages or self.stages,
+            expected_seconds=expected,
+            labeler_input=None if labeler is None else labeler.needs,
         )
         tracker.version = after_version  # a resumed run's versions continue, so streams see only news
         tracker.on_change = self.changes.notify

@@ -26,6 +26,45 @@ SYNTH = "generate demo"
 """The demo sequence's generation (``app.demo.SYNTH_STAGE``), before its run's pipeline."""
 
 
+UNIT_SECONDS: dict[str, float] = {
+    "labels2d": 0.13,
+    "project": 0.025,
+    "fuse": 0.005,
+    "smooth": 0.003,
+    "3dcn": 0.0,
+    "label_points": 0.008,
+    "evaluate": 0.004,
+    "export": 0.003,
+    POSES: 0.05,
+    SYNTH: 0.9,
+}
+"""Expected seconds per progress unit (a frame; a scan for the pose estimation) of each stage before a
+run has measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project
+1.5 s, fuse 0.28 s, smooth 0.16 s, label_points 0.49 s, evaluate 0.23 s, export 0.15 s; a sequence's own
+``3dcn`` stage only links the rounds' grids). Only their ratios matter until a stage has finished."""
+
+LABELS2D_UNIT_SECONDS: dict[str, float] = {"gt2d": 0.13, "images": 2.0}
+"""``labels2d`` per frame by what the labeler reads: 2D ground truth (the simulated labelers) or camera
+images (Grounding DINO + SAM: about 2 s a frame on a CPU)."""
+
+JOINT_UNIT_SECONDS = 0.02
+"""The 3D-CN rounds (``*/3dcn``) report thousandths of a round: ≈ 20 s a round (a small demo run)."""
+
+OTHER_UNIT_SECONDS = 0.01
+"""A stage this table does not know."""
+
+
+def unit_seconds(name: str, labeler_input: str | None = None) -> float:
+    """Expected seconds per progress unit of the progress stage ``name`` (:data:`UNIT_SECONDS`), its
+    ``labels2d`` by the labeler's input (:data:`LABELS2D_UNIT_SECONDS`: ``gt2d`` or ``images``)."""
+    sequence, stage = split_stage(name)
+    if sequence == JOINT:
+        return JOINT_UNIT_SECONDS
+    if stage == "labels2d" and labeler_input in LABELS2D_UNIT_SECONDS:
+        return LABELS2D_UNIT_SECONDS[labeler_input]
+    return UNIT_SECONDS.get(stage, OTHER_UNIT_SECONDS)
+
+
 def stage_name(sequence: str, stage: str) -> str:
     """``<sequence>/<stage>``: one stage of one sequence in a run's progress."""
     return f"{sequence}{SEPARATOR}{stage}"
@@ -103,12 +142,17 @@ def skipped_stages(run_dir: Path, names: Sequence[str]) -> dict[str, str | None]
 
 __all__ = [
     "JOINT",
+    "JOINT_UNIT_SECONDS",
+    "LABELS2D_UNIT_SECONDS",
+    "OTHER_UNIT_SECONDS",
     "POSES",
     "SEPARATOR",
     "SYNTH",
+    "UNIT_SECONDS",
     "run_stages",
     "skipped_stages",
     "split_stage",
     "stage_folder",
     "stage_name",
+    "unit_seconds",
 ]

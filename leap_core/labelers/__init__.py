@@ -14,7 +14,7 @@ transformers are imported by the grounded-sam labeler only when it first needs i
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
@@ -55,10 +55,17 @@ class LabelerSpec(Generic[C]):
     needs: LabelerInput
     """The input it reads from a dataset."""
     missing: str
-    """One line for a dataset that lacks ``needs``, e.g. to follow the folder's name in an error."""
+    """One line for a dataset that lacks ``needs``, e.g. to follow the folder's name in an error (what to
+    do instead depends on the folder: :func:`missing_input`)."""
     presets: tuple[str, ...] = ()
     """Names of whole settings of its section (``pipeline: {<section>: {preset: NAME}}``, ``leap run
     --labeler-preset NAME``): the names its config type's ``from_preset`` accepts."""
+
+    @property
+    def title(self) -> str:
+        """Its name with its human name, said once: ``grounded-sam (Grounding DINO + SAM)``, or the human
+        name alone when it already starts with the name (``simulated (from 2D ground truth)``)."""
+        return self.label if self.label.startswith(self.name) else f"{self.name} ({self.label})"
 
     def config_of(self, config: PipelineConfig) -> C:
         """This labeler's section of ``config`` (its defaults when ``config`` was made before this
@@ -82,8 +89,7 @@ _SIMULATED: LabelerSpec[SimulatedLabelerConfig] = LabelerSpec(
     config_type=SimulatedLabelerConfig,
     factory=_simulated,
     needs="gt2d",
-    missing="the simulated labeler needs 2D ground truth (gt2d/semantic, gt2d/instance); "
-    "for real camera images choose the grounded-sam labeler",
+    missing="the simulated labeler needs 2D ground truth (gt2d/semantic, gt2d/instance)",
     presets=tuple(SIMULATED_PRESETS),
 )
 _GROUNDED_SAM: LabelerSpec[GroundedSamConfig] = LabelerSpec(
@@ -138,6 +144,44 @@ def labeler_by_section(section: str) -> LabelerSpec[Any] | None:
     return next((s for s in LABELERS.values() if s.section == section), None)
 
 
+INPUT_FOLDERS: dict[LabelerInput, str] = {
+    "gt2d": "2D ground truth (gt2d/)",
+    "images": "camera images (image_2/)",
+}
+"""Each labeler input as a folder's content, for messages."""
+
+
+def missing_input(spec: LabelerSpec[Any], has: Collection[LabelerInput]) -> str:
+    """Why ``spec``'s labeler cannot label a dataset that lacks its input, and what to do, fitted to what
+    the dataset has (``has``): another labeler whose input it holds, else what to add. E.g. the simulated
+    labeler on a folder of camera images: "...; for its camera images (image_2/) choose the grounded-sam
+    labeler"; on a folder of scans alone: "..., and the dataset has no camera images (image_2/) for the
+    grounded-sam labeler either: add them"."""
+    usable = [s for s in LABELERS.values() if s.needs in has and s.name != spec.name]
+    if usable:
+        return f"{spec.missing}; for its {INPUT_FOLDERS[usable[0].needs]} choose the {usable[0].name} labeler"
+    other = next((s for s in LABELERS.values() if s.needs != spec.needs), None)
+    if other is None:
+        return spec.missing
+    return (
+        f"{spec.missing}, and the dataset has no {INPUT_FOLDERS[other.needs]} for the {other.name} "
+        "labeler either: add them"
+    )
+
+
+Weights = Literal["real", "random", "none"]
+"""What a labeler's 2D labels rest on: ``real`` model weights, ``random`` ones (tiny test models of ``leap
+make-tiny-models``: meaningless labels), or ``none`` (no model: the simulated labelers read 2D ground
+truth)."""
+
+
+def labeler_weights(labeler: Labeler) -> Weights:
+    """:data:`Weights` of ``labeler`` (resolves a model labeler's folders; loads no model)."""
+    if isinstance(labeler, GroundedSamLabeler):
+        return "random" if labeler.uses_random_weights else "real"
+    return "none"
+
+
 def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labeler:
     """The labeler selected by ``config.labeler``, configured by its section of ``config`` and run where
     ``runtime`` says (models folder, shared 2D cache, device). ``PipelineConfig`` accepts only names in
@@ -147,13 +191,17 @@ def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labe
 
 
 __all__ = [
+    "INPUT_FOLDERS",
     "LABELERS",
     "Labeler",
     "LabelerInput",
     "LabelerSpec",
     "SoftMasks",
+    "Weights",
     "labeler_by_section",
+    "labeler_weights",
     "make_labeler",
+    "missing_input",
     "register_labeler",
     "unregister_labeler",
 ]

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -340,6 +340,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
     poses_path: str | Path | None = None,
     estimate_poses: bool = False,
     check_models: bool = True,
+    labeler_named: bool | None = None,
 ) -> DatasetReport:
     """Inspect a KITTI-layout sequence folder; never raises for a bad folder.
 
@@ -352,12 +353,15 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         estimate_poses: missing poses will be estimated before the 3D stages (the app's "Estimate poses
             (KISS-ICP)" option, ``leap run --estimate-poses``): the 3D stages are then not blocked by them.
         check_models: look for the grounded-sam model folders (skip for a listing that must stay cheap).
+        labeler_named: whether the user named ``config.labeler`` (``--labeler``, or a ``labeler:`` in the
+            project file); when not, the check judges the labeler :func:`pick_labeler` picks, as ``leap
+            run`` does. None = named whenever ``config`` is given (the app's projects name theirs).
 
     Returns:
         The :class:`DatasetReport`.
     """
     root = Path(root)
-    chosen = config is not None
+    chosen = config is not None if labeler_named is None else labeler_named
     cfg = config or PipelineConfig()
     rt = runtime or Runtime()
     poses_file = Path(poses_path) if poses_path is not None else root / "poses.txt"
@@ -674,6 +678,33 @@ def _alternative(labelers: Iterable[LabelerCheck], besides: str | None) -> Label
     )
 
 
+def pick_labeler(per_sequence: Sequence[Sequence[LabelerCheck]], named: str | None = None) -> str | None:
+    """The 2D labeler a run uses, the one rule ``leap check`` and ``leap run`` share.
+
+    Args:
+        per_sequence: each sequence's :attr:`DatasetReport.labelers` (one entry for a run of one).
+        named: the labeler the user named (``--labeler``, a project file's ``labeler:``), if any.
+
+    Returns:
+        ``named`` when given; else the first labeler (registry order) that can run on every sequence;
+        else the first that lacks nothing but its models on any of them (the run then says which folder
+        to give); else None (nothing fits: the config's own labeler stays, and the check says why).
+    """
+    if named is not None:
+        return named
+    if not per_sequence:
+        return None
+    names = [lab.name for lab in per_sequence[0]]
+    by_seq = [{lab.name: lab for lab in labs} for labs in per_sequence]
+
+    def fits(name: str, allowed: set[str]) -> bool:
+        return all(name in labs and set(labs[name].reasons) <= allowed for labs in by_seq)
+
+    return next((n for n in names if fits(n, set())), None) or next(
+        (n for n in names if fits(n, {"models_missing"})), None
+    )
+
+
 def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gathered
     root: Path,
     frames: list[str],
@@ -690,10 +721,7 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
     image_codes = tuple(c for c in IMAGE_CODES if any(f.code == c for f in findings))
     labelers = _labeler_checks(frames, img, gt2d, model_codes, image_codes)
     by_name = {lab.name: lab for lab in labelers}
-    labeler = cfg.labeler
-    if not chosen:
-        pick = _alternative(labelers, None)
-        labeler = pick.name if pick is not None else labeler
+    labeler = pick_labeler([labelers], cfg.labeler if chosen else None) or cfg.labeler
     if labeler not in model_codes and by_name[labeler].can_run:
         # The models concern only runs with the grounded-sam labeler: a fact here, not a warning.
         findings[:] = [
@@ -829,6 +857,19 @@ VERDICT_TEXT: dict[Verdict, str] = {
 }
 
 
+def summary_text(report: DatasetReport) -> str:
+    """The verdict in words, as it agrees with the stage list: :data:`VERDICT_TEXT`, except that a
+    ``partial`` verdict counts the stages that cannot run, and says so when that is all of them (the
+    folder is usable, but not as set up: another labeler, its models or poses would unblock them)."""
+    blocked = report.blocked_stages
+    if report.verdict != "partial" or not blocked:
+        return VERDICT_TEXT[report.verdict]
+    total = len(report.stages)
+    if len(blocked) == total:
+        return f"no stage can run as set up (all {total} cannot run; the findings say what unblocks them)"
+    return f"only some stages can run ({len(blocked)} of {total} cannot run: {', '.join(blocked)})"
+
+
 def stage_line(stage: StageCheck) -> str:
     """``runs`` / ``skipped (no ground truth)`` / ``cannot run (no poses)``."""
     why = ", ".join(reason_text(r) for r in stage.reasons)
@@ -847,7 +888,7 @@ def report_data(report: DatasetReport) -> dict[str, Any]:
     (:func:`describe`), each stage and labeler with its ``reason`` (:func:`reason_text`), the verdict's
     ``summary`` and each coverage's ``kind``. A caller adds the fixes in its own words."""
     data = asdict(report)
-    data["summary"] = VERDICT_TEXT[report.verdict]
+    data["summary"] = summary_text(report)
     for cover in ("images", "ground_truth", "gt2d"):
         data[cover]["kind"] = getattr(report, cover).kind
     data["findings"] = [{**asdict(f), "message": describe(f)} for f in report.findings]
@@ -877,7 +918,9 @@ __all__ = [
     "check_dataset",
     "dataset_stamp",
     "describe",
+    "pick_labeler",
     "reason_text",
     "report_data",
     "stage_line",
+    "summary_text",
 ]

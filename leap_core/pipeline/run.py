@@ -224,7 +224,7 @@ def run_pipeline(
         seq.select(spec.frames)
         require_poses(seq, config, STAGE_TABLE[: last + 1])
     layout.root.mkdir(parents=True, exist_ok=True)
-    write_run_spec(layout, [(s.name, s.dataset, s.frames) for s in specs])
+    write_run_spec(layout, [(s.name, s.dataset, s.frames) for s in specs], pipeline=config_to_dict(config))
 
     # On a Ray cluster the sequences run at once (one driver thread each, their per-frame work as tasks
     # of the one connection made here); locally one after another.

@@ -13,16 +13,25 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from leap_core.config import PipelineConfig, config_to_dict
 from leap_core.consistency.config import fingerprint_form
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import Cancelled, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
+from leap_core.pipeline.class_presence import (
+    RECORD_KEY,
+    SilentClass,
+    class_pixels,
+    silent_classes,
+    warning_text,
+)
 from leap_core.pipeline.context import Ctx, ProgressCallback, StageInfo, hash_json, read_state
 from leap_core.pipeline.evaluation import read_metrics_json
 from leap_core.pipeline.executor import Executor, LocalExecutor, make_executor
 from leap_core.pipeline.metrics_file import SequenceMetrics
-from leap_core.pipeline.stages import STAGE_TABLE, STAGES
+from leap_core.pipeline.stages import STAGE_TABLE, STAGES, load_soft
 from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -199,6 +208,63 @@ def _run_stage(ctx: Ctx, stage: StageInfo, executor: Executor | None = None) -> 
     return StageReport(name, status != "skipped", status, seconds, int(extra.get("frames_computed", 0)))
 
 
+def _record_class_pixels(ctx: Ctx) -> None:
+    """Put each class's pixels over the run's frames into the ``labels2d`` record (once per set of
+    frames: a cached stage keeps it), for :func:`warn_silent_classes` and the export's summary."""
+    rec = ctx.state.get("labels2d")
+    if not rec or rec.get("status") != "done":
+        return
+    key = hash_json([ctx.fid(i) for i in ctx.frames])[:16]
+    kept = rec.get(RECORD_KEY)
+    if isinstance(kept, dict) and kept.get("frames") == key:
+        return
+    mass = np.zeros(ctx.schema.num_classes, np.float64)
+    for i in ctx.frames:
+        mass += class_pixels(load_soft(ctx.layout.labels2d(ctx.fid(i))))
+    rec[RECORD_KEY] = {"frames": key, "count": len(ctx.frames), "pixels": [round(float(m), 1) for m in mass]}
+    ctx.save_state()
+
+
+def recorded_silent_classes(
+    layout: SequenceLayout, schema: Schema, metrics: SequenceMetrics | None
+) -> list[SilentClass]:
+    """The sequence's classes with (almost) no 2D pixels (:func:`~leap_core.pipeline.class_presence.
+    silent_classes`), from its ``labels2d`` record and, when it was evaluated, its ground truth; [] when
+    the record has no pixel counts (a run written before they were recorded)."""
+    try:
+        kept = read_state(layout).get("labels2d", {}).get(RECORD_KEY)
+    except LeapError:
+        return []
+    if not isinstance(kept, dict) or len(kept.get("pixels") or []) != schema.num_classes:
+        return []
+    gt = None
+    if metrics is not None:
+        try:
+            confusion = metrics.table("all")["point"].confusion_matrix
+            per_name = dict(zip(metrics.class_names, confusion.sum(axis=1).tolist(), strict=False))
+            gt = [int(per_name.get(c.name, 0)) for c in schema.classes]
+        except KeyError:
+            gt = None
+    return silent_classes(
+        schema.names,
+        [c.prompts for c in schema.classes],
+        kept["pixels"],
+        int(kept.get("count") or 0),
+        gt,
+    )
+
+
+def warn_silent_classes(
+    layout: SequenceLayout, schema: Schema, metrics: SequenceMetrics | None, sequence: str
+) -> list[SilentClass]:
+    """Log one warning per class with (almost) no 2D pixels (:func:`recorded_silent_classes`); returns
+    them. Every run logs them, a cached one too, so the CLI and the app show them each time."""
+    silent = recorded_silent_classes(layout, schema, metrics)
+    for c in silent:
+        log.warning("%s", warning_text(c, sequence))
+    return silent
+
+
 # ---------------------------------------------------------------------------------------- public API
 def warn_missing_images(seq: KittiSequence, frames: range, labeler: str) -> list[str]:
     """Log a warning naming the run's frames that have no camera image; returns their frame ids.
@@ -362,9 +428,13 @@ def run_sequence(
     reports: dict[str, StageReport] = {}
     for stage in STAGE_TABLE[: last + 1]:
         reports[stage.name] = _run_stage(ctx, stage, executor)
+        if stage.name == "labels2d":
+            _record_class_pixels(ctx)
     metrics = None
     if "evaluate" in reports and reports["evaluate"].status == "done":
         metrics = read_metrics_json(ctx.layout.folder)
+    if last == len(STAGES) - 1:
+        warn_silent_classes(ctx.layout, schema, metrics, Path(folder).name)
     export_dir = ctx.layout.export_dir if "export" in reports else None
     return SequenceResult(ctx.layout.folder, reports, tuple(ctx.frames), export_dir, metrics)
 
@@ -375,9 +445,11 @@ __all__ = [
     "SequenceResult",
     "StageReport",
     "plan_stages",
+    "recorded_silent_classes",
     "require_poses",
     "run_sequence",
     "skip_reason",
     "stage_fingerprints",
     "stage_status",
+    "warn_silent_classes",
 ]

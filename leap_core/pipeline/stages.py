@@ -33,7 +33,7 @@ from leap_core.fusion import (
     world_points,
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy, read_npz
-from leap_core.labelers import LABELERS
+from leap_core.labelers import LABELERS, LabelerInput, labeler_weights, missing_input
 from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
@@ -80,7 +80,8 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     labeler = ctx.labeler()
     spec = LABELERS[ctx.cfg.labeler]
     if spec.needs == "gt2d" and not ctx.seq.has_gt2d:
-        raise DatasetError(ctx.seq.root / "gt2d" / "semantic", spec.missing)
+        has: list[LabelerInput] = ["images"] if ctx.seq.has_images else []
+        raise DatasetError(ctx.seq.root / "gt2d" / "semantic", missing_input(spec, has))
     lfp = labeler.fingerprint(ctx.schema)
     cache_root = None
     if ctx.cache_dir is not None:
@@ -109,6 +110,7 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     extra = ctx.each_frame("labels2d", work)
     extra["cache_hits"] = hits
     extra["labeler"] = labeler.name
+    extra["weights"] = labeler_weights(labeler)  # the export's provenance: real or random-weight models
     return extra
 
 
@@ -118,7 +120,7 @@ def _labeler_inputs(ctx: Ctx) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------- project
-def _load_soft(path: Path) -> SoftMasks:
+def load_soft(path: Path) -> SoftMasks:
     """:meth:`SoftMasks.load` through :func:`~leap_core.io_utils.read_npz`: the packed masks (compressed,
     ≈ 5 MB unpacked for a demo image) in one zlib call instead of about 20."""
     try:
@@ -141,7 +143,7 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
 
     def work(i: int) -> None:
         soft_path = ctx.layout.labels2d(ctx.fid(i))
-        soft = _load_soft(soft_path)
+        soft = load_soft(soft_path)
         if soft.num_classes != ctx.schema.num_classes:
             raise DatasetError(
                 soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}"

@@ -8,6 +8,8 @@ import pytest
 from app.crud import Correction
 from app.jobs.manager import corrections_for_run
 from app.jobs.progress import ProgressTracker
+from app.jobs.stages import OTHER_UNIT_SECONDS, UNIT_SECONDS
+from leap_core.pipeline import STAGES
 
 
 def test_stage_eta_percent_and_ordering() -> None:
@@ -17,17 +19,22 @@ def test_stage_eta_percent_and_ordering() -> None:
     assert not t.update("a", 4, 10, now=102.0, stamp="s2")
     snap = t.snapshot(now=102.0)
     a = snap["stages"][0]
-    # 4 of 10 done in 2 s -> 2 * 6 / 4 = 3 s left; run percent = (0.4 + 0 + 0) / 3.
+    # 4 of 10 done in 2 s -> 2 * 6 / 4 = 3 s left, 5 s in all. b, a stage the cost table does not know,
+    # is expected to take its 10 frames x OTHER_UNIT_SECONDS; c the 4 s of the previous run.
+    b_cost = 10 * OTHER_UNIT_SECONDS
     assert a["eta_s"] == 3.0 and a["percent"] == 40.0 and a["status"] == "running"
-    assert snap["percent"] == pytest.approx(13.3, abs=0.05) and snap["stage"] == "a"
-    assert snap["eta_s"] is None  # stage b has no expected duration
+    assert a["expected_s"] == 5.0 and snap["stages"][1]["expected_s"] == pytest.approx(b_cost)
+    assert snap["percent"] == pytest.approx(100 * 5 * 0.4 / (5 + b_cost + 4), abs=0.05)
+    assert snap["stage"] == "a"
+    assert snap["eta_s"] == pytest.approx(3 + b_cost + 4, abs=0.05)
     assert t.update("a", 10, 10, now=105.0, stamp="s3")
     assert t.snapshot(now=105.0)["stages"][0]["seconds"] == 5.0
     # c starts without b reporting: b was skipped by the pipeline.
     t.update("c", 1, 2, now=106.0, stamp="s4")
     snap = t.snapshot(now=107.0)
     assert [s["status"] for s in snap["stages"]] == ["done", "skipped", "running"]
-    assert snap["percent"] == pytest.approx(100 * (1 + 1 + 0.5) / 3, abs=0.05)
+    # a took 5 s, b nothing, c 1 of 2 in 1 s (2 s in all): (5 + 0 + 2 * 0.5) / (5 + 0 + 2).
+    assert snap["percent"] == pytest.approx(100 * 6 / 7, abs=0.05)
     assert snap["stages"][2]["eta_s"] == 1.0  # 1 of 2 in 1 s
     versions = snap["version"]
     t.set_status("done", "s5")
@@ -69,6 +76,52 @@ def test_run_eta_adds_expected_seconds_of_pending_stages() -> None:
     t.update("a", 1, 4, now=0.0, stamp="s")
     t.update("a", 2, 4, now=2.0, stamp="s")  # elapsed 2 s for 2 of 4 -> 2 s left
     assert t.snapshot(now=2.0)["eta_s"] == 9.5
+
+
+def test_the_run_percent_weights_stages_by_their_cost() -> None:
+    """labels2d takes most of a simulated run's time: 93 of its 100 frames done is most of the run, not
+    the 12 % that weighing the 8 stages equally gave."""
+    names = [f"00/{s}" for s in STAGES]
+    t = ProgressTracker.create(1, 1, names, labeler_input="gt2d")
+    t.set_status("running", "s")
+    t.update("00/labels2d", 0, 100, now=0.0, stamp="s")
+    # At the expected rate (UNIT_SECONDS["labels2d"] a frame) the stages to come weigh their table costs.
+    now = 93 * UNIT_SECONDS["labels2d"]
+    t.update("00/labels2d", 93, 100, now=now, stamp="s")
+    snap = t.snapshot(now=now)
+    rest = sum(100 * UNIT_SECONDS[s] for s in STAGES if s != "labels2d")
+    whole = 100 * UNIT_SECONDS["labels2d"] + rest
+    assert snap["percent"] == pytest.approx(100 * now / whole, abs=0.05)
+    assert snap["percent"] > 60  # equal weights: 100 * 0.93 / 8 = 11.6
+    # A first run (no previous times) has an ETA from the stage's own rate and the costs to come.
+    assert snap["eta_s"] == pytest.approx(7 * UNIT_SECONDS["labels2d"] + rest, abs=0.05)
+
+
+def test_stages_to_come_are_scaled_by_the_measured_speed() -> None:
+    """On a machine twice as slow as the cost table, the finished 3D stages say so and the stages to come
+    are expected to take twice their cost; labels2d (labeler- and device-bound) does not count."""
+    t = ProgressTracker.create(1, 1, ["00/labels2d", "00/project", "00/fuse", "00/export"])
+    t.set_status("running", "s")
+    t.update("00/labels2d", 0, 10, now=0.0, stamp="s")
+    t.update("00/labels2d", 10, 10, now=50.0, stamp="s")  # 5 s a frame: not a measure of the machine
+    t.update("00/project", 0, 10, now=50.0, stamp="s")
+    project = 2 * 10 * UNIT_SECONDS["project"]
+    t.update("00/project", 10, 10, now=50.0 + project, stamp="s")
+    t.update("00/fuse", 0, 10, now=50.0 + project, stamp="s")
+    assert t.speed() == pytest.approx(2.0)
+    snap = t.snapshot(now=50.0 + project)
+    assert snap["stages"][3]["expected_s"] == pytest.approx(2 * 10 * UNIT_SECONDS["export"], abs=1e-3)
+    # fuse started but has no rate yet: its expected seconds, then export's.
+    assert snap["eta_s"] == pytest.approx(2 * 10 * (UNIT_SECONDS["fuse"] + UNIT_SECONDS["export"]), abs=0.05)
+
+
+def test_no_eta_before_any_stage_has_a_rate() -> None:
+    t = ProgressTracker.create(1, 1, ["00/labels2d", "00/project"])
+    t.set_status("running", "s")
+    t.update("00/labels2d", 0, 10, now=0.0, stamp="s")
+    assert t.snapshot(now=1.0)["eta_s"] is None
+    t.update("00/labels2d", 1, 10, now=2.0, stamp="s")
+    assert t.snapshot(now=2.0)["eta_s"] == pytest.approx(18 + 10 * UNIT_SECONDS["project"], abs=0.06)
 
 
 def test_record_round_trip_and_interrupted_stage() -> None:

@@ -8,15 +8,19 @@ import json
 import os
 import time
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import appfixtures
 import numpy as np
 import pytest
+import yaml
 from apphelpers import API, create_project, wait_run
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
+import leap_core
 from app import crud
 from app.core.config import Settings
 from app.core.db import open_db
@@ -70,6 +74,11 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
 
     run = client.get(f"{API}/runs/{run['id']}").json()
     assert run["status"] == "done" and run["error"] is None and run["attempts"] == 1
+    # The tiny dataset's 2D ground truth has no sidewalk, its 3D ground truth has: the run says so.
+    assert any(
+        "class 'sidewalk' got no pixels from the 2D labeler" in w and "try other prompts" in w
+        for w in run["progress"]["warnings"]
+    ), run["progress"]["warnings"]
     stages = {s["name"].removeprefix("00/"): s for s in run["progress"]["stages"]}
     assert stages["3dcn"]["status"] == "skipped"  # 3D-CN is off by default
     for name in ("labels2d", "project", "label_points", "export"):
@@ -146,6 +155,40 @@ def crud_run_dir(client: TestClient, run_id: int) -> Path:
     with open_db(app_settings(client).database) as db:
         run = crud.require_run(db, run_id)
     return run.sequence_layout(run.params.names[0]).folder
+
+
+def test_first_run_progress_weighs_stages_by_cost_and_has_an_eta(
+    client: TestClient, data_root: Path, make_tiny_sequence: Callable[..., Any]
+) -> None:
+    """A project's first run (no earlier times to go by): its percent weighs each stage by its expected
+    seconds, and once a stage has a rate it has an ETA for the rest (the stages' own rates and the costs
+    of those to come), where it used to stay empty until the last stage."""
+    seq = make_tiny_sequence(data_root / "longer", n_frames=24, n_points=400)
+    appfixtures.add_gt2d(seq.root, seq.frame_ids, (48, 64))
+    project = create_project(client, seq.root)
+    run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
+    progress = [e for k, e in read_events(client, run["id"]) if k == "progress"]
+    assert progress[-1]["status"] == "done" and progress[-1]["percent"] == 100.0
+    running = [e for e in progress if e["status"] == "running"]
+    measured = [
+        e
+        for e in running
+        if any(s["status"] == "done" or (s["status"] == "running" and s["done"] > 0) for s in e["stages"])
+        and any(s["status"] == "pending" for s in e["stages"])
+    ]
+    assert measured, progress  # the stream saw the run between its first rate and its last stage
+    for e in measured:
+        assert e["eta_s"] is not None, e
+    for e in running:
+        weights = [s["expected_s"] for s in e["stages"]]
+        assert all(w is not None and w >= 0 for w in weights), e
+        if sum(weights) > 0:
+            weighted = sum(w * s["percent"] for w, s in zip(weights, e["stages"], strict=True)) / sum(weights)
+            assert e["percent"] == pytest.approx(weighted, abs=0.2), e
+        pending = {s["name"]: s["expected_s"] for s in e["stages"] if s["status"] == "pending"}
+        if "00/project" in pending and "00/export" in pending:
+            # Before they run, stages weigh their cost: projection costs more per frame than the export.
+            assert pending["00/project"] > pending["00/export"] > 0, e
 
 
 def test_deleting_a_project_removes_its_folders_and_its_ids_are_never_reused(
@@ -403,6 +446,29 @@ def test_corrections_reach_the_exported_labels(client: TestClient, tiny_dataset:
     raw = np.fromfile(run_dir / "export" / "000000.label", dtype=np.uint32)
     in_chosen = np.isin(keys, chosen)
     assert in_chosen.any() and (raw[in_chosen] & 0xFFFF == 80).all()  # pole's export id
+
+    # The export says which corrections its labels carry, and where the rest came from.
+    info = client.get(f"{API}/runs/{run['id']}/export").json()
+    prov = info["provenance"]
+    (corr,) = prov["corrections"]
+    assert corr["map_voxels"] == len(chosen) and corr["scan_points"] == 0 and len(corr["digest"]) == 16
+    assert prov["labeler"] == {
+        "name": "simulated",
+        "description": "simulated (from 2D ground truth)",
+        "weights": "none",
+        "seed": 0,
+    }
+    assert prov["poses"] == [{"sequence": "00", "source": "file", "file": str(tiny_dataset / "poses.txt")}]
+    assert prov["code"]["package"] == leap_core.__version__
+    assert (
+        f"corrections: {len(chosen)} voxels and 0 scan points in 0 frames (digest {corr['digest']})"
+        in (info["provenance_lines"])
+    )
+    archive = client.get(f"{API}/runs/{run['id']}/export.zip")
+    with zipfile.ZipFile(io.BytesIO(archive.content)) as zf:
+        summary = yaml.safe_load(zf.read("summary.yaml"))
+    assert summary["provenance"]["corrections"] == prov["corrections"]
+    assert summary["provenance"]["labeler"]["weights"] == "none"
 
 
 @pytest.mark.slow

@@ -68,6 +68,12 @@ def test_export_dialog_counts_and_confirmations(finished_run, browser, artifacts
     assert info["reasons"][0]["points"] > 0
     expect(dialog.locator('li[data-reason="outside_view"]')).to_contain_text("outside every camera view")
     expect(dialog.locator(".threshold-note")).to_contain_text("No confidence threshold")
+    # Where the labels came from, as the zip's summary.yaml records it.
+    provenance = dialog.locator("details.provenance")
+    provenance.locator("summary").click()
+    expect(provenance.locator("li").first).to_have_text(info["provenance_lines"][0])
+    expect(provenance).to_contain_text("labels: simulated labeler")
+    expect(provenance).to_contain_text("corrections: none applied")
 
     # Writing asks first; Cancel writes nothing.
     dialog.locator('button[data-action="predictions"]').click()

@@ -39,6 +39,9 @@ function countsSection(info) {
     ),
     h("ul", { class: "reasons" }, rows),
     h("p", { class: "muted small threshold-note" }, info.threshold_note),
+    (info.provenance_lines || []).length
+      ? h("details", { class: "provenance small" }, h("summary", {}, "Where the labels came from"), h("ul", {}, info.provenance_lines.map((line) => h("li", {}, line))))
+      : null,
   );
 }
 
