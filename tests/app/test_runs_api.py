@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import errno
 import io
 import json
-import os
-import time
+import threading
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -29,6 +27,7 @@ from leap_core.datasets.kitti import KittiSequence
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys
 from leap_core.pipeline import STAGES, world_points
+from leap_core.pipeline import apply as core_apply
 
 # The app tests' fixtures (this folder has no conftest.py; see appfixtures), found by name here.
 client, data_root, settings, tiny_dataset = (
@@ -232,28 +231,24 @@ def test_deleting_a_project_removes_its_folders_and_its_ids_are_never_reused(
     assert create_project(client, tiny_dataset, name="third")["id"] == again["id"] + 1
 
 
-def _open_fifo_writer(fifo: Path, timeout: float = 60.0) -> int:
-    """A write end of ``fifo`` once something has it open for reading (ENXIO until then)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            return os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
-        except OSError as exc:
-            if exc.errno != errno.ENXIO:
-                raise
-        time.sleep(0.02)
-    raise AssertionError(f"nothing opened {fifo} for reading within {timeout} s")
-
-
 def test_a_corrections_pass_in_flight_at_a_delete_leaves_no_folder_behind(
-    client: TestClient, tiny_dataset: Path
+    client: TestClient, tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The first corrections pass after a run reads every scan (the voxel → frames index) before it writes
     into the run folder. A project deleted meanwhile must not get its run folder back from that pass,
     and nothing is applied for it afterwards.
 
-    The pass is held at a real gate: one scan of the dataset is made a named pipe, whose read waits until
-    the test writes the scan's bytes into it."""
+    The pass is held at a gate in front of its real reading of the scans, after it has loaded the run's
+    grid (the dataset reader refuses a pipe in place of a scan, so the gate cannot live in the dataset
+    folder)."""
+    reading, release = threading.Event(), threading.Event()
+    real_index = core_apply.build_frame_index
+
+    def gated_index(*args: Any, **kwargs: Any) -> Any:
+        reading.set()
+        assert release.wait(60), "the test never released the pass"
+        return real_index(*args, **kwargs)
+
     settings = app_settings(client)
     project = create_project(client, tiny_dataset)
     run = client.post(f"{API}/projects/{project['id']}/runs", json={}).json()
@@ -266,31 +261,22 @@ def test_a_corrections_pass_in_flight_at_a_delete_leaves_no_folder_behind(
     voxel_size = float(run["params"]["pipeline"]["fusion"]["voxel_size"])
     first = KittiSequence(tiny_dataset).frame(0)
     keys = np.unique(voxel_keys(world_points(first.points, first.pose), voxel_size))[:30]
-    gate = tiny_dataset / "velodyne" / "000003.bin"
-    scan = gate.read_bytes()
-    gate.unlink()
-    os.mkfifo(gate)
+    monkeypatch.setattr(core_apply, "build_frame_index", gated_index)
     try:
         body = {"class_name": "car", "voxel_size": voxel_size, "keys": keys.tolist()}
         assert client.post(f"{API}/projects/{project['id']}/corrections", json=body).status_code == 201
-        writer = _open_fifo_writer(gate)  # the pass is reading the scans now, before any write
-        try:
-            assert client.delete(f"{API}/projects/{project['id']}").status_code == 200
-            assert not run_root.exists()
-        finally:
-            os.set_blocking(writer, True)
-            os.write(writer, scan)
-            os.close(writer)
-        applier(settings).wait(project["id"])
-        assert not run_root.exists(), sorted(str(p.relative_to(run_root)) for p in run_root.rglob("*"))
-        # Asked again (a viewer left open on the deleted project): nothing runs, nothing is written.
-        applier(settings).request(project["id"])
-        applier(settings).warm(project["id"])
-        assert applier(settings).wait(project["id"]).status == "idle"
+        assert reading.wait(60), "the corrections pass never started reading the scans"
+        assert client.delete(f"{API}/projects/{project['id']}").status_code == 200
         assert not run_root.exists()
     finally:
-        gate.unlink()
-        gate.write_bytes(scan)
+        release.set()
+    applier(settings).wait(project["id"])
+    assert not run_root.exists(), sorted(str(p.relative_to(run_root)) for p in run_root.rglob("*"))
+    # Asked again (a viewer left open on the deleted project): nothing runs, nothing is written.
+    applier(settings).request(project["id"])
+    applier(settings).warm(project["id"])
+    assert applier(settings).wait(project["id"]).status == "idle"
+    assert not run_root.exists()
 
 
 def test_unknown_runs_are_404(client: TestClient) -> None:
