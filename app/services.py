@@ -118,17 +118,30 @@ def resolve_dataset(
             f"dataset path {ref.path!r}: not a KITTI sequence folder (it has no velodyne/ folder; "
             "pick a folder like .../sequences/00)",
         )
+    refuse_escaping_entries(path, settings.data_roots, shown=ref.path, loc=loc)
+    return "folder", path
+
+
+def refuse_escaping_entries(
+    folder: Path, roots: list[Path], *, shown: str, loc: tuple[str | int, ...] = ("body", "dataset", "path")
+) -> None:
+    """Refuse the sequence ``folder`` (resolved inside a root; ``shown``: the path as the user gave it) when
+    an entry the pipeline reads is a link out of the data roots, or a link that cannot be followed.
+
+    Raises:
+        Forbidden: naming the entry and its target.
+        InvalidField: at ``loc``, an entry that is a symlink loop.
+    """
     try:
-        escape = escaping_entry(path, settings.data_roots)
+        escape = escaping_entry(folder, roots)
     except UnusablePath as exc:
-        raise InvalidField(loc, f"dataset path {ref.path!r}: {exc}") from None
+        raise InvalidField(loc, f"dataset path {shown!r}: {exc}") from None
     if escape is not None:
         name, target = escape
         raise Forbidden(
-            f"dataset path {ref.path!r}: {name} is a symlink to {str(target)!r}, which is outside the "
+            f"dataset path {shown!r}: {name} is a symlink to {str(target)!r}, which is outside the "
             "allowed data roots"
         )
-    return "folder", path
 
 
 def dataset_public(

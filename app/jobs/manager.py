@@ -369,13 +369,16 @@ class JobManager:
     # ------------------------------------------------------------------------------------- internals
     def _confine_dataset(self, kind: str, path: str) -> None:
         """Check a folder dataset against the server's data roots as they are NOW: they may have narrowed
-        since the project was created, or a folder on the way may have become a link out of them.
+        since the project was created, or a folder on the way, or an entry the pipeline reads
+        (``velodyne/``, ``labels/``, ...), may have become a link out of them.
 
         Raises:
-            Forbidden: naming the path and the allowed roots.
+            Forbidden: naming the path (or the entry) and the allowed roots.
+            InvalidField: an entry became a symlink loop.
         """
         if kind != "demo":
-            resolve_in_roots(path, self.settings.data_roots, what="dataset path")
+            folder = resolve_in_roots(path, self.settings.data_roots, what="dataset path")
+            services.refuse_escaping_entries(folder, self.settings.data_roots, shown=path)
 
     def _snapshot(self, project: ProjectRow, frames: tuple[int, int] | None) -> RunParams:
         """What a new run of ``project`` labels (``frames`` only for a project of one sequence) and the

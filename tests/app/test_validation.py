@@ -271,6 +271,35 @@ def test_links_out_of_the_data_roots_are_neither_listed_nor_accepted(
     assert r.status_code == 201, r.text
 
 
+def test_an_entry_relinked_out_of_the_roots_after_creation_stops_the_run(
+    server: Server, api: httpx.Client, tmp_path: Path
+) -> None:
+    """The roots are checked again when a run starts: a sequence whose ``labels/`` became a link out of
+    them after the project was created is refused (403 naming the entry and its target), and no run is
+    created; restored, the run starts."""
+    root: Path = server.data_root  # type: ignore[attr-defined]
+    seq = _sequence(root / "relinked" / "sequences" / "00")
+    outside = _sequence(tmp_path / "elsewhere" / "sequences" / "00")
+    r = api.post("/projects", json={"name": "relinked", "dataset": {"kind": "folder", "path": str(seq)}})
+    assert r.status_code == 201, r.text
+    pid = r.json()["id"]
+    (seq / "labels").rename(seq / "labels.kept")
+    (seq / "labels").symlink_to(outside / "labels", target_is_directory=True)
+    try:
+        r = api.post(f"/projects/{pid}/runs", json={})
+        assert r.status_code == 403, r.text
+        target = (outside / "labels").resolve()
+        says = f"labels is a symlink to '{target}', which is outside the allowed data roots"
+        assert says in r.json()["detail"], r.text
+        assert api.get(f"/projects/{pid}/runs").json()["data"] == []
+    finally:
+        (seq / "labels").unlink()
+        (seq / "labels.kept").rename(seq / "labels")
+    r = api.post(f"/projects/{pid}/runs", json={})
+    assert r.status_code == 202, r.text
+    assert api.post(f"/runs/{r.json()['id']}/cancel").status_code in (200, 409)
+
+
 def test_symlink_loops_are_422_naming_the_field(server: Server, api: httpx.Client) -> None:
     """A path through a symbolic link loop (``Path.resolve`` raises RuntimeError for one) is refused with
     the field and the reason, wherever it is given; the dataset list skips such folders."""
