@@ -23,6 +23,7 @@ from leap_core.labelers import LABELERS
 from leap_core.labelers.cache import default_cache_dir, image_digest
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
+from leap_core.paths import UnusablePath, real_path
 from leap_core.presets import Preset, load_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -184,13 +185,11 @@ def _run_folder_lock(out: Path) -> Iterator[None]:
 
 
 def _cli_path(raw: str | Path, option: str) -> Path:
-    """The path an option names, resolved (:func:`app.core.security.real_path`).
+    """The path an option names, resolved (:func:`leap_core.paths.real_path`).
 
     Raises:
         LeapError: ``option`` and why the path cannot be used (a symlink loop, ...), printed as one line.
     """
-    from app.core.security import UnusablePath, real_path
-
     try:
         return real_path(raw)
     except UnusablePath as exc:

@@ -21,7 +21,7 @@ from typing import Any
 from app import models
 from app.core.config import Settings
 from app.core.errors import Conflict, Forbidden, NotFound
-from app.core.security import UnusablePath, real_path, real_path_or_none, resolve_in_roots
+from app.core.security import resolve_in_roots
 from app.rows import ProjectRow, RunRow
 from app.services import pipeline_config
 from leap_core import __version__
@@ -43,6 +43,7 @@ from leap_core.export import (
     write_export_zip,
     write_run_export,
 )
+from leap_core.paths import UnusablePath, real_path, real_path_or_none
 from leap_core.pipeline.coverage import (
     ExportCoverage,
     coverage_counts,

@@ -20,7 +20,7 @@ from app.advice import report_dict
 from app.core.config import Settings
 from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
-from app.core.security import UnusablePath, real_path, real_path_or_none, resolve_in_roots
+from app.core.security import resolve_in_roots
 from app.forms import FORM_FIELDS, form_values, overrides_from_form
 from app.jobs.progress import ProgressTracker
 from app.rows import DatasetKind, ProjectRow, RunRow, labeled_sequences
@@ -30,6 +30,7 @@ from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
 from leap_core.labelers.grounded_sam import GroundedSamConfig
+from leap_core.paths import UnusablePath, real_path, real_path_or_none
 from leap_core.pipeline import PAPER, SequenceMetrics
 from leap_core.pipeline.preflight import check_dataset, dataset_stamp
 from leap_core.presets import builtin_preset

@@ -35,6 +35,7 @@ import yaml
 from leap_core.datasets.kitti import write_label
 from leap_core.errors import DatasetError, LeapError
 from leap_core.io_utils import atomic_write, atomic_write_bytes
+from leap_core.paths import UnusablePath, real_path
 from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.schema import Schema
 from leap_core.types import UNLABELED
@@ -640,7 +641,11 @@ def check_export_targets(targets: Mapping[str, Sequence[Path]], *, overwrite: bo
     """
     for folders in targets.values():
         for folder in folders:
-            problem = export_target_problem(Path(folder).expanduser().resolve())
+            try:
+                resolved = real_path(folder)
+            except UnusablePath as exc:
+                raise LeapError(f"export folder {str(folder)!r} {exc}") from None
+            problem = export_target_problem(resolved)
             if problem is not None:
                 raise LeapError(problem)
             refuse_existing(Path(folder), overwrite=overwrite)

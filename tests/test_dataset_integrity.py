@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from app.advice import report_dict
 from app.cli import cli
 from leap_core.datasets.kitti import (
+    A_LOOP,
     LINK_OUTSIDE,
     KittiSequence,
     image_size,
@@ -124,6 +125,42 @@ def test_leap_check_and_leap_run_name_the_linked_file(
     run = runner.invoke(cli, ["run", str(seq.root), "--out", str(tmp_path / "run"), "--labeler", "simulated"])
     assert run.exit_code != 0
     assert f"{linked}: {LINK_OUTSIDE}" in run.output and "bytes" not in run.output
+
+
+def test_a_symlink_loop_in_place_of_a_per_frame_file_is_named(seq: TinySequence, tmp_path: Path) -> None:
+    """A loop (``Path.resolve`` raises RuntimeError for one) is named like a dangling link: a scan that is
+    one refuses the sequence, a label that is one only takes that frame's ground truth away."""
+    scan = seq.root / "velodyne" / "000002.bin"
+    _link(scan, scan)
+    with pytest.raises(DatasetError) as err:
+        KittiSequence(seq.root)
+    assert err.value.path == str(scan) and err.value.problem.startswith(A_LOOP)
+    (finding,) = [f for f in check_dataset(seq.root, check_models=False).findings if f.code == "not_a_file"]
+    assert finding.severity == "blocker" and f"000002.bin is {A_LOOP}" in finding.detail
+
+    _link(scan, Path("000003.bin"))
+    label = seq.root / "labels" / "000001.label"
+    _link(label, label)
+    opened = KittiSequence(seq.root)
+    assert opened.label_problem(1) == A_LOOP
+    (finding,) = [f for f in check_dataset(seq.root, check_models=False).findings if f.code == "not_a_file"]
+    assert finding.severity == "warning" and f"000001.label is {A_LOOP}" in finding.detail
+
+
+def test_a_symlink_loop_on_the_way_to_the_export_folder_is_named(seq: TinySequence, tmp_path: Path) -> None:
+    """``leap run --export-to DIR`` checks DIR/sequences/<name>/predictions before the run: a loop on the way
+    is one line naming the option and the loop, not a traceback."""
+    target = tmp_path / "exports"
+    target.mkdir()
+    (target / "sequences").symlink_to(target / "sequences")
+    out = tmp_path / "run"
+    run = CliRunner().invoke(
+        cli, ["run", str(seq.root), "--out", str(out), "--labeler", "simulated", "--export-to", str(target)]
+    )
+    assert (run.exit_code != 0 and run.exception is None) or isinstance(run.exception, SystemExit), run.output
+    assert f"--export-to: export folder '{target / 'sequences'}" in run.output, run.output
+    assert "a symlink loop" in run.output and "Traceback" not in run.output
+    assert not out.exists()
 
 
 def test_a_pipe_in_place_of_a_label_is_refused_without_reading_it(seq: TinySequence) -> None:

@@ -3,15 +3,13 @@ paths to the configured data roots."""
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import hmac
-import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from urllib.parse import urlsplit
 
 from app.core.errors import Forbidden, InvalidField, printable
+from leap_core.paths import UnusablePath, real_path, real_path_or_none
 
 
 def token_matches(expected: str | None, given: str | None) -> bool:
@@ -22,60 +20,6 @@ def token_matches(expected: str | None, given: str | None) -> bool:
         return False
     # surrogatepass: a query parameter may carry any code point; it must not turn a 403 into a 500.
     return hmac.compare_digest(expected.encode(), given.encode("utf-8", "surrogatepass"))
-
-
-class UnusablePath(ValueError):
-    """A path the system cannot look up: a symbolic link loop, a name too long, a NUL byte; the message
-    completes "path X ..." (e.g. ``is a symlink loop ...``)."""
-
-
-def real_path(path: str | Path) -> Path:
-    """``path`` made absolute with ``~`` expanded and every symbolic link followed, as :meth:`Path.resolve`
-    (parts that do not exist are allowed). The one way the app resolves a path a user gave or stored.
-
-    :meth:`Path.resolve` reports a symlink loop as ``RuntimeError`` on Python 3.11 (``OSError`` ELOOP on
-    later versions) and ``~nobody`` as ``RuntimeError`` too; an uncaught one is a 500. Here each becomes
-    :class:`UnusablePath` with a reason the caller puts in its own message (naming the field).
-
-    Raises:
-        UnusablePath: a loop, an unknown ``~user``, a name too long, a NUL byte.
-    """
-    try:
-        expanded = Path(str(path)).expanduser()
-    except RuntimeError:  # "Could not determine home directory"
-        raise UnusablePath("starts with '~' of a user this system does not know") from None
-    try:
-        resolved = expanded.resolve()
-        # resolve() skips what does not exist; stat raises what later checks (is_dir) would hide.
-        with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-            resolved.stat()
-    except RuntimeError:  # Python 3.11's report of a loop
-        raise UnusablePath(_loop_reason(expanded)) from None
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise UnusablePath(_loop_reason(expanded)) from None
-        raise UnusablePath(f"cannot be looked up ({exc.strerror or exc})") from None
-    except ValueError as exc:  # "embedded null byte"
-        raise UnusablePath(f"cannot be looked up ({exc})") from None
-    return resolved
-
-
-LOOP = "a symlink loop (a link that leads back to itself, or too many links in a row)"
-
-
-def _loop_reason(path: Path) -> str:
-    """How ``path`` (absolute or relative to the current folder) meets a loop: it is one, or a folder on
-    the way is."""
-    prefix = Path(path.anchor) if path.is_absolute() else Path()
-    for part in path.parts[1:] if path.is_absolute() else path.parts:
-        prefix = prefix / part
-        try:
-            os.stat(prefix)
-        except OSError as exc:
-            if exc.errno != errno.ELOOP:
-                break
-            return f"is {LOOP}" if prefix == path else f"goes through {printable(str(prefix), 200)!r}, {LOOP}"
-    return f"leads into {LOOP}"
 
 
 def resolve_in_roots(
@@ -117,15 +61,6 @@ def resolve_in_roots(
             f"data roots ({allowed})"
         )
     raise Forbidden(f"{what} {str(raw)!r} is outside the allowed data roots ({allowed})")
-
-
-def real_path_or_none(path: str | Path) -> Path | None:
-    """:func:`real_path`, or None for a path that cannot be looked up (a stored folder that has become a
-    symlink loop holds nothing and equals no other folder)."""
-    try:
-        return real_path(path)
-    except UnusablePath:
-        return None
 
 
 def _inside(path: Path, roots: Sequence[Path]) -> bool:

@@ -13,9 +13,9 @@ import hashlib
 import logging
 from pathlib import Path
 
-from app.core.security import real_path_or_none
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence
 from leap_core.io_utils import link_or_copy, remove_tree
+from leap_core.paths import real_path_or_none
 from leap_core.progress import ProgressFn
 from leap_core.run_layout import SequenceLayout
 

@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from leap_core.errors import DatasetError, LeapError, PosesMissingError
 from leap_core.io_utils import atomic_write, atomic_write_bytes
+from leap_core.paths import UnusablePath, real_path, real_path_or_none
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: Written beside an estimated ``poses.txt``: JSON saying the poses are estimated, by what and how.
@@ -59,6 +60,7 @@ LINK_OUTSIDE = "a link leading outside the sequence folder"
 NOT_REGULAR = "not a regular file (a pipe, socket or device)"
 A_DIRECTORY = "a directory, not a file"
 DANGLING = "a link to nothing"
+A_LOOP = "a symlink loop (a link that leads back to itself, or too many links in a row)"
 NEVER_READ = frozenset({LINK_OUTSIDE, NOT_REGULAR})
 """Problems of a per-frame file that refuse the sequence: the reader never opens such a file (one linked
 outside may be anyone's, and reading a pipe blocks)."""
@@ -74,36 +76,60 @@ def sequence_roots(root: str | Path) -> tuple[Path, ...]:
     the app confines these entries to its data roots); a scan inside it linked elsewhere is not.
     """
     root = Path(root)
-    out = [root.resolve()]
+    out = [_resolved(root)]
     for name in FRAME_FOLDERS:
         entry = root / name
         if entry.exists():
-            out.append(entry.resolve())
+            out.append(_resolved(entry))
     return tuple(dict.fromkeys(out))
+
+
+def _resolved(path: Path) -> Path:
+    """``path`` with every link followed.
+
+    Raises:
+        DatasetError: ``path`` is (or goes through) a symbolic link loop, naming it.
+    """
+    try:
+        return real_path(path)
+    except UnusablePath as exc:
+        raise DatasetError(path, f"this path {exc}") from None
 
 
 def _inside(path: Path, roots: Sequence[Path]) -> bool:
     return any(path == r or path.is_relative_to(r) for r in roots)
 
 
+def _followed_link(link: Path, roots: Sequence[Path]) -> str | os.stat_result:
+    """The status of what the symbolic link ``link`` leads to, or why it may not be followed: a loop, a
+    target outside ``roots``, no target."""
+    target = real_path_or_none(link)
+    if target is None:
+        return A_LOOP
+    if not _inside(target, roots):
+        return LINK_OUTSIDE
+    try:
+        return link.stat()
+    except OSError:
+        return DANGLING
+
+
 def entry_problem(path: Path, roots: Sequence[Path]) -> str | None:
     """Why the reader may not read the per-frame file ``path``, or None for a regular file it may read.
 
     A symbolic link must lead inside ``roots`` (:func:`sequence_roots`), so a file linked to
-    ``/etc/passwd`` is never opened; a directory, a dangling link, a pipe, a socket or a device is no file
-    of a sequence (reading a pipe would block).
+    ``/etc/passwd`` is never opened; a directory, a dangling link, a link loop, a pipe, a socket or a device
+    is no file of a sequence (reading a pipe would block).
     """
     try:
         st = path.lstat()
     except OSError:
         return None  # absent: whoever needs it says so
     if stat.S_ISLNK(st.st_mode):
-        if not _inside(path.resolve(), roots):
-            return LINK_OUTSIDE
-        try:
-            st = path.stat()
-        except OSError:
-            return DANGLING
+        followed = _followed_link(path, roots)
+        if isinstance(followed, str):
+            return followed
+        st = followed
     if stat.S_ISDIR(st.st_mode):
         return A_DIRECTORY
     if not stat.S_ISREG(st.st_mode):
