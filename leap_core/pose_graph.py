@@ -55,7 +55,7 @@ class RefineConfig:
     LiDAR ring or a pole) are dropped as targets (:func:`plane_normals`)."""
     max_correspondence: float = 0.8
     """A source point farther than this (m) from its nearest target point has no correspondence."""
-    kernel: float = 0.1
+    kernel: float = 0.05
     """Scale (m) of the Geman-McClure kernel that down-weights large point-to-plane residuals."""
     max_iterations: int = 30
     """Gauss-Newton iterations per registration at most."""
