@@ -1,5 +1,5 @@
 """Refinement of LiDAR odometry: neighbouring scans registered to each other with point-to-plane ICP, then
-a pose graph over those registrations solved with scipy's least squares (docs/METHOD.md E.5a).
+a pose graph over those registrations solved by sparse least squares (docs/METHOD.md E.5a).
 
 KISS-ICP (:mod:`leap_core.odometry`) tracks each scan against a coarse local map with a constant-velocity
 prediction. Its errors are those of a tracker: the first step has no motion prior, a vehicle that speeds up
@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse
-from scipy.optimize import least_squares
+import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -304,49 +304,106 @@ def weak_edge(i: int, j: int, pose: F64, sigma_m: float = 1.0, sigma_rad: float 
 
 def edge_residuals(poses: F64, edges: list[Edge]) -> F64:
     """(E, 6) whitened residuals ``L_eᵀ · e(T_i⁻¹ T_j Z_e⁻¹)`` of ``edges`` at ``poses`` (F, 4, 4)."""
-    i = np.array([e.i for e in edges])
-    j = np.array([e.j for e in edges])
-    z = np.stack([e.pose for e in edges])
-    sqrt_info = np.stack([e.sqrt_information for e in edges])
-    err = motion_error(inverse(poses[i]) @ poses[j] @ inverse(z))
-    return np.asarray(np.einsum("eab,eb->ea", sqrt_info, err), dtype=np.float64)
+    g = _Graph.of(edges)
+    return g.residuals(poses[g.i], poses[g.j])
 
 
-def optimise_poses(initial: F64, edges: list[Edge], max_evaluations: int = 200) -> F64:
+@dataclass(frozen=True)
+class _Graph:
+    """The edges as arrays: ends ``i``, ``j`` (E,), ``Z⁻¹`` (E, 4, 4), ``Lᵀ`` (E, 6, 6)."""
+
+    i: npt.NDArray[np.int64]
+    j: npt.NDArray[np.int64]
+    z_inv: F64
+    sqrt_info: F64
+
+    @classmethod
+    def of(cls, edges: list[Edge]) -> _Graph:
+        return cls(
+            np.array([e.i for e in edges], dtype=np.int64),
+            np.array([e.j for e in edges], dtype=np.int64),
+            inverse(np.stack([e.pose for e in edges])),
+            np.stack([e.sqrt_information for e in edges]),
+        )
+
+    def residuals(self, ti: F64, tj: F64) -> F64:
+        """(E, 6) residuals with the edges' end poses ``ti``, ``tj`` (E, 4, 4)."""
+        err = motion_error(inverse(ti) @ tj @ self.z_inv)
+        return np.asarray(np.einsum("eab,eb->ea", self.sqrt_info, err), dtype=np.float64)
+
+    def jacobian(self, poses: F64, step: float = 1e-6) -> scipy.sparse.csr_matrix:
+        """(6E, 6(F−1)) Jacobian of the residuals with respect to small motions ``δ_k`` applied as
+        ``T_k · X(δ_k)`` (k ≥ 1; pose 0 is fixed), by central differences: each edge's residual depends on
+        its two ends only, so 24 evaluations over all edges give every 6×6 block."""
+        ti, tj = poses[self.i], poses[self.j]
+        blocks = np.zeros((2, len(self.i), 6, 6))
+        for k in range(6):
+            d = np.zeros(6)
+            d[k] = step
+            plus, minus = small_motion(d), small_motion(-d)
+            blocks[0, :, :, k] = self.residuals(ti @ plus, tj) - self.residuals(ti @ minus, tj)
+            blocks[1, :, :, k] = self.residuals(ti, tj @ plus) - self.residuals(ti, tj @ minus)
+        blocks /= 2.0 * step
+        rows, cols, vals = [], [], []
+        # Block entry (a, b): residual component a of edge e, motion component b of node n.
+        a, b = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+        for end, node in enumerate((self.i, self.j)):
+            keep = node > 0
+            e = np.flatnonzero(keep)
+            rows.append((6 * e[:, None, None] + a[None]).ravel())
+            cols.append((6 * (node[keep] - 1)[:, None, None] + b[None]).ravel())
+            vals.append(blocks[end, keep].ravel())
+        shape = (6 * len(self.i), 6 * (len(poses) - 1))
+        return scipy.sparse.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape
+        )
+
+
+def _moved(poses: F64, delta: F64) -> F64:
+    """``poses`` (F, 4, 4) with ``T_k ← T_k · X(δ_k)`` for k ≥ 1 (``delta`` (6(F−1),))."""
+    out: F64 = poses.copy()
+    out[1:] = poses[1:] @ small_motion(delta.reshape(-1, 6))
+    return out
+
+
+def optimise_poses(initial: F64, edges: list[Edge], max_iterations: int = 50) -> F64:
     """Poses (F, 4, 4) minimising the sum of squared :func:`edge_residuals`, from ``initial`` (F, 4, 4),
     pose 0 held fixed.
 
-    The unknowns are small motions ``δ_k`` (k ≥ 1) with ``T_k = initial_k · X(δ_k)``; scipy's trust-region
-    least squares solves them with a finite-difference Jacobian whose sparsity (edge e depends on δ_i and
-    δ_j only) is given, so its cost grows with the number of edges, not its square.
+    Levenberg-Marquardt on small motions ``T_k · X(δ_k)`` about the current poses: each step solves
+    ``(JᵀJ + λ · diag(JᵀJ)) δ = −Jᵀ r`` with scipy's sparse direct solver (the graph's JᵀJ is banded:
+    an edge links scans at most ``neighbours`` apart, so a step costs about linear time in the scans);
+    λ shrinks tenfold after a step that lowers the cost and grows tenfold until one does.
     """
-    init: F64 = np.array(initial, dtype=np.float64)
-    f = len(init)
-    if f < 2 or not edges:
-        return init
+    poses: F64 = np.array(initial, dtype=np.float64)
+    if len(poses) < 2 or not edges:
+        return poses
+    graph = _Graph.of(edges)
 
-    def poses_of(x: F64) -> F64:
-        out: F64 = init.copy()
-        out[1:] = init[1:] @ small_motion(x.reshape(f - 1, 6))
-        return out
+    def cost(t: F64) -> float:
+        return float(np.sum(graph.residuals(t[graph.i], t[graph.j]) ** 2))
 
-    def fun(x: F64) -> F64:
-        return edge_residuals(poses_of(x), edges).reshape(-1)
-
-    sparsity = scipy.sparse.lil_matrix((6 * len(edges), 6 * (f - 1)), dtype=np.int8)
-    for e, edge in enumerate(edges):
-        for node in (edge.i, edge.j):
-            if node > 0:
-                sparsity[6 * e : 6 * e + 6, 6 * (node - 1) : 6 * node] = 1
-    result = least_squares(
-        fun,
-        np.zeros(6 * (f - 1)),
-        jac_sparsity=sparsity,
-        method="trf",
-        max_nfev=max_evaluations,
-        x_scale="jac",
-    )
-    return poses_of(np.asarray(result.x, dtype=np.float64))
+    current, lam = cost(poses), 1e-4
+    for _ in range(max_iterations):
+        jac = graph.jacobian(poses)
+        r = graph.residuals(poses[graph.i], poses[graph.j]).reshape(-1)
+        h = (jac.T @ jac).tocsc()
+        g = jac.T @ r
+        diag = scipy.sparse.diags(h.diagonal() + 1e-12)
+        while lam < 1e10:
+            delta = np.asarray(scipy.sparse.linalg.spsolve((h + lam * diag).tocsc(), -g), dtype=np.float64)
+            trial = _moved(poses, delta)
+            new = cost(trial)
+            if new < current:
+                break
+            lam *= 10.0
+        else:
+            return poses  # no step lowers the cost: a minimum
+        gain = current - new
+        poses, current, lam = trial, new, max(lam / 10.0, 1e-12)
+        if gain <= 1e-12 * max(current, 1e-300) or float(np.abs(delta).max()) < 1e-10:
+            break
+    return poses
 
 
 # ----------------------------------------------------------------------------------------- the stream
