@@ -17,7 +17,7 @@ import typer
 from app.cli_import import import_cli
 from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import Frame, KittiSequence
-from leap_core.errors import Cancelled, ConfigError, LeapError, PosesMissingError
+from leap_core.errors import Cancelled, ConfigError, DatasetError, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
 from leap_core.labelers.cache import default_cache_dir, image_digest
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
@@ -740,14 +740,17 @@ def poses_cmd(
 
 def _truth_poses(root: Path, target: Path, truth: str | None) -> tuple[Path, npt.NDArray[np.float64]] | None:
     """The true LiDAR poses ``leap poses`` measures its estimate against, and their file: ``truth`` when
-    given, else the dataset's own poses.txt when it holds measured poses (no estimate note) and is not the
-    file being written; None otherwise."""
+    given, else the dataset's own poses.txt when it holds readable measured poses (no estimate note) and is
+    not the file being written; None otherwise."""
     if truth is not None:
         ref = KittiSequence(root, poses_path=truth)
         if not ref.has_poses:
             raise LeapError(f"{ref.poses_path}: --truth names no poses file")
         return ref.poses_path, ref.poses
-    own = KittiSequence(root)
+    try:
+        own = KittiSequence(root)
+    except DatasetError:
+        return None  # the dataset's own poses.txt cannot be read: nothing to measure against, not an error
     if own.pose_source != "file" or own.poses_path.resolve() == target.resolve():
         return None
     return own.poses_path, own.poses

@@ -104,6 +104,12 @@ def test_leap_poses_measures_the_estimate_against_true_poses(drive: Path, tmp_pa
     assert note["method"] == "kiss-icp" and note["quality"]["truth"]["poses"] == str(copy / "measured.txt")
     assert "KISS-ICP in" in res.output
 
+    # A dataset poses.txt that cannot be read is no truth, and no reason to refuse an estimate elsewhere.
+    (copy / "poses.txt").write_text("not a pose\n")
+    res = CliRunner().invoke(cli, ["poses", str(copy), "--out", str(tmp_path / "other" / "poses.txt")])
+    assert res.exit_code == 0, res.output
+    assert res.output.strip().splitlines()[-1].startswith("registration residual: median ")
+
     missing = tmp_path / "nowhere" / "poses.txt"
     res = CliRunner().invoke(
         cli, ["poses", str(drive), "--out", str(tmp_path / "x.txt"), "--truth", str(missing)]
