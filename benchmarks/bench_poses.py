@@ -19,7 +19,7 @@ voxel mIoU on both protocols, and the difference.
 
 Worlds (``--world``, generated in a temp folder; the street worlds with a tiny camera, which changes no
 scan and no pose): *report* worlds ``demo`` (street seed 0, 60 frames: `leap synth`'s demo), ``demo-hard``
-(the demo's streets, 80 frames, the car pulling away from rest at 1.6 m/s², 5 cm range noise), ``long``
+(street seed 0, 80 frames, the car pulling away from rest at 1.6 m/s², 5 cm range noise), ``long``
 (street seed 11, 240 frames), ``street-32`` (seed 0, 80 frames), ``agri-uav`` (seed 0, 40 frames);
 *tuning* worlds, on which the refinement's settings were chosen: ``tune-street`` (seed 21, 80 frames),
 ``tune-hard`` (seed 21, from rest, 5 cm noise), ``tune-street-32`` (seed 22), ``tune-agri-uav`` (seed 101);
