@@ -6,7 +6,8 @@ prediction. Its errors are those of a tracker: the first step has no motion prio
 outruns the prediction, and each step carries the jitter of a 0.8 m voxel map. Here every scan k is
 registered to each of its next ``neighbours`` scans j directly, at a finer resolution, starting from
 KISS-ICP's relative pose or the last registered step, whichever fits better (:class:`GraphBuilder`), which
-gives measurements ``Z_kj`` (scan j in scan k's frame) and their information ``H_kj``. The poses ``T_1 … T_{F−1}`` (``T_0`` fixed) then minimise
+gives measurements ``Z_kj`` (scan j in scan k's frame) and their information ``H_kj``. The poses
+``T_1 … T_{F−1}`` (``T_0`` fixed) then minimise
 
     Σ_(k,j) ‖ L_kjᵀ · e(T_k⁻¹ · T_j · Z_kj⁻¹) ‖²,     H_kj = L_kj · L_kjᵀ (Cholesky),
 
