@@ -18,7 +18,7 @@ import typer
 from app.cli_import import import_cli
 from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import Frame, KittiSequence
-from leap_core.errors import Cancelled, ConfigError, LeapError, PosesMissingError
+from leap_core.errors import Cancelled, ConfigError, DatasetError, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
 from leap_core.labelers.cache import default_cache_dir, image_digest
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
@@ -32,6 +32,8 @@ from leap_core.synth.domains import DOMAINS as SYNTH_DOMAINS
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
 
+    import numpy as np
+    import numpy.typing as npt
     from pydantic import SecretStr
     from tqdm import tqdm
 
@@ -703,7 +705,10 @@ def _estimate_run_poses(dataset: Path, target: Path) -> None:
 
         note, reused = estimate_into(seq, target, progress=tick)
     how = "reused" if reused else f"estimated in {note['seconds']:.1f} s"
-    typer.echo(f"poses: {how} with KISS-ICP {note['version']} for {note['frames']} scans -> {target}")
+    typer.echo(
+        f"poses: {how} with {note['method']} (KISS-ICP {note['version']}) for {note['frames']} scans "
+        f"-> {target}"
+    )
 
 
 @cli.command("poses")
@@ -714,14 +719,26 @@ def poses_cmd(
         None, "--out", help="poses.txt to write (default: DATASET/poses.txt); the note goes beside it."
     ),
     force: bool = typer.Option(False, "--force", help="Replace an existing poses file."),
+    truth: str | None = typer.Option(
+        None,
+        "--truth",
+        help="A poses.txt of true poses to measure the estimate against (default: the dataset's own "
+        "measured poses.txt when --out writes elsewhere).",
+    ),
+    refine: bool = typer.Option(
+        True,
+        "--refine/--no-refine",
+        help="Refine KISS-ICP's poses with the pose graph (--no-refine: faster).",
+    ),
 ) -> None:
-    """Estimate the sequence's poses with KISS-ICP LiDAR odometry and write them as a KITTI poses.txt
-    (left-camera frame, first pose = identity) plus poses_estimated.json saying how they were made."""
+    """Estimate the sequence's poses with KISS-ICP LiDAR odometry refined by a pose graph over
+    neighbouring-scan registrations, and write them as a KITTI poses.txt (left-camera frame, first pose =
+    identity) plus poses_estimated.json saying how they were made and how well they fit."""
     import time
 
     from tqdm import tqdm
 
-    from leap_core.odometry import estimate_sequence_poses, write_estimated_poses
+    from leap_core.odometry import OdometryConfig, estimate_sequence_poses, write_estimated_poses
     from leap_core.trajectory import path_distances
 
     try:
@@ -730,24 +747,75 @@ def poses_cmd(
         # Refused before the work, not after it.
         if target.exists() and not force:
             raise LeapError(f"{target}: already exists; add --force to replace it")
+        reference = _truth_poses(seq.root, target, truth)
+        config = OdometryConfig() if refine else OdometryConfig(refine=None)
         start = time.perf_counter()
-        with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
+        with tqdm(total=2 * len(seq), desc="poses (2 passes)", unit="scan", dynamic_ncols=True) as bar:
 
             def tick(done: int, total: int) -> None:
                 bar.total = total
                 bar.update(done - bar.n)
 
-            est = estimate_sequence_poses(seq, progress=tick)
+            est = estimate_sequence_poses(seq, config, progress=tick)
+        if reference is not None:
+            est = est.compared_with(reference[1], str(reference[0]))
         note = write_estimated_poses(target, est, force=force)
     except KeyboardInterrupt:
         raise fail("interrupted; nothing was written") from None
     except LeapError as exc:
         raise fail(str(exc)) from None
     seconds = time.perf_counter() - start
+    how = "KISS-ICP + pose graph" if refine else "KISS-ICP"
     typer.echo(
         f"wrote {target} and {note.name}: {len(seq)} poses, {path_distances(est.lidar)[-1]:.1f} m driven, "
-        f"KISS-ICP in {seconds:.1f} s ({1000 * est.seconds / len(seq):.0f} ms/scan)"
+        f"{how} in {seconds:.1f} s ({1000 * est.seconds / len(seq):.0f} ms/scan)"
     )
+    for line in pose_quality_lines(est.note()["quality"]):
+        typer.echo(line)
+
+
+def _truth_poses(root: Path, target: Path, truth: str | None) -> tuple[Path, npt.NDArray[np.float64]] | None:
+    """The true LiDAR poses ``leap poses`` measures its estimate against, and their file: ``truth`` when
+    given, else the dataset's own poses.txt when it holds readable measured poses (no estimate note) and is
+    not the file being written; None otherwise."""
+    if truth is not None:
+        ref = KittiSequence(root, poses_path=truth)
+        if not ref.has_poses:
+            raise LeapError(f"{ref.poses_path}: --truth names no poses file")
+        return ref.poses_path, ref.poses
+    try:
+        own = KittiSequence(root)
+    except DatasetError:
+        return None  # the dataset's own poses.txt cannot be read: nothing to measure against, not an error
+    if own.pose_source != "file" or own.poses_path.resolve() == target.resolve():
+        return None
+    return own.poses_path, own.poses
+
+
+def pose_quality_lines(quality: dict[str, Any]) -> list[str]:
+    """The lines ``leap poses`` prints about an estimate's ``quality`` (the note's): the residual and,
+    with true poses, drift, rotation error and the first step."""
+
+    def cm(v: float | None) -> str:
+        return "n/a" if v is None else f"{100 * v:.2f} cm"
+
+    lines = [
+        f"registration residual: median {cm(quality.get('residual_median_m'))} between neighbouring scans "
+        f"(KISS-ICP alone: {cm(quality.get('odometry_residual_median_m'))})"
+    ]
+    t = quality.get("truth")
+    if t is not None:
+        lengths = t["segment_lengths_m"]
+        drift = "n/a (the drive is too short)" if t["drift_pct"] is None else f"{t['drift_pct']:.2f} %"
+        rot = "n/a" if t["rotation_deg_per_100m"] is None else f"{t['rotation_deg_per_100m']:.2f} deg/100 m"
+        ratio = t["first_step_ratio"]
+        first = "n/a (a true step under 0.1 m)" if ratio is None else f"{ratio:.3f}"
+        lines.append(
+            f"against {t['poses']}: translational drift {drift} (KITTI's definition, segments "
+            f"{lengths[0]:.0f}-{lengths[-1]:.0f} m), rotation {rot}, ATE {cm(t['ate_m'])}, "
+            f"first step / second step {first} (1 = as right as the second)"
+        )
+    return lines
 
 
 @cli.command("train-3dcn")

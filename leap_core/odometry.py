@@ -1,9 +1,14 @@
 """Poses for a sequence recorded without them: LiDAR odometry with KISS-ICP (PRBonn's ``kiss-icp``
-package; docs/METHOD.md, "Estimated poses").
+package), refined by a pose graph over neighbouring-scan registrations (:mod:`leap_core.pose_graph`;
+docs/METHOD.md, "Estimated poses").
 
 KISS-ICP registers each scan against a local voxel map and returns LiDAR poses relative to the first
-scan. KITTI's ``poses.txt`` holds LEFT CAMERA poses, so they are converted with the calibration's
-``Tr`` (LiDAR → camera): ``P_cam = Tr · P_lidar · Tr⁻¹``, identity for the first scan as in KITTI, so
+scan; the refinement registers each scan to its next few scans directly and solves the poses that agree
+best with all those registrations. A second pass over the scans measures the result: the median
+point-to-plane residual between neighbouring scans at the final poses.
+
+KITTI's ``poses.txt`` holds LEFT CAMERA poses, so they are converted with the calibration's ``Tr``
+(LiDAR → camera): ``P_cam = Tr · P_lidar · Tr⁻¹``, identity for the first scan as in KITTI, so
 :func:`leap_core.datasets.kitti.lidar_poses` (``Tr⁻¹ · P_cam · Tr``) gives the odometry back.
 
 The estimate is written as ``poses.txt`` plus a ``poses_estimated.json`` note beside it
@@ -18,8 +23,8 @@ import json
 import math
 import os
 import time
-from collections.abc import Iterable
-from dataclasses import asdict, dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field, replace
 from importlib.metadata import version
 from pathlib import Path
 from typing import Any
@@ -33,16 +38,24 @@ from kiss_icp.kiss_icp import KissICP  # type: ignore[import-untyped]  # (the sa
 from leap_core.datasets.kitti import POSES_NOTE, KittiSequence, write_poses
 from leap_core.errors import ConfigError, DatasetError, LeapError
 from leap_core.io_utils import atomic_write_bytes
+from leap_core.pose_graph import GraphBuilder, RefineConfig, neighbour_residuals, optimise_poses
 from leap_core.progress import ProgressFn, report
+from leap_core.trajectory import TruthComparison, compare_with_truth
 
 METHOD = "kiss-icp"
-"""The ``method`` of the note file."""
+"""The ``method`` of the note file for KISS-ICP alone."""
+REFINED_METHOD = "kiss-icp+pose-graph"
+"""The ``method`` of the note file for KISS-ICP refined by the pose graph (the default)."""
+
+F64 = npt.NDArray[np.float64]
+ScanSource = Callable[[], Iterable[npt.NDArray[np.floating[Any]]]]
+"""Yields a sequence's scans in recording order, each (N, ≥3) x, y, z, …; called once per pass."""
 
 
 @dataclass(frozen=True)
 class OdometryConfig:
     """KISS-ICP settings for a spinning LiDAR like the demo's 64-beam sensor (KISS-ICP's own defaults
-    except the range, which follows the sensor: the demo's returns end at 80 m)."""
+    except the range, which follows the sensor: the demo's returns end at 80 m), and the refinement's."""
 
     max_range: float = 80.0
     """Points farther than this from the sensor are dropped before registration (m)."""
@@ -63,6 +76,8 @@ class OdometryConfig:
     """ICP stops when the update's norm falls below this."""
     threads: int = 0
     """Threads of the registration (0 = as many as cores)."""
+    refine: RefineConfig | None = field(default_factory=RefineConfig)
+    """The pose-graph refinement's settings (:mod:`leap_core.pose_graph`); None = KISS-ICP alone."""
 
     def __post_init__(self) -> None:
         def positive(name: str, value: float) -> None:
@@ -94,9 +109,18 @@ class OdometryConfig:
         """The voxel size in use (``voxel_size`` or ``max_range / 100``)."""
         return self.voxel_size if self.voxel_size is not None else self.max_range / 100.0
 
+    @property
+    def method(self) -> str:
+        """The note's ``method``: :data:`REFINED_METHOD`, or :data:`METHOD` without refinement."""
+        return METHOD if self.refine is None else REFINED_METHOD
+
     def settings(self) -> dict[str, Any]:
         """The settings as the note file records them (the resolved voxel size included)."""
         return {**asdict(self), "voxel_size": self.voxel, "deskew": False}
+
+    def measure(self) -> RefineConfig:
+        """The settings the residual is measured with (the refinement's, or its defaults without one)."""
+        return self.refine if self.refine is not None else RefineConfig()
 
 
 def _kiss(config: OdometryConfig) -> Any:
@@ -124,36 +148,89 @@ def _kiss(config: OdometryConfig) -> Any:
     return KissICP(kcfg)
 
 
+def range_cut(points: npt.NDArray[np.floating[Any]], config: OdometryConfig) -> F64:
+    """(M, 3) float64 x, y, z of the points (N, ≥3) whose range lies in ``(min_range, max_range)``, the
+    points KISS-ICP keeps."""
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    r = np.linalg.norm(xyz, axis=1)
+    return np.ascontiguousarray(xyz[(r > config.min_range) & (r < config.max_range)])
+
+
+@dataclass(frozen=True)
+class LidarOdometry:
+    """The result of :func:`estimate_lidar_poses`.
+
+    Attributes:
+        poses: (F, 4, 4) LiDAR → world poses, world = the first scan's LiDAR frame (pose 0 = identity).
+        odometry: (F, 4, 4) KISS-ICP's poses alone (= ``poses`` without refinement).
+        residuals: (F−1,) median |point-to-plane distance| (m) of scan k+1 against scan k at ``poses``
+            (:func:`leap_core.pose_graph.pair_residual`).
+        odometry_residual: the median of the same residuals at ``odometry``'s poses (m).
+    """
+
+    poses: F64
+    odometry: F64
+    residuals: F64
+    odometry_residual: float
+
+    @property
+    def residual(self) -> float:
+        """Median of :attr:`residuals` (m; NaN for a single scan)."""
+        return float(np.median(self.residuals)) if len(self.residuals) else math.nan
+
+
 def estimate_lidar_poses(
-    scans: Iterable[npt.NDArray[np.floating[Any]]],
+    scans: ScanSource,
     total: int,
     config: OdometryConfig | None = None,
     progress: ProgressFn | None = None,
-) -> npt.NDArray[np.float64]:
-    """LiDAR odometry of consecutive scans.
+) -> LidarOdometry:
+    """LiDAR odometry of consecutive scans, refined unless ``config.refine`` is None, and measured.
+
+    Two passes over ``scans()``: KISS-ICP and the neighbour registrations, then (after the pose graph) the
+    residuals at the final poses.
 
     Args:
-        scans: ``total`` scans in recording order, each (N, ≥3): x, y, z in the LiDAR frame (further
-            columns such as remission are ignored).
-        total: the number of scans (for progress).
-        config: KISS-ICP settings (default :class:`OdometryConfig`).
-        progress: ``progress(done, total)`` after each scan; may raise ``Cancelled``.
-
-    Returns:
-        (F, 4, 4) float64 LiDAR → world poses, world = the first scan's LiDAR frame (pose 0 = identity).
+        scans: yields ``total`` scans in recording order, each (N, ≥3): x, y, z in the LiDAR frame
+            (further columns such as remission are ignored); called once per pass.
+        total: the number of scans.
+        config: settings (default :class:`OdometryConfig`).
+        progress: ``progress(done, 2 · total)`` after each scan of each pass; may raise ``Cancelled``.
     """
-    odo = _kiss(config or OdometryConfig())
-    poses: list[npt.NDArray[np.float64]] = []
+    cfg = config or OdometryConfig()
+    odo = _kiss(cfg)
+    graph = GraphBuilder.start(cfg.refine) if cfg.refine is not None else None
+    kiss: list[F64] = []
     no_times = np.zeros(0, dtype=np.float64)
-    report(progress, 0, total)
-    for k, scan in enumerate(scans):
+    report(progress, 0, 2 * total)
+    for k, scan in enumerate(scans()):
         xyz = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float64)
         odo.register_frame(xyz, no_times)
-        poses.append(np.array(odo.last_pose, dtype=np.float64))
-        report(progress, k + 1, total)
-    if len(poses) != total:
-        raise LeapError(f"expected {total} scans, got {len(poses)}")
-    return np.stack(poses) if poses else np.zeros((0, 4, 4))
+        kiss.append(np.array(odo.last_pose, dtype=np.float64))
+        if graph is not None:
+            graph.add(k, range_cut(xyz, cfg), kiss[-1])
+        report(progress, k + 1, 2 * total)
+    if len(kiss) != total:
+        raise LeapError(f"expected {total} scans, got {len(kiss)}")
+    if total == 0:
+        empty = np.zeros((0, 4, 4))
+        return LidarOdometry(empty, empty, np.zeros(0), math.nan)
+    odometry = np.stack(kiss)
+    poses = optimise_poses(odometry, graph.edges) if graph is not None else odometry
+
+    def cut_scans() -> Iterable[F64]:
+        for k, scan in enumerate(scans()):
+            yield range_cut(scan, cfg)
+            report(progress, total + k + 1, 2 * total)
+
+    residuals = neighbour_residuals(cut_scans, poses, cfg.measure())
+    if graph is not None:
+        odometry_residual = (
+            float(np.median(graph.odometry_residuals)) if graph.odometry_residuals else math.nan
+        )
+    else:
+        odometry_residual = float(np.median(residuals)) if len(residuals) else math.nan
+    return LidarOdometry(poses, odometry, residuals, odometry_residual)
 
 
 def camera_poses(lidar: npt.NDArray[np.float64], tr: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -195,6 +272,11 @@ def pose_file_rows(frame_ids: list[str], cam: npt.NDArray[np.float64]) -> npt.ND
     return rows
 
 
+def _finite(v: float, digits: int = 6) -> float | None:
+    """A JSON number (NaN as None)."""
+    return None if not math.isfinite(v) else round(float(v), digits)
+
+
 @dataclass(frozen=True)
 class EstimatedPoses:
     """The result of :func:`estimate_sequence_poses`.
@@ -203,22 +285,47 @@ class EstimatedPoses:
         frame_ids: the scans' file stems, in order.
         lidar: (F, 4, 4) LiDAR poses relative to the first scan.
         cam: (F, 4, 4) KITTI camera-frame poses (first = identity).
-        seconds: wall time of the registration.
+        seconds: wall time of the estimate (both passes).
         config: the settings used.
         scans: :func:`scans_signature` of the sequence the estimate was made from.
+        residual: median point-to-plane residual (m) between neighbouring scans at ``lidar``.
+        odometry_residual: the same at KISS-ICP's poses alone.
+        odometry: (F, 4, 4) KISS-ICP's poses alone (None when not kept).
+        truth: the estimate against true poses (:meth:`compared_with`), if any.
+        truth_source: where the true poses came from.
     """
 
     frame_ids: list[str]
-    lidar: npt.NDArray[np.float64]
-    cam: npt.NDArray[np.float64]
+    lidar: F64
+    cam: F64
     seconds: float
     config: OdometryConfig
     scans: str = ""
+    residual: float = math.nan
+    odometry_residual: float = math.nan
+    odometry: F64 | None = None
+    truth: TruthComparison | None = None
+    truth_source: str = ""
+
+    def compared_with(self, true_lidar: F64, source: str) -> EstimatedPoses:
+        """This estimate with its :class:`~leap_core.trajectory.TruthComparison` against ``true_lidar``
+        ((F, 4, 4) LiDAR poses of the same frames, any world frame) read from ``source``."""
+        return replace(self, truth=compare_with_truth(true_lidar, self.lidar), truth_source=source)
+
+    def quality(self) -> dict[str, Any]:
+        """The note's ``quality``: residuals (m) and, with true poses, the comparison."""
+        out: dict[str, Any] = {
+            "residual_median_m": _finite(self.residual),
+            "odometry_residual_median_m": _finite(self.odometry_residual),
+        }
+        if self.truth is not None:
+            out["truth"] = {"poses": self.truth_source, **self.truth.to_dict()}
+        return out
 
     def note(self) -> dict[str, Any]:
         """The ``poses_estimated.json`` content."""
         return {
-            "method": METHOD,
+            "method": self.config.method,
             "version": version("kiss-icp"),
             "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
             "frames": len(self.frame_ids),
@@ -226,19 +333,29 @@ class EstimatedPoses:
             "seconds": round(self.seconds, 3),
             "settings": self.config.settings(),
             "scans": self.scans,
+            "quality": self.quality(),
         }
 
 
 def estimate_sequence_poses(
     seq: KittiSequence, config: OdometryConfig | None = None, progress: ProgressFn | None = None
 ) -> EstimatedPoses:
-    """KISS-ICP odometry over every scan of ``seq`` (in frame order), as LiDAR and camera poses."""
+    """:func:`estimate_lidar_poses` over every scan of ``seq`` (in frame order), as LiDAR and camera
+    poses."""
     cfg = config or OdometryConfig()
     t0 = time.perf_counter()
-    lidar = estimate_lidar_poses((f.points for f in seq), len(seq), cfg, progress)
+    est = estimate_lidar_poses(lambda: (f.points for f in seq), len(seq), cfg, progress)
     seconds = time.perf_counter() - t0
     return EstimatedPoses(
-        list(seq.frame_ids), lidar, camera_poses(lidar, seq.calib.Tr), seconds, cfg, scans_signature(seq)
+        list(seq.frame_ids),
+        est.poses,
+        camera_poses(est.poses, seq.calib.Tr),
+        seconds,
+        cfg,
+        scans_signature(seq),
+        residual=est.residual,
+        odometry_residual=est.odometry_residual,
+        odometry=est.odometry,
     )
 
 
@@ -256,7 +373,9 @@ def write_estimated_poses(poses_path: str | Path, est: EstimatedPoses, *, force:
     if path.exists() and not force:
         raise DatasetError(path, "already exists; pass force (CLI: --force) to replace it")
     note = path.parent / POSES_NOTE
-    atomic_write_bytes(note, (json.dumps(est.note(), indent=2, sort_keys=True) + "\n").encode())
+    atomic_write_bytes(
+        note, (json.dumps(est.note(), indent=2, sort_keys=True, allow_nan=False) + "\n").encode()
+    )
     write_poses(path, pose_file_rows(est.frame_ids, est.cam))
     return note
 
@@ -280,8 +399,8 @@ def read_note(poses_path: str | Path) -> dict[str, Any] | None:
 
 
 def reusable_estimate(seq: KittiSequence, poses_path: str | Path, config: OdometryConfig) -> bool:
-    """Whether ``poses_path`` already holds a KISS-ICP estimate of exactly these scans (and calibration)
-    made with these settings, so estimating again would give the same poses."""
+    """Whether ``poses_path`` already holds an estimate of exactly these scans (and calibration) made with
+    these settings, so estimating again would give the same poses."""
     path = Path(poses_path)
     try:
         note = read_note(path)
@@ -290,7 +409,7 @@ def reusable_estimate(seq: KittiSequence, poses_path: str | Path, config: Odomet
     return (
         path.is_file()
         and note is not None
-        and note.get("method") == METHOD
+        and note.get("method") == config.method
         and note.get("scans") == scans_signature(seq)
         and note.get("settings") == config.settings()
     )
@@ -310,7 +429,7 @@ def estimate_into(
     """
     cfg = config or OdometryConfig()
     if reusable_estimate(seq, poses_path, cfg):
-        report(progress, len(seq), len(seq))
+        report(progress, 2 * len(seq), 2 * len(seq))  # both passes, as an estimate reports them
         note = read_note(poses_path)
         assert note is not None  # reusable_estimate read it
         return note, True
@@ -331,14 +450,18 @@ def scans_signature(seq: KittiSequence) -> str:
 
 __all__ = [
     "METHOD",
+    "REFINED_METHOD",
     "EstimatedPoses",
+    "LidarOdometry",
     "OdometryConfig",
+    "ScanSource",
     "camera_poses",
     "estimate_into",
     "estimate_lidar_poses",
     "estimate_sequence_poses",
     "pose_file_rows",
     "pose_lines",
+    "range_cut",
     "read_note",
     "reusable_estimate",
     "scans_signature",

@@ -174,13 +174,98 @@ def ate_rmse(gt: F64, est: F64) -> float:
     return float(np.sqrt(np.mean(np.sum((moved - g[:, :3, 3]) ** 2, axis=1))))
 
 
+def step_lengths(poses: F64) -> F64:
+    """(F−1,) distance between consecutive positions ``‖t_k − t_{k−1}‖``."""
+    p = _check_poses("step_lengths", poses)
+    return np.asarray(np.linalg.norm(np.diff(p[:, :3, 3], axis=0), axis=1), dtype=np.float64)
+
+
+def first_step_ratio(gt: F64, est: F64, min_step: float = 0.1) -> float | None:
+    """How the estimate's first step compares with its second, relative to the truth's:
+    ``(‖Δe_1‖ / ‖Δe_2‖) / (‖Δg_1‖ / ‖Δg_2‖)`` with ``Δ_k`` the step from frame k−1 to k. 1 = the first
+    step is as right as the second; 0.5 = half as long as it should be next to the second (an odometry
+    that starts without a motion prior lags on its first step).
+
+    None when there are fewer than three frames or a true step is shorter than ``min_step`` (m): a vehicle
+    at rest has no step to compare.
+    """
+    g, e = _check_poses("gt", gt), _check_poses("est", est)
+    if g.shape != e.shape:
+        raise ValueError(f"gt {g.shape} and est {e.shape} must hold the same frames")
+    if len(g) < 3:
+        return None
+    sg, se = step_lengths(g[:3]), step_lengths(e[:3])
+    if min(sg) < min_step or se[1] <= 0.0:
+        return None
+    return float((se[0] / se[1]) / (sg[0] / sg[1]))
+
+
+@dataclass(frozen=True)
+class TruthComparison:
+    """An estimated trajectory against the true one (what ``leap poses`` reports when it has both).
+
+    Attributes:
+        drift_pct: translational drift (%): the KITTI devkit's mean ``‖t(D)‖ / L`` over the segments of
+            :func:`fitting_segment_lengths` (KITTI's 100-800 m on drives of 800 m or more).
+        rotation_deg_per_100m: the same segments' rotation error.
+        segment_lengths_m: the lengths used.
+        first_step_ratio: :func:`first_step_ratio` (None where undefined).
+        ate_m: :func:`ate_rmse`.
+        path_m: the true path length.
+    """
+
+    drift_pct: float
+    rotation_deg_per_100m: float
+    segment_lengths_m: tuple[float, ...]
+    first_step_ratio: float | None
+    ate_m: float
+    path_m: float
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready (NaN, from a drive too short for any segment, as None)."""
+
+        def num(v: float) -> float | None:
+            return None if np.isnan(v) else round(float(v), 6)
+
+        ratio = self.first_step_ratio
+        return {
+            "drift_pct": num(self.drift_pct),
+            "rotation_deg_per_100m": num(self.rotation_deg_per_100m),
+            "segment_lengths_m": list(self.segment_lengths_m),
+            "first_step_ratio": None if ratio is None else round(ratio, 6),
+            "ate_m": num(self.ate_m),
+            "path_m": num(self.path_m),
+        }
+
+
+def compare_with_truth(gt: F64, est: F64) -> TruthComparison:
+    """:class:`TruthComparison` of ``est`` against ``gt`` (both (F, 4, 4), F ≥ 2, the same sensor frame)."""
+    g, e = _check_poses("gt", gt), _check_poses("est", est)
+    if g.shape != e.shape or len(g) < 2:
+        raise ValueError(f"gt {g.shape} and est {e.shape} must hold the same frames, at least two")
+    lengths = fitting_segment_lengths(g)
+    seg = segment_errors(g, e, lengths)
+    return TruthComparison(
+        drift_pct=seg.translation_pct,
+        rotation_deg_per_100m=seg.rotation_deg_per_100m,
+        segment_lengths_m=lengths,
+        first_step_ratio=first_step_ratio(g, e),
+        ate_m=ate_rmse(g, e),
+        path_m=float(path_distances(g)[-1]),
+    )
+
+
 __all__ = [
     "KITTI_SEGMENT_LENGTHS",
     "SegmentErrors",
+    "TruthComparison",
     "align_rigid",
     "ate_rmse",
+    "compare_with_truth",
+    "first_step_ratio",
     "fitting_segment_lengths",
     "path_distances",
     "rotation_angle",
     "segment_errors",
+    "step_lengths",
 ]

@@ -268,6 +268,21 @@ def test_route_turns_and_speed(default_scene) -> None:
     assert step.min() > 0.4 and step.max() < 1.0
 
 
+def test_ego_from_rest_accelerates_at_accel(default_scene) -> None:
+    """``start_speed=0``: the ego starts at rest and covers ½·a·t² until it meets the speed envelope; the
+    default (None) route is the one that starts at cruise speed, unchanged."""
+    ego = EgoConfig(start_speed=0.0)
+    route = build_scene(SceneConfig(), ego, 60, 10.0, 0).route
+    t = np.arange(6) / 10.0
+    np.testing.assert_allclose(route.frame_s[:6], 0.5 * ego.accel * t**2, atol=1e-9)
+    assert route.speed[0] == 0.0 and route.speed[5] == pytest.approx(0.8)
+    # Same seed, same streets: the path is the default scene's, driven later.
+    np.testing.assert_allclose(route.xy, default_scene.route.xy)
+    assert default_scene.route.frame_s[1] == pytest.approx(0.8, abs=0.01)
+    with pytest.raises(ValueError, match="start_speed must be a speed >= 0"):
+        EgoConfig(start_speed=-1.0)
+
+
 def test_actors_move(default_scene) -> None:
     for actor in default_scene.actors:
         moved = np.linalg.norm(actor.xy[-1] - actor.xy[0])

@@ -1,4 +1,5 @@
-"""Estimated poses for a run of a project with "Estimate poses (KISS-ICP)" on.
+"""Estimated poses for a run of a project with "Estimate poses (KISS-ICP)" on (KISS-ICP odometry refined
+by a pose graph, :mod:`leap_core.odometry`).
 
 The estimate is made once per dataset into the work folder's cache (``<work_dir>/cache/poses/<key>/``,
 ``key`` from the dataset's resolved path), reused by every later run while the scans, calibration and
@@ -53,19 +54,34 @@ def prepare_run_poses(
     if not estimate or not needs_estimate(dataset) or cache_root is None:
         remove_tree(layout.poses.parent)
         return
-    from leap_core.odometry import estimate_into  # noqa: PLC0415  # KISS-ICP loads in a run that estimates
+    # KISS-ICP loads in a run that estimates.
+    from leap_core.odometry import REFINED_METHOD, estimate_into  # noqa: PLC0415
 
     seq = KittiSequence(dataset)
     cached = cache_folder(cache_root, dataset) / "poses.txt"
-    note, reused = estimate_into(seq, cached, progress=progress)
+    note, reused = estimate_into(seq, cached, progress=None if progress is None else _per_scan(progress))
     layout.poses.parent.mkdir(parents=True, exist_ok=True)
     link_or_copy(cached.parent / POSES_NOTE, layout.poses.parent / POSES_NOTE)
     link_or_copy(cached, layout.poses)
     how = "reused the estimate cached" if reused else f"estimated them in {note['seconds']:.1f} s, cached"
+    refined = " refined by a pose graph" if note.get("method") == REFINED_METHOD else ""
+    residual = (note.get("quality") or {}).get("residual_median_m")
+    fit = "" if residual is None else f", median residual {100 * residual:.2f} cm between neighbouring scans"
     notice_log.warning(
-        "poses: the dataset has no poses.txt; KISS-ICP %s LiDAR odometry %s in %s (%d scans)",
+        "poses: the dataset has no poses.txt; KISS-ICP %s LiDAR odometry%s %s in %s (%d scans%s)",
         note["version"],
+        refined,
         how,
         cached.parent,
         note["frames"],
+        fit,
     )
+
+
+def _per_scan(progress: ProgressFn) -> ProgressFn:
+    """The estimate reports two passes over the scans (``done`` of ``2 · scans``); the stage counts scans."""
+
+    def scaled(done: int, total: int) -> None:
+        progress((done + 1) // 2, total // 2)
+
+    return scaled

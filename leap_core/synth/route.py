@@ -26,7 +26,10 @@ class EgoConfig:
     turn_speed: float = 4.5
     """Speed through turns (m/s)."""
     accel: float = 1.6
-    """Braking / acceleration before and after turns (m/s²)."""
+    """Braking / acceleration before and after turns, and from ``start_speed`` (m/s²)."""
+    start_speed: float | None = None
+    """Speed at the first frame (m/s); None = the speed envelope's (cruise on a straight start). A lower
+    speed (0 = from rest) rises at ``accel`` until it meets the envelope."""
     first_turn_distance: tuple[float, float] = (20.0, 28.0)
     """Range of the distance from the start to the first intersection's centre (m), drawn per seed."""
     left_turn_radius: float = 7.5
@@ -39,6 +42,12 @@ class EgoConfig:
     """Amplitude of the body pitch oscillation (degrees)."""
     roll_per_accel_deg: float = 0.18
     """Body roll per m/s² of lateral acceleration in turns (degrees)."""
+
+    def __post_init__(self) -> None:
+        if self.start_speed is not None and not (0.0 <= self.start_speed < float("inf")):
+            raise ValueError(
+                f"EgoConfig.start_speed must be a speed >= 0 (m/s) or None, got {self.start_speed}"
+            )
 
 
 @dataclass(frozen=True)
@@ -185,8 +194,10 @@ def plan_route(
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     turns_arr = np.array(turns, dtype=np.float64).reshape(-1, 2)
 
-    frame_s = _drive(turns_arr, cfg, 0.0, frames, hz, cfg.cruise_speed)
+    frame_s = _drive(turns_arr, cfg, 0.0, frames, hz, cfg.cruise_speed, start_speed=cfg.start_speed)
     speed = np.array([_speed_limit(turns_arr, cfg, cfg.cruise_speed, sv) for sv in frame_s])
+    if cfg.start_speed is not None:
+        speed = np.minimum(speed, cfg.start_speed + cfg.accel * np.arange(frames) / hz)
     roll = _turn_roll(cfg, frame_s, speed, turns_arr, np.array(signs))
     poses = _ego_poses(cfg, s, xy, heading_angle, frame_s, roll=roll, rng=rng)
     return Route(
@@ -300,15 +311,27 @@ def _speed_limit(turns: npt.NDArray[np.float64], cfg: EgoConfig, cruise: float, 
 
 
 def _drive(
-    turns: npt.NDArray[np.float64], cfg: EgoConfig, s_start: float, frames: int, hz: float, cruise: float
+    turns: npt.NDArray[np.float64],
+    cfg: EgoConfig,
+    s_start: float,
+    frames: int,
+    hz: float,
+    cruise: float,
+    *,
+    start_speed: float | None = None,
 ) -> npt.NDArray[np.float64]:
-    """Arc length per frame when driving at the speed envelope from ``s_start`` (20 Euler steps per frame)."""
+    """Arc length per frame when driving at the speed envelope from ``s_start`` (20 Euler steps per frame);
+    with ``start_speed`` the speed is also at most ``start_speed + accel·t`` (t = time since the start)."""
     out = np.zeros(frames)
     sv, sub = s_start, 20
     for i in range(frames):
         out[i] = sv
-        for _ in range(sub):
-            sv += _speed_limit(turns, cfg, cruise, sv) / hz / sub
+        for k in range(sub):
+            v = _speed_limit(turns, cfg, cruise, sv)
+            if start_speed is not None:
+                # At the sub-step's midpoint: exact for a constant acceleration from rest.
+                v = min(v, start_speed + cfg.accel * (i * sub + k + 0.5) / hz / sub)
+            sv += v / hz / sub
     return out
 
 

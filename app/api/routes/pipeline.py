@@ -36,8 +36,8 @@ DEMO_STAGE = models.StageInfoPublic(
 POSES_STAGE_INFO = models.StageInfoPublic(
     name=POSES,
     label="Estimate poses",
-    description="KISS-ICP LiDAR odometry into the work folder (projects that estimate poses, on a dataset "
-    "without poses.txt; cached for later runs)",
+    description="KISS-ICP LiDAR odometry refined by a pose graph, into the work folder (projects that "
+    "estimate poses, on a dataset without poses.txt; cached for later runs)",
     per_frame=True,
 )
 """The stage before the pipeline's in a run that estimates poses."""
