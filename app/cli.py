@@ -685,11 +685,25 @@ def _sequence_specs(datasets: list[str], frames: str | None) -> list[SequenceSpe
     return specs
 
 
+@contextlib.contextmanager
+def _poses_bar(scans: int) -> Iterator[Callable[[int, int], None]]:
+    """A progress bar over pose estimation's two passes (odometry, then the pose graph) of ``scans``
+    scans; yields the ``progress(done, total)`` callback that moves it."""
+    from tqdm import tqdm
+
+    with tqdm(total=2 * scans, desc="poses (2 passes)", unit="scan", dynamic_ncols=True) as bar:
+
+        def tick(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        yield tick
+
+
 def _estimate_run_poses(dataset: Path, target: Path) -> None:
     """``leap run --estimate-poses``: KISS-ICP poses into ``target`` (the sequence's ``poses/poses.txt``
     in the run folder) when the dataset has none (reused when it already holds an estimate of the same
     scans)."""
-    from tqdm import tqdm
 
     from leap_core.odometry import estimate_into
 
@@ -697,12 +711,7 @@ def _estimate_run_poses(dataset: Path, target: Path) -> None:
     if seq.has_poses:
         typer.echo(f"poses: {seq.poses_path} (--estimate-poses not needed)")
         return
-    with tqdm(total=len(seq), desc="poses", unit="scan", dynamic_ncols=True) as bar:
-
-        def tick(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-
+    with _poses_bar(len(seq)) as tick:
         note, reused = estimate_into(seq, target, progress=tick)
     how = "reused" if reused else f"estimated in {note['seconds']:.1f} s"
     typer.echo(
@@ -736,8 +745,6 @@ def poses_cmd(
     identity) plus poses_estimated.json saying how they were made and how well they fit."""
     import time
 
-    from tqdm import tqdm
-
     from leap_core.odometry import OdometryConfig, estimate_sequence_poses, write_estimated_poses
     from leap_core.trajectory import path_distances
 
@@ -750,12 +757,7 @@ def poses_cmd(
         reference = _truth_poses(seq.root, target, truth)
         config = OdometryConfig() if refine else OdometryConfig(refine=None)
         start = time.perf_counter()
-        with tqdm(total=2 * len(seq), desc="poses (2 passes)", unit="scan", dynamic_ncols=True) as bar:
-
-            def tick(done: int, total: int) -> None:
-                bar.total = total
-                bar.update(done - bar.n)
-
+        with _poses_bar(len(seq)) as tick:
             est = estimate_sequence_poses(seq, config, progress=tick)
         if reference is not None:
             est = est.compared_with(reference[1], str(reference[0]))

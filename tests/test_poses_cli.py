@@ -150,10 +150,10 @@ def test_leap_run_estimate_poses_labels_like_true_poses_and_leaves_the_dataset_a
     )
     assert again.exit_code == 0 and "poses: reused" in again.output, again.output
     by_run = "the run (into its own folder)"
-    assert "poses: estimated (kiss-icp " in again.output and f"by {by_run}" in again.output
+    assert "poses: estimated (kiss-icp+pose-graph " in again.output and f"by {by_run}" in again.output
     with zipfile.ZipFile(zip_path) as zf:
         (told,) = yaml.safe_load(zf.read("summary.yaml"))["provenance"]["poses"]
-    assert told["source"] == "estimated" and told["method"].startswith("kiss-icp ")
+    assert told["source"] == "estimated" and told["method"].startswith("kiss-icp+pose-graph ")
     assert told["file"] == str(poses / "poses.txt") and told["estimated_by"] == by_run
 
     ref = tmp_path / "true"

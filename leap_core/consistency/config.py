@@ -9,6 +9,7 @@ sizes the paper uses, for a GPU.
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
@@ -125,7 +126,7 @@ class ConsistencyConfig:
     confidences saturate, and a voxel one image painted with many points (a moving object's track, a
     mistaken mask) saturates as fast as one many views agreed on. Kept on the tuning seeds 101-103 (a tie:
     camera-view mIoU after one round 71.9 with, 72.1 without; docs/METHOD.md, "How defaults were chosen")."""
-    temperature: float = field(default=2.0, metadata=within(0.01, 1000))
+    temperature: float = field(default=2.0, metadata=within(0.01, 1000, also=(math.inf,)))
     """Trust in the network when fusing back: its log-probabilities enter with weight ``1/temperature``.
     ``T = 1`` counts the network's view of a voxel like one camera observation; ``T → ∞`` ignores it.
     2.0 (half an observation, up to ½·ln(1/prob_floor) ≈ 3.5 nats) lets the network decide the voxels no
