@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     from leap_core.labelers.grounded_sam import GroundedSamConfig
     from leap_core.pipeline.preflight import Verdict
     from leap_core.pipeline.run import RunResult, SequenceSpec
+    from leap_core.progress import ProgressFn
 
 cli = typer.Typer(
     name="leap",
@@ -686,7 +687,7 @@ def _sequence_specs(datasets: list[str], frames: str | None) -> list[SequenceSpe
 
 
 @contextlib.contextmanager
-def _poses_bar(scans: int) -> Iterator[Callable[[int, int], None]]:
+def _poses_bar(scans: int) -> Iterator[ProgressFn]:
     """A progress bar over pose estimation's two passes (odometry, then the pose graph) of ``scans``
     scans; yields the ``progress(done, total)`` callback that moves it."""
     from tqdm import tqdm
