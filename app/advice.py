@@ -154,9 +154,9 @@ ADVICE: dict[str, Advice] = {
         "",
     ),
     "models_missing": Advice(
-        "pass --models DIR with grounding-dino-tiny/ and sam-vit-base/ (README 'Real 2D labels'); "
+        "pass --models DIR holding the folders named above (README 'Real 2D labels'); "
         "`leap make-tiny-models DIR` writes random-weight stand-ins to try the code path",
-        "the server needs a models folder holding grounding-dino-tiny/ and sam-vit-base/: whoever runs it "
+        "the server needs a models folder holding the folders named above: whoever runs it "
         "sets it (LEAP_MODELS_DIR) and restarts it",
     ),
     "models_random": Advice(

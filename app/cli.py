@@ -20,8 +20,7 @@ from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import Frame, KittiSequence
 from leap_core.errors import Cancelled, ConfigError, DatasetError, LeapError, PosesMissingError
 from leap_core.labelers import LABELERS
-from leap_core.labelers.cache import default_cache_dir, image_digest
-from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
+from leap_core.labelers.cache import default_cache_dir
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.paths import UnusablePath, real_path
 from leap_core.presets import Preset, load_preset
@@ -40,7 +39,6 @@ if TYPE_CHECKING:
     from app.core.config import Settings
     from app.core.instance import ServerLock
     from app.rows import RunRow
-    from leap_core.labelers.grounded_sam import GroundedSamConfig
     from leap_core.pipeline.preflight import Verdict
     from leap_core.pipeline.run import RunResult, SequenceSpec
     from leap_core.progress import ProgressFn
@@ -247,7 +245,7 @@ def _preset(option: str, name_or_path: str, base: PipelineConfig | None = None) 
         raise LeapError(f"{option} {exc}", field=exc.field) from None
 
 
-_MODELS_HELP = "Folder with one subfolder per model (grounding-dino-tiny/, sam-vit-base/)."
+_MODELS_HELP = "Folder with one subfolder per model (grounding-dino-tiny/, sam-vit-base/, sam3/)."
 _DEVICE_HELP = "Where the 2D labeler's models run: auto (CUDA when available), cpu or cuda."
 _DOWNLOAD_HELP = "Without --models: download a model missing from the Hugging Face cache."
 _RAY_HELP = (
@@ -258,93 +256,112 @@ _RAY_HELP = (
 _RAY_CPUS_HELP = "CPUs of the local Ray instance --ray auto starts when no cluster runs (default: all cores)."
 
 
+LABELS2D_THRESHOLD = {"grounded-sam": "box_threshold", "sam3": "score_threshold"}
+"""The setting ``leap labels2d --threshold`` sets, per model labeler."""
+
+
 @cli.command("labels2d")
 def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
     dataset: str = typer.Argument(..., help="Sequence folder in KITTI layout (.../sequences/NN)."),
     *,
+    labeler_name: str = typer.Option(
+        "grounded-sam",
+        "--labeler",
+        help="The model labeler whose labels to precompute: grounded-sam or sam3.",
+    ),
     schema: str = typer.Option(
         "semantickitti", "--schema", help="Project/schema YAML file, or a built-in name in projects/."
     ),
     models: str | None = typer.Option(None, "--models", help=_MODELS_HELP),
-    mode: str | None = typer.Option(None, "--mode", help="joint (all prompts in one text) or per-class."),
+    mode: str | None = typer.Option(
+        None, "--mode", help="grounded-sam: joint (all prompts in one text) or per-class."
+    ),
     batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Images per forward pass."),
     cache: str | None = typer.Option(
         None, "--cache", help="Shared cache folder, as `leap run --cache` (default: <dataset>/leap_cache)."
     ),
-    threshold: float | None = typer.Option(None, "--threshold", help="Box threshold (default: project's)."),
+    threshold: float | None = typer.Option(
+        None,
+        "--threshold",
+        help="Box (grounded-sam) or instance score (sam3) threshold (default: project's).",
+    ),
     device: str = typer.Option("auto", "--device", help=_DEVICE_HELP),
     allow_download: bool = typer.Option(False, "--allow-download", help=_DOWNLOAD_HELP),
     ray: str | None = typer.Option(None, "--ray", metavar="auto|ADDRESS", help=_RAY_HELP),
     ray_cpus: int | None = typer.Option(None, "--ray-cpus", min=1, help=_RAY_CPUS_HELP),
 ) -> None:
-    """Precompute Grounding DINO + SAM 2D labels of every frame into the 2D cache (resumable: frames
-    already in the cache are skipped, so an interrupted run continues where it stopped).
+    """Precompute a model labeler's 2D labels (Grounding DINO + SAM, or SAM 3) of every frame into the 2D
+    cache (resumable: frames already in the cache are skipped, so an interrupted run continues where it
+    stopped).
 
-    `leap run DATASET --labeler grounded-sam --cache <same folder>` then reads them instead of running
-    the models."""
+    `leap run DATASET --labeler grounded-sam|sam3 --cache <same folder>` then reads them instead of
+    running the models."""
     from tqdm import tqdm
 
+    from leap_core.labelers import model_labeler
+    from leap_core.labelers.base import passes_text
+
     try:
+        if labeler_name not in LABELS2D_THRESHOLD:
+            raise LeapError(
+                f"--labeler {labeler_name}: labels2d precomputes a model labeler's labels: "
+                f"use {' or '.join(LABELS2D_THRESHOLD)}"
+            )
+        if mode is not None and labeler_name != "grounded-sam":
+            raise LeapError(f"--mode is a grounded-sam setting; the {labeler_name} labeler has no modes")
         seq = KittiSequence(dataset)
         preset = _preset("--schema", schema)
         sch = preset.schema
-        flags = {"mode": mode, "batch_size": batch_size, "box_threshold": threshold}
-        cfg = config_from_dict(
-            {"grounded_sam": {k: v for k, v in flags.items() if v is not None}}, preset.pipeline
-        ).labeler_config(GroundedSamConfig)
+        spec = LABELERS[labeler_name]
+        flags = {"mode": mode, "batch_size": batch_size, LABELS2D_THRESHOLD[labeler_name]: threshold}
+        config = config_from_dict(
+            {"labeler": labeler_name, spec.section: {k: v for k, v in flags.items() if v is not None}},
+            preset.pipeline,
+        )
         runtime = _runtime(
             models, cache if cache else default_cache_dir(seq.root), device, allow_download, ray, ray_cpus
         )
-        labeler = GroundedSamLabeler(cfg, runtime)
-        store = labeler.cache
-        assert store is not None  # runtime.cache_dir is set
-        plans = labeler.plan(sch)
+        labeler, batch = model_labeler(config, runtime)
         frames = [f for f in seq if f.has_image]
 
         def cached(frame: Frame) -> bool:
-            digest = image_digest(frame.image)
+            hit = labeler.is_cached(frame.image, sch)
             frame.__dict__.pop("image", None)  # a long sequence's decoded images would not fit in memory
-            return all(labeler.pass_key(digest, p) in store for p in plans)
+            return hit
 
         todo = [f for f in tqdm(frames, desc="checking cache", unit="frame", leave=False) if not cached(f)]
         typer.echo(
             f"{len(frames)} frames with images ({len(seq) - len(frames)} without), "
             f"{len(frames) - len(todo)} cached, {len(todo)} to label; "
-            f"{len(plans)} detector pass(es) per image, cache {store.root}"
+            f"{labeler.work_per_image(sch)}, cache {runtime.cache_dir}"
         )
         if runtime.ray_address is not None:
             with tqdm(total=len(todo), desc="labels2d (ray)", unit="frame") as bar:
                 calls = _labels2d_on_ray(
-                    Path(dataset), sch, cfg, runtime, [f.frame_id for f in todo], bar.update
+                    Path(dataset), sch, config, runtime, [f.frame_id for f in todo], bar.update
                 )
-            typer.echo(
-                f"done: {len(todo)} frames labeled, {calls[0]} detector and {calls[1]} SAM encoder "
-                "forward passes (Ray tasks)"
-            )
+            typer.echo(f"done: {len(todo)} frames labeled, {passes_text(calls)} (Ray tasks)")
             return
         with tqdm(total=len(todo), desc="labels2d", unit="frame") as bar:
-            for start in range(0, len(todo), cfg.batch_size):
-                chunk = todo[start : start + cfg.batch_size]
+            for start in range(0, len(todo), batch):
+                chunk = todo[start : start + batch]
                 labeler.label_frames(chunk, sch)
                 for f in chunk:
                     f.__dict__.pop("image", None)  # frames keep their decoded image otherwise
                 bar.update(len(chunk))
     except LeapError as exc:
         raise fail(str(exc)) from None
-    typer.echo(
-        f"done: {len(todo)} frames labeled, {labeler.detector_calls} detector and "
-        f"{labeler.segmenter_calls} SAM encoder forward passes"
-    )
+    typer.echo(f"done: {len(todo)} frames labeled, {passes_text(labeler.forward_passes())}")
 
 
 def _labels2d_on_ray(
     dataset: Path,
     sch: Schema,
-    cfg: GroundedSamConfig,
+    cfg: PipelineConfig,
     runtime: Runtime,
     frame_ids: list[str],
     update: Callable[[int], Any],
-) -> tuple[int, int]:
+) -> dict[str, int]:
     """``leap labels2d --ray``: the frames to label as Ray tasks (a GPU each when the cluster has GPUs)."""
     from leap_core.pipeline.executor import RayExecutor  # the pipeline (and ray) only when asked for
 
@@ -356,15 +373,16 @@ def _labels2d_on_ray(
 
 @cli.command("make-tiny-models")
 def make_tiny_models_cmd(
-    folder: str = typer.Argument(..., help="Where to write grounding-dino-tiny/ and sam-vit-base/."),
+    folder: str = typer.Argument(..., help="Where to write grounding-dino-tiny/, sam-vit-base/ and sam3/."),
     seed: int = typer.Option(0, "--seed", help="Seed of the random weights."),
 ) -> None:
-    """Write tiny RANDOM-weight Grounding DINO + SAM models (for trying the code path without weights).
+    """Write tiny RANDOM-weight Grounding DINO + SAM and SAM 3 models (for trying the code paths without
+    weights).
 
-    Their labels are meaningless: they only exercise the grounded-sam code path. Use them with
+    Their labels are meaningless: they only exercise the grounded-sam and sam3 code paths. Use them with
     --models FOLDER; see the README section 'Real 2D labels' for the real weights."""
     paths = make_tiny_models(folder, TinyModelsConfig(seed=seed))
-    typer.echo(f"wrote {paths.detector} and {paths.segmenter}")
+    typer.echo(f"wrote {paths.detector}, {paths.segmenter} and {paths.sam3}")
     typer.secho(
         "these models have RANDOM weights: their labels exercise the code path only and are meaningless",
         fg=typer.colors.YELLOW,

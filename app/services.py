@@ -29,7 +29,7 @@ from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
-from leap_core.labelers.grounded_sam import GroundedSamConfig
+from leap_core.labelers import LABELERS
 from leap_core.paths import UnusablePath, real_path, real_path_or_none
 from leap_core.pipeline import PAPER, SequenceMetrics
 from leap_core.pipeline.preflight import check_dataset, dataset_stamp
@@ -174,15 +174,13 @@ def dataset_check(
     options, never a command-line flag), with the server's models folder. Cached per folder state
     (:func:`~leap_core.pipeline.preflight.dataset_stamp`: the mtimes of the folder and the entries it reads)
     and per setting that changes the answer, so the dataset list and project pages stay fast."""
-    gs = None if config is None else config.labeler_config(GroundedSamConfig)
     key = (
         dataset_stamp(path),
         None
         if config is None
         else (
             config.labeler,
-            gs.detector_id if gs else None,
-            gs.segmenter_id if gs else None,
+            tuple(spec.models(spec.config_of(config)) for spec in LABELERS.values()),
             config.consistency.enabled,
         ),
         str(settings.models_dir),

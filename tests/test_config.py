@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import build_tiny_sequence
@@ -22,7 +23,14 @@ from leap_core.config import (
     without_retired,
 )
 from leap_core.errors import ConfigError, LeapError, SchemaError
-from leap_core.labelers import LABELERS, LabelerSpec, make_labeler, register_labeler, unregister_labeler
+from leap_core.labelers import (
+    LABELERS,
+    PRODUCT_LABELERS,
+    LabelerSpec,
+    make_labeler,
+    register_labeler,
+    unregister_labeler,
+)
 from leap_core.labelers.cache import pass_cache_dir
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
 from leap_core.labelers.simulated import MOVED_TERMS, SimulatedLabeler, SimulatedLabelerConfig
@@ -41,7 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
         (
             {"labeler": "sam"},
             ("pipeline", "labeler"),
-            "must be one of 'simulated', 'grounded-sam', got 'sam'",
+            "must be one of 'simulated', 'grounded-sam', 'sam3', got 'sam'",
         ),
         ({"correction_strength": 0}, ("pipeline", "correction_strength"), "must be in (0, 1000] nats, got 0"),
         ({"bogus": 1}, ("pipeline", "bogus"), "unknown setting"),
@@ -137,7 +145,7 @@ def test_config_errors_survive_pickling() -> None:
 
 
 # ------------------------------------------------------------------------------------------ bounds
-PRODUCT_SECTIONS: dict[str, type] = {"simulated": SimulatedLabelerConfig, "grounded_sam": GroundedSamConfig}
+PRODUCT_SECTIONS: dict[str, type] = {spec.section: spec.config_type for spec in PRODUCT_LABELERS}
 """The config sections of leap_core's own labelers."""
 
 
@@ -268,7 +276,7 @@ def test_every_bounded_setting_takes_its_ends_and_refuses_values_beyond() -> Non
 
 def test_the_default_config_and_stored_configs_inside_the_bounds_read_unchanged() -> None:
     stored = json.loads(STORED.read_text())
-    assert config_to_dict(config_from_dict(stored)) == without_retired(stored)
+    assert config_to_dict(config_from_dict(stored)) == with_settings_added_since(without_retired(stored))
     for name in list_presets():
         preset = builtin_preset(name)
         assert config_from_dict(config_to_dict(preset.pipeline)) == preset.pipeline, name
@@ -345,6 +353,21 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
     assert "--models DIR" in last
 
 
+ADDED_SECTIONS = ("sam3",)
+"""Config sections added after the stored file was written (read as their defaults)."""
+ADDED_FIELDS = (("grounded_sam", "flip_votes"),)
+"""Fields added to existing sections since (read as their defaults)."""
+
+
+def with_settings_added_since(stored: dict[str, Any]) -> dict[str, Any]:
+    """``stored`` with the sections and fields added since at their defaults: what reading it gives."""
+    default = config_to_dict(PipelineConfig())
+    out = {**stored, **{name: default[name] for name in ADDED_SECTIONS}}
+    for section, name in ADDED_FIELDS:
+        out[section] = {**out[section], name: default[section][name]}
+    return out
+
+
 STORED = Path(__file__).resolve().parent / "data" / "pipeline_config_with_simulated_terms.json"
 """``config_to_dict(PipelineConfig())`` as SQLite rows, run specs and project files stored it while the
 simulated labeler's config still held the paper preset's noise terms (each at its off value)."""
@@ -357,7 +380,7 @@ def test_a_stored_dict_with_the_moved_noise_terms_at_their_defaults_still_reads(
     assert cfg == PipelineConfig()
     # Read back, it is today's dict form: the same sections, the simulated one without the moved terms.
     now = config_to_dict(cfg)
-    assert list(now) == list(stored)
+    assert sorted(now) == sorted([*stored, *ADDED_SECTIONS])  # labeler sections follow the registry
     assert now["simulated"] == {k: v for k, v in stored["simulated"].items() if k not in MOVED_TERMS}
     # Written by hand, a number term may be an integer (YAML "0"), a switch must be a switch.
     assert config_from_dict({"simulated": {"box_leak_prob": 0, "stratified_draws": False}}) == cfg
@@ -411,7 +434,11 @@ def test_runtime_values_reach_the_labeler_and_not_the_config(tmp_path: Path) -> 
 
 # ------------------------------------------------------------------------------------ labeler registry
 def test_every_registered_labeler_has_its_config_section_and_builds() -> None:
-    assert list(LABELERS) == ["simulated", "grounded-sam"]  # the product's; the lab's registers on import
+    assert list(LABELERS) == [
+        "simulated",
+        "grounded-sam",
+        "sam3",
+    ]  # the product's; the lab's registers on import
     own = {f.name for f in dataclasses.fields(PipelineConfig)}
     default = PipelineConfig()
     assert list(default.labelers) == [spec.section for spec in LABELERS.values()]
@@ -457,7 +484,7 @@ def test_a_registered_labeler_brings_its_config_section() -> None:
     register_labeler(spec)
     try:
         register_labeler(spec)  # again: nothing changes
-        assert list(LABELERS) == ["simulated", "grounded-sam", "exact"]
+        assert list(LABELERS) == ["simulated", "grounded-sam", "sam3", "exact"]
         with pytest.raises(ValueError, match="named 'exact'"):
             register_labeler(_exact_spec([]))
         with pytest.raises(ValueError, match="section 'simulated' belongs to the 'simulated' labeler"):
@@ -467,7 +494,8 @@ def test_a_registered_labeler_brings_its_config_section() -> None:
         labeler = make_labeler(cfg)
         assert isinstance(labeler, SimulatedLabeler) and labeler.cfg.seed == 3 and built == [ExactConfig(3)]
         d = config_to_dict(cfg)
-        assert list(d)[:4] == ["labeler", "simulated", "grounded_sam", "exact"] and d["exact"] == {"seed": 3}
+        assert list(d)[:5] == ["labeler", "simulated", "grounded_sam", "sam3", "exact"]
+        assert d["exact"] == {"seed": 3}
         assert config_from_dict(d) == cfg
         # Its fields are checked like any section's, with the absolute path.
         with pytest.raises(ConfigError) as err:
@@ -481,7 +509,9 @@ def test_a_registered_labeler_brings_its_config_section() -> None:
         with pytest.raises(ConfigError) as err:
             PipelineConfig(labelers={"exact": SimulatedLabelerConfig()})
         assert err.value.field == ("exact",)
-        with pytest.raises(ConfigError, match="must be one of 'simulated', 'grounded-sam', 'exact', got 'x'"):
+        with pytest.raises(
+            ConfigError, match="must be one of 'simulated', 'grounded-sam', 'sam3', 'exact', got 'x'"
+        ):
             config_from_dict({"labeler": "x"})
         with_section = dataclasses.replace(PipelineConfig(), labelers={"simulated": SimulatedLabelerConfig()})
         assert with_section.labeler_config(ExactConfig) == ExactConfig()

@@ -976,7 +976,7 @@ def test_config_roundtrip_through_json() -> None:
             "pipeline.consistency.backbone.channels: must be in [4, 1024], got 2",
         ),
         ({"grounded_sam": {"box_threshold": 1.5}}, "pipeline.grounded_sam.box_threshold: must be in (0, 1)"),
-        ({"labeler": "sam"}, "pipeline.labeler: must be one of 'simulated', 'grounded-sam'"),
+        ({"labeler": "sam"}, "pipeline.labeler: must be one of 'simulated', 'grounded-sam', 'sam3'"),
         ({"simulated": {"peak_prob": [0.5]}}, "pipeline.simulated.peak_prob: must be a list of 2 values"),
         (
             {"simulated": {"class_recall": {"car": 2}}},

@@ -9,17 +9,19 @@ the product's labelers, or :func:`register_labeler` from a package beside leap_c
 ``simulated-paper`` registers itself when imported).
 
 Importing this module loads the labelers' configs and classes but not their model stacks: torch and
-transformers are imported by the grounded-sam labeler only when it first needs its models.
+transformers are imported by the model labelers (grounded-sam, sam3) only when they first need them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
-from leap_core.labelers.base import Labeler, SoftMasks
+from leap_core.errors import LeapError
+from leap_core.labelers.base import Labeler, ModelLabeler, SoftMasks
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
+from leap_core.labelers.sam3 import Sam3Labeler, Sam3LabelerConfig
 from leap_core.labelers.simulated import SIMULATED_PRESETS, SimulatedLabeler, SimulatedLabelerConfig
 from leap_core.runtime import Runtime
 
@@ -60,6 +62,9 @@ class LabelerSpec(Generic[C]):
     presets: tuple[str, ...] = ()
     """Names of whole settings of its section (``pipeline: {<section>: {preset: NAME}}``, ``leap run
     --labeler-preset NAME``): the names its config type's ``from_preset`` accepts."""
+    models: Callable[[C], tuple[str, ...]] = field(default=lambda _config: ())
+    """``models(section_config)``: the Hugging Face ids of the model folders it loads (none for a labeler
+    without models), for the pre-flight check and the cache of dataset checks."""
 
     @property
     def title(self) -> str:
@@ -79,6 +84,10 @@ def _simulated(config: SimulatedLabelerConfig, runtime: Runtime) -> Labeler:  # 
 
 def _grounded_sam(config: GroundedSamConfig, runtime: Runtime) -> Labeler:
     return GroundedSamLabeler(config, runtime)
+
+
+def _sam3(config: Sam3LabelerConfig, runtime: Runtime) -> Labeler:
+    return Sam3Labeler(config, runtime)
 
 
 _SIMULATED: LabelerSpec[SimulatedLabelerConfig] = LabelerSpec(
@@ -101,9 +110,26 @@ _GROUNDED_SAM: LabelerSpec[GroundedSamConfig] = LabelerSpec(
     factory=_grounded_sam,
     needs="images",
     missing="the grounded-sam labeler needs camera images (image_2/)",
+    models=lambda c: (c.detector_id, c.segmenter_id),
 )
+_SAM3: LabelerSpec[Sam3LabelerConfig] = LabelerSpec(
+    name="sam3",
+    label="SAM 3",
+    description="SAM 3 instance masks for every class prompt, one model (camera images)",
+    section="sam3",
+    config_type=Sam3LabelerConfig,
+    factory=_sam3,
+    needs="images",
+    missing="the sam3 labeler needs camera images (image_2/)",
+    models=lambda c: (c.model_id,),
+)
+PRODUCT_LABELERS = (_SIMULATED, _GROUNDED_SAM, _SAM3)
+"""The labelers that are part of leap_core (they stay registered)."""
 
-LABELERS: dict[str, LabelerSpec[Any]] = {spec.name: spec for spec in (_SIMULATED, _GROUNDED_SAM)}
+MODEL_LABELERS = (GroundedSamLabeler, Sam3Labeler)
+"""The labeler classes that run models on camera images (weights real or random, a 2D cache)."""
+
+LABELERS: dict[str, LabelerSpec[Any]] = {spec.name: spec for spec in PRODUCT_LABELERS}
 """Every 2D labeler by name, in the order forms and help texts list them (the product's first, then those
 registered by :func:`register_labeler`)."""
 
@@ -134,7 +160,7 @@ def unregister_labeler(name: str) -> None:
     Raises:
         ValueError: ``name`` is one of the product's labelers.
     """
-    if name in (_SIMULATED.name, _GROUNDED_SAM.name):
+    if name in (s.name for s in PRODUCT_LABELERS):
         raise ValueError(f"the {name!r} labeler is part of leap_core and stays registered")
     LABELERS.pop(name, None)
 
@@ -177,9 +203,25 @@ truth)."""
 
 def labeler_weights(labeler: Labeler) -> Weights:
     """:data:`Weights` of ``labeler`` (resolves a model labeler's folders; loads no model)."""
-    if isinstance(labeler, GroundedSamLabeler):
+    if isinstance(labeler, MODEL_LABELERS):
         return "random" if labeler.uses_random_weights else "real"
     return "none"
+
+
+def model_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> tuple[ModelLabeler, int]:
+    """The model labeler ``config.labeler`` (as :func:`make_labeler`) and its ``batch_size``, for work that
+    fills its 2D cache.
+
+    Raises:
+        LeapError: ``config.labeler`` runs no models (the simulated labelers read 2D ground truth).
+    """
+    labeler = make_labeler(config, runtime)
+    if not isinstance(labeler, MODEL_LABELERS):
+        names = " or ".join(s.name for s in LABELERS.values() if s.models(s.config_type()))
+        raise LeapError(
+            f"the {config.labeler} labeler runs no models, so it has no 2D cache to fill: use {names}"
+        )
+    return labeler, int(LABELERS[config.labeler].config_of(config).batch_size)
 
 
 def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labeler:
@@ -193,6 +235,8 @@ def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labe
 __all__ = [
     "INPUT_FOLDERS",
     "LABELERS",
+    "MODEL_LABELERS",
+    "PRODUCT_LABELERS",
     "Labeler",
     "LabelerInput",
     "LabelerSpec",
@@ -202,6 +246,7 @@ __all__ = [
     "labeler_weights",
     "make_labeler",
     "missing_input",
+    "model_labeler",
     "register_labeler",
     "unregister_labeler",
 ]

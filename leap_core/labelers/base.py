@@ -7,6 +7,7 @@ A labeler turns one camera image into M masks, each with a class distribution an
 from __future__ import annotations
 
 import zipfile
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -103,6 +104,31 @@ class SoftMasks:
         out: npt.NDArray[np.float32] = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
         return out
 
+    def mirrored(self) -> SoftMasks:
+        """The same labels for the image mirrored left to right (column u becomes W-1-u)."""
+        dense = self.dense()[:, :, ::-1]
+        return SoftMasks.from_dense(dense, self.probs, self.confidence, self.num_classes)
+
+    def joined(self, other: SoftMasks) -> SoftMasks:
+        """Both sets of masks as one: where masks of both overlap, the per-pixel rule above averages
+        their distributions weighted by confidence.
+
+        Raises:
+            ValueError: ``other`` has another image size or class count.
+        """
+        if (other.height, other.width, other.num_classes) != (self.height, self.width, self.num_classes):
+            raise ValueError(
+                f"cannot join soft masks of {other.height}×{other.width}, {other.num_classes} classes with "
+                f"{self.height}×{self.width}, {self.num_classes} classes"
+            )
+        return SoftMasks(
+            self.height,
+            self.width,
+            np.concatenate([self.bits, other.bits], axis=0),
+            np.concatenate([self.probs, other.probs], axis=0),
+            np.concatenate([self.confidence, other.confidence], axis=0),
+        )
+
     def save(self, path: str | Path) -> None:
         atomic_save_npz(
             path,
@@ -122,6 +148,23 @@ class SoftMasks:
             raise DatasetError(path, f"unreadable 2D label file ({exc})") from exc
 
 
+def with_flip_votes(
+    images: Sequence[npt.NDArray[np.uint8]],
+    label: Callable[[list[npt.NDArray[np.uint8]]], list[SoftMasks]],
+) -> list[SoftMasks]:
+    """Flip votes: ``label`` each image and its left-right mirror in one call, and join each image's
+    labels with its mirror's mirrored back (:meth:`SoftMasks.joined`).
+
+    A pixel that masks of both views cover gets the confidence-weighted mean of their distributions; one
+    that only one view covers keeps that view's (a view that found nothing there casts no vote). The
+    labeler runs on twice the images: twice the 2D stage's time.
+    """
+    mirrors = [np.ascontiguousarray(im[:, ::-1]) for im in images]
+    out = label([*images, *mirrors])
+    n = len(images)
+    return [out[i].joined(out[n + i].mirrored()) for i in range(n)]
+
+
 class Labeler(Protocol):
     """Produces :class:`SoftMasks` for one frame's camera image."""
 
@@ -135,3 +178,33 @@ class Labeler(Protocol):
     def label(self, frame: Frame, schema: Schema) -> SoftMasks:
         """Label ``frame.image`` for the classes of ``schema`` (probs has ``len(schema.classes)`` columns)."""
         ...
+
+
+class ModelLabeler(Labeler, Protocol):
+    """A labeler that runs models on camera images, with a 2D cache (``leap labels2d`` fills it)."""
+
+    @property
+    def uses_random_weights(self) -> bool:
+        """True when a model folder holds tiny random test weights (meaningless labels)."""
+        ...
+
+    def is_cached(self, image: npt.NDArray[np.uint8], schema: Schema) -> bool:
+        """Whether labeling ``image`` would read only the cache."""
+        ...
+
+    def work_per_image(self, schema: Schema) -> str:
+        """What labeling one image costs, for a summary line (``2 detector passes per image``)."""
+        ...
+
+    def forward_passes(self) -> dict[str, int]:
+        """Forward passes run so far by model part (``{"detector": 3, "SAM encoder": 3}``)."""
+        ...
+
+    def label_frames(self, frames: Sequence[Frame], schema: Schema) -> list[SoftMasks]:
+        """:meth:`label` for several frames, batched through the models."""
+        ...
+
+
+def passes_text(passes: dict[str, int]) -> str:
+    """``3 detector and 3 SAM encoder forward passes``."""
+    return " and ".join(f"{n} {part}" for part, n in passes.items()) + " forward passes"

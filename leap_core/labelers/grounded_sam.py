@@ -50,7 +50,7 @@ import numpy.typing as npt
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
-from leap_core.labelers.base import SoftMasks
+from leap_core.labelers.base import SoftMasks, with_flip_votes
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.prompts import (
     NEG_INF,
@@ -121,6 +121,10 @@ class GroundedSamConfig:
 
     match_iou: float = field(default=0.7, metadata=within(0, 1, low_open=True))
     """Box IoU at which a region of one pass takes the class logits of a region of another pass."""
+
+    flip_votes: bool = False
+    """Label each image and its horizontal mirror and average the two
+    (:func:`~leap_core.labelers.base.with_flip_votes`; twice the 2D stage's time)."""
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -526,6 +530,8 @@ class GroundedSamLabeler:
             "use_negative_prompts": cfg.use_negative_prompts,
             "max_text_tokens": cfg.max_text_tokens,
             "classes": [[c.name, list(c.prompts), list(c.negative_prompts)] for c in schema.classes],
+            # Only when on: the fingerprints of runs made before the option existed stay valid.
+            **({"flip_votes": True} if cfg.flip_votes else {}),
         }
         return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -544,12 +550,34 @@ class GroundedSamLabeler:
 
     def label_images(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
         """Soft masks of (H, W, 3) uint8 RGB images; cached passes are read, the others computed
-        (``batch_size`` images per forward pass) and written to the cache."""
-        plans = self.plan(schema)
-        names = [c.name for c in schema.classes]
+        (``batch_size`` images per forward pass) and written to the cache (with ``flip_votes``, of the
+        images and their mirrors)."""
         for im in images:
             if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
                 raise LeapError(f"grounded-sam labels (H, W, 3) uint8 RGB images, got {im.shape} {im.dtype}")
+        if self.config.flip_votes:
+            return with_flip_votes(images, lambda ims: self._label(ims, schema))
+        return self._label(images, schema)
+
+    def is_cached(self, image: npt.NDArray[np.uint8], schema: Schema) -> bool:
+        """Whether every pass ``image`` needs is in the cache (its mirror's too with flip votes)."""
+        if self.cache is None:
+            return False
+        images = [image, np.ascontiguousarray(image[:, ::-1])] if self.config.flip_votes else [image]
+        plans = self.plan(schema)
+        return all(self.pass_key(image_digest(im), p) in self.cache for im in images for p in plans)
+
+    def forward_passes(self) -> dict[str, int]:
+        """Forward passes run so far by model part."""
+        return {"detector": self.detector_calls, "SAM encoder": self.segmenter_calls}
+
+    def work_per_image(self, schema: Schema) -> str:
+        """Detector passes per image, for a summary line."""
+        return f"{len(self.plan(schema))} detector pass(es) per image"
+
+    def _label(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
+        plans = self.plan(schema)
+        names = [c.name for c in schema.classes]
         digests = [image_digest(im) for im in images]
         keys = [[self.pass_key(d, p) for p in plans] for d in digests]
         results: list[list[PassResult | None]] = [

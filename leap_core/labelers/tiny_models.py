@@ -1,10 +1,10 @@
-"""Tiny RANDOM-WEIGHT Grounding DINO and SAM checkpoints, built offline from configs.
+"""Tiny RANDOM-WEIGHT Grounding DINO, SAM and SAM 3 checkpoints, built offline from configs.
 
-These models exercise the real code path of the ``grounded-sam`` labeler (folder loading, tokenizer
-offsets, detector outputs, SAM masks, caching) in tests and on machines without the real weights.
+These models exercise the real code paths of the ``grounded-sam`` and ``sam3`` labelers (folder loading,
+tokenizers, detector outputs, masks, caching) in tests and on machines without the real weights.
 **Their weights are random: the labels they produce are meaningless.** They are written in the same
-folder layout as real checkpoints (``<dir>/grounding-dino-tiny``, ``<dir>/sam-vit-base``), so
-``leap labels2d … --models <dir>`` and ``leap run --labeler grounded-sam`` accept them unchanged; each
+folder layout as real checkpoints (``<dir>/grounding-dino-tiny``, ``<dir>/sam-vit-base``, ``<dir>/sam3``),
+so ``leap labels2d … --models <dir>`` and ``leap run --labeler grounded-sam|sam3`` accept them unchanged; each
 folder carries a :data:`MARKER_FILE` so the app can warn that the labels are not real.
 
 Details that a tiny Grounding DINO must get right (docs/METHOD.md, "Facts about the tools"):
@@ -17,6 +17,7 @@ Details that a tiny Grounding DINO must get right (docs/METHOD.md, "Facts about 
 
 from __future__ import annotations
 
+import json
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ MARKER_FILE = "LEAP_TINY_RANDOM_MODEL.txt"
 
 _MARKER_TEXT = (
     "This is a tiny model with RANDOM weights, written by `leap make-tiny-models`.\n"
-    "It exercises LeAP Studio's Grounding DINO + SAM code path only; its labels are meaningless.\n"
+    "It exercises LeAP Studio's model labelers' code paths only; its labels are meaningless.\n"
     "For real labels download the real weights (see the README section 'Real 2D labels').\n"
 )
 
@@ -173,6 +174,9 @@ class TinyModelsConfig:
     """... and the long side at most this many."""
     sam_image_size: int = 64
     """SAM input size (the real one is 1024); images are resized to this long side and padded square."""
+    sam3_image_size: int = 112
+    """SAM 3 input size (the real one is 1008): a multiple of 14 · 2 (patches, and two attention windows
+    per side)."""
 
 
 def build_tiny_detector(cfg: TinyModelsConfig | None = None) -> tuple[Any, Any]:
@@ -273,6 +277,88 @@ def build_tiny_segmenter(cfg: TinyModelsConfig | None = None) -> tuple[Any, Any]
     return model, processor
 
 
+def tiny_clip_tokenizer(max_length: int) -> Any:
+    """A byte-level BPE CLIP tokenizer (the kind SAM 3 reads) whose vocabulary holds the lowercase
+    letters, digits and punctuation, each alone and word-final (``a</w>``), and the whole words of the
+    tiny BERT vocabulary as single tokens (typed Any: transformers is unannotated)."""
+    from transformers import CLIPTokenizer
+
+    symbols = list("abcdefghijklmnopqrstuvwxyz0123456789") + list("-,'()/&:;!.")
+    vocab: dict[str, int] = {"<|startoftext|>": 0, "<|endoftext|>": 1}
+    for sym in [*symbols, *(c + "</w>" for c in symbols)]:
+        vocab.setdefault(sym, len(vocab))
+    merges: list[tuple[str, str]] = []
+    for word in _WORDS:
+        # Left to right: "car" → (c, a), (ca, r</w>); each word ends as one token.
+        parts = [*word[:-1], word[-1] + "</w>"]
+        while len(parts) > 1:
+            pair = (parts[0], parts[1])
+            if pair not in merges:
+                merges.append(pair)
+            parts = [parts[0] + parts[1], *parts[2:]]
+            vocab.setdefault(parts[0], len(vocab))
+    # The tokenizers BPE model takes merges as pairs; transformers annotates them as strings only.
+    return CLIPTokenizer(vocab=vocab, merges=merges, model_max_length=max_length)  # type: ignore[arg-type]
+
+
+def build_tiny_sam3(cfg: TinyModelsConfig | None = None) -> tuple[Any, Any, dict[str, Any]]:
+    """``(model, tokenizer, image processor config)``: a tiny random Sam3Model, its CLIP tokenizer and
+    the ``preprocessor_config.json`` content the ``sam3`` labeler reads (typed Any: transformers is
+    unannotated). The image side needs ``sam3_image_size / 14`` patches divisible by the window size."""
+    import torch
+    from transformers import Sam3Config, Sam3Model
+
+    cfg = cfg or TinyModelsConfig()
+    tokenizer = tiny_clip_tokenizer(32)
+    size, hidden = cfg.sam3_image_size, 32
+    grid = size // 14  # patches per side; the FPN's levels are 4×, 2× and 1× that
+    layers = {"hidden_size": hidden, "num_attention_heads": 2, "intermediate_size": 64}
+    config = Sam3Config(
+        vision_config={
+            "backbone_config": {
+                "model_type": "sam3_vit_model",
+                **layers,
+                "num_hidden_layers": 2,
+                "image_size": size,
+                "patch_size": 14,
+                "window_size": grid // 2,
+                "global_attn_indexes": [1],
+                "pretrain_image_size": size // 2,
+            },
+            "fpn_hidden_size": hidden,
+            "backbone_feature_sizes": [[4 * grid, 4 * grid], [2 * grid, 2 * grid], [grid, grid]],
+        },
+        text_config={
+            "model_type": "clip_text_model",
+            **layers,
+            "vocab_size": len(tokenizer.get_vocab()),
+            "projection_dim": hidden,
+            "num_hidden_layers": 1,
+            "max_position_embeddings": 32,
+            "bos_token_id": 0,
+            "eos_token_id": 1,
+            "pad_token_id": 1,
+        },
+        geometry_encoder_config={**layers, "num_layers": 1},
+        detr_encoder_config={**layers, "num_layers": 1},
+        detr_decoder_config={**layers, "num_layers": 2, "num_queries": cfg.num_queries},
+        mask_decoder_config={"hidden_size": hidden, "num_attention_heads": 2},
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed + 2)
+        model = Sam3Model(config).eval()  # type: ignore[no-untyped-call]  # transformers: unannotated eval()
+    image_config = {
+        "image_processor_type": "Sam3ImageProcessor",
+        "size": {"height": size, "width": size},
+        "image_mean": [0.5, 0.5, 0.5],
+        "image_std": [0.5, 0.5, 0.5],
+        "do_rescale": True,
+        "rescale_factor": 1 / 255,
+        "do_normalize": True,
+    }
+    return model, tokenizer, image_config
+
+
 @dataclass(frozen=True)
 class TinyModelPaths:
     """Folders written by :func:`make_tiny_models`."""
@@ -283,6 +369,8 @@ class TinyModelPaths:
     """``models_dir/grounding-dino-tiny``"""
     segmenter: Path
     """``models_dir/sam-vit-base``"""
+    sam3: Path
+    """``models_dir/sam3``"""
 
 
 def make_tiny_models(
@@ -290,18 +378,24 @@ def make_tiny_models(
     cfg: TinyModelsConfig | None = None,
     detector_name: str = "grounding-dino-tiny",
     segmenter_name: str = "sam-vit-base",
+    sam3_name: str = "sam3",
 ) -> TinyModelPaths:
-    """Write tiny random Grounding DINO and SAM folders (weights, configs, processors, marker files).
+    """Write tiny random Grounding DINO, SAM and SAM 3 folders (weights, configs, processors, marker files).
 
     The folder names default to the last part of the labeler's default model ids, so pointing
     ``Runtime.models_dir`` at ``models_dir`` loads them with no other setting.
     RANDOM WEIGHTS: the labels these models produce are meaningless; they only exercise the code path.
     """
     root = Path(models_dir)
-    det_dir, seg_dir = root / detector_name, root / segmenter_name
+    det_dir, seg_dir, sam3_dir = root / detector_name, root / segmenter_name, root / sam3_name
     det_model, det_proc = build_tiny_detector(cfg)
     seg_model, seg_proc = build_tiny_segmenter(cfg)
-    for folder, model, proc in ((det_dir, det_model, det_proc), (seg_dir, seg_model, seg_proc)):
+    sam3_model, sam3_tok, sam3_image = build_tiny_sam3(cfg)
+    for folder, model, proc in (
+        (det_dir, det_model, det_proc),
+        (seg_dir, seg_model, seg_proc),
+        (sam3_dir, sam3_model, sam3_tok),
+    ):
         folder.mkdir(parents=True, exist_ok=True)
         # transformers writes the weights through a temp file of its own, whose 0600 mode the rename
         # keeps: written to a staging folder, each file is copied in by leap's atomic writer instead.
@@ -311,8 +405,10 @@ def make_tiny_models(
             for path in sorted(p for p in Path(staging).rglob("*") if p.is_file()):
                 atomic_copy(path, folder / path.relative_to(staging))
         atomic_write_bytes(folder / MARKER_FILE, _MARKER_TEXT.encode())
+    # SAM 3's image processor needs torchvision to be built, so its config is written as JSON.
+    atomic_write_bytes(sam3_dir / "preprocessor_config.json", json.dumps(sam3_image, indent=2).encode())
     atomic_write_bytes(root / "README.txt", _MARKER_TEXT.encode())
-    return TinyModelPaths(models_dir=root, detector=det_dir, segmenter=seg_dir)
+    return TinyModelPaths(models_dir=root, detector=det_dir, segmenter=seg_dir, sam3=sam3_dir)
 
 
 def is_tiny_random(folder: str | Path) -> bool:
@@ -326,8 +422,10 @@ __all__ = [
     "TinyModelPaths",
     "TinyModelsConfig",
     "build_tiny_detector",
+    "build_tiny_sam3",
     "build_tiny_segmenter",
     "is_tiny_random",
     "make_tiny_models",
+    "tiny_clip_tokenizer",
     "tiny_vocab",
 ]

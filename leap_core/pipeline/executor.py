@@ -73,7 +73,6 @@ if TYPE_CHECKING:
     from leap_core.consistency.config import ConsistencyConfig
     from leap_core.consistency.stage import Predict
     from leap_core.datasets.kitti import KittiSequence
-    from leap_core.labelers.grounded_sam import GroundedSamConfig
 
 TASKS_PER_CPU = 2
 """Per-frame stages are cut into about this many sub-ranges per cluster CPU: enough for progress and for
@@ -315,30 +314,30 @@ def reduce_task(num_classes: int, *parts: list[Observations]) -> Partial:
 def label_cache_task(
     dataset: Path,
     schema: Schema,
-    config: GroundedSamConfig,
+    config: PipelineConfig,
     runtime: Runtime,
     frame_ids: list[str],
     stop: StopSignal | None = None,
-) -> tuple[int, int]:
-    """``leap labels2d``'s work on some frames (a Ray task): Grounding DINO + SAM into the 2D cache of
-    ``runtime.cache_dir``, ``config.batch_size`` images per forward pass, ``stop`` checked before each
-    batch. Returns (detector, SAM encoder) forward passes."""
-    # Imported here: the labeler's module is only needed where this task runs.
+) -> dict[str, int]:
+    """``leap labels2d``'s work on some frames (a Ray task): the model labeler ``config.labeler`` into the
+    2D cache of ``runtime.cache_dir``, its ``batch_size`` images per forward pass, ``stop`` checked before
+    each batch. Returns its forward passes by model part."""
+    # Imported here: the labelers' modules are only needed where this task runs.
     from leap_core.datasets.kitti import KittiSequence  # noqa: PLC0415
-    from leap_core.labelers.grounded_sam import GroundedSamLabeler  # noqa: PLC0415
+    from leap_core.labelers import model_labeler  # noqa: PLC0415
 
     seq = KittiSequence(dataset)
-    labeler = GroundedSamLabeler(config, runtime)
+    labeler, batch = model_labeler(config, runtime)
     index = {fid: i for i, fid in enumerate(seq.frame_ids)}
     frames = [seq.frame(index[fid]) for fid in frame_ids]
-    for start in range(0, len(frames), config.batch_size):
+    for start in range(0, len(frames), batch):
         if stop is not None:
             stop.check()
-        chunk = frames[start : start + config.batch_size]
+        chunk = frames[start : start + batch]
         labeler.label_frames(chunk, schema)
         for f in chunk:
             f.__dict__.pop("image", None)  # a frame keeps its decoded image otherwise
-    return labeler.detector_calls, labeler.segmenter_calls
+    return labeler.forward_passes()
 
 
 def predict_task(
@@ -611,14 +610,14 @@ class RayExecutor:
         self,
         dataset: Path,
         schema: Schema,
-        config: GroundedSamConfig,
+        config: PipelineConfig,
         runtime: Runtime,
         frame_ids: Sequence[str],
         progress: Callable[[int], None] | None = None,
-    ) -> tuple[int, int]:
+    ) -> dict[str, int]:
         """:func:`label_cache_task` over ``frame_ids`` cut into runs of whole batches, one GPU per task when
         the cluster has GPUs (and ``runtime.device`` is not ``cpu``); ``progress(frames)`` as each ends.
-        Returns the (detector, SAM encoder) forward passes of all tasks.
+        Returns the forward passes of all tasks by model part.
 
         Raises:
             ValueError: ``runtime.cache_dir`` is not set (the cache is where the tasks write).
@@ -628,7 +627,8 @@ class RayExecutor:
         stop = StopSignal(runtime.cache_dir)
         gpus = self.ray.cluster_resources().get("GPU", 0) >= 1 and runtime.device != "cpu"
         slots = int(self.ray.cluster_resources().get("GPU", 1)) if gpus else self._cpus()
-        per_task = math.ceil(len(frame_ids) / (TASKS_PER_CPU * slots) / config.batch_size) * config.batch_size
+        batch = LABELERS[config.labeler].config_of(config).batch_size
+        per_task = math.ceil(len(frame_ids) / (TASKS_PER_CPU * slots) / batch) * batch
         task = self._task.options(num_gpus=1 if gpus else 0)
         worker_runtime = dataclasses.replace(runtime, ray_address=None, frame_threads=1)
         pending = {
@@ -644,16 +644,16 @@ class RayExecutor:
             ): len(frame_ids[s : s + per_task])
             for s in range(0, len(frame_ids), max(per_task, 1))
         }
-        calls = [0, 0]
+        calls: dict[str, int] = {}
 
-        def finished(result: tuple[int, int], n: int) -> None:
-            calls[0] += result[0]
-            calls[1] += result[1]
+        def finished(result: dict[str, int], n: int) -> None:
+            for part, count in result.items():
+                calls[part] = calls.get(part, 0) + count
             if progress is not None:
                 progress(n)
 
         self._drain(pending, finished, stop)
-        return calls[0], calls[1]
+        return calls
 
     # ---------------------------------------------------------------------------------------- fusion
     def _fuse(self, ctx: Ctx) -> dict[str, Any]:

@@ -52,7 +52,7 @@ from leap_core.datasets.kitti import (
 )
 from leap_core.errors import DatasetError, ModelLoadError
 from leap_core.labelers import LABELERS
-from leap_core.labelers.grounded_sam import GroundedSamConfig, model_folder_name, resolve_model_folder
+from leap_core.labelers.grounded_sam import model_folder_name, resolve_model_folder
 from leap_core.labelers.tiny_models import is_tiny_random
 from leap_core.pipeline.stages import STAGE_TABLE
 from leap_core.runtime import Runtime
@@ -352,7 +352,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         poses_path: read the poses from this file instead of ``root/poses.txt`` (as ``KittiSequence``).
         estimate_poses: missing poses will be estimated before the 3D stages (the app's "Estimate poses
             (KISS-ICP)" option, ``leap run --estimate-poses``): the 3D stages are then not blocked by them.
-        check_models: look for the grounded-sam model folders (skip for a listing that must stay cheap).
+        check_models: look for the model labelers' folders (skip for a listing that must stay cheap).
         labeler_named: whether the user named ``config.labeler`` (``--labeler``, or a ``labeler:`` in the
             project file); when not, the check judges the labeler :func:`pick_labeler` picks, as ``leap
             run`` does. None = named whenever ``config`` is given (the app's projects name theirs).
@@ -381,6 +381,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
             cfg,
             chosen,
             findings,
+            {},
             {},
         )
 
@@ -526,7 +527,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
                 )
             )
 
-    # 2D inputs: camera images (grounded-sam), 2D ground truth (simulated).
+    # 2D inputs: camera images (grounded-sam, sam3), 2D ground truth (simulated).
     if cover_img.kind == "none":
         findings.append(Finding("images_missing", "warning", str(root / "image_2"), "no camera images"))
     elif cover_img.kind == "some":
@@ -580,9 +581,21 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
                 _missing(frames, labels),
             )
         )
-    model_codes = _check_models(cfg, rt, findings) if check_models else {}
+    model_findings: dict[str, list[Finding]] = {}
+    model_codes = _check_models(cfg, rt, model_findings) if check_models else {}
     return _assemble(
-        root, frames, cover_img, cover_gt, cover_2d, calib, poses, cfg, chosen, findings, model_codes
+        root,
+        frames,
+        cover_img,
+        cover_gt,
+        cover_2d,
+        calib,
+        poses,
+        cfg,
+        chosen,
+        findings,
+        model_codes,
+        model_findings,
     )
 
 
@@ -595,11 +608,24 @@ def _note_method(poses_file: Path) -> str | None:
     return str(method) if method else None
 
 
-def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> dict[str, tuple[str, ...]]:
-    """Findings on the grounded-sam model folders; returns {labeler: codes that stop it}."""
-    gs = cfg.labeler_config(GroundedSamConfig)
+def _check_models(
+    cfg: PipelineConfig, rt: Runtime, findings: dict[str, list[Finding]]
+) -> dict[str, tuple[str, ...]]:
+    """Findings on the model folders of every labeler that loads models, into ``findings[labeler]``;
+    returns {labeler: codes that stop it}."""
+    out: dict[str, tuple[str, ...]] = {}
+    for spec in LABELERS.values():
+        ids = spec.models(spec.config_of(cfg))
+        if ids:
+            out[spec.name] = _check_model_folders(spec.name, ids, rt, findings.setdefault(spec.name, []))
+    return out
+
+
+def _check_model_folders(
+    labeler: str, model_ids: Sequence[str], rt: Runtime, findings: list[Finding]
+) -> tuple[str, ...]:
     missing: list[str] = []
-    for model_id in (gs.detector_id, gs.segmenter_id):
+    for model_id in model_ids:
         try:
             folder = resolve_model_folder(model_id, rt.models_dir, allow_download=False)
         except ModelLoadError:
@@ -615,7 +641,7 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
                 )
             )
     if not missing:
-        return {"grounded-sam": ()}
+        return ()
     if rt.models_dir is not None:
         names = ", ".join(f"{model_folder_name(m)}/ ({m})" for m in missing)
         findings.append(
@@ -623,7 +649,7 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
                 "models_missing",
                 "warning",
                 str(rt.models_dir),
-                f"no model folder with a config.json for {names}",
+                f"no model folder with a config.json for {names}, which the {labeler} labeler loads",
             )
         )
     else:
@@ -633,10 +659,11 @@ def _check_models(cfg: PipelineConfig, rt: Runtime, findings: list[Finding]) -> 
                 "warning",
                 None,
                 f"no models folder is set and {', '.join(missing)} "
-                f"{'is' if len(missing) == 1 else 'are'} not in the Hugging Face cache",
+                f"{'is' if len(missing) == 1 else 'are'} not in the Hugging Face cache "
+                f"(the {labeler} labeler loads {'it' if len(missing) == 1 else 'them'})",
             )
         )
-    return {"grounded-sam": ("models_missing",)}
+    return ("models_missing",)
 
 
 IMAGE_CODES = ("images_damaged", "images_size")
@@ -717,19 +744,19 @@ def _assemble(  # noqa: PLR0912, PLR0913, PLR0917  # the parts check_dataset gat
     chosen: bool,
     findings: list[Finding],
     model_codes: dict[str, tuple[str, ...]],
+    model_findings: dict[str, list[Finding]],
 ) -> DatasetReport:
     image_codes = tuple(c for c in IMAGE_CODES if any(f.code == c for f in findings))
     labelers = _labeler_checks(frames, img, gt2d, model_codes, image_codes)
     by_name = {lab.name: lab for lab in labelers}
     labeler = pick_labeler([labelers], cfg.labeler if chosen else None) or cfg.labeler
-    if labeler not in model_codes and by_name[labeler].can_run:
-        # The models concern only runs with the grounded-sam labeler: a fact here, not a warning.
-        findings[:] = [
-            replace(f, severity="info") if f.code in ("models_missing", "models_random") else f
-            for f in findings
-        ]
-    blockers = [f.code for f in findings if f.severity == "blocker"]
     alt = _alternative(labelers, labeler)
+    # The models of the labeler that runs (or of the one suggested instead) are what the user acts on;
+    # the others' are a fact, not a warning.
+    acting = labeler if by_name[labeler].can_run or alt is None else alt.name
+    for name, found in model_findings.items():
+        findings += found if name == acting else [replace(f, severity="info") for f in found]
+    blockers = [f.code for f in findings if f.severity == "blocker"]
     if not by_name[labeler].can_run and not blockers and alt is not None:
         # Only with another labeler to suggest: otherwise the findings behind it carry the fixes.
         why = ", ".join(reason_text(r) for r in by_name[labeler].reasons)
