@@ -318,6 +318,22 @@ def test_prompts_over_the_token_budget_run_in_several_passes(tiny_dir: Path) -> 
     assert len(wide.plan(schema)) == 1
 
 
+def test_flip_votes_join_each_image_with_its_mirror_and_change_the_fingerprint(tiny_dir: Path) -> None:
+    img = images(1)[0]
+    plain = GroundedSamLabeler(GroundedSamConfig(box_threshold=0.05), Runtime(models_dir=tiny_dir))
+    flip = GroundedSamLabeler(
+        GroundedSamConfig(box_threshold=0.05, flip_votes=True), Runtime(models_dir=tiny_dir)
+    )
+    voted = flip.label_images([img], small_schema())[0]
+    one, mirror = plain.label_images([img, np.ascontiguousarray(img[:, ::-1])], small_schema())
+    assert one.num_masks > 0 and mirror.num_masks > 0
+    want = one.joined(mirror.mirrored())
+    np.testing.assert_array_equal(voted.bits, want.bits)
+    np.testing.assert_allclose(voted.probs, want.probs, rtol=1e-5, atol=1e-6)
+    assert flip.detector_calls == 2  # the image and its mirror: twice the detector work
+    assert plain.fingerprint(small_schema()) != flip.fingerprint(small_schema())
+
+
 def test_fingerprint_tracks_prompts_settings_and_weights(tiny_dir: Path, tmp_path: Path) -> None:
     cfg = GroundedSamConfig()
     rt = Runtime(models_dir=tiny_dir)
