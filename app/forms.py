@@ -72,6 +72,13 @@ FORM_FIELDS: dict[str, FormField] = {
         "Grounding DINO boxes below this similarity are dropped",
         0.01,
     ),
+    "sam3_threshold": bounded(
+        "sam3.score_threshold",
+        "Instance score threshold",
+        "number",
+        "SAM 3 instances scoring below this are dropped",
+        0.01,
+    ),
     "voxel_size": bounded(
         "fusion.voxel_size", "Voxel size (m)", "number", "edge of the fusion grid's voxels", 0.05
     ),

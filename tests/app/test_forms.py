@@ -38,9 +38,13 @@ def test_the_labeler_choices_are_the_registry() -> None:
 def test_ignored_settings_in_the_forms_names() -> None:
     assert stage_switches() == {"3dcn": "consistency"}
     default = ignored_settings(PipelineConfig())
-    assert set(default) == {"threshold", "share", "temperature", "iterations"}
+    assert set(default) == {"threshold", "sam3_threshold", "share", "temperature", "iterations"}
     assert "simulated" in default["threshold"]
     assert default["share"] == "the 3D-CN stage is off (3D Consistency Network is unticked)"
     gsam = config_from_dict({"labeler": "grounded-sam", "consistency": {"enabled": True}})
-    assert ignored_settings(gsam) == {}
+    assert ignored_settings(gsam) == {
+        "sam3_threshold": "only the SAM 3 labeler uses it; the Grounding DINO + SAM labeler ignores it"
+    }
+    sam3 = config_from_dict({"labeler": "sam3"})
+    assert "threshold" in ignored_settings(sam3) and "sam3_threshold" not in ignored_settings(sam3)
     assert set(FORM_FIELDS) >= set(default)

@@ -76,6 +76,7 @@ def test_the_form_fields_are_the_projects_form_values_and_its_limits_are_enforce
     scoped = {f["name"]: (f["labeler"], f["stage"]) for f in fields if f["labeler"] or f["stage"]}
     assert scoped == {
         "threshold": ("grounded-sam", None),
+        "sam3_threshold": ("sam3", None),
         "share": (None, "3dcn"),
         "temperature": (None, "3dcn"),
         "iterations": (None, "3dcn"),
