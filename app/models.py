@@ -511,6 +511,12 @@ class RunPublic(BaseModel):
     has_metrics: bool
     has_export: bool
     resumable: bool
+    fix_setting: str | None = Field(
+        default=None,
+        description="a failed run whose fix is a project setting: that setting as the web UI names it (e.g. "
+        '"Estimate poses (KISS-ICP)"). Resume keeps the run\'s own settings, so after changing it start a '
+        "new run (POST /projects/{id}/runs) instead",
+    )
     summary: dict[str, Any] | None = Field(default=None, description="headline metrics (mIoU per result row)")
     note: str | None = Field(default=None, description="the note given when the run was started or later")
 

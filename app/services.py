@@ -16,7 +16,7 @@ from typing import Any
 import sqlite_utils
 
 from app import crud, models
-from app.advice import report_dict
+from app.advice import report_dict, setting_fix
 from app.core.config import Settings
 from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
@@ -813,6 +813,7 @@ def run_public(run: RunRow, live: dict[str, Any] | None) -> models.RunPublic:
         has_export=run.status == "done"
         and all(run.sequence_layout(name).export_dir.is_dir() for name in run.params.names),
         resumable=run.status in models.RESUMABLE_STATUSES,
+        fix_setting=setting_fix(run.error) if run.status == "failed" else None,
         summary=metrics_summary(overall(run)),
         note=run.note,
     )
