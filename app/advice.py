@@ -10,6 +10,7 @@ is wrong. :data:`ADVICE` holds each code's fix for both places; :func:`render_cl
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -37,7 +38,13 @@ class Advice:
     """For the command line: may name ``leap`` commands and flags. ``{seq}`` = the sequence folder."""
     app: str
     """For the web app: names the app's own options; never a command-line flag."""
+    setting: str = ""
+    """The project setting the app's fix changes, as the web UI names it ('' when the fix is not a
+    setting). Resume keeps a run's own settings, so a run that failed on one needs a new run instead."""
 
+
+POSES_SETTING = "Estimate poses (KISS-ICP)"
+LABELER_SETTING = "2D labeler"
 
 ADVICE: dict[str, Advice] = {
     "not_a_folder": Advice(
@@ -110,6 +117,7 @@ ADVICE: dict[str, Advice] = {
     "gt2d_partial": Advice(
         "add the missing gt2d/semantic and gt2d/instance masks, or use --labeler grounded-sam",
         "add the missing 2D ground-truth masks, or choose the Grounding DINO + SAM labeler under Parameters",
+        setting=LABELER_SETTING,
     ),
     "labels_missing": Advice(
         "",
@@ -124,6 +132,7 @@ ADVICE: dict[str, Advice] = {
         "`leap run`",
         'turn on "Estimate poses (KISS-ICP)" (on the project page, or when creating the project), or add '
         "a poses.txt to the dataset",
+        setting=POSES_SETTING,
     ),
     "poses_will_estimate": Advice(
         "",
@@ -133,17 +142,20 @@ ADVICE: dict[str, Advice] = {
         "fix or remove poses.txt, then estimate poses with `leap poses {seq} --force`",
         "fix or remove the dataset's poses.txt, then create the project with \"Estimate "
         'poses (KISS-ICP)" ticked',
+        setting=POSES_SETTING,
     ),
     "poses_unreadable": Advice(
         "fix or remove poses.txt (then `leap poses {seq}` estimates new ones)",
         "fix or remove the dataset's poses.txt, then create the project with "
         '"Estimate poses (KISS-ICP)" ticked',
+        setting=POSES_SETTING,
     ),
     "poses_short": Advice(
         "poses.txt needs one line per frame number: add the missing lines, or estimate "
         "poses with `leap poses {seq} --force`",
         "poses.txt needs one line per frame number: add the missing lines, or remove it "
         'and create the project with "Estimate poses (KISS-ICP)" ticked',
+        setting=POSES_SETTING,
     ),
     "poses_extra": Advice(
         "",
@@ -167,6 +179,7 @@ ADVICE: dict[str, Advice] = {
     "labeler_cannot_run": Advice(
         "use --labeler {alt}",
         'choose "{alt_label}" as the 2D labeler under Parameters',
+        setting=LABELER_SETTING,
     ),
     "off": Advice(
         "",
@@ -193,6 +206,20 @@ def advice(finding: Finding, audience: Audience, report: DatasetReport) -> str:
             )
         return text.format(alt=alt.name, alt_label=alt.label)
     return text.format(seq=report.root)
+
+
+def setting_fix(error: str | None) -> str | None:
+    """The project setting a run's error says to change (its advice's :attr:`Advice.setting`), or None
+    when the error carries no such advice. A run's error holds the app's advice verbatim (the worker and
+    the job manager append it), so the longest fixed part of each advice text is looked for in it."""
+    if not error:
+        return None
+    for entry in ADVICE.values():
+        if entry.setting and entry.app:
+            fixed = max(re.split(r"\{[^}]*\}", entry.app), key=len)
+            if fixed and fixed in error:
+                return entry.setting
+    return None
 
 
 def _coverage_line(cover: FrameCoverage, what: str) -> str:
@@ -263,4 +290,14 @@ def report_dict(report: DatasetReport, audience: Audience) -> dict[str, Any]:
     return data
 
 
-__all__ = ["ADVICE", "Advice", "Audience", "advice", "render_cli", "report_dict"]
+__all__ = [
+    "ADVICE",
+    "LABELER_SETTING",
+    "POSES_SETTING",
+    "Advice",
+    "Audience",
+    "advice",
+    "render_cli",
+    "report_dict",
+    "setting_fix",
+]

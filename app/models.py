@@ -511,6 +511,12 @@ class RunPublic(BaseModel):
     has_metrics: bool
     has_export: bool
     resumable: bool
+    fix_setting: str | None = Field(
+        default=None,
+        description="a failed run whose fix is a project setting: that setting as the web UI names it (e.g. "
+        '"Estimate poses (KISS-ICP)"). Resume keeps the run\'s own settings, so after changing it start a '
+        "new run (POST /projects/{id}/runs) instead",
+    )
     summary: dict[str, Any] | None = Field(default=None, description="headline metrics (mIoU per result row)")
     note: str | None = Field(default=None, description="the note given when the run was started or later")
 
@@ -730,6 +736,11 @@ class RunStatusesPublic(BaseModel):
     resumable: list[RunStatus] = Field(description="a run in these states can be resumed")
 
 
+class PresetPublic(BaseModel):
+    name: str = Field(description="value of ProjectCreate.schema_name")
+    classes: list[str] = Field(description="the preset's class names, in order")
+
+
 class PipelinePublic(BaseModel):
     """What the web UI shows of the pipeline: its stages, the parameter form and the 2D labelers."""
 
@@ -740,6 +751,10 @@ class PipelinePublic(BaseModel):
     form: list[FormFieldPublic] = Field(description="the project form's parameters, in display order")
     labelers: list[LabelerPublic]
     run_statuses: RunStatusesPublic
+    presets: list[PresetPublic] = Field(
+        default_factory=list,
+        description="the built-in class presets a project can be created from (projects/*.yaml), by name",
+    )
 
 
 # ---------------------------------------------------------------------------------------------- health

@@ -16,11 +16,11 @@ from typing import Any
 import sqlite_utils
 
 from app import crud, models
-from app.advice import report_dict
+from app.advice import report_dict, setting_fix
 from app.core.config import Settings
 from app.core.db import default_sequence_name, transaction
 from app.core.errors import Conflict, Forbidden, InvalidField, NotFound
-from app.core.security import resolve_in_roots
+from app.core.security import outside_roots, resolve_in_roots
 from app.forms import FORM_FIELDS, form_values, overrides_from_form
 from app.jobs.progress import ProgressTracker
 from app.rows import DatasetKind, ProjectRow, RunRow, labeled_sequences
@@ -140,8 +140,8 @@ def refuse_escaping_entries(
     if escape is not None:
         name, target = escape
         raise Forbidden(
-            f"dataset path {shown!r}: {name} is a symlink to {str(target)!r}, which is outside the "
-            "allowed data roots"
+            f"dataset path {shown!r}: {name} is a symlink to {str(target)!r}, which is outside "
+            + outside_roots(roots)
         )
 
 
@@ -811,6 +811,7 @@ def run_public(run: RunRow, live: dict[str, Any] | None) -> models.RunPublic:
         has_export=run.status == "done"
         and all(run.sequence_layout(name).export_dir.is_dir() for name in run.params.names),
         resumable=run.status in models.RESUMABLE_STATUSES,
+        fix_setting=setting_fix(run.error) if run.status == "failed" else None,
         summary=metrics_summary(overall(run)),
         note=run.note,
     )

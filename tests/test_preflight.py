@@ -12,7 +12,7 @@ import pytest
 from conftest import TinySequence, build_tiny_sequence
 from typer.testing import CliRunner
 
-from app.advice import ADVICE, advice, render_cli, report_dict
+from app.advice import ADVICE, advice, render_cli, report_dict, setting_fix
 from app.cli import CHECK_EXIT_CODES, cli
 from leap_core.config import config_from_dict
 from leap_core.datasets.kitti import POSES_NOTE, write_png16
@@ -250,3 +250,14 @@ def test_leap_check_prints_the_report_and_exits_by_verdict(seq: TinySequence, tm
     assert runner.invoke(cli, ["check", str(seq.root), "--labeler", "nope"]).exit_code == 2
     help_text = runner.invoke(cli, ["check", "--help"]).output
     assert "Exit codes" in help_text and "3 the pipeline cannot run" in " ".join(help_text.split())
+
+
+def test_a_run_error_whose_advice_names_a_setting_is_recognised() -> None:
+    """The app offers a new run with the project's settings beside Resume (which keeps the run's) exactly
+    when the run's error carries advice that changes a setting, whichever advice that is."""
+    named = {code: a for code, a in ADVICE.items() if a.setting}
+    assert {"poses_missing", "labeler_cannot_run"} <= set(named)
+    for code, entry in ADVICE.items():
+        text = entry.app.format(alt_label="Simulated", seq="/data/00")
+        assert setting_fix(f"/data/00/poses.txt: broken; {text}") == (entry.setting or None), code
+    assert setting_fix("RuntimeError: out of memory") is None and setting_fix(None) is None

@@ -782,6 +782,20 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
             (progress,) = crud.review_progress(db, pid)
         assert marks[regions[0].id].state == "accepted" and marks[regions[1].id].state == "skipped"
         assert (progress["kind"], progress["reviewed"], progress["skipped"]) == ("confidence", 1, 1)
+
+        # Leaving the review: the whole map at full colour, no box in the map or in the scan's image, no
+        # verdict on a region no longer shown; the queue stays, so the next step goes on after it.
+        shown_pos = session.queue.region_pos
+        session.queue.clear_focus()
+        assert session.queue.focus is None and session.renderer.wait_drawn()
+        np.testing.assert_array_equal(session.scene.voxels.handle.colors, full)
+        assert not session.scene.review_box.visible
+        pos = session.player.frame_pos
+        plain = out.scan_view(out.frame_indices[pos], session.palette)
+        np.testing.assert_array_equal(session.shared.scan_view.overlay, plain.overlay)
+        with pytest.raises(ValueError, match="press Next region"):
+            session.queue.mark_region("accepted")
+        assert session.queue.next_region() is regions[shown_pos + 1]
     finally:
         session.close()
 

@@ -3,7 +3,11 @@
 import { get, post } from "./api.js";
 import { checkSummary } from "./dataset-check.js";
 import { fmtPct, fmtTime, h, replace, statusChip } from "./dom.js";
+import { pipelineInfo } from "./pipeline.js";
 import { posesOption } from "./poses-option.js";
+
+/** The class preset a new project gets unless the user picks another (ProjectCreate.schema_name's default). */
+const DEFAULT_PRESET = "semantickitti";
 
 function projectCard(p) {
   const last = p.last_run;
@@ -44,7 +48,26 @@ export function sequenceLines(text) {
     });
 }
 
-function createForm(datasets, { toast, onCreated }) {
+/** The class preset picker: every built-in preset by name, with its class count and (as a hint) its classes. */
+function presetPicker(presets) {
+  const select = h(
+    "select",
+    { id: "new-preset", name: "schema_name" },
+    presets.map((p) =>
+      h("option", { value: p.name, selected: p.name === DEFAULT_PRESET }, `${p.name} (${p.classes.length} classes)`),
+    ),
+  );
+  const hint = h("p", { class: "muted small", id: "new-preset-classes" });
+  const showClasses = () => {
+    const p = presets.find((x) => x.name === select.value);
+    hint.textContent = p ? p.classes.join(", ") : "";
+  };
+  select.addEventListener("change", showClasses);
+  showClasses();
+  return { select, hint };
+}
+
+function createForm(datasets, presets, { toast, onCreated }) {
   const name = h("input", { id: "new-name", name: "name", required: true, maxlength: 120, placeholder: "My sequence" });
   const kindDemo = h("input", { type: "radio", name: "kind", value: "demo", id: "kind-demo" });
   const kindFolder = h("input", { type: "radio", name: "kind", value: "folder", id: "kind-folder", checked: true });
@@ -84,6 +107,7 @@ function createForm(datasets, { toast, onCreated }) {
     kindFolder.checked = true;
     showCheck();
   });
+  const preset = presetPicker(presets);
   const poses = posesOption();
   const error = h("p", { class: "error", role: "alert" });
   const submit = h("button", { class: "btn primary", type: "submit", id: "create-project" }, "Create project");
@@ -95,7 +119,7 @@ function createForm(datasets, { toast, onCreated }) {
       onsubmit: async (e) => {
         e.preventDefault();
         error.textContent = "";
-        const body = { name: name.value.trim(), estimate_poses: poses.checked() };
+        const body = { name: name.value.trim(), estimate_poses: poses.checked(), schema_name: preset.select.value };
         if (kindSeveral.checked) body.sequences = sequenceLines(paths.value);
         else body.dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
         submit.disabled = true;
@@ -123,8 +147,15 @@ function createForm(datasets, { toast, onCreated }) {
       h("div", { class: "indent stack" }, paths),
       h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
     ),
+    h("label", { class: "field" }, h("span", {}, "Classes"), preset.select),
+    preset.hint,
     poses.element,
-    h("p", { class: "muted small" }, `Data roots: ${datasets.roots.join(", ")}. New projects use the SemanticKITTI classes; edit them afterwards.`),
+    h(
+      "p",
+      { class: "muted small" },
+      `Data roots: ${datasets.roots.join(", ")} (the server's setting: leap serve --data-root DIR, or LEAP_DATA_ROOTS). `,
+      "The classes can be edited after creation.",
+    ),
     error,
     h("div", { class: "row end" }, submit),
   );
@@ -132,7 +163,7 @@ function createForm(datasets, { toast, onCreated }) {
 }
 
 export async function renderProjects(root, { toast }) {
-  const [projects, datasets] = await Promise.all([get("/projects"), get("/datasets")]);
+  const [projects, datasets, pipeline] = await Promise.all([get("/projects"), get("/datasets"), pipelineInfo()]);
   const list = h(
     "div",
     { class: "project-grid", id: "project-list" },
@@ -145,7 +176,7 @@ export async function renderProjects(root, { toast }) {
       "div",
       { class: "layout" },
       h("section", { class: "main-col" }, list),
-      h("aside", { class: "side-col" }, createForm(datasets, { toast, onCreated: (p) => (window.location.hash = `#/projects/${p.id}`) })),
+      h("aside", { class: "side-col" }, createForm(datasets, pipeline.presets, { toast, onCreated: (p) => (window.location.hash = `#/projects/${p.id}`) })),
     ),
   );
   return () => {};

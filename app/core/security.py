@@ -22,6 +22,18 @@ def token_matches(expected: str | None, given: str | None) -> bool:
     return hmac.compare_digest(expected.encode(), given.encode("utf-8", "surrogatepass"))
 
 
+CHANGE_ROOTS = (
+    "the data roots are the server's data_roots setting: start it with `leap serve --data-root DIR` "
+    "(repeatable) or set LEAP_DATA_ROOTS to a JSON list of folders, then restart it"
+)
+"""How a user whose path lies outside the data roots gets them changed (every such refusal says it)."""
+
+
+def outside_roots(roots: Iterable[Path]) -> str:
+    """The end of a refusal for a path outside the data roots: the current roots and how to change them."""
+    return f"the allowed data roots ({', '.join(str(r) for r in roots) or 'none'}); {CHANGE_ROOTS}"
+
+
 def resolve_in_roots(
     raw: str | Path,
     roots: Iterable[Path],
@@ -51,16 +63,15 @@ def resolve_in_roots(
         raise InvalidField(loc, f"{what} {printable(str(raw), 120)!r} {exc}; name a real folder") from None
     if _inside(resolved, roots):
         return resolved
-    allowed = ", ".join(str(r) for r in roots)
     link = _escaping_link(candidate, roots)
     if link is not None:
         where, target = link
         via = "is" if where == candidate.expanduser() else f"goes through {str(where)!r},"
         raise Forbidden(
-            f"{what} {str(raw)!r} {via} a symlink to {str(target)!r}, which is outside the allowed "
-            f"data roots ({allowed})"
+            f"{what} {str(raw)!r} {via} a symlink to {str(target)!r}, which is outside "
+            + outside_roots(roots)
         )
-    raise Forbidden(f"{what} {str(raw)!r} is outside the allowed data roots ({allowed})")
+    raise Forbidden(f"{what} {str(raw)!r} is outside {outside_roots(roots)}")
 
 
 def _inside(path: Path, roots: Sequence[Path]) -> bool:

@@ -331,6 +331,9 @@ class ReviewPanel:
     def on_region(self, region: Region, pos: int, count: int, kind: str) -> None:
         self.review.on_region(region, pos, count, kind)
 
+    def on_focus_cleared(self) -> None:
+        self.review.on_focus_cleared()
+
     def on_queue(self, building: bool) -> None:
         self.review.on_queue(building)
 

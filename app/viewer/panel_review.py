@@ -51,6 +51,11 @@ class ReviewQueuePanel:
             hint="Assign the class to the highlighted voxels (key: R opens the class picker)",
             disabled=True,
         )
+        self.leave_button = gui.add_button(
+            "Leave review",
+            hint="Undim the map and remove the region's box; Next region goes on from here (key: Esc)",
+            disabled=True,
+        )
         self.queue_info = gui.add_markdown("")
         self.progress = gui.add_markdown("")
         self.queue_kind.on_update(g(lambda _: self._in_background(self._build)))
@@ -59,6 +64,7 @@ class ReviewQueuePanel:
         self.accept_button.on_click(g(lambda _: q.mark_region("accepted")))
         self.skip_button.on_click(g(lambda _: q.mark_region("skipped")))
         self.relabel_button.on_click(g(lambda _: q.relabel_region(str(self.relabel_class.value))))
+        self.leave_button.on_click(g(lambda _: q.clear_focus()))
 
     def _in_background(self, fn: Any) -> None:
         # Ranking the disagreement queue reads every scan: keep viser's callback thread free meanwhile.
@@ -87,8 +93,17 @@ class ReviewQueuePanel:
         if self.relabel_class.value not in names:
             self.relabel_class.value = names[0]  # type: ignore[misc]  # viser: split setter (panel.py)
         self.progress.content = ""
-        for b in (self.accept_button, self.skip_button, self.relabel_button):
-            b.disabled = True
+        self._region_buttons(False)
+
+    def _region_buttons(self, on: bool) -> None:
+        for b in (self.accept_button, self.skip_button, self.relabel_button, self.leave_button):
+            b.disabled = not on
+
+    def on_focus_cleared(self) -> None:
+        self._region_buttons(False)
+        q = self.p.s.queue
+        if q.regions:
+            self.queue_info.content = "Left the review; press *Next region* (N) to go on."
 
     def on_queue(self, building: bool) -> None:
         for b in (self.next_button, self.prev_button):
@@ -112,8 +127,7 @@ class ReviewQueuePanel:
             f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels ({state}).{seen}"
         )
         self.progress.content = progress_text(q.review_progress())
-        for b in (self.accept_button, self.skip_button, self.relabel_button):
-            b.disabled = False
+        self._region_buttons(True)
 
 
 __all__ = ["QUEUE_KINDS", "QUEUE_OF", "ReviewQueuePanel", "progress_text"]

@@ -218,11 +218,17 @@ class ReviewQueue:
         return region
 
     def clear_focus(self) -> None:
-        """Show no region highlighted (the whole map at full colour, no box)."""
+        """Leave the review: no region highlighted (the whole map at full colour, no box in the map or in
+        the scan's image). The queue and its position stay, so *Next region* goes on where the user left."""
         with self.shared.lock:
+            had_focus = self.shared.focus is not None
             self.shared.focus, self.shared.focus_frame = None, None
         self.scene.set_review_box(None)
         self.renderer.request_draw()
+        if had_focus:
+            # The shown scan's image still has the region boxed in it: show the scan again without it.
+            self.player.show_scan(self.player.frame_pos, move_camera=False)
+        self.notify.panel.on_focus_cleared()
 
     def _best_scan(self, region: rl.Region) -> int | None:
         """Slider position of the scan that observed ``region`` most, among the ``queue_scans`` scans
@@ -245,7 +251,7 @@ class ReviewQueue:
         sh = self.shared
         with sh.lock:
             pos = self.region_pos
-            if not 0 <= pos < len(self.regions):
+            if sh.focus is None or not 0 <= pos < len(self.regions):
                 raise ValueError("no review region is shown; press Next region first")
             region, signature = self.regions[pos], self.signatures[pos]
         run_id = None if sh.run is None else sh.run.run_id
@@ -266,7 +272,7 @@ class ReviewQueue:
         sh = self.shared
         with sh.lock:
             pos = self.region_pos
-            if not 0 <= pos < len(self.regions) or sh.grid is None:
+            if sh.focus is None or not 0 <= pos < len(self.regions) or sh.grid is None:
                 raise ValueError("no review region is shown; press Next region first")
             region = self.regions[pos]
         cid = self.corrections.assign_selection(class_name, selection=Selection(region.rows))

@@ -136,7 +136,11 @@ def test_dataset_paths_outside_the_roots_are_403(
     for path in [str(outside), "/etc", "../elsewhere/sequences/00", str(link)]:
         r = client.post(f"{API}/projects", json={"name": "x", "dataset": {"kind": "folder", "path": path}})
         assert r.status_code == 403, (path, r.text)
-        assert "outside the allowed data roots" in r.json()["detail"]
+        detail = r.json()["detail"]
+        assert "outside the allowed data roots" in detail
+        # It lists the roots and says how to change them (the serve flag, the environment variable).
+        assert str(tiny_dataset.parents[2].resolve()) in detail, detail
+        assert "leap serve --data-root DIR" in detail and "LEAP_DATA_ROOTS" in detail, detail
     # A relative path is taken inside the first data root.
     rel = tiny_dataset.relative_to(tiny_dataset.parents[2])
     assert (

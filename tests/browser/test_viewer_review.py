@@ -208,3 +208,131 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
             page.screenshot(path=str(artifacts / "viewer-review-2-after-restart.png"))
     finally:
         live.stop()
+
+
+@pytest.fixture(scope="module")
+def labelled_app(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """An app (in this process) with one labelled street project: ``(live, project id, api client, colours)``,
+    colours holding the map's unfocused colours once a test has seen them."""
+    import httpx
+    from serverproc import make_small_street
+
+    root = tmp_path_factory.mktemp("review-leave")
+    dataset = make_small_street(root / "data" / "street", FRAMES)
+    live = LiveApp(_settings(root))
+    try:
+        api = httpx.Client(base_url=f"{live.base}/api/v1", timeout=30)
+        street = {"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}}
+        r = api.post("/projects", json=street)
+        assert r.status_code == 201, r.text
+        pid = r.json()["id"]
+        run = api.post(f"/projects/{pid}/runs", json={})
+        assert run.status_code == 202, run.text
+        done = wait_until(
+            lambda: (x := api.get(f"/runs/{run.json()['id']}").json())["status"] in ("done", "failed") and x,
+            300,
+            "the run",
+        )
+        assert done["status"] == "done", done.get("error")
+        yield live, pid, api, {}
+    finally:
+        live.stop()
+
+
+def _focus_a_region(page: Any, session: Any, full: np.ndarray) -> Any:
+    """Press N and wait until the map is dimmed around the next region, its box shown."""
+    from playwright.sync_api import expect
+
+    page.evaluate("document.activeElement && document.activeElement.blur()")  # keys go to the page
+    page.keyboard.press("n")
+    badge = page.locator("#leap-review")
+    expect(badge).to_contain_text(re.compile(r"region \d+/\d+"), timeout=60_000)
+    expect(badge.get_by_role("button", name="Leave review (Esc)")).to_be_visible()
+    region = session.queue.focus
+    assert region is not None
+    inside = np.isin(np.arange(session.grid.num_voxels), region.rows)
+    wait_until(
+        lambda: np.array_equal(session.scene.voxels.handle.colors[~inside], blend_dim(full[~inside])),
+        30,
+        "the map dimmed around the region",
+    )
+    assert session.scene.review_box is not None and session.scene.review_box.visible
+    return region
+
+
+def _wait_unfocused(page: Any, session: Any, full: np.ndarray, *, badge: bool = True) -> None:
+    """The review is left: no focus, the whole map at full colour, no box (and no region in the badge,
+    which follows the page's keys and buttons, not the panel's)."""
+    from playwright.sync_api import expect
+
+    wait_until(lambda: session.queue.focus is None, 30, "the focus to be cleared")
+    wait_until(
+        lambda: np.array_equal(session.scene.voxels.handle.colors, full), 30, "the map at full colour again"
+    )
+    box = session.scene.review_box
+    assert box is None or not box.visible
+    if badge:
+        badge = page.locator("#leap-review")
+        expect(badge).not_to_contain_text(re.compile(r"region \d+/\d+"), timeout=30_000)
+        expect(badge.get_by_role("button", name="Leave review (Esc)")).to_have_count(0)
+
+
+def _viewer_page(browser: Any, labelled: Any) -> tuple[Any, Any, np.ndarray]:
+    """A viewer page on the labelled project, its session and the map's unfocused colours."""
+    live, pid, api, colours = labelled
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    browserfixtures.echo_console(page)
+    page.on("pageerror", lambda exc: print(f"[page error] {exc}"))
+    session = _open_viewer(page, live, pid, api)
+    if "full" not in colours:
+        # Read before anything was focused (a previous test's focus would be dimming the map).
+        assert session.queue.focus is None and not session.queue.queue_built
+        colours["full"] = session.scene.voxels.handle.colors.copy()
+    return page, session, colours["full"]
+
+
+def test_esc_leaves_the_review(labelled_app: Any, artifacts: Path) -> None:
+    from playwright.sync_api import expect
+
+    _, pid, api, _ = labelled_app
+    with browserfixtures.launch_chromium() as browser:
+        page, session, full = _viewer_page(browser, labelled_app)
+        first = _focus_a_region(page, session, full)
+        page.keyboard.press("Escape")
+        _wait_unfocused(page, session, full)
+        page.screenshot(path=str(artifacts / "viewer-review-3-left.png"))
+
+        # Leaving keeps the queue: N goes on with the next region, and a verdict needs a shown region.
+        assert session.queue.regions and session.queue.regions[0] is first
+        page.keyboard.press("Escape")
+        gone = api.post(f"/projects/{pid}/viewer/review/mark", json={"state": "accepted"})
+        assert gone.status_code == 409 and "press Next region" in gone.json()["detail"], gone.text
+        page.keyboard.press("n")
+        expect(page.locator("#leap-review")).to_contain_text("region 2/", timeout=60_000)
+        page.close()
+
+
+def test_leave_review_buttons_leave_the_review(labelled_app: Any) -> None:
+    with browserfixtures.launch_chromium() as browser:
+        page, session, full = _viewer_page(browser, labelled_app)
+        # The badge's button on the page.
+        _focus_a_region(page, session, full)
+        page.get_by_role("button", name="Leave review (Esc)", exact=True).click()
+        _wait_unfocused(page, session, full)
+
+        # The panel's button in the "Review queue" folder.
+        page.get_by_text("Review queue", exact=True).click()
+        _focus_a_region(page, session, full)
+        page.get_by_role("button", name="Leave review", exact=True).click()
+        _wait_unfocused(page, session, full, badge=False)
+        page.close()
+
+
+def test_a_reloaded_viewer_page_is_out_of_the_review(labelled_app: Any) -> None:
+    with browserfixtures.launch_chromium() as browser:
+        page, session, full = _viewer_page(browser, labelled_app)
+        _focus_a_region(page, session, full)
+        page.reload()
+        page.get_by_text("Color by", exact=True).wait_for(timeout=60_000)
+        _wait_unfocused(page, session, full)
+        page.close()

@@ -221,3 +221,36 @@ def test_token_protected_server_asks_for_the_token(browser, tmp_path: Path) -> N
         fresh.close()
     finally:
         srv.stop()
+
+
+def test_create_form_offers_the_class_presets(server, browser) -> None:
+    """The create form lists the shipped class presets (default: the SemanticKITTI classes); a project
+    created with the farm drone preset has its classes, as many as the preset file holds."""
+    import httpx
+    from playwright.sync_api import expect
+
+    from leap_core.presets import builtin_preset
+
+    srv, dataset = server
+    agri = builtin_preset("agri_uav").schema.names
+    assert len(agri) == 7
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(srv.base + "/")
+    picker = page.locator("#new-preset")
+    expect(picker).to_have_value("semantickitti")
+    expect(picker.locator("option")).to_contain_text(["agri_uav (7 classes)", "nuscenes (16 classes)"])
+    page.fill("#new-name", "Farm")
+    page.select_option("#new-dataset", str(dataset))
+    picker.select_option("agri_uav")
+    expect(page.locator("#new-preset-classes")).to_have_text(", ".join(agri))
+    page.click("#create-project")
+    expect(page.locator("#project-name")).to_have_text("Farm")
+    expect(page.locator(".class-row")).to_have_count(len(agri))
+    assert page.locator(".class-row").evaluate_all("rows => rows.map((r) => r.dataset.class)") == agri
+    pid = int(page.url.rsplit("/", 1)[-1])
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        project = api.get(f"/projects/{pid}").json()
+    assert project["schema_name"] == "agri_uav" and project["num_classes"] == len(agri)
+    assert errors == []

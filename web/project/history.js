@@ -4,6 +4,7 @@
 import { get, patch } from "../api.js";
 import { duration, fmtPct, fmtSeconds, fmtTime, h, replace, statusChip } from "../dom.js";
 import { exportActions } from "./exports.js";
+import { RESUME_TITLE } from "./run-panel.js";
 
 function miou(run, row, protocol) {
   const table = run.summary && run.summary[protocol];
@@ -28,7 +29,9 @@ function defaultCompare(state) {
 function runActions(ctx, run) {
   const { state } = ctx;
   const out = exportActions(ctx, run);
-  if (run.resumable) out.push(h("button", { class: "btn small", onclick: () => ctx.actions.runAction(run, "resume") }, "Resume"));
+  if (run.resumable) {
+    out.push(h("button", { class: "btn small", title: RESUME_TITLE, onclick: () => ctx.actions.runAction(run, "resume") }, "Resume"));
+  }
   out.push(
     h(
       "button",

@@ -1,4 +1,6 @@
-// The latest run: status, overall progress with ETA, one progress bar per stage, cancel / resume.
+// The latest run: status, overall progress with ETA, one progress bar per stage, cancel / resume, and for a
+// run that failed on a project setting (run.fix_setting) a new run with the project's current settings:
+// Resume keeps the run's own settings, so after that setting is changed it would fail the same way.
 
 import { duration, fmtSeconds, h, replace } from "../dom.js";
 import { latestRun } from "./context.js";
@@ -47,6 +49,10 @@ function stageRow(ctx, stage, several) {
   );
 }
 
+/** What Resume does, on every Resume button. */
+export const RESUME_TITLE =
+  "Continue this run where it stopped, with the settings it was started with (changes made since are not used)";
+
 export function renderRunPanel(ctx) {
   const el = ctx.els.run;
   const run = latestRun(ctx);
@@ -61,6 +67,7 @@ export function renderRunPanel(ctx) {
   const active = ctx.active.has(status);
   const eta = pr.eta_s !== null && pr.eta_s !== undefined ? ` · about ${fmtSeconds(pr.eta_s)} left` : "";
   const dur = duration(run);
+  const fix = status === "failed" ? run.fix_setting : null;
   const head = h(
     "div",
     { class: "run-head" },
@@ -72,8 +79,20 @@ export function renderRunPanel(ctx) {
     active
       ? h("button", { class: "btn small", id: "cancel-button", onclick: () => ctx.actions.runAction(run, "cancel") }, "Cancel")
       : null,
+    fix
+      ? h(
+        "button",
+        {
+          class: "btn small primary",
+          id: "run-again-button",
+          title: "Start a new run with the project's current settings (this run's own settings stay as they were)",
+          onclick: ctx.actions.startRun,
+        },
+        "Run again with the new settings",
+      )
+      : null,
     run.resumable
-      ? h("button", { class: "btn small", id: "resume-button", onclick: () => ctx.actions.runAction(run, "resume") }, "Resume")
+      ? h("button", { class: "btn small", id: "resume-button", title: RESUME_TITLE, onclick: () => ctx.actions.runAction(run, "resume") }, "Resume")
       : null,
   );
   const overall = h(
@@ -87,6 +106,14 @@ export function renderRunPanel(ctx) {
     overall,
     h("ol", { class: "stages" }, pr.stages.map((stage) => stageRow(ctx, stage, several))),
     pr.error ? h("p", { class: "error run-error", role: "alert" }, pr.error) : null,
+    fix
+      ? h(
+        "p",
+        { class: "run-fix", id: "run-fix" },
+        `The fix is a setting (${fix}). Resume keeps this run's own settings, so it would fail the same way: `,
+        `change ${fix}, then press “Run again with the new settings”.`,
+      )
+      : null,
     pr.warnings && pr.warnings.length
       ? h("ul", { class: "run-warnings", "aria-label": "Warnings" }, pr.warnings.map((w) => h("li", {}, w)))
       : null,

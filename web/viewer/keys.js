@@ -103,11 +103,16 @@ export function listen() {
         event.preventDefault();
         return;
       }
-      const b = bindings.find((x) => x.combos.includes(combo));
-      if (!b) return;
+      // Several modules may bind one key (Esc puts the selection tool down and leaves the review): all run.
+      const matched = bindings.filter((x) => x.combos.includes(combo));
+      if (!matched.length) return;
       event.preventDefault();
       event.stopPropagation();
-      Promise.resolve(b.handler(event)).catch((err) => notify(err.message || String(err), "error"));
+      for (const b of matched) {
+        Promise.resolve()
+          .then(() => b.handler(event))
+          .catch((err) => notify(err.message || String(err), "error"));
+      }
     },
     true,
   );

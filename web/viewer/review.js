@@ -1,9 +1,11 @@
-// Review queue keys on the viewer page: a accept, s skip, r relabel (class picker), n / p next / previous.
+// Review queue keys on the viewer page: a accept, s skip, r relabel (class picker), n / p next / previous,
+// Esc leave the review.
 //
 // Each key calls app/api/routes/viewer_review.py, which acts on the same server-side ReviewSession as the
 // panel's "Review queue" buttons: the session highlights the region (the rest of the map dims), frames the
 // camera, jumps the scan slider to the scan that saw the region most and boxes the region in its image.
-// A small badge shows the progress ("12 / 100 reviewed") and a busy sign while a queue is being ranked.
+// A small badge shows the progress ("12 / 100 reviewed"), a busy sign while a queue is being ranked, and,
+// while a region is highlighted, a "Leave review" button (as Esc) that undims the map.
 
 import { bind, notify } from "./keys.js";
 import { projectId, viewerApi } from "./viewer-api.js";
@@ -11,6 +13,14 @@ import { projectId, viewerApi } from "./viewer-api.js";
 const GROUP = "Review queue";
 let badge = null;
 let busy = false;
+
+// A page that loads (a reload, a second tab) starts out of the review: the focus lives in the server's
+// session, and a dimmed map with no badge or button to leave it would be a trap. The progress shows at once
+// (a viewer reopened after a restart shows the stored marks). Queue actions wait for this, so a quick N
+// is not undone by it.
+const started = projectId === null ? Promise.resolve() : viewerApi("POST", "review/leave", {})
+  .then((state) => { if (state.total) show(state); })
+  .catch(() => {});
 
 function ensureBadge() {
   if (badge) return badge;
@@ -37,7 +47,13 @@ function show(state) {
     where.className = "leap-review-region";
     const seen = r.frame_id ? `, scan ${r.frame_id}` : "";
     where.textContent = ` · region ${r.position + 1}/${state.total} (${r.state || "not reviewed"}${seen})`;
-    el.append(where);
+    const leaveButton = document.createElement("button");
+    leaveButton.type = "button";
+    leaveButton.className = "leap-review-leave";
+    leaveButton.textContent = "Leave review (Esc)";
+    leaveButton.title = "Undim the map and remove the region's box; N goes on from this region";
+    leaveButton.addEventListener("click", () => leave().catch((err) => notify(err.message || String(err), "error")));
+    el.append(where, leaveButton);
   }
   el.hidden = false;
 }
@@ -55,24 +71,40 @@ function setBusy(on, text) {
   }
 }
 
+let acting = Promise.resolve();
+
 /** Run one queue action with the busy sign up (ranking the disagreement queue reads every scan). */
-async function act(path, body, text) {
+function act(path, body, text) {
   if (busy) return null;
   setBusy(true, text);
-  try {
-    const state = await viewerApi("POST", `review/${path}`, body);
-    setBusy(false);
-    show(state);
-    return state;
-  } catch (err) {
-    setBusy(false);
-    throw err;
-  }
+  const run = (async () => {
+    try {
+      await started;
+      const state = await viewerApi("POST", `review/${path}`, body);
+      setBusy(false);
+      show(state);
+      return state;
+    } catch (err) {
+      setBusy(false);
+      throw err;
+    }
+  })();
+  acting = run.catch(() => {});
+  return run;
+}
+
+/** Leave the review: the server undims the map and removes the region's box (the queue stays). */
+async function leave() {
+  const state = await viewerApi("POST", "review/leave", {});
+  if (state.total || !ensureBadge().hidden) show(state);
+  return state;
 }
 
 function closePicker() {
   const el = document.getElementById("leap-review-picker");
-  if (el) el.remove();
+  if (!el) return false;
+  el.remove();
+  return true;
 }
 
 /** The class picker for `r`: a list of the run's classes; picking one relabels the highlighted region. */
@@ -115,7 +147,9 @@ async function openPicker() {
 }
 
 window.addEventListener("keydown", (ev) => {
-  if (ev.key === "Escape") closePicker();
+  // Esc on an open picker only closes it; the other Esc bindings (leave the review, put the tool down)
+  // wait for the next press. This listener is added before keys.js's, so it can stop theirs.
+  if (ev.key === "Escape" && closePicker()) ev.stopImmediatePropagation();
 }, true);
 
 bind(["a"], "Accept the highlighted region (mark reviewed) and go to the next", () =>
@@ -126,10 +160,10 @@ bind(["r"], "Relabel the highlighted region (class picker)", openPicker, GROUP);
 bind(["n"], "Next review region (ranks the queue first)", () =>
   act("step", { step: 1 }, "Ranking regions…"), GROUP);
 bind(["p"], "Previous review region", () => act("step", { step: -1 }, "Ranking regions…"), GROUP);
+// Esc during a step (the queue may take seconds to rank) leaves the region that step shows: never dropped.
+bind(["escape"], "Leave the review (undim the map; N goes on from the last region)",
+  () => acting.then(leave), GROUP);
 
 // The badge exists (hidden) from the start: tests wait for it to know the keys are bound.
 ensureBadge();
-// Show the progress once the page is up (a viewer reopened after a restart shows the stored marks).
-if (projectId !== null) {
-  viewerApi("GET", "review").then((state) => { if (state.total) show(state); }).catch(() => {});
-}
+

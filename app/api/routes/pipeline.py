@@ -22,6 +22,7 @@ from app.rows import RunStatus
 from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGE_TABLE
 from leap_core.pipeline.steering import setting_scope
+from leap_core.presets import builtin_preset, list_presets
 
 router = APIRouter(prefix="/pipeline", tags=["pipeline"])
 
@@ -84,6 +85,7 @@ def pipeline_public() -> models.PipelinePublic:
             terminal=[s for s in statuses if s in TERMINAL_STATUSES],
             resumable=[s for s in statuses if s in models.RESUMABLE_STATUSES],
         ),
+        presets=[models.PresetPublic(name=n, classes=builtin_preset(n).schema.names) for n in list_presets()],
     )
 
 

@@ -97,6 +97,9 @@ def cancel_run(run_id: RunId, jobs: JobsDep, db: DbDep) -> models.RunPublic:
 
 @router.post("/runs/{run_id}/resume", response_model=models.RunPublic, status_code=status.HTTP_202_ACCEPTED)
 def resume_run(run_id: RunId, jobs: JobsDep, db: DbDep) -> models.RunPublic:
+    """Continue an interrupted, cancelled or failed run in its own folder with the settings it was started
+    with: changes to the project since then are not used (a run whose ``fix_setting`` is set failed on a
+    setting; start a new run with POST /projects/{id}/runs once it is changed)."""
     jobs.resume_run(run_id)
     return services.run_public(crud.require_run(db, run_id), jobs.progress(run_id))
 

@@ -1,5 +1,5 @@
-"""The review queue of a project's viewer (web/viewer/review.js: keys a/s/r/n/p), and review progress for
-the web UI's project page.
+"""The review queue of a project's viewer (web/viewer/review.js: keys a/s/r/n/p and Esc), and review
+progress for the web UI's project page.
 
 The viewer routes act on the running :class:`~app.viewer.session.ReviewSession` of the project (404 when no
 viewer runs), exactly as the panel's "Review queue" buttons do. Review marks live in SQLite (migration 4),
@@ -150,6 +150,16 @@ async def step_region(project_id: ProjectId, payload: QueueStep, viewers: Viewer
     if not queue.queue_built or not queue.regions or queue.queue_kind != kind:
         await run_blocking(queue.build_queue, kind)
     await run_blocking(queue.next_region, payload.step)
+    return _state(session)
+
+
+@router.post("/viewer/review/leave", response_model=ReviewStatePublic)
+async def leave_review(project_id: ProjectId, viewers: ViewersDep) -> ReviewStatePublic:
+    """Leave the review (key Esc, the "Leave review" buttons, and a viewer page that loads): no region
+    highlighted, the whole map at full colour and no region box. The queue and its marks stay; the next
+    step goes on from the region last shown."""
+    session = running_session(viewers, project_id)
+    await run_blocking(session.queue.clear_focus)
     return _state(session)
 
 
