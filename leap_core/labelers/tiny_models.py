@@ -347,6 +347,13 @@ def build_tiny_sam3(cfg: TinyModelsConfig | None = None) -> tuple[Any, Any, dict
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed + 2)
         model = Sam3Model(config).eval()  # type: ignore[no-untyped-call]  # transformers: unannotated eval()
+        # Random initial weights give every query a logit within ±0.01 of 0 and the image a presence of
+        # 0.5: every score would sit near 0.25, below the default threshold, and a run would keep nothing.
+        # A confident presence and query logits spread by ±0.6 keep about half the queries, so the whole
+        # path (masks, projection, fusion) runs at the default settings; the labels stay meaningless.
+        with torch.no_grad():
+            model.detr_decoder.presence_head.layer3.bias.fill_(4.0)
+            model.dot_product_scoring.query_proj.weight.mul_(60.0)
     image_config = {
         "image_processor_type": "Sam3ImageProcessor",
         "size": {"height": size, "width": size},
