@@ -828,3 +828,29 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
             assert again.queue.region_state(ranked.index(regions[0].id)) == "accepted"
     finally:
         again.close()
+
+
+def test_the_viewer_chooses_the_projects_2d_labeler_for_the_next_rerun(review_store) -> None:
+    """The Run folder's "2D labeler" shows the project's labeler; choosing another stores it in the project
+    (what the project page's form shows and the next run uses) and says so in the status."""
+    from app import crud
+    from app.core.db import open_db
+    from app.services import project_config
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, _run_id, _keys, _cls = review_store
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        panel = session.panel
+        assert isinstance(panel, ReviewPanel)
+        assert panel.labeler.value == "simulated" and "sam3" in panel.labeler.options
+        panel.labeler.value = "sam3"
+        with open_db(settings.database) as db:
+            assert project_config(crud.require_project(db, pid)).labeler == "sam3"
+        assert "SAM 3" in panel.status.content and "next re-run" in panel.status.content
+        panel.labeler.value = "grounded-sam"
+        assert session.backend.labeler() == "grounded-sam"
+    finally:
+        session.close()

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app import crud, services
+from app import crud, models, services
 from app.core.config import Settings
 from app.core.db import open_db
 from app.core.errors import Conflict, NotFound
@@ -159,6 +159,13 @@ class AppBackend:
         if manager is None:
             raise RuntimeError("runs can only be started while the app's job manager is running")
         return manager.start_run(self.project_id).id
+
+    def labeler(self) -> str:
+        return services.project_config(self._project()).labeler
+
+    def set_labeler(self, name: str) -> None:
+        with open_db(self.settings.database) as db:
+            services.update_project(db, self.project_id, models.ProjectUpdate(form={"labeler": name}))
 
     def corrections(self) -> list[CorrectionRecord]:
         with open_db(self.settings.database) as db:

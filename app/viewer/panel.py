@@ -25,6 +25,7 @@ from app.viewer.records import Inspection, RunInfo
 from app.viewer.region_logic import Region
 from app.viewer.selection_tool import camera_of
 from app.viewer.session import ReviewSession
+from leap_core.labelers import LABELERS
 
 log = logging.getLogger(__name__)
 
@@ -82,9 +83,17 @@ class ReviewPanel:
         with gui.add_folder("Run", order=0):
             self.status = gui.add_markdown("Loading…")
             self.progress = gui.add_progress_bar(0.0, visible=False)
+            self.labeler = gui.add_dropdown(
+                "2D labeler",
+                tuple(LABELERS),
+                initial_value=session.backend.labeler(),
+                hint="The project's 2D labeler: the next re-run uses it ("
+                + ", ".join(spec.title for spec in LABELERS.values())
+                + ")",
+            )
             self.rerun_button = gui.add_button(
                 "Re-run",
-                hint="Start a new run with the current classes, prompts and corrections",
+                hint="Start a new run with the current classes, prompts, 2D labeler and corrections",
                 color="blue",
             )
 
@@ -180,6 +189,7 @@ class ReviewPanel:
         self.remove_class.on_click(g(lambda _: self._remove_class()))
         self.add_class.on_click(g(lambda _: self._add_class()))
         self.rerun_button.on_click(g(lambda _: self._rerun()))
+        self.labeler.on_update(g(lambda _: self._labeler_chosen()))
 
     def _mode_changed(self) -> None:
         mode = _MODE_OF[str(self.color_by.value)]
@@ -252,6 +262,17 @@ class ReviewPanel:
         self.new_class.value = ""  # type: ignore[misc]  # viser: split setter, see class note
         self.edit_class.value = name  # type: ignore[misc]  # viser: split setter, see class note
         self.steer_info.content = f"Added class **{html.escape(name)}**."
+
+    def _labeler_chosen(self) -> None:
+        name = str(self.labeler.value)
+        if name == self.s.backend.labeler():
+            return
+        try:
+            self.s.backend.set_labeler(name)
+        except Exception:
+            self.labeler.value = self.s.backend.labeler()  # type: ignore[misc]  # viser: split setter, see class note
+            raise
+        self.set_status(f"2D labeler: **{html.escape(LABELERS[name].title)}** for the next re-run.")
 
     def _rerun(self) -> None:
         self.rerun_button.disabled = True

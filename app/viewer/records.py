@@ -170,6 +170,14 @@ class ProjectBackend(Protocol):
 
     def start_run(self) -> int: ...
 
+    def labeler(self) -> str:
+        """The project's 2D labeler (the next run's)."""
+        ...
+
+    def set_labeler(self, name: str) -> None:
+        """Make ``name`` the project's 2D labeler, as the project page's form does."""
+        ...
+
     def corrections(self) -> list[CorrectionRecord]: ...
 
     def add_correction(
