@@ -594,7 +594,7 @@ def row_max(rows: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     on (65536, 20) float32 blocks: numpy's reduction along a short last axis runs its inner loop once per
     row, while C element-wise maxima over whole columns stay vectorised.
     """
-    out = rows[:, 0].copy()
+    out: npt.NDArray[np.float32] = rows[:, 0].copy()
     for j in range(1, rows.shape[1]):
         np.maximum(out, rows[:, j], out=out)
     return out
