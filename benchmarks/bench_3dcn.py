@@ -42,6 +42,7 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -64,7 +65,15 @@ from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.schema import builtin_schema
 from leap_core.smoothing import SmoothedGrid, SmoothingConfig, knn_smooth
 
-RESULTS = Path(__file__).resolve().parent / "results"
+# $LEAP_BENCH_RESULTS: another folder for the result file, as in benchmarks/common.py (the tests' smoke runs).
+RESULTS = Path(os.environ.get("LEAP_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+QUICK_FRAMES = 2
+QUICK_CONFIG: dict[str, Any] = {
+    "min_steps": 0,
+    "points_per_scan": 4096,
+    "backbone": {"channels": 16, "layers": 2, "embed_channels": 8},
+}
+"""``--quick``: scans of the stand-in, and ConsistencyConfig overrides that keep every phase but shrink it."""
 
 
 # --------------------------------------------------------------------------------- stand-in sequence
@@ -330,8 +339,21 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
         default=None,
         help="also time an iteration fine-tuned from this 3D-CN checkpoint (--3dcn-init)",
     )
-    ap.add_argument("--out", type=Path, default=RESULTS / "bench_3dcn.json")
+    ap.add_argument(
+        "--out", type=Path, default=None, help="result file (default RESULTS/bench_3dcn[_quick].json)"
+    )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"smoke run: {QUICK_FRAMES} scans of the stand-in, a small network and one pass of training "
+        f"({json.dumps(QUICK_CONFIG)} under --config)",
+    )
     args = ap.parse_args(argv)
+    if args.quick:
+        args.frames = QUICK_FRAMES
+        args.config = json.dumps({**QUICK_CONFIG, **json.loads(args.config)})
+    if args.out is None:
+        args.out = RESULTS / ("bench_3dcn_quick.json" if args.quick else "bench_3dcn.json")
     torch.set_num_threads(args.threads)
 
     tmp = None

@@ -61,7 +61,11 @@ from leap_core import selection as sel
 from leap_core.fusion import AXIS_OFFSET, VoxelGrid, key_centres, voxel_keys, world_points
 from leap_core.smoothing import SmoothedGrid
 
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_viewer.json"
+# $LEAP_BENCH_RESULTS: another folder for the result file, as in benchmarks/common.py (the tests' smoke runs).
+RESULTS = (
+    Path(os.environ.get("LEAP_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+    / "bench_viewer.json"
+)
 
 
 def synthetic_grid(num_voxels: int, num_classes: int, seed: int = 0) -> ReviewGrid:

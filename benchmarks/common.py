@@ -1,7 +1,8 @@
 """Shared helpers for the benchmark scripts: timing, peak memory, a printed table and JSON results.
 
 Benchmarks report figures, they never assert speed. Each script prints a table (with a ratio against a
-baseline measured in the same process on the same data) and writes ``benchmarks/results/<name>.json``.
+baseline measured in the same process on the same data) and writes ``benchmarks/results/<name>.json``
+(:data:`RESULTS_DIR`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
+RESULTS_DIR = Path(os.environ.get("LEAP_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+"""Where result files go: ``benchmarks/results``, or the folder ``$LEAP_BENCH_RESULTS`` names (the tests'
+smoke runs write there, so they never replace a real run's figures)."""
 
 
 @dataclass
