@@ -11,7 +11,8 @@ stay in memory (writing GBs of random weights would only time the disk). ``--qui
 models of ``leap make-tiny-models`` instead (a smoke test in seconds).
 
 Data: KITTI-size images (376 × 1241, deterministic noise) and the class prompts of
-``projects/semantickitti_expanded.yaml`` (Grounding DINO: one joint pass; SAM 3: one pass per prompt).
+``projects/semantickitti_expanded.yaml`` (``--schema``; Grounding DINO: one joint pass; SAM 3: one pass per
+prompt, so its cost grows with the prompt list).
 With random weights, what is detected depends on the weights, so the mask work is pinned: Grounding DINO
 keeps its first ``--boxes`` regions and SAM 3 keeps each prompt's ``--instances`` best-scored queries.
 No 2D cache: every frame is computed.
@@ -22,8 +23,10 @@ per forward pass): seconds per frame, frames per second, peak GPU memory, the ex
 measured in the same process on the same frames.
 
 Run: ``.venv/bin/python benchmarks/bench_2d.py --quick`` (seconds, any machine); on a GPU machine
-``.venv/bin/python benchmarks/bench_2d.py --device cuda`` (under 8 minutes on one H100); on CPU the
-real sizes take minutes per frame: ``--device cpu --batches 1 --frames 1``. Writes
+``.venv/bin/python benchmarks/bench_2d.py --device cuda`` (meant to take under 8 minutes on one H100; not yet
+run on one); on CPU the
+real sizes take minutes per frame: ``--device cpu --batches 1 --frames 1 --no-warmup --schema
+semantickitti_bare`` (each class's name as its only prompt). Writes
 ``benchmarks/results/bench_2d[_quick][_cuda].json``.
 """
 
@@ -190,6 +193,16 @@ def main() -> None:  # one table of many measured figures
     ap.add_argument("--instances", type=int, default=5, help="SAM 3 instances kept per prompt")
     ap.add_argument("--prompts-per-pass", type=int, default=16, help="SAM 3 (image, prompt) pairs per pass")
     ap.add_argument("--sam-large", action="store_true", help="also time SAM ViT-L (the paper's SAM)")
+    ap.add_argument(
+        "--schema",
+        default="semantickitti_expanded",
+        help="class preset whose prompts are labeled (semantickitti_bare: each class's name only)",
+    )
+    ap.add_argument(
+        "--no-warmup",
+        action="store_true",
+        help="time the first batch too (on a CPU nothing is compiled; real sizes take minutes per frame)",
+    )
     ap.add_argument("--results-dir", type=Path, default=None, help="where the JSON goes")
     args = ap.parse_args()
 
@@ -197,7 +210,7 @@ def main() -> None:  # one table of many measured figures
 
     if args.device == "cuda" and not torch.cuda.is_available():
         sys.exit("--device cuda: torch sees no CUDA GPU")
-    schema, _ = load_project_file(projects_dir() / "semantickitti_expanded.yaml")
+    schema, _ = load_project_file(projects_dir() / f"{args.schema}.yaml")
     rng = np.random.default_rng(0)
     tmp = Path(tempfile.mkdtemp(prefix="leap-bench-2d-"))
     engines = build_engines(args, tmp, schema)
@@ -212,14 +225,16 @@ def main() -> None:  # one table of many measured figures
                 if lab is None:
                     continue
                 n = max(args.frames, batch)
-                frames = [rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8) for _ in range(n + batch)]
+                first = 0 if args.no_warmup else batch
+                frames = [rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8) for _ in range(n + first)]
                 sync = torch.cuda.synchronize if args.device == "cuda" else (lambda: None)
-                lab.label_images(frames[:batch], schema)  # warm-up: kernels, allocator, lazy loads
+                if first:
+                    lab.label_images(frames[:first], schema)  # warm-up: kernels, allocator, lazy loads
                 sync()
                 if args.device == "cuda":
                     torch.cuda.reset_peak_memory_stats()
                 start = time.perf_counter()
-                for i in range(batch, n + batch, batch):
+                for i in range(first, n + first, batch):
                     lab.label_images(frames[i : i + batch], schema)
                 sync()
                 per_frame = (time.perf_counter() - start) / n
@@ -272,7 +287,7 @@ def main() -> None:  # one table of many measured figures
         ],
     )
     name = "bench_2d" + ("_quick" if args.quick else "") + ("_cuda" if args.device == "cuda" else "")
-    payload = {"image_hw": KITTI_HW, "schema": "semantickitti_expanded", "device": where, "rows": rows}
+    payload = {"image_hw": KITTI_HW, "schema": args.schema, "prompts": prompts, "device": where, "rows": rows}
     path = write_results(name, payload, args.results_dir or RESULTS_DIR)
     print(f"wrote {path}")
 
