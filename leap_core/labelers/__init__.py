@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from leap_core.errors import LeapError
-from leap_core.labelers.base import Labeler, ModelLabeler, SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, Labeler, SoftMasks
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
 from leap_core.labelers.sam3 import Sam3Labeler, Sam3LabelerConfig
 from leap_core.labelers.simulated import SIMULATED_PRESETS, SimulatedLabeler, SimulatedLabelerConfig
@@ -126,8 +126,6 @@ _SAM3: LabelerSpec[Sam3LabelerConfig] = LabelerSpec(
 PRODUCT_LABELERS = (_SIMULATED, _GROUNDED_SAM, _SAM3)
 """The labelers that are part of leap_core (they stay registered)."""
 
-MODEL_LABELERS = (GroundedSamLabeler, Sam3Labeler)
-"""The labeler classes that run models on camera images (weights real or random, a 2D cache)."""
 
 LABELERS: dict[str, LabelerSpec[Any]] = {spec.name: spec for spec in PRODUCT_LABELERS}
 """Every 2D labeler by name, in the order forms and help texts list them (the product's first, then those
@@ -203,12 +201,12 @@ truth)."""
 
 def labeler_weights(labeler: Labeler) -> Weights:
     """:data:`Weights` of ``labeler`` (resolves a model labeler's folders; loads no model)."""
-    if isinstance(labeler, MODEL_LABELERS):
+    if isinstance(labeler, ImageModelLabeler):
         return "random" if labeler.uses_random_weights else "real"
     return "none"
 
 
-def model_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> tuple[ModelLabeler, int]:
+def model_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> tuple[ImageModelLabeler, int]:
     """The model labeler ``config.labeler`` (as :func:`make_labeler`) and its ``batch_size``, for work that
     fills its 2D cache.
 
@@ -216,7 +214,7 @@ def model_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> tup
         LeapError: ``config.labeler`` runs no models (the simulated labelers read 2D ground truth).
     """
     labeler = make_labeler(config, runtime)
-    if not isinstance(labeler, MODEL_LABELERS):
+    if not isinstance(labeler, ImageModelLabeler):
         names = " or ".join(s.name for s in LABELERS.values() if s.models(s.config_type()))
         raise LeapError(
             f"the {config.labeler} labeler runs no models, so it has no 2D cache to fill: use {names}"
@@ -235,7 +233,6 @@ def make_labeler(config: PipelineConfig, runtime: Runtime | None = None) -> Labe
 __all__ = [
     "INPUT_FOLDERS",
     "LABELERS",
-    "MODEL_LABELERS",
     "PRODUCT_LABELERS",
     "Labeler",
     "LabelerInput",

@@ -15,8 +15,9 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from leap_core.errors import DatasetError
+from leap_core.errors import DatasetError, LeapError
 from leap_core.io_utils import atomic_save_npz
+from leap_core.labelers.cache import LabelCache, image_digest
 
 if TYPE_CHECKING:
     from leap_core.datasets.kitti import Frame
@@ -180,29 +181,69 @@ class Labeler(Protocol):
         ...
 
 
-class ModelLabeler(Labeler, Protocol):
-    """A labeler that runs models on camera images, with a 2D cache (``leap labels2d`` fills it)."""
+class ImageModelLabeler:
+    """A :class:`Labeler` that runs models on camera images, with a 2D cache (``leap labels2d`` fills it).
+    The base gives what they share: the input check, flip votes and the cache test. A subclass sets
+    ``name``, ``cache`` and ``flip_votes`` and gives :meth:`_label` (the labels of images, reading and
+    filling its cache), :meth:`cache_keys` (the cache entries one image needs) and the methods below that
+    raise ``NotImplementedError``."""
+
+    name: str
+    cache: LabelCache | None
+    flip_votes: bool
+
+    def cache_keys(self, digest: str, schema: Schema) -> list[str]:
+        """The cache keys labeling the image with content digest ``digest`` reads."""
+        raise NotImplementedError
 
     @property
     def uses_random_weights(self) -> bool:
         """True when a model folder holds tiny random test weights (meaningless labels)."""
-        ...
+        raise NotImplementedError
 
-    def is_cached(self, image: npt.NDArray[np.uint8], schema: Schema) -> bool:
-        """Whether labeling ``image`` would read only the cache."""
-        ...
+    def fingerprint(self, schema: Schema) -> str:
+        """A string that changes whenever this labeler's output for the same image would change."""
+        raise NotImplementedError
 
     def work_per_image(self, schema: Schema) -> str:
-        """What labeling one image costs, for a summary line (``2 detector passes per image``)."""
-        ...
+        """What labeling one image costs, for a summary line (``2 detector pass(es) per image``)."""
+        raise NotImplementedError
 
     def forward_passes(self) -> dict[str, int]:
         """Forward passes run so far by model part (``{"detector": 3, "SAM encoder": 3}``)."""
-        ...
+        raise NotImplementedError
+
+    def _label(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
+        raise NotImplementedError
+
+    def label(self, frame: Frame, schema: Schema) -> SoftMasks:
+        """Soft masks of ``frame.image`` (probs has ``len(schema.classes)`` columns)."""
+        return self.label_images([frame.image], schema)[0]
 
     def label_frames(self, frames: Sequence[Frame], schema: Schema) -> list[SoftMasks]:
         """:meth:`label` for several frames, batched through the models."""
-        ...
+        return self.label_images([f.image for f in frames], schema)
+
+    def label_images(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
+        """Soft masks of (H, W, 3) uint8 RGB images; cached results are read, the others computed and
+        written to the cache (with flip votes, of the images and their mirrors).
+
+        Raises:
+            LeapError: an image is not (H, W, 3) uint8.
+        """
+        for im in images:
+            if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
+                raise LeapError(f"{self.name} labels (H, W, 3) uint8 RGB images, got {im.shape} {im.dtype}")
+        if self.flip_votes:
+            return with_flip_votes(images, lambda ims: self._label(ims, schema))
+        return self._label(images, schema)
+
+    def is_cached(self, image: npt.NDArray[np.uint8], schema: Schema) -> bool:
+        """Whether labeling ``image`` reads only the cache (its mirror's entries too with flip votes)."""
+        if self.cache is None:
+            return False
+        images = [image, np.ascontiguousarray(image[:, ::-1])] if self.flip_votes else [image]
+        return all(k in self.cache for im in images for k in self.cache_keys(image_digest(im), schema))
 
 
 def passes_text(passes: dict[str, int]) -> str:

@@ -50,7 +50,7 @@ import numpy.typing as npt
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
-from leap_core.labelers.base import SoftMasks, with_flip_votes
+from leap_core.labelers.base import ImageModelLabeler, SoftMasks
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.prompts import (
     NEG_INF,
@@ -69,7 +69,6 @@ from leap_core.labelers.tiny_models import is_tiny_random
 from leap_core.runtime import Runtime
 
 if TYPE_CHECKING:
-    from leap_core.datasets.kitti import Frame
     from leap_core.schema import Schema
 
 log = logging.getLogger(__name__)
@@ -398,7 +397,7 @@ def assemble_soft_masks(
 
 
 # ========================================================================================== labeler
-class GroundedSamLabeler:
+class GroundedSamLabeler(ImageModelLabeler):
     """Grounding DINO + SAM labeler (module docstring) with an optional on-disk 2D cache.
 
     ``runtime`` says where the model folders are (``models_dir``, ``allow_download``), where they run
@@ -418,6 +417,7 @@ class GroundedSamLabeler:
         cache: LabelCache | None = None,
     ) -> None:
         self.config = config or GroundedSamConfig()
+        self.flip_votes = self.config.flip_votes
         self.runtime = runtime or Runtime()
         if cache is None and self.runtime.cache_dir is not None:
             # Per-pass detector cache beside the per-frame one: a prompt edit of one class then only
@@ -539,33 +539,9 @@ class GroundedSamLabeler:
         """Cache key of one pass over the image with content digest ``digest``."""
         return cache_key({"image": digest, **self._settings(), "pass": plan.key_parts()})
 
-    # -------------------------------------------------------------------------------- labeling
-    def label(self, frame: Frame, schema: Schema) -> SoftMasks:
-        """Soft masks of ``frame.image`` (probs has ``len(schema.classes)`` columns)."""
-        return self.label_images([frame.image], schema)[0]
-
-    def label_frames(self, frames: Sequence[Frame], schema: Schema) -> list[SoftMasks]:
-        """:meth:`label` for several frames, batched through the models."""
-        return self.label_images([f.image for f in frames], schema)
-
-    def label_images(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
-        """Soft masks of (H, W, 3) uint8 RGB images; cached passes are read, the others computed
-        (``batch_size`` images per forward pass) and written to the cache (with ``flip_votes``, of the
-        images and their mirrors)."""
-        for im in images:
-            if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
-                raise LeapError(f"grounded-sam labels (H, W, 3) uint8 RGB images, got {im.shape} {im.dtype}")
-        if self.config.flip_votes:
-            return with_flip_votes(images, lambda ims: self._label(ims, schema))
-        return self._label(images, schema)
-
-    def is_cached(self, image: npt.NDArray[np.uint8], schema: Schema) -> bool:
-        """Whether every pass ``image`` needs is in the cache (its mirror's too with flip votes)."""
-        if self.cache is None:
-            return False
-        images = [image, np.ascontiguousarray(image[:, ::-1])] if self.config.flip_votes else [image]
-        plans = self.plan(schema)
-        return all(self.pass_key(image_digest(im), p) in self.cache for im in images for p in plans)
+    def cache_keys(self, digest: str, schema: Schema) -> list[str]:
+        """The pass keys of the image with content digest ``digest``."""
+        return [self.pass_key(digest, p) for p in self.plan(schema)]
 
     def forward_passes(self) -> dict[str, int]:
         """Forward passes run so far by model part."""
@@ -575,7 +551,10 @@ class GroundedSamLabeler:
         """Detector passes per image, for a summary line."""
         return f"{len(self.plan(schema))} detector pass(es) per image"
 
+    # -------------------------------------------------------------------------------- labeling
     def _label(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
+        """Cached passes are read, the others computed (``batch_size`` images per forward pass) and
+        written to the cache."""
         plans = self.plan(schema)
         names = [c.name for c in schema.classes]
         digests = [image_digest(im) for im in images]

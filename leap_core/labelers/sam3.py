@@ -52,7 +52,7 @@ import numpy.typing as npt
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import LeapError, ModelLoadError
-from leap_core.labelers.base import SoftMasks, with_flip_votes
+from leap_core.labelers.base import ImageModelLabeler, SoftMasks
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.grounded_sam import (
     _first_line,
@@ -69,7 +69,6 @@ from leap_core.labelers.tiny_models import is_tiny_random
 from leap_core.runtime import Runtime
 
 if TYPE_CHECKING:
-    from leap_core.datasets.kitti import Frame
     from leap_core.schema import Schema
 
 log = logging.getLogger(__name__)
@@ -285,7 +284,7 @@ class _Loaded:
     device: str
 
 
-class Sam3Labeler:
+class Sam3Labeler(ImageModelLabeler):
     """SAM 3 labeler (module docstring) with an optional on-disk 2D cache.
 
     ``runtime`` says where the model folder is, where it runs and, with ``cache_dir``, where per-prompt
@@ -304,6 +303,7 @@ class Sam3Labeler:
         cache: LabelCache | None = None,
     ) -> None:
         self.config = config or Sam3LabelerConfig()
+        self.flip_votes = self.config.flip_votes
         self.runtime = runtime or Runtime()
         if cache is None and self.runtime.cache_dir is not None:
             cache = LabelCache(pass_cache_dir(self.runtime.cache_dir))
@@ -446,13 +446,9 @@ class Sam3Labeler:
     def jobs(self, schema: Schema) -> list[PromptJob]:
         return prompt_jobs(schema, self.config.use_negative_prompts)
 
-    def is_cached(self, image: npt.NDArray[np.uint8], schema: Schema) -> bool:
-        """Whether every prompt result ``image`` needs is in the cache (its mirror's too with flip votes)."""
-        if self.cache is None:
-            return False
-        images = [image, np.ascontiguousarray(image[:, ::-1])] if self.config.flip_votes else [image]
-        jobs = self.jobs(schema)
-        return all(self.prompt_key(image_digest(im), j) in self.cache for im in images for j in jobs)
+    def cache_keys(self, digest: str, schema: Schema) -> list[str]:
+        """The prompt keys of the image with content digest ``digest``."""
+        return [self.prompt_key(digest, j) for j in self.jobs(schema)]
 
     def forward_passes(self) -> dict[str, int]:
         """Forward passes run so far by model part."""
@@ -463,25 +459,9 @@ class Sam3Labeler:
         return f"{len(self.jobs(schema))} prompt(s) per image"
 
     # -------------------------------------------------------------------------------- labeling
-    def label(self, frame: Frame, schema: Schema) -> SoftMasks:
-        """Soft masks of ``frame.image`` (probs has ``len(schema.classes)`` columns)."""
-        return self.label_images([frame.image], schema)[0]
-
-    def label_frames(self, frames: Sequence[Frame], schema: Schema) -> list[SoftMasks]:
-        """:meth:`label` for several frames, batched through the model."""
-        return self.label_images([f.image for f in frames], schema)
-
-    def label_images(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
-        """Soft masks of (H, W, 3) uint8 RGB images; cached prompt results are read, the others computed
-        and written to the cache (with ``flip_votes``, of the images and their mirrors)."""
-        for im in images:
-            if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
-                raise LeapError(f"sam3 labels (H, W, 3) uint8 RGB images, got {im.shape} {im.dtype}")
-        if self.config.flip_votes:
-            return with_flip_votes(images, lambda ims: self._label(ims, schema))
-        return self._label(images, schema)
-
     def _label(self, images: Sequence[npt.NDArray[np.uint8]], schema: Schema) -> list[SoftMasks]:
+        """Cached prompt results are read, the others computed (``batch_size`` images per vision pass,
+        ``prompts_per_pass`` pairs per prompt pass) and written to the cache."""
         jobs = self.jobs(schema)
         names = [c.name for c in schema.classes]
         keys = [[self.prompt_key(image_digest(im), j) for j in jobs] for im in images]
