@@ -24,8 +24,8 @@ measured in the same process on the same frames.
 
 Run: ``.venv/bin/python benchmarks/bench_2d.py --quick`` (seconds, any machine); on a GPU machine
 ``.venv/bin/python benchmarks/bench_2d.py --device cuda`` (meant to take under 8 minutes on one H100; not yet
-run on one); on CPU the real sizes take minutes per frame: ``--device cpu --batches 1 --frames 1 --no-warmup --schema
-semantickitti_bare`` (each class's name as its only prompt). Writes
+run on one); on CPU the real sizes take minutes per frame: ``--device cpu --batches 1 --frames 1
+--no-warmup --schema semantickitti_bare`` (each class's name as its only prompt). Writes
 ``benchmarks/results/bench_2d[_quick][_cuda].json``.
 """
 
