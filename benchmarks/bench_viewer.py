@@ -835,6 +835,12 @@ class MemoryBackend:
     def start_run(self) -> int:
         raise RuntimeError("no runs in the benchmark")
 
+    def labeler(self) -> str:
+        return "simulated"
+
+    def set_labeler(self, name: str) -> None:
+        raise RuntimeError(f"no runs in the benchmark, so no labeler to set ({name})")
+
     def corrections(self) -> list[Any]:
         return list(self.rows)
 

@@ -3,15 +3,12 @@
 
 import { get } from "./api.js";
 
-let pending = null;
+let info = null;
 
-/** The pipeline description (one request per page load; a failed request is retried on the next call). */
-export function pipelineInfo() {
-  if (!pending) {
-    pending = get("/pipeline").catch((err) => {
-      pending = null;
-      throw err;
-    });
-  }
-  return pending;
+/** The pipeline description, kept once a request succeeds. Only answers are kept, never a request in
+ * flight: one sent before the user gave the access token fails, and a page rendered after the token must
+ * not wait on it. */
+export async function pipelineInfo() {
+  if (info === null) info = await get("/pipeline");
+  return info;
 }

@@ -478,15 +478,12 @@ class Sam3Labeler(ImageModelLabeler):
                 results[i][j] = res
                 if self.cache is not None:
                     self.cache.put(keys[i][j], res)
-        out: list[SoftMasks] = []
-        for row in results:
-            done = [r for r in row if r is not None]
-            if not jobs:
-                h, w = images[len(out)].shape[:2]
-                out.append(SoftMasks.empty(h, w, len(names)))
-                continue
-            out.append(assemble_prompt_results(jobs, done, names, self.config.match_iou))
-        return out
+        if not jobs:  # a schema whose classes have no prompts: nothing to ask, nothing found
+            return [SoftMasks.empty(im.shape[0], im.shape[1], len(names)) for im in images]
+        return [
+            assemble_prompt_results(jobs, [r for r in row if r is not None], names, self.config.match_iou)
+            for row in results
+        ]
 
     # ------------------------------------------------------------------------------ model calls
     def _run(

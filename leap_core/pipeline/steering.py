@@ -23,7 +23,7 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from leap_core.config import PipelineConfig, config_from_dict, without_retired
+from leap_core.config import PipelineConfig, config_from_dict, config_to_dict, without_retired
 from leap_core.errors import LeapError
 from leap_core.labelers import LABELERS, labeler_by_section
 from leap_core.pipeline.stages import STAGE_TABLE
@@ -150,11 +150,28 @@ def recompute_plan(
     return plans
 
 
+def comparable(d: Mapping[str, Any]) -> dict[str, Any]:
+    """A stored ``config_to_dict`` form as today's code reads it, for comparing two runs' settings: fields
+    an older version stored at the value that meant "off" leave (:func:`~leap_core.config.
+    without_retired`), and sections and fields added since (a new labeler's, a new option) come in at
+    their defaults, which is what that older run did without them."""
+    return _fill_missing(without_retired(d), config_to_dict(PipelineConfig()))
+
+
+def _fill_missing(d: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(d)
+    for k, v in defaults.items():
+        if k not in out:
+            out[k] = v
+        elif isinstance(v, Mapping) and isinstance(out[k], Mapping):
+            out[k] = _fill_missing(out[k], v)
+    return out
+
+
 def changed_sections(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order; fields
-    an older version stored at the value that meant "off" do not count, :func:`~leap_core.config.
-    without_retired`)."""
-    old, new = without_retired(old), without_retired(new)
+    """Top-level keys whose values differ between two ``config_to_dict`` forms (in ``new``'s order),
+    compared as today's code reads them (:func:`comparable`)."""
+    old, new = comparable(old), comparable(new)
     keys = list(new) + [k for k in old if k not in new]
     return [k for k in keys if _canon(old.get(k)) != _canon(new.get(k))]
 
@@ -272,10 +289,10 @@ def run_changes(
     out = _sequence_changes(old.get("sequences") or [], new.get("sequences") or [])
     classes_old = (old.get("schema") or {}).get("classes", [])
     out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
-    # A snapshot stored by an older version may hold fields that left the config at their former defaults:
-    # they changed nothing, so they are no parameter change.
-    fa = _flatten(without_retired(old.get("pipeline") or {}))
-    fb = _flatten(without_retired(new.get("pipeline") or {}))
+    # A snapshot stored by an older version may hold fields that left the config at their former defaults,
+    # or lack settings added since: neither changed anything, so neither is a parameter change.
+    fa = _flatten(comparable(old.get("pipeline") or {}))
+    fb = _flatten(comparable(new.get("pipeline") or {}))
     try:
         cfg: PipelineConfig | None = config_from_dict(new.get("pipeline") or {})
     except LeapError:
@@ -295,6 +312,7 @@ __all__ = [
     "SettingScope",
     "StagePlan",
     "changed_sections",
+    "comparable",
     "ignored_reason",
     "recompute_plan",
     "run_changes",

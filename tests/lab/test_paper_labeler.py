@@ -104,7 +104,7 @@ def test_importing_the_lab_registers_its_labeler_with_its_config_section() -> No
     # The product's section is untouched, and the dict form has the lab's section beside it.
     assert cfg.labeler_config(SimulatedLabelerConfig) == SimulatedLabelerConfig()
     d = config_to_dict(cfg)
-    assert list(d)[:4] == ["labeler", "simulated", "grounded_sam", "simulated_paper"]
+    assert list(d)[:5] == ["labeler", "simulated", "grounded_sam", "sam3", "simulated_paper"]
     assert config_from_dict(d) == cfg
     labeler = make_labeler(cfg)
     assert isinstance(labeler, SimulatedPaperLabeler) and labeler.cfg.seed == 3
