@@ -64,6 +64,22 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return root, dataset
 
 
+def _street_project(api: Any, dataset: Path) -> int:
+    """A project on the street folder with its first run finished; its id."""
+    r = api.post("/projects", json={"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}})
+    assert r.status_code == 201, r.text
+    pid = int(r.json()["id"])
+    run = api.post(f"/projects/{pid}/runs", json={})
+    assert run.status_code == 202, run.text
+    done = wait_until(
+        lambda: (x := api.get(f"/runs/{run.json()['id']}").json())["status"] in ("done", "failed") and x,
+        300,
+        "the first run",
+    )
+    assert done["status"] == "done", done.get("error")
+    return pid
+
+
 def _settings(root: Path) -> Any:
     from app.core.config import Settings
 
@@ -97,18 +113,7 @@ def test_review_queue_highlights_jumps_and_marks_survive_a_restart(
     live = LiveApp(_settings(root))
     try:
         api = httpx.Client(base_url=f"{live.base}/api/v1", timeout=30)
-        street = {"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}}
-        r = api.post("/projects", json=street)
-        assert r.status_code == 201, r.text
-        pid = r.json()["id"]
-        run = api.post(f"/projects/{pid}/runs", json={})
-        assert run.status_code == 202, run.text
-        done = wait_until(
-            lambda: (x := api.get(f"/runs/{run.json()['id']}").json())["status"] in ("done", "failed") and x,
-            300,
-            "the first run",
-        )
-        assert done["status"] == "done", done.get("error")
+        pid = _street_project(api, dataset)
 
         with browserfixtures.launch_chromium() as browser:
             page = browser.new_page(viewport={"width": 1280, "height": 800})
@@ -222,18 +227,7 @@ def labelled_app(tmp_path_factory: pytest.TempPathFactory) -> Any:
     live = LiveApp(_settings(root))
     try:
         api = httpx.Client(base_url=f"{live.base}/api/v1", timeout=30)
-        street = {"name": "Street", "dataset": {"kind": "folder", "path": str(dataset)}}
-        r = api.post("/projects", json=street)
-        assert r.status_code == 201, r.text
-        pid = r.json()["id"]
-        run = api.post(f"/projects/{pid}/runs", json={})
-        assert run.status_code == 202, run.text
-        done = wait_until(
-            lambda: (x := api.get(f"/runs/{run.json()['id']}").json())["status"] in ("done", "failed") and x,
-            300,
-            "the run",
-        )
-        assert done["status"] == "done", done.get("error")
+        pid = _street_project(api, dataset)
         yield live, pid, api, {}
     finally:
         live.stop()
