@@ -192,6 +192,35 @@ class SchemaReplace(_Input):
     classes: list[ClassBase] = Field(min_length=1, max_length=256)
 
 
+class ClassListCreate(_Input):
+    """A whole class list for a new project: what ``POST /class-lists`` answers for an uploaded file."""
+
+    name: str = Field(default="uploaded", min_length=1, max_length=64, description="the class list's name")
+    description: str = Field(default="", max_length=4000)
+    classes: list[ClassBase] = Field(min_length=1, max_length=256)
+
+
+class ClassSpecPublic(BaseModel):
+    """One class as a class-list file holds it (the fields of ClassBase, normalised)."""
+
+    name: str
+    color: list[int]
+    prompts: list[str]
+    export_id: int
+    gt_ids: list[int]
+    category: str
+    negative_prompts: list[str]
+
+
+class ClassListPublic(BaseModel):
+    """An uploaded class-list file, validated; send it back as ``ProjectCreate.class_list``."""
+
+    name: str
+    description: str = Field(description="on one line (a file's line breaks become spaces)")
+    classes: list[ClassSpecPublic]
+    count: int
+
+
 # -------------------------------------------------------------------------------------------- projects
 class DatasetRef(_Input):
     kind: DatasetKind = "folder"
@@ -239,6 +268,11 @@ class ProjectCreate(_Input):
     schema_name: str = Field(
         default="semantickitti", min_length=1, max_length=64, description="built-in schema"
     )
+    class_list: ClassListCreate | None = Field(
+        default=None,
+        description="the project's classes, instead of a built-in schema (`schema_name`): e.g. an uploaded "
+        "file as `POST /class-lists` answers it; the pipeline starts from the defaults",
+    )
     pipeline: dict[str, Any] = Field(
         default_factory=dict, description="overrides of the default pipeline configuration"
     )
@@ -247,6 +281,12 @@ class ProjectCreate(_Input):
         description="when the dataset has no poses.txt, runs first estimate poses with KISS-ICP LiDAR "
         "odometry into the work folder (the dataset is never written)",
     )
+
+    @model_validator(mode="after")
+    def _one_class_source(self) -> ProjectCreate:
+        if self.class_list is not None and "schema_name" in self.model_fields_set:
+            raise ValueError("give schema_name (a built-in schema) or class_list, not both")
+        return self
 
 
 class ProjectUpdate(_Input):

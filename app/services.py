@@ -35,7 +35,7 @@ from leap_core.pipeline import PAPER, SequenceMetrics
 from leap_core.pipeline.preflight import check_dataset, dataset_stamp
 from leap_core.presets import builtin_preset
 from leap_core.runtime import Runtime
-from leap_core.schema import Schema
+from leap_core.schema import MAX_CLASS_LIST_BYTES, ClassListError, Schema, class_list_yaml, read_class_list
 from leap_core.synth.names import DEMO_EXTRA_RAW_IDS
 
 
@@ -271,14 +271,20 @@ def create_project(
     db: sqlite_utils.Database, settings: Settings, payload: models.ProjectCreate
 ) -> ProjectRow:
     """A new project with the classes and the ``pipeline:`` section of the built-in preset
-    ``payload.schema_name``, the payload's ``pipeline`` overrides applied on top, on one sequence
-    (``payload.dataset``) or several (``payload.sequences``, each confined and checked like one)."""
+    ``payload.schema_name`` (or the classes of ``payload.class_list`` and the default pipeline), the
+    payload's ``pipeline`` overrides applied on top, on one sequence (``payload.dataset``) or several
+    (``payload.sequences``, each confined and checked like one)."""
     kind, sequences = _project_sequences(settings, payload)
-    try:
-        preset = builtin_preset(payload.schema_name)
-    except LeapError as exc:
-        raise InvalidField(["body", "schema_name"], str(exc)) from None
-    config = pipeline_config(payload.pipeline, preset.pipeline)
+    if payload.class_list is not None:
+        schema = _schema_of(payload.class_list)
+        config = pipeline_config(payload.pipeline)
+    else:
+        try:
+            preset = builtin_preset(payload.schema_name)
+        except LeapError as exc:
+            raise InvalidField(["body", "schema_name"], str(exc)) from None
+        schema = preset.schema
+        config = pipeline_config(payload.pipeline, preset.pipeline)
     if kind == "folder":
         for name, path, loc in sequences:
             check = dataset_check(settings, path, config, estimate_poses=payload.estimate_poses)
@@ -290,10 +296,60 @@ def create_project(
         name=payload.name,
         dataset_kind=kind,
         sequences=[(name, str(path)) for name, path, _ in sequences],
-        schema=preset.schema.to_dict(),
+        schema=schema.to_dict(),
         pipeline=config_to_dict(config),
         estimate_poses=payload.estimate_poses,
     )
+
+
+def _schema_of(class_list: models.ClassListCreate) -> Schema:
+    """The validated schema of a payload's class list (the cross-class rules: unique names, export ids,
+    ground-truth ids and prompts)."""
+    doc = {
+        "name": class_list.name,
+        "description": class_list.description,
+        "classes": [c.model_dump() for c in class_list.classes],
+    }
+    try:
+        return Schema.from_dict(doc, source="class_list")
+    except SchemaError as exc:
+        message = str(exc)
+        m = re.search(r"classes\[(\d+)\]", message)
+        raise InvalidField(
+            ["body", "class_list", "classes", *([int(m.group(1))] if m else [])], message
+        ) from None
+
+
+def class_list_public(schema: Schema) -> models.ClassListPublic:
+    """A class list as the API answers it; ready to send back as ``ProjectCreate.class_list``."""
+    return models.ClassListPublic(
+        name=schema.name,
+        # A request body's strings may hold no line breaks (app.api.types), so the list must come back
+        # without any to be sent on.
+        description=" ".join(schema.description.split()),
+        classes=[models.ClassSpecPublic(**c.to_dict()) for c in schema.classes],
+        count=schema.num_classes,
+    )
+
+
+def read_class_file(data: bytes) -> models.ClassListPublic:
+    """An uploaded class-list file (the ``classes:`` part of a preset), validated.
+
+    Raises:
+        InvalidField: ``[body, <field in the file>]``, the message naming that field for people
+            (``classes[3].prompts: must list at least one prompt``).
+    """
+    if len(data) > MAX_CLASS_LIST_BYTES:
+        raise InvalidField(["body"], f"the file is larger than {MAX_CLASS_LIST_BYTES // 1024} KiB")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InvalidField(["body"], "the file is not UTF-8 text (a YAML class list is)") from None
+    try:
+        schema = read_class_list(text)
+    except ClassListError as exc:
+        raise InvalidField(["body", *([exc.where] if exc.where else [])], str(exc)) from None
+    return class_list_public(schema)
 
 
 def _project_sequences(
@@ -606,6 +662,12 @@ def classes_public(project: ProjectRow) -> models.ClassesPublic:
     classes = project.schema["classes"]
     data = [models.ClassPublic(index=i, hex=_hex(c["color"]), **c) for i, c in enumerate(classes)]
     return models.ClassesPublic(data=data, count=len(data), next_color=_hex(next_color(classes)))
+
+
+def class_file(project: ProjectRow) -> str:
+    """The project's classes as a class-list file: what ``POST /class-lists`` reads back into the same
+    classes (to start another project with them, or keep them beside the data)."""
+    return class_list_yaml(Schema.from_dict(project.schema, source=f"project {project.id}"))
 
 
 def _class_position(classes: list[dict[str, Any]], name: str, project_id: int) -> int:

@@ -62,7 +62,14 @@ _SCHEMA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
 class _Invalid(Exception):
-    """Internal: a validation problem without its location; callers prefix file and entry."""
+    """Internal: a validation problem without its location; callers prefix file and entry. A cross-class
+    problem also says which class and field it is about (``at``) and the problem alone (``problem``), for
+    :func:`read_class_list`'s field-named messages."""
+
+    def __init__(self, message: str, *, at: tuple[int, str] | None = None, problem: str = "") -> None:
+        super().__init__(message)
+        self.at = at
+        self.problem = problem or message
 
 
 # ------------------------------------------------------------------------------------------ classes
@@ -253,21 +260,23 @@ def _check_classes(classes: Sequence[ClassDef]) -> None:
         if not isinstance(c, ClassDef):
             raise _Invalid(f"classes[{i}]: expected a ClassDef, got {type(c).__name__}")
         if c.name in names:
-            raise _Invalid(f"{where(i)}: duplicate name (also {where(names[c.name])})")
+            problem = f"duplicate name (also {where(names[c.name])})"
+            raise _Invalid(f"{where(i)}: {problem}", at=(i, "name"), problem=problem)
         names[c.name] = i
         if c.export_id in exports:
-            raise _Invalid(
-                f"{where(i)}: export_id {c.export_id} is already used by {where(exports[c.export_id])}"
-            )
+            problem = f"export_id {c.export_id} is already used by {where(exports[c.export_id])}"
+            raise _Invalid(f"{where(i)}: {problem}", at=(i, "export_id"), problem=problem)
         exports[c.export_id] = i
         for gid in c.gt_ids:
             if gid in gts:
-                raise _Invalid(f"{where(i)}: gt id {gid} is already mapped to {where(gts[gid])}")
+                problem = f"gt id {gid} is already mapped to {where(gts[gid])}"
+                raise _Invalid(f"{where(i)}: {problem}", at=(i, "gt_ids"), problem=problem)
             gts[gid] = i
         for p in c.prompts:
             # The class score is a max over prompt tokens; one prompt in two classes ties them everywhere.
             if p.lower() in prompts:
-                raise _Invalid(f"{where(i)}: prompt {p!r} is also a prompt of {where(prompts[p.lower()])}")
+                problem = f"prompt {p!r} is also a prompt of {where(prompts[p.lower()])}"
+                raise _Invalid(f"{where(i)}: {problem}", at=(i, "prompts"), problem=problem)
             prompts[p.lower()] = i
 
 
@@ -458,13 +467,21 @@ def _read_yaml(path: Path) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         detail = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         raise SchemaError(f"{path}: cannot read schema file ({detail})") from exc
+    return _parse_yaml(text, str(path))
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    mark = getattr(exc, "problem_mark", None)
+    problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+    at = f" at line {mark.line + 1}" if mark is not None else ""
+    return f"invalid YAML{at}: {problem}"
+
+
+def _parse_yaml(text: str, source: str) -> Any:
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)  # safe: a SafeLoader subclass
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
-        at = f" at line {mark.line + 1}" if mark is not None else ""
-        raise SchemaError(f"{path}: invalid YAML{at}: {problem}") from None
+        raise SchemaError(f"{source}: {_yaml_problem(exc)}") from None
 
 
 def load_project_file(path: str | Path) -> tuple[Schema, dict[str, Any]]:
@@ -527,6 +544,112 @@ def save_schema(schema: Schema, path: str | Path, pipeline: Mapping[str, Any] | 
     atomic_write_bytes(path, (header + body).encode("utf-8"))
 
 
+# -------------------------------------------------------------------------------------- class lists
+MAX_CLASS_LIST_BYTES = 256 * 1024
+"""Largest class-list file :func:`read_class_list` reads (the 19 SemanticKITTI classes take about 4 KiB)."""
+
+_CLASS_FIELD = re.compile(r"^(" + "|".join(_CLASS_KEYS) + r")(\[\d+\])?:?\s+(.*)$", re.DOTALL)
+
+
+class ClassListError(SchemaError):
+    """A class-list file (:func:`read_class_list`) is invalid: ``where`` is the field at fault in the
+    file's terms (``classes[3].prompts``, ``classes``, or ``""`` for the file as a whole) and ``problem``
+    says what is wrong with it; the message is ``"<where>: <problem>"``."""
+
+    def __init__(self, where: str, problem: str) -> None:
+        self.where = where
+        self.problem = problem
+        super().__init__(f"{where}: {problem}" if where else problem, field=(where,) if where else ())
+
+
+def read_class_list(text: str, default_name: str = "uploaded") -> Schema:
+    """A class list written as a project file's ``classes:`` part (what :func:`class_list_yaml` writes):
+    a mapping with ``classes`` and optionally ``name`` and ``description``, or the bare list of classes.
+
+    Unlike :func:`load_project_file` (whose messages name the file for the command line) every problem
+    names the field in the file, for people who fix the file in an editor, e.g.
+    ``classes[3].prompts: must list at least one prompt``.
+
+    Raises:
+        ClassListError: the first problem found.
+    """
+    if len(text.encode("utf-8")) > MAX_CLASS_LIST_BYTES:
+        raise ClassListError("", f"the file is larger than {MAX_CLASS_LIST_BYTES // 1024} KiB")
+    try:
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # safe: a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise ClassListError("", _yaml_problem(exc)) from None
+    if isinstance(data, list):
+        data = {"classes": data}
+    if not isinstance(data, dict):
+        raise ClassListError("", "expected a mapping with a 'classes:' list (the classes part of a preset)")
+    for key in data:
+        if key == "pipeline":
+            raise ClassListError(
+                "pipeline", "a class list holds classes only; set the pipeline in the project's settings"
+            )
+        if key not in _TOP_KEYS:
+            close = difflib.get_close_matches(str(key), _TOP_KEYS, n=1)
+            hint = f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(_TOP_KEYS)}"
+            raise ClassListError(str(key), f"unknown key ({hint})")
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not name.strip() or len(name.strip()) > 64:
+        raise ClassListError("name", "must be text of 1 to 64 characters")
+    description = data.get("description") or ""
+    if not isinstance(description, str):
+        raise ClassListError("description", "must be text")
+    raw = data.get("classes")
+    if not isinstance(raw, list) or not raw:
+        raise ClassListError("classes", "must be a list of at least one class")
+    classes = [_class_from_entry(entry, i) for i, entry in enumerate(raw)]
+    try:
+        _check_classes(classes)
+    except _Invalid as exc:
+        where = f"classes[{exc.at[0]}].{exc.at[1]}" if exc.at else "classes"
+        raise ClassListError(where, exc.problem) from None
+    return Schema(name=name.strip(), classes=tuple(classes), description=description)
+
+
+def _class_from_entry(entry: object, i: int) -> ClassDef:
+    where = f"classes[{i}]"
+    if not isinstance(entry, Mapping):
+        raise ClassListError(where, f"must be a mapping with keys {', '.join(_REQUIRED_CLASS_KEYS)}")
+    for key in entry:
+        if key not in _CLASS_KEYS:
+            close = difflib.get_close_matches(str(key), _CLASS_KEYS, n=1)
+            hint = f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(_CLASS_KEYS)}"
+            raise ClassListError(f"{where}.{key}", f"unknown key ({hint})")
+    for key in _REQUIRED_CLASS_KEYS:
+        if key not in entry:
+            raise ClassListError(
+                f"{where}.{key}", f"missing (every class needs {', '.join(_REQUIRED_CLASS_KEYS)})"
+            )
+    try:
+        fields = _normalise_class(
+            name=entry["name"],
+            color=entry["color"],
+            prompts=entry["prompts"],
+            export_id=entry["export_id"],
+            gt_ids=entry.get("gt_ids", ()),
+            category=entry.get("category", "other"),
+            negative_prompts=entry.get("negative_prompts", ()),
+        )
+    except _Invalid as exc:
+        # Each field's messages start with the field ("prompts[1] 'x' is listed twice"): that part goes
+        # into the location, so the reader sees the path once and the problem after it.
+        m = _CLASS_FIELD.match(str(exc))
+        if m is None:
+            raise ClassListError(where, str(exc)) from None
+        raise ClassListError(f"{where}.{m.group(1)}{m.group(2) or ''}", m.group(3)) from None
+    return ClassDef(**fields)
+
+
+def class_list_yaml(schema: Schema) -> str:
+    """``schema`` as a class-list file: what :func:`read_class_list` reads back into the same classes."""
+    body = yaml.dump(schema.to_dict(), Dumper=_FlowListDumper, sort_keys=False, allow_unicode=True, width=110)
+    return f"# LeAP Studio class list {schema.name!r}: upload it in the create-project form.\n{body}"
+
+
 def projects_dir() -> Path:
     """The folder of the built-in project files: the repository's ``projects/``, installed as the package
     ``leap_core.projects`` (pyproject.toml's package-dir), so that an editable install reads the
@@ -568,14 +691,18 @@ def builtin_schema(name: str = "semantickitti") -> Schema:
 
 __all__ = [
     "CATEGORIES",
+    "MAX_CLASS_LIST_BYTES",
     "ClassDef",
+    "ClassListError",
     "Schema",
     "builtin_names",
     "builtin_path",
     "builtin_schema",
+    "class_list_yaml",
     "class_name_problem",
     "load_project_file",
     "load_schema",
     "projects_dir",
+    "read_class_list",
     "save_schema",
 ]

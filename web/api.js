@@ -27,7 +27,8 @@ export function errorText(detail) {
     return detail
       .map((d) => {
         const loc = (d.loc || []).filter((p) => p !== "body").join(".");
-        return loc ? `${loc}: ${d.msg}` : d.msg;
+        // Some messages name their field already (an uploaded file's "classes[3].prompts: ...").
+        return loc && !String(d.msg).startsWith(`${loc}: `) ? `${loc}: ${d.msg}` : d.msg;
       })
       .join("; ");
   }
@@ -62,14 +63,15 @@ export function url(path) {
   return full + (full.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(t);
 }
 
-export async function api(method, path, body) {
+/** `contentType`: send `body` as it is (a file's bytes) under that type instead of as JSON. */
+export async function api(method, path, body, contentType) {
   const headers = { Accept: "application/json" };
   const t = token();
   if (t) headers["X-Leap-Token"] = t;
   const init = { method, headers };
   if (body !== undefined) {
-    headers["Content-Type"] = "application/json";
-    init.body = JSON.stringify(body);
+    headers["Content-Type"] = contentType || "application/json";
+    init.body = contentType ? body : JSON.stringify(body);
   }
   const res = await fetch(BASE + path, init);
   if (!res.ok) {
@@ -87,6 +89,8 @@ export async function api(method, path, body) {
 
 export const get = (path) => api("GET", path);
 export const post = (path, body) => api("POST", path, body === undefined ? {} : body);
+/** A file's bytes as the request body (e.g. a class-list YAML to POST /class-lists). */
+export const postFile = (path, file, contentType) => api("POST", path, file, contentType);
 export const patch = (path, body) => api("PATCH", path, body);
 export const put = (path, body) => api("PUT", path, body);
 export const del = (path) => api("DELETE", path);

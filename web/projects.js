@@ -1,6 +1,6 @@
 // Project list and the create-project form.
 
-import { get, post } from "./api.js";
+import { get, post, postFile } from "./api.js";
 import { checkSummary } from "./dataset-check.js";
 import { fmtPct, fmtTime, h, replace, statusChip } from "./dom.js";
 import { pipelineInfo } from "./pipeline.js";
@@ -48,7 +48,15 @@ export function sequenceLines(text) {
     });
 }
 
-/** The class preset picker: every built-in preset by name, with its class count and (as a hint) its classes. */
+/** Largest class-list file the server reads (leap_core.schema.MAX_CLASS_LIST_BYTES): a bigger one is
+ * refused here before its bytes travel. */
+const MAX_CLASS_FILE_BYTES = 256 * 1024;
+const UPLOAD = "__upload__";
+
+/** The class picker: every built-in preset by name, with its class count and (as a hint) its classes, or
+ * an uploaded class-list file (the `classes:` part of a preset), read and checked by the server on pick.
+ * `classList()` is what the create request sends: null for a preset, the checked list for a file
+ * (undefined while a file is missing or refused). */
 function presetPicker(presets) {
   const select = h(
     "select",
@@ -56,15 +64,45 @@ function presetPicker(presets) {
     presets.map((p) =>
       h("option", { value: p.name, selected: p.name === DEFAULT_PRESET }, `${p.name} (${p.classes.length} classes)`),
     ),
+    h("option", { value: UPLOAD }, "Upload a class list (.yaml)…"),
   );
+  const file = h("input", { type: "file", id: "new-class-file", accept: ".yaml,.yml,application/yaml,text/yaml", hidden: true });
   const hint = h("p", { class: "muted small", id: "new-preset-classes" });
+  let uploaded;
   const showClasses = () => {
+    file.hidden = select.value !== UPLOAD;
+    hint.classList.remove("error");
+    if (select.value === UPLOAD) {
+      hint.textContent = uploaded ? `${uploaded.name}: ${uploaded.classes.map((c) => c.name).join(", ")}` : "Pick a class-list file: the classes part of a preset, or a project's downloaded class list.";
+      return;
+    }
     const p = presets.find((x) => x.name === select.value);
     hint.textContent = p ? p.classes.join(", ") : "";
   };
+  const refuse = (message) => {
+    uploaded = undefined;
+    hint.textContent = message;
+    hint.classList.add("error");
+  };
   select.addEventListener("change", showClasses);
+  file.addEventListener("change", async () => {
+    uploaded = undefined;
+    const f = file.files[0];
+    if (!f) return showClasses();
+    if (f.size > MAX_CLASS_FILE_BYTES) return refuse(`${f.name}: the file is larger than ${MAX_CLASS_FILE_BYTES / 1024} KiB`);
+    hint.textContent = `Checking ${f.name}…`;
+    try {
+      const list = await postFile("/class-lists", f, "application/yaml");
+      if (file.files[0] !== f) return; // another file was picked meanwhile
+      uploaded = { name: list.name, description: list.description, classes: list.classes };
+      showClasses();
+    } catch (err) {
+      if (file.files[0] === f) refuse(`${f.name}: ${err.message}`);
+    }
+  });
   showClasses();
-  return { select, hint };
+  const classList = () => (select.value !== UPLOAD ? null : uploaded);
+  return { select, file, hint, classList };
 }
 
 function createForm(datasets, presets, { toast, onCreated }) {
@@ -119,7 +157,14 @@ function createForm(datasets, presets, { toast, onCreated }) {
       onsubmit: async (e) => {
         e.preventDefault();
         error.textContent = "";
-        const body = { name: name.value.trim(), estimate_poses: poses.checked(), schema_name: preset.select.value };
+        const classList = preset.classList();
+        if (classList === undefined) {
+          error.textContent = "Pick a valid class-list file, or one of the presets.";
+          return;
+        }
+        const body = { name: name.value.trim(), estimate_poses: poses.checked() };
+        if (classList) body.class_list = classList;
+        else body.schema_name = preset.select.value;
         if (kindSeveral.checked) body.sequences = sequenceLines(paths.value);
         else body.dataset = kindDemo.checked ? { kind: "demo" } : { kind: "folder", path: path.value.trim() };
         submit.disabled = true;
@@ -148,6 +193,7 @@ function createForm(datasets, presets, { toast, onCreated }) {
       h("label", { class: "radio" }, kindDemo, h("span", {}, "Built-in demo street (generated on first run)")),
     ),
     h("label", { class: "field" }, h("span", {}, "Classes"), preset.select),
+    preset.file,
     preset.hint,
     poses.element,
     h(

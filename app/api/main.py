@@ -11,6 +11,7 @@ from fastapi import APIRouter
 from app.api.deps import AuthDep, PlainBodyDep
 from app.api.responses import COMMON_RESPONSES
 from app.api.routes import (
+    class_lists,
     classes,
     corrections,
     datasets,
@@ -30,6 +31,7 @@ api_router.include_router(projects.router)
 api_router.include_router(sequences.router)
 api_router.include_router(classes.router)
 api_router.include_router(classes.ids_router)
+api_router.include_router(class_lists.router)
 api_router.include_router(runs.router)
 api_router.include_router(exports.router)
 api_router.include_router(corrections.router)

@@ -5,7 +5,7 @@
 // named objects no class maps yet (the demo's traffic cones, benches, bollards …) are offered as one-click
 // suggestions. Every edit is saved at once; the next run uses it.
 
-import { del, enc, get, patch, post } from "../api.js";
+import { del, enc, get, patch, post, url } from "../api.js";
 import { h, replace } from "../dom.js";
 
 const NOT_EVALUATED = "none: not evaluated";
@@ -296,7 +296,13 @@ export function renderClasses(ctx, { keepTyped = false } = {}) {
   replace(
     ctx.els.classes,
     h("div", { class: "card-head" }, h("h2", {}, "Classes & prompts"), h("span", { class: "muted small" }, `${classes.length} classes`)),
-    h("p", { class: "muted small" }, "Color · name · export id. Enter adds a prompt; the next run uses the edits."),
+    h(
+      "p",
+      { class: "muted small" },
+      "Color · name · export id. Enter adds a prompt; the next run uses the edits. ",
+      // The file the create form's "upload a class list" takes: a new project starts with these classes.
+      h("a", { href: url(`/projects/${ctx.projectId}/classes.yaml`), download: "", id: "download-classes" }, "Download the class list (.yaml)"),
+    ),
     h("p", { class: "editor-status", role: "status" }),
     h("ol", { class: "class-list" }, classes.map((c) => classRow(ctx, c))),
     addClassForm(ctx),

@@ -9,6 +9,7 @@ ids and prompts) and answers with the full, ordered class list. A class created 
 from __future__ import annotations
 
 from fastapi import APIRouter, status
+from fastapi.responses import PlainTextResponse
 
 from app import crud, models, services
 from app.api.deps import DbDep
@@ -26,6 +27,23 @@ def list_gt_ids(project_id: ProjectId, db: DbDep) -> models.RawIdsPublic:
     """The raw ids in the dataset's ``labels/`` (at most 200 evenly spaced files are read; cached until
     the folder changes), each with its SemanticKITTI or demo name and the classes that map it."""
     return services.raw_ids_public(crud.require_project(db, project_id))
+
+
+@ids_router.get(
+    "/classes.yaml",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"application/yaml": {}}}},
+)
+def download_class_list(project_id: ProjectId, db: DbDep) -> PlainTextResponse:
+    """The project's classes as a class-list file, which ``POST /class-lists`` (the create form's upload)
+    reads back into the same classes."""
+    project = crud.require_project(db, project_id)
+    # The file name is the project id's, not its name: a name is free text, a header value is not.
+    return PlainTextResponse(
+        services.class_file(project),
+        media_type="application/yaml",
+        headers={"Content-Disposition": f'attachment; filename="project-{project_id}-classes.yaml"'},
+    )
 
 
 @router.get("", response_model=models.ClassesPublic)
