@@ -208,6 +208,23 @@ def check_problem(check: models.DatasetCheck) -> str:
     return f"the pipeline cannot run on this dataset: {'; '.join(parts)}"
 
 
+def dataset_candidate(settings: Settings, raw: str) -> models.DatasetCandidate:
+    """A typed sequence folder with its check, as :func:`find_datasets` lists one.
+
+    Raises:
+        Forbidden, InvalidField: as :func:`resolve_dataset` (at ``[query, path]``).
+    """
+    _, folder = resolve_dataset(settings, models.DatasetRef(kind="folder", path=raw), loc=("query", "path"))
+    check = dataset_check(settings, folder)
+    return models.DatasetCandidate(
+        path=str(folder),
+        frames=check.frames,
+        has_images=(folder / "image_2").is_dir(),
+        has_ground_truth=(folder / "labels").is_dir(),
+        check=check,
+    )
+
+
 def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> list[models.DatasetCandidate]:
     """KITTI-layout sequence folders (with ``velodyne/``) inside the data roots, for the create form (the
     demo street too, once generated, when the work folder lies inside a data root)."""

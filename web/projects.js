@@ -52,6 +52,8 @@ export function sequenceLines(text) {
  * refused here before its bytes travel. */
 const MAX_CLASS_FILE_BYTES = 256 * 1024;
 const UPLOAD = "__upload__";
+/** Pause in typing after which a typed dataset path is checked. */
+const TYPED_PATH_DELAY_MS = 400;
 
 /** The class picker: every built-in preset by name, with its class count and (as a hint) its classes, or
  * an uploaded class-list file (the `classes:` part of a preset), read and checked by the server on pick.
@@ -124,9 +126,29 @@ function createForm(datasets, presets, { toast, onCreated }) {
   );
   const path = h("input", { id: "new-path", placeholder: "or type a path inside a data root", spellcheck: "false" });
   const checkBox = h("div", { class: "check-slot" });
+  // A typed folder is checked by the server (GET /datasets/check, confined to the data roots as at
+  // creation) once typing pauses, so the form shows what a listed folder shows before "Create project".
+  let typedTimer = null;
+  let asked = "";
   const showCheck = () => {
-    const d = datasets.data.find((x) => x.path === path.value.trim());
-    replace(checkBox, d ? checkSummary(d.check) : null);
+    clearTimeout(typedTimer);
+    const typed = path.value.trim();
+    asked = typed;
+    const d = datasets.data.find((x) => x.path === typed);
+    if (d || !typed) {
+      replace(checkBox, d ? checkSummary(d.check) : null);
+      return;
+    }
+    replace(checkBox);
+    typedTimer = setTimeout(async () => {
+      replace(checkBox, h("p", { class: "muted small", id: "new-dataset-checking" }, "Checking the folder…"));
+      try {
+        const found = await get(`/datasets/check?path=${encodeURIComponent(typed)}`);
+        if (asked === typed) replace(checkBox, checkSummary(found.check));
+      } catch (err) {
+        if (asked === typed) replace(checkBox, h("p", { class: "error small", id: "new-dataset-refused" }, err.message));
+      }
+    }, TYPED_PATH_DELAY_MS);
   };
   select.addEventListener("change", () => {
     if (kindSeveral.checked) {
