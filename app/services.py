@@ -227,7 +227,8 @@ def dataset_candidate(settings: Settings, raw: str) -> models.DatasetCandidate:
 
 def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> list[models.DatasetCandidate]:
     """KITTI-layout sequence folders (with ``velodyne/``) inside the data roots, for the create form (the
-    demo street too, once generated, when the work folder lies inside a data root)."""
+    demo street and the farm drone demo too, once generated, when the work folder lies inside a data
+    root)."""
     found: list[models.DatasetCandidate] = []
     seen: set[Path] = set()
     work = real_path_or_none(settings.work_dir) or settings.work_dir
@@ -269,9 +270,11 @@ def find_datasets(settings: Settings, max_depth: int = 4, limit: int = 200) -> l
                 continue
             # The app's own work folder holds runs and caches, not datasets to label (of it only the
             # generated demo street, work_dir/demo/sequences/00, is offered); a link leading out of the
-            # data roots is not followed (the listing would show folders nobody may use).
+            # data roots is not followed (the listing would show folders nobody may use). The farm drone
+            # demo, work_dir/demo-agri/sequences/00, is offered the same way.
             if real == work:
-                visit(child / settings.demo_dataset.relative_to(settings.work_dir).parts[0], depth + 2)
+                for demo in (settings.demo_dataset, settings.demo_agri_dataset):
+                    visit(child / demo.relative_to(settings.work_dir).parts[0], depth + 2)
                 continue
             if not _inside(real, roots):
                 continue

@@ -30,12 +30,17 @@ client, data_root, settings, tiny_dataset = (
 def test_dataset_picker_lists_the_demo_street_but_no_run_folder(
     client: TestClient, settings: Settings, tiny_dataset: Path, make_tiny_sequence: Callable[..., Any]
 ) -> None:
-    """The work folder lies inside the data root: its demo street is offered, its runs and caches not."""
+    """The work folder lies inside the data root: its demo street and farm drone demo are offered, its runs
+    and caches not."""
     demo = make_tiny_sequence(settings.work_dir / "demo", n_frames=2, n_points=50)
     assert demo.root == settings.demo_dataset
+    farm = make_tiny_sequence(settings.work_dir / "demo-agri", n_frames=2, n_points=50)
+    assert farm.root == settings.demo_agri_dataset
     make_tiny_sequence(settings.work_dir / "runs" / "p1" / "r1", n_frames=1, n_points=50)
     paths = [d["path"] for d in client.get(f"{API}/datasets").json()["data"]]
-    assert sorted(paths) == sorted([str(tiny_dataset), str(settings.demo_dataset)])
+    assert sorted(paths) == sorted(
+        [str(tiny_dataset), str(settings.demo_dataset), str(settings.demo_agri_dataset)]
+    )
 
 
 def test_cli_shows_skipped_stages_as_lines_and_logs_above_the_bars(
