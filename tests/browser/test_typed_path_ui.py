@@ -60,3 +60,51 @@ def test_a_typed_path_is_checked_before_create(server, browser, artifacts: Path)
     page.click("#create-project")
     expect(page.locator("#project-name")).to_have_text("typed")
     assert not errors, errors
+
+
+def test_a_class_list_file_is_checked_on_pick_and_a_projects_list_downloads(
+    server, browser, tmp_path: Path
+) -> None:
+    """Upload: a bad file is refused on pick naming its field; a good one shows its classes and the project
+    gets them. Download: the project page's link gives a file the upload takes back."""
+    import httpx
+    from playwright.sync_api import expect
+
+    srv, _data, deep = server
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("classes:\n  - {name: car, color: [1, 2, 3], prompts: [], export_id: 10}\n")
+    good = tmp_path / "good.yaml"
+    good.write_text(
+        "name: yard\nclasses:\n"
+        "  - {name: crate, color: [200, 120, 40], prompts: [crate, wooden box], export_id: 1}\n"
+        "  - {name: ground, color: [90, 90, 90], prompts: [ground], export_id: 2}\n"
+    )
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(srv.base + "/")
+    expect(page.locator("#create-form")).to_be_visible()
+    page.fill("#new-name", "yard")
+    page.fill("#new-path", str(deep))
+    page.select_option("#new-preset", "__upload__")
+    hint = page.locator("#new-preset-classes")
+    page.set_input_files("#new-class-file", str(bad))
+    expect(hint).to_contain_text("classes[0].prompts")
+    page.set_input_files("#new-class-file", str(good))
+    expect(hint).to_have_text("yard: crate, ground")
+    page.click("#create-project")
+    expect(page.locator("#project-name")).to_have_text("yard")
+
+    link = page.locator("#download-classes")
+    expect(link).to_be_visible()
+    href = link.get_attribute("href")
+    assert href is not None
+    text = httpx.get(srv.base + href if href.startswith("/") else href, timeout=30).text
+    assert "crate" in text and "wooden box" in text and "ground" in text
+    again = tmp_path / "again.yaml"
+    again.write_text(text)
+    page.goto(srv.base + "/")
+    page.select_option("#new-preset", "__upload__")
+    page.set_input_files("#new-class-file", str(again))
+    expect(page.locator("#new-preset-classes")).to_contain_text("crate, ground")
+    assert not errors, errors
