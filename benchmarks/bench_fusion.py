@@ -19,8 +19,11 @@ Data (synthetic, deterministic, built here so the benchmark needs no dataset):
 - Memory: peak working memory added by ``fuse``, per input point. The stored grid's size per voxel is not a
   measurement (8 B key + 2·C B float16 logp, fixed by the format), so it is printed as a fact, not a target.
 - Smoothing: ~1M voxels on street surfaces (ground with steps, two facades), 20-class random posteriors.
+  Baseline, same process, same data: the previous smoothing (``baseline_knn_smooth``: rows numbered with
+  ``np.unique``, a CSR product per chunk), whose output bytes ``knn_smooth`` must equal (checked).
 
-Run: ``.venv/bin/python benchmarks/bench_fusion.py`` (``--quick`` for a small smoke run).
+Run: ``.venv/bin/python benchmarks/bench_fusion.py`` (``--quick`` for a small smoke run,
+``--smoothing-only`` for the smoothing alone, written to ``fusion_smoothing.json``).
 Writes ``benchmarks/results/fusion.json``.
 """
 
@@ -40,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import peak_memory, print_table, time_it, write_results
 
 from leap_core.fusion import FusionConfig, Observations, fuse, log_table, voxel_keys
-from leap_core.smoothing import SmoothingConfig, knn_smooth
+from leap_core.smoothing import SMOOTH_CHUNK, SmoothingConfig, knn_smooth, knn_weights
 
 C = 20
 
@@ -227,6 +230,32 @@ def _xyz_cache(images: int, points: int) -> np.ndarray:
     return _XYZ[(images, points)]
 
 
+def baseline_knn_smooth(centres: np.ndarray, probs: np.ndarray, cfg: SmoothingConfig) -> np.ndarray:
+    """The smoothing before ``knn_mix`` (same output bytes), kept as the same-work baseline: one tree, chunks
+    of ``SMOOTH_CHUNK`` voxels queried with ``cfg.workers`` threads, the rows they hit numbered with
+    ``np.unique`` and mixed as a (n × R) CSR @ (R × C) float32 product."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(probs, np.float32)
+    v = len(centres)
+    k = min(cfg.k, v)
+    bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
+    tree = cKDTree(np.asarray(centres, np.float32))
+    out = np.empty(p.shape, np.float32)
+    for s in range(0, v, SMOOTH_CHUNK):
+        e = min(v, s + SMOOTH_CHUNK)
+        n = e - s
+        dists, idx = tree.query(tree.data[s:e], k=k, distance_upper_bound=bound, workers=cfg.workers)
+        w = knn_weights(dists)
+        idx = np.where(idx >= v, np.arange(s, e)[:, None], idx)
+        cols, inv = np.unique(idx, return_inverse=True)
+        mat = scipy.sparse.csr_matrix(
+            (w.reshape(-1), inv.reshape(-1), np.arange(0, n * k + 1, k)), shape=(n, len(cols))
+        )
+        out[s:e] = mat @ p[cols]
+    return out
+
+
 def bench_smoothing(voxels: int, repeat: int) -> tuple[list, dict]:
     centres = surface_voxel_centres(voxels)
     rng = np.random.default_rng(1)
@@ -236,11 +265,26 @@ def bench_smoothing(voxels: int, repeat: int) -> tuple[list, dict]:
         ("default (k 9, max 0.6 m, 2 workers)", SmoothingConfig()),
         ("paper (k 9, unbounded, 2 workers)", SmoothingConfig(max_distance=None)),
     ):
+        load = os.getloadavg()[0]
+        t_base = time_it(lambda cfg=cfg: baseline_knn_smooth(centres, probs, cfg), repeat=repeat)
         t = time_it(lambda cfg=cfg: knn_smooth(centres, probs, cfg), repeat=repeat)
         _, mem = peak_memory(lambda cfg=cfg: knn_smooth(centres, probs, cfg))
+        same = knn_smooth(centres, probs, cfg).tobytes() == baseline_knn_smooth(centres, probs, cfg).tobytes()
         key = "bounded" if cfg.max_distance else "unbounded"
-        res[key] = {**t.to_dict(), "peak_memory_added_bytes": mem.added, "max_distance": cfg.max_distance}
-        rows.append(_row(f"knn_smooth {len(centres):,} voxels, {name}", t, len(centres), None, mem.added))
+        res[key] = {
+            **t.to_dict(),
+            "peak_memory_added_bytes": mem.added,
+            "max_distance": cfg.max_distance,
+            "baseline": t_base.to_dict(),
+            "ratio_vs_baseline": t_base.median / t.median,
+            "identical_to_baseline": same,
+            "load_average_1min": [load, os.getloadavg()[0]],
+        }
+        v = len(centres)
+        rows.append(_row(f"knn_smooth {v:,} voxels, {name}", t, v, t_base.median, mem.added))
+        rows.append(_row("  baseline (np.unique + CSR product), same work", t_base, v, None, None))
+        loads = f"{load:.1f} → {os.getloadavg()[0]:.1f}"
+        rows.append([f"  output bytes identical to the baseline: {same}; load average {loads}"] + [""] * 6)
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(centres).query(centres, k=9, workers=2)
@@ -256,19 +300,26 @@ def main() -> None:
     ap.add_argument("--voxels", type=int, default=1_000_000)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
+    ap.add_argument("--smoothing-only", action="store_true", help="only the smoothing against its baseline")
     args = ap.parse_args()
     if args.quick:
         args.images, args.points, args.voxels, args.repeat = 20, 5000, 50_000, 2
+    header = ["what", "median s", "best s", "CPU s", "M items/s", "× baseline", "peak MiB added"]
+    if args.smoothing_only:
+        srows, sres = bench_smoothing(args.voxels, args.repeat)
+        print_table(f"Smoothing ({os.cpu_count()} cores)", header, srows)
+        name = "fusion_smoothing" + ("_quick" if args.quick else "")
+        print(f"wrote {write_results(name, {'args': vars(args), 'smoothing': sres})}")
+        return
 
     load_start = os.getloadavg()
     frows, fres = bench_fusion(args.images, args.points, args.rows, args.repeat)
     srows, sres = bench_smoothing(args.voxels, args.repeat)
-    header = ["what", "median s", "best s", "CPU s", "M items/s", "× best baseline", "peak MiB added"]
     load = os.getloadavg()
     print_table(
         f"Fusion: {fres['points']:,} points, {C} classes, {args.rows} table rows per image "
         f"(load average at start {load_start[0]:.1f}, now {load[0]:.1f} on {os.cpu_count()} cores)",
-        header,
+        [*header[:5], "× best baseline", header[6]],
         frows,
     )
     print_table("Smoothing", header, srows)

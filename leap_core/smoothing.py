@@ -7,15 +7,18 @@ are fairly flat (e^-0.2 ≈ 0.82 relative to the voxel itself): smoothing is str
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-import scipy.sparse
 from scipy.spatial import cKDTree
 
 from leap_core.bounds import check_bounds, within
@@ -38,7 +41,8 @@ class SmoothingConfig:
     0.40 m, max 0.57 m on benchmarks/bench_fusion.py's street surfaces), so the bound only acts on isolated
     voxels (sparse far returns), which would otherwise take labels from other objects metres away."""
     workers: int = field(default=2, metadata=within(1, 256, also=(-1,)))
-    """Threads for the cKDTree query (-1 = all cores)."""
+    """Threads that smooth chunks of voxels at once, each querying the tree and mixing its own chunk
+    (-1 = all cores); the result does not depend on it."""
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -70,11 +74,125 @@ def knn_weights(dists: npt.ArrayLike) -> npt.NDArray[np.float32]:
 
 SMOOTH_CHUNK = 1 << 14
 """Voxels whose neighbours are queried and mixed at once: bounds the per-chunk temporaries (≈ 1.1 kB per
-voxel of a chunk at k = 9, C = 20, measured: ≈ 18 MB) however large the grid; the result does not depend
-on it."""
+voxel of a chunk at k = 9, C = 20: ≈ 18 MB; ``workers + 1`` chunks are in flight at once) however large the
+grid; the result does not depend on it."""
 
 RowProbs = Callable[[npt.NDArray[np.int64]], npt.NDArray[np.float32]]
 """``row_probs(rows) -> (len(rows), C) float32``: the distributions of the given (sorted unique) rows."""
+
+
+def knn_mix(
+    w: npt.NDArray[np.float32], idx: npt.NDArray[np.intp], p: npt.NDArray[np.float32]
+) -> npt.NDArray[np.float32]:
+    """Weighted sum of neighbour rows: ``out[n] = Σ_{j<k} w[n, j] · p[idx[n, j]]``.
+
+    Accumulated in float32 from 0, one neighbour after the other (j = 0, 1, …, k − 1), each product
+    rounded before it is added: exactly the steps of a CSR (n × R, k entries per row in neighbour order)
+    @ dense (R × C) product, so the result is bit for bit that product's, without sorting the indices or
+    building the matrix, and with only (n, C) temporaries instead of (n, k, C) ones.
+
+    Args:
+        w: (n, k) float32 weights.
+        idx: (n, k) rows of ``p`` (each in ``[0, R)``).
+        p: (R, C) float32 distributions.
+
+    Returns:
+        (n, C) float32.
+    """
+    n, k = w.shape
+    out = np.zeros((n, p.shape[1]), np.float32)
+    term = np.empty_like(out)
+    # Columns of idx copied contiguous once; mode="clip" lets take() write into ``term`` without the
+    # buffer that mode="raise" needs (the indices are in range by construction).
+    cols = np.ascontiguousarray(idx.T)
+    for j in range(k):
+        np.take(p, cols[j], axis=0, out=term, mode="clip")
+        np.multiply(term, w[:, j, None], out=term)
+        out += term
+    return out
+
+
+def _rows_hit(idx: npt.NDArray[np.intp]) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.intp]]:
+    """``np.unique(idx, return_inverse=True)`` for non-negative indices, by marking them in a table over
+    ``[idx.min(), idx.max()]`` instead of sorting (a chunk's neighbours span a few rows around it): sorted
+    unique rows (R,) and idx renumbered into them (same shape as idx)."""
+    lo = int(idx.min())
+    span = int(idx.max()) - lo + 1
+    local = idx - lo
+    hit = np.zeros(span, np.bool_)
+    hit[local.reshape(-1)] = True
+    rows = np.flatnonzero(hit)
+    number = np.empty(span, np.intp)
+    number[rows] = np.arange(len(rows))
+    return (rows + lo).astype(np.int64, copy=False), number[local]
+
+
+def _smooth_chunk(
+    tree: cKDTree,
+    s: int,
+    e: int,
+    source: npt.NDArray[np.float32] | RowProbs,
+    k: int,
+    bound: float,
+) -> npt.NDArray[np.float32]:
+    """Smoothed rows ``[s, e)``: query, weights, mix (:func:`knn_smooth`'s formula)."""
+    v = tree.n
+    n = e - s
+    dists, idx = tree.query(tree.data[s:e], k=k, distance_upper_bound=bound, workers=1)
+    w = knn_weights(np.asarray(dists).reshape(n, k))
+    idx = np.asarray(idx).reshape(n, k)
+    # Missing neighbours come back as index V; they have weight 0, so point them at the voxel itself.
+    missing = idx >= v
+    if missing.any():
+        idx = np.where(missing, np.arange(s, e)[:, None], idx)
+    if isinstance(source, np.ndarray):
+        return knn_mix(w, idx, source)
+    rows, local = _rows_hit(idx)
+    return knn_mix(w, local, np.asarray(source(rows), dtype=np.float32))
+
+
+def _smooth_chunks(
+    centres: npt.ArrayLike,
+    source: npt.NDArray[np.float32] | RowProbs,
+    cfg: SmoothingConfig | None,
+    chunk: int,
+) -> Iterator[tuple[int, npt.NDArray[np.float32]]]:
+    """:func:`knn_smooth_blocks` with the distributions given whole (an array) or by rows (a callable)."""
+    cfg = cfg or SmoothingConfig()
+    if chunk < 1:
+        raise ValueError(f"chunk must be ≥ 1, got {chunk}")
+    pts = np.asarray(centres, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"centres (V, 3) expected, got {pts.shape}")
+    v = pts.shape[0]
+    if v == 0:
+        return
+    k = min(cfg.k, v)
+    bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
+    # The tree holds its own float64 copy of the centres (the query converts float32 input to exactly
+    # these values), so queries read it and the caller's float32 array is not needed past this point.
+    tree = cKDTree(pts)
+    del pts, centres
+    starts = range(0, v, chunk)
+    threads = (os.cpu_count() or 1) if cfg.workers == -1 else cfg.workers
+    if threads == 1 or len(starts) == 1:
+        for s in starts:
+            yield s, _smooth_chunk(tree, s, min(v, s + chunk), source, k, bound)
+        return
+    # Whole chunks (query, weights and mix) run in the threads, not only the query: the numpy steps
+    # release the GIL too, and a chunk's rows do not depend on which thread computed them. A few chunks
+    # ahead are kept in flight so the threads stay busy while the caller consumes one.
+    with ThreadPoolExecutor(threads) as pool:
+        pending: deque[Future[npt.NDArray[np.float32]]] = deque()
+        todo = iter(starts)
+        for s in itertools.islice(todo, threads + 1):
+            pending.append(pool.submit(_smooth_chunk, tree, s, min(v, s + chunk), source, k, bound))
+        for s in starts:
+            block = pending.popleft().result()
+            nxt = next(todo, None)
+            if nxt is not None:
+                pending.append(pool.submit(_smooth_chunk, tree, nxt, min(v, nxt + chunk), source, k, bound))
+            yield s, block
 
 
 def knn_smooth_blocks(
@@ -87,8 +205,10 @@ def knn_smooth_blocks(
 
     One cKDTree is built over all centres; each chunk of ``chunk`` voxels queries it, takes the
     distributions of the rows its neighbours hit (``row_probs``, so the caller never needs all V rows at
-    once) and mixes them with the same sparse product, entry order and float32 arithmetic as the
-    unchunked computation, so every row is bit for bit what :func:`knn_smooth` gives whatever ``chunk``.
+    once) and mixes them (:func:`knn_mix`: the entry order and float32 arithmetic of the sparse product
+    ``csr(w, idx) @ probs``), so every row is bit for bit what :func:`knn_smooth` gives whatever ``chunk``
+    and ``cfg.workers``. Chunks are computed by ``cfg.workers`` threads, a few ahead of the caller; they
+    are yielded in order. ``row_probs`` may be called from those threads.
 
     Args:
         centres: (V, 3) voxel centres in metres (float32 values).
@@ -96,45 +216,7 @@ def knn_smooth_blocks(
         cfg: k, distance bound and threads.
         chunk: voxels per chunk (≥ 1).
     """
-    cfg = cfg or SmoothingConfig()
-    if chunk < 1:
-        raise ValueError(f"chunk must be ≥ 1, got {chunk}")
-    pts = np.asarray(centres, dtype=np.float32)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"centres (V, 3) expected, got {pts.shape}")
-    v = pts.shape[0]
-    if v == 0:
-        return
-    k = min(cfg.k, v)
-    bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
-    tree = cKDTree(pts)
-    # The tree holds its own float64 copy of the centres (the query converts float32 input to exactly
-    # these values), so queries read it and the caller's float32 array is not needed past this point.
-    data = tree.data
-    del pts, centres
-    for s in range(0, v, chunk):
-        e = min(v, s + chunk)
-        n = e - s
-        dists, idx = tree.query(data[s:e], k=k, distance_upper_bound=bound, workers=cfg.workers)
-        w = knn_weights(np.asarray(dists).reshape(n, k))
-        idx = np.asarray(idx).reshape(n, k)
-        # Missing neighbours come back as index V; they have weight 0, so point them at the voxel itself.
-        missing = idx >= v
-        if missing.any():
-            idx = np.where(missing, np.arange(s, e)[:, None], idx)
-        # Σ_j w_nj · probs[idx_nj] as one sparse (n × R, k per row) @ (R × C) product over the R distinct
-        # rows the chunk's neighbours hit; columns renumbered, entries kept in neighbour order.
-        cols, inv = np.unique(idx, return_inverse=True)
-        mat = scipy.sparse.csr_matrix(
-            (
-                w.reshape(-1),
-                inv.reshape(-1).astype(np.int64, copy=False),
-                np.arange(0, n * k + 1, k, dtype=np.int64),
-            ),
-            shape=(n, len(cols)),
-        )
-        p = np.asarray(row_probs(cols.astype(np.int64, copy=False)), dtype=np.float32)
-        yield s, np.asarray(mat @ p, dtype=np.float32)
+    return _smooth_chunks(centres, row_probs, cfg, chunk)
 
 
 def knn_smooth(
@@ -167,7 +249,7 @@ def knn_smooth(
         empty: npt.NDArray[np.float32] = p.copy()
         return empty
     out = np.empty(p.shape, np.float32)
-    for s, block in knn_smooth_blocks(pts, lambda rows: p[rows], cfg, chunk):
+    for s, block in _smooth_chunks(pts, p, cfg, chunk):
         out[s : s + len(block)] = block
     return out
 
@@ -347,6 +429,7 @@ __all__ = [
     "SmoothedGrid",
     "SmoothingConfig",
     "grid_row_probs",
+    "knn_mix",
     "knn_smooth",
     "knn_smooth_blocks",
     "knn_weights",
