@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from leap_core.errors import ConfigError
+from leap_core.trajectory import inverse
 
 F64 = npt.NDArray[np.float64]
 
@@ -108,16 +109,6 @@ def motion_error(t: F64) -> F64:
     m = np.asarray(t, dtype=np.float64)
     rv = Rotation.from_matrix(m[..., :3, :3].reshape(-1, 3, 3)).as_rotvec().reshape(*m.shape[:-2], 3)
     return np.concatenate([m[..., :3, 3], rv], axis=-1)
-
-
-def inverse(t: F64) -> F64:
-    """Inverse of rigid transforms (..., 4, 4): ``[Rᵀ | −Rᵀ t]``."""
-    out = np.zeros_like(t)
-    rt = np.swapaxes(t[..., :3, :3], -1, -2)
-    out[..., :3, :3] = rt
-    out[..., :3, 3] = -(rt @ t[..., :3, 3, None])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
 
 
 # ---------------------------------------------------------------------------------------- scan clouds
@@ -501,7 +492,6 @@ __all__ = [
     "alignment_cost",
     "edge_of",
     "edge_residuals",
-    "inverse",
     "motion_error",
     "neighbour_residuals",
     "optimise_poses",

@@ -196,6 +196,20 @@ def class_name_problem(name: str) -> str | None:
     return None
 
 
+def _normalise_entry(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """:func:`_normalise_class` of a class entry read from a file: the required keys (present, checked by
+    the caller) and the optional ones at their defaults."""
+    return _normalise_class(
+        name=entry["name"],
+        color=entry["color"],
+        prompts=entry["prompts"],
+        export_id=entry["export_id"],
+        gt_ids=entry.get("gt_ids", ()),
+        category=entry.get("category", "other"),
+        negative_prompts=entry.get("negative_prompts", ()),
+    )
+
+
 def _normalise_class(
     *,
     name: object,
@@ -431,15 +445,7 @@ def _class_from_mapping(entry: object, source: str, i: int) -> ClassDef:
         if key not in entry:
             raise SchemaError(f"{source}: {where}: missing required key {key!r}")
     try:
-        fields = _normalise_class(
-            name=entry["name"],
-            color=entry["color"],
-            prompts=entry["prompts"],
-            export_id=entry["export_id"],
-            gt_ids=entry.get("gt_ids", ()),
-            category=entry.get("category", "other"),
-            negative_prompts=entry.get("negative_prompts", ()),
-        )
+        fields = _normalise_entry(entry)
     except _Invalid as exc:
         raise SchemaError(f"{source}: {where}: {exc}") from None
     return ClassDef(**fields)
@@ -625,15 +631,7 @@ def _class_from_entry(entry: object, i: int) -> ClassDef:
                 f"{where}.{key}", f"missing (every class needs {', '.join(_REQUIRED_CLASS_KEYS)})"
             )
     try:
-        fields = _normalise_class(
-            name=entry["name"],
-            color=entry["color"],
-            prompts=entry["prompts"],
-            export_id=entry["export_id"],
-            gt_ids=entry.get("gt_ids", ()),
-            category=entry.get("category", "other"),
-            negative_prompts=entry.get("negative_prompts", ()),
-        )
+        fields = _normalise_entry(entry)
     except _Invalid as exc:
         # Each field's messages start with the field ("prompts[1] 'x' is listed twice"): that part goes
         # into the location, so the reader sees the path once and the problem after it.

@@ -45,8 +45,8 @@ def rotation_angle(rotation: F64) -> float:
     return float(np.arccos(np.clip((np.trace(rotation[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def _inv(t: F64) -> F64:
-    """Inverse of rigid transforms (..., 4, 4): ``[Rᵀ, −Rᵀ t]``."""
+def inverse(t: F64) -> F64:
+    """Inverse of rigid transforms (..., 4, 4): ``[Rᵀ | −Rᵀ t]``."""
     out = np.zeros_like(t)
     rt = np.swapaxes(t[..., :3, :3], -1, -2)
     out[..., :3, :3] = rt
@@ -118,7 +118,7 @@ def segment_errors(
             if beyond.size == 0:
                 continue
             j = int(beyond[0])
-            d = _inv(_inv(e[i]) @ e[j]) @ (_inv(g[i]) @ g[j])
+            d = inverse(inverse(e[i]) @ e[j]) @ (inverse(g[i]) @ g[j])
             firsts.append(i)
             lens.append(float(length))
             t_err.append(float(np.linalg.norm(d[:3, 3])) / length)
@@ -264,6 +264,7 @@ __all__ = [
     "compare_with_truth",
     "first_step_ratio",
     "fitting_segment_lengths",
+    "inverse",
     "path_distances",
     "rotation_angle",
     "segment_errors",

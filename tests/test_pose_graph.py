@@ -12,7 +12,6 @@ from leap_core.pose_graph import (
     RefineConfig,
     alignment_cost,
     edge_residuals,
-    inverse,
     motion_error,
     optimise_poses,
     plane_normals,
@@ -21,7 +20,7 @@ from leap_core.pose_graph import (
     small_motion,
     voxel_centroids,
 )
-from leap_core.trajectory import compare_with_truth, first_step_ratio
+from leap_core.trajectory import compare_with_truth, first_step_ratio, inverse
 
 
 def _pose(x: float, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:

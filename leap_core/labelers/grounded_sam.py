@@ -161,7 +161,8 @@ def model_folder_name(model_id: str) -> str:
     return model_id.rstrip("/").split("/")[-1]
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` of an exception from a model library (their messages run long)."""
     text = str(exc).strip()
     return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
 
@@ -227,7 +228,12 @@ def folder_identity(folder: str | Path) -> str:
     return h.hexdigest()[:16]
 
 
-def _read_model_type(folder: Path) -> str:
+def read_model_type(folder: Path) -> str:
+    """The ``model_type`` of a model folder's ``config.json`` ("" when it has none).
+
+    Raises:
+        ModelLoadError: the config is unreadable or not a JSON object.
+    """
     try:
         cfg = json.loads((folder / "config.json").read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -271,7 +277,7 @@ def load_processor(folder: Path, model_id: str, expect_type: str) -> Any:
     Raises:
         ModelLoadError: wrong model type, or transformers cannot read the folder.
     """
-    model_type = _read_model_type(folder)
+    model_type = read_model_type(folder)
     if model_type != expect_type:
         raise ModelLoadError(
             f"{folder}: holds a {model_type or 'unknown'!r} model, expected {expect_type!r} for {model_id}; "
@@ -285,7 +291,7 @@ def load_processor(folder: Path, model_id: str, expect_type: str) -> Any:
         )
     except Exception as exc:  # transformers raises many types for a broken folder
         raise ModelLoadError(
-            f"{folder}: cannot read the processor of {model_id} ({_first_line(exc)}); "
+            f"{folder}: cannot read the processor of {model_id} ({first_line(exc)}); "
             f"{_download_hint(model_id, folder)}"
         ) from exc
     if expect_type == "grounding-dino":
@@ -305,7 +311,12 @@ def load_processor(folder: Path, model_id: str, expect_type: str) -> Any:
     return proc
 
 
-def _load_model(folder: Path, model_id: str, cls_name: str, device: str) -> Any:
+def load_model(folder: Path, model_id: str, cls_name: str, device: str) -> Any:
+    """transformers' ``cls_name`` loaded from ``folder`` (local files only), on ``device``, in eval mode.
+
+    Raises:
+        ModelLoadError: naming the folder, the model id and the download command.
+    """
     import transformers
 
     cls = getattr(transformers, cls_name)
@@ -313,7 +324,7 @@ def _load_model(folder: Path, model_id: str, cls_name: str, device: str) -> Any:
         model = cls.from_pretrained(str(folder), local_files_only=True)
     except Exception as exc:  # transformers raises many types for a broken folder
         raise ModelLoadError(
-            f"{folder}: cannot load {model_id} weights ({_first_line(exc)}); "
+            f"{folder}: cannot load {model_id} weights ({first_line(exc)}); "
             f"{_download_hint(model_id, folder)}"
         ) from exc
     return model.to(device).eval()
@@ -429,6 +440,7 @@ class GroundedSamLabeler(ImageModelLabeler):
         self._det_proc: Any = None
         self._models: LoadedModels | None = None
         self._budget: int | None = None
+        self._plans: dict[Schema, list[PassPlan]] = {}
         self.detector_calls = 0
         """Detector forward passes run so far (a batch of images counts once)."""
         self.segmenter_calls = 0
@@ -479,9 +491,9 @@ class GroundedSamLabeler(ImageModelLabeler):
             device = pick_device(self.runtime.device)
             seg_proc = load_processor(seg, cfg.segmenter_id, "sam")
             self._models = LoadedModels(
-                detector=_load_model(det, cfg.detector_id, "GroundingDinoForObjectDetection", device),
+                detector=load_model(det, cfg.detector_id, "GroundingDinoForObjectDetection", device),
                 detector_processor=self.detector_processor,
-                segmenter=_load_model(seg, cfg.segmenter_id, "SamModel", device),
+                segmenter=load_model(seg, cfg.segmenter_id, "SamModel", device),
                 segmenter_processor=seg_proc,
                 device=device,
             )
@@ -496,7 +508,13 @@ class GroundedSamLabeler(ImageModelLabeler):
 
     # ------------------------------------------------------------------------------- planning
     def plan(self, schema: Schema) -> list[PassPlan]:
-        """The detector passes for ``schema`` under this config (needs the tokenizer only)."""
+        """The detector passes for ``schema`` under this config (needs the tokenizer only), made once per
+        schema: tokenizing every prompt costs about 20 ms, and the cache check and each batch ask again."""
+        if schema not in self._plans:
+            self._plans[schema] = self._make_plan(schema)
+        return self._plans[schema]
+
+    def _make_plan(self, schema: Schema) -> list[PassPlan]:
         tok = self.detector_processor.tokenizer
         use_neg = self.config.use_negative_prompts
         classes = [
@@ -682,10 +700,13 @@ __all__ = [
     "GroundedSamLabeler",
     "LoadedModels",
     "assemble_soft_masks",
+    "first_line",
     "folder_identity",
+    "load_model",
     "load_processor",
     "model_folder_name",
     "pass_regions",
     "pick_device",
+    "read_model_type",
     "resolve_model_folder",
 ]

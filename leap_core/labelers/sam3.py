@@ -55,13 +55,13 @@ from leap_core.errors import LeapError, ModelLoadError
 from leap_core.labelers.base import ImageModelLabeler, SoftMasks
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.grounded_sam import (
-    _first_line,
-    _load_model,
-    _read_model_type,
     assemble_soft_masks,
     check_model_id,
+    first_line,
     folder_identity,
+    load_model,
     pick_device,
+    read_model_type,
     resolve_model_folder,
 )
 from leap_core.labelers.prompts import box_iou, sigmoid
@@ -327,7 +327,7 @@ class Sam3Labeler(ImageModelLabeler):
         if self._folder is None:
             rt = self.runtime
             self._folder = resolve_model_folder(self.config.model_id, rt.models_dir, rt.allow_download)
-            model_type = _read_model_type(self._folder)
+            model_type = read_model_type(self._folder)
             if model_type not in MODEL_TYPES:
                 raise ModelLoadError(
                     f"{self._folder}: holds a {model_type or 'unknown'!r} model, expected a SAM 3 model "
@@ -360,7 +360,7 @@ class Sam3Labeler(ImageModelLabeler):
                 self._tokenizer = AutoTokenizer.from_pretrained(str(self.folder), local_files_only=True)
             except Exception as exc:  # transformers raises many types for a broken folder
                 raise ModelLoadError(
-                    f"{self.folder}: cannot read the tokenizer of {self.config.model_id} ({_first_line(exc)})"
+                    f"{self.folder}: cannot read the tokenizer of {self.config.model_id} ({first_line(exc)})"
                 ) from exc
         return self._tokenizer
 
@@ -383,7 +383,7 @@ class Sam3Labeler(ImageModelLabeler):
             import torch
 
             device = pick_device(self.runtime.device)
-            model = _load_model(self.folder, self.config.model_id, "Sam3Model", device)
+            model = load_model(self.folder, self.config.model_id, "Sam3Model", device)
             dtype = torch.float32
             if device == "cuda" and self.config.half_precision:
                 dtype = torch.float16
