@@ -1,7 +1,7 @@
 """A viewer session per browser tab over one project's shared state, and reviewers splitting the queue.
 
 Real SQLite, real viser servers (one per tab) on a tiny hand-built run (tests/test_viewer_logic.py's
-``review_store``); no browser (tests/browser/test_viewer_tabs.py drives two real tabs).
+``review_store``); no browser (tests/browser/test_viewer_tabs_ui.py drives two real tabs).
 """
 
 from __future__ import annotations
@@ -161,3 +161,29 @@ def test_the_viewer_skips_regions_another_reviewer_claimed(review_store) -> None
         assert seen == {r.id for r in regions} - set(held)
     finally:
         viewers.close_all()
+
+
+def test_reviewer_routes_claim_release_and_report(review_store) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+
+    settings, pid, _, _, _ = review_store
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as client:
+        api = f"/api/v1/projects/{pid}"
+        r = client.post(f"{api}/review/claims", json={"reviewer": "ana", "count": 2})
+        assert r.status_code == 409 and "open the 3D viewer" in r.json()["detail"]
+        ids = _queue(settings, pid, 4)
+        assert client.post(f"{api}/review/claims", json={"reviewer": "", "count": 2}).status_code == 422
+        assert client.post(f"{api}/review/claims", json={"reviewer": "ana", "count": 0}).status_code == 422
+        r = client.post(f"{api}/review/claims", json={"reviewer": "ana", "count": 2})
+        assert r.status_code == 200 and r.json()["regions"] == ids[:2]
+        rows = client.get(f"{api}/reviewers").json()["data"]
+        assert rows == [{"reviewer": "ana", "accepted": 0, "skipped": 0, "corrections": 0, "claimed": 2}]
+        assert client.post(f"{api}/review/claims/release", json={"reviewer": "ana"}).json() == {"released": 2}
+        # A viewer route naming a tab that is not one is refused before any lookup.
+        assert client.get(f"{api}/viewer/nav?tab=..%2F..").status_code == 422
+        opened = client.post(f"{api}/viewer", json={"reviewer": "ana"}).json()
+        assert client.get(f"{api}/viewer/nav?tab={opened['tab']}").status_code == 200
+        assert client.get(f"{api}/viewer/nav?tab=AAAAAAAAAAAA").status_code == 404
+        assert client.get(f"{api}/viewer/tabs/AAAAAAAAAAAA/client/").status_code == 404

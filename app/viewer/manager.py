@@ -463,6 +463,8 @@ class ProjectViewer:
                 log.exception("viewer of project %d could not read its runs", self.backend.project_id)
 
     def _follow_once(self) -> None:
+        if not self.tabs():
+            return  # every tab closed: nothing to follow for until the next one opens
         active = self.backend.active_run()
         if active is not None and active.run_id != self._followed:
             # Every tab shows its progress and loads it when it ends (RunWatcher, per tab).

@@ -9,6 +9,7 @@ import { sequenceQuery } from "./review.js";
 
 const NAME_KEY = "leap.reviewer";
 const BATCH = 10;
+const MAX_BATCH = 500;
 
 /** This browser's reviewer name ("" until given). */
 export function reviewerName() {
@@ -52,6 +53,8 @@ export async function renderReviewers(ctx) {
     h("option", { value: "disagreement" }, "disagreement queue"),
   );
 
+  const count = h("input", { id: "claim-count", type: "number", min: "1", max: String(MAX_BATCH), value: String(BATCH) });
+
   const needName = () => {
     const who = reviewerName();
     if (!who) {
@@ -65,7 +68,8 @@ export async function renderReviewers(ctx) {
     const who = needName();
     if (!who) return;
     try {
-      const body = { reviewer: who, count: BATCH, kind: kind.value, ...sequenceBody(ctx) };
+      const n = Math.min(MAX_BATCH, Math.max(1, Math.round(Number(count.value) || BATCH)));
+      const body = { reviewer: who, count: n, kind: kind.value, ...sequenceBody(ctx) };
       const r = await post(`/projects/${projectId}/review/claims`, body);
       message.textContent = r.regions.length
         ? `You hold ${r.regions.length} regions for an hour; the others' viewers skip them.`
@@ -131,8 +135,10 @@ export async function renderReviewers(ctx) {
     h(
       "p",
       {},
-      h("button", { class: "btn", id: "claim-button", onclick: claim }, `Claim ${BATCH} regions`),
-      " of the ",
+      h("button", { class: "btn", id: "claim-button", onclick: claim }, "Claim"),
+      " ",
+      count,
+      " regions of the ",
       kind,
       " ",
       h("button", { class: "btn secondary", id: "release-button", onclick: release }, "Release my claims"),
