@@ -187,3 +187,46 @@ def test_reviewer_routes_claim_release_and_report(review_store) -> None:
         assert client.get(f"{api}/viewer/nav?tab={opened['tab']}").status_code == 200
         assert client.get(f"{api}/viewer/nav?tab=AAAAAAAAAAAA").status_code == 404
         assert client.get(f"{api}/viewer/tabs/AAAAAAAAAAAA/client/").status_code == 404
+
+
+def test_migration_9_keeps_existing_corrections_and_marks_unnamed(tmp_path) -> None:
+    from app.core import db as dbmod
+
+    path = tmp_path / "old.db"
+    with dbmod.open_db(path) as db:
+        db.execute(
+            "CREATE TABLE schema_version (version INTEGER PRIMARY KEY, description TEXT NOT NULL, "
+            "applied_at TEXT NOT NULL)"
+        )
+        for number, description, apply in dbmod.MIGRATIONS:
+            if number <= 8:
+                apply(db)
+                db.execute("INSERT INTO schema_version VALUES (?, ?, 'then')", [number, description])
+        db.execute(
+            "INSERT INTO projects (name, created_at, updated_at, dataset_kind, dataset_path, schema_json, "
+            "pipeline_json) VALUES ('p', 'then', 'then', 'folder', '/x', '{}', '{}')"
+        )
+        pid = db.execute("SELECT id FROM projects").fetchone()[0]
+        db.execute(
+            "INSERT INTO project_sequences (project_id, position, name, dataset_path) "
+            "VALUES (?, 0, 'x', '/x')",
+            [pid],
+        )
+        db.execute(
+            "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
+            "author, sequence) VALUES (?, 'then', 'car', 0.5, x'', 1, 'map', 'viewer', 'x')",
+            [pid],
+        )
+        db.execute(
+            "INSERT INTO review_marks (project_id, region, signature, state, run_id, updated_at) "
+            "VALUES (?, 'x/4m:0,0,0', 's', 'accepted', NULL, 'then')",
+            [pid],
+        )
+    assert dbmod.init_db(path) == dbmod.SCHEMA_VERSION >= 9
+    with dbmod.open_db(path) as db:
+        assert "review_claims" in db.table_names()
+        (correction,) = crud.list_corrections(db, pid)
+        assert correction.reviewer is None and correction.author == "viewer"
+        assert reviewers.reviewer_progress(db, pid) == []  # unnamed work is nobody's
+        crud.set_review_mark(db, pid, region="4m:0,0,0", signature="s", state="skipped", reviewer="ana")
+        assert [(p.reviewer, p.skipped) for p in reviewers.reviewer_progress(db, pid)] == [("ana", 1)]
