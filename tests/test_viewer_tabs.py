@@ -95,6 +95,13 @@ def test_tabs_follow_a_run_started_elsewhere_unless_they_stay(review_store) -> N
         assert _wait(lambda: stay.newer_run is not None and stay.newer_run.run_id == new.id)
         stay.set_stay_on_run(False)  # unticked: the newer run loads, from the copy the other tab read
         assert stay.run is not None and stay.run.run_id == new.id and stay.grid is follow.grid
+        # A run whose stages were all reused finishes between two looks of the follower: still loaded.
+        with open_db(settings.database) as db:
+            quick = crud.create_run(db, project_id=pid, params=old.params, runs_dir=settings.runs_dir)
+            shutil.copytree(old.sequence_layout("00").folder, quick.sequence_layout("00").folder)
+            crud.update_run(db, quick.id, status="done")
+        assert _wait(lambda: follow.run is not None and follow.run.run_id == quick.id)
+        assert _wait(lambda: stay.run is not None and stay.run.run_id == quick.id)
     finally:
         viewers.close_all()
 

@@ -45,12 +45,12 @@ class OverlayCache:
         self, grid: ReviewGrid, key: Hashable, keys: npt.NDArray[np.int64], labels: npt.NDArray[np.int16]
     ) -> Overlay:
         """``grid`` with ``labels`` imposed on the voxels ``keys``; ``key`` identifies those corrections."""
+        # Computed under the lock: tabs told of a correction at once wait for the first and share its arrays.
         with self._lock:
             for g, k, arrays in self._entries:
                 if g is grid and k == key:
                     return arrays
-        arrays = vl.apply_corrections(grid.keys, grid.label, grid.conf, keys, labels)
-        with self._lock:
+            arrays = vl.apply_corrections(grid.keys, grid.label, grid.conf, keys, labels)
             # One entry per grid (its latest corrections), for the last ``keep`` grids shown.
             others = [e for e in self._entries if e[0] is not grid]
             self._entries = [*others[max(0, len(others) - self._keep + 1) :], (grid, key, arrays)]

@@ -328,6 +328,8 @@ class ProjectViewer:
         self._runs_lock = threading.Lock()
         self._stop = threading.Event()
         self._followed: int | None = None
+        latest = self.backend.latest_finished_run()
+        self._finished: int | None = None if latest is None else latest.run_id
         self._thread = threading.Thread(target=self._follow_loop, name="viewer-project", daemon=True)
         self._thread.start()
 
@@ -471,6 +473,15 @@ class ProjectViewer:
             for session in self.tabs():
                 session.runs.watch(active.run_id)
         self._followed = None if active is None else active.run_id
+        # A run whose stages were all reused can start and finish between two looks: hand a newly finished
+        # run to the tabs that show an older one (their watcher loads it, or keeps it as the newer run).
+        done = self.backend.latest_finished_run()
+        if done is not None and done.run_id != self._finished:
+            self._finished = done.run_id
+            for session in self.tabs():
+                shown = session.run
+                if shown is None or shown.run_id < done.run_id:
+                    session.runs.watch(done.run_id)
         now = time.monotonic()
         idle = []
         with self._lock:

@@ -101,6 +101,12 @@ class ReviewPanel:
                 False,
                 hint="Keep this run shown when a newer run of the project finishes (else it loads)",
             )
+            reviewer = getattr(session.backend, "reviewer", None)
+            self.reviewer = gui.add_markdown(
+                f"Reviewing as **{html.escape(reviewer)}**"
+                if reviewer
+                else "No reviewer name: give it in the project page's *Reviewers* card first."
+            )
 
         with gui.add_folder("View", order=1):
             self.color_by = gui.add_dropdown("Color by", COLOR_BY, initial_value="class")

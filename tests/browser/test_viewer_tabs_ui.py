@@ -8,7 +8,6 @@ localStorages) claim disjoint batches of the review queue from the project page.
 
 from __future__ import annotations
 
-import re
 import sys
 import time
 from collections.abc import Iterator
@@ -70,7 +69,10 @@ def _open_tab(street: dict[str, Any], context: Any = None, reviewer: str | None 
 def test_two_tabs_browse_apart_and_see_each_others_corrections(street: dict[str, Any]) -> None:
     from playwright.sync_api import expect
 
-    page_a, a = _open_tab(street)
+    from app import crud
+    from app.core.db import open_db
+
+    page_a, a = _open_tab(street, reviewer="ana")
     page_b, b = _open_tab(street)
     try:
         assert a is not b and a.grid is b.grid  # one copy of the run for both tabs
@@ -102,6 +104,11 @@ def test_two_tabs_browse_apart_and_see_each_others_corrections(street: dict[str,
         expect(page_b.get_by_text("1 active corrections", exact=False)).to_be_visible(timeout=2_000)
         print(f"tab B showed tab A's correction {time.monotonic() - t0:.2f} s after tab A stored it")
         assert b.label is a.label and b.player.frame_pos == start - 1  # B kept its own scan
+        # Tab A was opened for reviewer "ana": its panel says so, and the correction carries the name.
+        expect(page_a.get_by_text("Reviewing as ana", exact=True)).to_be_visible(timeout=10_000)
+        with open_db(street["live"].settings.database) as db:
+            (correction,) = crud.list_corrections(db, street["pid"])
+        assert correction.reviewer == "ana"
     finally:
         page_a.close()
         page_b.close()
@@ -113,22 +120,34 @@ def test_a_run_started_on_the_project_page_reaches_an_open_viewer(street: dict[s
     live, api, pid = street["live"], street["api"], street["pid"]
     page, session = _open_tab(street)
     project = street["browser"].new_page(viewport={"width": 1280, "height": 800})
+    # What the tab's panel is told about runs (the real panel, watched): a run whose stages are mostly
+    # reused can pass through "running" between two looks of the page.
+    told: list[tuple[int, str]] = []
+    panel_progress = session.panel.on_run_progress
+
+    def on_run_progress(info: Any) -> None:
+        told.append((info.run_id, info.status))
+        panel_progress(info)
+
+    session.panel.on_run_progress = on_run_progress
     try:
         shown = session.run
         assert shown is not None
+        # New prompts for a class: the run relabels the images, so it is in progress for a while.
+        edited = api.patch(f"/projects/{pid}/classes/car", json={"prompts": ["car", "automobile"]})
+        assert edited.status_code == 200, edited.text
         project.goto(f"{live.base}/#/projects/{pid}")
         project.locator("#run-button").click()
 
         def started() -> dict[str, Any] | None:
             runs = api.get(f"/projects/{pid}/runs").json()["data"]
-            return next((r for r in runs if r["id"] != shown.run_id), None)
+            return next((r for r in runs if r["id"] != shown.run_id and r["id"] > shown.run_id), None)
 
         run = wait_until(started, 30, "the run started on the project page")
         number, run_id = run["number"], run["id"]
-        # The open viewer shows the run in progress, then loads it when it ends.
-        progress = page.get_by_text(re.compile(rf"Run {number} (queued|running)"))
-        expect(progress).to_be_visible(timeout=30_000)
+        # The open viewer follows the run's progress, then loads it when it ends.
         wait_until(lambda: session.run is not None and session.run.run_id == run_id, 600, "the new run")
+        assert any(r == run_id and status in ("queued", "running") for r, status in told), told
         expect(page.get_by_text(f"Run {number} (id {run_id})", exact=False)).to_be_visible(timeout=30_000)
         expect(page.get_by_text(f"Stay on run {number}", exact=True)).to_be_visible(timeout=10_000)
     finally:
