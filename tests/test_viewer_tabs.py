@@ -194,6 +194,14 @@ def test_reviewer_routes_claim_release_and_report(review_store) -> None:
         assert client.get(f"{api}/viewer/nav?tab={opened['tab']}").status_code == 200
         assert client.get(f"{api}/viewer/nav?tab=AAAAAAAAAAAA").status_code == 404
         assert client.get(f"{api}/viewer/tabs/AAAAAAAAAAAA/client/").status_code == 404
+        # A link on a tab's page (the scan image) names its tab by the page it is on.
+        later = client.post(f"{api}/viewer", json={}).json()
+        viewers = client.app.state.viewers
+        viewers.get(pid, opened["tab"]).player.show_scan(0)
+        viewers.get(pid, later["tab"]).player.show_scan(2)
+        page = {"Referer": f"http://127.0.0.1{opened['url']}"}
+        assert client.get(f"{api}/viewer/nav", headers=page).json()["pos"] == 0
+        assert client.get(f"{api}/viewer/nav").json()["pos"] == 2  # no tab named: the one opened last
 
 
 def test_migration_9_keeps_existing_corrections_and_marks_unnamed(tmp_path) -> None:

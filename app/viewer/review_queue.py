@@ -61,6 +61,9 @@ class ReviewQueue:
         self.player = player
         self.corrections = corrections
         self.notify = notify
+        self.claimed_by_others: Callable[[], Collection[str]] = tuple
+        """Identities of the regions other reviewers claimed (:mod:`app.reviewers`), which stepping skips;
+        set by the app's viewer (none by default)."""
         self.regions: list[rl.Region] = []
         """The ranked regions, worst first."""
         self.region_pos = -1
@@ -73,9 +76,6 @@ class ReviewQueue:
         """Content signature of each region of :attr:`regions` (same order)."""
         self.marks: dict[str, ReviewMarkRecord] = {}
         """The project's marks by region identity, as last read."""
-        self.claimed_by_others: Callable[[], Collection[str]] = tuple
-        """Identities of the regions other reviewers claimed (:mod:`app.reviewers`), which stepping skips;
-        set by the app's viewer (none by default)."""
 
     @property
     def focus(self) -> rl.Region | None:

@@ -6,7 +6,7 @@
 // scan change (keys, panel slider, play) and opens or closes from the panel's button too.
 
 import { bind, notify } from "./keys.js";
-import { projectId, viewerApi, viewerPath } from "./viewer-api.js";
+import { projectId, viewerApi } from "./viewer-api.js";
 
 const GROUP = "Scans and camera";
 const POLL_MS = 800;
@@ -50,7 +50,7 @@ function render() {
   if (shownPos !== state.pos) {
     shownPos = state.pos;
     // The query only defeats the browser cache; the route always serves the shown scan.
-    box.querySelector("img").src = `/api/v1${viewerPath(`nav/image?pos=${state.pos}`)}`;
+    box.querySelector("img").src = `/api/v1/projects/${projectId}/viewer/nav/image?pos=${state.pos}`;
   }
   box.querySelector(".leap-image-caption").textContent =
     `Scan ${state.frame_id} (${state.pos + 1}/${state.count}). Press I or click to close.`;

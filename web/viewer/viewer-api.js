@@ -16,7 +16,8 @@ const tabMatch = window.location.pathname.match(/\/viewer\/tabs\/([A-Za-z0-9_-]+
 /** This browser tab's viewer session (each tab has its own scan, camera, selection and focus). */
 export const tabId = tabMatch ? tabMatch[1] : null;
 
-/** Path of one of this tab's viewer routes under /api/v1, e.g. `viewerPath("nav/image")`. */
+/** Path of one of this tab's viewer routes under /api/v1. (A plain link from this page, such as the scan
+ * image, names its tab by the page it is on: the app reads the Referer.) */
 export function viewerPath(path) {
   const tab = tabId ? `${path.includes("?") ? "&" : "?"}tab=${tabId}` : "";
   return `/projects/${projectId}/viewer/${path}${tab}`;

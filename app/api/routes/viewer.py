@@ -90,7 +90,11 @@ class ViewerOpen(BaseModel):
 
 TAB_QUERY = "tab"
 """Query parameter naming the viewer tab a viewer route acts on (web/viewer/viewer-api.js adds it to every
-call, and to the scan image's link; without it, the tab opened last)."""
+call; a request from a tab's page without it, such as the scan image, is that page's tab by its Referer;
+else the tab opened last)."""
+
+_TAB_PAGE = re.compile(r"/viewer/tabs/([^/?#]+)/client/")
+"""A viewer tab's page in a Referer."""
 
 TabId = Annotated[str, PathParam(pattern=TAB_PATTERN, description="the viewer tab")]
 
@@ -113,6 +117,10 @@ def get_viewers(request: Request) -> ViewerManager:
         manager = ViewerManager(state.settings, getattr(state, "jobs", None))
         state.viewers = manager
     tab = request.query_params.get(TAB_QUERY)
+    if tab is None:
+        # A link on a tab's page (the scan image) cannot add the query: its Referer names the tab.
+        page = _TAB_PAGE.search(request.headers.get("referer", ""))
+        tab = None if page is None else page.group(1)
     if tab is None:
         return manager
     if re.fullmatch(TAB_PATTERN, tab) is None:
