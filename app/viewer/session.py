@@ -1,5 +1,9 @@
 """One review session: a run's data, the scene, the GUI panel, and the project it steers.
 
+In the app each browser tab has its own session, with its own viser server
+(:class:`app.viewer.manager.ProjectViewer`); the tabs of a project share the loaded run (``data=``) and the
+corrected labels (``overlays=``), and are told of each other's corrections, marks and runs.
+
 :class:`ReviewSession` coordinates rooms, one object per concern, each a handle the panel and the API routes
 call (as viser's ``server.scene`` / ``server.gui``):
 
