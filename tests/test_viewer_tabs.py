@@ -245,3 +245,24 @@ def test_migration_9_keeps_existing_corrections_and_marks_unnamed(tmp_path) -> N
         assert reviewers.reviewer_progress(db, pid) == []  # unnamed work is nobody's
         crud.set_review_mark(db, pid, region="4m:0,0,0", signature="s", state="skipped", reviewer="ana")
         assert [(p.reviewer, p.skipped) for p in reviewers.reviewer_progress(db, pid)] == [("ana", 1)]
+
+
+def test_a_review_mark_in_one_tab_shows_in_the_others(review_store) -> None:
+    settings, pid, _, _, _ = review_store
+    config = SessionConfig(poll_interval_s=0.1, queue_share=1.0, queue_cell=1.0, queue_min_count=1)
+    viewers = ViewerManager(settings, config=config, tab_idle_s=600)
+    try:
+        a = viewers.get(pid, viewers.open(pid, reviewer="ana").tab)
+        b = viewers.get(pid, viewers.open(pid, reviewer="ben").tab)
+        assert a is not None and b is not None
+        total = len(a.queue.build_queue("confidence"))
+        assert len(b.queue.build_queue("confidence")) == total
+        region = a.queue.next_region()
+        assert region is not None and b.queue.focus is None  # the focus is tab A's alone
+        a.queue.mark_region("accepted")
+        assert b.queue.review_progress()["reviewed"] == 1
+        assert b.panel.review.progress.content.startswith(f"1 / {total} reviewed")
+        with open_db(settings.database) as db:
+            assert [(p.reviewer, p.accepted) for p in reviewers.reviewer_progress(db, pid)] == [("ana", 1)]
+    finally:
+        viewers.close_all()

@@ -449,11 +449,15 @@ class ProjectViewer:
             threading.Thread(target=_guarded(session.corrections.refresh), daemon=True).start()
 
     def push_marks(self, skip: str | None = None) -> None:
-        """Re-read the review marks in every tab but ``skip``."""
+        """Re-read the review marks in every tab but ``skip``, and show its queue's progress with them."""
         for session in self._others(skip):
             marks = session.backend.review_marks()
+            queue = session.queue
             with session.shared.lock:
-                session.queue.marks = marks
+                queue.marks = marks
+                shown = queue.queue_built and not queue.queue_building
+            if shown:
+                session.notify.panel.on_queue(False)
 
     # --------------------------------------------------------------------------------- following runs
     def _follow_loop(self) -> None:
