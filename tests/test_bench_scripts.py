@@ -42,6 +42,7 @@ SMOKE: dict[str, tuple[list[str], str]] = {
     "bench_scale.py": (["--frames", "2", "--seeds", "0", "--repeat", "1", "--no-cached"], "checks"),
     "bench_scan.py": (["--quick"], "outputs identical: yes"),
     "bench_synth.py": (["--quick"], "brute force (baseline)"),
+    "bench_viewer_tabs.py": (["--quick"], "each further tab"),
     "bench_viewer.py": (
         [
             "--voxels",
