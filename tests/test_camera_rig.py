@@ -1,0 +1,171 @@
+"""A rig of several cameras per frame: the layouts that declare it (``image_K/`` with ``PK``, or
+``cameras.yaml``), and a run where each camera alone sees about half the points: every point in either
+view is labeled, and a point both cameras see fuses both observations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from runhelpers import label
+
+from leap_core.config import PipelineConfig
+from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_png16, write_poses, write_scan
+from leap_core.datasets.rig import RIG_FILE, Camera, camera_rig_text
+from leap_core.errors import DatasetError
+from leap_core.fusion import VoxelGrid, log_table
+from leap_core.labelers.simulated import SimulatedLabelerConfig
+from leap_core.pipeline.apply import frame_keys
+from leap_core.pipeline.context import load_observation
+from leap_core.projection import project_points
+from leap_core.schema import builtin_schema
+
+H, W, F = 48, 64, 50.0
+AXES = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+"""LiDAR axes (x forward, y left, z up) → camera axes (x right, y down, z forward)."""
+ROAD, SIDEWALK = 40, 48
+"""What the left and the right camera see everywhere (raw SemanticKITTI ids)."""
+
+
+def yawed(deg: float) -> np.ndarray:
+    """(4, 4) LiDAR → camera for a camera at the LiDAR turned ``deg`` to the left."""
+    t = np.deg2rad(deg)
+    rz = np.array([[np.cos(t), np.sin(t), 0.0], [-np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+    tr = np.eye(4)
+    tr[:3, :3] = AXES @ rz
+    return tr
+
+
+K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+P = np.concatenate([K, np.zeros((3, 1))], axis=1)
+RIG = (Camera("left", P, yawed(25.0)), Camera("right", P, yawed(-25.0)))
+"""Each camera sees ±32.6° about its axis: the two overlap within 7.6° of straight ahead."""
+
+
+def two_camera_sequence(root: Path, n_points: int = 600) -> Path:
+    """One scan whose points spread over ±55° ahead; ``cameras.yaml`` with the left and right camera,
+    whose 2D ground truth is road (left) and sidewalk (right) everywhere."""
+    rng = np.random.default_rng(3)
+    az = np.deg2rad(rng.uniform(-55.0, 55.0, n_points))
+    r = rng.uniform(4.0, 20.0, n_points)
+    pts = np.column_stack(
+        [r * np.cos(az), r * np.sin(az), rng.uniform(-1.0, 0.5, n_points), np.ones(n_points)]
+    )
+    write_scan(root / "velodyne" / "000000.bin", pts.astype(np.float32))
+    write_calib(root / "calib.txt", Calib(P2=P, Tr=RIG[0].Tr))
+    write_poses(root / "poses.txt", np.eye(4)[None])
+    (root / RIG_FILE).write_text(camera_rig_text(RIG))
+    for folder, raw in (("gt2d", ROAD), ("gt2d/right", SIDEWALK)):
+        write_png16(root / folder / "semantic" / "000000.png", np.full((H, W), raw, np.uint16))
+        write_png16(root / folder / "instance" / "000000.png", np.zeros((H, W), np.uint16))
+    return root
+
+
+def test_kitti_layout_reads_image_3_with_p3(tmp_path: Path, make_tiny_sequence) -> None:
+    tiny = make_tiny_sequence(tmp_path, n_frames=1)
+    seq = KittiSequence(tiny.root)
+    assert [c.name for c in seq.cameras] == ["image_2"]  # the one-camera layout
+    (tiny.root / "image_3").mkdir()
+    text = (tiny.root / "calib.txt").read_text()
+    (tiny.root / "calib.txt").write_text(text.replace("P3:", "Px:"))
+    with pytest.raises(DatasetError, match=r"calib.txt: no 'P3:' line for the camera folder image_3/"):
+        KittiSequence(tiny.root)
+    p3 = tiny.calib.P2.copy()
+    p3[0, 3] = -F * 0.54
+    (tiny.root / "calib.txt").write_text(text + "P3: " + " ".join(map(str, p3.reshape(-1))) + "\n")
+    seq = KittiSequence(tiny.root)
+    assert [(c.name, c.source) for c in seq.cameras] == [
+        ("image_2", "calib.txt P2"),
+        ("image_3", "calib.txt P3"),
+    ]
+    np.testing.assert_array_equal(seq.cameras[1].lidar_to_image, p3 @ tiny.calib.Tr)
+    assert not seq.frame(0, 1).has_image
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("cameras: {}\n", "expected 'cameras:' mapping"),
+        (
+            "cameras:\n  velodyne: {P: [1,0,0,0, 0,1,0,0, 0,0,1,0]}\n",
+            "cameras.velodyne: 'velodyne' is a folder",
+        ),
+        ("cameras:\n  a: {P: [1, 2, 3]}\n", r"cameras.a.P: has 3 values, expected 12"),
+        ("cameras:\n  a: {P: [0,0,0,0, 0,0,0,0, 0,0,1,0]}\n", r"cameras.a.P: left 3×3 block is singular"),
+        ("cameras:\n  a: {P: [1,0,0,0, 0,1,0,0, 0,0,1,0], R: 1}\n", r"cameras.a: unknown key 'R'"),
+        (
+            "cameras:\n  ../up: {P: [1,0,0,0, 0,1,0,0, 0,0,1,0]}\n",
+            r"cameras.../up: a camera name is a folder",
+        ),
+    ],
+)
+def test_bad_rig_file_names_file_and_field(
+    tmp_path: Path, make_tiny_sequence, text: str, problem: str
+) -> None:
+    tiny = make_tiny_sequence(tmp_path, n_frames=1)
+    (tiny.root / RIG_FILE).write_text(text)
+    with pytest.raises(DatasetError, match=rf"cameras.yaml: {problem}"):
+        KittiSequence(tiny.root)
+
+
+def test_each_camera_paints_and_overlaps_fuse_both(tmp_path: Path) -> None:
+    root = two_camera_sequence(tmp_path / "sequences" / "00")
+    seq = KittiSequence(root)
+    assert [c.name for c in seq.cameras] == ["left", "right"]
+    pts = seq.frame(0).points
+    seen = [np.zeros(len(pts), bool) for _ in RIG]
+    for k, cam in enumerate(RIG):
+        seen[k][project_points(pts, cam.lidar_to_image, H, W).idx] = True
+    both = seen[0] & seen[1]
+    # The premise: each camera alone sees about half the points, and some points both see.
+    assert 0.4 < seen[0].mean() < 0.7 and 0.4 < seen[1].mean() < 0.7 and both.sum() >= 20
+
+    schema = builtin_schema("semantickitti")
+    cfg = PipelineConfig().with_labeler_config(SimulatedLabelerConfig.exact())
+    result = label(root, schema, cfg, tmp_path / "run", until="label_points")
+    lay = result.folder
+    assert (lay / "labels2d" / "right" / "000000.npz").is_file()
+    painted, n, in_view = load_observation(lay / "observations" / "000000.npz")
+    np.testing.assert_array_equal(in_view, seen[0] | seen[1])  # "in view" = in any camera's view
+    labels = np.load(lay / "points" / "000000.npz")["label"]
+    assert (labels[in_view] >= 0).all(), "a point in some camera's view stayed unlabeled"
+    road, sidewalk = schema.index("road"), schema.index("sidewalk")
+    point_label = painted.point_labels(n)
+    assert (point_label[seen[0] & ~seen[1]] == road).all()
+    assert (point_label[seen[1] & ~seen[0]] == sidewalk).all()
+
+    # A point both cameras see has two observations, and its voxel's log-likelihood is their sum.
+    observations = np.bincount(painted.point_idx, minlength=n)
+    np.testing.assert_array_equal(observations, seen[0].astype(int) + seen[1].astype(int))
+    keys = frame_keys(seq.frame(0), cfg.fusion.voxel_size)
+    alone = np.bincount(np.unique(keys, return_inverse=True)[1]) == 1
+    lonely = both & alone[np.unique(keys, return_inverse=True)[1]]
+    assert lonely.sum() >= 10
+    grid = VoxelGrid.load(lay / "grid.npz")
+    logp = grid.logp[grid.lookup(keys[lonely])].astype(np.float32)
+    obs = log_table(painted.table, cfg.fusion.prob_floor)
+    for row, p in zip(logp, np.flatnonzero(lonely), strict=True):
+        mine = painted.rows[painted.point_idx == p]
+        want = obs[mine].sum(axis=0)
+        want = np.maximum(want - want.max(), -cfg.fusion.logp_clip)
+        np.testing.assert_allclose(row, want, atol=2e-2)
+    # Road from one camera and sidewalk from the other: both at the top of the fused distribution.
+    assert (logp[:, road] == 0).all() and (logp[:, sidewalk] == 0).all()
+
+
+def test_check_reports_each_camera(tmp_path: Path) -> None:
+    from app.advice import render_cli, report_dict
+    from leap_core.pipeline.preflight import check_dataset
+
+    root = two_camera_sequence(tmp_path / "sequences" / "00")
+    (root / "gt2d" / "right" / "instance" / "000000.png").unlink()
+    report = check_dataset(root, check_models=False)
+    assert [(c.name, c.source, c.gt2d.present) for c in report.cameras] == [
+        ("left", "cameras.yaml", 1),
+        ("right", "cameras.yaml", 0),
+    ]
+    text = render_cli(report)
+    assert "cameras   2, each painting the points in its view" in text
+    assert "  right          cameras.yaml; 0 of 1 scans have its image, 0 its 2D ground truth" in text
+    assert report_dict(report, "app")["cameras"][0]["gt2d"]["kind"] == "all"
