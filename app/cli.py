@@ -1408,10 +1408,15 @@ def synth(
         help="; ".join(f"{k}: {v}" for k, v in SYNTH_DOMAINS.items()) + ".",
         autocompletion=lambda: list(SYNTH_DOMAINS),
     ),
+    cameras: int = typer.Option(
+        1,
+        "--cameras",
+        help="Cameras of the street rig: 1 (front), 2 (front, rear) or 4 (front, rear, left, right).",
+    ),
 ) -> None:
     """Generate a demo sequence in the KITTI / SemanticKITTI layout: a procedural street (default), with
     --domain street-32 another town seen by a 32-beam LiDAR, or with --domain agri-uav a drone survey of a
-    farm."""
+    farm; --cameras 4 gives the street a surround rig."""
     import time
 
     from tqdm import tqdm
@@ -1431,7 +1436,10 @@ def synth(
         bars[0].update(done - bars[0].n)
 
     try:
-        config = domain_config(domain, frames, seed)
+        config = domain_config(domain, frames, seed, cameras)
+    except ValueError as exc:
+        raise fail(f"--cameras: {exc}") from None
+    try:
         stats = generate_sequence(
             out,
             config,
@@ -1447,7 +1455,8 @@ def synth(
             bar.close()
     typer.echo(
         f"wrote {stats.path} in {time.perf_counter() - start:.1f} s: {frames} frames, "
-        f"{stats.points.mean():.0f} points/scan, {100 * stats.in_image_share:.1f}% in the image"
+        f"{stats.points.mean():.0f} points/scan, {100 * stats.in_image_share:.1f}% in "
+        + ("the image" if cameras == 1 else f"some camera's image ({cameras} cameras)")
     )
 
 

@@ -169,3 +169,47 @@ def test_check_reports_each_camera(tmp_path: Path) -> None:
     assert "cameras   2, each painting the points in its view" in text
     assert "  right          cameras.yaml; 0 of 1 scans have its image, 0 its 2D ground truth" in text
     assert report_dict(report, "app")["cameras"][0]["gt2d"]["kind"] == "all"
+
+
+def test_synth_surround_rig_agrees_with_its_ground_truth(tmp_path: Path) -> None:
+    """``leap synth --cameras 4``: four cameras rendered from the same world, each with its 2D ground
+    truth; labelled points projected with each camera's ``P · Tr`` land on a pixel of their class."""
+    from dataclasses import replace
+
+    from leap_core.synth import generate_sequence
+    from leap_core.synth.camera import CameraConfig
+    from leap_core.synth.generator import SynthConfig
+    from leap_core.synth.lidar import LidarConfig
+    from leap_core.synth.scene import SceneConfig
+
+    small = SynthConfig(
+        frames=1,
+        lidar=LidarConfig(beams=24, azimuth_step_deg=0.8),
+        camera=CameraConfig().scaled(0.25),
+        scene=SceneConfig(margin=90.0),
+    )
+    front = generate_sequence(tmp_path / "one", small)
+    stats = generate_sequence(tmp_path / "four", replace(small, cameras=4))
+    seq = KittiSequence(stats.path)
+    assert [c.name for c in seq.cameras] == ["image_2", "image_rear", "image_left", "image_right"]
+    # The front camera's files are those of the one-camera sequence, byte for byte.
+    for rel in ("image_2/000000.png", "gt2d/semantic/000000.png", "velodyne/000000.bin"):
+        assert (stats.path / rel).read_bytes() == (front.path / rel).read_bytes()
+    assert stats.in_image_share > 2.5 * front.in_image_share
+    frame = seq.frame(0)
+    sem = (frame.labels & 0xFFFF).astype(np.uint16)
+    seen = np.zeros(len(sem), bool)
+    for view in frame.cameras():
+        gt = view.gt2d_semantic
+        proj = project_points(frame.points, view.rig_camera.lidar_to_image, *gt.shape)
+        seen[proj.idx] = True
+        pad = np.pad(gt, 1, mode="edge")
+        inner = np.ones_like(gt, bool)  # away from class edges, where camera and LiDAR see different surfaces
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                inner &= pad[dy : dy + gt.shape[0], dx : dx + gt.shape[1]] == gt
+        keep = inner[proj.v, proj.u]
+        assert keep.sum() > 100, view.rig_camera.name
+        agree = (gt[proj.v[keep], proj.u[keep]] == sem[proj.idx[keep]]).mean()
+        assert agree >= 0.9, (view.rig_camera.name, agree)
+    assert seen.sum() == stats.in_image[0]
