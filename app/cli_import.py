@@ -122,7 +122,9 @@ def nuscenes_cmd(
     version: str = typer.Option("v1.0-mini", "--version", help="Table folder: v1.0-mini, v1.0-trainval, ..."),
     scene: str = typer.Option(..., "--scene", help="Scene name, e.g. scene-0061."),
     camera: str = typer.Option(
-        "CAM_FRONT", "--camera", help="Camera channel whose keyframe images are used."
+        "CAM_FRONT",
+        "--camera",
+        help="Camera channel whose keyframe images are used; several separated by commas, or all: a rig.",
     ),
     out: str | None = typer.Option(
         None, "--out", help="Sequence folder to write (default: data/nuscenes/<scene>)."

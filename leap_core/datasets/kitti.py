@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from leap_core.datasets.rig import (
+    FRAME_TR_FOLDER,
     GT2D_KINDS,
     PRIMARY_FOLDER,
     RIG_FILE,
@@ -677,10 +678,13 @@ class Frame:
     def calib(self) -> Calib:
         """The calibration of the frame's camera: ``P2`` its projection, ``Tr`` LiDAR → that camera (for
         the primary camera of a KITTI layout, the sequence's ``calib.txt``)."""
-        if self.camera == 0 and self.seq.rig_source == "calib.txt":
+        if (
+            self.camera == 0
+            and self.seq.rig_source == "calib.txt"
+            and self.seq.camera_tr(self.index) is self.seq.calib.Tr
+        ):
             return self.seq.calib
-        cam = self.rig_camera
-        return Calib(P2=cam.P, Tr=cam.Tr)
+        return Calib(P2=self.rig_camera.P, Tr=self.seq.camera_tr(self.index, self.camera))
 
     @property
     def has_image(self) -> bool:
@@ -823,8 +827,44 @@ class KittiSequence:
             # subset as in the whole sequence.
             self._poses = lidar_poses(cam_poses, self.calib.Tr)[rows]
         self._images = self._index_images()
+        self._frame_tr = self._read_frame_transforms()
         self.times: npt.NDArray[np.float64] | None = self._read_times()
         """(F,) seconds per scan (the line of its frame number), when ``times.txt`` exists."""
+
+    def _read_frame_transforms(self) -> list[npt.NDArray[np.float64] | None]:
+        """Per camera, its (F, 4, 4) LiDAR → camera transform per scan from ``tr_frames/<camera>.txt``
+        (:mod:`leap_core.datasets.rig`), or None: the camera's ``Tr``."""
+        out: list[npt.NDArray[np.float64] | None] = []
+        cams = list(self.cameras)
+        for k, cam in enumerate(cams):
+            path = self.root / FRAME_TR_FOLDER / f"{cam.name}.txt"
+            if not path.is_file():
+                out.append(None)
+                continue
+            every = read_poses(path)
+            trs = every[_rows_of_frames(path, len(every), "transforms", self)]
+            bad = np.flatnonzero(np.abs(np.linalg.det(trs[:, :3, :3])) < 1e-6)
+            if bad.size:
+                raise DatasetError(
+                    path, f"the transform of frame {self.frame_ids[int(bad[0])]} has a singular rotation"
+                )
+            out.append(trs)
+            cams[k] = Camera(
+                cam.name, cam.P, cam.Tr, f"{cam.source}, Tr per frame from {FRAME_TR_FOLDER}/{path.name}"
+            )
+        self.cameras = tuple(cams)
+        return out
+
+    def camera_tr(self, index: int, camera: int = 0) -> npt.NDArray[np.float64]:
+        """(4, 4) LiDAR → camera ``camera`` for scan ``index``: its ``tr_frames`` line, else its ``Tr``."""
+        per_frame = self._frame_tr[camera]
+        return self.cameras[camera].Tr if per_frame is None else per_frame[index]
+
+    def lidar_to_image(self, index: int, camera: int = 0) -> npt.NDArray[np.float64]:
+        """(3, 4) ``M = P · Tr`` of camera ``camera`` for scan ``index`` (:meth:`camera_tr`)."""
+        if self._frame_tr[camera] is None:
+            return self.cameras[camera].lidar_to_image
+        return self.cameras[camera].P @ self.camera_tr(index, camera)
 
     def _read_times(self) -> npt.NDArray[np.float64] | None:
         times = self.root / "times.txt"

@@ -11,6 +11,11 @@ Two ways to declare a rig, both beside ``velodyne/``:
   camera transform ``Tr`` (row-major; ``Tr`` may be left out to take ``calib.txt``'s), in the order given.
   ``calib.txt`` keeps its role for ``poses.txt`` (whose camera frame its ``Tr`` defines).
 
+A camera whose LiDAR → camera transform changes from frame to frame (the camera fires at another time than
+the LiDAR sweep, and the vehicle moves in between: nuScenes' cameras are up to tens of milliseconds from
+the sweep) has ``tr_frames/<camera>.txt``: one 3×4 row-major ``Tr`` per line, line N = frame N as in
+``poses.txt``; it replaces the camera's ``Tr`` for projection.
+
 The first camera is the *primary* one: its 2D ground truth lies in ``gt2d/<kind>/`` and its 2D labels in
 the run's ``labels2d/<frame>.npz``, as for a one-camera sequence; camera ``name`` of the others uses
 ``gt2d/<name>/<kind>/`` and ``labels2d/<name>/<frame>.npz``. A one-camera sequence is therefore read and
@@ -34,6 +39,8 @@ from leap_core.errors import DatasetError
 
 RIG_FILE = "cameras.yaml"
 """The file naming a sequence's camera folders and their calibration (module docstring)."""
+FRAME_TR_FOLDER = "tr_frames"
+"""``tr_frames/<camera>.txt``: a camera's LiDAR → camera transform per frame (module docstring)."""
 PRIMARY_FOLDER = "image_2"
 """The first camera's folder in the KITTI layout."""
 MAX_CAMERAS = 16
@@ -195,6 +202,7 @@ def camera_rig_text(cameras: list[Camera] | tuple[Camera, ...]) -> str:
 
 
 __all__ = [
+    "FRAME_TR_FOLDER",
     "GT2D_KINDS",
     "MAX_CAMERAS",
     "PRIMARY_FOLDER",

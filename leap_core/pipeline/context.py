@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
-from leap_core.datasets.rig import GT2D_KINDS, RIG_FILE
+from leap_core.datasets.rig import FRAME_TR_FOLDER, GT2D_KINDS, RIG_FILE
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_json, file_digest, read_npz
 from leap_core.labelers import make_labeler
@@ -274,6 +274,8 @@ def dataset_identity(seq: KittiSequence) -> str:
         rig = root / RIG_FILE
         parts.append(["rig", file_digest(rig) if rig.is_file() else None])
         folders += [f for f in seq.camera_folders() if (root / f).is_dir()]
+        if (root / FRAME_TR_FOLDER).is_dir():
+            folders.append(FRAME_TR_FOLDER)
     for name in folders:
         folder = root / name
         if not folder.is_dir():

@@ -178,7 +178,8 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
                 raise DatasetError(
                     soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}"
                 )
-            proj = project_points(pts, cam.lidar_to_image, soft.height, soft.width, pcfg.min_depth)
+            m = ctx.seq.lidar_to_image(i, k)
+            proj = project_points(pts, m, soft.height, soft.width, pcfg.min_depth)
             parts.append(paint(soft, proj, pcfg))
             used.append(k)
             in_view[proj.idx] = True
