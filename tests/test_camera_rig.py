@@ -11,7 +11,15 @@ import pytest
 from runhelpers import label
 
 from leap_core.config import PipelineConfig
-from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_png16, write_poses, write_scan
+from leap_core.datasets.kitti import (
+    Calib,
+    KittiSequence,
+    write_calib,
+    write_image,
+    write_png16,
+    write_poses,
+    write_scan,
+)
 from leap_core.datasets.rig import RIG_FILE, Camera, camera_rig_text
 from leap_core.errors import DatasetError
 from leap_core.fusion import VoxelGrid, log_table
@@ -59,6 +67,8 @@ def two_camera_sequence(root: Path, n_points: int = 600) -> Path:
     for folder, raw in (("gt2d", ROAD), ("gt2d/right", SIDEWALK)):
         write_png16(root / folder / "semantic" / "000000.png", np.full((H, W), raw, np.uint16))
         write_png16(root / folder / "instance" / "000000.png", np.zeros((H, W), np.uint16))
+    for cam, grey in zip(RIG, (60, 180), strict=True):
+        write_image(root / cam.name / "000000.png", np.full((H, W, 3), grey, np.uint8))
     return root
 
 
@@ -153,6 +163,21 @@ def test_each_camera_paints_and_overlaps_fuse_both(tmp_path: Path) -> None:
     # Road from one camera and sidewalk from the other: both at the top of the fused distribution.
     assert (logp[:, road] == 0).all() and (logp[:, sidewalk] == 0).all()
 
+    # The viewer shows the scan through either camera, and boxes a region in the camera that saw it.
+    from app.viewer.data import RunOutputs
+
+    outputs = RunOutputs(lay, root)
+    palette = np.array([c.color for c in schema.classes], np.uint8)
+    views = [outputs.scan_view(0, palette, camera=k) for k in range(2)]
+    assert [v.camera for v in views] == ["left", "right"]
+    assert views[0].overlay is not None and views[1].overlay is not None
+    assert views[0].overlay[0, 0, 0] == 60 and views[1].overlay[0, 0, 0] == 180
+    vs = cfg.fusion.voxel_size
+    for k, only in ((0, seen[0] & ~seen[1]), (1, seen[1] & ~seen[0])):
+        region = np.unique(keys[only])
+        assert outputs.best_camera(0, region, vs) == k
+        assert outputs.region_observers(0, region, vs, None)[1] == only.sum()
+
 
 def test_check_reports_each_camera(tmp_path: Path) -> None:
     from app.advice import render_cli, report_dict
@@ -167,10 +192,11 @@ def test_check_reports_each_camera(tmp_path: Path) -> None:
     ]
     text = render_cli(report)
     assert "cameras   2, each painting the points in its view" in text
-    assert "  right          cameras.yaml; 0 of 1 scans have its image, 0 its 2D ground truth" in text
+    assert "  right          cameras.yaml; 1 of 1 scans have its image, 0 its 2D ground truth" in text
     assert report_dict(report, "app")["cameras"][0]["gt2d"]["kind"] == "all"
 
 
+@pytest.mark.slow
 def test_synth_surround_rig_agrees_with_its_ground_truth(tmp_path: Path) -> None:
     """``leap synth --cameras 4``: four cameras rendered from the same world, each with its 2D ground
     truth; labelled points projected with each camera's ``P · Tr`` land on a pixel of their class."""
