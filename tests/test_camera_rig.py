@@ -239,3 +239,19 @@ def test_synth_surround_rig_agrees_with_its_ground_truth(tmp_path: Path) -> None
         agree = (gt[proj.v[keep], proj.u[keep]] == sem[proj.idx[keep]]).mean()
         assert agree >= 0.9, (view.rig_camera.name, agree)
     assert seen.sum() == stats.in_image[0]
+
+
+def test_rig_entries_linked_out_of_the_data_roots_are_refused(tmp_path: Path) -> None:
+    """The app confines every entry the pipeline reads to its data roots: a rig's camera folders too."""
+    from app.services import escaping_entry
+
+    roots = [tmp_path / "data"]
+    root = two_camera_sequence(roots[0] / "sequences" / "00")
+    assert escaping_entry(root, roots) is None
+    outside = tmp_path / "elsewhere"
+    (root / "right").rename(outside)
+    (root / "right").symlink_to(outside, target_is_directory=True)
+    assert escaping_entry(root, roots) == ("right", outside)
+    (root / "right").unlink()
+    (root / "image_3").symlink_to(outside, target_is_directory=True)  # a KITTI camera folder
+    assert escaping_entry(root, roots) == ("image_3", outside)

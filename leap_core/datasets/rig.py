@@ -188,6 +188,21 @@ def read_rig_file(path: Path, default_tr: npt.NDArray[np.float64]) -> tuple[Came
     return tuple(out)
 
 
+def rig_entries(root: Path) -> list[str]:
+    """The entries of the sequence folder ``root`` a camera rig adds to what is read (``cameras.yaml``,
+    ``tr_frames``, the ``image_K/`` folders and the camera folders ``cameras.yaml`` names), for a caller
+    that confines each entry; never raises (a malformed ``cameras.yaml`` is the reader's to refuse)."""
+    out = [RIG_FILE, FRAME_TR_FOLDER, *(name for _, name in kitti_camera_folders(root))]
+    try:
+        data = yaml.safe_load((root / RIG_FILE).read_text(encoding="utf-8-sig"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return out
+    cams = data.get("cameras") if isinstance(data, Mapping) else None
+    if isinstance(cams, Mapping):
+        out += [str(name) for name in cams if camera_name_problem(name) is None]
+    return list(dict.fromkeys(out))
+
+
 def camera_rig_text(cameras: list[Camera] | tuple[Camera, ...]) -> str:
     """``cameras.yaml`` text for ``cameras`` (the format :func:`read_rig_file` reads; 12 significant
     digits, as ``calib.txt``)."""
@@ -215,4 +230,5 @@ __all__ = [
     "gt2d_folder",
     "kitti_camera_folders",
     "read_rig_file",
+    "rig_entries",
 ]

@@ -35,7 +35,7 @@ from leap_core.fusion import (
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy, read_npz
 from leap_core.labelers import LABELERS, LabelerInput, labeler_weights, missing_input
-from leap_core.labelers.base import SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
     Ctx,
@@ -90,32 +90,41 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     hits = 0
     cameras = [0] * len(ctx.seq.cameras)
 
-    def label_into(frame: Frame, out: Path) -> None:
-        nonlocal hits
-        cameras[frame.camera] += 1
-        if cache_root is not None:
-            digest = frame_input_digest(ctx.seq, frame.index, frame.camera)
-            entry = cache_root / f"{frame.frame_id}-{digest[:20]}.npz"
-            if entry.is_file():
-                try:
-                    SoftMasks.load(entry)
-                    link_or_copy(entry, out)
-                    hits += 1
-                    return
-                except DatasetError:
-                    pass  # A damaged entry is recomputed and replaced atomically below.
-            _save_soft(entry, labeler.label(frame, ctx.schema))
-            link_or_copy(entry, out)
-        else:
-            _save_soft(out, labeler.label(frame, ctx.schema))
+    def cache_entry(frame: Frame) -> tuple[Path | None, bool]:
+        """The frame's 2D cache entry (None: no cache) and whether it holds a good one."""
+        if cache_root is None:
+            return None, False
+        digest = frame_input_digest(ctx.seq, frame.index, frame.camera)
+        entry = cache_root / f"{frame.frame_id}-{digest[:20]}.npz"
+        if entry.is_file():
+            try:
+                SoftMasks.load(entry)
+                return entry, True
+            except DatasetError:
+                pass  # A damaged entry is recomputed and replaced atomically below.
+        return entry, False
 
     def work(i: int) -> None:
+        nonlocal hits
         frame = ctx.seq.frame(i)
-        # The primary camera's file goes last: its presence is what marks the frame done on resume.
-        for view in frame.cameras()[1:]:
-            if _has_2d_input(view, spec.needs):
-                label_into(view, ctx.layout.labels2d(ctx.fid(i), view.rig_camera.name))
-        label_into(frame, ctx.layout.labels2d(ctx.fid(i)))
+        views = [v for v in frame.cameras()[1:] if _has_2d_input(v, spec.needs)] + [frame]
+        entries = [cache_entry(v) for v in views]
+        todo = [v for v, (_, hit) in zip(views, entries, strict=True) if not hit]
+        if len(todo) > 1 and isinstance(labeler, ImageModelLabeler):
+            # A model labeler takes the frame's cameras in one batch (one forward pass on a GPU).
+            computed = iter(labeler.label_frames(todo, ctx.schema))
+        else:
+            computed = (labeler.label(v, ctx.schema) for v in todo)
+        # In camera order, the primary camera's file last: its presence marks the frame done on resume.
+        for view, (entry, hit) in zip(views, entries, strict=True):
+            cameras[view.camera] += 1
+            out = ctx.layout.labels2d(ctx.fid(i), view.rig_camera.name if view.camera else None)
+            hits += hit
+            if not hit:
+                soft = next(computed)
+                _save_soft(entry or out, soft)
+            if entry is not None:
+                link_or_copy(entry, out)
 
     extra = ctx.each_frame("labels2d", work)
     extra["cache_hits"] = hits
