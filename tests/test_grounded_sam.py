@@ -598,6 +598,7 @@ def test_make_tiny_models_command(tmp_path: Path) -> None:
     assert lab.label_images(images(1), small_schema())[0].num_classes == 3
 
 
+@pytest.mark.slow
 def test_a_frames_cameras_are_labeled_in_one_batch(
     tiny_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -645,3 +646,13 @@ def test_a_frames_cameras_are_labeled_in_one_batch(
             got = SoftMasks.load(path)
             np.testing.assert_array_equal(got.bits, alone.bits)
             np.testing.assert_allclose(got.probs, alone.probs, rtol=1e-5, atol=1e-6)
+    # `leap labels2d` precomputes every camera's image.
+    from typer.testing import CliRunner
+
+    from app.cli import cli
+
+    args = ["labels2d", str(tiny.root), "--models", str(tiny_dir), "--cache", str(tmp_path / "cache")]
+    out = CliRunner().invoke(cli, [*args, "--threshold", "0.05"])
+    assert out.exit_code == 0, out.output
+    assert "4 images of 2 frames from 2 cameras, 0 cached, 4 to label" in out.output
+    assert "done: 4 images labeled" in out.output
