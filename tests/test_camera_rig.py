@@ -194,6 +194,11 @@ def test_check_reports_each_camera(tmp_path: Path) -> None:
     assert "cameras   2, each painting the points in its view" in text
     assert "  right          cameras.yaml; 1 of 1 scans have its image, 0 its 2D ground truth" in text
     assert report_dict(report, "app")["cameras"][0]["gt2d"]["kind"] == "all"
+    # Every camera's images are checked: a truncated one of the right camera is named.
+    image = root / "right" / "000000.png"
+    image.write_bytes(image.read_bytes()[:-20])
+    damaged = check_dataset(root, check_models=False).finding("images_damaged")
+    assert damaged is not None and damaged.path == str(root / "right") and damaged.frames == ("000000",)
 
 
 @pytest.mark.slow

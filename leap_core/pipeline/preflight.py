@@ -488,6 +488,9 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
             findings.append(Finding("unreadable", "blocker", str(where), problem))
     else:
         cameras = _camera_checks(seq)
+        for cam in seq.cameras[1:]:  # the primary camera's images are checked above
+            folder = root / cam.name
+            findings += _image_findings(folder, _image_files(folder, frames, set()))
         if seq.has_poses:
             source = seq.pose_source
             method = _note_method(poses_file) if source == "estimated" else None
