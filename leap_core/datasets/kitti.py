@@ -841,7 +841,7 @@ class KittiSequence:
             if not path.is_file():
                 out.append(None)
                 continue
-            every = read_poses(path)
+            every = read_poses(self.confined(path))
             trs = every[_rows_of_frames(path, len(every), "transforms", self)]
             bad = np.flatnonzero(np.abs(np.linalg.det(trs[:, :3, :3])) < 1e-6)
             if bad.size:
