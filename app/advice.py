@@ -253,6 +253,13 @@ def render_cli(report: DatasetReport, exit_codes: dict[Verdict, int] | None = No
         )
         gt2d = _coverage_line(report.gt2d, "2D ground truth (gt2d/)")
         lines.append(f"gt2d      {report.gt2d.kind}: {gt2d}")
+        if len(report.cameras) > 1:
+            lines.append(f"cameras   {len(report.cameras)}, each painting the points in its view")
+            for cam in report.cameras:
+                lines.append(
+                    f"  {cam.name:<14} {cam.source}; {cam.images.present} of {cam.images.total} scans have "
+                    f"its image, {cam.gt2d.present} its 2D ground truth"
+                )
         lines.append("")
         lines.append("labelers")
         for lab in report.labelers:

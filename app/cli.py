@@ -322,27 +322,31 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
             models, cache if cache else default_cache_dir(seq.root), device, allow_download, ray, ray_cpus
         )
         labeler, batch = model_labeler(config, runtime)
-        frames = [f for f in seq if f.has_image]
+        # Each camera's image of each frame (a rig's cameras after the first: docs/IMPORT.md).
+        frames = [v for f in seq for v in f.cameras() if v.has_image]
+        unit = "frame" if len(seq.cameras) == 1 else "image"
 
         def cached(frame: Frame) -> bool:
             hit = labeler.is_cached(frame.image, sch)
             frame.__dict__.pop("image", None)  # a long sequence's decoded images would not fit in memory
             return hit
 
-        todo = [f for f in tqdm(frames, desc="checking cache", unit="frame", leave=False) if not cached(f)]
+        todo = [f for f in tqdm(frames, desc="checking cache", unit=unit, leave=False) if not cached(f)]
+        what = f"{len(frames)} frames with images ({len(seq) - len(frames)} without)"
+        if len(seq.cameras) > 1:
+            what = f"{len(frames)} images of {len(seq)} frames from {len(seq.cameras)} cameras"
         typer.echo(
-            f"{len(frames)} frames with images ({len(seq) - len(frames)} without), "
-            f"{len(frames) - len(todo)} cached, {len(todo)} to label; "
+            f"{what}, {len(frames) - len(todo)} cached, {len(todo)} to label; "
             f"{labeler.work_per_image(sch)}, cache {runtime.cache_dir}"
         )
         if runtime.ray_address is not None:
-            with tqdm(total=len(todo), desc="labels2d (ray)", unit="frame") as bar:
-                calls = _labels2d_on_ray(
-                    Path(dataset), sch, config, runtime, [f.frame_id for f in todo], bar.update
-                )
-            typer.echo(f"done: {len(todo)} frames labeled, {passes_text(calls)} (Ray tasks)")
+            # A task labels every camera's image of its frames (the cached ones are read back).
+            ids = list(dict.fromkeys(f.frame_id for f in todo))
+            with tqdm(total=len(ids), desc="labels2d (ray)", unit="frame") as bar:
+                calls = _labels2d_on_ray(Path(dataset), sch, config, runtime, ids, bar.update)
+            typer.echo(f"done: {len(ids)} frames labeled, {passes_text(calls)} (Ray tasks)")
             return
-        with tqdm(total=len(todo), desc="labels2d", unit="frame") as bar:
+        with tqdm(total=len(todo), desc="labels2d", unit=unit) as bar:
             for start in range(0, len(todo), batch):
                 chunk = todo[start : start + batch]
                 labeler.label_frames(chunk, sch)
@@ -351,7 +355,7 @@ def labels2d(  # noqa: PLR0913  # typer: one parameter per command-line option
                 bar.update(len(chunk))
     except LeapError as exc:
         raise fail(str(exc)) from None
-    typer.echo(f"done: {len(todo)} frames labeled, {passes_text(labeler.forward_passes())}")
+    typer.echo(f"done: {len(todo)} {unit}s labeled, {passes_text(labeler.forward_passes())}")
 
 
 def _labels2d_on_ray(
@@ -1408,10 +1412,15 @@ def synth(
         help="; ".join(f"{k}: {v}" for k, v in SYNTH_DOMAINS.items()) + ".",
         autocompletion=lambda: list(SYNTH_DOMAINS),
     ),
+    cameras: int = typer.Option(
+        1,
+        "--cameras",
+        help="Cameras of the street rig: 1 (front), 2 (front, rear) or 4 (front, rear, left, right).",
+    ),
 ) -> None:
     """Generate a demo sequence in the KITTI / SemanticKITTI layout: a procedural street (default), with
     --domain street-32 another town seen by a 32-beam LiDAR, or with --domain agri-uav a drone survey of a
-    farm."""
+    farm; --cameras 4 gives the street a surround rig."""
     import time
 
     from tqdm import tqdm
@@ -1431,7 +1440,10 @@ def synth(
         bars[0].update(done - bars[0].n)
 
     try:
-        config = domain_config(domain, frames, seed)
+        config = domain_config(domain, frames, seed, cameras)
+    except ValueError as exc:
+        raise fail(f"--cameras: {exc}") from None
+    try:
         stats = generate_sequence(
             out,
             config,
@@ -1447,7 +1459,8 @@ def synth(
             bar.close()
     typer.echo(
         f"wrote {stats.path} in {time.perf_counter() - start:.1f} s: {frames} frames, "
-        f"{stats.points.mean():.0f} points/scan, {100 * stats.in_image_share:.1f}% in the image"
+        f"{stats.points.mean():.0f} points/scan, {100 * stats.in_image_share:.1f}% in "
+        + ("the image" if cameras == 1 else f"some camera's image ({cameras} cameras)")
     )
 
 

@@ -51,8 +51,11 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     bag: str = typer.Argument(..., help="ROS 1 .bag file, or ROS 2 bag folder (or its .db3 / .mcap file)."),
     *,
     lidar_topic: str = typer.Option(..., "--lidar-topic", help="sensor_msgs/PointCloud2 topic."),
-    camera_topic: str = typer.Option(
-        ..., "--camera-topic", help="sensor_msgs/Image or sensor_msgs/CompressedImage topic."
+    camera_topic: list[str] = typer.Option(
+        ...,
+        "--camera-topic",
+        help="sensor_msgs/Image or sensor_msgs/CompressedImage topic; repeat it for a rig of cameras (the "
+        "first is image_2, the others are calibrated from the bag's CameraInfo and /tf_static).",
     ),
     calib: str | None = typer.Option(
         None,
@@ -95,7 +98,8 @@ def rosbag_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
     try:
         cfg = RosbagImportConfig(
             lidar_topic=lidar_topic,
-            camera_topic=camera_topic,
+            camera_topic=camera_topic[0],
+            more_camera_topics=tuple(camera_topic[1:]),
             camera_info_topic=camera_info_topic,
             calib_file=None if calib is None else Path(calib),
             max_offset_ms=max_offset_ms,
@@ -122,7 +126,9 @@ def nuscenes_cmd(
     version: str = typer.Option("v1.0-mini", "--version", help="Table folder: v1.0-mini, v1.0-trainval, ..."),
     scene: str = typer.Option(..., "--scene", help="Scene name, e.g. scene-0061."),
     camera: str = typer.Option(
-        "CAM_FRONT", "--camera", help="Camera channel whose keyframe images are used."
+        "CAM_FRONT",
+        "--camera",
+        help="Camera channel whose keyframe images are used; several separated by commas, or all: a rig.",
     ),
     out: str | None = typer.Option(
         None, "--out", help="Sequence folder to write (default: data/nuscenes/<scene>)."

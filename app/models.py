@@ -310,6 +310,15 @@ class CheckCoverage(BaseModel):
     kind: Literal["all", "some", "none"]
 
 
+class CheckCamera(BaseModel):
+    """One camera of the dataset's rig (docs/IMPORT.md, "Several cameras")."""
+
+    name: str = Field(description="its image folder (image_2, CAM_FRONT)")
+    source: str = Field(description="where its projection was read (calib.txt P2, cameras.yaml)")
+    images: CheckCoverage
+    gt2d: CheckCoverage
+
+
 class CheckCalib(BaseModel):
     present: bool
     valid: bool
@@ -369,6 +378,7 @@ class DatasetCheck(BaseModel):
     labelers: list[CheckLabeler]
     stages: list[CheckStage]
     findings: list[CheckFinding]
+    cameras: list[CheckCamera] = Field(default=[], description="the rig's cameras, the primary one first")
 
 
 class DatasetPublic(BaseModel):

@@ -27,6 +27,7 @@ from app.rows import DatasetKind, ProjectRow, RunRow, labeled_sequences
 from leap_core.colors import distinct_color
 from leap_core.config import PipelineConfig, config_from_dict, config_to_dict
 from leap_core.datasets.raw_ids import raw_id_names, scan_raw_ids
+from leap_core.datasets.rig import rig_entries
 from leap_core.errors import LeapError, SchemaError
 from leap_core.io_utils import remove_tree
 from leap_core.labelers import LABELERS
@@ -71,7 +72,8 @@ def project_config(project: ProjectRow) -> PipelineConfig:
 
 # --------------------------------------------------------------------------------------------- datasets
 SEQUENCE_ENTRIES = ("velodyne", "image_2", "labels", "calib.txt", "poses.txt", "times.txt", "gt2d")
-"""What the pipeline reads inside a sequence folder; each must resolve inside a data root."""
+"""What the pipeline reads inside a sequence folder; each must resolve inside a data root (and so must what
+a camera rig adds: ``leap_core.datasets.rig.rig_entries``)."""
 
 
 def _inside(path: Path, roots: list[Path]) -> bool:
@@ -85,7 +87,7 @@ def escaping_entry(folder: Path, roots: list[Path]) -> tuple[str, Path] | None:
     Raises:
         UnusablePath: an entry is a link that cannot be followed (a loop); the message starts with its name.
     """
-    for name in SEQUENCE_ENTRIES:
+    for name in (*SEQUENCE_ENTRIES, *rig_entries(folder)):
         entry = folder / name
         if entry.is_symlink():
             try:

@@ -12,6 +12,7 @@ per point (docs/METHOD.md "Performance facts").
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,11 @@ from leap_core.geometry import affine_points
 from leap_core.io_utils import atomic_save_npz, read_npz
 from leap_core.labelers.base import SoftMasks
 from leap_core.types import UNLABELED
+
+POINT_PROB_FLOOR = 1e-3
+"""Floor of the class probabilities when a point's observations from several cameras are combined into one
+point label (:meth:`Painted.merged`): ``FusionConfig.prob_floor``'s default, so the point label is the
+fusion's update on that one point."""
 
 
 @dataclass(frozen=True)
@@ -232,18 +238,63 @@ class Painted:
     def empty(cls, num_classes: int) -> Painted:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros((0, num_classes), np.float32))
 
+    @classmethod
+    def joined(cls, parts: Sequence[Painted], num_classes: int) -> Painted:
+        """The observations of several images of one scan (a camera rig) as one: the parts' points in
+        order, each part's rows shifted past the tables before it. A point two cameras painted appears
+        twice, once per observation, so fusion adds both (docs/METHOD.md B.2, "Several cameras"). One
+        part is returned as it is."""
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return cls.empty(num_classes)
+        offsets = np.cumsum([0, *(p.table.shape[0] for p in parts)])
+        return cls(
+            np.concatenate([p.point_idx for p in parts]),
+            np.concatenate([p.rows + np.int32(o) for p, o in zip(parts, offsets, strict=False)]).astype(
+                np.int32
+            ),
+            np.concatenate([p.table for p in parts]).astype(np.float32),
+        )
+
+    def merged(self, prob_floor: float = POINT_PROB_FLOOR) -> Painted:
+        """One row per point: a point with several observations (several cameras) gets the posterior of
+        their product, ``softmax(Σ_o log max(t_o, floor))`` (the fusion's update on one point); a point
+        observed once keeps its row. Returns ``self`` when no point repeats."""
+        idx = self.point_idx
+        if len(idx) < 2 or bool(np.all(np.diff(idx) > 0)):
+            return self
+        uniq, inv, counts = np.unique(idx, return_inverse=True, return_counts=True)
+        logs = log_table(self.table, prob_floor)[self.rows]  # (P', C) per observation
+        summed = np.zeros((len(uniq), self.num_classes), np.float64)
+        np.add.at(summed, inv, logs)
+        summed -= summed.max(axis=1, keepdims=True)
+        post = np.exp(summed)
+        post /= post.sum(axis=1, keepdims=True)
+        single = counts[inv] == 1
+        first_row = np.zeros(len(uniq), np.int64)
+        first_row[inv[single]] = self.rows[single]
+        once = counts == 1
+        table = np.concatenate([self.table, post[~once].astype(np.float32)])
+        rows = first_row.copy()
+        rows[~once] = self.table.shape[0] + np.arange(int((~once).sum()))
+        return Painted(uniq.astype(np.int64), rows.astype(np.int32), table)
+
     def point_labels(self, num_points: int) -> npt.NDArray[np.int16]:
-        """(N,) int16 argmax class per painted point, ``UNLABELED`` elsewhere (the paper's "point" labels)."""
+        """(N,) int16 argmax class per painted point, ``UNLABELED`` elsewhere (the paper's "point" labels;
+        a point several cameras painted: of :meth:`merged`)."""
+        one = self.merged()
         out = np.full(num_points, UNLABELED, np.int16)
-        if len(self):
-            out[self.point_idx] = self.table.argmax(axis=1).astype(np.int16)[self.rows]
+        if len(one):
+            out[one.point_idx] = one.table.argmax(axis=1).astype(np.int16)[one.rows]
         return out
 
     def point_confidence(self, num_points: int) -> npt.NDArray[np.float32]:
-        """(N,) float32 max class probability per painted point, 0 elsewhere."""
+        """(N,) float32 max class probability per painted point (of :meth:`merged`), 0 elsewhere."""
+        one = self.merged()
         out = np.zeros(num_points, np.float32)
-        if len(self):
-            out[self.point_idx] = self.table.max(axis=1)[self.rows]
+        if len(one):
+            out[one.point_idx] = one.table.max(axis=1)[one.rows]
         return out
 
     def to_observations(self, point_keys: npt.ArrayLike, prob_floor: float) -> Observations:

@@ -211,7 +211,11 @@ class SequenceLayout:
         """``<folder>/<per-frame folder>/<frame_id><suffix>``."""
         return self.folder / folder / f"{frame_id}{suffix}"
 
-    def labels2d(self, frame_id: str) -> Path:
+    def labels2d(self, frame_id: str, camera: str | None = None) -> Path:
+        """A frame's 2D labels: ``labels2d/<frame_id>.npz`` for the rig's primary camera (``camera`` None),
+        ``labels2d/<camera>/<frame_id>.npz`` for the camera folder ``camera`` of the others."""
+        if camera is not None:
+            return self.folder / self.LABELS2D / camera / f"{frame_id}.npz"
         return self.frame_file(self.LABELS2D, frame_id)
 
     def observation(self, frame_id: str) -> Path:

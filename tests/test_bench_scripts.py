@@ -39,6 +39,7 @@ SMOKE: dict[str, tuple[list[str], str]] = {
     "bench_models.py": (["--quick"], "ratio = total compute"),
     "bench_pipeline.py": (["--sequence", SEQ], "second run, all cached"),
     "bench_ray.py": (["--sequence", SEQ, "--frames", "0:2", "--repeat", "1"], "ray / local"),
+    "bench_rig.py": (["--quick"], "cameras / 1 camera"),
     "bench_scale.py": (["--frames", "2", "--seeds", "0", "--repeat", "1", "--no-cached"], "checks"),
     "bench_scan.py": (["--quick"], "outputs identical: yes"),
     "bench_synth.py": (["--quick"], "brute force (baseline)"),

@@ -596,3 +596,63 @@ def test_make_tiny_models_command(tmp_path: Path) -> None:
     assert "RANDOM weights" in res.output
     lab = GroundedSamLabeler(GroundedSamConfig(box_threshold=0.05), Runtime(models_dir=tmp_path / "tm"))
     assert lab.label_images(images(1), small_schema())[0].num_classes == 3
+
+
+@pytest.mark.slow
+def test_a_frames_cameras_are_labeled_in_one_batch(
+    tiny_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The labels2d stage on a two-camera sequence hands the labeler each frame's two images at once (one
+    batch through the models), and each camera's file holds what labeling its image alone gives."""
+    from conftest import TINY_IMAGE_HW, build_tiny_sequence
+    from runhelpers import label
+
+    from leap_core.config import config_from_dict
+    from leap_core.datasets.kitti import KittiSequence, write_image
+
+    tiny = build_tiny_sequence(tmp_path, n_frames=2)
+    for fid, img in zip(tiny.frame_ids, images(2, TINY_IMAGE_HW), strict=True):
+        write_image(tiny.root / "image_3" / f"{fid}.png", img)  # the calib's P3 = P2: a second camera
+    calls: list[int] = []
+    real = GroundedSamLabeler.label_frames
+
+    def spy(self: GroundedSamLabeler, frames: list[object], schema: Schema) -> list[SoftMasks]:
+        calls.append(len(frames))
+        return real(self, frames, schema)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(GroundedSamLabeler, "label_frames", spy)
+    cfg = config_from_dict(
+        {"labeler": "grounded-sam", "grounded_sam": {"box_threshold": 0.05, "batch_size": 2}}
+    )
+    run = label(
+        tiny.root,
+        small_schema(),
+        cfg,
+        tmp_path / "run",
+        runtime=Runtime(models_dir=tiny_dir),
+        until="labels2d",
+    )
+    assert calls == [2, 2]  # per frame: image_3's and image_2's images together
+    seq = KittiSequence(tiny.root)
+    lab = GroundedSamLabeler(
+        GroundedSamConfig(box_threshold=0.05, batch_size=2), Runtime(models_dir=tiny_dir)
+    )
+    for i, fid in enumerate(tiny.frame_ids):
+        for cam, path in (
+            (0, run.folder / "labels2d" / f"{fid}.npz"),
+            (1, run.folder / "labels2d" / "image_3" / f"{fid}.npz"),
+        ):
+            alone = lab.label(seq.frame(i, cam), small_schema())
+            got = SoftMasks.load(path)
+            np.testing.assert_array_equal(got.bits, alone.bits)
+            np.testing.assert_allclose(got.probs, alone.probs, rtol=1e-5, atol=1e-6)
+    # `leap labels2d` precomputes every camera's image.
+    from typer.testing import CliRunner
+
+    from app.cli import cli
+
+    args = ["labels2d", str(tiny.root), "--models", str(tiny_dir), "--cache", str(tmp_path / "cache")]
+    out = CliRunner().invoke(cli, [*args, "--threshold", "0.05"])
+    assert out.exit_code == 0, out.output
+    assert "4 images of 2 frames from 2 cameras, 0 cached, 4 to label" in out.output
+    assert "done: 4 images labeled" in out.output

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -31,6 +31,7 @@ from leap_core.importers.nuscenes import (
     kitti_cam_poses,
 )
 from leap_core.presets import load_preset
+from leap_core.projection import project_points
 from leap_core.synth import CameraConfig, LidarConfig, SceneConfig, SynthConfig, generate_sequence
 
 VERSION = "v1.0-mini"
@@ -136,17 +137,52 @@ class NuSource:
     intrinsic: np.ndarray
     lidar_tokens: list[str]
     camera_tokens: list[str]
+    rig_tokens: list[dict[str, str]] = field(default_factory=list)
+    """Per keyframe, each camera's keyframe sample_data token."""
+
+
+@dataclass(frozen=True)
+class NuCamera:
+    """A camera of the written scene: its channel, its yaw about the LiDAR, how long after the sweep it
+    fires and how the ego moved meanwhile (in the ego frame)."""
+
+    channel: str
+    yaw_deg: float = 0.0
+    lag_us: int = IMAGE_LAG_US
+    motion: np.ndarray = field(default_factory=lambda: EGO_MOTION)
+
+
+SIX = tuple(
+    NuCamera(ch, yaw, IMAGE_LAG_US + 7_000 * k, _rigid(0.004 * (1 + k), (0.18 * (1 + k / 3), 0.005 * k, 0.0)))
+    for k, (ch, yaw) in enumerate(
+        [
+            ("CAM_FRONT", 0.0),
+            ("CAM_FRONT_RIGHT", -55.0),
+            ("CAM_BACK_RIGHT", -110.0),
+            ("CAM_BACK", 180.0),
+            ("CAM_BACK_LEFT", 110.0),
+            ("CAM_FRONT_LEFT", 55.0),
+        ]
+    )
+)
+"""nuScenes' six cameras around the LiDAR, each firing 7 ms after the one before, the ego moving on."""
 
 
 def write_nuscenes(
-    demo: KittiSequence, dataroot: Path, frames: int | None = None, lidarseg: bool = True
+    demo: KittiSequence,
+    dataroot: Path,
+    frames: int | None = None,
+    lidarseg: bool = True,
+    cameras: tuple[NuCamera, ...] = (NuCamera("CAM_FRONT"),),
 ) -> NuSource:
     """Write ``frames`` demo frames as one nuScenes scene (keyframes 2 Hz, one LiDAR and one camera sweep
-    between keyframes, a CAM_BACK sensor without data) and check the devkit loads it.
+    between keyframes, a CAM_BACK sensor without data unless ``cameras`` has one) and check the devkit
+    loads it.
 
     The camera: the demo's P2 = K·[I | t] becomes the intrinsic K and an extrinsic with t folded in, so the
     nuScenes camera sees exactly what the demo camera saw. The ego pose of an image is the sweep's moved by
-    :data:`EGO_MOTION`.
+    :data:`EGO_MOTION`. Further ``cameras`` are that camera turned about the LiDAR (showing the same image:
+    only their geometry is checked).
     """
     n = len(demo) if frames is None else frames
     tables = dataroot / VERSION
@@ -155,20 +191,28 @@ def write_nuscenes(
     fold = np.eye(4)
     fold[:3, 3] = np.linalg.solve(k, demo.calib.P2[:, 3])
     cam_to_ego = LIDAR_TO_EGO @ np.linalg.inv(fold @ demo.calib.Tr)
-    log, scene, cs_lidar, cs_cam = _token("log", 0), _token("scene", 0), _token("cs", 0), _token("cs", 1)
-    sensors = [
-        {"token": _token("sensor", 0), "channel": "LIDAR_TOP", "modality": "lidar"},
-        {"token": _token("sensor", 1), "channel": "CAM_FRONT", "modality": "camera"},
-        {"token": _token("sensor", 2), "channel": "CAM_BACK", "modality": "camera"},
+    log, scene, cs_lidar = _token("log", 0), _token("scene", 0), _token("cs", 0)
+    channels = [c.channel for c in cameras] + (["CAM_BACK"] if len(cameras) == 1 else [])
+    sensors = [{"token": _token("sensor", 0), "channel": "LIDAR_TOP", "modality": "lidar"}] + [
+        {"token": _token("sensor", j + 1), "channel": ch, "modality": "camera"}
+        for j, ch in enumerate(channels)
     ]
-    calibrated = [
-        _pose_record(cs_lidar, LIDAR_TO_EGO, sensor_token=sensors[0]["token"], camera_intrinsic=[]),
-        _pose_record(cs_cam, cam_to_ego, sensor_token=sensors[1]["token"], camera_intrinsic=k.tolist()),
-    ]
+    calibrated = [_pose_record(cs_lidar, LIDAR_TO_EGO, sensor_token=sensors[0]["token"], camera_intrinsic=[])]
+    cs_cams = [_token("cs", j + 1) for j in range(len(cameras))]
+    for j, cam in enumerate(cameras):
+        yaw = _rigid(np.deg2rad(cam.yaw_deg), (0.0, 0.0, 0.0))
+        calibrated.append(
+            _pose_record(
+                cs_cams[j],
+                LIDAR_TO_EGO @ yaw @ np.linalg.inv(fold @ demo.calib.Tr),
+                sensor_token=sensors[j + 1]["token"],
+                camera_intrinsic=k.tolist(),
+            )
+        )
     ego_poses: list[dict[str, object]] = []
     samples: list[dict[str, object]] = []
     lidar_chain: list[dict[str, object]] = []
-    cam_chain: list[dict[str, object]] = []
+    cam_chains: list[list[dict[str, object]]] = [[] for _ in cameras]
     lidarseg_rows: list[dict[str, object]] = []
     rng = np.random.default_rng(7)
     src = NuSource(dataroot, demo, [], [], [], cam_to_ego, k, [], [])
@@ -206,15 +250,31 @@ def write_nuscenes(
         for key, dt, cloud, jpg in sweeps:
             ts = T0 + i * KEYFRAME_US + dt
             folder = "samples" if key else "sweeps"
-            ego_l, ego_c = _token("ego-l", ts), _token("ego-c", ts)
+            ego_l = _token("ego-l", ts)
             ego_poses.append(_pose_record(ego_l, ego_sweep, timestamp=ts))
-            ego_poses.append(_pose_record(ego_c, ego_sweep @ EGO_MOTION, timestamp=ts + IMAGE_LAG_US))
             lname = f"{folder}/LIDAR_TOP/n008-2018-07-24__LIDAR_TOP__{ts}.pcd.bin"
-            cname = f"{folder}/CAM_FRONT/n008-2018-07-24__CAM_FRONT__{ts + IMAGE_LAG_US}.jpg"
-            for name, data in ((lname, cloud.tobytes()), (cname, jpg)):
-                (dataroot / name).parent.mkdir(parents=True, exist_ok=True)
-                (dataroot / name).write_bytes(data)
+            (dataroot / lname).parent.mkdir(parents=True, exist_ok=True)
+            (dataroot / lname).write_bytes(cloud.tobytes())
             common = {"sample_token": sample, "is_key_frame": key}
+            for j, cam in enumerate(cameras):
+                ego_c = _token("ego-c" if j == 0 else f"ego-c{j}", ts)
+                ego_poses.append(_pose_record(ego_c, ego_sweep @ cam.motion, timestamp=ts + cam.lag_us))
+                cname = f"{folder}/{cam.channel}/n008-2018-07-24__{cam.channel}__{ts + cam.lag_us}.jpg"
+                (dataroot / cname).parent.mkdir(parents=True, exist_ok=True)
+                (dataroot / cname).write_bytes(jpg)
+                cam_chains[j].append(
+                    {
+                        "token": _token("sd-c" if j == 0 else f"sd-c{j}", ts),
+                        "ego_pose_token": ego_c,
+                        "calibrated_sensor_token": cs_cams[j],
+                        "timestamp": ts + cam.lag_us,
+                        "fileformat": "jpg",
+                        "height": h,
+                        "width": w,
+                        "filename": cname,
+                        **common,
+                    }
+                )
             lidar_chain.append(
                 {
                     "token": _token("sd-l", ts),
@@ -228,26 +288,16 @@ def write_nuscenes(
                     **common,
                 }
             )
-            cam_chain.append(
-                {
-                    "token": _token("sd-c", ts),
-                    "ego_pose_token": ego_c,
-                    "calibrated_sensor_token": cs_cam,
-                    "timestamp": ts + IMAGE_LAG_US,
-                    "fileformat": "jpg",
-                    "height": h,
-                    "width": w,
-                    "filename": cname,
-                    **common,
-                }
-            )
             if key:
                 sem = lut[frame.labels & 0xFFFF]
                 src.points.append(cloud)
                 src.lidarseg.append(sem)
                 src.jpgs.append(jpg)
                 src.lidar_tokens.append(lidar_chain[-1]["token"])  # type: ignore[arg-type]
-                src.camera_tokens.append(cam_chain[-1]["token"])  # type: ignore[arg-type]
+                src.camera_tokens.append(cam_chains[0][-1]["token"])  # type: ignore[arg-type]
+                src.rig_tokens.append(
+                    {c.channel: str(ch[-1]["token"]) for c, ch in zip(cameras, cam_chains, strict=True)}
+                )
                 if lidarseg:
                     fname = f"lidarseg/{VERSION}/{lidar_chain[-1]['token']}_lidarseg.bin"
                     (dataroot / fname).parent.mkdir(parents=True, exist_ok=True)
@@ -259,7 +309,7 @@ def write_nuscenes(
                             "filename": fname,
                         }
                     )
-    for chain in (lidar_chain, cam_chain):
+    for chain in (lidar_chain, *cam_chains):
         for j, rec in enumerate(chain):
             rec["prev"] = chain[j - 1]["token"] if j else ""
             rec["next"] = chain[j + 1]["token"] if j < len(chain) - 1 else ""
@@ -298,7 +348,7 @@ def write_nuscenes(
             }
         ],
         "sample": samples,
-        "sample_data": lidar_chain + cam_chain,
+        "sample_data": lidar_chain + [rec for chain in cam_chains for rec in chain],
         "map": [
             {
                 "token": _token("map", 0),
@@ -444,6 +494,45 @@ def test_round_trip_points_images_calibration_poses_labels(source: NuSource, tmp
     note = json.loads((out / IMPORT_NOTE).read_text())
     assert note["scene"] == SCENE and [f["lidar_token"] for f in note["frames"]] == source.lidar_tokens
     assert not list(tmp_path.glob(".seq.*"))  # no staging folder left
+
+
+def test_six_cameras_project_as_the_devkit_does(demo: KittiSequence, tmp_path: Path) -> None:
+    """``--camera all``: each of six cameras, firing at its own time, projects the imported points through
+    ``cameras.yaml`` and its ``tr_frames`` line where the devkit's ``map_pointcloud_to_image`` puts them."""
+    from nuscenes.nuscenes import NuScenes
+
+    src = write_nuscenes(demo, tmp_path / "nu", frames=2, cameras=SIX)
+    out = tmp_path / "seq"
+    summary = import_nuscenes(src.dataroot, out, version=VERSION, scene=SCENE, camera="all")
+    assert (summary.frames, summary.images, summary.cameras) == (2, 12, 6)
+    assert "12 images of 6 cameras: CAM_FRONT, CAM_FRONT_RIGHT, CAM_BACK_RIGHT" in summary.line()
+    seq = KittiSequence(out)
+    assert [c.name for c in seq.cameras] == [c.channel for c in SIX]
+    nusc = NuScenes(version=VERSION, dataroot=str(src.dataroot), verbose=False)
+    for i in range(2):
+        pts = read_scan(seq.scan_path(i))
+        np.testing.assert_allclose(pts[:, :3], src.points[i][:, :3], atol=1e-6)  # as the LiDAR saw them
+        for k, cam in enumerate(SIX):
+            assert seq.image_path(i, k) is not None
+            m = seq.lidar_to_image(i, k)
+            q = pts[:, :3].astype(np.float64) @ m[:, :3].T + m[:, 3]
+            depth, sub = q[:, 2], q[:, :2] / q[:, 2:]
+            dk_uv, _, im = nusc.explorer.map_pointcloud_to_image(
+                src.lidar_tokens[i], src.rig_tokens[i][cam.channel]
+            )
+            w, h = im.size
+            keep = (
+                (depth > 1.0) & (sub[:, 0] > 1) & (sub[:, 0] < w - 1) & (sub[:, 1] > 1) & (sub[:, 1] < h - 1)
+            )
+            assert dk_uv.shape[1] == keep.sum() > 50, cam.channel
+            np.testing.assert_allclose(sub[keep], dk_uv[:2].T, atol=0.05, err_msg=cam.channel)
+            # The project stage paints exactly these pixels, rounded.
+            proj = project_points(pts, m, h, w)
+            np.testing.assert_array_equal(np.column_stack([proj.u, proj.v]), np.floor(sub[proj.idx] + 0.5))
+    # The time correction differs per camera: the later a camera fires, the further the transform moves.
+    assert not np.allclose(seq.camera_tr(0, 0), seq.camera_tr(0, 5), atol=1e-3)
+    text = CliRunner().invoke(cli, ["check", str(out)]).output
+    assert "CAM_BACK_LEFT  cameras.yaml, Tr per frame from tr_frames/CAM_BACK_LEFT.txt; 2 of 2 scans" in text
 
 
 def test_without_lidarseg_writes_no_labels(demo: KittiSequence, tmp_path: Path) -> None:

@@ -69,6 +69,9 @@ class BagSpec:
     """CameraInfo height minus the images' height."""
     tf_start_frame: int = 0
     """odom → base_link samples start at this frame (earlier scans have no pose)."""
+    rear: bool = False
+    """Also the sequence's second camera (a rig) on ``/rear/image_raw``, 3 ms after the first, with its
+    CameraInfo and its ``/tf_static`` edge; frame 1 has no rear image."""
 
 
 OPTICAL = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)
@@ -160,8 +163,8 @@ class Msgs:
             is_dense=False,
         )
 
-    def image(self, ns: int, rgb: np.ndarray, kind: str) -> Any:
-        hdr = self.header(ns, "camera_optical")
+    def image(self, ns: int, rgb: np.ndarray, kind: str, frame: str = "camera_optical") -> Any:
+        hdr = self.header(ns, frame)
         if kind in ("jpeg", "png"):
             ok, buf = cv2.imencode(".jpg" if kind == "jpeg" else ".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
             assert ok
@@ -181,14 +184,14 @@ class Msgs:
             data=rows.ravel(),
         )
 
-    def camera_info(self, ns: int, calib: Calib, hw: tuple[int, int]) -> Any:
+    def camera_info(self, ns: int, calib: Calib, hw: tuple[int, int], frame: str = "camera_optical") -> Any:
         hw = (hw[0] + self.info_pad, hw[1])
         mats = {"d": np.zeros(5), "k": calib.P2[:, :3].ravel(), "r": np.eye(3).ravel(), "p": calib.P2.ravel()}
         roi = self.t["sensor_msgs/msg/RegionOfInterest"](
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         )
         return self.t["sensor_msgs/msg/CameraInfo"](
-            header=self.header(ns, "camera_optical"),
+            header=self.header(ns, frame),
             height=hw[0],
             width=hw[1],
             distortion_model="plumb_bob",
@@ -259,6 +262,13 @@ def write_bag(seq: KittiSequence, path: Path, spec: BagSpec = BagSpec()) -> Path
                     m.camera_info(cam_ns, seq.calib, frame.image.shape[:2]),
                 )
             )
+        if spec.rear and i != 1:
+            rear, rear_ns = seq.frame(i, 1), cam_ns + 3_000_000
+            msgs.append(
+                (rear_ns + 1_000_000, "/rear/image_raw", m.image(rear_ns, rear.image, "rgb8", "rear_optical"))
+            )
+            info = m.camera_info(rear_ns, rear.calib, rear.image.shape[:2], "rear_optical")
+            msgs.append((rear_ns + 1_000_000, "/rear/camera_info", info))
     tr = seq.calib.Tr
     if spec.tf_static:
         base_cam = BASE_VELO @ np.linalg.inv(tr) @ np.linalg.inv(OPTICAL)
@@ -272,7 +282,12 @@ def write_bag(seq: KittiSequence, path: Path, spec: BagSpec = BagSpec()) -> Path
                         ("base_link", "velodyne", BASE_VELO),
                         ("base_link", "camera_link", base_cam),
                         ("camera_link", "camera_optical", OPTICAL),
-                    ],
+                    ]
+                    + (
+                        [("base_link", "rear_optical", BASE_VELO @ np.linalg.inv(seq.cameras[1].Tr))]
+                        if spec.rear
+                        else []
+                    ),
                 ),
             )
         )
@@ -437,6 +452,26 @@ def test_image_encodings(demo: KittiSequence, tmp_path: Path, image: str) -> Non
 
 
 # =============================================================================== pairing and drops
+def test_more_camera_topics_make_a_rig(tmp_path: Path) -> None:
+    """``--camera-topic`` twice: the second camera's frames go to their own folder, calibrated from its
+    CameraInfo and /tf_static, and project as the source rig's camera does; a frame without its image keeps
+    the scan."""
+    src = KittiSequence(generate_sequence(tmp_path / "demo2", replace(DEMO, frames=3, cameras=2)).path)
+    spec = BagSpec(rear=True)
+    got, summary = do_import(src, tmp_path, spec, more_camera_topics=("/rear/image_raw",))
+    assert [c.name for c in got.cameras] == ["image_2", "rear_image_raw"]
+    assert len(got) == 3 and "1 frames without a /rear/image_raw image" in summary.line()
+    for i in range(3):
+        a, b = got.frame(i, 1), src.frame(i, 1)
+        assert a.has_image == (i != 1)
+        if a.has_image:
+            np.testing.assert_array_equal(a.image, b.image)
+        (pa, fa), (pb, fb) = pixels(a.calib, a.points), pixels(b.calib, b.points)
+        np.testing.assert_array_equal(fa, fb)
+        assert np.abs(pa[fa] - pb[fb]).max() < 1e-3
+        np.testing.assert_array_equal(got.frame(i).image, src.frame(i).image)
+
+
 def test_pair_nearest_hand_computed() -> None:
     # scans at 0, 100, 200, 300 ms; cameras (unsorted) at 290, 40, 95, 160 ms; max offset 50 ms.
     ms = 1_000_000

@@ -41,7 +41,8 @@ function stageList(check) {
 
 function facts(check) {
   const poses = { file: "poses.txt", estimated: "estimated poses", missing: "no poses", invalid: "unreadable poses", "will-estimate": "poses estimated before the 3D stages" }[check.poses.source];
-  return `${check.frames} frames · ${check.images.present} with a camera image · ${poses} · ground truth: ${check.ground_truth.kind} · 2D ground truth: ${check.gt2d.kind}`;
+  const cameras = check.cameras && check.cameras.length > 1 ? ` · ${check.cameras.length} cameras: ${check.cameras.map((c) => `${c.name} (${c.images.present} images)`).join(", ")}` : "";
+  return `${check.frames} frames · ${check.images.present} with a camera image · ${poses} · ground truth: ${check.ground_truth.kind} · 2D ground truth: ${check.gt2d.kind}${cameras}`;
 }
 
 /** A compact summary for the create-project form: the verdict and the problems with their fixes. */

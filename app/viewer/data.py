@@ -146,6 +146,7 @@ class ScanView:
         aspect: image width / height.
         overlay: (H, W, 3) uint8 camera image with the projected labels drawn over it, or None.
         ego_pose: (4, 4) sensor-to-world pose of the scan (where the camera follows the ego vehicle to).
+        camera: the image folder of the camera whose image and pose these are (a rig has several).
     """
 
     frame_id: str
@@ -157,6 +158,7 @@ class ScanView:
     aspect: float
     overlay: npt.NDArray[np.uint8] | None
     ego_pose: npt.NDArray[np.float64] | None = None
+    camera: str = "image_2"
 
 
 def matrix_to_wxyz(rot: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -203,9 +205,17 @@ class RunOutputs:
         frame = self.seq.frame(index)
         return world_points(frame.points, frame.pose).astype(np.float32)
 
-    def scan_view(self, index: int, palette: npt.ArrayLike, *, overlay_radius: int = 1) -> ScanView:
-        """Points with final labels, camera pose and the labelled camera image of frame ``index``."""
-        frame = self.seq.frame(index)
+    def camera_names(self) -> list[str]:
+        """The image folders of the sequence's cameras, primary first (one for a one-camera sequence)."""
+        return [c.name for c in self.seq.cameras]
+
+    def scan_view(
+        self, index: int, palette: npt.ArrayLike, *, overlay_radius: int = 1, camera: int = 0
+    ) -> ScanView:
+        """Points with final labels, camera pose and the labelled camera image of frame ``index``, as the
+        rig's camera ``camera`` sees it (0: the primary one; a camera the sequence lacks: the primary)."""
+        camera = camera if 0 <= camera < len(self.seq.cameras) else 0
+        frame = self.seq.frame(index, camera)
         arrays = self.point_arrays(index)
         label = arrays["label"].astype(np.int16)
         if label.shape[0] != frame.points.shape[0]:
@@ -236,6 +246,7 @@ class RunOutputs:
             aspect=float(width / height),
             overlay=overlay,
             ego_pose=np.asarray(frame.pose, dtype=np.float64).copy(),
+            camera=frame.rig_camera.name,
         )
 
     def disagreement(self, grid: ReviewGrid) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
@@ -278,7 +289,7 @@ class RunOutputs:
         return rate, observed
 
     def region_observers(
-        self, index: int, keys: npt.NDArray[np.int64], voxel_size: float
+        self, index: int, keys: npt.NDArray[np.int64], voxel_size: float, camera: int | None = 0
     ) -> tuple[int, int, npt.NDArray[np.float64]]:
         """How scan ``index`` saw a region: ``(points in the region's voxels, of them in its image, their
         pixel coordinates (n, 2))``.
@@ -286,8 +297,13 @@ class RunOutputs:
         Args:
             keys: sorted voxel keys of the region.
             voxel_size: edge of those keys.
+            camera: the rig camera whose image counts; None = the camera that saw the most of the region
+                (:meth:`best_camera`).
         """
-        frame = self.seq.frame(index)
+        if camera is None:
+            camera = self.best_camera(index, keys, voxel_size)
+        camera = camera if 0 <= camera < len(self.seq.cameras) else 0
+        frame = self.seq.frame(index, camera)
         inside = np.flatnonzero(
             rows_in_sorted(keys, voxel_keys(world_points(frame.points, frame.pose), voxel_size)) >= 0
         )
@@ -297,6 +313,14 @@ class RunOutputs:
         proj = project_points(frame.points[inside], frame.calib.lidar_to_image, h, w)
         uv = np.stack([proj.u, proj.v], axis=1).astype(np.float64)
         return int(inside.size), int(uv.shape[0]), uv
+
+    def best_camera(self, index: int, keys: npt.NDArray[np.int64], voxel_size: float) -> int:
+        """The rig camera in whose image scan ``index`` shows the most points of the region ``keys``
+        (ties: the first; 0 for a one-camera sequence)."""
+        if len(self.seq.cameras) == 1:
+            return 0
+        seen = [self.region_observers(index, keys, voxel_size, k)[1] for k in range(len(self.seq.cameras))]
+        return int(np.argmax(seen))
 
     def view_counts(self, grid: ReviewGrid) -> npt.NDArray[np.int64]:
         """(V,) number of this run's scans that observed each voxel of ``grid``.

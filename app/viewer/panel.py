@@ -121,6 +121,13 @@ class ReviewPanel:
         with self.scan_folder:
             self.scan_slider = gui.add_slider("Scan", min=0, max=1, step=1, initial_value=0, disabled=True)
             self.scan_info = gui.add_markdown("")
+            self.camera = gui.add_dropdown(
+                "Camera",
+                ["image_2"],
+                initial_value="image_2",
+                visible=False,
+                hint="The rig camera whose image is shown",
+            )
             self.scan_image = gui.add_image(
                 np.zeros((8, 8, 3), np.uint8), label="camera + labels", format="jpeg", visible=False
             )
@@ -188,6 +195,7 @@ class ReviewPanel:
         self.limit.on_update(g(lambda _: self._limit_changed()))
         self.max_points.on_update(g(lambda _: self._limit_changed()))
         self.scan_slider.on_update(g(lambda _: self._slider_moved()))
+        self.camera.on_update(g(lambda _: self._camera_chosen()))
         self.show_scan.on_update(g(lambda _: self._scan_visibility()))
         self.show_map.on_update(g(lambda _: s.renderer.set_map_visible(self.show_map.value)))
         self.select_button.on_click(g(lambda _: self.arm_select()))
@@ -220,6 +228,13 @@ class ReviewPanel:
         # The session moves the slider itself after a key or button step: that echo must not reload.
         if int(self.scan_slider.value) != self.s.player.frame_pos:
             self.s.player.show_scan(int(self.scan_slider.value))
+
+    def _camera_chosen(self) -> None:
+        outputs = self.s.outputs
+        names = outputs.camera_names() if outputs is not None else []
+        chosen = str(self.camera.value)
+        if chosen in names and names.index(chosen) != self.s.player.camera:
+            self.s.player.set_camera(names.index(chosen))
 
     def _scan_visibility(self) -> None:
         on = bool(self.show_scan.value)
@@ -329,6 +344,12 @@ class ReviewPanel:
         size = round(float(grid.voxel_size), 2)
         self.point_size.value = size  # type: ignore[misc]  # viser: split setter, see class note
         n_frames = len(s.outputs.frame_indices) if s.outputs is not None else 0
+        cameras = s.outputs.camera_names() if s.outputs is not None else ["image_2"]
+        self.camera.options = cameras
+        self.camera.visible = len(cameras) > 1
+        if self.camera.value not in cameras or s.player.camera >= len(cameras):
+            s.player.camera = 0
+            self.camera.value = cameras[0]  # type: ignore[misc]  # viser: split setter, see class note
         self.scan_slider.max = max(1, n_frames - 1)
         self.scan_slider.disabled = n_frames <= 1
         self.set_status(
@@ -354,6 +375,8 @@ class ReviewPanel:
             f"Scan **{view.frame_id}** ({pos + 1}/{count}): {view.points.shape[0]:,} points, "
             f"{labelled:,} labelled."
         )
+        if view.camera != self.camera.value and view.camera in self.camera.options:
+            self.camera.value = view.camera  # type: ignore[misc]  # viser: split setter, see class note
         if view.overlay is not None:
             self.scan_image.image = view.overlay
             self.scan_image.visible = True

@@ -65,6 +65,8 @@ class ScanPlayer:
         """The page shows the scan's image enlarged (web/viewer/nav.js reads it, so it stays open while
         navigating and the panel's button and the ``i`` key act on the same state)."""
         self._image_jpeg: tuple[ScanView, bytes] | None = None
+        self.camera = 0
+        """The rig camera whose image (and pose) the shown scan comes with (0: the primary one)."""
         self._scan_lock = threading.RLock()
         self._player: threading.Thread | None = None
 
@@ -89,7 +91,7 @@ class ScanPlayer:
             return None
         with self._scan_lock:
             pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
-            view = outputs.scan_view(outputs.frame_indices[pos], sh.palette)
+            view = outputs.scan_view(outputs.frame_indices[pos], sh.palette, camera=self.camera)
             view = self.mark_region_in_image(view, pos)
             self.frame_pos = pos
             with sh.lock:
@@ -119,6 +121,12 @@ class ScanPlayer:
         self.notify.panel.on_scan(view, pos, len(outputs.frame_indices))
         return view
 
+    def set_camera(self, camera: int) -> ScanView | None:
+        """Show the shown scan through the rig's camera ``camera`` (its image, labels and frustum)."""
+        with self._scan_lock:
+            self.camera = camera
+            return self.show_scan(self.frame_pos, move_camera=False)
+
     def step_scan(self, step: int) -> ScanView | None:
         """Show the scan ``step`` positions after (before, when negative) the shown one."""
         with self._scan_lock:
@@ -131,7 +139,7 @@ class ScanPlayer:
         if region is None or outputs is None or grid is None or view.overlay is None:
             return view
         keys = grid.keys[region.rows]  # rows ascend, so the keys stay sorted
-        _, _, uv = outputs.region_observers(outputs.frame_indices[pos], keys, grid.voxel_size)
+        _, _, uv = outputs.region_observers(outputs.frame_indices[pos], keys, grid.voxel_size, self.camera)
         h, w = view.overlay.shape[:2]
         box = review.image_box(uv, w, h)
         if box is None:

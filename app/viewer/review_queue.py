@@ -223,6 +223,10 @@ class ReviewQueue:
         if best is not None:
             with sh.lock:
                 sh.focus_frame = best
+            keys = grid.keys[region.rows]
+            outputs = sh.outputs
+            if outputs is not None:
+                self.player.camera = outputs.best_camera(outputs.frame_indices[best], keys, grid.voxel_size)
             self.player.show_scan(best, move_camera=False)  # keep the framing of the region
         self.notify.panel.on_region(region, pos, len(self.regions), self.queue_kind)
         return region
@@ -250,7 +254,8 @@ class ReviewQueue:
         positions = outputs.seq.poses[frames, :3, 3]
         near = review.nearest_scans(positions, region.centre, self.config.queue_scans)
         keys = grid.keys[region.rows]  # rows ascend, so the keys stay sorted
-        counts = [outputs.region_observers(int(frames[i]), keys, grid.voxel_size)[:2] for i in near]
+        # Each scan as its camera that saw the region best: the region is boxed in that camera's image.
+        counts = [outputs.region_observers(int(frames[i]), keys, grid.voxel_size, None)[:2] for i in near]
         best = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
         return None if best is None else int(near[best])
 

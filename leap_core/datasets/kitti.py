@@ -34,6 +34,17 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from leap_core.datasets.rig import (
+    FRAME_TR_FOLDER,
+    GT2D_KINDS,
+    PRIMARY_FOLDER,
+    RIG_FILE,
+    Camera,
+    check_projection,
+    gt2d_folder,
+    kitti_camera_folders,
+    read_rig_file,
+)
 from leap_core.errors import DatasetError, LeapError, PosesMissingError
 from leap_core.io_utils import atomic_write, atomic_write_bytes
 from leap_core.paths import UnusablePath, real_path, real_path_or_none
@@ -68,16 +79,17 @@ UNREADABLE_FIX = "the pipeline does not read it: put the file itself in its plac
 """How to fix a per-frame file the reader refuses (:func:`entry_problem`)."""
 
 
-def sequence_roots(root: str | Path) -> tuple[Path, ...]:
+def sequence_roots(root: str | Path, extra: Iterable[str] = ()) -> tuple[Path, ...]:
     """Where the per-frame files of the sequence folder ``root`` may lie: the folder itself and each of its
-    folders of per-frame files (:data:`FRAME_FOLDERS`), all resolved.
+    folders of per-frame files (:data:`FRAME_FOLDERS`, then the relative folders ``extra``: the further
+    cameras' image and 2D ground-truth folders), all resolved.
 
     A ``velodyne/`` linked to another disk is part of the sequence (the layout is its owner's choice, and
     the app confines these entries to its data roots); a scan inside it linked elsewhere is not.
     """
     root = Path(root)
     out = [_resolved(root)]
-    for name in FRAME_FOLDERS:
+    for name in (*FRAME_FOLDERS, *extra):
         entry = root / name
         if entry.exists():
             out.append(_resolved(entry))
@@ -320,6 +332,49 @@ def _parse_matrix(path: Path, key: str, text: str, rows: int = 3, cols: int = 4)
 _CALIB_LINE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?::|\s)\s*(.*)$")
 
 
+def _calib_entries(path: Path) -> dict[str, str]:
+    """``calib.txt``'s lines as key → the text of its values."""
+    try:
+        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read calibration ({exc.strerror or exc})") from exc
+    entries: dict[str, str] = {}
+    for line in lines:
+        match = _CALIB_LINE.match(line)
+        if match:
+            entries[match.group(1)] = match.group(2)
+    return entries
+
+
+def read_rig(root: str | Path, calib: Calib) -> tuple[Camera, ...]:
+    """The cameras of the sequence folder ``root`` whose ``calib.txt`` reads as ``calib``
+    (:mod:`leap_core.datasets.rig`): those of ``cameras.yaml`` when it exists, else ``image_2`` (``P2``,
+    ``Tr``) and each further ``image_K/`` folder with ``PK`` and the same ``Tr``.
+
+    Raises:
+        DatasetError: naming ``cameras.yaml`` or ``calib.txt``: a malformed rig, or an ``image_K/`` folder
+            without its ``PK:`` line.
+    """
+    root = Path(root)
+    if (root / RIG_FILE).is_file():
+        return read_rig_file(root / RIG_FILE, calib.Tr)
+    cams = [Camera(PRIMARY_FOLDER, calib.P2, calib.Tr, "calib.txt P2")]
+    folders = kitti_camera_folders(root)
+    if folders:
+        path = root / "calib.txt"
+        entries = _calib_entries(path)
+        for k, name in folders:
+            key = f"P{k}"
+            if key not in entries:
+                raise DatasetError(
+                    path, f"no '{key}:' line for the camera folder {name}/ (its 3×4 projection; or remove it)"
+                )
+            p = _parse_matrix(path, key, entries[key])
+            check_projection(path, f"'{key}'", p)
+            cams.append(Camera(name, p, calib.Tr, f"calib.txt {key}"))
+    return tuple(cams)
+
+
 def read_calib(path: str | Path) -> Calib:
     """Read a KITTI ``calib.txt``: P2 and the LiDAR → rectified left camera transform.
 
@@ -331,15 +386,7 @@ def read_calib(path: str | Path) -> Calib:
             singular rotation or camera matrix.
     """
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
-    except OSError as exc:
-        raise DatasetError(path, f"cannot read calibration ({exc.strerror or exc})") from exc
-    entries: dict[str, str] = {}
-    for line in lines:
-        match = _CALIB_LINE.match(line)
-        if match:
-            entries[match.group(1)] = match.group(2)
+    entries = _calib_entries(path)
     if "P2" not in entries:
         raise DatasetError(path, "missing 'P2:' line (the left colour camera's 3×4 projection)")
     p2 = _parse_matrix(path, "P2", entries["P2"])
@@ -573,15 +620,34 @@ def write_png16(path: str | Path, arr: npt.NDArray[np.integer]) -> None:
 
 # ------------------------------------------------------------------------------------------ sequence
 class Frame:
-    """One frame of a sequence; every array is read from disk on first access only."""
+    """One frame of a sequence as one camera sees it; every array is read from disk on first access only.
 
-    def __init__(self, seq: KittiSequence, index: int) -> None:
+    ``camera`` picks the camera of the rig (:attr:`KittiSequence.cameras`) whose image and 2D ground truth
+    the frame's image attributes read; 0, the primary camera, is what a one-camera sequence has.
+    """
+
+    def __init__(self, seq: KittiSequence, index: int, camera: int = 0) -> None:
         self.seq = seq
         self.index = index
         self.frame_id = seq.frame_ids[index]
         self.number = seq.frame_numbers[index]
         """The frame number (:attr:`KittiSequence.frame_numbers`): what seeds and names depend on, never
         :attr:`index`, the position among the scans present."""
+        if not 0 <= camera < len(seq.cameras):
+            raise IndexError(f"camera {camera} out of range 0..{len(seq.cameras) - 1}")
+        self.camera = camera
+        """The index of the camera in :attr:`KittiSequence.cameras`."""
+
+    @property
+    def rig_camera(self) -> Camera:
+        """The camera this frame's image attributes read."""
+        return self.seq.cameras[self.camera]
+
+    def cameras(self) -> list[Frame]:
+        """This frame as each camera of the rig sees it, in rig order (one for a one-camera sequence)."""
+        return [
+            self if k == self.camera else Frame(self.seq, self.index, k) for k in range(len(self.seq.cameras))
+        ]
 
     @functools.cached_property
     def points(self) -> npt.NDArray[np.float32]:
@@ -610,19 +676,32 @@ class Frame:
 
     @property
     def calib(self) -> Calib:
-        return self.seq.calib
+        """The calibration of the frame's camera: ``P2`` its projection, ``Tr`` LiDAR → that camera (for
+        the primary camera of a KITTI layout, the sequence's ``calib.txt``)."""
+        if (
+            self.camera == 0
+            and self.seq.rig_source == "calib.txt"
+            and self.seq.camera_tr(self.index) is self.seq.calib.Tr
+        ):
+            return self.seq.calib
+        return Calib(P2=self.rig_camera.P, Tr=self.seq.camera_tr(self.index, self.camera))
 
     @property
     def has_image(self) -> bool:
-        return self.seq.image_path(self.index) is not None
+        return self.seq.image_path(self.index, self.camera) is not None
 
     @functools.cached_property
     def image(self) -> npt.NDArray[np.uint8]:
-        """(H, W, 3) uint8 RGB of the left colour camera."""
-        p = self.seq.image_path(self.index)
+        """(H, W, 3) uint8 RGB of the frame's camera (the left colour camera in KITTI)."""
+        p = self.seq.image_path(self.index, self.camera)
         if p is None:
-            raise DatasetError(self.seq.root / "image_2", f"no image for frame {self.frame_id}")
+            raise DatasetError(self.seq.root / self.rig_camera.name, f"no image for frame {self.frame_id}")
         return read_image(self.seq.confined(p))
+
+    def gt2d_path(self, kind: str) -> Path:
+        """The frame's 2D ground-truth image of ``kind`` (``semantic``, ``instance``, ``name``, ``cell``) for
+        its camera (:func:`~leap_core.datasets.rig.gt2d_folder`)."""
+        return self.seq.root / gt2d_folder(self.seq.cameras, self.camera, kind) / f"{self.frame_id}.png"
 
     @property
     def has_labels(self) -> bool:
@@ -638,19 +717,19 @@ class Frame:
     @functools.cached_property
     def gt2d_semantic(self) -> npt.NDArray[np.uint16]:
         """(H, W) raw semantic id per pixel (synthetic data's 2D ground truth; 0 = none)."""
-        return read_png16(self.seq.confined(self.seq.root / "gt2d" / "semantic" / f"{self.frame_id}.png"))
+        return read_png16(self.seq.confined(self.gt2d_path("semantic")))
 
     @functools.cached_property
     def gt2d_instance(self) -> npt.NDArray[np.uint16]:
         """(H, W) instance id per pixel (0 = none)."""
-        return read_png16(self.seq.confined(self.seq.root / "gt2d" / "instance" / f"{self.frame_id}.png"))
+        return read_png16(self.seq.confined(self.gt2d_path("instance")))
 
     @functools.cached_property
     def gt2d_cell(self) -> npt.NDArray[np.uint16] | None:
         """(H, W) world cell id per pixel (``leap_core.synth.camera.world_cells``; generated data only), or
         None when the sequence has no ``gt2d/cell`` folder (real data, or generated before it existed)."""
-        folder = self.seq.root / "gt2d" / "cell"
-        return read_png16(self.seq.confined(folder / f"{self.frame_id}.png")) if folder.is_dir() else None
+        path = self.gt2d_path("cell")
+        return read_png16(self.seq.confined(path)) if path.parent.is_dir() else None
 
 
 def _sort_frame_ids(stems: Iterable[str]) -> list[str]:
@@ -726,10 +805,14 @@ class KittiSequence:
         if same:
             a, b = self.frame_ids[same[0] - 1], self.frame_ids[same[0]]
             raise DatasetError(vel, f"scans {a}.bin and {b}.bin are both frame {self.frame_numbers[same[0]]}")
-        self.roots = sequence_roots(self.root)
+        self.calib = read_calib(self.root / "calib.txt")
+        self.cameras: tuple[Camera, ...] = read_rig(self.root, self.calib)
+        """The rig (:mod:`leap_core.datasets.rig`): one camera (``image_2``) in the one-camera layout."""
+        self.rig_source = RIG_FILE if (self.root / RIG_FILE).is_file() else "calib.txt"
+        """Where the rig was read: ``calib.txt`` (the KITTI layout) or ``cameras.yaml``."""
+        self.roots = sequence_roots(self.root, self.camera_folders())
         """Where its files may lie (:func:`sequence_roots`)."""
         self._refuse_unreadable_entries()
-        self.calib = read_calib(self.root / "calib.txt")
         self.poses_path = Path(poses_path) if poses_path is not None else self.root / "poses.txt"
         self._cam_poses: npt.NDArray[np.float64] | None = None
         self._poses: npt.NDArray[np.float64] | None = None
@@ -744,21 +827,58 @@ class KittiSequence:
             # subset as in the whole sequence.
             self._poses = lidar_poses(cam_poses, self.calib.Tr)[rows]
         self._images = self._index_images()
-        times = self.root / "times.txt"
-        self.times: npt.NDArray[np.float64] | None = None
+        self._frame_tr = self._read_frame_transforms()
+        self.times: npt.NDArray[np.float64] | None = self._read_times()
         """(F,) seconds per scan (the line of its frame number), when ``times.txt`` exists."""
-        if times.is_file():
-            try:
-                all_times = np.loadtxt(times, dtype=np.float64, ndmin=1)
-            except ValueError as exc:
-                raise DatasetError(times, f"malformed timestamps ({exc})") from exc
-            if all_times.ndim != 1:
+
+    def _read_frame_transforms(self) -> list[npt.NDArray[np.float64] | None]:
+        """Per camera, its (F, 4, 4) LiDAR → camera transform per scan from ``tr_frames/<camera>.txt``
+        (:mod:`leap_core.datasets.rig`), or None: the camera's ``Tr``."""
+        out: list[npt.NDArray[np.float64] | None] = []
+        cams = list(self.cameras)
+        for k, cam in enumerate(cams):
+            path = self.root / FRAME_TR_FOLDER / f"{cam.name}.txt"
+            if not path.is_file():
+                out.append(None)
+                continue
+            every = read_poses(self.confined(path))
+            trs = every[_rows_of_frames(path, len(every), "transforms", self)]
+            bad = np.flatnonzero(np.abs(np.linalg.det(trs[:, :3, :3])) < 1e-6)
+            if bad.size:
                 raise DatasetError(
-                    times, f"expected one timestamp per line, got {all_times.shape[1]} columns"
+                    path, f"the transform of frame {self.frame_ids[int(bad[0])]} has a singular rotation"
                 )
-            if not np.isfinite(all_times).all():
-                raise DatasetError(times, "timestamps have non-finite values")
-            self.times = all_times[_rows_of_frames(times, all_times.shape[0], "timestamps", self)]
+            out.append(trs)
+            cams[k] = Camera(
+                cam.name, cam.P, cam.Tr, f"{cam.source}, Tr per frame from {FRAME_TR_FOLDER}/{path.name}"
+            )
+        self.cameras = tuple(cams)
+        return out
+
+    def camera_tr(self, index: int, camera: int = 0) -> npt.NDArray[np.float64]:
+        """(4, 4) LiDAR → camera ``camera`` for scan ``index``: its ``tr_frames`` line, else its ``Tr``."""
+        per_frame = self._frame_tr[camera]
+        return self.cameras[camera].Tr if per_frame is None else per_frame[index]
+
+    def lidar_to_image(self, index: int, camera: int = 0) -> npt.NDArray[np.float64]:
+        """(3, 4) ``M = P · Tr`` of camera ``camera`` for scan ``index`` (:meth:`camera_tr`)."""
+        if self._frame_tr[camera] is None:
+            return self.cameras[camera].lidar_to_image
+        return self.cameras[camera].P @ self.camera_tr(index, camera)
+
+    def _read_times(self) -> npt.NDArray[np.float64] | None:
+        times = self.root / "times.txt"
+        if not times.is_file():
+            return None
+        try:
+            all_times = np.loadtxt(times, dtype=np.float64, ndmin=1)
+        except ValueError as exc:
+            raise DatasetError(times, f"malformed timestamps ({exc})") from exc
+        if all_times.ndim != 1:
+            raise DatasetError(times, f"expected one timestamp per line, got {all_times.shape[1]} columns")
+        if not np.isfinite(all_times).all():
+            raise DatasetError(times, "timestamps have non-finite values")
+        return all_times[_rows_of_frames(times, all_times.shape[0], "timestamps", self)]
 
     def _refuse_unreadable_entries(self) -> None:
         """Refuse a per-frame file linked outside :attr:`roots` or that no file read can take (a pipe, a
@@ -767,7 +887,10 @@ class KittiSequence:
         Raises:
             DatasetError: naming the first such file and what it is.
         """
-        for name, suffixes in FRAME_FOLDERS.items():
+        extra = {
+            name: (".png",) if name.startswith("gt2d/") else IMAGE_SUFFIXES for name in self.camera_folders()
+        }
+        for name, suffixes in {**FRAME_FOLDERS, **extra}.items():
             for entry, problem in folder_problems(self.root / name, suffixes, self.roots):
                 # A label or image folder entry that is a directory only takes that frame's file away,
                 # which the stages that need it report; a scan is needed by every stage.
@@ -818,11 +941,25 @@ class KittiSequence:
             raise PosesMissingError(self.poses_path, "no poses: the 3D stages need one pose per scan")
         return self._poses
 
-    def _index_images(self) -> dict[str, Path]:
-        img_dir = self.root / "image_2"
-        if not img_dir.is_dir():
-            return {}
-        return {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+    def camera_folders(self) -> list[str]:
+        """The per-frame folders of the cameras besides ``image_2`` and ``gt2d/<kind>`` (relative to the
+        sequence): the other cameras' image folders and their 2D ground-truth folders."""
+        out = [c.name for c in self.cameras if c.name != PRIMARY_FOLDER]
+        out += [
+            gt2d_folder(self.cameras, k, kind) for k in range(1, len(self.cameras)) for kind in GT2D_KINDS
+        ]
+        return out
+
+    def _index_images(self) -> list[dict[str, Path]]:
+        """Per camera, frame id → its image."""
+        out = []
+        for cam in self.cameras:
+            img_dir = self.root / cam.name
+            found = {}
+            if img_dir.is_dir():
+                found = {p.stem: p for p in sorted(img_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+            out.append(found)
+        return out
 
     def __len__(self) -> int:
         return len(self.frame_ids)
@@ -857,10 +994,11 @@ class KittiSequence:
             raise LeapError(f"{label} select no frame: no scan is numbered in that range")
         return range(lo, hi)
 
-    def frame(self, index: int) -> Frame:
+    def frame(self, index: int, camera: int = 0) -> Frame:
+        """Scan ``index`` as camera ``camera`` sees it (:class:`Frame`)."""
         if not 0 <= index < len(self):
             raise IndexError(f"frame {index} out of range 0..{len(self) - 1}")
-        return Frame(self, index)
+        return Frame(self, index, camera)
 
     def scan_path(self, index: int) -> Path:
         return self.root / "velodyne" / f"{self.frame_ids[index]}.bin"
@@ -868,8 +1006,9 @@ class KittiSequence:
     def label_path(self, index: int) -> Path:
         return self.root / "labels" / f"{self.frame_ids[index]}.label"
 
-    def image_path(self, index: int) -> Path | None:
-        return self._images.get(self.frame_ids[index])
+    def image_path(self, index: int, camera: int = 0) -> Path | None:
+        """Scan ``index``'s image from camera ``camera`` (None: that camera has none for the frame)."""
+        return self._images[camera].get(self.frame_ids[index])
 
     @property
     def has_labels(self) -> bool:
@@ -878,11 +1017,18 @@ class KittiSequence:
 
     @property
     def has_images(self) -> bool:
-        return bool(self._images)
+        """Whether some camera has images."""
+        return any(self._images)
 
     @property
     def has_gt2d(self) -> bool:
-        return (self.root / "gt2d" / "semantic").is_dir()
+        return any(
+            (self.root / gt2d_folder(self.cameras, k, "semantic")).is_dir() for k in range(len(self.cameras))
+        )
+
+    def camera_has_gt2d(self, camera: int) -> bool:
+        """Whether camera ``camera`` has a 2D ground-truth folder."""
+        return (self.root / gt2d_folder(self.cameras, camera, "semantic")).is_dir()
 
 
 __all__ = [
@@ -891,6 +1037,7 @@ __all__ = [
     "NEVER_READ",
     "POSES_NOTE",
     "Calib",
+    "Camera",
     "Frame",
     "KittiSequence",
     "atomic_write",
@@ -904,6 +1051,7 @@ __all__ = [
     "read_label",
     "read_png16",
     "read_poses",
+    "read_rig",
     "read_scan",
     "scan_point_count",
     "sequence_roots",

@@ -47,9 +47,10 @@ from leap_core.datasets.kitti import (
     write_poses,
     write_scan,
 )
+from leap_core.datasets.rig import FRAME_TR_FOLDER, RIG_FILE, Camera, camera_rig_text
 from leap_core.errors import DatasetError
 from leap_core.extras import MissingExtra
-from leap_core.importers.folder import IMPORT_NOTE, check_output, staged_output
+from leap_core.importers.folder import IMPORT_ENTRIES, IMPORT_NOTE, check_output, staged_output
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
 
@@ -61,6 +62,11 @@ try:  # the nuscenes extra and the devkit: only `leap import nuscenes` imports t
     from pyquaternion import Quaternion  # type: ignore[import-untyped]
 except ModuleNotFoundError as exc:
     raise MissingExtra("nuscenes", exc.name) from None
+
+RIG_ORDER = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
+"""nuScenes' six cameras, clockwise from the front: the rig order of ``--camera all``."""
+RIG_IMPORT_ENTRIES = IMPORT_ENTRIES | {RIG_FILE, FRAME_TR_FOLDER, *RIG_ORDER}
+"""What a nuScenes import writes (a rig import: its camera folders, ``cameras.yaml``, ``tr_frames``)."""
 
 LIDAR_CHANNEL = "LIDAR_TOP"
 """nuScenes' only LiDAR (the five radars are not LiDARs)."""
@@ -180,6 +186,8 @@ class ImportSummary:
     """nuScenes-lidarseg is installed in the dataroot."""
     skipped_sweeps: int = 0
     """LIDAR_TOP sweeps between keyframes, not written (no image, no labels there)."""
+    cameras: int = 1
+    """Cameras written (a rig import: two or more)."""
     max_offset_ms: float = 0.0
     """Largest |image − sweep| timestamp difference, compensated with the ego poses."""
     notes: list[str] = field(default_factory=list)
@@ -188,8 +196,11 @@ class ImportSummary:
     def line(self) -> str:
         """The one-line summary the CLI prints."""
         labels = f"{self.labels} lidarseg labels" if self.lidarseg else "no labels (lidarseg not installed)"
+        images = f"{self.images} {self.camera} images"
+        if self.cameras > 1:
+            images = f"{self.images} images of {self.cameras} cameras: {self.camera}"
         text = (
-            f"wrote {self.frames} frames of {self.scene} to {self.out} ({self.images} {self.camera} images, "
+            f"wrote {self.frames} frames of {self.scene} to {self.out} ({images}, "
             f"{labels}); skipped {self.skipped_sweeps} {LIDAR_CHANNEL} sweeps between keyframes (no image or "
             f"labels there); image-sweep offset up to {self.max_offset_ms:.0f} ms, compensated with the ego "
             "poses"
@@ -311,9 +322,53 @@ class _Scene:
     lidar: list[dict[str, Any]]
     """LIDAR_TOP keyframe ``sample_data`` records in time order."""
     cameras: list[dict[str, Any] | None]
-    """The camera's keyframe ``sample_data`` of each LiDAR keyframe's sample (None where it has none)."""
+    """The (first) camera's keyframe ``sample_data`` of each LiDAR keyframe's sample (None where it has
+    none)."""
     lidar_to_ego: npt.NDArray[np.float64]
     calib: Calib
+    """The (first) camera's calibration."""
+    rig: dict[str, tuple[list[dict[str, Any] | None], Calib]] = field(default_factory=dict)
+    """Per camera of a rig import (two or more cameras), its keyframe records and its calibration, in rig
+    order; empty for a one-camera import."""
+
+
+def camera_channels(nusc: Any, camera: str, where: Path) -> list[str]:
+    """The camera channels ``camera`` names: one channel, several separated by commas, or ``all`` (every
+    camera of the sensor table, nuScenes' six in clockwise order from ``CAM_FRONT`` first).
+
+    Raises:
+        DatasetError: naming ``sensor.json`` and listing the cameras, for a channel that is not a camera.
+    """
+    present = [s["channel"] for s in nusc.sensor if s["modality"] == "camera"]
+    if camera.strip() == "all":
+        return [c for c in RIG_ORDER if c in present] + sorted(c for c in present if c not in RIG_ORDER)
+    names = list(dict.fromkeys(c.strip() for c in camera.split(",") if c.strip()))
+    for name in names or [camera]:
+        _check_channels(nusc, name, where)
+    return names
+
+
+def _plan_rig(nusc: Any, scene: str, channels: list[str], tables: Path, summary_notes: list[str]) -> _Scene:
+    """:func:`_plan` of each camera of a rig import; a camera without keyframe images in the scene is left
+    out (noted), and a rig with none left is refused."""
+    rig: dict[str, tuple[list[dict[str, Any] | None], Calib]] = {}
+    first: _Scene | None = None
+    for name in channels:
+        try:
+            plan = _plan(nusc, scene, name, tables)
+        except DatasetError as exc:
+            if "keyframe images" not in exc.problem:
+                raise
+            summary_notes.append(f"{name} has no keyframe images in the scene: not imported")
+            continue
+        first = first or plan
+        rig[name] = (plan.cameras, plan.calib)
+    if first is None:
+        raise DatasetError(
+            tables / "sample_data.json", f"scene {scene!r} has no keyframe images of {channels}"
+        )
+    first.rig = rig
+    return first
 
 
 def _plan(nusc: Any, scene: str, camera: str, tables: Path) -> _Scene:
@@ -402,6 +457,47 @@ def _write_frame(
     return ego_image @ plan.lidar_to_ego, entry
 
 
+def _write_rig_frame(
+    nusc: Any, plan: _Scene, i: int, stage: Path, summary: ImportSummary
+) -> tuple[npt.NDArray[np.float64], dict[str, Any], dict[str, npt.NDArray[np.float64]]]:
+    """Frame ``i`` of a rig import: its scan as the LiDAR saw it at the sweep, each camera's image, its
+    labels; returns its LiDAR → global pose at the sweep, its ``import.json`` entry and per camera the
+    LiDAR → camera transform at that camera's image (the devkit's chain, :func:`camera_time_correction`)."""
+    sd = plan.lidar[i]
+    fid = f"{i:06d}"
+    ego_sweep = _matrix(nusc, "ego_pose", sd["ego_pose_token"])
+    pts = _read_points(nusc, sd["token"])
+    entry: dict[str, Any] = {
+        "frame": fid,
+        "sample_token": sd["sample_token"],
+        "lidar_token": sd["token"],
+        "lidar_timestamp_us": int(sd["timestamp"]),
+        "cameras": {},
+    }
+    trs: dict[str, npt.NDArray[np.float64]] = {}
+    for name, (records, calib) in plan.rig.items():
+        cam = records[i]
+        trs[name] = calib.Tr
+        if cam is None:
+            continue
+        ego_image = _matrix(nusc, "ego_pose", cam["ego_pose_token"])
+        image = _read_image_bytes(Path(nusc.get_sample_data_path(cam["token"])))
+        atomic_write_bytes(stage / name / f"{fid}{Path(cam['filename']).suffix.lower()}", image)
+        summary.images += 1
+        summary.max_offset_ms = max(summary.max_offset_ms, abs(cam["timestamp"] - sd["timestamp"]) / 1e3)
+        entry["cameras"][name] = {"token": cam["token"], "timestamp_us": int(cam["timestamp"])}
+        trs[name] = calib.Tr @ camera_time_correction(ego_sweep, ego_image, plan.lidar_to_ego)
+    xyz = pts[:, :3].astype(np.float64)
+    write_scan(stage / "velodyne" / f"{fid}.bin", np.column_stack([xyz, intensity_to_remission(pts[:, 3])]))
+    if summary.lidarseg:
+        labels = _read_labels(nusc, sd["token"], len(pts))
+        if labels is not None:
+            write_label(stage / "labels" / f"{fid}.label", labels)
+            summary.labels += 1
+    summary.frames += 1
+    return ego_sweep @ plan.lidar_to_ego, entry, trs
+
+
 def import_nuscenes(
     dataroot: str | Path,
     out: str | Path,
@@ -419,7 +515,11 @@ def import_nuscenes(
         out: the sequence folder to write; replaced whole at the end (:func:`staged_output`).
         version: the table folder (``v1.0-mini``, ``v1.0-trainval``).
         scene: scene name (``scene-0061``).
-        camera: camera channel whose keyframe images are written.
+        camera: camera channel whose keyframe images are written; several separated by commas, or ``all``,
+            write a rig (docs/IMPORT.md, "Several cameras"): each camera's images in a folder named after
+            its channel, ``cameras.yaml`` with each camera's ``P = [K | 0]`` and ``Tr``, and
+            ``tr_frames/<channel>.txt`` with each frame's LiDAR → camera transform at that camera's image
+            (the points stay as the LiDAR saw them at the sweep).
         force: replace a previous import in ``out``.
         progress: ``progress(done, total)`` per frame.
 
@@ -429,15 +529,21 @@ def import_nuscenes(
             unreadable LiDAR, image or label files, a non-empty ``out`` without ``force``.
     """
     root, out = Path(dataroot), Path(out)
-    check_output(out, force)  # before the minutes the tables of a full release take to load
+    check_output(
+        out, force, RIG_IMPORT_ENTRIES
+    )  # before the minutes the tables of a full release take to load
     nusc = _load(root, version)
+    channels = camera_channels(nusc, camera, root / version)
+    if len(channels) > 1:
+        return _import_rig(nusc, root, out, version, scene, channels, force, progress)
+    camera = channels[0] if channels else camera
     try:
         plan = _plan(nusc, scene, camera, root / version)
         summary = _new_summary(nusc, plan, out, camera)
         n = len(plan.lidar)
         lidar_global = np.zeros((n, 4, 4))
         entries: list[dict[str, Any]] = []
-        with staged_output(out, force) as stage:
+        with staged_output(out, force, RIG_IMPORT_ENTRIES) as stage:
             for i in range(n):
                 lidar_global[i], entry = _write_frame(nusc, plan, i, stage, summary)
                 entries.append(entry)
@@ -474,11 +580,80 @@ def import_nuscenes(
     return summary
 
 
+def _import_rig(  # noqa: PLR0917  # import_nuscenes' arguments, passed on
+    nusc: Any,
+    root: Path,
+    out: Path,
+    version: str,
+    scene: str,
+    channels: list[str],
+    force: bool,
+    progress: ProgressFn | None,
+) -> ImportSummary:
+    """:func:`import_nuscenes` of several cameras."""
+    notes: list[str] = []
+    try:
+        plan = _plan_rig(nusc, scene, channels, root / version, notes)
+        names = list(plan.rig)
+        summary = _new_summary(nusc, plan, out, ", ".join(names))
+        summary.cameras = len(names)
+        summary.notes += notes
+        n = len(plan.lidar)
+        lidar_global = np.zeros((n, 4, 4))
+        trs = {name: np.zeros((n, 4, 4)) for name in names}
+        entries: list[dict[str, Any]] = []
+        with staged_output(out, force, RIG_IMPORT_ENTRIES) as stage:
+            for i in range(n):
+                lidar_global[i], entry, frame_trs = _write_rig_frame(nusc, plan, i, stage, summary)
+                for name, tr in frame_trs.items():
+                    trs[name][i] = tr
+                entries.append(entry)
+                report(progress, i + 1, n)
+            write_calib(stage / "calib.txt", plan.calib)
+            write_poses(stage / "poses.txt", kitti_cam_poses(lidar_global, plan.calib.Tr))
+            rig = [Camera(name, calib.P2, calib.Tr) for name, (_, calib) in plan.rig.items()]
+            atomic_write_bytes(stage / RIG_FILE, camera_rig_text(rig).encode())
+            for name in names:
+                write_poses(stage / FRAME_TR_FOLDER / f"{name}.txt", trs[name])
+            t0 = plan.lidar[0]["timestamp"]
+            atomic_write_bytes(
+                stage / "times.txt",
+                "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in plan.lidar).encode(),
+            )
+            note = {
+                "importer": "nuscenes",
+                "dataroot": str(root.resolve()),
+                "version": version,
+                "scene": scene,
+                "scene_token": plan.record["token"],
+                "lidar": LIDAR_CHANNEL,
+                "cameras": names,
+                "remission": f"intensity / {INTENSITY_SCALE:g}, clipped to 0..1",
+                "points": "LiDAR frame at the sweep's timestamp; each camera's LiDAR → camera transform "
+                f"at its image's timestamp is in {FRAME_TR_FOLDER}/",
+                "labels": "nuScenes-lidarseg index per point" if summary.lidarseg else None,
+                "frames": entries,
+            }
+            atomic_write_bytes(stage / IMPORT_NOTE, (json.dumps(note, indent=2) + "\n").encode())
+    except KeyError as exc:
+        raise DatasetError(root / version, f"a record refers to a token its table lacks: {exc}") from exc
+    for name, (records, _) in plan.rig.items():
+        missing = sum(r is None for r in records)
+        if missing:
+            summary.notes.append(f"{missing} keyframes have no {name} image")
+    if summary.lidarseg and summary.labels < n:
+        summary.notes.append(
+            f"{n - summary.labels} keyframes have no lidarseg record (evaluation needs labels on every scan)"
+        )
+    return summary
+
+
 __all__ = [
     "INTENSITY_SCALE",
     "LIDARSEG_NAMES",
     "LIDAR_CHANNEL",
     "ImportSummary",
+    "camera_channels",
     "camera_time_correction",
     "import_nuscenes",
     "intensity_to_remission",

@@ -27,8 +27,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,9 +40,10 @@ import yaml
 from scipy.spatial.transform import Rotation, Slerp
 
 from leap_core.datasets.kitti import Calib, read_calib, write_calib, write_image, write_poses, write_scan
+from leap_core.datasets.rig import MAX_CAMERAS, RIG_FILE, Camera, camera_name_problem, camera_rig_text
 from leap_core.errors import ConfigError, DatasetError, LeapError
 from leap_core.extras import MissingExtra
-from leap_core.importers.folder import check_output, staged_output
+from leap_core.importers.folder import IMPORT_ENTRIES, check_output, staged_output
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
 
@@ -86,11 +88,28 @@ class RosbagImportConfig:
     """Largest difference between a scan's stamp and its camera frame's stamp (milliseconds)."""
     fixed_frame: str | None = None
     """Frame the poses are taken in; None = the root of the LiDAR frame's ``/tf`` tree."""
+    more_camera_topics: tuple[str, ...] = ()
+    """Further cameras of a rig (docs/IMPORT.md, "Several cameras"): image topics whose frames are written
+    into a folder named after the topic (:func:`camera_folder`), calibrated from the bag (their
+    ``CameraInfo`` and ``/tf_static``); a scan without a frame of such a camera within ``max_offset_ms`` is
+    kept, without that camera's image."""
 
     def __post_init__(self) -> None:
         for name in ("lidar_topic", "camera_topic"):
             if not getattr(self, name).strip():
                 raise ConfigError("must name a topic", field=(name,))
+        topics = [self.camera_topic, *self.more_camera_topics]
+        for k, topic in enumerate(self.more_camera_topics):
+            if not topic.strip():
+                raise ConfigError("must name a topic", field=("more_camera_topics", str(k)))
+            if topics.index(topic) != k + 1:
+                raise ConfigError(
+                    f"camera topic {topic!r} is given twice", field=("more_camera_topics", str(k))
+                )
+        if len(topics) > MAX_CAMERAS:
+            raise ConfigError(
+                f"{len(topics)} cameras; a rig holds at most {MAX_CAMERAS}", field=("more_camera_topics",)
+            )
         if not (math.isfinite(self.max_offset_ms) and self.max_offset_ms >= 0):
             raise ConfigError(
                 f"must be a finite number >= 0, got {self.max_offset_ms}", field=("max_offset_ms",)
@@ -576,10 +595,18 @@ class _Msg:
         return (self.recorded, self.stamp)
 
 
+def camera_folder(topic: str) -> str:
+    """The folder of a further camera's images: its topic without the leading slash, every other character
+    that may not name a camera folder a ``_`` (``/cam_left/image_raw`` → ``cam_left_image_raw``)."""
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", topic.strip("/")).strip("_.-")[:64] or "camera"
+    return name if camera_name_problem(name) is None and name != "image_2" else f"camera_{name}"[:64]
+
+
 def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, Any]:
     """Stamps of every scan and camera frame, the transform tree and the CameraInfo messages."""
     lidar = _topic(reader, bag, cfg.lidar_topic, (POINTCLOUD2,), "LiDAR")
     camera = _topic(reader, bag, cfg.camera_topic, (IMAGE, COMPRESSED_IMAGE), "camera")
+    more = [_topic(reader, bag, t, (IMAGE, COMPRESSED_IMAGE), "camera") for t in cfg.more_camera_topics]
     topics = reader.topics
     info_conns: list[Any] = []
     if cfg.camera_info_topic is not None:
@@ -598,7 +625,11 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
     size: tuple[int, int] | None = None  # (width, height) of the first raw image
     tree = TfTree()
     lidar_ids, camera_ids = {c.id for c in lidar}, {c.id for c in camera}
-    for conn, log_ns, raw in reader.messages(connections=[*lidar, *camera, *info_conns, *tf_conns]):
+    more_ids = {c.id: k for k, conns in enumerate(more) for c in conns}
+    more_cams: list[list[_Msg]] = [[] for _ in more]
+    more_sizes: list[tuple[int, int] | None] = [None for _ in more]
+    connections = [*lidar, *camera, *(c for conns in more for c in conns), *info_conns, *tf_conns]
+    for conn, log_ns, raw in reader.messages(connections=connections):
         # A raw uint8 array of an image or scan is a view: deserialising is cheap.
         msg = reader.deserialize(raw, conn.msgtype)
         if conn.msgtype == TF_MESSAGE:
@@ -611,6 +642,11 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
             cams.append(_Msg(stamp, int(log_ns), _frame(msg.header.frame_id)))
             if size is None and conn.msgtype == IMAGE:
                 size = (int(msg.width), int(msg.height))
+        elif conn.id in more_ids:
+            k = more_ids[conn.id]
+            more_cams[k].append(_Msg(stamp, int(log_ns), _frame(msg.header.frame_id)))
+            if more_sizes[k] is None and conn.msgtype == IMAGE:
+                more_sizes[k] = (int(msg.width), int(msg.height))
         else:
             infos.setdefault(conn.topic, msg)
     return {
@@ -622,6 +658,9 @@ def _first_pass(reader: Any, bag: Path, cfg: RosbagImportConfig) -> dict[str, An
         "lidar": lidar,
         "camera": camera,
         "size": size,
+        "more": more,
+        "more_cams": more_cams,
+        "more_sizes": more_sizes,
     }
 
 
@@ -716,6 +755,43 @@ def _calibration(
     return Calib(P2=p2, Tr=tr), " + ".join(sources), notes
 
 
+def _more_calibration(
+    bag: Path, cfg: RosbagImportConfig, first: dict[str, Any], lidar_frame: str
+) -> list[Camera]:
+    """Each further camera's ``P`` (its CameraInfo: the one whose frame is its images' frame) and ``Tr``
+    (``/tf_static`` from the LiDAR frame to that frame); a DatasetError naming the topic and what is
+    missing."""
+    out = []
+    for k, topic in enumerate(cfg.more_camera_topics):
+        msgs = first["more_cams"][k]
+        if not msgs:
+            raise DatasetError(bag, f"camera topic {topic!r} has no messages")
+        frame = msgs[0].frame
+        infos = [(t, m) for t, m in sorted(first["infos"].items()) if _frame(m.header.frame_id) == frame]
+        problems: list[str] = []
+        p = None
+        if len(infos) != 1:
+            problems.append(
+                f"camera intrinsics ({len(infos)} sensor_msgs/CameraInfo topics for frame {frame!r})"
+            )
+        else:
+            one = replace(cfg, camera_topic=topic, more_camera_topics=())
+            p = _p2_from_info(one, {"size": first["more_sizes"][k]}, infos[0], problems, [])
+        tr = first["tree"].lookup_static(frame, lidar_frame)
+        if tr is None:
+            problems.append(
+                f"LiDAR → camera transform (no {TF_STATIC_TOPIC} chain from {lidar_frame!r} to {frame!r})"
+            )
+        if problems or p is None or tr is None:
+            raise DatasetError(bag, f"missing calibration of camera {topic}: " + "; ".join(problems))
+        out.append(Camera(camera_folder(topic), p, tr, f"CameraInfo {infos[0][0]} + {TF_STATIC_TOPIC}"))
+    names = [c.name for c in out]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise DatasetError(bag, f"two camera topics would share the folder {twice[0]!r}")
+    return out
+
+
 def _poses(
     bag: Path, cfg: RosbagImportConfig, tree: TfTree, lidar_frame: str, stamps: npt.NDArray[np.int64]
 ) -> tuple[F64 | None, npt.NDArray[np.bool_], str | None]:
@@ -742,9 +818,14 @@ def _decode_image(conn_type: str, msg: Any) -> tuple[npt.NDArray[np.uint8], byte
     return image_rgb(msg), None, ".png"
 
 
-def _write_image(seq: Path, frame_no: int, payload: tuple[npt.NDArray[np.uint8], bytes | None, str]) -> None:
+def _write_image(
+    seq: Path,
+    frame_no: int,
+    payload: tuple[npt.NDArray[np.uint8], bytes | None, str],
+    folder: str = "image_2",
+) -> None:
     rgb, data, suffix = payload
-    path = seq / "image_2" / f"{frame_no:06d}{suffix}"
+    path = seq / folder / f"{frame_no:06d}{suffix}"
     if data is None:
         write_image(path, rgb)
     else:
@@ -775,7 +856,7 @@ def import_rosbag(
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise DatasetError(bag, "no such bag file or folder")
-    check_output(out, force)  # before the bag is read
+    check_output(out, force, IMPORT_ENTRIES | {RIG_FILE, *map(camera_folder, cfg.more_camera_topics)})
     summary = ImportSummary(out=out)
     with _open_bag(bag) as reader:
         first = _first_pass(reader, bag, cfg)
@@ -792,15 +873,24 @@ def import_rosbag(
         summary.no_camera = int((partner < 0).sum())
         summary.no_pose = int(((partner >= 0) & ~covered).sum())
         keep = (partner >= 0) & covered
-        # Messages are found again in the second pass by (recording time, stamp), not by position,
+        more = _more_calibration(bag, cfg, first, lidar_frame)
+        # Messages are found again in the second pass by (topic, recording time, stamp), not by position,
         # as a storage may order messages of equal recording time differently per query.
         todo = {scans[s].key: int(s) for s in np.flatnonzero(keep)}
-        wanted: dict[tuple[int, int], list[int]] = {}
+        wanted: dict[tuple[str, int, int], list[tuple[int, str]]] = {}
         for s in np.flatnonzero(keep):
-            wanted.setdefault(cams[int(partner[s])].key, []).append(int(s))
+            wanted.setdefault((cfg.camera_topic, *cams[int(partner[s])].key), []).append((int(s), "image_2"))
+        for topic, cam, msgs in zip(cfg.more_camera_topics, more, first["more_cams"], strict=True):
+            pair = pair_nearest(stamps, [c.stamp for c in msgs], round(cfg.max_offset_ms * 1e6))
+            for s in np.flatnonzero(keep & (pair >= 0)):
+                wanted.setdefault((topic, *msgs[int(pair[s])].key), []).append((int(s), cam.name))
+            missing = int((keep & (pair < 0)).sum())
+            if missing:
+                summary.notes.append(f"{missing} frames without a {topic} image within the maximum offset")
 
-        with staged_output(out, force) as fresh:
-            plan = _Plan(first["lidar"], first["camera"], todo, wanted)
+        with staged_output(out, force, IMPORT_ENTRIES | {RIG_FILE, *(c.name for c in more)}) as fresh:
+            camera_conns = [*first["camera"], *(c for conns in first["more"] for c in conns)]
+            plan = _Plan(first["lidar"], camera_conns, todo, wanted)
             written = _write_frames(reader, bag, plan, fresh, summary, progress)
             if not written:
                 raise DatasetError(
@@ -810,6 +900,9 @@ def import_rosbag(
                 )
             kept = np.asarray(written, np.int64)
             write_calib(fresh / "calib.txt", calib)
+            if more:
+                rig = [Camera("image_2", calib.P2, calib.Tr), *more]
+                atomic_write_bytes(fresh / RIG_FILE, camera_rig_text(rig).encode())
             times = (stamps[kept] - stamps[kept[0]]).astype(np.float64) * 1e-9
             atomic_write_bytes(fresh / "times.txt", "".join(f"{t:.9e}\n" for t in times).encode())
             if lidar_world is not None:
@@ -828,11 +921,14 @@ class _Plan:
     lidar: list[Any]
     camera: list[Any]
     todo: dict[tuple[int, int], int]
-    wanted: dict[tuple[int, int], list[int]]
+    wanted: dict[tuple[str, int, int], list[tuple[int, str]]]
+    """(topic, recording time, stamp) of a camera frame → the (scan index, image folder) it is written for."""
     frame_of: dict[int, int | None] = field(default_factory=dict)
     """Scan index → frame number (None: the scan had no finite point)."""
-    waiting: dict[int, tuple[npt.NDArray[np.uint8], bytes | None, str]] = field(default_factory=dict)
-    """Scan index → its decoded image, when the image came before the scan."""
+    waiting: dict[tuple[int, str], tuple[npt.NDArray[np.uint8], bytes | None, str]] = field(
+        default_factory=dict
+    )
+    """(scan index, image folder) → its decoded image, when the image came before the scan."""
     written: list[int] = field(default_factory=list)
     """Scan indices written, in frame order."""
 
@@ -855,7 +951,7 @@ def _write_frames(
                     continue
                 _write_scan(plan, scan_i, pointcloud_xyzi(msg), seq, summary)
             else:
-                scans = plan.wanted.pop(key, None)
+                scans = plan.wanted.pop((conn.topic, *key), None)
                 if scans is None:
                     continue
                 _write_camera(plan, scans, _decode_image(conn.msgtype, msg), seq)
@@ -875,28 +971,33 @@ def _write_scan(
 ) -> None:
     pts, nan, _ = cloud
     summary.nan_points += nan
+    waiting = [key for key in plan.waiting if key[0] == scan_i]
     if len(pts) == 0:
         summary.empty += 1
         plan.frame_of[scan_i] = None
-        plan.waiting.pop(scan_i, None)
+        for key in waiting:
+            plan.waiting.pop(key)
         return
     frame_no = len(plan.written)
     write_scan(seq / "velodyne" / f"{frame_no:06d}.bin", pts)
     plan.written.append(scan_i)
     plan.frame_of[scan_i] = frame_no
-    if scan_i in plan.waiting:
-        _write_image(seq, frame_no, plan.waiting.pop(scan_i))
+    for key in waiting:
+        _write_image(seq, frame_no, plan.waiting.pop(key), key[1])
 
 
 def _write_camera(
-    plan: _Plan, scans: list[int], payload: tuple[npt.NDArray[np.uint8], bytes | None, str], seq: Path
+    plan: _Plan,
+    scans: list[tuple[int, str]],
+    payload: tuple[npt.NDArray[np.uint8], bytes | None, str],
+    seq: Path,
 ) -> None:
     # A camera frame may come before or after its scans: before, it waits for them.
-    for s in scans:
+    for s, folder in scans:
         if s not in plan.frame_of:
-            plan.waiting[s] = payload
+            plan.waiting[(s, folder)] = payload
         elif (no := plan.frame_of[s]) is not None:
-            _write_image(seq, no, payload)
+            _write_image(seq, no, payload, folder)
 
 
 __all__ = [
@@ -904,6 +1005,7 @@ __all__ = [
     "PartialCalib",
     "RosbagImportConfig",
     "TfTree",
+    "camera_folder",
     "compressed_image",
     "image_rgb",
     "import_rosbag",

@@ -509,21 +509,15 @@ def _distribution(
 def _name_image(frame: Frame, semantic: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint16]:
     """The frame's per-pixel name ids: ``gt2d/name/<frame>.png`` when the sequence has that folder, else
     the generic name of each pixel's raw semantic id."""
-    folder = frame.seq.root / "gt2d" / "name"
-    if not folder.is_dir():
+    path = frame.gt2d_path("name")
+    if not path.parent.is_dir():
         return generic_name_ids(semantic)
-    names = read_png16(frame.seq.confined(folder / f"{frame.frame_id}.png"))
+    names = read_png16(frame.seq.confined(path))
     if names.shape != semantic.shape:
-        raise LeapError(
-            f"{folder / (frame.frame_id + '.png')}: name image {names.shape} and semantic mask "
-            f"{semantic.shape} differ in size"
-        )
+        raise LeapError(f"{path}: name image {names.shape} and semantic mask {semantic.shape} differ in size")
     unknown = np.setdiff1d(np.unique(names), [0, *NAMES_BY_ID])
     if unknown.size:
-        raise LeapError(
-            f"{folder / (frame.frame_id + '.png')}: unknown name ids {unknown[:5].tolist()} "
-            "(see leap_core/synth/names.py)"
-        )
+        raise LeapError(f"{path}: unknown name ids {unknown[:5].tolist()} (see leap_core/synth/names.py)")
     return names
 
 

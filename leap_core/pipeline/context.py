@@ -20,6 +20,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.datasets.kitti import KittiSequence
+from leap_core.datasets.rig import FRAME_TR_FOLDER, GT2D_KINDS, RIG_FILE
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_json, file_digest, read_npz
 from leap_core.labelers import make_labeler
@@ -269,6 +270,12 @@ def dataset_identity(seq: KittiSequence) -> str:
     # A newer optional folder counts only where present, so older sequences keep their identity.
     if (root / "gt2d" / "cell").is_dir():
         folders.append("gt2d/cell")
+    if len(seq.cameras) > 1 or seq.rig_source != "calib.txt":
+        rig = root / RIG_FILE
+        parts.append(["rig", file_digest(rig) if rig.is_file() else None])
+        folders += [f for f in seq.camera_folders() if (root / f).is_dir()]
+        if (root / FRAME_TR_FOLDER).is_dir():
+            folders.append(FRAME_TR_FOLDER)
     for name in folders:
         folder = root / name
         if not folder.is_dir():
@@ -280,16 +287,16 @@ def dataset_identity(seq: KittiSequence) -> str:
     return hash_json(parts)
 
 
-GT2D_KINDS = ("semantic", "instance", "name", "cell")
-"""Per-frame 2D ground-truth images a labeler may read (``gt2d/<kind>/<frame>.png``)."""
-
-
-def frame_input_digest(seq: KittiSequence, index: int) -> str:
-    """Content digest of what a 2D labeler reads for one frame: its frame number and id (what seeds
-    depend on), its image and 2D ground truth, if any."""
-    h = hashlib.sha256(f"{seq.frame_numbers[index]}|{seq.frame_ids[index]}".encode())
-    fid = seq.frame_ids[index]
-    paths = [seq.image_path(index), *(seq.root / "gt2d" / kind / f"{fid}.png" for kind in GT2D_KINDS)]
+def frame_input_digest(seq: KittiSequence, index: int, camera: int = 0) -> str:
+    """Content digest of what a 2D labeler reads for one frame of one camera: its frame number and id (what
+    seeds depend on), the camera's name (for cameras after the primary one), its image and 2D ground
+    truth, if any."""
+    key = f"{seq.frame_numbers[index]}|{seq.frame_ids[index]}"
+    if camera:
+        key += f"|{seq.cameras[camera].name}"
+    h = hashlib.sha256(key.encode())
+    frame = seq.frame(index, camera)
+    paths = [seq.image_path(index, camera), *(frame.gt2d_path(kind) for kind in GT2D_KINDS)]
     for p in paths:
         if p is not None and p.is_file():
             h.update(p.name.encode())

@@ -1,10 +1,10 @@
 """Why points of a finished run stay unlabeled in its export, counted from the run folder and its dataset.
 
 A point is unlabeled exactly when its 0.2 m voxel is not in the final grid (docs/METHOD.md B.5). A voxel
-enters the grid only when some frame painted a point in it (B.1-B.3): the point lay in the camera image
+enters the grid only when some frame painted a point in it (B.1-B.3): the point lay in a camera image
 and a 2D mask covered it and survived depth clustering. So an unlabeled point has one of two reasons:
 
-- ``outside_view``: no point of its voxel was inside the camera image in any frame of the run;
+- ``outside_view``: no point of its voxel was inside any camera's image in any frame of the run;
 - ``no_mask``: its voxel was inside the image in some frame, but no mask kept there covered it (the
   labeler found nothing there, e.g. a detector box below ``box_threshold`` was dropped in 2D, or depth
   clustering removed the point from the mask).
@@ -46,7 +46,7 @@ class ExportCoverage:
         frames: scans in the export.
         points: points in those scans.
         labeled: points with a class.
-        outside_view: unlabeled points whose voxel was never inside the camera image.
+        outside_view: unlabeled points whose voxel was never inside a camera image (of any camera).
         no_mask: unlabeled points whose voxel was in the image but never covered by a kept mask.
         raw_counts: raw id (0 = unlabeled) → points, as the ``.label`` files hold them.
     """
@@ -117,7 +117,7 @@ def unlabeled_reasons(label: npt.ArrayLike, keys: npt.ArrayLike, seen_keys: npt.
     Args:
         label: (N,) class index per point, ``UNLABELED`` where none.
         keys: (N,) int64 world voxel key per point.
-        seen_keys: (S,) sorted unique int64 keys of the voxels some frame saw inside the camera image.
+        seen_keys: (S,) sorted unique int64 keys of the voxels some frame saw inside a camera image.
     """
     lab = np.asarray(label).reshape(-1)
     k = np.asarray(keys, dtype=np.int64).reshape(-1)

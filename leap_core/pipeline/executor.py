@@ -319,9 +319,9 @@ def label_cache_task(
     frame_ids: list[str],
     stop: StopSignal | None = None,
 ) -> dict[str, int]:
-    """``leap labels2d``'s work on some frames (a Ray task): the model labeler ``config.labeler`` into the
-    2D cache of ``runtime.cache_dir``, its ``batch_size`` images per forward pass, ``stop`` checked before
-    each batch. Returns its forward passes by model part."""
+    """``leap labels2d``'s work on some frames (a Ray task): the model labeler ``config.labeler`` on each
+    camera's image of them into the 2D cache of ``runtime.cache_dir``, its ``batch_size`` images per
+    forward pass, ``stop`` checked before each batch. Returns its forward passes by model part."""
     # Imported here: the labelers' modules are only needed where this task runs.
     from leap_core.datasets.kitti import KittiSequence  # noqa: PLC0415
     from leap_core.labelers import model_labeler  # noqa: PLC0415
@@ -329,7 +329,8 @@ def label_cache_task(
     seq = KittiSequence(dataset)
     labeler, batch = model_labeler(config, runtime)
     index = {fid: i for i, fid in enumerate(seq.frame_ids)}
-    frames = [seq.frame(index[fid]) for fid in frame_ids]
+    # Every camera's image of each frame (one for a one-camera sequence).
+    frames = [v for fid in frame_ids for v in seq.frame(index[fid]).cameras() if v.has_image]
     for start in range(0, len(frames), batch):
         if stop is not None:
             stop.check()

@@ -50,6 +50,7 @@ from leap_core.datasets.kitti import (
     read_poses,
     sequence_roots,
 )
+from leap_core.datasets.rig import gt2d_folder
 from leap_core.errors import DatasetError, ModelLoadError
 from leap_core.labelers import LABELERS
 from leap_core.labelers.grounded_sam import model_folder_name, resolve_model_folder
@@ -116,6 +117,20 @@ class CalibCheck:
 
 
 @dataclass(frozen=True)
+class CameraCheck:
+    """One camera of the sequence's rig (:attr:`~leap_core.datasets.kitti.KittiSequence.cameras`)."""
+
+    name: str
+    """Its image folder (``image_2``, ``CAM_FRONT``)."""
+    source: str
+    """Where its projection was read (``calib.txt P3``, ``cameras.yaml``)."""
+    images: FrameCoverage
+    """Scans with an image of this camera."""
+    gt2d: FrameCoverage
+    """Scans with this camera's 2D ground truth (semantic and instance masks)."""
+
+
+@dataclass(frozen=True)
 class PosesCheck:
     source: PoseSource
     """``file`` / ``estimated`` (:data:`~leap_core.datasets.kitti.POSES_NOTE` beside it, as
@@ -174,6 +189,8 @@ class DatasetReport:
     labelers: tuple[LabelerCheck, ...]
     stages: tuple[StageCheck, ...]
     findings: tuple[Finding, ...]
+    cameras: tuple[CameraCheck, ...] = ()
+    """The rig's cameras, primary first (empty when the reader cannot open the folder)."""
 
     def finding(self, code: str) -> Finding | None:
         return next((f for f in self.findings if f.code == code), None)
@@ -181,6 +198,26 @@ class DatasetReport:
     @property
     def blocked_stages(self) -> list[str]:
         return [s.name for s in self.stages if s.state == "blocked"]
+
+
+GT2D_MASKS = ("semantic", "instance")
+"""The 2D ground-truth masks a frame's camera needs for the simulated labeler."""
+
+
+def _camera_checks(seq: KittiSequence) -> tuple[CameraCheck, ...]:
+    """Per camera of the rig: where its calibration came from, and how many scans have its image and
+    its 2D ground truth."""
+    out = []
+    n = len(seq)
+    for k, cam in enumerate(seq.cameras):
+        images = sum(seq.image_path(i, k) is not None for i in range(n))
+        masks = [
+            _stems(seq.root / gt2d_folder(seq.cameras, k, kind), (".png",))
+            for kind in ("semantic", "instance")
+        ]
+        gt2d = len(set(seq.frame_ids) & masks[0] & masks[1])
+        out.append(CameraCheck(cam.name, cam.source, FrameCoverage(images, n), FrameCoverage(gt2d, n)))
+    return tuple(out)
 
 
 # ----------------------------------------------------------------------------------------- listing
@@ -438,6 +475,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
 
     # The reader every run uses decides what opens; its own poses reading gives pose_source.
     poses: PosesCheck | None = None
+    cameras: tuple[CameraCheck, ...] = ()
     try:
         seq = KittiSequence(root, poses_path=poses_file)
     except (DatasetError, OSError, ValueError) as exc:
@@ -449,6 +487,10 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         elif where not in said and where.parent not in said:  # a file a finding above names already
             findings.append(Finding("unreadable", "blocker", str(where), problem))
     else:
+        cameras = _camera_checks(seq)
+        for cam in seq.cameras[1:]:  # the primary camera's images are checked above
+            folder = root / cam.name
+            findings += _image_findings(folder, _image_files(folder, frames, set()))
         if seq.has_poses:
             source = seq.pose_source
             method = _note_method(poses_file) if source == "estimated" else None
@@ -583,7 +625,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         )
     model_findings: dict[str, list[Finding]] = {}
     model_codes = _check_models(cfg, rt, model_findings) if check_models else {}
-    return _assemble(
+    report = _assemble(
         root,
         frames,
         cover_img,
@@ -597,6 +639,7 @@ def check_dataset(  # noqa: PLR0912, PLR0915  # one pass over the folder's parts
         model_codes,
         model_findings,
     )
+    return replace(report, cameras=cameras)
 
 
 def _note_method(poses_file: Path) -> str | None:
@@ -918,6 +961,9 @@ def report_data(report: DatasetReport) -> dict[str, Any]:
     data["summary"] = summary_text(report)
     for cover in ("images", "ground_truth", "gt2d"):
         data[cover]["kind"] = getattr(report, cover).kind
+    for cam, entry in zip(report.cameras, data["cameras"], strict=True):
+        entry["images"]["kind"] = cam.images.kind
+        entry["gt2d"]["kind"] = cam.gt2d.kind
     data["findings"] = [{**asdict(f), "message": describe(f)} for f in report.findings]
     data["stages"] = [
         {**asdict(s), "reason": "" if s.state == "runs" else ", ".join(map(reason_text, s.reasons))}
@@ -934,6 +980,7 @@ __all__ = [
     "REASONS",
     "VERDICT_TEXT",
     "CalibCheck",
+    "CameraCheck",
     "DatasetReport",
     "Finding",
     "FrameCoverage",

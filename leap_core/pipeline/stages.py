@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.consistency.selection import view_counts
+from leap_core.datasets.kitti import Frame
 from leap_core.errors import DatasetError, LeapError, ModelLoadError
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.export import export_labels
@@ -34,7 +35,7 @@ from leap_core.fusion import (
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy, read_npz
 from leap_core.labelers import LABELERS, LabelerInput, labeler_weights, missing_input
-from leap_core.labelers.base import SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
     Ctx,
@@ -87,31 +88,58 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     if ctx.cache_dir is not None:
         cache_root = ctx.cache_dir / "labels2d" / hash_json([lfp, ctx.schema.num_classes])[:16]
     hits = 0
+    cameras = [0] * len(ctx.seq.cameras)
+
+    def cache_entry(frame: Frame) -> tuple[Path | None, bool]:
+        """The frame's 2D cache entry (None: no cache) and whether it holds a good one."""
+        if cache_root is None:
+            return None, False
+        digest = frame_input_digest(ctx.seq, frame.index, frame.camera)
+        entry = cache_root / f"{frame.frame_id}-{digest[:20]}.npz"
+        if entry.is_file():
+            try:
+                SoftMasks.load(entry)
+                return entry, True
+            except DatasetError:
+                pass  # A damaged entry is recomputed and replaced atomically below.
+        return entry, False
 
     def work(i: int) -> None:
         nonlocal hits
-        out = ctx.layout.labels2d(ctx.fid(i))
         frame = ctx.seq.frame(i)
-        if cache_root is not None:
-            entry = cache_root / f"{frame.frame_id}-{frame_input_digest(ctx.seq, i)[:20]}.npz"
-            if entry.is_file():
-                try:
-                    SoftMasks.load(entry)
-                    link_or_copy(entry, out)
-                    hits += 1
-                    return
-                except DatasetError:
-                    pass  # A damaged entry is recomputed and replaced atomically below.
-            _save_soft(entry, labeler.label(frame, ctx.schema))
-            link_or_copy(entry, out)
+        views = [v for v in frame.cameras()[1:] if _has_2d_input(v, spec.needs)] + [frame]
+        entries = [cache_entry(v) for v in views]
+        todo = [v for v, (_, hit) in zip(views, entries, strict=True) if not hit]
+        if len(todo) > 1 and isinstance(labeler, ImageModelLabeler):
+            # A model labeler takes the frame's cameras in one batch (one forward pass on a GPU).
+            computed = iter(labeler.label_frames(todo, ctx.schema))
         else:
-            _save_soft(out, labeler.label(frame, ctx.schema))
+            computed = (labeler.label(v, ctx.schema) for v in todo)
+        # In camera order, the primary camera's file last: its presence marks the frame done on resume.
+        for view, (entry, hit) in zip(views, entries, strict=True):
+            cameras[view.camera] += 1
+            out = ctx.layout.labels2d(ctx.fid(i), view.rig_camera.name if view.camera else None)
+            hits += hit
+            if not hit:
+                soft = next(computed)
+                _save_soft(entry or out, soft)
+            if entry is not None:
+                link_or_copy(entry, out)
 
     extra = ctx.each_frame("labels2d", work)
     extra["cache_hits"] = hits
+    if len(cameras) > 1:
+        extra["camera_images"] = dict(zip((c.name for c in ctx.seq.cameras), cameras, strict=True))
     extra["labeler"] = labeler.name
     extra["weights"] = labeler_weights(labeler)  # the export's provenance: real or random-weight models
     return extra
+
+
+def _has_2d_input(frame: Frame, needs: str) -> bool:
+    """Whether the frame's camera has what the labeler reads: its image, or its 2D ground truth."""
+    if needs == "gt2d":
+        return frame.gt2d_path("semantic").is_file()
+    return frame.has_image
 
 
 def _labeler_inputs(ctx: Ctx) -> dict[str, Any]:
@@ -132,27 +160,42 @@ def load_soft(path: Path) -> SoftMasks:
 
 
 def stage_project(ctx: Ctx) -> dict[str, Any]:
-    """Per frame: project the scan, depth-cluster per mask, paint → ``observations/<frame_id>.npz``.
+    """Per frame: project the scan into each camera, depth-cluster per mask, paint →
+    ``observations/<frame_id>.npz``.
 
-    Stores the :class:`Painted` arrays plus ``n_points`` and ``in_view`` (packed bits: the point lies in the
-    image in front of the camera), which the camera-view evaluation protocol uses. Frames run
-    :attr:`Runtime.frame_threads` at a time.
+    Stores the :class:`Painted` arrays plus ``n_points`` and ``in_view`` (packed bits: the point lies in
+    some camera's image in front of it), which the camera-view evaluation protocol uses. With several
+    cameras the cameras' observations are joined (:meth:`Painted.joined`: a point two cameras painted has
+    two observations) and ``camera`` (uint8, per painted row of ``point_idx``) says which camera made each;
+    a camera without 2D labels for the frame adds nothing. Frames run :attr:`Runtime.frame_threads` at a
+    time.
     """
     pcfg = ctx.cfg.projection
-    m = ctx.seq.calib.lidar_to_image
+    rig = ctx.seq.cameras
 
     def work(i: int) -> None:
-        soft_path = ctx.layout.labels2d(ctx.fid(i))
-        soft = load_soft(soft_path)
-        if soft.num_classes != ctx.schema.num_classes:
-            raise DatasetError(
-                soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}"
-            )
         pts = ctx.seq.frame(i).points
-        proj = project_points(pts, m, soft.height, soft.width, pcfg.min_depth)
-        painted = paint(soft, proj, pcfg)
+        parts: list[Painted] = []
+        used: list[int] = []
         in_view = np.zeros(pts.shape[0], bool)
-        in_view[proj.idx] = True
+        for k, cam in enumerate(rig):
+            soft_path = ctx.layout.labels2d(ctx.fid(i), cam.name if k else None)
+            if k and not soft_path.is_file():
+                continue
+            soft = load_soft(soft_path)
+            if soft.num_classes != ctx.schema.num_classes:
+                raise DatasetError(
+                    soft_path, f"{soft.num_classes} classes but the schema has {ctx.schema.num_classes}"
+                )
+            m = ctx.seq.lidar_to_image(i, k)
+            proj = project_points(pts, m, soft.height, soft.width, pcfg.min_depth)
+            parts.append(paint(soft, proj, pcfg))
+            used.append(k)
+            in_view[proj.idx] = True
+        painted = Painted.joined(parts, ctx.schema.num_classes)
+        extra: dict[str, npt.NDArray[Any]] = {}
+        if len(rig) > 1:
+            extra["camera"] = np.repeat(np.asarray(used, np.uint8), [len(p) for p in parts])
         atomic_save_npz(
             ctx.layout.observation(ctx.fid(i)),
             point_idx=painted.point_idx,
@@ -160,6 +203,7 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
             table=painted.table,
             n_points=np.asarray(pts.shape[0], np.int64),
             in_view=np.packbits(in_view),
+            **extra,
         )
 
     return ctx.each_frame("project", work, parallel=True)

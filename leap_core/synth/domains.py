@@ -50,16 +50,21 @@ STREET_32_SCENE = SceneConfig(
 """The ``street-32`` town (the fields it changes from :class:`SceneConfig`'s defaults)."""
 
 
-def domain_config(domain: str, frames: int, seed: int) -> SynthConfig | AgriSynthConfig:
-    """The generator config of ``domain`` (a key of :data:`DOMAINS`) for ``frames`` frames from ``seed``.
+def domain_config(domain: str, frames: int, seed: int, cameras: int = 1) -> SynthConfig | AgriSynthConfig:
+    """The generator config of ``domain`` (a key of :data:`DOMAINS`) for ``frames`` frames from ``seed``,
+    with a rig of ``cameras`` cameras (``SynthConfig.cameras``; the street domains only).
 
     Raises:
-        ValueError: an unknown domain (the message lists the known ones).
+        ValueError: an unknown domain (the message lists the known ones), or a rig the domain lacks.
     """
     if domain == "street":
-        return SynthConfig(frames=frames, seed=seed)
+        return SynthConfig(frames=frames, seed=seed, cameras=cameras)
     if domain == "street-32":
-        return SynthConfig(frames=frames, seed=seed, lidar=STREET_32_LIDAR, scene=STREET_32_SCENE)
+        return SynthConfig(
+            frames=frames, seed=seed, lidar=STREET_32_LIDAR, scene=STREET_32_SCENE, cameras=cameras
+        )
+    if cameras != 1 and domain in DOMAINS:
+        raise ValueError(f"the {domain} domain has one camera (a rig of several is a street option)")
     if domain == "agri-uav":
         # Loaded when asked for: a street run never imports the farm's modules.
         from leap_core.synth.agri import AgriSynthConfig  # noqa: PLC0415

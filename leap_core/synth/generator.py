@@ -29,11 +29,12 @@ from leap_core.datasets.kitti import (
     write_calib,
     write_poses,
 )
+from leap_core.datasets.rig import RIG_FILE, Camera, camera_rig_text
 from leap_core.errors import DatasetError
 from leap_core.io_utils import atomic_write_bytes
 from leap_core.progress import ProgressFn, report
 from leap_core.synth.camera import CameraConfig, SunShadows, camera_to_world, pixel_rays, render
-from leap_core.synth.frame_io import count_in_image, write_frame
+from leap_core.synth.frame_io import in_image_mask, write_camera, write_frame
 from leap_core.synth.lidar import LidarConfig, ray_grid, scan
 from leap_core.synth.route import EgoConfig
 from leap_core.synth.scene import Scene, SceneConfig, build_scene
@@ -69,6 +70,14 @@ def synth_version(seq_dir: str | Path) -> int | None:
         return None
 
 
+SURROUND_RIGS: dict[int, tuple[tuple[str, float], ...]] = {
+    1: (("image_2", 0.0),),
+    2: (("image_2", 0.0), ("image_rear", 180.0)),
+    4: (("image_2", 0.0), ("image_rear", 180.0), ("image_left", 90.0), ("image_right", -90.0)),
+}
+"""The demo's rigs: per camera its folder and its yaw (degrees to the left of straight ahead)."""
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     """Everything that determines a generated sequence (same config → identical bytes)."""
@@ -89,10 +98,18 @@ class SynthConfig:
     """Street layout and object density."""
     ego: EgoConfig = field(default_factory=EgoConfig)
     """How the ego vehicle drives."""
+    cameras: int = 1
+    """Cameras of the rig (:data:`SURROUND_RIGS`): 1 = the front camera alone (``image_2``); 2 adds a rear
+    camera, 4 a rear, a left and a right one, each the front camera turned about the LiDAR's vertical axis
+    and written with a ``cameras.yaml``."""
 
     def __post_init__(self) -> None:
         if self.frames < 1:
             raise ValueError(f"SynthConfig.frames must be >= 1, got {self.frames}")
+        if self.cameras not in SURROUND_RIGS:
+            raise ValueError(
+                f"SynthConfig.cameras must be one of {sorted(SURROUND_RIGS)}, got {self.cameras}"
+            )
         if self.hz <= 0:
             raise ValueError(f"SynthConfig.hz must be > 0, got {self.hz}")
 
@@ -104,7 +121,8 @@ class SynthStats:
     Attributes:
         path: the sequence folder.
         points: (F,) points per scan.
-        in_image: (F,) points per scan that project inside the image (depth > 0).
+        in_image: (F,) points per scan that project inside the image (depth > 0); with several cameras,
+            inside some camera's image.
     """
 
     path: Path
@@ -126,6 +144,25 @@ def lidar_mount(cfg: SynthConfig) -> npt.NDArray[np.float64]:
 def calibration(cfg: SynthConfig) -> Calib:
     """The sequence's calibration (P2 and Tr as written to ``calib.txt``)."""
     return Calib(P2=cfg.camera.P2(), Tr=cfg.camera.Tr())
+
+
+def yaw_about_lidar(deg: float) -> npt.NDArray[np.float64]:
+    """(4, 4) rotation by ``deg`` about the LiDAR's vertical axis (z up; positive turns x towards y, left)."""
+    t = np.deg2rad(deg)
+    out = np.eye(4)
+    out[:2, :2] = [[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]
+    return out
+
+
+def rig_cameras(cfg: SynthConfig) -> tuple[Camera, ...]:
+    """The rig of ``cfg``: the front camera (``P2``, ``Tr``) and the others as it, turned by their yaw
+    about the LiDAR (``Tr_k = Tr · R_z(yaw)⁻¹``: the camera's mount turns with it, so each looks out of the
+    same point of the car in its own direction)."""
+    calib = calibration(cfg)
+    return tuple(
+        Camera(name, calib.P2, calib.Tr @ np.linalg.inv(yaw_about_lidar(yaw)), source=RIG_FILE)
+        for name, yaw in SURROUND_RIGS[cfg.cameras]
+    )
 
 
 def lidar_poses(scene: Scene, cfg: SynthConfig) -> npt.NDArray[np.float64]:
@@ -158,6 +195,7 @@ class _Worker:
         )
         self.poses = lidar_poses(self.scene, cfg)
         self.calib = calibration(cfg)
+        self.rig = rig_cameras(cfg)
         self.version_text = f"{SYNTH_VERSION}\n"
 
     def frame(self, i: int) -> tuple[int, int, int]:
@@ -178,11 +216,26 @@ class _Worker:
             rays=self.pixel_rays,
         )
         write_frame(self.seq_dir, i, sc, cam)
-        return (
-            i,
-            len(sc.points),
-            count_in_image(sc.points[:, :3], self.calib, cfg.camera.width, cfg.camera.height),
-        )
+        seen = in_image_mask(sc.points[:, :3], self.calib, cfg.camera.width, cfg.camera.height)
+        for k, (name, yaw) in enumerate(SURROUND_RIGS[cfg.cameras][1:], start=1):
+            # Each further camera draws its sensor noise from its own stream: the front camera's stays.
+            rng_k = np.random.default_rng(np.random.SeedSequence([cfg.seed, i, 0x11DA, k]))
+            view = render(
+                prims,
+                len(scene.static),
+                camera_to_world(cfg.camera, self.poses[i] @ yaw_about_lidar(yaw)),
+                cfg.camera,
+                sun=scene.sun,
+                shadows=self.shadows,
+                rng=rng_k,
+                rays=self.pixel_rays,
+            )
+            write_camera(self.seq_dir, i, view, name, f"gt2d/{name}")
+            cam_k = self.rig[k]
+            seen |= in_image_mask(
+                sc.points[:, :3], Calib(P2=cam_k.P, Tr=cam_k.Tr), cfg.camera.width, cfg.camera.height
+            )
+        return i, len(sc.points), int(seen.sum())
 
 
 def make_worker(cfg: SynthConfig | AgriSynthConfig, seq_dir: Path) -> _Worker | AgriWorker:
@@ -273,6 +326,8 @@ def generate_sequence(
     times = "".join(f"{i / cfg.hz:.6e}\n" for i in range(cfg.frames))
     atomic_write_bytes(seq_dir / "times.txt", times.encode())
     atomic_write_bytes(seq_dir / VERSION_FILE, worker.version_text.encode())
+    if isinstance(cfg, SynthConfig) and cfg.cameras > 1:
+        atomic_write_bytes(seq_dir / RIG_FILE, camera_rig_text(rig_cameras(cfg)).encode())
     return SynthStats(path=seq_dir, points=points, in_image=in_image)
 
 

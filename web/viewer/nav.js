@@ -47,13 +47,15 @@ function render() {
   box.hidden = !open;
   if (!open) return;
   placeImage(box);
-  if (shownPos !== state.pos) {
-    shownPos = state.pos;
-    // The query only defeats the browser cache; the route always serves the shown scan.
-    box.querySelector("img").src = `/api/v1/projects/${projectId}/viewer/nav/image?pos=${state.pos}`;
+  const shown = `${state.pos}/${state.camera}`;
+  if (shownPos !== shown) {
+    shownPos = shown;
+    // The query only defeats the browser cache; the route always serves the shown scan's chosen camera.
+    const query = new URLSearchParams({ pos: String(state.pos), camera: String(state.camera) });
+    box.querySelector("img").src = `/api/v1/projects/${projectId}/viewer/nav/image?${query}`;
   }
   box.querySelector(".leap-image-caption").textContent =
-    `Scan ${state.frame_id} (${state.pos + 1}/${state.count}). Press I or click to close.`;
+    `Scan ${state.frame_id} (${state.pos + 1}/${state.count}), camera ${state.camera}. Press I or click to close.`;
 }
 
 async function act(method, path, body) {

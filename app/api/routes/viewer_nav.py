@@ -31,6 +31,7 @@ class NavState(BaseModel):
     playing: bool = Field(description="playing through the scans")
     image_open: bool = Field(description="the page shows the scan's image enlarged")
     has_image: bool = Field(description="the shown scan has a camera image")
+    camera: str | None = Field(default=None, description="the rig camera whose image is shown (its folder)")
 
 
 class StepBody(BaseModel):
@@ -69,6 +70,7 @@ def _state(session: ReviewSession) -> NavState:
         playing=player.playing,
         image_open=player.image_open,
         has_image=view is not None and view.overlay is not None,
+        camera=None if view is None else view.camera,
     )
 
 
