@@ -5,14 +5,18 @@ from __future__ import annotations
 
 import json
 import shutil
+import zipfile
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import yaml
 from runhelpers import label
+from typer.testing import CliRunner
 
+from app.cli import cli
 from leap_core.consistency.config import BackboneConfig
 from leap_core.consistency.data import prepare_cloud
 from leap_core.consistency.train import predict_log_probs
@@ -189,3 +193,71 @@ def test_torchscript_export_predicts_what_pytorch_predicts(labeled_run: Path, tm
     ours = predict_log_probs(model.network, points)
     theirs = run_scripted(loaded, prepare_cloud(points, model.network.cfg))
     assert np.array_equal(ours, theirs)
+
+
+def _tiny_project(path: Path) -> Path:
+    """The SemanticKITTI classes with the tiny backbone as the project's 3D-CN backbone."""
+    bb = TINY.backbone
+    doc = {
+        **SCHEMA.schema.to_dict(),
+        "pipeline": {
+            "consistency": {
+                "backbone": {
+                    "channels": bb.channels,
+                    "layers": bb.layers,
+                    "embed_channels": bb.embed_channels,
+                    "knn": bb.knn,
+                }
+            }
+        },
+    }
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_cli_train_predict_export(labeled_run: Path, camera_less: Path, tmp_path: Path) -> None:
+    """`leap train`, `leap predict --zip` on the camera-less sequence, `leap export-model`; one-line
+    errors for an existing model file and a file that is not a model."""
+    runner = CliRunner()
+    project = _tiny_project(tmp_path / "p.yaml")
+    model_file = tmp_path / "m.pt"
+    args = ["train", str(labeled_run), "--out", str(model_file), "--project-file", str(project)]
+    opts = [
+        "--steps",
+        "3",
+        "--points-per-scan",
+        "512",
+        "--val-block",
+        "2",
+        "--val-every",
+        "2",
+        "--device",
+        "cpu",
+    ]
+    done = runner.invoke(cli, [*args, *opts])
+    assert done.exit_code == 0, done.output
+    assert "2 training scans, 2 held apart" in done.output and "points/s" in done.output
+    again = runner.invoke(cli, [*args, *opts])
+    assert again.exit_code == 2 and "already exists; add --force" in again.output
+
+    zipped = tmp_path / "labels.zip"
+    pred = runner.invoke(
+        cli,
+        ["predict", str(model_file), str(camera_less), "--out", str(tmp_path / "run"), "--zip", str(zipped)],
+    )
+    assert pred.exit_code == 0, pred.output
+    assert "2 scans" in pred.output and "mIoU" in pred.output
+    with zipfile.ZipFile(zipped) as zf:
+        names = set(zf.namelist())
+    assert {"sequences/00/predictions/000000.label", "label-map.yaml", "model-card.json"} <= names
+
+    script = tmp_path / "m.ts"
+    exp = runner.invoke(cli, ["export-model", str(model_file), "--out", str(script)])
+    assert exp.exit_code == 0, exp.output
+    assert torch.jit.load(str(script)) is not None
+
+    bad = runner.invoke(cli, ["predict", str(script), str(camera_less), "--out", str(tmp_path / "r2")])
+    assert bad.exit_code == 2 and f"error: {script}: unreadable model" in bad.output
+    card = tmp_path / "m.card.json"
+    bad = runner.invoke(cli, ["predict", str(card), str(camera_less), "--out", str(tmp_path / "r3")])
+    assert bad.exit_code == 2 and "unreadable model" in bad.output

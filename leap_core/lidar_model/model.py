@@ -11,6 +11,7 @@ code that trained it (package version and git commit).
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,7 +77,9 @@ def load_model(path: str | Path, device: str = "cpu") -> LidarModel:
     if not path.is_file():
         raise ModelLoadError(f"{path}: model not found (train one with `leap train`)")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns before refusing a TorchScript archive
+            warnings.simplefilter("ignore", UserWarning)
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several unrelated types for corrupt files
         raise ModelLoadError(f"{path}: unreadable model ({type(exc).__name__}: {exc})") from exc
     if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:

@@ -48,6 +48,8 @@ class PredictedSequence:
     metrics: Metrics | None = None
     """Every point against the ground truth (None without it)."""
     confusion: npt.NDArray[np.int64] | None = field(default=None, repr=False)
+    raw_counts: dict[int, int] = field(default_factory=dict)
+    """Points per export id written (for the export's label map)."""
 
 
 def scan_labels(
@@ -85,6 +87,7 @@ def predict_sequence(
     cm = np.zeros((c, c + 1), np.int64) if with_truth else None
     ids = model.schema.export_ids()
     out = PredictedSequence(name)
+    per_class = np.zeros(c, np.int64)
     t0 = time.perf_counter()
     for k, i in enumerate(idx):
         frame = seq.frame(i)
@@ -100,10 +103,12 @@ def predict_sequence(
         export_labels(layout.export_label(fid), layout.export_conf(fid), label, conf, ids)
         if cm is not None:
             cm += confusion_matrix(model.schema.map_gt(frame.labels), label, c)
+        per_class += np.bincount(label, minlength=c)
         out.scans += 1
         out.points += int(points.shape[0])
         report(progress, k + 1, len(idx))
     out.seconds = time.perf_counter() - t0
+    out.raw_counts = {int(ids[k]): int(n) for k, n in enumerate(per_class) if n}
     if cm is not None:
         out.confusion = cm
         out.metrics = metrics_from_confusion(
