@@ -33,6 +33,7 @@ from leap_core.lidar_model.train import resolve_device
 from leap_core.metrics import Metrics, confusion_matrix, metrics_from_confusion
 from leap_core.progress import ProgressFn, report
 from leap_core.run_layout import RunLayout, SequenceLayout, write_run_spec
+from leap_core.schema import Schema
 from leap_core.types import UNLABELED
 
 
@@ -65,7 +66,7 @@ def scan_labels(
     return label, conf
 
 
-def predict_sequence(
+def predict_sequence(  # noqa: PLR0913  keyword options of one labeling
     model: LidarModel,
     seq: KittiSequence,
     layout: SequenceLayout,
@@ -75,14 +76,20 @@ def predict_sequence(
     views: int = 1,
     device: str = "auto",
     progress: ProgressFn | None = None,
+    truth: Schema | None = None,
 ) -> PredictedSequence:
     """Label the scans ``indices`` (default all) of ``seq`` into ``layout`` (points + export), one at a
-    time; score them when every one has ground truth."""
+    time; score them when every one has ground truth, its raw ids read by ``truth``'s ground-truth ids
+    (default the model's schema; the same classes: a model trained on another domain's ids is scored
+    on this one's)."""
     dev = resolve_device(device)
     net = model.network.to(dev)
     model.network = net
     idx = list(range(len(seq))) if indices is None else list(indices)
     c = model.schema.num_classes
+    gt_schema = model.schema if truth is None else truth
+    if gt_schema.names != model.schema.names:
+        raise LeapError(f"the ground truth's classes ({', '.join(gt_schema.names)}) are not the model's")
     with_truth = all(seq.label_path(i).is_file() for i in idx)
     cm = np.zeros((c, c + 1), np.int64) if with_truth else None
     ids = model.schema.export_ids()
@@ -102,7 +109,7 @@ def predict_sequence(
         )
         export_labels(layout.export_label(fid), layout.export_conf(fid), label, conf, ids)
         if cm is not None:
-            cm += confusion_matrix(model.schema.map_gt(frame.labels), label, c)
+            cm += confusion_matrix(gt_schema.map_gt(frame.labels), label, c)
         per_class += np.bincount(label, minlength=c)
         out.scans += 1
         out.points += int(points.shape[0])
@@ -118,7 +125,7 @@ def predict_sequence(
     return out
 
 
-def predict_run(
+def predict_run(  # noqa: PLR0913  keyword options of one labeling
     model: LidarModel,
     model_path: str | Path,
     datasets: Sequence[tuple[str, str | Path, range | None]],
@@ -128,6 +135,7 @@ def predict_run(
     device: str = "auto",
     num_threads: int = 0,
     progress: Any = None,
+    truth: Schema | None = None,
 ) -> list[PredictedSequence]:
     """Label sequences with ``model`` into the run folder ``out``.
 
@@ -139,6 +147,7 @@ def predict_run(
         device: ``auto``, ``cpu`` or ``cuda``.
         num_threads: torch threads (0: torch's setting).
         progress: ``progress(name, done, total)`` per scan.
+        truth: the classes' ground-truth ids to score with (:func:`predict_sequence`).
 
     Raises:
         LeapError: ``out`` holds results of another run, or a sequence's frames are out of range.
@@ -171,6 +180,7 @@ def predict_run(
                     views=views,
                     device=device,
                     progress=tick,
+                    truth=truth,
                 )
             )
     return results
