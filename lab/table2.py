@@ -285,7 +285,7 @@ def measure(
     )
     tag = (
         f"f{sizes.frames}_c{sizes.coarse}_s{sizes.source_steps}_{sizes.finetune_steps}"
-        f"_p{sizes.points_per_scan}_w{sizes.backbone.channels}"
+        f"_p{sizes.points_per_scan}_w{sizes.backbone.channels}x{sizes.backbone.layers}"
     )
     src_path = runs / f"{dom.key}_source_{tag}.pt"
     src_train, _ = split_scans([truth_sequence(s) for s in sources], [], 0, 2)
@@ -326,10 +326,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--finetune-steps", type=int, default=150, help="Steps of each fine-tuning.")
     ap.add_argument("--points-per-scan", type=int, default=8192, help="Points per scan per step.")
     ap.add_argument("--cn-min-steps", type=int, default=150, help="The label runs' 3D-CN training steps.")
+    ap.add_argument("--channels", type=int, default=BackboneConfig.channels, help="Backbone width.")
+    ap.add_argument("--layers", type=int, default=BackboneConfig.layers, help="Backbone layer pairs.")
     ap.add_argument("--quick", action="store_true", help="Smallest mode: 3 frames, a tiny network, 1 seed.")
     ap.add_argument("--out", default=None, help="Also write the Markdown table to this file.")
     args = ap.parse_args(argv)
-    backbone = BackboneConfig()
+    backbone = BackboneConfig(channels=args.channels, layers=args.layers)
     seeds = [int(s) for s in args.seeds.split(",")]
     if args.quick:
         args.frames, args.coarse, args.source_steps, args.finetune_steps = 3, 6, 3, 2

@@ -83,6 +83,14 @@ def test_block_split_holds_every_nth_block_apart() -> None:
     assert not block_split(10, 0, 5).any()
 
 
+def test_a_sequence_cannot_both_train_and_validate(labeled_run: Path) -> None:
+    runs = labeled_sequences([labeled_run])
+    with pytest.raises(LeapError, match="both to train on and apart for validation"):
+        split_scans(runs, labeled_sequences([labeled_run]), 0, 2)
+    train, val = split_scans(runs, [], 2, 2)
+    assert [i for _, i in train.scans] == [0, 1] and [i for _, i in val.scans] == [2, 3]
+
+
 def test_training_labels_are_the_run_s_final_labels_with_corrections(
     labeled_run: Path, tmp_path: Path
 ) -> None:
@@ -215,6 +223,7 @@ def _tiny_project(path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_cli_train_predict_export(labeled_run: Path, camera_less: Path, tmp_path: Path) -> None:
     """`leap train`, `leap predict --zip` on the camera-less sequence, `leap export-model`; one-line
     errors for an existing model file and a file that is not a model."""

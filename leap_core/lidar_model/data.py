@@ -171,7 +171,15 @@ def split_scans(
     train: Sequence[LabeledSequence], apart: Sequence[LabeledSequence], block: int, every: int
 ) -> tuple[LabeledScans, LabeledScans]:
     """``(training, validation)`` scans: the ``apart`` sequences validate whole; of the ``train``
-    sequences, each one's :func:`block_split` blocks validate and the rest trains."""
+    sequences, each one's :func:`block_split` blocks validate and the rest trains.
+
+    Raises:
+        LeapError: a sequence is both in ``train`` and ``apart``, or no scan is left to train on.
+    """
+    trained = {(p.where, p.seq.root.resolve()) for p in train}
+    for p in apart:
+        if (p.where, p.seq.root.resolve()) in trained:
+            raise LeapError(f"{p.where}: given both to train on and apart for validation; give it once")
     parts = (*train, *apart)
     tr: list[tuple[int, int]] = []
     va: list[tuple[int, int]] = []
