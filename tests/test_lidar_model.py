@@ -151,6 +151,10 @@ def test_train_predict_without_images_and_export(
 
     (exported,) = run_export(out)  # the run's export reads as any run's
     assert exported.name == "lidar" and len(exported.files(with_confidence=True)) == 4
+    before = sorted(p.name for p in labeled_run.rglob("*"))
+    with pytest.raises(LeapError, match="holds another run's results"):
+        predict_run(model, model_file, [("lidar", camera_less, None)], labeled_run, device="cpu")
+    assert sorted(p.name for p in labeled_run.rglob("*")) == before
 
 
 def test_interrupted_training_resumes_to_the_same_checkpoint(labeled_run: Path, tmp_path: Path) -> None:
