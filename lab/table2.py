@@ -328,6 +328,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--cn-min-steps", type=int, default=150, help="The label runs' 3D-CN training steps.")
     ap.add_argument("--channels", type=int, default=BackboneConfig.channels, help="Backbone width.")
     ap.add_argument("--layers", type=int, default=BackboneConfig.layers, help="Backbone layer pairs.")
+    ap.add_argument(
+        "--labeler", default=None, help="The label runs' labeler instead of the domain's (`simulated`)."
+    )
     ap.add_argument("--quick", action="store_true", help="Smallest mode: 3 frames, a tiny network, 1 seed.")
     ap.add_argument("--out", default=None, help="Also write the Markdown table to this file.")
     args = ap.parse_args(argv)
@@ -352,6 +355,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     results = []
     for key in args.domains.split(","):
         dom = DOMAINS[key]
+        if args.labeler is not None:
+            dom = dataclasses.replace(
+                dom, pipeline={"labeler": args.labeler}, title=f"{dom.title}, `{args.labeler}`"
+            )
         rows = measure(dom, seeds, sizes, Path(args.data), Path(args.runs))
         results.append((dom, rows))
     table = table_markdown(results)
