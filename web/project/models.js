@@ -34,7 +34,7 @@ function trainForm(ctx, card) {
       "aria-label": "Validation",
       onchange: (e) => (seqPick.hidden = e.target.value !== "sequence"),
     },
-    h("option", { value: "block" }, "every 5th block of frames"),
+    h("option", { value: "block" }, "blocks of frames"),
     names.length > 1 ? h("option", { value: "sequence" }, "one whole sequence") : null,
   );
   const train = async () => {
@@ -44,6 +44,7 @@ function trainForm(ctx, card) {
       steps: val("model-steps"),
       points_per_scan: val("model-points"),
       val_block: val("model-val-block"),
+      val_every: val("model-val-every"),
       validation: by.value,
     };
     if (by.value === "sequence") body.validation_sequence = seqPick.value;
@@ -66,6 +67,7 @@ function trainForm(ctx, card) {
     numberField("model-steps", "Steps", 200, 1, 100000),
     numberField("model-points", "Points per scan", 8192, 256, 1000000),
     numberField("model-val-block", "Frames per validation block", 10, 1, 100000),
+    numberField("model-val-every", "Every n-th block validates", 5, 2, 1000),
     h("label", { class: "field" }, h("span", { class: "muted small" }, "Validation"), by, seqPick),
     h("button", { class: "btn", id: "train-model", onclick: train }, "Train a model"),
   );
