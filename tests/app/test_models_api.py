@@ -106,6 +106,12 @@ def test_train_then_label_a_sequence_and_download_its_labels(studio: Studio) -> 
     assert card["validation"]["scans"] == 2
     assert set(card["validation"]["iou"]) == {c["name"] for c in card["classes"]}
     assert card["settings"]["steps"] == 3
+    # Trained on the run's final point labels (points/*.npz, where the corrections are applied).
+    counts = np.zeros(len(card["classes"]), np.int64)
+    for fid in ("000000", "000002"):
+        label = np.load(run_dir / "sequences" / "00" / "points" / f"{fid}.npz")["label"]
+        counts += np.bincount(label[label >= 0], minlength=counts.size)
+    assert [c["training_points"] for c in card["classes"]] == counts.tolist()
     path = model_file(st.settings, pid, job["id"])
     assert path.is_file() and path.with_suffix(".card.json").is_file()
     assert path.is_relative_to(st.settings.work_dir)
