@@ -196,7 +196,7 @@ def test_cancel_then_resume_ends_with_the_uninterrupted_checkpoint(studio: Studi
     job_id = r.json()["id"]
     wait_job(st, "B", job_id, until=("running",))
     deadline = time.monotonic() + 30
-    while st.c.get(f"{API}/projects/{pid}/model-jobs").json()["data"][0]["done"] < 4:
+    while st.c.get(f"{API}/projects/{pid}/model-jobs").json()["data"][0]["done"] < 2:
         assert time.monotonic() < deadline
         time.sleep(0.01)
     r = st.c.post(f"{API}/projects/{pid}/model-jobs/{job_id}/cancel")
@@ -221,7 +221,7 @@ def test_cancel_then_resume_ends_with_the_uninterrupted_checkpoint(studio: Studi
         assert torch.equal(one[key], two[key]), key
 
 
-def test_a_job_the_server_left_working_is_interrupted_and_resumable(studio: Studio, tmp_path: Path) -> None:
+def test_a_job_the_server_left_working_is_interrupted_and_resumable(tmp_path: Path) -> None:
     """What a restart finds: the job row says running (the server stopped mid-training)."""
     settings = Settings(
         data_roots=[tmp_path], work_dir=tmp_path / "studio", seed_demo=False, prewarm_workers=False
