@@ -12,7 +12,7 @@ from pathlib import Path
 
 import sqlite_utils
 
-from app import crud, models
+from app import crud, models, services
 from app.core.config import Settings
 from app.core.errors import Conflict, InvalidField, NotFound
 from app.jobs.models import ModelJobs, label_folder, model_file
@@ -20,6 +20,7 @@ from app.rows import ModelJobRow
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
 from leap_core.lidar_model.config import LidarModelConfig, model_config_to_dict
 from leap_core.lidar_model.model import read_card
+from leap_core.run_layout import sequence_name_problem
 from leap_core.schema import Schema
 
 ZIP_NAME = "labels.zip"
@@ -90,12 +91,14 @@ def start_labeling(
     model_id: int,
     payload: models.ModelLabelCreate,
 ) -> ModelJobRow:
-    """Queue a ``label`` job: the project's sequence ``payload.sequence`` with its model ``model_id``.
+    """Queue a ``label`` job: the project's sequence ``payload.sequence``, or the sequence folder
+    ``payload.dataset`` inside a data root (checked as a project's dataset is), with its model ``model_id``.
 
     Raises:
         NotFound: no such model in this project.
         Conflict: the model's training has not finished.
-        InvalidField: ``sequence`` is not one of the project's sequences.
+        InvalidField: ``sequence`` is not one of the project's sequences, or ``dataset`` no sequence folder.
+        Forbidden: ``dataset`` outside the data roots (or linking out of them).
     """
     project = crud.require_project(db, project_id)
     trained = crud.require_model_job(db, model_id, project.id)
@@ -103,18 +106,26 @@ def start_labeling(
         raise NotFound(f"Model {model_id} not found in project {project_id}")
     if trained.status != "done" or not model_file(settings, project.id, model_id).is_file():
         raise Conflict(f"Model {model_id} is {trained.status}; label with a finished model")
-    seq = project.sequence(payload.sequence)
-    if seq is None:
-        raise InvalidField(
-            ("body", "sequence"), f"not a sequence of this project; give one of {', '.join(project.names)}"
-        )
+    if payload.dataset is not None:
+        ref = models.DatasetRef(kind="folder", path=payload.dataset)
+        _kind, folder = services.resolve_dataset(settings, ref, loc=("body", "dataset"))
+        name = folder.name if sequence_name_problem(folder.name) is None else "00"
+        dataset = str(folder)
+    else:
+        seq = project.sequence(payload.sequence or "")
+        if seq is None:
+            raise InvalidField(
+                ("body", "sequence"),
+                f"not a sequence of this project; give one of {', '.join(project.names)}",
+            )
+        name, dataset = seq.name, seq.dataset_path
     job = crud.create_model_job(
         db,
         project_id=project.id,
         kind="label",
-        name=seq.name,
+        name=name,
         model_id=model_id,
-        params={"dataset": seq.dataset_path, "frames": None},
+        params={"dataset": dataset, "frames": None},
     )
     jobs.submit(job)
     return job

@@ -960,9 +960,24 @@ class ModelTrainCreate(_Input):
 
 
 class ModelLabelCreate(_Input):
-    """Label one of the project's sequences with a model of the project."""
+    """Label one of the project's sequences, or a sequence folder inside a data root, with a model of the
+    project (give one of ``sequence`` and ``dataset``)."""
 
-    sequence: str = Field(min_length=1, max_length=200, description="the project's sequence to label")
+    sequence: str | None = Field(
+        default=None, min_length=1, max_length=200, description="the project's sequence to label"
+    )
+    dataset: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=4096,
+        description="a KITTI-layout sequence folder inside a data root to label instead (LiDAR only)",
+    )
+
+    @model_validator(mode="after")
+    def _one_target(self) -> ModelLabelCreate:
+        if (self.sequence is None) == (self.dataset is None):
+            raise ValueError("give one of 'sequence' (the project's) or 'dataset' (a folder in a data root)")
+        return self
 
 
 class ModelJobPublic(BaseModel):

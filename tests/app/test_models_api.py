@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 import time
 import zipfile
 from collections.abc import Iterator
@@ -140,6 +141,27 @@ def test_train_then_label_a_sequence_and_download_its_labels(studio: Studio) -> 
     assert label_folder(st.settings, pid, done["id"]).is_relative_to(st.settings.work_dir)
 
 
+def test_label_a_sequence_folder_without_a_camera(studio: Studio) -> None:
+    """A dataset path inside a data root, LiDAR only (no images, no labels, no poses): every point labeled."""
+    st = studio
+    pid = st.projects["A"]
+    folder = st.dataset.parents[2] / "lidar-only" / "sequences" / "05"
+    (folder / "velodyne").mkdir(parents=True)
+    for scan in sorted((st.dataset / "velodyne").glob("*.bin")):
+        shutil.copy(scan, folder / "velodyne" / scan.name)
+    shutil.copy(st.dataset / "calib.txt", folder / "calib.txt")
+    model = st.c.get(f"{API}/projects/{pid}/models").json()["data"][0]["id"]
+    r = st.c.post(f"{API}/projects/{pid}/models/{model}/label", json={"dataset": str(folder)})
+    assert r.status_code == 202, r.text
+    done = wait_job(st, "A", r.json()["id"])
+    assert (done["status"], done["name"]) == ("done", "05"), done
+    with zipfile.ZipFile(io.BytesIO(st.c.get(f"{API}{done['download']}").content)) as zf:
+        labels = sorted(n for n in zf.namelist() if n.endswith(".label"))
+        assert labels == [f"sequences/05/predictions/{i:06d}.label" for i in range(FRAMES)]
+        assert all((np.frombuffer(zf.read(n), np.uint32) & 0xFFFF).min() > 0 for n in labels)
+    assert sorted(p.name for p in folder.iterdir()) == ["calib.txt", "velodyne"]
+
+
 def test_bad_input_names_the_field(studio: Studio) -> None:
     st = studio
     pid = st.projects["A"]
@@ -160,6 +182,11 @@ def test_bad_input_names_the_field(studio: Studio) -> None:
     r = st.c.post(f"{base}/{model}/label", json={"sequence": "../00"})
     assert loc_of(r) == ["body", "sequence"]
     assert st.c.post(f"{base}/{model}/label", json={}).status_code == 422
+    both = st.c.post(f"{base}/{model}/label", json={"sequence": "00", "dataset": str(st.dataset)})
+    assert both.status_code == 422 and "give one of" in both.text
+    assert loc_of(st.c.post(f"{base}/{model}/label", json={"dataset": "kitti"})) == ["body", "dataset"]
+    outside = st.c.post(f"{base}/{model}/label", json={"dataset": str(Path(__file__).parent)})
+    assert outside.status_code == 403, outside.text
     assert st.c.post(f"{API}/projects/999/models", json={}).status_code == 404
 
 
