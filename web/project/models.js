@@ -1,7 +1,7 @@
 // LiDAR-only models of the project: "Train a model" on the latest finished run's final labels (corrections
 // win; a background job with live progress, cancel and resume), the trained models with their cards
 // (classes, data and runs seen, validation IoU per class, when, settings), and "Label with a model" on one
-// of the project's sequences, whose labels download as a zip. Mounted by project.js after the other cards;
+// of the project's sequences (or a sequence folder in a data root), whose labels download as a zip. Mounted by project.js after the other cards;
 // polls the jobs while one is queued or working.
 
 import { get, post, url } from "../api.js";
@@ -106,9 +106,16 @@ function modelCard(ctx, card, model) {
     { class: "label-sequence", "aria-label": `Sequence to label with ${model.name}` },
     ctx.state.project.sequences.map((q) => h("option", { value: q.name }, q.name)),
   );
+  const folder = h("input", {
+    class: "label-dataset",
+    maxlength: 4096,
+    placeholder: "or a sequence folder in a data root",
+    "aria-label": `Sequence folder to label with ${model.name}`,
+  });
   const label = async () => {
+    const path = folder.value.trim();
     try {
-      await post(`/projects/${ctx.projectId}/models/${model.id}/label`, { sequence: pick.value });
+      await post(`/projects/${ctx.projectId}/models/${model.id}/label`, path ? { dataset: path } : { sequence: pick.value });
       await refresh(ctx, card);
     } catch (err) {
       ctx.toast(err.message, "error");
@@ -149,7 +156,7 @@ function modelCard(ctx, card, model) {
         ),
       ),
     ),
-    h("div", { class: "model-label" }, pick, h("button", { class: "btn small label-with-model", onclick: label }, "Label with this model")),
+    h("div", { class: "model-label" }, pick, folder, h("button", { class: "btn small label-with-model", onclick: label }, "Label with this model")),
   );
 }
 
