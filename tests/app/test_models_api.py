@@ -88,6 +88,22 @@ def train(st: Studio, project: str, **body: Any) -> dict[str, Any]:
     return wait_job(st, project, r.json()["id"])
 
 
+def a_model(st: Studio) -> int:
+    """Project A's first model (trained here when no earlier test trained one)."""
+    found = st.c.get(f"{API}/projects/{st.projects['A']}/models").json()["data"]
+    return int(found[-1]["id"]) if found else int(train(st, "A")["id"])
+
+
+def a_labeling(st: Studio) -> dict[str, Any]:
+    """A finished labeling of project A (made here when no earlier test made one)."""
+    jobs = st.c.get(f"{API}/projects/{st.projects['A']}/model-jobs").json()["data"]
+    done = [j for j in jobs if j["kind"] == "label" and j["status"] == "done"]
+    if done:
+        return done[0]
+    r = st.c.post(f"{API}/projects/{st.projects['A']}/models/{a_model(st)}/label", json={"sequence": "00"})
+    return wait_job(st, "A", r.json()["id"])
+
+
 def test_train_then_label_a_sequence_and_download_its_labels(studio: Studio) -> None:
     st = studio
     pid = st.projects["A"]
@@ -150,7 +166,7 @@ def test_label_a_sequence_folder_without_a_camera(studio: Studio) -> None:
     for scan in sorted((st.dataset / "velodyne").glob("*.bin")):
         shutil.copy(scan, folder / "velodyne" / scan.name)
     shutil.copy(st.dataset / "calib.txt", folder / "calib.txt")
-    model = st.c.get(f"{API}/projects/{pid}/models").json()["data"][0]["id"]
+    model = a_model(st)
     r = st.c.post(f"{API}/projects/{pid}/models/{model}/label", json={"dataset": str(folder)})
     assert r.status_code == 202, r.text
     done = wait_job(st, "A", r.json()["id"])
@@ -178,7 +194,7 @@ def test_bad_input_names_the_field(studio: Studio) -> None:
         "body",
         "validation",
     ]
-    model = st.c.get(f"{base}").json()["data"][0]["id"]
+    model = a_model(st)
     r = st.c.post(f"{base}/{model}/label", json={"sequence": "../00"})
     assert loc_of(r) == ["body", "sequence"]
     assert st.c.post(f"{base}/{model}/label", json={}).status_code == 422
@@ -193,13 +209,12 @@ def test_bad_input_names_the_field(studio: Studio) -> None:
 def test_one_project_never_reaches_another_projects_models(studio: Studio) -> None:
     st = studio
     a, b = st.projects["A"], st.projects["B"]
-    models = st.c.get(f"{API}/projects/{a}/models").json()["data"]
-    model = models[0]["id"]
-    label_job = next(
-        j for j in st.c.get(f"{API}/projects/{a}/model-jobs").json()["data"] if j["kind"] == "label"
-    )
-    assert st.c.get(f"{API}/projects/{b}/models").json()["count"] == 0
-    assert st.c.get(f"{API}/projects/{b}/model-jobs").json()["count"] == 0
+    model = a_model(st)
+    label_job = a_labeling(st)
+    a_ids = {model, label_job["id"]}
+    assert not a_ids & {m["id"] for m in st.c.get(f"{API}/projects/{b}/models").json()["data"]}
+    b_jobs = {j["id"] for j in st.c.get(f"{API}/projects/{b}/model-jobs").json()["data"]}
+    assert not a_ids & b_jobs
     r = st.c.post(f"{API}/projects/{b}/models/{model}/label", json={"sequence": "00"})
     assert r.status_code == 404, r.text
     assert st.c.get(f"{API}/projects/{b}/model-jobs/{label_job['id']}/labels.zip").status_code == 404
@@ -209,7 +224,7 @@ def test_one_project_never_reaches_another_projects_models(studio: Studio) -> No
     assert st.c.get(f"{API}/projects/{a}/model-jobs/{model}/labels.zip").status_code == 404
     r = st.c.post(f"{API}/projects/{a}/models/{label_job['id']}/label", json={"sequence": "00"})
     assert r.status_code == 404
-    assert st.c.get(f"{API}/projects/{b}/model-jobs").json()["count"] == 0
+    assert {j["id"] for j in st.c.get(f"{API}/projects/{b}/model-jobs").json()["data"]} == b_jobs
 
 
 def test_cancel_then_resume_ends_with_the_uninterrupted_checkpoint(studio: Studio) -> None:
@@ -226,8 +241,10 @@ def test_cancel_then_resume_ends_with_the_uninterrupted_checkpoint(studio: Studi
     while st.c.get(f"{API}/projects/{pid}/model-jobs").json()["data"][0]["done"] < 2:
         assert time.monotonic() < deadline
         time.sleep(0.01)
+    busy = st.c.delete(f"{API}/projects/{pid}")
     r = st.c.post(f"{API}/projects/{pid}/model-jobs/{job_id}/cancel")
     assert r.status_code == 200, r.text
+    assert busy.status_code == 409 and f"model job {job_id}" in busy.text, busy.text
     cancelled = wait_job(st, "B", job_id)
     assert cancelled["status"] == "cancelled", cancelled
     assert 0 < cancelled["done"] < steps
@@ -246,6 +263,9 @@ def test_cancel_then_resume_ends_with_the_uninterrupted_checkpoint(studio: Studi
     assert one.keys() == two.keys()
     for key in one:
         assert torch.equal(one[key], two[key]), key
+    # The models go with their project.
+    assert st.c.delete(f"{API}/projects/{pid}").status_code == 200
+    assert not path.parent.exists()
 
 
 def test_a_job_the_server_left_working_is_interrupted_and_resumable(tmp_path: Path) -> None:
