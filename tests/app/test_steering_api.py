@@ -138,7 +138,7 @@ def test_preview_note_and_comparison(env) -> None:
     # k: smoothing and what follows.
     client.patch(f"/projects/{pid}", json={"form": {"k": 4}})
     k = client.get(f"/projects/{pid}/runs/preview").json()
-    assert k["recompute"] == ["smooth", "label_points", "evaluate", "export"]
+    assert k["recompute"] == ["smooth", "label_points", "tracks", "evaluate", "export"]
     reasons = {s["name"]: s["reason"] for s in k["stages"]}
     assert reasons["smooth"] == "settings changed: smoothing" and reasons["export"] == "after Point labels"
 
