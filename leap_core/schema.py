@@ -326,7 +326,7 @@ def _check_classes(classes: Sequence[ClassDef]) -> None:
     if not classes:
         raise _Invalid("classes: the class list is empty")
     names: dict[str, int] = {}
-    exports: dict[int, int] = {}
+    exports: dict[int, tuple[int, str]] = {}
     gts: dict[int, int] = {}
     prompts: dict[str, int] = {}
 
@@ -341,15 +341,17 @@ def _check_classes(classes: Sequence[ClassDef]) -> None:
             raise _Invalid(f"{where(i)}: {problem}", at=(i, "name"), problem=problem)
         names[c.name] = i
         if c.export_id in exports:
-            problem = f"export_id {c.export_id} is already used by {where(exports[c.export_id])}"
+            j, kind = exports[c.export_id]
+            problem = f"export_id {c.export_id} is already the {kind} of {where(j)}"
             raise _Invalid(f"{where(i)}: {problem}", at=(i, "export_id"), problem=problem)
-        exports[c.export_id] = i
+        exports[c.export_id] = (i, "export_id")
         if c.moving_id is not None:
             # A moving id is written to .label files too: it must name one class only.
             if c.moving_id in exports:
-                problem = f"moving_id {c.moving_id} is already used by {where(exports[c.moving_id])}"
+                j, kind = exports[c.moving_id]
+                problem = f"moving_id {c.moving_id} is already the {kind} of {where(j)}"
                 raise _Invalid(f"{where(i)}: {problem}", at=(i, "moving_id"), problem=problem)
-            exports[c.moving_id] = i
+            exports[c.moving_id] = (i, "moving_id")
         for gid in c.gt_ids:
             if gid in gts:
                 problem = f"gt id {gid} is already mapped to {where(gts[gid])}"

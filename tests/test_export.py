@@ -631,3 +631,24 @@ def test_labels_and_confidences_of_any_shape_are_flattened_in_scan_order(tmp_pat
     export_labels(lp, cp, labels, np.array([[0.5, 0.25], [0.75, 1.0]]), EXPORT_IDS)
     np.testing.assert_array_equal(read_label(lp, 4), [10, 48, 0, 40])
     np.testing.assert_array_equal(read_confidence(cp, 4), np.array([0.5, 0.25, 0.0, 1.0], np.float32))
+
+
+def test_export_writes_instance_ids_and_moving_ids(tmp_path) -> None:
+    labels = np.array([0, 0, -1, 1, 0], np.int16)
+    conf = np.ones(5, np.float32)
+    moving_ids = np.array([252, 40, 48], np.uint32)  # car moves as 252; road and sidewalk have none
+    lp, cp = tmp_path / "000000.label", tmp_path / "000000.conf"
+    export_labels(
+        lp,
+        cp,
+        labels,
+        conf,
+        EXPORT_IDS,
+        instance=np.array([3, 7, 9, 0, 0]),
+        moving=np.array([True, False, True, False, False]),
+        moving_ids=moving_ids,
+    )
+    # A moving car of track 3, a static car of track 7; an unlabeled point carries no instance; stuff 0.
+    assert read_label(lp, 5).tolist() == [252 | 3 << 16, 10 | 7 << 16, 0, 40, 10]
+    with pytest.raises(ValueError, match="moving_ids"):
+        export_labels(lp, cp, labels, conf, EXPORT_IDS, moving=np.ones(5, bool))

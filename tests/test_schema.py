@@ -279,7 +279,7 @@ CASES: list[tuple[str, Mutation, str]] = [
     (
         "duplicate export id",
         _set(2, "export_id", 10),
-        "classes[2] 'motorcycle': export_id 10 is already used by classes[0] 'car'",
+        "classes[2] 'motorcycle': export_id 10 is already the export_id of classes[0] 'car'",
     ),
     (
         "gt id in two classes",
@@ -463,5 +463,5 @@ def test_thing_fields_are_checked(entry: dict[str, Any], problem: str) -> None:
 def test_moving_id_may_not_be_another_class_export_id() -> None:
     a = ClassDef("a", (1, 2, 3), ("a",), 10, thing=True, moving_id=40)
     b = ClassDef("b", (1, 2, 3), ("b",), 40)
-    with pytest.raises(SchemaError, match="export_id 40 is already used"):
+    with pytest.raises(SchemaError, match="export_id 40 is already the moving_id of classes\\[0\\] 'a'"):
         Schema("s", (a, b))

@@ -416,7 +416,28 @@ def format_result_tables(data: SequenceMetrics) -> str:
     ratio = data.coverage_ratio.get(ROW_VOXEL)
     if ratio:
         parts.append(f"voxel labels cover {ratio:.2f}x as many points as projection alone")
+    if data.objects:
+        parts.append(format_object_scores(data.objects))
     return "\n\n".join(parts)
+
+
+def format_object_scores(objects: Mapping[str, Mapping[str, float | None]]) -> str:
+    """The object scores of a ``metrics.json`` (docs/METHOD.md D.6) as a short text table, in %."""
+
+    def pct(v: float | None) -> str:
+        return "-" if v is None else f"{100 * v:.1f}"
+
+    lines = ["objects (%)     camera view  all points", "--------------  -----------  ----------"]
+    for key in ("PQ", "PQ_things", "PQ_stuff", "SQ", "RQ"):
+        lines.append(f"{key:<14}  {pct(objects['camera'].get(key)):>11}  {pct(objects['all'].get(key)):>10}")
+    motion = objects.get("motion", {})
+    lines.append(f"{'MOS IoU':<14}  {'':>11}  {pct(motion.get('mos_iou')):>10}")
+    lines.append(f"{'S_assoc':<14}  {'':>11}  {pct(motion.get('s_assoc')):>10}")
+    right = objects.get("moving_right_class", {})
+    if right:
+        shares = ", ".join(f"{name} {pct(v)}" for name, v in right.items())
+        lines.append(f"moving points with the right class: {shares}")
+    return "\n".join(lines)
 
 
 def result_tables(folder: str | Path) -> str | None:

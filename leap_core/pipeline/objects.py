@@ -83,7 +83,7 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
     frames = list(ctx.frames)
     total = len(frames)
 
-    def segments(i: int) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int64], Any, Any, Any]:
+    def segments(i: int) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int64], Any, Any, Any, Any]:
         fid = ctx.fid(i)
         path = ctx.layout.points(fid)
         try:
@@ -91,14 +91,15 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
         except (OSError, KeyError, ValueError) as exc:
             raise DatasetError(path, f"unreadable point labels ({exc})") from exc
         rows, votes = thing_votes(z["label"], z["point_label"], things)
+        final_thing = things[np.maximum(z["label"][rows], 0)] & (z["label"][rows] >= 0)
         frame = ctx.seq.frame(i)
         xyz = affine_points(frame.points_at(rows)[:, :3], frame.pose[:3]) if rows.size else np.zeros((0, 3))
         free = ~corrected_rows(corr, fid, rows, voxel_keys(xyz, vs))
-        rows, votes, xyz = rows[free], votes[free], xyz[free]
+        rows, votes, xyz, final_thing = rows[free], votes[free], xyz[free], final_thing[free]
         seg = euclidean_segments(xyz, cfg.cluster_radius, cfg.min_segment_points)
         centroid, hist, box = segment_summary(xyz, seg, votes, things.shape[0])
         keep = seg >= 0
-        return rows[keep].astype(np.int32), seg[keep], centroid, hist, box
+        return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, final_thing[keep]
 
     per_scan = []
     ctx.tick("tracks", 0, total)
@@ -115,14 +116,18 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
             f"{table.label.size} tracks in sequence {ctx.layout.folder.name}: more than the {MAX_TRACKS} "
             "instance ids a .label holds; raise tracking.min_segment_points or label fewer frames per run"
         )
-    counts = [s[0].size for s in per_scan]
+    # A static track keeps the map's word on its points: those the final grid calls stuff (a mask's bleed
+    # onto the road beside a parked car, seen in one scan) stay stuff and get no id; a moving track takes
+    # all its points, since the map's label at a mover is its trail.
+    kept = []
+    for t, s in enumerate(per_scan):
+        track_of_row = ids[t][s[1]]
+        keep = s[5] | table.moving[track_of_row - 1]
+        kept.append((s[0][keep], track_of_row[keep]))
+    counts = [r.size for r, _ in kept]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    rows = np.concatenate([s[0] for s in per_scan]) if per_scan else np.zeros(0, np.int32)
-    track = (
-        np.concatenate([ids[t][s[1]] for t, s in enumerate(per_scan)]).astype(np.int32)
-        if per_scan
-        else np.zeros(0, np.int32)
-    )
+    rows = np.concatenate([r for r, _ in kept]) if kept else np.zeros(0, np.int32)
+    track = np.concatenate([k for _, k in kept]).astype(np.int32) if kept else np.zeros(0, np.int32)
     SequenceTracks(tuple(ctx.frame_ids()), offsets, rows.astype(np.int32), track, table).save(
         ctx.layout.tracks
     )
