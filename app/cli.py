@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypedDict
@@ -39,6 +40,7 @@ if TYPE_CHECKING:
     from app.core.config import Settings
     from app.core.instance import ServerLock
     from app.rows import RunRow
+    from leap_core.lidar_model.config import LidarModelConfig
     from leap_core.pipeline.preflight import Verdict
     from leap_core.pipeline.run import RunResult, SequenceSpec
     from leap_core.progress import ProgressFn
@@ -931,6 +933,278 @@ def train_3dcn_cmd(
         f"{sum(tail) / max(len(tail), 1):.3f}"
         + (f"; no ground truth for {', '.join(missing)}" if missing else "")
     )
+
+
+# ------------------------------------------------------------------------------- a LiDAR-only model
+def _model_config(  # noqa: PLR0913  # one value per training option
+    backbone: Any,
+    *,
+    steps: int | None,
+    seed: int | None,
+    points_per_scan: int | None,
+    val_block: int | None,
+    val_every: int | None,
+    checkpoint_every: int | None,
+    device: str,
+    threads: int,
+) -> LidarModelConfig:
+    """The training settings from ``leap train``'s options (one-line error for a value out of range)."""
+    from leap_core.lidar_model.config import LidarModelConfig
+
+    given: dict[str, Any] = {
+        "steps": steps,
+        "seed": seed,
+        "points_per_scan": points_per_scan,
+        "val_block": val_block,
+        "val_every": val_every,
+        "checkpoint_every": checkpoint_every,
+    }
+    try:
+        return LidarModelConfig(
+            **{k: v for k, v in given.items() if v is not None},
+            device=device,  # type: ignore[arg-type]  # any string: the config refuses a bad one
+            num_threads=threads,
+            backbone=backbone,
+        )
+    except ConfigError as exc:
+        raise LeapError(f"--{exc.field[0].replace('_', '-')}: {exc.problem}") from None
+
+
+@cli.command("train")
+def train_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
+    sources: list[str] = typer.Argument(
+        ...,
+        help="What to train on: run folders (every sequence's final labels, corrections included), a run's "
+        "sequence folder (RUN/sequences/NAME), or dataset sequences with ground truth (labels/).",
+    ),
+    *,
+    out: str = typer.Option(..., "--out", metavar="MODEL.pt", help="The model file to write."),
+    schema: str | None = typer.Option(
+        None,
+        "--schema",
+        help="Schema/project YAML file, or a built-in name in projects/ (default semantickitti).",
+    ),
+    project_file: str | None = typer.Option(
+        None,
+        "--project-file",
+        help="Project YAML: its classes and its 'pipeline: consistency: backbone:' sizes.",
+    ),
+    val: list[str] = typer.Option(
+        [],
+        "--val",
+        help="Sequences held apart for validation (same kinds as SOURCES); turns the block split off.",
+    ),
+    init: str | None = typer.Option(
+        None, "--init", metavar="MODEL.pt", help="Start from this model's weights."
+    ),
+    steps: int | None = typer.Option(None, "--steps", help="Optimisation steps (default 1000)."),
+    seed: int | None = typer.Option(None, "--seed", help="Training seed (default 0)."),
+    points_per_scan: int | None = typer.Option(None, "--points-per-scan", help="Points per scan per step."),
+    val_block: int | None = typer.Option(
+        None, "--val-block", help="Frames per validation block (default 10; 0: no block split)."
+    ),
+    val_every: int | None = typer.Option(
+        None, "--val-every", help="Every N-th block is held apart for validation (default 5)."
+    ),
+    checkpoint_every: int | None = typer.Option(
+        None, "--checkpoint-every", help="Steps between resumable states (MODEL.state.pt)."
+    ),
+    device: str = typer.Option("auto", "--device", help="auto (CUDA when available), cpu or cuda."),
+    threads: int = typer.Option(0, "--threads", min=0, help="Torch threads (0: torch's default)."),
+    restart: bool = typer.Option(
+        False, "--restart", help="Start over instead of resuming an interrupted training."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace an existing model file."),
+) -> None:
+    """Train a LiDAR-only segmentation model (the project's 3D backbone) on the final labels of runs or on
+    ground truth, with a held-apart validation split and a model card (MODEL.card.json). An interrupted
+    training resumes when the same command runs again."""
+    from tqdm import tqdm
+
+    from leap_core.lidar_model.data import labeled_sequences, split_scans
+    from leap_core.lidar_model.model import LidarModel, load_model, state_path
+    from leap_core.lidar_model.train import train_lidar_model
+
+    target = Path(out)
+    try:
+        if target.exists() and not force:
+            raise LeapError(f"{target}: already exists; add --force to replace it")
+        if target.exists() and not target.is_file():
+            raise LeapError(f"{target}: not a file")
+        sch, pcfg = _run_config(schema, project_file, None, None)
+        start: LidarModel | None = None
+        backbone = pcfg.consistency.backbone
+        if init is not None:
+            start = load_model(_cli_path(init, "--init"))
+            backbone = start.config.backbone
+        cfg = _model_config(
+            backbone,
+            steps=steps,
+            seed=seed,
+            points_per_scan=points_per_scan,
+            val_block=val_block,
+            val_every=val_every,
+            checkpoint_every=checkpoint_every,
+            device=device,
+            threads=threads,
+        )
+        if val:
+            cfg = dataclasses.replace(cfg, val_block=0)
+        train, held = split_scans(
+            labeled_sequences(sources), labeled_sequences(val), cfg.val_block, cfg.val_every
+        )
+        typer.echo(f"{len(train.scans)} training scans, {len(held.scans)} held apart for validation")
+        with tqdm(desc="train", unit="step", dynamic_ncols=True) as bar:
+
+            def tick(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done - bar.n)
+
+            result = train_lidar_model(
+                target, train, held, sch, cfg, init=start, init_path=init, progress=tick, restart=restart
+            )
+    except KeyboardInterrupt:
+        resume = state_path(target)
+        where = f"from {resume}" if resume.is_file() else "(no state saved yet)"
+        raise fail(f"interrupted; run the same command again to resume {where}") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    card = result.card
+    v = card["validation"]
+    score = (
+        "no validation scans" if v is None or v["miou"] is None else f"validation mIoU {100 * v['miou']:.1f}"
+    )
+    tail = result.losses[-50:]
+    typer.echo(
+        f"wrote {target} and {target.with_suffix('.card.json').name}: {cfg.steps} steps"
+        + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
+        + f", {result.points_seen / max(result.seconds, 1e-9):,.0f} points/s, mean loss of the last "
+        f"{len(tail)} steps {sum(tail) / max(len(tail), 1):.3f}; {score}"
+    )
+
+
+@cli.command("predict")
+def predict_cmd(  # noqa: PLR0913  # typer: one parameter per command-line option
+    model_file: str = typer.Argument(..., metavar="MODEL.pt", help="A model `leap train` wrote."),
+    datasets: list[str] = typer.Argument(..., help="Sequence folders (.../sequences/NN) to label."),
+    *,
+    out: str = typer.Option(..., "--out", help="Run folder to write (created)."),
+    frames: str | None = typer.Option(
+        None, "--frames", help="Frame numbers A:B (B exclusive) of each sequence."
+    ),
+    views: int = typer.Option(1, "--views", min=1, max=32, help="Test-time views averaged per scan."),
+    device: str = typer.Option("auto", "--device", help="auto (CUDA when available), cpu or cuda."),
+    threads: int = typer.Option(0, "--threads", min=0, help="Torch threads (0: torch's default)."),
+    export_to: str | None = typer.Option(
+        None, "--export-to", help="Also copy the .label files to DIR/sequences/<name>/predictions/."
+    ),
+    zip_path: str | None = typer.Option(
+        None, "--zip", help="Also write the export as a zip with its label map."
+    ),
+    with_conf: bool = typer.Option(
+        False, "--with-conf", help="Include the .conf files in --export-to/--zip."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing export."),
+) -> None:
+    """Label sequences with a trained model: LiDAR only (no camera, images or poses needed), frame by frame,
+    into a run folder (points/ and export/ .label + .conf per sequence, as `leap run` writes); scored
+    where the sequence has ground truth."""
+    from tqdm import tqdm
+
+    from leap_core.export import (
+        LABEL_MAP_FILE,
+        export_targets,
+        label_map,
+        label_map_yaml,
+        run_export,
+        write_export_zip,
+        write_run_export,
+    )
+    from leap_core.lidar_model.model import load_model
+    from leap_core.lidar_model.predict import predict_run
+    from leap_core.metrics import format_table
+
+    try:
+        zip_file = _zip_target(zip_path, overwrite)
+        model = load_model(_cli_path(model_file, "MODEL.pt"))
+        specs = _sequence_specs(datasets, frames)
+        bars: dict[str, tqdm[Any]] = {}
+
+        def tick(name: str, done: int, total: int) -> None:
+            bar = bars.get(name)
+            if bar is None:
+                bar = bars[name] = tqdm(total=total, desc=f"{name} predict", unit="scan", dynamic_ncols=True)
+            bar.update(done - bar.n)
+
+        try:
+            results = predict_run(
+                model,
+                model_file,
+                [(s.name, s.dataset, s.frames) for s in specs],
+                _cli_path(out, "--out"),
+                views=views,
+                device=device,
+                num_threads=threads,
+                progress=tick,
+            )
+        finally:
+            for bar in bars.values():
+                bar.close()
+        for r in results:
+            typer.echo(
+                f"sequence {r.name}: {r.scans} scans, {r.points} points labeled, "
+                f"{r.scans / max(r.seconds, 1e-9):.2f} scans/s"
+            )
+            if r.metrics is not None:
+                typer.echo(format_table({"model": r.metrics}, model.schema.names))
+        exported = run_export(Path(out))
+        if export_to is not None:
+            target = _cli_path(export_to, "--export-to")
+            folders = export_targets(target, [s.name for s in exported], with_conf=with_conf)
+            done = write_run_export(folders, exported, with_conf=with_conf, overwrite=overwrite)
+            typer.echo(f"wrote {sum(done.files.values())} files to {target}/sequences/*/predictions/")
+        if zip_file is not None:
+            counts: dict[int, int] = {}
+            for r in results:
+                for raw, n in r.raw_counts.items():
+                    counts[raw] = counts.get(raw, 0) + n
+            lmap = label_map(
+                model.schema, counts, name=model.schema.name, sequences=[s.name for s in exported]
+            )
+            extra = {
+                LABEL_MAP_FILE: label_map_yaml(lmap),
+                "model-card.json": json.dumps(model.card, indent=2),
+            }
+            n = write_export_zip(zip_file, exported, extra, include_confidence=with_conf, overwrite=overwrite)
+            typer.echo(f"wrote {zip_file} ({n} files, {LABEL_MAP_FILE}, model-card.json)")
+    except KeyboardInterrupt:
+        raise fail(f"interrupted; the scans labeled so far are in {out}") from None
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+
+
+@cli.command("export-model")
+def export_model_cmd(
+    model_file: str = typer.Argument(..., metavar="MODEL.pt", help="A model `leap train` wrote."),
+    *,
+    out: str = typer.Option(..., "--out", metavar="FILE.pt", help="The TorchScript file to write."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing file."),
+) -> None:
+    """Export a trained model as TorchScript (torch.jit.load, no LeAP needed to run it; inputs in
+    docs/METHOD.md "A LiDAR-only model"). ONNX is not offered: the backbone's sparse cell averaging has no
+    ONNX operator."""
+    from leap_core.lidar_model.export import export_torchscript
+    from leap_core.lidar_model.model import load_model
+
+    target = Path(out)
+    try:
+        if target.exists() and not force:
+            raise LeapError(f"{target}: already exists; add --force to replace it")
+        model = load_model(_cli_path(model_file, "MODEL.pt"))
+        export_torchscript(model.network, target)
+    except LeapError as exc:
+        raise fail(str(exc)) from None
+    typer.echo(f"wrote {target} (TorchScript, {model.schema.num_classes} classes)")
 
 
 def _zip_target(zip_path: str | None, overwrite: bool) -> Path | None:

@@ -482,6 +482,8 @@ class Correction:
     sequence: str | None = None
     """The project sequence whose scans it corrects (migration 6; voxel keys and frame ids are per
     sequence)."""
+    reviewer: str | None = None
+    """The reviewer's name the viewer tab was given (migration 9); None when none was given."""
 
 
 def _correction(row: dict[str, Any]) -> Correction:
@@ -498,6 +500,7 @@ def _correction(row: dict[str, Any]) -> Correction:
         points=None if row.get("points") is None else np.frombuffer(row["points"], dtype=np.int64).copy(),
         author=row.get("author"),
         sequence=row.get("sequence"),
+        reviewer=row.get("reviewer"),
     )
 
 
@@ -517,6 +520,7 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     points: npt.ArrayLike | None = None,
     author: str | None = None,
     sequence: str | None = None,
+    reviewer: str | None = None,
 ) -> int:
     """Store a correction (active) of the project's sequence ``sequence`` (None: its first); returns its id.
 
@@ -544,7 +548,7 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     seq = sequence_name(db, project_id, sequence)
     cursor = db.execute(
         "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
-        "frame_id, points, author, sequence) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?)",
+        "frame_id, points, author, sequence, reviewer) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?, ?)",
         [
             project_id,
             utcnow(),
@@ -556,6 +560,7 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
             blob,
             author,
             seq,
+            reviewer,
         ],
     )
     return _inserted_id(cursor)
@@ -624,18 +629,20 @@ def set_review_mark(
     state: str,
     run_id: int | None = None,
     sequence: str | None = None,
+    reviewer: str | None = None,
 ) -> None:
-    """Record (or replace) the verdict on ``region`` of the sequence ``sequence`` (None: the first)."""
+    """Record (or replace) the verdict on ``region`` of the sequence ``sequence`` (None: the first), by
+    ``reviewer`` (None: unnamed)."""
     if state not in REVIEW_STATES:
         raise ValueError(f"state must be one of {', '.join(REVIEW_STATES)}, got {state!r}")
     require_project(db, project_id)
     key = review_key(db, project_id, sequence, region)
     db.execute(
-        "INSERT INTO review_marks (project_id, region, signature, state, run_id, updated_at) "
-        "VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT(project_id, region) DO UPDATE SET "
+        "INSERT INTO review_marks (project_id, region, signature, state, run_id, updated_at, reviewer) "
+        "VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT(project_id, region) DO UPDATE SET "
         "signature = excluded.signature, state = excluded.state, run_id = excluded.run_id, "
-        "updated_at = excluded.updated_at",
-        [project_id, key, signature, state, run_id, utcnow()],
+        "updated_at = excluded.updated_at, reviewer = excluded.reviewer",
+        [project_id, key, signature, state, run_id, utcnow(), reviewer],
     )
 
 

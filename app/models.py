@@ -908,6 +908,7 @@ class CorrectionPublic(BaseModel):
     author: str | None = Field(description="'viewer', 'api', or null for corrections older than authors")
     active: bool
     sequence: str | None = Field(default=None, description="the project sequence it corrects")
+    reviewer: str | None = Field(default=None, description="the reviewer's name given to the viewer tab")
 
 
 class CorrectionClassCount(BaseModel):

@@ -13,6 +13,7 @@ A run labels a list of sequences (often one) with one class schema and one confi
                                   inference tasks of the last rounds computed on Ray)
       3dcn/rounds/<name>/grid_3dcn{i}.npz, grid_smooth_3dcn{i}.npz
                                   round i's grids of each sequence, hard-linked into sequences/<name>/
+      model.json                  the LiDAR-only model that labeled the run (`leap predict`), its card
       params.json, run.log, .lock, export.zip, export-conf.zip
                                   the app's files of this run
 
@@ -35,6 +36,7 @@ One sequence's folder::
       tracks.npz                  objects (the tracks stage): per scan the thing points' rows and track
                                   ids; per track its voted class, velocity, moving flag and scans seen
       metrics.json                result tables
+      model-metrics.json          a LiDAR-only model's scores on the ground truth (`leap predict`)
       export/<frame_id>.label     raw export ids (a moving thing: its class's moving id), instance id << 16
       export/<frame_id>.conf      float32 per-point confidence
       export-coverage.json        the export's point counts (labeled, unlabeled by reason, per raw id)
@@ -95,6 +97,7 @@ class SequenceLayout:
     TRACKS: ClassVar[str] = "tracks.npz"
     GRID_SMOOTH: ClassVar[str] = "grid_smooth.npz"
     METRICS: ClassVar[str] = "metrics.json"
+    MODEL_METRICS: ClassVar[str] = "model-metrics.json"
     CORRECTIONS: ClassVar[str] = "corrections.npz"
     CORRECTIONS_SCAN: ClassVar[str] = "corrections_scan.npz"
     APPLIED_CORRECTIONS: ClassVar[str] = "applied_corrections.npz"
@@ -158,6 +161,11 @@ class SequenceLayout:
     @property
     def metrics(self) -> Path:
         return self._file(self.METRICS)
+
+    @property
+    def model_metrics(self) -> Path:
+        """A model-labeled sequence's scores on its ground truth (``leap predict``)."""
+        return self._file(self.MODEL_METRICS)
 
     @property
     def corrections(self) -> Path:
@@ -295,8 +303,9 @@ class RunLayout:
     LOCK: ClassVar[str] = ".lock"
     EXPORT_ZIP: ClassVar[str] = "export.zip"
     EXPORT_CONF_ZIP: ClassVar[str] = "export-conf.zip"
+    MODEL_NOTE: ClassVar[str] = "model.json"
     RUN_FILES: ClassVar[frozenset[str]] = frozenset(
-        {SPEC, SEQUENCES, METRICS, CN_DIR, PARAMS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP}
+        {SPEC, SEQUENCES, METRICS, CN_DIR, PARAMS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP, MODEL_NOTE}
     )
     """The entries of the run folder itself (everything else lives in a sequence's folder)."""
     RUN_OWN_FILES: ClassVar[frozenset[str]] = frozenset({PARAMS, LOG, LOCK, EXPORT_ZIP, EXPORT_CONF_ZIP})
@@ -381,6 +390,12 @@ class RunLayout:
         ``grid_smooth_3dcn{i}.npz``) before its folder links them in."""
         self.sequence(name)  # checks the name
         return SequenceLayout(self.cn_dir / "rounds" / name)
+
+    @property
+    def model_note(self) -> Path:
+        """``model.json`` of a run labeled by a LiDAR-only model (``leap predict``): the model's file,
+        digest and card."""
+        return self.root / self.MODEL_NOTE
 
     # ------------------------------------------------------------------------------- the app's files
     @property

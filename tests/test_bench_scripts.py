@@ -36,6 +36,7 @@ SMOKE: dict[str, tuple[list[str], str]] = {
     "bench_check.py": (["--frames", "20", "--repeat", "1"], "check / open"),
     "bench_fusion.py": (["--quick"], "Ratio to the best same-work baseline"),
     "bench_objects.py": (["--quick"], "tracks stage ms/scan"),
+    "bench_lidar_model.py": (["--quick"], "ratio model / baseline time"),
     "bench_memory.py": (["--sequence", SEQ], f"baseline = {BASELINE_COMMIT}"),
     "bench_models.py": (["--quick"], "ratio = total compute"),
     "bench_pipeline.py": (["--sequence", SEQ], "second run, all cached"),
@@ -44,6 +45,7 @@ SMOKE: dict[str, tuple[list[str], str]] = {
     "bench_scale.py": (["--frames", "2", "--seeds", "0", "--repeat", "1", "--no-cached"], "checks"),
     "bench_scan.py": (["--quick"], "outputs identical: yes"),
     "bench_synth.py": (["--quick"], "brute force (baseline)"),
+    "bench_viewer_tabs.py": (["--quick"], "each further tab"),
     "bench_viewer.py": (
         [
             "--voxels",

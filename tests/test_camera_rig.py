@@ -260,3 +260,18 @@ def test_rig_entries_linked_out_of_the_data_roots_are_refused(tmp_path: Path) ->
     (root / "right").unlink()
     (root / "image_3").symlink_to(outside, target_is_directory=True)  # a KITTI camera folder
     assert escaping_entry(root, roots) == ("image_3", outside)
+
+
+def test_synth_cameras_option_names_what_it_takes(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from app.cli import cli
+    from leap_core.synth.domains import domain_config
+
+    with pytest.raises(ValueError, match="the agri-uav domain has one camera"):
+        domain_config("agri-uav", 2, 0, cameras=4)
+    out = CliRunner().invoke(cli, ["synth", str(tmp_path), "--frames", "1", "--cameras", "3"])
+    assert (
+        out.exit_code != 0 and "--cameras: SynthConfig.cameras must be one of [1, 2, 4], got 3" in out.output
+    )
+    assert not (tmp_path / "sequences").exists()

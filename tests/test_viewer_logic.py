@@ -583,9 +583,10 @@ def test_viewer_api_and_authenticated_relay(review_store) -> None:
         assert r.status_code == 200, r.text
         body = r.json()
         assert body["run_id"] == run_id and body["port"] > 0
-        assert body["url"] == f"/api/v1/projects/{pid}/viewer/client/"
+        assert body["url"] == f"/api/v1/projects/{pid}/viewer/tabs/{body['tab']}/client/"
         assert "direct_url" not in body  # viser's own port streams only to the relay
-        assert client.post(base, json={"run_id": run_id}, headers=auth).json()["port"] == body["port"]
+        second = client.post(base, json={"run_id": run_id}, headers=auth).json()
+        assert second["tab"] != body["tab"] and second["port"] != body["port"]  # a session per tab
         assert client.get(body["url"]).status_code == 403
         page = client.get(body["url"] + f"?token={token}")
         assert page.status_code == 200 and "Viser" in page.text

@@ -23,6 +23,7 @@ import { renderRuns } from "./project/history.js";
 import { renderNextRun } from "./project/next-run.js";
 import { renderParams } from "./project/params.js";
 import { renderReview } from "./project/review.js";
+import { renderReviewers } from "./project/reviewers.js";
 import { renderRunPanel } from "./project/run-panel.js";
 import { renderSequences } from "./project/sequences.js";
 
@@ -96,7 +97,10 @@ export async function renderProject(root, projectId, { toast }) {
     classes: () => renderClasses(ctx),
     params: () => renderParams(ctx),
     check: () => renderDatasetCheck(els.check, state.project),
-    review: () => renderReview(ctx),
+    review: () => {
+      renderReview(ctx);
+      renderReviewers(ctx);
+    },
   };
 
   // --------------------------------------------------------------------------------- live progress
@@ -192,6 +196,7 @@ export async function renderProject(root, projectId, { toast }) {
   ctx.render.params();
   ctx.render.next();
   renderReview(ctx);
+  renderReviewers(ctx);
   await ctx.render.compare();
   follow(state.runs.find((r) => ctx.active.has(r.status)));
   import("./project/corrections.js").then((m) => m.mountCorrections(ctx));

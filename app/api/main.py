@@ -19,6 +19,7 @@ from app.api.routes import (
     health,
     pipeline,
     projects,
+    reviewers,
     runs,
     sequences,
 )
@@ -35,6 +36,7 @@ api_router.include_router(class_lists.router)
 api_router.include_router(runs.router)
 api_router.include_router(exports.router)
 api_router.include_router(corrections.router)
+api_router.include_router(reviewers.router)
 
 if importlib.util.find_spec("app.api.routes.viewer") is not None:
     # The 3D review viewer is an optional module of its own (app/viewer, app/api/routes/viewer.py).

@@ -226,6 +226,28 @@ def _v8_one_run_shape(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v9_reviewers(db: sqlite_utils.Database) -> None:
+    # Several people review one project: every correction and review mark records the reviewer's name
+    # (NULL for those made before names were asked, or through the API without one), and a reviewer claims
+    # regions of a saved review queue so the others skip them until the claim expires or is released.
+    _execute_script(
+        db,
+        """
+        ALTER TABLE corrections ADD COLUMN reviewer TEXT;
+        ALTER TABLE review_marks ADD COLUMN reviewer TEXT;
+        CREATE TABLE review_claims (
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            sequence TEXT NOT NULL,
+            region TEXT NOT NULL,
+            reviewer TEXT NOT NULL,
+            claimed_at TEXT NOT NULL,
+            expires_at TEXT NOT NULL,
+            PRIMARY KEY (project_id, sequence, region)
+        );
+        """,
+    )
+
+
 def _name_of(names: dict[tuple[int, str], str], project_id: int, path: str) -> str | None:
     return names.get((project_id, path))
 
@@ -288,6 +310,7 @@ MIGRATIONS: list[Migration] = [
     (6, "project_sequences; corrections and review queues per sequence", _v6_project_sequences),
     (7, "project_sequences.removed_at", _v7_sequence_removal),
     (8, "runs of one shape: a list of sequences; review marks per sequence", _v8_one_run_shape),
+    (9, "reviewer names on corrections and review marks; review_claims", _v9_reviewers),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -8,15 +8,53 @@ only (its point indices). Each one is a row of the project's store
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Hashable
+
 import numpy as np
+import numpy.typing as npt
 
 from app.viewer import view_logic as vl
+from app.viewer.data import ReviewGrid
 from app.viewer.player import ScanPlayer
 from app.viewer.records import ProjectBackend, Scope, Selection
 from app.viewer.render import LodRenderer
 from app.viewer.selection_tool import SelectionTool
 from app.viewer.shared import Notifier, SharedState
 from leap_core.fusion import voxel_keys
+
+Overlay = tuple[npt.NDArray[np.int16], npt.NDArray[np.float32], npt.NDArray[np.bool_]]
+"""(label, conf, corrected) of a grid with the corrections applied
+(:func:`app.viewer.view_logic.apply_corrections`)."""
+
+
+class OverlayCache:
+    """The corrected labels of each shown grid, computed once for every viewer tab that shows it.
+
+    Tabs of one project show the same grid object; each (V,) array set is kept for the grid and the
+    corrections it was computed from, so a second tab (or a tab told of another's correction) takes the
+    same arrays instead of a copy. Arrays are never changed in place (see :class:`SharedState`).
+    """
+
+    def __init__(self, keep: int = 4) -> None:
+        self._lock = threading.Lock()
+        self._keep = keep
+        self._entries: list[tuple[ReviewGrid, Hashable, Overlay]] = []
+
+    def overlay(
+        self, grid: ReviewGrid, key: Hashable, keys: npt.NDArray[np.int64], labels: npt.NDArray[np.int16]
+    ) -> Overlay:
+        """``grid`` with ``labels`` imposed on the voxels ``keys``; ``key`` identifies those corrections."""
+        # Computed under the lock: tabs told of a correction at once wait for the first and share its arrays.
+        with self._lock:
+            for g, k, arrays in self._entries:
+                if g is grid and k == key:
+                    return arrays
+            arrays = vl.apply_corrections(grid.keys, grid.label, grid.conf, keys, labels)
+            # One entry per grid (its latest corrections), for the last ``keep`` grids shown.
+            others = [e for e in self._entries if e[0] is not grid]
+            self._entries = [*others[max(0, len(others) - self._keep + 1) :], (grid, key, arrays)]
+        return arrays
 
 
 class Corrections:
@@ -40,7 +78,11 @@ class Corrections:
         player: ScanPlayer,
         tools: SelectionTool,
         notify: Notifier,
+        *,
+        overlays: OverlayCache | None = None,
     ) -> None:
+        self.overlays = overlays or OverlayCache(keep=1)
+        """Where the corrected labels come from (shared by the tabs of one project in the app)."""
         self.shared = shared
         self.backend = backend
         self.renderer = renderer
@@ -57,7 +99,7 @@ class Corrections:
         grid = sh.grid
         assert grid is not None
         names = sh.class_ids()
-        keys_all, labels_all = [], []
+        keys_all, labels_all, used = [], [], []
         sh.corrections = self.backend.corrections()
         for rec in sh.corrections:
             if rec.scope != "map" or not rec.active or rec.class_name not in names or rec.keys.size == 0:
@@ -65,9 +107,11 @@ class Corrections:
             keys = sh.grid_keys(rec)
             keys_all.append(keys)
             labels_all.append(np.full(keys.shape[0], names[rec.class_name], np.int16))
+            used.append((rec.id, names[rec.class_name]))
         ck = np.concatenate(keys_all) if keys_all else np.zeros(0, np.int64)
         cl = np.concatenate(labels_all) if labels_all else np.zeros(0, np.int16)
-        sh.label, sh.conf, sh.corrected = vl.apply_corrections(grid.keys, grid.label, grid.conf, ck, cl)
+        # Correction rows never change but for ``active``: the ids and classes applied identify the result.
+        sh.label, sh.conf, sh.corrected = self.overlays.overlay(grid, tuple(used), ck, cl)
 
     def assign_selection(
         self, class_name: str, *, scope: Scope | None = None, selection: Selection | None = None
@@ -152,6 +196,12 @@ class Corrections:
         return cid
 
     def _after_history(self) -> None:
+        self.refresh()
+        self.notify.emit("corrected")
+
+    def refresh(self) -> None:
+        """Read the project's corrections again and show them (after an undo / redo here, or a correction
+        made elsewhere: another tab, the web UI)."""
         with self.shared.lock:
             if self.shared.grid is not None:
                 self.apply_locked()
@@ -164,4 +214,4 @@ class Corrections:
         return sum(1 for c in self.shared.corrections if c.active)
 
 
-__all__ = ["Corrections"]
+__all__ = ["Corrections", "Overlay", "OverlayCache"]

@@ -96,6 +96,17 @@ class ReviewPanel:
                 hint="Start a new run with the current classes, prompts, 2D labeler and corrections",
                 color="blue",
             )
+            self.stay = gui.add_checkbox(
+                "Stay on this run",
+                False,
+                hint="Keep this run shown when a newer run of the project finishes (else it loads)",
+            )
+            reviewer = getattr(session.backend, "reviewer", None)
+            self.reviewer = gui.add_markdown(
+                f"Reviewing as **{html.escape(reviewer)}**"
+                if reviewer
+                else "No reviewer name: give it in the project page's *Reviewers* card first."
+            )
 
         with gui.add_folder("View", order=1):
             self.color_by = gui.add_dropdown("Color by", COLOR_BY, initial_value="class")
@@ -198,6 +209,7 @@ class ReviewPanel:
         self.add_class.on_click(g(lambda _: self._add_class()))
         self.rerun_button.on_click(g(lambda _: self._rerun()))
         self.labeler.on_update(g(lambda _: self._labeler_chosen()))
+        self.stay.on_update(g(lambda _: s.set_stay_on_run(bool(self.stay.value))))
 
     def _mode_changed(self) -> None:
         mode = _MODE_OF[str(self.color_by.value)]
@@ -345,6 +357,7 @@ class ReviewPanel:
             f"{len(names)} classes, voxel {grid.voxel_size:g} m."
         )
         self.rerun_button.disabled = s.runs.watched_run is not None
+        self.stay.label = f"Stay on run {run.number}"
         self._update_legend()
         self.on_history()
         self.nav.inspect_folder.visible = False

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable, Collection
 
 import numpy as np
 
@@ -60,6 +61,9 @@ class ReviewQueue:
         self.player = player
         self.corrections = corrections
         self.notify = notify
+        self.claimed_by_others: Callable[[], Collection[str]] = tuple
+        """Identities of the regions other reviewers claimed (:mod:`app.reviewers`), which stepping skips;
+        set by the app's viewer (none by default)."""
         self.regions: list[rl.Region] = []
         """The ranked regions, worst first."""
         self.region_pos = -1
@@ -184,10 +188,16 @@ class ReviewQueue:
     # ------------------------------------------------------------------------------------- focusing
     def next_region(self, step: int = 1) -> rl.Region | None:
         """Show the next (or previous, ``step=-1``) region of the queue (see :meth:`show_region`)."""
+        others = set(self.claimed_by_others())
         with self.shared.lock:
             if not self.regions:
                 return None
-            pos = (self.region_pos + step) % len(self.regions)
+            n = len(self.regions)
+            ahead = [(self.region_pos + step * k) % n for k in range(1, n + 1)]
+            pos = next((i for i in ahead if self.regions[i].id not in others), None)
+        if pos is None:
+            self.notify.panel.set_status("Every region of the queue is claimed by another reviewer.")
+            return None
         return self.show_region(pos)
 
     def show_region(self, pos: int) -> rl.Region | None:
@@ -261,11 +271,16 @@ class ReviewQueue:
             region, signature = self.regions[pos], self.signatures[pos]
         run_id = None if sh.run is None else sh.run.run_id
         self.backend.set_review_mark(region.id, signature, state, run_id)
+        others = set(self.claimed_by_others())
         with sh.lock:
             self.marks[region.id] = ReviewMarkRecord(signature, state)
             n = len(self.regions)
             following = [(pos + k) % n for k in range(1, n + 1)]
-            nxt = next((i for i in following if self.region_state(i) is None), None)
+            nxt = next(
+                (i for i in following if self.region_state(i) is None and self.regions[i].id not in others),
+                None,
+            )
+        self.notify.emit("marked")
         if nxt is None:
             self.notify.panel.on_region(region, pos, n, self.queue_kind)
             return None

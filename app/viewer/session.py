@@ -1,5 +1,9 @@
 """One review session: a run's data, the scene, the GUI panel, and the project it steers.
 
+In the app each browser tab has its own session, with its own viser server
+(:class:`app.viewer.manager.ProjectViewer`); the tabs of a project share the loaded run (``data=``) and the
+corrected labels (``overlays=``), and are told of each other's corrections, marks and runs.
+
 :class:`ReviewSession` coordinates rooms, one object per concern, each a handle the panel and the API routes
 call (as viser's ``server.scene`` / ``server.gui``):
 
@@ -46,13 +50,14 @@ from __future__ import annotations
 import dataclasses
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from app.viewer import view_logic as vl
-from app.viewer.corrections import Corrections
+from app.viewer.corrections import Corrections, OverlayCache
 from app.viewer.data import ReviewGrid, RunOutputs
 from app.viewer.player import ScanPlayer
 from app.viewer.records import (
@@ -82,6 +87,15 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack  # typing.Unpack from Python 3.11
 
 
+RunData = Callable[[RunInfo], tuple[ReviewGrid, RunOutputs]]
+"""Reads a finished run's grid and scans (the app's viewer shares one copy between its tabs)."""
+
+
+def read_run(run: RunInfo, dataset: Path) -> tuple[ReviewGrid, RunOutputs]:
+    """A finished run's grid and scans, read from its folder and its dataset."""
+    return ReviewGrid.load(run.run_dir, run.pipeline), RunOutputs(run.run_dir, dataset)
+
+
 class ReviewSession:
     """A viewer for one project: shows a run, edits the project, starts re-runs, records corrections.
 
@@ -92,6 +106,8 @@ class ReviewSession:
         run_id: run to show (default: the latest finished one).
         host, port: where viser binds (port 0 = any free port; read :attr:`port`).
         config: tunables.
+        data: reads a run's grid and scans (default: from its folder, for this session alone).
+        overlays: the corrected labels, shared with other sessions showing the same grids.
     """
 
     def __init__(
@@ -103,8 +119,15 @@ class ReviewSession:
         host: str = "127.0.0.1",
         port: int = 0,
         config: SessionConfig | None = None,
+        data: RunData | None = None,
+        overlays: OverlayCache | None = None,
     ) -> None:
         self.backend = backend
+        self._data = data or (lambda run: read_run(run, backend.dataset_path()))
+        self.stay_on_run = False
+        """Keep showing the loaded run when a newer one finishes (the panel's "Stay on run N")."""
+        self.newer_run: RunInfo | None = None
+        """A run that finished while :attr:`stay_on_run` kept the shown one (loaded when it is unticked)."""
         self.config = cfg = config or SessionConfig()
         self.scene = ReviewScene(host=host, port=port, label=f"LeAP review: {backend.project_name()}")
         self.shared = sh = SharedState(backend.load_schema())
@@ -115,7 +138,9 @@ class ReviewSession:
         self.renderer = LodRenderer(sh, self.scene, cfg.lod, notify, self._stop)
         self.player = ScanPlayer(sh, self.scene, self.renderer, cfg, notify, self._stop)
         self.tools = SelectionTool(sh, self.scene, self.renderer, cfg.lod.query_edge, notify)
-        self.corrections = Corrections(sh, backend, self.renderer, self.player, self.tools, notify)
+        self.corrections = Corrections(
+            sh, backend, self.renderer, self.player, self.tools, notify, overlays=overlays
+        )
         self.queue = ReviewQueue(
             sh,
             backend,
@@ -127,7 +152,7 @@ class ReviewSession:
             notify=notify,
         )
         self.classes = ClassEditor(sh, backend, self.renderer, notify)
-        self.runs = RunWatcher(backend, self.load_run, notify, cfg.poll_interval_s, self._stop)
+        self.runs = RunWatcher(backend, self.follow_run, notify, cfg.poll_interval_s, self._stop)
         self.panel = panel(self)
         notify.bind(self.panel)
         self.scene.on_look_at(self.renderer.camera_moved)
@@ -151,8 +176,8 @@ class ReviewSession:
         return self.scene.port
 
     def on_event(self, listener: Callable[[str], None]) -> None:
-        """Call ``listener(name)`` on session events ("loaded", "drawn", "selection", "corrected", "tools",
-        "run_started", "run_finished")."""
+        """Call ``listener(name)`` on session events ("loaded", "drawn", "selection", "corrected", "marked",
+        "tools", "run_started", "run_finished")."""
         self.notify.on_event(listener)
 
     def close(self) -> None:
@@ -223,9 +248,28 @@ class ReviewSession:
     # ------------------------------------------------------------------------------------- loading
     def load_run(self, run: RunInfo) -> None:
         """Load a finished run's grid (with the project's corrections overlaid) and draw it."""
-        grid = ReviewGrid.load(run.run_dir, run.pipeline)
-        outputs = RunOutputs(run.run_dir, self.backend.dataset_path())
+        self.newer_run = None
+        grid, outputs = self._data(run)
         self.show_grid(run, grid, outputs)
+
+    def follow_run(self, run: RunInfo) -> None:
+        """A run of the project finished: load it, unless :attr:`stay_on_run` keeps the shown one."""
+        shown = self.run
+        if self.stay_on_run and shown is not None and shown.run_id != run.run_id:
+            self.newer_run = run
+            self.notify.panel.set_status(
+                f"Run {run.number} finished; you stay on run {shown.number} (untick *Stay on run "
+                f"{shown.number}* to load run {run.number})."
+            )
+            return
+        self.load_run(run)
+
+    def set_stay_on_run(self, on: bool) -> None:
+        """Keep the shown run when newer ones finish, or (off) load the newest that finished meanwhile."""
+        self.stay_on_run = on
+        newer = self.newer_run
+        if not on and newer is not None:
+            self.load_run(newer)
 
     def show_grid(self, run: RunInfo, grid: ReviewGrid, outputs: RunOutputs | None) -> None:
         """Show a run's grid already in memory (:meth:`load_run` reads it from the run's folder), with its
@@ -280,6 +324,7 @@ __all__ = [
     "QueueKind",
     "ReviewMarkRecord",
     "ReviewSession",
+    "RunData",
     "RunInfo",
     "Scope",
     "SessionConfig",

@@ -27,6 +27,30 @@ PLANES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2))
 """Axis pairs of the 2D grids: xy, xz, yz. Layer ``l`` mixes on ``PLANES[l % 3]``."""
 
 
+def cell_mean_matrix(cells: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The occupied cells of a plane and the matrix that averages the points of each.
+
+    Args:
+        cells: (N,) int64 flat cell index of every point.
+
+    Returns:
+        ``occupied`` (U,) sorted unique cells, ``inverse`` (N,) row of ``occupied`` of each point, and
+        ``mean`` (U, N) sparse COO with ``1 / |cell|`` at (cell of n, n). TorchScript compiles it (the
+        exported network builds its planes with it).
+    """
+    occupied, inverse, counts = torch.unique(cells, sorted=True, return_inverse=True, return_counts=True)
+    n = cells.shape[0]
+    values = (1.0 / counts.to(torch.float32))[inverse]
+    indices = torch.stack([inverse, torch.arange(n, device=cells.device)])
+    size = (occupied.shape[0], n)
+    # TorchScript's signature lacks check_invariants (off there anyway)
+    if torch.jit.is_scripting():  # type: ignore[attr-defined]
+        mean = torch.sparse_coo_tensor(indices, values, size)
+    else:
+        mean = torch.sparse_coo_tensor(indices, values, size, check_invariants=False)
+    return occupied, inverse, mean.coalesce()
+
+
 @dataclass
 class PlaneIndex:
     """Where the points of a batch fall on one plane's dense 2D grid, in compressed form.
@@ -46,14 +70,8 @@ class PlaneIndex:
 
     @classmethod
     def from_cells(cls, cells: Tensor, grid_shape: tuple[int, int, int]) -> PlaneIndex:
-        """Build from the (N,) flat cell index of every point."""
-        occupied, inverse, counts = torch.unique(cells, sorted=True, return_inverse=True, return_counts=True)
-        n = cells.shape[0]
-        values = (1.0 / counts.to(torch.float32))[inverse]
-        indices = torch.stack([inverse, torch.arange(n, device=cells.device)])
-        mean = torch.sparse_coo_tensor(
-            indices, values, (occupied.shape[0], n), check_invariants=False
-        ).coalesce()
+        """Build from the (N,) flat cell index of every point (:func:`cell_mean_matrix`)."""
+        occupied, inverse, mean = cell_mean_matrix(cells)
         return cls(occupied=occupied, inverse=inverse, mean=mean, grid_shape=grid_shape)
 
     def to(self, device: torch.device | str) -> PlaneIndex:
@@ -183,18 +201,27 @@ class SpatialMix(nn.Module):
         self.gamma = nn.Parameter(torch.full((channels,), float(layer_scale)))
         self.drop = DropPath(drop_path)
 
+    @torch.jit.unused
     def forward(self, x: Tensor, plane: PlaneIndex) -> Tensor:
         """``x + γ ⊙ DW_2(GELU(DW_1(scatter_mean(LN(x), cells))))[cells]``: (N, F) -> (N, F)."""
         b, h, w = plane.grid_shape
+        return self.mix(x, plane.occupied, plane.inverse, plane.mean, b, h, w)
+
+    @torch.jit.export
+    def mix(  # noqa: PLR0917  a PlaneIndex's fields, so TorchScript can compile it
+        self, x: Tensor, occupied: Tensor, inverse: Tensor, mean: Tensor, b: int, h: int, w: int
+    ) -> Tensor:
+        """:meth:`forward` on the fields of a :class:`PlaneIndex` (grid ``(b, h, w)``): the one body that
+        both the network and its TorchScript export (:mod:`leap_core.lidar_model.export`) run."""
         f = x.shape[1]
-        cell_mean = torch.sparse.mm(plane.mean, self.norm(x))
-        dense = x.new_zeros(b * h * w, f).index_copy(0, plane.occupied, cell_mean)
+        cell_mean = torch.sparse.mm(mean, self.norm(x))
+        dense = x.new_zeros(b * h * w, f).index_copy(0, occupied, cell_mean)
         # (B·H·W, F) rows are NHWC: the permuted view is a channels-last NCHW tensor, which the depth-wise
         # convolutions run on faster than on the default layout, and no copy is made either way.
         grid = dense.view(b, h, w, f).permute(0, 3, 1, 2)
         grid = self.conv2(F_.gelu(self.conv1(grid)))
         grid = grid.permute(0, 2, 3, 1).reshape(b * h * w, f)
-        back = grid.index_select(0, plane.occupied).index_select(0, plane.inverse)
+        back = grid.index_select(0, occupied).index_select(0, inverse)
         update: Tensor = self.drop(self.gamma * back)
         return x + update
 
@@ -263,5 +290,6 @@ __all__ = [
     "PointSegmenter",
     "SpatialMix",
     "WaffleBackbone",
+    "cell_mean_matrix",
     "count_parameters",
 ]

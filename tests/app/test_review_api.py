@@ -44,7 +44,11 @@ def test_migration_4_upgrades_a_version_2_database(tmp_path: Path) -> None:
         pid = _project(db)
         crud.set_review_mark(db, pid, region="4m:0,0,0", signature="ab", state="accepted", run_id=None)
         with pytest.raises(Exception, match="CHECK"):
-            db.execute("INSERT INTO review_marks VALUES (?, 'r', 's', 'maybe', NULL, 'now')", [pid])
+            db.execute(
+                "INSERT INTO review_marks (project_id, region, signature, state, run_id, updated_at) "
+                "VALUES (?, 'r', 's', 'maybe', NULL, 'now')",
+                [pid],
+            )
         # Marks go with their project.
         crud.delete_project(db, pid)
         assert db.execute("SELECT COUNT(*) FROM review_marks").fetchone()[0] == 0

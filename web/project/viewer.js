@@ -1,7 +1,9 @@
-// The link to the 3D review viewer: starts (or reuses) the project's viewer on its latest finished run.
+// The link to the 3D review viewer: opens a new viewer tab (its own scan, camera, selection and focus) on
+// the project's latest finished run.
 
 import { post, url } from "../api.js";
 import { h } from "../dom.js";
+import { reviewerName } from "./reviewers.js";
 
 /** The sequence picker beside the button, for a project of several sequences (null otherwise): the
  * viewer shows one sequence at a time. */
@@ -49,6 +51,8 @@ export function viewerButton(ctx) {
         try {
           const body = { run_id: lastDone.id };
           if (picker) body.sequence = state.viewerSequence;
+          // The tab stores this browser's reviewer name with its corrections and review marks.
+          if (reviewerName()) body.reviewer = reviewerName();
           const v = await post(`/projects/${projectId}/viewer`, body);
           if (win) win.location = url(v.url);
         } catch (err) {

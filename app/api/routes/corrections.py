@@ -8,7 +8,7 @@ from collections import Counter
 from pathlib import Path as FilePath
 from typing import Annotated
 
-from fastapi import APIRouter, Path, status
+from fastapi import APIRouter, Path, Request, status
 
 from app import crud, models
 from app.api.deps import DbDep, ReadDbDep, SettingsDep
@@ -35,7 +35,15 @@ def _public(c: crud.Correction) -> models.CorrectionPublic:
         author=c.author,
         active=c.active,
         sequence=c.sequence,
+        reviewer=c.reviewer,
     )
+
+
+def _tell_viewers(request: Request, project_id: int) -> None:
+    """Show the changed corrections in the project's open viewer tabs (when the viewer is installed)."""
+    viewers = getattr(request.app.state, "viewers", None)
+    if viewers is not None:
+        viewers.corrections_changed(project_id)
 
 
 def _check_class(project: ProjectRow, class_name: str) -> None:
@@ -92,7 +100,11 @@ def list_corrections(
     status_code=status.HTTP_201_CREATED,
 )
 def add_correction(
-    project_id: ProjectId, payload: models.CorrectionCreate, db: DbDep, settings: SettingsDep
+    project_id: ProjectId,
+    payload: models.CorrectionCreate,
+    db: DbDep,
+    settings: SettingsDep,
+    request: Request,
 ) -> models.CorrectionPublic:
     """Store a correction (author "api") and apply it to the latest run's export in the background. 422
     naming ``class_name`` for a class the project does not have."""
@@ -114,6 +126,7 @@ def add_correction(
         sequence=name,
     )
     applier(settings).request(project_id)
+    _tell_viewers(request, project_id)
     return _public(crud.get_correction(db, cid))
 
 
@@ -124,10 +137,12 @@ def update_correction(
     payload: models.CorrectionUpdate,
     db: DbDep,
     settings: SettingsDep,
+    request: Request,
 ) -> models.CorrectionPublic:
     """Turn a correction off (undo) or on again; the export follows in the background."""
     if crud.get_correction(db, correction_id).project_id != project_id:
         raise NotFound(f"Correction {correction_id} not found in project {project_id}")
     crud.set_correction_active(db, correction_id, payload.active)
     applier(settings).request(project_id)
+    _tell_viewers(request, project_id)
     return _public(crud.get_correction(db, correction_id))

@@ -1,0 +1,163 @@
+"""Viewer tabs: the memory each open tab adds, and how fast a correction reaches the other tabs.
+
+Opens ``--tabs`` real review sessions (each its own viser server, panel and renderer, as
+:class:`app.viewer.manager.ProjectViewer` opens one per browser tab) on one synthetic map of ``--voxels``
+voxels (:func:`bench_viewer.synthetic_grid`), in the same process, two ways:
+
+- **shared** (what the app does): every tab shows the same ``ReviewGrid`` object and takes its corrected
+  labels from one :class:`app.viewer.corrections.OverlayCache`;
+- **copied** (baseline: a viewer per tab that loads its own copy of the run): every tab gets its own copy
+  of the grid and its own overlay.
+
+It reports the resident memory (VmRSS) each tab adds once drawn, and, with shared tabs, the time from a
+correction stored in tab 1 until every other tab has relabelled and redrawn (what the push runs:
+``Corrections.refresh`` on each, on threads) beside the time tab 1 takes for the same correction itself.
+
+Run: ``.venv/bin/python benchmarks/bench_viewer_tabs.py [--voxels 2000000] [--tabs 4] [--quick]``.
+Prints tables and writes ``benchmarks/results/bench_viewer_tabs.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_viewer import MemoryBackend, synthetic_grid
+from common import _status_kb, machine_info, print_table
+
+from app.viewer.corrections import OverlayCache
+from app.viewer.lod import LodConfig
+from app.viewer.panel import ReviewPanel
+from app.viewer.records import RunInfo, Selection, SessionConfig
+from app.viewer.session import ReviewSession
+from leap_core.schema import builtin_schema
+
+RESULTS = (
+    Path(os.environ.get("LEAP_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+    / "bench_viewer_tabs.json"
+)
+
+
+def _rss_mb() -> float:
+    gc.collect()
+    return (_status_kb("VmRSS") or 0) / 1024
+
+
+def open_tabs(
+    grid: Any, backend: MemoryBackend, tabs: int, *, shared: bool, run_dir: Path, voxels: int
+) -> dict[str, Any]:
+    """``tabs`` sessions on ``grid`` (or, not ``shared``, each on its own identical grid, as a tab that reads
+    the run itself would hold); the resident memory each one added once drawn, and the sessions."""
+    overlays = OverlayCache() if shared else None
+    cfg = SessionConfig(follow_ego=False, lod=LodConfig(budget=1 << 62))
+    run = RunInfo(1, 1, "done", 100.0, None, None, run_dir, backend.schema)
+    sessions: list[ReviewSession] = []
+    added: list[float] = []
+    for _ in range(tabs):
+        before = _rss_mb()
+        session = ReviewSession(backend, panel=ReviewPanel, config=cfg, overlays=overlays)
+        own = grid if shared else synthetic_grid(voxels, len(backend.schema.classes))
+        session.show_grid(run, own, None)
+        assert session.renderer.wait_drawn(600)
+        sessions.append(session)
+        added.append(_rss_mb() - before)
+    return {"sessions": sessions, "added_mb": added}
+
+
+def push_times(sessions: list[ReviewSession], repeats: int) -> dict[str, list[float]]:
+    """Per repeat: tab 1's own correction (store, relabel, redraw) and the others' refresh after it."""
+    first, others = sessions[0], sessions[1:]
+    names = first.class_names()
+    rng = np.random.default_rng(1)
+    own, pushed = [], []
+    for r in range(repeats):
+        rows = np.sort(rng.choice(first.grid.num_voxels, 10_000, replace=False)).astype(np.int64)  # type: ignore[union-attr]
+        t0 = time.perf_counter()
+        first.corrections.assign_selection(names[r % len(names)], selection=Selection(rows))
+        assert first.renderer.wait_drawn(600)
+        own.append(time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        threads = [threading.Thread(target=s.corrections.refresh) for s in others]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for s in others:
+            assert s.renderer.wait_drawn(600)
+            assert s.label is first.label
+        pushed.append(time.perf_counter() - t1)
+    return {"own_s": own, "push_s": pushed}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--voxels", type=int, default=2_000_000)
+    parser.add_argument("--tabs", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="20k voxels, 2 tabs, 1 repeat (the smoke test)")
+    args = parser.parse_args()
+    if args.quick:
+        args.voxels, args.tabs, args.repeats = 20_000, 2, 1
+    schema = builtin_schema()
+    grid = synthetic_grid(args.voxels, schema.num_classes)
+    run_dir = Path(os.environ.get("TMPDIR", "/tmp"))
+    out: dict[str, Any] = {"machine": machine_info(), "voxels": grid.num_voxels, "tabs": args.tabs}
+    rows = []
+    for shared in (True, False):
+        backend = MemoryBackend(schema, run_dir)
+        opened = open_tabs(grid, backend, args.tabs, shared=shared, run_dir=run_dir, voxels=args.voxels)
+        sessions = opened["sessions"]
+        try:
+            extra = opened["added_mb"][1:]
+            key = "shared" if shared else "copied (baseline)"
+            out[key] = {"added_mb": opened["added_mb"]}
+            rows.append([key, opened["added_mb"][0], statistics.median(extra) if extra else float("nan")])
+            if shared and len(sessions) > 1:
+                out["push"] = push_times(sessions, args.repeats)
+        finally:
+            for s in sessions:
+                s.close()
+            del sessions, opened
+    print_table(
+        f"Memory per viewer tab, {grid.num_voxels:,} voxels, {args.tabs} tabs (MB of VmRSS added once drawn)",
+        ["tabs", "first tab", "each further tab (median)"],
+        rows,
+    )
+    if "push" in out:
+        p = out["push"]
+        print_table(
+            f"A 10k-voxel correction in tab 1 reaching the {args.tabs - 1} other tab(s), "
+            f"{grid.num_voxels:,} voxels",
+            ["what", "median s", "max s"],
+            [
+                [
+                    "tab 1's own correction (store, relabel, redraw; baseline)",
+                    statistics.median(p["own_s"]),
+                    max(p["own_s"]),
+                ],
+                [
+                    "the other tabs, pushed (relabel, redraw)",
+                    statistics.median(p["push_s"]),
+                    max(p["push_s"]),
+                ],
+            ],
+        )
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(out, indent=2, default=float))
+
+
+if __name__ == "__main__":
+    main()
