@@ -304,7 +304,7 @@ class ObjectEvaluation:
         thing_gt = (gt >= 0) & self.things[np.maximum(gt, 0)] & ((gt_segment >> 16) > 0)
         gt_track = np.where(thing_gt, gt.astype(np.int64) * 65536 + (gt_segment >> 16) + 1, 0)
         keep = (gt != UNLABELED) & ((gt_track > 0) | (instance > 0))
-        right = np.bincount(gt[gt_moving & (label == gt)], minlength=len(self.things))
+        right = np.bincount(gt[gt_moving & (label == gt) & (gt >= 0)], minlength=len(self.things))
         total = np.bincount(gt[gt_moving & (gt >= 0)], minlength=len(self.things))
         scan = {p: PanopticCounts(self.schema.num_classes) for p in ("camera", "all")}
         scan["all"].add(gt, gt_segment, label, pred_segment)
