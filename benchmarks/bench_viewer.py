@@ -829,6 +829,9 @@ class MemoryBackend:
     def run_info(self, run_id: int) -> Any:
         raise KeyError(run_id)
 
+    def finished_run_before(self, run_id: int) -> None:  # noqa: ARG002  (the protocol's signature)
+        return None
+
     def active_run(self) -> None:
         return None
 

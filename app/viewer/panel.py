@@ -29,12 +29,20 @@ from leap_core.labelers import LABELERS
 
 log = logging.getLogger(__name__)
 
-COLOR_BY = ("class", "confidence", "class probability")
+COLOR_BY = (
+    "class",
+    "confidence",
+    "class probability",
+    "camera vs final disagreement",
+    "Δ since the run before",
+)
 """Labels of the colouring modes, in :data:`app.viewer.view_logic.ColorMode` order."""
 _MODE_OF: dict[str, vl.ColorMode] = {
     "class": "class",
     "confidence": "confidence",
     "class probability": "class_probability",
+    "camera vs final disagreement": "disagreement",
+    "Δ since the run before": "delta",
 }
 
 
@@ -43,8 +51,18 @@ def _hex(rgb: Any) -> str:
     return f"#{r:02x}{g:02x}{b:02x}"
 
 
-def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: str | None = None) -> str:
-    """HTML legend: class swatches in class mode, a colour bar with ticks in the scalar modes."""
+def legend_html(
+    mode: str, names: list[str], palette: np.ndarray, class_name: str | None = None, note: str | None = None
+) -> str:
+    """HTML legend: class swatches in the class and Δ modes (the Δ mode first says what it compares with,
+    ``note``), a colour bar with ticks in the scalar modes."""
+    if mode == "delta":
+        grey = _hex(vl.UNCHANGED_RGB)
+        head = (
+            f'<div style="font-size:11px"><span style="display:inline-block;width:12px;height:12px;'
+            f'border-radius:2px;background:{grey}"></span> {html.escape(note or "")}</div>'
+        )
+        return head + legend_html("class", names, palette)
     if mode == "class":
         items = "".join(
             f'<div style="display:flex;align-items:center;gap:4px;font-size:11px;white-space:nowrap">'
@@ -57,7 +75,10 @@ def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: st
         # Three columns: 19 classes in 7 rows, so the Scan section starts within a 720 px high window.
         return f'<div style="display:grid;grid-template-columns:1fr 1fr 1fr;gap:1px 6px">{items}</div>'
     stops = ", ".join(f"{_hex(vl.CONFIDENCE_LUT[int(i)])}" for i in np.linspace(0, 255, 9))
-    title = "confidence (max posterior)" if mode == "confidence" else f"P({html.escape(class_name or '')})"
+    title = {
+        "confidence": "confidence (max posterior)",
+        "disagreement": "share of camera-labelled points the final label disagrees with",
+    }.get(mode, f"P({html.escape(class_name or '')})")
     return (
         f'<div style="font-size:12px">{title}'
         f'<div style="height:12px;border-radius:2px;background:linear-gradient(to right, {stops})"></div>'
@@ -196,7 +217,10 @@ class ReviewPanel:
         self.prob_class.visible = mode == "class_probability"
         names = self.s.class_names()
         index = names.index(self.prob_class.value) if self.prob_class.value in names else 0
-        self.threshold.label = "Min probability" if mode == "class_probability" else "Min confidence"
+        self.threshold.label = {
+            "class_probability": "Min probability",
+            "disagreement": "Min disagreement",
+        }.get(mode, "Min confidence")
         self.s.set_state(mode=mode, class_index=index)
         self._update_legend()
 
@@ -291,7 +315,16 @@ class ReviewPanel:
         mode = _MODE_OF[str(self.color_by.value)]
         names = self.s.class_names()
         cls = names[self.s.state.class_index] if names and self.s.state.class_index < len(names) else None
-        self.legend.content = legend_html(mode, names, self.s.palette, cls)
+        self.legend.content = legend_html(mode, names, self.s.palette, cls, self._delta_note(mode))
+
+    def _delta_note(self, mode: str) -> str | None:
+        sh = self.s.shared
+        if mode != "delta" or sh.delta is None or sh.run is None:
+            return None
+        base = sh.delta.base_run(sh.run)
+        if base is None:
+            return "no earlier finished run to compare with: nothing is marked as changed"
+        return f"unchanged since run {base.number}; changed voxels in their class colour"
 
     def on_run_loaded(self) -> None:
         s = self.s

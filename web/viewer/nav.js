@@ -47,13 +47,15 @@ function render() {
   box.hidden = !open;
   if (!open) return;
   placeImage(box);
-  if (shownPos !== state.pos) {
-    shownPos = state.pos;
+  const shown = `${state.pos}:${state.zoomed ? "zoomed" : ""}`;
+  if (shownPos !== shown) {
+    shownPos = shown;
     // The query only defeats the browser cache; the route always serves the shown scan.
-    box.querySelector("img").src = `/api/v1/projects/${projectId}/viewer/nav/image?pos=${state.pos}`;
+    box.querySelector("img").src = `/api/v1/projects/${projectId}/viewer/nav/image?pos=${state.pos}&z=${state.zoomed ? 1 : 0}`;
   }
-  box.querySelector(".leap-image-caption").textContent =
-    `Scan ${state.frame_id} (${state.pos + 1}/${state.count}). Press I or click to close.`;
+  box.querySelector(".leap-image-caption").textContent = state.zoomed
+    ? `Scan ${state.frame_id} (${state.pos + 1}/${state.count}), zoomed on the review region. Press I or click to close.`
+    : `Scan ${state.frame_id} (${state.pos + 1}/${state.count}). Press I or click to close.`;
 }
 
 async function act(method, path, body) {

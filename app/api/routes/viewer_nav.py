@@ -31,6 +31,9 @@ class NavState(BaseModel):
     playing: bool = Field(description="playing through the scans")
     image_open: bool = Field(description="the page shows the scan's image enlarged")
     has_image: bool = Field(description="the shown scan has a camera image")
+    zoomed: bool = Field(
+        default=False, description="the image is the focused review region's crop, zoomed on it"
+    )
 
 
 class StepBody(BaseModel):
@@ -69,6 +72,7 @@ def _state(session: ReviewSession) -> NavState:
         playing=player.playing,
         image_open=player.image_open,
         has_image=view is not None and view.overlay is not None,
+        zoomed=player.zoomed_image(view) is not None,
     )
 
 
