@@ -930,3 +930,39 @@ def test_session_delta_mode_marks_the_voxels_whose_class_changed_since_the_run_b
         assert session.scene.voxels.handle.points.shape[0] == int(changed.sum())
     finally:
         session.close()
+
+
+def test_panel_words_stages_counts_corrections_and_clears_a_stale_error(review_store) -> None:
+    from dataclasses import replace
+
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, _run_id, _keys, _cls = review_store
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        panel = session.panel
+        info = replace(session.run, status="running", percent=40.0, stage="00/labels2d")
+        panel.on_run_progress(info)
+        assert panel.status.content == f"Run {info.number} running, 2D labels: 40%"
+        # An action that fails shows its error; the next one that works clears it.
+        panel.guard(lambda: session.tools.set_tools(tool="pencil"))()
+        assert panel.status.content.startswith("**Error:** tool must be")
+        panel.guard(lambda: session.tools.set_tools(tool="lasso"))()
+        assert panel.status.content == ""
+        # One correction: singular.
+        session.tools.select_rows(np.arange(3))
+        assert session.corrections.assign_selection("car") is not None
+        assert panel._corr_summary() == "1 active correction (applied in every later run)."
+        session.tools.select_rows(np.arange(3, 6))
+        session.corrections.assign_selection("road")
+        assert panel._corr_summary() == "2 active corrections (applied in every later run)."
+        # Jump to the first correction: its voxels selected.
+        first = min(c.id for c in session.shared.corrections)
+        assert session.corrections.show_correction(first) == 3
+        np.testing.assert_array_equal(session.tools.selection.rows, np.arange(3))
+        with pytest.raises(LookupError):
+            session.corrections.show_correction(first + 100)
+    finally:
+        session.close()

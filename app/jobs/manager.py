@@ -234,8 +234,8 @@ class JobManager:
                     # Inside this transaction a retry of the stored end would wait for its own lock.
                     self._refuse_when_unsaved(active.id, flush=False)
                     raise Conflict(
-                        f"Project {project_id} already has run {active.id} {active.status}; "
-                        "cancel it or wait for it to finish"
+                        f"Project {project_id} already has run {active.number} (id {active.id}) "
+                        f"{active.status}; cancel it or wait for it to finish"
                     )
                 params = self._snapshot(db, project, frames)
                 run = crud.create_run(
@@ -264,11 +264,15 @@ class JobManager:
                     self._confine_dataset(run.params.dataset_kind, str(seq.dataset))
                 if run.status not in RESUMABLE_STATUSES:
                     raise Conflict(
-                        f"Run {run_id} is {run.status}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
+                        f"Run {run.number} (id {run_id}) is {run.status}; "
+                        f"only {', '.join(RESUMABLE_STATUSES)} runs resume"
                     )
                 active = crud.active_run(db, run.project_id)
                 if active is not None:
-                    raise Conflict(f"Project {run.project_id} already has run {active.id} {active.status}")
+                    raise Conflict(
+                        f"Project {run.project_id} already has run {active.number} (id {active.id}) "
+                        f"{active.status}"
+                    )
                 crud.update_run(db, run_id, status="queued", error=None, finished_at=None)
                 run = crud.require_run(db, run_id)
             expected = self._expected_seconds(db, run.project_id)
@@ -289,7 +293,10 @@ class JobManager:
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
             if run.status not in ACTIVE_STATUSES:
-                raise Conflict(f"Run {run_id} is {run.status}; only queued or running runs can be cancelled")
+                raise Conflict(
+                    f"Run {run.number} (id {run_id}) is {run.status}; "
+                    "only queued or running runs can be cancelled"
+                )
             # queued -> cancelled and queued -> running (_execute) are both conditional updates, so
             # exactly one of them wins.
             if crud.transition_run(db, run_id, "queued", status="cancelled", finished_at=utcnow()):

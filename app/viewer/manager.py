@@ -336,7 +336,9 @@ class ViewerManager:
     def _check_run(backend: ProjectBackend, run_id: int) -> RunInfo:
         info = backend.run_info(run_id)
         if info.status != "done":
-            raise Conflict(f"Run {run_id} is {info.status}; only finished runs can be reviewed")
+            raise Conflict(
+                f"Run {info.number} (id {run_id}) is {info.status}; only finished runs can be reviewed"
+            )
         return info
 
     def get(self, project_id: int) -> ReviewSession | None:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.jobs.stages import stage_words
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
@@ -100,6 +101,8 @@ class ReviewPanel:
         gui = session.scene.server.gui
         self.gui = gui
         self._class_boxes: list[viser.GuiCheckboxHandle] = []
+        self._error: str | None = None
+        """The error a failed action put in the status line (cleared by the next action that works)."""
 
         with gui.add_folder("Run", order=0):
             self.status = gui.add_markdown("Loading…")
@@ -181,11 +184,17 @@ class ReviewPanel:
         @functools.wraps(fn)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             try:
-                return fn(*args, **kwargs)
+                out = fn(*args, **kwargs)
             except Exception as exc:
                 log.warning("viewer action %s failed: %s", fn.__name__, exc)
-                self.set_status(f"**Error:** {html.escape(str(exc))}")
+                self._error = f"**Error:** {html.escape(str(exc))}"
+                self.set_status(self._error)
                 return None
+            # An action that worked clears the error a failed one left (unless something said more since).
+            if self._error is not None and self.status.content == self._error:
+                self.set_status("")
+            self._error = None
+            return out
 
         return wrapper
 
@@ -200,7 +209,8 @@ class ReviewPanel:
         self.scan_slider.on_update(g(lambda _: self._slider_moved()))
         self.show_scan.on_update(g(lambda _: self._scan_visibility()))
         self.show_map.on_update(g(lambda _: s.renderer.set_map_visible(self.show_map.value)))
-        self.select_button.on_click(g(lambda _: self.arm_select()))
+        # The same box tool as the Selection tools' "box" (and key M), so the Tool dropdown shows it armed.
+        self.select_button.on_click(g(lambda _: s.tools.set_tools(tool="box")))
         self.apply_button.on_click(g(lambda _: s.corrections.assign_selection(str(self.assign_class.value))))
         self.clear_button.on_click(g(lambda _: s.tools.clear_selection()))
         self.undo_button.on_click(g(lambda _: s.corrections.undo()))
@@ -397,7 +407,8 @@ class ReviewPanel:
         self.corr_info.content = f"{count:,} voxels selected." if count else self._corr_summary()
 
     def _corr_summary(self) -> str:
-        return f"{self.s.corrections.correction_count()} active corrections (applied in every later run)."
+        n = self.s.corrections.correction_count()
+        return f"{n} active correction{'' if n == 1 else 's'} (applied in every later run)."
 
     def on_history(self) -> None:
         self.undo_button.disabled = not self.s.corrections.history.can_undo
@@ -427,7 +438,7 @@ class ReviewPanel:
             percent = float(min(100.0, max(0.0, info.percent)))
             self.progress.value = percent  # type: ignore[misc]  # viser: split setter, see class note
             self.rerun_button.disabled = True
-            stage = f", {info.stage}" if info.stage else ""
+            stage = f", {stage_words(info.stage)}" if info.stage else ""
             self.set_status(f"Run {info.number} {info.status}{stage}: {info.percent:.0f}%")
             return
         self.progress.visible = False
