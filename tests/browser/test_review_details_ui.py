@@ -90,16 +90,19 @@ def test_review_details(demo_app: dict[str, Any]) -> None:
         project_page.goto(f"{base}/#/projects/{pid}")
         first = _corrections(api, pid)[0]
         button = project_page.get_by_role("button", name=f"Show correction {first['id']} in 3D")
-        session.tools.clear_selection()
         with project_page.expect_popup() as popup:
             button.click()
         popup.value.wait_for_load_state()
-        grid = session.grid
+        # The jump opens a viewer tab of its own, with its own selection: the tab opened last.
+        shown = wait_until(
+            lambda: (s := app.state.viewers.get(pid)) is not session and s.grid is not None and s, 30, "the tab"
+        )
+        grid = shown.grid
         with open_db(demo_app["settings"].database) as db:
             stored = next(c for c in crud.list_corrections(db, pid) if c.id == first["id"])
         rows = np.unique(grid.rows_of(stored.keys))
-        wait_until(lambda: session.tools.selection.rows.size == rows[rows >= 0].size, 20, "the jump")
-        np.testing.assert_array_equal(session.tools.selection.rows, rows[rows >= 0])
+        wait_until(lambda: shown.tools.selection.rows.size == rows[rows >= 0].size, 20, "the jump")
+        np.testing.assert_array_equal(shown.tools.selection.rows, rows[rows >= 0])
 
         # A correction of a voxel no scan holds: the apply job changes no scan and says so.
         far = int(voxel_keys(np.array([[4000.0, 4000.0, 40.0]]), grid.voxel_size)[0])
