@@ -153,7 +153,7 @@ def export_target(settings: Settings, project: ProjectRow, raw: str) -> Path:
 def _exported(run: RunRow) -> list[ExportedSequence]:
     """Each sequence of a finished run with its export folder, in run order."""
     if run.status != "done":
-        raise Conflict(f"Run {run.id} is {run.status}; only finished runs have exports")
+        raise Conflict(f"Run {run.number} (id {run.id}) is {run.status}; only finished runs have exports")
     out = []
     for seq in run.params.sequences:
         export = run.sequence_layout(seq.name).export_dir

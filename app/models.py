@@ -614,8 +614,10 @@ class MetricsPublic(BaseModel):
 class ChangePublic(BaseModel):
     """One difference between two runs' inputs (or between the latest run and the project now)."""
 
-    kind: Literal["dataset", "frames", "class", "parameter"]
-    subject: str = Field(description="class name, dotted parameter path, `dataset` or `frames`")
+    kind: Literal["dataset", "frames", "class", "parameter", "correction", "poses"]
+    subject: str = Field(
+        description="class name, dotted parameter path, sequence name, correction id or `estimate_poses`"
+    )
     text: str = Field(description="one line for people")
     ignored: str | None = Field(
         default=None, description="a parameter the newer configuration ignores: why (it changed nothing)"
@@ -643,7 +645,9 @@ class ComparePublic(BaseModel):
 
     run_id: int
     base_run_id: int
-    changes: list[ChangePublic] = Field(description="base run → run: dataset, frames, classes, parameters")
+    changes: list[ChangePublic] = Field(
+        description="base run → run: dataset, frames, pose estimation, classes, parameters, corrections"
+    )
     rows: list[RowDelta] = Field(description="per protocol, the result rows both runs have")
 
 

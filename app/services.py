@@ -472,7 +472,9 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
     crud.require_project(db, project_id)
     active = crud.active_run(db, project_id)
     if active is not None:
-        raise Conflict(f"Project {project_id} has run {active.id} {active.status}; cancel it first")
+        raise Conflict(
+            f"Project {project_id} has run {active.number} (id {active.id}) {active.status}; cancel it first"
+        )
     crud.delete_project(db, project_id)
     # After the rows are gone: a crash in between leaves orphan files, never rows pointing at nothing.
     folders = project_folders(settings, project_id)
@@ -492,8 +494,8 @@ def _refuse_sequence_edit(db: sqlite_utils.Database, project: ProjectRow) -> Non
     active = crud.active_run(db, project.id)
     if active is not None:
         raise Conflict(
-            f"Project {project.id} has run {active.id} {active.status}; its sequences can change "
-            "once it ends (or is cancelled)"
+            f"Project {project.id} has run {active.number} (id {active.id}) {active.status}; its sequences "
+            "can change once it ends (or is cancelled)"
         )
     if project.dataset_kind == "demo":
         raise Conflict(

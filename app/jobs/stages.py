@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from leap_core.errors import LeapError
+from leap_core.pipeline.stages import STAGE_TABLE
 from leap_core.run_layout import RunLayout
 
 SEPARATOR = "/"
@@ -76,6 +77,18 @@ def split_stage(name: str) -> tuple[str | None, str]:
     stored before every run had sequences)."""
     sequence, sep, stage = name.partition(SEPARATOR)
     return (sequence, stage) if sep else (None, name)
+
+
+def stage_words(name: str, several: bool = False) -> str:
+    """A progress stage's name for people, as the project page's run panel words it: the stage's label
+    (``"00/labels2d"`` → ``"2D labels"``), after the sequence when the run has ``several``
+    (``"01 · Voxel fusion"``, ``"all · 3D-CN"`` for the 3D-CN's rounds); a stage outside the pipeline
+    (``"00/estimate poses"``) keeps its words."""
+    sequence, stage = split_stage(name)
+    label = next((s.label for s in STAGE_TABLE if s.name == stage), stage)
+    if sequence is None or not several:
+        return label
+    return f"{'all' if sequence == JOINT else sequence} · {label}"
 
 
 def run_stages(
@@ -155,5 +168,6 @@ __all__ = [
     "split_stage",
     "stage_folder",
     "stage_name",
+    "stage_words",
     "unit_seconds",
 ]

@@ -62,7 +62,7 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert [s["name"] for s in run["progress"]["stages"]] == [f"00/{s}" for s in STAGES]
     # One active run per project.
     again = client.post(f"{API}/projects/{project['id']}/runs", json={})
-    assert again.status_code == 409 and "already has run" in again.json()["detail"]
+    assert again.status_code == 409 and f"already has run 1 (id {run['id']})" in again.json()["detail"]
 
     events = read_events(client, run["id"])
     assert events[-1][0] == "end"
