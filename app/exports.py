@@ -259,7 +259,9 @@ def export_info(settings: Settings, run: RunRow, project: ProjectRow) -> models.
                 name=c.name,
                 export_id=c.export_id,
                 color="#{:02x}{:02x}{:02x}".format(*c.color),
-                points=cov.raw_counts.get(c.export_id, 0),
+                # A thing's moving points carry its moving id: they are the class's points too.
+                points=cov.raw_counts.get(c.export_id, 0)
+                + (0 if c.moving_id is None else cov.raw_counts.get(c.moving_id, 0)),
             )
             for c in schema.classes
         ],

@@ -683,7 +683,9 @@ def next_color(classes: list[dict[str, Any]]) -> list[int]:
 
 
 def classes_public(project: ProjectRow) -> models.ClassesPublic:
-    classes = project.schema["classes"]
+    # Through the schema, so a class stored before classes said thing / moving_id shows its defaults.
+    schema = Schema.from_dict(project.schema, source=f"project {project.id}")
+    classes = [c.to_dict() for c in schema.classes]
     data = [models.ClassPublic(index=i, hex=_hex(c["color"]), **c) for i, c in enumerate(classes)]
     return models.ClassesPublic(data=data, count=len(data), next_color=_hex(next_color(classes)))
 
@@ -743,7 +745,7 @@ def update_class(
     i = _class_position(classes, name, project_id)
     changes = payload.model_dump(exclude_unset=True, exclude={"position"})
     for key, value in changes.items():
-        if value is None:
+        if value is None and key != "moving_id":  # a null moving id removes it
             raise InvalidField(["body", key], f"{key} may not be null")
         classes[i][key] = value
     if payload.position is not None:

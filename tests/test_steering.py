@@ -353,7 +353,7 @@ def test_the_preview_agrees_with_the_runner(
         assert all(p.action != "recompute" for p in plan.values())
     if variant == "k":
         assert plan["smooth"].reason == "settings changed: smoothing"
-        assert plan["labels2d"].action == "reuse" and plan["export"].reason == "after Point labels"
+        assert plan["labels2d"].action == "reuse" and plan["export"].reason == "after Point labels, Objects"
 
 
 def test_plan_reasons_without_a_previous_run_and_for_unfinished_stages() -> None:

@@ -34,14 +34,15 @@ UNIT_SECONDS: dict[str, float] = {
     "smooth": 0.003,
     "3dcn": 0.0,
     "label_points": 0.008,
+    "tracks": 0.004,
     "evaluate": 0.004,
     "export": 0.003,
     POSES: 0.05,
     SYNTH: 0.9,
 }
-"""Expected seconds per progress unit (a frame; a scan for the pose estimation) of each stage before a
-run has measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project
-1.5 s, fuse 0.28 s, smooth 0.16 s, label_points 0.49 s, evaluate 0.23 s, export 0.15 s; a sequence's own
+"""Expected seconds per progress unit (a frame; a scan for the pose estimation) of each stage before a run has
+measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project 1.5 s, fuse 0.28
+s, smooth 0.16 s, label_points 0.49 s, tracks about 0.25 s, evaluate 0.23 s, export 0.15 s; a sequence's own
 ``3dcn`` stage only links the rounds' grids). Only their ratios matter until a stage has finished."""
 
 LABELS2D_UNIT_SECONDS: dict[str, float] = {"gt2d": 0.13, "images": 2.0}

@@ -95,7 +95,9 @@ def test_review_details(demo_app: dict[str, Any]) -> None:
         popup.value.wait_for_load_state()
         # The jump opens a viewer tab of its own, with its own selection: the tab opened last.
         shown = wait_until(
-            lambda: (s := app.state.viewers.get(pid)) is not session and s.grid is not None and s, 30, "the tab"
+            lambda: (s := app.state.viewers.get(pid)) is not session and s.grid is not None and s,
+            30,
+            "the tab",
         )
         grid = shown.grid
         with open_db(demo_app["settings"].database) as db:
