@@ -153,7 +153,7 @@ def export_target(settings: Settings, project: ProjectRow, raw: str) -> Path:
 def _exported(run: RunRow) -> list[ExportedSequence]:
     """Each sequence of a finished run with its export folder, in run order."""
     if run.status != "done":
-        raise Conflict(f"Run {run.id} is {run.status}; only finished runs have exports")
+        raise Conflict(f"Run {run.number} (id {run.id}) is {run.status}; only finished runs have exports")
     out = []
     for seq in run.params.sequences:
         export = run.sequence_layout(seq.name).export_dir
@@ -259,7 +259,9 @@ def export_info(settings: Settings, run: RunRow, project: ProjectRow) -> models.
                 name=c.name,
                 export_id=c.export_id,
                 color="#{:02x}{:02x}{:02x}".format(*c.color),
-                points=cov.raw_counts.get(c.export_id, 0),
+                # A thing's moving points carry its moving id: they are the class's points too.
+                points=cov.raw_counts.get(c.export_id, 0)
+                + (0 if c.moving_id is None else cov.raw_counts.get(c.moving_id, 0)),
             )
             for c in schema.classes
         ],

@@ -74,6 +74,14 @@ class ClassBase(_Input):
     gt_ids: list[int] = Field(default_factory=list, max_length=256)
     category: str = Field(default="other", min_length=1, max_length=64)
     negative_prompts: list[str] = Field(default_factory=list, max_length=64)
+    thing: bool | None = Field(
+        default=None,
+        description="a countable object, tracked with instance ids; absent: SemanticKITTI's things by "
+        "name and export id, else stuff",
+    )
+    moving_id: int | None = Field(
+        default=None, ge=1, le=65535, description="raw id exported for its points while it moves (a thing)"
+    )
 
     @field_validator("name")
     @classmethod
@@ -116,6 +124,8 @@ class ClassUpdate(_Input):
     gt_ids: list[int] | None = Field(default=None, max_length=256)
     category: str | None = Field(default=None, min_length=1, max_length=64)
     negative_prompts: list[str] | None = Field(default=None, max_length=64)
+    thing: bool | None = None
+    moving_id: int | None = Field(default=None, ge=1, le=65535, description="null: no moving id")
     position: int | None = Field(default=None, ge=0, description="move the class to this index")
 
     @field_validator("name")
@@ -144,6 +154,8 @@ class ClassPublic(BaseModel):
     gt_ids: list[int]
     category: str
     negative_prompts: list[str]
+    thing: bool
+    moving_id: int | None
 
 
 class ClassesPublic(BaseModel):
@@ -210,6 +222,8 @@ class ClassSpecPublic(BaseModel):
     gt_ids: list[int]
     category: str
     negative_prompts: list[str]
+    thing: bool
+    moving_id: int | None
 
 
 class ClassListPublic(BaseModel):
@@ -600,8 +614,10 @@ class MetricsPublic(BaseModel):
 class ChangePublic(BaseModel):
     """One difference between two runs' inputs (or between the latest run and the project now)."""
 
-    kind: Literal["dataset", "frames", "class", "parameter"]
-    subject: str = Field(description="class name, dotted parameter path, `dataset` or `frames`")
+    kind: Literal["dataset", "frames", "class", "parameter", "correction", "poses"]
+    subject: str = Field(
+        description="class name, dotted parameter path, sequence name, correction id or `estimate_poses`"
+    )
     text: str = Field(description="one line for people")
     ignored: str | None = Field(
         default=None, description="a parameter the newer configuration ignores: why (it changed nothing)"
@@ -629,7 +645,9 @@ class ComparePublic(BaseModel):
 
     run_id: int
     base_run_id: int
-    changes: list[ChangePublic] = Field(description="base run → run: dataset, frames, classes, parameters")
+    changes: list[ChangePublic] = Field(
+        description="base run → run: dataset, frames, pose estimation, classes, parameters, corrections"
+    )
     rows: list[RowDelta] = Field(description="per protocol, the result rows both runs have")
 
 

@@ -109,6 +109,9 @@ class RunParams:
     stages: tuple[str, ...] = ()
     """The run's progress stages in the order it reaches them (``<sequence>/<stage>``:
     :func:`app.jobs.stages.run_stages`)."""
+    corrections: Mapping[str, tuple[int, ...]] | None = None
+    """Per sequence name, the ids of the active corrections the run got, in the order they were made;
+    None for a run queued before runs recorded them (what changed between runs then leaves them out)."""
 
     @property
     def names(self) -> list[str]:
@@ -127,6 +130,11 @@ class RunParams:
             "pipeline": self.pipeline,
             "estimate_poses": self.estimate_poses,
             "stages": list(self.stages),
+            **(
+                {}
+                if self.corrections is None
+                else {"corrections": {k: list(v) for k, v in self.corrections.items()}}
+            ),
         }
 
     def public(self) -> dict[str, Any]:
@@ -169,11 +177,22 @@ class RunParams:
                 pipeline=pipeline,
                 estimate_poses=bool(data.get("estimate_poses", False)),
                 stages=tuple(str(s) for s in data.get("stages") or ()),
+                corrections=_correction_ids(data.get("corrections")),
             )
         except KeyError as exc:
             raise ValueError(f"run parameters: missing {exc}") from None
         except (TypeError, AttributeError) as exc:
             raise ValueError(f"run parameters: {exc}") from None
+
+
+def _correction_ids(value: Any) -> dict[str, tuple[int, ...]] | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping) or not all(
+        isinstance(ids, list) and all(isinstance(i, int) for i in ids) for ids in value.values()
+    ):
+        raise ValueError("'corrections' must map sequence names to lists of correction ids")
+    return {str(k): tuple(ids) for k, ids in value.items()}
 
 
 @dataclass(frozen=True)

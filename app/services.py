@@ -477,7 +477,9 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
     crud.require_project(db, project_id)
     active = crud.active_run(db, project_id)
     if active is not None:
-        raise Conflict(f"Project {project_id} has run {active.id} {active.status}; cancel it first")
+        raise Conflict(
+            f"Project {project_id} has run {active.number} (id {active.id}) {active.status}; cancel it first"
+        )
     busy = crud.list_model_jobs(db, project_id, statuses=("queued", "running"))
     if busy:
         raise Conflict(f"Project {project_id} has model job {busy[0].id} {busy[0].status}; cancel it first")
@@ -500,8 +502,8 @@ def _refuse_sequence_edit(db: sqlite_utils.Database, project: ProjectRow) -> Non
     active = crud.active_run(db, project.id)
     if active is not None:
         raise Conflict(
-            f"Project {project.id} has run {active.id} {active.status}; its sequences can change "
-            "once it ends (or is cancelled)"
+            f"Project {project.id} has run {active.number} (id {active.id}) {active.status}; its sequences "
+            "can change once it ends (or is cancelled)"
         )
     if project.dataset_kind == "demo":
         raise Conflict(
@@ -689,7 +691,9 @@ def next_color(classes: list[dict[str, Any]]) -> list[int]:
 
 
 def classes_public(project: ProjectRow) -> models.ClassesPublic:
-    classes = project.schema["classes"]
+    # Through the schema, so a class stored before classes said thing / moving_id shows its defaults.
+    schema = Schema.from_dict(project.schema, source=f"project {project.id}")
+    classes = [c.to_dict() for c in schema.classes]
     data = [models.ClassPublic(index=i, hex=_hex(c["color"]), **c) for i, c in enumerate(classes)]
     return models.ClassesPublic(data=data, count=len(data), next_color=_hex(next_color(classes)))
 
@@ -749,7 +753,7 @@ def update_class(
     i = _class_position(classes, name, project_id)
     changes = payload.model_dump(exclude_unset=True, exclude={"position"})
     for key, value in changes.items():
-        if value is None:
+        if value is None and key != "moving_id":  # a null moving id removes it
             raise InvalidField(["body", key], f"{key} may not be null")
         classes[i][key] = value
     if payload.position is not None:

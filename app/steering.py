@@ -20,13 +20,23 @@ from app import crud, models
 from app.core.config import Settings
 from app.core.errors import InvalidField
 from app.forms import PATH_LABELS
-from app.jobs.manager import run_corrections, seed_source
-from app.rows import ProjectRow, RunParams, RunSequence
+from app.jobs.manager import active_correction_ids, run_corrections, seed_source
+from app.jobs.poses import cache_folder, needs_estimate
+from app.rows import ProjectRow, RunParams, RunRow, RunSequence
 from app.services import metrics_public, overall, project_config, stale_results
 from leap_core.errors import LeapError
+from leap_core.io_utils import link_or_copy
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
-from leap_core.pipeline.steering import Change, StagePlan, changed_sections, recompute_plan, run_changes
+from leap_core.pipeline.steering import (
+    Change,
+    CorrectionNote,
+    StagePlan,
+    changed_sections,
+    correction_changes,
+    recompute_plan,
+    run_changes,
+)
 from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import Schema
@@ -39,15 +49,65 @@ def _change_public(change: Change) -> models.ChangePublic:
     )
 
 
-def project_snapshot(project: ProjectRow) -> RunParams:
-    """The inputs a new run of all frames would snapshot (what :func:`run_changes` compares; no stages)."""
+def project_snapshot(db: sqlite_utils.Database, project: ProjectRow) -> RunParams:
+    """The inputs a new run of all frames would snapshot, its corrections included (what
+    :func:`what_changed` compares; no stages)."""
     return RunParams(
         sequences=tuple(RunSequence(s.name, Path(s.dataset_path)) for s in project.sequences),
         dataset_kind=project.dataset_kind,
         schema=project.schema,
         pipeline=project.pipeline,
         estimate_poses=project.estimate_poses,
+        corrections=active_correction_ids(db, project),
     )
+
+
+def _correction_text(c: crud.Correction) -> str:
+    what = c.class_name or "erase"
+    if c.scope == "scan":
+        n = 0 if c.points is None else int(c.points.shape[0])
+        return f"{what}, scan {c.frame_id}, {n} point{'' if n == 1 else 's'}"
+    n = int(c.keys.shape[0])
+    return f"{what}, map, {n} voxel{'' if n == 1 else 's'}"
+
+
+def what_changed(
+    db: sqlite_utils.Database, project_id: int, base: RunRow, new: RunParams
+) -> list[models.ChangePublic]:
+    """``base`` → ``new``: sequences, pose estimation, classes, parameters (:func:`run_changes`), and the
+    corrections each got (:func:`correction_changes`; left out when ``base`` predates recorded ones).
+    Pose estimation switched on changes nothing where every sequence has its own ``poses.txt``."""
+    changes = run_changes(base.params.to_dict(), new.to_dict(), PATH_LABELS)
+    if not any(needs_estimate(s.dataset) for s in new.sequences):
+        changes = [
+            dataclasses.replace(c, ignored="every sequence has its own poses.txt, which a run keeps")
+            if c.kind == "poses"
+            else c
+            for c in changes
+        ]
+    if base.params.corrections is not None and new.corrections is not None:
+        notes = {
+            c.id: CorrectionNote(_correction_text(c), made_after=c.created_at > base.created_at)
+            for name in dict.fromkeys([*base.params.corrections, *new.corrections])
+            for c in crud.list_corrections(db, project_id, active_only=False, sequence=name)
+        }
+        changes += correction_changes(base.params.corrections, new.corrections, notes)
+    return [_change_public(c) for c in changes]
+
+
+def _link_estimated_poses(dataset: Path, layout: SequenceLayout, cache_root: Path) -> bool:
+    """Put the estimate a run of ``dataset`` would reuse into the preview's folder ``layout`` (as
+    :func:`app.jobs.poses.prepare_run_poses` links it into the run's), so the fingerprints hash the poses
+    the run will read; False when the run would estimate them afresh."""
+    from leap_core.datasets.kitti import POSES_NOTE, KittiSequence  # noqa: PLC0415
+    from leap_core.odometry import OdometryConfig, reusable_estimate  # noqa: PLC0415  (KISS-ICP loads)
+
+    cached = cache_folder(cache_root, dataset) / "poses.txt"
+    if not reusable_estimate(KittiSequence(dataset), cached, OdometryConfig()):
+        return False
+    link_or_copy(cached, layout.poses)
+    link_or_copy(cached.parent / POSES_NOTE, layout.poses.parent / POSES_NOTE)
+    return True
 
 
 def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) -> models.RunPreview:
@@ -55,13 +115,9 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
     the ``stages.json`` of the finished run its folder would be seeded from (the job manager's rule: the
     latest finished run, when it covered the same dataset and all frames)."""
     project = crud.require_project(db, project_id)
-    snapshot = project_snapshot(project)
+    snapshot = project_snapshot(db, project)
     base = seed_source(db, project_id, snapshot)
-    changes = (
-        []
-        if base is None
-        else [_change_public(c) for c in run_changes(base.params.to_dict(), snapshot.to_dict(), PATH_LABELS)]
-    )
+    changes = [] if base is None else what_changed(db, project_id, base, snapshot)
     basis = None if base is None else models.RunBasis(id=base.id, number=base.number)
     # A run of other sequences seeds nothing (seed_source): say why instead of "no earlier run".
     stale = None if base is not None else stale_results(project, crud.list_runs(db, project_id))
@@ -88,8 +144,10 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
         "class": "the classes or prompts changed",
         "dataset": "the dataset changed",
         "frames": "the frames changed",
+        "correction": "the corrections changed",
+        "poses": "the poses changed",
     }
-    hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds))
+    hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds and c.ignored is None))
     per_sequence = []
     try:
         schema = Schema.from_dict(project.schema, source="classes")
@@ -101,6 +159,10 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
                 corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
                 lay = SequenceLayout(Path(tmp))
                 run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
+                estimated = project.estimate_poses and needs_estimate(dataset)
+                if estimated and not _link_estimated_poses(dataset, lay, settings.cache_dir):
+                    fresh = "the poses will be estimated"
+                    hint = f"{hint}; {fresh}" if hint and fresh not in hint else hint or fresh
                 base_lay = None if base is None else base.sequence_layout(name)
                 if base_lay is not None and base_lay.joint_3dcn.is_file():
                     # A sequence's 3D-CN fingerprint covers the round it took; a change anywhere that
@@ -167,9 +229,7 @@ def compare_runs(db: sqlite_utils.Database, run_id: int, base_id: int) -> models
     base = crud.require_run(db, base_id)
     if run.project_id != base.project_id:
         raise InvalidField(["path", "base_id"], f"run {base_id} belongs to another project than run {run_id}")
-    changes = [
-        _change_public(c) for c in run_changes(base.params.to_dict(), run.params.to_dict(), PATH_LABELS)
-    ]
+    changes = what_changed(db, run.project_id, base, run.params)
     rows: list[models.RowDelta] = []
     ma, mb = metrics_public(overall(run)), metrics_public(overall(base))
     if ma is not None and mb is not None:

@@ -216,7 +216,10 @@ def _disagreement(
 
 def bench_queues(grid: ReviewGrid, repeats: int, scans: int = 40, points: int = 120_000) -> dict[str, Any]:
     """Both review queues at ``grid``'s size, ours against the previous implementation (same process)."""
-    share, cell, min_count = 0.05, 4.0, 5  # app.viewer.session.SessionConfig defaults
+    from app.viewer.records import SessionConfig
+
+    defaults = SessionConfig()
+    share, cell, min_count = defaults.queue_share, defaults.queue_cell, defaults.queue_min_count
 
     def timed(fn: Any) -> tuple[float, Any]:
         runs, out = [], None
@@ -228,7 +231,12 @@ def bench_queues(grid: ReviewGrid, repeats: int, scans: int = 40, points: int = 
 
     def conf_new() -> list[rl.Region]:
         regions = rl.rank_regions(
-            grid.centres, grid.conf, rl.lowest_share(grid.conf, share), cell, min_count=min_count
+            grid.centres,
+            grid.conf,
+            rl.lowest_share(grid.conf, share),
+            cell,
+            wrong=rl.confidence_wrong(grid.conf),
+            min_count=min_count,
         )
         review.region_signatures(grid.centres, grid.keys, grid.label, [r.cell for r in regions], cell)
         return regions
@@ -243,14 +251,28 @@ def bench_queues(grid: ReviewGrid, repeats: int, scans: int = 40, points: int = 
         cand = seen & (rate > 0) & rl.lowest_share(np.where(seen, -rate, np.inf), share)
         if not new:
             return old_rank_regions(grid.centres, rate, cand, cell, min_count, False)
-        regions = rl.rank_regions(grid.centres, rate, cand, cell, min_count=min_count, ascending=False)
+        regions = rl.rank_regions(
+            grid.centres,
+            rate,
+            cand,
+            cell,
+            wrong=rl.disagreement_wrong(rate, observed),
+            min_count=min_count,
+            ascending=False,
+        )
         review.region_signatures(grid.centres, grid.keys, grid.label, [r.cell for r in regions], cell)
         return regions
 
     data = synthetic_scans(grid, scans, points, camera_share=0.08)
     conf_new_s, regions = timed(conf_new)
     conf_old_s, old_regions = timed(conf_old)
-    assert [(round(r.score, 9), r.count) for r in regions] == [(round(a, 9), b) for a, b in old_regions]
+    # The same regions (the app ranks them by expected wrong count, the previous implementation by score,
+    # so past the 100 kept the two keep different ones).
+    assert len(regions) == len(old_regions)
+    if len(regions) < 100:
+        assert sorted((round(r.score, 9), r.count) for r in regions) == sorted(
+            (round(a, 9), b) for a, b in old_regions
+        )
     dis_new_s, _ = timed(lambda: dis_rank(*_disagreement(grid, data, True), True))
     dis_old_s, _ = timed(lambda: dis_rank(*_disagreement(grid, data, False), False))
     rate, observed = _disagreement(grid, data, True)
@@ -828,6 +850,9 @@ class MemoryBackend:
 
     def run_info(self, run_id: int) -> Any:
         raise KeyError(run_id)
+
+    def finished_run_before(self, run_id: int) -> None:  # noqa: ARG002  (the protocol's signature)
+        return None
 
     def active_run(self) -> None:
         return None

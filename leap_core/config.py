@@ -51,6 +51,7 @@ from leap_core.labelers import LABELERS, labeler_by_section
 from leap_core.labelers.simulated import MOVED_TERMS, MOVED_TERMS_FIX
 from leap_core.projection import ProjectionConfig
 from leap_core.smoothing import SmoothingConfig
+from leap_core.tracking import TrackingConfig
 
 
 def _default_sections() -> dict[str, object]:
@@ -80,6 +81,8 @@ class PipelineConfig:
     """kNN smoothing of the fused grid."""
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
     """3D Consistency Network (off unless ``consistency.enabled``)."""
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    """Objects: per-scan segments of thing points, tracks, class votes and motion (docs/METHOD.md B.6)."""
     correction_strength: float = field(default=50.0, metadata=within(0, 1000, low_open=True, unit="nats"))
     """Log-odds of one manual correction (``corrections.npz`` in the run folder) when it is fused in."""
 

@@ -1,8 +1,9 @@
 """Export of per-point labels: SemanticKITTI ``.label`` files, a per-point confidence file, the label map
 that reads them, and the rules for where an export may be written.
 
-``.label``: uint32 per point, the class's raw export id (``Schema.export_ids``) in the low 16 bits,
-instance 0 in the high 16, and 0 ("unlabeled") for points without a label.
+``.label``: uint32 per point, the class's raw export id (``Schema.export_ids``; a moving thing's points
+its ``moving_id``) in the low 16 bits, the point's track id in the high 16 (unique over the sequence; 0
+for stuff and untracked points), and 0 ("unlabeled") for points without a label.
 ``.conf``: float32 per point, the label's posterior probability, 0 where unlabeled.
 Both are raw little-endian arrays in scan order, written atomically (temp file + rename). A run writes them
 as ``export/<frame_id>.label`` / ``.conf`` (:class:`~leap_core.run_layout.SequenceLayout`).
@@ -74,8 +75,15 @@ def export_labels(
     labels: npt.ArrayLike,
     confidence: npt.ArrayLike,
     export_ids: npt.ArrayLike,
+    *,
+    instance: npt.ArrayLike | None = None,
+    moving: npt.ArrayLike | None = None,
+    moving_ids: npt.ArrayLike | None = None,
 ) -> None:
     """Write one scan's ``.label`` and ``.conf`` files, each atomically (folders created if missing).
+
+    A label is ``raw | instance << 16`` (SemanticKITTI): ``raw`` is ``moving_ids[label]`` where ``moving``
+    and ``export_ids[label]`` elsewhere, 0 where unlabeled.
 
     Args:
         label_path: the ``.label`` file.
@@ -83,14 +91,25 @@ def export_labels(
         labels: (N,) int16 class index per point, ``UNLABELED`` (-1) where none.
         confidence: (N,) float32 confidence per point (stored as 0 where unlabeled).
         export_ids: (C,) uint32 raw id per class index.
+        instance: (N,) instance (track) id per point, 0..65535, 0 = none; None: all 0.
+        moving: (N,) bool, the points whose track moves; None: none.
+        moving_ids: (C,) raw id of a class's moving points (needed with ``moving``).
     """
     lab = np.asarray(labels).reshape(-1)
     conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
     if conf.shape != lab.shape:
         raise ValueError(f"confidence has {conf.shape[0]} values for {lab.shape[0]} labels")
     raw = labels_to_raw(lab, export_ids)
+    if moving is not None:
+        if moving_ids is None:
+            raise ValueError("moving points need moving_ids")
+        raw = np.where(np.asarray(moving, bool).reshape(-1), labels_to_raw(lab, moving_ids), raw)
+    inst = None
+    if instance is not None:
+        # Unlabeled points carry no instance: 0 is "unlabeled" as a whole value.
+        inst = np.where(raw > 0, np.asarray(instance).reshape(-1), 0)
     conf = np.where(lab == UNLABELED, np.float32(0.0), conf).astype("<f4")
-    write_label(label_path, raw)
+    write_label(label_path, raw, inst)
     atomic_write_bytes(conf_path, conf.tobytes())
 
 
@@ -117,7 +136,8 @@ def label_map(
 
     Keys (ids are the raw ids of ``.label`` files; learning ids are 0 = unlabeled, ``k + 1`` = class k):
 
-    - ``labels``: raw id → name; 0 is ``unlabeled``, each class's export id its name.
+    - ``labels``: raw id → name; 0 is ``unlabeled``, each class's export id its name, a thing's moving id
+      ``moving-<name>``.
     - ``color_map``: raw id → ``[B, G, R]`` (BGR, as semantic-kitti-api stores colours; the schema's RGB
       reversed), unlabeled black.
     - ``content``: raw id → fraction of the exported points with that id (semantic-kitti-api's "ratio with
@@ -149,6 +169,10 @@ def label_map(
         labels[ids[k]] = c.name
         colors[ids[k]] = [int(c.color[2]), int(c.color[1]), int(c.color[0])]
         learning[ids[k]] = k + 1
+        if c.moving_id is not None:
+            labels[c.moving_id] = f"moving-{c.name}"
+            colors[c.moving_id] = colors[ids[k]]
+            learning[c.moving_id] = k + 1
     out: dict[str, Any] = {"name": name or schema.name, "labels": labels, "color_map": colors}
     if counts is not None:
         n = {raw: int(counts.get(raw, 0)) for raw in labels}
@@ -167,6 +191,8 @@ def label_map(
 _LABEL_MAP_HEADER = """\
 # Label map of a LeAP Studio export, in the layout of semantic-kitti-api's config/semantic-kitti.yaml.
 # labels: raw id in the .label files (low 16 bits) -> class name; 0 = unlabeled.
+# The upper 16 bits hold the point's track (instance) id, the same in every scan that sees the object;
+# 0 for stuff classes and untracked points. A moving object's points carry its class's moving id.
 # color_map: raw id -> [B, G, R] (BGR, like semantic-kitti-api's color_map).
 # content / counts: share / number of the exported points with that id.
 # learning_map: raw id -> learning id (0 = unlabeled, k = k-th class); learning_map_inv: the inverse.
@@ -356,7 +382,8 @@ def summary_yaml(  # noqa: PLR0913  # keyword-only: the parts of a summary
         for s in sequences
     ]
     summary["files"] = {
-        "labels": f"sequences/<name>/{PREDICTIONS}/<frame>.label (uint32: raw id, instance 0 above)",
+        "labels": f"sequences/<name>/{PREDICTIONS}/<frame>.label (uint32: raw id in the low 16 bits, "
+        "a moving thing's moving id; track id in the upper 16, unique over the sequence, 0 = stuff or none)",
         "confidences": (
             f"sequences/<name>/{CONFIDENCES}/<frame>.conf (float32 per point)" if with_confidence else None
         ),

@@ -2,6 +2,10 @@
 
 A review region is one coarse cell (edge ``cell_size`` metres) of the voxel map holding enough *candidate*
 voxels (the least confident share, or the voxels where the camera and the final label disagree most).
+Regions are ranked by how much a person can fix there: the *expected wrong* count, the sum over the
+region's candidates of each one's chance of being wrong (``1 - confidence`` per voxel, or the
+disagreeing share of each voxel's camera-labelled points times their number), so a large uncertain area
+comes before a speck of a few voxels however uncertain.
 
 Identity and signature (how review marks survive a re-run):
 
@@ -42,6 +46,9 @@ class RankedCell:
     """Largest distance of a candidate voxel from the centre (metres)."""
     score: float
     """Mean score of the candidate voxels."""
+    expected_wrong: float = 0.0
+    """Sum of the candidates' ``wrong`` values (:func:`rank_cells`): how many the region is expected to
+    get wrong."""
 
 
 def rank_cells(
@@ -50,24 +57,27 @@ def rank_cells(
     candidates: npt.NDArray[np.bool_],
     cell_size: float,
     *,
+    wrong: npt.NDArray[np.floating] | None = None,
     min_count: int = 1,
     ascending: bool = True,
     limit: int = 100,
 ) -> list[RankedCell]:
-    """Cluster candidate voxels into coarse cells and order the cells by their mean score.
+    """Cluster candidate voxels into coarse cells and order the cells by expected wrong count (or score).
 
     Each candidate voxel goes to cell ``floor(xyz / cell_size)`` (packed into one int64, so grouping is a
     1-D ``unique``, not a row-wise one); a cell with ≥ ``min_count`` candidates is a region with score
-    ``mean(score[candidates in cell])``. Order: score (lowest first when ``ascending``), then more
-    candidates first, then the smaller cell key (so equal regions always come in the same order).
+    ``mean(score[candidates in cell])`` and expected wrong count ``E = sum(wrong[candidates in cell])``.
+    Order: with ``wrong``, the largest E first; without, the score (lowest first when ``ascending``);
+    then more candidates first, then the smaller cell key (so equal regions always come in the same order).
 
     Args:
         centres: (V, 3) voxel centres.
         score: (V,) per-voxel score.
         candidates: (V,) bool.
         cell_size: cell edge in metres (> 0).
+        wrong: (V,) per-voxel expected wrong count (≥ 0), e.g. ``1 - confidence``; None ranks by score.
         min_count: cells with fewer candidates are dropped.
-        ascending: lowest score first (confidence) or highest first (disagreement).
+        ascending: lowest score first (confidence) or highest first (disagreement), without ``wrong``.
         limit: at most this many regions.
 
     Returns:
@@ -90,7 +100,14 @@ def rank_cells(
     extent = np.zeros(k)
     np.maximum.at(extent, inverse, dist)
     keep = np.flatnonzero(counts >= min_count)
-    primary = mean_score[keep] if ascending else -mean_score[keep]
+    expected: npt.NDArray[np.float64] = np.zeros(k)
+    primary: npt.NDArray[np.float64]
+    if wrong is not None:
+        w = np.asarray(wrong, dtype=np.float64)[rows]
+        expected = np.bincount(inverse, weights=w, minlength=k).astype(np.float64)
+        primary = -expected[keep]
+    else:
+        primary = np.asarray(mean_score[keep] if ascending else -mean_score[keep], dtype=np.float64)
     # np.unique sorted the cells, so ``keep`` ascending is the cell-key tie-break (lexsort: last key first).
     order = keep[np.lexsort((keep, -counts[keep], primary))][:limit]
     # Candidate rows grouped by cell: a stable sort of the cell index keeps rows ascending within a cell.
@@ -103,6 +120,7 @@ def rank_cells(
             centre=(float(mean_xyz[i, 0]), float(mean_xyz[i, 1]), float(mean_xyz[i, 2])),
             extent=float(extent[i]),
             score=float(mean_score[i]),
+            expected_wrong=float(expected[i]),
         )
         for i in order
     ]
@@ -225,13 +243,48 @@ def draw_box(
     return out
 
 
+def zoom_box(
+    box: tuple[int, int, int, int], width: int, height: int, min_share: float = 0.25
+) -> tuple[int, int, int, int]:
+    """A crop of the image around ``box`` with the image's aspect ratio: centred on the box, at least
+    ``min_share`` of the image's width (so a speck keeps some surroundings), large enough to hold the box,
+    shifted inside the image. Inclusive pixel corners, like ``box``.
+
+    ``w = clip(max(min_share·W, (u1-u0+1), (v1-v0+1)·W/H), 1, W)``, ``h = round(w·H/W)`` (≤ H).
+    """
+    u0, v0, u1, v1 = box
+    aspect = height / width
+    w = max(min_share * width, u1 - u0 + 1, (v1 - v0 + 1) / aspect)
+    w = int(min(width, max(1, round(w))))
+    h = int(min(height, max(1, round(w * aspect))))
+    cu, cv = (u0 + u1 + 1) / 2, (v0 + v1 + 1) / 2
+    left = int(np.clip(round(cu - w / 2), 0, width - w))
+    top = int(np.clip(round(cv - h / 2), 0, height - h))
+    return left, top, left + w - 1, top + h - 1
+
+
+def crop_zoom(image: npt.NDArray[np.uint8], crop: tuple[int, int, int, int]) -> npt.NDArray[np.uint8]:
+    """The ``crop`` (inclusive corners) of ``image`` (H, W, 3) enlarged to the image's size by nearest
+    neighbour (pixels stay sharp, labels stay their colours): output pixel (y, x) takes crop pixel
+    ``(floor(y·h/H), floor(x·w/W))``."""
+    u0, v0, u1, v1 = crop
+    part = image[v0 : v1 + 1, u0 : u1 + 1]
+    hh, ww = image.shape[:2]
+    ys = (np.arange(hh) * part.shape[0]) // hh
+    xs = (np.arange(ww) * part.shape[1]) // ww
+    out: npt.NDArray[np.uint8] = part[ys[:, None], xs[None, :]]
+    return out
+
+
 __all__ = [
     "RankedCell",
     "best_observer",
+    "crop_zoom",
     "draw_box",
     "image_box",
     "nearest_scans",
     "rank_cells",
     "region_id",
     "region_signatures",
+    "zoom_box",
 ]

@@ -33,9 +33,11 @@ One sequence's folder::
       3dcn_joint.json             with the 3D-CN on: the round its 3D-CN grids come from (its digest is part
                                   of the 3dcn stage's fingerprint)
       points/<frame_id>.npz       label, conf, point_label per point
+      tracks.npz                  objects (the tracks stage): per scan the thing points' rows and track
+                                  ids; per track its voted class, velocity, moving flag and scans seen
       metrics.json                result tables
       model-metrics.json          a LiDAR-only model's scores on the ground truth (`leap predict`)
-      export/<frame_id>.label     raw export ids, instance 0
+      export/<frame_id>.label     raw export ids (a moving thing: its class's moving id), instance id << 16
       export/<frame_id>.conf      float32 per-point confidence
       export-coverage.json        the export's point counts (labeled, unlabeled by reason, per raw id)
       applied_corrections.npz, applied_corrections_scan.npz, frame_voxels.npz
@@ -92,6 +94,7 @@ class SequenceLayout:
     POINTS: ClassVar[str] = "points"
     EXPORT: ClassVar[str] = "export"
     GRID: ClassVar[str] = "grid.npz"
+    TRACKS: ClassVar[str] = "tracks.npz"
     GRID_SMOOTH: ClassVar[str] = "grid_smooth.npz"
     METRICS: ClassVar[str] = "metrics.json"
     MODEL_METRICS: ClassVar[str] = "model-metrics.json"
@@ -125,6 +128,11 @@ class SequenceLayout:
     @property
     def state(self) -> Path:
         return self._file(self.STATE)
+
+    @property
+    def tracks(self) -> Path:
+        """The ``tracks`` stage's objects: per scan the thing points' track ids; per track class, motion."""
+        return self._file(self.TRACKS)
 
     @property
     def grid(self) -> Path:

@@ -17,6 +17,8 @@ File format (``projects/<name>.yaml``)::
         gt_ids: [10, 252]           # optional
         category: vehicle           # optional, default "other"
         negative_prompts: []        # optional
+        thing: true                 # optional: a countable object (tracked, given instance ids)
+        moving_id: 252              # optional: raw id exported for its points while it moves (a thing)
     pipeline: {}                    # optional config overrides, see leap_core.presets.load_preset
 
 Every problem raises :class:`~leap_core.errors.SchemaError` with one line naming the file and the entry,
@@ -53,12 +55,38 @@ MAX_RAW_ID = 0xFFFF
 # would silently become two phrases and its token columns would no longer belong to one prompt.
 _PHRASE_SEPARATORS = (".", "?")
 
-_CLASS_KEYS = ("name", "color", "prompts", "export_id", "gt_ids", "category", "negative_prompts")
+_CLASS_KEYS = (
+    "name",
+    "color",
+    "prompts",
+    "export_id",
+    "gt_ids",
+    "category",
+    "negative_prompts",
+    "thing",
+    "moving_id",
+)
 _REQUIRED_CLASS_KEYS = ("name", "color", "prompts", "export_id")
 _TOP_KEYS = ("name", "description", "classes")
 _PROJECT_KEYS = (*_TOP_KEYS, "pipeline")
 _HEX_COLOR = re.compile(r"^#([0-9a-fA-F]{6})$")
 _SCHEMA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+SEMANTICKITTI_THINGS: dict[tuple[str, int], int | None] = {
+    ("car", 10): 252,
+    ("bicycle", 11): None,
+    ("motorcycle", 15): None,
+    ("truck", 18): 258,
+    ("other-vehicle", 20): 259,
+    ("person", 30): 254,
+    ("bicyclist", 31): 253,
+    ("motorcyclist", 32): 255,
+}
+"""SemanticKITTI's thing classes, as (name, export id) → the moving raw id its ``.label`` files use
+(252 moving-car ... 259 moving-other-vehicle; bicycles and motorcycles have none: a ridden one is the
+bicyclist's or motorcyclist's). A class entry that says neither ``thing`` nor ``moving_id`` and matches
+one of these by name and export id is that thing, so schemas written before classes had the two keys
+read as SemanticKITTI defines them; every other class of such a schema is stuff."""
 
 
 class _Invalid(Exception):
@@ -95,6 +123,12 @@ class ClassDef:
     """Coarse group for category mIoU (see :data:`CATEGORIES`)."""
     negative_prompts: tuple[str, ...] = ()
     """Optional prompts describing what this class is NOT."""
+    thing: bool | None = None
+    """A countable object (car, person): its points form segments and tracks with instance ids; False is
+    stuff (road, vegetation). None (not given) takes :data:`SEMANTICKITTI_THINGS`' answer, else False."""
+    moving_id: int | None = None
+    """Raw id exported for the class's points while its track moves (SemanticKITTI 252-259), or None:
+    moving points keep ``export_id``. Only a thing has one; it differs from every class's export id."""
 
     def __post_init__(self) -> None:
         try:
@@ -106,6 +140,8 @@ class ClassDef:
                 gt_ids=self.gt_ids,
                 category=self.category,
                 negative_prompts=self.negative_prompts,
+                thing=self.thing,
+                moving_id=self.moving_id,
             )
         except _Invalid as exc:
             raise SchemaError(f"class {_entry_label(self.name)}: {exc}") from None
@@ -122,6 +158,8 @@ class ClassDef:
             "category": self.category,
             "prompts": list(self.prompts),
             "negative_prompts": list(self.negative_prompts),
+            "thing": bool(self.thing),
+            "moving_id": self.moving_id,
         }
 
 
@@ -207,10 +245,12 @@ def _normalise_entry(entry: Mapping[str, Any]) -> dict[str, Any]:
         gt_ids=entry.get("gt_ids", ()),
         category=entry.get("category", "other"),
         negative_prompts=entry.get("negative_prompts", ()),
+        thing=entry.get("thing"),
+        moving_id=entry.get("moving_id"),
     )
 
 
-def _normalise_class(
+def _normalise_class(  # noqa: PLR0913  # keyword-only: a class's fields
     *,
     name: object,
     color: object,
@@ -219,6 +259,8 @@ def _normalise_class(
     gt_ids: object,
     category: object,
     negative_prompts: object,
+    thing: object = None,
+    moving_id: object = None,
 ) -> dict[str, Any]:
     """Check one class's fields and return them normalised (tuples, plain ints, stripped strings)."""
     out: dict[str, Any] = {"name": _text(name, "name")}
@@ -255,7 +297,28 @@ def _normalise_class(
         if neg.lower() in positives:
             raise _Invalid(f"negative_prompts[{i}] {neg!r} is also one of this class's prompts")
     out["negative_prompts"] = negatives
+    out["thing"], out["moving_id"] = _thing_fields(out["name"], out["export_id"], thing, moving_id)
     return out
+
+
+def _thing_fields(name: str, export_id: int, thing: object, moving_id: object) -> tuple[bool, int | None]:
+    """``(thing, moving_id)`` checked; both unset → :data:`SEMANTICKITTI_THINGS`' entry or stuff."""
+    if thing is None and moving_id is None:
+        standard = (name, export_id) in SEMANTICKITTI_THINGS
+        return standard, SEMANTICKITTI_THINGS.get((name, export_id))
+    if thing is None:
+        thing = True
+    if not isinstance(thing, (bool, np.bool_)):
+        raise _Invalid(f"thing must be true or false, got {thing!r}")
+    if moving_id is None:
+        return bool(thing), None
+    if not _is_int(moving_id) or not 1 <= int(moving_id) <= MAX_RAW_ID:
+        raise _Invalid(f"moving_id must be an integer 1..{MAX_RAW_ID} or null, got {moving_id!r}")
+    if not thing:
+        raise _Invalid("moving_id is set but thing is false: only a thing (a tracked object) moves")
+    if int(moving_id) == export_id:
+        raise _Invalid(f"moving_id {int(moving_id)} equals export_id: moving points must be told apart")
+    return True, int(moving_id)
 
 
 def _check_classes(classes: Sequence[ClassDef]) -> None:
@@ -263,7 +326,7 @@ def _check_classes(classes: Sequence[ClassDef]) -> None:
     if not classes:
         raise _Invalid("classes: the class list is empty")
     names: dict[str, int] = {}
-    exports: dict[int, int] = {}
+    exports: dict[int, tuple[int, str]] = {}
     gts: dict[int, int] = {}
     prompts: dict[str, int] = {}
 
@@ -278,9 +341,17 @@ def _check_classes(classes: Sequence[ClassDef]) -> None:
             raise _Invalid(f"{where(i)}: {problem}", at=(i, "name"), problem=problem)
         names[c.name] = i
         if c.export_id in exports:
-            problem = f"export_id {c.export_id} is already used by {where(exports[c.export_id])}"
+            j, kind = exports[c.export_id]
+            problem = f"export_id {c.export_id} is already the {kind} of {where(j)}"
             raise _Invalid(f"{where(i)}: {problem}", at=(i, "export_id"), problem=problem)
-        exports[c.export_id] = i
+        exports[c.export_id] = (i, "export_id")
+        if c.moving_id is not None:
+            # A moving id is written to .label files too: it must name one class only.
+            if c.moving_id in exports:
+                j, kind = exports[c.moving_id]
+                problem = f"moving_id {c.moving_id} is already the {kind} of {where(j)}"
+                raise _Invalid(f"{where(i)}: {problem}", at=(i, "moving_id"), problem=problem)
+            exports[c.moving_id] = (i, "moving_id")
         for gid in c.gt_ids:
             if gid in gts:
                 problem = f"gt id {gid} is already mapped to {where(gts[gid])}"
@@ -351,6 +422,15 @@ class Schema:
     def export_ids(self) -> npt.NDArray[np.uint32]:
         """(C,) uint32 raw ids written to ``.label`` files for class indices 0..C-1."""
         return np.array([c.export_id for c in self.classes], dtype=np.uint32)
+
+    def things(self) -> npt.NDArray[np.bool_]:
+        """(C,) bool: which classes are things (tracked objects with instance ids)."""
+        return np.array([bool(c.thing) for c in self.classes], dtype=bool)
+
+    def moving_export_ids(self) -> npt.NDArray[np.uint32]:
+        """(C,) uint32 raw id written for a class's moving points: its ``moving_id``, else ``export_id``."""
+        ids = [c.export_id if c.moving_id is None else c.moving_id for c in self.classes]
+        return np.array(ids, dtype=np.uint32)
 
     def categories(self) -> list[str]:
         """Category of each class, in class order."""
@@ -690,6 +770,7 @@ def builtin_schema(name: str = "semantickitti") -> Schema:
 __all__ = [
     "CATEGORIES",
     "MAX_CLASS_LIST_BYTES",
+    "SEMANTICKITTI_THINGS",
     "ClassDef",
     "ClassListError",
     "Schema",

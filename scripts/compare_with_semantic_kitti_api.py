@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Check the ``.label`` files a ``leap run`` exported with semantic-kitti-api's ``evaluate_semantics.py``.
+"""Check the ``.label`` files a ``leap run`` exported with semantic-kitti-api's ``evaluate_semantics.py``
+(and, with ``--objects``, its ``evaluate_panoptic.py`` and ``evaluate_mos.py``).
 
 Runs the external evaluator (an unmodified checkout, given by path; nothing of it is copied here) on the
 run's ``export/`` folder against the sequence's ground truth, then prints its per-class IoU beside LeAP's
@@ -18,6 +19,10 @@ sequence and the predictions are linked into a temporary tree under that split's
 this keeps its config untouched. Only the frames LeAP evaluated (``metrics.json`` "frames") are linked,
 because the evaluator asserts equal label and prediction counts. The evaluator is asked for its
 ``--codalab`` scores file so the comparison uses full-precision values, not its 3-decimal printout.
+
+``--objects``: on the same tree, ``evaluate_panoptic.py`` (its ``--output`` scores: PQ / SQ / RQ over all
+classes, things and stuff) against ``metrics.json``'s ``objects.all``, and ``evaluate_mos.py`` with its
+``config/semantic-kitti-mos.yaml`` (``iou_moving``) against ``objects.motion.mos_iou``; the same tolerance.
 """
 
 from __future__ import annotations
@@ -59,6 +64,11 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--split", default="valid", choices=["train", "valid", "test"])
     ap.add_argument("--python", default=sys.executable, help="interpreter for the evaluator")
     ap.add_argument("--tol", type=float, default=1e-3, help="largest allowed |IoU difference|")
+    ap.add_argument(
+        "--objects",
+        action="store_true",
+        help="also compare PQ (evaluate_panoptic.py) and the moving IoU (evaluate_mos.py)",
+    )
     return ap.parse_args(argv)
 
 
@@ -74,17 +84,22 @@ def _link_tree(root: Path, seq_name: str, gt_labels: list[Path], preds: list[Pat
         (pred_dir / src.name).symlink_to(src.resolve())
 
 
-def _run_evaluator(
+def _run_evaluator(  # the evaluator, its config and the files it reads
     args: argparse.Namespace,
     script: Path,
     datacfg: Path,
     seq_name: str,
     gt_files: list[Path],
     pred_files: list[Path],
+    *,
+    cfg_flag: str = "--datacfg",
+    scores_flag: str = "--codalab",
 ) -> tuple[dict[str, Any], str, str]:
-    """Run ``evaluate_semantics.py`` on a temporary tree of links to the label and prediction files.
+    """Run one of the evaluators (``evaluate_semantics.py`` by default) on a temporary tree of links to the
+    label and prediction files; ``cfg_flag`` / ``scores_flag`` are its names for the data config and the
+    scores folder (``evaluate_panoptic.py``: ``--data_cfg`` / ``--output``).
 
-    Returns its ``--codalab`` scores, its printout and its command line (temporary folder shown as <tmp>).
+    Returns its scores file, its printout and its command line (temporary folder shown as <tmp>).
     """
     with tempfile.TemporaryDirectory(prefix="ska_cmp_") as tmp:
         root = Path(tmp)
@@ -100,9 +115,9 @@ def _run_evaluator(
             str(root / "predictions"),
             "--split",
             args.split,
-            "--datacfg",
+            cfg_flag,
             str(datacfg),
-            "--codalab",
+            scores_flag,
             str(scores_dir),
         ]
         # cwd = the checkout: the evaluator imports its auxiliary/ package relative to it.
@@ -114,7 +129,7 @@ def _run_evaluator(
     return scores, proc.stdout, " ".join(cmd[1:]).replace(tmp, "<tmp>")
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None) -> int:  # noqa: PLR0915  # one report, top to bottom
     args = _parse_args(argv)
     evaluator = args.evaluator.resolve()
     script = evaluator / "evaluate_semantics.py"
@@ -179,9 +194,60 @@ def main(argv: list[str] | None = None) -> int:
         f"leap miou_all_classes {m_ours:.6f}, miou (defined classes) {leap['miou']:.6f}"
     )
     worst = max(worst, d_m)
+    if args.objects:
+        worst = max(worst, _compare_objects(args, evaluator, metrics, seq_name, gt_files, pred_files))
     ok = worst <= args.tol and not math.isnan(worst)
     print(f"max |diff| = {worst:.3e}  ({'OK' if ok else 'FAIL'}, tolerance {args.tol:g})")
     return 0 if ok else 1
+
+
+def _compare_objects(  # the evaluators' folder, LeAP's scores, the files
+    args: argparse.Namespace,
+    evaluator: Path,
+    metrics: dict[str, Any],
+    seq_name: str,
+    gt_files: list[Path],
+    pred_files: list[Path],
+) -> float:
+    """Print evaluate_panoptic.py's and evaluate_mos.py's scores beside ``metrics.json``'s ``objects``;
+    return the largest |difference|."""
+    objects = metrics.get("objects")
+    if not objects:
+        sys.exit("error: metrics.json has no object scores (a run with tracking.enabled: false?)")
+    datacfg = (args.datacfg or evaluator / "config" / "semantic-kitti.yaml").resolve()
+    pan, _, shown = _run_evaluator(
+        args,
+        evaluator / "evaluate_panoptic.py",
+        datacfg,
+        seq_name,
+        gt_files,
+        pred_files,
+        cfg_flag="--data_cfg",
+        scores_flag="--output",
+    )
+    mos, _, shown_mos = _run_evaluator(
+        args,
+        evaluator / "evaluate_mos.py",
+        evaluator / "config" / "semantic-kitti-mos.yaml",
+        seq_name,
+        gt_files,
+        pred_files,
+    )
+    print(f"\n$ {shown}\n$ {shown_mos}\n")
+    print(f"{'score':<14}  {'leap':>9}  {'evaluator':>9}  {'|diff|':>9}")
+    print(f"{'-' * 14}  {'-' * 9}  {'-' * 9}  {'-' * 9}")
+    pairs = [
+        (f"{q}{part}", objects["all"][f"{q}{part}"], pan[f"{q.lower()}_{name}"])
+        for part, name in (("", "mean"), ("_things", "things"), ("_stuff", "stuff"))
+        for q in ("PQ", "SQ", "RQ")
+    ]
+    pairs.append(("MOS IoU", objects["motion"]["mos_iou"], mos["iou_moving"]))
+    worst = 0.0
+    for name, ours, theirs in pairs:
+        d = abs(float(ours if ours is not None else math.nan) - float(theirs))
+        worst = max(worst, d) if not math.isnan(d) else math.nan
+        print(f"{name:<14}  {float(ours or 0):>9.6f}  {float(theirs):>9.6f}  {d:>9.2e}")
+    return worst
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ SMOKE: dict[str, tuple[list[str], str]] = {
     "bench_app_load.py": (["--quick"], "ratio load / baseline"),
     "bench_check.py": (["--frames", "20", "--repeat", "1"], "check / open"),
     "bench_fusion.py": (["--quick"], "Ratio to the best same-work baseline"),
+    "bench_objects.py": (["--quick"], "tracks stage ms/scan"),
     "bench_lidar_model.py": (["--quick"], "ratio model / baseline time"),
     "bench_memory.py": (["--sequence", SEQ], f"baseline = {BASELINE_COMMIT}"),
     "bench_models.py": (["--quick"], "ratio = total compute"),

@@ -353,7 +353,7 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
     assert "--models DIR" in last
 
 
-ADDED_SECTIONS = ("sam3",)
+ADDED_SECTIONS = ("sam3", "tracking")
 """Config sections added after the stored file was written (read as their defaults)."""
 ADDED_FIELDS = (("grounded_sam", "flip_votes"),)
 """Fields added to existing sections since (read as their defaults)."""

@@ -203,3 +203,20 @@ def test_unreadable_metrics_name_their_file(tmp_path: Path) -> None:
     with pytest.raises(DatasetError) as err:
         result_tables(tmp_path)
     assert err.value.path == str(path)
+
+
+def test_object_scores_round_trip_and_print() -> None:
+    data = _sequence(1)
+    data["objects"] = {
+        "camera": {"PQ": 0.5, "PQ_things": 0.25, "PQ_stuff": 0.75, "SQ": 0.8, "RQ": 0.625},
+        "all": {"PQ": 0.3, "PQ_things": None, "PQ_stuff": 0.3, "SQ": 0.6, "RQ": 0.5},
+        "motion": {"mos_iou": 0.4, "s_assoc": 0.9, "moving_points": 12.0},
+        "moving_right_class": {"a": 0.5},
+    }
+    m = _metrics(data)
+    assert m.objects is not None and m.objects["motion"]["s_assoc"] == 0.9
+    text = format_result_tables(m)
+    assert "PQ_things              25.0           -" in text and "S_assoc" in text and "a 50.0" in text
+    # A run's overall holds no object scores (they are per sequence).
+    summed = overall_metrics({"s1": m})
+    assert summed is not None and summed.objects is None

@@ -102,13 +102,23 @@ def test_label_map_yaml_round_trip() -> None:
     counts = {0: 5, int(schema.classes[0].export_id): 15}
     text = label_map_yaml(label_map(schema, counts, name="demo run 3"))
     back = load_label_map(text, "label-map.yaml")
-    assert back.names == {0: "unlabeled", **{c.export_id: c.name for c in schema.classes}}
-    assert back.colors_rgb == {0: (0, 0, 0), **{c.export_id: tuple(c.color) for c in schema.classes}}
+    moving = {c.moving_id: c for c in schema.classes if c.moving_id is not None}
+    assert moving and back.names == {
+        0: "unlabeled",
+        **{c.export_id: c.name for c in schema.classes},
+        **{raw: f"moving-{c.name}" for raw, c in moving.items()},
+    }
+    assert back.colors_rgb == {
+        0: (0, 0, 0),
+        **{c.export_id: tuple(c.color) for c in schema.classes},
+        **{raw: tuple(c.color) for raw, c in moving.items()},
+    }
     assert back.class_names() == schema.names
     assert back.counts == {raw: counts.get(raw, 0) for raw in back.names}
     for k, c in enumerate(schema.classes, start=1):
         assert back.learning_map_inv[k] == c.export_id and back.learning_map[c.export_id] == k
         assert all(back.learning_map[g] == k for g in c.gt_ids)  # the evaluation mapping the run used
+        assert c.moving_id is None or back.learning_map[c.moving_id] == k  # a mover evaluates as its class
     # On disk: semantic-kitti-api's keys, integer ids, colours as [B, G, R], content as shares of the points.
     raw = yaml.safe_load(text)
     car = next(c for c in schema.classes if c.name == "car")
@@ -285,7 +295,9 @@ def test_summary_yaml_holds_every_part_in_order() -> None:
             {"name": "town", "dataset": None, "frames": "all"},
         ],
         "files": {
-            "labels": "sequences/<name>/predictions/<frame>.label (uint32: raw id, instance 0 above)",
+            "labels": "sequences/<name>/predictions/<frame>.label (uint32: raw id in the low 16 bits, "
+            "a moving thing's moving id; track id in the upper 16, unique over the sequence, "
+            "0 = stuff or none)",
             "confidences": "sequences/<name>/confidences/<frame>.conf (float32 per point)",
             "label_map": "label-map.yaml",
         },
@@ -317,7 +329,13 @@ def test_label_map_defaults_and_the_tables_for_unlabeled() -> None:
     )
     lm = label_map(schema, {})
     assert lm["name"] == "mini"  # no name given: the schema's
-    assert lm["content"] == {0: 0.0, 10: 0.0, 40: 0.0} and lm["counts"] == {0: 0, 10: 0, 40: 0}  # no point
+    # "car" with export id 10 is SemanticKITTI's car: a thing whose moving points export 252.
+    assert lm["content"] == {0: 0.0, 10: 0.0, 252: 0.0, 40: 0.0} and lm["counts"] == {
+        0: 0,
+        10: 0,
+        252: 0,
+        40: 0,
+    }
     assert lm["learning_map_inv"] == {0: 0, 1: 10, 2: 40}
     assert lm["learning_ignore"] == {0: True, 1: False, 2: False}
     # Without counts the file has no counts table, and reading it back gives an empty one.
@@ -613,3 +631,24 @@ def test_labels_and_confidences_of_any_shape_are_flattened_in_scan_order(tmp_pat
     export_labels(lp, cp, labels, np.array([[0.5, 0.25], [0.75, 1.0]]), EXPORT_IDS)
     np.testing.assert_array_equal(read_label(lp, 4), [10, 48, 0, 40])
     np.testing.assert_array_equal(read_confidence(cp, 4), np.array([0.5, 0.25, 0.0, 1.0], np.float32))
+
+
+def test_export_writes_instance_ids_and_moving_ids(tmp_path) -> None:
+    labels = np.array([0, 0, -1, 1, 0], np.int16)
+    conf = np.ones(5, np.float32)
+    moving_ids = np.array([252, 40, 48], np.uint32)  # car moves as 252; road and sidewalk have none
+    lp, cp = tmp_path / "000000.label", tmp_path / "000000.conf"
+    export_labels(
+        lp,
+        cp,
+        labels,
+        conf,
+        EXPORT_IDS,
+        instance=np.array([3, 7, 9, 0, 0]),
+        moving=np.array([True, False, True, False, False]),
+        moving_ids=moving_ids,
+    )
+    # A moving car of track 3, a static car of track 7; an unlabeled point carries no instance; stuff 0.
+    assert read_label(lp, 5).tolist() == [252 | 3 << 16, 10 | 7 << 16, 0, 40, 10]
+    with pytest.raises(ValueError, match="moving_ids"):
+        export_labels(lp, cp, labels, conf, EXPORT_IDS, moving=np.ones(5, bool))

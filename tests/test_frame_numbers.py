@@ -149,7 +149,7 @@ def test_a_run_without_poses_stops_before_any_work(no_poses: Path, tmp_path: Pat
     with pytest.raises(
         PosesMissingError,
         match=r"poses\.txt: no poses: the 3D stages \(fuse, label_points, "
-        r"evaluate\) need one pose per scan",
+        r"tracks, evaluate\) need one pose per scan",
     ) as exc:
         label(no_poses, schema, PipelineConfig(), tmp_path / "run")
     assert exc.value.path == str(no_poses / "poses.txt")

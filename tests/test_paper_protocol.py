@@ -261,7 +261,7 @@ def test_common_points_by_hand() -> None:
 def test_common_protocol_scores_every_row_on_the_points_all_rows_label(run, street: Path) -> None:
     run_dir, result = run
     m = json.loads(SequenceLayout(run_dir).metrics.read_text())
-    assert m["rows"] == ["point", "voxel"]
+    assert m["rows"] == ["point", "voxel", "objects"]
     schema = builtin_schema("semantickitti")
     seq, lay = KittiSequence(street), SequenceLayout(run_dir)
     voxel = SmoothedGrid.load(lay.grid_smooth)

@@ -69,8 +69,11 @@ TR = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=
 P2 = np.array([[F, 0, W / 2, 0], [0, F, H / 2, 0], [0, 0, 1, 0]], dtype=np.float64)
 
 
-def _raycast(origin: np.ndarray, dirs: np.ndarray, max_range: float = 45.0) -> tuple:
-    """Nearest hit of each ray: (t, semantic id, instance id); t = inf for no hit."""
+def _raycast(
+    origin: np.ndarray, dirs: np.ndarray, max_range: float = 45.0, boxes: list | None = None
+) -> tuple:
+    """Nearest hit of each ray among the ground and ``boxes`` (default :data:`BOXES`): (t, semantic id,
+    instance id); t = inf for no hit."""
     n = dirs.shape[0]
     t_best = np.full(n, np.inf)
     sem = np.zeros(n, np.uint16)
@@ -82,7 +85,7 @@ def _raycast(origin: np.ndarray, dirs: np.ndarray, max_range: float = 45.0) -> t
         ground = np.where(hit_y < 4, ROAD, np.where(hit_y < 6, SIDEWALK, TERRAIN))
         t_best = np.where(ok, t, t_best)
         sem = np.where(ok, ground, sem).astype(np.uint16)
-        for x0, x1, y0, y1, z0, z1, s, k in BOXES:
+        for x0, x1, y0, y1, z0, z1, s, k in BOXES if boxes is None else boxes:
             lo = (np.array([x0, y0, z0]) - origin) / dirs
             hi = (np.array([x1, y1, z1]) - origin) / dirs
             tn = np.nanmax(np.minimum(lo, hi), axis=1)
@@ -98,8 +101,10 @@ def _raycast(origin: np.ndarray, dirs: np.ndarray, max_range: float = 45.0) -> t
     return t_best, sem, inst
 
 
-def make_street(root: Path, n_frames: int = 6, step: float = 1.5) -> Path:
-    """Write a KITTI-layout sequence with scans, labels, images and 2D ground truth."""
+def make_street(root: Path, n_frames: int = 6, step: float = 1.5, movers: tuple = ()) -> Path:
+    """Write a KITTI-layout sequence with scans, labels, images and 2D ground truth (no times.txt: scans
+    0.1 s apart). ``movers``: boxes as in :data:`BOXES` plus a velocity ``(vx, vy)`` in m/s, placed at
+    ``frame × 0.1 s``."""
     root.mkdir(parents=True, exist_ok=True)
     write_calib(root / "calib.txt", Calib(P2=P2, Tr=TR))
     lidar_poses = []
@@ -116,14 +121,18 @@ def make_street(root: Path, n_frames: int = 6, step: float = 1.5) -> Path:
         pose = np.eye(4)
         pose[:3, 3] = origin
         lidar_poses.append(pose)
-        t, sem, inst = _raycast(origin, ldirs)
+        boxes = BOXES + [
+            (x0 + vx * i * 0.1, x1 + vx * i * 0.1, y0 + vy * i * 0.1, y1 + vy * i * 0.1, z0, z1, sem_id, k)
+            for (x0, x1, y0, y1, z0, z1, sem_id, k), (vx, vy) in movers
+        ]
+        t, sem, inst = _raycast(origin, ldirs, boxes=boxes)
         hit = np.isfinite(t)
         xyz = (ldirs[hit] * t[hit, None]).astype(np.float32)  # LiDAR frame: no rotation
         pts = np.concatenate([xyz, np.full((xyz.shape[0], 1), 0.5, np.float32)], axis=1)
         fid = f"{i:06d}"
         write_scan(root / "velodyne" / f"{fid}.bin", pts)
         write_label(root / "labels" / f"{fid}.label", sem[hit], inst[hit])
-        pt, psem, pinst = _raycast(origin, pdirs)
+        pt, psem, pinst = _raycast(origin, pdirs, boxes=boxes)
         write_png16(root / "gt2d" / "semantic" / f"{fid}.png", psem.reshape(H, W))
         write_png16(root / "gt2d" / "instance" / f"{fid}.png", pinst.reshape(H, W))
         seen = np.isfinite(pt)
@@ -201,7 +210,7 @@ def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
     assert all(status[s]["status"] in ("done", "skipped") for s in STAGES)
 
     m = result.metrics
-    assert m is not None and set(m.rows) == {"point", "voxel"}
+    assert m is not None and set(m.rows) == {"point", "voxel", "objects"}
     cam, allp = m.table("camera"), m.table("all")
     # Voxels fuse several noisy views and label points the camera does not see in that scan.
     assert cam["voxel"].miou > 0.5
@@ -218,6 +227,7 @@ def test_exported_ids_match_metrics(baseline, street: Path, schema) -> None:
     seq = KittiSequence(street)
     gt_all, pred_all = [], []
     raw_to_idx = {int(e): i for i, e in enumerate(schema.export_ids())}
+    raw_to_idx |= {int(e): i for i, e in enumerate(schema.moving_export_ids())}
     for i, fid in enumerate(seq.frame_ids):
         frame = seq.frame(i)
         gt_all.append(schema.map_gt(frame.labels))
@@ -230,7 +240,7 @@ def test_exported_ids_match_metrics(baseline, street: Path, schema) -> None:
         schema.categories(),
         ignore_unlabeled_pred=False,
     )
-    assert m.miou == pytest.approx(result.metrics.miou("all", "voxel"), abs=1e-9)
+    assert m.miou == pytest.approx(result.metrics.miou("all", "objects"), abs=1e-9)
 
 
 def test_second_run_skips_everything(baseline, street: Path, schema) -> None:
@@ -249,9 +259,22 @@ def test_changing_k_reruns_only_smooth_and_later(baseline, street: Path, schema,
     run_dir = _copy_run(baseline, tmp_path / "copy")
     cfg = config_from_dict({"smoothing": {"k": 4}})
     plan = plan_stages(street, schema, cfg, run_dir)
-    assert [s for s, todo in plan.items() if todo] == ["smooth", "3dcn", "label_points", "evaluate", "export"]
+    assert [s for s, todo in plan.items() if todo] == [
+        "smooth",
+        "3dcn",
+        "label_points",
+        "tracks",
+        "evaluate",
+        "export",
+    ]
     result = label(street, schema, cfg, tmp_path / "copy")
-    assert result.ran == ["smooth", "label_points", "evaluate", "export"]  # 3dcn is off: nothing to run
+    assert result.ran == [
+        "smooth",
+        "label_points",
+        "tracks",
+        "evaluate",
+        "export",
+    ]  # 3dcn is off: nothing to run
     # A colour edit changes nothing downstream.
     recolored = schema.with_classes(
         [dataclasses.replace(schema.classes[0], color=(1, 2, 3)), *schema.classes[1:]]
@@ -285,11 +308,14 @@ def _downstream(names: set[str]) -> set[str]:
     [
         (
             {"projection": {"min_depth": 0.8}},
-            ["project", "fuse", "smooth", "3dcn", "label_points", "evaluate", "export"],
+            ["project", "fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export"],
         ),
-        ({"fusion": {"prob_floor": 0.002}}, ["fuse", "smooth", "3dcn", "label_points", "evaluate", "export"]),
-        ({"smoothing": {"k": 4}}, ["smooth", "3dcn", "label_points", "evaluate", "export"]),
-        ({"consistency": {"enabled": True}}, ["3dcn", "label_points", "evaluate", "export"]),
+        (
+            {"fusion": {"prob_floor": 0.002}},
+            ["fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export"],
+        ),
+        ({"smoothing": {"k": 4}}, ["smooth", "3dcn", "label_points", "tracks", "evaluate", "export"]),
+        ({"consistency": {"enabled": True}}, ["3dcn", "label_points", "tracks", "evaluate", "export"]),
         # A disabled 3D-CN's settings and the strength of corrections the run does not have are not inputs.
         ({"consistency": {"share": 0.3}}, []),
         ({"correction_strength": 20.0}, []),
@@ -706,8 +732,8 @@ def test_a_run_without_poses_is_refused_only_when_an_enabled_stage_needs_them(
     require_poses(seq, PipelineConfig(), STAGE_TABLE[:2])  # the 2D labels and the projection need none
     require_poses(KittiSequence(street), on, STAGE_TABLE)
     for cfg, needing in (
-        (PipelineConfig(), "fuse, label_points, evaluate"),
-        (on, "fuse, 3dcn, label_points, evaluate"),
+        (PipelineConfig(), "fuse, label_points, tracks, evaluate"),
+        (on, "fuse, 3dcn, label_points, tracks, evaluate"),
     ):
         with pytest.raises(PosesMissingError, match=rf"poses\.txt: no poses: the 3D stages \({needing}\)"):
             require_poses(seq, cfg, STAGE_TABLE)
@@ -1196,9 +1222,9 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
     }
     cfg = config_from_dict({"consistency": tiny})
     result = label(street, schema, cfg, out)
-    assert result.ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert result.ran == ["3dcn", "label_points", "tracks", "evaluate", "export"]
     m = result.metrics
-    assert m.rows == ["point", "voxel", "+3D-CN x1", "+3D-CN x2"]
+    assert m.rows == ["point", "voxel", "+3D-CN x1", "+3D-CN x2", "objects"]
     # The network predicts every point, so every point gets a label (all-points protocol share = 1).
     assert m.table("all")["+3D-CN x2"].labeled_share == pytest.approx(1.0)
     assert m.table("all")["voxel"] == baseline[1].metrics.table("all")["voxel"]
@@ -1212,7 +1238,7 @@ def test_3dcn_rows_and_caching(baseline, street: Path, schema, tmp_path: Path) -
     grid_before = (run_dir / "grid_3dcn1.npz").read_bytes()
     warmer = config_from_dict({"consistency": {**tiny, "temperature": 4.0}})
     again = label(street, schema, warmer, out)
-    assert again.ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert again.ran == ["3dcn", "label_points", "tracks", "evaluate", "export"]
     assert (ckpt1.stat().st_mtime_ns, ckpt1.read_bytes()) == before  # not retrained, not rewritten
     assert (run_dir / "grid_3dcn1.npz").read_bytes() != grid_before  # ... yet fused back with the new T
     assert "+3D-CN x1" in (result_tables(run_dir) or "")

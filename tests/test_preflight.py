@@ -54,6 +54,7 @@ def test_a_complete_sequence_can_run_every_stage(seq: TinySequence) -> None:
         "smooth": "runs",
         "3dcn": "skipped",
         "label_points": "runs",
+        "tracks": "runs",
         "evaluate": "runs",
         "export": "runs",
     }
@@ -66,7 +67,7 @@ def test_without_poses_only_the_3d_stages_are_blocked(seq: TinySequence) -> None
     assert r.verdict == "partial" and r.poses.source == "missing"
     states = _stages(r)
     assert states["labels2d"] == states["project"] == "runs"
-    three_d = ("fuse", "smooth", "3dcn", "label_points", "evaluate", "export")
+    three_d = ("fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export")
     assert all(states[s] == "blocked" for s in three_d)
     f = r.finding("poses_missing")
     assert f is not None and f.path == str(seq.root / "poses.txt")

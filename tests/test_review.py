@@ -116,3 +116,93 @@ def test_dim_outside_keeps_the_focused_voxels() -> None:
     out = vl.dim_outside(colors, np.array([7, 3, 9]), np.array([3]), toward=(200, 200, 200), alpha=0.75)
     # (1-0.75)*0 + 0.75*200 = 150; (0.25*40 + 150) = 160
     assert out.tolist() == [[150, 150, 150], [200, 100, 0], [160, 160, 160]]
+
+
+def test_regions_rank_by_expected_wrong_so_a_speck_comes_after_a_large_uncertain_area() -> None:
+    # A speck of 2 very uncertain voxels and an area of 3 fairly uncertain ones.
+    conf = np.array([0.1, 0.1, 0.6, 0.6, 0.5, 1.0], np.float32)
+    cand = np.array([True, True, True, True, True, False])
+    wrong = rl.confidence_wrong(conf)
+    assert wrong.tolist() == pytest.approx([0.9, 0.9, 0.4, 0.4, 0.5, 0.0])
+    by_score = rl.rank_regions(CENTRES, conf, cand, 4.0)
+    assert [r.id for r in by_score] == ["4m:0,0,0", "4m:2,0,0"]  # lowest mean confidence first
+    ranked = rl.rank_regions(CENTRES, conf, cand, 4.0, wrong=wrong)
+    # Expected wrong voxels: speck 0.9 + 0.9 = 1.8, area 0.4 + 0.4 + 0.5 = 1.3 ... the speck still wins here,
+    assert [(r.id, r.expected_wrong) for r in ranked] == [
+        ("4m:0,0,0", pytest.approx(1.8)),
+        ("4m:2,0,0", pytest.approx(1.3)),
+    ]
+    # ... but not once the area's voxels are a little less sure: 3 × 0.7 = 2.1 > 1.8.
+    conf2 = np.array([0.1, 0.1, 0.3, 0.3, 0.3, 1.0], np.float32)
+    ranked2 = rl.rank_regions(CENTRES, conf2, cand, 4.0, wrong=rl.confidence_wrong(conf2))
+    assert [r.id for r in ranked2] == ["4m:2,0,0", "4m:0,0,0"]
+    assert [r.id for r in rl.rank_regions(CENTRES, conf2, cand, 4.0)] == ["4m:0,0,0", "4m:2,0,0"]
+    # The minimum size drops the speck.
+    sized = rl.rank_regions(CENTRES, conf2, cand, 4.0, wrong=rl.confidence_wrong(conf2), min_count=3)
+    assert [r.id for r in sized] == ["4m:2,0,0"]
+    # Disagreement: the disagreeing share times the camera-labelled points.
+    rate = np.array([1.0, 1.0, 0.5, 0.5, 0.25, 0.0], np.float32)
+    observed = np.array([1, 1, 10, 10, 8, 0])
+    assert rl.disagreement_wrong(rate, observed).tolist() == [1.0, 1.0, 5.0, 5.0, 2.0, 0.0]
+    dis = rl.rank_regions(
+        CENTRES, rate, cand, 4.0, wrong=rl.disagreement_wrong(rate, observed), ascending=False
+    )
+    assert [(r.id, r.expected_wrong) for r in dis] == [("4m:2,0,0", 12.0), ("4m:0,0,0", 2.0)]
+
+
+def test_the_minimum_region_size_is_bounded() -> None:
+    from app.viewer.records import SessionConfig
+    from leap_core.errors import ConfigError
+
+    assert SessionConfig().queue_min_count == 10
+    with pytest.raises(ConfigError, match=r"queue_min_count: must be in \[1, 100000\], got 0"):
+        SessionConfig(queue_min_count=0)
+    with pytest.raises(ConfigError, match="queue_min_count"):
+        SessionConfig(queue_min_count=10**9)
+
+
+def test_zoom_box_keeps_the_aspect_and_the_image() -> None:
+    # A 4-pixel box in a 200 × 100 image: a crop of a quarter of the width (50 × 25), centred on it.
+    assert review.zoom_box((98, 48, 101, 51), 200, 100) == (75, 38, 124, 62)
+    # Near a corner the crop shifts inside the image.
+    assert review.zoom_box((0, 0, 3, 3), 200, 100) == (0, 0, 49, 24)
+    assert review.zoom_box((196, 96, 199, 99), 200, 100) == (150, 75, 199, 99)
+    # A box larger than a quarter: the crop holds it (tall box → height rules: 60 px high → 120 wide).
+    assert review.zoom_box((10, 20, 29, 79), 200, 100) == (0, 20, 119, 79)
+    # Never larger than the image.
+    assert review.zoom_box((0, 0, 199, 99), 200, 100) == (0, 0, 199, 99)
+
+
+def test_crop_zoom_enlarges_the_crop_to_the_image_size() -> None:
+    img = np.zeros((4, 8, 3), np.uint8)
+    img[1, 2] = (255, 0, 0)
+    img[2, 3] = (0, 255, 0)
+    out = review.crop_zoom(img, (2, 1, 3, 2))  # 2 × 2 crop → 8 × 4 image, each pixel 4 × 2
+    assert out.shape == img.shape
+    assert (out[:2, :4] == (255, 0, 0)).all() and (out[2:, 4:] == (0, 255, 0)).all()
+    assert (out[:2, 4:] == 0).all() and (out[2:, :4] == 0).all()
+
+
+def test_focus_highlight_and_faded_scan_colours() -> None:
+    from app.viewer import nav_logic as nl
+
+    cols = np.array([[255, 0, 0], [0, 0, 0]], np.uint8)
+    hi = rl.highlight_colors(cols)
+    # 0.65 · c + 0.35 · (0, 255, 255)
+    assert hi.tolist() == [[166, 89, 89], [0, 89, 89]]
+    assert nl.focus_scan_colors(cols, False) is cols
+    faded = nl.focus_scan_colors(cols, True)
+    assert faded.tolist() == [[238, 200, 200], [200, 200, 200]]  # 0.15 · c + 0.85 · 235
+
+
+def test_disagreement_colour_mode_colours_and_thresholds_the_rate() -> None:
+    label = np.array([0, 1, 0], np.int16)
+    conf = np.array([0.9, 0.9, 0.9], np.float32)
+    rate = np.array([0.0, 1.0, 0.5], np.float32)
+    palette = np.array([[10, 20, 30], [40, 50, 60]], np.uint8)
+    state = vl.ViewState(mode="disagreement", threshold=0.4)
+    rows, colors = vl.render_view(state, label, conf, palette, rate)
+    assert rows.tolist() == [1, 2]  # the rate, not the confidence, meets the threshold
+    assert colors.tolist() == vl.scalar_colors(rate[[1, 2]]).tolist()
+    with pytest.raises(ValueError, match="disagreement mode needs"):
+        vl.render_view(state, label, conf, palette, None)

@@ -390,10 +390,10 @@ def test_the_3dcn_trains_one_network_on_every_sequence(joint) -> None:
         member = layout.sequence(name)
         assert not (member.folder / "3dcn").exists()  # no network of its own
         assert member.grid_smooth_3dcn(1).samefile(layout.joint_rounds(name).grid_smooth_3dcn(1))
-        assert result.sequences[name].metrics.rows == ["point", "voxel", "+3D-CN x1"]
+        assert result.sequences[name].metrics.rows == ["point", "voxel", "+3D-CN x1", "objects"]
         with np.load(member.points("000000")) as z:
             assert (z["label"] >= 0).all()  # the network labels every point
-    assert result.metrics.overall.rows == ["point", "voxel", "+3D-CN x1"]
+    assert result.metrics.overall.rows == ["point", "voxel", "+3D-CN x1", "objects"]
 
 
 @pytest.mark.slow
@@ -412,8 +412,16 @@ def test_a_change_in_one_sequence_reruns_the_3dcn_of_all(joint, streets, schema,
         keys = np.asarray(z["keys"][:50])
     save_corrections(member.corrections, keys, np.zeros(len(keys), np.int64))
     changed = run_pipeline(_specs(streets), schema, cfg, out)
-    assert changed.sequences["01"].ran == ["fuse", "smooth", "3dcn", "label_points", "evaluate", "export"]
-    assert changed.sequences["00"].ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert changed.sequences["01"].ran == [
+        "fuse",
+        "smooth",
+        "3dcn",
+        "label_points",
+        "tracks",
+        "evaluate",
+        "export",
+    ]
+    assert changed.sequences["00"].ran == ["3dcn", "label_points", "tracks", "evaluate", "export"]
     old = RunLayout(result.root).sequence("00").grid_3dcn(1).read_bytes()
     assert RunLayout(out).sequence("00").grid_3dcn(1).read_bytes() != old
 
@@ -432,13 +440,17 @@ def test_a_source_network_starts_the_3dcn_and_is_part_of_its_fingerprint(
     shutil.copy(RunLayout(out).cn_dir / "3dcn_iter1.pt", source)
     runtime = Runtime(init_3dcn=source)
     tuned = run_pipeline(_specs(streets), schema, cfg, out, runtime=runtime)
-    assert all(r.ran == ["3dcn", "label_points", "evaluate", "export"] for r in tuned.sequences.values())
+    assert all(
+        r.ran == ["3dcn", "label_points", "tracks", "evaluate", "export"] for r in tuned.sequences.values()
+    )
     meta = load_checkpoint(RunLayout(out).cn_dir / "3dcn_iter1.pt").meta
     assert meta["source"] == file_digest(source)
     again = run_pipeline(_specs(streets), schema, cfg, out, runtime=runtime)
     assert all(r.ran == [] for r in again.sequences.values())
     back = run_pipeline(_specs(streets), schema, cfg, out)  # no source: the random-weight network again
-    assert all(r.ran == ["3dcn", "label_points", "evaluate", "export"] for r in back.sequences.values())
+    assert all(
+        r.ran == ["3dcn", "label_points", "tracks", "evaluate", "export"] for r in back.sequences.values()
+    )
 
 
 @pytest.mark.slow
@@ -470,7 +482,7 @@ def test_3dcn_resumes_after_cancel(joint, streets, schema, tmp_path) -> None:
     trained = ckpt.stat().st_mtime_ns
     again = run_pipeline(_specs(streets), schema, cfg, out)
     assert ckpt.stat().st_mtime_ns == trained  # the checkpoint was reused, not retrained
-    assert again.sequences["00"].ran == ["3dcn", "label_points", "evaluate", "export"]
+    assert again.sequences["00"].ran == ["3dcn", "label_points", "tracks", "evaluate", "export"]
     for name in ("00", "01"):
         assert _files(RunLayout(out).sequence(name).export_dir) == _files(
             RunLayout(result.root).sequence(name).export_dir
@@ -489,7 +501,7 @@ def test_switching_the_3dcn_off_gives_the_runs_without_it_again(
     for name in ("00", "01"):
         member = RunLayout(out).sequence(name)
         assert not member.joint_3dcn.exists()
-        assert off.sequences[name].ran == ["label_points", "evaluate", "export"]
+        assert off.sequences[name].ran == ["label_points", "tracks", "evaluate", "export"]
         assert _files(member.export_dir) == _files(RunLayout(multi.root).sequence(name).export_dir)
     assert off.metrics == multi.metrics
 
@@ -662,7 +674,7 @@ def test_cli_run_of_another_sequence_in_a_run_folder_gets_its_own_folder(streets
     again = _cli("run", str(streets["00"]), "--out", str(out), "--frames", "0:2")
     assert again.exit_code == 0, again.output
     timing = again.output.split("stages: ")[1].splitlines()[0]
-    assert timing.count("cached") == 7 and "3dcn skipped" in timing, timing
+    assert timing.count("cached") == 8 and "3dcn skipped" in timing, timing
     assert RunLayout(out).names() == ["00"]
 
 

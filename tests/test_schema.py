@@ -279,7 +279,7 @@ CASES: list[tuple[str, Mutation, str]] = [
     (
         "duplicate export id",
         _set(2, "export_id", 10),
-        "classes[2] 'motorcycle': export_id 10 is already used by classes[0] 'car'",
+        "classes[2] 'motorcycle': export_id 10 is already the export_id of classes[0] 'car'",
     ),
     (
         "gt id in two classes",
@@ -418,3 +418,50 @@ def test_with_classes_validates_and_keeps_the_rest() -> None:
     clash = ClassDef("lane", (9, 9, 9), ("lane",), 60, gt_ids=(40,))
     with pytest.raises(SchemaError, match="gt id 40 is already mapped to classes\\[1\\] 'road'"):
         schema.with_classes([*schema.classes, clash])
+
+
+# ------------------------------------------------------------------------------- things and movers
+SEMANTICKITTI_MOVING = {
+    "car": 252, "bicyclist": 253, "person": 254, "motorcyclist": 255, "truck": 258, "other-vehicle": 259,
+}  # fmt: skip
+
+
+def test_builtin_things_and_moving_ids(kitti: Schema) -> None:
+    things = {c.name for c in kitti.classes if c.thing}
+    assert things == {"car", "bicycle", "motorcycle", "truck", "other-vehicle", "person", "bicyclist",
+                      "motorcyclist"}  # fmt: skip
+    assert {c.name: c.moving_id for c in kitti.classes if c.moving_id} == SEMANTICKITTI_MOVING
+    assert kitti.things().tolist() == [c.name in things for c in kitti.classes]
+    moving = kitti.moving_export_ids()
+    assert moving[kitti.index("person")] == 254 and moving[kitti.index("road")] == 40
+
+
+def test_older_schema_without_the_keys_gets_semantickitti_things(kitti: Schema) -> None:
+    doc = kitti.to_dict()
+    for c in doc["classes"]:
+        del c["thing"], c["moving_id"]
+    old = Schema.from_dict(doc)
+    assert old == kitti
+    # A class named like a SemanticKITTI thing but with another export id is not guessed to be one.
+    assert ClassDef("car", (1, 2, 3), ("car",), 4).thing is False
+
+
+@pytest.mark.parametrize(
+    ("entry", "problem"),
+    [
+        ({"thing": "yes"}, "thing must be true or false"),
+        ({"thing": False, "moving_id": 300}, "only a thing"),
+        ({"thing": True, "moving_id": 7}, "equals export_id"),
+        ({"thing": True, "moving_id": 70000}, "moving_id must be an integer"),
+    ],
+)
+def test_thing_fields_are_checked(entry: dict[str, Any], problem: str) -> None:
+    with pytest.raises(SchemaError, match=problem):
+        ClassDef("x", (1, 2, 3), ("x",), 7, **entry)
+
+
+def test_moving_id_may_not_be_another_class_export_id() -> None:
+    a = ClassDef("a", (1, 2, 3), ("a",), 10, thing=True, moving_id=40)
+    b = ClassDef("b", (1, 2, 3), ("b",), 40)
+    with pytest.raises(SchemaError, match="export_id 40 is already the moving_id of classes\\[0\\] 'a'"):
+        Schema("s", (a, b))

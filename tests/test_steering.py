@@ -33,7 +33,9 @@ from leap_core.pipeline import (
 )
 from leap_core.pipeline.context import read_state
 from leap_core.pipeline.steering import (
+    CorrectionNote,
     changed_sections,
+    correction_changes,
     ignored_reason,
     recompute_plan,
     run_changes,
@@ -198,6 +200,39 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert sections == ["grounded_sam", "smoothing"]
 
 
+def test_corrections_and_pose_estimation_are_changes() -> None:
+    notes = {
+        1: CorrectionNote("car, map, 3 voxels", made_after=False),
+        2: CorrectionNote("road, map, 9 voxels", made_after=True),
+        3: CorrectionNote("erase, scan 000004, 1 point", made_after=False),
+        4: CorrectionNote("car, map, 1 voxel", made_after=False, exists=False),
+        5: CorrectionNote("pole, map, 2 voxels", made_after=False),
+    }
+    old = {"00": [1, 3, 4, 5]}
+    new = {"00": [5, 2, 1]}  # 3 switched off, 4 gone, 2 new; 1 and 5 in both (their order is the made order)
+    texts = [c.text for c in correction_changes(old, new, notes)]
+    assert texts == [
+        "correction 2 (road, map, 9 voxels) added",
+        "correction 3 (erase, scan 000004, 1 point) switched off",
+        "correction 4 (car, map, 1 voxel) removed",
+    ]
+    assert {c.kind for c in correction_changes(old, new, notes)} == {"correction"}
+    back = [c.text for c in correction_changes({"00": [1]}, {"00": [1, 3], "01": [5]}, notes)]
+    assert back == [
+        "correction 3 (erase, scan 000004, 1 point) in sequence 00 switched on",
+        "correction 5 (pole, map, 2 voxels) in sequence 01 switched on",
+    ]
+    assert correction_changes(old, old, notes) == []
+    schema = builtin_schema("semantickitti")
+    off, on = _snapshot(schema, PipelineConfig()), _snapshot(schema, PipelineConfig())
+    on["estimate_poses"] = True
+    poses = run_changes(off, on)
+    assert [(c.kind, c.subject, c.text) for c in poses] == [
+        ("poses", "estimate_poses", "Estimate poses (KISS-ICP): off → on")
+    ]
+    assert [c.text for c in run_changes(on, off)] == ["Estimate poses (KISS-ICP): on → off"]
+
+
 def test_run_changes_list_the_sequences_added_removed_and_moved() -> None:
     """Sequences are matched by name: one added or removed, one whose folder or frames changed; each
     change names the sequence as its subject, the sequences' changes coming first."""
@@ -318,7 +353,7 @@ def test_the_preview_agrees_with_the_runner(
         assert all(p.action != "recompute" for p in plan.values())
     if variant == "k":
         assert plan["smooth"].reason == "settings changed: smoothing"
-        assert plan["labels2d"].action == "reuse" and plan["export"].reason == "after Point labels"
+        assert plan["labels2d"].action == "reuse" and plan["export"].reason == "after Point labels, Objects"
 
 
 def test_plan_reasons_without_a_previous_run_and_for_unfinished_stages() -> None:

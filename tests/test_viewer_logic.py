@@ -500,13 +500,13 @@ def test_session_shows_edits_and_corrects_through_the_store(review_store) -> Non
         assert view is not None and session.scene.scan.count == 60
         assert session.scene.camera.handle is not None and view.overlay is not None
 
-        # Review queue: lowest-confidence regions first; the camera target moves there.
+        # Review queue: the regions expected to hold the most wrong voxels first; the camera goes there.
         regions = session.queue.build_queue("confidence")
-        assert regions and all(a.score <= b.score for a, b in pairwise(regions))
+        assert regions and all(a.expected_wrong >= b.expected_wrong for a, b in pairwise(regions))
         assert session.queue.next_region() == regions[0]
         session.queue.clear_focus()
         dis = session.queue.build_queue("disagreement")
-        assert dis and all(a.score >= b.score for a, b in pairwise(dis))
+        assert dis and all(a.expected_wrong >= b.expected_wrong for a, b in pairwise(dis))
 
         # Steering: a renamed, recoloured, re-prompted class lands in the project's SQLite row.
         session.classes.update_class(1, name="vehicle", color=(1, 2, 3), prompts=["car", "van"])
@@ -760,11 +760,27 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
         held = session.grid.centres[region.rows]
         np.testing.assert_allclose(box.position, (held.min(axis=0) + held.max(axis=0)) / 2, atol=1e-5)
 
-        # Scan jump: brute force over every scan (three here, all within queue_scans).
+        # Drawn filled on top: the region's voxels again, larger, in their colours pulled toward cyan.
+        focus = session.scene.focus
+        assert focus.visible and focus.count == region.count
+        assert focus.point_size > session.scene.voxels.point_size
+        np.testing.assert_array_equal(focus.handle.points, session.grid.centres[region.rows])
+        np.testing.assert_array_equal(focus.handle.colors, rl.highlight_colors(full[region.rows]))
+
+        # Scan jump: brute force over every scan (three here, all within queue_scans), nearest first on a tie.
         out = session.outputs
+        order = review.nearest_scans(out.seq.poses[out.frame_indices, :3, 3], region.centre, 99)
+        counts = [out.region_observers(out.frame_indices[i], keys[region.rows], 0.5) for i in order]
+        first = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
+        assert first is not None
+        best = int(order[first])
         counts = [out.region_observers(f, keys[region.rows], 0.5) for f in out.frame_indices]
-        best = review.best_observer([c[1] for c in counts], [c[0] for c in counts])
-        assert best is not None and session.queue.focus_frame == best and session.player.frame_pos == best
+        assert session.queue.focus_frame == best and session.player.frame_pos == best
+        # The scan's points fade while the region is focused.
+        scan_full = vl.class_colors(session.shared.scan_label, session.palette)
+        np.testing.assert_array_equal(
+            session.scene.scan.handle.colors, vl.blend(scan_full, (235, 235, 235), 0.85)
+        )
         # The image shows where the region is: its projected points boxed in magenta.
         assert counts[best][1] > 0, "the tiny scene's camera should see the region"
         plain = out.scan_view(out.frame_indices[best], session.palette)
@@ -772,6 +788,12 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
         u0, v0, u1, v1 = review.image_box(counts[best][2], plain.overlay.shape[1], plain.overlay.shape[0])
         assert boxed.overlay[v0, u0].tolist() == list(REVIEW_BOX_RGB)
         assert boxed.overlay[v1, (u0 + u1) // 2].tolist() == list(REVIEW_BOX_RGB)
+        # The enlarged image is the crop around that box, zoomed to the image's size.
+        h, w = plain.overlay.shape[:2]
+        zoomed = session.player.zoomed_image()
+        crop = review.zoom_box((u0, v0, u1, v1), w, h)
+        np.testing.assert_array_equal(zoomed, review.crop_zoom(session.shared.scan_view.overlay, crop))
+        assert zoomed.shape == plain.overlay.shape and crop[2] - crop[0] + 1 < w
 
         # Accept, then skip: stored in SQLite, the next unmarked region is shown each time.
         nxt = session.queue.mark_region("accepted")
@@ -790,7 +812,10 @@ def test_session_review_queue_highlights_jumps_and_keeps_marks(review_store) -> 
         session.queue.clear_focus()
         assert session.queue.focus is None and session.renderer.wait_drawn()
         np.testing.assert_array_equal(session.scene.voxels.handle.colors, full)
-        assert not session.scene.review_box.visible
+        assert not session.scene.review_box.visible and not session.scene.focus.visible
+        assert session.player.zoomed_image() is None
+        scan_full = vl.class_colors(session.shared.scan_label, session.palette)
+        np.testing.assert_array_equal(session.scene.scan.handle.colors, scan_full)
         pos = session.player.frame_pos
         plain = out.scan_view(out.frame_indices[pos], session.palette)
         np.testing.assert_array_equal(session.shared.scan_view.overlay, plain.overlay)
@@ -853,5 +878,92 @@ def test_the_viewer_chooses_the_projects_2d_labeler_for_the_next_rerun(review_st
         assert "SAM 3" in panel.status.content and "next re-run" in panel.status.content
         panel.labeler.value = "grounded-sam"
         assert session.backend.labeler() == "grounded-sam"
+    finally:
+        session.close()
+
+
+def test_session_delta_mode_marks_the_voxels_whose_class_changed_since_the_run_before(review_store) -> None:
+    """Run 2 lists the classes in another order and changed the class of some voxels: the Δ view shows
+    exactly those in their class colour and the rest pale (classes matched by name, not index)."""
+    import shutil
+
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, run_id, keys, cls = review_store
+    reordered = {**SCHEMA3, "classes": [SCHEMA3["classes"][i] for i in (2, 0, 1)]}  # building, road, car
+    new_index = np.array([1, 2, 0])  # road → 1, car → 2, building → 0
+    changed = np.zeros(keys.size, bool)
+    changed[::4] = True
+    cls2 = np.where(changed, (cls + 1) % 3, cls)  # in run 1's numbering
+    probs = np.full((keys.size, 3), 0.05, np.float32)
+    probs[np.arange(keys.size), new_index[cls2]] = 0.9
+    with open_db(settings.database) as db:
+        first = crud.require_run(db, run_id)
+        run2 = crud.create_run(
+            db,
+            project_id=pid,
+            params=run_params(reordered, first.params.sequences[0].dataset),
+            runs_dir=settings.runs_dir,
+        )
+        crud.update_run(db, run2.id, status="done")
+    folder = run2.sequence_layout("00").folder
+    shutil.copytree(first.sequence_layout("00").folder, folder)
+    _write_grid(folder, keys, probs, voxel_size=0.5)
+
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        assert session.run is not None and session.run.run_id == run2.id
+        session.panel.color_by.value = "Δ since the run before"
+        session.set_state(mode="delta", threshold=0.0)
+        assert session.state.mode == "delta" and session.renderer.wait_drawn()
+        colors = session.scene.voxels.handle.colors
+        palette = np.array([c["color"] for c in reordered["classes"]], np.uint8)
+        np.testing.assert_array_equal(colors[changed], palette[new_index[cls2[changed]]])
+        assert (colors[~changed] == vl.UNCHANGED_RGB).all()
+        assert "unchanged since run 1" in session.panel.legend.content
+        # "Changed only": the threshold keeps the changed voxels.
+        session.set_state(threshold=0.5)
+        assert session.renderer.wait_drawn()
+        assert session.scene.voxels.handle.points.shape[0] == int(changed.sum())
+    finally:
+        session.close()
+
+
+def test_panel_words_stages_counts_corrections_and_clears_a_stale_error(review_store) -> None:
+    from dataclasses import replace
+
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, _run_id, _keys, _cls = review_store
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        panel = session.panel
+        info = replace(session.run, status="running", percent=40.0, stage="00/labels2d")
+        panel.on_run_progress(info)
+        assert panel.status.content == f"Run {info.number} running, 2D labels: 40%"
+        # An action that fails shows its error; the next one that works clears it.
+        panel.guard(lambda: session.tools.set_tools(tool="pencil"))()
+        assert panel.status.content.startswith("**Error:** tool must be")
+        panel.guard(lambda: session.tools.set_tools(tool="lasso"))()
+        assert panel.status.content == ""
+        # One correction: singular.
+        session.tools.select_rows(np.arange(3))
+        assert session.corrections.assign_selection("car") is not None
+        assert panel._corr_summary() == "1 active correction (applied in every later run)."
+        session.tools.select_rows(np.arange(3, 6))
+        session.corrections.assign_selection("road")
+        assert panel._corr_summary() == "2 active corrections (applied in every later run)."
+        # Jump to the first correction: its voxels selected.
+        first = min(c.id for c in session.shared.corrections)
+        assert session.corrections.show_correction(first) == 3
+        np.testing.assert_array_equal(session.tools.selection.rows, np.arange(3))
+        with pytest.raises(LookupError):
+            session.corrections.show_correction(first + 100)
     finally:
         session.close()

@@ -475,7 +475,12 @@ def test_evaluate_scores_each_round_from_its_own_grid(run: Run, tmp_path: Path) 
     round1 = SmoothedGrid(own.keys[::2], np.roll(own.probs[::2], 1, axis=1), own.voxel_size)
     round1.save(lay.grid_smooth_3dcn(1))
     lay.metrics.unlink()
-    cfg = dataclasses.replace(run.cfg, consistency=dataclasses.replace(run.cfg.consistency, iterations=2))
+    cfg = dataclasses.replace(
+        run.cfg,
+        consistency=dataclasses.replace(run.cfg.consistency, iterations=2),
+        # The rows of the grids only: the objects row (the final row with the tracks) is test_objects.py's.
+        tracking=dataclasses.replace(run.cfg.tracking, enabled=False),
+    )
     calls: list[tuple[str, int, int]] = []
     assert _evaluate(run, lay, cfg, run.seq, progress=lambda *a: calls.append(a)) == {}
     n = len(run.frames)

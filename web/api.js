@@ -20,18 +20,79 @@ export class ApiError extends Error {
   }
 }
 
+/** A 422 location as a field path: ["body", "classes", 19, "name"] → "classes[19].name". */
+export function fieldPath(loc) {
+  let path = "";
+  for (const [i, part] of (loc || []).entries()) {
+    if (i === 0 && ["body", "query", "path"].includes(part)) continue; // where FastAPI found the field
+    if (typeof part === "number" || /^\d+$/.test(String(part))) path += `[${part}]`;
+    else path += path ? `.${part}` : String(part);
+  }
+  return path;
+}
+
+/** What a validation error says of its field, in words (pydantic's error types), without the field. */
+function problemText(d) {
+  const c = d.ctx || {};
+  // The server sends the context's values as text ("1"): numbers come back as numbers.
+  const n = (k) => (c[k] !== undefined && c[k] !== null && !Number.isNaN(Number(c[k])) ? Number(c[k]) : c[k]);
+  switch (d.type) {
+    case "missing":
+      return "is required";
+    case "string_too_short":
+      return n("min_length") === 1 ? "must not be empty" : `must have at least ${n("min_length")} characters`;
+    case "string_too_long":
+      return `must have at most ${n("max_length")} characters`;
+    case "too_short":
+      return `must list at least ${n("min_length")} item${n("min_length") === 1 ? "" : "s"}`;
+    case "too_long":
+      return `must list at most ${n("max_length")} items`;
+    case "greater_than_equal":
+      return `must be at least ${n("ge")}`;
+    case "greater_than":
+      return `must be more than ${n("gt")}`;
+    case "less_than_equal":
+      return `must be at most ${n("le")}`;
+    case "less_than":
+      return `must be less than ${n("lt")}`;
+    case "int_parsing":
+    case "int_type":
+      return "must be a whole number";
+    case "float_parsing":
+    case "float_type":
+      return "must be a number";
+    case "bool_parsing":
+    case "bool_type":
+      return "must be true or false";
+    case "extra_forbidden":
+      return "is not a known field";
+    case "literal_error":
+      return `must be ${n("expected")}`;
+    default: {
+      const msg = String(d.msg || "").replace(/^(Value error|Assertion failed), /, "");
+      return msg ? msg[0].toLowerCase() + msg.slice(1) : "is not valid";
+    }
+  }
+}
+
+/** One field-named sentence per validation error ("name: must not be empty"); a message that names its
+ * field already ("classes[19].name: ...", an uploaded file's "classes[3].prompts: ...") is kept as it is. */
+function validationText(d) {
+  const path = fieldPath(d.loc);
+  let msg = problemText(d);
+  // A message may start by naming its field ("classes: classes[19] ...", "classes[19].name: ..."): keep its
+  // own, more precise naming and drop the repeated prefix.
+  const root = path.split(/[.[]/)[0];
+  const names = (text) => root && text.startsWith(root) && /^[.:[]/.test(text.slice(root.length));
+  while (msg.startsWith(`${root}: `) && names(msg.slice(root.length + 2))) msg = msg.slice(root.length + 2);
+  if (!path || names(msg)) return msg;
+  return `${path}: ${msg}`;
+}
+
 export function errorText(detail) {
   if (detail === null || detail === undefined) return "";
   if (typeof detail === "string") return detail;
-  if (Array.isArray(detail)) {
-    return detail
-      .map((d) => {
-        const loc = (d.loc || []).filter((p) => p !== "body").join(".");
-        // Some messages name their field already (an uploaded file's "classes[3].prompts: ...").
-        return loc && !String(d.msg).startsWith(`${loc}: `) ? `${loc}: ${d.msg}` : d.msg;
-      })
-      .join("; ");
-  }
+  if (Array.isArray(detail)) return detail.map(validationText).join("; ");
   return JSON.stringify(detail);
 }
 

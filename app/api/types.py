@@ -93,6 +93,7 @@ def _short_key(key: str) -> str:
 # ------------------------------------------------------------------------------------------ path params
 ProjectId = Annotated[int, Path(ge=1, le=MAX_INT, description="project id")]
 RunId = Annotated[int, Path(ge=1, le=MAX_INT, description="run id")]
+CorrectionId = Annotated[int, Path(ge=1, le=MAX_INT, description="correction id")]
 PromptIndex = Annotated[int, Path(ge=0, le=MAX_INT, description="index of the prompt in the class's list")]
 SequenceQuery = Annotated[
     str | None,

@@ -263,6 +263,7 @@ class CorrectionApplier:
                 schema.export_ids(),
                 new=new,
                 cache=cache,
+                moving_export_ids=schema.moving_export_ids(),
             )
             if result.frames:
                 exports.invalidate(run.run_dir)

@@ -234,10 +234,10 @@ class JobManager:
                     # Inside this transaction a retry of the stored end would wait for its own lock.
                     self._refuse_when_unsaved(active.id, flush=False)
                     raise Conflict(
-                        f"Project {project_id} already has run {active.id} {active.status}; "
-                        "cancel it or wait for it to finish"
+                        f"Project {project_id} already has run {active.number} (id {active.id}) "
+                        f"{active.status}; cancel it or wait for it to finish"
                     )
-                params = self._snapshot(project, frames)
+                params = self._snapshot(db, project, frames)
                 run = crud.create_run(
                     db, project_id=project_id, params=params, runs_dir=self.settings.runs_dir
                 )
@@ -264,11 +264,15 @@ class JobManager:
                     self._confine_dataset(run.params.dataset_kind, str(seq.dataset))
                 if run.status not in RESUMABLE_STATUSES:
                     raise Conflict(
-                        f"Run {run_id} is {run.status}; only {', '.join(RESUMABLE_STATUSES)} runs resume"
+                        f"Run {run.number} (id {run_id}) is {run.status}; "
+                        f"only {', '.join(RESUMABLE_STATUSES)} runs resume"
                     )
                 active = crud.active_run(db, run.project_id)
                 if active is not None:
-                    raise Conflict(f"Project {run.project_id} already has run {active.id} {active.status}")
+                    raise Conflict(
+                        f"Project {run.project_id} already has run {active.number} (id {active.id}) "
+                        f"{active.status}"
+                    )
                 crud.update_run(db, run_id, status="queued", error=None, finished_at=None)
                 run = crud.require_run(db, run_id)
             expected = self._expected_seconds(db, run.project_id)
@@ -289,7 +293,10 @@ class JobManager:
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
             if run.status not in ACTIVE_STATUSES:
-                raise Conflict(f"Run {run_id} is {run.status}; only queued or running runs can be cancelled")
+                raise Conflict(
+                    f"Run {run.number} (id {run_id}) is {run.status}; "
+                    "only queued or running runs can be cancelled"
+                )
             # queued -> cancelled and queued -> running (_execute) are both conditional updates, so
             # exactly one of them wins.
             if crud.transition_run(db, run_id, "queued", status="cancelled", finished_at=utcnow()):
@@ -380,9 +387,9 @@ class JobManager:
             folder = resolve_in_roots(path, self.settings.data_roots, what="dataset path")
             services.refuse_escaping_entries(folder, self.settings.data_roots, shown=path)
 
-    def _snapshot(self, project: ProjectRow, frames: tuple[int, int] | None) -> RunParams:
-        """What a new run of ``project`` labels (``frames`` only for a project of one sequence) and the
-        progress stages it will go through."""
+    def _snapshot(self, db: Any, project: ProjectRow, frames: tuple[int, int] | None) -> RunParams:
+        """What a new run of ``project`` labels (``frames`` only for a project of one sequence), the
+        corrections it gets and the progress stages it will go through."""
         demo = project.dataset_kind == "demo"
         generate = [s.name for s in project.sequences if demo and not demo_exists(Path(s.dataset_path))]
         estimate = [
@@ -400,6 +407,7 @@ class JobManager:
             stages=tuple(
                 run_stages(project.names, self.stages, joint_3dcn=joint, estimate=estimate, generate=generate)
             ),
+            corrections=active_correction_ids(db, project),
         )
 
     def _prepare_run_dir(self, db: Any, run: RunRow) -> None:
@@ -416,7 +424,7 @@ class JobManager:
         for seq in run.params.sequences:
             lay = run.sequence_layout(seq.name)
             lay.folder.mkdir(parents=True, exist_ok=True)
-            corrections = crud.list_corrections(db, run.project_id, active_only=True, sequence=seq.name)
+            corrections = snapshot_corrections(db, run.project_id, run.params, seq.name)
             run_corrections(corrections, run.params).write(lay.corrections, lay.corrections_scan)
             if previous is not None:
                 linked += seed_sequence(previous.sequence_layout(seq.name), lay)
@@ -1011,6 +1019,25 @@ def link_tree(source: Path, target: Path, keep: Callable[[Path], bool] | None = 
         link_or_copy(src, dst)
         count += 1
     return count
+
+
+def active_correction_ids(db: Any, project: ProjectRow) -> dict[str, tuple[int, ...]]:
+    """Per sequence of ``project``, the ids of its active corrections in the order they were made (what a
+    run queued now gets, :attr:`RunParams.corrections`)."""
+    return {
+        s.name: tuple(c.id for c in crud.list_corrections(db, project.id, active_only=True, sequence=s.name))
+        for s in project.sequences
+    }
+
+
+def snapshot_corrections(db: Any, project_id: int, params: RunParams, sequence: str) -> list[crud.Correction]:
+    """The corrections of ``sequence`` that a run with ``params`` gets: those its snapshot names (the active
+    ones when it was queued, so one made in between is not half in), else the active ones now."""
+    if params.corrections is None:
+        return crud.list_corrections(db, project_id, active_only=True, sequence=sequence)
+    wanted = set(params.corrections.get(sequence, ()))
+    every = crud.list_corrections(db, project_id, active_only=False, sequence=sequence)
+    return [c for c in every if c.id in wanted]
 
 
 def run_corrections(corrections: Sequence[crud.Correction], params: RunParams) -> RunCorrections:

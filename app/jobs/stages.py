@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from leap_core.errors import LeapError
+from leap_core.pipeline.stages import STAGE_TABLE
 from leap_core.run_layout import RunLayout
 
 SEPARATOR = "/"
@@ -33,14 +34,15 @@ UNIT_SECONDS: dict[str, float] = {
     "smooth": 0.003,
     "3dcn": 0.0,
     "label_points": 0.008,
+    "tracks": 0.004,
     "evaluate": 0.004,
     "export": 0.003,
     POSES: 0.05,
     SYNTH: 0.9,
 }
-"""Expected seconds per progress unit (a frame; a scan for the pose estimation) of each stage before a
-run has measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project
-1.5 s, fuse 0.28 s, smooth 0.16 s, label_points 0.49 s, evaluate 0.23 s, export 0.15 s; a sequence's own
+"""Expected seconds per progress unit (a frame; a scan for the pose estimation) of each stage before a run has
+measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project 1.5 s, fuse 0.28
+s, smooth 0.16 s, label_points 0.49 s, tracks about 0.25 s, evaluate 0.23 s, export 0.15 s; a sequence's own
 ``3dcn`` stage only links the rounds' grids). Only their ratios matter until a stage has finished."""
 
 LABELS2D_UNIT_SECONDS: dict[str, float] = {"gt2d": 0.13, "images": 2.0}
@@ -75,6 +77,18 @@ def split_stage(name: str) -> tuple[str | None, str]:
     stored before every run had sequences)."""
     sequence, sep, stage = name.partition(SEPARATOR)
     return (sequence, stage) if sep else (None, name)
+
+
+def stage_words(name: str, several: bool = False) -> str:
+    """A progress stage's name for people, as the project page's run panel words it: the stage's label
+    (``"00/labels2d"`` → ``"2D labels"``), after the sequence when the run has ``several``
+    (``"01 · Voxel fusion"``, ``"all · 3D-CN"`` for the 3D-CN's rounds); a stage outside the pipeline
+    (``"00/estimate poses"``) keeps its words."""
+    sequence, stage = split_stage(name)
+    label = next((s.label for s in STAGE_TABLE if s.name == stage), stage)
+    if sequence is None or not several:
+        return label
+    return f"{'all' if sequence == JOINT else sequence} · {label}"
 
 
 def run_stages(
@@ -154,5 +168,6 @@ __all__ = [
     "split_stage",
     "stage_folder",
     "stage_name",
+    "stage_words",
     "unit_seconds",
 ]

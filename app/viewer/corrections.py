@@ -179,6 +179,43 @@ class Corrections:
             raise ValueError(f"slot must lie in [1, {len(names)}], got {slot}")
         return self.assign_selection(names[slot - 1])
 
+    def show_correction(self, correction_id: int) -> int:
+        """Jump to a stored correction: select what it covers and frame the camera on it. A map-scope
+        correction selects its voxels present in the shown map; a scan-scope one shows its scan and selects
+        its points there. Returns how many voxels or points are selected.
+
+        Raises:
+            LookupError: no correction ``correction_id`` in this project's sequence.
+            ValueError: nothing of it lies in the shown run (its voxels or its scan are not in it).
+        """
+        sh = self.shared
+        with sh.lock:
+            rec = next((c for c in sh.corrections if c.id == correction_id), None)
+            grid, outputs = sh.grid, sh.outputs
+        if rec is None:
+            raise LookupError(f"correction {correction_id} is not one of this sequence's corrections")
+        if grid is None:
+            raise ValueError("no run is shown")
+        rows = grid.rows_of(rec.keys)
+        rows = rows[rows >= 0]
+        if rows.size == 0:
+            raise ValueError(f"correction {correction_id}: none of its voxels is in the shown run's map")
+        centres = grid.centres[rows]
+        lo, hi = centres.min(axis=0), centres.max(axis=0)
+        extent = float(np.linalg.norm(hi - lo)) / 2
+        if rec.scope == "scan" and rec.points is not None and outputs is not None:
+            ids = [outputs.seq.frame_ids[i] for i in outputs.frame_indices]
+            if rec.frame_id not in ids:
+                raise ValueError(f"correction {correction_id}: scan {rec.frame_id} is not in the shown run")
+            self.player.show_scan(ids.index(rec.frame_id), move_camera=False)
+            count = self.tools.select_rows(rec.points, "scan", rec.frame_id)
+        else:
+            count = self.tools.select_rows(rows)
+        pos, target = vl.orbit_view((lo + hi) / 2, max(12.0, 3.0 * extent), elevation_deg=45.0)
+        self.renderer.focus_lod((lo + hi) / 2)
+        self.renderer.scene.look_at(pos, target)
+        return count
+
     def undo(self) -> int | None:
         """Deactivate the last correction made here; returns its id (None: nothing to undo)."""
         cid = self.history.undo()

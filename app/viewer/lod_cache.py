@@ -62,6 +62,8 @@ class LodCache:
             corrected if prob else None,
             state.class_index if prob else -1,
             state.threshold,
+            # The disagreement view scores another column than the confidence views share.
+            state.mode == "disagreement",
         )
         cached = self.tables
         if (

@@ -167,6 +167,16 @@ class AppBackend:
         run = next((r for r in runs if self._covers(r)), None)
         return None if run is None else self._info(run)
 
+    def finished_run_before(self, run_id: int) -> RunInfo | None:
+        with open_db(self.settings.database) as db:
+            runs = crud.list_runs(db, self.project_id)
+        number = next((r.number for r in runs if r.id == run_id), None)
+        if number is None:
+            return None
+        earlier = [r for r in runs if r.status == "done" and r.number < number and self._covers(r)]
+        run = max(earlier, key=lambda r: r.number, default=None)
+        return None if run is None else self._info(run)
+
     def active_run(self) -> RunInfo | None:
         with open_db(self.settings.database) as db:
             run = crud.active_run(db, self.project_id)
@@ -597,7 +607,9 @@ class ViewerManager:
     def _check_run(backend: ProjectBackend, run_id: int) -> RunInfo:
         info = backend.run_info(run_id)
         if info.status != "done":
-            raise Conflict(f"Run {run_id} is {info.status}; only finished runs can be reviewed")
+            raise Conflict(
+                f"Run {info.number} (id {run_id}) is {info.status}; only finished runs can be reviewed"
+            )
         return info
 
     def viewer(self, project_id: int) -> ProjectViewer | None:

@@ -108,6 +108,17 @@ def scan_colors(
     return out
 
 
+SCAN_DIM_ALPHA = 0.85
+"""How far a scan's points fade toward the map's dim colour while a review region is focused."""
+
+
+def focus_scan_colors(colors: npt.NDArray[np.uint8], focused: bool) -> npt.NDArray[np.uint8]:
+    """A scan's point colours while a review region is (``focused``) or is not focused: faded
+    :data:`SCAN_DIM_ALPHA` of the way toward the map's dim colour (:func:`app.viewer.view_logic.blend`), so
+    the region's highlight is the only strong colour around it; unchanged otherwise."""
+    return vl.blend(colors, (235, 235, 235), SCAN_DIM_ALPHA) if focused else colors
+
+
 def confidence_histograms(
     label: npt.ArrayLike, conf: npt.ArrayLike, num_classes: int, bins: int = 10
 ) -> npt.NDArray[np.int64]:

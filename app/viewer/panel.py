@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.jobs.stages import stage_words
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
@@ -29,12 +30,20 @@ from leap_core.labelers import LABELERS
 
 log = logging.getLogger(__name__)
 
-COLOR_BY = ("class", "confidence", "class probability")
+COLOR_BY = (
+    "class",
+    "confidence",
+    "class probability",
+    "camera vs final disagreement",
+    "Δ since the run before",
+)
 """Labels of the colouring modes, in :data:`app.viewer.view_logic.ColorMode` order."""
 _MODE_OF: dict[str, vl.ColorMode] = {
     "class": "class",
     "confidence": "confidence",
     "class probability": "class_probability",
+    "camera vs final disagreement": "disagreement",
+    "Δ since the run before": "delta",
 }
 
 
@@ -43,8 +52,18 @@ def _hex(rgb: Any) -> str:
     return f"#{r:02x}{g:02x}{b:02x}"
 
 
-def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: str | None = None) -> str:
-    """HTML legend: class swatches in class mode, a colour bar with ticks in the scalar modes."""
+def legend_html(
+    mode: str, names: list[str], palette: np.ndarray, class_name: str | None = None, note: str | None = None
+) -> str:
+    """HTML legend: class swatches in the class and Δ modes (the Δ mode first says what it compares with,
+    ``note``), a colour bar with ticks in the scalar modes."""
+    if mode == "delta":
+        grey = _hex(vl.UNCHANGED_RGB)
+        head = (
+            f'<div style="font-size:11px"><span style="display:inline-block;width:12px;height:12px;'
+            f'border-radius:2px;background:{grey}"></span> {html.escape(note or "")}</div>'
+        )
+        return head + legend_html("class", names, palette)
     if mode == "class":
         items = "".join(
             f'<div style="display:flex;align-items:center;gap:4px;font-size:11px;white-space:nowrap">'
@@ -57,7 +76,10 @@ def legend_html(mode: str, names: list[str], palette: np.ndarray, class_name: st
         # Three columns: 19 classes in 7 rows, so the Scan section starts within a 720 px high window.
         return f'<div style="display:grid;grid-template-columns:1fr 1fr 1fr;gap:1px 6px">{items}</div>'
     stops = ", ".join(f"{_hex(vl.CONFIDENCE_LUT[int(i)])}" for i in np.linspace(0, 255, 9))
-    title = "confidence (max posterior)" if mode == "confidence" else f"P({html.escape(class_name or '')})"
+    title = {
+        "confidence": "confidence (max posterior)",
+        "disagreement": "share of camera-labelled points the final label disagrees with",
+    }.get(mode, f"P({html.escape(class_name or '')})")
     return (
         f'<div style="font-size:12px">{title}'
         f'<div style="height:12px;border-radius:2px;background:linear-gradient(to right, {stops})"></div>'
@@ -79,34 +101,10 @@ class ReviewPanel:
         gui = session.scene.server.gui
         self.gui = gui
         self._class_boxes: list[viser.GuiCheckboxHandle] = []
+        self._error: str | None = None
+        """The error a failed action put in the status line (cleared by the next action that works)."""
 
-        with gui.add_folder("Run", order=0):
-            self.status = gui.add_markdown("Loading…")
-            self.progress = gui.add_progress_bar(0.0, visible=False)
-            self.labeler = gui.add_dropdown(
-                "2D labeler",
-                tuple(LABELERS),
-                initial_value=session.backend.labeler(),
-                hint="The project's 2D labeler: the next re-run uses it ("
-                + ", ".join(spec.title for spec in LABELERS.values())
-                + ")",
-            )
-            self.rerun_button = gui.add_button(
-                "Re-run",
-                hint="Start a new run with the current classes, prompts, 2D labeler and corrections",
-                color="blue",
-            )
-            self.stay = gui.add_checkbox(
-                "Stay on this run",
-                False,
-                hint="Keep this run shown when a newer run of the project finishes (else it loads)",
-            )
-            reviewer = getattr(session.backend, "reviewer", None)
-            self.reviewer = gui.add_markdown(
-                f"Reviewing as **{html.escape(reviewer)}**"
-                if reviewer
-                else "No reviewer name: give it in the project page's *Reviewers* card first."
-            )
+        self._add_run_folder()
 
         with gui.add_folder("View", order=1):
             self.color_by = gui.add_dropdown("Color by", COLOR_BY, initial_value="class")
@@ -160,6 +158,37 @@ class ReviewPanel:
         self.on_schema()
         self.tools = ToolsPanel(self)
 
+    def _add_run_folder(self) -> None:
+        # The run shown, its progress and who reviews it: the first folder, above the view settings.
+        gui, session = self.gui, self.s
+        with gui.add_folder("Run", order=0):
+            self.status = gui.add_markdown("Loading…")
+            self.progress = gui.add_progress_bar(0.0, visible=False)
+            self.labeler = gui.add_dropdown(
+                "2D labeler",
+                tuple(LABELERS),
+                initial_value=session.backend.labeler(),
+                hint="The project's 2D labeler: the next re-run uses it ("
+                + ", ".join(spec.title for spec in LABELERS.values())
+                + ")",
+            )
+            self.rerun_button = gui.add_button(
+                "Re-run",
+                hint="Start a new run with the current classes, prompts, 2D labeler and corrections",
+                color="blue",
+            )
+            self.stay = gui.add_checkbox(
+                "Stay on this run",
+                False,
+                hint="Keep this run shown when a newer run of the project finishes (else it loads)",
+            )
+            reviewer = getattr(session.backend, "reviewer", None)
+            self.reviewer = gui.add_markdown(
+                f"Reviewing as **{html.escape(reviewer)}**"
+                if reviewer
+                else "No reviewer name: give it in the project page's *Reviewers* card first."
+            )
+
     def _add_display_folder(self) -> None:
         # Rarely changed settings stay folded so that Scan, Review and Corrections fit at 1280×720.
         gui = self.gui
@@ -178,11 +207,17 @@ class ReviewPanel:
         @functools.wraps(fn)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             try:
-                return fn(*args, **kwargs)
+                out = fn(*args, **kwargs)
             except Exception as exc:
                 log.warning("viewer action %s failed: %s", fn.__name__, exc)
-                self.set_status(f"**Error:** {html.escape(str(exc))}")
+                self._error = f"**Error:** {html.escape(str(exc))}"
+                self.set_status(self._error)
                 return None
+            # An action that worked clears the error a failed one left (unless something said more since).
+            if self._error is not None and self.status.content == self._error:
+                self.set_status("")
+            self._error = None
+            return out
 
         return wrapper
 
@@ -198,7 +233,8 @@ class ReviewPanel:
         self.camera.on_update(g(lambda _: self._camera_chosen()))
         self.show_scan.on_update(g(lambda _: self._scan_visibility()))
         self.show_map.on_update(g(lambda _: s.renderer.set_map_visible(self.show_map.value)))
-        self.select_button.on_click(g(lambda _: self.arm_select()))
+        # The same box tool as the Selection tools' "box" (and key M), so the Tool dropdown shows it armed.
+        self.select_button.on_click(g(lambda _: s.tools.set_tools(tool="box")))
         self.apply_button.on_click(g(lambda _: s.corrections.assign_selection(str(self.assign_class.value))))
         self.clear_button.on_click(g(lambda _: s.tools.clear_selection()))
         self.undo_button.on_click(g(lambda _: s.corrections.undo()))
@@ -216,7 +252,10 @@ class ReviewPanel:
         self.prob_class.visible = mode == "class_probability"
         names = self.s.class_names()
         index = names.index(self.prob_class.value) if self.prob_class.value in names else 0
-        self.threshold.label = "Min probability" if mode == "class_probability" else "Min confidence"
+        self.threshold.label = {
+            "class_probability": "Min probability",
+            "disagreement": "Min disagreement",
+        }.get(mode, "Min confidence")
         self.s.set_state(mode=mode, class_index=index)
         self._update_legend()
 
@@ -318,7 +357,16 @@ class ReviewPanel:
         mode = _MODE_OF[str(self.color_by.value)]
         names = self.s.class_names()
         cls = names[self.s.state.class_index] if names and self.s.state.class_index < len(names) else None
-        self.legend.content = legend_html(mode, names, self.s.palette, cls)
+        self.legend.content = legend_html(mode, names, self.s.palette, cls, self._delta_note(mode))
+
+    def _delta_note(self, mode: str) -> str | None:
+        sh = self.s.shared
+        if mode != "delta" or sh.delta is None or sh.run is None:
+            return None
+        base = sh.delta.base_run(sh.run)
+        if base is None:
+            return "no earlier finished run to compare with: nothing is marked as changed"
+        return f"unchanged since run {base.number}; changed voxels in their class colour"
 
     def on_run_loaded(self) -> None:
         s = self.s
@@ -400,7 +448,8 @@ class ReviewPanel:
         self.corr_info.content = f"{count:,} voxels selected." if count else self._corr_summary()
 
     def _corr_summary(self) -> str:
-        return f"{self.s.corrections.correction_count()} active corrections (applied in every later run)."
+        n = self.s.corrections.correction_count()
+        return f"{n} active correction{'' if n == 1 else 's'} (applied in every later run)."
 
     def on_history(self) -> None:
         self.undo_button.disabled = not self.s.corrections.history.can_undo
@@ -430,7 +479,7 @@ class ReviewPanel:
             percent = float(min(100.0, max(0.0, info.percent)))
             self.progress.value = percent  # type: ignore[misc]  # viser: split setter, see class note
             self.rerun_button.disabled = True
-            stage = f", {info.stage}" if info.stage else ""
+            stage = f", {stage_words(info.stage)}" if info.stage else ""
             self.set_status(f"Run {info.number} {info.status}{stage}: {info.percent:.0f}%")
             return
         self.progress.visible = False

@@ -10,12 +10,14 @@ import html
 import threading
 from typing import TYPE_CHECKING, Any
 
-from app.viewer.records import QueueKind
+from app.viewer.records import QueueKind, SessionConfig
 from app.viewer.region_logic import Region
+from leap_core.bounds import bounds_rows
 
 if TYPE_CHECKING:
     from app.viewer.panel import ReviewPanel
 
+SESSION_BOUNDS = dict(bounds_rows(SessionConfig))
 QUEUE_KINDS = ("lowest confidence", "camera vs final disagreement")
 QUEUE_OF: dict[str, QueueKind] = {
     "lowest confidence": "confidence",
@@ -56,6 +58,15 @@ class ReviewQueuePanel:
             hint="Undim the map and remove the region's box; Next region goes on from here (key: Esc)",
             disabled=True,
         )
+        bound = SESSION_BOUNDS["queue_min_count"]
+        self.min_count = gui.add_number(
+            "Min region size",
+            initial_value=q.min_count,
+            min=int(bound.low),
+            max=int(bound.high),
+            step=1,
+            hint="Regions need at least this many candidate voxels (smaller specks are left out)",
+        )
         self.queue_info = gui.add_markdown("")
         self.progress = gui.add_markdown("")
         self.queue_kind.on_update(g(lambda _: self._in_background(self._build)))
@@ -65,6 +76,7 @@ class ReviewQueuePanel:
         self.skip_button.on_click(g(lambda _: q.mark_region("skipped")))
         self.relabel_button.on_click(g(lambda _: q.relabel_region(str(self.relabel_class.value))))
         self.leave_button.on_click(g(lambda _: q.clear_focus()))
+        self.min_count.on_update(g(lambda _: q.set_min_count(int(self.min_count.value))))
 
     def _in_background(self, fn: Any) -> None:
         # Ranking the disagreement queue reads every scan: keep viser's callback thread free meanwhile.
@@ -118,13 +130,15 @@ class ReviewQueuePanel:
         s = self.p.s
         q = s.queue
         what = "mean confidence" if kind == "confidence" else "disagreement"
+        unit = "voxels" if kind == "confidence" else "points"
         state = STATE_TEXT[q.region_state(pos)]
         seen = ""
         if q.focus_frame is not None and s.outputs is not None:
             fid = s.outputs.seq.frame_ids[s.outputs.frame_indices[q.focus_frame]]
             seen = f" Seen best in scan {html.escape(fid)} (boxed in the image)."
         self.queue_info.content = (
-            f"Region {pos + 1}/{count}: {what} **{region.score:.2f}**, {region.count} voxels ({state}).{seen}"
+            f"Region {pos + 1}/{count}: about **{region.expected_wrong:.0f}** {unit} expected wrong; {what} "
+            f"{region.score:.2f}, {region.count} voxels ({state}).{seen}"
         )
         self.progress.content = progress_text(q.review_progress())
         self._region_buttons(True)

@@ -59,7 +59,10 @@ class ToolsPanel:
             )
             self.brush = gui.add_slider("Brush radius", min=0.005, max=0.2, step=0.005, initial_value=0.03)
             self.erase_button = gui.add_button("Erase to unlabeled", disabled=True)
-            self.info = gui.add_markdown("Keys: L lasso, B brush, M box, 1-9 assign, E erase, Esc clear.")
+            self.info = gui.add_markdown(
+                "Keys: L lasso, B brush, M box, 1-9 assign (1 2: the 12th class, 0: the 10th), E erase, "
+                "Esc clear."
+            )
         g = panel.guard
         widgets = (
             self.tool,

@@ -13,6 +13,7 @@ import threading
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from app.viewer import nav_logic as nl
 from app.viewer.data import ScanView
@@ -67,6 +68,9 @@ class ScanPlayer:
         self._image_jpeg: tuple[ScanView, bytes] | None = None
         self.camera = 0
         """The rig camera whose image (and pose) the shown scan comes with (0: the primary one)."""
+        self.zoomed: tuple[ScanView, tuple[int, int, int, int]] | None = None
+        """The scan view whose image boxes the focused region, and the crop around the region
+        (:func:`leap_core.review.zoom_box`) that the enlarged image shows zoomed."""
         self._scan_lock = threading.RLock()
         self._player: threading.Thread | None = None
 
@@ -92,7 +96,11 @@ class ScanPlayer:
         with self._scan_lock:
             pos = int(np.clip(pos, 0, len(outputs.frame_indices) - 1))
             view = outputs.scan_view(outputs.frame_indices[pos], sh.palette, camera=self.camera)
-            view = self.mark_region_in_image(view, pos)
+            box = self.region_box(view, pos)
+            view = self.mark_region_in_image(view, pos, box)
+            if box is not None and view.overlay is not None:
+                h, w = view.overlay.shape[:2]
+                self.zoomed = (view, review.zoom_box(box, w, h))
             self.frame_pos = pos
             with sh.lock:
                 sh.scan_view = view
@@ -100,7 +108,7 @@ class ScanPlayer:
                 if dropped:  # a scan selection belongs to the scan it was made on
                     sh.selection = Selection.empty()
                 sh.scan_label = sh.scan_labels(view)
-                colors = nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette)
+                colors = self._colors()
                 self.scene.scan.set(view.points, colors)
             if dropped:
                 self.renderer.draw_selection()
@@ -132,17 +140,25 @@ class ScanPlayer:
         with self._scan_lock:
             return self.show_scan(self.frame_pos + step)
 
-    def mark_region_in_image(self, view: ScanView, pos: int) -> ScanView:
-        """The scan view with the focused region boxed in its image (when this scan's camera sees it)."""
+    def region_box(self, view: ScanView, pos: int) -> tuple[int, int, int, int] | None:
+        """The focused region's pixel box in the image of the scan at slider position ``pos`` (None: no
+        focus, no image, or its camera does not see the region)."""
         sh = self.shared
         region, outputs, grid = sh.focus, sh.outputs, sh.grid
         if region is None or outputs is None or grid is None or view.overlay is None:
-            return view
+            return None
         keys = grid.keys[region.rows]  # rows ascend, so the keys stay sorted
         _, _, uv = outputs.region_observers(outputs.frame_indices[pos], keys, grid.voxel_size, self.camera)
         h, w = view.overlay.shape[:2]
-        box = review.image_box(uv, w, h)
-        if box is None:
+        return review.image_box(uv, w, h)
+
+    def mark_region_in_image(
+        self, view: ScanView, pos: int, box: tuple[int, int, int, int] | None = None
+    ) -> ScanView:
+        """The scan view with the focused region boxed in its image (when this scan's camera sees it;
+        ``box``: :meth:`region_box`, when already known)."""
+        box = box if box is not None else self.region_box(view, pos)
+        if box is None or view.overlay is None:
             return view
         return dataclasses.replace(view, overlay=review.draw_box(view.overlay, box, REVIEW_BOX_RGB))
 
@@ -152,7 +168,9 @@ class ScanPlayer:
         with self._scan_lock:
             view = sh.scan_view
             if view is not None and self.scene.scan.count == view.points.shape[0]:
-                self.scene.scan.set_colors(nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette))
+                with sh.lock:
+                    colors = self._colors()
+                self.scene.scan.set_colors(colors)
 
     def recolour_scan(self) -> None:
         """Relabel and recolour the shown scan after the corrections changed."""
@@ -162,8 +180,15 @@ class ScanPlayer:
             if view is None:
                 return
             sh.scan_label = sh.scan_labels(view)
-            colors = nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette)
+            colors = self._colors()
         self.scene.scan.set_colors(colors)
+
+    def _colors(self) -> npt.NDArray[np.uint8]:
+        """The shown scan's point colours for the colour mode, faded while a review region is focused
+        (caller holds the shared lock)."""
+        sh = self.shared
+        colors = nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette)
+        return nl.focus_scan_colors(colors, sh.focus is not None)
 
     # ---------------------------------------------------------------------------------------- camera
     def fit_map(self) -> None:
@@ -201,6 +226,16 @@ class ScanPlayer:
         return self.follow_ego
 
     # ----------------------------------------------------------------------------------------- image
+    def zoomed_image(self, view: ScanView | None = None) -> npt.NDArray[np.uint8] | None:
+        """The focused region's zoomed crop of the shown scan's image (``view``: that scan), or None when
+        no region is focused in it."""
+        zoomed, view = self.zoomed, view or self.shared.scan_view
+        if zoomed is None or view is None or zoomed[0] is not view or self.shared.focus is None:
+            return None
+        assert view.overlay is not None  # a crop is only kept for a view with an image
+        # A box of a few pixels is easy to miss: the enlarged image shows the crop around it, zoomed.
+        return review.crop_zoom(view.overlay, zoomed[1])
+
     def set_image_open(self, on: bool | None = None) -> bool:
         """Show or hide the enlarged scan image in the page (None toggles)."""
         self.image_open = (not self.image_open) if on is None else bool(on)
@@ -216,7 +251,9 @@ class ScanPlayer:
         cached = self._image_jpeg
         if cached is not None and cached[0] is view:
             return cached[1]
-        ok, buf = cv2.imencode(".jpg", view.overlay[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+        image = self.zoomed_image(view)
+        image = view.overlay if image is None else image
+        ok, buf = cv2.imencode(".jpg", image[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
         if not ok:
             raise RuntimeError(f"could not encode the image of scan {view.frame_id}")
         data = buf.tobytes()

@@ -21,6 +21,7 @@ from app.viewer.data import ScanView
 from app.viewer.lod import LodConfig
 from app.viewer.region_logic import Region
 from leap_core import selection as sel
+from leap_core.bounds import check_bounds, within
 from leap_core.schema import Schema
 
 QueueKind = Literal["confidence", "disagreement"]
@@ -164,6 +165,11 @@ class ProjectBackend(Protocol):
 
     def latest_finished_run(self) -> RunInfo | None: ...
 
+    def finished_run_before(self, run_id: int) -> RunInfo | None:
+        """The newest finished run of the sequence before run ``run_id`` (the viewer's Δ view compares
+        with it), or None."""
+        ...
+
     def run_info(self, run_id: int) -> RunInfo: ...
 
     def active_run(self) -> RunInfo | None: ...
@@ -238,8 +244,9 @@ class SessionConfig:
     """Share of voxels (lowest confidence / highest disagreement) clustered into review regions."""
     queue_cell: float = 4.0
     """Edge (m) of the cells review regions are clustered into."""
-    queue_min_count: int = 5
-    """Cells with fewer candidate voxels are not regions."""
+    queue_min_count: int = dataclasses.field(default=10, metadata=within(1, 100_000))
+    """Minimum region size: cells with fewer candidate voxels are not regions (specks a few voxels large
+    are not worth a person's time). The panel's *Min region size* changes it per session."""
     poll_interval_s: float = 0.5
     """How often a started run's progress is polled."""
     max_points: int = 200_000
@@ -254,6 +261,9 @@ class SessionConfig:
     """Whether the camera follows the ego pose on a scan change when the viewer starts (key ``g``)."""
     lod: LodConfig = dataclasses.field(default_factory=LodConfig)
     """Level of detail of maps with more voxels than its budget (:mod:`app.viewer.lod`)."""
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
 
 
 @dataclass(frozen=True, eq=False)

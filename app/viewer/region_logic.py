@@ -38,6 +38,9 @@ class Region:
     """(count,) grid rows of the candidate voxels (the ones highlighted)."""
     cell: int = 0
     """Packed cell key (:func:`leap_core.review.rank_cells`)."""
+    expected_wrong: float = 0.0
+    """How many of its voxels (confidence queue) or camera-labelled points (disagreement queue) are
+    expected to be wrong: what ranks it."""
 
 
 def rank_regions(
@@ -46,18 +49,21 @@ def rank_regions(
     candidates: npt.NDArray[np.bool_],
     cell_size: float,
     *,
+    wrong: npt.NDArray[np.floating] | None = None,
     min_count: int = 1,
     ascending: bool = True,
     limit: int = 100,
 ) -> list[Region]:
-    """Cluster candidate voxels into coarse cells and order the cells by their mean score
-    (:func:`leap_core.review.rank_cells`; ties: more candidates first, then the smaller cell key).
+    """Cluster candidate voxels into coarse cells and order the cells by their expected wrong count, or
+    without ``wrong`` by their mean score (:func:`leap_core.review.rank_cells`; ties: more candidates
+    first, then the smaller cell key).
 
     Args:
         centres: (V, 3) voxel centres.
         score: (V,) per-voxel score.
         candidates: (V,) bool, the voxels to cluster (e.g. the least confident share).
         cell_size: cell edge in metres (> 0).
+        wrong: (V,) per-voxel expected wrong count (:func:`confidence_wrong`, :func:`disagreement_wrong`).
         min_count: cells with fewer candidates are dropped (isolated voxels are noise, not regions).
         ascending: lowest score first (confidence) or highest first (disagreement).
         limit: return at most this many regions.
@@ -66,7 +72,14 @@ def rank_regions(
         Regions, best first, each with its identity and candidate rows.
     """
     cells = review.rank_cells(
-        centres, score, candidates, cell_size, min_count=min_count, ascending=ascending, limit=limit
+        centres,
+        score,
+        candidates,
+        cell_size,
+        wrong=wrong,
+        min_count=min_count,
+        ascending=ascending,
+        limit=limit,
     )
     return [
         Region(
@@ -77,9 +90,33 @@ def rank_regions(
             id=review.region_id(c.cell, cell_size),
             rows=c.rows,
             cell=c.cell,
+            expected_wrong=c.expected_wrong,
         )
         for c in cells
     ]
+
+
+def confidence_wrong(conf: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
+    """(V,) expected wrong count per voxel from its confidence: ``1 - conf`` (a corrected voxel, conf 1,
+    counts 0)."""
+    return np.clip(1.0 - np.asarray(conf, dtype=np.float64), 0.0, 1.0)
+
+
+def disagreement_wrong(
+    rate: npt.NDArray[np.floating], observed: npt.NDArray[np.integer]
+) -> npt.NDArray[np.float64]:
+    """(V,) expected wrong points per voxel from the disagreement: ``rate · observed`` (the camera-labelled
+    points of the voxel whose final label differs from the camera's)."""
+    return np.asarray(rate, dtype=np.float64) * np.asarray(observed, dtype=np.float64)
+
+
+def highlight_colors(colors: npt.NDArray[np.uint8], alpha: float = 0.35) -> npt.NDArray[np.uint8]:
+    """Colours of a focused region's voxels in the highlight drawn over the map: their own colours
+    pulled ``alpha`` toward :data:`REVIEW_BOX_RGB`, ``c' = round((1-α)·c + α·cyan)``, so the class stays
+    readable and the region stands out from the dimmed map."""
+    c = np.asarray(colors, dtype=np.float64)
+    out = (1.0 - alpha) * c + alpha * np.asarray(REVIEW_BOX_RGB, dtype=np.float64)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def lowest_share(score: npt.NDArray[np.floating], share: float) -> npt.NDArray[np.bool_]:
@@ -124,4 +161,13 @@ def disagreement_rate(
     return rate, observed
 
 
-__all__ = ["REVIEW_BOX_RGB", "Region", "disagreement_rate", "lowest_share", "rank_regions"]
+__all__ = [
+    "REVIEW_BOX_RGB",
+    "Region",
+    "confidence_wrong",
+    "disagreement_rate",
+    "disagreement_wrong",
+    "highlight_colors",
+    "lowest_share",
+    "rank_regions",
+]

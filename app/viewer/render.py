@@ -19,12 +19,13 @@ import numpy as np
 import numpy.typing as npt
 
 from app.viewer import lod, lod_plan
+from app.viewer import region_logic as rl
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid
 from app.viewer.lod import LodConfig
 from app.viewer.lod_cache import LodCache
 from app.viewer.lod_cull import thin_rows
-from app.viewer.scene import ReviewScene
+from app.viewer.scene import FOCUS_SCALE, ReviewScene
 from app.viewer.shared import Notifier, SharedState
 from leap_core.fusion import key_coords
 
@@ -40,12 +41,34 @@ def view_score(
     label: npt.NDArray[np.int16],
     conf: npt.NDArray[np.float32],
     corrected: npt.NDArray[np.bool_],
+    shared: SharedState | None = None,
 ) -> tuple[npt.NDArray[np.floating], npt.NDArray[np.floating] | None]:
-    """``(score, class_prob)`` of the view: the value the threshold applies to, and the probability of
-    ``state.class_index`` (corrections applied; None outside ``class_probability`` mode)."""
-    class_prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
-    class_prob = vl.corrected_class_prob(state, label, class_prob, corrected)
-    return vl.view_score(state, conf, class_prob), class_prob
+    """``(score, column)`` of the view: the value the threshold applies to, and the mode's column (the
+    probability of ``state.class_index``, corrections applied, or the disagreement rate; None in the
+    other modes)."""
+    column = mode_column(grid, state, label, shared)
+    column = vl.corrected_class_prob(state, label, column, corrected)
+    return vl.view_score(state, conf, column), column
+
+
+def mode_column(
+    grid: ReviewGrid, state: vl.ViewState, label: npt.NDArray[np.int16], shared: SharedState | None
+) -> npt.NDArray[np.floating] | None:
+    """The per-voxel column a :data:`~app.viewer.view_logic.COLUMN_MODES` mode colours by: the class's
+    posterior; the camera-vs-final disagreement rate (0 for voxels no camera-labelled point fell in;
+    :meth:`RunOutputs.disagreement`, kept per grid); or whether the voxel's class (``label``) changed since
+    the run before (:class:`app.viewer.run_delta.RunDelta`). None in the other modes."""
+    if state.mode == "class_probability":
+        return grid.class_prob(state.class_index)
+    outputs = None if shared is None else shared.outputs
+    if state.mode == "disagreement" and outputs is not None:
+        return outputs.disagreement(grid)[0]
+    delta, run = (None, None) if shared is None else (shared.delta, shared.run)
+    if state.mode == "delta" and delta is not None and run is not None and shared is not None:
+        return delta.column(run, grid, label, shared.class_names())
+    if state.mode in vl.COLUMN_MODES:
+        return np.zeros(grid.num_voxels, np.float32)
+    return None
 
 
 def blend_dim(colors: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
@@ -150,7 +173,7 @@ class LodRenderer:
             return np.zeros(0, np.int64), np.zeros((0, 3), np.uint8)
         if limit is not None:
             state = dataclasses.replace(state, max_points=min(limit, state.max_points or limit))
-        class_prob = grid.class_prob(state.class_index) if state.mode == "class_probability" else None
+        class_prob = mode_column(grid, state, label, sh)
         rows, colors = vl.render_view(state, label, conf, palette, class_prob, corrected)
         focus = sh.focus
         if focus is not None and focus.rows.size:
@@ -162,7 +185,7 @@ class LodRenderer:
         sh = self.shared
         with sh.lock:
             state, label, conf, corrected = sh.view_state, sh.label, sh.conf, sh.corrected
-        score, _ = view_score(grid, state, label, conf, corrected)
+        score, _ = view_score(grid, state, label, conf, corrected, sh)
         return vl.visible_mask(label, score, state.threshold, state.enabled)
 
     # --------------------------------------------------------------------------------------- drawing
@@ -192,6 +215,7 @@ class LodRenderer:
         if shown is None:
             shown = self._draw_exact()
         self.draw_selection()
+        self.draw_focus()
         self.last_draw_s = time.perf_counter() - t0
         self.draw_count += 1
         self.notify.panel.on_drawn(shown=shown, total=grid.num_voxels, seconds=self.last_draw_s)
@@ -254,7 +278,7 @@ class LodRenderer:
         cfg = self.config
         budget = self._budget(state)
         blocks = index.blocks(index.overview_level(budget, cfg.overview_share))
-        score, class_prob = view_score(grid, state, label, conf, corrected)
+        score, class_prob = view_score(grid, state, label, conf, corrected, sh)
         hist, ssum = self.cache.block_tables(
             blocks,
             state=state,
@@ -326,6 +350,19 @@ class LodRenderer:
             self.scene.selection.set(grid.centres[rows], cols)
         self.scene.selection.visible = True
 
+    def draw_focus(self) -> None:
+        """Draw the focused review region filled on top of the map (its voxels' current class colours
+        pulled toward the review cyan, larger points), or hide it when nothing is focused."""
+        sh = self.shared
+        with sh.lock:
+            grid, region, label, palette = sh.grid, sh.focus, sh.label, sh.palette
+        if grid is None or region is None or region.rows.size == 0 or not self.map_visible:
+            self.scene.focus.visible = False
+            return
+        colors = rl.highlight_colors(vl.class_colors(label[region.rows], palette))
+        self.scene.focus.set(grid.centres[region.rows], colors)
+        self.scene.focus.visible = True
+
     # ------------------------------------------------------------------------------- level of detail
     def build_index(self, grid: ReviewGrid) -> None:
         """Build ``grid``'s level-of-detail index on a thread, then redraw with it."""
@@ -381,6 +418,7 @@ class LodRenderer:
         """Show or hide the voxel map (both its layers)."""
         self.map_visible = bool(on)
         self.scene.voxels.visible = self.map_visible
+        self.draw_focus()
         if self.lod_plan is not None or not self.map_visible:
             self.scene.overview.visible = self.map_visible
 
@@ -388,6 +426,7 @@ class LodRenderer:
         """Voxel point size (m); overview blocks keep their size relative to it."""
         grid = self.shared.grid
         self.scene.voxels.point_size = float(size)
+        self.scene.focus.point_size = float(size) * FOCUS_SCALE
         if grid is not None and self._shown_blocks is not None:
             self.scene.overview.point_size = self._shown_blocks[0].edge * float(size) / grid.voxel_size
 

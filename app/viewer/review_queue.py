@@ -1,14 +1,17 @@
 """The review queue of a session: ranking regions worth a look, showing one, and the verdicts on them.
 
-A region is a cell of the map holding enough candidate voxels (the least confident share, or the share with
-the most camera-vs-final disagreement; :mod:`app.viewer.region_logic`). Showing one focuses it: its voxels
-stay at full colour and the rest dims, a box outlines it, the camera frames it, and the scan that saw it most
-is shown with the region boxed in its image. Accept / skip are stored in the project with the region's
+A region is a cell of the map holding at least :attr:`ReviewQueue.min_count` candidate voxels (the least
+confident share, or the share with the most camera-vs-final disagreement; :mod:`app.viewer.region_logic`),
+ranked by how many voxels (or camera-labelled points) it is expected to get wrong. Showing one focuses it:
+its voxels are drawn filled and larger on top of the map, the rest of the map and the scan's points fade, a
+box outlines it, the camera frames it, and the scan that saw it most is shown with the region boxed in its
+image (the enlarged image zoomed on it). Accept / skip are stored in the project with the region's
 content signature, so a mark counts only while the region's content is unchanged.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from collections.abc import Callable, Collection
@@ -76,6 +79,8 @@ class ReviewQueue:
         """Content signature of each region of :attr:`regions` (same order)."""
         self.marks: dict[str, ReviewMarkRecord] = {}
         """The project's marks by region identity, as last read."""
+        self.min_count = config.queue_min_count
+        """Minimum region size in candidate voxels (:meth:`set_min_count`)."""
 
     @property
     def focus(self) -> rl.Region | None:
@@ -117,7 +122,8 @@ class ReviewQueue:
                     conf,
                     candidates,
                     cfg.queue_cell,
-                    min_count=cfg.queue_min_count,
+                    wrong=rl.confidence_wrong(conf),
+                    min_count=self.min_count,
                     ascending=True,
                 )
             else:
@@ -132,7 +138,8 @@ class ReviewQueue:
                     rate,
                     candidates,
                     cfg.queue_cell,
-                    min_count=cfg.queue_min_count,
+                    wrong=rl.disagreement_wrong(rate, observed),
+                    min_count=self.min_count,
                     ascending=False,
                 )
             signatures = review.region_signatures(
@@ -154,6 +161,19 @@ class ReviewQueue:
             with sh.lock:
                 self.queue_building = False
             self.notify.panel.on_queue(False)
+
+    def set_min_count(self, count: int) -> None:
+        """Change the minimum region size (within :attr:`SessionConfig.queue_min_count`'s bounds); the
+        queue is ranked again on its next use.
+
+        Raises:
+            ConfigError: naming ``queue_min_count`` and its range.
+        """
+        checked = dataclasses.replace(self.config, queue_min_count=int(count)).queue_min_count
+        with self.shared.lock:
+            if checked != self.min_count:
+                self.min_count = checked
+                self.queue_built = False
 
     def rebuild_in_background(self) -> None:
         """Rank the current kind of queue again on a thread (after a re-run: the disagreement queue reads
@@ -228,6 +248,8 @@ class ReviewQueue:
             if outputs is not None:
                 self.player.camera = outputs.best_camera(outputs.frame_indices[best], keys, grid.voxel_size)
             self.player.show_scan(best, move_camera=False)  # keep the framing of the region
+        else:
+            self.player.color_scan()  # fade the shown scan's points around the highlight
         self.notify.panel.on_region(region, pos, len(self.regions), self.queue_kind)
         return region
 

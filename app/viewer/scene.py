@@ -68,6 +68,10 @@ def guard_websocket(server: viser.ViserServer, secret: str) -> None:
     ws_server.disconnect_all_clients()
 
 
+FOCUS_SCALE = 1.6
+"""Point size of the focused region's highlight relative to the map's voxels."""
+
+
 def _xyz(values: npt.ArrayLike) -> tuple[float, float, float]:
     """A 3-vector as the tuple of floats viser's positions take."""
     x, y, z = (float(v) for v in np.asarray(values).reshape(3))
@@ -255,6 +259,9 @@ class ReviewScene:
         """The voxel map (one point per voxel centre; on a big map, the voxels near the focus)."""
         self.overview = PointLayer(self.server, "/map/overview", point_size=0.4)
         """A big map's overview: one point per block away from the focus (:mod:`app.viewer.lod`)."""
+        self.focus = PointLayer(self.server, "/map/focus", point_size=0.2 * FOCUS_SCALE)
+        """The focused review region's voxels, filled and larger than the map's, so they cover the dimmed
+        map and the scan's points around them (:mod:`app.viewer.review_queue`)."""
         self.selection = PointLayer(self.server, "/map/selection", point_size=0.26)
         """Highlight of the voxels selected for a correction."""
         self.scan = PointLayer(self.server, "/scan/points", point_size=0.08)

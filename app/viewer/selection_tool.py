@@ -205,6 +205,13 @@ class SelectionTool:
         self.notify.emit("selection")
         return int(chosen.size)
 
+    def select_rows(
+        self, rows: npt.NDArray[np.int64], target: Target = "map", frame_id: str | None = None
+    ) -> int:
+        """Select exactly ``rows`` (grid rows, or the shown scan ``frame_id``'s point indices for target
+        ``scan``); returns the count."""
+        return self._set_selection(np.unique(np.asarray(rows, np.int64)), target, frame_id, False)
+
     def select_rect(
         self,
         position: npt.ArrayLike,

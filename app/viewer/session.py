@@ -78,6 +78,7 @@ from app.viewer.records import (
 )
 from app.viewer.render import LodRenderer
 from app.viewer.review_queue import ReviewQueue
+from app.viewer.run_delta import RunDelta
 from app.viewer.scene import ReviewScene
 from app.viewer.selection_tool import SelectionTool
 from app.viewer.shared import Notifier, SharedState
@@ -131,6 +132,7 @@ class ReviewSession:
         self.config = cfg = config or SessionConfig()
         self.scene = ReviewScene(host=host, port=port, label=f"LeAP review: {backend.project_name()}")
         self.shared = sh = SharedState(backend.load_schema())
+        sh.delta = RunDelta(backend)
         self.notify = notify = Notifier()
         self.scene_version = 0
         """Bumped every time a run's data is (re)loaded into the scene."""

@@ -20,6 +20,7 @@ from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid, RunOutputs, ScanView
 from app.viewer.records import CorrectionRecord, RunInfo, Selection, SessionView
 from app.viewer.region_logic import Region
+from app.viewer.run_delta import RunDelta
 from leap_core.fusion import key_centres, voxel_keys
 from leap_core.schema import Schema
 from leap_core.types import UNLABELED
@@ -74,6 +75,8 @@ class SharedState:
         :class:`app.viewer.player.ScanPlayer`)."""
         self.scan_label = np.zeros(0, np.int16)
         """Labels of the shown scan's points with the corrections overlaid (what the scan layer shows)."""
+        self.delta: RunDelta | None = None
+        """The ``delta`` colour mode's source (the run before the shown one; set by the session)."""
 
     def class_names(self) -> list[str]:
         """Names of the displayed grid's classes (index order)."""

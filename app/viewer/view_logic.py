@@ -20,11 +20,20 @@ from leap_core.fusion import last_per_key
 from leap_core.selection import project_to_screen, quat_to_matrix
 from leap_core.types import UNLABELED
 
-ColorMode = Literal["class", "confidence", "class_probability"]
-"""How voxels are coloured: argmax class colour, max posterior on a colour scale, or one class's posterior."""
+ColorMode = Literal["class", "confidence", "class_probability", "disagreement", "delta"]
+"""How voxels are coloured: argmax class colour, max posterior on a colour scale, one class's posterior,
+the camera-vs-final disagreement rate on the same scale (the share of a voxel's camera-labelled points
+whose final label differs from the camera's), or the change since the run before (``delta``: voxels whose
+class changed in their class colour, the others pale)."""
+
+COLUMN_MODES: tuple[ColorMode, ...] = ("class_probability", "disagreement", "delta")
+"""Modes coloured by a per-voxel column other than the confidence (passed as ``class_prob``)."""
 
 UNLABELED_RGB: tuple[int, int, int] = (128, 128, 128)
 """Colour of unlabeled points (grey)."""
+
+UNCHANGED_RGB: tuple[int, int, int] = (215, 215, 215)
+"""Colour of a voxel whose class did not change since the run before, in the ``delta`` mode."""
 
 SCALE_ANCHORS: tuple[tuple[int, int, int], ...] = (
     (68, 1, 84),
@@ -189,7 +198,8 @@ def view_colors(
 
     Args:
         label, conf: (V,) argmax class and its probability.
-        class_prob: (V,) probability of ``state.class_index`` (needed in ``class_probability`` mode).
+        class_prob: (V,) probability of ``state.class_index`` (``class_probability`` mode) or
+            disagreement rate (``disagreement`` mode).
         palette: (C, 3) class colours.
         rows: (M,) voxel rows to colour.
 
@@ -201,17 +211,23 @@ def view_colors(
     if state.mode == "confidence":
         return scalar_colors(conf[rows])
     if class_prob is None:
-        raise ValueError("class_probability mode needs the class's probabilities")
+        raise ValueError(f"{state.mode} mode needs its per-voxel column")
+    if state.mode == "delta":
+        out = class_colors(label[rows], palette)
+        out[class_prob[rows] < 0.5] = UNCHANGED_RGB
+        return out
     return scalar_colors(class_prob[rows])
 
 
 def view_score(
     state: ViewState, conf: npt.NDArray[np.float32], class_prob: npt.NDArray[np.floating] | None
 ) -> npt.NDArray[np.floating]:
-    """The per-voxel value the threshold applies to in ``state.mode``."""
-    if state.mode == "class_probability":
+    """The per-voxel value the threshold applies to in ``state.mode``: the mode's column in
+    :data:`COLUMN_MODES` (``class_prob``: the class's probability, or the disagreement rate), else the
+    confidence."""
+    if state.mode in COLUMN_MODES:
         if class_prob is None:
-            raise ValueError("class_probability mode needs the class's probabilities")
+            raise ValueError(f"{state.mode} mode needs its per-voxel column")
         return class_prob
     return conf
 
@@ -273,6 +289,37 @@ def visible_rows(
     """The rows among ``rows`` that :func:`render_view` shows (before ``max_points``), in the given order;
     ``score`` is the (V,) per-voxel value of :func:`view_score` (corrections applied)."""
     return rows[visible_mask(label[rows], score[rows], state.threshold, state.enabled)]
+
+
+def delta_column(
+    keys: npt.NDArray[np.int64],
+    label: npt.NDArray[np.int16],
+    base_keys: npt.NDArray[np.int64],
+    base_label: npt.NDArray[np.int16],
+    base_to_current: npt.ArrayLike,
+) -> npt.NDArray[np.float32]:
+    """(V,) 1.0 where a voxel's class differs from the earlier run's class of the same voxel key, else 0.0
+    (the ``delta`` colour mode's column).
+
+    ``changed[v] = 1`` when key ``v`` is absent from ``base_keys`` or ``map[base_label[row(v)]] ≠ label[v]``
+    with ``map = base_to_current`` (the earlier run's class indices in this run's numbering, by class name;
+    -2 for a class this run lacks, so it always differs; unlabeled -1 stays -1).
+
+    Args:
+        keys, label: (V,) this run's sorted keys and classes (corrections applied).
+        base_keys, base_label: (B,) the earlier run's sorted keys and classes.
+        base_to_current: (C_base,) int, index map of the earlier run's classes.
+    """
+    keys = np.asarray(keys, dtype=np.int64)
+    out = np.ones(keys.shape[0], np.float32)
+    if base_keys.size == 0 or keys.size == 0:
+        return out
+    pos = np.minimum(np.searchsorted(base_keys, keys), base_keys.shape[0] - 1)
+    hit = base_keys[pos] == keys
+    table = np.append(np.asarray(base_to_current, dtype=np.int64), -1)  # index -1 (unlabeled) → -1
+    before = table[base_label[pos[hit]].astype(np.intp)]
+    out[np.flatnonzero(hit)[before == label[hit]]] = 0.0
+    return out
 
 
 # ------------------------------------------------------------------------------------- corrections
@@ -493,6 +540,7 @@ class EditHistory(Generic[T]):
 
 
 __all__ = [
+    "COLUMN_MODES",
     "CONFIDENCE_LUT",
     "ColorMode",
     "EditHistory",
@@ -502,6 +550,7 @@ __all__ = [
     "class_colors",
     "corrected_class_prob",
     "decimate_indices",
+    "delta_column",
     "dim_outside",
     "draw_label_overlay",
     "make_lut",

@@ -10,8 +10,10 @@ fuse          ``grid.npz``: Bayesian log-space fusion of every observation, then
 smooth        ``grid_smooth.npz``: distance-weighted kNN smoothing of the fused grid (B.4)
 3dcn          ``grid_3dcn{i}.npz`` / ``grid_smooth_3dcn{i}.npz`` per iteration i (stage C, when enabled)
 label_points  ``points/<frame_id>.npz``: label + confidence of every point from the final grid (B.5)
-evaluate      ``metrics.json``: point / voxel / +3D-CN rows; protocols camera, all and paper (D.5)
-export        ``export/<frame_id>.label`` + ``.conf`` per scan
+tracks        ``tracks.npz``: segments of thing points, tracks over the sequence, class votes, motion (B.6)
+evaluate      ``metrics.json``: point / voxel / +3D-CN / objects rows; protocols camera, all and paper (D.5);
+              object scores: PQ, MOS IoU, S_assoc (D.6)
+export        ``export/<frame_id>.label`` + ``.conf`` per scan (instance ids, moving ids)
 ============  ================================================================================================
 
 Caching. Every stage has a fingerprint: a hash of the config sections it reads, the fingerprints of its

@@ -36,6 +36,7 @@ from leap_core.export import export_labels
 from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys
 from leap_core.geometry import affine_points, row_blocks
 from leap_core.io_utils import atomic_save_npz
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.run_layout import SequenceLayout, load_corrections, save_corrections
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -230,11 +231,13 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
     cache: RunCache,
     progress: Callable[[int, int], None] | None = None,
     threads: int = 4,
+    moving_export_ids: npt.NDArray[np.uint32] | None = None,
 ) -> ApplyResult:
     """Rewrite the run's points and export of the frames ``new`` changes (module docstring), atomically
     per file, then record ``new`` as applied. ``threads`` frames are rewritten at a time (an error in one
     is raised once the others end; the applied record is then left as it was, so the next call redoes
-    them all).
+    them all). A run with objects (``tracks.npz``) keeps them in the export; ``moving_export_ids`` are
+    the raw ids of moving points (``Schema.moving_export_ids``; default ``export_ids``).
 
     Raises:
         DatasetError: a scan correction indexes past its scan, or a points file is unreadable.
@@ -250,6 +253,10 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
     baked = np.setdiff1d(own.map_keys[own.map_class >= 0], new.map_keys, assume_unique=True)
     todo = sorted(positions)
     scan_changed = set(new.scan.changed_frames(old.scan))
+    # The run's objects stay: tracked points keep their track's class, id and moving id, except the points
+    # a correction now labels (a correction wins over a track's class vote).
+    tracks = SequenceTracks.load(layout.tracks) if layout.tracks.is_file() else None
+    moving_ids = export_ids if moving_export_ids is None else moving_export_ids
 
     def rewrite(p: int) -> None:
         i = frames[p]
@@ -273,8 +280,23 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
             sel = np.flatnonzero(rows_in_sorted(diff, keys) >= 0).astype(np.int64)
             lab[sel], conf[sel] = point_labels(cache.final, keys, fid, new, subset=sel)
         atomic_save_npz(path, label=lab, conf=conf.astype(np.float16), point_label=point_label)
+        if tracks is None:
+            export_labels(
+                layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16), export_ids
+            )
+            return
+        scan_points, _ = new.scan.of(fid)
+        keep = np.union1d(np.flatnonzero(np.isin(keys, new.map_keys)), scan_points).astype(np.int64)
+        lab, instance, moving = tracks.point_objects(fid, lab, keep)
         export_labels(
-            layout.export_label(fid), layout.export_conf(fid), lab, conf.astype(np.float16), export_ids
+            layout.export_label(fid),
+            layout.export_conf(fid),
+            lab,
+            conf.astype(np.float16),
+            export_ids,
+            instance=instance,
+            moving=moving,
+            moving_ids=moving_ids,
         )
 
     # Frames are independent files; numpy's lookups and the fsyncs of the atomic writes release the GIL,

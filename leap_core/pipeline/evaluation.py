@@ -1,11 +1,13 @@
 """The evaluate stage and the result tables of a run (``metrics.json``).
 
-Rows: ``point`` (projection only), ``voxel`` (the smoothed fused grid) and, with the 3D-CN, ``+3D-CN x{i}``
-per round. Protocols (:data:`PROTOCOLS`): ``camera`` (points inside the image, unlabeled predictions
-ignored: the paper's), ``common`` (the camera view's points that every row labels, so the rows are scored
-on the same points) and ``all`` (every point, unlabeled = miss), over the schema's classes; and
-``paper`` (:data:`PAPER`): the camera protocol's confusion matrices summed into the 11 merged classes of
-the paper's Table 1 (:data:`leap_core.eval_view.PAPER_VIEW`), present only for a SemanticKITTI schema.
+Rows: ``point`` (projection only), ``voxel`` (the smoothed fused grid), with the 3D-CN ``+3D-CN x{i}`` per
+round and, when the run tracks objects, ``objects`` (the final row with the tracks' classes: the exported
+labels); ``objects`` in ``metrics.json`` holds the object scores. Protocols (:data:`PROTOCOLS`): ``camera``
+(points inside the image, unlabeled predictions ignored: the paper's), ``common`` (the camera view's points
+that every row labels, so the rows are scored on the same points) and ``all`` (every point, unlabeled = miss),
+over the schema's classes; and ``paper`` (:data:`PAPER`): the camera protocol's confusion matrices summed into
+the 11 merged classes of the paper's Table 1 (:data:`leap_core.eval_view.PAPER_VIEW`), present only for a
+SemanticKITTI schema.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import threading
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -22,11 +25,14 @@ import numpy.typing as npt
 
 from leap_core.errors import DatasetError, LeapError
 from leap_core.eval_view import PAPER_VIEW
+from leap_core.export import labels_to_raw
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json, read_npz
 from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_confusion, metrics_from_confusion
+from leap_core.panoptic import MOS_MOVING, MosCounts, PanopticCounts, association_score, mos_states
 from leap_core.pipeline.context import load_view, ordered_map
 from leap_core.pipeline.metrics_file import RowScores, RunMetrics, SequenceMetrics, ViewSpec
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -37,6 +43,9 @@ if TYPE_CHECKING:
 
 ROW_POINT = "point"
 ROW_VOXEL = "voxel"
+ROW_OBJECTS = "objects"
+"""The row of what the export writes when the run tracks objects: the final row with each tracked point
+given its track's class (docs/METHOD.md B.6)."""
 COMMON = "common"
 PROTOCOLS: dict[str, str] = {
     "camera": "camera view: points inside the image, unlabeled predictions ignored (the paper's protocol)",
@@ -54,9 +63,10 @@ PAPER = "paper"
 OPTIONAL_PROTOCOLS = (COMMON, PAPER)
 """Protocols a ``metrics.json`` may lack: ``paper`` for a schema other than SemanticKITTI's, ``common`` in
 files written before it existed."""
-METRICS_VERSION = 2
-"""Layout of ``metrics.json`` (2: the ``common`` protocol). Part of the evaluate stage's fingerprint, so a
-finished run is evaluated again, from its stored outputs, on its next ``leap run``."""
+METRICS_VERSION = 3
+"""Layout of ``metrics.json`` (2: the ``common`` protocol; 3: the object scores). Part of the evaluate
+stage's fingerprint, so a finished run is evaluated again, from its stored outputs, on its next
+``leap run``."""
 PAPER_DESCRIPTION = (
     "the paper's Table 1: camera view, unlabeled predictions ignored, SemanticKITTI's 19 classes merged into "
     f"{len(PAPER_VIEW.classes)} ({', '.join(PAPER_VIEW.names)})"
@@ -129,7 +139,7 @@ def no_ground_truth(seq: KittiSequence, frames: Iterable[int]) -> str | None:
     return "no ground truth"
 
 
-def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
+def stage_evaluate(ctx: Ctx) -> dict[str, Any]:  # noqa: PLR0915  # one pass over the frames feeds every score
     """Point / voxel / +3D-CN rows against ground truth, every protocol → ``metrics.json``.
 
     Skipped (status "skipped") when a processed frame has no ground-truth ``.label`` file; the note says
@@ -155,6 +165,10 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         final_row = ROW_VOXEL
     need_keys = any(v is not None for v in rows.values())
     vs = ctx.cfg.fusion.voxel_size
+    objects = ObjectEvaluation.of(ctx)
+    from_grid = dict(rows)
+    if objects is not None:
+        rows[ROW_OBJECTS] = None
 
     def counts(i: int) -> tuple[dict[str, dict[str, npt.NDArray[np.int64]]], dict[str, int], int, int]:
         """One frame's confusion matrices (protocol → row → (C, C+1)), labeled points per row, points and
@@ -169,8 +183,11 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         gt = schema.map_gt(frame.labels)
         keys = voxel_keys(world_points(frame.points, frame.pose), vs) if need_keys else np.zeros(0, np.int64)
         preds = {
-            name: stored[name] if grid is None else grid.labels_at(keys)[0] for name, grid in rows.items()
+            name: stored[name] if grid is None else grid.labels_at(keys)[0]
+            for name, grid in from_grid.items()
         }
+        if objects is not None:
+            preds[ROW_OBJECTS] = objects.add_scan(ctx.fid(i), frame.labels, gt, preds[final_row], in_view)
         common = common_points(in_view, preds.values())
         conf: dict[str, dict[str, npt.NDArray[np.int64]]] = {p: {} for p in PROTOCOLS}
         labeled: dict[str, int] = {}
@@ -228,9 +245,103 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:
         labeled_share_all_points={r: (labeled_any[r] / n_points if n_points else None) for r in rows},
         labeler=ctx.cfg.labeler,
         coverage_ratio={r: (labeled_any[r] / pl if pl else None) for r in rows},
+        objects=None if objects is None else objects.scores(),
     )
     atomic_write_json(lay.metrics, with_paper_protocol(out).to_dict())
     return {}
+
+
+class ObjectEvaluation:
+    """The object scores of one sequence (:mod:`leap_core.panoptic`), summed scan by scan from the labels
+    an export writes: the final labels with the ``tracks`` stage's classes, ids and moving ids. Scans may
+    be added from several threads in any order: a lock guards the integer sums, and each scan's panoptic
+    counts (float IoU sums) are kept apart and summed in frame order, so the scores do not depend on the
+    order frames finish."""
+
+    def __init__(self, ctx: Ctx, tracks: SequenceTracks) -> None:
+        schema = ctx.schema
+        self.schema = schema
+        self.tracks = tracks
+        self.things = schema.things()
+        self.has_moving = any(c.moving_id is not None for c in schema.classes)
+        self.per_scan: dict[str, dict[str, PanopticCounts]] = {}
+        self.order = ctx.frame_ids()
+        self.mos = MosCounts()
+        c = schema.num_classes
+        self.moving_right = np.zeros(c, np.int64)
+        self.moving_total = np.zeros(c, np.int64)
+        self.gt_tracks: list[npt.NDArray[np.int64]] = []
+        self.pred_tracks: list[npt.NDArray[np.int64]] = []
+        self.lock = threading.Lock()
+
+    @classmethod
+    def of(cls, ctx: Ctx) -> ObjectEvaluation | None:
+        """None when the run did not track objects (``tracking.enabled`` off)."""
+        if not ctx.cfg.tracking.enabled:
+            return None
+        return cls(ctx, SequenceTracks.load(ctx.layout.tracks))
+
+    def add_scan(
+        self,
+        frame_id: str,
+        raw_gt: npt.NDArray[np.uint32],
+        gt: npt.NDArray[np.int16],
+        final: npt.NDArray[np.int16],
+        in_view: npt.NDArray[np.bool_],
+    ) -> npt.NDArray[np.int16]:
+        """One scan: ``raw_gt`` (N,) its ``.label`` values, ``gt`` (N,) their classes, ``final`` (N,) the
+        final labels before the tracks, ``in_view`` (N,) the camera view. Returns the labels the export
+        writes (the ``objects`` row)."""
+        label, instance, moving = self.tracks.point_objects(frame_id, final)
+        low = np.where(
+            moving,
+            labels_to_raw(label, self.schema.moving_export_ids()),
+            labels_to_raw(label, self.schema.export_ids()),
+        ).astype(np.int64)
+        pred_segment = low | (np.where(low > 0, instance, 0).astype(np.int64) << 16)
+        gt_segment = raw_gt.astype(np.int64)
+        gt_moving = mos_states(raw_gt) == MOS_MOVING
+        thing_gt = (gt >= 0) & self.things[np.maximum(gt, 0)] & ((gt_segment >> 16) > 0)
+        gt_track = np.where(thing_gt, gt.astype(np.int64) * 65536 + (gt_segment >> 16) + 1, 0)
+        keep = (gt != UNLABELED) & ((gt_track > 0) | (instance > 0))
+        right = np.bincount(gt[gt_moving & (label == gt) & (gt >= 0)], minlength=len(self.things))
+        total = np.bincount(gt[gt_moving & (gt >= 0)], minlength=len(self.things))
+        scan = {p: PanopticCounts(self.schema.num_classes) for p in ("camera", "all")}
+        scan["all"].add(gt, gt_segment, label, pred_segment)
+        scan["camera"].add(gt[in_view], gt_segment[in_view], label[in_view], pred_segment[in_view])
+        with self.lock:
+            self.per_scan[frame_id] = scan
+            if self.has_moving:
+                self.mos.add(mos_states(raw_gt), np.where(label == UNLABELED, 0, mos_states(low)))
+            self.moving_right += right
+            self.moving_total += total
+            self.gt_tracks.append(gt_track[keep])
+            self.pred_tracks.append(instance[keep].astype(np.int64))
+        return label
+
+    def scores(self) -> dict[str, dict[str, float | None]]:
+        out: dict[str, dict[str, float | None]] = {}
+        for p in ("camera", "all"):
+            counts = PanopticCounts(self.schema.num_classes)
+            for fid in self.order:
+                if fid in self.per_scan:
+                    counts.merge(self.per_scan[fid][p])
+            out[p] = {k: (None if np.isnan(v) else v) for k, v in counts.scores(self.things).items()}
+        gt_tracks = np.concatenate(self.gt_tracks) if self.gt_tracks else np.zeros(0, np.int64)
+        pred_tracks = np.concatenate(self.pred_tracks) if self.pred_tracks else np.zeros(0, np.int64)
+        s_assoc = association_score(gt_tracks, pred_tracks)
+        mos = self.mos.iou if self.has_moving else float("nan")
+        out["motion"] = {
+            "mos_iou": None if np.isnan(mos) else mos,
+            "s_assoc": None if np.isnan(s_assoc) else s_assoc,
+            "moving_points": float(self.moving_total.sum()),
+        }
+        out["moving_right_class"] = {
+            name: float(self.moving_right[k] / self.moving_total[k])
+            for k, name in enumerate(self.schema.names)
+            if self.moving_total[k]
+        }
+        return out
 
 
 def _read_point_labels(path: Path, final_row: str) -> dict[str, npt.NDArray[np.int16]]:
@@ -305,7 +416,28 @@ def format_result_tables(data: SequenceMetrics) -> str:
     ratio = data.coverage_ratio.get(ROW_VOXEL)
     if ratio:
         parts.append(f"voxel labels cover {ratio:.2f}x as many points as projection alone")
+    if data.objects:
+        parts.append(format_object_scores(data.objects))
     return "\n\n".join(parts)
+
+
+def format_object_scores(objects: Mapping[str, Mapping[str, float | None]]) -> str:
+    """The object scores of a ``metrics.json`` (docs/METHOD.md D.6) as a short text table, in %."""
+
+    def pct(v: float | None) -> str:
+        return "-" if v is None else f"{100 * v:.1f}"
+
+    lines = ["objects (%)     camera view  all points", "--------------  -----------  ----------"]
+    for key in ("PQ", "PQ_things", "PQ_stuff", "SQ", "RQ"):
+        lines.append(f"{key:<14}  {pct(objects['camera'].get(key)):>11}  {pct(objects['all'].get(key)):>10}")
+    motion = objects.get("motion", {})
+    lines.append(f"{'MOS IoU':<14}  {'':>11}  {pct(motion.get('mos_iou')):>10}")
+    lines.append(f"{'S_assoc':<14}  {'':>11}  {pct(motion.get('s_assoc')):>10}")
+    right = objects.get("moving_right_class", {})
+    if right:
+        shares = ", ".join(f"{name} {pct(v)}" for name, v in right.items())
+        lines.append(f"moving points with the right class: {shares}")
+    return "\n".join(lines)
 
 
 def result_tables(folder: str | Path) -> str | None:

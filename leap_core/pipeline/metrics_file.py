@@ -38,6 +38,7 @@ _RESERVED = frozenset(
         "paper_view",
         "protocol_notes",
         "sequences",
+        "objects",
     }
 )
 """Keys of a sequence's ``metrics.json`` that are not a protocol's table."""
@@ -162,6 +163,12 @@ class SequenceMetrics:
     """Protocol → why it was not computed."""
     sequences: list[str] | None = None
     """A run's ``overall``: the sequences summed (None in a sequence's file)."""
+    objects: dict[str, dict[str, float | None]] | None = None
+    """Object scores (:mod:`leap_core.panoptic`, docs/METHOD.md D.6), when the run tracked objects:
+    ``camera`` and ``all`` → ``PQ``, ``SQ``, ``RQ`` and each with ``_things`` / ``_stuff``; ``motion`` →
+    ``mos_iou`` (moving-object IoU, all points), ``s_assoc`` (LSTQ's association score) and
+    ``moving_points``; ``moving_right_class`` → class → share of its ground-truth moving points exported
+    with that class. A sequence's file only (a run's ``overall`` has none)."""
 
     def table(self, protocol: str) -> dict[str, RowScores]:
         """Row → scores of ``protocol``.
@@ -210,6 +217,8 @@ class SequenceMetrics:
             out["protocol_notes"] = dict(self.protocol_notes)
         if self.sequences is not None:
             out["sequences"] = list(self.sequences)
+        if self.objects is not None:
+            out["objects"] = {k: dict(v) for k, v in self.objects.items()}
         return out
 
     @classmethod
@@ -252,6 +261,14 @@ class SequenceMetrics:
                 paper_view=None if view is None else ViewSpec.from_dict(view),
                 protocol_notes={str(k): str(v) for k, v in (data.get("protocol_notes") or {}).items()},
                 sequences=None if listed is None else [str(s) for s in listed],
+                objects=(
+                    None
+                    if data.get("objects") is None
+                    else {
+                        str(k): {str(n): _opt_float(v) for n, v in part.items()}
+                        for k, part in data["objects"].items()
+                    }
+                ),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise DatasetError(source, f"unreadable metrics ({type(exc).__name__}: {exc})") from exc

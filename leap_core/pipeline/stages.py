@@ -49,6 +49,8 @@ from leap_core.pipeline.context import (
     load_view,
 )
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
+from leap_core.pipeline.objects import stage_tracks
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import RunLayout, SequenceLayout, load_corrections
 from leap_core.smoothing import SMOOTH_CHUNK, SmoothedGrid, smooth_grid_blocks
@@ -564,8 +566,12 @@ def _label_points_inputs(ctx: Ctx) -> dict[str, Any]:
 
 # -------------------------------------------------------------------------------------------- export
 def stage_export(ctx: Ctx) -> dict[str, Any]:
-    """Per frame: ``export/<frame_id>.label`` (raw export ids, 0 = unlabeled, instance 0) and ``.conf``."""
+    """Per frame: ``export/<frame_id>.label`` and ``.conf``. A label is the raw export id (0 = unlabeled)
+    with the point's track id in the upper 16 bits (0 for stuff and untracked points); a tracked point
+    takes its track's class, and while the track moves the class's moving id (``ClassDef.moving_id``)."""
     ids = ctx.schema.export_ids()
+    moving_ids = ctx.schema.moving_export_ids()
+    tracks = read_tracks(ctx)
 
     def work(i: int) -> None:
         fid = ctx.fid(i)
@@ -575,9 +581,29 @@ def stage_export(ctx: Ctx) -> dict[str, Any]:
             lab, conf = z["label"], z["conf"].astype(np.float32)
         except (OSError, KeyError, ValueError) as exc:
             raise DatasetError(path, f"unreadable point labels ({exc})") from exc
-        export_labels(ctx.layout.export_label(fid), ctx.layout.export_conf(fid), lab, conf, ids)
+        if tracks is None:
+            export_labels(ctx.layout.export_label(fid), ctx.layout.export_conf(fid), lab, conf, ids)
+            return
+        lab, instance, moving = tracks.point_objects(fid, lab)
+        export_labels(
+            ctx.layout.export_label(fid),
+            ctx.layout.export_conf(fid),
+            lab,
+            conf,
+            ids,
+            instance=instance,
+            moving=moving,
+            moving_ids=moving_ids,
+        )
 
     return ctx.each_frame("export", work, parallel=True)
+
+
+def read_tracks(ctx: Ctx) -> SequenceTracks | None:
+    """The ``tracks`` stage's objects, or None when tracking is off."""
+    if not ctx.cfg.tracking.enabled:
+        return None
+    return SequenceTracks.load(ctx.layout.tracks)
 
 
 # ---------------------------------------------------------------------------------------- the table
@@ -650,12 +676,25 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         needs_poses=True,
     ),
     StageInfo(
+        "tracks",
+        "Objects",
+        "segments of thing points per scan, tracks through the sequence, class votes and motion",
+        False,
+        stage_tracks,
+        reads=("tracking",),
+        upstream=("label_points",),
+        inputs=lambda ctx: [[c.name, bool(c.thing)] for c in ctx.schema.classes],
+        outputs=lambda lay, _cfg: (lay.tracks,),
+        switch="tracking.enabled",
+        needs_poses=True,
+    ),
+    StageInfo(
         "evaluate",
         "Evaluation",
         "point / voxel / 3D-CN metrics against ground truth",
         False,
         stage_evaluate,
-        upstream=("project", "smooth", "3dcn", "label_points"),
+        upstream=("project", "smooth", "3dcn", "label_points", "tracks"),
         # The paper's merge and the file's layout are inputs too: a change of either re-evaluates.
         inputs=lambda ctx: (
             [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
@@ -670,8 +709,11 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         "SemanticKITTI .label and .conf files per scan",
         True,
         stage_export,
-        upstream=("label_points",),
-        inputs=lambda ctx: [int(x) for x in ctx.schema.export_ids()],
+        upstream=("label_points", "tracks"),
+        inputs=lambda ctx: [
+            [int(x) for x in ctx.schema.export_ids()],
+            [int(x) for x in ctx.schema.moving_export_ids()],
+        ],
         frame_files=FrameFiles(SequenceLayout.EXPORT, (".label", ".conf")),
     ),
 )
@@ -696,4 +738,5 @@ __all__ = [
     "stage_labels2d",
     "stage_project",
     "stage_smooth",
+    "stage_tracks",
 ]

@@ -181,7 +181,7 @@ def _canon(value: Any) -> str:
 
 
 # ------------------------------------------------------------------------------------ run changes
-ChangeKind = Literal["dataset", "frames", "class", "parameter"]
+ChangeKind = Literal["dataset", "frames", "class", "parameter", "correction", "poses"]
 
 
 @dataclass(frozen=True)
@@ -190,7 +190,8 @@ class Change:
 
     kind: ChangeKind
     subject: str
-    """Class name, dotted parameter path, or the sequence's name (a ``dataset`` or ``frames`` change)."""
+    """Class name, dotted parameter path, the sequence's name (a ``dataset`` or ``frames`` change), the
+    correction's id (a ``correction`` change) or ``estimate_poses``."""
     text: str
     """One line for people (``prompts of car: + "sedan", − "jeep"``)."""
     ignored: str | None = None
@@ -278,6 +279,47 @@ def _sequence_changes(old: list[Mapping[str, Any]], new: list[Mapping[str, Any]]
     return out
 
 
+@dataclass(frozen=True)
+class CorrectionNote:
+    """What a change list says of one correction (the caller reads it from its store)."""
+
+    text: str
+    """``car, map, 340 voxels``."""
+    made_after: bool
+    """Made after the older run was queued (so "added", not "switched on")."""
+    exists: bool = True
+    """Still stored (switched off rather than deleted, when the newer run lacks it)."""
+
+
+def correction_changes(
+    old: Mapping[str, Sequence[int]],
+    new: Mapping[str, Sequence[int]],
+    notes: Mapping[int, CorrectionNote],
+) -> list[Change]:
+    """The corrections one run got and the other did not, per sequence (``{name: [correction ids]}``, older
+    run first): in ``new`` only, *added* (made after the older run) or *switched on*; in ``old`` only,
+    *switched off* or *removed*. A correction switched off and on again in between is no change (the runs
+    got the same input). Sequences are named only when the runs have several."""
+    out: list[Change] = []
+    names = list(new) + [n for n in old if n not in new]
+    for name in names:
+        a, b = list(old.get(name, ())), list(new.get(name, ()))
+        where = f" in sequence {name}" if len(names) > 1 else ""
+        for cid in b:
+            if cid not in a:
+                note = notes.get(cid)
+                verb = "added" if note is None or note.made_after else "switched on"
+                what = f" ({note.text})" if note is not None else ""
+                out.append(Change("correction", str(cid), f"correction {cid}{what}{where} {verb}"))
+        for cid in a:
+            if cid not in b:
+                note = notes.get(cid)
+                verb = "switched off" if note is not None and note.exists else "removed"
+                what = f" ({note.text})" if note is not None else ""
+                out.append(Change("correction", str(cid), f"correction {cid}{what}{where} {verb}"))
+    return out
+
+
 def run_changes(
     old: Mapping[str, Any], new: Mapping[str, Any], labels: Mapping[str, str] | None = None
 ) -> list[Change]:
@@ -285,8 +327,12 @@ def run_changes(
     "schema": {"classes"}, "pipeline"}``, as the app stores them), older run first: sequences (added,
     removed, another folder, other frames), classes and prompts, then parameters (dotted paths, each
     marked when ``new``'s config ignores it; ``labels``: dotted path → human name, shown before the path
-    of the settings it names)."""
+    of the settings it names). Pose estimation switched on or off is a ``poses`` change; the corrections
+    each run got are compared by :func:`correction_changes`, which needs the caller's store."""
     out = _sequence_changes(old.get("sequences") or [], new.get("sequences") or [])
+    if bool(old.get("estimate_poses")) != bool(new.get("estimate_poses")):
+        turned = "off → on" if new.get("estimate_poses") else "on → off"
+        out.append(Change("poses", "estimate_poses", f"Estimate poses (KISS-ICP): {turned}"))
     classes_old = (old.get("schema") or {}).get("classes", [])
     out += _class_changes(classes_old, (new.get("schema") or {}).get("classes", []))
     # A snapshot stored by an older version may hold fields that left the config at their former defaults,
@@ -309,10 +355,12 @@ def run_changes(
 
 __all__ = [
     "Change",
+    "CorrectionNote",
     "SettingScope",
     "StagePlan",
     "changed_sections",
     "comparable",
+    "correction_changes",
     "ignored_reason",
     "recompute_plan",
     "run_changes",

@@ -31,6 +31,8 @@ def test_class_crud_round_trip(client: TestClient, project: dict) -> None:
     base = f"{API}/projects/{project['id']}/classes"
     body = client.get(base).json()
     assert body["count"] == 19 and body["data"][0]["name"] == "car" and body["data"][0]["hex"] == "#6496f5"
+    car, road = body["data"][0], body["data"][8]
+    assert (car["thing"], car["moving_id"], road["thing"], road["moving_id"]) == (True, 252, False, None)
 
     r = client.post(
         base,
@@ -46,6 +48,12 @@ def test_class_crud_round_trip(client: TestClient, project: dict) -> None:
     assert names(r.json())[:3] == ["car", "bus stop", "bicycle"]
     assert r.json()["data"][1]["color"] == [0x12, 0xAB, 0x34]
 
+    r = client.patch(f"{base}/bus stop", json={"thing": True, "moving_id": 300})
+    assert r.status_code == 200 and r.json()["data"][1]["moving_id"] == 300, r.text
+    r = client.patch(f"{base}/bus stop", json={"moving_id": None})  # null removes it
+    assert r.json()["data"][1]["moving_id"] is None and r.json()["data"][1]["thing"] is True
+    r = client.patch(f"{base}/bus stop", json={"moving_id": 40})  # road's export id
+    assert r.status_code == 422 and "moving_id" in r.text
     r = client.patch(f"{base}/bus stop", json={"name": "shelter", "color": [1, 2, 3], "position": 0})
     assert r.status_code == 200, r.text
     assert names(r.json())[:2] == ["shelter", "car"] and r.json()["data"][0]["hex"] == "#010203"

@@ -159,7 +159,7 @@ def test_the_run_shows_skipped_stages_with_their_reason(client: TestClient, tiny
     again = wait_run(client, again["id"])
     assert again["status"] == "done", again["error"]
     stages = {s["name"]: s for s in again["progress"]["stages"]}
-    for name in ("labels2d", "project", "fuse", "smooth", "label_points", "evaluate", "export"):
+    for name in ("labels2d", "project", "fuse", "smooth", "label_points", "tracks", "evaluate", "export"):
         assert stages[f"00/{name}"]["status"] == "skipped", stages[f"00/{name}"]
         assert stages[f"00/{name}"]["note"] == "unchanged since the last run", stages[f"00/{name}"]
     log = client.get(f"{API}/runs/{again['id']}/logs").json()["text"]

@@ -68,7 +68,7 @@ def test_cli_shows_skipped_stages_as_lines_and_logs_above_the_bars(
         bars("00", "labels2d", 4, 4)
         run_pipeline(specs, preset.schema, cfg, out, progress=bars)
     second = err.getvalue()
-    for stage in ("project", "fuse", "smooth", "label_points", "evaluate", "export"):
+    for stage in ("project", "fuse", "smooth", "label_points", "tracks", "evaluate", "export"):
         assert f"{stage:<12} skipped (unchanged since the last run in this folder)" in second, second
     lines = second.replace("\r", "\n").splitlines()
     assert "a warning during a bar" in lines, second

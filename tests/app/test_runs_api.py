@@ -62,7 +62,7 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert [s["name"] for s in run["progress"]["stages"]] == [f"00/{s}" for s in STAGES]
     # One active run per project.
     again = client.post(f"{API}/projects/{project['id']}/runs", json={})
-    assert again.status_code == 409 and "already has run" in again.json()["detail"]
+    assert again.status_code == 409 and f"already has run 1 (id {run['id']})" in again.json()["detail"]
 
     events = read_events(client, run["id"])
     assert events[-1][0] == "end"
@@ -87,12 +87,12 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert run["params"]["sequences"] == [{"name": "00", "dataset": str(tiny_dataset), "frames": None}]
     assert run["has_metrics"] and run["has_export"] and not run["resumable"]
     assert set(run["summary"]) == {"camera", "common", "all", "paper"}
-    assert set(run["summary"]["camera"]) == {"point", "voxel"}
+    assert set(run["summary"]["camera"]) == {"point", "voxel", "objects"}
 
     metrics = client.get(f"{API}/runs/{run['id']}/metrics").json()
     voxel = metrics["metrics"]["protocols"]["camera"]["voxel"]
     assert set(voxel["iou"]) == set(metrics["class_names"]) and "confusion" not in voxel
-    assert 0.0 <= voxel["miou"] <= 1.0 and metrics["metrics"]["rows"] == ["point", "voxel"]
+    assert 0.0 <= voxel["miou"] <= 1.0 and metrics["metrics"]["rows"] == ["point", "voxel", "objects"]
     # The paper's protocol: Table 1's 11 merged classes, named in views, with the merge and a description.
     view = metrics["metrics"]["views"]["paper"]
     paper = metrics["metrics"]["protocols"]["paper"]["voxel"]

@@ -138,9 +138,10 @@ def test_preview_note_and_comparison(env) -> None:
     # k: smoothing and what follows.
     client.patch(f"/projects/{pid}", json={"form": {"k": 4}})
     k = client.get(f"/projects/{pid}/runs/preview").json()
-    assert k["recompute"] == ["smooth", "label_points", "evaluate", "export"]
+    assert k["recompute"] == ["smooth", "label_points", "tracks", "evaluate", "export"]
     reasons = {s["name"]: s["reason"] for s in k["stages"]}
-    assert reasons["smooth"] == "settings changed: smoothing" and reasons["export"] == "after Point labels"
+    assert reasons["smooth"] == "settings changed: smoothing"
+    assert reasons["export"] == "after Point labels, Objects"
 
     # A class evaluated against id 99 (other-object): the 2D labels and everything after them.
     client.post(
@@ -173,7 +174,7 @@ def test_preview_note_and_comparison(env) -> None:
     assert "kNN smoothing k (smoothing.k): 9 → 4" in texts
     assert any(t.startswith("class thing added") for t in texts)
     assert {(r["protocol"], r["row"]) for r in cmp["rows"]} == {
-        (p_, r_) for p_ in ("camera", "common", "all") for r_ in ("point", "voxel")
+        (p_, r_) for p_ in ("camera", "common", "all") for r_ in ("point", "voxel", "objects")
     }
     m1 = client.get(f"/runs/{run1['id']}/metrics").json()["metrics"]["protocols"]
     m2 = client.get(f"/runs/{run2['id']}/metrics").json()["metrics"]["protocols"]
@@ -205,7 +206,7 @@ def test_comparison_of_the_paper_protocol_lists_its_merged_classes(env) -> None:
     run2 = _run(client, pid)
     cmp = client.get(f"/runs/{run2['id']}/compare/{run1['id']}").json()
     rows = [r for r in cmp["rows"] if r["protocol"] == "paper"]
-    assert [r["row"] for r in rows] == ["point", "voxel"]
+    assert [r["row"] for r in rows] == ["objects", "point", "voxel"]
     m1 = client.get(f"/runs/{run1['id']}/metrics").json()["metrics"]
     m2 = client.get(f"/runs/{run2['id']}/metrics").json()["metrics"]
     for row in rows:
@@ -222,7 +223,7 @@ def test_metrics_carry_the_share_of_all_points_labeled(env) -> None:
     run = _run(client, p["id"])
     m = client.get(f"/runs/{run['id']}/metrics").json()["metrics"]
     n = m["n_points"]
-    assert set(m["labeled_share_all_points"]) == {"point", "voxel"}
+    assert set(m["labeled_share_all_points"]) == {"point", "voxel", "objects"}
     for row, share in m["labeled_share_all_points"].items():
         assert share == pytest.approx(m["labeled_points"][row] / n)
     assert m["labeled_share_all_points"]["point"] < m["labeled_share_all_points"]["voxel"] <= 1.0

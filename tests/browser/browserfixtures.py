@@ -167,6 +167,7 @@ def box_select_centre(page: Any, session: Any) -> int:
     as a hand does), and return how many voxels the viewer selected."""
     page.get_by_role("button", name="Select box").click()
     wait_until(lambda: session.scene.rect_select_armed, 10, "box selection to be armed")
+    page.wait_for_timeout(500)  # the server armed it; the browser hears of it over the websocket
     canvas = page.locator("canvas").first.bounding_box()
     cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
     page.mouse.move(cx - 90, cy - 50)

@@ -187,9 +187,11 @@ def test_review_steer_rerun_and_correct_in_a_real_browser(live_app: dict[str, An
         # 8. The review queue moves the camera to the least confident region.
         page.get_by_text("Review queue", exact=True).click()
         page.get_by_role("button", name="Next region").click()
-        page.get_by_text(re.compile(r"Region 1/\d+: mean confidence")).wait_for(timeout=30_000)
+        page.get_by_text(re.compile(r"Region 1/\d+: about \d+ voxels expected wrong")).wait_for(
+            timeout=30_000
+        )
         region = session.queue.regions[0]
-        assert region.score == min(r.score for r in session.queue.regions)
+        assert region.expected_wrong == max(r.expected_wrong for r in session.queue.regions)
         page.wait_for_timeout(3000)
         _shot(page, artifacts, "viewer-7-review-queue.png")
 

@@ -101,7 +101,7 @@ def test_two_tabs_browse_apart_and_see_each_others_corrections(street: dict[str,
         page_a.get_by_role("button", name="Apply to selection").click()
         wait_until(lambda: a.corrections.correction_count() == 1, 20, "the correction in tab A")
         t0 = time.monotonic()
-        expect(page_b.get_by_text("1 active corrections", exact=False)).to_be_visible(timeout=2_000)
+        expect(page_b.get_by_text("1 active correction ", exact=False)).to_be_visible(timeout=2_000)
         print(f"tab B showed tab A's correction {time.monotonic() - t0:.2f} s after tab A stored it")
         assert b.label is a.label and b.player.frame_pos == start - 1  # B kept its own scan
         # Tab A was opened for reviewer "ana": its panel says so, and the correction carries the name.

@@ -4,9 +4,10 @@
 // without a run. Mounted by web/project.js; polls while the page shows it. Every user string (class names,
 // authors) goes in as text (dom.js h), never as HTML.
 
-import { get, patch } from "../api.js";
+import { get, patch, post } from "../api.js";
 import { fmtTime, h, replace } from "../dom.js";
 import { sequenceQuery } from "./review.js";
+import { openViewer } from "./viewer.js";
 
 const POLL_MS = 2000;
 
@@ -19,6 +20,7 @@ function applyText(a) {
   if (a.status === "failed") return `Applying corrections failed: ${a.error || "unknown error"}`;
   if (a.status === "no_run") return "No finished run yet: corrections apply at the next run.";
   if (a.status === "done") {
+    if (!a.frames && !a.baked_reverts) return `Run ${a.run_number}'s export is up to date: no scan needed a change.`;
     const reverts = a.baked_reverts ? ` ${a.baked_reverts} undone voxels keep their class until the next run.` : "";
     return `Applied to run ${a.run_number}: ${a.frames} scan${a.frames === 1 ? "" : "s"} updated in ${a.seconds.toFixed(2)} s.${reverts}`;
   }
@@ -57,6 +59,7 @@ export function mountCorrections(ctx) {
       ctx.render.compare();
     }
     lastApplied = applied;
+    const canShow = Boolean(ctx.state.health && ctx.state.health.viewer && ctx.state.runs.some((r) => r.status === "done"));
     const rows = body.corrections.map((c) =>
       h(
         "tr",
@@ -77,6 +80,26 @@ export function mountCorrections(ctx) {
             onchange: (e) => toggle(c, e.target.checked),
           }),
         ),
+        canShow
+          ? h(
+              "td",
+              {},
+              h(
+                "button",
+                {
+                  class: "btn small corr-show",
+                  title: "Open the 3D viewer with this correction selected and in view",
+                  "aria-label": `Show correction ${c.id} in 3D`,
+                  onclick: () =>
+                    // The new tab (v.tab) is the one that shows it, not another viewer tab already open.
+                    openViewer(ctx, (v) =>
+                      post(`/projects/${ctx.projectId}/viewer/tools/corrections/${c.id}/show?tab=${v.tab}`),
+                    ),
+                },
+                "Show in 3D",
+              ),
+            )
+          : null,
       ),
     );
     replace(
@@ -93,7 +116,7 @@ export function mountCorrections(ctx) {
         ? h(
             "table",
             { class: "corr-table" },
-            h("thead", {}, h("tr", {}, ["Class", "Scope", "Size", "By", "When", "Active"].map((t) => h("th", {}, t)))),
+            h("thead", {}, h("tr", {}, ["Class", "Scope", "Size", "By", "When", "Active", ...(canShow ? [""] : [])].map((t) => h("th", {}, t)))),
             h("tbody", {}, rows),
           )
         : h("p", { class: "muted small" }, "No corrections yet. Make them in the 3D viewer (select, then a class)."),

@@ -32,10 +32,34 @@ function sequencePicker(ctx) {
   );
 }
 
+/** Open the viewer on the latest finished run (of the picked sequence) in a new tab; `then(v)` runs once
+ * the server has it loaded, before the tab navigates (e.g. to jump to a correction). False without a
+ * finished run. */
+export async function openViewer(ctx, then = null) {
+  const { state, projectId, toast } = ctx;
+  const lastDone = state.runs.find((r) => r.status === "done");
+  if (!lastDone) return false;
+  // Opened before any await: a window opened later is no longer the click's and gets blocked.
+  const win = window.open("about:blank", "_blank");
+  try {
+    const body = { run_id: lastDone.id };
+    if ((state.project.sequences || []).length > 1) body.sequence = state.viewerSequence;
+    // The tab stores this browser's reviewer name with its corrections and review marks.
+    if (reviewerName()) body.reviewer = reviewerName();
+    const v = await post(`/projects/${projectId}/viewer`, body);
+    if (then) await then(v);
+    if (win) win.location = url(v.url);
+  } catch (err) {
+    if (win) win.close();
+    toast(err.message, "error");
+  }
+  return true;
+}
+
 /** The "Open 3D viewer" button (with the sequence picker of a project of several sequences), or null when
  * the server has no viewer. */
 export function viewerButton(ctx) {
-  const { state, projectId, toast } = ctx;
+  const { state } = ctx;
   if (!(state.health && state.health.viewer)) return null;
   const lastDone = state.runs.find((r) => r.status === "done");
   const picker = sequencePicker(ctx);
@@ -46,20 +70,7 @@ export function viewerButton(ctx) {
       id: "viewer-button",
       disabled: !lastDone,
       title: lastDone ? `Review run ${lastDone.number} in 3D` : "Needs a finished run",
-      onclick: async () => {
-        const win = window.open("about:blank", "_blank");
-        try {
-          const body = { run_id: lastDone.id };
-          if (picker) body.sequence = state.viewerSequence;
-          // The tab stores this browser's reviewer name with its corrections and review marks.
-          if (reviewerName()) body.reviewer = reviewerName();
-          const v = await post(`/projects/${projectId}/viewer`, body);
-          if (win) win.location = url(v.url);
-        } catch (err) {
-          if (win) win.close();
-          toast(err.message, "error");
-        }
-      },
+      onclick: () => openViewer(ctx),
     },
     "Open 3D viewer",
   );

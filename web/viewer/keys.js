@@ -41,8 +41,12 @@ function typing(event) {
   const el = event.target;
   if (!el || !el.tagName) return false;
   const tag = el.tagName.toLowerCase();
-  // viser's dropdowns keep focus in a read-only <input> after a pick: that is not typing.
+  // viser's dropdowns keep focus in their <input> after a pick (read-only in some versions, a closed
+  // combobox in others): that is not typing. An open one takes the keys (its list is being browsed).
   if (tag === "input" && el.readOnly) return false;
+  if (tag === "input" && el.getAttribute("role") === "combobox" && el.getAttribute("aria-expanded") !== "true") {
+    return false;
+  }
   return tag === "input" || tag === "textarea" || tag === "select" || el.isContentEditable;
 }
 

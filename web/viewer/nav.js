@@ -47,15 +47,22 @@ function render() {
   box.hidden = !open;
   if (!open) return;
   placeImage(box);
-  const shown = `${state.pos}/${state.camera}`;
+  const shown = `${state.pos}/${state.camera}/${state.zoomed ? "zoomed" : ""}`;
   if (shownPos !== shown) {
     shownPos = shown;
-    // The query only defeats the browser cache; the route always serves the shown scan's chosen camera.
-    const query = new URLSearchParams({ pos: String(state.pos), camera: String(state.camera) });
+    // The query only defeats the browser cache; the route always serves the shown scan's chosen camera
+    // (the focused review region's zoomed crop while one is focused in it).
+    const query = new URLSearchParams({
+      pos: String(state.pos),
+      camera: String(state.camera),
+      z: state.zoomed ? "1" : "0",
+    });
     box.querySelector("img").src = `/api/v1/projects/${projectId}/viewer/nav/image?${query}`;
   }
-  box.querySelector(".leap-image-caption").textContent =
-    `Scan ${state.frame_id} (${state.pos + 1}/${state.count}), camera ${state.camera}. Press I or click to close.`;
+  const where = `Scan ${state.frame_id} (${state.pos + 1}/${state.count}), camera ${state.camera}`;
+  box.querySelector(".leap-image-caption").textContent = state.zoomed
+    ? `${where}, zoomed on the review region. Press I or click to close.`
+    : `${where}. Press I or click to close.`;
 }
 
 async function act(method, path, body) {

@@ -137,8 +137,35 @@ async function poll() {
   setTimeout(poll, POLL_MS);
 }
 
-bind(["1", "2", "3", "4", "5", "6", "7", "8", "9"], "Assign the n-th class of the picker to the selection",
-  (event) => assign({ slot: Number(event.key) }), "Selection and corrections", ["1-9"]);
+// Classes past the ninth: type the number ("1" "2" for the 12th; "0" alone is the 10th). A digit waits
+// DIGIT_WAIT_MS for the next one only while a longer number could still name a class, so with nine classes
+// or fewer every digit assigns at once.
+const DIGIT_WAIT_MS = 700;
+let digits = "";
+let digitTimer = null;
+
+function slotOf(typed) {
+  return typed === "0" ? 10 : Number(typed);
+}
+
+function assignTyped() {
+  clearTimeout(digitTimer);
+  digitTimer = null;
+  const slot = slotOf(digits);
+  digits = "";
+  if (slot >= 1 && slot <= state.classes.length) assign({ slot });
+  else notify(`No class ${slot}: the picker has ${state.classes.length}`, "error");
+}
+
+function digitKey(event) {
+  digits += event.key;
+  clearTimeout(digitTimer);
+  if (digits !== "0" && slotOf(digits) * 10 <= state.classes.length) digitTimer = setTimeout(assignTyped, DIGIT_WAIT_MS);
+  else assignTyped();
+}
+
+bind(["1", "2", "3", "4", "5", "6", "7", "8", "9", "0"], "Assign the n-th class of the picker to the selection (type 1 2 for the 12th, 0 for the 10th)",
+  digitKey, "Selection and corrections", ["1-9", "0"]);
 bind(["e"], "Erase the selection to unlabeled", () => assign({ erase: true }), "Selection and corrections");
 bind(["ctrl+z"], "Undo the last correction", () => viewerApi("POST", "tools/undo", {}), "Selection and corrections");
 bind(["ctrl+shift+z"], "Redo", () => viewerApi("POST", "tools/redo", {}), "Selection and corrections");

@@ -6,21 +6,18 @@ from __future__ import annotations
 
 from collections import Counter
 from pathlib import Path as FilePath
-from typing import Annotated
 
-from fastapi import APIRouter, Path, Request, status
+from fastapi import APIRouter, Request, status
 
 from app import crud, models
 from app.api.deps import DbDep, ReadDbDep, SettingsDep
 from app.api.responses import NOT_FOUND
-from app.api.types import MAX_INT, ProjectId, SequenceQuery
+from app.api.types import CorrectionId, ProjectId, SequenceQuery
 from app.core.errors import InvalidField, NotFound
 from app.jobs.apply import applier
 from app.rows import ProjectRow
 
 router = APIRouter(tags=["corrections"], responses={**NOT_FOUND})
-
-CorrectionId = Annotated[int, Path(ge=1, le=MAX_INT, description="correction id")]
 
 
 def _public(c: crud.Correction) -> models.CorrectionPublic:

@@ -32,6 +32,9 @@ class NavState(BaseModel):
     image_open: bool = Field(description="the page shows the scan's image enlarged")
     has_image: bool = Field(description="the shown scan has a camera image")
     camera: str | None = Field(default=None, description="the rig camera whose image is shown (its folder)")
+    zoomed: bool = Field(
+        default=False, description="the image is the focused review region's crop, zoomed on it"
+    )
 
 
 class StepBody(BaseModel):
@@ -71,6 +74,7 @@ def _state(session: ReviewSession) -> NavState:
         image_open=player.image_open,
         has_image=view is not None and view.overlay is not None,
         camera=None if view is None else view.camera,
+        zoomed=player.zoomed_image(view) is not None,
     )
 
 

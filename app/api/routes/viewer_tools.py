@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, Strict
 
 from app.api.responses import CONFLICT, NOT_FOUND
 from app.api.routes.viewer import ViewersDep, run_blocking, running_session
-from app.api.types import ProjectId
+from app.api.types import CorrectionId, ProjectId
 from app.viewer.records import ToolSettings
 from app.viewer.session import ReviewSession
 
@@ -174,6 +174,22 @@ async def undo(project_id: ProjectId, viewers: ViewersDep) -> EditResult:
 async def redo(project_id: ProjectId, viewers: ViewersDep) -> EditResult:
     """Redo the last undone correction."""
     return EditResult(correction_id=await run_blocking(running_session(viewers, project_id).corrections.redo))
+
+
+@router.post("/corrections/{correction_id}/show", response_model=ToolsState)
+async def show_correction(
+    project_id: ProjectId, correction_id: CorrectionId, viewers: ViewersDep
+) -> ToolsState:
+    """Jump to a stored correction (the project page's corrections list): select what it covers (its voxels,
+    or its points in its scan, which is shown) and frame the camera on it."""
+    session = running_session(viewers, project_id)
+    try:
+        await run_blocking(session.corrections.show_correction, correction_id)
+    except LookupError as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc)) from None
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
+    return _state(session)
 
 
 @router.post("/clear", response_model=ToolsState)

@@ -1,0 +1,145 @@
+"""Objects on the demo street: what the ``tracks`` stage changes, against the same run without it.
+
+Runs the pipeline on one sequence twice in one run folder: first with ``tracking.enabled: false`` (the
+baseline: the labels of a run without objects), then with it on (only ``tracks``, ``evaluate`` and
+``export`` run again). Prints, for both (docs/RESULTS.md "Objects"):
+
+- moving-person points with the right class: ground-truth raw id 254 points whose exported class is person
+  (all points);
+- MOS IoU (moving points, all points; evaluate_mos.py's definition), camera-view and all-points PQ of
+  things, S_assoc (LSTQ), from the run's ``metrics.json``;
+- stuff mIoU before / after (all points and camera view: the mean IoU of the stuff classes);
+- the tracks stage's time per scan beside ``label_points``' (same run, same frames: the stage before it).
+
+Usage::
+
+    .venv/bin/leap synth /tmp/demo
+    .venv/bin/python benchmarks/bench_objects.py --sequence /tmp/demo/sequences/00
+    .venv/bin/python benchmarks/bench_objects.py --quick     # a generated 3-frame street
+
+Writes ``benchmarks/results/bench_objects.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np
+from common import print_table, write_results
+
+from leap_core.config import PipelineConfig, config_from_dict
+from leap_core.datasets.kitti import KittiSequence, read_label
+from leap_core.pipeline import SequenceSpec, run_pipeline
+from leap_core.pipeline.metrics_file import SequenceMetrics
+from leap_core.schema import Schema, builtin_schema
+from leap_core.synth import SynthConfig, generate_sequence
+
+MOVING_PERSON = 254
+
+
+def moving_right_share(seq: KittiSequence, export: Path, schema: Schema, raw_id: int) -> float:
+    """Share of the points whose ground truth is ``raw_id`` exported with that id's class."""
+    lut = np.full(0x10000, -1, np.int64)
+    for k, c in enumerate(schema.classes):
+        lut[c.export_id] = k
+        if c.moving_id is not None:
+            lut[c.moving_id] = k
+    want = int(schema.gt_lut()[raw_id])
+    right = total = 0
+    for i, fid in enumerate(seq.frame_ids):
+        gt = seq.frame(i).labels & 0xFFFF
+        pred = lut[read_label(export / f"{fid}.label") & 0xFFFF]
+        sel = gt == raw_id
+        total += int(sel.sum())
+        right += int((pred[sel] == want).sum())
+    return right / total if total else math.nan
+
+
+def stuff_miou(m: SequenceMetrics, protocol: str, row: str, schema: Schema) -> float:
+    iou = m.table(protocol)[row].iou
+    vals = [iou[c.name] for c in schema.classes if not c.thing and iou[c.name] is not None]
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def pct(x: float | None) -> str:
+    return "-" if x is None or math.isnan(x) else f"{100 * x:.1f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sequence", default="/tmp/demo/sequences/00", help="KITTI-layout sequence folder.")
+    ap.add_argument("--quick", action="store_true", help="A generated 3-frame street instead.")
+    ap.add_argument("--work", default=None, help="Folder for the run (default: a temp folder).")
+    args = ap.parse_args()
+
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_objects_"))
+    if args.quick:
+        seq_dir = generate_sequence(work / "data", SynthConfig(frames=3)).path
+    else:
+        seq_dir = Path(args.sequence)
+        if not (seq_dir / "velodyne").is_dir():
+            sys.exit(f"{seq_dir}: not a sequence folder; generate the demo first: leap synth /tmp/demo")
+    seq = KittiSequence(seq_dir)
+    schema = builtin_schema("semantickitti")
+    out = work / "run"
+    results: dict[str, Any] = {}
+    for name, enabled in (("without objects", False), ("with objects", True)):
+        cfg = config_from_dict({"tracking": {"enabled": enabled}}, PipelineConfig())
+        res = run_pipeline([SequenceSpec.of(seq_dir)], schema, cfg, out).only()
+        assert res.metrics is not None, "the sequence has no ground truth"
+        row = "objects" if enabled else "voxel"
+        lay = res.layout if hasattr(res, "layout") else None
+        state = json.loads(
+            ((lay.folder if lay else out / "sequences" / seq_dir.name) / "stages.json").read_text()
+        )
+        obj = res.metrics.objects or {}
+        results[name] = {
+            "moving_person_right_class": moving_right_share(
+                seq,
+                (lay.folder if lay else out / "sequences" / seq_dir.name) / "export",
+                schema,
+                MOVING_PERSON,
+            ),
+            "mos_iou": obj.get("motion", {}).get("mos_iou"),
+            "pq_things_camera": obj.get("camera", {}).get("PQ_things"),
+            "pq_things_all": obj.get("all", {}).get("PQ_things"),
+            "pq_camera": obj.get("camera", {}).get("PQ"),
+            "s_assoc": obj.get("motion", {}).get("s_assoc"),
+            "stuff_miou_all": stuff_miou(res.metrics, "all", row, schema),
+            "stuff_miou_camera": stuff_miou(res.metrics, "camera", row, schema),
+            "miou_all": res.metrics.miou("all", row),
+            "tracks_ms_per_scan": 1000 * state["tracks"].get("seconds", 0.0) / len(seq) if enabled else None,
+            "label_points_ms_per_scan": 1000 * state["label_points"]["seconds"] / len(seq),
+            "tracks": state["tracks"].get("tracks"),
+            "moving_tracks": state["tracks"].get("moving_tracks"),
+        }
+    keys = [
+        ("moving-person points, right class %", "moving_person_right_class"),
+        ("MOS IoU % (all points)", "mos_iou"),
+        ("PQ things % (camera view)", "pq_things_camera"),
+        ("PQ things % (all points)", "pq_things_all"),
+        ("PQ % (camera view)", "pq_camera"),
+        ("S_assoc %", "s_assoc"),
+        ("stuff mIoU % (all points)", "stuff_miou_all"),
+        ("stuff mIoU % (camera view)", "stuff_miou_camera"),
+        ("mIoU % (all points)", "miou_all"),
+    ]
+    rows = [[label, *(pct(results[n][k]) for n in results)] for label, k in keys]
+    on = results["with objects"]
+    rows.append(["tracks / moving tracks", "-", f"{on['tracks']} / {on['moving_tracks']}"])
+    rows.append(["tracks stage ms/scan", "-", f"{on['tracks_ms_per_scan']:.1f}"])
+    rows.append(["label_points ms/scan (baseline)", "-", f"{on['label_points_ms_per_scan']:.1f}"])
+    print_table(f"Objects on {seq_dir} ({len(seq)} frames)", ["", *results], rows)
+    write_results("bench_objects", {"sequence": str(seq_dir), "frames": len(seq), "results": results})
+
+
+if __name__ == "__main__":
+    main()

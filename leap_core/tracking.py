@@ -1,0 +1,311 @@
+"""Objects through a sequence: per-scan segments of thing points, tracks, one class per track, motion
+(docs/METHOD.md B.6).
+
+Pure functions on arrays; the pipeline stage (:mod:`leap_core.pipeline.stages`, ``tracks``) does the I/O.
+
+1. **Segments.** A scan's thing points (points whose own label or per-scan projected label is a thing
+   class) are grouped by Euclidean clustering on a grid (:func:`euclidean_segments`): cubes of side
+   ``cluster_radius`` that touch are connected (scipy's ``connected_components``). Segments with fewer
+   than ``min_segment_points`` points are dropped.
+2. **Tracks.** Each live track predicts its centroid at the scan's time with a constant-velocity model,
+   ``ĉ = c_last + v · (t - t_last)``; the cost of giving segment s to track k is ``‖ĉ_k - c_s‖`` (world
+   coordinates), pairs above ``gate`` are forbidden and the one-to-one assignment of least total cost is
+   scipy's ``linear_sum_assignment``. Unassigned segments start tracks; a track unseen for more than
+   ``max_missed`` scans ends. Track ids are 1, 2, ... in order of birth, unique over the sequence.
+   ``v`` is the displacement of the last two observations over their time difference (0 for a new track).
+3. **Class.** A track's class is the argmax of its segments' summed class votes over all its scans.
+4. **Motion.** A track's velocity is the least-squares slope of its centroids against time. Its *sweep*
+   is how far its ground footprint reaches beyond one scan's: with each segment's axis-aligned box
+   ``[x0, x1] × [y0, y1]`` (world, metres), ``e_x = (max x1 - min x0) - max_t (x1 - x0)`` over its scans,
+   likewise ``e_y``, sweep ``= √(e_x² + e_y²)``. A track is moving when it has at least
+   ``min_track_scans`` scans, its speed ``‖v‖`` reaches ``moving_speed`` and its sweep reaches
+   ``moving_distance``. The sweep, not ``‖v‖ · duration``, because a parked car seen first from afar (a
+   few points on its front) and then whole has a centroid that drifts by metres, while its footprint
+   never leaves the box of its largest view; a mover's footprint does, by the distance it travelled.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from leap_core.bounds import check_bounds, within
+
+_FORBIDDEN = 1e9
+_HALF_NEIGHBOURS = [
+    (dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if (dx, dy, dz) > (0, 0, 0)
+]
+"""13 of the 26 neighbour offsets, one of each opposite pair: each adjacency is found once."""
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Segments, association and motion of the ``tracks`` stage."""
+
+    enabled: bool = True
+    """Build tracks (instance ids, moving labels); off: exports keep instance 0 and static ids."""
+    cluster_radius: float = field(default=0.5, metadata=within(0.05, 10, unit="m"))
+    """Euclidean clustering cube side: points in touching cubes are one segment (points closer than this
+    always are). 0.5 m joins the returns of one car or person (a few centimetres to 30 cm apart within
+    40 m) and keeps apart objects 2 m apart."""
+    min_segment_points: int = field(default=5, metadata=within(1, 100_000))
+    """Smaller segments are dropped (stray points of a thing class)."""
+    gate: float = field(default=2.0, metadata=within(0.1, 100, unit="m"))
+    """Largest distance between a track's predicted and a segment's centroid for an association."""
+    max_missed: int = field(default=3, metadata=within(0, 1000))
+    """A track not associated for more than this many scans ends."""
+    moving_speed: float = field(default=0.5, metadata=within(0, 100, unit="m/s"))
+    """Least speed of a moving track (a walking person: 1.3 m/s)."""
+    moving_distance: float = field(default=1.0, metadata=within(0, 1000, unit="m"))
+    """Least sweep of a moving track: how far its footprint reaches beyond its largest single view."""
+    min_track_scans: int = field(default=3, metadata=within(2, 1000))
+    """Tracks seen in fewer scans are never moving (their slope is noise)."""
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
+
+
+def euclidean_segments(xyz: npt.ArrayLike, radius: float, min_points: int) -> npt.NDArray[np.int64]:
+    """(N,) int64 segment index 0..S-1 per point, -1 for points of segments under ``min_points``.
+
+    Euclidean clustering on a grid: the points fall into cubes of side ``radius``; cubes that share a face,
+    edge or corner (26-neighbourhood) are connected, and a segment is a connected set of occupied cubes.
+    So points closer than ``radius`` always share a segment, and points more than ``2√3 · radius`` apart
+    never do directly. The radius graph of the points themselves (a k-d tree's pairs) is the same idea
+    but costs seconds on a scan's near cars (hundreds of neighbours per point); the cubes cost one sort.
+    Segments are numbered by their first point, so the result does not depend on any internal order.
+    """
+    pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    n = pts.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    cell = np.floor(pts / radius).astype(np.int64)
+    cell -= cell.min(axis=0) - 1  # ≥ 1, so a neighbour's coordinate never goes negative
+    span = cell.max(axis=0) + 2
+    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    cells, of_point = np.unique(key, return_inverse=True)
+    m = cells.size
+    src: list[npt.NDArray[np.int64]] = []
+    dst: list[npt.NDArray[np.int64]] = []
+    for dx, dy, dz in _HALF_NEIGHBOURS:
+        probe = cells + (dx * span[1] + dy) * span[2] + dz
+        pos = np.minimum(np.searchsorted(cells, probe), m - 1)
+        hit = cells[pos] == probe
+        src.append(np.flatnonzero(hit))
+        dst.append(pos[hit])
+    a, b = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(m, m))
+    _, comp_of_cell = connected_components(graph, directed=False)
+    comp = comp_of_cell[of_point.reshape(-1)]
+    sizes = np.bincount(comp)
+    first = np.full(sizes.size, n, np.int64)
+    np.minimum.at(first, comp, np.arange(n))
+    keep = sizes >= min_points
+    order = np.argsort(np.where(keep, first, n + 1), kind="stable")
+    rank = np.full(sizes.size, -1, np.int64)
+    rank[order[: int(keep.sum())]] = np.arange(int(keep.sum()))
+    out: npt.NDArray[np.int64] = rank[comp]
+    return out
+
+
+def segment_summary(
+    xyz: npt.ArrayLike, segment: npt.ArrayLike, votes: npt.ArrayLike, num_classes: int
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Centroid (S, 3), summed class votes (S, C) and ground box (S, 4) ``[x0, y0, x1, y1]`` of the
+    segments 0..S-1.
+
+    Args:
+        xyz: (N, 3) world coordinates.
+        segment: (N,) segment index, -1 = in none.
+        votes: (N, C) class votes of each point (e.g. one-hot labels).
+        num_classes: C.
+    """
+    p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    s = np.asarray(segment).reshape(-1)
+    v = np.asarray(votes, dtype=np.float64).reshape(-1, num_classes)
+    n_seg = int(s.max()) + 1 if s.size else 0
+    inside = s >= 0
+    count = np.bincount(s[inside], minlength=n_seg).astype(np.float64)
+    sums = np.stack([np.bincount(s[inside], p[inside, k], n_seg) for k in range(3)], axis=1)
+    centroid: npt.NDArray[np.float64] = sums.astype(np.float64) / np.maximum(count, 1)[:, None]
+    hist = np.zeros((n_seg, num_classes))
+    np.add.at(hist, s[inside], v[inside])
+    box = np.empty((n_seg, 4))
+    box[:, :2] = np.inf
+    box[:, 2:] = -np.inf
+    for k in range(2):
+        np.minimum.at(box[:, k], s[inside], p[inside, k])
+        np.maximum.at(box[:, 2 + k], s[inside], p[inside, k])
+    return centroid, hist, box
+
+
+def associate(
+    predicted: npt.ArrayLike, centroids: npt.ArrayLike, gate: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """One-to-one pairs (track rows, segment rows) of least total distance, each pair within ``gate``.
+
+    Args:
+        predicted: (K, 3) tracks' predicted centroids.
+        centroids: (S, 3) segments' centroids.
+    """
+    a = np.asarray(predicted, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(centroids, dtype=np.float64).reshape(-1, 3)
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cost = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
+    cost = np.where(cost <= gate, cost, _FORBIDDEN)
+    rows, cols = linear_sum_assignment(cost)
+    ok = cost[rows, cols] < _FORBIDDEN
+    return rows[ok].astype(np.int64), cols[ok].astype(np.int64)
+
+
+def track_ids(
+    centroids: Sequence[npt.ArrayLike], times: npt.ArrayLike, cfg: TrackingConfig
+) -> list[npt.NDArray[np.int64]]:
+    """Track id (1, 2, ...) of every segment of every scan (module docstring, step 2).
+
+    Args:
+        centroids: per scan t, (S_t, 3) segment centroids in world coordinates.
+        times: (T,) seconds of each scan, increasing.
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    if t.shape[0] != len(centroids):
+        raise ValueError(f"{t.shape[0]} times for {len(centroids)} scans")
+    last_pos = np.zeros((0, 3))
+    vel = np.zeros((0, 3))
+    last_t = np.zeros(0)
+    last_scan = np.zeros(0, np.int64)
+    ids = np.zeros(0, np.int64)
+    next_id = 1
+    out: list[npt.NDArray[np.int64]] = []
+    for k, c in enumerate(centroids):
+        cen = np.asarray(c, dtype=np.float64).reshape(-1, 3)
+        live = k - last_scan <= cfg.max_missed + 1
+        last_pos, vel, last_t, last_scan, ids = (
+            last_pos[live],
+            vel[live],
+            last_t[live],
+            last_scan[live],
+            ids[live],
+        )
+        predicted = last_pos + vel * (t[k] - last_t)[:, None]
+        rows, cols = associate(predicted, cen, cfg.gate)
+        seg_ids = np.zeros(cen.shape[0], np.int64)
+        seg_ids[cols] = ids[rows]
+        dt = np.maximum(t[k] - last_t[rows], 1e-6)
+        vel[rows] = (cen[cols] - last_pos[rows]) / dt[:, None]
+        last_pos[rows] = cen[cols]
+        last_t[rows] = t[k]
+        last_scan[rows] = k
+        new = np.setdiff1d(np.arange(cen.shape[0]), cols)
+        seg_ids[new] = np.arange(next_id, next_id + new.size)
+        next_id += new.size
+        last_pos = np.concatenate([last_pos, cen[new]])
+        vel = np.concatenate([vel, np.zeros((new.size, 3))])
+        last_t = np.concatenate([last_t, np.full(new.size, t[k])])
+        last_scan = np.concatenate([last_scan, np.full(new.size, k, np.int64)])
+        ids = np.concatenate([ids, seg_ids[new]])
+        out.append(seg_ids)
+    return out
+
+
+@dataclass(frozen=True)
+class TrackTable:
+    """Per track (index = id - 1): class, motion and life.
+
+    Attributes:
+        label: (K,) int16 voted class.
+        velocity: (K, 3) float64 m/s, the least-squares slope of the centroids.
+        moving: (K,) bool.
+        scans: (K,) int64 scans the track was seen in.
+        sweep: (K,) float64 metres its footprint reaches beyond its largest scan's (module docstring).
+    """
+
+    label: npt.NDArray[np.int16]
+    velocity: npt.NDArray[np.float64]
+    moving: npt.NDArray[np.bool_]
+    scans: npt.NDArray[np.int64]
+    sweep: npt.NDArray[np.float64]
+
+
+def track_table(
+    ids: Sequence[npt.ArrayLike],
+    centroids: Sequence[npt.ArrayLike],
+    votes: Sequence[npt.ArrayLike],
+    boxes: Sequence[npt.ArrayLike],
+    times: npt.ArrayLike,
+    cfg: TrackingConfig,
+) -> TrackTable:
+    """Class vote and motion of every track (module docstring, steps 3-4).
+
+    Args:
+        ids: per scan, (S_t,) track ids from :func:`track_ids`.
+        centroids: per scan, (S_t, 3) centroids.
+        votes: per scan, (S_t, C) summed class votes.
+        boxes: per scan, (S_t, 4) ground boxes ``[x0, y0, x1, y1]``.
+        times: (T,) seconds.
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    tid = np.concatenate([np.asarray(x, np.int64).reshape(-1) for x in ids]) if ids else np.zeros(0, np.int64)
+    k = int(tid.max()) if tid.size else 0
+    c = next((np.asarray(v).shape[1] for v in votes if np.asarray(v).ndim == 2), 1)
+    cen = (
+        np.concatenate([np.asarray(x, np.float64).reshape(-1, 3) for x in centroids])
+        if ids
+        else np.zeros((0, 3))
+    )
+    vot = (
+        np.concatenate([np.asarray(x, np.float64).reshape(-1, c) for x in votes]) if ids else np.zeros((0, c))
+    )
+    when = (
+        np.concatenate([np.full(np.asarray(x).reshape(-1).size, t[i]) for i, x in enumerate(ids)])
+        if ids
+        else np.zeros(0)
+    )
+    row = tid - 1
+    hist = np.zeros((k, c))
+    np.add.at(hist, row, vot)
+    scans = np.bincount(row, minlength=k).astype(np.int64)
+    # Least squares per track: slope = Σ (t - t̄)(x - x̄) / Σ (t - t̄)².
+    n = np.maximum(scans, 1).astype(np.float64)
+    t_mean = np.bincount(row, when, k) / n
+    x_mean = np.stack([np.bincount(row, cen[:, j], k) for j in range(3)], axis=1) / n[:, None]
+    dt = when - t_mean[row]
+    var = np.bincount(row, dt * dt, k)
+    cov = np.stack([np.bincount(row, dt * (cen[:, j] - x_mean[row, j]), k) for j in range(3)], axis=1)
+    velocity = np.where(var[:, None] > 0, cov / np.maximum(var, 1e-12)[:, None], 0.0)
+    box = np.concatenate([np.asarray(x, np.float64).reshape(-1, 4) for x in boxes or [np.zeros((0, 4))]])
+    lo = np.full((k, 2), np.inf)
+    hi = np.full((k, 2), -np.inf)
+    widest = np.zeros((k, 2))
+    for j in range(2):
+        np.minimum.at(lo[:, j], row, box[:, j])
+        np.maximum.at(hi[:, j], row, box[:, 2 + j])
+        np.maximum.at(widest[:, j], row, box[:, 2 + j] - box[:, j])
+    sweep = np.linalg.norm(np.maximum(hi - lo - widest, 0), axis=1) if k else np.zeros(0)
+    speed = np.linalg.norm(velocity, axis=1)
+    moving = (scans >= cfg.min_track_scans) & (speed >= cfg.moving_speed) & (sweep >= cfg.moving_distance)
+    return TrackTable(
+        label=hist.argmax(axis=1).astype(np.int16) if k else np.zeros(0, np.int16),
+        velocity=velocity,
+        moving=moving,
+        scans=scans,
+        sweep=sweep,
+    )
+
+
+__all__ = [
+    "TrackTable",
+    "TrackingConfig",
+    "associate",
+    "euclidean_segments",
+    "segment_summary",
+    "track_ids",
+    "track_table",
+]

@@ -1,0 +1,98 @@
+"""Segments, tracks, class votes and motion (leap_core.tracking) on small hand-made scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from leap_core.errors import ConfigError
+from leap_core.tracking import (
+    TrackingConfig,
+    associate,
+    euclidean_segments,
+    segment_summary,
+    track_ids,
+    track_table,
+)
+
+
+def _blob(centre: tuple[float, float, float], n: int, rng: np.random.Generator) -> np.ndarray:
+    return np.asarray(centre) + rng.uniform(-0.3, 0.3, (n, 3))
+
+
+def test_euclidean_segments_split_at_the_radius_and_drop_small_ones() -> None:
+    rng = np.random.default_rng(0)
+    xyz = np.concatenate([_blob((5, 0, 0), 20, rng), _blob((0, 0, 0), 30, rng), _blob((9, 9, 0), 3, rng)])
+    seg = euclidean_segments(xyz, radius=0.5, min_points=5)
+    # Numbered by first point: the blob at x = 5 comes first in the array, so it is segment 0.
+    assert seg.tolist() == [0] * 20 + [1] * 30 + [-1] * 3
+    centroid, hist, box = segment_summary(xyz, seg, np.eye(2)[np.r_[np.zeros(20, int), np.ones(33, int)]], 2)
+    assert centroid[0] == pytest.approx(xyz[:20].mean(axis=0))
+    assert hist.tolist() == [[20, 0], [0, 30]]
+    assert box[1] == pytest.approx([*xyz[20:50, :2].min(axis=0), *xyz[20:50, :2].max(axis=0)])
+    assert euclidean_segments(np.zeros((0, 3)), 0.5, 1).shape == (0,)
+
+
+def test_associate_is_one_to_one_within_the_gate() -> None:
+    rows, cols = associate([[0, 0, 0], [1, 0, 0]], [[0.9, 0, 0], [0.1, 0, 0], [50, 0, 0]], gate=2.0)
+    assert dict(zip(rows.tolist(), cols.tolist(), strict=True)) == {0: 1, 1: 0}
+    rows, cols = associate([[0, 0, 0]], [[5, 0, 0]], gate=2.0)
+    assert rows.size == cols.size == 0
+
+
+def test_constant_velocity_keeps_ids_of_fast_neighbours_apart() -> None:
+    # Two cars 1.5 m apart side by side, both at 7 m/s (0.7 m a scan at 10 Hz), and one parked car; the
+    # moving cars' segments are closer to the other car's last position than a gate would separate
+    # without the motion model after a missed scan.
+    cfg = TrackingConfig(gate=1.0, max_missed=2)
+    times = np.arange(12) * 0.1
+    cents = []
+    for k, t in enumerate(times):
+        frame = [[7 * t, 0, 0], [7 * t, 1.5, 0], [20, 5, 0]]
+        cents.append(np.array(frame if k != 5 else frame[2:]))  # scan 5 misses both movers
+    ids = track_ids(cents, times, cfg)
+    assert ids[0].tolist() == [1, 2, 3]
+    for k, row in enumerate(ids):
+        assert row.tolist() == ([1, 2, 3] if k != 5 else [3])
+    votes = [np.tile([[1.0, 0], [1, 0], [0, 1]], (1, 1))[-len(c) :] for c in cents]
+    boxes = [np.c_[c[:, :2] - 2, c[:, :2] + 2] for c in cents]  # 4 m boxes around each centroid
+    table = track_table(ids, cents, votes, boxes, times, cfg)
+    assert table.moving.tolist() == [True, True, False]
+    assert table.velocity[0] == pytest.approx([7, 0, 0])
+    assert table.scans.tolist() == [11, 11, 12]
+    assert table.label.tolist() == [0, 0, 1]
+
+
+def test_a_track_gone_longer_than_max_missed_comes_back_with_a_new_id() -> None:
+    cfg = TrackingConfig(max_missed=1)
+    cents = [np.array([[0.0, 0, 0]]), np.zeros((0, 3)), np.zeros((0, 3)), np.array([[0.0, 0, 0]])]
+    assert [x.tolist() for x in track_ids(cents, np.arange(4) * 0.1, cfg)] == [[1], [], [], [2]]
+
+
+def test_class_vote_is_over_all_scans_and_a_growing_view_is_not_motion() -> None:
+    cfg = TrackingConfig()
+    times = np.arange(30) * 0.1
+    # A parked car 10..14 m ahead seen first on its near end only, then whole: its centroid moves 2 m in
+    # 3 s (0.7 m/s) while its footprint never leaves the box of its widest view.
+    far = [10 + 4 * min(1.0, 0.1 + k / 20) for k in range(30)]
+    cents = [np.array([[(10 + x) / 2, 0, 0]]) for x in far]
+    boxes = [np.array([[10, -1, x, 1]]) for x in far]
+    votes = [np.array([[0.0, 5, 1]]) if k < 20 else np.array([[0.0, 0, 7]]) for k in range(30)]
+    ids = track_ids(cents, times, cfg)
+    table = track_table(ids, cents, votes, boxes, times, cfg)
+    assert [x.tolist() for x in ids] == [[1]] * 30
+    assert table.label.tolist() == [1]  # 100 votes for class 1 against 20 + 70 for class 2
+    assert np.linalg.norm(table.velocity[0]) > cfg.moving_speed and table.sweep[0] == pytest.approx(0)
+    assert table.moving.tolist() == [False]
+
+
+def test_config_bounds() -> None:
+    with pytest.raises(ConfigError, match="cluster_radius"):
+        TrackingConfig(cluster_radius=0)
+
+
+def test_grid_clustering_joins_chains_and_keeps_two_metres_apart() -> None:
+    chain = np.c_[np.arange(0, 10, 0.45), np.zeros(23), np.zeros(23)]  # a wall's row of returns
+    assert set(euclidean_segments(chain, 0.5, 1).tolist()) == {0}
+    two = np.array([[0.0, 0, 0], [0.2, 0, 0], [2.2, 0, 0], [2.4, 0, 0]])
+    assert euclidean_segments(two, 0.5, 1).tolist() == [0, 0, 1, 1]
