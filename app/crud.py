@@ -19,7 +19,17 @@ import sqlite_utils
 
 from app.core.db import transaction, utcnow
 from app.core.errors import InvalidField, NotFound
-from app.rows import DatasetKind, ProjectRow, RunParams, RunRow, RunStatus, SequenceRow
+from app.rows import (
+    DatasetKind,
+    ModelJobKind,
+    ModelJobRow,
+    ModelJobStatus,
+    ProjectRow,
+    RunParams,
+    RunRow,
+    RunStatus,
+    SequenceRow,
+)
 from leap_core.pipeline.metrics_file import RunMetrics
 
 _JSON_COLUMNS = {
@@ -736,3 +746,84 @@ def set_meta(db: sqlite_utils.Database, key: str, value: str) -> None:
         "INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value = ?",
         [key, value, value],
     )
+
+
+# ------------------------------------------------------------------------------------------ model jobs
+def _model_job(row: dict[str, Any]) -> ModelJobRow:
+    return ModelJobRow(
+        id=int(row["id"]),
+        project_id=int(row["project_id"]),
+        kind=cast("ModelJobKind", row["kind"]),
+        status=cast("ModelJobStatus", row["status"]),
+        name=str(row["name"]),
+        model_id=None if row["model_id"] is None else int(row["model_id"]),
+        params=dict(row["params"]),
+        done=int(row["done"]),
+        total=int(row["total"]),
+        error=row["error"],
+        created_at=str(row["created_at"]),
+        started_at=row["started_at"],
+        finished_at=row["finished_at"],
+    )
+
+
+def create_model_job(
+    db: sqlite_utils.Database,
+    *,
+    project_id: int,
+    kind: ModelJobKind,
+    name: str,
+    params: dict[str, Any],
+    model_id: int | None = None,
+) -> ModelJobRow:
+    """Insert a queued model job."""
+    with transaction(db):
+        cursor = db.execute(
+            "INSERT INTO model_jobs (project_id, kind, status, name, model_id, params_json, created_at) "
+            "VALUES (?, ?, 'queued', ?, ?, ?, ?)",
+            [project_id, kind, name, model_id, _dumps(params), utcnow()],
+        )
+        job_id = _inserted_id(cursor)
+    return require_model_job(db, job_id)
+
+
+def get_model_job(db: sqlite_utils.Database, job_id: int) -> ModelJobRow | None:
+    row = _one(db, "SELECT * FROM model_jobs WHERE id = ?", [job_id])
+    return None if row is None else _model_job(row)
+
+
+def require_model_job(db: sqlite_utils.Database, job_id: int, project_id: int | None = None) -> ModelJobRow:
+    """The job row, or :class:`NotFound` (also when it belongs to another project than ``project_id``)."""
+    job = get_model_job(db, job_id)
+    if job is None or (project_id is not None and job.project_id != project_id):
+        raise NotFound(
+            f"Model job {job_id} not found" + ("" if project_id is None else f" in project {project_id}")
+        )
+    return job
+
+
+def list_model_jobs(
+    db: sqlite_utils.Database, project_id: int | None = None, statuses: Sequence[str] = ()
+) -> list[ModelJobRow]:
+    """A project's model jobs (or every project's), newest first, optionally only in ``statuses``."""
+    where: list[str] = []
+    params: list[Any] = []
+    if project_id is not None:
+        where.append("project_id = ?")
+        params.append(project_id)
+    if statuses:
+        where.append(f"status IN ({', '.join('?' for _ in statuses)})")
+        params += list(statuses)
+    sql = (
+        "SELECT * FROM model_jobs" + (f" WHERE {' AND '.join(where)}" if where else "") + " ORDER BY id DESC"
+    )
+    return [_model_job(r) for r in _rows(db, sql, params)]
+
+
+def update_model_job(db: sqlite_utils.Database, job_id: int, **fields: Any) -> None:
+    """Set columns of a model job (``status``, ``done``, ``total``, ``error``, ``started_at``, ...)."""
+    if not fields:
+        return
+    cols = ", ".join(f"{k} = ?" for k in fields)
+    with transaction(db):
+        db.execute(f"UPDATE model_jobs SET {cols} WHERE id = ?", [*fields.values(), job_id])

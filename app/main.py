@@ -35,6 +35,7 @@ from app.core.security import UNSAFE_METHODS, cross_origin_reason
 from app.demo import seed_agri_demo_project, seed_demo_project
 from app.jobs.apply import applier
 from app.jobs.manager import JobManager
+from app.jobs.models import ModelJobs
 from leap_core import __version__
 
 API_PREFIX = "/api/v1"
@@ -158,13 +159,14 @@ def _operation_id(route: APIRoute) -> str:
     return f"{route.tags[0]}-{route.name}" if route.tags else route.name
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None) -> FastAPI:  # noqa: PLR0915  the app assembled in one place
     """Build the app; the database is created or migrated now, the workers start with the server."""
     settings = settings or get_settings()
     settings.work_dir.mkdir(parents=True, exist_ok=True)
     set_size_cap(settings.database, None if settings.db_max_mb is None else int(settings.db_max_mb * 2**20))
     init_db(settings.database)
     jobs = JobManager(settings)
+    model_jobs = ModelJobs(settings)
     # Corrections made while a run worked reach its export when it ends, not only at the next edit.
     jobs.on_run_done(applier(settings).request)
 
@@ -174,6 +176,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         import leap_core.pipeline  # noqa: F401, PLC0415  # warm-up when serving, not on import of app.main
 
         jobs.start()
+        model_jobs.start()
         if settings.seed_demo:
             seed_demo_project(settings, jobs)
             if settings.seed_agri_demo:
@@ -186,6 +189,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             _close_viewers(app)
+            model_jobs.stop()
             jobs.stop()
             app.state.db_pool.close()
 
@@ -201,6 +205,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.jobs = jobs
+    app.state.model_jobs = model_jobs
     app.state.db_pool = ConnectionPool(settings.database)
 
     @app.exception_handler(AppError)

@@ -939,3 +939,92 @@ class CorrectionList(BaseModel):
     corrections: list[CorrectionPublic]
     per_class: list[CorrectionClassCount]
     apply: CorrectionApply
+
+
+# ------------------------------------------------------------------------------ LiDAR-only models
+MODEL_NAME_MAX = 80
+MODEL_STEPS_MAX = 100_000
+"""The app's cap on a training's steps (the CLI allows more): a job holds the server's one model thread."""
+
+
+class ModelTrainCreate(_Input):
+    """Train a LiDAR-only model on the project's latest finished run's final labels (corrections win)."""
+
+    name: str = Field(
+        default="model", min_length=1, max_length=MODEL_NAME_MAX, description="the model's name"
+    )
+    steps: int = Field(default=200, ge=1, le=MODEL_STEPS_MAX, description="optimisation steps")
+    points_per_scan: int = Field(
+        default=8192, ge=256, le=1_000_000, description="points drawn from a scan per step (time and memory)"
+    )
+    validation: Literal["block", "sequence"] = Field(
+        default="block",
+        description="held apart for validation: every val_every-th block of val_block frames of each "
+        "sequence, or one whole sequence (validation_sequence)",
+    )
+    validation_sequence: str | None = Field(
+        default=None, max_length=200, description="the sequence held apart (validation = 'sequence')"
+    )
+    val_block: int = Field(default=10, ge=1, le=100_000, description="frames per validation block")
+    val_every: int = Field(default=5, ge=2, le=1000, description="every this-many-th block validates")
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="seed of weights, order, draws")
+
+    @field_validator("name")
+    @classmethod
+    def _model_name(cls, v: str) -> str:
+        if _BAD_NAME_CHARS.search(v):
+            raise ValueError("model names may not contain '/', '\\' or control characters")
+        return v
+
+
+class ModelLabelCreate(_Input):
+    """Label one of the project's sequences, or a sequence folder inside a data root, with a model of the
+    project (give one of ``sequence`` and ``dataset``)."""
+
+    sequence: str | None = Field(
+        default=None, min_length=1, max_length=200, description="the project's sequence to label"
+    )
+    dataset: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=4096,
+        description="a KITTI-layout sequence folder inside a data root to label instead (LiDAR only)",
+    )
+
+    @model_validator(mode="after")
+    def _one_target(self) -> ModelLabelCreate:
+        if (self.sequence is None) == (self.dataset is None):
+            raise ValueError("give one of 'sequence' (the project's) or 'dataset' (a folder in a data root)")
+        return self
+
+
+class ModelJobPublic(BaseModel):
+    id: int
+    project_id: int
+    kind: Literal["train", "label"]
+    status: str
+    name: str
+    model_id: int | None
+    done: int
+    total: int
+    error: str | None
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    download: str | None = Field(default=None, description="the labels' zip (a finished labeling)")
+
+
+class ModelJobsPublic(BaseModel):
+    data: list[ModelJobPublic]
+    count: int
+
+
+class ModelPublic(BaseModel):
+    id: int = Field(description="the id of the job that trained it")
+    name: str
+    card: dict[str, Any] = Field(description="classes, data and runs seen, settings, validation, code, when")
+
+
+class ModelsPublic(BaseModel):
+    data: list[ModelPublic]
+    count: int

@@ -260,3 +260,33 @@ __all__ = [
     "SequenceRow",
     "labeled_sequences",
 ]
+
+
+ModelJobKind = Literal["train", "label"]
+"""``train``: a LiDAR-only model trained on a project's labels; ``label``: a sequence labeled with one."""
+
+ModelJobStatus = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
+"""A model job's state in the ``model_jobs`` table (``interrupted``: the server stopped while it worked)."""
+
+
+@dataclass(frozen=True)
+class ModelJobRow:
+    """A background job of a project's LiDAR-only models (``model_jobs``)."""
+
+    id: int
+    project_id: int
+    kind: ModelJobKind
+    status: ModelJobStatus
+    name: str
+    """``train``: the model's name; ``label``: the labeled sequence's name."""
+    model_id: int | None
+    """``label``: the ``train`` job whose model labels (same project)."""
+    params: dict[str, Any]
+    """``train``: ``{"run_id", "settings" (LidarModelConfig dict form), "validation" {"by", "sequence"}}``;
+    ``label``: ``{"dataset", "frames"}``."""
+    done: int
+    total: int
+    error: str | None
+    created_at: str
+    started_at: str | None
+    finished_at: str | None

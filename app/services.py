@@ -458,8 +458,13 @@ def update_project(db: sqlite_utils.Database, project_id: int, payload: models.P
 
 def project_folders(settings: Settings, project_id: int) -> list[Path]:
     """The work folder's folders of one project: its runs (``runs/p<P>``) and its stage caches
-    (``cache/p<P>``, the 2D labels its runs and run previews computed)."""
-    return [settings.runs_dir / f"p{project_id}", settings.cache_dir / f"p{project_id}"]
+    (``cache/p<P>``, the 2D labels its runs and run previews computed) and its LiDAR-only models and their
+    labelings (``lidar-models/p<P>``)."""
+    return [
+        settings.runs_dir / f"p{project_id}",
+        settings.cache_dir / f"p{project_id}",
+        settings.work_dir / "lidar-models" / f"p{project_id}",
+    ]
 
 
 def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> list[Path]:
@@ -475,6 +480,9 @@ def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: in
         raise Conflict(
             f"Project {project_id} has run {active.number} (id {active.id}) {active.status}; cancel it first"
         )
+    busy = crud.list_model_jobs(db, project_id, statuses=("queued", "running"))
+    if busy:
+        raise Conflict(f"Project {project_id} has model job {busy[0].id} {busy[0].status}; cancel it first")
     crud.delete_project(db, project_id)
     # After the rows are gone: a crash in between leaves orphan files, never rows pointing at nothing.
     folders = project_folders(settings, project_id)

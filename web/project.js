@@ -8,6 +8,7 @@
 //   sequences.js  the project's sequences: add a folder, remove one (confirmed), the "results stale" note
 //   next-run.js   what the next run recomputes (and why), what changed since the latest run, its note
 //   classes.js    classes & prompts editor (colours, ground-truth ids)
+//   models.js     LiDAR-only models: train, their cards, label a sequence with one (mounted last)
 //   params.js     pipeline parameters form (settings the chosen labeler or a switched-off stage ignores are
 //                 greyed out with the reason)
 
@@ -200,6 +201,7 @@ export async function renderProject(root, projectId, { toast }) {
   await ctx.render.compare();
   follow(state.runs.find((r) => ctx.active.has(r.status)));
   import("./project/corrections.js").then((m) => m.mountCorrections(ctx));
+  import("./project/models.js").then((m) => m.mountModels(ctx));
 
   return () => {
     disposed = true;

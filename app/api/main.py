@@ -17,6 +17,7 @@ from app.api.routes import (
     datasets,
     exports,
     health,
+    lidar_models,
     pipeline,
     projects,
     reviewers,
@@ -37,6 +38,7 @@ api_router.include_router(runs.router)
 api_router.include_router(exports.router)
 api_router.include_router(corrections.router)
 api_router.include_router(reviewers.router)
+api_router.include_router(lidar_models.router)
 
 if importlib.util.find_spec("app.api.routes.viewer") is not None:
     # The 3D review viewer is an optional module of its own (app/viewer, app/api/routes/viewer.py).

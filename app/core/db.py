@@ -248,6 +248,33 @@ def _v9_reviewers(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v10_model_jobs(db: sqlite_utils.Database) -> None:
+    # LiDAR-only models trained on a project's labels and the labelings made with them: both are background
+    # jobs with progress, cancel and resume. AUTOINCREMENT: a job's id names its folder, never handed out
+    # again after a project (and its jobs) is deleted.
+    _execute_script(
+        db,
+        """
+        CREATE TABLE model_jobs (
+            id INTEGER PRIMARY KEY AUTOINCREMENT,
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            kind TEXT NOT NULL,
+            status TEXT NOT NULL,
+            name TEXT NOT NULL,
+            model_id INTEGER,
+            params_json TEXT NOT NULL,
+            done INTEGER NOT NULL DEFAULT 0,
+            total INTEGER NOT NULL DEFAULT 0,
+            error TEXT,
+            created_at TEXT NOT NULL,
+            started_at TEXT,
+            finished_at TEXT
+        );
+        CREATE INDEX model_jobs_project ON model_jobs (project_id, id);
+        """,
+    )
+
+
 def _name_of(names: dict[tuple[int, str], str], project_id: int, path: str) -> str | None:
     return names.get((project_id, path))
 
@@ -311,6 +338,11 @@ MIGRATIONS: list[Migration] = [
     (7, "project_sequences.removed_at", _v7_sequence_removal),
     (8, "runs of one shape: a list of sequences; review marks per sequence", _v8_one_run_shape),
     (9, "reviewer names on corrections and review marks; review_claims", _v9_reviewers),
+    (
+        10,
+        "model_jobs: LiDAR-only models trained on a project's labels and labelings with them",
+        _v10_model_jobs,
+    ),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 
