@@ -1,14 +1,17 @@
 """Objects on the demo street: what the ``tracks`` stage changes, against the same run without it.
 
-Runs the pipeline on one sequence twice in one run folder: first with ``tracking.enabled: false`` (the
-baseline: the labels of a run without objects), then with it on (only ``tracks``, ``evaluate`` and
-``export`` run again). Prints, for both (docs/RESULTS.md "Objects"):
+Runs the pipeline on one sequence three times in one run folder: first with ``tracking.enabled: false``
+(the baseline: the labels of a run without objects), then with it on and ``tracking.vote: all`` (every
+track's points take its voted class), then ``tracking.vote: moving`` (the default: only moving tracks'
+points do); only ``tracks``, ``evaluate`` and ``export`` run again. Prints, for each (docs/RESULTS.md
+"Objects"):
 
 - moving-person points with the right class: ground-truth raw id 254 points whose exported class is person
   (all points);
 - MOS IoU (moving points, all points; evaluate_mos.py's definition), camera-view and all-points PQ of
   things, S_assoc (LSTQ), from the run's ``metrics.json``;
-- stuff mIoU before / after (all points and camera view: the mean IoU of the stuff classes);
+- stuff mIoU before / after (all points and camera view: the mean IoU of the stuff classes), mIoU and
+  each thing class's IoU in camera view;
 - the tracks stage's time per scan beside ``label_points``' (same run, same frames: the stage before it).
 
 Usage::
@@ -91,8 +94,9 @@ def main() -> None:
     schema = builtin_schema("semantickitti")
     out = work / "run"
     results: dict[str, Any] = {}
-    for name, enabled in (("without objects", False), ("with objects", True)):
-        cfg = config_from_dict({"tracking": {"enabled": enabled}}, PipelineConfig())
+    runs = (("without objects", False, "moving"), ("vote all", True, "all"), ("vote moving", True, "moving"))
+    for name, enabled, vote in runs:
+        cfg = config_from_dict({"tracking": {"enabled": enabled, "vote": vote}}, PipelineConfig())
         res = run_pipeline([SequenceSpec.of(seq_dir)], schema, cfg, out).only()
         assert res.metrics is not None, "the sequence has no ground truth"
         row = "objects" if enabled else "voxel"
@@ -116,6 +120,10 @@ def main() -> None:
             "stuff_miou_all": stuff_miou(res.metrics, "all", row, schema),
             "stuff_miou_camera": stuff_miou(res.metrics, "camera", row, schema),
             "miou_all": res.metrics.miou("all", row),
+            "miou_camera": res.metrics.miou("camera", row),
+            "things_camera": {
+                c.name: res.metrics.table("camera")[row].iou[c.name] for c in schema.classes if c.thing
+            },
             "tracks_ms_per_scan": 1000 * state["tracks"].get("seconds", 0.0) / len(seq) if enabled else None,
             "label_points_ms_per_scan": 1000 * state["label_points"]["seconds"] / len(seq),
             "tracks": state["tracks"].get("tracks"),
@@ -131,12 +139,17 @@ def main() -> None:
         ("stuff mIoU % (all points)", "stuff_miou_all"),
         ("stuff mIoU % (camera view)", "stuff_miou_camera"),
         ("mIoU % (all points)", "miou_all"),
+        ("mIoU % (camera view)", "miou_camera"),
     ]
     rows = [[label, *(pct(results[n][k]) for n in results)] for label, k in keys]
-    on = results["with objects"]
-    rows.append(["tracks / moving tracks", "-", f"{on['tracks']} / {on['moving_tracks']}"])
-    rows.append(["tracks stage ms/scan", "-", f"{on['tracks_ms_per_scan']:.1f}"])
-    rows.append(["label_points ms/scan (baseline)", "-", f"{on['label_points_ms_per_scan']:.1f}"])
+    things = [c.name for c in schema.classes if c.thing]
+    rows += [
+        [f"IoU % {t} (camera view)", *(pct(results[n]["things_camera"][t]) for n in results)] for t in things
+    ]
+    on = results["vote moving"]
+    rows.append(["tracks / moving tracks", "-", "-", f"{on['tracks']} / {on['moving_tracks']}"])
+    rows.append(["tracks stage ms/scan", "-", "-", f"{on['tracks_ms_per_scan']:.1f}"])
+    rows.append(["label_points ms/scan (baseline)", "-", "-", f"{on['label_points_ms_per_scan']:.1f}"])
     print_table(f"Objects on {seq_dir} ({len(seq)} frames)", ["", *results], rows)
     write_results("bench_objects", {"sequence": str(seq_dir), "frames": len(seq), "results": results})
 

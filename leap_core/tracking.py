@@ -14,6 +14,10 @@ Pure functions on arrays; the pipeline stage (:mod:`leap_core.pipeline.stages`, 
    ``max_missed`` scans ends. Track ids are 1, 2, ... in order of birth, unique over the sequence.
    ``v`` is the displacement of the last two observations over their time difference (0 for a new track).
 3. **Class.** A track's class is the argmax of its segments' summed class votes over all its scans.
+   Which tracks' points take it is ``vote``: ``"moving"`` (default) only a moving track's, since the map's
+   label at a mover is its trail; a static track's points keep their own per-point class (and still get
+   the track's id), because a segment from 3D clustering alone can hold a person beside a bicycle or a
+   car, and one class would win for both. ``"all"``: every track's points.
 4. **Motion.** A track's velocity is the least-squares slope of its centroids against time. Its *sweep*
    is how far its ground footprint reaches beyond one scan's: with each segment's axis-aligned box
    ``[x0, x1] × [y0, y1]`` (world, metres), ``e_x = (max x1 - min x0) - max_t (x1 - x0)`` over its scans,
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -36,6 +41,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from leap_core.bounds import check_bounds, within
+from leap_core.errors import ConfigError
 
 _FORBIDDEN = 1e9
 _HALF_NEIGHBOURS = [
@@ -66,9 +72,14 @@ class TrackingConfig:
     """Least sweep of a moving track: how far its footprint reaches beyond its largest single view."""
     min_track_scans: int = field(default=3, metadata=within(2, 1000))
     """Tracks seen in fewer scans are never moving (their slope is noise)."""
+    vote: Literal["moving", "all"] = "moving"
+    """Whose points take their track's voted class: ``moving`` tracks' only (a static track's points keep
+    their own class and get the id), or ``all`` tracks' (docs/METHOD.md B.6 gives the measured trade)."""
 
     def __post_init__(self) -> None:
         check_bounds(self)
+        if self.vote not in ("moving", "all"):
+            raise ConfigError(f"must be 'moving' or 'all', got {self.vote!r}", field=("vote",))
 
 
 def euclidean_segments(xyz: npt.ArrayLike, radius: float, min_points: int) -> npt.NDArray[np.int64]:
@@ -225,6 +236,7 @@ class TrackTable:
         moving: (K,) bool.
         scans: (K,) int64 scans the track was seen in.
         sweep: (K,) float64 metres its footprint reaches beyond its largest scan's (module docstring).
+        voted: (K,) bool whose points take ``label`` (``TrackingConfig.vote``); the others keep theirs.
     """
 
     label: npt.NDArray[np.int16]
@@ -232,6 +244,7 @@ class TrackTable:
     moving: npt.NDArray[np.bool_]
     scans: npt.NDArray[np.int64]
     sweep: npt.NDArray[np.float64]
+    voted: npt.NDArray[np.bool_]
 
 
 def track_table(
@@ -297,6 +310,7 @@ def track_table(
         moving=moving,
         scans=scans,
         sweep=sweep,
+        voted=moving.copy() if cfg.vote == "moving" else np.ones(k, bool),
     )
 
 

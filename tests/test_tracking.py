@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from leap_core.errors import ConfigError
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.tracking import (
     TrackingConfig,
     associate,
@@ -89,6 +92,45 @@ def test_class_vote_is_over_all_scans_and_a_growing_view_is_not_motion() -> None
 def test_config_bounds() -> None:
     with pytest.raises(ConfigError, match="cluster_radius"):
         TrackingConfig(cluster_radius=0)
+    with pytest.raises(ConfigError, match="vote: must be 'moving' or 'all'"):
+        TrackingConfig(vote="static")  # type: ignore[arg-type]
+
+
+def _two_tracks(cfg: TrackingConfig) -> SequenceTracks:
+    """One scan's view of two tracks: a car at 7 m/s (track 1) and a static segment of a person beside a
+    bicycle (track 2, 3 person and 2 bicycle points of classes 0-2: car 0, person 1, bicycle 2; the vote
+    over its 12 scans says person). Scan 0's rows: 0-3 the car, 4-8 the pair, 9 untracked."""
+    times = np.arange(12) * 0.1
+    cents = [np.array([[7 * t, 0, 0], [20, 5, 0]]) for t in times]
+    votes = [np.array([[4.0, 0, 0], [0, 3, 2]]) for _ in times]
+    boxes = [np.c_[c[:, :2] - 1, c[:, :2] + 1] for c in cents]
+    ids = track_ids(cents, times, cfg)
+    table = track_table(ids, cents, votes, boxes, times, cfg)
+    assert table.moving.tolist() == [True, False] and table.label.tolist() == [0, 1]
+    rows = np.arange(9, dtype=np.int32)
+    track = np.array([1] * 4 + [2] * 5, np.int32)
+    return SequenceTracks(("000000",), np.array([0, 9]), rows, track, table)
+
+
+def test_static_tracks_keep_their_points_classes_by_default() -> None:
+    own = np.array([2, 2, 0, 0, 1, 1, 1, 2, 2, -1], np.int16)  # the car's points partly called bicycle
+    label, instance, moving = _two_tracks(TrackingConfig()).point_objects("000000", own)
+    # The mover's points take its class (the map's label at a mover is its trail); the static pair keeps
+    # person and bicycle, each with the track's id.
+    assert label.tolist() == [0, 0, 0, 0, 1, 1, 1, 2, 2, -1]
+    assert instance.tolist() == [1] * 4 + [2] * 5 + [0]
+    assert moving.tolist() == [True] * 4 + [False] * 6
+    label, instance, _ = _two_tracks(TrackingConfig(vote="all")).point_objects("000000", own)
+    assert label.tolist() == [0, 0, 0, 0, 1, 1, 1, 1, 1, -1]
+    assert instance.tolist() == [1] * 4 + [2] * 5 + [0]
+
+
+def test_the_vote_setting_survives_tracks_npz(tmp_path: Path) -> None:
+    for vote in ("moving", "all"):
+        tracks = _two_tracks(TrackingConfig(vote=vote))  # type: ignore[arg-type]
+        tracks.save(tmp_path / "tracks.npz")
+        back = SequenceTracks.load(tmp_path / "tracks.npz")
+        assert back.table.voted.tolist() == ([True, False] if vote == "moving" else [True, True])
 
 
 def test_grid_clustering_joins_chains_and_keeps_two_metres_apart() -> None:

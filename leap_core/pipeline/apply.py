@@ -253,8 +253,8 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
     baked = np.setdiff1d(own.map_keys[own.map_class >= 0], new.map_keys, assume_unique=True)
     todo = sorted(positions)
     scan_changed = set(new.scan.changed_frames(old.scan))
-    # The run's objects stay: tracked points keep their track's class, id and moving id, except the points
-    # a correction now labels (a correction wins over a track's class vote).
+    # The run's objects stay: tracked points keep their track's id, moving id and (voted tracks) class,
+    # except the points a correction now labels (a correction wins over a track's class vote).
     tracks = SequenceTracks.load(layout.tracks) if layout.tracks.is_file() else None
     moving_ids = export_ids if moving_export_ids is None else moving_export_ids
 

@@ -44,8 +44,8 @@ if TYPE_CHECKING:
 ROW_POINT = "point"
 ROW_VOXEL = "voxel"
 ROW_OBJECTS = "objects"
-"""The row of what the export writes when the run tracks objects: the final row with each tracked point
-given its track's class (docs/METHOD.md B.6)."""
+"""The row of what the export writes when the run tracks objects: the final row with each point of a voted
+track (``tracking.vote``) given its track's class (docs/METHOD.md B.6)."""
 COMMON = "common"
 PROTOCOLS: dict[str, str] = {
     "camera": "camera view: points inside the image, unlabeled predictions ignored (the paper's protocol)",

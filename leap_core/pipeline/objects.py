@@ -4,8 +4,9 @@ Per scan, the thing points (a point whose final label or whose own projected lab
 clustered into segments and their centroids placed in the world by the scan's pose; segments become
 tracks (:mod:`leap_core.tracking`), written to ``tracks.npz`` (:mod:`leap_core.pipeline.tracks_file`).
 
-The export (``stage_export``) gives a tracked point its track's class, its track id in the upper 16 bits
-and, while the track moves, the class's moving id.
+The export (``stage_export``) gives a tracked point its track id in the upper 16 bits, the track's class
+where the track is voted (``tracking.vote``: by default only moving tracks) and, while the track moves,
+the class's moving id.
 """
 
 from __future__ import annotations

@@ -567,8 +567,9 @@ def _label_points_inputs(ctx: Ctx) -> dict[str, Any]:
 # -------------------------------------------------------------------------------------------- export
 def stage_export(ctx: Ctx) -> dict[str, Any]:
     """Per frame: ``export/<frame_id>.label`` and ``.conf``. A label is the raw export id (0 = unlabeled)
-    with the point's track id in the upper 16 bits (0 for stuff and untracked points); a tracked point
-    takes its track's class, and while the track moves the class's moving id (``ClassDef.moving_id``)."""
+    with the point's track id in the upper 16 bits (0 for stuff and untracked points); a point of a voted
+    track (``tracking.vote``, by default a moving one) takes its track's class, and while the track moves
+    the class's moving id (``ClassDef.moving_id``)."""
     ids = ctx.schema.export_ids()
     moving_ids = ctx.schema.moving_export_ids()
     tracks = read_tracks(ctx)

@@ -4,7 +4,8 @@ tracked points only:
 - ``frame_ids`` (T,) str and ``offsets`` (T+1,) int64: scan t's entries are ``offsets[t]:offsets[t+1]``;
 - ``rows`` (P,) int32 the point's row in its scan, ``track`` (P,) int32 its track id (1..K);
 - per track (index = id - 1): ``label`` (K,) int16 voted class, ``velocity`` (K, 3) float32 m/s,
-  ``moving`` (K,) bool, ``scans`` (K,) int32, ``sweep`` (K,) float32 m.
+  ``moving`` (K,) bool, ``scans`` (K,) int32, ``sweep`` (K,) float32 m, ``voted`` (K,) bool whether its
+  points take ``label`` (``tracking.vote``).
 """
 
 from __future__ import annotations
@@ -53,9 +54,10 @@ class SequenceTracks:
         labels: npt.NDArray[np.int16],
         keep: npt.NDArray[np.int64] | None = None,
     ) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.uint32], npt.NDArray[np.bool_]]:
-        """(label, instance, moving) per point of one scan: ``labels`` with tracked points given their
-        track's class, the track id (0 elsewhere) and whether the track moves. ``keep``: point rows
-        that keep their label and get no object (points corrected by hand after the tracks were made)."""
+        """(label, instance, moving) per point of one scan: ``labels`` with the points of voted tracks
+        (``TrackTable.voted``: by default the moving ones) given their track's class, the track id of every
+        tracked point (0 elsewhere) and whether the track moves. ``keep``: point rows that keep their label
+        and get no object (points corrected by hand after the tracks were made)."""
         obj = self.scan(frame_id)
         if keep is not None and keep.size:
             sel = ~np.isin(obj.rows, keep)
@@ -67,7 +69,8 @@ class SequenceTracks:
         instance = np.zeros(n, np.uint32)
         moving = np.zeros(n, bool)
         k = obj.track.astype(np.int64) - 1
-        out[obj.rows] = self.table.label[k]
+        voted = self.table.voted[k]
+        out[obj.rows[voted]] = self.table.label[k[voted]]
         instance[obj.rows] = obj.track.astype(np.uint32)
         moving[obj.rows] = self.table.moving[k]
         return out, instance, moving
@@ -84,6 +87,7 @@ class SequenceTracks:
             moving=self.table.moving,
             scans=self.table.scans.astype(np.int32),
             sweep=self.table.sweep.astype(np.float32),
+            voted=self.table.voted,
         )
 
     @classmethod
@@ -91,15 +95,21 @@ class SequenceTracks:
         """Raises: DatasetError naming the file when it is unreadable."""
         names = ("frame_ids", "offsets", "rows", "track", "label", "velocity", "moving", "scans", "sweep")
         try:
-            z = read_npz(path, names)
+            z = read_npz(path)
+            missing = [n for n in names if n not in z]
+            if missing:
+                raise KeyError(", ".join(missing))
         except (OSError, KeyError, ValueError) as exc:
             raise DatasetError(path, f"unreadable tracks ({exc}); rerun the tracks stage") from exc
+        # A file without ``voted`` was written when every track's points took its class.
+        voted = z["voted"] if "voted" in z else np.ones(z["label"].shape[0], bool)
         table = TrackTable(
             label=z["label"].astype(np.int16),
             velocity=z["velocity"].astype(np.float64),
             moving=z["moving"].astype(bool),
             scans=z["scans"].astype(np.int64),
             sweep=z["sweep"].astype(np.float64),
+            voted=voted.astype(bool),
         )
         return cls(
             tuple(str(x) for x in z["frame_ids"]),
