@@ -732,4 +732,6 @@ def test_leap_run_on_an_imported_scene_with_the_nuscenes_preset(demo: KittiSeque
     assert "driveable_surface" in res.output  # the result table: the imported lidarseg labels were evaluated
     for fid in ("000000", "000001", "000002"):
         exported = read_label(folder(tmp_path / "run", seq.name) / "export" / f"{fid}.label")
-        assert exported.shape == (len(src.points[int(fid)]),) and set(np.unique(exported)) <= set(range(17))
+        # Class in the low 16 bits (the upper 16 hold track ids of things).
+        classes = exported & 0xFFFF
+        assert exported.shape == (len(src.points[int(fid)]),) and set(np.unique(classes)) <= set(range(17))

@@ -33,6 +33,7 @@ from leap_core.labelers.base import SoftMasks
 from leap_core.pipeline import stage_status
 from leap_core.pipeline.apply import frame_keys
 from leap_core.pipeline.context import ordered_map
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.projection import (
     Painted,
     Projected,
@@ -369,8 +370,15 @@ def test_run_files_are_the_reference_computation(runs, street: Path) -> None:
             assert_same_bytes(z["label"], label)
             assert_same_bytes(z["conf"], conf.astype(np.float16))
             assert_same_bytes(z["point_label"], want.point_labels(len(frame.points)))
-        raw = labels_to_raw(label, schema.export_ids())
-        assert (run_dir / "export" / f"{fid}.label").read_bytes() == raw.astype("<u4").tobytes()
+        raw = labels_to_raw(label, schema.export_ids()).astype("<u4")
+        exported = np.frombuffer((run_dir / "export" / f"{fid}.label").read_bytes(), "<u4")
+        # Points of a track carry its id in the upper 16 bits (a mover: its class's moving id too);
+        # every other point is the map's label with instance 0.
+        obj = SequenceTracks.load(run_dir / "tracks.npz").scan(fid)
+        untracked = np.ones(len(frame.points), bool)
+        untracked[obj.rows] = False
+        assert_same_bytes(exported[untracked], raw[untracked])
+        assert_same_bytes(exported[obj.rows] >> 16, obj.track.astype("<u4"))
         conf16 = conf.astype(np.float16).astype(np.float32)
         want_conf = np.where(label == UNLABELED, 0, conf16).astype("<f4")
         assert (run_dir / "export" / f"{fid}.conf").read_bytes() == want_conf.tobytes()

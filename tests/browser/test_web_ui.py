@@ -105,7 +105,7 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     # ---- run with live per-stage progress
     page.click("#run-button")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "running", timeout=60_000)
-    expect(page.locator(".stage")).to_have_count(8)
+    expect(page.locator(".stage")).to_have_count(9)
     expect(page.locator('.stage[data-stage="00/smooth"] .stage-name')).to_have_text(
         "Smoothing (served label)"
     )
@@ -120,7 +120,7 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     expect(page.locator("#run-percent")).to_have_text("100 %")
 
     # ---- metrics table and per-class IoU chart
-    expect(page.locator("#metrics-table tbody tr")).to_have_count(2)  # point, voxel
+    expect(page.locator("#metrics-table tbody tr")).to_have_count(3)  # point, voxel, objects
     one_run_bars = page.locator("#iou-chart svg rect[fill]:not(.swatch)").count()
     assert one_run_bars == 20  # one bar per class
     miou = page.locator('#metrics-table tr[data-row="voxel"] td.strong').inner_text()
@@ -140,7 +140,7 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     expect(page.locator("#run-panel h2")).to_have_text("Run 2")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=180_000)
     expect(page.locator(".runs-table tbody tr[data-run-id]")).to_have_count(2)
-    expect(page.locator("#metrics-table tbody tr")).to_have_count(4)  # 2 runs x (point, voxel)
+    expect(page.locator("#metrics-table tbody tr")).to_have_count(6)  # 2 runs x (point, voxel, objects)
     expect(page.locator(".legend > span")).to_have_count(2)
     assert page.locator("#iou-chart svg rect[fill]:not(.swatch)").count() == 2 * one_run_bars
     page.screenshot(path=str(artifacts / "web_ui_project.png"), full_page=True)
@@ -154,7 +154,9 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     info.value.save_as(target)
     frame_ids = sorted(p.stem for p in (dataset / "velodyne").glob("*.bin"))
     with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
-        export_ids = {c["export_id"] for c in api.get(f"/projects/{project_id}/classes").json()["data"]}
+        classes = api.get(f"/projects/{project_id}/classes").json()["data"]
+        # A moving thing's points carry its class's moving id.
+        export_ids = {c["export_id"] for c in classes} | {c["moving_id"] for c in classes if c["moving_id"]}
     with zipfile.ZipFile(io.BytesIO(target.read_bytes())) as zf:
         members = [f"sequences/00/predictions/{f}.label" for f in frame_ids]
         assert sorted(zf.namelist()) == sorted([*members, "label-map.yaml", "summary.yaml"])
@@ -166,7 +168,8 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
             semantic = labels & 0xFFFF
             # Most points of a scan lie outside the camera view, and the simulated detector may miss the
             # road of a whole block of frames: a few per cent labeled is a real export, none is not.
-            assert (labels >> 16 == 0).all() and (semantic > 0).mean() > 0.05
+            # The upper 16 bits hold a thing's track id; an unlabeled point belongs to no object.
+            assert (labels[semantic == 0] >> 16 == 0).all() and (semantic > 0).mean() > 0.05
             assert set(np.unique(semantic).tolist()) <= export_ids | {0}
             labeled += int((semantic > 0).sum())
         summary = yaml.safe_load(zf.read("summary.yaml"))
