@@ -422,6 +422,16 @@ def _new_summary(nusc: Any, plan: _Scene, out: Path, camera: str) -> ImportSumma
     return summary
 
 
+def _sweep_entry(sd: dict[str, Any], fid: str) -> dict[str, Any]:
+    """A frame's ``import.json`` entry: which keyframe and LiDAR sweep it holds."""
+    return {
+        "frame": fid,
+        "sample_token": sd["sample_token"],
+        "lidar_token": sd["token"],
+        "lidar_timestamp_us": int(sd["timestamp"]),
+    }
+
+
 def _write_frame(
     nusc: Any, plan: _Scene, i: int, stage: Path, summary: ImportSummary
 ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]:
@@ -431,12 +441,7 @@ def _write_frame(
     fid = f"{i:06d}"
     ego_sweep = _matrix(nusc, "ego_pose", sd["ego_pose_token"])
     pts = _read_points(nusc, sd["token"])
-    entry: dict[str, Any] = {
-        "frame": fid,
-        "sample_token": sd["sample_token"],
-        "lidar_token": sd["token"],
-        "lidar_timestamp_us": int(sd["timestamp"]),
-    }
+    entry = _sweep_entry(sd, fid)
     ego_image = ego_sweep
     if cam is not None:
         ego_image = _matrix(nusc, "ego_pose", cam["ego_pose_token"])
@@ -467,13 +472,7 @@ def _write_rig_frame(
     fid = f"{i:06d}"
     ego_sweep = _matrix(nusc, "ego_pose", sd["ego_pose_token"])
     pts = _read_points(nusc, sd["token"])
-    entry: dict[str, Any] = {
-        "frame": fid,
-        "sample_token": sd["sample_token"],
-        "lidar_token": sd["token"],
-        "lidar_timestamp_us": int(sd["timestamp"]),
-        "cameras": {},
-    }
+    entry: dict[str, Any] = {**_sweep_entry(sd, fid), "cameras": {}}
     trs: dict[str, npt.NDArray[np.float64]] = {}
     for name, (records, calib) in plan.rig.items():
         cam = records[i]
@@ -496,6 +495,25 @@ def _write_rig_frame(
             summary.labels += 1
     summary.frames += 1
     return ego_sweep @ plan.lidar_to_ego, entry, trs
+
+
+def _write_times(stage: Path, lidar: list[dict[str, Any]]) -> None:
+    """``times.txt``: each sweep's time in seconds after the first (nuScenes timestamps are µs)."""
+    t0 = lidar[0]["timestamp"]
+    text = "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in lidar)
+    atomic_write_bytes(stage / "times.txt", text.encode())
+
+
+def _note_head(root: Path, version: str, scene: str, record: dict[str, Any]) -> dict[str, Any]:
+    """The fields of the import note that name the source scene (one camera or a rig)."""
+    return {
+        "importer": "nuscenes",
+        "dataroot": str(root.resolve()),
+        "version": version,
+        "scene": scene,
+        "scene_token": record["token"],
+        "lidar": LIDAR_CHANNEL,
+    }
 
 
 def import_nuscenes(
@@ -550,18 +568,9 @@ def import_nuscenes(
                 report(progress, i + 1, n)
             write_calib(stage / "calib.txt", plan.calib)
             write_poses(stage / "poses.txt", kitti_cam_poses(lidar_global, plan.calib.Tr))
-            t0 = plan.lidar[0]["timestamp"]
-            atomic_write_bytes(
-                stage / "times.txt",
-                "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in plan.lidar).encode(),
-            )
+            _write_times(stage, plan.lidar)
             note = {
-                "importer": "nuscenes",
-                "dataroot": str(root.resolve()),
-                "version": version,
-                "scene": scene,
-                "scene_token": plan.record["token"],
-                "lidar": LIDAR_CHANNEL,
+                **_note_head(root, version, scene, plan.record),
                 "camera": camera,
                 "remission": f"intensity / {INTENSITY_SCALE:g}, clipped to 0..1",
                 "points": "LiDAR frame at the camera image's timestamp (ego-motion compensated)",
@@ -615,18 +624,9 @@ def _import_rig(  # noqa: PLR0917  # import_nuscenes' arguments, passed on
             atomic_write_bytes(stage / RIG_FILE, camera_rig_text(rig).encode())
             for name in names:
                 write_poses(stage / FRAME_TR_FOLDER / f"{name}.txt", trs[name])
-            t0 = plan.lidar[0]["timestamp"]
-            atomic_write_bytes(
-                stage / "times.txt",
-                "".join(f"{(sd['timestamp'] - t0) / 1e6:.6f}\n" for sd in plan.lidar).encode(),
-            )
+            _write_times(stage, plan.lidar)
             note = {
-                "importer": "nuscenes",
-                "dataroot": str(root.resolve()),
-                "version": version,
-                "scene": scene,
-                "scene_token": plan.record["token"],
-                "lidar": LIDAR_CHANNEL,
+                **_note_head(root, version, scene, plan.record),
                 "cameras": names,
                 "remission": f"intensity / {INTENSITY_SCALE:g}, clipped to 0..1",
                 "points": "LiDAR frame at the sweep's timestamp; each camera's LiDAR → camera transform "
