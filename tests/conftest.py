@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from synthcache import SYNTH_CACHE_ENV
 
 from leap_core.datasets.kitti import Calib, write_calib, write_image, write_label, write_poses, write_scan
+
+
+@pytest.fixture(scope="session", autouse=True)
+def shared_synth_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The folder where :func:`synthcache.synth_copy` keeps what it rendered: one per test run, shared by
+    the pytest-xdist processes (their temporary folders lie side by side in the run's own)."""
+    base = tmp_path_factory.getbasetemp()
+    cache = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "synth-cache"
+    cache.mkdir(exist_ok=True)
+    before = os.environ.get(SYNTH_CACHE_ENV)
+    os.environ[SYNTH_CACHE_ENV] = str(cache)
+    yield cache
+    if before is None:
+        os.environ.pop(SYNTH_CACHE_ENV, None)
+    else:
+        os.environ[SYNTH_CACHE_ENV] = before
+
 
 TINY_IMAGE_HW = (48, 64)
 """Image size of tiny sequences (KITTI's aspect ratio is wider; any size works)."""

@@ -1,6 +1,6 @@
 // Entry point: token capture, a tiny hash router (#/ and #/projects/<id>) and the toast line.
 
-import { ApiError, captureToken, get, setToken } from "./api.js";
+import { ApiError, captureToken, get, setToken, token } from "./api.js";
 import { h, replace } from "./dom.js";
 import { renderProject } from "./project.js";
 import { renderProjects } from "./projects.js";
@@ -17,13 +17,17 @@ export function toast(message, kind = "info") {
   toast.timer = setTimeout(() => (el.hidden = true), kind === "error" ? 8000 : 3500);
 }
 
-function tokenForm(retry) {
+/** `refused`: a token was sent and the server answered 403, so the user learns that one was wrong. */
+function tokenForm(retry, refused) {
   const input = h("input", { type: "password", placeholder: "access token", autocomplete: "off", id: "token-input" });
   return h(
     "section",
     { class: "card narrow" },
     h("h2", {}, "Access token required"),
     h("p", { class: "muted" }, "This server only answers requests that carry its access token."),
+    refused
+      ? h("p", { class: "error", id: "token-refused" }, "The server refused that token: use the one its `leap serve` was given (--token, --new-token or LEAP_ACCESS_TOKEN).")
+      : null,
     h(
       "form",
       {
@@ -49,7 +53,7 @@ async function route() {
     await get("/health");
   } catch (err) {
     if (err instanceof ApiError && err.status === 403) {
-      replace(app, tokenForm(route));
+      replace(app, tokenForm(route, Boolean(token())));
       return;
     }
     replace(app, h("section", { class: "card" }, h("p", { class: "error" }, `Server unreachable: ${err.message}`)));

@@ -30,11 +30,11 @@ def free_port() -> int:
 
 def make_small_street(root: Path, frames: int) -> Path:
     """Generate the reduced demo street into ``root/sequences/00``; returns the sequence folder."""
-    from app.core.demo_synth import synth_config
-    from leap_core.synth import generate_sequence
+    from synthcache import synth_copy
 
-    stats = generate_sequence(root, synth_config({**SMALL_DEMO, "frames": frames}), force=True)
-    return stats.path
+    from app.core.demo_synth import synth_config
+
+    return synth_copy(root, synth_config({**SMALL_DEMO, "frames": frames}), force=True).path
 
 
 class Server:

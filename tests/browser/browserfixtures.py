@@ -128,9 +128,11 @@ def running_app(
         demo_synth={"frames": frames},
     )
     # Generate the demo sequence here, in one process: the app then finds it instead of generating it.
-    from leap_core.synth import SynthConfig, generate_sequence
+    from synthcache import synth_copy
 
-    generate_sequence(settings.demo_dataset.parent.parent, SynthConfig(frames=frames), workers=1)
+    from leap_core.synth import SynthConfig
+
+    synth_copy(settings.demo_dataset.parent.parent, SynthConfig(frames=frames))
     if prepare is not None:
         prepare(settings.demo_dataset)
     app = create_app(settings)

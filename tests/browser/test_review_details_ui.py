@@ -64,8 +64,16 @@ def test_review_details(demo_app: dict[str, Any]) -> None:
         # The Corrections folder's box button arms the Selection tools' box: the Tool dropdown shows it.
         page.get_by_text("Corrections", exact=True).click()
         page.get_by_role("button", name="Select box").click()
-        wait_until(lambda: session.tools.settings.tool == "box", 10, "the box tool")
-        assert session.panel.tools.tool.value == "box" and session.scene.rect_select_armed
+        # The button's callback sets the tool, the dropdown and the scene one after the other: wait for all.
+        wait_until(
+            lambda: (
+                session.tools.settings.tool == "box"
+                and session.panel.tools.tool.value == "box"
+                and session.scene.rect_select_armed
+            ),
+            10,
+            "the box tool armed and shown in the Tool dropdown",
+        )
 
         # "1" then "2": the twelfth class; "0": the tenth.
         assert browserfixtures.box_select_centre(page, session) > 0

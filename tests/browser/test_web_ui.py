@@ -211,7 +211,9 @@ def test_token_protected_server_asks_for_the_token(browser, tmp_path: Path) -> N
         expect(page.locator("#token-input")).to_be_visible()
         page.fill("#token-input", "not-the-token-at-all")
         page.locator("button[type=submit]").click()
-        expect(page.locator("#token-input")).to_be_visible()  # refused: asked again
+        # Refused: asked again, and told so (waiting for the message also waits for the new form).
+        expect(page.locator("#token-refused")).to_contain_text("refused that token")
+        expect(page.locator("#token-input")).to_have_value("")
         page.fill("#token-input", token)
         page.locator("button[type=submit]").click()
         expect(page.locator("#create-form")).to_be_visible()

@@ -1,6 +1,8 @@
 // The next run, before it starts: which stages it recomputes and which it reuses from the latest finished run
 // (GET /projects/{id}/runs/preview compares the fingerprints it would have with that run's), what changed
-// since that run, and a note to keep with it. Re-rendered after every class, prompt or parameter edit.
+// since that run, and a note to keep with it. The plan is re-rendered after every class, prompt or parameter
+// edit; the note field is built once and never replaced, so a preview that lands while the user types takes
+// neither the focus nor the keystrokes.
 
 import { get } from "../api.js";
 import { h, replace } from "../dom.js";
@@ -25,9 +27,30 @@ function changeList(changes, id) {
 
 export { changeList };
 
+/** The card's two parts: the plan (replaced by each render) and the note field (built once). */
+function parts(ctx) {
+  const { state } = ctx;
+  if (!ctx.els.nextPlan) {
+    const note = h("input", {
+      id: "run-note",
+      maxlength: 500,
+      placeholder: "note for the next run (optional)",
+      "aria-label": "Note for the next run",
+      value: state.runNote || "",
+      oninput: (e) => (state.runNote = e.target.value),
+    });
+    ctx.els.nextNote = note;
+    ctx.els.nextPlan = h("div", { class: "next-plan" }, h("h2", {}, "Next run"));
+    replace(ctx.els.next, ctx.els.nextPlan, h("label", { class: "run-note" }, h("span", { class: "muted small" }, "Note"), note));
+  }
+  return ctx.els.nextPlan;
+}
+
 export async function renderNextRun(ctx) {
   const { state, projectId } = ctx;
-  const el = ctx.els.next;
+  const el = parts(ctx);
+  // A started run took the note: the field empties (it is never rebuilt, so it is cleared here).
+  if (!state.runNote && ctx.els.nextNote.value) ctx.els.nextNote.value = "";
   const mine = ++seq;
   let preview;
   try {
@@ -39,14 +62,6 @@ export async function renderNextRun(ctx) {
   if (mine !== seq) return;
   const recompute = preview.stages.filter((s) => s.action === "recompute");
   const reuse = preview.stages.filter((s) => s.action === "reuse");
-  const note = h("input", {
-    id: "run-note",
-    maxlength: 500,
-    placeholder: "note for the next run (optional)",
-    "aria-label": "Note for the next run",
-    value: state.runNote || "",
-    oninput: (e) => (state.runNote = e.target.value),
-  });
   const summary = !preview.base_run
     ? preview.stale
       ? `The sequences changed since run ${preview.stale.run_number}: the next run computes every stage.`
@@ -74,6 +89,5 @@ export async function renderNextRun(ctx) {
     reuse.length && recompute.length ? h("p", { class: "muted small" }, `Reused: ${reuse.map((s) => s.label).join(", ")}.`) : null,
     preview.base_run ? h("h3", { class: "small" }, `Changes since run ${preview.base_run.number}`) : null,
     preview.base_run ? changeList(preview.changes, "pending-changes") : null,
-    h("label", { class: "run-note" }, h("span", { class: "muted small" }, "Note"), note),
   );
 }
