@@ -158,7 +158,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
             with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
                 corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
                 lay = SequenceLayout(Path(tmp))
-                run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
+                run_corrections(corrections, snapshot, settings.work_dir).write_run(lay)
                 estimated = project.estimate_poses and needs_estimate(dataset)
                 if estimated and not _link_estimated_poses(dataset, lay, settings.cache_dir):
                     fresh = "the poses will be estimated"

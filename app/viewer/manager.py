@@ -209,6 +209,8 @@ class AppBackend:
                 scope=c.scope,
                 frame_id=c.frame_id,
                 points=c.points,
+                run_id=c.run_id,
+                track_id=c.track_id,
             )
             for c in rows
         ]

@@ -85,12 +85,17 @@ class CorrectionRecord:
     created_at: str = ""
     """ISO UTC time it was made ("" when the store does not say)."""
 
-    scope: Scope = "map"
-    """``map``: every point in ``keys``' voxels; ``scan``: only ``points`` of scan ``frame_id``."""
+    scope: Scope | Literal["object"] = "map"
+    """``map``: every point in ``keys``' voxels; ``scan``: only ``points`` of scan ``frame_id``; ``object``:
+    every point of one object in every scan (a run's track, matched to later runs' tracks)."""
     frame_id: str | None = None
     """Scan of a scan-scope correction."""
     points: npt.NDArray[np.int64] | None = None
     """Scan scope: indices into that scan's points."""
+    run_id: int | None = None
+    """Object scope: the run whose track it relabels."""
+    track_id: int | None = None
+    """Object scope: that track."""
 
 
 @dataclass(frozen=True)
