@@ -20,9 +20,11 @@ from leap_core.pipeline.object_corrections import (
     MIN_IOU,
     NO_CLASS,
     CorrectedTracks,
+    Match,
     ObjectCorrections,
     ObjectIdentity,
     match_track,
+    match_tracks,
     merge_object_corrections,
 )
 from leap_core.pipeline.tracks_file import SequenceTracks
@@ -61,8 +63,10 @@ def test_the_track_of_highest_iou_takes_it_above_one_half() -> None:
     halves = _tracks({"0": [(1, 1), (2, 1), (3, 2), (4, 2)]}, 2)
     m = match_track(identity, halves)
     assert m.iou == MIN_IOU and not m.applied
-    # No point shared: no track at all.
+    # No point shared: no track at all (row 2 of scan "0" is not row 2 of scan "1").
     assert match_track(identity, _tracks({"0": [(7, 1)]}, 1)).track == 0
+    moved = ObjectIdentity.of_track(_tracks({"0": [(1, 1)], "1": [(2, 1)]}, 1), 1)
+    assert match_track(moved, _tracks({"0": [(2, 1)], "1": [(5, 1)]}, 1)) == Match(0, 0.0)
     with pytest.raises(LeapError, match="no track 3"):
         ObjectIdentity.of_track(stored, 3)
 
@@ -74,12 +78,17 @@ def test_only_the_scans_both_runs_labeled_count() -> None:
     identity = ObjectIdentity.of_track(stored, 1)
     later = _tracks({"1": [(3, 1), (4, 1)], "2": [(5, 1), (6, 1), (7, 1)]}, 1)
     assert match_track(identity, later).iou == 1.0
+    first = identity
     # ... but a scan the first run labeled without the object there counts: a track that is somewhere else
     # in that scan is not the same object.
     stored = _tracks({"0": [(1, 1), (2, 1)], "1": [(9, 2)]}, 2)
     identity = ObjectIdentity.of_track(stored, 1)
     later = _tracks({"0": [(1, 1), (2, 1)], "1": [(3, 1), (4, 1), (5, 1)]}, 1)
     assert match_track(identity, later).iou == pytest.approx(2 / 5)
+    # Several corrections are matched in one pass, each as alone.
+    both = _tracks({"0": [(1, 1), (2, 1)], "1": [(3, 2), (4, 2), (5, 1)], "2": [(6, 2)]}, 2)
+    assert match_tracks([first, identity], both) == [match_track(first, both), match_track(identity, both)]
+    assert match_tracks([first, identity], both) == [Match(2, 0.5), Match(1, 2 / 3)]
 
 
 def test_precedence_on_the_points_of_a_scan() -> None:

@@ -138,27 +138,52 @@ def match_track(identity: ObjectIdentity, tracks: SequenceTracks) -> Match:
     id). Example: A = scan "0": rows [1, 2, 3, 4]; track 1 = rows [1, 2, 3], track 2 = rows [4, 5] →
     track 1, IoU 3 / 4.
     """
+    return match_tracks([identity], tracks)[0]
+
+
+def match_tracks(identities: Sequence[ObjectIdentity], tracks: SequenceTracks) -> list[Match]:
+    """:func:`match_track` of each identity, in one pass over the scans: a scan's row → track table is
+    filled once (a scatter of its tracked rows) and each identity's rows in it are gathered from it, so
+    many corrections cost about one, and scans no identity has points in only count their tracks' sizes
+    (one ``bincount`` over every scan, less the scans an identity does not cover)."""
     k = tracks.table.label.size
-    inter = np.zeros(k + 1, np.int64)
-    size_b = np.zeros(k + 1, np.int64)
-    size_a = 0
-    covered = {f: i for i, f in enumerate(identity.frame_ids)}
+    m = len(identities)
+    inter = np.zeros((m, k + 1), np.int64)
+    size_a = np.zeros(m, np.int64)
+    track_all = tracks.track
+    size_b = np.tile(np.bincount(track_all, minlength=k + 1), (m, 1))
+    covered = [{f: i for i, f in enumerate(x.frame_ids)} for x in identities]
+    lookup = np.zeros(int(tracks.rows.max(initial=-1)) + 1, np.int32)
     for t, fid in enumerate(tracks.frame_ids):
-        f = covered.get(fid)
-        if f is None:
-            continue
-        a_rows = identity.rows[int(identity.ptr[f]) : int(identity.ptr[f + 1])]
         lo, hi = int(tracks.offsets[t]), int(tracks.offsets[t + 1])
-        rows, track = tracks.rows[lo:hi], tracks.track[lo:hi].astype(np.int64)
-        size_a += a_rows.size
-        size_b += np.bincount(track, minlength=k + 1)
-        hit = np.isin(rows, a_rows, assume_unique=True)
-        inter += np.bincount(track[hit], minlength=k + 1)
-    if k == 0 or inter[1:].max(initial=0) == 0:
-        return Match(0, 0.0)
-    iou = inter[1:] / np.maximum(size_a + size_b[1:] - inter[1:], 1)
-    best = int(np.argmax(iou))
-    return Match(best + 1, float(iou[best]))
+        rows = tracks.rows[lo:hi]
+        filled = False
+        for j, (identity, pos) in enumerate(zip(identities, covered, strict=True)):
+            f = pos.get(fid)
+            if f is None:  # a scan the identity's run never labeled: its tracks do not count
+                size_b[j] -= np.bincount(track_all[lo:hi], minlength=k + 1)
+                continue
+            a_rows = identity.rows[int(identity.ptr[f]) : int(identity.ptr[f + 1])]
+            if a_rows.size == 0:
+                continue
+            if not filled:
+                lookup[rows] = track_all[lo:hi]
+                filled = True
+            size_a[j] += a_rows.size
+            inside = a_rows[a_rows < lookup.size]
+            inter[j] += np.bincount(lookup[inside], minlength=k + 1)
+        if filled:
+            lookup[rows] = 0
+    out = []
+    for j in range(m):
+        hits = inter[j, 1:]
+        if k == 0 or hits.max(initial=0) == 0:
+            out.append(Match(0, 0.0))
+            continue
+        iou = hits / np.maximum(size_a[j] + size_b[j, 1:] - hits, 1)
+        best = int(np.argmax(iou))
+        out.append(Match(best + 1, float(iou[best])))
+    return out
 
 
 @dataclass(frozen=True)
@@ -186,7 +211,7 @@ class ObjectCorrections:
         """``(track_class, matches)``: (K+1,) int16 class per track id (:data:`NO_CLASS` where no correction
         applies; a later correction wins on a track two match) and each correction's :class:`Match`."""
         track_class = np.full(tracks.table.label.size + 1, NO_CLASS, np.int16)
-        matches = [match_track(identity, tracks) for identity in self.identities]
+        matches = match_tracks(self.identities, tracks)
         for m, c in zip(matches, self.class_idx, strict=True):
             if m.applied:
                 track_class[m.track] = c
@@ -328,6 +353,7 @@ __all__ = [
     "ObjectCorrections",
     "ObjectIdentity",
     "match_track",
+    "match_tracks",
     "merge_object_corrections",
     "read_corrected_tracks",
 ]
