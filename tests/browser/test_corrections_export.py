@@ -208,6 +208,13 @@ def test_one_click_relabels_an_object_in_every_scan_of_the_export(
         )
         page.get_by_text("relabelled to", exact=False).wait_for(timeout=10_000)
         page.screenshot(path=str(artifacts / "object-relabel.png"))
+        # The project page lists it with the track it met in the latest run.
+        ui = browser.new_page(viewport={"width": 1280, "height": 900})
+        ui.goto(f"{base}/#/projects/{pid}")
+        row = ui.locator(f"#corrections tr[data-id='{correction.id}']")
+        row.wait_for(timeout=30_000)
+        wait_until(lambda: f"object {found.track} (IoU 1.00)" in row.inner_text(), 10, "the object's match")
+        assert new_class in row.inner_text() and "viewer" in row.inner_text()
 
     index = schema.index(new_class)
     moving = bool(tracks.table.moving[found.track - 1])
