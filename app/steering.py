@@ -67,6 +67,8 @@ def _correction_text(c: crud.Correction) -> str:
     if c.scope == "scan":
         n = 0 if c.points is None else int(c.points.shape[0])
         return f"{what}, scan {c.frame_id}, {n} point{'' if n == 1 else 's'}"
+    if c.scope == "object":
+        return f"{what}, object {c.track_id} of run id {c.run_id}"
     n = int(c.keys.shape[0])
     return f"{what}, map, {n} voxel{'' if n == 1 else 's'}"
 

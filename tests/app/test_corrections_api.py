@@ -313,6 +313,12 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
     corr = r.json()
     assert corr["scope"] == "object" and corr["track_id"] == track and corr["run_id"] == run["id"]
     assert (st.data / "studio" / "objects" / f"p{st.pid}").is_dir()
+    # The next run would redo the evaluation and the export for it, not the fusion: an object correction is
+    # never fused (an earlier test's scan correction, made during the latest run, reruns label_points here).
+    preview = st.c.get(f"/projects/{st.pid}/runs/preview").json()
+    assert {"evaluate", "export"} <= set(preview["recompute"]), preview
+    assert "fuse" not in preview["recompute"], preview
+    assert any(f"object {track} of run id {run['id']}" in c["text"] for c in preview["changes"]), preview
     listed = st.wait_apply()
     assert listed["apply"]["status"] == "done", listed
     mine = next(c for c in listed["corrections"] if c["id"] == corr["id"])
