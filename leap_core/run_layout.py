@@ -121,7 +121,6 @@ class SequenceLayout:
             APPLIED_CORRECTIONS,
             APPLIED_CORRECTIONS_SCAN,
             APPLIED_CORRECTIONS_OBJECT,
-            OBJECT_MATCHES,
             FRAME_VOXELS,
         }
     )

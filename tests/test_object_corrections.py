@@ -4,6 +4,7 @@ on the tiny street's mover (tests/test_objects.py's scene)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from leap_core.pipeline.object_corrections import (
 )
 from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.schema import builtin_schema
-from leap_core.tracking import TrackTable
+from leap_core.tracking import TrackingConfig, TrackTable
 
 
 def _tracks(
@@ -173,3 +174,13 @@ def test_a_rerun_reimposes_the_correction_on_the_mover(tmp_path: Path) -> None:
         assert (after[rest] == before[fid][rest]).all(), fid
         changed += mine.size
     assert changed > 50
+    # Without the correction the next run writes the export it wrote before, and a report of nothing.
+    (folder / "corrections_object.npz").unlink()
+    label(root, schema, PipelineConfig(), tmp_path / "run")
+    assert json.loads((folder / "object_matches.json").read_text()) == {}
+    for fid in seq.frame_ids:
+        assert (read_label(folder / "export" / f"{fid}.label") == before[fid]).all(), fid
+    # A run without objects keeps no report of an export it did not write.
+    untracked = dataclasses.replace(PipelineConfig(), tracking=TrackingConfig(enabled=False))
+    label(root, schema, untracked, tmp_path / "run")
+    assert not (folder / "object_matches.json").exists()

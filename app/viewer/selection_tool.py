@@ -68,9 +68,9 @@ class SelectionTool:
         self.settings = ToolSettings()
         """The tools' settings (:meth:`set_tools` changes them)."""
         self.inspected: Inspection | None = None
-        self.inspected_object: ObjectInfo | None = None
-        """The object under the last click (:meth:`pick_object`)."""
         """The voxel last clicked (None until a click hits one, and after a run loads)."""
+        self.inspected_object: ObjectInfo | None = None
+        """The object under the last click (:meth:`pick_object`; None when it hit none)."""
 
     @property
     def selection(self) -> Selection:

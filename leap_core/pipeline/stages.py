@@ -583,6 +583,9 @@ def stage_export(ctx: Ctx) -> dict[str, Any]:
     ids = ctx.schema.export_ids()
     moving_ids = ctx.schema.moving_export_ids()
     tracks = read_tracks(ctx)
+    # The report belongs to the export it describes: a run that reuses the export keeps it, one that
+    # writes another (or none, without tracks) must not show the one before.
+    ctx.layout.object_matches.unlink(missing_ok=True)
 
     def work(i: int) -> None:
         fid = ctx.fid(i)

@@ -9,6 +9,7 @@ from collections import Counter
 from pathlib import Path as FilePath
 from typing import Any
 
+import sqlite_utils
 from fastapi import APIRouter, Request, status
 
 from app import crud, models, services
@@ -53,7 +54,7 @@ Matches = tuple[RunRow, dict[str, Any]]
 applied)."""
 
 
-def _object_matches(db: Any, project_id: int, sequence: str) -> Matches | None:
+def _object_matches(db: sqlite_utils.Database, project_id: int, sequence: str) -> Matches | None:
     """Which track of the latest finished run each object correction met (written by the run's export
     and by the apply job; None when that run has no such file for the sequence)."""
     run = crud.last_finished_run(db, project_id)
