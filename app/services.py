@@ -506,8 +506,14 @@ def object_ref(
     count = int(tracks.table.label.size)
     if not 1 <= track_id <= count:
         raise InvalidField(("body", "track_id"), f"run {run.number} has tracks 1..{count}, not {track_id}")
+    identity = ObjectIdentity.of_track(tracks, track_id)
+    if identity.points == 0:
+        # A static track whose points all keep a stuff class of the map: no point of the export is in it.
+        raise InvalidField(
+            ("body", "track_id"), f"track {track_id} of run {run.number} has no points to relabel"
+        )
     rel = Path(OBJECTS_FOLDER) / f"p{project_id}" / f"r{run_id}-{sequence}-t{track_id}.npz"
-    ObjectIdentity.of_track(tracks, track_id).save(settings.work_dir / rel)
+    identity.save(settings.work_dir / rel)
     return crud.ObjectRef(run_id=run_id, track_id=track_id, identity=rel.as_posix())
 
 

@@ -6,6 +6,7 @@ Also migration 3 on a version-2 database file.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -354,6 +355,22 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
     reverted = st.labels(run)
     for fid in before:
         assert (reverted[fid] == before[fid]).all(), fid
+    # A track without a point in the export (a static one whose points all keep a stuff class) is refused.
+    original = (folder / "tracks.npz").read_bytes()
+    t = tracks.table
+    empty = dataclasses.replace(
+        t,
+        **{
+            f.name: np.concatenate([getattr(t, f.name), getattr(t, f.name)[:1]])
+            for f in dataclasses.fields(t)
+        },
+    )
+    dataclasses.replace(tracks, table=empty).save(folder / "tracks.npz")
+    try:
+        r = st.c.post(url, json={**body, "track_id": int(t.label.size) + 1})
+        assert r.status_code == 422 and "has no points" in r.text, r.text
+    finally:
+        (folder / "tracks.npz").write_bytes(original)
 
 
 def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:
