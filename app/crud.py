@@ -481,8 +481,9 @@ class Correction:
     scan-scope correction, the voxels of its points, for display)."""
     active: bool
     """False once undone."""
-    scope: Literal["map", "scan"] = "map"
-    """``"map"``: every point of every scan in ``keys``; ``"scan"``: only ``points`` of scan ``frame_id``."""
+    scope: Literal["map", "scan", "object"] = "map"
+    """``"map"``: every point of every scan in ``keys``; ``"scan"``: only ``points`` of scan ``frame_id``;
+    ``"object"``: every point of one object in every scan (``identity``)."""
     frame_id: str | None = None
     """Scan-scope: the scan's frame id (file stem)."""
     points: npt.NDArray[np.int64] | None = None
@@ -494,6 +495,13 @@ class Correction:
     sequence)."""
     reviewer: str | None = None
     """The reviewer's name the viewer tab was given (migration 9); None when none was given."""
+    run_id: int | None = None
+    """Object scope: the run whose tracks it was made on (migration 11)."""
+    track_id: int | None = None
+    """Object scope: the track of that run it relabels."""
+    identity: str | None = None
+    """Object scope: the file (relative to the work folder) holding the object's point rows per scan
+    (:class:`leap_core.pipeline.object_corrections.ObjectIdentity`), matched to later runs' tracks."""
 
 
 def _correction(row: dict[str, Any]) -> Correction:
@@ -505,16 +513,31 @@ def _correction(row: dict[str, Any]) -> Correction:
         voxel_size=float(row["voxel_size"]),
         keys=np.frombuffer(row["keys"], dtype=np.int64).copy(),
         active=bool(row["active"]),
-        scope="scan" if row.get("scope") == "scan" else "map",
+        scope=row["scope"] if row.get("scope") in ("scan", "object") else "map",
         frame_id=row.get("frame_id"),
         points=None if row.get("points") is None else np.frombuffer(row["points"], dtype=np.int64).copy(),
         author=row.get("author"),
         sequence=row.get("sequence"),
         reviewer=row.get("reviewer"),
+        run_id=row.get("run_id"),
+        track_id=row.get("track_id"),
+        identity=row.get("identity"),
     )
 
 
-CORRECTION_SCOPES = ("map", "scan")
+CORRECTION_SCOPES = ("map", "scan", "object")
+
+
+@dataclass(frozen=True)
+class ObjectRef:
+    """What an object-scope correction stores beside its class: the run and track it was made on and its
+    identity file (relative to the work folder; :attr:`Correction.identity`)."""
+
+    run_id: int
+    track_id: int
+    identity: str
+
+
 """Where a correction applies (:attr:`Correction.scope`)."""
 
 
@@ -531,12 +554,14 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     author: str | None = None,
     sequence: str | None = None,
     reviewer: str | None = None,
+    obj: ObjectRef | None = None,
 ) -> int:
     """Store a correction (active) of the project's sequence ``sequence`` (None: its first); returns its id.
 
     Raises:
         InvalidField: an unknown scope, a scan-scope correction without ``frame_id`` / ``points`` (or with
-            negative point indices), or a map-scope one with them; an unknown ``sequence``.
+            negative point indices), or a map-scope one with them; an object-scope one without ``obj`` or
+            another with it; an unknown ``sequence``.
     """
     arr = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1))
     if scope not in CORRECTION_SCOPES:
@@ -554,11 +579,14 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     elif frame_id is not None or points is not None:
         field = "frame_id" if frame_id is not None else "points"
         raise InvalidField((field,), f"{field} is only for scan-scope corrections")
+    if (scope == "object") != (obj is not None):
+        raise InvalidField(("track_id",), "an object-scope correction, and only one, names a run's track")
     require_project(db, project_id)
     seq = sequence_name(db, project_id, sequence)
     cursor = db.execute(
         "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
-        "frame_id, points, author, sequence, reviewer) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?, ?)",
+        "frame_id, points, author, sequence, reviewer, run_id, track_id, identity) "
+        "VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         [
             project_id,
             utcnow(),
@@ -571,6 +599,9 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
             author,
             seq,
             reviewer,
+            None if obj is None else obj.run_id,
+            None if obj is None else obj.track_id,
+            None if obj is None else obj.identity,
         ],
     )
     return _inserted_id(cursor)

@@ -861,8 +861,10 @@ class CorrectionCreate(_Input):
     keys: list[Annotated[int, Field(ge=0, le=2**63 - 1)]] = Field(
         default_factory=list, max_length=CORRECTION_MAX_ITEMS, description="packed voxel keys covered"
     )
-    scope: Literal["map", "scan"] = Field(
-        default="map", description="'map': all scans' points in the voxels; 'scan': listed points of one scan"
+    scope: Literal["map", "scan", "object"] = Field(
+        default="map",
+        description="'map': all scans' points in the voxels; 'scan': listed points of one scan; 'object': "
+        "every point of one object (a run's track) in every scan",
     )
     frame_id: str | None = Field(
         default=None,
@@ -882,6 +884,10 @@ class CorrectionCreate(_Input):
         description="the project sequence it corrects (default: the first; keys and frame ids are per "
         "sequence)",
     )
+    run_id: int | None = Field(default=None, ge=1, le=2**62, description="object scope: the run whose track")
+    track_id: int | None = Field(
+        default=None, ge=1, le=0xFFFF, description="object scope: the track (instance id) of that run"
+    )
 
     @field_validator("class_name")
     @classmethod
@@ -892,8 +898,10 @@ class CorrectionCreate(_Input):
     def _scope(self) -> CorrectionCreate:
         if self.scope == "scan" and (self.frame_id is None or self.points is None):
             raise ValueError("a scan-scope correction needs frame_id and points")
-        if self.scope == "map" and (self.frame_id is not None or self.points is not None):
+        if self.scope != "scan" and (self.frame_id is not None or self.points is not None):
             raise ValueError("frame_id and points are only for scan-scope corrections")
+        if (self.scope == "object") != (self.run_id is not None and self.track_id is not None):
+            raise ValueError("an object-scope correction, and only one, needs run_id and track_id")
         return self
 
 
@@ -901,11 +909,21 @@ class CorrectionUpdate(_Input):
     active: bool = Field(description="false undoes the correction, true redoes it")
 
 
+class ObjectMatch(BaseModel):
+    """Where an object-scope correction lands in a run (docs/METHOD.md B.6, "Object corrections")."""
+
+    run_id: int
+    run_number: int
+    track: int = Field(description="the run's track of highest overlap (0: none shares a point)")
+    iou: float = Field(description="its IoU with the corrected object")
+    applied: bool = Field(description="false: the IoU is not above 0.5, it no longer matches an object")
+
+
 class CorrectionPublic(BaseModel):
     id: int
     created_at: str
     class_name: str = Field(description="assigned class; '' = erased to unlabeled")
-    scope: Literal["map", "scan"]
+    scope: Literal["map", "scan", "object"]
     frame_id: str | None = Field(description="scan scope: the scan")
     voxels: int = Field(description="voxels covered")
     points: int | None = Field(description="scan scope: points covered")
@@ -913,6 +931,11 @@ class CorrectionPublic(BaseModel):
     active: bool
     sequence: str | None = Field(default=None, description="the project sequence it corrects")
     reviewer: str | None = Field(default=None, description="the reviewer's name given to the viewer tab")
+    run_id: int | None = Field(default=None, description="object scope: the run it was made on")
+    track_id: int | None = Field(default=None, description="object scope: that run's track")
+    match: ObjectMatch | None = Field(
+        default=None, description="object scope: the track of the latest finished run it meets, if known"
+    )
 
 
 class CorrectionClassCount(BaseModel):

@@ -33,7 +33,9 @@ from leap_core.io_utils import remove_tree
 from leap_core.labelers import LABELERS
 from leap_core.paths import UnusablePath, real_path, real_path_or_none
 from leap_core.pipeline import PAPER, SequenceMetrics
+from leap_core.pipeline.object_corrections import ObjectIdentity
 from leap_core.pipeline.preflight import check_dataset, dataset_stamp
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.presets import builtin_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import MAX_CLASS_LIST_BYTES, ClassListError, Schema, class_list_yaml, read_class_list
@@ -458,13 +460,61 @@ def update_project(db: sqlite_utils.Database, project_id: int, payload: models.P
 
 def project_folders(settings: Settings, project_id: int) -> list[Path]:
     """The work folder's folders of one project: its runs (``runs/p<P>``) and its stage caches
-    (``cache/p<P>``, the 2D labels its runs and run previews computed) and its LiDAR-only models and their
-    labelings (``lidar-models/p<P>``)."""
+    (``cache/p<P>``, the 2D labels its runs and run previews computed), its LiDAR-only models and their
+    labelings (``lidar-models/p<P>``) and its object corrections' identities (``objects/p<P>``)."""
     return [
         settings.runs_dir / f"p{project_id}",
         settings.cache_dir / f"p{project_id}",
         settings.work_dir / "lidar-models" / f"p{project_id}",
+        settings.work_dir / OBJECTS_FOLDER / f"p{project_id}",
     ]
+
+
+OBJECTS_FOLDER = "objects"
+"""Work-folder folder of the object corrections' identity files
+(``objects/p<P>/r<R>-<sequence>-t<T>.npz``)."""
+
+
+def object_ref(
+    db: sqlite_utils.Database, settings: Settings, project_id: int, run_id: int, sequence: str, track_id: int
+) -> crud.ObjectRef:
+    """Keep the object ``track_id`` of run ``run_id``'s sequence ``sequence`` for an object-scope
+    correction: its point rows per scan go into a file of the work folder (written atomically; the same
+    object of the same run always gets the same file).
+
+    Raises:
+        InvalidField: the run is not a finished run of the project that labeled ``sequence``, it has no
+            objects (``tracks.npz``), or it has no track ``track_id`` (each naming its field).
+    """
+    run = crud.get_run(db, run_id)
+    if run is None or run.project_id != project_id:
+        raise InvalidField(("body", "run_id"), f"project {project_id} has no run {run_id}")
+    if run.status != "done":
+        raise InvalidField(
+            ("body", "run_id"), f"run {run.number} is {run.status}: objects come from a finished run"
+        )
+    if sequence not in [s.name for s in run.params.sequences]:
+        raise InvalidField(("body", "sequence"), f"run {run.number} did not label sequence {sequence!r}")
+    layout = run.sequence_layout(sequence)
+    if not layout.tracks.is_file():
+        raise InvalidField(
+            ("body", "run_id"),
+            f"run {run.number} has no objects (no tracks.npz in sequence {sequence}): "
+            "turn tracking on and re-run",
+        )
+    tracks = SequenceTracks.load(layout.tracks)
+    count = int(tracks.table.label.size)
+    if not 1 <= track_id <= count:
+        raise InvalidField(("body", "track_id"), f"run {run.number} has tracks 1..{count}, not {track_id}")
+    identity = ObjectIdentity.of_track(tracks, track_id)
+    if identity.points == 0:
+        # A static track whose points all keep a stuff class of the map: no point of the export is in it.
+        raise InvalidField(
+            ("body", "track_id"), f"track {track_id} of run {run.number} has no points to relabel"
+        )
+    rel = Path(OBJECTS_FOLDER) / f"p{project_id}" / f"r{run_id}-{sequence}-t{track_id}.npz"
+    identity.save(settings.work_dir / rel)
+    return crud.ObjectRef(run_id=run_id, track_id=track_id, identity=rel.as_posix())
 
 
 def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> list[Path]:

@@ -67,6 +67,8 @@ def _correction_text(c: crud.Correction) -> str:
     if c.scope == "scan":
         n = 0 if c.points is None else int(c.points.shape[0])
         return f"{what}, scan {c.frame_id}, {n} point{'' if n == 1 else 's'}"
+    if c.scope == "object":
+        return f"{what}, object {c.track_id} of run id {c.run_id}"
     n = int(c.keys.shape[0])
     return f"{what}, map, {n} voxel{'' if n == 1 else 's'}"
 
@@ -158,7 +160,7 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
             with tempfile.TemporaryDirectory(prefix="preview-", dir=settings.work_dir) as tmp:
                 corrections = crud.list_corrections(db, project_id, active_only=True, sequence=name)
                 lay = SequenceLayout(Path(tmp))
-                run_corrections(corrections, snapshot).write(lay.corrections, lay.corrections_scan)
+                run_corrections(corrections, snapshot, settings.work_dir).write_run(lay)
                 estimated = project.estimate_poses and needs_estimate(dataset)
                 if estimated and not _link_estimated_poses(dataset, lay, settings.cache_dir):
                     fresh = "the poses will be estimated"

@@ -26,6 +26,8 @@ One sequence's folder::
       corrections.npz             map-scope manual corrections (keys (K,) int64, class_idx (K,), -1 = erase),
                                   fused into grid.npz, re-imposed on smoothed grids and on the points
       corrections_scan.npz        scan-scope corrections (leap_core.corrections.ScanCorrections), per point
+      corrections_object.npz      object-scope corrections (leap_core.pipeline.object_corrections): per
+                                  correction its class and the object's point rows per scan
       grid.npz                    fused VoxelGrid (keys, logp, voxel_size)
       grid_smooth.npz             SmoothedGrid (keys, probs float16, voxel_size) after kNN smoothing
       grid_3dcn{i}.npz            3D-CN round i: fused grid + network evidence
@@ -40,9 +42,10 @@ One sequence's folder::
       export/<frame_id>.label     raw export ids (a moving thing: its class's moving id), instance id << 16
       export/<frame_id>.conf      float32 per-point confidence
       export-coverage.json        the export's point counts (labeled, unlabeled by reason, per raw id)
-      applied_corrections.npz, applied_corrections_scan.npz, frame_voxels.npz
-                                  the app's "apply corrections" job: the corrections the points and export
+      applied_corrections.npz, applied_corrections_scan.npz, applied_corrections_object.npz,
+      frame_voxels.npz            the app's "apply corrections" job: the corrections the points and export
                                   now carry, and the voxel → frames index (leap_core.pipeline.apply)
+      object_matches.json         per object correction the track it met and whether it applies
       poses/poses.txt, poses/poses_estimated.json
                                   estimated poses (KISS-ICP) the sequence uses because its dataset has none
 
@@ -100,8 +103,11 @@ class SequenceLayout:
     MODEL_METRICS: ClassVar[str] = "model-metrics.json"
     CORRECTIONS: ClassVar[str] = "corrections.npz"
     CORRECTIONS_SCAN: ClassVar[str] = "corrections_scan.npz"
+    CORRECTIONS_OBJECT: ClassVar[str] = "corrections_object.npz"
     APPLIED_CORRECTIONS: ClassVar[str] = "applied_corrections.npz"
     APPLIED_CORRECTIONS_SCAN: ClassVar[str] = "applied_corrections_scan.npz"
+    APPLIED_CORRECTIONS_OBJECT: ClassVar[str] = "applied_corrections_object.npz"
+    OBJECT_MATCHES: ClassVar[str] = "object_matches.json"
     FRAME_VOXELS: ClassVar[str] = "frame_voxels.npz"
     EXPORT_COVERAGE: ClassVar[str] = "export-coverage.json"
     POSES_DIR: ClassVar[str] = "poses"
@@ -110,9 +116,11 @@ class SequenceLayout:
         {
             CORRECTIONS,
             CORRECTIONS_SCAN,
+            CORRECTIONS_OBJECT,
             EXPORT_COVERAGE,
             APPLIED_CORRECTIONS,
             APPLIED_CORRECTIONS_SCAN,
+            APPLIED_CORRECTIONS_OBJECT,
             FRAME_VOXELS,
         }
     )
@@ -176,6 +184,23 @@ class SequenceLayout:
     def corrections_scan(self) -> Path:
         """Scan-scope corrections (:class:`leap_core.corrections.ScanCorrections`)."""
         return self._file(self.CORRECTIONS_SCAN)
+
+    @property
+    def corrections_object(self) -> Path:
+        """Object-scope corrections (:class:`leap_core.pipeline.object_corrections.ObjectCorrections`)."""
+        return self._file(self.CORRECTIONS_OBJECT)
+
+    @property
+    def applied_corrections_object(self) -> Path:
+        """Object-scope counterpart of :attr:`applied_corrections`."""
+        return self._file(self.APPLIED_CORRECTIONS_OBJECT)
+
+    @property
+    def object_matches(self) -> Path:
+        """Which track of the run each object correction met, and whether it applies (JSON, written by
+        the export and the apply job: :meth:`CorrectedTracks.report
+        <leap_core.pipeline.object_corrections.CorrectedTracks.report>`)."""
+        return self._file(self.OBJECT_MATCHES)
 
     @property
     def applied_corrections(self) -> Path:

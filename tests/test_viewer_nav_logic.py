@@ -75,3 +75,42 @@ def test_confidence_histograms_bin_per_class() -> None:
         nl.confidence_histograms(label, conf, 3, bins=0)
     with pytest.raises(ValueError, match="same length"):
         nl.confidence_histograms([0], [0.1, 0.2], 1)
+
+
+def test_object_colors_mark_movers_and_leave_points_of_no_object_grey() -> None:
+    # Id 1: hue 0.618 (blue); a moving and a static point of it, a point of id 2 (hue 0.236: green) and
+    # one of no object.
+    colors = nl.object_colors(np.array([1, 1, 2, 0], np.uint32), np.array([True, False, True, False]))
+    moving, static, other, none = (c.astype(int) for c in colors)
+    assert tuple(none) == nl.SCAN_GREY_RGB
+    assert moving.argmax() == 2 and other.argmax() == 1  # blue-ish for id 1, green-ish for id 2
+    # Saturation 0.85 at value 0.95: the strongest channel 242, the weakest 36.
+    assert moving.max() == 242 and moving.min() == 36
+    # The static point is the same hue faded toward white.
+    assert tuple(static) == tuple(np.rint(0.55 * moving + 0.45 * 255).astype(int))
+    # Only the objects view colours by object; the class view keeps class colours.
+    labels = np.array([0, 1, 0, -1], np.int16)
+    palette = np.array([[10, 20, 30], [40, 50, 60]], np.uint8)
+    inst, mov = np.array([1, 1, 2, 0], np.uint32), np.array([True, False, True, False])
+    assert (nl.scan_colors("objects", labels, palette, inst, mov) == colors).all()
+    assert nl.scan_colors("class", labels, palette, inst, mov)[1].tolist() == [40, 50, 60]
+
+
+def test_the_inspected_object_line_escapes_class_names() -> None:
+    from app.viewer.panel_nav import object_html
+    from app.viewer.records import ObjectInfo
+
+    found = ObjectInfo(
+        run_id=1,
+        track=7,
+        class_index=0,
+        scans=12,
+        moving=True,
+        speed=1.44,
+        points=85,
+        frame_id="000003",
+        corrected_to=1,
+    )
+    text = object_html(found, ["<b>car</b>", "truck"])
+    assert "Object <b>7</b>" in text and "&lt;b&gt;car&lt;/b&gt;" in text and "<b>truck</b>" in text
+    assert "seen in <b>12</b> scans" in text and "<b>moving</b> at 1.4 m/s" in text and "85 points" in text

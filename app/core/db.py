@@ -275,6 +275,43 @@ def _v10_model_jobs(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v11_object_corrections(db: sqlite_utils.Database) -> None:
+    # A correction may name one object (scope 'object'): the run and track it was made on, and the file
+    # under the work folder that keeps the object's point rows per scan (its identity, matched to later
+    # runs' tracks). SQLite cannot widen a CHECK in place: the table is rebuilt with its rows and indexes.
+    _execute_script(
+        db,
+        """
+        CREATE TABLE corrections_v11 (
+            id INTEGER PRIMARY KEY,
+            project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+            created_at TEXT NOT NULL,
+            class_name TEXT NOT NULL,
+            voxel_size REAL NOT NULL,
+            keys BLOB NOT NULL,
+            active INTEGER NOT NULL DEFAULT 1,
+            scope TEXT NOT NULL DEFAULT 'map' CHECK (scope IN ('map', 'scan', 'object')),
+            frame_id TEXT,
+            points BLOB,
+            author TEXT,
+            sequence TEXT,
+            reviewer TEXT,
+            run_id INTEGER,
+            track_id INTEGER,
+            identity TEXT
+        );
+        INSERT INTO corrections_v11 (id, project_id, created_at, class_name, voxel_size, keys, active, scope,
+            frame_id, points, author, sequence, reviewer)
+            SELECT id, project_id, created_at, class_name, voxel_size, keys, active, scope, frame_id, points,
+            author, sequence, reviewer FROM corrections;
+        DROP TABLE corrections;
+        ALTER TABLE corrections_v11 RENAME TO corrections;
+        CREATE INDEX corrections_project ON corrections(project_id, id);
+        CREATE INDEX corrections_sequence ON corrections(project_id, sequence, id)
+        """,
+    )
+
+
 def _name_of(names: dict[tuple[int, str], str], project_id: int, path: str) -> str | None:
     return names.get((project_id, path))
 
@@ -343,6 +380,7 @@ MIGRATIONS: list[Migration] = [
         "model_jobs: LiDAR-only models trained on a project's labels and labelings with them",
         _v10_model_jobs,
     ),
+    (11, "object-scope corrections: corrections.run_id, track_id, identity", _v11_object_corrections),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -249,7 +249,7 @@ class CorrectionApplier:
         schema = Schema.from_dict(run.params.schema, source=f"run {run.id} schema")
         frames = changed = baked = 0
         for seq, corrections in targets:
-            new = run_corrections(corrections, run.params)
+            new = run_corrections(corrections, run.params, self.settings.work_dir)
             if not new.differs(RunCorrections.applied(seq.layout, schema.num_classes)):
                 # The usual case after a run ends (the hook of app.main): nothing to load or rewrite.
                 continue
@@ -264,6 +264,7 @@ class CorrectionApplier:
                 new=new,
                 cache=cache,
                 moving_export_ids=schema.moving_export_ids(),
+                things_mask=schema.things(),
             )
             if result.frames:
                 exports.invalidate(run.run_dir)

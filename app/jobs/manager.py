@@ -66,6 +66,7 @@ from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGES, read_run_metrics
 from leap_core.pipeline.apply import RunCorrections
 from leap_core.pipeline.metrics_file import RunMetrics
+from leap_core.pipeline.object_corrections import ObjectIdentity, merge_object_corrections
 from leap_core.run_layout import SequenceLayout
 
 log = logging.getLogger("leap.jobs")
@@ -425,7 +426,7 @@ class JobManager:
             lay = run.sequence_layout(seq.name)
             lay.folder.mkdir(parents=True, exist_ok=True)
             corrections = snapshot_corrections(db, run.project_id, run.params, seq.name)
-            run_corrections(corrections, run.params).write(lay.corrections, lay.corrections_scan)
+            run_corrections(corrections, run.params, self.settings.work_dir).write_run(lay)
             if previous is not None:
                 linked += seed_sequence(previous.sequence_layout(seq.name), lay)
         if previous is not None:
@@ -1040,10 +1041,17 @@ def snapshot_corrections(db: Any, project_id: int, params: RunParams, sequence: 
     return [c for c in every if c.id in wanted]
 
 
-def run_corrections(corrections: Sequence[crud.Correction], params: RunParams) -> RunCorrections:
+def run_corrections(
+    corrections: Sequence[crud.Correction], params: RunParams, work_dir: Path
+) -> RunCorrections:
     """The active corrections of a project's sequence as a run with ``params`` (its ``schema`` and
     ``pipeline``) applies them: map scope flattened by :func:`corrections_for_run`, scan scope by
-    :meth:`ScanCorrections.merge` (later corrections win on the same voxel / point)."""
+    :meth:`ScanCorrections.merge` (later corrections win on the same voxel / point), object scope with
+    each object's identity read from its file under ``work_dir`` (in the order they were made).
+
+    Raises:
+        DatasetError: an object correction's identity file is missing or unreadable (naming it).
+    """
     keys, classes = corrections_for_run(corrections, params.schema, params.pipeline)
     names = [c["name"] for c in params.schema["classes"]]
     scan = ScanCorrections.merge(
@@ -1054,7 +1062,14 @@ def run_corrections(corrections: Sequence[crud.Correction], params: RunParams) -
         and c.points is not None
         and (index := _class_index(c.class_name, names)) != -2
     )
-    return RunCorrections(keys, classes, scan)
+    objects = merge_object_corrections(
+        [
+            (c.id, index, ObjectIdentity.load(work_dir / c.identity))
+            for c in corrections
+            if c.scope == "object" and c.identity and (index := _class_index(c.class_name, names)) != -2
+        ]
+    )
+    return RunCorrections(keys, classes, scan, objects)
 
 
 def _class_index(name: str, names: list[str]) -> int:

@@ -8,6 +8,7 @@ only (its point indices). Each one is a row of the project's store
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections.abc import Hashable
 
@@ -169,6 +170,28 @@ class Corrections:
         self.notify.panel.on_selection(0)
         self.notify.panel.on_history()
         self.renderer.request_draw()
+        self.notify.emit("corrected")
+        return cid
+
+    def relabel_object(self, class_name: str) -> int | None:
+        """Store an object-scope correction giving ``class_name`` (``""``: erase) to the inspected object
+        (the last clicked point's track, :meth:`SelectionTool.pick_object`): every point of it in every
+        scan, with one action. Returns its id (None when no object is inspected)."""
+        found = self.tools.inspected_object
+        if found is None:
+            return None
+        if class_name != "" and class_name not in self.shared.class_names():
+            raise ValueError(f"unknown class {class_name!r}")
+        cid = self.backend.add_object_correction(class_name, found.run_id, found.track)
+        self.history.push(cid)
+        self.refresh()
+        with self.shared.lock:
+            objects = self.shared.object_classes()
+        corrected = [c for t, c in objects if t == found.track]
+        self.tools.inspected_object = dataclasses.replace(
+            found, corrected_to=corrected[-1] if corrected else None
+        )
+        self.notify.panel.on_object(self.tools.inspected_object)
         self.notify.emit("corrected")
         return cid
 

@@ -8,6 +8,7 @@ only). Arrays are read once and kept; per-class probability columns are extracte
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from leap_core.config import config_from_dict
 from leap_core.consistency.selection import lookup_counts, view_counts
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import VoxelGrid, rows_in_sorted, voxel_keys, world_points
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.projection import project_points
 from leap_core.run_layout import SequenceLayout
 from leap_core.smoothing import SmoothedGrid
@@ -147,6 +149,8 @@ class ScanView:
         overlay: (H, W, 3) uint8 camera image with the projected labels drawn over it, or None.
         ego_pose: (4, 4) sensor-to-world pose of the scan (where the camera follows the ego vehicle to).
         camera: the image folder of the camera whose image and pose these are (a rig has several).
+        instance: (N,) uint32 track id per point (0: no object), or None when the run has no objects.
+        moving: (N,) bool whether the point's track moves, or None when the run has no objects.
     """
 
     frame_id: str
@@ -159,6 +163,8 @@ class ScanView:
     overlay: npt.NDArray[np.uint8] | None
     ego_pose: npt.NDArray[np.float64] | None = None
     camera: str = "image_2"
+    instance: npt.NDArray[np.uint32] | None = None
+    moving: npt.NDArray[np.bool_] | None = None
 
 
 def matrix_to_wxyz(rot: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -195,7 +201,43 @@ class RunOutputs:
         """Indices of the frames that have per-point labels in this run, in sequence order."""
         self._disagreement: tuple[ReviewGrid, np.ndarray, np.ndarray] | None = None
         self._views: tuple[ReviewGrid, npt.NDArray[np.int64]] | None = None
+        self._tracks: SequenceTracks | None = None
+        self._tracks_read = False
         self._lock = threading.Lock()
+
+    def tracks(self) -> SequenceTracks | None:
+        """The run's objects (``tracks.npz``, read once), or None when it tracked none."""
+        with self._lock:
+            if not self._tracks_read:
+                path = self.layout.tracks
+                self._tracks = SequenceTracks.load(path) if path.is_file() else None
+                self._tracks_read = True
+            return self._tracks
+
+    def object_matches(self) -> dict[str, Any]:
+        """Per object correction id the track of this run it met (``object_matches.json``; read each
+        time: the apply job rewrites it)."""
+        try:
+            found = json.loads(self.layout.object_matches.read_text())
+        except (OSError, ValueError):
+            return {}
+        return found if isinstance(found, dict) else {}
+
+    def scan_objects(
+        self, frame_id: str, n: int
+    ) -> tuple[npt.NDArray[np.uint32] | None, npt.NDArray[np.bool_] | None]:
+        """``(instance (n,), moving (n,))`` of one scan's points, or ``(None, None)`` without objects."""
+        tracks = self.tracks()
+        if tracks is None:
+            return None, None
+        obj = tracks.scan(frame_id)
+        if obj.rows.size and int(obj.rows.max()) >= n:
+            raise DatasetError(self.layout.tracks, f"scan {frame_id} has point rows past its {n} points")
+        instance = np.zeros(n, np.uint32)
+        moving = np.zeros(n, bool)
+        instance[obj.rows] = obj.track.astype(np.uint32)
+        moving[obj.rows] = tracks.table.moving[obj.track.astype(np.int64) - 1]
+        return instance, moving
 
     def point_arrays(self, index: int) -> dict[str, np.ndarray]:
         return _read_npz(self.layout.points(self.seq.frame_ids[index]), ("label",))
@@ -236,6 +278,7 @@ class RunOutputs:
             overlay = vl.draw_label_overlay(
                 image, uv, label[proj.idx], palette, radius=overlay_radius, depth=proj.depth
             )
+        instance, moving = self.scan_objects(frame.frame_id, label.shape[0])
         return ScanView(
             frame_id=frame.frame_id,
             points=self.world_points(index),
@@ -247,6 +290,8 @@ class RunOutputs:
             overlay=overlay,
             ego_pose=np.asarray(frame.pose, dtype=np.float64).copy(),
             camera=frame.rig_camera.name,
+            instance=instance,
+            moving=moving,
         )
 
     def disagreement(self, grid: ReviewGrid) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:

@@ -138,6 +138,8 @@ class LodCache:
         columns = np.frombuffer(columns_bytes, np.float32)
         if mode == "class":
             colors[changed] = vl.class_colors(lod_plan.majority_class(hist, columns, changed), palette)
+        elif mode == "objects":
+            colors[changed] = vl.UNCHANGED_RGB
         else:
             colors[changed] = vl.scalar_colors(lod_plan.mean_score(hist, ssum, columns, changed))
 
@@ -158,6 +160,8 @@ class LodCache:
             return cached[1]
         if mode == "class":
             colors = vl.class_colors(lod_plan.majority_class(hist, columns), palette)
+        elif mode == "objects":
+            colors = np.tile(np.asarray(vl.UNCHANGED_RGB, np.uint8), (hist.shape[0], 1))
         else:
             colors = vl.scalar_colors(lod_plan.mean_score(hist, ssum, columns))
         self.colors = (key, colors)

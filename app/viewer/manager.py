@@ -209,6 +209,8 @@ class AppBackend:
                 scope=c.scope,
                 frame_id=c.frame_id,
                 points=c.points,
+                run_id=c.run_id,
+                track_id=c.track_id,
             )
             for c in rows
         ]
@@ -238,6 +240,28 @@ class AppBackend:
                 author="viewer",
                 sequence=self.sequence,
                 reviewer=self.reviewer,
+            )
+        applier(self.settings).request(self.project_id)
+        return cid
+
+    def add_object_correction(self, class_name: str, run_id: int, track_id: int) -> int:
+        """Store an object-scope correction made in the viewer (author "viewer", the tab's reviewer):
+        track ``track_id`` of run ``run_id`` (checked and kept as its identity file by
+        :func:`app.services.object_ref`), and apply it to the latest run's export in the background."""
+        with open_db(self.settings.database) as db:
+            run = crud.require_run(db, run_id)
+            obj = services.object_ref(db, self.settings, self.project_id, run_id, self.sequence, track_id)
+            cid = crud.add_correction(
+                db,
+                project_id=self.project_id,
+                class_name=class_name,
+                voxel_size=services.pipeline_config(run.params.pipeline, loc=("run",)).fusion.voxel_size,
+                keys=[],
+                scope="object",
+                author="viewer",
+                sequence=self.sequence,
+                reviewer=self.reviewer,
+                obj=obj,
             )
         applier(self.settings).request(self.project_id)
         return cid

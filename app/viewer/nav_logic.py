@@ -96,13 +96,41 @@ def fit_view(
     return vl.orbit_view(centre, max(min_distance, spread * extent), elevation_deg, azimuth_deg)
 
 
+def object_colors(instance: npt.ArrayLike, moving: npt.ArrayLike) -> npt.NDArray[np.uint8]:
+    """(N, 3) colours of a scan's points by object: hue ``h = frac(id · φ⁻¹)`` (φ⁻¹ ≈ 0.618, the golden
+    ratio's step: consecutive ids far apart on the colour wheel), full value for a moving object's points
+    and :data:`STATIC_OBJECT_ALPHA` of the way to white for a static one's, :data:`SCAN_GREY_RGB` for
+    points of no object (id 0)."""
+    ids = np.asarray(instance, np.int64).reshape(-1)
+    hue = np.mod(ids * 0.6180339887498949, 1.0)
+    # HSV → RGB at saturation 0.85, value 0.95: each channel is v · (1 - s · clip(|6h - c| - 1, 0, 1)).
+    k = np.abs(np.mod(hue[:, None] * 6.0 + np.array([0.0, 4.0, 2.0]), 6.0) - 3.0) - 1.0
+    rgb = 0.95 * (1.0 - 0.85 * (1.0 - np.clip(k, 0.0, 1.0)))
+    out: npt.NDArray[np.uint8] = np.rint(rgb * 255).astype(np.uint8)
+    static = ~np.asarray(moving, bool).reshape(-1)
+    out[static] = vl.blend(out[static], (255, 255, 255), STATIC_OBJECT_ALPHA)
+    out[ids == 0] = SCAN_GREY_RGB
+    return out
+
+
+STATIC_OBJECT_ALPHA = 0.45
+"""How far a static object's colour fades toward white in the objects view (movers keep full colour)."""
+
+
 def scan_colors(
-    mode: vl.ColorMode, labels: npt.NDArray[np.integer], palette: npt.ArrayLike
+    mode: vl.ColorMode,
+    labels: npt.NDArray[np.integer],
+    palette: npt.ArrayLike,
+    instance: npt.NDArray[np.uint32] | None = None,
+    moving: npt.NDArray[np.bool_] | None = None,
 ) -> npt.NDArray[np.uint8]:
-    """(N, 3) colours of a scan's points: class colours in the class view, :data:`SCAN_GREY_RGB` in the
-    confidence and probability views (where the voxels carry a colour scale)."""
+    """(N, 3) colours of a scan's points: class colours in the class view, object colours in the objects
+    view (:func:`object_colors`; every point grey when the run has no objects), :data:`SCAN_GREY_RGB` in
+    the confidence and probability views (where the voxels carry a colour scale)."""
     if mode == "class":
         return vl.class_colors(labels, palette)
+    if mode == "objects" and instance is not None and moving is not None:
+        return object_colors(instance, moving)
     out = np.empty((np.asarray(labels).shape[0], 3), np.uint8)
     out[:] = SCAN_GREY_RGB
     return out
@@ -156,5 +184,6 @@ __all__ = [
     "confidence_histograms",
     "fit_view",
     "follow_view",
+    "object_colors",
     "scan_colors",
 ]

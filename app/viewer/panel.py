@@ -22,7 +22,7 @@ from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
 from app.viewer.panel_review import QUEUE_KINDS, ReviewQueuePanel
 from app.viewer.panel_tools import ToolsPanel
-from app.viewer.records import Inspection, RunInfo
+from app.viewer.records import Inspection, ObjectInfo, RunInfo
 from app.viewer.region_logic import Region
 from app.viewer.selection_tool import camera_of
 from app.viewer.session import ReviewSession
@@ -36,6 +36,7 @@ COLOR_BY = (
     "class probability",
     "camera vs final disagreement",
     "Δ since the run before",
+    "objects",
 )
 """Labels of the colouring modes, in :data:`app.viewer.view_logic.ColorMode` order."""
 _MODE_OF: dict[str, vl.ColorMode] = {
@@ -44,6 +45,7 @@ _MODE_OF: dict[str, vl.ColorMode] = {
     "class probability": "class_probability",
     "camera vs final disagreement": "disagreement",
     "Δ since the run before": "delta",
+    "objects": "objects",
 }
 
 
@@ -57,6 +59,12 @@ def legend_html(
 ) -> str:
     """HTML legend: class swatches in the class and Δ modes (the Δ mode first says what it compares with,
     ``note``), a colour bar with ticks in the scalar modes."""
+    if mode == "objects":
+        return (
+            '<div style="font-size:11px">The shown scan\'s points in the colour of their object (track id); '
+            "<b>full colour: moving</b>, pale: static, grey: no object. The map is pale. Click a point to "
+            "see its object.</div>"
+        )
     if mode == "delta":
         grey = _hex(vl.UNCHANGED_RGB)
         head = (
@@ -409,6 +417,7 @@ class ReviewPanel:
         self._update_legend()
         self.on_history()
         self.nav.inspect_folder.visible = False
+        self.nav.on_run_loaded(names)
         self.nav.on_nav()
 
     def _toggle_class(self, index: int, event: Any) -> None:
@@ -460,6 +469,9 @@ class ReviewPanel:
 
     def on_inspect(self, inspection: Inspection) -> None:
         self.nav.on_inspect(inspection)
+
+    def on_object(self, found: ObjectInfo | None) -> None:
+        self.nav.on_object(found)
 
     def on_nav(self) -> None:
         self.nav.on_nav()

@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 import viser
 
-from app.viewer.records import CorrectionRecord, Inspection
+from app.viewer.records import CorrectionRecord, Inspection, ObjectInfo
 from app.viewer.session import ReviewSession
 
 BROWSE = ("◀ Previous", "Play", "Next ▶")
@@ -36,6 +36,26 @@ def _swatch(rgb: Sequence[int] | npt.NDArray[np.uint8]) -> str:
     return (
         f'<span style="display:inline-block;width:10px;height:10px;border-radius:2px;'
         f'background:{_hex(rgb)};margin-right:4px"></span>'
+    )
+
+
+ERASE_OPTION = "(erase: unlabeled)"
+"""The object class picker's entry that erases the object to unlabeled."""
+
+
+def object_html(found: ObjectInfo, names: Sequence[str]) -> str:
+    """The Inspect section's object line: track id, class, scans seen, moving or not and speed."""
+
+    def name(i: int) -> str:
+        return "unlabeled" if i < 0 else html.escape(names[i] if i < len(names) else f"class {i}")
+
+    motion = f"<b>moving</b> at {found.speed:.1f} m/s" if found.moving else f"static ({found.speed:.1f} m/s)"
+    scans = "scan" if found.scans == 1 else "scans"
+    fixed = "" if found.corrected_to is None else f"; relabelled to <b>{name(found.corrected_to)}</b>"
+    return (
+        f'<div class="leap-object" style="font-size:12px;margin-bottom:4px">Object <b>{found.track}</b>: '
+        f"<b>{name(found.class_index)}</b>{fixed}; seen in <b>{found.scans}</b> {scans}, {motion}; "
+        f"{found.points:,} points in scan {html.escape(found.frame_id)}.</div>"
     )
 
 
@@ -150,6 +170,13 @@ class NavPanel:
         # Right under Run: a click's answer shows without scrolling, whatever else is expanded.
         self.inspect_folder = gui.add_folder("Inspect", order=0.5, expand_by_default=True, visible=False)
         with self.inspect_folder:
+            self.object_info = gui.add_html("", visible=False)
+            self.object_class = gui.add_dropdown("Object class", ["-"], initial_value="-", visible=False)
+            self.relabel_object = gui.add_button(
+                "Relabel object",
+                visible=False,
+                hint="Give the class to every point of this object in every scan (one object correction)",
+            )
             self.inspect = gui.add_html("")
         with gui.add_folder("Confidence by class", order=7, expand_by_default=False):
             self.histogram = gui.add_html("")
@@ -162,6 +189,7 @@ class NavPanel:
         self.follow.on_update(guard(lambda _: self._follow_changed()))
         self.enlarge.on_click(guard(lambda _: player.set_image_open(None)))
         s.scene.on_click(guard(self._clicked))
+        self.relabel_object.on_click(guard(lambda _: self._relabel_object()))
 
     def _browse(self, option: str) -> None:
         if option == BROWSE[0]:
@@ -190,6 +218,27 @@ class NavPanel:
         if self.enlarge.label != label:
             self.enlarge.label = label
 
+    def _relabel_object(self) -> None:
+        chosen = str(self.object_class.value)
+        self.s.corrections.relabel_object("" if chosen == ERASE_OPTION else chosen)
+
+    def on_run_loaded(self, names: Sequence[str]) -> None:
+        """A run was loaded: the object class picker offers its classes (and erasing)."""
+        options = [*names, ERASE_OPTION]
+        self.object_class.options = options
+        if self.object_class.value not in options:
+            self.object_class.value = options[0]  # type: ignore[misc]  # viser: split setter (see panel.py)
+        self.on_object(None)
+
+    def on_object(self, found: ObjectInfo | None) -> None:
+        """Show the clicked point's object (or hide the object widgets: no object was hit)."""
+        shown = found is not None
+        self.object_info.visible = self.object_class.visible = self.relabel_object.visible = shown
+        if found is None:
+            return
+        self.object_info.content = object_html(found, self.s.class_names())
+        self.inspect_folder.visible = True
+
     def on_inspect(self, found: Inspection) -> None:
         self.inspect.content = distribution_html(found, self.s.class_names(), self.s.palette)
         self.inspect_folder.visible = True
@@ -215,4 +264,13 @@ class NavPanel:
             self.histogram.content = content
 
 
-__all__ = ["BROWSE", "FIT", "NavPanel", "distribution_html", "histogram_html", "history_html"]
+__all__ = [
+    "BROWSE",
+    "ERASE_OPTION",
+    "FIT",
+    "NavPanel",
+    "distribution_html",
+    "histogram_html",
+    "history_html",
+    "object_html",
+]

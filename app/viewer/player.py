@@ -187,7 +187,9 @@ class ScanPlayer:
         """The shown scan's point colours for the colour mode, faded while a review region is focused
         (caller holds the shared lock)."""
         sh = self.shared
-        colors = nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette)
+        view = sh.scan_view
+        instance, moving = (None, None) if view is None else (view.instance, view.moving)
+        colors = nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette, instance, moving)
         return nl.focus_scan_colors(colors, sh.focus is not None)
 
     # ---------------------------------------------------------------------------------------- camera

@@ -85,12 +85,17 @@ class CorrectionRecord:
     created_at: str = ""
     """ISO UTC time it was made ("" when the store does not say)."""
 
-    scope: Scope = "map"
-    """``map``: every point in ``keys``' voxels; ``scan``: only ``points`` of scan ``frame_id``."""
+    scope: Scope | Literal["object"] = "map"
+    """``map``: every point in ``keys``' voxels; ``scan``: only ``points`` of scan ``frame_id``; ``object``:
+    every point of one object in every scan (a run's track, matched to later runs' tracks)."""
     frame_id: str | None = None
     """Scan of a scan-scope correction."""
     points: npt.NDArray[np.int64] | None = None
     """Scan scope: indices into that scan's points."""
+    run_id: int | None = None
+    """Object scope: the run whose track it relabels."""
+    track_id: int | None = None
+    """Object scope: that track."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +123,31 @@ class Inspection:
     """Every correction (active or undone) whose voxels include this one, oldest first."""
     distance: float
     """Distance from the click ray's origin (metres)."""
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """The object (a track of the shown run) under a clicked point
+    (:meth:`~app.viewer.selection_tool.SelectionTool.inspect_ray`)."""
+
+    run_id: int
+    """The run whose track it is."""
+    track: int
+    """Its track id (the instance id in the export's upper 16 bits)."""
+    class_index: int
+    """The track's voted class (-1: none)."""
+    scans: int
+    """Scans it was seen in."""
+    moving: bool
+    """Whether the track moves (docs/METHOD.md B.6, step 5)."""
+    speed: float
+    """Its speed (m/s): the norm of the least-squares velocity."""
+    points: int
+    """Its points in the shown scan."""
+    frame_id: str
+    """The shown scan."""
+    corrected_to: int | None = None
+    """The class an active object correction gives it (-1 erases), or None."""
 
 
 @dataclass(frozen=True)
@@ -197,6 +227,10 @@ class ProjectBackend(Protocol):
         points: npt.NDArray[np.int64] | None = None,
     ) -> int: ...
 
+    def add_object_correction(self, class_name: str, run_id: int, track_id: int) -> int:
+        """Store an object-scope correction of track ``track_id`` of run ``run_id``; returns its id."""
+        ...
+
     def set_correction_active(self, correction_id: int, active: bool) -> None: ...
 
     def review_marks(self) -> dict[str, ReviewMarkRecord]: ...
@@ -232,6 +266,8 @@ class SessionView(Protocol):
     def on_run_progress(self, info: RunInfo) -> None: ...
 
     def on_inspect(self, inspection: Inspection) -> None: ...
+
+    def on_object(self, found: ObjectInfo | None) -> None: ...
 
     def on_nav(self) -> None: ...
 
@@ -286,6 +322,7 @@ class Selection:
 __all__ = [
     "CorrectionRecord",
     "Inspection",
+    "ObjectInfo",
     "ProjectBackend",
     "QueueKind",
     "ReviewMarkRecord",

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from app.viewer import lod_cull
 from app.viewer import nav_logic as nl
-from app.viewer.records import Inspection, Selection, Target, ToolKind, ToolSettings
+from app.viewer.records import Inspection, ObjectInfo, Selection, Target, ToolKind, ToolSettings
 from app.viewer.render import LodRenderer
 from app.viewer.scene import ReviewScene
 from app.viewer.shared import Notifier, SharedState
@@ -69,6 +69,8 @@ class SelectionTool:
         """The tools' settings (:meth:`set_tools` changes them)."""
         self.inspected: Inspection | None = None
         """The voxel last clicked (None until a click hits one, and after a run loads)."""
+        self.inspected_object: ObjectInfo | None = None
+        """The object under the last click (:meth:`pick_object`; None when it hit none)."""
 
     @property
     def selection(self) -> Selection:
@@ -247,11 +249,15 @@ class SelectionTool:
     def inspect_ray(self, origin: npt.ArrayLike, direction: npt.ArrayLike) -> Inspection | None:
         """Inspect the first shown voxel a click ray enters (:func:`leap_core.picking.pick_voxel`): its
         class distribution, confidence, number of scans that observed it and its correction history.
-        Returns None (and changes nothing) when the ray hits no shown voxel."""
+        Returns None (and changes nothing) when the ray hits no shown voxel.
+
+        The object under the click is found too (:meth:`pick_object`) and reported to the panel
+        (``on_object``), the voxel or not."""
         sh = self.shared
         grid = sh.grid
         if grid is None:
             return None
+        self.pick_object(origin, direction, grid.voxel_size)
         index = self.renderer.lod_index
         if index is not None:
             # Every visible voxel of a big map can be picked, overview or not; cubes off the ray are skipped.
@@ -290,9 +296,45 @@ class SelectionTool:
         self.notify.panel.on_inspect(found)
         return found
 
+    def pick_object(
+        self, origin: npt.ArrayLike, direction: npt.ArrayLike, voxel_size: float
+    ) -> ObjectInfo | None:
+        """The object of the shown scan's first point a click ray enters (each point a cube of the voxel
+        size, :func:`leap_core.picking.pick_voxel`; only points of objects are candidates, so a mover kept
+        out of the map is picked where its points are). Kept in :attr:`inspected_object` and told to the
+        panel (None: the ray meets no object's point)."""
+        sh = self.shared
+        with sh.lock:
+            view, run, outputs = sh.scan_view, sh.run, sh.outputs
+            objects = sh.object_classes()
+        found = None
+        tracks = None if outputs is None else outputs.tracks()
+        if view is not None and view.instance is not None and run is not None and tracks is not None:
+            rows = np.flatnonzero(view.instance > 0)
+            pick = pick_voxel(origin, direction, view.points[rows].astype(np.float64), voxel_size)
+            if pick is not None:
+                track = int(view.instance[rows[pick.index]])
+                k = track - 1
+                corrected = [c for t, c in objects if t == track]
+                found = ObjectInfo(
+                    run_id=run.run_id,
+                    track=track,
+                    class_index=int(tracks.table.label[k]),
+                    scans=int(tracks.table.scans[k]),
+                    moving=bool(tracks.table.moving[k]),
+                    speed=float(np.linalg.norm(tracks.table.velocity[k])),
+                    points=int((view.instance == track).sum()),
+                    frame_id=view.frame_id,
+                    corrected_to=corrected[-1] if corrected else None,
+                )
+        self.inspected_object = found
+        self.notify.panel.on_object(found)
+        return found
+
     def clear_inspection(self) -> None:
-        """Forget the inspected voxel and hide its marker (a run was loaded)."""
+        """Forget the inspected voxel and object and hide the voxel's marker (a run was loaded)."""
         self.inspected = None
+        self.inspected_object = None
         self.scene.inspected.visible = False
 
 

@@ -122,6 +122,10 @@ class SharedState:
         grid = self.grid
         if grid is None or self.corrected.size != grid.num_voxels:
             return label
+        if view.instance is not None:
+            # Object corrections first: map and scan corrections win on the points they label.
+            for track, cls in self.object_classes():
+                label[view.instance == track] = cls
         if self.corrected.any():
             rows = grid.rows_of(voxel_keys(view.points.astype(np.float64), grid.voxel_size))
             hit = rows >= 0
@@ -140,6 +144,28 @@ class SharedState:
                 pts = rec.points[(rec.points >= 0) & (rec.points < n)]
                 label[pts] = names[rec.class_name]
         return label
+
+    def object_classes(self) -> list[tuple[int, int]]:
+        """``(track id, class index)`` of the shown run's objects that active object corrections relabel, in
+        the order they were made (a later one wins): a correction made on this run names its track, one
+        made on another run the track it met here (``object_matches.json``, when it applies). Caller holds
+        :attr:`lock`."""
+        run, outputs = self.run, self.outputs
+        recs = [r for r in self.corrections if r.scope == "object" and r.active]
+        if run is None or outputs is None or not recs:
+            return []
+        names = self.class_ids()
+        matches = outputs.object_matches() if any(r.run_id != run.run_id for r in recs) else {}
+        out = []
+        for rec in recs:
+            cls = UNLABELED if rec.class_name == "" else names.get(rec.class_name)
+            if cls is None:
+                continue
+            if rec.run_id == run.run_id and rec.track_id is not None:
+                out.append((rec.track_id, cls))
+            elif (m := matches.get(str(rec.id))) is not None and m.get("applied"):
+                out.append((int(m["track"]), cls))
+        return out
 
     def confidence_histograms(self, bins: int = 10) -> npt.NDArray[np.int64]:
         """(C, bins) voxel counts per shown class and confidence bin (corrections applied; see

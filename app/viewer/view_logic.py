@@ -20,11 +20,12 @@ from leap_core.fusion import last_per_key
 from leap_core.selection import project_to_screen, quat_to_matrix
 from leap_core.types import UNLABELED
 
-ColorMode = Literal["class", "confidence", "class_probability", "disagreement", "delta"]
+ColorMode = Literal["class", "confidence", "class_probability", "disagreement", "delta", "objects"]
 """How voxels are coloured: argmax class colour, max posterior on a colour scale, one class's posterior,
 the camera-vs-final disagreement rate on the same scale (the share of a voxel's camera-labelled points
-whose final label differs from the camera's), or the change since the run before (``delta``: voxels whose
-class changed in their class colour, the others pale)."""
+whose final label differs from the camera's), the change since the run before (``delta``: voxels whose
+class changed in their class colour, the others pale), or ``objects``: the voxel map pale, the shown
+scan's points in the colour of their object (:func:`app.viewer.nav_logic.object_colors`)."""
 
 COLUMN_MODES: tuple[ColorMode, ...] = ("class_probability", "disagreement", "delta")
 """Modes coloured by a per-voxel column other than the confidence (passed as ``class_prob``)."""
@@ -210,6 +211,8 @@ def view_colors(
         return class_colors(label[rows], palette)
     if state.mode == "confidence":
         return scalar_colors(conf[rows])
+    if state.mode == "objects":
+        return np.tile(np.asarray(UNCHANGED_RGB, np.uint8), (rows.shape[0], 1))
     if class_prob is None:
         raise ValueError(f"{state.mode} mode needs its per-voxel column")
     if state.mode == "delta":

@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,8 @@ from leap_core.errors import DatasetError
 from leap_core.export import export_labels
 from leap_core.fusion import last_per_key, rows_in_sorted, voxel_keys
 from leap_core.geometry import affine_points, row_blocks
-from leap_core.io_utils import atomic_save_npz
+from leap_core.io_utils import atomic_save_npz, atomic_write_json
+from leap_core.pipeline.object_corrections import CorrectedTracks, ObjectCorrections
 from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.run_layout import SequenceLayout, load_corrections, save_corrections
 from leap_core.smoothing import SmoothedGrid
@@ -44,8 +45,8 @@ from leap_core.types import UNLABELED
 
 @dataclass(frozen=True)
 class RunCorrections:
-    """The corrections a run applies: map scope (sorted unique keys, one class each, -1 = erase) and scan
-    scope."""
+    """The corrections a run applies: map scope (sorted unique keys, one class each, -1 = erase), scan
+    scope and object scope (:mod:`leap_core.pipeline.object_corrections`)."""
 
     map_keys: npt.NDArray[np.int64]
     """(K,) sorted unique voxel keys."""
@@ -53,14 +54,18 @@ class RunCorrections:
     """(K,) class per key (-1 erases)."""
     scan: ScanCorrections
     """Scan-scope corrections."""
+    objects: ObjectCorrections = field(default_factory=ObjectCorrections)
+    """Object-scope corrections (applied to the export over the run's tracks, never fused)."""
 
     @classmethod
     def empty(cls) -> RunCorrections:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int16), ScanCorrections.empty())
 
     @classmethod
-    def read(cls, map_path: Path, scan_path: Path, num_classes: int) -> RunCorrections:
-        """Read a pair of files (either may be missing: no corrections of that scope)."""
+    def read(
+        cls, map_path: Path, scan_path: Path, num_classes: int, object_path: Path | None = None
+    ) -> RunCorrections:
+        """Read the files of each scope (any may be missing: no corrections of that scope)."""
         keys, cls_ = np.zeros(0, np.int64), np.zeros(0, np.int16)
         if map_path.is_file():
             k, c = last_per_key(*load_corrections(map_path, num_classes))
@@ -68,18 +73,27 @@ class RunCorrections:
         scan = ScanCorrections.empty()
         if scan_path.is_file():
             scan = ScanCorrections.load(scan_path, num_classes)
-        return cls(keys, cls_, scan)
+        objects = ObjectCorrections()
+        if object_path is not None:
+            objects = ObjectCorrections.read(object_path, num_classes)
+        return cls(keys, cls_, scan, objects)
 
     @classmethod
     def of_run(cls, layout: SequenceLayout, num_classes: int) -> RunCorrections:
-        """The corrections the run's stages applied (``corrections.npz`` + ``corrections_scan.npz``)."""
-        return cls.read(layout.corrections, layout.corrections_scan, num_classes)
+        """The corrections the run's stages applied (``corrections.npz``, ``corrections_scan.npz``,
+        ``corrections_object.npz``)."""
+        return cls.read(layout.corrections, layout.corrections_scan, num_classes, layout.corrections_object)
 
     @classmethod
     def applied(cls, layout: SequenceLayout, num_classes: int) -> RunCorrections:
         """The corrections the run's points and export carry now (after any immediate apply)."""
         if layout.applied_corrections.is_file():
-            return cls.read(layout.applied_corrections, layout.applied_corrections_scan, num_classes)
+            return cls.read(
+                layout.applied_corrections,
+                layout.applied_corrections_scan,
+                num_classes,
+                layout.applied_corrections_object,
+            )
         return cls.of_run(layout, num_classes)
 
     def erased_keys(self) -> npt.NDArray[np.int64]:
@@ -88,15 +102,23 @@ class RunCorrections:
         return erased
 
     def differs(self, other: RunCorrections) -> bool:
-        """Whether any point would get another label under ``other`` (a voxel or a scan's points differ)."""
+        """Whether any point would get another label under ``other`` (a voxel, a scan's points or an object
+        correction differ)."""
         return bool(
             changed_keys(self.map_keys, self.map_class, other.map_keys, other.map_class).size
             or self.scan.changed_frames(other.scan)
+            or self.objects.differs(other.objects)
         )
 
-    def write(self, map_path: Path, scan_path: Path) -> None:
+    def write(self, map_path: Path, scan_path: Path, object_path: Path | None = None) -> None:
         save_corrections(map_path, self.map_keys, self.map_class)
         self.scan.save(scan_path)
+        if object_path is not None:
+            self.objects.save(object_path)
+
+    def write_run(self, layout: SequenceLayout) -> None:
+        """Write the files a run's stages read (``corrections*.npz`` of the sequence's folder)."""
+        self.write(layout.corrections, layout.corrections_scan, layout.corrections_object)
 
 
 def export_ahead_of_metrics(layout: SequenceLayout, num_classes: int) -> bool:
@@ -220,6 +242,18 @@ class ApplyResult:
     """Wall time."""
 
 
+def _object_changes(
+    layout: SequenceLayout, old: ObjectCorrections, new: ObjectCorrections, things: npt.NDArray[np.bool_]
+) -> tuple[CorrectedTracks | None, list[str]]:
+    """The run's tracks with ``new`` on top (None: the run has none) and the frames where a track's
+    corrected class differs between ``old`` and ``new``."""
+    if not layout.tracks.is_file():
+        return None, []
+    raw = SequenceTracks.load(layout.tracks)
+    tracks = CorrectedTracks.of(raw, new, things)
+    return tracks, tracks.frames_of(tracks.changed_tracks(CorrectedTracks.of(raw, old, things)))
+
+
 def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corrections, the cache, knobs
     layout: SequenceLayout,
     seq: KittiSequence,
@@ -232,12 +266,16 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
     progress: Callable[[int, int], None] | None = None,
     threads: int = 4,
     moving_export_ids: npt.NDArray[np.uint32] | None = None,
+    things_mask: npt.NDArray[np.bool_] | None = None,
 ) -> ApplyResult:
     """Rewrite the run's points and export of the frames ``new`` changes (module docstring), atomically
     per file, then record ``new`` as applied. ``threads`` frames are rewritten at a time (an error in one
     is raised once the others end; the applied record is then left as it was, so the next call redoes
-    them all). A run with objects (``tracks.npz``) keeps them in the export; ``moving_export_ids`` are
-    the raw ids of moving points (``Schema.moving_export_ids``; default ``export_ids``).
+    them all). A run with objects (``tracks.npz``) keeps them in the export, with ``new``'s object
+    corrections on top (the frames where a track's corrected class changed are rewritten too);
+    ``moving_export_ids`` are the raw ids of moving points (``Schema.moving_export_ids``; default
+    ``export_ids``), ``things_mask`` (C,) which classes are things (``Schema.things``; default none: an
+    object correction then drops the track's id).
 
     Raises:
         DatasetError: a scan correction indexes past its scan, or a points file is unreadable.
@@ -254,8 +292,11 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
     todo = sorted(positions)
     scan_changed = set(new.scan.changed_frames(old.scan))
     # The run's objects stay: tracked points keep their track's id, moving id and (voted tracks) class,
-    # except the points a correction now labels (a correction wins over a track's class vote).
-    tracks = SequenceTracks.load(layout.tracks) if layout.tracks.is_file() else None
+    # except the points a map or scan correction now labels (such a correction wins over a track's class
+    # vote and over an object correction); the object corrections relabel the tracks they match.
+    things = np.zeros(num_classes, bool) if things_mask is None else things_mask
+    tracks, moved = _object_changes(layout, old.objects, new.objects, things)
+    todo = sorted(set(todo) | {pos_of[f] for f in moved if f in pos_of})
     moving_ids = export_ids if moving_export_ids is None else moving_export_ids
 
     def rewrite(p: int) -> None:
@@ -287,12 +328,12 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
             return
         scan_points, _ = new.scan.of(fid)
         keep = np.union1d(np.flatnonzero(np.isin(keys, new.map_keys)), scan_points).astype(np.int64)
-        lab, instance, moving = tracks.point_objects(fid, lab, keep)
+        lab, out_conf, instance, moving = tracks.point_objects(fid, lab, conf.astype(np.float16), keep)
         export_labels(
             layout.export_label(fid),
             layout.export_conf(fid),
             lab,
-            conf.astype(np.float16),
+            out_conf.astype(np.float16),
             export_ids,
             instance=instance,
             moving=moving,
@@ -305,7 +346,9 @@ def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corr
         for k, _ in enumerate(pool.map(rewrite, todo)):
             if progress is not None:
                 progress(k + 1, len(todo))
-    new.write(layout.applied_corrections, layout.applied_corrections_scan)
+    new.write(layout.applied_corrections, layout.applied_corrections_scan, layout.applied_corrections_object)
+    if tracks is not None:
+        atomic_write_json(layout.object_matches, tracks.report())
     return ApplyResult(
         frames=tuple(seq.frame_ids[frames[p]] for p in todo),
         changed_voxels=int(diff.size),

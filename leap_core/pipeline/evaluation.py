@@ -32,7 +32,7 @@ from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_con
 from leap_core.panoptic import MOS_MOVING, MosCounts, PanopticCounts, association_score, mos_states
 from leap_core.pipeline.context import load_view, ordered_map
 from leap_core.pipeline.metrics_file import RowScores, RunMetrics, SequenceMetrics, ViewSpec
-from leap_core.pipeline.tracks_file import SequenceTracks
+from leap_core.pipeline.object_corrections import CorrectedTracks, read_corrected_tracks
 from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.smoothing import SmoothedGrid
 from leap_core.types import UNLABELED
@@ -253,12 +253,13 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:  # noqa: PLR0915  # one pass ove
 
 class ObjectEvaluation:
     """The object scores of one sequence (:mod:`leap_core.panoptic`), summed scan by scan from the labels
-    an export writes: the final labels with the ``tracks`` stage's classes, ids and moving ids. Scans may
+    an export writes: the final labels with the ``tracks`` stage's classes, ids and moving ids, and the
+    run's object corrections on top (:class:`CorrectedTracks`). Scans may
     be added from several threads in any order: a lock guards the integer sums, and each scan's panoptic
     counts (float IoU sums) are kept apart and summed in frame order, so the scores do not depend on the
     order frames finish."""
 
-    def __init__(self, ctx: Ctx, tracks: SequenceTracks) -> None:
+    def __init__(self, ctx: Ctx, tracks: CorrectedTracks) -> None:
         schema = ctx.schema
         self.schema = schema
         self.tracks = tracks
@@ -279,7 +280,7 @@ class ObjectEvaluation:
         """None when the run did not track objects (``tracking.enabled`` off)."""
         if not ctx.cfg.tracking.enabled:
             return None
-        return cls(ctx, SequenceTracks.load(ctx.layout.tracks))
+        return cls(ctx, read_corrected_tracks(ctx.layout, ctx.schema))
 
     def add_scan(
         self,
@@ -292,7 +293,7 @@ class ObjectEvaluation:
         """One scan: ``raw_gt`` (N,) its ``.label`` values, ``gt`` (N,) their classes, ``final`` (N,) the
         final labels before the tracks, ``in_view`` (N,) the camera view. Returns the labels the export
         writes (the ``objects`` row)."""
-        label, instance, moving = self.tracks.point_objects(frame_id, final)
+        label, _, instance, moving = self.tracks.point_objects(frame_id, final)
         low = np.where(
             moving,
             labels_to_raw(label, self.schema.moving_export_ids()),

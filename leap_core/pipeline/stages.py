@@ -33,7 +33,7 @@ from leap_core.fusion import (
     voxel_keys,
     world_points,
 )
-from leap_core.io_utils import atomic_save_npz, atomic_write, link_or_copy, read_npz
+from leap_core.io_utils import atomic_save_npz, atomic_write, atomic_write_json, link_or_copy, read_npz
 from leap_core.labelers import LABELERS, LabelerInput, labeler_weights, missing_input
 from leap_core.labelers.base import ImageModelLabeler, SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
@@ -49,8 +49,8 @@ from leap_core.pipeline.context import (
     load_view,
 )
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
+from leap_core.pipeline.object_corrections import CorrectedTracks, read_corrected_tracks
 from leap_core.pipeline.objects import stage_tracks
-from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import RunLayout, SequenceLayout, load_corrections
 from leap_core.smoothing import SMOOTH_CHUNK, SmoothedGrid, smooth_grid_blocks
@@ -564,15 +564,28 @@ def _label_points_inputs(ctx: Ctx) -> dict[str, Any]:
     return {"scan_corrections": file_digest(scan) if scan.is_file() else None}
 
 
+def object_corrections_inputs(ctx: Ctx) -> list[dict[str, str]]:
+    """The object corrections' part of the export's and the evaluation's fingerprints (they apply there
+    only, over the tracks: a changed object correction reruns neither the fusion nor the tracks; none
+    leaves the fingerprints as they were before object corrections existed)."""
+    path = ctx.layout.corrections_object
+    return [{"object_corrections": file_digest(path)}] if path.is_file() else []
+
+
 # -------------------------------------------------------------------------------------------- export
 def stage_export(ctx: Ctx) -> dict[str, Any]:
     """Per frame: ``export/<frame_id>.label`` and ``.conf``. A label is the raw export id (0 = unlabeled)
     with the point's track id in the upper 16 bits (0 for stuff and untracked points); a point of a voted
     track (``tracking.vote``, by default a moving one) takes its track's class, and while the track moves
-    the class's moving id (``ClassDef.moving_id``)."""
+    the class's moving id (``ClassDef.moving_id``). The object corrections then relabel the tracks they
+    match (:class:`~leap_core.pipeline.object_corrections.CorrectedTracks`), and which track each met is
+    written to ``object_matches.json``."""
     ids = ctx.schema.export_ids()
     moving_ids = ctx.schema.moving_export_ids()
     tracks = read_tracks(ctx)
+    # The report belongs to the export it describes: a run that reuses the export keeps it, one that
+    # writes another (or none, without tracks) must not show the one before.
+    ctx.layout.object_matches.unlink(missing_ok=True)
 
     def work(i: int) -> None:
         fid = ctx.fid(i)
@@ -585,7 +598,7 @@ def stage_export(ctx: Ctx) -> dict[str, Any]:
         if tracks is None:
             export_labels(ctx.layout.export_label(fid), ctx.layout.export_conf(fid), lab, conf, ids)
             return
-        lab, instance, moving = tracks.point_objects(fid, lab)
+        lab, conf, instance, moving = tracks.point_objects(fid, lab, conf)
         export_labels(
             ctx.layout.export_label(fid),
             ctx.layout.export_conf(fid),
@@ -597,14 +610,18 @@ def stage_export(ctx: Ctx) -> dict[str, Any]:
             moving_ids=moving_ids,
         )
 
-    return ctx.each_frame("export", work, parallel=True)
+    out = ctx.each_frame("export", work, parallel=True)
+    if tracks is not None:
+        atomic_write_json(ctx.layout.object_matches, tracks.report())
+    return out
 
 
-def read_tracks(ctx: Ctx) -> SequenceTracks | None:
-    """The ``tracks`` stage's objects, or None when tracking is off."""
+def read_tracks(ctx: Ctx) -> CorrectedTracks | None:
+    """The ``tracks`` stage's objects with the run's object corrections on top, or None when tracking is
+    off."""
     if not ctx.cfg.tracking.enabled:
         return None
-    return SequenceTracks.load(ctx.layout.tracks)
+    return read_corrected_tracks(ctx.layout, ctx.schema)
 
 
 # ---------------------------------------------------------------------------------------- the table
@@ -700,6 +717,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         inputs=lambda ctx: (
             [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
             + [PAPER_VIEW.to_dict(), {"metrics_version": METRICS_VERSION}]
+            + object_corrections_inputs(ctx)
         ),
         outputs=lambda lay, _cfg: (lay.metrics,),
         needs_poses=True,
@@ -714,6 +732,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         inputs=lambda ctx: [
             [int(x) for x in ctx.schema.export_ids()],
             [int(x) for x in ctx.schema.moving_export_ids()],
+            *object_corrections_inputs(ctx),
         ],
         frame_files=FrameFiles(SequenceLayout.EXPORT, (".label", ".conf")),
     ),

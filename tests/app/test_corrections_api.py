@@ -6,6 +6,7 @@ Also migration 3 on a version-2 database file.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -282,6 +283,94 @@ def test_a_correction_made_while_a_run_works_reaches_that_runs_export_when_it_en
         time.sleep(0.1)
     assert body["apply"]["run_id"] == run["id"], body
     assert (st.labels(run)["000000"][points] == st.class_id(target)).all()
+
+
+def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_it(studio: Studio) -> None:
+    from leap_core.pipeline.apply import RunCorrections, frame_keys
+    from leap_core.pipeline.tracks_file import SequenceTracks
+    from leap_core.run_layout import SequenceLayout
+
+    st = studio
+    run = next(r for r in st.runs() if r["status"] == "done")  # the latest: the apply job's run
+    folder = st.run_dir(run)
+    tracks = SequenceTracks.load(folder / "tracks.npz")
+    assert tracks.table.label.size >= 1, "the tiny sequence's run has no objects"
+    track = int(np.argmax(tracks.table.scans)) + 1
+    names = [c["name"] for c in run["params"]["schema"]["classes"]]
+    target = next(n for n in names if n not in ("", names[int(tracks.table.label[track - 1])]))
+    before = st.labels(run)
+    url = f"/projects/{st.pid}/corrections"
+    body = {"class_name": target, "voxel_size": _voxel_size(st), "scope": "object", "run_id": run["id"]}
+    # Refused with the field named: no such track, another project's run, an object without a track.
+    for bad, field in (
+        ({**body, "track_id": int(tracks.table.label.size) + 1}, "track_id"),
+        ({**body, "run_id": 10**6, "track_id": track}, "run_id"),
+    ):
+        r = st.c.post(url, json=bad)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", field], r.text
+    assert st.c.post(url, json=body).status_code == 422
+    r = st.c.post(url, json={**body, "track_id": track})
+    assert r.status_code == 201, r.text
+    corr = r.json()
+    assert corr["scope"] == "object" and corr["track_id"] == track and corr["run_id"] == run["id"]
+    assert (st.data / "studio" / "objects" / f"p{st.pid}").is_dir()
+    # The next run would redo the evaluation and the export for it, not the fusion: an object correction is
+    # never fused (an earlier test's scan correction, made during the latest run, reruns label_points here).
+    preview = st.c.get(f"/projects/{st.pid}/runs/preview").json()
+    assert {"evaluate", "export"} <= set(preview["recompute"]), preview
+    assert "fuse" not in preview["recompute"], preview
+    assert any(f"object {track} of run id {run['id']}" in c["text"] for c in preview["changes"]), preview
+    listed = st.wait_apply()
+    assert listed["apply"]["status"] == "done", listed
+    mine = next(c for c in listed["corrections"] if c["id"] == corr["id"])
+    assert mine["match"] == {
+        "run_id": run["id"],
+        "run_number": run["number"],
+        "track": track,
+        "iou": 1.0,
+        "applied": True,
+    }
+    # Every scan's points of the track take the class, but those a map or scan correction labels (those
+    # win); nothing else moves.
+    applied = RunCorrections.applied(SequenceLayout(folder), len(names))
+    seq = KittiSequence(st.dataset)
+    after = st.labels(run)
+    relabeled = 0
+    for i, fid in enumerate(seq.frame_ids):
+        obj = tracks.scan(fid)
+        rows = obj.rows[obj.track == track].astype(np.int64)
+        scan_points, _ = applied.scan.of(fid)
+        kept = np.isin(frame_keys(seq.frame(i), _voxel_size(st)), applied.map_keys)[rows] | np.isin(
+            rows, scan_points
+        )
+        assert (after[fid][rows[~kept]] == st.class_id(target)).all(), fid
+        assert (after[fid][rows[kept]] == before[fid][rows[kept]]).all(), fid
+        rest = np.setdiff1d(np.arange(after[fid].size), rows)
+        assert (after[fid][rest] == before[fid][rest]).all(), fid
+        relabeled += int((~kept).sum())
+    assert relabeled > 0
+    r = st.c.patch(f"{url}/{corr['id']}", json={"active": False})
+    assert r.status_code == 200, r.text
+    st.wait_apply()
+    reverted = st.labels(run)
+    for fid in before:
+        assert (reverted[fid] == before[fid]).all(), fid
+    # A track without a point in the export (a static one whose points all keep a stuff class) is refused.
+    original = (folder / "tracks.npz").read_bytes()
+    t = tracks.table
+    empty = dataclasses.replace(
+        t,
+        **{
+            f.name: np.concatenate([getattr(t, f.name), getattr(t, f.name)[:1]])
+            for f in dataclasses.fields(t)
+        },
+    )
+    dataclasses.replace(tracks, table=empty).save(folder / "tracks.npz")
+    try:
+        r = st.c.post(url, json={**body, "track_id": int(t.label.size) + 1})
+        assert r.status_code == 422 and "has no points" in r.text, r.text
+    finally:
+        (folder / "tracks.npz").write_bytes(original)
 
 
 def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:

@@ -116,3 +116,124 @@ def crud_active(settings: Any, correction_id: int) -> bool:
 
     with open_db(settings.database) as db:
         return crud.get_correction(db, correction_id).active
+
+
+def test_one_click_relabels_an_object_in_every_scan_of_the_export(
+    live_app: dict[str, Any], artifacts: Path
+) -> None:
+    """The issue's acceptance: in the viewer, click a point of an object, pick a class, press *Relabel
+    object*: every scan's export changes for that object's points (and only for them), without a run."""
+    import httpx
+
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer import view_logic as vl
+    from leap_core.datasets.kitti import KittiSequence, read_label
+    from leap_core.pipeline.apply import RunCorrections, frame_keys
+    from leap_core.pipeline.tracks_file import SequenceTracks
+    from leap_core.run_layout import SequenceLayout
+    from leap_core.schema import Schema
+
+    base, app, settings = live_app["base"], live_app["app"], live_app["settings"]
+    api = httpx.Client(base_url=f"{base}/api/v1", timeout=30)
+    project = next(p for p in api.get("/projects").json()["data"] if p["is_demo"])
+    pid = project["id"]
+    run = wait_until(
+        lambda: next(
+            (r for r in api.get(f"/projects/{pid}/runs").json()["data"] if r["status"] == "done"), None
+        ),
+        600,
+        "a finished run",
+    )
+    folder = settings.work_dir / "runs" / f"p{pid}" / f"r{run['id']}" / "sequences" / "00"
+    tracks = SequenceTracks.load(folder / "tracks.npz")
+    schema = Schema.from_dict(run["params"]["schema"], source="run schema")
+    seq = KittiSequence(settings.demo_dataset)
+    before = {fid: read_label(folder / "export" / f"{fid}.label") for fid in seq.frame_ids}
+    viewer = api.post(f"/projects/{pid}/viewer").json()
+    session = app.state.viewers.get(pid, viewer.get("tab"))
+    assert session is not None
+
+    with browserfixtures.launch_chromium() as browser:
+        page = browserfixtures.open_viewer(browser, base + viewer["url"], project["name"], session)
+        browserfixtures.pick(page, "Color by", "objects")
+        wait_until(lambda: session.state.mode == "objects", 20, "the objects colour mode")
+        page.wait_for_timeout(1500)  # the browser's camera settles behind the shown scan
+        (client,) = session.scene.clients().values()
+        cam = client.camera
+        view = session.player.scan_view
+        rows = np.flatnonzero(view.instance > 0)
+        assert rows.size, "the shown scan has no object"
+        uv, front = vl.project_to_screen(
+            view.points[rows].astype(np.float64),
+            list(cam.position),
+            list(cam.wxyz),
+            float(cam.fov),
+            float(cam.aspect),
+        )
+        inside = front & (uv[:, 0] > 0.15) & (uv[:, 0] < 0.85) & (uv[:, 1] > 0.15) & (uv[:, 1] < 0.85)
+        assert inside.any(), "no object's point in view"
+        # The object point nearest the camera: no other object's point lies in front of it.
+        depth = np.linalg.norm(view.points[rows].astype(np.float64) - np.array(cam.position), axis=1)
+        target = int(np.flatnonzero(inside)[np.argmin(depth[inside])])
+        box = page.locator("canvas").first.bounding_box()
+        page.mouse.click(box["x"] + uv[target, 0] * box["width"], box["y"] + uv[target, 1] * box["height"])
+        found = wait_until(lambda: session.tools.inspected_object, 20, "the clicked object")
+        assert found.track == int(view.instance[rows[target]]) and found.run_id == run["id"]
+        page.locator(".leap-object").wait_for(timeout=10_000)
+        assert f"Object {found.track}" in page.locator(".leap-object").inner_text()
+        voted = schema.names[found.class_index] if found.class_index >= 0 else None
+        new_class = "truck" if voted != "truck" else "car"
+        browserfixtures.pick(page, "Object class", new_class)
+        page.get_by_role("button", name="Relabel object").click()  # the one action
+        with open_db(settings.database) as db:
+            objects = wait_until(
+                lambda: [c for c in crud.list_corrections(db, pid) if c.scope == "object"],
+                20,
+                "the stored correction",
+            )
+        (correction,) = objects
+        assert (correction.track_id, correction.run_id, correction.author) == (
+            found.track,
+            run["id"],
+            "viewer",
+        )
+        wait_until(
+            lambda: (
+                (b := api.get(f"/projects/{pid}/corrections").json())["apply"]["status"] == "done"
+                and b["apply"]["finished_at"] > correction.created_at
+            ),
+            30,
+            "the apply-corrections job",
+        )
+        page.get_by_text("relabelled to", exact=False).wait_for(timeout=10_000)
+        page.screenshot(path=str(artifacts / "object-relabel.png"))
+        # The project page lists it with the track it met in the latest run.
+        ui = browser.new_page(viewport={"width": 1280, "height": 900})
+        ui.goto(f"{base}/#/projects/{pid}")
+        row = ui.locator(f"#corrections tr[data-id='{correction.id}']")
+        row.wait_for(timeout=30_000)
+        wait_until(lambda: f"object {found.track} (IoU 1.00)" in row.inner_text(), 10, "the object's match")
+        assert new_class in row.inner_text() and "viewer" in row.inner_text()
+
+    index = schema.index(new_class)
+    moving = bool(tracks.table.moving[found.track - 1])
+    want = int((schema.moving_export_ids() if moving else schema.export_ids())[index])
+    applied = RunCorrections.applied(SequenceLayout(folder), schema.num_classes)
+    scans = 0
+    for i, fid in enumerate(seq.frame_ids):
+        after = read_label(folder / "export" / f"{fid}.label")
+        obj = tracks.scan(fid)
+        mine = obj.rows[obj.track == found.track].astype(np.int64)
+        kept = np.isin(frame_keys(seq.frame(i), applied_voxel_size(run)), applied.map_keys)[mine]
+        kept |= np.isin(mine, applied.scan.of(fid)[0])
+        assert (after[mine[~kept]] & 0xFFFF == want).all(), fid
+        assert (after[mine[~kept]] >> 16 == found.track).all(), fid
+        rest = np.setdiff1d(np.arange(after.size), mine)
+        assert (after[rest] == before[fid][rest]).all(), fid
+        scans += bool((~kept).any())
+    assert scans == int(tracks.table.scans[found.track - 1]) > 1  # every scan that sees it changed
+
+
+def applied_voxel_size(run: dict[str, Any]) -> float:
+    return float(run["params"]["pipeline"]["fusion"]["voxel_size"])

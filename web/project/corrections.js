@@ -1,5 +1,5 @@
 // The project's manual corrections (made in the 3D viewer or through the API): counts per class, each
-// correction with its scope (voxel map or one scan), author and time, an active toggle (undo / redo), and
+// correction with its scope (voxel map, one scan, or one object: where it lands in the latest run), author and time, an active toggle (undo / redo), and
 // the state of the "apply corrections" job that brings the latest finished run's export up to date
 // without a run. Mounted by web/project.js; polls while the page shows it. Every user string (class names,
 // authors) goes in as text (dom.js h), never as HTML.
@@ -13,6 +13,22 @@ const POLL_MS = 2000;
 
 function className(name) {
   return name === "" ? "erase (unlabeled)" : name;
+}
+
+function scopeText(c) {
+  if (c.scope === "scan") return `scan ${c.frame_id}`;
+  if (c.scope === "object") return `object ${c.track_id} of run id ${c.run_id}`;
+  return "map";
+}
+
+// Where an object correction lands in the latest finished run (docs/METHOD.md B.6, object corrections).
+function sizeText(c) {
+  if (c.scope === "scan") return `${c.points} points`;
+  if (c.scope !== "object") return `${c.voxels} voxels`;
+  const m = c.match;
+  if (!m) return "not applied yet";
+  if (!m.applied) return `run ${m.run_number}: no longer matches an object (best IoU ${m.iou.toFixed(2)})`;
+  return `run ${m.run_number}: object ${m.track} (IoU ${m.iou.toFixed(2)})`;
 }
 
 function applyText(a) {
@@ -65,8 +81,8 @@ export function mountCorrections(ctx) {
         "tr",
         { dataset: { id: String(c.id) }, class: c.active ? "" : "muted" },
         h("td", {}, className(c.class_name)),
-        h("td", {}, c.scope === "scan" ? `scan ${c.frame_id}` : "map"),
-        h("td", { class: "num" }, c.scope === "scan" ? `${c.points} points` : `${c.voxels} voxels`),
+        h("td", {}, scopeText(c)),
+        h("td", { class: c.scope === "object" ? "corr-match" : "num" }, sizeText(c)),
         h("td", {}, c.author || "—"),
         h("td", {}, fmtTime(c.created_at)),
         h(
@@ -80,7 +96,7 @@ export function mountCorrections(ctx) {
             onchange: (e) => toggle(c, e.target.checked),
           }),
         ),
-        canShow
+        canShow && c.scope !== "object"
           ? h(
               "td",
               {},
@@ -99,7 +115,9 @@ export function mountCorrections(ctx) {
                 "Show in 3D",
               ),
             )
-          : null,
+          : canShow
+            ? h("td", {})
+            : null,
       ),
     );
     replace(

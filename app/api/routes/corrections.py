@@ -4,28 +4,38 @@ job (:mod:`app.jobs.apply`), which brings the latest finished run's export up to
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 from pathlib import Path as FilePath
+from typing import Any
 
+import sqlite_utils
 from fastapi import APIRouter, Request, status
 
-from app import crud, models
+from app import crud, models, services
 from app.api.deps import DbDep, ReadDbDep, SettingsDep
 from app.api.responses import NOT_FOUND
 from app.api.types import CorrectionId, ProjectId, SequenceQuery
 from app.core.errors import InvalidField, NotFound
 from app.jobs.apply import applier
-from app.rows import ProjectRow
+from app.rows import ProjectRow, RunRow
 
 router = APIRouter(tags=["corrections"], responses={**NOT_FOUND})
 
 
-def _public(c: crud.Correction) -> models.CorrectionPublic:
+def _public(c: crud.Correction, matches: Matches | None = None) -> models.CorrectionPublic:
+    match = None
+    if c.scope == "object" and matches is not None and str(c.id) in matches[1]:
+        m = matches[1][str(c.id)]
+        run = matches[0]
+        match = models.ObjectMatch(
+            run_id=run.id, run_number=run.number, track=m["track"], iou=m["iou"], applied=m["applied"]
+        )
     return models.CorrectionPublic(
         id=c.id,
         created_at=c.created_at,
         class_name=c.class_name,
-        scope="scan" if c.scope == "scan" else "map",
+        scope=c.scope,
         frame_id=c.frame_id,
         voxels=int(c.keys.size),
         points=None if c.points is None else int(c.points.size),
@@ -33,7 +43,29 @@ def _public(c: crud.Correction) -> models.CorrectionPublic:
         active=c.active,
         sequence=c.sequence,
         reviewer=c.reviewer,
+        run_id=c.run_id,
+        track_id=c.track_id,
+        match=match,
     )
+
+
+Matches = tuple[RunRow, dict[str, Any]]
+"""The latest finished run and its sequence's ``object_matches.json`` (correction id → track, IoU,
+applied)."""
+
+
+def _object_matches(db: sqlite_utils.Database, project_id: int, sequence: str) -> Matches | None:
+    """Which track of the latest finished run each object correction met (written by the run's export
+    and by the apply job; None when that run has no such file for the sequence)."""
+    run = crud.last_finished_run(db, project_id)
+    if run is None or sequence not in [s.name for s in run.params.sequences]:
+        return None
+    path = run.sequence_layout(sequence).object_matches
+    try:
+        found = json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError):
+        return None  # being replaced (atomically) or damaged: the next listing reads it again
+    return (run, found) if isinstance(found, dict) else None
 
 
 def _tell_viewers(request: Request, project_id: int) -> None:
@@ -75,6 +107,7 @@ def list_corrections(
     crud.require_project(db, project_id)
     name = crud.sequence_name(db, project_id, sequence, loc=("query", "sequence"))
     rows = crud.list_corrections(db, project_id, active_only=False, sequence=name)
+    matches = _object_matches(db, project_id, name) if any(c.scope == "object" for c in rows) else None
     counts: Counter[str] = Counter()
     voxels: Counter[str] = Counter()
     for c in rows:
@@ -82,7 +115,7 @@ def list_corrections(
             counts[c.class_name] += 1
             voxels[c.class_name] += int(c.keys.size)
     return models.CorrectionList(
-        corrections=[_public(c) for c in reversed(rows)],
+        corrections=[_public(c, matches) for c in reversed(rows)],
         per_class=[
             models.CorrectionClassCount(class_name=name, corrections=n, voxels=voxels[name])
             for name, n in sorted(counts.items())
@@ -104,12 +137,17 @@ def add_correction(
     request: Request,
 ) -> models.CorrectionPublic:
     """Store a correction (author "api") and apply it to the latest run's export in the background. 422
-    naming ``class_name`` for a class the project does not have."""
+    naming ``class_name`` for a class the project does not have; for an object-scope one, naming
+    ``run_id`` / ``track_id`` when the run is not a finished run of the project with objects, or has no
+    such track."""
     _check_class(crud.require_project(db, project_id), payload.class_name)
     name = crud.sequence_name(db, project_id, payload.sequence, loc=("body", "sequence"))
     if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
         dataset = next(s.dataset_path for s in crud.list_sequences(db, project_id) if s.name == name)
         _check_scan(FilePath(dataset), payload.frame_id, payload.points)
+    obj = None
+    if payload.scope == "object" and payload.run_id is not None and payload.track_id is not None:
+        obj = services.object_ref(db, settings, project_id, payload.run_id, name, payload.track_id)
     cid = crud.add_correction(
         db,
         project_id=project_id,
@@ -121,6 +159,7 @@ def add_correction(
         points=payload.points,
         author="api",
         sequence=name,
+        obj=obj,
     )
     applier(settings).request(project_id)
     _tell_viewers(request, project_id)
