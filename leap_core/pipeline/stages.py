@@ -49,7 +49,7 @@ from leap_core.pipeline.context import (
     load_view,
 )
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
-from leap_core.pipeline.objects import stage_tracks
+from leap_core.pipeline.objects import motion_enabled, motion_inputs, read_motion, stage_motion, stage_tracks
 from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import RunLayout, SequenceLayout, load_corrections
@@ -211,10 +211,23 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
     return ctx.each_frame("project", work, parallel=True)
 
 
+def fused_observation(painted: Painted, moving: npt.NDArray[np.int32] | None) -> Painted:
+    """The observations of a scan that the fusion adds: all but those of the ``moving`` point rows (the
+    ``motion`` stage's movers; None: all)."""
+    if moving is None or not moving.size:
+        return painted
+    keep = ~np.isin(painted.point_idx, moving)
+    return Painted(painted.point_idx[keep], painted.rows[keep], painted.table)
+
+
 def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
-    """Per frame: its observation and the world voxel key of each observed (painted) point."""
+    """Per frame: its observation and the world voxel key of each observed (painted) point, without the
+    points of moving objects when the ``motion`` stage found them (docs/METHOD.md B.6)."""
+    movers = read_motion(ctx)
     for i in ctx.frames:
         painted = Painted.load(ctx.layout.observation(ctx.fid(i)))
+        if movers is not None:
+            painted = fused_observation(painted, movers.scan(ctx.fid(i)).rows)
         frame = ctx.seq.frame(i)
         pts = frame.points_at(painted.point_idx)
         yield painted, voxel_keys(world_points(pts, frame.pose), ctx.cfg.fusion.voxel_size)
@@ -234,7 +247,8 @@ def camera_view_keys(ctx: Ctx) -> npt.NDArray[np.int64]:
 
 # ---------------------------------------------------------------------------------------------- fuse
 def stage_fuse(ctx: Ctx) -> dict[str, Any]:
-    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``.
+    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``. The
+    points of moving objects (``motion.npz``, when ``tracking.exclude_moving``) are left out.
 
     Written by :func:`~leap_core.fusion.fuse_to_file` (the bytes of ``fuse`` + ``apply_overrides``): the
     per-chunk sums wait on disk in ``<run>/.fuse_spill/`` and the grid is summed, finalised and written a
@@ -630,13 +644,27 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         frame_files=FrameFiles(SequenceLayout.OBSERVATIONS),
     ),
     StageInfo(
+        "motion",
+        "Moving objects",
+        "moving objects from the per-scan projected labels, kept out of the fusion",
+        False,
+        stage_motion,
+        upstream=("project",),
+        # Only the tracking settings it uses (motion_inputs): trying another tracking.vote fuses nothing.
+        inputs=motion_inputs,
+        outputs=lambda lay, _cfg: (lay.motion,),
+        switch="tracking.enabled",
+        enabled=lambda cfg: motion_enabled(cfg.tracking),
+        needs_poses=True,
+    ),
+    StageInfo(
         "fuse",
         "Voxel fusion",
-        "Bayesian fusion of every observation into the voxel grid",
+        "Bayesian fusion of the observations (but moving objects') into the voxel grid",
         False,
         stage_fuse,
         reads=("fusion",),
-        upstream=("project",),
+        upstream=("project", "motion"),
         inputs=_fuse_inputs,
         outputs=lambda lay, _cfg: (lay.grid,),
         needs_poses=True,
@@ -683,7 +711,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         False,
         stage_tracks,
         reads=("tracking",),
-        upstream=("label_points",),
+        upstream=("motion", "label_points"),
         inputs=lambda ctx: [[c.name, bool(c.thing)] for c in ctx.schema.classes],
         outputs=lambda lay, _cfg: (lay.tracks,),
         switch="tracking.enabled",
@@ -731,12 +759,14 @@ __all__ = [
     "camera_view_keys",
     "cn_rounds",
     "finish_fuse",
+    "fused_observation",
     "observed_keys",
     "stage_3dcn",
     "stage_export",
     "stage_fuse",
     "stage_label_points",
     "stage_labels2d",
+    "stage_motion",
     "stage_project",
     "stage_smooth",
     "stage_tracks",
