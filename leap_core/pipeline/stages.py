@@ -402,6 +402,8 @@ def cn_rounds(
     # The margin for new voxels applies inside the camera view (keep_known_or_sure): each member's keys
     # are made when a round first fuses that member, and kept for a second round (as the view counts are).
     in_view = [cache(partial(camera_view_keys, m.ctx)) for m in members]
+    # The movers the fusion left out stay out of the rounds too: no training labels, no evidence back.
+    moving = [_moving_rows(m.ctx) for m in members]
     total = cn.iterations * _3DCN_GRID_SCALE
 
     def tick(done: int, tot: int) -> None:
@@ -431,8 +433,11 @@ def cn_rounds(
                     e,
                     m.name,
                     in_view=iv,
+                    moving=mv,
                 )
-                for m, f, s, v, e, iv in zip(members, fused, smoothed, views, erased, in_view, strict=True)
+                for m, f, s, v, e, iv, mv in zip(
+                    members, fused, smoothed, views, erased, in_view, moving, strict=True
+                )
             ]
             round_grids = iter_3dcn_round(
                 parts, c, cn, cfg.fusion, checkpoints, it, progress=prog, predict=predict, source=source
@@ -444,6 +449,14 @@ def cn_rounds(
         smoothed = [sm for _, sm in paths]
         tick(it * _3DCN_GRID_SCALE, total)
     return [VoxelGrid.load(f).num_voxels for f in fused]
+
+
+def _moving_rows(ctx: Ctx) -> Callable[[int], npt.NDArray[np.int32]] | None:
+    """Frame index → the rows of the ``motion`` stage's movers in that scan; None when it did not run."""
+    movers = read_motion(ctx)
+    if movers is None:
+        return None
+    return lambda i: movers.scan(ctx.fid(i)).rows
 
 
 def source_digest(path: Path) -> str:
