@@ -1,4 +1,4 @@
-"""A planted mover is kept out of the map: a car driving 1.5 m per scan through the tiny ray-cast street
+"""A planted mover is kept out of the map: a van driving 1.5 m per scan through the tiny ray-cast street
 (tests/test_pipeline.py), labeled by the simulated labeler with every noise knob off, is found by the
 ``motion`` stage before the fusion; the voxels it passed through do not carry its class, and its points
 carry one moving id through every scan (docs/METHOD.md B.6)."""
