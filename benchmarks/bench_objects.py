@@ -1,10 +1,13 @@
-"""Objects on the demo street: what the ``tracks`` stage changes, against the same run without it.
+"""Objects on the demo street: what the ``motion`` and ``tracks`` stages change, against the same run without
+them.
 
-Runs the pipeline on one sequence three times in one run folder: first with ``tracking.enabled: false``
-(the baseline: the labels of a run without objects), then with it on and ``tracking.vote: all`` (every
-track's points take its voted class), then ``tracking.vote: moving`` (the default: only moving tracks'
-points do); only ``tracks``, ``evaluate`` and ``export`` run again. Prints, for each (docs/RESULTS.md
-"Objects"):
+Runs the pipeline on one sequence in one run folder: first with ``tracking.enabled: false`` (the baseline:
+the labels of a run without objects), then with it on and ``tracking.vote: all`` (every track's points
+take its voted class), then ``tracking.vote: moving`` (only moving tracks' points do), both with
+``tracking.exclude_moving: false`` (every point fused: only ``tracks``, ``evaluate`` and ``export`` run
+again), then ``vote: moving`` with ``exclude_moving: true`` (the default: the ``motion`` stage finds movers
+before the fusion, which leaves them out, so the fusion and what follows run again). Prints, for each
+(docs/RESULTS.md "Objects"):
 
 - moving-person points with the right class: ground-truth raw id 254 points whose exported class is person
   (all points);
@@ -12,7 +15,9 @@ points do); only ``tracks``, ``evaluate`` and ``export`` run again. Prints, for 
   things, S_assoc (LSTQ), from the run's ``metrics.json``;
 - stuff mIoU before / after (all points and camera view: the mean IoU of the stuff classes), mIoU and
   each thing class's IoU in camera view;
-- the tracks stage's time per scan beside ``label_points``' (same run, same frames: the stage before it).
+- the smear: the share of static points in voxels a moving object passed through (any scan) whose final
+  label is a thing class;
+- the motion and tracks stages' time per scan beside ``label_points``' (same run, same frames).
 
 Usage::
 
@@ -40,6 +45,8 @@ from common import print_table, write_results
 
 from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import KittiSequence, read_label
+from leap_core.fusion import voxel_keys, world_points
+from leap_core.io_utils import read_npz
 from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.pipeline.metrics_file import SequenceMetrics
 from leap_core.schema import Schema, builtin_schema
@@ -66,6 +73,28 @@ def moving_right_share(seq: KittiSequence, export: Path, schema: Schema, raw_id:
     return right / total if total else math.nan
 
 
+def trail_smear(seq: KittiSequence, folder: Path, schema: Schema, voxel_size: float) -> float:
+    """Share of the static points in voxels a moving object passed through (ground truth: a SemanticKITTI
+    moving id, any scan) whose final label (``points/``, the map's word) is a thing class: the smear."""
+    moving = np.array([c.moving_id for c in schema.classes if c.moving_id is not None])
+    trail = []
+    for i in range(len(seq)):
+        f = seq.frame(i)
+        sel = np.isin(f.labels & 0xFFFF, moving)
+        trail.append(voxel_keys(world_points(f.points[sel], f.pose), voxel_size))
+    keys = np.unique(np.concatenate(trail))
+    lut = np.concatenate([schema.things(), [False]])
+    thing = total = 0
+    for i, fid in enumerate(seq.frame_ids):
+        f = seq.frame(i)
+        static = ~np.isin(f.labels & 0xFFFF, moving)
+        there = static & np.isin(voxel_keys(world_points(f.points, f.pose), voxel_size), keys)
+        lab = read_npz(folder / "points" / f"{fid}.npz", ("label",))["label"][there]
+        total += int(there.sum())
+        thing += int(lut[lab].sum())
+    return thing / total if total else math.nan
+
+
 def stuff_miou(m: SequenceMetrics, protocol: str, row: str, schema: Schema) -> float:
     iou = m.table(protocol)[row].iou
     vals = [iou[c.name] for c in schema.classes if not c.thing and iou[c.name] is not None]
@@ -76,11 +105,20 @@ def pct(x: float | None) -> str:
     return "-" if x is None or math.isnan(x) else f"{100 * x:.1f}"
 
 
+def ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sequence", default="/tmp/demo/sequences/00", help="KITTI-layout sequence folder.")
     ap.add_argument("--quick", action="store_true", help="A generated 3-frame street instead.")
     ap.add_argument("--work", default=None, help="Folder for the run (default: a temp folder).")
+    ap.add_argument(
+        "--tracking",
+        default="{}",
+        help="JSON of further tracking settings for every run (e.g. '{\"moving_distance\": 2}').",
+    )
     args = ap.parse_args()
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_objects_"))
@@ -94,9 +132,18 @@ def main() -> None:
     schema = builtin_schema("semantickitti")
     out = work / "run"
     results: dict[str, Any] = {}
-    runs = (("without objects", False, "moving"), ("vote all", True, "all"), ("vote moving", True, "moving"))
-    for name, enabled, vote in runs:
-        cfg = config_from_dict({"tracking": {"enabled": enabled, "vote": vote}}, PipelineConfig())
+    extra = json.loads(args.tracking)
+    runs = (
+        ("without objects", False, "moving", False),
+        ("vote all", True, "all", False),
+        ("vote moving", True, "moving", False),
+        ("movers kept out", True, "moving", True),
+    )
+    for name, enabled, vote, exclude in runs:
+        cfg = config_from_dict(
+            {"tracking": {**extra, "enabled": enabled, "vote": vote, "exclude_moving": exclude}},
+            PipelineConfig(),
+        )
         res = run_pipeline([SequenceSpec.of(seq_dir)], schema, cfg, out).only()
         assert res.metrics is not None, "the sequence has no ground truth"
         row = "objects" if enabled else "voxel"
@@ -112,6 +159,9 @@ def main() -> None:
                 schema,
                 MOVING_PERSON,
             ),
+            "trail_smear": trail_smear(
+                seq, (lay.folder if lay else out / "sequences" / seq_dir.name), schema, cfg.fusion.voxel_size
+            ),
             "mos_iou": obj.get("motion", {}).get("mos_iou"),
             "pq_things_camera": obj.get("camera", {}).get("PQ_things"),
             "pq_things_all": obj.get("all", {}).get("PQ_things"),
@@ -125,6 +175,9 @@ def main() -> None:
                 c.name: res.metrics.table("camera")[row].iou[c.name] for c in schema.classes if c.thing
             },
             "tracks_ms_per_scan": 1000 * state["tracks"].get("seconds", 0.0) / len(seq) if enabled else None,
+            "motion_ms_per_scan": 1000 * state["motion"].get("seconds", 0.0) / len(seq) if exclude else None,
+            "fuse_ms_per_scan": 1000 * state["fuse"]["seconds"] / len(seq),
+            "moving_before_fusion": state["tracks"].get("moving_before_fusion"),
             "label_points_ms_per_scan": 1000 * state["label_points"]["seconds"] / len(seq),
             "tracks": state["tracks"].get("tracks"),
             "moving_tracks": state["tracks"].get("moving_tracks"),
@@ -132,6 +185,7 @@ def main() -> None:
     keys = [
         ("moving-person points, right class %", "moving_person_right_class"),
         ("MOS IoU % (all points)", "mos_iou"),
+        ("static points in movers' voxels labeled a thing %", "trail_smear"),
         ("PQ things % (camera view)", "pq_things_camera"),
         ("PQ things % (all points)", "pq_things_all"),
         ("PQ % (camera view)", "pq_camera"),
@@ -146,10 +200,21 @@ def main() -> None:
     rows += [
         [f"IoU % {t} (camera view)", *(pct(results[n]["things_camera"][t]) for n in results)] for t in things
     ]
-    on = results["vote moving"]
-    rows.append(["tracks / moving tracks", "-", "-", f"{on['tracks']} / {on['moving_tracks']}"])
-    rows.append(["tracks stage ms/scan", "-", "-", f"{on['tracks_ms_per_scan']:.1f}"])
-    rows.append(["label_points ms/scan (baseline)", "-", "-", f"{on['label_points_ms_per_scan']:.1f}"])
+
+    def each(fmt: Any) -> list[str]:
+        return [fmt(results[n]) for n in results]
+
+    rows.append(
+        [
+            "tracks / moving tracks",
+            *each(lambda r: "-" if r["tracks"] is None else f"{r['tracks']} / {r['moving_tracks']}"),
+        ]
+    )
+    rows.append(["movers found before fusion", *each(lambda r: str(r["moving_before_fusion"] or "-"))])
+    rows.append(["motion stage ms/scan", *each(lambda r: ms(r["motion_ms_per_scan"]))])
+    rows.append(["tracks stage ms/scan", *each(lambda r: ms(r["tracks_ms_per_scan"]))])
+    rows.append(["fuse ms/scan", *each(lambda r: ms(r["fuse_ms_per_scan"]))])
+    rows.append(["label_points ms/scan (baseline)", *each(lambda r: ms(r["label_points_ms_per_scan"]))])
     print_table(f"Objects on {seq_dir} ({len(seq)} frames)", ["", *results], rows)
     write_results("bench_objects", {"sequence": str(seq_dir), "frames": len(seq), "results": results})
 

@@ -23,6 +23,8 @@ One sequence's folder::
       stages.json                 stage records (status, fingerprint, seconds, ...)
       labels2d/<frame_id>.npz     the 2D labeler's SoftMasks per frame
       observations/<frame_id>.npz projection + painting per frame
+      motion.npz                  moving objects found before fusion (the motion stage; tracks.npz's format,
+                                  moving tracks only): the points the fusion leaves out
       corrections.npz             map-scope manual corrections (keys (K,) int64, class_idx (K,), -1 = erase),
                                   fused into grid.npz, re-imposed on smoothed grids and on the points
       corrections_scan.npz        scan-scope corrections (leap_core.corrections.ScanCorrections), per point
@@ -98,6 +100,7 @@ class SequenceLayout:
     EXPORT: ClassVar[str] = "export"
     GRID: ClassVar[str] = "grid.npz"
     TRACKS: ClassVar[str] = "tracks.npz"
+    MOTION: ClassVar[str] = "motion.npz"
     GRID_SMOOTH: ClassVar[str] = "grid_smooth.npz"
     METRICS: ClassVar[str] = "metrics.json"
     MODEL_METRICS: ClassVar[str] = "model-metrics.json"
@@ -141,6 +144,12 @@ class SequenceLayout:
     def tracks(self) -> Path:
         """The ``tracks`` stage's objects: per scan the thing points' track ids; per track class, motion."""
         return self._file(self.TRACKS)
+
+    @property
+    def motion(self) -> Path:
+        """The ``motion`` stage's moving objects (the ``tracks.npz`` format, moving tracks only): the points
+        the fusion leaves out."""
+        return self._file(self.MOTION)
 
     @property
     def grid(self) -> Path:

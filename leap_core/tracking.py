@@ -75,6 +75,12 @@ class TrackingConfig:
     vote: Literal["moving", "all"] = "moving"
     """Whose points take their track's voted class: ``moving`` tracks' only (a static track's points keep
     their own class and get the id), or ``all`` tracks' (docs/METHOD.md B.6 gives the measured trade)."""
+    exclude_moving: bool = False
+    """Find moving objects before the fusion, from the per-scan projected labels (the ``motion`` stage),
+    and keep their points out of the voxel map, so neither a mover nor what it passes is smeared; their
+    labels come from their track. Off (default): every observed point is fused, and the ``tracks`` stage
+    finds movers from the final labels too, which on the demo street labels more moving points right
+    (docs/METHOD.md B.6 gives the measured trade)."""
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -314,12 +320,44 @@ def track_table(
     )
 
 
+def stack_tables(first: TrackTable, second: TrackTable) -> TrackTable:
+    """The tracks of ``first`` (ids 1..K1) followed by those of ``second`` (ids K1+1..K1+K2)."""
+    return TrackTable(
+        label=np.concatenate([first.label, second.label]).astype(np.int16),
+        velocity=np.concatenate([first.velocity.reshape(-1, 3), second.velocity.reshape(-1, 3)]),
+        moving=np.concatenate([first.moving, second.moving]).astype(bool),
+        scans=np.concatenate([first.scans, second.scans]).astype(np.int64),
+        sweep=np.concatenate([first.sweep, second.sweep]).astype(np.float64),
+        voted=np.concatenate([first.voted, second.voted]).astype(bool),
+    )
+
+
+def moving_only(table: TrackTable) -> tuple[TrackTable, npt.NDArray[np.int64]]:
+    """The moving tracks of ``table``, every one voted (its points take its class), and the new id of each
+    old track (K,) int64: 1, 2, ... for the moving ones in their order, 0 for the others."""
+    new_id = np.where(table.moving, np.cumsum(table.moving), 0).astype(np.int64)
+    m = table.moving
+    return (
+        TrackTable(
+            label=table.label[m],
+            velocity=table.velocity[m],
+            moving=np.ones(int(m.sum()), bool),
+            scans=table.scans[m],
+            sweep=table.sweep[m],
+            voted=np.ones(int(m.sum()), bool),
+        ),
+        new_id,
+    )
+
+
 __all__ = [
     "TrackTable",
     "TrackingConfig",
     "associate",
     "euclidean_segments",
+    "moving_only",
     "segment_summary",
+    "stack_tables",
     "track_ids",
     "track_table",
 ]

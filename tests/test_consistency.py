@@ -36,6 +36,7 @@ from leap_core.consistency.stage import (
     targets_path,
     training_fingerprint,
     voxel_mean_log_probs,
+    without_rows,
 )
 from leap_core.consistency.train import (
     class_weights,
@@ -1097,6 +1098,42 @@ def test_run_3dcn_iteration_hands_frames_views_and_in_view_to_its_round(
     expected_point = fuse_back(grid, preds, c, 1.0, FusionConfig(), "point")
     assert np.array_equal(point.keys, expected_point.keys) and np.array_equal(point.logp, expected_point.logp)
     assert not np.array_equal(point.logp, fuse_back(grid, preds, c, 1.0, FusionConfig()).logp)
+
+
+def test_a_round_leaves_moving_points_out_of_its_labels_and_its_evidence(
+    tmp_path: Path, make_tiny_sequence
+) -> None:
+    """``RoundPart.moving`` (the motion stage's movers, which the fusion left out): their points are never
+    training labels and their predictions are not fused back."""
+    seq, grid, c = _tiny_stage_inputs(tmp_path, make_tiny_sequence)
+    frames = range(3)
+
+    def moving(i: int) -> np.ndarray:
+        return np.arange(i, len(seq.frame(i).points), 3, dtype=np.int32)
+
+    targets = reliable_targets(seq, grid, c, replace(TINY, share=1.0), 0.2, frames, None, moving=moving)
+    for i, t in enumerate(targets):
+        assert (t[moving(i)] == UNLABELED).all()
+        rows = grid.lookup(voxel_keys(world_points(seq.frame(i).points, seq.poses[i]), 0.2))
+        keep = rows >= 0
+        keep[moving(i)] = False
+        assert keep.any() and np.array_equal(t[keep], grid.logp[rows[keep]].argmax(axis=1))
+
+    def predict(s: KittiSequence, fr: range, ckpt: Path):
+        yield from _predictions(s, fr, load_checkpoint(ckpt).model, roll=1)
+
+    work = tmp_path / "work"
+    cfg = replace(TINY, temperature=1.0, new_voxel_margin=0.0)
+    part = RoundPart(seq, grid, grid, frames, moving=moving)
+    (out,) = iter_3dcn_round([part], c, cfg, FusionConfig(), work, 1, None, predict)
+    cfg1 = iteration_config(cfg, 1)
+    trained_on = reliable_targets(seq, grid, c, cfg1, 0.2, frames, None, moving=moving)
+    fingerprint = load_checkpoint(checkpoint_path(work, 1)).meta["fingerprint"]
+    assert fingerprint == training_fingerprint(cfg1, c, frames, trained_on)
+    every = list(predict(seq, frames, checkpoint_path(work, 1)))
+    expected = fuse_back(grid, without_rows(frames, every, moving), c, 1.0, FusionConfig())
+    assert np.array_equal(out.keys, expected.keys) and np.array_equal(out.logp, expected.logp)
+    assert not np.array_equal(out.logp, fuse_back(grid, every, c, 1.0, FusionConfig()).logp)
 
 
 def test_a_joint_round_trains_one_network_on_every_part_and_fuses_each_part_back(

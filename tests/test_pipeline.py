@@ -182,7 +182,7 @@ def _copy_run(baseline, out: Path) -> Path:
 def test_end_to_end_outputs(baseline, street: Path, schema) -> None:
     run_dir, result, calls = baseline
     assert list(result.stages) == list(STAGES)
-    assert result.ran == [s for s in STAGES if s != "3dcn"]
+    assert result.ran == [s for s in STAGES if s not in ("motion", "3dcn")]
     assert result.stages["3dcn"].status == "skipped"
     assert not (run_dir / ".fuse_spill").exists()  # the fuse stage's chunk folder goes when it ends
     # Each report names its stage; per-frame stages computed every frame, whole-run stages count none.
@@ -308,7 +308,7 @@ def _downstream(names: set[str]) -> set[str]:
     [
         (
             {"projection": {"min_depth": 0.8}},
-            ["project", "fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export"],
+            ["project", "motion", "fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export"],
         ),
         (
             {"fusion": {"prob_floor": 0.002}},
@@ -497,11 +497,18 @@ def test_plans_and_fingerprints_are_for_the_frames_asked_for(street: Path, schem
     run_dir = label(street, schema, PipelineConfig(), out, frames=range(0, 3), until="fuse").folder
     assert run_dir == folder(out)
     plan = plan_stages(street, schema, PipelineConfig(), run_dir, frames=range(0, 3))
-    assert [s for s, todo in plan.items() if not todo] == ["labels2d", "project", "fuse"]
-    assert all(plan_stages(street, schema, PipelineConfig(), run_dir).values())
+    assert [s for s, todo in plan.items() if not todo] == ["labels2d", "project", "motion", "fuse"]
+    # The switched-off motion stage has nothing to do for any frames; every other stage has, for all six.
+    whole = plan_stages(street, schema, PipelineConfig(), run_dir)
+    assert [s for s, todo in whole.items() if not todo] == ["motion"]
     recorded = stage_status(run_dir)
     fps = stage_fingerprints(street, schema, PipelineConfig(), run_dir, frames=range(0, 3))
-    assert [s for s in STAGES if fps[s] == recorded[s].get("fingerprint")] == ["labels2d", "project", "fuse"]
+    assert [s for s in STAGES if fps[s] == recorded[s].get("fingerprint")] == [
+        "labels2d",
+        "project",
+        "motion",
+        "fuse",
+    ]
 
 
 def test_zero_noise_point_labels_match_ground_truth(street: Path, schema, tmp_path: Path) -> None:
@@ -785,9 +792,10 @@ def test_fingerprints_hash_the_documented_parts(baseline, street: Path, schema) 
 
     frames = hash_json([f"{i:06d}" for i in range(6)])
     assert fp["project"] == parts("project", ["labels2d"], config={"projection": sections["projection"]})
+    assert fp["motion"] == parts("motion", ["project"], enabled=False)
     assert fp["fuse"] == parts(
         "fuse",
-        ["project"],
+        ["project", "motion"],
         config={"fusion": sections["fusion"]},
         inputs={"frames": frames, "corrections": None, "strength": None},
     )

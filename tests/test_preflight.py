@@ -50,6 +50,7 @@ def test_a_complete_sequence_can_run_every_stage(seq: TinySequence) -> None:
     assert _stages(r) == {
         "labels2d": "runs",
         "project": "runs",
+        "motion": "skipped",
         "fuse": "runs",
         "smooth": "runs",
         "3dcn": "skipped",

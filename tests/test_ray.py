@@ -186,6 +186,21 @@ def test_ray_run_writes_the_local_bytes(
 
 
 @pytest.mark.slow
+def test_movers_kept_out_of_the_fusion_give_the_local_bytes_on_ray(
+    ray_instance, dataset: Path, preset_config, tmp_path: Path
+) -> None:
+    """With ``tracking.exclude_moving`` the fusion's chunks count the observations left after the movers
+    (``executor.fused_count``), so the tasks' partial sums are the local fusion's."""
+    schema, cfg = preset_config
+    cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, exclude_moving=True))
+    local = label(dataset, schema, cfg, tmp_path / "local", frames=FRAMES).folder
+    assert stage_status(local)["motion"]["moving_points"] > 0
+    on_ray = label(dataset, schema, cfg, tmp_path / "ray", frames=FRAMES, runtime=RAY).folder
+    _same_outputs(on_ray, local)
+    assert stage_status(on_ray)["fuse"]["fusion_chunks"] >= 3
+
+
+@pytest.mark.slow
 def test_cancel_on_ray_then_resume_gives_the_local_bytes(
     ray_instance,
     dataset: Path,

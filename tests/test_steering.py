@@ -360,7 +360,7 @@ def test_plan_reasons_without_a_previous_run_and_for_unfinished_stages() -> None
     cfg = PipelineConfig()
     fps = {s.name: f"fp-{s.name}" for s in STAGE_TABLE}
     empty = recompute_plan(cfg, fps, None)
-    assert {p.action for p in empty if p.name != "3dcn"} == {"recompute"}
+    assert {p.action for p in empty if p.name not in ("motion", "3dcn")} == {"recompute"}
     assert empty[0].reason == "no earlier run to reuse"
     prev = {s.name: {"fingerprint": fps[s.name], "status": "done"} for s in STAGE_TABLE}
     prev["3dcn"]["status"] = "skipped"

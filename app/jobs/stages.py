@@ -30,6 +30,7 @@ SYNTH = "generate demo"
 UNIT_SECONDS: dict[str, float] = {
     "labels2d": 0.13,
     "project": 0.025,
+    "motion": 0.006,
     "fuse": 0.005,
     "smooth": 0.003,
     "3dcn": 0.0,
@@ -41,9 +42,10 @@ UNIT_SECONDS: dict[str, float] = {
     SYNTH: 0.9,
 }
 """Expected seconds per progress unit (a frame; a scan for the pose estimation) of each stage before a run has
-measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project 1.5 s, fuse 0.28
-s, smooth 0.16 s, label_points 0.49 s, tracks about 0.25 s, evaluate 0.23 s, export 0.15 s; a sequence's own
-``3dcn`` stage only links the rounds' grids). Only their ratios matter until a stage has finished."""
+measured its own, from a demo run (60 frames, the simulated labeler: labels2d 8.0 s, project 1.5 s, motion
+(with ``tracking.exclude_moving``) about 0.35 s, fuse 0.28 s, smooth 0.16 s, label_points 0.49 s, tracks about
+0.25 s, evaluate 0.23 s, export 0.15 s; a sequence's own ``3dcn`` stage only links the rounds' grids). Only
+their ratios matter until a stage has finished."""
 
 LABELS2D_UNIT_SECONDS: dict[str, float] = {"gt2d": 0.13, "images": 2.0}
 """``labels2d`` per frame by what the labeler reads: 2D ground truth (the simulated labelers) or camera

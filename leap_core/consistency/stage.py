@@ -162,6 +162,7 @@ def iter_reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, ea
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None,
     progress: Callable[[], None] | None = None,
     erased: npt.NDArray[np.int64] | None = None,
+    moving: MovingRows | None = None,
 ) -> Iterator[npt.NDArray[np.int16]]:
     """:func:`reliable_targets` one scan at a time, in frame order.
 
@@ -178,6 +179,10 @@ def iter_reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, ea
         lab, conf = voxel_labels.at(keys)
         if erased is not None and erased.size:
             lab = np.where(np.isin(keys, erased), np.int16(UNLABELED), lab).astype(lab.dtype)
+        if moving is not None:
+            # A mover's points take their voxel's label where the mover is, i.e. what it passes.
+            lab = lab.copy()
+            lab[moving(i)] = UNLABELED
         support = lookup_counts(keys, *views) if views is not None else None
         if progress is not None:
             progress()
@@ -224,6 +229,7 @@ def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each na
     views: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None,
     progress: Callable[[], None] | None = None,
     erased: npt.NDArray[np.int64] | None = None,
+    moving: MovingRows | None = None,
 ) -> list[npt.NDArray[np.int16]]:
     """Step 1 of :func:`run_3dcn_iteration`: per scan, the (N_s,) int16 training label of each point, its
     voxel's argmax class in ``smoothed`` where selected, ``UNLABELED`` elsewhere.
@@ -232,12 +238,23 @@ def reliable_targets(  # noqa: PLR0913, PLR0917  the selection's inputs, each na
     the ``cfg.share`` most confident become labels (:func:`select_reliable_scans`, scope
     ``cfg.selection_scope``, ties by ``views`` counts, then by ``cfg.seed``'s random order). ``progress()``
     is called once per scan. Points in ``erased`` voxels (map-scope erase corrections) are never labels,
-    whatever class the fused evidence gives the voxel. The pipeline streams the same targets to disk
-    (:func:`iter_reliable_targets`, :class:`TargetFile`) instead of holding this list.
+    whatever class the fused evidence gives the voxel; nor are the point rows ``moving(i)`` of scan i (the
+    ``motion`` stage's movers, kept out of the fusion: their voxel's label is what they pass). The
+    pipeline streams the same targets to disk (:func:`iter_reliable_targets`, :class:`TargetFile`)
+    instead of holding this list.
     """
     return list(
         iter_reliable_targets(
-            seq, smoothed, num_classes, cfg, voxel_size, frames, views, progress=progress, erased=erased
+            seq,
+            smoothed,
+            num_classes,
+            cfg,
+            voxel_size,
+            frames,
+            views,
+            progress=progress,
+            erased=erased,
+            moving=moving,
         )
     )
 
@@ -261,6 +278,9 @@ a time)."""
 
 KeySource = npt.NDArray[np.int64] | Callable[[], npt.NDArray[np.int64]]
 """Sorted voxel keys, or a function that makes them when the round needs them."""
+
+MovingRows = Callable[[int], npt.NDArray[np.int32]]
+"""Frame index → the point rows of that scan that belong to moving objects (``motion.npz``)."""
 
 
 def _grid(source: GridSource) -> VoxelGrid:
@@ -298,6 +318,10 @@ class RoundPart:
     """Sorted unique keys of the voxels that hold a point inside a camera image in some frame (or a
     function that makes them): ``cfg.new_voxel_margin`` applies to the new voxels among them
     (:func:`keep_known_or_sure`). None counts every voxel as in view."""
+    moving: MovingRows | None = None
+    """The point rows of each scan that belong to moving objects (the ``motion`` stage's, which the fusion
+    left out): never training labels, and their predictions are not fused back, so the round does not put
+    the movers into the map again. None: no point is left out."""
 
 
 def run_3dcn_iteration(  # noqa: PLR0913, PLR0917  a round's inputs, each named in the docstring
@@ -443,6 +467,7 @@ def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 
                 part.views,
                 progress=tick,
                 erased=part.erased,
+                moving=part.moving,
             ):
                 counts[:] += class_counts(t, num_classes)
                 yield t
@@ -485,7 +510,7 @@ def iter_3dcn_round(  # noqa: PLR0913, PLR0917  a round's inputs; its steps 1-3 
         in_view = _keys(part.in_view) if cfg.new_voxel_margin > 0 else None
         grid = fuse_back(
             fused,
-            scans,
+            scans if part.moving is None else without_rows(frames, scans, part.moving),
             num_classes,
             cfg.temperature,
             fusion_cfg,
@@ -527,6 +552,19 @@ def predict_frames(
             if tick is not None:
                 tick()
             yield keys, logp
+
+
+def without_rows(
+    frames: Iterable[int],
+    predictions: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]],
+    rows: MovingRows,
+) -> Iterator[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]]:
+    """Per scan of ``frames`` (in order, as ``predictions`` come), its ``(keys, logp)`` without the point
+    rows ``rows(i)``."""
+    for i, (keys, logp) in zip(frames, predictions, strict=True):
+        keep = np.ones(keys.shape[0], bool)
+        keep[rows(i)] = False
+        yield (keys, logp) if keep.all() else (keys[keep], logp[keep])
 
 
 def _ticked(
@@ -834,6 +872,7 @@ __all__ = [
     "FUSE_CHUNK_POINTS",
     "GridSource",
     "KeySource",
+    "MovingRows",
     "Predict",
     "RoundPart",
     "TargetFile",
@@ -849,4 +888,5 @@ __all__ = [
     "targets_path",
     "training_fingerprint",
     "voxel_mean_log_probs",
+    "without_rows",
 ]

@@ -53,13 +53,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from leap_core.config import PipelineConfig
 from leap_core.errors import Cancelled, DatasetError, LeapError
 from leap_core.extras import MissingExtra
 from leap_core.fusion import Observations, Partial, fold_blocks, fusion_blocks, log_table, reduce_block
+from leap_core.io_utils import read_npz
 from leap_core.labelers import LABELERS
 from leap_core.pipeline.context import Ctx, StageInfo
+from leap_core.pipeline.objects import read_motion
 from leap_core.pipeline.stages import STAGE_TABLE, finish_fuse, observed_keys
 from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
@@ -165,6 +168,19 @@ def observed_count(path: Path) -> int:
     if len(shape) != 1:
         raise DatasetError(path, f"point_idx must be 1-D, got shape {shape}")
     return int(shape[0])
+
+
+def fused_count(path: Path, moving: npt.NDArray[np.int32] | None) -> int:
+    """Number of observations of an ``observations/`` file that the fusion adds: :func:`observed_count`
+    less those of the ``moving`` point rows (:func:`~leap_core.pipeline.stages.fused_observation`), so the
+    tasks' chunks are the local fusion's."""
+    if moving is None or not moving.size:
+        return observed_count(path)
+    try:
+        point_idx = read_npz(path, ("point_idx",))["point_idx"]
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(path, f"unreadable observation file ({exc})") from exc
+    return int((~np.isin(point_idx, moving)).sum())
 
 
 def merge_records(parts: Sequence[dict[str, Any]], total: int, computed: int) -> dict[str, Any]:
@@ -660,7 +676,13 @@ class RayExecutor:
     def _fuse(self, ctx: Ctx) -> dict[str, Any]:
         frames = list(ctx.frames)
         total = len(frames)
-        counts = [observed_count(ctx.layout.observation(ctx.fid(i))) for i in frames]
+        movers = read_motion(ctx)
+        counts = [
+            fused_count(
+                ctx.layout.observation(ctx.fid(i)), None if movers is None else movers.scan(ctx.fid(i)).rows
+            )
+            for i in frames
+        ]
         chunks = fusion_blocks(counts, ctx.cfg.fusion.chunk_points)
         size = max(1, math.ceil(total / (TASKS_PER_CPU * self._cpus())))
         stop = StopSignal(ctx.layout.folder)

@@ -1,8 +1,13 @@
-"""The ``tracks`` stage: objects through a sequence (docs/METHOD.md B.6).
+"""The ``motion`` and ``tracks`` stages: objects through a sequence (docs/METHOD.md B.6).
 
-Per scan, the thing points (a point whose final label or whose own projected label is a thing class) are
-clustered into segments and their centroids placed in the world by the scan's pose; segments become
-tracks (:mod:`leap_core.tracking`), written to ``tracks.npz`` (:mod:`leap_core.pipeline.tracks_file`).
+``motion`` (after ``project``, before ``fuse``; when ``tracking.exclude_moving``): per scan, the points whose
+own projected label is a thing class are clustered into segments, placed in the world by the scan's pose
+and tracked through the sequence (:mod:`leap_core.tracking`); the moving tracks' points go to
+``motion.npz`` (the ``tracks.npz`` format, moving tracks only), which the fusion reads to leave them out.
+
+``tracks`` (after ``label_points``): the same on the remaining thing points (a point whose final label or
+whose own projected label is a thing class), numbered after the motion stage's movers, both written to
+``tracks.npz`` (:mod:`leap_core.pipeline.tracks_file`).
 
 The export (``stage_export``) gives a tracked point its track id in the upper 16 bits, the track's class
 where the track is voted (``tracking.vote``: by default only moving tracks) and, while the track moves,
@@ -11,6 +16,8 @@ the class's moving id.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,9 +28,19 @@ from leap_core.fusion import voxel_keys
 from leap_core.geometry import affine_points
 from leap_core.io_utils import read_npz
 from leap_core.pipeline.apply import RunCorrections
-from leap_core.pipeline.context import Ctx, ordered_map
+from leap_core.pipeline.context import Ctx, load_observation, ordered_map
 from leap_core.pipeline.tracks_file import SequenceTracks
-from leap_core.tracking import euclidean_segments, segment_summary, track_ids, track_table
+from leap_core.tracking import (
+    TrackingConfig,
+    TrackTable,
+    euclidean_segments,
+    moving_only,
+    segment_summary,
+    stack_tables,
+    track_ids,
+    track_table,
+)
+from leap_core.types import UNLABELED
 
 SCAN_PERIOD = 0.1
 """Seconds between scans when a sequence has no ``times.txt`` (KITTI's 10 Hz): frame number × this."""
@@ -74,17 +91,142 @@ def corrected_rows(
     return np.isin(keys, corr.map_keys) | np.isin(rows, scan_points)
 
 
+Segments = tuple[
+    npt.NDArray[np.int32],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.bool_],
+]
+"""One scan's segmented points: rows (P,) int32, segment (P,) int64, per segment centroid (S, 3), votes
+(S, C) and ground box (S, 4), and per point a stage's own flag (P,) bool."""
+
+
+def _track_scans(
+    ctx: Ctx, stage: str, segments: Callable[[int], Segments]
+) -> tuple[list[Segments], list[npt.NDArray[np.int64]], TrackTable]:
+    """``segments`` of every frame (frame threads at a time, in order), their track ids and the track
+    table (:mod:`leap_core.tracking`, steps 2-5)."""
+    cfg = ctx.cfg.tracking
+    frames = list(ctx.frames)
+    total = len(frames)
+    per_scan: list[Segments] = []
+    ctx.tick(stage, 0, total)
+    for done, item in enumerate(ordered_map(segments, frames, ctx.frame_threads), start=1):
+        per_scan.append(item)
+        ctx.tick(stage, done, total)
+    times = scan_times(ctx)
+    ids = track_ids([s[2] for s in per_scan], times, cfg)
+    table = track_table(
+        ids, [s[2] for s in per_scan], [s[3] for s in per_scan], [s[4] for s in per_scan], times, cfg
+    )
+    return per_scan, ids, table
+
+
+def _check_count(ctx: Ctx, tracks: int) -> None:
+    if tracks > MAX_TRACKS:
+        raise LeapError(
+            f"{tracks} tracks in sequence {ctx.layout.folder.name}: more than the {MAX_TRACKS} instance ids "
+            "a .label holds; raise tracking.min_segment_points or label fewer frames per run"
+        )
+
+
+def _save(
+    ctx: Ctx, path: Path, kept: list[tuple[npt.NDArray[np.int32], npt.NDArray[np.int64]]], table: TrackTable
+) -> int:
+    """Writes per-scan (rows, track ids) and the table as ``tracks.npz``'s format; returns the point count."""
+    offsets = np.concatenate([[0], np.cumsum([r.size for r, _ in kept])]).astype(np.int64)
+    rows = np.concatenate([r for r, _ in kept]) if kept else np.zeros(0, np.int32)
+    track = np.concatenate([k for _, k in kept]) if kept else np.zeros(0, np.int32)
+    SequenceTracks(
+        tuple(ctx.frame_ids()), offsets, rows.astype(np.int32), track.astype(np.int32), table
+    ).save(path)
+    return int(rows.size)
+
+
+# -------------------------------------------------------------------------------------------- motion
+def motion_enabled(cfg: TrackingConfig) -> bool:
+    """Whether the ``motion`` stage runs and the fusion leaves its movers out."""
+    return cfg.enabled and cfg.exclude_moving
+
+
+def motion_inputs(ctx: Ctx) -> dict[str, Any]:
+    """The ``motion`` stage's fingerprint parts: the tracking settings it uses (not ``vote``, which only
+    the export reads, so that trying the other vote does not fuse again) and which classes are things."""
+    cfg = ctx.cfg.tracking
+    used = (
+        "cluster_radius",
+        "min_segment_points",
+        "gate",
+        "max_missed",
+        "moving_speed",
+        "moving_distance",
+        "min_track_scans",
+    )
+    return {
+        "tracking": {k: getattr(cfg, k) for k in used},
+        "things": [[c.name, bool(c.thing)] for c in ctx.schema.classes],
+    }
+
+
+def stage_motion(ctx: Ctx) -> dict[str, Any]:
+    """Moving objects from the per-scan projected labels, before the fusion → ``motion.npz``.
+
+    A scan's thing points are those whose own projected label (B.2, this scan's view) is a thing class,
+    one vote each; segments, tracks and motion as the ``tracks`` stage makes them. Only the moving tracks
+    are kept, numbered 1..M in order of birth; each takes the class its points' projected labels vote for
+    over all its scans. Manual corrections play no part here (the ``tracks`` stage leaves corrected points
+    out of objects), so a scan-scope correction does not fuse again.
+    """
+    cfg = ctx.cfg.tracking
+    things = ctx.schema.things()
+
+    def segments(i: int) -> Segments:
+        path = ctx.layout.observation(ctx.fid(i))
+        painted, n, _ = load_observation(path)
+        point_label = painted.point_labels(n)
+        rows, votes = thing_votes(np.full(n, UNLABELED, np.int16), point_label, things)
+        frame = ctx.seq.frame(i)
+        xyz = affine_points(frame.points_at(rows)[:, :3], frame.pose[:3]) if rows.size else np.zeros((0, 3))
+        seg = euclidean_segments(xyz, cfg.cluster_radius, cfg.min_segment_points)
+        centroid, hist, box = segment_summary(xyz, seg, votes, things.shape[0])
+        keep = seg >= 0
+        return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, np.ones(int(keep.sum()), bool)
+
+    per_scan, ids, table = _track_scans(ctx, "motion", segments)
+    movers, new_id = moving_only(table)
+    _check_count(ctx, movers.label.size)
+    kept = []
+    for t, s in enumerate(per_scan):
+        track_of_row = new_id[ids[t][s[1]] - 1]
+        keep = track_of_row > 0
+        kept.append((s[0][keep], track_of_row[keep]))
+    points = _save(ctx, ctx.layout.motion, kept, movers)
+    return {"tracks": int(table.label.size), "moving_tracks": int(movers.label.size), "moving_points": points}
+
+
+def read_motion(ctx: Ctx) -> SequenceTracks | None:
+    """The ``motion`` stage's movers, or None when it does not run (tracking or ``exclude_moving`` off)."""
+    if not motion_enabled(ctx.cfg.tracking):
+        return None
+    return SequenceTracks.load(ctx.layout.motion)
+
+
+# -------------------------------------------------------------------------------------------- tracks
 def stage_tracks(ctx: Ctx) -> dict[str, Any]:
-    """Segments per scan, tracks over the sequence, class vote and motion → ``tracks.npz``. Points a manual
-    correction labels are left out (their label is the correction's)."""
+    """Segments per scan, tracks over the sequence, class vote and motion → ``tracks.npz``, after the
+    ``motion`` stage's movers (ids 1..M, kept as that stage found them: their points were left out of the
+    map, so their final labels hold no word of theirs). Points a manual correction labels are left out
+    (their label is the correction's)."""
     cfg = ctx.cfg.tracking
     things = ctx.schema.things()
     corr = RunCorrections.of_run(ctx.layout, ctx.schema.num_classes)
+    movers = read_motion(ctx)
     vs = ctx.cfg.fusion.voxel_size
-    frames = list(ctx.frames)
-    total = len(frames)
+    mover_rows: dict[int, tuple[npt.NDArray[np.int32], npt.NDArray[np.int64]]] = {}
 
-    def segments(i: int) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int64], Any, Any, Any, Any]:
+    def segments(i: int) -> Segments:
         fid = ctx.fid(i)
         path = ctx.layout.points(fid)
         try:
@@ -94,6 +236,17 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
         rows, votes = thing_votes(z["label"], z["point_label"], things)
         final_thing = things[np.maximum(z["label"][rows], 0)] & (z["label"][rows] >= 0)
         frame = ctx.seq.frame(i)
+        if movers is not None:
+            obj = movers.scan(fid)
+            mxyz = (
+                affine_points(frame.points_at(obj.rows)[:, :3], frame.pose[:3])
+                if obj.rows.size
+                else np.zeros((0, 3))
+            )
+            free = ~corrected_rows(corr, fid, obj.rows.astype(np.int64), voxel_keys(mxyz, vs))
+            mover_rows[i] = (obj.rows[free], obj.track[free].astype(np.int64))
+            mine = ~np.isin(rows, obj.rows)
+            rows, votes, final_thing = rows[mine], votes[mine], final_thing[mine]
         xyz = affine_points(frame.points_at(rows)[:, :3], frame.pose[:3]) if rows.size else np.zeros((0, 3))
         free = ~corrected_rows(corr, fid, rows, voxel_keys(xyz, vs))
         rows, votes, xyz, final_thing = rows[free], votes[free], xyz[free], final_thing[free]
@@ -102,47 +255,40 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
         keep = seg >= 0
         return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, final_thing[keep]
 
-    per_scan = []
-    ctx.tick("tracks", 0, total)
-    for done, item in enumerate(ordered_map(segments, frames, ctx.frame_threads), start=1):
-        per_scan.append(item)
-        ctx.tick("tracks", done, total)
-    times = scan_times(ctx)
-    ids = track_ids([s[2] for s in per_scan], times, cfg)
-    table = track_table(
-        ids, [s[2] for s in per_scan], [s[3] for s in per_scan], [s[4] for s in per_scan], times, cfg
-    )
-    if table.label.size > MAX_TRACKS:
-        raise LeapError(
-            f"{table.label.size} tracks in sequence {ctx.layout.folder.name}: more than the {MAX_TRACKS} "
-            "instance ids a .label holds; raise tracking.min_segment_points or label fewer frames per run"
-        )
+    per_scan, ids, table = _track_scans(ctx, "tracks", segments)
+    first = movers.table.label.size if movers is not None else 0
+    if movers is not None:
+        table = stack_tables(movers.table, table)
+    _check_count(ctx, table.label.size)
     # A static track keeps the map's word on its points: those the final grid calls stuff (a mask's bleed
     # onto the road beside a parked car, seen in one scan) stay stuff and get no id; a moving track takes
     # all its points, since the map's label at a mover is its trail.
     kept = []
-    for t, s in enumerate(per_scan):
-        track_of_row = ids[t][s[1]]
+    for t, (i, s) in enumerate(zip(ctx.frames, per_scan, strict=True)):
+        track_of_row = ids[t][s[1]] + first
         keep = s[5] | table.moving[track_of_row - 1]
-        kept.append((s[0][keep], track_of_row[keep]))
-    counts = [r.size for r, _ in kept]
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    rows = np.concatenate([r for r, _ in kept]) if kept else np.zeros(0, np.int32)
-    track = np.concatenate([k for _, k in kept]).astype(np.int32) if kept else np.zeros(0, np.int32)
-    SequenceTracks(tuple(ctx.frame_ids()), offsets, rows.astype(np.int32), track, table).save(
-        ctx.layout.tracks
-    )
+        own = (s[0][keep], track_of_row[keep])
+        if i in mover_rows:
+            m_rows, m_track = mover_rows[i]
+            own = (np.concatenate([m_rows, own[0]]).astype(np.int32), np.concatenate([m_track, own[1]]))
+        kept.append(own)
+    points = _save(ctx, ctx.layout.tracks, kept, table)
     return {
         "tracks": int(table.label.size),
         "moving_tracks": int(table.moving.sum()),
-        "tracked_points": int(rows.size),
+        "moving_before_fusion": int(first),
+        "tracked_points": points,
     }
 
 
 __all__ = [
     "SCAN_PERIOD",
     "corrected_rows",
+    "motion_enabled",
+    "motion_inputs",
+    "read_motion",
     "scan_times",
+    "stage_motion",
     "stage_tracks",
     "thing_votes",
 ]

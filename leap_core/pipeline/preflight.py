@@ -68,7 +68,7 @@ PoseSource = Literal["file", "estimated", "missing", "invalid", "will-estimate"]
 
 SHOWN_FRAMES = 5
 """Frame ids a finding names (the rest are counted)."""
-POSES_STAGES = ("fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export")
+POSES_STAGES = ("motion", "fuse", "smooth", "3dcn", "label_points", "tracks", "evaluate", "export")
 """Stages that place scans in the world (they read ``frame.pose``); ``labels2d`` and ``project`` do not."""
 
 

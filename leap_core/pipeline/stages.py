@@ -50,7 +50,7 @@ from leap_core.pipeline.context import (
 )
 from leap_core.pipeline.evaluation import METRICS_VERSION, stage_evaluate
 from leap_core.pipeline.object_corrections import CorrectedTracks, read_corrected_tracks
-from leap_core.pipeline.objects import stage_tracks
+from leap_core.pipeline.objects import motion_enabled, motion_inputs, read_motion, stage_motion, stage_tracks
 from leap_core.projection import Painted, paint, project_points
 from leap_core.run_layout import RunLayout, SequenceLayout, load_corrections
 from leap_core.smoothing import SMOOTH_CHUNK, SmoothedGrid, smooth_grid_blocks
@@ -211,10 +211,23 @@ def stage_project(ctx: Ctx) -> dict[str, Any]:
     return ctx.each_frame("project", work, parallel=True)
 
 
+def fused_observation(painted: Painted, moving: npt.NDArray[np.int32] | None) -> Painted:
+    """The observations of a scan that the fusion adds: all but those of the ``moving`` point rows (the
+    ``motion`` stage's movers; None: all)."""
+    if moving is None or not moving.size:
+        return painted
+    keep = ~np.isin(painted.point_idx, moving)
+    return Painted(painted.point_idx[keep], painted.rows[keep], painted.table)
+
+
 def observed_keys(ctx: Ctx) -> Iterator[tuple[Painted, npt.NDArray[np.int64]]]:
-    """Per frame: its observation and the world voxel key of each observed (painted) point."""
+    """Per frame: its observation and the world voxel key of each observed (painted) point, without the
+    points of moving objects when the ``motion`` stage found them (docs/METHOD.md B.6)."""
+    movers = read_motion(ctx)
     for i in ctx.frames:
         painted = Painted.load(ctx.layout.observation(ctx.fid(i)))
+        if movers is not None:
+            painted = fused_observation(painted, movers.scan(ctx.fid(i)).rows)
         frame = ctx.seq.frame(i)
         pts = frame.points_at(painted.point_idx)
         yield painted, voxel_keys(world_points(pts, frame.pose), ctx.cfg.fusion.voxel_size)
@@ -234,7 +247,8 @@ def camera_view_keys(ctx: Ctx) -> npt.NDArray[np.int64]:
 
 # ---------------------------------------------------------------------------------------------- fuse
 def stage_fuse(ctx: Ctx) -> dict[str, Any]:
-    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``.
+    """All frames' observations → one voxel grid (log-space Bayes), then corrections → ``grid.npz``. The
+    points of moving objects (``motion.npz``, when ``tracking.exclude_moving``) are left out.
 
     Written by :func:`~leap_core.fusion.fuse_to_file` (the bytes of ``fuse`` + ``apply_overrides``): the
     per-chunk sums wait on disk in ``<run>/.fuse_spill/`` and the grid is summed, finalised and written a
@@ -388,6 +402,8 @@ def cn_rounds(
     # The margin for new voxels applies inside the camera view (keep_known_or_sure): each member's keys
     # are made when a round first fuses that member, and kept for a second round (as the view counts are).
     in_view = [cache(partial(camera_view_keys, m.ctx)) for m in members]
+    # The movers the fusion left out stay out of the rounds too: no training labels, no evidence back.
+    moving = [_moving_rows(m.ctx) for m in members]
     total = cn.iterations * _3DCN_GRID_SCALE
 
     def tick(done: int, tot: int) -> None:
@@ -417,8 +433,11 @@ def cn_rounds(
                     e,
                     m.name,
                     in_view=iv,
+                    moving=mv,
                 )
-                for m, f, s, v, e, iv in zip(members, fused, smoothed, views, erased, in_view, strict=True)
+                for m, f, s, v, e, iv, mv in zip(
+                    members, fused, smoothed, views, erased, in_view, moving, strict=True
+                )
             ]
             round_grids = iter_3dcn_round(
                 parts, c, cn, cfg.fusion, checkpoints, it, progress=prog, predict=predict, source=source
@@ -430,6 +449,14 @@ def cn_rounds(
         smoothed = [sm for _, sm in paths]
         tick(it * _3DCN_GRID_SCALE, total)
     return [VoxelGrid.load(f).num_voxels for f in fused]
+
+
+def _moving_rows(ctx: Ctx) -> Callable[[int], npt.NDArray[np.int32]] | None:
+    """Frame index → the rows of the ``motion`` stage's movers in that scan; None when it did not run."""
+    movers = read_motion(ctx)
+    if movers is None:
+        return None
+    return lambda i: movers.scan(ctx.fid(i)).rows
 
 
 def source_digest(path: Path) -> str:
@@ -647,13 +674,27 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         frame_files=FrameFiles(SequenceLayout.OBSERVATIONS),
     ),
     StageInfo(
+        "motion",
+        "Moving objects",
+        "moving objects from the per-scan projected labels, kept out of the fusion",
+        False,
+        stage_motion,
+        upstream=("project",),
+        # Only the tracking settings it uses (motion_inputs): trying another tracking.vote fuses nothing.
+        inputs=motion_inputs,
+        outputs=lambda lay, _cfg: (lay.motion,),
+        switch="tracking.enabled",
+        enabled=lambda cfg: motion_enabled(cfg.tracking),
+        needs_poses=True,
+    ),
+    StageInfo(
         "fuse",
         "Voxel fusion",
-        "Bayesian fusion of every observation into the voxel grid",
+        "Bayesian fusion of the observations (but moving objects') into the voxel grid",
         False,
         stage_fuse,
         reads=("fusion",),
-        upstream=("project",),
+        upstream=("project", "motion"),
         inputs=_fuse_inputs,
         outputs=lambda lay, _cfg: (lay.grid,),
         needs_poses=True,
@@ -700,7 +741,7 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         False,
         stage_tracks,
         reads=("tracking",),
-        upstream=("label_points",),
+        upstream=("motion", "label_points"),
         inputs=lambda ctx: [[c.name, bool(c.thing)] for c in ctx.schema.classes],
         outputs=lambda lay, _cfg: (lay.tracks,),
         switch="tracking.enabled",
@@ -750,12 +791,14 @@ __all__ = [
     "camera_view_keys",
     "cn_rounds",
     "finish_fuse",
+    "fused_observation",
     "observed_keys",
     "stage_3dcn",
     "stage_export",
     "stage_fuse",
     "stage_label_points",
     "stage_labels2d",
+    "stage_motion",
     "stage_project",
     "stage_smooth",
     "stage_tracks",

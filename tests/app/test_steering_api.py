@@ -117,7 +117,7 @@ def test_preview_note_and_comparison(env) -> None:
     fresh = client.get(f"/projects/{pid}/runs/preview").json()
     assert fresh["base_run"] is None and fresh["changes"] == []
     assert [s["name"] for s in fresh["stages"]] == list(STAGES)
-    assert fresh["recompute"] == [s for s in STAGES if s != "3dcn"]
+    assert fresh["recompute"] == [s for s in STAGES if s not in ("motion", "3dcn")]
     assert {s["reason"] for s in fresh["stages"] if s["action"] == "recompute"} == {"no earlier run to reuse"}
 
     run1 = _run(client, pid, note="baseline")
@@ -149,7 +149,7 @@ def test_preview_note_and_comparison(env) -> None:
         json={"name": "thing", "prompts": ["odd thing"], "export_id": 99, "gt_ids": [99]},
     )
     added = client.get(f"/projects/{pid}/runs/preview").json()
-    assert added["recompute"] == [s for s in STAGES if s != "3dcn"]
+    assert added["recompute"] == [s for s in STAGES if s not in ("motion", "3dcn")]
     assert {s["name"]: s["reason"] for s in added["stages"]}["labels2d"] == "the classes or prompts changed"
     assert any(c["text"].startswith("class thing added") for c in added["changes"])
 
