@@ -18,8 +18,8 @@ from app.core.errors import Conflict, InvalidField, NotFound
 from app.jobs.models import ModelJobs, label_folder, model_file
 from app.rows import ModelJobRow
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
+from leap_core.lidar_model.card import read_card
 from leap_core.lidar_model.config import LidarModelConfig, model_config_to_dict
-from leap_core.lidar_model.model import read_card
 from leap_core.run_layout import sequence_name_problem
 from leap_core.schema import Schema
 

@@ -592,3 +592,8 @@ def test_reading_a_config_or_preset_never_imports_transformers() -> None:
 
 def test_reading_a_config_or_preset_never_imports_torch() -> None:
     assert "torch" not in _modules_after(_READ_CONFIG)
+
+
+def test_the_server_app_imports_without_torch() -> None:
+    """``leap serve`` starts without importing torch (a second on every start); workers import it."""
+    assert "torch" not in _modules_after("import app.main")

@@ -10,7 +10,6 @@ code that trained it (package version and git commit).
 
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,16 +20,12 @@ import torch
 from leap_core.consistency.backbone import PointSegmenter
 from leap_core.errors import ModelLoadError
 from leap_core.io_utils import atomic_write, atomic_write_json
+from leap_core.lidar_model.card import card_path, read_card
 from leap_core.lidar_model.config import LidarModelConfig, model_config_from_dict, model_config_to_dict
 from leap_core.schema import Schema
 
 MODEL_FORMAT = "leap-lidar-model"
 MODEL_VERSION = 1
-
-
-def card_path(model: str | Path) -> Path:
-    """The model card beside a checkpoint: ``model.pt`` → ``model.card.json``."""
-    return Path(model).with_suffix(".card.json")
 
 
 def state_path(model: str | Path) -> Path:
@@ -98,22 +93,6 @@ def load_model(path: str | Path, device: str = "cpu") -> LidarModel:
         raise ModelLoadError(f"{path}: card has {schema.num_classes} classes, network {network.num_classes}")
     network.eval()
     return LidarModel(network.to(device), cfg, schema, card)
-
-
-def read_card(path: str | Path) -> dict[str, Any]:
-    """A model's card from its ``.card.json`` (no torch).
-
-    Raises:
-        ModelLoadError: naming the file, when it is missing or not JSON.
-    """
-    cp = card_path(path)
-    try:
-        data = json.loads(cp.read_text())
-    except (OSError, ValueError) as exc:
-        raise ModelLoadError(f"{cp}: unreadable model card ({exc})") from exc
-    if not isinstance(data, dict):
-        raise ModelLoadError(f"{cp}: a model card is a JSON object")
-    return data
 
 
 __all__ = [
