@@ -355,7 +355,12 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
 
 ADDED_SECTIONS = ("sam3", "tracking")
 """Config sections added after the stored file was written (read as their defaults)."""
-ADDED_FIELDS = (("grounded_sam", "flip_votes"),)
+ADDED_FIELDS = (
+    ("grounded_sam", "flip_votes"),
+    ("simulated", "instance_miss"),
+    ("simulated", "instance_merge"),
+    ("simulated", "instance_split"),
+)
 """Fields added to existing sections since (read as their defaults)."""
 
 
@@ -381,7 +386,8 @@ def test_a_stored_dict_with_the_moved_noise_terms_at_their_defaults_still_reads(
     # Read back, it is today's dict form: the same sections, the simulated one without the moved terms.
     now = config_to_dict(cfg)
     assert sorted(now) == sorted([*stored, *ADDED_SECTIONS])  # labeler sections follow the registry
-    assert now["simulated"] == {k: v for k, v in stored["simulated"].items() if k not in MOVED_TERMS}
+    added = {k: now["simulated"][k] for s, k in ADDED_FIELDS if s == "simulated"}
+    assert now["simulated"] == {k: v for k, v in stored["simulated"].items() if k not in MOVED_TERMS} | added
     # Written by hand, a number term may be an integer (YAML "0"), a switch must be a switch.
     assert config_from_dict({"simulated": {"box_leak_prob": 0, "stratified_draws": False}}) == cfg
     with pytest.raises(ConfigError):

@@ -29,7 +29,7 @@ from leap_core.labelers.grounded_sam import (
     pass_regions,
     pick_device,
 )
-from leap_core.labelers.prompts import ClassPrompts, make_pass
+from leap_core.labelers.prompts import ClassPrompts, make_pass, sigmoid
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
 from leap_core.runtime import Runtime
 from leap_core.schema import ClassDef, Schema, save_schema
@@ -656,3 +656,30 @@ def test_a_frames_cameras_are_labeled_in_one_batch(
     assert out.exit_code == 0, out.output
     assert "4 images of 2 frames from 2 cameras, 0 cached, 4 to label" in out.output
     assert "done: 4 images labeled" in out.output
+
+
+def test_each_kept_box_of_a_thing_class_is_an_instance(tiny_dir: Path, tmp_path: Path) -> None:
+    """Through the tiny models: an instance per kept box whose own class is a thing (car here), its SAM
+    mask as its pixels less those of higher-scoring instances, its confidence as its score."""
+    schema = small_schema()
+    assert schema.things().tolist() == [True, False, False]
+    img = images(1)[0]
+    lab = GroundedSamLabeler(
+        GroundedSamConfig(box_threshold=0.05), Runtime(models_dir=tiny_dir), cache=LabelCache(tmp_path)
+    )
+    sm = lab.label_images([img], schema)[0]
+    assert lab.cache is not None
+    stored = lab.cache.get(lab.pass_key(image_digest(img), lab.plan(schema)[0]))
+    assert stored is not None and sm.instances is not None
+    h, w = img.shape[:2]
+    masks = np.unpackbits(stored.bits, axis=1, count=h * w).reshape(-1, h, w).astype(bool)
+    conf = sigmoid(stored.scores.max(axis=1))  # the labeler's confidence of each box
+    car = (stored.scores.argmax(axis=1) == 0) & masks.any(axis=(1, 2))
+    assert 1 < car.sum() < len(car)  # some boxes are cars, some are not
+    # Per pixel: the best score among the car masks covering it (0 where none) is its instance's score.
+    best = np.where(masks[car], conf[car][:, None, None], 0).max(axis=0)
+    ins = sm.instances
+    got = np.where(ins.ids > 0, ins.score[np.maximum(ins.ids, 1) - 1], 0)
+    np.testing.assert_array_equal(got, best)
+    assert (ins.label == 0).all() and ins.num_instances <= car.sum()
+    assert (np.diff(ins.score) <= 0).all()  # instance 1 scores highest

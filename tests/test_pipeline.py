@@ -47,6 +47,7 @@ from leap_core.pipeline.runner import (
     stage_fingerprints,
     warn_missing_images,
 )
+from leap_core.pipeline.stages import load_soft
 from leap_core.run_layout import SequenceLayout
 from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
@@ -876,6 +877,32 @@ def test_a_damaged_2d_cache_entry_is_recomputed(street: Path, schema, tmp_path: 
     assert stage_status(folder(tmp_path / "b"))["labels2d"]["cache_hits"] == 1
     assert entries[0].read_bytes() == good
     assert (folder(tmp_path / "b") / "labels2d" / "000000.npz").read_bytes() == good
+
+
+def test_a_2d_cache_entry_without_instances_is_recomputed(street: Path, schema, tmp_path: Path) -> None:
+    """An entry written before labelers gave instances has the same key: it is not served but recomputed
+    (the stage's record counts it) and replaced by one with the same masks and the instances."""
+    cache = Runtime(cache_dir=tmp_path / "cache")
+    label(
+        street, schema, PipelineConfig(), tmp_path / "a", frames=range(0, 2), until="labels2d", runtime=cache
+    )
+    entries = sorted((tmp_path / "cache" / "labels2d").glob("*/*.npz"))
+    new = load_soft(entries[0])
+    assert new.instances is not None and new.instances.num_instances > 0
+    old = {k: v for k, v in new.arrays().items() if not k.startswith("instance_")}
+    entries[0].unlink()  # the run folder's hard link keeps its file
+    with entries[0].open("wb") as fh:
+        np.savez_compressed(fh, **old)
+    label(
+        street, schema, PipelineConfig(), tmp_path / "b", frames=range(0, 2), until="labels2d", runtime=cache
+    )
+    record = stage_status(folder(tmp_path / "b"))["labels2d"]
+    assert (record["cache_hits"], record["cache_refreshed"]) == (1, 1)
+    again = load_soft(entries[0])
+    assert again.instances is not None
+    np.testing.assert_array_equal(again.instances.ids, new.instances.ids)
+    np.testing.assert_array_equal(again.bits, new.bits)
+    assert "cache_refreshed" not in stage_status(folder(tmp_path / "a"))["labels2d"]
 
 
 def test_the_2d_cache_is_keyed_by_the_labeler_config(street: Path, schema, tmp_path: Path) -> None:

@@ -19,6 +19,7 @@ from runhelpers import folder
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
 from leap_core.labelers.base import SoftMasks, with_flip_votes
 from leap_core.labelers.cache import LabelCache, PassResult, image_digest
+from leap_core.labelers.prompts import sigmoid
 from leap_core.labelers.sam3 import (
     ImageSettings,
     PromptJob,
@@ -230,6 +231,25 @@ def test_each_prompts_instances_match_a_direct_transformers_call(tiny_dir: Path,
     assert (sm.height, sm.width, sm.num_classes) == (40, 96, 3)
     np.testing.assert_allclose(sm.probs.sum(axis=1), 1.0, rtol=1e-5)
     assert (sm.confidence >= thr - 1e-6).all()
+    # Instances: the car prompts' kept instances (car is the schema's one thing), negatives applied; per
+    # pixel the best score of the car masks covering it.
+    results = (
+        {j: lab.cache.get(lab.prompt_key(image_digest(img), j)) for j in lab.jobs(schema)}
+        if lab.cache
+        else {}
+    )
+    negatives = [r for j, r in results.items() if j.class_name == "car" and j.role == "negative"]
+    cars = [
+        drop_negated(r, negatives, lab.config.match_iou)
+        for j, r in results.items()
+        if j.class_name == "car" and j.role == "positive"
+    ]
+    masks = np.concatenate([np.unpackbits(r.bits, axis=1, count=40 * 96) for r in cars]).reshape(-1, 40, 96)
+    score = sigmoid(np.concatenate([r.scores[:, 0] for r in cars]))
+    best = np.where(masks.astype(bool), score[:, None, None], 0).max(axis=0)
+    ins = sm.instances
+    assert ins is not None and ins.num_instances > 0 and (ins.label == 0).all()
+    np.testing.assert_array_equal(np.where(ins.ids > 0, ins.score[np.maximum(ins.ids, 1) - 1], 0), best)
 
 
 def test_batches_and_the_cache(tiny_dir: Path, tmp_path: Path) -> None:

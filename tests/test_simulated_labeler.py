@@ -552,3 +552,122 @@ def _one_frame(root: Path, sem: np.ndarray, inst: np.ndarray) -> KittiSequence:
     write_png16(root / "gt2d" / "semantic" / "000000.png", sem)
     write_png16(root / "gt2d" / "instance" / "000000.png", inst)
     return KittiSequence(root)
+
+
+# ================================================================================== instances
+def _instance_frame(root: Path, n_frames: int = 1) -> KittiSequence:
+    """Two touching cars (ids 1, 2), a truck touching car 2 (id 3), a lone car (id 4), a road pixel block
+    with an instance id (a stuff class: no instance), in each of ``n_frames`` frames."""
+    sem, inst = np.full((H, W), 40, np.uint16), np.zeros((H, W), np.uint16)
+    for ident, raw, rows, cols in (
+        (1, 10, (10, 20), (2, 12)),
+        (2, 10, (10, 20), (12, 22)),
+        (3, 18, (10, 20), (22, 40)),
+        (4, 10, (30, 40), (44, 60)),
+        (5, 40, (42, 46), (2, 8)),
+    ):
+        sem[rows[0] : rows[1], cols[0] : cols[1]] = raw
+        inst[rows[0] : rows[1], cols[0] : cols[1]] = ident
+    make_sequence(root, n_frames=n_frames)
+    for i in range(n_frames):
+        write_png16(root / "gt2d" / "semantic" / f"{i:06d}.png", sem)
+        write_png16(root / "gt2d" / "instance" / f"{i:06d}.png", inst)
+    return KittiSequence(root)
+
+
+def _instances(seq: KittiSequence, **kw: object):
+    cfg = dataclasses.replace(SimulatedLabelerConfig.exact(), **kw)
+    ins = SimulatedLabeler(cfg).label(seq.frame(0), SCHEMA).instances
+    assert ins is not None
+    return ins
+
+
+def _parts(ins) -> list[tuple[int, tuple[int, int, int, int]]]:
+    """(class, box rows0, rows1, cols0, cols1) of each instance, sorted."""
+    out = []
+    for k in range(1, ins.num_instances + 1):
+        ys, xs = np.nonzero(ins.ids == k)
+        out.append(
+            (int(ins.label[k - 1]), (int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1))
+        )
+    return sorted(out)
+
+
+def test_exact_instances_are_the_thing_instances_of_the_ground_truth(tmp_path: Path) -> None:
+    ins = _instances(_instance_frame(tmp_path / "s"))
+    assert _parts(ins) == [
+        (CAR, (10, 20, 2, 12)),
+        (CAR, (10, 20, 12, 22)),
+        (CAR, (30, 40, 44, 60)),
+        (TRUCK, (10, 20, 22, 40)),
+    ]  # the road block's id is stuff: no instance
+    np.testing.assert_array_equal(ins.score, 1.0)
+    assert ins.ids.dtype == np.int32 and ins.ids.shape == (H, W)
+
+
+def test_instance_misses_merges_and_splits(tmp_path: Path) -> None:
+    seq = _instance_frame(tmp_path / "s")
+    assert _instances(seq, instance_miss=1.0).num_instances == 0
+    # Touching cars merge; the truck touches car 2 but is another class; the lone car stays alone.
+    assert _parts(_instances(seq, instance_merge=1.0)) == [
+        (CAR, (10, 20, 2, 22)),
+        (CAR, (30, 40, 44, 60)),
+        (TRUCK, (10, 20, 22, 40)),
+    ]
+    # Each cut at the middle of its longer side: the 10 × 16 lone car at column 52, the 10 × 18 truck at 31.
+    split = _parts(_instances(seq, instance_split=1.0))
+    assert (CAR, (30, 40, 44, 52)) in split and (CAR, (30, 40, 52, 60)) in split
+    assert (TRUCK, (10, 20, 22, 31)) in split and (TRUCK, (10, 20, 31, 40)) in split
+    assert len(split) == 8
+    # A tall instance is cut across its rows.
+    sem, inst = np.full((H, W), 40, np.uint16), np.zeros((H, W), np.uint16)
+    sem[4:44, 30:34], inst[4:44, 30:34] = 10, 7
+    tall = _one_frame(tmp_path / "t", sem, inst)
+    assert _parts(_instances(tall, instance_split=1.0)) == [(CAR, (4, 24, 30, 34)), (CAR, (24, 44, 30, 34))]
+
+
+def test_instance_noise_draws_per_frame_and_apart_from_each_other(tmp_path: Path) -> None:
+    """Half rates over many frames: each term acts on some frames only, and setting one term leaves the
+    outcome of another unchanged (their draws are their own)."""
+    frames = list(_instance_frame(tmp_path / "s", n_frames=12))
+
+    def counts(**kw: object) -> list[int]:
+        lab = SimulatedLabeler(dataclasses.replace(SimulatedLabelerConfig.exact(), **kw))
+        return [lab.label(f, SCHEMA).instances.num_instances for f in frames]
+
+    missed = counts(instance_miss=0.5)
+    assert len(set(missed)) > 1 and max(missed) <= 4
+    assert counts(instance_miss=0.5) == missed  # seeded by (seed, frame number)
+    merged = counts(instance_merge=0.5)
+    assert set(merged) <= {3, 4} and len(set(merged)) == 2
+    both = counts(instance_miss=0.5, instance_split=1.0)
+    assert both == [2 * m for m in missed]  # the same objects missed, each kept one cut in two
+
+
+def test_instances_leave_the_semantic_masks_as_they_were(seq: KittiSequence) -> None:
+    """The default labeler's masks, probabilities and confidences of the module's frames are those recorded
+    before instances existed (their noise has its own stream), whatever the instance terms."""
+    import hashlib
+
+    for cfg in (
+        SimulatedLabelerConfig(),
+        SimulatedLabelerConfig(instance_miss=0.7, instance_merge=1.0, instance_split=1.0),
+    ):
+        h = hashlib.sha256()
+        for f in seq:
+            sm = SimulatedLabeler(cfg).label(f, SCHEMA)
+            for a in (sm.bits, sm.probs, sm.confidence):
+                h.update(a.tobytes())
+        assert h.hexdigest()[:16] == "f1c89981a9f11029"
+
+
+def test_instance_terms_enter_the_fingerprint_only_off_their_defaults() -> None:
+    from leap_core.labelers.simulated import _INSTANCE_DEFAULTS
+
+    default = SimulatedLabelerConfig()
+    assert {k: getattr(default, k) for k in _INSTANCE_DEFAULTS} == _INSTANCE_DEFAULTS
+    fp = SimulatedLabeler().fingerprint(SCHEMA)
+    assert "instance_miss" not in SimulatedLabeler().fingerprint_config()
+    for name in _INSTANCE_DEFAULTS:
+        other = SimulatedLabeler(dataclasses.replace(default, **{name: 0.5}))
+        assert other.fingerprint(SCHEMA) != fp

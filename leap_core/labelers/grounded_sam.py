@@ -17,6 +17,9 @@ Per image and per detector pass (see :mod:`leap_core.labelers.prompts` for passe
    ``multimask=False`` uses SAM's single-mask output.
 6. ``p(q,·)`` = softmax over classes of the class logits. Pixels covered by several masks get the
    confidence-weighted average of their distributions; that is what :class:`SoftMasks` encodes.
+7. Instances: each kept box of a thing class (the class of its best logit in its own pass) is one object
+   instance, its SAM mask the instance's pixels and its confidence the score; where instance masks
+   overlap, the higher score wins the pixel (:class:`~leap_core.labelers.base.Instances`).
 
 Several passes (prompts longer than the text-token budget, or ``mode="per-class"``): every pass
 contributes its regions. A region has logits only for its own pass's classes; for a class of another
@@ -50,7 +53,7 @@ import numpy.typing as npt
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
-from leap_core.labelers.base import ImageModelLabeler, SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, Instances, SoftMasks
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.prompts import (
     NEG_INF,
@@ -368,13 +371,22 @@ def pass_regions(
 
 
 def assemble_soft_masks(
-    results: Sequence[PassResult], class_names: Sequence[str], match_iou: float
+    results: Sequence[PassResult],
+    class_names: Sequence[str],
+    match_iou: float,
+    *,
+    things: npt.ArrayLike | None = None,
 ) -> SoftMasks:
     """Combine the pass results of one image into its :class:`SoftMasks` (C = ``len(class_names)``).
 
     ``probs`` = softmax over classes of the logits filled across passes
     (:func:`~leap_core.labelers.prompts.fill_across_passes`); ``confidence`` = sigmoid of the region's
     best logit in its own pass. Regions whose SAM mask is empty are dropped (they cover no pixel).
+
+    Instances: each kept region whose own class (its best logit's class within its own pass: the class
+    of the prompt that found the box) is a thing (``things``: (C,) bool, default every class) is one
+    instance, its SAM mask the instance's mask and its confidence the instance's score
+    (:class:`~leap_core.labelers.base.Instances`: where masks overlap the higher score wins the pixel).
 
     Raises:
         ValueError: no results, results of different image sizes, or a class name not in ``class_names``.
@@ -404,7 +416,11 @@ def assemble_soft_masks(
     confidence = sigmoid(own.max(axis=1))
     probs = softmax_classes(fill_across_passes(boxes, scores, pass_id, member, match_iou))
     nonempty = bits.any(axis=1)
-    return SoftMasks(h, w, bits[nonempty], probs[nonempty], confidence[nonempty])
+    thing = np.ones(c, bool) if things is None else np.asarray(things, dtype=bool).reshape(c)
+    own_class = own.argmax(axis=1)
+    inst = np.flatnonzero(nonempty & thing[own_class])
+    instances = Instances.from_bits(bits[inst], h, w, own_class[inst], confidence[inst])
+    return SoftMasks(h, w, bits[nonempty], probs[nonempty], confidence[nonempty], instances)
 
 
 # ========================================================================================== labeler
@@ -603,7 +619,9 @@ class GroundedSamLabeler(ImageModelLabeler):
                     if self.cache is not None:
                         self.cache.put(keys[i][p], res)
         return [
-            assemble_soft_masks([r for r in row if r is not None], names, self.config.match_iou)
+            assemble_soft_masks(
+                [r for r in row if r is not None], names, self.config.match_iou, things=schema.things()
+            )
             for row in results
         ]
 

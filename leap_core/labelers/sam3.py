@@ -21,6 +21,9 @@ classes' negative prompts when enabled):
 6. Overlapping masks: a pixel covered by several instances gets their confidence-weighted mean
    distribution (:class:`~leap_core.labelers.base.SoftMasks`); a pixel no kept instance covers carries
    no observation ("no class" is never a class of its own).
+7. Instances: every kept instance of a thing class, after step 4, is one of the image's object instances
+   (:class:`~leap_core.labelers.base.Instances`) with its score ``s``; where their masks overlap, the
+   higher score wins the pixel.
 
 The unit cached is one prompt over one image (:class:`~leap_core.labelers.cache.PassResult` with one
 class column): editing one class's prompts recomputes only those prompts. Keys hold the image digest,
@@ -255,10 +258,13 @@ def assemble_prompt_results(
     results: Sequence[PassResult],
     class_names: Sequence[str],
     match_iou: float,
+    *,
+    things: npt.ArrayLike | None = None,
 ) -> SoftMasks:
     """One image's :class:`SoftMasks` from the results of its prompt jobs (same order): negatives drop
     the instances they beat (:func:`drop_negated`), then the positives are assembled like Grounding DINO +
-    SAM passes (module docstring, step 5)."""
+    SAM passes (module docstring, step 5), each kept instance of a thing class (``things``, (C,) bool;
+    default every class) one of the image's :class:`~leap_core.labelers.base.Instances` with its score."""
     negatives: dict[str, list[PassResult]] = {}
     for job, res in zip(jobs, results, strict=True):
         if job.role == "negative":
@@ -271,7 +277,7 @@ def assemble_prompt_results(
     if not kept:
         h, w = results[0].height, results[0].width
         return SoftMasks.empty(h, w, len(class_names))
-    return assemble_soft_masks(kept, class_names, match_iou)
+    return assemble_soft_masks(kept, class_names, match_iou, things=things)
 
 
 # ========================================================================================== labeler
@@ -481,7 +487,9 @@ class Sam3Labeler(ImageModelLabeler):
         if not jobs:  # a schema whose classes have no prompts: nothing to ask, nothing found
             return [SoftMasks.empty(im.shape[0], im.shape[1], len(names)) for im in images]
         return [
-            assemble_prompt_results(jobs, [r for r in row if r is not None], names, self.config.match_iou)
+            assemble_prompt_results(
+                jobs, [r for r in row if r is not None], names, self.config.match_iou, things=schema.things()
+            )
             for row in results
         ]
 

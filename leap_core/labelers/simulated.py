@@ -48,6 +48,11 @@ Noise model, applied per image in this order (every parameter lives in :class:`S
    (stuff masks: ``0..stuff_bleed_px``), so it spills onto the background around it. Per-mask depth
    clustering in the projection stage is what removes the spill of foreground objects onto points behind.
 
+Instances (docs/METHOD.md A.5a): the ground truth's thing instances (``gt2d/instance``, each id's class the
+most frequent one its pixels carry in ``gt2d/semantic``), jittered with the masks, then missed, merged and
+split (:func:`noisy_instances`). Their draws come from a stream of their own
+(``SeedSequence([seed, frame.number, tag])``), so the masks are what they were without instances.
+
 With every knob off (:meth:`SimulatedLabelerConfig.exact`) each named region is one mask with a one-hot
 distribution and confidence 1, so where every region's name is named by exactly its own class's prompts,
 the per-pixel argmax reproduces the mapped ground truth exactly.
@@ -69,6 +74,7 @@ labeler (``simulated-paper``, beside leap_core; docs/METHOD.md A.7-A.8) is such 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import typing
@@ -78,11 +84,13 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy import ndimage
 
 from leap_core.bounds import SEED_MAX, check_bounds, within
 from leap_core.datasets.kitti import read_png16
 from leap_core.errors import ConfigError, LeapError
-from leap_core.labelers.base import SoftMasks
+from leap_core.labelers.base import Instances, SoftMasks
+from leap_core.schema import MAX_RAW_ID
 from leap_core.synth.names import NAMES_BY_ID, STRENGTHS, generic_name_ids, lexicon_digest, match
 
 if TYPE_CHECKING:
@@ -91,6 +99,13 @@ if TYPE_CHECKING:
 
 # Independent random streams per noise step (see the module docstring, "Determinism").
 _STREAM_JITTER, _STREAM_OBJECT, _STREAM_PROBS, _STREAM_BLEED = range(4)
+
+_INSTANCE_TAG = 0x494E5354
+"""The instance noise's stream ("INST"): ``SeedSequence([seed, frame, tag])``, no stream number that the
+steps above or a subclass's (from :data:`FIRST_FREE_STREAM`) use, so instances never move their draws."""
+
+_INSTANCE_DEFAULTS = {"instance_miss": 0.1, "instance_merge": 0.1, "instance_split": 0.05}
+"""The instance terms' defaults (checked against the config's in the tests): left out of fingerprints."""
 
 FIRST_FREE_STREAM = 4
 """The first stream number this labeler does not draw from: a subclass's terms draw from streams numbered
@@ -206,6 +221,15 @@ class SimulatedLabelerConfig:
     match_temperature: float = field(default=0.1, metadata=within(0, 10))
     """Softness of that competition: class c wins with probability ∝ exp(match_confidence[k(c)] / T);
     0 = the strongest strength always wins (ties drawn uniformly)."""
+    instance_miss: float = field(default=0.1, metadata=within(0, 1))
+    """Probability that an object (a ground-truth instance of a thing class) gets no 2D instance: its
+    box was missed (the same rate as ``recall``'s misses)."""
+    instance_merge: float = field(default=0.1, metadata=within(0, 1))
+    """Probability that two objects of one class whose image regions touch or whose boxes overlap become
+    one instance (one box round a group of people or a row of parked cars)."""
+    instance_split: float = field(default=0.05, metadata=within(0, 1))
+    """Probability that an instance is cut in two across the middle of its longer image axis (an object
+    seen in two parts round an occluder, or two boxes on one long vehicle)."""
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -244,6 +268,9 @@ class SimulatedLabelerConfig:
             match_detection=dict.fromkeys(STRENGTHS, 1.0),
             match_confidence=dict.fromkeys(STRENGTHS, 1.0),
             match_temperature=0.0,
+            instance_miss=0.0,
+            instance_merge=0.0,
+            instance_split=0.0,
         )
 
 
@@ -603,6 +630,11 @@ class SimulatedLabeler:
         """The config as the fingerprint hashes it: every field, the pairs as lists."""
         cfg = asdict(self.cfg)
         cfg["confusion_pairs"] = [list(p) for p in self.cfg.confusion_pairs]
+        # The instance terms only where they differ from their defaults: a run labeled before instances
+        # existed keeps its fingerprint (its 2D cache entries, lacking instances, are recomputed).
+        for name, default in _INSTANCE_DEFAULTS.items():
+            if cfg[name] == default:
+                del cfg[name]
         return cfg
 
     def label(self, frame: Frame, schema: Schema) -> SoftMasks:
@@ -681,14 +713,21 @@ class SimulatedLabeler:
                 rng_i = np.random.default_rng(dist_rng.integers(0, 2**63))
                 confs.append(np.float32(conf[i] * cfg.match_confidence[STRENGTHS[k]]))
                 bits.append(np.packbits(self.paint_part(flat, draws, i, part, radius)))
+        instances = noisy_instances(
+            inst,
+            instance_classes(frame.gt2d_instance, sem, schema),
+            cfg,
+            np.random.SeedSequence([seed, idx, _INSTANCE_TAG]),
+        )
         if not bits:
-            return SoftMasks.empty(h, w, num_classes)
+            return dataclasses.replace(SoftMasks.empty(h, w, num_classes), instances=instances)
         return SoftMasks(
             height=h,
             width=w,
             bits=np.stack(bits),
             probs=np.stack(probs),
             confidence=np.asarray(confs, dtype=np.float32),
+            instances=instances,
         )
 
     # ------------------------------------------------------------------------- steps a subclass extends
@@ -729,6 +768,163 @@ class SimulatedLabeler:
         ``flat`` is a reused zero buffer, returned."""
         del i
         return paint_region(flat, part, radius, draws.h, draws.w)
+
+
+def instance_classes(
+    inst: npt.NDArray[np.uint16], semantic: npt.NDArray[np.uint16], schema: Schema
+) -> npt.NDArray[np.int16]:
+    """(65536,) int16: the thing class of each ground-truth instance id of one image (-1: the id is absent
+    or no thing), the schema class of the raw semantic ids most of its pixels carry (ties: lower class).
+
+    Args:
+        inst: (H, W) ground-truth instance ids (0 = none), before any jitter.
+        semantic: (H, W) raw semantic ids of the same pixels.
+    """
+    out = np.full(MAX_RAW_ID + 1, -1, np.int16)
+    if inst.shape != semantic.shape:
+        raise LeapError(f"instance {inst.shape} and semantic {semantic.shape} masks differ in size")
+    cls = schema.gt_lut()[semantic]
+    things = schema.things()
+    sel = (inst > 0) & (cls >= 0)
+    sel[sel] = things[cls[sel]]
+    if not sel.any():
+        return out
+    c = schema.num_classes
+    key, count = np.unique(inst[sel].astype(np.int64) * c + cls[sel], return_counts=True)
+    ids, classes = key // c, key % c
+    # Per id the most frequent class: sorted by (id, -count, class), the first row of each id.
+    order = np.lexsort((classes, -count, ids))
+    first = np.r_[True, ids[order][1:] != ids[order][:-1]]
+    out[ids[order][first]] = classes[order][first]
+    return out
+
+
+def touching_pairs(ids: npt.NDArray[np.integer]) -> set[tuple[int, int]]:
+    """Pairs (a, b), a < b, of nonzero ids of an (H, W) image with 8-neighbouring pixels."""
+    out: set[tuple[int, int]] = set()
+    for x, y in (
+        (ids[:, :-1], ids[:, 1:]),
+        (ids[:-1, :], ids[1:, :]),
+        (ids[:-1, :-1], ids[1:, 1:]),
+        (ids[:-1, 1:], ids[1:, :-1]),
+    ):
+        sel = (x != y) & (x > 0) & (y > 0)
+        if sel.any():
+            a, b = x[sel].astype(np.int64), y[sel].astype(np.int64)
+            pairs = np.unique(np.minimum(a, b) << 32 | np.maximum(a, b))
+            out.update((int(p >> 32), int(p & 0xFFFFFFFF)) for p in pairs)
+    return out
+
+
+def noisy_instances(
+    inst: npt.NDArray[np.uint16],
+    classes: npt.NDArray[np.int16],
+    cfg: SimulatedLabelerConfig,
+    seed: np.random.SeedSequence,
+) -> Instances:
+    """The simulated labeler's instances of one image: its ground-truth thing instances with misses,
+    merges and splits (docs/METHOD.md A.7, steps 6-8).
+
+    Args:
+        inst: (H, W) ground-truth instance ids (0 = none), jittered like the masks.
+        classes: (65536,) the thing class per id (:func:`instance_classes`; -1 = no thing instance).
+        cfg: ``instance_miss`` p_m, ``instance_merge`` p_g, ``instance_split`` p_s, ``min_region_px``, the
+            ``confidence`` range of the scores.
+        seed: the frame's instance stream. Draws are per ground-truth id (in id order) and per pair, from
+            children of their own per step, so one term's setting never moves another's draws.
+
+    1. Ids with a thing class and at least ``min_region_px`` pixels are the objects; each is missed with
+       probability p_m.
+    2. Two kept objects of one class whose pixels touch (8-neighbours) or whose boxes overlap are merged
+       with probability p_g (a draw per pair; merges chain).
+    3. Each instance (merged or not, drawn by its lowest id) is cut with probability p_s at the middle of
+       its box's longer side (width when equal): pixels before it keep the instance, the others are a new
+       one of the same class and score.
+    4. Scores ``U(confidence)`` by the instance's lowest id; ids are numbered by descending score
+       (:meth:`Instances.from_id_image`).
+    """
+    miss_seq, merge_seq, split_seq, score_seq = seed.spawn(4)
+    gt = np.flatnonzero(classes >= 0)  # every thing id of the image, in id order: the draws' index
+    u_miss = np.random.default_rng(miss_seq).random(gt.size)
+    u_split = np.random.default_rng(split_seq).random(gt.size)
+    u_score = np.random.default_rng(score_seq).random(gt.size)
+    px = np.bincount(inst.ravel(), minlength=MAX_RAW_ID + 1)[gt]
+    kept = gt[(px >= max(cfg.min_region_px, 1)) & (u_miss >= cfg.instance_miss)]
+    groups = _merged(inst, kept, classes, cfg.instance_merge, merge_seq)
+    lut = np.zeros(MAX_RAW_ID + 1, np.int32)
+    lut[kept] = np.searchsorted([g[0] for g in groups], [_group_of(groups, int(g)) for g in kept]) + 1
+    ids = lut[inst]
+    lo, hi = cfg.confidence
+    pos = np.searchsorted(gt, [g[0] for g in groups])
+    label = [int(classes[g[0]]) for g in groups]
+    score = [lo + (hi - lo) * float(u_score[p]) for p in pos]
+    if cfg.instance_split > 0:
+        for n, box in enumerate(ndimage.find_objects(ids)[: len(groups)], start=1):
+            if (
+                box is not None
+                and u_split[pos[n - 1]] < cfg.instance_split
+                and _split(ids, box, n, len(label) + 1)
+            ):
+                label.append(label[n - 1])
+                score.append(score[n - 1])
+    return Instances.from_id_image(ids, label, score)
+
+
+def _group_of(groups: list[list[int]], g: int) -> int:
+    """The lowest id of the group holding id ``g``."""
+    return next(grp[0] for grp in groups if g in grp)
+
+
+def _merged(
+    inst: npt.NDArray[np.uint16],
+    kept: npt.NDArray[np.int64],
+    classes: npt.NDArray[np.int16],
+    p_merge: float,
+    seed: np.random.SeedSequence,
+) -> list[list[int]]:
+    """The kept ids in groups after step 2 of :func:`noisy_instances`, each group sorted, groups by their
+    lowest id. A pair's draw comes from a child of ``seed`` keyed by the two ids, so it never depends on
+    which other pairs exist (a miss elsewhere changes none)."""
+    root = {int(g): int(g) for g in kept}
+
+    def find(a: int) -> int:
+        while root[a] != a:
+            a = root[a]
+        return a
+
+    if p_merge > 0 and kept.size > 1:
+        live = np.where(np.isin(inst, kept), inst, 0)
+        boxes = ndimage.find_objects(live)
+        pairs = touching_pairs(live)
+        for i, a in enumerate(kept):
+            for b in kept[i + 1 :]:
+                sa, sb = boxes[a - 1], boxes[b - 1]
+                if all(x.start < y.stop and y.start < x.stop for x, y in zip(sa, sb, strict=True)):
+                    pairs.add((int(a), int(b)))
+        for a, b in sorted(pairs):
+            if classes[a] != classes[b]:
+                continue
+            child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, a, b))
+            if np.random.default_rng(child).random() < p_merge:
+                ra, rb = find(a), find(b)
+                root[max(ra, rb)] = min(ra, rb)
+    out: dict[int, list[int]] = {}
+    for g in kept:
+        out.setdefault(find(int(g)), []).append(int(g))
+    return [out[r] for r in sorted(out)]
+
+
+def _split(ids: npt.NDArray[np.int32], box: tuple[slice, ...], n: int, new: int) -> bool:
+    """Step 3 of :func:`noisy_instances` in place: instance ``n`` (bounding ``box``) cut at the middle of
+    its box's longer side, the far part numbered ``new``; False when that side is one pixel long."""
+    axis = 1 if box[1].stop - box[1].start >= box[0].stop - box[0].start else 0
+    span = box[axis]
+    if span.stop - span.start < 2:
+        return False
+    coord = np.arange(span.start, span.stop) >= (span.start + span.stop) // 2
+    window = ids[box]
+    window[(window == n) & (coord[None, :] if axis else coord[:, None])] = new
+    return True
 
 
 def paint_region(

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache, partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -67,19 +67,16 @@ _3DCN_GRID_SCALE = 1000
 def _save_soft(path: Path, soft: SoftMasks) -> None:
     # Compressed: packed masks are mostly zero bytes (≈ 10× smaller), and SoftMasks.load reads either form.
     with atomic_write(path, "wb") as fh:
-        np.savez_compressed(
-            fh,
-            size=np.array([soft.height, soft.width], dtype=np.int64),
-            bits=soft.bits,
-            probs=soft.probs,
-            confidence=soft.confidence,
-        )
+        np.savez_compressed(fh, **cast(dict[str, Any], soft.arrays()))
 
 
 def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     """Per frame: the labeler's SoftMasks → ``labels2d/<frame_id>.npz`` (via the shared 2D cache folder
     ``runtime.cache_dir`` when given: entries keyed by the labeler's fingerprint and the frame's inputs,
-    hard-linked into the run folder)."""
+    hard-linked into the run folder).
+
+    A cache entry without instances (written before labelers gave them) is recomputed, not served: the
+    record's ``cache_refreshed`` counts them (absent when none)."""
     labeler = ctx.labeler()
     spec = LABELERS[ctx.cfg.labeler]
     if spec.needs == "gt2d" and not ctx.seq.has_gt2d:
@@ -89,7 +86,7 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
     cache_root = None
     if ctx.cache_dir is not None:
         cache_root = ctx.cache_dir / "labels2d" / hash_json([lfp, ctx.schema.num_classes])[:16]
-    hits = 0
+    hits = refreshed = 0
     cameras = [0] * len(ctx.seq.cameras)
 
     def cache_entry(frame: Frame) -> tuple[Path | None, bool]:
@@ -98,13 +95,11 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
             return None, False
         digest = frame_input_digest(ctx.seq, frame.index, frame.camera)
         entry = cache_root / f"{frame.frame_id}-{digest[:20]}.npz"
-        if entry.is_file():
-            try:
-                SoftMasks.load(entry)
-                return entry, True
-            except DatasetError:
-                pass  # A damaged entry is recomputed and replaced atomically below.
-        return entry, False
+        state = _cache_state(entry)
+        if state == "stale":
+            nonlocal refreshed
+            refreshed += 1
+        return entry, state == "hit"
 
     def work(i: int) -> None:
         nonlocal hits
@@ -130,11 +125,25 @@ def stage_labels2d(ctx: Ctx) -> dict[str, Any]:
 
     extra = ctx.each_frame("labels2d", work)
     extra["cache_hits"] = hits
+    if refreshed:
+        extra["cache_refreshed"] = refreshed
     if len(cameras) > 1:
         extra["camera_images"] = dict(zip((c.name for c in ctx.seq.cameras), cameras, strict=True))
     extra["labeler"] = labeler.name
     extra["weights"] = labeler_weights(labeler)  # the export's provenance: real or random-weight models
     return extra
+
+
+def _cache_state(entry: Path) -> Literal["hit", "miss", "stale"]:
+    """A 2D cache entry is a ``hit``, a ``miss`` (absent or damaged: recomputed and replaced atomically)
+    or ``stale``: it predates instances, so it is recomputed whole under the same key."""
+    if not entry.is_file():
+        return "miss"
+    try:
+        cached = load_soft(entry)
+    except DatasetError:
+        return "miss"
+    return "stale" if cached.instances is None else "hit"
 
 
 def _has_2d_input(frame: Frame, needs: str) -> bool:
@@ -154,9 +163,7 @@ def load_soft(path: Path) -> SoftMasks:
     """:meth:`SoftMasks.load` through :func:`~leap_core.io_utils.read_npz`: the packed masks (compressed,
     ≈ 5 MB unpacked for a demo image) in one zlib call instead of about 20."""
     try:
-        z = read_npz(path)
-        h, w = (int(x) for x in z["size"])
-        return SoftMasks(h, w, z["bits"], z["probs"].astype(np.float32), z["confidence"].astype(np.float32))
+        return SoftMasks.from_arrays(read_npz(path))
     except (OSError, KeyError, ValueError) as exc:
         raise DatasetError(path, f"unreadable 2D label file ({exc})") from exc
 
