@@ -57,9 +57,14 @@ def test_2d_label_files_keep_instances_and_older_files_load_without(tmp_path: Pa
             np.testing.assert_array_equal(loaded.instances.label, ins.label)
             np.testing.assert_array_equal(loaded.instances.score, ins.score)
             np.testing.assert_array_equal(loaded.bits, _soft(ins).bits)
+    # A labeler that gives no instances has an empty set written (not a file from before instances).
+    _save_soft(tmp_path / "none.npz", _soft(None))
+    none = load_soft(tmp_path / "none.npz").instances
+    assert none is not None and none.num_instances == 0 and none.ids.shape == (3, 5)
     # A file written before instances existed: the same members less the instance ones.
     old = tmp_path / "old.npz"
-    _save_soft(old, _soft(None))
+    with old.open("wb") as fh:
+        np.savez_compressed(fh, **_soft(None).arrays())
     with zipfile.ZipFile(old) as z:
         assert sorted(z.namelist()) == ["bits.npy", "confidence.npy", "probs.npy", "size.npy"]
     assert load_soft(old).instances is None and SoftMasks.load(old).instances is None

@@ -642,6 +642,10 @@ def test_instance_noise_draws_per_frame_and_apart_from_each_other(tmp_path: Path
     assert set(merged) <= {3, 4} and len(set(merged)) == 2
     both = counts(instance_miss=0.5, instance_split=1.0)
     assert both == [2 * m for m in missed]  # the same objects missed, each kept one cut in two
+    # Split draws of their own: kept objects (miss draw ≥ 0.5) are cut on some frames (with the miss
+    # draws reused, none would be).
+    half = counts(instance_miss=0.5, instance_split=0.5)
+    assert all(m <= h <= 2 * m for h, m in zip(half, missed, strict=True)) and half != missed
 
 
 def test_instances_leave_the_semantic_masks_as_they_were(seq: KittiSequence) -> None:

@@ -6,6 +6,7 @@ function (docs/ARCHITECTURE.md, "Adding a stage").
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from collections.abc import Callable, Iterator, Sequence
@@ -35,7 +36,7 @@ from leap_core.fusion import (
 )
 from leap_core.io_utils import atomic_save_npz, atomic_write, atomic_write_json, link_or_copy, read_npz
 from leap_core.labelers import LABELERS, LabelerInput, labeler_weights, missing_input
-from leap_core.labelers.base import ImageModelLabeler, SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, Instances, SoftMasks
 from leap_core.pipeline.apply import RunCorrections, check_scan_points, frame_keys, point_labels
 from leap_core.pipeline.context import (
     Ctx,
@@ -65,6 +66,11 @@ _3DCN_GRID_SCALE = 1000
 
 # ------------------------------------------------------------------------------------------ labels2d
 def _save_soft(path: Path, soft: SoftMasks) -> None:
+    """Write a 2D label file; labels without instances (a labeler that gives none) are written with an
+    empty set, so the file is not taken for one from before instances existed (whose 2D cache entry would
+    then be recomputed on every run)."""
+    if soft.instances is None:
+        soft = dataclasses.replace(soft, instances=Instances.empty(soft.height, soft.width))
     # Compressed: packed masks are mostly zero bytes (≈ 10× smaller), and SoftMasks.load reads either form.
     with atomic_write(path, "wb") as fh:
         np.savez_compressed(fh, **cast(dict[str, Any], soft.arrays()))
