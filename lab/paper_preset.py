@@ -77,6 +77,9 @@ PAPER_PRESET: dict[str, Any] = {
         "hypernym": 0.45,
     },
     "match_temperature": 0.1,
+    "instance_miss": 0.1,
+    "instance_merge": 0.1,
+    "instance_split": 0.05,
     "class_confusion": {
         "bicycle": 0.592,
         "bicyclist": 0.592,
