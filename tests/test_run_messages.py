@@ -112,13 +112,13 @@ def test_the_verdict_line_matches_the_stage_list(
     (images_only.root / "poses.txt").unlink()
     code, out = _invoke("check", images_only.root, "--labeler", "simulated", "--models", tmp_path / "none")
     assert code == 1
-    assert out.count("cannot run (") >= 9 + 2  # 9 stages and the 2 labelers
+    assert out.count("cannot run (") >= 10 + 2  # 10 stages and the 2 labelers
     assert "only some stages can run" not in out
-    assert "verdict: no stage can run as set up (all 9 cannot run" in out
+    assert "verdict: no stage can run as set up (all 10 cannot run" in out
     # Some blocked, some not: the line counts them.
     code, out = _invoke("check", images_only.root, "--labeler", "grounded-sam", "--models", models)
     assert code == 1
-    verdict = "verdict: only some stages can run (7 of 9 cannot run: fuse, smooth, 3dcn, label_points, "
+    verdict = "verdict: only some stages can run (8 of 10 cannot run: motion, fuse, smooth, 3dcn, label_points, "
     assert verdict in out
     report = check_dataset(images_only.root, runtime=Runtime(models_dir=models))
     assert report_data(report)["summary"] == summary_text(report)  # what the app shows, too

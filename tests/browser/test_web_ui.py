@@ -105,7 +105,7 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     # ---- run with live per-stage progress
     page.click("#run-button")
     expect(page.locator("#run-status")).to_have_attribute("data-status", "running", timeout=60_000)
-    expect(page.locator(".stage")).to_have_count(9)
+    expect(page.locator(".stage")).to_have_count(10)
     expect(page.locator('.stage[data-stage="00/smooth"] .stage-name')).to_have_text(
         "Smoothing (served label)"
     )
