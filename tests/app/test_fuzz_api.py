@@ -1,6 +1,6 @@
 """schemathesis against the live OpenAPI schema of a real server: no 500s, no undeclared status codes.
 
-The quick version of ``scripts/fuzz_api.py``: 8 examples per operation and phase, about 2,600 requests in
+The quick version of ``scripts/fuzz_api.py``: 5 examples per operation and phase, about 3,300 requests in
 about 30 s on 2 cores, so it meets the acceptance run's 2,000 requests on its own; the script's default (60
 examples) goes further, see docs/SECURITY.md's Input validation.
 """
@@ -27,7 +27,7 @@ def _fuzz_module():  # type: ignore[no-untyped-def]
 
 @pytest.mark.slow
 def test_schemathesis_finds_no_server_errors_and_no_undeclared_statuses(tmp_path: Path) -> None:
-    result = _fuzz_module().fuzz_live_server(tmp_path, max_examples=8, seed=1)
+    result = _fuzz_module().fuzz_live_server(tmp_path, max_examples=5, seed=1)
     assert result.requests >= 2000, result.output[-2000:]
     assert result.server_errors == 0, result.statuses
     assert not result.failures, (result.failures, result.output[-3000:])
