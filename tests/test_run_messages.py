@@ -118,7 +118,9 @@ def test_the_verdict_line_matches_the_stage_list(
     # Some blocked, some not: the line counts them.
     code, out = _invoke("check", images_only.root, "--labeler", "grounded-sam", "--models", models)
     assert code == 1
-    verdict = "verdict: only some stages can run (8 of 10 cannot run: motion, fuse, smooth, 3dcn, label_points, "
+    verdict = (
+        "verdict: only some stages can run (8 of 10 cannot run: motion, fuse, smooth, 3dcn, label_points, "
+    )
     assert verdict in out
     report = check_dataset(images_only.root, runtime=Runtime(models_dir=models))
     assert report_data(report)["summary"] == summary_text(report)  # what the app shows, too
