@@ -5,9 +5,10 @@ Runs the pipeline on one sequence in one run folder: first with ``tracking.enabl
 the labels of a run without objects), then with it on and ``tracking.vote: all`` (every track's points
 take its voted class), then ``tracking.vote: moving`` (only moving tracks' points do), both with
 ``tracking.exclude_moving: false`` (every point fused: only ``tracks``, ``evaluate`` and ``export`` run
-again), then ``vote: moving`` with ``exclude_moving: true`` (the default: the ``motion`` stage finds movers
-before the fusion, which leaves them out, so the fusion and what follows run again). Prints, for each
-(docs/RESULTS.md "Objects"):
+again), then ``vote: moving`` with ``exclude_moving: true`` (the ``motion`` stage finds movers before the
+fusion, which leaves them out, so the fusion and what follows run again). ``--segments euclidean,masks``
+does the three objects runs once per ``tracking.segments`` setting. Prints, for each (docs/RESULTS.md
+"Objects"):
 
 - moving-person points with the right class: ground-truth raw id 254 points whose exported class is person
   (all points);
@@ -24,6 +25,7 @@ Usage::
     .venv/bin/leap synth /tmp/demo
     .venv/bin/python benchmarks/bench_objects.py --sequence /tmp/demo/sequences/00
     .venv/bin/python benchmarks/bench_objects.py --quick     # a generated 3-frame street
+    .venv/bin/python benchmarks/bench_objects.py --segments euclidean,masks   # both segmentations
 
 Writes ``benchmarks/results/bench_objects.json``.
 """
@@ -119,6 +121,12 @@ def main() -> None:
         default="{}",
         help="JSON of further tracking settings for every run (e.g. '{\"moving_distance\": 2}').",
     )
+    ap.add_argument(
+        "--segments",
+        default="euclidean",
+        help="Comma-separated tracking.segments settings to run each objects run with (e.g. "
+        "'euclidean,masks': every objects run once per setting, the column names say which).",
+    )
     args = ap.parse_args()
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_objects_"))
@@ -133,15 +141,26 @@ def main() -> None:
     out = work / "run"
     results: dict[str, Any] = {}
     extra = json.loads(args.tracking)
-    runs = (
-        ("without objects", False, "moving", False),
-        ("vote all", True, "all", False),
-        ("vote moving", True, "moving", False),
-        ("movers kept out", True, "moving", True),
-    )
-    for name, enabled, vote, exclude in runs:
+    settings = [x.strip() for x in args.segments.split(",") if x.strip()]
+    runs = [("without objects", False, "moving", False, settings[0])]
+    for seg in settings:
+        tag = f" ({seg})" if len(settings) > 1 else ""
+        runs += [
+            (f"vote all{tag}", True, "all", False, seg),
+            (f"vote moving{tag}", True, "moving", False, seg),
+            (f"movers kept out{tag}", True, "moving", True, seg),
+        ]
+    for name, enabled, vote, exclude, seg in runs:
         cfg = config_from_dict(
-            {"tracking": {**extra, "enabled": enabled, "vote": vote, "exclude_moving": exclude}},
+            {
+                "tracking": {
+                    **extra,
+                    "enabled": enabled,
+                    "vote": vote,
+                    "exclude_moving": exclude,
+                    "segments": seg,
+                }
+            },
             PipelineConfig(),
         )
         res = run_pipeline([SequenceSpec.of(seq_dir)], schema, cfg, out).only()

@@ -5,8 +5,12 @@ Pure functions on arrays; the pipeline stage (:mod:`leap_core.pipeline.stages`, 
 
 1. **Segments.** A scan's thing points (points whose own label or per-scan projected label is a thing
    class) are grouped by Euclidean clustering on a grid (:func:`euclidean_segments`): cubes of side
-   ``cluster_radius`` that touch are connected (scipy's ``connected_components``). Segments with fewer
-   than ``min_segment_points`` points are dropped.
+   ``cluster_radius`` that touch are connected (scipy's ``connected_components``). With ``segments:
+   masks`` (:func:`mask_segments`) the points of one 2D instance mask (those the projection kept after
+   depth clustering) form one segment whatever their distance, so two people side by side, one mask
+   each, are two segments; the points no mask covers join the mask of their nearest covered point in the
+   same Euclidean cluster, or form that cluster's own segment where it holds no covered point. Segments
+   with fewer than ``min_segment_points`` points are dropped.
 2. **Tracks.** Each live track predicts its centroid at the scan's time with a constant-velocity model,
    ``ĉ = c_last + v · (t - t_last)``; the cost of giving segment s to track k is ``‖ĉ_k - c_s‖`` (world
    coordinates), pairs above ``gate`` are forbidden and the one-to-one assignment of least total cost is
@@ -39,6 +43,7 @@ import numpy.typing as npt
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError
@@ -82,10 +87,17 @@ class TrackingConfig:
     finds movers from the final labels too, which on the demo street labels more moving points right
     (docs/METHOD.md B.6 gives the measured trade)."""
 
+    segments: Literal["masks", "euclidean"] = "euclidean"
+    """How a scan's thing points form segments: ``euclidean`` (3D clustering only) or ``masks`` (one
+    segment per 2D instance mask, Euclidean clustering for the points no mask covers; module docstring,
+    step 1; docs/METHOD.md B.6 gives the measured figures behind the default)."""
+
     def __post_init__(self) -> None:
         check_bounds(self)
         if self.vote not in ("moving", "all"):
             raise ConfigError(f"must be 'moving' or 'all', got {self.vote!r}", field=("vote",))
+        if self.segments not in ("masks", "euclidean"):
+            raise ConfigError(f"must be 'masks' or 'euclidean', got {self.segments!r}", field=("segments",))
 
 
 def euclidean_segments(xyz: npt.ArrayLike, radius: float, min_points: int) -> npt.NDArray[np.int64]:
@@ -119,16 +131,65 @@ def euclidean_segments(xyz: npt.ArrayLike, radius: float, min_points: int) -> np
     a, b = np.concatenate(src), np.concatenate(dst)
     graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(m, m))
     _, comp_of_cell = connected_components(graph, directed=False)
-    comp = comp_of_cell[of_point.reshape(-1)]
-    sizes = np.bincount(comp)
+    return _numbered(comp_of_cell.astype(np.int64)[of_point.reshape(-1)], min_points)
+
+
+def _numbered(group: npt.NDArray[np.int64], min_points: int) -> npt.NDArray[np.int64]:
+    """(N,) the groups 0..G-1 of ``group`` (N,) renumbered 0, 1, ... by their first point, -1 for those
+    under ``min_points`` points: a numbering that no internal order of the grouping shows through."""
+    n = group.shape[0]
+    sizes = np.bincount(group)
     first = np.full(sizes.size, n, np.int64)
-    np.minimum.at(first, comp, np.arange(n))
+    np.minimum.at(first, group, np.arange(n))
     keep = sizes >= min_points
     order = np.argsort(np.where(keep, first, n + 1), kind="stable")
     rank = np.full(sizes.size, -1, np.int64)
     rank[order[: int(keep.sum())]] = np.arange(int(keep.sum()))
-    out: npt.NDArray[np.int64] = rank[comp]
+    out: npt.NDArray[np.int64] = rank[group]
     return out
+
+
+def mask_segments(
+    xyz: npt.ArrayLike, instance: npt.ArrayLike, radius: float, min_points: int
+) -> npt.NDArray[np.int64]:
+    """(N,) int64 segment index 0..S-1 per point, -1 for points of segments under ``min_points``: one
+    segment per 2D instance, Euclidean clustering for the rest.
+
+    Args:
+        xyz: (N, 3) points (world or sensor coordinates; only distances matter).
+        instance: (N,) int 2D instance of each point (:func:`leap_core.instances.point_instances`),
+            0 = none.
+        radius: the Euclidean clustering's cube side (:func:`euclidean_segments`).
+        min_points: smallest segment kept.
+
+    Rule: let E be the Euclidean clusters of all N points (:func:`euclidean_segments` with no size
+    floor). Points with the same instance k > 0 are one segment, even where E splits them (a mask's
+    points after depth clustering belong to one object). A point with instance 0 takes the instance of
+    its nearest point with an instance if that point lies in the same cluster of E (a limb outside the
+    image, or returns a mask's edge missed, beside the masked rest); the points of a cluster of E that
+    holds no instance form one segment, as :func:`euclidean_segments` would make it. Segments are
+    numbered by their first point.
+    """
+    pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    ins = np.asarray(instance, dtype=np.int64).reshape(-1)
+    n = pts.shape[0]
+    if ins.shape[0] != n:
+        raise ValueError(f"{ins.shape[0]} instance ids for {n} points")
+    if n == 0:
+        return np.zeros(0, np.int64)
+    comp = euclidean_segments(pts, radius, 1)
+    covered = np.flatnonzero(ins > 0)
+    # Segment keys: instance k → k; a cluster c of E with no covered point → max instance + 1 + c.
+    key = ins.copy()
+    free = np.flatnonzero(ins == 0)
+    if free.size and covered.size:
+        near = np.asarray(cKDTree(pts[covered]).query(pts[free])[1], np.int64).reshape(-1)
+        same = comp[covered[near]] == comp[free]
+        key[free[same]] = ins[covered[near[same]]]
+        free = free[~same]
+    key[free] = int(ins.max(initial=0)) + 1 + comp[free]
+    _, seg = np.unique(key, return_inverse=True)
+    return _numbered(seg.reshape(-1).astype(np.int64), min_points)
 
 
 def segment_summary(
@@ -355,6 +416,7 @@ __all__ = [
     "TrackingConfig",
     "associate",
     "euclidean_segments",
+    "mask_segments",
     "moving_only",
     "segment_summary",
     "stack_tables",

@@ -3,6 +3,7 @@ tracked with one id, exported with its moving id, and nothing static takes a mov
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +11,13 @@ import pytest
 from runhelpers import label
 from test_pipeline import make_street
 
-from leap_core.config import PipelineConfig
+from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import KittiSequence, read_label
+from leap_core.pipeline.context import Ctx
+from leap_core.pipeline.objects import scan_instances
+from leap_core.pipeline.stages import STAGE_TABLE
 from leap_core.pipeline.tracks_file import SequenceTracks
+from leap_core.run_layout import SequenceLayout
 from leap_core.schema import builtin_schema
 
 pytestmark = pytest.mark.slow
@@ -61,3 +66,48 @@ def test_nothing_static_is_moving(run: tuple[KittiSequence, Path]) -> None:
     # The parked cars are objects too: tracked, with ids, static.
     parked = (gt & 0xFFFF) == CAR
     assert ((out[parked] >> 16) > 0).mean() > 0.8
+
+
+def test_mask_segments_follow_the_2d_instances_and_rerun_only_the_objects(
+    run: tuple[KittiSequence, Path], tmp_path: Path
+) -> None:
+    seq, folder = run
+    out = tmp_path / "run"
+    shutil.copytree(folder.parents[1], out)
+    cfg = config_from_dict({"tracking": {"segments": "masks"}}, PipelineConfig())
+    schema = builtin_schema("semantickitti")
+    res = label(seq.root, schema, cfg, out)
+    assert res.ran == ["tracks", "evaluate", "export"]
+    ctx = Ctx(
+        seq,
+        schema,
+        cfg,
+        SequenceLayout(res.folder),
+        range(len(seq)),
+        None,
+        None,
+        {s.name: s for s in STAGE_TABLE},
+    )
+    tracks = SequenceTracks.load(res.folder / "tracks.npz")
+    covered = right = 0
+    for i, fid in enumerate(seq.frame_ids):
+        ins = scan_instances(ctx, i)
+        obj = tracks.scan(fid)
+        # A mask's tracked points share one track, and two masks never share one.
+        pairs = np.unique(np.c_[ins[obj.rows], obj.track][ins[obj.rows] > 0], axis=0)
+        assert np.unique(pairs[:, 0]).size == np.unique(pairs[:, 1]).size == len(pairs)
+        gt = seq.frame(i).labels >> 16
+        assert ins.shape == gt.shape
+        # Each 2D instance's points are mostly one object of the ground truth (a mask's edge bleeds onto
+        # the road: the simulated labeler's noise and the depth clustering's edges).
+        for k in np.unique(ins[ins > 0]):
+            ids, counts = np.unique(gt[ins == k], return_counts=True)
+            assert ids[counts.argmax()] > 0
+            covered += int(counts.sum())
+            right += int(counts.max())
+    assert covered > 0 and right >= 0.9 * covered
+    gt, exported = _exported(seq, res.folder)
+    mover = (gt & 0xFFFF) == MOVING_CAR
+    ids, counts = np.unique(exported[mover] >> 16, return_counts=True)
+    counts[ids == 0] = 0
+    assert ids[counts.argmax()] > 0 and counts.max() >= 0.6 * mover.sum()

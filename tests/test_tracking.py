@@ -13,6 +13,7 @@ from leap_core.tracking import (
     TrackingConfig,
     associate,
     euclidean_segments,
+    mask_segments,
     segment_summary,
     track_ids,
     track_table,
@@ -94,6 +95,8 @@ def test_config_bounds() -> None:
         TrackingConfig(cluster_radius=0)
     with pytest.raises(ConfigError, match="vote: must be 'moving' or 'all'"):
         TrackingConfig(vote="static")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="segments: must be 'masks' or 'euclidean'"):
+        TrackingConfig(segments="voxels")  # type: ignore[arg-type]
 
 
 def _two_tracks(cfg: TrackingConfig) -> SequenceTracks:
@@ -138,3 +141,31 @@ def test_grid_clustering_joins_chains_and_keeps_two_metres_apart() -> None:
     assert set(euclidean_segments(chain, 0.5, 1).tolist()) == {0}
     two = np.array([[0.0, 0, 0], [0.2, 0, 0], [2.2, 0, 0], [2.4, 0, 0]])
     assert euclidean_segments(two, 0.5, 1).tolist() == [0, 0, 1, 1]
+
+
+def test_two_people_side_by_side_with_a_mask_each_are_two_segments() -> None:
+    # Two people 0.3 m apart (one Euclidean cluster at 0.5 m), one 2D instance mask each (ids 3 and 7);
+    # a point outside the image (instance 0) at person B's shoulder; a third person outside the image,
+    # 5 m away; a 2-point instance under the size floor.
+    rng = np.random.default_rng(1)
+    a = rng.uniform([0.0, 0, 0], [0.3, 0.3, 1.7], (40, 3))
+    b = rng.uniform([0.6, 0, 0], [0.9, 0.3, 1.7], (40, 3))
+    limb = np.array([[1.05, 0.1, 1.2]])  # 0.15 m beyond B's edge, nearest to B's points
+    far = rng.uniform([5.0, 0, 0], [5.3, 0.3, 1.7], (30, 3))
+    tiny = np.array([[9.0, 0, 0], [9.1, 0, 0]])
+    xyz = np.concatenate([a, b, limb, far, tiny])
+    ins = np.r_[np.full(40, 3), np.full(40, 7), 0, np.zeros(30, int), [9, 9]]
+    seg = mask_segments(xyz, ins, radius=0.5, min_points=5)
+    assert seg.tolist() == [0] * 40 + [1] * 41 + [2] * 30 + [-1, -1]
+    # Euclidean clustering alone joins the two people.
+    assert set(euclidean_segments(xyz[:81], 0.5, 5).tolist()) == {0}
+    # A mask's points stay one segment even where they are apart in 3D (depth clustering kept them).
+    apart = np.concatenate([a, a + np.array([3.0, 0, 0])])
+    assert set(mask_segments(apart, np.full(80, 4), 0.5, 5).tolist()) == {0}
+    # An uncovered point takes no mask whose points are in another Euclidean cluster.
+    lone = np.concatenate([a, far])
+    got = mask_segments(lone, np.r_[np.full(40, 2), np.zeros(30, int)], 0.5, 5)
+    assert got.tolist() == [0] * 40 + [1] * 30
+    assert mask_segments(np.zeros((0, 3)), np.zeros(0, int), 0.5, 1).shape == (0,)
+    with pytest.raises(ValueError, match="instance ids"):
+        mask_segments(xyz, ins[:-1], 0.5, 5)

@@ -26,14 +26,18 @@ import numpy.typing as npt
 from leap_core.errors import DatasetError, LeapError
 from leap_core.fusion import voxel_keys
 from leap_core.geometry import affine_points
+from leap_core.instances import CameraInstances, point_instances
 from leap_core.io_utils import read_npz
+from leap_core.labelers.base import Instances
 from leap_core.pipeline.apply import RunCorrections
 from leap_core.pipeline.context import Ctx, load_observation, ordered_map
 from leap_core.pipeline.tracks_file import SequenceTracks
+from leap_core.projection import project_points
 from leap_core.tracking import (
     TrackingConfig,
     TrackTable,
     euclidean_segments,
+    mask_segments,
     moving_only,
     segment_summary,
     stack_tables,
@@ -89,6 +93,71 @@ def corrected_rows(
     (map scope: its voxel; scan scope: the point): a correction wins over a track's class vote."""
     scan_points, _ = corr.scan.of(frame_id)
     return np.isin(keys, corr.map_keys) | np.isin(rows, scan_points)
+
+
+_INSTANCE_MEMBERS = ("size", "instance_ids", "instance_label", "instance_score")
+
+
+def scan_instances(ctx: Ctx, i: int) -> npt.NDArray[np.int32]:
+    """(N,) int32 the 2D instance each point of frame ``i``'s scan falls in (0 = none), numbered across
+    the frame's cameras (:func:`~leap_core.instances.point_instances`).
+
+    Nothing is stored for it: the scan is projected into each camera again (as the ``project`` stage did,
+    ``projection.min_depth``), the instance ids come from the 2D label files, and the points the
+    depth clustering kept in a camera are those its observation painted (``observations/``, per camera
+    by its ``camera`` member). A 2D label file without instances (written before they existed) adds none.
+    """
+    fid = ctx.fid(i)
+    obs = ctx.layout.observation(fid)
+    rig = ctx.seq.cameras
+    try:
+        z = read_npz(obs, ("point_idx", "n_points", *(("camera",) if len(rig) > 1 else ())))
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(obs, f"unreadable observation file ({exc})") from exc
+    n = int(z["n_points"])
+    painted = np.asarray(z["point_idx"], np.int64)
+    camera = np.asarray(z["camera"], np.int64) if "camera" in z else np.zeros(painted.size, np.int64)
+    pts: npt.NDArray[np.float32] | None = None
+    views: list[CameraInstances] = []
+    for k, cam in enumerate(rig):
+        path = ctx.layout.labels2d(fid, cam.name if k else None)
+        if k and not path.is_file():
+            continue
+        try:
+            arrays = read_npz(path, _INSTANCE_MEMBERS)
+        except KeyError:
+            continue
+        except (OSError, ValueError) as exc:
+            raise DatasetError(path, f"unreadable 2D label file ({exc})") from exc
+        h, w = (int(x) for x in arrays["size"])
+        try:
+            ins = Instances(
+                np.asarray(arrays["instance_ids"], np.int32),
+                np.asarray(arrays["instance_label"], np.int16),
+                np.asarray(arrays["instance_score"], np.float32),
+            )
+        except ValueError as exc:
+            raise DatasetError(path, f"unreadable 2D label file ({exc})") from exc
+        if ins.num_instances == 0:
+            continue
+        if pts is None:
+            pts = ctx.seq.frame(i).points
+        proj = project_points(pts, ctx.seq.lidar_to_image(i, k), h, w, ctx.cfg.projection.min_depth)
+        kept = np.isin(proj.idx, painted[camera == k])
+        views.append(CameraInstances(proj.idx, proj.u, proj.v, kept, ins))
+    return point_instances(n, views).point
+
+
+def segment_points(
+    ctx: Ctx, i: int, rows: npt.NDArray[np.int64], xyz: npt.NDArray[np.float64]
+) -> npt.NDArray[np.int64]:
+    """Segments of frame ``i``'s thing points ``rows`` (P,) at world ``xyz`` (P, 3) by the run's
+    ``tracking.segments`` (:func:`~leap_core.tracking.euclidean_segments` or
+    :func:`~leap_core.tracking.mask_segments`): (P,) segment index, -1 = dropped."""
+    cfg = ctx.cfg.tracking
+    if cfg.segments == "euclidean" or not rows.size:
+        return euclidean_segments(xyz, cfg.cluster_radius, cfg.min_segment_points)
+    return mask_segments(xyz, scan_instances(ctx, i)[rows], cfg.cluster_radius, cfg.min_segment_points)
 
 
 Segments = tuple[
@@ -163,6 +232,7 @@ def motion_inputs(ctx: Ctx) -> dict[str, Any]:
         "moving_speed",
         "moving_distance",
         "min_track_scans",
+        "segments",
     )
     return {
         "tracking": {k: getattr(cfg, k) for k in used},
@@ -179,7 +249,6 @@ def stage_motion(ctx: Ctx) -> dict[str, Any]:
     over all its scans. Manual corrections play no part here (the ``tracks`` stage leaves corrected points
     out of objects), so a scan-scope correction does not fuse again.
     """
-    cfg = ctx.cfg.tracking
     things = ctx.schema.things()
 
     def segments(i: int) -> Segments:
@@ -189,7 +258,7 @@ def stage_motion(ctx: Ctx) -> dict[str, Any]:
         rows, votes = thing_votes(np.full(n, UNLABELED, np.int16), point_label, things)
         frame = ctx.seq.frame(i)
         xyz = affine_points(frame.points_at(rows)[:, :3], frame.pose[:3]) if rows.size else np.zeros((0, 3))
-        seg = euclidean_segments(xyz, cfg.cluster_radius, cfg.min_segment_points)
+        seg = segment_points(ctx, i, rows, xyz)
         centroid, hist, box = segment_summary(xyz, seg, votes, things.shape[0])
         keep = seg >= 0
         return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, np.ones(int(keep.sum()), bool)
@@ -219,7 +288,6 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
     ``motion`` stage's movers (ids 1..M, kept as that stage found them: their points were left out of the
     map, so their final labels hold no word of theirs). Points a manual correction labels are left out
     (their label is the correction's)."""
-    cfg = ctx.cfg.tracking
     things = ctx.schema.things()
     corr = RunCorrections.of_run(ctx.layout, ctx.schema.num_classes)
     movers = read_motion(ctx)
@@ -250,7 +318,7 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
         xyz = affine_points(frame.points_at(rows)[:, :3], frame.pose[:3]) if rows.size else np.zeros((0, 3))
         free = ~corrected_rows(corr, fid, rows, voxel_keys(xyz, vs))
         rows, votes, xyz, final_thing = rows[free], votes[free], xyz[free], final_thing[free]
-        seg = euclidean_segments(xyz, cfg.cluster_radius, cfg.min_segment_points)
+        seg = segment_points(ctx, i, rows, xyz)
         centroid, hist, box = segment_summary(xyz, seg, votes, things.shape[0])
         keep = seg >= 0
         return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, final_thing[keep]
@@ -287,7 +355,9 @@ __all__ = [
     "motion_enabled",
     "motion_inputs",
     "read_motion",
+    "scan_instances",
     "scan_times",
+    "segment_points",
     "stage_motion",
     "stage_tracks",
     "thing_votes",
