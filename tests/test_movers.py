@@ -126,8 +126,8 @@ def test_reruns_follow_the_switch_and_not_the_vote(
     street: KittiSequence, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
     """The motion stage sits before the fusion in the fingerprints: switching ``exclude_moving`` on fuses
-    again; another ``vote`` with it on redoes only the tracks and what follows; switching it off again
-    fuses every point once more."""
+    again; another ``vote`` with it on redoes only the tracks and what follows, another ``segments`` the
+    motion stage too; switching it off again fuses every point once more."""
     out = tmp_path_factory.mktemp("runs") / "resume"
     schema = builtin_schema("semantickitti")
     first = label(street.root, schema, _config(False), out)
@@ -136,6 +136,9 @@ def test_reruns_follow_the_switch_and_not_the_vote(
     assert on.ran == ["motion", "fuse", "smooth", "label_points", "tracks", "evaluate", "export"]
     voted = config_from_dict({"tracking": {"vote": "all"}}, _config(True))
     assert label(street.root, schema, voted, out).ran == ["tracks", "evaluate", "export"]
+    # The motion stage segments too: another tracking.segments finds its movers again.
+    masks = config_from_dict({"tracking": {"segments": "masks"}}, _config(True))
+    assert label(street.root, schema, masks, out).ran[0] == "motion"
     off = label(street.root, schema, _config(False), out)
     assert off.ran == ["fuse", "smooth", "label_points", "tracks", "evaluate", "export"]
     assert not (out / "sequences" / "00" / "motion.npz").exists()
