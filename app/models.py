@@ -622,6 +622,11 @@ class ChangePublic(BaseModel):
     ignored: str | None = Field(
         default=None, description="a parameter the newer configuration ignores: why (it changed nothing)"
     )
+    field: str | None = Field(
+        default=None,
+        description="a change of one class's field: which (`prompts`, `gt_ids`, `export_id`, `thing`, "
+        "`moving_id`, ...); null for a class added, removed or reordered and for the other kinds",
+    )
 
 
 class ClassDelta(BaseModel):
