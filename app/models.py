@@ -606,8 +606,8 @@ class MetricsPublic(BaseModel):
     )
     sequences: list[str] = Field(
         default_factory=list,
-        description="a run of several sequences: those with metrics of their own "
-        "(`?sequence=`), in run order; empty for a run of one sequence",
+        description="the run's sequences with metrics of their own (`?sequence=`), in run order: "
+        "one name for a run of one sequence, whose own figures are that sequence's",
     )
 
 

@@ -130,6 +130,9 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
         run1 = max(api.get(f"/projects/{project_id}/runs").json()["data"], key=lambda r: r["id"])
         objects1 = api.get(f"/runs/{run1['id']}/metrics").json()["metrics"]["objects"]
     expect(page.locator("#object-table tbody tr")).to_have_count(7)
+    # One sequence: its figures are the run's own, not an "overall" of several.
+    expect(page.locator("#metrics-headline")).not_to_contain_text("overall")
+    expect(page.locator("#object-scores-note")).to_have_count(0)
     expect(page.locator('#object-table tr[data-score="pq-camera"] td.score')).to_have_text(
         f"{100 * objects1['camera']['PQ']:.1f}"
     )

@@ -281,7 +281,7 @@ export async function renderCompare(ctx) {
   replace(
     el,
     h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, seqNames), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
-    headline(state, latest, all[all.length - 1].metrics, seqNames.length > 0),
+    headline(state, latest, all[all.length - 1].metrics, seqNames.length > 1),
     protocolNotes,
     staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
