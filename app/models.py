@@ -606,8 +606,8 @@ class MetricsPublic(BaseModel):
     )
     sequences: list[str] = Field(
         default_factory=list,
-        description="a run of several sequences: those with metrics of their own "
-        "(`?sequence=`), in run order; empty for a run of one sequence",
+        description="the run's sequences with metrics of their own (`?sequence=`), in run order: "
+        "one name for a run of one sequence, whose own figures are that sequence's",
     )
 
 
@@ -621,6 +621,11 @@ class ChangePublic(BaseModel):
     text: str = Field(description="one line for people")
     ignored: str | None = Field(
         default=None, description="a parameter the newer configuration ignores: why (it changed nothing)"
+    )
+    field: str | None = Field(
+        default=None,
+        description="a change of one class's field: which (`prompts`, `gt_ids`, `export_id`, `thing`, "
+        "`moving_id`, ...); null for a class added, removed or reordered and for the other kinds",
     )
 
 

@@ -6,6 +6,7 @@ Routes stay thin: they parse the request, call one function here or in :mod:`app
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import threading
@@ -884,7 +885,9 @@ def metrics_public(metrics: SequenceMetrics | None) -> dict[str, Any] | None:
         "descriptions": {protocol: text}, "rows": [...], "coverage_ratio": {row: x}, ...}``, or None
         without metrics or without any protocol's table. A protocol over merged classes (the paper's) has
         its classes in ``views`` ({protocol: {class_names, categories, merge: {class: [schema classes]}}});
-        ``notes`` ({protocol: text}) says why a protocol is absent.
+        ``notes`` ({protocol: text}) says why a protocol is absent; ``objects`` the object scores
+        (``camera`` / ``all`` → PQ, SQ, RQ, each ``_things`` / ``_stuff``; ``motion`` → ``mos_iou``,
+        ``s_assoc``, ``moving_points``; ``moving_right_class``), null when the run tracked no objects.
     """
     if metrics is None or not metrics.tables:
         return None
@@ -908,6 +911,7 @@ def metrics_public(metrics: SequenceMetrics | None) -> dict[str, Any] | None:
             else {}
         ),
         "notes": dict(metrics.protocol_notes),
+        "objects": None if metrics.objects is None else {k: dict(v) for k, v in metrics.objects.items()},
     }
 
 
@@ -931,7 +935,14 @@ def sequence_metrics(run: RunRow, sequence: str | None) -> dict[str, Any] | None
         InvalidField: ``sequence`` is not one of the run's sequences (``[query, sequence]``).
     """
     if sequence is None:
-        return metrics_public(overall(run))
+        own = overall(run)
+        names = metrics_sequences(run)
+        if own is not None and own.objects is None and len(names) == 1 and run.metrics is not None:
+            # Object scores are a sequence's (tracks do not span sequences): a run of one sequence shows
+            # them as its own, a run of several per sequence.
+            one = run.metrics.sequence(names[0])
+            own = dataclasses.replace(own, objects=None if one is None else one.objects)
+        return metrics_public(own)
     names = run.params.names
     if sequence not in names:
         raise InvalidField(

@@ -29,6 +29,7 @@ from leap_core.io_utils import link_or_copy
 from leap_core.pipeline import STAGE_TABLE, stage_fingerprints
 from leap_core.pipeline.context import read_state
 from leap_core.pipeline.steering import (
+    OBJECT_FIELDS,
     Change,
     CorrectionNote,
     StagePlan,
@@ -45,7 +46,7 @@ from leap_core.schema import Schema
 # ------------------------------------------------------------------------------------------ steering
 def _change_public(change: Change) -> models.ChangePublic:
     return models.ChangePublic(
-        kind=change.kind, subject=change.subject, text=change.text, ignored=change.ignored
+        kind=change.kind, subject=change.subject, text=change.text, ignored=change.ignored, field=change.field
     )
 
 
@@ -149,7 +150,9 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
         "correction": "the corrections changed",
         "poses": "the poses changed",
     }
-    hint = "; ".join(dict.fromkeys(kinds[c.kind] for c in changes if c.kind in kinds and c.ignored is None))
+    hint = "; ".join(
+        dict.fromkeys(_change_hint(c, kinds) for c in changes if c.kind in kinds and c.ignored is None)
+    )
     per_sequence = []
     try:
         schema = Schema.from_dict(project.schema, source="classes")
@@ -198,6 +201,14 @@ def run_preview(db: sqlite_utils.Database, settings: Settings, project_id: int) 
         changes=changes,
         stale=stale,
     )
+
+
+def _change_hint(change: models.ChangePublic, kinds: dict[str, str]) -> str:
+    """The reason a change gives a stage it reruns: a class's thing flag or moving id is named as such, as
+    only the object stages (tracks, evaluation, export) read them."""
+    if change.kind == "class" and change.field in OBJECT_FIELDS:
+        return "a class's thing flag or moving id changed"
+    return kinds[change.kind]
 
 
 def _merged_plans(per_sequence: list[tuple[str, list[StagePlan]]]) -> list[StagePlan]:

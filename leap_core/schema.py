@@ -301,11 +301,21 @@ def _normalise_class(  # noqa: PLR0913  # keyword-only: a class's fields
     return out
 
 
+def object_fields(entry: Mapping[str, Any]) -> tuple[bool, int | None]:
+    """A stored class entry's ``(thing, moving_id)`` as a schema reads it: an entry written before classes
+    had the two keys is :data:`SEMANTICKITTI_THINGS`' entry for its name and export id, else stuff; a
+    moving id alone makes a thing. Unchecked (the entry was checked when it was stored)."""
+    thing, moving_id = entry.get("thing"), entry.get("moving_id")
+    if thing is None and moving_id is None:
+        key = (entry.get("name"), entry.get("export_id"))
+        return key in SEMANTICKITTI_THINGS, SEMANTICKITTI_THINGS.get(key)  # type: ignore[arg-type]
+    return (True if thing is None else bool(thing)), (None if moving_id is None else int(moving_id))
+
+
 def _thing_fields(name: str, export_id: int, thing: object, moving_id: object) -> tuple[bool, int | None]:
     """``(thing, moving_id)`` checked; both unset → :data:`SEMANTICKITTI_THINGS`' entry or stuff."""
     if thing is None and moving_id is None:
-        standard = (name, export_id) in SEMANTICKITTI_THINGS
-        return standard, SEMANTICKITTI_THINGS.get((name, export_id))
+        return object_fields({"name": name, "export_id": export_id})
     if thing is None:
         thing = True
     if not isinstance(thing, (bool, np.bool_)):
@@ -781,6 +791,7 @@ __all__ = [
     "class_name_problem",
     "load_project_file",
     "load_schema",
+    "object_fields",
     "projects_dir",
     "read_class_list",
     "save_schema",

@@ -3,6 +3,7 @@ changes and the all-points labeled share."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import itertools
 import json
@@ -198,6 +199,25 @@ def test_run_changes_list_classes_prompts_ids_and_parameters() -> None:
     assert [c.text for c in ids] == ["ground-truth ids of car: [10, 252] → none"]
     sections = changed_sections(config_to_dict(PipelineConfig()), new["pipeline"])
     assert sections == ["grounded_sam", "smoothing"]
+
+
+def test_run_changes_name_a_class_s_thing_flag_and_moving_id() -> None:
+    schema = builtin_schema("semantickitti")
+    old = _snapshot(schema, PipelineConfig())
+    edits = {"car": {"moving_id": None}, "truck": {"thing": False, "moving_id": None}}
+    edited = [dataclasses.replace(c, **edits.get(c.name, {})) for c in schema.classes]
+    assert edited[0].name == "car" and schema.classes[0].moving_id == 252
+    changes = run_changes(old, _snapshot(schema.with_classes(edited), PipelineConfig()))
+    assert [(c.kind, c.subject, c.field, c.text) for c in changes] == [
+        ("class", "car", "moving_id", "moving id of car: 252 → none"),
+        ("class", "truck", "thing", "truck is stuff (was a thing)"),
+        ("class", "truck", "moving_id", "moving id of truck: 258 → none"),
+    ]
+    # A class stored before classes had the two keys reads as SemanticKITTI's defaults: no change.
+    bare = copy.deepcopy(old)
+    for entry in bare["schema"]["classes"]:
+        del entry["thing"], entry["moving_id"]
+    assert run_changes(bare, old) == []
 
 
 def test_corrections_and_pose_estimation_are_changes() -> None:

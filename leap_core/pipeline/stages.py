@@ -767,11 +767,17 @@ STAGE_TABLE: tuple[StageInfo, ...] = (
         False,
         stage_evaluate,
         upstream=("project", "smooth", "3dcn", "label_points", "tracks"),
-        # The paper's merge and the file's layout are inputs too: a change of either re-evaluates.
+        # The paper's merge and the file's layout are inputs too: a change of either re-evaluates. So are
+        # the moving ids when the run tracks objects: the moving-object IoU reads what the export writes.
         inputs=lambda ctx: (
             [[c.name, sorted(c.gt_ids), c.category] for c in ctx.schema.classes]
             + [PAPER_VIEW.to_dict(), {"metrics_version": METRICS_VERSION}]
             + object_corrections_inputs(ctx)
+            + (
+                [{"moving_ids": [int(x) for x in ctx.schema.moving_export_ids()]}]
+                if ctx.cfg.tracking.enabled
+                else []
+            )
         ),
         outputs=lambda lay, _cfg: (lay.metrics,),
         needs_poses=True,

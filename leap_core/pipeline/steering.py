@@ -27,6 +27,7 @@ from leap_core.config import PipelineConfig, config_from_dict, config_to_dict, w
 from leap_core.errors import LeapError
 from leap_core.labelers import LABELERS, labeler_by_section
 from leap_core.pipeline.stages import STAGE_TABLE
+from leap_core.schema import object_fields
 
 
 # ------------------------------------------------------------------------------------ setting scopes
@@ -196,6 +197,9 @@ class Change:
     """One line for people (``prompts of car: + "sedan", − "jeep"``)."""
     ignored: str | None = None
     """For a parameter the newer run's config ignores: why (it then changed nothing)."""
+    field: str | None = None
+    """A ``class`` change of one class's field: which (``prompts``, ``thing``, ``moving_id``, ...); None
+    for a class added, removed or reordered and for the other kinds."""
 
 
 def _fmt(value: Any) -> str:
@@ -245,14 +249,36 @@ def _class_changes(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, 
                 plus = [f"+ {_fmt(p)}" for p in pb if p not in pa]
                 minus = [f"− {_fmt(p)}" for p in pa if p not in pb]
                 listed = ", ".join(plus + minus) or "reordered"
-                out.append(Change("class", name, f"{what} of {name}: {listed}"))
+                out.append(Change("class", name, f"{what} of {name}: {listed}", field=key))
         ga, gb = sorted(a.get("gt_ids", [])), sorted(b.get("gt_ids", []))
         if ga != gb:
-            out.append(Change("class", name, f"ground-truth ids of {name}: {_fmt(ga)} → {_fmt(gb)}"))
+            out.append(
+                Change("class", name, f"ground-truth ids of {name}: {_fmt(ga)} → {_fmt(gb)}", field="gt_ids")
+            )
         for key, what in (("export_id", "export id"), ("category", "category"), ("color", "colour")):
             if a.get(key) != b.get(key):
                 text = f"{what} of {name}: {_fmt(a.get(key))} → {_fmt(b.get(key))}"
-                out.append(Change("class", name, text))
+                out.append(Change("class", name, text, field=key))
+        out += _object_changes(name, a, b)
+    return out
+
+
+OBJECT_FIELDS = ("thing", "moving_id")
+"""A class's fields that only the object stages read: the tracks stage its ``thing`` flag, the export its
+``moving_id`` (and the evaluation what both change)."""
+
+
+def _object_changes(name: str, old: Mapping[str, Any], new: Mapping[str, Any]) -> list[Change]:
+    """A class's ``thing`` flag and moving id, compared as a schema reads them (an entry stored before
+    classes had them at its defaults, :func:`~leap_core.schema.object_fields`)."""
+    (ta, ma), (tb, mb) = object_fields(old), object_fields(new)
+    out = []
+    if ta != tb:
+        text = f"{name} is {'a thing' if tb else 'stuff'} (was {'a thing' if ta else 'stuff'})"
+        out.append(Change("class", name, text, field="thing"))
+    if ma != mb:
+        text = f"moving id of {name}: {'none' if ma is None else ma} → {'none' if mb is None else mb}"
+        out.append(Change("class", name, text, field="moving_id"))
     return out
 
 
@@ -354,6 +380,7 @@ def run_changes(
 
 
 __all__ = [
+    "OBJECT_FIELDS",
     "Change",
     "CorrectionNote",
     "SettingScope",

@@ -277,6 +277,10 @@ def test_run_labels_every_sequence(
         stored["overall"]["camera"]["voxel"]["miou"]
     )
     assert per["00"]["metrics"] != per["01"]["metrics"]
+    # Tracks do not span sequences: object scores per sequence only, none summed.
+    assert overall["metrics"]["objects"] is None
+    for n in ("00", "01"):
+        assert per[n]["metrics"]["objects"] == stored["sequences"][n]["objects"] is not None
     assert loc_of(client.get(f"{API}/runs/{run['id']}/metrics", params={"sequence": "07"})) == [
         "query",
         "sequence",

@@ -122,6 +122,9 @@ def test_the_preview_matches_the_run_for_every_kind_of_edit(
         ("class edit", patch("/classes/car", {"gt_ids": [10]}), "class"),
         ("prompt edit", patch("/classes/car", {"prompts": ["car", "parked car"]}), "class"),
         ("setting change", patch("", {"form": {"k": 4}}), "parameter"),
+        # Read by the object stages only: the export (and what the evaluation scores of it), the tracks.
+        ("moving id", patch("/classes/car", {"moving_id": None}), "class"),
+        ("thing flag", patch("/classes/car", {"thing": False}), "class"),
         ("correction added", add_correction, "correction"),
         ("correction removed", switch_off, "correction"),
     ]
@@ -134,6 +137,12 @@ def test_the_preview_matches_the_run_for_every_kind_of_edit(
         done = run()
         truth = _rewritten(_stages_json(settings, pid, last["id"]), _stages_json(settings, pid, done["id"]))
         assert set(preview["recompute"]) == truth, (what, preview["stages"])
+        if what in ("moving id", "thing flag"):
+            stages = {p["name"]: p for p in preview["stages"]}
+            first = "tracks" if what == "thing flag" else "export"
+            assert {first, "evaluate", "export"} <= set(preview["recompute"]), (what, preview["stages"])
+            assert stages[first]["reason"] == "a class's thing flag or moving id changed", stages[first]
+            assert [c["field"] for c in preview["changes"]] == [what.replace(" flag", "").replace(" ", "_")]
         if kind == "correction":
             assert preview["recompute"], what  # a correction is fused: never "no changes" beside a recompute
             cmp = client.get(f"{API}/runs/{done['id']}/compare/{last['id']}").json()

@@ -103,6 +103,10 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
     assert "Table 1" in metrics["metrics"]["descriptions"]["paper"] and metrics["metrics"]["notes"] == {}
     stored = json.loads((Path(crud_run_dir(client, run["id"])) / "metrics.json").read_text())
     assert paper["miou"] == stored["paper"]["voxel"]["miou"] == run["summary"]["paper"]["voxel"]
+    # Object scores are a sequence's; a run of one sequence shows them as its own.
+    objects = metrics["metrics"]["objects"]
+    assert objects == stored["objects"] and set(objects) >= {"camera", "all", "motion"}
+    assert 0.0 <= objects["camera"]["PQ"] <= 1.0 and "s_assoc" in objects["motion"]
 
     logs = client.get(f"{API}/runs/{run['id']}/logs").json()
     assert "stage 00/export done" in logs["text"] and "run finished" in logs["text"]

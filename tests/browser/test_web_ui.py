@@ -125,6 +125,61 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     assert one_run_bars == 20  # one bar per class
     miou = page.locator('#metrics-table tr[data-row="voxel"] td.strong').inner_text()
     assert 0 < float(miou) <= 100
+    # The object scores: PQ, MOS IoU and S_assoc as the run's metrics.json has them, in %.
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        run1 = max(api.get(f"/projects/{project_id}/runs").json()["data"], key=lambda r: r["id"])
+        objects1 = api.get(f"/runs/{run1['id']}/metrics").json()["metrics"]["objects"]
+    expect(page.locator("#object-table tbody tr")).to_have_count(7)
+    # One sequence: its figures are the run's own, not an "overall" of several.
+    expect(page.locator("#metrics-headline")).not_to_contain_text("overall")
+    expect(page.locator("#object-scores-note")).to_have_count(0)
+    expect(page.locator('#object-table tr[data-score="pq-camera"] td.score')).to_have_text(
+        f"{100 * objects1['camera']['PQ']:.1f}"
+    )
+    s_assoc = objects1["motion"]["s_assoc"]
+    expect(page.locator('#object-table tr[data-score="s-assoc"] td.score')).to_have_text(
+        "\u2013" if s_assoc is None else f"{100 * s_assoc:.1f}"
+    )
+
+    # ---- a class's object fields: the thing flag and the moving id, saved at once; the preview follows
+    def class_api(name: str) -> dict:
+        with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+            return next(
+                c for c in api.get(f"/projects/{project_id}/classes").json()["data"] if c["name"] == name
+            )
+
+    def saving(action) -> None:
+        """Do ``action`` and wait for the class PATCH it sends to be answered."""
+        with page.expect_response(lambda r: r.request.method == "PATCH" and "/classes/" in r.url):
+            action()
+
+    truck = page.locator('.class-row[data-class="truck"]')
+    assert truck.locator(".cls-thing").is_checked() and truck.locator(".cls-moving").input_value() == "258"
+    saving(truck.locator(".cls-thing").uncheck)
+    expect(truck.locator(".cls-moving")).to_be_disabled()  # a stuff class has no moving id
+    expect(page.locator(".editor-status")).to_have_text("Saved")
+    assert (class_api("truck")["thing"], class_api("truck")["moving_id"]) == (False, None)
+    plan = page.locator('#recompute-plan .plan-stage[data-stage="tracks"]')
+    expect(plan).to_have_attribute("data-action", "recompute")
+    expect(plan.locator(".plan-reason")).to_have_text("a class's thing flag or moving id changed")
+    saving(truck.locator(".cls-thing").check)
+    expect(truck.locator(".cls-moving")).to_be_enabled()
+    truck.locator(".cls-moving").fill("258")
+    saving(lambda: truck.locator(".cls-moving").press("Tab"))
+    assert (class_api("truck")["thing"], class_api("truck")["moving_id"]) == (True, 258)
+    # A moving id equal to the class's export id is refused: the message beside the field, the value kept.
+    car = page.locator('.class-row[data-class="car"]')
+    car.locator(".cls-moving").fill("10")
+    saving(lambda: car.locator(".cls-moving").press("Tab"))
+    expect(car.locator(".cls-object-error")).to_contain_text("equals export_id")
+    expect(car.locator(".cls-moving")).to_have_class(re.compile("invalid"))
+    expect(car.locator(".cls-moving")).to_have_value("10")
+    assert class_api("car")["moving_id"] == 252
+    car.locator(".cls-moving").fill("")
+    saving(lambda: car.locator(".cls-moving").press("Tab"))
+    expect(car.locator(".cls-object-error")).to_be_empty()
+    expect(car.locator(".cls-moving")).to_have_value("")
+    assert class_api("car")["moving_id"] is None
 
     # ---- change a parameter, run again, compare both runs side by side
     expect(page.locator('#params label[data-param="k"] > span')).to_have_text("Neighbours k (served label)")
@@ -141,6 +196,16 @@ def test_create_edit_run_compare_and_download(server, browser, artifacts: Path, 
     expect(page.locator("#run-status")).to_have_attribute("data-status", "done", timeout=180_000)
     expect(page.locator(".runs-table tbody tr[data-run-id]")).to_have_count(2)
     expect(page.locator("#metrics-table tbody tr")).to_have_count(6)  # 2 runs x (point, voxel, objects)
+    # The object scores of both runs with their Δ, as the per-class IoU table.
+    expect(page.locator("#object-table thead th")).to_have_count(4)
+    with httpx.Client(base_url=f"{srv.base}/api/v1") as api:
+        run2 = max(api.get(f"/projects/{project_id}/runs").json()["data"], key=lambda r: r["id"])
+        objects2 = api.get(f"/runs/{run2['id']}/metrics").json()["metrics"]["objects"]
+    delta = 100 * (objects2["camera"]["PQ"] - objects1["camera"]["PQ"])
+    sign = "+" if delta > 0 else "−" if delta < 0 else "±"
+    expect(page.locator('#object-table tr[data-score="pq-camera"] td.delta')).to_have_text(
+        f"{sign}{abs(delta):.1f}"
+    )
     expect(page.locator(".legend > span")).to_have_count(2)
     assert page.locator("#iou-chart svg rect[fill]:not(.swatch)").count() == 2 * one_run_bars
     page.screenshot(path=str(artifacts / "web_ui_project.png"), full_page=True)

@@ -3,17 +3,22 @@
 // server's most distinct unused colour (never the viewer's unlabeled grey); its ground-truth ids are picked
 // from the raw ids present in the dataset's labels (GET /projects/{id}/gt-ids, with names where known), and
 // named objects no class maps yet (the demo's traffic cones, benches, bollards …) are offered as one-click
-// suggestions. Every edit is saved at once; the next run uses it.
+// suggestions. Each class also says whether it is a thing (a countable object the tracks stage follows and
+// gives instance ids) and, for a thing, the raw id its points export while it moves (SemanticKITTI's
+// 252-259; empty: none). Every edit is saved at once; the next run uses it.
 
-import { del, enc, get, patch, post, url } from "../api.js";
+import { ApiError, del, enc, get, patch, post, url } from "../api.js";
 import { h, replace } from "../dom.js";
 
 const NOT_EVALUATED = "none: not evaluated";
 /** Raw ids never offered as a class of their own: SemanticKITTI's "unlabeled" and "outlier". */
 const NEVER_SUGGESTED = new Set([0, 1]);
 
-/** Run one class-list request; on success show the new list, on failure its message. */
-async function classCall(ctx, fn) {
+/**
+ * Run one class-list request; on success show the new list, on failure its message (in the editor's
+ * status line, or through `onError` for an editor that shows it beside its own field).
+ */
+async function classCall(ctx, fn, onError = null) {
   const status = ctx.els.classes.querySelector(".editor-status");
   try {
     const res = await fn();
@@ -26,7 +31,10 @@ async function classCall(ctx, fn) {
     if (ctx.render.next) ctx.render.next();
     return true;
   } catch (err) {
-    if (status) {
+    if (onError) {
+      if (status) status.textContent = ""; // a "Saved" of an earlier edit no longer holds
+      onError(err);
+    } else if (status) {
       status.textContent = err.message;
       status.className = "editor-status error";
     }
@@ -112,6 +120,56 @@ function gtEditor(ctx, c, save) {
   return parts;
 }
 
+/**
+ * The class's object fields: a "thing" checkbox and its moving raw id (empty = none). A failed save leaves
+ * the value typed and shows the server's message beside the fields, the input it names marked, as the
+ * parameter form does.
+ */
+function objectFields(ctx, c) {
+  const base = `/projects/${ctx.projectId}/classes/${enc(c.name)}`;
+  const error = h("p", { class: "error small cls-object-error", role: "alert" });
+  const inputs = {};
+  const save = async (body, input) => {
+    error.textContent = "";
+    for (const el of Object.values(inputs)) el.classList.remove("invalid");
+    await classCall(ctx, () => patch(base, body), (err) => {
+      error.textContent = err.message;
+      const f = err instanceof ApiError ? err.field() : null;
+      (inputs[f] || input).classList.add("invalid");
+    });
+  };
+  inputs.thing = h("input", {
+    type: "checkbox",
+    class: "cls-thing",
+    checked: Boolean(c.thing),
+    "aria-label": `${c.name} is a thing`,
+    // A stuff class has no moving id: unticking a thing clears it in the same save (the field shows it).
+    onchange: (e) => save(e.target.checked ? { thing: true } : { thing: false, moving_id: null }, e.target),
+  });
+  inputs.moving_id = h("input", {
+    type: "number",
+    class: "cls-moving",
+    min: 1,
+    max: 65535,
+    value: c.moving_id === null || c.moving_id === undefined ? "" : String(c.moving_id),
+    placeholder: "none",
+    disabled: !c.thing,
+    title: c.thing ? "Raw id its points export while the object moves (empty: none)" : "Only a thing has a moving id",
+    "aria-label": `Moving id of ${c.name}`,
+    onchange: (e) => {
+      const v = e.target.value.trim();
+      save({ moving_id: v === "" ? null : Number(v) }, e.target);
+    },
+  });
+  return h(
+    "div",
+    { class: "object-line small" },
+    h("label", { class: "inline", title: "A countable object: tracked through the sequence, with instance ids" }, inputs.thing, " thing"),
+    h("label", { class: "inline" }, "moving id ", inputs.moving_id),
+    error,
+  );
+}
+
 function classRow(ctx, c) {
   const base = `/projects/${ctx.projectId}/classes/${enc(c.name)}`;
   const save = (fn) => classCall(ctx, fn);
@@ -189,6 +247,7 @@ function classRow(ctx, c) {
     "li",
     { class: "class-row", dataset: { class: c.name } },
     h("div", { class: "class-line" }, color, name, exportId, remove),
+    objectFields(ctx, c),
     h("div", { class: "prompts" }, chips, add),
     gtEditor(ctx, c, save),
   );
@@ -299,7 +358,7 @@ export function renderClasses(ctx, { keepTyped = false } = {}) {
     h(
       "p",
       { class: "muted small" },
-      "Color · name · export id. Enter adds a prompt; the next run uses the edits. ",
+      "Color · name · export id; thing (a tracked object) and its moving id. Enter adds a prompt; the next run uses the edits. ",
       // The file the create form's "upload a class list" takes: a new project starts with these classes.
       h("a", { href: url(`/projects/${ctx.projectId}/classes.yaml`), download: "", id: "download-classes" }, "Download the class list (.yaml)"),
     ),

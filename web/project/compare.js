@@ -1,7 +1,8 @@
 // Metrics of the runs ticked in the history, side by side: a headline with the camera-view figures beside
 // the share of *all* points labeled (what an export leaves unlabeled), a table per result row, a per-class
 // IoU table with a Δ column (newest compared run against the one before it), what changed between those two
-// runs (GET /runs/{id}/compare/{base}: prompts, classes, parameters) and a per-class IoU chart.
+// runs (GET /runs/{id}/compare/{base}: prompts, classes, parameters), the object scores (panoptic quality,
+// moving-object IoU, S_assoc: the metrics' `objects`, with the same Δ) and a per-class IoU chart.
 
 import { get } from "../api.js";
 import { RUN_COLORS, iouChart } from "../chart.js";
@@ -91,6 +92,61 @@ function classTable(state, runs, all, comparison) {
           h("td", {}, n),
           two ? h("td", { class: "num" }, fmtPct(d ? d.base_iou : prev[n])) : null,
           h("td", { class: "num iou" }, fmtPct(d ? d.iou : last[n])),
+          two ? h("td", { class: `num delta${delta > 0 ? " up" : delta < 0 ? " down" : ""}` }, fmtDelta(delta)) : null,
+        );
+      }),
+    ),
+  );
+}
+
+/** The object scores shown, as [key, label, title, (objects) => value]; in %, as the CLI's table. */
+const OBJECT_SCORES = [
+  ["pq-camera", "PQ · camera view", "panoptic quality over every class, points in the camera view", (o) => o.camera.PQ],
+  ["pq-things-camera", "PQ things · camera view", "panoptic quality of the thing classes (tracked objects)", (o) => o.camera.PQ_things],
+  ["pq-stuff-camera", "PQ stuff · camera view", "panoptic quality of the stuff classes", (o) => o.camera.PQ_stuff],
+  ["pq-all", "PQ · all points", "panoptic quality over every class, all points", (o) => o.all.PQ],
+  ["pq-things-all", "PQ things · all points", "panoptic quality of the thing classes, all points", (o) => o.all.PQ_things],
+  ["mos-iou", "MOS IoU", "moving-object IoU of the moving points, all points (as evaluate_mos.py)", (o) => (o.motion || {}).mos_iou],
+  ["s-assoc", "S_assoc", "LSTQ's association score: one id per object through the sequence", (o) => (o.motion || {}).s_assoc],
+];
+const NO_OBJECTS = "—";
+
+/**
+ * The object scores of the newest compared run and the one before it, with Δ. A run without them (tracking
+ * off, or evaluated before object scores existed) shows "—"; a score without ground truth to measure
+ * (no moving points) shows "–".
+ */
+function objectTable(runs, all) {
+  const two = runs.length >= 2;
+  const objs = all.map((m) => m.metrics.objects || null);
+  const a = runs[runs.length - 1];
+  const b = two ? runs[runs.length - 2] : null;
+  const oa = objs[objs.length - 1];
+  const ob = two ? objs[objs.length - 2] : null;
+  const cell = (o, get) => (o ? fmtPct(get(o)) : NO_OBJECTS);
+  const num = (o, get) => (o && typeof get(o) === "number" ? get(o) : null);
+  const noObjects = "no object scores: the run tracked no objects (tracking off) or predates them";
+  return h(
+    "table",
+    { class: "metrics-table object-table", id: "object-table" },
+    h(
+      "thead",
+      {},
+      h("tr", {}, h("th", {}, "Score"), two ? h("th", { class: "num", title: ob ? "" : noObjects }, `#${b.number}`) : null, h("th", { class: "num", title: oa ? "" : noObjects }, `#${a.number}`), two ? h("th", { class: "num", title: `run ${a.number} − run ${b.number}` }, "Δ") : null),
+    ),
+    h(
+      "tbody",
+      {},
+      OBJECT_SCORES.map(([key, label, title, get]) => {
+        const va = num(oa, get);
+        const vb = two ? num(ob, get) : null;
+        const delta = va !== null && vb !== null ? va - vb : null;
+        return h(
+          "tr",
+          { dataset: { score: key } },
+          h("td", { title }, label),
+          two ? h("td", { class: "num" }, cell(ob, get)) : null,
+          h("td", { class: "num score" }, cell(oa, get)),
           two ? h("td", { class: `num delta${delta > 0 ? " up" : delta < 0 ? " down" : ""}` }, fmtDelta(delta)) : null,
         );
       }),
@@ -225,12 +281,17 @@ export async function renderCompare(ctx) {
   replace(
     el,
     h("div", { class: "card-head" }, h("h2", {}, "Metrics"), h("div", { class: "row" }, sequenceSelect(ctx, seqNames), h("label", { class: "inline" }, "Protocol ", protoSel), h("label", { class: "inline" }, "Row ", rowSel))),
-    headline(state, latest, all[all.length - 1].metrics, seqNames.length > 0),
+    headline(state, latest, all[all.length - 1].metrics, seqNames.length > 1),
     protocolNotes,
     staleNote(runs, all),
     h("div", { class: "table-wrap" }, metricsTable(state, runs, all)),
     h("h3", { class: "chart-title" }, comparison ? `Per-class IoU (%) · ${state.row} labels · run ${latest.number} against run ${runs[runs.length - 2].number}` : `Per-class IoU (%) · ${state.row} labels`),
     h("div", { class: "table-wrap" }, classTable(state, runs, all, comparison)),
+    h("h3", { class: "chart-title" }, runs.length >= 2 ? `Object scores (%) · run ${latest.number} against run ${runs[runs.length - 2].number}` : "Object scores (%)"),
+    state.metricsSequence === null && seqNames.length > 1
+      ? h("p", { class: "muted small", id: "object-scores-note" }, "Objects are tracked per sequence: pick a sequence above for its object scores.")
+      : null,
+    h("div", { class: "table-wrap" }, objectTable(runs, all)),
     comparison ? h("h3", { class: "chart-title" }, `What changed from run ${runs[runs.length - 2].number} to run ${latest.number}`) : null,
     comparison ? changeList(comparison.changes, "run-changes") : null,
     h("h3", { class: "chart-title" }, "Per-class IoU chart"),
