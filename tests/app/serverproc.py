@@ -59,6 +59,9 @@ class Server:
             "LEAP_PORT": str(self.port),
             "LEAP_SEED_DEMO": "false",
             "LEAP_PROGRESS_INTERVAL_S": "0.01",
+            # A spare worker imports the pipeline (about 1 s of CPU) and most of these servers end before
+            # using it; the in-process apps of the browser tests keep the default, so it stays exercised.
+            "LEAP_PREWARM_WORKERS": "false",
             **(extra_env or {}),
         }
         self.proc: subprocess.Popen[bytes] | None = None
