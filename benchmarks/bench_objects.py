@@ -26,6 +26,11 @@ Usage::
     .venv/bin/python benchmarks/bench_objects.py --sequence /tmp/demo/sequences/00
     .venv/bin/python benchmarks/bench_objects.py --quick     # a generated 3-frame street
     .venv/bin/python benchmarks/bench_objects.py --segments euclidean,masks   # both segmentations
+    .venv/bin/python benchmarks/bench_objects.py --preset paper   # the lab's labeler fitted to the paper
+
+``--preset paper`` labels with the research lab's ``simulated-paper`` labeler and its ``paper`` preset (the
+noise fitted to the paper's point row, ``lab/paper_labeler.py``) instead of the product's simulated labeler
+with its defaults (``default``).
 
 Writes ``benchmarks/results/bench_objects.json``.
 """
@@ -127,7 +132,19 @@ def main() -> None:
         help="Comma-separated tracking.segments settings to run each objects run with (e.g. "
         "'euclidean,masks': every objects run once per setting, the column names say which).",
     )
+    ap.add_argument(
+        "--preset",
+        choices=("default", "paper"),
+        default="default",
+        help="Simulated labels: the product's simulated labeler (default) or the lab's simulated-paper "
+        "labeler with its paper preset.",
+    )
     args = ap.parse_args()
+    labeler: dict[str, Any] = {}
+    if args.preset == "paper":
+        import lab  # noqa: F401  registers the simulated-paper labeler
+
+        labeler = {"labeler": "simulated-paper", "simulated_paper": {"preset": "paper"}}
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_objects_"))
     if args.quick:
@@ -153,13 +170,14 @@ def main() -> None:
     for name, enabled, vote, exclude, seg in runs:
         cfg = config_from_dict(
             {
+                **labeler,
                 "tracking": {
                     **extra,
                     "enabled": enabled,
                     "vote": vote,
                     "exclude_moving": exclude,
                     "segments": seg,
-                }
+                },
             },
             PipelineConfig(),
         )
@@ -234,8 +252,11 @@ def main() -> None:
     rows.append(["tracks stage ms/scan", *each(lambda r: ms(r["tracks_ms_per_scan"]))])
     rows.append(["fuse ms/scan", *each(lambda r: ms(r["fuse_ms_per_scan"]))])
     rows.append(["label_points ms/scan (baseline)", *each(lambda r: ms(r["label_points_ms_per_scan"]))])
-    print_table(f"Objects on {seq_dir} ({len(seq)} frames)", ["", *results], rows)
-    write_results("bench_objects", {"sequence": str(seq_dir), "frames": len(seq), "results": results})
+    print_table(f"Objects on {seq_dir} ({len(seq)} frames, {args.preset} preset)", ["", *results], rows)
+    write_results(
+        "bench_objects" if args.preset == "default" else f"bench_objects_{args.preset}",
+        {"sequence": str(seq_dir), "frames": len(seq), "preset": args.preset, "results": results},
+    )
 
 
 if __name__ == "__main__":
