@@ -57,18 +57,21 @@ def track_life(offsets: npt.ArrayLike, track: npt.ArrayLike, k: int) -> TrackLif
     ``first = min S_j``, ``last = max S_j``, ``present = |S_j|``, ``gaps = last - first + 1 - |S_j|``."""
     off = np.asarray(offsets, np.int64).reshape(-1)
     tid = np.asarray(track, np.int64).reshape(-1)
-    scans = off.size - 1
-    scan_of = np.repeat(np.arange(max(scans, 0), dtype=np.int64), np.diff(off))
-    pairs = np.unique((tid - 1) * max(scans, 1) + scan_of) if tid.size else np.zeros(0, np.int64)
-    row, t = pairs // max(scans, 1), pairs % max(scans, 1)
+    scans = max(off.size - 1, 1)
+    scan_of = np.repeat(np.arange(off.size - 1, dtype=np.int64), np.diff(off))
+    # The (track, scan) pairs once each, sorted by track then scan: a track's first pair holds its first
+    # scan and its last pair its last (a sort and a diff, no unbuffered ufunc.at over every point).
+    key = np.sort((tid - 1) * scans + scan_of)
+    pairs = key[np.r_[True, key[1:] != key[:-1]]] if key.size else key
+    row, t = pairs // scans, pairs % scans
     present = np.bincount(row, minlength=k).astype(np.int64)[:k]
-    first = np.full(k, np.iinfo(np.int64).max, np.int64)
+    starts = np.flatnonzero(np.r_[True, row[1:] != row[:-1]]) if row.size else np.zeros(0, np.int64)
+    ends = np.append(starts[1:], row.size)[: starts.size] - 1
+    first = np.full(k, -1, np.int64)
     last = np.full(k, -1, np.int64)
-    np.minimum.at(first, row, t)
-    np.maximum.at(last, row, t)
-    seen = present > 0
-    first = np.where(seen, first, -1)
-    gaps = np.where(seen, last - first + 1 - present, 0)
+    first[row[starts]] = t[starts]
+    last[row[starts]] = t[ends]
+    gaps = np.where(present > 0, last - first + 1 - present, 0)
     return TrackLife(first, last, gaps, present)
 
 
