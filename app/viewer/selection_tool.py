@@ -16,12 +16,14 @@ import numpy.typing as npt
 
 from app.viewer import lod_cull
 from app.viewer import nav_logic as nl
+from app.viewer.data import ScanView
 from app.viewer.records import Inspection, ObjectInfo, Selection, Target, ToolKind, ToolSettings
 from app.viewer.render import LodRenderer
 from app.viewer.scene import ReviewScene
 from app.viewer.shared import Notifier, SharedState
 from leap_core import selection as sel
 from leap_core.picking import pick_voxel
+from leap_core.pipeline.tracks_file import SequenceTracks
 
 
 def camera_of(camera: Any) -> sel.PinholeCamera:
@@ -313,20 +315,23 @@ class SelectionTool:
             rows = np.flatnonzero(view.instance > 0)
             pick = pick_voxel(origin, direction, view.points[rows].astype(np.float64), voxel_size)
             if pick is not None:
-                track = int(view.instance[rows[pick.index]])
-                k = track - 1
-                corrected = [c for t, c in objects if t == track]
-                found = ObjectInfo(
-                    run_id=run.run_id,
-                    track=track,
-                    class_index=int(tracks.table.label[k]),
-                    scans=int(tracks.table.scans[k]),
-                    moving=bool(tracks.table.moving[k]),
-                    speed=float(np.linalg.norm(tracks.table.velocity[k])),
-                    points=int((view.instance == track).sum()),
-                    frame_id=view.frame_id,
-                    corrected_to=corrected[-1] if corrected else None,
-                )
+                found = _object_info(run.run_id, tracks, view, int(view.instance[rows[pick.index]]), objects)
+        self.inspected_object = found
+        self.notify.panel.on_object(found)
+        return found
+
+    def inspect_track(self, track: int) -> ObjectInfo | None:
+        """Make track ``track`` of the shown run the inspected object (as a click on one of its points in
+        the shown scan would: *Relabel object* then applies to it), and tell the panel. None (nothing
+        changed) when the run has no such track."""
+        sh = self.shared
+        with sh.lock:
+            view, run, outputs = sh.scan_view, sh.run, sh.outputs
+            objects = sh.object_classes()
+        tracks = None if outputs is None else outputs.tracks()
+        if view is None or run is None or tracks is None or not 1 <= track <= tracks.table.label.size:
+            return None
+        found = _object_info(run.run_id, tracks, view, track, objects)
         self.inspected_object = found
         self.notify.panel.on_object(found)
         return found
@@ -336,6 +341,27 @@ class SelectionTool:
         self.inspected = None
         self.inspected_object = None
         self.scene.inspected.visible = False
+
+
+def _object_info(
+    run_id: int, tracks: SequenceTracks, view: ScanView, track: int, objects: list[tuple[int, int]]
+) -> ObjectInfo:
+    """What the Inspect section shows of track ``track`` in the scan ``view``; ``objects``: the
+    ``(track, class)`` pairs of active object corrections (:meth:`SharedState.object_classes`)."""
+    k = track - 1
+    corrected = [c for t, c in objects if t == track]
+    instance = view.instance if view.instance is not None else np.zeros(0, np.uint32)
+    return ObjectInfo(
+        run_id=run_id,
+        track=track,
+        class_index=int(tracks.table.label[k]),
+        scans=int(tracks.table.scans[k]),
+        moving=bool(tracks.table.moving[k]),
+        speed=float(np.linalg.norm(tracks.table.velocity[k])),
+        points=int((instance == track).sum()),
+        frame_id=view.frame_id,
+        corrected_to=corrected[-1] if corrected else None,
+    )
 
 
 __all__ = ["SelectionTool", "camera_of"]
