@@ -338,11 +338,14 @@ def _schema_of(class_list: models.ClassListCreate) -> Schema:
     try:
         return Schema.from_dict(doc, source="class_list")
     except SchemaError as exc:
-        message = str(exc)
-        m = re.search(r"classes\[(\d+)\]", message)
-        raise InvalidField(
-            ["body", "class_list", "classes", *([int(m.group(1))] if m else [])], message
-        ) from None
+        raise InvalidField(["body", "class_list", *_class_field(exc)], str(exc)) from None
+
+
+def _class_field(exc: SchemaError) -> list[str | int]:
+    """A schema error's place in a class list as an API location: ``["classes", 3, "moving_id"]`` (the
+    entry's index as a number), or ``["classes"]`` for the list as a whole."""
+    path = exc.field or ("classes",)
+    return [int(x) if x.isdigit() else x for x in path]
 
 
 def class_list_public(schema: Schema) -> models.ClassListPublic:
@@ -779,9 +782,7 @@ def save_classes(
     try:
         schema = Schema.from_dict(doc, source="classes")
     except SchemaError as exc:
-        message = str(exc)
-        m = re.search(r"classes\[(\d+)\]", message)
-        raise InvalidField([*loc, "classes", *([int(m.group(1))] if m else [])], message) from None
+        raise InvalidField([*loc, *_class_field(exc)], str(exc)) from None
     return crud.update_project(db, project_id, schema=schema.to_dict())
 
 

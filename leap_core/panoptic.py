@@ -25,6 +25,7 @@ Definitions (docs/METHOD.md D.6), each on points whose ground truth is labeled:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,11 +80,39 @@ class MosCounts:
         self.fp += int(np.count_nonzero((g == MOS_STATIC) & (p == MOS_MOVING)))
         self.fn += int(np.count_nonzero((g == MOS_MOVING) & (p != MOS_MOVING)))
 
+    def merge(self, other: MosCounts) -> None:
+        """Add ``other``'s counts (of other scans) to these."""
+        self.tp += other.tp
+        self.fp += other.fp
+        self.fn += other.fn
+
     @property
     def iou(self) -> float:
         """Moving IoU, NaN when no point is moving in either."""
         den = self.tp + self.fp + self.fn
         return self.tp / den if den else math.nan
+
+
+def _dense_codes(ids: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], int]:
+    """``(codes, values, bits)``: ``ids`` (N,) (.label values, ``< 2^32``) renumbered densely in their
+    order: ``codes`` (N,) below ``2^bits``, ``values[code]`` the id back.
+
+    A .label value's halves (instance ``h``, raw class id ``l``) each take few distinct values in a scan, so
+    each is ranked through a 65,536-entry table (no sort): ``code = rank(h) · 2^b + rank(l)`` with ``b`` the
+    bits of the number of distinct ``l``, which keeps the ids' order.
+    """
+    if ids.size == 0:
+        return ids, np.zeros(1, np.int64), 1
+    ranked = []
+    for half in (ids >> 16, ids & 0xFFFF):
+        seen = np.bincount(half, minlength=1 << 16) > 0
+        ranked.append((np.cumsum(seen)[half] - 1, np.flatnonzero(seen)))
+    (r_hi, v_hi), (r_lo, v_lo) = ranked
+    b_lo = max(int(v_lo.size - 1).bit_length(), 1)
+    bits = max(int(v_hi.size - 1).bit_length(), 1) + b_lo
+    values = np.zeros((v_hi.size, 1 << b_lo), np.int64)
+    values[:, : v_lo.size] = (v_hi[:, None] << 16) | v_lo[None, :]
+    return (r_hi << b_lo) | r_lo, values.reshape(-1), bits
 
 
 @dataclass
@@ -131,34 +160,38 @@ class PanopticCounts:
             raise ValueError("gt and pred classes and segments must have one value per point each")
         keep = gc != UNLABELED
         gc, gs, pc, ps = gc[keep], gs[keep], pc[keep], ps[keep]
-        for c in np.union1d(gc, pc[pc != UNLABELED]):
-            self._add_class(
-                int(c), gs[gc == c], ps[pc == c], gs[(gc == c) & (pc == c)], ps[(gc == c) & (pc == c)]
-            )
-
-    def _add_class(
-        self,
-        c: int,
-        gt_ids: npt.NDArray[np.int64],
-        pred_ids: npt.NDArray[np.int64],
-        both_gt: npt.NDArray[np.int64],
-        both_pred: npt.NDArray[np.int64],
-    ) -> None:
-        g_ids, g_size = np.unique(gt_ids, return_counts=True)
-        p_ids, p_size = np.unique(pred_ids, return_counts=True)
-        pairs, inter = np.unique(np.stack([both_gt, both_pred]), axis=1, return_counts=True)
-        gi = np.searchsorted(g_ids, pairs[0])
-        pi = np.searchsorted(p_ids, pairs[1])
+        if gs.size and (min(int(gs.min()), int(ps.min())) < 0 or max(int(gs.max()), int(ps.max())) >> 32):
+            raise ValueError("segment ids must be .label values, 0 <= id < 2^32")
+        # One sort per kind of key instead of several per class: a segment is (class, id) in one int64,
+        # a (gt, pred) pair of one class is (class, gt code, pred code), the codes being the ids renumbered
+        # densely in their order (:func:`_dense_codes`), so the pairs come out of one 1-D sort in the
+        # (gt id, pred id) order of a per-class unique.
+        g_keys, g_size = np.unique((gc << 32) | gs, return_counts=True)
+        labeled = pc != UNLABELED
+        p_keys, p_size = np.unique((pc[labeled] << 32) | ps[labeled], return_counts=True)
+        same = gc == pc
+        codes, values, bits = _dense_codes(np.concatenate([gs[same], ps[same]]))
+        n_same = int(same.sum())
+        pair_keys, inter = np.unique(
+            (gc[same] << (2 * bits)) | (codes[:n_same] << bits) | codes[n_same:], return_counts=True
+        )
+        mask = (1 << bits) - 1
+        pair_class = pair_keys >> (2 * bits)
+        gi = np.searchsorted(g_keys, (pair_class << 32) | values[(pair_keys >> bits) & mask])
+        pi = np.searchsorted(p_keys, (pair_class << 32) | values[pair_keys & mask])
         iou = inter / (g_size[gi] + p_size[pi] - inter)
         hit = iou > MATCH_IOU
-        g_matched = np.zeros(g_ids.size, bool)
-        p_matched = np.zeros(p_ids.size, bool)
+        g_matched = np.zeros(g_keys.size, bool)
+        p_matched = np.zeros(p_keys.size, bool)
         g_matched[gi[hit]] = True
         p_matched[pi[hit]] = True
-        self.tp[c] += int(hit.sum())
-        self.iou_sum[c] += float(iou[hit].sum())
-        self.fn[c] += int(np.count_nonzero(~g_matched & (g_size >= self.min_points)))
-        self.fp[c] += int(np.count_nonzero(~p_matched & (p_size >= self.min_points)))
+        c = self.num_classes
+        self.tp += np.bincount(pair_class[hit], minlength=c)
+        for k in np.unique(pair_class[hit]):
+            # One class's matched IoUs summed as numpy sums them (pairwise), in (gt, pred) order.
+            self.iou_sum[k] += float(iou[hit & (pair_class == k)].sum())
+        self.fn += np.bincount(g_keys[~g_matched & (g_size >= self.min_points)] >> 32, minlength=c)
+        self.fp += np.bincount(p_keys[~p_matched & (p_size >= self.min_points)] >> 32, minlength=c)
 
     def merge(self, other: PanopticCounts) -> None:
         """Add ``other``'s counts (of other scans) to these."""
@@ -188,35 +221,92 @@ class PanopticCounts:
         return out
 
 
-def association_score(gt_track: npt.ArrayLike, pred_track: npt.ArrayLike, *, min_points: int = 0) -> float:
-    """LSTQ's S_assoc (module docstring) of one sequence's points, all scans concatenated.
+@dataclass
+class AssociationCounts:
+    """The point counts S_assoc needs (module docstring), summed scan by scan: per ground-truth track its
+    size ``|l|``, per predicted track ``|f|``, per pair ``TPA = |f ∩ l|``. Memory grows with the number of
+    tracks and pairs, not of points, so a sequence of any length fits.
 
-    Args:
-        gt_track: (N,) int64 ground-truth track id per point, 0 = not a thing (stuff, unlabeled): a
-            track is every point with one id, over all scans.
-        pred_track: (N,) int64 predicted track id, 0 = none.
-        min_points: ground-truth tracks with fewer points are left out.
-
-    Returns:
-        S_assoc in [0, 1]; NaN without ground-truth tracks.
+    Attributes:
+        gt: (L,) int64 ground-truth track ids, sorted; ``gt_size`` (L,) their points.
+        pred: (F,) int64 predicted track ids, sorted; ``pred_size`` (F,) their points.
+        pairs: (P,) int64 ``l · 2^32 + f`` of each pair sharing points, sorted; ``tpa`` (P,) the points.
     """
-    g = np.asarray(gt_track).reshape(-1).astype(np.int64)
-    p = np.asarray(pred_track).reshape(-1).astype(np.int64)
-    if g.shape != p.shape:
-        raise ValueError(f"gt has {g.shape[0]} points but pred has {p.shape[0]}")
-    gt_ids, gt_size = np.unique(g[g > 0], return_counts=True)
-    pred_ids, pred_size = np.unique(p[p > 0], return_counts=True)
-    both = (g > 0) & (p > 0)
-    pairs, tpa = np.unique(np.stack([g[both], p[both]]), axis=1, return_counts=True)
-    keep = gt_size >= min_points
-    if not keep.any():
-        return math.nan
-    gi = np.searchsorted(gt_ids, pairs[0])
-    pi = np.searchsorted(pred_ids, pairs[1])
-    # TPA + FPA + FNA = |f| + |l| - TPA.
-    iou = tpa / (pred_size[pi] + gt_size[gi] - tpa)
-    per_gt = np.bincount(gi, weights=tpa * iou, minlength=gt_ids.size) / gt_size
-    return float(per_gt[keep].mean())
+
+    gt: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    gt_size: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    pred: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    pred_size: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    pairs: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    tpa: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @classmethod
+    def of(cls, gt_track: npt.ArrayLike, pred_track: npt.ArrayLike) -> AssociationCounts:
+        """The counts of some points (one scan, or all of a sequence).
+
+        Args:
+            gt_track: (N,) int ground-truth track id per point, 0 = not a thing (stuff, unlabeled); ids
+                below 2^31.
+            pred_track: (N,) int predicted track id, 0 = none; ids below 2^32.
+        """
+        g = np.asarray(gt_track).reshape(-1).astype(np.int64)
+        p = np.asarray(pred_track).reshape(-1).astype(np.int64)
+        if g.shape != p.shape:
+            raise ValueError(f"gt has {g.shape[0]} points but pred has {p.shape[0]}")
+        if g.size and (int(min(g.min(), p.min())) < 0 or int(g.max()) >> 31 or int(p.max()) >> 32):
+            raise ValueError("track ids must be 0 <= gt < 2^31 and 0 <= pred < 2^32")
+        both = (g > 0) & (p > 0)
+        return cls(
+            *np.unique(g[g > 0], return_counts=True),
+            *np.unique(p[p > 0], return_counts=True),
+            *np.unique((g[both] << 32) | p[both], return_counts=True),
+        )
+
+    @classmethod
+    def summed(cls, parts: Sequence[AssociationCounts]) -> AssociationCounts:
+        """The counts of all ``parts`` (of disjoint points) together."""
+        return cls(
+            *_summed([(x.gt, x.gt_size) for x in parts]),
+            *_summed([(x.pred, x.pred_size) for x in parts]),
+            *_summed([(x.pairs, x.tpa) for x in parts]),
+        )
+
+    @property
+    def entries(self) -> int:
+        """Table rows held (the memory these counts take, in units of two int64)."""
+        return int(self.gt.size + self.pred.size + self.pairs.size)
+
+    def score(self, min_points: int = 0) -> float:
+        """S_assoc in [0, 1] over the ground-truth tracks of at least ``min_points`` points; NaN without
+        any."""
+        keep = self.gt_size >= min_points
+        if not keep.any():
+            return math.nan
+        gi = np.searchsorted(self.gt, self.pairs >> 32)
+        pi = np.searchsorted(self.pred, self.pairs & 0xFFFFFFFF)
+        tpa = self.tpa
+        # TPA + FPA + FNA = |f| + |l| - TPA.
+        iou = tpa / (self.pred_size[pi] + self.gt_size[gi] - tpa)
+        per_gt = np.bincount(gi, weights=tpa * iou, minlength=self.gt.size) / self.gt_size
+        return float(per_gt[keep].mean())
+
+
+def _summed(
+    tables: Sequence[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]],
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Sorted key → count tables as one: the union of the keys (sorted), counts of equal keys summed."""
+    if not tables:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    keys, at = np.unique(np.concatenate([k for k, _ in tables]), return_inverse=True)
+    counts = np.zeros(keys.size, np.int64)
+    np.add.at(counts, at, np.concatenate([c for _, c in tables]))
+    return keys, counts
+
+
+def association_score(gt_track: npt.ArrayLike, pred_track: npt.ArrayLike, *, min_points: int = 0) -> float:
+    """LSTQ's S_assoc (module docstring) of one sequence's points, all scans concatenated
+    (:meth:`AssociationCounts.of`'s arguments); NaN without ground-truth tracks."""
+    return AssociationCounts.of(gt_track, pred_track).score(min_points)
 
 
 def scores_dict(values: dict[str, float]) -> dict[str, Any]:

@@ -485,7 +485,9 @@ class Schema:
             source: where ``d`` came from (a file path); every error message starts with it.
 
         Raises:
-            SchemaError: ``"<source>: classes[i] '<name>': <problem>"``.
+            SchemaError: ``"<source>: classes[i] '<name>': <problem>"``; its ``field`` is
+            ``("classes", "i", key)`` where the problem is one field of one class (``("classes", "i")``
+            when it is the entry as a whole).
         """
         if not isinstance(d, Mapping):
             raise SchemaError(f"{source}: expected a mapping with keys {', '.join(_TOP_KEYS)}")
@@ -507,7 +509,8 @@ class Schema:
         try:
             _check_classes(classes)
         except _Invalid as exc:
-            raise SchemaError(f"{source}: {exc}") from None
+            at = ("classes", str(exc.at[0]), exc.at[1]) if exc.at else ("classes",)
+            raise SchemaError(f"{source}: {exc}", field=at) from None
         return cls(name=name.strip(), classes=tuple(classes), description=description)
 
     def with_classes(self, classes: Iterable[ClassDef]) -> Schema:
@@ -537,7 +540,9 @@ def _class_from_mapping(entry: object, source: str, i: int) -> ClassDef:
     try:
         fields = _normalise_entry(entry)
     except _Invalid as exc:
-        raise SchemaError(f"{source}: {where}: {exc}") from None
+        m = _CLASS_FIELD.match(str(exc))
+        at = ("classes", str(i), m.group(1)) if m else ("classes", str(i))
+        raise SchemaError(f"{source}: {where}: {exc}", field=at) from None
     return ClassDef(**fields)
 
 

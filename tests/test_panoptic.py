@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from leap_core.panoptic import MosCounts, PanopticCounts, association_score, mos_states
+from leap_core.panoptic import AssociationCounts, MosCounts, PanopticCounts, association_score, mos_states
 
 GRASS, SKY, PERSON, DOG = 0, 1, 2, 3
 
@@ -92,3 +92,61 @@ def test_association_score_of_a_split_and_a_bloated_track() -> None:
     assert association_score(gt, np.where(gt > 0, gt + 100, 0)) == pytest.approx(1.0)
     assert association_score(gt, pred, min_points=6) == pytest.approx(expected_1)
     assert math.isnan(association_score(np.zeros(3), np.ones(3)))
+
+
+def _reference_counts(
+    gc: np.ndarray, gs: np.ndarray, pc: np.ndarray, ps: np.ndarray, c: int, mp: int
+) -> tuple:
+    """evaluate_panoptic.py's counting written out segment by segment (dicts, one class at a time)."""
+    tp, fp, fn, iou_sum = [0] * c, [0] * c, [0] * c, [0.0] * c
+    for k in range(c):
+        gt_seg: dict[int, set[int]] = {}
+        pred_seg: dict[int, set[int]] = {}
+        for i in range(gc.size):
+            if gc[i] == -1:
+                continue
+            if gc[i] == k:
+                gt_seg.setdefault(int(gs[i]), set()).add(i)
+            if pc[i] == k:
+                pred_seg.setdefault(int(ps[i]), set()).add(i)
+        matched_g, matched_p = set(), set()
+        for g, gp in gt_seg.items():
+            for p, pp in pred_seg.items():
+                iou = len(gp & pp) / len(gp | pp)
+                if iou > 0.5:
+                    tp[k] += 1
+                    iou_sum[k] += iou
+                    matched_g.add(g)
+                    matched_p.add(p)
+        fn[k] = sum(1 for g, gp in gt_seg.items() if g not in matched_g and len(gp) >= mp)
+        fp[k] = sum(1 for p, pp in pred_seg.items() if p not in matched_p and len(pp) >= mp)
+    return tp, fp, fn, iou_sum
+
+
+def test_panoptic_counts_agree_with_a_segment_by_segment_reference() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        n, c = int(rng.integers(0, 400)), int(rng.integers(1, 5))
+        gc = rng.integers(-1, c, n)
+        # .label-like ids: an instance in the upper half, a raw class id (0, 300 or 600) in the lower
+        gs = (rng.integers(0, 6, n) << 16) | rng.integers(0, 3, n) * 300
+        pc = np.where(rng.random(n) < 0.8, gc, rng.integers(-1, c, n))
+        ps = np.where(rng.random(n) < 0.8, gs, rng.integers(0, 9, n) << 16)
+        mp = int(rng.choice([1, 5, 30]))
+        counts = PanopticCounts(c, min_points=mp)
+        counts.add(gc, gs, pc, ps)
+        tp, fp, fn, iou_sum = _reference_counts(gc, gs, pc, ps, c, mp)
+        assert counts.tp.tolist() == tp and counts.fp.tolist() == fp and counts.fn.tolist() == fn
+        assert counts.iou_sum == pytest.approx(iou_sum, abs=1e-12)
+
+
+def test_association_counts_summed_scan_by_scan_equal_the_whole_sequence() -> None:
+    rng = np.random.default_rng(3)
+    scans = [(rng.integers(0, 8, 300) * (rng.random(300) < 0.7), rng.integers(0, 12, 300)) for _ in range(9)]
+    whole = association_score(np.concatenate([g for g, _ in scans]), np.concatenate([p for _, p in scans]))
+    parts = [AssociationCounts.of(g, p) for g, p in scans]
+    summed = AssociationCounts.summed([AssociationCounts.summed(parts[:4]), *parts[4:]])
+    assert summed.score() == whole
+    assert summed.entries < sum(g.size for g, _ in scans)
+    with pytest.raises(ValueError, match="track ids"):
+        AssociationCounts.of(np.array([1 << 31]), np.array([1]))

@@ -29,7 +29,7 @@ from leap_core.export import labels_to_raw
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json, read_npz
 from leap_core.metrics import Metrics, confusion_matrix, format_table, merge_confusion, metrics_from_confusion
-from leap_core.panoptic import MOS_MOVING, MosCounts, PanopticCounts, association_score, mos_states
+from leap_core.panoptic import MOS_MOVING, AssociationCounts, MosCounts, PanopticCounts, mos_states
 from leap_core.pipeline.context import load_view, ordered_map
 from leap_core.pipeline.metrics_file import RowScores, RunMetrics, SequenceMetrics, ViewSpec
 from leap_core.pipeline.object_corrections import CorrectedTracks, read_corrected_tracks
@@ -251,6 +251,11 @@ def stage_evaluate(ctx: Ctx) -> dict[str, Any]:  # noqa: PLR0915  # one pass ove
     return {}
 
 
+ASSOC_BATCH = 1 << 16
+"""Rows of scans' S_assoc tables gathered before they are summed into the sequence's
+(:class:`ObjectEvaluation`)."""
+
+
 class ObjectEvaluation:
     """The object scores of one sequence (:mod:`leap_core.panoptic`), summed scan by scan from the labels
     an export writes: the final labels with the ``tracks`` stage's classes, ids and moving ids, and the
@@ -271,8 +276,10 @@ class ObjectEvaluation:
         c = schema.num_classes
         self.moving_right = np.zeros(c, np.int64)
         self.moving_total = np.zeros(c, np.int64)
-        self.gt_tracks: list[npt.NDArray[np.int64]] = []
-        self.pred_tracks: list[npt.NDArray[np.int64]] = []
+        # S_assoc's counts: scans' tables wait in ``pending`` until they hold as many rows as ``assoc``
+        # (or ASSOC_BATCH), then are summed in at once, so memory follows the tracks, not the points.
+        self.assoc = AssociationCounts()
+        self.pending: list[AssociationCounts] = []
         self.lock = threading.Lock()
 
     @classmethod
@@ -301,7 +308,8 @@ class ObjectEvaluation:
         ).astype(np.int64)
         pred_segment = low | (np.where(low > 0, instance, 0).astype(np.int64) << 16)
         gt_segment = raw_gt.astype(np.int64)
-        gt_moving = mos_states(raw_gt) == MOS_MOVING
+        gt_state = mos_states(raw_gt)
+        gt_moving = gt_state == MOS_MOVING
         thing_gt = (gt >= 0) & self.things[np.maximum(gt, 0)] & ((gt_segment >> 16) > 0)
         gt_track = np.where(thing_gt, gt.astype(np.int64) * 65536 + (gt_segment >> 16) + 1, 0)
         keep = (gt != UNLABELED) & ((gt_track > 0) | (instance > 0))
@@ -310,14 +318,19 @@ class ObjectEvaluation:
         scan = {p: PanopticCounts(self.schema.num_classes) for p in ("camera", "all")}
         scan["all"].add(gt, gt_segment, label, pred_segment)
         scan["camera"].add(gt[in_view], gt_segment[in_view], label[in_view], pred_segment[in_view])
+        assoc = AssociationCounts.of(gt_track[keep], instance[keep])
+        mos = MosCounts()
+        if self.has_moving:
+            mos.add(gt_state, np.where(label == UNLABELED, 0, mos_states(low)))
         with self.lock:
             self.per_scan[frame_id] = scan
-            if self.has_moving:
-                self.mos.add(mos_states(raw_gt), np.where(label == UNLABELED, 0, mos_states(low)))
+            self.mos.merge(mos)
             self.moving_right += right
             self.moving_total += total
-            self.gt_tracks.append(gt_track[keep])
-            self.pred_tracks.append(instance[keep].astype(np.int64))
+            self.pending.append(assoc)
+            if sum(x.entries for x in self.pending) >= max(self.assoc.entries, ASSOC_BATCH):
+                self.assoc = AssociationCounts.summed([self.assoc, *self.pending])
+                self.pending = []
         return label
 
     def scores(self) -> dict[str, dict[str, float | None]]:
@@ -328,9 +341,7 @@ class ObjectEvaluation:
                 if fid in self.per_scan:
                     counts.merge(self.per_scan[fid][p])
             out[p] = {k: (None if np.isnan(v) else v) for k, v in counts.scores(self.things).items()}
-        gt_tracks = np.concatenate(self.gt_tracks) if self.gt_tracks else np.zeros(0, np.int64)
-        pred_tracks = np.concatenate(self.pred_tracks) if self.pred_tracks else np.zeros(0, np.int64)
-        s_assoc = association_score(gt_tracks, pred_tracks)
+        s_assoc = AssociationCounts.summed([self.assoc, *self.pending]).score()
         mos = self.mos.iou if self.has_moving else float("nan")
         out["motion"] = {
             "mos_iou": None if np.isnan(mos) else mos,

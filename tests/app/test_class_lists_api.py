@@ -125,6 +125,6 @@ def test_a_class_list_in_the_create_payload_is_checked_as_a_whole(client: TestCl
     body = {"name": "p", "dataset": {"kind": "demo"}, "class_list": {"classes": [one, {**one, "name": "b"}]}}
     r = client.post(f"{API}/projects", json=body)
     assert r.status_code == 422
-    assert r.json()["detail"][0]["loc"] == ["body", "class_list", "classes", 1]
+    assert r.json()["detail"][0]["loc"] == ["body", "class_list", "classes", 1, "export_id"]
     r = client.post(f"{API}/projects", json={**body, "schema_name": "demo"})
     assert r.status_code == 422 and "not both" in r.text

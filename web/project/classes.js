@@ -303,10 +303,9 @@ function newObjectFields() {
     },
     /** Shows a refused add beside the fields when it is about them; returns whether it was. */
     show(err) {
-      const f = err instanceof ApiError ? err.field() : null;
-      // A field's own check names it in the 422's loc; the class list's rules (a moving id on a stuff
-      // class, one equal to the export id) name the class entry and say the field in the message.
-      const input = inputs[f] || (/\bmoving_id\b/.test(err.message) ? moving : /\bthing (must|is)\b/.test(err.message) ? thing : null);
+      // The 422's loc ends with the field at fault, also for the class list's rules (a moving id on a
+      // stuff class, one equal to the export id: ["body", "classes", 19, "moving_id"]).
+      const input = inputs[err instanceof ApiError ? err.field() : null];
       if (!input) return false;
       error.textContent = err.message;
       input.classList.add("invalid");
