@@ -498,7 +498,7 @@ class CorrectedTracks:
             tuple(zip(corrections.ids, results, strict=True)),
         )
 
-    def _scan(self, frame_id: str) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    def scan_rows(self, frame_id: str) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
         """(rows, object ids) of one scan's tracked points (none for a scan the tracks do not hold)."""
         t = self.tracks
         try:
@@ -520,7 +520,7 @@ class CorrectedTracks:
         correction labels) gets its object's id and motion, a voted object's points its class; then the
         relabelled objects' points their correction's class, confidence 1 (0 for an erase), and no id or
         motion unless the class is a thing. ``conf`` None: ones (the evaluation reads labels only)."""
-        rows, obj = self._scan(frame_id)
+        rows, obj = self.scan_rows(frame_id)
         if keep is not None and keep.size:
             sel = ~np.isin(rows, keep)
             rows, obj = rows[sel], obj[sel]
