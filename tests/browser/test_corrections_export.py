@@ -233,6 +233,9 @@ def test_one_click_relabels_an_object_in_every_scan_of_the_export(
             with open_db(settings.database) as db:
                 merge = crud.list_corrections(db, pid)[-1]
             assert (merge.action, merge.track_id, merge.other_track_id) == ("merge", found.track, other)
+            merged = ui.locator(f"#corrections tr[data-id='{merge.id}']")
+            merged.wait_for(timeout=10_000)  # the project page's list polls every 2 s
+            assert f"merge of objects {found.track} and {other}" in merged.inner_text()
             page.keyboard.press("Control+z")  # the viewer page's undo key
             wait_until(lambda: not (session.shared.scan_instance != other).all(), 20, "the undone merge")
             wait_until(
