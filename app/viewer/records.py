@@ -136,9 +136,10 @@ class ObjectInfo:
     run_id: int
     """The run whose track it is."""
     track: int
-    """Its track id (the instance id in the export's upper 16 bits)."""
+    """Its id as the export shows it (the instance id in the upper 16 bits): the run's track id, or the new
+    id of a part a split cut off; merged objects show the id of the one merged into."""
     class_index: int
-    """The track's voted class (-1: none)."""
+    """The object's voted class (-1: none; a merged object's is the one merged into's)."""
     scans: int
     """Scans it was seen in."""
     moving: bool
