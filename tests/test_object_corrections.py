@@ -263,7 +263,12 @@ def test_the_file_round_trips_and_refuses_bad_classes(tmp_path: Path) -> None:
     assert edits.differs(
         merge_object_corrections([*edits.edits[:2], ObjectEdit(7, "split", one, frame_id="1")])
     )
+    # A file written before merges and splits existed (no 'action', no 'split_frame') holds relabels.
     corr.save(path)
+    with np.load(path) as z:
+        np.savez(path, **{k: z[k] for k in z.files if k not in ("action", "split_frame")})
+    old = ObjectCorrections.load(path, num_classes=2)
+    assert [e.action for e in old.edits] == ["relabel"] * 2 and not old.differs(corr)
     with pytest.raises(DatasetError, match=r"corrections_object.npz.*'class_idx' must be in -1..0"):
         ObjectCorrections.load(path, num_classes=1)
     empty = tmp_path / "none.npz"
