@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from app.rows import DatasetKind, RunStatus
+from leap_core.object_review import ReasonCode
 from leap_core.schema import class_name_problem
 
 StageStatus = Literal["pending", "running", "done", "skipped", "failed", "cancelled"]
@@ -1097,3 +1098,35 @@ class ModelPublic(BaseModel):
 class ModelsPublic(BaseModel):
     data: list[ModelPublic]
     count: int
+
+
+# ------------------------------------------------------------------------------------------- objects
+class ObjectPublic(BaseModel):
+    """One object (track) of a finished run's sequence (``tracks.npz``; docs/METHOD.md B.6)."""
+
+    id: int = Field(description="track id: the instance id in the export's upper 16 bits")
+    class_name: str = Field(description="its voted class")
+    scans: int = Field(description="scans in which it has points")
+    first_frame: str | None = Field(description="frame id of the first of them (null: none)")
+    last_frame: str | None = Field(description="frame id of the last of them (null: none)")
+    gaps: int = Field(description="scans between the first and the last without its points")
+    moving: bool
+    speed: float = Field(description="m/s, the norm of its least-squares velocity")
+    vote_share: float = Field(description="the voted class's share of the class vote over its scans, 0..1")
+    runner_up: str | None = Field(description="the class with the next most votes (null: no other)")
+    runner_up_share: float = Field(description="its share of the vote, 0..1")
+    queued: list[ReasonCode] = Field(
+        description="why the object review queue holds it, in priority order (empty: not queued)"
+    )
+    reason: str = Field(description="the same for a person: 'car 48 % vs truck 41 %; 3 gaps'")
+
+
+class ObjectsPublic(BaseModel):
+    """A page of a run's objects: every object by id, or (``queued=true``) the review queue in order."""
+
+    run_id: int
+    sequence: str
+    data: list[ObjectPublic]
+    count: int = Field(description="objects matching the filter, over all pages")
+    offset: int
+    limit: int

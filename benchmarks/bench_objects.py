@@ -18,7 +18,11 @@ does the three objects runs once per ``tracking.segments`` setting. Prints, for 
   each thing class's IoU in camera view;
 - the smear: the share of static points in voxels a moving object passed through (any scan) whose final
   label is a thing class;
-- the motion and tracks stages' time per scan beside ``label_points``' (same run, same frames).
+- the motion and tracks stages' time per scan beside ``label_points``' (same run, same frames);
+- the object review queue (docs/METHOD.md B.6, default ``ObjectQueueConfig``): objects queued for a close
+  vote / a broken track / a short track, and the share of objects whose voted class differs from the
+  ground-truth class most of their points carry, among the queued ones against the rest (does the queue
+  find the wrong ones?).
 
 Usage::
 
@@ -26,6 +30,11 @@ Usage::
     .venv/bin/python benchmarks/bench_objects.py --sequence /tmp/demo/sequences/00
     .venv/bin/python benchmarks/bench_objects.py --quick     # a generated 3-frame street
     .venv/bin/python benchmarks/bench_objects.py --segments euclidean,masks   # both segmentations
+    .venv/bin/python benchmarks/bench_objects.py --preset paper   # the lab's labeler fitted to the paper
+
+``--preset paper`` labels with the research lab's ``simulated-paper`` labeler and its ``paper`` preset (the
+noise fitted to the paper's point row, ``lab/paper_labeler.py``) instead of the product's simulated labeler
+with its defaults (``default``).
 
 Writes ``benchmarks/results/bench_objects.json``.
 """
@@ -49,8 +58,10 @@ from leap_core.config import PipelineConfig, config_from_dict
 from leap_core.datasets.kitti import KittiSequence, read_label
 from leap_core.fusion import voxel_keys, world_points
 from leap_core.io_utils import read_npz
+from leap_core.object_review import BROKEN, CLOSE_VOTE, SHORT, ObjectQueueConfig
 from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.pipeline.metrics_file import SequenceMetrics
+from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.schema import Schema, builtin_schema
 from leap_core.synth import SynthConfig, generate_sequence
 
@@ -97,6 +108,45 @@ def trail_smear(seq: KittiSequence, folder: Path, schema: Schema, voxel_size: fl
     return thing / total if total else math.nan
 
 
+def queue_quality(seq: KittiSequence, folder: Path, schema: Schema) -> dict[str, Any]:
+    """The object review queue of the run's ``tracks.npz``: counts per reason, and the share of objects
+    whose voted class is not the ground-truth class most of their tracked points carry (points without
+    ground truth not counted), among the queued and the other thing objects with points."""
+    tracks = SequenceTracks.load(folder / "tracks.npz")
+    k = tracks.table.label.size
+    gt_lut = schema.gt_lut()
+    c = schema.num_classes
+    hist = np.zeros((k, c + 1), np.int64)
+    for i, fid in enumerate(seq.frame_ids):
+        obj = tracks.scan(fid)
+        if not obj.rows.size:
+            continue
+        gt = gt_lut[seq.frame(i).labels[obj.rows] & 0xFFFF]
+        np.add.at(hist, (obj.track.astype(np.int64) - 1, np.where(gt >= 0, gt, c)), 1)
+    known = hist[:, :c].sum(axis=1) > 0
+    wrong = known & (hist[:, :c].argmax(axis=1) != tracks.table.label)
+    ids, reasons = tracks.review_queue(schema.things(), ObjectQueueConfig())
+    queued = np.zeros(k, bool)
+    queued[ids - 1] = True
+    life = tracks.track_life()
+    rest = ~queued & (life.present > 0) & schema.things()[tracks.table.label] & known
+
+    def share(sel: np.ndarray) -> float:
+        n = int((sel & known).sum())
+        return float((sel & wrong).sum() / n) if n else math.nan
+
+    return {
+        "objects": int(((life.present > 0) & schema.things()[tracks.table.label]).sum()),
+        "queued": int(ids.size),
+        "close_vote": int(((reasons & CLOSE_VOTE) > 0).sum()),
+        "broken": int(((reasons & BROKEN) > 0).sum()),
+        "short": int(((reasons & SHORT) > 0).sum()),
+        "wrong_queued": share(queued),
+        "wrong_close_vote": share(np.isin(np.arange(1, k + 1), ids[(reasons & CLOSE_VOTE) > 0])),
+        "wrong_rest": share(rest),
+    }
+
+
 def stuff_miou(m: SequenceMetrics, protocol: str, row: str, schema: Schema) -> float:
     iou = m.table(protocol)[row].iou
     vals = [iou[c.name] for c in schema.classes if not c.thing and iou[c.name] is not None]
@@ -127,7 +177,19 @@ def main() -> None:
         help="Comma-separated tracking.segments settings to run each objects run with (e.g. "
         "'euclidean,masks': every objects run once per setting, the column names say which).",
     )
+    ap.add_argument(
+        "--preset",
+        choices=("default", "paper"),
+        default="default",
+        help="Simulated labels: the product's simulated labeler (default) or the lab's simulated-paper "
+        "labeler with its paper preset.",
+    )
     args = ap.parse_args()
+    labeler: dict[str, Any] = {}
+    if args.preset == "paper":
+        import lab  # noqa: F401  registers the simulated-paper labeler
+
+        labeler = {"labeler": "simulated-paper", "simulated_paper": {"preset": "paper"}}
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_objects_"))
     if args.quick:
@@ -153,13 +215,14 @@ def main() -> None:
     for name, enabled, vote, exclude, seg in runs:
         cfg = config_from_dict(
             {
+                **labeler,
                 "tracking": {
                     **extra,
                     "enabled": enabled,
                     "vote": vote,
                     "exclude_moving": exclude,
                     "segments": seg,
-                }
+                },
             },
             PipelineConfig(),
         )
@@ -200,6 +263,9 @@ def main() -> None:
             "label_points_ms_per_scan": 1000 * state["label_points"]["seconds"] / len(seq),
             "tracks": state["tracks"].get("tracks"),
             "moving_tracks": state["tracks"].get("moving_tracks"),
+            "queue": queue_quality(seq, lay.folder if lay else out / "sequences" / seq_dir.name, schema)
+            if enabled
+            else None,
         }
     keys = [
         ("moving-person points, right class %", "moving_person_right_class"),
@@ -229,13 +295,42 @@ def main() -> None:
             *each(lambda r: "-" if r["tracks"] is None else f"{r['tracks']} / {r['moving_tracks']}"),
         ]
     )
+    rows.append(
+        [
+            "review queue: queued / objects (close vote, broken, short)",
+            *each(
+                lambda r: (
+                    "-"
+                    if r["queue"] is None
+                    else "{queued} / {objects} ({close_vote}, {broken}, {short})".format(**r["queue"])
+                )
+            ),
+        ]
+    )
+    rows.append(
+        [
+            "objects of the wrong class %: queued / close vote / rest",
+            *each(
+                lambda r: (
+                    "-"
+                    if r["queue"] is None
+                    else " / ".join(
+                        pct(r["queue"][k]) for k in ("wrong_queued", "wrong_close_vote", "wrong_rest")
+                    )
+                )
+            ),
+        ]
+    )
     rows.append(["movers found before fusion", *each(lambda r: str(r["moving_before_fusion"] or "-"))])
     rows.append(["motion stage ms/scan", *each(lambda r: ms(r["motion_ms_per_scan"]))])
     rows.append(["tracks stage ms/scan", *each(lambda r: ms(r["tracks_ms_per_scan"]))])
     rows.append(["fuse ms/scan", *each(lambda r: ms(r["fuse_ms_per_scan"]))])
     rows.append(["label_points ms/scan (baseline)", *each(lambda r: ms(r["label_points_ms_per_scan"]))])
-    print_table(f"Objects on {seq_dir} ({len(seq)} frames)", ["", *results], rows)
-    write_results("bench_objects", {"sequence": str(seq_dir), "frames": len(seq), "results": results})
+    print_table(f"Objects on {seq_dir} ({len(seq)} frames, {args.preset} preset)", ["", *results], rows)
+    write_results(
+        "bench_objects" if args.preset == "default" else f"bench_objects_{args.preset}",
+        {"sequence": str(seq_dir), "frames": len(seq), "preset": args.preset, "results": results},
+    )
 
 
 if __name__ == "__main__":

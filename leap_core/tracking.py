@@ -18,6 +18,8 @@ Pure functions on arrays; the pipeline stage (:mod:`leap_core.pipeline.stages`, 
    ``max_missed`` scans ends. Track ids are 1, 2, ... in order of birth, unique over the sequence.
    ``v`` is the displacement of the last two observations over their time difference (0 for a new track).
 3. **Class.** A track's class is the argmax of its segments' summed class votes over all its scans.
+   The vote's evidence is kept for review (:class:`VoteEvidence`): the winner's share of the votes and the
+   runner-up class with its share.
    Which tracks' points take it is ``vote``: ``"moving"`` (default) only a moving track's, since the map's
    label at a mover is its trail; a static track's points keep their own per-point class (and still get
    the track's id), because a segment from 3D clustering alone can hold a person beside a bicycle or a
@@ -294,6 +296,59 @@ def track_ids(
 
 
 @dataclass(frozen=True)
+class VoteEvidence:
+    """How clear each track's class vote was (index = id - 1), for the object review queue
+    (:mod:`leap_core.object_review`).
+
+    With ``h`` (K, C) the votes summed over a track's scans (:func:`track_table`) and ``n = Σ_c h_c``:
+    ``share = h_label / n`` and ``runner_share = h_runner / n``, where ``runner_up`` is the class of the
+    second-largest count (ties: the lower index) or -1 when no other class got a vote (then its share is 0).
+    A track without votes has ``share`` 0.
+
+    Attributes:
+        share: (K,) float64 the winning class's share of the vote, 0..1.
+        runner_up: (K,) int16 the runner-up class, -1 = none.
+        runner_share: (K,) float64 its share, 0..1.
+    """
+
+    share: npt.NDArray[np.float64]
+    runner_up: npt.NDArray[np.int16]
+    runner_share: npt.NDArray[np.float64]
+
+    @classmethod
+    def unknown(cls, k: int) -> VoteEvidence:
+        """What a ``tracks.npz`` written before the evidence was kept reads as: every vote unanimous
+        (share 1, no runner-up), so no such track is queued for a close vote."""
+        return cls(np.ones(k), np.full(k, -1, np.int16), np.zeros(k))
+
+    def take(self, rows: npt.NDArray[np.bool_] | npt.NDArray[np.int64]) -> VoteEvidence:
+        """The evidence of the tracks ``rows`` (a mask or indices), in that order."""
+        return VoteEvidence(self.share[rows], self.runner_up[rows], self.runner_share[rows])
+
+
+def vote_evidence(hist: npt.ArrayLike) -> VoteEvidence:
+    """:class:`VoteEvidence` of summed class votes ``hist`` (K, C) (the winner is ``argmax``, as
+    :func:`track_table` votes)."""
+    h = np.asarray(hist, dtype=np.float64)
+    k = h.shape[0]
+    if k == 0 or h.ndim != 2 or h.shape[1] == 0:
+        return VoteEvidence(np.zeros(0), np.zeros(0, np.int16), np.zeros(0))
+    total = h.sum(axis=1)
+    n = np.maximum(total, 1e-12)
+    win = h.argmax(axis=1)
+    rest = h.copy()
+    rest[np.arange(k), win] = -np.inf
+    runner = rest.argmax(axis=1) if h.shape[1] > 1 else np.zeros(k, np.int64)
+    runner_votes = rest[np.arange(k), runner] if h.shape[1] > 1 else np.zeros(k)
+    has_runner = runner_votes > 0
+    return VoteEvidence(
+        share=np.where(total > 0, h[np.arange(k), win] / n, 0.0),
+        runner_up=np.where(has_runner, runner, -1).astype(np.int16),
+        runner_share=np.where(has_runner, runner_votes / n, 0.0),
+    )
+
+
+@dataclass(frozen=True)
 class TrackTable:
     """Per track (index = id - 1): class, motion and life.
 
@@ -304,6 +359,8 @@ class TrackTable:
         scans: (K,) int64 scans the track was seen in.
         sweep: (K,) float64 metres its footprint reaches beyond its largest scan's (module docstring).
         voted: (K,) bool whose points take ``label`` (``TrackingConfig.vote``); the others keep theirs.
+        evidence: how clear each class vote was; None where it is not known (a ``tracks.npz`` written
+            before it was kept: :meth:`vote_evidence` reads that as unanimous).
     """
 
     label: npt.NDArray[np.int16]
@@ -312,6 +369,11 @@ class TrackTable:
     scans: npt.NDArray[np.int64]
     sweep: npt.NDArray[np.float64]
     voted: npt.NDArray[np.bool_]
+    evidence: VoteEvidence | None = None
+
+    def vote_evidence(self) -> VoteEvidence:
+        """:attr:`evidence`, or :meth:`VoteEvidence.unknown` where the table has none."""
+        return self.evidence if self.evidence is not None else VoteEvidence.unknown(self.label.size)
 
 
 def track_table(
@@ -378,6 +440,7 @@ def track_table(
         scans=scans,
         sweep=sweep,
         voted=moving.copy() if cfg.vote == "moving" else np.ones(k, bool),
+        evidence=vote_evidence(hist),
     )
 
 
@@ -390,6 +453,15 @@ def stack_tables(first: TrackTable, second: TrackTable) -> TrackTable:
         scans=np.concatenate([first.scans, second.scans]).astype(np.int64),
         sweep=np.concatenate([first.sweep, second.sweep]).astype(np.float64),
         voted=np.concatenate([first.voted, second.voted]).astype(bool),
+        evidence=_stack_evidence(first.vote_evidence(), second.vote_evidence()),
+    )
+
+
+def _stack_evidence(a: VoteEvidence, b: VoteEvidence) -> VoteEvidence:
+    return VoteEvidence(
+        np.concatenate([a.share, b.share]).astype(np.float64),
+        np.concatenate([a.runner_up, b.runner_up]).astype(np.int16),
+        np.concatenate([a.runner_share, b.runner_share]).astype(np.float64),
     )
 
 
@@ -406,6 +478,7 @@ def moving_only(table: TrackTable) -> tuple[TrackTable, npt.NDArray[np.int64]]:
             scans=table.scans[m],
             sweep=table.sweep[m],
             voted=np.ones(int(m.sum()), bool),
+            evidence=table.vote_evidence().take(m),
         ),
         new_id,
     )
@@ -414,6 +487,7 @@ def moving_only(table: TrackTable) -> tuple[TrackTable, npt.NDArray[np.int64]]:
 __all__ = [
     "TrackTable",
     "TrackingConfig",
+    "VoteEvidence",
     "associate",
     "euclidean_segments",
     "mask_segments",
@@ -422,4 +496,5 @@ __all__ = [
     "stack_tables",
     "track_ids",
     "track_table",
+    "vote_evidence",
 ]

@@ -1026,3 +1026,74 @@ def test_panel_words_stages_counts_corrections_and_clears_a_stale_error(review_s
             session.corrections.show_correction(first + 100)
     finally:
         session.close()
+
+
+def test_objects_to_review_step_inspect_frame_and_leave_the_queue_when_relabelled(review_store) -> None:
+    """The hand-built run gets four tracks: 1 a car whose vote was close (car 50 % vs building 45 %) in
+    every scan, 2 a car seen in scan 0 only, 3 road (stuff), 4 a car in scans 0 and 2 (a gap). The queue
+    is 1, 4, 2; showing one moves to its middle scan, inspects and frames it; relabelling 1 takes it out."""
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+    from leap_core.datasets.kitti import KittiSequence
+    from leap_core.pipeline.tracks_file import SequenceTracks
+    from leap_core.tracking import TrackTable, VoteEvidence
+
+    settings, pid, run_id, _keys, _cls = review_store
+    with open_db(settings.database) as db:
+        run = crud.require_run(db, run_id)
+    layout = run.sequence_layout("00")
+    per_scan = [
+        [(range(0, 10), 1), (range(10, 15), 2), (range(30, 35), 4)],
+        [(range(0, 10), 1), (range(20, 25), 3)],
+        [(range(0, 10), 1), (range(30, 35), 4)],
+    ]
+    rows = [np.concatenate([np.arange(r.start, r.stop) for r, _ in s]) for s in per_scan]
+    track = [np.concatenate([np.full(len(r), t) for r, t in s]) for s in per_scan]
+    k = 4
+    table = TrackTable(
+        label=np.array([1, 1, 0, 1], np.int16),
+        velocity=np.zeros((k, 3)),
+        moving=np.zeros(k, bool),
+        scans=np.array([3, 1, 1, 2]),
+        sweep=np.zeros(k),
+        voted=np.zeros(k, bool),
+        evidence=VoteEvidence(
+            np.array([0.5, 1, 1, 1]), np.array([2, -1, -1, -1], np.int16), np.r_[0.45, 0, 0, 0]
+        ),
+    )
+    frame_ids = tuple(KittiSequence(run.params.sequences[0].dataset).frame_ids)
+    SequenceTracks(
+        frame_ids,
+        np.cumsum([0, *(r.size for r in rows)]).astype(np.int64),
+        np.concatenate(rows).astype(np.int32),
+        np.concatenate(track).astype(np.int32),
+        table,
+    ).save(layout.tracks)
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        panel = session.panel.objects
+        shown = panel.step(1)
+        assert shown is not None and (shown.track, shown.position, shown.count) == (1, 1, 3)
+        assert shown.frame_id == frame_ids[1] and session.player.frame_pos == 1
+        assert session.tools.inspected_object is not None and session.tools.inspected_object.track == 1
+        assert "(1 of 3), car: car 50 % vs building 45 %" in panel.info.content
+        view = session.shared.scan_view
+        assert view is not None
+        look = np.array(session.scene.server.initial_camera.look_at)
+        centre = view.points[:10].astype(np.float64)
+        assert np.linalg.norm(look[:2] - np.percentile(centre[:, :2], [2, 98], axis=0).mean(axis=0)) < 1e-3
+        shown = panel.step(1)
+        assert shown is not None and (shown.track, shown.frame_id) == (4, frame_ids[2])
+        assert "1 gap; seen in 2 scans" in panel.info.content
+        assert panel.step(1) is not None and session.objects.current == 2
+        assert panel.step(1) is None and "end of the queue" in panel.info.content
+        assert [panel.step(-1).track, panel.step(-1).track] == [4, 1]  # type: ignore[union-attr]
+        assert session.corrections.relabel_object("building") is not None
+        assert "relabelled: done; 2 left" in panel.info.content
+        assert session.objects.pending() == [4, 2]
+        assert panel.step(1).track == 4 and panel.step(-1) is None  # type: ignore[union-attr]
+    finally:
+        session.close()

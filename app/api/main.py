@@ -18,6 +18,7 @@ from app.api.routes import (
     exports,
     health,
     lidar_models,
+    objects,
     pipeline,
     projects,
     reviewers,
@@ -35,6 +36,7 @@ api_router.include_router(classes.router)
 api_router.include_router(classes.ids_router)
 api_router.include_router(class_lists.router)
 api_router.include_router(runs.router)
+api_router.include_router(objects.router)
 api_router.include_router(exports.router)
 api_router.include_router(corrections.router)
 api_router.include_router(reviewers.router)

@@ -20,7 +20,7 @@ from app.jobs.stages import stage_words
 from app.viewer import view_logic as vl
 from app.viewer.data import ScanView
 from app.viewer.panel_nav import NavPanel
-from app.viewer.panel_review import QUEUE_KINDS, ReviewQueuePanel
+from app.viewer.panel_review import QUEUE_KINDS, ObjectQueuePanel, ReviewQueuePanel
 from app.viewer.panel_tools import ToolsPanel
 from app.viewer.records import Inspection, ObjectInfo, RunInfo
 from app.viewer.region_logic import Region
@@ -140,6 +140,8 @@ class ReviewPanel:
 
         with gui.add_folder("Review queue", order=4, expand_by_default=False):
             self.review = ReviewQueuePanel(self)
+            with gui.add_folder("Objects to review", expand_by_default=False):
+                self.objects = ObjectQueuePanel(self)
 
         with gui.add_folder("Corrections", order=5, expand_by_default=False):
             self.assign_class = gui.add_dropdown("Assign class", ["-"], initial_value="-")
@@ -387,6 +389,7 @@ class ReviewPanel:
             self.prob_class.value = names[0]  # type: ignore[misc]  # viser: split setter, see class note
         self.assign_class.options = names
         self.review.on_run_loaded(names)
+        self.objects.on_run_loaded()
         if self.assign_class.value not in names:
             self.assign_class.value = names[0]  # type: ignore[misc]  # viser: split setter, see class note
         for box in self._class_boxes:
@@ -472,6 +475,7 @@ class ReviewPanel:
 
     def on_object(self, found: ObjectInfo | None) -> None:
         self.nav.on_object(found)
+        self.objects.on_object(found)
 
     def on_nav(self) -> None:
         self.nav.on_nav()

@@ -10,7 +10,8 @@ import html
 import threading
 from typing import TYPE_CHECKING, Any
 
-from app.viewer.records import QueueKind, SessionConfig
+from app.viewer.object_queue import QueuedObject
+from app.viewer.records import ObjectInfo, QueueKind, SessionConfig
 from app.viewer.region_logic import Region
 from leap_core.bounds import bounds_rows
 
@@ -144,4 +145,71 @@ class ReviewQueuePanel:
         self._region_buttons(True)
 
 
-__all__ = ["QUEUE_KINDS", "QUEUE_OF", "ReviewQueuePanel", "progress_text"]
+def object_text(shown: QueuedObject, class_name: str) -> str:
+    """The objects folder's line for the object shown: ``"Object **12** (1 of 5), car: car 48 % vs truck
+    41 %"`` (HTML-escaped: class names are the user's)."""
+    where = f"{shown.position} of {shown.count}" if shown.position else f"done; {shown.count} left"
+    return (
+        f"Object **{shown.track}** ({where}), {html.escape(class_name)}: {html.escape(shown.reason)} "
+        f"(scan {html.escape(shown.frame_id)})."
+    )
+
+
+class ObjectQueuePanel:
+    """Widgets of the "Objects to review" folder (call inside it): Next / Previous object over the session's
+    :class:`~app.viewer.object_queue.ObjectQueue`; the shown object is the inspected one, which the Inspect
+    section's *Relabel object* relabels."""
+
+    def __init__(self, panel: ReviewPanel) -> None:
+        self.p = panel
+        gui, g = panel.gui, panel.guard
+        self.next_button = gui.add_button(
+            "Next object", hint="The next object whose class or track is in doubt"
+        )
+        self.prev_button = gui.add_button("Previous object")
+        self.info = gui.add_markdown("Close class votes, broken and short tracks; press *Next object*.")
+        self.next_button.on_click(g(lambda _: self.step(1)))
+        self.prev_button.on_click(g(lambda _: self.step(-1)))
+
+    def step(self, step: int) -> QueuedObject | None:
+        objects = self.p.s.objects
+        shown = objects.step(step)
+        if shown is None:
+            left = len(objects.pending())
+            end = "end" if step > 0 else "start"
+            self.info.content = (
+                f"No objects to review ({'no tracks in this run' if not objects.ids else 'none queued'})."
+                if not left
+                else f"At the {end} of the queue ({left} to review)."
+            )
+            return shown
+        self.show(shown)
+        return shown
+
+    def show(self, shown: QueuedObject) -> None:
+        outputs = self.p.s.outputs
+        tracks = None if outputs is None else outputs.tracks()
+        names = self.p.s.class_names()
+        label = -1 if tracks is None else int(tracks.table.label[shown.track - 1])
+        self.info.content = object_text(shown, names[label] if 0 <= label < len(names) else "unlabeled")
+
+    def on_run_loaded(self) -> None:
+        self.info.content = "Close class votes, broken and short tracks; press *Next object*."
+
+    def on_object(self, found: ObjectInfo | None) -> None:
+        """After *Relabel object* on the object shown, say it is done and how many are left."""
+        objects = self.p.s.objects
+        if found is None or found.track != objects.current or found.corrected_to is None:
+            return
+        left = len(objects.pending())
+        self.info.content = f"Object **{found.track}** relabelled: done; {left} left. Press *Next object*."
+
+
+__all__ = [
+    "QUEUE_KINDS",
+    "QUEUE_OF",
+    "ObjectQueuePanel",
+    "ReviewQueuePanel",
+    "object_text",
+    "progress_text",
+]

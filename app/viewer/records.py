@@ -22,6 +22,7 @@ from app.viewer.lod import LodConfig
 from app.viewer.region_logic import Region
 from leap_core import selection as sel
 from leap_core.bounds import check_bounds, within
+from leap_core.object_review import ObjectQueueConfig
 from leap_core.pipeline.object_corrections import ObjectCorrections
 from leap_core.schema import Schema
 
@@ -316,6 +317,8 @@ class SessionConfig:
     """Whether the camera follows the ego pose on a scan change when the viewer starts (key ``g``)."""
     lod: LodConfig = dataclasses.field(default_factory=LodConfig)
     """Level of detail of maps with more voxels than its budget (:mod:`app.viewer.lod`)."""
+    objects: ObjectQueueConfig = dataclasses.field(default_factory=ObjectQueueConfig)
+    """Which objects the "Objects to review" queue holds (:mod:`app.viewer.object_queue`)."""
 
     def __post_init__(self) -> None:
         check_bounds(self)

@@ -319,6 +319,23 @@ class SelectionTool:
         self.notify.panel.on_object(found)
         return found
 
+    def inspect_track(self, track: int) -> ObjectInfo | None:
+        """Make object ``track`` of the shown run (its id as the export shows it, the corrections on top)
+        the inspected object (as a click on one of its points in the shown scan would: *Relabel object*,
+        *Split here* and *Merge with* then apply to it), and tell the panel. None (nothing changed) when the
+        run has no such object."""
+        sh = self.shared
+        with sh.lock:
+            view, run, objects = sh.scan_view, sh.run, sh.objects
+        if view is None or run is None or objects is None or not 1 <= track <= objects.count:
+            return None
+        if not objects.object_scans(track):
+            return None  # merged into another object: that one holds its points
+        found = object_info(objects, ObjectInfo(run.run_id, 0, -1, 0, False, 0.0, 0, view.frame_id), track)
+        self.inspected_object = found
+        self.notify.panel.on_object(found)
+        return found
+
     def clear_inspection(self) -> None:
         """Forget the inspected voxel and object and hide the voxel's marker (a run was loaded)."""
         self.inspected = None

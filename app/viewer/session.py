@@ -59,6 +59,7 @@ import numpy.typing as npt
 from app.viewer import view_logic as vl
 from app.viewer.corrections import Corrections, OverlayCache
 from app.viewer.data import ReviewGrid, RunOutputs
+from app.viewer.object_queue import ObjectQueue
 from app.viewer.player import ScanPlayer
 from app.viewer.records import (
     CorrectionRecord,
@@ -153,6 +154,7 @@ class ReviewSession:
             corrections=self.corrections,
             notify=notify,
         )
+        self.objects = ObjectQueue(sh, cfg.objects, player=self.player, tools=self.tools, scene=self.scene)
         self.classes = ClassEditor(sh, backend, self.renderer, notify)
         self.runs = RunWatcher(backend, self.follow_run, notify, cfg.poll_interval_s, self._stop)
         self.panel = panel(self)

@@ -159,6 +159,15 @@ class SharedState:
                 label[pts] = names[rec.class_name]
         return label
 
+    def object_classes(self) -> list[tuple[int, int]]:
+        """``(object id, class index)`` of the shown run's objects an active relabel reaches (after the
+        merges and splits made before it: :attr:`objects`), by id. Caller holds :attr:`lock`."""
+        objects = self.objects
+        if objects is None:
+            return []
+        fixed = np.flatnonzero(objects.track_class != NO_CLASS)
+        return [(int(t), int(objects.track_class[t])) for t in fixed]
+
     def confidence_histograms(self, bins: int = 10) -> npt.NDArray[np.int64]:
         """(C, bins) voxel counts per shown class and confidence bin (corrections applied; see
         :func:`app.viewer.nav_logic.confidence_histograms`)."""

@@ -5,7 +5,17 @@ tracked points only:
 - ``rows`` (P,) int32 the point's row in its scan, ``track`` (P,) int32 its track id (1..K);
 - per track (index = id - 1): ``label`` (K,) int16 voted class, ``velocity`` (K, 3) float32 m/s,
   ``moving`` (K,) bool, ``scans`` (K,) int32, ``sweep`` (K,) float32 m, ``voted`` (K,) bool whether its
-  points take ``label`` (``tracking.vote``).
+  points take ``label`` (``tracking.vote``);
+- the class vote's evidence per track (:class:`~leap_core.tracking.VoteEvidence`): ``share`` (K,) float32
+  the winner's share of the votes, ``runner_up`` (K,) int16 the runner-up class (-1 none) and
+  ``runner_share`` (K,) float32 its share;
+- each track's life in the file (:class:`TrackLife`): ``first`` / ``last`` (K,) int32 the first and last
+  scan index (position in ``frame_ids``) where it has points, ``gaps`` (K,) int32 the scans between them
+  where it has none.
+
+Files written before the evidence and the life were kept still load: the evidence reads as unanimous
+(share 1, no runner-up, :meth:`~leap_core.tracking.VoteEvidence.unknown`) and the life is counted from
+the file's points (:func:`track_life`), which is what the stored one holds.
 """
 
 from __future__ import annotations
@@ -18,7 +28,51 @@ import numpy.typing as npt
 
 from leap_core.errors import DatasetError, LeapError
 from leap_core.io_utils import atomic_save_npz, read_npz
-from leap_core.tracking import TrackTable
+from leap_core.object_review import ObjectQueueConfig, object_queue
+from leap_core.tracking import TrackTable, VoteEvidence
+
+
+@dataclass(frozen=True)
+class TrackLife:
+    """Where each track (index = id - 1) has points in a ``tracks.npz``.
+
+    Attributes:
+        first: (K,) int64 first scan index (position in the file's ``frame_ids``) with a point of it,
+            -1 for a track with none.
+        last: (K,) int64 last such scan index, -1 for a track with none.
+        gaps: (K,) int64 scans in ``first..last`` where it has no point (a broken track: the tracker lost
+            it for a while, or the map called all its points stuff there); 0 for a track with none.
+        present: (K,) int64 scans where it has points (``last - first + 1 - gaps``; 0 for none).
+    """
+
+    first: npt.NDArray[np.int64]
+    last: npt.NDArray[np.int64]
+    gaps: npt.NDArray[np.int64]
+    present: npt.NDArray[np.int64]
+
+
+def track_life(offsets: npt.ArrayLike, track: npt.ArrayLike, k: int) -> TrackLife:
+    """:class:`TrackLife` of tracks 1..``k`` from a file's ``offsets`` (T+1,) and per-point ``track``
+    (P,) ids: with ``S_j`` the set of scans t holding a point of track j,
+    ``first = min S_j``, ``last = max S_j``, ``present = |S_j|``, ``gaps = last - first + 1 - |S_j|``."""
+    off = np.asarray(offsets, np.int64).reshape(-1)
+    tid = np.asarray(track, np.int64).reshape(-1)
+    scans = max(off.size - 1, 1)
+    scan_of = np.repeat(np.arange(off.size - 1, dtype=np.int64), np.diff(off))
+    # The (track, scan) pairs once each, sorted by track then scan: a track's first pair holds its first
+    # scan and its last pair its last (a sort and a diff, no unbuffered ufunc.at over every point).
+    key = np.sort((tid - 1) * scans + scan_of)
+    pairs = key[np.r_[True, key[1:] != key[:-1]]] if key.size else key
+    row, t = pairs // scans, pairs % scans
+    present = np.bincount(row, minlength=k).astype(np.int64)[:k]
+    starts = np.flatnonzero(np.r_[True, row[1:] != row[:-1]]) if row.size else np.zeros(0, np.int64)
+    ends = np.append(starts[1:], row.size)[: starts.size] - 1
+    first = np.full(k, -1, np.int64)
+    last = np.full(k, -1, np.int64)
+    first[row[starts]] = t[starts]
+    last[row[starts]] = t[ends]
+    gaps = np.where(present > 0, last - first + 1 - present, 0)
+    return TrackLife(first, last, gaps, present)
 
 
 @dataclass(frozen=True)
@@ -38,6 +92,36 @@ class SequenceTracks:
     rows: npt.NDArray[np.int32]
     track: npt.NDArray[np.int32]
     table: TrackTable
+    life: TrackLife | None = None
+    """As the file stores it; None: counted from the points when asked (:meth:`track_life`)."""
+
+    def track_life(self) -> TrackLife:
+        """Where each track has points (:class:`TrackLife`)."""
+        if self.life is not None:
+            return self.life
+        return track_life(self.offsets, self.track, self.table.label.size)
+
+    def scans_of(self, track: int) -> npt.NDArray[np.int64]:
+        """(S,) int64 the scan indices (positions in :attr:`frame_ids`) where track ``track`` has points,
+        ascending."""
+        scan_of = np.repeat(np.arange(len(self.frame_ids), dtype=np.int64), np.diff(self.offsets))
+        return np.unique(scan_of[self.track == track])
+
+    def review_queue(
+        self, things: npt.NDArray[np.bool_], cfg: ObjectQueueConfig
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
+        """The tracks to review and why (:func:`leap_core.object_review.object_queue` over this file)."""
+        ev, life = self.table.vote_evidence(), self.track_life()
+        return object_queue(
+            self.table.label,
+            things,
+            share=ev.share,
+            runner_up=ev.runner_up,
+            runner_share=ev.runner_share,
+            present=life.present,
+            gaps=life.gaps,
+            cfg=cfg,
+        )
 
     def scan(self, frame_id: str) -> ScanObjects:
         """The tracked points of ``frame_id`` (none for a scan the file does not hold)."""
@@ -76,6 +160,8 @@ class SequenceTracks:
         return out, instance, moving
 
     def save(self, path: Path) -> None:
+        evidence = self.table.vote_evidence()
+        life = track_life(self.offsets, self.track, self.table.label.size)
         atomic_save_npz(
             path,
             frame_ids=np.array(self.frame_ids, dtype=np.str_),
@@ -88,6 +174,12 @@ class SequenceTracks:
             scans=self.table.scans.astype(np.int32),
             sweep=self.table.sweep.astype(np.float32),
             voted=self.table.voted,
+            share=evidence.share.astype(np.float32),
+            runner_up=evidence.runner_up.astype(np.int16),
+            runner_share=evidence.runner_share.astype(np.float32),
+            first=life.first.astype(np.int32),
+            last=life.last.astype(np.int32),
+            gaps=life.gaps.astype(np.int32),
         )
 
     @classmethod
@@ -103,6 +195,25 @@ class SequenceTracks:
             raise DatasetError(path, f"unreadable tracks ({exc}); rerun the tracks stage") from exc
         # A file without ``voted`` was written when every track's points took its class.
         voted = z["voted"] if "voted" in z else np.ones(z["label"].shape[0], bool)
+        evidence = (
+            VoteEvidence(
+                z["share"].astype(np.float64),
+                z["runner_up"].astype(np.int16),
+                z["runner_share"].astype(np.float64),
+            )
+            if all(n in z for n in ("share", "runner_up", "runner_share"))
+            else None
+        )
+        life = (
+            TrackLife(
+                z["first"].astype(np.int64),
+                z["last"].astype(np.int64),
+                z["gaps"].astype(np.int64),
+                np.where(z["first"] >= 0, z["last"].astype(np.int64) - z["first"] + 1 - z["gaps"], 0),
+            )
+            if all(n in z for n in ("first", "last", "gaps"))
+            else None
+        )
         table = TrackTable(
             label=z["label"].astype(np.int16),
             velocity=z["velocity"].astype(np.float64),
@@ -110,6 +221,7 @@ class SequenceTracks:
             scans=z["scans"].astype(np.int64),
             sweep=z["sweep"].astype(np.float64),
             voted=voted.astype(bool),
+            evidence=evidence,
         )
         return cls(
             tuple(str(x) for x in z["frame_ids"]),
@@ -117,7 +229,8 @@ class SequenceTracks:
             z["rows"].astype(np.int32),
             z["track"].astype(np.int32),
             table,
+            life,
         )
 
 
-__all__ = ["ScanObjects", "SequenceTracks"]
+__all__ = ["ScanObjects", "SequenceTracks", "TrackLife", "track_life"]

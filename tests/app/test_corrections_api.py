@@ -361,11 +361,15 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
     # A track without a point in the export (a static one whose points all keep a stuff class) is refused.
     original = (folder / "tracks.npz").read_bytes()
     t = tracks.table
+    # One more track, a copy of the first's fields (its vote evidence dropped: the file then reads as
+    # unanimous votes), with no point in any scan.
     empty = dataclasses.replace(
         t,
+        evidence=None,
         **{
             f.name: np.concatenate([getattr(t, f.name), getattr(t, f.name)[:1]])
             for f in dataclasses.fields(t)
+            if f.name != "evidence"
         },
     )
     dataclasses.replace(tracks, table=empty).save(folder / "tracks.npz")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import threading
@@ -26,8 +27,11 @@ from app.jobs.apply import applier
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.eval_view import PAPER_VIEW
 from leap_core.fusion import voxel_keys
+from leap_core.object_review import ObjectQueueConfig
 from leap_core.pipeline import STAGES, world_points
 from leap_core.pipeline import apply as core_apply
+from leap_core.pipeline.tracks_file import SequenceTracks
+from leap_core.tracking import VoteEvidence
 
 # The app tests' fixtures (this folder has no conftest.py; see appfixtures), found by name here.
 client, data_root, settings, tiny_dataset = (
@@ -143,6 +147,54 @@ def test_run_progress_metrics_and_exports(client: TestClient, tiny_dataset: Path
 
     project = client.get(f"{API}/projects/{project['id']}").json()
     assert project["last_run"]["status"] == "done" and project["active_run"] is None
+    _check_objects(client, run, crud_run_dir(client, run["id"]) / "tracks.npz")
+
+
+def _check_objects(client: TestClient, run: dict[str, Any], path: Path) -> None:
+    """``GET /runs/{id}/objects`` lists tracks.npz's tracks, and with ``queued`` the review queue in order.
+    The file's first track gets a close vote first (car 50 % vs truck 45 %), so the queue holds it."""
+    found = SequenceTracks.load(path)
+    k = found.table.label.size
+    assert k >= 2, "the tiny run has too few objects"
+    ev = found.table.vote_evidence()
+    names = [c["name"] for c in run["params"]["schema"]["classes"]]
+    close = VoteEvidence(
+        np.r_[0.5, ev.share[1:]],
+        np.r_[names.index("truck"), ev.runner_up[1:]].astype(np.int16),
+        np.r_[0.45, ev.runner_share[1:]],
+    )
+    label = found.table.label.copy()
+    label[0] = names.index("car")
+    table = dataclasses.replace(found.table, label=label, evidence=close)
+    dataclasses.replace(found, table=table, life=None).save(path)
+    url = f"{API}/runs/{run['id']}/objects"
+    every = client.get(url, params={"limit": 1000}).json()
+    assert every["count"] == k and [o["id"] for o in every["data"]] == list(range(1, k + 1))
+    life = found.track_life()
+    first = every["data"][0]
+    assert (
+        first["class_name"] == "car" and first["runner_up"] == "truck" and first["queued"][0] == "close_vote"
+    )
+    assert first["vote_share"] == pytest.approx(0.5) and first["runner_up_share"] == pytest.approx(0.45)
+    assert first["reason"].startswith("car 50 % vs truck 45 %")
+    assert [o["scans"] for o in every["data"]] == life.present.tolist()
+    assert [o["gaps"] for o in every["data"]] == life.gaps.tolist()
+    assert [o["moving"] for o in every["data"]] == found.table.moving.tolist()
+    things = np.array([c["thing"] for c in run["params"]["schema"]["classes"]], bool)
+    ids, _ = SequenceTracks.load(path).review_queue(things, ObjectQueueConfig())
+    queued = client.get(url, params={"queued": True, "limit": 1}).json()
+    assert queued["count"] == ids.size and [o["id"] for o in queued["data"]] == [1]
+    page = client.get(url, params={"queued": True, "offset": 1, "limit": 1000}).json()
+    assert [o["id"] for o in page["data"]] == ids[1:].tolist()
+    assert all(o["queued"] and o["reason"] for o in page["data"])
+    for bad, field in (
+        ({"limit": 1001}, "limit"),
+        ({"offset": -1}, "offset"),
+        ({"sequence": "01"}, "sequence"),
+    ):
+        r = client.get(url, params=bad)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", field], r.text
+    assert client.get(f"{API}/runs/999999/objects").status_code == 404
 
 
 def app_settings(client: TestClient) -> Settings:

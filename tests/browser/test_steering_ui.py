@@ -6,6 +6,7 @@ a re-run, an IoU and a Δ in the metrics, and the comparison lists what changed.
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -106,10 +107,24 @@ def test_traffic_cones_get_an_iou_and_ignored_settings_are_greyed(server, browse
     expect(page.locator("#new-class-gt-summary")).to_have_text("Ground truth: none: not evaluated")
     page.select_option("#new-class-gt", [str(CONE_ID)])
     expect(page.locator("#new-class-gt-summary")).to_have_text("Ground truth: 300 traffic-cone")
+    # The object fields: the API's field error beside them (a moving id equal to the export id), the typed
+    # values kept; a stuff class sends no moving id.
+    page.locator("#new-class-thing").check()
+    page.fill("#new-class-moving", page.locator("#new-class-export").input_value())
     page.locator("form.add-class button[type=submit]").click()
+    expect(page.locator("#new-class-object-error")).to_contain_text("equals export_id")
+    expect(page.locator("#new-class-moving")).to_have_class(re.compile("invalid"))
+    expect(page.locator("#new-class-name")).to_have_value("traffic-cone")
+    page.locator("#new-class-thing").uncheck()
+    expect(page.locator("#new-class-moving")).to_be_disabled()
+    with page.expect_request(lambda r: r.method == "POST" and r.url.endswith("/classes")) as sent:
+        page.locator("form.add-class button[type=submit]").click()
+    body = sent.value.post_data_json
+    assert body["thing"] is False and "moving_id" not in body, body
     cone = page.locator('.class-row[data-class="traffic-cone"]')
     expect(cone.locator(".gt-summary")).to_have_text("300 traffic-cone")
     expect(cone.locator(".prompt-text")).to_have_text(["traffic cone"])
+    assert not cone.locator(".cls-thing").is_checked() and cone.locator(".cls-moving").input_value() == ""
     colour = cone.locator(".cls-color").input_value()
     assert colour == suggested  # the distinct colour it was offered, never the unlabeled grey
     expect(page.locator(f'.suggestion[data-raw-id="{CONE_ID}"]')).to_have_count(0)

@@ -261,6 +261,60 @@ function suggestions(ctx) {
   return ids.data.filter((r) => r.name && !usersOf(ctx, r.id).length && !NEVER_SUGGESTED.has(r.id) && !names.has(r.name));
 }
 
+/**
+ * The new class's object fields: "thing" starts undecided (the server then follows SemanticKITTI's things
+ * by name and export id, else stuff) until ticked or unticked; the moving id is sent when typed. A refused
+ * add shows the server's message beside them, the input its 422 names marked.
+ */
+function newObjectFields() {
+  const thing = h("input", { type: "checkbox", id: "new-class-thing", "aria-label": "New class is a thing" });
+  thing.indeterminate = true;
+  const moving = h("input", {
+    type: "number",
+    min: 1,
+    max: 65535,
+    placeholder: "none",
+    class: "cls-moving",
+    id: "new-class-moving",
+    title: "Raw id its points export while the object moves (empty: none; only a thing moves)",
+    "aria-label": "New class moving id",
+  });
+  thing.addEventListener("change", () => (moving.disabled = !thing.checked));
+  const error = h("p", { class: "error small", id: "new-class-object-error", role: "alert" });
+  const inputs = { thing, moving_id: moving };
+  return {
+    line: h(
+      "div",
+      { class: "object-line small" },
+      h("label", { class: "inline", title: "A countable object: tracked through the sequence, with instance ids (undecided: SemanticKITTI's things by name)" }, thing, " thing"),
+      h("label", { class: "inline" }, "moving id ", moving),
+      error,
+    ),
+    body() {
+      const out = {};
+      if (!thing.indeterminate) out.thing = thing.checked;
+      const v = moving.value.trim();
+      if (v !== "" && !moving.disabled) out.moving_id = Number(v);
+      return out;
+    },
+    clear() {
+      error.textContent = "";
+      for (const el of Object.values(inputs)) el.classList.remove("invalid");
+    },
+    /** Shows a refused add beside the fields when it is about them; returns whether it was. */
+    show(err) {
+      const f = err instanceof ApiError ? err.field() : null;
+      // A field's own check names it in the 422's loc; the class list's rules (a moving id on a stuff
+      // class, one equal to the export id) name the class entry and say the field in the message.
+      const input = inputs[f] || (/\bmoving_id\b/.test(err.message) ? moving : /\bthing (must|is)\b/.test(err.message) ? thing : null);
+      if (!input) return false;
+      error.textContent = err.message;
+      input.classList.add("invalid");
+      return true;
+    },
+  };
+}
+
 function addClassForm(ctx) {
   const classes = ctx.state.classes;
   const name = h("input", { placeholder: "new class", maxlength: 64, id: "new-class-name", "aria-label": "New class name" });
@@ -277,6 +331,7 @@ function addClassForm(ctx) {
   const nextId = Math.max(0, ...classes.map((c) => c.export_id)) + 1;
   const exportId = h("input", { type: "number", min: 1, max: 65535, value: String(Math.min(nextId, 65535)), class: "cls-export", id: "new-class-export", "aria-label": "New class export id" });
   const prompts = h("input", { placeholder: "prompts, comma separated", id: "new-class-prompts", "aria-label": "New class prompts" });
+  const object = newObjectFields();
   const gt = gtSelect(ctx, [], { id: "new-class-gt", "aria-label": "New class ground-truth ids" });
   const gtNote = h("span", { class: "muted small", id: "new-class-gt-summary" }, `Ground truth: ${NOT_EVALUATED}`);
   gt.addEventListener("change", () => (gtNote.textContent = `Ground truth: ${gtSummary(ctx, selectedIds(gt))}`));
@@ -310,11 +365,19 @@ function addClassForm(ctx) {
         if (!n) return;
         const body = { name: n, export_id: Number(exportId.value), prompts: list.length ? list : [n], gt_ids: selectedIds(gt) };
         if (colorTouched) body.color = color.value; // else the server picks the same distinct colour
-        await classCall(ctx, () => post(`/projects/${ctx.projectId}/classes`, body));
+        Object.assign(body, object.body());
+        object.clear();
+        await classCall(ctx, () => post(`/projects/${ctx.projectId}/classes`, body), (err) => {
+          if (object.show(err)) return;
+          const status = ctx.els.classes.querySelector(".editor-status");
+          status.textContent = err.message;
+          status.className = "editor-status error";
+        });
       },
     },
     offer.length ? h("div", { class: "suggestions" }, h("span", { class: "muted small" }, "In the ground truth, not yet a class: "), offer) : null,
     h("div", { class: "class-line" }, color, name, exportId, h("button", { class: "btn small", type: "submit" }, "Add")),
+    object.line,
     prompts,
     gtNote,
     gt,

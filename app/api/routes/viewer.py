@@ -125,7 +125,7 @@ def get_viewers(request: Request) -> ViewerManager:
         return manager
     if re.fullmatch(TAB_PATTERN, tab) is None:
         raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_ENTITY,
+            422,
             detail=f"?{TAB_QUERY}=: not a viewer tab id (open the 3D viewer again from the project page)",
         )
     return manager.for_tab(tab)

@@ -180,7 +180,7 @@ async def relabel_region(
     session = running_session(viewers, project_id)
     if payload.class_name not in session.class_names():
         raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_ENTITY,
+            422,
             detail=[
                 {
                     "loc": ["body", "class_name"],

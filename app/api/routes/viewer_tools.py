@@ -105,7 +105,7 @@ def _state(session: ReviewSession) -> ToolsState:
 
 
 def _unprocessable(field: str, exc: Exception) -> HTTPException:
-    return HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, detail=f"{field}: {exc}")
+    return HTTPException(422, detail=f"{field}: {exc}")
 
 
 @router.get("", response_model=ToolsState)
@@ -152,7 +152,7 @@ async def assign(project_id: ProjectId, payload: AssignBody, viewers: ViewersDep
     """Correct the selection: the ``slot``-th class, or unlabeled (``erase``), in the tools' scope."""
     session = running_session(viewers, project_id)
     if payload.erase == (payload.slot is not None):
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, detail="body: give either slot or erase")
+        raise HTTPException(422, detail="body: give either slot or erase")
     try:
         if payload.erase:
             cid = await run_blocking(session.corrections.assign_selection, "")
