@@ -461,6 +461,10 @@ def count_runs(db: sqlite_utils.Database, project_id: int) -> int:
 
 
 # ----------------------------------------------------------------------------------------- corrections
+ObjectAction = Literal["relabel", "merge", "split"]
+"""What an object-scope correction does (:attr:`Correction.action`)."""
+
+
 @dataclass(frozen=True)
 class Correction:
     """Manual voxel class assignment made in the viewer; applied as an overriding observation by runs."""
@@ -502,6 +506,16 @@ class Correction:
     identity: str | None = None
     """Object scope: the file (relative to the work folder) holding the object's point rows per scan
     (:class:`leap_core.pipeline.object_corrections.ObjectIdentity`), matched to later runs' tracks."""
+    action: ObjectAction = "relabel"
+    """Object scope: ``relabel`` (``class_name``), ``merge`` (the object ``other_track_id`` into
+    ``track_id``) or ``split`` (``track_id`` from scan ``split_frame`` on); migration 12, rows before it
+    read as relabels."""
+    other_track_id: int | None = None
+    """Merge: the object of run ``run_id`` merged into ``track_id``."""
+    other_identity: str | None = None
+    """Merge: that object's identity file (as ``identity``)."""
+    split_frame: str | None = None
+    """Split: the frame id of the first scan of the new object."""
 
 
 def _correction(row: dict[str, Any]) -> Correction:
@@ -522,10 +536,15 @@ def _correction(row: dict[str, Any]) -> Correction:
         run_id=row.get("run_id"),
         track_id=row.get("track_id"),
         identity=row.get("identity"),
+        action=row["action"] if row.get("action") in ("merge", "split") else "relabel",
+        other_track_id=row.get("other_track_id"),
+        other_identity=row.get("other_identity"),
+        split_frame=row.get("split_frame"),
     )
 
 
 CORRECTION_SCOPES = ("map", "scan", "object")
+"""Where a correction applies (:attr:`Correction.scope`)."""
 
 
 @dataclass(frozen=True)
@@ -536,9 +555,10 @@ class ObjectRef:
     run_id: int
     track_id: int
     identity: str
-
-
-"""Where a correction applies (:attr:`Correction.scope`)."""
+    action: ObjectAction = "relabel"
+    other_track_id: int | None = None
+    other_identity: str | None = None
+    split_frame: str | None = None
 
 
 def add_correction(  # noqa: PLR0913  one keyword per column of the row
@@ -585,8 +605,8 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
     seq = sequence_name(db, project_id, sequence)
     cursor = db.execute(
         "INSERT INTO corrections (project_id, created_at, class_name, voxel_size, keys, active, scope, "
-        "frame_id, points, author, sequence, reviewer, run_id, track_id, identity) "
-        "VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        "frame_id, points, author, sequence, reviewer, run_id, track_id, identity, action, other_track_id, "
+        "other_identity, split_frame) VALUES (?, ?, ?, ?, ?, 1, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         [
             project_id,
             utcnow(),
@@ -602,6 +622,10 @@ def add_correction(  # noqa: PLR0913  one keyword per column of the row
             None if obj is None else obj.run_id,
             None if obj is None else obj.track_id,
             None if obj is None else obj.identity,
+            None if obj is None else obj.action,
+            None if obj is None else obj.other_track_id,
+            None if obj is None else obj.other_identity,
+            None if obj is None else obj.split_frame,
         ],
     )
     return _inserted_id(cursor)

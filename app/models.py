@@ -860,8 +860,11 @@ CORRECTION_MAX_ITEMS = 5_000_000
 class CorrectionCreate(_Input):
     """A manual correction made through the API (author "api"); the viewer makes them itself."""
 
-    class_name: str = Field(
-        max_length=64, description="class to assign; '' erases to unlabeled (export id 0)"
+    class_name: str | None = Field(
+        default=None,
+        max_length=64,
+        description="class to assign; '' erases to unlabeled (export id 0); required but for an object's "
+        "merge or split, which take none",
     )
     voxel_size: float = Field(gt=0, le=100, description="voxel edge (m) the keys were computed with")
     keys: list[Annotated[int, Field(ge=0, le=2**63 - 1)]] = Field(
@@ -892,13 +895,32 @@ class CorrectionCreate(_Input):
     )
     run_id: int | None = Field(default=None, ge=1, le=2**62, description="object scope: the run whose track")
     track_id: int | None = Field(
-        default=None, ge=1, le=0xFFFF, description="object scope: the track (instance id) of that run"
+        default=None,
+        ge=1,
+        le=0xFFFF,
+        description="object scope: the object (instance id) of that run, as its export shows it now",
+    )
+    action: Literal["relabel", "merge", "split"] = Field(
+        default="relabel",
+        description="object scope: 'relabel' gives class_name to the object; 'merge' joins the object "
+        "other_track_id into track_id (one id, one class); 'split' gives the object's points from scan "
+        "frame on a new id",
+    )
+    other_track_id: int | None = Field(
+        default=None, ge=1, le=0xFFFF, description="object merge: the object merged into track_id"
+    )
+    frame: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9_.-]+$",
+        description="object split: the frame id of the first scan the new object holds",
     )
 
     @field_validator("class_name")
     @classmethod
-    def _class(cls, value: str) -> str:
-        return value if value == "" else _check_class_name(value)
+    def _class(cls, value: str | None) -> str | None:
+        return value if value is None or value == "" else _check_class_name(value)
 
     @model_validator(mode="after")
     def _scope(self) -> CorrectionCreate:
@@ -908,6 +930,14 @@ class CorrectionCreate(_Input):
             raise ValueError("frame_id and points are only for scan-scope corrections")
         if (self.scope == "object") != (self.run_id is not None and self.track_id is not None):
             raise ValueError("an object-scope correction, and only one, needs run_id and track_id")
+        if self.action != "relabel" and self.scope != "object":
+            raise ValueError(f"action {self.action!r} is for object-scope corrections")
+        if (self.action == "relabel") == (self.class_name is None):
+            raise ValueError("class_name is required, but for an object's merge or split, which take none")
+        if (self.action == "merge") != (self.other_track_id is not None):
+            raise ValueError("other_track_id is for a merge, which needs it")
+        if (self.action == "split") != (self.frame is not None):
+            raise ValueError("frame is for a split, which needs it")
         return self
 
 
@@ -922,7 +952,13 @@ class ObjectMatch(BaseModel):
     run_number: int
     track: int = Field(description="the run's track of highest overlap (0: none shares a point)")
     iou: float = Field(description="its IoU with the corrected object")
-    applied: bool = Field(description="false: the IoU is not above 0.5, it no longer matches an object")
+    applied: bool = Field(
+        description="false: it changes nothing (an IoU not above 0.5: it no longer matches an object; a "
+        "merge whose objects are one, a split whose scan the run did not label)"
+    )
+    other_track: int | None = Field(default=None, description="merge: the object met by the one merged in")
+    other_iou: float | None = Field(default=None, description="merge: its IoU")
+    new_track: int | None = Field(default=None, description="split: the new object's id (0: not applied)")
 
 
 class CorrectionPublic(BaseModel):
@@ -938,7 +974,12 @@ class CorrectionPublic(BaseModel):
     sequence: str | None = Field(default=None, description="the project sequence it corrects")
     reviewer: str | None = Field(default=None, description="the reviewer's name given to the viewer tab")
     run_id: int | None = Field(default=None, description="object scope: the run it was made on")
-    track_id: int | None = Field(default=None, description="object scope: that run's track")
+    track_id: int | None = Field(default=None, description="object scope: that run's object")
+    action: Literal["relabel", "merge", "split"] | None = Field(
+        default=None, description="object scope: what it does (null for map and scan scope)"
+    )
+    other_track_id: int | None = Field(default=None, description="object merge: the object merged in")
+    split_frame: str | None = Field(default=None, description="object split: the new object's first scan")
     match: ObjectMatch | None = Field(
         default=None, description="object scope: the track of the latest finished run it meets, if known"
     )

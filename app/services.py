@@ -7,10 +7,11 @@ Routes stay thin: they parse the request, call one function here or in :mod:`app
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import re
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,13 +35,19 @@ from leap_core.io_utils import remove_tree
 from leap_core.labelers import LABELERS
 from leap_core.paths import UnusablePath, real_path, real_path_or_none
 from leap_core.pipeline import PAPER, SequenceMetrics
-from leap_core.pipeline.object_corrections import ObjectIdentity
+from leap_core.pipeline.object_corrections import (
+    CorrectedTracks,
+    ObjectCorrections,
+    ObjectEdit,
+    ObjectIdentity,
+)
 from leap_core.pipeline.preflight import check_dataset, dataset_stamp
 from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.presets import builtin_preset
 from leap_core.runtime import Runtime
 from leap_core.schema import MAX_CLASS_LIST_BYTES, ClassListError, Schema, class_list_yaml, read_class_list
 from leap_core.synth.names import DEMO_EXTRA_RAW_IDS
+from leap_core.types import UNLABELED
 
 
 # -------------------------------------------------------------------------------------- pipeline config
@@ -479,16 +486,56 @@ OBJECTS_FOLDER = "objects"
 (``objects/p<P>/r<R>-<sequence>-t<T>.npz``)."""
 
 
-def object_ref(
-    db: sqlite_utils.Database, settings: Settings, project_id: int, run_id: int, sequence: str, track_id: int
+def object_corrections(
+    corrections: Sequence[crud.Correction], names: list[str], work_dir: Path
+) -> ObjectCorrections:
+    """The object-scope corrections among ``corrections`` (in the order they were made) as a run with the
+    classes ``names`` applies them, each identity read from its file under ``work_dir``; a relabel to a
+    class the run does not have is left out.
+
+    Raises:
+        DatasetError: an identity file is missing or unreadable (naming it).
+    """
+    edits = []
+    for c in corrections:
+        if c.scope != "object" or not c.identity:
+            continue
+        identity = ObjectIdentity.load(work_dir / c.identity)
+        if c.action == "merge" and c.other_identity:
+            other = ObjectIdentity.load(work_dir / c.other_identity)
+            edits.append(ObjectEdit(c.id, "merge", identity, other=other))
+        elif c.action == "split" and c.split_frame:
+            edits.append(ObjectEdit(c.id, "split", identity, frame_id=c.split_frame))
+        elif c.action == "relabel" and (c.class_name == "" or c.class_name in names):
+            index = UNLABELED if c.class_name == "" else names.index(c.class_name)
+            edits.append(ObjectEdit(c.id, "relabel", identity, class_idx=index))
+    return ObjectCorrections(tuple(edits))
+
+
+def object_ref(  # noqa: PLR0913  the run's object, and what a merge or a split adds
+    db: sqlite_utils.Database,
+    settings: Settings,
+    project_id: int,
+    run_id: int,
+    sequence: str,
+    track_id: int,
+    *,
+    action: crud.ObjectAction = "relabel",
+    other_track_id: int | None = None,
+    frame: str | None = None,
 ) -> crud.ObjectRef:
     """Keep the object ``track_id`` of run ``run_id``'s sequence ``sequence`` for an object-scope
-    correction: its point rows per scan go into a file of the work folder (written atomically; the same
-    object of the same run always gets the same file).
+    correction, as the run's export shows it now (its tracks with the sequence's active object corrections
+    on top, :class:`CorrectedTracks`: a merged object is both parts, a split-off part its own id): its point
+    rows per scan go into a file of the work folder (written atomically, named by its content: the same
+    points always get the same file). A merge keeps ``other_track_id`` the same way; a split checks that
+    ``frame`` cuts the object (it has points before that scan and from it on).
 
     Raises:
         InvalidField: the run is not a finished run of the project that labeled ``sequence``, it has no
-            objects (``tracks.npz``), or it has no track ``track_id`` (each naming its field).
+            objects (``tracks.npz``), it has no object ``track_id`` (or ``other_track_id``) with points, a
+            merge names one object twice, a split's ``frame`` does not cut the object (each naming its
+            field).
     """
     run = crud.get_run(db, run_id)
     if run is None or run.project_id != project_id:
@@ -506,19 +553,58 @@ def object_ref(
             f"run {run.number} has no objects (no tracks.npz in sequence {sequence}): "
             "turn tracking on and re-run",
         )
-    tracks = SequenceTracks.load(layout.tracks)
-    count = int(tracks.table.label.size)
-    if not 1 <= track_id <= count:
-        raise InvalidField(("body", "track_id"), f"run {run.number} has tracks 1..{count}, not {track_id}")
-    identity = ObjectIdentity.of_track(tracks, track_id)
-    if identity.points == 0:
-        # A static track whose points all keep a stuff class of the map: no point of the export is in it.
-        raise InvalidField(
-            ("body", "track_id"), f"track {track_id} of run {run.number} has no points to relabel"
+    schema = Schema.from_dict(run.params.schema, source=f"run {run.number} schema")
+    active = crud.list_corrections(db, project_id, active_only=True, sequence=sequence)
+    objects = CorrectedTracks.of(
+        SequenceTracks.load(layout.tracks),
+        object_corrections(active, schema.names, settings.work_dir),
+        schema.things(),
+    )
+
+    def kept(object_id: int, field: str) -> str:
+        if not 1 <= object_id <= objects.count:
+            raise InvalidField(
+                ("body", field), f"run {run.number} has objects 1..{objects.count}, not {object_id}"
+            )
+        identity = objects.identity(object_id)
+        if identity.points == 0:
+            # A static track whose points all keep a stuff class of the map, or an object merged into another.
+            raise InvalidField(
+                ("body", field), f"object {object_id} of run {run.number} has no points in its export"
+            )
+        digest = hashlib.sha256(identity.rows.tobytes() + identity.ptr.tobytes())
+        digest.update("/".join(identity.frame_ids).encode())
+        rel = (
+            Path(OBJECTS_FOLDER)
+            / f"p{project_id}"
+            / f"r{run_id}-{sequence}-t{object_id}-{digest.hexdigest()[:16]}.npz"
         )
-    rel = Path(OBJECTS_FOLDER) / f"p{project_id}" / f"r{run_id}-{sequence}-t{track_id}.npz"
-    identity.save(settings.work_dir / rel)
-    return crud.ObjectRef(run_id=run_id, track_id=track_id, identity=rel.as_posix())
+        identity.save(settings.work_dir / rel)
+        return rel.as_posix()
+
+    identity = kept(track_id, "track_id")
+    other = None
+    if action == "merge":
+        if other_track_id is None or other_track_id == track_id:
+            raise InvalidField(("body", "other_track_id"), f"a merge needs another object than {track_id}")
+        other = kept(other_track_id, "other_track_id")
+    if action == "split":
+        scans = objects.object_scans(track_id)
+        if frame is None or frame not in scans or frame == scans[0]:
+            raise InvalidField(
+                ("body", "frame"),
+                f"object {track_id} of run {run.number} is in scans {scans[0]}..{scans[-1]}: a split names "
+                f"one of them after its first, not {frame!r}",
+            )
+    return crud.ObjectRef(
+        run_id=run_id,
+        track_id=track_id,
+        identity=identity,
+        action=action,
+        other_track_id=other_track_id if action == "merge" else None,
+        other_identity=other,
+        split_frame=frame if action == "split" else None,
+    )
 
 
 def delete_project(db: sqlite_utils.Database, settings: Settings, project_id: int) -> list[Path]:

@@ -68,6 +68,10 @@ def _correction_text(c: crud.Correction) -> str:
     if c.scope == "scan":
         n = 0 if c.points is None else int(c.points.shape[0])
         return f"{what}, scan {c.frame_id}, {n} point{'' if n == 1 else 's'}"
+    if c.scope == "object" and c.action == "merge":
+        return f"merge of objects {c.track_id} and {c.other_track_id} of run id {c.run_id}"
+    if c.scope == "object" and c.action == "split":
+        return f"split of object {c.track_id} of run id {c.run_id} at scan {c.split_frame}"
     if c.scope == "object":
         return f"{what}, object {c.track_id} of run id {c.run_id}"
     n = int(c.keys.shape[0])

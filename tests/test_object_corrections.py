@@ -23,6 +23,7 @@ from leap_core.pipeline.object_corrections import (
     CorrectedTracks,
     Match,
     ObjectCorrections,
+    ObjectEdit,
     ObjectIdentity,
     match_track,
     match_tracks,
@@ -119,7 +120,124 @@ def test_precedence_on_the_points_of_a_scan() -> None:
         "8": {"track": 2, "iou": 1.0, "applied": True},
         "9": {"track": 2, "iou": 1.0, "applied": True},
     }
-    assert out.frames_of(out.changed_tracks(CorrectedTracks.of(tracks, ObjectCorrections(), things))) == ["0"]
+    assert out.changed_frames(CorrectedTracks.of(tracks, ObjectCorrections(), things)) == ["0"]
+
+
+def _car_in_two() -> SequenceTracks:
+    """Scans "0".."3": track 1 (static, class 0) holds rows 1-2 in "0", "1"; track 2 (moving, class 0) rows
+    3-4 in "1".."3"; track 3 rows 7-8 in "0".."3" (two cars under one id: an id switch at scan "2")."""
+    per = {
+        "0": [(1, 1), (2, 1), (7, 3), (8, 3)],
+        "1": [(1, 1), (2, 1), (3, 2), (4, 2), (7, 3), (8, 3)],
+        "2": [(3, 2), (4, 2), (7, 3), (8, 3)],
+        "3": [(3, 2), (4, 2), (7, 3), (8, 3)],
+    }
+    tracks = _tracks(per, 3, moving=(False, True, False))
+    table = dataclasses.replace(tracks.table, label=np.array([2, 1, 2], np.int16), voted=tracks.table.moving)
+    return dataclasses.replace(tracks, table=table)
+
+
+def _ids(out: CorrectedTracks, fid: str, n: int = 10) -> list[int]:
+    return out.point_objects(fid, np.zeros(n, np.int16))[2].tolist()
+
+
+def test_merge_gives_one_id_class_and_motion_in_every_scan() -> None:
+    tracks = _car_in_two()
+    things = np.array([False, True, True])
+    one, two = ObjectIdentity.of_track(tracks, 1), ObjectIdentity.of_track(tracks, 2)
+    out = CorrectedTracks.of(
+        tracks, merge_object_corrections([ObjectEdit(5, "merge", two, other=one)]), things
+    )
+    for fid in ("0", "1", "2", "3"):
+        lab, _, inst, mov = out.point_objects(fid, np.zeros(10, np.int16))
+        held = np.flatnonzero(np.isin(np.arange(10), [1, 2, 3, 4]) & (inst > 0))
+        # Track 1's points carry track 2's id, its class 1 (the one merged into) and its motion.
+        assert set(inst[held].tolist()) == {2} and set(lab[held].tolist()) == {1}, fid
+        assert mov[held].all() and (inst[[7, 8]] == 3).all(), fid
+    assert out.object_scans(2) == ["0", "1", "2", "3"] and out.object_scans(1) == []
+    assert out.report()["5"] == {
+        "track": 2,
+        "iou": 1.0,
+        "applied": True,
+        "action": "merge",
+        "other_track": 1,
+        "other_iou": 1.0,
+    }
+    assert out.changed_frames(CorrectedTracks.of(tracks, ObjectCorrections(), things)) == ["0", "1"]
+    # A later relabel of the merged object (made on its identity then: both parts) relabels both; a relabel
+    # made on part 1 alone before the merge is overruled by the merged object's class.
+    merged = ObjectIdentity(one.frame_ids, *_union(one, two))
+    edits = [(4, 0, one), ObjectEdit(5, "merge", two, other=one), (6, 2, merged)]
+    out = CorrectedTracks.of(tracks, merge_object_corrections(edits), things)
+    assert out.point_objects("1", np.zeros(10, np.int16))[0][[1, 2, 3, 4]].tolist() == [2] * 4
+    assert out.report()["6"]["track"] == 2 and out.report()["6"]["applied"]
+
+
+def _union(a: ObjectIdentity, b: ObjectIdentity) -> tuple[np.ndarray, np.ndarray]:
+    parts = [np.union1d(a.of(f), b.of(f)).astype(np.int32) for f in a.frame_ids]
+    return np.cumsum([0, *(p.size for p in parts)]).astype(np.int64), np.concatenate(parts)
+
+
+def test_split_gives_a_new_unique_id_from_its_scan_on() -> None:
+    tracks = _car_in_two()
+    things = np.array([False, True, True])
+    three = ObjectIdentity.of_track(tracks, 3)
+    split = ObjectEdit(9, "split", three, frame_id="2")
+    out = CorrectedTracks.of(tracks, merge_object_corrections([split]), things)
+    assert [_ids(out, f)[7] for f in ("0", "1", "2", "3")] == [3, 3, 4, 4]  # 4: beyond the run's 1..3
+    assert out.count == 4 and out.report()["9"] == {
+        "track": 3,
+        "iou": 1.0,
+        "applied": True,
+        "action": "split",
+        "new_track": 4,
+    }
+    assert out.changed_frames(CorrectedTracks.of(tracks, ObjectCorrections(), things)) == ["2", "3"]
+    # A second split of the same object at an earlier scan cuts what is left of it: another new id.
+    first = ObjectIdentity(three.frame_ids, *_rows_in(three, ("0", "1")))
+    again = ObjectEdit(10, "split", first, frame_id="1")
+    out = CorrectedTracks.of(tracks, merge_object_corrections([split, again]), things)
+    assert [_ids(out, f)[8] for f in ("0", "1", "2", "3")] == [3, 5, 4, 4]
+    # A relabel made on the split-off part reaches that part only.
+    tail = ObjectIdentity(three.frame_ids, *_rows_in(three, ("2", "3")))
+    out = CorrectedTracks.of(tracks, merge_object_corrections([split, (11, 1, tail)]), things)
+    assert [out.point_objects(f, np.zeros(10, np.int16))[0][7] for f in ("0", "1", "2", "3")] == [0, 0, 1, 1]
+
+
+def _rows_in(x: ObjectIdentity, keep: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    parts = [x.of(f) if f in keep else np.zeros(0, np.int32) for f in x.frame_ids]
+    return np.cumsum([0, *(p.size for p in parts)]).astype(np.int64), np.concatenate(parts)
+
+
+def test_merge_and_split_are_rematched_after_a_rerun_and_change_nothing_once_lost() -> None:
+    tracks = _car_in_two()
+    things = np.array([False, True, True])
+    one, two, three = (ObjectIdentity.of_track(tracks, k) for k in (1, 2, 3))
+    edits = [ObjectEdit(1, "merge", two, other=one), ObjectEdit(2, "split", three, frame_id="2")]
+    # The re-run numbers its tracks otherwise (3 → 1, 1 → 2, 2 → 3) and holds one more point of track 3.
+    per = {
+        "0": [(1, 2), (2, 2), (7, 1), (8, 1)],
+        "1": [(1, 2), (2, 2), (3, 3), (4, 3), (7, 1), (8, 1)],
+        "2": [(3, 3), (4, 3), (7, 1), (8, 1), (9, 1)],
+        "3": [(3, 3), (4, 3), (7, 1), (8, 1)],
+    }
+    rerun = _tracks(per, 3, moving=(False, False, True))
+    out = CorrectedTracks.of(rerun, merge_object_corrections(edits), things)
+    assert out.report()["1"]["track"] == 3 and out.report()["1"]["other_track"] == 2
+    assert [_ids(out, "1")[r] for r in (1, 3, 7)] == [3, 3, 1]
+    assert [_ids(out, f)[9] for f in ("2",)] == [4] and _ids(out, "3")[7] == 4 and _ids(out, "1")[7] == 1
+    # Once the objects are gone (a re-run without track 1's points, one whose split scan is not labeled),
+    # the corrections change nothing and say so.
+    lost = _tracks({"0": [(7, 1), (8, 1)], "1": [(3, 2), (4, 2), (7, 1), (8, 1)]}, 2)
+    out = CorrectedTracks.of(lost, merge_object_corrections(edits), things)
+    plain = CorrectedTracks.of(lost, ObjectCorrections(), things)
+    assert not out.report()["1"]["applied"] and out.report()["1"]["other_track"] == 0
+    assert not out.report()["2"]["applied"] and out.report()["2"]["new_track"] == 0
+    assert out.changed_frames(plain) == [] and out.count == 2
+    for fid in ("0", "1"):
+        assert [x.tolist() for x in out.point_objects(fid, np.zeros(10, np.int16))] == [
+            x.tolist() for x in plain.point_objects(fid, np.zeros(10, np.int16))
+        ]
 
 
 def test_the_file_round_trips_and_refuses_bad_classes(tmp_path: Path) -> None:
@@ -134,6 +252,23 @@ def test_the_file_round_trips_and_refuses_bad_classes(tmp_path: Path) -> None:
     assert [i.frame_ids for i in back.identities] == [("0", "1", "2")] * 2
     assert back.identities[0].rows.tolist() == [1, 5] and back.identities[1].rows.tolist() == [2]
     assert not back.differs(corr) and corr.differs(ObjectCorrections())
+    one, two = ObjectIdentity.of_track(tracks, 1), ObjectIdentity.of_track(tracks, 2)
+    edits = merge_object_corrections(
+        [ObjectEdit(5, "merge", one, other=two), (6, 0, two), ObjectEdit(7, "split", one, frame_id="2")]
+    )
+    edits.save(path)
+    back = ObjectCorrections.load(path, num_classes=2)
+    assert not back.differs(edits) and back.edits[0].other is not None and back.edits[2].frame_id == "2"
+    assert back.edits[0].other.rows.tolist() == [2] and back.class_idx.tolist() == [NO_CLASS, 0, NO_CLASS]
+    assert edits.differs(
+        merge_object_corrections([*edits.edits[:2], ObjectEdit(7, "split", one, frame_id="1")])
+    )
+    # A file written before merges and splits existed (no 'action', no 'split_frame') holds relabels.
+    corr.save(path)
+    with np.load(path) as z:
+        np.savez(path, **{k: z[k] for k in z.files if k not in ("action", "split_frame")})
+    old = ObjectCorrections.load(path, num_classes=2)
+    assert [e.action for e in old.edits] == ["relabel"] * 2 and not old.differs(corr)
     with pytest.raises(DatasetError, match=r"corrections_object.npz.*'class_idx' must be in -1..0"):
         ObjectCorrections.load(path, num_classes=1)
     empty = tmp_path / "none.npz"

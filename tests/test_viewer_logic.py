@@ -680,6 +680,65 @@ def test_scan_scope_correction_relabels_only_its_points_of_its_scan(review_store
         session.close()
 
 
+def test_split_here_and_merge_with_renumber_the_shown_objects_at_once(review_store) -> None:
+    """The inspected object's *Split here* (at the shown scan) and *Merge with*: stored as object corrections
+    of the run, and the shown scan's object ids (colour by objects) and the object line follow at once."""
+    from app import crud
+    from app.core.db import open_db
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.records import ObjectInfo
+    from app.viewer.selection_tool import object_info
+    from app.viewer.session import ReviewSession
+    from leap_core.pipeline.tracks_file import SequenceTracks
+    from leap_core.tracking import TrackTable
+
+    settings, pid, run_id, *_ = review_store
+    with open_db(settings.database) as db:
+        run = crud.require_run(db, run_id)
+    # Object 1: rows 0-9 of every scan (an id switch at scan 1); object 2: rows 20-29 of every scan.
+    per_scan = [(np.r_[0:10, 20:30], np.r_[[1] * 10, [2] * 10])] * 3
+    table = TrackTable(
+        label=np.array([1, 1], np.int16),
+        velocity=np.zeros((2, 3)),
+        moving=np.zeros(2, bool),
+        scans=np.full(2, 3, np.int64),
+        sweep=np.zeros(2),
+        voted=np.zeros(2, bool),
+    )
+    frame_ids = tuple(sorted(p.stem for p in (run.sequence_layout("00").folder / "points").glob("*.npz")))
+    SequenceTracks(
+        frame_ids,
+        np.arange(0, 61, 20, dtype=np.int64),
+        np.concatenate([r for r, _ in per_scan]).astype(np.int32),
+        np.concatenate([t for _, t in per_scan]).astype(np.int32),
+        table,
+    ).save(run.sequence_layout("00").tracks)
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        player, tools = session.player, session.tools
+        assert player.show_scan(1) is not None and session.shared.objects is not None
+        tools.inspected_object = object_info(
+            session.shared.objects, ObjectInfo(run_id, 0, -1, 0, False, 0.0, 0, frame_ids[1]), 1
+        )
+        cid = session.corrections.split_object()
+        with open_db(settings.database) as db:
+            stored = crud.get_correction(db, cid)
+        assert (stored.action, stored.track_id, stored.split_frame) == ("split", 1, frame_ids[1])
+        assert tools.inspected_object.track == 3 and tools.inspected_object.scans == 2
+        assert session.shared.scan_instance[:10].tolist() == [3] * 10  # the new id, beyond the run's 1, 2
+        player.show_scan(0)
+        assert session.shared.scan_instance[:10].tolist() == [1] * 10
+        # The split-off part takes object 2 in: one id (3) in every scan it is in.
+        cid = session.corrections.merge_object(2)
+        assert tools.inspected_object.track == 3 and tools.inspected_object.scans == 3
+        assert session.shared.scan_instance[20:30].tolist() == [3] * 10
+        assert session.corrections.undo() == cid
+        assert session.shared.scan_instance[20:30].tolist() == [2] * 10
+    finally:
+        session.close()
+
+
 def test_scan_player_plays_from_the_first_scan_and_stops_at_the_last(review_store) -> None:
     from app.viewer.manager import AppBackend
     from app.viewer.panel import ReviewPanel

@@ -312,6 +312,20 @@ def _v11_object_corrections(db: sqlite_utils.Database) -> None:
     )
 
 
+def _v12_object_edits(db: sqlite_utils.Database) -> None:
+    # An object correction may merge two objects or split one at a scan: what it does (NULL: a relabel, as
+    # every row before), the second object of a merge (its track and identity file) and a split's scan.
+    _execute_script(
+        db,
+        """
+        ALTER TABLE corrections ADD COLUMN action TEXT;
+        ALTER TABLE corrections ADD COLUMN other_track_id INTEGER;
+        ALTER TABLE corrections ADD COLUMN other_identity TEXT;
+        ALTER TABLE corrections ADD COLUMN split_frame TEXT
+        """,
+    )
+
+
 def _name_of(names: dict[tuple[int, str], str], project_id: int, path: str) -> str | None:
     return names.get((project_id, path))
 
@@ -381,6 +395,11 @@ MIGRATIONS: list[Migration] = [
         _v10_model_jobs,
     ),
     (11, "object-scope corrections: corrections.run_id, track_id, identity", _v11_object_corrections),
+    (
+        12,
+        "merge and split of objects: corrections.action, other_track_id, other_identity, split_frame",
+        _v12_object_edits,
+    ),
 ]
 """Ordered schema migrations: (version, description, apply). Append only; never edit a released one."""
 

@@ -66,7 +66,6 @@ from leap_core.labelers import LABELERS
 from leap_core.pipeline import STAGES, read_run_metrics
 from leap_core.pipeline.apply import RunCorrections
 from leap_core.pipeline.metrics_file import RunMetrics
-from leap_core.pipeline.object_corrections import ObjectIdentity, merge_object_corrections
 from leap_core.run_layout import SequenceLayout
 
 log = logging.getLogger("leap.jobs")
@@ -1062,13 +1061,7 @@ def run_corrections(
         and c.points is not None
         and (index := _class_index(c.class_name, names)) != -2
     )
-    objects = merge_object_corrections(
-        [
-            (c.id, index, ObjectIdentity.load(work_dir / c.identity))
-            for c in corrections
-            if c.scope == "object" and c.identity and (index := _class_index(c.class_name, names)) != -2
-        ]
-    )
+    objects = services.object_corrections(corrections, names, work_dir)
     return RunCorrections(keys, classes, scan, objects)
 
 

@@ -8,7 +8,6 @@ only (its point indices). Each one is a row of the project's store
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 from collections.abc import Hashable
 
@@ -18,11 +17,13 @@ import numpy.typing as npt
 from app.viewer import view_logic as vl
 from app.viewer.data import ReviewGrid
 from app.viewer.player import ScanPlayer
-from app.viewer.records import ProjectBackend, Scope, Selection
+from app.viewer.records import ObjectAction, ProjectBackend, Scope, Selection
 from app.viewer.render import LodRenderer
-from app.viewer.selection_tool import SelectionTool
+from app.viewer.selection_tool import SelectionTool, object_info
 from app.viewer.shared import Notifier, SharedState
 from leap_core.fusion import voxel_keys
+from leap_core.pipeline.object_corrections import CorrectedTracks
+from leap_core.pipeline.tracks_file import SequenceTracks
 
 Overlay = tuple[npt.NDArray[np.int16], npt.NDArray[np.float32], npt.NDArray[np.bool_]]
 """(label, conf, corrected) of a grid with the corrections applied
@@ -92,6 +93,8 @@ class Corrections:
         self.notify = notify
         self.history: vl.EditHistory[int] = vl.EditHistory()
         """Ids of the corrections this viewer made, for undo / redo."""
+        self._objects: tuple[Hashable, SequenceTracks, CorrectedTracks] | None = None
+        """The last :meth:`_objects_locked` result with what it was computed from."""
 
     def apply_locked(self) -> None:
         """Read the project's corrections and overlay the active map-scope ones on the shown grid (caller
@@ -113,6 +116,21 @@ class Corrections:
         cl = np.concatenate(labels_all) if labels_all else np.zeros(0, np.int16)
         # Correction rows never change but for ``active``: the ids and classes applied identify the result.
         sh.label, sh.conf, sh.corrected = self.overlays.overlay(grid, tuple(used), ck, cl)
+        sh.objects = self._objects_locked()
+
+    def _objects_locked(self) -> CorrectedTracks | None:
+        """The shown run's tracks with the project's active object corrections on top, computed again only
+        when the run or those corrections changed (caller holds the shared lock)."""
+        sh = self.shared
+        run, outputs, schema = sh.run, sh.outputs, sh.run_schema
+        tracks = None if outputs is None else outputs.tracks()
+        if run is None or tracks is None or schema is None:
+            return None
+        key = (run.run_id, tuple(r.id for r in sh.corrections if r.scope == "object" and r.active))
+        if self._objects is None or self._objects[0] != key or self._objects[1] is not tracks:
+            edits = self.backend.object_corrections(schema.names)
+            self._objects = (key, tracks, CorrectedTracks.of(tracks, edits, schema.things()))
+        return self._objects[2]
 
     def assign_selection(
         self, class_name: str, *, scope: Scope | None = None, selection: Selection | None = None
@@ -175,22 +193,50 @@ class Corrections:
 
     def relabel_object(self, class_name: str) -> int | None:
         """Store an object-scope correction giving ``class_name`` (``""``: erase) to the inspected object
-        (the last clicked point's track, :meth:`SelectionTool.pick_object`): every point of it in every
+        (the last clicked point's object, :meth:`SelectionTool.pick_object`): every point of it in every
         scan, with one action. Returns its id (None when no object is inspected)."""
+        if class_name != "" and class_name not in self.shared.class_names():
+            raise ValueError(f"unknown class {class_name!r}")
+        return self._edit_object(class_name, "relabel")
+
+    def split_object(self) -> int | None:
+        """Split the inspected object at the scan shown: its points from that scan on become a new object
+        (a ``split`` object correction). Returns its id (None when no object is inspected).
+
+        Raises:
+            InvalidField: the object has no point before the shown scan (nothing to split off).
+        """
         found = self.tools.inspected_object
         if found is None:
             return None
-        if class_name != "" and class_name not in self.shared.class_names():
-            raise ValueError(f"unknown class {class_name!r}")
-        cid = self.backend.add_object_correction(class_name, found.run_id, found.track)
+        return self._edit_object("", "split", frame=found.frame_id)
+
+    def merge_object(self, other: int) -> int | None:
+        """Merge object ``other`` of the shown run into the inspected one (a ``merge`` object correction:
+        one id, the inspected object's class). Returns its id (None when no object is inspected).
+
+        Raises:
+            InvalidField: ``other`` is the inspected object or no object with points.
+        """
+        return self._edit_object("", "merge", other=other)
+
+    def _edit_object(
+        self, class_name: str, action: ObjectAction, *, other: int | None = None, frame: str | None = None
+    ) -> int | None:
+        found = self.tools.inspected_object
+        if found is None:
+            return None
+        cid = self.backend.add_object_correction(
+            class_name, found.run_id, found.track, action=action, other_track_id=other, frame=frame
+        )
         self.history.push(cid)
         self.refresh()
         with self.shared.lock:
-            objects = self.shared.object_classes()
-        corrected = [c for t, c in objects if t == found.track]
-        self.tools.inspected_object = dataclasses.replace(
-            found, corrected_to=corrected[-1] if corrected else None
-        )
+            objects = self.shared.objects
+        track = found.track
+        if objects is not None and action == "split":
+            track = next((r.new_track for c, r in objects.results if c == cid and r.applied), track)
+        self.tools.inspected_object = None if objects is None else object_info(objects, found, track)
         self.notify.panel.on_object(self.tools.inspected_object)
         self.notify.emit("corrected")
         return cid

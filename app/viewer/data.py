@@ -8,7 +8,6 @@ only). Arrays are read once and kept; per-class probability columns are extracte
 
 from __future__ import annotations
 
-import json
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -213,15 +212,6 @@ class RunOutputs:
                 self._tracks = SequenceTracks.load(path) if path.is_file() else None
                 self._tracks_read = True
             return self._tracks
-
-    def object_matches(self) -> dict[str, Any]:
-        """Per object correction id the track of this run it met (``object_matches.json``; read each
-        time: the apply job rewrites it)."""
-        try:
-            found = json.loads(self.layout.object_matches.read_text())
-        except (OSError, ValueError):
-            return {}
-        return found if isinstance(found, dict) else {}
 
     def scan_objects(
         self, frame_id: str, n: int

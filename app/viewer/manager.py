@@ -40,6 +40,7 @@ from app.viewer.corrections import OverlayCache
 from app.viewer.data import ReviewGrid, RunOutputs
 from app.viewer.lod import LodConfig
 from app.viewer.panel import ReviewPanel
+from app.viewer.records import ObjectAction
 from app.viewer.session import (
     CorrectionRecord,
     ProjectBackend,
@@ -50,7 +51,8 @@ from app.viewer.session import (
     SessionConfig,
     read_run,
 )
-from leap_core.errors import SchemaError
+from leap_core.errors import LeapError, SchemaError
+from leap_core.pipeline.object_corrections import ObjectCorrections
 from leap_core.schema import Schema
 
 log = logging.getLogger("leap.viewer")
@@ -244,13 +246,33 @@ class AppBackend:
         applier(self.settings).request(self.project_id)
         return cid
 
-    def add_object_correction(self, class_name: str, run_id: int, track_id: int) -> int:
+    def add_object_correction(
+        self,
+        class_name: str,
+        run_id: int,
+        track_id: int,
+        *,
+        action: ObjectAction = "relabel",
+        other_track_id: int | None = None,
+        frame: str | None = None,
+    ) -> int:
         """Store an object-scope correction made in the viewer (author "viewer", the tab's reviewer):
-        track ``track_id`` of run ``run_id`` (checked and kept as its identity file by
-        :func:`app.services.object_ref`), and apply it to the latest run's export in the background."""
+        object ``track_id`` of run ``run_id`` relabelled, merged with ``other_track_id`` or split at
+        ``frame`` (checked and kept as identity files by :func:`app.services.object_ref`), and apply it to
+        the latest run's export in the background."""
         with open_db(self.settings.database) as db:
             run = crud.require_run(db, run_id)
-            obj = services.object_ref(db, self.settings, self.project_id, run_id, self.sequence, track_id)
+            obj = services.object_ref(
+                db,
+                self.settings,
+                self.project_id,
+                run_id,
+                self.sequence,
+                track_id,
+                action=action,
+                other_track_id=other_track_id,
+                frame=frame,
+            )
             cid = crud.add_correction(
                 db,
                 project_id=self.project_id,
@@ -265,6 +287,18 @@ class AppBackend:
             )
         applier(self.settings).request(self.project_id)
         return cid
+
+    def object_corrections(self, names: list[str]) -> ObjectCorrections:
+        """The sequence's active object corrections for a run with the classes ``names``
+        (:func:`app.services.object_corrections`); none, with a warning in the log, when an identity file
+        is unreadable (the export's apply job reports it)."""
+        with open_db(self.settings.database) as db:
+            rows = crud.list_corrections(db, self.project_id, active_only=True, sequence=self.sequence)
+        try:
+            return services.object_corrections(rows, names, self.settings.work_dir)
+        except LeapError as exc:
+            log.warning("object corrections not shown: %s", exc)
+            return ObjectCorrections()
 
     def set_correction_active(self, correction_id: int, active: bool) -> None:
         with open_db(self.settings.database) as db:

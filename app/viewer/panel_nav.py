@@ -177,6 +177,28 @@ class NavPanel:
                 visible=False,
                 hint="Give the class to every point of this object in every scan (one object correction)",
             )
+            self.split_object = gui.add_button(
+                "Split here",
+                visible=False,
+                hint="The tracker carried this id onto another object: give its points from the scan shown "
+                "on a new id (one object correction)",
+            )
+            self.merge_with = gui.add_number(
+                "Merge with",
+                0,
+                min=0,
+                max=0xFFFF,
+                step=1,
+                visible=False,
+                hint="The id of another object (colour by objects, click it to read its id) that is part of "
+                "this one",
+            )
+            self.merge_object = gui.add_button(
+                "Merge into this object",
+                visible=False,
+                hint="The object 'Merge with' names becomes part of this one: one id and this object's class "
+                "in every scan (one object correction)",
+            )
             self.inspect = gui.add_html("")
         with gui.add_folder("Confidence by class", order=7, expand_by_default=False):
             self.histogram = gui.add_html("")
@@ -190,6 +212,8 @@ class NavPanel:
         self.enlarge.on_click(guard(lambda _: player.set_image_open(None)))
         s.scene.on_click(guard(self._clicked))
         self.relabel_object.on_click(guard(lambda _: self._relabel_object()))
+        self.split_object.on_click(guard(lambda _: session.corrections.split_object()))
+        self.merge_object.on_click(guard(lambda _: self._merge_object()))
 
     def _browse(self, option: str) -> None:
         if option == BROWSE[0]:
@@ -222,6 +246,12 @@ class NavPanel:
         chosen = str(self.object_class.value)
         self.s.corrections.relabel_object("" if chosen == ERASE_OPTION else chosen)
 
+    def _merge_object(self) -> None:
+        other = int(self.merge_with.value)
+        if other < 1:
+            raise ValueError("Merge with: type the id of the other object (colour by objects, click it)")
+        self.s.corrections.merge_object(other)
+
     def on_run_loaded(self, names: Sequence[str]) -> None:
         """A run was loaded: the object class picker offers its classes (and erasing)."""
         options = [*names, ERASE_OPTION]
@@ -233,7 +263,15 @@ class NavPanel:
     def on_object(self, found: ObjectInfo | None) -> None:
         """Show the clicked point's object (or hide the object widgets: no object was hit)."""
         shown = found is not None
-        self.object_info.visible = self.object_class.visible = self.relabel_object.visible = shown
+        for widget in (
+            self.object_info,
+            self.object_class,
+            self.relabel_object,
+            self.split_object,
+            self.merge_with,
+            self.merge_object,
+        ):
+            widget.visible = shown
         if found is None:
             return
         self.object_info.content = object_html(found, self.s.class_names())

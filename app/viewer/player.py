@@ -188,7 +188,7 @@ class ScanPlayer:
         (caller holds the shared lock)."""
         sh = self.shared
         view = sh.scan_view
-        instance, moving = (None, None) if view is None else (view.instance, view.moving)
+        instance, moving = (None, None) if view is None else (sh.scan_instance, sh.scan_moving)
         colors = nl.scan_colors(sh.view_state.mode, sh.scan_label, sh.palette, instance, moving)
         return nl.focus_scan_colors(colors, sh.focus is not None)
 

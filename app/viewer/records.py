@@ -23,12 +23,15 @@ from app.viewer.region_logic import Region
 from leap_core import selection as sel
 from leap_core.bounds import check_bounds, within
 from leap_core.object_review import ObjectQueueConfig
+from leap_core.pipeline.object_corrections import ObjectCorrections
 from leap_core.schema import Schema
 
 QueueKind = Literal["confidence", "disagreement"]
 ToolKind = Literal["lasso", "brush", "box"]
 Target = Literal["map", "scan"]
 """What a selection tool picks from: voxels of the map, or points of the scan shown."""
+ObjectAction = Literal["relabel", "merge", "split"]
+"""What an object correction does (:class:`leap_core.pipeline.object_corrections.ObjectEdit`)."""
 Scope = Literal["map", "scan"]
 """What a correction changes: all points in its voxels in every scan (``map``), or listed points of one
 scan (``scan``)."""
@@ -134,9 +137,10 @@ class ObjectInfo:
     run_id: int
     """The run whose track it is."""
     track: int
-    """Its track id (the instance id in the export's upper 16 bits)."""
+    """Its id as the export shows it (the instance id in the upper 16 bits): the run's track id, or the new
+    id of a part a split cut off; merged objects show the id of the one merged into."""
     class_index: int
-    """The track's voted class (-1: none)."""
+    """The object's voted class (-1: none; a merged object's is the one merged into's)."""
     scans: int
     """Scans it was seen in."""
     moving: bool
@@ -228,8 +232,23 @@ class ProjectBackend(Protocol):
         points: npt.NDArray[np.int64] | None = None,
     ) -> int: ...
 
-    def add_object_correction(self, class_name: str, run_id: int, track_id: int) -> int:
-        """Store an object-scope correction of track ``track_id`` of run ``run_id``; returns its id."""
+    def add_object_correction(
+        self,
+        class_name: str,
+        run_id: int,
+        track_id: int,
+        *,
+        action: ObjectAction = "relabel",
+        other_track_id: int | None = None,
+        frame: str | None = None,
+    ) -> int:
+        """Store an object-scope correction of object ``track_id`` of run ``run_id`` (as its export shows it
+        now): a relabel to ``class_name``, a merge of ``other_track_id`` into it or a split at scan
+        ``frame``; returns its id."""
+        ...
+
+    def object_corrections(self, names: list[str]) -> ObjectCorrections:
+        """The sequence's active object corrections for a run with the classes ``names``."""
         ...
 
     def set_correction_active(self, correction_id: int, active: bool) -> None: ...
@@ -325,6 +344,7 @@ class Selection:
 __all__ = [
     "CorrectionRecord",
     "Inspection",
+    "ObjectAction",
     "ObjectInfo",
     "ProjectBackend",
     "QueueKind",

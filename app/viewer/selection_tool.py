@@ -16,14 +16,13 @@ import numpy.typing as npt
 
 from app.viewer import lod_cull
 from app.viewer import nav_logic as nl
-from app.viewer.data import ScanView
 from app.viewer.records import Inspection, ObjectInfo, Selection, Target, ToolKind, ToolSettings
 from app.viewer.render import LodRenderer
 from app.viewer.scene import ReviewScene
 from app.viewer.shared import Notifier, SharedState
 from leap_core import selection as sel
 from leap_core.picking import pick_voxel
-from leap_core.pipeline.tracks_file import SequenceTracks
+from leap_core.pipeline.object_corrections import NO_CLASS, CorrectedTracks
 
 
 def camera_of(camera: Any) -> sel.PinholeCamera:
@@ -303,35 +302,36 @@ class SelectionTool:
     ) -> ObjectInfo | None:
         """The object of the shown scan's first point a click ray enters (each point a cube of the voxel
         size, :func:`leap_core.picking.pick_voxel`; only points of objects are candidates, so a mover kept
-        out of the map is picked where its points are). Kept in :attr:`inspected_object` and told to the
-        panel (None: the ray meets no object's point)."""
+        out of the map is picked where its points are), as the corrections leave it (a merged object is
+        both parts, a split-off part its own). Kept in :attr:`inspected_object` and told to the panel
+        (None: the ray meets no object's point)."""
         sh = self.shared
         with sh.lock:
-            view, run, outputs = sh.scan_view, sh.run, sh.outputs
-            objects = sh.object_classes()
+            view, run, objects, instance = sh.scan_view, sh.run, sh.objects, sh.scan_instance
         found = None
-        tracks = None if outputs is None else outputs.tracks()
-        if view is not None and view.instance is not None and run is not None and tracks is not None:
-            rows = np.flatnonzero(view.instance > 0)
+        if view is not None and instance is not None and run is not None and objects is not None:
+            rows = np.flatnonzero(instance > 0)
             pick = pick_voxel(origin, direction, view.points[rows].astype(np.float64), voxel_size)
             if pick is not None:
-                found = _object_info(run.run_id, tracks, view, int(view.instance[rows[pick.index]]), objects)
+                shown = ObjectInfo(run.run_id, 0, -1, 0, False, 0.0, 0, view.frame_id)
+                found = object_info(objects, shown, int(instance[rows[pick.index]]))
         self.inspected_object = found
         self.notify.panel.on_object(found)
         return found
 
     def inspect_track(self, track: int) -> ObjectInfo | None:
-        """Make track ``track`` of the shown run the inspected object (as a click on one of its points in
-        the shown scan would: *Relabel object* then applies to it), and tell the panel. None (nothing
-        changed) when the run has no such track."""
+        """Make object ``track`` of the shown run (its id as the export shows it, the corrections on top)
+        the inspected object (as a click on one of its points in the shown scan would: *Relabel object*,
+        *Split here* and *Merge with* then apply to it), and tell the panel. None (nothing changed) when the
+        run has no such object."""
         sh = self.shared
         with sh.lock:
-            view, run, outputs = sh.scan_view, sh.run, sh.outputs
-            objects = sh.object_classes()
-        tracks = None if outputs is None else outputs.tracks()
-        if view is None or run is None or tracks is None or not 1 <= track <= tracks.table.label.size:
+            view, run, objects = sh.scan_view, sh.run, sh.objects
+        if view is None or run is None or objects is None or not 1 <= track <= objects.count:
             return None
-        found = _object_info(run.run_id, tracks, view, track, objects)
+        if not objects.object_scans(track):
+            return None  # merged into another object: that one holds its points
+        found = object_info(objects, ObjectInfo(run.run_id, 0, -1, 0, False, 0.0, 0, view.frame_id), track)
         self.inspected_object = found
         self.notify.panel.on_object(found)
         return found
@@ -343,25 +343,23 @@ class SelectionTool:
         self.scene.inspected.visible = False
 
 
-def _object_info(
-    run_id: int, tracks: SequenceTracks, view: ScanView, track: int, objects: list[tuple[int, int]]
-) -> ObjectInfo:
-    """What the Inspect section shows of track ``track`` in the scan ``view``; ``objects``: the
-    ``(track, class)`` pairs of active object corrections (:meth:`SharedState.object_classes`)."""
-    k = track - 1
-    corrected = [c for t, c in objects if t == track]
-    instance = view.instance if view.instance is not None else np.zeros(0, np.uint32)
+def object_info(objects: CorrectedTracks, shown: ObjectInfo, track: int) -> ObjectInfo:
+    """Object ``track`` of ``objects`` (the shown run's, corrections on top) as the panel shows it, in the
+    scan ``shown`` is of."""
+    scans = objects.object_scans(track)
+    _, obj = objects.scan_rows(shown.frame_id)
+    fixed = int(objects.track_class[track])
     return ObjectInfo(
-        run_id=run_id,
+        run_id=shown.run_id,
         track=track,
-        class_index=int(tracks.table.label[k]),
-        scans=int(tracks.table.scans[k]),
-        moving=bool(tracks.table.moving[k]),
-        speed=float(np.linalg.norm(tracks.table.velocity[k])),
-        points=int((instance == track).sum()),
-        frame_id=view.frame_id,
-        corrected_to=corrected[-1] if corrected else None,
+        class_index=int(objects.label[track]),
+        scans=len(scans),
+        moving=bool(objects.moving[track]),
+        speed=float(np.linalg.norm(objects.velocity[track])),
+        points=int(np.count_nonzero(obj == track)),
+        frame_id=shown.frame_id,
+        corrected_to=None if fixed == NO_CLASS else fixed,
     )
 
 
-__all__ = ["SelectionTool", "camera_of"]
+__all__ = ["SelectionTool", "camera_of", "object_info"]

@@ -22,6 +22,7 @@ from app.viewer.records import CorrectionRecord, RunInfo, Selection, SessionView
 from app.viewer.region_logic import Region
 from app.viewer.run_delta import RunDelta
 from leap_core.fusion import key_centres, voxel_keys
+from leap_core.pipeline.object_corrections import NO_CLASS, CorrectedTracks
 from leap_core.schema import Schema
 from leap_core.types import UNLABELED
 
@@ -75,6 +76,14 @@ class SharedState:
         :class:`app.viewer.player.ScanPlayer`)."""
         self.scan_label = np.zeros(0, np.int16)
         """Labels of the shown scan's points with the corrections overlaid (what the scan layer shows)."""
+        self.objects: CorrectedTracks | None = None
+        """The shown run's objects with the active object corrections on top (merges, splits, relabels:
+        what its export holds once the apply job has run); None without objects (written by
+        :meth:`app.viewer.corrections.Corrections.apply_locked`)."""
+        self.scan_instance: npt.NDArray[np.uint32] | None = None
+        """(N,) object id of each point of the shown scan as the export writes it (0: none), or None."""
+        self.scan_moving: npt.NDArray[np.bool_] | None = None
+        """(N,) whether that object moves, or None."""
         self.delta: RunDelta | None = None
         """The ``delta`` colour mode's source (the run before the shown one; set by the session)."""
 
@@ -119,13 +128,18 @@ class SharedState:
         of each point, then this scan's own corrections in the order they were made. Caller holds
         :attr:`lock`."""
         label: npt.NDArray[np.int16] = view.label.copy()
+        self.scan_instance, self.scan_moving = view.instance, view.moving
         grid = self.grid
         if grid is None or self.corrected.size != grid.num_voxels:
             return label
-        if view.instance is not None:
+        objects = self.objects
+        if objects is not None and view.instance is not None:
             # Object corrections first: map and scan corrections win on the points they label.
-            for track, cls in self.object_classes():
-                label[view.instance == track] = cls
+            _, _, self.scan_instance, self.scan_moving = objects.point_objects(view.frame_id, view.label)
+            tracked, obj = objects.scan_rows(view.frame_id)
+            cls = objects.track_class[obj]
+            fixed = cls != NO_CLASS
+            label[tracked[fixed]] = cls[fixed]
         if self.corrected.any():
             rows = grid.rows_of(voxel_keys(view.points.astype(np.float64), grid.voxel_size))
             hit = rows >= 0
@@ -146,26 +160,13 @@ class SharedState:
         return label
 
     def object_classes(self) -> list[tuple[int, int]]:
-        """``(track id, class index)`` of the shown run's objects that active object corrections relabel, in
-        the order they were made (a later one wins): a correction made on this run names its track, one
-        made on another run the track it met here (``object_matches.json``, when it applies). Caller holds
-        :attr:`lock`."""
-        run, outputs = self.run, self.outputs
-        recs = [r for r in self.corrections if r.scope == "object" and r.active]
-        if run is None or outputs is None or not recs:
+        """``(object id, class index)`` of the shown run's objects an active relabel reaches (after the
+        merges and splits made before it: :attr:`objects`), by id. Caller holds :attr:`lock`."""
+        objects = self.objects
+        if objects is None:
             return []
-        names = self.class_ids()
-        matches = outputs.object_matches() if any(r.run_id != run.run_id for r in recs) else {}
-        out = []
-        for rec in recs:
-            cls = UNLABELED if rec.class_name == "" else names.get(rec.class_name)
-            if cls is None:
-                continue
-            if rec.run_id == run.run_id and rec.track_id is not None:
-                out.append((rec.track_id, cls))
-            elif (m := matches.get(str(rec.id))) is not None and m.get("applied"):
-                out.append((int(m["track"]), cls))
-        return out
+        fixed = np.flatnonzero(objects.track_class != NO_CLASS)
+        return [(int(t), int(objects.track_class[t])) for t in fixed]
 
     def confidence_histograms(self, bins: int = 10) -> npt.NDArray[np.int64]:
         """(C, bins) voxel counts per shown class and confidence bin (corrections applied; see

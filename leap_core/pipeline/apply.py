@@ -245,13 +245,13 @@ class ApplyResult:
 def _object_changes(
     layout: SequenceLayout, old: ObjectCorrections, new: ObjectCorrections, things: npt.NDArray[np.bool_]
 ) -> tuple[CorrectedTracks | None, list[str]]:
-    """The run's tracks with ``new`` on top (None: the run has none) and the frames where a track's
-    corrected class differs between ``old`` and ``new``."""
+    """The run's tracks with ``new`` on top (None: the run has none) and the frames where a point's
+    corrected object, class or motion differs between ``old`` and ``new``."""
     if not layout.tracks.is_file():
         return None, []
     raw = SequenceTracks.load(layout.tracks)
     tracks = CorrectedTracks.of(raw, new, things)
-    return tracks, tracks.frames_of(tracks.changed_tracks(CorrectedTracks.of(raw, old, things)))
+    return tracks, tracks.changed_frames(CorrectedTracks.of(raw, old, things))
 
 
 def apply_to_run(  # noqa: PLR0913  the run, its frames and export ids, the corrections, the cache, knobs

@@ -329,6 +329,9 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
         "track": track,
         "iou": 1.0,
         "applied": True,
+        "other_track": None,
+        "other_iou": None,
+        "new_track": None,
     }
     # Every scan's points of the track take the class, but those a map or scan correction labels (those
     # win); nothing else moves.
@@ -358,11 +361,15 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
     # A track without a point in the export (a static one whose points all keep a stuff class) is refused.
     original = (folder / "tracks.npz").read_bytes()
     t = tracks.table
+    # One more track, a copy of the first's fields (its vote evidence dropped: the file then reads as
+    # unanimous votes), with no point in any scan.
     empty = dataclasses.replace(
         t,
+        evidence=None,
         **{
             f.name: np.concatenate([getattr(t, f.name), getattr(t, f.name)[:1]])
             for f in dataclasses.fields(t)
+            if f.name != "evidence"
         },
     )
     dataclasses.replace(tracks, table=empty).save(folder / "tracks.npz")
@@ -371,6 +378,64 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
         assert r.status_code == 422 and "has no points" in r.text, r.text
     finally:
         (folder / "tracks.npz").write_bytes(original)
+
+
+def test_merge_and_split_give_the_exports_instance_ids_and_undo_reverts_them(studio: Studio) -> None:
+    from leap_core.pipeline.tracks_file import SequenceTracks
+
+    st = studio
+    run = next(r for r in st.runs() if r["status"] == "done")
+    export = st.run_dir(run) / "export"
+
+    def ids() -> dict[str, np.ndarray]:
+        return {p.stem: read_label(p) >> 16 for p in sorted(export.glob("*.label"))}
+
+    before = ids()
+    sizes = np.bincount(np.concatenate(list(before.values())).astype(np.int64))
+    sizes[0] = 0
+    assert np.count_nonzero(sizes) >= 2, "the tiny sequence's export has fewer than two objects"
+    a, b = (int(x) for x in np.argsort(-sizes, kind="stable")[:2])
+    scans = [f for f, v in before.items() if (v == a).any()]
+    url = f"/projects/{st.pid}/corrections"
+    body = {"voxel_size": _voxel_size(st), "scope": "object", "run_id": run["id"], "track_id": a}
+    # Refused with the field named: a merge of an object with itself, a split at the object's first scan.
+    for bad, field in (
+        ({**body, "action": "merge", "other_track_id": a}, "other_track_id"),
+        ({**body, "action": "split", "frame": scans[0]}, "frame"),
+    ):
+        r = st.c.post(url, json=bad)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", field], r.text
+    merge = st.c.post(url, json={**body, "action": "merge", "other_track_id": b})
+    assert merge.status_code == 201, merge.text
+    listed = st.wait_apply()
+    mine = next(c for c in listed["corrections"] if c["id"] == merge.json()["id"])
+    assert (mine["action"], mine["other_track_id"], mine["class_name"]) == ("merge", b, ""), mine
+    assert mine["match"]["applied"] and mine["match"]["other_track"] == b, mine
+    merged = ids()
+    for fid, v in before.items():
+        assert (merged[fid][(v == a) | (v == b)] == a).all(), fid
+        assert (merged[fid][(v != a) & (v != b)] == v[(v != a) & (v != b)]).all(), fid
+    # The merged object is split at a later scan: its points from there on take a new id beyond the run's.
+    both = [f for f, v in merged.items() if (v == a).any()]
+    assert len(both) >= 2, both
+    split = st.c.post(url, json={**body, "action": "split", "frame": both[1]})
+    assert split.status_code == 201, split.text
+    listed = st.wait_apply()
+    new = next(c for c in listed["corrections"] if c["id"] == split.json()["id"])["match"]["new_track"]
+    assert new == SequenceTracks.load(st.run_dir(run) / "tracks.npz").table.label.size + 1, new
+    cut = ids()
+    for fid in before:
+        later = fid >= both[1]
+        assert (cut[fid][merged[fid] == a] == (new if later else a)).all(), fid
+    preview = st.c.get(f"/projects/{st.pid}/runs/preview").json()
+    texts = [c["text"] for c in preview["changes"]]
+    assert any(f"merge of objects {a} and {b}" in t for t in texts), texts
+    assert any(f"split of object {a} of run id {run['id']} at scan {both[1]}" in t for t in texts), texts
+    for c in (split, merge):
+        assert st.c.patch(f"{url}/{c.json()['id']}", json={"active": False}).status_code == 200
+    st.wait_apply()
+    for fid, v in ids().items():
+        assert (v == before[fid]).all(), fid
 
 
 def test_migration_3_upgrades_a_version_2_database(tmp_path: Path) -> None:

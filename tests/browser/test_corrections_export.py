@@ -215,6 +215,38 @@ def test_one_click_relabels_an_object_in_every_scan_of_the_export(
         row.wait_for(timeout=30_000)
         wait_until(lambda: f"object {found.track} (IoU 1.00)" in row.inner_text(), 10, "the object's match")
         assert new_class in row.inner_text() and "viewer" in row.inner_text()
+        # Merge another object of the shown scan into it: the colour-by-objects ids and the object line
+        # follow at once; undone again, so the export below holds the relabel only.
+        shown = session.shared.scan_instance
+        others = np.unique(shown[(shown > 0) & (shown != found.track)])
+        if others.size:
+            other = int(others[0])
+            browserfixtures.panel_input(page, "Merge with").fill(str(other))
+            browserfixtures.panel_input(page, "Merge with").press("Enter")
+            wait_until(lambda: int(session.panel.nav.merge_with.value) == other, 10, "the typed object id")
+            page.get_by_role("button", name="Merge into this object").click()
+            wait_until(lambda: not (session.shared.scan_instance == other).any(), 20, "the merged ids")
+            assert (session.shared.scan_instance[shown == other] == found.track).all()
+            scans = session.tools.inspected_object.scans
+            assert scans >= int(tracks.table.scans[found.track - 1])
+            page.get_by_text(f"seen in {scans} scan", exact=False).wait_for(timeout=10_000)
+            with open_db(settings.database) as db:
+                merge = crud.list_corrections(db, pid)[-1]
+            assert (merge.action, merge.track_id, merge.other_track_id) == ("merge", found.track, other)
+            merged = ui.locator(f"#corrections tr[data-id='{merge.id}']")
+            merged.wait_for(timeout=10_000)  # the project page's list polls every 2 s
+            assert f"merge of objects {found.track} and {other}" in merged.inner_text()
+            page.keyboard.press("Control+z")  # the viewer page's undo key
+            wait_until(lambda: not (session.shared.scan_instance != other).all(), 20, "the undone merge")
+            wait_until(
+                lambda: (
+                    (b := api.get(f"/projects/{pid}/corrections").json())["apply"]["status"] == "done"
+                    and not next(c for c in b["corrections"] if c["id"] == merge.id)["active"]
+                    and b["apply"]["finished_at"] > merge.created_at
+                ),
+                30,
+                "the apply job after the undo",
+            )
 
     index = schema.index(new_class)
     moving = bool(tracks.table.moving[found.track - 1])

@@ -11,8 +11,11 @@ import { openViewer } from "./viewer.js";
 
 const POLL_MS = 2000;
 
-function className(name) {
-  return name === "" ? "erase (unlabeled)" : name;
+function className(c) {
+  // A merge or a split of objects assigns no class.
+  if (c.action === "merge") return `merge of objects ${c.track_id} and ${c.other_track_id}`;
+  if (c.action === "split") return `split of object ${c.track_id} at scan ${c.split_frame}`;
+  return c.class_name === "" ? "erase (unlabeled)" : c.class_name;
 }
 
 function scopeText(c) {
@@ -21,14 +24,25 @@ function scopeText(c) {
   return "map";
 }
 
+function objectsText(m) {
+  if (m.other_track != null) return `objects ${m.other_track} into ${m.track}`;
+  if (m.new_track) return `object ${m.track}, new object ${m.new_track}`;
+  return `object ${m.track}`;
+}
+
 // Where an object correction lands in the latest finished run (docs/METHOD.md B.6, object corrections).
 function sizeText(c) {
   if (c.scope === "scan") return `${c.points} points`;
   if (c.scope !== "object") return `${c.voxels} voxels`;
   const m = c.match;
   if (!m) return "not applied yet";
-  if (!m.applied) return `run ${m.run_number}: no longer matches an object (best IoU ${m.iou.toFixed(2)})`;
-  return `run ${m.run_number}: object ${m.track} (IoU ${m.iou.toFixed(2)})`;
+  if (!m.applied) {
+    const iou = Math.min(m.iou, m.other_iou ?? m.iou);
+    if (m.track && m.track === m.other_track) return `run ${m.run_number}: the two are already one object: changes nothing`;
+    if (m.new_track === 0 && m.iou > 0.5) return `run ${m.run_number}: scan not labeled in this run: changes nothing`;
+    return `run ${m.run_number}: no longer matches an object (best IoU ${iou.toFixed(2)}): changes nothing`;
+  }
+  return `run ${m.run_number}: ${objectsText(m)} (IoU ${m.iou.toFixed(2)})`;
 }
 
 function applyText(a) {
@@ -80,7 +94,7 @@ export function mountCorrections(ctx) {
       h(
         "tr",
         { dataset: { id: String(c.id) }, class: c.active ? "" : "muted" },
-        h("td", {}, className(c.class_name)),
+        h("td", {}, className(c)),
         h("td", {}, scopeText(c)),
         h("td", { class: c.scope === "object" ? "corr-match" : "num" }, sizeText(c)),
         h("td", {}, c.author || "—"),
@@ -127,7 +141,7 @@ export function mountCorrections(ctx) {
         ? h(
             "ul",
             { class: "corr-classes" },
-            body.per_class.map((p) => h("li", { dataset: { cls: p.class_name } }, `${className(p.class_name)}: ${p.corrections} correction${p.corrections === 1 ? "" : "s"}, ${p.voxels} voxels`)),
+            body.per_class.map((p) => h("li", { dataset: { cls: p.class_name } }, `${className({ class_name: p.class_name })}: ${p.corrections} correction${p.corrections === 1 ? "" : "s"}, ${p.voxels} voxels`)),
           )
         : null,
       rows.length

@@ -29,7 +29,14 @@ def _public(c: crud.Correction, matches: Matches | None = None) -> models.Correc
         m = matches[1][str(c.id)]
         run = matches[0]
         match = models.ObjectMatch(
-            run_id=run.id, run_number=run.number, track=m["track"], iou=m["iou"], applied=m["applied"]
+            run_id=run.id,
+            run_number=run.number,
+            track=m["track"],
+            iou=m["iou"],
+            applied=m["applied"],
+            other_track=m.get("other_track"),
+            other_iou=m.get("other_iou"),
+            new_track=m.get("new_track"),
         )
     return models.CorrectionPublic(
         id=c.id,
@@ -45,6 +52,9 @@ def _public(c: crud.Correction, matches: Matches | None = None) -> models.Correc
         reviewer=c.reviewer,
         run_id=c.run_id,
         track_id=c.track_id,
+        action=c.action if c.scope == "object" else None,
+        other_track_id=c.other_track_id,
+        split_frame=c.split_frame,
         match=match,
     )
 
@@ -111,7 +121,7 @@ def list_corrections(
     counts: Counter[str] = Counter()
     voxels: Counter[str] = Counter()
     for c in rows:
-        if c.active:
+        if c.active and c.action == "relabel":  # a merge or a split assigns no class
             counts[c.class_name] += 1
             voxels[c.class_name] += int(c.keys.size)
     return models.CorrectionList(
@@ -139,19 +149,31 @@ def add_correction(
     """Store a correction (author "api") and apply it to the latest run's export in the background. 422
     naming ``class_name`` for a class the project does not have; for an object-scope one, naming
     ``run_id`` / ``track_id`` when the run is not a finished run of the project with objects, or has no
-    such track."""
-    _check_class(crud.require_project(db, project_id), payload.class_name)
+    such object, ``other_track_id`` for a merge with itself or with no such object, ``frame`` for a split
+    at a scan that does not cut the object (:func:`app.services.object_ref`)."""
+    class_name = payload.class_name or ""  # a merge or a split assigns none
+    _check_class(crud.require_project(db, project_id), class_name)
     name = crud.sequence_name(db, project_id, payload.sequence, loc=("body", "sequence"))
     if payload.scope == "scan" and payload.frame_id is not None and payload.points is not None:
         dataset = next(s.dataset_path for s in crud.list_sequences(db, project_id) if s.name == name)
         _check_scan(FilePath(dataset), payload.frame_id, payload.points)
     obj = None
     if payload.scope == "object" and payload.run_id is not None and payload.track_id is not None:
-        obj = services.object_ref(db, settings, project_id, payload.run_id, name, payload.track_id)
+        obj = services.object_ref(
+            db,
+            settings,
+            project_id,
+            payload.run_id,
+            name,
+            payload.track_id,
+            action=payload.action,
+            other_track_id=payload.other_track_id,
+            frame=payload.frame,
+        )
     cid = crud.add_correction(
         db,
         project_id=project_id,
-        class_name=payload.class_name,
+        class_name=class_name,
         voxel_size=payload.voxel_size,
         keys=payload.keys,
         scope=payload.scope,
