@@ -152,10 +152,9 @@ class PanopticCounts:
             pred_class: (N,) int class index, ``UNLABELED`` = in no segment.
             pred_segment: (N,) int64 predicted segment id.
         """
-        gc = np.asarray(gt_class).reshape(-1).astype(np.int64)
-        gs = np.asarray(gt_segment).reshape(-1).astype(np.int64)
-        pc = np.asarray(pred_class).reshape(-1).astype(np.int64)
-        ps = np.asarray(pred_segment).reshape(-1).astype(np.int64)
+        gc, gs, pc, ps = (
+            np.asarray(x, np.int64).reshape(-1) for x in (gt_class, gt_segment, pred_class, pred_segment)
+        )
         if not gc.shape == gs.shape == pc.shape == ps.shape:
             raise ValueError("gt and pred classes and segments must have one value per point each")
         keep = gc != UNLABELED
