@@ -11,12 +11,21 @@ Pure functions on arrays; the pipeline stage (:mod:`leap_core.pipeline.stages`, 
    each, are two segments; the points no mask covers join the mask of their nearest covered point in the
    same Euclidean cluster, or form that cluster's own segment where it holds no covered point. Segments
    with fewer than ``min_segment_points`` points are dropped.
-2. **Tracks.** Each live track predicts its centroid at the scan's time with a constant-velocity model,
-   ``ĉ = c_last + v · (t - t_last)``; the cost of giving segment s to track k is ``‖ĉ_k - c_s‖`` (world
-   coordinates), pairs above ``gate`` are forbidden and the one-to-one assignment of least total cost is
-   scipy's ``linear_sum_assignment``. Unassigned segments start tracks; a track unseen for more than
-   ``max_missed`` scans ends. Track ids are 1, 2, ... in order of birth, unique over the sequence.
-   ``v`` is the displacement of the last two observations over their time difference (0 for a new track).
+2. **Tracks.** Each live track predicts where it is at the scan's time with a constant-velocity model:
+   its last centroid (and ground box) move by ``v · (t - t_last)``. ``v`` is the least-squares slope of its
+   last ``velocity_scans`` centroids against time (:func:`recent_velocity`; 0 for a track seen once), not
+   the step between the last two: the visible part of an object changes from scan to scan (an oncoming
+   car shows its front, then its side) and one jump of its centroid would throw the next prediction off.
+   The distance of segment s to track k is ``d = ‖ĉ_k - c_s‖`` (``distance: centroid``) or, with
+   ``distance: box``, the gap between the ground boxes ``d = ‖(max(0, x0_s - x1_k, x0_k - x1_s), likewise
+   y)‖`` (:func:`box_gap`, 0 where they overlap; cost ``d + 0.1 · ‖ĉ_k - c_s‖``, the centroid term
+   ordering pairs whose boxes overlap). Pairs with ``d`` above the track's gate are forbidden and scipy's
+   ``linear_sum_assignment`` picks the one-to-one assignment of least total cost. The gate grows with what
+   the track does not know: ``gate`` for a track with a velocity, ``gate + max_speed · (t - t_last)`` for a
+   track seen once, which may be moving at up to ``max_speed`` in any direction. Unassigned segments start
+   tracks; a track unseen for more than ``max_missed`` scans ends. Track ids are 1, 2, ... in order of
+   birth, unique over the sequence; the ``tracks`` stage keeps only the ids with points in some scan
+   (:func:`present_ids`).
 3. **Class.** A track's class is the argmax of its segments' summed class votes over all its scans.
    The vote's evidence is kept for review (:class:`VoteEvidence`): the winner's share of the votes and the
    runner-up class with its share.
@@ -51,6 +60,8 @@ from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError
 
 _FORBIDDEN = 1e9
+_TIE_BREAK = 0.1
+"""Weight of the centroid distance in the association cost: it only orders pairs whose boxes overlap."""
 _HALF_NEIGHBOURS = [
     (dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if (dx, dy, dz) > (0, 0, 0)
 ]
@@ -70,7 +81,19 @@ class TrackingConfig:
     min_segment_points: int = field(default=5, metadata=within(1, 100_000))
     """Smaller segments are dropped (stray points of a thing class)."""
     gate: float = field(default=2.0, metadata=within(0.1, 100, unit="m"))
-    """Largest distance between a track's predicted and a segment's centroid for an association."""
+    """Largest distance (``distance``) between a track's prediction and a segment for an association, for
+    a track whose velocity is known (module docstring, step 2)."""
+    max_speed: float = field(default=5.0, metadata=within(0, 100, unit="m/s"))
+    """How fast an object seen only once may be moving: such a track has no velocity to predict with, so
+    its gate grows by ``max_speed · Δt`` (0.5 m at 10 Hz). Higher lets a new track reach its object after a
+    larger first step but also a neighbour's segment (docs/METHOD.md B.6 gives the measured trade)."""
+    distance: Literal["centroid", "box"] = "centroid"
+    """What the gate and the association cost measure between a track's prediction and a segment:
+    ``centroid``, the distance of the centroids; ``box``, the gap between the ground boxes (module
+    docstring, step 2; docs/METHOD.md B.6 gives the measured figures behind the default)."""
+    velocity_scans: int = field(default=5, metadata=within(2, 100))
+    """A track's velocity for its prediction is the least-squares slope over its last this many
+    observations, so one jump of a partial view's centroid does not throw it off."""
     max_missed: int = field(default=3, metadata=within(0, 1000))
     """A track not associated for more than this many scans ends."""
     moving_speed: float = field(default=0.5, metadata=within(0, 100, unit="m/s"))
@@ -98,6 +121,8 @@ class TrackingConfig:
         check_bounds(self)
         if self.vote not in ("moving", "all"):
             raise ConfigError(f"must be 'moving' or 'all', got {self.vote!r}", field=("vote",))
+        if self.distance not in ("centroid", "box"):
+            raise ConfigError(f"must be 'centroid' or 'box', got {self.distance!r}", field=("distance",))
         if self.segments not in ("masks", "euclidean"):
             raise ConfigError(f"must be 'masks' or 'euclidean', got {self.segments!r}", field=("segments",))
 
@@ -225,74 +250,216 @@ def segment_summary(
     return centroid, hist, box
 
 
+def box_gap(a: npt.ArrayLike, b: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """(K, S) ground distance between the boxes ``a`` (K, 4) and ``b`` (S, 4), each ``[x0, y0, x1, y1]``:
+    ``‖(max(0, x0_b - x1_a, x0_a - x1_b), max(0, y0_b - y1_a, y0_a - y1_b))‖``, 0 where they overlap."""
+    p = np.asarray(a, dtype=np.float64).reshape(-1, 4)[:, None, :]
+    q = np.asarray(b, dtype=np.float64).reshape(-1, 4)[None, :, :]
+    dx = np.maximum(0.0, np.maximum(q[..., 0] - p[..., 2], p[..., 0] - q[..., 2]))
+    dy = np.maximum(0.0, np.maximum(q[..., 1] - p[..., 3], p[..., 1] - q[..., 3]))
+    gap: npt.NDArray[np.float64] = np.hypot(dx, dy)
+    return gap
+
+
+def _point_boxes(centroids: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(S, 4) boxes of zero size at the centroids' ground positions."""
+    return np.concatenate([centroids[:, :2], centroids[:, :2]], axis=1)
+
+
 def associate(
-    predicted: npt.ArrayLike, centroids: npt.ArrayLike, gate: float
+    predicted: npt.ArrayLike,
+    centroids: npt.ArrayLike,
+    gate: float | npt.ArrayLike,
+    predicted_boxes: npt.ArrayLike | None = None,
+    boxes: npt.ArrayLike | None = None,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """One-to-one pairs (track rows, segment rows) of least total distance, each pair within ``gate``.
+    """One-to-one pairs (track rows, segment rows) of least total cost, each pair within its track's gate
+    (module docstring, step 2).
+
+    The distance of a pair is ``d = box_gap(B̂_k, B_s)``; a pair with ``d > gate_k`` is forbidden and the
+    cost of the others is ``d + 0.1 · ‖ĉ_k - c_s‖``.
 
     Args:
-        predicted: (K, 3) tracks' predicted centroids.
-        centroids: (S, 3) segments' centroids.
+        predicted: (K, 3) tracks' predicted centroids ``ĉ``.
+        centroids: (S, 3) segments' centroids ``c``.
+        gate: the gate of every track, or (K,) one per track.
+        predicted_boxes: (K, 4) tracks' predicted ground boxes; None: zero-size boxes at ``predicted``.
+        boxes: (S, 4) segments' ground boxes; None: zero-size boxes at ``centroids``.
     """
     a = np.asarray(predicted, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(centroids, dtype=np.float64).reshape(-1, 3)
     if a.shape[0] == 0 or b.shape[0] == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cost = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
-    cost = np.where(cost <= gate, cost, _FORBIDDEN)
+    apart = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
+    if predicted_boxes is None or boxes is None:
+        gap, cost = apart, apart
+    else:
+        gap = box_gap(predicted_boxes, boxes)
+        cost = gap + _TIE_BREAK * apart
+    limit = np.broadcast_to(np.asarray(gate, dtype=np.float64).reshape(-1), (a.shape[0],))
+    cost = np.where(gap <= limit[:, None], cost, _FORBIDDEN)
     rows, cols = linear_sum_assignment(cost)
     ok = cost[rows, cols] < _FORBIDDEN
     return rows[ok].astype(np.int64), cols[ok].astype(np.int64)
 
 
+def recent_velocity(times: npt.ArrayLike, centroids: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """(K, 3) least-squares slope of each track's recent centroids against time.
+
+    ``v = Σ_i (t_i - t̄)(c_i - c̄) / Σ_i (t_i - t̄)²`` over the track's observations i (0 where there are
+    fewer than two at different times).
+
+    Args:
+        times: (K, H) seconds of each track's last H observations, NaN where it has fewer.
+        centroids: (K, H, 3) their centroids (ignored where the time is NaN).
+    """
+    t = np.asarray(times, dtype=np.float64)
+    c = np.asarray(centroids, dtype=np.float64).reshape(t.shape[0], t.shape[1], 3)
+    seen = ~np.isnan(t)
+    n = np.maximum(seen.sum(axis=1), 1)
+    t0 = np.where(seen, t, 0.0)
+    t_mean = t0.sum(axis=1) / n
+    dt = np.where(seen, t - t_mean[:, None], 0.0)
+    c0 = np.where(seen[..., None], c, 0.0)
+    c_mean = c0.sum(axis=1) / n[:, None]
+    var = (dt * dt).sum(axis=1)
+    cov = (dt[..., None] * (c0 - c_mean[:, None, :]) * seen[..., None]).sum(axis=1)
+    v: npt.NDArray[np.float64] = np.where(var[:, None] > 1e-12, cov / np.maximum(var, 1e-12)[:, None], 0.0)
+    return v
+
+
+class _LiveTracks:
+    """The state of the live tracks in :func:`track_ids`, one row per track."""
+
+    def __init__(self, history: int) -> None:
+        self.pos = np.zeros((0, 3))
+        """(K, 3) last centroid."""
+        self.box = np.zeros((0, 4))
+        """(K, 4) last ground box."""
+        self.past_t = np.zeros((0, history))
+        """(K, H) times of the last H observations, oldest first, NaN before the first."""
+        self.past_c = np.zeros((0, history, 3))
+        """(K, H, 3) their centroids."""
+        self.last_t = np.zeros(0)
+        self.last_scan = np.zeros(0, np.int64)
+        self.ids = np.zeros(0, np.int64)
+
+    def keep(self, rows: npt.NDArray[np.bool_]) -> None:
+        self.pos, self.box, self.past_t, self.past_c = (
+            self.pos[rows],
+            self.box[rows],
+            self.past_t[rows],
+            self.past_c[rows],
+        )
+        self.last_t, self.last_scan, self.ids = self.last_t[rows], self.last_scan[rows], self.ids[rows]
+
+    def observe(
+        self,
+        rows: npt.NDArray[np.int64],
+        cen: npt.NDArray[np.float64],
+        box: npt.NDArray[np.float64],
+        t: float,
+        k: int,
+    ) -> None:
+        """Tracks ``rows`` seen at ``cen`` (R, 3) with ``box`` (R, 4) in scan ``k`` at time ``t``."""
+        self.pos[rows] = cen
+        self.box[rows] = box
+        self.past_t[rows] = np.concatenate([self.past_t[rows, 1:], np.full((rows.size, 1), t)], axis=1)
+        self.past_c[rows] = np.concatenate([self.past_c[rows, 1:], cen[:, None, :]], axis=1)
+        self.last_t[rows] = t
+        self.last_scan[rows] = k
+
+    def start(
+        self,
+        ids: npt.NDArray[np.int64],
+        cen: npt.NDArray[np.float64],
+        box: npt.NDArray[np.float64],
+        t: float,
+        k: int,
+    ) -> None:
+        """New tracks ``ids`` (R,) seen at ``cen`` (R, 3) with ``box`` (R, 4) in scan ``k`` at time ``t``."""
+        n, h = ids.size, self.past_t.shape[1]
+        past_t = np.full((n, h), np.nan)
+        past_t[:, -1] = t
+        past_c = np.zeros((n, h, 3))
+        past_c[:, -1] = cen
+        self.pos = np.concatenate([self.pos, cen])
+        self.box = np.concatenate([self.box, box])
+        self.past_t = np.concatenate([self.past_t, past_t])
+        self.past_c = np.concatenate([self.past_c, past_c])
+        self.last_t = np.concatenate([self.last_t, np.full(n, t)])
+        self.last_scan = np.concatenate([self.last_scan, np.full(n, k, np.int64)])
+        self.ids = np.concatenate([self.ids, ids])
+
+
 def track_ids(
-    centroids: Sequence[npt.ArrayLike], times: npt.ArrayLike, cfg: TrackingConfig
+    centroids: Sequence[npt.ArrayLike],
+    times: npt.ArrayLike,
+    cfg: TrackingConfig,
+    boxes: Sequence[npt.ArrayLike] | None = None,
 ) -> list[npt.NDArray[np.int64]]:
     """Track id (1, 2, ...) of every segment of every scan (module docstring, step 2).
 
     Args:
         centroids: per scan t, (S_t, 3) segment centroids in world coordinates.
         times: (T,) seconds of each scan, increasing.
+        cfg: ``gate``, ``max_speed``, ``velocity_scans``, ``distance`` and ``max_missed``.
+        boxes: per scan t, (S_t, 4) segment ground boxes ``[x0, y0, x1, y1]``, for ``distance: box``; None:
+            zero-size boxes at the centroids.
     """
     t = np.asarray(times, dtype=np.float64).reshape(-1)
     if t.shape[0] != len(centroids):
         raise ValueError(f"{t.shape[0]} times for {len(centroids)} scans")
-    last_pos = np.zeros((0, 3))
-    vel = np.zeros((0, 3))
-    last_t = np.zeros(0)
-    last_scan = np.zeros(0, np.int64)
-    ids = np.zeros(0, np.int64)
+    if boxes is not None and len(boxes) != len(centroids):
+        raise ValueError(f"{len(boxes)} scans of boxes for {len(centroids)} scans")
+    live = _LiveTracks(cfg.velocity_scans)
     next_id = 1
     out: list[npt.NDArray[np.int64]] = []
     for k, c in enumerate(centroids):
         cen = np.asarray(c, dtype=np.float64).reshape(-1, 3)
-        live = k - last_scan <= cfg.max_missed + 1
-        last_pos, vel, last_t, last_scan, ids = (
-            last_pos[live],
-            vel[live],
-            last_t[live],
-            last_scan[live],
-            ids[live],
-        )
-        predicted = last_pos + vel * (t[k] - last_t)[:, None]
-        rows, cols = associate(predicted, cen, cfg.gate)
+        box = _point_boxes(cen) if boxes is None else np.asarray(boxes[k], np.float64).reshape(-1, 4)
+        if box.shape[0] != cen.shape[0]:
+            raise ValueError(f"scan {k}: {box.shape[0]} boxes for {cen.shape[0]} centroids")
+        live.keep(k - live.last_scan <= cfg.max_missed + 1)
+        elapsed = t[k] - live.last_t
+        shift = recent_velocity(live.past_t, live.past_c) * elapsed[:, None]
+        once = np.sum(~np.isnan(live.past_t), axis=1) == 1
+        gate = cfg.gate + np.where(once, cfg.max_speed * elapsed, 0.0)
+        if cfg.distance == "box":
+            rows, cols = associate(live.pos + shift, cen, gate, live.box + shift[:, [0, 1, 0, 1]], box)
+        else:
+            rows, cols = associate(live.pos + shift, cen, gate)
         seg_ids = np.zeros(cen.shape[0], np.int64)
-        seg_ids[cols] = ids[rows]
-        dt = np.maximum(t[k] - last_t[rows], 1e-6)
-        vel[rows] = (cen[cols] - last_pos[rows]) / dt[:, None]
-        last_pos[rows] = cen[cols]
-        last_t[rows] = t[k]
-        last_scan[rows] = k
+        seg_ids[cols] = live.ids[rows]
+        live.observe(rows, cen[cols], box[cols], float(t[k]), k)
         new = np.setdiff1d(np.arange(cen.shape[0]), cols)
         seg_ids[new] = np.arange(next_id, next_id + new.size)
         next_id += new.size
-        last_pos = np.concatenate([last_pos, cen[new]])
-        vel = np.concatenate([vel, np.zeros((new.size, 3))])
-        last_t = np.concatenate([last_t, np.full(new.size, t[k])])
-        last_scan = np.concatenate([last_scan, np.full(new.size, k, np.int64)])
-        ids = np.concatenate([ids, seg_ids[new]])
+        live.start(seg_ids[new], cen[new], box[new], float(t[k]), k)
         out.append(seg_ids)
     return out
+
+
+def present_ids(
+    tracks: Sequence[npt.ArrayLike], k: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
+    """Ids without holes for the tracks that have points.
+
+    Args:
+        tracks: per scan, (P_t,) the track id 1..K of each point that keeps one.
+        k: K, the number of tracks.
+
+    Returns:
+        ``new_id`` (K + 1,) int64: the new id of old id j (``new_id[0] = 0``), 1..K' in the old ids' order
+        (so still in order of birth) for the tracks with a point, 0 for the others; and ``present`` (K,)
+        bool, which old tracks (ids 1..K) have a point, the rows of the table to keep.
+    """
+    present = np.zeros(k + 1, bool)
+    for x in tracks:
+        present[np.asarray(x, np.int64).reshape(-1)] = True
+    present[0] = False
+    new_id = np.where(present, np.cumsum(present), 0).astype(np.int64)
+    return new_id, present[1:]
 
 
 @dataclass(frozen=True)
@@ -374,6 +541,18 @@ class TrackTable:
     def vote_evidence(self) -> VoteEvidence:
         """:attr:`evidence`, or :meth:`VoteEvidence.unknown` where the table has none."""
         return self.evidence if self.evidence is not None else VoteEvidence.unknown(self.label.size)
+
+    def take(self, rows: npt.NDArray[np.bool_] | npt.NDArray[np.int64]) -> TrackTable:
+        """The tracks ``rows`` (a mask or indices), in that order."""
+        return TrackTable(
+            label=self.label[rows],
+            velocity=self.velocity.reshape(-1, 3)[rows],
+            moving=self.moving[rows],
+            scans=self.scans[rows],
+            sweep=self.sweep[rows],
+            voted=self.voted[rows],
+            evidence=None if self.evidence is None else self.evidence.take(rows),
+        )
 
 
 def track_table(
@@ -489,9 +668,12 @@ __all__ = [
     "TrackingConfig",
     "VoteEvidence",
     "associate",
+    "box_gap",
     "euclidean_segments",
     "mask_segments",
     "moving_only",
+    "present_ids",
+    "recent_velocity",
     "segment_summary",
     "stack_tables",
     "track_ids",

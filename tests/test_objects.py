@@ -111,3 +111,10 @@ def test_mask_segments_follow_the_2d_instances_and_rerun_only_the_objects(
     ids, counts = np.unique(exported[mover] >> 16, return_counts=True)
     counts[ids == 0] = 0
     assert ids[counts.argmax()] > 0 and counts.max() >= 0.6 * mover.sum()
+
+
+def test_every_track_id_has_points(run: tuple[KittiSequence, Path]) -> None:
+    # A static track whose points the map all calls stuff keeps no id: ids 1..K, each on some point.
+    tracks = SequenceTracks.load(run[1] / "tracks.npz")
+    assert tracks.track_life().present.min() > 0
+    assert np.unique(tracks.track).tolist() == list(range(1, tracks.table.label.size + 1))

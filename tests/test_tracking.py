@@ -12,8 +12,11 @@ from leap_core.pipeline.tracks_file import SequenceTracks
 from leap_core.tracking import (
     TrackingConfig,
     associate,
+    box_gap,
     euclidean_segments,
     mask_segments,
+    present_ids,
+    recent_velocity,
     segment_summary,
     track_ids,
     track_table,
@@ -169,3 +172,67 @@ def test_two_people_side_by_side_with_a_mask_each_are_two_segments() -> None:
     assert mask_segments(np.zeros((0, 3)), np.zeros(0, int), 0.5, 1).shape == (0,)
     with pytest.raises(ValueError, match="instance ids"):
         mask_segments(xyz, ins[:-1], 0.5, 5)
+
+
+def test_an_oncoming_car_whose_visible_part_jumps_keeps_one_track() -> None:
+    # A car driving at 7 m/s whose segment, in three scans, takes in a neighbour's points or loses its
+    # rear: its centroid jumps 0.8 m aside and 0.9 m back. The step between the last two centroids would
+    # predict the next scan 2.4 m off (beyond the 2 m gate); the slope over the last five does not.
+    times = np.arange(20) * 0.1
+    jump = np.array([0.8, -0.9, 0])
+    cents = [np.array([[0.0, 7 * t, -1]]) + (jump if k in (6, 11, 15) else 0) for k, t in enumerate(times)]
+    assert [x.tolist() for x in track_ids(cents, times, TrackingConfig())] == [[1]] * 20
+    two_step = track_ids(cents, times, TrackingConfig(velocity_scans=2, max_speed=0))
+    assert len({int(x[0]) for x in two_step}) == 4  # the last two observations: cut three times
+
+
+def test_a_mover_passing_a_parked_car_does_not_take_its_id() -> None:
+    # A car at 8 m/s passes 1.2 m beside a parked car (centroids 2.8 m apart). In scan 9 the parked car's
+    # visible part is pulled 0.8 m towards the mover (the mover hides its middle); in scan 10 the mover
+    # shows a second, small segment on that side. A velocity from the last two centroids sends the parked
+    # car's track after the mover's fragment and gives the parked car a new id.
+    times = np.arange(20) * 0.1
+    cents = []
+    for k, t in enumerate(times):
+        mover, parked = [2 + 8 * t, 0.0, -1.0], [10.0, 2.8 - (0.8 if k == 9 else 0), -1.0]
+        cents.append(np.array([mover, parked] + ([[mover[0] + 0.5, 1.0, -1.0]] if k == 10 else [])))
+    ids = track_ids(cents, times, TrackingConfig())
+    assert all(x[:2].tolist() == [1, 2] for x in ids)
+    assert ids[10][2] == 3  # the fragment starts a short track of its own
+    old = track_ids(cents, times, TrackingConfig(velocity_scans=2, max_speed=0))
+    assert old[10].tolist() == [1, 3, 2] and old[11].tolist() == [1, 3]
+
+
+def test_a_new_track_may_move_up_to_max_speed_before_it_has_a_velocity() -> None:
+    # A car first seen at 20 m/s: 2 m, then 2.3 m between its first two scans (its view grows).
+    times = np.arange(6) * 0.1
+    cents = [np.array([[0.0, 0, 0]])] + [np.array([[2.3 + 2 * k, 0, 0]]) for k in range(5)]
+    assert [x.tolist() for x in track_ids(cents, times, TrackingConfig(max_speed=5))] == [[1]] * 6
+    assert [x.tolist() for x in track_ids(cents, times, TrackingConfig(max_speed=0))][:2] == [[1], [2]]
+
+
+def test_recent_velocity_is_the_least_squares_slope() -> None:
+    t = np.array([[np.nan, 0.0, 0.1, 0.2], [np.nan, np.nan, np.nan, 0.3]])
+    c = np.zeros((2, 4, 3))
+    c[0, 1:, 0] = [0.0, 1.2, 1.6]  # slope: Σ(t - t̄)(x - x̄) / Σ(t - t̄)² = 0.16 / 0.02 = 8
+    assert recent_velocity(t, c).ravel().tolist() == pytest.approx([8, 0, 0, 0, 0, 0])
+
+
+def test_box_distance_is_the_gap_between_ground_boxes() -> None:
+    gap = box_gap([[0, 0, 4, 2]], [[1, 1, 2, 3], [7, 6, 8, 7], [5, -1, 6, 1]])
+    assert gap[0].tolist() == pytest.approx([0.0, 5.0, 1.0])
+    # A partial view's box overlaps its track's predicted box though its centroid is 1.9 m off.
+    rows, cols = associate([[2.0, 1, 0]], [[0.1, 1, 0]], 0.5, [[0, 0, 4, 2]], [[0, 0.5, 0.2, 1.5]])
+    assert (rows.tolist(), cols.tolist()) == ([0], [0])
+    assert associate([[2.0, 1, 0]], [[0.1, 1, 0]], 0.5)[0].size == 0
+
+
+def test_only_tracks_with_points_keep_an_id_in_order_of_birth() -> None:
+    # Tracks 1..5; track 2's points were all stuff in the map and track 4's all corrected: ids close up.
+    new_id, present = present_ids([np.array([1, 1, 3]), np.array([], np.int64), np.array([5, 3])], 5)
+    assert present.tolist() == [True, False, True, False, True]
+    assert new_id.tolist() == [0, 1, 0, 2, 0, 3]
+    table = track_table(
+        [np.arange(1, 6)], [np.zeros((5, 3))], [np.eye(5)], [np.zeros((5, 4))], np.zeros(1), TrackingConfig()
+    ).take(present)
+    assert table.label.tolist() == [0, 2, 4] and table.vote_evidence().share.size == 3

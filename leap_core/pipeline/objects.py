@@ -39,6 +39,7 @@ from leap_core.tracking import (
     euclidean_segments,
     mask_segments,
     moving_only,
+    present_ids,
     segment_summary,
     stack_tables,
     track_ids,
@@ -186,7 +187,7 @@ def _track_scans(
         per_scan.append(item)
         ctx.tick(stage, done, total)
     times = scan_times(ctx)
-    ids = track_ids([s[2] for s in per_scan], times, cfg)
+    ids = track_ids([s[2] for s in per_scan], times, cfg, [s[4] for s in per_scan])
     table = track_table(
         ids, [s[2] for s in per_scan], [s[3] for s in per_scan], [s[4] for s in per_scan], times, cfg
     )
@@ -232,6 +233,9 @@ def motion_inputs(ctx: Ctx) -> dict[str, Any]:
         "moving_speed",
         "moving_distance",
         "min_track_scans",
+        "max_speed",
+        "velocity_scans",
+        "distance",
         "segments",
     )
     return {
@@ -340,11 +344,16 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
             m_rows, m_track = mover_rows[i]
             own = (np.concatenate([m_rows, own[0]]).astype(np.int32), np.concatenate([m_track, own[1]]))
         kept.append(own)
+    # An id only for a track with points: a static track whose points the map all calls stuff, or a track
+    # whose points are all corrected, goes, and the others close up (still in order of birth).
+    new_id, present = present_ids([k for _, k in kept], table.label.size)
+    kept = [(r, new_id[k]) for r, k in kept]
+    table = table.take(present)
     points = _save(ctx, ctx.layout.tracks, kept, table)
     return {
         "tracks": int(table.label.size),
         "moving_tracks": int(table.moving.sum()),
-        "moving_before_fusion": int(first),
+        "moving_before_fusion": int(present[:first].sum()),
         "tracked_points": points,
     }
 
