@@ -21,6 +21,7 @@ from leap_core.object_review import (
     reason_codes,
     reason_text,
 )
+from leap_core.pipeline import tracks_file
 from leap_core.pipeline.tracks_file import SequenceTracks, track_life
 from leap_core.tracking import TrackingConfig, track_ids, track_table, vote_evidence
 
@@ -102,6 +103,17 @@ def test_track_life_of_an_empty_track_and_an_empty_file() -> None:
     assert life.first.tolist() == [-1, 0, -1] and life.last.tolist() == [-1, 2, -1]
     assert life.gaps.tolist() == [0, 1, 0] and life.present.tolist() == [0, 2, 0]
     assert track_life([0], [], 0).gaps.size == 0
+
+
+def test_track_life_read_a_few_points_at_a_time_is_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(5)
+    offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 7, 40))])
+    track = rng.integers(1, 9, int(offsets[-1]))
+    whole = track_life(offsets, track, 9)
+    monkeypatch.setattr(tracks_file, "_LIFE_BLOCK", 5)  # blocks of about one scan, some of several
+    blocks = track_life(offsets, track, 9)
+    for name in ("first", "last", "gaps", "present"):
+        assert getattr(blocks, name).tolist() == getattr(whole, name).tolist(), name
 
 
 def test_the_queue_orders_close_votes_then_broken_then_short() -> None:

@@ -16,7 +16,7 @@ the class's moving id.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -163,14 +163,25 @@ def segment_points(
 
 Segments = tuple[
     npt.NDArray[np.int32],
-    npt.NDArray[np.int64],
+    npt.NDArray[np.int32],
     npt.NDArray[np.float64],
     npt.NDArray[np.float64],
     npt.NDArray[np.float64],
     npt.NDArray[np.bool_],
 ]
-"""One scan's segmented points: rows (P,) int32, segment (P,) int64, per segment centroid (S, 3), votes
+"""One scan's segmented points: rows (P,) int32, segment (P,) int32, per segment centroid (S, 3), votes
 (S, C) and ground box (S, 4), and per point a stage's own flag (P,) bool."""
+
+
+_NO_SEGMENTS: Segments = (
+    np.zeros(0, np.int32),
+    np.zeros(0, np.int32),
+    np.zeros((0, 3)),
+    np.zeros((0, 0)),
+    np.zeros((0, 4)),
+    np.zeros(0, bool),
+)
+"""A scan's segments once they are used (:func:`_tracked_points`)."""
 
 
 def _track_scans(
@@ -203,15 +214,16 @@ def _check_count(ctx: Ctx, tracks: int) -> None:
 
 
 def _save(
-    ctx: Ctx, path: Path, kept: list[tuple[npt.NDArray[np.int32], npt.NDArray[np.int64]]], table: TrackTable
+    ctx: Ctx, path: Path, kept: list[tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]], table: TrackTable
 ) -> int:
-    """Writes per-scan (rows, track ids) and the table as ``tracks.npz``'s format; returns the point count."""
+    """Writes per-scan (rows, track ids) and the table as ``tracks.npz``'s format; returns the point count.
+    Empties ``kept`` once its arrays are joined, so that the per-scan copies are gone while the file is
+    written."""
     offsets = np.concatenate([[0], np.cumsum([r.size for r, _ in kept])]).astype(np.int64)
-    rows = np.concatenate([r for r, _ in kept]) if kept else np.zeros(0, np.int32)
-    track = np.concatenate([k for _, k in kept]) if kept else np.zeros(0, np.int32)
-    SequenceTracks(
-        tuple(ctx.frame_ids()), offsets, rows.astype(np.int32), track.astype(np.int32), table
-    ).save(path)
+    rows = np.concatenate([r for r, _ in kept], dtype=np.int32) if kept else np.zeros(0, np.int32)
+    track = np.concatenate([k for _, k in kept], dtype=np.int32) if kept else np.zeros(0, np.int32)
+    kept.clear()
+    SequenceTracks(tuple(ctx.frame_ids()), offsets, rows, track, table).save(path)
     return int(rows.size)
 
 
@@ -265,16 +277,24 @@ def stage_motion(ctx: Ctx) -> dict[str, Any]:
         seg = segment_points(ctx, i, rows, xyz)
         centroid, hist, box = segment_summary(xyz, seg, votes, things.shape[0])
         keep = seg >= 0
-        return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, np.ones(int(keep.sum()), bool)
+        return (
+            rows[keep].astype(np.int32),
+            seg[keep].astype(np.int32),
+            centroid,
+            hist,
+            box,
+            np.ones(int(keep.sum()), bool),
+        )
 
     per_scan, ids, table = _track_scans(ctx, "motion", segments)
     movers, new_id = moving_only(table)
     _check_count(ctx, movers.label.size)
     kept = []
     for t, s in enumerate(per_scan):
-        track_of_row = new_id[ids[t][s[1]] - 1]
+        track_of_row = new_id[ids[t][s[1]] - 1].astype(np.int32)
         keep = track_of_row > 0
         kept.append((s[0][keep], track_of_row[keep]))
+    del per_scan
     points = _save(ctx, ctx.layout.motion, kept, movers)
     return {"tracks": int(table.label.size), "moving_tracks": int(movers.label.size), "moving_points": points}
 
@@ -284,6 +304,39 @@ def read_motion(ctx: Ctx) -> SequenceTracks | None:
     if not motion_enabled(ctx.cfg.tracking):
         return None
     return SequenceTracks.load(ctx.layout.motion)
+
+
+def _tracked_points(
+    frames: Sequence[int],
+    per_scan: list[Segments],
+    ids: list[npt.NDArray[np.int64]],
+    first: int,
+    moving: npt.NDArray[np.bool_],
+    mover_rows: dict[int, tuple[npt.NDArray[np.int32], npt.NDArray[np.int64]]],
+) -> list[tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]]:
+    """Per scan, the (rows, track ids) that keep their track: the ``motion`` stage's movers (``mover_rows``
+    by frame), then the segments' points, their ids offset by ``first`` (the movers' count).
+
+    A static track keeps the map's word on its points: those the final grid calls stuff (a mask's bleed
+    onto the road beside a parked car, seen in one scan) stay stuff and get no id; a moving track takes
+    all its points, since the map's label at a mover is its trail. Empties ``per_scan`` as it goes, so
+    one copy of the sequence's tracked points is held at a time.
+    """
+    kept = []
+    for t, i in enumerate(frames):
+        s = per_scan[t]
+        track_of_row = (ids[t][s[1]] + first).astype(np.int32)
+        keep = s[5] | moving[track_of_row - 1]
+        own = (s[0][keep], track_of_row[keep])
+        if i in mover_rows:
+            m_rows, m_track = mover_rows[i]
+            own = (
+                np.concatenate([m_rows, own[0]]).astype(np.int32),
+                np.concatenate([m_track, own[1]]).astype(np.int32),
+            )
+        kept.append(own)
+        per_scan[t] = _NO_SEGMENTS
+    return kept
 
 
 # -------------------------------------------------------------------------------------------- tracks
@@ -325,29 +378,20 @@ def stage_tracks(ctx: Ctx) -> dict[str, Any]:
         seg = segment_points(ctx, i, rows, xyz)
         centroid, hist, box = segment_summary(xyz, seg, votes, things.shape[0])
         keep = seg >= 0
-        return rows[keep].astype(np.int32), seg[keep], centroid, hist, box, final_thing[keep]
+        return rows[keep].astype(np.int32), seg[keep].astype(np.int32), centroid, hist, box, final_thing[keep]
 
     per_scan, ids, table = _track_scans(ctx, "tracks", segments)
     first = movers.table.label.size if movers is not None else 0
     if movers is not None:
         table = stack_tables(movers.table, table)
     _check_count(ctx, table.label.size)
-    # A static track keeps the map's word on its points: those the final grid calls stuff (a mask's bleed
-    # onto the road beside a parked car, seen in one scan) stay stuff and get no id; a moving track takes
-    # all its points, since the map's label at a mover is its trail.
-    kept = []
-    for t, (i, s) in enumerate(zip(ctx.frames, per_scan, strict=True)):
-        track_of_row = ids[t][s[1]] + first
-        keep = s[5] | table.moving[track_of_row - 1]
-        own = (s[0][keep], track_of_row[keep])
-        if i in mover_rows:
-            m_rows, m_track = mover_rows[i]
-            own = (np.concatenate([m_rows, own[0]]).astype(np.int32), np.concatenate([m_track, own[1]]))
-        kept.append(own)
+    kept = _tracked_points(ctx.frames, per_scan, ids, first, table.moving, mover_rows)
     # An id only for a track with points: a static track whose points the map all calls stuff, or a track
     # whose points are all corrected, goes, and the others close up (still in order of birth).
     new_id, present = present_ids([k for _, k in kept], table.label.size)
-    kept = [(r, new_id[k]) for r, k in kept]
+    new_id32 = new_id.astype(np.int32)
+    for t, (r, k) in enumerate(kept):
+        kept[t] = (r, new_id32[k])
     table = table.take(present)
     points = _save(ctx, ctx.layout.tracks, kept, table)
     return {

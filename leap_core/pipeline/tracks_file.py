@@ -51,18 +51,29 @@ class TrackLife:
     present: npt.NDArray[np.int64]
 
 
+_LIFE_BLOCK = 1 << 20
+"""Points :func:`track_life` reads at a time."""
+
+
 def track_life(offsets: npt.ArrayLike, track: npt.ArrayLike, k: int) -> TrackLife:
     """:class:`TrackLife` of tracks 1..``k`` from a file's ``offsets`` (T+1,) and per-point ``track``
     (P,) ids: with ``S_j`` the set of scans t holding a point of track j,
     ``first = min S_j``, ``last = max S_j``, ``present = |S_j|``, ``gaps = last - first + 1 - |S_j|``."""
     off = np.asarray(offsets, np.int64).reshape(-1)
-    tid = np.asarray(track, np.int64).reshape(-1)
+    tid = np.asarray(track).reshape(-1)
     scans = max(off.size - 1, 1)
-    scan_of = np.repeat(np.arange(off.size - 1, dtype=np.int64), np.diff(off))
     # The (track, scan) pairs once each, sorted by track then scan: a track's first pair holds its first
-    # scan and its last pair its last (a sort and a diff, no unbuffered ufunc.at over every point).
-    key = np.sort((tid - 1) * scans + scan_of)
-    pairs = key[np.r_[True, key[1:] != key[:-1]]] if key.size else key
+    # scan and its last pair its last (a sort and a diff, no unbuffered ufunc.at over every point). Scans
+    # are taken a block of about _LIFE_BLOCK points at a time, so the temporaries stay that size however
+    # long the sequence (pairs are far fewer than points).
+    parts = [np.zeros(0, np.int64)]
+    t0 = 0
+    while t0 < off.size - 1:
+        t1 = max(int(np.searchsorted(off, off[t0] + _LIFE_BLOCK, side="right")) - 1, t0 + 1)
+        scan_of = np.repeat(np.arange(t0, t1, dtype=np.int64), np.diff(off[t0 : t1 + 1]))
+        parts.append(np.unique((tid[off[t0] : off[t1]].astype(np.int64) - 1) * scans + scan_of))
+        t0 = t1
+    pairs = np.sort(np.concatenate(parts))
     row, t = pairs // scans, pairs % scans
     present = np.bincount(row, minlength=k).astype(np.int64)[:k]
     starts = np.flatnonzero(np.r_[True, row[1:] != row[:-1]]) if row.size else np.zeros(0, np.int64)
