@@ -4,6 +4,7 @@ view is labeled, and a point both cameras see fuses both observations."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -275,3 +276,55 @@ def test_synth_cameras_option_names_what_it_takes(tmp_path: Path) -> None:
         out.exit_code != 0 and "--cameras: SynthConfig.cameras must be one of [1, 2, 4], got 3" in out.output
     )
     assert not (tmp_path / "sequences").exists()
+
+
+def _small_demo(root: Path) -> Path:
+    """One frame of the demo street at a quarter of its camera size, as ``leap synth`` writes it."""
+    from leap_core.synth import generate_sequence
+    from leap_core.synth.camera import CameraConfig
+    from leap_core.synth.generator import SynthConfig
+    from leap_core.synth.lidar import LidarConfig
+    from leap_core.synth.scene import SceneConfig
+
+    small = SynthConfig(
+        frames=1,
+        lidar=LidarConfig(beams=8, azimuth_step_deg=2.0),
+        camera=CameraConfig().scaled(0.25),
+        scene=SceneConfig(margin=90.0),
+    )
+    return generate_sequence(root, small).path
+
+
+def test_image_3_added_to_a_demo_is_refused_not_projected_as_image_2(tmp_path: Path) -> None:
+    """The demo knows one camera: its ``calib.txt`` holds ``P2`` and ``Tr`` only, each line one key and
+    twelve numbers (what semantic-kitti-api's ``parse_calibration`` reads), so an ``image_3/`` folder
+    added by hand is refused naming ``calib.txt`` and the missing ``P3``, by the reader and ``leap check``."""
+    from leap_core.pipeline.preflight import check_dataset
+
+    root = _small_demo(tmp_path)
+    lines = (root / "calib.txt").read_text().splitlines()
+    assert [ln.split(":")[0] for ln in lines] == ["P2", "Tr"]
+    assert all(len(ln.split(":")[1].split()) == 12 for ln in lines)
+    assert [c.name for c in KittiSequence(root).cameras] == ["image_2"]
+    (root / "image_3").mkdir()
+    shutil.copy(root / "image_2" / "000000.png", root / "image_3" / "000000.png")
+    with pytest.raises(DatasetError, match=r"calib.txt: no 'P3:' line for the camera folder image_3/"):
+        KittiSequence(root)
+    report = check_dataset(root)
+    assert not report.cameras
+    blockers = [f for f in report.findings if f.severity == "blocker"]
+    assert [(Path(f.path or "").name, "'P3:'" in f.detail) for f in blockers] == [("calib.txt", True)]
+
+
+def test_calib_with_p2_copied_to_every_camera_refuses_image_3(tmp_path: Path, make_tiny_sequence) -> None:
+    """A ``calib.txt`` whose ``P3`` is ``P2`` (earlier versions of ``write_calib`` wrote P2 as P0..P3) gives
+    ``image_3/`` no projection of its own: refused with the fix, not projected with camera 2's matrix."""
+    tiny = make_tiny_sequence(tmp_path, n_frames=1)
+    text = (tiny.root / "calib.txt").read_text()
+    p2 = next(ln for ln in text.splitlines() if ln.startswith("P2:"))
+    copies = "".join(f"P{k}:{p2[3:]}\n" for k in (0, 1, 3))
+    (tiny.root / "calib.txt").write_text(copies + text)
+    assert [c.name for c in KittiSequence(tiny.root).cameras] == ["image_2"]  # no image_3/: nothing to refuse
+    (tiny.root / "image_3").mkdir()
+    with pytest.raises(DatasetError, match=r"calib.txt: 'P3' is a copy of 'P2'.*image_3's own projection"):
+        KittiSequence(tiny.root)

@@ -119,7 +119,7 @@ def test_calib_round_trip(tmp_path: Path, tiny_calib: Calib) -> None:
     calib = tiny_calib
     write_calib(tmp_path / "calib.txt", calib)
     text = (tmp_path / "calib.txt").read_text()
-    assert [ln.split(":")[0] for ln in text.splitlines()] == ["P0", "P1", "P2", "P3", "Tr"]
+    assert [ln.split(":")[0] for ln in text.splitlines()] == ["P2", "Tr"]
     back = read_calib(tmp_path / "calib.txt")
     np.testing.assert_allclose(back.P2, calib.P2, rtol=1e-12)
     np.testing.assert_allclose(back.Tr, calib.Tr, rtol=1e-12, atol=1e-15)

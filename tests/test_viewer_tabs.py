@@ -117,6 +117,32 @@ def test_an_idle_tab_is_closed(review_store) -> None:
         viewers.close_all()
 
 
+def test_an_idle_viewer_reads_its_runs_only_when_one_changes(review_store) -> None:
+    """With the app's job manager, the project's follower sleeps until a run changes: no look at the
+    database in a window without events (a timer that read it every interval cost each idle tab a steady
+    share of a core), and a run the manager reports reaches the tab at once."""
+    from app.jobs.manager import JobManager
+
+    settings, pid, run_id, _, _ = review_store
+    jobs = JobManager(settings)
+    viewers = ViewerManager(settings, jobs, config=SessionConfig(poll_interval_s=0.05), tab_idle_s=600)
+    try:
+        tab = viewers.get(pid, viewers.open(pid).tab)
+        viewer = viewers.viewer(pid)
+        assert tab is not None and viewer is not None
+        time.sleep(1.0)  # 20 intervals without an event
+        assert viewer.looks == 0
+        with open_db(settings.database) as db:
+            old = crud.require_run(db, run_id)
+            new = crud.create_run(db, project_id=pid, params=old.params, runs_dir=settings.runs_dir)
+            crud.update_run(db, new.id, status="running")
+        jobs.changes.notify(new.id)  # what the manager does when it queues or advances a run
+        assert _wait(lambda: tab.runs.watched_run == new.id, 2.0)
+        assert viewer.looks == 1
+    finally:
+        viewers.close_all()
+
+
 def _queue(settings, pid: int, n: int = 8) -> list[str]:
     regions = [(f"4m:{i},0,0", f"sig{i}") for i in range(n)]
     with open_db(settings.database) as db:

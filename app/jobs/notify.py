@@ -26,10 +26,24 @@ class ChangeNotifier:
         self._waiters: dict[int, list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]]] = defaultdict(
             list
         )
+        self._events: list[threading.Event] = []
+
+    def add_event(self, event: threading.Event) -> None:
+        """Set ``event`` at every change of any run (a thread that follows runs waits on it instead of
+        reading the database on a timer); :meth:`remove_event` stops it."""
+        with self._lock:
+            self._events.append(event)
+
+    def remove_event(self, event: threading.Event) -> None:
+        with self._lock:
+            self._events = [e for e in self._events if e is not event]
 
     def notify(self, run_id: int) -> None:
         with self._lock:
             waiters = self._waiters.pop(run_id, None)
+            events = list(self._events)
+        for event in events:
+            event.set()
         if not waiters:
             return
         by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Future[None]]] = defaultdict(list)

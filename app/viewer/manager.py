@@ -93,7 +93,7 @@ class AppBackend:
         # Corrections made in this viewer reach the export at once: load what that needs now.
         applier(settings).warm(project_id)
 
-    def _jobs_manager(self) -> JobManager | None:
+    def jobs_manager(self) -> JobManager | None:
         """The given job manager, else the running server's, else None (no server: read the DB only)."""
         if self._jobs is not None:
             return self._jobs
@@ -125,7 +125,7 @@ class AppBackend:
 
     def _info(self, run: RunRow) -> RunInfo:
         status, percent, stage, error = str(run.status), 0.0, None, run.error
-        manager = self._jobs_manager()
+        manager = self.jobs_manager()
         if manager is not None:
             progress = manager.run_status(run.id)
             status = str(progress.get("status", status))
@@ -185,7 +185,7 @@ class AppBackend:
         return None if run is None else self._info(run)
 
     def start_run(self) -> int:
-        manager = self._jobs_manager()
+        manager = self.jobs_manager()
         if manager is None:
             raise RuntimeError("runs can only be started while the app's job manager is running")
         return manager.start_run(self.project_id).id
@@ -398,6 +398,15 @@ class ProjectViewer:
         self._followed: int | None = None
         latest = self.backend.latest_finished_run()
         self._finished: int | None = None if latest is None else latest.run_id
+        self._changed = threading.Event()
+        """Set when any run changes (the job manager's :class:`~app.jobs.notify.ChangeNotifier`)."""
+        manager = self.backend.jobs_manager()
+        same_db = manager is not None and manager.settings.database == settings.database
+        self._notifier = manager.changes if manager is not None and same_db else None
+        if self._notifier is not None:
+            self._notifier.add_event(self._changed)
+        self.looks = 0
+        """How many times the follower has read the project's runs (tests count its wakeups)."""
         self._thread = threading.Thread(target=self._follow_loop, name="viewer-project", daemon=True)
         self._thread.start()
 
@@ -468,6 +477,9 @@ class ProjectViewer:
     def close(self) -> None:
         """Close every tab and stop following the project."""
         self._stop.set()
+        self._changed.set()
+        if self._notifier is not None:
+            self._notifier.remove_event(self._changed)
         with self._lock:
             tabs = list(self._tabs.values())
             self._tabs.clear()
@@ -528,17 +540,35 @@ class ProjectViewer:
                 session.notify.panel.on_queue(False)
 
     # --------------------------------------------------------------------------------- following runs
-    def _follow_loop(self) -> None:
+    def _idle_wait_s(self) -> float:
+        """Longest wait between two looks at the runs and the tabs' browsers: with the job manager's
+        notifier a look follows each run change, so the timer only has to find tabs whose browser left
+        (within a quarter of ``tab_idle_s``, at most 30 s); without it, runs are polled."""
         interval = self.config.poll_interval_s
-        while not self._stop.wait(interval):
+        if self._notifier is None:
+            return interval
+        return max(interval, min(30.0, self.tab_idle_s / 4))
+
+    def _follow_loop(self) -> None:
+        interval, idle = self.config.poll_interval_s, self._idle_wait_s()
+        while not self._stop.is_set():
+            # An idle viewer sleeps here until a run changes: a timer that read the database every
+            # interval cost each idle tab's server a steady share of a core.
+            self._changed.wait(idle)
+            self._changed.clear()
+            if self._stop.is_set():
+                return
             try:
                 self._follow_once()
             except Exception:  # a transient DB error must not end following
                 log.exception("viewer of project %d could not read its runs", self.backend.project_id)
+            # A running run notifies at every progress step: look at most once an interval.
+            self._stop.wait(interval)
 
     def _follow_once(self) -> None:
         if not self.tabs():
             return  # every tab closed: nothing to follow for until the next one opens
+        self.looks += 1
         active = self.backend.active_run()
         if active is not None and active.run_id != self._followed:
             # Every tab shows its progress and loads it when it ends (RunWatcher, per tab).

@@ -4,6 +4,8 @@ Format facts (docs/METHOD.md, checked against PRBonn/semantic-kitti-api):
 - ``velodyne/*.bin``: float32 (x, y, z, remission) quadruples; size a multiple of 16 bytes.
 - ``labels/*.label``: uint32 per point, semantic id in the low 16 bits, instance id in the high 16.
 - ``calib.txt``: ``P0:``..``P3:`` 3×4 projections and ``Tr:`` 3×4 LiDAR→left camera; colour camera = P2.
+  semantic-kitti-api reads only ``Tr`` (every line ``key: numbers``), so :func:`write_calib` writes only
+  the lines it knows: ``P2`` and ``Tr``.
   The KITTI object / tracking variants (``R0_rect`` / ``R_rect`` 3×3 and ``Tr_velo_to_cam`` /
   ``Tr_velo_cam`` 3×4, keys with or without a colon) are read too: there Tr = R0_rect · Tr_velo_to_cam.
 - ``poses.txt``: 3×4 per frame in the LEFT CAMERA frame; LiDAR pose in world = Tr⁻¹ · pose · Tr.
@@ -353,7 +355,7 @@ def read_rig(root: str | Path, calib: Calib) -> tuple[Camera, ...]:
 
     Raises:
         DatasetError: naming ``cameras.yaml`` or ``calib.txt``: a malformed rig, or an ``image_K/`` folder
-            without its ``PK:`` line.
+            without its ``PK:`` line or whose ``PK`` is a copy of ``P2``.
     """
     root = Path(root)
     if (root / RIG_FILE).is_file():
@@ -371,6 +373,15 @@ def read_rig(root: str | Path, calib: Calib) -> tuple[Camera, ...]:
                 )
             p = _parse_matrix(path, key, entries[key])
             check_projection(path, f"'{key}'", p)
+            if np.array_equal(p, calib.P2):
+                # Same P and same Tr is camera 2's view: what earlier versions of write_calib wrote for
+                # every camera, not a calibration of this one.
+                raise DatasetError(
+                    path,
+                    f"'{key}' is a copy of 'P2', so {name}/ would be projected as image_2 (an earlier leap "
+                    f"synth or import wrote P2 for every camera): put {name}'s own projection in '{key}:' "
+                    "or remove the folder",
+                )
             cams.append(Camera(name, p, calib.Tr, f"calib.txt {key}"))
     return tuple(cams)
 
@@ -414,12 +425,17 @@ def read_calib(path: str | Path) -> Calib:
 
 
 def write_calib(path: str | Path, calib: Calib) -> None:
-    """Write a KITTI ``calib.txt`` (P0..P3 with P2 for all cameras; only P2 and Tr are used)."""
+    """Write a KITTI ``calib.txt`` with the lines ``calib`` knows: ``P2`` and ``Tr`` (atomic).
+
+    No ``P0``, ``P1`` or ``P3``: a copy of ``P2`` under those keys would make an ``image_3/`` folder added
+    later project as if it were camera 2; without the line, :func:`read_rig` refuses that folder, naming
+    the missing line.
+    """
 
     def fmt(m: npt.NDArray[np.float64]) -> str:
         return " ".join(f"{v:.12e}" for v in m.reshape(-1))
 
-    lines = [f"P{i}: {fmt(calib.P2)}" for i in range(4)] + [f"Tr: {fmt(calib.Tr[:3])}"]
+    lines = [f"P2: {fmt(calib.P2)}", f"Tr: {fmt(calib.Tr[:3])}"]
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 
 

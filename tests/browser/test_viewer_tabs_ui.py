@@ -1,9 +1,10 @@
 """A viewer per browser tab and reviewers who split the queue, in real Chromium pages against the real app.
 
 One small street project (6 frames) serves the three tests: two viewer tabs browse scans apart while a
-correction made in one shows in the other within 2 s; a run started from the project page shows its
-progress in an open viewer, which loads it when it ends; two reviewers (two browser profiles, so two
-localStorages) claim disjoint batches of the review queue from the project page.
+correction made in one shows in the other within 2 s, and a tab left alone then polls the server rarely
+until it is used; a run started from the project page shows its progress in an open viewer, which loads it
+when it ends; two reviewers (two browser profiles, so two localStorages) claim disjoint batches of the
+review queue from the project page.
 """
 
 from __future__ import annotations
@@ -66,6 +67,28 @@ def _open_tab(street: dict[str, Any], context: Any = None, reviewer: str | None 
     return page, session
 
 
+def _polls_rarely_when_idle(page: Any) -> None:
+    """The page, left alone, asks the server for its scan and tool state rarely (it polled every 0.8 s and
+    0.4 s, for every open tab); a key brings the fast polling back."""
+    polls: list[str] = []
+
+    def on_request(request: Any) -> None:
+        path = request.url.split("?")[0]
+        if path.endswith(("/viewer/nav", "/viewer/tools")):
+            polls.append(path.rsplit("/", 1)[1])
+
+    page.wait_for_timeout(3_500)  # fast for 3 s after the last input (web/viewer/viewer-api.js)
+    page.on("request", on_request)
+    page.wait_for_timeout(2_000)  # polled every 0.8 s and 0.4 s: 7 requests
+    idle = list(polls)
+    assert len(idle) <= 2, idle
+    page.bring_to_front()
+    page.keyboard.press("Shift")
+    page.wait_for_timeout(1_500)
+    assert polls.count("tools") - idle.count("tools") >= 2, polls
+    assert polls.count("nav") - idle.count("nav") >= 1, polls
+
+
 def test_two_tabs_browse_apart_and_see_each_others_corrections(street: dict[str, Any]) -> None:
     from playwright.sync_api import expect
 
@@ -109,6 +132,7 @@ def test_two_tabs_browse_apart_and_see_each_others_corrections(street: dict[str,
         with open_db(street["live"].settings.database) as db:
             (correction,) = crud.list_corrections(db, street["pid"])
         assert correction.reviewer == "ana"
+        _polls_rarely_when_idle(page_b)  # tab B, showing what A did, is left alone
     finally:
         page_a.close()
         page_b.close()

@@ -3,10 +3,11 @@
 // Keys call app/api/routes/viewer_nav.py, which acts on the same server-side session as the panel's
 // Browse / Fit view / Follow ego / Enlarge image widgets. The enlarged image is an <img> over the canvas
 // (viser's panel image is a thumbnail); the page polls the viewer's state so that the image follows every
-// scan change (keys, panel slider, play) and opens or closes from the panel's button too.
+// scan change (keys, panel slider, play) and opens or closes from the panel's button too (pollState: at
+// POLL_MS while the page is in use or playing, rarely while idle).
 
 import { bind, notify } from "./keys.js";
-import { projectId, viewerApi } from "./viewer-api.js";
+import { pollState, projectId, viewerApi } from "./viewer-api.js";
 
 const GROUP = "Scans and camera";
 const POLL_MS = 800;
@@ -72,13 +73,8 @@ async function act(method, path, body) {
 }
 
 async function poll() {
-  try {
-    state = await viewerApi("GET", "nav");
-    render();
-  } catch {
-    // No run loaded yet, or the viewer is restarting: try again on the next tick.
-  }
-  setTimeout(poll, POLL_MS);
+  state = await viewerApi("GET", "nav");
+  render();
 }
 
 bind(["arrowright", "."], "Next scan", () => act("POST", "nav/step", { step: 1 }), GROUP);
@@ -99,4 +95,4 @@ bind(["i"], "Enlarge / shrink the scan's camera image", async () => {
 }, GROUP);
 window.addEventListener("resize", () => render());
 
-if (projectId !== null) poll();
+if (projectId !== null) pollState(poll, POLL_MS, () => Boolean(state && state.playing));

@@ -5,10 +5,10 @@
 // of the browser whose camera moved last. The drawing canvas exists only while a lasso or brush is
 // armed: otherwise it would swallow the pointer and viser's orbit controls would stop working.
 // Settings (armed tool, brush radius, ...) live in the server's session, shared with the panel; this
-// module polls them so a tool armed from the panel shows here too.
+// module polls them (pollState) so a tool armed from the panel shows here too.
 
 import { bind, notify } from "./keys.js";
-import { projectId, viewerApi } from "./viewer-api.js";
+import { pollState, projectId, viewerApi } from "./viewer-api.js";
 
 const POLL_MS = 400;
 let state = { tool: null, brush_radius: 0.03, classes: [] };
@@ -129,12 +129,7 @@ async function assign(body) {
 }
 
 async function poll() {
-  try {
-    if (!stroke) setState(await viewerApi("GET", "tools"));
-  } catch (_) {
-    /* the viewer may be restarting; try again on the next tick */
-  }
-  setTimeout(poll, POLL_MS);
+  if (!stroke) setState(await viewerApi("GET", "tools"));
 }
 
 // Classes past the ninth: type the number ("1" "2" for the 12th; "0" alone is the 10th). A digit waits
@@ -181,4 +176,4 @@ bind(["escape"], "Clear the selection and put the tool down", async () => {
 }, "Selection and corrections");
 
 window.addEventListener("resize", place);
-if (projectId !== null) poll();
+if (projectId !== null) pollState(poll, POLL_MS);

@@ -27,3 +27,59 @@ export function viewerPath(path) {
 export function viewerApi(method, path, body) {
   return api(method, viewerPath(path), body);
 }
+
+// What the page polls (nav.js: the shown scan, tools.js: the armed tool) changes only through this page
+// (its keys, its panel) or while playing, so it is polled at the module's own rate for ACTIVE_MS after a
+// key, click or wheel on the page, every IDLE_MS otherwise (a run that loads meanwhile), and not at all
+// while the page is hidden: an idle tab's polls were a steady load on the server for every open tab.
+const ACTIVE_MS = 3000;
+const IDLE_MS = 15000;
+let lastInput = performance.now();
+const wakers = [];
+
+function wakeAll() {
+  for (const wake of wakers) wake();
+}
+
+for (const type of ["keydown", "pointerdown", "wheel"]) {
+  window.addEventListener(
+    type,
+    () => {
+      lastInput = performance.now();
+      wakeAll();
+    },
+    { capture: true, passive: true },
+  );
+}
+document.addEventListener("visibilitychange", () => {
+  if (!document.hidden) wakeAll();
+});
+
+/** Call `tick` (async) now and then every `fastMs` while the page is in use or `busy()` says so (e.g.
+ * playing), every IDLE_MS while idle, never while hidden. A tick that throws is tried again later. */
+export function pollState(tick, fastMs, busy = () => false) {
+  let timer = null;
+  let inFlight = false;
+  let fast = true;
+  async function run() {
+    clearTimeout(timer);
+    timer = null;
+    if (inFlight || document.hidden) return; // the running tick schedules the next; visibility wakes it
+    inFlight = true;
+    try {
+      await tick();
+    } catch {
+      // No run loaded yet, or the viewer is restarting: try again on the next tick.
+    }
+    inFlight = false;
+    fast = busy() || performance.now() - lastInput < ACTIVE_MS;
+    timer = setTimeout(run, fast ? fastMs : IDLE_MS);
+  }
+  wakers.push(() => {
+    // Input: back to the fast rate from now (the click's effect reaches the server a moment later).
+    if (inFlight || (fast && timer !== null)) return;
+    clearTimeout(timer);
+    timer = setTimeout(run, fastMs);
+  });
+  run();
+}
