@@ -30,6 +30,36 @@ def shared_synth_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pat
         os.environ[SYNTH_CACHE_ENV] = before
 
 
+LONGEST_FILES = (
+    "tests/test_demo_outputs.py",
+    "tests/app/test_fuzz_api.py",
+    "tests/browser/test_viewer.py",
+    "tests/browser/test_viewer_review.py",
+)
+"""Test files of a minute or more on 2 cores (the 60-frame demo and two 3D-CN runs, the schemathesis run,
+two viewer sessions in Chromium), longest first."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Long files first: :data:`LONGEST_FILES`, then every file with a slow or browser test, then the rest,
+    each in collection order. pytest-xdist hands files to its processes in this order (scripts/test.sh
+    turns off its own ordering by test count, which put the longest files, few tests each, last): a long
+    file started last kept one process busy after the other had finished."""
+    root = config.rootpath
+    missing = [name for name in LONGEST_FILES if not (root / name).is_file()]
+    if missing:
+        raise pytest.UsageError(f"tests/conftest.py LONGEST_FILES lists files that do not exist: {missing}")
+    heavy = {it.path for it in items if it.get_closest_marker("slow") or it.get_closest_marker("browser")}
+
+    def rank(item: pytest.Item) -> int:
+        name = item.path.relative_to(root).as_posix() if item.path.is_relative_to(root) else ""
+        if name in LONGEST_FILES:
+            return LONGEST_FILES.index(name)
+        return len(LONGEST_FILES) + (0 if item.path in heavy else 1)
+
+    items.sort(key=rank)
+
+
 TINY_IMAGE_HW = (48, 64)
 """Image size of tiny sequences (KITTI's aspect ratio is wider; any size works)."""
 

@@ -612,7 +612,12 @@ def test_a_frames_cameras_are_labeled_in_one_batch(
 
     tiny = build_tiny_sequence(tmp_path, n_frames=2)
     for fid, img in zip(tiny.frame_ids, images(2, TINY_IMAGE_HW), strict=True):
-        write_image(tiny.root / "image_3" / f"{fid}.png", img)  # the calib's P3 = P2: a second camera
+        write_image(tiny.root / "image_3" / f"{fid}.png", img)
+    # A second camera 0.5 m to the right of the first: P2 with its own x offset (f · 0.5 m).
+    calib = tiny.root / "calib.txt"
+    p2 = next(line for line in calib.read_text().splitlines() if line.startswith("P2:")).split()[1:]
+    p3 = [*p2[:3], f"{float(p2[3]) - 0.5 * float(p2[0]):.12e}", *p2[4:]]
+    calib.write_text(calib.read_text() + "P3: " + " ".join(p3) + "\n")
     calls: list[int] = []
     real = GroundedSamLabeler.label_frames
 
