@@ -228,12 +228,19 @@ class ScanPlayer:
         return self.follow_ego
 
     # ----------------------------------------------------------------------------------------- image
+    def is_zoomed(self, view: ScanView | None = None) -> bool:
+        """Whether the enlarged image of the shown scan (``view``: that scan) is a focused region's zoomed
+        crop (what the page's polls ask; :meth:`zoomed_image` makes the crop)."""
+        zoomed, view = self.zoomed, view or self.shared.scan_view
+        return zoomed is not None and view is not None and zoomed[0] is view and self.shared.focus is not None
+
     def zoomed_image(self, view: ScanView | None = None) -> npt.NDArray[np.uint8] | None:
         """The focused region's zoomed crop of the shown scan's image (``view``: that scan), or None when
         no region is focused in it."""
-        zoomed, view = self.zoomed, view or self.shared.scan_view
-        if zoomed is None or view is None or zoomed[0] is not view or self.shared.focus is None:
+        view = view or self.shared.scan_view
+        if not self.is_zoomed(view) or view is None or self.zoomed is None:
             return None
+        zoomed = self.zoomed
         assert view.overlay is not None  # a crop is only kept for a view with an image
         # A box of a few pixels is easy to miss: the enlarged image shows the crop around it, zoomed.
         return review.crop_zoom(view.overlay, zoomed[1])

@@ -74,7 +74,7 @@ def _state(session: ReviewSession) -> NavState:
         image_open=player.image_open,
         has_image=view is not None and view.overlay is not None,
         camera=None if view is None else view.camera,
-        zoomed=player.zoomed_image(view) is not None,
+        zoomed=player.is_zoomed(view),
     )
 
 
