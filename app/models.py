@@ -1009,6 +1009,11 @@ class CorrectionList(BaseModel):
     corrections: list[CorrectionPublic]
     per_class: list[CorrectionClassCount]
     apply: CorrectionApply
+    latest_run_objects: bool | None = Field(
+        default=None,
+        description="whether the latest finished run tracked objects in this sequence (its tracks are what "
+        "object corrections reach); null when the project has no finished run of the sequence",
+    )
 
 
 # ------------------------------------------------------------------------------ LiDAR-only models

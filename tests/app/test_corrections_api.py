@@ -333,6 +333,13 @@ def test_an_object_correction_relabels_its_track_in_every_scan_and_undo_reverts_
         "other_iou": None,
         "new_track": None,
     }
+    assert listed["latest_run_objects"] is True
+    # A latest run without tracks (tracking off) is said so: the list does not say "not applied yet".
+    (folder / "tracks.npz").rename(folder / "tracks.off")
+    try:
+        assert st.c.get(f"/projects/{st.pid}/corrections").json()["latest_run_objects"] is False
+    finally:
+        (folder / "tracks.off").rename(folder / "tracks.npz")
     # Every scan's points of the track take the class, but those a map or scan correction labels (those
     # win); nothing else moves.
     applied = RunCorrections.applied(SequenceLayout(folder), len(names))

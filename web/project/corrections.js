@@ -31,10 +31,12 @@ function objectsText(m) {
 }
 
 // Where an object correction lands in the latest finished run (docs/METHOD.md B.6, object corrections).
-function sizeText(c) {
+function sizeText(c, latestRunObjects) {
   if (c.scope === "scan") return `${c.points} points`;
   if (c.scope !== "object") return `${c.voxels} voxels`;
   const m = c.match;
+  // The latest run tracked no objects (tracking off): the correction waits for a run that does.
+  if (!m && latestRunObjects === false) return "latest run has no objects (tracking off): changes nothing yet";
   if (!m) return "not applied yet";
   if (!m.applied) {
     const iou = Math.min(m.iou, m.other_iou ?? m.iou);
@@ -96,7 +98,7 @@ export function mountCorrections(ctx) {
         { dataset: { id: String(c.id) }, class: c.active ? "" : "muted" },
         h("td", {}, className(c)),
         h("td", {}, scopeText(c)),
-        h("td", { class: c.scope === "object" ? "corr-match" : "num" }, sizeText(c)),
+        h("td", { class: c.scope === "object" ? "corr-match" : "num" }, sizeText(c, body.latest_run_objects)),
         h("td", {}, c.author || "—"),
         h("td", {}, fmtTime(c.created_at)),
         h(

@@ -131,7 +131,16 @@ def list_corrections(
             for name, n in sorted(counts.items())
         ],
         apply=models.CorrectionApply(**applier(settings).state(project_id).to_dict()),
+        latest_run_objects=_latest_run_objects(db, project_id, name),
     )
+
+
+def _latest_run_objects(db: sqlite_utils.Database, project_id: int, sequence: str) -> bool | None:
+    """Whether the latest finished run has tracks for ``sequence`` (None: no finished run of it)."""
+    run = crud.last_finished_run(db, project_id)
+    if run is None or sequence not in [s.name for s in run.params.sequences]:
+        return None
+    return run.sequence_layout(sequence).tracks.is_file()
 
 
 @router.post(
