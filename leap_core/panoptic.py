@@ -99,7 +99,8 @@ def _dense_codes(ids: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], npt
 
     A .label value's halves (instance ``h``, raw class id ``l``) each take few distinct values in a scan, so
     each is ranked through a 65,536-entry table (no sort): ``code = rank(h) · 2^b + rank(l)`` with ``b`` the
-    bits of the number of distinct ``l``, which keeps the ids' order.
+    bits of the number of distinct ``l``, which keeps the ids' order. Where those codes would span far
+    more values than there are ids, the ids are ranked by a sort (the same order, denser codes).
     """
     if ids.size == 0:
         return ids, np.zeros(1, np.int64), 1
@@ -109,6 +110,11 @@ def _dense_codes(ids: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], npt
         ranked.append((np.cumsum(seen)[half] - 1, np.flatnonzero(seen)))
     (r_hi, v_hi), (r_lo, v_lo) = ranked
     b_lo = max(int(v_lo.size - 1).bit_length(), 1)
+    if v_hi.size << b_lo > 4 * ids.size:
+        # Ids spread over many instances and raw ids at once (a .label file of unusual values): the
+        # table of every combination would outgrow the ids, so they are ranked by a sort instead.
+        values, codes = np.unique(ids, return_inverse=True)
+        return codes.reshape(-1).astype(np.int64), values, max(int(values.size - 1).bit_length(), 1)
     bits = max(int(v_hi.size - 1).bit_length(), 1) + b_lo
     values = np.zeros((v_hi.size, 1 << b_lo), np.int64)
     values[:, : v_lo.size] = (v_hi[:, None] << 16) | v_lo[None, :]

@@ -82,15 +82,20 @@ class ObjectIdentity:
         k = int(track_id)
         if not 1 <= k <= tracks.table.label.size:
             raise LeapError(f"no track {k}: the run's tracks are 1..{tracks.table.label.size}")
-        ids, ptr, parts = [], [0], []
-        for t, fid in enumerate(tracks.frame_ids):
+        return cls.of_ids(tracks, tracks.track, k)
+
+    @classmethod
+    def of_ids(cls, tracks: SequenceTracks, ids: npt.NDArray[np.int32], object_id: int) -> ObjectIdentity:
+        """The points whose entry in ``ids`` (P,) (aligned with ``tracks.rows``: the run's track ids, or
+        its objects after merges and splits) is ``object_id``, in every scan of ``tracks``."""
+        ptr, parts = [0], []
+        for t in range(len(tracks.frame_ids)):
             a, b = int(tracks.offsets[t]), int(tracks.offsets[t + 1])
-            rows = np.sort(tracks.rows[a:b][tracks.track[a:b] == k])
-            ids.append(fid)
-            parts.append(rows.astype(np.int32))
+            rows = np.sort(tracks.rows[a:b][ids[a:b] == object_id]).astype(np.int32)
+            parts.append(rows)
             ptr.append(ptr[-1] + rows.size)
         rows_all = np.concatenate(parts) if parts else np.zeros(0, np.int32)
-        return cls(tuple(ids), np.asarray(ptr, np.int64), rows_all)
+        return cls(tracks.frame_ids, np.asarray(ptr, np.int64), rows_all)
 
     def of(self, frame_id: str) -> npt.NDArray[np.int32]:
         """The object's rows in scan ``frame_id`` (empty when it has none there)."""
@@ -409,7 +414,7 @@ def _objects_after(
         table[name] = grown
     table["cls"][k + 1 :] = NO_CLASS
     instance = tracks.track.astype(np.int32, copy=True)
-    scan_of = np.repeat(np.arange(len(tracks.frame_ids)), np.diff(tracks.offsets))
+    scan_of = tracks.entry_scans()
     results: list[EditResult] = []
     count = k
     start = 0
@@ -500,13 +505,8 @@ class CorrectedTracks:
 
     def scan_rows(self, frame_id: str) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
         """(rows, object ids) of one scan's tracked points (none for a scan the tracks do not hold)."""
-        t = self.tracks
-        try:
-            s = t.frame_ids.index(frame_id)
-        except ValueError:
-            return np.zeros(0, np.int32), np.zeros(0, np.int32)
-        a, b = int(t.offsets[s]), int(t.offsets[s + 1])
-        return t.rows[a:b], self.instance[a:b]
+        a, b = self.tracks.span(frame_id)
+        return self.tracks.rows[a:b], self.instance[a:b]
 
     def point_objects(
         self,
@@ -560,27 +560,17 @@ class CorrectedTracks:
         for x, y in zip(a, b, strict=True):
             diff |= x != y
         t = self.tracks
-        frame_of = np.repeat(np.arange(len(t.frame_ids)), np.diff(t.offsets))
-        return [t.frame_ids[f] for f in np.unique(frame_of[diff])]
+        return [t.frame_ids[f] for f in np.unique(t.entry_scans()[diff])]
 
     def object_scans(self, object_id: int) -> list[str]:
         """Frame ids of the scans in which object ``object_id`` has points, in order."""
         t = self.tracks
-        frame_of = np.repeat(np.arange(len(t.frame_ids)), np.diff(t.offsets))
-        return [t.frame_ids[f] for f in np.unique(frame_of[self.instance == object_id])]
+        return [t.frame_ids[f] for f in np.unique(t.entry_scans()[self.instance == object_id])]
 
     def identity(self, object_id: int) -> ObjectIdentity:
         """Object ``object_id``'s points in every scan of the tracks (:meth:`ObjectIdentity.of_track` of a
         corrected object: what a correction made on it keeps)."""
-        t = self.tracks
-        ptr, parts = [0], []
-        for s in range(len(t.frame_ids)):
-            a, b = int(t.offsets[s]), int(t.offsets[s + 1])
-            rows = np.sort(t.rows[a:b][self.instance[a:b] == object_id]).astype(np.int32)
-            parts.append(rows)
-            ptr.append(ptr[-1] + rows.size)
-        rows_all = np.concatenate(parts) if parts else np.zeros(0, np.int32)
-        return ObjectIdentity(t.frame_ids, np.asarray(ptr, np.int64), rows_all)
+        return ObjectIdentity.of_ids(self.tracks, self.instance, object_id)
 
     @property
     def count(self) -> int:

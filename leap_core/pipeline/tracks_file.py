@@ -112,11 +112,24 @@ class SequenceTracks:
             return self.life
         return track_life(self.offsets, self.track, self.table.label.size)
 
+    def entry_scans(self) -> npt.NDArray[np.int64]:
+        """(P,) int64 the scan index (position in :attr:`frame_ids`) of each entry of :attr:`rows` (made on
+        each call: a long sequence's tracks hold millions of entries)."""
+        return np.repeat(np.arange(len(self.frame_ids), dtype=np.int64), np.diff(self.offsets))
+
+    def span(self, frame_id: str) -> tuple[int, int]:
+        """``(a, b)``: scan ``frame_id``'s entries are ``rows[a:b]`` (``(0, 0)`` for a scan the file does
+        not hold)."""
+        try:
+            t = self.frame_ids.index(frame_id)
+        except ValueError:
+            return 0, 0
+        return int(self.offsets[t]), int(self.offsets[t + 1])
+
     def scans_of(self, track: int) -> npt.NDArray[np.int64]:
         """(S,) int64 the scan indices (positions in :attr:`frame_ids`) where track ``track`` has points,
         ascending."""
-        scan_of = np.repeat(np.arange(len(self.frame_ids), dtype=np.int64), np.diff(self.offsets))
-        return np.unique(scan_of[self.track == track])
+        return np.unique(self.entry_scans()[self.track == track])
 
     def review_queue(
         self, things: npt.NDArray[np.bool_], cfg: ObjectQueueConfig
@@ -136,11 +149,7 @@ class SequenceTracks:
 
     def scan(self, frame_id: str) -> ScanObjects:
         """The tracked points of ``frame_id`` (none for a scan the file does not hold)."""
-        try:
-            t = self.frame_ids.index(frame_id)
-        except ValueError:
-            return ScanObjects(np.zeros(0, np.int32), np.zeros(0, np.int32))
-        a, b = int(self.offsets[t]), int(self.offsets[t + 1])
+        a, b = self.span(frame_id)
         return ScanObjects(self.rows[a:b], self.track[a:b])
 
     def point_objects(
