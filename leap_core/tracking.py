@@ -335,26 +335,28 @@ class _LiveTracks:
     """The state of the live tracks in :func:`track_ids`, one row per track."""
 
     def __init__(self, history: int) -> None:
-        self.pos = np.zeros((0, 3))
-        """(K, 3) last centroid."""
         self.box = np.zeros((0, 4))
         """(K, 4) last ground box."""
         self.past_t = np.zeros((0, history))
         """(K, H) times of the last H observations, oldest first, NaN before the first."""
         self.past_c = np.zeros((0, history, 3))
         """(K, H, 3) their centroids."""
-        self.last_t = np.zeros(0)
         self.last_scan = np.zeros(0, np.int64)
         self.ids = np.zeros(0, np.int64)
 
+    @property
+    def pos(self) -> npt.NDArray[np.float64]:
+        """(K, 3) last centroid."""
+        return self.past_c[:, -1]
+
+    @property
+    def last_t(self) -> npt.NDArray[np.float64]:
+        """(K,) time of the last observation."""
+        return self.past_t[:, -1]
+
     def keep(self, rows: npt.NDArray[np.bool_]) -> None:
-        self.pos, self.box, self.past_t, self.past_c = (
-            self.pos[rows],
-            self.box[rows],
-            self.past_t[rows],
-            self.past_c[rows],
-        )
-        self.last_t, self.last_scan, self.ids = self.last_t[rows], self.last_scan[rows], self.ids[rows]
+        self.box, self.past_t, self.past_c = self.box[rows], self.past_t[rows], self.past_c[rows]
+        self.last_scan, self.ids = self.last_scan[rows], self.ids[rows]
 
     def observe(
         self,
@@ -365,11 +367,9 @@ class _LiveTracks:
         k: int,
     ) -> None:
         """Tracks ``rows`` seen at ``cen`` (R, 3) with ``box`` (R, 4) in scan ``k`` at time ``t``."""
-        self.pos[rows] = cen
         self.box[rows] = box
         self.past_t[rows] = np.concatenate([self.past_t[rows, 1:], np.full((rows.size, 1), t)], axis=1)
         self.past_c[rows] = np.concatenate([self.past_c[rows, 1:], cen[:, None, :]], axis=1)
-        self.last_t[rows] = t
         self.last_scan[rows] = k
 
     def start(
@@ -386,11 +386,9 @@ class _LiveTracks:
         past_t[:, -1] = t
         past_c = np.zeros((n, h, 3))
         past_c[:, -1] = cen
-        self.pos = np.concatenate([self.pos, cen])
         self.box = np.concatenate([self.box, box])
         self.past_t = np.concatenate([self.past_t, past_t])
         self.past_c = np.concatenate([self.past_c, past_c])
-        self.last_t = np.concatenate([self.last_t, np.full(n, t)])
         self.last_scan = np.concatenate([self.last_scan, np.full(n, k, np.int64)])
         self.ids = np.concatenate([self.ids, ids])
 
