@@ -40,7 +40,7 @@ import platform
 import sys
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,12 +49,24 @@ import torch
 from torch import nn
 from torch.nn import functional as F_
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import import_commit
+
 from leap_core.consistency.backbone import PointSegmenter, count_parameters
 from leap_core.consistency.config import ConsistencyConfig
 from leap_core.consistency.data import collate, prepare_cloud
 from leap_core.consistency.selection import view_counts
 from leap_core.consistency.stage import run_3dcn_iteration
-from leap_core.consistency.train import load_source, num_train_steps
+from leap_core.consistency.train import (
+    config_from_dict,
+    config_to_dict,
+    load_source,
+    num_train_steps,
+    resolve_device,
+    resolve_precision,
+    train_model,
+)
 from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_label, write_poses, write_scan
 from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
 from leap_core.io_utils import atomic_write_json
@@ -64,6 +76,7 @@ from leap_core.projection import Painted
 from leap_core.run_layout import RunLayout, SequenceLayout
 from leap_core.schema import builtin_schema
 from leap_core.smoothing import SmoothedGrid, SmoothingConfig, knn_smooth
+from leap_core.types import UNLABELED
 
 # $LEAP_BENCH_RESULTS: another folder for the result file, as in benchmarks/common.py (the tests' smoke runs).
 RESULTS = Path(os.environ.get("LEAP_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
@@ -74,6 +87,11 @@ QUICK_CONFIG: dict[str, Any] = {
     "backbone": {"channels": 16, "layers": 2, "embed_channels": 8},
 }
 """``--quick``: scans of the stand-in, and ConsistencyConfig overrides that keep every phase but shrink it."""
+QUICK_STEPS = 3
+"""``--quick``: training steps each version of the training-step table is timed over."""
+BASELINE_COMMIT = "25c0286"
+"""The training-step table's baseline: ``train_model`` before mixed precision, prefetching and the cheaper
+exact preparation."""
 
 
 # --------------------------------------------------------------------------------- stand-in sequence
@@ -259,6 +277,77 @@ def step_times(
     }
 
 
+def training_step_versions(  # noqa: PLR0917  the step's settings, data and the baseline to compare with
+    cfg: ConsistencyConfig,
+    scans: list[tuple[np.ndarray, np.ndarray]],
+    num_classes: int,
+    steps: int,
+    baseline: str,
+    work: Path,
+    repeats: int = 2,
+) -> list[dict[str, Any]]:
+    """Seconds per training step of ``train_model`` (reading, sampling and preparing the scans, forward,
+    backward, optimiser) as of git commit ``baseline`` and as of this tree in float32 and in ``cfg``'s
+    precision, each ``steps`` steps on the same ``scans`` (points, targets), alternating ``repeats`` times.
+
+    The baseline gets ``cfg``'s settings minus those it does not know (listed in its row's ``left_out``).
+    """
+    base = import_commit(baseline, work, ("consistency.config", "consistency.train"))
+    base_train = base["consistency.train"]
+    base_cfg_cls = base["consistency.config"].ConsistencyConfig
+    plain = config_to_dict(replace(cfg, min_steps=steps, epochs=1))
+    known = {f.name for f in fields(base_cfg_cls)}
+    known_bb = {f.name for f in fields(base["consistency.config"].BackboneConfig)}
+    left_out = [k for k in plain if k not in known] + [
+        f"backbone.{k}" for k in plain["backbone"] if k not in known_bb
+    ]
+    base_plain = {k: v for k, v in plain.items() if k in known}
+    base_plain["backbone"] = {k: v for k, v in plain["backbone"].items() if k in known_bb}
+    resolved = resolve_precision(cfg, resolve_device(cfg))
+    versions: list[tuple[str, Any, Any]] = [
+        (f"baseline {baseline}", base_train.train_model, base_train.config_from_dict(base_plain)),
+        ("this tree, float32", train_model, config_from_dict({**plain, "precision": "float32"})),
+    ]
+    if resolved is not None:
+        name = str(resolved).removeprefix("torch.")
+        versions.append((f"this tree, {name} ({cfg.precision})", train_model, config_from_dict(plain)))
+    indices = list(range(min(len(scans), steps)))  # one pass over them is at most ``steps`` steps
+    wall: dict[str, list[float]] = {name: [] for name, _, _ in versions}
+    cpu: dict[str, list[float]] = {name: [] for name, _, _ in versions}
+    if repeats > 1:  # a warm-up round (lazy imports, first allocations), not timed
+        for _, train, vcfg in versions:
+            train(scans.__getitem__, indices[:1], num_classes, replace(vcfg, min_steps=1))
+    for _ in range(repeats):
+        for name, train, vcfg in versions:
+            c0 = time.process_time()
+            _, stats = train(scans.__getitem__, indices, num_classes, vcfg)
+            cpu[name].append((time.process_time() - c0) / stats.steps)
+            wall[name].append(stats.seconds / stats.steps)
+    first = versions[0][0]
+    return [
+        {
+            "version": name,
+            "steps": steps,
+            "wall_s_per_step": float(np.median(wall[name])),
+            "cpu_s_per_step": float(np.median(cpu[name])),
+            "speedup_vs_baseline": float(np.median(wall[first]) / np.median(wall[name])),
+            "left_out": left_out if name == first else [],
+        }
+        for name, _, _ in versions
+    ]
+
+
+def print_training_steps(rows: list[dict[str, Any]]) -> None:
+    """The per-version training-step table, with the ratio to the baseline commit."""
+    print(f"\n{'training step (train_model)':<40}{'wall s':>9}{'CPU s':>9}{'speed-up':>10}")
+    for r in rows:
+        print(
+            f"{r['version']:<40}{r['wall_s_per_step']:>9.3f}{r['cpu_s_per_step']:>9.3f}{r['speedup_vs_baseline']:>9.2f}x"
+        )
+    if rows[0]["left_out"]:
+        print(f"(baseline settings left out, unknown to it: {', '.join(rows[0]['left_out'])})")
+
+
 def print_step_times(base: dict[str, float]) -> None:
     """The training-step table and its two ratios, each labelled by what it includes."""
     print(f"\n{'training step':<32}{'params':>10}{'seconds':>10}")
@@ -272,6 +361,63 @@ def print_step_times(base: dict[str, float]) -> None:
         f"{(base['prepare_s'] + base['backbone_step_s']) / base['mlp_step_s']:.1f}x "
         f"({base['points_per_step']:,} points/step)"
     )
+
+
+def step_tables(
+    args: argparse.Namespace,
+    cfg: ConsistencyConfig,
+    seq: KittiSequence,
+    frames: range,
+    gt: list[np.ndarray],
+    num_classes: int,
+) -> tuple[dict[str, float], list[dict[str, Any]]]:
+    """The backbone-vs-MLP step (:func:`step_times`) and the training step per version
+    (:func:`training_step_versions`) on the first scans of ``seq``."""
+    base = step_times(cfg, seq.frame(frames[0]).points, num_classes)
+    # The scans' targets: the ground truth with 4 of 5 points unlabeled (the selection keeps a share of
+    # each class's labels); what a step costs does not depend on which labels they are.
+    mask_rng = np.random.default_rng(0)
+    scans = [
+        (seq.frame(i).points, np.where(mask_rng.random(len(g)) < 0.2, g, UNLABELED))
+        for i, g in zip(frames[: args.steps], gt, strict=False)
+    ]
+    with tempfile.TemporaryDirectory(prefix="bench3dcn_base_") as work:
+        rows = training_step_versions(
+            cfg, scans, num_classes, args.steps, args.baseline, Path(work), repeats=1 if args.quick else 3
+        )
+    return base, rows
+
+
+def steps_only(  # noqa: PLR0917  main's parsed inputs
+    args: argparse.Namespace,
+    cfg: ConsistencyConfig,
+    seq: KittiSequence,
+    frames: range,
+    gt: list[np.ndarray],
+    num_classes: int,
+    source: str,
+) -> int:
+    """``--steps-only``: the two training-step tables, printed and written."""
+    load_before = os.getloadavg()[0]
+    base, rows = step_tables(args, cfg, seq, frames, gt, num_classes)
+    load_after = os.getloadavg()[0]
+    print(
+        f"3D-CN training steps on {source}; torch threads {args.threads}, device {cfg.device}, "
+        f"load average {load_before:.1f} -> {load_after:.1f}"
+    )
+    print_step_times(base)
+    print_training_steps(rows)
+    payload = {
+        "source": source,
+        "threads": args.threads,
+        "load_average": [load_before, load_after],
+        "points_per_scan": cfg.points_per_scan,
+        "baseline": base,
+        "training_steps": rows,
+    }
+    atomic_write_json(args.out, payload)
+    print(f"\nwrote {args.out}")
+    return 0
 
 
 # ----------------------------------------------------------------------------------------------- main
@@ -340,7 +486,19 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
         help="also time an iteration fine-tuned from this 3D-CN checkpoint (--3dcn-init)",
     )
     ap.add_argument(
-        "--out", type=Path, default=None, help="result file (default RESULTS/bench_3dcn[_quick].json)"
+        "--baseline",
+        default=BASELINE_COMMIT,
+        help="git commit whose train_model the training-step table compares with (default: the last "
+        "before mixed precision and prefetching)",
+    )
+    ap.add_argument("--steps", type=int, default=30, help="training steps each version is timed over")
+    ap.add_argument(
+        "--steps-only",
+        action="store_true",
+        help="only the training-step tables (no 3D-CN round, no labels table)",
+    )
+    ap.add_argument(
+        "--out", type=Path, default=None, help="result file (default RESULTS/bench_3dcn[_quick][_steps].json)"
     )
     ap.add_argument(
         "--quick",
@@ -351,9 +509,11 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
     args = ap.parse_args(argv)
     if args.quick:
         args.frames = QUICK_FRAMES
+        args.steps = QUICK_STEPS
         args.config = json.dumps({**QUICK_CONFIG, **json.loads(args.config)})
     if args.out is None:
-        args.out = RESULTS / ("bench_3dcn_quick.json" if args.quick else "bench_3dcn.json")
+        suffix = ("_quick" if args.quick else "") + ("_steps" if args.steps_only else "")
+        args.out = RESULTS / f"bench_3dcn{suffix}.json"
     torch.set_num_threads(args.threads)
 
     tmp = None
@@ -384,6 +544,8 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
         overrides["backbone"] = replace(base_cfg.backbone, **overrides["backbone"])
     cfg = replace(base_cfg, device=args.device, num_threads=args.threads, **overrides)
     fusion_cfg = FusionConfig()
+    if args.steps_only:
+        return steps_only(args, cfg, seq, frames, gt, c, source)
 
     if args.run_dir is not None:
         fused, smoothed, views, seen = load_run_inputs(args.run_dir, seq, frames, fusion_cfg.logp_clip)
@@ -462,7 +624,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
             "miou_all_points": every.miou,
             "labeled_share_all": float((pred >= 0).mean()),
         }
-    base = step_times(cfg, seq.frame(frames[0]).points, c)
+    base, training_steps = step_tables(args, cfg, seq, frames, gt, c)
 
     print(f"3D-CN benchmark on {source}: {n} scans, {n_points:,} points; inputs: {inputs}")
     print(
@@ -479,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
             f"{tuned_s / total_s:.2f} ({num_train_steps(n, cfg, finetune=True)} steps against {steps})"
         )
     print_step_times(base)
+    print_training_steps(training_steps)
     print(f"\n{'labels':<24}{'mIoU cam':>10}{'cat cam':>10}{'mIoU all':>10}{'labeled':>10}")
     for name, r in rows.items():
         print(
@@ -511,6 +674,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: PLR0912  arguments, run
         "ratio_prepare_and_backbone_to_mlp_step": (base["prepare_s"] + base["backbone_step_s"])
         / base["mlp_step_s"],
         "labels": rows,
+        "training_steps": training_steps,
     }
     if tuned_s is not None:
         result["source_network"] = {

@@ -37,15 +37,10 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import importlib
-import io
 import os
-import re
 import shutil
 import statistics
-import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -57,7 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import RESULTS_DIR, print_table, write_results
+from common import RESULTS_DIR, import_commit, print_table, write_results
 
 from leap_core.config import PipelineConfig, config_to_dict
 from leap_core.datasets.kitti import KittiSequence, write_scan
@@ -65,7 +60,6 @@ from leap_core.pipeline import SequenceSpec, run_pipeline
 from leap_core.runtime import Runtime
 from leap_core.schema import builtin_schema
 
-REPO = Path(__file__).resolve().parents[1]
 TIMED = ("project", "fuse", "label_points", "export")
 """The per-scan 3D stages of the target, in pipeline order (each reads the previous one's files)."""
 OUTPUTS = {
@@ -95,24 +89,8 @@ class Version:
 
 
 def import_baseline(commit: str, into: Path) -> Version:
-    """``leap_core`` and ``projects/`` as of ``commit``, imported as ``leap_base_<commit>``."""
-    name = f"leap_base_{re.sub(r'[^0-9A-Za-z]', '_', commit)}"
-    tar = subprocess.run(
-        ["git", "-C", str(REPO), "archive", commit, "leap_core", "projects"], check=True, capture_output=True
-    ).stdout
-    root = into / "baseline"
-    shutil.rmtree(root, ignore_errors=True)
-    root.mkdir(parents=True)
-    with tarfile.open(fileobj=io.BytesIO(tar)) as tf:
-        tf.extractall(root, filter="data")
-    (root / "leap_core").rename(root / name)
-    for py in (root / name).rglob("*.py"):
-        py.write_text(re.sub(r"\bleap_core\b", name, py.read_text()))
-    sys.path.insert(0, str(root))
-    mods = {
-        m: importlib.import_module(f"{name}.{m}")
-        for m in ("pipeline.runner", "pipeline.stages", "config", "schema")
-    }
+    """``leap_core`` and ``projects/`` as of ``commit`` (:func:`common.import_commit`)."""
+    mods = import_commit(commit, into, ("pipeline.runner", "pipeline.stages", "config", "schema"))
     return Version(commit, mods["pipeline.runner"], mods["pipeline.stages"], mods["config"], mods["schema"])
 
 

@@ -9,18 +9,27 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import importlib
+import io
 import json
 import os
 import platform
+import re
 import resource
+import shutil
 import statistics
+import subprocess
 import sys
+import tarfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
+REPO = Path(__file__).resolve().parents[1]
+"""The repository root (its git history holds the baseline commits some benchmarks import)."""
 RESULTS_DIR = Path(os.environ.get("LEAP_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
 """Where result files go: ``benchmarks/results``, or the folder ``$LEAP_BENCH_RESULTS`` names (the tests'
 smoke runs write there, so they never replace a real run's figures)."""
@@ -188,3 +197,31 @@ def write_results(name: str, payload: dict[str, Any], results_dir: Path = RESULT
     tmp.write_text(json.dumps(doc, indent=2, sort_keys=False, default=float) + "\n")
     os.replace(tmp, path)
     return path
+
+
+def import_commit(commit: str, into: Path, modules: Sequence[str]) -> dict[str, ModuleType]:
+    """``leap_core`` and ``projects/`` as of git ``commit``, imported beside today's as the package
+    ``leap_base_<commit>``, so a benchmark runs both versions in one process on the same data.
+
+    Args:
+        commit: a commit of this repository's history.
+        into: a folder for the extracted tree (its ``baseline/`` is replaced).
+        modules: dotted module names under ``leap_core`` to import, e.g. ``"pipeline.runner"``.
+
+    Returns:
+        Each of ``modules`` to its imported baseline module.
+    """
+    name = f"leap_base_{re.sub(r'[^0-9A-Za-z]', '_', commit)}"
+    tar = subprocess.run(
+        ["git", "-C", str(REPO), "archive", commit, "leap_core", "projects"], check=True, capture_output=True
+    ).stdout
+    root = into / "baseline"
+    shutil.rmtree(root, ignore_errors=True)
+    root.mkdir(parents=True)
+    with tarfile.open(fileobj=io.BytesIO(tar)) as tf:
+        tf.extractall(root, filter="data")
+    (root / "leap_core").rename(root / name)
+    for py in (root / name).rglob("*.py"):
+        py.write_text(re.sub(r"\bleap_core\b", name, py.read_text()))
+    sys.path.insert(0, str(root))
+    return {m: importlib.import_module(f"{name}.{m}") for m in modules}

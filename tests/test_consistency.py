@@ -14,7 +14,14 @@ import torch
 
 from leap_core.consistency.backbone import CloudTensors, KnnEmbedding, PlaneIndex, PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig, fingerprint_form
-from leap_core.consistency.data import LOCAL_SCALE, collate, inference_view, prepare_cloud
+from leap_core.consistency.data import (
+    LOCAL_SCALE,
+    collate,
+    inference_view,
+    neighbours,
+    prepare_cloud,
+    prepare_cloud_tensors,
+)
 from leap_core.consistency.selection import (
     lookup_counts,
     per_class_quota,
@@ -39,6 +46,7 @@ from leap_core.consistency.stage import (
     without_rows,
 )
 from leap_core.consistency.train import (
+    _training_batch,
     class_weights,
     config_from_dict,
     config_to_dict,
@@ -46,8 +54,10 @@ from leap_core.consistency.train import (
     load_checkpoint,
     load_source,
     lr_factor,
+    native_bfloat16,
     num_train_steps,
     predict_log_probs,
+    resolve_precision,
     save_checkpoint,
     train_model,
 )
@@ -66,6 +76,8 @@ TINY = ConsistencyConfig(
     augment=False,
     device="cpu",
     num_threads=1,
+    # float32 on every machine: these tests pin exact numbers, and ``auto`` resolves by the CPU.
+    precision="float32",
 )
 
 
@@ -411,6 +423,66 @@ def test_tiny_training_reduces_the_loss_and_is_deterministic() -> None:
     assert stats2.losses == stats.losses
 
 
+@pytest.mark.slow
+def test_bfloat16_training_learns_is_deterministic_and_is_mixed_precision() -> None:
+    scans = _scans()
+    cfg = replace(TINY, epochs=8, precision="bfloat16")
+    model, stats = train_model(scans.__getitem__, list(scans), 3, cfg)
+    assert np.mean(stats.losses[-4:]) < 0.5 * np.mean(stats.losses[:4])
+    pts, lab = synthetic_scan(99)
+    logp = predict_log_probs(model, pts, precision=torch.bfloat16)
+    assert (logp.argmax(axis=1) == lab).mean() > 0.9
+    _, again = train_model(scans.__getitem__, list(scans), 3, cfg)
+    assert again.losses == stats.losses
+    # The passes ran in bfloat16 (float32's losses differ), the weights stayed float32, and float32
+    # inference of the same weights agrees to bfloat16's rounding.
+    _, full = train_model(scans.__getitem__, list(scans), 3, replace(cfg, precision="float32", epochs=1))
+    assert full.losses[0] != stats.losses[0]  # the same weights and batch, another arithmetic
+    assert all(p.dtype == torch.float32 for p in model.parameters())
+    prob32, prob16 = np.exp(predict_log_probs(model, pts)), np.exp(logp)
+    assert not np.array_equal(prob32, prob16) and np.abs(prob32 - prob16).max() < 0.1
+
+
+def test_precision_resolves_by_the_hardware_only_for_auto() -> None:
+    cpu = torch.device("cpu")
+    assert resolve_precision(replace(TINY, precision="float32"), cpu) is None
+    assert resolve_precision(replace(TINY, precision="bfloat16"), cpu) is torch.bfloat16
+    auto = resolve_precision(replace(TINY, precision="auto"), cpu)
+    assert auto is (torch.bfloat16 if native_bfloat16(cpu) else None)
+    with pytest.raises(ConfigError, match="precision"):
+        replace(TINY, precision="float16")
+
+
+@pytest.mark.parametrize(("n", "subset"), [(600, True), (600, False), (3, False)])
+def test_the_device_preparation_agrees_with_the_kd_tree_one(n: int, subset: bool) -> None:
+    pts, _ = synthetic_scan(5, n)
+    pts[:, 3] = np.random.default_rng(1).uniform(0, 1, n)
+    cfg = replace(TINY_BACKBONE, knn=8, grid_cells=(0.7, 0.9, 1.1))
+    sub = np.sort(np.random.default_rng(2).choice(n, n // 2, replace=False)) if subset else None
+    want = prepare_cloud(pts, cfg, sub)
+    nbr = neighbours(pts[:, :3], pts[sub if subset else slice(None), :3], cfg.knn)
+    got = prepare_cloud_tensors(
+        torch.from_numpy(pts), cfg, torch.from_numpy(nbr), None if sub is None else torch.from_numpy(sub)
+    )
+    np.testing.assert_allclose(got.feats.numpy(), want.feats, atol=2e-5)
+    np.testing.assert_allclose(got.local.numpy(), want.local, atol=2e-5)
+    assert np.array_equal(got.cell_uv.numpy(), want.cell_uv) and np.array_equal(got.grid_hw, want.grid_hw)
+    a, b = collate([want, want]), collate([got, got])
+    assert all(torch.equal(p.occupied, q.occupied) for p, q in zip(a.planes, b.planes, strict=True))
+
+
+def test_a_training_batch_prepared_on_the_device_matches_the_cpu_one() -> None:
+    scans = _scans()
+    cfg = replace(TINY, points_per_scan=200, augment=True, scans_per_step=2)
+    on_cpu = _training_batch(scans.__getitem__, [0, 1], cfg, np.random.default_rng(4), 1)
+    on_dev = _training_batch(scans.__getitem__, [0, 1], cfg, np.random.default_rng(4), 1, torch.device("cpu"))
+    assert on_cpu is not None and on_dev is not None
+    assert torch.equal(on_cpu[1], on_dev[1])  # the same points drawn, the same targets
+    assert on_cpu[0].num_points == on_dev[0].num_points == 400
+    torch.testing.assert_close(on_dev[0].feats, on_cpu[0].feats, atol=2e-5, rtol=0)
+    torch.testing.assert_close(on_dev[0].local, on_cpu[0].local, atol=2e-5, rtol=0)
+
+
 def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -> None:
     def fp(cfg: ConsistencyConfig) -> str:
         return training_fingerprint(cfg, 3, range(2), [np.zeros(2, np.int16), np.ones(2, np.int16)])
@@ -426,7 +498,7 @@ def test_a_checkpoints_fingerprint_outlives_new_fields_at_their_former_value() -
     assert fp(replace(TINY, backbone=replace(TINY_BACKBONE, position_inputs=False))) != fp(TINY)
     plain = config_to_dict(TINY)
     form = fingerprint_form(plain)
-    assert set(form) == set(plain) - {"test_time_views", "finetune_lr", "finetune_min_steps"}
+    assert set(form) == set(plain) - {"test_time_views", "finetune_lr", "finetune_min_steps", "precision"}
     assert set(form["backbone"]) == set(plain["backbone"]) - {"position_inputs"}
     assert plain["test_time_views"] == 1 and plain["backbone"]["position_inputs"] is True  # not written to
     other = fingerprint_form(

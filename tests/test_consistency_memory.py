@@ -10,6 +10,7 @@ import subprocess
 import sys
 import weakref
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -82,16 +83,19 @@ def test_inference_runs_under_inference_mode_without_a_graph() -> None:
 
 
 def test_predict_frames_infers_one_scan_at_a_time(tmp_path: Path, make_tiny_sequence) -> None:
-    """A scan is predicted only when asked for, and the fusion back drops each scan's predictions before
-    it asks for the next one."""
+    """A scan is predicted only when asked for, in the configured precision, and the fusion back drops
+    each scan's predictions before it asks for the next one."""
     seq = KittiSequence(make_tiny_sequence(tmp_path, n_frames=4, n_points=200).root)
     torch.manual_seed(0)
     model = PointSegmenter(TINY.backbone, 3).eval()
     ticks: list[int] = []
-    scans = predict_frames(model, seq, range(4), TINY, 0.2, lambda: ticks.append(1))
+    cfg = replace(TINY, precision="bfloat16")
+    scans = predict_frames(model, seq, range(4), cfg, 0.2, lambda: ticks.append(1))
     keys, logp = next(scans)
     assert len(ticks) == 1 and logp.shape == (len(keys), 3)
-    assert np.array_equal(logp, predict_log_probs(model, seq.frame(0).points))
+    pts = seq.frame(0).points
+    assert np.array_equal(logp, predict_log_probs(model, pts, precision=torch.bfloat16))
+    assert not np.array_equal(logp, predict_log_probs(model, pts))
     del keys, logp
 
     refs: list[weakref.ref[np.ndarray]] = []

@@ -1,7 +1,8 @@
 """The GPU code paths, on a machine with a CUDA GPU (skipped elsewhere, so CI, which has none, skips them;
 docs/MUTATION.md says when they last ran on a GPU and what they caught).
 
-What runs on the GPU in a pipeline run: the 3D-CN's training and inference (``consistency.device``) and the
+What runs on the GPU in a pipeline run: the 3D-CN's training and inference (``consistency.device``; its
+inputs' features and grid cells, and bfloat16 mixed precision with ``consistency.precision``) and the
 2D labeler's Grounding DINO + SAM (``Runtime.device``). Each test runs one of them on CUDA and compares it
 with the same computation on the CPU, which the rest of the suite checks exactly."""
 
@@ -13,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_consistency import TINY, _predictions, _tiny_stage_inputs
+from test_consistency import TINY, _predictions, _scans, _tiny_stage_inputs, synthetic_scan
 from test_grounded_sam import images, small_schema
 
 from leap_core.consistency.stage import checkpoint_path, fuse_back, run_3dcn_iteration
-from leap_core.consistency.train import load_checkpoint, predict_log_probs
+from leap_core.consistency.train import _training_batch, load_checkpoint, predict_log_probs, train_model
 from leap_core.fusion import FusionConfig, VoxelGrid
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler
 from leap_core.labelers.tiny_models import TinyModelsConfig, make_tiny_models
@@ -73,6 +74,26 @@ def test_3dcn_round_trains_and_predicts_on_the_gpu(tmp_path: Path, make_tiny_seq
     assert torch.cuda.max_memory_allocated() > before
     assert np.array_equal(again.keys, out.keys)
     np.testing.assert_allclose(again.logp.astype(np.float32), out.logp.astype(np.float32), atol=1e-2)
+
+
+def test_3dcn_inputs_prepared_on_the_gpu_and_bfloat16_training() -> None:
+    scans = _scans()
+    cfg = replace(TINY, points_per_scan=200, augment=True, scans_per_step=2)
+    on_cpu = _training_batch(scans.__getitem__, [0, 1], cfg, np.random.default_rng(4), 1)
+    on_gpu = _training_batch(
+        scans.__getitem__, [0, 1], cfg, np.random.default_rng(4), 1, torch.device("cuda")
+    )
+    assert on_cpu is not None and on_gpu is not None and on_gpu[0].feats.is_cuda
+    torch.testing.assert_close(on_gpu[0].feats.cpu(), on_cpu[0].feats, atol=2e-5, rtol=0)
+    torch.testing.assert_close(on_gpu[0].local.cpu(), on_cpu[0].local, atol=2e-5, rtol=0)
+    # Mixed precision on the GPU learns as float32 does (test_consistency's bfloat16 test, on CUDA).
+    model, stats = train_model(
+        scans.__getitem__, list(scans), 3, replace(TINY, epochs=8, device="cuda", precision="bfloat16")
+    )
+    assert np.mean(stats.losses[-4:]) < 0.5 * np.mean(stats.losses[:4])
+    pts, lab = synthetic_scan(99)
+    logp = predict_log_probs(model.cuda(), pts, device="cuda", precision=torch.bfloat16)
+    assert (logp.argmax(axis=1) == lab).mean() > 0.9
 
 
 def test_grounded_sam_on_the_gpu_matches_the_cpu(tmp_path: Path) -> None:

@@ -214,8 +214,17 @@ class SpatialMix(nn.Module):
         """:meth:`forward` on the fields of a :class:`PlaneIndex` (grid ``(b, h, w)``): the one body that
         both the network and its TorchScript export (:mod:`leap_core.lidar_model.export`) run."""
         f = x.shape[1]
-        cell_mean = torch.sparse.mm(mean, self.norm(x))
-        dense = x.new_zeros(b * h * w, f).index_copy(0, occupied, cell_mean)
+        # The TorchScript export runs in float32 only.
+        if torch.jit.is_scripting():  # type: ignore[attr-defined]
+            normed = self.norm(x)
+            cell_mean = torch.sparse.mm(mean, normed)
+        else:
+            # The cell means in float32 whatever the autocast: sparse products have no bfloat16 backward
+            # on the CPU, and an average over many points is what lower precision would round worst.
+            with torch.autocast(device_type=x.device.type, enabled=False):
+                normed = self.norm(x).float()
+                cell_mean = torch.sparse.mm(mean, normed)
+        dense = normed.new_zeros(b * h * w, f).index_copy(0, occupied, cell_mean)
         # (B·H·W, F) rows are NHWC: the permuted view is a channels-last NCHW tensor, which the depth-wise
         # convolutions run on faster than on the default layout, and no copy is made either way.
         grid = dense.view(b, h, w, f).permute(0, 3, 1, 2)

@@ -23,6 +23,7 @@ ADDED_FIELDS: dict[tuple[str, ...], Any] = {
     ("backbone", "position_inputs"): True,
     ("finetune_lr",): 5e-4,
     ("finetune_min_steps",): 0,
+    ("precision",): "float32",
 }
 """Fields added to :class:`ConsistencyConfig` after runs and checkpoints had been written, each with the
 value that computes what was computed before the field existed. Fingerprints (the 3D-CN stage's, a
@@ -204,6 +205,16 @@ class ConsistencyConfig:
     CPU."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Torch device; ``auto`` takes CUDA when available."""
+    precision: Literal["auto", "float32", "bfloat16"] = "auto"
+    """Arithmetic of the network's forward and backward passes. ``bfloat16`` is mixed precision (torch
+    autocast): matrix products and convolutions in bfloat16, while weights, optimiser state, normalisations,
+    the spatial mixing's cell means and the loss stay float32. ``auto`` takes it where the hardware does
+    bfloat16 natively (a CUDA GPU that supports it; a CPU with AVX512-BF16 or AMX, where a training step
+    of the default network is about 1.6× faster, ``benchmarks/bench_3dcn.py``) and ``float32`` elsewhere,
+    where bfloat16 would be emulated and slower. Same seed, data and resolved precision on the same
+    machine give the same checkpoint; the two precisions give networks that differ like two seeds
+    (docs/METHOD.md C.2). Like ``device``, it does not enter the checkpoint's fingerprint: changing it
+    reuses trained weights."""
     num_threads: int = field(default=0, metadata=within(0, 1024))
     """``torch.set_num_threads`` during training/inference on CPU; ``0`` leaves torch's setting alone."""
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
@@ -220,6 +231,11 @@ class ConsistencyConfig:
                 "must be 0 with network_evidence 'point' (it applies to voxel evidence only)",
             ),
             ("device", self.device in ("auto", "cpu", "cuda"), "must be 'auto', 'cpu' or 'cuda'"),
+            (
+                "precision",
+                self.precision in ("auto", "float32", "bfloat16"),
+                "must be 'auto', 'float32' or 'bfloat16'",
+            ),
         )
         for name, ok, rule in checks:
             if not ok:

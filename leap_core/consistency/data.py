@@ -1,11 +1,15 @@
-"""Scan → network input: features, kNN neighbourhoods, 2D grid cells, augmentation (numpy / scipy).
+"""Scan → network input: features, kNN neighbourhoods, 2D grid cells, augmentation.
 
-The model (:mod:`leap_core.consistency.backbone`) sees tensors only; everything that needs a kd-tree or
-per-scan bookkeeping lives here.
+The model (:mod:`leap_core.consistency.backbone`) sees tensors only; everything that needs a neighbour
+search or per-scan bookkeeping lives here, twice over the same formulas: :func:`prepare_cloud` in numpy /
+scipy, and :func:`prepare_cloud_tensors` in torch on the network's device, so a GPU is not left waiting on
+the CPU. Both take the neighbours from a kd-tree (:func:`neighbours`): an exact search that a GPU does not
+beat by brute force on a whole scan.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -45,6 +49,23 @@ class PreparedCloud:
     feats: npt.NDArray[np.float32]
     local: npt.NDArray[np.float32]
     cell_uv: npt.NDArray[np.int64]
+    grid_hw: npt.NDArray[np.int64]
+
+
+@dataclass
+class TensorCloud:
+    """:class:`PreparedCloud`'s fields as torch tensors on one device (:func:`prepare_cloud_tensors`).
+
+    Attributes:
+        feats: (N, D_in) float32.
+        local: (N, K, D_loc) float32.
+        cell_uv: (3, N, 2) int64.
+        grid_hw: (3, 2) int64, on the CPU (the batch's grid sizes are Python numbers).
+    """
+
+    feats: torch.Tensor
+    local: torch.Tensor
+    cell_uv: torch.Tensor
     grid_hw: npt.NDArray[np.int64]
 
 
@@ -127,16 +148,29 @@ def height_above_ground(xyz: npt.NDArray[np.float32], cell: float = GROUND_CELL)
     ij = np.floor(xyz[:, :2] / cell).astype(np.int64)
     ij -= ij.min(axis=0)
     col = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    order = np.lexsort((xyz[:, 2], col))
-    sorted_col = col[order]
-    first = np.empty(len(order), dtype=bool)
-    first[:1] = True
-    np.not_equal(sorted_col[1:], sorted_col[:-1], out=first[1:])
-    group = np.cumsum(first) - 1
-    ground = xyz[order[first], 2][group]
-    out = np.empty(len(order), dtype=np.float32)
-    out[order] = xyz[order, 2] - ground
+    if int(col.max()) >= 4 * len(col) + 4096:
+        # Far-flung points would make the column table larger than the cloud: number the columns instead.
+        col = np.unique(col, return_inverse=True)[1].reshape(-1)
+    ground = np.full(int(col.max()) + 1, np.inf, dtype=xyz.dtype)
+    np.minimum.at(ground, col, xyz[:, 2])
+    out: npt.NDArray[np.float32] = (xyz[:, 2] - ground[col]).astype(np.float32)
     return out
+
+
+def neighbours(
+    xyz_all: npt.NDArray[np.float32], xyz: npt.NDArray[np.float32], knn: int, workers: int = 1
+) -> npt.NDArray[np.int64]:
+    """(N, knn) int64 rows of ``xyz_all`` (M, 3) nearest to each of ``xyz`` (N, 3), nearest first (the
+    point itself when it is among them), by a kd-tree queried on ``workers`` threads. A cloud of fewer than
+    ``knn`` points repeats its farthest neighbour, so the shape does not depend on the scan's size."""
+    k = min(knn, xyz_all.shape[0])
+    # The query's neighbours do not depend on the tree's shape; a median-free build is 2-3x faster.
+    tree = cKDTree(xyz_all, balanced_tree=False, compact_nodes=False)
+    _, nbr = tree.query(xyz, k=k, workers=workers)
+    nbr = np.asarray(nbr, dtype=np.int64).reshape(xyz.shape[0], k)
+    if k < knn:
+        nbr = np.concatenate([nbr, np.repeat(nbr[:, -1:], knn - k, axis=1)], axis=1)
+    return nbr
 
 
 def prepare_cloud(
@@ -171,15 +205,9 @@ def prepare_cloud(
     xyz_all = pts[:, :3]
     xyz = sel[:, :3]
     n = xyz.shape[0]
-    k = min(cfg.knn, xyz_all.shape[0])
     if n == 0:
         raise ValueError("cannot prepare an empty point cloud")
-    tree = cKDTree(xyz_all)
-    _, nbr = tree.query(xyz, k=k, workers=workers)
-    nbr = np.asarray(nbr, dtype=np.int64).reshape(n, k)
-    if k < cfg.knn:
-        # Tiny clouds: repeat the farthest neighbour so the tensor shape does not depend on the scan size.
-        nbr = np.concatenate([nbr, np.repeat(nbr[:, -1:], cfg.knn - k, axis=1)], axis=1)
+    nbr = neighbours(xyz_all, xyz, cfg.knn, workers)
     offsets = xyz_all[nbr] - xyz[:, None, :]
     dist = np.linalg.norm(offsets, axis=2, keepdims=True)
     local_parts = [offsets / LOCAL_SCALE, dist / LOCAL_SCALE]
@@ -215,8 +243,8 @@ def prepare_cloud(
     return PreparedCloud(feats=feats, local=local, cell_uv=cell_uv, grid_hw=grid_hw)
 
 
-def collate(clouds: Sequence[PreparedCloud]) -> CloudTensors:
-    """Concatenate B prepared clouds into one batch.
+def collate(clouds: Sequence[PreparedCloud | TensorCloud]) -> CloudTensors:
+    """Concatenate B prepared clouds into one batch, on the clouds' device (numpy clouds: the CPU).
 
     Each plane's grid is ``(B, H, W)`` with ``H, W`` the largest over the batch; a point of cloud ``b`` at
     cell ``(u, v)`` gets the flat index ``b · H · W + u · W + v``.
@@ -225,17 +253,96 @@ def collate(clouds: Sequence[PreparedCloud]) -> CloudTensors:
         raise ValueError("cannot collate an empty list of clouds")
     b = len(clouds)
     hw = np.max(np.stack([c.grid_hw for c in clouds]), axis=0)
+    uv = [torch.as_tensor(c.cell_uv) for c in clouds]
     planes = []
     for p in range(len(PLANES)):
         h, w = int(hw[p, 0]), int(hw[p, 1])
-        cells = np.concatenate(
-            [i * h * w + c.cell_uv[p, :, 0] * w + c.cell_uv[p, :, 1] for i, c in enumerate(clouds)]
-        )
-        planes.append(PlaneIndex.from_cells(torch.from_numpy(cells), (b, h, w)))
+        cells = torch.cat([i * h * w + c[p, :, 0] * w + c[p, :, 1] for i, c in enumerate(uv)])
+        planes.append(PlaneIndex.from_cells(cells, (b, h, w)))
     return CloudTensors(
-        feats=torch.from_numpy(np.concatenate([c.feats for c in clouds])),
-        local=torch.from_numpy(np.concatenate([c.local for c in clouds])),
+        feats=torch.cat([torch.as_tensor(c.feats) for c in clouds]),
+        local=torch.cat([torch.as_tensor(c.local) for c in clouds]),
         planes=tuple(planes),
+    )
+
+
+def shape_features_tensors(offsets: torch.Tensor) -> torch.Tensor:
+    """:func:`shape_features` in torch: (N, K, 3) offsets -> (N, 5) float32, on their device."""
+    centred = offsets - offsets.mean(dim=1, keepdim=True)
+    cov = torch.einsum("nki,nkj->nij", centred, centred) / max(offsets.shape[1], 1)
+    evals, evecs = torch.linalg.eigh(cov.double())
+    evals = evals.clamp_min(0.0)
+    l3, l2, l1 = evals[:, 0], evals[:, 1], evals[:, 2]
+    denom = l1.clamp_min(1e-12)
+    out = torch.stack(
+        [evecs[:, 2, 0].abs(), (l1 - l2) / denom, (l2 - l3) / denom, l3 / denom, l1.sqrt() / LOCAL_SCALE],
+        dim=1,
+    )
+    out[l1 <= 1e-12] = 0.0
+    return out.float()
+
+
+def height_above_ground_tensors(xyz: torch.Tensor, cell: float = GROUND_CELL) -> torch.Tensor:
+    """:func:`height_above_ground` in torch: (N, 3) -> (N,) float32 ``z − min z`` of its column."""
+    ij = torch.floor(xyz[:, :2] / cell).long()
+    col = torch.unique(ij, dim=0, return_inverse=True)[1]
+    ground = torch.full((int(col.max()) + 1,), math.inf, dtype=xyz.dtype, device=xyz.device)
+    ground = ground.scatter_reduce(0, col, xyz[:, 2], reduce="amin")
+    return (xyz[:, 2] - ground[col]).float()
+
+
+def prepare_cloud_tensors(
+    points: torch.Tensor, cfg: BackboneConfig, nbr: torch.Tensor, subset: torch.Tensor | None = None
+) -> TensorCloud:
+    """:func:`prepare_cloud` in torch on ``points``' device, by the same formulas (its docstring has
+    them), given the neighbours; the features agree with :func:`prepare_cloud`'s to float32 rounding.
+
+    Args:
+        points: (M, 4) float32 x, y, z, remission in the LiDAR frame.
+        cfg: backbone sizes.
+        nbr: (N, knn) int64 :func:`neighbours` of the prepared points among all M, on the same device.
+        subset: (N,) int64 indices of the points to prepare (on the same device); None for all M.
+    """
+    if points.ndim != 2 or points.shape[1] < 4:
+        raise ValueError(f"points must be (N, 4) x, y, z, remission, got {tuple(points.shape)}")
+    pts = points.float()
+    sel = pts if subset is None else pts[subset]
+    xyz_all, xyz = pts[:, :3], sel[:, :3]
+    n = xyz.shape[0]
+    if n == 0:
+        raise ValueError("cannot prepare an empty point cloud")
+    offsets = xyz_all[nbr] - xyz[:, None, :]
+    dist = offsets.norm(dim=2, keepdim=True)
+    local_parts = [offsets / LOCAL_SCALE, dist / LOCAL_SCALE]
+    feat_parts = (
+        [
+            xyz[:, :2] / POSITION_SCALE,
+            xyz[:, 2:3] / HEIGHT_SCALE,
+            xyz.norm(dim=1, keepdim=True) / POSITION_SCALE,
+        ]
+        if cfg.position_inputs
+        else []
+    )
+    ground = height_above_ground_tensors(xyz_all)
+    feat_parts += [
+        (ground if subset is None else ground[subset])[:, None] / HEIGHT_SCALE,
+        shape_features_tensors(offsets),
+    ]
+    if cfg.use_intensity:
+        feat_parts.append(sel[:, 3:4])
+        local_parts.append(pts[nbr, 3][..., None] - sel[:, None, 3:4])
+    clipped = xyz.clamp(-GRID_EXTENT, GRID_EXTENT)
+    cell_uv = torch.empty((len(PLANES), n, 2), dtype=torch.int64, device=pts.device)
+    for p, (a, b) in enumerate(PLANES):
+        for j, axis in enumerate((a, b)):
+            coord = clipped[:, axis]
+            cell_uv[p, :, j] = torch.floor((coord - coord.min()) / cfg.grid_cells[p]).long()
+    grid_hw = (cell_uv.amax(dim=1) + 1).cpu().numpy().astype(np.int64)
+    return TensorCloud(
+        feats=torch.cat(feat_parts, dim=1).float(),
+        local=torch.cat(local_parts, dim=2).float(),
+        cell_uv=cell_uv,
+        grid_hw=grid_hw,
     )
 
 
@@ -246,9 +353,14 @@ __all__ = [
     "LOCAL_SCALE",
     "POSITION_SCALE",
     "PreparedCloud",
+    "TensorCloud",
     "augment_points",
     "collate",
     "height_above_ground",
+    "height_above_ground_tensors",
+    "neighbours",
     "prepare_cloud",
+    "prepare_cloud_tensors",
     "shape_features",
+    "shape_features_tensors",
 ]

@@ -33,6 +33,7 @@ from leap_core.consistency.train import (
     num_train_steps,
     predict_log_probs,
     resolve_device,
+    resolve_precision,
     save_checkpoint,
     torch_threads,
     train_model,
@@ -85,8 +86,9 @@ def training_fingerprint(
     time). ``frames`` is the frames of one sequence, or ``(name, frames)`` per part of a
     joint round over several sequences (:func:`iter_3dcn_round`)."""
     h = hashlib.sha256()
-    # Fields that only matter after training (T, new voxels' margin, test-time views, device, threads)
-    # are left out: changing them reuses the weights.
+    # Fields that only matter after training (T, new voxels' margin, test-time views) or say only where
+    # and in what arithmetic it runs (device, precision, threads) are left out: changing them reuses the
+    # weights.
     untrained = (
         "enabled",
         "iterations",
@@ -95,6 +97,7 @@ def training_fingerprint(
         "new_voxel_margin",
         "test_time_views",
         "device",
+        "precision",
         "num_threads",
     )
     trained = {k: v for k, v in fingerprint_form(config_to_dict(cfg)).items() if k not in untrained}
@@ -545,7 +548,12 @@ def predict_frames(
             frame = seq.frame(i)
             keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
             logp = predict_log_probs(
-                model, frame.points, device=device, workers=workers, views=cfg.test_time_views
+                model,
+                frame.points,
+                device=device,
+                workers=workers,
+                views=cfg.test_time_views,
+                precision=resolve_precision(cfg, device),
             )
             del frame
             release_free_memory()  # the forward pass's activations, freed by now

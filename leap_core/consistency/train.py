@@ -20,18 +20,22 @@ import numpy.typing as npt
 import torch
 from torch.nn import functional as F_
 
-from leap_core.consistency.backbone import PointSegmenter
+from leap_core.consistency.backbone import CloudTensors, PointSegmenter
 from leap_core.consistency.config import BackboneConfig, ConsistencyConfig
 from leap_core.consistency.data import (
     PreparedCloud,
+    TensorCloud,
     augment_points,
     collate,
     inference_view,
+    neighbours,
     prepare_cloud,
+    prepare_cloud_tensors,
 )
 from leap_core.errors import ModelLoadError
 from leap_core.heap import release_free_memory
 from leap_core.io_utils import atomic_write, file_digest
+from leap_core.prefetch import prefetched
 from leap_core.progress import ProgressFn, report
 from leap_core.types import UNLABELED
 
@@ -67,6 +71,32 @@ def resolve_device(cfg: ConsistencyConfig) -> torch.device:
             raise ModelLoadError("consistency.device is 'cuda' but torch sees no CUDA device")
         return torch.device("cuda")
     return torch.device("cpu")
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether ``device`` computes in bfloat16 natively: a CUDA GPU that supports it, or a CPU with
+    AVX512-BF16 or AMX instructions (elsewhere torch emulates it, slower than float32)."""
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    cpu = torch.cpu
+    # Private probes, the only ones torch has; a torch without them counts as "no".
+    probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(bool(getattr(cpu, name, lambda: False)()) for name in probes)
+
+
+def resolve_precision(cfg: ConsistencyConfig, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of the network's passes for ``cfg.precision`` on ``device``: ``torch.bfloat16``,
+    or None for plain float32 (``auto``: bfloat16 where :func:`native_bfloat16`)."""
+    if cfg.precision == "bfloat16" or (cfg.precision == "auto" and native_bfloat16(device)):
+        return torch.bfloat16
+    return None
+
+
+def autocast(device: torch.device, dtype: torch.dtype | None) -> contextlib.AbstractContextManager[None]:
+    """Mixed precision in ``dtype`` for the block on ``device``'s type; nothing when ``dtype`` is None."""
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device.type, dtype=dtype)
 
 
 @contextlib.contextmanager
@@ -213,45 +243,53 @@ def train_model(
         opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total))
         model.train()
-        step = 0
-        workers = max(1, torch.get_num_threads())
-        while step < total:
-            order = rng.permutation(len(indices))
-            for s in range(min(per_epoch, total - step)):
-                batch_ids = [indices[j] for j in order[s * cfg.scans_per_step : (s + 1) * cfg.scans_per_step]]
-                batch = _training_batch(load_scan, batch_ids, cfg, rng, workers)
-                _train_step(model, opt, batch, weights, cfg, device, stats)
-                del batch
-                # The step's batch, activations and gradients are freed by now; hand their pages back
-                # so they do not add up step after step (leap_core.heap).
-                release_free_memory()
-                sched.step()
-                step += 1
-                report(progress, step, total)
+        amp = resolve_precision(cfg, device)
+        # The kd-tree queries leave one thread to the training step they overlap with.
+        workers = max(1, torch.get_num_threads() - 1)
+        # The next step's scans are read, sampled and prepared (kd-tree, features, grid cells) on a
+        # background thread while this step trains; the sampling draws in the same order either way.
+        # On a GPU the input is prepared there too (a brute-force neighbour search takes it milliseconds);
+        # on the CPU with a kd-tree.
+        prep_device = device if device.type == "cuda" else None
+        batches = _step_batches(load_scan, indices, per_epoch, total, cfg, rng, workers, prep_device)
+        for step, batch in enumerate(prefetched(batches), start=1):
+            if batch is not None:
+                _train_step(model, opt, batch, weights, cfg, device, amp, stats)
+            del batch
+            # The step's batch, activations and gradients are freed by now; hand their pages back
+            # so they do not add up step after step (leap_core.heap).
+            release_free_memory()
+            sched.step()
+            report(progress, step, total)
     model.eval()
     stats.seconds = time.perf_counter() - t0
     return model.cpu(), stats
 
 
+TrainingBatch = tuple[CloudTensors, torch.Tensor]
+"""One step's collated clouds and its (N,) int64 loss targets (``_IGNORE`` where a point has no label)."""
+
+
 def _train_step(  # noqa: PLR0917  one step's model, optimiser, batch and its settings
     model: PointSegmenter,
     opt: torch.optim.Optimizer,
-    batch_data: tuple[list[PreparedCloud], list[npt.NDArray[np.int64]]],
+    batch_data: TrainingBatch,
     weights: torch.Tensor | None,
     cfg: ConsistencyConfig,
     device: torch.device,
+    amp: torch.dtype | None,
     stats: TrainStats,
 ) -> None:
-    """One optimisation step on one batch (:func:`_training_batch`), counted in ``stats``; nothing when
-    the batch is empty. Its own function so that the step's tensors are gone when it returns."""
+    """One optimisation step on one batch (:func:`_training_batch`), counted in ``stats``, with the
+    network's passes in ``amp`` mixed precision (None: float32). Its own function so that the step's
+    tensors are gone when it returns."""
     clouds, targets = batch_data
-    if not clouds:
-        return
-    batch = collate(clouds).to(device)
-    tgt = torch.from_numpy(np.concatenate(targets)).to(device)
-    logits = model(batch)
+    batch = clouds.to(device)
+    tgt = targets.to(device)
+    with autocast(device, amp):
+        logits = model(batch)
     loss = F_.cross_entropy(
-        logits, tgt, weight=weights, ignore_index=_IGNORE, label_smoothing=cfg.label_smoothing
+        logits.float(), tgt, weight=weights, ignore_index=_IGNORE, label_smoothing=cfg.label_smoothing
     )
     opt.zero_grad(set_to_none=True)
     torch.autograd.backward(loss)  # loss.backward(), which torch leaves unannotated
@@ -263,16 +301,42 @@ def _train_step(  # noqa: PLR0917  one step's model, optimiser, batch and its se
     stats.labeled_seen += int((tgt != _IGNORE).sum())
 
 
+def _step_batches(  # noqa: PLR0917  the loop's scans, its lengths and the sampling's settings
+    load_scan: ScanLoader,
+    indices: Sequence[int],
+    per_epoch: int,
+    total: int,
+    cfg: ConsistencyConfig,
+    rng: np.random.Generator,
+    workers: int,
+    prep_device: torch.device | None,
+) -> Iterator[TrainingBatch | None]:
+    """The ``total`` steps' batches in order: per pass over the scans a seeded permutation of
+    ``indices``, ``cfg.scans_per_step`` scans per step, ``per_epoch`` steps per pass; None for a step
+    none of whose scans has a drawn labeled point (the step is skipped, the schedule still advances)."""
+    step = 0
+    while step < total:
+        order = rng.permutation(len(indices))
+        for s in range(min(per_epoch, total - step)):
+            batch_ids = [indices[j] for j in order[s * cfg.scans_per_step : (s + 1) * cfg.scans_per_step]]
+            yield _training_batch(load_scan, batch_ids, cfg, rng, workers, prep_device)
+            step += 1
+
+
 def _training_batch(
     load_scan: ScanLoader,
     batch_ids: Sequence[int],
     cfg: ConsistencyConfig,
     rng: np.random.Generator,
     workers: int,
-) -> tuple[list[PreparedCloud], list[npt.NDArray[np.int64]]]:
-    """The clouds of one step and their loss targets (``_IGNORE`` where a drawn point has no selected
-    label); a scan none of whose drawn points carries a label is left out."""
-    clouds, targets = [], []
+    prep_device: torch.device | None = None,
+) -> TrainingBatch | None:
+    """The collated clouds of one step and their loss targets (``_IGNORE`` where a drawn point has no
+    selected label); a scan none of whose drawn points carries a label is left out, and a step without
+    any such scan is None. Prepared on ``prep_device`` in torch (:func:`prepare_cloud_tensors`), or with
+    a kd-tree of ``workers`` threads when None (:func:`prepare_cloud`)."""
+    clouds: list[PreparedCloud | TensorCloud] = []
+    targets = []
     for i in batch_ids:
         points, target = load_scan(i)
         target = np.asarray(target)
@@ -283,9 +347,16 @@ def _training_batch(
         t = target[subset].astype(np.int64)
         if not (t != UNLABELED).any():
             continue
-        clouds.append(prepare_cloud(pts, cfg.backbone, subset, workers=workers))
+        if prep_device is None:
+            clouds.append(prepare_cloud(pts, cfg.backbone, subset, workers=workers))
+        else:
+            nbr = neighbours(pts[:, :3], pts[subset, :3], cfg.backbone.knn, workers)
+            on = [torch.from_numpy(a).to(prep_device, non_blocking=True) for a in (pts, nbr, subset)]
+            clouds.append(prepare_cloud_tensors(on[0], cfg.backbone, on[1], on[2]))
         targets.append(np.where(t == UNLABELED, _IGNORE, t))
-    return clouds, targets
+    if not clouds:
+        return None
+    return collate(clouds), torch.from_numpy(np.concatenate(targets))
 
 
 @torch.inference_mode()
@@ -295,6 +366,7 @@ def predict_log_probs(
     device: torch.device | str = "cpu",
     workers: int = 1,
     views: int = 1,
+    precision: torch.dtype | None = None,
 ) -> npt.NDArray[np.float32]:
     """Per-point class log-probabilities of every point of one scan, averaged over ``views`` views of it.
 
@@ -307,6 +379,7 @@ def predict_log_probs(
         device: where the forward pass runs.
         workers: kd-tree query threads.
         views: test-time views (:func:`~leap_core.consistency.data.inference_view`), ≥ 1.
+        precision: the autocast dtype of the forward pass (:func:`resolve_precision`); None = float32.
 
     Returns:
         (N, C) float32 log-probabilities (rows log-sum-exp to 0); ``-inf`` for classes the model had no
@@ -320,8 +393,17 @@ def predict_log_probs(
         acc: torch.Tensor | None = None
         for j in range(views):
             view = points if views == 1 else inference_view(points, j, views)
-            batch = collate([prepare_cloud(view, model.cfg, None, workers=workers)]).to(device)
-            logits = model(batch).float().masked_fill(~model.trained_classes, -math.inf)
+            dev = torch.device(device)
+            if dev.type == "cuda":
+                nbr = neighbours(view[:, :3], view[:, :3], model.cfg.knn, workers)
+                on = [torch.from_numpy(a).to(dev) for a in (view, nbr)]
+                cloud: PreparedCloud | TensorCloud = prepare_cloud_tensors(on[0], model.cfg, on[1])
+            else:
+                cloud = prepare_cloud(view, model.cfg, None, workers=workers)
+            batch = collate([cloud]).to(dev)
+            with autocast(torch.device(device), precision):
+                logits = model(batch)
+            logits = logits.float().masked_fill(~model.trained_classes, -math.inf)
             logp = F_.log_softmax(logits, dim=1)
             acc = logp if acc is None else torch.logaddexp(acc, logp)
         assert acc is not None
@@ -457,9 +539,11 @@ __all__ = [
     "load_checkpoint",
     "load_source",
     "lr_factor",
+    "native_bfloat16",
     "num_train_steps",
     "predict_log_probs",
     "resolve_device",
+    "resolve_precision",
     "save_checkpoint",
     "torch_threads",
     "train_model",
