@@ -672,7 +672,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--budget", type=float, default=440.0, help="seconds from the start after which the run stops"
     )
     ap.add_argument("--sample-interval", type=float, default=0.25, help="seconds between GPU samples")
-    ap.add_argument("--work", type=Path, default=None, help="where the temporary sequence and run go")
+    ap.add_argument(
+        "--work", type=Path, default=None, help="folder for the sequence and run, kept (default: a temp one)"
+    )
     ap.add_argument("--results-dir", type=Path, default=None, help="where the JSON goes")
     args = ap.parse_args(argv)
     args.frames = args.frames or (QUICK_FRAMES if args.quick else 300)
