@@ -87,6 +87,17 @@ def write_folder(folder: Path, config: Any, processor: Any, extra: dict[str, Any
         (folder / "preprocessor_config.json").write_text(json.dumps(extra))
 
 
+def pin_regions(lab: GroundedSamLabeler, keep: int) -> None:
+    """Make ``lab`` keep its detector's first ``keep`` regions per image whatever random weights score
+    (with a box threshold just above zero every region passes, so SAM always gets ``keep`` boxes)."""
+    detect = lab._detect
+
+    def pinned(images: Any, plan: Any) -> Any:
+        return [(b[:keep], s[:keep]) for b, s in detect(images, plan)]
+
+    lab._detect = pinned  # type: ignore[method-assign]  # the benchmark pins the mask work
+
+
 class PinnedSam3(Sam3Labeler):
     """SAM 3 keeping each prompt's ``instances`` best queries whatever random weights score (the mask
     upsampling and packing of a busy frame then always runs)."""
@@ -147,13 +158,7 @@ def build_engines(
                 Runtime(models_dir=folder, device=dev),
             )
             lab._models = LoadedModels(det_model, lab.detector_processor, seg, sp, dev)
-            keep = args.boxes
-            detect = lab._detect
-
-            def pinned(images: Any, plan: Any) -> Any:
-                return [(b[:keep], s[:keep]) for b, s in detect(images, plan)]
-
-            lab._detect = pinned  # type: ignore[method-assign]  # the benchmark pins the mask work
+            pin_regions(lab, args.boxes)
             return lab
 
         engines[f"Grounding DINO-T + {name}"] = make_gs

@@ -108,10 +108,12 @@ class PeakMemory:
 
     added: int = 0
     exact: bool = False
+    peak: int = 0
+    """The process's peak resident size while measured, in bytes (with ``exact`` False: since it began)."""
     _start: int = field(default=0, repr=False)
 
-    @contextlib.contextmanager
-    def measure(self) -> Iterator[PeakMemory]:
+    def start(self) -> None:
+        """Begin measuring (what ``measure`` does on entry; for spans that are not one ``with`` block)."""
         try:
             Path("/proc/self/clear_refs").write_text("5")
             self.exact = _status_kb("VmHWM") is not None
@@ -121,12 +123,20 @@ class PeakMemory:
             self._start = (_status_kb("VmRSS") or 0) * 1024
         else:
             self._start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-        yield self
+
+    def stop(self) -> None:
+        """End measuring: sets ``peak`` and ``added``."""
         if self.exact:
-            peak = (_status_kb("VmHWM") or 0) * 1024
+            self.peak = (_status_kb("VmHWM") or 0) * 1024
         else:
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-        self.added = max(peak - self._start, 0)
+            self.peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+        self.added = max(self.peak - self._start, 0)
+
+    @contextlib.contextmanager
+    def measure(self) -> Iterator[PeakMemory]:
+        self.start()
+        yield self
+        self.stop()
 
 
 def peak_memory(fn: Callable[[], Any]) -> tuple[Any, PeakMemory]:

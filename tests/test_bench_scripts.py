@@ -35,6 +35,8 @@ SMOKE: dict[str, tuple[list[str], str]] = {
     "bench_app_load.py": (["--quick"], "ratio load / baseline"),
     "bench_check.py": (["--frames", "20", "--repeat", "1"], "check / open"),
     "bench_fusion.py": (["--quick"], "Ratio to the best same-work baseline"),
+    # Printed only when every stage and the 3D-CN round's three phases were measured.
+    "bench_gpu.py": (["--quick"], "x the target of at most 30 min on one H100"),
     "bench_objects.py": (["--quick"], "tracks stage ms/scan"),
     "bench_lidar_model.py": (["--quick"], "ratio model / baseline time"),
     "bench_memory.py": (["--sequence", SEQ], f"baseline = {BASELINE_COMMIT}"),
@@ -62,6 +64,8 @@ SMOKE: dict[str, tuple[list[str], str]] = {
         "worst server time",
     ),
 }
+SLOW = {"bench_gpu.py"}
+"""Scripts whose smallest run takes 10 s or more on 2 cores (``scripts/test.sh --fast`` skips them)."""
 NEEDS = {
     "bench_ray.py": "ray",
     "bench_memory.py": "psutil",
@@ -87,7 +91,9 @@ def tiny_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return generate_sequence(root, SynthConfig(frames=2)).path
 
 
-@pytest.mark.parametrize("script", sorted(SMOKE))
+@pytest.mark.parametrize(
+    "script", [pytest.param(s, marks=pytest.mark.slow) if s in SLOW else s for s in sorted(SMOKE)]
+)
 def test_benchmark_smallest_mode_runs(script: str, tmp_path: Path, request: pytest.FixtureRequest) -> None:
     args, expected = SMOKE[script]
     if script in NEEDS and importlib.util.find_spec(NEEDS[script]) is None:
