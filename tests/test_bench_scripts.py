@@ -26,12 +26,14 @@ OWN_TESTS = {"bench_2d.py", "bench_poses.py"}
 """Scripts whose smallest mode a test file of their own runs."""
 BASELINE_COMMIT = "c472ae0"
 """The baseline commit of bench_scan.py and bench_memory.py (checked out from git)."""
+BASELINES = {"bench_scan.py": BASELINE_COMMIT, "bench_memory.py": BASELINE_COMMIT, "bench_3dcn.py": "25c0286"}
+"""The scripts that import a baseline commit from git, and that commit (their default)."""
 
 SEQ = "{seq}"
 """Stands for the generated 2-frame sequence in a command line."""
 SMOKE: dict[str, tuple[list[str], str]] = {
     # script: (smallest command line, text its output must hold)
-    "bench_3dcn.py": (["--quick"], "ratio backbone step / MLP step"),
+    "bench_3dcn.py": (["--quick"], "this tree, float32"),
     "bench_app_load.py": (["--quick"], "ratio load / baseline"),
     "bench_check.py": (["--frames", "20", "--repeat", "1"], "check / open"),
     "bench_fusion.py": (["--quick"], "Ratio to the best same-work baseline"),
@@ -98,8 +100,9 @@ def test_benchmark_smallest_mode_runs(script: str, tmp_path: Path, request: pyte
     args, expected = SMOKE[script]
     if script in NEEDS and importlib.util.find_spec(NEEDS[script]) is None:
         pytest.skip(f"{NEEDS[script]} not installed (an optional extra)")
-    if script in ("bench_scan.py", "bench_memory.py") and not _has_commit(BASELINE_COMMIT):
-        pytest.skip(f"baseline commit {BASELINE_COMMIT} not in this clone's history")
+    baseline = BASELINES.get(script)
+    if baseline is not None and not _has_commit(baseline):
+        pytest.skip(f"baseline commit {baseline} of {script} not in this clone's history")
     if SEQ in args:
         seq = request.getfixturevalue("tiny_sequence")
         args = [str(seq) if a == SEQ else a for a in args]
