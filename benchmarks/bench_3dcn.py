@@ -373,7 +373,7 @@ def step_tables(
 ) -> tuple[dict[str, float], list[dict[str, Any]]]:
     """The backbone-vs-MLP step (:func:`step_times`) and the training step per version
     (:func:`training_step_versions`) on the first scans of ``seq``."""
-    base = step_times(cfg, seq.frame(frames[0]).points, num_classes)
+    base = step_times(cfg, seq.frame(frames[0]).points, num_classes, repeats=2 if args.quick else 5)
     # The scans' targets: the ground truth with 4 of 5 points unlabeled (the selection keeps a share of
     # each class's labels); what a step costs does not depend on which labels they are.
     mask_rng = np.random.default_rng(0)

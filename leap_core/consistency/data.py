@@ -243,6 +243,26 @@ def prepare_cloud(
     return PreparedCloud(feats=feats, local=local, cell_uv=cell_uv, grid_hw=grid_hw)
 
 
+def prepare_input(
+    points: npt.NDArray[np.float32],
+    cfg: BackboneConfig,
+    subset: npt.NDArray[np.int64] | None = None,
+    device: torch.device | None = None,
+    workers: int = 1,
+) -> PreparedCloud | TensorCloud:
+    """(A subset of) one scan prepared for the network: on ``device`` (a GPU) the neighbours by kd-tree on
+    ``workers`` CPU threads and the rest there (:func:`prepare_cloud_tensors`); with None all on the CPU
+    (:func:`prepare_cloud`)."""
+    if device is None:
+        return prepare_cloud(points, cfg, subset, workers=workers)
+    nbr = neighbours(
+        points[:, :3], points[subset if subset is not None else slice(None), :3], cfg.knn, workers
+    )
+    on_device = torch.from_numpy(np.ascontiguousarray(points)).to(device)
+    sub = None if subset is None else torch.from_numpy(subset).to(device)
+    return prepare_cloud_tensors(on_device, cfg, torch.from_numpy(nbr).to(device), sub)
+
+
 def collate(clouds: Sequence[PreparedCloud | TensorCloud]) -> CloudTensors:
     """Concatenate B prepared clouds into one batch, on the clouds' device (numpy clouds: the CPU).
 
@@ -361,6 +381,7 @@ __all__ = [
     "neighbours",
     "prepare_cloud",
     "prepare_cloud_tensors",
+    "prepare_input",
     "shape_features",
     "shape_features_tensors",
 ]

@@ -24,6 +24,7 @@ import torch
 
 from leap_core.consistency.backbone import PointSegmenter
 from leap_core.consistency.config import ConsistencyConfig, fingerprint_form
+from leap_core.consistency.data import PreparedCloud, TensorCloud
 from leap_core.consistency.selection import lookup_counts, select_reliable, select_reliable_scans
 from leap_core.consistency.train import (
     SourceNetwork,
@@ -31,7 +32,8 @@ from leap_core.consistency.train import (
     config_to_dict,
     load_checkpoint,
     num_train_steps,
-    predict_log_probs,
+    predict_prepared,
+    prepare_views,
     resolve_device,
     resolve_precision,
     save_checkpoint,
@@ -51,6 +53,7 @@ from leap_core.fusion import (
     world_points,
 )
 from leap_core.heap import cap_heap_growth, release_free_memory
+from leap_core.prefetch import prefetched
 from leap_core.types import UNLABELED
 
 FUSE_CHUNK_POINTS = 2_000_000
@@ -536,26 +539,28 @@ def predict_frames(
     tick: Callable[[], None] | None = None,
 ) -> Iterator[tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]]:
     """Step 3's inference, one scan at a time: per frame of ``frames``, the (N,) voxel keys of its points
-    in world coordinates and their (N, C) network log-probabilities (:func:`predict_log_probs`, on
-    ``model``'s device, ``cfg.num_threads`` torch threads, averaged over ``cfg.test_time_views`` views).
-    Only the scan being predicted is held; the memory its forward pass freed goes back to the system
-    before the scan is yielded
+    in world coordinates and their (N, C) network log-probabilities
+    (:func:`~leap_core.consistency.train.predict_log_probs`, on ``model``'s device, ``cfg.num_threads``
+    torch threads, averaged over ``cfg.test_time_views`` views, in ``cfg.precision``). The scan being
+    predicted and the next one, prepared meanwhile on a background thread, are held; the memory a forward
+    pass freed goes back to the system before its scan is yielded
     (:func:`~leap_core.heap.release_free_memory`). ``tick()`` after each scan."""
     device = next(model.parameters()).device
+    precision = resolve_precision(cfg, device)
     with torch_threads(cfg.num_threads):
-        workers = max(1, torch.get_num_threads())
-        for i in frames:
-            frame = seq.frame(i)
-            keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
-            logp = predict_log_probs(
-                model,
-                frame.points,
-                device=device,
-                workers=workers,
-                views=cfg.test_time_views,
-                precision=resolve_precision(cfg, device),
-            )
-            del frame
+        # The kd-tree queries of the next scan leave one thread to the forward pass they overlap with.
+        workers = max(1, torch.get_num_threads() - 1)
+
+        def prepared() -> Iterator[tuple[npt.NDArray[np.int64], list[PreparedCloud | TensorCloud]]]:
+            for i in frames:
+                frame = seq.frame(i)
+                keys = voxel_keys(world_points(frame.points, frame.pose), voxel_size)
+                yield keys, prepare_views(frame.points, model.cfg, cfg.test_time_views, device, workers)
+
+        # The next scan is read and prepared on a background thread while this one is predicted.
+        for keys, clouds in prefetched(prepared()):
+            logp = predict_prepared(model, clouds, device, precision)
+            del clouds
             release_free_memory()  # the forward pass's activations, freed by now
             if tick is not None:
                 tick()

@@ -28,9 +28,7 @@ from leap_core.consistency.data import (
     augment_points,
     collate,
     inference_view,
-    neighbours,
-    prepare_cloud,
-    prepare_cloud_tensors,
+    prepare_input,
 )
 from leap_core.errors import ModelLoadError
 from leap_core.heap import release_free_memory
@@ -347,19 +345,57 @@ def _training_batch(
         t = target[subset].astype(np.int64)
         if not (t != UNLABELED).any():
             continue
-        if prep_device is None:
-            clouds.append(prepare_cloud(pts, cfg.backbone, subset, workers=workers))
-        else:
-            nbr = neighbours(pts[:, :3], pts[subset, :3], cfg.backbone.knn, workers)
-            on = [torch.from_numpy(a).to(prep_device, non_blocking=True) for a in (pts, nbr, subset)]
-            clouds.append(prepare_cloud_tensors(on[0], cfg.backbone, on[1], on[2]))
+        clouds.append(prepare_input(pts, cfg.backbone, subset, prep_device, workers))
         targets.append(np.where(t == UNLABELED, _IGNORE, t))
     if not clouds:
         return None
     return collate(clouds), torch.from_numpy(np.concatenate(targets))
 
 
+def prepare_views(
+    points: npt.NDArray[np.float32], cfg: BackboneConfig, views: int, device: torch.device, workers: int = 1
+) -> list[PreparedCloud | TensorCloud]:
+    """The network inputs of ``views`` test-time views of one scan
+    (:func:`~leap_core.consistency.data.inference_view`; ``views = 1``: the scan as it is), prepared on
+    ``device`` when it is a GPU, else on the CPU (:func:`~leap_core.consistency.data.prepare_input`)."""
+    if views < 1:
+        raise ValueError(f"views must be >= 1, got {views}")
+    on = device if device.type == "cuda" else None
+    return [
+        prepare_input(points if views == 1 else inference_view(points, j, views), cfg, None, on, workers)
+        for j in range(views)
+    ]
+
+
 @torch.inference_mode()
+def predict_prepared(
+    model: PointSegmenter,
+    clouds: Sequence[PreparedCloud | TensorCloud],
+    device: torch.device,
+    precision: torch.dtype | None = None,
+) -> npt.NDArray[np.float32]:
+    """:func:`predict_log_probs` on views :func:`prepare_views` prepared: ``log((1/V) · Σ_j P_j)`` over the
+    V clouds, as a log-sum-exp; ``-inf`` for classes without training labels."""
+    was_training = model.training
+    model.eval()
+    try:
+        acc: torch.Tensor | None = None
+        for cloud in clouds:
+            batch = collate([cloud]).to(device)
+            with autocast(device, precision):
+                logits = model(batch)
+            logits = logits.float().masked_fill(~model.trained_classes, -math.inf)
+            logp = F_.log_softmax(logits, dim=1)
+            acc = logp if acc is None else torch.logaddexp(acc, logp)
+        if acc is None:
+            raise ValueError("no view to predict")
+        if len(clouds) > 1:
+            acc -= math.log(len(clouds))
+        return acc.cpu().numpy()
+    finally:
+        model.train(was_training)
+
+
 def predict_log_probs(
     model: PointSegmenter,
     points: npt.NDArray[np.float32],
@@ -376,7 +412,7 @@ def predict_log_probs(
     Args:
         model: a trained segmenter (moved to ``device`` by the caller).
         points: (N, 4) float32 scan in its LiDAR frame.
-        device: where the forward pass runs.
+        device: where the forward pass runs (on a GPU the input is prepared there too).
         workers: kd-tree query threads.
         views: test-time views (:func:`~leap_core.consistency.data.inference_view`), ≥ 1.
         precision: the autocast dtype of the forward pass (:func:`resolve_precision`); None = float32.
@@ -385,33 +421,8 @@ def predict_log_probs(
         (N, C) float32 log-probabilities (rows log-sum-exp to 0); ``-inf`` for classes the model had no
         training label of (``model.trained_classes``).
     """
-    if views < 1:
-        raise ValueError(f"views must be >= 1, got {views}")
-    was_training = model.training
-    model.eval()
-    try:
-        acc: torch.Tensor | None = None
-        for j in range(views):
-            view = points if views == 1 else inference_view(points, j, views)
-            dev = torch.device(device)
-            if dev.type == "cuda":
-                nbr = neighbours(view[:, :3], view[:, :3], model.cfg.knn, workers)
-                on = [torch.from_numpy(a).to(dev) for a in (view, nbr)]
-                cloud: PreparedCloud | TensorCloud = prepare_cloud_tensors(on[0], model.cfg, on[1])
-            else:
-                cloud = prepare_cloud(view, model.cfg, None, workers=workers)
-            batch = collate([cloud]).to(dev)
-            with autocast(torch.device(device), precision):
-                logits = model(batch)
-            logits = logits.float().masked_fill(~model.trained_classes, -math.inf)
-            logp = F_.log_softmax(logits, dim=1)
-            acc = logp if acc is None else torch.logaddexp(acc, logp)
-        assert acc is not None
-        if views > 1:
-            acc -= math.log(views)
-        return acc.cpu().numpy()
-    finally:
-        model.train(was_training)
+    dev = torch.device(device)
+    return predict_prepared(model, prepare_views(points, model.cfg, views, dev, workers), dev, precision)
 
 
 # ----------------------------------------------------------------------------------------- checkpoint
@@ -542,6 +553,8 @@ __all__ = [
     "native_bfloat16",
     "num_train_steps",
     "predict_log_probs",
+    "predict_prepared",
+    "prepare_views",
     "resolve_device",
     "resolve_precision",
     "save_checkpoint",
