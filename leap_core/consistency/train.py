@@ -246,8 +246,7 @@ def train_model(
         workers = max(1, torch.get_num_threads() - 1)
         # The next step's scans are read, sampled and prepared (kd-tree, features, grid cells) on a
         # background thread while this step trains; the sampling draws in the same order either way.
-        # On a GPU the input is prepared there too (a brute-force neighbour search takes it milliseconds);
-        # on the CPU with a kd-tree.
+        # On a GPU the features and grid cells are computed there, so the thread's share stays small.
         prep_device = device if device.type == "cuda" else None
         batches = _step_batches(load_scan, indices, per_epoch, total, cfg, rng, workers, prep_device)
         for step, batch in enumerate(prefetched(batches), start=1):
@@ -331,8 +330,8 @@ def _training_batch(
 ) -> TrainingBatch | None:
     """The collated clouds of one step and their loss targets (``_IGNORE`` where a drawn point has no
     selected label); a scan none of whose drawn points carries a label is left out, and a step without
-    any such scan is None. Prepared on ``prep_device`` in torch (:func:`prepare_cloud_tensors`), or with
-    a kd-tree of ``workers`` threads when None (:func:`prepare_cloud`)."""
+    any such scan is None. Prepared by :func:`~leap_core.consistency.data.prepare_input` on
+    ``prep_device`` (None: the CPU), its kd-tree queried on ``workers`` threads."""
     clouds: list[PreparedCloud | TensorCloud] = []
     targets = []
     for i in batch_ids:
