@@ -356,6 +356,7 @@ def test_a_project_file_with_models_dir_is_refused_with_file_and_field(tmp_path:
 ADDED_SECTIONS = ("sam3", "tracking")
 """Config sections added after the stored file was written (read as their defaults)."""
 ADDED_FIELDS = (
+    ("consistency", "precision"),
     ("grounded_sam", "flip_votes"),
     ("simulated", "instance_miss"),
     ("simulated", "instance_merge"),

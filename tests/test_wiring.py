@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from runhelpers import folder, label
 from test_pipeline import make_street
 
@@ -28,7 +29,7 @@ from leap_core.consistency.stage import (
     reliable_targets,
     training_fingerprint,
 )
-from leap_core.consistency.train import load_checkpoint, predict_log_probs, torch_threads
+from leap_core.consistency.train import load_checkpoint, predict_log_probs, resolve_precision, torch_threads
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.fusion import (
     Observations,
@@ -227,12 +228,13 @@ def test_3dcn_grid_is_the_fused_grid_plus_network_evidence(run: Run) -> None:
     = its knn_smooth with the corrections re-imposed."""
     cn, fcfg = run.cfg.consistency, run.cfg.fusion
     model = load_checkpoint(checkpoint_path(run.cn_dir, 1)).model
+    precision = resolve_precision(cn, torch.device("cpu"))  # the run's arithmetic, as its stage resolved it
     preds, in_view = [], []
     with torch_threads(cn.num_threads):  # the stage's thread count: matmul sums in the same order
         for i in run.frames:
             frame = run.seq.frame(i)
             keys = voxel_keys(world_points(frame.points, frame.pose), fcfg.voxel_size)
-            preds.append((keys, predict_log_probs(model, frame.points)))
+            preds.append((keys, predict_log_probs(model, frame.points, precision=precision)))
             in_view.append(keys[load_view(run.lay.observation(f"{i:06d}"))[1]])
     fused = VoxelGrid.load(run.lay.grid)
     # The margin applies to the new voxels inside the camera view; some lie outside it here.

@@ -164,8 +164,9 @@ def neighbours(
     point itself when it is among them), by a kd-tree queried on ``workers`` threads. A cloud of fewer than
     ``knn`` points repeats its farthest neighbour, so the shape does not depend on the scan's size."""
     k = min(knn, xyz_all.shape[0])
-    # The query's neighbours do not depend on the tree's shape; a median-free build is 2-3x faster.
-    tree = cKDTree(xyz_all, balanced_tree=False, compact_nodes=False)
+    # A median-free build would be 2-3x faster, but which of equally distant points a query returns
+    # depends on the tree's shape, and so would the features of scans with repeated points.
+    tree = cKDTree(xyz_all)
     _, nbr = tree.query(xyz, k=k, workers=workers)
     nbr = np.asarray(nbr, dtype=np.int64).reshape(xyz.shape[0], k)
     if k < knn:
