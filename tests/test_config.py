@@ -357,6 +357,7 @@ ADDED_SECTIONS = ("sam3", "tracking")
 """Config sections added after the stored file was written (read as their defaults)."""
 ADDED_FIELDS = (
     ("grounded_sam", "flip_votes"),
+    ("grounded_sam", "half_precision"),
     ("simulated", "instance_miss"),
     ("simulated", "instance_merge"),
     ("simulated", "instance_split"),
