@@ -17,7 +17,7 @@ With random weights, what is detected depends on the weights, so the mask work i
 keeps its first ``--boxes`` regions and SAM 3 keeps each prompt's ``--instances`` best-scored queries.
 No 2D cache: every frame is computed.
 
-Rows: engine × precision (fp16 only on CUDA; Grounding DINO + SAM runs fp32 only) × batch size (images
+Rows: engine × precision (fp16, the labelers' ``half_precision``, only on CUDA) × batch size (images
 per forward pass): seconds per frame, frames per second, peak GPU memory, the extrapolated 2D stage of a
 4,541-frame sequence (SemanticKITTI 08's length), and the ratio to Grounding DINO + SAM fp32 at batch 1,
 measured in the same process on the same frames.
@@ -47,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_models import real_detector, real_sam
 from common import RESULTS_DIR, print_table, write_results
 
+from leap_core.labelers.base import model_dtype
 from leap_core.labelers.cache import PassResult
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler, LoadedModels
 from leap_core.labelers.sam3 import Sam3Labeler, Sam3LabelerConfig, _Loaded
@@ -124,7 +125,6 @@ def build_engines(
     args: argparse.Namespace, tmp: Path, schema: Schema
 ) -> dict[str, Callable[[str, int], Any]]:
     """Engine name → ``make(precision, batch)``: a labeler over in-memory models on ``args.device``."""
-    import torch
 
     dev = args.device
     words = sorted({w for c in schema.classes for p in (*c.prompts, *c.negative_prompts) for w in p.split()})
@@ -150,14 +150,16 @@ def build_engines(
         def make_gs(
             precision: str, batch: int, folder: Path = folder, seg: Any = seg_on, sp: Any = seg_proc
         ) -> Any:
-            if precision != "fp32":
+            if precision == "fp16" and dev != "cuda":
                 return None
             # Threshold just above zero similarity: every region is kept, then pinned to --boxes below.
-            lab = GroundedSamLabeler(
-                GroundedSamConfig(batch_size=batch, box_threshold=1e-6),
-                Runtime(models_dir=folder, device=dev),
+            cfg = GroundedSamConfig(batch_size=batch, box_threshold=1e-6, half_precision=precision == "fp16")
+            lab = GroundedSamLabeler(cfg, Runtime(models_dir=folder, device=dev))
+            # Cast in place, as the labeler casts what it loads; the next row casts back if it needs to.
+            dtype = model_dtype(dev, cfg.half_precision)
+            lab._models = LoadedModels(
+                det_model.to(dtype), lab.detector_processor, seg.to(dtype), sp, dev, dtype
             )
-            lab._models = LoadedModels(det_model, lab.detector_processor, seg, sp, dev)
             pin_regions(lab, args.boxes)
             return lab
 
@@ -178,7 +180,7 @@ def build_engines(
         )
         lab = PinnedSam3(cfg, Runtime(models_dir=s3_folder.parent, device=dev))
         lab.instances = args.instances
-        dtype = torch.float16 if precision == "fp16" else torch.float32
+        dtype = model_dtype(dev, cfg.half_precision)
         lab._loaded = _Loaded(s3_on.to(dtype), dtype, dev)
         return lab
 
@@ -259,13 +261,14 @@ def main() -> None:  # one table of many measured figures
                 print(f"  {engine} {precision} batch {batch}: {per_frame:.3f} s/frame", flush=True)
 
     base = next(r for r in rows if r["engine"].startswith("Grounding") and r["batch"] == batches[0])
+    base_name = f"{base['engine']} {base['precision']} batch {base['batch']}"
     where = (
         torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
     )
     prompts = sum(len(c.prompts) + len(c.negative_prompts) for c in schema.classes)
     print_table(
         f"2D stage per {KITTI_HW[1]}x{KITTI_HW[0]} frame, {where}, {'tiny' if args.quick else 'real-size'} "
-        f"random-weight models, {prompts} prompts; ratio = {base['engine']} fp32 batch {base['batch']} / row",
+        f"random-weight models, {prompts} prompts; ratio = {base_name} / row",
         [
             "engine",
             "precision",

@@ -10,9 +10,9 @@ trained ones do) and warmed up once per batch size.
 Timed, in the order ``leap labels2d`` and ``leap run --cache`` work on a GPU machine:
 
 1. the 2D stage as ``leap labels2d`` runs it (:func:`leap_core.pipeline.executor.label_cache_task`,
-   ``--batch`` images per forward pass into the 2D cache), SAM 3 in fp16 on CUDA; Grounding DINO + SAM in
-   fp32 (its labeler has no half-precision setting). Same-process baseline: the same engine at batch 1
-   in fp32 on the first ``--baseline-frames`` frames, into a cache of its own. The mask work is pinned as
+   ``--batch`` images per forward pass into the 2D cache), in fp16 on CUDA (the labelers'
+   ``half_precision``; fp32 on a CPU). Same-process baseline: the same engine at batch 1 in fp32 on the
+   first ``--baseline-frames`` frames, into a cache of its own. The mask work is pinned as
    in bench_2d.py (``--boxes`` SAM boxes per image, ``--instances`` SAM 3 instances per prompt), since
    what random weights detect says nothing about a real frame;
 2. ``run_pipeline`` (what ``leap run`` calls) with that cache: its ``labels2d`` stage reads the cached
@@ -84,7 +84,7 @@ from leap_core.consistency.train import num_train_steps
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import Cancelled
 from leap_core.labelers import LabelerSpec, register_labeler
-from leap_core.labelers.base import ImageModelLabeler, Labeler
+from leap_core.labelers.base import ImageModelLabeler, Labeler, model_dtype
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler, LoadedModels
 from leap_core.labelers.sam3 import Sam3LabelerConfig, _Loaded
 from leap_core.labelers.tiny_models import (
@@ -350,7 +350,7 @@ class Engine:
     ) -> PipelineConfig:
         """``base`` with this labeler at ``batch`` images per pass (thresholds just above zero, so the
         pinned regions or instances are kept whatever random weights score) and one 3D-CN round."""
-        section: dict[str, Any] = {"batch_size": batch, "box_threshold": 1e-6}
+        section: dict[str, Any] = {"batch_size": batch, "box_threshold": 1e-6, "half_precision": fp16}
         if self.name == "sam3":
             section = {
                 "batch_size": batch,
@@ -368,8 +368,6 @@ class Engine:
 def build_engine(args: argparse.Namespace, device: str, models: Path, schema: Schema) -> Engine:
     """The ``args.engine`` models (real size; tiny with ``--quick``) on ``device``, their configs and
     processors written into ``models`` as a download has them, and the benchmark labeler registered."""
-    import torch
-
     if args.engine == "grounded-sam":
         if args.quick:
             tiny = TinyModelsConfig(max_text_len=256)
@@ -384,8 +382,11 @@ def build_engine(args: argparse.Namespace, device: str, models: Path, schema: Sc
         def make_gs(cfg: GroundedSamConfig, runtime: Runtime) -> Labeler:
             lab = GroundedSamLabeler(cfg, runtime)
             if held:
-                proc = lab.detector_processor
-                lab._models = LoadedModels(held["detector"], proc, held["sam"], held["sam_proc"], device)
+                # Cast in place, as the labeler casts what it loads (the baseline's fp32 and the batched
+                # run's fp16 labelers are built and used one after the other).
+                dtype = model_dtype(device, cfg.half_precision)
+                det, sam = held["detector"].to(dtype), held["sam"].to(dtype)
+                lab._models = LoadedModels(det, lab.detector_processor, sam, held["sam_proc"], device, dtype)
                 pin_regions(lab, args.boxes)
             return lab
 
@@ -409,7 +410,7 @@ def build_engine(args: argparse.Namespace, device: str, models: Path, schema: Sc
             lab = PinnedSam3(cfg, runtime)
             lab.instances = args.instances
             if held:
-                dtype = torch.float16 if cfg.half_precision and device == "cuda" else torch.float32
+                dtype = model_dtype(device, cfg.half_precision)
                 lab._loaded = _Loaded(held["sam3"].to(dtype), dtype, device)
             return lab
 
@@ -712,7 +713,7 @@ def main(argv: list[str] | None = None) -> int:
     records: dict[str, dict[str, Any]] = {}
     stopped = False
     runs: dict[str, tuple[int, PipelineConfig]] = {}
-    fp16 = device == "cuda" and args.engine == "sam3"
+    fp16 = device == "cuda"
     try:
         # -------------------------------------------------------------------- set-up (not in the figures)
         t = time.perf_counter()

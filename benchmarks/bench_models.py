@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import print_table, time_it, write_results
 
+from leap_core.labelers.base import model_dtype
 from leap_core.labelers.cache import LabelCache, PassResult, image_digest
 from leap_core.labelers.grounded_sam import GroundedSamConfig, GroundedSamLabeler, LoadedModels
 from leap_core.labelers.tiny_models import (
@@ -113,7 +114,10 @@ def make_labeler(
     lab = GroundedSamLabeler(
         GroundedSamConfig(), Runtime(models_dir=folder, device=device), cache=LabelCache(cache)
     )
-    lab._models = LoadedModels(det[0].to(device), lab.detector_processor, seg[0].to(device), seg[1], device)
+    dtype = model_dtype(device, lab.config.half_precision)
+    lab._models = LoadedModels(
+        det[0].to(device, dtype), lab.detector_processor, seg[0].to(device, dtype), seg[1], device, dtype
+    )
     return lab
 
 

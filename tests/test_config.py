@@ -358,6 +358,7 @@ ADDED_SECTIONS = ("sam3", "tracking")
 ADDED_FIELDS = (
     ("consistency", "precision"),
     ("grounded_sam", "flip_votes"),
+    ("grounded_sam", "half_precision"),
     ("simulated", "instance_miss"),
     ("simulated", "instance_merge"),
     ("simulated", "instance_split"),

@@ -9,7 +9,7 @@ import dataclasses
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +17,13 @@ import pytest
 import torch
 from runhelpers import folder
 
+from leap_core.config import config_from_dict, config_to_dict
 from leap_core.datasets.kitti import KittiSequence
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
-from leap_core.labelers.base import SoftMasks
-from leap_core.labelers.cache import LabelCache, PassResult, image_digest
+from leap_core.labelers.base import SoftMasks, model_dtype
+from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest
 from leap_core.labelers.grounded_sam import (
+    LABELER_VERSION,
     GroundedSamConfig,
     GroundedSamLabeler,
     assemble_soft_masks,
@@ -349,6 +351,90 @@ def test_fingerprint_tracks_prompts_settings_and_weights(tiny_dir: Path, tmp_pat
     assert fp == GroundedSamLabeler(cfg, elsewhere).fingerprint(small_schema())
     other = make_tiny_models(tmp_path / "other", TinyModelsConfig(num_queries=20))
     assert fp != GroundedSamLabeler(cfg, Runtime(models_dir=other.models_dir)).fingerprint(small_schema())
+
+
+def test_half_precision_is_ignored_on_the_cpu_and_keys_its_own_cache_entries(
+    tiny_dir: Path, tmp_path: Path
+) -> None:
+    assert model_dtype("cuda", True) == torch.float16
+    assert model_dtype("cuda", False) == model_dtype("cpu", True) == torch.float32
+    schema, img = small_schema(), images(1)[0]
+    cfg = GroundedSamConfig(box_threshold=0.05)
+    rt = Runtime(models_dir=tiny_dir, device="cpu", cache_dir=tmp_path)
+    plain = GroundedSamLabeler(cfg, rt)
+    half = GroundedSamLabeler(dataclasses.replace(cfg, half_precision=True), rt)
+    (a,) = plain.label_images([img], schema)
+    (b,) = half.label_images([img], schema)
+    assert half.detector_calls == 1  # the float32 run's cache entries are not served to it
+    assert half.models.dtype == torch.float32
+    assert {p.dtype for m in (half.models.detector, half.models.segmenter) for p in m.parameters()} == {
+        torch.float32
+    }
+    assert a.num_masks > 0 and a.arrays().keys() == b.arrays().keys()
+    for name, x in a.arrays().items():  # the CPU computed the same thing byte for byte
+        assert x.dtype == b.arrays()[name].dtype and x.tobytes() == b.arrays()[name].tobytes(), name
+    digest, (plan,) = image_digest(img), plain.plan(schema)
+    assert plain.pass_key(digest, plan) != half.pass_key(digest, plan)
+    assert plain.fingerprint(schema) != half.fingerprint(schema)
+    # Off, the key is what it was before the setting existed: caches filled then stay valid.
+    before = {"version": LABELER_VERSION, **plain.identity(), "box_threshold": 0.05, "mode": "joint"}
+    before |= {"multimask": True, "mask_threshold": 0.0}
+    assert plain.pass_key(digest, plan) == cache_key({"image": digest, **before, "pass": plan.key_parts()})
+    # A project setting like any other: read, written back, and a switch must be a switch.
+    read = config_from_dict({"grounded_sam": {"half_precision": True}})
+    assert read.labeler_config(GroundedSamConfig).half_precision is True
+    assert config_to_dict(read)["grounded_sam"]["half_precision"] is True
+    assert config_from_dict(config_to_dict(read)) == read
+    with pytest.raises(ConfigError, match="must be true or false") as err:
+        config_from_dict({"grounded_sam": {"half_precision": 1}})
+    assert err.value.field[-2:] == ("grounded_sam", "half_precision")
+
+
+def half_precision_agreement(full: Sequence[PassResult], half: Sequence[PassResult]) -> tuple[float, float]:
+    """How closely float16 pass results follow float32 ones of the same images: the share of float32
+    regions found again (a float16 region with its box within 1 px and every class logit within 0.1), and
+    the median share of mask pixels the same between such pairs. Random weights leave near-ties that
+    float16 rounding flips (which encoder proposals become queries, which of SAM's 3 candidates wins), so
+    neither is 1."""
+    found, agree = [], []
+    for a, b in zip(full, half, strict=True):
+        near = (np.abs(a.boxes[:, None] - b.boxes[None]).max(axis=2) <= 1.0) & (
+            np.abs(a.scores[:, None] - b.scores[None]).max(axis=2) <= 0.1
+        )
+        found.extend(near.any(axis=1))
+        ua, ub = np.unpackbits(a.bits, axis=1), np.unpackbits(b.bits, axis=1)
+        agree.extend((ua[i] == ub[near[i].argmax()]).mean() for i in np.flatnonzero(near.any(axis=1)))
+    return float(np.mean(found)), float(np.median(agree))
+
+
+def test_float16_models_give_float32_results_near_the_float32_ones(tiny_dir: Path, tmp_path: Path) -> None:
+    """The CUDA float16 path run on the CPU, with the models cast by hand as the benchmarks hold them: the
+    pixel inputs follow the models' dtype and the cached results come back float32."""
+    schema, imgs = small_schema(), images(2)
+    # A threshold just above zero: every query is kept in both precisions, whatever its rounding.
+    cfg = GroundedSamConfig(box_threshold=1e-6, batch_size=2)
+    full = GroundedSamLabeler(cfg, Runtime(models_dir=tiny_dir), cache=LabelCache(tmp_path / "full"))
+    half = GroundedSamLabeler(
+        dataclasses.replace(cfg, half_precision=True),
+        Runtime(models_dir=tiny_dir),
+        cache=LabelCache(tmp_path / "half"),
+    )
+    m = half.models
+    half._models = dataclasses.replace(
+        m, detector=m.detector.half(), segmenter=m.segmenter.half(), dtype=torch.float16
+    )
+    full.label_images(imgs, schema)
+    out = half.label_images(imgs, schema)
+    assert all(sm.num_masks > 0 and sm.probs.dtype == np.float32 for sm in out)
+    (plan,) = half.plan(schema)
+    results = []
+    for lab in (full, half):
+        assert lab.cache is not None
+        got = [lab.cache.get(lab.pass_key(image_digest(im), plan)) for im in imgs]
+        assert all(r is not None and r.scores.dtype == r.boxes.dtype == np.float32 for r in got)
+        results.append([r for r in got if r is not None])
+    found, agree = half_precision_agreement(results[0], results[1])
+    assert found >= 0.75 and agree >= 0.9, (found, agree)
 
 
 @pytest.mark.parametrize("umask", [0o022, 0o002])

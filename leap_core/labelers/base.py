@@ -409,6 +409,16 @@ class ImageModelLabeler:
         return all(k in self.cache for im in images for k in self.cache_keys(image_digest(im), schema))
 
 
+def model_dtype(device: str, half_precision: bool) -> Any:
+    """The torch dtype a model labeler runs its models in on ``device`` ("cpu" or "cuda"):
+    ``torch.float16`` when its ``half_precision`` setting is on and the device is a CUDA GPU, else
+    ``torch.float32``. The CPU ignores the setting: float16 is no reliable speed-up there, and the CPU's
+    float32 labels stay the reference that tests compare with transformers."""
+    import torch  # noqa: PLC0415  every labeler imports this module; only a model labeler's models need torch
+
+    return torch.float16 if half_precision and device == "cuda" else torch.float32
+
+
 def passes_text(passes: dict[str, int]) -> str:
     """``3 detector and 3 SAM encoder forward passes``."""
     return " and ".join(f"{n} {part}" for part, n in passes.items()) + " forward passes"

@@ -35,6 +35,11 @@ weights. Where the models live, the device and the 2D cache folder are deploymen
 (:class:`~leap_core.runtime.Runtime`), not settings of :class:`GroundedSamConfig`. Weights load lazily,
 on the first image that is not in the 2D cache; transformers and torch are imported only then, so reading
 the config costs neither.
+
+With ``half_precision`` on a CUDA GPU both models run in float16 (cast once when loaded, their pixel
+inputs cast per call); the detector's logits and boxes and SAM's mask logits are cast back to float32
+before the region maths and the mask threshold, so the cache holds float32 results either way. The
+setting is part of the cache keys; the CPU ignores it.
 """
 
 from __future__ import annotations
@@ -53,7 +58,7 @@ import numpy.typing as npt
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import ConfigError, LeapError, ModelLoadError
-from leap_core.labelers.base import ImageModelLabeler, Instances, SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, Instances, SoftMasks, model_dtype
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.prompts import (
     NEG_INF,
@@ -127,6 +132,9 @@ class GroundedSamConfig:
     flip_votes: bool = False
     """Label each image and its horizontal mirror and average the two
     (:func:`~leap_core.labelers.base.with_flip_votes`; twice the 2D stage's time)."""
+
+    half_precision: bool = False
+    """Run Grounding DINO and SAM in float16 on a CUDA GPU (ignored on the CPU)."""
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -272,6 +280,8 @@ class LoadedModels:
     """SamProcessor."""
     device: str
     """"cpu" or "cuda"."""
+    dtype: Any
+    """torch.float32, or float16 with ``half_precision`` on CUDA (both models' weights)."""
 
 
 def load_processor(folder: Path, model_id: str, expect_type: str) -> Any:
@@ -505,13 +515,16 @@ class GroundedSamLabeler(ImageModelLabeler):
             cfg = self.config
             det, seg = self.folders
             device = pick_device(self.runtime.device)
+            dtype = model_dtype(device, cfg.half_precision)
             seg_proc = load_processor(seg, cfg.segmenter_id, "sam")
+            detector = load_model(det, cfg.detector_id, "GroundingDinoForObjectDetection", device)
             self._models = LoadedModels(
-                detector=load_model(det, cfg.detector_id, "GroundingDinoForObjectDetection", device),
+                detector=detector.to(dtype),
                 detector_processor=self.detector_processor,
-                segmenter=load_model(seg, cfg.segmenter_id, "SamModel", device),
+                segmenter=load_model(seg, cfg.segmenter_id, "SamModel", device).to(dtype),
                 segmenter_processor=seg_proc,
                 device=device,
+                dtype=dtype,
             )
         return self._models
 
@@ -552,6 +565,8 @@ class GroundedSamLabeler(ImageModelLabeler):
             "mode": cfg.mode,
             "multimask": cfg.multimask,
             "mask_threshold": cfg.mask_threshold,
+            # Only when on: the keys and fingerprints of labels made before the option existed stay valid.
+            **({"half_precision": True} if cfg.half_precision else {}),
         }
 
     def fingerprint(self, schema: Schema) -> str:
@@ -645,7 +660,7 @@ class GroundedSamLabeler(ImageModelLabeler):
         pix = m.detector_processor.image_processor(images=list(images), return_tensors="pt")
         b = len(images)
         inputs = {
-            "pixel_values": pix["pixel_values"].to(m.device),
+            "pixel_values": pix["pixel_values"].to(m.device, m.dtype),
             "pixel_mask": pix["pixel_mask"].to(m.device) if "pixel_mask" in pix else None,
             "input_ids": enc["input_ids"].repeat(b, 1).to(m.device),
             "attention_mask": enc["attention_mask"].repeat(b, 1).to(m.device),
@@ -676,7 +691,7 @@ class GroundedSamLabeler(ImageModelLabeler):
         if need:
             enc = m.segmenter_processor(images=[images[i] for i in need], return_tensors="pt")
             with torch.inference_mode():
-                emb = m.segmenter.get_image_embeddings(enc["pixel_values"].to(m.device))
+                emb = m.segmenter.get_image_embeddings(enc["pixel_values"].to(m.device, m.dtype))
             self.segmenter_calls += 1
             for k, i in enumerate(need):
                 emb_of[i] = emb[k : k + 1]
@@ -691,6 +706,7 @@ class GroundedSamLabeler(ImageModelLabeler):
             scale = np.array([resized[1] / orig[1], resized[0] / orig[0]] * 2, dtype=np.float32)
             chunks = []
             for start in range(0, b.shape[0], _SAM_BOX_CHUNK):
+                # float32 boxes: SAM's prompt encoder scales them to [0, 1] before casting to its dtype.
                 sb = torch.from_numpy(b[start : start + _SAM_BOX_CHUNK] * scale)[None].to(m.device)
                 with torch.inference_mode():
                     res = m.segmenter(

@@ -55,7 +55,7 @@ import numpy.typing as npt
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import LeapError, ModelLoadError
-from leap_core.labelers.base import ImageModelLabeler, SoftMasks
+from leap_core.labelers.base import ImageModelLabeler, SoftMasks, model_dtype
 from leap_core.labelers.cache import LabelCache, PassResult, cache_key, image_digest, pass_cache_dir
 from leap_core.labelers.grounded_sam import (
     assemble_soft_masks,
@@ -389,11 +389,8 @@ class Sam3Labeler(ImageModelLabeler):
             import torch
 
             device = pick_device(self.runtime.device)
-            model = load_model(self.folder, self.config.model_id, "Sam3Model", device)
-            dtype = torch.float32
-            if device == "cuda" and self.config.half_precision:
-                dtype = torch.float16
-                model = model.to(dtype)
+            dtype = model_dtype(device, self.config.half_precision)
+            model = load_model(self.folder, self.config.model_id, "Sam3Model", device).to(dtype)
             if device == "cuda" and self.config.compile:
                 model = torch.compile(model)
             self._loaded = _Loaded(model, dtype, device)
