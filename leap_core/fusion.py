@@ -20,9 +20,11 @@ bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y,
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
@@ -83,12 +85,22 @@ class FusionPaths:
     e.g. coordinates near ±2²⁰ voxels). 0 = always ``np.unique``."""
     block: int = 1 << 16
     """Elements per block in the in-place key-packing passes (the temporaries stay in L2 cache)."""
+    compiled: bool = True
+    """Reduce, merge and finalise with the compiled kernels of :mod:`leap_core.fusion_kernels` when numba
+    (the ``fast`` extra) is installed; False = the numpy path, which runs without numba."""
+    compiled_min_points: int = 2_000_000
+    """A chunk of fewer points loads the kernels only if this process already has (merges and finalising
+    never load them): importing numba and loading the cached kernels costs ≈ 0.8 s, which the kernels
+    (≈ 60 ns less CPU per point) win back only over ≈ 10 M points, so small fusions (tests, short
+    sequences) stay on numpy. 0 = always load them."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.pack_max_bits <= 62:
             raise ConfigError(f"must be in 0..62, got {self.pack_max_bits}", field=("pack_max_bits",))
         if self.block < 1:
             raise ConfigError(f"must be ≥ 1, got {self.block}", field=("block",))
+        if self.compiled_min_points < 0:
+            raise ConfigError(f"must be ≥ 0, got {self.compiled_min_points}", field=("compiled_min_points",))
 
 
 # ---------------------------------------------------------------------------------------------- keys
@@ -394,6 +406,24 @@ def log_table(table: npt.ArrayLike, floor: float) -> npt.NDArray[np.float32]:
 
 
 # -------------------------------------------------------------------------------------------- fusion
+def compiled_kernels(compiled: bool, load: bool = True) -> ModuleType | None:
+    """:mod:`leap_core.fusion_kernels` when ``compiled`` and numba is installed, else None (numpy path);
+    with ``load`` False only when this process has already imported it. Imported on first use: reading a
+    config or a grid never loads numba."""
+    if not compiled:
+        return None
+    if not load:
+        loaded: ModuleType | None = sys.modules.get("leap_core.fusion_kernels")
+        return loaded
+    try:
+        from leap_core import fusion_kernels  # noqa: PLC0415  numba is optional and slow to import
+    except ImportError as exc:
+        if (exc.name or "").partition(".")[0] not in ("numba", "llvmlite"):
+            raise
+        return None
+    return fusion_kernels
+
+
 def _bits(n: int) -> int:
     """Bits needed to hold integers 0..n (n ≥ 0)."""
     return max(int(n).bit_length(), 0)
@@ -426,38 +456,55 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
         np.add(o.rows, off, out=rows[s:e], casting="unsafe")
         s = e
     table = np.concatenate([o.log_table for o in obs], axis=0).astype(np.float32, copy=False)
+    kern = compiled_kernels(paths.compiled, load=n >= paths.compiled_min_points)
 
-    lo = np.full(3, np.iinfo(np.int64).max)
-    hi = np.full(3, np.iinfo(np.int64).min)
     block = paths.block
-    for b in range(0, n, block):
-        blk = comp[b : b + block]
-        for a, c in enumerate(_axes(blk)):
-            lo[a] = min(lo[a], int(c.min()))
-            hi[a] = max(hi[a], int(c.max()))
+    if kern is not None:
+        lo, hi = kern.axis_bounds(comp)
+    else:
+        lo = np.full(3, np.iinfo(np.int64).max)
+        hi = np.full(3, np.iinfo(np.int64).min)
+        for b in range(0, n, block):
+            blk = comp[b : b + block]
+            for a, c in enumerate(_axes(blk)):
+                lo[a] = min(lo[a], int(c.min()))
+                hi[a] = max(hi[a], int(c.max()))
     cbits = [_bits(int(h - m)) for h, m in zip(hi, lo, strict=True)]
     uniq_keys = None
     if sum(cbits) + rbits <= paths.pack_max_bits:
         shifts = (cbits[1] + cbits[2] + rbits, cbits[2] + rbits, rbits)
-        for b in range(0, n, block):
-            blk = comp[b : b + block]
-            x, y, z = _axes(blk)
-            x -= lo[0]
-            x <<= shifts[0]
-            y -= lo[1]
-            y <<= shifts[1]
-            z -= lo[2]
-            z <<= shifts[2]
-            x |= y
-            x |= z
-            np.bitwise_or(x, rows[b : b + block], out=blk)
+        pair_bits = sum(cbits) + rbits
+        if kern is not None:
+            kern.pack_pairs(comp, rows, lo, np.array(shifts, np.int64))
+        else:
+            for b in range(0, n, block):
+                blk = comp[b : b + block]
+                x, y, z = _axes(blk)
+                x -= lo[0]
+                x <<= shifts[0]
+                y -= lo[1]
+                y <<= shifts[1]
+                z -= lo[2]
+                z <<= shifts[2]
+                x |= y
+                x |= z
+                np.bitwise_or(x, rows[b : b + block], out=blk)
     else:
         uniq_keys, vox = np.unique(comp, return_inverse=True)
         if _bits(len(uniq_keys)) + rbits > 62:
             raise ValueError(f"too many table rows ({k_total}) in one fusion chunk; lower chunk_points")
         comp = (vox.astype(np.int64) << rbits) | rows
+        pair_bits = _bits(len(uniq_keys) - 1) + rbits
     del rows
 
+    if kern is not None:
+        comp = kern.radix_sort(comp, pair_bits)
+        n_vox = int(kern.count_voxels(comp, rbits))
+        vox_ids = np.empty(n_vox, np.int64)
+        sums = np.zeros((n_vox, table.shape[1]), np.float32)
+        kern.reduce_pairs(comp, rbits, table, np.float32(weight), vox_ids, sums)
+        del comp
+        return _pair_keys(vox_ids, uniq_keys, lo, cbits), sums
     comp.sort()
     first = np.empty(n, bool)
     first[0] = True
@@ -478,14 +525,26 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
     counts *= np.float32(weight)
     mat = scipy.sparse.csr_matrix((counts, pair_rows, indptr), shape=(len(vstarts), k_total))
     sums = np.asarray(mat @ table, dtype=np.float32)
+    return _pair_keys(vox_ids, uniq_keys, lo, cbits), sums
 
+
+def _pair_keys(
+    vox_ids: npt.NDArray[np.int64],
+    uniq_keys: npt.NDArray[np.int64] | None,
+    lo: npt.NDArray[np.int64],
+    cbits: list[int],
+) -> npt.NDArray[np.int64]:
+    """Voxel keys of a chunk's voxel ids: ``uniq_keys[ids]`` when voxels were numbered by ``np.unique``,
+    else the packed axis fields (``cbits`` wide, offset by ``lo``) turned back into keys."""
     if uniq_keys is not None:
-        return uniq_keys[vox_ids], sums
+        out: npt.NDArray[np.int64] = uniq_keys[vox_ids]
+        return out
     bz, by = cbits[2], cbits[1]
     x = (vox_ids >> (by + bz)) + lo[0]
     y = ((vox_ids >> bz) & ((1 << by) - 1)) + lo[1]
     z = (vox_ids & ((1 << bz) - 1)) + lo[2]
-    return (x << (2 * AXIS_BITS)) | (y << AXIS_BITS) | z, sums
+    keys: npt.NDArray[np.int64] = (x << (2 * AXIS_BITS)) | (y << AXIS_BITS) | z
+    return keys
 
 
 def union_sorted(a: npt.NDArray[np.int64], b: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
@@ -581,10 +640,19 @@ def _merge(
     acc_a: npt.NDArray[np.float32],
     keys_b: npt.NDArray[np.int64],
     acc_b: npt.NDArray[np.float32],
+    compiled: bool = True,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
-    """:func:`merge_sparse` of one (V, C) float32 accumulator."""
-    keys, (acc,) = merge_sparse(keys_a, [acc_a], keys_b, [acc_b])
-    return keys, acc
+    """:func:`merge_sparse` of one (V, C) float32 accumulator; with ``compiled`` and numba, the same sums
+    by one backward pass over the grown arrays (:func:`leap_core.fusion_kernels.merge_backward`)."""
+    kern = compiled_kernels(compiled, load=False)
+    if kern is None or len(keys_a) == 0 or acc_a.dtype != np.float32 or acc_b.dtype != np.float32:
+        keys, (acc,) = merge_sparse(keys_a, [acc_a], keys_b, [acc_b])
+        return keys, acc
+    n = len(keys_a)
+    m = int(kern.count_new(keys_a, keys_b))
+    keys_a, acc_a = _grow(keys_a, n + m), _grow(acc_a, n + m)
+    kern.merge_backward(keys_a, acc_a, n, keys_b, acc_b)
+    return keys_a, acc_a
 
 
 def row_max(rows: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -600,7 +668,9 @@ def row_max(rows: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     return out
 
 
-def _finalise(keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig) -> VoxelGrid:
+def _finalise(
+    keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig, compiled: bool = True
+) -> VoxelGrid:
     """Shift each row to max 0, clip at -logp_clip, store float16.
 
     Works over blocks of rows and, when ``acc`` owns its memory, writes the float16 rows into the front of
@@ -610,14 +680,25 @@ def _finalise(keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: Fu
     numpy only: torch's row max and float16 cast are ≈ 3.6× faster on one thread (25 against 91 ms for
     687k voxels × 20 classes), but importing torch costs ≈ 1.7 s, which a run without the 3D-CN never pays
     otherwise (the break-even is ≈ 18 M voxels, 7× a whole SemanticKITTI sequence), and with two threads
-    on busy cores it was 4× slower than numpy (433 against 94 ms).
+    on busy cores it was 4× slower than numpy (433 against 94 ms). With ``compiled`` and numba, the shift and
+    clip are one pass per block (:func:`leap_core.fusion_kernels.shift_clip`, the same float32 values).
     """
+    kern = compiled_kernels(compiled, load=False)
     v, c = acc.shape
     in_place = bool(acc.flags.owndata and acc.flags.c_contiguous and acc.base is None and v > 0)
     out16 = None if in_place else np.empty((v, c), np.float16)
     flat16 = acc.reshape(-1).view(np.float16) if in_place else None
     block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
-    for s in range(0, v, block):
+    if kern is not None and v > 0:
+        for s in range(0, v, block):
+            rows = acc[s : s + block]
+            kern.shift_clip(rows, row_max(rows), np.float32(cfg.logp_clip))
+        # The float16 bits in one pass, in index order, so into the front of acc's own buffer too.
+        dest = flat16 if flat16 is not None else out16
+        assert dest is not None
+        kern.to_half(acc.reshape(-1).view(np.uint32), dest.reshape(-1).view(np.uint16))
+        del dest, rows
+    for s in range(0, v if kern is None else 0, block):
         rows = acc[s : s + block]
         rows -= row_max(rows)[:, None]
         np.maximum(rows, np.float32(-cfg.logp_clip), out=rows)
@@ -627,9 +708,10 @@ def _finalise(keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: Fu
         else:
             assert out16 is not None
             out16[s : s + block] = half
+        del rows, half  # views of acc's buffer, which the resize below may move
     if out16 is not None:
         return VoxelGrid(keys, out16, cfg.voxel_size)
-    del flat16, rows, half  # views of acc's buffer, which the resize below may move
+    del flat16
     # The float16 rows fill the first v·c/2 float32 elements: shrink the buffer to them, in place.
     acc.resize(((v * c + 1) // 2,), refcheck=False)
     logp = acc.view(np.float16)[: v * c].reshape(v, c)
@@ -728,8 +810,8 @@ def fuse(
     paths = paths or FusionPaths()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
     for chunk in _chunked(_checked(batches, num_classes), cfg.chunk_points):
-        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(chunk, weight, paths))
-    return _finalise(acc_keys, acc, cfg)
+        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(chunk, weight, paths), paths.compiled)
+    return _finalise(acc_keys, acc, cfg, paths.compiled)
 
 
 def fuse_dense(
@@ -918,13 +1000,15 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
                             acc[pos] += cs[lo:hi]
                         release(ck)
                         release(cs)
-                grid = _finalise(fk, acc, cfg)
+                grid = _finalise(fk, acc, cfg, paths.compiled)
                 if len(o_keys):
                     lo_o, hi_o = np.searchsorted(o_keys, first), np.searchsorted(o_keys, last, side="right")
                     if hi_o > lo_o:
                         ka, acc_a = fk.copy(), np.asarray(grid.logp, dtype=np.float32)
-                        ka, acc_a = _merge(ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy())
-                        grid = _finalise(ka, acc_a, cfg)
+                        ka, acc_a = _merge(
+                            ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy(), paths.compiled
+                        )
+                        grid = _finalise(ka, acc_a, cfg, paths.compiled)
                 yield np.asarray(grid.logp, np.float16)
 
         save_npz(
@@ -1045,6 +1129,7 @@ __all__ = [
     "VoxelGrid",
     "VoxelLabels",
     "apply_overrides",
+    "compiled_kernels",
     "fold_blocks",
     "fuse",
     "fuse_dense",
