@@ -11,7 +11,8 @@ carry an index ``rows`` into a small per-image table of distinct distributions (
 covering masks, :mod:`leap_core.projection`); the log is taken per table row (:func:`log_table`).
 :func:`fuse` then packs (voxel, table row) into one int64 per point, sorts once, counts equal pairs and
 multiplies the (voxel × table-row) count matrix with the stacked log tables as a sparse product, so per point
-only 8 bytes are sorted and never C floats moved.
+only 8 bytes are sorted and never C floats moved. With numba installed, large chunks run the same operations
+compiled (:mod:`leap_core.fusion_kernels`: a radix sort, one-pass sums, merge and finalise; same bytes).
 
 Voxel keys pack ``floor(xyz / voxel_size)`` in 21 bits per axis (offset by 2²⁰ so negatives work): x in
 bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y, z).
@@ -501,7 +502,8 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
         comp = kern.radix_sort(comp, pair_bits)
         n_vox = int(kern.count_voxels(comp, rbits))
         vox_ids = np.empty(n_vox, np.int64)
-        sums = np.zeros((n_vox, table.shape[1]), np.float32)
+        # With spare rows: the first chunk's sums become fuse's accumulator, which then grows in place.
+        sums = np.zeros((n_vox + int(n_vox * SPARE_ROWS), table.shape[1]), np.float32)[:n_vox]
         kern.reduce_pairs(comp, rbits, table, np.float32(weight), vox_ids, sums)
         del comp
         return _pair_keys(vox_ids, uniq_keys, lo, cbits), sums
@@ -589,6 +591,47 @@ def _grow(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
     return out
 
 
+def _owner(arr: npt.NDArray[Any]) -> npt.NDArray[Any] | None:
+    """The array owning ``arr``'s memory when ``arr`` is it or a leading slice of it (both C-contiguous, same
+    row shape), else None: the buffer an accumulator with spare rows (:func:`_grow_spare`) lives in."""
+    if arr.flags.owndata and arr.base is None and arr.flags.c_contiguous:
+        return arr
+    b = arr.base
+    if (
+        isinstance(b, np.ndarray)
+        and b.base is None
+        and b.flags.owndata
+        and b.flags.c_contiguous
+        and arr.flags.c_contiguous
+        and b.dtype == arr.dtype
+        and b.shape[1:] == arr.shape[1:]
+        and arr.ctypes.data == b.ctypes.data
+    ):
+        return b
+    return None
+
+
+SPARE_ROWS = 2.0
+"""Spare rows (a share of the rows needed) that :func:`_grow_spare` and the compiled chunk sums reserve.
+Never-touched rows cost address space, not memory; they spare the ``realloc`` of a large accumulator,
+which here copies it into fresh pages (numpy asks for transparent huge pages on large arrays, and moving
+those cost ≈ 40 ms per 44 MB on idle cores, 135 ms on busy ones). Twice: a street drive's second chunk
+nearly doubles the first one's voxels (298 k → 548 k → 674 k in benchmarks/bench_fusion.py); with half
+as many spare rows the first merge still reallocated, and fuse took 18 % more CPU time."""
+
+
+def _grow_spare(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
+    """``arr`` with ``rows`` rows, the first ``len(arr)`` kept and the rest undefined: a longer slice of its
+    buffer when that has the rows (:func:`_owner`), else the buffer resized in place with
+    :data:`SPARE_ROWS` more (:func:`_grow` when no buffer is owned). Callers hold no other view of it."""
+    owner = _owner(arr)
+    if owner is None:
+        return _grow(arr, rows)
+    if owner.shape[0] < rows:
+        owner.resize((rows + int(rows * SPARE_ROWS), *owner.shape[1:]), refcheck=False)
+    return owner[:rows]
+
+
 def merge_sparse(
     keys_a: npt.NDArray[np.int64],
     accs_a: list[npt.NDArray[Any]],
@@ -650,7 +693,7 @@ def _merge(
         return keys, acc
     n = len(keys_a)
     m = int(kern.count_new(keys_a, keys_b))
-    keys_a, acc_a = _grow(keys_a, n + m), _grow(acc_a, n + m)
+    keys_a, acc_a = _grow_spare(keys_a, n + m), _grow_spare(acc_a, n + m)
     kern.merge_backward(keys_a, acc_a, n, keys_b, acc_b)
     return keys_a, acc_a
 
@@ -673,21 +716,23 @@ def _finalise(
 ) -> VoxelGrid:
     """Shift each row to max 0, clip at -logp_clip, store float16.
 
-    Works over blocks of rows and, when ``acc`` owns its memory, writes the float16 rows into the front of
-    ``acc``'s own buffer (block [s, e)'s float16 bytes lie inside float32 rows [s/2, e/2), already done)
-    and shrinks it, so the float32 and float16 grids never both exist whole.
+    Works over blocks of rows and, when ``acc`` owns its memory or is a leading slice of an array that does
+    (:func:`_owner`), writes the float16 rows into the front of that buffer (block [s, e)'s float16 bytes
+    lie inside float32 rows [s/2, e/2), already done) and shrinks it, so the float32 and float16 grids never
+    both exist whole.
 
     numpy only: torch's row max and float16 cast are ≈ 3.6× faster on one thread (25 against 91 ms for
     687k voxels × 20 classes), but importing torch costs ≈ 1.7 s, which a run without the 3D-CN never pays
     otherwise (the break-even is ≈ 18 M voxels, 7× a whole SemanticKITTI sequence), and with two threads
     on busy cores it was 4× slower than numpy (433 against 94 ms). With ``compiled`` and numba, the shift and
-    clip are one pass per block (:func:`leap_core.fusion_kernels.shift_clip`, the same float32 values).
+    clip are one pass per block from numpy's row maxima (:func:`leap_core.fusion_kernels.shift_clip`) and the
+    float16 bits one pass over all (:func:`leap_core.fusion_kernels.to_half`): the same bytes.
     """
     kern = compiled_kernels(compiled, load=False)
     v, c = acc.shape
-    in_place = bool(acc.flags.owndata and acc.flags.c_contiguous and acc.base is None and v > 0)
-    out16 = None if in_place else np.empty((v, c), np.float16)
-    flat16 = acc.reshape(-1).view(np.float16) if in_place else None
+    owner = _owner(acc) if v > 0 else None
+    out16 = None if owner is not None else np.empty((v, c), np.float16)
+    flat16 = acc.reshape(-1).view(np.float16) if owner is not None else None
     block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
     if kern is not None and v > 0:
         for s in range(0, v, block):
@@ -711,10 +756,11 @@ def _finalise(
         del rows, half  # views of acc's buffer, which the resize below may move
     if out16 is not None:
         return VoxelGrid(keys, out16, cfg.voxel_size)
-    del flat16
+    del flat16, acc
     # The float16 rows fill the first v·c/2 float32 elements: shrink the buffer to them, in place.
-    acc.resize(((v * c + 1) // 2,), refcheck=False)
-    logp = acc.view(np.float16)[: v * c].reshape(v, c)
+    assert owner is not None
+    owner.resize(((v * c + 1) // 2,), refcheck=False)
+    logp = owner.view(np.float16)[: v * c].reshape(v, c)
     return VoxelGrid(keys, logp, cfg.voxel_size)
 
 
