@@ -91,9 +91,10 @@ class FusionPaths:
     (the ``fast`` extra) is installed; False = the numpy path, which runs without numba."""
     compiled_min_points: int = 2_000_000
     """A chunk of fewer points loads the kernels only if this process already has (merges and finalising
-    never load them): importing numba and loading the cached kernels costs ≈ 0.8 s, which the kernels
-    (≈ 60 ns less CPU per point) win back only over ≈ 10 M points, so small fusions (tests, short
-    sequences) stay on numpy. 0 = always load them."""
+    never load them): importing numba and loading the cached kernels costs ≈ 1 s, which the kernels
+    (≈ 75 ns less CPU per point, benchmarks/bench_fusion.py) win back over ≈ 13 M points. A full default
+    chunk is the sign of a large fusion (a sequence that fills one mostly fills many; the demo's 60 frames
+    fill none), so small fusions (tests, short sequences) stay on numpy. 0 = always load them."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.pack_max_bits <= 62:

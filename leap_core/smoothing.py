@@ -77,10 +77,10 @@ SMOOTH_CHUNK = 1 << 14
 voxel of a chunk at k = 9, C = 20: ≈ 18 MB; ``workers + 1`` chunks are in flight at once) however large the
 grid; the result does not depend on it."""
 
-COMPILED_MIN_VOXELS = 4_000_000
+COMPILED_MIN_VOXELS = 16_000_000
 """Smoothing this many voxels or more loads the compiled :func:`knn_mix` (numba, the ``fast`` extra) when the
-process has not already (the fusion of a large sequence loads it): ≈ 0.35 CPU-seconds less per million
-voxels against ≈ 0.8 s to import numba and load the cached kernels."""
+process has not already (the fusion of a large sequence loads it): it saves ≈ 0.02-0.1 CPU-seconds per
+million voxels (benchmarks/bench_fusion.py) against ≈ 1 s to import numba and load the cached kernels."""
 
 Mix = Callable[
     [npt.NDArray[np.float32], npt.NDArray[np.intp], npt.NDArray[np.float32]], npt.NDArray[np.float32]

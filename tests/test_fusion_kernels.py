@@ -155,7 +155,7 @@ def test_radix_sort_is_np_sort(bits: int) -> None:
 
 def test_small_fusions_leave_numba_alone_and_fusion_runs_without_it(tmp_path: Path) -> None:
     """In a fresh interpreter: a fusion of fewer than ``compiled_min_points`` points per chunk does not import
-    numba (its ≈ 0.8 s would not pay off), and where numba cannot be imported a fusion that asks for the
+    numba (its ≈ 1 s would not pay off), and where numba cannot be imported a fusion that asks for the
     kernels runs the numpy path; both give the grid the compiled path gives here."""
     c = 5
     batches = _batches(4, c=c)
