@@ -592,14 +592,16 @@ def _grow(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
     return out
 
 
-def _owner(arr: npt.NDArray[Any]) -> npt.NDArray[Any] | None:
-    """The array owning ``arr``'s memory when ``arr`` is it or a leading slice of it (both C-contiguous, same
-    row shape), else None: the buffer an accumulator with spare rows (:func:`_grow_spare`) lives in."""
+def _owner(arr: npt.NDArray[Any], views: bool) -> npt.NDArray[Any] | None:
+    """The array owning ``arr``'s memory when ``arr`` is it or, with ``views`` (``arr`` is this module's
+    accumulator, never a caller's array), a leading slice of it (both C-contiguous, same row shape); else
+    None. The buffer an accumulator with spare rows (:func:`_grow_spare`) lives in."""
     if arr.flags.owndata and arr.base is None and arr.flags.c_contiguous:
         return arr
     b = arr.base
     if (
-        isinstance(b, np.ndarray)
+        views
+        and isinstance(b, np.ndarray)
         and b.base is None
         and b.flags.owndata
         and b.flags.c_contiguous
@@ -622,10 +624,11 @@ as many spare rows the first merge still reallocated, and fuse took 18 % more CP
 
 
 def _grow_spare(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
-    """``arr`` with ``rows`` rows, the first ``len(arr)`` kept and the rest undefined: a longer slice of its
-    buffer when that has the rows (:func:`_owner`), else the buffer resized in place with
-    :data:`SPARE_ROWS` more (:func:`_grow` when no buffer is owned). Callers hold no other view of it."""
-    owner = _owner(arr)
+    """``arr`` (an accumulator of this module) with ``rows`` rows, the first ``len(arr)`` kept and the rest
+    undefined: a longer slice of its buffer when that has the rows (:func:`_owner`), else the buffer
+    resized in place with :data:`SPARE_ROWS` more (:func:`_grow` when no buffer is owned). Callers hold no
+    other view of it."""
+    owner = _owner(arr, views=True)
     if owner is None:
         return _grow(arr, rows)
     if owner.shape[0] < rows:
@@ -713,12 +716,18 @@ def row_max(rows: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
 
 
 def _finalise(
-    keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig, compiled: bool = True
+    keys: npt.NDArray[np.int64],
+    acc: npt.NDArray[np.float32],
+    cfg: FusionConfig,
+    compiled: bool = True,
+    *,
+    ours: bool = True,
 ) -> VoxelGrid:
     """Shift each row to max 0, clip at -logp_clip, store float16.
 
-    Works over blocks of rows and, when ``acc`` owns its memory or is a leading slice of an array that does
-    (:func:`_owner`), writes the float16 rows into the front of that buffer (block [s, e)'s float16 bytes
+    Works over blocks of rows and, when ``acc`` owns its memory or (``ours``: an accumulator of this module,
+    not a caller's array) is a leading slice of an array that does (:func:`_owner`), writes the float16
+    rows into the front of that buffer (block [s, e)'s float16 bytes
     lie inside float32 rows [s/2, e/2), already done) and shrinks it, so the float32 and float16 grids never
     both exist whole.
 
@@ -731,7 +740,7 @@ def _finalise(
     """
     kern = compiled_kernels(compiled, load=False)
     v, c = acc.shape
-    owner = _owner(acc) if v > 0 else None
+    owner = _owner(acc, views=ours) if v > 0 else None
     out16 = None if owner is not None else np.empty((v, c), np.float16)
     flat16 = acc.reshape(-1).view(np.float16) if owner is not None else None
     block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
@@ -938,7 +947,9 @@ def fuse_unique(
         if weight != 1.0:
             logp *= np.float32(weight)
         acc_keys, acc = _merge(acc_keys, acc, keys, logp)
-    return _finalise(acc_keys, acc, cfg)
+    # Without a prior grid the accumulator is the caller's logp itself: finalised in its buffer only when
+    # that is logp's own (as always), never in an array logp is a slice of.
+    return _finalise(acc_keys, acc, cfg, ours=grid is not None)
 
 
 FILE_BLOCK_VOXELS = 1 << 20

@@ -182,3 +182,15 @@ def test_small_fusions_leave_numba_alone_and_fusion_runs_without_it(tmp_path: Pa
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == [digest, digest]
+
+
+def test_fuse_unique_never_finalises_in_a_callers_buffer() -> None:
+    """Without a prior grid fuse_unique's accumulator is the caller's logp: when that is a slice of a larger
+    array, the float16 grid is not written into (nor the array resized to) that array's buffer, as a
+    compiled merge's accumulator with spare rows is."""
+    c = 5
+    big = np.full((10, c), -1.0, np.float32)
+    grid = fusion.fuse_unique(None, np.arange(6, dtype=np.int64), big[:6], c)
+    assert big.shape == (10, c) and big.dtype == np.float32
+    np.testing.assert_array_equal(big[6:], -1.0)
+    assert grid.logp.shape == (6, c)
