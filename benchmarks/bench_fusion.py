@@ -16,11 +16,16 @@ Data (synthetic, deterministic, built here so the benchmark needs no dataset):
   ``(V × N one-hot) @ (N × C logp)``. The headline ratio is ``fuse`` against the fastest of the three
   ("best baseline"). Computing the keys from the points (``voxel_keys``) is the same for both; it is
   timed apart and added to both sides for the "from points" ratio.
+- ``fuse`` runs its compiled kernels (``leap_core/fusion_kernels.py``, numba: the ``fast`` extra) when numba
+  is installed; its numpy path (``FusionPaths(compiled=False)``, what runs without numba) is timed beside
+  it, and the two grids must be the same bytes (checked). The kernels' one-off cost is measured in fresh
+  processes: compiling them into an empty cache, and loading them from a warm one.
 - Memory: peak working memory added by ``fuse``, per input point. The stored grid's size per voxel is not a
   measurement (8 B key + 2·C B float16 logp, fixed by the format), so it is printed as a fact, not a target.
 - Smoothing: ~1M voxels on street surfaces (ground with steps, two facades), 20-class random posteriors.
   Baseline, same process, same data: the previous smoothing (``baseline_knn_smooth``: rows numbered with
-  ``np.unique``, a CSR product per chunk), whose output bytes ``knn_smooth`` must equal (checked).
+  ``np.unique``, a CSR product per chunk), whose output bytes ``knn_smooth`` must equal (checked), with its
+  weighted sums compiled (``compiled=True``) and by numpy (``compiled=False``, timed beside it).
 
 Run: ``.venv/bin/python benchmarks/bench_fusion.py`` (``--quick`` for a small smoke run,
 ``--smoothing-only`` for the smoothing alone, written to ``fusion_smoothing.json``).
@@ -42,10 +47,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import peak_memory, print_table, time_it, write_results
 
-from leap_core.fusion import FusionConfig, Observations, fuse, log_table, voxel_keys
+from leap_core.fusion import (
+    FusionConfig,
+    FusionPaths,
+    Observations,
+    compiled_kernels,
+    fuse,
+    log_table,
+    voxel_keys,
+)
 from leap_core.smoothing import SMOOTH_CHUNK, SmoothingConfig, knn_smooth, knn_weights
 
 C = 20
+COMPILED = FusionPaths(compiled_min_points=0)
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -162,8 +176,17 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
         obs = make_observations(images, points, rows, coherent)
         xyz = _xyz_cache(images, points)
         t_keys = time_it(partial(voxel_keys, xyz, 0.2), repeat=3)
-        t_fuse = time_it(partial(fuse, obs, C), repeat=repeat)
-        grid, mem = peak_memory(partial(fuse, obs, C))
+        # The kernels whatever the size (a --quick run's chunks are below compiled_min_points).
+        t_fuse = time_it(partial(fuse, obs, C, paths=COMPILED), repeat=repeat)
+        numpy_path = FusionPaths(compiled=False)
+        t_numpy = time_it(partial(fuse, obs, C, paths=numpy_path), repeat=repeat)
+        grid, mem = peak_memory(partial(fuse, obs, C, paths=COMPILED))
+        plain = fuse(obs, C, paths=numpy_path)
+        same_bytes = (
+            grid.keys.tobytes() == plain.keys.tobytes() and grid.logp.tobytes() == plain.logp.tobytes()
+        )
+        assert same_bytes, "the compiled and numpy paths gave different grids"
+        del plain
         base_t, base_diff = {}, {}
         for name, fn in ACCUMULATIONS.items():
             base_t[name] = time_it(partial(same_work, fn, obs), repeat=max(1, repeat // 2))
@@ -188,13 +211,19 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
             "ratio_vs_best_baseline_best": base_t[best_best].best / t_fuse.best,
             "ratio_vs_naive_add_at": base_t["np.add.at"].median / t_fuse.median,
             "ratio_from_points_vs_best_baseline": (t_keys.median + t_best) / (t_keys.median + t_fuse.median),
+            "compiled": compiled_kernels(True) is not None,
+            "numpy_path": t_numpy.to_dict(),
+            "ratio_vs_numpy_path": t_numpy.median / t_fuse.median,
+            "identical_to_numpy_path": same_bytes,
             "voxels": len(grid),
             "stored_bytes_per_voxel": grid.nbytes / len(grid),
             "peak_memory_added_bytes": mem.added,
             "peak_memory_added_bytes_per_point": mem.added / n,
             "peak_memory_exact": mem.exact,
         }
-        table_rows.append(_row(f"fuse, {label}", t_fuse, n, t_best, mem.added))
+        compiled = "compiled" if compiled_kernels(True) is not None else "numba missing: numpy"
+        table_rows.append(_row(f"fuse ({compiled}), {label}", t_fuse, n, t_best, mem.added))
+        table_rows.append(_row("  fuse, numpy path (without numba; same bytes)", t_numpy, n, t_best, None))
         for name, t in base_t.items():
             mark = " (best)" if name == best else ""
             table_rows.append(_row(f"  {name}, same work{mark}", t, n, t_best, None))
@@ -205,6 +234,50 @@ def bench_fusion(images: int, points: int, rows: int, repeat: int) -> tuple[list
             + [""] * 6
         )
     return table_rows, results
+
+
+_COMPILE_PROBE = """
+import time
+t0 = time.perf_counter()
+from leap_core.fusion import compiled_kernels
+kern = compiled_kernels(True)
+t1 = time.perf_counter()
+import numpy as np
+from leap_core.fusion import FusionConfig, FusionPaths, Observations, fuse, log_table
+rng = np.random.default_rng(0)
+obs = [Observations(rng.integers(0, 1 << 20, 5000), rng.integers(0, 50, 5000).astype(np.int32),
+                    log_table(rng.dirichlet(np.ones(20), 50), 1e-3)) for _ in range(4)]
+paths = FusionPaths(compiled_min_points=0)
+t2 = time.perf_counter()
+fuse(obs, 20, FusionConfig(chunk_points=12_000), paths=paths)
+t3 = time.perf_counter()
+fuse(obs, 20, FusionConfig(chunk_points=12_000), paths=paths)
+t4 = time.perf_counter()
+print(kern is not None, t1 - t0, (t3 - t2) - (t4 - t3))
+"""
+
+
+def bench_compile(quick: bool) -> dict:
+    """The kernels' one-off cost in fresh processes: importing numba and the kernels module, then the first
+    ``fuse`` less a second one (compiling, or loading from the cache), with an empty cache folder
+    (``NUMBA_CACHE_DIR``) and again with it filled (``quick``: only the latter, with the default cache)."""
+    import subprocess
+    import tempfile
+
+    out: dict = {}
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "PYTHONPATH": str(root)}
+        if not quick:
+            env["NUMBA_CACHE_DIR"] = cache
+        for name in ("warm_cache",) if quick else ("empty_cache", "warm_cache"):
+            res = subprocess.run(
+                [sys.executable, "-c", _COMPILE_PROBE], env=env, capture_output=True, text=True, check=True
+            )
+            compiled, t_import, t_first = res.stdout.split()
+            out[name] = {"import_s": float(t_import), "first_call_extra_s": float(t_first)}
+            out["compiled"] = compiled == "True"
+    return out
 
 
 def _row(what: str, t, n: int, baseline_s: float | None, mem: int | None) -> list:
@@ -267,9 +340,12 @@ def bench_smoothing(voxels: int, repeat: int) -> tuple[list, dict]:
     ):
         load = os.getloadavg()[0]
         t_base = time_it(lambda cfg=cfg: baseline_knn_smooth(centres, probs, cfg), repeat=repeat)
-        t = time_it(lambda cfg=cfg: knn_smooth(centres, probs, cfg), repeat=repeat)
-        _, mem = peak_memory(lambda cfg=cfg: knn_smooth(centres, probs, cfg))
-        same = knn_smooth(centres, probs, cfg).tobytes() == baseline_knn_smooth(centres, probs, cfg).tobytes()
+        t = time_it(lambda cfg=cfg: knn_smooth(centres, probs, cfg, compiled=True), repeat=repeat)
+        t_np = time_it(lambda cfg=cfg: knn_smooth(centres, probs, cfg, compiled=False), repeat=repeat)
+        _, mem = peak_memory(lambda cfg=cfg: knn_smooth(centres, probs, cfg, compiled=True))
+        base = baseline_knn_smooth(centres, probs, cfg).tobytes()
+        same = knn_smooth(centres, probs, cfg, compiled=True).tobytes() == base
+        same_np = knn_smooth(centres, probs, cfg, compiled=False).tobytes() == base
         key = "bounded" if cfg.max_distance else "unbounded"
         res[key] = {
             **t.to_dict(),
@@ -278,13 +354,19 @@ def bench_smoothing(voxels: int, repeat: int) -> tuple[list, dict]:
             "baseline": t_base.to_dict(),
             "ratio_vs_baseline": t_base.median / t.median,
             "identical_to_baseline": same,
+            "numpy_path": t_np.to_dict(),
+            "numpy_path_identical_to_baseline": same_np,
             "load_average_1min": [load, os.getloadavg()[0]],
         }
         v = len(centres)
         rows.append(_row(f"knn_smooth {v:,} voxels, {name}", t, v, t_base.median, mem.added))
+        rows.append(_row("  knn_smooth, numpy path (without numba)", t_np, v, t_base.median, None))
         rows.append(_row("  baseline (np.unique + CSR product), same work", t_base, v, None, None))
         loads = f"{load:.1f} → {os.getloadavg()[0]:.1f}"
-        rows.append([f"  output bytes identical to the baseline: {same}; load average {loads}"] + [""] * 6)
+        rows.append(
+            [f"  output bytes identical to the baseline: {same} (numpy path {same_np}); load average {loads}"]
+            + [""] * 6
+        )
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(centres).query(centres, k=9, workers=2)
@@ -314,6 +396,7 @@ def main() -> None:
 
     load_start = os.getloadavg()
     frows, fres = bench_fusion(args.images, args.points, args.rows, args.repeat)
+    fres["compile"] = comp = bench_compile(args.quick)
     srows, sres = bench_smoothing(args.voxels, args.repeat)
     load = os.getloadavg()
     print_table(
@@ -355,6 +438,22 @@ def main() -> None:
         f"{co['best_baseline']} (np.add.at: {co['ratio_vs_naive_add_at']:.1f}×); from the points "
         f"(voxel_keys added to both): {co['ratio_from_points_vs_best_baseline']:.2f}×."
     )
+    if comp["compiled"]:
+        w = comp["warm_cache"]
+        e = comp.get("empty_cache")
+        cold = (
+            ""
+            if e is None
+            else f"empty cache {e['import_s']:.2f} s import + {e['first_call_extra_s']:.2f} s compile; "
+        )
+        print(
+            f"Compiled kernels: {co['ratio_vs_numpy_path']:.2f}× the numpy path (coherent rows; random rows "
+            f"{rnd['ratio_vs_numpy_path']:.2f}×), same bytes: {co['identical_to_numpy_path']}. One-off cost "
+            f"in a fresh process: {cold}warm cache {w['import_s']:.2f} s import + "
+            f"{w['first_call_extra_s']:.2f} s load."
+        )
+    else:
+        print("numba is not installed: fuse ran its numpy path (pip install 'leap-studio[fast]').")
     print(
         f"Stored grid: {co['stored_bytes_per_voxel']:.0f} B/voxel = 8 B key + 2·{C} B float16 logp (fixed "
         f"by the format, not a measurement); fuse's working memory: "

@@ -11,7 +11,8 @@ carry an index ``rows`` into a small per-image table of distinct distributions (
 covering masks, :mod:`leap_core.projection`); the log is taken per table row (:func:`log_table`).
 :func:`fuse` then packs (voxel, table row) into one int64 per point, sorts once, counts equal pairs and
 multiplies the (voxel × table-row) count matrix with the stacked log tables as a sparse product, so per point
-only 8 bytes are sorted and never C floats moved.
+only 8 bytes are sorted and never C floats moved. With numba installed, large chunks run the same operations
+compiled (:mod:`leap_core.fusion_kernels`: a radix sort, one-pass sums, merge and finalise; same bytes).
 
 Voxel keys pack ``floor(xyz / voxel_size)`` in 21 bits per axis (offset by 2²⁰ so negatives work): x in
 bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y, z).
@@ -20,9 +21,11 @@ bits 42-62, y in 21-41, z in 0-20. Sorting keys therefore sorts voxels by (x, y,
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
@@ -83,12 +86,23 @@ class FusionPaths:
     e.g. coordinates near ±2²⁰ voxels). 0 = always ``np.unique``."""
     block: int = 1 << 16
     """Elements per block in the in-place key-packing passes (the temporaries stay in L2 cache)."""
+    compiled: bool = True
+    """Reduce, merge and finalise with the compiled kernels of :mod:`leap_core.fusion_kernels` when numba
+    (the ``fast`` extra) is installed; False = the numpy path, which runs without numba."""
+    compiled_min_points: int = 2_000_000
+    """A chunk of fewer points loads the kernels only if this process already has (merges and finalising
+    never load them): importing numba and loading the cached kernels costs ≈ 1 s, which the kernels
+    (≈ 75 ns less CPU per point, benchmarks/bench_fusion.py) win back over ≈ 13 M points. A full default
+    chunk is the sign of a large fusion (a sequence that fills one mostly fills many; the demo's 60 frames
+    fill none), so small fusions (tests, short sequences) stay on numpy. 0 = always load them."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.pack_max_bits <= 62:
             raise ConfigError(f"must be in 0..62, got {self.pack_max_bits}", field=("pack_max_bits",))
         if self.block < 1:
             raise ConfigError(f"must be ≥ 1, got {self.block}", field=("block",))
+        if self.compiled_min_points < 0:
+            raise ConfigError(f"must be ≥ 0, got {self.compiled_min_points}", field=("compiled_min_points",))
 
 
 # ---------------------------------------------------------------------------------------------- keys
@@ -394,6 +408,24 @@ def log_table(table: npt.ArrayLike, floor: float) -> npt.NDArray[np.float32]:
 
 
 # -------------------------------------------------------------------------------------------- fusion
+def compiled_kernels(compiled: bool, load: bool = True) -> ModuleType | None:
+    """:mod:`leap_core.fusion_kernels` when ``compiled`` and numba is installed, else None (numpy path);
+    with ``load`` False only when this process has already imported it. Imported on first use: reading a
+    config or a grid never loads numba."""
+    if not compiled:
+        return None
+    if not load:
+        loaded: ModuleType | None = sys.modules.get("leap_core.fusion_kernels")
+        return loaded
+    try:
+        from leap_core import fusion_kernels  # noqa: PLC0415  numba is optional and slow to import
+    except ImportError as exc:
+        if (exc.name or "").partition(".")[0] not in ("numba", "llvmlite"):
+            raise
+        return None
+    return fusion_kernels
+
+
 def _bits(n: int) -> int:
     """Bits needed to hold integers 0..n (n ≥ 0)."""
     return max(int(n).bit_length(), 0)
@@ -426,38 +458,56 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
         np.add(o.rows, off, out=rows[s:e], casting="unsafe")
         s = e
     table = np.concatenate([o.log_table for o in obs], axis=0).astype(np.float32, copy=False)
+    kern = compiled_kernels(paths.compiled, load=n >= paths.compiled_min_points)
 
-    lo = np.full(3, np.iinfo(np.int64).max)
-    hi = np.full(3, np.iinfo(np.int64).min)
     block = paths.block
-    for b in range(0, n, block):
-        blk = comp[b : b + block]
-        for a, c in enumerate(_axes(blk)):
-            lo[a] = min(lo[a], int(c.min()))
-            hi[a] = max(hi[a], int(c.max()))
+    if kern is not None:
+        lo, hi = kern.axis_bounds(comp)
+    else:
+        lo = np.full(3, np.iinfo(np.int64).max)
+        hi = np.full(3, np.iinfo(np.int64).min)
+        for b in range(0, n, block):
+            blk = comp[b : b + block]
+            for a, c in enumerate(_axes(blk)):
+                lo[a] = min(lo[a], int(c.min()))
+                hi[a] = max(hi[a], int(c.max()))
     cbits = [_bits(int(h - m)) for h, m in zip(hi, lo, strict=True)]
     uniq_keys = None
     if sum(cbits) + rbits <= paths.pack_max_bits:
         shifts = (cbits[1] + cbits[2] + rbits, cbits[2] + rbits, rbits)
-        for b in range(0, n, block):
-            blk = comp[b : b + block]
-            x, y, z = _axes(blk)
-            x -= lo[0]
-            x <<= shifts[0]
-            y -= lo[1]
-            y <<= shifts[1]
-            z -= lo[2]
-            z <<= shifts[2]
-            x |= y
-            x |= z
-            np.bitwise_or(x, rows[b : b + block], out=blk)
+        pair_bits = sum(cbits) + rbits
+        if kern is not None:
+            kern.pack_pairs(comp, rows, lo, np.array(shifts, np.int64))
+        else:
+            for b in range(0, n, block):
+                blk = comp[b : b + block]
+                x, y, z = _axes(blk)
+                x -= lo[0]
+                x <<= shifts[0]
+                y -= lo[1]
+                y <<= shifts[1]
+                z -= lo[2]
+                z <<= shifts[2]
+                x |= y
+                x |= z
+                np.bitwise_or(x, rows[b : b + block], out=blk)
     else:
         uniq_keys, vox = np.unique(comp, return_inverse=True)
         if _bits(len(uniq_keys)) + rbits > 62:
             raise ValueError(f"too many table rows ({k_total}) in one fusion chunk; lower chunk_points")
         comp = (vox.astype(np.int64) << rbits) | rows
+        pair_bits = _bits(len(uniq_keys) - 1) + rbits
     del rows
 
+    if kern is not None:
+        comp = kern.radix_sort(comp, pair_bits)
+        n_vox = int(kern.count_voxels(comp, rbits))
+        vox_ids = np.empty(n_vox, np.int64)
+        # With spare rows: the first chunk's sums become fuse's accumulator, which then grows in place.
+        sums = np.zeros((n_vox + int(n_vox * SPARE_ROWS), table.shape[1]), np.float32)[:n_vox]
+        kern.reduce_pairs(comp, rbits, table, np.float32(weight), vox_ids, sums)
+        del comp
+        return _pair_keys(vox_ids, uniq_keys, lo, cbits), sums
     comp.sort()
     first = np.empty(n, bool)
     first[0] = True
@@ -478,14 +528,26 @@ def _reduce_chunk(  # noqa: PLR0915  steps 1-3 in one body, each freeing its buf
     counts *= np.float32(weight)
     mat = scipy.sparse.csr_matrix((counts, pair_rows, indptr), shape=(len(vstarts), k_total))
     sums = np.asarray(mat @ table, dtype=np.float32)
+    return _pair_keys(vox_ids, uniq_keys, lo, cbits), sums
 
+
+def _pair_keys(
+    vox_ids: npt.NDArray[np.int64],
+    uniq_keys: npt.NDArray[np.int64] | None,
+    lo: npt.NDArray[np.int64],
+    cbits: list[int],
+) -> npt.NDArray[np.int64]:
+    """Voxel keys of a chunk's voxel ids: ``uniq_keys[ids]`` when voxels were numbered by ``np.unique``,
+    else the packed axis fields (``cbits`` wide, offset by ``lo``) turned back into keys."""
     if uniq_keys is not None:
-        return uniq_keys[vox_ids], sums
+        out: npt.NDArray[np.int64] = uniq_keys[vox_ids]
+        return out
     bz, by = cbits[2], cbits[1]
     x = (vox_ids >> (by + bz)) + lo[0]
     y = ((vox_ids >> bz) & ((1 << by) - 1)) + lo[1]
     z = (vox_ids & ((1 << bz) - 1)) + lo[2]
-    return (x << (2 * AXIS_BITS)) | (y << AXIS_BITS) | z, sums
+    keys: npt.NDArray[np.int64] = (x << (2 * AXIS_BITS)) | (y << AXIS_BITS) | z
+    return keys
 
 
 def union_sorted(a: npt.NDArray[np.int64], b: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
@@ -528,6 +590,50 @@ def _grow(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
     out = np.zeros((rows, *arr.shape[1:]), arr.dtype)
     out[: len(arr)] = arr
     return out
+
+
+def _owner(arr: npt.NDArray[Any], views: bool) -> npt.NDArray[Any] | None:
+    """The array owning ``arr``'s memory when ``arr`` is it or, with ``views`` (``arr`` is this module's
+    accumulator, never a caller's array), a leading slice of it (both C-contiguous, same row shape); else
+    None. The buffer an accumulator with spare rows (:func:`_grow_spare`) lives in."""
+    if arr.flags.owndata and arr.base is None and arr.flags.c_contiguous:
+        return arr
+    b = arr.base
+    if (
+        views
+        and isinstance(b, np.ndarray)
+        and b.base is None
+        and b.flags.owndata
+        and b.flags.c_contiguous
+        and arr.flags.c_contiguous
+        and b.dtype == arr.dtype
+        and b.shape[1:] == arr.shape[1:]
+        and arr.ctypes.data == b.ctypes.data
+    ):
+        return b
+    return None
+
+
+SPARE_ROWS = 2.0
+"""Spare rows (a share of the rows needed) that :func:`_grow_spare` and the compiled chunk sums reserve.
+Never-touched rows cost address space, not memory; they spare the ``realloc`` of a large accumulator,
+which here copies it into fresh pages (numpy asks for transparent huge pages on large arrays, and moving
+those cost ≈ 40 ms per 44 MB on idle cores, 135 ms on busy ones). Twice: a street drive's second chunk
+nearly doubles the first one's voxels (298 k → 548 k → 674 k in benchmarks/bench_fusion.py); with half
+as many spare rows the first merge still reallocated, and fuse took 18 % more CPU time."""
+
+
+def _grow_spare(arr: npt.NDArray[Any], rows: int) -> npt.NDArray[Any]:
+    """``arr`` (an accumulator of this module) with ``rows`` rows, the first ``len(arr)`` kept and the rest
+    undefined: a longer slice of its buffer when that has the rows (:func:`_owner`), else the buffer
+    resized in place with :data:`SPARE_ROWS` more (:func:`_grow` when no buffer is owned). Callers hold no
+    other view of it."""
+    owner = _owner(arr, views=True)
+    if owner is None:
+        return _grow(arr, rows)
+    if owner.shape[0] < rows:
+        owner.resize((rows + int(rows * SPARE_ROWS), *owner.shape[1:]), refcheck=False)
+    return owner[:rows]
 
 
 def merge_sparse(
@@ -581,10 +687,19 @@ def _merge(
     acc_a: npt.NDArray[np.float32],
     keys_b: npt.NDArray[np.int64],
     acc_b: npt.NDArray[np.float32],
+    compiled: bool = True,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
-    """:func:`merge_sparse` of one (V, C) float32 accumulator."""
-    keys, (acc,) = merge_sparse(keys_a, [acc_a], keys_b, [acc_b])
-    return keys, acc
+    """:func:`merge_sparse` of one (V, C) float32 accumulator; with ``compiled`` and numba, the same sums
+    by one backward pass over the grown arrays (:func:`leap_core.fusion_kernels.merge_backward`)."""
+    kern = compiled_kernels(compiled, load=False)
+    if kern is None or len(keys_a) == 0 or acc_a.dtype != np.float32 or acc_b.dtype != np.float32:
+        keys, (acc,) = merge_sparse(keys_a, [acc_a], keys_b, [acc_b])
+        return keys, acc
+    n = len(keys_a)
+    m = int(kern.count_new(keys_a, keys_b))
+    keys_a, acc_a = _grow_spare(keys_a, n + m), _grow_spare(acc_a, n + m)
+    kern.merge_backward(keys_a, acc_a, n, keys_b, acc_b)
+    return keys_a, acc_a
 
 
 def row_max(rows: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -600,24 +715,45 @@ def row_max(rows: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     return out
 
 
-def _finalise(keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: FusionConfig) -> VoxelGrid:
+def _finalise(
+    keys: npt.NDArray[np.int64],
+    acc: npt.NDArray[np.float32],
+    cfg: FusionConfig,
+    compiled: bool = True,
+    *,
+    ours: bool = True,
+) -> VoxelGrid:
     """Shift each row to max 0, clip at -logp_clip, store float16.
 
-    Works over blocks of rows and, when ``acc`` owns its memory, writes the float16 rows into the front of
-    ``acc``'s own buffer (block [s, e)'s float16 bytes lie inside float32 rows [s/2, e/2), already done)
-    and shrinks it, so the float32 and float16 grids never both exist whole.
+    Works over blocks of rows and, when ``acc`` owns its memory or (``ours``: an accumulator of this module,
+    not a caller's array) is a leading slice of an array that does (:func:`_owner`), writes the float16
+    rows into the front of that buffer (block [s, e)'s float16 bytes
+    lie inside float32 rows [s/2, e/2), already done) and shrinks it, so the float32 and float16 grids never
+    both exist whole.
 
     numpy only: torch's row max and float16 cast are ≈ 3.6× faster on one thread (25 against 91 ms for
     687k voxels × 20 classes), but importing torch costs ≈ 1.7 s, which a run without the 3D-CN never pays
     otherwise (the break-even is ≈ 18 M voxels, 7× a whole SemanticKITTI sequence), and with two threads
-    on busy cores it was 4× slower than numpy (433 against 94 ms).
+    on busy cores it was 4× slower than numpy (433 against 94 ms). With ``compiled`` and numba, the shift and
+    clip are one pass per block from numpy's row maxima (:func:`leap_core.fusion_kernels.shift_clip`) and the
+    float16 bits one pass over all (:func:`leap_core.fusion_kernels.to_half`): the same bytes.
     """
+    kern = compiled_kernels(compiled, load=False)
     v, c = acc.shape
-    in_place = bool(acc.flags.owndata and acc.flags.c_contiguous and acc.base is None and v > 0)
-    out16 = None if in_place else np.empty((v, c), np.float16)
-    flat16 = acc.reshape(-1).view(np.float16) if in_place else None
+    owner = _owner(acc, views=ours) if v > 0 else None
+    out16 = None if owner is not None else np.empty((v, c), np.float16)
+    flat16 = acc.reshape(-1).view(np.float16) if owner is not None else None
     block = max(1, min(_MOVE_BLOCK, (1 << 22) // max(c, 1)))
-    for s in range(0, v, block):
+    if kern is not None and v > 0:
+        for s in range(0, v, block):
+            rows = acc[s : s + block]
+            kern.shift_clip(rows, row_max(rows), np.float32(cfg.logp_clip))
+        # The float16 bits in one pass, in index order, so into the front of acc's own buffer too.
+        dest = flat16 if flat16 is not None else out16
+        assert dest is not None
+        kern.to_half(acc.reshape(-1).view(np.uint32), dest.reshape(-1).view(np.uint16))
+        del dest, rows
+    for s in range(0, v if kern is None else 0, block):
         rows = acc[s : s + block]
         rows -= row_max(rows)[:, None]
         np.maximum(rows, np.float32(-cfg.logp_clip), out=rows)
@@ -627,12 +763,14 @@ def _finalise(keys: npt.NDArray[np.int64], acc: npt.NDArray[np.float32], cfg: Fu
         else:
             assert out16 is not None
             out16[s : s + block] = half
+        del rows, half  # views of acc's buffer, which the resize below may move
     if out16 is not None:
         return VoxelGrid(keys, out16, cfg.voxel_size)
-    del flat16, rows, half  # views of acc's buffer, which the resize below may move
+    del flat16, acc
     # The float16 rows fill the first v·c/2 float32 elements: shrink the buffer to them, in place.
-    acc.resize(((v * c + 1) // 2,), refcheck=False)
-    logp = acc.view(np.float16)[: v * c].reshape(v, c)
+    assert owner is not None
+    owner.resize(((v * c + 1) // 2,), refcheck=False)
+    logp = owner.view(np.float16)[: v * c].reshape(v, c)
     return VoxelGrid(keys, logp, cfg.voxel_size)
 
 
@@ -728,8 +866,8 @@ def fuse(
     paths = paths or FusionPaths()
     acc_keys, acc = _start(grid, num_classes, cfg, weight)
     for chunk in _chunked(_checked(batches, num_classes), cfg.chunk_points):
-        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(chunk, weight, paths))
-    return _finalise(acc_keys, acc, cfg)
+        acc_keys, acc = _merge(acc_keys, acc, *_reduce_chunk(chunk, weight, paths), paths.compiled)
+    return _finalise(acc_keys, acc, cfg, paths.compiled)
 
 
 def fuse_dense(
@@ -809,7 +947,9 @@ def fuse_unique(
         if weight != 1.0:
             logp *= np.float32(weight)
         acc_keys, acc = _merge(acc_keys, acc, keys, logp)
-    return _finalise(acc_keys, acc, cfg)
+    # Without a prior grid the accumulator is the caller's logp itself: finalised in its buffer only when
+    # that is logp's own (as always), never in an array logp is a slice of.
+    return _finalise(acc_keys, acc, cfg, ours=grid is not None)
 
 
 FILE_BLOCK_VOXELS = 1 << 20
@@ -918,13 +1058,15 @@ def fuse_to_file(  # noqa: PLR0915  fuse's inputs, the override and the files; o
                             acc[pos] += cs[lo:hi]
                         release(ck)
                         release(cs)
-                grid = _finalise(fk, acc, cfg)
+                grid = _finalise(fk, acc, cfg, paths.compiled)
                 if len(o_keys):
                     lo_o, hi_o = np.searchsorted(o_keys, first), np.searchsorted(o_keys, last, side="right")
                     if hi_o > lo_o:
                         ka, acc_a = fk.copy(), np.asarray(grid.logp, dtype=np.float32)
-                        ka, acc_a = _merge(ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy())
-                        grid = _finalise(ka, acc_a, cfg)
+                        ka, acc_a = _merge(
+                            ka, acc_a, o_keys[lo_o:hi_o].copy(), o_obs[lo_o:hi_o].copy(), paths.compiled
+                        )
+                        grid = _finalise(ka, acc_a, cfg, paths.compiled)
                 yield np.asarray(grid.logp, np.float16)
 
         save_npz(
@@ -1045,6 +1187,7 @@ __all__ = [
     "VoxelGrid",
     "VoxelLabels",
     "apply_overrides",
+    "compiled_kernels",
     "fold_blocks",
     "fuse",
     "fuse_dense",

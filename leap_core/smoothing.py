@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from leap_core.bounds import check_bounds, within
 from leap_core.errors import DatasetError
-from leap_core.fusion import VoxelGrid, VoxelLabels, key_centres, keys_sorted_unique
+from leap_core.fusion import VoxelGrid, VoxelLabels, compiled_kernels, key_centres, keys_sorted_unique
 from leap_core.io_utils import atomic_save_npz
 from leap_core.npzio import Streamed, has_member, load_npz, release, save_npz
 
@@ -76,6 +76,16 @@ SMOOTH_CHUNK = 1 << 14
 """Voxels whose neighbours are queried and mixed at once: bounds the per-chunk temporaries (≈ 1.1 kB per
 voxel of a chunk at k = 9, C = 20: ≈ 18 MB; ``workers + 1`` chunks are in flight at once) however large the
 grid; the result does not depend on it."""
+
+COMPILED_MIN_VOXELS = 16_000_000
+"""Smoothing this many voxels or more loads the compiled :func:`knn_mix` (numba, the ``fast`` extra) when the
+process has not already (the fusion of a large sequence loads it): it saves ≈ 0.02-0.1 CPU-seconds per
+million voxels (benchmarks/bench_fusion.py) against ≈ 1 s to import numba and load the cached kernels."""
+
+Mix = Callable[
+    [npt.NDArray[np.float32], npt.NDArray[np.intp], npt.NDArray[np.float32]], npt.NDArray[np.float32]
+]
+""":func:`knn_mix` or its compiled twin (same bytes)."""
 
 RowProbs = Callable[[npt.NDArray[np.int64]], npt.NDArray[np.float32]]
 """``row_probs(rows) -> (len(rows), C) float32``: the distributions of the given (sorted unique) rows."""
@@ -134,6 +144,8 @@ def _smooth_chunk(
     source: npt.NDArray[np.float32] | RowProbs,
     k: int,
     bound: float,
+    *,
+    mix: Mix = knn_mix,
 ) -> npt.NDArray[np.float32]:
     """Smoothed rows ``[s, e)``: query, weights, mix (:func:`knn_smooth`'s formula)."""
     v = tree.n
@@ -146,9 +158,9 @@ def _smooth_chunk(
     if missing.any():
         idx = np.where(missing, np.arange(s, e)[:, None], idx)
     if isinstance(source, np.ndarray):
-        return knn_mix(w, idx, source)
+        return mix(w, idx, source)
     rows, local = _rows_hit(idx)
-    return knn_mix(w, local, np.asarray(source(rows), dtype=np.float32))
+    return mix(w, local, np.asarray(source(rows), dtype=np.float32))
 
 
 def _smooth_chunks(
@@ -156,6 +168,7 @@ def _smooth_chunks(
     source: npt.NDArray[np.float32] | RowProbs,
     cfg: SmoothingConfig | None,
     chunk: int,
+    compiled: bool | None = None,
 ) -> Iterator[tuple[int, npt.NDArray[np.float32]]]:
     """:func:`knn_smooth_blocks` with the distributions given whole (an array) or by rows (a callable)."""
     cfg = cfg or SmoothingConfig()
@@ -169,6 +182,8 @@ def _smooth_chunks(
         return
     k = min(cfg.k, v)
     bound = np.inf if cfg.max_distance is None else float(cfg.max_distance)
+    kern = compiled_kernels(compiled is not False, load=compiled is True or v >= COMPILED_MIN_VOXELS)
+    mix: Mix = knn_mix if kern is None else kern.knn_mix
     # The tree holds its own float64 copy of the centres (the query converts float32 input to exactly
     # these values), so queries read it and the caller's float32 array is not needed past this point.
     tree = cKDTree(pts)
@@ -177,7 +192,7 @@ def _smooth_chunks(
     threads = (os.cpu_count() or 1) if cfg.workers == -1 else cfg.workers
     if threads == 1 or len(starts) == 1:
         for s in starts:
-            yield s, _smooth_chunk(tree, s, min(v, s + chunk), source, k, bound)
+            yield s, _smooth_chunk(tree, s, min(v, s + chunk), source, k, bound, mix=mix)
         return
     # Whole chunks (query, weights and mix) run in the threads, not only the query: the numpy steps
     # release the GIL too, and a chunk's rows do not depend on which thread computed them. A few chunks
@@ -186,12 +201,14 @@ def _smooth_chunks(
         pending: deque[Future[npt.NDArray[np.float32]]] = deque()
         todo = iter(starts)
         for s in itertools.islice(todo, threads + 1):
-            pending.append(pool.submit(_smooth_chunk, tree, s, min(v, s + chunk), source, k, bound))
+            pending.append(pool.submit(_smooth_chunk, tree, s, min(v, s + chunk), source, k, bound, mix=mix))
         for s in starts:
             block = pending.popleft().result()
             nxt = next(todo, None)
             if nxt is not None:
-                pending.append(pool.submit(_smooth_chunk, tree, nxt, min(v, nxt + chunk), source, k, bound))
+                pending.append(
+                    pool.submit(_smooth_chunk, tree, nxt, min(v, nxt + chunk), source, k, bound, mix=mix)
+                )
             yield s, block
 
 
@@ -224,6 +241,8 @@ def knn_smooth(
     probs: npt.ArrayLike,
     cfg: SmoothingConfig | None = None,
     chunk: int = SMOOTH_CHUNK,
+    *,
+    compiled: bool | None = None,
 ) -> npt.NDArray[np.float32]:
     """Smooth per-voxel distributions over each voxel's k nearest voxels.
 
@@ -237,6 +256,9 @@ def knn_smooth(
         probs: (V, C) float32 per-voxel distributions.
         cfg: k, distance bound and threads.
         chunk: voxels per chunk.
+        compiled: the weighted sums by the compiled :func:`knn_mix` (True; numpy where numba is missing),
+            by numpy (False), or by the compiled one when already loaded or the grid has
+            :data:`COMPILED_MIN_VOXELS` (None). The bytes are the same.
 
     Returns:
         (V, C) float32 smoothed distributions.
@@ -249,7 +271,7 @@ def knn_smooth(
         empty: npt.NDArray[np.float32] = p.copy()
         return empty
     out = np.empty(p.shape, np.float32)
-    for s, block in _smooth_chunks(pts, p, cfg, chunk):
+    for s, block in _smooth_chunks(pts, p, cfg, chunk, compiled):
         out[s : s + len(block)] = block
     return out
 

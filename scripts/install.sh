@@ -10,9 +10,9 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 # The CPU wheel of torch first: an unpinned torch would pull a multi-GB CUDA build.
 .venv/bin/python -m pip install -q "torch==2.13.0"
-# Every optional stack (pyproject.toml's extras: ray, ros, nuscenes, bench), so every command works here;
+# Every optional stack (pyproject.toml's extras: ray, ros, nuscenes, bench, fast), so every command works here;
 # [test] includes them all and adds the test, lint and type-check tools.
-extras="[ray,ros,nuscenes,bench]"
+extras="[ray,ros,nuscenes,bench,fast]"
 if [ "${1:-}" = "--test" ]; then extras="[test]"; fi
 # Editable: the checkout's code, presets (projects/) and web UI (web/) are what runs.
 .venv/bin/python -m pip install -q -e ".${extras}"

@@ -36,6 +36,8 @@ EXTRA_MODULES = [
     "cachetools",
     "parameterized",
     "psutil",
+    "numba",
+    "llvmlite",
 ]
 """Modules only the extras install (pyquaternion is not among them: kiss-icp, a core dependency, needs it)."""
 
