@@ -200,6 +200,54 @@ print(json.dumps({"held": (freed - rss0) / mib, "after_trim": (after - rss0) / m
 """
 
 
+_REUSE_CHILD = """
+import json
+import numpy as np, psutil
+from leap_core import heap
+proc = psutil.Process()
+mib = 2**20
+heap.cap_heap_growth()  # as the 3D-CN stage does before training
+
+
+def churn():
+    # 80 MiB of 2 MiB blocks, freed with a small block pinned after each (holes, not the heap's top).
+    blocks, pins = [], []
+    for _ in range(40):
+        blocks.append(np.ones(1 << 18))
+        pins.append(np.ones(1024))
+    del blocks
+    return pins
+
+
+rss0 = proc.memory_info().rss
+with heap.reusing_heap():
+    pins = churn()
+    inside = proc.memory_info().rss
+after = proc.memory_info().rss
+pins += churn()
+heap.release_free_memory()  # what inference does after each scan
+trimmed = proc.memory_info().rss
+held = {"inside": inside, "after": after, "trimmed": trimmed}
+print(json.dumps({k: (v - rss0) / mib for k, v in held.items()}))
+"""
+
+
+@pytest.mark.skipif(_glibc() is None, reason="mallopt / malloc_trim are glibc's")
+def test_training_reuses_its_freed_blocks_and_gives_them_back_at_the_end() -> None:
+    """Inside ``reusing_heap`` freed 2 MiB blocks stay on the heap for the next step; at its end they go
+    back to the system. Blocks served later from the heap's free room go back at the next hand-back."""
+    out = subprocess.run(
+        [sys.executable, "-c", _REUSE_CHILD],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
+    held = json.loads(out.stdout)
+    assert held["inside"] > 60, held
+    assert held["after"] < 20 and held["trimmed"] < 20, held
+
+
 def _heap_child(mode: str) -> dict[str, float]:
     out = subprocess.run(
         [sys.executable, "-c", _HEAP_CHILD, mode],

@@ -31,7 +31,7 @@ from leap_core.consistency.data import (
     prepare_input,
 )
 from leap_core.errors import ModelLoadError
-from leap_core.heap import release_free_memory
+from leap_core.heap import release_free_memory, reusing_heap
 from leap_core.io_utils import atomic_write, file_digest
 from leap_core.prefetch import prefetched
 from leap_core.progress import ProgressFn, report
@@ -39,6 +39,9 @@ from leap_core.types import UNLABELED
 
 CHECKPOINT_FORMAT = "leap-3dcn"
 CHECKPOINT_VERSION = 1
+RELEASE_EVERY = 8
+"""Training steps between two hand-backs of freed heap pages (:func:`~leap_core.heap.release_free_memory`):
+each costs about 30 ms and makes the next step fault its pages in again."""
 _IGNORE = -100
 """``ignore_index`` of the cross-entropy (torch's default) for points without a selected label."""
 
@@ -241,7 +244,6 @@ def train_model(
         opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total))
         model.train()
-        amp = resolve_precision(cfg, device)
         # The kd-tree queries leave one thread to the training step they overlap with.
         workers = max(1, torch.get_num_threads() - 1)
         # The next step's scans are read, sampled and prepared (kd-tree, features, grid cells) on a
@@ -249,15 +251,18 @@ def train_model(
         # On a GPU the features and grid cells are computed there, so the thread's share stays small.
         prep_device = device if device.type == "cuda" else None
         batches = _step_batches(load_scan, indices, per_epoch, total, cfg, rng, workers, prep_device)
-        for step, batch in enumerate(prefetched(batches), start=1):
-            if batch is not None:
-                _train_step(model, opt, batch, weights, cfg, device, amp, stats)
-            del batch
-            # The step's batch, activations and gradients are freed by now; hand their pages back
-            # so they do not add up step after step (leap_core.heap).
-            release_free_memory()
-            sched.step()
-            report(progress, step, total)
+        amp = resolve_precision(cfg, device)
+        with reusing_heap():
+            for step, batch in enumerate(prefetched(batches), start=1):
+                if batch is not None:
+                    _train_step(model, opt, batch, weights, cfg, device, amp, stats)
+                del batch
+                # The steps' batches, activations and gradients are freed by now; hand their pages back
+                # so they do not add up step after step (leap_core.heap).
+                if step % RELEASE_EVERY == 0 or step == total:
+                    release_free_memory()
+                sched.step()
+                report(progress, step, total)
     model.eval()
     stats.seconds = time.perf_counter() - t0
     return model.cpu(), stats
