@@ -69,6 +69,7 @@ from leap_core.consistency.train import (
 )
 from leap_core.datasets.kitti import Calib, KittiSequence, write_calib, write_label, write_poses, write_scan
 from leap_core.fusion import FusionConfig, VoxelGrid, fuse_dense, voxel_keys, world_points
+from leap_core.heap import cap_heap_growth
 from leap_core.io_utils import atomic_write_json
 from leap_core.metrics import evaluate
 from leap_core.pipeline import SequenceSpec
@@ -291,7 +292,9 @@ def training_step_versions(  # noqa: PLR0917  the step's settings, data and the 
     precision, each ``steps`` steps on the same ``scans`` (points, targets), alternating ``repeats`` times.
 
     The baseline gets ``cfg``'s settings minus those it does not know (listed in its row's ``left_out``).
+    glibc's mmap threshold is capped first, as the 3D-CN stage does before it trains (leap_core.heap).
     """
+    cap_heap_growth()
     base = import_commit(baseline, work, ("consistency.config", "consistency.train"))
     base_train = base["consistency.train"]
     base_cfg_cls = base["consistency.config"].ConsistencyConfig

@@ -210,11 +210,11 @@ class ConsistencyConfig:
     autocast): matrix products and convolutions in bfloat16, while weights, optimiser state, normalisations,
     the spatial mixing's cell means and the loss stay float32. ``auto`` takes it where the hardware does
     bfloat16 natively (a CUDA GPU that supports it; a CPU with AVX512-BF16 or AMX, where a training step
-    of the default network is about 1.6× faster, ``benchmarks/bench_3dcn.py``) and ``float32`` elsewhere,
-    where bfloat16 would be emulated and slower. Same seed, data and resolved precision on the same
-    machine give the same checkpoint; the two precisions give networks that differ like two seeds
-    (docs/METHOD.md C.2). Like ``device``, it does not enter the checkpoint's fingerprint: changing it
-    reuses trained weights."""
+    of the default network is about 1.35× faster than in float32, ``benchmarks/bench_3dcn.py``) and
+    ``float32`` elsewhere, where bfloat16 would be emulated and slower. Same seed, data and resolved
+    precision on the same machine give the same checkpoint; the two precisions give networks that differ
+    like two seeds (docs/METHOD.md C.2). Like ``device``, it does not enter the checkpoint's fingerprint:
+    changing it reuses trained weights."""
     num_threads: int = field(default=0, metadata=within(0, 1024))
     """``torch.set_num_threads`` during training/inference on CPU; ``0`` leaves torch's setting alone."""
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
