@@ -680,6 +680,24 @@ def test_scan_scope_correction_relabels_only_its_points_of_its_scan(review_store
         session.close()
 
 
+def test_a_run_handed_over_twice_is_loaded_once(review_store) -> None:
+    """The tab's run watcher and the project's follower may both hand over the run that just finished (one
+    while the other is still loading it): the shown run is not loaded again."""
+    from app.viewer.manager import AppBackend
+    from app.viewer.panel import ReviewPanel
+    from app.viewer.session import ReviewSession
+
+    settings, pid, *_ = review_store
+    session = ReviewSession(AppBackend(settings, pid), panel=ReviewPanel)
+    try:
+        shown, version = session.run, session.scene_version
+        assert shown is not None and version == 1
+        session.follow_run(shown)
+        assert session.scene_version == version and session.run is shown
+    finally:
+        session.close()
+
+
 def test_split_here_and_merge_with_renumber_the_shown_objects_at_once(review_store) -> None:
     """The inspected object's *Split here* (at the shown scan) and *Merge with*: stored as object corrections
     of the run, and the shown scan's object ids (colour by objects) and the object line follow at once."""

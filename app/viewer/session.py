@@ -257,8 +257,12 @@ class ReviewSession:
         self.show_grid(run, grid, outputs)
 
     def follow_run(self, run: RunInfo) -> None:
-        """A run of the project finished: load it, unless :attr:`stay_on_run` keeps the shown one."""
+        """A run of the project finished: load it, unless :attr:`stay_on_run` keeps the shown one or it is
+        the shown run already (the tab's watcher and the project's follower can both hand over a run that
+        finished while the other was loading it)."""
         shown = self.run
+        if shown is not None and shown.run_id == run.run_id:
+            return
         if self.stay_on_run and shown is not None and shown.run_id != run.run_id:
             self.newer_run = run
             self.notify.panel.set_status(
