@@ -18,7 +18,8 @@ _POLL_S = 0.05
 
 
 def prefetched(items: Iterable[T], depth: int = 1) -> Iterator[T]:
-    """``items``, in order, with up to ``depth`` of them computed ahead by one background thread.
+    """``items``, in order, computed ahead by one background thread: up to ``depth`` of them wait for the
+    consumer, and one more is being computed (so ``depth + 1`` items besides the consumer's are in memory).
 
     The thread alone iterates ``items``, so a generator that draws from a random source draws in the same
     order as it would unprefetched. An exception raised while producing an item is raised here, in the

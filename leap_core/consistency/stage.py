@@ -542,8 +542,8 @@ def predict_frames(
     in world coordinates and their (N, C) network log-probabilities
     (:func:`~leap_core.consistency.train.predict_log_probs`, on ``model``'s device, ``cfg.num_threads``
     torch threads, averaged over ``cfg.test_time_views`` views, in ``cfg.precision``). The scan being
-    predicted and the next one, prepared meanwhile on a background thread, are held; the memory a forward
-    pass freed goes back to the system before its scan is yielded
+    predicted and at most two after it, prepared meanwhile on a background thread, are held; the memory a
+    forward pass freed goes back to the system before its scan is yielded
     (:func:`~leap_core.heap.release_free_memory`). ``tick()`` after each scan."""
     device = next(model.parameters()).device
     precision = resolve_precision(cfg, device)
