@@ -9,6 +9,12 @@ includes: backbone step / MLP step (what the kNN embedding and 2D-grid mixing co
 (preparation + backbone step) / MLP step (what a training step costs end to end against a network that
 needs no neighbourhood).
 
+The training-step table times the whole ``train_model`` loop (reading, sampling and preparing scans,
+forward, backward, optimiser; seconds per step, wall and CPU) of git commit ``--baseline`` (default
+``25c0286``: before mixed precision, the background preparation and the reused step memory), imported into
+this process (``common.import_commit``), beside this tree in float32 and in the config's resolved precision,
+on the same scans, alternating. ``--steps-only`` prints the two step tables alone (minutes, not a round).
+
 Inputs: with ``--run-dir``, the fused and smoothed grids and camera-view masks of a finished ``leap run``
 (the pipeline's own stage B output, so the label table matches ``leap run --3dcn``). Without it, a "camera"
 grid is built from the ground truth: points in a frontal field of view are fused with a confident
@@ -28,7 +34,7 @@ same inputs starts from that network and fine-tunes it (``leap run --3dcn-init``
 ``finetune_lr``); its time and labels are printed beside the random-weight iteration's, with the ratio of
 the two totals, both measured in this process.
 
-Prints a table and writes ``benchmarks/results/bench_3dcn.json``.
+Prints the tables and writes ``benchmarks/results/bench_3dcn[_quick][_steps].json``.
 """
 
 from __future__ import annotations
